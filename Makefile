@@ -1,0 +1,32 @@
+# Two commands (CONTRACT section 7): `make demo` and `make test`.
+# Both create .venv if missing and install everything into it.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: venv test demo bench figures clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements-ros.txt requirements-dev.txt setup.py
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements-ros.txt -r requirements-dev.txt
+	$(PY) -m pip install -q -e .
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q -p no:cacheprovider test
+
+demo: $(STAMP)
+	$(PY) -m egovib_ros.demo
+
+bench: $(STAMP)
+	$(VENV)/bin/egovib bench --json docs/bench.json
+
+figures: $(STAMP)
+	$(VENV)/bin/egovib figures --out docs
+
+clean:
+	rm -rf build install log .pytest_cache

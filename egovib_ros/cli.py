@@ -1,0 +1,51 @@
+"""`egovib` console script (CONTRACT section 3).
+
+Each command lives in its own module, which exposes `register(subparsers)`;
+the parser it adds sets `func(args) -> int`. Bad input raises EgovibError,
+turned here into a one-line error and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from egovib_ros import __version__
+from egovib_ros.errors import EgovibError
+
+# Order = order in `egovib --help`.
+COMMAND_MODULES = (
+    "egovib_ros.sim.cli",          # simulate sweep|motion
+    "egovib_ros.offline",          # calibrate, denoise
+    "egovib_ros.evaluation.cli",   # evaluate, figures
+    "egovib_ros.gap.cli",          # gap, gap validate
+    "egovib_ros.bench",            # bench
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="egovib",
+        description="Ego-vibration removal for robot accelerometers (spectral subtraction).")
+    parser.add_argument("--version", action="version", version=f"egovib {__version__}")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except EgovibError as exc:
+        print(f"egovib: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("egovib: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

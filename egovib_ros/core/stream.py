@@ -1,0 +1,338 @@
+"""From an accelerometer sample stream to analysis blocks with matched joint velocity.
+
+`BlockFramer` is the streaming state shared by calibration and denoising: it cleans
+the input (out-of-order stamps, NaN/inf, gaps), band-passes it, cuts it into blocks
+of `block_length` samples every `hop`, and hands out each block once the joint
+states covering its time span have arrived. `frame_batch` does the same for whole
+arrays with the same arithmetic, so streaming and batch results agree.
+
+Bad-input policy (counted in `stats`, never a silent wrong result):
+- a sample stamped at or before the previous one is dropped;
+- a non-finite sample is replaced by the last finite one (keeps the filter sane);
+- a gap of up to `max_fill_samples` missing samples is bridged by linear
+  interpolation (these synthetic samples are never output); a longer gap ends the
+  segment: pending samples are flushed as at end of stream and the filter restarts;
+- a block with no joint state in or shortly before its span is MISSING: the
+  denoiser passes it through band-passed only, the calibrator skips it.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from egovib_ros.core.blocks import analysis_window, validate_blocking
+from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
+from egovib_ros.core.velocity import MISSING, block_mean_velocity
+from egovib_ros.errors import StreamError
+
+LOG = logging.getLogger("egovib_ros.core")
+
+
+@dataclass
+class FramerSettings:
+    sample_rate_hz: float = 3000.0
+    block_length: int = 64
+    hop: int = 32
+    band_hz: tuple[float, float] = (150.0, 750.0)
+    band_order: int = 4
+    layout: str = "combined"              # see filters.CHANNEL_LAYOUTS
+    max_fill_samples: int = 8
+    joint_wait_s: float = 0.02            # give joint states this long to cover a block
+    max_hold_s: float = 0.05              # use a joint state this old when none falls in a block
+    rate_tolerance: float = 0.1           # accepted relative error of the measured sample rate
+
+    def __post_init__(self) -> None:
+        validate_blocking(self.block_length, self.hop)
+        if self.layout not in CHANNEL_LAYOUTS:
+            raise StreamError(f"channels: unknown layout {self.layout!r}")
+
+    @property
+    def period_ns(self) -> float:
+        return 1e9 / self.sample_rate_hz
+
+
+@dataclass
+class Blocks:
+    """A batch of analysis blocks (B may be 0)."""
+    samples: np.ndarray        # (B, C, L) band-passed, not yet windowed
+    t_first_ns: np.ndarray     # (B,) stamp of the first real sample in the block
+    t_last_ns: np.ndarray      # (B,)
+    velocity: np.ndarray       # (B, J) mean joint velocity (NaN when MISSING)
+    steadiness: np.ndarray     # (B, J) |mean(first half) - mean(second half)|
+    status: np.ndarray         # (B,) velocity.MATCHED / HELD / MISSING
+    # Output bookkeeping: the hop of samples that each block completes.
+    out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
+    ends_segment: bool = False # last blocks before a flush or a long gap
+
+    @property
+    def n(self) -> int:
+        return len(self.samples)
+
+
+@dataclass
+class _Segment:
+    stamps: np.ndarray         # int64, -1 marks synthetic (gap-fill) samples
+    values: np.ndarray         # (n, 3) raw, cleaned
+    ends_stream: bool          # a long gap follows: flush after this segment
+
+
+@dataclass
+class FramerStats:
+    samples_in: int = 0
+    dropped_out_of_order: int = 0
+    nonfinite_replaced: int = 0
+    gap_filled_samples: int = 0
+    resets: int = 0
+    joint_states_in: int = 0
+    joint_states_dropped: int = 0
+    blocks: int = 0
+    blocks_held: int = 0
+    blocks_missing: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+class _Cleaner:
+    """Sequential input checks (order, finiteness, gaps) with carried state."""
+
+    def __init__(self, settings: FramerSettings, stats: FramerStats):
+        self.s = settings
+        self.stats = stats
+        self.last_stamp: int | None = None
+        self.last_value: np.ndarray | None = None
+
+    def segments(self, stamps: np.ndarray, accel: np.ndarray) -> list[_Segment]:
+        stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
+        accel = np.asarray(accel, dtype=np.float64)
+        if accel.ndim != 2 or accel.shape != (len(stamps), 3):
+            raise StreamError(f"accelerometer chunk: expected stamps (N,) and samples (N, 3), "
+                              f"got {stamps.shape} and {accel.shape}")
+        self.stats.samples_in += len(stamps)
+        if len(stamps) == 0:
+            return []
+        if self.last_stamp is not None:
+            # Fast path (the live case): in order, no gap, all finite.
+            limit = 1.5 * self.s.period_ns
+            first_step = int(stamps[0]) - self.last_stamp
+            steps = stamps[1:] - stamps[:-1]
+            if 0 < first_step < limit and (len(steps) == 0 or (steps.min() > 0 and steps.max() < limit)) \
+                    and np.isfinite(accel).all():
+                self.last_stamp = int(stamps[-1])
+                self.last_value = accel[-1].copy()
+                return [_Segment(stamps, accel, ends_stream=False)]
+        # Out of order: keep a sample only if later than everything accepted before it.
+        before = np.maximum.accumulate(np.concatenate(
+            [[self.last_stamp if self.last_stamp is not None else np.iinfo(np.int64).min], stamps[:-1]]))
+        keep = stamps > before
+        if not keep.all():
+            self.stats.dropped_out_of_order += int((~keep).sum())
+            stamps, accel = stamps[keep], accel[keep]
+        if len(stamps) == 0:
+            return []
+        # Non-finite samples: hold the last finite one.
+        bad = ~np.all(np.isfinite(accel), axis=1)
+        if bad.any():
+            self.stats.nonfinite_replaced += int(bad.sum())
+            accel = accel.copy()
+            good_idx = np.where(~bad, np.arange(len(accel)), -1)
+            good_idx = np.maximum.accumulate(good_idx)
+            fallback = self.last_value if self.last_value is not None else np.zeros(3)
+            accel = np.where((good_idx >= 0)[:, None], accel[np.maximum(good_idx, 0)], fallback[None, :])
+        # Gaps, measured against the previous accepted sample.
+        prev_stamp = np.concatenate([[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]])
+        missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
+        missing[0] = missing[0] if self.last_stamp is not None else 0
+        segments: list[_Segment] = []
+        prev_value = self.last_value
+        start = 0
+        pieces_t, pieces_v = [], []
+        for i in np.flatnonzero(missing > 0):
+            pieces_t.append(stamps[start:i])
+            pieces_v.append(accel[start:i])
+            left_value = accel[i - 1] if i > 0 else prev_value
+            if missing[i] <= self.s.max_fill_samples and left_value is not None:
+                k = int(missing[i])
+                self.stats.gap_filled_samples += k
+                frac = (np.arange(1, k + 1) / (k + 1))[:, None]
+                pieces_t.append(np.full(k, -1, dtype=np.int64))
+                pieces_v.append(left_value[None, :] + frac * (accel[i] - left_value)[None, :])
+            else:
+                self.stats.resets += 1
+                segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=True))
+                pieces_t, pieces_v = [], []
+            start = i
+        pieces_t.append(stamps[start:])
+        pieces_v.append(accel[start:])
+        segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=False))
+        self.last_stamp = int(stamps[-1])
+        self.last_value = accel[-1].copy()
+        return segments
+
+
+def _cat_t(pieces: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.int64)
+
+
+def _cat_v(pieces: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(pieces) if pieces else np.zeros((0, 3))
+
+
+class BlockFramer:
+    """Streaming framer. Push joint states and accelerometer chunks in any sizes;
+    `pop_blocks()` returns the blocks that became ready."""
+
+    def __init__(self, settings: FramerSettings, n_joints: int):
+        self.s = settings
+        self.n_joints = int(n_joints)
+        self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
+        self.window = analysis_window(settings.block_length, settings.hop)
+        self.stats = FramerStats()
+        self._cleaner = _Cleaner(settings, self.stats)
+        self._bandpass = BandPass(sample_rate_hz=settings.sample_rate_hz, band_hz=settings.band_hz,
+                                  order=settings.band_order, n_channels=self.n_channels)
+        self._joint_t = np.zeros(0, dtype=np.int64)
+        self._joint_v = np.zeros((0, self.n_joints))
+        self._rate_checked = False
+        self._rate_stamps: list[np.ndarray] = []
+        self._ready: list[Blocks] = []
+        self.with_steadiness = True
+        self._offsets = np.arange(settings.block_length)
+        self._start_segment()
+
+    # --- input ---------------------------------------------------------------
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        velocity = np.asarray(velocity, dtype=np.float64)
+        if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
+            raise StreamError(f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
+                              f"got {stamps_ns.shape} and {velocity.shape}")
+        self.stats.joint_states_in += len(stamps_ns)
+        last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
+        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]])) if len(stamps_ns) else stamps_ns
+        keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
+        self.stats.joint_states_dropped += int((~keep).sum())
+        if keep.any():
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
+            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
+        self._drain(final=False)
+
+    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        for segment in self._cleaner.segments(stamps_ns, accel):
+            self._check_rate(segment.stamps)
+            self._append(segment.stamps, segment.values)
+            self._drain(final=False)
+            if segment.ends_stream:
+                self._drain(final=True)
+                self._start_segment()
+
+    def flush(self) -> None:
+        """End of stream: complete all pending blocks (zero padding at the end)."""
+        self._drain(final=True)
+        self._start_segment()
+
+    def pop_blocks(self) -> list[Blocks]:
+        ready, self._ready = self._ready, []
+        return ready
+
+    @property
+    def latest_accel_ns(self) -> int | None:
+        return self._cleaner.last_stamp
+
+    # --- internals -------------------------------------------------------------
+    def _start_segment(self) -> None:
+        pad = self.s.block_length - self.s.hop
+        # Front padding so the first real sample is covered by L/hop blocks like all others.
+        self._buf_x = np.zeros((self.n_channels, pad))          # channels first
+        self._buf_t = np.full(pad, -1, dtype=np.int64)
+        self._bandpass.reset()
+
+    def _check_rate(self, stamps: np.ndarray) -> None:
+        if self._rate_checked:
+            return
+        self._rate_stamps.append(stamps[stamps >= 0])
+        seen = np.concatenate(self._rate_stamps)
+        if len(seen) < 2 * self.s.block_length:
+            return
+        measured = 1e9 / float(np.median(np.diff(seen)))
+        self._rate_checked = True
+        self._rate_stamps = []
+        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
+            raise StreamError(f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
+                              f"{self.s.sample_rate_hz:g} Hz")
+
+    def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        if len(stamps) == 0:
+            return
+        filtered = self._bandpass.process(channel_matrix(values, self.s.layout).T)
+        self._buf_x = np.concatenate([self._buf_x, filtered], axis=1)
+        self._buf_t = np.concatenate([self._buf_t, stamps])
+
+    def _drain(self, *, final: bool) -> None:
+        L, H = self.s.block_length, self.s.hop
+        buf_x, buf_t = self._buf_x, self._buf_t
+        if final:
+            real_pos = np.flatnonzero(buf_t >= 0)
+            if len(real_pos) == 0:
+                self._buf_x, self._buf_t = buf_x[:, :0], buf_t[:0]
+                return
+            # Zero-pad so the block completing the last real sample exists.
+            required = (int(real_pos[-1]) // H) * H + L
+            if required > len(buf_t):
+                need = required - len(buf_t)
+                buf_x = np.concatenate([buf_x, np.zeros((self.n_channels, need))], axis=1)
+                buf_t = np.concatenate([buf_t, np.full(need, -1, dtype=np.int64)])
+            n_blocks = int(real_pos[-1]) // H + 1       # up to the block completing the last real sample
+        else:
+            n_blocks = (len(buf_t) - L) // H + 1 if len(buf_t) >= L else 0
+        if n_blocks <= 0:
+            return
+        index = (np.arange(n_blocks) * H)[:, None] + self._offsets[None, :]      # (B, L)
+        window_t = buf_t[index]
+        real = window_t >= 0
+        any_real = real.any(axis=1)
+        t_last = window_t.max(axis=1)                   # stamps increase; non-real samples are -1
+        t_first = np.where(real, window_t, np.iinfo(np.int64).max).min(axis=1)
+        if not final:
+            latest_joint = self._joint_t[-1] if len(self._joint_t) else None
+            waited = (self._cleaner.last_stamp - t_last) >= int(self.s.joint_wait_s * 1e9)
+            ready = waited if latest_joint is None else (t_last <= latest_joint) | waited
+            if not ready.all():                         # blocks are released strictly in order
+                n_blocks = int(np.argmin(ready))
+                if n_blocks == 0:
+                    return
+                index, window_t = index[:n_blocks], window_t[:n_blocks]
+                any_real, t_first, t_last = any_real[:n_blocks], t_first[:n_blocks], t_last[:n_blocks]
+        samples = buf_x[:, index].transpose(1, 0, 2).copy()                       # (B, C, L)
+        velocity, steadiness, status = block_mean_velocity(
+            self._joint_t, self._joint_v, t_first, t_last, max_hold_ns=int(self.s.max_hold_s * 1e9),
+            with_steadiness=self.with_steadiness)
+        status[~any_real] = MISSING
+        self.stats.blocks += n_blocks
+        self.stats.blocks_held += int(np.count_nonzero(status == 1))
+        self.stats.blocks_missing += int(np.count_nonzero(status == MISSING))
+        self._ready.append(Blocks(samples, t_first, t_last, velocity, steadiness, status,
+                                  window_t[:, :H], ends_segment=final))
+        consumed = n_blocks * H
+        if final:
+            self._buf_x, self._buf_t = buf_x[:, :0], buf_t[:0]
+        else:
+            self._buf_x, self._buf_t = buf_x[:, consumed:], buf_t[consumed:]
+        self._trim_joints(int(t_first[-1]))
+
+    def _trim_joints(self, oldest_needed_ns: int) -> None:
+        # Keep one joint state before the next block's span for the hold rule.
+        cut = int(np.searchsorted(self._joint_t, oldest_needed_ns, side="left")) - 1
+        if cut > 256:
+            self._joint_t = self._joint_t[cut:]
+            self._joint_v = self._joint_v[cut:]
+
+
+def frame_batch(settings: FramerSettings, n_joints: int, accel_stamps_ns: np.ndarray, accel: np.ndarray,
+                joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray) -> tuple[list[Blocks], FramerStats]:
+    """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
+    framer = BlockFramer(settings, n_joints)
+    framer.push_joint_states(joint_stamps_ns, joint_velocity)
+    framer.push_accel(accel_stamps_ns, accel)
+    framer.flush()
+    return framer.pop_blocks(), framer.stats

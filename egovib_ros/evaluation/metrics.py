@@ -1,0 +1,259 @@
+"""Paper metrics (CONTRACT section 6) as pure functions on 1-D arrays.
+
+Every signal here is already in the paper's measurement space: axes combined
+and band-passed (150-750 Hz) with the *same causal filter* for the raw signal,
+the denoised output and the clean reference, so that all three share phase and
+can be compared sample by sample.
+
+Definitions (paper section 4, CONTRACT section 6):
+
+* magnitude            |x[k]| of the band-passed 1-D signal.
+* noise mean           mean magnitude over no-contact samples (contacts dilated
+                       by a margin, because the band-pass and the 64-sample
+                       blocks smear a tap over its neighbours).
+* tap peak             mean over taps of the largest magnitude inside each tap
+                       window (onset - margin .. end of contact + margin).
+* peak SNR             20 log10(tap peak / noise mean).
+* noise reduction      20 log10(noise mean raw / noise mean denoised).
+* tap retention        tap peak denoised / tap peak raw (paper: 1.27/3.41 = 0.37).
+* segmental SNR        on 64-sample segments with 50 % overlap, per segment
+                       10 log10(sum s^2 / sum (x - s)^2) with s the clean
+                       reference (the ground-truth contact signal, combined and
+                       band-passed) and x the raw or denoised signal; clamped
+                       to [-10, 35] dB and averaged over the contact segments
+                       (segments at least half inside a contact).
+
+Alignment: output sample k of the core's denoiser carries input stamp k, so the
+denoised array is compared with the raw/reference arrays index by index.
+`estimate_lag` checks this (it should return 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+SEGMENT_LENGTH = 64
+SEGMENT_HOP = 32
+SEGSNR_CLAMP_DB = (-10.0, 35.0)
+
+# Contact segmentation defaults (seconds).
+MARGIN_BEFORE_S = 0.010      # block smearing / pre-echo reaches up to one block (21 ms) early;
+MARGIN_AFTER_S = 0.030       # the band-pass ringing and the block tail come after the contact
+MIN_GAP_S = 0.030            # contact activity closer than this belongs to the same tap
+EDGE_S = 0.10                # ignore filter/denoiser start-up and flush at both ends
+
+
+@dataclass(frozen=True)
+class ContactSegmentation:
+    """Where the ground-truth contact signal is active.
+
+    onsets:       (T,) sample index of each tap's first active sample.
+    tap_windows:  (T, 2) [start, stop) sample ranges used for per-tap peaks.
+    contact_mask: (N,) bool, contact activity dilated by the margins.
+    active_mask:  (N,) bool, contact activity itself (for segmental SNR).
+    no_contact_mask: (N,) bool, neither contact nor the start/end edges.
+    """
+
+    onsets: np.ndarray
+    tap_windows: np.ndarray
+    contact_mask: np.ndarray
+    active_mask: np.ndarray
+    no_contact_mask: np.ndarray
+
+    @property
+    def n_taps(self) -> int:
+        return int(self.onsets.size)
+
+
+def _runs(mask: np.ndarray) -> np.ndarray:
+    """(R, 2) [start, stop) of the True runs of a 1-D bool array."""
+    padded = np.concatenate(([False], np.asarray(mask, bool), [False]))
+    edges = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    return edges.reshape(-1, 2)
+
+
+def _merge_runs(runs: np.ndarray, min_gap: int) -> np.ndarray:
+    """Merge [start, stop) runs separated by fewer than `min_gap` samples."""
+    if runs.shape[0] == 0:
+        return runs.reshape(0, 2)
+    new_group = np.concatenate(([True], runs[1:, 0] - runs[:-1, 1] >= min_gap))
+    group = np.cumsum(new_group) - 1
+    starts = runs[new_group, 0]
+    stops = np.zeros_like(starts)
+    np.maximum.at(stops, group, runs[:, 1])
+    return np.stack([starts, stops], axis=1)
+
+
+def activity_threshold(contact: np.ndarray, *, relative: float = 1e-3, floor: float = 1e-6) -> float:
+    """Default level above which the ground-truth contact magnitude counts as contact."""
+    peak = float(np.max(np.abs(contact))) if contact.size else 0.0
+    return max(relative * peak, floor)
+
+
+def segment_contacts(contact: np.ndarray, *, sample_rate_hz: float,
+                     threshold: float | None = None,
+                     margin_before_s: float = MARGIN_BEFORE_S,
+                     margin_after_s: float = MARGIN_AFTER_S,
+                     min_gap_s: float = MIN_GAP_S,
+                     edge_s: float = EDGE_S) -> ContactSegmentation:
+    """Split a recording into taps and no-contact time from the ground-truth contact signal.
+
+    `contact` is the 1-D ground-truth contact signal (combined axes, band-passed
+    or not: only where it is non-negligible matters). Taps are the runs of
+    |contact| > threshold, merged when closer than `min_gap_s`.
+    """
+    contact = np.asarray(contact, dtype=float)
+    n = contact.size
+    level = activity_threshold(contact) if threshold is None else float(threshold)
+    active = np.abs(contact) > level
+    runs = _merge_runs(_runs(active), max(1, int(round(min_gap_s * sample_rate_hz))))
+    before = int(round(margin_before_s * sample_rate_hz))
+    after = int(round(margin_after_s * sample_rate_hz))
+    windows = np.stack([np.clip(runs[:, 0] - before, 0, n),
+                        np.clip(runs[:, 1] + after, 0, n)], axis=1) if runs.size else np.zeros((0, 2), int)
+    contact_mask = np.zeros(n, bool)
+    for start, stop in windows:
+        contact_mask[start:stop] = True
+    active_mask = np.zeros(n, bool)
+    for start, stop in runs:
+        active_mask[start:stop] = True
+    edge = min(int(round(edge_s * sample_rate_hz)), n // 2)
+    no_contact = ~contact_mask
+    no_contact[:edge] = False
+    no_contact[n - edge:] = False
+    return ContactSegmentation(onsets=runs[:, 0].astype(np.int64) if runs.size else np.zeros(0, np.int64),
+                               tap_windows=windows.astype(np.int64),
+                               contact_mask=contact_mask, active_mask=active_mask,
+                               no_contact_mask=no_contact)
+
+
+def noise_mean(x: np.ndarray, no_contact_mask: np.ndarray) -> float:
+    """Mean magnitude of the band-passed signal outside contacts ("mean signal magnitude")."""
+    values = np.abs(np.asarray(x, float)[no_contact_mask])
+    return float(values.mean()) if values.size else float("nan")
+
+
+def tap_peaks(x: np.ndarray, tap_windows: np.ndarray) -> np.ndarray:
+    """(T,) largest magnitude of `x` inside each tap window."""
+    magnitude = np.abs(np.asarray(x, float))
+    return np.array([magnitude[start:stop].max() for start, stop in tap_windows if stop > start])
+
+
+def db20(ratio: float) -> float:
+    """20 log10 of an amplitude ratio; +/-inf at the ends, nan if undefined."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(20.0 * np.log10(ratio))
+
+
+def peak_snr_db(peak: float, noise: float) -> float:
+    """Peak SNR = 20 log10(mean tap peak / no-contact noise mean)."""
+    return db20(peak / noise) if noise > 0 else float("inf")
+
+
+def segment_starts(n: int, length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP) -> np.ndarray:
+    return np.arange(0, max(n - length, -1) + 1, hop)
+
+
+def segmental_snr(reference: np.ndarray, estimate: np.ndarray, *,
+                  length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP,
+                  clamp_db: tuple[float, float] = SEGSNR_CLAMP_DB) -> np.ndarray:
+    """Per-segment SNR in dB of `estimate` against the clean `reference`, clamped.
+
+    Segments are `length` samples with `hop` spacing (64 / 32 = 50 % overlap).
+    Returns one value per segment start of `segment_starts`.
+    """
+    reference = np.asarray(reference, float)
+    error = np.asarray(estimate, float) - reference
+    if reference.size < length:
+        return np.zeros(0)
+    ref_frames = np.lib.stride_tricks.sliding_window_view(reference, length)[::hop]
+    err_frames = np.lib.stride_tricks.sliding_window_view(error, length)[::hop]
+    signal_energy = np.sum(ref_frames ** 2, axis=1)
+    error_energy = np.sum(err_frames ** 2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = 10.0 * np.log10(signal_energy / error_energy)
+    snr = np.where(error_energy == 0, clamp_db[1], snr)        # perfect segment
+    snr = np.where(signal_energy == 0, clamp_db[0], snr)       # nothing to recover
+    return np.clip(snr, *clamp_db)
+
+
+def segments_in_mask(mask: np.ndarray, *, length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP,
+                     min_fraction: float = 0.5) -> np.ndarray:
+    """(S,) bool: which segments have at least `min_fraction` of their samples in `mask`."""
+    mask = np.asarray(mask, float)
+    if mask.size < length:
+        return np.zeros(0, bool)
+    frames = np.lib.stride_tricks.sliding_window_view(mask, length)[::hop]
+    return frames.mean(axis=1) >= min_fraction
+
+
+def mean_segmental_snr(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray) -> float:
+    """Mean clamped segmental SNR over the segments that lie in `mask` (nan if none)."""
+    values = segmental_snr(reference, estimate)
+    chosen = segments_in_mask(mask)
+    return float(values[chosen].mean()) if chosen.any() else float("nan")
+
+
+def estimate_lag(reference: np.ndarray, x: np.ndarray, *, max_lag: int = 96) -> int:
+    """Lag (samples) of `x` relative to `reference` maximising their cross-correlation.
+
+    Positive = `x` is late. Used to check the denoiser's stamp alignment (expected 0).
+    """
+    reference = np.asarray(reference, float)
+    x = np.asarray(x, float)
+    corr = signal.correlate(x, reference, mode="full", method="fft")
+    lags = signal.correlation_lags(x.size, reference.size, mode="full")
+    keep = np.abs(lags) <= max_lag
+    return int(lags[keep][np.argmax(corr[keep])])
+
+
+def signal_metrics(raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray,
+                   seg: ContactSegmentation) -> dict:
+    """The signal-quality JSON fields of CONTRACT section 6 (all but the event F1s).
+
+    raw, denoised, reference: (N,) band-passed 1-D signals on the same stamps.
+    """
+    raw = np.asarray(raw, float)
+    denoised = np.asarray(denoised, float)
+    if not (raw.shape == denoised.shape == reference.shape):
+        raise ValueError(f"signal lengths differ: raw {raw.shape}, denoised {denoised.shape}, "
+                         f"reference {reference.shape}")
+    noise_raw = noise_mean(raw, seg.no_contact_mask)
+    noise_den = noise_mean(denoised, seg.no_contact_mask)
+    peaks_raw = tap_peaks(raw, seg.tap_windows)
+    peaks_den = tap_peaks(denoised, seg.tap_windows)
+    peak_raw = float(peaks_raw.mean()) if peaks_raw.size else float("nan")
+    peak_den = float(peaks_den.mean()) if peaks_den.size else float("nan")
+    snr_raw = peak_snr_db(peak_raw, noise_raw)
+    snr_den = peak_snr_db(peak_den, noise_den)
+    return {
+        "noise_mean_raw": noise_raw,
+        "noise_mean_denoised": noise_den,
+        "noise_reduction_db": db20(noise_raw / noise_den) if noise_den > 0 else float("inf"),
+        "tap_peak_raw": peak_raw,
+        "tap_peak_denoised": peak_den,
+        "tap_retention": peak_den / peak_raw if peak_raw > 0 else float("nan"),
+        "peak_snr_raw_db": snr_raw,
+        "peak_snr_denoised_db": snr_den,
+        "peak_snr_improvement_db": snr_den - snr_raw,
+        "segsnr_contact_raw_db": mean_segmental_snr(reference, raw, seg.active_mask),
+        "segsnr_contact_denoised_db": mean_segmental_snr(reference, denoised, seg.active_mask),
+        "n_taps": seg.n_taps,
+    }
+
+
+def json_safe(value):
+    """Replace non-finite floats (not valid JSON) by None, recursively."""
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    return value

@@ -1,0 +1,136 @@
+"""The gap metric: windowed log-spectral distance between observed and predicted magnitudes.
+
+Definition (also written into every report):
+
+    e[w, f] = 20 log10( sum_{b in w} |Y_b(f)| / sum_{b in w} m_b(f) )
+    gap     = sqrt( mean_{w, f} e[w, f]^2 )                        [dB]
+
+where b runs over the no-contact blocks of a time window w (W consecutive held-out
+blocks), f over the in-band DFT bins, |Y_b| is the observed magnitude spectrum and
+m_b the model's predicted *expected* magnitude (mean spectrum, Eq. 5/6 without the
++sd over-subtraction term).  Averaging within a window before the log keeps the
+per-block Rayleigh-like scatter (several dB) from swamping model errors, while a
+window (a fraction of a second) is short enough that position, acceleration, time
+and lag still vary between windows.  gap^2 is a mean of squares, so it splits
+additively over frequency bins, windows and anything a window is labelled with
+(velocity cell, covariate bin): `contributions` returns those shares.
+
+A model equal to the real process still scores > 0: finite-sample scatter of the
+window means.  `floor` estimates that from the data itself by a split-half: each
+window is split into two interleaved halves (pairs of blocks, so overlapping blocks
+stay together); a slowly varying model error cancels in e_A - e_B while the scatter
+does not, and Var(e_full) ~= E[(e_A - e_B)^2] / 4.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_WINDOW_BLOCKS = 32
+
+
+@dataclass
+class Windows:
+    """Assignment of (held-out) blocks to consecutive windows."""
+
+    index: np.ndarray        # (B,) window id of each block, -1 = unused tail
+    n_windows: int
+    half: np.ndarray         # (B,) 0/1: split-half membership (interleaved pairs)
+
+    def members(self) -> np.ndarray:
+        return self.index >= 0
+
+
+def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> Windows:
+    """Cut `n_blocks` consecutive blocks into windows of `window_blocks` (the remainder is dropped)."""
+    n_windows = n_blocks // window_blocks
+    index = np.full(n_blocks, -1, dtype=np.int64)
+    used = n_windows * window_blocks
+    index[:used] = np.arange(used) // window_blocks
+    half = (np.arange(n_blocks) // 2) % 2
+    return Windows(index=index, n_windows=int(n_windows), half=half)
+
+
+def _window_sums(values: np.ndarray, windows: Windows, mask: np.ndarray | None = None) -> np.ndarray:
+    """Sum (B, F) values per window -> (n_windows, F); `mask` selects blocks."""
+    keep = windows.members() if mask is None else windows.members() & mask
+    out = np.zeros((windows.n_windows, values.shape[1]))
+    np.add.at(out, windows.index[keep], values[keep])
+    return out
+
+
+def window_errors_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows,
+                     mask: np.ndarray | None = None) -> np.ndarray:
+    """e[w, f] in dB: log ratio of window sums of observed vs predicted magnitudes."""
+    obs = _window_sums(observed, windows, mask)
+    pred = _window_sums(predicted, windows, mask)
+    tiny = np.finfo(float).tiny
+    return 20.0 * np.log10(np.maximum(obs, tiny) / np.maximum(pred, tiny))
+
+
+def gap_db(errors_db: np.ndarray) -> float:
+    """RMS of window errors (the gap)."""
+    return float(np.sqrt(np.mean(np.square(errors_db)))) if errors_db.size else float("nan")
+
+
+def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
+    """Split-half estimate of the gap a perfect model would score on these windows."""
+    e_a = window_errors_db(observed, predicted, windows, windows.half == 0)
+    e_b = window_errors_db(observed, predicted, windows, windows.half == 1)
+    return float(np.sqrt(np.mean(np.square(e_a - e_b)) / 4.0)) if e_a.size else float("nan")
+
+
+def contributions(errors_db: np.ndarray, labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split gap^2 over window labels: (share of gap^2 [dB^2] per label and bin, window count per label).
+
+    share[k, f] = sum_{w: label w = k} e[w,f]^2 / (n_windows * n_bins); summing share over
+    k and f gives gap^2 exactly.  Windows with label < 0 are not counted in any label.
+    """
+    n_windows, n_bins = errors_db.shape
+    share = np.zeros((n_labels, n_bins))
+    counts = np.zeros(n_labels, dtype=np.int64)
+    ok = labels >= 0
+    np.add.at(share, labels[ok], np.square(errors_db[ok]) / (n_windows * n_bins))
+    np.add.at(counts, labels[ok], 1)
+    return share, counts
+
+
+def grouped_bias_db(observed: np.ndarray, predicted: np.ndarray, labels: np.ndarray,
+                    n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Band-summed observed/predicted ratio in dB per label group of blocks (for covariate profiles).
+
+    Returns (bias_db (n_labels,), block counts); groups without blocks give NaN.
+    """
+    ok = labels >= 0
+    obs = np.bincount(labels[ok], weights=observed[ok].sum(axis=1), minlength=n_labels)
+    pred = np.bincount(labels[ok], weights=predicted[ok].sum(axis=1), minlength=n_labels)
+    counts = np.bincount(labels[ok], minlength=n_labels)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bias = np.where(counts > 0, 20.0 * np.log10(obs / pred), np.nan)
+    return bias, counts
+
+
+def paired_signflip_pvalue(base_errors_db: np.ndarray, cand_errors_db: np.ndarray, *,
+                           segment_windows: int = 2, n_permutations: int = 20000,
+                           rng: np.random.Generator | None = None) -> float:
+    """One-sided p-value that the candidate's held-out errors are smaller than the base's.
+
+    Paired permutation (sign-flip) test over contiguous segments of `segment_windows`
+    windows: under H0 (candidate no better) each segment's improvement
+    d = sum (e_base^2 - e_cand^2) is symmetric about zero, so random sign flips give
+    the null distribution of the mean improvement.  Segments keep short-range
+    dependence between neighbouring windows together.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    d_w = np.mean(np.square(base_errors_db) - np.square(cand_errors_db), axis=1)
+    n_seg = max(len(d_w) // segment_windows, 1)
+    d_s = np.array([chunk.sum() for chunk in np.array_split(d_w, n_seg)])
+    observed = d_s.mean()
+    if n_seg <= 16:   # exact: all 2^n sign patterns
+        signs = 1 - 2 * ((np.arange(2 ** n_seg)[:, None] >> np.arange(n_seg)) & 1)
+        null = (signs * d_s).mean(axis=1)       # includes the identity pattern
+        return float(np.mean(null >= observed - 1e-12))
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
+    null = (signs * d_s).mean(axis=1)
+    return float((1 + np.sum(null >= observed - 1e-12)) / (1 + len(null)))

@@ -1,0 +1,119 @@
+"""bag_player: play a rosbag2 (MCAP or sqlite3) at its recorded timing, then exit.
+
+Messages are published as stored (serialized bytes) at their bag receive times,
+scaled by `rate`; bag topic names drop their leading '/' so that namespaces and
+remappings apply. With `clock: true`, /clock (rosgraph_msgs/Clock) carries the
+bag time, so nodes started with use_sim_time run on the recording's time base.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.node import Node
+from rosbags.rosbag2 import Reader
+from rosgraph_msgs.msg import Clock
+
+from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.nodes.bag_recorder import message_class
+from egovib_ros.nodes.common import declare, run_node, stream_publisher_qos
+from egovib_ros.ros_convert import ns_to_stamp
+
+TICK_S = 0.002          # publishing granularity: messages due within a tick go out together
+CLOCK_PERIOD_NS = 1_000_000   # /clock at up to 1 kHz of bag time
+
+
+class BagPlayer(Node):
+    """Plays the bag `bag`; `run()` returns when every message was published."""
+
+    def __init__(self):
+        super().__init__("bag_player")
+        self.bag = Path(declare(self, "bag", "", "rosbag2 directory to play"))
+        self.rate = float(declare(self, "rate", 1.0, "playback speed factor (2.0 = twice as fast)"))
+        self.publish_clock = declare(self, "clock", False, "publish /clock with the bag time")
+        topics = declare(self, "topics", [""], "topics to play (bag names); empty = all")
+        self.wait_for_subscribers = declare(
+            self, "wait_for_subscribers", 0,
+            "wait until every played topic has at least this many subscribers before starting")
+        self.wait_timeout = float(declare(self, "wait_timeout", 10.0,
+                                          "seconds to wait for subscribers before giving up"))
+        self.start_delay = float(declare(self, "start_delay", 0.0, "seconds to wait before playing"))
+        self.linger = float(declare(self, "linger", 0.5,
+                                    "seconds to stay up after the last message, to let it be delivered"))
+        if self.rate <= 0:
+            raise ConfigError(f"bag_player: rate must be > 0, not {self.rate}")
+        if not (self.bag / "metadata.yaml").is_file():
+            raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
+        try:
+            self.reader = Reader(self.bag)
+            self.reader.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
+            raise BagError(f"{self.bag}: cannot open bag: {exc}") from None
+        wanted = {t for t in topics if t}
+        self.connections = [c for c in self.reader.connections if not wanted or c.topic in wanted]
+        if not self.connections:
+            raise BagError(f"{self.bag}: none of the topics {sorted(wanted)} is in the bag")
+        qos = stream_publisher_qos()
+        self.publishers = {}
+        for conn in self.connections:
+            try:
+                msg_class = message_class(conn.msgtype)
+            except (ImportError, AttributeError):
+                self.get_logger().warning(f"{conn.topic}: type {conn.msgtype} not available, skipped")
+                continue
+            self.publishers[conn.id] = self.create_publisher(msg_class, conn.topic.lstrip("/"), qos)
+        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+        self.published = 0
+
+    def _wait_for_subscribers(self) -> None:
+        deadline = time.monotonic() + self.wait_timeout
+        while rclpy.ok() and time.monotonic() < deadline:
+            if all(p.get_subscription_count() >= self.wait_for_subscribers
+                   for p in self.publishers.values()):
+                return
+            time.sleep(0.05)
+        self.get_logger().warning("not every topic has its subscribers; playing anyway")
+
+    def run(self) -> int:
+        """Publish every message at its recorded time (scaled by rate); 0 when all are out."""
+        if self.wait_for_subscribers > 0:
+            self._wait_for_subscribers()
+        time.sleep(self.start_delay)
+        connections = [c for c in self.connections if c.id in self.publishers]
+        start_bag_ns = self.reader.start_time
+        self.get_logger().info(f"playing {self.bag} ({self.reader.message_count} messages, "
+                               f"{self.reader.duration / 1e9:.1f} s) at rate {self.rate}")
+        start_wall = time.monotonic()
+        clock_msg = Clock()
+        last_clock_ns = None
+        for conn, bag_ns, data in self.reader.messages(connections=connections):
+            due = start_wall + (bag_ns - start_bag_ns) / 1e9 / self.rate
+            wait = due - time.monotonic()
+            if wait > TICK_S:
+                time.sleep(wait)
+            if not rclpy.ok():
+                self.get_logger().info(f"interrupted after {self.published} messages")
+                return 0
+            # /clock at most every CLOCK_PERIOD_NS of bag time, always before the message it covers.
+            if self.clock_publisher is not None and (
+                    last_clock_ns is None or bag_ns - last_clock_ns >= CLOCK_PERIOD_NS):
+                clock_msg.clock = ns_to_stamp(bag_ns)
+                self.clock_publisher.publish(clock_msg)
+                last_clock_ns = bag_ns
+            self.publishers[conn.id].publish(bytes(data))
+            self.published += 1
+        time.sleep(self.linger)
+        self.get_logger().info(f"done: {self.published} messages played")
+        return 0
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(BagPlayer, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

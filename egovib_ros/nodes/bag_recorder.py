@@ -1,0 +1,132 @@
+"""bag_recorder: record chosen topics, as serialized bytes, to a rosbag2 (MCAP) with rosbags.
+
+Subscribes each topic once a publisher appears (type and QoS taken from the
+publishers, as `ros2 bag record` does: reliable when every publisher is reliable),
+writes each message as received (receive time on the node clock), and at exit
+reports received vs written per topic. The bag directory appears only when it is
+complete (written to a temporary sibling and moved in place on a clean exit).
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from egovib_ros.constants import (TOPIC_COMMANDS, TOPIC_CONTACT, TOPIC_DENOISED, TOPIC_EGO,
+                                  TOPIC_JOINT_STATES, TOPIC_RAW)
+from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.fileutil import atomic_output
+from egovib_ros.nodes.common import SENSOR_QUEUE_DEPTH, declare, run_node
+
+DEFAULT_TOPICS = [TOPIC_JOINT_STATES, TOPIC_RAW, TOPIC_DENOISED, TOPIC_CONTACT, TOPIC_EGO,
+                  TOPIC_COMMANDS]
+STORAGE = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+
+
+def message_class(type_name: str):
+    """'sensor_msgs/msg/Imu' -> the rclpy message class."""
+    package, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.msg"), name)
+
+
+class BagRecorder(Node):
+    """Records `topics` into the bag `output`."""
+
+    def __init__(self):
+        super().__init__("bag_recorder")
+        topics = declare(self, "topics", DEFAULT_TOPICS,
+                         "topics to record (relative names resolve in the node's namespace)")
+        self.output = Path(declare(self, "output", "recording",
+                                   "bag directory to write; must not exist yet"))
+        storage = declare(self, "storage", "mcap", "rosbag2 storage plugin: mcap | sqlite3")
+        self.queue_depth = declare(self, "queue_depth", SENSOR_QUEUE_DEPTH,
+                                   "subscription queue depth per topic")
+        if storage not in STORAGE:
+            raise ConfigError(f"bag_recorder: storage must be mcap or sqlite3, not {storage!r}")
+        if self.output.exists():
+            raise BagError(f"{self.output}: bag already exists")
+        self.topics = [self.resolve_topic_name(t) for t in topics]
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._files = contextlib.ExitStack()
+        tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
+        self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
+        self.writer.open()
+        self.connections: dict[str, object] = {}
+        self.received = {t: 0 for t in self.topics}
+        self.written = {t: 0 for t in self.topics}
+        self._subscriptions = []
+        self._discovery_timer = self.create_timer(0.1, self._discover)
+        self._discover()
+        self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output} ({storage})")
+
+    def _discover(self) -> None:
+        """Subscribe every wanted topic that has a publisher now."""
+        for topic in self.topics:
+            if topic in self.connections:
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue
+            type_name = publishers[0].topic_type
+            reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                           for p in publishers)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.queue_depth,
+                             reliability=(ReliabilityPolicy.RELIABLE if reliable
+                                          else ReliabilityPolicy.BEST_EFFORT),
+                             durability=DurabilityPolicy.VOLATILE)
+            try:
+                msg_class = message_class(type_name)
+                connection = self.writer.add_connection(topic, type_name, typestore=self.typestore)
+            except Exception as exc:  # noqa: BLE001 - unknown type: report, keep recording others
+                self.get_logger().error(f"{topic}: cannot record type {type_name}: {exc}")
+                self.connections[topic] = None
+                continue
+            self.connections[topic] = connection
+            self._subscriptions.append(self.create_subscription(
+                msg_class, topic, self._make_callback(topic, connection), qos, raw=True))
+            self.get_logger().info(f"{topic}: subscribed ({type_name}, "
+                                   f"{'reliable' if reliable else 'best effort'})")
+        if all(t in self.connections for t in self.topics):
+            self._discovery_timer.cancel()
+
+    def _make_callback(self, topic: str, connection):
+        clock = self.get_clock()
+        write = self.writer.write
+        received, written = self.received, self.written
+
+        def on_message(data: bytes) -> None:
+            received[topic] += 1
+            write(connection, clock.now().nanoseconds, data)
+            written[topic] += 1
+        return on_message
+
+    def summary(self) -> str:
+        """One line per topic: received vs written."""
+        return "; ".join(f"{t}: received {self.received[t]}, written {self.written[t]}"
+                         for t in self.topics)
+
+    def close(self) -> int:
+        """Close the bag, move it in place, report counts. Exit status 1 if any message was lost."""
+        for sub in self._subscriptions:
+            self.destroy_subscription(sub)
+        self._subscriptions = []
+        self.writer.close()
+        self._files.close()
+        lost = sum(self.received[t] - self.written[t] for t in self.topics)
+        line = f"bag {self.output} closed: {self.summary()}"
+        self.get_logger().info(line)
+        print(f"bag_recorder: {line}", flush=True)
+        return 1 if lost else 0
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(BagRecorder, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,186 @@
+"""Simulator parameters (config/sim.yaml) and the effects SPEC of CONTRACT section 5."""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from egovib_ros.constants import EFFECT_NAMES
+from egovib_ros.errors import ConfigError
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+
+
+@dataclass
+class JointVibration:
+    """Ego-vibration mechanisms of one joint, reaching the sensor through its own path.
+
+    Source = gear-mesh / commutation lines + friction broadband; the source is
+    filtered by the joint's structural path (a band of modes + a resonance near
+    1000 Hz) and lands on the joint's own sensor direction.
+    """
+
+    line_hz_per_unit: float           # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
+    line_orders: list[float]          # multiples of the fundamental (mesh harmonics, commutation)
+    line_amps: list[float]            # amplitude (m/s^2) of each line at full speed, before the path
+    line_speed_exponent: float        # line amplitude ~ speed_fraction ** exponent
+    friction_coulomb: float           # friction broadband rms (m/s^2) once moving at all
+    friction_viscous: float           # extra friction broadband rms at full speed (linear in speed)
+    path_band_hz: list[float]         # structural band that carries this joint's vibration
+    path_order: int                   # Butterworth order of that band
+    resonance_hz: float               # structural resonance near 1000 Hz (removed by the band-pass)
+    resonance_q: float
+    resonance_gain: float
+    direction: list[float]            # sensor direction (unit vector, normalised on use)
+    amp_jitter: float                 # relative amplitude jitter (rms) of the lines
+    amp_jitter_hz: float              # bandwidth of that jitter
+    phase_jitter: float               # phase random walk of the lines (rad per sqrt(s))
+
+
+def _wrist_default() -> JointVibration:
+    return JointVibration(line_hz_per_unit=125.0, line_orders=[1.0, 2.0, 1.6], line_amps=[0.1, 0.05, 0.04],
+                          line_speed_exponent=1.0, friction_coulomb=0.03, friction_viscous=0.06,
+                          path_band_hz=[150.0, 400.0], path_order=3, resonance_hz=1000.0, resonance_q=8.0,
+                          resonance_gain=0.5, direction=[1.0, 0.0, 0.0], amp_jitter=0.12,
+                          amp_jitter_hz=8.0, phase_jitter=0.5)
+
+
+def _gripper_default() -> JointVibration:
+    return JointVibration(line_hz_per_unit=15000.0, line_orders=[1.0, 0.75, 1.25], line_amps=[0.1, 0.05, 0.04],
+                          line_speed_exponent=1.0, friction_coulomb=0.03, friction_viscous=0.06,
+                          path_band_hz=[470.0, 750.0], path_order=3, resonance_hz=1050.0, resonance_q=8.0,
+                          resonance_gain=0.5, direction=[0.0, 1.0, 0.0], amp_jitter=0.12,
+                          amp_jitter_hz=8.0, phase_jitter=0.5)
+
+
+@dataclass
+class SimParams:
+    """All simulator parameters; round-trips to YAML (`load`/`save`/`to_dict`)."""
+
+    # joints / controller / encoders
+    controller_tau_s: float = 0.03
+    encoder_resolution: list[float] = field(default_factory=lambda: [2.0e-5, 1.0e-6])
+    gripper_start_m: float = 0.043
+    joint_phase_s: float = 0.00017
+    # accelerometer
+    sensor_noise_rms: float = 0.01
+    gravity_ms2: float = 9.81
+    gravity_tilt_rad: float = 0.0
+    hum_amps: list[float] = field(default_factory=lambda: [0.03, 0.05, 0.04, 0.03, 0.03, 0.02, 0.02, 0.015])
+    hum_direction: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
+    # joints' vibration mechanisms
+    wrist: JointVibration = field(default_factory=_wrist_default)
+    gripper: JointVibration = field(default_factory=_gripper_default)
+    # taps
+    tap_peak_ms2: float = 3.4
+    tap_peak_spread: float = 0.2
+    tap_modes_hz: list[float] = field(default_factory=lambda: [230.0, 410.0, 640.0])
+    tap_mode_amps: list[float] = field(default_factory=lambda: [1.0, 0.8, 0.5])
+    tap_mode_decay_s: list[float] = field(default_factory=lambda: [0.008, 0.005, 0.004])
+    tap_length_s: float = 0.03
+    tap_dead_time_s: float = 0.25
+    tap_direction: list[float] = field(default_factory=lambda: [0.35, 0.35, 0.87])
+    # effects: parameters of each effect's term (strengths come from the SPEC)
+    position_phase_rad: float = 0.6
+    coupling_gain: float = 0.25
+    acceleration_gain: float = 0.15
+    drift_period_s: float = 60.0
+    effects: dict[str, float] = field(default_factory=dict)
+
+    # --- YAML round trip -------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, source: str = "sim params") -> "SimParams":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"{source}: unknown parameter(s) {', '.join(unknown)}")
+        kwargs = dict(data)
+        joint_fields = {f.name for f in dataclasses.fields(JointVibration)}
+        for name, default in (("wrist", _wrist_default), ("gripper", _gripper_default)):
+            if name in kwargs:
+                sub = kwargs[name] or {}
+                if not isinstance(sub, dict) or set(sub) - joint_fields:
+                    raise ConfigError(f"{source}: {name}: unknown field(s) {sorted(set(sub) - joint_fields)}")
+                kwargs[name] = JointVibration(**{**dataclasses.asdict(default()), **sub})
+        if "effects" in kwargs:
+            kwargs["effects"] = validate_effects(kwargs["effects"] or {}, source=source)
+        try:
+            return cls(**kwargs)
+        except TypeError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+
+    @classmethod
+    def load(cls, path: str | os.PathLike | None = None) -> "SimParams":
+        """Parameters from a YAML file (default config/sim.yaml; built-in defaults if it is absent)."""
+        if path is None:
+            if not DEFAULT_CONFIG.exists():
+                return cls()
+            path = DEFAULT_CONFIG
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping of parameters")
+        data = data.get("sim", data)
+        return cls.from_dict(data, source=str(path))
+
+    def save(self, path: str | os.PathLike) -> None:
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def validate_effects(effects: dict[str, Any], *, source: str = "effects") -> dict[str, float]:
+    """Check names against the vocabulary; drop zero strengths (zero = effect off)."""
+    out: dict[str, float] = {}
+    for name, value in effects.items():
+        if name == "none":
+            continue
+        if name not in EFFECT_NAMES:
+            raise ConfigError(f"{source}: unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)}, none)")
+        try:
+            strength = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: effect {name} has non-numeric strength {value!r}") from None
+        if strength != strength or abs(strength) == float("inf"):
+            raise ConfigError(f"{source}: effect {name} strength must be finite")
+        if strength != 0.0:
+            out[name] = strength
+    return out
+
+
+def parse_effects(spec: str | None) -> dict[str, float]:
+    """Parse the SPEC `name=strength,...` (CONTRACT section 3); '' / None / 'none' = no effect."""
+    if spec is None or not spec.strip():
+        return {}
+    raw: dict[str, str] = {}
+    for item in spec.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        if item == "none":
+            continue
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--effects {spec!r}: item {item!r} is not name=strength")
+        name = name.strip()
+        if name in raw:
+            raise ConfigError(f"--effects {spec!r}: effect {name} given twice")
+        raw[name] = value.strip()
+    return validate_effects(raw, source=f"--effects {spec!r}")
+
+
+def format_effects(effects: dict[str, float]) -> str:
+    """Inverse of parse_effects."""
+    return ",".join(f"{k}={v:g}" for k, v in effects.items()) or "none"

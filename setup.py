@@ -1,0 +1,30 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "egovib_ros"
+NODES = ("sim_hand", "sweep_driver", "calibrator", "denoiser", "bag_recorder", "bag_player")
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    # ROS client libraries (rclpy, message packages) come from apt on a ROS
+    # install, or from requirements-ros.txt in the project venv: not listed here.
+    install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml"],
+    zip_safe=True,
+    maintainer="egovib_ros developers",
+    maintainer_email="egovib@example.com",
+    description="Ego-vibration removal for robot accelerometers by spectral subtraction",
+    license="BSD-3-Clause",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [f"egovib = {PACKAGE}.cli:main"]
+        + [f"{node} = {PACKAGE}.nodes.{node}:main" for node in NODES],
+    },
+)
