@@ -46,7 +46,7 @@ class CalibrationAccumulator:
         self._sumsq = np.zeros(shape)
         self._counts = np.zeros(self.grid_shape, dtype=np.int64)
         self._spacing = [np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid]
-        self.rejected = {"no_joint_state": 0, "unsteady": 0, "off_grid": 0, "not_in_sweep": 0}
+        self.rejected = {"partial": 0, "no_joint_state": 0, "unsteady": 0, "off_grid": 0, "not_in_sweep": 0}
         assert CHANNEL_LAYOUTS["all"] == MODEL_CHANNELS
 
     @property
@@ -91,8 +91,11 @@ class CalibrationAccumulator:
         for blocks in batches:
             if blocks.n == 0:
                 continue
-            usable = blocks.status == MATCHED
-            self.rejected["no_joint_state"] += int((~usable).sum())
+            # Blocks holding start/end padding or gap-filled samples would bias the statistics.
+            complete = blocks.complete
+            self.rejected["partial"] += int((~complete).sum())
+            usable = complete & (blocks.status == MATCHED)
+            self.rejected["no_joint_state"] += int((complete & (blocks.status != MATCHED)).sum())
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, near = self.cell_of(velocity)
             steady = np.ones(blocks.n, dtype=bool)

@@ -65,6 +65,7 @@ class Blocks:
     # Output bookkeeping: the hop of samples that each block completes.
     out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
     ends_segment: bool = False # last blocks before a flush or a long gap
+    complete: np.ndarray | None = None   # (B,) every sample real (no padding or gap fill)
 
     @property
     def n(self) -> int:
@@ -301,7 +302,7 @@ class BlockFramer:
                 n_blocks = int(np.argmin(ready))
                 if n_blocks == 0:
                     return
-                index, window_t = index[:n_blocks], window_t[:n_blocks]
+                index, window_t, real = index[:n_blocks], window_t[:n_blocks], real[:n_blocks]
                 any_real, t_first, t_last = any_real[:n_blocks], t_first[:n_blocks], t_last[:n_blocks]
         samples = buf_x[:, index].transpose(1, 0, 2).copy()                       # (B, C, L)
         velocity, steadiness, status = block_mean_velocity(
@@ -312,7 +313,7 @@ class BlockFramer:
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
         self.stats.blocks_missing += int(np.count_nonzero(status == MISSING))
         self._ready.append(Blocks(samples, t_first, t_last, velocity, steadiness, status,
-                                  window_t[:, :H], ends_segment=final))
+                                  window_t[:, :H], ends_segment=final, complete=real.all(axis=1)))
         consumed = n_blocks * H
         if final:
             self._buf_x, self._buf_t = buf_x[:, :0], buf_t[:0]

@@ -1,0 +1,169 @@
+"""Spectral subtraction: latency, streaming == batch, and bad input (issue 2)."""
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+from synthetic import FS, push_random_chunks, stream
+
+from egovib_ros.core import BandPass, StreamingDenoiser, calibrate_arrays, channel_matrix, denoise_batch
+from egovib_ros.errors import StreamError
+
+CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
+
+
+@pytest.fixture(scope="module")
+def model():
+    data = stream(24, CELLS, sigma=[0.2, 1.0, 0.6, 1.3, 2.0, 0.8])
+    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
+    return model
+
+
+def zero(model):
+    return dataclasses.replace(model, mean=np.zeros_like(model.mean), std=np.zeros_like(model.std))
+
+
+def bandpassed(accel, channels):
+    bp = BandPass(sample_rate_hz=FS, band_hz=(150.0, 750.0), order=4, n_channels=3 if channels == "per_axis" else 1)
+    return bp.process(channel_matrix(accel, channels).T).T
+
+
+def collect(chunks):
+    chunks = [c for c in chunks if c is not None and len(c)]
+    return np.concatenate([c.stamps_ns for c in chunks]), np.concatenate([c.values for c in chunks])
+
+
+@pytest.mark.parametrize("channels", ["per_axis", "combined"])
+def test_zero_noise_estimate_gives_bandpassed_input_delayed_by_one_block(model, channels):
+    data = stream(3, [(1.5, 0.02)], seed=1)
+    expected = bandpassed(data["accel"], channels)
+    denoiser = StreamingDenoiser(zero(model), channels=channels)
+    denoiser.push_joint_states(data["t_joint"], data["velocity"])
+    lo, hi = denoiser.delay_samples
+    assert (lo, hi) == (32, 63)                      # 10.7 .. 21 ms at 3 kHz
+    chunks, emitted = [], 0
+    for n in range(1, 700):                          # one sample at a time
+        chunk = denoiser.push_accel(data["t_acc"][n - 1:n], data["accel"][n - 1:n])
+        chunks.append(chunk)
+        emitted += len(chunk)
+        if n >= 64:
+            assert lo <= n - emitted <= hi
+    chunks.append(denoiser.push_accel(data["t_acc"][699:], data["accel"][699:]))
+    chunks.append(denoiser.flush())
+    stamps, values = collect(chunks)
+    np.testing.assert_array_equal(stamps, data["t_acc"])
+    assert np.max(np.abs(values - expected)) <= 1e-9
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_chunkings_of_60_s_equal_batch(model, seed):
+    data = stream(60, CELLS, seed=10 + seed)
+    b_stamps, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    denoiser = StreamingDenoiser(model)
+    chunks = push_random_chunks(denoiser, data, np.random.default_rng(seed))
+    stamps, values = collect(chunks + [denoiser.flush()])
+    np.testing.assert_array_equal(stamps, b_stamps)
+    assert np.max(np.abs(values - b_values)) <= 1e-12
+    assert len(stamps) == len(data["t_acc"])
+
+
+def test_combined_channel_streaming_equals_batch_and_reduces_noise(model):
+    data = stream(10, CELLS[1:4], seed=5)
+    _, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model,
+                                   channels="combined")
+    denoiser = StreamingDenoiser(model, channels="combined")
+    _, values = collect(push_random_chunks(denoiser, data, np.random.default_rng(3)) + [denoiser.flush()])
+    assert np.max(np.abs(values - b_values)) <= 1e-12
+    raw = bandpassed(data["accel"], "combined")
+    # Pure ego-noise: subtraction of mean + std removes most of it.
+    assert np.mean(np.abs(values)) < 0.3 * np.mean(np.abs(raw))
+
+
+def test_no_joint_state_passes_bandpassed_signal_and_counts(model, caplog):
+    data = stream(2, [(1.5, 0.0)], seed=2)
+    denoiser = StreamingDenoiser(model, channels="per_axis")
+    with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
+        chunks = [denoiser.push_accel(data["t_acc"], data["accel"]), denoiser.flush()]
+    _, values = collect(chunks)
+    assert np.max(np.abs(values - bandpassed(data["accel"], "per_axis"))) <= 1e-9
+    assert denoiser.stats["blocks_no_joint_state"] == denoiser.stats["blocks"] > 0
+    assert "no joint state" in caplog.text
+
+
+def test_stale_joint_state_is_held_briefly_then_missing(model):
+    data = stream(2, [(1.5, 0.0)], seed=2)
+    denoiser = StreamingDenoiser(model, max_hold_s=0.05)
+    denoiser.push_joint_states(data["t_joint"][:200], data["velocity"][:200])     # first 0.2 s only
+    denoiser.push_accel(data["t_acc"], data["accel"])
+    denoiser.flush()
+    stats = denoiser.stats
+    assert stats["blocks_held_joint_state"] >= 1
+    assert stats["blocks_no_joint_state"] > stats["blocks"] // 2
+
+
+def test_nonfinite_samples_are_replaced_and_counted(model):
+    data = stream(2, [(1.5, 0.02)], seed=3)
+    accel = data["accel"].copy()
+    accel[[100, 101, 2000], 1] = [np.nan, np.inf, -np.inf]
+    stamps, values, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
+    assert np.all(np.isfinite(values)) and len(values) == len(accel)
+    assert stats["nonfinite_replaced"] == 3
+
+
+def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(model):
+    data = stream(4, [(1.5, 0.02)], seed=4)
+    keep = np.ones(len(data["t_acc"]), dtype=bool)
+    keep[1000:1003] = False              # 3 missing samples: bridged
+    keep[5000:5600] = False              # 0.2 s gap: segment ends, filter restarts
+    t_acc, accel = data["t_acc"][keep], data["accel"][keep]
+    t_acc = t_acc.copy()
+    t_acc[[7000, 7001]] = t_acc[[7001, 7000]]        # one sample out of order
+    stamps, values, stats = denoise_batch(t_acc, accel, data["t_joint"], data["velocity"], model)
+    # 3 bridged + 1: dropping the late sample leaves a one-sample hole, bridged too.
+    assert stats["gap_filled_samples"] == 4
+    assert stats["resets"] == 1
+    assert stats["dropped_out_of_order"] == 1
+    assert len(stamps) == len(t_acc) - 1 and np.all(np.diff(stamps) > 0)
+    data_gappy = dict(data, t_acc=t_acc, accel=accel)
+    denoiser = StreamingDenoiser(model)
+    s_stamps, s_values = collect(push_random_chunks(denoiser, data_gappy, np.random.default_rng(9)) + [denoiser.flush()])
+    np.testing.assert_array_equal(s_stamps, stamps)
+    assert np.max(np.abs(s_values - values)) <= 1e-12
+
+
+def test_out_of_grid_velocity_uses_edge_cells_and_is_counted(model):
+    data = stream(2, [(5.0, 0.02)], seed=6)
+    edge = dict(data, velocity=np.minimum(data["velocity"], 3.0))
+    _, outside, stats = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    _, clamped, _ = denoise_batch(edge["t_acc"], edge["accel"], edge["t_joint"], edge["velocity"], model)
+    assert stats["blocks_out_of_grid"] == stats["blocks"]
+    np.testing.assert_array_equal(outside, clamped)
+
+
+def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
+    data = stream(1, [(0.0, 0.0)])
+    denoiser = StreamingDenoiser(model)
+    with pytest.raises(StreamError, match="1500 Hz but the model expects 3000 Hz"):
+        denoiser.push_accel((np.arange(1000) * 666_667).astype(np.int64), data["accel"][:1000])
+    with pytest.raises(StreamError, match="sample rate"):
+        StreamingDenoiser(model, sample_rate_hz=1000.0)
+    with pytest.raises(StreamError, match="block length 32"):
+        StreamingDenoiser(model, block_length=32)
+
+
+def test_bad_shapes_are_errors(model):
+    denoiser = StreamingDenoiser(model)
+    with pytest.raises(StreamError, match=r"\(N, 3\)"):
+        denoiser.push_accel(np.arange(10, dtype=np.int64), np.zeros((10, 2)))
+    with pytest.raises(StreamError, match="joint states"):
+        denoiser.push_joint_states(np.arange(10, dtype=np.int64), np.zeros((10, 3)))
+
+
+def test_oversubtraction_and_floor_options(model):
+    data = stream(3, [(1.5, 0.02)], seed=8)
+    args = (data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    paper = denoise_batch(*args)[1]
+    harder = denoise_batch(*args, oversubtraction=2.0)[1]
+    floored = denoise_batch(*args, floor=0.1)[1]
+    level = lambda x: np.mean(np.abs(x))  # noqa: E731
+    assert level(harder) < level(paper) < level(floored)
