@@ -20,7 +20,7 @@ def channel_matrix(accel: np.ndarray, layout: str) -> np.ndarray:
     if accel.ndim != 2 or accel.shape[1] != 3:
         raise StreamError(f"accelerometer samples must have shape (N, 3), got {accel.shape}")
     if layout == "per_axis":
-        return accel.copy()
+        return accel                    # callers copy (the band-pass works on a copy)
     combined = accel.sum(axis=1, keepdims=True)
     if layout == "combined":
         return combined

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import itertools
+import math
 import logging
 import os
 import zipfile
@@ -67,6 +68,12 @@ class NoiseModel:
         self._subtables: dict = {}
         self.validate()
         self._positions = [np.arange(len(g), dtype=np.float64) for g in self.grid]
+        self._bounds = [(float(g[0]), float(g[-1])) for g in self.grid]
+        # Grid step per joint if the grid is uniform (to the last bit of the step), else 0.
+        self._steps = []
+        for g in self.grid:
+            step = (g[-1] - g[0]) / (len(g) - 1)
+            self._steps.append(float(step) if np.allclose(np.diff(g), step, rtol=1e-12, atol=0) else 0.0)
 
     # --- shape facts -------------------------------------------------------
     @property
@@ -196,7 +203,8 @@ class NoiseModel:
     def estimate(self, velocity: np.ndarray, channel_index: list[int] | slice = slice(None), *,
                  include_std: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Noise magnitude spectra at velocities (B, J) -> ((B, C, F), out_of_grid (B,))."""
-        velocity = np.atleast_2d(np.asarray(velocity, dtype=np.float64))
+        if not (isinstance(velocity, np.ndarray) and velocity.ndim == 2 and velocity.dtype == np.float64):
+            velocity = np.atleast_2d(np.asarray(velocity, dtype=np.float64))
         key = (tuple(channel_index) if isinstance(channel_index, list) else str(channel_index), include_std)
         table = self._subtables.get(key)
         if table is None:
@@ -210,7 +218,11 @@ class NoiseModel:
         for j, g in enumerate(self.grid):
             v = velocity[:, j]
             outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
-            position = np.interp(v, g, np.arange(len(g), dtype=np.float64))
+            step = self._steps[j]
+            if step:   # uniform grid: plain arithmetic (the one-block path does the same on floats)
+                position = np.minimum(np.maximum((v - g[0]) / step, 0.0), len(g) - 1.0)
+            else:
+                position = np.interp(v, g, self._positions[j])
             i0 = np.minimum(np.floor(position).astype(np.intp), len(g) - 2)
             lower.append(i0)
             frac.append(position - i0)
@@ -229,13 +241,24 @@ class NoiseModel:
         same order on Python floats and array views, so the result is bit-identical."""
         lower, frac = [], []
         outside = False
-        for j, g in enumerate(self.grid):
+        for j, (low, high) in enumerate(self._bounds):
             v = float(velocity[j])
-            outside |= (v < g[0] - 1e-9 * abs(g[0])) or (v > g[-1] + 1e-9 * abs(g[-1]))
-            position = float(np.interp(v, g, self._positions[j]))
-            i0 = min(int(np.floor(position)), len(g) - 2)
+            outside = outside or v < low - 1e-9 * abs(low) or v > high + 1e-9 * abs(high)
+            step = self._steps[j]
+            n = len(self.grid[j])
+            if step:
+                position = min(max((v - low) / step, 0.0), n - 1.0)
+            else:
+                position = float(np.interp(v, self.grid[j], self._positions[j]))
+            i0 = min(int(math.floor(position)), n - 2)
             lower.append(i0)
             frac.append(position - i0)
+        if self.n_joints == 2:
+            # Spelled out: same weights, same products, same left-to-right sum as below.
+            (i, j), (a, b) = lower, frac
+            out = ((1.0 - a) * (1.0 - b)) * table[i, j] + ((1.0 - a) * b) * table[i, j + 1] \
+                + (a * (1.0 - b)) * table[i + 1, j] + (a * b) * table[i + 1, j + 1]
+            return out[None], np.array([outside])
         out = None
         for corner in itertools.product((0, 1), repeat=self.n_joints):
             weight = 1.0

@@ -209,7 +209,16 @@ class BlockFramer:
             raise StreamError(f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
                               f"got {stamps_ns.shape} and {velocity.shape}")
         self.stats.joint_states_in += len(stamps_ns)
+        if len(stamps_ns) == 0:
+            return
         last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
+        if stamps_ns[0] > last and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all()) \
+                and np.isfinite(velocity).all():
+            # Fast path (the live case): in order and finite.
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns])
+            self._joint_v = np.concatenate([self._joint_v, velocity])
+            self._drain(final=False)
+            return
         before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]])) if len(stamps_ns) else stamps_ns
         keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
         self.stats.joint_states_dropped += int((~keep).sum())
@@ -272,6 +281,9 @@ class BlockFramer:
     def _drain(self, *, final: bool) -> None:
         L, H = self.s.block_length, self.s.hop
         buf_x, buf_t = self._buf_x, self._buf_t
+        if not final and L <= len(buf_t) < L + H:
+            self._drain_one()
+            return
         if final:
             real_pos = np.flatnonzero(buf_t >= 0)
             if len(real_pos) == 0:
@@ -308,6 +320,7 @@ class BlockFramer:
         velocity, steadiness, status = block_mean_velocity(
             self._joint_t, self._joint_v, t_first, t_last, max_hold_ns=int(self.s.max_hold_s * 1e9),
             with_steadiness=self.with_steadiness)
+        status = status.copy()                          # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
@@ -320,6 +333,37 @@ class BlockFramer:
         else:
             self._buf_x, self._buf_t = buf_x[:, consumed:], buf_t[consumed:]
         self._trim_joints(int(t_first[-1]))
+
+    def _drain_one(self) -> None:
+        """The live case: exactly one block can be formed. Same result as the general path
+        of `_drain`, with Python scalars and views instead of index arrays."""
+        L, H = self.s.block_length, self.s.hop
+        window_t = self._buf_t[:L]
+        real = window_t >= 0
+        complete = bool(real.all())
+        if complete:
+            t_first, t_last = int(window_t[0]), int(window_t[-1])
+        else:
+            if not real.any():
+                return
+            t_first, t_last = int(window_t[int(real.argmax())]), int(window_t.max())
+        latest_joint = int(self._joint_t[-1]) if len(self._joint_t) else None
+        waited = self._cleaner.last_stamp - t_last >= int(self.s.joint_wait_s * 1e9)
+        if not (waited or (latest_joint is not None and t_last <= latest_joint)):
+            return
+        first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
+        velocity, steadiness, status = block_mean_velocity(
+            self._joint_t, self._joint_v, first, last, max_hold_ns=int(self.s.max_hold_s * 1e9),
+            with_steadiness=self.with_steadiness)
+        self.stats.blocks += 1
+        if status[0] == 1:
+            self.stats.blocks_held += 1
+        elif status[0] == MISSING:
+            self.stats.blocks_missing += 1
+        self._ready.append(Blocks(self._buf_x[None, :, :L], first, last, velocity, steadiness, status,
+                                  window_t[None, :H], ends_segment=False, complete=np.array([complete])))
+        self._buf_x, self._buf_t = self._buf_x[:, H:], self._buf_t[H:]
+        self._trim_joints(t_first)
 
     def _trim_joints(self, oldest_needed_ns: int) -> None:
         # Keep one joint state before the next block's span for the hold rule.

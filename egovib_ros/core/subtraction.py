@@ -117,6 +117,17 @@ class StreamingDenoiser:
 
     # --- internals -------------------------------------------------------------
     def _process(self, batches: list[Blocks]) -> DenoisedChunk:
+        if len(batches) == 1 and batches[0].n == 1 and not batches[0].ends_segment:
+            # The live case: one block per call.
+            blocks = batches[0]
+            heads = self._overlap_add(self._subtract(blocks))[0]
+            real = blocks.out_stamps_ns[0] >= 0
+            if real.all():
+                chunk = DenoisedChunk(blocks.out_stamps_ns[0], heads)
+            else:
+                chunk = DenoisedChunk(blocks.out_stamps_ns[0][real], heads[real])
+            self.samples_out += len(chunk)
+            return chunk
         stamps_out, values_out = [], []
         for blocks in batches:
             if blocks.n:

@@ -33,6 +33,8 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64)
     joint_velocity = np.asarray(joint_velocity, dtype=np.float64)
     n_blocks = len(t_first_ns)
+    if n_blocks == 1 and not with_steadiness and len(joint_stamps_ns):
+        return _one_block(joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]), max_hold_ns)
     n_joints = joint_velocity.shape[1] if joint_velocity.ndim == 2 else 0
     mean = np.full((n_blocks, n_joints), np.nan)
     steadiness = np.full((n_blocks, n_joints), np.nan)
@@ -40,9 +42,6 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
     if n_blocks == 0 or len(joint_stamps_ns) == 0:
         return mean, steadiness, status
 
-    if n_blocks == 1 and not with_steadiness:
-        return _one_block(joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]),
-                          max_hold_ns, mean, steadiness, status)
     start = np.searchsorted(joint_stamps_ns, t_first_ns, side="left")
     stop = np.searchsorted(joint_stamps_ns, t_last_ns, side="right")
     count = stop - start
@@ -87,17 +86,33 @@ def _row_width(max_count: int) -> int:
     return max(32, int(np.ceil(max_count / 8.0)) * 8)
 
 
-def _one_block(joint_stamps_ns, joint_velocity, t_first, t_last, max_hold_ns, mean, steadiness, status):
+def _one_block(joint_stamps_ns, joint_velocity, t_first, t_last, max_hold_ns):
     """The streaming case (one block per hop) with few numpy calls. Summing the rows of a
     slice adds them one after another, as the padded-row sum above does, so the numbers
     are identical."""
-    start = int(np.searchsorted(joint_stamps_ns, t_first, side="left"))
-    stop = int(np.searchsorted(joint_stamps_ns, t_last, side="right"))
+    start = int(joint_stamps_ns.searchsorted(t_first, side="left"))
+    stop = int(joint_stamps_ns.searchsorted(t_last, side="right"))
     if stop > start:
-        mean[0] = joint_velocity[start:stop].sum(axis=0) / float(stop - start)
-        status[0] = MATCHED
-    elif start > 0 and t_first - joint_stamps_ns[start - 1] <= max_hold_ns:
-        mean[0] = joint_velocity[start - 1]
-        steadiness[0] = 0.0
-        status[0] = HELD
-    return mean, steadiness, status
+        mean = joint_velocity[start:stop].sum(axis=0) / float(stop - start)
+        return mean[None], _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MATCHED]
+    if start > 0 and t_first - int(joint_stamps_ns[start - 1]) <= max_hold_ns:
+        return joint_velocity[start - 1][None].copy(), np.zeros((1, joint_velocity.shape[1])), _STATUS[HELD]
+    return np.full((1, joint_velocity.shape[1]), np.nan), _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MISSING]
+
+
+class _Frozen(dict):
+    """Read-only per-size constants for the one-block path (returned arrays are never written)."""
+
+    def __init__(self, make):
+        super().__init__()
+        self._make = make
+
+    def __missing__(self, key):
+        value = self._make(key)
+        value.flags.writeable = False
+        self[key] = value
+        return value
+
+
+_NAN_STEADINESS = _Frozen(lambda n_joints: np.full((1, n_joints), np.nan))
+_STATUS = _Frozen(lambda code: np.array([code], dtype=np.int8))
