@@ -24,7 +24,7 @@ import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
-from egovib_ros.core.velocity import MISSING, block_mean_velocity
+from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
@@ -199,6 +199,7 @@ class BlockFramer:
         self._ready: list[Blocks] = []
         self.with_steadiness = True
         self._offsets = np.arange(settings.block_length)
+        self._max_hold_ns = int(settings.max_hold_s * 1e9)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -352,9 +353,13 @@ class BlockFramer:
         if not (waited or (latest_joint is not None and t_last <= latest_joint)):
             return
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
-        velocity, steadiness, status = block_mean_velocity(
-            self._joint_t, self._joint_v, first, last, max_hold_ns=int(self.s.max_hold_s * 1e9),
-            with_steadiness=self.with_steadiness)
+        if self.with_steadiness or not len(self._joint_t):
+            velocity, steadiness, status = block_mean_velocity(
+                self._joint_t, self._joint_v, first, last, max_hold_ns=self._max_hold_ns,
+                with_steadiness=self.with_steadiness)
+        else:
+            velocity, steadiness, status = one_block_mean_velocity(
+                self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns)
         self.stats.blocks += 1
         if status[0] == 1:
             self.stats.blocks_held += 1

@@ -34,7 +34,7 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
     joint_velocity = np.asarray(joint_velocity, dtype=np.float64)
     n_blocks = len(t_first_ns)
     if n_blocks == 1 and not with_steadiness and len(joint_stamps_ns):
-        return _one_block(joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]), max_hold_ns)
+        return one_block_mean_velocity(joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]), max_hold_ns)
     n_joints = joint_velocity.shape[1] if joint_velocity.ndim == 2 else 0
     mean = np.full((n_blocks, n_joints), np.nan)
     steadiness = np.full((n_blocks, n_joints), np.nan)
@@ -86,7 +86,7 @@ def _row_width(max_count: int) -> int:
     return max(32, int(np.ceil(max_count / 8.0)) * 8)
 
 
-def _one_block(joint_stamps_ns, joint_velocity, t_first, t_last, max_hold_ns):
+def one_block_mean_velocity(joint_stamps_ns, joint_velocity, t_first, t_last, max_hold_ns):
     """The streaming case (one block per hop) with few numpy calls. Summing the rows of a
     slice adds them one after another, as the padded-row sum above does, so the numbers
     are identical."""
