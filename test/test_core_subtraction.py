@@ -145,6 +145,8 @@ def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
     denoiser = StreamingDenoiser(model)
     with pytest.raises(StreamError, match="1500 Hz but the model expects 3000 Hz"):
         denoiser.push_accel((np.arange(1000) * 666_667).astype(np.int64), data["accel"][:1000])
+    with pytest.raises(StreamError, match="1500 Hz"):                 # and it keeps refusing
+        denoiser.push_accel((np.arange(1000, 1100) * 666_667).astype(np.int64), data["accel"][:100])
     with pytest.raises(StreamError, match="sample rate"):
         StreamingDenoiser(model, sample_rate_hz=1000.0)
     with pytest.raises(StreamError, match="block length 32"):

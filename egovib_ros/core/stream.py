@@ -195,6 +195,7 @@ class BlockFramer:
         self._joint_t = np.zeros(0, dtype=np.int64)
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
+        self._rate_error = ""
         self._rate_stamps: list[np.ndarray] = []
         self._ready: list[Blocks] = []
         self.with_steadiness = True
@@ -260,6 +261,8 @@ class BlockFramer:
 
     def _check_rate(self, stamps: np.ndarray) -> None:
         if self._rate_checked:
+            if self._rate_error:
+                raise StreamError(self._rate_error)     # a wrong rate stays wrong: refuse every chunk
             return
         self._rate_stamps.append(stamps[stamps >= 0])
         seen = np.concatenate(self._rate_stamps)
@@ -269,8 +272,9 @@ class BlockFramer:
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            raise StreamError(f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
-                              f"{self.s.sample_rate_hz:g} Hz")
+            self._rate_error = (f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
+                                f"{self.s.sample_rate_hz:g} Hz")
+            raise StreamError(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
