@@ -8,12 +8,16 @@ message of a batch has the same length and the same structure, only the stamp
 and the numbers differ.  Anything unusual (mixed frame_id lengths, big-endian
 CDR, different joint names) falls back to rosbags per message.
 
+Reading MCAP bags scans the MCAP records directly (`_mcap_chunks`), ~2x faster
+than rosbags' reader; sqlite3 bags, file-compressed bags and anything the scan
+does not expect go through rosbags.
+
 CDR here is what rclpy produces: a 4-byte encapsulation header
 ``00 01 00 00`` (little-endian CDR) followed by the body, with alignment
 counted from the start of the body.
 
 Public API:
-    Recording, read_recording(path), write_recording(path, rec)
+    Recording, read_recording(path), write_recording(path, rec), write_recordings(path, slices)
     encode_imu_batch / decode_imu / decode_imu_batch           (nodes: raw CDR)
     encode_joint_state_batch / decode_joint_state_batch
     encode_commands / decode_commands
@@ -183,7 +187,7 @@ def decode_imu_batch(raws: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray]:
     if len(first) >= 16 and first[:2] == CDR_LE_HEADER[:2]:
         frame_len = struct.unpack_from("<I", first, 12)[0] - 1
         length = _imu_length(frame_len)
-        if all(len(r) == length for r in raws):
+        if set(map(len, raws)) == {length}:
             arr = np.frombuffer(b"".join(raws), dtype=_imu_dtype(frame_len))
             if np.all(arr["strlen"] == frame_len + 1):
                 stamps = arr["sec"].astype(np.int64) * _NS + arr["nanosec"].astype(np.int64)
@@ -264,8 +268,8 @@ def decode_joint_state_batch(raws: Sequence[bytes], names: Sequence[str] | None 
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
     """Stamps (n,), positions (n, J), velocities (n, J) and joint names of serialised JointStates.
 
-    Columns follow `names` (default: the names of the first message); a joint
-    missing from a message gives NaN.
+    Columns follow `names` (default: the names of the first message); messages may
+    carry other joints too; a joint missing from a message gives NaN.
     """
     n = len(raws)
     if n == 0:
@@ -275,8 +279,9 @@ def decode_joint_state_batch(raws: Sequence[bytes], names: Sequence[str] | None 
     msg_names, pos_off, n_pos, vel_off, n_vel, _ = _joint_state_layout(first)
     names = tuple(names) if names is not None else msg_names
     length = len(first)
-    if (first[:2] == CDR_LE_HEADER[:2] and msg_names == names and n_pos == n_vel == len(names)
-            and all(len(r) == length for r in raws)):
+    columns = [msg_names.index(name) for name in names] if set(names) <= set(msg_names) else None
+    if (first[:2] == CDR_LE_HEADER[:2] and columns is not None and n_pos == n_vel == len(msg_names)
+            and set(map(len, raws)) == {length}):
         buf = np.frombuffer(b"".join(raws), np.uint8).reshape(n, length)
         structure = slice(12, pos_off)          # frame_id, names, position count
         if np.all(buf[:, structure] == buf[0, structure]) and np.all(
@@ -286,7 +291,9 @@ def decode_joint_state_batch(raws: Sequence[bytes], names: Sequence[str] | None 
                               "offsets": [4, 8, pos_off, vel_off], "itemsize": length})
             arr = buf.view(dtype).reshape(n)
             stamps = arr["sec"].astype(np.int64) * _NS + arr["nanosec"].astype(np.int64)
-            return stamps, arr["pos"].astype(np.float64), arr["vel"].astype(np.float64), names
+            # (a robot's joint_states may carry more joints than asked for: pick the columns)
+            return (stamps, arr["pos"][:, columns].astype(np.float64), arr["vel"][:, columns].astype(np.float64),
+                    names)
     # Unusual batch: rosbags per message, columns matched by joint name.
     stamps = np.empty(n, np.int64)
     position = np.full((n, len(names)), np.nan)
@@ -413,31 +420,41 @@ def write_recording(path: str | os.PathLike, rec: Recording, *, storage: str = "
     Messages of all topics are written in stamp order.  `progress(n_messages)`
     is called now and then with the number written since the last call.
     """
-    streams = _recording_streams(rec)
+    write_recordings(path, [rec], storage=storage, compress=compress, progress=progress)
+
+
+def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, storage: str = "mcap",
+                     compress: bool = False, progress=None) -> None:
+    """Write consecutive time slices of a recording into one bag (constant memory for long runs).
+
+    Each slice is written in stamp order; topics are declared when first seen.
+    """
     chunk = 50_000
     with BagWriter(path, storage=storage, compress=compress) as bag:
-        for topic, _, _ in streams:
-            bag.add_topic(topic, TOPIC_TYPES[topic])
-
-        def messages(index: int):
-            topic, stamps, encode = streams[index]
-            stamps = np.asarray(stamps, np.int64)
-            for a in range(0, len(stamps), chunk):
-                datas = encode(a, a + chunk)
-                for stamp, data in zip(stamps[a:a + chunk].tolist(), datas):
-                    yield stamp, index, data
-
-        conns = [bag._connections[topic] for topic, _, _ in streams]
         write = bag._writer.write
-        count = 0
-        for stamp, index, data in heapq.merge(*(messages(i) for i in range(len(streams)))):
-            write(conns[index], stamp, data)
-            count += 1
-            if progress is not None and count == chunk:
+        for rec in pieces:
+            streams = _recording_streams(rec)
+            for topic, _, _ in streams:
+                bag.add_topic(topic, TOPIC_TYPES[topic])
+            conns = [bag._connections[topic] for topic, _, _ in streams]
+
+            def messages(index: int):
+                _, stamps, encode = streams[index]
+                stamps = np.asarray(stamps, np.int64)
+                for a in range(0, len(stamps), chunk):
+                    datas = encode(a, a + chunk)
+                    for stamp, data in zip(stamps[a:a + chunk].tolist(), datas):
+                        yield stamp, index, data
+
+            count = 0
+            for stamp, index, data in heapq.merge(*(messages(i) for i in range(len(streams)))):
+                write(conns[index], stamp, data)
+                count += 1
+                if progress is not None and count == chunk:
+                    progress(count)
+                    count = 0
+            if progress is not None and count:
                 progress(count)
-                count = 0
-        if progress is not None and count:
-            progress(count)
 
 
 # --------------------------------------------------------------------------
@@ -450,7 +467,8 @@ def _open_reader(path: Path) -> Reader:
         reader = Reader(path)
         reader.open()
     except Exception as exc:  # rosbags raises several types for broken bags
-        raise BagError(f"{path}: not a readable rosbag2 bag ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BagError(f"{path}: not a readable rosbag2 bag ({reason})") from None
     return reader
 
 
@@ -464,7 +482,103 @@ def bag_topics(path: str | os.PathLike) -> dict[str, tuple[str, int]]:
         reader.close()
 
 
-def read_recording(path: str | os.PathLike, *, ground_truth: bool = True, denoised: bool = True) -> Recording:
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _mcap_files(path: Path) -> list[Path] | None:
+    """The bag's .mcap files when it is an uncompressed-file MCAP bag, else None (use rosbags)."""
+    import yaml
+    try:
+        info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    except Exception:
+        return None
+    if info.get("storage_identifier") != "mcap" or info.get("compression_mode") not in ("", None):
+        return None
+    files = [path / name for name in info.get("relative_file_paths") or []]
+    return files if files and all(f.suffix == ".mcap" and f.exists() for f in files) else None
+
+
+def _mcap_chunks(file: Path, topics: set[str]):
+    """Yield ({topic: [raw CDR, ...]}, [command log times]) per MCAP chunk, in file order.
+
+    A plain scan of the MCAP records (spec: mcap.dev/spec) that keeps Python work
+    per message to a few operations; rosbags' reader is ~3x slower on
+    one-message-per-sample bags.  Raises on anything unexpected (caller falls back).
+    """
+    import mmap
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    unpack_u16, unpack_u32, unpack_u64 = (struct.Struct(f).unpack_from for f in ("<H", "<I", "<Q"))
+    channels: dict[int, str] = {}
+    commands_topic = BAG_TOPICS["commands"]
+
+    def string_at(buf, pos: int) -> tuple[str, int]:
+        n = unpack_u32(buf, pos)[0]
+        return bytes(buf[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
+
+    unpack_record = struct.Struct("<BQH").unpack_from        # opcode, record length, channel id (messages)
+
+    def scan(buf, pos: int, end: int, out: dict, times: list) -> None:
+        mv = memoryview(buf)
+        get_topic = channels.get
+        while pos < end:
+            op, length, channel_id = unpack_record(buf, pos)
+            body = pos + 9
+            if op == 0x05:
+                topic = get_topic(channel_id)
+                if topic is not None:
+                    out[topic].append(mv[body + 22:body + length])
+                    if topic == commands_topic:
+                        times.append(unpack_u64(buf, body + 6)[0])
+            elif op == 0x04:
+                channel_id = unpack_u16(buf, body)[0]
+                topic, _ = string_at(buf, body + 4)
+                if topic in topics:
+                    channels[channel_id] = topic
+            elif op == 0x06:
+                chunk_pos = body + 24
+                crc = unpack_u32(buf, chunk_pos)[0]
+                compression, chunk_pos = string_at(buf, chunk_pos + 4)
+                size = unpack_u64(buf, chunk_pos)[0]
+                raw = decompress(bytes(mv[chunk_pos + 8:chunk_pos + 8 + size]), compression,
+                                 unpack_u64(buf, body + 16)[0], crc)
+                inner: dict[str, list] = {t: [] for t in topics}
+                inner_times: list[int] = []
+                scan(raw, 0, len(raw), inner, inner_times)
+                out["__chunks__"].append((inner, inner_times))
+            elif op in (0x02, 0x0F):          # footer / data end: the rest is the summary
+                return
+            pos = body + length
+        if pos != end:
+            raise ValueError("truncated MCAP record")
+
+    with open(file, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        if buf[:8] != _MCAP_MAGIC:
+            raise ValueError("not an MCAP file")
+        top: dict[str, list] = {t: [] for t in topics}
+        top["__chunks__"] = []
+        top_times: list[int] = []
+        # scan top-level records lazily, chunk by chunk, so memory stays bounded
+        pos, end = 8, len(buf) - 8
+        while pos < end:
+            op = buf[pos]
+            length = unpack_u64(buf, pos + 1)[0]
+            if op in (0x02, 0x0F):
+                break
+            top["__chunks__"] = []
+            scan(buf, pos, pos + 9 + length, top, top_times)
+            for inner, inner_times in top["__chunks__"]:
+                yield inner, inner_times
+            if any(top[t] for t in topics):            # messages outside chunks
+                yield {t: [bytes(x) for x in top[t]] for t in topics}, list(top_times)
+                for t in topics:
+                    top[t] = []
+                top_times.clear()
+            pos += 9 + length
+
+
+def read_recording(path: str | os.PathLike, *, ground_truth: bool = True, denoised: bool = True,
+                   joint_names: Sequence[str] = JOINT_NAMES) -> Recording:
     """Read a rosbag2 bag (MCAP or sqlite3) into a Recording.
 
     Requires `/accelerometer/raw` and `/joint_states`; the ground-truth,
@@ -501,25 +615,46 @@ def read_recording(path: str | os.PathLike, *, ground_truth: bool = True, denois
                 if TOPIC_TYPES[topic] == IMU_TYPE:
                     decoded[topic].append(decode_imu_batch(raws))
                 elif TOPIC_TYPES[topic] == JOINT_STATE_TYPE:
-                    decoded[topic].append(decode_joint_state_batch(raws, JOINT_NAMES))
+                    decoded[topic].append(decode_joint_state_batch(raws, joint_names))
                 else:
                     decoded[topic].append([decode_commands(r) for r in raws])
             except Exception as exc:
                 raise BagError(f"{path}: topic {topic}: cannot decode message ({exc})") from None
             pending[topic] = []
 
-        try:
-            for conn, log_time, raw in reader.messages(connections=connections):
-                bucket = pending[conn.topic]
-                bucket.append(raw)
-                if conn.topic == BAG_TOPICS["commands"]:
-                    command_times.append(log_time)
-                elif len(bucket) >= _READ_BATCH:
-                    flush(conn.topic)
-        except BagError:
-            raise
-        except Exception as exc:
-            raise BagError(f"{path}: unreadable bag data ({exc})") from None
+        fast_done = False
+        files = _mcap_files(path)
+        if files is not None:
+            try:
+                for file in files:
+                    for batch, times in _mcap_chunks(file, set(pending)):
+                        for topic, raws in batch.items():
+                            if raws:
+                                pending[topic].extend(raws)
+                                if len(pending[topic]) >= _READ_BATCH and topic != BAG_TOPICS["commands"]:
+                                    flush(topic)
+                        command_times.extend(times)
+                fast_done = True
+            except BagError:
+                raise
+            except Exception:
+                # anything unexpected: start again with rosbags' reader, which reports errors properly
+                pending = {topic: [] for topic in pending}
+                decoded = {topic: [] for topic in decoded}
+                command_times.clear()
+        if not fast_done:
+            try:
+                for conn, log_time, raw in reader.messages(connections=connections):
+                    bucket = pending[conn.topic]
+                    bucket.append(raw)
+                    if conn.topic == BAG_TOPICS["commands"]:
+                        command_times.append(log_time)
+                    elif len(bucket) >= _READ_BATCH:
+                        flush(conn.topic)
+            except BagError:
+                raise
+            except Exception as exc:
+                raise BagError(f"{path}: unreadable bag data ({exc})") from None
         for topic in list(pending):
             flush(topic)
     finally:
@@ -549,11 +684,11 @@ def read_recording(path: str | os.PathLike, *, ground_truth: bool = True, denois
         order = np.argsort(js_stamps, kind="stable")
         js_stamps, js_pos, js_vel = js_stamps[order], js_pos[order], js_vel[order]
     if np.isnan(js_vel).all(axis=0).any():
-        missing = [JOINT_NAMES[j] for j in np.flatnonzero(np.isnan(js_vel).all(axis=0))]
+        missing = [joint_names[j] for j in np.flatnonzero(np.isnan(js_vel).all(axis=0))]
         raise BagError(f"{path}: topic {BAG_TOPICS['joint_states']} lacks joint(s) {', '.join(missing)}")
 
     rec = Recording(accel_stamps_ns=raw[0], accel=raw[1], joint_stamps_ns=js_stamps,
-                    joint_position=js_pos, joint_velocity=js_vel, joint_names=JOINT_NAMES)
+                    joint_position=js_pos, joint_velocity=js_vel, joint_names=tuple(joint_names))
     for key in ("contact", "ego"):
         arrays = imu_arrays(BAG_TOPICS[key])
         if arrays is not None:

@@ -77,10 +77,11 @@ def _expected_cells(model: NoiseModel) -> np.ndarray:
 
 def run_denoise(args: argparse.Namespace) -> int:
     model = NoiseModel.load(args.model)
-    rec = read_recording(args.bag)
+    rec = read_recording(args.bag, joint_names=model.joint_names)      # the joints the model knows
     stamps, values, stats = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
                                           rec.joint_velocity, model, channels=args.channels,
-                                          oversubtraction=args.oversubtraction, floor=args.floor)
+                                          oversubtraction=args.oversubtraction, floor=args.floor,
+                                          joint_names=rec.joint_names, source=str(args.bag))
     if values.shape[1] == 1:   # CONTRACT: combined signal in x, y = z = 0
         values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
     out = dataclasses.replace(rec, denoised_stamps_ns=stamps, denoised=values)

@@ -125,3 +125,45 @@ def test_bad_model_files_give_one_line_errors(tmp_path):
     np.savez(negative, **{**fields, "mean": -np.ones_like(fields["mean"])})
     with pytest.raises(ModelFileError, match="negative or non-finite"):
         NoiseModel.load(negative)
+
+
+def test_superposition_for_one_and_three_joints():
+    rng = np.random.default_rng(3)
+    one = NoiseModel(grid=(np.array([-1.0, 0.0, 1.0]),), joint_names=("a",), channels=("combined",),
+                     mean=rng.uniform(1, 2, (3, 1, 3)), std=rng.uniform(0, 1, (3, 1, 3)),
+                     counts=np.ones(3, dtype=int), block_length=4, hop=2, window=analysis_window(4, 2),
+                     measured="superposition")
+    mu, sd = one.superposed()
+    np.testing.assert_allclose(mu, one.mean)             # one joint: Eq. 6 is the identity
+    np.testing.assert_allclose(sd, one.std)
+    grid = tuple(np.array([-1.0, 0.0, 1.0]) for _ in range(3))
+    mean, std = np.zeros((3, 3, 3, 1, 3)), np.zeros((3, 3, 3, 1, 3))
+    mean[1, 1, 1], std[1, 1, 1] = 1.0, 0.2
+    mean[2, 1, 1], mean[1, 2, 1], mean[1, 1, 2] = 3.0, 4.0, 5.0
+    std[2, 1, 1], std[1, 2, 1], std[1, 1, 2] = 0.3, 0.4, 0.5
+    three = NoiseModel(grid=grid, joint_names=("a", "b", "c"), channels=("combined",), mean=mean, std=std,
+                       counts=np.ones((3, 3, 3), dtype=int), block_length=4, hop=2, window=analysis_window(4, 2),
+                       measured="superposition")
+    mu, sd = three.superposed()
+    np.testing.assert_allclose(mu[2, 2, 2, 0], 3 + 4 + 5 - 2 * 1.0)
+    np.testing.assert_allclose(sd[2, 2, 2, 0], np.sqrt(0.09 + 0.16 + 0.25 + 2 * 0.04))
+    value, _ = three.estimate(np.array([[1.0, 1.0, 1.0]]))
+    np.testing.assert_allclose(value[0], (mu + sd)[2, 2, 2])
+
+
+def test_malformed_fields_and_empty_models_are_one_line_errors(tmp_path):
+    good = tmp_path / "good.npz"
+    tiny_model().save(good)
+    with np.load(good, allow_pickle=False) as data:
+        fields = {k: data[k] for k in data.files}
+    cases = {"n_joints": np.array([2, 2]), "joint_names": np.array("a"), "band_hz": np.array([150.0]),
+             "sample_rate_hz": np.array("fast"), "grid_0": np.array([-1.0, np.nan, 1.0]), "hop": np.array(0)}
+    for key, bad in cases.items():
+        path = tmp_path / f"bad_{key}.npz"
+        np.savez(path, **{**fields, key: bad})
+        with pytest.raises(ModelFileError) as info:
+            NoiseModel.load(path)
+        assert str(info.value).startswith(str(path)) and "\n" not in str(info.value), key
+    empty = tiny_model(measured="full", counts=np.zeros((3, 3), dtype=int))
+    with pytest.raises(ModelFileError, match="no measured cell"):
+        empty.estimate_table()

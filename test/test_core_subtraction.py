@@ -169,3 +169,85 @@ def test_oversubtraction_and_floor_options(model):
     floored = denoise_batch(*args, floor=0.1)[1]
     level = lambda x: np.mean(np.abs(x))  # noqa: E731
     assert level(harder) < level(paper) < level(floored)
+
+
+def test_joint_states_lagging_the_accelerometer_across_long_gaps_still_equal_batch(model):
+    data = stream(6, CELLS[1:5], seed=12)
+    keep = np.ones(len(data["t_acc"]), dtype=bool)
+    for start in (3000, 9000, 14000):
+        keep[start:start + 300] = False                 # 0.1 s gaps: each ends a segment
+    data = dict(data, t_acc=data["t_acc"][keep], accel=data["accel"][keep])
+    b_stamps, b_values, stats = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    assert stats["resets"] == 3
+    denoiser = StreamingDenoiser(model)                  # joint states arrive 10 ms late (< joint_wait 20 ms)
+    chunks = push_random_chunks(denoiser, data, np.random.default_rng(4), joint_lead_ns=-10_000_000)
+    stamps, values = collect(chunks + [denoiser.flush()])
+    np.testing.assert_array_equal(stamps, b_stamps)
+    assert np.max(np.abs(values - b_values)) <= 1e-12
+
+
+@pytest.mark.parametrize("length,hop", [(64, 16), (32, 16)])
+def test_other_block_settings_keep_latency_and_streaming_equal_batch(length, hop):
+    data = stream(6, CELLS[:4], seed=13)
+    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"],
+                                block_length=length, hop=hop)
+    denoiser = StreamingDenoiser(model)
+    assert denoiser.delay_samples == (length - hop, length - 1)
+    denoiser.push_joint_states(data["t_joint"], data["velocity"])
+    emitted, chunks = 0, []
+    for n in range(1, 400):
+        chunks.append(denoiser.push_accel(data["t_acc"][n - 1:n], data["accel"][n - 1:n]))
+        emitted += len(chunks[-1])
+        if n >= length:
+            assert length - hop <= n - emitted <= length - 1
+    chunks += [denoiser.push_accel(data["t_acc"][399:], data["accel"][399:]), denoiser.flush()]
+    stamps, values = collect(chunks)
+    b_stamps, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    np.testing.assert_array_equal(stamps, b_stamps)
+    assert np.max(np.abs(values - b_values)) <= 1e-12
+
+
+def test_dead_axis_with_spectral_floor_stays_finite(model):
+    data = stream(1, [(1.5, 0.02)], seed=14)
+    accel = np.zeros_like(data["accel"])                # a sensor delivering exact zeros
+    _, values, _ = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model, floor=1.0)
+    assert np.all(values == 0)
+
+
+def test_leading_nonfinite_samples_are_dropped_not_zeroed(model):
+    data = stream(2, [(1.5, 0.02)], seed=15)
+    accel = data["accel"].copy()
+    accel[:5] = np.nan                                  # nothing to hold yet
+    stamps, values, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
+    clean_stamps, clean, _ = denoise_batch(data["t_acc"][5:], data["accel"][5:], data["t_joint"], data["velocity"],
+                                           model)
+    np.testing.assert_array_equal(stamps, clean_stamps)
+    np.testing.assert_array_equal(values, clean)        # no zero-to-gravity step ringing like a tap
+
+
+def test_backward_clock_jump_restarts_instead_of_dropping_everything(model):
+    first, second = stream(2, [(1.5, 0.02)], seed=16), stream(2, [(1.5, 0.02)], seed=17)
+    assert second["t_acc"][0] < first["t_acc"][-1]            # a bag played in a loop
+    denoiser = StreamingDenoiser(model)
+    rng = np.random.default_rng(5)
+    chunks = push_random_chunks(denoiser, first, rng) + push_random_chunks(denoiser, second, rng)
+    stamps, values = collect(chunks + [denoiser.flush()])
+    expected = np.concatenate([first["t_acc"], second["t_acc"]])
+    np.testing.assert_array_equal(stamps, expected)
+    stats = denoiser.stats
+    assert stats["resets"] == 1 and stats["dropped_out_of_order"] == stats["joint_states_dropped"] == 0
+    assert stats["blocks_no_joint_state"] == 0 and np.all(np.isfinite(values))
+
+
+def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
+    path = tmp_path / "elbow.npz"
+    dataclasses.replace(model, joint_names=("shoulder", "elbow")).save(path)
+    from egovib_ros.core import NoiseModel
+    with pytest.raises(StreamError, match=r"elbow.npz: model joints \['shoulder', 'elbow'\] do not match"):
+        StreamingDenoiser(NoiseModel.load(path), joint_names=("r_wrist_roll_joint", "r_gripper_joint"))
+
+
+def test_stream_errors_name_their_source(model):
+    denoiser = StreamingDenoiser(model, source="/accelerometer/raw")
+    with pytest.raises(StreamError, match=r"^/accelerometer/raw: accelerometer chunk"):
+        denoiser.push_accel(np.arange(4, dtype=np.int64), np.zeros((4, 2)))

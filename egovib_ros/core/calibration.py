@@ -26,7 +26,7 @@ class CalibrationAccumulator:
                  sample_rate_hz: float = 3000.0, block_length: int = BLOCK_LENGTH, hop: int = HOP,
                  band_hz: tuple[float, float] = BAND_HZ, band_order: int = BAND_ORDER, sweep: str = "full",
                  cell_tolerance: float = 0.3, steady_tolerance: float = 0.3,
-                 joint_wait_s: float = 0.02, max_hold_s: float = 0.05):
+                 joint_wait_s: float = 0.02, max_hold_s: float = 0.05, source: str = ""):
         if sweep not in MEASURED_KINDS:
             raise ConfigError(f"grid: expected one of {MEASURED_KINDS}, got {sweep!r}")
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else default_grid()))
@@ -38,7 +38,7 @@ class CalibrationAccumulator:
         self.steady_tolerance = float(steady_tolerance)
         self.settings = FramerSettings(sample_rate_hz=sample_rate_hz, block_length=block_length, hop=hop,
                                        band_hz=band_hz, band_order=band_order, layout="all",
-                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s)
+                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s, source=source)
         self._framer = BlockFramer(self.settings, len(self.grid))
         self.window = self._framer.window
         shape = self.grid_shape + (len(MODEL_CHANNELS), block_length // 2 + 1)
@@ -153,7 +153,7 @@ def calibrate_arrays(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamp
     """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
 
     `progress`, if given, is called with the number of accelerometer samples consumed."""
-    acc = CalibrationAccumulator(**options)
+    acc = CalibrationAccumulator(source=source, **options)
     accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64)
     step = max(1, int(chunk_s * acc.settings.sample_rate_hz))

@@ -3,8 +3,10 @@
 Paper Eq. 5: |N(f, v)| = mu_N(f, v) + sd_N(f, v).
 Paper Eq. 6 (superposition from cells where at most one joint moves), for J joints:
     mu  = sum_j mu(v_j on axis j) - (J - 1) mu(0)
-    sd  = sqrt(sum_j sd(v_j on axis j)^2 + sd(0)^2)
-which for J = 2 is exactly the paper's equation (including its + sd(0, 0)^2 term).
+    sd  = sqrt(sum_j sd(v_j on axis j)^2 + (J - 1) sd(0)^2)
+which for J = 2 is exactly the paper's equation, including its + sd(0, 0)^2 term (so
+at an on-axis cell Eq. 6 gives sqrt(sd^2 + sd0^2), and at (0, 0) sqrt(3) sd0, not the
+measured sd: the paper's over-subtraction), and for J = 1 returns the measured table.
 Between grid points the estimate is interpolated multilinearly (bilinear for 2 joints);
 outside the grid it is clamped to the edge and the block is counted as out of grid.
 """
@@ -22,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
-from egovib_ros.core.blocks import WINDOW_NAME, n_bins
-from egovib_ros.errors import ModelFileError
+from egovib_ros.core.blocks import WINDOW_NAME, n_bins, validate_blocking
+from egovib_ros.errors import ConfigError, ModelFileError
 
 LOG = logging.getLogger("egovib_ros.core")
 
@@ -105,8 +107,16 @@ class NoiseModel:
         if self.counts.shape != self.grid_shape or np.any(self.counts < 0):
             raise ModelFileError(f"{where}: 'counts' has shape {self.counts.shape}, expected {self.grid_shape}")
         for j, g in enumerate(self.grid):
-            if len(g) < 2 or np.any(np.diff(g) <= 0):
-                raise ModelFileError(f"{where}: grid of joint {j} must be increasing with >= 2 values")
+            if g.ndim != 1 or len(g) < 2 or not np.all(np.isfinite(g)) or np.any(np.diff(g) <= 0):
+                raise ModelFileError(f"{where}: grid of joint {j} must be finite and increasing with >= 2 values")
+        if not (np.isfinite(self.sample_rate_hz) and self.sample_rate_hz > 0):
+            raise ModelFileError(f"{where}: sample rate must be a positive number, got {self.sample_rate_hz}")
+        try:
+            validate_blocking(self.block_length, self.hop)
+        except ConfigError as exc:
+            raise ModelFileError(f"{where}: {exc}") from None
+        if not (np.all(np.isfinite(self.band_hz)) and 0 < self.band_hz[0] < self.band_hz[1] < self.sample_rate_hz / 2):
+            raise ModelFileError(f"{where}: band {self.band_hz} Hz does not fit the sample rate {self.sample_rate_hz:g} Hz")
         if self.window.shape != (self.block_length,):
             raise ModelFileError(f"{where}: window has {self.window.size} samples, block_length is {self.block_length}")
         if self.measured not in MEASURED_KINDS:
@@ -132,7 +142,7 @@ class NoiseModel:
         zero = self.zero_index()
         mu0, sd0 = self.mean[zero], self.std[zero]
         mu = np.zeros_like(self.mean) - (self.n_joints - 1) * mu0
-        var = np.zeros_like(self.std) + sd0 ** 2
+        var = np.zeros_like(self.std) + (self.n_joints - 1) * sd0 ** 2
         for j in range(self.n_joints):
             index = list(zero)
             index[j] = slice(None)
@@ -157,6 +167,8 @@ class NoiseModel:
         else:
             mu, sd = self.mean.copy(), self.std.copy()
             filled = ~have
+            if not have.any():
+                raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: no measured cell at all")
             if filled.any():
                 LOG.warning("noise model: %d of %d cells are empty; filled by superposition (Eq. 6) "
                             "where its single-joint cells exist, else from the nearest measured cell",
@@ -312,10 +324,22 @@ class NoiseModel:
         missing = [k for k in required if k not in fields]
         if missing:
             raise ModelFileError(f"{where}: missing field(s) {missing}")
-        n_joints = int(fields["n_joints"])
+        try:
+            n_joints = int(fields["n_joints"])
+        except (TypeError, ValueError):
+            raise ModelFileError(f"{where}: malformed field 'n_joints'") from None
         grid_keys = [f"grid_{j}" for j in range(n_joints)]
         if any(k not in fields for k in grid_keys):
             raise ModelFileError(f"{where}: missing grid arrays for {n_joints} joints")
+        try:
+            return cls._from_fields(fields, grid_keys, where)
+        except ModelFileError:
+            raise
+        except (TypeError, ValueError, IndexError, KeyError) as exc:
+            raise ModelFileError(f"{where}: malformed field ({exc.__class__.__name__}: {exc})") from None
+
+    @classmethod
+    def _from_fields(cls, fields: dict, grid_keys: list[str], where: str) -> "NoiseModel":
         provenance = dict(zip([str(k) for k in fields.get("provenance_keys", [])],
                               [str(v) for v in fields.get("provenance_values", [])]))
         provenance["path"] = where

@@ -4,7 +4,8 @@
 the input (out-of-order stamps, NaN/inf, gaps), band-passes it, cuts it into blocks
 of `block_length` samples every `hop`, and hands out each block once the joint
 states covering its time span have arrived. `frame_batch` does the same for whole
-arrays with the same arithmetic, so streaming and batch results agree.
+arrays through the same code, so streaming and batch results agree (to the bit for
+the paper's settings, within ~1e-16 otherwise).
 
 Bad-input policy (counted in `stats`, never a silent wrong result):
 - a sample stamped at or before the previous one is dropped;
@@ -42,6 +43,8 @@ class FramerSettings:
     joint_wait_s: float = 0.02            # give joint states this long to cover a block
     max_hold_s: float = 0.05              # use a joint state this old when none falls in a block
     rate_tolerance: float = 0.1           # accepted relative error of the measured sample rate
+    clock_jump_s: float = 1.0             # a stamp this far back means a restarted clock (bag loop, reset)
+    source: str = ""                      # topic or file named in error messages
 
     def __post_init__(self) -> None:
         validate_blocking(self.block_length, self.hop)
@@ -51,6 +54,9 @@ class FramerSettings:
     @property
     def period_ns(self) -> float:
         return 1e9 / self.sample_rate_hz
+
+    def error(self, message: str) -> StreamError:
+        return StreamError(f"{self.source}: {message}" if self.source else message)
 
 
 @dataclass
@@ -76,7 +82,8 @@ class Blocks:
 class _Segment:
     stamps: np.ndarray         # int64, -1 marks synthetic (gap-fill) samples
     values: np.ndarray         # (n, 3) raw, cleaned
-    ends_stream: bool          # a long gap follows: flush after this segment
+    ends_stream: bool          # a long gap or a clock jump follows: close the segment
+    wait_for_joints: bool = True   # False after a clock jump: no more joint states on the old clock
 
 
 @dataclass
@@ -84,6 +91,7 @@ class FramerStats:
     samples_in: int = 0
     dropped_out_of_order: int = 0
     nonfinite_replaced: int = 0
+    nonfinite_dropped: int = 0
     gap_filled_samples: int = 0
     resets: int = 0
     joint_states_in: int = 0
@@ -107,9 +115,12 @@ class _Cleaner:
         stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
         accel = np.asarray(accel, dtype=np.float64)
         if accel.ndim != 2 or accel.shape != (len(stamps), 3):
-            raise StreamError(f"accelerometer chunk: expected stamps (N,) and samples (N, 3), "
-                              f"got {stamps.shape} and {accel.shape}")
+            raise self.s.error(f"accelerometer chunk: expected stamps (N,) and samples (N, 3), "
+                               f"got {stamps.shape} and {accel.shape}")
         self.stats.samples_in += len(stamps)
+        return self._segments(stamps, accel)
+
+    def _segments(self, stamps: np.ndarray, accel: np.ndarray) -> list[_Segment]:
         if len(stamps) == 0:
             return []
         if self.last_stamp is not None:
@@ -125,6 +136,18 @@ class _Cleaner:
         # Out of order: keep a sample only if later than everything accepted before it.
         before = np.maximum.accumulate(np.concatenate(
             [[self.last_stamp if self.last_stamp is not None else np.iinfo(np.int64).min], stamps[:-1]]))
+        known = before != np.iinfo(np.int64).min        # the sentinel would wrap when subtracted from
+        jump = np.flatnonzero(known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9)))
+        if len(jump):
+            # The clock went back (bag loop, sensor reset): end the segment, start afresh.
+            i = int(jump[0])
+            head = self._segments(stamps[:i], accel[:i])
+            if not head:
+                head = [_Segment(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), ends_stream=True)]
+            head[-1].ends_stream, head[-1].wait_for_joints = True, False
+            self.stats.resets += 1
+            self.last_stamp = None
+            return head + self._segments(stamps[i:], accel[i:])
         keep = stamps > before
         if not keep.all():
             self.stats.dropped_out_of_order += int((~keep).sum())
@@ -133,6 +156,13 @@ class _Cleaner:
             return []
         # Non-finite samples: hold the last finite one.
         bad = ~np.all(np.isfinite(accel), axis=1)
+        if bad.any() and self.last_value is None:
+            # Nothing to hold yet: drop leading non-finite samples (a zero would ring like a tap).
+            first_good = int(np.argmin(bad)) if not bad.all() else len(bad)
+            self.stats.nonfinite_dropped += first_good
+            stamps, accel, bad = stamps[first_good:], accel[first_good:], bad[first_good:]
+            if len(stamps) == 0:
+                return []
         if bad.any():
             self.stats.nonfinite_replaced += int(bad.sum())
             accel = accel.copy()
@@ -198,6 +228,7 @@ class BlockFramer:
         self._rate_error = ""
         self._rate_stamps: list[np.ndarray] = []
         self._ready: list[Blocks] = []
+        self._closed: list[list] = []          # [buf_x, buf_t, wait_for_joints] of ended segments
         self.with_steadiness = True
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
@@ -208,8 +239,8 @@ class BlockFramer:
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
         velocity = np.asarray(velocity, dtype=np.float64)
         if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
-            raise StreamError(f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
-                              f"got {stamps_ns.shape} and {velocity.shape}")
+            raise self.s.error(f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
+                               f"got {stamps_ns.shape} and {velocity.shape}")
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
@@ -221,7 +252,22 @@ class BlockFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity])
             self._drain(final=False)
             return
-        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]])) if len(stamps_ns) else stamps_ns
+        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
+        known = before != np.iinfo(np.int64).min
+        jump = np.flatnonzero(known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9)))
+        if len(jump):
+            # The joint clock went back (bag loop, reset): forget the old timeline.
+            i = int(jump[0])
+            self.push_joint_states(stamps_ns[:i], velocity[:i])
+            self.stats.joint_states_in -= len(stamps_ns)       # counted once, here
+            # Complete the accelerometer blocks still pending on the old clock with its joint
+            # states, then forget them.
+            self._close_segment(wait_for_joints=False)
+            self._drain(final=False)
+            self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
+            self.push_joint_states(stamps_ns[i:], velocity[i:])
+            self.stats.joint_states_in += i
+            return
         keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
         self.stats.joint_states_dropped += int((~keep).sum())
         if keep.any():
@@ -233,15 +279,13 @@ class BlockFramer:
         for segment in self._cleaner.segments(stamps_ns, accel):
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
-            self._drain(final=False)
             if segment.ends_stream:
-                self._drain(final=True)
-                self._start_segment()
+                self._close_segment(wait_for_joints=segment.wait_for_joints)
+            self._drain(final=False)
 
     def flush(self) -> None:
         """End of stream: complete all pending blocks (zero padding at the end)."""
         self._drain(final=True)
-        self._start_segment()
 
     def pop_blocks(self) -> list[Blocks]:
         ready, self._ready = self._ready, []
@@ -262,7 +306,7 @@ class BlockFramer:
     def _check_rate(self, stamps: np.ndarray) -> None:
         if self._rate_checked:
             if self._rate_error:
-                raise StreamError(self._rate_error)     # a wrong rate stays wrong: refuse every chunk
+                raise self.s.error(self._rate_error)    # a wrong rate stays wrong: refuse every chunk
             return
         self._rate_stamps.append(stamps[stamps >= 0])
         seen = np.concatenate(self._rate_stamps)
@@ -274,7 +318,7 @@ class BlockFramer:
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
             self._rate_error = (f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
                                 f"{self.s.sample_rate_hz:g} Hz")
-            raise StreamError(self._rate_error)
+            raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
@@ -283,61 +327,81 @@ class BlockFramer:
         self._buf_x = np.concatenate([self._buf_x, filtered], axis=1)
         self._buf_t = np.concatenate([self._buf_t, stamps])
 
-    def _drain(self, *, final: bool) -> None:
+    def _close_segment(self, *, wait_for_joints: bool) -> None:
+        """End the open segment (long gap, clock jump, flush): pad it as at the end of a stream
+        and queue it. Its last blocks are released like any other, once their joint states
+        are in (or after `joint_wait_s`), unless the joint clock has restarted."""
         L, H = self.s.block_length, self.s.hop
         buf_x, buf_t = self._buf_x, self._buf_t
-        if not final and L <= len(buf_t) < L + H:
-            self._drain_one()
-            return
-        if final:
-            real_pos = np.flatnonzero(buf_t >= 0)
-            if len(real_pos) == 0:
-                self._buf_x, self._buf_t = buf_x[:, :0], buf_t[:0]
-                return
+        real_pos = np.flatnonzero(buf_t >= 0)
+        if len(real_pos):
             # Zero-pad so the block completing the last real sample exists.
             required = (int(real_pos[-1]) // H) * H + L
             if required > len(buf_t):
                 need = required - len(buf_t)
                 buf_x = np.concatenate([buf_x, np.zeros((self.n_channels, need))], axis=1)
                 buf_t = np.concatenate([buf_t, np.full(need, -1, dtype=np.int64)])
-            n_blocks = int(real_pos[-1]) // H + 1       # up to the block completing the last real sample
-        else:
-            n_blocks = (len(buf_t) - L) // H + 1 if len(buf_t) >= L else 0
-        if n_blocks <= 0:
+            self._closed.append([buf_x, buf_t, wait_for_joints])
+        self._start_segment()
+
+    def _drain(self, *, final: bool) -> None:
+        L, H = self.s.block_length, self.s.hop
+        if final:
+            self._close_segment(wait_for_joints=False)
+        # Closed segments first, in order; each ends with a block flagged ends_segment.
+        while self._closed:
+            buf_x, buf_t, wait = self._closed[0]
+            buf_x, buf_t = self._release(buf_x, buf_t, wait=wait and not final, closing=True)
+            if len(buf_t) >= L:                 # blocks still waiting for their joint states
+                self._closed[0][:2] = buf_x, buf_t
+                return
+            self._closed.pop(0)
+        if final:
             return
+        if L <= len(self._buf_t) < L + H:
+            self._drain_one()
+        else:
+            self._buf_x, self._buf_t = self._release(self._buf_x, self._buf_t, wait=True, closing=False)
+
+    def _release(self, buf_x: np.ndarray, buf_t: np.ndarray, *, wait: bool,
+                 closing: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Cut the blocks available in a buffer (those whose joint states are in, if `wait`),
+        queue them, and return what is left of the buffer."""
+        L, H = self.s.block_length, self.s.hop
+        n_blocks = (len(buf_t) - L) // H + 1 if len(buf_t) >= L else 0
+        if n_blocks <= 0:
+            return buf_x, buf_t
         index = (np.arange(n_blocks) * H)[:, None] + self._offsets[None, :]      # (B, L)
         window_t = buf_t[index]
         real = window_t >= 0
         any_real = real.any(axis=1)
         t_last = window_t.max(axis=1)                   # stamps increase; non-real samples are -1
         t_first = np.where(real, window_t, np.iinfo(np.int64).max).min(axis=1)
-        if not final:
+        if wait:
             latest_joint = self._joint_t[-1] if len(self._joint_t) else None
             waited = (self._cleaner.last_stamp - t_last) >= int(self.s.joint_wait_s * 1e9)
             ready = waited if latest_joint is None else (t_last <= latest_joint) | waited
             if not ready.all():                         # blocks are released strictly in order
                 n_blocks = int(np.argmin(ready))
                 if n_blocks == 0:
-                    return
+                    return buf_x, buf_t
                 index, window_t, real = index[:n_blocks], window_t[:n_blocks], real[:n_blocks]
                 any_real, t_first, t_last = any_real[:n_blocks], t_first[:n_blocks], t_last[:n_blocks]
         samples = buf_x[:, index].transpose(1, 0, 2).copy()                       # (B, C, L)
         velocity, steadiness, status = block_mean_velocity(
-            self._joint_t, self._joint_v, t_first, t_last, max_hold_ns=int(self.s.max_hold_s * 1e9),
-            with_steadiness=self.with_steadiness)
+            self._joint_t, self._joint_v, np.where(any_real, t_first, 0), np.where(any_real, t_last, 0),
+            max_hold_ns=self._max_hold_ns, with_steadiness=self.with_steadiness)
         status = status.copy()                          # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
         self.stats.blocks_missing += int(np.count_nonzero(status == MISSING))
-        self._ready.append(Blocks(samples, t_first, t_last, velocity, steadiness, status,
-                                  window_t[:, :H], ends_segment=final, complete=real.all(axis=1)))
-        consumed = n_blocks * H
-        if final:
-            self._buf_x, self._buf_t = buf_x[:, :0], buf_t[:0]
-        else:
-            self._buf_x, self._buf_t = buf_x[:, consumed:], buf_t[consumed:]
-        self._trim_joints(int(t_first[-1]))
+        rest_x, rest_t = buf_x[:, n_blocks * H:], buf_t[n_blocks * H:]
+        self._ready.append(Blocks(samples, t_first, t_last, velocity, steadiness, status, window_t[:, :H],
+                                  ends_segment=closing and len(rest_t) < L, complete=real.all(axis=1)))
+        if any_real.any():
+            self._trim_joints(int(t_first[any_real][-1]))
+        return rest_x, rest_t
 
     def _drain_one(self) -> None:
         """The live case: exactly one block can be formed. Same result as the general path

@@ -21,7 +21,6 @@ from egovib_ros.errors import ConfigError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
 
-_TINY = np.finfo(np.float64).tiny
 MagnitudeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -50,14 +49,16 @@ class StreamingDenoiser:
     size (in any interleaving); each push returns the samples that became final.
 
     Output sample k carries the stamp of input sample k. It is final when every block
-    covering it is processed: `hop` .. `block_length - 1` samples after it arrived
-    (10.7-21 ms at 3 kHz with L = 64), plus any wait for joint states (`joint_wait_s`).
+    covering it is processed: `block_length - hop` .. `block_length - 1` samples after it
+    arrived (10.7-21 ms at 3 kHz with L = 64, hop = 32), plus any wait for joint states
+    (`joint_wait_s`).
     """
 
     def __init__(self, model: NoiseModel, *, channels: str = "per_axis", oversubtraction: float = 1.0,
                  floor: float = 0.0, include_std: bool = True, rule: MagnitudeRule | None = None,
                  joint_wait_s: float = 0.02, max_hold_s: float = 0.05, max_fill_samples: int = 8,
-                 sample_rate_hz: float | None = None, block_length: int | None = None):
+                 sample_rate_hz: float | None = None, block_length: int | None = None,
+                 joint_names: tuple[str, ...] | None = None, source: str = ""):
         if channels not in ("per_axis", "combined"):
             raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
         if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
@@ -66,12 +67,15 @@ class StreamingDenoiser:
         if block_length is not None and block_length != model.block_length:
             raise StreamError(f"block length {block_length} differs from the model's {model.block_length} "
                               f"({model.provenance.get('path', 'model')})")
+        if joint_names is not None and tuple(joint_names) != model.joint_names:
+            raise StreamError(f"{model.provenance.get('path', 'model')}: model joints {list(model.joint_names)} "
+                              f"do not match the stream's {list(joint_names)}")
         self.model = model
         self.channels = channels
         self.settings = FramerSettings(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length,
                                        hop=model.hop, band_hz=model.band_hz, band_order=model.band_order,
                                        layout=channels, max_fill_samples=max_fill_samples,
-                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s)
+                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s, source=source)
         self._framer = BlockFramer(self.settings, model.n_joints)
         self._framer.with_steadiness = False
         if not np.allclose(self._framer.window, model.window, rtol=0, atol=1e-12):
@@ -97,7 +101,7 @@ class StreamingDenoiser:
     @property
     def delay_samples(self) -> tuple[int, int]:
         """(min, max) samples between a sample's arrival and its output."""
-        return self.model.hop, self.model.block_length - 1
+        return self.model.block_length - self.model.hop, self.model.block_length - 1
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
         self._framer.push_joint_states(stamps_ns, velocity)
@@ -155,7 +159,8 @@ class StreamingDenoiser:
     def _overlap_add(self, cleaned: np.ndarray) -> np.ndarray:
         """(B, C, L) processed blocks -> (B, hop, C) completed output hops; carries the tail.
 
-        The same additions in the same order whatever B is, so streaming == batch."""
+        With 50 % overlap the additions are the same whatever B is (streaming == batch to
+        the bit); with more overlap the tail is summed in another order (~1e-16 apart)."""
         n_blocks, n_channels, block_length = cleaned.shape
         hop = self.model.hop
         overlap = block_length // hop
@@ -199,8 +204,8 @@ class StreamingDenoiser:
             self.blocks_out_of_grid += n_outside
             self._warn_once("out_of_grid", "joint velocity outside the model grid: using the edge cells")
         cleaned = self._rule(magnitude, noise)
-        # Where |Y| = 0 the rule gives 0 too, so dividing by a tiny floor yields gain 0 there.
-        return cleaned / np.maximum(magnitude, _TINY)
+        # |Y| = 0 (a dead axis): gain 0, whatever the rule says (a floor would give inf * 0).
+        return np.divide(cleaned, magnitude, out=np.zeros_like(magnitude), where=magnitude > 0)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
@@ -210,12 +215,34 @@ class StreamingDenoiser:
 
 def denoise_batch(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_ns: np.ndarray,
                   joint_velocity: np.ndarray, model: NoiseModel, *, channels: str = "per_axis",
-                  **options) -> tuple[np.ndarray, np.ndarray, dict]:
+                  chunk_s: float = 30.0, **options) -> tuple[np.ndarray, np.ndarray, dict]:
     """Denoise whole arrays. Returns (stamps_ns (K,), values (K, C), stats); K equals the
-    number of valid input samples (all of them unless some were out of order)."""
+    number of valid input samples (all of them unless some were out of order or non-finite
+    before the first finite one).
+
+    Works through the streaming denoiser `chunk_s` seconds at a time, joint states first,
+    so working memory does not grow with the recording (the output does, of course).
+    """
     denoiser = StreamingDenoiser(model, channels=channels, **options)
-    denoiser._framer.push_joint_states(joint_stamps_ns, joint_velocity)
-    denoiser._framer.push_accel(accel_stamps_ns, accel)
-    denoiser._framer.flush()
-    chunk = denoiser._process(denoiser._framer.pop_blocks())
-    return chunk.stamps_ns, chunk.values, denoiser.stats
+    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
+    joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
+    step = max(1, int(chunk_s * model.sample_rate_hz))
+    wait_ns = int(denoiser.settings.joint_wait_s * 1e9) + 1
+    chunks, joint_pos = [], 0
+    for start in range(0, len(accel_stamps_ns), step):
+        stop = min(start + step, len(accel_stamps_ns))
+        last = stop == len(accel_stamps_ns)
+        joint_stop = len(joint_stamps_ns) if last else \
+            int(np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right"))
+        if joint_stop > joint_pos:
+            chunks.append(denoiser.push_joint_states(joint_stamps_ns[joint_pos:joint_stop],
+                                                     joint_velocity[joint_pos:joint_stop]))
+            joint_pos = joint_stop
+        chunks.append(denoiser.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
+    if joint_pos < len(joint_stamps_ns):
+        chunks.append(denoiser.push_joint_states(joint_stamps_ns[joint_pos:], joint_velocity[joint_pos:]))
+    chunks.append(denoiser.flush())
+    n_channels = len(denoiser._channel_index)
+    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
+    values = np.concatenate([np.zeros((0, n_channels))] + [c.values for c in chunks])
+    return stamps, values, denoiser.stats
