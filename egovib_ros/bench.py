@@ -47,9 +47,13 @@ def machine_info() -> dict:
     except OSError:
         pass
     import scipy
+    try:
+        load = [round(x, 2) for x in os.getloadavg()]    # other work on the machine skews timings
+    except OSError:
+        load = None
     return {"platform": platform.platform(), "cpu_model": cpu, "cores": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
-            "egovib_ros": __version__}
+            "egovib_ros": __version__, "load_average_1_5_15min": load}
 
 
 def synthetic_streams(duration_s: float, *, seed: int = 0) -> dict:
@@ -209,6 +213,8 @@ def markdown_summary(results: dict) -> str:
     lines = ["# egovib bench", "",
              f"Machine: {m['cpu_model']}, {m['cores']} cores, {m['platform']}, "
              f"Python {m['python']}, numpy {m['numpy']}, scipy {m['scipy']}"
+             + (f"; load average {m['load_average_1_5_15min']} while measuring"
+                if m.get("load_average_1_5_15min") else "")
              + (" (quick run)" if results.get("quick") else ""), "",
              "Regenerate: `egovib bench --json docs/bench.json` (also writes docs/bench.md).", "",
              "| figure | measured | target |", "|---|---|---|"]

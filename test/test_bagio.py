@@ -93,6 +93,18 @@ def test_joint_state_decode_reorders_by_name():
     np.testing.assert_array_equal(v, [[4.0, 3.0]])
 
 
+def test_joint_state_decode_picks_joints_from_a_full_robot():
+    ts = bagio.typestore()
+    names = ("torso_lift_joint", JOINT_NAMES[1], "head_pan_joint", JOINT_NAMES[0])
+    raws = [bytes(ts.serialize_cdr(bagio.joint_state_message(k, names, [0.1, 0.02 + k, 0.3, 1.0 + k],
+                                                             [1.0, 0.01 * k, 3.0, 2.0 * k]),
+                                   bagio.JOINT_STATE_TYPE)) for k in range(3)]
+    s, p, v, got = decode_joint_state_batch(raws, JOINT_NAMES)
+    assert got == JOINT_NAMES
+    np.testing.assert_array_equal(p, [[1.0 + k, 0.02 + k] for k in range(3)])
+    np.testing.assert_array_equal(v, [[2.0 * k, 0.01 * k] for k in range(3)])
+
+
 @pytest.mark.parametrize("storage,compress", [("mcap", False), ("mcap", True), ("sqlite3", False)])
 def test_recording_round_trip(tmp_path, storage, compress):
     rec = _random_recording()
@@ -169,3 +181,30 @@ def test_existing_output_is_refused(tmp_path):
     (tmp_path / "bag").mkdir()
     with pytest.raises(BagError, match="already exists"):
         write_recording(tmp_path / "bag", _random_recording(seconds=0.01))
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_fast_mcap_scan_equals_rosbags_reader(tmp_path, monkeypatch, compress):
+    rec = _random_recording(seconds=2.0)
+    rec.denoised_stamps_ns, rec.denoised = rec.accel_stamps_ns, rec.accel * 0.25
+    write_recording(tmp_path / "bag", rec, compress=compress)
+    assert bagio._mcap_files(tmp_path / "bag") is not None
+    fast = read_recording(tmp_path / "bag")
+    monkeypatch.setattr(bagio, "_mcap_files", lambda path: None)      # force rosbags' reader
+    slow = read_recording(tmp_path / "bag")
+    for name in ("accel_stamps_ns", "accel", "joint_stamps_ns", "joint_position", "joint_velocity", "contact",
+                 "ego", "denoised_stamps_ns", "denoised", "command_stamps_ns", "commands"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(fast, name), getattr(rec, name), err_msg=name)
+
+
+def test_missing_joint_is_bag_error(tmp_path):
+    ts = bagio.typestore()
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic(BAG_TOPICS["raw"], bagio.IMU_TYPE)
+        bag.add_topic(BAG_TOPICS["joint_states"], bagio.JOINT_STATE_TYPE)
+        bag.write(BAG_TOPICS["raw"], 1, encode_imu_batch([1], [[0.0, 0.0, 1.0]])[0])
+        raw = ts.serialize_cdr(bagio.joint_state_message(1, [JOINT_NAMES[0]], [0.0], [0.0]), bagio.JOINT_STATE_TYPE)
+        bag.write(BAG_TOPICS["joint_states"], 1, bytes(raw))
+    with pytest.raises(BagError, match=JOINT_NAMES[1]):
+        read_recording(tmp_path / "bag")

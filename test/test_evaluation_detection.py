@@ -80,3 +80,23 @@ def test_pr2_magnitude_ignores_gravity_and_passes_vibration():
     vibration[:, 0] += 3.0 * np.sin(2 * np.pi * 400 * t)
     magnitude = detection.pr2_magnitude(vibration, sample_rate_hz=FS)
     assert magnitude[3000:].max() == pytest.approx(3.0, rel=0.03)
+
+
+def test_onset_is_timed_at_constant_fraction_not_by_pre_echo():
+    """A weak 20 ms pre-echo before a tap (block smearing) must not move the onset early."""
+    x = np.zeros(6000)
+    x[2940:3000] = 0.05                       # pre-echo, 5 % of the peak, 20 ms early
+    x[3000:3060] = 1.0 * np.exp(-np.arange(60) / 20.0)
+    onsets = detection.detect_events(x, 0.02, sample_rate_hz=FS)
+    assert onsets.tolist() == [3000]
+    # With the fraction at 0 the onset is the first threshold crossing (the pre-echo).
+    assert detection.detect_events(x, 0.02, sample_rate_hz=FS, onset_fraction=0.0).tolist() == [2940]
+
+
+def test_envelope_is_causal_rms():
+    x = np.zeros(300)
+    x[100] = 3.0
+    env = detection.envelope(x, sample_rate_hz=FS, window_s=0.004)   # 12 samples
+    assert np.all(env[:100] == 0)
+    assert env[100:112] == pytest.approx(np.full(12, 3.0 / np.sqrt(12)))
+    assert np.all(env[112:] < 1e-9)

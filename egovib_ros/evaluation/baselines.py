@@ -20,7 +20,7 @@ Everything block-based goes through the core (`denoise_batch` with its `rule`,
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -53,7 +53,6 @@ class MethodContext:
     model: NoiseModel
     model_short: NoiseModel | None = None
     noise_clip: np.ndarray | None = None
-    options: dict = field(default_factory=dict)
 
 
 def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
@@ -64,8 +63,13 @@ def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
     return band.process(channel_matrix(accel, "combined").T)[0]
 
 
-def _on_input_stamps(out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray) -> np.ndarray:
-    """Sum the output channels and place them on the input stamps (0 where a sample was dropped)."""
+def on_input_stamps(out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray) -> np.ndarray:
+    """Sum the output channels and place them on the input stamps (0 where a sample is missing).
+
+    Denoised samples carry the stamp of the input sample they replace, so matching
+    is by stamp: dropped inputs or a shorter output (e.g. a live node stopped before
+    flushing) leave zeros, never a shift.
+    """
     summed = np.asarray(values, float).sum(axis=1)
     if len(out_stamps) == len(in_stamps) and np.array_equal(out_stamps, in_stamps):
         return summed
@@ -106,7 +110,7 @@ class WienerRule:
 def _core(rec, model: NoiseModel, **options) -> np.ndarray:
     stamps, values, _ = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
                                       model, **options)
-    return _on_input_stamps(stamps, values, rec.accel_stamps_ns)
+    return on_input_stamps(stamps, values, rec.accel_stamps_ns)
 
 
 def _noisereduce(rec, ctx: MethodContext) -> np.ndarray:

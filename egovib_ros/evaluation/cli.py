@@ -41,7 +41,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         unknown = [m for m in methods if m not in baselines.METHOD_LABELS]
         if unknown:
             raise ConfigError(f"--methods: unknown method(s) {unknown}; expected {list(baselines.METHOD_LABELS)}")
-    rec = read_recording(args.bag, denoised=False)
+    rec = read_recording(args.bag, denoised=True)
     require_ground_truth(rec, where=str(args.bag))
     calibration_path = _calibration_bag(args, model)
     calibration = read_recording(calibration_path, ground_truth=False, denoised=False) \
@@ -71,21 +71,21 @@ def run_figures(args: argparse.Namespace) -> int:
     config = experiments.ExperimentConfig(seed=args.seed)
     if args.quick:
         config = config.quick()
-    steps = 1 + len(config.speeds) + 2
+    steps = 1 + len(config.speeds) + bool(config.robustness_effects) + 2
     with tqdm(total=steps, desc="figures", unit="step", disable=args.quiet) as bar:
         def progress(name: str) -> None:
             bar.set_postfix_str(name)
             bar.update()
         results = experiments.run_experiments(config, progress=progress, keep_signals=True)
         out.mkdir(parents=True, exist_ok=True)
-        with atomic_output(out / "eval_results.json") as tmp:
-            tmp.write_text(json.dumps(experiments.results_json(results), indent=2) + "\n")
-        with atomic_output(out / "eval_results.md") as tmp:
-            tmp.write_text(experiments.results_markdown(results))
         paths = figures.make_figures(results, out)
         progress("evaluation figures")
         paths += experiments.validation_figures(results, out)
         progress("Fig. 3 / Fig. 4 analogues")
+        with atomic_output(out / "eval_results.json") as tmp:
+            tmp.write_text(json.dumps(experiments.results_json(results), indent=2) + "\n")
+        with atomic_output(out / "eval_results.md") as tmp:
+            tmp.write_text(experiments.results_markdown(results))
     if not args.quiet:
         print(f"wrote {out / 'eval_results.md'}, {out / 'eval_results.json'} and "
               + ", ".join(str(p) for p in paths))
@@ -96,7 +96,9 @@ def register(subparsers) -> None:
     ev = subparsers.add_parser("evaluate", help="paper metrics on a bag with ground truth (JSON)",
                                description="Denoise BAG with MODEL by every method and write the paper's "
                                            "metrics (CONTRACT section 6) as JSON. Needs the ground-truth "
-                                           "topic /accelerometer/contact.")
+                                           "topic /accelerometer/contact. If BAG also holds "
+                                           "/accelerometer/denoised (from `egovib denoise` or the live node), "
+                                           "it is scored too, as method 'bag_denoised'.")
     ev.add_argument("bag", help="rosbag2 directory with /accelerometer/raw, /joint_states, /accelerometer/contact")
     ev.add_argument("--model", required=True, help="noise model .npz")
     ev.add_argument("--json", required=True, metavar="FILE", help="output JSON")

@@ -91,6 +91,9 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     pr2_magnitude = detection.pr2_magnitude(rec.accel, sample_rate_hz=fs)
     pr2 = {f"pr2_{t:g}ms2": detection.evaluate_detector(pr2_magnitude, truth, t, sample_rate_hz=fs)
            for t in detection.PR2_THRESHOLDS_MS2}
+    minutes = len(raw) / fs / 60.0
+    for scores in (raw_detection, *pr2.values()):
+        scores["false_alarms_per_min"] = scores["fp"] / minutes
 
     per_method = {}
     for name in names:
@@ -99,8 +102,13 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
         result["delay_ms"] = baselines.method_delay_ms(name, ctx)
         scores = detection.evaluate_detector(env(outputs[name]), truth, threshold_for(name), sample_rate_hz=fs)
         result.update({"f1": scores["f1"], "precision": scores["precision"], "recall": scores["recall"],
-                       "threshold": scores["threshold"]})
+                       "threshold": scores["threshold"], "false_alarms": scores["fp"],
+                       "false_alarms_per_min": scores["fp"] / minutes})
         per_method[name] = result
+
+    if rec.denoised is not None and len(rec.denoised):
+        per_method["bag_denoised"], outputs["bag_denoised"] = _bag_denoised(
+            rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs, minutes)
 
     primary = per_method[PRIMARY]
     report = {field: primary[field] for field in CONTRACT_FIELDS if field in primary}
@@ -126,6 +134,32 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     if keep_signals:
         report["signals"] = {"raw": raw, "reference": reference, "seg": seg, **outputs}
     return report
+
+
+def _bag_denoised(rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs, minutes):
+    """Metrics of the bag's own /accelerometer/denoised (e.g. recorded from the live node).
+
+    Its layout tells which method produced it: y = z = 0 is the combined (paper)
+    pipeline, anything else per-axis output; that method's calibrated threshold and
+    batch output are used for detection and for the node-vs-batch comparison.
+    """
+    signal = baselines.on_input_stamps(rec.denoised_stamps_ns, rec.denoised, rec.accel_stamps_ns)
+    like = "paper" if not np.any(rec.denoised[:, 1:]) else "per_axis"
+    result = metrics.signal_metrics(raw, signal, reference, seg)
+    result["label"] = f"from bag: {BAG_TOPICS['denoised']} (like {like})"
+    result["delay_ms"] = None
+    threshold = per_method[like]["threshold"] if like in per_method else threshold_for(like)
+    scores = detection.evaluate_detector(env(signal), truth, threshold, sample_rate_hz=fs)
+    result.update({"f1": scores["f1"], "precision": scores["precision"], "recall": scores["recall"],
+                   "threshold": threshold, "false_alarms": scores["fp"],
+                   "false_alarms_per_min": scores["fp"] / minutes,
+                   "samples_missing": int(len(raw) - np.isin(rec.accel_stamps_ns, rec.denoised_stamps_ns).sum()),
+                   "alignment_lag_samples": metrics.estimate_lag(reference, signal) if seg.n_taps else None})
+    if like in outputs:
+        batch = outputs[like]
+        result["rms_difference_vs_batch"] = float(np.sqrt(np.mean((signal - batch) ** 2))
+                                                  / max(np.sqrt(np.mean(batch ** 2)), 1e-300))
+    return result, signal
 
 
 def _edge_mask(n: int, fs: float) -> np.ndarray:

@@ -59,7 +59,8 @@ def fig5(report: dict, path: Path, *, title: str, fs: float = 3000.0, method: st
         mesh = ax.pcolormesh(tt + t[0], f, db, shading="auto", vmin=vmax - 60, vmax=vmax, cmap="magma")
         ax.set_ylabel("Hz")
         ax.set_title(f"spectrogram: {'raw' if key == 'raw' else 'denoised'}", fontsize=9)
-    fig.colorbar(mesh, ax=axes[2:], label="dB")
+    # One colour bar for the whole column keeps all four panels the same width (shared time axis).
+    fig.colorbar(mesh, ax=list(axes), label="spectrogram power (dB)", shrink=0.45, anchor=(0.0, 0.0))
     axes[-1].set_xlabel("time (s)")
     fig.suptitle(title)
     return _save(fig, path)
@@ -67,7 +68,7 @@ def fig5(report: dict, path: Path, *, title: str, fs: float = 3000.0, method: st
 
 def pr_figure(reports: dict[str, dict], path: Path, methods=("paper", "wiener", "per_axis", "bandpass")) -> Path:
     """PR curves (threshold sweeps) with each detector's calibrated operating point."""
-    fig, axes = plt.subplots(1, len(reports), figsize=(5.5 * len(reports), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(reports), figsize=(5.0 * len(reports), 4.5), squeeze=False)
     for ax, (title, report) in zip(axes[0], reports.items()):
         curves = report["pr_curves"]
         raw = curves["raw_bandpassed"]
@@ -110,7 +111,8 @@ def speed_figure(results: dict, path: Path) -> Path:
             ax = axes[row][col]
             for i, name in enumerate(names):
                 y = [results["speeds"][s][exp]["methods"][name][key] for s in speeds]
-                ax.plot(x, y, "o-", color=f"C{i}", label=baselines.METHOD_LABELS[name], lw=2 if name == "paper" else 1)
+                ax.plot(x, y, "o-", color=f"C{i}", label=baselines.METHOD_LABELS[name],
+                        lw=2 if name == "paper" else 1)
             if key == "f1":
                 for style, det_key, label_det in ((":", "raw_bandpassed", "detector on raw band-passed"),
                                                   ("--", "pr2_2ms2", "PR2 2 m/s$^2$"),
@@ -132,13 +134,18 @@ def make_figures(results: dict, out_dir: Path, *, fs: float = 3000.0) -> list[Pa
     speeds = sorted(results["speeds"])
     shown = 0.5 if 0.5 in speeds else speeds[0]
     both = results["speeds"][shown]
+    pr_panels = {f"exp (a), {shown:.0%}": both["a"],
+                 f"exp (a), {speeds[-1]:.0%}": results["speeds"][speeds[-1]]["a"],
+                 f"exp (b), {shown:.0%}": both["b"]}
+    if "robustness" in results and "pr_curves" in results["robustness"]["a"]:
+        robust = results["robustness"]
+        pr_panels[f"exp (a), {robust['speed']:.0%}, {robust['effects']}"] = robust["a"]
     paths = [
         fig5(both["a"], out_dir / "eval_fig5_a.png", fs=fs,
              title=f"Experiment (a): taps on the moving hand, speed limit {shown:.0%}"),
         fig5(both["b"], out_dir / "eval_fig5_b.png", fs=fs,
              title=f"Experiment (b): stationary taps added to ego-vibration, speed limit {shown:.0%}"),
-        pr_figure({f"exp (a), {shown:.0%}": both["a"], f"exp (a), {speeds[-1]:.0%}": results["speeds"][speeds[-1]]["a"],
-                   f"exp (b), {shown:.0%}": both["b"]}, out_dir / "eval_pr_curve.png"),
+        pr_figure(pr_panels, out_dir / "eval_pr_curve.png"),
         speed_figure(results, out_dir / "eval_speed.png"),
     ]
     return paths

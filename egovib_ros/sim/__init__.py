@@ -8,5 +8,5 @@
 """
 from egovib_ros.sim.params import SimParams, format_effects, parse_effects  # noqa: F401
 from egovib_ros.sim.hand import HandSimulator, SimChunk  # noqa: F401
-from egovib_ros.sim.scenarios import (motion_commands, simulate_motion, simulate_sweep,  # noqa: F401
-                                      sweep_cells)
+from egovib_ros.sim.scenarios import (concat_recordings, motion_commands, motion_slices,  # noqa: F401
+                                      simulate_motion, simulate_sweep, sweep_cells, sweep_slices)

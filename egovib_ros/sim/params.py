@@ -42,19 +42,19 @@ class JointVibration:
 
 
 def _wrist_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=125.0, line_orders=[1.0, 2.0, 1.6], line_amps=[0.1, 0.05, 0.04],
-                          line_speed_exponent=1.0, friction_coulomb=0.03, friction_viscous=0.06,
-                          path_band_hz=[150.0, 400.0], path_order=3, resonance_hz=1000.0, resonance_q=8.0,
-                          resonance_gain=0.5, direction=[1.0, 0.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=8.0, phase_jitter=0.5)
+    return JointVibration(line_hz_per_unit=60.0, line_orders=[1.0, 2.0, 3.0], line_amps=[2.2, 1.1, 0.77],
+                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
+                          path_band_hz=[150.0, 380.0], path_order=4, resonance_hz=980.0, resonance_q=12.0,
+                          resonance_gain=0.3, direction=[1.0, 0.0, 0.0], amp_jitter=0.12,
+                          amp_jitter_hz=20.0, phase_jitter=3.0)
 
 
 def _gripper_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=15000.0, line_orders=[1.0, 0.75, 1.25], line_amps=[0.1, 0.05, 0.04],
-                          line_speed_exponent=1.0, friction_coulomb=0.03, friction_viscous=0.06,
-                          path_band_hz=[470.0, 750.0], path_order=3, resonance_hz=1050.0, resonance_q=8.0,
-                          resonance_gain=0.5, direction=[0.0, 1.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=8.0, phase_jitter=0.5)
+    return JointVibration(line_hz_per_unit=15000.0, line_orders=[1.0, 1.5, 2.0], line_amps=[2.2, 1.1, 0.77],
+                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
+                          path_band_hz=[480.0, 750.0], path_order=4, resonance_hz=1040.0, resonance_q=12.0,
+                          resonance_gain=0.3, direction=[0.0, 1.0, 0.0], amp_jitter=0.12,
+                          amp_jitter_hz=20.0, phase_jitter=3.0)
 
 
 @dataclass
@@ -67,10 +67,11 @@ class SimParams:
     gripper_start_m: float = 0.043
     joint_phase_s: float = 0.00017
     # accelerometer
-    sensor_noise_rms: float = 0.01
+    sensor_noise_rms: float = 0.002
     gravity_ms2: float = 9.81
     gravity_tilt_rad: float = 0.0
-    hum_amps: list[float] = field(default_factory=lambda: [0.03, 0.05, 0.04, 0.03, 0.03, 0.02, 0.02, 0.015])
+    zero_g_offset_ms2: list[float] = field(default_factory=lambda: [0.02, -0.03, 0.0025])
+    hum_amps: list[float] = field(default_factory=lambda: [0.009] + [0.03] * 7 + [0.009] * 7)
     hum_direction: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
     # joints' vibration mechanisms
     wrist: JointVibration = field(default_factory=_wrist_default)
@@ -86,8 +87,8 @@ class SimParams:
     tap_direction: list[float] = field(default_factory=lambda: [0.35, 0.35, 0.87])
     # effects: parameters of each effect's term (strengths come from the SPEC)
     position_phase_rad: float = 0.6
-    coupling_gain: float = 0.25
-    acceleration_gain: float = 0.15
+    coupling_gain: float = 1.6
+    acceleration_gain: float = 1.5
     drift_period_s: float = 60.0
     effects: dict[str, float] = field(default_factory=dict)
 

@@ -1,0 +1,36 @@
+"""`egovib bench --quick` writes every figure (as ratios to real time) with the machine noted."""
+import json
+
+from egovib_ros import bench
+from egovib_ros.cli import main
+
+
+def test_bench_quick_writes_json_and_markdown(tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--json", str(out), "--quick", "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    machine = data["machine"]
+    assert machine["cores"] >= 1 and machine["cpu_model"] and machine["numpy"]
+    figures = {**data["batch"], **data["stream"], **data["calibration"], **data["simulation_and_bags"]}
+    for key in ("batch_x_realtime", "stream_hop_median_us", "stream_hop_p99_us", "calibration_s",
+                "simulation_x_realtime", "bag_write_x_realtime", "bag_read_x_realtime"):
+        assert figures[key] > 0, key
+    assert figures["stream_hop_p99_us"] >= figures["stream_hop_median_us"]
+    assert data["calibration"]["cells"] == 441
+    assert set(data["targets"]) == set(bench.TARGETS)
+    assert all(t["met"] in (True, False) for t in data["targets"].values())
+    markdown = (tmp_path / "bench.md").read_text()
+    assert "x real time" in markdown and machine["cpu_model"] in markdown
+
+
+def test_bench_output_in_missing_directory_is_created(tmp_path):
+    out = tmp_path / "new" / "dir" / "b.json"
+    md = tmp_path / "elsewhere.md"
+    assert main(["bench", "--json", str(out), "--markdown", str(md), "--quick", "--quiet"]) == 0
+    assert out.is_file() and md.is_file()
+
+
+def test_synthetic_model_has_the_real_shape():
+    model = bench.synthetic_model()
+    assert model.grid_shape == (21, 21)
+    assert model.mean.shape[-1] == 33
