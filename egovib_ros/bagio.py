@@ -247,6 +247,8 @@ def _joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int
 def encode_joint_state_batch(stamps_ns: np.ndarray, position: np.ndarray, velocity: np.ndarray,
                              names: Sequence[str] = JOINT_NAMES) -> list[bytes]:
     """Serialise one JointState (name, position, velocity; no effort) per row to CDR bytes."""
+    if len(stamps_ns) == 0:
+        return []
     position = np.asarray(position, np.float64).reshape(len(stamps_ns), -1)
     velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
     n, n_joints = position.shape

@@ -1,32 +1,26 @@
 """ROS 2 message <-> numpy conversion, used by the nodes only (imports rclpy message types).
 
-Stamps are int64 nanoseconds throughout, as in the core. The Imu stream runs at
-3 kHz, one message per sample (CONTRACT section 2), so it has a fast path: batches
-of samples are encoded to CDR bytes with numpy (rclpy's `Publisher.publish` takes
-bytes) and raw CDR bytes are decoded with `struct`, skipping message objects.
+Stamps are int64 nanoseconds throughout, as in the core. The 3 kHz Imu and 1 kHz
+JointState streams have a fast path: nodes publish CDR bytes (rclpy's
+`Publisher.publish` takes bytes) and subscribe with `raw=True`, collecting bytes and
+decoding them in batches with the vectorised codec of egovib_ros.bagio.
 """
 from __future__ import annotations
 
-import struct
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
+from egovib_ros.bagio import (decode_imu_batch, decode_joint_state_batch,  # noqa: F401 (re-exported)
+                              encode_imu_batch, encode_joint_state_batch)
 from egovib_ros.constants import ACCEL_FRAME, JOINT_NAMES
 from egovib_ros.errors import StreamError
 
 _NS_PER_S = 1_000_000_000
-_CDR_LE_HEADER = b"\x00\x01\x00\x00"
-# Doubles of the Imu body after the header, in order: orientation (4), its
-# covariance (9), angular_velocity (3), covariance (9), linear_acceleration (3),
-# covariance (9). linear_acceleration starts at double 25.
-_IMU_DOUBLES = 37
-_IMU_ACCEL_DOUBLE = 25
 
 
 # --- stamps ------------------------------------------------------------------
@@ -62,64 +56,60 @@ def imu_sample(msg: Imu) -> tuple[int, np.ndarray]:
     return stamp_to_ns(msg.header.stamp), np.array([acc.x, acc.y, acc.z])
 
 
-def _imu_layout(frame_id: str) -> tuple[bytes, int, int]:
-    """(template body, offset of first double, total length) of an Imu CDR message."""
-    name = frame_id.encode() + b"\x00"
-    body_prefix = 8 + 4 + len(name)                  # stamp + string length + string
-    first_double = (body_prefix + 7) // 8 * 8        # CDR aligns doubles to 8 in the body
-    total = 4 + first_double + 8 * _IMU_DOUBLES
-    doubles = np.zeros(_IMU_DOUBLES)
-    doubles[3] = 1.0                                 # orientation.w, rclpy's default
-    doubles[4] = -1.0                                # orientation_covariance[0]
-    doubles[13 + 3] = -1.0                           # angular_velocity_covariance[0]
-    template = (_CDR_LE_HEADER + b"\x00" * 8 + struct.pack("<I", len(name)) + name
-                + b"\x00" * (first_double - body_prefix) + doubles.astype("<f8").tobytes())
-    assert len(template) == total
-    return template, 4 + first_double, total
+def decode_imu_messages(raws: list[bytes], topic: str = "accelerometer/raw"
+                        ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Raw Imu CDR messages -> (stamps_ns (n,), accel (n, 3), number of undecodable messages dropped).
 
-
-_LAYOUT_CACHE: dict[str, tuple[bytes, int, int]] = {}
-
-
-def encode_imu_batch(stamps_ns: np.ndarray, accel: np.ndarray,
-                     frame_id: str = ACCEL_FRAME) -> list[bytes]:
-    """Serialise N samples to N Imu CDR messages (little-endian), vectorised.
-
-    Equal, field by field, to `serialize_message(imu_message(...))`.
+    Vectorised (egovib_ros.bagio) for the usual batch; a batch holding a bad message is
+    decoded one by one so that only the bad messages are dropped.
     """
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    accel = np.asarray(accel, dtype=np.float64).reshape(len(stamps_ns), 3)
-    if frame_id not in _LAYOUT_CACHE:
-        _LAYOUT_CACHE[frame_id] = _imu_layout(frame_id)
-    template, accel_offset, size = _LAYOUT_CACHE[frame_id]
-    count = len(stamps_ns)
-    rows = np.tile(np.frombuffer(template, dtype=np.uint8), (count, 1))
-    sec, nanosec = np.divmod(stamps_ns, _NS_PER_S)
-    rows[:, 4:8] = sec.astype("<i4").view(np.uint8).reshape(count, 4)
-    rows[:, 8:12] = nanosec.astype("<u4").view(np.uint8).reshape(count, 4)
-    accel_at = accel_offset + 8 * _IMU_ACCEL_DOUBLE
-    rows[:, accel_at:accel_at + 24] = accel.astype("<f8").view(np.uint8).reshape(count, 24)
-    flat = rows.tobytes()
-    return [flat[i * size:(i + 1) * size] for i in range(count)]
+    try:
+        stamps, accel = decode_imu_batch(raws)
+        if np.all(np.isfinite(accel)):
+            return stamps, accel, 0
+    except Exception:  # noqa: BLE001 - any decoding failure: fall back to one by one
+        pass
+    good_stamps, good_accel = [], []
+    for raw in raws:
+        try:
+            stamp, values = decode_imu_batch([raw])
+        except Exception:  # noqa: BLE001
+            continue
+        if np.all(np.isfinite(values)):
+            good_stamps.append(stamp[0])
+            good_accel.append(values[0])
+    n_bad = len(raws) - len(good_stamps)
+    return (np.asarray(good_stamps, dtype=np.int64).reshape(-1),
+            np.asarray(good_accel, dtype=np.float64).reshape(-1, 3), n_bad)
 
 
-_UNPACK_STAMP = struct.Struct("<iII").unpack_from
-_UNPACK_ACCEL = struct.Struct("<3d").unpack_from
+def decode_joint_state_messages(raws: list[bytes], names: Sequence[str] = JOINT_NAMES
+                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Raw JointState CDR messages -> (stamps_ns, position (n, J), velocity (n, J), n dropped).
 
-
-def decode_imu(data: bytes, topic: str = "accelerometer/raw") -> tuple[int, tuple[float, float, float]]:
-    """Raw Imu CDR bytes -> (stamp_ns, (ax, ay, az)). Raises StreamError on a bad message."""
-    if data[:2] == _CDR_LE_HEADER[:2] and len(data) >= 16:
-        sec, nanosec, name_len = _UNPACK_STAMP(data, 4)
-        first_double = (12 + name_len + 7) // 8 * 8
-        if len(data) == 4 + first_double + 8 * _IMU_DOUBLES:
-            return sec * _NS_PER_S + nanosec, _UNPACK_ACCEL(data, 4 + first_double + 8 * _IMU_ACCEL_DOUBLE)
-    try:  # other encodings (big-endian CDR): let rclpy do it
-        msg = deserialize_message(bytes(data), Imu)
-    except Exception as exc:  # noqa: BLE001 - any decoding failure is a bad message
-        raise StreamError(f"{topic}: undecodable Imu message ({len(data)} bytes): {exc}") from None
-    stamp_ns, accel = imu_sample(msg)
-    return stamp_ns, tuple(accel)
+    Columns follow `names` (messages may list more joints in any order); messages
+    that cannot be decoded or lack a finite position/velocity of a joint are dropped.
+    """
+    try:
+        stamps, position, velocity, _ = decode_joint_state_batch(raws, names=names)
+    except Exception:  # noqa: BLE001 - decode one by one, dropping the bad ones
+        parts = []
+        for raw in raws:
+            try:
+                parts.append(decode_joint_state_batch([raw], names=names)[:3])
+            except Exception:  # noqa: BLE001
+                continue
+        if not parts:
+            n = len(names)
+            return np.zeros(0, np.int64), np.zeros((0, n)), np.zeros((0, n)), len(raws)
+        stamps = np.concatenate([p[0] for p in parts])
+        position = np.concatenate([p[1] for p in parts])
+        velocity = np.concatenate([p[2] for p in parts])
+    good = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(velocity), axis=1)
+    n_bad = len(raws) - int(good.sum())
+    if n_bad:
+        stamps, position, velocity = stamps[good], position[good], velocity[good]
+    return stamps, position, velocity, n_bad
 
 
 # --- JointState ----------------------------------------------------------------

@@ -208,3 +208,8 @@ def test_missing_joint_is_bag_error(tmp_path):
         bag.write(BAG_TOPICS["joint_states"], 1, bytes(raw))
     with pytest.raises(BagError, match=JOINT_NAMES[1]):
         read_recording(tmp_path / "bag")
+
+
+def test_empty_joint_state_batch_encodes_to_nothing():
+    from egovib_ros.bagio import encode_joint_state_batch
+    assert encode_joint_state_batch(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2))) == []

@@ -74,11 +74,21 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     def env(x: np.ndarray) -> np.ndarray:
         return detection.envelope(x, sample_rate_hz=fs)
 
+    cal_mask = None
+    if calibration is not None:
+        # Only the calibration samples recorded at joint speeds the test run reaches: a
+        # sweep's full-speed cells would set the threshold for a slow run (joint states only,
+        # never the test accelerometer signal).
+        cal_mask = _edge_mask(len(calibration.accel_stamps_ns), fs)
+        in_envelope = speed_envelope_mask(calibration, rec)
+        if np.count_nonzero(cal_mask & in_envelope) >= fs:       # at least 1 s left
+            cal_mask &= in_envelope
+
     def threshold_for(name: str | None) -> float:
         """Detection threshold of the raw signal (name None) or of a method's output."""
         if calibration is not None:
             cal = noise_clip if name is None else baselines.run_method(name, calibration, ctx)
-            return detection.threshold_from_calibration(env(cal)[_edge_mask(len(cal), fs)])
+            return detection.threshold_from_calibration(env(cal)[cal_mask])
         signal = raw if name is None else outputs[name]
         return detection.threshold_from_calibration(env(signal)[seg.no_contact_mask])
 
@@ -119,7 +129,8 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
         "delay_ms": primary["delay_ms"],
         "alignment_lag_samples": metrics.estimate_lag(reference, outputs[PRIMARY]) if seg.n_taps else None,
         "duration_s": len(raw) / fs,
-        "threshold_source": "calibration data (no contact)" if calibration is not None
+        "threshold_source": "calibration data (no contact), at joint speeds within this run's envelope"
+        if calibration is not None
         else "no-contact part of this recording (no calibration data given)",
         "detection": {"raw_bandpassed": raw_detection, **pr2,
                       "rule": {"envelope": f"causal RMS over {detection.ENVELOPE_S * 1e3:g} ms",
@@ -160,6 +171,18 @@ def _bag_denoised(rec, raw, reference, seg, per_method, outputs, threshold_for, 
         result["rms_difference_vs_batch"] = float(np.sqrt(np.mean((signal - batch) ** 2))
                                                   / max(np.sqrt(np.mean(batch ** 2)), 1e-300))
     return result, signal
+
+
+def speed_envelope_mask(calibration, rec, margin: float = 1.05) -> np.ndarray:
+    """Calibration accelerometer samples whose joint speeds stay within the largest joint
+    speeds of `rec` (per joint, times `margin`)."""
+    limit = np.nanmax(np.abs(rec.joint_velocity), axis=0) * margin
+    mask = np.ones(len(calibration.accel_stamps_ns), bool)
+    for j in range(calibration.joint_velocity.shape[1]):
+        speed = np.interp(calibration.accel_stamps_ns, calibration.joint_stamps_ns,
+                          np.abs(calibration.joint_velocity[:, j]))
+        mask &= speed <= limit[j]
+    return mask
 
 
 def _edge_mask(n: int, fs: float) -> np.ndarray:

@@ -55,14 +55,14 @@ class BagPlayer(Node):
         if not self.connections:
             raise BagError(f"{self.bag}: none of the topics {sorted(wanted)} is in the bag")
         qos = stream_publisher_qos()
-        self.publishers = {}
+        self.topic_publishers = {}
         for conn in self.connections:
             try:
                 msg_class = message_class(conn.msgtype)
             except (ImportError, AttributeError):
                 self.get_logger().warning(f"{conn.topic}: type {conn.msgtype} not available, skipped")
                 continue
-            self.publishers[conn.id] = self.create_publisher(msg_class, conn.topic.lstrip("/"), qos)
+            self.topic_publishers[conn.id] = self.create_publisher(msg_class, conn.topic.lstrip("/"), qos)
         self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
         self.published = 0
 
@@ -70,7 +70,7 @@ class BagPlayer(Node):
         deadline = time.monotonic() + self.wait_timeout
         while rclpy.ok() and time.monotonic() < deadline:
             if all(p.get_subscription_count() >= self.wait_for_subscribers
-                   for p in self.publishers.values()):
+                   for p in self.topic_publishers.values()):
                 return
             time.sleep(0.05)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")
@@ -80,7 +80,7 @@ class BagPlayer(Node):
         if self.wait_for_subscribers > 0:
             self._wait_for_subscribers()
         time.sleep(self.start_delay)
-        connections = [c for c in self.connections if c.id in self.publishers]
+        connections = [c for c in self.connections if c.id in self.topic_publishers]
         start_bag_ns = self.reader.start_time
         self.get_logger().info(f"playing {self.bag} ({self.reader.message_count} messages, "
                                f"{self.reader.duration / 1e9:.1f} s) at rate {self.rate}")
@@ -101,7 +101,7 @@ class BagPlayer(Node):
                 clock_msg.clock = ns_to_stamp(bag_ns)
                 self.clock_publisher.publish(clock_msg)
                 last_clock_ns = bag_ns
-            self.publishers[conn.id].publish(bytes(data))
+            self.topic_publishers[conn.id].publish(bytes(data))
             self.published += 1
         time.sleep(self.linger)
         self.get_logger().info(f"done: {self.published} messages played")

@@ -10,14 +10,16 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, DurabilityPolicy,
                        qos_profile_sensor_data)
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rcl_interfaces.msg import ParameterDescriptor
 
 from egovib_ros.errors import EgovibError
 
 # Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
-# with a deeper queue: publishers send 3 kHz streams in 10 ms batches of 30, which
-# a depth of 5 would cut.
-SENSOR_QUEUE_DEPTH = 500
+# with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
+# a depth of 5 would cut, and a starved process must not lose what DDS delivered.
+SENSOR_QUEUE_DEPTH = 3000
+SPIN_TIMEOUT_S = 0.1
 
 
 def sensor_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
@@ -31,6 +33,15 @@ def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
     """Publishers of 3 kHz streams: reliable (so a reliable recorder can match too), keep-last."""
     return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
                       history=HistoryPolicy.KEEP_LAST, depth=depth)
+
+
+def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool = True):
+    """Subscribe a sensor stream with sensor_qos(); reliability and depth may be overridden by
+    the standard ROS parameters `qos_overrides.<topic>.subscription.{reliability,depth}`
+    (e.g. reliable for a lossless replay of a bag on a loaded machine)."""
+    return node.create_subscription(
+        msg_type, topic, callback, sensor_qos(), raw=raw,
+        qos_overriding_options=QoSOverridingOptions.with_default_policies())
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
@@ -65,12 +76,12 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
         done = getattr(node, "done", None)
         if hasattr(node, "run"):
             status = int(node.run() or 0)
-        elif done is not None:
-            executor.spin_until_future_complete(done)
-            if done.done() and done.result() is not None:
-                status = int(done.result())
         else:
-            executor.spin()
+            # spin_once in a loop: EventsExecutor.spin() (rclpy 7.1) busy-waits at 100 % CPU.
+            while rclpy.ok() and not (done is not None and done.done()):
+                executor.spin_once(timeout_sec=SPIN_TIMEOUT_S)
+            if done is not None and done.done() and done.result() is not None:
+                status = int(done.result())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except EgovibError as exc:

@@ -1,0 +1,153 @@
+"""Shared fixtures for the tests that run real ROS 2 nodes over real DDS.
+
+Every such test gets a private random ROS_DOMAIN_ID with localhost-only discovery,
+starts the nodes as separate processes (the venv's console scripts) and stops them
+all at the end, also when the test fails.
+"""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BIN = Path(sys.executable).parent
+
+
+def _param_text(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_param_text(v) for v in value) + "]"
+    return str(value)
+
+
+class NodeProcesses:
+    """Starts console-script nodes in a ROS domain and cleans them up."""
+
+    def __init__(self, domain_id: int, log_dir: Path):
+        self.domain_id = domain_id
+        self.log_dir = log_dir
+        self.procs: list[tuple[subprocess.Popen, Path]] = []
+        self.env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                        PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
+
+    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None,
+              cwd: Path | None = None) -> subprocess.Popen:
+        """Run `executable --ros-args -p name:=value ...`; output goes to a log file."""
+        cmd = [str(BIN / executable), "--ros-args"]
+        for name, value in (params or {}).items():
+            cmd += ["-p", f"{name}:={_param_text(value)}"]
+        log_path = self.log_dir / f"{log_name or executable}.{len(self.procs)}.log"
+        log = open(log_path, "w")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env,
+                                cwd=cwd or self.log_dir, start_new_session=True)
+        log.close()
+        self.procs.append((proc, log_path))
+        return proc
+
+    def log(self, proc: subprocess.Popen) -> str:
+        for p, path in self.procs:
+            if p is proc:
+                return path.read_text()
+        raise KeyError(proc)
+
+    def stop(self, proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
+        """Send `sig` (Ctrl-C by default) and wait; kill if it does not end in time."""
+        if proc.poll() is None:
+            proc.send_signal(sig)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def cleanup(self) -> None:
+        for proc, _ in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 10
+        for proc, _ in self.procs:
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.fixture
+def ros_domain(monkeypatch) -> int:
+    """A random private ROS domain, localhost discovery, for this test and its nodes."""
+    domain_id = random.SystemRandom().randint(1, 200)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return domain_id
+
+
+@pytest.fixture
+def nodes(ros_domain, tmp_path):
+    procs = NodeProcesses(ros_domain, tmp_path)
+    try:
+        yield procs
+    finally:
+        procs.cleanup()
+
+
+class RosClient:
+    """An rclpy node in the test process (own context), spun on demand."""
+
+    def __init__(self, domain_id: int):
+        import rclpy
+        from rclpy.experimental import EventsExecutor
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("test_client", context=self.context)
+        self.executor = EventsExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture
+def ros_client(ros_domain):
+    client = RosClient(ros_domain)
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+@pytest.fixture(scope="session")
+def sim_model_path(tmp_path_factory) -> Path:
+    """A noise model calibrated offline from a short simulated superposition sweep."""
+    from egovib_ros.core import calibrate_arrays
+    from egovib_ros.sim import simulate_sweep
+    rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=11)
+    model, _ = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
+                                sweep="superposition", source="test sweep")
+    assert np.all(model.counts[model.axis_mask()] > 0)
+    path = tmp_path_factory.mktemp("model") / "model.npz"
+    model.save(path)
+    return path

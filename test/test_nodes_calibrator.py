@@ -1,0 +1,101 @@
+"""Live calibration on real DDS: sim_hand + sweep_driver + calibrator (+ bag_recorder)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from egovib_ros.core import NoiseModel
+from egovib_ros.errors import ModelFileError
+
+EGOVIB = str(Path(sys.executable).parent / "egovib")
+SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}
+# Lossless input on a loaded machine (standard QoS override parameters).
+RELIABLE = {"qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
+            "qos_overrides./joint_states.subscription.reliability": "reliable"}
+
+
+def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while text not in nodes.log(proc):
+        assert time.monotonic() < deadline and proc.poll() is None, nodes.log(proc)
+        time.sleep(0.1)
+
+
+def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_path):
+    live_model, bag = tmp_path / "live.npz", tmp_path / "sweep"
+    cal = nodes.start("calibrator", {"output": str(live_model), "grid": "superposition", **RELIABLE})
+    rec = nodes.start("bag_recorder", {"output": str(bag), "topics": ["joint_states", "accelerometer/raw"]})
+    # sim_hand starts once both calibrator and recorder are matched: both see every sample.
+    sim = nodes.start("sim_hand", {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2})
+    wait_for_log(nodes, rec, "/accelerometer/raw: subscribed")
+    wait_for_log(nodes, rec, "/joint_states: subscribed")
+    wait_for_log(nodes, sim, "simulation started")
+    driver = nodes.start("sweep_driver", SWEEP)
+    assert driver.wait(120) == 0, nodes.log(driver)
+    assert "superposition sweep done" in nodes.log(driver)
+    nodes.stop(sim)
+    time.sleep(0.5)
+    assert nodes.stop(cal) == 0, nodes.log(cal)
+    assert nodes.stop(rec) == 0, nodes.log(rec)
+    offline_model = tmp_path / "offline.npz"
+    subprocess.run([EGOVIB, "calibrate", str(bag), "--out", str(offline_model), "--grid", "superposition",
+                    "--quiet"], check=True, capture_output=True)
+
+    live, offline = NoiseModel.load(live_model), NoiseModel.load(offline_model)
+    assert live.measured == offline.measured == "superposition"
+    axis = live.axis_mask()
+    assert np.all(live.counts[axis] > 5), live.counts[axis]
+    # Both saw the stream from its first sample: the same blocks in the same cells. Slack:
+    # one block per moving cell; at rest (zero cell: stream start and end, where the first
+    # joint states may reach the two subscribers at different moments) 5 %.
+    difference = np.abs(live.counts - offline.counts)
+    zero = live.zero_index()
+    assert difference[zero] <= 0.05 * offline.counts[zero], (live.counts - offline.counts)[axis]
+    difference[zero] = 0
+    assert difference.max() <= 1, (live.counts - offline.counts)[axis]
+    both = axis & (live.counts > 5) & (offline.counts > 5)
+    # Mean spectra equal within sampling error (standard error of the mean, 4 sigma + quantisation).
+    sem = live.std[both] / np.sqrt(live.counts[both])[:, None, None]
+    assert np.all(np.abs(live.mean[both] - offline.mean[both]) <= 4 * sem + 1e-9 * live.mean[both].max())
+    np.testing.assert_allclose(live.std[both], offline.std[both], rtol=0.25, atol=1e-6)
+
+
+def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
+    model_path, checkpoint = tmp_path / "model.npz", tmp_path / "model.checkpoint.npz"
+    params = {"output": str(model_path), "grid": "superposition", **RELIABLE}
+    first = nodes.start("calibrator", params)
+    sim = nodes.start("sim_hand", {"seed": 22, "publish_ground_truth": False})
+    wait_for_log(nodes, first, "calibrating")
+    driver = nodes.start("sweep_driver", SWEEP)
+
+    deadline = time.monotonic() + 60
+    saved = None
+    while saved is None or (saved.counts > 0).sum() < 8:
+        assert time.monotonic() < deadline and driver.poll() is None, nodes.log(first)
+        time.sleep(0.2)
+        try:
+            saved = NoiseModel.load(checkpoint)
+        except ModelFileError:          # not written yet
+            pass
+    assert nodes.stop(first, sig=9) == -9   # SIGKILL: no chance to write anything at exit
+    assert not model_path.exists()
+    saved = NoiseModel.load(checkpoint)      # the last checkpoint before the kill
+
+    second = nodes.start("calibrator", params)
+    wait_for_log(nodes, second, "resumed from")
+    assert driver.wait(120) == 0, nodes.log(driver)
+    time.sleep(0.5)
+    assert nodes.stop(second) == 0, nodes.log(second)
+    nodes.stop(sim)
+
+    final = NoiseModel.load(model_path)
+    assert not checkpoint.exists()
+    kept = saved.counts > 0
+    assert np.all(final.counts >= saved.counts)
+    assert np.all(final.counts[kept] > 0)
+    # The restarted calibrator added the cells swept after the restart.
+    assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum()
