@@ -1,0 +1,10 @@
+"""Sim-to-real gap diagnosis (numpy/scipy only; see docs/gap.md).
+
+Public entry points:
+    run_gap(model_path, real_path, out_dir, *, write_back=False, ...)  -> report dict   (pipeline)
+    diagnose_recording(rec, model, *, reference_lag_s=0.0, ...)         -> Diagnosis     (pipeline)
+    diagnose(table, ...), build_table(rec, model)                        (diagnose, features)
+    run_validation(seeds=5, duration_s=120.0, out_dir="docs", ...)      (validate)
+    simulator_reference_lag(model)                                       (simref)
+    write_back(diagnosis, sim_params_path, out_yaml)                     (writeback)
+"""

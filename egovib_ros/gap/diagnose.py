@@ -17,8 +17,12 @@ from egovib_ros.gap.features import BlockTable
 TRAIN_FRACTION = 0.6
 #: Significance level of the verdict (Bonferroni-corrected over the candidates).
 ALPHA = 0.01
-#: A significant candidate must also lower the held-out gap by at least this much.
-MIN_REDUCTION_DB = 0.002
+#: A significant candidate must also lower the held-out per-block mean squared log
+#: error by at least this much (dB^2 per block and bin).
+MIN_BLOCK_GAIN_DB2 = 0.01
+#: Length of the contiguous held-out segments the permutation test flips (s).
+SEGMENT_S = 0.5
+DB_PER_NEPER = 20.0 / np.log(10.0)
 N_BOOTSTRAP = 2000
 
 METRIC_NAME = "windowed log-spectral distance"
@@ -27,8 +31,10 @@ METRIC_DEFINITION = (
     "e[w,f] = 20*log10(sum_b |Y_b(f)| / sum_b m_b(f)) over the no-contact blocks b of window w "
     "({w} consecutive blocks, {ws:.2f} s); |Y_b| observed magnitude spectrum (band-passed sum of axes, "
     "model window), m_b the model's expected magnitude (mean spectrum, no +sd). gap^2 is additive over "
-    "bins, windows and window labels (velocity cell, covariate bin). floor = split-half estimate of the "
-    "score of a perfect model (interleaved block pairs: sqrt(mean (e_A - e_B)^2 / 4)).")
+    "bins, windows and window labels (velocity cell, covariate bin). floor = the score of a model equal to the "
+    "real process, i.e. the scatter of window means alone, estimated from the held-out blocks' own ratio "
+    "|Y|/m: its lag-0 and lag-1 (overlapping blocks) covariances minus the covariance 4 blocks apart, which "
+    "removes slowly varying model error.")
 
 
 @dataclass
@@ -48,6 +54,7 @@ class Diagnosis:
     confidence: float
     residual_noise: dict[str, float] = field(default_factory=dict)
     window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS
+    reference_lag_s: float = 0.0
 
     @property
     def verdict_model(self) -> FittedModel:
@@ -81,72 +88,96 @@ def residual_noise_db(table: BlockTable, predicted: np.ndarray, std_scale: np.nd
 
 def diagnose(table: BlockTable, *, train_fraction: float = TRAIN_FRACTION,
              window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS, alpha: float = ALPHA,
-             effects: tuple[str, ...] = EFFECTS, seed: int = 0) -> Diagnosis:
-    """Run the whole diagnosis on one recording's block table."""
+             effects: tuple[str, ...] = EFFECTS, seed: int = 0, reference_lag_s: float = 0.0) -> Diagnosis:
+    """Run the whole diagnosis on one recording's block table.
+
+    `reference_lag_s`: the lag the simulator itself shows between joint states and
+    vibration (see `simulator_reference_lag`); timing is judged relative to it.
+    """
     train, heldout, split = time_split(table, train_fraction)
     if train.sum() < 200 or heldout.sum() < 4 * window_blocks:
         raise ValueError(f"too few no-contact blocks ({int(train.sum())} train, {int(heldout.sum())} held out)")
     rows = np.flatnonzero(heldout)
     windows = metric.make_windows(len(rows), window_blocks)
-    models = fit_all(table, train, effects)
+    # "Synchronous" means in sync the way the simulator is: its vibration envelope trails
+    # the joint velocity by the structural and band-pass group delay (a few ms), so the
+    # refit and all non-timing candidates use the simulator's reference lag; the timing
+    # candidate fits its own.
+    fit_table = table.at_lag(reference_lag_s) if reference_lag_s else table
+    models = fit_all(fit_table, train, effects)
+    if "timing" in models:
+        lag = models["timing"].parameters["lag_s"]
+        models["timing"].parameters["reference_lag_s"] = round(float(reference_lag_s), 5)
+        models["timing"].parameters["lag_vs_simulator_s"] = round(float(lag - reference_lag_s), 5)
     observed = table.magnitude
     errors = {"sim_as_is": heldout_errors(table.base_mean, observed, rows, windows)}
     for name, fitted in models.items():
-        errors[name] = heldout_errors(fitted.predicted, fitted.table.magnitude, rows, windows)
+        errors[name] = heldout_errors(fitted.predicted, observed, rows, windows)
     gaps = {name: metric.gap_db(e) for name, e in errors.items()}
-    floor = metric.floor_db(observed[rows], models["refit"].predicted[rows], windows)
 
     rng = np.random.default_rng(seed)
-    base = errors["refit"]
+    # Scatter is estimated around the best held-out predictor: a model error that varies
+    # from block to block (e.g. a wrong lag) would otherwise count as scatter.
+    best = min(models, key=lambda name: gaps[name])
+    floor = metric.floor_db(observed[rows], models[best].predicted[rows], windows)
+    # The decision uses every held-out block, not window means: per-block squared log
+    # residuals (centred by the refit's training offset, the log-of-Rayleigh bias common
+    # to all models), paired against the refit, contiguous SEGMENT_S segments.
+    offset = np.mean(metric.block_log_errors(observed[train], models["refit"].predicted[train]), axis=0)
+    loss = {name: np.sum((metric.block_log_errors(observed[rows], f.predicted[rows]) - offset) ** 2, axis=1)
+            for name, f in models.items()}
+    segments = np.floor((table.t_mid_s[rows] - split) / SEGMENT_S).astype(np.int64)
+    segments -= segments.min()
+    n_bins = observed.shape[1]
     excess_refit = max(gaps["refit"] ** 2 - floor ** 2, 1e-12)
     candidates = []
     for effect in effects:
         if effect not in errors:
             continue
-        p = metric.paired_signflip_pvalue(base, errors[effect], rng=rng)
+        p = metric.segment_signflip_pvalue(loss["refit"], loss[effect], segments, rng=rng)
         removed = float(np.clip((gaps["refit"] ** 2 - gaps[effect] ** 2) / excess_refit, -9.99, 1.0))
+        block_gain = float(np.mean(loss["refit"] - loss[effect]) / n_bins) * DB_PER_NEPER ** 2
         candidates.append({"effect": effect, "heldout_gap": round(gaps[effect], 4),
                            "reduction": round(gaps["refit"] - gaps[effect], 4), "p_value": p,
-                           "excess_removed": round(float(removed), 4)})
-    candidates.sort(key=lambda c: -c["reduction"])
+                           "excess_removed": round(removed, 4),
+                           "block_mse_reduction_db2": round(float(block_gain), 5)})
+    candidates.sort(key=lambda c: -c["block_mse_reduction_db2"])
     level = alpha / max(len(candidates), 1)
-    eligible = [c for c in candidates if c["p_value"] < level and c["reduction"] >= MIN_REDUCTION_DB]
+    eligible = [c for c in candidates if c["p_value"] < level and c["block_mse_reduction_db2"] >= MIN_BLOCK_GAIN_DB2]
     verdict = eligible[0]["effect"] if eligible else "none"
-    confidence = _bootstrap_confidence(errors, [c["effect"] for c in candidates], verdict, floor, rng)
+    if verdict == "none":
+        # How far the strongest candidate is from being named: 1 - its Bonferroni-adjusted p.
+        best_p = min([c["p_value"] for c in candidates], default=1.0)
+        confidence = round(float(1.0 - min(1.0, best_p * max(len(candidates), 1))), 4)
+    else:
+        confidence = _bootstrap_confidence(loss, [c["effect"] for c in candidates], verdict, segments, n_bins, rng)
 
     residual = {"raw": 0.0}
     residual["sim_as_is"] = residual_noise_db(table, table.base_mean, np.ones_like(table.base_mean), rows)
-    residual["after_refit"] = residual_noise_db(table, models["refit"].predicted, models["refit"].std_scale, rows)
+    residual["after_refit"] = residual_noise_db(models["refit"].table, models["refit"].predicted,
+                                                models["refit"].std_scale, rows)
     vm = models[verdict] if verdict != "none" else models["refit"]
     residual["after_effect"] = residual_noise_db(vm.table, vm.predicted, vm.std_scale, rows)
-    return Diagnosis(table=table, train=train, heldout=heldout, heldout_rows=rows, windows=windows,
+    return Diagnosis(reference_lag_s=float(reference_lag_s), table=table, train=train, heldout=heldout, heldout_rows=rows, windows=windows,
                      split_time_s=split, models=models, errors=errors, gaps=gaps, floor=floor,
                      candidates=candidates, verdict=verdict, confidence=confidence,
                      residual_noise=residual, window_blocks=window_blocks)
 
 
-def _bootstrap_confidence(errors: dict[str, np.ndarray], names: list[str], verdict: str, floor: float,
-                          rng: np.random.Generator, segment_windows: int = 2) -> float:
-    """Share of block-bootstrap resamples of held-out segments that reach the same decision.
-
-    For an effect: it has the largest held-out reduction (and at least MIN_REDUCTION_DB).
-    For `none`: no candidate reduces the gap by MIN_REDUCTION_DB.
+def _bootstrap_confidence(loss: dict[str, np.ndarray], names: list[str], verdict: str, segments: np.ndarray,
+                          n_bins: int, rng: np.random.Generator) -> float:
+    """Share of block-bootstrap resamples (held-out segments drawn with replacement) in which
+    the verdict's effect has the largest held-out per-block gain over the refit (at least
+    MIN_BLOCK_GAIN_DB2).
     """
     if not names:
         return 1.0
-    sq = {n: np.mean(np.square(errors[n]), axis=1) for n in ["refit"] + names}
-    n_w = len(sq["refit"])
-    n_seg = max(n_w // segment_windows, 1)
-    seg = np.minimum(np.arange(n_w) // segment_windows, n_seg - 1)
-    seg_sum = {n: np.bincount(seg, weights=v, minlength=n_seg) for n, v in sq.items()}
-    seg_len = np.bincount(seg, minlength=n_seg)
+    n_seg = int(segments.max()) + 1
+    seg_len = np.bincount(segments, minlength=n_seg)
+    gain = np.stack([np.bincount(segments, weights=loss["refit"] - loss[n], minlength=n_seg) for n in names])
     picks = rng.integers(0, n_seg, size=(N_BOOTSTRAP, n_seg))
-    n_picked = seg_len[picks].sum(axis=1)
-    mean_sq = {n: s[picks].sum(axis=1) / n_picked for n, s in seg_sum.items()}
-    gap_refit = np.sqrt(mean_sq["refit"])
-    reduction = np.stack([gap_refit - np.sqrt(mean_sq[n]) for n in names])
-    best = np.argmax(reduction, axis=0)
-    found = reduction[best, np.arange(N_BOOTSTRAP)] >= MIN_REDUCTION_DB
-    if verdict == "none":
-        return round(float(np.mean(~found)), 4)
+    n_picked = np.maximum(seg_len[picks].sum(axis=1), 1)
+    mean_gain = gain[:, picks].sum(axis=2) / n_picked / n_bins * DB_PER_NEPER ** 2     # (K, N_BOOTSTRAP)
+    best = np.argmax(mean_gain, axis=0)
+    found = mean_gain[best, np.arange(N_BOOTSTRAP)] >= MIN_BLOCK_GAIN_DB2
     return round(float(np.mean(found & (best == names.index(verdict)))), 4)

@@ -14,19 +14,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from scipy import ndimage, signal
 
-from egovib_ros.core.filters import BandPass, channel_matrix
-from egovib_ros.core.velocity import block_mean_velocity
+from egovib_ros.core.stream import FramerSettings, frame_batch
+from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
 
 NS = 1_000_000_000
-#: A block counts as contact if its band energy exceeds the local typical level by this
-#: many robust standard deviations (log domain); taps are ~20 dB above ego-vibration.
-CONTACT_Z = 4.0
-#: Blocks on either side of a flagged block also dropped (tap tails, 10-30 ms).
-CONTACT_DILATE = 2
+#: A block counts as contact if its top-3-bin log ratio to the model exceeds the local
+#: typical level by this many robust standard deviations.
+CONTACT_Z = 3.5
+#: Blocks after a flagged block also dropped (tap tails ring for 10-30 ms + filter decay).
+CONTACT_DILATE = 5
 #: Savitzky-Golay window for joint accelerations (s): long enough to average encoder
 #: quantisation, short compared with the motion.
 ACCEL_SMOOTH_S = 0.031
@@ -73,7 +72,7 @@ class BlockTable:
         """Rows of the table (boolean mask or indices)."""
         pick = {name: getattr(self, name)[rows] for name in
                 ("t_first_s", "t_last_s", "magnitude", "velocity", "position", "acceleration",
-                 "base_mean", "base_std", "contact")}
+                 "base_mean", "base_std", "contact", "axis_mean")}
         return replace(self, **pick)
 
     def at_lag(self, lag_s: float) -> "BlockTable":
@@ -86,25 +85,38 @@ class BlockTable:
             raise ValueError("table has no joint series to re-match")
         velocity, position, acceleration = _joint_block_means(self.joints, self.t_first_s, self.t_last_s, lag_s)
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
+        axis, zero = axis_spectra(self.model, velocity, self.freq_index)
         return replace(self, velocity=velocity, position=position, acceleration=acceleration,
-                       base_mean=mean, base_std=std)
+                       base_mean=mean, base_std=std, axis_mean=axis, zero_mean=zero)
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
+    axis_mean: np.ndarray | None = field(repr=False, default=None)   # (B, J, F) Eq. 6 single-joint spectra
+    zero_mean: np.ndarray | None = field(repr=False, default=None)   # (F,) spectrum at rest
 
 
-def block_spectra(accel: np.ndarray, model) -> tuple[np.ndarray, np.ndarray]:
-    """|rfft(window * block)| of the band-passed sum of axes, core framing.
+def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
+    """The core's own framing (`frame_batch`, as calibration uses): band-passed sum of axes.
 
-    Returns (spectra (B, n_bins), first-sample index of each block).
+    Returns (magnitude spectra (B, n_bins) of complete blocks with a joint state,
+    t_first_ns (B,), t_last_ns (B,), block mean velocity (B, J)).
     """
-    x = channel_matrix(accel, "combined")
-    band = BandPass(sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz,
-                    order=model.band_order, n_channels=1)
-    y = band.process(x)[:, 0]
-    if len(y) < model.block_length:
-        return np.zeros((0, model.block_length // 2 + 1)), np.zeros(0, dtype=np.intp)
-    frames = sliding_window_view(y, model.block_length)[::model.hop]
-    return np.abs(np.fft.rfft(frames * model.window, axis=1)), np.arange(len(frames)) * model.hop
+    settings = FramerSettings(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length,
+                              hop=model.hop, band_hz=model.band_hz, band_order=model.band_order,
+                              layout="combined", max_hold_s=max_hold_s)
+    batches, _ = frame_batch(settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel,
+                             rec.joint_stamps_ns, velocity)
+    batches = [b for b in batches if b.n]
+    if not batches:
+        n_bins = model.block_length // 2 + 1
+        return np.zeros((0, n_bins)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, velocity.shape[1]))
+    samples = np.concatenate([b.samples[:, 0, :] for b in batches])
+    t_first = np.concatenate([b.t_first_ns for b in batches])
+    t_last = np.concatenate([b.t_last_ns for b in batches])
+    v = np.concatenate([b.velocity for b in batches])
+    ok = np.concatenate([(b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
+                         for b in batches])
+    spectra = np.abs(np.fft.rfft(samples[ok] * model.window, axis=1))
+    return spectra, t_first[ok], t_last[ok], v[ok]
 
 
 def in_band_bins(model) -> np.ndarray:
@@ -146,16 +158,33 @@ def _model_lookup(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[
     return mean, np.maximum(full[:, 0, freq_index] - mean, 0.0)
 
 
+def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 6 ingredients: mean spectra with only joint j moving, (B, J, F), and at rest, (F,)."""
+    ch = model.channel_indices(("combined",))
+    n_joints = velocity.shape[1]
+    zero, _ = model.estimate(np.zeros((1, n_joints)), ch, include_std=False)
+    axis = np.empty((len(velocity), n_joints, len(freq_index)))
+    for j in range(n_joints):
+        only = np.zeros_like(velocity)
+        only[:, j] = velocity[:, j]
+        m, _ = model.estimate(only, ch, include_std=False)
+        axis[:, j] = m[:, 0, freq_index]
+    return axis, zero[0, 0, freq_index]
+
+
 def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarray, *,
                     z: float = CONTACT_Z, dilate: int = CONTACT_DILATE) -> np.ndarray:
-    """Flag blocks whose band energy is an outlier above the model's prediction.
+    """Flag blocks whose spectrum is an outlier above the model's prediction.
 
-    The log energy ratio is compared with its running median over ~2 s (so a
-    mis-calibrated or drifting model does not flag everything) using a robust
-    (MAD) scale; flagged blocks are widened by `dilate` blocks on each side.
+    The statistic (mean of the three largest per-bin log ratios) is compared with its
+    running median over ~2 s (so a mis-calibrated or drifting model does not flag
+    everything) using a robust (MAD) scale; flagged blocks are widened by one block
+    before and `dilate` blocks after (tap tails).
     """
-    ratio = 10.0 * np.log10(np.maximum(np.sum(magnitude ** 2, axis=1), 1e-300)
-                            / np.maximum(np.sum(predicted ** 2, axis=1), 1e-300))
+    # A tap rings in a few modes: the mean of the three largest per-bin log ratios
+    # separates taps from ego-vibration better than the band energy when the hand moves fast.
+    log_ratio = np.log(np.maximum(magnitude, 1e-300) / np.maximum(predicted, 1e-300))
+    ratio = np.sort(log_ratio, axis=1)[:, -3:].mean(axis=1)
     if len(ratio) < 5:
         return np.zeros(len(ratio), dtype=bool)
     dt = np.median(np.diff(t_s)) if len(t_s) > 1 else 0.01
@@ -164,8 +193,12 @@ def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarra
     resid = ratio - local
     scale = 1.4826 * np.median(np.abs(resid - np.median(resid))) + 1e-9
     flagged = resid > z * scale
-    if dilate > 0 and flagged.any():
-        flagged = ndimage.binary_dilation(flagged, iterations=dilate)
+    if flagged.any():
+        # A tap rings on after its onset: drop `dilate` blocks after each flagged block
+        # and one before (the block straddling the onset may be below threshold).
+        structure = np.zeros(2 * dilate + 1, dtype=bool)
+        structure[dilate - 1:] = True               # origin at the centre: -1 .. +dilate
+        flagged = ndimage.binary_dilation(flagged, structure=structure)
     return flagged
 
 
@@ -186,15 +219,16 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
     if len(rec.joint_stamps_ns) < 10:
         raise BagError(f"{source}: /joint_states has only {len(rec.joint_stamps_ns)} messages")
 
-    spectra, first = block_spectra(rec.accel, model)
+    velocity = rec.joint_velocity[:, order]
+    spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
+    if len(spectra) < 10:
+        raise BagError(f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not overlap?)")
     freq_index = in_band_bins(model)
     t0_ns = int(rec.accel_stamps_ns[0])
-    accel_t = (rec.accel_stamps_ns - t0_ns) / NS
-    t_first = accel_t[first]
-    t_last = accel_t[first + model.block_length - 1]
+    t_first = (first_ns - t0_ns) / NS
+    t_last = (last_ns - t0_ns) / NS
 
     joint_t = (rec.joint_stamps_ns - t0_ns) / NS
-    velocity = rec.joint_velocity[:, order]
     # Unwrap so a block mean of the continuous wrist angle never straddles a +-pi jump.
     position = np.unwrap(rec.joint_position[:, order], axis=0)
     window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
@@ -204,21 +238,15 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
         if len(velocity) > window else np.zeros_like(velocity)
     joints = JointSeries(t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration)
 
-    # Lag-0 velocity exactly as the core matches it (same as calibration and denoising).
-    v_core, _, status = block_mean_velocity(rec.joint_stamps_ns, velocity,
-                                            rec.accel_stamps_ns[first],
-                                            rec.accel_stamps_ns[first + model.block_length - 1],
-                                            max_hold_ns=int(max_hold_s * NS))
-    valid = status != 2
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
-    mean, std = _model_lookup(model, np.nan_to_num(v_core), freq_index)
+    mean, std = _model_lookup(model, v_core, freq_index)
     vmax = np.array([np.max(np.abs(g)) for g in model.grid])
     table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=spectra[:, freq_index],
                        freqs_hz=model.freqs_hz[freq_index], velocity=v_core, position=pos_b,
                        acceleration=acc_b, base_mean=mean, base_std=std,
-                       contact=np.zeros(len(first), dtype=bool), vmax=vmax,
+                       contact=np.zeros(len(t_first), dtype=bool), vmax=vmax,
                        joint_names=tuple(model.joint_names), model=model, joints=joints,
                        freq_index=freq_index)
-    table = table.subset(valid)
+    table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     return table

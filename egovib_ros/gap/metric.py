@@ -16,10 +16,10 @@ additively over frequency bins, windows and anything a window is labelled with
 (velocity cell, covariate bin): `contributions` returns those shares.
 
 A model equal to the real process still scores > 0: finite-sample scatter of the
-window means.  `floor` estimates that from the data itself by a split-half: each
-window is split into two interleaved halves (pairs of blocks, so overlapping blocks
-stay together); a slowly varying model error cancels in e_A - e_B while the scatter
-does not, and Var(e_full) ~= E[(e_A - e_B)^2] / 4.
+window means.  `floor_db` estimates that from the data itself, from the covariances
+of the per-block ratio |Y|/m at lags 0 and 1 (overlapping blocks) minus the
+covariance at a lag of 4 blocks (a slowly varying model error adds about the same to
+all three).  `floor_split_half_db` is a cross-check.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEFAULT_WINDOW_BLOCKS = 32
+DEFAULT_WINDOW_BLOCKS = 8
 
 
 @dataclass
@@ -74,8 +74,36 @@ def gap_db(errors_db: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(errors_db)))) if errors_db.size else float("nan")
 
 
-def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
-    """Split-half estimate of the gap a perfect model would score on these windows."""
+def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 4) -> float:
+    """Estimate of the gap a perfect model would score on these windows (scatter only).
+
+    The scatter of a window mean comes from the block-to-block scatter of the ratio
+    r_b = |Y_b| / m_b, which is correlated only between overlapping neighbours (lag 1).
+    A model error varies slowly, adding about the same covariance at every short lag,
+    so the scatter's own covariances are C_k - C_far (k = 0, 1; far = 4 blocks apart);
+    then var(window mean) = (W c_0 + 2 (W - 1) c_1) / W^2 and e ~ 20/ln10 * sd.
+    """
+    keep = windows.members()
+    if not keep.any():
+        return float("nan")
+    r = observed[keep] / np.maximum(predicted[keep], 1e-300)
+    r = r / r.mean(axis=0) - 1.0
+    n = len(r)
+    if n <= far_lag + 1:
+        return float("nan")
+
+    def cov(k: int) -> np.ndarray:
+        return np.mean(r[k:] * r[:n - k], axis=0) if k else np.mean(r * r, axis=0)
+
+    c_far = cov(far_lag)
+    c0, c1 = cov(0) - c_far, np.maximum(cov(1) - c_far, 0.0)
+    w = np.bincount(windows.index[keep]).mean()
+    var = (w * c0 + 2 * (w - 1) * c1) / w ** 2
+    return float(20.0 / np.log(10.0) * np.sqrt(np.mean(np.maximum(var, 0.0))))
+
+
+def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
+    """Split-half cross-check of `floor_db` (interleaved block pairs; overlap makes it a lower bound)."""
     e_a = window_errors_db(observed, predicted, windows, windows.half == 0)
     e_b = window_errors_db(observed, predicted, windows, windows.half == 1)
     return float(np.sqrt(np.mean(np.square(e_a - e_b)) / 4.0)) if e_a.size else float("nan")
@@ -131,6 +159,33 @@ def paired_signflip_pvalue(base_errors_db: np.ndarray, cand_errors_db: np.ndarra
         signs = 1 - 2 * ((np.arange(2 ** n_seg)[:, None] >> np.arange(n_seg)) & 1)
         null = (signs * d_s).mean(axis=1)       # includes the identity pattern
         return float(np.mean(null >= observed - 1e-12))
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
+    null = (signs * d_s).mean(axis=1)
+    return float((1 + np.sum(null >= observed - 1e-12)) / (1 + len(null)))
+
+
+def block_log_errors(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Per-block, per-bin natural-log residuals ln |Y| - ln m (squared and summed, the test's loss)."""
+    tiny = 1e-300
+    r = np.log(np.maximum(observed, tiny)) - np.log(np.maximum(predicted, tiny))
+    return r
+
+
+def segment_signflip_pvalue(base_loss: np.ndarray, cand_loss: np.ndarray, segments: np.ndarray, *,
+                            n_permutations: int = 20000, rng: np.random.Generator | None = None) -> float:
+    """One-sided paired sign-flip test on per-block losses grouped in contiguous time segments.
+
+    Under H0 (the candidate predicts held-out blocks no better than the base) each
+    segment's summed loss difference is symmetric about zero.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    d_s = np.bincount(segments, weights=base_loss - cand_loss)
+    d_s = d_s[np.bincount(segments) > 0]
+    n_seg = len(d_s)
+    observed = d_s.mean()
+    if n_seg <= 16:
+        signs = 1 - 2 * ((np.arange(2 ** n_seg)[:, None] >> np.arange(n_seg)) & 1)
+        return float(np.mean((signs * d_s).mean(axis=1) >= observed - 1e-12))
     signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
     null = (signs * d_s).mean(axis=1)
     return float((1 + np.sum(null >= observed - 1e-12)) / (1 + len(null)))
