@@ -232,6 +232,7 @@ class BlockFramer:
         self.with_steadiness = True
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
+        self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -408,18 +409,19 @@ class BlockFramer:
         of `_drain`, with Python scalars and views instead of index arrays."""
         L, H = self.s.block_length, self.s.hop
         window_t = self._buf_t[:L]
+        t_last = int(window_t[-1])
+        if t_last < 0:                                  # ends in gap fill: rare
+            t_last = int(window_t.max())
+            if t_last < 0:
+                return
+        # Readiness first, on Python ints: most calls find the joint states not yet in.
+        joint_t = self._joint_t
+        if not ((len(joint_t) and t_last <= int(joint_t[-1]))
+                or self._cleaner.last_stamp - t_last >= self._joint_wait_ns):
+            return
         real = window_t >= 0
         complete = bool(real.all())
-        if complete:
-            t_first, t_last = int(window_t[0]), int(window_t[-1])
-        else:
-            if not real.any():
-                return
-            t_first, t_last = int(window_t[int(real.argmax())]), int(window_t.max())
-        latest_joint = int(self._joint_t[-1]) if len(self._joint_t) else None
-        waited = self._cleaner.last_stamp - t_last >= int(self.s.joint_wait_s * 1e9)
-        if not (waited or (latest_joint is not None and t_last <= latest_joint)):
-            return
+        t_first = int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
         if self.with_steadiness or not len(self._joint_t):
             velocity, steadiness, status = block_mean_velocity(
