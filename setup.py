@@ -22,7 +22,6 @@ setup(
     maintainer_email="egovib@example.com",
     description="Ego-vibration removal for robot accelerometers by spectral subtraction",
     license="BSD-3-Clause",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [f"egovib = {PACKAGE}.cli:main"]
         + [f"{node} = {PACKAGE}.nodes.{node}:main" for node in NODES],
