@@ -82,11 +82,11 @@ class NodeGroup:
                 raise RuntimeError(f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}")
             time.sleep(0.1)
 
-    def stop(self, name: str, timeout: float = 30.0) -> int:
-        """Ctrl-C the node and wait for it (kill after `timeout`)."""
+    def stop(self, name: str, timeout: float = 30.0, sig: int = signal.SIGINT) -> int:
+        """Ctrl-C the node (or send `sig`) and wait for it (kill after `timeout`)."""
         proc = self.procs[name]
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(sig)
             try:
                 proc.wait(timeout)
             except subprocess.TimeoutExpired:

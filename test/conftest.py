@@ -6,80 +6,39 @@ all at the end, also when the test fails.
 """
 from __future__ import annotations
 
-import os
 import random
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-BIN = Path(sys.executable).parent
+from egovib_ros.demo import NodeGroup
 
-
-def _param_text(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ",".join(_param_text(v) for v in value) + "]"
-    return str(value)
-
-
-class NodeProcesses:
-    """Starts console-script nodes in a ROS domain and cleans them up."""
+class NodeProcesses(NodeGroup):
+    """The demo's NodeGroup, addressed by process handle as the tests like it."""
 
     def __init__(self, domain_id: int, log_dir: Path):
-        self.domain_id = domain_id
-        self.log_dir = log_dir
-        self.procs: list[tuple[subprocess.Popen, Path]] = []
-        self.env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                        PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
+        super().__init__(log_dir, domain_id)
 
-    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None,
-              cwd: Path | None = None) -> subprocess.Popen:
+    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None):
         """Run `executable --ros-args -p name:=value ...`; output goes to a log file."""
-        cmd = [str(BIN / executable), "--ros-args"]
-        for name, value in (params or {}).items():
-            cmd += ["-p", f"{name}:={_param_text(value)}"]
-        log_path = self.log_dir / f"{log_name or executable}.{len(self.procs)}.log"
-        log = open(log_path, "w")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env,
-                                cwd=cwd or self.log_dir, start_new_session=True)
-        log.close()
-        self.procs.append((proc, log_path))
-        return proc
+        return super().start(f"{log_name or executable}.{len(self.procs)}", executable, params)
+
+    def _name(self, proc: subprocess.Popen) -> str:
+        return next(name for name, p in self.procs.items() if p is proc)
 
     def log(self, proc: subprocess.Popen) -> str:
-        for p, path in self.procs:
-            if p is proc:
-                return path.read_text()
-        raise KeyError(proc)
+        return super().log(self._name(proc))
 
     def stop(self, proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
         """Send `sig` (Ctrl-C by default) and wait; kill if it does not end in time."""
-        if proc.poll() is None:
-            proc.send_signal(sig)
-            try:
-                proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        return proc.returncode
+        return super().stop(self._name(proc), timeout, sig)
 
     def cleanup(self) -> None:
-        for proc, _ in self.procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 10
-        for proc, _ in self.procs:
-            try:
-                proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        self.close()
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from egovib_ros.constants import EFFECT_NAMES, GRIPPER_GAP_RANGE_M, MAX_SPEED
 from egovib_ros.sim import HandSimulator, SimParams
