@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
+from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError
 from egovib_ros.fileutil import atomic_output
 
@@ -62,17 +63,13 @@ def run_calibrate(args: argparse.Namespace) -> int:
     with atomic_output(args.out) as tmp:
         model.save(tmp)
     print(model.summary(), file=sys.stderr)
-    missing = int(np.sum(model.counts[_expected_cells(model)] == 0))
+    missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
     if missing:
         print(f"warning: {missing} cells of the {model.measured} grid have no block; "
               f"they are filled at load time (see NoiseModel)", file=sys.stderr)
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
-
-
-def _expected_cells(model: NoiseModel) -> np.ndarray:
-    return model.axis_mask() if model.measured == "superposition" else np.ones(model.grid_shape, dtype=bool)
 
 
 def run_denoise(args: argparse.Namespace) -> int:

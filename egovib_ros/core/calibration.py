@@ -13,7 +13,7 @@ import numpy as np
 from egovib_ros import __version__
 from egovib_ros.constants import BAND_HZ, BAND_ORDER, BLOCK_LENGTH, HOP, JOINT_NAMES, default_grid
 from egovib_ros.core.filters import CHANNEL_LAYOUTS
-from egovib_ros.core.noise_model import MEASURED_KINDS, MODEL_CHANNELS, NoiseModel
+from egovib_ros.core.noise_model import MEASURED_KINDS, MODEL_CHANNELS, NoiseModel, sweep_mask
 from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings
 from egovib_ros.core.velocity import MATCHED
 from egovib_ros.errors import ConfigError
@@ -46,6 +46,7 @@ class CalibrationAccumulator:
         self._sumsq = np.zeros(shape)
         self._counts = np.zeros(self.grid_shape, dtype=np.int64)
         self._spacing = [np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid]
+        self.expected_cells = sweep_mask(self.grid, sweep)     # the cells this sweep visits
         self.rejected = {"partial": 0, "no_joint_state": 0, "unsteady": 0, "off_grid": 0, "not_in_sweep": 0}
         assert CHANNEL_LAYOUTS["all"] == MODEL_CHANNELS
 
@@ -106,11 +107,9 @@ class CalibrationAccumulator:
             self.rejected["off_grid"] += int((usable & steady & ~near).sum())
             accept = usable & steady & near
             if self.sweep == "superposition":
-                zero = [int(np.argmin(np.abs(g))) for g in self.grid]
-                moving = (index != np.array(zero)[None, :]).sum(axis=1)
-                on_axis = moving <= 1
-                self.rejected["not_in_sweep"] += int((accept & ~on_axis).sum())
-                accept &= on_axis
+                in_sweep = self.expected_cells[tuple(index.T)]
+                self.rejected["not_in_sweep"] += int((accept & ~in_sweep).sum())
+                accept &= in_sweep
             if not accept.any():
                 continue
             magnitude = np.abs(np.fft.rfft(blocks.samples[accept] * self.window, axis=-1))   # (b, C, F)

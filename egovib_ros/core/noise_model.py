@@ -132,10 +132,7 @@ class NoiseModel:
     # --- Eq. 5 / Eq. 6 tables ---------------------------------------------
     def axis_mask(self) -> np.ndarray:
         """Cells where at most one joint moves (the 41-cell superposition sweep)."""
-        zero = self.zero_index()
-        moving = [np.arange(n) != z for n, z in zip(self.grid_shape, zero)]
-        n_moving = sum(np.meshgrid(*[m.astype(int) for m in moving], indexing="ij"))
-        return n_moving <= 1
+        return sweep_mask(self.grid, "superposition")
 
     def superposed(self) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 6 mean and std for every cell, from the single-joint cells only."""
@@ -357,6 +354,19 @@ class NoiseModel:
         return (f"noise model: {self.n_joints} joints {self.grid_shape} grid ({self.measured} sweep), "
                 f"{measured}/{self.counts.size} cells measured, {int(self.counts.sum())} blocks, "
                 f"{self.sample_rate_hz:g} Hz, L={self.block_length}, hop={self.hop}")
+
+
+def sweep_mask(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
+    """Grid-shaped mask of the cells a sweep visits: all of them ("full") or those where
+    at most one joint moves ("superposition", the cells Eq. 6 needs)."""
+    shape = tuple(len(g) for g in grid)
+    if sweep == "full":
+        return np.ones(shape, dtype=bool)
+    if sweep != "superposition":
+        raise ConfigError(f"grid: expected one of {MEASURED_KINDS}, got {sweep!r}")
+    index = np.indices(shape)
+    zero = [int(np.argmin(np.abs(g))) for g in grid]
+    return sum((index[j] != zero[j]).astype(int) for j in range(len(shape))) <= 1
 
 
 def _nearest_fill(values: np.ndarray, have: np.ndarray) -> np.ndarray:

@@ -27,7 +27,10 @@ from egovib_ros.ros_convert import (decode_imu_messages, decode_joint_state_mess
                                     diagnostic_array)
 
 
-JOINT_LAG_S = 0.5   # stream seconds samples may wait for the joint states that cover them
+# The two topics come on separate DDS readers: on a busy machine (e.g. while another
+# process starts) joint states can fall well behind the samples. Calibration has no latency
+# to keep, so blocks wait up to this long (stream time) for the joint states covering them.
+JOINT_WAIT_S = 2.0
 
 
 def default_checkpoint(output: str) -> str:
@@ -51,23 +54,20 @@ class Calibrator(Node):
             raise ConfigError(f"calibrator: grid must be full or superposition, not {grid!r}")
         self.grid = grid
         if resume and os.path.exists(self.checkpoint):
-            self.acc = CalibrationAccumulator.from_model(NoiseModel.load(self.checkpoint))
+            self.acc = CalibrationAccumulator.from_model(NoiseModel.load(self.checkpoint), joint_wait_s=JOINT_WAIT_S)
             if self.acc.sweep != grid:
                 raise ConfigError(f"{self.checkpoint}: checkpoint of a {self.acc.sweep} sweep, "
                                   f"but grid is {grid}")
             self.get_logger().info(f"resumed from {self.checkpoint}: "
                                    f"{int((self.acc.counts > 0).sum())} cells, {int(self.acc.counts.sum())} blocks")
         else:
-            self.acc = CalibrationAccumulator(sweep=grid)
-        self.expected = self._expected_cells()
+            self.acc = CalibrationAccumulator(sweep=grid, joint_wait_s=JOINT_WAIT_S)
+        self.expected = self.acc.expected_cells
         self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
         sensor_subscription(self, Imu, TOPIC_RAW, self._on_accel)
         sensor_subscription(self, JointState, TOPIC_JOINT_STATES, self._on_joint_state)
         self._accel_raw: list[bytes] = []
         self._joint_raw: list[bytes] = []
-        self._pending_stamps = np.zeros(0, dtype=np.int64)
-        self._pending_accel = np.zeros((0, 3))
-        self._latest_joint_ns = np.iinfo(np.int64).min
         self.bad_messages = 0
         self._counts = self.acc.counts
         self._current_cell: int | None = None
@@ -79,14 +79,6 @@ class Calibrator(Node):
         self.get_logger().info(f"calibrating a {grid} grid into {self.output} "
                                f"(checkpoint {self.checkpoint})")
 
-    def _expected_cells(self) -> np.ndarray:
-        shape = self.acc.grid_shape
-        if self.grid == "full":
-            return np.ones(shape, dtype=bool)
-        zero = [int(np.argmin(np.abs(g))) for g in self.acc.grid]
-        index = np.indices(shape)
-        return (sum((index[j] != zero[j]).astype(int) for j in range(len(shape)))) <= 1
-
     # --- input ------------------------------------------------------------------------
     def _on_joint_state(self, data: bytes) -> None:
         self._joint_raw.append(data)
@@ -96,14 +88,9 @@ class Calibrator(Node):
         if len(self._accel_raw) >= self.batch_samples:
             self._process()
 
-    def _process(self, final: bool = False) -> None:
-        """Push joint states, then the samples they cover.
-
-        The two topics arrive on separate DDS readers, so on a busy machine joint states
-        can lag the samples; samples newer than the latest joint state wait here (up to
-        JOINT_LAG_S of stream time) instead of being rejected by the core as having no
-        joint state. `final` pushes everything.
-        """
+    def _process(self) -> None:
+        """Push what arrived, joint states first; the core holds each block until the
+        joint states covering it are in (at most JOINT_WAIT_S)."""
         self._last_input = time.monotonic()
         try:
             if self._joint_raw:
@@ -112,21 +99,12 @@ class Calibrator(Node):
                 self.bad_messages += n_bad
                 if len(stamps):
                     self.acc.push_joint_states(stamps, velocity)
-                    self._latest_joint_ns = max(self._latest_joint_ns, int(stamps[-1]))
             if self._accel_raw:
                 raws, self._accel_raw = self._accel_raw, []
                 stamps, accel, n_bad = decode_imu_messages(raws, TOPIC_RAW)
                 self.bad_messages += n_bad
-                self._pending_stamps = np.concatenate([self._pending_stamps, stamps])
-                self._pending_accel = np.concatenate([self._pending_accel, accel])
-            if len(self._pending_stamps):
-                newest = int(self._pending_stamps[-1])
-                cutoff = newest if final else max(self._latest_joint_ns, newest - int(JOINT_LAG_S * 1e9))
-                ready = int(np.searchsorted(self._pending_stamps, cutoff, side="right"))
-                if ready:
-                    self.acc.push_accel(self._pending_stamps[:ready], self._pending_accel[:ready])
-                    self._pending_stamps = self._pending_stamps[ready:]
-                    self._pending_accel = self._pending_accel[ready:]
+                if len(stamps):
+                    self.acc.push_accel(stamps, accel)
         except EgovibError as exc:
             self.bad_messages += 1
             self.get_logger().warning(f"dropped a batch: {exc}", throttle_duration_sec=5.0)
@@ -188,7 +166,7 @@ class Calibrator(Node):
 
     def close(self) -> int:
         """Write the final model and report coverage; 1 if no block was collected."""
-        self._process(final=True)
+        self._process()
         self.acc.flush()
         cov = self.coverage()
         if cov["blocks"] == 0:
