@@ -1,27 +1,16 @@
 """Recording <-> rosbag2 bags (MCAP or sqlite3) via rosbags; no rclpy.
 
 A bag holds one ``sensor_msgs/msg/Imu`` per accelerometer sample (CONTRACT
-section 2), i.e. ~900k messages per topic for five minutes.  Going through
-rosbags' per-message (de)serialiser would take minutes, so Imu and JointState
-messages are (de)serialised with numpy on their fixed CDR layout: every
-message of a batch has the same length and the same structure, only the stamp
-and the numbers differ.  Anything unusual (mixed frame_id lengths, big-endian
-CDR, different joint names) falls back to rosbags per message.
+section 2). Messages are (de)serialised in numpy batches by `egovib_ros.cdr`.
 
 Reading MCAP bags scans the MCAP records directly (`_mcap_chunks`), ~2x faster
 than rosbags' reader; sqlite3 bags, file-compressed bags and anything the scan
 does not expect go through rosbags.
 
-CDR here is what rclpy produces: a 4-byte encapsulation header
-``00 01 00 00`` (little-endian CDR) followed by the body, with alignment
-counted from the start of the body.
-
 Public API:
     Recording, read_recording(path), write_recording(path, rec), write_recordings(path, slices)
-    encode_imu_batch / decode_imu / decode_imu_batch           (nodes: raw CDR)
-    encode_joint_state_batch / decode_joint_state_batch
-    encode_commands / decode_commands
     BagWriter                                                  (bag_recorder)
+    the codec of egovib_ros.cdr, re-exported for existing callers
 """
 from __future__ import annotations
 
@@ -29,21 +18,19 @@ import heapq
 import os
 import struct
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-from rosbags.typesys import Stores, get_typestore
 
-from egovib_ros.constants import ACCEL_FRAME, BAG_TOPICS, JOINT_NAMES
+from egovib_ros.cdr import (COMMANDS_TYPE, IMU_TYPE, JOINT_STATE_TYPE, decode_commands,  # noqa: F401
+                            decode_imu, decode_imu_batch, decode_joint_state_batch, encode_commands,
+                            encode_imu_batch, encode_joint_state_batch, imu_message, joint_state_message,
+                            replace_imu_field, typestore)
+from egovib_ros.constants import BAG_TOPICS, JOINT_NAMES
 from egovib_ros.errors import BagError
-
-IMU_TYPE = "sensor_msgs/msg/Imu"
-JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
-COMMANDS_TYPE = "std_msgs/msg/Float64MultiArray"
 
 TOPIC_TYPES = {
     BAG_TOPICS["raw"]: IMU_TYPE,
@@ -54,16 +41,8 @@ TOPIC_TYPES = {
     BAG_TOPICS["commands"]: COMMANDS_TYPE,
 }
 
-CDR_LE_HEADER = b"\x00\x01\x00\x00"
-_NS = 1_000_000_000
 # Messages decoded per numpy batch while reading: bounds memory on long bags.
 _READ_BATCH = 200_000
-
-
-@lru_cache(maxsize=1)
-def typestore():
-    """The ROS 2 Jazzy typestore of rosbags (cached)."""
-    return get_typestore(Stores.ROS2_JAZZY)
 
 
 @dataclass
@@ -89,245 +68,6 @@ class Recording:
         if len(self.accel_stamps_ns) < 2:
             return 0.0
         return float(self.accel_stamps_ns[-1] - self.accel_stamps_ns[0]) / 1e9
-
-
-# --------------------------------------------------------------------------
-# CDR helpers
-# --------------------------------------------------------------------------
-def _align(offset: int, size: int) -> int:
-    return (offset + size - 1) // size * size
-
-
-def _split(buf: bytes, n: int, length: int) -> list[bytes]:
-    """Cut a contiguous buffer of n equal messages into n bytes objects."""
-    return [buf[i:i + length] for i in range(0, n * length, length)]
-
-
-def _stamp_fields(stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    return stamps_ns // _NS, stamps_ns % _NS
-
-
-# --- Imu -------------------------------------------------------------------
-def _imu_accel_offset(frame_len: int) -> int:
-    """Byte offset (from message start) of linear_acceleration.x for a frame_id of given length."""
-    body = _align(12 + frame_len + 1, 8)   # sec, nanosec, strlen, chars + NUL, then doubles
-    # quaternion(4) + orientation_cov(9) + angular_velocity(3) + angular_velocity_cov(9)
-    return 4 + body + 25 * 8
-
-
-def _imu_length(frame_len: int) -> int:
-    return _imu_accel_offset(frame_len) + 12 * 8
-
-
-def _imu_dtype(frame_len: int) -> np.dtype:
-    return np.dtype({"names": ["sec", "nanosec", "strlen", "accel"],
-                     "formats": ["<i4", "<u4", "<u4", ("<f8", 3)],
-                     "offsets": [4, 8, 12, _imu_accel_offset(frame_len)],
-                     "itemsize": _imu_length(frame_len)})
-
-
-def imu_message(stamp_ns: int, xyz: Sequence[float], frame_id: str = ACCEL_FRAME):
-    """A rosbags Imu object following REP 145 (unknown orientation and angular velocity)."""
-    ts = typestore()
-    Imu, Header, Time = ts.types[IMU_TYPE], ts.types["std_msgs/msg/Header"], ts.types[
-        "builtin_interfaces/msg/Time"]
-    Quaternion, Vector3 = ts.types["geometry_msgs/msg/Quaternion"], ts.types["geometry_msgs/msg/Vector3"]
-    unknown = np.zeros(9)
-    unknown[0] = -1.0
-    return Imu(
-        header=Header(stamp=Time(sec=int(stamp_ns // _NS), nanosec=int(stamp_ns % _NS)), frame_id=frame_id),
-        orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
-        orientation_covariance=unknown.copy(),
-        angular_velocity=Vector3(x=0.0, y=0.0, z=0.0),
-        angular_velocity_covariance=unknown.copy(),
-        linear_acceleration=Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
-        linear_acceleration_covariance=np.zeros(9))
-
-
-@lru_cache(maxsize=8)
-def _imu_template(frame_id: str) -> bytes:
-    return bytes(typestore().serialize_cdr(imu_message(0, (0.0, 0.0, 0.0), frame_id), IMU_TYPE))
-
-
-def encode_imu_batch(stamps_ns: np.ndarray, accel: np.ndarray, frame_id: str = ACCEL_FRAME) -> list[bytes]:
-    """Serialise one Imu per sample to CDR bytes (identical to rclpy/rosbags serialisation)."""
-    accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-    n = len(accel)
-    if len(stamps_ns) != n:
-        raise ValueError(f"encode_imu_batch: {len(stamps_ns)} stamps for {n} samples")
-    template = _imu_template(frame_id)
-    frame_len = len(frame_id.encode())
-    # Work on a byte buffer: copying a structured array does not keep the gap bytes.
-    buf = np.frombuffer(template * n, dtype=np.uint8).copy()
-    arr = buf.view(_imu_dtype(frame_len))
-    arr["sec"], arr["nanosec"] = _stamp_fields(stamps_ns)
-    arr["accel"] = accel
-    return _split(buf.tobytes(), n, len(template))
-
-
-def _decode_imu_slow(raw: bytes) -> tuple[int, np.ndarray]:
-    msg = typestore().deserialize_cdr(raw, IMU_TYPE)
-    la = msg.linear_acceleration
-    return msg.header.stamp.sec * _NS + msg.header.stamp.nanosec, np.array([la.x, la.y, la.z])
-
-
-def decode_imu(raw: bytes) -> tuple[int, np.ndarray]:
-    """Stamp (ns) and linear acceleration (3,) of one serialised Imu message."""
-    stamps, accel = decode_imu_batch([raw])
-    return int(stamps[0]), accel[0]
-
-
-def decode_imu_batch(raws: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (n,) int64 ns and linear accelerations (n, 3) of serialised Imu messages."""
-    n = len(raws)
-    if n == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    first = bytes(raws[0][:16])
-    if len(first) >= 16 and first[:2] == CDR_LE_HEADER[:2]:
-        frame_len = struct.unpack_from("<I", first, 12)[0] - 1
-        length = _imu_length(frame_len)
-        if set(map(len, raws)) == {length}:
-            arr = np.frombuffer(b"".join(raws), dtype=_imu_dtype(frame_len))
-            if np.all(arr["strlen"] == frame_len + 1):
-                stamps = arr["sec"].astype(np.int64) * _NS + arr["nanosec"].astype(np.int64)
-                return stamps, arr["accel"].astype(np.float64)
-    # Unusual batch (mixed frame_id lengths, big-endian, ...): rosbags per message.
-    stamps = np.empty(n, np.int64)
-    accel = np.empty((n, 3))
-    for i, raw in enumerate(raws):
-        stamps[i], accel[i] = _decode_imu_slow(raw)
-    return stamps, accel
-
-
-# --- JointState ------------------------------------------------------------
-def joint_state_message(stamp_ns: int, names: Sequence[str], position, velocity, frame_id: str = ""):
-    """A rosbags JointState object (no effort)."""
-    ts = typestore()
-    JointState, Header, Time = ts.types[JOINT_STATE_TYPE], ts.types["std_msgs/msg/Header"], ts.types[
-        "builtin_interfaces/msg/Time"]
-    return JointState(
-        header=Header(stamp=Time(sec=int(stamp_ns // _NS), nanosec=int(stamp_ns % _NS)), frame_id=frame_id),
-        name=list(names), position=np.asarray(position, np.float64),
-        velocity=np.asarray(velocity, np.float64), effort=np.zeros(0))
-
-
-def _joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int, int]:
-    """Walk the CDR of one JointState: (names, pos_offset, n_pos, vel_offset, n_vel, effort_count_offset).
-
-    Offsets are counted from the message start (4-byte encapsulation header included).
-    """
-    def u32(body_off: int) -> int:
-        return struct.unpack_from("<I", raw, 4 + body_off)[0]
-
-    off = 8
-    off = 12 + u32(off)                        # frame_id string
-    off = _align(off, 4)
-    n_names = u32(off)
-    off += 4
-    names = []
-    for _ in range(n_names):
-        off = _align(off, 4)
-        slen = u32(off)
-        names.append(raw[4 + off + 4:4 + off + 4 + slen - 1].decode())
-        off += 4 + slen
-    seqs = []
-    for _ in range(2):                          # position, velocity
-        off = _align(off, 4)
-        count = u32(off)
-        off += 4
-        if count:
-            off = _align(off, 8)
-        seqs.append((4 + off, count))
-        off += 8 * count
-    off = _align(off, 4)
-    return tuple(names), seqs[0][0], seqs[0][1], seqs[1][0], seqs[1][1], 4 + off
-
-
-def encode_joint_state_batch(stamps_ns: np.ndarray, position: np.ndarray, velocity: np.ndarray,
-                             names: Sequence[str] = JOINT_NAMES) -> list[bytes]:
-    """Serialise one JointState (name, position, velocity; no effort) per row to CDR bytes."""
-    if len(stamps_ns) == 0:
-        return []
-    position = np.asarray(position, np.float64).reshape(len(stamps_ns), -1)
-    velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
-    n, n_joints = position.shape
-    template = bytes(typestore().serialize_cdr(
-        joint_state_message(0, names, np.zeros(n_joints), np.zeros(n_joints)), JOINT_STATE_TYPE))
-    _, pos_off, _, vel_off, _, _ = _joint_state_layout(template)
-    dtype = np.dtype({"names": ["sec", "nanosec", "pos", "vel"],
-                      "formats": ["<i4", "<u4", ("<f8", n_joints), ("<f8", n_joints)],
-                      "offsets": [4, 8, pos_off, vel_off], "itemsize": len(template)})
-    buf = np.frombuffer(template * n, dtype=np.uint8).copy()
-    arr = buf.view(dtype)
-    arr["sec"], arr["nanosec"] = _stamp_fields(stamps_ns)
-    arr["pos"] = position
-    arr["vel"] = velocity
-    return _split(buf.tobytes(), n, len(template))
-
-
-def decode_joint_state_batch(raws: Sequence[bytes], names: Sequence[str] | None = None
-                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
-    """Stamps (n,), positions (n, J), velocities (n, J) and joint names of serialised JointStates.
-
-    Columns follow `names` (default: the names of the first message); messages may
-    carry other joints too; a joint missing from a message gives NaN.
-    """
-    n = len(raws)
-    if n == 0:
-        k = len(names) if names is not None else 0
-        return np.zeros(0, np.int64), np.zeros((0, k)), np.zeros((0, k)), tuple(names or ())
-    first = bytes(raws[0])
-    msg_names, pos_off, n_pos, vel_off, n_vel, _ = _joint_state_layout(first)
-    names = tuple(names) if names is not None else msg_names
-    length = len(first)
-    columns = [msg_names.index(name) for name in names] if set(names) <= set(msg_names) else None
-    if (first[:2] == CDR_LE_HEADER[:2] and columns is not None and n_pos == n_vel == len(msg_names)
-            and set(map(len, raws)) == {length}):
-        buf = np.frombuffer(b"".join(raws), np.uint8).reshape(n, length)
-        structure = slice(12, pos_off)          # frame_id, names, position count
-        if np.all(buf[:, structure] == buf[0, structure]) and np.all(
-                buf[:, vel_off - 8:vel_off] == buf[0, vel_off - 8:vel_off]):
-            dtype = np.dtype({"names": ["sec", "nanosec", "pos", "vel"],
-                              "formats": ["<i4", "<u4", ("<f8", n_pos), ("<f8", n_pos)],
-                              "offsets": [4, 8, pos_off, vel_off], "itemsize": length})
-            arr = buf.view(dtype).reshape(n)
-            stamps = arr["sec"].astype(np.int64) * _NS + arr["nanosec"].astype(np.int64)
-            # (a robot's joint_states may carry more joints than asked for: pick the columns)
-            return (stamps, arr["pos"][:, columns].astype(np.float64), arr["vel"][:, columns].astype(np.float64),
-                    names)
-    # Unusual batch: rosbags per message, columns matched by joint name.
-    stamps = np.empty(n, np.int64)
-    position = np.full((n, len(names)), np.nan)
-    velocity = np.full((n, len(names)), np.nan)
-    column = {name: j for j, name in enumerate(names)}
-    for i, raw in enumerate(raws):
-        msg = typestore().deserialize_cdr(raw, JOINT_STATE_TYPE)
-        stamps[i] = msg.header.stamp.sec * _NS + msg.header.stamp.nanosec
-        for k, name in enumerate(msg.name):
-            j = column.get(name)
-            if j is None:
-                continue
-            if k < len(msg.position):
-                position[i, j] = msg.position[k]
-            if k < len(msg.velocity):
-                velocity[i, j] = msg.velocity[k]
-    return stamps, position, velocity, names
-
-
-# --- Float64MultiArray commands ---------------------------------------------
-def encode_commands(values: Sequence[float]) -> bytes:
-    """Serialise one ``[wrist rad/s, gripper m/s]`` Float64MultiArray command."""
-    ts = typestore()
-    msg = ts.types[COMMANDS_TYPE](
-        layout=ts.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
-        data=np.asarray(values, np.float64))
-    return bytes(ts.serialize_cdr(msg, COMMANDS_TYPE))
-
-
-def decode_commands(raw: bytes) -> np.ndarray:
-    """The data array of a serialised Float64MultiArray."""
-    return np.asarray(typestore().deserialize_cdr(raw, COMMANDS_TYPE).data, np.float64)
 
 
 # --------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 Stamps are int64 nanoseconds throughout, as in the core. The 3 kHz Imu and 1 kHz
 JointState streams have a fast path: nodes publish CDR bytes (rclpy's
 `Publisher.publish` takes bytes) and subscribe with `raw=True`, collecting bytes and
-decoding them in batches with the vectorised codec of egovib_ros.bagio.
+decoding them in batches with the vectorised codec of egovib_ros.cdr.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.bagio import (decode_imu_batch, decode_joint_state_batch,  # noqa: F401 (re-exported)
+from egovib_ros.cdr import (decode_imu_batch, decode_joint_state_batch,  # noqa: F401 (re-exported)
                               encode_imu_batch, encode_joint_state_batch)
 from egovib_ros.constants import ACCEL_FRAME, JOINT_NAMES
 from egovib_ros.errors import StreamError

@@ -1,0 +1,283 @@
+"""Robot profiles (CONTRACT section 1b, schema ``egovib.robot/1``).
+
+Everything robot-specific - which Imu topic and field is cleaned, at what nominal
+rate, which joints key the noise and how fast they go, how the velocity grid is
+spaced, the block processing settings - comes from a profile. The PR2 right hand
+(``config/robots/pr2_right_hand.yaml``) is the default; a model calibrated with a
+profile carries it, so denoising needs only the model.
+
+    profile = load_profile("quadcopter")          # a name in config/robots, or a path
+    profile.grid()                                # per-joint grid velocities
+
+Pure Python + numpy + yaml: imported by the core, the CLI and the nodes alike.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from egovib_ros.errors import ConfigError
+
+SCHEMA = "egovib.robot/1"
+PACKAGE = "egovib_ros"
+DEFAULT_PROFILE = "pr2_right_hand"
+SENSOR_FIELDS = ("linear_acceleration", "angular_velocity")
+MAX_JOINTS = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotProfile:
+    """A validated robot profile. Build with `load_profile`, `RobotProfile.from_dict` or
+    keywords; every field is checked on construction (one-line ConfigError naming it)."""
+
+    name: str
+    sensor_topic: str
+    sensor_field: str
+    rate_hz: float
+    denoised_topic: str
+    joints_topic: str
+    joint_names: tuple[str, ...]
+    max_speed: tuple[float, ...]
+    bidirectional: tuple[bool, ...]
+    steps: int = 10
+    sensor_range: float = math.inf        # |value| beyond this on any axis: a bad sample
+    block_length: int = 64
+    hop: int = 32
+    band_hz: tuple[float, float] = (150.0, 750.0)
+    band_order: int = 4
+    source: str = field(default="", compare=False)    # where it was read (error messages)
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        where = self.source or f"robot profile {self.name!r}"
+
+        def bad(message: str) -> ConfigError:
+            return ConfigError(f"{where}: {message}")
+
+        if not isinstance(self.name, str) or not self.name:
+            raise bad("name must be a non-empty string")
+        for key in ("sensor_topic", "denoised_topic", "joints_topic"):
+            value = getattr(self, key)
+            if not isinstance(value, str) or not value.strip("/"):
+                raise bad(f"{key} must be a topic name, got {value!r}")
+        if self.sensor_field not in SENSOR_FIELDS:
+            raise bad(f"sensor field must be one of {SENSOR_FIELDS}, got {self.sensor_field!r}")
+        set_(self, "rate_hz", _positive(self.rate_hz, "rate_hz", bad))
+        names = tuple(self.joint_names) if not isinstance(self.joint_names, str) else (self.joint_names,)
+        if not 1 <= len(names) <= MAX_JOINTS:
+            raise bad(f"between 1 and {MAX_JOINTS} joints are supported, got {len(names)}")
+        if any(not isinstance(n, str) or not n for n in names) or len(set(names)) != len(names):
+            raise bad(f"joint names must be distinct non-empty strings, got {list(names)}")
+        set_(self, "joint_names", names)
+        for key in ("max_speed", "bidirectional"):
+            values = getattr(self, key)
+            values = (values,) * len(names) if np.isscalar(values) else tuple(values)
+            if len(values) != len(names):
+                raise bad(f"{key} has {len(values)} entries for {len(names)} joints")
+            set_(self, key, values)
+        set_(self, "max_speed", tuple(_positive(v, "max_speed", bad) for v in self.max_speed))
+        if not all(isinstance(b, (bool, np.bool_)) for b in self.bidirectional):
+            raise bad(f"bidirectional must be true/false per joint, got {list(self.bidirectional)}")
+        set_(self, "bidirectional", tuple(bool(b) for b in self.bidirectional))
+        set_(self, "steps", _integer(self.steps, "steps", 1, 100, bad))
+        set_(self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True))
+        set_(self, "block_length", _integer(self.block_length, "block_length", 4, 65536, bad))
+        set_(self, "hop", _integer(self.hop, "hop", 1, 65536, bad))
+        if self.block_length % self.hop or self.block_length // self.hop < 2:
+            raise bad(f"hop must divide block_length and be smaller ({self.hop}, {self.block_length})")
+        try:
+            low, high = (float(b) for b in self.band_hz)
+        except (TypeError, ValueError):
+            raise bad(f"band_hz must be [low, high], got {self.band_hz!r}") from None
+        if not (math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.rate_hz / 2):
+            raise bad(f"band_hz must satisfy 0 < low < high < {self.rate_hz / 2:g} Hz (Nyquist), "
+                      f"got [{low:g}, {high:g}]")
+        set_(self, "band_hz", (low, high))
+        set_(self, "band_order", _integer(self.band_order, "band_order", 1, 12, bad))
+
+    # --- derived facts --------------------------------------------------------
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    def grid_values(self, joint: int) -> np.ndarray:
+        """Grid velocities of one joint in its own unit: -max..max (bidirectional) or 0..max
+        in `steps` steps per direction."""
+        low = -self.steps if self.bidirectional[joint] else 0
+        return np.round(np.arange(low, self.steps + 1) / self.steps, 10) * self.max_speed[joint]
+
+    def grid(self) -> tuple[np.ndarray, ...]:
+        return tuple(self.grid_values(j) for j in range(self.n_joints))
+
+    @property
+    def grid_shape(self) -> tuple[int, ...]:
+        return tuple((2 if b else 1) * self.steps + 1 for b in self.bidirectional)
+
+    @property
+    def node_sensor_topic(self) -> str:
+        """The sensor topic as a relative name (remappable, namespaceable), for nodes."""
+        return self.sensor_topic.lstrip("/")
+
+    @property
+    def node_denoised_topic(self) -> str:
+        return self.denoised_topic.lstrip("/")
+
+    @property
+    def node_joints_topic(self) -> str:
+        return self.joints_topic.lstrip("/")
+
+    # --- (de)serialisation ----------------------------------------------------
+    def to_dict(self) -> dict:
+        """The profile as the YAML mapping of CONTRACT section 1b (plus `sensor.range`)."""
+        sensor = {"topic": self.sensor_topic, "field": self.sensor_field, "rate_hz": self.rate_hz,
+                  "denoised_topic": self.denoised_topic}
+        if math.isfinite(self.sensor_range):
+            sensor["range"] = self.sensor_range
+        return {"schema": SCHEMA, "name": self.name, "sensor": sensor,
+                "joints": {"topic": self.joints_topic, "names": list(self.joint_names),
+                           "max_speed": list(self.max_speed), "bidirectional": list(self.bidirectional),
+                           "steps": self.steps},
+                "processing": {"block_length": self.block_length, "hop": self.hop,
+                               "band_hz": list(self.band_hz), "band_order": self.band_order}}
+
+    def dumps(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    @classmethod
+    def from_dict(cls, data: dict, *, source: str = "") -> "RobotProfile":
+        where = source or "robot profile"
+        if not isinstance(data, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+        if data.get("schema") != SCHEMA:
+            raise ConfigError(f"{where}: schema must be {SCHEMA!r}, got {data.get('schema')!r}")
+        sections = {}
+        for key in ("sensor", "joints", "processing"):
+            value = data.get(key, {} if key == "processing" else None)
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: section '{key}' is missing or not a mapping")
+            sections[key] = value
+        sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
+        _no_unknown(sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where)
+        _no_unknown(joints, ("topic", "names", "max_speed", "bidirectional", "steps"), "joints", where)
+        _no_unknown(processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where)
+        for key in ("topic", "field", "rate_hz"):
+            if key not in sensor:
+                raise ConfigError(f"{where}: sensor.{key} is required")
+        for key in ("names", "max_speed"):
+            if key not in joints:
+                raise ConfigError(f"{where}: joints.{key} is required")
+        names = joints["names"]
+        defaults = cls.__dataclass_fields__
+        return cls(name=str(data.get("name", "")), sensor_topic=sensor["topic"], sensor_field=sensor["field"],
+                   rate_hz=sensor["rate_hz"],
+                   denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
+                   joints_topic=joints.get("topic", "/joint_states"),
+                   joint_names=tuple(names) if isinstance(names, list) else names,
+                   max_speed=joints["max_speed"], bidirectional=joints.get("bidirectional", True),
+                   steps=joints.get("steps", defaults["steps"].default),
+                   sensor_range=sensor.get("range", math.inf),
+                   block_length=processing.get("block_length", defaults["block_length"].default),
+                   hop=processing.get("hop", defaults["hop"].default),
+                   band_hz=processing.get("band_hz", defaults["band_hz"].default),
+                   band_order=processing.get("band_order", defaults["band_order"].default),
+                   source=source)
+
+    @classmethod
+    def loads(cls, text: str, *, source: str = "") -> "RobotProfile":
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ConfigError(f"{source or 'robot profile'}: not valid YAML ({first})") from None
+        return cls.from_dict(data, source=source)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "RobotProfile":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: no such robot profile") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read robot profile ({exc.__class__.__name__})") from None
+        return cls.loads(text, source=str(path))
+
+
+def _positive(value, name: str, bad, *, allow_inf: bool = False) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise bad(f"{name} must be a positive number, got {value!r}") from None
+    if isinstance(value, bool) or not number > 0 or math.isnan(number) or (math.isinf(number) and not allow_inf):
+        raise bad(f"{name} must be a positive{'' if allow_inf else ' finite'} number, got {value!r}")
+    return number
+
+
+def _integer(value, name: str, low: int, high: int, bad) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+        raise bad(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
+
+
+def _no_unknown(section: dict, known: tuple[str, ...], name: str, where: str) -> None:
+    unknown = sorted(set(section) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown} in '{name}' (known: {list(known)})")
+
+
+def _denoised_name(topic: str) -> str:
+    head, _, tail = topic.rstrip("/").rpartition("/")
+    return f"{head}/denoised" if head else "/denoised"
+
+
+# --- where profiles live -------------------------------------------------------
+def config_dir() -> Path:
+    """The package's config directory: the source tree's `config/` (checkout, editable
+    install) or `share/egovib_ros/config` of a colcon/ament or pip install."""
+    here = Path(__file__).resolve()
+    candidates = [here.parents[1] / "config"]
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        if prefix:
+            candidates.append(Path(prefix) / "share" / PACKAGE / "config")
+    # an install tree: <prefix>/lib/pythonX.Y/site-packages/egovib_ros/robot.py
+    candidates += [parent / "share" / PACKAGE / "config" for parent in here.parents[1:6]]
+    candidates.append(Path(sys.prefix) / "share" / PACKAGE / "config")
+    for candidate in candidates:
+        if (candidate / "robots" / f"{DEFAULT_PROFILE}.yaml").is_file():
+            return candidate
+    raise ConfigError(f"cannot find the {PACKAGE} config directory (looked in "
+                      f"{', '.join(str(c) for c in candidates[:3])}, ...); is the package installed?")
+
+
+def profile_names() -> list[str]:
+    """Names of the profiles shipped in config/robots."""
+    return sorted(p.stem for p in (config_dir() / "robots").glob("*.yaml"))
+
+
+def load_profile(spec: str | os.PathLike | None = None) -> RobotProfile:
+    """A profile from a path, a shipped profile's name (e.g. ``quadcopter``), or the
+    default PR2 hand for None/empty."""
+    if spec is None or str(spec) == "":
+        return RobotProfile.load(config_dir() / "robots" / f"{DEFAULT_PROFILE}.yaml")
+    path = Path(spec)
+    if path.suffix in (".yaml", ".yml") or path.exists() or os.sep in str(spec):
+        return RobotProfile.load(path)
+    shipped = config_dir() / "robots" / f"{spec}.yaml"
+    if shipped.is_file():
+        return RobotProfile.load(shipped)
+    raise ConfigError(f"{spec}: no such robot profile file, nor a shipped profile "
+                      f"(shipped: {', '.join(profile_names())})")
+
+
+def default_profile() -> RobotProfile:
+    return load_profile(None)
+
+
+__all__ = ["RobotProfile", "load_profile", "default_profile", "profile_names", "config_dir", "SCHEMA",
+           "SENSOR_FIELDS", "MAX_JOINTS"]
