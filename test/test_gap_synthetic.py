@@ -15,8 +15,8 @@ from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import diagnose
-from egovib_ros.gap.features import (BlockTable, JointSeries, _joint_block_means, _model_lookup, axis_spectra,
-                                     in_band_bins)
+from egovib_ros.gap.features import (BlockTable, JointSeries, _joint_block_means, _model_lookup, attach_motion,
+                                     axis_spectra, in_band_bins)
 
 VMAX = np.array([3.0, 0.04])
 
@@ -74,11 +74,12 @@ def synthetic_table(effect: str = "none", strength: float = 0.0, *, duration_s: 
     v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
     mean0, std0 = _model_lookup(model, v0, freq_index)
     axis0, zero0 = axis_spectra(model, v0, freq_index)
-    return BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=magnitude,
-                      freqs_hz=model.freqs_hz[freq_index], velocity=v0, position=p0, acceleration=a0,
-                      base_mean=mean0, base_std=std0, contact=np.zeros(n_blocks, dtype=bool), vmax=VMAX,
-                      joint_names=("wrist_roll", "gripper"), model=model, joints=joints, freq_index=freq_index,
-                      axis_mean=axis0, zero_mean=zero0)
+    table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=magnitude,
+                       freqs_hz=model.freqs_hz[freq_index], velocity=v0, position=p0, acceleration=a0,
+                       base_mean=mean0, base_std=std0, contact=np.zeros(n_blocks, dtype=bool), vmax=VMAX,
+                       joint_names=("wrist_roll", "gripper"), model=model, joints=joints, freq_index=freq_index,
+                       axis_mean=axis0, zero_mean=zero0)
+    return attach_motion(table)
 
 
 def test_perfect_model_scores_at_floor():

@@ -39,6 +39,9 @@ class JointSeries:
     position: np.ndarray          # (M, J)
     velocity: np.ndarray          # (M, J)
     acceleration: np.ndarray      # (M, J) smoothed derivative of velocity
+    smooth_velocity: np.ndarray | None = None      # (M, J) Savitzky-Golay smoothed velocity
+    reversals: tuple[np.ndarray, ...] = ()         # per joint: joint-clock times (s) where motion
+                                                   # resumes opposite to the last direction
 
 
 @dataclass
@@ -72,7 +75,8 @@ class BlockTable:
         """Rows of the table (boolean mask or indices)."""
         pick = {name: getattr(self, name)[rows] for name in
                 ("t_first_s", "t_last_s", "magnitude", "velocity", "position", "acceleration",
-                 "base_mean", "base_std", "contact", "axis_mean")}
+                 "base_mean", "base_std", "contact", "axis_mean", "hats", "reversal_after_s",
+                 "reversal_before_s") if getattr(self, name) is not None}
         return replace(self, **pick)
 
     def at_lag(self, lag_s: float) -> "BlockTable":
@@ -86,12 +90,100 @@ class BlockTable:
         velocity, position, acceleration = _joint_block_means(self.joints, self.t_first_s, self.t_last_s, lag_s)
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
         axis, zero = axis_spectra(self.model, velocity, self.freq_index)
+        hats, after, before = motion_features(self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots,
+                                              self.model.window)
         return replace(self, velocity=velocity, position=position, acceleration=acceleration,
-                       base_mean=mean, base_std=std, axis_mean=axis, zero_mean=zero)
+                       base_mean=mean, base_std=std, axis_mean=axis, zero_mean=zero, hats=hats,
+                       reversal_after_s=after, reversal_before_s=before, lag_s=float(lag_s))
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
     axis_mean: np.ndarray | None = field(repr=False, default=None)   # (B, J, F) Eq. 6 single-joint spectra
     zero_mean: np.ndarray | None = field(repr=False, default=None)   # (F,) spectrum at rest
+    #: Velocity knots per joint (the model's grid): the baseline's cells.
+    knots: tuple[np.ndarray, ...] = field(repr=False, default=())
+    #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
+    #: velocity trajectory at the knots: what a velocity-only table predicts, linearly.
+    hats: np.ndarray | None = field(repr=False, default=None)
+    reversal_after_s: np.ndarray | None = field(repr=False, default=None)    # (B, J) since last reversal
+    reversal_before_s: np.ndarray | None = field(repr=False, default=None)   # (B, J) until next reversal
+    lag_s: float = 0.0                                                         # joint-state lag of this table
+
+
+#: The baseline's velocity cells: the model's grid with each interval split in this many
+#: (tonal lines sweep a DFT bin within a fraction of a 10 % grid step).
+KNOT_REFINE = 4
+KNOT_REFINE_LOW = 10
+LOW_SPEED_FRACTION = 0.2
+#: Points per block at which the velocity trajectory is sampled for the baseline's features.
+TRAJECTORY_POINTS = 16
+#: A joint is moving in one direction once |smoothed velocity| exceeds this share of its top speed.
+REVERSAL_THRESHOLD = 0.03
+
+
+def hat_basis(values: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Piecewise-linear interpolation weights: (left knot index, left weight, right weight)."""
+    v = np.clip(values, knots[0], knots[-1])
+    i = np.clip(np.searchsorted(knots, v, side="right") - 1, 0, len(knots) - 2)
+    frac = (v - knots[i]) / (knots[i + 1] - knots[i])
+    return i, 1.0 - frac, frac
+
+
+def motion_features(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float,
+                    knots: tuple[np.ndarray, ...], window: np.ndarray):
+    """Velocity-trajectory hat features (B, J, K) and times since / until the nearest reversal (B, J).
+
+    Each block's features are the analysis-window^2-weighted mean, over TRAJECTORY_POINTS
+    instants inside the block, of the hat functions of the (smoothed) joint velocity: a
+    velocity table interpolated linearly between its cells and averaged over the block's
+    own velocity trajectory (a block straddling a reversal sees both directions' speeds,
+    not their mean, which is near zero).
+    """
+    n_blocks, n_joints = len(t_first), len(knots)
+    pts = np.linspace(0.0, 1.0, TRAJECTORY_POINTS)
+    idx = np.clip(np.round(pts * (len(window) - 1)).astype(int), 0, len(window) - 1)
+    weight = window[idx] ** 2
+    weight = weight / weight.sum()
+    times = t_first[:, None] + pts[None, :] * (t_last - t_first)[:, None]           # (B, Q)
+    t_joint = joints.t_s - lag_s
+    vel = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
+    n_knots = max(len(k) for k in knots)
+    hats = np.zeros((n_blocks, n_joints, n_knots))
+    rows = np.repeat(np.arange(n_blocks), TRAJECTORY_POINTS)
+    w = np.tile(weight, n_blocks)
+    for j in range(n_joints):
+        v = np.interp(times.ravel(), t_joint, vel[:, j])
+        i, wl, wr = hat_basis(v, knots[j])
+        np.add.at(hats[:, j], (rows, i), w * wl)
+        np.add.at(hats[:, j], (rows, i + 1), w * wr)
+    t_mid = 0.5 * (t_first + t_last)
+    after = np.full((n_blocks, n_joints), np.inf)
+    before = np.full((n_blocks, n_joints), np.inf)
+    for j, events in enumerate(joints.reversals):
+        if len(events) == 0:
+            continue
+        ev = np.sort(events) - lag_s
+        k = np.searchsorted(ev, t_mid, side="right")
+        has_prev = k > 0
+        after[has_prev, j] = t_mid[has_prev] - ev[k[has_prev] - 1]
+        has_next = k < len(ev)
+        before[has_next, j] = ev[k[has_next]] - t_mid[has_next]
+    return hats, after, before
+
+
+def detect_reversals(t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per joint: times at which motion resumes opposite to the previous direction of motion."""
+    out = []
+    for j in range(smooth_velocity.shape[1]):
+        v = smooth_velocity[:, j]
+        thr = REVERSAL_THRESHOLD * vmax[j]
+        state = np.where(v > thr, 1, np.where(v < -thr, -1, 0))
+        moving = np.flatnonzero(state)
+        if len(moving) < 2:
+            out.append(np.zeros(0))
+            continue
+        flips = moving[1:][np.diff(state[moving]) != 0]
+        out.append(t_s[flips])
+    return tuple(out)
 
 
 def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
@@ -173,7 +265,7 @@ def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[n
 
 
 def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarray, *,
-                    z: float = CONTACT_Z, dilate: int = CONTACT_DILATE) -> np.ndarray:
+                    z: float = CONTACT_Z, dilate: int = CONTACT_DILATE, return_raw: bool = False):
     """Flag blocks whose spectrum is an outlier above the model's prediction.
 
     The statistic (mean of the three largest per-bin log ratios) is compared with its
@@ -186,23 +278,65 @@ def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarra
     log_ratio = np.log(np.maximum(magnitude, 1e-300) / np.maximum(predicted, 1e-300))
     ratio = np.sort(log_ratio, axis=1)[:, -3:].mean(axis=1)
     if len(ratio) < 5:
-        return np.zeros(len(ratio), dtype=bool)
+        none = np.zeros(len(ratio), dtype=bool)
+        return (none, none.copy()) if return_raw else none
     dt = np.median(np.diff(t_s)) if len(t_s) > 1 else 0.01
     size = int(max(5, min(len(ratio), round(2.0 / max(dt, 1e-6))))) | 1
     local = ndimage.median_filter(ratio, size=size, mode="nearest")
     resid = ratio - local
     scale = 1.4826 * np.median(np.abs(resid - np.median(resid))) + 1e-9
-    flagged = resid > z * scale
+    flagged = raw = resid > z * scale
     if flagged.any():
         # A tap rings on after its onset: drop `dilate` blocks after each flagged block
         # and one before (the block straddling the onset may be below threshold).
         structure = np.zeros(2 * dilate + 1, dtype=bool)
         structure[dilate - 1:] = True               # origin at the centre: -1 .. +dilate
         flagged = ndimage.binary_dilation(flagged, structure=structure)
-    return flagged
+    return (flagged, raw) if return_raw else flagged
 
 
-def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") -> BlockTable:
+def baseline_knots(grid, refine: int = 1, low_refine: int | None = None,
+                   low_fraction: float = LOW_SPEED_FRACTION) -> tuple[np.ndarray, ...]:
+    """The model's velocity grid per joint, each interval split into `refine` cells
+    (`low_refine` within `low_fraction` of the top speed: a line whose frequency is a
+    high multiple of the shaft speed sweeps a DFT bin per ~1 % of speed there)."""
+    low_refine = refine if low_refine is None else low_refine
+    out = []
+    for g in grid:
+        g = np.asarray(g, float)
+        top = np.max(np.abs(g))
+        pieces = []
+        for a, b in zip(g[:-1], g[1:]):
+            n = low_refine if max(abs(a), abs(b)) <= low_fraction * top + 1e-12 else refine
+            pieces.append(np.linspace(a, b, n + 1)[:-1])
+        out.append(np.round(np.concatenate(pieces + [g[-1:]]), 12))
+    return tuple(out)
+
+
+def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
+    """Fill in the smoothed velocity and the reversal times of a joint series (if missing)."""
+    if joints.smooth_velocity is None:
+        dt = float(np.median(np.diff(joints.t_s)))
+        window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
+        joints.smooth_velocity = signal.savgol_filter(joints.velocity, window, 2, axis=0, mode="interp") \
+            if len(joints.velocity) > window else joints.velocity
+    if not joints.reversals:
+        joints.reversals = detect_reversals(joints.t_s, joints.smooth_velocity, vmax)
+    return joints
+
+
+def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> BlockTable:
+    """Baseline cells, velocity-trajectory features and reversal times of a table built by hand."""
+    smooth_joint_series(table.joints, table.vmax)
+    table.knots = baseline_knots(table.model.grid, knot_refine,
+                                 KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine)
+    table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
+        table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window)
+    return table
+
+
+def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag",
+                knot_refine: int = KNOT_REFINE) -> BlockTable:
     """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel."""
     if model.n_joints != len(rec.joint_names):
         raise ModelFileError(f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
@@ -236,17 +370,22 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
     acceleration = signal.savgol_filter(velocity, window, 2, deriv=1, axis=0,
                                         delta=float(np.median(np.diff(joint_t))), mode="interp") \
         if len(velocity) > window else np.zeros_like(velocity)
-    joints = JointSeries(t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration)
+    smooth = signal.savgol_filter(velocity, window, 2, axis=0, mode="interp") if len(velocity) > window else velocity
+    vmax = np.array([np.max(np.abs(g)) for g in model.grid])
+    joints = JointSeries(t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration,
+                         smooth_velocity=smooth, reversals=detect_reversals(joint_t, smooth, vmax))
 
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)
-    vmax = np.array([np.max(np.abs(g)) for g in model.grid])
+    knots = baseline_knots(model.grid, knot_refine, KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine)
+    hats, after, before = motion_features(joints, t_first, t_last, 0.0, knots, model.window)
     table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=spectra[:, freq_index],
                        freqs_hz=model.freqs_hz[freq_index], velocity=v_core, position=pos_b,
                        acceleration=acc_b, base_mean=mean, base_std=std,
                        contact=np.zeros(len(t_first), dtype=bool), vmax=vmax,
                        joint_names=tuple(model.joint_names), model=model, joints=joints,
-                       freq_index=freq_index)
+                       freq_index=freq_index, knots=knots, hats=hats, reversal_after_s=after,
+                       reversal_before_s=before)
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     return table

@@ -171,6 +171,18 @@ def block_log_errors(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     return r
 
 
+def block_deviance(observed_power: np.ndarray, predicted_power: np.ndarray) -> np.ndarray:
+    """Per-block Gamma deviance y/mu - ln(y/mu) - 1, averaged over bins (y = |Y|^2, mu = expected power).
+
+    Minimised in expectation by mu = E[y], whatever the distribution of y: the right loss
+    for a model of expected *power* (independent sources add in power, not in mean
+    magnitude, so a mean-magnitude or log loss would reward fitting how the shape of the
+    magnitude distribution changes with the mixture, e.g. two tones in one bin).
+    """
+    ratio = np.maximum(observed_power, 1e-300) / np.maximum(predicted_power, 1e-300)
+    return np.mean(ratio - np.log(ratio) - 1.0, axis=1)
+
+
 def segment_signflip_pvalue(base_loss: np.ndarray, cand_loss: np.ndarray, segments: np.ndarray, *,
                             n_permutations: int = 20000, rng: np.random.Generator | None = None) -> float:
     """One-sided paired sign-flip test on per-block losses grouped in contiguous time segments.
