@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.altreality.motion import (GAP_MAX, GRIPPER_LIMIT, WRIST_LIMIT, plan_motion,
+from egovib_ros.altreality.motion import (GRIPPER_LIMIT, WRIST_LIMIT, plan_motion,
                                           reversal_events)
 from egovib_ros.bagio import Recording
 

@@ -60,6 +60,11 @@ LAG_SCAN_STRIDE = 2
 REL_CLIP = 25.0
 #: An effect term never moves a prediction by more than this (nepers, ~26 dB).
 MAX_LOG_GAIN = 3.0
+#: Iterations of the Gamma GLM (IRLS) of a candidate term; working residuals clipped here
+#: (a block 20x above its mean power is an outlier, not information about a smooth term).
+GLM_ITERATIONS = 4
+WORKING_CLIP = 20.0
+EULER_GAMMA = 0.5772156649
 
 
 @dataclass
@@ -257,6 +262,27 @@ def fit_term(x: np.ndarray, z: np.ndarray, train: np.ndarray) -> tuple[np.ndarra
     return np.vstack([intercept[None, :], beta]), info
 
 
+def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power: E[ratio] = exp(2 (a(f) + x beta(f))).
+
+    Targets the *mean* power (the quantity that adds over independent sources and that the
+    held-out deviance judges), by iteratively reweighted least squares: for a log link and
+    Gamma variance the working weights are constant, so each step is the same GCV ridge
+    fit (`fit_term`) on the working response eta + (ratio - mu) / mu.  Starts from the
+    least-squares fit of log ratio.  Returns coefficients on the magnitude scale (half the
+    power exponent), (1 + R, F).
+    """
+    log_ratio = np.log(np.maximum(ratio, 1e-300))
+    coef, ridge = fit_term(x, log_ratio, train)
+    coef[0] += EULER_GAMMA                       # E log of an exponential variable = log mean - gamma
+    for _ in range(GLM_ITERATIONS):
+        eta = coef[0][None, :] + (np.clip(x @ coef[1:], -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN) if x.shape[1] else 0.0)
+        mu = np.exp(eta)
+        work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
+        coef, ridge = fit_term(x, work, train)
+    return coef / 2.0, ridge
+
+
 def _relevel(table: BlockTable, train: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     """Per-bin factor so that the predicted *mean* magnitude matches on training blocks."""
     return table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
@@ -269,8 +295,7 @@ def fit_variant(table: BlockTable, train: np.ndarray, effect: str, scales: Scale
     fitted on the training rows."""
     base = refit if refit is not None else fit_baseline(table, train)
     extra, names = regressors if regressors is not None else effect_regressors(effect, table, scales)
-    z = np.log(np.maximum(table.magnitude, 1e-300)) - np.log(np.maximum(base.magnitude, 1e-300))
-    coef, ridge = fit_term(extra, z, train)
+    coef, ridge = fit_power_term(extra, table.magnitude ** 2 / np.maximum(base.power, 1e-300), train)
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
     predicted = base.magnitude * gain

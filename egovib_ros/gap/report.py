@@ -160,7 +160,7 @@ def build_report(diag: Diagnosis, *, model_path: str, real_path: str, figures: d
         "schema": SCHEMA,
         "metric": {"name": METRIC_NAME, "unit": "dB",
                    "definition": METRIC_DEFINITION.format(w=diag.window_blocks,
-                                                          ws=diag.window_blocks * float(np.median(np.diff(dt))))},
+                                                          ws=diag.window_blocks * float(np.median(np.diff(t.t_mid_s))))},
         "split": {k: (_r(v, 3) if isinstance(v, float) else v) for k, v in diag.split_info.items()},
         "gap": {"sim_as_is": _r(diag.gaps["sim_as_is"]), "after_refit": _r(diag.gaps["refit"]),
                 "after_effect": _r(diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]),
