@@ -122,20 +122,23 @@ def simulator_cells(table: BlockTable, knots: tuple[np.ndarray, ...] | None = No
 
 def _smoothness_rows(knots: tuple[np.ndarray, ...], where: list[tuple[int, int]], n_par: int
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Second differences along each joint's cells (the rest cell counts as a fixed 0), and their centre column."""
+    """Second differences along each joint's cells (the rest cell counts as a fixed 0), and the
+    (up to three) columns each row involves, (R, 3) with -1 where the rest cell stands."""
     col = {jk: 1 + i for i, jk in enumerate(where)}
-    rows, centres = [], []
+    rows, members = [], []
     for j, g in enumerate(knots):
         for k in range(1, len(g) - 1):
             r = np.zeros(n_par)
+            m = []
             for kk, c in ((k - 1, 1.0), (k, -2.0), (k + 1, 1.0)):
                 if (j, kk) in col:
                     r[col[(j, kk)]] = c
+                m.append(col.get((j, kk), -1))
             rows.append(r)
-            centres.append(col.get((j, k), 0))
+            members.append(m)
     if not rows:
-        return np.zeros((0, n_par)), np.zeros(0, int)
-    return np.array(rows), np.array(centres)
+        return np.zeros((0, n_par)), np.zeros((0, 3), int)
+    return np.array(rows), np.array(members)
 
 
 def _solve(xt: sparse.csr_matrix, yn: np.ndarray, weights: np.ndarray, prior: np.ndarray, prior_blocks: float,
@@ -151,7 +154,10 @@ def _solve(xt: sparse.csr_matrix, yn: np.ndarray, weights: np.ndarray, prior: np
         lhs[np.diag_indices(n_par)] += pen
         rhs = rhs + pen * prior[f]
         if len(d2):
-            ds = d2 / scale[f, centres][:, None]
+            # Curvature relative to the largest of the three cells involved: a sharp line
+            # (one loud cell between quiet ones) is not crushed by its quiet neighbours' scale.
+            local = np.max(np.where(centres >= 0, scale[f][np.maximum(centres, 0)], 0.0), axis=1)
+            ds = d2 / np.maximum(local, SCALE_FLOOR)[:, None]
             lhs += SMOOTH_BLOCKS * ds.T @ ds
         coef[f] = np.linalg.solve(lhs, rhs)
     return coef
