@@ -34,6 +34,8 @@ def register(subparsers) -> None:
                           "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
                           "on our simulator (validate)")
     val.add_argument("--seeds", type=int, default=5, help="seeds per effect class (validate)")
+    val.add_argument("--master-seed", type=int, default=2026,
+                     help="seed from which all runs' classes, strengths and seeds are drawn (validate)")
     val.add_argument("--duration", type=float, default=120.0, help="seconds per simulated real bag (validate)")
     val.add_argument("--jobs", type=int, default=1, help="parallel worker processes (validate)")
     val.add_argument("--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)")
@@ -47,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
         if args.seeds < 1 or args.duration < 30:
             raise ConfigError("gap validate: --seeds must be >= 1 and --duration >= 30 s")
         summary = run_validation(seeds=args.seeds, duration_s=args.duration, out_dir=out, jobs=args.jobs,
-                                 ladder=not args.no_ladder, progress=True, reality=args.reality)
+                                 ladder=not args.no_ladder, progress=True, reality=args.reality,
+                                 master_seed=args.master_seed)
         print(f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
               f"none flagged {summary['none_false_positive_rate']:.3f}, "
               f"{summary['n_runs']} runs -> {summary['outputs']}")

@@ -371,7 +371,8 @@ def run_validation(*, seeds: int = 5, duration_s: float = 120.0, out_dir: str | 
             _init_worker(model_paths, reference_lags)
             results = _progress((run_one(r, duration_s) for r in runs), len(runs), progress)
     summary = summarise(results, reality)
-    command = (f"egovib gap validate --reality {reality} --seeds {seeds} --duration {duration_s:g}"
+    command = (f"egovib gap validate --reality {reality} --seeds {seeds} --duration {duration_s:g} "
+               f"--master-seed {master_seed}"
                + ("" if ladder else " --no-ladder") + f" --out {out_dir}")
     json_name, md_name, png_name = output_names(reality)
     report = {"schema": "egovib.gap_validation/2", "summary": summary,
