@@ -1,62 +1,319 @@
 """`egovib calibrate` and `egovib denoise`: the core run on recorded bags.
 
 They call the very same core as the calibrator and denoiser nodes, so live and
-offline results agree.
+offline results agree. Bags are streamed (egovib_ros.bag): memory does not grow with
+the recording, topics that are only copied are copied as serialized bytes (whole MCAP
+chunks when possible), and several bags or directories of bags run in parallel
+(`--jobs`, Dask) with one progress bar and one summary.
+
+Library use (evaluate, gap and scripts call these directly):
+    denoise_bag(bag, out, model=..., channels=..., compress=...) -> dict of figures
+    calibrate_bags([bag, ...], profile=..., sweep=...) -> (NoiseModel, stats)
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
+import os
 import sys
+from pathlib import Path
+from typing import Callable, Sequence
 
 import numpy as np
-from tqdm import tqdm
 
-from egovib_ros.bagio import read_recording, write_recording
-from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
-from egovib_ros.core.noise_model import sweep_mask
-from egovib_ros.errors import BagError
+from egovib_ros.bag import BagReader, BagWriter, MessageBatch, RecordingStream, compression_name
+from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
+from egovib_ros.bag.messages import decode_imu, replace_imu_field
+from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.fileutil import atomic_output
+from egovib_ros.robot import RobotProfile, load_profile
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     cal = subparsers.add_parser(
-        "calibrate", help="build a noise model from a calibration-sweep bag",
-        description="Assign 64-sample blocks of a sweep bag to joint-velocity cells and write the "
-                    "per-cell mean/std noise spectra (CONTRACT section 4).")
-    cal.add_argument("bag", help="rosbag2 directory with /joint_states and /accelerometer/raw")
+        "calibrate", help="build a noise model from a calibration sweep or any no-contact recording",
+        description="Assign blocks of the bags' sensor signal to joint-velocity cells and write the per-cell "
+                    "mean/std noise spectra (CONTRACT section 4). Several bags (or directories of bags) "
+                    "give one model; they are read in parallel with --jobs.")
+    cal.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
     cal.add_argument("--out", required=True, metavar="MODEL.npz", help="noise-model file to write")
-    cal.add_argument("--grid", choices=("auto", "full", "superposition"), default="auto",
-                     help="which sweep the bag holds; auto = superposition if no cell has both joints moving")
+    cal.add_argument("--robot", metavar="PROFILE", default=None,
+                     help="robot profile (YAML path or shipped name); default the PR2 hand")
+    cal.add_argument("--grid", choices=("auto", "full", "superposition", "free"), default="auto",
+                     help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
+                          "auto = decided from the data")
+    _parallel_options(cal)
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.set_defaults(func=run_calibrate)
 
     den = subparsers.add_parser(
-        "denoise", help="remove ego-vibration from a bag",
+        "denoise", help="remove ego-vibration from bags",
         description="Spectral subtraction of the model's noise at the recorded joint velocities; writes a "
-                    "bag with the input topics plus /accelerometer/denoised (one message per raw sample, "
-                    "with the raw sample's stamp).")
-    den.add_argument("bag", help="rosbag2 directory with /joint_states and /accelerometer/raw")
+                    "bag with the input topics (copied as they are) plus the model's denoised topic: one "
+                    "message per raw sample, the input message with the cleaned field, the raw sample's stamp. "
+                    "Several bags (or directories of bags): --out is a directory, one output bag per input.")
+    den.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
     den.add_argument("--model", required=True, metavar="MODEL.npz")
-    den.add_argument("--out", required=True, metavar="BAG", help="output bag directory")
+    den.add_argument("--out", required=True, metavar="BAG",
+                     help="output bag directory (one input bag) or directory of output bags (several)")
     den.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis",
                      help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x")
     den.add_argument("--oversubtraction", type=float, default=1.0, help="alpha in max(|Y| - alpha N, beta N)")
     den.add_argument("--floor", type=float, default=0.0, help="beta in max(|Y| - alpha N, beta N)")
+    den.add_argument("--compress", choices=("none", "zstd"), default="none",
+                     help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)")
+    _parallel_options(den)
     den.add_argument("--quiet", action="store_true", help="no progress bar")
     den.set_defaults(func=run_denoise)
 
 
+def _parallel_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--jobs", type=int, default=1, metavar="N",
+                        help="bags processed at once (N > 1: a local Dask cluster of N worker processes)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                        help="run on an existing Dask cluster (e.g. tcp://host:8786) instead of a local one")
+
+
+# --------------------------------------------------------------------------
+# denoise
+# --------------------------------------------------------------------------
+def model_profile(model: NoiseModel) -> RobotProfile:
+    """The robot profile the model was calibrated with (v1 models: the PR2 default)."""
+    profile = getattr(model, "profile", None)
+    return profile if profile is not None else load_profile(None)
+
+
+class _DenoisedTopic:
+    """Pairs denoiser output with the raw messages it replaces and releases the output
+    bag's content in input order: each input unit (an MCAP chunk copied verbatim, or a
+    batch of messages per topic) followed by the denoised messages of its raw samples,
+    once every one of those samples is final.
+
+    Raw samples the denoiser drops (out of order, leading non-finite) have no denoised
+    message; they are counted."""
+
+    def __init__(self, writer: BagWriter, raw_topic: str, denoised_topic: str, field: str, copy_topics: set[str]):
+        self.writer = writer
+        self.raw_topic, self.denoised_topic, self.field = raw_topic, denoised_topic, field
+        self.copy_topics = copy_topics
+        self.units: list[tuple[object, int]] = []          # (ReadBatch, global index past its last raw message)
+        self.raw_read = 0                                  # raw messages read so far
+        self.resolved = 0                                  # raw messages before this are matched or dropped
+        self.pending = MessageBatch.empty()                # raw messages from `resolved` on
+        self.pending_stamps = np.zeros(0, np.int64)
+        self.out_index: list[np.ndarray] = []              # global raw index of each denoised message
+        self.out_batches: list[MessageBatch] = []
+        self.written = 0
+        self.dropped = 0
+        self.verbatim_chunks = 0
+        self.copied_chunks = 0
+
+    def add_input(self, batch, raw_stamps: np.ndarray | None) -> None:
+        raw = batch.messages.get(self.raw_topic)
+        if raw is not None and len(raw):
+            stamps = raw_stamps if raw_stamps is not None else decode_imu(raw, self.field)[0]
+            self.pending = MessageBatch.concat([self.pending, raw])
+            self.pending_stamps = np.concatenate([self.pending_stamps, stamps])
+            self.raw_read += len(raw)
+        self.units.append((batch, self.raw_read))
+
+    def add_output(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        if len(stamps) == 0:
+            return
+        if values.shape[1] == 1:       # CONTRACT: combined signal in x, y = z = 0
+            values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
+        index = self._match(stamps)
+        messages = replace_imu_field(self.pending.take(index), values, self.field)
+        self.out_index.append(self.resolved + index)
+        self.out_batches.append(messages)
+        done = int(index[-1]) + 1
+        self.dropped += done - len(index)
+        self.resolved += done
+        rest = np.arange(done, len(self.pending))
+        self.pending = MessageBatch.concat([self.pending.take(rest)]) if len(rest) else MessageBatch.empty()
+        self.pending_stamps = self.pending_stamps[done:]
+        self._emit()
+
+    def finish(self) -> None:
+        self.dropped += len(self.pending)
+        self.resolved = self.raw_read
+        self.pending, self.pending_stamps = MessageBatch.empty(), np.zeros(0, np.int64)
+        self._emit()
+
+    def _match(self, stamps: np.ndarray) -> np.ndarray:
+        """Positions in `pending` of the raw messages of these output stamps (in order)."""
+        n, known = len(stamps), self.pending_stamps
+        if n <= len(known) and np.array_equal(known[:n], stamps):
+            return np.arange(n)
+        index = np.empty(n, np.int64)        # some raw samples were dropped: walk (rare)
+        j = 0
+        for k, stamp in enumerate(stamps.tolist()):
+            while j < len(known) and known[j] != stamp:
+                j += 1
+            if j == len(known):
+                raise RuntimeError(f"denoised sample stamped {stamp} has no raw message")
+            index[k] = j
+            j += 1
+        return index
+
+    def _emit(self) -> None:
+        if not self.units or self.units[0][1] > self.resolved:
+            return
+        index = np.concatenate(self.out_index) if self.out_index else np.zeros(0, np.int64)
+        messages = MessageBatch.concat(self.out_batches)
+        used = 0
+        while self.units and self.units[0][1] <= self.resolved:
+            batch, raw_end = self.units.pop(0)
+            self._copy(batch)
+            stop = int(np.searchsorted(index, raw_end))
+            if stop > used:
+                part = messages.take(np.arange(used, stop))
+                self.writer.write_batch(self.denoised_topic, part.log_times, part)
+                self.written += stop - used
+                used = stop
+        rest = np.arange(used, len(index))
+        self.out_index = [index[used:]] if len(rest) else []
+        self.out_batches = [messages.take(rest)] if len(rest) else []
+
+    def _copy(self, batch) -> None:
+        chunk = batch.chunk
+        if chunk is not None:
+            other = {c for c, t in batch.topic_of_channel.items() if t not in self.copy_topics}
+            if other:
+                chunk = chunk.without(other)
+            if self.writer.write_chunk(chunk, batch.scanner.schemas, batch.scanner.channels):
+                self.verbatim_chunks += 1
+                return
+        self.copied_chunks += 1
+        for topic, messages in batch.messages.items():
+            if topic in self.copy_topics and len(messages):
+                self.writer.write_batch(topic, messages.log_times, messages)
+
+
+def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseModel | str | os.PathLike,
+                channels: str = "per_axis", oversubtraction: float = 1.0, floor: float = 0.0,
+                compress: bool | str = False, progress: Callable[[int], None] | None = None) -> dict:
+    """Denoise one bag into `out` (written atomically: nothing appears unless complete).
+
+    Streams the bag: input MCAP chunks are copied verbatim (topics never decoded but
+    the sensor and joint topics), the profile's denoised topic is added, one message
+    per raw sample. Returns figures (samples, blocks, size ratio, ...)."""
+    model = model if isinstance(model, NoiseModel) else NoiseModel.load(model)
+    profile = model_profile(model)
+    bag = Path(bag)
+    with BagReader(bag) as reader:
+        stream = RecordingStream(reader, profile, ground_truth=False, denoised=False, commands=False)
+        raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
+        copy_topics = [t for t in reader.topics if t != denoised_topic]
+        denoiser = StreamingDenoiser(model, channels=channels, oversubtraction=oversubtraction, floor=floor,
+                                     source=f"{bag}: {raw_topic}")
+        with atomic_output(out, directory=True) as tmp:
+            with BagWriter(tmp, compress=compress) as writer:
+                for topic in copy_topics:
+                    writer.copy_topic(reader, topic)
+                writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
+                job = _DenoisedTopic(writer, raw_topic, denoised_topic, profile.sensor_field, set(copy_topics))
+
+                def push(pieces) -> None:
+                    for piece in pieces:
+                        for chunk in (denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
+                                      denoiser.push_accel(piece.accel_stamps_ns, piece.accel)):
+                            job.add_output(chunk.stamps_ns, chunk.values)
+
+                for batch in reader.batches(copy_topics):
+                    pieces = stream.add(batch)
+                    job.add_input(batch, stream.decoded.get("raw", (None,))[0])
+                    push(pieces)
+                    if progress is not None:
+                        progress(batch.bytes_read)
+                push(stream.finish())
+                final = denoiser.flush()
+                job.add_output(final.stamps_ns, final.values)
+                job.finish()
+                ratio = writer.size_ratio
+    stats = denoiser.stats
+    return {"samples_in": job.raw_read, "denoised_messages": job.written, "raw_without_output": job.dropped,
+            "blocks": stats["blocks"], "blocks_out_of_grid": stats["blocks_out_of_grid"],
+            "blocks_no_joint_state": stats["blocks_no_joint_state"],
+            "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
+            "dropped_out_of_order": stats["dropped_out_of_order"], "channels": channels,
+            "chunks_copied_verbatim": job.verbatim_chunks, "chunks_rewritten": job.copied_chunks,
+            "size_ratio": ratio, "compression": compression_name(compress) or "none"}
+
+
+def _describe_denoise(figures: dict) -> str:
+    text = (f"{figures['denoised_messages']} samples denoised ({figures['channels']}); blocks {figures['blocks']}, "
+            f"out of grid {figures['blocks_out_of_grid']}, no joint state {figures['blocks_no_joint_state']}")
+    if figures.get("blocks_unmeasured"):
+        text += f", on unmeasured cells {figures['blocks_unmeasured']}"
+    if figures["raw_without_output"]:
+        text += f", raw samples dropped (out of order / non-finite) {figures['raw_without_output']}"
+    if figures["compression"] != "none" and figures["size_ratio"]:
+        text += f"; zstd size ratio {figures['size_ratio']:.1f}"
+    return text
+
+
+def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
+    return denoise_bag(bag, out, progress=progress, **options)
+
+
+def output_jobs(specs: Sequence[str], out: str | os.PathLike) -> list[BagJob]:
+    """One input bag -> `out` is the output bag; several (or a directory) -> `out` is a
+    directory holding one output bag per input, under the input's relative name."""
+    pairs = expand_bags(specs)
+    single = len(specs) == 1 and len(pairs) == 1 and Path(specs[0]) == pairs[0][0]
+    if single:
+        return [BagJob(pairs[0][0], Path(out))]
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: with several input bags --out must be a directory")
+    return [BagJob(bag, out / name) for bag, name in pairs]
+
+
+def run_denoise(args: argparse.Namespace) -> int:
+    model = NoiseModel.load(args.model)          # a bad model fails once, before any bag is touched
+    jobs = output_jobs(args.bags, args.out)
+    task = functools.partial(_denoise_task, model=model, channels=args.channels,
+                             oversubtraction=args.oversubtraction, floor=args.floor, compress=args.compress)
+    results = run_bags(task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet)
+    return _report(results, _describe_denoise, single=len(jobs) == 1)
+
+
+def _report(results, describe, *, single: bool) -> int:
+    """Single bag: its line, or its one-line error (exit 2). Several: the summary."""
+    if single:
+        r = results[0]
+        if not r.ok:
+            raise BagError(r.error.splitlines()[0]) if r.error else BagError(f"{r.bag}: failed")
+        print(describe(r.value), file=sys.stderr)
+        print(f"wrote {r.out}", file=sys.stderr)
+        return 0
+    for line in summary_lines(results, describe):
+        print(line, file=sys.stderr)
+    return 0 if all(r.ok for r in results) else 2
+
+
+# --------------------------------------------------------------------------
+# calibrate
+# --------------------------------------------------------------------------
 def run_calibrate(args: argparse.Namespace) -> int:
-    rec = read_recording(args.bag, ground_truth=False, denoised=False)
+    # interim (core v1): one bag, whole arrays; replaced by the streaming version on Core v2
+    from tqdm import tqdm
+    from egovib_ros.bag import read_recording
+    from egovib_ros.core import calibrate_arrays
+    from egovib_ros.core.noise_model import sweep_mask
+    bag = args.bags[0]
+    rec = read_recording(bag, ground_truth=False, denoised=False)
     sweep = "superposition" if args.grid == "superposition" else "full"
     with tqdm(total=len(rec.accel_stamps_ns), unit="sample", unit_scale=True, desc="calibrate",
               disable=args.quiet or None, file=sys.stderr) as bar:
         model, stats = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
-                                        rec.joint_velocity, source=str(args.bag), progress=bar.update,
+                                        rec.joint_velocity, source=str(bag), progress=bar.update,
                                         sweep=sweep, joint_names=rec.joint_names)
     if model.counts.sum() == 0:
-        raise BagError(f"{args.bag}: no steady block near any grid velocity "
+        raise BagError(f"{bag}: no steady block near any grid velocity "
                        f"(rejected: {stats['rejected']}); is this a calibration sweep?")
     if args.grid == "auto" and not np.any(model.counts[~model.axis_mask()] > 0):
         model = dataclasses.replace(model, measured="superposition")
@@ -70,26 +327,3 @@ def run_calibrate(args: argparse.Namespace) -> int:
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
-
-
-def run_denoise(args: argparse.Namespace) -> int:
-    model = NoiseModel.load(args.model)
-    rec = read_recording(args.bag, joint_names=model.joint_names)      # the joints the model knows
-    stamps, values, stats = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
-                                          rec.joint_velocity, model, channels=args.channels,
-                                          oversubtraction=args.oversubtraction, floor=args.floor,
-                                          joint_names=rec.joint_names, source=str(args.bag))
-    if values.shape[1] == 1:   # CONTRACT: combined signal in x, y = z = 0
-        values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-    out = dataclasses.replace(rec, denoised_stamps_ns=stamps, denoised=values)
-    total = len(rec.accel_stamps_ns) * (3 if rec.contact is not None else 1) * 2 + len(rec.joint_stamps_ns)
-    with atomic_output(args.out, directory=True) as tmp, \
-            tqdm(total=total, unit="msg", unit_scale=True, desc="write", disable=args.quiet or None,
-                 file=sys.stderr) as bar:
-        write_recording(tmp, out, progress=bar.update)
-    print(f"denoised {len(stamps)} samples ({args.channels}); blocks: {stats['blocks']}, "
-          f"out of grid: {stats['blocks_out_of_grid']}, no joint state: {stats['blocks_no_joint_state']}, "
-          f"dropped out-of-order: {stats['dropped_out_of_order']}", file=sys.stderr)
-    print(f"wrote {args.out}", file=sys.stderr)
-    return 0
-
