@@ -138,6 +138,9 @@ def _run_dask(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, schedul
     except ImportError:
         raise ConfigError("parallel runs need dask.distributed (pip install 'dask[distributed]')") from None
     cluster = None
+    quiet_loggers = {name: logging.getLogger(name).level for name in ("distributed", "dask", "tornado", "bokeh")}
+    for name in quiet_loggers:        # Dask reports at INFO level; our summary is the report
+        logging.getLogger(name).setLevel(logging.ERROR)
     try:
         if scheduler:
             try:
@@ -145,8 +148,8 @@ def _run_dask(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, schedul
             except Exception as exc:
                 raise ConfigError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: {exc})") from None
         else:
-            cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+            cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   scheduler_kwargs={"dashboard": False}, silence_logs=logging.ERROR)
             client = Client(cluster)
         with client:
             futures = client.map(run_guarded, [task] * len(jobs_list), list(jobs_list), pure=False)
@@ -164,6 +167,8 @@ def _run_dask(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, schedul
     finally:
         if cluster is not None:
             cluster.close()
+        for name, level in quiet_loggers.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def summary_lines(results: Sequence[BagResult], describe: Callable[[Any], str] = str) -> list[str]:

@@ -23,6 +23,7 @@ layout follows the spec (https://mcap.dev/spec) as that library reads it.
 from __future__ import annotations
 
 import io
+import os
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -143,6 +144,8 @@ class McapScanner:
 
     def chunks(self) -> Iterator[ChunkData]:
         with open(self.path, "rb") as fh:
+            if hasattr(os, "posix_fadvise"):        # one pass front to back: read ahead further
+                os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
             if fh.read(8) != MAGIC:
                 raise McapFormatError("not an MCAP file (bad magic)")
             pending: tuple | None = None            # a chunk waiting for its message indexes
@@ -346,7 +349,7 @@ class McapWriter:
     """
 
     def __init__(self, path: str | Path, *, compression: str = "", chunk_bytes: int = 4 << 20,
-                 library: str = "egovib_ros", level: int = 3):
+                 library: str = "egovib_ros", level: int = 1):
         if compression not in ("", "zstd"):
             raise ValueError(f"compression must be '' or 'zstd', got {compression!r}")
         self.path = Path(path)
