@@ -36,7 +36,7 @@ def test_short_slice_gives_every_metric_for_every_method(short_result):
     fold = short_result["primary"]
     assert fold["calibration_s"] == [0.0, 4.0] and fold["test_s"] == [4.0, 6.0]
     rows = fold["results"]["1"]
-    assert set(rows) == {"raw", "ours", "global", "mean_command", "notch_q5", "notch_q2", "firmware"}
+    assert set(rows) == {"raw", "ours", "ours_L64", "global", "mean_command", "notch_q5", "notch_q2", "firmware"}
     for name, row in rows.items():
         if name == "firmware":
             assert row["noise_mean_denoised"] < row["noise_mean_raw"] and np.isfinite(row["noise_reduction_db"])

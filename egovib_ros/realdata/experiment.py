@@ -61,6 +61,7 @@ class RealConfig:
     amplitudes: tuple[float, ...] = (0.5, 1.0, 2.0)
     methods: tuple[str, ...] = METHODS
     swapped: bool = True             # also calibrate on the test part and test on the calibration part
+    extra_seeds: tuple[int, ...] = (2, 3, 4, 5)   # more event sets at the primary amplitude (pooled table)
 
     def __post_init__(self) -> None:
         if PRIMARY_AMPLITUDE not in self.amplitudes:
@@ -79,6 +80,97 @@ def _edge_mask(n: int, fs: float) -> np.ndarray:
 
 def _with_signal(rec: FlightRecording, accel: np.ndarray) -> FlightRecording:
     return dataclasses.replace(rec, accel=accel)
+
+
+def score_events(fitted: dict, thresholds: dict, test: FlightRecording, profile: RobotProfile, spec: EventSpec,
+                 firmware_bp: np.ndarray | None, *, keep_signals: bool = False) -> dict:
+    """Add one set of events to the test part, run every fitted method, score it."""
+    fs = profile.rate_hz
+    t0 = int(test.accel_stamps_ns[0])
+    events = make_events(test.accel_stamps_ns, test.accel, sample_rate_hz=fs, band_hz=profile.band_hz,
+                         band_order=profile.band_order, spec=spec)
+    noisy = _with_signal(test, test.accel + events.signal)
+    reference = combined_bandpassed(events.signal, profile)
+    seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
+    truth = seg.onsets
+    raw = combined_bandpassed(noisy.accel, profile)
+    minutes = len(test.accel_stamps_ns) / fs / 60.0
+    rows, signals = {}, {}
+    for name, method in fitted.items():
+        output = method.run(noisy)
+        envelope = detection.envelope(output, sample_rate_hz=fs)
+        row = metrics.signal_metrics(raw, output, reference, seg)
+        scores = detection.evaluate_detector(envelope, truth, thresholds[name], sample_rate_hz=fs)
+        lenient = detection.evaluate_detector(envelope, truth, thresholds[name], sample_rate_hz=fs,
+                                              tolerance_s=LENIENT_TOLERANCE_S)
+        row.update({"f1": scores["f1"], "precision": scores["precision"], "recall": scores["recall"],
+                    "tp": scores["tp"], "fp": scores["fp"], "fn": scores["fn"],
+                    "threshold": scores["threshold"], "false_alarms": scores["fp"],
+                    "false_alarms_per_min": scores["fp"] / minutes, "f1_30ms": lenient["f1"]})
+        rows[name] = row
+        if keep_signals:
+            signals[name] = output
+    if firmware_bp is not None:
+        noise_fw = metrics.noise_mean(firmware_bp, seg.no_contact_mask)
+        rows["firmware"] = {
+            "noise_mean_raw": rows["raw"]["noise_mean_raw"], "noise_mean_denoised": noise_fw,
+            "noise_reduction_db": metrics.db20(rows["raw"]["noise_mean_raw"] / noise_fw),
+            "noise_spike_raw": rows["raw"]["noise_spike_raw"],
+            "noise_spike_denoised": metrics.noise_spike(firmware_bp, seg.no_contact_mask)}
+    info = {"seed": spec.seed, "n_events": int(len(events.onsets)), "n_taps_segmented": seg.n_taps,
+            "target_peak_rad_s": events.target_peak,
+            "onsets_s": ((events.onset_ns - t0) / 1e9).round(4).tolist(),
+            "axis": events.axis.tolist(), "frequency_hz": events.frequency_hz.round(1).tolist(),
+            "decay_ms": (1e3 * events.decay_s).round(2).tolist(),
+            "amplitude_rad_s": events.amplitude.round(5).tolist()}
+    if keep_signals:
+        signals.update({"raw_input": raw, "reference": reference, "seg": seg, "stamps_ns": test.accel_stamps_ns,
+                        "firmware": firmware_bp})
+    return {"rows": rows, "events": info, "signals": signals}
+
+
+def firmware_transfer(test: FlightRecording, profile: RobotProfile, nperseg: int = 128) -> dict:
+    """How the firmware's filters treat the band: |H| = |P_xy / P_xx| from raw to filtered gyro and
+    their coherence (Welch, per axis, then averaged in dB / linearly), summarised over the band."""
+    from scipy import signal as sps
+
+    fs = profile.rate_hz
+    gains, coherences = [], []
+    for axis in range(3):
+        x, y = test.accel[:, axis], test.filtered[:, axis]
+        freqs, pxy = sps.csd(x, y, fs=fs, nperseg=nperseg)
+        _, pxx = sps.welch(x, fs=fs, nperseg=nperseg)
+        _, coherence = sps.coherence(x, y, fs=fs, nperseg=nperseg)
+        gains.append(20 * np.log10(np.abs(pxy) / np.maximum(pxx, 1e-30) + 1e-30))
+        coherences.append(coherence)
+    gain_db, coherence = np.mean(gains, axis=0), np.mean(coherences, axis=0)
+    band = (freqs >= profile.band_hz[0]) & (freqs <= profile.band_hz[1])
+    return {"band_hz": list(profile.band_hz), "median_gain_db": float(np.median(gain_db[band])),
+            "median_coherence": float(np.median(coherence[band])),
+            "freqs_hz": freqs.round(2).tolist(), "gain_db": gain_db.round(1).tolist(),
+            "coherence": coherence.round(3).tolist()}
+
+
+POOLED = ("noise_reduction_db", "tap_retention", "peak_snr_improvement_db", "f1", "false_alarms_per_min")
+
+
+def pool_seeds(per_seed: list[dict], seeds: list[int]) -> dict:
+    """Per method over event sets: mean/min/max of the main metrics, and F1 from pooled counts."""
+    pooled = {"seeds": list(seeds), "methods": {}}
+    for name in per_seed[0]:
+        if name == "firmware":
+            continue
+        entry = {}
+        for key in POOLED:
+            values = np.array([rows[name][key] for rows in per_seed], float)
+            entry[key] = {"mean": float(values.mean()), "min": float(values.min()), "max": float(values.max())}
+        tp, fp, fn = (sum(rows[name][k] for rows in per_seed) for k in ("tp", "fp", "fn"))
+        precision = tp / (tp + fp) if tp + fp else 1.0
+        recall = tp / (tp + fn) if tp + fn else 1.0
+        entry["f1_pooled"] = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+        entry["events"] = int(tp + fn)
+        pooled["methods"][name] = entry
+    return pooled
 
 
 def run_fold(rec: FlightRecording, profile: RobotProfile, calibration_s: tuple[float, float],
@@ -109,49 +201,24 @@ def run_fold(rec: FlightRecording, profile: RobotProfile, calibration_s: tuple[f
         thresholds[name] = detection.threshold_from_calibration(env(method.run(cal))[cal_mask])
         fitted[name] = method
 
-    minutes = len(test.accel_stamps_ns) / fs / 60.0
     firmware_bp = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
     results, event_info, signals = {}, {}, {}
     for amplitude in config.amplitudes:
         spec = dataclasses.replace(config.events, relative_amplitude=amplitude)
-        events = make_events(test.accel_stamps_ns, test.accel, sample_rate_hz=fs, band_hz=profile.band_hz,
-                             band_order=profile.band_order, spec=spec)
-        noisy = _with_signal(test, test.accel + events.signal)
-        reference = combined_bandpassed(events.signal, profile)
-        seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
-        truth = seg.onsets
-        raw = combined_bandpassed(noisy.accel, profile)
-        per_method = {}
-        for name, method in fitted.items():
-            output = method.run(noisy)
-            row = metrics.signal_metrics(raw, output, reference, seg)
-            scores = detection.evaluate_detector(env(output), truth, thresholds[name], sample_rate_hz=fs)
-            lenient = detection.evaluate_detector(env(output), truth, thresholds[name], sample_rate_hz=fs,
-                                                  tolerance_s=LENIENT_TOLERANCE_S)
-            row.update({"f1": scores["f1"], "precision": scores["precision"], "recall": scores["recall"],
-                        "threshold": scores["threshold"], "false_alarms": scores["fp"],
-                        "false_alarms_per_min": scores["fp"] / minutes, "f1_30ms": lenient["f1"]})
-            per_method[name] = row
-            if keep_signals and amplitude == PRIMARY_AMPLITUDE:
-                signals[name] = output
-        if firmware_bp is not None:
-            noise_fw = metrics.noise_mean(firmware_bp, seg.no_contact_mask)
-            per_method["firmware"] = {
-                "noise_mean_raw": per_method["raw"]["noise_mean_raw"], "noise_mean_denoised": noise_fw,
-                "noise_reduction_db": metrics.db20(per_method["raw"]["noise_mean_raw"] / noise_fw),
-                "noise_spike_raw": per_method["raw"]["noise_spike_raw"],
-                "noise_spike_denoised": metrics.noise_spike(firmware_bp, seg.no_contact_mask)}
-        results[f"{amplitude:g}"] = per_method
-        event_info[f"{amplitude:g}"] = {
-            "n_events": int(len(events.onsets)), "n_taps_segmented": seg.n_taps,
-            "target_peak_rad_s": events.target_peak,
-            "onsets_s": ((events.onset_ns - t0) / 1e9).round(4).tolist(),
-            "axis": events.axis.tolist(), "frequency_hz": events.frequency_hz.round(1).tolist(),
-            "decay_ms": (1e3 * events.decay_s).round(2).tolist(),
-            "amplitude_rad_s": events.amplitude.round(5).tolist()}
-        if keep_signals and amplitude == PRIMARY_AMPLITUDE:
-            signals.update({"raw_input": raw, "reference": reference, "seg": seg, "stamps_ns": test.accel_stamps_ns,
-                            "firmware": firmware_bp, "t0_ns": t0})
+        primary = amplitude == PRIMARY_AMPLITUDE
+        scored = score_events(fitted, thresholds, test, profile, spec, firmware_bp, keep_signals=keep_signals and primary)
+        results[f"{amplitude:g}"] = scored["rows"]
+        event_info[f"{amplitude:g}"] = {key: value for key, value in scored["events"].items()}
+        if keep_signals and primary:
+            signals = {**scored["signals"], "t0_ns": t0}
+    # Fifteen events or so per set: the same at the primary amplitude over several event sets.
+    over_seeds = {}
+    if config.extra_seeds:
+        per_seed = [results[f"{PRIMARY_AMPLITUDE:g}"]]
+        for seed in config.extra_seeds:
+            spec = dataclasses.replace(config.events, relative_amplitude=PRIMARY_AMPLITUDE, seed=seed)
+            per_seed.append(score_events(fitted, thresholds, test, profile, spec, firmware_bp)["rows"])
+        over_seeds = pool_seeds(per_seed, [config.events.seed, *config.extra_seeds])
     fold = {
         "calibration_s": [float(calibration_s[0]), float(calibration_s[1])],
         "test_s": [float(test_s[0]), float(test_s[1])],
@@ -166,7 +233,10 @@ def run_fold(rec: FlightRecording, profile: RobotProfile, calibration_s: tuple[f
                     for name, method in fitted.items()},
         "events": event_info,
         "results": results,
+        "over_seeds": over_seeds,
     }
+    if test.filtered is not None:
+        fold["firmware_transfer"] = firmware_transfer(test, profile)
     if keep_signals:
         fold["signals"] = signals
     return fold

@@ -9,6 +9,8 @@ them sample by sample.
   ours           the paper's spectral subtraction keyed on all four motor
                  commands: the 4-joint quadcopter profile, calibrated from free
                  flight (core calibrate_arrays(sweep="free"), denoise_batch)       L / fs
+  ours_L64       the same with the paper's 64-sample blocks (hop 32), to show
+                 the profile's choice of L = 32                                   64 / fs
   global         (a) one average noise spectrum (mean + std over every
                  calibration block), subtracted whatever the motors do: the core
                  with a one-cell table                                            L / fs
@@ -37,6 +39,7 @@ from egovib_ros.robot import RobotProfile
 LABELS = {
     "raw": "band-pass only (raw)",
     "ours": "ours: paper's subtraction keyed on 4 motor commands",
+    "ours_L64": "ours with the paper's block, L = 64 (64 ms)",
     "global": "(a) global average spectrum, not keyed",
     "mean_command": "(b) paper's table keyed on mean motor command (1-D)",
     "notch_q5": "(c) harmonic notch bank per motor, 3 harmonics, Q 5 (Betaflight)",
@@ -184,6 +187,8 @@ def build_methods(profile: RobotProfile, names=METHODS) -> dict:
     makers = {
         "raw": lambda: BandPassOnly(profile),
         "ours": lambda: SpectralTable(profile, lambda rec: rec.joint_velocity),
+        "ours_L64": lambda: SpectralTable(dataclasses.replace(profile, name=f"{profile.name}_L64", block_length=64,
+                                                              hop=32, source=""), lambda rec: rec.joint_velocity),
         "global": lambda: SpectralTable(single_joint_profile(profile, "constant", steps=1),
                                         lambda rec: np.zeros((len(rec.joint_stamps_ns), 1))),
         "mean_command": lambda: SpectralTable(single_joint_profile(profile, "mean_command"),
