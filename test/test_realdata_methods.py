@@ -1,12 +1,18 @@
 """Each real-data baseline does what it claims, on synthetic signals with known lines."""
+
 import numpy as np
 import pytest
 from scipy import signal
 
 from egovib_ros.realdata.events import EventSpec, make_events
 from egovib_ros.realdata.methods import build_methods, combined_bandpassed, single_joint_profile
-from egovib_ros.realdata.notch import (HarmonicNotchBank, SpeedFrequencyMap, fit_speed_frequency_map, fold,
-                                       notch_sos)
+from egovib_ros.realdata.notch import (
+    HarmonicNotchBank,
+    SpeedFrequencyMap,
+    fit_speed_frequency_map,
+    fold,
+    notch_sos,
+)
 from egovib_ros.realdata.recording import FlightRecording
 from egovib_ros.robot import load_profile
 
@@ -22,7 +28,7 @@ def _stamps(n, seed=0):
 
 
 def _lines(stamps, commands, frequency_map, harmonics=(1.0, 0.6, 0.4), noise=0.002, seed=0):
-    """(N,) sum over motors of harmonic lines at h * f(u_m) (phase-continuous), folded by sampling."""
+    """(N,) sum over motors of harmonic lines at h * f(u_m), folded by sampling."""
     rng = np.random.default_rng(seed)
     t = (stamps - stamps[0]) / 1e9
     dt = np.diff(t, prepend=t[0])
@@ -37,7 +43,9 @@ def _lines(stamps, commands, frequency_map, harmonics=(1.0, 0.6, 0.4), noise=0.0
 def _recording(stamps, commands, x):
     gyro = np.zeros((len(stamps), 3))
     gyro[:, 0] = x
-    return FlightRecording(stamps, gyro, stamps, commands, np.zeros_like(commands), tuple(PROFILE.joint_names))
+    return FlightRecording(
+        stamps, gyro, stamps, commands, np.zeros_like(commands), tuple(PROFILE.joint_names)
+    )
 
 
 def test_fold_and_notch_match_sampling_and_scipy():
@@ -47,7 +55,9 @@ def test_fold_and_notch_match_sampling_and_scipy():
         np.testing.assert_allclose(notch_sos(np.array([f0]), q, FS)[0], np.r_[b, a], rtol=1e-12)
     half = notch_sos(np.array([200.0]), 5.0, FS, weight=0.5)[0]
     _, h = signal.sosfreqz(half[None], worN=[200.0], fs=FS)
-    assert abs(h[0]) == pytest.approx(0.5, abs=1e-6)          # Betaflight's weighted notch: half the line passes
+    assert abs(h[0]) == pytest.approx(
+        0.5, abs=1e-6
+    )  # Betaflight's weighted notch: half the line passes
 
 
 def test_speed_frequency_map_is_recovered_from_lines():
@@ -67,15 +77,17 @@ def test_notch_bank_removes_the_tracked_lines_and_passes_a_tone_between_them():
     truth = SpeedFrequencyMap(330.0, 0.8)
     n = 6000
     stamps = _stamps(n, seed=1)
-    ramp = np.linspace(0.3, 0.6, n)                           # motors speed up: lines move 126 -> 220 Hz
+    ramp = np.linspace(0.3, 0.6, n)  # motors speed up: lines move 126 -> 220 Hz
     commands = np.stack([ramp, ramp + 0.02, ramp - 0.02, ramp + 0.01], axis=1)
     lines = _lines(stamps, commands, truth, noise=0.0)
     bank = HarmonicNotchBank(truth, sample_rate_hz=FS, q=5.0)
     out = bank.apply(stamps, lines, stamps, commands)
     settle = slice(500, n)
-    assert 20 * np.log10(np.std(lines[settle]) / np.std(out[settle])) > 15     # keyed lines removed
+    assert 20 * np.log10(np.std(lines[settle]) / np.std(out[settle])) > 15  # keyed lines removed
     t = (stamps - stamps[0]) / 1e9
-    tone = 0.05 * np.sin(2 * np.pi * 95.0 * t)               # below every notch (min 100 Hz, fundamentals >= 126)
+    tone = 0.05 * np.sin(
+        2 * np.pi * 95.0 * t
+    )  # below every notch (min 100 Hz, fundamentals >= 126)
     assert np.std(bank.apply(stamps, tone, stamps, commands)[settle]) / np.std(tone[settle]) > 0.8
     # Centres: 3 harmonics per motor, folded, constrained to [min_hz, 0.48 fs].
     centres = bank.centres(np.array([[0.0, 0.5, 1.0, 0.9]]))[0]
@@ -88,8 +100,10 @@ def _two_regimes(seed=0):
     (line at 300 Hz) or motor 2 fast (line at 150 Hz)."""
     n = 12000
     stamps = _stamps(n, seed=seed)
-    regime = (np.arange(n) // 1500) % 2                       # 1.5 s each, alternating
-    commands = np.where(regime[:, None] == 0, [0.6, 0.2, 0.4, 0.4], [0.2, 0.6, 0.4, 0.4]).astype(float)
+    regime = (np.arange(n) // 1500) % 2  # 1.5 s each, alternating
+    commands = np.where(regime[:, None] == 0, [0.6, 0.2, 0.4, 0.4], [0.2, 0.6, 0.4, 0.4]).astype(
+        float
+    )
     rng = np.random.default_rng(seed)
     t = (stamps - stamps[0]) / 1e9
     noise = rng.normal(0, 0.003, n)
@@ -113,14 +127,18 @@ def test_only_the_four_motor_table_keeps_a_signal_where_the_other_regime_has_its
     regime0 = test.joint_velocity[:, 0] > 0.5
     probe = np.zeros_like(test.accel)
     probe[:, 1] = np.where(regime0, 0.05 * np.sin(2 * np.pi * 150 * t), 0.0)
-    test_with_probe = _recording(test.accel_stamps_ns, test.joint_velocity, test.accel[:, 0] + probe[:, 1])
+    test_with_probe = _recording(
+        test.accel_stamps_ns, test.joint_velocity, test.accel[:, 0] + probe[:, 1]
+    )
     reference = combined_bandpassed(probe, PROFILE)
     inside = regime0.copy()
     inside[:200] = False
     snr = {}
     for name, method in build_methods(PROFILE, ("ours", "mean_command", "global")).items():
         out = method.fit(cal).run(test_with_probe)
-        snr[name] = 10 * np.log10(np.sum(reference[inside] ** 2) / np.sum((out - reference)[inside] ** 2))
+        snr[name] = 10 * np.log10(
+            np.sum(reference[inside] ** 2) / np.sum((out - reference)[inside] ** 2)
+        )
     assert snr["ours"] > snr["mean_command"] + 6, snr
     assert snr["ours"] > snr["global"] + 6, snr
     assert snr["ours"] > 6, snr
@@ -148,9 +166,17 @@ def test_mean_command_table_beats_the_global_average_when_speed_moves_the_line()
 
 def test_single_joint_profiles_keep_the_robots_processing():
     one = single_joint_profile(PROFILE, "mean_command")
-    assert one.joint_names == ("mean_command",) and one.bidirectional == (False,) and one.max_speed == (1.0,)
-    assert (one.rate_hz, one.block_length, one.hop, one.band_hz) == \
-        (PROFILE.rate_hz, PROFILE.block_length, PROFILE.hop, PROFILE.band_hz)
+    assert (
+        one.joint_names == ("mean_command",)
+        and one.bidirectional == (False,)
+        and one.max_speed == (1.0,)
+    )
+    assert (one.rate_hz, one.block_length, one.hop, one.band_hz) == (
+        PROFILE.rate_hz,
+        PROFILE.block_length,
+        PROFILE.hop,
+        PROFILE.band_hz,
+    )
     assert single_joint_profile(PROFILE, "constant", steps=1).grid_shape == (2,)
 
 
@@ -159,23 +185,44 @@ def test_events_follow_their_documented_form_amplitude_and_timing():
     stamps = _stamps(n, seed=4)
     noise = np.random.default_rng(4).normal(0, 0.05, (n, 3))
     spec = EventSpec(seed=7)
-    events = make_events(stamps, noise, sample_rate_hz=FS, band_hz=PROFILE.band_hz,
-                         band_order=PROFILE.band_order, spec=spec)
+    events = make_events(
+        stamps,
+        noise,
+        sample_rate_hz=FS,
+        band_hz=PROFILE.band_hz,
+        band_order=PROFILE.band_order,
+        spec=spec,
+    )
     onset_s = (events.onset_ns - stamps[0]) / 1e9
-    assert len(events.onsets) == len(np.arange(spec.margin_s + spec.jitter_s,
-                                               (stamps[-1] - stamps[0]) / 1e9 - spec.margin_s - spec.jitter_s,
-                                               spec.spacing_s))
-    assert onset_s.min() >= spec.margin_s - 1e-9 and np.diff(onset_s).min() >= spec.spacing_s - 2 * spec.jitter_s
+    assert len(events.onsets) == len(
+        np.arange(
+            spec.margin_s + spec.jitter_s,
+            (stamps[-1] - stamps[0]) / 1e9 - spec.margin_s - spec.jitter_s,
+            spec.spacing_s,
+        )
+    )
+    assert (
+        onset_s.min() >= spec.margin_s - 1e-9
+        and np.diff(onset_s).min() >= spec.spacing_s - 2 * spec.jitter_s
+    )
     assert np.all((events.frequency_hz >= 100) & (events.frequency_hz <= 400))
-    noise_peak = np.abs(combined_bandpassed(noise, PROFILE)[100:n - 100]).max()
+    noise_peak = np.abs(combined_bandpassed(noise, PROFILE)[100 : n - 100]).max()
     assert events.target_peak == pytest.approx(noise_peak)
-    for k, onset in enumerate(events.onsets):                 # each event alone peaks at the target
+    for k, onset in enumerate(events.onsets):  # each event alone peaks at the target
         alone = np.zeros((n, 3))
         stop = min(n, onset + 200)
-        alone[onset - 1:stop] = events.signal[onset - 1:stop]
-        assert np.abs(combined_bandpassed(alone, PROFILE)).max() == pytest.approx(events.target_peak, rel=0.02)
-        assert np.all(events.signal[onset - 1] == 0)           # starts from zero, on one axis
-        assert np.count_nonzero(np.any(events.signal[onset:onset + 5] != 0, axis=0)) == 1
-    again = make_events(stamps, noise, sample_rate_hz=FS, band_hz=PROFILE.band_hz, band_order=PROFILE.band_order,
-                        spec=spec)
+        alone[onset - 1 : stop] = events.signal[onset - 1 : stop]
+        assert np.abs(combined_bandpassed(alone, PROFILE)).max() == pytest.approx(
+            events.target_peak, rel=0.02
+        )
+        assert np.all(events.signal[onset - 1] == 0)  # starts from zero, on one axis
+        assert np.count_nonzero(np.any(events.signal[onset : onset + 5] != 0, axis=0)) == 1
+    again = make_events(
+        stamps,
+        noise,
+        sample_rate_hz=FS,
+        band_hz=PROFILE.band_hz,
+        band_order=PROFILE.band_order,
+        spec=spec,
+    )
     np.testing.assert_array_equal(again.signal, events.signal)

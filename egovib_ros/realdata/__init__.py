@@ -22,4 +22,5 @@ Modules:
 ATTRIBUTION = (
     "Betaflight blackbox log LOG00037.BFL (quadcopter 'AR8', KakuteF7, Betaflight 4.2.0) from "
     "github.com/ilya-epifanov/fc-blackbox, src/test-data/LOG00037.BFL, licence MIT OR Apache-2.0; "
-    "first posted in github.com/gyroflow/gyroflow issue 72; decoded with the orangebox parser.")
+    "first posted in github.com/gyroflow/gyroflow issue 72; decoded with the orangebox parser."
+)

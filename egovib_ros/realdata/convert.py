@@ -24,6 +24,7 @@ Data: Betaflight blackbox log LOG00037.BFL from github.com/ilya-epifanov/fc-blac
 github.com/gyroflow/gyroflow issue 72), decoded with orangebox. The converter writes a
 README.md with this attribution into the bag directory.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -74,9 +75,10 @@ Converted from `quadcopter_ar8_flight.npz` (sha256 `{sha256}`) by
 
 | topic | type | content |
 |---|---|---|
-| `{profile.sensor_topic}` | sensor_msgs/msg/Imu | gyro before the firmware's filters, `angular_velocity` in rad/s (the vibration channel) |
-| `{FILTERED_TOPIC}` | sensor_msgs/msg/Imu | gyro after Betaflight's own filters (RPM notches keyed on measured motor RPM, dynamic low-pass) |
-| `{profile.joints_topic}` | sensor_msgs/msg/JointState | `{", ".join(MOTOR_NAMES)}`: velocity = motor command (fraction of full scale, 0..1), position = its time integral |
+| `{profile.sensor_topic}` | Imu | gyro before the firmware's filters, `angular_velocity`, rad/s |
+| `{FILTERED_TOPIC}` | Imu | gyro after Betaflight's own filters (RPM notches, dynamic low-pass) |
+| `{profile.joints_topic}` | JointState | `{", ".join(MOTOR_NAMES)}`: velocity = command (0..1), \
+position = its time integral |
 
 Imu messages follow REP 145 (orientation and linear acceleration unknown: covariance[0] =
 -1), frame `{FRAME_ID}`, axes as logged by Betaflight (roll, pitch, yaw rates about the
@@ -85,7 +87,9 @@ in {log.duration_s:.2f} s). MCAP storage, zstd-compressed chunks.
 """
 
 
-def convert(npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotProfile | None = None) -> dict:
+def convert(
+    npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotProfile | None = None
+) -> dict:
     """Write the bag (atomically: nothing at `out` unless complete). Returns a summary."""
     from egovib_ros.bagio import BagWriter
 
@@ -96,7 +100,9 @@ def convert(npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotPro
     field = profile.sensor_field
     raw = encode_imu_batch(stamps, log.gyro, FRAME_ID, field=field)
     filtered = encode_imu_batch(stamps, log.gyro_filtered, FRAME_ID, field=field)
-    joints = encode_joint_state_batch(stamps, motor_positions(stamps, log.motors), log.motors, MOTOR_NAMES)
+    joints = encode_joint_state_batch(
+        stamps, motor_positions(stamps, log.motors), log.motors, MOTOR_NAMES
+    )
     with atomic_output(out, directory=True) as tmp:
         with BagWriter(tmp, compress=True) as bag:
             bag.add_topic(profile.joints_topic, JOINT_STATE_TYPE)
@@ -109,27 +115,42 @@ def convert(npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotPro
                 bag.write(FILTERED_TOPIC, stamp, filtered[i])
         (tmp / "README.md").write_text(bag_readme(log, profile, sha256))
     size = sum(f.stat().st_size for f in Path(out).iterdir())
-    return {"bag": str(out), "samples": log.n, "duration_s": log.duration_s, "bytes": size,
-            "topics": [profile.sensor_topic, FILTERED_TOPIC, profile.joints_topic]}
+    return {
+        "bag": str(out),
+        "samples": log.n,
+        "duration_s": log.duration_s,
+        "bytes": size,
+        "topics": [profile.sensor_topic, FILTERED_TOPIC, profile.joints_topic],
+    }
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("npz", help="decoded flight log (e.g. ../shared/real/quadcopter_ar8_flight.npz)")
-    parser.add_argument("--out", required=True, help="output bag directory (e.g. bags/quadcopter_ar8)")
-    parser.add_argument("--robot", default=PROFILE_NAME,
-                        help="robot profile naming the topics and Imu field (default: quadcopter)")
+    parser.add_argument(
+        "npz", help="decoded flight log (e.g. ../shared/real/quadcopter_ar8_flight.npz)"
+    )
+    parser.add_argument(
+        "--out", required=True, help="output bag directory (e.g. bags/quadcopter_ar8)"
+    )
+    parser.add_argument(
+        "--robot",
+        default=PROFILE_NAME,
+        help="robot profile naming the topics and Imu field (default: quadcopter)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     summary = convert(args.npz, args.out, profile=load_profile(args.robot))
-    print(f"wrote {summary['bag']}: {summary['samples']} samples ({summary['duration_s']:.2f} s) on "
-          f"{', '.join(summary['topics'])}; {summary['bytes'] / 1e6:.2f} MB")
+    print(
+        f"wrote {summary['bag']}: {summary['samples']} samples ({summary['duration_s']:.2f} s) on "
+        f"{', '.join(summary['topics'])}; {summary['bytes'] / 1e6:.2f} MB"
+    )
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m egovib_ros.realdata.convert NPZ --out BAG` (same as `egovib real convert`)."""
     from egovib_ros.cli import main as egovib_main
+
     return egovib_main(["real", "convert", *(sys.argv[1:] if argv is None else argv)])
 
 

@@ -22,6 +22,7 @@ test part (edges excluded), the same rule as the simulator's experiment (b).
 Timing: one event every `spacing_s` on average, each onset jittered uniformly by
 +-`jitter_s`, none within `margin_s` of either end; a fixed seed makes them repeatable.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -47,23 +48,33 @@ class EventSpec:
 
 @dataclass
 class Events:
-    signal: np.ndarray          # (N, 3) the events alone, rad/s, on the test part's samples
-    onsets: np.ndarray          # (T,) sample index of each onset (first sample at or after t0)
-    onset_ns: np.ndarray        # (T,) t0 in stamp time
-    axis: np.ndarray            # (T,)
-    frequency_hz: np.ndarray    # (T,)
-    decay_s: np.ndarray         # (T,)
-    amplitude: np.ndarray       # (T,) A, rad/s on its axis
-    target_peak: float          # band-passed peak every event was scaled to
+    signal: np.ndarray  # (N, 3) the events alone, rad/s, on the test part's samples
+    onsets: np.ndarray  # (T,) sample index of each onset (first sample at or after t0)
+    onset_ns: np.ndarray  # (T,) t0 in stamp time
+    axis: np.ndarray  # (T,)
+    frequency_hz: np.ndarray  # (T,)
+    decay_s: np.ndarray  # (T,)
+    amplitude: np.ndarray  # (T,) A, rad/s on its axis
+    target_peak: float  # band-passed peak every event was scaled to
 
 
-def _bandpassed_combined(values: np.ndarray, sample_rate_hz: float, band_hz, order: int) -> np.ndarray:
+def _bandpassed_combined(
+    values: np.ndarray, sample_rate_hz: float, band_hz, order: int
+) -> np.ndarray:
     band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
     return band.process(channel_matrix(values, "combined").T)[0]
 
 
-def make_events(stamps_ns: np.ndarray, noise: np.ndarray, *, sample_rate_hz: float, band_hz, band_order: int,
-                spec: EventSpec = EventSpec(), edge_s: float = 0.1) -> Events:
+def make_events(
+    stamps_ns: np.ndarray,
+    noise: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    band_hz,
+    band_order: int,
+    spec: EventSpec = EventSpec(),
+    edge_s: float = 0.1,
+) -> Events:
     """Events for a recording with sensor stamps `stamps_ns` and sensor values `noise` (N, 3)
     (the real signal they will be added to; only its band-passed maximum is used)."""
     stamps_ns = np.asarray(stamps_ns, np.int64)
@@ -71,7 +82,9 @@ def make_events(stamps_ns: np.ndarray, noise: np.ndarray, *, sample_rate_hz: flo
     rng = np.random.default_rng(spec.seed)
     t = (stamps_ns - stamps_ns[0]) / 1e9
     duration = t[-1]
-    centres = np.arange(spec.margin_s + spec.jitter_s, duration - spec.margin_s - spec.jitter_s, spec.spacing_s)
+    centres = np.arange(
+        spec.margin_s + spec.jitter_s, duration - spec.margin_s - spec.jitter_s, spec.spacing_s
+    )
     onset_s = centres + rng.uniform(-spec.jitter_s, spec.jitter_s, len(centres))
     count = len(onset_s)
     axis = rng.integers(0, 3, count)
@@ -81,19 +94,28 @@ def make_events(stamps_ns: np.ndarray, noise: np.ndarray, *, sample_rate_hz: flo
 
     edge = int(round(edge_s * sample_rate_hz))
     noise_bp = _bandpassed_combined(noise, sample_rate_hz, band_hz, band_order)
-    target = spec.relative_amplitude * float(np.abs(noise_bp[edge:n - edge]).max())
+    target = spec.relative_amplitude * float(np.abs(noise_bp[edge : n - edge]).max())
 
     total = np.zeros((n, 3))
     amplitude = np.zeros(count)
     onsets = np.searchsorted(t, onset_s, side="left")
     for k in range(count):
         dt = t - onset_s[k]
-        active = (dt >= 0) & (dt < 12 * decay[k])          # exp(-12) ~ 6e-6: the rest is nothing
+        active = (dt >= 0) & (dt < 12 * decay[k])  # exp(-12) ~ 6e-6: the rest is nothing
         unit = np.zeros((n, 3))
-        unit[active, axis[k]] = sign[k] * np.exp(-dt[active] / decay[k]) * np.sin(2 * np.pi * frequency[k] * dt[active])
+        unit[active, axis[k]] = (
+            sign[k] * np.exp(-dt[active] / decay[k]) * np.sin(2 * np.pi * frequency[k] * dt[active])
+        )
         peak = np.abs(_bandpassed_combined(unit, sample_rate_hz, band_hz, band_order)).max()
         amplitude[k] = target / peak
         total += amplitude[k] * unit
-    return Events(signal=total, onsets=onsets.astype(np.int64),
-                  onset_ns=stamps_ns[0] + np.round(onset_s * 1e9).astype(np.int64), axis=axis,
-                  frequency_hz=frequency, decay_s=decay, amplitude=amplitude, target_peak=target)
+    return Events(
+        signal=total,
+        onsets=onsets.astype(np.int64),
+        onset_ns=stamps_ns[0] + np.round(onset_s * 1e9).astype(np.int64),
+        axis=axis,
+        frequency_hz=frequency,
+        decay_s=decay,
+        amplitude=amplitude,
+        target_peak=target,
+    )

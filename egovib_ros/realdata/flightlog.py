@@ -8,6 +8,7 @@ motor commands as a fraction of full scale, ``meta_json``.
 Units here are those of the bag: stamps in integer ns (the log's microsecond clock
 times 1000), angular rates in rad/s.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,10 +31,10 @@ class FlightLogError(EgovibError):
 
 @dataclass(frozen=True)
 class FlightLog:
-    stamps_ns: np.ndarray          # (N,) int64, strictly increasing
-    gyro: np.ndarray               # (N, 3) rad/s, unfiltered (the vibration channel)
-    gyro_filtered: np.ndarray      # (N, 3) rad/s, after Betaflight's own filters
-    motors: np.ndarray             # (N, 4) command fraction 0..1 (one DShot step below 0 at idle)
+    stamps_ns: np.ndarray  # (N,) int64, strictly increasing
+    gyro: np.ndarray  # (N, 3) rad/s, unfiltered (the vibration channel)
+    gyro_filtered: np.ndarray  # (N, 3) rad/s, after Betaflight's own filters
+    motors: np.ndarray  # (N, 4) command fraction 0..1 (one DShot step below 0 at idle)
     meta: dict
     source: str = ""
 
@@ -46,8 +47,14 @@ class FlightLog:
         return float(self.stamps_ns[-1] - self.stamps_ns[0]) / 1e9 if self.n > 1 else 0.0
 
     def slice(self, start: int, stop: int) -> "FlightLog":
-        return FlightLog(self.stamps_ns[start:stop], self.gyro[start:stop], self.gyro_filtered[start:stop],
-                         self.motors[start:stop], self.meta, self.source)
+        return FlightLog(
+            self.stamps_ns[start:stop],
+            self.gyro[start:stop],
+            self.gyro_filtered[start:stop],
+            self.motors[start:stop],
+            self.meta,
+            self.source,
+        )
 
 
 def seconds_to_ns(time_s: np.ndarray) -> np.ndarray:
@@ -68,13 +75,21 @@ def load_flight_log(path: str | os.PathLike) -> FlightLog:
     except FileNotFoundError:
         raise FlightLogError(f"{path}: no such flight log") from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise FlightLogError(f"{path}: not a readable .npz flight log ({exc.__class__.__name__})") from None
+        raise FlightLogError(
+            f"{path}: not a readable .npz flight log ({exc.__class__.__name__})"
+        ) from None
     n = fields["time_s"].shape[0] if fields["time_s"].ndim == 1 else -1
-    shapes = {"time_s": (n,), "gyro_unfiltered_dps": (n, 3), "gyro_filtered_dps": (n, 3),
-              "motor_cmd_frac": (n, len(MOTOR_NAMES))}
+    shapes = {
+        "time_s": (n,),
+        "gyro_unfiltered_dps": (n, 3),
+        "gyro_filtered_dps": (n, 3),
+        "motor_cmd_frac": (n, len(MOTOR_NAMES)),
+    }
     for key, shape in shapes.items():
         if fields[key].shape != shape or n < 2:
-            raise FlightLogError(f"{path}: field {key} has shape {fields[key].shape}, expected {shape}")
+            raise FlightLogError(
+                f"{path}: field {key} has shape {fields[key].shape}, expected {shape}"
+            )
         if not np.all(np.isfinite(fields[key])):
             raise FlightLogError(f"{path}: field {key} holds non-finite values")
     stamps = seconds_to_ns(fields["time_s"])
@@ -84,7 +99,11 @@ def load_flight_log(path: str | os.PathLike) -> FlightLog:
         meta = json.loads(meta_text)
     except json.JSONDecodeError:
         meta = {"meta_json": meta_text}
-    return FlightLog(stamps_ns=stamps,
-                     gyro=np.deg2rad(fields["gyro_unfiltered_dps"].astype(np.float64)),
-                     gyro_filtered=np.deg2rad(fields["gyro_filtered_dps"].astype(np.float64)),
-                     motors=fields["motor_cmd_frac"].astype(np.float64), meta=meta, source=str(path))
+    return FlightLog(
+        stamps_ns=stamps,
+        gyro=np.deg2rad(fields["gyro_unfiltered_dps"].astype(np.float64)),
+        gyro_filtered=np.deg2rad(fields["gyro_filtered_dps"].astype(np.float64)),
+        motors=fields["motor_cmd_frac"].astype(np.float64),
+        meta=meta,
+        source=str(path),
+    )

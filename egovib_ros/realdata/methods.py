@@ -24,16 +24,21 @@ them sample by sample.
 Baseline (d), the firmware's own filtered gyro, is a signal of the log, not a method:
 see experiment.py.
 """
+
 from __future__ import annotations
 
 import dataclasses
-import inspect
 
 import numpy as np
 
-from egovib_ros.core import BandPass, CalibrationAccumulator, calibrate_arrays, channel_matrix, denoise_batch
+from egovib_ros.core import BandPass, calibrate_arrays, channel_matrix, denoise_batch
 from egovib_ros.evaluation.baselines import on_input_stamps
-from egovib_ros.realdata.notch import ARDUPILOT_Q, BETAFLIGHT_Q, HarmonicNotchBank, fit_speed_frequency_map
+from egovib_ros.realdata.notch import (
+    ARDUPILOT_Q,
+    BETAFLIGHT_Q,
+    HarmonicNotchBank,
+    fit_speed_frequency_map,
+)
 from egovib_ros.robot import RobotProfile
 
 LABELS = {
@@ -49,29 +54,43 @@ METHODS = tuple(LABELS)
 
 
 def combined_bandpassed(values: np.ndarray, profile: RobotProfile) -> np.ndarray:
-    """(N,) sum of the three axes, band-passed with the core's causal filter and the profile's band."""
-    band = BandPass(sample_rate_hz=profile.rate_hz, band_hz=profile.band_hz, order=profile.band_order,
-                    n_channels=1)
+    """(N,) sum of the three axes, band-passed with the core's causal filter, profile's band."""
+    band = BandPass(
+        sample_rate_hz=profile.rate_hz,
+        band_hz=profile.band_hz,
+        order=profile.band_order,
+        n_channels=1,
+    )
     return band.process(channel_matrix(values, "combined").T)[0]
 
 
-def single_joint_profile(profile: RobotProfile, joint: str, *, steps: int | None = None) -> RobotProfile:
-    """The robot's profile with one synthetic one-directional joint (0..1) in place of its joints."""
-    return dataclasses.replace(profile, name=f"{profile.name}_{joint}", joint_names=(joint,), max_speed=(1.0,),
-                               bidirectional=(False,), steps=profile.steps if steps is None else steps, source="")
+def single_joint_profile(
+    profile: RobotProfile, joint: str, *, steps: int | None = None
+) -> RobotProfile:
+    """The robot's profile with one synthetic one-directional joint (0..1) instead of its own."""
+    return dataclasses.replace(
+        profile,
+        name=f"{profile.name}_{joint}",
+        joint_names=(joint,),
+        max_speed=(1.0,),
+        bidirectional=(False,),
+        steps=profile.steps if steps is None else steps,
+        source="",
+    )
 
 
 def calibrate_free(profile: RobotProfile, rec, joint_velocity: np.ndarray, *, source: str = ""):
-    """Calibrate a noise model from no-contact free motion: (model, stats)."""
-    arrays = (rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, joint_velocity)
-    if "profile" in inspect.signature(CalibrationAccumulator.__init__).parameters:
-        return calibrate_arrays(*arrays, profile=profile, sweep="free", source=source)
-    # Core v1 (until "Core v2" is merged): a dense grid from the profile, every block to its
-    # nearest cell, empty cells filled from the nearest measured one.
-    return calibrate_arrays(*arrays, grid=profile.grid(), joint_names=profile.joint_names,
-                            sample_rate_hz=profile.rate_hz, block_length=profile.block_length, hop=profile.hop,
-                            band_hz=profile.band_hz, band_order=profile.band_order, sweep="full",
-                            cell_tolerance=0.51, source=source)
+    """Calibrate a noise model from no-contact free motion (every steady block to its nearest
+    cell of the profile's grid): (model, stats)."""
+    return calibrate_arrays(
+        rec.accel_stamps_ns,
+        rec.accel,
+        rec.joint_stamps_ns,
+        joint_velocity,
+        profile=profile,
+        sweep="free",
+        source=source,
+    )
 
 
 class SpectralTable:
@@ -79,39 +98,44 @@ class SpectralTable:
 
     def __init__(self, profile: RobotProfile, joints, *, channels: str = "combined"):
         self.profile = profile
-        self.joints = joints                  # rec -> (M, J) joint velocities on rec.joint_stamps_ns
+        self.joints = joints  # rec -> (M, J) joint velocities on rec.joint_stamps_ns
         self.channels = channels
         self.model = None
         self.calibration_stats: dict = {}
+        self.denoise_stats: dict = {}
 
     @property
     def delay_ms(self) -> float:
         return 1e3 * self.profile.block_length / self.profile.rate_hz
 
     def fit(self, rec) -> "SpectralTable":
-        self.model, self.calibration_stats = calibrate_free(self.profile, rec, self.joints(rec),
-                                                            source=self.profile.name)
+        self.model, self.calibration_stats = calibrate_free(
+            self.profile, rec, self.joints(rec), source=self.profile.name
+        )
         return self
 
     def run(self, rec) -> np.ndarray:
-        stamps, values, self.denoise_stats = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
-                                                           self.joints(rec), self.model, channels=self.channels)
+        stamps, values, self.denoise_stats = denoise_batch(
+            rec.accel_stamps_ns,
+            rec.accel,
+            rec.joint_stamps_ns,
+            self.joints(rec),
+            self.model,
+            channels=self.channels,
+        )
         return on_input_stamps(stamps, values, rec.accel_stamps_ns)
 
     def info(self) -> dict:
         model = self.model
-        info = {"profile": self.profile.name, "joints": list(self.profile.joint_names),
-                "block_length": self.profile.block_length, "hop": self.profile.hop,
-                "calibration": _plain(self.calibration_stats)}
-        if hasattr(model, "coverage"):
-            info["coverage"] = _plain(model.coverage())
-        else:
-            counts = np.asarray(model.counts)
-            measured = counts[counts > 0]
-            info["coverage"] = {"cells_measured": int(measured.size), "cells_total": int(counts.size),
-                                "blocks": int(counts.sum()),
-                                "median_blocks_per_measured_cell": float(np.median(measured)) if measured.size else 0}
-        if hasattr(self, "denoise_stats"):
+        info = {
+            "profile": self.profile.name,
+            "joints": list(self.profile.joint_names),
+            "block_length": self.profile.block_length,
+            "hop": self.profile.hop,
+            "calibration": _plain(self.calibration_stats),
+            "coverage": _plain(model.coverage()),
+        }
+        if self.denoise_stats:
             info["denoise"] = _plain(self.denoise_stats)
         return info
 
@@ -133,16 +157,26 @@ class NotchMethod:
         return self
 
     def run(self, rec) -> np.ndarray:
-        notched = self.bank.apply(rec.accel_stamps_ns, rec.accel.sum(axis=1), rec.joint_stamps_ns,
-                                  rec.joint_velocity)
-        band = BandPass(sample_rate_hz=self.profile.rate_hz, band_hz=self.profile.band_hz,
-                        order=self.profile.band_order, n_channels=1)
+        notched = self.bank.apply(
+            rec.accel_stamps_ns, rec.accel.sum(axis=1), rec.joint_stamps_ns, rec.joint_velocity
+        )
+        band = BandPass(
+            sample_rate_hz=self.profile.rate_hz,
+            band_hz=self.profile.band_hz,
+            order=self.profile.band_order,
+            n_channels=1,
+        )
         return band.process(notched[None, :])[0]
 
     def info(self) -> dict:
-        return {"map": self.bank.frequency_map.to_dict(), "q": self.q, "harmonics": self.bank.harmonics,
-                "min_hz": self.bank.min_hz, "max_hz": self.bank.max_hz,
-                "update_every_samples": self.bank.update_samples}
+        return {
+            "map": self.bank.frequency_map.to_dict(),
+            "q": self.q,
+            "harmonics": self.bank.harmonics,
+            "min_hz": self.bank.min_hz,
+            "max_hz": self.bank.max_hz,
+            "update_every_samples": self.bank.update_samples,
+        }
 
 
 class BandPassOnly:
@@ -187,12 +221,20 @@ def build_methods(profile: RobotProfile, names=METHODS) -> dict:
     makers = {
         "raw": lambda: BandPassOnly(profile),
         "ours": lambda: SpectralTable(profile, lambda rec: rec.joint_velocity),
-        "ours_L64": lambda: SpectralTable(dataclasses.replace(profile, name=f"{profile.name}_L64", block_length=64,
-                                                              hop=32, source=""), lambda rec: rec.joint_velocity),
-        "global": lambda: SpectralTable(single_joint_profile(profile, "constant", steps=1),
-                                        lambda rec: np.zeros((len(rec.joint_stamps_ns), 1))),
-        "mean_command": lambda: SpectralTable(single_joint_profile(profile, "mean_command"),
-                                              lambda rec: rec.joint_velocity.mean(axis=1, keepdims=True)),
+        "ours_L64": lambda: SpectralTable(
+            dataclasses.replace(
+                profile, name=f"{profile.name}_L64", block_length=64, hop=32, source=""
+            ),
+            lambda rec: rec.joint_velocity,
+        ),
+        "global": lambda: SpectralTable(
+            single_joint_profile(profile, "constant", steps=1),
+            lambda rec: np.zeros((len(rec.joint_stamps_ns), 1)),
+        ),
+        "mean_command": lambda: SpectralTable(
+            single_joint_profile(profile, "mean_command"),
+            lambda rec: rec.joint_velocity.mean(axis=1, keepdims=True),
+        ),
         "notch_q5": lambda: NotchMethod(profile, q=BETAFLIGHT_Q),
         "notch_q2": lambda: NotchMethod(profile, q=ARDUPILOT_Q),
     }

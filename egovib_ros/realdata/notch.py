@@ -19,6 +19,7 @@ Causal and streaming: coefficients are refreshed every `update_s` from the lates
 command at or before the first sample of the update block, and the filter state is
 carried across updates (scipy sosfilt, transposed direct form II).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -26,20 +27,22 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-BETAFLIGHT_Q = 5.0            # rpm_filter_q default 500 -> Q 5
-ARDUPILOT_Q = 2.0             # INS_HNTCH_BW = half of INS_HNTCH_FREQ (throttle-based setup) -> Q 2
-BETAFLIGHT_MIN_HZ = 100.0     # rpm_filter_min_hz default
-MAX_RATIO = 0.48              # centres below 0.48 x sample rate ("to avoid oscillations")
+BETAFLIGHT_Q = 5.0  # rpm_filter_q default 500 -> Q 5
+ARDUPILOT_Q = 2.0  # INS_HNTCH_BW = half of INS_HNTCH_FREQ (throttle-based setup) -> Q 2
+BETAFLIGHT_MIN_HZ = 100.0  # rpm_filter_min_hz default
+MAX_RATIO = 0.48  # centres below 0.48 x sample rate ("to avoid oscillations")
 HARMONICS = 3
 
 
 def fold(freq_hz: np.ndarray, sample_rate_hz: float) -> np.ndarray:
-    """Where a line at `freq_hz` appears after sampling at `sample_rate_hz` without anti-aliasing."""
+    """Where a line at `freq_hz` appears when sampled at `sample_rate_hz` without anti-aliasing."""
     f = np.mod(np.asarray(freq_hz, float), sample_rate_hz)
     return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
 
 
-def notch_sos(freq_hz: np.ndarray, q: float, sample_rate_hz: float, weight: np.ndarray | float = 1.0) -> np.ndarray:
+def notch_sos(
+    freq_hz: np.ndarray, q: float, sample_rate_hz: float, weight: np.ndarray | float = 1.0
+) -> np.ndarray:
     """(..., 6) second-order sections of scipy.signal.iirnotch(f, q, fs) for every centre in
     `freq_hz` (vectorised, same formulas), blended with a pass-through by `weight` as
     Betaflight's weighted biquad: y = x + w (notch(x) - x)."""
@@ -67,14 +70,27 @@ class SpeedFrequencyMap:
         return self.coefficient * np.maximum(np.asarray(command, float), 0.0) ** self.exponent
 
     def to_dict(self) -> dict:
-        return {"form": "f = coefficient * command**exponent", "coefficient_hz": self.coefficient,
-                "exponent": self.exponent, "windows_used": self.windows_used, "rms_error_hz": self.rms_error_hz}
+        return {
+            "form": "f = coefficient * command**exponent",
+            "coefficient_hz": self.coefficient,
+            "exponent": self.exponent,
+            "windows_used": self.windows_used,
+            "rms_error_hz": self.rms_error_hz,
+        }
 
 
-def fit_speed_frequency_map(x: np.ndarray, motors: np.ndarray, sample_rate_hz: float, *,
-                            window: int = 256, hop: int = 32, harmonics: int = HARMONICS,
-                            search_hz: tuple[float, float] = (60.0, 300.0), min_command: float = 0.1,
-                            max_unsteady: float = 0.02) -> SpeedFrequencyMap:
+def fit_speed_frequency_map(
+    x: np.ndarray,
+    motors: np.ndarray,
+    sample_rate_hz: float,
+    *,
+    window: int = 256,
+    hop: int = 32,
+    harmonics: int = HARMONICS,
+    search_hz: tuple[float, float] = (60.0, 300.0),
+    min_command: float = 0.1,
+    max_unsteady: float = 0.02,
+) -> SpeedFrequencyMap:
     """Fit f1(u) = c u^p on no-contact data: x (N,) the 1-D sensor signal, motors (N, M) the
     commands on the same samples.
 
@@ -88,22 +104,26 @@ def fit_speed_frequency_map(x: np.ndarray, motors: np.ndarray, sample_rate_hz: f
     nfft = 4096
     freqs = np.fft.rfftfreq(nfft, 1.0 / sample_rate_hz)
     candidates = np.arange(search_hz[0], search_hz[1], 0.5)
-    comb = np.stack([fold(h * candidates, sample_rate_hz) for h in range(1, harmonics + 1)])   # (H, K)
+    comb = np.stack(
+        [fold(h * candidates, sample_rate_hz) for h in range(1, harmonics + 1)]
+    )  # (H, K)
     taper = np.hanning(window)
     f_peak, command = [], []
     for start in range(0, len(x) - window + 1, hop):
-        u = motors[start:start + window]
+        u = motors[start : start + window]
         level = u.mean()
         if level < min_command or u.mean(axis=1).std() > max_unsteady:
             continue
-        seg = x[start:start + window]
+        seg = x[start : start + window]
         power = np.abs(np.fft.rfft((seg - seg.mean()) * taper, nfft)) ** 2 + 1e-30
         score = np.log(np.interp(comb, freqs, power)).sum(axis=0)
         f_peak.append(candidates[int(np.argmax(score))])
         command.append(level)
     if len(f_peak) < 5:
-        raise ValueError(f"only {len(f_peak)} steady windows with spinning motors: cannot fit the "
-                         "speed -> frequency map")
+        raise ValueError(
+            f"only {len(f_peak)} steady windows with spinning motors: cannot fit the "
+            "speed -> frequency map"
+        )
     log_u, log_f = np.log(np.asarray(command)), np.log(np.asarray(f_peak))
     keep = np.ones(len(log_u), bool)
     for _ in range(10):
@@ -120,11 +140,19 @@ def fit_speed_frequency_map(x: np.ndarray, motors: np.ndarray, sample_rate_hz: f
 
 
 class HarmonicNotchBank:
-    """Notches at the folded harmonics h = 1..H of every motor's line, keyed on the motor commands."""
+    """Notches at the folded harmonics h = 1..H of each motor's line, keyed on its command."""
 
-    def __init__(self, frequency_map: SpeedFrequencyMap, *, sample_rate_hz: float, harmonics: int = HARMONICS,
-                 q: float = BETAFLIGHT_Q, min_hz: float = BETAFLIGHT_MIN_HZ, max_ratio: float = MAX_RATIO,
-                 update_s: float = 0.001):
+    def __init__(
+        self,
+        frequency_map: SpeedFrequencyMap,
+        *,
+        sample_rate_hz: float,
+        harmonics: int = HARMONICS,
+        q: float = BETAFLIGHT_Q,
+        min_hz: float = BETAFLIGHT_MIN_HZ,
+        max_ratio: float = MAX_RATIO,
+        update_s: float = 0.001,
+    ):
         self.frequency_map = frequency_map
         self.sample_rate_hz = float(sample_rate_hz)
         self.harmonics = int(harmonics)
@@ -135,14 +163,19 @@ class HarmonicNotchBank:
 
     def centres(self, commands: np.ndarray) -> np.ndarray:
         """(B, M) motor commands -> (B, M * H) notch centres in Hz (folded, constrained)."""
-        fundamental = self.frequency_map(commands)                                   # (B, M)
-        lines = fundamental[..., None] * np.arange(1, self.harmonics + 1)            # (B, M, H)
+        fundamental = self.frequency_map(commands)  # (B, M)
+        lines = fundamental[..., None] * np.arange(1, self.harmonics + 1)  # (B, M, H)
         folded = fold(lines, self.sample_rate_hz)
         return np.clip(folded, self.min_hz, self.max_hz).reshape(len(commands), -1)
 
-    def apply(self, stamps_ns: np.ndarray, x: np.ndarray, joint_stamps_ns: np.ndarray,
-              commands: np.ndarray) -> np.ndarray:
-        """Filter the 1-D signal x (N,) sampled at stamps_ns; commands (M_js, M) at joint_stamps_ns."""
+    def apply(
+        self,
+        stamps_ns: np.ndarray,
+        x: np.ndarray,
+        joint_stamps_ns: np.ndarray,
+        commands: np.ndarray,
+    ) -> np.ndarray:
+        """Filter the 1-D signal x (N,) sampled at stamps_ns; commands (K, M) at joint_stamps_ns."""
         x = np.asarray(x, float)
         n = len(x)
         starts = np.arange(0, n, self.update_samples)
@@ -150,7 +183,7 @@ class HarmonicNotchBank:
         index = np.searchsorted(joint_stamps_ns, stamps_ns[starts], side="right") - 1
         held = np.asarray(commands, float)[np.maximum(index, 0)]
         held[index < 0] = 0.0
-        sos = notch_sos(self.centres(held), self.q, self.sample_rate_hz)            # (B, K, 6)
+        sos = notch_sos(self.centres(held), self.q, self.sample_rate_hz)  # (B, K, 6)
         out = np.empty(n)
         zi = np.zeros((sos.shape[1], 2))
         for i, start in enumerate(starts):
