@@ -17,7 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "quadcopter_ar8"
 PROFILE = load_profile("quadcopter")
 # Calibration 0-4 s (idle, take-off, hover), test 4-6 s (hover): a few seconds of the real flight.
-SHORT = dict(split_s=4.0, end_s=6.0, amplitudes=(1.0,), swapped=False, extra_seeds=())
+SHORT = dict(split_s=4.0, end_s=6.0, amplitudes=(1.0,), swapped=False, event_sets=1)
 METRIC_FIELDS = (
     "noise_mean_raw",
     "noise_mean_denoised",
@@ -84,7 +84,7 @@ def test_more_event_sets_are_pooled(flight):
         PROFILE,
         (0.0, 4.0),
         (4.0, 6.0),
-        RealConfig(**{**SHORT, "methods": ("raw", "mean_command"), "extra_seeds": (2,)}),
+        RealConfig(**{**SHORT, "methods": ("raw", "mean_command"), "event_sets": 2}),
     )
     pooled = fold["over_seeds"]
     assert pooled["seeds"] == [1, 2]
@@ -156,6 +156,8 @@ def test_cli_writes_the_report_files(tmp_path, capsys):
             "--end",
             "6",
             "--no-swapped",
+            "--event-sets",
+            "2",
         ]
     )
     assert code == 0
@@ -173,6 +175,7 @@ def test_cli_writes_the_report_files(tmp_path, capsys):
     assert (
         report["command"].startswith("egovib real evaluate --bag")
         and "--split 4" in report["command"]
+        and "--event-sets 2" in report["command"]
     )
     markdown = (out / "real_results.md").read_text()
     assert "MIT OR Apache-2.0" in markdown and "Where a baseline wins" in markdown

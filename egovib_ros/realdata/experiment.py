@@ -65,14 +65,13 @@ class RealConfig:
     amplitudes: tuple[float, ...] = (0.5, 1.0, 2.0)
     methods: tuple[str, ...] = METHODS
     swapped: bool = True  # also calibrate on the test part and test on the calibration part
-    extra_seeds: tuple[int, ...] = (
-        2,
-        3,
-        4,
-        5,
-    )  # more event sets at the primary amplitude (pooled table)
+    # Event sets at the primary amplitude (seeds seed, seed + 1, ...): about 15 events each,
+    # so one set decides F1 by single events; the pooled table uses them all.
+    event_sets: int = 5
 
     def __post_init__(self) -> None:
+        if self.event_sets < 1:
+            raise ConfigError(f"event sets must be at least 1, got {self.event_sets}")
         if PRIMARY_AMPLITUDE not in self.amplitudes:
             self.amplitudes = tuple(sorted(set(self.amplitudes) | {PRIMARY_AMPLITUDE}))
         if "raw" not in self.methods:
@@ -294,16 +293,17 @@ def run_fold(
             signals = {**scored["signals"], "t0_ns": t0}
     # Fifteen events or so per set: the same at the primary amplitude over several event sets.
     over_seeds = {}
-    if config.extra_seeds:
+    extra_seeds = [config.events.seed + k for k in range(1, config.event_sets)]
+    if extra_seeds:
         per_seed = [results[f"{PRIMARY_AMPLITUDE:g}"]]
-        for seed in config.extra_seeds:
+        for seed in extra_seeds:
             spec = dataclasses.replace(
                 config.events, relative_amplitude=PRIMARY_AMPLITUDE, seed=seed
             )
             per_seed.append(
                 score_events(fitted, thresholds, test, profile, spec, firmware_bp)["rows"]
             )
-        over_seeds = pool_seeds(per_seed, [config.events.seed, *config.extra_seeds])
+        over_seeds = pool_seeds(per_seed, [config.events.seed, *extra_seeds])
     fold = {
         "calibration_s": [float(calibration_s[0]), float(calibration_s[1])],
         "test_s": [float(test_s[0]), float(test_s[1])],
@@ -425,6 +425,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"end of the test part, s (default {RealConfig.end_s}: before the final impact)",
     )
     parser.add_argument("--seed", type=int, default=EventSpec.seed, help="seed of the added events")
+    parser.add_argument("--event-sets", type=int, default=RealConfig.event_sets,
+                        help=f"event sets (seeds SEED, SEED+1, ...) pooled at 1x (default "
+                        f"{RealConfig.event_sets})")
     parser.add_argument("--no-swapped", action="store_true", help="skip the swapped split")
 
 
@@ -437,6 +440,7 @@ def command_line(args: argparse.Namespace) -> str:
         ("--split", args.split, RealConfig.split_s),
         ("--end", args.end, RealConfig.end_s),
         ("--seed", args.seed, EventSpec.seed),
+        ("--event-sets", args.event_sets, RealConfig.event_sets),
     ):
         if value != default:
             words += [flag, f"{value:g}"]
@@ -455,6 +459,7 @@ def run(args: argparse.Namespace) -> int:
         end_s=args.end,
         events=EventSpec(seed=args.seed),
         swapped=not args.no_swapped,
+        event_sets=args.event_sets,
     )
     start = time.perf_counter()
     # The core warns once per denoiser about idle commands of -0.0005 (one DShot step below the
