@@ -143,6 +143,23 @@ def test_bad_flight_log_is_a_one_line_error_and_leaves_no_bag(tmp_path, capsys):
         load_flight_log(tmp_path / "junk.npz")
 
 
+def test_a_joint_the_bag_lacks_is_named(tmp_path):
+    import dataclasses
+
+    from egovib_ros.errors import BagError
+
+    _small_npz(tmp_path / "log.npz", n=20)
+    convert(tmp_path / "log.npz", tmp_path / "bag")
+    profile = load_profile("quadcopter")
+    names = ("motor1", "motor5", "motor3", "motor4")
+    other = dataclasses.replace(profile, joint_names=names, source="")
+    with pytest.raises(BagError, match=r"joint 'motor5' never appears on /joint_states"):
+        read_flight_bag(tmp_path / "bag", other)
+    with pytest.raises(BagError, match="missing topic /imu/other"):
+        other = dataclasses.replace(profile, sensor_topic="/imu/other", source="")
+        read_flight_bag(tmp_path / "bag", other)
+
+
 def test_converter_module_main(tmp_path):
     _small_npz(tmp_path / "log.npz", n=50)
     done = subprocess.run(

@@ -221,7 +221,9 @@ def _protocol(result: dict) -> str:
         f"({events['target_peak_rad_s']:.3f} rad/s; the paper's taps were \"similar to the maximum",
         "noise magnitude\"). Detection thresholds: each method's own output on the calibration",
         "part (at motor commands the test reaches), 1.1 x its largest 4 ms RMS envelope; never",
-        "tuned on the test part. Metrics: `egovib_ros.evaluation.metrics` / `detection`",
+        "tuned on the test part (for the noise tables that part is also their training data, so",
+        "their calibration residual is smaller than on new data: a threshold biased low, towards",
+        "false alarms, i.e. against them). Metrics: `egovib_ros.evaluation.metrics` / `detection`",
         "(CONTRACT section 6) on the summed, band-passed gyro; event F1 with +-10 ms onset",
         "tolerance (also +-30 ms: IIR notches ring and delay an event).",
     ))
