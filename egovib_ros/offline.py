@@ -13,7 +13,6 @@ Library use (evaluate, gap and scripts call these directly):
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import os
 import sys
@@ -22,10 +21,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from egovib_ros.bag import BagReader, BagWriter, MessageBatch, RecordingStream, compression_name
+from egovib_ros.bag import (BagReader, BagWriter, MessageBatch, RecordingStream, compression_name,
+                            iter_recording)
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.messages import decode_imu, replace_imu_field
-from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser, check_bad_share
+from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.fileutil import atomic_output
 from egovib_ros.robot import RobotProfile, load_profile
@@ -80,9 +81,11 @@ def _parallel_options(parser: argparse.ArgumentParser) -> None:
 # denoise
 # --------------------------------------------------------------------------
 def model_profile(model: NoiseModel) -> RobotProfile:
-    """The robot profile the model was calibrated with (v1 models: the PR2 default)."""
-    profile = getattr(model, "profile", None)
-    return profile if profile is not None else load_profile(None)
+    """The robot profile the model was calibrated with (topics, field, joints)."""
+    if model.profile is None:
+        raise ConfigError(f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
+                          f"and is not the PR2 grid; recalibrate it with --robot PROFILE")
+    return model.profile
 
 
 class _DenoisedTopic:
@@ -232,6 +235,7 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
                 final = denoiser.flush()
                 job.add_output(final.stamps_ns, final.values)
                 job.finish()
+                check_bad_share(denoiser.stats, f"{bag}: {raw_topic}")       # before the bag appears
                 ratio = writer.size_ratio
     stats = denoiser.stats
     return {"samples_in": job.raw_read, "denoised_messages": job.written, "raw_without_output": job.dropped,
@@ -298,32 +302,114 @@ def _report(results, describe, *, single: bool) -> int:
 # --------------------------------------------------------------------------
 # calibrate
 # --------------------------------------------------------------------------
+def calibrate_bag(bag: str | os.PathLike, *, profile: RobotProfile, sweep: str = "auto",
+                  progress: Callable[[int], None] | None = None) -> CalibrationAccumulator:
+    """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice."""
+    where = f"{bag}: {profile.sensor_topic}"
+    acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=str(bag))
+    for piece in iter_recording(bag, profile=profile, ground_truth=False, denoised=False, commands=False,
+                                progress=progress):
+        acc.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
+        acc.push_accel(piece.accel_stamps_ns, piece.accel)
+    acc.flush()
+    check_bad_share(acc.stats, where)
+    return acc
+
+
+def merge_accumulators(accumulators: Sequence[CalibrationAccumulator]) -> CalibrationAccumulator:
+    """Pool the per-cell sums of several bags' accumulators into the first (in the order
+    given, so the result does not depend on which bag finished first). Bags are separate
+    streams: each was framed and flushed on its own; only the statistics are pooled.
+
+    Uses the accumulator's tallies (both the sweep and the free-motion tally, so "auto"
+    decides on the pooled data); a `merge` method in the core would be its natural home."""
+    first, rest = accumulators[0], accumulators[1:]
+    for other in rest:
+        for mine, theirs in ((first._sweep_tally, other._sweep_tally), (first._free_tally, other._free_tally)):
+            k = theirs.n
+            if k:
+                ids = np.ravel_multi_index(tuple(theirs.cells[:k].T), first.grid_shape)
+                rows = mine.rows(ids, theirs.cells[:k])
+                mine.sum[rows] += theirs.sum[:k]
+                mine.sumsq[rows] += theirs.sumsq[:k]
+                mine.counts[rows] += theirs.counts[:k]
+            for key, value in theirs.rejected.items():
+                mine.rejected[key] = mine.rejected.get(key, 0) + value
+        for key, value in vars(other._framer.stats).items():
+            if isinstance(value, int):
+                setattr(first._framer.stats, key, getattr(first._framer.stats, key) + value)
+    return first
+
+
+def _calibrate_task(bag: Path, out, progress, **options) -> CalibrationAccumulator:
+    return calibrate_bag(bag, progress=progress, **options)
+
+
+def calibrate_bags(bags: Sequence[str | os.PathLike], *, profile: RobotProfile | None = None, sweep: str = "auto",
+                   jobs: int = 1, scheduler: str | None = None, quiet: bool = True):
+    """One noise model from one or more bags (bags read in parallel with `jobs` > 1 or a
+    Dask `scheduler`). Returns (model, stats, per-bag results); model is None if a bag
+    failed (the results say which and why)."""
+    profile = profile or load_profile(None)
+    pairs = expand_bags(bags)
+    task = functools.partial(_calibrate_task, profile=profile, sweep=sweep)
+    results = run_bags(task, [BagJob(bag) for bag, _ in pairs], jobs=jobs, scheduler=scheduler,
+                       desc="calibrate", quiet=quiet)
+    if not all(r.ok for r in results):
+        return None, None, results
+    per_bag = [r.value.stats for r in results]      # before pooling changes the first one
+    acc = merge_accumulators([r.value for r in results])
+    for r, stats in zip(results, per_bag):           # what the summary shows per bag
+        r.value = stats
+    names = [str(b) for b, _ in pairs]
+    source = names[0] if len(names) == 1 else f"{len(names)} bags: " + ", ".join(names[:20]) + \
+        (", ..." if len(names) > 20 else "")
+    return acc.to_model(source=source), acc.stats, results
+
+
+def _describe_calibrate(stats: dict) -> str:
+    return (f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
+            f"({stats['mode']}), bad samples {stats['samples_bad']}")
+
+
+def coverage_lines(model: NoiseModel) -> list[str]:
+    """What `egovib calibrate` prints about the model's coverage."""
+    c = model.coverage()
+    lines = [model.summary(),
+             f"coverage: {c['cells_measured']} of {c['cells_total']} cells measured "
+             f"({100 * c['fraction_measured']:.1f} %), {c['blocks']} blocks; blocks per measured cell: "
+             f"min {c['min_blocks']}, median {c['median_blocks']:g}"
+             + (f"; {c['cells_under_min_blocks']} cells have too few blocks for a std"
+                if c.get("cells_under_min_blocks") else "")]
+    if model.measured != "free" and model.dense_ok:
+        missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
+        if missing:
+            lines.append(f"warning: {missing} cells of the {model.measured} grid have no block; "
+                         f"they are filled at load time (see NoiseModel)")
+    return lines
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
-    # interim (core v1): one bag, whole arrays; replaced by the streaming version on Core v2
-    from tqdm import tqdm
-    from egovib_ros.bag import read_recording
-    from egovib_ros.core import calibrate_arrays
-    from egovib_ros.core.noise_model import sweep_mask
-    bag = args.bags[0]
-    rec = read_recording(bag, ground_truth=False, denoised=False)
-    sweep = "superposition" if args.grid == "superposition" else "full"
-    with tqdm(total=len(rec.accel_stamps_ns), unit="sample", unit_scale=True, desc="calibrate",
-              disable=args.quiet or None, file=sys.stderr) as bar:
-        model, stats = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
-                                        rec.joint_velocity, source=str(bag), progress=bar.update,
-                                        sweep=sweep, joint_names=rec.joint_names)
-    if model.counts.sum() == 0:
-        raise BagError(f"{bag}: no steady block near any grid velocity "
-                       f"(rejected: {stats['rejected']}); is this a calibration sweep?")
-    if args.grid == "auto" and not np.any(model.counts[~model.axis_mask()] > 0):
-        model = dataclasses.replace(model, measured="superposition")
+    profile = load_profile(args.robot)
+    model, stats, results = calibrate_bags(args.bags, profile=profile, sweep=args.grid, jobs=args.jobs,
+                                           scheduler=args.scheduler, quiet=args.quiet)
+    if len(results) > 1 or model is None:
+        if len(results) == 1:
+            raise BagError(results[0].error)
+        for line in summary_lines(results, _describe_calibrate):
+            print(line, file=sys.stderr)
+        if model is None:
+            print(f"egovib: error: no model written: {sum(not r.ok for r in results)} bag(s) failed",
+                  file=sys.stderr)
+            return 2
+    where = args.bags[0] if len(args.bags) == 1 else f"{len(results)} bags"
+    if model.coverage()["blocks"] == 0:
+        raise BagError(f"{where}: no steady block near any grid velocity "
+                       f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?")
     with atomic_output(args.out) as tmp:
         model.save(tmp)
-    print(model.summary(), file=sys.stderr)
-    missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
-    if missing:
-        print(f"warning: {missing} cells of the {model.measured} grid have no block; "
-              f"they are filled at load time (see NoiseModel)", file=sys.stderr)
+    for line in coverage_lines(model):
+        print(line, file=sys.stderr)
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
