@@ -80,7 +80,11 @@ class ChunkData:
     index: dict[int, tuple[np.ndarray, np.ndarray]]
     definitions: list[tuple[int, int]] = field(default_factory=list)
     file_bytes: int = 0          # bytes of the file consumed up to this chunk (progress bars)
+    # No message read after this chunk has a log time below `frontier_ns` (None: unknown).
+    frontier_ns: int | None = None
     lengths: dict[int, np.ndarray] = field(default_factory=dict)     # record lengths per channel, if known
+    start_ns: int | None = None     # the chunk record's message start/end time (None: loose messages)
+    end_ns: int | None = None
 
     @property
     def buffer(self) -> np.ndarray:
@@ -143,48 +147,110 @@ class McapScanner:
         self.summary_start = 0
 
     def chunks(self) -> Iterator[ChunkData]:
+        """Chunks in order of their first message's log time: file order for files written
+        in time order (read front to back), else by seeking along the summary's chunk
+        index (files whose chunks were written per topic, or out of order) so that the
+        streams of different topics arrive together."""
         with open(self.path, "rb") as fh:
             if hasattr(os, "posix_fadvise"):        # one pass front to back: read ahead further
                 os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
             if fh.read(8) != MAGIC:
                 raise McapFormatError("not an MCAP file (bad magic)")
-            pending: tuple | None = None            # a chunk waiting for its message indexes
-            loose: list[bytes] = []
-            loose_size = 0
-            consumed = 0
+            by_time, by_file = self._time_order(fh)
+            if by_time is None:
+                fh.seek(8)
+                yield from self._sequential(fh, [c.message_start_time for c in by_file] if by_file else None)
+            else:
+                yield from self._seeking(fh, by_time)
 
-            def progress(chunk: ChunkData) -> ChunkData:
-                nonlocal consumed
-                chunk.file_bytes, consumed = fh.tell() - consumed, fh.tell()
-                return chunk
+    def _time_order(self, fh) -> tuple[list | None, list | None]:
+        """(the summary's chunk indexes by start time if that differs from file order, else
+        None; the chunk indexes in file order, or None without a summary)."""
+        from mcap.reader import make_reader
+        try:
+            fh.seek(0)
+            summary = make_reader(fh).get_summary()
+        except Exception:
+            return None, None
+        if summary is None or not summary.chunk_indexes:
+            return None, None
+        by_file = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        by_time = sorted(by_file, key=lambda c: c.message_start_time)       # stable: ties keep file order
+        if [c.chunk_start_offset for c in by_time] == [c.chunk_start_offset for c in by_file]:
+            return None, by_file
+        self.schemas.update(summary.schemas)
+        self.channels.update(summary.channels)
+        return by_time, by_file
 
-            while True:
-                head = fh.read(9)
-                if len(head) < 9:
-                    raise McapFormatError("truncated (no footer)")
-                op, length = _RECORD_HEADER.unpack(head)
-                if op == OP_MESSAGE_INDEX and pending is not None:
-                    pending[1].append(_read_exact(fh, length))
-                    continue
-                if pending is not None:
-                    yield progress(self._finish_chunk(*pending))
-                    pending = None
-                if op == OP_CHUNK:
-                    pending = (_read_exact(fh, length), [])
-                elif op == OP_MESSAGE:
-                    loose.append(head + _read_exact(fh, length))
-                    loose_size += 9 + length
-                    if loose_size >= self.loose_bytes:
-                        yield progress(self._walk(b"".join(loose)))
-                        loose, loose_size = [], 0
-                elif op in (OP_SCHEMA, OP_CHANNEL):
-                    self._define(op, _read_exact(fh, length))
-                elif op in (OP_DATA_END, OP_FOOTER):
-                    break
-                else:
-                    fh.seek(length, io.SEEK_CUR)
-            if loose:
-                yield progress(self._walk(b"".join(loose)))
+    def _seeking(self, fh, order: list) -> Iterator[ChunkData]:
+        starts = [c.message_start_time for c in order[1:]] + [None]
+        for index, frontier in zip(order, starts):
+            fh.seek(index.chunk_start_offset)
+            op, length = _RECORD_HEADER.unpack(_read_exact(fh, 9))
+            if op != OP_CHUNK:
+                raise McapFormatError("chunk index points at something else than a chunk")
+            body = _read_exact(fh, length)
+            fh.seek(index.chunk_start_offset + index.chunk_length)
+            raw = _read_exact(fh, index.message_index_length)
+            bodies, pos = [], 0
+            while pos + 9 <= len(raw):
+                op, length = _RECORD_HEADER.unpack_from(raw, pos)
+                if op == OP_MESSAGE_INDEX:
+                    bodies.append(raw[pos + 9:pos + 9 + length])
+                pos += 9 + length
+            chunk = self._finish_chunk(body, bodies)
+            chunk.file_bytes = index.chunk_length + index.message_index_length
+            chunk.frontier_ns = frontier if frontier is not None else index.message_end_time
+            yield chunk
+
+    def _sequential(self, fh, starts: list[int] | None) -> Iterator[ChunkData]:
+        """Front to back. `starts`: each chunk's first log time (from the summary), which
+        tells where the next chunk begins; without it a chunk's own start is the bound."""
+        pending: tuple | None = None            # a chunk waiting for its message indexes
+        loose: list[bytes] = []
+        loose_size = 0
+        consumed = 0
+        n_chunks = 0
+
+        def progress(chunk: ChunkData) -> ChunkData:
+            nonlocal consumed, n_chunks
+            chunk.file_bytes, consumed = fh.tell() - consumed, fh.tell()
+            if chunk.start_ns is not None:       # a chunk (not loose messages)
+                n_chunks += 1
+                following = starts[n_chunks] if starts is not None and n_chunks < len(starts) else None
+                chunk.frontier_ns = following if following is not None else (
+                    chunk.end_ns if starts is not None else chunk.start_ns)
+            else:
+                chunk.frontier_ns = chunk.end_ns
+            return chunk
+
+        while True:
+            head = fh.read(9)
+            if len(head) < 9:
+                raise McapFormatError("truncated (no footer)")
+            op, length = _RECORD_HEADER.unpack(head)
+            if op == OP_MESSAGE_INDEX and pending is not None:
+                pending[1].append(_read_exact(fh, length))
+                continue
+            if pending is not None:
+                yield progress(self._finish_chunk(*pending))
+                pending = None
+            if op == OP_CHUNK:
+                pending = (_read_exact(fh, length), [])
+            elif op == OP_MESSAGE:
+                loose.append(head + _read_exact(fh, length))
+                loose_size += 9 + length
+                if loose_size >= self.loose_bytes:
+                    yield progress(self._walk(b"".join(loose)))
+                    loose, loose_size = [], 0
+            elif op in (OP_SCHEMA, OP_CHANNEL):
+                self._define(op, _read_exact(fh, length))
+            elif op in (OP_DATA_END, OP_FOOTER):
+                break
+            else:
+                fh.seek(length, io.SEEK_CUR)
+        if loose:
+            yield progress(self._walk(b"".join(loose)))
 
     # --- internals -------------------------------------------------------------
     def _define(self, op: int, body: bytes | memoryview) -> tuple[int, int]:
@@ -214,7 +280,9 @@ class McapScanner:
             pairs = np.frombuffer(ib, _U64, count=nbytes // 8, offset=6).reshape(-1, 2).astype(np.int64)
             index[channel] = (pairs[:, 0], pairs[:, 1])
         checked = self._check_index(records, index) if index else None
-        return checked if checked is not None else self._walk(records)
+        chunk = checked if checked is not None else self._walk(records)
+        chunk.start_ns, chunk.end_ns = start, end
+        return chunk
 
     def _check_index(self, records: bytes, index: dict) -> ChunkData | None:
         """ChunkData from the message indexes if they account for every message record
@@ -284,7 +352,10 @@ class McapScanner:
                 definitions.append(self._define(op, memoryview(records)[pos + 9:pos + 9 + length]))
             pos += 9 + length
         index = {c: (np.array(t, np.int64), np.array(o, np.int64)) for c, (t, o) in per_channel.items()}
-        return ChunkData(records, index, definitions)
+        chunk = ChunkData(records, index, definitions)
+        times = [t.max() for t, _ in index.values() if len(t)]
+        chunk.end_ns = int(max(times)) if times else None      # loose messages: the latest log time
+        return chunk
 
 
 def _read_exact(fh: BinaryIO, n: int) -> bytes:
@@ -428,8 +499,16 @@ class McapWriter:
         if len(log_times) == 0:
             return
         if isinstance(data, np.ndarray):
+            width = MESSAGE_HEADER + data.shape[1]
+            step = max(1, (self.chunk_bytes - self._pending) // width)
+            if step < len(log_times):          # keep chunks near chunk_bytes: split the batch
+                self.add_records(channel_id, log_times[:step], data[:step])
+                for a in range(step, len(log_times), max(1, self.chunk_bytes // width)):
+                    b = a + max(1, self.chunk_bytes // width)
+                    self.add_records(channel_id, log_times[a:b], data[a:b])
+                return
             records = message_records(channel_id, log_times, data)
-            offsets = np.arange(len(log_times), dtype=np.int64) * records.shape[1]
+            offsets = np.arange(len(log_times), dtype=np.int64) * width
             self._add_part(records, {channel_id: (log_times, offsets)}, records.nbytes)
             return
         lengths = np.fromiter((len(d) for d in data), np.int64, len(data))

@@ -42,6 +42,7 @@ class ReadBatch:
     scanner: McapScanner | None = None       # its schemas/channels
     topic_of_channel: dict[int, str] = field(default_factory=dict)
     bytes_read: int = 0                      # of the bag's files, for progress bars
+    frontier_ns: int | None = None           # messages read later have log times >= this (None: unknown)
 
 
 class BagReader:
@@ -143,7 +144,8 @@ class BagReader:
                         times, starts, lengths = chunk.data_span(channel)
                         per_topic.setdefault(topic, []).append(MessageBatch(buf, starts, lengths, times))
                 messages = {t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()}
-                yield ReadBatch(messages, chunk, scanner, topic_of, bytes_read=chunk.file_bytes)
+                yield ReadBatch(messages, chunk, scanner, topic_of, bytes_read=chunk.file_bytes,
+                                frontier_ns=chunk.frontier_ns)
 
     def _rosbags_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         connections = [c for c in self._reader.connections if c.topic in wanted]
@@ -152,10 +154,11 @@ class BagReader:
         pending: dict[str, tuple[list, list]] = {}
         count = 0
         size = 0
+        latest = None
 
         def emit() -> ReadBatch:
             messages = {t: MessageBatch.from_list(d, ts) for t, (d, ts) in pending.items()}
-            return ReadBatch(messages, bytes_read=size)
+            return ReadBatch(messages, bytes_read=size, frontier_ns=latest)      # rosbags reads in log-time order
 
         try:
             for conn, log_time, raw in self._reader.messages(connections=connections):
@@ -164,6 +167,7 @@ class BagReader:
                 times.append(log_time)
                 count += 1
                 size += len(raw)
+                latest = log_time
                 if count >= self.rosbags_batch:
                     yield emit()
                     pending, count, size = {}, 0, 0

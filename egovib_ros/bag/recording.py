@@ -7,12 +7,15 @@ from the robot profile (CONTRACT 1b; default the PR2 hand): the sensor topic's
 by name from JointStates with any number and order of joints.
 
 Slices are aligned for the streaming core: each slice carries every joint state read
-so far and only sensor samples whose joint states (up to `horizon_s` past them) are
-in, so pushing a slice's joint states and then its sensor samples into a
-StreamingDenoiser or CalibrationAccumulator gives the whole-array result (tested).
-A joint-state stream that falls more than `max_lag_s` behind the sensor (or stops)
-no longer holds the sensor back: memory stays bounded, and those blocks are treated
-as a live denoiser would treat them.
+so far and only sensor samples whose joint states (up to `horizon_s` past them) and
+earlier samples are all in, so pushing a slice's joint states and then its sensor
+samples into a StreamingDenoiser or CalibrationAccumulator gives the whole-array
+result (tested). "In" means the reader has passed that time: chunks are read in
+log-time order and every message not yet read is logged after the reader's frontier
+(log time ~ header stamp: a message logged much later than stamped is late, as it
+would be live). Once `max_lag_s` of sensor samples wait (a
+joint-state stream far behind in the file, or gone), the oldest go on without them:
+memory stays bounded, and those blocks are treated as a live denoiser treats them.
 
 JointState messages that carry only some of the named joints (robots where each
 controller publishes its own JointState) are merged as joint_state_publisher does:
@@ -83,6 +86,14 @@ def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
             "contact": f"{head}/contact", "ego": f"{head}/ego", "commands": COMMANDS_TOPIC}
 
 
+def _by_stamp(stamps: np.ndarray, *values: np.ndarray) -> tuple:
+    """Stamps and their rows in stamp order (stable; usually already in order)."""
+    if len(stamps) > 1 and np.any(stamps[1:] < stamps[:-1]):
+        order = np.argsort(stamps, kind="stable")
+        return (stamps[order],) + tuple(v[order] for v in values)
+    return (stamps,) + values
+
+
 def _concat(parts: list[np.ndarray], width: int | None) -> np.ndarray:
     if parts:
         return np.concatenate(parts)
@@ -99,7 +110,7 @@ class RecordingStream:
     """
 
     def __init__(self, reader: BagReader, profile: RobotProfile | None = None, *, ground_truth: bool = True,
-                 denoised: bool = True, commands: bool = True, horizon_s: float = 0.1, max_lag_s: float = 5.0,
+                 denoised: bool = True, commands: bool = True, horizon_s: float = 0.1, max_lag_s: float = 10.0,
                  min_slice_s: float = 1.0):
         self.reader = reader
         self.profile = profile or _default_profile()
@@ -122,7 +133,7 @@ class RecordingStream:
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
         self.horizon_ns = int(horizon_s * 1e9)
-        self.max_lag_ns = int(max_lag_s * 1e9)
+        self.max_pending = max(1, int(max_lag_s * self.profile.rate_hz))
         self.min_slice_ns = int(min_slice_s * 1e9)
         self._sensor_keys = [k for k in ("raw", "contact", "ego") if k in self.present]
         self._sensor: dict[str, list] = {k: [] for k in self._sensor_keys}     # [(stamps, values), ...]
@@ -131,13 +142,14 @@ class RecordingStream:
         self._commands: list[tuple] = []
         self._last_joint_values: np.ndarray | None = None      # for merging partial JointStates
         self._joint_seen = np.zeros(len(self.joint_names), bool)
-        self._latest_joint_ns: int | None = None
+        self._frontier_ns: int | None = None
         self.counts = {k: 0 for k in self.present}
         self.decoded: dict[str, tuple] = {}        # the last batch's decoded streams, by key (raw, ...)
 
     # --- input -------------------------------------------------------------------------
     def add(self, batch: ReadBatch) -> list[Recording]:
         self.decoded = {}
+        self._frontier_ns = batch.frontier_ns
         for topic, messages in batch.messages.items():
             key = self._key_of.get(topic)
             if key is None or len(messages) == 0:
@@ -172,9 +184,6 @@ class RecordingStream:
         elif key == "joint_states":
             stamps, position, velocity = decode_joint_states(messages, self.joint_names)
             self._joints.append(self._merge_partial(stamps, position, velocity))
-            if len(stamps):
-                latest = int(stamps.max())
-                self._latest_joint_ns = latest if self._latest_joint_ns is None else max(latest, self._latest_joint_ns)
         elif key == "denoised":
             self._denoised.append(decode_imu(messages, self.field))
         elif key == "commands":
@@ -198,33 +207,39 @@ class RecordingStream:
 
     # --- output ------------------------------------------------------------------------
     def _release(self, *, final: bool) -> list[Recording]:
-        sensor = {k: (_concat([s for s, _ in v], None), _concat([x for _, x in v], 3)) for k, v in self._sensor.items()}
+        sensor = {k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
+                  for k, v in self._sensor.items()}
         raw_stamps = sensor["raw"][0]
         n = min(len(s) for s, _ in sensor.values())
         if final:
             take = n
         else:
-            if n and self._latest_joint_ns is not None:
-                ready = raw_stamps[:n] + self.horizon_ns <= self._latest_joint_ns
-                take = n if ready.all() else int(np.argmin(ready))
-            else:
-                take = 0
-            if n and int(raw_stamps[n - 1]) - int(raw_stamps[take if take < n else n - 1]) > self.max_lag_ns:
-                # joint states far behind (or gone): do not hold the sensor stream any longer
-                take = max(take, int(np.searchsorted(raw_stamps[:n], raw_stamps[n - 1] - self.max_lag_ns,
-                                                     side="right")))
+            # Everything not yet read is logged at or after the frontier: a sample that far
+            # before it has its joint states (up to the horizon) and all earlier samples in.
+            frontier = self._frontier_ns if self._frontier_ns is not None else np.iinfo(np.int64).max
+            take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
+            if n - take > self.max_pending:
+                # a frontier that does not move (odd files): hold no more than max_lag_s of samples
+                take = n - self.max_pending
             span = int(raw_stamps[take - 1]) - int(raw_stamps[0]) if take else 0
             if span < self.min_slice_ns:
                 self._sensor = {k: [v] for k, v in sensor.items()}
                 return []
-        joints = self._joints
-        self._joints = []
-        js_stamps = _concat([j[0] for j in joints], None)
         width = len(self.joint_names)
+        js_stamps, js_position, js_velocity = _by_stamp(
+            _concat([j[0] for j in self._joints], None),
+            _concat([j[1] for j in self._joints], width).reshape(-1, width),
+            _concat([j[2] for j in self._joints], width).reshape(-1, width))
+        # joint states past the frontier wait: earlier ones may still be unread
+        cut = len(js_stamps) if final or self._frontier_ns is None else \
+            max(int(np.searchsorted(js_stamps, self._frontier_ns, side="left")),
+                int(np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")) if take else 0)
+        self._joints = [(js_stamps[cut:], js_position[cut:], js_velocity[cut:])] if cut < len(js_stamps) else []
+        js_stamps, js_position, js_velocity = js_stamps[:cut], js_position[:cut], js_velocity[:cut]
         piece = Recording(
             accel_stamps_ns=raw_stamps[:take], accel=sensor["raw"][1][:take],
-            joint_stamps_ns=js_stamps, joint_position=_concat([j[1] for j in joints], width).reshape(-1, width),
-            joint_velocity=_concat([j[2] for j in joints], width).reshape(-1, width), joint_names=self.joint_names)
+            joint_stamps_ns=js_stamps, joint_position=js_position, joint_velocity=js_velocity,
+            joint_names=self.joint_names)
         for key in ("contact", "ego"):
             if key in sensor:
                 stamps, values = sensor[key]
@@ -322,14 +337,15 @@ def _sorted(rec: Recording) -> Recording:
 # Writing
 # --------------------------------------------------------------------------
 def write_recording(path: str | os.PathLike, rec: Recording, *, profile: RobotProfile | None = None,
-                    storage: str = "mcap", compress: bool | str = False, progress=None) -> None:
+                    storage: str = "mcap", compress: bool | str = False, progress=None, **options) -> None:
     """Write a Recording as a rosbag2 bag: one message per sample, log time = stamp."""
-    write_recordings(path, [rec], profile=profile, storage=storage, compress=compress, progress=progress)
+    write_recordings(path, [rec], profile=profile, storage=storage, compress=compress, progress=progress,
+                     **options)
 
 
 def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, profile: RobotProfile | None = None,
                      storage: str = "mcap", compress: bool | str = False, progress=None,
-                     window_s: float = 1.0) -> None:
+                     window_s: float = 1.0, chunk_bytes: int = 4 << 20) -> None:
     """Write consecutive time slices of a recording into one bag, in constant memory.
 
     Each slice is cut into `window_s` windows; a window's messages go into the bag
@@ -338,7 +354,7 @@ def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, pr
     profile = profile or _default_profile()
     names = bag_topic_names(profile)
     field_ = profile.sensor_field
-    with BagWriter(path, storage=storage, compress=compress) as bag:
+    with BagWriter(path, storage=storage, compress=compress, chunk_bytes=chunk_bytes) as bag:
         for rec in pieces:
             streams = _streams(rec, names, field_)
             for topic, msgtype, _, _ in streams:
