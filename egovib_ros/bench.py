@@ -298,7 +298,8 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
     topic, with this package's chunk scanner / writer, the `mcap` library and rosbags.
     Every reader hands its raw messages to the same vectorised decoders."""
     from mcap.reader import make_reader
-    from mcap.writer import CompressionType, Writer as McapLibWriter
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapLibWriter
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
     from egovib_ros.bag import BagReader, BagWriter, iter_recording

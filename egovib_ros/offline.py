@@ -21,8 +21,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from egovib_ros.bag import (BagReader, BagWriter, MessageBatch, RecordingStream, compression_name,
-                            iter_recording)
+from egovib_ros.bag import (
+    BagReader,
+    BagWriter,
+    MessageBatch,
+    RecordingStream,
+    compression_name,
+    iter_recording,
+)
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.messages import decode_imu, replace_imu_field
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser, check_bad_share

@@ -8,8 +8,17 @@ from rosbags.rosbag2 import Reader
 from egovib_ros import bagio
 from egovib_ros.bag import BagReader, iter_recording
 from egovib_ros.bag.many import expand_bags
-from egovib_ros.bagio import (BagWriter, Recording, decode_imu, decode_imu_batch, decode_joint_state_batch,
-                              encode_imu_batch, encode_joint_state_batch, read_recording, write_recording)
+from egovib_ros.bagio import (
+    BagWriter,
+    Recording,
+    decode_imu,
+    decode_imu_batch,
+    decode_joint_state_batch,
+    encode_imu_batch,
+    encode_joint_state_batch,
+    read_recording,
+    write_recording,
+)
 from egovib_ros.constants import ACCEL_FRAME, BAG_TOPICS, JOINT_NAMES
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.robot import RobotProfile

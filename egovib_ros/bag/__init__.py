@@ -13,8 +13,16 @@ messages, Imu/JointState decoding), `reader`/`writer` (rosbag2 directories),
 """
 from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states, replace_imu_field
 from egovib_ros.bag.reader import BagReader, ReadBatch, TopicInfo, bag_topics
-from egovib_ros.bag.recording import (Recording, RecordingStream, bag_topic_names, concat_recordings,
-                                      iter_recording, read_recording, write_recording, write_recordings)
+from egovib_ros.bag.recording import (
+    Recording,
+    RecordingStream,
+    bag_topic_names,
+    concat_recordings,
+    iter_recording,
+    read_recording,
+    write_recording,
+    write_recordings,
+)
 from egovib_ros.bag.writer import COMPRESSIONS, BagWriter, compression_name
 
 __all__ = ["MessageBatch", "decode_imu", "decode_joint_states", "replace_imu_field", "BagReader", "ReadBatch",

@@ -35,6 +35,7 @@ class BagResult:
     error: str = ""
     seconds: float = 0.0
     out: str | None = None
+    internal: bool = False        # not bad input but an unexpected exception (a bug?)
 
 
 @dataclass
@@ -82,7 +83,8 @@ def bag_size(path: Path) -> int:
         return 0
 
 
-def run_guarded(task: Callable, job: BagJob, progress: Callable[[int], None] | None = None) -> BagResult:
+def run_guarded(task: Callable, job: BagJob, progress: Callable[[int], None] | None = None, *,
+                reraise: bool = False) -> BagResult:
     """Run `task` on one bag; any failure becomes a BagResult naming the bag (bad input:
     its one-line message; anything else: the exception, with the traceback logged)."""
     start = time.perf_counter()
@@ -95,9 +97,11 @@ def run_guarded(task: Callable, job: BagJob, progress: Callable[[int], None] | N
         message = message if str(job.bag) in message else f"{job.bag}: {message}"
         return BagResult(str(job.bag), False, error=message, seconds=time.perf_counter() - start)
     except Exception as exc:  # a bug or an unexpected file: report it, keep going with the others
+        if reraise:
+            raise
         logging.getLogger("egovib_ros.bag").debug("%s", traceback.format_exc())
         return BagResult(str(job.bag), False, error=f"{job.bag}: {type(exc).__name__}: {exc}",
-                         seconds=time.perf_counter() - start)
+                         seconds=time.perf_counter() - start, internal=True)
 
 
 def run_bags(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int = 1, scheduler: str | None = None,
@@ -122,7 +126,8 @@ def run_bags(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int = 1, sche
                     read[0] += step
                     bar.update(step)
 
-                results[i] = run_guarded(task, job, progress)
+                # a single bag in this process: let an unexpected exception show its traceback
+                results[i] = run_guarded(task, job, progress, reraise=len(jobs_list) == 1)
                 bar.update(job.size - read[0])
         else:
             results = _run_dask(task, jobs_list, jobs=jobs, scheduler=scheduler, bar=bar)

@@ -34,8 +34,15 @@ import numpy as np
 from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states
 from egovib_ros.bag.reader import BagReader, ReadBatch
 from egovib_ros.bag.writer import BagWriter
-from egovib_ros.cdr import (COMMANDS_TYPE, IMU_TYPE, JOINT_STATE_TYPE, decode_commands, encode_commands,
-                            encode_imu_batch, encode_joint_state_batch)
+from egovib_ros.cdr import (
+    COMMANDS_TYPE,
+    IMU_TYPE,
+    JOINT_STATE_TYPE,
+    decode_commands,
+    encode_commands,
+    encode_imu_batch,
+    encode_joint_state_batch,
+)
 from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile, load_profile
