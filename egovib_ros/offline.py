@@ -30,7 +30,8 @@ from egovib_ros.bag import (
     iter_recording,
 )
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
-from egovib_ros.bag.messages import decode_imu, replace_imu_field
+from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
+from egovib_ros.bag.messages import decode_imu, imu_layout, replace_imu_field
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser, check_bad_share
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError, ConfigError
@@ -100,20 +101,22 @@ class _DenoisedTopic:
     batch of messages per topic) followed by the denoised messages of its raw samples,
     once every one of those samples is final.
 
-    Raw samples the denoiser drops (out of order, leading non-finite) have no denoised
-    message; they are counted."""
+    A denoised message is its raw message with the field replaced, built straight into
+    MCAP message records: one copy of the raw bytes out of the input chunk, then the 24
+    bytes of the field. Raw samples the denoiser drops (out of order, bad) have no
+    denoised message; they are counted."""
 
     def __init__(self, writer: BagWriter, raw_topic: str, denoised_topic: str, field: str, copy_topics: set[str]):
         self.writer = writer
         self.raw_topic, self.denoised_topic, self.field = raw_topic, denoised_topic, field
+        self.channel_id = writer.topics[denoised_topic].channel_id
         self.copy_topics = copy_topics
         self.units: list[tuple[object, int]] = []          # (ReadBatch, global index past its last raw message)
         self.raw_read = 0                                  # raw messages read so far
         self.resolved = 0                                  # raw messages before this are matched or dropped
-        self.pending = MessageBatch.empty()                # raw messages from `resolved` on
-        self.pending_stamps = np.zeros(0, np.int64)
-        self.out_index: list[np.ndarray] = []              # global raw index of each denoised message
-        self.out_batches: list[MessageBatch] = []
+        self.pending: list[tuple[MessageBatch, int, int | None]] = []   # (raw batch, global start, field offset)
+        self.pending_stamps = np.zeros(0, np.int64)        # stamps of raw messages from `resolved` on
+        self.out: list[tuple[np.ndarray, np.ndarray, object]] = []   # (global index, log times, records|batch)
         self.written = 0
         self.dropped = 0
         self.verbatim_chunks = 0
@@ -123,7 +126,7 @@ class _DenoisedTopic:
         raw = batch.messages.get(self.raw_topic)
         if raw is not None and len(raw):
             stamps = raw_stamps if raw_stamps is not None else decode_imu(raw, self.field)[0]
-            self.pending = MessageBatch.concat([self.pending, raw])
+            self.pending.append((raw, self.raw_read, imu_layout(raw, self.field)))
             self.pending_stamps = np.concatenate([self.pending_stamps, stamps])
             self.raw_read += len(raw)
         self.units.append((batch, self.raw_read))
@@ -133,26 +136,48 @@ class _DenoisedTopic:
             return
         if values.shape[1] == 1:       # CONTRACT: combined signal in x, y = z = 0
             values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-        index = self._match(stamps)
-        messages = replace_imu_field(self.pending.take(index), values, self.field)
-        self.out_index.append(self.resolved + index)
-        self.out_batches.append(messages)
+        index = self.resolved + self._match(stamps)
+        self.out.append((index,) + self._denoised(index, values))
         done = int(index[-1]) + 1
-        self.dropped += done - len(index)
-        self.resolved += done
-        rest = np.arange(done, len(self.pending))
-        self.pending = MessageBatch.concat([self.pending.take(rest)]) if len(rest) else MessageBatch.empty()
-        self.pending_stamps = self.pending_stamps[done:]
+        self.dropped += done - self.resolved - len(index)
+        self.pending_stamps = self.pending_stamps[done - self.resolved:]
+        self.resolved = done
+        self.pending = [p for p in self.pending if p[1] + len(p[0]) > done]
         self._emit()
 
     def finish(self) -> None:
-        self.dropped += len(self.pending)
+        self.dropped += self.raw_read - self.resolved
         self.resolved = self.raw_read
-        self.pending, self.pending_stamps = MessageBatch.empty(), np.zeros(0, np.int64)
+        self.pending, self.pending_stamps = [], np.zeros(0, np.int64)
         self._emit()
 
+    def _denoised(self, index: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, object]:
+        """(log times, MCAP records or a MessageBatch) of the raw messages at global `index`
+        with the field set to `values`."""
+        parts = []
+        for raw, first, offset in self.pending:
+            lo, hi = np.searchsorted(index, [first, first + len(raw)])
+            if hi > lo:
+                parts.append((raw, index[lo:hi] - first, offset))
+        widths = {raw.uniform_length for raw, _, _ in parts}
+        offsets = {offset for _, _, offset in parts}
+        log_times = np.concatenate([raw.log_times[local] for raw, local, _ in parts])
+        if len(widths) != 1 or None in widths or len(offsets) != 1 or None in offsets:
+            # unusual messages: the codec's general path
+            messages = MessageBatch.concat([raw.take(local) for raw, local, _ in parts])
+            return log_times, replace_imu_field(messages, values, self.field)
+        width, offset = widths.pop(), offsets.pop()
+        records = message_records(self.channel_id, log_times, None, width)
+        row = 0
+        for raw, local, _ in parts:
+            records[row:row + len(local), MESSAGE_HEADER:] = rows(raw.buf, raw.starts[local], width)
+            row += len(local)
+        at = MESSAGE_HEADER + offset
+        records[:, at:at + 24] = values.astype("<f8").view(np.uint8).reshape(-1, 24)
+        return log_times, records
+
     def _match(self, stamps: np.ndarray) -> np.ndarray:
-        """Positions in `pending` of the raw messages of these output stamps (in order)."""
+        """Positions (from `resolved`) of the raw messages of these output stamps (in order)."""
         n, known = len(stamps), self.pending_stamps
         if n <= len(known) and np.array_equal(known[:n], stamps):
             return np.arange(n)
@@ -168,23 +193,23 @@ class _DenoisedTopic:
         return index
 
     def _emit(self) -> None:
-        if not self.units or self.units[0][1] > self.resolved:
-            return
-        index = np.concatenate(self.out_index) if self.out_index else np.zeros(0, np.int64)
-        messages = MessageBatch.concat(self.out_batches)
-        used = 0
         while self.units and self.units[0][1] <= self.resolved:
             batch, raw_end = self.units.pop(0)
             self._copy(batch)
-            stop = int(np.searchsorted(index, raw_end))
-            if stop > used:
-                part = messages.take(np.arange(used, stop))
-                self.writer.write_batch(self.denoised_topic, part.log_times, part)
-                self.written += stop - used
-                used = stop
-        rest = np.arange(used, len(index))
-        self.out_index = [index[used:]] if len(rest) else []
-        self.out_batches = [messages.take(rest)] if len(rest) else []
+            while self.out and self.out[0][0][0] < raw_end:
+                index, log_times, data = self.out[0]
+                k = int(np.searchsorted(index, raw_end))
+                if isinstance(data, MessageBatch):
+                    self.writer.write_batch(self.denoised_topic, log_times[:k], data.take(np.arange(k)))
+                    rest = data.take(np.arange(k, len(index)))
+                else:
+                    self.writer.write_message_records(self.denoised_topic, log_times[:k], data[:k])
+                    rest = data[k:]
+                self.written += k
+                if k < len(index):
+                    self.out[0] = (index[k:], log_times[k:], rest)
+                else:
+                    self.out.pop(0)
 
     def _copy(self, batch) -> None:
         chunk = batch.chunk
@@ -284,6 +309,10 @@ def output_jobs(specs: Sequence[str], out: str | os.PathLike) -> list[BagJob]:
 
 def run_denoise(args: argparse.Namespace) -> int:
     model = NoiseModel.load(args.model)          # a bad model fails once, before any bag is touched
+    model_profile(model)
+    # Bad options fail here too; this also builds the model's look-up table once, which
+    # the workers then receive with the model instead of each building (and logging) it.
+    StreamingDenoiser(model, channels=args.channels, oversubtraction=args.oversubtraction, floor=args.floor)
     jobs = output_jobs(args.bags, args.out)
     task = functools.partial(_denoise_task, model=model, channels=args.channels,
                              oversubtraction=args.oversubtraction, floor=args.floor, compress=args.compress)

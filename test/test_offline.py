@@ -11,7 +11,13 @@ from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag import BagWriter
 from egovib_ros.bagio import bag_topics, read_recording, write_recording
-from egovib_ros.cdr import encode_imu_batch, imu_field_offset, joint_state_message, typestore
+from egovib_ros.cdr import (
+    encode_imu_batch,
+    encode_joint_state_batch,
+    imu_field_offset,
+    joint_state_message,
+    typestore,
+)
 from egovib_ros.constants import ACCEL_FRAME
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
 from egovib_ros.offline import denoise_bag
@@ -278,3 +284,30 @@ def test_calibrate_pools_several_bags(bags, tmp_path):
     np.testing.assert_allclose(both.mean, pooled, rtol=1e-9, atol=1e-12)
     for name in ("cells", "cell_mean", "cell_std", "cell_counts"):
         np.testing.assert_array_equal(getattr(results["both_j2"], name), getattr(both, name))
+
+
+def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
+    """Raw messages whose frame_id changes length mid-stream (no fixed layout): the output is
+    still each input message with only the field replaced, as the vectorised path makes it."""
+    motion = read_recording(bags / "motion")
+    n = len(motion.accel_stamps_ns)
+    half = n // 2
+    with BagWriter(tmp_path / "mixed") as bag:
+        bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
+        bag.add_topic("/joint_states", "sensor_msgs/msg/JointState")
+        stamps = motion.accel_stamps_ns
+        raws = encode_imu_batch(stamps[:half], motion.accel[:half], "imu") + \
+            encode_imu_batch(stamps[half:], motion.accel[half:], "imu_link_long_name")
+        bag.write_batch("/accelerometer/raw", stamps, raws)
+        bag.write_batch("/joint_states", motion.joint_stamps_ns,
+                        encode_joint_state_batch(motion.joint_stamps_ns, motion.joint_position,
+                                                 motion.joint_velocity, motion.joint_names))
+    denoise_bag(tmp_path / "mixed", tmp_path / "out", model=NoiseModel.load(model_path))
+    _, expected, _ = denoise_batch(motion.accel_stamps_ns, motion.accel, motion.joint_stamps_ns,
+                                   motion.joint_velocity, NoiseModel.load(model_path))
+    np.testing.assert_array_equal(read_recording(tmp_path / "out").denoised, expected)
+    raw, den = _messages(tmp_path / "out", "/accelerometer/raw"), _messages(tmp_path / "out", "/accelerometer/denoised")
+    assert [t for t, _ in raw] == [t for t, _ in den]
+    for (_, a), (_, b), frame in ((raw[0], den[0], "imu"), (raw[-1], den[-1], "imu_link_long_name")):
+        at = imu_field_offset(len(frame), "linear_acceleration")
+        assert a[:at] == b[:at] and a[at + 24:] == b[at + 24:] and a[at:at + 24] != b[at:at + 24]

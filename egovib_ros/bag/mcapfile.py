@@ -375,9 +375,9 @@ def _read_exact(fh: BinaryIO, n: int) -> bytes:
     return data
 
 
-def _decompress(data: memoryview, compression: str, size: int) -> bytes:
+def _decompress(data: memoryview, compression: str, size: int) -> bytes | memoryview:
     if compression == "":
-        return bytes(data)
+        return data             # a view of the chunk record just read: no copy
     if compression == "zstd":
         import zstandard
         out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
@@ -394,10 +394,13 @@ def _decompress(data: memoryview, compression: str, size: int) -> bytes:
 # --------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------
-def message_records(channel_id: int, log_times: np.ndarray, data: np.ndarray) -> np.ndarray:
+def message_records(channel_id: int, log_times: np.ndarray, data: np.ndarray | None,
+                    width: int | None = None) -> np.ndarray:
     """(n, 31 + L) uint8: one MCAP message record per row of `data` (n, L); publish time =
-    log time, sequence 0 (as rosbag2 and rosbags write them)."""
-    n, width = data.shape
+    log time, sequence 0 (as rosbag2 and rosbags write them). With `data` None the
+    message bytes (columns 31:) are left for the caller to fill (`width` = L)."""
+    n = len(log_times)
+    width = data.shape[1] if data is not None else width
     out = np.empty((n, MESSAGE_HEADER + width), np.uint8)
     head = out.view(np.dtype(dict(_MESSAGE_FIELDS, itemsize=MESSAGE_HEADER + width))).reshape(n)
     head["op"] = OP_MESSAGE
@@ -406,7 +409,8 @@ def message_records(channel_id: int, log_times: np.ndarray, data: np.ndarray) ->
     head["sequence"] = 0
     head["log_time"] = log_times
     head["publish_time"] = log_times
-    out[:, MESSAGE_HEADER:] = data
+    if data is not None:
+        out[:, MESSAGE_HEADER:] = data
     return out
 
 
@@ -529,6 +533,13 @@ class McapWriter:
         blob = ragged_message_records(channel_id, log_times, data)
         offsets = np.concatenate([[0], np.cumsum(lengths + MESSAGE_HEADER)[:-1]]).astype(np.int64)
         self._add_part(blob, {channel_id: (log_times, offsets)}, len(blob))
+
+    def add_message_records(self, channel_id: int, log_times: np.ndarray, records: np.ndarray) -> None:
+        """Append records made by `message_records` (n, 31 + L) for this channel."""
+        if len(log_times):
+            offsets = np.arange(len(log_times), dtype=np.int64) * records.shape[1]
+            self._add_part(np.ascontiguousarray(records), {channel_id: (np.asarray(log_times, np.int64), offsets)},
+                           records.nbytes)
 
     def flush_chunk(self) -> None:
         """Close the chunk being built (if any)."""

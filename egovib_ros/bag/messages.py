@@ -91,7 +91,7 @@ class MessageBatch:
 # --------------------------------------------------------------------------
 # Imu
 # --------------------------------------------------------------------------
-def _imu_layout(batch: MessageBatch, field: str) -> int | None:
+def imu_layout(batch: MessageBatch, field: str) -> int | None:
     """Byte offset of `field` when every message has the codec's fixed little-endian
     layout with one frame_id length, else None (use the per-message fallback)."""
     width = batch.uniform_length
@@ -112,7 +112,7 @@ def decode_imu(batch: MessageBatch, field: str = "linear_acceleration") -> tuple
     """Header stamps (n,) int64 ns and the `field` vectors (n, 3) of Imu messages."""
     if len(batch) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3))
-    offset = _imu_layout(batch, field)
+    offset = imu_layout(batch, field)
     if offset is None:
         return cdr.decode_imu_batch(batch.to_list(), field)
     stamps = batch.field(4, "<i4").astype(np.int64) * _NS + batch.field(8, "<u4").astype(np.int64)
@@ -129,7 +129,7 @@ def replace_imu_field(batch: MessageBatch, values: np.ndarray, field: str = "lin
     values = np.asarray(values, np.float64).reshape(-1, 3)
     if len(values) != len(batch):
         raise ValueError(f"replace_imu_field: {len(values)} values for {len(batch)} messages")
-    offset = _imu_layout(batch, field) if len(batch) else None
+    offset = imu_layout(batch, field) if len(batch) else None
     if offset is None:
         return MessageBatch.from_list(cdr.replace_imu_field(batch.to_list(), values, field), batch.log_times)
     matrix = np.array(batch.matrix())            # a copy: the input stays as it was

@@ -235,6 +235,17 @@ class BagWriter:
         self._mcap.add_records(self.topics[topic].channel_id, log_times, data)
         self.topics[topic].count += len(log_times)
 
+    def write_message_records(self, topic: str, log_times: np.ndarray, records: np.ndarray) -> None:
+        """Append ready-made MCAP message records of `topic` (see `mcapfile.message_records`,
+        whose channel id must be this topic's); other storage: the messages themselves."""
+        if self._mcap is None:
+            self.write_batch(topic, log_times, records[:, 31:])
+            return
+        if topic in self._buffered:
+            self._drain_buffer()
+        self._mcap.add_message_records(self.topics[topic].channel_id, log_times, records)
+        self.topics[topic].count += len(log_times)
+
     def write_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
         """Copy an input MCAP chunk's records as they are, if its channel ids and
         definitions are this bag's; returns False (nothing written) otherwise."""
