@@ -12,6 +12,7 @@ import logging
 import sys
 
 from egovib_ros import __version__
+from egovib_ros.cliutil import OneLineErrorParser
 from egovib_ros.errors import EgovibError
 
 # Order = order in `egovib --help`.
@@ -25,7 +26,7 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(     # one-line errors for bad options, like every bad input
         prog="egovib",
         description="Ego-vibration removal for robot accelerometers (spectral subtraction).")
     parser.add_argument("--version", action="version", version=f"egovib {__version__}")

@@ -16,7 +16,8 @@ from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.cliutil import nonneg_float
+from egovib_ros.fileutil import atomic_output, prepare_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,6 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.add_argument("--out", required=True, metavar="MODEL.npz", help="noise-model file to write")
     cal.add_argument("--grid", choices=("auto", "full", "superposition"), default="auto",
                      help="which sweep the bag holds; auto = superposition if no cell has both joints moving")
+    cal.add_argument("--force", action="store_true", help="replace an existing model written by egovib")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.set_defaults(func=run_calibrate)
 
@@ -41,13 +43,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     den.add_argument("--out", required=True, metavar="BAG", help="output bag directory")
     den.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis",
                      help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x")
-    den.add_argument("--oversubtraction", type=float, default=1.0, help="alpha in max(|Y| - alpha N, beta N)")
-    den.add_argument("--floor", type=float, default=0.0, help="beta in max(|Y| - alpha N, beta N)")
+    den.add_argument("--oversubtraction", type=nonneg_float, default=1.0, help="alpha in max(|Y| - alpha N, beta N)")
+    den.add_argument("--floor", type=nonneg_float, default=0.0, help="beta in max(|Y| - alpha N, beta N)")
+    den.add_argument("--force", action="store_true", help="replace an existing bag written by egovib")
     den.add_argument("--quiet", action="store_true", help="no progress bar")
     den.set_defaults(func=run_denoise)
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    prepare_output(args.out, force=args.force, inputs=[args.bag], kind="model")     # before any work
     rec = read_recording(args.bag, ground_truth=False, denoised=False)
     sweep = "superposition" if args.grid == "superposition" else "full"
     with tqdm(total=len(rec.accel_stamps_ns), unit="sample", unit_scale=True, desc="calibrate",
@@ -73,6 +77,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 
 def run_denoise(args: argparse.Namespace) -> int:
+    prepare_output(args.out, force=args.force, inputs=[args.bag, args.model], kind="bag")   # before any work
     model = NoiseModel.load(args.model)
     rec = read_recording(args.bag, joint_names=model.joint_names)      # the joints the model knows
     stamps, values, stats = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
@@ -83,7 +88,7 @@ def run_denoise(args: argparse.Namespace) -> int:
         values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
     out = dataclasses.replace(rec, denoised_stamps_ns=stamps, denoised=values)
     total = len(rec.accel_stamps_ns) * (3 if rec.contact is not None else 1) * 2 + len(rec.joint_stamps_ns)
-    with atomic_output(args.out, directory=True) as tmp, \
+    with atomic_output(args.out, directory=True, kind="bag") as tmp, \
             tqdm(total=total, unit="msg", unit_scale=True, desc="write", disable=args.quiet or None,
                  file=sys.stderr) as bar:
         write_recording(tmp, out, progress=bar.update)
