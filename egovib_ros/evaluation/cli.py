@@ -68,9 +68,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
         tmp.write_text(json.dumps(metrics.json_safe(report), indent=2) + "\n")
     bad = report["bad_samples"]
     if bad["bad"] or bad.get("calibration_bad") or bad["joint_states_nonfinite"]:    # always said, even --quiet
-        print(f"{args.bag}: bad samples treated as missing: {bad['raw_nonfinite']} non-finite and "
-              f"{bad['raw_beyond_range']} beyond +/-{bad['sensor_range']:g} raw, {bad['contact_nonfinite']} "
-              f"ground truth, {bad['denoised_nonfinite']} denoised, {bad['joint_states_nonfinite']} joint states"
+        print(f"{args.bag}: {bad['bad']} bad samples of {bad['samples']} ({bad['bad_fraction']:.2%}) treated as "
+              f"missing: {bad['raw_nonfinite']} non-finite and {bad['raw_beyond_range']} beyond "
+              f"+/-{bad['sensor_range']:g} raw, {bad['contact_nonfinite']} ground truth, "
+              f"{bad['denoised_nonfinite']} denoised; {bad['joint_states_nonfinite']} non-finite joint states"
               f"{', %d calibration' % bad['calibration_bad'] if bad.get('calibration_bad') else ''}; "
               f"{bad['excluded_samples']} samples and {bad['taps_excluded']} taps left out of the metrics",
               file=sys.stderr)

@@ -102,11 +102,11 @@ def screen_recording(rec, model: NoiseModel, *, source: str = "recording",
 
 
 def excluded_around(bad: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """Samples a bad input sample can have touched: the blocks that hold it (one block
-    before, one after) and the band-pass settling after it (metrics.EDGE_S)."""
-    block = int(model.block_length)
-    settle = int(round(metrics.EDGE_S * model.sample_rate_hz))
-    return metrics.dilate(bad, before=2 * block, after=2 * block + settle)
+    """Samples a run of bad input samples can have touched: every block that holds one
+    of them (a block either side) and, after a bridged run, the band-pass settling: as
+    long as the run, at most metrics.EDGE_S."""
+    return metrics.exclusion_mask(bad, margin=int(model.block_length),
+                                  settle_max=int(round(metrics.EDGE_S * model.sample_rate_hz)))
 
 
 def prepare_signals(rec, model: NoiseModel, excluded: np.ndarray | None = None) -> dict:
@@ -154,6 +154,7 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     excluded = excluded_around(bad, model) if bad.any() else None
     prepared = prepare_signals(rec, model, excluded)
     raw, reference, seg = prepared["raw"], prepared["reference"], prepared["seg"]
+    excluded = seg.excluded_mask          # now also the windows of the taps it dropped
     cal_excluded = None
     if calibration is not None:
         calibration, cal_bad, cal_counts = screen_recording(

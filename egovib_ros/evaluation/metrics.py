@@ -303,24 +303,29 @@ def fill_missing(values: np.ndarray, bad: np.ndarray) -> np.ndarray:
     return flat.reshape(values.shape)
 
 
-def dilate(mask: np.ndarray, before: int, after: int) -> np.ndarray:
-    """Extend each True sample to `before` samples earlier and `after` samples later."""
-    mask = np.asarray(mask, bool)
-    if not mask.any():
-        return mask.copy()
-    n = mask.size
-    out = np.zeros(n + 1, np.int64)
-    idx = np.flatnonzero(mask)
-    np.add.at(out, np.clip(idx - before, 0, n), 1)
-    np.add.at(out, np.clip(idx + after + 1, 0, n), -1)
-    return np.cumsum(out[:n]) > 0
+def exclusion_mask(bad: np.ndarray, *, margin: int, settle_max: int) -> np.ndarray:
+    """Each run [a, b) of `bad` widened to [a - margin, b + margin + min(b - a, settle_max)):
+    what bridging the run can have disturbed (blocks holding it, then filter settling)."""
+    bad = np.asarray(bad, bool)
+    runs = _runs(bad)
+    n = bad.size
+    if runs.size == 0:
+        return np.zeros(n, bool)
+    length = runs[:, 1] - runs[:, 0]
+    starts = np.clip(runs[:, 0] - margin, 0, n)
+    stops = np.clip(runs[:, 1] + margin + np.minimum(length, settle_max), 0, n)
+    edges = np.zeros(n + 1, np.int64)
+    np.add.at(edges, starts, 1)
+    np.add.at(edges, stops, -1)
+    return np.cumsum(edges[:n]) > 0
 
 
 def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSegmentation:
     """`seg` without the samples in `excluded` (bad input and what it touched).
 
     No-contact statistics skip them; a tap whose window holds one is dropped whole
-    (its peak and onset would be guesses) and counted in `n_taps_excluded`.
+    (its peak and onset would be guesses), counted in `n_taps_excluded`, and its window
+    joins the excluded samples (so its detection counts neither way).
     """
     excluded = np.asarray(excluded, bool)
     if excluded.shape != seg.no_contact_mask.shape:
@@ -336,6 +341,9 @@ def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSe
     active = np.zeros_like(seg.active_mask)
     for start, stop in windows[keep]:
         active[start:stop] = seg.active_mask[start:stop]
+    excluded = excluded.copy()
+    for start, stop in windows[~keep]:         # a dropped tap's detection must not count as false
+        excluded[start:stop] = True
     return ContactSegmentation(onsets=seg.onsets[keep], tap_windows=windows[keep],
                                contact_mask=seg.contact_mask, active_mask=active,
                                no_contact_mask=seg.no_contact_mask & ~excluded, excluded_mask=excluded,
