@@ -52,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)")
     if not 0.2 <= args.train_fraction <= 0.9:
         raise ConfigError(f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}")
+    from egovib_ros.core.noise_model import NoiseModel
+    NoiseModel.load(args.model)              # a broken model is named first, as before
     prepare_output(args.out, force=args.force, inputs=[args.model, args.real, args.sim_params],   # before work
                    kind="report")
     from egovib_ros.gap.pipeline import run_gap
