@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "egovib_ros.evaluation.cli",   # evaluate, figures
     "egovib_ros.gap.cli",          # gap, gap validate
     "egovib_ros.bench",            # bench
+    "egovib_ros.realdata.cli",     # real convert|evaluate
 )
 
 
