@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from typing import Callable, NoReturn
 
 from egovib_ros.errors import ConfigError
@@ -66,7 +65,8 @@ def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool =
             return f"a finite number {'>' if low_open else '>='} {low:g}"
         if math.isinf(low):
             return f"a finite number {'<' if high_open else '<='} {high:g}"
-        return (f"a number in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}")
+        left, right = "(" if low_open else "[", ")" if high_open else "]"
+        return f"a number in {left}{low:g}, {high:g}{right}"
 
     parse.__name__ = "number"
     return parse
@@ -130,7 +130,27 @@ def effects_spec_text(text: str) -> str:
     return text
 
 
-def fail(message: str) -> NoReturn:
-    """Print a one-line error and exit 2 (for checks outside argparse)."""
-    print(f"egovib: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
+def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | None = None) -> str:
+    """Refuse a recording the core found mostly unusable; else the line of counts to print.
+
+    stats: of calibrate_arrays / denoise_batch. Refused (one-line StreamError naming
+    `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
+    (non-finite, beyond the sensor range, out of order), or of the `joint_states`
+    messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
+    """
+    from egovib_ros.core import MAX_BAD_SHARE, check_bad_share
+    from egovib_ros.errors import StreamError
+    limit = MAX_BAD_SHARE if limit is None else limit
+    check_bad_share(stats, where, limit)
+    dropped = int(stats.get("joint_states_dropped", 0))
+    if joint_states and dropped > limit * joint_states:
+        raise StreamError(f"{where}: {dropped} of {joint_states} joint states "
+                          f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
+                          f"not "
+                          f"stamped after the previous one: a stuck clock?); more than "
+                          f"{100 * limit:g} % is refused")
+    return (f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
+            f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
+            f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
+            f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
+            f"dropped")

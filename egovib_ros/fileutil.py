@@ -98,7 +98,8 @@ def prepare_output(path: str | os.PathLike, *, force: bool = False,
 
 
 def prepare_outputs_in(directory: str | os.PathLike, names: Sequence[str], *, force: bool = False,
-                       inputs: Iterable[str | os.PathLike | None] = (), option: str = "--out") -> Path:
+                       inputs: Iterable[str | os.PathLike | None] = (),
+                       option: str = "--out") -> Path:
     """Like prepare_output for a command that writes the files `names` into `directory`.
 
     The directory itself may exist (it is added to, never replaced); each named file
@@ -129,7 +130,8 @@ def _check_path_itself(path: str | os.PathLike, label: str) -> Path:
     target = Path(text)
     if target.name in ("", ".", "..") or text.rstrip("/").endswith(("/.", "/..")) \
             or text.rstrip("/") in (".", ".."):
-        raise OutputError(f"{label}: refusing to write to '.' or '..'; name a new file or directory")
+        raise OutputError(f"{label}: refusing to write to '.' or '..'; "
+                          f"name a new file or directory")
     resolved = _resolve(target)
     cwd = _resolve(Path.cwd())
     if resolved == cwd or resolved in cwd.parents or resolved == Path(resolved.anchor):
@@ -143,7 +145,8 @@ def _resolve(path: Path) -> Path:
     return Path(os.path.realpath(os.path.abspath(path)))
 
 
-def _check_not_an_input(target: Path, inputs: Iterable[str | os.PathLike | None], label: str) -> None:
+def _check_not_an_input(target: Path, inputs: Iterable[str | os.PathLike | None],
+                        label: str) -> None:
     out = _resolve(target)
     for item in inputs:
         if item is None or not os.fspath(item):
@@ -156,9 +159,11 @@ def _check_not_an_input(target: Path, inputs: Iterable[str | os.PathLike | None]
         if same:
             raise OutputError(f"{label}: is {item}, an input of this run; refusing to overwrite it")
         if src in out.parents:
-            raise OutputError(f"{label}: lies inside {item}, an input of this run; write it elsewhere")
+            raise OutputError(f"{label}: lies inside {item}, an input of this run; "
+                              f"write it elsewhere")
         if out in src.parents:
-            raise OutputError(f"{label}: holds {item}, an input of this run; refusing to replace it")
+            raise OutputError(f"{label}: holds {item}, an input of this run; "
+                              f"refusing to replace it")
 
 
 def _check_writable(target: Path, label: str) -> None:
@@ -262,7 +267,8 @@ def _read_json(path: Path):
 
 
 def _short_list(items: list[str], limit: int = 3) -> str:
-    return ", ".join(items[:limit]) + (f" and {len(items) - limit} more" if len(items) > limit else "")
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more
 
 
 # --- writing -------------------------------------------------------------------------------
@@ -300,7 +306,8 @@ def _make_staging(parent: Path, name: str) -> Path:
     try:
         staging = parent / f".{name}.{os.getpid()}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
         staging.mkdir()
-        (staging / PARTIAL_MARKER).write_text(json.dumps({"pid": os.getpid(), "created": time.time()}))
+        (staging / PARTIAL_MARKER).write_text(json.dumps({"pid": os.getpid(),
+                                                          "created": time.time()}))
     except OSError as exc:
         raise OutputError(f"{parent / name}: cannot write in {parent} ({exc.strerror})") from None
     return staging
@@ -402,7 +409,7 @@ def process_start_time() -> float:
     """Wall-clock start of this process (Linux /proc), else when this module was imported."""
     try:
         fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
-        ticks = int(fields[19])                            # field 22: starttime, clock ticks after boot
+        ticks = int(fields[19])                  # field 22: starttime, clock ticks after boot
         boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
                     if line.startswith("btime "))
         return boot + ticks / os.sysconf("SC_CLK_TCK")

@@ -16,7 +16,7 @@ from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError
-from egovib_ros.cliutil import nonneg_float
+from egovib_ros.cliutil import check_stream, nonneg_float
 from egovib_ros.fileutil import atomic_output, prepare_output
 
 
@@ -59,6 +59,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         model, stats = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
                                         rec.joint_velocity, source=str(args.bag), progress=bar.update,
                                         sweep=args.grid)
+    counts = check_stream(stats, str(args.bag), joint_states=len(rec.joint_stamps_ns))   # refuse or count
     if model.coverage()["blocks"] == 0:
         raise BagError(f"{args.bag}: no steady block near any grid velocity "
                        f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?")
@@ -71,6 +72,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             print(f"warning: {missing} cells of the {model.measured} grid have no block; "
                   f"they are filled at load time (see NoiseModel)", file=sys.stderr)
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
+    print(counts, file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 
@@ -83,6 +85,7 @@ def run_denoise(args: argparse.Namespace) -> int:
                                           rec.joint_velocity, model, channels=args.channels,
                                           oversubtraction=args.oversubtraction, floor=args.floor,
                                           joint_names=rec.joint_names, source=str(args.bag))
+    counts = check_stream(stats, str(args.bag), joint_states=len(rec.joint_stamps_ns))   # refuse or count
     if values.shape[1] == 1:   # CONTRACT: combined signal in x, y = z = 0
         values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
     out = dataclasses.replace(rec, denoised_stamps_ns=stamps, denoised=values)
@@ -94,6 +97,7 @@ def run_denoise(args: argparse.Namespace) -> int:
     print(f"denoised {len(stamps)} samples ({args.channels}); blocks: {stats['blocks']}, "
           f"out of grid: {stats['blocks_out_of_grid']}, no joint state: {stats['blocks_no_joint_state']}, "
           f"dropped out-of-order: {stats['dropped_out_of_order']}", file=sys.stderr)
+    print(counts, file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 

@@ -13,8 +13,16 @@ import time
 import numpy as np
 import pytest
 
-from egovib_ros.fileutil import (MARKER, PARTIAL_MARKER, OutputError, atomic_output, clean_stale_partials,
-                                 prepare_output, prepare_outputs_in, process_start_time)
+from egovib_ros.fileutil import (
+    MARKER,
+    PARTIAL_MARKER,
+    OutputError,
+    atomic_output,
+    clean_stale_partials,
+    prepare_output,
+    prepare_outputs_in,
+    process_start_time,
+)
 
 
 def write_dir_output(path, files=("metadata.yaml", "data.mcap"), kind="bag"):
@@ -25,7 +33,8 @@ def write_dir_output(path, files=("metadata.yaml", "data.mcap"), kind="bag"):
 
 
 def state(root):
-    return sorted((str(p.relative_to(root)), p.stat().st_mtime_ns, p.stat().st_size) for p in root.rglob("*"))
+    return sorted((str(p.relative_to(root)), p.stat().st_mtime_ns,
+                   p.stat().st_size) for p in root.rglob("*"))
 
 
 @pytest.fixture
@@ -77,7 +86,8 @@ def test_force_replaces_only_our_own_directories(cwd):
     assert prepare_output("ours", force=True, kind="bag")
     (cwd / "theirs").mkdir()
     (cwd / "theirs" / "thesis.tex").write_text("years of work")
-    with pytest.raises(OutputError, match="not an egovib output.*thesis.tex.*not replaced, even with --force"):
+    with pytest.raises(OutputError,
+                       match="not an egovib output.*thesis.tex.*not replaced, even with --force"):
         prepare_output("theirs", force=True, kind="bag")
     # ours, but someone added a file since: not replaced either
     (cwd / "ours" / "notes.txt").write_text("mine")
@@ -116,14 +126,13 @@ def test_legacy_outputs_without_marker_are_recognised(cwd):
     bag = cwd / "denoised"
     bag.mkdir()
     (bag / "denoised_0.mcap").write_bytes(b"mcap")
-    (bag / "metadata.yaml").write_text(
-        "rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n  topics_with_message_count:\n"
-        "  - topic_metadata: {name: /accelerometer/raw}\n  - topic_metadata: {name: /accelerometer/denoised}\n")
+    head = ("rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n"
+            "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/raw}\n")
+    denoised = "  - topic_metadata: {name: /accelerometer/denoised}\n"
+    (bag / "metadata.yaml").write_text(head + denoised)
     assert prepare_output("denoised", force=True, kind="bag")
     # a bag someone recorded on a robot (no topic only egovib writes) is not ours
-    (bag / "metadata.yaml").write_text(
-        "rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n  topics_with_message_count:\n"
-        "  - topic_metadata: {name: /accelerometer/raw}\n")
+    (bag / "metadata.yaml").write_text(head)
     with pytest.raises(OutputError, match="not an egovib output"):
         prepare_output("denoised", force=True, kind="bag")
 
@@ -236,8 +245,9 @@ def test_stale_partials_of_dead_runs_are_cleaned_and_nothing_else(cwd):
     old = process_start_time() - 60
     dead = _staging(cwd, "bag", dead_pid(), old)
     alive_other_run = _staging(cwd, "bag2", os.getppid(), old)           # a run still going
-    newer = _staging(cwd, "bag3", dead_pid(), time.time() + 60)          # not older than this process
-    legacy = cwd / ".model.npz.ab12cd34.partial"                         # the previous version's shape
+    newer = _staging(cwd, "bag3", dead_pid(),
+                     time.time() + 60)          # not older than this process
+    legacy = cwd / ".model.npz.ab12cd34.partial"             # the previous version's shape
     legacy.mkdir()
     (legacy / "model.npz").write_bytes(b"x")
     os.utime(legacy, (old, old))

@@ -24,7 +24,6 @@ excluded from every metric (metrics.exclude_samples); they are counted under
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
@@ -50,13 +49,8 @@ def require_ground_truth(rec, where: str = "recording") -> None:
 
 
 def sensor_range_of(model: NoiseModel) -> float:
-    """+/- full scale of the model's sensor (its robot profile); inf if unknown."""
-    profile = getattr(model, "profile", None)
-    if profile is None:        # a model without a profile: the default robot's, if its joints
-        from egovib_ros.robot import load_profile
-        default = load_profile(None)
-        profile = default if tuple(model.joint_names) == tuple(default.joint_names) else None
-    return float(profile.sensor_range) if profile is not None else math.inf
+    """+/- full scale of the model's sensor (its robot profile; inf if it states none)."""
+    return float(model.profile.sensor_range)
 
 
 def screen_recording(rec, model: NoiseModel, *, source: str = "recording",
