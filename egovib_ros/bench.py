@@ -226,9 +226,11 @@ def markdown_summary(results: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
-    prepare_output(args.json, force=args.force, kind="json", option="--json", inputs=[args.markdown])  # before work
-    prepare_output(args.markdown or Path(args.json).with_suffix(".md"), force=args.force, kind="file",
-                   option="--markdown", inputs=[args.json])
+    # before any work
+    prepare_output(args.json, force=args.force, kind="json", option="--json",
+                   inputs=[args.markdown])
+    prepare_output(args.markdown or Path(args.json).with_suffix(".md"), force=args.force,
+                   kind="file", option="--markdown", inputs=[args.json])
     with tqdm(total=4, desc="bench", unit="step", disable=args.quiet) as bar:
         results = run_benchmarks(quick=args.quick, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
     json_path = Path(args.json)

@@ -15,14 +15,19 @@ from pathlib import Path
 from egovib_ros import cliutil
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.evaluation import metrics
-from egovib_ros.evaluation.evaluate import evaluate_recording, require_ground_truth  # noqa: F401 (API)
+from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
+    bad_samples_said,
+    evaluate_recording,
+    require_ground_truth,
+)
 from egovib_ros.fileutil import atomic_output, prepare_output, prepare_outputs_in
 
 __all__ = ["evaluate_recording", "register"]
 
 # What `egovib figures` writes into its --out directory (figures.py, experiments.py).
 FIGURE_OUTPUTS = ("eval_results.json", "eval_results.md", "eval_fig5_a.png", "eval_fig5_b.png",
-                  "eval_pr_curve.png", "eval_speed.png", "eval_fig3_spectra.png", "eval_fig4_superposition.png")
+                  "eval_pr_curve.png", "eval_speed.png", "eval_fig3_spectra.png",
+                  "eval_fig4_superposition.png")
 
 
 def _calibration_bag(args, model) -> Path | None:
@@ -42,7 +47,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
     model = NoiseModel.load(args.model)
     calibration_path = _calibration_bag(args, model)
-    prepare_output(args.json, force=args.force, kind="json", option="--json",        # before any work
+    # before any work
+    prepare_output(args.json, force=args.force, kind="json", option="--json",
                    inputs=[args.bag, args.model, calibration_path, args.model_short])
     model_short = NoiseModel.load(args.model_short) if args.model_short else None
     methods = None
@@ -54,11 +60,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     # The joints the model is keyed on, as denoise reads them: a bag without them is refused.
     rec = read_recording(args.bag, denoised=True, joint_names=model.joint_names)
     require_ground_truth(rec, where=str(args.bag))
-    calibration = read_recording(calibration_path, ground_truth=False, denoised=False,
-                                 joint_names=model.joint_names) if calibration_path is not None else None
+    calibration = None
+    if calibration_path is not None:
+        calibration = read_recording(calibration_path, ground_truth=False, denoised=False,
+                                     joint_names=model.joint_names)
     try:
-        report = evaluate_recording(rec, model, calibration=calibration, model_short=model_short, methods=methods,
-                                    source=str(args.bag), calibration_source=str(calibration_path),
+        report = evaluate_recording(rec, model, calibration=calibration, model_short=model_short,
+                                    methods=methods, source=str(args.bag),
+                                    calibration_source=str(calibration_path),
                                     max_bad_fraction=args.max_bad_fraction)
     except ValueError as exc:
         raise BagError(f"{args.bag}: {exc}") from None
@@ -66,15 +75,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
               "calibration_bag": str(calibration_path) if calibration_path else None, **report}
     with atomic_output(args.json) as tmp:
         tmp.write_text(json.dumps(metrics.json_safe(report), indent=2) + "\n")
-    bad = report["bad_samples"]
-    if bad["bad"] or bad.get("calibration_bad") or bad["joint_states_nonfinite"]:    # always said, even --quiet
-        print(f"{args.bag}: {bad['bad']} bad samples of {bad['samples']} ({bad['bad_fraction']:.2%}) treated as "
-              f"missing: {bad['raw_nonfinite']} non-finite and {bad['raw_beyond_range']} beyond "
-              f"+/-{bad['sensor_range']:g} raw, {bad['contact_nonfinite']} ground truth, "
-              f"{bad['denoised_nonfinite']} denoised; {bad['joint_states_nonfinite']} non-finite joint states"
-              f"{', %d calibration' % bad['calibration_bad'] if bad.get('calibration_bad') else ''}; "
-              f"{bad['excluded_samples']} samples and {bad['taps_excluded']} taps left out of the metrics",
-              file=sys.stderr)
+    if bad_samples_said(report["bad_samples"]):                 # always said, even with --quiet
+        print(f"{args.bag}: {bad_samples_said(report['bad_samples'])}", file=sys.stderr)
     if not args.quiet:
         print(f"{args.bag}: {report['n_taps']} taps, noise reduction {report['noise_reduction_db']:.1f} dB, "
               f"peak SNR {report['peak_snr_raw_db']:.1f} -> {report['peak_snr_denoised_db']:.1f} dB, "
@@ -129,8 +131,8 @@ def register(subparsers) -> None:
     ev.add_argument("--methods", help="comma list of methods (default: all that can run)")
     ev.add_argument("--max-bad-fraction", type=cliutil.fraction, default=metrics.MAX_BAD_FRACTION,
                     metavar="FRACTION",
-                    help="refuse a recording with more bad (non-finite or out-of-range) samples than this "
-                         f"(default {metrics.MAX_BAD_FRACTION:g})")
+                    help="refuse a recording with more bad (non-finite or out-of-range) samples "
+                         f"than this (default {metrics.MAX_BAD_FRACTION:g})")
     ev.add_argument("--force", action="store_true", help="replace an existing JSON file")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=run_evaluate)
@@ -141,6 +143,7 @@ def register(subparsers) -> None:
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")
     fig.add_argument("--seed", type=cliutil.seed, default=1)
     fig.add_argument("--quick", action="store_true", help="small run (for tests)")
-    fig.add_argument("--force", action="store_true", help="replace the files of a previous run in DIR")
+    fig.add_argument("--force", action="store_true",
+                     help="replace the files of a previous run in DIR")
     fig.add_argument("--quiet", action="store_true")
     fig.set_defaults(func=run_figures)

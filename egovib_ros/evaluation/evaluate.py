@@ -54,7 +54,8 @@ def sensor_range_of(model: NoiseModel) -> float:
 
 
 def screen_recording(rec, model: NoiseModel, *, source: str = "recording",
-                     max_bad_fraction: float = metrics.MAX_BAD_FRACTION) -> tuple[object, np.ndarray, dict]:
+                     max_bad_fraction: float = metrics.MAX_BAD_FRACTION
+                     ) -> tuple[object, np.ndarray, dict]:
     """(recording with bad samples bridged, (N,) bool bad accelerometer-stamp samples, counts).
 
     Bad: a raw sample non-finite or beyond the sensor range, a non-finite ground-truth
@@ -84,15 +85,29 @@ def screen_recording(rec, model: NoiseModel, *, source: str = "recording",
     counts = {"raw_nonfinite": raw_nonfinite, "raw_beyond_range": raw_beyond,
               "contact_nonfinite": int(contact_bad.sum()), "denoised_nonfinite": denoised_bad,
               "joint_states_nonfinite": joint_bad, "samples": n, "bad": int(bad.sum()),
-              "bad_fraction": float(bad.mean()) if n else 0.0, "max_bad_fraction": float(max_bad_fraction),
-              "sensor_range": sensor_range}
+              "bad_fraction": float(bad.mean()) if n else 0.0,
+              "max_bad_fraction": float(max_bad_fraction), "sensor_range": sensor_range}
     if n and bad.mean() > max_bad_fraction:
-        raise BagError(f"{source}: {int(bad.sum())} of {n} samples ({bad.mean():.1%}) are non-finite or beyond "
-                       f"the sensor range (+/-{sensor_range:g}); more than {max_bad_fraction:.0%} bad: "
-                       f"no metrics")
+        raise BagError(f"{source}: {int(bad.sum())} of {n} samples ({bad.mean():.1%}) are "
+                       f"non-finite or beyond the sensor range (+/-{sensor_range:g}); more than "
+                       f"{max_bad_fraction:.0%} bad: no metrics")
     if n and bad.all():
         raise BagError(f"{source}: no valid sample")
     return (dataclasses.replace(rec, **changes) if changes else rec), bad, counts
+
+
+def bad_samples_said(bad: dict) -> str:
+    """The report's "bad_samples" as one line ('' if there were none)."""
+    if not (bad["bad"] or bad.get("calibration_bad") or bad["joint_states_nonfinite"]):
+        return ""
+    calibration = f", {bad['calibration_bad']} calibration" if bad.get("calibration_bad") else ""
+    return (f"{bad['bad']} bad samples of {bad['samples']} ({bad['bad_fraction']:.2%}) treated as "
+            f"missing: {bad['raw_nonfinite']} non-finite and {bad['raw_beyond_range']} beyond "
+            f"+/-{bad['sensor_range']:g} raw, {bad['contact_nonfinite']} ground truth, "
+            f"{bad['denoised_nonfinite']} denoised{calibration}; "
+            f"{bad['joint_states_nonfinite']} non-finite joint states; "
+            f"{bad['excluded_samples']} samples and {bad['taps_excluded']} taps left out of the "
+            f"metrics")
 
 
 def excluded_around(bad: np.ndarray, model: NoiseModel) -> np.ndarray:
@@ -144,7 +159,8 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     """
     fs = model.sample_rate_hz
     require_ground_truth(rec, where=source)
-    rec, bad, bad_counts = screen_recording(rec, model, source=source, max_bad_fraction=max_bad_fraction)
+    rec, bad, bad_counts = screen_recording(rec, model, source=source,
+                                            max_bad_fraction=max_bad_fraction)
     excluded = excluded_around(bad, model) if bad.any() else None
     prepared = prepare_signals(rec, model, excluded)
     raw, reference, seg = prepared["raw"], prepared["reference"], prepared["seg"]
@@ -152,8 +168,8 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     cal_excluded = None
     if calibration is not None:
         calibration, cal_bad, cal_counts = screen_recording(
-            dataclasses.replace(calibration, contact=None, denoised=None), model, source=calibration_source,
-            max_bad_fraction=max_bad_fraction)
+            dataclasses.replace(calibration, contact=None, denoised=None), model,
+            source=calibration_source, max_bad_fraction=max_bad_fraction)
         bad_counts["calibration_bad"] = cal_counts["bad"]
         cal_excluded = excluded_around(cal_bad, model) if cal_bad.any() else None
     noise_clip = baselines.combined_bandpassed(calibration.accel, model) if calibration is not None else None
@@ -192,7 +208,8 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     raw_threshold = threshold_for(None)
     raw_detection = _score(env(raw), truth, raw_threshold, fs, excluded)
     pr2_magnitude = detection.pr2_magnitude(rec.accel, sample_rate_hz=fs)
-    pr2 = {f"pr2_{t:g}ms2": _score(pr2_magnitude, truth, t, fs, excluded) for t in detection.PR2_THRESHOLDS_MS2}
+    pr2 = {f"pr2_{t:g}ms2": _score(pr2_magnitude, truth, t, fs, excluded)
+           for t in detection.PR2_THRESHOLDS_MS2}
     minutes = (len(raw) - (int(excluded.sum()) if excluded is not None else 0)) / fs / 60.0
     for scores in (raw_detection, *pr2.values()):
         scores["false_alarms_per_min"] = scores["fp"] / minutes
@@ -210,7 +227,8 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
 
     if rec.denoised is not None and len(rec.denoised):
         per_method["bag_denoised"], outputs["bag_denoised"] = _bag_denoised(
-            rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs, minutes, excluded)
+            rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs, minutes,
+            excluded)
 
     primary = per_method[PRIMARY]
     report = {field: primary[field] for field in CONTRACT_FIELDS if field in primary}
@@ -224,9 +242,10 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
         "bad_samples": {**bad_counts,
                         "excluded_samples": int(excluded.sum()) if excluded is not None else 0,
                         "taps_excluded": seg.n_taps_excluded,
-                        "rule": "non-finite or beyond the sensor range: missing data, bridged for the filters; "
-                                "the blocks around them and the band-pass settling after them are left "
-                                "out of every metric, and so is any tap they touch"},
+                        "rule": "non-finite or beyond the sensor range: missing data, bridged "
+                                "for the filters; the blocks around them and the band-pass "
+                                "settling after them are left out of every metric, and so is "
+                                "any tap they touch"},
         "threshold_source": "calibration data (no contact), at joint speeds within this run's envelope"
         if calibration is not None
         else "no-contact part of this recording (no calibration data given)",
@@ -239,16 +258,17 @@ def evaluate_recording(rec, model: NoiseModel, *, calibration=None, model_short:
     if pr_curves:
         def env_kept(x: np.ndarray) -> np.ndarray:     # no detection where bad input was
             return env(x) if excluded is None else np.where(excluded, 0.0, env(x))
-        report["pr_curves"] = {"raw_bandpassed": detection.pr_curve(env_kept(raw), truth, sample_rate_hz=fs),
-                               **{name: detection.pr_curve(env_kept(outputs[name]), truth, sample_rate_hz=fs)
-                                  for name in names}}
+        report["pr_curves"] = {
+            "raw_bandpassed": detection.pr_curve(env_kept(raw), truth, sample_rate_hz=fs),
+            **{name: detection.pr_curve(env_kept(outputs[name]), truth, sample_rate_hz=fs)
+               for name in names}}
     if keep_signals:
         report["signals"] = {"raw": raw, "reference": reference, "seg": seg, **outputs}
     return report
 
 
-def _bag_denoised(rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs, minutes,
-                  excluded=None):
+def _bag_denoised(rec, raw, reference, seg, per_method, outputs, threshold_for, env, truth, fs,
+                  minutes, excluded=None):
     """Metrics of the bag's own /accelerometer/denoised (e.g. recorded from the live node).
 
     Its layout tells which method produced it: y = z = 0 is the combined (paper)

@@ -265,7 +265,8 @@ def signal_metrics(raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray,
         "peak_snr_raw_db": snr_raw,
         "peak_snr_denoised_db": snr_den,
         "peak_snr_improvement_db": snr_den - snr_raw,
-        "segsnr_contact_raw_db": mean_segmental_snr(reference, raw, seg.active_mask, seg.excluded_mask),
+        "segsnr_contact_raw_db": mean_segmental_snr(reference, raw, seg.active_mask,
+                                                    seg.excluded_mask),
         "segsnr_contact_denoised_db": mean_segmental_snr(reference, denoised, seg.active_mask,
                                                          seg.excluded_mask),
         "n_taps": seg.n_taps,
@@ -329,7 +330,8 @@ def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSe
     """
     excluded = np.asarray(excluded, bool)
     if excluded.shape != seg.no_contact_mask.shape:
-        raise ValueError(f"excluded mask has shape {excluded.shape}, signals {seg.no_contact_mask.shape}")
+        raise ValueError(f"excluded mask has shape {excluded.shape}, "
+                         f"signals {seg.no_contact_mask.shape}")
     if seg.excluded_mask is not None:
         excluded = excluded | seg.excluded_mask
     if not excluded.any():
@@ -346,7 +348,8 @@ def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSe
         excluded[start:stop] = True
     return ContactSegmentation(onsets=seg.onsets[keep], tap_windows=windows[keep],
                                contact_mask=seg.contact_mask, active_mask=active,
-                               no_contact_mask=seg.no_contact_mask & ~excluded, excluded_mask=excluded,
+                               no_contact_mask=seg.no_contact_mask & ~excluded,
+                               excluded_mask=excluded,
                                n_taps_excluded=seg.n_taps_excluded + int(np.count_nonzero(~keep)))
 
 

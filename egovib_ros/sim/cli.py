@@ -26,8 +26,9 @@ def register(subparsers) -> None:
                        help="comma list name=strength over position, coupling, acceleration, timing, drift "
                             "(e.g. position=0.5,timing=0.03); never written into the bag")
         p.add_argument("--seed", type=cliutil.seed, default=0, help=f"0 .. {cliutil.MAX_SEED}")
-        p.add_argument("--truth", metavar="FILE", help="write {seed, effects, tap_onsets_ns} to this JSON file "
-                                                       "(must not exist unless --force)")
+        p.add_argument("--truth", metavar="FILE",
+                       help="write {seed, effects, tap_onsets_ns} to this JSON file "
+                            "(must not exist unless --force)")
         p.add_argument("--params", metavar="YAML", help="simulator parameters (default config/sim.yaml)")
         p.add_argument("--tap-mode", choices=("random", "periodic"), default="random",
                        help="tap onsets: Poisson with dead time, or evenly spaced")
@@ -40,18 +41,22 @@ def register(subparsers) -> None:
     sweep = scen.add_parser("sweep", help="velocity-grid sweep for calibration (paper section 3)")
     sweep.add_argument("--grid", choices=("full", "superposition"), default="superposition",
                        help="full: 441 cells; superposition: the 41 cells with at most one joint moving")
-    sweep.add_argument("--dwell", type=cliutil.positive_float, required=True, metavar="SECONDS", help="recorded time per cell")
+    sweep.add_argument("--dwell", type=cliutil.positive_float, required=True, metavar="SECONDS",
+                       help="recorded time per cell")
     sweep.add_argument("--settle", type=cliutil.nonneg_float, default=1.0, metavar="SECONDS",
                        help="time per cell for the controller to settle before the dwell (default 1.0)")
-    sweep.add_argument("--taps", type=cliutil.nonneg_float, default=0.0, metavar="RATE_HZ", help="tap rate (default 0)")
+    sweep.add_argument("--taps", type=cliutil.nonneg_float, default=0.0, metavar="RATE_HZ",
+                       help="tap rate (default 0)")
     common(sweep)
     sweep.set_defaults(func=run)
 
     motion = scen.add_parser("motion", help="random smooth motion with taps (paper section 4)")
     motion.add_argument("--duration", type=cliutil.positive_float, required=True, metavar="SECONDS")
-    motion.add_argument("--max-speed", type=cliutil.positive_fraction, required=True, metavar="FRACTION",
+    motion.add_argument("--max-speed", type=cliutil.positive_fraction, required=True,
+                        metavar="FRACTION",
                         help="commands stay within this fraction of each joint's max speed")
-    motion.add_argument("--taps", type=cliutil.nonneg_float, required=True, metavar="RATE_HZ", help="mean tap rate")
+    motion.add_argument("--taps", type=cliutil.nonneg_float, required=True, metavar="RATE_HZ",
+                        help="mean tap rate")
     common(motion)
     motion.set_defaults(func=run)
 
@@ -73,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
     effects = args.effects
     if effects.get("timing", 0.0) < 0:
         # The simulated clock starts at 0: leading joint stamps would be negative.
-        raise ConfigError(f"--effects: timing={effects['timing']:g} s: joint states leading the accelerometer "
-                          f"(timing < 0) is not supported by simulate; use timing >= 0")
+        raise ConfigError(f"--effects: timing={effects['timing']:g} s: joint states leading the "
+                          f"accelerometer (timing < 0) is not supported by simulate; "
+                          f"use timing >= 0")
     params = SimParams.load(args.params)
     if args.scenario == "sweep":
         total = len(sweep_cells(args.grid)) * (args.dwell + args.settle)
