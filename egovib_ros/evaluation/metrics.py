@@ -43,6 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.stream import MAX_BAD_SHARE
+
 SEGMENT_LENGTH = 64
 SEGMENT_HOP = 32
 SEGSNR_CLAMP_DB = (-10.0, 35.0)
@@ -53,7 +55,7 @@ MARGIN_AFTER_S = 0.030       # the band-pass ringing and the block tail come aft
 MIN_GAP_S = 0.030            # contact activity closer than this belongs to the same tap
 SPIKE_QUANTILE = 0.999       # "noise spikes": 99.9th percentile of the no-contact magnitude
 EDGE_S = 0.10                # ignore filter/denoiser start-up and flush at both ends
-MAX_BAD_FRACTION = 0.10      # more bad samples than this: the recording is refused, not scored
+MAX_BAD_FRACTION = MAX_BAD_SHARE   # more bad than this: refused, not scored (as calibrate/denoise)
 
 
 @dataclass(frozen=True)
