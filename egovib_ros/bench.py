@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, default_profile
 
 SYNTHETIC_JOINT_RATE_HZ = 1000.0       # joint states of the synthetic streams
@@ -474,6 +474,11 @@ def markdown_summary(results: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
+    # before any work
+    prepare_output(args.json, force=args.force, kind="json", option="--json",
+                   inputs=[args.markdown])
+    prepare_output(args.markdown or Path(args.json).with_suffix(".md"), force=args.force,
+                   kind="file", option="--markdown", inputs=[args.json])
     with tqdm(total=5, desc="bench", unit="step", disable=args.quiet) as bar:
         results = run_benchmarks(quick=args.quick, bag_seconds=args.bag_seconds, bag=args.bag,
                                  workdir=args.workdir,
@@ -500,5 +505,6 @@ def register(subparsers) -> None:
     parser.add_argument("--bag", type=Path, default=None, help="measure the bag figures on this bag instead")
     parser.add_argument("--workdir", type=Path, default=None,
                         help="where the bench writes its bags (default: the system temp directory)")
+    parser.add_argument("--force", action="store_true", help="replace existing output files")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(func=run)

@@ -32,10 +32,11 @@ from egovib_ros.bag import (
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.messages import decode_imu, imu_layout, replace_imu_field
-from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser, check_bad_share
+from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser
 from egovib_ros.core.noise_model import sweep_mask
+from egovib_ros.cliutil import check_stream, nonneg_float
 from egovib_ros.errors import BagError, ConfigError
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, load_profile
 
 
@@ -53,6 +54,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
                           "auto = decided from the data")
     _parallel_options(cal)
+    cal.add_argument("--force", action="store_true",
+                     help="replace an existing model written by egovib")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.set_defaults(func=run_calibrate)
 
@@ -68,11 +71,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="output bag directory (one input bag) or directory of output bags (several)")
     den.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis",
                      help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x")
-    den.add_argument("--oversubtraction", type=float, default=1.0, help="alpha in max(|Y| - alpha N, beta N)")
-    den.add_argument("--floor", type=float, default=0.0, help="beta in max(|Y| - alpha N, beta N)")
+    den.add_argument("--oversubtraction", type=nonneg_float, default=1.0,
+                     help="alpha in max(|Y| - alpha N, beta N)")
+    den.add_argument("--floor", type=nonneg_float, default=0.0,
+                     help="beta in max(|Y| - alpha N, beta N)")
     den.add_argument("--compress", choices=("none", "zstd"), default="none",
                      help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)")
     _parallel_options(den)
+    den.add_argument("--force", action="store_true",
+                     help="replace an existing bag written by egovib")
     den.add_argument("--quiet", action="store_true", help="no progress bar")
     den.set_defaults(func=run_denoise)
 
@@ -243,7 +250,7 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
         copy_topics = [t for t in reader.topics if t != denoised_topic]
         denoiser = StreamingDenoiser(model, channels=channels, oversubtraction=oversubtraction, floor=floor,
                                      source=f"{bag}: {raw_topic}")
-        with atomic_output(out, directory=True) as tmp:
+        with atomic_output(out, directory=True, kind="bag") as tmp:
             with BagWriter(tmp, compress=compress) as writer:
                 for topic in copy_topics:
                     writer.copy_topic(reader, topic)
@@ -266,7 +273,9 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
                 final = denoiser.flush()
                 job.add_output(final.stamps_ns, final.values)
                 job.finish()
-                check_bad_share(denoiser.stats, f"{bag}: {raw_topic}")       # before the bag appears
+                # too many bad samples or unusable joint states: refused (before the bag appears)
+                counts = check_stream(denoiser.stats, f"{bag}: {raw_topic}",
+                                      joint_states=stream.counts["joint_states"])
                 ratio = writer.size_ratio
     stats = denoiser.stats
     return {"samples_in": job.raw_read, "denoised_messages": job.written, "raw_without_output": job.dropped,
@@ -275,7 +284,7 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
             "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
             "dropped_out_of_order": stats["dropped_out_of_order"], "channels": channels,
             "chunks_copied_verbatim": job.verbatim_chunks, "chunks_rewritten": job.copied_chunks,
-            "size_ratio": ratio, "compression": compression_name(compress) or "none"}
+            "size_ratio": ratio, "compression": compression_name(compress) or "none", "input_counts": counts}
 
 
 def _describe_denoise(figures: dict) -> str:
@@ -287,7 +296,7 @@ def _describe_denoise(figures: dict) -> str:
         text += f", raw samples dropped (out of order / non-finite) {figures['raw_without_output']}"
     if figures["compression"] != "none" and figures["size_ratio"]:
         text += f"; zstd size ratio {figures['size_ratio']:.1f}"
-    return text
+    return text + f"; {figures['input_counts']}"
 
 
 def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
@@ -314,6 +323,8 @@ def run_denoise(args: argparse.Namespace) -> int:
     # the workers then receive with the model instead of each building (and logging) it.
     StreamingDenoiser(model, channels=args.channels, oversubtraction=args.oversubtraction, floor=args.floor)
     jobs = output_jobs(args.bags, args.out)
+    for job in jobs:        # before any work: every output may be written (or replaced with --force)
+        prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
     task = functools.partial(_denoise_task, model=model, channels=args.channels,
                              oversubtraction=args.oversubtraction, floor=args.floor, compress=args.compress)
     results = run_bags(task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet)
@@ -339,15 +350,19 @@ def _report(results, describe, *, single: bool) -> int:
 # --------------------------------------------------------------------------
 def calibrate_bag(bag: str | os.PathLike, *, profile: RobotProfile, sweep: str = "auto",
                   progress: Callable[[int], None] | None = None) -> CalibrationAccumulator:
-    """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice."""
+    """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice. The
+    accumulator's `input_counts` is the line of bad-input counts to print."""
     where = f"{bag}: {profile.sensor_topic}"
     acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=str(bag))
+    joint_states = 0
     for piece in iter_recording(bag, profile=profile, ground_truth=False, denoised=False, commands=False,
                                 progress=progress):
         acc.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
         acc.push_accel(piece.accel_stamps_ns, piece.accel)
+        joint_states += len(piece.joint_stamps_ns)
     acc.flush()
-    check_bad_share(acc.stats, where)
+    # too many bad samples or unusable joint states: refused; else counted
+    acc.input_counts = check_stream(acc.stats, where, joint_states=joint_states)
     return acc
 
 
@@ -392,7 +407,7 @@ def calibrate_bags(bags: Sequence[str | os.PathLike], *, profile: RobotProfile |
                        desc="calibrate", quiet=quiet)
     if not all(r.ok for r in results):
         return None, None, results
-    per_bag = [r.value.stats for r in results]      # before pooling changes the first one
+    per_bag = [dict(r.value.stats, input_counts=r.value.input_counts) for r in results]   # before pooling
     acc = merge_accumulators([r.value for r in results])
     for r, stats in zip(results, per_bag):           # what the summary shows per bag
         r.value = stats
@@ -404,7 +419,7 @@ def calibrate_bags(bags: Sequence[str | os.PathLike], *, profile: RobotProfile |
 
 def _describe_calibrate(stats: dict) -> str:
     return (f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
-            f"({stats['mode']}), bad samples {stats['samples_bad']}")
+            f"({stats['mode']}); {stats['input_counts']}")
 
 
 def coverage_lines(model: NoiseModel) -> list[str]:
@@ -425,6 +440,7 @@ def coverage_lines(model: NoiseModel) -> list[str]:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
+    prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
     model, stats, results = calibrate_bags(args.bags, profile=profile, sweep=args.grid, jobs=args.jobs,
                                            scheduler=args.scheduler, quiet=args.quiet)
@@ -446,5 +462,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     for line in coverage_lines(model):
         print(line, file=sys.stderr)
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
+    if len(results) == 1:
+        print(results[0].value["input_counts"], file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0

@@ -489,3 +489,21 @@ def test_topics_written_apart_are_read_together(tmp_path):
     whole = bagio.concat_recordings(slices)
     for name in ("accel_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity"):
         np.testing.assert_array_equal(getattr(whole, name), getattr(rec, name), err_msg=name)
+
+
+@pytest.mark.parametrize("crc", [True, False])
+def test_damaged_records_are_detected(tmp_path, crc):
+    """A flipped byte inside a chunk: refused by the chunk CRC; without CRCs, a message record
+    whose opcode was damaged is missing from the count the bag's index gives."""
+    rec = _random_recording(seconds=2.0)
+    write_recording(tmp_path / "bag", rec, crc=crc)
+    mcap = next((tmp_path / "bag").glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    at = data.find(encode_imu_batch(rec.accel_stamps_ns[4000:4001], rec.accel[4000:4001])[0])
+    assert at > 31 and data[at - 31] == 0x05
+    data[at - 31] = 0xFA                                          # no longer a message record
+    mcap.write_bytes(bytes(data))
+    expected = "CRC mismatch" if crc else "lost to damaged records|do not match|index lists"
+    with pytest.raises(BagError, match=f"bag.*({expected})") as info:
+        read_recording(tmp_path / "bag")
+    assert "\n" not in str(info.value)

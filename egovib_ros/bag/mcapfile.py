@@ -60,6 +60,10 @@ class McapFormatError(ValueError):
     """The file is not the MCAP the scan expects (the caller names the file)."""
 
 
+class McapDamaged(McapFormatError):
+    """The file is damaged (CRC mismatch, records that contradict the index, truncation)."""
+
+
 def rows(buf: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
     """(n, width) copy of the byte runs buf[s:s + width] (a row gather on a sliding-window
     view: one memcpy per row, ~10x faster than a 2-D index array)."""
@@ -237,7 +241,7 @@ class McapScanner:
         while True:
             head = fh.read(9)
             if len(head) < 9:
-                raise McapFormatError("truncated (no footer)")
+                raise McapDamaged("truncated (no footer)")
             op, length = _RECORD_HEADER.unpack(head)
             if op == OP_MESSAGE_INDEX and pending is not None:
                 pending[1].append(_read_exact(fh, length))
@@ -283,7 +287,7 @@ class McapScanner:
             raise McapFormatError("chunk shorter than its declared size")
         records = _decompress(data, compression, size)
         if crc and zlib.crc32(records) != crc:
-            raise McapFormatError("chunk CRC mismatch")
+            raise McapDamaged("chunk CRC mismatch (damaged file)")
         index = {}
         for ib in index_bodies:
             channel, nbytes = struct.unpack_from("<HI", ib, 0)
@@ -291,6 +295,13 @@ class McapScanner:
             index[channel] = (pairs[:, 0], pairs[:, 1])
         checked = self._check_index(records, index) if index else None
         chunk = checked if checked is not None else self._walk(records)
+        if index and checked is None:
+            # the index lists messages the records do not hold as such: records were damaged
+            listed = {c: len(t) for c, (t, _) in index.items() if len(t)}
+            found = {c: len(t) for c, (t, _) in chunk.index.items() if len(t)}
+            if listed != found:
+                raise McapDamaged(f"a chunk holds {sum(found.values())} message records but its index "
+                                      f"lists {sum(listed.values())} (damaged records)")
         chunk.start_ns, chunk.end_ns = start, end
         return chunk
 
@@ -434,13 +445,14 @@ class McapWriter:
     """
 
     def __init__(self, path: str | Path, *, compression: str = "", chunk_bytes: int = 4 << 20,
-                 library: str = "egovib_ros", level: int = 1):
+                 library: str = "egovib_ros", level: int = 1, crc: bool = True):
         if compression not in ("", "zstd"):
             raise ValueError(f"compression must be '' or 'zstd', got {compression!r}")
         self.path = Path(path)
         self._fh = open(self.path, "xb")
         self.compression = compression
         self.chunk_bytes = int(chunk_bytes)
+        self.crc = crc                  # chunk CRCs: damage is detected on reading (0: not computed)
         self._compress = None
         if compression == "zstd":
             import zstandard
@@ -568,7 +580,7 @@ class McapWriter:
         self.end_time = end if self.end_time is None else max(self.end_time, end)
         size = base
         crc = 0
-        for b in buffers:
+        for b in buffers if self.crc else ():
             crc = zlib.crc32(b, crc)
         if self._compress:
             buffers = [self._compress(b"".join(buffers))]

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
-from egovib_ros.bag.mcapfile import ChunkData, McapFormatError, McapScanner
+from egovib_ros.bag.mcapfile import ChunkData, McapDamaged, McapFormatError, McapScanner
 from egovib_ros.bag.messages import MessageBatch
 from egovib_ros.errors import BagError
 
@@ -117,17 +117,34 @@ class BagReader:
         """ReadBatches of `topics` (default: all) in file order; BagError on unreadable data."""
         wanted = set(self.topics) if topics is None else set(topics) & set(self.topics)
         started = False
+        read = dict.fromkeys(wanted, 0)
         if self.is_plain_mcap:
             try:
                 for batch in self._mcap_batches(wanted):
                     started = True
+                    for topic, messages in batch.messages.items():
+                        read[topic] += len(messages)
                     yield batch
+                self._check_counts(read)
                 return
             except McapFormatError as exc:
-                if started:
+                if started or isinstance(exc, McapDamaged):
                     raise BagError(f"{self.path}: unreadable MCAP data ({exc})") from None
             # not yet started: rosbags' reader gets its chance (and reports errors its way)
-        yield from self._rosbags_batches(wanted)
+        for batch in self._rosbags_batches(wanted):
+            for topic, messages in batch.messages.items():
+                read[topic] += len(messages)
+            yield batch
+        self._check_counts(read)
+
+    def _check_counts(self, read: dict[str, int]) -> None:
+        """Every message the bag's index counts must have been read: records damaged into
+        something else would otherwise be skipped without a word."""
+        for topic, n in sorted(read.items()):
+            expected = self.topics[topic].count
+            if expected and n != expected:
+                raise BagError(f"{self.path}: topic {topic}: {n} messages read, the bag lists {expected} "
+                               f"({expected - n} lost to damaged records)")
 
     def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         for file in self.files:

@@ -352,7 +352,7 @@ def write_recording(path: str | os.PathLike, rec: Recording, *, profile: RobotPr
 
 def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, profile: RobotProfile | None = None,
                      storage: str = "mcap", compress: bool | str = False, progress=None,
-                     window_s: float = 1.0, chunk_bytes: int = 4 << 20) -> None:
+                     window_s: float = 1.0, chunk_bytes: int = 4 << 20, crc: bool = True) -> None:
     """Write consecutive time slices of a recording into one bag, in constant memory.
 
     Each slice is cut into `window_s` windows; a window's messages go into the bag
@@ -361,7 +361,7 @@ def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, pr
     profile = profile or _default_profile()
     names = bag_topic_names(profile)
     field_ = profile.sensor_field
-    with BagWriter(path, storage=storage, compress=compress, chunk_bytes=chunk_bytes) as bag:
+    with BagWriter(path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc) as bag:
         for rec in pieces:
             streams = _streams(rec, names, field_)
             for topic, msgtype, _, _ in streams:

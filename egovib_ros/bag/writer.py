@@ -57,13 +57,14 @@ class BagWriter:
 
     `storage`: "mcap" (default) or "sqlite3". `compress`: zstd chunk compression for
     MCAP (rosbags and `ros2 bag` read it); for sqlite3, per-message zstd (rosbag2's
-    "message" mode). Messages of one topic must be written in log-time order; topics
-    may be interleaved freely. Memory: one chunk (`chunk_bytes`) plus what `write`
+    "message" mode). `crc`: MCAP chunk CRCs (default), so a damaged file is refused on
+    reading rather than read wrong. Messages of one topic must be written in log-time
+    order; topics may be interleaved freely. Memory: one chunk (`chunk_bytes`) plus what `write`
     has buffered towards it.
     """
 
     def __init__(self, path: str | os.PathLike, *, storage: str = "mcap", compress: bool | str = False,
-                 chunk_bytes: int = 4 << 20):
+                 chunk_bytes: int = 4 << 20, crc: bool = True):
         self.path = Path(path)
         if storage not in ("mcap", "sqlite3"):
             raise BagError(f"{self.path}: unknown storage {storage!r} (mcap or sqlite3)")
@@ -72,6 +73,7 @@ class BagWriter:
         self.storage = storage
         self.compression = compression_name(compress)
         self.chunk_bytes = chunk_bytes
+        self.crc = crc
         self.topics: dict[str, _Topic] = {}
         self._mcap: McapWriter | None = None
         self._rosbags = None
@@ -84,7 +86,7 @@ class BagWriter:
         if self.storage == "mcap":
             self.path.mkdir(parents=True)
             self._mcap = McapWriter(self.path / f"{self.path.name}.mcap", compression=self.compression,
-                                    chunk_bytes=self.chunk_bytes, library=_library())
+                                    chunk_bytes=self.chunk_bytes, library=_library(), crc=self.crc)
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
             from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
