@@ -507,3 +507,12 @@ def test_damaged_records_are_detected(tmp_path, crc):
     with pytest.raises(BagError, match=f"bag.*({expected})") as info:
         read_recording(tmp_path / "bag")
     assert "\n" not in str(info.value)
+
+
+def test_metadata_spans_every_message(tmp_path):
+    rec = _random_recording(seconds=2.0)
+    write_recording(tmp_path / "bag", rec)
+    with Reader(tmp_path / "bag") as reader:
+        times = [t for _, t, _ in reader.messages()]
+        assert reader.start_time == min(times) and reader.end_time == max(times) + 1     # rosbags: end + 1
+        assert reader.message_count == len(times)

@@ -116,6 +116,7 @@ class BagWriter:
             self._rosbags.close()
             return
         self._drain_buffer()
+        self._mcap.flush_chunk()              # the last chunk's times count in the metadata
         info = self._metadata()
         text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
         self._mcap.close(metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}})
