@@ -1,6 +1,7 @@
 """Compatibility shim: the bag layer lives in `egovib_ros.bag` (streaming reader and
 writer, profile-keyed recordings, many bags), the CDR codec in `egovib_ros.cdr`.
 Existing imports from `egovib_ros.bagio` keep working."""
+
 from egovib_ros.bag import (  # noqa: F401
     COMPRESSIONS,
     BagReader,

@@ -10,6 +10,7 @@ Library use (evaluate, gap and scripts call these directly):
     denoise_bag(bag, out, model=..., channels=..., compress=...) -> dict of figures
     calibrate_bags([bag, ...], profile=..., sweep=...) -> (NoiseModel, stats)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,9 +33,9 @@ from egovib_ros.bag import (
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.messages import decode_imu, imu_layout, replace_imu_field
+from egovib_ros.cliutil import check_stream, nonneg_float
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser
 from egovib_ros.core.noise_model import sweep_mask
-from egovib_ros.cliutil import check_stream, nonneg_float
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, load_profile
@@ -42,53 +43,94 @@ from egovib_ros.robot import RobotProfile, load_profile
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     cal = subparsers.add_parser(
-        "calibrate", help="build a noise model from a calibration sweep or any no-contact recording",
-        description="Assign blocks of the bags' sensor signal to joint-velocity cells and write the per-cell "
-                    "mean/std noise spectra (CONTRACT section 4). Several bags (or directories of bags) "
-                    "give one model; they are read in parallel with --jobs.")
+        "calibrate",
+        help="build a noise model from a calibration sweep or any no-contact recording",
+        description="Assign blocks of the bags' sensor signal to joint-velocity cells and write "
+        "the per-cell mean/std noise spectra (CONTRACT section 4). Several bags (or directories "
+        "of bags) give one model; they are read in parallel with --jobs.",
+    )
     cal.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
     cal.add_argument("--out", required=True, metavar="MODEL.npz", help="noise-model file to write")
-    cal.add_argument("--robot", metavar="PROFILE", default=None,
-                     help="robot profile (YAML path or shipped name); default the PR2 hand")
-    cal.add_argument("--grid", choices=("auto", "full", "superposition", "free"), default="auto",
-                     help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
-                          "auto = decided from the data")
+    cal.add_argument(
+        "--robot",
+        metavar="PROFILE",
+        default=None,
+        help="robot profile (YAML path or shipped name); default the PR2 hand",
+    )
+    cal.add_argument(
+        "--grid",
+        choices=("auto", "full", "superposition", "free"),
+        default="auto",
+        help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
+        "auto = decided from the data",
+    )
     _parallel_options(cal)
-    cal.add_argument("--force", action="store_true",
-                     help="replace an existing model written by egovib")
+    cal.add_argument(
+        "--force", action="store_true", help="replace an existing model written by egovib"
+    )
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.set_defaults(func=run_calibrate)
 
     den = subparsers.add_parser(
-        "denoise", help="remove ego-vibration from bags",
-        description="Spectral subtraction of the model's noise at the recorded joint velocities; writes a "
-                    "bag with the input topics (copied as they are) plus the model's denoised topic: one "
-                    "message per raw sample, the input message with the cleaned field, the raw sample's stamp. "
-                    "Several bags (or directories of bags): --out is a directory, one output bag per input.")
+        "denoise",
+        help="remove ego-vibration from bags",
+        description="Spectral subtraction of the model's noise at the recorded joint velocities; "
+        "writes a bag with the input topics (copied as they are) plus the model's denoised "
+        "topic: one message per raw sample, the input message with the cleaned field, the raw "
+        "sample's stamp. Several bags (or directories of bags): --out is a directory, one "
+        "output bag per input.",
+    )
     den.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
     den.add_argument("--model", required=True, metavar="MODEL.npz")
-    den.add_argument("--out", required=True, metavar="BAG",
-                     help="output bag directory (one input bag) or directory of output bags (several)")
-    den.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis",
-                     help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x")
-    den.add_argument("--oversubtraction", type=nonneg_float, default=1.0,
-                     help="alpha in max(|Y| - alpha N, beta N)")
-    den.add_argument("--floor", type=nonneg_float, default=0.0,
-                     help="beta in max(|Y| - alpha N, beta N)")
-    den.add_argument("--compress", choices=("none", "zstd"), default="none",
-                     help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)")
+    den.add_argument(
+        "--out",
+        required=True,
+        metavar="BAG",
+        help="output bag directory (one input bag) or directory of output bags (several)",
+    )
+    den.add_argument(
+        "--channels",
+        choices=("per_axis", "combined"),
+        default="per_axis",
+        help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x",
+    )
+    den.add_argument(
+        "--oversubtraction",
+        type=nonneg_float,
+        default=1.0,
+        help="alpha in max(|Y| - alpha N, beta N)",
+    )
+    den.add_argument(
+        "--floor", type=nonneg_float, default=0.0, help="beta in max(|Y| - alpha N, beta N)"
+    )
+    den.add_argument(
+        "--compress",
+        choices=("none", "zstd"),
+        default="none",
+        help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)",
+    )
     _parallel_options(den)
-    den.add_argument("--force", action="store_true",
-                     help="replace an existing bag written by egovib")
+    den.add_argument(
+        "--force", action="store_true", help="replace an existing bag written by egovib"
+    )
     den.add_argument("--quiet", action="store_true", help="no progress bar")
     den.set_defaults(func=run_denoise)
 
 
 def _parallel_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--jobs", type=int, default=1, metavar="N",
-                        help="bags processed at once (N > 1: a local Dask cluster of N worker processes)")
-    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                        help="run on an existing Dask cluster (e.g. tcp://host:8786) instead of a local one")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="bags processed at once (N > 1: a local Dask cluster of N worker processes)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run on an existing Dask cluster (e.g. tcp://host:8786) instead of a local one",
+    )
 
 
 # --------------------------------------------------------------------------
@@ -97,8 +139,10 @@ def _parallel_options(parser: argparse.ArgumentParser) -> None:
 def model_profile(model: NoiseModel) -> RobotProfile:
     """The robot profile the model was calibrated with (topics, field, joints)."""
     if model.profile is None:
-        raise ConfigError(f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
-                          f"and is not the PR2 grid; recalibrate it with --robot PROFILE")
+        raise ConfigError(
+            f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
+            f"and is not the PR2 grid; recalibrate it with --robot PROFILE"
+        )
     return model.profile
 
 
@@ -113,17 +157,30 @@ class _DenoisedTopic:
     bytes of the field. Raw samples the denoiser drops (out of order, bad) have no
     denoised message; they are counted."""
 
-    def __init__(self, writer: BagWriter, raw_topic: str, denoised_topic: str, field: str, copy_topics: set[str]):
+    def __init__(
+        self,
+        writer: BagWriter,
+        raw_topic: str,
+        denoised_topic: str,
+        field: str,
+        copy_topics: set[str],
+    ):
         self.writer = writer
         self.raw_topic, self.denoised_topic, self.field = raw_topic, denoised_topic, field
         self.channel_id = writer.topics[denoised_topic].channel_id
         self.copy_topics = copy_topics
-        self.units: list[tuple[object, int]] = []          # (ReadBatch, global index past its last raw message)
-        self.raw_read = 0                                  # raw messages read so far
-        self.resolved = 0                                  # raw messages before this are matched or dropped
-        self.pending: list[tuple[MessageBatch, int, int | None]] = []   # (raw batch, global start, field offset)
-        self.pending_stamps = np.zeros(0, np.int64)        # stamps of raw messages from `resolved` on
-        self.out: list[tuple[np.ndarray, np.ndarray, object]] = []   # (global index, log times, records|batch)
+        self.units: list[
+            tuple[object, int]
+        ] = []  # (ReadBatch, global index past its last raw message)
+        self.raw_read = 0  # raw messages read so far
+        self.resolved = 0  # raw messages before this are matched or dropped
+        self.pending: list[
+            tuple[MessageBatch, int, int | None]
+        ] = []  # (raw batch, global start, field offset)
+        self.pending_stamps = np.zeros(0, np.int64)  # stamps of raw messages from `resolved` on
+        self.out: list[
+            tuple[np.ndarray, np.ndarray, object]
+        ] = []  # (global index, log times, records|batch)
         self.written = 0
         self.dropped = 0
         self.verbatim_chunks = 0
@@ -141,13 +198,13 @@ class _DenoisedTopic:
     def add_output(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
             return
-        if values.shape[1] == 1:       # CONTRACT: combined signal in x, y = z = 0
+        if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
             values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
         index = self.resolved + self._match(stamps)
         self.out.append((index,) + self._denoised(index, values))
         done = int(index[-1]) + 1
         self.dropped += done - self.resolved - len(index)
-        self.pending_stamps = self.pending_stamps[done - self.resolved:]
+        self.pending_stamps = self.pending_stamps[done - self.resolved :]
         self.resolved = done
         self.pending = [p for p in self.pending if p[1] + len(p[0]) > done]
         self._emit()
@@ -177,10 +234,12 @@ class _DenoisedTopic:
         records = message_records(self.channel_id, log_times, None, width)
         row = 0
         for raw, local, _ in parts:
-            records[row:row + len(local), MESSAGE_HEADER:] = rows(raw.buf, raw.starts[local], width)
+            records[row : row + len(local), MESSAGE_HEADER:] = rows(
+                raw.buf, raw.starts[local], width
+            )
             row += len(local)
         at = MESSAGE_HEADER + offset
-        records[:, at:at + 24] = values.astype("<f8").view(np.uint8).reshape(-1, 24)
+        records[:, at : at + 24] = values.astype("<f8").view(np.uint8).reshape(-1, 24)
         return log_times, records
 
     def _match(self, stamps: np.ndarray) -> np.ndarray:
@@ -188,7 +247,7 @@ class _DenoisedTopic:
         n, known = len(stamps), self.pending_stamps
         if n <= len(known) and np.array_equal(known[:n], stamps):
             return np.arange(n)
-        index = np.empty(n, np.int64)        # some raw samples were dropped: walk (rare)
+        index = np.empty(n, np.int64)  # some raw samples were dropped: walk (rare)
         j = 0
         for k, stamp in enumerate(stamps.tolist()):
             while j < len(known) and known[j] != stamp:
@@ -207,7 +266,9 @@ class _DenoisedTopic:
                 index, log_times, data = self.out[0]
                 k = int(np.searchsorted(index, raw_end))
                 if isinstance(data, MessageBatch):
-                    self.writer.write_batch(self.denoised_topic, log_times[:k], data.take(np.arange(k)))
+                    self.writer.write_batch(
+                        self.denoised_topic, log_times[:k], data.take(np.arange(k))
+                    )
                     rest = data.take(np.arange(k, len(index)))
                 else:
                     self.writer.write_message_records(self.denoised_topic, log_times[:k], data[:k])
@@ -233,9 +294,17 @@ class _DenoisedTopic:
                 self.writer.write_batch(topic, messages.log_times, messages)
 
 
-def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseModel | str | os.PathLike,
-                channels: str = "per_axis", oversubtraction: float = 1.0, floor: float = 0.0,
-                compress: bool | str = False, progress: Callable[[int], None] | None = None) -> dict:
+def denoise_bag(
+    bag: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    model: NoiseModel | str | os.PathLike,
+    channels: str = "per_axis",
+    oversubtraction: float = 1.0,
+    floor: float = 0.0,
+    compress: bool | str = False,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
     """Denoise one bag into `out` (written atomically: nothing appears unless complete).
 
     Streams the bag: input MCAP chunks are copied verbatim (topics never decoded but
@@ -245,22 +314,33 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
     profile = model_profile(model)
     bag = Path(bag)
     with BagReader(bag) as reader:
-        stream = RecordingStream(reader, profile, ground_truth=False, denoised=False, commands=False)
+        stream = RecordingStream(
+            reader, profile, ground_truth=False, denoised=False, commands=False
+        )
         raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
         copy_topics = [t for t in reader.topics if t != denoised_topic]
-        denoiser = StreamingDenoiser(model, channels=channels, oversubtraction=oversubtraction, floor=floor,
-                                     source=f"{bag}: {raw_topic}")
+        denoiser = StreamingDenoiser(
+            model,
+            channels=channels,
+            oversubtraction=oversubtraction,
+            floor=floor,
+            source=f"{bag}: {raw_topic}",
+        )
         with atomic_output(out, directory=True, kind="bag") as tmp:
             with BagWriter(tmp, compress=compress) as writer:
                 for topic in copy_topics:
                     writer.copy_topic(reader, topic)
                 writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
-                job = _DenoisedTopic(writer, raw_topic, denoised_topic, profile.sensor_field, set(copy_topics))
+                job = _DenoisedTopic(
+                    writer, raw_topic, denoised_topic, profile.sensor_field, set(copy_topics)
+                )
 
                 def push(pieces) -> None:
                     for piece in pieces:
-                        for chunk in (denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
-                                      denoiser.push_accel(piece.accel_stamps_ns, piece.accel)):
+                        for chunk in (
+                            denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
+                            denoiser.push_accel(piece.accel_stamps_ns, piece.accel),
+                        ):
                             job.add_output(chunk.stamps_ns, chunk.values)
 
                 for batch in reader.batches(copy_topics):
@@ -274,22 +354,37 @@ def denoise_bag(bag: str | os.PathLike, out: str | os.PathLike, *, model: NoiseM
                 job.add_output(final.stamps_ns, final.values)
                 job.finish()
                 # too many bad samples or unusable joint states: refused (before the bag appears)
-                counts = check_stream(denoiser.stats, f"{bag}: {raw_topic}",
-                                      joint_states=stream.counts["joint_states"])
+                counts = check_stream(
+                    denoiser.stats,
+                    f"{bag}: {raw_topic}",
+                    joint_states=stream.counts["joint_states"],
+                )
                 ratio = writer.size_ratio
     stats = denoiser.stats
-    return {"samples_in": job.raw_read, "denoised_messages": job.written, "raw_without_output": job.dropped,
-            "blocks": stats["blocks"], "blocks_out_of_grid": stats["blocks_out_of_grid"],
-            "blocks_no_joint_state": stats["blocks_no_joint_state"],
-            "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
-            "dropped_out_of_order": stats["dropped_out_of_order"], "channels": channels,
-            "chunks_copied_verbatim": job.verbatim_chunks, "chunks_rewritten": job.copied_chunks,
-            "size_ratio": ratio, "compression": compression_name(compress) or "none", "input_counts": counts}
+    return {
+        "samples_in": job.raw_read,
+        "denoised_messages": job.written,
+        "raw_without_output": job.dropped,
+        "blocks": stats["blocks"],
+        "blocks_out_of_grid": stats["blocks_out_of_grid"],
+        "blocks_no_joint_state": stats["blocks_no_joint_state"],
+        "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
+        "dropped_out_of_order": stats["dropped_out_of_order"],
+        "channels": channels,
+        "chunks_copied_verbatim": job.verbatim_chunks,
+        "chunks_rewritten": job.copied_chunks,
+        "size_ratio": ratio,
+        "compression": compression_name(compress) or "none",
+        "input_counts": counts,
+    }
 
 
 def _describe_denoise(figures: dict) -> str:
-    text = (f"{figures['denoised_messages']} samples denoised ({figures['channels']}); blocks {figures['blocks']}, "
-            f"out of grid {figures['blocks_out_of_grid']}, no joint state {figures['blocks_no_joint_state']}")
+    text = (
+        f"{figures['denoised_messages']} samples denoised ({figures['channels']}); "
+        f"blocks {figures['blocks']}, out of grid {figures['blocks_out_of_grid']}, "
+        f"no joint state {figures['blocks_no_joint_state']}"
+    )
     if figures.get("blocks_unmeasured"):
         text += f", on unmeasured cells {figures['blocks_unmeasured']}"
     if figures["raw_without_output"]:
@@ -317,17 +412,27 @@ def output_jobs(specs: Sequence[str], out: str | os.PathLike) -> list[BagJob]:
 
 
 def run_denoise(args: argparse.Namespace) -> int:
-    model = NoiseModel.load(args.model)          # a bad model fails once, before any bag is touched
+    model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model_profile(model)
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
-    StreamingDenoiser(model, channels=args.channels, oversubtraction=args.oversubtraction, floor=args.floor)
+    StreamingDenoiser(
+        model, channels=args.channels, oversubtraction=args.oversubtraction, floor=args.floor
+    )
     jobs = output_jobs(args.bags, args.out)
-    for job in jobs:        # before any work: every output may be written (or replaced with --force)
+    for job in jobs:  # before any work: every output may be written (or replaced with --force)
         prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
-    task = functools.partial(_denoise_task, model=model, channels=args.channels,
-                             oversubtraction=args.oversubtraction, floor=args.floor, compress=args.compress)
-    results = run_bags(task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet)
+    task = functools.partial(
+        _denoise_task,
+        model=model,
+        channels=args.channels,
+        oversubtraction=args.oversubtraction,
+        floor=args.floor,
+        compress=args.compress,
+    )
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet
+    )
     return _report(results, _describe_denoise, single=len(jobs) == 1)
 
 
@@ -348,15 +453,21 @@ def _report(results, describe, *, single: bool) -> int:
 # --------------------------------------------------------------------------
 # calibrate
 # --------------------------------------------------------------------------
-def calibrate_bag(bag: str | os.PathLike, *, profile: RobotProfile, sweep: str = "auto",
-                  progress: Callable[[int], None] | None = None) -> CalibrationAccumulator:
+def calibrate_bag(
+    bag: str | os.PathLike,
+    *,
+    profile: RobotProfile,
+    sweep: str = "auto",
+    progress: Callable[[int], None] | None = None,
+) -> CalibrationAccumulator:
     """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice. The
     accumulator's `input_counts` is the line of bad-input counts to print."""
     where = f"{bag}: {profile.sensor_topic}"
     acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=str(bag))
     joint_states = 0
-    for piece in iter_recording(bag, profile=profile, ground_truth=False, denoised=False, commands=False,
-                                progress=progress):
+    for piece in iter_recording(
+        bag, profile=profile, ground_truth=False, denoised=False, commands=False, progress=progress
+    ):
         acc.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
         acc.push_accel(piece.accel_stamps_ns, piece.accel)
         joint_states += len(piece.joint_stamps_ns)
@@ -375,7 +486,10 @@ def merge_accumulators(accumulators: Sequence[CalibrationAccumulator]) -> Calibr
     decides on the pooled data); a `merge` method in the core would be its natural home."""
     first, rest = accumulators[0], accumulators[1:]
     for other in rest:
-        for mine, theirs in ((first._sweep_tally, other._sweep_tally), (first._free_tally, other._free_tally)):
+        for mine, theirs in (
+            (first._sweep_tally, other._sweep_tally),
+            (first._free_tally, other._free_tally),
+        ):
             k = theirs.n
             if k:
                 ids = np.ravel_multi_index(tuple(theirs.cells[:k].T), first.grid_shape)
@@ -395,68 +509,105 @@ def _calibrate_task(bag: Path, out, progress, **options) -> CalibrationAccumulat
     return calibrate_bag(bag, progress=progress, **options)
 
 
-def calibrate_bags(bags: Sequence[str | os.PathLike], *, profile: RobotProfile | None = None, sweep: str = "auto",
-                   jobs: int = 1, scheduler: str | None = None, quiet: bool = True):
+def calibrate_bags(
+    bags: Sequence[str | os.PathLike],
+    *,
+    profile: RobotProfile | None = None,
+    sweep: str = "auto",
+    jobs: int = 1,
+    scheduler: str | None = None,
+    quiet: bool = True,
+):
     """One noise model from one or more bags (bags read in parallel with `jobs` > 1 or a
     Dask `scheduler`). Returns (model, stats, per-bag results); model is None if a bag
     failed (the results say which and why)."""
     profile = profile or load_profile(None)
     pairs = expand_bags(bags)
     task = functools.partial(_calibrate_task, profile=profile, sweep=sweep)
-    results = run_bags(task, [BagJob(bag) for bag, _ in pairs], jobs=jobs, scheduler=scheduler,
-                       desc="calibrate", quiet=quiet)
+    results = run_bags(
+        task,
+        [BagJob(bag) for bag, _ in pairs],
+        jobs=jobs,
+        scheduler=scheduler,
+        desc="calibrate",
+        quiet=quiet,
+    )
     if not all(r.ok for r in results):
         return None, None, results
-    per_bag = [dict(r.value.stats, input_counts=r.value.input_counts) for r in results]   # before pooling
+    per_bag = [
+        dict(r.value.stats, input_counts=r.value.input_counts) for r in results
+    ]  # before pooling
     acc = merge_accumulators([r.value for r in results])
-    for r, stats in zip(results, per_bag):           # what the summary shows per bag
+    for r, stats in zip(results, per_bag):  # what the summary shows per bag
         r.value = stats
     names = [str(b) for b, _ in pairs]
-    source = names[0] if len(names) == 1 else f"{len(names)} bags: " + ", ".join(names[:20]) + \
-        (", ..." if len(names) > 20 else "")
+    source = (
+        names[0]
+        if len(names) == 1
+        else f"{len(names)} bags: " + ", ".join(names[:20]) + (", ..." if len(names) > 20 else "")
+    )
     return acc.to_model(source=source), acc.stats, results
 
 
 def _describe_calibrate(stats: dict) -> str:
-    return (f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
-            f"({stats['mode']}); {stats['input_counts']}")
+    return (
+        f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
+        f"({stats['mode']}); {stats['input_counts']}"
+    )
 
 
 def coverage_lines(model: NoiseModel) -> list[str]:
     """What `egovib calibrate` prints about the model's coverage."""
     c = model.coverage()
-    lines = [model.summary(),
-             f"coverage: {c['cells_measured']} of {c['cells_total']} cells measured "
-             f"({100 * c['fraction_measured']:.1f} %), {c['blocks']} blocks; blocks per measured cell: "
-             f"min {c['min_blocks']}, median {c['median_blocks']:g}"
-             + (f"; {c['cells_under_min_blocks']} cells have too few blocks for a std"
-                if c.get("cells_under_min_blocks") else "")]
+    lines = [
+        model.summary(),
+        f"coverage: {c['cells_measured']} of {c['cells_total']} cells measured "
+        f"({100 * c['fraction_measured']:.1f} %), {c['blocks']} blocks; blocks per measured cell: "
+        f"min {c['min_blocks']}, median {c['median_blocks']:g}"
+        + (
+            f"; {c['cells_under_min_blocks']} cells have too few blocks for a std"
+            if c.get("cells_under_min_blocks")
+            else ""
+        ),
+    ]
     if model.measured != "free" and model.dense_ok:
         missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
         if missing:
-            lines.append(f"warning: {missing} cells of the {model.measured} grid have no block; "
-                         f"they are filled at load time (see NoiseModel)")
+            lines.append(
+                f"warning: {missing} cells of the {model.measured} grid have no block; "
+                f"they are filled at load time (see NoiseModel)"
+            )
     return lines
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
-    model, stats, results = calibrate_bags(args.bags, profile=profile, sweep=args.grid, jobs=args.jobs,
-                                           scheduler=args.scheduler, quiet=args.quiet)
+    model, stats, results = calibrate_bags(
+        args.bags,
+        profile=profile,
+        sweep=args.grid,
+        jobs=args.jobs,
+        scheduler=args.scheduler,
+        quiet=args.quiet,
+    )
     if len(results) > 1 or model is None:
         if len(results) == 1:
             raise BagError(results[0].error)
         for line in summary_lines(results, _describe_calibrate):
             print(line, file=sys.stderr)
         if model is None:
-            print(f"egovib: error: no model written: {sum(not r.ok for r in results)} bag(s) failed",
-                  file=sys.stderr)
+            print(
+                f"egovib: error: no model written: {sum(not r.ok for r in results)} bag(s) failed",
+                file=sys.stderr,
+            )
             return 2
     where = args.bags[0] if len(args.bags) == 1 else f"{len(results)} bags"
     if model.coverage()["blocks"] == 0:
-        raise BagError(f"{where}: no steady block near any grid velocity "
-                       f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?")
+        raise BagError(
+            f"{where}: no steady block near any grid velocity "
+            f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?"
+        )
     with atomic_output(args.out) as tmp:
         model.save(tmp)
     for line in coverage_lines(model):

@@ -1,4 +1,5 @@
 """Tests of egovib_ros.bagio: CDR codecs against rosbags, bag round trips, bad bags."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,10 +33,16 @@ def _random_recording(seed: int = 0, seconds: float = 0.5, with_truth: bool = Tr
     joint_stamps = t0 + 170_000 + np.arange(m, dtype=np.int64) * 1_000_000
     contact = rng.normal(size=(n, 3))
     ego = rng.normal(size=(n, 3))
-    rec = Recording(accel_stamps_ns=accel_stamps, accel=contact + ego,
-                    joint_stamps_ns=joint_stamps, joint_position=rng.normal(size=(m, 2)),
-                    joint_velocity=rng.normal(size=(m, 2)), joint_names=JOINT_NAMES,
-                    command_stamps_ns=joint_stamps[::100], commands=rng.normal(size=(len(joint_stamps[::100]), 2)))
+    rec = Recording(
+        accel_stamps_ns=accel_stamps,
+        accel=contact + ego,
+        joint_stamps_ns=joint_stamps,
+        joint_position=rng.normal(size=(m, 2)),
+        joint_velocity=rng.normal(size=(m, 2)),
+        joint_names=JOINT_NAMES,
+        command_stamps_ns=joint_stamps[::100],
+        commands=rng.normal(size=(len(joint_stamps[::100]), 2)),
+    )
     if with_truth:
         rec.contact, rec.ego = contact, ego
     return rec
@@ -67,7 +74,9 @@ def test_imu_codec_other_frame_lengths(frame_id):
     stamps = np.array([5, 10**9 + 7], np.int64)
     accel = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
     fast = encode_imu_batch(stamps, accel, frame_id=frame_id)
-    assert fast[1] == bytes(ts.serialize_cdr(bagio.imu_message(int(stamps[1]), accel[1], frame_id), bagio.IMU_TYPE))
+    assert fast[1] == bytes(
+        ts.serialize_cdr(bagio.imu_message(int(stamps[1]), accel[1], frame_id), bagio.IMU_TYPE)
+    )
     np.testing.assert_array_equal(decode_imu_batch(fast)[1], accel)
 
 
@@ -86,8 +95,12 @@ def test_joint_state_codec_matches_rosbags():
     pos, vel = rng.normal(size=(2, 2)), rng.normal(size=(2, 2))
     fast = encode_joint_state_batch(stamps, pos, vel)
     for i, raw in enumerate(fast):
-        ref = bytes(ts.serialize_cdr(bagio.joint_state_message(int(stamps[i]), JOINT_NAMES, pos[i], vel[i]),
-                                     bagio.JOINT_STATE_TYPE))
+        ref = bytes(
+            ts.serialize_cdr(
+                bagio.joint_state_message(int(stamps[i]), JOINT_NAMES, pos[i], vel[i]),
+                bagio.JOINT_STATE_TYPE,
+            )
+        )
         assert raw == ref
     s, p, v, names = decode_joint_state_batch(fast)
     assert names == JOINT_NAMES
@@ -98,8 +111,12 @@ def test_joint_state_codec_matches_rosbags():
 
 def test_joint_state_decode_reorders_by_name():
     ts = bagio.typestore()
-    raw = bytes(ts.serialize_cdr(bagio.joint_state_message(7, JOINT_NAMES[::-1], [1.0, 2.0], [3.0, 4.0]),
-                                 bagio.JOINT_STATE_TYPE))
+    raw = bytes(
+        ts.serialize_cdr(
+            bagio.joint_state_message(7, JOINT_NAMES[::-1], [1.0, 2.0], [3.0, 4.0]),
+            bagio.JOINT_STATE_TYPE,
+        )
+    )
     s, p, v, _ = decode_joint_state_batch([raw], JOINT_NAMES)
     np.testing.assert_array_equal(p, [[2.0, 1.0]])
     np.testing.assert_array_equal(v, [[4.0, 3.0]])
@@ -108,9 +125,17 @@ def test_joint_state_decode_reorders_by_name():
 def test_joint_state_decode_picks_joints_from_a_full_robot():
     ts = bagio.typestore()
     names = ("torso_lift_joint", JOINT_NAMES[1], "head_pan_joint", JOINT_NAMES[0])
-    raws = [bytes(ts.serialize_cdr(bagio.joint_state_message(k, names, [0.1, 0.02 + k, 0.3, 1.0 + k],
-                                                             [1.0, 0.01 * k, 3.0, 2.0 * k]),
-                                   bagio.JOINT_STATE_TYPE)) for k in range(3)]
+    raws = [
+        bytes(
+            ts.serialize_cdr(
+                bagio.joint_state_message(
+                    k, names, [0.1, 0.02 + k, 0.3, 1.0 + k], [1.0, 0.01 * k, 3.0, 2.0 * k]
+                ),
+                bagio.JOINT_STATE_TYPE,
+            )
+        )
+        for k in range(3)
+    ]
     s, p, v, got = decode_joint_state_batch(raws, JOINT_NAMES)
     assert got == JOINT_NAMES
     np.testing.assert_array_equal(p, [[1.0 + k, 0.02 + k] for k in range(3)])
@@ -124,15 +149,26 @@ def test_recording_round_trip(tmp_path, storage, compress):
     write_recording(out, rec, storage=storage, compress=compress)
     assert (out / "metadata.yaml").exists()
     back = read_recording(out)
-    for name in ("accel_stamps_ns", "accel", "joint_stamps_ns", "joint_position", "joint_velocity", "contact",
-                 "ego", "command_stamps_ns", "commands"):
+    for name in (
+        "accel_stamps_ns",
+        "accel",
+        "joint_stamps_ns",
+        "joint_position",
+        "joint_velocity",
+        "contact",
+        "ego",
+        "command_stamps_ns",
+        "commands",
+    ):
         np.testing.assert_array_equal(getattr(back, name), getattr(rec, name), err_msg=name)
     assert back.joint_names == JOINT_NAMES
     assert back.denoised is None
     # rosbags' own reader sees the contract's topics, log time = header stamp.
     with Reader(out) as reader:
         topics = {c.topic for c in reader.connections}
-        assert topics == {BAG_TOPICS[k] for k in ("raw", "contact", "ego", "joint_states", "commands")}
+        assert topics == {
+            BAG_TOPICS[k] for k in ("raw", "contact", "ego", "joint_states", "commands")
+        }
         conn = [c for c in reader.connections if c.topic == BAG_TOPICS["raw"]]
         log_time, raw = next((t, r) for _, t, r in reader.messages(connections=conn))
         assert log_time == decode_imu(raw)[0] == rec.accel_stamps_ns[0]
@@ -158,7 +194,11 @@ def test_bag_writer_raw_bytes(tmp_path):
         bag.add_topic(BAG_TOPICS["raw"], bagio.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], bagio.JOINT_STATE_TYPE)
         bag.write_many(BAG_TOPICS["raw"], stamps, encode_imu_batch(stamps, accel))
-        bag.write(BAG_TOPICS["joint_states"], 0, encode_joint_state_batch([0], [[0.0, 0.01]], [[1.0, 0.02]])[0])
+        bag.write(
+            BAG_TOPICS["joint_states"],
+            0,
+            encode_joint_state_batch([0], [[0.0, 0.01]], [[1.0, 0.02]])[0],
+        )
     back = read_recording(tmp_path / "bag")
     np.testing.assert_array_equal(back.accel, accel)
     np.testing.assert_array_equal(back.joint_velocity, [[1.0, 0.02]])
@@ -195,8 +235,19 @@ def test_existing_output_is_refused(tmp_path):
         write_recording(tmp_path / "bag", _random_recording(seconds=0.01))
 
 
-FIELDS = ("accel_stamps_ns", "accel", "joint_stamps_ns", "joint_position", "joint_velocity", "contact", "ego",
-          "denoised_stamps_ns", "denoised", "command_stamps_ns", "commands")
+FIELDS = (
+    "accel_stamps_ns",
+    "accel",
+    "joint_stamps_ns",
+    "joint_position",
+    "joint_velocity",
+    "contact",
+    "ego",
+    "denoised_stamps_ns",
+    "denoised",
+    "command_stamps_ns",
+    "commands",
+)
 
 
 @pytest.mark.parametrize("compress", [False, True])
@@ -207,7 +258,9 @@ def test_chunk_scan_equals_rosbags_reader(tmp_path, monkeypatch, compress):
     with BagReader(tmp_path / "bag") as reader:
         assert reader.is_plain_mcap
     fast = read_recording(tmp_path / "bag")
-    monkeypatch.setattr(BagReader, "is_plain_mcap", property(lambda self: False))     # force rosbags' reader
+    monkeypatch.setattr(
+        BagReader, "is_plain_mcap", property(lambda self: False)
+    )  # force rosbags' reader
     slow = read_recording(tmp_path / "bag")
     for name in FIELDS:
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
@@ -220,7 +273,9 @@ def test_missing_joint_is_bag_error(tmp_path):
         bag.add_topic(BAG_TOPICS["raw"], bagio.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], bagio.JOINT_STATE_TYPE)
         bag.write(BAG_TOPICS["raw"], 1, encode_imu_batch([1], [[0.0, 0.0, 1.0]])[0])
-        raw = ts.serialize_cdr(bagio.joint_state_message(1, [JOINT_NAMES[0]], [0.0], [0.0]), bagio.JOINT_STATE_TYPE)
+        raw = ts.serialize_cdr(
+            bagio.joint_state_message(1, [JOINT_NAMES[0]], [0.0], [0.0]), bagio.JOINT_STATE_TYPE
+        )
         bag.write(BAG_TOPICS["joint_states"], 1, bytes(raw))
     with pytest.raises(BagError, match=JOINT_NAMES[1]):
         read_recording(tmp_path / "bag")
@@ -228,21 +283,44 @@ def test_missing_joint_is_bag_error(tmp_path):
 
 def test_empty_joint_state_batch_encodes_to_nothing():
     from egovib_ros.bagio import encode_joint_state_batch
+
     assert encode_joint_state_batch(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2))) == []
 
 
 # --------------------------------------------------------------------------
 # Robot profiles: other topics, the gyro field, JointStates of a whole robot
 # --------------------------------------------------------------------------
-GYRO_ROBOT = RobotProfile(name="test_arm", sensor_topic="/imu/data_raw", sensor_field="angular_velocity",
-                          rate_hz=1600.0, denoised_topic="/imu/data_denoised", joints_topic="/arm/joint_states",
-                          joint_names=("elbow", "wrist", "spindle"), max_speed=(2.0, 3.0, 50.0),
-                          bidirectional=(True, True, False), band_hz=(100.0, 600.0))
-FULL_ROBOT = ("base", "shoulder", "spindle", "elbow", "head_pan", "head_tilt", "wrist", "torso", "finger_1",
-              "finger_2", "finger_3", "caster")
+GYRO_ROBOT = RobotProfile(
+    name="test_arm",
+    sensor_topic="/imu/data_raw",
+    sensor_field="angular_velocity",
+    rate_hz=1600.0,
+    denoised_topic="/imu/data_denoised",
+    joints_topic="/arm/joint_states",
+    joint_names=("elbow", "wrist", "spindle"),
+    max_speed=(2.0, 3.0, 50.0),
+    bidirectional=(True, True, False),
+    band_hz=(100.0, 600.0),
+)
+FULL_ROBOT = (
+    "base",
+    "shoulder",
+    "spindle",
+    "elbow",
+    "head_pan",
+    "head_tilt",
+    "wrist",
+    "torso",
+    "finger_1",
+    "finger_2",
+    "finger_3",
+    "caster",
+)
 
 
-def _write_robot_bag(path, *, seconds=1.0, names=FULL_ROBOT, shuffle=True, seed=0, writer_options=None):
+def _write_robot_bag(
+    path, *, seconds=1.0, names=FULL_ROBOT, shuffle=True, seed=0, writer_options=None
+):
     """A bag of GYRO_ROBOT: gyro Imu (angular_velocity) and a 12-joint JointState whose joint
     order changes between messages. Returns the arrays written, joints in profile order."""
     rng = np.random.default_rng(seed)
@@ -255,11 +333,21 @@ def _write_robot_bag(path, *, seconds=1.0, names=FULL_ROBOT, shuffle=True, seed=
     with BagWriter(path, **(writer_options or {})) as bag:
         bag.add_topic("/imu/data_raw", bagio.IMU_TYPE)
         bag.add_topic("/arm/joint_states", bagio.JOINT_STATE_TYPE)
-        bag.write_batch("/imu/data_raw", stamps, bagio.encode_imu_batch(stamps, gyro, "imu_link", "angular_velocity"))
+        bag.write_batch(
+            "/imu/data_raw",
+            stamps,
+            bagio.encode_imu_batch(stamps, gyro, "imu_link", "angular_velocity"),
+        )
         for k in range(m):
             order = rng.permutation(len(names)) if shuffle else np.arange(len(names))
-            msg = bagio.joint_state_message(int(js_stamps[k]), [names[i] for i in order], pos[k, order], vel[k, order])
-            bag.write("/arm/joint_states", int(js_stamps[k]), bytes(ts.serialize_cdr(msg, bagio.JOINT_STATE_TYPE)))
+            msg = bagio.joint_state_message(
+                int(js_stamps[k]), [names[i] for i in order], pos[k, order], vel[k, order]
+            )
+            bag.write(
+                "/arm/joint_states",
+                int(js_stamps[k]),
+                bytes(ts.serialize_cdr(msg, bagio.JOINT_STATE_TYPE)),
+            )
     columns = [names.index(j) for j in GYRO_ROBOT.joint_names if j in names]
     return stamps, gyro, js_stamps, pos[:, columns], vel[:, columns]
 
@@ -268,7 +356,7 @@ def test_profile_picks_topics_field_and_joints_by_name(tmp_path):
     stamps, gyro, js_stamps, pos, vel = _write_robot_bag(tmp_path / "bag")
     rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
     np.testing.assert_array_equal(rec.accel_stamps_ns, stamps)
-    np.testing.assert_array_equal(rec.accel, gyro)                  # the profile's field, whatever its name
+    np.testing.assert_array_equal(rec.accel, gyro)  # the profile's field, whatever its name
     assert rec.joint_names == GYRO_ROBOT.joint_names
     np.testing.assert_array_equal(rec.joint_stamps_ns, js_stamps)
     np.testing.assert_array_equal(rec.joint_position, pos)
@@ -286,7 +374,9 @@ def test_joint_states_in_one_order_take_the_vectorised_path(tmp_path):
 def test_named_joint_never_seen_is_bag_error_naming_joint_and_topic(tmp_path):
     names = tuple(n for n in FULL_ROBOT if n != "spindle")
     _write_robot_bag(tmp_path / "bag", names=names)
-    with pytest.raises(BagError, match=r"bag: topic /arm/joint_states lacks joint\(s\) spindle") as info:
+    with pytest.raises(
+        BagError, match=r"bag: topic /arm/joint_states lacks joint\(s\) spindle"
+    ) as info:
         read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
     assert "\n" not in str(info.value)
 
@@ -299,15 +389,23 @@ def test_partial_joint_states_are_merged_per_joint(tmp_path):
     with BagWriter(tmp_path / "bag") as bag:
         bag.add_topic("/imu/data_raw", bagio.IMU_TYPE)
         bag.add_topic("/arm/joint_states", bagio.JOINT_STATE_TYPE)
-        bag.write_batch("/imu/data_raw", stamps, bagio.encode_imu_batch(stamps, np.zeros((3000, 3))))
+        bag.write_batch(
+            "/imu/data_raw", stamps, bagio.encode_imu_batch(stamps, np.zeros((3000, 3)))
+        )
         for k in range(10):
-            arm = bagio.joint_state_message(k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k])
-            tool = bagio.joint_state_message(k * 2_000_000 + 1_000_000, ["spindle"], [7.0], [20.0 + k])
+            arm = bagio.joint_state_message(
+                k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k]
+            )
+            tool = bagio.joint_state_message(
+                k * 2_000_000 + 1_000_000, ["spindle"], [7.0], [20.0 + k]
+            )
             for stamp, msg in ((k * 2_000_000, arm), (k * 2_000_000 + 1_000_000, tool)):
-                bag.write("/arm/joint_states", stamp, bytes(ts.serialize_cdr(msg, bagio.JOINT_STATE_TYPE)))
+                bag.write(
+                    "/arm/joint_states", stamp, bytes(ts.serialize_cdr(msg, bagio.JOINT_STATE_TYPE))
+                )
     rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
     assert len(rec.joint_stamps_ns) == 20
-    assert np.isnan(rec.joint_velocity[0, 2])                       # spindle not heard of yet
+    assert np.isnan(rec.joint_velocity[0, 2])  # spindle not heard of yet
     np.testing.assert_array_equal(rec.joint_velocity[1], [0.0, 1.0, 20.0])
     np.testing.assert_array_equal(rec.joint_velocity[2], [0.1, 2.0, 20.0])
     np.testing.assert_array_equal(rec.joint_velocity[-1], [0.9, 10.0, 29.0])
@@ -322,7 +420,9 @@ def test_slices_are_bounded_and_join_to_the_whole(tmp_path):
     joints_so_far = 0
     for piece in slices[:-1]:
         joints_so_far += len(piece.joint_stamps_ns)
-        needed = np.searchsorted(rec.joint_stamps_ns, piece.accel_stamps_ns.max() + int(0.1e9), side="right")
+        needed = np.searchsorted(
+            rec.joint_stamps_ns, piece.accel_stamps_ns.max() + int(0.1e9), side="right"
+        )
         assert joints_so_far >= needed
         assert piece.duration_s < 4.0
     whole = bagio.concat_recordings(slices)
@@ -338,6 +438,7 @@ def _rewrite_with_mcap_library(bag, **writer_options):
     """Rewrite a bag's .mcap with the `mcap` library's writer (same topics, schemas, times)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
+
     mcap = next(bag.glob("*.mcap"))
     with open(mcap, "rb") as fh:
         reader = make_reader(fh)
@@ -358,10 +459,14 @@ def _rewrite_with_mcap_library(bag, **writer_options):
 @pytest.mark.parametrize("layout", ["indexed_zstd", "chunks_without_index", "unchunked"])
 def test_reads_mcap_from_other_writers(tmp_path, monkeypatch, layout):
     from mcap.writer import CompressionType, IndexType
-    options = {"indexed_zstd": dict(chunk_size=20_000, compression=CompressionType.ZSTD),
-               "chunks_without_index": dict(chunk_size=50_000, compression=CompressionType.NONE,
-                                            index_types=IndexType.NONE),
-               "unchunked": dict(use_chunking=False, compression=CompressionType.NONE)}[layout]
+
+    options = {
+        "indexed_zstd": dict(chunk_size=20_000, compression=CompressionType.ZSTD),
+        "chunks_without_index": dict(
+            chunk_size=50_000, compression=CompressionType.NONE, index_types=IndexType.NONE
+        ),
+        "unchunked": dict(use_chunking=False, compression=CompressionType.NONE),
+    }[layout]
     rec = _random_recording(seconds=1.0)
     write_recording(tmp_path / "bag", rec)
     _rewrite_with_mcap_library(tmp_path / "bag", **options)
@@ -376,6 +481,7 @@ def test_reads_mcap_from_other_writers(tmp_path, monkeypatch, layout):
 def test_written_mcap_is_valid_for_the_mcap_library_and_rosbags(tmp_path):
     """CRCs, summary, statistics and log-time order as the `mcap` library and rosbags check them."""
     from mcap.reader import make_reader
+
     rec = _random_recording(seconds=3.0)
     write_recording(tmp_path / "bag", rec, compress="zstd")
     with open(next((tmp_path / "bag").glob("*.mcap")), "rb") as fh:
@@ -396,15 +502,24 @@ def test_written_mcap_is_valid_for_the_mcap_library_and_rosbags(tmp_path):
 def test_verbatim_chunk_copy(tmp_path):
     rec = _random_recording(seconds=2.0)
     write_recording(tmp_path / "bag", rec)
-    with BagReader(tmp_path / "bag") as reader, BagWriter(tmp_path / "copy", compress="zstd") as writer:
+    with (
+        BagReader(tmp_path / "bag") as reader,
+        BagWriter(tmp_path / "copy", compress="zstd") as writer,
+    ):
         for topic in reader.topics:
             writer.copy_topic(reader, topic)
-        copied = [writer.write_chunk(b.chunk, b.scanner.schemas, b.scanner.channels) for b in reader.batches()]
+        copied = [
+            writer.write_chunk(b.chunk, b.scanner.schemas, b.scanner.channels)
+            for b in reader.batches()
+        ]
     assert copied and all(copied)
     with Reader(tmp_path / "bag") as a, Reader(tmp_path / "copy") as b:
-        assert [(c.topic, t, bytes(d)) for c, t, d in a.messages()] == [(c.topic, t, bytes(d)) for c, t, d in
-                                                                          b.messages()]
-        assert {c.topic: c.msgtype for c in a.connections} == {c.topic: c.msgtype for c in b.connections}
+        assert [(c.topic, t, bytes(d)) for c, t, d in a.messages()] == [
+            (c.topic, t, bytes(d)) for c, t, d in b.messages()
+        ]
+        assert {c.topic: c.msgtype for c in a.connections} == {
+            c.topic: c.msgtype for c in b.connections
+        }
 
 
 def test_chunk_without_channels(tmp_path):
@@ -421,7 +536,7 @@ def test_chunk_without_channels(tmp_path):
         _, new_starts, new_lengths = kept.data_span(channel)
         np.testing.assert_array_equal(lengths, new_lengths)
         for a, b, n in zip(old_starts[:5], new_starts[:5], lengths[:5]):
-            assert batch.chunk.records[a:a + n] == kept.records[b:b + n]
+            assert batch.chunk.records[a : a + n] == kept.records[b : b + n]
 
 
 def test_single_messages_and_batches_mix_in_log_time_order(tmp_path):
@@ -430,9 +545,16 @@ def test_single_messages_and_batches_mix_in_log_time_order(tmp_path):
         bag.add_topic(BAG_TOPICS["raw"], bagio.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], bagio.JOINT_STATE_TYPE)
         for k in range(0, 200, 20):
-            bag.write_batch(BAG_TOPICS["raw"], stamps[k:k + 20], encode_imu_batch(stamps[k:k + 20], np.ones((20, 3)) * k))
-            bag.write(BAG_TOPICS["joint_states"], int(stamps[k]) + 1,
-                      encode_joint_state_batch([int(stamps[k]) + 1], [[0.0, 0.0]], [[float(k), 0.0]])[0])
+            bag.write_batch(
+                BAG_TOPICS["raw"],
+                stamps[k : k + 20],
+                encode_imu_batch(stamps[k : k + 20], np.ones((20, 3)) * k),
+            )
+            bag.write(
+                BAG_TOPICS["joint_states"],
+                int(stamps[k]) + 1,
+                encode_joint_state_batch([int(stamps[k]) + 1], [[0.0, 0.0]], [[float(k), 0.0]])[0],
+            )
     with Reader(tmp_path / "bag") as reader:
         times = [t for _, t, _ in reader.messages()]
         assert times == sorted(times) and len(times) == 210
@@ -443,10 +565,12 @@ def test_single_messages_and_batches_mix_in_log_time_order(tmp_path):
 
 def test_zstd_chunks_shrink_the_imu_stream(tmp_path):
     rec = _random_recording(seconds=2.0, with_truth=False)
-    rec.accel = np.round(rec.accel * 20) / 20           # 10-bit-like sensor values, as recorded
+    rec.accel = np.round(rec.accel * 20) / 20  # 10-bit-like sensor values, as recorded
     write_recording(tmp_path / "plain", rec)
     write_recording(tmp_path / "zstd", rec, compress="zstd")
-    size = {name: next((tmp_path / name).glob("*.mcap")).stat().st_size for name in ("plain", "zstd")}
+    size = {
+        name: next((tmp_path / name).glob("*.mcap")).stat().st_size for name in ("plain", "zstd")
+    }
     assert size["plain"] / size["zstd"] > 4
     np.testing.assert_array_equal(read_recording(tmp_path / "zstd").accel, rec.accel)
 
@@ -460,14 +584,19 @@ def test_expand_bags(tmp_path):
     (tmp_path / "a" / ".hidden").mkdir()
     (tmp_path / "empty").mkdir()
     found = expand_bags([tmp_path / "a", tmp_path / "solo"])
-    assert [(str(b.relative_to(tmp_path)), str(n)) for b, n in found] == [("a/one", "one"), ("a/two", "two"),
-                                                                           ("solo", "solo")]
+    assert [(str(b.relative_to(tmp_path)), str(n)) for b, n in found] == [
+        ("a/one", "one"),
+        ("a/two", "two"),
+        ("solo", "solo"),
+    ]
     assert [str(n) for _, n in expand_bags([tmp_path])] == ["a/one", "a/two", "b/one", "solo"]
     with pytest.raises(ConfigError, match="one"):
         expand_bags([tmp_path / "a", tmp_path / "b"])
     with pytest.raises(BagError, match="empty: no rosbag2 bags"):
         expand_bags([tmp_path / "empty"])
-    assert [b for b, _ in expand_bags([tmp_path / "missing"])] == [tmp_path / "missing"]   # its task reports it
+    assert [b for b, _ in expand_bags([tmp_path / "missing"])] == [
+        tmp_path / "missing"
+    ]  # its task reports it
 
 
 def test_topics_written_apart_are_read_together(tmp_path):
@@ -475,13 +604,19 @@ def test_topics_written_apart_are_read_together(tmp_path):
     flushes per topic): chunks are read in log-time order (seeking along the chunk index),
     so no slice waits long for its joint states and the slices equal the whole."""
     from egovib_ros.bag.mcapfile import McapScanner
+
     rec = _random_recording(seconds=6.0, with_truth=False)
     with BagWriter(tmp_path / "bag", chunk_bytes=200_000) as bag:
         bag.add_topic(BAG_TOPICS["raw"], bagio.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], bagio.JOINT_STATE_TYPE)
-        bag.write_batch(BAG_TOPICS["raw"], rec.accel_stamps_ns, encode_imu_batch(rec.accel_stamps_ns, rec.accel))
-        bag.write_batch(BAG_TOPICS["joint_states"], rec.joint_stamps_ns,
-                        encode_joint_state_batch(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity))
+        bag.write_batch(
+            BAG_TOPICS["raw"], rec.accel_stamps_ns, encode_imu_batch(rec.accel_stamps_ns, rec.accel)
+        )
+        bag.write_batch(
+            BAG_TOPICS["joint_states"],
+            rec.joint_stamps_ns,
+            encode_joint_state_batch(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity),
+        )
     starts = [c.start_ns for c in McapScanner(next((tmp_path / "bag").glob("*.mcap"))).chunks()]
     assert starts == sorted(starts) and len(starts) > 10
     slices = list(iter_recording(tmp_path / "bag", min_slice_s=0.5))
@@ -501,7 +636,7 @@ def test_damaged_records_are_detected(tmp_path, crc):
     data = bytearray(mcap.read_bytes())
     at = data.find(encode_imu_batch(rec.accel_stamps_ns[4000:4001], rec.accel[4000:4001])[0])
     assert at > 31 and data[at - 31] == 0x05
-    data[at - 31] = 0xFA                                          # no longer a message record
+    data[at - 31] = 0xFA  # no longer a message record
     mcap.write_bytes(bytes(data))
     expected = "CRC mismatch" if crc else "lost to damaged records|do not match|index lists"
     with pytest.raises(BagError, match=f"bag.*({expected})") as info:
@@ -514,5 +649,7 @@ def test_metadata_spans_every_message(tmp_path):
     write_recording(tmp_path / "bag", rec)
     with Reader(tmp_path / "bag") as reader:
         times = [t for _, t, _ in reader.messages()]
-        assert reader.start_time == min(times) and reader.end_time == max(times) + 1     # rosbags: end + 1
+        assert (
+            reader.start_time == min(times) and reader.end_time == max(times) + 1
+        )  # rosbags: end + 1
         assert reader.message_count == len(times)

@@ -11,6 +11,7 @@ Layers: `mcapfile` (MCAP records, chunk by chunk, numpy), `messages` (packed
 messages, Imu/JointState decoding), `reader`/`writer` (rosbag2 directories),
 `recording` (profile-keyed arrays), `many` (several bags).
 """
+
 from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states, replace_imu_field
 from egovib_ros.bag.reader import BagReader, ReadBatch, TopicInfo, bag_topics
 from egovib_ros.bag.recording import (
@@ -25,7 +26,24 @@ from egovib_ros.bag.recording import (
 )
 from egovib_ros.bag.writer import COMPRESSIONS, BagWriter, compression_name
 
-__all__ = ["MessageBatch", "decode_imu", "decode_joint_states", "replace_imu_field", "BagReader", "ReadBatch",
-           "TopicInfo", "bag_topics", "Recording", "RecordingStream", "bag_topic_names", "concat_recordings",
-           "iter_recording", "read_recording", "write_recording", "write_recordings", "COMPRESSIONS",
-           "BagWriter", "compression_name"]
+__all__ = [
+    "MessageBatch",
+    "decode_imu",
+    "decode_joint_states",
+    "replace_imu_field",
+    "BagReader",
+    "ReadBatch",
+    "TopicInfo",
+    "bag_topics",
+    "Recording",
+    "RecordingStream",
+    "bag_topic_names",
+    "concat_recordings",
+    "iter_recording",
+    "read_recording",
+    "write_recording",
+    "write_recordings",
+    "COMPRESSIONS",
+    "BagWriter",
+    "compression_name",
+]

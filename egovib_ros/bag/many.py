@@ -13,6 +13,7 @@ processed one after the other in this process.
 A task is a picklable callable `task(bag: Path, out: Path | None, progress)` returning
 a small picklable summary (dict); `progress(n_bytes)` may be called as the bag is read.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,7 +36,7 @@ class BagResult:
     error: str = ""
     seconds: float = 0.0
     out: str | None = None
-    internal: bool = False        # not bad input but an unexpected exception (a bug?)
+    internal: bool = False  # not bad input but an unexpected exception (a bug?)
 
 
 @dataclass
@@ -59,20 +60,31 @@ def expand_bags(specs: Sequence[str | os.PathLike]) -> list[tuple[Path, Path]]:
     for spec in specs:
         path = Path(spec)
         if path.is_dir() and not is_bag(path):
-            bags = sorted(p.parent for p in path.rglob("metadata.yaml")
-                          if not any(part.startswith(".") or part.endswith(".partial")
-                                     for part in p.parent.relative_to(path).parts))
-            bags = [b for b in bags if not any(b != o and o in b.parents for o in bags)]   # no bags inside bags
+            bags = sorted(
+                p.parent
+                for p in path.rglob("metadata.yaml")
+                if not any(
+                    part.startswith(".") or part.endswith(".partial")
+                    for part in p.parent.relative_to(path).parts
+                )
+            )
+            bags = [
+                b for b in bags if not any(b != o and o in b.parents for o in bags)
+            ]  # no bags inside bags
             if not bags:
-                raise BagError(f"{path}: no rosbag2 bags (directories with metadata.yaml) in this directory")
+                raise BagError(
+                    f"{path}: no rosbag2 bags (directories with metadata.yaml) in this directory"
+                )
             found += [(b, b.relative_to(path)) for b in bags]
         else:
             found.append((path, Path(path.name)))
     names = [str(n) for _, n in found]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
-        raise ConfigError(f"several input bags are named {duplicates[0]!r}; their outputs would collide "
-                          f"(give them in separate runs or directories)")
+        raise ConfigError(
+            f"several input bags are named {duplicates[0]!r}; their outputs would collide "
+            f"(give them in separate runs or directories)"
+        )
     return found
 
 
@@ -83,15 +95,25 @@ def bag_size(path: Path) -> int:
         return 0
 
 
-def run_guarded(task: Callable, job: BagJob, progress: Callable[[int], None] | None = None, *,
-                reraise: bool = False) -> BagResult:
+def run_guarded(
+    task: Callable,
+    job: BagJob,
+    progress: Callable[[int], None] | None = None,
+    *,
+    reraise: bool = False,
+) -> BagResult:
     """Run `task` on one bag; any failure becomes a BagResult naming the bag (bad input:
     its one-line message; anything else: the exception, with the traceback logged)."""
     start = time.perf_counter()
     try:
         value = task(job.bag, job.out, progress)
-        return BagResult(str(job.bag), True, value=value, seconds=time.perf_counter() - start,
-                         out=None if job.out is None else str(job.out))
+        return BagResult(
+            str(job.bag),
+            True,
+            value=value,
+            seconds=time.perf_counter() - start,
+            out=None if job.out is None else str(job.out),
+        )
     except EgovibError as exc:
         message = str(exc)
         message = message if str(job.bag) in message else f"{job.bag}: {message}"
@@ -100,21 +122,41 @@ def run_guarded(task: Callable, job: BagJob, progress: Callable[[int], None] | N
         if reraise:
             raise
         logging.getLogger("egovib_ros.bag").debug("%s", traceback.format_exc())
-        return BagResult(str(job.bag), False, error=f"{job.bag}: {type(exc).__name__}: {exc}",
-                         seconds=time.perf_counter() - start, internal=True)
+        return BagResult(
+            str(job.bag),
+            False,
+            error=f"{job.bag}: {type(exc).__name__}: {exc}",
+            seconds=time.perf_counter() - start,
+            internal=True,
+        )
 
 
-def run_bags(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int = 1, scheduler: str | None = None,
-             desc: str = "bags", quiet: bool = False) -> list[BagResult]:
+def run_bags(
+    task: Callable,
+    jobs_list: Sequence[BagJob],
+    *,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    desc: str = "bags",
+    quiet: bool = False,
+) -> list[BagResult]:
     """Run `task` on every bag; results in the order of `jobs_list`."""
     from tqdm import tqdm
+
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
     for job in jobs_list:
         job.size = job.size or bag_size(job.bag)
     total = sum(j.size for j in jobs_list)
-    bar = tqdm(total=total, unit="B", unit_scale=True, desc=desc, disable=quiet or None, file=sys.stderr,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=total,
+        unit="B",
+        unit_scale=True,
+        desc=desc,
+        disable=quiet or None,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
     results: list[BagResult | None] = [None] * len(jobs_list)
     try:
         if jobs == 1 and scheduler is None:
@@ -136,25 +178,38 @@ def run_bags(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int = 1, sche
     return results
 
 
-def _run_dask(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, scheduler: str | None,
-              bar) -> list[BagResult]:
+def _run_dask(
+    task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, scheduler: str | None, bar
+) -> list[BagResult]:
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
-        raise ConfigError("parallel runs need dask.distributed (pip install 'dask[distributed]')") from None
+        raise ConfigError(
+            "parallel runs need dask.distributed (pip install 'dask[distributed]')"
+        ) from None
     cluster = None
-    quiet_loggers = {name: logging.getLogger(name).level for name in ("distributed", "dask", "tornado", "bokeh")}
-    for name in quiet_loggers:        # Dask reports at INFO level; our summary is the report
+    quiet_loggers = {
+        name: logging.getLogger(name).level for name in ("distributed", "dask", "tornado", "bokeh")
+    }
+    for name in quiet_loggers:  # Dask reports at INFO level; our summary is the report
         logging.getLogger(name).setLevel(logging.ERROR)
     try:
         if scheduler:
             try:
                 client = Client(scheduler, timeout="10s")
             except Exception as exc:
-                raise ConfigError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: {exc})") from None
+                raise ConfigError(
+                    f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: {exc})"
+                ) from None
         else:
-            cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   scheduler_kwargs={"dashboard": False}, silence_logs=logging.ERROR)
+            cluster = LocalCluster(
+                n_workers=jobs,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                scheduler_kwargs={"dashboard": False},
+                silence_logs=logging.ERROR,
+            )
             client = Client(cluster)
         with client:
             futures = client.map(run_guarded, [task] * len(jobs_list), list(jobs_list), pure=False)
@@ -164,9 +219,12 @@ def _run_dask(task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, schedul
                 i = index[future.key]
                 try:
                     results[i] = future.result()
-                except Exception as exc:          # the worker died (memory, signal): only this bag fails
-                    results[i] = BagResult(str(jobs_list[i].bag), False,
-                                           error=f"{jobs_list[i].bag}: worker failed ({type(exc).__name__}: {exc})")
+                except Exception as exc:  # the worker died (memory, signal): only this bag fails
+                    results[i] = BagResult(
+                        str(jobs_list[i].bag),
+                        False,
+                        error=f"{jobs_list[i].bag}: worker failed ({type(exc).__name__}: {exc})",
+                    )
                 bar.update(jobs_list[i].size)
             return results
     finally:
@@ -181,8 +239,11 @@ def summary_lines(results: Sequence[BagResult], describe: Callable[[Any], str] =
     lines = []
     for r in results:
         if r.ok:
-            lines.append(f"  ok     {r.bag} -> {r.out} ({r.seconds:.1f} s): {describe(r.value)}" if r.out else
-                         f"  ok     {r.bag} ({r.seconds:.1f} s): {describe(r.value)}")
+            lines.append(
+                f"  ok     {r.bag} -> {r.out} ({r.seconds:.1f} s): {describe(r.value)}"
+                if r.out
+                else f"  ok     {r.bag} ({r.seconds:.1f} s): {describe(r.value)}"
+            )
         else:
             lines.append(f"  FAILED {r.error}")
     failed = sum(not r.ok for r in results)

@@ -7,6 +7,7 @@ writer can copy it verbatim. MCAP files are scanned chunk by chunk (`mcapfile`);
 sqlite3 bags, file-compressed bags, and MCAP files the scan does not understand go
 through rosbags' reader, a fixed number of messages at a time.
 """
+
 from __future__ import annotations
 
 import os
@@ -27,8 +28,8 @@ from egovib_ros.errors import BagError
 class TopicInfo:
     msgtype: str
     count: int
-    metadata: dict            # the topic's entry in metadata.yaml (topic_metadata), for copying
-    msgdef: str = ""          # message definition (as rosbags has it)
+    metadata: dict  # the topic's entry in metadata.yaml (topic_metadata), for copying
+    msgdef: str = ""  # message definition (as rosbags has it)
     msgdef_format: str = "ros2msg"
     digest: str = ""
 
@@ -38,17 +39,17 @@ class ReadBatch:
     """Messages of the wanted topics from one stretch of the bag, in file order."""
 
     messages: dict[str, MessageBatch]
-    chunk: ChunkData | None = None           # the MCAP chunk they came from (verbatim copies)
-    scanner: McapScanner | None = None       # its schemas/channels
+    chunk: ChunkData | None = None  # the MCAP chunk they came from (verbatim copies)
+    scanner: McapScanner | None = None  # its schemas/channels
     topic_of_channel: dict[int, str] = field(default_factory=dict)
-    bytes_read: int = 0                      # of the bag's files, for progress bars
-    frontier_ns: int | None = None           # messages read later have log times >= this (None: unknown)
+    bytes_read: int = 0  # of the bag's files, for progress bars
+    frontier_ns: int | None = None  # messages read later have log times >= this (None: unknown)
 
 
 class BagReader:
     """A rosbag2 bag opened for reading (context manager)."""
 
-    rosbags_batch = 50_000     # messages per batch when reading through rosbags
+    rosbags_batch = 50_000  # messages per batch when reading through rosbags
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
@@ -61,33 +62,47 @@ class BagReader:
             reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise BagError(f"{self.path}: not a readable rosbag2 bag ({reason})") from None
         self.info = self._metadata()
-        entries = {e["topic_metadata"]["name"]: e["topic_metadata"]
-                   for e in self.info.get("topics_with_message_count") or [] if "topic_metadata" in e}
+        entries = {
+            e["topic_metadata"]["name"]: e["topic_metadata"]
+            for e in self.info.get("topics_with_message_count") or []
+            if "topic_metadata" in e
+        }
         self.topics: dict[str, TopicInfo] = {}
         for conn in self._reader.connections:
             if conn.topic in self.topics:
                 continue
             msgdef = getattr(conn, "msgdef", None)
             self.topics[conn.topic] = TopicInfo(
-                msgtype=conn.msgtype, count=self._reader.topics[conn.topic].msgcount,
-                metadata=dict(entries.get(conn.topic, {})), msgdef=getattr(msgdef, "data", "") or "",
-                msgdef_format="ros2idl" if str(getattr(getattr(msgdef, "format", None), "name", "")) == "IDL"
-                else "ros2msg", digest=getattr(conn, "digest", "") or "")
+                msgtype=conn.msgtype,
+                count=self._reader.topics[conn.topic].msgcount,
+                metadata=dict(entries.get(conn.topic, {})),
+                msgdef=getattr(msgdef, "data", "") or "",
+                msgdef_format="ros2idl"
+                if str(getattr(getattr(msgdef, "format", None), "name", "")) == "IDL"
+                else "ros2msg",
+                digest=getattr(conn, "digest", "") or "",
+            )
         self.files = [self.path / name for name in self.info.get("relative_file_paths") or []]
         self.total_bytes = sum(f.stat().st_size for f in self.files if f.exists())
 
     # --- facts -----------------------------------------------------------------
     def _metadata(self) -> dict:
         try:
-            return yaml.safe_load((self.path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+            return yaml.safe_load((self.path / "metadata.yaml").read_text())[
+                "rosbag2_bagfile_information"
+            ]
         except Exception:
             return {}
 
     @property
     def is_plain_mcap(self) -> bool:
         """MCAP storage without file-level compression: the chunk scan applies."""
-        return (self.info.get("storage_identifier") == "mcap" and self.info.get("compression_mode") in ("", None)
-                and bool(self.files) and all(f.suffix == ".mcap" and f.exists() for f in self.files))
+        return (
+            self.info.get("storage_identifier") == "mcap"
+            and self.info.get("compression_mode") in ("", None)
+            and bool(self.files)
+            and all(f.suffix == ".mcap" and f.exists() for f in self.files)
+        )
 
     def mcap_definitions(self):
         """(schemas, channels) by id from the summary of the bag's first MCAP file (read with
@@ -96,6 +111,7 @@ class BagReader:
             self._definitions = None
             if self.is_plain_mcap:
                 from mcap.reader import make_reader
+
                 try:
                     with open(self.files[0], "rb") as fh:
                         summary = make_reader(fh).get_summary()
@@ -110,7 +126,8 @@ class BagReader:
         if topic not in self.topics:
             raise BagError(f"{self.path}: missing topic {topic}")
         if self.topics[topic].msgtype != msgtype:
-            raise BagError(f"{self.path}: topic {topic} has type {self.topics[topic].msgtype}, expected {msgtype}")
+            found = self.topics[topic].msgtype
+            raise BagError(f"{self.path}: topic {topic} has type {found}, expected {msgtype}")
 
     # --- reading ---------------------------------------------------------------
     def batches(self, topics: Iterable[str] | None = None) -> Iterator[ReadBatch]:
@@ -143,14 +160,18 @@ class BagReader:
         for topic, n in sorted(read.items()):
             expected = self.topics[topic].count
             if expected and n != expected:
-                raise BagError(f"{self.path}: topic {topic}: {n} messages read, the bag lists {expected} "
-                               f"({expected - n} lost to damaged records)")
+                raise BagError(
+                    f"{self.path}: topic {topic}: {n} messages read, the bag lists {expected} "
+                    f"({expected - n} lost to damaged records)"
+                )
 
     def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         for file in self.files:
             scanner = McapScanner(file)
             for chunk in scanner.chunks():
-                topic_of = {c: scanner.channels[c].topic for c in chunk.index if c in scanner.channels}
+                topic_of = {
+                    c: scanner.channels[c].topic for c in chunk.index if c in scanner.channels
+                }
                 missing = [c for c in chunk.index if c not in scanner.channels]
                 if missing:
                     raise McapFormatError(f"messages on undefined channel {missing[0]}")
@@ -159,10 +180,20 @@ class BagReader:
                 for channel, topic in topic_of.items():
                     if topic in wanted:
                         times, starts, lengths = chunk.data_span(channel)
-                        per_topic.setdefault(topic, []).append(MessageBatch(buf, starts, lengths, times))
-                messages = {t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()}
-                yield ReadBatch(messages, chunk, scanner, topic_of, bytes_read=chunk.file_bytes,
-                                frontier_ns=chunk.frontier_ns)
+                        per_topic.setdefault(topic, []).append(
+                            MessageBatch(buf, starts, lengths, times)
+                        )
+                messages = {
+                    t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()
+                }
+                yield ReadBatch(
+                    messages,
+                    chunk,
+                    scanner,
+                    topic_of,
+                    bytes_read=chunk.file_bytes,
+                    frontier_ns=chunk.frontier_ns,
+                )
 
     def _rosbags_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         connections = [c for c in self._reader.connections if c.topic in wanted]
@@ -175,7 +206,9 @@ class BagReader:
 
         def emit() -> ReadBatch:
             messages = {t: MessageBatch.from_list(d, ts) for t, (d, ts) in pending.items()}
-            return ReadBatch(messages, bytes_read=size, frontier_ns=latest)      # rosbags reads in log-time order
+            return ReadBatch(
+                messages, bytes_read=size, frontier_ns=latest
+            )  # rosbags reads in log-time order
 
         try:
             for conn, log_time, raw in self._reader.messages(connections=connections):
@@ -208,7 +241,8 @@ class BagReader:
 
 
 def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:
-    """Several channels of one topic in a chunk (e.g. two QoS variants): one batch in log-time order."""
+    """Several channels of one topic in a chunk (e.g. two QoS variants): one batch, in
+    log-time order."""
     merged = MessageBatch.concat(batches)
     order = np.argsort(merged.log_times, kind="stable")
     return merged.take(order)

@@ -22,6 +22,7 @@ controller publishes its own JointState) are merged as joint_state_publisher doe
 each joint keeps its last value until it is published again. A named joint that
 never appears is a BagError naming the joint and the topic.
 """
+
 from __future__ import annotations
 
 import os
@@ -47,7 +48,7 @@ from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile, load_profile
 
-COMMANDS_TOPIC = BAG_TOPICS["commands"]      # ros2_control forward-command topic (sim, sweeps)
+COMMANDS_TOPIC = BAG_TOPICS["commands"]  # ros2_control forward-command topic (sim, sweeps)
 
 
 @lru_cache(maxsize=1)
@@ -63,18 +64,18 @@ def _default_joint_names() -> tuple[str, ...]:
 class Recording:
     """Everything the project keeps of a bag, as numpy arrays (see docs/DESIGN.md)."""
 
-    accel_stamps_ns: np.ndarray          # (N,) int64, sensor sample stamps
-    accel: np.ndarray                    # (N, 3) float64, the profile's field (raw topic)
-    joint_stamps_ns: np.ndarray          # (M,) int64
-    joint_position: np.ndarray           # (M, J) float64
-    joint_velocity: np.ndarray           # (M, J) float64
+    accel_stamps_ns: np.ndarray  # (N,) int64, sensor sample stamps
+    accel: np.ndarray  # (N, 3) float64, the profile's field (raw topic)
+    joint_stamps_ns: np.ndarray  # (M,) int64
+    joint_position: np.ndarray  # (M, J) float64
+    joint_velocity: np.ndarray  # (M, J) float64
     joint_names: tuple[str, ...] = field(default_factory=_default_joint_names)
-    contact: np.ndarray | None = None    # (N, 3) ground truth, same stamps as accel
-    ego: np.ndarray | None = None        # (N, 3) ground truth
+    contact: np.ndarray | None = None  # (N, 3) ground truth, same stamps as accel
+    ego: np.ndarray | None = None  # (N, 3) ground truth
     denoised_stamps_ns: np.ndarray | None = None
-    denoised: np.ndarray | None = None   # (K, 3)
+    denoised: np.ndarray | None = None  # (K, 3)
     command_stamps_ns: np.ndarray | None = None
-    commands: np.ndarray | None = None   # (P, J)
+    commands: np.ndarray | None = None  # (P, J)
 
     @property
     def duration_s(self) -> float:
@@ -89,8 +90,14 @@ def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
     simulator's ground truth (contact, ego: siblings of the sensor topic)."""
     profile = profile or _default_profile()
     head = profile.sensor_topic.rstrip("/").rpartition("/")[0]
-    return {"raw": profile.sensor_topic, "denoised": profile.denoised_topic, "joint_states": profile.joints_topic,
-            "contact": f"{head}/contact", "ego": f"{head}/ego", "commands": COMMANDS_TOPIC}
+    return {
+        "raw": profile.sensor_topic,
+        "denoised": profile.denoised_topic,
+        "joint_states": profile.joints_topic,
+        "contact": f"{head}/contact",
+        "ego": f"{head}/ego",
+        "commands": COMMANDS_TOPIC,
+    }
 
 
 def _by_stamp(stamps: np.ndarray, *values: np.ndarray) -> tuple:
@@ -116,9 +123,18 @@ class RecordingStream:
     >>> for piece in stream.finish(): ...
     """
 
-    def __init__(self, reader: BagReader, profile: RobotProfile | None = None, *, ground_truth: bool = True,
-                 denoised: bool = True, commands: bool = True, horizon_s: float = 0.1, max_lag_s: float = 10.0,
-                 min_slice_s: float = 1.0):
+    def __init__(
+        self,
+        reader: BagReader,
+        profile: RobotProfile | None = None,
+        *,
+        ground_truth: bool = True,
+        denoised: bool = True,
+        commands: bool = True,
+        horizon_s: float = 0.1,
+        max_lag_s: float = 10.0,
+        min_slice_s: float = 1.0,
+    ):
         self.reader = reader
         self.profile = profile or _default_profile()
         self.names = bag_topic_names(self.profile)
@@ -127,15 +143,26 @@ class RecordingStream:
         where = reader.path
         reader.require(self.names["raw"], IMU_TYPE)
         reader.require(self.names["joint_states"], JOINT_STATE_TYPE)
-        optional = {"contact": ground_truth, "ego": ground_truth, "denoised": denoised, "commands": commands}
+        optional = {
+            "contact": ground_truth,
+            "ego": ground_truth,
+            "denoised": denoised,
+            "commands": commands,
+        }
         self.present = {"raw", "joint_states"}
         for key, wanted in optional.items():
             topic = self.names[key]
-            if wanted and topic in reader.topics and topic not in (self.names["raw"], self.names["joint_states"]):
+            if (
+                wanted
+                and topic in reader.topics
+                and topic not in (self.names["raw"], self.names["joint_states"])
+            ):
                 expected = COMMANDS_TYPE if key == "commands" else IMU_TYPE
                 if reader.topics[topic].msgtype != expected:
-                    raise BagError(f"{where}: topic {topic} has type {reader.topics[topic].msgtype}, "
-                                   f"expected {expected}")
+                    raise BagError(
+                        f"{where}: topic {topic} has type {reader.topics[topic].msgtype}, "
+                        f"expected {expected}"
+                    )
                 self.present.add(key)
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
@@ -143,15 +170,17 @@ class RecordingStream:
         self.max_pending = max(1, int(max_lag_s * self.profile.rate_hz))
         self.min_slice_ns = int(min_slice_s * 1e9)
         self._sensor_keys = [k for k in ("raw", "contact", "ego") if k in self.present]
-        self._sensor: dict[str, list] = {k: [] for k in self._sensor_keys}     # [(stamps, values), ...]
+        self._sensor: dict[str, list] = {
+            k: [] for k in self._sensor_keys
+        }  # [(stamps, values), ...]
         self._joints: list[tuple] = []
         self._denoised: list[tuple] = []
         self._commands: list[tuple] = []
-        self._last_joint_values: np.ndarray | None = None      # for merging partial JointStates
+        self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
         self._joint_seen = np.zeros(len(self.joint_names), bool)
         self._frontier_ns: int | None = None
         self.counts = {k: 0 for k in self.present}
-        self.decoded: dict[str, tuple] = {}        # the last batch's decoded streams, by key (raw, ...)
+        self.decoded: dict[str, tuple] = {}  # the last batch's decoded streams, by key (raw, ...)
 
     # --- input -------------------------------------------------------------------------
     def add(self, batch: ReadBatch) -> list[Recording]:
@@ -167,7 +196,9 @@ class RecordingStream:
             except BagError:
                 raise
             except Exception as exc:
-                raise BagError(f"{self.reader.path}: topic {topic}: cannot decode message ({exc})") from None
+                raise BagError(
+                    f"{self.reader.path}: topic {topic}: cannot decode message ({exc})"
+                ) from None
         return self._release(final=False)
 
     def finish(self) -> list[Recording]:
@@ -179,8 +210,10 @@ class RecordingStream:
                 raise BagError(f"{where}: topic {self.names[key]} has no messages")
         if not self._joint_seen.all():
             missing = [n for n, seen in zip(self.joint_names, self._joint_seen) if not seen]
-            raise BagError(f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
-                           f"(named by robot profile {self.profile.name!r})")
+            raise BagError(
+                f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
+                f"(named by robot profile {self.profile.name!r})"
+            )
         return pieces
 
     def _add(self, key: str, messages: MessageBatch) -> None:
@@ -204,18 +237,26 @@ class RecordingStream:
         if present.all():
             self._last_joint_values = np.stack([position[-1], velocity[-1]])
             return stamps, position, velocity
-        both = np.stack([position, velocity], axis=1)                          # (M, 2, J)
-        start = self._last_joint_values if self._last_joint_values is not None else np.full(both.shape[1:], np.nan)
+        both = np.stack([position, velocity], axis=1)  # (M, 2, J)
+        start = (
+            self._last_joint_values
+            if self._last_joint_values is not None
+            else np.full(both.shape[1:], np.nan)
+        )
         rows = np.where(present[:, None, :], np.arange(len(stamps))[:, None, None], -1)
-        last = np.maximum.accumulate(rows, axis=0)                             # last row holding each joint
-        filled = np.where(last >= 0, np.take_along_axis(both, np.maximum(last, 0), axis=0), start[None])
+        last = np.maximum.accumulate(rows, axis=0)  # last row holding each joint
+        filled = np.where(
+            last >= 0, np.take_along_axis(both, np.maximum(last, 0), axis=0), start[None]
+        )
         self._last_joint_values = filled[-1]
         return stamps, filled[:, 0], filled[:, 1]
 
     # --- output ------------------------------------------------------------------------
     def _release(self, *, final: bool) -> list[Recording]:
-        sensor = {k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
-                  for k, v in self._sensor.items()}
+        sensor = {
+            k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
+            for k, v in self._sensor.items()
+        }
         raw_stamps = sensor["raw"][0]
         n = min(len(s) for s, _ in sensor.values())
         if final:
@@ -223,7 +264,9 @@ class RecordingStream:
         else:
             # Everything not yet read is logged at or after the frontier: a sample that far
             # before it has its joint states (up to the horizon) and all earlier samples in.
-            frontier = self._frontier_ns if self._frontier_ns is not None else np.iinfo(np.int64).max
+            frontier = (
+                self._frontier_ns if self._frontier_ns is not None else np.iinfo(np.int64).max
+            )
             take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
             if n - take > self.max_pending:
                 # a frontier that does not move (odd files): hold no more than max_lag_s of samples
@@ -236,23 +279,45 @@ class RecordingStream:
         js_stamps, js_position, js_velocity = _by_stamp(
             _concat([j[0] for j in self._joints], None),
             _concat([j[1] for j in self._joints], width).reshape(-1, width),
-            _concat([j[2] for j in self._joints], width).reshape(-1, width))
+            _concat([j[2] for j in self._joints], width).reshape(-1, width),
+        )
         # joint states past the frontier wait: earlier ones may still be unread
-        cut = len(js_stamps) if final or self._frontier_ns is None else \
-            max(int(np.searchsorted(js_stamps, self._frontier_ns, side="left")),
-                int(np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")) if take else 0)
-        self._joints = [(js_stamps[cut:], js_position[cut:], js_velocity[cut:])] if cut < len(js_stamps) else []
+        cut = (
+            len(js_stamps)
+            if final or self._frontier_ns is None
+            else max(
+                int(np.searchsorted(js_stamps, self._frontier_ns, side="left")),
+                int(
+                    np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")
+                )
+                if take
+                else 0,
+            )
+        )
+        self._joints = (
+            [(js_stamps[cut:], js_position[cut:], js_velocity[cut:])]
+            if cut < len(js_stamps)
+            else []
+        )
         js_stamps, js_position, js_velocity = js_stamps[:cut], js_position[:cut], js_velocity[:cut]
         piece = Recording(
-            accel_stamps_ns=raw_stamps[:take], accel=sensor["raw"][1][:take],
-            joint_stamps_ns=js_stamps, joint_position=js_position, joint_velocity=js_velocity,
-            joint_names=self.joint_names)
+            accel_stamps_ns=raw_stamps[:take],
+            accel=sensor["raw"][1][:take],
+            joint_stamps_ns=js_stamps,
+            joint_position=js_position,
+            joint_velocity=js_velocity,
+            joint_names=self.joint_names,
+        )
         for key in ("contact", "ego"):
             if key in sensor:
                 stamps, values = sensor[key]
-                if not np.array_equal(stamps[:take], raw_stamps[:take]) or (final and len(stamps) != len(raw_stamps)):
-                    raise BagError(f"{self.reader.path}: topic {self.names[key]} does not have the stamps of "
-                                   f"{self.names['raw']}")
+                if not np.array_equal(stamps[:take], raw_stamps[:take]) or (
+                    final and len(stamps) != len(raw_stamps)
+                ):
+                    raise BagError(
+                        f"{self.reader.path}: topic {self.names[key]} does not have the stamps of "
+                        f"{self.names['raw']}"
+                    )
                 setattr(piece, key, values[:take])
         self._sensor = {k: [(s[take:], x[take:])] for k, (s, x) in sensor.items()}
         if self._denoised:
@@ -264,19 +329,34 @@ class RecordingStream:
             values = [v for c in self._commands for v in c[1]]
             width_c = max(len(v) for v in values)
             piece.command_stamps_ns = times
-            piece.commands = np.array([np.pad(v, (0, width_c - len(v)), constant_values=np.nan) for v in values])
+            piece.commands = np.array(
+                [np.pad(v, (0, width_c - len(v)), constant_values=np.nan) for v in values]
+            )
             self._commands = []
         return [piece]
 
 
-def iter_recording(path: str | os.PathLike, *, profile: RobotProfile | None = None, ground_truth: bool = True,
-                   denoised: bool = True, commands: bool = True, progress: Callable[[int], None] | None = None,
-                   **options) -> Iterator[Recording]:
+def iter_recording(
+    path: str | os.PathLike,
+    *,
+    profile: RobotProfile | None = None,
+    ground_truth: bool = True,
+    denoised: bool = True,
+    commands: bool = True,
+    progress: Callable[[int], None] | None = None,
+    **options,
+) -> Iterator[Recording]:
     """Consecutive aligned time slices of a bag (see the module doc); memory is bounded by
     the slice length, not the bag's. `progress(bytes)` is called as the bag is read."""
     with BagReader(path) as reader:
-        stream = RecordingStream(reader, profile, ground_truth=ground_truth, denoised=denoised,
-                                 commands=commands, **options)
+        stream = RecordingStream(
+            reader,
+            profile,
+            ground_truth=ground_truth,
+            denoised=denoised,
+            commands=commands,
+            **options,
+        )
         for batch in reader.batches(stream.topics):
             yield from stream.add(batch)
             if progress is not None:
@@ -298,15 +378,23 @@ def concat_recordings(pieces: Sequence[Recording]) -> Recording:
             values[f.name] = parts[0]
         else:
             width = [p.shape[1] for p in parts if p.ndim == 2]
-            if width and len(set(width)) > 1:     # commands of different lengths
+            if width and len(set(width)) > 1:  # commands of different lengths
                 w = max(width)
-                parts = [np.pad(p, ((0, 0), (0, w - p.shape[1])), constant_values=np.nan) for p in parts]
+                parts = [
+                    np.pad(p, ((0, 0), (0, w - p.shape[1])), constant_values=np.nan) for p in parts
+                ]
             values[f.name] = np.concatenate(parts)
     return Recording(joint_names=first.joint_names, **values)
 
 
-def read_recording(path: str | os.PathLike, *, profile: RobotProfile | None = None, ground_truth: bool = True,
-                   denoised: bool = True, joint_names: Sequence[str] | None = None) -> Recording:
+def read_recording(
+    path: str | os.PathLike,
+    *,
+    profile: RobotProfile | None = None,
+    ground_truth: bool = True,
+    denoised: bool = True,
+    joint_names: Sequence[str] | None = None,
+) -> Recording:
     """A whole bag as one Recording (MCAP or sqlite3): the profile's sensor topic and joints
     (default PR2), plus ground truth, denoised and command topics when present and asked
     for. Streams are sorted by stamp. BagError names the bag and the problem.
@@ -315,10 +403,16 @@ def read_recording(path: str | os.PathLike, *, profile: RobotProfile | None = No
     profile = profile or _default_profile()
     if joint_names is not None and tuple(joint_names) != profile.joint_names:
         import dataclasses
-        profile = dataclasses.replace(profile, joint_names=tuple(joint_names),
-                                      max_speed=(1.0,) * len(joint_names), bidirectional=(True,) * len(joint_names))
-    rec = concat_recordings(list(iter_recording(path, profile=profile, ground_truth=ground_truth,
-                                                denoised=denoised)))
+
+        profile = dataclasses.replace(
+            profile,
+            joint_names=tuple(joint_names),
+            max_speed=(1.0,) * len(joint_names),
+            bidirectional=(True,) * len(joint_names),
+        )
+    rec = concat_recordings(
+        list(iter_recording(path, profile=profile, ground_truth=ground_truth, denoised=denoised))
+    )
     return _sorted(rec)
 
 
@@ -333,7 +427,10 @@ def _sorted(rec: Recording) -> Recording:
     if np.any(np.diff(rec.joint_stamps_ns) < 0):
         order = np.argsort(rec.joint_stamps_ns, kind="stable")
         rec.joint_stamps_ns = rec.joint_stamps_ns[order]
-        rec.joint_position, rec.joint_velocity = rec.joint_position[order], rec.joint_velocity[order]
+        rec.joint_position, rec.joint_velocity = (
+            rec.joint_position[order],
+            rec.joint_velocity[order],
+        )
     if rec.denoised_stamps_ns is not None and np.any(np.diff(rec.denoised_stamps_ns) < 0):
         order = np.argsort(rec.denoised_stamps_ns, kind="stable")
         rec.denoised_stamps_ns, rec.denoised = rec.denoised_stamps_ns[order], rec.denoised[order]
@@ -343,16 +440,40 @@ def _sorted(rec: Recording) -> Recording:
 # --------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------
-def write_recording(path: str | os.PathLike, rec: Recording, *, profile: RobotProfile | None = None,
-                    storage: str = "mcap", compress: bool | str = False, progress=None, **options) -> None:
+def write_recording(
+    path: str | os.PathLike,
+    rec: Recording,
+    *,
+    profile: RobotProfile | None = None,
+    storage: str = "mcap",
+    compress: bool | str = False,
+    progress=None,
+    **options,
+) -> None:
     """Write a Recording as a rosbag2 bag: one message per sample, log time = stamp."""
-    write_recordings(path, [rec], profile=profile, storage=storage, compress=compress, progress=progress,
-                     **options)
+    write_recordings(
+        path,
+        [rec],
+        profile=profile,
+        storage=storage,
+        compress=compress,
+        progress=progress,
+        **options,
+    )
 
 
-def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, profile: RobotProfile | None = None,
-                     storage: str = "mcap", compress: bool | str = False, progress=None,
-                     window_s: float = 1.0, chunk_bytes: int = 4 << 20, crc: bool = True) -> None:
+def write_recordings(
+    path: str | os.PathLike,
+    pieces: Iterable[Recording],
+    *,
+    profile: RobotProfile | None = None,
+    storage: str = "mcap",
+    compress: bool | str = False,
+    progress=None,
+    window_s: float = 1.0,
+    chunk_bytes: int = 4 << 20,
+    crc: bool = True,
+) -> None:
     """Write consecutive time slices of a recording into one bag, in constant memory.
 
     Each slice is cut into `window_s` windows; a window's messages go into the bag
@@ -361,7 +482,9 @@ def write_recordings(path: str | os.PathLike, pieces: Iterable[Recording], *, pr
     profile = profile or _default_profile()
     names = bag_topic_names(profile)
     field_ = profile.sensor_field
-    with BagWriter(path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc) as bag:
+    with BagWriter(
+        path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc
+    ) as bag:
         for rec in pieces:
             streams = _streams(rec, names, field_)
             for topic, msgtype, _, _ in streams:
@@ -399,13 +522,26 @@ def _streams(rec: Recording, names: dict, field_: str) -> list:
         den_stamps = np.asarray(rec.denoised_stamps_ns, np.int64)
         streams.append((names["denoised"], IMU_TYPE, den_stamps, imu(rec.denoised, den_stamps)))
     js = np.asarray(rec.joint_stamps_ns, np.int64)
-    streams.append((names["joint_states"], JOINT_STATE_TYPE, js,
-                    lambda a, b: encode_joint_state_batch(js[a:b], rec.joint_position[a:b],
-                                                          rec.joint_velocity[a:b], rec.joint_names)))
+    streams.append(
+        (
+            names["joint_states"],
+            JOINT_STATE_TYPE,
+            js,
+            lambda a, b: encode_joint_state_batch(
+                js[a:b], rec.joint_position[a:b], rec.joint_velocity[a:b], rec.joint_names
+            ),
+        )
+    )
     if rec.commands is not None and len(rec.commands):
         cs = np.asarray(rec.command_stamps_ns, np.int64)
-        streams.append((names["commands"], COMMANDS_TYPE, cs,
-                        lambda a, b: [encode_commands(c) for c in rec.commands[a:b]]))
+        streams.append(
+            (
+                names["commands"],
+                COMMANDS_TYPE,
+                cs,
+                lambda a, b: [encode_commands(c) for c in rec.commands[a:b]],
+            )
+        )
     # window lookup needs sorted stamps; a slice normally is (write in stamp order otherwise)
     out = []
     for topic, msgtype, s, encode in streams:
@@ -422,6 +558,7 @@ def _reordered(encode, order):
     def enc(a, b):
         datas = encode(0, len(order))
         return [datas[i] for i in order[a:b]]
+
     return enc
 
 
@@ -429,4 +566,3 @@ def duration_of(path: str | os.PathLike) -> float:
     """Seconds spanned by a bag (metadata.yaml)."""
     with BagReader(path) as reader:
         return float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / 1e9
-

@@ -3,6 +3,7 @@ zstd-compressed per chunk, plus the bag's `metadata.yaml` (rosbag2 version 9, as
 writes it), so the result reads with rosbags and `ros2 bag`. sqlite3 output goes
 through rosbags' writer.
 """
+
 from __future__ import annotations
 
 import os
@@ -36,7 +37,7 @@ class _Topic:
     topic: str
     msgtype: str
     channel_id: int
-    metadata: dict            # topic_metadata of metadata.yaml
+    metadata: dict  # topic_metadata of metadata.yaml
     count: int = 0
 
 
@@ -63,8 +64,15 @@ class BagWriter:
     has buffered towards it.
     """
 
-    def __init__(self, path: str | os.PathLike, *, storage: str = "mcap", compress: bool | str = False,
-                 chunk_bytes: int = 4 << 20, crc: bool = True):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        storage: str = "mcap",
+        compress: bool | str = False,
+        chunk_bytes: int = 4 << 20,
+        crc: bool = True,
+    ):
         self.path = Path(path)
         if storage not in ("mcap", "sqlite3"):
             raise BagError(f"{self.path}: unknown storage {storage!r} (mcap or sqlite3)")
@@ -85,11 +93,17 @@ class BagWriter:
     def open(self) -> "BagWriter":
         if self.storage == "mcap":
             self.path.mkdir(parents=True)
-            self._mcap = McapWriter(self.path / f"{self.path.name}.mcap", compression=self.compression,
-                                    chunk_bytes=self.chunk_bytes, library=_library(), crc=self.crc)
+            self._mcap = McapWriter(
+                self.path / f"{self.path.name}.mcap",
+                compression=self.compression,
+                chunk_bytes=self.chunk_bytes,
+                library=_library(),
+                crc=self.crc,
+            )
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
             from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
             self._rosbags = Writer(self.path, version=9, storage_plugin=StoragePlugin.SQLITE3)
             if self.compression:
                 self._rosbags.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
@@ -116,10 +130,12 @@ class BagWriter:
             self._rosbags.close()
             return
         self._drain_buffer()
-        self._mcap.flush_chunk()              # the last chunk's times count in the metadata
+        self._mcap.flush_chunk()  # the last chunk's times count in the metadata
         info = self._metadata()
         text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
-        self._mcap.close(metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}})
+        self._mcap.close(
+            metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}}
+        )
         (self.path / "metadata.yaml").write_text(text)
 
     def abort(self) -> None:
@@ -136,9 +152,19 @@ class BagWriter:
         return self._mcap.bytes_uncompressed / self._mcap.bytes_compressed
 
     # --- topics ----------------------------------------------------------------------
-    def add_topic(self, topic: str, msgtype: str, *, msgdef: str | None = None, msgdef_format: str = "ros2msg",
-                  type_hash: str | None = None, offered_qos_profiles=None, channel_metadata: dict | None = None,
-                  channel_id: int | None = None, schema=None) -> int:
+    def add_topic(
+        self,
+        topic: str,
+        msgtype: str,
+        *,
+        msgdef: str | None = None,
+        msgdef_format: str = "ros2msg",
+        type_hash: str | None = None,
+        offered_qos_profiles=None,
+        channel_metadata: dict | None = None,
+        channel_id: int | None = None,
+        schema=None,
+    ) -> int:
         """Declare a topic (idempotent); returns its MCAP channel id.
 
         Definitions default to the Jazzy typestore's; pass those of an input bag to copy
@@ -156,29 +182,42 @@ class BagWriter:
             except Exception:
                 type_hash = ""
         qos = offered_qos_profiles if offered_qos_profiles is not None else []
-        if isinstance(qos, str):           # metadata.yaml before version 9 holds a YAML string
+        if isinstance(qos, str):  # metadata.yaml before version 9 holds a YAML string
             qos = yaml.safe_load(qos) or []
-        metadata = {"name": topic, "type": msgtype, "serialization_format": "cdr", "offered_qos_profiles": qos,
-                    "type_description_hash": type_hash}
+        metadata = {
+            "name": topic,
+            "type": msgtype,
+            "serialization_format": "cdr",
+            "offered_qos_profiles": qos,
+            "type_description_hash": type_hash,
+        }
         if self._rosbags is not None:
             if schema is not None and msgdef is None:
                 msgdef = bytes(schema.data).decode()
-            conn = self._rosbags.add_connection(topic, msgtype, msgdef=msgdef, rihs01=type_hash or "") \
-                if msgdef is not None and type_hash else self._rosbags.add_connection(topic, msgtype,
-                                                                                     typestore=typestore())
+            conn = (
+                self._rosbags.add_connection(topic, msgtype, msgdef=msgdef, rihs01=type_hash or "")
+                if msgdef is not None and type_hash
+                else self._rosbags.add_connection(topic, msgtype, typestore=typestore())
+            )
             self._rosbags_conns[topic] = conn
             self.topics[topic] = _Topic(topic, msgtype, conn.id, metadata)
             return conn.id
         if schema is not None:
-            schema_id = self._mcap.add_schema(schema.name, schema.encoding, schema.data, schema_id=schema.id
-                                              if schema.id not in self._mcap.schemas else None)
+            schema_id = self._mcap.add_schema(
+                schema.name,
+                schema.encoding,
+                schema.data,
+                schema_id=schema.id if schema.id not in self._mcap.schemas else None,
+            )
         else:
             schema_id = self._mcap.add_schema(msgtype, msgdef_format, msgdef.encode())
         if channel_metadata is None:
             channel_metadata = {"offered_qos_profiles": yaml.safe_dump(qos).strip()}
         if channel_id is not None and channel_id in self._mcap.channels:
             channel_id = None
-        channel_id = self._mcap.add_channel(topic, schema_id, "cdr", channel_metadata, channel_id=channel_id)
+        channel_id = self._mcap.add_channel(
+            topic, schema_id, "cdr", channel_metadata, channel_id=channel_id
+        )
         self.topics[topic] = _Topic(topic, msgtype, channel_id, metadata)
         return channel_id
 
@@ -194,12 +233,16 @@ class BagWriter:
             channel = next((c for c in channels.values() if c.topic == topic), None)
             schema = schemas.get(channel.schema_id) if channel is not None else None
         return self.add_topic(
-            name, info.msgtype, msgdef=info.msgdef or None, msgdef_format=info.msgdef_format,
+            name,
+            info.msgtype,
+            msgdef=info.msgdef or None,
+            msgdef_format=info.msgdef_format,
             type_hash=info.metadata.get("type_description_hash") or info.digest or None,
             offered_qos_profiles=info.metadata.get("offered_qos_profiles"),
             channel_metadata=dict(channel.metadata) if channel is not None else None,
             channel_id=channel.id if channel is not None and as_topic is None else None,
-            schema=schema)
+            schema=schema,
+        )
 
     # --- messages --------------------------------------------------------------------
     def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
@@ -219,7 +262,9 @@ class BagWriter:
     def write_many(self, topic: str, stamps_ns: Iterable[int], datas: Iterable[bytes]) -> None:
         """Append many serialised messages of one topic."""
         datas = list(datas)
-        self.write_batch(topic, np.fromiter((int(s) for s in stamps_ns), np.int64, len(datas)), datas)
+        self.write_batch(
+            topic, np.fromiter((int(s) for s in stamps_ns), np.int64, len(datas)), datas
+        )
 
     def write_batch(self, topic: str, log_times: np.ndarray, data) -> None:
         """Append messages of one topic: `data` is an (n, L) uint8 array, a MessageBatch or
@@ -273,7 +318,9 @@ class BagWriter:
     def _drain_buffer(self) -> None:
         buffered, self._buffered, self._buffered_bytes = self._buffered, {}, 0
         for topic, (datas, stamps) in buffered.items():
-            self._mcap.add_records(self.topics[topic].channel_id, np.asarray(stamps, np.int64), datas)
+            self._mcap.add_records(
+                self.topics[topic].channel_id, np.asarray(stamps, np.int64), datas
+            )
             self.topics[topic].count += len(stamps)
 
     def _metadata(self) -> dict:
@@ -282,12 +329,26 @@ class BagWriter:
         count = sum(t.count for t in self.topics.values())
         name = f"{self.path.name}.mcap"
         return {
-            "version": 9, "storage_identifier": "mcap", "relative_file_paths": [name],
-            "duration": {"nanoseconds": duration}, "starting_time": {"nanoseconds_since_epoch": start},
+            "version": 9,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [name],
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
             "message_count": count,
-            "topics_with_message_count": [{"topic_metadata": t.metadata, "message_count": t.count}
-                                          for t in self.topics.values()],
-            "compression_format": "", "compression_mode": "",
-            "files": [{"path": name, "starting_time": {"nanoseconds_since_epoch": start},
-                       "duration": {"nanoseconds": duration}, "message_count": count}],
-            "custom_data": None, "ros_distro": "jazzy"}
+            "topics_with_message_count": [
+                {"topic_metadata": t.metadata, "message_count": t.count}
+                for t in self.topics.values()
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [
+                {
+                    "path": name,
+                    "starting_time": {"nanoseconds_since_epoch": start},
+                    "duration": {"nanoseconds": duration},
+                    "message_count": count,
+                }
+            ],
+            "custom_data": None,
+            "ros_distro": "jazzy",
+        }
