@@ -33,7 +33,7 @@ from egovib_ros.bag import (
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.messages import decode_imu, imu_layout, replace_imu_field
-from egovib_ros.cliutil import check_stream, nonneg_float
+from egovib_ros.cliutil import check_stream, int_in, nonneg_float
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError, ConfigError
@@ -120,7 +120,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _parallel_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--jobs",
-        type=int,
+        type=int_in(1, 4096),
         default=1,
         metavar="N",
         help="bags processed at once (N > 1: a local Dask cluster of N worker processes)",
