@@ -9,144 +9,28 @@
 
 The nodes run as separate processes (the console scripts beside this Python) in a
 private random ROS domain with localhost-only discovery, so nothing else on the
-network sees or disturbs them. Usage: python -m egovib_ros.demo [--out DIR].
+network sees or disturbs them (egovib_ros.orchestration). Usage: `egovib demo [--out DIR]`
+(or python -m egovib_ros.demo).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import random
 import shutil
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-BIN = Path(sys.executable).parent
+from egovib_ros.orchestration import NodeGroup, Watcher, reliable_input
 
-
-def _param_text(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ",".join(_param_text(v) for v in value) + "]"
-    return str(value)
-
-
-class NodeGroup:
-    """Node processes sharing one private ROS domain; `close()` stops them all."""
-
-    def __init__(self, log_dir: Path, domain_id: int | None = None):
-        self.domain_id = domain_id if domain_id is not None else random.SystemRandom().randint(1, 200)
-        self.log_dir = Path(log_dir)
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id),
-                        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1",
-                        RCUTILS_COLORIZED_OUTPUT="0")
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def use_domain_here(self) -> None:
-        """Put this process in the group's domain (before rclpy.init)."""
-        os.environ["ROS_DOMAIN_ID"] = str(self.domain_id)
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-
-    def start(self, name: str, executable: str, params: dict | None = None) -> subprocess.Popen:
-        cmd = [str(BIN / executable), "--ros-args"]
-        for key, value in (params or {}).items():
-            cmd += ["-p", f"{key}:={_param_text(value)}"]
-        with open(self.log_path(name), "w") as log:
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env,
-                                    start_new_session=True)
-        self.procs[name] = proc
-        return proc
-
-    def log_path(self, name: str) -> Path:
-        return self.log_dir / f"{name}.log"
-
-    def log(self, name: str) -> str:
-        return self.log_path(name).read_text()
-
-    def check_alive(self, *names: str) -> None:
-        for name in names:
-            code = self.procs[name].poll()
-            if code is not None:
-                raise RuntimeError(f"{name} exited with status {code}; its log:\n{self.log(name)[-3000:]}")
-
-    def wait_for_log(self, name: str, text: str, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while text not in self.log(name):
-            self.check_alive(name)
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}")
-            time.sleep(0.1)
-
-    def stop(self, name: str, timeout: float = 30.0, sig: int = signal.SIGINT) -> int:
-        """Ctrl-C the node (or send `sig`) and wait for it (kill after `timeout`)."""
-        proc = self.procs[name]
-        if proc.poll() is None:
-            proc.send_signal(sig)
-            try:
-                proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        return proc.returncode
-
-    def close(self) -> None:
-        for name in list(self.procs):
-            if self.procs[name].poll() is None:
-                self.procs[name].send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 10
-        for proc in self.procs.values():
-            try:
-                proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-
-
-RELIABLE_INPUT = {"qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
-                  "qos_overrides./joint_states.subscription.reliability": "reliable"}
-
-
-class Watcher:
-    """An rclpy node in this process: commands and progress from /diagnostics."""
-
-    def __init__(self):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.experimental import EventsExecutor
-        from std_msgs.msg import Float64MultiArray
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        self.node = rclpy.create_node("egovib_demo", context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.status: dict[str, str] = {}
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.commands = self.node.create_publisher(Float64MultiArray, "hand_velocity_controller/commands", 10)
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            self.status[status.name] = status.message
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.context.try_shutdown()
+PR2_INPUT = ("/accelerometer/raw", "/joint_states")      # the simulated hand's streams (PR2 profile)
 
 
 def calibrate(group: NodeGroup, watcher: Watcher, model: Path, *, dwell: float, settle: float) -> None:
     print(f"[1/3] calibration: superposition sweep, 41 cells x ({settle:g} s settle + {dwell:g} s dwell)",
           flush=True)
     group.start("calibrator", "calibrator", {"output": str(model), "grid": "superposition",
-                                             "resume": False, **RELIABLE_INPUT})
+                                             "resume": False, **reliable_input(*PR2_INPUT)})
     group.start("sim_hand_sweep", "sim_hand", {"seed": 1, "publish_ground_truth": False})
     group.wait_for_log("calibrator", "calibrating")
     driver = group.start("sweep_driver", "sweep_driver", {"grid": "superposition", "dwell": dwell,
@@ -176,7 +60,7 @@ def run_motion(group: NodeGroup, watcher: Watcher, model: Path, bag: Path, *, se
           f"{tap_rate_hz:g} Hz; denoiser (combined, as in the paper) and recorder", flush=True)
     # Start order: denoiser, then the recorder matched to its output, then the hand, which
     # waits until its streams are subscribed, so that the bag holds every sample of the run.
-    group.start("denoiser", "denoiser", {"model": str(model), "channels": "combined", **RELIABLE_INPUT})
+    group.start("denoiser", "denoiser", {"model": str(model), "channels": "combined", **reliable_input(*PR2_INPUT)})
     group.wait_for_log("denoiser", "denoising")
     # Recorded: what the evaluation needs (the ego-only ground truth is left out to spare CPU).
     group.start("bag_recorder", "bag_recorder", {"output": str(bag), "topics": [
@@ -264,8 +148,7 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
     return summary
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="demo_output", help="directory for the model, bag, logs, figures")
     parser.add_argument("--dwell", type=float, default=1.0, help="sweep dwell per cell (s)")
     parser.add_argument("--settle", type=float, default=0.3, help="sweep settle time per cell (s)")
@@ -273,7 +156,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-speed", type=float, default=0.5, help="fraction of max joint speed")
     parser.add_argument("--taps", type=float, default=2.0, help="tap rate (Hz)")
     parser.add_argument("--seed", type=int, default=7)
-    args = parser.parse_args(argv)
+
+
+def register(subparsers) -> None:
+    """`egovib demo`."""
+    parser = subparsers.add_parser("demo", help="the whole pipeline live on ROS 2 nodes (make demo)",
+                                   description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     model, bag = out / "noise_model.npz", out / "run_bag"
     for old in (model, bag, out / "logs"):

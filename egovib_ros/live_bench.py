@@ -1,14 +1,15 @@
 """Live benchmark: does the denoiser node keep up with 3 kHz next to sim_hand on this machine?
 
-    python -m egovib_ros.live_bench --json docs/live_bench.json [--seconds 60]
+    egovib live-bench --json docs/live_bench.json [--seconds 60]
 
 Runs sim_hand (ground-truth topics off) and denoiser as separate processes in a private
 ROS domain, drives the hand with random smooth motion from this process, and for
 `--seconds` (after a warm-up) measures:
 
-* dropped samples: raw samples missing at the denoiser's input (stamp gaps, bad
-  messages, out of order; from its /diagnostics) and denoised samples missing here
-  (stamp gaps in accelerometer/denoised);
+* dropped samples: at the denoiser's input, what its /diagnostics reports (the core's
+  counts of bridged gaps, restarts, bad and out-of-order samples, and undecodable
+  messages); at its output, denoised samples missing here (the stamp span received
+  at the nominal rate minus the samples received);
 * CPU share (fraction of one core, i.e. CPU seconds per real-time second) of the
   denoiser and of sim_hand, from /proc/<pid>/stat;
 * latency, raw stamp -> denoised received: for each denoised sample received here,
@@ -31,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.demo import NodeGroup, Watcher
+from egovib_ros.orchestration import NodeGroup, Watcher
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -56,36 +57,20 @@ def bench_model(path: Path) -> Path:
 def algorithmic_latency_ms(model_path: Path, *, publish_period: float = 0.002, seconds: float = 10.0) -> dict:
     """The latency the pipeline would have with zero transport and scheduling cost.
 
-    In this process: sim_hand's batching (samples of each `publish_period` appear at its
-    end, joint states first) and the denoiser node's processing rule (every 32 samples
-    counted from the first) on the same StreamingDenoiser. Latency of a sample = time of
-    the batch that completes its output - its stamp.
+    sim_hand publishes each `publish_period`'s samples at its end; the denoiser node
+    processes every hop of samples, and input sample k is output with the block that
+    ends at input sample e(k) = floor((k + L - H) / H) * H + H - 1 (the first block starts
+    with L - H samples of padding). Latency of sample k = stamp of the last sample of the
+    batch that carries e(k) - stamp of k.
     """
-    from egovib_ros.core import NoiseModel, StreamingDenoiser
-    from egovib_ros.sim import HandSimulator
-    sim = HandSimulator(seed=3, start_ns=0)
-    sim.set_command([1.5, 0.02])
-    denoiser = StreamingDenoiser(NoiseModel.load(model_path))
-    per_tick = int(round(publish_period * 3000))
-    pending_a: list[tuple[int, np.ndarray]] = []
-    pending_j: list[tuple[np.ndarray, np.ndarray]] = []
-    latency = []
-    for _ in range(int(seconds / publish_period)):
-        chunk = sim.step(per_tick)
-        tick_end_ns = int(chunk.accel_stamps_ns[-1])          # published once the last sample is due
-        pending_j.append((chunk.joint_stamps_ns, chunk.joint_velocity))
-        for stamp, value in zip(chunk.accel_stamps_ns, chunk.accel):
-            pending_a.append((int(stamp), value))
-            if (denoiser.stats["samples_in"] + len(pending_a)) % 32:
-                continue
-            for js, jv in pending_j:
-                if len(js):
-                    denoiser.push_joint_states(js, jv)
-            pending_j = []
-            out = denoiser.push_accel(np.array([a for a, _ in pending_a]), np.array([v for _, v in pending_a]))
-            pending_a = []
-            latency.append((tick_end_ns - out.stamps_ns) / 1e6)
-    values = np.concatenate(latency)[3000:]                   # after the first second
+    from egovib_ros.core import NoiseModel
+    model = NoiseModel.load(model_path)
+    rate, length, hop = model.sample_rate_hz, model.block_length, model.hop
+    per_batch = max(1, int(round(publish_period * rate)))
+    k = np.arange(int(seconds * rate))
+    completing = (k + length - hop) // hop * hop + hop - 1
+    published_with = (completing // per_batch + 1) * per_batch - 1
+    values = (published_with - k)[int(rate):] / rate * 1e3          # after the first second
     return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
             "max": float(values.max())}
 
@@ -156,11 +141,12 @@ def run_bench(*, seconds: float = 60.0, warmup: float = 5.0, model: Path | None 
     stamps, _, bad = decode_imu_messages(received[n0:])
     arrival = np.asarray(arrival_ns[n0:n0 + len(stamps)], dtype=np.int64)
     latency_ms = (arrival - stamps) / 1e6
-    steps = np.round(np.diff(stamps) / (1e9 / 3000.0))
-    missing_out = int(np.sum(np.clip(steps - 1, 0, None)))
+    # sim_hand stamps samples exactly at the nominal rate: the span received says how many were sent.
+    missing_out = int(round((stamps[-1] - stamps[0]) * 3000.0 / 1e9)) + 1 - len(stamps)
     first, last = denoiser_diag[diag0 - 1] if diag0 else denoiser_diag[0], denoiser_diag[-1]
     node_drops = {key: int(last[key]) - int(first[key])
-                  for key in ("missing_samples", "bad_messages", "dropped_out_of_order")}
+                  for key in ("undecodable_messages", "samples_bad", "samples_out_of_order", "gap_filled_samples",
+                              "stream_restarts", "samples_withheld")}
     node_latency = [(float(d["latency_p50_ms"]), float(d["latency_p99_ms"])) for d in denoiser_diag[diag0:]
                     if d["latency_p50_ms"] != "nan"]
     algorithmic = algorithmic_latency_ms(model, publish_period=publish_period)
@@ -188,12 +174,11 @@ def run_bench(*, seconds: float = 60.0, warmup: float = 5.0, model: Path | None 
         "denoiser_reported_latency_ms": {
             "p50_median_over_seconds": float(np.median([p for p, _ in node_latency])) if node_latency else None,
             "p99_max_over_seconds": float(np.max([q for _, q in node_latency])) if node_latency else None,
-            "definition": "denoiser node clock at publish minus header stamp"},
+            "definition": "denoiser's wall clock: receive of an input message to publish of its denoised copy"},
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m egovib_ros.live_bench", description=__doc__.split("\n\n")[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", required=True, help="output JSON file")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--warmup", type=float, default=5.0)
@@ -201,7 +186,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
     parser.add_argument("--publish-period", type=float, default=0.002,
                         help="sim_hand's batching period (s): part of the measured latency")
-    args = parser.parse_args(argv)
+
+
+def register(subparsers) -> None:
+    """`egovib live-bench`."""
+    parser = subparsers.add_parser("live-bench", help="does the denoiser node keep up live (drops, CPU, latency)",
+                                   description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m egovib_ros.live_bench", description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
     from egovib_ros.fileutil import atomic_output
     result = run_bench(seconds=args.seconds, warmup=args.warmup, channels=args.channels,
                        model=Path(args.model) if args.model else None, publish_period=args.publish_period)

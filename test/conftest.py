@@ -9,13 +9,13 @@ from __future__ import annotations
 import random
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from egovib_ros.demo import NodeGroup
+from egovib_ros.orchestration import NodeGroup, Watcher
+
 
 class NodeProcesses(NodeGroup):
     """The demo's NodeGroup, addressed by process handle as the tests like it."""
@@ -23,9 +23,10 @@ class NodeProcesses(NodeGroup):
     def __init__(self, domain_id: int, log_dir: Path):
         super().__init__(log_dir, domain_id)
 
-    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None):
-        """Run `executable --ros-args -p name:=value ...`; output goes to a log file."""
-        return super().start(f"{log_name or executable}.{len(self.procs)}", executable, params)
+    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None, **options):
+        """Run `executable --ros-args -p name:=value ...`; output goes to a log file.
+        `options`: remap, namespace, args (see NodeGroup.start)."""
+        return super().start(f"{log_name or executable}.{len(self.procs)}", executable, params, **options)
 
     def _name(self, proc: subprocess.Popen) -> str:
         return next(name for name, p in self.procs.items() if p is proc)
@@ -59,39 +60,10 @@ def nodes(ros_domain, tmp_path):
         procs.cleanup()
 
 
-class RosClient:
-    """An rclpy node in the test process (own context), spun on demand."""
-
-    def __init__(self, domain_id: int):
-        import rclpy
-        from rclpy.experimental import EventsExecutor
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("test_client", context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-
-    def spin_until(self, predicate, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return bool(predicate())
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
 @pytest.fixture
 def ros_client(ros_domain):
-    client = RosClient(ros_domain)
+    """An rclpy node in the test process (own context, the test's domain), spun on demand."""
+    client = Watcher("test_client")
     try:
         yield client
     finally:

@@ -15,13 +15,25 @@ from rclpy.node import Node
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
-from egovib_ros.nodes.common import declare, run_node, stream_publisher_qos
+from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
 from egovib_ros.ros_convert import ns_to_stamp
 
 TICK_S = 0.002          # publishing granularity: messages due within a tick go out together
 CLOCK_PERIOD_NS = 1_000_000   # /clock at up to 1 kHz of bag time
+PARAMETERS = (
+    Param("bag", "", "rosbag2 directory to play"),
+    Param("rate", 1.0, "playback speed factor (2.0 = twice as fast)", range=(0.001, 1000.0)),
+    Param("clock", False, "publish /clock with the bag time"),
+    Param("topics", [""], "topics to play (bag names); empty = all"),
+    Param("wait_for_subscribers", 0, "wait until every played topic has at least this many subscribers "
+          "before starting", range=(0, 100)),
+    Param("wait_timeout", 10.0, "seconds to wait for subscribers before giving up", range=(0.0, 3600.0)),
+    Param("start_delay", 0.0, "seconds to wait before playing", range=(0.0, 3600.0)),
+    Param("linger", 0.5, "seconds to stay up after the last message, to let it be delivered",
+          range=(0.0, 3600.0)),
+)
 
 
 class BagPlayer(Node):
@@ -29,20 +41,15 @@ class BagPlayer(Node):
 
     def __init__(self):
         super().__init__("bag_player")
-        self.bag = Path(declare(self, "bag", "", "rosbag2 directory to play"))
-        self.rate = float(declare(self, "rate", 1.0, "playback speed factor (2.0 = twice as fast)"))
-        self.publish_clock = declare(self, "clock", False, "publish /clock with the bag time")
-        topics = declare(self, "topics", [""], "topics to play (bag names); empty = all")
-        self.wait_for_subscribers = declare(
-            self, "wait_for_subscribers", 0,
-            "wait until every played topic has at least this many subscribers before starting")
-        self.wait_timeout = float(declare(self, "wait_timeout", 10.0,
-                                          "seconds to wait for subscribers before giving up"))
-        self.start_delay = float(declare(self, "start_delay", 0.0, "seconds to wait before playing"))
-        self.linger = float(declare(self, "linger", 0.5,
-                                    "seconds to stay up after the last message, to let it be delivered"))
-        if self.rate <= 0:
-            raise ConfigError(f"bag_player: rate must be > 0, not {self.rate}")
+        params = declare_parameters(self, PARAMETERS)
+        self.bag = Path(params["bag"])
+        self.rate = params["rate"]
+        self.publish_clock = params["clock"]
+        topics = params["topics"]
+        self.wait_for_subscribers = params["wait_for_subscribers"]
+        self.wait_timeout = params["wait_timeout"]
+        self.start_delay = params["start_delay"]
+        self.linger = params["linger"]
         if not (self.bag / "metadata.yaml").is_file():
             raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
         try:

@@ -20,9 +20,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from egovib_ros.constants import (TOPIC_COMMANDS, TOPIC_CONTACT, TOPIC_DENOISED, TOPIC_EGO,
                                   TOPIC_JOINT_STATES, TOPIC_RAW)
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError
 from egovib_ros.fileutil import atomic_output
-from egovib_ros.nodes.common import declare, run_node
+from egovib_ros.nodes.common import Param, declare_parameters, run_node
 
 DEFAULT_TOPICS = [TOPIC_JOINT_STATES, TOPIC_RAW, TOPIC_DENOISED, TOPIC_CONTACT, TOPIC_EGO,
                   TOPIC_COMMANDS]
@@ -30,6 +30,13 @@ DEFAULT_TOPICS = [TOPIC_JOINT_STATES, TOPIC_RAW, TOPIC_DENOISED, TOPIC_CONTACT, 
 # writing may lag that long on a busy machine without losing anything.
 RECORDER_QUEUE_DEPTH = 30000
 STORAGE = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+PARAMETERS = (
+    Param("topics", DEFAULT_TOPICS, "topics to record (relative names resolve in the node's namespace)"),
+    Param("output", "recording", "bag directory to write; must not exist yet"),
+    Param("storage", "mcap", "rosbag2 storage plugin", choices=tuple(STORAGE)),
+    Param("queue_depth", RECORDER_QUEUE_DEPTH, "subscription queue depth per topic (how far writing may lag)",
+          range=(1, 10_000_000)),
+)
 
 
 def message_class(type_name: str):
@@ -43,23 +50,22 @@ class BagRecorder(Node):
 
     def __init__(self):
         super().__init__("bag_recorder")
-        topics = declare(self, "topics", DEFAULT_TOPICS,
-                         "topics to record (relative names resolve in the node's namespace)")
-        self.output = Path(declare(self, "output", "recording",
-                                   "bag directory to write; must not exist yet"))
-        storage = declare(self, "storage", "mcap", "rosbag2 storage plugin: mcap | sqlite3")
-        self.queue_depth = declare(self, "queue_depth", RECORDER_QUEUE_DEPTH,
-                                   "subscription queue depth per topic (how far writing may lag)")
-        if storage not in STORAGE:
-            raise ConfigError(f"bag_recorder: storage must be mcap or sqlite3, not {storage!r}")
+        params = declare_parameters(self, PARAMETERS)
+        topics = params["topics"]
+        self.output = Path(params["output"])
+        storage = params["storage"]
+        self.queue_depth = params["queue_depth"]
         if self.output.exists():
             raise BagError(f"{self.output}: bag already exists")
         self.topics = [self.resolve_topic_name(t) for t in topics]
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._files = contextlib.ExitStack()
-        tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
-        self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
-        self.writer.open()
+        try:
+            tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
+            self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
+            self.writer.open()
+        except OSError as exc:
+            raise BagError(f"{self.output}: cannot write the bag ({exc.strerror or exc})") from None
         self.connections: dict[str, object] = {}
         self.received = {t: 0 for t in self.topics}
         self.written = {t: 0 for t in self.topics}
