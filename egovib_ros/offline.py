@@ -26,8 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "per-cell mean/std noise spectra (CONTRACT section 4).")
     cal.add_argument("bag", help="rosbag2 directory with /joint_states and /accelerometer/raw")
     cal.add_argument("--out", required=True, metavar="MODEL.npz", help="noise-model file to write")
-    cal.add_argument("--grid", choices=("auto", "full", "superposition"), default="auto",
-                     help="which sweep the bag holds; auto = superposition if no cell has both joints moving")
+    cal.add_argument("--grid", choices=("auto", "full", "superposition", "free"), default="auto",
+                     help="what the bag holds: a sweep (full or superposition) or free motion; auto decides "
+                          "from how many blocks sit on grid velocities")
     cal.add_argument("--quiet", action="store_true", help="no progress bar")
     cal.set_defaults(func=run_calibrate)
 
@@ -49,24 +50,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     rec = read_recording(args.bag, ground_truth=False, denoised=False)
-    sweep = "superposition" if args.grid == "superposition" else "full"
     with tqdm(total=len(rec.accel_stamps_ns), unit="sample", unit_scale=True, desc="calibrate",
               disable=args.quiet or None, file=sys.stderr) as bar:
         model, stats = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns,
                                         rec.joint_velocity, source=str(args.bag), progress=bar.update,
-                                        sweep=sweep, joint_names=rec.joint_names)
-    if model.counts.sum() == 0:
+                                        sweep=args.grid)
+    if model.coverage()["blocks"] == 0:
         raise BagError(f"{args.bag}: no steady block near any grid velocity "
-                       f"(rejected: {stats['rejected']}); is this a calibration sweep?")
-    if args.grid == "auto" and not np.any(model.counts[~model.axis_mask()] > 0):
-        model = dataclasses.replace(model, measured="superposition")
+                       f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?")
     with atomic_output(args.out) as tmp:
         model.save(tmp)
     print(model.summary(), file=sys.stderr)
-    missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
-    if missing:
-        print(f"warning: {missing} cells of the {model.measured} grid have no block; "
-              f"they are filled at load time (see NoiseModel)", file=sys.stderr)
+    if model.measured != "free" and model.dense_ok:
+        missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
+        if missing:
+            print(f"warning: {missing} cells of the {model.measured} grid have no block; "
+                  f"they are filled at load time (see NoiseModel)", file=sys.stderr)
     print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0

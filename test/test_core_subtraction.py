@@ -1,5 +1,4 @@
 """Spectral subtraction: latency, streaming == batch, and bad input (issue 2)."""
-import dataclasses
 import logging
 
 import numpy as np
@@ -20,7 +19,7 @@ def model():
 
 
 def zero(model):
-    return dataclasses.replace(model, mean=np.zeros_like(model.mean), std=np.zeros_like(model.std))
+    return model.replace(mean=np.zeros_like(model.mean), std=np.zeros_like(model.std))
 
 
 def bandpassed(accel, channels):
@@ -101,13 +100,20 @@ def test_stale_joint_state_is_held_briefly_then_missing(model):
     assert stats["blocks_no_joint_state"] > stats["blocks"] // 2
 
 
-def test_nonfinite_samples_are_replaced_and_counted(model):
+def test_bad_samples_are_missing_counted_and_never_output(model):
     data = stream(2, [(1.5, 0.02)], seed=3)
     accel = data["accel"].copy()
     accel[[100, 101, 2000], 1] = [np.nan, np.inf, -np.inf]
+    accel[3000, 2] = 1e181                              # flipped bytes: far beyond the sensor's +-78.5
     stamps, values, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
-    assert np.all(np.isfinite(values)) and len(values) == len(accel)
-    assert stats["nonfinite_replaced"] == 3
+    assert np.all(np.isfinite(values)) and len(values) == len(accel) - 4
+    assert stats["samples_bad"] == 4 and stats["gap_filled_samples"] == 4
+    assert not np.isin(data["t_acc"][[100, 101, 2000, 3000]], stamps).any()
+    # bridged like any short gap: the same as never having received those samples
+    keep = np.ones(len(accel), dtype=bool)
+    keep[[100, 101, 2000, 3000]] = False
+    _, gapped, _ = denoise_batch(data["t_acc"][keep], data["accel"][keep], data["t_joint"], data["velocity"], model)
+    np.testing.assert_array_equal(values, gapped)
 
 
 def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(model):
@@ -241,7 +247,7 @@ def test_backward_clock_jump_restarts_instead_of_dropping_everything(model):
 
 def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
     path = tmp_path / "elbow.npz"
-    dataclasses.replace(model, joint_names=("shoulder", "elbow")).save(path)
+    model.replace(joint_names=("shoulder", "elbow")).save(path)
     from egovib_ros.core import NoiseModel
     with pytest.raises(StreamError, match=r"elbow.npz: model joints \['shoulder', 'elbow'\] do not match"):
         StreamingDenoiser(NoiseModel.load(path), joint_names=("r_wrist_roll_joint", "r_gripper_joint"))

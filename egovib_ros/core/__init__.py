@@ -12,13 +12,15 @@ from egovib_ros.core.blocks import analysis_window, overlap_add
 from egovib_ros.core.calibration import CalibrationAccumulator, calibrate_arrays
 from egovib_ros.core.filters import BandPass, channel_matrix, design_bandpass
 from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, frame_batch
-from egovib_ros.core.subtraction import DenoisedChunk, StreamingDenoiser, denoise_batch, paper_rule
+from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed, frame_batch
+from egovib_ros.core.subtraction import (DenoisedChunk, StreamingDenoiser, SubtractionSettings, denoise_batch,
+                                          paper_rule)
 from egovib_ros.core.velocity import HELD, MATCHED, MISSING, block_mean_velocity
 
 __all__ = [
     "analysis_window", "overlap_add", "CalibrationAccumulator", "calibrate_arrays", "BandPass",
     "channel_matrix", "design_bandpass", "MODEL_CHANNELS", "NoiseModel", "BlockFramer", "Blocks",
-    "FramerSettings", "frame_batch", "DenoisedChunk", "StreamingDenoiser", "denoise_batch", "paper_rule",
+    "FramerSettings", "feed", "frame_batch", "DenoisedChunk", "StreamingDenoiser", "SubtractionSettings",
+    "denoise_batch", "paper_rule",
     "HELD", "MATCHED", "MISSING", "block_mean_velocity",
 ]

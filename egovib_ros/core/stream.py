@@ -9,16 +9,20 @@ the paper's settings, within ~1e-16 otherwise).
 
 Bad-input policy (counted in `stats`, never a silent wrong result):
 - a sample stamped at or before the previous one is dropped;
-- a non-finite sample is replaced by the last finite one (keeps the filter sane);
+- a bad sample (non-finite, or beyond the sensor's range on any axis) is treated as
+  missing (`samples_bad`): never averaged into a model, never output;
 - a gap of up to `max_fill_samples` missing samples is bridged by linear
   interpolation (these synthetic samples are never output); a longer gap ends the
   segment: pending samples are flushed as at end of stream and the filter restarts;
+- stamps may jitter around the nominal rate (+-30 % per step): the stream is
+  treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
 - a block with no joint state in or shortly before its span is MISSING: the
   denoiser passes it through band-passed only, the calibrator skips it.
 """
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,30 +30,70 @@ import numpy as np
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
-from egovib_ros.errors import StreamError
+from egovib_ros.errors import ConfigError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True)
 class FramerSettings:
+    """How a sensor stream is cleaned, filtered and cut into blocks. Every field is
+    validated on construction (one-line ConfigError naming it); build one from a model
+    with `FramerSettings.for_model(model, layout=..., **overrides)`."""
+
     sample_rate_hz: float = 3000.0
     block_length: int = 64
     hop: int = 32
     band_hz: tuple[float, float] = (150.0, 750.0)
     band_order: int = 4
     layout: str = "combined"              # see filters.CHANNEL_LAYOUTS
+    sensor_range: float = math.inf        # |value| beyond this on any axis: a bad sample
     max_fill_samples: int = 8
     joint_wait_s: float = 0.02            # give joint states this long to cover a block
     max_hold_s: float = 0.05              # use a joint state this old when none falls in a block
     rate_tolerance: float = 0.1           # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0             # a stamp this far back means a restarted clock (bag loop, reset)
+    with_steadiness: bool = True          # compute per-block velocity steadiness (calibration needs it)
     source: str = ""                      # topic or file named in error messages
 
     def __post_init__(self) -> None:
+        where = f"{self.source}: " if self.source else ""
         validate_blocking(self.block_length, self.hop)
         if self.layout not in CHANNEL_LAYOUTS:
-            raise StreamError(f"channels: unknown layout {self.layout!r}")
+            raise ConfigError(f"{where}channels: unknown layout {self.layout!r}; expected one of "
+                              f"{sorted(CHANNEL_LAYOUTS)}")
+        checks = (("sample_rate_hz", self.sample_rate_hz, 0.0, math.inf, False),
+                  ("sensor_range", self.sensor_range, 0.0, math.inf, True),
+                  ("joint_wait_s", self.joint_wait_s, 0.0, 10.0, False),
+                  ("max_hold_s", self.max_hold_s, 0.0, 10.0, False),
+                  ("rate_tolerance", self.rate_tolerance, 0.0, 1.0, False),
+                  ("clock_jump_s", self.clock_jump_s, 0.0, 3600.0, False))
+        for name, value, low, high, inf_ok in checks:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and not math.isnan(value) \
+                and (math.isfinite(value) or inf_ok) and low <= value <= high and (value > 0 or name in (
+                    "joint_wait_s", "max_hold_s"))
+            if not ok:
+                raise ConfigError(f"{where}{name} must be a number in {'(' if low == 0 else '['}{low:g}, "
+                                  f"{high:g}], got {value!r}")
+        if isinstance(self.max_fill_samples, bool) or not isinstance(self.max_fill_samples, int) \
+                or not 0 <= self.max_fill_samples <= 1000:
+            raise ConfigError(f"{where}max_fill_samples must be an integer in [0, 1000], got {self.max_fill_samples!r}")
+        if isinstance(self.band_order, bool) or not isinstance(self.band_order, int) or not 1 <= self.band_order <= 12:
+            raise ConfigError(f"{where}band_order must be an integer in [1, 12], got {self.band_order!r}")
+        low, high = self.band_hz
+        if not (math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.sample_rate_hz / 2):
+            raise ConfigError(f"{where}band_hz must satisfy 0 < low < high < {self.sample_rate_hz / 2:g} Hz, "
+                              f"got {self.band_hz}")
+
+    @classmethod
+    def for_model(cls, model, *, layout: str, **overrides) -> "FramerSettings":
+        """The framing a noise model was calibrated with, for a stream of `layout`."""
+        sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
+        fields = dict(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length, hop=model.hop,
+                      band_hz=model.band_hz, band_order=model.band_order, layout=layout,
+                      sensor_range=sensor_range)
+        fields.update(overrides)
+        return cls(**fields)
 
     @property
     def period_ns(self) -> float:
@@ -90,8 +134,7 @@ class _Segment:
 class FramerStats:
     samples_in: int = 0
     dropped_out_of_order: int = 0
-    nonfinite_replaced: int = 0
-    nonfinite_dropped: int = 0
+    samples_bad: int = 0                  # non-finite or beyond the sensor range: treated as missing
     gap_filled_samples: int = 0
     resets: int = 0
     joint_states_in: int = 0
@@ -129,7 +172,7 @@ class _Cleaner:
             first_step = int(stamps[0]) - self.last_stamp
             steps = stamps[1:] - stamps[:-1]
             if 0 < first_step < limit and (len(steps) == 0 or (steps.min() > 0 and steps.max() < limit)) \
-                    and np.isfinite(accel).all():
+                    and self._all_good(accel):
                 self.last_stamp = int(stamps[-1])
                 self.last_value = accel[-1].copy()
                 return [_Segment(stamps, accel, ends_stream=False)]
@@ -154,22 +197,15 @@ class _Cleaner:
             stamps, accel = stamps[keep], accel[keep]
         if len(stamps) == 0:
             return []
-        # Non-finite samples: hold the last finite one.
-        bad = ~np.all(np.isfinite(accel), axis=1)
-        if bad.any() and self.last_value is None:
-            # Nothing to hold yet: drop leading non-finite samples (a zero would ring like a tap).
-            first_good = int(np.argmin(bad)) if not bad.all() else len(bad)
-            self.stats.nonfinite_dropped += first_good
-            stamps, accel, bad = stamps[first_good:], accel[first_good:], bad[first_good:]
+        # Bad samples (non-finite, beyond the sensor range) are missing: the gap rules below
+        # bridge or restart around them, exactly as if they had never arrived.
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.all(np.isfinite(accel), axis=1) & np.all(np.abs(accel) <= self.s.sensor_range, axis=1))
+        if bad.any():
+            self.stats.samples_bad += int(bad.sum())
+            stamps, accel = stamps[~bad], accel[~bad]
             if len(stamps) == 0:
                 return []
-        if bad.any():
-            self.stats.nonfinite_replaced += int(bad.sum())
-            accel = accel.copy()
-            good_idx = np.where(~bad, np.arange(len(accel)), -1)
-            good_idx = np.maximum.accumulate(good_idx)
-            fallback = self.last_value if self.last_value is not None else np.zeros(3)
-            accel = np.where((good_idx >= 0)[:, None], accel[np.maximum(good_idx, 0)], fallback[None, :])
         # Gaps, measured against the previous accepted sample.
         prev_stamp = np.concatenate([[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]])
         missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
@@ -201,6 +237,12 @@ class _Cleaner:
         return segments
 
 
+    def _all_good(self, accel: np.ndarray) -> bool:
+        if not np.isfinite(accel).all():
+            return False
+        return math.isinf(self.s.sensor_range) or float(np.abs(accel).max(initial=0.0)) <= self.s.sensor_range
+
+
 def _cat_t(pieces: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.int64)
 
@@ -229,7 +271,6 @@ class BlockFramer:
         self._rate_stamps: list[np.ndarray] = []
         self._ready: list[Blocks] = []
         self._closed: list[list] = []          # [buf_x, buf_t, wait_for_joints] of ended segments
-        self.with_steadiness = True
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
         self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
@@ -391,7 +432,7 @@ class BlockFramer:
         samples = buf_x[:, index].transpose(1, 0, 2).copy()                       # (B, C, L)
         velocity, steadiness, status = block_mean_velocity(
             self._joint_t, self._joint_v, np.where(any_real, t_first, 0), np.where(any_real, t_last, 0),
-            max_hold_ns=self._max_hold_ns, with_steadiness=self.with_steadiness)
+            max_hold_ns=self._max_hold_ns, with_steadiness=self.s.with_steadiness)
         status = status.copy()                          # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
@@ -423,10 +464,10 @@ class BlockFramer:
         complete = bool(real.all())
         t_first = int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
-        if self.with_steadiness or not len(self._joint_t):
+        if self.s.with_steadiness or not len(self._joint_t):
             velocity, steadiness, status = block_mean_velocity(
                 self._joint_t, self._joint_v, first, last, max_hold_ns=self._max_hold_ns,
-                with_steadiness=self.with_steadiness)
+                with_steadiness=self.s.with_steadiness)
         else:
             velocity, steadiness, status = one_block_mean_velocity(
                 self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns)
@@ -456,3 +497,33 @@ def frame_batch(settings: FramerSettings, n_joints: int, accel_stamps_ns: np.nda
     framer.push_accel(accel_stamps_ns, accel)
     framer.flush()
     return framer.pop_blocks(), framer.stats
+
+
+def feed(consumer, accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_ns: np.ndarray,
+         joint_velocity: np.ndarray, *, sample_rate_hz: float, joint_wait_s: float, chunk_s: float = 10.0,
+         progress=None) -> list:
+    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_accel`)
+    `chunk_s` seconds at a time, joint states first up to a little past each sensor
+    chunk so that no block waits: the one loop behind every batch path (denoise_batch,
+    calibrate_arrays, benchmarks, tests). Returns what the pushes returned, in order;
+    the caller flushes. `progress(n)` is called with sensor samples consumed."""
+    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
+    joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
+    step = max(1, int(chunk_s * sample_rate_hz))
+    wait_ns = int(joint_wait_s * 1e9) + 1
+    outputs, joint_pos = [], 0
+    for start in range(0, len(accel_stamps_ns), step):
+        stop = min(start + step, len(accel_stamps_ns))
+        last = stop == len(accel_stamps_ns)
+        joint_stop = len(joint_stamps_ns) if last else \
+            int(np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right"))
+        if joint_stop > joint_pos:
+            outputs.append(consumer.push_joint_states(joint_stamps_ns[joint_pos:joint_stop],
+                                                      joint_velocity[joint_pos:joint_stop]))
+            joint_pos = joint_stop
+        outputs.append(consumer.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
+        if progress is not None:
+            progress(stop - start)
+    if joint_pos < len(joint_stamps_ns):
+        outputs.append(consumer.push_joint_states(joint_stamps_ns[joint_pos:], joint_velocity[joint_pos:]))
+    return outputs
