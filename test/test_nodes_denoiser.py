@@ -21,76 +21,21 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.serialization import deserialize_message
 from scipy import signal
-from sensor_msgs.msg import Imu, JointState
+from sensor_msgs.msg import Imu
 
+from conftest import many_joints
 from egovib_ros.nodes.common import sensor_qos, stream_publisher_qos
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import (command_message, decode_imu_messages, diagnostic_values, encode_imu_batch,
-                                    encode_joint_state_batch)
+from egovib_ros.ros_convert import command_message, decode_imu_messages, diagnostic_values, encode_imu_batch
 
 PR2 = load_profile()    # the simulated hand; sim_model_path is calibrated on it
 BIN = Path(sys.executable).parent
 RATE = PR2.rate_hz
-# A robot's JointState: many joints in an order of its own; the model's two are among them.
-OTHER_JOINTS = [f"l_arm_joint_{i}" for i in range(10)]
-ALL_JOINTS = OTHER_JOINTS[:4] + [PR2.joint_names[1]] + OTHER_JOINTS[4:7] + [PR2.joint_names[0]] + OTHER_JOINTS[7:]
 
 
 def bandpass(values: np.ndarray) -> np.ndarray:
     sos = signal.butter(PR2.band_order, PR2.band_hz, btype="bandpass", fs=RATE, output="sos")
     return signal.sosfilt(sos, values, axis=0)
-
-
-class Feeder:
-    """Publishes a sensor stream (Imu, one per sample) and 12-joint JointStates from this
-    process in real time, 10 ms at a time, and keeps what it sent."""
-
-    def __init__(self, client, *, namespace: str = "", rate_hz: float = RATE, joint_names=ALL_JOINTS,
-                 velocity: dict[str, float] | None = None, seed: int = 0):
-        prefix = f"{namespace}/" if namespace else ""
-        self.client = client
-        self.raw_pub = client.node.create_publisher(Imu, prefix + PR2.node_sensor_topic, stream_publisher_qos())
-        self.joint_pub = client.node.create_publisher(JointState, prefix + PR2.node_joints_topic,
-                                                      stream_publisher_qos())
-        self.rate_hz = rate_hz
-        self.joint_names = list(joint_names)
-        speeds = {**{n: 0.1 * k for k, n in enumerate(self.joint_names)},          # other joints: anything
-                  **{n: 0.3 * vmax for n, vmax in zip(PR2.joint_names, PR2.max_speed)}, **(velocity or {})}
-        self.velocity = np.array([speeds[name] for name in self.joint_names])
-        self.rng = np.random.default_rng(seed)
-        self.stamp0 = time.time_ns()
-        self.next_index = 0
-        self.stamps: list[np.ndarray] = []
-        self.values: list[np.ndarray] = []
-
-    def wait_for_subscribers(self, timeout: float = 30.0) -> bool:
-        return self.client.spin_until(lambda: self.raw_pub.get_subscription_count() > 0
-                                      and self.joint_pub.get_subscription_count() > 0, timeout)
-
-    def run(self, seconds: float, *, skip_s: float = 0.0) -> None:
-        """Publish `seconds` of stream; `skip_s` first jumps the stamps (a restart after a gap)."""
-        self.next_index += int(round(skip_s * self.rate_hz))
-        start = time.monotonic()
-        n_ticks = int(round(seconds / 0.01))
-        per_tick = int(round(self.rate_hz * 0.01))
-        for tick in range(n_ticks):
-            index = self.next_index + np.arange(per_tick)
-            stamps = self.stamp0 + (index * (1e9 / self.rate_hz)).astype(np.int64)
-            values = self.rng.normal(0.0, 0.5, (per_tick, 3))
-            joint_stamps = stamps[::max(1, per_tick // 10)]
-            position = np.zeros((len(joint_stamps), len(self.joint_names)))
-            velocity = np.tile(self.velocity, (len(joint_stamps), 1))
-            for data in encode_joint_state_batch(joint_stamps, position, velocity, self.joint_names):
-                self.joint_pub.publish(data)
-            for data in encode_imu_batch(stamps, values, "imu_link"):
-                self.raw_pub.publish(data)
-            self.stamps.append(stamps)
-            self.values.append(values)
-            self.next_index += per_tick
-            self.client.spin_for(max(0.0, start + 0.01 * (tick + 1) - time.monotonic()))
-
-    def sent(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.concatenate(self.stamps), np.concatenate(self.values)
 
 
 def level_of(client, name: str = "denoiser"):
@@ -188,13 +133,13 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(nodes, ros
     assert nodes.stop(den) == 0
 
 
-def test_health_stale_without_input_and_ok_again_after_a_restart(nodes, ros_client, sim_model_path):
+def test_health_stale_without_input_and_ok_again_after_a_restart(nodes, ros_client, feeder, sim_model_path):
     den = nodes.start("denoiser", {"model": str(sim_model_path)})
-    feeder = Feeder(ros_client, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0})
-    assert feeder.wait_for_subscribers(), nodes.log(den)
+    stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0})
+    assert stream.wait_for_subscribers(), nodes.log(den)
     # No input at all: STALE from the first report.
     assert ros_client.spin_until(lambda: level_of(ros_client) == DiagnosticStatus.STALE, 3.0), nodes.log(den)
-    feeder.run(2.5)
+    stream.run(2.5)
     assert level_of(ros_client) == DiagnosticStatus.OK, ros_client.statuses["denoiser"]
     # The sensor stops: STALE within 3 s.
     stopped = time.monotonic()
@@ -206,10 +151,10 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(nodes, ros_clie
     # after at most a WARN for the restart.
     resumed = time.monotonic()
     levels = []
-    feeder.run(0.2, skip_s=3.0)
+    stream.run(0.2, skip_s=3.0)
     while time.monotonic() - resumed < 3.0 and level_of(ros_client) != DiagnosticStatus.OK:
         levels.append(level_of(ros_client))
-        feeder.run(0.1)
+        stream.run(0.1)
     recovered = time.monotonic() - resumed
     assert level_of(ros_client) == DiagnosticStatus.OK, (levels, ros_client.statuses["denoiser"])
     assert set(levels) <= {DiagnosticStatus.STALE, DiagnosticStatus.WARN}
@@ -236,13 +181,14 @@ def set_parameters(client, node_name: str, **values) -> list:
     return future.result().results
 
 
-def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(nodes, ros_client, sim_model_path):
+def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(nodes, ros_client, feeder,
+                                                                            sim_model_path):
     den = nodes.start("denoiser", {"model": str(sim_model_path)})
     denoised = []
     ros_client.node.create_subscription(Imu, "accelerometer/denoised", denoised.append, sensor_qos(), raw=True)
-    feeder = Feeder(ros_client, velocity={PR2.joint_names[0]: 1.5, PR2.joint_names[1]: 0.02})
-    assert feeder.wait_for_subscribers(), nodes.log(den)
-    feeder.run(1.5)
+    stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.5, PR2.joint_names[1]: 0.02})
+    assert stream.wait_for_subscribers(), nodes.log(den)
+    stream.run(1.5)
 
     refused = set_parameters(ros_client, "denoiser", model="other.npz", channels="combined")
     assert not any(r.successful for r in refused)
@@ -252,11 +198,11 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(no
     changed = set_parameters(ros_client, "denoiser", oversubtraction=0.0)
     assert changed[0].successful, changed[0].reason
     mark = len(denoised)
-    feeder.run(1.5)
+    stream.run(1.5)
     ros_client.spin_for(1.0)             # idle flush of the held samples
     assert nodes.stop(den) == 0, nodes.log(den)
 
-    stamps, values = feeder.sent()
+    stamps, values = stream.sent()
     out_stamps, out, _ = decode_imu_messages(denoised)
     np.testing.assert_array_equal(out_stamps, stamps)
     expected = bandpass(values)
@@ -267,7 +213,7 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(no
     assert "oversubtraction 0, floor 0" in nodes.log(den)
 
 
-def test_wrong_rate_and_missing_joint_are_errors_with_no_output(nodes, ros_client, sim_model_path):
+def test_wrong_rate_and_missing_joint_are_errors_with_no_output(nodes, ros_client, feeder, sim_model_path):
     # Two denoisers side by side: one fed a 1 kHz stream (the model is 3 kHz), one fed
     # joint states that lack one of the model's joints.
     wrong = nodes.start("denoiser", {"model": str(sim_model_path)}, namespace="/wrong_rate")
@@ -276,9 +222,9 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(nodes, ros_clien
     for ns, received in output.items():
         ros_client.node.create_subscription(Imu, f"/{ns}/accelerometer/denoised", received.append,
                                             sensor_qos(), raw=True)
-    slow = Feeder(ros_client, namespace="/wrong_rate", rate_hz=1000.0)
-    no_gripper = Feeder(ros_client, namespace="/no_gripper", seed=1,
-                        joint_names=[n for n in ALL_JOINTS if n != PR2.joint_names[1]])
+    slow = feeder(PR2, namespace="/wrong_rate", rate_hz=1000.0)
+    no_gripper = feeder(PR2, namespace="/no_gripper", seed=1,
+                        joint_names=[n for n in many_joints(PR2) if n != PR2.joint_names[1]])
     assert slow.wait_for_subscribers() and no_gripper.wait_for_subscribers(), nodes.log(wrong) + nodes.log(lacking)
     for _ in range(25):
         slow.run(0.1)

@@ -25,11 +25,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from egovib_ros.cdr import replace_imu_field
-from egovib_ros.core import NoiseModel, StreamingDenoiser, paper_rule
+from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.common import (Health, Param, StreamInput, declare_parameters, run_node,
                                      stream_publisher_qos)
-from egovib_ros.robot import load_profile
+from egovib_ros.robot import RobotProfile
 
 LIVE = ("oversubtraction", "floor")
 # The core checks the stream's rate on its first 2 blocks' worth of samples; output waits
@@ -43,8 +44,9 @@ MODEL_PARAMETERS = (
 )
 PARAMETERS = MODEL_PARAMETERS + (
     Param("oversubtraction", 1.0, "alpha in max(|Y| - alpha N, beta N); changes live", read_only=False,
-          range=(0.0, 10.0)),
-    Param("floor", 0.0, "beta in max(|Y| - alpha N, beta N); changes live", read_only=False, range=(0.0, 1.0)),
+          range=(0.0, MAX_OVERSUBTRACTION)),
+    Param("floor", 0.0, "beta in max(|Y| - alpha N, beta N); changes live", read_only=False,
+          range=(0.0, MAX_FLOOR)),
     Param("batch_samples", 32, "process every this many sensor samples (default: the model's hop, i.e. as "
           "soon as a block completes)", range=(1, 100_000)),
     Param("flush_after_idle", 0.5, "seconds without input after which the samples held for overlap-add are "
@@ -54,21 +56,6 @@ PARAMETERS = MODEL_PARAMETERS + (
     Param("unmeasured_warn_fraction", 0.25, "WARN when more than this share of a second's blocks fell on "
           "cells the calibration did not measure", range=(0.0, 1.0)),
 )
-
-
-class LiveRule:
-    """The paper's magnitude rule (core.paper_rule) whose alpha and beta may change between
-    blocks: given to the core as its `rule`, updated by the parameter callback."""
-
-    def __init__(self, oversubtraction: float, floor: float):
-        self.set(oversubtraction, floor)
-
-    def set(self, oversubtraction: float, floor: float) -> None:
-        self._rule = paper_rule(oversubtraction, floor)       # validates
-        self.oversubtraction, self.floor = float(oversubtraction), float(floor)
-
-    def __call__(self, magnitude: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        return self._rule(magnitude, noise)
 
 
 class HeldInput:
@@ -120,10 +107,12 @@ class HeldInput:
         return n
 
 
-def model_profile(model: NoiseModel):
-    """The robot profile the model was calibrated with (v1 models: the PR2 hand)."""
-    profile = getattr(model, "profile", None)
-    return profile if profile is not None else load_profile()
+def model_profile(model: NoiseModel) -> RobotProfile:
+    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2 hand)."""
+    if model.profile is None:
+        raise ConfigError(f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
+                          f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`")
+    return model.profile
 
 
 class Denoiser(Node):
@@ -139,8 +128,8 @@ class Denoiser(Node):
         self.channels = first["channels"]
         self.flush_after_idle_s = params["flush_after_idle"]
         self.unmeasured_warn = params["unmeasured_warn_fraction"]
-        self.rule = LiveRule(params["oversubtraction"], params["floor"])
-        self.denoiser = StreamingDenoiser(self.model, channels=self.channels, rule=self.rule,
+        self.denoiser = StreamingDenoiser(self.model, channels=self.channels,
+                                          oversubtraction=params["oversubtraction"], floor=params["floor"],
                                           source=self.resolve_topic_name(self.profile.node_sensor_topic))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -172,16 +161,15 @@ class Denoiser(Node):
     def _on_set_parameters(self, params) -> SetParametersResult:
         """oversubtraction and floor take effect from the next block (rclpy has already
         checked their ranges and refused read-only parameters)."""
-        values = {"oversubtraction": self.rule.oversubtraction, "floor": self.rule.floor}
-        for param in params:
-            if param.name in LIVE:
-                values[param.name] = param.value
+        changes = {p.name: p.value for p in params if p.name in LIVE}
+        if not changes:
+            return SetParametersResult(successful=True)
         try:
-            self.rule.set(values["oversubtraction"], values["floor"])
+            self.denoiser.set_subtraction(**changes)
         except EgovibError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        if any(p.name in LIVE for p in params):
-            self.get_logger().info(f"oversubtraction {self.rule.oversubtraction:g}, floor {self.rule.floor:g}")
+        settings = self.denoiser.subtraction
+        self.get_logger().info(f"oversubtraction {settings.oversubtraction:g}, floor {settings.floor:g}")
         return SetParametersResult(successful=True)
 
     # --- input ---------------------------------------------------------------------------
@@ -279,14 +267,13 @@ class Denoiser(Node):
         self._last_report = (now, inp.sensor_messages, self.samples_published)
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
-        samples_bad = stats.get("samples_bad", stats.get("nonfinite_replaced", 0) + stats.get("nonfinite_dropped", 0))
         counters = {"undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-                    "samples_bad": samples_bad, "samples_out_of_order": stats["dropped_out_of_order"],
+                    "samples_bad": stats["samples_bad"], "samples_out_of_order": stats["dropped_out_of_order"],
                     "gap_filled_samples": stats["gap_filled_samples"], "stream_restarts": stats["resets"],
                     "joint_states_dropped": stats["joint_states_dropped"], "blocks": stats["blocks"],
                     "blocks_no_joint_state": stats["blocks_no_joint_state"],
                     "blocks_out_of_grid": stats["blocks_out_of_grid"],
-                    "blocks_unmeasured": stats.get("blocks_unmeasured", 0)}
+                    "blocks_unmeasured": stats["blocks_unmeasured"]}
         grown = self.health.changes(counters)
         blocks = max(grown["blocks"], 1)
         fractions = {key: grown[f"blocks_{key}"] / blocks for key in ("no_joint_state", "out_of_grid", "unmeasured")}
@@ -302,7 +289,8 @@ class Denoiser(Node):
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
             "model_rate_hz": self.model.sample_rate_hz, "channels": self.channels,
-            "oversubtraction": self.rule.oversubtraction, "floor": self.rule.floor,
+            "oversubtraction": self.denoiser.subtraction.oversubtraction,
+            "floor": self.denoiser.subtraction.floor,
         }
         errors = []
         if self.stream_error:

@@ -2,8 +2,9 @@
 
 The robot profile (`robot`: a profile path or a shipped name, default the PR2 hand)
 gives the joints and their grid (max speed, steps, one- or two-directional). For each
-cell of the grid (`full`: every cell, only for small grids; `superposition`: the cells
-where at most one joint moves, which Eq. 6 needs) the joint velocities are commanded
+cell of the grid (`full`: every cell, only for small grids; `superposition`: the rest
+cell, then each joint's other grid values with the others at rest, which Eq. 6 needs;
+the core's `sweep_cells` order) the joint velocities are commanded
 in the ros2_control forward-command convention (std_msgs/Float64MultiArray, one value
 per joint in profile order) on `hand_velocity_controller/commands` (remap it to your
 controller's `<controller>/commands`) for `settle` + `dwell` seconds of node-clock
@@ -18,6 +19,7 @@ from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
 from egovib_ros.constants import TOPIC_COMMANDS
+from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import Health, Param, declare_parameters, run_node
 from egovib_ros.robot import RobotProfile, load_profile
@@ -38,29 +40,16 @@ PARAMETERS = (
 )
 
 
-def sweep_cells(profile: RobotProfile, grid: str) -> np.ndarray:
-    """Velocity cells (C, J) of a sweep over the profile's grid, in sweep order.
-
-    full: every cell, the last joint varying fastest; superposition: the first joint's
-    whole axis (the others at rest, so the rest cell comes early), then each other
-    joint's non-zero values."""
+def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
+    """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
+    order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses)."""
+    if grid == "full" and np.prod(profile.grid_shape, dtype=np.float64) > MAX_SWEEP_CELLS:
+        raise ConfigError(f"{profile.name}: a full sweep has {int(np.prod(profile.grid_shape, dtype=np.float64))} "
+                          f"cells (more than {MAX_SWEEP_CELLS}); sweep the superposition grid or calibrate "
+                          f"from free motion")
     axes = profile.grid()
-    if grid == "full":
-        n_cells = int(np.prod(profile.grid_shape))
-        if n_cells > MAX_SWEEP_CELLS:
-            raise ConfigError(f"{profile.name}: a full sweep has {n_cells} cells (more than {MAX_SWEEP_CELLS}); "
-                              f"sweep the superposition grid or calibrate from free motion")
-        mesh = np.meshgrid(*axes, indexing="ij")
-        return np.column_stack([m.ravel() for m in mesh])
-    if grid == "superposition":
-        rows = []
-        for joint, values in enumerate(axes):
-            for value in (values if joint == 0 else values[values != 0]):
-                cell = np.zeros(profile.n_joints)
-                cell[joint] = value
-                rows.append(cell)
-        return np.array(rows)
-    raise ConfigError(f"grid must be 'full' or 'superposition', not {grid!r}")
+    cells = sweep_cells(axes, grid)
+    return np.column_stack([axes[j][cells[:, j]] for j in range(profile.n_joints)])
 
 
 class SweepDriver(Node):
@@ -72,7 +61,7 @@ class SweepDriver(Node):
         self.dwell_s, self.settle_s = params["dwell"], params["settle"]
         self.start_cell = params["start_cell"]
         self.wait_for_subscriber = params["wait_for_subscriber"]
-        self.cells = sweep_cells(self.profile, grid)
+        self.cells = sweep_velocities(self.profile, grid)
         if not 0 <= self.start_cell < len(self.cells):
             raise ConfigError(f"sweep_driver: start_cell must be in 0..{len(self.cells) - 1}")
         self.grid = grid
