@@ -7,15 +7,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 
-from egovib_ros.core import NoiseModel
+from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
+from egovib_ros.orchestration import reliable_input
+from egovib_ros.ros_convert import diagnostic_values
+from robots import profile, recording
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}
 # Lossless input on a loaded machine (standard QoS override parameters).
-RELIABLE = {"qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
-            "qos_overrides./joint_states.subscription.reliability": "reliable"}
+RELIABLE = reliable_input("/accelerometer/raw", "/joint_states")
 
 
 def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
@@ -99,3 +102,54 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
     assert np.all(final.counts[kept] > 0)
     # The restarted calibrator added the cells swept after the restart.
     assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum()
+
+
+def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_checkpoints_fail(
+        nodes, ros_client, feeder, tmp_path):
+    """A robot that is not the PR2 (3 joints, one one-directional, a gyro at 1 kHz with
+    jittery stamps, joint states at 500 Hz among ten other joints): free-motion calibration
+    through its profile. The checkpoint directory is unusable at first (a file stands where
+    it should be): ERROR on /diagnostics, statistics kept, the write retried; once the
+    directory exists the checkpoint appears, and the final model equals the offline one."""
+    robot = profile(3, rate_hz=1000.0)
+    robot_path = tmp_path / "robot.yaml"
+    robot_path.write_text(robot.dumps())
+    data = recording(robot, 8.0, seed=3, joint_rate_hz=500.0)
+    blocked = tmp_path / "models"
+    blocked.write_text("a file where the model directory should be")
+    output = blocked / "model.npz"
+    cal = nodes.start("calibrator", {"robot": str(robot_path), "grid": "free", "output": str(output),
+                                     "checkpoint_period": 1.0, "retry_period": 0.5,
+                                     **reliable_input(robot.sensor_topic, robot.joints_topic)})
+    stream = feeder(robot)
+    assert stream.wait_for_subscribers(), nodes.log(cal)
+    t_acc, accel, t_joint, velocity = data["t_acc"], data["accel"], data["t_joint"], data["velocity"]
+    half = len(t_acc) // 2
+    joint_half = int(np.searchsorted(t_joint, t_acc[half]))
+    stream.publish(t_acc[:half], accel[:half], t_joint[:joint_half], velocity[:joint_half])
+
+    def failing() -> bool:
+        status = ros_client.statuses.get("calibrator")
+        return status is not None and status.level == DiagnosticStatus.ERROR and "cannot write checkpoint" in \
+            status.message and str(output.parent) in status.message
+    assert ros_client.spin_until(failing, timeout=5.0), (ros_client.statuses.get("calibrator"), nodes.log(cal))
+    assert cal.poll() is None
+    failures = int(diagnostic_values(ros_client.statuses["calibrator"])["checkpoint_failures"])
+    blocked.unlink()
+    blocked.mkdir()
+    checkpoint = blocked / "model.checkpoint.npz"
+    assert ros_client.spin_until(checkpoint.exists, timeout=5.0), nodes.log(cal)
+    assert ros_client.spin_until(lambda: ros_client.statuses["calibrator"].level != DiagnosticStatus.ERROR, 3.0)
+    stream.publish(t_acc[half:], accel[half:], t_joint[joint_half:], velocity[joint_half:])
+    ros_client.spin_for(0.5)
+    assert nodes.stop(cal) == 0, nodes.log(cal)
+    assert failures >= 1 and "cannot write checkpoint" in nodes.log(cal)
+
+    live = NoiseModel.load(output)
+    offline, stats = calibrate_arrays(t_acc, accel, t_joint, velocity, profile=robot, sweep="free")
+    assert live.profile == robot and live.measured == offline.measured == "free"
+    live_cells, live_counts = live.cells_measured()
+    cells, counts = offline.cells_measured()
+    assert len(cells) > 20 and np.array_equal(live_cells, cells), (len(live_cells), len(cells))
+    assert np.abs(live_counts - counts).max() <= 1 and abs(live_counts.sum() - counts.sum()) <= 0.01 * counts.sum()
+    assert not checkpoint.exists()
