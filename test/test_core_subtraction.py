@@ -257,3 +257,15 @@ def test_stream_errors_name_their_source(model):
     denoiser = StreamingDenoiser(model, source="/accelerometer/raw")
     with pytest.raises(StreamError, match=r"^/accelerometer/raw: accelerometer chunk"):
         denoiser.push_accel(np.arange(4, dtype=np.int64), np.zeros((4, 2)))
+
+
+def test_a_mostly_bad_recording_is_refused_not_denoised(model):
+    from egovib_ros.core import check_bad_share
+    data = stream(2, [(1.5, 0.02)], seed=21)
+    accel = data["accel"].copy()
+    accel[: len(accel) // 4] = np.nan                      # 25 % bad
+    _, _, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
+    assert stats["samples_bad"] == len(accel) // 4
+    with pytest.raises(StreamError, match=r"bag.mcap: 1500 of 6000 sensor samples \(25.0 %\) are bad"):
+        check_bad_share(stats, "bag.mcap")
+    check_bad_share(stats, "bag.mcap", limit=0.3)

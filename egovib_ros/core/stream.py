@@ -34,6 +34,23 @@ from egovib_ros.errors import ConfigError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
 
+#: A recording with more bad samples than this share (non-finite, beyond the sensor range,
+#: out of order) gives an error, not a result: whatever came out would describe the faults.
+MAX_BAD_SHARE = 0.1
+
+
+def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> None:
+    """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
+    (`stats` of a StreamingDenoiser or CalibrationAccumulator)."""
+    total = int(stats.get("samples_in", 0))
+    bad = int(stats.get("samples_bad", 0)) + int(stats.get("dropped_out_of_order", 0))
+    if total == 0:
+        raise StreamError(f"{where}: no sensor samples")
+    if bad > limit * total:
+        raise StreamError(f"{where}: {bad} of {total} sensor samples ({100 * bad / total:.1f} %) are bad "
+                          f"(non-finite, beyond the sensor range or out of order); more than "
+                          f"{100 * limit:g} % is refused")
+
 
 @dataclass(frozen=True, kw_only=True)
 class FramerSettings:
