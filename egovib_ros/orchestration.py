@@ -8,6 +8,7 @@ commands. Used by `egovib demo`, `egovib live-bench` and the node tests.
 
 On a colcon install the launch files in `launch/` do the same job.
 """
+
 from __future__ import annotations
 
 import os
@@ -35,19 +36,27 @@ def reliable_input(*topics: str) -> dict[str, str]:
     """QoS override parameters that make a node's sensor subscriptions reliable (lossless
     replay or calibration on a loaded machine). `topics` as the node resolves them
     (absolute names, e.g. '/accelerometer/raw')."""
-    return {f"qos_overrides.{'/' + t.lstrip('/')}.subscription.reliability": "reliable" for t in topics}
+    return {
+        f"qos_overrides.{'/' + t.lstrip('/')}.subscription.reliability": "reliable" for t in topics
+    }
 
 
 class NodeGroup:
     """Node processes sharing one private ROS domain; `close()` stops them all."""
 
     def __init__(self, log_dir: str | os.PathLike, domain_id: int | None = None):
-        self.domain_id = domain_id if domain_id is not None else random.SystemRandom().randint(1, 200)
+        self.domain_id = (
+            domain_id if domain_id is not None else random.SystemRandom().randint(1, 200)
+        )
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id),
-                        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1",
-                        RCUTILS_COLORIZED_OUTPUT="0")
+        self.env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(self.domain_id),
+            ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+            PYTHONUNBUFFERED="1",
+            RCUTILS_COLORIZED_OUTPUT="0",
+        )
         self.procs: dict[str, subprocess.Popen] = {}
 
     def use_domain_here(self) -> None:
@@ -55,9 +64,16 @@ class NodeGroup:
         os.environ["ROS_DOMAIN_ID"] = str(self.domain_id)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
-    def start(self, name: str, executable: str, params: Mapping | None = None, *,
-              remap: Mapping[str, str] | None = None, namespace: str = "",
-              args: Sequence[str] = ()) -> subprocess.Popen:
+    def start(
+        self,
+        name: str,
+        executable: str,
+        params: Mapping | None = None,
+        *,
+        remap: Mapping[str, str] | None = None,
+        namespace: str = "",
+        args: Sequence[str] = (),
+    ) -> subprocess.Popen:
         """Start `executable --ros-args -p k:=v ... -r from:=to ...` as process `name`."""
         cmd = [str(BIN / executable), *args, "--ros-args"]
         for key, value in (params or {}).items():
@@ -67,8 +83,9 @@ class NodeGroup:
         if namespace:
             cmd += ["-r", f"__ns:={namespace}"]
         with open(self.log_path(name), "w") as log:
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env,
-                                    start_new_session=True)
+            proc = subprocess.Popen(
+                cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True
+            )
         self.procs[name] = proc
         return proc
 
@@ -82,14 +99,18 @@ class NodeGroup:
         for name in names:
             code = self.procs[name].poll()
             if code is not None:
-                raise RuntimeError(f"{name} exited with status {code}; its log:\n{self.log(name)[-3000:]}")
+                raise RuntimeError(
+                    f"{name} exited with status {code}; its log:\n{self.log(name)[-3000:]}"
+                )
 
     def wait_for_log(self, name: str, text: str, timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout
         while text not in self.log(name):
             self.check_alive(name)
             if time.monotonic() > deadline:
-                raise RuntimeError(f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}")
+                raise RuntimeError(
+                    f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}"
+                )
             time.sleep(0.1)
 
     def stop(self, name: str, timeout: float = 30.0, sig: int = signal.SIGINT) -> int:
@@ -121,18 +142,25 @@ class Watcher:
     """An rclpy node in this process (own context): the latest /diagnostics status of each
     node, and a publisher of joint commands (ros2_control forward-command convention)."""
 
-    def __init__(self, name: str = "egovib_watcher", commands_topic: str = "hand_velocity_controller/commands"):
+    def __init__(
+        self,
+        name: str = "egovib_watcher",
+        commands_topic: str = "hand_velocity_controller/commands",
+    ):
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.experimental import EventsExecutor
         from std_msgs.msg import Float64MultiArray
+
         self.context = rclpy.Context()
-        rclpy.init(context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        rclpy.init(
+            context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
+        )
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.status: dict[str, str] = {}            # node status name -> message
-        self.statuses: dict[str, object] = {}       # node status name -> latest DiagnosticStatus
+        self.status: dict[str, str] = {}  # node status name -> message
+        self.statuses: dict[str, object] = {}  # node status name -> latest DiagnosticStatus
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
         self.commands = self.node.create_publisher(Float64MultiArray, commands_topic, 10)
 

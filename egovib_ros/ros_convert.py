@@ -7,6 +7,7 @@ decoding them in batches with the vectorised codec of egovib_ros.cdr. Nothing he
 knows a particular robot: joint names, the Imu field and frames come from the caller
 (the robot profile or the input messages).
 """
+
 from __future__ import annotations
 
 from typing import Iterable, Mapping, Sequence
@@ -17,9 +18,21 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.cdr import (decode_imu_batch, decode_joint_state_batch,  # noqa: F401 (re-exported)
-                            encode_imu_batch, encode_joint_state_batch)
+from egovib_ros.cdr import (
+    decode_imu_batch,
+    decode_joint_state_batch,
+    encode_imu_batch,
+    encode_joint_state_batch,
+)
 from egovib_ros.errors import StreamError
+
+__all__ = [
+    "stamp_to_ns", "ns_to_stamp", "imu_message", "decode_imu_raws", "decode_imu_messages",
+    "decode_joint_state_raws", "decode_joint_state_messages", "joint_names_of", "command_message",
+    "command_velocity", "diagnostic_array", "diagnostic_values", "LEVELS",
+    # the codec of egovib_ros.cdr, for the nodes and their tests
+    "decode_imu_batch", "decode_joint_state_batch", "encode_imu_batch", "encode_joint_state_batch",
+]
 
 _NS_PER_S = 1_000_000_000
 
@@ -37,8 +50,9 @@ def ns_to_stamp(stamp_ns: int) -> Time:
 
 
 # --- Imu ---------------------------------------------------------------------
-def imu_message(stamp_ns: int, values: Sequence[float], frame_id: str,
-                field: str = "linear_acceleration") -> Imu:
+def imu_message(
+    stamp_ns: int, values: Sequence[float], frame_id: str, field: str = "linear_acceleration"
+) -> Imu:
     """One sample as an Imu message, `values` in `field` (REP 145: orientation and the other
     vector unknown, covariance[0] = -1)."""
     msg = Imu()
@@ -52,8 +66,9 @@ def imu_message(stamp_ns: int, values: Sequence[float], frame_id: str,
     return msg
 
 
-def decode_imu_raws(raws: Sequence[bytes], field: str = "linear_acceleration"
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decode_imu_raws(
+    raws: Sequence[bytes], field: str = "linear_acceleration"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Raw Imu CDR messages -> (stamps_ns (n,), `field` values (n, 3), index (n,) of the
     decoded messages in `raws`). Undecodable messages are left out (len(raws) - n of
     them); non-finite values are kept: the core counts and handles them.
@@ -75,12 +90,16 @@ def decode_imu_raws(raws: Sequence[bytes], field: str = "linear_acceleration"
         stamps.append(stamp[0])
         values.append(value[0])
         index.append(i)
-    return (np.asarray(stamps, dtype=np.int64).reshape(-1), np.asarray(values, dtype=np.float64).reshape(-1, 3),
-            np.asarray(index, dtype=np.int64))
+    return (
+        np.asarray(stamps, dtype=np.int64).reshape(-1),
+        np.asarray(values, dtype=np.float64).reshape(-1, 3),
+        np.asarray(index, dtype=np.int64),
+    )
 
 
-def decode_imu_messages(raws: Sequence[bytes], field: str = "linear_acceleration"
-                        ) -> tuple[np.ndarray, np.ndarray, int]:
+def decode_imu_messages(
+    raws: Sequence[bytes], field: str = "linear_acceleration"
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Raw Imu CDR messages -> (stamps_ns, values (n, 3), number dropped), dropping
     undecodable and non-finite messages (for analysing a received stream)."""
     stamps, values, _ = decode_imu_raws(raws, field)
@@ -88,8 +107,9 @@ def decode_imu_messages(raws: Sequence[bytes], field: str = "linear_acceleration
     return stamps[finite], values[finite], len(raws) - int(finite.sum())
 
 
-def decode_joint_state_raws(raws: Sequence[bytes], names: Sequence[str]
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def decode_joint_state_raws(
+    raws: Sequence[bytes], names: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Raw JointState CDR messages -> (stamps_ns, position (n, J), velocity (n, J), number
     of undecodable messages left out). Columns follow `names` (messages may list more
     joints, in any order); a joint a message lacks is NaN in its row."""
@@ -107,12 +127,17 @@ def decode_joint_state_raws(raws: Sequence[bytes], names: Sequence[str]
     if not parts:
         n = len(names)
         return np.zeros(0, np.int64), np.zeros((0, n)), np.zeros((0, n)), len(raws)
-    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-            np.concatenate([p[2] for p in parts]), len(raws) - len(parts))
+    return (
+        np.concatenate([p[0] for p in parts]),
+        np.concatenate([p[1] for p in parts]),
+        np.concatenate([p[2] for p in parts]),
+        len(raws) - len(parts),
+    )
 
 
-def decode_joint_state_messages(raws: Sequence[bytes], names: Sequence[str]
-                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def decode_joint_state_messages(
+    raws: Sequence[bytes], names: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """As decode_joint_state_raws, but also dropping rows without a finite position and
     velocity of every named joint; the count returned covers both kinds."""
     stamps, position, velocity, _ = decode_joint_state_raws(raws, names)
@@ -143,18 +168,26 @@ def command_velocity(msg: Float64MultiArray, n_joints: int, topic: str = "comman
 
 
 # --- diagnostics ---------------------------------------------------------------
-LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN,
-          "error": DiagnosticStatus.ERROR, "stale": DiagnosticStatus.STALE}
+LEVELS = {
+    "ok": DiagnosticStatus.OK,
+    "warn": DiagnosticStatus.WARN,
+    "error": DiagnosticStatus.ERROR,
+    "stale": DiagnosticStatus.STALE,
+}
 
 
-def diagnostic_array(stamp_ns: int, statuses: Iterable[tuple[str, str, str, Mapping[str, object]]],
-                     hardware_id: str = "") -> DiagnosticArray:
+def diagnostic_array(
+    stamp_ns: int,
+    statuses: Iterable[tuple[str, str, str, Mapping[str, object]]],
+    hardware_id: str = "",
+) -> DiagnosticArray:
     """DiagnosticArray from (name, level 'ok'|'warn'|'error'|'stale', message, values) tuples."""
     array = DiagnosticArray()
     array.header.stamp = ns_to_stamp(max(int(stamp_ns), 0))
     for name, level, message, values in statuses:
-        status = DiagnosticStatus(level=LEVELS[level], name=name, message=message,
-                                  hardware_id=hardware_id)
+        status = DiagnosticStatus(
+            level=LEVELS[level], name=name, message=message, hardware_id=hardware_id
+        )
         status.values = [KeyValue(key=str(k), value=_format_value(v)) for k, v in values.items()]
         array.status.append(status)
     return array

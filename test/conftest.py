@@ -4,6 +4,7 @@ Every such test gets a private random ROS_DOMAIN_ID with localhost-only discover
 starts the nodes as separate processes (the venv's console scripts) and stops them
 all at the end, also when the test fails.
 """
+
 from __future__ import annotations
 
 import random
@@ -24,10 +25,14 @@ class NodeProcesses(NodeGroup):
     def __init__(self, domain_id: int, log_dir: Path):
         super().__init__(log_dir, domain_id)
 
-    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None, **options):
+    def start(
+        self, executable: str, params: dict | None = None, *, log_name: str | None = None, **options
+    ):
         """Run `executable --ros-args -p name:=value ...`; output goes to a log file.
         `options`: remap, namespace, args (see NodeGroup.start)."""
-        return super().start(f"{log_name or executable}.{len(self.procs)}", executable, params, **options)
+        return super().start(
+            f"{log_name or executable}.{len(self.procs)}", executable, params, **options
+        )
 
     def _name(self, proc: subprocess.Popen) -> str:
         return next(name for name, p in self.procs.items() if p is proc)
@@ -77,20 +82,36 @@ class Feeder:
     sent. JointStates carry `joint_names` (default: the profile's joints among ten others,
     in an order of their own, as a real robot's joint_state_broadcaster does)."""
 
-    def __init__(self, client, profile, *, namespace: str = "", joint_names=None, velocity=None,
-                 rate_hz: float | None = None, seed: int = 0):
+    def __init__(
+        self,
+        client,
+        profile,
+        *,
+        namespace: str = "",
+        joint_names=None,
+        velocity=None,
+        rate_hz: float | None = None,
+        seed: int = 0,
+    ):
         from sensor_msgs.msg import Imu, JointState
 
         from egovib_ros.nodes.common import stream_publisher_qos
+
         prefix = f"{namespace.rstrip('/')}/" if namespace else ""
         self.client, self.profile = client, profile
-        self.raw_pub = client.node.create_publisher(Imu, prefix + profile.node_sensor_topic, stream_publisher_qos())
-        self.joint_pub = client.node.create_publisher(JointState, prefix + profile.node_joints_topic,
-                                                      stream_publisher_qos())
+        self.raw_pub = client.node.create_publisher(
+            Imu, prefix + profile.node_sensor_topic, stream_publisher_qos()
+        )
+        self.joint_pub = client.node.create_publisher(
+            JointState, prefix + profile.node_joints_topic, stream_publisher_qos()
+        )
         self.rate_hz = rate_hz or profile.rate_hz
         self.joint_names = list(joint_names) if joint_names is not None else many_joints(profile)
-        speeds = {**{n: 0.1 * k for k, n in enumerate(self.joint_names)},          # other joints: anything
-                  **{n: 0.3 * vmax for n, vmax in zip(profile.joint_names, profile.max_speed)}, **(velocity or {})}
+        speeds = {
+            **{n: 0.1 * k for k, n in enumerate(self.joint_names)},  # other joints: anything
+            **{n: 0.3 * vmax for n, vmax in zip(profile.joint_names, profile.max_speed)},
+            **(velocity or {}),
+        }
         self.velocity = np.array([speeds[name] for name in self.joint_names])
         self.rng = np.random.default_rng(seed)
         self.stamp0 = time.time_ns()
@@ -99,8 +120,13 @@ class Feeder:
         self.values: list[np.ndarray] = []
 
     def wait_for_subscribers(self, timeout: float = 30.0) -> bool:
-        return self.client.spin_until(lambda: self.raw_pub.get_subscription_count() > 0
-                                      and self.joint_pub.get_subscription_count() > 0, timeout)
+        return self.client.spin_until(
+            lambda: (
+                self.raw_pub.get_subscription_count() > 0
+                and self.joint_pub.get_subscription_count() > 0
+            ),
+            timeout,
+        )
 
     def run(self, seconds: float, *, skip_s: float = 0.0) -> None:
         """Publish `seconds` of white noise at constant joint velocities; `skip_s` first jumps
@@ -109,15 +135,23 @@ class Feeder:
         n = int(round(seconds * self.rate_hz))
         index = self.next_index + np.arange(n)
         stamps = self.stamp0 + (index * (1e9 / self.rate_hz)).astype(np.int64)
-        joint_stamps = stamps[::max(1, int(round(self.rate_hz / 1000.0)))]
-        self.publish(stamps, self.rng.normal(0.0, 0.5, (n, 3)), joint_stamps,
-                     np.tile(self.velocity, (len(joint_stamps), 1)), all_joints=True)
+        joint_stamps = stamps[:: max(1, int(round(self.rate_hz / 1000.0)))]
+        self.publish(
+            stamps,
+            self.rng.normal(0.0, 0.5, (n, 3)),
+            joint_stamps,
+            np.tile(self.velocity, (len(joint_stamps), 1)),
+            all_joints=True,
+        )
         self.next_index += n
 
-    def publish(self, stamps, values, joint_stamps, joint_velocity, *, all_joints: bool = False) -> None:
+    def publish(
+        self, stamps, values, joint_stamps, joint_velocity, *, all_joints: bool = False
+    ) -> None:
         """Publish recorded arrays at their own pace (stamps relative to the first); velocities
         are of the profile's joints unless `all_joints` (then of `joint_names`)."""
         from egovib_ros.ros_convert import encode_imu_batch, encode_joint_state_batch
+
         names = self.joint_names
         if not all_joints:
             columns = {name: j for j, name in enumerate(self.profile.joint_names)}
@@ -132,11 +166,17 @@ class Feeder:
             due = t0 + int((time.monotonic() - start + 0.01) * 1e9)
             i_end, k_end = np.searchsorted(stamps, due), np.searchsorted(joint_stamps, due)
             if k_end > k:
-                for data in encode_joint_state_batch(joint_stamps[k:k_end], np.zeros((k_end - k, len(names))),
-                                                     joint_velocity[k:k_end], names):
+                for data in encode_joint_state_batch(
+                    joint_stamps[k:k_end],
+                    np.zeros((k_end - k, len(names))),
+                    joint_velocity[k:k_end],
+                    names,
+                ):
                     self.joint_pub.publish(data)
             if i_end > i:
-                for data in encode_imu_batch(stamps[i:i_end], values[i:i_end], "imu_link", self.profile.sensor_field):
+                for data in encode_imu_batch(
+                    stamps[i:i_end], values[i:i_end], "imu_link", self.profile.sensor_field
+                ):
                     self.raw_pub.publish(data)
             i, k = i_end, k_end
             self.client.spin_for(0.01)
@@ -165,9 +205,16 @@ def sim_model_path(tmp_path_factory) -> Path:
     """A noise model calibrated offline from a short simulated superposition sweep."""
     from egovib_ros.core import calibrate_arrays
     from egovib_ros.sim import simulate_sweep
+
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=11)
-    model, _ = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
-                                sweep="superposition", source="test sweep")
+    model, _ = calibrate_arrays(
+        rec.accel_stamps_ns,
+        rec.accel,
+        rec.joint_stamps_ns,
+        rec.joint_velocity,
+        sweep="superposition",
+        source="test sweep",
+    )
     assert np.all(model.counts[model.axis_mask()] > 0)
     path = tmp_path_factory.mktemp("model") / "model.npz"
     model.save(path)

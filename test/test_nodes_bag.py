@@ -1,4 +1,5 @@
-"""bag_player and bag_recorder on real DDS, and the denoiser on a replayed bag vs `egovib denoise`."""
+"""bag_player and bag_recorder on real DDS; the denoiser on a replayed bag vs `egovib denoise`."""
+
 from __future__ import annotations
 
 import subprocess
@@ -43,21 +44,47 @@ def test_replayed_bag_denoised_live_equals_offline(nodes, sim_model_path, tmp_pa
     source = tmp_path / "motion"
     make_motion_bag(source, 3.0, seed=3)
     offline = tmp_path / "offline"
-    subprocess.run([EGOVIB, "denoise", str(source), "--model", str(sim_model_path), "--out", str(offline),
-                    "--quiet"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            EGOVIB,
+            "denoise",
+            str(source),
+            "--model",
+            str(sim_model_path),
+            "--out",
+            str(offline),
+            "--quiet",
+        ],
+        check=True,
+        capture_output=True,
+    )
     want_stamps, want = bag_imu(offline, "/accelerometer/denoised")
 
     # Reliable input (standard QoS override): the replay must not lose samples on a loaded machine.
-    den = nodes.start("denoiser", {"model": str(sim_model_path), "flush_after_idle": 0.3,
-                                   "qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
-                                   "qos_overrides./joint_states.subscription.reliability": "reliable"})
-    rec = nodes.start("bag_recorder", {"output": str(tmp_path / "live"), "topics": ["accelerometer/denoised"]})
+    den = nodes.start(
+        "denoiser",
+        {
+            "model": str(sim_model_path),
+            "flush_after_idle": 0.3,
+            "qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
+            "qos_overrides./joint_states.subscription.reliability": "reliable",
+        },
+    )
+    rec = nodes.start(
+        "bag_recorder", {"output": str(tmp_path / "live"), "topics": ["accelerometer/denoised"]}
+    )
     wait_for_log(nodes, rec, "/accelerometer/denoised: subscribed")
     time.sleep(0.5)
-    player = nodes.start("bag_player", {"bag": str(source), "wait_for_subscribers": 1,
-                                        "topics": ["/joint_states", "/accelerometer/raw"]})
+    player = nodes.start(
+        "bag_player",
+        {
+            "bag": str(source),
+            "wait_for_subscribers": 1,
+            "topics": ["/joint_states", "/accelerometer/raw"],
+        },
+    )
     assert player.wait(60) == 0, nodes.log(player)
-    time.sleep(1.5)                       # idle flush of the last held samples, and delivery
+    time.sleep(1.5)  # idle flush of the last held samples, and delivery
     assert nodes.stop(rec) == 0, nodes.log(rec)
     assert nodes.stop(den) == 0, nodes.log(den)
     assert "received 9000, written 9000" in nodes.log(rec), nodes.log(rec)
@@ -73,11 +100,24 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
     want = read_recording(source, ground_truth=False, denoised=False)
     node = ros_client.node
     raw, clock, arrival = [], [], []
-    node.create_subscription(Imu, "accelerometer/raw", lambda m: (raw.append(m), arrival.append(time.monotonic())),
-                             sensor_qos(), raw=True)
+    node.create_subscription(
+        Imu,
+        "accelerometer/raw",
+        lambda m: (raw.append(m), arrival.append(time.monotonic())),
+        sensor_qos(),
+        raw=True,
+    )
     node.create_subscription(Clock, "/clock", lambda m: clock.append(stamp_to_ns(m.clock)), 100)
-    player = nodes.start("bag_player", {"bag": str(source), "rate": 2.0, "clock": True,
-                                        "wait_for_subscribers": 1, "topics": ["/accelerometer/raw"]})
+    player = nodes.start(
+        "bag_player",
+        {
+            "bag": str(source),
+            "rate": 2.0,
+            "clock": True,
+            "wait_for_subscribers": 1,
+            "topics": ["/accelerometer/raw"],
+        },
+    )
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
     ros_client.spin_for(0.3)
     assert player.returncode == 0, nodes.log(player)

@@ -5,6 +5,7 @@ install); they are compiled and read: every Node(...) names an installed executa
 and only parameters that node declares; every LaunchConfiguration has its
 DeclareLaunchArgument. config/<node>.yaml sets only declared parameters.
 """
+
 from __future__ import annotations
 
 import ast
@@ -32,8 +33,11 @@ def keyword(call: ast.Call, name: str):
 
 
 def calls(tree: ast.AST, name: str) -> list[ast.Call]:
-    return [n for n in ast.walk(tree) if isinstance(n, ast.Call)
-            and getattr(n.func, "id", getattr(n.func, "attr", None)) == name]
+    return [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", None)) == name
+    ]
 
 
 def test_both_launch_files_exist():
@@ -44,7 +48,10 @@ def test_both_launch_files_exist():
 def test_launch_file_names_existing_executables_parameters_and_arguments(path, tmp_path):
     py_compile.compile(str(path), cfile=str(tmp_path / "compiled.pyc"), doraise=True)
     tree = ast.parse(path.read_text())
-    assert any(isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description" for n in tree.body)
+    assert any(
+        isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description"
+        for n in tree.body
+    )
     nodes = calls(tree, "Node")
     assert nodes
     for node in nodes:
@@ -53,10 +60,19 @@ def test_launch_file_names_existing_executables_parameters_and_arguments(path, t
         assert executable in NODES and (BIN / executable).is_file(), executable
         known = declared(executable)
         parameters = keyword(node, "parameters")
-        keys = [ast.literal_eval(k) for d in ast.walk(parameters) if isinstance(d, ast.Dict) for k in d.keys]
+        keys = [
+            ast.literal_eval(k)
+            for d in ast.walk(parameters)
+            if isinstance(d, ast.Dict)
+            for k in d.keys
+        ]
         assert keys and set(keys) <= known, (executable, set(keys) - known)
     arguments = {ast.literal_eval(c.args[0]) for c in calls(tree, "DeclareLaunchArgument")}
-    used = {c.args[0].value for c in calls(tree, "LaunchConfiguration") if isinstance(c.args[0], ast.Constant)}
+    used = {
+        c.args[0].value
+        for c in calls(tree, "LaunchConfiguration")
+        if isinstance(c.args[0], ast.Constant)
+    }
     assert used and used <= arguments, used - arguments
 
 

@@ -1,4 +1,5 @@
 """sim_hand on real DDS: follows commands, honours use_sim_time (with bag_player's /clock)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,8 +21,15 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     node.create_subscription(Imu, "accelerometer/raw", raw.append, sensor_qos(), raw=True)
     node.create_subscription(JointState, "joint_states", joints.append, sensor_qos(), raw=True)
     sim = nodes.start("sim_hand", {"use_sim_time": True, "publish_ground_truth": False, "seed": 2})
-    player = nodes.start("bag_player", {"bag": str(bag), "clock": True, "wait_for_subscribers": 1,
-                                        "topics": ["/hand_velocity_controller/commands"]})
+    player = nodes.start(
+        "bag_player",
+        {
+            "bag": str(bag),
+            "clock": True,
+            "wait_for_subscribers": 1,
+            "topics": ["/hand_velocity_controller/commands"],
+        },
+    )
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
     ros_client.spin_for(0.3)
     assert player.returncode == 0, nodes.log(player)
@@ -31,7 +39,10 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     j_stamps, _, velocity, _ = decode_joint_state_messages(joints)
     # Stamps come from /clock (the bag's time base, starting near 0), not the wall clock.
     assert len(stamps) > 3000
-    assert recorded.accel_stamps_ns[0] <= stamps[0] and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+    assert (
+        recorded.accel_stamps_ns[0] <= stamps[0]
+        and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+    )
     assert np.all(np.diff(stamps) > 0)
     # Sim time runs at the bag's pace: ~3 kHz of sim time.
     assert abs(len(stamps) / ((stamps[-1] - stamps[0]) / 1e9) - 3000) < 10

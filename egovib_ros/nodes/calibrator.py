@@ -16,6 +16,7 @@ naming the file, and the write is retried every `retry_period` seconds. At shutd
 (Ctrl-C / SIGTERM) the model is written to `output` (or, if that fails, next to the
 system's temporary files, named in the error) and coverage is printed.
 """
+
 from __future__ import annotations
 
 import os
@@ -38,17 +39,37 @@ from egovib_ros.robot import load_profile
 JOINT_WAIT_S = 2.0
 SWEEPS = ("full", "superposition")
 PARAMETERS = (
-    Param("robot", "", "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand"),
+    Param(
+        "robot",
+        "",
+        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
+    ),
     Param("output", "noise_model.npz", "noise-model file written at shutdown"),
-    Param("grid", "full", "full | superposition: a sweep over grid velocities; free: any no-contact motion "
-          "(each steady block to its nearest cell); auto: decide from the data",
-          choices=("full", "superposition", "free", "auto")),
+    Param(
+        "grid",
+        "full",
+        "full | superposition: a sweep over grid velocities; free: any no-contact motion "
+        "(each steady block to its nearest cell); auto: decide from the data",
+        choices=("full", "superposition", "free", "auto"),
+    ),
     Param("checkpoint", "", "checkpoint model path; empty = <output stem>.checkpoint.npz"),
     Param("resume", True, "resume from the checkpoint if it exists"),
     Param("batch_samples", 96, "sensor samples collected before processing", range=(1, 100_000)),
-    Param("checkpoint_period", 10.0, "free motion: seconds between checkpoints", range=(0.1, 3600.0)),
-    Param("retry_period", 5.0, "seconds between attempts to write a checkpoint that failed", range=(0.1, 3600.0)),
-    Param("stale_after", 1.5, "seconds without input before /diagnostics reports STALE", range=(0.1, 3600.0)),
+    Param(
+        "checkpoint_period", 10.0, "free motion: seconds between checkpoints", range=(0.1, 3600.0)
+    ),
+    Param(
+        "retry_period",
+        5.0,
+        "seconds between attempts to write a checkpoint that failed",
+        range=(0.1, 3600.0),
+    ),
+    Param(
+        "stale_after",
+        1.5,
+        "seconds without input before /diagnostics reports STALE",
+        range=(0.1, 3600.0),
+    ),
 )
 
 
@@ -68,14 +89,19 @@ class Calibrator(Node):
         self.checkpoint = params["checkpoint"] or default_checkpoint(self.output)
         self.checkpoint_period_s = params["checkpoint_period"]
         self.retry_period_s = params["retry_period"]
-        self.input = StreamInput(self, self.profile, batch_samples=params["batch_samples"], on_batch=self._process)
+        self.input = StreamInput(
+            self, self.profile, batch_samples=params["batch_samples"], on_batch=self._process
+        )
         source = self.input.sensor_topic
         if params["resume"] and os.path.exists(self.checkpoint):
             self.acc = self._resume(NoiseModel.load(self.checkpoint), source)
         else:
-            self.acc = CalibrationAccumulator(profile=self.profile, sweep=self.grid, joint_wait_s=JOINT_WAIT_S,
-                                              source=source)
-        self.health = Health(self, hardware_id=self.profile.name, stale_after_s=params["stale_after"])
+            self.acc = CalibrationAccumulator(
+                profile=self.profile, sweep=self.grid, joint_wait_s=JOINT_WAIT_S, source=source
+            )
+        self.health = Health(
+            self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
+        )
         self._counts = self._cell_count_map()
         self._blocks_used = self.acc.stats["blocks_used"]
         self._current_cell: tuple[int, ...] | None = None
@@ -92,22 +118,32 @@ class Calibrator(Node):
         self.create_timer(0.25, self._on_timer)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"calibrating {self.profile.name} ({self.grid} grid, joints {list(self.profile.joint_names)}) from "
-            f"{self.input.sensor_topic} ({self.profile.sensor_field}) and {self.input.joints_topic} into "
-            f"{self.output} (checkpoint {self.checkpoint})")
+            f"calibrating {self.profile.name} ({self.grid} grid, joints "
+            f"{list(self.profile.joint_names)}) from {self.input.sensor_topic} "
+            f"({self.profile.sensor_field}) and {self.input.joints_topic} into "
+            f"{self.output} (checkpoint {self.checkpoint})"
+        )
 
     def _resume(self, model: NoiseModel, source: str) -> CalibrationAccumulator:
         where = self.checkpoint
-        if model.joint_names != self.profile.joint_names or model.grid_shape != self.profile.grid_shape:
-            raise ConfigError(f"{where}: checkpoint of joints {list(model.joint_names)} on a {model.grid_shape} "
-                              f"grid, but robot {self.profile.name!r} has {list(self.profile.joint_names)} on "
-                              f"{self.profile.grid_shape}")
+        if (
+            model.joint_names != self.profile.joint_names
+            or model.grid_shape != self.profile.grid_shape
+        ):
+            raise ConfigError(
+                f"{where}: checkpoint of joints {list(model.joint_names)} on a {model.grid_shape} "
+                f"grid, but robot {self.profile.name!r} has {list(self.profile.joint_names)} on "
+                f"{self.profile.grid_shape}"
+            )
         if self.grid != "auto" and model.measured != self.grid:
-            raise ConfigError(f"{where}: checkpoint of a {model.measured} calibration, but grid is {self.grid}")
+            raise ConfigError(
+                f"{where}: checkpoint of a {model.measured} calibration, but grid is {self.grid}"
+            )
         acc = CalibrationAccumulator.from_model(model, joint_wait_s=JOINT_WAIT_S, source=source)
         coverage = model.coverage()
-        self.get_logger().info(f"resumed from {where}: {coverage['cells_measured']} cells, "
-                               f"{coverage['blocks']} blocks")
+        self.get_logger().info(
+            f"resumed from {where}: {coverage['cells_measured']} cells, {coverage['blocks']} blocks"
+        )
         return acc
 
     # --- input ------------------------------------------------------------------------
@@ -119,16 +155,19 @@ class Calibrator(Node):
         if joints is not None and len(joints.stamps_ns):
             missing = self.input.missing_joints(grace_s=0.0)
             if missing != self.missing_joints and missing:
-                self.get_logger().error(self.input.missing_joints_message(missing) + ": no block can be used")
+                self.get_logger().error(
+                    self.input.missing_joints_message(missing) + ": no block can be used"
+                )
             self.missing_joints = missing
             self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
             try:
                 self.acc.push_accel(batch.stamps_ns, batch.values)
-            except EgovibError as exc:          # e.g. a stream at another rate than the profile's
-                self.get_logger().error(f"dropped {len(batch.stamps_ns)} samples: {exc}",
-                                        throttle_duration_sec=5.0)
+            except EgovibError as exc:  # e.g. a stream at another rate than the profile's
+                self.get_logger().error(
+                    f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0
+                )
                 self.stream_error = str(exc)
         self._track_cells()
 
@@ -148,7 +187,11 @@ class Calibrator(Node):
                 self._checkpoint_due = True
             return
         counts = self._cell_count_map()
-        grown = {cell: n - self._counts.get(cell, 0) for cell, n in counts.items() if n > self._counts.get(cell, 0)}
+        grown = {
+            cell: n - self._counts.get(cell, 0)
+            for cell, n in counts.items()
+            if n > self._counts.get(cell, 0)
+        }
         if grown:
             newest = max(grown, key=grown.get)
             if self._current_cell is not None and newest != self._current_cell:
@@ -162,8 +205,10 @@ class Calibrator(Node):
 
     def _log_cell(self, cell: tuple[int, ...], counts: dict) -> None:
         covered, expected = self._sweep_coverage(counts)
-        self.get_logger().info(f"cell [{self._velocity_text(cell)}] done: {counts.get(cell, 0)} blocks; "
-                               f"coverage {covered}/{expected} cells")
+        self.get_logger().info(
+            f"cell [{self._velocity_text(cell)}] done: {counts.get(cell, 0)} blocks; "
+            f"coverage {covered}/{expected} cells"
+        )
 
     def _sweep_coverage(self, counts: dict) -> tuple[int, int]:
         expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
@@ -172,8 +217,11 @@ class Calibrator(Node):
     def _on_timer(self) -> None:
         if self.input.sensor_pending and time.monotonic() - self._last_input > 0.05:
             self._process()
-        if self.acc.mode not in SWEEPS and self.acc.stats["blocks_used"] and \
-                time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s:
+        if (
+            self.acc.mode not in SWEEPS
+            and self.acc.stats["blocks_used"]
+            and time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s
+        ):
             self._checkpoint_due = True
         if self._checkpoint_due and time.monotonic() >= self._retry_at:
             self._write_checkpoint()
@@ -186,8 +234,10 @@ class Calibrator(Node):
             self.checkpoint_failures += 1
             self._retry_at = time.monotonic() + self.retry_period_s
             reason = getattr(exc, "strerror", None) or str(exc)
-            message = (f"cannot write checkpoint {self.checkpoint} ({reason}); statistics kept in memory, "
-                       f"retrying every {self.retry_period_s:g} s")
+            message = (
+                f"cannot write checkpoint {self.checkpoint} ({reason}); statistics kept in memory, "
+                f"retrying every {self.retry_period_s:g} s"
+            )
             if message != self.checkpoint_error:
                 self.get_logger().error(message)
             self.checkpoint_error = message
@@ -209,15 +259,22 @@ class Calibrator(Node):
     def coverage(self) -> dict:
         counts = self._cell_count_map()
         values = list(counts.values())
-        result = {"mode": self.acc.mode, "cells_measured": len(counts),
-                  "cells_total": int(np.prod(self.profile.grid_shape, dtype=np.float64)),
-                  "blocks": int(sum(values)), "min_blocks": min(values) if values else 0}
+        result = {
+            "mode": self.acc.mode,
+            "cells_measured": len(counts),
+            "cells_total": int(np.prod(self.profile.grid_shape, dtype=np.float64)),
+            "blocks": int(sum(values)),
+            "min_blocks": min(values) if values else 0,
+        }
         if self.acc.mode in SWEEPS:
             expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
             missing = [cell for cell in expected if counts.get(cell, 0) == 0]
-            result.update(cells_expected=len(expected), cells_covered=len(expected) - len(missing),
-                          min_blocks=min((counts.get(c, 0) for c in expected), default=0),
-                          missing_cells=[self._velocity_text(c) for c in missing])
+            result.update(
+                cells_expected=len(expected),
+                cells_covered=len(expected) - len(missing),
+                min_blocks=min((counts.get(c, 0) for c in expected), default=0),
+                missing_cells=[self._velocity_text(c) for c in missing],
+            )
         return result
 
     def _publish_diagnostics(self) -> None:
@@ -227,20 +284,33 @@ class Calibrator(Node):
         now = time.monotonic()
         last_t, last_in = self._last_report
         self._last_report = (now, inp.sensor_messages)
-        counters = {"undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-                    "samples_bad": stats["samples_bad"], "samples_out_of_order": stats["dropped_out_of_order"],
-                    "gap_filled_samples": stats["gap_filled_samples"], "stream_restarts": stats["resets"],
-                    "joint_states_dropped": stats["joint_states_dropped"]}
+        counters = {
+            "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
+            "samples_bad": stats["samples_bad"],
+            "samples_out_of_order": stats["dropped_out_of_order"],
+            "gap_filled_samples": stats["gap_filled_samples"],
+            "stream_restarts": stats["resets"],
+            "joint_states_dropped": stats["joint_states_dropped"],
+        }
         grown = self.health.changes(counters)
-        values = {"input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),
-                  "samples_in": inp.sensor_messages, "joint_states_in": inp.joint_messages,
-                  "mode": cov["mode"], "cells_measured": cov["cells_measured"], "cells_total": cov["cells_total"],
-                  "cells_expected": cov.get("cells_expected", cov["cells_total"]),
-                  "cells_covered": cov.get("cells_covered", cov["cells_measured"]),
-                  "missing_cells": len(cov.get("missing_cells", [])), "blocks": cov["blocks"],
-                  "min_blocks": cov["min_blocks"], "blocks_rejected": sum(stats["rejected"].values()),
-                  **{f"rejected_{k}": v for k, v in stats["rejected"].items()}, **counters,
-                  "checkpoints_written": self.checkpoints_written, "checkpoint_failures": self.checkpoint_failures}
+        values = {
+            "input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),
+            "samples_in": inp.sensor_messages,
+            "joint_states_in": inp.joint_messages,
+            "mode": cov["mode"],
+            "cells_measured": cov["cells_measured"],
+            "cells_total": cov["cells_total"],
+            "cells_expected": cov.get("cells_expected", cov["cells_total"]),
+            "cells_covered": cov.get("cells_covered", cov["cells_measured"]),
+            "missing_cells": len(cov.get("missing_cells", [])),
+            "blocks": cov["blocks"],
+            "min_blocks": cov["min_blocks"],
+            "blocks_rejected": sum(stats["rejected"].values()),
+            **{f"rejected_{k}": v for k, v in stats["rejected"].items()},
+            **counters,
+            "checkpoints_written": self.checkpoints_written,
+            "checkpoint_failures": self.checkpoint_failures,
+        }
         errors = [e for e in (self.stream_error, self.checkpoint_error) if e]
         if self.missing_joints:
             errors.append(inp.missing_joints_message(self.missing_joints))
@@ -249,8 +319,13 @@ class Calibrator(Node):
             ok = f"{cov['cells_covered']}/{cov['cells_expected']} cells covered"
         else:
             ok = f"{cov['cells_measured']} cells measured ({cov['mode']})"
-        self.health.publish(errors=errors, stale=self.health.stale_message(inp.last_sensor_s, inp.sensor_topic),
-                            warnings=warnings, ok=ok, values=values)
+        self.health.publish(
+            errors=errors,
+            stale=self.health.stale_message(inp.last_sensor_s, inp.sensor_topic),
+            warnings=warnings,
+            ok=ok,
+            values=values,
+        )
 
     def close(self) -> int:
         """Write the final model and report coverage; 1 if no block was collected, 2 if the
@@ -259,7 +334,10 @@ class Calibrator(Node):
         self.acc.flush()
         cov = self.coverage()
         if cov["blocks"] == 0:
-            print("calibrator: no usable block (steady, with joint states): no model written", flush=True)
+            print(
+                "calibrator: no usable block (steady, with joint states): no model written",
+                flush=True,
+            )
             return 1
         try:
             self.write_model(self.output)
@@ -269,20 +347,37 @@ class Calibrator(Node):
             try:
                 self.write_model(str(fallback))
             except (OSError, EgovibError):
-                raise ConfigError(f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
-                                  + (f"; the last checkpoint is {self.checkpoint}"
-                                     if os.path.exists(self.checkpoint) else "")) from None
-            raise ConfigError(f"cannot write {self.output} ({reason}); the model was saved to {fallback}") from None
+                raise ConfigError(
+                    f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
+                    + (
+                        f"; the last checkpoint is {self.checkpoint}"
+                        if os.path.exists(self.checkpoint)
+                        else ""
+                    )
+                ) from None
+            raise ConfigError(
+                f"cannot write {self.output} ({reason}); the model was saved to {fallback}"
+            ) from None
         if os.path.exists(self.checkpoint):
             os.remove(self.checkpoint)
         missing = cov.get("missing_cells")
-        where = (f"{cov['cells_covered']}/{cov['cells_expected']} cells" if "cells_expected" in cov
-                 else f"{cov['cells_measured']} of {cov['cells_total']} cells")
-        shown = "none" if not missing else ", ".join(f"[{m}]" for m in missing[:20]) + \
-            (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
-        print(f"calibrator: wrote {self.output} ({cov['mode']}): {where}, {cov['blocks']} blocks "
-              f"(min {cov['min_blocks']} per cell); missing cells: {shown}; rejected blocks: "
-              f"{self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}", flush=True)
+        where = (
+            f"{cov['cells_covered']}/{cov['cells_expected']} cells"
+            if "cells_expected" in cov
+            else f"{cov['cells_measured']} of {cov['cells_total']} cells"
+        )
+        shown = (
+            "none"
+            if not missing
+            else ", ".join(f"[{m}]" for m in missing[:20])
+            + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+        )
+        print(
+            f"calibrator: wrote {self.output} ({cov['mode']}): {where}, {cov['blocks']} blocks "
+            f"(min {cov['min_blocks']} per cell); missing cells: {shown}; rejected blocks: "
+            f"{self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}",
+            flush=True,
+        )
         return 0
 
 

@@ -1,5 +1,6 @@
 """Shared plumbing of the egovib_ros nodes: parameters, QoS, raw-message batching, health
 (/diagnostics), executor and clean shutdown."""
+
 from __future__ import annotations
 
 import math
@@ -17,12 +18,23 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.ros_convert import decode_imu_raws, decode_joint_state_raws, diagnostic_array, joint_names_of
+from egovib_ros.ros_convert import (
+    decode_imu_raws,
+    decode_joint_state_raws,
+    diagnostic_array,
+    joint_names_of,
+)
 
 # Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
 # with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
@@ -34,14 +46,23 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 
 def sensor_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
     """qos_profile_sensor_data with a queue deep enough for batched 3 kHz streams."""
-    return QoSProfile(**{k: getattr(qos_profile_sensor_data, k) for k in
-                         ("reliability", "durability", "history", "liveliness")}, depth=depth)
+    return QoSProfile(
+        **{
+            k: getattr(qos_profile_sensor_data, k)
+            for k in ("reliability", "durability", "history", "liveliness")
+        },
+        depth=depth,
+    )
 
 
 def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
     """Publishers of 3 kHz streams: reliable (so a reliable recorder can match too), keep-last."""
-    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                      history=HistoryPolicy.KEEP_LAST, depth=depth)
+    return QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+    )
 
 
 def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool = True):
@@ -49,8 +70,13 @@ def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool
     the standard ROS parameters `qos_overrides.<topic>.subscription.{reliability,depth}`
     (e.g. reliable for a lossless replay of a bag on a loaded machine)."""
     return node.create_subscription(
-        msg_type, topic, callback, sensor_qos(), raw=raw,
-        qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        msg_type,
+        topic,
+        callback,
+        sensor_qos(),
+        raw=raw,
+        qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+    )
 
 
 # --- parameters ------------------------------------------------------------------
@@ -62,6 +88,7 @@ class Param:
     checked at start (`ros2 param describe` shows them); `range` is inclusive and
     enforced by rclpy on every set.
     """
+
     name: str
     default: Any
     description: str
@@ -78,15 +105,19 @@ class Param:
             if isinstance(default, bool) or not isinstance(default, (int, float)):
                 raise TypeError(f"{self.name}: a range needs a numeric default")
             if isinstance(default, int):
-                descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+                descriptor.integer_range = [
+                    IntegerRange(from_value=int(low), to_value=int(high), step=1)
+                ]
             else:
-                descriptor.floating_point_range = [FloatingPointRange(from_value=float(low),
-                                                                      to_value=float(high), step=0.0)]
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)
+                ]
         return descriptor
 
 
-def declare_parameters(node: Node, params: Sequence[Param], defaults: dict[str, Any] | None = None
-                       ) -> dict[str, Any]:
+def declare_parameters(
+    node: Node, params: Sequence[Param], defaults: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Declare `params` (defaults may be replaced, e.g. from a model) and return their values.
 
     A value out of range, of the wrong type or not among the choices is a one-line
@@ -97,38 +128,46 @@ def declare_parameters(node: Node, params: Sequence[Param], defaults: dict[str, 
         try:
             value = node.declare_parameter(param.name, default, param.descriptor(default)).value
         except ParameterException as exc:
-            raise ConfigError(f"{node.get_name()}: parameter '{param.name}': {_parameter_reason(exc)}") from None
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}': {_parameter_reason(exc)}"
+            ) from None
         if param.choices and value not in param.choices:
-            raise ConfigError(f"{node.get_name()}: parameter '{param.name}' must be one of "
-                              f"{', '.join(param.choices)}; got {value!r}")
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}' must be one of "
+                f"{', '.join(param.choices)}; got {value!r}"
+            )
         if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"{node.get_name()}: parameter '{param.name}' must be finite, got {value}")
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}' must be finite, got {value}"
+            )
         values[param.name] = value
     return values
 
 
 def _parameter_reason(exc: ParameterException) -> str:
     text = str(exc)
-    if "Reason:" in text:                # InvalidParameterValueException: "... Reason: <why>: name"
+    if "Reason:" in text:  # InvalidParameterValueException: "... Reason: <why>: name"
         text = text.split("Reason:", 1)[1].strip().rsplit(":", 1)[0]
-    elif "expecting type" in text:       # InvalidParameterTypeException
-        text = text.rsplit(":", 1)[0] + " (write floating-point values with a decimal point, e.g. 2.0)"
+    elif "expecting type" in text:  # InvalidParameterTypeException
+        text = (
+            text.rsplit(":", 1)[0] + " (write floating-point values with a decimal point, e.g. 2.0)"
+        )
     return text
 
 
 # --- raw input, batched ----------------------------------------------------------
 @dataclass
 class SensorBatch:
-    stamps_ns: np.ndarray        # (n,)
-    values: np.ndarray           # (n, 3) the profile's Imu field; non-finite kept
-    raws: list[bytes]            # (n) the input messages (kept for the drop-in output)
-    arrival_ns: np.ndarray       # (n,) monotonic receive time of each message
+    stamps_ns: np.ndarray  # (n,)
+    values: np.ndarray  # (n, 3) the profile's Imu field; non-finite kept
+    raws: list[bytes]  # (n) the input messages (kept for the drop-in output)
+    arrival_ns: np.ndarray  # (n,) monotonic receive time of each message
 
 
 @dataclass
 class JointBatch:
-    stamps_ns: np.ndarray        # (m,)
-    velocity: np.ndarray         # (m, J) in profile order; NaN where a message lacks a joint
+    stamps_ns: np.ndarray  # (m,)
+    velocity: np.ndarray  # (m, J) in profile order; NaN where a message lacks a joint
 
 
 class StreamInput:
@@ -141,8 +180,15 @@ class StreamInput:
     to the core, which counts and handles it (one count for each problem).
     """
 
-    def __init__(self, node: Node, profile, *, batch_samples: int, on_batch: Callable[[], None],
-                 on_joint_state: Callable[[], None] | None = None):
+    def __init__(
+        self,
+        node: Node,
+        profile,
+        *,
+        batch_samples: int,
+        on_batch: Callable[[], None],
+        on_joint_state: Callable[[], None] | None = None,
+    ):
         self.field = profile.sensor_field
         self.joint_names = tuple(profile.joint_names)
         self.batch_samples = int(batch_samples)
@@ -159,11 +205,11 @@ class StreamInput:
         self.joint_messages = 0
         self.undecodable_sensor = 0
         self.undecodable_joints = 0
-        self.last_sensor_s: float | None = None          # monotonic time of the last sensor message
+        self.last_sensor_s: float | None = None  # monotonic time of the last sensor message
         self.first_joint_s: float | None = None
         self.last_joint_s: float | None = None
         self.joints_seen = np.zeros(len(self.joint_names), bool)
-        self.carried_joint_names: tuple[str, ...] = ()   # names in a message lacking a named joint
+        self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
 
     # callbacks: keep them minimal, 3 kHz
     def _on_sensor(self, data: bytes) -> None:
@@ -225,9 +271,15 @@ class StreamInput:
         return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
 
     def missing_joints_message(self, missing: list[str]) -> str:
-        carried = f" (its messages carry {list(self.carried_joint_names)})" if self.carried_joint_names else ""
-        return (f"{self.joints_topic}: joint{'s' if len(missing) > 1 else ''} "
-                f"{', '.join(repr(m) for m in missing)} never seen with a velocity{carried}")
+        carried = (
+            f" (its messages carry {list(self.carried_joint_names)})"
+            if self.carried_joint_names
+            else ""
+        )
+        return (
+            f"{self.joints_topic}: joint{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(repr(m) for m in missing)} never seen with a velocity{carried}"
+        )
 
 
 # --- health ------------------------------------------------------------------------
@@ -267,8 +319,15 @@ class Health:
         idle = time.monotonic() - last_input_s
         return f"no input on {what} for {idle:.1f} s" if idle >= self.stale_after_s else None
 
-    def publish(self, *, errors: Sequence[str] = (), stale: str | None = None, warnings: Sequence[str] = (),
-                ok: str = "ok", values: dict[str, object]) -> str:
+    def publish(
+        self,
+        *,
+        errors: Sequence[str] = (),
+        stale: str | None = None,
+        warnings: Sequence[str] = (),
+        ok: str = "ok",
+        values: dict[str, object],
+    ) -> str:
         if errors:
             level, message = "error", "; ".join(errors)
         elif stale:
@@ -278,8 +337,13 @@ class Health:
         else:
             level, message = "ok", ok
         self.level = level
-        self.publisher.publish(diagnostic_array(self.node.get_clock().now().nanoseconds,
-                                                [(self.name, level, message, values)], self.hardware_id))
+        self.publisher.publish(
+            diagnostic_array(
+                self.node.get_clock().now().nanoseconds,
+                [(self.name, level, message, values)],
+                self.hardware_id,
+            )
+        )
         return level
 
 
@@ -320,7 +384,9 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except EgovibError as exc:
-        name = node.get_name() if node is not None else os.path.basename(sys.argv[0]) or "egovib_ros"
+        name = (
+            node.get_name() if node is not None else os.path.basename(sys.argv[0]) or "egovib_ros"
+        )
         print(f"{name}: error: {exc}", file=sys.stderr)
         status = 2
     finally:

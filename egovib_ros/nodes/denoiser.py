@@ -15,6 +15,7 @@ missing or out-of-order samples, restarts, blocks without joint state (passed th
 band-passed) or too many blocks on unmeasured cells. `oversubtraction` and `floor`
 change live (`ros2 param set`); the other parameters are read-only.
 """
+
 from __future__ import annotations
 
 import time
@@ -28,8 +29,14 @@ from egovib_ros.cdr import replace_imu_field
 from egovib_ros.core import NoiseModel, StreamingDenoiser
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.nodes.common import (Health, Param, StreamInput, declare_parameters, run_node,
-                                     stream_publisher_qos)
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    StreamInput,
+    declare_parameters,
+    run_node,
+    stream_publisher_qos,
+)
 from egovib_ros.robot import RobotProfile
 
 LIVE = ("oversubtraction", "floor")
@@ -37,24 +44,63 @@ LIVE = ("oversubtraction", "floor")
 # for twice that, once, so that a stream at the wrong rate publishes nothing at all.
 RATE_PROVEN_BLOCKS = 4
 MODEL_PARAMETERS = (
-    Param("model", "", "noise-model file (.npz) from `egovib calibrate` or the calibrator node; the robot "
-          "profile it carries gives topics, Imu field, joints and rate"),
-    Param("channels", "per_axis", "per_axis: clean each axis (drop-in replacement) | combined: the paper's "
-          "1-D signal in x, y = z = 0", choices=("per_axis", "combined")),
+    Param(
+        "model",
+        "",
+        "noise-model file (.npz) from `egovib calibrate` or the calibrator node; the robot "
+        "profile it carries gives topics, Imu field, joints and rate",
+    ),
+    Param(
+        "channels",
+        "per_axis",
+        "per_axis: clean each axis (drop-in replacement) | combined: the paper's "
+        "1-D signal in x, y = z = 0",
+        choices=("per_axis", "combined"),
+    ),
 )
 PARAMETERS = MODEL_PARAMETERS + (
-    Param("oversubtraction", 1.0, "alpha in max(|Y| - alpha N, beta N); changes live", read_only=False,
-          range=(0.0, MAX_OVERSUBTRACTION)),
-    Param("floor", 0.0, "beta in max(|Y| - alpha N, beta N); changes live", read_only=False,
-          range=(0.0, MAX_FLOOR)),
-    Param("batch_samples", 32, "process every this many sensor samples (default: the model's hop, i.e. as "
-          "soon as a block completes)", range=(1, 100_000)),
-    Param("flush_after_idle", 0.5, "seconds without input after which the samples held for overlap-add are "
-          "published (0 = never)", range=(0.0, 3600.0)),
-    Param("stale_after", 1.5, "seconds without input before /diagnostics reports STALE (reported at the "
-          "next 1 Hz report)", range=(0.1, 3600.0)),
-    Param("unmeasured_warn_fraction", 0.25, "WARN when more than this share of a second's blocks fell on "
-          "cells the calibration did not measure", range=(0.0, 1.0)),
+    Param(
+        "oversubtraction",
+        1.0,
+        "alpha in max(|Y| - alpha N, beta N); changes live",
+        read_only=False,
+        range=(0.0, MAX_OVERSUBTRACTION),
+    ),
+    Param(
+        "floor",
+        0.0,
+        "beta in max(|Y| - alpha N, beta N); changes live",
+        read_only=False,
+        range=(0.0, MAX_FLOOR),
+    ),
+    Param(
+        "batch_samples",
+        32,
+        "process every this many sensor samples (default: the model's hop, i.e. as "
+        "soon as a block completes)",
+        range=(1, 100_000),
+    ),
+    Param(
+        "flush_after_idle",
+        0.5,
+        "seconds without input after which the samples held for overlap-add are "
+        "published (0 = never)",
+        range=(0.0, 3600.0),
+    ),
+    Param(
+        "stale_after",
+        1.5,
+        "seconds without input before /diagnostics reports STALE (reported at the "
+        "next 1 Hz report)",
+        range=(0.1, 3600.0),
+    ),
+    Param(
+        "unmeasured_warn_fraction",
+        0.25,
+        "WARN when more than this share of a second's blocks fell on "
+        "cells the calibration did not measure",
+        range=(0.0, 1.0),
+    ),
 )
 
 
@@ -82,7 +128,7 @@ class HeldInput:
         k = len(stamps)
         if not k:
             return [], np.zeros(0, dtype=np.int64)
-        if len(self.raws) >= k and np.array_equal(self.stamps[:k], stamps):      # the usual case
+        if len(self.raws) >= k and np.array_equal(self.stamps[:k], stamps):  # the usual case
             rows = np.arange(k)
         else:
             # Output = a subsequence of the input in arrival order (also across a clock jump).
@@ -91,14 +137,20 @@ class HeldInput:
                 while i < len(held) and held[i] != stamp:
                     i += 1
                 if i == len(held):
-                    raise RuntimeError("denoiser: output stamps do not match the held input (internal error)")
+                    raise RuntimeError(
+                        "denoiser: output stamps do not match the held input (internal error)"
+                    )
                 rows.append(i)
                 i += 1
             rows = np.asarray(rows)
         raws = [self.raws[i] for i in rows]
         arrival = self.arrival[rows]
         cut = int(rows[-1]) + 1
-        self.stamps, self.arrival, self.raws = self.stamps[cut:], self.arrival[cut:], self.raws[cut:]
+        self.stamps, self.arrival, self.raws = (
+            self.stamps[cut:],
+            self.arrival[cut:],
+            self.raws[cut:],
+        )
         return raws, arrival
 
     def clear(self) -> int:
@@ -108,10 +160,13 @@ class HeldInput:
 
 
 def model_profile(model: NoiseModel) -> RobotProfile:
-    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2 hand)."""
+    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2
+    hand)."""
     if model.profile is None:
-        raise ConfigError(f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
-                          f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`")
+        raise ConfigError(
+            f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
+            f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`"
+        )
     return model.profile
 
 
@@ -123,29 +178,45 @@ class Denoiser(Node):
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
         self.model = NoiseModel.load(first["model"])
         self.profile = model_profile(self.model)
-        params = declare_parameters(self, PARAMETERS[len(MODEL_PARAMETERS):],
-                                    defaults={"batch_samples": self.model.hop})
+        params = declare_parameters(
+            self, PARAMETERS[len(MODEL_PARAMETERS) :], defaults={"batch_samples": self.model.hop}
+        )
         self.channels = first["channels"]
         self.flush_after_idle_s = params["flush_after_idle"]
         self.unmeasured_warn = params["unmeasured_warn_fraction"]
-        self.denoiser = StreamingDenoiser(self.model, channels=self.channels,
-                                          oversubtraction=params["oversubtraction"], floor=params["floor"],
-                                          source=self.resolve_topic_name(self.profile.node_sensor_topic))
+        self.denoiser = StreamingDenoiser(
+            self.model,
+            channels=self.channels,
+            oversubtraction=params["oversubtraction"],
+            floor=params["floor"],
+            source=self.resolve_topic_name(self.profile.node_sensor_topic),
+        )
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.input = StreamInput(self, self.profile, batch_samples=params["batch_samples"],
-                                 on_batch=self._process, on_joint_state=self._on_joint_state)
-        self.pub = self.create_publisher(Imu, self.profile.node_denoised_topic, stream_publisher_qos())
+        self.input = StreamInput(
+            self,
+            self.profile,
+            batch_samples=params["batch_samples"],
+            on_batch=self._process,
+            on_joint_state=self._on_joint_state,
+        )
+        self.pub = self.create_publisher(
+            Imu, self.profile.node_denoised_topic, stream_publisher_qos()
+        )
         self.output_topic = self.resolve_topic_name(self.profile.node_denoised_topic)
-        self.health = Health(self, hardware_id=self.profile.name, stale_after_s=params["stale_after"])
+        self.health = Health(
+            self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
+        )
         self.held = HeldInput()
-        self._startup: list[tuple[list[bytes], np.ndarray, np.ndarray]] = []   # output awaiting the rate check
+        self._startup: list[
+            tuple[list[bytes], np.ndarray, np.ndarray]
+        ] = []  # output awaiting the rate check
         self._rate_proven = False
         self._blocks_held_back = False
         self._last_input = time.monotonic()
         self._flushed = True
         self.samples_published = 0
-        self.samples_withheld = 0          # input samples not published because of an ERROR
+        self.samples_withheld = 0  # input samples not published because of an ERROR
         self.stream_error: str | None = None
         self.missing_joints: list[str] = []
         self._latency_ms: list[np.ndarray] = []
@@ -153,9 +224,11 @@ class Denoiser(Node):
         self.create_timer(0.05, self._on_idle_check)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, {self.model.sample_rate_hz:g} Hz) "
-            f"-> {self.output_topic} ({self.channels}), joints {list(self.profile.joint_names)} from "
-            f"{self.input.joints_topic}, model {first['model']}")
+            f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, "
+            f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} ({self.channels}), "
+            f"joints {list(self.profile.joint_names)} from "
+            f"{self.input.joints_topic}, model {first['model']}"
+        )
 
     # --- parameters --------------------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -169,7 +242,9 @@ class Denoiser(Node):
         except EgovibError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         settings = self.denoiser.subtraction
-        self.get_logger().info(f"oversubtraction {settings.oversubtraction:g}, floor {settings.floor:g}")
+        self.get_logger().info(
+            f"oversubtraction {settings.oversubtraction:g}, floor {settings.floor:g}"
+        )
         return SetParametersResult(successful=True)
 
     # --- input ---------------------------------------------------------------------------
@@ -187,7 +262,7 @@ class Denoiser(Node):
         self._process_joints()
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
-            if self.stream_error is not None:          # the core refuses this stream for good
+            if self.stream_error is not None:  # the core refuses this stream for good
                 self.samples_withheld += len(batch.stamps_ns)
                 return
             self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
@@ -207,8 +282,10 @@ class Denoiser(Node):
         if missing != self.missing_joints:
             self.missing_joints = missing
             if missing:
-                self.get_logger().error(self.input.missing_joints_message(missing) +
-                                        ": cannot denoise, publishing nothing")
+                self.get_logger().error(
+                    self.input.missing_joints_message(missing)
+                    + ": cannot denoise, publishing nothing"
+                )
         self._publish(self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity))
 
     def _refuse(self, reason: str) -> None:
@@ -221,7 +298,9 @@ class Denoiser(Node):
     def _update_held_back(self) -> None:
         """Is a completed block held back (more than a block of input not yet output)?"""
         stats = self.denoiser.stats
-        self._blocks_held_back = stats["samples_in"] - stats["samples_out"] >= self.model.block_length
+        self._blocks_held_back = (
+            stats["samples_in"] - stats["samples_out"] >= self.model.block_length
+        )
 
     def _publish(self, chunk, *, end_of_stream: bool = False) -> None:
         if self.stream_error is not None:
@@ -229,24 +308,27 @@ class Denoiser(Node):
         if chunk is not None and len(chunk):
             raws, arrival = self.held.take(chunk.stamps_ns)
             if self.missing_joints:
-                self.samples_withheld += len(raws)           # no output claimed as denoised
+                self.samples_withheld += len(raws)  # no output claimed as denoised
                 return
             self._startup.append((raws, chunk.values, arrival))
         if not self._rate_proven:
             # The core measures the stream's rate on its first samples; nothing is published
             # before that has passed (a stream at the wrong rate gives no output at all).
-            if self.denoiser.stats["samples_in"] < RATE_PROVEN_BLOCKS * self.model.block_length \
-                    and not end_of_stream:
+            if (
+                self.denoiser.stats["samples_in"] < RATE_PROVEN_BLOCKS * self.model.block_length
+                and not end_of_stream
+            ):
                 return
             self._rate_proven = True
         pending, self._startup = self._startup, []
         for raws, values, arrival in pending:
-            if values.shape[1] == 1:           # CONTRACT: combined signal in x, y = z = 0
+            if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
                 values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
             for data in replace_imu_field(raws, values, self.profile.sensor_field):
                 self.pub.publish(data)
             self.samples_published += len(raws)
-            # Latency on this machine's clock: receive of the input message -> publish of its output.
+            # Latency on this machine's clock: receive of the input message -> publish of its
+            # output.
             self._latency_ms.append((time.monotonic_ns() - arrival) / 1e6)
 
     def _on_idle_check(self) -> None:
@@ -267,28 +349,40 @@ class Denoiser(Node):
         self._last_report = (now, inp.sensor_messages, self.samples_published)
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
-        counters = {"undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-                    "samples_bad": stats["samples_bad"], "samples_out_of_order": stats["dropped_out_of_order"],
-                    "gap_filled_samples": stats["gap_filled_samples"], "stream_restarts": stats["resets"],
-                    "joint_states_dropped": stats["joint_states_dropped"], "blocks": stats["blocks"],
-                    "blocks_no_joint_state": stats["blocks_no_joint_state"],
-                    "blocks_out_of_grid": stats["blocks_out_of_grid"],
-                    "blocks_unmeasured": stats["blocks_unmeasured"]}
+        counters = {
+            "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
+            "samples_bad": stats["samples_bad"],
+            "samples_out_of_order": stats["dropped_out_of_order"],
+            "gap_filled_samples": stats["gap_filled_samples"],
+            "stream_restarts": stats["resets"],
+            "joint_states_dropped": stats["joint_states_dropped"],
+            "blocks": stats["blocks"],
+            "blocks_no_joint_state": stats["blocks_no_joint_state"],
+            "blocks_out_of_grid": stats["blocks_out_of_grid"],
+            "blocks_unmeasured": stats["blocks_unmeasured"],
+        }
         grown = self.health.changes(counters)
         blocks = max(grown["blocks"], 1)
-        fractions = {key: grown[f"blocks_{key}"] / blocks for key in ("no_joint_state", "out_of_grid", "unmeasured")}
+        fractions = {
+            key: grown[f"blocks_{key}"] / blocks
+            for key in ("no_joint_state", "out_of_grid", "unmeasured")
+        }
         joint_age = now - inp.last_joint_s if inp.last_joint_s is not None else float("nan")
         values = {
             "input_rate_hz": (inp.sensor_messages - last_in) / period,
             "output_rate_hz": (self.samples_published - last_out) / period,
-            "samples_in": inp.sensor_messages, "samples_published": self.samples_published,
-            "samples_withheld": self.samples_withheld, **counters,
-            "joint_states_in": inp.joint_messages, "joint_state_age_s": joint_age,
+            "samples_in": inp.sensor_messages,
+            "samples_published": self.samples_published,
+            "samples_withheld": self.samples_withheld,
+            **counters,
+            "joint_states_in": inp.joint_messages,
+            "joint_state_age_s": joint_age,
             **{f"{key}_fraction": value for key, value in fractions.items()},
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
-            "model_rate_hz": self.model.sample_rate_hz, "channels": self.channels,
+            "model_rate_hz": self.model.sample_rate_hz,
+            "channels": self.channels,
             "oversubtraction": self.denoiser.subtraction.oversubtraction,
             "floor": self.denoiser.subtraction.floor,
         }
@@ -299,29 +393,46 @@ class Denoiser(Node):
             errors.append(inp.missing_joints_message(self.missing_joints))
         warnings = []
         if inp.joint_messages == 0 and inp.sensor_messages > 0:
-            warnings.append(f"no joint state on {inp.joints_topic}: passing the band-passed signal through")
+            warnings.append(
+                f"no joint state on {inp.joints_topic}: passing the band-passed signal through"
+            )
         elif grown["blocks_no_joint_state"]:
-            warnings.append(f"{grown['blocks_no_joint_state']} blocks without joint state (passed through)")
-        for key, text in (("undecodable_messages", "undecodable messages"), ("samples_bad", "bad samples"),
-                          ("samples_out_of_order", "samples out of order"),
-                          ("gap_filled_samples", "missing samples bridged"),
-                          ("stream_restarts", "stream restarts (gap or clock jump)"),
-                          ("joint_states_dropped", "joint states dropped")):
+            warnings.append(
+                f"{grown['blocks_no_joint_state']} blocks without joint state (passed through)"
+            )
+        for key, text in (
+            ("undecodable_messages", "undecodable messages"),
+            ("samples_bad", "bad samples"),
+            ("samples_out_of_order", "samples out of order"),
+            ("gap_filled_samples", "missing samples bridged"),
+            ("stream_restarts", "stream restarts (gap or clock jump)"),
+            ("joint_states_dropped", "joint states dropped"),
+        ):
             if grown[key]:
                 warnings.append(f"{grown[key]} {text}")
         if grown["blocks_out_of_grid"]:
-            warnings.append(f"{fractions['out_of_grid']:.0%} of blocks beyond the model's velocity grid")
+            warnings.append(
+                f"{fractions['out_of_grid']:.0%} of blocks beyond the model's velocity grid"
+            )
         if fractions["unmeasured"] > self.unmeasured_warn:
-            warnings.append(f"{fractions['unmeasured']:.0%} of blocks on cells the calibration did not measure")
+            warnings.append(
+                f"{fractions['unmeasured']:.0%} of blocks on cells the calibration did not measure"
+            )
         stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
-        self.health.publish(errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values)
+        self.health.publish(
+            errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values
+        )
 
     def close(self) -> None:
         stats = self.denoiser.stats
-        print(f"denoiser: samples in {self.input.sensor_messages}, published {self.samples_published}, "
-              f"withheld {self.samples_withheld}, undecodable "
-              f"{self.input.undecodable_sensor + self.input.undecodable_joints}, restarts {stats['resets']}, "
-              f"blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}", flush=True)
+        print(
+            f"denoiser: samples in {self.input.sensor_messages}, "
+            f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
+            f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
+            f"restarts {stats['resets']}, "
+            f"blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}",
+            flush=True,
+        )
 
 
 def main(args: list[str] | None = None) -> int:

@@ -6,40 +6,73 @@ node clock (so `use_sim_time` works), `joint_states` (1 kHz), `accelerometer/raw
 `accelerometer/ego`. Every `publish_period` the samples due since the last tick are
 generated and sent as pre-serialised CDR, which keeps the CPU cost of 3 kHz low.
 """
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from sensor_msgs.msg import Imu, JointState
 from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.constants import ACCEL_FRAME, ACCEL_RATE_HZ, TOPIC_COMMANDS, TOPIC_CONTACT, TOPIC_EGO
+from egovib_ros.constants import (
+    ACCEL_FRAME,
+    ACCEL_RATE_HZ,
+    TOPIC_COMMANDS,
+    TOPIC_CONTACT,
+    TOPIC_EGO,
+)
 from egovib_ros.errors import StreamError
-from egovib_ros.nodes.common import Health, Param, declare_parameters, run_node, stream_publisher_qos
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    declare_parameters,
+    run_node,
+    stream_publisher_qos,
+)
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.sim import HandSimulator, SimParams, format_effects, parse_effects
 from egovib_ros.sim.params import default_config_path
 
 _NS = 1_000_000_000
-PR2 = load_profile()        # the simulated robot: joint names and topics
+PR2 = load_profile()  # the simulated robot: joint names and topics
 PARAMETERS = (
     Param("seed", 0, "random seed of the simulator", range=(0, 2**31 - 1)),
     Param("tap_rate_hz", 0.0, "mean rate of simulated taps (0 = none)", range=(0.0, 100.0)),
-    Param("tap_mode", "random", "tap onsets: random (Poisson) | periodic", choices=("random", "periodic")),
+    Param(
+        "tap_mode",
+        "random",
+        "tap onsets: random (Poisson) | periodic",
+        choices=("random", "periodic"),
+    ),
     Param("effects", "none", "effects SPEC 'name=strength,...' (CONTRACT section 5), or none"),
     Param("sim_params", "", "simulator parameter YAML; empty = config/sim.yaml of the package"),
-    Param("publish_period", 0.01, "seconds between publishing batches of samples", range=(0.0005, 1.0)),
+    Param(
+        "publish_period", 0.01, "seconds between publishing batches of samples", range=(0.0005, 1.0)
+    ),
     Param("publish_ground_truth", True, "publish accelerometer/contact and accelerometer/ego"),
     Param("publish_ego", True, "with publish_ground_truth: also publish accelerometer/ego"),
     Param("frame_id", ACCEL_FRAME, "frame_id of the Imu messages"),
-    Param("max_batch", 0.1, "most seconds of samples generated per tick when catching up", range=(0.001, 10.0)),
-    Param("wait_for_subscribers", 0, "start simulating only once every published stream has this many "
-          "subscribers", range=(0, 100)),
-    Param("wait_timeout", 30.0, "seconds to wait for those subscribers before starting anyway",
-          range=(0.0, 3600.0)),
+    Param(
+        "max_batch",
+        0.1,
+        "most seconds of samples generated per tick when catching up",
+        range=(0.001, 10.0),
+    ),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "start simulating only once every published stream has this many subscribers",
+        range=(0, 100),
+    ),
+    Param(
+        "wait_timeout",
+        30.0,
+        "seconds to wait for those subscribers before starting anyway",
+        range=(0.0, 3600.0),
+    ),
 )
 
 
@@ -62,14 +95,25 @@ class SimHand(Node):
         self.params = SimParams.load(self.params_file)
         self.seed, self.tap_rate_hz, self.tap_mode = int(seed), tap_rate_hz, tap_mode
         self.sim: HandSimulator | None = None
-        HandSimulator(self.params, effects=self.effects, seed=self.seed, tap_rate_hz=tap_rate_hz,
-                      tap_mode=tap_mode)   # validate the settings now, not at the first tick
+        HandSimulator(
+            self.params,
+            effects=self.effects,
+            seed=self.seed,
+            tap_rate_hz=tap_rate_hz,
+            tap_mode=tap_mode,
+        )  # validate the settings now, not at the first tick
 
         qos = stream_publisher_qos()
         self.pub_joint = self.create_publisher(JointState, PR2.node_joints_topic, qos)
         self.pub_raw = self.create_publisher(Imu, PR2.node_sensor_topic, qos)
-        self.pub_contact = self.create_publisher(Imu, TOPIC_CONTACT, qos) if self.ground_truth else None
-        self.pub_ego = self.create_publisher(Imu, TOPIC_EGO, qos) if self.ground_truth and publish_ego else None
+        self.pub_contact = (
+            self.create_publisher(Imu, TOPIC_CONTACT, qos) if self.ground_truth else None
+        )
+        self.pub_ego = (
+            self.create_publisher(Imu, TOPIC_EGO, qos)
+            if self.ground_truth and publish_ego
+            else None
+        )
         self.health = Health(self, hardware_id=PR2.name)
         self.create_subscription(Float64MultiArray, TOPIC_COMMANDS, self._on_command, 10)
         self.commands_received = 0
@@ -82,8 +126,10 @@ class SimHand(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"simulating seed {self.seed}, effects {format_effects(self.effects)}, taps "
-            f"{tap_rate_hz:g} Hz ({tap_mode}), ground truth {'on' if self.ground_truth else 'off'}, "
-            f"simulator parameters from {self.params_file}")
+            f"{tap_rate_hz:g} Hz ({tap_mode}), "
+            f"ground truth {'on' if self.ground_truth else 'off'}, "
+            f"simulator parameters from {self.params_file}"
+        )
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         try:
@@ -100,14 +146,19 @@ class SimHand(Node):
 
     def _tick(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
-        if now_ns <= 0:           # use_sim_time and no /clock yet
+        if now_ns <= 0:  # use_sim_time and no /clock yet
             return
         if self.sim is None:
             if not self._subscribers_ready():
                 return
-            self.sim = HandSimulator(self.params, effects=self.effects, seed=self.seed,
-                                     tap_rate_hz=self.tap_rate_hz, tap_mode=self.tap_mode,
-                                     start_ns=now_ns)
+            self.sim = HandSimulator(
+                self.params,
+                effects=self.effects,
+                seed=self.seed,
+                tap_rate_hz=self.tap_rate_hz,
+                tap_mode=self.tap_mode,
+                start_ns=now_ns,
+            )
             pending = getattr(self, "_pending_command", None)
             if pending is not None:
                 self.sim.set_command(pending)
@@ -120,9 +171,10 @@ class SimHand(Node):
         n = min(lag, max(1, int(self.max_batch_s * ACCEL_RATE_HZ)))
         chunk = self.sim.step(n)
         self.taps += len(chunk.tap_onsets_ns)
-        if len(chunk.joint_stamps_ns):      # a short step may hold no 1 kHz sample
-            for data in encode_joint_state_batch(chunk.joint_stamps_ns, chunk.joint_position,
-                                                 chunk.joint_velocity, PR2.joint_names):
+        if len(chunk.joint_stamps_ns):  # a short step may hold no 1 kHz sample
+            for data in encode_joint_state_batch(
+                chunk.joint_stamps_ns, chunk.joint_position, chunk.joint_velocity, PR2.joint_names
+            ):
                 self.pub_joint.publish(data)
         for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.accel, self.frame_id):
             self.pub_raw.publish(data)
@@ -153,19 +205,31 @@ class SimHand(Node):
             return
         now_ns = self.get_clock().now().nanoseconds
         last_ns, last_samples = self._last_diag
-        rate = ((self.samples_published - last_samples) * _NS / (now_ns - last_ns)
-                if last_ns and now_ns > last_ns else 0.0)
+        rate = (
+            (self.samples_published - last_samples) * _NS / (now_ns - last_ns)
+            if last_ns and now_ns > last_ns
+            else 0.0
+        )
         self._last_diag = (now_ns, self.samples_published)
         velocity = self.sim.velocity
-        values = {"accel_rate_hz": rate, "samples_published": self.samples_published,
-                  "max_lag_samples": self.max_lag_samples, "taps": self.taps,
-                  "commands_received": self.commands_received,
-                  "commands_rejected": self.commands_rejected,
-                  "command": list(np.round(self.sim.command, 6)),
-                  "velocity": list(np.round(velocity, 6))}
-        rejected = self.health.changes({"commands_rejected": self.commands_rejected})["commands_rejected"]
-        self.health.publish(warnings=[f"{rejected} commands rejected"] if rejected else [], ok="simulating",
-                            values=values)
+        values = {
+            "accel_rate_hz": rate,
+            "samples_published": self.samples_published,
+            "max_lag_samples": self.max_lag_samples,
+            "taps": self.taps,
+            "commands_received": self.commands_received,
+            "commands_rejected": self.commands_rejected,
+            "command": list(np.round(self.sim.command, 6)),
+            "velocity": list(np.round(velocity, 6)),
+        }
+        rejected = self.health.changes({"commands_rejected": self.commands_rejected})[
+            "commands_rejected"
+        ]
+        self.health.publish(
+            warnings=[f"{rejected} commands rejected"] if rejected else [],
+            ok="simulating",
+            values=values,
+        )
         self.max_lag_samples = 0
 
 

@@ -11,6 +11,7 @@ controller's `<controller>/commands`) for `settle` + `dwell` seconds of node-clo
 time (so it follows use_sim_time). Progress: a log line per cell and /diagnostics.
 `start_cell` resumes an interrupted sweep.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,27 +27,49 @@ from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.ros_convert import command_message
 
 _NS = 1_000_000_000
-COMMAND_PERIOD_S = 0.05     # the command is repeated at 20 Hz (forward-command controllers hold it)
-MAX_SWEEP_CELLS = 100_000   # a full grid beyond this would take days: sweep superposition or calibrate free motion
+COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
+MAX_SWEEP_CELLS = (
+    100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
+)
 PARAMETERS = (
-    Param("robot", "", "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand"),
-    Param("grid", "superposition", "full (every cell of the grid) | superposition (cells with at most one joint "
-          "moving)", choices=("full", "superposition")),
+    Param(
+        "robot",
+        "",
+        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
+    ),
+    Param(
+        "grid",
+        "superposition",
+        "full (every cell of the grid) | superposition (cells with at most one joint moving)",
+        choices=("full", "superposition"),
+    ),
     Param("dwell", 15.0, "seconds of data per cell, after settling", range=(0.001, 3600.0)),
     Param("settle", 1.0, "seconds to reach a cell's velocity", range=(0.0, 3600.0)),
-    Param("start_cell", 0, "first cell (0-based) to command: resumes a sweep", range=(0, MAX_SWEEP_CELLS)),
-    Param("wait_for_subscriber", 10.0, "seconds to wait for a subscriber of the commands before starting "
-          "(0 = do not wait)", range=(0.0, 3600.0)),
+    Param(
+        "start_cell",
+        0,
+        "first cell (0-based) to command: resumes a sweep",
+        range=(0, MAX_SWEEP_CELLS),
+    ),
+    Param(
+        "wait_for_subscriber",
+        10.0,
+        "seconds to wait for a subscriber of the commands before starting (0 = do not wait)",
+        range=(0.0, 3600.0),
+    ),
 )
 
 
 def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
     """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
     order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses)."""
-    if grid == "full" and np.prod(profile.grid_shape, dtype=np.float64) > MAX_SWEEP_CELLS:
-        raise ConfigError(f"{profile.name}: a full sweep has {int(np.prod(profile.grid_shape, dtype=np.float64))} "
-                          f"cells (more than {MAX_SWEEP_CELLS}); sweep the superposition grid or calibrate "
-                          f"from free motion")
+    n_cells = int(np.prod(profile.grid_shape, dtype=np.float64))
+    if grid == "full" and n_cells > MAX_SWEEP_CELLS:
+        raise ConfigError(
+            f"{profile.name}: a full sweep has {n_cells} "
+            f"cells (more than {MAX_SWEEP_CELLS}); sweep the superposition grid or calibrate "
+            f"from free motion"
+        )
     axes = profile.grid()
     cells = sweep_cells(axes, grid)
     return np.column_stack([axes[j][cells[:, j]] for j in range(profile.n_joints)])
@@ -74,15 +97,17 @@ class SweepDriver(Node):
         self.create_timer(COMMAND_PERIOD_S, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         total = (len(self.cells) - self.start_cell) * (self.dwell_s + self.settle_s)
-        self.get_logger().info(f"{grid} sweep of {self.profile.name} ({', '.join(self.profile.joint_names)}): "
-                               f"cells {self.start_cell}..{len(self.cells) - 1}, "
-                               f"settle {self.settle_s:g} s + dwell {self.dwell_s:g} s, ~{total:.0f} s")
+        self.get_logger().info(
+            f"{grid} sweep of {self.profile.name} ({', '.join(self.profile.joint_names)}): "
+            f"cells {self.start_cell}..{len(self.cells) - 1}, "
+            f"settle {self.settle_s:g} s + dwell {self.dwell_s:g} s, ~{total:.0f} s"
+        )
 
     def _tick(self) -> None:
         if self.done.done():
             return
         now = self.get_clock().now().nanoseconds
-        if now <= 0:                    # use_sim_time and no /clock yet
+        if now <= 0:  # use_sim_time and no /clock yet
             return
         if self.cell_start_ns is None:
             if self._created_ns is None:
@@ -103,7 +128,9 @@ class SweepDriver(Node):
             return
         self.cell_start_ns = now
         velocity = self.cells[self.cell]
-        command = ", ".join(f"{name} {v:+.4g}" for name, v in zip(self.profile.joint_names, velocity))
+        command = ", ".join(
+            f"{name} {v:+.4g}" for name, v in zip(self.profile.joint_names, velocity)
+        )
         self.get_logger().info(f"cell {self.cell + 1}/{len(self.cells)}: {command}")
 
     def _finish(self) -> None:
@@ -117,15 +144,31 @@ class SweepDriver(Node):
     def _publish_diagnostics(self) -> None:
         index = max(self.cell, self.start_cell)
         finished = self.cell >= len(self.cells)
-        values = {"cell": min(index, len(self.cells) - 1) + 1, "cells": len(self.cells),
-                  "grid": self.grid, "dwell_s": self.dwell_s, "settle_s": self.settle_s}
+        values = {
+            "cell": min(index, len(self.cells) - 1) + 1,
+            "cells": len(self.cells),
+            "grid": self.grid,
+            "dwell_s": self.dwell_s,
+            "settle_s": self.settle_s,
+        }
         commanding = not finished and 0 <= self.cell < len(self.cells)
-        for j, name in enumerate(self.profile.joint_names):      # same keys every time (dashboards)
+        for j, name in enumerate(self.profile.joint_names):  # same keys every time (dashboards)
             values[f"command.{name}"] = float(self.cells[self.cell][j]) if commanding else 0.0
-        message = "done" if finished else (f"cell {index + 1}/{len(self.cells)}"
-                                           if self.cell_start_ns is not None else "waiting")
+        message = (
+            "done"
+            if finished
+            else (
+                f"cell {index + 1}/{len(self.cells)}"
+                if self.cell_start_ns is not None
+                else "waiting"
+            )
+        )
         waiting = self.cell_start_ns is None and not finished
-        warnings = ["no subscriber of the commands yet"] if waiting and self.pub.get_subscription_count() == 0 else []
+        warnings = (
+            ["no subscriber of the commands yet"]
+            if waiting and self.pub.get_subscription_count() == 0
+            else []
+        )
         self.health.publish(warnings=warnings, ok=message, values=values)
 
     def close(self) -> None:

@@ -14,7 +14,6 @@ from egovib_ros.errors import ConfigError
 from egovib_ros.robot import config_dir
 
 
-
 def default_config_path() -> Path:
     """config/sim.yaml of the package: the source tree's, or the installed share directory's
     (colcon/ament or pip install), found like the robot profiles (robot.config_dir)."""
