@@ -7,6 +7,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.nodes.common import sensor_qos
+from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.sim import simulate_motion
 
@@ -36,7 +37,7 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     assert nodes.stop(sim) == 0, nodes.log(sim)
 
     stamps, _, _ = decode_imu_messages(raw)
-    j_stamps, _, velocity, _ = decode_joint_state_messages(joints)
+    j_stamps, _, velocity, _ = decode_joint_state_messages(joints, load_profile().joint_names)
     # Stamps come from /clock (the bag's time base, starting near 0), not the wall clock.
     assert len(stamps) > 3000
     assert (
