@@ -231,6 +231,11 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
     stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.5, PR2.joint_names[1]: 0.02})
     assert stream.wait_for_subscribers(), nodes.log(den)
     stream.run(1.5)
+    # Both joints moving: the superposition sweep measured no such cell (Eq. 6 fills it), which
+    # /diagnostics reports as model coverage.
+    status = ros_client.statuses["denoiser"]
+    assert float(diagnostic_values(status)["unmeasured_fraction"]) == 1.0
+    assert status.level == DiagnosticStatus.WARN and "did not measure" in status.message
 
     refused = set_parameters(ros_client, "denoiser", model="other.npz", channels="combined")
     assert not any(r.successful for r in refused)
