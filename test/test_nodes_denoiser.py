@@ -25,6 +25,7 @@ from rclpy.serialization import deserialize_message
 from scipy import signal
 from sensor_msgs.msg import Imu
 
+from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import sensor_qos, stream_publisher_qos
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import (
@@ -221,9 +222,11 @@ def set_parameters(client, node_name: str, **values) -> list:
 
 
 def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
-    nodes, ros_client, feeder, sim_model_path
+    nodes, ros_client, feeder, sim_model_path, tmp_path
 ):
-    den = nodes.start("denoiser", {"model": str(sim_model_path)})
+    model = tmp_path / "axes_only.npz"
+    NoiseModel.load(sim_model_path).replace(measured="full").save(model)
+    den = nodes.start("denoiser", {"model": str(model)})
     denoised = []
     ros_client.node.create_subscription(
         Imu, "accelerometer/denoised", denoised.append, sensor_qos(), raw=True
@@ -231,8 +234,8 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
     stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.5, PR2.joint_names[1]: 0.02})
     assert stream.wait_for_subscribers(), nodes.log(den)
     stream.run(1.5)
-    # Both joints moving: the superposition sweep measured no such cell (Eq. 6 fills it), which
-    # /diagnostics reports as model coverage.
+    # Both joints moving: the calibration (a full-grid one that reached only the axes) measured
+    # no such cell, which /diagnostics reports as model coverage.
     status = ros_client.statuses["denoiser"]
     assert float(diagnostic_values(status)["unmeasured_fraction"]) == 1.0
     assert status.level == DiagnosticStatus.WARN and "did not measure" in status.message
