@@ -20,7 +20,7 @@ from egovib_ros.orchestration import NodeGroup, Watcher
 
 
 class NodeProcesses(NodeGroup):
-    """The demo's NodeGroup, addressed by process handle as the tests like it."""
+    """orchestration.NodeGroup, addressed by process handle as the tests like it."""
 
     def __init__(self, domain_id: int, log_dir: Path):
         super().__init__(log_dir, domain_id)
@@ -92,6 +92,7 @@ class Feeder:
         velocity=None,
         rate_hz: float | None = None,
         seed: int = 0,
+        split_joints: bool = False,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -113,6 +114,7 @@ class Feeder:
             **(velocity or {}),
         }
         self.velocity = np.array([speeds[name] for name in self.joint_names])
+        self.split_joints = split_joints  # two publishers, each with half of the joints
         self.rng = np.random.default_rng(seed)
         self.stamp0 = time.time_ns()
         self.next_index = 0
@@ -166,13 +168,21 @@ class Feeder:
             due = t0 + int((time.monotonic() - start + 0.01) * 1e9)
             i_end, k_end = np.searchsorted(stamps, due), np.searchsorted(joint_stamps, due)
             if k_end > k:
-                for data in encode_joint_state_batch(
-                    joint_stamps[k:k_end],
-                    np.zeros((k_end - k, len(names))),
-                    joint_velocity[k:k_end],
-                    names,
-                ):
-                    self.joint_pub.publish(data)
+                parts = [slice(None)]
+                if self.split_joints:
+                    parts = [slice(0, len(names) // 2), slice(len(names) // 2, None)]
+                messages = [
+                    encode_joint_state_batch(
+                        joint_stamps[k:k_end] + h * 100_000,
+                        np.zeros((k_end - k, len(names[part]))),
+                        joint_velocity[k:k_end, part],
+                        names[part],
+                    )
+                    for h, part in enumerate(parts)
+                ]
+                for row in zip(*messages):  # in stamp order, publisher after publisher
+                    for data in row:
+                        self.joint_pub.publish(data)
             if i_end > i:
                 for data in encode_imu_batch(
                     stamps[i:i_end], values[i:i_end], "imu_link", self.profile.sensor_field

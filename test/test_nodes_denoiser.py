@@ -170,7 +170,10 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
     nodes, ros_client, feeder, sim_model_path
 ):
     den = nodes.start("denoiser", {"model": str(sim_model_path)})
-    stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0})
+    # Joint states from two publishers, each with some of the joints: merged by name.
+    stream = feeder(
+        PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0}, split_joints=True
+    )
     assert stream.wait_for_subscribers(), nodes.log(den)
     # No input at all: STALE from the first report.
     assert ros_client.spin_until(lambda: level_of(ros_client) == DiagnosticStatus.STALE, 3.0), (
@@ -198,6 +201,7 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
     assert set(levels) <= {DiagnosticStatus.STALE, DiagnosticStatus.WARN}
     values = diagnostic_values(ros_client.statuses["denoiser"])
     assert int(values["stream_restarts"]) == 1
+    assert int(values["joint_states_dropped"]) <= 1  # the first, before every joint was seen
     print(
         f"STALE {stale_after:.2f} s after the input stopped; OK {recovered:.2f} s after it resumed"
     )

@@ -209,6 +209,7 @@ class StreamInput:
         self.first_joint_s: float | None = None
         self.last_joint_s: float | None = None
         self.joints_seen = np.zeros(len(self.joint_names), bool)
+        self._last_joint: np.ndarray | None = None  # (2, J) last position and velocity
         self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
 
     # callbacks: keep them minimal, 3 kHz
@@ -255,17 +256,37 @@ class StreamInput:
         now = time.monotonic()
         self.first_joint_s = self.first_joint_s or now
         self.last_joint_s = now
-        stamps, _, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
+        stamps, position, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
         self.undecodable_joints += bad
         if len(stamps):
-            self.joints_seen |= np.isfinite(velocity).any(axis=0)
+            present = ~(np.isnan(position) & np.isnan(velocity))
+            self.joints_seen |= present.any(axis=0)
             if not self.joints_seen.all() and not self.carried_joint_names:
                 self.carried_joint_names = joint_names_of(raws[-1])
+            if not present.all():
+                velocity = self._fill_partial(position, velocity, present)
+            else:
+                self._last_joint = np.stack([position[-1], velocity[-1]])
         return JointBatch(stamps, velocity)
 
+    def _fill_partial(
+        self, position: np.ndarray, velocity: np.ndarray, present: np.ndarray
+    ) -> np.ndarray:
+        """Partial JointStates (several publishers, each with some of the joints): a joint a
+        message lacks keeps its last published value, as the bag layer reads them offline."""
+        both = np.stack([position, velocity], axis=1)  # (M, 2, J)
+        start = self._last_joint
+        if start is None:
+            start = np.full(both.shape[1:], np.nan)
+        rows = np.where(present[:, None, :], np.arange(len(both))[:, None, None], -1)
+        last = np.maximum.accumulate(rows, axis=0)  # the last row holding each joint
+        held = np.take_along_axis(both, np.maximum(last, 0), axis=0)
+        filled = np.where(last >= 0, held, start[None])
+        self._last_joint = filled[-1]
+        return filled[:, 1]
+
     def missing_joints(self, grace_s: float = 1.0) -> list[str]:
-        """Named joints never seen (with a velocity) although joint states have been
-        arriving for `grace_s` (several publishers may each carry some of the joints)."""
+        """Named joints never seen although joint states have been arriving for `grace_s`."""
         if self.first_joint_s is None or time.monotonic() - self.first_joint_s < grace_s:
             return []
         return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
@@ -278,7 +299,7 @@ class StreamInput:
         )
         return (
             f"{self.joints_topic}: joint{'s' if len(missing) > 1 else ''} "
-            f"{', '.join(repr(m) for m in missing)} never seen with a velocity{carried}"
+            f"{', '.join(repr(m) for m in missing)} never seen{carried}"
         )
 
 
