@@ -27,6 +27,7 @@ from sensor_msgs.msg import Imu
 
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import sensor_qos, stream_publisher_qos
+from egovib_ros.orchestration import reliable_input
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import (
     command_message,
@@ -38,6 +39,8 @@ from egovib_ros.ros_convert import (
 PR2 = load_profile()  # the simulated hand; sim_model_path is calibrated on it
 BIN = Path(sys.executable).parent
 RATE = PR2.rate_hz
+# Lossless input where a test compares streams exactly (standard QoS override parameters).
+RELIABLE = reliable_input(PR2.sensor_topic, PR2.joints_topic)
 
 
 def bandpass(values: np.ndarray) -> np.ndarray:
@@ -119,7 +122,7 @@ def test_live_denoiser_keeps_stamps_lowers_noise_and_copies_the_input_message(
 def test_bad_input_counted_once_and_pass_through_without_joint_states(
     nodes, ros_client, sim_model_path
 ):
-    den = nodes.start("denoiser", {"model": str(sim_model_path)})
+    den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE})
     denoised = []
     ros_client.node.create_subscription(
         Imu, "accelerometer/denoised", denoised.append, sensor_qos(), raw=True
@@ -169,7 +172,7 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(
 def test_health_stale_without_input_and_ok_again_after_a_restart(
     nodes, ros_client, feeder, sim_model_path
 ):
-    den = nodes.start("denoiser", {"model": str(sim_model_path)})
+    den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE})
     # Joint states from two publishers, each with some of the joints: merged by name.
     stream = feeder(
         PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0}, split_joints=True
@@ -230,7 +233,7 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
 ):
     model = tmp_path / "axes_only.npz"
     NoiseModel.load(sim_model_path).replace(measured="full").save(model)
-    den = nodes.start("denoiser", {"model": str(model)})
+    den = nodes.start("denoiser", {"model": str(model), **RELIABLE})
     denoised = []
     ros_client.node.create_subscription(
         Imu, "accelerometer/denoised", denoised.append, sensor_qos(), raw=True

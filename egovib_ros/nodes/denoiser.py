@@ -339,6 +339,12 @@ class Denoiser(Node):
         elif not self._flushed and self.flush_after_idle_s > 0 and idle > self.flush_after_idle_s:
             self._flushed = True
             self._publish(self.denoiser.flush(), end_of_stream=True)
+        # The stream stopping or coming back is reported at once, not at the next 1 Hz report.
+        last = self.input.last_sensor_s
+        if last is not None and self.health.level in ("ok", "warn", "stale"):
+            stale = time.monotonic() - last >= self.health.stale_after_s
+            if stale != (self.health.level == "stale"):
+                self._publish_diagnostics()
 
     # --- health ----------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
