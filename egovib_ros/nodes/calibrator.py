@@ -153,7 +153,7 @@ class Calibrator(Node):
         self._last_input = time.monotonic()
         joints = self.input.take_joints()
         if joints is not None and len(joints.stamps_ns):
-            missing = self.input.missing_joints(grace_s=0.0)
+            missing = self.input.missing_joints()
             if missing != self.missing_joints and missing:
                 self.get_logger().error(
                     self.input.missing_joints_message(missing) + ": no block can be used"

@@ -285,9 +285,9 @@ class StreamInput:
         self._last_joint = filled[-1]
         return filled[:, 1]
 
-    def missing_joints(self, grace_s: float = 1.0) -> list[str]:
-        """Named joints never seen although joint states have been arriving for `grace_s`."""
-        if self.first_joint_s is None or time.monotonic() - self.first_joint_s < grace_s:
+    def missing_joints(self) -> list[str]:
+        """Named joints that no joint state received so far has carried."""
+        if self.first_joint_s is None:
             return []
         return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
 

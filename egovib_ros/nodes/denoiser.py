@@ -210,9 +210,8 @@ class Denoiser(Node):
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
         )
         self.held = HeldInput()
-        self._startup: list[
-            tuple[list[bytes], np.ndarray, np.ndarray]
-        ] = []  # output awaiting the rate check
+        # Output waiting for the core's rate check: (messages, values, arrival) per chunk.
+        self._startup: list[tuple] = []
         self._rate_proven = False
         self._blocks_held_back = False
         self._last_input = time.monotonic()
@@ -280,7 +279,7 @@ class Denoiser(Node):
         batch = self.input.take_joints()
         if batch is None or not len(batch.stamps_ns):
             return
-        missing = self.input.missing_joints(grace_s=0.0)
+        missing = self.input.missing_joints()
         if missing != self.missing_joints:
             self.missing_joints = missing
             if missing:
