@@ -81,3 +81,17 @@ def test_parameter_files_set_only_declared_parameters(executable):
     data = yaml.safe_load((REPO / "config" / f"{executable}.yaml").read_text())
     values = data[executable]["ros__parameters"]
     assert set(values) <= declared(executable), set(values) - declared(executable)
+
+
+def test_demo_and_live_bench_are_egovib_subcommands(capsys):
+    from egovib_ros.cli import build_parser, main
+
+    parser = build_parser()
+    for command, module in (("demo", "egovib_ros.demo"), ("live-bench", "egovib_ros.live_bench")):
+        args = parser.parse_args(
+            [command] + (["--json", "x.json"] if command == "live-bench" else [])
+        )
+        assert args.func is importlib.import_module(module).run
+    with pytest.raises(SystemExit) as exit_info:
+        main(["live-bench"])  # --json is required: a one-line usage error, exit 2
+    assert exit_info.value.code == 2 and "--json" in capsys.readouterr().err
