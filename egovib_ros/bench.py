@@ -26,7 +26,7 @@ import numpy as np
 from egovib_ros import __version__
 from egovib_ros.constants import (ACCEL_RATE_HZ, BAND_HZ, BAND_ORDER, BLOCK_LENGTH, HOP, JOINT_NAMES,
                                   JOINT_RATE_HZ, MAX_SPEED, default_grid)
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.fileutil import atomic_output, prepare_output
 
 TARGETS = {
     "batch_x_realtime": (">=", 1000.0),
@@ -226,6 +226,11 @@ def markdown_summary(results: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
+    # before any work
+    prepare_output(args.json, force=args.force, kind="json", option="--json",
+                   inputs=[args.markdown])
+    prepare_output(args.markdown or Path(args.json).with_suffix(".md"), force=args.force,
+                   kind="file", option="--markdown", inputs=[args.json])
     with tqdm(total=4, desc="bench", unit="step", disable=args.quiet) as bar:
         results = run_benchmarks(quick=args.quick, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
     json_path = Path(args.json)
@@ -245,5 +250,6 @@ def register(subparsers) -> None:
     parser.add_argument("--json", required=True, metavar="FILE", help="where to write the JSON figures")
     parser.add_argument("--markdown", metavar="FILE", help="markdown summary (default: FILE with .md suffix)")
     parser.add_argument("--quick", action="store_true", help="short inputs (seconds), for tests")
+    parser.add_argument("--force", action="store_true", help="replace existing output files")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     parser.set_defaults(func=run)

@@ -12,6 +12,7 @@ import logging
 import sys
 
 from egovib_ros import __version__
+from egovib_ros.cliutil import OneLineErrorParser
 from egovib_ros.errors import EgovibError
 
 # Order = order in `egovib --help`.
@@ -28,7 +29,7 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(     # one-line errors for bad options, like every bad input
         prog="egovib",
         description="Ego-vibration removal for robot accelerometers (spectral subtraction).")
     parser.add_argument("--version", action="version", version=f"egovib {__version__}")
@@ -41,7 +42,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:        # --help / --version (0), a bad option (2, one line printed)
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         return int(args.func(args) or 0)
     except EgovibError as exc:
