@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+from egovib_ros.errors import EgovibError
 from egovib_ros.orchestration import NodeGroup, Watcher, reliable_input
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
@@ -266,17 +267,38 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0]
     )
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    try:
+        return run(parser.parse_args(argv))
+    except EgovibError as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def clear_previous_run(out: Path) -> None:
+    """Remove what a previous demo run left in `out` - only if it is recognisably ours
+    (fileutil.prepare_output); anything else there is refused, never deleted."""
+    from egovib_ros.fileutil import prepare_output
+
+    outputs = {
+        "noise_model.npz": "model",
+        "run_bag": "bag",
+        "demo_evaluation.json": "json",
+        "demo_fig5.png": "file",
+    }
+    for name, kind in outputs.items():
+        prepare_output(out / name, force=True, kind=kind)
+    for name in outputs:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     model, bag = out / "noise_model.npz", out / "run_bag"
-    for old in (model, bag, out / "logs"):
-        if old.is_dir():
-            shutil.rmtree(old)
-        elif old.exists():
-            old.unlink()
+    clear_previous_run(out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     group = NodeGroup(out / "logs")
