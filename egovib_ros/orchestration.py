@@ -11,6 +11,7 @@ On a colcon install the launch files in `launch/` do the same job.
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import signal
@@ -28,7 +29,8 @@ def param_text(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (list, tuple)):
-        return "[" + ",".join(param_text(v) for v in value) + "]"
+        items = (json.dumps(v) if isinstance(v, str) else param_text(v) for v in value)
+        return "[" + ",".join(items) + "]"
     return str(value)
 
 

@@ -204,7 +204,7 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
     ros_client.spin_for(0.5)
     player = nodes.start(
         "bag_player",
-        {"bag": str(bag), "wait_for_subscribers": 1, "topics": topics or [""]},
+        {"bag": str(bag), "wait_for_subscribers": 1, **({"topics": topics} if topics else {})},
         namespace=ns,
     )
     reports = []

@@ -59,7 +59,7 @@ class BagPlayer(Node):
         self.bag = Path(params["bag"])
         self.rate = params["rate"]
         self.publish_clock = params["clock"]
-        topics = params["topics"]
+        topics = params["topics"] or []
         self.wait_for_subscribers = params["wait_for_subscribers"]
         self.wait_timeout = params["wait_timeout"]
         self.start_delay = params["start_delay"]
