@@ -192,7 +192,14 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
     )
     den = nodes.start(
         "denoiser",
-        {"model": str(model), "flush_after_idle": 0.3, **reliable_input(topic_in, joints_in)},
+        {
+            "model": str(model),
+            "flush_after_idle": 0.3,
+            # Replay: a block waits for its joint states (which a busy machine may deliver
+            # late on their own DDS reader) so that the output is exactly the offline one.
+            "joint_wait": 1.0,
+            **reliable_input(topic_in, joints_in),
+        },
         remap={
             robot.node_sensor_topic: topic_in,
             robot.node_joints_topic: joints_in,

@@ -82,6 +82,13 @@ PARAMETERS = MODEL_PARAMETERS + (
         range=(1, 100_000),
     ),
     Param(
+        "joint_wait",
+        0.02,
+        "seconds of stream time a completed block waits for the joint states covering it "
+        "(longer: exact for replays whose joint states may lag, at the cost of latency)",
+        range=(0.0, 10.0),
+    ),
+    Param(
         "flush_after_idle",
         0.5,
         "seconds without input after which the samples held for overlap-add are "
@@ -191,6 +198,7 @@ class Denoiser(Node):
             channels=self.channels,
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
+            joint_wait_s=params["joint_wait"],
             source=self.resolve_topic_name(self.profile.node_sensor_topic),
         )
         self.add_on_set_parameters_callback(self._on_set_parameters)
