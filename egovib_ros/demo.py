@@ -151,20 +151,24 @@ def read_live_recording(bag: Path):
     import dataclasses
 
     import numpy as np
-    from rosbags.rosbag2 import Reader
 
-    from egovib_ros.bagio import decode_imu_batch, read_recording
+    from egovib_ros.bag import BagReader, decode_imu, read_recording
     from egovib_ros.constants import BAG_TOPICS
 
     rec = read_recording(bag, ground_truth=False, denoised=True)
     truth = {}
-    with Reader(bag) as reader:
-        for key in ("contact", "ego"):
-            conns = [c for c in reader.connections if c.topic == BAG_TOPICS[key]]
-            if conns:
-                truth[key] = decode_imu_batch(
-                    [bytes(d) for _, _, d in reader.messages(connections=conns)]
-                )
+    with BagReader(bag) as reader:
+        topics = {
+            BAG_TOPICS[key]: key for key in ("contact", "ego") if BAG_TOPICS[key] in reader.topics
+        }
+        parts = {key: [] for key in topics.values()}
+        for batch in reader.batches(topics):
+            for topic, messages in batch.messages.items():
+                parts[topics[topic]].append(decode_imu(messages))
+    for key, decoded in parts.items():
+        stamps = np.concatenate([s for s, _ in decoded])
+        order = np.argsort(stamps, kind="stable")
+        truth[key] = (stamps[order], np.concatenate([v for _, v in decoded])[order])
     keep = np.ones(len(rec.accel_stamps_ns), bool)
     for stamps, _ in truth.values():
         keep &= np.isin(rec.accel_stamps_ns, stamps)
