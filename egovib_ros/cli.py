@@ -23,6 +23,8 @@ COMMAND_MODULES = (
     "egovib_ros.gap.cli",          # gap, gap validate
     "egovib_ros.bench",            # bench
     "egovib_ros.realdata.cli",     # real convert|evaluate
+    "egovib_ros.demo",             # demo (live, ROS 2 nodes)
+    "egovib_ros.live_bench",       # live-bench (live, ROS 2 nodes)
 )
 
 

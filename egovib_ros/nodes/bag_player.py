@@ -5,6 +5,7 @@ scaled by `rate`; bag topic names drop their leading '/' so that namespaces and
 remappings apply. With `clock: true`, /clock (rosgraph_msgs/Clock) carries the
 bag time, so nodes started with use_sim_time run on the recording's time base.
 """
+
 from __future__ import annotations
 
 import time
@@ -15,13 +16,38 @@ from rclpy.node import Node
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
-from egovib_ros.nodes.common import declare, run_node, stream_publisher_qos
+from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
 from egovib_ros.ros_convert import ns_to_stamp
 
-TICK_S = 0.002          # publishing granularity: messages due within a tick go out together
-CLOCK_PERIOD_NS = 1_000_000   # /clock at up to 1 kHz of bag time
+TICK_S = 0.002  # publishing granularity: messages due within a tick go out together
+CLOCK_PERIOD_NS = 1_000_000  # /clock at up to 1 kHz of bag time
+PARAMETERS = (
+    Param("bag", "", "rosbag2 directory to play"),
+    Param("rate", 1.0, "playback speed factor (2.0 = twice as fast)", range=(0.001, 1000.0)),
+    Param("clock", False, "publish /clock with the bag time"),
+    Param("topics", [""], "topics to play (bag names); empty = all"),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "wait until every played topic has at least this many subscribers before starting",
+        range=(0, 100),
+    ),
+    Param(
+        "wait_timeout",
+        10.0,
+        "seconds to wait for subscribers before giving up",
+        range=(0.0, 3600.0),
+    ),
+    Param("start_delay", 0.0, "seconds to wait before playing", range=(0.0, 3600.0)),
+    Param(
+        "linger",
+        0.5,
+        "seconds to stay up after the last message, to let it be delivered",
+        range=(0.0, 3600.0),
+    ),
+)
 
 
 class BagPlayer(Node):
@@ -29,20 +55,15 @@ class BagPlayer(Node):
 
     def __init__(self):
         super().__init__("bag_player")
-        self.bag = Path(declare(self, "bag", "", "rosbag2 directory to play"))
-        self.rate = float(declare(self, "rate", 1.0, "playback speed factor (2.0 = twice as fast)"))
-        self.publish_clock = declare(self, "clock", False, "publish /clock with the bag time")
-        topics = declare(self, "topics", [""], "topics to play (bag names); empty = all")
-        self.wait_for_subscribers = declare(
-            self, "wait_for_subscribers", 0,
-            "wait until every played topic has at least this many subscribers before starting")
-        self.wait_timeout = float(declare(self, "wait_timeout", 10.0,
-                                          "seconds to wait for subscribers before giving up"))
-        self.start_delay = float(declare(self, "start_delay", 0.0, "seconds to wait before playing"))
-        self.linger = float(declare(self, "linger", 0.5,
-                                    "seconds to stay up after the last message, to let it be delivered"))
-        if self.rate <= 0:
-            raise ConfigError(f"bag_player: rate must be > 0, not {self.rate}")
+        params = declare_parameters(self, PARAMETERS)
+        self.bag = Path(params["bag"])
+        self.rate = params["rate"]
+        self.publish_clock = params["clock"]
+        topics = params["topics"] or []
+        self.wait_for_subscribers = params["wait_for_subscribers"]
+        self.wait_timeout = params["wait_timeout"]
+        self.start_delay = params["start_delay"]
+        self.linger = params["linger"]
         if not (self.bag / "metadata.yaml").is_file():
             raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
         try:
@@ -60,17 +81,25 @@ class BagPlayer(Node):
             try:
                 msg_class = message_class(conn.msgtype)
             except (ImportError, AttributeError):
-                self.get_logger().warning(f"{conn.topic}: type {conn.msgtype} not available, skipped")
+                self.get_logger().warning(
+                    f"{conn.topic}: type {conn.msgtype} not available, skipped"
+                )
                 continue
-            self.topic_publishers[conn.id] = self.create_publisher(msg_class, conn.topic.lstrip("/"), qos)
-        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+            self.topic_publishers[conn.id] = self.create_publisher(
+                msg_class, conn.topic.lstrip("/"), qos
+            )
+        self.clock_publisher = (
+            self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+        )
         self.published = 0
 
     def _wait_for_subscribers(self) -> None:
         deadline = time.monotonic() + self.wait_timeout
         while rclpy.ok() and time.monotonic() < deadline:
-            if all(p.get_subscription_count() >= self.wait_for_subscribers
-                   for p in self.topic_publishers.values()):
+            if all(
+                p.get_subscription_count() >= self.wait_for_subscribers
+                for p in self.topic_publishers.values()
+            ):
                 return
             time.sleep(0.05)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")
@@ -82,8 +111,10 @@ class BagPlayer(Node):
         time.sleep(self.start_delay)
         connections = [c for c in self.connections if c.id in self.topic_publishers]
         start_bag_ns = self.reader.start_time
-        self.get_logger().info(f"playing {self.bag} ({self.reader.message_count} messages, "
-                               f"{self.reader.duration / 1e9:.1f} s) at rate {self.rate}")
+        self.get_logger().info(
+            f"playing {self.bag} ({self.reader.message_count} messages, "
+            f"{self.reader.duration / 1e9:.1f} s) at rate {self.rate}"
+        )
         start_wall = time.monotonic()
         clock_msg = Clock()
         last_clock_ns = None
@@ -97,7 +128,8 @@ class BagPlayer(Node):
                 return 0
             # /clock at most every CLOCK_PERIOD_NS of bag time, always before the message it covers.
             if self.clock_publisher is not None and (
-                    last_clock_ns is None or bag_ns - last_clock_ns >= CLOCK_PERIOD_NS):
+                last_clock_ns is None or bag_ns - last_clock_ns >= CLOCK_PERIOD_NS
+            ):
                 clock_msg.clock = ns_to_stamp(bag_ns)
                 self.clock_publisher.publish(clock_msg)
                 last_clock_ns = bag_ns

@@ -11,8 +11,19 @@ import yaml
 
 from egovib_ros.constants import EFFECT_NAMES
 from egovib_ros.errors import ConfigError
+from egovib_ros.robot import config_dir
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+
+def default_config_path() -> Path:
+    """config/sim.yaml of the package: the source tree's, or the installed share directory's
+    (colcon/ament or pip install), found like the robot profiles (robot.config_dir)."""
+    return config_dir() / "sim.yaml"
+
+
+def __getattr__(name: str):
+    if name == "DEFAULT_CONFIG":        # kept for callers of the former constant
+        return default_config_path()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -119,11 +130,12 @@ class SimParams:
 
     @classmethod
     def load(cls, path: str | os.PathLike | None = None) -> "SimParams":
-        """Parameters from a YAML file (default config/sim.yaml; built-in defaults if it is absent)."""
+        """Parameters from a YAML file (default: the package's config/sim.yaml; a missing
+        default is an error, not a silent fall-back to built-in values)."""
         if path is None:
-            if not DEFAULT_CONFIG.exists():
-                return cls()
-            path = DEFAULT_CONFIG
+            path = default_config_path()
+            if not path.is_file():
+                raise ConfigError(f"{path}: the package's simulator parameters are missing; reinstall the package")
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
