@@ -177,6 +177,11 @@ class CalibrationAccumulator:
                 "gap_filled_samples": s.gap_filled_samples, "resets": s.resets,
                 "joint_states_dropped": s.joint_states_dropped}
 
+    @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held) by the framer."""
+        return self._framer.backlog
+
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._accumulate(self._framer.pop_blocks())
