@@ -215,7 +215,7 @@ def joint_state_message(stamp_ns: int, names: Sequence[str], position, velocity,
         velocity=np.asarray(velocity, np.float64), effort=np.zeros(0))
 
 
-def _joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int, int]:
+def joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int, int]:
     """Walk the CDR of one JointState: (names, pos_offset, n_pos, vel_offset, n_vel, effort_count_offset).
 
     Offsets are counted from the message start (4-byte encapsulation header included).
@@ -257,7 +257,7 @@ def encode_joint_state_batch(stamps_ns: np.ndarray, position: np.ndarray, veloci
     n, n_joints = position.shape
     template = bytes(typestore().serialize_cdr(
         joint_state_message(0, names, np.zeros(n_joints), np.zeros(n_joints)), JOINT_STATE_TYPE))
-    _, pos_off, _, vel_off, _, _ = _joint_state_layout(template)
+    _, pos_off, _, vel_off, _, _ = joint_state_layout(template)
     dtype = np.dtype({"names": ["sec", "nanosec", "pos", "vel"],
                       "formats": ["<i4", "<u4", ("<f8", n_joints), ("<f8", n_joints)],
                       "offsets": [4, 8, pos_off, vel_off], "itemsize": len(template)})
@@ -281,7 +281,7 @@ def decode_joint_state_batch(raws: Sequence[bytes], names: Sequence[str] | None 
         k = len(names) if names is not None else 0
         return np.zeros(0, np.int64), np.zeros((0, k)), np.zeros((0, k)), tuple(names or ())
     first = bytes(raws[0])
-    msg_names, pos_off, n_pos, vel_off, n_vel, _ = _joint_state_layout(first)
+    msg_names, pos_off, n_pos, vel_off, n_vel, _ = joint_state_layout(first)
     names = tuple(names) if names is not None else msg_names
     length = len(first)
     columns = [msg_names.index(name) for name in names] if set(names) <= set(msg_names) else None

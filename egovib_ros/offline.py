@@ -482,26 +482,10 @@ def merge_accumulators(accumulators: Sequence[CalibrationAccumulator]) -> Calibr
     given, so the result does not depend on which bag finished first). Bags are separate
     streams: each was framed and flushed on its own; only the statistics are pooled.
 
-    Uses the accumulator's tallies (both the sweep and the free-motion tally, so "auto"
-    decides on the pooled data); a `merge` method in the core would be its natural home."""
-    first, rest = accumulators[0], accumulators[1:]
-    for other in rest:
-        for mine, theirs in (
-            (first._sweep_tally, other._sweep_tally),
-            (first._free_tally, other._free_tally),
-        ):
-            k = theirs.n
-            if k:
-                ids = np.ravel_multi_index(tuple(theirs.cells[:k].T), first.grid_shape)
-                rows = mine.rows(ids, theirs.cells[:k])
-                mine.sum[rows] += theirs.sum[:k]
-                mine.sumsq[rows] += theirs.sumsq[:k]
-                mine.counts[rows] += theirs.counts[:k]
-            for key, value in theirs.rejected.items():
-                mine.rejected[key] = mine.rejected.get(key, 0) + value
-        for key, value in vars(other._framer.stats).items():
-            if isinstance(value, int):
-                setattr(first._framer.stats, key, getattr(first._framer.stats, key) + value)
+    Both the sweep and the free-motion tally are pooled, so "auto" decides on the pooled data."""
+    first = accumulators[0]
+    for other in accumulators[1:]:
+        first.merge(other)
     return first
 
 

@@ -174,3 +174,27 @@ def test_profile_overrides_and_bad_settings_are_refused():
         CalibrationAccumulator(profile=p, sweep="spiral")
     with pytest.raises(ConfigError, match="cell_tolerance"):
         CalibrationAccumulator(profile=p, cell_tolerance=float("nan"))
+
+
+def test_pooling_two_recordings_weights_each_cell_by_its_blocks():
+    p = profile(2, rate_hz=1000.0, bidirectional=(True, False))
+    parts = []
+    for seed in (11, 12):
+        acc = CalibrationAccumulator(profile=p, sweep="free")
+        push_random_chunks(acc, recording(p, 20.0, seed=seed), np.random.default_rng(seed), max_chunk=300)
+        acc.flush()
+        parts.append(acc)
+    models = [acc.to_model() for acc in parts]
+    parts[0].merge(parts[1])
+    pooled = parts[0].to_model()
+    for k, cell in enumerate(pooled.cells):
+        counts, sums = 0, 0.0
+        for m in models:
+            row = np.flatnonzero((m.cells == cell).all(axis=1))
+            if len(row):
+                counts += m.cell_counts[row[0]]
+                sums = sums + m.cell_counts[row[0]] * m.cell_mean[row[0]]
+        assert pooled.cell_counts[k] == counts
+        np.testing.assert_allclose(pooled.cell_mean[k], sums / counts, rtol=1e-12)
+    with pytest.raises(ConfigError, match="cannot pool"):
+        parts[0].merge(CalibrationAccumulator(profile=profile(3)))

@@ -68,7 +68,7 @@ def test_memory_stays_bounded_however_long_the_recording():
         j0, j1 = np.searchsorted(data["t_joint"], data["t_acc"][[start, min(stop, len(data["t_acc"])) - 1]] + [0, 25_000_000])
         acc.push_joint_states(data["t_joint"][j0:j1], data["velocity"][j0:j1])
         acc.push_accel(data["t_acc"][start:stop], data["accel"][start:stop])
-        sizes.append((len(acc._framer._buf_t), len(acc._framer._joint_t)))
+        sizes.append(acc.backlog)
     assert max(s[0] for s in sizes) < 200 and max(s[1] for s in sizes) < 1400
 
 

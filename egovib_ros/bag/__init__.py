@@ -1,11 +1,22 @@
 """rosbag2 bags <-> numpy, streamed in bounded memory; no rclpy.
 
-    read_recording(path, profile=...) -> Recording          whole bag (small bags, tests)
-    iter_recording(path, profile=...) -> Iterator[Recording]  aligned time slices (any size)
+    read_recording(path, profile=...) -> Recording             whole bag (small bags, tests)
+    iter_recording(path, profile=...) -> Iterator[Recording]    aligned time slices (any size)
     write_recording(path, rec), write_recordings(path, slices)
-    BagReader(path).batches(topics) -> ReadBatch            packed messages per MCAP chunk
-    BagWriter(path, compress="zstd")                        chunked MCAP (+ metadata.yaml)
-    run_bags(task, bags, jobs=..., scheduler=...)           many bags in parallel (Dask)
+    BagReader(path).batches(topics) -> ReadBatch               packed messages per MCAP chunk
+    BagWriter(path, compress="zstd")                           chunked MCAP (+ metadata.yaml)
+    many.run_bags(task, jobs, jobs=N, scheduler=ADDRESS)       many bags in parallel (Dask)
+
+Streaming a bag through the core (what `egovib calibrate` does; evaluate and gap alike):
+
+    for piece in iter_recording(bag, profile=model.profile):   # topics, field, joints
+        consumer.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
+        out = consumer.push_accel(piece.accel_stamps_ns, piece.accel)
+        # piece.contact / piece.ego: ground truth of the same samples (sim bags)
+    consumer.flush()
+
+gives the whole-array result (`feed` on read_recording's arrays) in memory that does not
+grow with the bag.
 
 Layers: `mcapfile` (MCAP records, chunk by chunk, numpy), `messages` (packed
 messages, Imu/JointState decoding), `reader`/`writer` (rosbag2 directories),

@@ -188,7 +188,7 @@ def _joint_states_fast(batch: MessageBatch, names: tuple[str, ...]):
     if first[:2] != cdr.CDR_LE_HEADER[:2]:
         return None
     try:
-        msg_names, pos_off, n_pos, vel_off, n_vel, _ = cdr._joint_state_layout(first)
+        msg_names, pos_off, n_pos, vel_off, n_vel, _ = cdr.joint_state_layout(first)
     except Exception:
         return None
     if not set(names) <= set(msg_names) or not n_pos == n_vel == len(msg_names):

@@ -177,6 +177,11 @@ class CalibrationAccumulator:
                 "gap_filled_samples": s.gap_filled_samples, "resets": s.resets,
                 "joint_states_dropped": s.joint_states_dropped}
 
+    @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held) by the framer."""
+        return self._framer.backlog
+
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._accumulate(self._framer.pop_blocks())
@@ -238,6 +243,27 @@ class CalibrationAccumulator:
             for tally, accept in zip((self._sweep_tally, self._free_tally), accepted):
                 if accept.any():
                     tally.add(ids[accept], index[accept], magnitude[accept])
+
+    def merge(self, other: "CalibrationAccumulator") -> None:
+        """Pool another accumulator's per-cell sums and counts into this one (several bags of
+        one robot: each was framed and flushed on its own, only the statistics are pooled).
+        Both tallies are pooled, so "auto" decides on the pooled data."""
+        if other.grid_shape != self.grid_shape or other.joint_names != self.joint_names \
+                or other.settings.block_length != self.settings.block_length:
+            raise ConfigError(f"calibration: cannot pool {other.joint_names} {other.grid_shape} into "
+                              f"{self.joint_names} {self.grid_shape}")
+        for mine, theirs in ((self._sweep_tally, other._sweep_tally), (self._free_tally, other._free_tally)):
+            k = theirs.n
+            if k:
+                rows = mine.rows(np.ravel_multi_index(tuple(theirs.cells.T), self._shape), theirs.cells)
+                np.add.at(mine.sum, rows, theirs.sum[:k])
+                np.add.at(mine.sumsq, rows, theirs.sumsq[:k])
+                np.add.at(mine.counts, rows, theirs.counts[:k])
+            for key, value in theirs.rejected.items():
+                mine.rejected[key] = mine.rejected.get(key, 0) + value
+        for key, value in vars(other._framer.stats).items():
+            if isinstance(value, int):
+                setattr(self._framer.stats, key, getattr(self._framer.stats, key) + value)
 
     def to_model(self, *, source: str = "", measured: str | None = None) -> NoiseModel:
         """The noise model from what has been accumulated so far (only measured cells)."""

@@ -351,6 +351,11 @@ class BlockFramer:
         return ready
 
     @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held): bounded however long the stream runs."""
+        return len(self._buf_t), len(self._joint_t)
+
+    @property
     def latest_accel_ns(self) -> int | None:
         return self._cleaner.last_stamp
 

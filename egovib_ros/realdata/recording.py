@@ -1,19 +1,16 @@
-"""Read the flight bag back into arrays, keyed by the robot profile.
-
-A small stand-in for ``egovib_ros.bagio.read_recording(path, profile=...)`` (being made
-profile-aware on another branch): rosbags' reader plus the project's CDR decoders,
-joints picked by name. Replace by that one call when it lands on main.
-"""
+"""The flight bag as arrays, keyed by the robot profile, through the bag layer
+(`egovib_ros.bag.read_recording`), plus the firmware-filtered gyro topic for baseline (d)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.cdr import IMU_TYPE, JOINT_STATE_TYPE, decode_imu_batch, decode_joint_state_batch
+from egovib_ros.bag import bag_topics, read_recording
+from egovib_ros.cdr import IMU_TYPE
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile
 
@@ -66,59 +63,17 @@ class FlightRecording:
 def read_flight_bag(
     path: str | os.PathLike, profile: RobotProfile, *, filtered_topic: str = FILTERED_TOPIC
 ) -> FlightRecording:
-    """Sensor topic/field and joints from `profile`; the filtered gyro when the bag has it."""
-    from rosbags.rosbag2 import Reader
-
-    path = Path(path)
-    if not path.exists():
-        raise BagError(f"{path}: no such bag")
-    try:
-        reader = Reader(path)
-        reader.open()
-    except Exception as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BagError(f"{path}: not a readable rosbag2 bag ({reason})") from None
-    try:
-        types = {c.topic: c.msgtype for c in reader.connections}
-        expected = {
-            profile.sensor_topic: IMU_TYPE,
-            profile.joints_topic: JOINT_STATE_TYPE,
-            filtered_topic: IMU_TYPE,
-        }
-        for topic in (profile.sensor_topic, profile.joints_topic):
-            if topic not in types:
-                raise BagError(f"{path}: missing topic {topic}")
-        for topic, msgtype in expected.items():
-            if topic in types and types[topic] != msgtype:
-                raise BagError(f"{path}: topic {topic} has type {types[topic]}, expected {msgtype}")
-        raws: dict[str, list[bytes]] = {topic: [] for topic in expected if topic in types}
-        try:
-            for conn, _, raw in reader.messages(
-                connections=[c for c in reader.connections if c.topic in raws]
-            ):
-                raws[conn.topic].append(raw)
-        except Exception as exc:
-            raise BagError(f"{path}: unreadable bag data ({exc})") from None
-    finally:
-        reader.close()
-    field = profile.sensor_field
-    try:
-        stamps, values = decode_imu_batch(raws[profile.sensor_topic], field)
-        j_stamps, j_pos, j_vel, _ = decode_joint_state_batch(
-            raws[profile.joints_topic], profile.joint_names
-        )
-        filtered = (
-            decode_imu_batch(raws[filtered_topic], field)
-            if raws.get(filtered_topic)
-            else (None, None)
-        )
-    except Exception as exc:
-        raise BagError(f"{path}: cannot decode a message ({exc})") from None
-    if len(stamps) == 0:
-        raise BagError(f"{path}: topic {profile.sensor_topic} has no messages")
-    for j, name in enumerate(profile.joint_names):
-        if len(j_vel) == 0 or np.all(np.isnan(j_vel[:, j])):
-            raise BagError(f"{path}: joint {name!r} never appears on {profile.joints_topic}")
-    return FlightRecording(
-        stamps, values, j_stamps, j_vel, j_pos, tuple(profile.joint_names), *filtered
-    )
+    """Sensor topic/field and joints from `profile` (through the bag layer); the
+    firmware-filtered gyro when the bag has it."""
+    rec = read_recording(path, profile=profile, ground_truth=False, denoised=False)
+    filtered = (None, None)
+    topics = bag_topics(path)
+    if filtered_topic in topics:
+        if topics[filtered_topic][0] != IMU_TYPE:
+            raise BagError(f"{path}: topic {filtered_topic} has type {topics[filtered_topic][0]}, "
+                           f"expected {IMU_TYPE}")
+        other = dataclasses.replace(profile, sensor_topic=filtered_topic)
+        firmware = read_recording(path, profile=other, ground_truth=False, denoised=False)
+        filtered = (firmware.accel_stamps_ns, firmware.accel)
+    return FlightRecording(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
+                           rec.joint_position, tuple(profile.joint_names), *filtered)
