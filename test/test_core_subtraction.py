@@ -255,7 +255,7 @@ def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
 
 def test_stream_errors_name_their_source(model):
     denoiser = StreamingDenoiser(model, source="/accelerometer/raw")
-    with pytest.raises(StreamError, match=r"^/accelerometer/raw: accelerometer chunk"):
+    with pytest.raises(StreamError, match=r"^/accelerometer/raw: sensor chunk"):
         denoiser.push_accel(np.arange(4, dtype=np.int64), np.zeros((4, 2)))
 
 

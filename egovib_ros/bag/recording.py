@@ -43,6 +43,7 @@ from egovib_ros.cdr import (
     encode_commands,
     encode_imu_batch,
     encode_joint_state_batch,
+    hold_missing_joints,
 )
 from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.errors import BagError
@@ -232,24 +233,11 @@ class RecordingStream:
 
     def _merge_partial(self, stamps, position, velocity):
         """Fill a joint missing from a message with its last published value."""
-        present = ~(np.isnan(position) & np.isnan(velocity))
-        self._joint_seen |= present.any(axis=0)
-        if present.all():
-            self._last_joint_values = np.stack([position[-1], velocity[-1]])
-            return stamps, position, velocity
-        both = np.stack([position, velocity], axis=1)  # (M, 2, J)
-        start = (
-            self._last_joint_values
-            if self._last_joint_values is not None
-            else np.full(both.shape[1:], np.nan)
+        self._joint_seen |= (~(np.isnan(position) & np.isnan(velocity))).any(axis=0)
+        position, velocity, self._last_joint_values = hold_missing_joints(
+            position, velocity, self._last_joint_values
         )
-        rows = np.where(present[:, None, :], np.arange(len(stamps))[:, None, None], -1)
-        last = np.maximum.accumulate(rows, axis=0)  # last row holding each joint
-        filled = np.where(
-            last >= 0, np.take_along_axis(both, np.maximum(last, 0), axis=0), start[None]
-        )
-        self._last_joint_values = filled[-1]
-        return stamps, filled[:, 0], filled[:, 1]
+        return stamps, position, velocity
 
     # --- output ------------------------------------------------------------------------
     def _release(self, *, final: bool) -> list[Recording]:

@@ -175,7 +175,7 @@ class _Cleaner:
         stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
         accel = np.asarray(accel, dtype=np.float64)
         if accel.ndim != 2 or accel.shape != (len(stamps), 3):
-            raise self.s.error(f"accelerometer chunk: expected stamps (N,) and samples (N, 3), "
+            raise self.s.error(f"sensor chunk: expected stamps (N,) and samples (N, 3), "
                                f"got {stamps.shape} and {accel.shape}")
         self.stats.samples_in += len(stamps)
         return self._segments(stamps, accel)
@@ -351,6 +351,12 @@ class BlockFramer:
         return ready
 
     @property
+    def rate_checked(self) -> bool:
+        """The stream's rate has been measured on its first 2 blocks of samples and found
+        right (a wrong rate raises StreamError on every push instead)."""
+        return self._rate_checked and not self._rate_error
+
+    @property
     def backlog(self) -> tuple[int, int]:
         """(samples buffered, joint states held): bounded however long the stream runs."""
         return len(self._buf_t), len(self._joint_t)
@@ -380,7 +386,7 @@ class BlockFramer:
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = (f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
+            self._rate_error = (f"sensor stream runs at {measured:.0f} Hz but the model expects "
                                 f"{self.s.sample_rate_hz:g} Hz")
             raise self.s.error(self._rate_error)
 

@@ -159,7 +159,7 @@ class StreamingDenoiser:
                 "joint_states_in": s.joint_states_in, "joint_states_dropped": s.joint_states_dropped,
                 "blocks": s.blocks, "blocks_held_joint_state": s.blocks_held,
                 "blocks_no_joint_state": s.blocks_missing, "blocks_out_of_grid": self.blocks_out_of_grid,
-                "blocks_unmeasured": self.blocks_unmeasured}
+                "blocks_unmeasured": self.blocks_unmeasured, "rate_checked": self._framer.rate_checked}
 
     # --- internals -------------------------------------------------------------
     def _process(self, batches: list[Blocks]) -> DenoisedChunk:

@@ -28,6 +28,7 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_ros.cdr import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.ros_convert import (
     decode_imu_raws,
@@ -263,27 +264,9 @@ class StreamInput:
             self.joints_seen |= present.any(axis=0)
             if not self.joints_seen.all() and not self.carried_joint_names:
                 self.carried_joint_names = joint_names_of(raws[-1])
-            if not present.all():
-                velocity = self._fill_partial(position, velocity, present)
-            else:
-                self._last_joint = np.stack([position[-1], velocity[-1]])
+            # a joint a message lacks keeps its last value, as the bag layer reads it offline
+            _, velocity, self._last_joint = hold_missing_joints(position, velocity, self._last_joint)
         return JointBatch(stamps, velocity)
-
-    def _fill_partial(
-        self, position: np.ndarray, velocity: np.ndarray, present: np.ndarray
-    ) -> np.ndarray:
-        """Partial JointStates (several publishers, each with some of the joints): a joint a
-        message lacks keeps its last published value, as the bag layer reads them offline."""
-        both = np.stack([position, velocity], axis=1)  # (M, 2, J)
-        start = self._last_joint
-        if start is None:
-            start = np.full(both.shape[1:], np.nan)
-        rows = np.where(present[:, None, :], np.arange(len(both))[:, None, None], -1)
-        last = np.maximum.accumulate(rows, axis=0)  # the last row holding each joint
-        held = np.take_along_axis(both, np.maximum(last, 0), axis=0)
-        filled = np.where(last >= 0, held, start[None])
-        self._last_joint = filled[-1]
-        return filled[:, 1]
 
     def missing_joints(self) -> list[str]:
         """Named joints that no joint state received so far has carried."""

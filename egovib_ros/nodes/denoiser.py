@@ -43,7 +43,6 @@ LIVE = ("oversubtraction", "floor")
 # The core checks the stream's rate once it has accepted 2 blocks' worth of samples
 # (stream.BlockFramer); output waits for that, once, so that a stream at the wrong rate
 # publishes nothing at all (test_wrong_rate_... holds this to the core's rule).
-RATE_PROVEN_BLOCKS = 2
 MODEL_PARAMETERS = (
     Param(
         "model",
@@ -323,9 +322,7 @@ class Denoiser(Node):
         if not self._rate_proven:
             # The core measures the stream's rate on its first samples; nothing is published
             # before that has passed (a stream at the wrong rate gives no output at all).
-            stats = self.denoiser.stats
-            accepted = stats["samples_in"] - stats["samples_bad"] - stats["dropped_out_of_order"]
-            if accepted < RATE_PROVEN_BLOCKS * self.model.block_length and not end_of_stream:
+            if not self.denoiser.stats["rate_checked"] and not end_of_stream:
                 return
             self._rate_proven = True
         pending, self._startup = self._startup, []
