@@ -110,7 +110,10 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
             robot.node_denoised_topic: topic_out,
         },
     )
-    rec = nodes.start("bag_recorder", {"output": str(tmp_path / "live"), "topics": [topic_out]})
+    # recorded with zstd MCAP chunks (read back below through the bag layer)
+    rec = nodes.start(
+        "bag_recorder", {"output": str(tmp_path / "live"), "topics": [topic_out], "compress": True}
+    )
     wait_for_log(nodes, rec, f"{topic_out}: subscribed")
     ros_client.spin_for(0.5)
     player = nodes.start(

@@ -183,6 +183,11 @@ def test_cli_writes_the_report_files(tmp_path, capsys):
     assert f"{ours['noise_reduction_db']:.1f}" in markdown
     pooled = report["primary"]["over_seeds"]["methods"]["ours"]
     assert f"| {pooled['f1_pooled']:.2f} |" in (out / "real_readme_section.md").read_text()
+    # a second run into the same directory needs --force; nothing is touched without it
+    before = (out / "real_results.json").read_bytes()
+    capsys.readouterr()
+    assert egovib(["real", "evaluate", "--bag", str(BAG), "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err and (out / "real_results.json").read_bytes() == before
 
 
 def test_cli_bad_bag_is_a_one_line_error_without_output(tmp_path, capsys):

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.cdr import IMU_TYPE, JOINT_STATE_TYPE, encode_imu_batch, encode_joint_state_batch
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.realdata import ATTRIBUTION
 from egovib_ros.realdata.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
 from egovib_ros.robot import RobotProfile, load_profile
@@ -137,9 +137,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=PROFILE_NAME,
         help="robot profile naming the topics and Imu field (default: quadcopter)",
     )
+    parser.add_argument("--force", action="store_true", help="replace a bag written by an earlier run")
 
 
 def run(args: argparse.Namespace) -> int:
+    # before any work: never replace what egovib did not write, nor the input
+    prepare_output(args.out, force=args.force, inputs=[args.npz], kind="bag")
     summary = convert(args.npz, args.out, profile=load_profile(args.robot))
     print(
         f"wrote {summary['bag']}: {summary['samples']} samples ({summary['duration_s']:.2f} s) on "

@@ -429,6 +429,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"event sets (seeds SEED, SEED+1, ...) pooled at 1x (default "
                         f"{RealConfig.event_sets})")
     parser.add_argument("--no-swapped", action="store_true", help="skip the swapped split")
+    parser.add_argument("--force", action="store_true", help="replace real_* files written by an earlier run")
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -452,6 +453,10 @@ def command_line(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     from egovib_ros.realdata import report as report_module
 
+    from egovib_ros.fileutil import prepare_outputs_in
+
+    # before any work: never replace what this command did not write
+    prepare_outputs_in(args.out, list(report_module.FILES.values()), force=args.force, inputs=[args.bag])
     profile = load_profile(args.robot)
     rec = read_flight_bag(args.bag, profile)
     config = RealConfig(
