@@ -4,6 +4,7 @@ Every numeric option is checked by its argparse `type=` before any work starts:
 finite, in range, integral where it must be. A bad value is a one-line error naming
 the option (`OneLineErrorParser`), exit status 2, like every other bad input.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,7 +23,7 @@ EFFECT_RANGES: dict[str, tuple[float, float]] = {
     "timing": (-1.0, 1.0),
     "drift": (0.0, 100.0),
 }
-MAX_SEED = 2 ** 32 - 1
+MAX_SEED = 2**32 - 1
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
@@ -45,9 +46,16 @@ def _number(text: str) -> float:
     return value
 
 
-def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool = False,
-             high_open: bool = False, what: str = "") -> Callable[[str], float]:
+def float_in(
+    low: float = -math.inf,
+    high: float = math.inf,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    what: str = "",
+) -> Callable[[str], float]:
     """argparse type: a finite float in [low, high] (open ends where asked)."""
+
     def parse(text: str) -> float:
         value = _number(text)
         too_low = value <= low if low_open else value < low
@@ -74,6 +82,7 @@ def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool =
 
 def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
     """argparse type: an integer in [low, high]."""
+
     def parse(text: str) -> int:
         try:
             value = int(text, 10)
@@ -96,8 +105,8 @@ def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], i
 finite_float = float_in()
 positive_float = float_in(0.0, low_open=True)
 nonneg_float = float_in(0.0)
-fraction = float_in(0.0, 1.0)                                  # [0, 1]
-positive_fraction = float_in(0.0, 1.0, low_open=True)         # (0, 1]
+fraction = float_in(0.0, 1.0)  # [0, 1]
+positive_fraction = float_in(0.0, 1.0, low_open=True)  # (0, 1]
 nonneg_int = int_in(0)
 positive_int = int_in(1)
 seed = int_in(0, MAX_SEED)
@@ -118,6 +127,7 @@ def check_effects(effects: dict[str, float], *, source: str = "--effects") -> di
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (CONTRACT section 3), checked."""
     from egovib_ros.sim.params import parse_effects
+
     try:
         return check_effects(parse_effects(text), source="SPEC")
     except ConfigError as exc:
@@ -140,17 +150,22 @@ def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | N
     """
     from egovib_ros.core import MAX_BAD_SHARE, check_bad_share
     from egovib_ros.errors import StreamError
+
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
     dropped = int(stats.get("joint_states_dropped", 0))
     if joint_states and dropped > limit * joint_states:
-        raise StreamError(f"{where}: {dropped} of {joint_states} joint states "
-                          f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
-                          f"not "
-                          f"stamped after the previous one: a stuck clock?); more than "
-                          f"{100 * limit:g} % is refused")
-    return (f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
-            f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
-            f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
-            f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
-            f"dropped")
+        raise StreamError(
+            f"{where}: {dropped} of {joint_states} joint states "
+            f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
+            f"not "
+            f"stamped after the previous one: a stuck clock?); more than "
+            f"{100 * limit:g} % is refused"
+        )
+    return (
+        f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
+        f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
+        f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
+        f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
+        f"dropped"
+    )

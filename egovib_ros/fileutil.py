@@ -24,6 +24,7 @@ to them, but only our own (they carry PARTIAL_MARKER, or have the exact shape th
 previous version left), only when older than the running process and only when the
 process that made them is gone.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -42,10 +43,10 @@ from typing import Iterable, Iterator, Sequence
 
 from egovib_ros.errors import EgovibError
 
-MARKER = ".egovib-output"            # JSON marker inside every directory output we write
+MARKER = ".egovib-output"  # JSON marker inside every directory output we write
 MARKER_SCHEMA = "egovib.output/1"
 PARTIAL_SUFFIX = ".partial"
-PARTIAL_MARKER = ".egovib-partial"   # JSON {pid, created} inside every staging directory
+PARTIAL_MARKER = ".egovib-partial"  # JSON {pid, created} inside every staging directory
 GAP_REPORT_SCHEMA = "egovib.gap/1"
 MODEL_SCHEMA = "egovib.noise_model"
 
@@ -68,9 +69,15 @@ class OutputError(EgovibError):
 
 # --- checks done before any work ---------------------------------------------------------
 
-def prepare_output(path: str | os.PathLike, *, force: bool = False,
-                   inputs: Iterable[str | os.PathLike | None] = (), kind: str = "file",
-                   option: str = "--out") -> Path:
+
+def prepare_output(
+    path: str | os.PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    kind: str = "file",
+    option: str = "--out",
+) -> Path:
     """Check that `path` may be written by this run; raise OutputError (one line) if not.
 
     inputs: paths this run reads (and other outputs of the same run): the output may
@@ -97,9 +104,14 @@ def prepare_output(path: str | os.PathLike, *, force: bool = False,
     return target
 
 
-def prepare_outputs_in(directory: str | os.PathLike, names: Sequence[str], *, force: bool = False,
-                       inputs: Iterable[str | os.PathLike | None] = (),
-                       option: str = "--out") -> Path:
+def prepare_outputs_in(
+    directory: str | os.PathLike,
+    names: Sequence[str],
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    option: str = "--out",
+) -> Path:
     """Like prepare_output for a command that writes the files `names` into `directory`.
 
     The directory itself may exist (it is added to, never replaced); each named file
@@ -128,15 +140,20 @@ def _check_path_itself(path: str | os.PathLike, label: str) -> Path:
     if not text.strip():
         raise OutputError(f"{label or 'output'}: empty path")
     target = Path(text)
-    if target.name in ("", ".", "..") or text.rstrip("/").endswith(("/.", "/..")) \
-            or text.rstrip("/") in (".", ".."):
-        raise OutputError(f"{label}: refusing to write to '.' or '..'; "
-                          f"name a new file or directory")
+    if (
+        target.name in ("", ".", "..")
+        or text.rstrip("/").endswith(("/.", "/.."))
+        or text.rstrip("/") in (".", "..")
+    ):
+        raise OutputError(
+            f"{label}: refusing to write to '.' or '..'; name a new file or directory"
+        )
     resolved = _resolve(target)
     cwd = _resolve(Path.cwd())
     if resolved == cwd or resolved in cwd.parents or resolved == Path(resolved.anchor):
-        raise OutputError(f"{label}: is the working directory or one of its parents; "
-                          f"name a new file or directory")
+        raise OutputError(
+            f"{label}: is the working directory or one of its parents; name a new file or directory"
+        )
     return target
 
 
@@ -145,8 +162,9 @@ def _resolve(path: Path) -> Path:
     return Path(os.path.realpath(os.path.abspath(path)))
 
 
-def _check_not_an_input(target: Path, inputs: Iterable[str | os.PathLike | None],
-                        label: str) -> None:
+def _check_not_an_input(
+    target: Path, inputs: Iterable[str | os.PathLike | None], label: str
+) -> None:
     out = _resolve(target)
     for item in inputs:
         if item is None or not os.fspath(item):
@@ -155,15 +173,17 @@ def _check_not_an_input(target: Path, inputs: Iterable[str | os.PathLike | None]
         same = out == src
         if not same and os.path.exists(target) and os.path.exists(item):
             with contextlib.suppress(OSError):
-                same = os.path.samefile(target, item)         # hard links, bind mounts
+                same = os.path.samefile(target, item)  # hard links, bind mounts
         if same:
             raise OutputError(f"{label}: is {item}, an input of this run; refusing to overwrite it")
         if src in out.parents:
-            raise OutputError(f"{label}: lies inside {item}, an input of this run; "
-                              f"write it elsewhere")
+            raise OutputError(
+                f"{label}: lies inside {item}, an input of this run; write it elsewhere"
+            )
         if out in src.parents:
-            raise OutputError(f"{label}: holds {item}, an input of this run; "
-                              f"refusing to replace it")
+            raise OutputError(
+                f"{label}: holds {item}, an input of this run; refusing to replace it"
+            )
 
 
 def _check_writable(target: Path, label: str) -> None:
@@ -184,6 +204,7 @@ def _check_writable(target: Path, label: str) -> None:
 
 
 # --- what counts as ours -----------------------------------------------------------------
+
 
 def _why_not_ours(path: Path, kind: str) -> str | None:
     """None if `path` is a previous output of ours that an output of `kind` may replace,
@@ -214,7 +235,7 @@ def _why_not_our_directory(path: Path) -> str | None:
             return f"holds files egovib did not write ({_short_list(foreign)})"
         return None
     if not files:
-        return None                                       # an empty directory loses nothing
+        return None  # an empty directory loses nothing
     report = _read_json(path / "report.json")
     if isinstance(report, dict) and report.get("schema") == GAP_REPORT_SCHEMA:
         foreign = sorted(f for f in files if not _LEGACY_REPORT_FILE.match(f))
@@ -229,12 +250,13 @@ def _is_our_legacy_bag(path: Path, files: list[str]) -> bool:
     storage files, with ground-truth or denoised topics that only egovib writes."""
     try:
         import yaml
+
         meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         listed = {str(p) for p in meta.get("relative_file_paths", [])} | {"metadata.yaml"}
         topics = {t["topic_metadata"]["name"] for t in meta.get("topics_with_message_count", [])}
     except (OSError, KeyError, TypeError, ValueError, ImportError, AttributeError):
         return False
-    except Exception:                                      # yaml.YAMLError and friends
+    except Exception:  # yaml.YAMLError and friends
         return False
     return set(files) <= listed and any(t in topics for t in _OUR_BAG_TOPICS)
 
@@ -245,9 +267,10 @@ def _is_our_model(path: Path) -> bool:
             if "schema.npy" not in zf.namelist():
                 return False
         import numpy as np
+
         with np.load(path, allow_pickle=False) as data:
             return str(data["schema"]) == MODEL_SCHEMA
-    except Exception:                                      # any unreadable file is not ours
+    except Exception:  # any unreadable file is not ours
         return False
 
 
@@ -273,9 +296,11 @@ def _short_list(items: list[str], limit: int = 3) -> str:
 
 # --- writing -------------------------------------------------------------------------------
 
+
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, *, directory: bool = False,
-                  kind: str | None = None) -> Iterator[Path]:
+def atomic_output(
+    path: str | os.PathLike, *, directory: bool = False, kind: str | None = None
+) -> Iterator[Path]:
     """Yield a temporary sibling path; move it onto `path` only if the block succeeds.
 
     For `directory=True` (rosbag2 bags, report directories) the yielded path does not
@@ -306,8 +331,9 @@ def _make_staging(parent: Path, name: str) -> Path:
     try:
         staging = parent / f".{name}.{os.getpid()}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
         staging.mkdir()
-        (staging / PARTIAL_MARKER).write_text(json.dumps({"pid": os.getpid(),
-                                                          "created": time.time()}))
+        (staging / PARTIAL_MARKER).write_text(
+            json.dumps({"pid": os.getpid(), "created": time.time()})
+        )
     except OSError as exc:
         raise OutputError(f"{parent / name}: cannot write in {parent} ({exc.strerror})") from None
     return staging
@@ -315,10 +341,15 @@ def _make_staging(parent: Path, name: str) -> Path:
 
 def _write_marker(directory: Path, kind: str | None) -> None:
     from egovib_ros import __version__
+
     files = sorted(_relative_files(directory))
-    marker = {"schema": MARKER_SCHEMA, "kind": kind or "directory", "files": files,
-              "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-              "software_version": __version__}
+    marker = {
+        "schema": MARKER_SCHEMA,
+        "kind": kind or "directory",
+        "files": files,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "software_version": __version__,
+    }
     (directory / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
 
 
@@ -346,6 +377,7 @@ def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) 
 
 # --- stale staging directories -----------------------------------------------------------
 
+
 def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
     """Remove our own staging directories in `directory` left by runs that are gone.
 
@@ -363,8 +395,11 @@ def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
     started = process_start_time()
     for entry in entries:
         name = entry.name
-        if not (name.startswith(".") and name.endswith(PARTIAL_SUFFIX)) or entry.is_symlink() \
-                or not entry.is_dir():
+        if (
+            not (name.startswith(".") and name.endswith(PARTIAL_SUFFIX))
+            or entry.is_symlink()
+            or not entry.is_dir()
+        ):
             continue
         try:
             if not _is_stale_partial(entry, started):
@@ -372,7 +407,7 @@ def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
             shutil.rmtree(entry)
             removed.append(entry)
         except OSError:
-            continue                                       # read-only or racing: leave it
+            continue  # read-only or racing: leave it
     return removed
 
 
@@ -398,7 +433,7 @@ def _pid_alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True                                        # exists, owned by someone else
+        return True  # exists, owned by someone else
     return True
 
 
@@ -409,9 +444,12 @@ def process_start_time() -> float:
     """Wall-clock start of this process (Linux /proc), else when this module was imported."""
     try:
         fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
-        ticks = int(fields[19])                  # field 22: starttime, clock ticks after boot
-        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
-                    if line.startswith("btime "))
+        ticks = int(fields[19])  # field 22: starttime, clock ticks after boot
+        boot = next(
+            float(line.split()[1])
+            for line in Path("/proc/stat").read_text().splitlines()
+            if line.startswith("btime ")
+        )
         return boot + ticks / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError, StopIteration):
         return _IMPORT_TIME

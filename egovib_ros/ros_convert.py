@@ -27,11 +27,24 @@ from egovib_ros.cdr import (
 from egovib_ros.errors import StreamError
 
 __all__ = [
-    "stamp_to_ns", "ns_to_stamp", "imu_message", "decode_imu_raws", "decode_imu_messages",
-    "decode_joint_state_raws", "decode_joint_state_messages", "joint_names_of", "command_message",
-    "command_velocity", "diagnostic_array", "diagnostic_values", "LEVELS",
+    "stamp_to_ns",
+    "ns_to_stamp",
+    "imu_message",
+    "decode_imu_raws",
+    "decode_imu_messages",
+    "decode_joint_state_raws",
+    "decode_joint_state_messages",
+    "joint_names_of",
+    "command_message",
+    "command_velocity",
+    "diagnostic_array",
+    "diagnostic_values",
+    "LEVELS",
     # the codec of egovib_ros.cdr, for the nodes and their tests
-    "decode_imu_batch", "decode_joint_state_batch", "encode_imu_batch", "encode_joint_state_batch",
+    "decode_imu_batch",
+    "decode_joint_state_batch",
+    "encode_imu_batch",
+    "encode_joint_state_batch",
 ]
 
 _NS_PER_S = 1_000_000_000

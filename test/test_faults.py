@@ -14,6 +14,7 @@ The commands run in-process (`egovib_ros.cli.main`, the console script's entry p
 to keep the suite fast; the read-only file-system rows and the issue's headline case
 run in child processes.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -36,18 +37,25 @@ from egovib_ros.bagio import BagWriter, read_recording, write_recording
 from egovib_ros.cdr import encode_imu_batch, imu_field_offset
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
-BAG_READER = ("bag reader (helper 'bags'): MCAP records lost to corruption are skipped silently; "
-              "they must be detected (e.g. against the summary's message counts)")
-GAP_JOINTS = ("gap pipeline (helper 'gap'): gap/features.py re-matches the raw joint velocities "
-              "(BlockTable.at_lag) and crashes on NaN; it must drop or refuse them, with counts")
-GAP_COUNTS = ("gap pipeline (helper 'gap'): gap/features.py frames without the profile's sensor "
-              "range (FramerSettings default inf), so 1e181 values pass (held-out gap 1039 dB, "
-              "verdict none); and `egovib gap` prints no count of bad samples")
-SENSOR_RANGE = 78.5      # the PR2 profile's accelerometer range (config/robots/pr2_right_hand.yaml)
+BAG_READER = (
+    "bag reader (helper 'bags'): MCAP records lost to corruption are skipped silently; "
+    "they must be detected (e.g. against the summary's message counts)"
+)
+GAP_JOINTS = (
+    "gap pipeline (helper 'gap'): gap/features.py re-matches the raw joint velocities "
+    "(BlockTable.at_lag) and crashes on NaN; it must drop or refuse them, with counts"
+)
+GAP_COUNTS = (
+    "gap pipeline (helper 'gap'): gap/features.py frames without the profile's sensor "
+    "range (FramerSettings default inf), so 1e181 values pass (held-out gap 1039 dB, "
+    "verdict none); and `egovib gap` prints no count of bad samples"
+)
+SENSOR_RANGE = 78.5  # the PR2 profile's accelerometer range (config/robots/pr2_right_hand.yaml)
 FS = 3000
 
 
 # --- running commands ----------------------------------------------------------------------
+
 
 @dataclasses.dataclass
 class Result:
@@ -75,8 +83,9 @@ def _child_env() -> dict:
 def egovib_subprocess(*args, cwd: Path) -> Result:
     """The real console command, in its own process."""
     command = [sys.executable, "-m", "egovib_ros.cli", *map(str, args)]
-    proc = subprocess.run(command, cwd=cwd, env=_child_env(), capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run(
+        command, cwd=cwd, env=_child_env(), capture_output=True, text=True, timeout=300
+    )
     return Result(proc.returncode, proc.stdout, proc.stderr)
 
 
@@ -94,8 +103,9 @@ print(json.dumps(results))
 """
 
 
-def run_on_readonly(commands: list[list[str]], *, cwd: Path, readonly: Path,
-                    populate: str) -> list[Result]:
+def run_on_readonly(
+    commands: list[list[str]], *, cwd: Path, readonly: Path, populate: str
+) -> list[Result]:
     """Run the commands with `readonly` a read-only file system, populated first by the
     shell command `populate`. As root: a read-only tmpfs in a private mount namespace
     (nothing stays mounted); otherwise the directory made read-only with chmod."""
@@ -103,10 +113,13 @@ def run_on_readonly(commands: list[list[str]], *, cwd: Path, readonly: Path,
     driver = [sys.executable, "-c", _DRIVER, json.dumps(commands)]
     run = dict(cwd=cwd, env=_child_env(), capture_output=True, text=True, timeout=600)
     if os.geteuid() == 0:
-        script = (f"mount -t tmpfs -o size=4m tmpfs {readonly} && cd {readonly} && {populate} && "
-                  f"mount -o remount,ro {readonly} && cd {cwd} && exec \"$@\"")
-        proc = subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c", script,
-                               "sh", *driver], **run)
+        script = (
+            f"mount -t tmpfs -o size=4m tmpfs {readonly} && cd {readonly} && {populate} && "
+            f'mount -o remount,ro {readonly} && cd {cwd} && exec "$@"'
+        )
+        proc = subprocess.run(
+            ["unshare", "-m", "--propagation", "private", "sh", "-c", script, "sh", *driver], **run
+        )
     else:
         subprocess.run(["sh", "-c", populate], cwd=readonly, check=True)
         readonly.chmod(0o555)
@@ -123,8 +136,18 @@ def readonly_supported() -> bool:
         return True
     if shutil.which("unshare") is None:
         return False
-    probe = subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c",
-                            "mount -t tmpfs -o size=1m,ro tmpfs /mnt"], capture_output=True)
+    probe = subprocess.run(
+        [
+            "unshare",
+            "-m",
+            "--propagation",
+            "private",
+            "sh",
+            "-c",
+            "mount -t tmpfs -o size=1m,ro tmpfs /mnt",
+        ],
+        capture_output=True,
+    )
     return probe.returncode == 0
 
 
@@ -142,18 +165,25 @@ def snapshot(*roots: Path) -> dict:
 
 def tree_digest(path: Path) -> dict:
     """Content of a small tree (for the rows that must leave a bag bit-identical)."""
-    return {str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(path.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(path.rglob("*"))
+        if p.is_file()
+    }
 
 
 # --- generated inputs ----------------------------------------------------------------------
+
 
 def _raw_only_bag(path: Path, rec) -> None:
     """A bag with only /accelerometer/raw (no joint states)."""
     with BagWriter(path) as bag:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
-        bag.write_many("/accelerometer/raw", rec.accel_stamps_ns,
-                       encode_imu_batch(rec.accel_stamps_ns, rec.accel))
+        bag.write_many(
+            "/accelerometer/raw",
+            rec.accel_stamps_ns,
+            encode_imu_batch(rec.accel_stamps_ns, rec.accel),
+        )
 
 
 def _mcap(bag: Path) -> Path:
@@ -163,7 +193,7 @@ def _mcap(bag: Path) -> Path:
 def _frame_id(message: bytes) -> bytes:
     """frame_id of a CDR Imu message (after the 4-byte header and the 8-byte stamp)."""
     length = int.from_bytes(message[12:16], "little")
-    return message[16:16 + length - 1]
+    return message[16 : 16 + length - 1]
 
 
 def _flip_value_bytes(bag: Path, rec, first: int, count: int) -> None:
@@ -190,7 +220,7 @@ def _drop_records(bag: Path, rec, first: int, count: int) -> None:
         pos = 0
         for message in encode_imu_batch(rec.accel_stamps_ns[part], values[part]):
             at = data.find(message, pos)
-            assert at >= 31 and data[at - 31] == 0x05          # opcode 0x05: a Message record
+            assert at >= 31 and data[at - 31] == 0x05  # opcode 0x05: a Message record
             data[at - 31] = 0xFA
             pos = at
     mcap.write_bytes(bytes(data))
@@ -200,10 +230,10 @@ def _with_bad_samples(accel: np.ndarray, start: int, length: int) -> np.ndarray:
     """NaN, then +/-inf, then beyond-range values over `length` samples from `start`."""
     out = accel.copy()
     third = length // 3
-    out[start:start + third] = np.nan
-    out[start + third:start + 2 * third, 0] = np.inf
-    out[start + third:start + 2 * third, 2] = -np.inf
-    out[start + 2 * third:start + length, 1] = 1e181
+    out[start : start + third] = np.nan
+    out[start + third : start + 2 * third, 0] = np.inf
+    out[start + third : start + 2 * third, 2] = -np.inf
+    out[start + 2 * third : start + length, 1] = 1e181
     return out
 
 
@@ -244,7 +274,7 @@ def lab(tmp_path_factory) -> Lab:
     p = {"lab": root}
 
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.5, settle_s=0.3, seed=3)
-    sweep = _with(sweep, contact=None, ego=None)         # a real calibration bag has none
+    sweep = _with(sweep, contact=None, ego=None)  # a real calibration bag has none
     p["sweep"] = root / "sweep"
     write_recording(p["sweep"], sweep)
     p["model"] = root / "model.npz"
@@ -261,41 +291,50 @@ def lab(tmp_path_factory) -> Lab:
     p["truncated"] = root / "truncated"
     shutil.copytree(p["motion"], p["truncated"])
     data = _mcap(p["truncated"]).read_bytes()
-    _mcap(p["truncated"]).write_bytes(data[:len(data) * 6 // 10])
+    _mcap(p["truncated"]).write_bytes(data[: len(data) * 6 // 10])
     p["flipped_values"] = root / "flipped_values"
     shutil.copytree(p["motion"], p["flipped_values"])
     _flip_value_bytes(p["flipped_values"], motion, 4000, 60)
     p["dropped_records"] = root / "dropped_records"
     shutil.copytree(p["motion"], p["dropped_records"])
-    _drop_records(p["dropped_records"], motion, 3000, 2160)          # 0.72 s, as in the issue
+    _drop_records(p["dropped_records"], motion, 3000, 2160)  # 0.72 s, as in the issue
     p["no_contact_topic"] = root / "no_contact_topic"
     write_recording(p["no_contact_topic"], _with(motion, contact=None, ego=None))
     p["no_joint_states"] = root / "no_joint_states"
     _raw_only_bag(p["no_joint_states"], motion)
     p["stamps_zero"] = root / "stamps_zero"
     write_recording(p["stamps_zero"], _with(motion, accel_stamps_ns=0 * motion.accel_stamps_ns))
-    p["stuck_joint_clock"] = root / "stuck_joint_clock"              # the first 10 s of the sweep
+    p["stuck_joint_clock"] = root / "stuck_joint_clock"  # the first 10 s of the sweep
     n = 10 * FS
     m = int(np.searchsorted(sweep.joint_stamps_ns, sweep.accel_stamps_ns[n]))
-    write_recording(p["stuck_joint_clock"], _with(
-        sweep, accel_stamps_ns=sweep.accel_stamps_ns[:n], accel=sweep.accel[:n],
-        joint_stamps_ns=np.full(m, sweep.joint_stamps_ns[0]),
-        joint_position=sweep.joint_position[:m], joint_velocity=sweep.joint_velocity[:m],
-        commands=None, command_stamps_ns=None))
+    write_recording(
+        p["stuck_joint_clock"],
+        _with(
+            sweep,
+            accel_stamps_ns=sweep.accel_stamps_ns[:n],
+            accel=sweep.accel[:n],
+            joint_stamps_ns=np.full(m, sweep.joint_stamps_ns[0]),
+            joint_position=sweep.joint_position[:m],
+            joint_velocity=sweep.joint_velocity[:m],
+            commands=None,
+            command_stamps_ns=None,
+        ),
+    )
 
-    bad12 = motion.accel.copy()                      # 12 scattered bad samples, as in the issue
+    bad12 = motion.accel.copy()  # 12 scattered bad samples, as in the issue
     rows = np.linspace(1000, 8000, 12).astype(int)
     bad12[rows[:4], 0] = np.nan
     bad12[rows[4:8], 1] = np.inf
     bad12[rows[8:], 2] = -np.inf
     p["nan12"] = root / "nan12"
     write_recording(p["nan12"], _with(motion, accel=bad12))
-    p["nan_burst"] = root / "nan_burst"                      # 0.2 s: 6.7 % of the samples
+    p["nan_burst"] = root / "nan_burst"  # 0.2 s: 6.7 % of the samples
     write_recording(p["nan_burst"], _with(motion, accel=_with_bad_samples(motion.accel, 4500, 600)))
-    p["mostly_nan"] = root / "mostly_nan"                    # 1 s of 3 s: above the 10 % refused
-    write_recording(p["mostly_nan"],
-                    _with(motion, accel=_with_bad_samples(motion.accel, 3000, 3000)))
-    p["sweep_nan"] = root / "sweep_nan"                      # 1 s of bad samples in the sweep
+    p["mostly_nan"] = root / "mostly_nan"  # 1 s of 3 s: above the 10 % refused
+    write_recording(
+        p["mostly_nan"], _with(motion, accel=_with_bad_samples(motion.accel, 3000, 3000))
+    )
+    p["sweep_nan"] = root / "sweep_nan"  # 1 s of bad samples in the sweep
     write_recording(p["sweep_nan"], _with(sweep, accel=_with_bad_samples(sweep.accel, 30000, 3000)))
 
     gap_rec, _ = simulate_motion(duration_s=8.0, max_speed=0.5, tap_rate_hz=0.5, seed=7)
@@ -305,8 +344,9 @@ def lab(tmp_path_factory) -> Lab:
     p["gap_nan_velocity"] = root / "gap_nan_velocity"
     write_recording(p["gap_nan_velocity"], _with(gap_rec, joint_velocity=velocity))
     p["gap_nan_accel"] = root / "gap_nan_accel"
-    write_recording(p["gap_nan_accel"],
-                    _with(gap_rec, accel=_with_bad_samples(gap_rec.accel, 9000, 1500)))
+    write_recording(
+        p["gap_nan_accel"], _with(gap_rec, accel=_with_bad_samples(gap_rec.accel, 9000, 1500))
+    )
 
     # models broken the ways the issue found them
     model = p["model"]
@@ -329,8 +369,9 @@ def lab(tmp_path_factory) -> Lab:
     }
     for name, fields in variants.items():
         p[name] = _model_variant(model, root / f"{name}.npz", **fields)
-    p["model_missing_field"] = _model_variant(model, root / "model_missing_field.npz",
-                                              drop=("hop",))
+    p["model_missing_field"] = _model_variant(
+        model, root / "model_missing_field.npz", drop=("hop",)
+    )
     return Lab(root, {k: Path(v) for k, v in p.items()})
 
 
@@ -342,13 +383,13 @@ Check = Callable[["Result", Path, Lab], None]
 @dataclasses.dataclass
 class Row:
     id: str
-    args: tuple[str, ...]           # {name}: a path of the lab; relative: this row's directory
-    names: tuple[str, ...] = ()     # what the one error line must name
-    expect: str = "error"           # "error" (exit 2, one line) | "ok" (exit 0) | "either"
+    args: tuple[str, ...]  # {name}: a path of the lab; relative: this row's directory
+    names: tuple[str, ...] = ()  # what the one error line must name
+    expect: str = "error"  # "error" (exit 2, one line) | "ok" (exit 0) | "either"
     setup: Callable[[Path, Lab], None] | None = None
     check: Check | None = None
     xfail: str | None = None
-    unchanged: bool = True          # nothing that existed before may change (else: the lab only)
+    unchanged: bool = True  # nothing that existed before may change (else: the lab only)
 
 
 def unrelated_dir(name: str = "stuff") -> Callable[[Path, Lab], None]:
@@ -356,6 +397,7 @@ def unrelated_dir(name: str = "stuff") -> Callable[[Path, Lab], None]:
         (work / name).mkdir()
         (work / name / "thesis.tex").write_text("years of work\n")
         (work / name / "data.csv").write_text("1,2,3\n")
+
     return setup
 
 
@@ -363,6 +405,7 @@ def existing_file(name: str, text: str = "{}\n") -> Callable[[Path, Lab], None]:
     def setup(work: Path, lab: Lab) -> None:
         (work / name).parent.mkdir(parents=True, exist_ok=True)
         (work / name).write_text(text)
+
     return setup
 
 
@@ -370,12 +413,15 @@ def no_output(*names: str) -> Check:
     def check(result: Result, work: Path, lab: Lab) -> None:
         for name in names:
             assert not (work / name).exists(), f"{name} was written"
+
     return check
 
 
-def counted(count: int | None = None, *, output: str | None = None,
-            json_file: str | None = None) -> Check:
+def counted(
+    count: int | None = None, *, output: str | None = None, json_file: str | None = None
+) -> Check:
     """A handled case: the bad samples counted and printed; results finite and in range."""
+
     def check(result: Result, work: Path, lab: Lab) -> None:
         assert "bad" in result.err, f"no count of bad samples printed: {result.err!r}"
         if count is not None:
@@ -386,15 +432,25 @@ def counted(count: int | None = None, *, output: str | None = None,
             bad = report["bad_samples"]
             assert bad["bad"] > 0 and bad["raw_nonfinite"] + bad["raw_beyond_range"] == bad["bad"]
             assert f"{bad['bad']} bad samples" in result.err, result.err
-            for key in ("noise_mean_raw", "noise_mean_denoised", "noise_reduction_db",
-                        "peak_snr_raw_db", "peak_snr_denoised_db", "segsnr_contact_raw_db",
-                        "segsnr_contact_denoised_db", "f1_raw", "f1_denoised", "tap_retention"):
+            for key in (
+                "noise_mean_raw",
+                "noise_mean_denoised",
+                "noise_reduction_db",
+                "peak_snr_raw_db",
+                "peak_snr_denoised_db",
+                "segsnr_contact_raw_db",
+                "segsnr_contact_denoised_db",
+                "f1_raw",
+                "f1_denoised",
+                "tap_retention",
+            ):
                 assert isinstance(report[key], float) and np.isfinite(report[key]), key
         if output:
             rec = read_recording(work / output)
             assert len(rec.denoised) >= 0.9 * len(rec.accel)
             assert np.all(np.isfinite(rec.denoised))
             assert np.max(np.abs(rec.denoised)) <= SENSOR_RANGE
+
     return check
 
 
@@ -445,10 +501,12 @@ def first_denoise(work: Path, lab: Lab) -> None:
 
 def mentions(*words: str) -> Check:
     """For "either" rows that end in exit 0: what the output (stdout or stderr) must say."""
+
     def check(result: Result, work: Path, lab: Lab) -> None:
         if result.code == 0:
             said = (result.out + result.err).lower()
             assert all(word.lower() in said for word in words), (words, said)
+
     return check
 
 
@@ -461,13 +519,33 @@ def den(bag: str, *extra: str, out: str = "den", model: str = "model") -> tuple[
 
 
 def ev(bag: str, *extra: str, out: str = "eval.json", model: str = "model") -> tuple[str, ...]:
-    return ("evaluate", f"{{{bag}}}", "--model", f"{{{model}}}", "--json", out,
-            "--methods", "paper", "--quiet", *extra)
+    return (
+        "evaluate",
+        f"{{{bag}}}",
+        "--model",
+        f"{{{model}}}",
+        "--json",
+        out,
+        "--methods",
+        "paper",
+        "--quiet",
+        *extra,
+    )
 
 
 def gap(bag: str, *extra: str, out: str = "report", model: str = "model") -> tuple[str, ...]:
-    return ("gap", "--model", f"{{{model}}}", "--real", f"{{{bag}}}", "--out", out,
-            "--reference-lag", "0", *extra)
+    return (
+        "gap",
+        "--model",
+        f"{{{model}}}",
+        "--real",
+        f"{{{bag}}}",
+        "--out",
+        out,
+        "--reference-lag",
+        "0",
+        *extra,
+    )
 
 
 def cal(bag: str, *extra: str, out: str = "m.npz") -> tuple[str, ...]:
@@ -484,52 +562,128 @@ def sim(*extra: str, out: str = "bag") -> tuple[str, ...]:
 ROWS = [
     # --- outputs: data loss (exit 0 before) ------------------------------------------------
     Row("calibrate_out_is_the_input_bag", cal("motion", out="{motion}"), ("--out", "motion")),
-    Row("calibrate_out_is_the_input_bag_force", cal("motion", "--force", out="{motion}"),
-        ("--out", "input")),
-    Row("calibrate_out_unrelated_dir", cal("sweep", out="stuff"), ("--out stuff", "exists"),
-        setup=unrelated_dir()),
-    Row("calibrate_out_unrelated_dir_force", cal("sweep", "--force", out="stuff"),
-        ("--out stuff", "not replaced"), setup=unrelated_dir()),
-    Row("calibrate_out_replaces_a_bag_force", cal("sweep", "--force", out="{motion}"),
-        ("--out", "motion")),
-    Row("calibrate_out_is_not_a_model_force", cal("sweep", "--force", out="{model_text}"),
-        ("--out", "model_text.npz", "not an egovib noise model")),
-    Row("denoise_out_unrelated_dir_force", den("motion", "--force", out="stuff"),
-        ("--out stuff", "not replaced"), setup=unrelated_dir()),
-    Row("denoise_out_existing_bag_no_force", den("motion"), ("--out den", "--force"),
-        setup=first_denoise),
-    Row("denoise_out_is_the_input_force", den("motion", "--force", out="{motion}"),
-        ("--out", "input")),
-    Row("denoise_out_is_the_model_force", den("motion", "--force", out="{model}"),
-        ("--out", "model.npz")),
+    Row(
+        "calibrate_out_is_the_input_bag_force",
+        cal("motion", "--force", out="{motion}"),
+        ("--out", "input"),
+    ),
+    Row(
+        "calibrate_out_unrelated_dir",
+        cal("sweep", out="stuff"),
+        ("--out stuff", "exists"),
+        setup=unrelated_dir(),
+    ),
+    Row(
+        "calibrate_out_unrelated_dir_force",
+        cal("sweep", "--force", out="stuff"),
+        ("--out stuff", "not replaced"),
+        setup=unrelated_dir(),
+    ),
+    Row(
+        "calibrate_out_replaces_a_bag_force",
+        cal("sweep", "--force", out="{motion}"),
+        ("--out", "motion"),
+    ),
+    Row(
+        "calibrate_out_is_not_a_model_force",
+        cal("sweep", "--force", out="{model_text}"),
+        ("--out", "model_text.npz", "not an egovib noise model"),
+    ),
+    Row(
+        "denoise_out_unrelated_dir_force",
+        den("motion", "--force", out="stuff"),
+        ("--out stuff", "not replaced"),
+        setup=unrelated_dir(),
+    ),
+    Row(
+        "denoise_out_existing_bag_no_force",
+        den("motion"),
+        ("--out den", "--force"),
+        setup=first_denoise,
+    ),
+    Row(
+        "denoise_out_is_the_input_force",
+        den("motion", "--force", out="{motion}"),
+        ("--out", "input"),
+    ),
+    Row(
+        "denoise_out_is_the_model_force",
+        den("motion", "--force", out="{model}"),
+        ("--out", "model.npz"),
+    ),
     Row("denoise_out_inside_the_input", den("motion", out="{motion}/den"), ("--out", "inside")),
-    Row("denoise_out_holds_the_input_force", den("motion", "--force", out="{lab}"),
-        ("--out", "holds")),
-    Row("evaluate_json_unrelated_dir_force", ev("motion", "--force", out="stuff"),
-        ("--json stuff", "is a directory"), setup=unrelated_dir()),
-    Row("evaluate_json_is_the_bag_force", ev("motion", "--force", out="{motion}"),
-        ("--json", "input")),
-    Row("evaluate_json_exists", ev("motion"), ("--json eval.json", "exists"),
-        setup=existing_file("eval.json")),
-    Row("evaluate_json_not_json_force", ev("motion", "--force"), ("--json eval.json", "not a JSON"),
-        setup=existing_file("eval.json", "my notes\n")),
-    Row("gap_out_unrelated_dir_force", gap("motion", "--force", out="stuff"),
-        ("--out stuff", "not replaced"), setup=unrelated_dir()),
-    Row("gap_out_is_the_input_force", gap("motion", "--force", out="{motion}"),
-        ("--out", "input")),
-    Row("simulate_truth_is_a_dir_force", sim("--truth", "stuff", "--force"),
-        ("--truth stuff", "directory"), setup=unrelated_dir(), check=no_output("bag")),
-    Row("simulate_out_unrelated_dir_force", sim("--force", out="stuff"),
-        ("--out stuff", "not replaced"), setup=unrelated_dir()),
-    Row("simulate_out_is_the_params_file", sim("--params", "sim.yaml", "--force", out="sim.yaml"),
-        ("--out sim.yaml", "input"), setup=existing_file("sim.yaml", "sim: {}\n")),
-    Row("figures_out_holds_previous_results", ("figures", "--out", "docs", "--quick", "--quiet"),
+    Row(
+        "denoise_out_holds_the_input_force",
+        den("motion", "--force", out="{lab}"),
+        ("--out", "holds"),
+    ),
+    Row(
+        "evaluate_json_unrelated_dir_force",
+        ev("motion", "--force", out="stuff"),
+        ("--json stuff", "is a directory"),
+        setup=unrelated_dir(),
+    ),
+    Row(
+        "evaluate_json_is_the_bag_force",
+        ev("motion", "--force", out="{motion}"),
+        ("--json", "input"),
+    ),
+    Row(
+        "evaluate_json_exists",
+        ev("motion"),
+        ("--json eval.json", "exists"),
+        setup=existing_file("eval.json"),
+    ),
+    Row(
+        "evaluate_json_not_json_force",
+        ev("motion", "--force"),
+        ("--json eval.json", "not a JSON"),
+        setup=existing_file("eval.json", "my notes\n"),
+    ),
+    Row(
+        "gap_out_unrelated_dir_force",
+        gap("motion", "--force", out="stuff"),
+        ("--out stuff", "not replaced"),
+        setup=unrelated_dir(),
+    ),
+    Row("gap_out_is_the_input_force", gap("motion", "--force", out="{motion}"), ("--out", "input")),
+    Row(
+        "simulate_truth_is_a_dir_force",
+        sim("--truth", "stuff", "--force"),
+        ("--truth stuff", "directory"),
+        setup=unrelated_dir(),
+        check=no_output("bag"),
+    ),
+    Row(
+        "simulate_out_unrelated_dir_force",
+        sim("--force", out="stuff"),
+        ("--out stuff", "not replaced"),
+        setup=unrelated_dir(),
+    ),
+    Row(
+        "simulate_out_is_the_params_file",
+        sim("--params", "sim.yaml", "--force", out="sim.yaml"),
+        ("--out sim.yaml", "input"),
+        setup=existing_file("sim.yaml", "sim: {}\n"),
+    ),
+    Row(
+        "figures_out_holds_previous_results",
+        ("figures", "--out", "docs", "--quick", "--quiet"),
         ("--out docs", "eval_results.json", "--force"),
-        setup=existing_file("docs/eval_results.json")),
-    Row("bench_json_exists", ("bench", "--json", "bench.json", "--quick", "--quiet"),
-        ("--json bench.json", "exists"), setup=existing_file("bench.json")),
-    Row("gap_validate_out_holds_previous_results", ("gap", "validate", "--out", "docs"),
-        ("--out docs", "gap_validation.md"), setup=existing_file("docs/gap_validation.md")),
+        setup=existing_file("docs/eval_results.json"),
+    ),
+    Row(
+        "bench_json_exists",
+        ("bench", "--json", "bench.json", "--quick", "--quiet"),
+        ("--json bench.json", "exists"),
+        setup=existing_file("bench.json"),
+    ),
+    Row(
+        "gap_validate_out_holds_previous_results",
+        ("gap", "validate", "--out", "docs"),
+        ("--out docs", "gap_validation.md"),
+        setup=existing_file("docs/gap_validation.md"),
+    ),
     # --- outputs: '.' and '..' --------------------------------------------------------------
     Row("calibrate_out_dot", cal("sweep", "--force", out="."), ("--out .",)),
     Row("denoise_out_dotdot", den("motion", "--force", out=".."), ("--out ..",)),
@@ -539,114 +693,285 @@ ROWS = [
     Row("figures_out_dotdot", ("figures", "--out", "..", "--quick", "--force"), ("--out ..",)),
     Row("bench_json_dot", ("bench", "--json", ".", "--quick", "--force"), ("--json .",)),
     # --- outputs that work: our own output replaced with --force; stale leftovers cleaned --
-    Row("denoise_force_replaces_own_output", den("motion", "--force"), expect="ok",
-        setup=first_denoise, check=replaced_own_output, unchanged=False),
-    Row("stale_partials_of_killed_runs_cleaned", den("motion"), expect="ok", setup=stale_partials,
-        check=partials_cleaned, unchanged=False),
+    Row(
+        "denoise_force_replaces_own_output",
+        den("motion", "--force"),
+        expect="ok",
+        setup=first_denoise,
+        check=replaced_own_output,
+        unchanged=False,
+    ),
+    Row(
+        "stale_partials_of_killed_runs_cleaned",
+        den("motion"),
+        expect="ok",
+        setup=stale_partials,
+        check=partials_cleaned,
+        unchanged=False,
+    ),
     # --- options: checked before any work ---------------------------------------------------
-    Row("denoise_oversubtraction_nan", den("motion", "--oversubtraction", "nan"),
-        ("--oversubtraction", "nan"), check=no_output("den")),
-    Row("denoise_oversubtraction_negative", den("motion", "--oversubtraction", "-1"),
-        ("--oversubtraction",)),
-    Row("denoise_floor_inf", den("motion", "--floor", "inf"), ("--floor", "inf"),
-        check=no_output("den")),
-    Row("simulate_duration_nan", SIM[:3] + ("nan",) + SIM[4:] + ("--out", "bag"),
-        ("--duration", "nan"), check=no_output("bag")),
-    Row("simulate_duration_inf", SIM[:3] + ("inf",) + SIM[4:] + ("--out", "bag"),
-        ("--duration", "inf")),
+    Row(
+        "denoise_oversubtraction_nan",
+        den("motion", "--oversubtraction", "nan"),
+        ("--oversubtraction", "nan"),
+        check=no_output("den"),
+    ),
+    Row(
+        "denoise_oversubtraction_negative",
+        den("motion", "--oversubtraction", "-1"),
+        ("--oversubtraction",),
+    ),
+    Row(
+        "denoise_floor_inf",
+        den("motion", "--floor", "inf"),
+        ("--floor", "inf"),
+        check=no_output("den"),
+    ),
+    Row(
+        "simulate_duration_nan",
+        SIM[:3] + ("nan",) + SIM[4:] + ("--out", "bag"),
+        ("--duration", "nan"),
+        check=no_output("bag"),
+    ),
+    Row(
+        "simulate_duration_inf",
+        SIM[:3] + ("inf",) + SIM[4:] + ("--out", "bag"),
+        ("--duration", "inf"),
+    ),
     Row("simulate_duration_zero", SIM[:3] + ("0",) + SIM[4:] + ("--out", "bag"), ("--duration",)),
-    Row("simulate_dwell_nan", ("simulate", "sweep", "--dwell", "nan", "--out", "bag"),
-        ("--dwell", "nan")),
+    Row(
+        "simulate_dwell_nan",
+        ("simulate", "sweep", "--dwell", "nan", "--out", "bag"),
+        ("--dwell", "nan"),
+    ),
     Row("simulate_seed_negative", sim("--seed", "-1"), ("--seed", "-1")),
-    Row("simulate_max_speed_above_one", SIM[:5] + ("1.5",) + SIM[6:] + ("--out", "bag"),
-        ("--max-speed", "1.5")),
+    Row(
+        "simulate_max_speed_above_one",
+        SIM[:5] + ("1.5",) + SIM[6:] + ("--out", "bag"),
+        ("--max-speed", "1.5"),
+    ),
     Row("simulate_taps_nan", SIM[:7] + ("nan",) + SIM[8:] + ("--out", "bag"), ("--taps", "nan")),
-    Row("simulate_effects_timing_minus_5", sim("--effects", "timing=-5"),
-        ("--effects", "timing=-5")),
-    Row("simulate_effects_timing_leading", sim("--effects", "timing=-0.03"),
-        ("--effects", "timing=-0.03")),
-    Row("simulate_effects_strength_nan", sim("--effects", "position=nan"),
-        ("--effects", "position")),
+    Row(
+        "simulate_effects_timing_minus_5", sim("--effects", "timing=-5"), ("--effects", "timing=-5")
+    ),
+    Row(
+        "simulate_effects_timing_leading",
+        sim("--effects", "timing=-0.03"),
+        ("--effects", "timing=-0.03"),
+    ),
+    Row(
+        "simulate_effects_strength_nan", sim("--effects", "position=nan"), ("--effects", "position")
+    ),
     Row("simulate_effects_unknown", sim("--effects", "wobble=1"), ("--effects", "wobble")),
-    Row("gap_reference_lag_nan", gap("motion", "--reference-lag", "nan"),
-        ("--reference-lag", "nan")),
-    Row("gap_train_fraction_out_of_range", gap("motion", "--train-fraction", "1.5"),
-        ("--train-fraction", "1.5")),
-    Row("gap_train_fraction_nan", gap("motion", "--train-fraction", "nan"),
-        ("--train-fraction", "nan")),
-    Row("gap_validate_seeds_zero", ("gap", "validate", "--seeds", "0", "--out", "docs"),
-        ("--seeds", "0")),
-    Row("evaluate_max_bad_fraction_above_one", ev("motion", "--max-bad-fraction", "2"),
-        ("--max-bad-fraction",)),
+    Row(
+        "gap_reference_lag_nan", gap("motion", "--reference-lag", "nan"), ("--reference-lag", "nan")
+    ),
+    Row(
+        "gap_train_fraction_out_of_range",
+        gap("motion", "--train-fraction", "1.5"),
+        ("--train-fraction", "1.5"),
+    ),
+    Row(
+        "gap_train_fraction_nan",
+        gap("motion", "--train-fraction", "nan"),
+        ("--train-fraction", "nan"),
+    ),
+    Row(
+        "gap_validate_seeds_zero",
+        ("gap", "validate", "--seeds", "0", "--out", "docs"),
+        ("--seeds", "0"),
+    ),
+    Row(
+        "evaluate_max_bad_fraction_above_one",
+        ev("motion", "--max-bad-fraction", "2"),
+        ("--max-bad-fraction",),
+    ),
     Row("figures_seed_negative", ("figures", "--out", "docs", "--seed", "-1"), ("--seed", "-1")),
     # --- broken bags -------------------------------------------------------------------------
     Row("denoise_truncated_bag", den("truncated"), ("truncated",), check=no_output("den")),
     Row("calibrate_truncated_bag", cal("truncated"), ("truncated",)),
     Row("evaluate_truncated_bag", ev("truncated"), ("truncated",)),
-    Row("evaluate_missing_ground_truth_topic", ev("no_contact_topic"),
-        ("no_contact_topic", "/accelerometer/contact")),
-    Row("denoise_missing_joint_states_topic", den("no_joint_states"),
-        ("no_joint_states", "/joint_states")),
-    Row("denoise_no_such_bag", ("denoise", "{lab}/nothing", "--model", "{model}", "--out", "den"),
-        ("nothing",)),
-    Row("evaluate_flipped_value_bytes_counted", ev("flipped_values"), expect="ok",
-        check=counted(60, json_file="eval.json"), unchanged=False),
-    Row("denoise_flipped_value_bytes_counted", den("flipped_values"), expect="ok",
-        check=counted(60, output="den"), unchanged=False),
-    Row("denoise_records_lost_to_flipped_bytes", den("dropped_records"), ("dropped_records",),
-        expect="either", check=mentions("2160"), unchanged=False),
-    Row("calibrate_records_lost_to_flipped_bytes", cal("dropped_records"), ("dropped_records",),
-        expect="either", check=mentions("2160"), unchanged=False),
+    Row(
+        "evaluate_missing_ground_truth_topic",
+        ev("no_contact_topic"),
+        ("no_contact_topic", "/accelerometer/contact"),
+    ),
+    Row(
+        "denoise_missing_joint_states_topic",
+        den("no_joint_states"),
+        ("no_joint_states", "/joint_states"),
+    ),
+    Row(
+        "denoise_no_such_bag",
+        ("denoise", "{lab}/nothing", "--model", "{model}", "--out", "den"),
+        ("nothing",),
+    ),
+    Row(
+        "evaluate_flipped_value_bytes_counted",
+        ev("flipped_values"),
+        expect="ok",
+        check=counted(60, json_file="eval.json"),
+        unchanged=False,
+    ),
+    Row(
+        "denoise_flipped_value_bytes_counted",
+        den("flipped_values"),
+        expect="ok",
+        check=counted(60, output="den"),
+        unchanged=False,
+    ),
+    Row(
+        "denoise_records_lost_to_flipped_bytes",
+        den("dropped_records"),
+        ("dropped_records",),
+        expect="either",
+        check=mentions("2160"),
+        unchanged=False,
+    ),
+    Row(
+        "calibrate_records_lost_to_flipped_bytes",
+        cal("dropped_records"),
+        ("dropped_records",),
+        expect="either",
+        check=mentions("2160"),
+        unchanged=False,
+    ),
     Row("denoise_all_accel_stamps_zero", den("stamps_zero"), ("stamps_zero", "out of order")),
-    Row("calibrate_stuck_joint_clock", cal("stuck_joint_clock"),
-        ("stuck_joint_clock", "joint states")),
-    Row("evaluate_12_nonfinite_samples", ev("nan12"), expect="ok", check=f1_close_to_clean,
-        unchanged=False),
-    Row("evaluate_nan_burst_counted", ev("nan_burst"), expect="ok",
-        check=counted(600, json_file="eval.json"), unchanged=False),
-    Row("evaluate_mostly_bad_samples_refused", ev("mostly_nan"), ("mostly_nan", "bad"),
-        check=no_output("eval.json")),
-    Row("denoise_nan_burst_counted", den("nan_burst"), expect="ok",
-        check=counted(600, output="den"), unchanged=False),
-    Row("denoise_mostly_bad_samples_refused", den("mostly_nan"), ("mostly_nan", "bad"),
-        check=no_output("den")),
-    Row("calibrate_nan_second_counted", cal("sweep_nan"), expect="ok", check=counted(3000),
-        unchanged=False),
-    Row("gap_nan_joint_velocity", gap("gap_nan_velocity"), ("gap_nan_velocity",), expect="either",
-        check=mentions("500", "joint"), unchanged=False, xfail=GAP_JOINTS),
-    Row("gap_nan_accel_counted", gap("gap_nan_accel"), expect="ok", check=mentions("1500", "bad"),
-        unchanged=False, xfail=GAP_COUNTS),
+    Row(
+        "calibrate_stuck_joint_clock",
+        cal("stuck_joint_clock"),
+        ("stuck_joint_clock", "joint states"),
+    ),
+    Row(
+        "evaluate_12_nonfinite_samples",
+        ev("nan12"),
+        expect="ok",
+        check=f1_close_to_clean,
+        unchanged=False,
+    ),
+    Row(
+        "evaluate_nan_burst_counted",
+        ev("nan_burst"),
+        expect="ok",
+        check=counted(600, json_file="eval.json"),
+        unchanged=False,
+    ),
+    Row(
+        "evaluate_mostly_bad_samples_refused",
+        ev("mostly_nan"),
+        ("mostly_nan", "bad"),
+        check=no_output("eval.json"),
+    ),
+    Row(
+        "denoise_nan_burst_counted",
+        den("nan_burst"),
+        expect="ok",
+        check=counted(600, output="den"),
+        unchanged=False,
+    ),
+    Row(
+        "denoise_mostly_bad_samples_refused",
+        den("mostly_nan"),
+        ("mostly_nan", "bad"),
+        check=no_output("den"),
+    ),
+    Row(
+        "calibrate_nan_second_counted",
+        cal("sweep_nan"),
+        expect="ok",
+        check=counted(3000),
+        unchanged=False,
+    ),
+    Row(
+        "gap_nan_joint_velocity",
+        gap("gap_nan_velocity"),
+        ("gap_nan_velocity",),
+        expect="either",
+        check=mentions("500", "joint"),
+        unchanged=False,
+        xfail=GAP_JOINTS,
+    ),
+    Row(
+        "gap_nan_accel_counted",
+        gap("gap_nan_accel"),
+        expect="ok",
+        check=mentions("1500", "bad"),
+        unchanged=False,
+        xfail=GAP_COUNTS,
+    ),
     # --- broken models -----------------------------------------------------------------------
-    Row("denoise_model_is_a_text_file", den("motion", model="model_text"), ("model_text.npz",),
-        check=no_pickle_advice),
-    Row("evaluate_model_is_a_text_file", ev("motion", model="model_text"), ("model_text.npz",),
-        check=no_pickle_advice),
+    Row(
+        "denoise_model_is_a_text_file",
+        den("motion", model="model_text"),
+        ("model_text.npz",),
+        check=no_pickle_advice,
+    ),
+    Row(
+        "evaluate_model_is_a_text_file",
+        ev("motion", model="model_text"),
+        ("model_text.npz",),
+        check=no_pickle_advice,
+    ),
     Row("denoise_model_empty_file", den("motion", model="model_empty"), ("model_empty.npz",)),
-    Row("evaluate_model_truncated", ev("motion", model="model_truncated"),
-        ("model_truncated.npz",)),
-    Row("denoise_model_wrong_schema", den("motion", model="model_wrong_schema"),
-        ("model_wrong_schema.npz", "schema")),
-    Row("denoise_model_schema_version_text", den("motion", model="model_schema_text"),
-        ("model_schema_text.npz", "schema")),
-    Row("gap_model_schema_version_text", gap("motion", model="model_schema_text"),
-        ("model_schema_text.npz", "schema")),
-    Row("evaluate_model_schema_version_float", ev("motion", model="model_schema_float"),
-        ("model_schema_float.npz", "schema")),
-    Row("denoise_model_n_joints_malformed", den("motion", model="model_n_joints"),
-        ("model_n_joints.npz",)),
-    Row("denoise_model_mean_wrong_shape", den("motion", model="model_mean_shape"),
-        ("model_mean_shape.npz",)),
+    Row(
+        "evaluate_model_truncated", ev("motion", model="model_truncated"), ("model_truncated.npz",)
+    ),
+    Row(
+        "denoise_model_wrong_schema",
+        den("motion", model="model_wrong_schema"),
+        ("model_wrong_schema.npz", "schema"),
+    ),
+    Row(
+        "denoise_model_schema_version_text",
+        den("motion", model="model_schema_text"),
+        ("model_schema_text.npz", "schema"),
+    ),
+    Row(
+        "gap_model_schema_version_text",
+        gap("motion", model="model_schema_text"),
+        ("model_schema_text.npz", "schema"),
+    ),
+    Row(
+        "evaluate_model_schema_version_float",
+        ev("motion", model="model_schema_float"),
+        ("model_schema_float.npz", "schema"),
+    ),
+    Row(
+        "denoise_model_n_joints_malformed",
+        den("motion", model="model_n_joints"),
+        ("model_n_joints.npz",),
+    ),
+    Row(
+        "denoise_model_mean_wrong_shape",
+        den("motion", model="model_mean_shape"),
+        ("model_mean_shape.npz",),
+    ),
     Row("denoise_model_rate_nan", den("motion", model="model_rate_nan"), ("model_rate_nan.npz",)),
-    Row("denoise_model_cells_off_grid", den("motion", model="model_cells_off_grid"),
-        ("model_cells_off_grid.npz",)),
-    Row("gap_model_profile_garbage", gap("motion", model="model_profile_garbage"),
-        ("model_profile_garbage.npz",)),
-    Row("evaluate_model_missing_field", ev("motion", model="model_missing_field"),
-        ("model_missing_field.npz",)),
-    Row("evaluate_model_keyed_on_other_joints", ev("motion", model="model_other_joints"),
-        ("motion", "l_wrist_roll_joint")),
-    Row("denoise_model_keyed_on_other_joints", den("motion", model="model_other_joints"),
-        ("motion", "l_wrist_roll_joint")),
+    Row(
+        "denoise_model_cells_off_grid",
+        den("motion", model="model_cells_off_grid"),
+        ("model_cells_off_grid.npz",),
+    ),
+    Row(
+        "gap_model_profile_garbage",
+        gap("motion", model="model_profile_garbage"),
+        ("model_profile_garbage.npz",),
+    ),
+    Row(
+        "evaluate_model_missing_field",
+        ev("motion", model="model_missing_field"),
+        ("model_missing_field.npz",),
+    ),
+    Row(
+        "evaluate_model_keyed_on_other_joints",
+        ev("motion", model="model_other_joints"),
+        ("motion", "l_wrist_roll_joint"),
+    ),
+    Row(
+        "denoise_model_keyed_on_other_joints",
+        den("motion", model="model_other_joints"),
+        ("motion", "l_wrist_roll_joint"),
+    ),
 ]
 
 
@@ -670,7 +995,7 @@ def test_fault(row: Row, lab: Lab, tmp_path: Path, monkeypatch) -> None:
         row.setup(work, lab)
     before = snapshot(lab.root, work)
     result = egovib(*_format(row.args, lab))
-    if row.expect == "either":          # refused (as an error row) or handled (exit 0, counted)
+    if row.expect == "either":  # refused (as an error row) or handled (exit 0, counted)
         assert result.code in (0, 2), f"exit {result.code}: {result.err}"
     if row.expect == "error" or (row.expect == "either" and result.code == 2):
         assert result.code == 2, f"exit {result.code}: {result.err}"
@@ -686,13 +1011,14 @@ def test_fault(row: Row, lab: Lab, tmp_path: Path, monkeypatch) -> None:
     after = snapshot(lab.root, work)
     leftovers = [path for path in after if path.endswith(".partial") and path not in before]
     assert not leftovers, "staging left behind"
-    if not row.unchanged and result.code == 0:   # its outputs may appear; the lab never changes
+    if not row.unchanged and result.code == 0:  # its outputs may appear; the lab never changes
         after = {k: v for k, v in after.items() if k.startswith(str(lab.root))}
         before = {k: v for k, v in before.items() if k.startswith(str(lab.root))}
     assert after == before, f"changed: {sorted(set(after.items()) ^ set(before.items()))[:5]}"
 
 
 # --- the issue's headline case, as the user typed it ---------------------------------------
+
 
 def test_calibrate_motion_out_motion_leaves_the_bag_intact(lab, tmp_path):
     """`egovib calibrate motion --out motion` removed the bag (exit 0); now: exit 2, bag intact
@@ -721,8 +1047,9 @@ READONLY_ROWS = [
     ("figures", ("figures", "--out", "ro/docs", "--quick")),
 ]
 # ro/den: a previous output of ours, which --force could replace were the file system writable
-READONLY_POPULATE = ("mkdir den && "
-                     "echo '{\"schema\": \"egovib.output/1\", \"files\": []}' > den/.egovib-output")
+READONLY_POPULATE = (
+    'mkdir den && echo \'{"schema": "egovib.output/1", "files": []}\' > den/.egovib-output'
+)
 
 
 @pytest.fixture(scope="module")
@@ -730,10 +1057,17 @@ def readonly_results(lab, tmp_path_factory):
     """All read-only rows in one child process (one interpreter start, one mount)."""
     work = tmp_path_factory.mktemp("readonly")
     before = snapshot(lab.root)
-    results = run_on_readonly([_format(args, lab) for _, args in READONLY_ROWS], cwd=work,
-                              readonly=work / "ro", populate=READONLY_POPULATE)
-    return {"results": dict(zip([name for name, _ in READONLY_ROWS], results)), "work": work,
-            "lab_unchanged": snapshot(lab.root) == before}
+    results = run_on_readonly(
+        [_format(args, lab) for _, args in READONLY_ROWS],
+        cwd=work,
+        readonly=work / "ro",
+        populate=READONLY_POPULATE,
+    )
+    return {
+        "results": dict(zip([name for name, _ in READONLY_ROWS], results)),
+        "work": work,
+        "lab_unchanged": snapshot(lab.root) == before,
+    }
 
 
 @pytest.mark.skipif(not readonly_supported(), reason="no way to make a read-only file system")
@@ -752,6 +1086,7 @@ def test_unwritable_output_refused_before_work(name, readonly_results):
 
 # --- must show: 1 s of bad samples moves nothing by more than 0.5 dB -----------------------
 
+
 @pytest.fixture(scope="module")
 def bad_second(tmp_path_factory):
     """A 30 s motion bag, clean and with 1 s of NaN/inf/beyond-range samples. 30 s with 3
@@ -759,7 +1094,7 @@ def bad_second(tmp_path_factory):
     sampling alone by 0.1-0.4 dB (seeds 21-26; 0.3-0.7 dB with 15-20 s)."""
     root = tmp_path_factory.mktemp("bad_second")
     rec, _ = simulate_motion(duration_s=30.0, max_speed=0.5, tap_rate_hz=3.0, seed=21)
-    rec = _with(rec, ego=None)                         # evaluate needs only the contact truth
+    rec = _with(rec, ego=None)  # evaluate needs only the contact truth
     write_recording(root / "clean", rec)
     write_recording(root / "bad", _with(rec, accel=_with_bad_samples(rec.accel, 8 * FS, FS)))
     return root
@@ -774,15 +1109,28 @@ def test_bad_second_metrics_within_half_db(lab, bad_second, tmp_path):
     printed."""
     reports = {}
     for name in ("clean", "bad"):
-        result = egovib("evaluate", bad_second / name, "--model", lab["model"],
-                        "--json", tmp_path / f"{name}.json", "--methods", "paper")
+        result = egovib(
+            "evaluate",
+            bad_second / name,
+            "--model",
+            lab["model"],
+            "--json",
+            tmp_path / f"{name}.json",
+            "--methods",
+            "paper",
+        )
         assert result.code == 0, result.err
         reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
     assert "3000 bad samples" in result.err, result.err
     clean, bad = reports["clean"], reports["bad"]
     assert bad["bad_samples"]["bad"] == 3000 and bad["bad_samples"]["raw_beyond_range"] == 1000
-    for key in ("noise_reduction_db", "peak_snr_raw_db", "peak_snr_denoised_db",
-                "segsnr_contact_raw_db", "segsnr_contact_denoised_db"):
+    for key in (
+        "noise_reduction_db",
+        "peak_snr_raw_db",
+        "peak_snr_denoised_db",
+        "segsnr_contact_raw_db",
+        "segsnr_contact_denoised_db",
+    ):
         assert abs(bad[key] - clean[key]) <= 0.5, (key, bad[key], clean[key])
     for key in ("noise_mean_raw", "noise_mean_denoised", "tap_peak_raw", "tap_peak_denoised"):
         assert db(bad[key], clean[key]) <= 0.5, (key, bad[key], clean[key])
@@ -795,6 +1143,7 @@ def test_bad_second_model_within_half_db(lab, tmp_path):
     printed. (The framing after the bad second is shifted, so a block may fall into a cell
     the clean run had none in: seen once, 1 block, at a cell transition.)"""
     from egovib_ros.core import NoiseModel
+
     result = egovib("calibrate", lab["sweep_nan"], "--out", tmp_path / "bad.npz", "--quiet")
     assert result.code == 0, result.err
     assert "3000 sensor samples" in result.err, result.err
@@ -812,14 +1161,21 @@ def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     no non-finite or beyond-range value, and the count is printed. (The clean run's output
     comes from the same core in-process: `egovib denoise` equals it, test_offline.)"""
     from egovib_ros.core import NoiseModel, denoise_batch
-    result = egovib("denoise", bad_second / "bad", "--model", lab["model"],
-                    "--out", tmp_path / "bad", "--quiet")
+
+    result = egovib(
+        "denoise", bad_second / "bad", "--model", lab["model"], "--out", tmp_path / "bad", "--quiet"
+    )
     assert result.code == 0, result.err
     assert "3000 sensor samples" in result.err, result.err
     bad = read_recording(tmp_path / "bad")
     clean = read_recording(bad_second / "clean")
-    stamps, values, _ = denoise_batch(clean.accel_stamps_ns, clean.accel, clean.joint_stamps_ns,
-                                      clean.joint_velocity, NoiseModel.load(lab["model"]))
+    stamps, values, _ = denoise_batch(
+        clean.accel_stamps_ns,
+        clean.accel,
+        clean.joint_stamps_ns,
+        clean.joint_velocity,
+        NoiseModel.load(lab["model"]),
+    )
     assert np.all(np.isfinite(bad.denoised)) and np.max(np.abs(bad.denoised)) <= SENSOR_RANGE
     assert len(bad.denoised_stamps_ns) >= 0.9 * len(stamps)
     # compared outside the bad second and a second either side of it

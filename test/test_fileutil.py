@@ -4,6 +4,7 @@ prepare_output refuses before any work; atomic_output writes next to the target 
 renames into place only when complete, marking directory outputs as ours; stale
 staging directories of killed runs are cleaned, nothing else is.
 """
+
 import json
 import os
 import subprocess
@@ -33,8 +34,9 @@ def write_dir_output(path, files=("metadata.yaml", "data.mcap"), kind="bag"):
 
 
 def state(root):
-    return sorted((str(p.relative_to(root)), p.stat().st_mtime_ns,
-                   p.stat().st_size) for p in root.rglob("*"))
+    return sorted(
+        (str(p.relative_to(root)), p.stat().st_mtime_ns, p.stat().st_size) for p in root.rglob("*")
+    )
 
 
 @pytest.fixture
@@ -44,6 +46,7 @@ def cwd(tmp_path, monkeypatch):
 
 
 # --- prepare_output ------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("path", [".", "..", "./", "../", "sub/..", "/"])
 def test_dot_and_dotdot_refused(cwd, path):
@@ -64,8 +67,15 @@ def test_existing_output_needs_force(cwd):
     assert prepare_output("out.json", force=True, kind="json", option="--json").name == "out.json"
 
 
-@pytest.mark.parametrize("relation,path", [("is", "outer/bag"), ("lies inside", "outer/bag/sub"),
-                                           ("holds", "outer"), ("is", "outer/./bag/")])
+@pytest.mark.parametrize(
+    "relation,path",
+    [
+        ("is", "outer/bag"),
+        ("lies inside", "outer/bag/sub"),
+        ("holds", "outer"),
+        ("is", "outer/./bag/"),
+    ],
+)
 def test_output_overlapping_an_input_refused_even_with_force(cwd, relation, path):
     (cwd / "outer" / "bag").mkdir(parents=True)
     with pytest.raises(OutputError, match=f"^--out {path}: {relation} outer/bag, an input"):
@@ -86,8 +96,9 @@ def test_force_replaces_only_our_own_directories(cwd):
     assert prepare_output("ours", force=True, kind="bag")
     (cwd / "theirs").mkdir()
     (cwd / "theirs" / "thesis.tex").write_text("years of work")
-    with pytest.raises(OutputError,
-                       match="not an egovib output.*thesis.tex.*not replaced, even with --force"):
+    with pytest.raises(
+        OutputError, match="not an egovib output.*thesis.tex.*not replaced, even with --force"
+    ):
         prepare_output("theirs", force=True, kind="bag")
     # ours, but someone added a file since: not replaced either
     (cwd / "ours" / "notes.txt").write_text("mine")
@@ -126,8 +137,10 @@ def test_legacy_outputs_without_marker_are_recognised(cwd):
     bag = cwd / "denoised"
     bag.mkdir()
     (bag / "denoised_0.mcap").write_bytes(b"mcap")
-    head = ("rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n"
-            "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/raw}\n")
+    head = (
+        "rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n"
+        "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/raw}\n"
+    )
     denoised = "  - topic_metadata: {name: /accelerometer/denoised}\n"
     (bag / "metadata.yaml").write_text(head + denoised)
     assert prepare_output("denoised", force=True, kind="bag")
@@ -154,7 +167,7 @@ def test_unwritable_parent_detected_before_work(cwd):
 
 def test_missing_parent_directories_are_fine(cwd):
     assert prepare_output("a/b/c.json", kind="json")
-    assert not (cwd / "a").exists()                  # nothing created before the work
+    assert not (cwd / "a").exists()  # nothing created before the work
 
 
 def test_prepare_outputs_in_adds_to_a_directory_but_replaces_files_only_with_force(cwd):
@@ -173,13 +186,14 @@ def test_prepare_outputs_in_adds_to_a_directory_but_replaces_files_only_with_for
 
 # --- atomic_output -------------------------------------------------------------------------
 
+
 def test_directory_output_is_marked_and_appears_only_when_complete(cwd):
     with pytest.raises(RuntimeError):
         with atomic_output("bag", directory=True, kind="bag") as tmp:
             tmp.mkdir()
             (tmp / "metadata.yaml").write_text("half")
             raise RuntimeError("killed")
-    assert sorted(os.listdir(cwd)) == []                # no output, no staging left
+    assert sorted(os.listdir(cwd)) == []  # no output, no staging left
     write_dir_output(cwd / "bag")
     marker = json.loads((cwd / "bag" / MARKER).read_text())
     assert marker["schema"] == "egovib.output/1" and marker["kind"] == "bag"
@@ -227,6 +241,7 @@ def test_file_output_replaces_atomically(cwd):
 
 # --- stale staging directories ------------------------------------------------------------
 
+
 def _staging(cwd, name, pid, created):
     path = cwd / f".{name}.{pid}.0badc0de.partial"
     (path / name).mkdir(parents=True)
@@ -244,18 +259,17 @@ def dead_pid() -> int:
 def test_stale_partials_of_dead_runs_are_cleaned_and_nothing_else(cwd):
     old = process_start_time() - 60
     dead = _staging(cwd, "bag", dead_pid(), old)
-    alive_other_run = _staging(cwd, "bag2", os.getppid(), old)           # a run still going
-    newer = _staging(cwd, "bag3", dead_pid(),
-                     time.time() + 60)          # not older than this process
-    legacy = cwd / ".model.npz.ab12cd34.partial"             # the previous version's shape
+    alive_other_run = _staging(cwd, "bag2", os.getppid(), old)  # a run still going
+    newer = _staging(cwd, "bag3", dead_pid(), time.time() + 60)  # not older than this process
+    legacy = cwd / ".model.npz.ab12cd34.partial"  # the previous version's shape
     legacy.mkdir()
     (legacy / "model.npz").write_bytes(b"x")
     os.utime(legacy, (old, old))
-    legacy_foreign = cwd / ".notes.ab12cd34.partial"                     # same shape, other content
+    legacy_foreign = cwd / ".notes.ab12cd34.partial"  # same shape, other content
     legacy_foreign.mkdir()
     (legacy_foreign / "thesis.tex").write_text("mine")
     os.utime(legacy_foreign, (old, old))
-    no_marker = cwd / ".bag.12345.0badc0de.partial"                      # our name, no marker
+    no_marker = cwd / ".bag.12345.0badc0de.partial"  # our name, no marker
     no_marker.mkdir()
     removed = clean_stale_partials(cwd)
     assert sorted(p.name for p in removed) == sorted([dead.name, legacy.name])

@@ -187,7 +187,9 @@ def test_cli_writes_the_report_files(tmp_path, capsys):
     before = (out / "real_results.json").read_bytes()
     capsys.readouterr()
     assert egovib(["real", "evaluate", "--bag", str(BAG), "--out", str(out)]) == 2
-    assert "--force" in capsys.readouterr().err and (out / "real_results.json").read_bytes() == before
+    assert (
+        "--force" in capsys.readouterr().err and (out / "real_results.json").read_bytes() == before
+    )
 
 
 def test_cli_bad_bag_is_a_one_line_error_without_output(tmp_path, capsys):

@@ -14,6 +14,7 @@ Two ways a recording can calibrate, tallied side by side:
 `sweep="auto"` picks the sweep tally when most usable blocks sat on grid points
 (AUTO_SWEEP_SHARE), else free motion, and says which in `stats["mode"]`.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -40,7 +41,13 @@ class _Tally:
         self.sum = np.zeros((16, n_channels, n_bins))
         self.sumsq = np.zeros_like(self.sum)
         self.counts = np.zeros(16, dtype=np.int64)
-        self.rejected = {"partial": 0, "no_joint_state": 0, "unsteady": 0, "off_grid": 0, "not_in_sweep": 0}
+        self.rejected = {
+            "partial": 0,
+            "no_joint_state": 0,
+            "unsteady": 0,
+            "off_grid": 0,
+            "not_in_sweep": 0,
+        }
 
     @property
     def n(self) -> int:
@@ -57,7 +64,7 @@ class _Tally:
                     self.sum = np.concatenate([self.sum, np.zeros_like(self.sum[:grow])])
                     self.sumsq = np.concatenate([self.sumsq, np.zeros_like(self.sumsq[:grow])])
                     self.counts = np.concatenate([self.counts, np.zeros(grow, dtype=np.int64)])
-                self.cells = np.concatenate([self.cells, cells[k:k + 1]])
+                self.cells = np.concatenate([self.cells, cells[k : k + 1]])
             out[k] = row
         return out
 
@@ -65,14 +72,14 @@ class _Tally:
         unique, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
         rows = self.rows(unique, cells[first])[inverse]
         np.add.at(self.sum, rows, magnitude)
-        np.add.at(self.sumsq, rows, magnitude ** 2)
+        np.add.at(self.sumsq, rows, magnitude**2)
         np.add.at(self.counts, rows, 1)
 
     def statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         k = self.n
         n = self.counts[:k, None, None].astype(np.float64)
         mean = self.sum[:k] / np.maximum(n, 1)
-        var = np.divide(self.sumsq[:k] - n * mean ** 2, n - 1, out=np.zeros_like(mean), where=n > 1)
+        var = np.divide(self.sumsq[:k] - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1)
         return self.cells.copy(), mean, np.sqrt(np.maximum(var, 0.0)), self.counts[:k].copy()
 
 
@@ -84,26 +91,56 @@ class CalibrationAccumulator:
     `band_order` override it (tests, experiments with other block lengths).
     """
 
-    def __init__(self, *, profile: RobotProfile | None = None, sweep: str = "full",
-                 grid: tuple[np.ndarray, ...] | None = None, joint_names: tuple[str, ...] | None = None,
-                 sample_rate_hz: float | None = None, block_length: int | None = None, hop: int | None = None,
-                 band_hz: tuple[float, float] | None = None, band_order: int | None = None,
-                 cell_tolerance: float = 0.3, steady_tolerance: float = 0.3, free_steady_tolerance: float = 0.5,
-                 joint_wait_s: float = 0.02, max_hold_s: float = 0.05, source: str = ""):
+    def __init__(
+        self,
+        *,
+        profile: RobotProfile | None = None,
+        sweep: str = "full",
+        grid: tuple[np.ndarray, ...] | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        sample_rate_hz: float | None = None,
+        block_length: int | None = None,
+        hop: int | None = None,
+        band_hz: tuple[float, float] | None = None,
+        band_order: int | None = None,
+        cell_tolerance: float = 0.3,
+        steady_tolerance: float = 0.3,
+        free_steady_tolerance: float = 0.5,
+        joint_wait_s: float = 0.02,
+        max_hold_s: float = 0.05,
+        source: str = "",
+    ):
         if sweep not in SWEEPS:
             raise ConfigError(f"grid: expected one of {SWEEPS}, got {sweep!r}")
         base = profile if profile is not None else default_profile()
-        overrides = dict(grid=grid, joint_names=joint_names, sample_rate_hz=sample_rate_hz,
-                         block_length=block_length, hop=hop, band_hz=band_hz, band_order=band_order)
+        overrides = dict(
+            grid=grid,
+            joint_names=joint_names,
+            sample_rate_hz=sample_rate_hz,
+            block_length=block_length,
+            hop=hop,
+            band_hz=band_hz,
+            band_order=band_order,
+        )
         # The model carries the profile only when nothing was overridden.
         self.profile = base if all(v is None for v in overrides.values()) else None
-        self.grid = tuple(np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else base.grid()))
-        self.joint_names = tuple(joint_names if joint_names is not None else
-                                 (base.joint_names if grid is None else [f"joint{j}" for j in range(len(self.grid))]))
+        self.grid = tuple(
+            np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else base.grid())
+        )
+        self.joint_names = tuple(
+            joint_names
+            if joint_names is not None
+            else (
+                base.joint_names if grid is None else [f"joint{j}" for j in range(len(self.grid))]
+            )
+        )
         if len(self.joint_names) != len(self.grid):
             raise ConfigError(f"{len(self.joint_names)} joint names for {len(self.grid)} grid axes")
-        for name, value in (("cell_tolerance", cell_tolerance), ("steady_tolerance", steady_tolerance),
-                            ("free_steady_tolerance", free_steady_tolerance)):
+        for name, value in (
+            ("cell_tolerance", cell_tolerance),
+            ("steady_tolerance", steady_tolerance),
+            ("free_steady_tolerance", free_steady_tolerance),
+        ):
             if not (np.isfinite(value) and 0 < value <= 1):
                 raise ConfigError(f"calibration: {name} must be in (0, 1] grid steps, got {value}")
         self.sweep = sweep
@@ -111,16 +148,25 @@ class CalibrationAccumulator:
         self.steady_tolerance = float(steady_tolerance)
         self.free_steady_tolerance = float(free_steady_tolerance)
         self.settings = FramerSettings(
-            sample_rate_hz=sample_rate_hz or base.rate_hz, block_length=block_length or base.block_length,
-            hop=hop or base.hop, band_hz=band_hz or base.band_hz, band_order=band_order or base.band_order,
-            layout="all", sensor_range=base.sensor_range, joint_wait_s=joint_wait_s, max_hold_s=max_hold_s,
-            source=source)
+            sample_rate_hz=sample_rate_hz or base.rate_hz,
+            block_length=block_length or base.block_length,
+            hop=hop or base.hop,
+            band_hz=band_hz or base.band_hz,
+            band_order=band_order or base.band_order,
+            layout="all",
+            sensor_range=base.sensor_range,
+            joint_wait_s=joint_wait_s,
+            max_hold_s=max_hold_s,
+            source=source,
+        )
         self._framer = BlockFramer(self.settings, len(self.grid))
         self.window = self._framer.window
         n_bins = self.settings.block_length // 2 + 1
         self._sweep_tally = _Tally(len(self.grid), len(MODEL_CHANNELS), n_bins)
         self._free_tally = _Tally(len(self.grid), len(MODEL_CHANNELS), n_bins)
-        self._spacing = [np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid]
+        self._spacing = [
+            np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid
+        ]
         self._shape = tuple(len(g) for g in self.grid)
         self._zero = np.array([int(np.argmin(np.abs(g))) for g in self.grid])
         assert CHANNEL_LAYOUTS["all"] == MODEL_CHANNELS
@@ -159,7 +205,7 @@ class CalibrationAccumulator:
         tally = self._tally()
         out = np.zeros(self._shape, dtype=np.int64)
         if tally.n:
-            out[tuple(tally.cells.T)] = tally.counts[:tally.n]
+            out[tuple(tally.cells.T)] = tally.counts[: tally.n]
         return out
 
     def cell_counts(self) -> tuple[np.ndarray, np.ndarray]:
@@ -171,11 +217,19 @@ class CalibrationAccumulator:
     def stats(self) -> dict:
         s = self._framer.stats
         tally = self._tally()
-        return {"mode": self.mode, "samples_in": s.samples_in, "samples_bad": s.samples_bad,
-                "blocks": s.blocks, "blocks_used": int(tally.counts.sum()), "cells": tally.n,
-                "rejected": dict(tally.rejected), "dropped_out_of_order": s.dropped_out_of_order,
-                "gap_filled_samples": s.gap_filled_samples, "resets": s.resets,
-                "joint_states_dropped": s.joint_states_dropped}
+        return {
+            "mode": self.mode,
+            "samples_in": s.samples_in,
+            "samples_bad": s.samples_bad,
+            "blocks": s.blocks,
+            "blocks_used": int(tally.counts.sum()),
+            "cells": tally.n,
+            "rejected": dict(tally.rejected),
+            "dropped_out_of_order": s.dropped_out_of_order,
+            "gap_filled_samples": s.gap_filled_samples,
+            "resets": s.resets,
+            "joint_states_dropped": s.joint_states_dropped,
+        }
 
     @property
     def backlog(self) -> tuple[int, int]:
@@ -216,14 +270,21 @@ class CalibrationAccumulator:
             index, distance = self.cell_of(velocity)
             steadiness = np.empty_like(distance)
             for j in range(len(self.grid)):
-                steadiness[:, j] = np.nan_to_num(blocks.steadiness[:, j], nan=np.inf) / self._spacing[j][index[:, j]]
+                steadiness[:, j] = (
+                    np.nan_to_num(blocks.steadiness[:, j], nan=np.inf)
+                    / self._spacing[j][index[:, j]]
+                )
             # Beyond the grid edge by more than half a step: not this grid's velocity.
             inside = np.all(distance <= 0.5, axis=1)
             accepted = []
-            for tally, steady_tol, cell_tol in ((self._sweep_tally, self.steady_tolerance, self.cell_tolerance),
-                                                (self._free_tally, self.free_steady_tolerance, None)):
+            for tally, steady_tol, cell_tol in (
+                (self._sweep_tally, self.steady_tolerance, self.cell_tolerance),
+                (self._free_tally, self.free_steady_tolerance, None),
+            ):
                 tally.rejected["partial"] += int((~complete).sum())
-                tally.rejected["no_joint_state"] += int((complete & (blocks.status != MATCHED)).sum())
+                tally.rejected["no_joint_state"] += int(
+                    (complete & (blocks.status != MATCHED)).sum()
+                )
                 steady = np.all(steadiness <= steady_tol, axis=1)
                 near = np.all(distance <= cell_tol, axis=1) if cell_tol is not None else inside
                 tally.rejected["unsteady"] += int((usable & ~steady).sum())
@@ -238,7 +299,9 @@ class CalibrationAccumulator:
             if not union.any():
                 continue
             magnitude = np.zeros((blocks.n,) + self._sweep_tally.sum.shape[1:])
-            magnitude[union] = np.abs(np.fft.rfft(blocks.samples[union] * self.window, axis=-1))   # (b, C, F)
+            magnitude[union] = np.abs(
+                np.fft.rfft(blocks.samples[union] * self.window, axis=-1)
+            )  # (b, C, F)
             ids = np.ravel_multi_index(tuple(index.T), self._shape)
             for tally, accept in zip((self._sweep_tally, self._free_tally), accepted):
                 if accept.any():
@@ -248,14 +311,24 @@ class CalibrationAccumulator:
         """Pool another accumulator's per-cell sums and counts into this one (several bags of
         one robot: each was framed and flushed on its own, only the statistics are pooled).
         Both tallies are pooled, so "auto" decides on the pooled data."""
-        if other.grid_shape != self.grid_shape or other.joint_names != self.joint_names \
-                or other.settings.block_length != self.settings.block_length:
-            raise ConfigError(f"calibration: cannot pool {other.joint_names} {other.grid_shape} into "
-                              f"{self.joint_names} {self.grid_shape}")
-        for mine, theirs in ((self._sweep_tally, other._sweep_tally), (self._free_tally, other._free_tally)):
+        if (
+            other.grid_shape != self.grid_shape
+            or other.joint_names != self.joint_names
+            or other.settings.block_length != self.settings.block_length
+        ):
+            raise ConfigError(
+                f"calibration: cannot pool {other.joint_names} {other.grid_shape} into "
+                f"{self.joint_names} {self.grid_shape}"
+            )
+        for mine, theirs in (
+            (self._sweep_tally, other._sweep_tally),
+            (self._free_tally, other._free_tally),
+        ):
             k = theirs.n
             if k:
-                rows = mine.rows(np.ravel_multi_index(tuple(theirs.cells.T), self._shape), theirs.cells)
+                rows = mine.rows(
+                    np.ravel_multi_index(tuple(theirs.cells.T), self._shape), theirs.cells
+                )
                 np.add.at(mine.sum, rows, theirs.sum[:k])
                 np.add.at(mine.sumsq, rows, theirs.sumsq[:k])
                 np.add.at(mine.counts, rows, theirs.counts[:k])
@@ -269,11 +342,24 @@ class CalibrationAccumulator:
         """The noise model from what has been accumulated so far (only measured cells)."""
         cells, mean, std, counts = self._tally().statistics()
         s = self.settings
-        return NoiseModel(grid=self.grid, joint_names=self.joint_names, cells=cells, mean=mean, std=std,
-                          counts=counts, sample_rate_hz=s.sample_rate_hz, block_length=s.block_length, hop=s.hop,
-                          window=self.window, band_hz=s.band_hz, band_order=s.band_order, channels=MODEL_CHANNELS,
-                          measured=measured or self.mode, profile=self.profile,
-                          provenance={"source": source, "software_version": __version__})
+        return NoiseModel(
+            grid=self.grid,
+            joint_names=self.joint_names,
+            cells=cells,
+            mean=mean,
+            std=std,
+            counts=counts,
+            sample_rate_hz=s.sample_rate_hz,
+            block_length=s.block_length,
+            hop=s.hop,
+            window=self.window,
+            band_hz=s.band_hz,
+            band_order=s.band_order,
+            channels=MODEL_CHANNELS,
+            measured=measured or self.mode,
+            profile=self.profile,
+            provenance={"source": source, "software_version": __version__},
+        )
 
     @classmethod
     def from_model(cls, model: NoiseModel, **options) -> "CalibrationAccumulator":
@@ -281,30 +367,61 @@ class CalibrationAccumulator:
         if model.profile is not None and "profile" not in options:
             acc = cls(profile=model.profile, sweep=model.measured, **options)
         else:
-            acc = cls(grid=model.grid, joint_names=model.joint_names, sample_rate_hz=model.sample_rate_hz,
-                      block_length=model.block_length, hop=model.hop, band_hz=model.band_hz,
-                      band_order=model.band_order, sweep=model.measured, **options)
+            acc = cls(
+                grid=model.grid,
+                joint_names=model.joint_names,
+                sample_rate_hz=model.sample_rate_hz,
+                block_length=model.block_length,
+                hop=model.hop,
+                band_hz=model.band_hz,
+                band_order=model.band_order,
+                sweep=model.measured,
+                **options,
+            )
         cells, counts = model.cells_measured()
         if len(cells):
             n = counts[:, None, None].astype(np.float64)
             tally = acc._tally()
-            tally.add(np.ravel_multi_index(tuple(cells.T), acc._shape), cells, np.zeros_like(model.cell_mean))
-            rows = np.array([tally.row_of[int(i)] for i in np.ravel_multi_index(tuple(cells.T), acc._shape)])
+            tally.add(
+                np.ravel_multi_index(tuple(cells.T), acc._shape),
+                cells,
+                np.zeros_like(model.cell_mean),
+            )
+            rows = np.array(
+                [tally.row_of[int(i)] for i in np.ravel_multi_index(tuple(cells.T), acc._shape)]
+            )
             tally.counts[rows] = counts
             tally.sum[rows] = model.cell_mean * n
-            tally.sumsq[rows] = model.cell_std ** 2 * np.maximum(n - 1, 0) + n * model.cell_mean ** 2
+            tally.sumsq[rows] = model.cell_std**2 * np.maximum(n - 1, 0) + n * model.cell_mean**2
         return acc
 
 
-def calibrate_arrays(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_ns: np.ndarray,
-                     joint_velocity: np.ndarray, *, chunk_s: float = 10.0, source: str = "",
-                     progress=None, **options) -> tuple[NoiseModel, dict]:
+def calibrate_arrays(
+    accel_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    *,
+    chunk_s: float = 10.0,
+    source: str = "",
+    progress=None,
+    **options,
+) -> tuple[NoiseModel, dict]:
     """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
 
     `options` go to CalibrationAccumulator (profile, sweep, overrides). `progress`, if
     given, is called with the number of sensor samples consumed."""
     acc = CalibrationAccumulator(source=source, **options)
-    feed(acc, accel_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s=chunk_s,
-         sample_rate_hz=acc.settings.sample_rate_hz, joint_wait_s=acc.settings.joint_wait_s, progress=progress)
+    feed(
+        acc,
+        accel_stamps_ns,
+        accel,
+        joint_stamps_ns,
+        joint_velocity,
+        chunk_s=chunk_s,
+        sample_rate_hz=acc.settings.sample_rate_hz,
+        joint_wait_s=acc.settings.joint_wait_s,
+        progress=progress,
+    )
     acc.flush()
     return acc.to_model(source=source), acc.stats

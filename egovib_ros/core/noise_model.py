@@ -26,6 +26,7 @@ measurements cost. How a velocity is looked up:
   quadcopter's 11^4); larger grids use the nearest grid point per joint. Outside
   the grid the estimate is clamped to the edge and the block is counted.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -50,10 +51,12 @@ SCHEMA_VERSION = 2
 MODEL_CHANNELS = ("combined", "x", "y", "z")
 MEASURED_KINDS = ("full", "superposition", "free")
 MIN_BLOCKS_FOR_STD = 5
-DENSE_LIMIT_BYTES = 64 * 2 ** 20
-FILL_RULES = ("superposition: Eq. 6 from single-joint cells everywhere; full/free: measured cell -> Eq. 5, "
-              "else Eq. 6 where its single-joint cells are measured, else nearest measured cell; "
-              f"cells with < {MIN_BLOCKS_FOR_STD} blocks borrow the pooled relative std")
+DENSE_LIMIT_BYTES = 64 * 2**20
+FILL_RULES = (
+    "superposition: Eq. 6 from single-joint cells everywhere; full/free: measured cell -> Eq. 5, "
+    "else Eq. 6 where its single-joint cells are measured, else nearest measured cell; "
+    f"cells with < {MIN_BLOCKS_FOR_STD} blocks borrow the pooled relative std"
+)
 
 
 class NoiseModel:
@@ -64,13 +67,27 @@ class NoiseModel:
     grid_shape + (C, F), ``counts`` grid_shape; cells with count 0 are unmeasured).
     """
 
-    def __init__(self, *, grid: tuple[np.ndarray, ...], joint_names: tuple[str, ...],
-                 mean: np.ndarray, std: np.ndarray, counts: np.ndarray, cells: np.ndarray | None = None,
-                 sample_rate_hz: float = 3000.0, block_length: int = 64, hop: int = 32,
-                 window: np.ndarray | None = None, window_name: str = WINDOW_NAME,
-                 band_hz: tuple[float, float] = (150.0, 750.0), band_order: int = 4,
-                 channels: tuple[str, ...] = MODEL_CHANNELS, measured: str = "full",
-                 profile: RobotProfile | None = None, provenance: dict | None = None):
+    def __init__(
+        self,
+        *,
+        grid: tuple[np.ndarray, ...],
+        joint_names: tuple[str, ...],
+        mean: np.ndarray,
+        std: np.ndarray,
+        counts: np.ndarray,
+        cells: np.ndarray | None = None,
+        sample_rate_hz: float = 3000.0,
+        block_length: int = 64,
+        hop: int = 32,
+        window: np.ndarray | None = None,
+        window_name: str = WINDOW_NAME,
+        band_hz: tuple[float, float] = (150.0, 750.0),
+        band_order: int = 4,
+        channels: tuple[str, ...] = MODEL_CHANNELS,
+        measured: str = "full",
+        profile: RobotProfile | None = None,
+        provenance: dict | None = None,
+    ):
         self.provenance = dict(provenance or {})
         where = self.provenance.get("path", "noise model")
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in grid)
@@ -83,10 +100,13 @@ class NoiseModel:
         self.band_order = band_order
         self.measured = str(measured)
         self._check_settings(where)
-        self.window = (analysis_window(self.block_length, self.hop) if window is None
-                       else np.asarray(window, dtype=np.float64))
+        self.window = (
+            analysis_window(self.block_length, self.hop)
+            if window is None
+            else np.asarray(window, dtype=np.float64)
+        )
         mean, std, counts = (np.asarray(a) for a in (mean, std, counts))
-        if cells is None:                              # dense grid-shaped input
+        if cells is None:  # dense grid-shaped input
             self._check_dense(mean, std, counts, where)
             have = counts > 0
             cells = np.argwhere(have)
@@ -98,7 +118,11 @@ class NoiseModel:
         self._check_cells(where)
         order = np.argsort(self._flat(self.cells), kind="stable")
         self.cells, self.cell_mean, self.cell_std, self.cell_counts = (
-            self.cells[order], self.cell_mean[order], self.cell_std[order], self.cell_counts[order])
+            self.cells[order],
+            self.cell_mean[order],
+            self.cell_std[order],
+            self.cell_counts[order],
+        )
         self._cell_ids = self._flat(self.cells)
         self.profile = profile if profile is not None else self._derived_profile()
         if self.profile is not None:
@@ -110,46 +134,76 @@ class NoiseModel:
         self._steps = []
         for g in self.grid:
             step = (g[-1] - g[0]) / (len(g) - 1)
-            self._steps.append(float(step) if np.allclose(np.diff(g), step, rtol=1e-12, atol=0) else 0.0)
+            self._steps.append(
+                float(step) if np.allclose(np.diff(g), step, rtol=1e-12, atol=0) else 0.0
+            )
 
     # --- construction checks --------------------------------------------------------
     def _check_settings(self, where: str) -> None:
         if not 1 <= len(self.grid) <= 8:
-            raise ModelFileError(f"{where}: 1 to 8 joints are supported, the model has {len(self.grid)}")
+            raise ModelFileError(
+                f"{where}: 1 to 8 joints are supported, the model has {len(self.grid)}"
+            )
         if len(self.joint_names) != self.n_joints:
-            raise ModelFileError(f"{where}: {len(self.joint_names)} joint names for {self.n_joints} grid axes")
+            raise ModelFileError(
+                f"{where}: {len(self.joint_names)} joint names for {self.n_joints} grid axes"
+            )
         for j, g in enumerate(self.grid):
             if g.ndim != 1 or len(g) < 2 or not np.all(np.isfinite(g)) or np.any(np.diff(g) <= 0):
-                raise ModelFileError(f"{where}: grid of joint {j} must be finite and increasing with >= 2 values")
+                raise ModelFileError(
+                    f"{where}: grid of joint {j} must be finite and increasing with >= 2 values"
+                )
         if not (math.isfinite(self.sample_rate_hz) and self.sample_rate_hz > 0):
-            raise ModelFileError(f"{where}: sample rate must be a positive number, got {self.sample_rate_hz}")
+            raise ModelFileError(
+                f"{where}: sample rate must be a positive number, got {self.sample_rate_hz}"
+            )
         try:
             validate_blocking(self.block_length, self.hop)
         except ConfigError as exc:
             raise ModelFileError(f"{where}: {exc}") from None
         self.block_length, self.hop = int(self.block_length), int(self.hop)
-        if not (np.all(np.isfinite(self.band_hz)) and 0 < self.band_hz[0] < self.band_hz[1] < self.sample_rate_hz / 2):
-            raise ModelFileError(f"{where}: band {self.band_hz} Hz does not fit the sample rate {self.sample_rate_hz:g} Hz")
-        if isinstance(self.band_order, bool) or not isinstance(self.band_order, (int, np.integer)) \
-                or not 1 <= self.band_order <= 12:
-            raise ModelFileError(f"{where}: band order must be an integer in [1, 12], got {self.band_order!r}")
+        if not (
+            np.all(np.isfinite(self.band_hz))
+            and 0 < self.band_hz[0] < self.band_hz[1] < self.sample_rate_hz / 2
+        ):
+            raise ModelFileError(
+                f"{where}: band {self.band_hz} Hz does not fit the sample rate {self.sample_rate_hz:g} Hz"
+            )
+        if (
+            isinstance(self.band_order, bool)
+            or not isinstance(self.band_order, (int, np.integer))
+            or not 1 <= self.band_order <= 12
+        ):
+            raise ModelFileError(
+                f"{where}: band order must be an integer in [1, 12], got {self.band_order!r}"
+            )
         self.band_order = int(self.band_order)
         if self.measured not in MEASURED_KINDS:
-            raise ModelFileError(f"{where}: measured must be one of {MEASURED_KINDS}, got {self.measured!r}")
+            raise ModelFileError(
+                f"{where}: measured must be one of {MEASURED_KINDS}, got {self.measured!r}"
+            )
         if not self.channels or any(c not in MODEL_CHANNELS for c in self.channels):
-            raise ModelFileError(f"{where}: channels must be among {MODEL_CHANNELS}, got {list(self.channels)}")
+            raise ModelFileError(
+                f"{where}: channels must be among {MODEL_CHANNELS}, got {list(self.channels)}"
+            )
 
-    def _check_dense(self, mean: np.ndarray, std: np.ndarray, counts: np.ndarray, where: str) -> None:
+    def _check_dense(
+        self, mean: np.ndarray, std: np.ndarray, counts: np.ndarray, where: str
+    ) -> None:
         shape = self.grid_shape + (len(self.channels), n_bins(self.block_length))
         for name, arr in (("mean", mean), ("std", std)):
             if arr.shape != shape:
                 raise ModelFileError(f"{where}: '{name}' has shape {arr.shape}, expected {shape}")
         if counts.shape != self.grid_shape:
-            raise ModelFileError(f"{where}: 'counts' has shape {counts.shape}, expected {self.grid_shape}")
+            raise ModelFileError(
+                f"{where}: 'counts' has shape {counts.shape}, expected {self.grid_shape}"
+            )
 
     def _check_cells(self, where: str) -> None:
         if self.window.shape != (self.block_length,) or not np.all(np.isfinite(self.window)):
-            raise ModelFileError(f"{where}: window has {self.window.size} samples, block_length is {self.block_length}")
+            raise ModelFileError(
+                f"{where}: window has {self.window.size} samples, block_length is {self.block_length}"
+            )
         k = len(self.cells)
         shape = (k, len(self.channels), n_bins(self.block_length))
         for name, arr in (("mean", self.cell_mean), ("std", self.cell_std)):
@@ -158,9 +212,13 @@ class NoiseModel:
             if not np.all(np.isfinite(arr)) or np.any(arr < 0):
                 raise ModelFileError(f"{where}: '{name}' holds negative or non-finite values")
         if self.cell_counts.shape != (k,) or np.any(self.cell_counts <= 0):
-            raise ModelFileError(f"{where}: 'counts' must hold one positive block count per measured cell")
+            raise ModelFileError(
+                f"{where}: 'counts' must hold one positive block count per measured cell"
+            )
         if k and (np.any(self.cells < 0) or np.any(self.cells >= np.array(self.grid_shape))):
-            raise ModelFileError(f"{where}: 'cells' holds grid indices outside the grid {self.grid_shape}")
+            raise ModelFileError(
+                f"{where}: 'cells' holds grid indices outside the grid {self.grid_shape}"
+            )
         if k != len(np.unique(self._flat(self.cells))):
             raise ModelFileError(f"{where}: 'cells' lists a cell twice")
 
@@ -168,14 +226,24 @@ class NoiseModel:
         """A profile for a model built without one: the PR2 hand's when it is the PR2 grid,
         else generic topics if the grid is a profile grid (uniform, symmetric or from 0)."""
         from egovib_ros.robot import default_profile
+
         try:
             pr2 = default_profile()
         except ConfigError:
             pr2 = None
-        settings = dict(rate_hz=self.sample_rate_hz, block_length=self.block_length, hop=self.hop,
-                        band_hz=self.band_hz, band_order=self.band_order)
-        if pr2 is not None and pr2.joint_names == self.joint_names and pr2.grid_shape == self.grid_shape \
-                and all(np.allclose(a, b) for a, b in zip(pr2.grid(), self.grid)):
+        settings = dict(
+            rate_hz=self.sample_rate_hz,
+            block_length=self.block_length,
+            hop=self.hop,
+            band_hz=self.band_hz,
+            band_order=self.band_order,
+        )
+        if (
+            pr2 is not None
+            and pr2.joint_names == self.joint_names
+            and pr2.grid_shape == self.grid_shape
+            and all(np.allclose(a, b) for a, b in zip(pr2.grid(), self.grid))
+        ):
             try:
                 return RobotProfile(**{**_profile_kwargs(pr2), **settings})
             except ConfigError:
@@ -188,11 +256,18 @@ class NoiseModel:
             max_speed.append(float(g[-1]))
             bidirectional.append(bool(two_way))
         try:
-            profile = RobotProfile(name="unnamed", sensor_topic="/accelerometer/raw",
-                                   sensor_field="linear_acceleration", denoised_topic="/accelerometer/denoised",
-                                   joints_topic="/joint_states", joint_names=self.joint_names,
-                                   max_speed=tuple(max_speed), bidirectional=tuple(bidirectional),
-                                   steps=steps.pop() if len(steps) == 1 else 0, **settings)
+            profile = RobotProfile(
+                name="unnamed",
+                sensor_topic="/accelerometer/raw",
+                sensor_field="linear_acceleration",
+                denoised_topic="/accelerometer/denoised",
+                joints_topic="/joint_states",
+                joint_names=self.joint_names,
+                max_speed=tuple(max_speed),
+                bidirectional=tuple(bidirectional),
+                steps=steps.pop() if len(steps) == 1 else 0,
+                **settings,
+            )
         except ConfigError:
             return None
         same = all(np.allclose(a, b) for a, b in zip(profile.grid(), self.grid))
@@ -208,7 +283,9 @@ class NoiseModel:
         if (p.block_length, p.hop) != (self.block_length, self.hop):
             problems.append(f"blocks {p.block_length}/{p.hop} vs {self.block_length}/{self.hop}")
         if problems:
-            raise ModelFileError(f"{where}: robot profile {p.name!r} does not match the model ({'; '.join(problems)})")
+            raise ModelFileError(
+                f"{where}: robot profile {p.name!r} does not match the model ({'; '.join(problems)})"
+            )
 
     # --- shape facts -------------------------------------------------------
     @property
@@ -235,8 +312,10 @@ class NoiseModel:
     def channel_indices(self, names: tuple[str, ...]) -> list[int]:
         missing = [n for n in names if n not in self.channels]
         if missing:
-            raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: no channel(s) {missing}; "
-                                 f"the model has {list(self.channels)}")
+            raise ModelFileError(
+                f"{self.provenance.get('path', 'noise model')}: no channel(s) {missing}; "
+                f"the model has {list(self.channels)}"
+            )
         return [self.channels.index(n) for n in names]
 
     def _flat(self, cells: np.ndarray) -> np.ndarray:
@@ -261,25 +340,34 @@ class NoiseModel:
     def coverage(self) -> dict:
         """How much of the grid the calibration measured, for reports and /diagnostics."""
         counts = self.cell_counts
-        return {"cells_measured": int(len(counts)), "cells_total": self.n_cells,
-                "fraction_measured": float(len(counts) / self.n_cells),
-                "blocks": int(counts.sum()), "min_blocks": int(counts.min()) if len(counts) else 0,
-                "median_blocks": float(np.median(counts)) if len(counts) else 0.0,
-                "cells_under_min_blocks": int(np.sum(counts < MIN_BLOCKS_FOR_STD)),
-                "measured": self.measured}
+        return {
+            "cells_measured": int(len(counts)),
+            "cells_total": self.n_cells,
+            "fraction_measured": float(len(counts) / self.n_cells),
+            "blocks": int(counts.sum()),
+            "min_blocks": int(counts.min()) if len(counts) else 0,
+            "median_blocks": float(np.median(counts)) if len(counts) else 0.0,
+            "cells_under_min_blocks": int(np.sum(counts < MIN_BLOCKS_FOR_STD)),
+            "measured": self.measured,
+        }
 
     def _rows_of(self, cells: np.ndarray) -> np.ndarray:
         """Row of each cell (B, J) in the measured table, -1 where not measured."""
         ids = self._flat(cells)
         pos = np.minimum(np.searchsorted(self._cell_ids, ids), max(len(self._cell_ids) - 1, 0))
-        found = (len(self._cell_ids) > 0) & (self._cell_ids[pos] == ids) if len(self._cell_ids) else \
-            np.zeros(len(ids), dtype=bool)
+        found = (
+            (len(self._cell_ids) > 0) & (self._cell_ids[pos] == ids)
+            if len(self._cell_ids)
+            else np.zeros(len(ids), dtype=bool)
+        )
         return np.where(found, pos, -1)
 
     def _dense(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         if not self.dense_ok:
-            raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: grid of {self.n_cells:.3g} "
-                                 f"cells is too large for a dense view; use cells_measured()")
+            raise ModelFileError(
+                f"{self.provenance.get('path', 'noise model')}: grid of {self.n_cells:.3g} "
+                f"cells is too large for a dense view; use cells_measured()"
+            )
         out = np.full(self.grid_shape + values.shape[1:], fill, dtype=values.dtype)
         out[tuple(self.cells.T)] = values
         return out
@@ -307,14 +395,16 @@ class NoiseModel:
     # --- Eq. 5 / Eq. 6 ---------------------------------------------------------
     def _effective_std(self) -> np.ndarray:
         """Per measured cell std, with thinly measured cells borrowing the pooled spread."""
+
         def make():
             std = self.cell_std.copy()
             thin = self.cell_counts < MIN_BLOCKS_FOR_STD
             solid = ~thin & np.all(self.cell_mean > 0, axis=(1, 2))
             if thin.any() and solid.any():
-                pooled = np.median(self.cell_std[solid] / self.cell_mean[solid], axis=0)      # (C, F)
+                pooled = np.median(self.cell_std[solid] / self.cell_mean[solid], axis=0)  # (C, F)
                 std[thin] = np.maximum(std[thin], pooled[None] * self.cell_mean[thin])
             return std
+
         return self._cached("effective_std", make)
 
     def axis_mask(self) -> np.ndarray:
@@ -324,6 +414,7 @@ class NoiseModel:
     def _axis_tables(self) -> tuple[list, list, list]:
         """Per joint: mean (n_j, C, F), std (n_j, C, F) and measured (n_j,) along its axis
         (the other joints at zero)."""
+
         def make():
             zero = np.array(self.zero_index())
             std = self._effective_std()
@@ -340,6 +431,7 @@ class NoiseModel:
                 stds.append(sd)
                 have.append(ok)
             return means, stds, have
+
         return self._cached("axis", make)
 
     def superposed(self) -> tuple[np.ndarray, np.ndarray]:
@@ -349,7 +441,7 @@ class NoiseModel:
         zero = self.zero_index()
         mu0, sd0 = means[0][zero[0]], stds[0][zero[0]]
         mu = np.zeros(self.grid_shape + mu0.shape) - (self.n_joints - 1) * mu0
-        var = np.zeros_like(mu) + (self.n_joints - 1) * sd0 ** 2
+        var = np.zeros_like(mu) + (self.n_joints - 1) * sd0**2
         for j in range(self.n_joints):
             expand = [np.newaxis] * self.n_joints
             expand[j] = slice(None)
@@ -362,8 +454,10 @@ class NoiseModel:
         one on the same axis (the superposition sweep with a cell missing)."""
         means, stds, have = self._axis_tables()
         if not all(h.any() for h in have):
-            raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: superposition needs measured "
-                                 f"single-joint cells on every axis")
+            raise ModelFileError(
+                f"{self.provenance.get('path', 'noise model')}: superposition needs measured "
+                f"single-joint cells on every axis"
+            )
         out_mu, out_sd = [], []
         for mu, sd, ok in zip(means, stds, have):
             index = np.flatnonzero(ok)
@@ -386,21 +480,27 @@ class NoiseModel:
         zero = self.zero_index()
         mu0, sd0 = means[0][zero[0]], stds[0][zero[0]]
         mu = -(self.n_joints - 1) * mu0 + sum(means[j][cells[:, j]] for j in range(self.n_joints))
-        var = (self.n_joints - 1) * sd0 ** 2 + sum(stds[j][cells[:, j]] ** 2 for j in range(self.n_joints))
+        var = (self.n_joints - 1) * sd0**2 + sum(
+            stds[j][cells[:, j]] ** 2 for j in range(self.n_joints)
+        )
         return np.maximum(mu, 0.0), np.sqrt(var)
 
     def _nearest_measured(self, cells: np.ndarray) -> np.ndarray:
         """Row of the measured cell nearest (grid-index distance) to each cell (B, J)."""
         if not len(self.cells):
-            raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: no measured cell at all")
+            raise ModelFileError(
+                f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
+            )
         rows = np.empty(len(cells), dtype=np.int64)
         for start in range(0, len(cells), 4096):
-            part = cells[start:start + 4096]
+            part = cells[start : start + 4096]
             d = ((part[:, None, :] - self.cells[None, :, :]) ** 2).sum(axis=2)
-            rows[start:start + 4096] = d.argmin(axis=1)
+            rows[start : start + 4096] = d.argmin(axis=1)
         return rows
 
-    def _cell_estimates(self, cells: np.ndarray, include_std: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _cell_estimates(
+        self, cells: np.ndarray, include_std: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Noise magnitude at grid cells (B, J) -> ((B, C, F), measured (B,)) by the lookup rules."""
         rows = self._rows_of(cells)
         measured = rows >= 0
@@ -409,7 +509,9 @@ class NoiseModel:
             return (mu + sd if include_std else mu), measured
         out = np.empty((len(cells),) + self.cell_mean.shape[1:])
         std = self._effective_std()
-        out[measured] = self.cell_mean[rows[measured]] + (std[rows[measured]] if include_std else 0.0)
+        out[measured] = self.cell_mean[rows[measured]] + (
+            std[rows[measured]] if include_std else 0.0
+        )
         missing = np.flatnonzero(~measured)
         if len(missing):
             sup = self._superposable(cells[missing])
@@ -428,16 +530,26 @@ class NoiseModel:
         table = self._cache.get(key)
         if table is None:
             if not self.dense_ok:
-                raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: grid too large for a table")
+                raise ModelFileError(
+                    f"{self.provenance.get('path', 'noise model')}: grid too large for a table"
+                )
             if not len(self.cells):
-                raise ModelFileError(f"{self.provenance.get('path', 'noise model')}: no measured cell at all")
+                raise ModelFileError(
+                    f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
+                )
             cells = np.indices(self.grid_shape).reshape(self.n_joints, -1).T
             values, measured = self._cell_estimates(cells, include_std)
             table = values.reshape(self.grid_shape + values.shape[1:])
             filled = ~measured.reshape(self.grid_shape)
             if filled.any() and include_std:
-                LOG.warning("noise model: %d of %d cells are empty; filled (%s)", int(filled.sum()), filled.size,
-                            "Eq. 6" if self.measured == "superposition" else "Eq. 6 or nearest measured cell")
+                LOG.warning(
+                    "noise model: %d of %d cells are empty; filled (%s)",
+                    int(filled.sum()),
+                    filled.size,
+                    "Eq. 6"
+                    if self.measured == "superposition"
+                    else "Eq. 6 or nearest measured cell",
+                )
             self._cache[key] = table
             self._cache["filled"] = filled
         return table
@@ -451,11 +563,16 @@ class NoiseModel:
 
     # --- look-ups ------------------------------------------------------------------
     def _table_for(self, channel_index, include_std: bool) -> np.ndarray:
-        key = ("sub", tuple(channel_index) if isinstance(channel_index, list) else str(channel_index), include_std)
+        key = (
+            "sub",
+            tuple(channel_index) if isinstance(channel_index, list) else str(channel_index),
+            include_std,
+        )
         table = self._cache.get(key)
         if table is None:
             table = self._cache[key] = np.ascontiguousarray(
-                self.estimate_table(include_std=include_std)[..., channel_index, :])
+                self.estimate_table(include_std=include_std)[..., channel_index, :]
+            )
         return table
 
     def _positions_of(self, velocity: np.ndarray) -> tuple[list, list, np.ndarray]:
@@ -466,7 +583,7 @@ class NoiseModel:
             v = velocity[:, j]
             outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
             step = self._steps[j]
-            if step:   # uniform grid: plain arithmetic (the one-block path does the same on floats)
+            if step:  # uniform grid: plain arithmetic (the one-block path does the same on floats)
                 position = np.minimum(np.maximum((v - g[0]) / step, 0.0), len(g) - 1.0)
             else:
                 position = np.interp(v, g, self._positions[j])
@@ -475,13 +592,20 @@ class NoiseModel:
             frac.append(position - i0)
         return lower, frac, outside
 
-    def lookup(self, velocity: np.ndarray, channel_index: list[int] | slice = slice(None), *,
-               include_std: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lookup(
+        self,
+        velocity: np.ndarray,
+        channel_index: list[int] | slice = slice(None),
+        *,
+        include_std: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Noise magnitude spectra at velocities (B, J) -> ((B, C, F), outside (B,), measured (B,)):
         `measured` says whether the grid cell nearest each velocity was measured."""
         velocity = np.atleast_2d(np.asarray(velocity, dtype=np.float64))
         if velocity.shape[1:] != (self.n_joints,):
-            raise ConfigError(f"noise model: velocities must have shape (B, {self.n_joints}), got {velocity.shape}")
+            raise ConfigError(
+                f"noise model: velocities must have shape (B, {self.n_joints}), got {velocity.shape}"
+            )
         lower, frac, outside = self._positions_of(velocity)
         nearest = np.stack([lo + (fr >= 0.5) for lo, fr in zip(lower, frac)], axis=1)
         measured = self._rows_of(nearest) >= 0
@@ -492,7 +616,7 @@ class NoiseModel:
         if len(velocity) == 1:
             noise, out, _ = self.estimate_one(velocity[0], table)
             return noise, out, measured
-        out = np.zeros((len(velocity),) + table.shape[self.n_joints:])
+        out = np.zeros((len(velocity),) + table.shape[self.n_joints :])
         for corner in itertools.product((0, 1), repeat=self.n_joints):
             weight = np.ones(len(velocity))
             index = []
@@ -502,8 +626,13 @@ class NoiseModel:
             out += weight[:, None, None] * table[tuple(index)]
         return out, outside, measured
 
-    def estimate(self, velocity: np.ndarray, channel_index: list[int] | slice = slice(None), *,
-                 include_std: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    def estimate(
+        self,
+        velocity: np.ndarray,
+        channel_index: list[int] | slice = slice(None),
+        *,
+        include_std: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Noise magnitude spectra at velocities (B, J) -> ((B, C, F), out_of_grid (B,))."""
         noise, outside, _ = self.lookup(velocity, channel_index, include_std=include_std)
         return noise, outside
@@ -512,12 +641,16 @@ class NoiseModel:
         """(B,) whether the grid cell nearest each velocity (B, J) was measured."""
         return self.lookup(velocity)[2] if len(np.atleast_2d(velocity)) else np.zeros(0, dtype=bool)
 
-    def table(self, channel_index: list[int] | slice = slice(None), *, include_std: bool = True) -> np.ndarray | None:
+    def table(
+        self, channel_index: list[int] | slice = slice(None), *, include_std: bool = True
+    ) -> np.ndarray | None:
         """The dense estimate table of some channels for `estimate_one`, or None when the grid
         is too large for a table (then use `lookup`)."""
         return self._table_for(channel_index, include_std) if self.dense_ok else None
 
-    def estimate_one(self, velocity: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    def estimate_one(
+        self, velocity: np.ndarray, table: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
         """`lookup` for a single block (the streaming case) on a `table()`: the same
         operations in the same order on Python floats and array views, so the result is
         bit-identical to the vectorised path. Returns (noise (1, C, F), outside (1,),
@@ -542,9 +675,17 @@ class NoiseModel:
         if self.n_joints == 2:
             # Spelled out: same weights, same products, same left-to-right sum as below.
             (i, j), (a, b) = lower, frac
-            out = ((1.0 - a) * (1.0 - b)) * table[i, j] + ((1.0 - a) * b) * table[i, j + 1] \
-                + (a * (1.0 - b)) * table[i + 1, j] + (a * b) * table[i + 1, j + 1]
-            return out[None], np.array([outside]), bool(measured_grid[i + (a >= 0.5), j + (b >= 0.5)])
+            out = (
+                ((1.0 - a) * (1.0 - b)) * table[i, j]
+                + ((1.0 - a) * b) * table[i, j + 1]
+                + (a * (1.0 - b)) * table[i + 1, j]
+                + (a * b) * table[i + 1, j + 1]
+            )
+            return (
+                out[None],
+                np.array([outside]),
+                bool(measured_grid[i + (a >= 0.5), j + (b >= 0.5)]),
+            )
         out = None
         for corner in itertools.product((0, 1), repeat=self.n_joints):
             weight = 1.0
@@ -558,12 +699,25 @@ class NoiseModel:
     # --- copies ---------------------------------------------------------------------
     def replace(self, **changes) -> "NoiseModel":
         """A copy with some fields changed (dense `mean`/`std`/`counts` for small grids)."""
-        fields = dict(grid=self.grid, joint_names=self.joint_names, cells=self.cells, mean=self.cell_mean,
-                      std=self.cell_std, counts=self.cell_counts, sample_rate_hz=self.sample_rate_hz,
-                      block_length=self.block_length, hop=self.hop, window=self.window,
-                      window_name=self.window_name, band_hz=self.band_hz, band_order=self.band_order,
-                      channels=self.channels, measured=self.measured, profile=self.profile,
-                      provenance=dict(self.provenance))
+        fields = dict(
+            grid=self.grid,
+            joint_names=self.joint_names,
+            cells=self.cells,
+            mean=self.cell_mean,
+            std=self.cell_std,
+            counts=self.cell_counts,
+            sample_rate_hz=self.sample_rate_hz,
+            block_length=self.block_length,
+            hop=self.hop,
+            window=self.window,
+            window_name=self.window_name,
+            band_hz=self.band_hz,
+            band_order=self.band_order,
+            channels=self.channels,
+            measured=self.measured,
+            profile=self.profile,
+            provenance=dict(self.provenance),
+        )
         if {"mean", "std", "counts"} & set(changes):
             fields.update(cells=None, mean=self.mean, std=self.std, counts=self.counts)
         if {"joint_names", "grid"} & set(changes) and "profile" not in changes:
@@ -574,18 +728,32 @@ class NoiseModel:
     # --- file I/O (CONTRACT section 4) --------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write the .npz (loadable with allow_pickle=False). Use atomic_output for safety."""
-        provenance = {"source": "", "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                      "software_version": __version__, **{k: v for k, v in self.provenance.items() if k != "path"}}
+        provenance = {
+            "source": "",
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "software_version": __version__,
+            **{k: v for k, v in self.provenance.items() if k != "path"},
+        }
         arrays = {
-            "schema": np.array(SCHEMA), "schema_version": np.array(SCHEMA_VERSION),
+            "schema": np.array(SCHEMA),
+            "schema_version": np.array(SCHEMA_VERSION),
             "profile": np.array(self.profile.dumps() if self.profile is not None else ""),
-            "sample_rate_hz": np.array(self.sample_rate_hz), "block_length": np.array(self.block_length),
-            "hop": np.array(self.hop), "window": self.window, "window_name": np.array(self.window_name),
-            "band_hz": np.array(self.band_hz), "band_order": np.array(self.band_order),
-            "joint_names": np.array(self.joint_names), "channels": np.array(self.channels),
-            "n_joints": np.array(self.n_joints), "cells": self.cells.astype(np.int32),
-            "mean": self.cell_mean, "std": self.cell_std, "counts": self.cell_counts,
-            "measured": np.array(self.measured), "fill": np.array(FILL_RULES),
+            "sample_rate_hz": np.array(self.sample_rate_hz),
+            "block_length": np.array(self.block_length),
+            "hop": np.array(self.hop),
+            "window": self.window,
+            "window_name": np.array(self.window_name),
+            "band_hz": np.array(self.band_hz),
+            "band_order": np.array(self.band_order),
+            "joint_names": np.array(self.joint_names),
+            "channels": np.array(self.channels),
+            "n_joints": np.array(self.n_joints),
+            "cells": self.cells.astype(np.int32),
+            "mean": self.cell_mean,
+            "std": self.cell_std,
+            "counts": self.cell_counts,
+            "measured": np.array(self.measured),
+            "fill": np.array(FILL_RULES),
             "provenance_keys": np.array(list(provenance.keys())),
             "provenance_values": np.array([str(v) for v in provenance.values()]),
         }
@@ -608,18 +776,40 @@ class NoiseModel:
             raise
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
             # numpy's message for a non-npz file suggests allow_pickle: not useful here.
-            reason = "not a zip archive" if "pickle" in str(exc) else f"{exc.__class__.__name__}: {exc}"
+            reason = (
+                "not a zip archive" if "pickle" in str(exc) else f"{exc.__class__.__name__}: {exc}"
+            )
             raise ModelFileError(f"{where}: not a readable noise-model .npz ({reason})") from None
         if str(fields.get("schema", "")) != SCHEMA:
-            raise ModelFileError(f"{where}: not an egovib noise model (schema {str(fields.get('schema', 'missing'))!r})")
-        version = _integer_field(fields.get("schema_version", np.array(-1)), "schema_version", where)
+            raise ModelFileError(
+                f"{where}: not an egovib noise model (schema {str(fields.get('schema', 'missing'))!r})"
+            )
+        version = _integer_field(
+            fields.get("schema_version", np.array(-1)), "schema_version", where
+        )
         if version > SCHEMA_VERSION:
-            raise ModelFileError(f"{where}: model schema version {version} is newer than this software "
-                                 f"supports ({SCHEMA_VERSION}); upgrade egovib_ros")
+            raise ModelFileError(
+                f"{where}: model schema version {version} is newer than this software "
+                f"supports ({SCHEMA_VERSION}); upgrade egovib_ros"
+            )
         if version < 1:
             raise ModelFileError(f"{where}: invalid schema version {version}")
-        required = ["sample_rate_hz", "block_length", "hop", "window", "window_name", "band_hz", "band_order",
-                    "joint_names", "channels", "n_joints", "mean", "std", "counts", "measured"]
+        required = [
+            "sample_rate_hz",
+            "block_length",
+            "hop",
+            "window",
+            "window_name",
+            "band_hz",
+            "band_order",
+            "joint_names",
+            "channels",
+            "n_joints",
+            "mean",
+            "std",
+            "counts",
+            "measured",
+        ]
         if version >= 2:
             required.append("cells")
         missing = [k for k in required if k not in fields]
@@ -638,40 +828,62 @@ class NoiseModel:
         except ConfigError as exc:
             raise ModelFileError(f"{where}: {exc}") from None
         except (TypeError, ValueError, IndexError, KeyError) as exc:
-            raise ModelFileError(f"{where}: malformed field ({exc.__class__.__name__}: {exc})") from None
+            raise ModelFileError(
+                f"{where}: malformed field ({exc.__class__.__name__}: {exc})"
+            ) from None
 
     @classmethod
-    def _from_fields(cls, fields: dict, grid_keys: list[str], where: str, version: int) -> "NoiseModel":
-        provenance = dict(zip([str(k) for k in fields.get("provenance_keys", [])],
-                              [str(v) for v in fields.get("provenance_values", [])]))
+    def _from_fields(
+        cls, fields: dict, grid_keys: list[str], where: str, version: int
+    ) -> "NoiseModel":
+        provenance = dict(
+            zip(
+                [str(k) for k in fields.get("provenance_keys", [])],
+                [str(v) for v in fields.get("provenance_values", [])],
+            )
+        )
         provenance["path"] = where
         profile_text = str(fields.get("profile", ""))
-        profile = RobotProfile.loads(profile_text, source=f"{where} (profile)") if profile_text else None
+        profile = (
+            RobotProfile.loads(profile_text, source=f"{where} (profile)") if profile_text else None
+        )
         if fields["joint_names"].ndim != 1 or fields["channels"].ndim != 1:
-            raise ModelFileError(f"{where}: malformed field 'joint_names' or 'channels' (not a list)")
-        common = dict(grid=tuple(fields[k] for k in grid_keys),
-                      joint_names=tuple(str(n) for n in fields["joint_names"]),
-                      sample_rate_hz=float(fields["sample_rate_hz"]),
-                      block_length=_integer_field(fields["block_length"], "block_length", where),
-                      hop=_integer_field(fields["hop"], "hop", where), window=fields["window"],
-                      window_name=str(fields["window_name"]), band_hz=tuple(float(b) for b in fields["band_hz"]),
-                      band_order=_integer_field(fields["band_order"], "band_order", where),
-                      channels=tuple(str(c) for c in fields["channels"]), measured=str(fields["measured"]),
-                      profile=profile, provenance=provenance)
+            raise ModelFileError(
+                f"{where}: malformed field 'joint_names' or 'channels' (not a list)"
+            )
+        common = dict(
+            grid=tuple(fields[k] for k in grid_keys),
+            joint_names=tuple(str(n) for n in fields["joint_names"]),
+            sample_rate_hz=float(fields["sample_rate_hz"]),
+            block_length=_integer_field(fields["block_length"], "block_length", where),
+            hop=_integer_field(fields["hop"], "hop", where),
+            window=fields["window"],
+            window_name=str(fields["window_name"]),
+            band_hz=tuple(float(b) for b in fields["band_hz"]),
+            band_order=_integer_field(fields["band_order"], "band_order", where),
+            channels=tuple(str(c) for c in fields["channels"]),
+            measured=str(fields["measured"]),
+            profile=profile,
+            provenance=provenance,
+        )
         cells = fields["cells"] if version >= 2 else None
-        if version < 2:     # v1: dense tables of a 2-joint PR2-style grid
+        if version < 2:  # v1: dense tables of a 2-joint PR2-style grid
             for name in ("mean", "std"):
                 if not (np.all(np.isfinite(fields[name])) and np.all(fields[name] >= 0)):
                     raise ModelFileError(f"{where}: '{name}' holds negative or non-finite values")
-        return cls(mean=fields["mean"], std=fields["std"], counts=fields["counts"], cells=cells, **common)
+        return cls(
+            mean=fields["mean"], std=fields["std"], counts=fields["counts"], cells=cells, **common
+        )
 
     def summary(self) -> str:
         c = self.coverage()
         name = self.profile.name if self.profile is not None else "unnamed robot"
-        return (f"noise model ({name}): {self.n_joints} joints {self.grid_shape} grid ({self.measured}), "
-                f"{c['cells_measured']}/{c['cells_total']} cells measured, {c['blocks']} blocks "
-                f"(median {c['median_blocks']:g} per cell), {self.sample_rate_hz:g} Hz, "
-                f"L={self.block_length}, hop={self.hop}")
+        return (
+            f"noise model ({name}): {self.n_joints} joints {self.grid_shape} grid ({self.measured}), "
+            f"{c['cells_measured']}/{c['cells_total']} cells measured, {c['blocks']} blocks "
+            f"(median {c['median_blocks']:g} per cell), {self.sample_rate_hz:g} Hz, "
+            f"L={self.block_length}, hop={self.hop}"
+        )
 
 
 def _integer_field(value: np.ndarray, name: str, where: str) -> int:
@@ -680,7 +892,9 @@ def _integer_field(value: np.ndarray, name: str, where: str) -> int:
     if arr.ndim != 0 or arr.dtype.kind not in "iu":
         if arr.ndim == 0 and arr.dtype.kind == "f" and np.isfinite(arr) and float(arr).is_integer():
             return int(arr)
-        raise ModelFileError(f"{where}: malformed field '{name}' (expected an integer, got {arr!r})")
+        raise ModelFileError(
+            f"{where}: malformed field '{name}' (expected an integer, got {arr!r})"
+        )
     return int(arr)
 
 

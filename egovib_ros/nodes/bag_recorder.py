@@ -87,7 +87,7 @@ class BagRecorder(Node):
         try:
             tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
             self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
-            if compress:   # readable by rosbags and `ros2 bag`, ~13x smaller for a 3 kHz Imu stream
+            if compress:  # readable by rosbags and `ros2 bag`, ~13x smaller for a 3 kHz Imu stream
                 mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
                 self.writer.set_compression(mode, CompressionFormat.ZSTD)
             self.writer.open()
@@ -99,8 +99,10 @@ class BagRecorder(Node):
         self._recording_subs = []
         self._discovery_timer = self.create_timer(0.1, self._discover)
         self._discover()
-        self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output} ({storage}"
-                               f"{', zstd' if compress else ''})")
+        self.get_logger().info(
+            f"recording {', '.join(self.topics)} to {self.output} ({storage}"
+            f"{', zstd' if compress else ''})"
+        )
 
     def _discover(self) -> None:
         """Subscribe every wanted topic that has a publisher now."""

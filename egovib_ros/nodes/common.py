@@ -265,7 +265,9 @@ class StreamInput:
             if not self.joints_seen.all() and not self.carried_joint_names:
                 self.carried_joint_names = joint_names_of(raws[-1])
             # a joint a message lacks keeps its last value, as the bag layer reads it offline
-            _, velocity, self._last_joint = hold_missing_joints(position, velocity, self._last_joint)
+            _, velocity, self._last_joint = hold_missing_joints(
+                position, velocity, self._last_joint
+            )
         return JointBatch(stamps, velocity)
 
     def missing_joints(self) -> list[str]:

@@ -137,7 +137,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=PROFILE_NAME,
         help="robot profile naming the topics and Imu field (default: quadcopter)",
     )
-    parser.add_argument("--force", action="store_true", help="replace a bag written by an earlier run")
+    parser.add_argument(
+        "--force", action="store_true", help="replace a bag written by an earlier run"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

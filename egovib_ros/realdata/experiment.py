@@ -425,11 +425,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"end of the test part, s (default {RealConfig.end_s}: before the final impact)",
     )
     parser.add_argument("--seed", type=int, default=EventSpec.seed, help="seed of the added events")
-    parser.add_argument("--event-sets", type=int, default=RealConfig.event_sets,
-                        help=f"event sets (seeds SEED, SEED+1, ...) pooled at 1x (default "
-                        f"{RealConfig.event_sets})")
+    parser.add_argument(
+        "--event-sets",
+        type=int,
+        default=RealConfig.event_sets,
+        help=f"event sets (seeds SEED, SEED+1, ...) pooled at 1x (default {RealConfig.event_sets})",
+    )
     parser.add_argument("--no-swapped", action="store_true", help="skip the swapped split")
-    parser.add_argument("--force", action="store_true", help="replace real_* files written by an earlier run")
+    parser.add_argument(
+        "--force", action="store_true", help="replace real_* files written by an earlier run"
+    )
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -451,12 +456,13 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from egovib_ros.fileutil import prepare_outputs_in
     from egovib_ros.realdata import report as report_module
 
-    from egovib_ros.fileutil import prepare_outputs_in
-
     # before any work: never replace what this command did not write
-    prepare_outputs_in(args.out, list(report_module.FILES.values()), force=args.force, inputs=[args.bag])
+    prepare_outputs_in(
+        args.out, list(report_module.FILES.values()), force=args.force, inputs=[args.bag]
+    )
     profile = load_profile(args.robot)
     rec = read_flight_bag(args.bag, profile)
     config = RealConfig(

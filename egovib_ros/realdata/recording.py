@@ -70,10 +70,19 @@ def read_flight_bag(
     topics = bag_topics(path)
     if filtered_topic in topics:
         if topics[filtered_topic][0] != IMU_TYPE:
-            raise BagError(f"{path}: topic {filtered_topic} has type {topics[filtered_topic][0]}, "
-                           f"expected {IMU_TYPE}")
+            raise BagError(
+                f"{path}: topic {filtered_topic} has type {topics[filtered_topic][0]}, "
+                f"expected {IMU_TYPE}"
+            )
         other = dataclasses.replace(profile, sensor_topic=filtered_topic)
         firmware = read_recording(path, profile=other, ground_truth=False, denoised=False)
         filtered = (firmware.accel_stamps_ns, firmware.accel)
-    return FlightRecording(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
-                           rec.joint_position, tuple(profile.joint_names), *filtered)
+    return FlightRecording(
+        rec.accel_stamps_ns,
+        rec.accel,
+        rec.joint_stamps_ns,
+        rec.joint_velocity,
+        rec.joint_position,
+        tuple(profile.joint_names),
+        *filtered,
+    )

@@ -1,4 +1,5 @@
 """Simulator parameters (config/sim.yaml) and the effects SPEC of CONTRACT section 5."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -21,7 +22,7 @@ def default_config_path() -> Path:
 
 
 def __getattr__(name: str):
-    if name == "DEFAULT_CONFIG":        # kept for callers of the former constant
+    if name == "DEFAULT_CONFIG":  # kept for callers of the former constant
         return default_config_path()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
@@ -35,37 +36,61 @@ class JointVibration:
     1000 Hz) and lands on the joint's own sensor direction.
     """
 
-    line_hz_per_unit: float           # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
-    line_orders: list[float]          # multiples of the fundamental (mesh harmonics, commutation)
-    line_amps: list[float]            # amplitude (m/s^2) of each line at full speed, before the path
-    line_speed_exponent: float        # line amplitude ~ speed_fraction ** exponent
-    friction_coulomb: float           # friction broadband rms (m/s^2) once moving at all
-    friction_viscous: float           # extra friction broadband rms at full speed (linear in speed)
-    path_band_hz: list[float]         # structural band that carries this joint's vibration
-    path_order: int                   # Butterworth order of that band
-    resonance_hz: float               # structural resonance near 1000 Hz (removed by the band-pass)
+    line_hz_per_unit: float  # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
+    line_orders: list[float]  # multiples of the fundamental (mesh harmonics, commutation)
+    line_amps: list[float]  # amplitude (m/s^2) of each line at full speed, before the path
+    line_speed_exponent: float  # line amplitude ~ speed_fraction ** exponent
+    friction_coulomb: float  # friction broadband rms (m/s^2) once moving at all
+    friction_viscous: float  # extra friction broadband rms at full speed (linear in speed)
+    path_band_hz: list[float]  # structural band that carries this joint's vibration
+    path_order: int  # Butterworth order of that band
+    resonance_hz: float  # structural resonance near 1000 Hz (removed by the band-pass)
     resonance_q: float
     resonance_gain: float
-    direction: list[float]            # sensor direction (unit vector, normalised on use)
-    amp_jitter: float                 # relative amplitude jitter (rms) of the lines
-    amp_jitter_hz: float              # bandwidth of that jitter
-    phase_jitter: float               # phase random walk of the lines (rad per sqrt(s))
+    direction: list[float]  # sensor direction (unit vector, normalised on use)
+    amp_jitter: float  # relative amplitude jitter (rms) of the lines
+    amp_jitter_hz: float  # bandwidth of that jitter
+    phase_jitter: float  # phase random walk of the lines (rad per sqrt(s))
 
 
 def _wrist_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=60.0, line_orders=[1.0, 2.0, 3.0], line_amps=[2.2, 1.1, 0.77],
-                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
-                          path_band_hz=[150.0, 380.0], path_order=4, resonance_hz=980.0, resonance_q=12.0,
-                          resonance_gain=0.3, direction=[1.0, 0.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=20.0, phase_jitter=3.0)
+    return JointVibration(
+        line_hz_per_unit=60.0,
+        line_orders=[1.0, 2.0, 3.0],
+        line_amps=[2.2, 1.1, 0.77],
+        line_speed_exponent=0.7,
+        friction_coulomb=0.01,
+        friction_viscous=0.4,
+        path_band_hz=[150.0, 380.0],
+        path_order=4,
+        resonance_hz=980.0,
+        resonance_q=12.0,
+        resonance_gain=0.3,
+        direction=[1.0, 0.0, 0.0],
+        amp_jitter=0.12,
+        amp_jitter_hz=20.0,
+        phase_jitter=3.0,
+    )
 
 
 def _gripper_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=15000.0, line_orders=[1.0, 1.5, 2.0], line_amps=[2.2, 1.1, 0.77],
-                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
-                          path_band_hz=[480.0, 750.0], path_order=4, resonance_hz=1040.0, resonance_q=12.0,
-                          resonance_gain=0.3, direction=[0.0, 1.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=20.0, phase_jitter=3.0)
+    return JointVibration(
+        line_hz_per_unit=15000.0,
+        line_orders=[1.0, 1.5, 2.0],
+        line_amps=[2.2, 1.1, 0.77],
+        line_speed_exponent=0.7,
+        friction_coulomb=0.01,
+        friction_viscous=0.4,
+        path_band_hz=[480.0, 750.0],
+        path_order=4,
+        resonance_hz=1040.0,
+        resonance_q=12.0,
+        resonance_gain=0.3,
+        direction=[0.0, 1.0, 0.0],
+        amp_jitter=0.12,
+        amp_jitter_hz=20.0,
+        phase_jitter=3.0,
+    )
 
 
 @dataclass
@@ -119,7 +144,9 @@ class SimParams:
             if name in kwargs:
                 sub = kwargs[name] or {}
                 if not isinstance(sub, dict) or set(sub) - joint_fields:
-                    raise ConfigError(f"{source}: {name}: unknown field(s) {sorted(set(sub) - joint_fields)}")
+                    raise ConfigError(
+                        f"{source}: {name}: unknown field(s) {sorted(set(sub) - joint_fields)}"
+                    )
                 kwargs[name] = JointVibration(**{**dataclasses.asdict(default()), **sub})
         if "effects" in kwargs:
             kwargs["effects"] = validate_effects(kwargs["effects"] or {}, source=source)
@@ -135,7 +162,9 @@ class SimParams:
         if path is None:
             path = default_config_path()
             if not path.is_file():
-                raise ConfigError(f"{path}: the package's simulator parameters are missing; reinstall the package")
+                raise ConfigError(
+                    f"{path}: the package's simulator parameters are missing; reinstall the package"
+                )
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
@@ -161,11 +190,15 @@ def validate_effects(effects: dict[str, Any], *, source: str = "effects") -> dic
         if name == "none":
             continue
         if name not in EFFECT_NAMES:
-            raise ConfigError(f"{source}: unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)}, none)")
+            raise ConfigError(
+                f"{source}: unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)}, none)"
+            )
         try:
             strength = float(value)
         except (TypeError, ValueError):
-            raise ConfigError(f"{source}: effect {name} has non-numeric strength {value!r}") from None
+            raise ConfigError(
+                f"{source}: effect {name} has non-numeric strength {value!r}"
+            ) from None
         if strength != strength or abs(strength) == float("inf"):
             raise ConfigError(f"{source}: effect {name} strength must be finite")
         if strength != 0.0:
