@@ -257,7 +257,8 @@ def joint_state_message(
 
 
 def joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int, int]:
-    """Walk the CDR of one JointState: (names, pos_offset, n_pos, vel_offset, n_vel, effort_count_offset).
+    """Walk the CDR of one JointState:
+    (names, pos_offset, n_pos, vel_offset, n_vel, effort_count_offset).
 
     Offsets are counted from the message start (4-byte encapsulation header included).
     """

@@ -198,7 +198,8 @@ def test_eight_joint_superposition_model_saves_loads_and_denoises_in_little_memo
     assert path.stat().st_size < 2**20
     with pytest.raises(ModelFileError, match="too large for a dense view"):
         loaded.mean
-    # Eq. 6 for 8 joints: the estimate at a cell is the sum of its axis cells minus 7 x the zero cell
+    # Eq. 6 for 8 joints: the estimate at a cell is the sum of its axis cells minus 7 x the
+    # zero cell
     cell = np.array([[12, 10, 10, 3, 10, 10, 20, 10]])
     velocity = np.array([[p.grid()[j][cell[0, j]] for j in range(8)]])
     noise, outside = loaded.estimate(velocity)

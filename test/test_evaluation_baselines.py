@@ -1,4 +1,5 @@
-"""Every baseline runs on the same data through the real core and returns the right shape and delay."""
+"""Every baseline runs on the same data through the real core and returns the right
+shape and delay."""
 
 import numpy as np
 import pytest
@@ -13,7 +14,8 @@ FS = 3000.0
 
 
 def _recording(velocity_of_t, duration_s, *, taps=(), seed=0):
-    """Velocity-dependent band-limited vibration (+ optional decaying taps on x) with joint states."""
+    """Velocity-dependent band-limited vibration (+ optional decaying taps on x) with
+    joint states."""
     rng = np.random.default_rng(seed)
     n, m = int(duration_s * FS), int(duration_s * 1000)
     accel_t = (np.arange(n) * 1e9 / FS).astype(np.int64)

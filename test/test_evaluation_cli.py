@@ -180,7 +180,8 @@ def test_figures_quick_regenerates_table_and_every_figure(tmp_path):
 
 @pytest.mark.parametrize("channels, like", [("combined", "paper"), ("per_axis", "per_axis")])
 def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, like):
-    """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch method it came from."""
+    """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch
+    method it came from."""
     denoised_bag = tmp_path / "denoised_bag"
     assert (
         main(

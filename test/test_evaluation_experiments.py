@@ -1,4 +1,5 @@
-"""The paper's experiments on a modest simulated run: structure, the table, and issue 5's "Must show".
+"""The paper's experiments on a modest simulated run: structure, the table, and
+issue 5's "Must show".
 
 Thresholds (issue 5, experiment (a) at <= 50 % speed, paper method): peak SNR
 improvement >= 14 dB, no-contact noise reduction >= 20 dB, tap retention >= 0.5,

@@ -14,7 +14,8 @@ def _decaying_tap(n, peak, freq=400.0, tau=0.01):
 
 
 def _synthetic(n=3 * 3000, onsets=(3000, 4500, 6000), tap_len=150, peak=4.0, noise=0.25, seed=1):
-    """Reference with taps at known onsets; raw = reference + sign noise (|noise| = `noise`) outside taps."""
+    """Reference with taps at known onsets; raw = reference + sign noise
+    (|noise| = `noise`) outside taps."""
     rng = np.random.default_rng(seed)
     reference = np.zeros(n)
     for onset in onsets:

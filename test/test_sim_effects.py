@@ -49,9 +49,11 @@ def band_rms(x: np.ndarray, width: int) -> np.ndarray:
 
 @pytest.mark.parametrize("name", EFFECT_NAMES)
 def test_strength_zero_is_bit_identical(params, name):
-    command = lambda t: np.column_stack(
-        [2.5 * np.sin(2 * np.pi * 0.5 * t), 0.03 * np.cos(2 * np.pi * 0.4 * t)]
-    )
+    def command(t):
+        return np.column_stack(
+            [2.5 * np.sin(2 * np.pi * 0.5 * t), 0.03 * np.cos(2 * np.pi * 0.4 * t)]
+        )
+
     base = run(params, command, 3.0, taps=2.0)
     off = run(params, command, 3.0, effects={name: 0.0}, taps=2.0)
     for field in FIELDS:
@@ -106,9 +108,9 @@ def test_coupling_breaks_superposition_at_speed(params):
 
 def test_acceleration_adds_vibration_at_speed_changes(params):
     # wrist reverses between +/-50 % every 0.5 s: large |acceleration| around each reversal
-    command = lambda t: np.column_stack(
-        [np.where((t // 0.5) % 2 == 0, 1.5, -1.5), np.zeros_like(t)]
-    )
+    def command(t):
+        return np.column_stack([np.where((t // 0.5) % 2 == 0, 1.5, -1.5), np.zeros_like(t)])
+
     acc = {}
     for s in (0.0, 1.0):
         chunk = run(params, command, 6.0, effects={"acceleration": s} if s else None)
@@ -122,7 +124,8 @@ def test_acceleration_adds_vibration_at_speed_changes(params):
 
 
 def _lag_joint_states_vs_vibration(chunk) -> float:
-    """Time from the vibration change to the reported joint-velocity change, for a 0 -> 2 rad/s step at 1 s."""
+    """Time from the vibration change to the reported joint-velocity change, for a
+    0 -> 2 rad/s step at 1 s."""
     level = band_rms(chunk.accel, 48)
     steady = level[int(2.0 * FS) :].mean()
     t_accel = chunk.accel_stamps_ns / 1e9
@@ -134,7 +137,9 @@ def _lag_joint_states_vs_vibration(chunk) -> float:
 
 @pytest.mark.parametrize("strength", [0.03, -0.02])
 def test_timing_lag_equals_strength(params, strength):
-    command = lambda t: np.column_stack([np.where(t >= 1.0, 2.0, 0.0), np.zeros_like(t)])
+    def command(t):
+        return np.column_stack([np.where(t >= 1.0, 2.0, 0.0), np.zeros_like(t)])
+
     base = _lag_joint_states_vs_vibration(run(params, command, 3.0))
     shifted = _lag_joint_states_vs_vibration(
         run(params, command, 3.0, effects={"timing": strength})

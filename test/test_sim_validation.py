@@ -1,4 +1,5 @@
-"""The simulator reproduces the paper's observations (levels of section 4, Fig. 3 trend, Fig. 4 superposition)."""
+"""The simulator reproduces the paper's observations (levels of section 4, Fig. 3 trend,
+Fig. 4 superposition)."""
 
 from __future__ import annotations
 

@@ -167,7 +167,8 @@ class NoiseModel:
             and 0 < self.band_hz[0] < self.band_hz[1] < self.sample_rate_hz / 2
         ):
             raise ModelFileError(
-                f"{where}: band {self.band_hz} Hz does not fit the sample rate {self.sample_rate_hz:g} Hz"
+                f"{where}: band {self.band_hz} Hz does not fit the sample rate "
+                f"{self.sample_rate_hz:g} Hz"
             )
         if (
             isinstance(self.band_order, bool)
@@ -202,7 +203,8 @@ class NoiseModel:
     def _check_cells(self, where: str) -> None:
         if self.window.shape != (self.block_length,) or not np.all(np.isfinite(self.window)):
             raise ModelFileError(
-                f"{where}: window has {self.window.size} samples, block_length is {self.block_length}"
+                f"{where}: window has {self.window.size} samples, "
+                f"block_length is {self.block_length}"
             )
         k = len(self.cells)
         shape = (k, len(self.channels), n_bins(self.block_length))
@@ -284,7 +286,8 @@ class NoiseModel:
             problems.append(f"blocks {p.block_length}/{p.hop} vs {self.block_length}/{self.hop}")
         if problems:
             raise ModelFileError(
-                f"{where}: robot profile {p.name!r} does not match the model ({'; '.join(problems)})"
+                f"{where}: robot profile {p.name!r} does not match the model "
+                f"({'; '.join(problems)})"
             )
 
     # --- shape facts -------------------------------------------------------
@@ -501,7 +504,8 @@ class NoiseModel:
     def _cell_estimates(
         self, cells: np.ndarray, include_std: bool
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Noise magnitude at grid cells (B, J) -> ((B, C, F), measured (B,)) by the lookup rules."""
+        """Noise magnitude at grid cells (B, J) -> ((B, C, F), measured (B,)) by the
+        lookup rules."""
         rows = self._rows_of(cells)
         measured = rows >= 0
         if self.measured == "superposition":
@@ -604,7 +608,8 @@ class NoiseModel:
         velocity = np.atleast_2d(np.asarray(velocity, dtype=np.float64))
         if velocity.shape[1:] != (self.n_joints,):
             raise ConfigError(
-                f"noise model: velocities must have shape (B, {self.n_joints}), got {velocity.shape}"
+                f"noise model: velocities must have shape (B, {self.n_joints}), "
+                f"got {velocity.shape}"
             )
         lower, frac, outside = self._positions_of(velocity)
         nearest = np.stack([lo + (fr >= 0.5) for lo, fr in zip(lower, frac)], axis=1)
@@ -782,7 +787,8 @@ class NoiseModel:
             raise ModelFileError(f"{where}: not a readable noise-model .npz ({reason})") from None
         if str(fields.get("schema", "")) != SCHEMA:
             raise ModelFileError(
-                f"{where}: not an egovib noise model (schema {str(fields.get('schema', 'missing'))!r})"
+                f"{where}: not an egovib noise model "
+                f"(schema {str(fields.get('schema', 'missing'))!r})"
             )
         version = _integer_field(
             fields.get("schema_version", np.array(-1)), "schema_version", where
@@ -879,7 +885,8 @@ class NoiseModel:
         c = self.coverage()
         name = self.profile.name if self.profile is not None else "unnamed robot"
         return (
-            f"noise model ({name}): {self.n_joints} joints {self.grid_shape} grid ({self.measured}), "
+            f"noise model ({name}): {self.n_joints} joints {self.grid_shape} grid "
+            f"({self.measured}), "
             f"{c['cells_measured']}/{c['cells_total']} cells measured, {c['blocks']} blocks "
             f"(median {c['median_blocks']:g} per cell), {self.sample_rate_hz:g} Hz, "
             f"L={self.block_length}, hop={self.hop}"

@@ -112,7 +112,8 @@ class FramerSettings:
             or not 0 <= self.max_fill_samples <= 1000
         ):
             raise ConfigError(
-                f"{where}max_fill_samples must be an integer in [0, 1000], got {self.max_fill_samples!r}"
+                f"{where}max_fill_samples must be an integer in [0, 1000], "
+                f"got {self.max_fill_samples!r}"
             )
         if (
             isinstance(self.band_order, bool)

@@ -57,7 +57,8 @@ class MethodContext:
 
 
 def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """(N,) sum of the three axes, band-passed with the core's causal filter and the model's band."""
+    """(N,) sum of the three axes, band-passed with the core's causal filter and the
+    model's band."""
     band = BandPass(
         sample_rate_hz=model.sample_rate_hz,
         band_hz=model.band_hz,

@@ -105,7 +105,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         print(f"{args.bag}: {bad_samples_said(report['bad_samples'])}", file=sys.stderr)
     if not args.quiet:
         print(
-            f"{args.bag}: {report['n_taps']} taps, noise reduction {report['noise_reduction_db']:.1f} dB, "
+            f"{args.bag}: {report['n_taps']} taps, "
+            f"noise reduction {report['noise_reduction_db']:.1f} dB, "
             f"peak SNR {report['peak_snr_raw_db']:.1f} -> {report['peak_snr_denoised_db']:.1f} dB, "
             f"retention {report['tap_retention']:.2f}, F1 raw {report['f1_raw']:.2f} -> "
             f"denoised {report['f1_denoised']:.2f}; wrote {args.json}"

@@ -149,7 +149,8 @@ def pr_curve(
     refractory_s: float = REFRACTORY_S,
     tolerance_s: float = TOLERANCE_S,
 ) -> dict:
-    """Precision/recall/F1 over a threshold sweep (log-spaced over the signal's range by default)."""
+    """Precision/recall/F1 over a threshold sweep (log-spaced over the signal's range by
+    default)."""
     magnitude = np.abs(np.asarray(magnitude, float))
     if thresholds is None:
         positive = magnitude[magnitude > 0]
@@ -176,7 +177,8 @@ def pr_curve(
 def pr2_magnitude(
     accel: np.ndarray, *, sample_rate_hz: float, highpass_hz: float = PR2_HIGHPASS_HZ
 ) -> np.ndarray:
-    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper sensor's input)."""
+    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper
+    sensor's input)."""
     sos = signal.butter(1, highpass_hz, btype="highpass", fs=sample_rate_hz, output="sos")
     accel = np.asarray(accel, float)
     # Start the filter at rest on the first sample so gravity does not produce a start-up spike.

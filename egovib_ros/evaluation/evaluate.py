@@ -325,9 +325,11 @@ def evaluate_recording(
                 "settling after them are left out of every metric, and so is "
                 "any tap they touch",
             },
-            "threshold_source": "calibration data (no contact), at joint speeds within this run's envelope"
-            if calibration is not None
-            else "no-contact part of this recording (no calibration data given)",
+            "threshold_source": (
+                "calibration data (no contact), at joint speeds within this run's envelope"
+                if calibration is not None
+                else "no-contact part of this recording (no calibration data given)"
+            ),
             "detection": {
                 "raw_bandpassed": raw_detection,
                 **pr2,
@@ -335,7 +337,9 @@ def evaluate_recording(
                     "envelope": f"causal RMS over {detection.ENVELOPE_S * 1e3:g} ms",
                     "refractory_s": detection.REFRACTORY_S,
                     "tolerance_s": detection.TOLERANCE_S,
-                    "threshold": f"{detection.CALIBRATION_MARGIN} x max envelope on calibration data",
+                    "threshold": (
+                        f"{detection.CALIBRATION_MARGIN} x max envelope on calibration data"
+                    ),
                 },
             },
             "methods": per_method,

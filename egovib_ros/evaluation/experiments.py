@@ -54,10 +54,10 @@ KNOWN_GAPS = {
         "experiment (b) (light taps, the paper's hard case) shows the difference"
     ),
     "f1_denoised > PR2 2 m/s^2": (
-        "at 25 % speed the raw ego-vibration is small (no-contact mean ~0.05 m/s^2, largest magnitudes well "
-        "below 2 m/s^2) and the taps average 3.4 m/s^2, so on a short run the PR2 2 m/s^2 threshold can "
-        "already find every tap (F1 = 1) and nothing can be strictly above it; at 50 % and in "
-        "experiment (b) it misses taps or fires on motion"
+        "at 25 % speed the raw ego-vibration is small (no-contact mean ~0.05 m/s^2, largest "
+        "magnitudes well below 2 m/s^2) and the taps average 3.4 m/s^2, so on a short run the "
+        "PR2 2 m/s^2 threshold can already find every tap (F1 = 1) and nothing can be strictly "
+        "above it; at 50 % and in experiment (b) it misses taps or fires on motion"
     ),
 }
 
@@ -243,7 +243,10 @@ def run_experiments(
     progress=None,
     keep_signals: bool = False,
 ) -> dict:
-    """All speeds, both experiments, all methods: {"config", "models", "speeds": {speed: {"a", "b"}}}."""
+    """All speeds, both experiments, all methods.
+
+    Returns {"config", "models", "speeds": {speed: {"a", "b"}}}.
+    """
     config = config or ExperimentConfig()
     models = build_models(config, params)
     if progress:
@@ -296,7 +299,10 @@ MUST_SHOW_CRITERIA = (
 
 
 def must_show_check(results: dict) -> dict:
-    """Issue 5's "Must show" criteria on experiment (a) at speeds <= 50 %: {speed: {criterion: bool}}."""
+    """Issue 5's "Must show" criteria on experiment (a) at speeds <= 50 %.
+
+    Returns {speed: {criterion: bool}}.
+    """
     checks = {}
     for speed, both in results["speeds"].items():
         if speed > 0.5 + 1e-9:
@@ -365,8 +371,8 @@ PAPER = {
 }
 
 TABLE_HEADER = (
-    "| exp | speed | method | delay ms | noise | red. dB | spike | peak | retention | peak SNR dB | "
-    "gain dB | segSNR dB | thr | P | R | F1 | FA/min |"
+    "| exp | speed | method | delay ms | noise | red. dB | spike | peak | retention | "
+    "peak SNR dB | gain dB | segSNR dB | thr | P | R | F1 | FA/min |"
 )
 
 
@@ -389,7 +395,8 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
     ):
         d = det[key]
         rows.append(
-            f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | {d['threshold']:g} | "
+            f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | "
+            f"{d['threshold']:g} | "
             f"{_fmt(d['precision'], 2)} | {_fmt(d['recall'], 2)} | {_fmt(d['f1'], 2)} | "
             f"{_fmt(d['false_alarms_per_min'])} |"
         )
@@ -416,8 +423,10 @@ def paper_comparison_markdown(results: dict) -> str:
         lines.append(
             f"| ours, sim, exp (a) {speed:.0%} | "
             f"{_fmt(r['noise_mean_raw'], 3)} -> {_fmt(r['noise_mean_denoised'], 3)} | "
-            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | {_fmt(r['tap_retention'], 2)} | "
-            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | {_fmt(r['delay_ms'])} | "
+            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | "
+            f"{_fmt(r['tap_retention'], 2)} | "
+            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | "
+            f"{_fmt(r['delay_ms'])} | "
             f"{_fmt(det['raw_bandpassed']['f1'], 2)} / {_fmt(det['pr2_2ms2']['f1'], 2)} / "
             f"{_fmt(det['pr2_5ms2']['f1'], 2)} -> {_fmt(r['f1_denoised'], 2)} |"
         )
@@ -425,7 +434,8 @@ def paper_comparison_markdown(results: dict) -> str:
 
 
 def results_markdown(results: dict) -> str:
-    """The results tables (paper vs ours; every experiment x speed x method) and the must-show check."""
+    """The results tables (paper vs ours; every experiment x speed x method) and the
+    must-show check."""
     lines = [
         "# Evaluation results",
         "",
@@ -442,15 +452,15 @@ def results_markdown(results: dict) -> str:
         "",
         "Metrics (CONTRACT section 6): noise = mean |x| of the combined, 150-750 Hz band-passed "
         "signal outside contacts; red. = noise reduction; spike = 99.9th percentile of |x| outside "
-        "contacts; peak = mean per-tap peak |x|; thr = calibrated detection threshold (on the envelope); "
-        "peak SNR = 20 log10(peak / noise); gain = peak SNR "
-        "improvement; segSNR = mean clamped [-10, 35] dB SNR of 64-sample segments (50 % overlap) inside "
-        "contacts against the band-passed ground-truth contact signal (raw: see the band-pass row); "
-        "P/R/F1 with +/-10 ms onset tolerance, threshold = 1.1 x the largest 4 ms RMS envelope of a "
-        "separate no-contact motion recording processed by the same method; FA/min = false alarms per "
-        "minute. Experiment (a): taps on the moving hand; (b): stationary taps, scaled to the largest "
-        "noise magnitude, added to motion ego-vibration. The band-pass-only row is also the raw "
-        "detector (same signal, same threshold rule).",
+        "contacts; peak = mean per-tap peak |x|; thr = calibrated detection threshold (on the "
+        "envelope); peak SNR = 20 log10(peak / noise); gain = peak SNR improvement; segSNR = mean "
+        "clamped [-10, 35] dB SNR of 64-sample segments (50 % overlap) inside contacts against the "
+        "band-passed ground-truth contact signal (raw: see the band-pass row); P/R/F1 with "
+        "+/-10 ms onset tolerance, threshold = 1.1 x the largest 4 ms RMS envelope of a separate "
+        "no-contact motion recording processed by the same method; FA/min = false alarms per "
+        "minute. Experiment (a): taps on the moving hand; (b): stationary taps, scaled to the "
+        "largest noise magnitude, added to motion ego-vibration. The band-pass-only row is also "
+        "the raw detector (same signal, same threshold rule).",
         "",
         TABLE_HEADER,
         "|" + "---|" * (TABLE_HEADER.count("|") - 1),
@@ -464,9 +474,9 @@ def results_markdown(results: dict) -> str:
             "",
             f"## Broken model assumptions: `{robust['effects']}` at {robust['speed']:.0%} speed",
             "",
-            "The paper saw noise spikes at fast motion and suspected a joint-position dependence. Here "
-            "the simulator adds effects the velocity-only model cannot capture (CONTRACT section 5); "
-            "sweep, model and test all include them.",
+            "The paper saw noise spikes at fast motion and suspected a joint-position dependence. "
+            "Here the simulator adds effects the velocity-only model cannot capture (CONTRACT "
+            "section 5); sweep, model and test all include them.",
             "",
             TABLE_HEADER,
             "|" + "---|" * (TABLE_HEADER.count("|") - 1),
@@ -477,7 +487,8 @@ def results_markdown(results: dict) -> str:
         lines += [
             "",
             f"Eq. 6 superposition error of the simulated hand (Fig. 4 analogue, "
-            f"eval_fig4_superposition.png): max {err['max_pct']:.1f} %, mean {err['mean_pct']:.1f} % "
+            f"eval_fig4_superposition.png): max {err['max_pct']:.1f} %, "
+            f"mean {err['mean_pct']:.1f} % "
             f"(paper: up to 15 % at high wrist speed).",
         ]
     lines += ["", "## Must show (issue 5), experiment (a), paper method", ""]

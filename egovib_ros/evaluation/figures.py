@@ -37,7 +37,8 @@ def _window(report: dict, fs: float) -> slice:
 def fig5(
     report: dict, path: Path, *, title: str, fs: float = 3000.0, method: str = "paper"
 ) -> Path:
-    """Paper Fig. 5 analogue: time series and spectrograms, raw vs denoised, with the true contact."""
+    """Paper Fig. 5 analogue: time series and spectrograms, raw vs denoised, with the
+    true contact."""
     sig = report["signals"]
     window = _window(report, fs)
     t = np.arange(window.start, window.stop) / fs
@@ -125,7 +126,8 @@ def pr_figure(
 
 
 def speed_figure(results: dict, path: Path) -> Path:
-    """Each method's noise reduction, peak-SNR gain and F1 against the speed limit, both experiments."""
+    """Each method's noise reduction, peak-SNR gain and F1 against the speed limit, both
+    experiments."""
     speeds = sorted(results["speeds"])
     keys = [
         ("noise_reduction_db", "no-contact noise reduction (dB)"),
@@ -197,7 +199,9 @@ def make_figures(results: dict, out_dir: Path, *, fs: float = 3000.0) -> list[Pa
             both["b"],
             out_dir / "eval_fig5_b.png",
             fs=fs,
-            title=f"Experiment (b): stationary taps added to ego-vibration, speed limit {shown:.0%}",
+            title=(
+                f"Experiment (b): stationary taps added to ego-vibration, speed limit {shown:.0%}"
+            ),
         ),
         pr_figure(pr_panels, out_dir / "eval_pr_curve.png"),
         speed_figure(results, out_dir / "eval_speed.png"),

@@ -168,7 +168,8 @@ def noise_mean(x: np.ndarray, no_contact_mask: np.ndarray) -> float:
 def noise_spike(
     x: np.ndarray, no_contact_mask: np.ndarray, quantile: float = SPIKE_QUANTILE
 ) -> float:
-    """High quantile (99.9 %) of the no-contact magnitude: the noise spikes a threshold must clear."""
+    """High quantile (99.9 %) of the no-contact magnitude: the noise spikes a threshold
+    must clear."""
     values = np.abs(np.asarray(x, float)[no_contact_mask])
     return float(np.quantile(values, quantile)) if values.size else float("nan")
 

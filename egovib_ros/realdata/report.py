@@ -284,24 +284,25 @@ def _protocol(result: dict) -> str:
     tau_low, tau_high = (1e3 * t for t in spec["decay_s"])
     return " ".join(
         (
-            f"Calibrate on {_span_s(primary['calibration_s'])} (idle, take-off, hover, both punch-outs",
-            f"and flips: free motion, motor commands {_range(primary, 'calibration')}); test on",
-            f"{_span_s(primary['test_s'])} (hover with stick inputs, commands",
+            f"Calibrate on {_span_s(primary['calibration_s'])} (idle, take-off, hover, both",
+            f"punch-outs and flips: free motion, motor commands {_range(primary, 'calibration')});",
+            f"test on {_span_s(primary['test_s'])} (hover with stick inputs, commands",
             f"{_range(primary, 'test')});",
             "the final impact at 16.9 s is left out of both.",
             f"{events['n_events']} known events are added to the test part's real gyro: damped",
             "sinusoids e(t) = A exp(-t/tau) sin(2 pi f t) on one random axis, f uniform in",
             f"{f_low:g}-{f_high:g} Hz, tau uniform in {tau_low:g}-{tau_high:g} ms, one every",
-            f"{spec['spacing_s']:g} s +- {spec['jitter_s']:g} s (seed {spec['seed']}); each scaled so",
-            "its band-passed peak equals the largest band-passed noise magnitude of the test part",
-            f"({events['target_peak_rad_s']:.3f} rad/s; the paper's taps were \"similar to the maximum",
-            "noise magnitude\"). Detection thresholds: each method's own output on the calibration",
-            "part (at motor commands the test reaches), 1.1 x its largest 4 ms RMS envelope; never",
-            "tuned on the test part (for the noise tables that part is also their training data, so",
-            "their calibration residual is smaller than on new data: a threshold biased low, towards",
-            "false alarms, i.e. against them). Metrics: `egovib_ros.evaluation.metrics` / `detection`",
-            "(CONTRACT section 6) on the summed, band-passed gyro; event F1 with +-10 ms onset",
-            "tolerance (also +-30 ms: IIR notches ring and delay an event).",
+            f"{spec['spacing_s']:g} s +- {spec['jitter_s']:g} s (seed {spec['seed']}); each scaled",
+            "so its band-passed peak equals the largest band-passed noise magnitude of the test",
+            f"part ({events['target_peak_rad_s']:.3f} rad/s; the paper's taps were \"similar to",
+            "the maximum noise magnitude\"). Detection thresholds: each method's own output on the",
+            "calibration part (at motor commands the test reaches), 1.1 x its largest 4 ms RMS",
+            "envelope; never tuned on the test part (for the noise tables that part is also their",
+            "training data, so their calibration residual is smaller than on new data: a threshold",
+            "biased low, towards false alarms, i.e. against them). Metrics:",
+            "`egovib_ros.evaluation.metrics` / `detection` (CONTRACT section 6) on the summed,",
+            "band-passed gyro; event F1 with +-10 ms onset tolerance (also +-30 ms: IIR notches",
+            "ring and delay an event).",
         )
     )
 
@@ -341,16 +342,17 @@ def markdown(result: dict) -> str:
         "",
         " ".join(
             (
-                f"**Data.** {result['data']['attribution']} Licence MIT OR Apache-2.0. Shipped as the",
-                f"bag `{result['bag']}`: unfiltered gyro (`{profile['sensor']['topic']}`,",
+                f"**Data.** {result['data']['attribution']} Licence MIT OR Apache-2.0. Shipped as",
+                f"the bag `{result['bag']}`: unfiltered gyro (`{profile['sensor']['topic']}`,",
                 f"`{profile['sensor']['field']}`, rad/s), the firmware-filtered gyro, four motor",
                 f"commands as `/joint_states`; {result['data']['samples']} samples in",
-                f"{result['data']['duration_s']:.2f} s, steps {step['min']:.3f}-{step['max']:.3f} ms",
-                f"(median {step['median']:.3f}). Profile `config/robots/{profile['name']}.yaml`:",
+                f"{result['data']['duration_s']:.2f} s, steps {step['min']:.3f}-{step['max']:.3f}",
+                f"ms (median {step['median']:.3f}).",
+                f"Profile `config/robots/{profile['name']}.yaml`:",
                 f"{len(profile['joints']['names'])} one-directional joints,",
                 f"{profile['joints']['steps']} steps, L = {processing['block_length']}, hop",
-                f"{processing['hop']}, band {processing['band_hz'][0]:g}-{processing['band_hz'][1]:g}",
-                "Hz.",
+                f"{processing['hop']}, band",
+                f"{processing['band_hz'][0]:g}-{processing['band_hz'][1]:g} Hz.",
             )
         ),
         "",
@@ -389,10 +391,10 @@ def markdown(result: dict) -> str:
             "",
             " ".join(
                 (
-                    "The test part now holds idle on the ground, take-off, punch-outs and flips: motor",
-                    f"commands {_range(swapped, 'test')}, the calibration only",
-                    f"{_range(swapped, 'calibration')}. Events are scaled to this part's largest noise",
-                    f"({swapped['events'][AT_1X]['target_peak_rad_s']:.3f} rad/s, from the",
+                    "The test part now holds idle on the ground, take-off, punch-outs and flips:",
+                    f"motor commands {_range(swapped, 'test')}, the calibration only",
+                    f"{_range(swapped, 'calibration')}. Events are scaled to this part's largest",
+                    f"noise ({swapped['events'][AT_1X]['target_peak_rad_s']:.3f} rad/s, from the",
                     "punch-outs).",
                     f"The worse case for every keyed method. {_unmeasured(swapped)}",
                 )

@@ -208,7 +208,8 @@ class HandSimulator:
         k = np.arange(HUM_PERIOD)
         if len(p.hum_amps) > HUM_PERIOD // 2 - 1:
             raise ConfigError(
-                f"sim params: at most {HUM_PERIOD // 2 - 1} hum_amps (harmonics of fs/32 below Nyquist)"
+                f"sim params: at most {HUM_PERIOD // 2 - 1} hum_amps "
+                "(harmonics of fs/32 below Nyquist)"
             )
         # equal phases: each odd rfft bin then gets the in-phase leakage of both neighbouring lines
         self.hum_period = np.sin(2 * np.pi * np.outer(k, harmonics) / HUM_PERIOD) @ np.asarray(
@@ -291,7 +292,8 @@ class HandSimulator:
 
     # --- joints -------------------------------------------------------------------
     def _kinematics(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """True velocities and positions (n, J) at the accel samples; gripper reverses before its limits."""
+        """True velocities and positions (n, J) at the accel samples; gripper reverses before
+        its limits."""
         n = len(targets)
         vel = np.empty((n, self.n_joints))
         pos = np.empty((n, self.n_joints))

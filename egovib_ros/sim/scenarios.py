@@ -21,7 +21,8 @@ CHUNK = 3000  # samples per simulator step in offline runs (1 s)
 
 
 def sweep_cells(grid: str) -> np.ndarray:
-    """Velocity cells (C, 2) in sweep order: 'full' = 441 cells, 'superposition' = the 41 with <= 1 joint moving."""
+    """Velocity cells (C, 2) in sweep order: 'full' = 441 cells, 'superposition' = the
+    41 with <= 1 joint moving."""
     w = GRID_FRACTIONS * MAX_SPEED[0]
     g = GRID_FRACTIONS * MAX_SPEED[1]
     if grid == "full":
@@ -100,7 +101,8 @@ def sweep_slices(
     tap_mode: str = "random",
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Iterator[Recording], dict]:
-    """Streaming form of simulate_sweep: (iterator of 1-s Recording slices, truth dict filled as it runs)."""
+    """Streaming form of simulate_sweep: (iterator of 1-s Recording slices, truth dict
+    filled as it runs)."""
     params = params if params is not None else SimParams.load()
     sim = HandSimulator(
         params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode
@@ -190,7 +192,8 @@ def motion_slices(
     command_rate_hz: float = 50.0,
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Iterator[Recording], dict]:
-    """Streaming form of simulate_motion: (iterator of 1-s Recording slices, truth dict filled as it runs)."""
+    """Streaming form of simulate_motion: (iterator of 1-s Recording slices, truth dict
+    filled as it runs)."""
     if duration_s <= 0:
         raise ConfigError("--duration must be > 0 seconds")
     params = params if params is not None else SimParams.load()

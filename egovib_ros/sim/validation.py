@@ -7,9 +7,10 @@ standard deviation sd(f) over the blocks, N(f) = mu + sd (Eq. 5).
 
 Fig. 4 metric (superposition error of one cell (w, g)):
 
-    N6(f)  = mu(w,0) + mu(0,g) - mu(0,0) + sqrt(sd(w,0)^2 + sd(0,g)^2 + sd(0,0)^2)   (Eq. 6, literal)
+    N6(f)  = mu(w,0) + mu(0,g) - mu(0,0) + sqrt(sd(w,0)^2 + sd(0,g)^2 + sd(0,0)^2) (Eq. 6, literal)
     Nobs(f) = mu(w,g) + sd(w,g)
-    error   = 100 * |sum_f N6(f) - sum_f Nobs(f)| / sum_f Nobs(f),  f over the rfft bins in 150..750 Hz
+    error   = 100 * |sum_f N6(f) - sum_f Nobs(f)| / sum_f Nobs(f),
+              f over the rfft bins in 150..750 Hz
 
 Blocks are assigned to cells by the commanded cell and kept only when the true
 joint speeds stay within 0.5 % of max speed of the cell's speeds over the whole
@@ -132,7 +133,8 @@ def _grid_index(stats: CellStats) -> np.ndarray:
 
 
 def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.ndarray:
-    """(21, 21) Fig. 4 error map in % (rows wrist, columns gripper); Eq. 6 from `axes` (default: `full`)."""
+    """(21, 21) Fig. 4 error map in % (rows wrist, columns gripper); Eq. 6 from `axes`
+    (default: `full`)."""
     axes = axes if axes is not None else full
     n = len(GRID_FRACTIONS)
     mu = np.full((n, n, len(FREQS_HZ)), np.nan)
@@ -225,7 +227,8 @@ def generation_speed(seconds: float = 20.0, seed: int = 0) -> float:
 
 
 def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0) -> dict:
-    """Bag write/read throughput for a simulated motion recording (raw + contact + ego + joint states).
+    """Bag write/read throughput for a simulated motion recording (raw + contact + ego +
+    joint states).
 
     Returns messages/s and multiples of real time for write_recording and read_recording.
     """
@@ -261,7 +264,8 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 
 # --- figures ---------------------------------------------------------------------
 def plot_fig3(stats: CellStats, path: str | Path) -> None:
-    """Mean + std spectra (Eq. 5) for a subset of cells, 4 direction combinations each (paper Fig. 3)."""
+    """Mean + std spectra (Eq. 5) for a subset of cells, 4 direction combinations each
+    (paper Fig. 3)."""
     import matplotlib
 
     matplotlib.use("Agg")
