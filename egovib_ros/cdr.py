@@ -28,8 +28,6 @@ from typing import Sequence
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from egovib_ros.constants import ACCEL_FRAME, JOINT_NAMES
-
 IMU_TYPE = "sensor_msgs/msg/Imu"
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 COMMANDS_TYPE = "std_msgs/msg/Float64MultiArray"
@@ -97,7 +95,7 @@ def _imu_dtype(frame_len: int, field: str = "linear_acceleration") -> np.dtype:
 def imu_message(
     stamp_ns: int,
     xyz: Sequence[float],
-    frame_id: str = ACCEL_FRAME,
+    frame_id: str = "",
     field: str = "linear_acceleration",
 ):
     """A rosbags Imu object following REP 145 with `xyz` in `field`; the other vector is
@@ -143,7 +141,7 @@ def _imu_template(frame_id: str, field: str = "linear_acceleration") -> bytes:
 def encode_imu_batch(
     stamps_ns: np.ndarray,
     values: np.ndarray,
-    frame_id: str = ACCEL_FRAME,
+    frame_id: str = "",
     field: str = "linear_acceleration",
 ) -> list[bytes]:
     """Serialise one Imu per sample, `values` in `field`, to CDR bytes (identical to
@@ -294,7 +292,7 @@ def encode_joint_state_batch(
     stamps_ns: np.ndarray,
     position: np.ndarray,
     velocity: np.ndarray,
-    names: Sequence[str] = JOINT_NAMES,
+    names: Sequence[str],
 ) -> list[bytes]:
     """Serialise one JointState (name, position, velocity; no effort) per row to CDR bytes."""
     if len(stamps_ns) == 0:

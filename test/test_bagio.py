@@ -20,7 +20,7 @@ from egovib_ros.bagio import (
     read_recording,
     write_recording,
 )
-from egovib_ros.constants import ACCEL_FRAME, BAG_TOPICS, JOINT_NAMES
+from egovib_ros.constants import BAG_TOPICS, JOINT_NAMES
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.robot import RobotProfile
 
@@ -58,7 +58,7 @@ def test_imu_codec_matches_rosbags_serialisation():
         assert raw == reference
         assert raw[:4] == b"\x00\x01\x00\x00"
         msg = ts.deserialize_cdr(raw, bagio.IMU_TYPE)
-        assert msg.header.frame_id == ACCEL_FRAME
+        assert msg.header.frame_id == ""  # no robot's frame by default: writers name theirs
         assert msg.orientation_covariance[0] == -1 and msg.angular_velocity_covariance[0] == -1
         assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
     got_stamps, got_accel = decode_imu_batch(fast)
@@ -93,7 +93,7 @@ def test_joint_state_codec_matches_rosbags():
     rng = np.random.default_rng(1)
     stamps = np.array([3, 2_000_000_001], np.int64)
     pos, vel = rng.normal(size=(2, 2)), rng.normal(size=(2, 2))
-    fast = encode_joint_state_batch(stamps, pos, vel)
+    fast = encode_joint_state_batch(stamps, pos, vel, JOINT_NAMES)
     for i, raw in enumerate(fast):
         ref = bytes(
             ts.serialize_cdr(
@@ -197,7 +197,7 @@ def test_bag_writer_raw_bytes(tmp_path):
         bag.write(
             BAG_TOPICS["joint_states"],
             0,
-            encode_joint_state_batch([0], [[0.0, 0.01]], [[1.0, 0.02]])[0],
+            encode_joint_state_batch([0], [[0.0, 0.01]], [[1.0, 0.02]], JOINT_NAMES)[0],
         )
     back = read_recording(tmp_path / "bag")
     np.testing.assert_array_equal(back.accel, accel)
@@ -284,7 +284,12 @@ def test_missing_joint_is_bag_error(tmp_path):
 def test_empty_joint_state_batch_encodes_to_nothing():
     from egovib_ros.bagio import encode_joint_state_batch
 
-    assert encode_joint_state_batch(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2))) == []
+    assert (
+        encode_joint_state_batch(
+            np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), JOINT_NAMES
+        )
+        == []
+    )
 
 
 # --------------------------------------------------------------------------
@@ -553,7 +558,9 @@ def test_single_messages_and_batches_mix_in_log_time_order(tmp_path):
             bag.write(
                 BAG_TOPICS["joint_states"],
                 int(stamps[k]) + 1,
-                encode_joint_state_batch([int(stamps[k]) + 1], [[0.0, 0.0]], [[float(k), 0.0]])[0],
+                encode_joint_state_batch(
+                    [int(stamps[k]) + 1], [[0.0, 0.0]], [[float(k), 0.0]], JOINT_NAMES
+                )[0],
             )
     with Reader(tmp_path / "bag") as reader:
         times = [t for _, t, _ in reader.messages()]
@@ -615,7 +622,9 @@ def test_topics_written_apart_are_read_together(tmp_path):
         bag.write_batch(
             BAG_TOPICS["joint_states"],
             rec.joint_stamps_ns,
-            encode_joint_state_batch(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity),
+            encode_joint_state_batch(
+                rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity, JOINT_NAMES
+            ),
         )
     starts = [c.start_ns for c in McapScanner(next((tmp_path / "bag").glob("*.mcap"))).chunks()]
     assert starts == sorted(starts) and len(starts) > 10

@@ -19,7 +19,6 @@ from egovib_ros.cdr import (
     joint_state_message,
     typestore,
 )
-from egovib_ros.constants import ACCEL_FRAME
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
 from egovib_ros.offline import denoise_bag
 from egovib_ros.sim import simulate_motion, simulate_sweep
@@ -142,7 +141,8 @@ def test_denoised_message_is_the_raw_message_with_the_field_replaced(bags, model
     assert [t for t, _ in raw] == [t for t, _ in den]  # the raw sample's stamp and log time
     a = np.frombuffer(b"".join(d for _, d in raw), np.uint8).reshape(len(raw), -1)
     b = np.frombuffer(b"".join(d for _, d in den), np.uint8).reshape(len(den), -1)
-    field_at = imu_field_offset(len(ACCEL_FRAME), "linear_acceleration")
+    frame_len = int.from_bytes(raw[0][1][12:16], "little") - 1  # the CDR string length of frame_id
+    field_at = imu_field_offset(frame_len, "linear_acceleration")
     changed = np.flatnonzero((a != b).any(axis=0))
     assert changed.min() >= field_at and changed.max() < field_at + 24
     # every input topic is in the output byte for byte

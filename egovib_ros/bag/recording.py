@@ -461,8 +461,10 @@ def write_recordings(
     window_s: float = 1.0,
     chunk_bytes: int = 4 << 20,
     crc: bool = True,
+    frame_id: str = "",
 ) -> None:
     """Write consecutive time slices of a recording into one bag, in constant memory.
+    Imu messages carry `frame_id` (the sensor's frame).
 
     Each slice is cut into `window_s` windows; a window's messages go into the bag
     together (grouped by topic), so chunks follow time. `progress(n_messages)` is
@@ -474,7 +476,7 @@ def write_recordings(
         path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc
     ) as bag:
         for rec in pieces:
-            streams = _streams(rec, names, field_)
+            streams = _streams(rec, names, field_, frame_id)
             for topic, msgtype, _, _ in streams:
                 bag.add_topic(topic, msgtype)
             start = min(int(s[0]) for _, _, s, _ in streams if len(s))
@@ -491,12 +493,12 @@ def write_recordings(
                     progress(count)
 
 
-def _streams(rec: Recording, names: dict, field_: str) -> list:
+def _streams(rec: Recording, names: dict, field_: str, frame_id: str) -> list:
     """(topic, type, stamps, encode(a, b)) per topic present in the recording."""
     n = len(rec.accel_stamps_ns)
 
     def imu(values, stamps):
-        return lambda a, b: encode_imu_batch(stamps[a:b], values[a:b], field=field_)
+        return lambda a, b: encode_imu_batch(stamps[a:b], values[a:b], frame_id, field_)
 
     stamps = np.asarray(rec.accel_stamps_ns, np.int64)
     streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.accel, stamps))]

@@ -7,6 +7,7 @@ import json
 
 from egovib_ros import cliutil
 from egovib_ros.bagio import write_recordings
+from egovib_ros.constants import ACCEL_FRAME
 from egovib_ros.errors import ConfigError
 from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.sim.params import SimParams
@@ -167,7 +168,9 @@ def run(args: argparse.Namespace) -> int:
     # simulate and write slice by slice: constant memory however long the run
     try:
         with atomic_output(out, directory=True, kind="bag") as tmp:
-            write_recordings(tmp, slices, storage=args.storage, compress=args.compress)
+            write_recordings(
+                tmp, slices, storage=args.storage, compress=args.compress, frame_id=ACCEL_FRAME
+            )
             if args.truth:
                 with atomic_output(args.truth) as tmp_truth:
                     tmp_truth.write_text(json.dumps(truth) + "\n")
