@@ -105,3 +105,12 @@ class BandPass:
         y, zi = signal.sosfilt(self.sos, x, axis=-1, zi=self._zi.transpose(1, 0, 2))
         self._zi = np.ascontiguousarray(zi.transpose(1, 0, 2))
         return y
+
+
+def combined_bandpassed(
+    values: np.ndarray, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
+) -> np.ndarray:
+    """(N,) sum of the three axes of (N, 3) samples, band-passed with the streaming filter
+    from steady state: the paper's 1-D signal, the reference every metric is taken on."""
+    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
+    return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows

@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from egovib_ros.core import BandPass, NoiseModel, channel_matrix, denoise_batch
+from egovib_ros.core import NoiseModel, denoise_batch, filters
 
 NOISEREDUCE_N_FFT = 64
 
@@ -59,14 +59,9 @@ class MethodContext:
 def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
     """(N,) sum of the three axes, band-passed with the core's causal filter and the
     model's band."""
-    band = BandPass(
-        sample_rate_hz=model.sample_rate_hz,
-        band_hz=model.band_hz,
-        order=model.band_order,
-        n_channels=1,
+    return filters.combined_bandpassed(
+        accel, sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order
     )
-    # BandPass works on (C, N) sample rows.
-    return band.process(channel_matrix(accel, "combined").T)[0]
 
 
 def on_input_stamps(

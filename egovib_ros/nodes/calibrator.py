@@ -30,7 +30,14 @@ from rclpy.node import Node
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.fileutil import atomic_output
-from egovib_ros.nodes.common import Health, Param, StreamInput, declare_parameters, run_node
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    StreamInput,
+    declare_parameters,
+    run_node,
+    stream_counters,
+)
 from egovib_ros.robot import load_profile
 
 # The two topics come on separate DDS readers: on a busy machine (e.g. while another
@@ -284,14 +291,7 @@ class Calibrator(Node):
         now = time.monotonic()
         last_t, last_in = self._last_report
         self._last_report = (now, inp.sensor_messages)
-        counters = {
-            "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-            "samples_bad": stats["samples_bad"],
-            "samples_out_of_order": stats["dropped_out_of_order"],
-            "gap_filled_samples": stats["gap_filled_samples"],
-            "stream_restarts": stats["resets"],
-            "joint_states_dropped": stats["joint_states_dropped"],
-        }
+        counters = stream_counters(inp, stats)
         grown = self.health.changes(counters)
         values = {
             "input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),

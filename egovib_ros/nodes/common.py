@@ -289,6 +289,19 @@ class StreamInput:
 
 
 # --- health ------------------------------------------------------------------------
+def stream_counters(inp: "StreamInput", stats: dict) -> dict[str, int]:
+    """The input-quality counters every stream node reports (cumulative): undecodable
+    messages from the node's input, the core's bad/out-of-order/gap/restart counts."""
+    return {
+        "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
+        "samples_bad": stats["samples_bad"],
+        "samples_out_of_order": stats["dropped_out_of_order"],
+        "gap_filled_samples": stats["gap_filled_samples"],
+        "stream_restarts": stats["resets"],
+        "joint_states_dropped": stats["joint_states_dropped"],
+    }
+
+
 class Health:
     """The node's DiagnosticStatus on /diagnostics (~1 Hz), with the usual level semantics:
 

@@ -35,6 +35,7 @@ from egovib_ros.nodes.common import (
     StreamInput,
     declare_parameters,
     run_node,
+    stream_counters,
     stream_publisher_qos,
 )
 from egovib_ros.robot import RobotProfile
@@ -361,12 +362,7 @@ class Denoiser(Node):
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
         counters = {
-            "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-            "samples_bad": stats["samples_bad"],
-            "samples_out_of_order": stats["dropped_out_of_order"],
-            "gap_filled_samples": stats["gap_filled_samples"],
-            "stream_restarts": stats["resets"],
-            "joint_states_dropped": stats["joint_states_dropped"],
+            **stream_counters(inp, stats),
             "blocks": stats["blocks"],
             "blocks_no_joint_state": stats["blocks_no_joint_state"],
             "blocks_out_of_grid": stats["blocks_out_of_grid"],

@@ -31,7 +31,7 @@ import dataclasses
 
 import numpy as np
 
-from egovib_ros.core import BandPass, calibrate_arrays, channel_matrix, denoise_batch
+from egovib_ros.core import BandPass, calibrate_arrays, denoise_batch, filters
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.realdata.notch import (
     ARDUPILOT_Q,
@@ -55,13 +55,9 @@ METHODS = tuple(LABELS)
 
 def combined_bandpassed(values: np.ndarray, profile: RobotProfile) -> np.ndarray:
     """(N,) sum of the three axes, band-passed with the core's causal filter, profile's band."""
-    band = BandPass(
-        sample_rate_hz=profile.rate_hz,
-        band_hz=profile.band_hz,
-        order=profile.band_order,
-        n_channels=1,
+    return filters.combined_bandpassed(
+        values, sample_rate_hz=profile.rate_hz, band_hz=profile.band_hz, order=profile.band_order
     )
-    return band.process(channel_matrix(values, "combined").T)[0]
 
 
 def single_joint_profile(
