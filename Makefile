@@ -23,10 +23,10 @@ demo: $(STAMP)
 	$(PY) -m egovib_ros.demo
 
 bench: $(STAMP)
-	$(VENV)/bin/egovib bench --json docs/bench.json
+	$(VENV)/bin/egovib bench --json docs/bench.json --force
 
 figures: $(STAMP)
-	$(VENV)/bin/egovib figures --out docs
+	$(VENV)/bin/egovib figures --out docs --force
 
 clean:
 	rm -rf build install log .pytest_cache

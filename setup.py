@@ -14,10 +14,13 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/robots", glob("config/robots/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     # ROS client libraries (rclpy, message packages) come from apt on a ROS
     # install, or from requirements-ros.txt in the project venv: not listed here.
-    install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml"],
+    install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml",
+                      # bags: zstd MCAP chunks; many bags on a Dask cluster (local or remote)
+                      "zstandard", "dask", "distributed"],
     zip_safe=True,
     maintainer="egovib_ros developers",
     maintainer_email="egovib@example.com",

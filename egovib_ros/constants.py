@@ -2,17 +2,18 @@
 
 Pure Python/numpy: imported by the core, the simulator, the nodes and the CLI.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 # --- robot (CONTRACT section 1) -------------------------------------------
 JOINT_NAMES: tuple[str, ...] = ("r_wrist_roll_joint", "r_gripper_joint")
-MAX_SPEED: tuple[float, ...] = (3.0, 0.04)          # rad/s, m/s
+MAX_SPEED: tuple[float, ...] = (3.0, 0.04)  # rad/s, m/s
 GRIPPER_GAP_RANGE_M: tuple[float, float] = (0.0, 0.086)
 ACCEL_RATE_HZ: float = 3000.0
 JOINT_RATE_HZ: float = 1000.0
-ACCEL_RANGE_MS2: float = 78.5                        # +/- 8 g
+ACCEL_RANGE_MS2: float = 78.5  # +/- 8 g
 ACCEL_BITS: int = 10
 ACCEL_FRAME: str = "r_gripper_motor_accelerometer_link"
 
@@ -33,7 +34,7 @@ def default_grid() -> tuple[np.ndarray, ...]:
 BLOCK_LENGTH: int = 64
 HOP: int = 32
 BAND_HZ: tuple[float, float] = (150.0, 750.0)
-BAND_ORDER: int = 4                                  # 4th-order Butterworth band-pass
+BAND_ORDER: int = 4  # 4th-order Butterworth band-pass
 
 # --- ROS names (CONTRACT section 2), all relative ---------------------------
 TOPIC_JOINT_STATES = "joint_states"

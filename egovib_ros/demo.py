@@ -9,156 +9,59 @@
 
 The nodes run as separate processes (the console scripts beside this Python) in a
 private random ROS domain with localhost-only discovery, so nothing else on the
-network sees or disturbs them. Usage: python -m egovib_ros.demo [--out DIR].
+network sees or disturbs them (egovib_ros.orchestration). Usage: `egovib demo [--out DIR]`
+(or python -m egovib_ros.demo).
 """
+
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import random
 import shutil
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-BIN = Path(sys.executable).parent
+from egovib_ros.errors import EgovibError
+from egovib_ros.orchestration import NodeGroup, Watcher, reliable_input
+
+PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
 
 
-def _param_text(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ",".join(_param_text(v) for v in value) + "]"
-    return str(value)
-
-
-class NodeGroup:
-    """Node processes sharing one private ROS domain; `close()` stops them all."""
-
-    def __init__(self, log_dir: Path, domain_id: int | None = None):
-        self.domain_id = domain_id if domain_id is not None else random.SystemRandom().randint(1, 200)
-        self.log_dir = Path(log_dir)
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id),
-                        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1",
-                        RCUTILS_COLORIZED_OUTPUT="0")
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def use_domain_here(self) -> None:
-        """Put this process in the group's domain (before rclpy.init)."""
-        os.environ["ROS_DOMAIN_ID"] = str(self.domain_id)
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-
-    def start(self, name: str, executable: str, params: dict | None = None) -> subprocess.Popen:
-        cmd = [str(BIN / executable), "--ros-args"]
-        for key, value in (params or {}).items():
-            cmd += ["-p", f"{key}:={_param_text(value)}"]
-        with open(self.log_path(name), "w") as log:
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env,
-                                    start_new_session=True)
-        self.procs[name] = proc
-        return proc
-
-    def log_path(self, name: str) -> Path:
-        return self.log_dir / f"{name}.log"
-
-    def log(self, name: str) -> str:
-        return self.log_path(name).read_text()
-
-    def check_alive(self, *names: str) -> None:
-        for name in names:
-            code = self.procs[name].poll()
-            if code is not None:
-                raise RuntimeError(f"{name} exited with status {code}; its log:\n{self.log(name)[-3000:]}")
-
-    def wait_for_log(self, name: str, text: str, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while text not in self.log(name):
-            self.check_alive(name)
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}")
-            time.sleep(0.1)
-
-    def stop(self, name: str, timeout: float = 30.0, sig: int = signal.SIGINT) -> int:
-        """Ctrl-C the node (or send `sig`) and wait for it (kill after `timeout`)."""
-        proc = self.procs[name]
-        if proc.poll() is None:
-            proc.send_signal(sig)
-            try:
-                proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        return proc.returncode
-
-    def close(self) -> None:
-        for name in list(self.procs):
-            if self.procs[name].poll() is None:
-                self.procs[name].send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 10
-        for proc in self.procs.values():
-            try:
-                proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-
-
-RELIABLE_INPUT = {"qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
-                  "qos_overrides./joint_states.subscription.reliability": "reliable"}
-
-
-class Watcher:
-    """An rclpy node in this process: commands and progress from /diagnostics."""
-
-    def __init__(self):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.experimental import EventsExecutor
-        from std_msgs.msg import Float64MultiArray
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        self.node = rclpy.create_node("egovib_demo", context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.status: dict[str, str] = {}
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.commands = self.node.create_publisher(Float64MultiArray, "hand_velocity_controller/commands", 10)
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            self.status[status.name] = status.message
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
-def calibrate(group: NodeGroup, watcher: Watcher, model: Path, *, dwell: float, settle: float) -> None:
-    print(f"[1/3] calibration: superposition sweep, 41 cells x ({settle:g} s settle + {dwell:g} s dwell)",
-          flush=True)
-    group.start("calibrator", "calibrator", {"output": str(model), "grid": "superposition",
-                                             "resume": False, **RELIABLE_INPUT})
+def calibrate(
+    group: NodeGroup, watcher: Watcher, model: Path, *, dwell: float, settle: float
+) -> None:
+    print(
+        f"[1/3] calibration: superposition sweep, 41 cells x "
+        f"({settle:g} s settle + {dwell:g} s dwell)",
+        flush=True,
+    )
+    group.start(
+        "calibrator",
+        "calibrator",
+        {
+            "output": str(model),
+            "grid": "superposition",
+            "resume": False,
+            **reliable_input(*PR2_INPUT),
+        },
+    )
     group.start("sim_hand_sweep", "sim_hand", {"seed": 1, "publish_ground_truth": False})
     group.wait_for_log("calibrator", "calibrating")
-    driver = group.start("sweep_driver", "sweep_driver", {"grid": "superposition", "dwell": dwell,
-                                                          "settle": settle})
+    driver = group.start(
+        "sweep_driver", "sweep_driver", {"grid": "superposition", "dwell": dwell, "settle": settle}
+    )
     last_print = 0.0
     while driver.poll() is None:
         watcher.spin_for(0.5)
         group.check_alive("calibrator", "sim_hand_sweep")
         if time.monotonic() - last_print > 10:
             last_print = time.monotonic()
-            print(f"      sweep: {watcher.status.get('sweep_driver', 'starting')}; "
-                  f"calibrator: {watcher.status.get('calibrator', 'starting')}", flush=True)
+            print(
+                f"      sweep: {watcher.status.get('sweep_driver', 'starting')}; "
+                f"calibrator: {watcher.status.get('calibrator', 'starting')}",
+                flush=True,
+            )
     if driver.returncode != 0:
         raise RuntimeError(f"sweep_driver failed:\n{group.log('sweep_driver')[-3000:]}")
     group.stop("sim_hand_sweep")
@@ -168,23 +71,54 @@ def calibrate(group: NodeGroup, watcher: Watcher, model: Path, *, dwell: float, 
     print("      " + group.log("calibrator").strip().splitlines()[-1][:300], flush=True)
 
 
-def run_motion(group: NodeGroup, watcher: Watcher, model: Path, bag: Path, *, seconds: float,
-               max_speed: float, tap_rate_hz: float, seed: int) -> None:
+def run_motion(
+    group: NodeGroup,
+    watcher: Watcher,
+    model: Path,
+    bag: Path,
+    *,
+    seconds: float,
+    max_speed: float,
+    tap_rate_hz: float,
+    seed: int,
+) -> None:
     from egovib_ros.ros_convert import command_message
     from egovib_ros.sim import motion_commands
-    print(f"[2/3] run: {seconds:g} s of random motion (max {max_speed:.0%} speed) with taps at "
-          f"{tap_rate_hz:g} Hz; denoiser (combined, as in the paper) and recorder", flush=True)
+
+    print(
+        f"[2/3] run: {seconds:g} s of random motion (max {max_speed:.0%} speed) with taps at "
+        f"{tap_rate_hz:g} Hz; denoiser (combined, as in the paper) and recorder",
+        flush=True,
+    )
     # Start order: denoiser, then the recorder matched to its output, then the hand, which
     # waits until its streams are subscribed, so that the bag holds every sample of the run.
-    group.start("denoiser", "denoiser", {"model": str(model), "channels": "combined", **RELIABLE_INPUT})
+    group.start(
+        "denoiser",
+        "denoiser",
+        {"model": str(model), "channels": "combined", **reliable_input(*PR2_INPUT)},
+    )
     group.wait_for_log("denoiser", "denoising")
     # Recorded: what the evaluation needs (the ego-only ground truth is left out to spare CPU).
-    group.start("bag_recorder", "bag_recorder", {"output": str(bag), "topics": [
-        "joint_states", "accelerometer/raw", "accelerometer/denoised", "accelerometer/contact",
-        "hand_velocity_controller/commands"]})
+    group.start(
+        "bag_recorder",
+        "bag_recorder",
+        {
+            "output": str(bag),
+            "topics": [
+                "joint_states",
+                "accelerometer/raw",
+                "accelerometer/denoised",
+                "accelerometer/contact",
+                "hand_velocity_controller/commands",
+            ],
+        },
+    )
     group.wait_for_log("bag_recorder", "/accelerometer/denoised: subscribed")
-    group.start("sim_hand", "sim_hand", {"seed": seed, "tap_rate_hz": tap_rate_hz, "publish_ego": False,
-                                         "wait_for_subscribers": 1})
+    group.start(
+        "sim_hand",
+        "sim_hand",
+        {"seed": seed, "tap_rate_hz": tap_rate_hz, "publish_ego": False, "wait_for_subscribers": 1},
+    )
     for topic in ("/accelerometer/raw", "/accelerometer/contact", "/joint_states"):
         group.wait_for_log("bag_recorder", f"{topic}: subscribed")
     times, commands = motion_commands(seconds, max_speed, seed)
@@ -196,13 +130,18 @@ def run_motion(group: NodeGroup, watcher: Watcher, model: Path, bag: Path, *, se
         if time.monotonic() - last_print > 10:
             last_print = time.monotonic()
             group.check_alive("denoiser", "bag_recorder", "sim_hand")
-            print(f"      {t:4.0f} s: denoiser {watcher.status.get('denoiser', 'starting')}", flush=True)
+            print(
+                f"      {t:4.0f} s: denoiser {watcher.status.get('denoiser', 'starting')}",
+                flush=True,
+            )
     watcher.commands.publish(command_message([0.0, 0.0]))
     group.stop("sim_hand")
-    watcher.spin_for(1.0)              # the denoiser flushes its last samples after 0.5 s idle
+    watcher.spin_for(1.0)  # the denoiser flushes its last samples after 0.5 s idle
     group.stop("denoiser")
     if group.stop("bag_recorder") != 0:
-        raise RuntimeError(f"bag_recorder lost messages or failed:\n{group.log('bag_recorder')[-3000:]}")
+        raise RuntimeError(
+            f"bag_recorder lost messages or failed:\n{group.log('bag_recorder')[-3000:]}"
+        )
     print("      " + group.log("bag_recorder").strip().splitlines()[-1][:400], flush=True)
 
 
@@ -212,29 +151,41 @@ def read_live_recording(bag: Path):
     import dataclasses
 
     import numpy as np
-    from rosbags.rosbag2 import Reader
 
-    from egovib_ros.bagio import decode_imu_batch, read_recording
+    from egovib_ros.bag import BagReader, decode_imu, read_recording
     from egovib_ros.constants import BAG_TOPICS
+
     rec = read_recording(bag, ground_truth=False, denoised=True)
     truth = {}
-    with Reader(bag) as reader:
-        for key in ("contact", "ego"):
-            conns = [c for c in reader.connections if c.topic == BAG_TOPICS[key]]
-            if conns:
-                truth[key] = decode_imu_batch([bytes(d) for _, _, d in reader.messages(connections=conns)])
+    with BagReader(bag) as reader:
+        topics = {
+            BAG_TOPICS[key]: key for key in ("contact", "ego") if BAG_TOPICS[key] in reader.topics
+        }
+        parts = {key: [] for key in topics.values()}
+        for batch in reader.batches(topics):
+            for topic, messages in batch.messages.items():
+                parts[topics[topic]].append(decode_imu(messages))
+    for key, decoded in parts.items():
+        stamps = np.concatenate([s for s, _ in decoded])
+        order = np.argsort(stamps, kind="stable")
+        truth[key] = (stamps[order], np.concatenate([v for _, v in decoded])[order])
     keep = np.ones(len(rec.accel_stamps_ns), bool)
     for stamps, _ in truth.values():
         keep &= np.isin(rec.accel_stamps_ns, stamps)
     first, last = np.flatnonzero(keep)[[0, -1]]
-    keep[:first] = keep[last + 1:] = False
+    keep[:first] = keep[last + 1 :] = False
     stamps = rec.accel_stamps_ns[keep]
     values = {key: v[np.searchsorted(s, stamps)] for key, (s, v) in truth.items()}
     joints = (rec.joint_stamps_ns >= stamps[0]) & (rec.joint_stamps_ns <= stamps[-1])
-    return dataclasses.replace(rec, accel_stamps_ns=stamps, accel=rec.accel[keep], **values,
-                               joint_stamps_ns=rec.joint_stamps_ns[joints],
-                               joint_position=rec.joint_position[joints],
-                               joint_velocity=rec.joint_velocity[joints])
+    return dataclasses.replace(
+        rec,
+        accel_stamps_ns=stamps,
+        accel=rec.accel[keep],
+        **values,
+        joint_stamps_ns=rec.joint_stamps_ns[joints],
+        joint_position=rec.joint_position[joints],
+        joint_velocity=rec.joint_velocity[joints],
+    )
 
 
 def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
@@ -242,56 +193,138 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
     from egovib_ros.evaluation import figures, metrics
     from egovib_ros.evaluation.evaluate import evaluate_recording
     from egovib_ros.fileutil import atomic_output
+
     print("[3/3] evaluation of the recorded run", flush=True)
     model = NoiseModel.load(model_path)
     rec = read_live_recording(bag)
     report = evaluate_recording(rec, model, methods=["paper"], keep_signals=True)
     signals = report.pop("signals")
     live = report["methods"].get("bag_denoised", {})
-    figure = figures.fig5({**report, "signals": signals}, out / "demo_fig5.png",
-                          title="make demo: live run, offline paper pipeline on the recorded raw signal")
-    summary = {"bag": str(bag), "model": str(model_path), "figure": str(figure),
-               "n_taps": report["n_taps"],
-               "live_denoiser": {k: live.get(k) for k in ("noise_mean_raw", "noise_mean_denoised",
-                                                           "noise_reduction_db", "peak_snr_raw_db",
-                                                           "peak_snr_denoised_db", "tap_retention", "f1",
-                                                           "samples_missing", "rms_difference_vs_batch")},
-               "offline_paper": {k: report.get(k) for k in ("noise_reduction_db", "peak_snr_raw_db",
-                                                             "peak_snr_denoised_db", "tap_retention",
-                                                             "f1_raw", "f1_denoised")}}
+    figure = figures.fig5(
+        {**report, "signals": signals},
+        out / "demo_fig5.png",
+        title="make demo: live run, offline paper pipeline on the recorded raw signal",
+    )
+    summary = {
+        "bag": str(bag),
+        "model": str(model_path),
+        "figure": str(figure),
+        "n_taps": report["n_taps"],
+        "live_denoiser": {
+            k: live.get(k)
+            for k in (
+                "noise_mean_raw",
+                "noise_mean_denoised",
+                "noise_reduction_db",
+                "peak_snr_raw_db",
+                "peak_snr_denoised_db",
+                "tap_retention",
+                "f1",
+                "samples_missing",
+                "rms_difference_vs_batch",
+            )
+        },
+        "offline_paper": {
+            k: report.get(k)
+            for k in (
+                "noise_reduction_db",
+                "peak_snr_raw_db",
+                "peak_snr_denoised_db",
+                "tap_retention",
+                "f1_raw",
+                "f1_denoised",
+            )
+        },
+    }
     with atomic_output(out / "demo_evaluation.json") as tmp:
         tmp.write_text(json.dumps(metrics.json_safe(summary), indent=2) + "\n")
     return summary
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default="demo_output", help="directory for the model, bag, logs, figures")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--out", default="demo_output", help="directory for the model, bag, logs, figures"
+    )
     parser.add_argument("--dwell", type=float, default=1.0, help="sweep dwell per cell (s)")
     parser.add_argument("--settle", type=float, default=0.3, help="sweep settle time per cell (s)")
-    parser.add_argument("--seconds", type=float, default=30.0, help="length of the recorded run (s)")
+    parser.add_argument(
+        "--seconds", type=float, default=30.0, help="length of the recorded run (s)"
+    )
     parser.add_argument("--max-speed", type=float, default=0.5, help="fraction of max joint speed")
     parser.add_argument("--taps", type=float, default=2.0, help="tap rate (Hz)")
     parser.add_argument("--seed", type=int, default=7)
-    args = parser.parse_args(argv)
+
+
+def register(subparsers) -> None:
+    """`egovib demo`."""
+    parser = subparsers.add_parser(
+        "demo",
+        help="the whole pipeline live on ROS 2 nodes (make demo)",
+        description=__doc__.split("\n\n")[0],
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0]
+    )
+    add_arguments(parser)
+    try:
+        return run(parser.parse_args(argv))
+    except EgovibError as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def clear_previous_run(out: Path) -> None:
+    """Remove what a previous demo run left in `out` - only if it is recognisably ours
+    (fileutil.prepare_output); anything else there is refused, never deleted."""
+    from egovib_ros.fileutil import prepare_output
+
+    outputs = {
+        "noise_model.npz": "model",
+        "run_bag": "bag",
+        "demo_evaluation.json": "json",
+        "demo_fig5.png": "file",
+    }
+    for name, kind in outputs.items():
+        prepare_output(out / name, force=True, kind=kind)
+    for name in outputs:
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+
+
+def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     model, bag = out / "noise_model.npz", out / "run_bag"
-    for old in (model, bag, out / "logs"):
-        if old.is_dir():
-            shutil.rmtree(old)
-        elif old.exists():
-            old.unlink()
+    clear_previous_run(out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     group = NodeGroup(out / "logs")
     group.use_domain_here()
-    print(f"egovib_ros demo: ROS_DOMAIN_ID={group.domain_id} (localhost only), output in {out}/", flush=True)
+    print(
+        f"egovib_ros demo: ROS_DOMAIN_ID={group.domain_id} (localhost only), output in {out}/",
+        flush=True,
+    )
     watcher = None
     try:
         watcher = Watcher()
         calibrate(group, watcher, model, dwell=args.dwell, settle=args.settle)
-        run_motion(group, watcher, model, bag, seconds=args.seconds, max_speed=args.max_speed,
-                   tap_rate_hz=args.taps, seed=args.seed)
+        run_motion(
+            group,
+            watcher,
+            model,
+            bag,
+            seconds=args.seconds,
+            max_speed=args.max_speed,
+            tap_rate_hz=args.taps,
+            seed=args.seed,
+        )
     except (RuntimeError, KeyboardInterrupt) as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 1
@@ -302,14 +335,21 @@ def main(argv: list[str] | None = None) -> int:
     summary = evaluate(model, bag, out)
     live, offline = summary["live_denoiser"], summary["offline_paper"]
     print(f"\nResult ({summary['n_taps']} taps, {time.monotonic() - started:.0f} s in all):")
-    print(f"  live denoiser node : noise reduction {live['noise_reduction_db']:.1f} dB, "
-          f"peak SNR {live['peak_snr_raw_db']:.1f} dB raw -> {live['peak_snr_denoised_db']:.1f} dB denoised, "
-          f"tap retention {live['tap_retention']:.2f}, samples missing {live['samples_missing']}")
-    print(f"  offline (same bag) : noise reduction {offline['noise_reduction_db']:.1f} dB, "
-          f"peak SNR {offline['peak_snr_raw_db']:.1f} -> {offline['peak_snr_denoised_db']:.1f} dB, "
-          f"event F1 {offline['f1_raw']:.2f} raw -> {offline['f1_denoised']:.2f} denoised")
-    print(f"  model:  {model}\n  bag:    {bag}\n  figure: {summary['figure']}\n"
-          f"  report: {out / 'demo_evaluation.json'}\n  logs:   {out / 'logs'}/")
+    print(
+        f"  live denoiser node : noise reduction {live['noise_reduction_db']:.1f} dB, "
+        f"peak SNR {live['peak_snr_raw_db']:.1f} dB raw -> "
+        f"{live['peak_snr_denoised_db']:.1f} dB denoised, "
+        f"tap retention {live['tap_retention']:.2f}, samples missing {live['samples_missing']}"
+    )
+    print(
+        f"  offline (same bag) : noise reduction {offline['noise_reduction_db']:.1f} dB, "
+        f"peak SNR {offline['peak_snr_raw_db']:.1f} -> {offline['peak_snr_denoised_db']:.1f} dB, "
+        f"event F1 {offline['f1_raw']:.2f} raw -> {offline['f1_denoised']:.2f} denoised"
+    )
+    print(
+        f"  model:  {model}\n  bag:    {bag}\n  figure: {summary['figure']}\n"
+        f"  report: {out / 'demo_evaluation.json'}\n  logs:   {out / 'logs'}/"
+    )
     return 0
 
 

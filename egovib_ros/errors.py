@@ -1,4 +1,5 @@
 """Typed errors. Every message is one line naming the file/topic and the problem."""
+
 from __future__ import annotations
 
 

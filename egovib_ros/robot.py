@@ -11,12 +11,13 @@ profile carries it, so denoising needs only the model.
 
 Pure Python + numpy + yaml: imported by the core, the CLI and the nodes alike.
 """
+
 from __future__ import annotations
 
 import math
 import os
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,12 +47,12 @@ class RobotProfile:
     max_speed: tuple[float, ...]
     bidirectional: tuple[bool, ...]
     steps: int = 10
-    sensor_range: float = math.inf        # |value| beyond this on any axis: a bad sample
+    sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
     block_length: int = 64
     hop: int = 32
     band_hz: tuple[float, float] = (150.0, 750.0)
     band_order: int = 4
-    source: str = field(default="", compare=False)    # where it was read (error messages)
+    source: str = field(default="", compare=False)  # where it was read (error messages)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -69,7 +70,11 @@ class RobotProfile:
         if self.sensor_field not in SENSOR_FIELDS:
             raise bad(f"sensor field must be one of {SENSOR_FIELDS}, got {self.sensor_field!r}")
         set_(self, "rate_hz", _positive(self.rate_hz, "rate_hz", bad))
-        names = tuple(self.joint_names) if not isinstance(self.joint_names, str) else (self.joint_names,)
+        names = (
+            tuple(self.joint_names)
+            if not isinstance(self.joint_names, str)
+            else (self.joint_names,)
+        )
         if not 1 <= len(names) <= MAX_JOINTS:
             raise bad(f"between 1 and {MAX_JOINTS} joints are supported, got {len(names)}")
         if any(not isinstance(n, str) or not n for n in names) or len(set(names)) != len(names):
@@ -86,18 +91,24 @@ class RobotProfile:
             raise bad(f"bidirectional must be true/false per joint, got {list(self.bidirectional)}")
         set_(self, "bidirectional", tuple(bool(b) for b in self.bidirectional))
         set_(self, "steps", _integer(self.steps, "steps", 1, 100, bad))
-        set_(self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True))
+        set_(
+            self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True)
+        )
         set_(self, "block_length", _integer(self.block_length, "block_length", 4, 65536, bad))
         set_(self, "hop", _integer(self.hop, "hop", 1, 65536, bad))
         if self.block_length % self.hop or self.block_length // self.hop < 2:
-            raise bad(f"hop must divide block_length and be smaller ({self.hop}, {self.block_length})")
+            raise bad(
+                f"hop must divide block_length and be smaller ({self.hop}, {self.block_length})"
+            )
         try:
             low, high = (float(b) for b in self.band_hz)
         except (TypeError, ValueError):
             raise bad(f"band_hz must be [low, high], got {self.band_hz!r}") from None
         if not (math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.rate_hz / 2):
-            raise bad(f"band_hz must satisfy 0 < low < high < {self.rate_hz / 2:g} Hz (Nyquist), "
-                      f"got [{low:g}, {high:g}]")
+            raise bad(
+                f"band_hz must satisfy 0 < low < high < {self.rate_hz / 2:g} Hz (Nyquist), "
+                f"got [{low:g}, {high:g}]"
+            )
         set_(self, "band_hz", (low, high))
         set_(self, "band_order", _integer(self.band_order, "band_order", 1, 12, bad))
 
@@ -135,16 +146,32 @@ class RobotProfile:
     # --- (de)serialisation ----------------------------------------------------
     def to_dict(self) -> dict:
         """The profile as the YAML mapping of CONTRACT section 1b (plus `sensor.range`)."""
-        sensor = {"topic": self.sensor_topic, "field": self.sensor_field, "rate_hz": self.rate_hz,
-                  "denoised_topic": self.denoised_topic}
+        sensor = {
+            "topic": self.sensor_topic,
+            "field": self.sensor_field,
+            "rate_hz": self.rate_hz,
+            "denoised_topic": self.denoised_topic,
+        }
         if math.isfinite(self.sensor_range):
             sensor["range"] = self.sensor_range
-        return {"schema": SCHEMA, "name": self.name, "sensor": sensor,
-                "joints": {"topic": self.joints_topic, "names": list(self.joint_names),
-                           "max_speed": list(self.max_speed), "bidirectional": list(self.bidirectional),
-                           "steps": self.steps},
-                "processing": {"block_length": self.block_length, "hop": self.hop,
-                               "band_hz": list(self.band_hz), "band_order": self.band_order}}
+        return {
+            "schema": SCHEMA,
+            "name": self.name,
+            "sensor": sensor,
+            "joints": {
+                "topic": self.joints_topic,
+                "names": list(self.joint_names),
+                "max_speed": list(self.max_speed),
+                "bidirectional": list(self.bidirectional),
+                "steps": self.steps,
+            },
+            "processing": {
+                "block_length": self.block_length,
+                "hop": self.hop,
+                "band_hz": list(self.band_hz),
+                "band_order": self.band_order,
+            },
+        }
 
     def dumps(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
@@ -163,9 +190,15 @@ class RobotProfile:
                 raise ConfigError(f"{where}: section '{key}' is missing or not a mapping")
             sections[key] = value
         sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
-        _no_unknown(sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where)
-        _no_unknown(joints, ("topic", "names", "max_speed", "bidirectional", "steps"), "joints", where)
-        _no_unknown(processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where)
+        _no_unknown(
+            sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where
+        )
+        _no_unknown(
+            joints, ("topic", "names", "max_speed", "bidirectional", "steps"), "joints", where
+        )
+        _no_unknown(
+            processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where
+        )
         for key in ("topic", "field", "rate_hz"):
             if key not in sensor:
                 raise ConfigError(f"{where}: sensor.{key} is required")
@@ -174,19 +207,24 @@ class RobotProfile:
                 raise ConfigError(f"{where}: joints.{key} is required")
         names = joints["names"]
         defaults = cls.__dataclass_fields__
-        return cls(name=str(data.get("name", "")), sensor_topic=sensor["topic"], sensor_field=sensor["field"],
-                   rate_hz=sensor["rate_hz"],
-                   denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
-                   joints_topic=joints.get("topic", "/joint_states"),
-                   joint_names=tuple(names) if isinstance(names, list) else names,
-                   max_speed=joints["max_speed"], bidirectional=joints.get("bidirectional", True),
-                   steps=joints.get("steps", defaults["steps"].default),
-                   sensor_range=sensor.get("range", math.inf),
-                   block_length=processing.get("block_length", defaults["block_length"].default),
-                   hop=processing.get("hop", defaults["hop"].default),
-                   band_hz=processing.get("band_hz", defaults["band_hz"].default),
-                   band_order=processing.get("band_order", defaults["band_order"].default),
-                   source=source)
+        return cls(
+            name=str(data.get("name", "")),
+            sensor_topic=sensor["topic"],
+            sensor_field=sensor["field"],
+            rate_hz=sensor["rate_hz"],
+            denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
+            joints_topic=joints.get("topic", "/joint_states"),
+            joint_names=tuple(names) if isinstance(names, list) else names,
+            max_speed=joints["max_speed"],
+            bidirectional=joints.get("bidirectional", True),
+            steps=joints.get("steps", defaults["steps"].default),
+            sensor_range=sensor.get("range", math.inf),
+            block_length=processing.get("block_length", defaults["block_length"].default),
+            hop=processing.get("hop", defaults["hop"].default),
+            band_hz=processing.get("band_hz", defaults["band_hz"].default),
+            band_order=processing.get("band_order", defaults["band_order"].default),
+            source=source,
+        )
 
     @classmethod
     def loads(cls, text: str, *, source: str = "") -> "RobotProfile":
@@ -205,7 +243,9 @@ class RobotProfile:
         except FileNotFoundError:
             raise ConfigError(f"{path}: no such robot profile") from None
         except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: cannot read robot profile ({exc.__class__.__name__})") from None
+            raise ConfigError(
+                f"{path}: cannot read robot profile ({exc.__class__.__name__})"
+            ) from None
         return cls.loads(text, source=str(path))
 
 
@@ -214,13 +254,24 @@ def _positive(value, name: str, bad, *, allow_inf: bool = False) -> float:
         number = float(value)
     except (TypeError, ValueError):
         raise bad(f"{name} must be a positive number, got {value!r}") from None
-    if isinstance(value, bool) or not number > 0 or math.isnan(number) or (math.isinf(number) and not allow_inf):
-        raise bad(f"{name} must be a positive{'' if allow_inf else ' finite'} number, got {value!r}")
+    if (
+        isinstance(value, bool)
+        or not number > 0
+        or math.isnan(number)
+        or (math.isinf(number) and not allow_inf)
+    ):
+        raise bad(
+            f"{name} must be a positive{'' if allow_inf else ' finite'} number, got {value!r}"
+        )
     return number
 
 
 def _integer(value, name: str, low: int, high: int, bad) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not low <= value <= high:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not low <= value <= high
+    ):
         raise bad(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     return int(value)
 
@@ -251,8 +302,10 @@ def config_dir() -> Path:
     for candidate in candidates:
         if (candidate / "robots" / f"{DEFAULT_PROFILE}.yaml").is_file():
             return candidate
-    raise ConfigError(f"cannot find the {PACKAGE} config directory (looked in "
-                      f"{', '.join(str(c) for c in candidates[:3])}, ...); is the package installed?")
+    raise ConfigError(
+        f"cannot find the {PACKAGE} config directory (looked in "
+        f"{', '.join(str(c) for c in candidates[:3])}, ...); is the package installed?"
+    )
 
 
 def profile_names() -> list[str]:
@@ -271,13 +324,23 @@ def load_profile(spec: str | os.PathLike | None = None) -> RobotProfile:
     shipped = config_dir() / "robots" / f"{spec}.yaml"
     if shipped.is_file():
         return RobotProfile.load(shipped)
-    raise ConfigError(f"{spec}: no such robot profile file, nor a shipped profile "
-                      f"(shipped: {', '.join(profile_names())})")
+    raise ConfigError(
+        f"{spec}: no such robot profile file, nor a shipped profile "
+        f"(shipped: {', '.join(profile_names())})"
+    )
 
 
 def default_profile() -> RobotProfile:
     return load_profile(None)
 
 
-__all__ = ["RobotProfile", "load_profile", "default_profile", "profile_names", "config_dir", "SCHEMA",
-           "SENSOR_FIELDS", "MAX_JOINTS"]
+__all__ = [
+    "RobotProfile",
+    "load_profile",
+    "default_profile",
+    "profile_names",
+    "config_dir",
+    "SCHEMA",
+    "SENSOR_FIELDS",
+    "MAX_JOINTS",
+]

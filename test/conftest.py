@@ -4,6 +4,7 @@ Every such test gets a private random ROS_DOMAIN_ID with localhost-only discover
 starts the nodes as separate processes (the venv's console scripts) and stops them
 all at the end, also when the test fails.
 """
+
 from __future__ import annotations
 
 import random
@@ -15,17 +16,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.demo import NodeGroup
+from egovib_ros.orchestration import NodeGroup, Watcher
+
 
 class NodeProcesses(NodeGroup):
-    """The demo's NodeGroup, addressed by process handle as the tests like it."""
+    """orchestration.NodeGroup, addressed by process handle as the tests like it."""
 
     def __init__(self, domain_id: int, log_dir: Path):
         super().__init__(log_dir, domain_id)
 
-    def start(self, executable: str, params: dict | None = None, *, log_name: str | None = None):
-        """Run `executable --ros-args -p name:=value ...`; output goes to a log file."""
-        return super().start(f"{log_name or executable}.{len(self.procs)}", executable, params)
+    def start(
+        self, executable: str, params: dict | None = None, *, log_name: str | None = None, **options
+    ):
+        """Run `executable --ros-args -p name:=value ...`; output goes to a log file.
+        `options`: remap, namespace, args (see NodeGroup.start)."""
+        return super().start(
+            f"{log_name or executable}.{len(self.procs)}", executable, params, **options
+        )
 
     def _name(self, proc: subprocess.Popen) -> str:
         return next(name for name, p in self.procs.items() if p is proc)
@@ -59,43 +66,148 @@ def nodes(ros_domain, tmp_path):
         procs.cleanup()
 
 
-class RosClient:
-    """An rclpy node in the test process (own context), spun on demand."""
-
-    def __init__(self, domain_id: int):
-        import rclpy
-        from rclpy.experimental import EventsExecutor
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("test_client", context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-
-    def spin_until(self, predicate, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return bool(predicate())
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
 @pytest.fixture
 def ros_client(ros_domain):
-    client = RosClient(ros_domain)
+    """An rclpy node in the test process (own context, the test's domain), spun on demand."""
+    client = Watcher("test_client")
     try:
         yield client
     finally:
         client.close()
+
+
+class Feeder:
+    """Publishes a robot's sensor stream (Imu, one message per sample, the profile's field)
+    and JointStates from the test process in real time, 10 ms at a time, and keeps what it
+    sent. JointStates carry `joint_names` (default: the profile's joints among ten others,
+    in an order of their own, as a real robot's joint_state_broadcaster does)."""
+
+    def __init__(
+        self,
+        client,
+        profile,
+        *,
+        namespace: str = "",
+        joint_names=None,
+        velocity=None,
+        rate_hz: float | None = None,
+        seed: int = 0,
+        split_joints: bool = False,
+    ):
+        from sensor_msgs.msg import Imu, JointState
+
+        from egovib_ros.nodes.common import stream_publisher_qos
+
+        prefix = f"{namespace.rstrip('/')}/" if namespace else ""
+        self.client, self.profile = client, profile
+        self.raw_pub = client.node.create_publisher(
+            Imu, prefix + profile.node_sensor_topic, stream_publisher_qos()
+        )
+        self.joint_pub = client.node.create_publisher(
+            JointState, prefix + profile.node_joints_topic, stream_publisher_qos()
+        )
+        self.rate_hz = rate_hz or profile.rate_hz
+        self.joint_names = list(joint_names) if joint_names is not None else many_joints(profile)
+        speeds = {
+            **{n: 0.1 * k for k, n in enumerate(self.joint_names)},  # other joints: anything
+            **{n: 0.3 * vmax for n, vmax in zip(profile.joint_names, profile.max_speed)},
+            **(velocity or {}),
+        }
+        self.velocity = np.array([speeds[name] for name in self.joint_names])
+        self.split_joints = split_joints  # two publishers, each with half of the joints
+        self.rng = np.random.default_rng(seed)
+        self.stamp0 = time.time_ns()
+        self.next_index = 0
+        self.stamps: list[np.ndarray] = []
+        self.values: list[np.ndarray] = []
+
+    def wait_for_subscribers(self, timeout: float = 30.0) -> bool:
+        return self.client.spin_until(
+            lambda: (
+                self.raw_pub.get_subscription_count() > 0
+                and self.joint_pub.get_subscription_count() > 0
+            ),
+            timeout,
+        )
+
+    def run(self, seconds: float, *, skip_s: float = 0.0) -> None:
+        """Publish `seconds` of white noise at constant joint velocities; `skip_s` first jumps
+        the stamps (a restart after a gap)."""
+        self.next_index += int(round(skip_s * self.rate_hz))
+        n = int(round(seconds * self.rate_hz))
+        index = self.next_index + np.arange(n)
+        stamps = self.stamp0 + (index * (1e9 / self.rate_hz)).astype(np.int64)
+        joint_stamps = stamps[:: max(1, int(round(self.rate_hz / 1000.0)))]
+        self.publish(
+            stamps,
+            self.rng.normal(0.0, 0.5, (n, 3)),
+            joint_stamps,
+            np.tile(self.velocity, (len(joint_stamps), 1)),
+            all_joints=True,
+        )
+        self.next_index += n
+
+    def publish(
+        self, stamps, values, joint_stamps, joint_velocity, *, all_joints: bool = False
+    ) -> None:
+        """Publish recorded arrays at their own pace (stamps relative to the first); velocities
+        are of the profile's joints unless `all_joints` (then of `joint_names`)."""
+        from egovib_ros.ros_convert import encode_imu_batch, encode_joint_state_batch
+
+        names = self.joint_names
+        if not all_joints:
+            columns = {name: j for j, name in enumerate(self.profile.joint_names)}
+            full = np.tile(self.velocity, (len(joint_stamps), 1))
+            for k, name in enumerate(names):
+                if name in columns:
+                    full[:, k] = joint_velocity[:, columns[name]]
+            joint_velocity = full
+        t0, start = int(min(stamps[0], joint_stamps[0])), time.monotonic()
+        i = k = 0
+        while i < len(stamps) or k < len(joint_stamps):
+            due = t0 + int((time.monotonic() - start + 0.01) * 1e9)
+            i_end, k_end = np.searchsorted(stamps, due), np.searchsorted(joint_stamps, due)
+            if k_end > k:
+                parts = [slice(None)]
+                if self.split_joints:
+                    parts = [slice(0, len(names) // 2), slice(len(names) // 2, None)]
+                messages = [
+                    encode_joint_state_batch(
+                        joint_stamps[k:k_end] + h * 100_000,
+                        np.zeros((k_end - k, len(names[part]))),
+                        joint_velocity[k:k_end, part],
+                        names[part],
+                    )
+                    for h, part in enumerate(parts)
+                ]
+                for row in zip(*messages):  # in stamp order, publisher after publisher
+                    for data in row:
+                        self.joint_pub.publish(data)
+            if i_end > i:
+                for data in encode_imu_batch(
+                    stamps[i:i_end], values[i:i_end], "imu_link", self.profile.sensor_field
+                ):
+                    self.raw_pub.publish(data)
+            i, k = i_end, k_end
+            self.client.spin_for(0.01)
+        self.stamps.append(np.asarray(stamps))
+        self.values.append(np.asarray(values))
+
+    def sent(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate(self.stamps), np.concatenate(self.values)
+
+
+def many_joints(profile) -> list[str]:
+    """A JointState's names: the profile's joints among ten others, shuffled (fixed order)."""
+    names = list(profile.joint_names) + [f"other_joint_{i}" for i in range(10)]
+    order = np.random.default_rng(len(names)).permutation(len(names))
+    return [names[i] for i in order]
+
+
+@pytest.fixture
+def feeder(ros_client):
+    """Feeder factory bound to the test's ros_client: feeder(profile, **options)."""
+    return lambda profile, **options: Feeder(ros_client, profile, **options)
 
 
 @pytest.fixture(scope="session")
@@ -103,9 +215,16 @@ def sim_model_path(tmp_path_factory) -> Path:
     """A noise model calibrated offline from a short simulated superposition sweep."""
     from egovib_ros.core import calibrate_arrays
     from egovib_ros.sim import simulate_sweep
+
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=11)
-    model, _ = calibrate_arrays(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
-                                sweep="superposition", source="test sweep")
+    model, _ = calibrate_arrays(
+        rec.accel_stamps_ns,
+        rec.accel,
+        rec.joint_stamps_ns,
+        rec.joint_velocity,
+        sweep="superposition",
+        source="test sweep",
+    )
     assert np.all(model.counts[model.axis_mask()] > 0)
     path = tmp_path_factory.mktemp("model") / "model.npz"
     model.save(path)

@@ -1,4 +1,5 @@
 """Synthetic streams for core tests: known joint velocities and known noise per cell."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,8 +12,14 @@ def stamps(n: int, rate_hz: float, offset_ns: int = 0) -> np.ndarray:
     return (offset_ns + np.round(np.arange(n) * 1e9 / rate_hz)).astype(np.int64)
 
 
-def stream(duration_s: float, cells: list[tuple[float, float]], *, sigma: list[float] | None = None,
-           seed: int = 0, gravity: float = 9.81) -> dict:
+def stream(
+    duration_s: float,
+    cells: list[tuple[float, float]],
+    *,
+    sigma: list[float] | None = None,
+    seed: int = 0,
+    gravity: float = 9.81,
+) -> dict:
     """Piecewise-constant joint velocities (one cell per equal segment), white noise whose
     std per segment is `sigma`, gravity on z. Joint and accelerometer clocks are offset."""
     rng = np.random.default_rng(seed)
@@ -26,15 +33,30 @@ def stream(duration_s: float, cells: list[tuple[float, float]], *, sigma: list[f
     sig = np.ones(len(cells)) if sigma is None else np.asarray(sigma, dtype=float)
     accel = rng.normal(size=(n, 3)) * sig[seg_acc, None]
     accel[:, 2] += gravity
-    return {"t_acc": t_acc, "accel": accel, "t_joint": t_joint, "velocity": velocity,
-            "segment": seg_acc}
+    return {
+        "t_acc": t_acc,
+        "accel": accel,
+        "t_joint": t_joint,
+        "velocity": velocity,
+        "segment": seg_acc,
+    }
 
 
-def push_random_chunks(processor, data: dict, rng: np.random.Generator, max_chunk: int = 400,
-                       joint_lead_ns: int = 25_000_000):
+def push_random_chunks(
+    processor,
+    data: dict,
+    rng: np.random.Generator,
+    max_chunk: int = 400,
+    joint_lead_ns: int = 25_000_000,
+):
     """Interleave joint-state and accelerometer chunks of random sizes in time order, joint
     states running `joint_lead_ns` ahead. Returns what the pushes returned."""
-    t_acc, accel, t_joint, velocity = data["t_acc"], data["accel"], data["t_joint"], data["velocity"]
+    t_acc, accel, t_joint, velocity = (
+        data["t_acc"],
+        data["accel"],
+        data["t_joint"],
+        data["velocity"],
+    )
     out = []
     i = j = 0
     while i < len(t_acc):
@@ -44,7 +66,7 @@ def push_random_chunks(processor, data: dict, rng: np.random.Generator, max_chun
         if j_stop > j:
             out.append(processor.push_joint_states(t_joint[j:j_stop], velocity[j:j_stop]))
             j = j_stop
-        out.append(processor.push_accel(t_acc[i:i + k], accel[i:i + k]))
+        out.append(processor.push_accel(t_acc[i : i + k], accel[i : i + k]))
         i += k
     if j < len(t_joint):
         out.append(processor.push_joint_states(t_joint[j:], velocity[j:]))

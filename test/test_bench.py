@@ -1,4 +1,5 @@
 """`egovib bench --quick` writes every figure (as ratios to real time) with the machine noted."""
+
 import json
 
 from egovib_ros import bench
@@ -11,12 +12,47 @@ def test_bench_quick_writes_json_and_markdown(tmp_path):
     data = json.loads(out.read_text())
     machine = data["machine"]
     assert machine["cores"] >= 1 and machine["cpu_model"] and machine["numpy"]
-    figures = {**data["batch"], **data["stream"], **data["calibration"], **data["simulation_and_bags"]}
-    for key in ("batch_x_realtime", "stream_hop_median_us", "stream_hop_p99_us", "calibration_s",
-                "simulation_x_realtime", "bag_write_x_realtime", "bag_read_x_realtime"):
+    figures = {
+        **data["batch"],
+        **data["stream"],
+        **data["calibration"],
+        **data["simulation_and_bags"],
+    }
+    for key in (
+        "batch_x_realtime",
+        "stream_hop_median_us",
+        "stream_hop_p99_us",
+        "calibration_s",
+        "simulation_x_realtime",
+        "bag_write_x_realtime",
+        "bag_read_x_realtime",
+    ):
         assert figures[key] > 0, key
     assert figures["stream_hop_p99_us"] >= figures["stream_hop_median_us"]
     assert data["calibration"]["cells"] == 441
+    bags = data["bags"]  # denoise end to end beside a copy of the same bag (issue 10)
+    for key in (
+        "denoise_x_realtime",
+        "denoise_zstd_x_realtime",
+        "file_copy_x_realtime",
+        "bag_copy_x_realtime",
+        "denoise_vs_file_copy",
+        "denoise_vs_bag_copy",
+        "imu_stream_zstd_size_ratio",
+    ):
+        assert bags[key] > 0, key
+    assert bags["zstd_output_size_ratio"] > 2 and bags["imu_stream_zstd_size_ratio"] > 2
+    assert bags["bag_signal_s"] > 2.5
+    for key in (
+        "read_scanner",
+        "read_mcap_library",
+        "read_rosbags",
+        "write_package",
+        "write_mcap_library",
+        "write_rosbags",
+    ):
+        assert bags["mcap"][f"{key}_msgs_per_s"] > 0, key
+    assert "a bag copy" in (tmp_path / "bench.md").read_text()
     assert set(data["targets"]) == set(bench.TARGETS)
     assert all(t["met"] in (True, False) for t in data["targets"].values())
     markdown = (tmp_path / "bench.md").read_text()

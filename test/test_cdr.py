@@ -1,4 +1,5 @@
 """egovib_ros.cdr: the vectorised codec agrees with rosbags for both Imu vector fields."""
+
 import numpy as np
 import pytest
 
@@ -14,7 +15,9 @@ def test_imu_field_roundtrip_matches_rosbags(field, frame_id):
     raws = cdr.encode_imu_batch(stamps, values, frame_id, field)
     ts = cdr.typestore()
     for stamp, xyz, raw in zip(stamps, values, raws):
-        assert raw == bytes(ts.serialize_cdr(cdr.imu_message(int(stamp), xyz, frame_id, field), cdr.IMU_TYPE))
+        assert raw == bytes(
+            ts.serialize_cdr(cdr.imu_message(int(stamp), xyz, frame_id, field), cdr.IMU_TYPE)
+        )
     got_stamps, got = cdr.decode_imu_batch(raws, field)
     assert np.array_equal(got_stamps, stamps) and np.array_equal(got, values)
     other = "angular_velocity" if field == "linear_acceleration" else "linear_acceleration"
@@ -29,7 +32,9 @@ def test_replace_field_keeps_every_other_byte(field):
     raw = bytes(ts.serialize_cdr(msg, cdr.IMU_TYPE))
     fast = cdr.replace_imu_field([raw, raw], np.array([[7.0, 8.0, 9.0], [0.0, 0.0, 1.0]]), field)
     # the per-message path (mixed lengths) gives the same bytes
-    odd = bytes(ts.serialize_cdr(cdr.imu_message(1, [0, 0, 0], "a_longer_frame_name"), cdr.IMU_TYPE))
+    odd = bytes(
+        ts.serialize_cdr(cdr.imu_message(1, [0, 0, 0], "a_longer_frame_name"), cdr.IMU_TYPE)
+    )
     slow = cdr.replace_imu_field([raw, odd], np.array([[7.0, 8.0, 9.0], [0.0, 0.0, 1.0]]), field)
     assert fast[0] == slow[0]
     out = ts.deserialize_cdr(fast[0], cdr.IMU_TYPE)

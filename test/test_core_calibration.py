@@ -1,4 +1,5 @@
 """Calibration: known per-cell noise recovered, one pass, rejection, resume (issue 2)."""
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -30,7 +31,9 @@ def test_white_noise_levels_and_rayleigh_spread_are_recovered(calibrated):
     # and 8 bins: about 1 % sampling error)...
     np.testing.assert_allclose(np.array(level) / level[1], np.array(SIGMA) / SIGMA[1], rtol=0.03)
     # ...and the magnitude of complex Gaussian bins is Rayleigh: std/mean = sqrt(4/pi - 1).
-    np.testing.assert_allclose(np.array(spread) / np.array(level), np.sqrt(4 / np.pi - 1), rtol=0.05)
+    np.testing.assert_allclose(
+        np.array(spread) / np.array(level), np.sqrt(4 / np.pi - 1), rtol=0.05
+    )
 
 
 def test_matches_an_independent_reference_computation():
@@ -41,11 +44,15 @@ def test_matches_an_independent_reference_computation():
     x = data["accel"].sum(axis=1)
     y, _ = signal.sosfilt(sos, x, zi=signal.sosfilt_zi(sos) * x[0])
     stft = signal.ShortTimeFFT(analysis_window(64, 32), hop=32, fs=FS, mfft=64, fft_mode="onesided")
-    spectra = np.abs(stft.stft(y, p0=0, p1=(len(y) - 64) // 32 + 1, k_offset=32))    # blocks fully inside
+    spectra = np.abs(
+        stft.stft(y, p0=0, p1=(len(y) - 64) // 32 + 1, k_offset=32)
+    )  # blocks fully inside
     cell = cell_index(model, (0.9, -0.012))
     assert model.counts[cell] == spectra.shape[1] == stats["blocks_used"]
     np.testing.assert_allclose(model.mean[cell][0], spectra.mean(axis=1), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(model.std[cell][0], spectra.std(axis=1, ddof=1), rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(
+        model.std[cell][0], spectra.std(axis=1, ddof=1), rtol=1e-7, atol=1e-12
+    )
 
 
 def test_streaming_any_chunking_equals_one_pass(calibrated):
@@ -65,34 +72,40 @@ def test_memory_stays_bounded_however_long_the_recording():
     sizes = []
     for start in range(0, len(data["t_acc"]), 3000):
         stop = start + 3000
-        j0, j1 = np.searchsorted(data["t_joint"], data["t_acc"][[start, min(stop, len(data["t_acc"])) - 1]] + [0, 25_000_000])
+        j0, j1 = np.searchsorted(
+            data["t_joint"],
+            data["t_acc"][[start, min(stop, len(data["t_acc"])) - 1]] + [0, 25_000_000],
+        )
         acc.push_joint_states(data["t_joint"][j0:j1], data["velocity"][j0:j1])
         acc.push_accel(data["t_acc"][start:stop], data["accel"][start:stop])
-        sizes.append((len(acc._framer._buf_t), len(acc._framer._joint_t)))
+        sizes.append(acc.backlog)
     assert max(s[0] for s in sizes) < 200 and max(s[1] for s in sizes) < 1400
 
 
 def test_reversals_are_rejected_as_unsteady_and_off_grid_blocks_too():
     data = stream(6, [(0.0, 0.0)], seed=6)
     t = data["t_joint"] / 1e9
-    sign = np.where(np.floor(t / 0.1) % 2 == 0, 1.0, -1.0)        # reverses every 0.1 s
+    sign = np.where(np.floor(t / 0.1) % 2 == 0, 1.0, -1.0)  # reverses every 0.1 s
     data["velocity"] = np.stack([1.5 * sign, np.zeros_like(t)], axis=1)
     model, stats = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
     n_reversals = int(np.sum(np.diff(sign) != 0))
     assert stats["rejected"]["unsteady"] >= n_reversals
     used = np.argwhere(model.counts > 0)
     assert sorted(model.grid[0][used[:, 0]].tolist()) == [-1.5, 1.5]
-    data["velocity"] = np.tile([0.15, 0.0], (len(t), 1))              # half way between cells
+    data["velocity"] = np.tile([0.15, 0.0], (len(t), 1))  # half way between cells
     model, stats = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
     assert model.counts.sum() == 0 and stats["rejected"]["off_grid"] > 0
 
 
 def test_superposition_sweep_ignores_cells_with_both_joints_moving():
     data = stream(8, [(1.5, 0.0), (1.5, 0.02)], seed=7)
-    model, stats = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"],
-                                    sweep="superposition")
+    model, stats = calibrate_arrays(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], sweep="superposition"
+    )
     assert model.measured == "superposition"
-    assert model.counts[cell_index(model, (1.5, 0.02))] == 0 and stats["rejected"]["not_in_sweep"] > 0
+    assert (
+        model.counts[cell_index(model, (1.5, 0.02))] == 0 and stats["rejected"]["not_in_sweep"] > 0
+    )
     assert model.counts[cell_index(model, (1.5, 0.0))] > 0
 
 

@@ -1,10 +1,10 @@
 """Axis handling, band-pass with carried state, window and overlap-add (issue 2)."""
+
 import numpy as np
 import pytest
 from scipy import signal
 
-from egovib_ros.core import BandPass, analysis_window, channel_matrix, overlap_add
-from egovib_ros.core import filters
+from egovib_ros.core import BandPass, analysis_window, channel_matrix, filters, overlap_add
 from egovib_ros.core.blocks import validate_blocking
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -31,10 +31,14 @@ def test_bandpass_chunked_equals_whole_and_scipy(monkeypatch, use_kernel):
     chunked = np.concatenate([bp.process(part) for part in np.split(x, cuts, axis=1)], axis=1)
     np.testing.assert_array_equal(chunked, whole)
     sos = bp.sos
-    reference = signal.sosfilt(sos, x, axis=-1, zi=signal.sosfilt_zi(sos)[:, None, :] * x[None, :, 0, None])[0]
+    reference = signal.sosfilt(
+        sos, x, axis=-1, zi=signal.sosfilt_zi(sos)[:, None, :] * x[None, :, 0, None]
+    )[0]
     np.testing.assert_allclose(whole, reference, rtol=0, atol=1e-12)
     # Steady-state start: a constant (gravity) input gives no ringing at all.
-    flat = BandPass(sample_rate_hz=3000, band_hz=(150, 750), order=4, n_channels=1).process(np.full((1, 300), 9.81))
+    flat = BandPass(sample_rate_hz=3000, band_hz=(150, 750), order=4, n_channels=1).process(
+        np.full((1, 300), 9.81)
+    )
     assert np.max(np.abs(flat)) < 1e-9
 
 
@@ -53,9 +57,11 @@ def test_window_sums_to_one_and_overlap_add_reconstructs():
     window = analysis_window(64, 32)
     x = np.random.default_rng(2).normal(size=(64 * 10, 1))
     padded = np.concatenate([np.zeros((32, 1)), x, np.zeros((64, 1))])
-    blocks = np.stack([padded[i:i + 64] * window[:, None] for i in range(0, len(padded) - 63, 32)])
+    blocks = np.stack(
+        [padded[i : i + 64] * window[:, None] for i in range(0, len(padded) - 63, 32)]
+    )
     y = overlap_add(blocks, 32)
-    np.testing.assert_allclose(y[32:32 + len(x)], x, atol=1e-12)
+    np.testing.assert_allclose(y[32 : 32 + len(x)], x, atol=1e-12)
 
 
 def test_blocking_validation_messages():

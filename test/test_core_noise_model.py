@@ -1,5 +1,5 @@
 """Noise model: Eq. 5/6, interpolation, empty cells, file round trip and bad files (issue 2)."""
-import dataclasses
+
 import logging
 
 import numpy as np
@@ -15,19 +15,29 @@ GRID = (np.array([-1.0, 0.0, 1.0]), np.array([-0.5, 0.0, 0.5]))
 def tiny_model(measured="superposition", mean=None, std=None, counts=None):
     """3 x 3 grid, one channel, L = 4 (3 bins): small enough to check by hand."""
     shape = (3, 3, 1, 3)
-    return NoiseModel(grid=GRID, joint_names=("a", "b"), channels=("combined",),
-                      mean=np.zeros(shape) if mean is None else mean,
-                      std=np.zeros(shape) if std is None else std,
-                      counts=np.ones((3, 3), dtype=int) if counts is None else counts,
-                      block_length=4, hop=2, window=analysis_window(4, 2), measured=measured)
+    return NoiseModel(
+        grid=GRID,
+        joint_names=("a", "b"),
+        channels=("combined",),
+        mean=np.zeros(shape) if mean is None else mean,
+        std=np.zeros(shape) if std is None else std,
+        counts=np.ones((3, 3), dtype=int) if counts is None else counts,
+        block_length=4,
+        hop=2,
+        window=analysis_window(4, 2),
+        measured=measured,
+    )
 
 
 def test_eq6_superposition_matches_hand_computation():
     mean = np.zeros((3, 3, 1, 3))
     std = np.zeros((3, 3, 1, 3))
-    mean[1, 1, 0] = [0.5, 0.5, 0.5]; std[1, 1, 0] = [1.2, 0.0, 0.0]   # background (0, 0)
-    mean[0, 1, 0] = [2.0, 3.0, 4.0]; std[0, 1, 0] = [0.3, 0.3, 0.0]   # joint a = -1 alone
-    mean[1, 2, 0] = [1.0, 1.0, 1.0]; std[1, 2, 0] = [0.4, 0.4, 2.0]   # joint b = +0.5 alone
+    mean[1, 1, 0] = [0.5, 0.5, 0.5]
+    std[1, 1, 0] = [1.2, 0.0, 0.0]  # background (0, 0)
+    mean[0, 1, 0] = [2.0, 3.0, 4.0]
+    std[0, 1, 0] = [0.3, 0.3, 0.0]  # joint a = -1 alone
+    mean[1, 2, 0] = [1.0, 1.0, 1.0]
+    std[1, 2, 0] = [0.4, 0.4, 2.0]  # joint b = +0.5 alone
     model = tiny_model(mean=mean, std=std)
     mu, sd = model.superposed()
     # mu = 2 + 1 - 0.5 etc.; sd = sqrt(0.3^2 + 0.4^2 + 1.2^2) = sqrt(1.69) = 1.3
@@ -61,7 +71,7 @@ def test_empty_cells_are_filled_by_superposition_and_logged(caplog):
     rng = np.random.default_rng(1)
     mean = rng.uniform(1, 2, size=(3, 3, 1, 3))
     counts = np.ones((3, 3), dtype=int)
-    counts[0, 0] = 0                                   # off-axis cell never visited
+    counts[0, 0] = 0  # off-axis cell never visited
     model = tiny_model(measured="full", mean=mean, counts=counts)
     with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
         table = model.estimate_table()
@@ -74,25 +84,51 @@ def test_empty_cells_are_filled_by_superposition_and_logged(caplog):
 
 def test_save_load_round_trip_is_exact(tmp_path):
     rng = np.random.default_rng(2)
-    model = tiny_model(measured="full", mean=rng.uniform(size=(3, 3, 1, 3)), std=rng.uniform(size=(3, 3, 1, 3)),
-                       counts=rng.integers(0, 100, size=(3, 3)))
+    model = tiny_model(
+        measured="full",
+        mean=rng.uniform(size=(3, 3, 1, 3)),
+        std=rng.uniform(size=(3, 3, 1, 3)),
+        counts=rng.integers(0, 100, size=(3, 3)),
+    )
     model.provenance["source"] = "bags/sweep"
     path = tmp_path / "model.npz"
     model.save(path)
     loaded = NoiseModel.load(path)
-    for field in dataclasses.fields(NoiseModel):
-        a, b = getattr(model, field.name), getattr(loaded, field.name)
-        if field.name == "provenance":
+    fields = (
+        "grid",
+        "joint_names",
+        "cells",
+        "cell_mean",
+        "cell_std",
+        "cell_counts",
+        "sample_rate_hz",
+        "block_length",
+        "hop",
+        "window",
+        "window_name",
+        "band_hz",
+        "band_order",
+        "channels",
+        "measured",
+        "profile",
+        "provenance",
+        "mean",
+        "std",
+        "counts",
+    )
+    for name in fields:
+        a, b = getattr(model, name), getattr(loaded, name)
+        if name == "provenance":
             assert b["source"] == "bags/sweep" and b["software_version"] and b["created"]
-        elif field.name == "grid":
+        elif name == "grid":
             for ga, gb in zip(a, b):
                 np.testing.assert_array_equal(ga, gb)
         elif isinstance(a, np.ndarray):
             np.testing.assert_array_equal(a, b)
             assert a.dtype == b.dtype
         else:
-            assert a == b, field.name
-    with np.load(path, allow_pickle=False) as data:      # plain arrays only
+            assert a == b, name
+    with np.load(path, allow_pickle=False) as data:  # plain arrays only
         assert int(data["schema_version"]) == SCHEMA_VERSION
 
 
@@ -129,21 +165,38 @@ def test_bad_model_files_give_one_line_errors(tmp_path):
 
 def test_superposition_for_one_and_three_joints():
     rng = np.random.default_rng(3)
-    one = NoiseModel(grid=(np.array([-1.0, 0.0, 1.0]),), joint_names=("a",), channels=("combined",),
-                     mean=rng.uniform(1, 2, (3, 1, 3)), std=rng.uniform(0, 1, (3, 1, 3)),
-                     counts=np.ones(3, dtype=int), block_length=4, hop=2, window=analysis_window(4, 2),
-                     measured="superposition")
+    one = NoiseModel(
+        grid=(np.array([-1.0, 0.0, 1.0]),),
+        joint_names=("a",),
+        channels=("combined",),
+        mean=rng.uniform(1, 2, (3, 1, 3)),
+        std=rng.uniform(0, 1, (3, 1, 3)),
+        counts=np.ones(3, dtype=int),
+        block_length=4,
+        hop=2,
+        window=analysis_window(4, 2),
+        measured="superposition",
+    )
     mu, sd = one.superposed()
-    np.testing.assert_allclose(mu, one.mean)             # one joint: Eq. 6 is the identity
+    np.testing.assert_allclose(mu, one.mean)  # one joint: Eq. 6 is the identity
     np.testing.assert_allclose(sd, one.std)
     grid = tuple(np.array([-1.0, 0.0, 1.0]) for _ in range(3))
     mean, std = np.zeros((3, 3, 3, 1, 3)), np.zeros((3, 3, 3, 1, 3))
     mean[1, 1, 1], std[1, 1, 1] = 1.0, 0.2
     mean[2, 1, 1], mean[1, 2, 1], mean[1, 1, 2] = 3.0, 4.0, 5.0
     std[2, 1, 1], std[1, 2, 1], std[1, 1, 2] = 0.3, 0.4, 0.5
-    three = NoiseModel(grid=grid, joint_names=("a", "b", "c"), channels=("combined",), mean=mean, std=std,
-                       counts=np.ones((3, 3, 3), dtype=int), block_length=4, hop=2, window=analysis_window(4, 2),
-                       measured="superposition")
+    three = NoiseModel(
+        grid=grid,
+        joint_names=("a", "b", "c"),
+        channels=("combined",),
+        mean=mean,
+        std=std,
+        counts=np.ones((3, 3, 3), dtype=int),
+        block_length=4,
+        hop=2,
+        window=analysis_window(4, 2),
+        measured="superposition",
+    )
     mu, sd = three.superposed()
     np.testing.assert_allclose(mu[2, 2, 2, 0], 3 + 4 + 5 - 2 * 1.0)
     np.testing.assert_allclose(sd[2, 2, 2, 0], np.sqrt(0.09 + 0.16 + 0.25 + 2 * 0.04))
@@ -156,8 +209,14 @@ def test_malformed_fields_and_empty_models_are_one_line_errors(tmp_path):
     tiny_model().save(good)
     with np.load(good, allow_pickle=False) as data:
         fields = {k: data[k] for k in data.files}
-    cases = {"n_joints": np.array([2, 2]), "joint_names": np.array("a"), "band_hz": np.array([150.0]),
-             "sample_rate_hz": np.array("fast"), "grid_0": np.array([-1.0, np.nan, 1.0]), "hop": np.array(0)}
+    cases = {
+        "n_joints": np.array([2, 2]),
+        "joint_names": np.array("a"),
+        "band_hz": np.array([150.0]),
+        "sample_rate_hz": np.array("fast"),
+        "grid_0": np.array([-1.0, np.nan, 1.0]),
+        "hop": np.array(0),
+    }
     for key, bad in cases.items():
         path = tmp_path / f"bad_{key}.npz"
         np.savez(path, **{**fields, key: bad})

@@ -1,12 +1,18 @@
 """Spectral subtraction: latency, streaming == batch, and bad input (issue 2)."""
-import dataclasses
+
 import logging
 
 import numpy as np
 import pytest
 from synthetic import FS, push_random_chunks, stream
 
-from egovib_ros.core import BandPass, StreamingDenoiser, calibrate_arrays, channel_matrix, denoise_batch
+from egovib_ros.core import (
+    BandPass,
+    StreamingDenoiser,
+    calibrate_arrays,
+    channel_matrix,
+    denoise_batch,
+)
 from egovib_ros.errors import StreamError
 
 CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
@@ -20,11 +26,16 @@ def model():
 
 
 def zero(model):
-    return dataclasses.replace(model, mean=np.zeros_like(model.mean), std=np.zeros_like(model.std))
+    return model.replace(mean=np.zeros_like(model.mean), std=np.zeros_like(model.std))
 
 
 def bandpassed(accel, channels):
-    bp = BandPass(sample_rate_hz=FS, band_hz=(150.0, 750.0), order=4, n_channels=3 if channels == "per_axis" else 1)
+    bp = BandPass(
+        sample_rate_hz=FS,
+        band_hz=(150.0, 750.0),
+        order=4,
+        n_channels=3 if channels == "per_axis" else 1,
+    )
     return bp.process(channel_matrix(accel, channels).T).T
 
 
@@ -40,10 +51,10 @@ def test_zero_noise_estimate_gives_bandpassed_input_delayed_by_one_block(model, 
     denoiser = StreamingDenoiser(zero(model), channels=channels)
     denoiser.push_joint_states(data["t_joint"], data["velocity"])
     lo, hi = denoiser.delay_samples
-    assert (lo, hi) == (32, 63)                      # 10.7 .. 21 ms at 3 kHz
+    assert (lo, hi) == (32, 63)  # 10.7 .. 21 ms at 3 kHz
     chunks, emitted = [], 0
-    for n in range(1, 700):                          # one sample at a time
-        chunk = denoiser.push_accel(data["t_acc"][n - 1:n], data["accel"][n - 1:n])
+    for n in range(1, 700):  # one sample at a time
+        chunk = denoiser.push_accel(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n])
         chunks.append(chunk)
         emitted += len(chunk)
         if n >= 64:
@@ -58,7 +69,9 @@ def test_zero_noise_estimate_gives_bandpassed_input_delayed_by_one_block(model, 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_random_chunkings_of_60_s_equal_batch(model, seed):
     data = stream(60, CELLS, seed=10 + seed)
-    b_stamps, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    b_stamps, b_values, _ = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
+    )
     denoiser = StreamingDenoiser(model)
     chunks = push_random_chunks(denoiser, data, np.random.default_rng(seed))
     stamps, values = collect(chunks + [denoiser.flush()])
@@ -69,10 +82,13 @@ def test_random_chunkings_of_60_s_equal_batch(model, seed):
 
 def test_combined_channel_streaming_equals_batch_and_reduces_noise(model):
     data = stream(10, CELLS[1:4], seed=5)
-    _, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model,
-                                   channels="combined")
+    _, b_values, _ = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model, channels="combined"
+    )
     denoiser = StreamingDenoiser(model, channels="combined")
-    _, values = collect(push_random_chunks(denoiser, data, np.random.default_rng(3)) + [denoiser.flush()])
+    _, values = collect(
+        push_random_chunks(denoiser, data, np.random.default_rng(3)) + [denoiser.flush()]
+    )
     assert np.max(np.abs(values - b_values)) <= 1e-12
     raw = bandpassed(data["accel"], "combined")
     # Pure ego-noise: subtraction of mean + std removes most of it.
@@ -93,7 +109,7 @@ def test_no_joint_state_passes_bandpassed_signal_and_counts(model, caplog):
 def test_stale_joint_state_is_held_briefly_then_missing(model):
     data = stream(2, [(1.5, 0.0)], seed=2)
     denoiser = StreamingDenoiser(model, max_hold_s=0.05)
-    denoiser.push_joint_states(data["t_joint"][:200], data["velocity"][:200])     # first 0.2 s only
+    denoiser.push_joint_states(data["t_joint"][:200], data["velocity"][:200])  # first 0.2 s only
     denoiser.push_accel(data["t_acc"], data["accel"])
     denoiser.flush()
     stats = denoiser.stats
@@ -101,23 +117,34 @@ def test_stale_joint_state_is_held_briefly_then_missing(model):
     assert stats["blocks_no_joint_state"] > stats["blocks"] // 2
 
 
-def test_nonfinite_samples_are_replaced_and_counted(model):
+def test_bad_samples_are_missing_counted_and_never_output(model):
     data = stream(2, [(1.5, 0.02)], seed=3)
     accel = data["accel"].copy()
     accel[[100, 101, 2000], 1] = [np.nan, np.inf, -np.inf]
-    stamps, values, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
-    assert np.all(np.isfinite(values)) and len(values) == len(accel)
-    assert stats["nonfinite_replaced"] == 3
+    accel[3000, 2] = 1e181  # flipped bytes: far beyond the sensor's +-78.5
+    stamps, values, stats = denoise_batch(
+        data["t_acc"], accel, data["t_joint"], data["velocity"], model
+    )
+    assert np.all(np.isfinite(values)) and len(values) == len(accel) - 4
+    assert stats["samples_bad"] == 4 and stats["gap_filled_samples"] == 4
+    assert not np.isin(data["t_acc"][[100, 101, 2000, 3000]], stamps).any()
+    # bridged like any short gap: the same as never having received those samples
+    keep = np.ones(len(accel), dtype=bool)
+    keep[[100, 101, 2000, 3000]] = False
+    _, gapped, _ = denoise_batch(
+        data["t_acc"][keep], data["accel"][keep], data["t_joint"], data["velocity"], model
+    )
+    np.testing.assert_array_equal(values, gapped)
 
 
 def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(model):
     data = stream(4, [(1.5, 0.02)], seed=4)
     keep = np.ones(len(data["t_acc"]), dtype=bool)
-    keep[1000:1003] = False              # 3 missing samples: bridged
-    keep[5000:5600] = False              # 0.2 s gap: segment ends, filter restarts
+    keep[1000:1003] = False  # 3 missing samples: bridged
+    keep[5000:5600] = False  # 0.2 s gap: segment ends, filter restarts
     t_acc, accel = data["t_acc"][keep], data["accel"][keep]
     t_acc = t_acc.copy()
-    t_acc[[7000, 7001]] = t_acc[[7001, 7000]]        # one sample out of order
+    t_acc[[7000, 7001]] = t_acc[[7001, 7000]]  # one sample out of order
     stamps, values, stats = denoise_batch(t_acc, accel, data["t_joint"], data["velocity"], model)
     # 3 bridged + 1: dropping the late sample leaves a one-sample hole, bridged too.
     assert stats["gap_filled_samples"] == 4
@@ -126,7 +153,9 @@ def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(
     assert len(stamps) == len(t_acc) - 1 and np.all(np.diff(stamps) > 0)
     data_gappy = dict(data, t_acc=t_acc, accel=accel)
     denoiser = StreamingDenoiser(model)
-    s_stamps, s_values = collect(push_random_chunks(denoiser, data_gappy, np.random.default_rng(9)) + [denoiser.flush()])
+    s_stamps, s_values = collect(
+        push_random_chunks(denoiser, data_gappy, np.random.default_rng(9)) + [denoiser.flush()]
+    )
     np.testing.assert_array_equal(s_stamps, stamps)
     assert np.max(np.abs(s_values - values)) <= 1e-12
 
@@ -134,8 +163,12 @@ def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(
 def test_out_of_grid_velocity_uses_edge_cells_and_is_counted(model):
     data = stream(2, [(5.0, 0.02)], seed=6)
     edge = dict(data, velocity=np.minimum(data["velocity"], 3.0))
-    _, outside, stats = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
-    _, clamped, _ = denoise_batch(edge["t_acc"], edge["accel"], edge["t_joint"], edge["velocity"], model)
+    _, outside, stats = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
+    )
+    _, clamped, _ = denoise_batch(
+        edge["t_acc"], edge["accel"], edge["t_joint"], edge["velocity"], model
+    )
     assert stats["blocks_out_of_grid"] == stats["blocks"]
     np.testing.assert_array_equal(outside, clamped)
 
@@ -145,7 +178,7 @@ def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
     denoiser = StreamingDenoiser(model)
     with pytest.raises(StreamError, match="1500 Hz but the model expects 3000 Hz"):
         denoiser.push_accel((np.arange(1000) * 666_667).astype(np.int64), data["accel"][:1000])
-    with pytest.raises(StreamError, match="1500 Hz"):                 # and it keeps refusing
+    with pytest.raises(StreamError, match="1500 Hz"):  # and it keeps refusing
         denoiser.push_accel((np.arange(1000, 1100) * 666_667).astype(np.int64), data["accel"][:100])
     with pytest.raises(StreamError, match="sample rate"):
         StreamingDenoiser(model, sample_rate_hz=1000.0)
@@ -175,11 +208,13 @@ def test_joint_states_lagging_the_accelerometer_across_long_gaps_still_equal_bat
     data = stream(6, CELLS[1:5], seed=12)
     keep = np.ones(len(data["t_acc"]), dtype=bool)
     for start in (3000, 9000, 14000):
-        keep[start:start + 300] = False                 # 0.1 s gaps: each ends a segment
+        keep[start : start + 300] = False  # 0.1 s gaps: each ends a segment
     data = dict(data, t_acc=data["t_acc"][keep], accel=data["accel"][keep])
-    b_stamps, b_values, stats = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    b_stamps, b_values, stats = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
+    )
     assert stats["resets"] == 3
-    denoiser = StreamingDenoiser(model)                  # joint states arrive 10 ms late (< joint_wait 20 ms)
+    denoiser = StreamingDenoiser(model)  # joint states arrive 10 ms late (< joint_wait 20 ms)
     chunks = push_random_chunks(denoiser, data, np.random.default_rng(4), joint_lead_ns=-10_000_000)
     stamps, values = collect(chunks + [denoiser.flush()])
     np.testing.assert_array_equal(stamps, b_stamps)
@@ -189,45 +224,58 @@ def test_joint_states_lagging_the_accelerometer_across_long_gaps_still_equal_bat
 @pytest.mark.parametrize("length,hop", [(64, 16), (32, 16)])
 def test_other_block_settings_keep_latency_and_streaming_equal_batch(length, hop):
     data = stream(6, CELLS[:4], seed=13)
-    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"],
-                                block_length=length, hop=hop)
+    model, _ = calibrate_arrays(
+        data["t_acc"],
+        data["accel"],
+        data["t_joint"],
+        data["velocity"],
+        block_length=length,
+        hop=hop,
+    )
     denoiser = StreamingDenoiser(model)
     assert denoiser.delay_samples == (length - hop, length - 1)
     denoiser.push_joint_states(data["t_joint"], data["velocity"])
     emitted, chunks = 0, []
     for n in range(1, 400):
-        chunks.append(denoiser.push_accel(data["t_acc"][n - 1:n], data["accel"][n - 1:n]))
+        chunks.append(denoiser.push_accel(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n]))
         emitted += len(chunks[-1])
         if n >= length:
             assert length - hop <= n - emitted <= length - 1
     chunks += [denoiser.push_accel(data["t_acc"][399:], data["accel"][399:]), denoiser.flush()]
     stamps, values = collect(chunks)
-    b_stamps, b_values, _ = denoise_batch(data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model)
+    b_stamps, b_values, _ = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
+    )
     np.testing.assert_array_equal(stamps, b_stamps)
     assert np.max(np.abs(values - b_values)) <= 1e-12
 
 
 def test_dead_axis_with_spectral_floor_stays_finite(model):
     data = stream(1, [(1.5, 0.02)], seed=14)
-    accel = np.zeros_like(data["accel"])                # a sensor delivering exact zeros
-    _, values, _ = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model, floor=1.0)
+    accel = np.zeros_like(data["accel"])  # a sensor delivering exact zeros
+    _, values, _ = denoise_batch(
+        data["t_acc"], accel, data["t_joint"], data["velocity"], model, floor=1.0
+    )
     assert np.all(values == 0)
 
 
 def test_leading_nonfinite_samples_are_dropped_not_zeroed(model):
     data = stream(2, [(1.5, 0.02)], seed=15)
     accel = data["accel"].copy()
-    accel[:5] = np.nan                                  # nothing to hold yet
-    stamps, values, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
-    clean_stamps, clean, _ = denoise_batch(data["t_acc"][5:], data["accel"][5:], data["t_joint"], data["velocity"],
-                                           model)
+    accel[:5] = np.nan  # nothing to hold yet
+    stamps, values, stats = denoise_batch(
+        data["t_acc"], accel, data["t_joint"], data["velocity"], model
+    )
+    clean_stamps, clean, _ = denoise_batch(
+        data["t_acc"][5:], data["accel"][5:], data["t_joint"], data["velocity"], model
+    )
     np.testing.assert_array_equal(stamps, clean_stamps)
-    np.testing.assert_array_equal(values, clean)        # no zero-to-gravity step ringing like a tap
+    np.testing.assert_array_equal(values, clean)  # no zero-to-gravity step ringing like a tap
 
 
 def test_backward_clock_jump_restarts_instead_of_dropping_everything(model):
     first, second = stream(2, [(1.5, 0.02)], seed=16), stream(2, [(1.5, 0.02)], seed=17)
-    assert second["t_acc"][0] < first["t_acc"][-1]            # a bag played in a loop
+    assert second["t_acc"][0] < first["t_acc"][-1]  # a bag played in a loop
     denoiser = StreamingDenoiser(model)
     rng = np.random.default_rng(5)
     chunks = push_random_chunks(denoiser, first, rng) + push_random_chunks(denoiser, second, rng)
@@ -235,19 +283,41 @@ def test_backward_clock_jump_restarts_instead_of_dropping_everything(model):
     expected = np.concatenate([first["t_acc"], second["t_acc"]])
     np.testing.assert_array_equal(stamps, expected)
     stats = denoiser.stats
-    assert stats["resets"] == 1 and stats["dropped_out_of_order"] == stats["joint_states_dropped"] == 0
+    assert (
+        stats["resets"] == 1 and stats["dropped_out_of_order"] == stats["joint_states_dropped"] == 0
+    )
     assert stats["blocks_no_joint_state"] == 0 and np.all(np.isfinite(values))
 
 
 def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
     path = tmp_path / "elbow.npz"
-    dataclasses.replace(model, joint_names=("shoulder", "elbow")).save(path)
+    model.replace(joint_names=("shoulder", "elbow")).save(path)
     from egovib_ros.core import NoiseModel
-    with pytest.raises(StreamError, match=r"elbow.npz: model joints \['shoulder', 'elbow'\] do not match"):
-        StreamingDenoiser(NoiseModel.load(path), joint_names=("r_wrist_roll_joint", "r_gripper_joint"))
+
+    with pytest.raises(
+        StreamError, match=r"elbow.npz: model joints \['shoulder', 'elbow'\] do not match"
+    ):
+        StreamingDenoiser(
+            NoiseModel.load(path), joint_names=("r_wrist_roll_joint", "r_gripper_joint")
+        )
 
 
 def test_stream_errors_name_their_source(model):
     denoiser = StreamingDenoiser(model, source="/accelerometer/raw")
-    with pytest.raises(StreamError, match=r"^/accelerometer/raw: accelerometer chunk"):
+    with pytest.raises(StreamError, match=r"^/accelerometer/raw: sensor chunk"):
         denoiser.push_accel(np.arange(4, dtype=np.int64), np.zeros((4, 2)))
+
+
+def test_a_mostly_bad_recording_is_refused_not_denoised(model):
+    from egovib_ros.core import check_bad_share
+
+    data = stream(2, [(1.5, 0.02)], seed=21)
+    accel = data["accel"].copy()
+    accel[: len(accel) // 4] = np.nan  # 25 % bad
+    _, _, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
+    assert stats["samples_bad"] == len(accel) // 4
+    with pytest.raises(
+        StreamError, match=r"bag.mcap: 1500 of 6000 sensor samples \(25.0 %\) are bad"
+    ):
+        check_bad_share(stats, "bag.mcap")
+    check_bad_share(stats, "bag.mcap", limit=0.3)

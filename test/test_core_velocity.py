@@ -1,4 +1,5 @@
 """Per-block joint velocity matched by stamps (issue 2)."""
+
 import numpy as np
 
 from egovib_ros.core import HELD, MATCHED, MISSING, block_mean_velocity
@@ -11,8 +12,8 @@ def test_mean_over_span_hold_and_missing():
     last = np.array([2, 5, 41, 3], dtype=np.int64) * 1_000_000
     mean, steady, status = block_mean_velocity(t, v, first, last, max_hold_ns=5_000_000)
     np.testing.assert_allclose(mean[0], [2, 20])
-    np.testing.assert_allclose(mean[1], [4, 40])           # none inside: hold stamp 3 ms (1 ms old)
-    assert np.isnan(mean[2]).all()                         # last state 29 ms old: missing
+    np.testing.assert_allclose(mean[1], [4, 40])  # none inside: hold stamp 3 ms (1 ms old)
+    assert np.isnan(mean[2]).all()  # last state 29 ms old: missing
     np.testing.assert_allclose(mean[3], [3, 30])
     assert status.tolist() == [MATCHED, HELD, MISSING, MATCHED]
     # Steadiness: first half [1] vs second half [2, 3] -> |1 - 2.5| = 1.5
@@ -27,6 +28,7 @@ def test_one_block_path_is_bit_identical_to_vectorised():
     last = first + 21_000_000
     many = block_mean_velocity(t, v, first, last, max_hold_ns=50_000_000, with_steadiness=False)[0]
     for b in range(0, 300, 7):
-        one = block_mean_velocity(t, v, first[b:b + 1], last[b:b + 1], max_hold_ns=50_000_000,
-                                  with_steadiness=False)[0]
+        one = block_mean_velocity(
+            t, v, first[b : b + 1], last[b : b + 1], max_hold_ns=50_000_000, with_steadiness=False
+        )[0]
         np.testing.assert_array_equal(one[0], many[b])

@@ -1,4 +1,6 @@
-"""Every baseline runs on the same data through the real core and returns the right shape and delay."""
+"""Every baseline runs on the same data through the real core and returns the right
+shape and delay."""
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -12,7 +14,8 @@ FS = 3000.0
 
 
 def _recording(velocity_of_t, duration_s, *, taps=(), seed=0):
-    """Velocity-dependent band-limited vibration (+ optional decaying taps on x) with joint states."""
+    """Velocity-dependent band-limited vibration (+ optional decaying taps on x) with
+    joint states."""
     rng = np.random.default_rng(seed)
     n, m = int(duration_s * FS), int(duration_s * 1000)
     accel_t = (np.arange(n) * 1e9 / FS).astype(np.int64)
@@ -20,14 +23,27 @@ def _recording(velocity_of_t, duration_s, *, taps=(), seed=0):
     velocity = velocity_of_t(joint_t / 1e9)
     v_at_accel = np.stack([np.interp(accel_t, joint_t, velocity[:, j]) for j in range(2)], axis=1)
     sos = signal.butter(4, [250, 600], btype="bandpass", fs=FS, output="sos")
-    level = 0.05 + np.abs(v_at_accel[:, 0]) / MAX_SPEED[0] + 0.5 * np.abs(v_at_accel[:, 1]) / MAX_SPEED[1]
+    level = (
+        0.05
+        + np.abs(v_at_accel[:, 0]) / MAX_SPEED[0]
+        + 0.5 * np.abs(v_at_accel[:, 1]) / MAX_SPEED[1]
+    )
     ego = signal.sosfilt(sos, rng.normal(size=(n, 3)), axis=0) * level[:, None]
     contact = np.zeros((n, 3))
     for onset in taps:
         k = np.arange(min(240, n - onset))
-        contact[onset:onset + k.size, 0] = 4.0 * np.exp(-k / 30.0) * np.sin(2 * np.pi * 420 * k / FS)
-    return Recording(accel_t, ego + contact + [0.0, 0.0, 9.81], joint_t, np.cumsum(velocity, 0) / 1e3, velocity,
-                     contact=contact, ego=ego)
+        contact[onset : onset + k.size, 0] = (
+            4.0 * np.exp(-k / 30.0) * np.sin(2 * np.pi * 420 * k / FS)
+        )
+    return Recording(
+        accel_t,
+        ego + contact + [0.0, 0.0, 9.81],
+        joint_t,
+        np.cumsum(velocity, 0) / 1e3,
+        velocity,
+        contact=contact,
+        ego=ego,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +51,11 @@ def context():
     grid = default_grid()
     cells = [(a, 0.0) for a in grid[0]] + [(0.0, b) for b in grid[1] if b != 0]
     dwell = 0.5
-    sweep = _recording(lambda t: np.array(cells)[np.minimum((t / dwell).astype(int), len(cells) - 1)],
-                       dwell * len(cells), seed=1)
+    sweep = _recording(
+        lambda t: np.array(cells)[np.minimum((t / dwell).astype(int), len(cells) - 1)],
+        dwell * len(cells),
+        seed=1,
+    )
     arrays = (sweep.accel_stamps_ns, sweep.accel, sweep.joint_stamps_ns, sweep.joint_velocity)
     model, _ = calibrate_arrays(*arrays, sweep="superposition")
     model_short, _ = calibrate_arrays(*arrays, sweep="superposition", block_length=32, hop=16)
@@ -46,8 +65,12 @@ def context():
 
 @pytest.fixture(scope="module")
 def moving():
-    return _recording(lambda t: np.stack([1.5 * np.sin(0.9 * t), 0.02 * np.sin(0.6 * t + 1)], axis=1), 6.0,
-                      taps=(3000, 7500, 12000), seed=2)
+    return _recording(
+        lambda t: np.stack([1.5 * np.sin(0.9 * t), 0.02 * np.sin(0.6 * t + 1)], axis=1),
+        6.0,
+        taps=(3000, 7500, 12000),
+        seed=2,
+    )
 
 
 def test_every_method_runs_with_shape_and_delay(context, moving):
@@ -70,8 +93,10 @@ def test_subtraction_methods_reduce_noise_in_order(context, moving):
     """More subtraction, less residual noise: Boll (mean) > paper (mean + std) outside contacts."""
     reference = baselines.combined_bandpassed(moving.contact, context.model)
     seg = metrics.segment_contacts(reference, sample_rate_hz=FS)
-    noise = {name: metrics.noise_mean(baselines.run_method(name, moving, context), seg.no_contact_mask)
-             for name in ("bandpass", "boll", "paper", "wiener")}
+    noise = {
+        name: metrics.noise_mean(baselines.run_method(name, moving, context), seg.no_contact_mask)
+        for name in ("bandpass", "boll", "paper", "wiener")
+    }
     assert noise["bandpass"] > noise["boll"] > noise["paper"]
     assert noise["wiener"] < noise["bandpass"]
 
@@ -80,7 +105,9 @@ def test_denoised_output_is_aligned_with_input_stamps(context, moving):
     """The core's output sample k carries input stamp k: no shift against the clean reference."""
     reference = baselines.combined_bandpassed(moving.contact, context.model)
     for name in ("paper", "per_axis", "paper_L32", "wiener"):
-        assert metrics.estimate_lag(reference, baselines.run_method(name, moving, context)) == 0, name
+        assert metrics.estimate_lag(reference, baselines.run_method(name, moving, context)) == 0, (
+            name
+        )
 
 
 def test_wiener_rule_gain_between_zero_and_one_and_stateful():

@@ -1,4 +1,5 @@
 """`egovib evaluate` end to end on a small simulated bag, and its bad-input errors."""
+
 import dataclasses
 import json
 from pathlib import Path
@@ -16,30 +17,58 @@ from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS
 def simulated(tmp_path_factory):
     """A superposition sweep -> model file, a 10 s motion bag with taps, and a no-contact bag."""
     from egovib_ros.sim import simulate_motion, simulate_sweep
+
     root = tmp_path_factory.mktemp("evaluate")
-    sweep, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, effects={}, seed=11, params=None)
-    model, _ = calibrate_arrays(sweep.accel_stamps_ns, sweep.accel, sweep.joint_stamps_ns,
-                                sweep.joint_velocity, sweep="superposition", source="test sweep")
+    sweep, _ = simulate_sweep(
+        grid="superposition", dwell_s=1.0, settle_s=0.3, effects={}, seed=11, params=None
+    )
+    model, _ = calibrate_arrays(
+        sweep.accel_stamps_ns,
+        sweep.accel,
+        sweep.joint_stamps_ns,
+        sweep.joint_velocity,
+        sweep="superposition",
+        source="test sweep",
+    )
     model_path = root / "model.npz"
     model.save(model_path)
-    motion, truth = simulate_motion(duration_s=10.0, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=12,
-                                    params=None)
+    motion, truth = simulate_motion(
+        duration_s=10.0, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=12, params=None
+    )
     bag = root / "motion_bag"
     write_recording(bag, motion)
-    quiet, _ = simulate_motion(duration_s=6.0, max_speed=0.5, tap_rate_hz=0.0, effects={}, seed=13, params=None)
+    quiet, _ = simulate_motion(
+        duration_s=6.0, max_speed=0.5, tap_rate_hz=0.0, effects={}, seed=13, params=None
+    )
     quiet_bag = root / "quiet_bag"
     write_recording(quiet_bag, quiet)
     # The same data as a real robot would record it: no ground-truth topics.
     robot_bag = root / "robot_bag"
     write_recording(robot_bag, dataclasses.replace(quiet, contact=None, ego=None))
-    return {"root": root, "model": model_path, "bag": bag, "quiet_bag": quiet_bag, "robot_bag": robot_bag,
-            "truth": truth}
+    return {
+        "root": root,
+        "model": model_path,
+        "bag": bag,
+        "quiet_bag": quiet_bag,
+        "robot_bag": robot_bag,
+        "truth": truth,
+    }
 
 
 def test_evaluate_writes_contract_fields(simulated, capsys):
     out = simulated["root"] / "report.json"
-    code = main(["evaluate", str(simulated["bag"]), "--model", str(simulated["model"]), "--json", str(out),
-                 "--calibration", str(simulated["quiet_bag"])])
+    code = main(
+        [
+            "evaluate",
+            str(simulated["bag"]),
+            "--model",
+            str(simulated["model"]),
+            "--json",
+            str(out),
+            "--calibration",
+            str(simulated["quiet_bag"]),
+        ]
+    )
     assert code == 0
     report = json.loads(out.read_text())
     for field in CONTRACT_FIELDS:
@@ -49,19 +78,35 @@ def test_evaluate_writes_contract_fields(simulated, capsys):
     assert report["n_taps"] == len(onsets_ns) > 0
     assert report["noise_mean_denoised"] < report["noise_mean_raw"]
     assert report["noise_reduction_db"] == pytest.approx(
-        20 * np.log10(report["noise_mean_raw"] / report["noise_mean_denoised"]))
+        20 * np.log10(report["noise_mean_raw"] / report["noise_mean_denoised"])
+    )
     assert report["peak_snr_denoised_db"] > report["peak_snr_raw_db"]
     assert 0 < report["tap_retention"] <= 1.5
     assert report["alignment_lag_samples"] == 0
     assert report["threshold_source"].startswith("calibration")
-    assert set(report["methods"]) >= {"bandpass", "boll", "paper", "wiener", "noisereduce", "per_axis"}
+    assert set(report["methods"]) >= {
+        "bandpass",
+        "boll",
+        "paper",
+        "wiener",
+        "noisereduce",
+        "per_axis",
+    }
     assert "wrote" in capsys.readouterr().out
 
 
 def test_evaluate_without_ground_truth_is_a_one_line_error(simulated, capsys):
     out = simulated["root"] / "no_truth.json"
-    code = main(["evaluate", str(simulated["robot_bag"]), "--model", str(simulated["model"]),
-                 "--json", str(out)])
+    code = main(
+        [
+            "evaluate",
+            str(simulated["robot_bag"]),
+            "--model",
+            str(simulated["model"]),
+            "--json",
+            str(out),
+        ]
+    )
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "/accelerometer/contact" in err and "robot_bag" in err
@@ -90,8 +135,21 @@ def test_evaluate_bad_input_exit_2_no_output(simulated, tmp_path, capsys, case):
 
 def test_evaluate_unknown_method_is_config_error(simulated, tmp_path, capsys):
     out = tmp_path / "out.json"
-    assert main(["evaluate", str(simulated["bag"]), "--model", str(simulated["model"]), "--json", str(out),
-                 "--methods", "paper,magic"]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                str(simulated["bag"]),
+                "--model",
+                str(simulated["model"]),
+                "--json",
+                str(out),
+                "--methods",
+                "paper,magic",
+            ]
+        )
+        == 2
+    )
     assert "magic" in capsys.readouterr().err
     assert not out.exists()
 
@@ -99,8 +157,16 @@ def test_evaluate_unknown_method_is_config_error(simulated, tmp_path, capsys):
 def test_figures_quick_regenerates_table_and_every_figure(tmp_path):
     out = tmp_path / "docs"
     assert main(["figures", "--out", str(out), "--quick", "--quiet"]) == 0
-    names = ["eval_results.md", "eval_results.json", "eval_fig5_a.png", "eval_fig5_b.png", "eval_pr_curve.png",
-             "eval_speed.png", "eval_fig3_spectra.png", "eval_fig4_superposition.png"]
+    names = [
+        "eval_results.md",
+        "eval_results.json",
+        "eval_fig5_a.png",
+        "eval_fig5_b.png",
+        "eval_pr_curve.png",
+        "eval_speed.png",
+        "eval_fig3_spectra.png",
+        "eval_fig4_superposition.png",
+    ]
     for name in names:
         assert (out / name).stat().st_size > 1000, name
     assert (out / "eval_fig5_a.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -114,13 +180,44 @@ def test_figures_quick_regenerates_table_and_every_figure(tmp_path):
 
 @pytest.mark.parametrize("channels, like", [("combined", "paper"), ("per_axis", "per_axis")])
 def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, like):
-    """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch method it came from."""
+    """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch
+    method it came from."""
     denoised_bag = tmp_path / "denoised_bag"
-    assert main(["denoise", str(simulated["bag"]), "--model", str(simulated["model"]), "--out",
-                 str(denoised_bag), "--channels", channels, "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "denoise",
+                str(simulated["bag"]),
+                "--model",
+                str(simulated["model"]),
+                "--out",
+                str(denoised_bag),
+                "--channels",
+                channels,
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     out = tmp_path / "report.json"
-    assert main(["evaluate", str(denoised_bag), "--model", str(simulated["model"]), "--json", str(out),
-                 "--calibration", str(simulated["quiet_bag"]), "--methods", f"paper,{like}", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                str(denoised_bag),
+                "--model",
+                str(simulated["model"]),
+                "--json",
+                str(out),
+                "--calibration",
+                str(simulated["quiet_bag"]),
+                "--methods",
+                f"paper,{like}",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     bag = json.loads(out.read_text())["methods"]["bag_denoised"]
     assert like in bag["label"]
     assert bag["samples_missing"] == 0 and bag["alignment_lag_samples"] == 0

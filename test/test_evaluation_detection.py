@@ -1,4 +1,5 @@
 """Event detection and P/R/F1 on constructed onsets."""
+
 import numpy as np
 import pytest
 
@@ -10,12 +11,14 @@ FS = 3000.0
 def _bursts(n, onsets, amplitude=3.0, length=60):
     x = np.zeros(n)
     for onset in onsets:
-        x[onset:onset + length] = amplitude * np.exp(-np.arange(length) / 20.0)
+        x[onset : onset + length] = amplitude * np.exp(-np.arange(length) / 20.0)
     return x
 
 
 def test_detect_events_onsets_and_refractory_merging():
-    x = _bursts(6000, [1000, 1100, 3000])   # 1100 is 33 ms after 1000: same event at 50 ms refractory
+    x = _bursts(
+        6000, [1000, 1100, 3000]
+    )  # 1100 is 33 ms after 1000: same event at 50 ms refractory
     onsets = detection.detect_events(x, 1.0, sample_rate_hz=FS, refractory_s=0.05)
     assert onsets.tolist() == [1000, 3000]
     onsets = detection.detect_events(x, 1.0, sample_rate_hz=FS, refractory_s=0.01)
@@ -24,7 +27,7 @@ def test_detect_events_onsets_and_refractory_merging():
 
 
 def test_match_events_tolerance_one_to_one():
-    tol = int(0.010 * FS)   # 30 samples
+    tol = int(0.010 * FS)  # 30 samples
     truth = np.array([1000, 2000, 3000])
     detected = np.array([1010, 1020, 2031, 2990, 5000])
     tp, fp, fn = detection.match_events(detected, truth, tol)
@@ -62,7 +65,7 @@ def test_pr_curve_sweeps_from_merged_noise_to_missed_taps():
     amplitudes = np.linspace(0.5, 5.0, onsets.size)
     x = np.abs(rng.normal(scale=0.3, size=30000))
     for onset, amplitude in zip(onsets, amplitudes):
-        x[onset:onset + 60] += amplitude * np.exp(-np.arange(60) / 20.0)
+        x[onset : onset + 60] += amplitude * np.exp(-np.arange(60) / 20.0)
     curve = detection.pr_curve(x, onsets, sample_rate_hz=FS, n_thresholds=25)
     assert curve["threshold"].shape == curve["precision"].shape == (25,)
     # Very low thresholds merge noise and taps into a few long events; very high ones miss
@@ -85,18 +88,20 @@ def test_pr2_magnitude_ignores_gravity_and_passes_vibration():
 def test_onset_is_timed_at_constant_fraction_not_by_pre_echo():
     """A weak 20 ms pre-echo before a tap (block smearing) must not move the onset early."""
     x = np.zeros(6000)
-    x[2940:3000] = 0.05                       # pre-echo, 5 % of the peak, 20 ms early
+    x[2940:3000] = 0.05  # pre-echo, 5 % of the peak, 20 ms early
     x[3000:3060] = 1.0 * np.exp(-np.arange(60) / 20.0)
     onsets = detection.detect_events(x, 0.02, sample_rate_hz=FS)
     assert onsets.tolist() == [3000]
     # With the fraction at 0 the onset is the first threshold crossing (the pre-echo).
-    assert detection.detect_events(x, 0.02, sample_rate_hz=FS, onset_fraction=0.0).tolist() == [2940]
+    assert detection.detect_events(x, 0.02, sample_rate_hz=FS, onset_fraction=0.0).tolist() == [
+        2940
+    ]
 
 
 def test_envelope_is_causal_rms():
     x = np.zeros(300)
     x[100] = 3.0
-    env = detection.envelope(x, sample_rate_hz=FS, window_s=0.004)   # 12 samples
+    env = detection.envelope(x, sample_rate_hz=FS, window_s=0.004)  # 12 samples
     assert np.all(env[:100] == 0)
     assert env[100:112] == pytest.approx(np.full(12, 3.0 / np.sqrt(12)))
     assert np.all(env[112:] < 1e-9)

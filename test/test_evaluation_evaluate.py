@@ -1,4 +1,5 @@
 """evaluate_recording on a small simulated recording: fields, fallbacks and ground-truth checks."""
+
 import dataclasses
 
 import numpy as np
@@ -13,14 +14,21 @@ from egovib_ros.sim import simulate_motion, simulate_sweep
 @pytest.fixture(scope="module")
 def model():
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.6, settle_s=0.3, effects={}, seed=21)
-    model, _ = calibrate_arrays(sweep.accel_stamps_ns, sweep.accel, sweep.joint_stamps_ns, sweep.joint_velocity,
-                                sweep="superposition")
+    model, _ = calibrate_arrays(
+        sweep.accel_stamps_ns,
+        sweep.accel,
+        sweep.joint_stamps_ns,
+        sweep.joint_velocity,
+        sweep="superposition",
+    )
     return model
 
 
 @pytest.fixture(scope="module")
 def recording():
-    rec, truth = simulate_motion(duration_s=8.0, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=22)
+    rec, truth = simulate_motion(
+        duration_s=8.0, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=22
+    )
     return rec, truth
 
 
@@ -44,7 +52,7 @@ def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recordi
 def test_primary_fields_are_the_paper_methods(model, recording):
     rec, _ = recording
     report = evaluate_recording(rec, model, methods=["bandpass"])
-    assert "paper" in report["methods"]          # the primary method always runs
+    assert "paper" in report["methods"]  # the primary method always runs
     paper = report["methods"]["paper"]
     assert report["noise_reduction_db"] == paper["noise_reduction_db"]
     assert report["f1_denoised"] == paper["f1"]

@@ -1,4 +1,5 @@
-"""The paper's experiments on a modest simulated run: structure, the table, and issue 5's "Must show".
+"""The paper's experiments on a modest simulated run: structure, the table, and
+issue 5's "Must show".
 
 Thresholds (issue 5, experiment (a) at <= 50 % speed, paper method): peak SNR
 improvement >= 14 dB, no-contact noise reduction >= 20 dB, tap retention >= 0.5,
@@ -7,6 +8,7 @@ A criterion the current simulator misses is reported as xfail with the measured
 reason from experiments.KNOWN_GAPS (printed under the results table too); an
 unexplained miss fails.
 """
+
 import dataclasses
 import json
 
@@ -18,7 +20,6 @@ from egovib_ros.evaluation import baselines, experiments
 from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS
 
 SPEEDS = (0.25, 0.5)
-
 
 
 @pytest.fixture(scope="module")
@@ -34,13 +35,22 @@ def test_results_cover_both_experiments_all_methods_and_speeds(results):
         for report in both.values():
             for field in CONTRACT_FIELDS:
                 assert field in report
-            assert set(report["methods"]) == {"bandpass", "boll", "paper", "wiener", "noisereduce", "per_axis",
-                                              "paper_L32"}
+            assert set(report["methods"]) == {
+                "bandpass",
+                "boll",
+                "paper",
+                "wiener",
+                "noisereduce",
+                "per_axis",
+                "paper_L32",
+            }
             assert report["n_taps"] > 5
             assert report["alignment_lag_samples"] == 0
             for name, m in report["methods"].items():
                 assert m["delay_ms"] is not None
-            assert report["methods"]["paper_L32"]["delay_ms"] < report["methods"]["paper"]["delay_ms"]
+            assert (
+                report["methods"]["paper_L32"]["delay_ms"] < report["methods"]["paper"]["delay_ms"]
+            )
     # experiment (b): light taps, scaled to the largest noise magnitude
     assert all(both["b"]["tap_scale"] > 0 for both in results["speeds"].values())
 
@@ -89,17 +99,25 @@ def test_gaussian_noise_floor_of_mean_plus_std_subtraction():
     for c = mean. The residual is sparse, so its mean |x| drops a little more than its rms.
     Either way mean + std cannot reach 20 dB on broadband Gaussian noise.
     """
+
     def white(seconds, seed):
         rng = np.random.default_rng(seed)
         n, m = int(seconds * 3000), int(seconds * 1000)
-        return ((np.arange(n) * 1e9 / 3000).astype(np.int64), rng.normal(size=(n, 3)),
-                (np.arange(m) * 1e6).astype(np.int64), np.zeros((m, 2)))
+        return (
+            (np.arange(n) * 1e9 / 3000).astype(np.int64),
+            rng.normal(size=(n, 3)),
+            (np.arange(m) * 1e6).astype(np.int64),
+            np.zeros((m, 2)),
+        )
+
     model, _ = calibrate_arrays(*white(30.0, 1))
     test = white(10.0, 2)
     raw = baselines.combined_bandpassed(test[1], model)[3000:-3000]
     reduction = {}
     for include_std in (False, True):
         _, values, _ = denoise_batch(*test, model, channels="combined", include_std=include_std)
-        reduction[include_std] = 20 * np.log10(np.abs(raw).mean() / np.abs(values[3000:-3000, 0]).mean())
+        reduction[include_std] = 20 * np.log10(
+            np.abs(raw).mean() / np.abs(values[3000:-3000, 0]).mean()
+        )
     assert 15.5 < reduction[True] < 19.5
     assert 8.0 < reduction[False] < 12.0

@@ -1,4 +1,5 @@
 """Metrics of CONTRACT section 6 on synthetic signals with known answers."""
+
 import numpy as np
 import pytest
 
@@ -13,11 +14,12 @@ def _decaying_tap(n, peak, freq=400.0, tau=0.01):
 
 
 def _synthetic(n=3 * 3000, onsets=(3000, 4500, 6000), tap_len=150, peak=4.0, noise=0.25, seed=1):
-    """Reference with taps at known onsets; raw = reference + sign noise (|noise| = `noise`) outside taps."""
+    """Reference with taps at known onsets; raw = reference + sign noise
+    (|noise| = `noise`) outside taps."""
     rng = np.random.default_rng(seed)
     reference = np.zeros(n)
     for onset in onsets:
-        reference[onset:onset + tap_len] = _decaying_tap(tap_len, peak)
+        reference[onset : onset + tap_len] = _decaying_tap(tap_len, peak)
     noise_signal = noise * rng.choice([-1.0, 1.0], size=n)
     return reference, noise_signal
 
@@ -58,7 +60,9 @@ def test_known_tap_in_known_noise_gives_known_snr_reduction_retention():
     assert m["n_taps"] == 3
 
 
-@pytest.mark.parametrize("error_scale, expected", [(0.1, 20.0), (10.0, -10.0), (0.0, 35.0), (0.01, 35.0)])
+@pytest.mark.parametrize(
+    "error_scale, expected", [(0.1, 20.0), (10.0, -10.0), (0.0, 35.0), (0.01, 35.0)]
+)
 def test_segmental_snr_known_ratios_and_clamping(error_scale, expected):
     rng = np.random.default_rng(2)
     reference = rng.normal(size=640)

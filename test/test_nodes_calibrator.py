@@ -1,4 +1,5 @@
 """Live calibration on real DDS: sim_hand + sweep_driver + calibrator (+ bag_recorder)."""
+
 from __future__ import annotations
 
 import subprocess
@@ -7,15 +8,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
+from robots import profile, recording
 
-from egovib_ros.core import NoiseModel
+from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
+from egovib_ros.orchestration import reliable_input
+from egovib_ros.ros_convert import diagnostic_values
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}
 # Lossless input on a loaded machine (standard QoS override parameters).
-RELIABLE = {"qos_overrides./accelerometer/raw.subscription.reliability": "reliable",
-            "qos_overrides./joint_states.subscription.reliability": "reliable"}
+RELIABLE = reliable_input("/accelerometer/raw", "/joint_states")
 
 
 def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
@@ -27,10 +31,16 @@ def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
 
 def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_path):
     live_model, bag = tmp_path / "live.npz", tmp_path / "sweep"
-    cal = nodes.start("calibrator", {"output": str(live_model), "grid": "superposition", **RELIABLE})
-    rec = nodes.start("bag_recorder", {"output": str(bag), "topics": ["joint_states", "accelerometer/raw"]})
+    cal = nodes.start(
+        "calibrator", {"output": str(live_model), "grid": "superposition", **RELIABLE}
+    )
+    rec = nodes.start(
+        "bag_recorder", {"output": str(bag), "topics": ["joint_states", "accelerometer/raw"]}
+    )
     # sim_hand starts once both calibrator and recorder are matched: both see every sample.
-    sim = nodes.start("sim_hand", {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2})
+    sim = nodes.start(
+        "sim_hand", {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2}
+    )
     wait_for_log(nodes, rec, "/accelerometer/raw: subscribed")
     wait_for_log(nodes, rec, "/joint_states: subscribed")
     wait_for_log(nodes, sim, "simulation started")
@@ -42,8 +52,20 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     assert nodes.stop(cal) == 0, nodes.log(cal)
     assert nodes.stop(rec) == 0, nodes.log(rec)
     offline_model = tmp_path / "offline.npz"
-    subprocess.run([EGOVIB, "calibrate", str(bag), "--out", str(offline_model), "--grid", "superposition",
-                    "--quiet"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            EGOVIB,
+            "calibrate",
+            str(bag),
+            "--out",
+            str(offline_model),
+            "--grid",
+            "superposition",
+            "--quiet",
+        ],
+        check=True,
+        capture_output=True,
+    )
 
     live, offline = NoiseModel.load(live_model), NoiseModel.load(offline_model)
     assert live.measured == offline.measured == "superposition"
@@ -60,7 +82,9 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     both = axis & (live.counts > 5) & (offline.counts > 5)
     # Mean spectra equal within sampling error (standard error of the mean, 4 sigma + quantisation).
     sem = live.std[both] / np.sqrt(live.counts[both])[:, None, None]
-    assert np.all(np.abs(live.mean[both] - offline.mean[both]) <= 4 * sem + 1e-9 * live.mean[both].max())
+    assert np.all(
+        np.abs(live.mean[both] - offline.mean[both]) <= 4 * sem + 1e-9 * live.mean[both].max()
+    )
     np.testing.assert_allclose(live.std[both], offline.std[both], rtol=0.25, atol=1e-6)
 
 
@@ -79,11 +103,11 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
         time.sleep(0.2)
         try:
             saved = NoiseModel.load(checkpoint)
-        except ModelFileError:          # not written yet
+        except ModelFileError:  # not written yet
             pass
-    assert nodes.stop(first, sig=9) == -9   # SIGKILL: no chance to write anything at exit
+    assert nodes.stop(first, sig=9) == -9  # SIGKILL: no chance to write anything at exit
     assert not model_path.exists()
-    saved = NoiseModel.load(checkpoint)      # the last checkpoint before the kill
+    saved = NoiseModel.load(checkpoint)  # the last checkpoint before the kill
 
     second = nodes.start("calibrator", params)
     wait_for_log(nodes, second, "resumed from")
@@ -99,3 +123,81 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
     assert np.all(final.counts[kept] > 0)
     # The restarted calibrator added the cells swept after the restart.
     assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum()
+
+
+def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_checkpoints_fail(
+    nodes, ros_client, feeder, tmp_path
+):
+    """A robot that is not the PR2 (3 joints, one one-directional, a gyro at 1 kHz with
+    jittery stamps, joint states at 500 Hz among ten other joints): free-motion calibration
+    through its profile. The checkpoint directory is unusable at first (a file stands where
+    it should be): ERROR on /diagnostics, statistics kept, the write retried; once the
+    directory exists the checkpoint appears, and the final model equals the offline one."""
+    robot = profile(3, rate_hz=1000.0)
+    robot_path = tmp_path / "robot.yaml"
+    robot_path.write_text(robot.dumps())
+    data = recording(robot, 8.0, seed=3, joint_rate_hz=500.0)
+    blocked = tmp_path / "models"
+    blocked.write_text("a file where the model directory should be")
+    output = blocked / "model.npz"
+    cal = nodes.start(
+        "calibrator",
+        {
+            "robot": str(robot_path),
+            "grid": "free",
+            "output": str(output),
+            "checkpoint_period": 1.0,
+            "retry_period": 0.5,
+            **reliable_input(robot.sensor_topic, robot.joints_topic),
+        },
+    )
+    stream = feeder(robot)
+    assert stream.wait_for_subscribers(), nodes.log(cal)
+    t_acc, accel, t_joint, velocity = (
+        data["t_acc"],
+        data["accel"],
+        data["t_joint"],
+        data["velocity"],
+    )
+    half = len(t_acc) // 2
+    joint_half = int(np.searchsorted(t_joint, t_acc[half]))
+    stream.publish(t_acc[:half], accel[:half], t_joint[:joint_half], velocity[:joint_half])
+
+    def failing() -> bool:
+        status = ros_client.statuses.get("calibrator")
+        return (
+            status is not None
+            and status.level == DiagnosticStatus.ERROR
+            and "cannot write checkpoint" in status.message
+            and str(output.parent) in status.message
+        )
+
+    assert ros_client.spin_until(failing, timeout=5.0), (
+        ros_client.statuses.get("calibrator"),
+        nodes.log(cal),
+    )
+    assert cal.poll() is None
+    failures = int(diagnostic_values(ros_client.statuses["calibrator"])["checkpoint_failures"])
+    blocked.unlink()
+    blocked.mkdir()
+    checkpoint = blocked / "model.checkpoint.npz"
+    assert ros_client.spin_until(checkpoint.exists, timeout=5.0), nodes.log(cal)
+    assert ros_client.spin_until(
+        lambda: ros_client.statuses["calibrator"].level != DiagnosticStatus.ERROR, 3.0
+    )
+    stream.publish(t_acc[half:], accel[half:], t_joint[joint_half:], velocity[joint_half:])
+    ros_client.spin_for(0.5)
+    assert nodes.stop(cal) == 0, nodes.log(cal)
+    assert failures >= 1 and "cannot write checkpoint" in nodes.log(cal)
+
+    live = NoiseModel.load(output)
+    offline, stats = calibrate_arrays(t_acc, accel, t_joint, velocity, profile=robot, sweep="free")
+    assert live.profile == robot and live.measured == offline.measured == "free"
+    live_cells, live_counts = live.cells_measured()
+    cells, counts = offline.cells_measured()
+    assert len(cells) > 20 and np.array_equal(live_cells, cells), (len(live_cells), len(cells))
+    assert (
+        np.abs(live_counts - counts).max() <= 1
+        and abs(live_counts.sum() - counts.sum()) <= 0.01 * counts.sum()
+    )
+    assert not checkpoint.exists()

@@ -1,4 +1,5 @@
 """sim_hand on real DDS: follows commands, honours use_sim_time (with bag_player's /clock)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -6,6 +7,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.nodes.common import sensor_qos
+from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.sim import simulate_motion
 
@@ -20,18 +22,28 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     node.create_subscription(Imu, "accelerometer/raw", raw.append, sensor_qos(), raw=True)
     node.create_subscription(JointState, "joint_states", joints.append, sensor_qos(), raw=True)
     sim = nodes.start("sim_hand", {"use_sim_time": True, "publish_ground_truth": False, "seed": 2})
-    player = nodes.start("bag_player", {"bag": str(bag), "clock": True, "wait_for_subscribers": 1,
-                                        "topics": ["/hand_velocity_controller/commands"]})
+    player = nodes.start(
+        "bag_player",
+        {
+            "bag": str(bag),
+            "clock": True,
+            "wait_for_subscribers": 1,
+            "topics": ["/hand_velocity_controller/commands"],
+        },
+    )
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
     ros_client.spin_for(0.3)
     assert player.returncode == 0, nodes.log(player)
     assert nodes.stop(sim) == 0, nodes.log(sim)
 
     stamps, _, _ = decode_imu_messages(raw)
-    j_stamps, _, velocity, _ = decode_joint_state_messages(joints)
+    j_stamps, _, velocity, _ = decode_joint_state_messages(joints, load_profile().joint_names)
     # Stamps come from /clock (the bag's time base, starting near 0), not the wall clock.
     assert len(stamps) > 3000
-    assert recorded.accel_stamps_ns[0] <= stamps[0] and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+    assert (
+        recorded.accel_stamps_ns[0] <= stamps[0]
+        and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+    )
     assert np.all(np.diff(stamps) > 0)
     # Sim time runs at the bag's pace: ~3 kHz of sim time.
     assert abs(len(stamps) / ((stamps[-1] - stamps[0]) / 1e9) - 3000) < 10

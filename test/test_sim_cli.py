@@ -1,4 +1,5 @@
 """`egovib simulate` end to end: real bags written and read back."""
+
 from __future__ import annotations
 
 import json
@@ -14,12 +15,33 @@ from egovib_ros.constants import BAG_TOPICS
 
 def test_simulate_motion_bag_and_truth(tmp_path):
     out, truth = tmp_path / "motion", tmp_path / "truth.json"
-    rc = main(["simulate", "motion", "--duration", "3", "--max-speed", "0.5", "--taps", "2", "--out", str(out),
-               "--seed", "7", "--truth", str(truth), "--effects", "position=0.5,timing=0.01", "--quiet"])
+    rc = main(
+        [
+            "simulate",
+            "motion",
+            "--duration",
+            "3",
+            "--max-speed",
+            "0.5",
+            "--taps",
+            "2",
+            "--out",
+            str(out),
+            "--seed",
+            "7",
+            "--truth",
+            str(truth),
+            "--effects",
+            "position=0.5,timing=0.01",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     assert (out / "metadata.yaml").exists() and list(out.glob("*.mcap"))
     topics = bag_topics(out)
-    assert set(topics) == {BAG_TOPICS[k] for k in ("raw", "contact", "ego", "joint_states", "commands")}
+    assert set(topics) == {
+        BAG_TOPICS[k] for k in ("raw", "contact", "ego", "joint_states", "commands")
+    }
     assert topics[BAG_TOPICS["raw"]] == ("sensor_msgs/msg/Imu", 9000)
     data = json.loads(truth.read_text())
     assert data["seed"] == 7 and data["effects"] == {"position": 0.5, "timing": 0.01}
@@ -32,9 +54,29 @@ def test_simulate_motion_bag_and_truth(tmp_path):
 
 def test_simulate_sweep_cli_matches_library(tmp_path):
     from egovib_ros.sim import simulate_sweep
+
     out = tmp_path / "sweep"
-    assert main(["simulate", "sweep", "--grid", "superposition", "--dwell", "0.1", "--settle", "0.05",
-                 "--out", str(out), "--seed", "3", "--quiet", "--compress"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "sweep",
+                "--grid",
+                "superposition",
+                "--dwell",
+                "0.1",
+                "--settle",
+                "0.05",
+                "--out",
+                str(out),
+                "--seed",
+                "3",
+                "--quiet",
+                "--compress",
+            ]
+        )
+        == 0
+    )
     rec = read_recording(out)
     ref, _ = simulate_sweep(grid="superposition", dwell_s=0.1, settle_s=0.05, seed=3)
     np.testing.assert_array_equal(rec.accel, ref.accel)
@@ -44,17 +86,35 @@ def test_simulate_sweep_cli_matches_library(tmp_path):
 
 def test_bad_input_exit_2_and_no_output(tmp_path, capsys):
     out = tmp_path / "bag"
-    args = ["simulate", "motion", "--duration", "1", "--max-speed", "0.5", "--taps", "0", "--out", str(out),
-            "--quiet"]
+    args = [
+        "simulate",
+        "motion",
+        "--duration",
+        "1",
+        "--max-speed",
+        "0.5",
+        "--taps",
+        "0",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     # the console script itself: one-line error, exit status 2
-    res = subprocess.run([sys.executable, "-m", "egovib_ros.cli", *args, "--effects", "wobble=1"],
-                         capture_output=True, text=True)
-    assert res.returncode == 2 and "wobble" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    res = subprocess.run(
+        [sys.executable, "-m", "egovib_ros.cli", *args, "--effects", "wobble=1"],
+        capture_output=True,
+        text=True,
+    )
+    assert (
+        res.returncode == 2 and "wobble" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    )
     bad = tmp_path / "bad.yaml"
     bad.write_text("controller_tau: 0.1\n")
-    for extra, needle in ((["--params", str(tmp_path / "missing.yaml")], "missing.yaml"),
-                          (["--params", str(bad)], "controller_tau"),
-                          (["--max-speed", "2"], "max-speed")):
+    for extra, needle in (
+        (["--params", str(tmp_path / "missing.yaml")], "missing.yaml"),
+        (["--params", str(bad)], "controller_tau"),
+        (["--max-speed", "2"], "max-speed"),
+    ):
         assert main(args + extra) == 2
         err = capsys.readouterr().err
         assert needle in err and len(err.strip().splitlines()) == 1

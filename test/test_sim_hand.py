@@ -1,4 +1,5 @@
 """Tests of the streaming simulator egovib_ros.sim.hand (base model)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -9,8 +10,18 @@ from egovib_ros.errors import ConfigError
 from egovib_ros.sim import HandSimulator, SimParams
 from egovib_ros.sim.hand import LSB_MS2, quantise
 
-FIELDS = ("accel_stamps_ns", "accel", "contact", "ego", "joint_stamps_ns", "joint_position", "joint_velocity",
-          "tap_onsets_ns", "true_velocity", "true_position")
+FIELDS = (
+    "accel_stamps_ns",
+    "accel",
+    "contact",
+    "ego",
+    "joint_stamps_ns",
+    "joint_position",
+    "joint_velocity",
+    "tap_onsets_ns",
+    "true_velocity",
+    "true_position",
+)
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +34,7 @@ def _run(params, chunk_sizes, *, seed=3, effects=None, profile=None, taps=2.0):
     sim.set_command([0.6 * MAX_SPEED[0], 0.9 * MAX_SPEED[1]])
     out, start = [], 0
     for n in chunk_sizes:
-        cmds = None if profile is None else profile[start:start + n]
+        cmds = None if profile is None else profile[start : start + n]
         out.append(sim.step(n, commands=cmds))
         start += n
     return {f: np.concatenate([getattr(c, f) for c in out]) for f in FIELDS}
@@ -36,13 +47,17 @@ def _random_chunks(total, rng):
     return sizes
 
 
-@pytest.mark.parametrize("effects", [None, {"position": 0.5, "coupling": 1.0, "acceleration": 1.0,
-                                            "timing": 0.02, "drift": 0.5}])
+@pytest.mark.parametrize(
+    "effects",
+    [None, {"position": 0.5, "coupling": 1.0, "acceleration": 1.0, "timing": 0.02, "drift": 0.5}],
+)
 def test_chunked_steps_equal_one_long_step(params, effects):
-    total = 9000                                  # 3 s: includes gripper reversals and taps
+    total = 9000  # 3 s: includes gripper reversals and taps
     rng = np.random.default_rng(0)
     t = np.arange(total) / 3000
-    profile = np.column_stack([2.5 * np.sin(2 * np.pi * 0.7 * t), 0.04 * np.sign(np.sin(2 * np.pi * 0.5 * t))])
+    profile = np.column_stack(
+        [2.5 * np.sin(2 * np.pi * 0.7 * t), 0.04 * np.sign(np.sin(2 * np.pi * 0.5 * t))]
+    )
     whole = _run(params, [total], effects=effects, profile=profile)
     for _ in range(2):
         parts = _run(params, _random_chunks(total, rng), effects=effects, profile=profile)
@@ -66,7 +81,9 @@ def test_accelerometer_is_quantised_and_clipped(params):
     np.testing.assert_allclose(codes, np.round(codes), atol=1e-9)
     assert LSB_MS2 == pytest.approx(157.0 / 1024)
     clipped = quantise(np.array([[1000.0, -1000.0, 0.0]]))
-    assert clipped[0, 0] == pytest.approx(511 * LSB_MS2) and clipped[0, 1] == pytest.approx(-512 * LSB_MS2)
+    assert clipped[0, 0] == pytest.approx(511 * LSB_MS2) and clipped[0, 1] == pytest.approx(
+        -512 * LSB_MS2
+    )
     # raw = quantised (ego + contact + small sensor noise): within half an LSB + a few noise sigma
     resid = out["accel"] - out["ego"] - out["contact"] - np.asarray(params.zero_g_offset_ms2)
     assert np.abs(resid).max() < LSB_MS2 / 2 + 6 * params.sensor_noise_rms
@@ -75,18 +92,18 @@ def test_accelerometer_is_quantised_and_clipped(params):
 def test_joint_states_like_the_pr2(params):
     out = _run(params, [3000 * 4])
     stamps = out["joint_stamps_ns"]
-    assert np.all(np.diff(stamps) == 1_000_000)                    # 1 kHz
+    assert np.all(np.diff(stamps) == 1_000_000)  # 1 kHz
     phase = (stamps[0] - out["accel_stamps_ns"][0]) % (10**9 // 3000)
-    assert phase != 0                                               # own clock phase vs the accelerometer
+    assert phase != 0  # own clock phase vs the accelerometer
     pos, vel = out["joint_position"], out["joint_velocity"]
     res = np.asarray(params.encoder_resolution)
-    np.testing.assert_allclose(pos / res, np.round(pos / res), atol=1e-6)        # encoder quantisation
+    np.testing.assert_allclose(pos / res, np.round(pos / res), atol=1e-6)  # encoder quantisation
     np.testing.assert_allclose(vel[1:], np.diff(pos, axis=0) * JOINT_RATE_HZ, rtol=1e-9, atol=1e-9)
     # gripper reverses inside its gap limits; wrist is continuous
     gap = out["true_position"][:, 1]
     assert gap.min() >= GRIPPER_GAP_RANGE_M[0] - 1e-9 and gap.max() <= GRIPPER_GAP_RANGE_M[1] + 1e-9
     assert np.any(np.diff(np.sign(out["true_velocity"][:, 1])) != 0)
-    assert out["true_position"][-1, 0] > 2 * np.pi                 # 1.8 rad/s for 4 s
+    assert out["true_position"][-1, 0] > 2 * np.pi  # 1.8 rad/s for 4 s
 
 
 def test_velocity_controller_is_smooth(params):
@@ -100,6 +117,7 @@ def test_velocity_controller_is_smooth(params):
 
 def test_stationary_background_is_small_and_vibration_grows_with_speed(params):
     from egovib_ros.sim.validation import bandpass_combined
+
     levels = []
     for frac in (0.0, 0.3, 1.0):
         sim = HandSimulator(params, seed=0)
@@ -124,7 +142,7 @@ def test_taps_periodic_and_random(params):
     assert np.all(np.abs(chunk.contact[k + 3]).sum(axis=1) > 0)
     active = np.zeros(len(chunk.contact), bool)
     for start in k:
-        active[start:start + int(params.tap_length_s * 3000)] = True
+        active[start : start + int(params.tap_length_s * 3000)] = True
     assert np.all(chunk.contact[~active] == 0)
 
 

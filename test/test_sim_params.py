@@ -1,4 +1,5 @@
 """Tests of egovib_ros.sim.params: config/sim.yaml, YAML round trip, the effects SPEC."""
+
 from __future__ import annotations
 
 import pytest
@@ -28,9 +29,16 @@ def test_partial_yaml_and_sim_section(tmp_path):
     assert p.gripper.path_band_hz == SimParams().gripper.path_band_hz
 
 
-@pytest.mark.parametrize("text,needle", [("nonsense_key: 1\n", "nonsense_key"), ("wrist:\n  teeth: 3\n", "teeth"),
-                                         ("effects: {wobble: 1}\n", "wobble"), ("[1, 2]\n", "mapping"),
-                                         ("a: [\n", "YAML")])
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("nonsense_key: 1\n", "nonsense_key"),
+        ("wrist:\n  teeth: 3\n", "teeth"),
+        ("effects: {wobble: 1}\n", "wobble"),
+        ("[1, 2]\n", "mapping"),
+        ("a: [\n", "YAML"),
+    ],
+)
 def test_bad_yaml_is_config_error(tmp_path, text, needle):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -41,9 +49,12 @@ def test_bad_yaml_is_config_error(tmp_path, text, needle):
 def test_parse_effects():
     assert parse_effects("position=0.5,timing=0.03") == {"position": 0.5, "timing": 0.03}
     assert parse_effects("") == {} and parse_effects(None) == {} and parse_effects("none") == {}
-    assert parse_effects("drift=0,coupling=1") == {"coupling": 1.0}          # zero = off
+    assert parse_effects("drift=0,coupling=1") == {"coupling": 1.0}  # zero = off
     assert parse_effects(" position = 0.5 , ") == {"position": 0.5}
-    assert parse_effects(format_effects({"position": 0.5, "timing": -0.02})) == {"position": 0.5, "timing": -0.02}
+    assert parse_effects(format_effects({"position": 0.5, "timing": -0.02})) == {
+        "position": 0.5,
+        "timing": -0.02,
+    }
     for bad in ("position", "position=abc", "wobble=1", "position=1,position=2", "drift=nan"):
         with pytest.raises(ConfigError):
             parse_effects(bad)

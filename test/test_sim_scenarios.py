@@ -1,4 +1,5 @@
 """Tests of egovib_ros.sim.scenarios: sweeps and random smooth motion."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,9 +32,12 @@ def test_simulate_sweep_recording():
     js = rec.joint_stamps_ns
     for stamp, cmd in zip(rec.command_stamps_ns, rec.commands):
         sel = (js > stamp + 0.2e9) & (js < stamp + 0.3e9)
-        np.testing.assert_allclose(np.abs(rec.joint_velocity[sel]).mean(axis=0), np.abs(cmd),
-                                   atol=0.02 * np.asarray(MAX_SPEED).max() + 1e-3)
-    np.testing.assert_allclose(rec.accel, rec.accel)   # finite
+        np.testing.assert_allclose(
+            np.abs(rec.joint_velocity[sel]).mean(axis=0),
+            np.abs(cmd),
+            atol=0.02 * np.asarray(MAX_SPEED).max() + 1e-3,
+        )
+    np.testing.assert_allclose(rec.accel, rec.accel)  # finite
     assert truth == {"seed": 4, "effects": {}, "tap_onsets_ns": []}
 
 
@@ -41,9 +45,9 @@ def test_motion_commands_smooth_and_bounded():
     t, cmds = motion_commands(60.0, 0.5, seed=1)
     assert np.all(np.abs(cmds) <= 0.5 * np.asarray(MAX_SPEED) + 1e-12)
     frac = np.abs(cmds) / np.asarray(MAX_SPEED)
-    assert frac.max() > 0.4                                      # uses the allowed range
+    assert frac.max() > 0.4  # uses the allowed range
     step = np.abs(np.diff(cmds, axis=0)).max(axis=0) / np.asarray(MAX_SPEED)
-    assert np.all(step < 0.1)                                    # low-pass filtered: no jumps at 50 Hz
+    assert np.all(step < 0.1)  # low-pass filtered: no jumps at 50 Hz
     t2, cmds2 = motion_commands(60.0, 0.5, seed=1)
     np.testing.assert_array_equal(cmds, cmds2)
     with pytest.raises(ConfigError):
@@ -51,8 +55,9 @@ def test_motion_commands_smooth_and_bounded():
 
 
 def test_simulate_motion_with_taps_and_truth():
-    rec, truth = simulate_motion(duration_s=8.0, max_speed=0.5, tap_rate_hz=1.0, seed=2,
-                                 effects={"position": 0.3})
+    rec, truth = simulate_motion(
+        duration_s=8.0, max_speed=0.5, tap_rate_hz=1.0, seed=2, effects={"position": 0.3}
+    )
     assert len(rec.accel) == 24000
     assert truth["seed"] == 2 and truth["effects"] == {"position": 0.3}
     onsets = np.asarray(truth["tap_onsets_ns"])

@@ -8,17 +8,53 @@ Public surface:
     BandPass, channel_matrix          axis handling and band-pass
     analysis_window, overlap_add      block-processing primitives
 """
+
 from egovib_ros.core.blocks import analysis_window, overlap_add
 from egovib_ros.core.calibration import CalibrationAccumulator, calibrate_arrays
 from egovib_ros.core.filters import BandPass, channel_matrix, design_bandpass
 from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, frame_batch
-from egovib_ros.core.subtraction import DenoisedChunk, StreamingDenoiser, denoise_batch, paper_rule
+from egovib_ros.core.stream import (
+    MAX_BAD_SHARE,
+    BlockFramer,
+    Blocks,
+    FramerSettings,
+    check_bad_share,
+    feed,
+    frame_batch,
+)
+from egovib_ros.core.subtraction import (
+    DenoisedChunk,
+    StreamingDenoiser,
+    SubtractionSettings,
+    denoise_batch,
+    paper_rule,
+)
 from egovib_ros.core.velocity import HELD, MATCHED, MISSING, block_mean_velocity
 
 __all__ = [
-    "analysis_window", "overlap_add", "CalibrationAccumulator", "calibrate_arrays", "BandPass",
-    "channel_matrix", "design_bandpass", "MODEL_CHANNELS", "NoiseModel", "BlockFramer", "Blocks",
-    "FramerSettings", "frame_batch", "DenoisedChunk", "StreamingDenoiser", "denoise_batch", "paper_rule",
-    "HELD", "MATCHED", "MISSING", "block_mean_velocity",
+    "analysis_window",
+    "overlap_add",
+    "CalibrationAccumulator",
+    "calibrate_arrays",
+    "BandPass",
+    "channel_matrix",
+    "design_bandpass",
+    "MODEL_CHANNELS",
+    "NoiseModel",
+    "BlockFramer",
+    "Blocks",
+    "FramerSettings",
+    "feed",
+    "frame_batch",
+    "MAX_BAD_SHARE",
+    "check_bad_share",
+    "DenoisedChunk",
+    "StreamingDenoiser",
+    "SubtractionSettings",
+    "denoise_batch",
+    "paper_rule",
+    "HELD",
+    "MATCHED",
+    "MISSING",
+    "block_mean_velocity",
 ]

@@ -1,4 +1,5 @@
 """Block processing settings: analysis window, framing and overlap-add (paper section 2)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,8 +20,10 @@ def analysis_window(block_length: int, hop: int) -> np.ndarray:
     window = signal.get_window("hamming", block_length, fftbins=True)
     window = window * (hop / window.sum())
     if not signal.check_COLA(window, block_length, block_length - hop, tol=1e-10):
-        raise ConfigError(f"hop {hop} does not give a constant overlap-add for a "
-                          f"{block_length}-sample Hamming window")
+        raise ConfigError(
+            f"hop {hop} does not give a constant overlap-add for a "
+            f"{block_length}-sample Hamming window"
+        )
     return window
 
 
@@ -45,5 +48,5 @@ def overlap_add(blocks: np.ndarray, hop: int) -> np.ndarray:
     # Segment i of every block lands `i` hops after the block start: one vectorised add per segment.
     segments = blocks.reshape(n_blocks, overlap, hop, n_channels)
     for i in range(overlap):
-        out[i * hop:(i + n_blocks) * hop] += segments[:, i].reshape(n_blocks * hop, n_channels)
+        out[i * hop : (i + n_blocks) * hop] += segments[:, i].reshape(n_blocks * hop, n_channels)
     return out

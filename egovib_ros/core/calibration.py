@@ -1,69 +1,240 @@
 """One-pass calibration of the noise model (paper section 3, "PR2 Ego-vibration Estimation").
 
-Blocks are framed exactly as in denoising, assigned to the velocity cell nearest their
-mean joint velocity, and accumulated as per-cell sums of magnitudes and of squared
-magnitudes, so memory stays constant however long the recording. A block is rejected
-when its velocity is not steady (e.g. the gripper reversing at a limit, or the
-controller still settling on a new cell) or not close to any grid point.
+Blocks are framed exactly as in denoising, assigned to a velocity cell by their mean
+joint velocity, and accumulated as per-cell sums of magnitudes and of squared
+magnitudes, so memory stays constant however long the recording. Only cells that
+receive blocks are stored (sparse), so any number of joints (1 to 8) works.
+
+Two ways a recording can calibrate, tallied side by side:
+- a sweep (the paper): the robot dwells on grid velocities; a block counts when it
+  is steady and within `cell_tolerance` grid steps of a grid point (settling and
+  gripper reversals are rejected);
+- free motion (a flight, random motion, a day of normal operation): any steady
+  block counts for the cell nearest its velocity.
+`sweep="auto"` picks the sweep tally when most usable blocks sat on grid points
+(AUTO_SWEEP_SHARE), else free motion, and says which in `stats["mode"]`.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from egovib_ros import __version__
-from egovib_ros.constants import BAND_HZ, BAND_ORDER, BLOCK_LENGTH, HOP, JOINT_NAMES, default_grid
 from egovib_ros.core.filters import CHANNEL_LAYOUTS
-from egovib_ros.core.noise_model import MEASURED_KINDS, MODEL_CHANNELS, NoiseModel, sweep_mask
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings
+from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel, sweep_cells, sweep_mask
+from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
 from egovib_ros.core.velocity import MATCHED
 from egovib_ros.errors import ConfigError
+from egovib_ros.robot import RobotProfile, default_profile
+
+SWEEPS = ("auto", "full", "superposition", "free")
+#: In "auto", the share of usable blocks that must sit on grid points to call it a sweep.
+AUTO_SWEEP_SHARE = 0.7
+
+
+class _Tally:
+    """Sparse per-cell sums of magnitude and squared magnitude (rows grow as cells appear)."""
+
+    def __init__(self, n_joints: int, n_channels: int, n_bins: int):
+        self.row_of: dict[int, int] = {}
+        self.cells = np.zeros((0, n_joints), dtype=np.int64)
+        self.sum = np.zeros((16, n_channels, n_bins))
+        self.sumsq = np.zeros_like(self.sum)
+        self.counts = np.zeros(16, dtype=np.int64)
+        self.rejected = {
+            "partial": 0,
+            "no_joint_state": 0,
+            "unsteady": 0,
+            "off_grid": 0,
+            "not_in_sweep": 0,
+        }
+
+    @property
+    def n(self) -> int:
+        return len(self.row_of)
+
+    def rows(self, ids: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        out = np.empty(len(ids), dtype=np.int64)
+        for k, cell_id in enumerate(ids.tolist()):
+            row = self.row_of.get(cell_id)
+            if row is None:
+                row = self.row_of[cell_id] = len(self.row_of)
+                if row >= len(self.counts):
+                    grow = len(self.counts)
+                    self.sum = np.concatenate([self.sum, np.zeros_like(self.sum[:grow])])
+                    self.sumsq = np.concatenate([self.sumsq, np.zeros_like(self.sumsq[:grow])])
+                    self.counts = np.concatenate([self.counts, np.zeros(grow, dtype=np.int64)])
+                self.cells = np.concatenate([self.cells, cells[k : k + 1]])
+            out[k] = row
+        return out
+
+    def add(self, ids: np.ndarray, cells: np.ndarray, magnitude: np.ndarray) -> None:
+        unique, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+        rows = self.rows(unique, cells[first])[inverse]
+        np.add.at(self.sum, rows, magnitude)
+        np.add.at(self.sumsq, rows, magnitude**2)
+        np.add.at(self.counts, rows, 1)
+
+    def statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        k = self.n
+        n = self.counts[:k, None, None].astype(np.float64)
+        mean = self.sum[:k] / np.maximum(n, 1)
+        var = np.divide(self.sumsq[:k] - n * mean**2, n - 1, out=np.zeros_like(mean), where=n > 1)
+        return self.cells.copy(), mean, np.sqrt(np.maximum(var, 0.0)), self.counts[:k].copy()
 
 
 class CalibrationAccumulator:
-    """Accumulates per-cell magnitude statistics from streamed joint states and accelerations."""
+    """Accumulates per-cell magnitude statistics from streamed joint states and sensor samples.
 
-    def __init__(self, *, grid: tuple[np.ndarray, ...] | None = None, joint_names: tuple[str, ...] = JOINT_NAMES,
-                 sample_rate_hz: float = 3000.0, block_length: int = BLOCK_LENGTH, hop: int = HOP,
-                 band_hz: tuple[float, float] = BAND_HZ, band_order: int = BAND_ORDER, sweep: str = "full",
-                 cell_tolerance: float = 0.3, steady_tolerance: float = 0.3,
-                 joint_wait_s: float = 0.02, max_hold_s: float = 0.05, source: str = ""):
-        if sweep not in MEASURED_KINDS:
-            raise ConfigError(f"grid: expected one of {MEASURED_KINDS}, got {sweep!r}")
-        self.grid = tuple(np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else default_grid()))
-        self.joint_names = tuple(joint_names)
+    The robot profile (default: the PR2 hand) gives the grid, joints, rate and blocking;
+    `grid`, `joint_names`, `sample_rate_hz`, `block_length`, `hop`, `band_hz` and
+    `band_order` override it (tests, experiments with other block lengths).
+    """
+
+    def __init__(
+        self,
+        *,
+        profile: RobotProfile | None = None,
+        sweep: str = "full",
+        grid: tuple[np.ndarray, ...] | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        sample_rate_hz: float | None = None,
+        block_length: int | None = None,
+        hop: int | None = None,
+        band_hz: tuple[float, float] | None = None,
+        band_order: int | None = None,
+        cell_tolerance: float = 0.3,
+        steady_tolerance: float = 0.3,
+        free_steady_tolerance: float = 0.5,
+        joint_wait_s: float = 0.02,
+        max_hold_s: float = 0.05,
+        source: str = "",
+    ):
+        if sweep not in SWEEPS:
+            raise ConfigError(f"grid: expected one of {SWEEPS}, got {sweep!r}")
+        base = profile if profile is not None else default_profile()
+        overrides = dict(
+            grid=grid,
+            joint_names=joint_names,
+            sample_rate_hz=sample_rate_hz,
+            block_length=block_length,
+            hop=hop,
+            band_hz=band_hz,
+            band_order=band_order,
+        )
+        # The model carries the profile only when nothing was overridden.
+        self.profile = base if all(v is None for v in overrides.values()) else None
+        self.grid = tuple(
+            np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else base.grid())
+        )
+        self.joint_names = tuple(
+            joint_names
+            if joint_names is not None
+            else (
+                base.joint_names if grid is None else [f"joint{j}" for j in range(len(self.grid))]
+            )
+        )
         if len(self.joint_names) != len(self.grid):
             raise ConfigError(f"{len(self.joint_names)} joint names for {len(self.grid)} grid axes")
+        for name, value in (
+            ("cell_tolerance", cell_tolerance),
+            ("steady_tolerance", steady_tolerance),
+            ("free_steady_tolerance", free_steady_tolerance),
+        ):
+            if not (np.isfinite(value) and 0 < value <= 1):
+                raise ConfigError(f"calibration: {name} must be in (0, 1] grid steps, got {value}")
         self.sweep = sweep
         self.cell_tolerance = float(cell_tolerance)
         self.steady_tolerance = float(steady_tolerance)
-        self.settings = FramerSettings(sample_rate_hz=sample_rate_hz, block_length=block_length, hop=hop,
-                                       band_hz=band_hz, band_order=band_order, layout="all",
-                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s, source=source)
+        self.free_steady_tolerance = float(free_steady_tolerance)
+        self.settings = FramerSettings(
+            sample_rate_hz=sample_rate_hz or base.rate_hz,
+            block_length=block_length or base.block_length,
+            hop=hop or base.hop,
+            band_hz=band_hz or base.band_hz,
+            band_order=band_order or base.band_order,
+            layout="all",
+            sensor_range=base.sensor_range,
+            joint_wait_s=joint_wait_s,
+            max_hold_s=max_hold_s,
+            source=source,
+        )
         self._framer = BlockFramer(self.settings, len(self.grid))
         self.window = self._framer.window
-        shape = self.grid_shape + (len(MODEL_CHANNELS), block_length // 2 + 1)
-        self._sum = np.zeros(shape)
-        self._sumsq = np.zeros(shape)
-        self._counts = np.zeros(self.grid_shape, dtype=np.int64)
-        self._spacing = [np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid]
-        self.expected_cells = sweep_mask(self.grid, sweep)     # the cells this sweep visits
-        self.rejected = {"partial": 0, "no_joint_state": 0, "unsteady": 0, "off_grid": 0, "not_in_sweep": 0}
+        n_bins = self.settings.block_length // 2 + 1
+        self._sweep_tally = _Tally(len(self.grid), len(MODEL_CHANNELS), n_bins)
+        self._free_tally = _Tally(len(self.grid), len(MODEL_CHANNELS), n_bins)
+        self._spacing = [
+            np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid
+        ]
+        self._shape = tuple(len(g) for g in self.grid)
+        self._zero = np.array([int(np.argmin(np.abs(g))) for g in self.grid])
         assert CHANNEL_LAYOUTS["all"] == MODEL_CHANNELS
 
     @property
     def grid_shape(self) -> tuple[int, ...]:
-        return tuple(len(g) for g in self.grid)
+        return self._shape
+
+    @property
+    def mode(self) -> str:
+        """Which tally the model comes from: a sweep ("full"/"superposition") or "free"."""
+        if self.sweep in ("full", "superposition", "free"):
+            return self.sweep
+        sweep_blocks = int(self._sweep_tally.counts.sum())
+        free_blocks = int(self._free_tally.counts.sum())
+        if free_blocks and sweep_blocks >= AUTO_SWEEP_SHARE * free_blocks:
+            moving = (self._sweep_tally.cells != self._zero).sum(axis=1)
+            return "superposition" if not np.any(moving > 1) else "full"
+        return "free"
+
+    def _tally(self) -> _Tally:
+        return self._free_tally if self.mode == "free" else self._sweep_tally
+
+    @property
+    def expected_cells(self) -> np.ndarray:
+        """Grid-shaped mask of the cells this sweep should visit (small grids)."""
+        return sweep_mask(self.grid, "full" if self.mode == "free" else self.mode)
+
+    def expected_cell_list(self) -> np.ndarray:
+        """Grid indices (K, J) of the cells this sweep should visit."""
+        return sweep_cells(self.grid, "full" if self.mode == "free" else self.mode)
 
     @property
     def counts(self) -> np.ndarray:
-        return self._counts.copy()
+        """Dense grid-shaped block counts (small grids)."""
+        tally = self._tally()
+        out = np.zeros(self._shape, dtype=np.int64)
+        if tally.n:
+            out[tuple(tally.cells.T)] = tally.counts[: tally.n]
+        return out
+
+    def cell_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """(grid indices (K, J), block counts (K,)) of the cells measured so far."""
+        cells, _, _, counts = self._tally().statistics()
+        return cells, counts
 
     @property
     def stats(self) -> dict:
         s = self._framer.stats
-        return {"samples_in": s.samples_in, "blocks": s.blocks, "blocks_used": int(self._counts.sum()),
-                "rejected": dict(self.rejected), "dropped_out_of_order": s.dropped_out_of_order,
-                "nonfinite_replaced": s.nonfinite_replaced, "resets": s.resets}
+        tally = self._tally()
+        return {
+            "mode": self.mode,
+            "samples_in": s.samples_in,
+            "samples_bad": s.samples_bad,
+            "blocks": s.blocks,
+            "blocks_used": int(tally.counts.sum()),
+            "cells": tally.n,
+            "rejected": dict(tally.rejected),
+            "dropped_out_of_order": s.dropped_out_of_order,
+            "gap_filled_samples": s.gap_filled_samples,
+            "resets": s.resets,
+            "joint_states_dropped": s.joint_states_dropped,
+        }
+
+    @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held) by the framer."""
+        return self._framer.backlog
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self._framer.push_joint_states(stamps_ns, velocity)
@@ -78,15 +249,15 @@ class CalibrationAccumulator:
         self._accumulate(self._framer.pop_blocks())
 
     def cell_of(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest cell index per joint (B, J) and whether every joint is within tolerance."""
+        """Nearest cell index per joint (B, J) and the distance to it in grid steps (B, J)."""
         velocity = np.atleast_2d(velocity)
         index = np.empty(velocity.shape, dtype=np.intp)
-        ok = np.ones(len(velocity), dtype=bool)
+        distance = np.empty(velocity.shape)
         for j, g in enumerate(self.grid):
             i = np.abs(velocity[:, j, None] - g[None, :]).argmin(axis=1)
             index[:, j] = i
-            ok &= np.abs(velocity[:, j] - g[i]) <= self.cell_tolerance * self._spacing[j][i]
-        return index, ok
+            distance[:, j] = np.abs(velocity[:, j] - g[i]) / self._spacing[j][i]
+        return index, distance
 
     def _accumulate(self, batches: list[Blocks]) -> None:
         for blocks in batches:
@@ -94,80 +265,163 @@ class CalibrationAccumulator:
                 continue
             # Blocks holding start/end padding or gap-filled samples would bias the statistics.
             complete = blocks.complete
-            self.rejected["partial"] += int((~complete).sum())
             usable = complete & (blocks.status == MATCHED)
-            self.rejected["no_joint_state"] += int((complete & (blocks.status != MATCHED)).sum())
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
-            index, near = self.cell_of(velocity)
-            steady = np.ones(blocks.n, dtype=bool)
+            index, distance = self.cell_of(velocity)
+            steadiness = np.empty_like(distance)
             for j in range(len(self.grid)):
-                steady &= np.nan_to_num(blocks.steadiness[:, j], nan=np.inf) <= \
-                    self.steady_tolerance * self._spacing[j][index[:, j]]
-            self.rejected["unsteady"] += int((usable & ~steady).sum())
-            self.rejected["off_grid"] += int((usable & steady & ~near).sum())
-            accept = usable & steady & near
-            if self.sweep == "superposition":
-                in_sweep = self.expected_cells[tuple(index.T)]
-                self.rejected["not_in_sweep"] += int((accept & ~in_sweep).sum())
-                accept &= in_sweep
-            if not accept.any():
+                steadiness[:, j] = (
+                    np.nan_to_num(blocks.steadiness[:, j], nan=np.inf)
+                    / self._spacing[j][index[:, j]]
+                )
+            # Beyond the grid edge by more than half a step: not this grid's velocity.
+            inside = np.all(distance <= 0.5, axis=1)
+            accepted = []
+            for tally, steady_tol, cell_tol in (
+                (self._sweep_tally, self.steady_tolerance, self.cell_tolerance),
+                (self._free_tally, self.free_steady_tolerance, None),
+            ):
+                tally.rejected["partial"] += int((~complete).sum())
+                tally.rejected["no_joint_state"] += int(
+                    (complete & (blocks.status != MATCHED)).sum()
+                )
+                steady = np.all(steadiness <= steady_tol, axis=1)
+                near = np.all(distance <= cell_tol, axis=1) if cell_tol is not None else inside
+                tally.rejected["unsteady"] += int((usable & ~steady).sum())
+                tally.rejected["off_grid"] += int((usable & steady & ~near).sum())
+                accept = usable & steady & near
+                if tally is self._sweep_tally and self.sweep == "superposition":
+                    in_sweep = (index != self._zero).sum(axis=1) <= 1
+                    tally.rejected["not_in_sweep"] += int((accept & ~in_sweep).sum())
+                    accept &= in_sweep
+                accepted.append(accept)
+            union = accepted[0] | accepted[1]
+            if not union.any():
                 continue
-            magnitude = np.abs(np.fft.rfft(blocks.samples[accept] * self.window, axis=-1))   # (b, C, F)
-            cells = np.ravel_multi_index(tuple(index[accept].T), self.grid_shape)
-            flat_sum = self._sum.reshape((-1,) + self._sum.shape[len(self.grid):])
-            flat_sumsq = self._sumsq.reshape(flat_sum.shape)
-            np.add.at(flat_sum, cells, magnitude)
-            np.add.at(flat_sumsq, cells, magnitude ** 2)
-            np.add.at(self._counts.reshape(-1), cells, 1)
+            magnitude = np.zeros((blocks.n,) + self._sweep_tally.sum.shape[1:])
+            magnitude[union] = np.abs(
+                np.fft.rfft(blocks.samples[union] * self.window, axis=-1)
+            )  # (b, C, F)
+            ids = np.ravel_multi_index(tuple(index.T), self._shape)
+            for tally, accept in zip((self._sweep_tally, self._free_tally), accepted):
+                if accept.any():
+                    tally.add(ids[accept], index[accept], magnitude[accept])
+
+    def merge(self, other: "CalibrationAccumulator") -> None:
+        """Pool another accumulator's per-cell sums and counts into this one (several bags of
+        one robot: each was framed and flushed on its own, only the statistics are pooled).
+        Both tallies are pooled, so "auto" decides on the pooled data."""
+        if (
+            other.grid_shape != self.grid_shape
+            or other.joint_names != self.joint_names
+            or other.settings.block_length != self.settings.block_length
+        ):
+            raise ConfigError(
+                f"calibration: cannot pool {other.joint_names} {other.grid_shape} into "
+                f"{self.joint_names} {self.grid_shape}"
+            )
+        for mine, theirs in (
+            (self._sweep_tally, other._sweep_tally),
+            (self._free_tally, other._free_tally),
+        ):
+            k = theirs.n
+            if k:
+                rows = mine.rows(
+                    np.ravel_multi_index(tuple(theirs.cells.T), self._shape), theirs.cells
+                )
+                np.add.at(mine.sum, rows, theirs.sum[:k])
+                np.add.at(mine.sumsq, rows, theirs.sumsq[:k])
+                np.add.at(mine.counts, rows, theirs.counts[:k])
+            for key, value in theirs.rejected.items():
+                mine.rejected[key] = mine.rejected.get(key, 0) + value
+        for key, value in vars(other._framer.stats).items():
+            if isinstance(value, int):
+                setattr(self._framer.stats, key, getattr(self._framer.stats, key) + value)
 
     def to_model(self, *, source: str = "", measured: str | None = None) -> NoiseModel:
-        """The noise model from what has been accumulated so far (empty cells have count 0)."""
-        n = self._counts[..., None, None].astype(np.float64)
-        mean = np.divide(self._sum, n, out=np.zeros_like(self._sum), where=n > 0)
-        var = np.divide(self._sumsq - n * mean ** 2, n - 1, out=np.zeros_like(self._sum), where=n > 1)
-        std = np.sqrt(np.maximum(var, 0.0))
-        return NoiseModel(grid=self.grid, joint_names=self.joint_names, mean=mean, std=std,
-                          counts=self._counts.copy(), sample_rate_hz=self.settings.sample_rate_hz,
-                          block_length=self.settings.block_length, hop=self.settings.hop, window=self.window,
-                          band_hz=self.settings.band_hz, band_order=self.settings.band_order,
-                          channels=MODEL_CHANNELS, measured=measured or self.sweep,
-                          provenance={"source": source, "software_version": __version__})
+        """The noise model from what has been accumulated so far (only measured cells)."""
+        cells, mean, std, counts = self._tally().statistics()
+        s = self.settings
+        return NoiseModel(
+            grid=self.grid,
+            joint_names=self.joint_names,
+            cells=cells,
+            mean=mean,
+            std=std,
+            counts=counts,
+            sample_rate_hz=s.sample_rate_hz,
+            block_length=s.block_length,
+            hop=s.hop,
+            window=self.window,
+            band_hz=s.band_hz,
+            band_order=s.band_order,
+            channels=MODEL_CHANNELS,
+            measured=measured or self.mode,
+            profile=self.profile,
+            provenance={"source": source, "software_version": __version__},
+        )
 
     @classmethod
     def from_model(cls, model: NoiseModel, **options) -> "CalibrationAccumulator":
         """Resume from a checkpoint: the model's cells become the accumulated statistics."""
-        acc = cls(grid=model.grid, joint_names=model.joint_names, sample_rate_hz=model.sample_rate_hz,
-                  block_length=model.block_length, hop=model.hop, band_hz=model.band_hz,
-                  band_order=model.band_order, sweep=model.measured, **options)
-        n = model.counts[..., None, None].astype(np.float64)
-        acc._counts = model.counts.copy()
-        acc._sum = model.mean * n
-        acc._sumsq = model.std ** 2 * np.maximum(n - 1, 0) + n * model.mean ** 2
+        if model.profile is not None and "profile" not in options:
+            acc = cls(profile=model.profile, sweep=model.measured, **options)
+        else:
+            acc = cls(
+                grid=model.grid,
+                joint_names=model.joint_names,
+                sample_rate_hz=model.sample_rate_hz,
+                block_length=model.block_length,
+                hop=model.hop,
+                band_hz=model.band_hz,
+                band_order=model.band_order,
+                sweep=model.measured,
+                **options,
+            )
+        cells, counts = model.cells_measured()
+        if len(cells):
+            n = counts[:, None, None].astype(np.float64)
+            tally = acc._tally()
+            tally.add(
+                np.ravel_multi_index(tuple(cells.T), acc._shape),
+                cells,
+                np.zeros_like(model.cell_mean),
+            )
+            rows = np.array(
+                [tally.row_of[int(i)] for i in np.ravel_multi_index(tuple(cells.T), acc._shape)]
+            )
+            tally.counts[rows] = counts
+            tally.sum[rows] = model.cell_mean * n
+            tally.sumsq[rows] = model.cell_std**2 * np.maximum(n - 1, 0) + n * model.cell_mean**2
         return acc
 
 
-def calibrate_arrays(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_ns: np.ndarray,
-                     joint_velocity: np.ndarray, *, chunk_s: float = 10.0, source: str = "",
-                     progress=None, **options) -> tuple[NoiseModel, dict]:
+def calibrate_arrays(
+    accel_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    *,
+    chunk_s: float = 10.0,
+    source: str = "",
+    progress=None,
+    **options,
+) -> tuple[NoiseModel, dict]:
     """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
 
-    `progress`, if given, is called with the number of accelerometer samples consumed."""
+    `options` go to CalibrationAccumulator (profile, sweep, overrides). `progress`, if
+    given, is called with the number of sensor samples consumed."""
     acc = CalibrationAccumulator(source=source, **options)
-    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64)
-    joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64)
-    step = max(1, int(chunk_s * acc.settings.sample_rate_hz))
-    joint_pos = 0
-    for start in range(0, len(accel_stamps_ns), step):
-        stop = min(start + step, len(accel_stamps_ns))
-        # Joint states first, up to a little past the chunk, so no block waits.
-        horizon = accel_stamps_ns[stop - 1] + int(1e9 * acc.settings.joint_wait_s) + 1
-        joint_stop = int(np.searchsorted(joint_stamps_ns, horizon, side="right")) if stop < len(accel_stamps_ns) \
-            else len(joint_stamps_ns)
-        if joint_stop > joint_pos:
-            acc.push_joint_states(joint_stamps_ns[joint_pos:joint_stop], joint_velocity[joint_pos:joint_stop])
-            joint_pos = joint_stop
-        acc.push_accel(accel_stamps_ns[start:stop], accel[start:stop])
-        if progress is not None:
-            progress(stop - start)
+    feed(
+        acc,
+        accel_stamps_ns,
+        accel,
+        joint_stamps_ns,
+        joint_velocity,
+        chunk_s=chunk_s,
+        sample_rate_hz=acc.settings.sample_rate_hz,
+        joint_wait_s=acc.settings.joint_wait_s,
+        progress=progress,
+    )
     acc.flush()
     return acc.to_model(source=source), acc.stats

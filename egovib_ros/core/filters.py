@@ -1,4 +1,5 @@
 """Axis handling and the streaming band-pass (paper section 3: sum of axes, 150-750 Hz)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -8,26 +9,33 @@ from egovib_ros.errors import ConfigError, StreamError
 
 #: Channel layouts. "combined" = sum of the three axes (the paper), "per_axis" = x, y, z,
 #: "all" = combined, x, y, z (what calibration records, so one model serves both).
-CHANNEL_LAYOUTS = {"combined": ("combined",), "per_axis": ("x", "y", "z"),
-                   "all": ("combined", "x", "y", "z")}
+CHANNEL_LAYOUTS = {
+    "combined": ("combined",),
+    "per_axis": ("x", "y", "z"),
+    "all": ("combined", "x", "y", "z"),
+}
 
 
 def channel_matrix(accel: np.ndarray, layout: str) -> np.ndarray:
     """Map (N, 3) accelerations to the (N, C) channels of `layout`."""
     if layout not in CHANNEL_LAYOUTS:
-        raise ConfigError(f"channels: unknown layout {layout!r}; expected one of {sorted(CHANNEL_LAYOUTS)}")
+        raise ConfigError(
+            f"channels: unknown layout {layout!r}; expected one of {sorted(CHANNEL_LAYOUTS)}"
+        )
     accel = np.asarray(accel, dtype=np.float64)
     if accel.ndim != 2 or accel.shape[1] != 3:
         raise StreamError(f"accelerometer samples must have shape (N, 3), got {accel.shape}")
     if layout == "per_axis":
-        return accel                    # callers copy (the band-pass works on a copy)
+        return accel  # callers copy (the band-pass works on a copy)
     combined = accel.sum(axis=1, keepdims=True)
     if layout == "combined":
         return combined
     return np.concatenate([combined, accel], axis=1)
 
 
-def design_bandpass(*, sample_rate_hz: float, band_hz: tuple[float, float], order: int) -> np.ndarray:
+def design_bandpass(
+    *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
+) -> np.ndarray:
     """Butterworth band-pass as second-order sections (scipy's order convention: `order`
     poles per band edge, as MATLAB's butter(4, [lo hi]) used in the paper's era)."""
     low, high = float(band_hz[0]), float(band_hz[1])
@@ -71,10 +79,12 @@ class BandPass:
     the gravity offset), so chunked and whole-signal filtering agree exactly.
     """
 
-    def __init__(self, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int, n_channels: int):
+    def __init__(
+        self, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int, n_channels: int
+    ):
         self.sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
         self.n_channels = int(n_channels)
-        self._zi: np.ndarray | None = None          # (C, n_sections, 2)
+        self._zi: np.ndarray | None = None  # (C, n_sections, 2)
 
     def reset(self) -> None:
         self._zi = None
@@ -87,11 +97,20 @@ class BandPass:
         if x.shape[1] == 0:
             return x
         if self._zi is None:
-            zi = signal.sosfilt_zi(self.sos)                                  # (n_sections, 2)
+            zi = signal.sosfilt_zi(self.sos)  # (n_sections, 2)
             self._zi = np.ascontiguousarray(zi[None, :, :] * x[:, 0, None, None])
         if _SOS_KERNEL is not None:
-            _SOS_KERNEL(self.sos, x, self._zi)                                # in place
+            _SOS_KERNEL(self.sos, x, self._zi)  # in place
             return x
         y, zi = signal.sosfilt(self.sos, x, axis=-1, zi=self._zi.transpose(1, 0, 2))
         self._zi = np.ascontiguousarray(zi.transpose(1, 0, 2))
         return y
+
+
+def combined_bandpassed(
+    values: np.ndarray, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
+) -> np.ndarray:
+    """(N,) sum of the three axes of (N, 3) samples, band-passed with the streaming filter
+    from steady state: the paper's 1-D signal, the reference every metric is taken on."""
+    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
+    return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows

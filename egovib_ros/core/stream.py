@@ -9,16 +9,21 @@ the paper's settings, within ~1e-16 otherwise).
 
 Bad-input policy (counted in `stats`, never a silent wrong result):
 - a sample stamped at or before the previous one is dropped;
-- a non-finite sample is replaced by the last finite one (keeps the filter sane);
+- a bad sample (non-finite, or beyond the sensor's range on any axis) is treated as
+  missing (`samples_bad`): never averaged into a model, never output;
 - a gap of up to `max_fill_samples` missing samples is bridged by linear
   interpolation (these synthetic samples are never output); a longer gap ends the
   segment: pending samples are flushed as at end of stream and the filter restarts;
+- stamps may jitter around the nominal rate (+-30 % per step): the stream is
+  treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
 - a block with no joint state in or shortly before its span is MISSING: the
   denoiser passes it through band-passed only, the calibrator skips it.
 """
+
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,30 +31,122 @@ import numpy as np
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
-from egovib_ros.errors import StreamError
+from egovib_ros.errors import ConfigError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
 
+#: A recording with more bad samples than this share (non-finite, beyond the sensor range,
+#: out of order) gives an error, not a result: whatever came out would describe the faults.
+MAX_BAD_SHARE = 0.1
 
-@dataclass
+
+def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> None:
+    """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
+    (`stats` of a StreamingDenoiser or CalibrationAccumulator)."""
+    total = int(stats.get("samples_in", 0))
+    bad = int(stats.get("samples_bad", 0)) + int(stats.get("dropped_out_of_order", 0))
+    if total == 0:
+        raise StreamError(f"{where}: no sensor samples")
+    if bad > limit * total:
+        raise StreamError(
+            f"{where}: {bad} of {total} sensor samples ({100 * bad / total:.1f} %) are bad "
+            f"(non-finite, beyond the sensor range or out of order); more than "
+            f"{100 * limit:g} % is refused"
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
 class FramerSettings:
+    """How a sensor stream is cleaned, filtered and cut into blocks. Every field is
+    validated on construction (one-line ConfigError naming it); build one from a model
+    with `FramerSettings.for_model(model, layout=..., **overrides)`."""
+
     sample_rate_hz: float = 3000.0
     block_length: int = 64
     hop: int = 32
     band_hz: tuple[float, float] = (150.0, 750.0)
     band_order: int = 4
-    layout: str = "combined"              # see filters.CHANNEL_LAYOUTS
+    layout: str = "combined"  # see filters.CHANNEL_LAYOUTS
+    sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
     max_fill_samples: int = 8
-    joint_wait_s: float = 0.02            # give joint states this long to cover a block
-    max_hold_s: float = 0.05              # use a joint state this old when none falls in a block
-    rate_tolerance: float = 0.1           # accepted relative error of the measured sample rate
-    clock_jump_s: float = 1.0             # a stamp this far back means a restarted clock (bag loop, reset)
-    source: str = ""                      # topic or file named in error messages
+    joint_wait_s: float = 0.02  # give joint states this long to cover a block
+    max_hold_s: float = 0.05  # use a joint state this old when none falls in a block
+    rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
+    clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
+    with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
+    source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
+        where = f"{self.source}: " if self.source else ""
         validate_blocking(self.block_length, self.hop)
         if self.layout not in CHANNEL_LAYOUTS:
-            raise StreamError(f"channels: unknown layout {self.layout!r}")
+            raise ConfigError(
+                f"{where}channels: unknown layout {self.layout!r}; expected one of "
+                f"{sorted(CHANNEL_LAYOUTS)}"
+            )
+        checks = (
+            ("sample_rate_hz", self.sample_rate_hz, 0.0, math.inf, False),
+            ("sensor_range", self.sensor_range, 0.0, math.inf, True),
+            ("joint_wait_s", self.joint_wait_s, 0.0, 10.0, False),
+            ("max_hold_s", self.max_hold_s, 0.0, 10.0, False),
+            ("rate_tolerance", self.rate_tolerance, 0.0, 1.0, False),
+            ("clock_jump_s", self.clock_jump_s, 0.0, 3600.0, False),
+        )
+        for name, value, low, high, inf_ok in checks:
+            ok = (
+                isinstance(value, (int, float))
+                and not isinstance(value, bool)
+                and not math.isnan(value)
+                and (math.isfinite(value) or inf_ok)
+                and low <= value <= high
+                and (value > 0 or name in ("joint_wait_s", "max_hold_s"))
+            )
+            if not ok:
+                raise ConfigError(
+                    f"{where}{name} must be a number in {'(' if low == 0 else '['}{low:g}, "
+                    f"{high:g}], got {value!r}"
+                )
+        if (
+            isinstance(self.max_fill_samples, bool)
+            or not isinstance(self.max_fill_samples, int)
+            or not 0 <= self.max_fill_samples <= 1000
+        ):
+            raise ConfigError(
+                f"{where}max_fill_samples must be an integer in [0, 1000], "
+                f"got {self.max_fill_samples!r}"
+            )
+        if (
+            isinstance(self.band_order, bool)
+            or not isinstance(self.band_order, int)
+            or not 1 <= self.band_order <= 12
+        ):
+            raise ConfigError(
+                f"{where}band_order must be an integer in [1, 12], got {self.band_order!r}"
+            )
+        low, high = self.band_hz
+        if not (
+            math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.sample_rate_hz / 2
+        ):
+            raise ConfigError(
+                f"{where}band_hz must satisfy 0 < low < high < {self.sample_rate_hz / 2:g} Hz, "
+                f"got {self.band_hz}"
+            )
+
+    @classmethod
+    def for_model(cls, model, *, layout: str, **overrides) -> "FramerSettings":
+        """The framing a noise model was calibrated with, for a stream of `layout`."""
+        sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
+        fields = dict(
+            sample_rate_hz=model.sample_rate_hz,
+            block_length=model.block_length,
+            hop=model.hop,
+            band_hz=model.band_hz,
+            band_order=model.band_order,
+            layout=layout,
+            sensor_range=sensor_range,
+        )
+        fields.update(overrides)
+        return cls(**fields)
 
     @property
     def period_ns(self) -> float:
@@ -62,16 +159,17 @@ class FramerSettings:
 @dataclass
 class Blocks:
     """A batch of analysis blocks (B may be 0)."""
-    samples: np.ndarray        # (B, C, L) band-passed, not yet windowed
-    t_first_ns: np.ndarray     # (B,) stamp of the first real sample in the block
-    t_last_ns: np.ndarray      # (B,)
-    velocity: np.ndarray       # (B, J) mean joint velocity (NaN when MISSING)
-    steadiness: np.ndarray     # (B, J) |mean(first half) - mean(second half)|
-    status: np.ndarray         # (B,) velocity.MATCHED / HELD / MISSING
+
+    samples: np.ndarray  # (B, C, L) band-passed, not yet windowed
+    t_first_ns: np.ndarray  # (B,) stamp of the first real sample in the block
+    t_last_ns: np.ndarray  # (B,)
+    velocity: np.ndarray  # (B, J) mean joint velocity (NaN when MISSING)
+    steadiness: np.ndarray  # (B, J) |mean(first half) - mean(second half)|
+    status: np.ndarray  # (B,) velocity.MATCHED / HELD / MISSING
     # Output bookkeeping: the hop of samples that each block completes.
     out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
-    ends_segment: bool = False # last blocks before a flush or a long gap
-    complete: np.ndarray | None = None   # (B,) every sample real (no padding or gap fill)
+    ends_segment: bool = False  # last blocks before a flush or a long gap
+    complete: np.ndarray | None = None  # (B,) every sample real (no padding or gap fill)
 
     @property
     def n(self) -> int:
@@ -80,18 +178,17 @@ class Blocks:
 
 @dataclass
 class _Segment:
-    stamps: np.ndarray         # int64, -1 marks synthetic (gap-fill) samples
-    values: np.ndarray         # (n, 3) raw, cleaned
-    ends_stream: bool          # a long gap or a clock jump follows: close the segment
-    wait_for_joints: bool = True   # False after a clock jump: no more joint states on the old clock
+    stamps: np.ndarray  # int64, -1 marks synthetic (gap-fill) samples
+    values: np.ndarray  # (n, 3) raw, cleaned
+    ends_stream: bool  # a long gap or a clock jump follows: close the segment
+    wait_for_joints: bool = True  # False after a clock jump: no more joint states on the old clock
 
 
 @dataclass
 class FramerStats:
     samples_in: int = 0
     dropped_out_of_order: int = 0
-    nonfinite_replaced: int = 0
-    nonfinite_dropped: int = 0
+    samples_bad: int = 0  # non-finite or beyond the sensor range: treated as missing
     gap_filled_samples: int = 0
     resets: int = 0
     joint_states_in: int = 0
@@ -115,8 +212,10 @@ class _Cleaner:
         stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
         accel = np.asarray(accel, dtype=np.float64)
         if accel.ndim != 2 or accel.shape != (len(stamps), 3):
-            raise self.s.error(f"accelerometer chunk: expected stamps (N,) and samples (N, 3), "
-                               f"got {stamps.shape} and {accel.shape}")
+            raise self.s.error(
+                f"sensor chunk: expected stamps (N,) and samples (N, 3), "
+                f"got {stamps.shape} and {accel.shape}"
+            )
         self.stats.samples_in += len(stamps)
         return self._segments(stamps, accel)
 
@@ -128,16 +227,27 @@ class _Cleaner:
             limit = 1.5 * self.s.period_ns
             first_step = int(stamps[0]) - self.last_stamp
             steps = stamps[1:] - stamps[:-1]
-            if 0 < first_step < limit and (len(steps) == 0 or (steps.min() > 0 and steps.max() < limit)) \
-                    and np.isfinite(accel).all():
+            if (
+                0 < first_step < limit
+                and (len(steps) == 0 or (steps.min() > 0 and steps.max() < limit))
+                and self._all_good(accel)
+            ):
                 self.last_stamp = int(stamps[-1])
                 self.last_value = accel[-1].copy()
                 return [_Segment(stamps, accel, ends_stream=False)]
         # Out of order: keep a sample only if later than everything accepted before it.
-        before = np.maximum.accumulate(np.concatenate(
-            [[self.last_stamp if self.last_stamp is not None else np.iinfo(np.int64).min], stamps[:-1]]))
-        known = before != np.iinfo(np.int64).min        # the sentinel would wrap when subtracted from
-        jump = np.flatnonzero(known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9)))
+        before = np.maximum.accumulate(
+            np.concatenate(
+                [
+                    [self.last_stamp if self.last_stamp is not None else np.iinfo(np.int64).min],
+                    stamps[:-1],
+                ]
+            )
+        )
+        known = before != np.iinfo(np.int64).min  # the sentinel would wrap when subtracted from
+        jump = np.flatnonzero(
+            known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9))
+        )
         if len(jump):
             # The clock went back (bag loop, sensor reset): end the segment, start afresh.
             i = int(jump[0])
@@ -154,24 +264,22 @@ class _Cleaner:
             stamps, accel = stamps[keep], accel[keep]
         if len(stamps) == 0:
             return []
-        # Non-finite samples: hold the last finite one.
-        bad = ~np.all(np.isfinite(accel), axis=1)
-        if bad.any() and self.last_value is None:
-            # Nothing to hold yet: drop leading non-finite samples (a zero would ring like a tap).
-            first_good = int(np.argmin(bad)) if not bad.all() else len(bad)
-            self.stats.nonfinite_dropped += first_good
-            stamps, accel, bad = stamps[first_good:], accel[first_good:], bad[first_good:]
+        # Bad samples (non-finite, beyond the sensor range) are missing: the gap rules below
+        # bridge or restart around them, exactly as if they had never arrived.
+        with np.errstate(invalid="ignore"):
+            bad = ~(
+                np.all(np.isfinite(accel), axis=1)
+                & np.all(np.abs(accel) <= self.s.sensor_range, axis=1)
+            )
+        if bad.any():
+            self.stats.samples_bad += int(bad.sum())
+            stamps, accel = stamps[~bad], accel[~bad]
             if len(stamps) == 0:
                 return []
-        if bad.any():
-            self.stats.nonfinite_replaced += int(bad.sum())
-            accel = accel.copy()
-            good_idx = np.where(~bad, np.arange(len(accel)), -1)
-            good_idx = np.maximum.accumulate(good_idx)
-            fallback = self.last_value if self.last_value is not None else np.zeros(3)
-            accel = np.where((good_idx >= 0)[:, None], accel[np.maximum(good_idx, 0)], fallback[None, :])
         # Gaps, measured against the previous accepted sample.
-        prev_stamp = np.concatenate([[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]])
+        prev_stamp = np.concatenate(
+            [[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]]
+        )
         missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
         missing[0] = missing[0] if self.last_stamp is not None else 0
         segments: list[_Segment] = []
@@ -200,6 +308,14 @@ class _Cleaner:
         self.last_value = accel[-1].copy()
         return segments
 
+    def _all_good(self, accel: np.ndarray) -> bool:
+        if not np.isfinite(accel).all():
+            return False
+        return (
+            math.isinf(self.s.sensor_range)
+            or float(np.abs(accel).max(initial=0.0)) <= self.s.sensor_range
+        )
+
 
 def _cat_t(pieces: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.int64)
@@ -220,16 +336,19 @@ class BlockFramer:
         self.window = analysis_window(settings.block_length, settings.hop)
         self.stats = FramerStats()
         self._cleaner = _Cleaner(settings, self.stats)
-        self._bandpass = BandPass(sample_rate_hz=settings.sample_rate_hz, band_hz=settings.band_hz,
-                                  order=settings.band_order, n_channels=self.n_channels)
+        self._bandpass = BandPass(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            order=settings.band_order,
+            n_channels=self.n_channels,
+        )
         self._joint_t = np.zeros(0, dtype=np.int64)
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
         self._rate_error = ""
         self._rate_stamps: list[np.ndarray] = []
         self._ready: list[Blocks] = []
-        self._closed: list[list] = []          # [buf_x, buf_t, wait_for_joints] of ended segments
-        self.with_steadiness = True
+        self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
         self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
@@ -240,14 +359,19 @@ class BlockFramer:
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
         velocity = np.asarray(velocity, dtype=np.float64)
         if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
-            raise self.s.error(f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
-                               f"got {stamps_ns.shape} and {velocity.shape}")
+            raise self.s.error(
+                f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
+                f"got {stamps_ns.shape} and {velocity.shape}"
+            )
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
         last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
-        if stamps_ns[0] > last and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all()) \
-                and np.isfinite(velocity).all():
+        if (
+            stamps_ns[0] > last
+            and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all())
+            and np.isfinite(velocity).all()
+        ):
             # Fast path (the live case): in order and finite.
             self._joint_t = np.concatenate([self._joint_t, stamps_ns])
             self._joint_v = np.concatenate([self._joint_v, velocity])
@@ -255,12 +379,14 @@ class BlockFramer:
             return
         before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
         known = before != np.iinfo(np.int64).min
-        jump = np.flatnonzero(known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9)))
+        jump = np.flatnonzero(
+            known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9))
+        )
         if len(jump):
             # The joint clock went back (bag loop, reset): forget the old timeline.
             i = int(jump[0])
             self.push_joint_states(stamps_ns[:i], velocity[:i])
-            self.stats.joint_states_in -= len(stamps_ns)       # counted once, here
+            self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
             # Complete the accelerometer blocks still pending on the old clock with its joint
             # states, then forget them.
             self._close_segment(wait_for_joints=False)
@@ -293,6 +419,17 @@ class BlockFramer:
         return ready
 
     @property
+    def rate_checked(self) -> bool:
+        """The stream's rate has been measured on its first 2 blocks of samples and found
+        right (a wrong rate raises StreamError on every push instead)."""
+        return self._rate_checked and not self._rate_error
+
+    @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held): bounded however long the stream runs."""
+        return len(self._buf_t), len(self._joint_t)
+
+    @property
     def latest_accel_ns(self) -> int | None:
         return self._cleaner.last_stamp
 
@@ -300,14 +437,14 @@ class BlockFramer:
     def _start_segment(self) -> None:
         pad = self.s.block_length - self.s.hop
         # Front padding so the first real sample is covered by L/hop blocks like all others.
-        self._buf_x = np.zeros((self.n_channels, pad))          # channels first
+        self._buf_x = np.zeros((self.n_channels, pad))  # channels first
         self._buf_t = np.full(pad, -1, dtype=np.int64)
         self._bandpass.reset()
 
     def _check_rate(self, stamps: np.ndarray) -> None:
         if self._rate_checked:
             if self._rate_error:
-                raise self.s.error(self._rate_error)    # a wrong rate stays wrong: refuse every chunk
+                raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
             return
         self._rate_stamps.append(stamps[stamps >= 0])
         seen = np.concatenate(self._rate_stamps)
@@ -317,8 +454,10 @@ class BlockFramer:
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = (f"accelerometer stream runs at {measured:.0f} Hz but the model expects "
-                                f"{self.s.sample_rate_hz:g} Hz")
+            self._rate_error = (
+                f"sensor stream runs at {measured:.0f} Hz but the model expects "
+                f"{self.s.sample_rate_hz:g} Hz"
+            )
             raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
@@ -353,7 +492,7 @@ class BlockFramer:
         while self._closed:
             buf_x, buf_t, wait = self._closed[0]
             buf_x, buf_t = self._release(buf_x, buf_t, wait=wait and not final, closing=True)
-            if len(buf_t) >= L:                 # blocks still waiting for their joint states
+            if len(buf_t) >= L:  # blocks still waiting for their joint states
                 self._closed[0][:2] = buf_x, buf_t
                 return
             self._closed.pop(0)
@@ -362,44 +501,67 @@ class BlockFramer:
         if L <= len(self._buf_t) < L + H:
             self._drain_one()
         else:
-            self._buf_x, self._buf_t = self._release(self._buf_x, self._buf_t, wait=True, closing=False)
+            self._buf_x, self._buf_t = self._release(
+                self._buf_x, self._buf_t, wait=True, closing=False
+            )
 
-    def _release(self, buf_x: np.ndarray, buf_t: np.ndarray, *, wait: bool,
-                 closing: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _release(
+        self, buf_x: np.ndarray, buf_t: np.ndarray, *, wait: bool, closing: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Cut the blocks available in a buffer (those whose joint states are in, if `wait`),
         queue them, and return what is left of the buffer."""
         L, H = self.s.block_length, self.s.hop
         n_blocks = (len(buf_t) - L) // H + 1 if len(buf_t) >= L else 0
         if n_blocks <= 0:
             return buf_x, buf_t
-        index = (np.arange(n_blocks) * H)[:, None] + self._offsets[None, :]      # (B, L)
+        index = (np.arange(n_blocks) * H)[:, None] + self._offsets[None, :]  # (B, L)
         window_t = buf_t[index]
         real = window_t >= 0
         any_real = real.any(axis=1)
-        t_last = window_t.max(axis=1)                   # stamps increase; non-real samples are -1
+        t_last = window_t.max(axis=1)  # stamps increase; non-real samples are -1
         t_first = np.where(real, window_t, np.iinfo(np.int64).max).min(axis=1)
         if wait:
             latest_joint = self._joint_t[-1] if len(self._joint_t) else None
             waited = (self._cleaner.last_stamp - t_last) >= int(self.s.joint_wait_s * 1e9)
             ready = waited if latest_joint is None else (t_last <= latest_joint) | waited
-            if not ready.all():                         # blocks are released strictly in order
+            if not ready.all():  # blocks are released strictly in order
                 n_blocks = int(np.argmin(ready))
                 if n_blocks == 0:
                     return buf_x, buf_t
                 index, window_t, real = index[:n_blocks], window_t[:n_blocks], real[:n_blocks]
-                any_real, t_first, t_last = any_real[:n_blocks], t_first[:n_blocks], t_last[:n_blocks]
-        samples = buf_x[:, index].transpose(1, 0, 2).copy()                       # (B, C, L)
+                any_real, t_first, t_last = (
+                    any_real[:n_blocks],
+                    t_first[:n_blocks],
+                    t_last[:n_blocks],
+                )
+        samples = buf_x[:, index].transpose(1, 0, 2).copy()  # (B, C, L)
         velocity, steadiness, status = block_mean_velocity(
-            self._joint_t, self._joint_v, np.where(any_real, t_first, 0), np.where(any_real, t_last, 0),
-            max_hold_ns=self._max_hold_ns, with_steadiness=self.with_steadiness)
-        status = status.copy()                          # may be a shared read-only constant
+            self._joint_t,
+            self._joint_v,
+            np.where(any_real, t_first, 0),
+            np.where(any_real, t_last, 0),
+            max_hold_ns=self._max_hold_ns,
+            with_steadiness=self.s.with_steadiness,
+        )
+        status = status.copy()  # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
         self.stats.blocks_missing += int(np.count_nonzero(status == MISSING))
-        rest_x, rest_t = buf_x[:, n_blocks * H:], buf_t[n_blocks * H:]
-        self._ready.append(Blocks(samples, t_first, t_last, velocity, steadiness, status, window_t[:, :H],
-                                  ends_segment=closing and len(rest_t) < L, complete=real.all(axis=1)))
+        rest_x, rest_t = buf_x[:, n_blocks * H :], buf_t[n_blocks * H :]
+        self._ready.append(
+            Blocks(
+                samples,
+                t_first,
+                t_last,
+                velocity,
+                steadiness,
+                status,
+                window_t[:, :H],
+                ends_segment=closing and len(rest_t) < L,
+                complete=real.all(axis=1),
+            )
+        )
         if any_real.any():
             self._trim_joints(int(t_first[any_real][-1]))
         return rest_x, rest_t
@@ -410,33 +572,54 @@ class BlockFramer:
         L, H = self.s.block_length, self.s.hop
         window_t = self._buf_t[:L]
         t_last = int(window_t[-1])
-        if t_last < 0:                                  # ends in gap fill: rare
+        if t_last < 0:  # ends in gap fill: rare
             t_last = int(window_t.max())
             if t_last < 0:
                 return
         # Readiness first, on Python ints: most calls find the joint states not yet in.
         joint_t = self._joint_t
-        if not ((len(joint_t) and t_last <= int(joint_t[-1]))
-                or self._cleaner.last_stamp - t_last >= self._joint_wait_ns):
+        if not (
+            (len(joint_t) and t_last <= int(joint_t[-1]))
+            or self._cleaner.last_stamp - t_last >= self._joint_wait_ns
+        ):
             return
         real = window_t >= 0
         complete = bool(real.all())
-        t_first = int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
+        t_first = (
+            int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
+        )
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
-        if self.with_steadiness or not len(self._joint_t):
+        if self.s.with_steadiness or not len(self._joint_t):
             velocity, steadiness, status = block_mean_velocity(
-                self._joint_t, self._joint_v, first, last, max_hold_ns=self._max_hold_ns,
-                with_steadiness=self.with_steadiness)
+                self._joint_t,
+                self._joint_v,
+                first,
+                last,
+                max_hold_ns=self._max_hold_ns,
+                with_steadiness=self.s.with_steadiness,
+            )
         else:
             velocity, steadiness, status = one_block_mean_velocity(
-                self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns)
+                self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns
+            )
         self.stats.blocks += 1
         if status[0] == 1:
             self.stats.blocks_held += 1
         elif status[0] == MISSING:
             self.stats.blocks_missing += 1
-        self._ready.append(Blocks(self._buf_x[None, :, :L], first, last, velocity, steadiness, status,
-                                  window_t[None, :H], ends_segment=False, complete=np.array([complete])))
+        self._ready.append(
+            Blocks(
+                self._buf_x[None, :, :L],
+                first,
+                last,
+                velocity,
+                steadiness,
+                status,
+                window_t[None, :H],
+                ends_segment=False,
+                complete=np.array([complete]),
+            )
+        )
         self._buf_x, self._buf_t = self._buf_x[:, H:], self._buf_t[H:]
         self._trim_joints(t_first)
 
@@ -448,11 +631,66 @@ class BlockFramer:
             self._joint_v = self._joint_v[cut:]
 
 
-def frame_batch(settings: FramerSettings, n_joints: int, accel_stamps_ns: np.ndarray, accel: np.ndarray,
-                joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray) -> tuple[list[Blocks], FramerStats]:
+def frame_batch(
+    settings: FramerSettings,
+    n_joints: int,
+    accel_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+) -> tuple[list[Blocks], FramerStats]:
     """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
     framer = BlockFramer(settings, n_joints)
     framer.push_joint_states(joint_stamps_ns, joint_velocity)
     framer.push_accel(accel_stamps_ns, accel)
     framer.flush()
     return framer.pop_blocks(), framer.stats
+
+
+def feed(
+    consumer,
+    accel_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    joint_wait_s: float,
+    chunk_s: float = 10.0,
+    progress=None,
+) -> list:
+    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_accel`)
+    `chunk_s` seconds at a time, joint states first up to a little past each sensor
+    chunk so that no block waits: the one loop behind every batch path (denoise_batch,
+    calibrate_arrays, benchmarks, tests). Returns what the pushes returned, in order;
+    the caller flushes. `progress(n)` is called with sensor samples consumed."""
+    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
+    joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
+    step = max(1, int(chunk_s * sample_rate_hz))
+    wait_ns = int(joint_wait_s * 1e9) + 1
+    outputs, joint_pos = [], 0
+    for start in range(0, len(accel_stamps_ns), step):
+        stop = min(start + step, len(accel_stamps_ns))
+        last = stop == len(accel_stamps_ns)
+        joint_stop = (
+            len(joint_stamps_ns)
+            if last
+            else int(
+                np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right")
+            )
+        )
+        if joint_stop > joint_pos:
+            outputs.append(
+                consumer.push_joint_states(
+                    joint_stamps_ns[joint_pos:joint_stop], joint_velocity[joint_pos:joint_stop]
+                )
+            )
+            joint_pos = joint_stop
+        outputs.append(consumer.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
+        if progress is not None:
+            progress(stop - start)
+    if joint_pos < len(joint_stamps_ns):
+        outputs.append(
+            consumer.push_joint_states(joint_stamps_ns[joint_pos:], joint_velocity[joint_pos:])
+        )
+    return outputs

@@ -5,9 +5,11 @@ is the paper: negatives set to zero), N from the noise model at the block's mean
 velocity, then overlap-add. `rule` can replace the magnitude rule (baselines such as
 Wiener gains use it); it maps (|Y| (B, C, F), N (B, C, F)) -> |X|.
 """
+
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -15,7 +17,7 @@ import numpy as np
 
 from egovib_ros.core.filters import CHANNEL_LAYOUTS
 from egovib_ros.core.noise_model import NoiseModel
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings
+from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -24,21 +26,58 @@ LOG = logging.getLogger("egovib_ros.core")
 MagnitudeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
+MAX_OVERSUBTRACTION = 10.0
+MAX_FLOOR = 1.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SubtractionSettings:
+    """The subtraction rule max(|Y| - alpha N, beta N): alpha = `oversubtraction` (the
+    paper: 1), beta = `floor` (the paper: 0; Berouti 1979 keeps a little noise to avoid
+    "musical" artefacts). Validated on construction."""
+
+    oversubtraction: float = 1.0
+    floor: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, value, high in (
+            ("oversubtraction", self.oversubtraction, MAX_OVERSUBTRACTION),
+            ("floor", self.floor, MAX_FLOOR),
+        ):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or math.isnan(value)
+                or not 0.0 <= value <= high
+            ):
+                raise ConfigError(f"{name} must be a number in [0, {high:g}], got {value!r}")
+
+    def rule(self) -> MagnitudeRule:
+        return paper_rule(self.oversubtraction, self.floor)
+
+
 def paper_rule(oversubtraction: float = 1.0, floor: float = 0.0) -> MagnitudeRule:
     """Magnitude subtraction: max(|Y| - alpha N, beta N) (Boll 1979; floor as Berouti 1979)."""
-    if oversubtraction < 0 or floor < 0:
-        raise ConfigError(f"oversubtraction and floor must be >= 0, got {oversubtraction}, {floor}")
+    if (
+        not (math.isfinite(oversubtraction) and math.isfinite(floor))
+        or oversubtraction < 0
+        or floor < 0
+    ):
+        raise ConfigError(
+            f"oversubtraction and floor must be finite and >= 0, got {oversubtraction}, {floor}"
+        )
 
     def rule(magnitude: np.ndarray, noise: np.ndarray) -> np.ndarray:
         cleaned = magnitude - oversubtraction * noise
         return np.maximum(cleaned, floor * noise) if floor > 0 else np.maximum(cleaned, 0.0)
+
     return rule
 
 
 @dataclass
 class DenoisedChunk:
-    stamps_ns: np.ndarray    # (K,) input stamps of the output samples
-    values: np.ndarray       # (K, C)
+    stamps_ns: np.ndarray  # (K,) input stamps of the output samples
+    values: np.ndarray  # (K, C)
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -54,50 +93,93 @@ class StreamingDenoiser:
     (`joint_wait_s`).
     """
 
-    def __init__(self, model: NoiseModel, *, channels: str = "per_axis", oversubtraction: float = 1.0,
-                 floor: float = 0.0, include_std: bool = True, rule: MagnitudeRule | None = None,
-                 joint_wait_s: float = 0.02, max_hold_s: float = 0.05, max_fill_samples: int = 8,
-                 sample_rate_hz: float | None = None, block_length: int | None = None,
-                 joint_names: tuple[str, ...] | None = None, source: str = ""):
+    def __init__(
+        self,
+        model: NoiseModel,
+        *,
+        channels: str = "per_axis",
+        oversubtraction: float = 1.0,
+        floor: float = 0.0,
+        include_std: bool = True,
+        rule: MagnitudeRule | None = None,
+        joint_wait_s: float = 0.02,
+        max_hold_s: float = 0.05,
+        max_fill_samples: int = 8,
+        sample_rate_hz: float | None = None,
+        block_length: int | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        source: str = "",
+    ):
         if channels not in ("per_axis", "combined"):
             raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
         if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
-            raise StreamError(f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
-                              f"{model.sample_rate_hz:g} Hz ({model.provenance.get('path', 'model')})")
+            raise StreamError(
+                f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
+                f"{model.sample_rate_hz:g} Hz ({model.provenance.get('path', 'model')})"
+            )
         if block_length is not None and block_length != model.block_length:
-            raise StreamError(f"block length {block_length} differs from the model's {model.block_length} "
-                              f"({model.provenance.get('path', 'model')})")
+            raise StreamError(
+                f"block length {block_length} differs from the model's {model.block_length} "
+                f"({model.provenance.get('path', 'model')})"
+            )
         if joint_names is not None and tuple(joint_names) != model.joint_names:
-            raise StreamError(f"{model.provenance.get('path', 'model')}: model joints {list(model.joint_names)} "
-                              f"do not match the stream's {list(joint_names)}")
+            raise StreamError(
+                f"{model.provenance.get('path', 'model')}: model joints {list(model.joint_names)} "
+                f"do not match the stream's {list(joint_names)}"
+            )
         self.model = model
         self.channels = channels
-        self.settings = FramerSettings(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length,
-                                       hop=model.hop, band_hz=model.band_hz, band_order=model.band_order,
-                                       layout=channels, max_fill_samples=max_fill_samples,
-                                       joint_wait_s=joint_wait_s, max_hold_s=max_hold_s, source=source)
+        self.subtraction = SubtractionSettings(oversubtraction=oversubtraction, floor=floor)
+        self.settings = FramerSettings.for_model(
+            model,
+            layout=channels,
+            max_fill_samples=max_fill_samples,
+            joint_wait_s=joint_wait_s,
+            max_hold_s=max_hold_s,
+            with_steadiness=False,
+            source=source,
+        )
         self._framer = BlockFramer(self.settings, model.n_joints)
-        self._framer.with_steadiness = False
         if not np.allclose(self._framer.window, model.window, rtol=0, atol=1e-12):
-            raise StreamError(f"{model.provenance.get('path', 'model')}: analysis window differs from "
-                              f"{model.window_name} for L={model.block_length}, hop={model.hop}")
+            raise StreamError(
+                f"{model.provenance.get('path', 'model')}: analysis window differs from "
+                f"{model.window_name} for L={model.block_length}, hop={model.hop}"
+            )
         self._window = model.window
-        self._channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
+        self.channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
         self._include_std = include_std
-        self._table = np.ascontiguousarray(
-            model.estimate_table(include_std=include_std)[..., self._channel_index, :])
-        self._rule = rule if rule is not None else paper_rule(oversubtraction, floor)
-        n_channels = len(self._channel_index)
+        self._table = model.table(
+            self.channel_index, include_std=include_std
+        )  # None for huge grids
+        self._custom_rule = rule
+        self._rule = rule if rule is not None else self.subtraction.rule()
+        n_channels = len(self.channel_index)
         self._tail = np.zeros((model.block_length // model.hop - 1, n_channels, model.hop))
         # Returned by pushes that complete no sample (most joint-state pushes): shared, read-only.
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_channels)))
         self._empty.stamps_ns.flags.writeable = False
         self._empty.values.flags.writeable = False
         self.blocks_out_of_grid = 0
+        self.blocks_unmeasured = 0
         self.samples_out = 0
         self._warned: set[str] = set()
 
     # --- API -----------------------------------------------------------------
+    def set_subtraction(
+        self, *, oversubtraction: float | None = None, floor: float | None = None
+    ) -> None:
+        """Change alpha/beta while streaming (takes effect from the next block)."""
+        if self._custom_rule is not None:
+            raise ConfigError(
+                "this denoiser uses a custom magnitude rule: oversubtraction/floor do not apply"
+            )
+        current = self.subtraction
+        self.subtraction = SubtractionSettings(
+            oversubtraction=current.oversubtraction if oversubtraction is None else oversubtraction,
+            floor=current.floor if floor is None else floor,
+        )
+        self._rule = self.subtraction.rule()
+
     @property
     def delay_samples(self) -> tuple[int, int]:
         """(min, max) samples between a sample's arrival and its output."""
@@ -118,12 +200,22 @@ class StreamingDenoiser:
     @property
     def stats(self) -> dict:
         s = self._framer.stats
-        return {"samples_in": s.samples_in, "samples_out": self.samples_out,
-                "dropped_out_of_order": s.dropped_out_of_order, "nonfinite_replaced": s.nonfinite_replaced,
-                "gap_filled_samples": s.gap_filled_samples, "resets": s.resets,
-                "joint_states_in": s.joint_states_in, "joint_states_dropped": s.joint_states_dropped,
-                "blocks": s.blocks, "blocks_held_joint_state": s.blocks_held,
-                "blocks_no_joint_state": s.blocks_missing, "blocks_out_of_grid": self.blocks_out_of_grid}
+        return {
+            "samples_in": s.samples_in,
+            "samples_out": self.samples_out,
+            "dropped_out_of_order": s.dropped_out_of_order,
+            "samples_bad": s.samples_bad,
+            "gap_filled_samples": s.gap_filled_samples,
+            "resets": s.resets,
+            "joint_states_in": s.joint_states_in,
+            "joint_states_dropped": s.joint_states_dropped,
+            "blocks": s.blocks,
+            "blocks_held_joint_state": s.blocks_held,
+            "blocks_no_joint_state": s.blocks_missing,
+            "blocks_out_of_grid": self.blocks_out_of_grid,
+            "blocks_unmeasured": self.blocks_unmeasured,
+            "rate_checked": self._framer.rate_checked,
+        }
 
     # --- internals -------------------------------------------------------------
     def _process(self, batches: list[Blocks]) -> DenoisedChunk:
@@ -151,7 +243,9 @@ class StreamingDenoiser:
                 # End of stream or a long gap: nothing overlaps the next block.
                 self._tail = np.zeros_like(self._tail)
         if not stamps_out:
-            return DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, len(self._channel_index))))
+            return DenoisedChunk(
+                np.zeros(0, dtype=np.int64), np.zeros((0, len(self.channel_index)))
+            )
         chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
         self.samples_out += len(chunk)
         return chunk
@@ -171,30 +265,37 @@ class StreamingDenoiser:
             return head.T[None]
         segments = cleaned.reshape(n_blocks, n_channels, overlap, hop)
         extended = np.zeros((n_blocks + overlap - 1, n_channels, hop))
-        extended[:overlap - 1] += self._tail
+        extended[: overlap - 1] += self._tail
         for i in range(overlap):
-            extended[i:i + n_blocks] += segments[:, :, i]
+            extended[i : i + n_blocks] += segments[:, :, i]
         self._tail = extended[n_blocks:]
         return extended[:n_blocks].transpose(0, 2, 1)
 
     def _subtract(self, blocks: Blocks) -> np.ndarray:
-        spectrum = np.fft.rfft(blocks.samples * self._window, axis=-1)                # (B, C, F)
+        spectrum = np.fft.rfft(blocks.samples * self._window, axis=-1)  # (B, C, F)
         magnitude = np.abs(spectrum)
         usable = blocks.status != MISSING
-        if blocks.n == 1 and usable[0]:
+        if blocks.n == 1 and usable[0] and self._table is not None:
             # One block (the live case): skip the general lookup's bookkeeping.
-            noise, outside = self.model._estimate_one(blocks.velocity[0], self._table)
+            noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
+            self.blocks_unmeasured += not measured
             gain = self._gain(magnitude, noise, outside)
         elif usable.all():
-            noise, outside = self.model.estimate(blocks.velocity, self._channel_index,
-                                                 include_std=self._include_std)
+            noise, outside, measured = self.model.lookup(
+                blocks.velocity, self.channel_index, include_std=self._include_std
+            )
+            self.blocks_unmeasured += int((~measured).sum())
             gain = self._gain(magnitude, noise, outside)
         else:
-            self._warn_once("missing", "no joint state for a block: passing the band-passed signal through")
+            self._warn_once(
+                "missing", "no joint state for a block: passing the band-passed signal through"
+            )
             gain = np.ones_like(magnitude)
             if usable.any():
-                noise, outside = self.model.estimate(blocks.velocity[usable], self._channel_index,
-                                                     include_std=self._include_std)
+                noise, outside, measured = self.model.lookup(
+                    blocks.velocity[usable], self.channel_index, include_std=self._include_std
+                )
+                self.blocks_unmeasured += int((~measured).sum())
                 gain[usable] = self._gain(magnitude[usable], noise, outside)
         return np.fft.irfft(spectrum * gain, n=self.model.block_length, axis=-1)
 
@@ -202,7 +303,9 @@ class StreamingDenoiser:
         n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())
         if n_outside:
             self.blocks_out_of_grid += n_outside
-            self._warn_once("out_of_grid", "joint velocity outside the model grid: using the edge cells")
+            self._warn_once(
+                "out_of_grid", "joint velocity outside the model grid: using the edge cells"
+            )
         cleaned = self._rule(magnitude, noise)
         # |Y| = 0 (a dead axis): gain 0, whatever the rule says (a floor would give inf * 0).
         return np.divide(cleaned, magnitude, out=np.zeros_like(magnitude), where=magnitude > 0)
@@ -213,9 +316,17 @@ class StreamingDenoiser:
             LOG.warning(message)
 
 
-def denoise_batch(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_ns: np.ndarray,
-                  joint_velocity: np.ndarray, model: NoiseModel, *, channels: str = "per_axis",
-                  chunk_s: float = 30.0, **options) -> tuple[np.ndarray, np.ndarray, dict]:
+def denoise_batch(
+    accel_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    model: NoiseModel,
+    *,
+    channels: str = "per_axis",
+    chunk_s: float = 30.0,
+    **options,
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """Denoise whole arrays. Returns (stamps_ns (K,), values (K, C), stats); K equals the
     number of valid input samples (all of them unless some were out of order or non-finite
     before the first finite one).
@@ -224,25 +335,18 @@ def denoise_batch(accel_stamps_ns: np.ndarray, accel: np.ndarray, joint_stamps_n
     so working memory does not grow with the recording (the output does, of course).
     """
     denoiser = StreamingDenoiser(model, channels=channels, **options)
-    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
-    joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
-    step = max(1, int(chunk_s * model.sample_rate_hz))
-    wait_ns = int(denoiser.settings.joint_wait_s * 1e9) + 1
-    chunks, joint_pos = [], 0
-    for start in range(0, len(accel_stamps_ns), step):
-        stop = min(start + step, len(accel_stamps_ns))
-        last = stop == len(accel_stamps_ns)
-        joint_stop = len(joint_stamps_ns) if last else \
-            int(np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right"))
-        if joint_stop > joint_pos:
-            chunks.append(denoiser.push_joint_states(joint_stamps_ns[joint_pos:joint_stop],
-                                                     joint_velocity[joint_pos:joint_stop]))
-            joint_pos = joint_stop
-        chunks.append(denoiser.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
-    if joint_pos < len(joint_stamps_ns):
-        chunks.append(denoiser.push_joint_states(joint_stamps_ns[joint_pos:], joint_velocity[joint_pos:]))
+    chunks = feed(
+        denoiser,
+        accel_stamps_ns,
+        accel,
+        joint_stamps_ns,
+        joint_velocity,
+        chunk_s=chunk_s,
+        sample_rate_hz=model.sample_rate_hz,
+        joint_wait_s=denoiser.settings.joint_wait_s,
+    )
     chunks.append(denoiser.flush())
-    n_channels = len(denoiser._channel_index)
+    n_channels = len(denoiser.channel_index)
     stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
     values = np.concatenate([np.zeros((0, n_channels))] + [c.values for c in chunks])
     return stamps, values, denoiser.stats

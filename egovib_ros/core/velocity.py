@@ -4,19 +4,26 @@ Magnitude Estimate": each block is marked with the element-wise mean joint veloc
 Joint states (1 kHz) and accelerometer samples (3 kHz) come from independent clocks,
 so matching is by stamps only, never by sample counts.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 #: Status of a block's joint velocity.
-MATCHED = 0   # mean over the joint states stamped inside the block's time span
-HELD = 1      # none inside; the latest earlier joint state (within max_hold) is used
-MISSING = 2   # no usable joint state: velocity is NaN, the block is not denoised/calibrated
+MATCHED = 0  # mean over the joint states stamped inside the block's time span
+HELD = 1  # none inside; the latest earlier joint state (within max_hold) is used
+MISSING = 2  # no usable joint state: velocity is NaN, the block is not denoised/calibrated
 
 
-def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
-                        t_first_ns: np.ndarray, t_last_ns: np.ndarray, *,
-                        max_hold_ns: int, with_steadiness: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def block_mean_velocity(
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    t_first_ns: np.ndarray,
+    t_last_ns: np.ndarray,
+    *,
+    max_hold_ns: int,
+    with_steadiness: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean joint velocity over [t_first, t_last] for each block.
 
     Returns (mean (B, J), steadiness (B, J), status (B,)). Steadiness is the absolute
@@ -34,7 +41,9 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
     joint_velocity = np.asarray(joint_velocity, dtype=np.float64)
     n_blocks = len(t_first_ns)
     if n_blocks == 1 and not with_steadiness and len(joint_stamps_ns):
-        return one_block_mean_velocity(joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]), max_hold_ns)
+        return one_block_mean_velocity(
+            joint_stamps_ns, joint_velocity, int(t_first_ns[0]), int(t_last_ns[0]), max_hold_ns
+        )
     n_joints = joint_velocity.shape[1] if joint_velocity.ndim == 2 else 0
     mean = np.full((n_blocks, n_joints), np.nan)
     steadiness = np.full((n_blocks, n_joints), np.nan)
@@ -63,8 +72,9 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
             sum_second = (rows * (~first_half & valid)[:, :, None]).sum(axis=1)
             n_first = np.maximum(half, 1)[:, None].astype(np.float64)
             n_second = (count[inside] - half)[:, None].astype(np.float64)
-            steadiness[inside] = np.where(half[:, None] > 0,
-                                          np.abs(sum_first / n_first - sum_second / n_second), 0.0)
+            steadiness[inside] = np.where(
+                half[:, None] > 0, np.abs(sum_first / n_first - sum_second / n_second), 0.0
+            )
         status[inside] = MATCHED
 
     # Blocks with no joint state inside their span: hold the previous one if recent enough.
@@ -72,7 +82,9 @@ def block_mean_velocity(joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray,
     if empty.any():
         prev = start[empty] - 1
         ok = prev >= 0
-        age = np.where(ok, t_first_ns[empty] - joint_stamps_ns[np.maximum(prev, 0)], np.iinfo(np.int64).max)
+        age = np.where(
+            ok, t_first_ns[empty] - joint_stamps_ns[np.maximum(prev, 0)], np.iinfo(np.int64).max
+        )
         ok &= age <= max_hold_ns
         rows_empty = np.flatnonzero(empty)[ok]
         mean[rows_empty] = joint_velocity[prev[ok]]
@@ -96,8 +108,16 @@ def one_block_mean_velocity(joint_stamps_ns, joint_velocity, t_first, t_last, ma
         mean = joint_velocity[start:stop].sum(axis=0) / float(stop - start)
         return mean[None], _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MATCHED]
     if start > 0 and t_first - int(joint_stamps_ns[start - 1]) <= max_hold_ns:
-        return joint_velocity[start - 1][None].copy(), np.zeros((1, joint_velocity.shape[1])), _STATUS[HELD]
-    return np.full((1, joint_velocity.shape[1]), np.nan), _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MISSING]
+        return (
+            joint_velocity[start - 1][None].copy(),
+            np.zeros((1, joint_velocity.shape[1])),
+            _STATUS[HELD],
+        )
+    return (
+        np.full((1, joint_velocity.shape[1]), np.nan),
+        _NAN_STEADINESS[joint_velocity.shape[1]],
+        _STATUS[MISSING],
+    )
 
 
 class _Frozen(dict):

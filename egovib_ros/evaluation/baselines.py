@@ -18,6 +18,7 @@ algorithmic latency of a streaming implementation, in ms:
 Everything block-based goes through the core (`denoise_batch` with its `rule`,
 `include_std`, `channels` options); nothing here re-implements framing.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from egovib_ros.core import BandPass, NoiseModel, channel_matrix, denoise_batch
+from egovib_ros.core import NoiseModel, denoise_batch, filters
 
 NOISEREDUCE_N_FFT = 64
 
@@ -56,14 +57,16 @@ class MethodContext:
 
 
 def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """(N,) sum of the three axes, band-passed with the core's causal filter and the model's band."""
-    band = BandPass(sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order,
-                    n_channels=1)
-    # BandPass works on (C, N) sample rows.
-    return band.process(channel_matrix(accel, "combined").T)[0]
+    """(N,) sum of the three axes, band-passed with the core's causal filter and the
+    model's band."""
+    return filters.combined_bandpassed(
+        accel, sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order
+    )
 
 
-def on_input_stamps(out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray) -> np.ndarray:
+def on_input_stamps(
+    out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray
+) -> np.ndarray:
     """Sum the output channels and place them on the input stamps (0 where a sample is missing).
 
     Denoised samples carry the stamp of the input sample they replace, so matching
@@ -93,14 +96,18 @@ class WienerRule:
         self._previous_clean_power: np.ndarray | None = None
 
     def __call__(self, magnitude: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        noise_power = np.maximum(noise ** 2, 1e-20)
-        posterior = magnitude ** 2 / noise_power
+        noise_power = np.maximum(noise**2, 1e-20)
+        posterior = magnitude**2 / noise_power
         cleaned = np.empty_like(magnitude)
         previous = self._previous_clean_power
         a = self.smoothing
         for i in range(len(magnitude)):
             instantaneous = np.maximum(posterior[i] - 1.0, 0.0)
-            prior = instantaneous if previous is None else a * previous / noise_power[i] + (1 - a) * instantaneous
+            prior = (
+                instantaneous
+                if previous is None
+                else a * previous / noise_power[i] + (1 - a) * instantaneous
+            )
             cleaned[i] = prior / (1.0 + prior) * magnitude[i]
             previous = cleaned[i] ** 2
         self._previous_clean_power = previous
@@ -108,20 +115,28 @@ class WienerRule:
 
 
 def _core(rec, model: NoiseModel, **options) -> np.ndarray:
-    stamps, values, _ = denoise_batch(rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity,
-                                      model, **options)
+    stamps, values, _ = denoise_batch(
+        rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity, model, **options
+    )
     return on_input_stamps(stamps, values, rec.accel_stamps_ns)
 
 
 def _noisereduce(rec, ctx: MethodContext) -> np.ndarray:
     import noisereduce
+
     if ctx.noise_clip is None:
         raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
     signal = combined_bandpassed(rec.accel, ctx.model)
     # No mask smoothing: a 64-sample STFT gate, the same latency class as the paper.
-    return noisereduce.reduce_noise(y=signal, sr=int(ctx.model.sample_rate_hz), stationary=True,
-                                    y_noise=np.asarray(ctx.noise_clip, float), n_fft=NOISEREDUCE_N_FFT,
-                                    freq_mask_smooth_hz=None, time_mask_smooth_ms=None)
+    return noisereduce.reduce_noise(
+        y=signal,
+        sr=int(ctx.model.sample_rate_hz),
+        stationary=True,
+        y_noise=np.asarray(ctx.noise_clip, float),
+        n_fft=NOISEREDUCE_N_FFT,
+        freq_mask_smooth_hz=None,
+        time_mask_smooth_ms=None,
+    )
 
 
 def _block_delay_ms(model: NoiseModel | None) -> float | None:
@@ -165,5 +180,7 @@ def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
     if name not in RUNNERS:
         raise ValueError(f"unknown method {name!r}; expected one of {list(RUNNERS)}")
     if name == "paper_L32" and ctx.model_short is None:
-        raise ValueError("paper_L32 needs a model calibrated with 32-sample blocks (MethodContext.model_short)")
+        raise ValueError(
+            "paper_L32 needs a model calibrated with 32-sample blocks (MethodContext.model_short)"
+        )
     return np.asarray(RUNNERS[name](rec, ctx), float)

@@ -18,6 +18,7 @@ magnitude of the raw 3-axis acceleration after a first-order high-pass
 (RC = 3.3 ms, about 48 Hz, as in common PR2 contact-detection code) at fixed
 levels of 2 and 5 m/s^2.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,10 +26,10 @@ from scipy import optimize, signal
 
 REFRACTORY_S = 0.05
 TOLERANCE_S = 0.010
-ONSET_FRACTION = 0.25        # onset = first sample at 25 % of the event's peak envelope
-ENVELOPE_S = 0.004           # RMS window: shorter than a tap's ring-down, longer than a noise spike
+ONSET_FRACTION = 0.25  # onset = first sample at 25 % of the event's peak envelope
+ENVELOPE_S = 0.004  # RMS window: shorter than a tap's ring-down, longer than a noise spike
 PR2_THRESHOLDS_MS2 = (2.0, 5.0)
-PR2_HIGHPASS_HZ = 1.0 / (2.0 * np.pi * 0.0033)   # first-order RC = 3.3 ms
+PR2_HIGHPASS_HZ = 1.0 / (2.0 * np.pi * 0.0033)  # first-order RC = 3.3 ms
 CALIBRATION_MARGIN = 1.1
 
 
@@ -39,8 +40,14 @@ def envelope(x: np.ndarray, *, sample_rate_hz: float, window_s: float = ENVELOPE
     return np.sqrt(np.maximum(power, 0.0))
 
 
-def detect_events(magnitude: np.ndarray, threshold: float, *, sample_rate_hz: float,
-                  refractory_s: float = REFRACTORY_S, onset_fraction: float = ONSET_FRACTION) -> np.ndarray:
+def detect_events(
+    magnitude: np.ndarray,
+    threshold: float,
+    *,
+    sample_rate_hz: float,
+    refractory_s: float = REFRACTORY_S,
+    onset_fraction: float = ONSET_FRACTION,
+) -> np.ndarray:
     """Onset sample indices of events where `magnitude` (an envelope) exceeds `threshold`.
 
     Above-threshold samples less than `refractory_s` after the previous
@@ -65,8 +72,9 @@ def detect_events(magnitude: np.ndarray, threshold: float, *, sample_rate_hz: fl
     return onsets
 
 
-def threshold_from_calibration(calibration_magnitude: np.ndarray, *, quantile: float = 1.0,
-                               margin: float = CALIBRATION_MARGIN) -> float:
+def threshold_from_calibration(
+    calibration_magnitude: np.ndarray, *, quantile: float = 1.0, margin: float = CALIBRATION_MARGIN
+) -> float:
     """Detection threshold from no-contact calibration data: margin x quantile of |x|.
 
     With the defaults (largest value x 1.1) the detector raises no event on the
@@ -92,8 +100,13 @@ def match_events(detected: np.ndarray, truth: np.ndarray, tolerance: int) -> tup
     return tp, int(detected.size) - tp, int(truth.size) - tp
 
 
-def precision_recall_f1(detected: np.ndarray, truth: np.ndarray, *, sample_rate_hz: float,
-                        tolerance_s: float = TOLERANCE_S) -> dict:
+def precision_recall_f1(
+    detected: np.ndarray,
+    truth: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    tolerance_s: float = TOLERANCE_S,
+) -> dict:
     """Precision, recall, F1 (and counts) of detected onsets against true onsets.
 
     Conventions: precision = 1 when nothing is detected, recall = 1 when there
@@ -106,38 +119,66 @@ def precision_recall_f1(detected: np.ndarray, truth: np.ndarray, *, sample_rate_
     return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}
 
 
-def evaluate_detector(magnitude: np.ndarray, truth: np.ndarray, threshold: float, *,
-                      sample_rate_hz: float, refractory_s: float = REFRACTORY_S,
-                      tolerance_s: float = TOLERANCE_S) -> dict:
+def evaluate_detector(
+    magnitude: np.ndarray,
+    truth: np.ndarray,
+    threshold: float,
+    *,
+    sample_rate_hz: float,
+    refractory_s: float = REFRACTORY_S,
+    tolerance_s: float = TOLERANCE_S,
+) -> dict:
     """Detect on `magnitude` at `threshold` and score against `truth` onsets."""
-    onsets = detect_events(magnitude, threshold, sample_rate_hz=sample_rate_hz,
-                           refractory_s=refractory_s)
-    scores = precision_recall_f1(onsets, truth, sample_rate_hz=sample_rate_hz,
-                                 tolerance_s=tolerance_s)
+    onsets = detect_events(
+        magnitude, threshold, sample_rate_hz=sample_rate_hz, refractory_s=refractory_s
+    )
+    scores = precision_recall_f1(
+        onsets, truth, sample_rate_hz=sample_rate_hz, tolerance_s=tolerance_s
+    )
     scores["threshold"] = float(threshold)
     return scores
 
 
-def pr_curve(magnitude: np.ndarray, truth: np.ndarray, *, sample_rate_hz: float,
-             thresholds: np.ndarray | None = None, n_thresholds: int = 60,
-             refractory_s: float = REFRACTORY_S, tolerance_s: float = TOLERANCE_S) -> dict:
-    """Precision/recall/F1 over a threshold sweep (log-spaced over the signal's range by default)."""
+def pr_curve(
+    magnitude: np.ndarray,
+    truth: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    thresholds: np.ndarray | None = None,
+    n_thresholds: int = 60,
+    refractory_s: float = REFRACTORY_S,
+    tolerance_s: float = TOLERANCE_S,
+) -> dict:
+    """Precision/recall/F1 over a threshold sweep (log-spaced over the signal's range by
+    default)."""
     magnitude = np.abs(np.asarray(magnitude, float))
     if thresholds is None:
         positive = magnitude[magnitude > 0]
         low = np.quantile(positive, 0.5) if positive.size else 1e-6
         high = magnitude.max() if positive.size else 1.0
         thresholds = np.geomspace(low, max(high, low * 1.01), n_thresholds)
-    rows = [evaluate_detector(magnitude, truth, t, sample_rate_hz=sample_rate_hz,
-                              refractory_s=refractory_s, tolerance_s=tolerance_s)
-            for t in thresholds]
-    return {key: np.array([row[key] for row in rows])
-            for key in ("threshold", "precision", "recall", "f1")}
+    rows = [
+        evaluate_detector(
+            magnitude,
+            truth,
+            t,
+            sample_rate_hz=sample_rate_hz,
+            refractory_s=refractory_s,
+            tolerance_s=tolerance_s,
+        )
+        for t in thresholds
+    ]
+    return {
+        key: np.array([row[key] for row in rows])
+        for key in ("threshold", "precision", "recall", "f1")
+    }
 
 
-def pr2_magnitude(accel: np.ndarray, *, sample_rate_hz: float,
-                  highpass_hz: float = PR2_HIGHPASS_HZ) -> np.ndarray:
-    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper sensor's input)."""
+def pr2_magnitude(
+    accel: np.ndarray, *, sample_rate_hz: float, highpass_hz: float = PR2_HIGHPASS_HZ
+) -> np.ndarray:
+    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper
+    sensor's input)."""
     sos = signal.butter(1, highpass_hz, btype="highpass", fs=sample_rate_hz, output="sos")
     accel = np.asarray(accel, float)
     # Start the filter at rest on the first sample so gravity does not produce a start-up spike.

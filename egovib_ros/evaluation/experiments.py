@@ -18,6 +18,7 @@ the same speed limit, processed by each method.
 `run_experiments(config)` returns all results; `results_markdown` and
 `results_json` render them; the plots are in figures.py.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -31,11 +32,18 @@ from egovib_ros.evaluation import baselines, metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
-EXPERIMENTS = {"a": "taps on the moving hand (Fig. 5 left)",
-               "b": "stationary taps added to motion ego-vibration (Fig. 5 right)"}
+EXPERIMENTS = {
+    "a": "taps on the moving hand (Fig. 5 left)",
+    "b": "stationary taps added to motion ego-vibration (Fig. 5 right)",
+}
 
 #: Issue 5 "Must show" thresholds, checked on experiment (a) at <= 50 % speed.
-MUST_SHOW = {"peak_snr_improvement_db": 14.0, "noise_reduction_db": 20.0, "tap_retention": 0.5, "f1": 0.95}
+MUST_SHOW = {
+    "peak_snr_improvement_db": 14.0,
+    "noise_reduction_db": 20.0,
+    "tap_retention": 0.5,
+    "f1": 0.95,
+}
 
 #: Why a must-show criterion can be missed on the simulator (measured; printed under the table
 #: and used by the test to mark a miss as a known, explained gap rather than hide it).
@@ -43,12 +51,14 @@ KNOWN_GAPS = {
     "f1_denoised > f1_raw": (
         "in experiment (a) the simulated taps stand far enough above the motion noise that the raw "
         "band-passed detector is already perfect (F1 = 1), so nothing can be strictly above it; "
-        "experiment (b) (light taps, the paper's hard case) shows the difference"),
+        "experiment (b) (light taps, the paper's hard case) shows the difference"
+    ),
     "f1_denoised > PR2 2 m/s^2": (
-        "at 25 % speed the raw ego-vibration is small (no-contact mean ~0.05 m/s^2, largest magnitudes well "
-        "below 2 m/s^2) and the taps average 3.4 m/s^2, so on a short run the PR2 2 m/s^2 threshold can "
-        "already find every tap (F1 = 1) and nothing can be strictly above it; at 50 % and in "
-        "experiment (b) it misses taps or fires on motion"),
+        "at 25 % speed the raw ego-vibration is small (no-contact mean ~0.05 m/s^2, largest "
+        "magnitudes well below 2 m/s^2) and the taps average 3.4 m/s^2, so on a short run the "
+        "PR2 2 m/s^2 threshold can already find every tap (F1 = 1) and nothing can be strictly "
+        "above it; at 50 % and in experiment (b) it misses taps or fires on motion"
+    ),
 }
 
 
@@ -57,7 +67,7 @@ class ExperimentConfig:
     """Sizes of one run. The defaults are the published run (`egovib figures`)."""
 
     duration_s: float = 30.0
-    calibration_s: float = 30.0          # no-contact motion used for detection thresholds
+    calibration_s: float = 30.0  # no-contact motion used for detection thresholds
     tap_rate_hz: float = 2.0
     speeds: tuple[float, ...] = SPEEDS
     # The paper's experiments use the superposition model (Eq. 6) from single-joint cells.
@@ -73,8 +83,14 @@ class ExperimentConfig:
 
     def quick(self) -> "ExperimentConfig":
         """A modest run for tests (seconds)."""
-        return dataclasses.replace(self, duration_s=12.0, calibration_s=10.0, speeds=(0.5, 1.0),
-                                   sweep_grid="superposition", sweep_dwell_s=1.0)
+        return dataclasses.replace(
+            self,
+            duration_s=12.0,
+            calibration_s=10.0,
+            speeds=(0.5, 1.0),
+            sweep_grid="superposition",
+            sweep_dwell_s=1.0,
+        )
 
 
 @dataclass
@@ -86,15 +102,21 @@ class Models:
 
 def _sim():
     from egovib_ros import sim
+
     return sim
 
 
 def build_models(config: ExperimentConfig, params=None, effects: dict | None = None) -> Models:
     """Simulate the calibration sweep and calibrate the L = 64 and short-block models from it."""
     sim = _sim()
-    sweep, _ = sim.simulate_sweep(grid=config.sweep_grid, dwell_s=config.sweep_dwell_s,
-                                  settle_s=config.sweep_settle_s, effects=effects or {}, seed=config.seed,
-                                  params=params)
+    sweep, _ = sim.simulate_sweep(
+        grid=config.sweep_grid,
+        dwell_s=config.sweep_dwell_s,
+        settle_s=config.sweep_settle_s,
+        effects=effects or {},
+        seed=config.seed,
+        params=params,
+    )
     common = dict(sweep=config.sweep_grid, source="simulated calibration sweep")
     arrays = (sweep.accel_stamps_ns, sweep.accel, sweep.joint_stamps_ns, sweep.joint_velocity)
     model, _ = calibrate_arrays(*arrays, block_length=BLOCK_LENGTH, hop=HOP, **common)
@@ -103,11 +125,25 @@ def build_models(config: ExperimentConfig, params=None, effects: dict | None = N
     return Models(model, model_short, sweep)
 
 
-def motion(config: ExperimentConfig, *, max_speed: float, tap_rate_hz: float, duration_s: float, seed: int,
-           params=None, effects: dict | None = None):
+def motion(
+    config: ExperimentConfig,
+    *,
+    max_speed: float,
+    tap_rate_hz: float,
+    duration_s: float,
+    seed: int,
+    params=None,
+    effects: dict | None = None,
+):
     """One simulated random-motion recording (and its truth dict)."""
-    return _sim().simulate_motion(duration_s=duration_s, max_speed=max_speed, tap_rate_hz=tap_rate_hz,
-                                  effects=effects or {}, seed=seed, params=params)
+    return _sim().simulate_motion(
+        duration_s=duration_s,
+        max_speed=max_speed,
+        tap_rate_hz=tap_rate_hz,
+        effects=effects or {},
+        seed=seed,
+        params=params,
+    )
 
 
 def added_taps_recording(taps_rec, motion_rec, model):
@@ -124,30 +160,74 @@ def added_taps_recording(taps_rec, motion_rec, model):
     noise = baselines.combined_bandpassed(motion_rec.accel[:n], model)
     edge = int(metrics.EDGE_S * model.sample_rate_hz)
     peak = metrics.tap_peaks(tap_signal, seg.tap_windows).mean()
-    scale = np.abs(noise[edge:n - edge]).max() / peak
+    scale = np.abs(noise[edge : n - edge]).max() / peak
     return dataclasses.replace(
-        motion_rec, accel_stamps_ns=motion_rec.accel_stamps_ns[:n], accel=motion_rec.accel[:n] + scale * taps,
-        contact=scale * taps, ego=None if motion_rec.ego is None else motion_rec.ego[:n],
-        denoised=None, denoised_stamps_ns=None), float(scale)
+        motion_rec,
+        accel_stamps_ns=motion_rec.accel_stamps_ns[:n],
+        accel=motion_rec.accel[:n] + scale * taps,
+        contact=scale * taps,
+        ego=None if motion_rec.ego is None else motion_rec.ego[:n],
+        denoised=None,
+        denoised_stamps_ns=None,
+    ), float(scale)
 
 
-def run_speed(config: ExperimentConfig, models: Models, speed: float, *, index: int, params=None,
-              keep_signals: bool = False, effects: dict | None = None, only_a: bool = False) -> dict:
+def run_speed(
+    config: ExperimentConfig,
+    models: Models,
+    speed: float,
+    *,
+    index: int,
+    params=None,
+    keep_signals: bool = False,
+    effects: dict | None = None,
+    only_a: bool = False,
+) -> dict:
     """Both experiments at one speed limit: {"a": report, "b": report} (only "a" if `only_a`)."""
     seed = config.seed * 1000 + index * 10
-    calibration, _ = motion(config, max_speed=speed, tap_rate_hz=0.0, duration_s=config.calibration_s,
-                            seed=seed + 1, params=params, effects=effects)
-    kwargs = dict(calibration=calibration, model_short=models.model_short, keep_signals=keep_signals,
-                  pr_curves=keep_signals)
-    rec_a, _ = motion(config, max_speed=speed, tap_rate_hz=config.tap_rate_hz, duration_s=config.duration_s,
-                      seed=seed + 2, params=params, effects=effects)
+    calibration, _ = motion(
+        config,
+        max_speed=speed,
+        tap_rate_hz=0.0,
+        duration_s=config.calibration_s,
+        seed=seed + 1,
+        params=params,
+        effects=effects,
+    )
+    kwargs = dict(
+        calibration=calibration,
+        model_short=models.model_short,
+        keep_signals=keep_signals,
+        pr_curves=keep_signals,
+    )
+    rec_a, _ = motion(
+        config,
+        max_speed=speed,
+        tap_rate_hz=config.tap_rate_hz,
+        duration_s=config.duration_s,
+        seed=seed + 2,
+        params=params,
+        effects=effects,
+    )
     report_a = evaluate_recording(rec_a, models.model, **kwargs)
     if only_a:
         return {"a": report_a}
-    taps_rec, _ = motion(config, max_speed=0.0, tap_rate_hz=config.tap_rate_hz, duration_s=config.duration_s,
-                         seed=seed + 3, params=params)
-    ego_rec, _ = motion(config, max_speed=speed, tap_rate_hz=0.0, duration_s=config.duration_s,
-                        seed=seed + 4, params=params)
+    taps_rec, _ = motion(
+        config,
+        max_speed=0.0,
+        tap_rate_hz=config.tap_rate_hz,
+        duration_s=config.duration_s,
+        seed=seed + 3,
+        params=params,
+    )
+    ego_rec, _ = motion(
+        config,
+        max_speed=speed,
+        tap_rate_hz=0.0,
+        duration_s=config.duration_s,
+        seed=seed + 4,
+        params=params,
+    )
     rec_b, scale = added_taps_recording(taps_rec, ego_rec, models.model)
     report_b = evaluate_recording(rec_b, models.model, **kwargs)
     report_b["tap_scale"] = scale
@@ -156,53 +236,88 @@ def run_speed(config: ExperimentConfig, models: Models, speed: float, *, index: 
     return {"a": report_a, "b": report_b}
 
 
-def run_experiments(config: ExperimentConfig | None = None, *, params=None, progress=None,
-                    keep_signals: bool = False) -> dict:
-    """All speeds, both experiments, all methods: {"config", "models", "speeds": {speed: {"a", "b"}}}."""
+def run_experiments(
+    config: ExperimentConfig | None = None,
+    *,
+    params=None,
+    progress=None,
+    keep_signals: bool = False,
+) -> dict:
+    """All speeds, both experiments, all methods.
+
+    Returns {"config", "models", "speeds": {speed: {"a", "b"}}}.
+    """
     config = config or ExperimentConfig()
     models = build_models(config, params)
     if progress:
         progress("calibration")
-    results = {"config": dataclasses.asdict(config), "models_obj": models,
-               "model_summary": models.model.summary(), "speeds": {}}
+    results = {
+        "config": dataclasses.asdict(config),
+        "models_obj": models,
+        "model_summary": models.model.summary(),
+        "speeds": {},
+    }
     for index, speed in enumerate(config.speeds):
-        results["speeds"][speed] = run_speed(config, models, speed, index=index, params=params,
-                                             keep_signals=keep_signals)
+        results["speeds"][speed] = run_speed(
+            config, models, speed, index=index, params=params, keep_signals=keep_signals
+        )
         if progress:
             progress(f"speed {speed:.0%}")
     if config.robustness_effects:
         effects = _sim().parse_effects(config.robustness_effects)
         robust_models = build_models(config, params, effects=effects)
-        report = run_speed(config, robust_models, config.robustness_speed, index=len(config.speeds),
-                           params=params, effects=effects, only_a=True, keep_signals=keep_signals)["a"]
-        results["robustness"] = {"effects": config.robustness_effects, "speed": config.robustness_speed,
-                                 "a": report}
+        report = run_speed(
+            config,
+            robust_models,
+            config.robustness_speed,
+            index=len(config.speeds),
+            params=params,
+            effects=effects,
+            only_a=True,
+            keep_signals=keep_signals,
+        )["a"]
+        results["robustness"] = {
+            "effects": config.robustness_effects,
+            "speed": config.robustness_speed,
+            "a": report,
+        }
         if progress:
             progress("robustness")
     results["must_show"] = must_show_check(results)
     return results
 
 
-MUST_SHOW_CRITERIA = ("peak_snr_improvement_db >= 14", "noise_reduction_db >= 20", "tap_retention >= 0.5",
-                      "f1_denoised >= 0.95", "f1_denoised > f1_raw", "f1_denoised > PR2 2 m/s^2",
-                      "f1_denoised > PR2 5 m/s^2")
+MUST_SHOW_CRITERIA = (
+    "peak_snr_improvement_db >= 14",
+    "noise_reduction_db >= 20",
+    "tap_retention >= 0.5",
+    "f1_denoised >= 0.95",
+    "f1_denoised > f1_raw",
+    "f1_denoised > PR2 2 m/s^2",
+    "f1_denoised > PR2 5 m/s^2",
+)
 
 
 def must_show_check(results: dict) -> dict:
-    """Issue 5's "Must show" criteria on experiment (a) at speeds <= 50 %: {speed: {criterion: bool}}."""
+    """Issue 5's "Must show" criteria on experiment (a) at speeds <= 50 %.
+
+    Returns {speed: {criterion: bool}}.
+    """
     checks = {}
     for speed, both in results["speeds"].items():
         if speed > 0.5 + 1e-9:
             continue
         paper = both["a"]["methods"]["paper"]
         det = both["a"]["detection"]
-        values = (paper["peak_snr_improvement_db"] >= MUST_SHOW["peak_snr_improvement_db"],
-                  paper["noise_reduction_db"] >= MUST_SHOW["noise_reduction_db"],
-                  paper["tap_retention"] >= MUST_SHOW["tap_retention"],
-                  paper["f1"] >= MUST_SHOW["f1"],
-                  paper["f1"] > det["raw_bandpassed"]["f1"],
-                  paper["f1"] > det["pr2_2ms2"]["f1"],
-                  paper["f1"] > det["pr2_5ms2"]["f1"])
+        values = (
+            paper["peak_snr_improvement_db"] >= MUST_SHOW["peak_snr_improvement_db"],
+            paper["noise_reduction_db"] >= MUST_SHOW["noise_reduction_db"],
+            paper["tap_retention"] >= MUST_SHOW["tap_retention"],
+            paper["f1"] >= MUST_SHOW["f1"],
+            paper["f1"] > det["raw_bandpassed"]["f1"],
+            paper["f1"] > det["pr2_2ms2"]["f1"],
+            paper["f1"] > det["pr2_5ms2"]["f1"],
+        )
         checks[f"{speed:.0%}"] = dict(zip(MUST_SHOW_CRITERIA, (bool(v) for v in values)))
     return checks
 
@@ -218,26 +333,47 @@ def _fmt(value, digits: int = 1) -> str:
 
 def results_json(results: dict) -> dict:
     """JSON-ready copy of `run_experiments` results (no signals, no objects)."""
-    out = {"config": results["config"], "model": results["model_summary"], "must_show": results["must_show"],
-           "experiments": EXPERIMENTS, "speeds": {}}
+    out = {
+        "config": results["config"],
+        "model": results["model_summary"],
+        "must_show": results["must_show"],
+        "experiments": EXPERIMENTS,
+        "speeds": {},
+    }
+
     def strip(report: dict) -> dict:
         return {k: v for k, v in report.items() if k not in ("signals", "recording", "pr_curves")}
+
     for speed, both in results["speeds"].items():
         out["speeds"][f"{speed:g}"] = {key: strip(report) for key, report in both.items()}
     if "robustness" in results:
         robust = results["robustness"]
-        out["robustness"] = {"effects": robust["effects"], "speed": robust["speed"], "a": strip(robust["a"])}
+        out["robustness"] = {
+            "effects": robust["effects"],
+            "speed": robust["speed"],
+            "a": strip(robust["a"]),
+        }
     if "fig4_error" in results:
         out["fig4_error"] = results["fig4_error"]
     return metrics.json_safe(out)
 
 
 #: Paper section 4 (experiment (a), solenoid taps on the moving PR2): the numbers to replicate.
-PAPER = {"noise_mean_raw": 0.27, "noise_mean_denoised": 0.02, "tap_peak_raw": 3.41, "tap_peak_denoised": 1.27,
-         "tap_retention": 1.27 / 3.41, "peak_snr_raw_db": 22.0, "peak_snr_denoised_db": 36.0, "delay_ms": 21.0}
+PAPER = {
+    "noise_mean_raw": 0.27,
+    "noise_mean_denoised": 0.02,
+    "tap_peak_raw": 3.41,
+    "tap_peak_denoised": 1.27,
+    "tap_retention": 1.27 / 3.41,
+    "peak_snr_raw_db": 22.0,
+    "peak_snr_denoised_db": 36.0,
+    "delay_ms": 21.0,
+}
 
-TABLE_HEADER = ("| exp | speed | method | delay ms | noise | red. dB | spike | peak | retention | peak SNR dB | "
-                "gain dB | segSNR dB | thr | P | R | F1 | FA/min |")
+TABLE_HEADER = (
+    "| exp | speed | method | delay ms | noise | red. dB | spike | peak | retention | "
+    "peak SNR dB | gain dB | segSNR dB | thr | P | R | F1 | FA/min |"
+)
 
 
 def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
@@ -250,83 +386,122 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
             f"{_fmt(m['tap_retention'], 2)} | {_fmt(m['peak_snr_denoised_db'])} | "
             f"{_fmt(m['peak_snr_improvement_db'])} | {_fmt(m['segsnr_contact_denoised_db'])} | "
             f"{_fmt(m['threshold'], 3)} | {_fmt(m['precision'], 2)} | {_fmt(m['recall'], 2)} | "
-            f"{_fmt(m['f1'], 2)} | {_fmt(m['false_alarms_per_min'])} |")
+            f"{_fmt(m['f1'], 2)} | {_fmt(m['false_alarms_per_min'])} |"
+        )
     det = report["detection"]
-    for label, key in (("PR2 2 m/s^2 (raw magnitude)", "pr2_2ms2"), ("PR2 5 m/s^2 (raw magnitude)", "pr2_5ms2")):
+    for label, key in (
+        ("PR2 2 m/s^2 (raw magnitude)", "pr2_2ms2"),
+        ("PR2 5 m/s^2 (raw magnitude)", "pr2_5ms2"),
+    ):
         d = det[key]
-        rows.append(f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | {d['threshold']:g} | "
-                    f"{_fmt(d['precision'], 2)} | {_fmt(d['recall'], 2)} | {_fmt(d['f1'], 2)} | "
-                    f"{_fmt(d['false_alarms_per_min'])} |")
+        rows.append(
+            f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | "
+            f"{d['threshold']:g} | "
+            f"{_fmt(d['precision'], 2)} | {_fmt(d['recall'], 2)} | {_fmt(d['f1'], 2)} | "
+            f"{_fmt(d['false_alarms_per_min'])} |"
+        )
     return rows
 
 
 def paper_comparison_markdown(results: dict) -> str:
     """Paper section 4 numbers next to ours (paper method, experiment (a), every speed)."""
-    lines = ["| | noise raw -> denoised (m/s^2) | tap peak raw -> denoised (m/s^2) | retention | "
-             "peak SNR raw -> denoised (dB) | delay (ms) | F1 raw / PR2 2 / PR2 5 -> denoised |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| | noise raw -> denoised (m/s^2) | tap peak raw -> denoised (m/s^2) | retention | "
+        "peak SNR raw -> denoised (dB) | delay (ms) | F1 raw / PR2 2 / PR2 5 -> denoised |",
+        "|---|---|---|---|---|---|---|",
+    ]
     p = PAPER
-    lines.append(f"| paper, PR2 (Fig. 5 left) | {p['noise_mean_raw']} -> {p['noise_mean_denoised']} | "
-                 f"{p['tap_peak_raw']} -> {p['tap_peak_denoised']} | {p['tap_retention']:.2f} | "
-                 f"{p['peak_snr_raw_db']:.0f} -> {p['peak_snr_denoised_db']:.0f} | {p['delay_ms']:.0f} | "
-                 "not reported |")
+    lines.append(
+        f"| paper, PR2 (Fig. 5 left) | {p['noise_mean_raw']} -> {p['noise_mean_denoised']} | "
+        f"{p['tap_peak_raw']} -> {p['tap_peak_denoised']} | {p['tap_retention']:.2f} | "
+        f"{p['peak_snr_raw_db']:.0f} -> {p['peak_snr_denoised_db']:.0f} | {p['delay_ms']:.0f} | "
+        "not reported |"
+    )
     for speed, both in results["speeds"].items():
         r = both["a"]
         det = r["detection"]
         lines.append(
             f"| ours, sim, exp (a) {speed:.0%} | "
             f"{_fmt(r['noise_mean_raw'], 3)} -> {_fmt(r['noise_mean_denoised'], 3)} | "
-            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | {_fmt(r['tap_retention'], 2)} | "
-            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | {_fmt(r['delay_ms'])} | "
+            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | "
+            f"{_fmt(r['tap_retention'], 2)} | "
+            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | "
+            f"{_fmt(r['delay_ms'])} | "
             f"{_fmt(det['raw_bandpassed']['f1'], 2)} / {_fmt(det['pr2_2ms2']['f1'], 2)} / "
-            f"{_fmt(det['pr2_5ms2']['f1'], 2)} -> {_fmt(r['f1_denoised'], 2)} |")
+            f"{_fmt(det['pr2_5ms2']['f1'], 2)} -> {_fmt(r['f1_denoised'], 2)} |"
+        )
     return "\n".join(lines)
 
 
 def results_markdown(results: dict) -> str:
-    """The results tables (paper vs ours; every experiment x speed x method) and the must-show check."""
-    lines = ["# Evaluation results", "",
-             f"Model: {results['model_summary']}.", "",
-             "Regenerate everything (this file, docs/eval_results.json, docs/eval_*.png): "
-             "`egovib figures --out docs`. Method and notes: docs/eval_notes.md.", "",
-             "## Paper vs this replication (paper's method, experiment (a))", "",
-             paper_comparison_markdown(results), "",
-             "## All methods, both experiments, all speeds", "",
-             "Metrics (CONTRACT section 6): noise = mean |x| of the combined, 150-750 Hz band-passed "
-             "signal outside contacts; red. = noise reduction; spike = 99.9th percentile of |x| outside "
-             "contacts; peak = mean per-tap peak |x|; thr = calibrated detection threshold (on the envelope); "
-             "peak SNR = 20 log10(peak / noise); gain = peak SNR "
-             "improvement; segSNR = mean clamped [-10, 35] dB SNR of 64-sample segments (50 % overlap) inside "
-             "contacts against the band-passed ground-truth contact signal (raw: see the band-pass row); "
-             "P/R/F1 with +/-10 ms onset tolerance, threshold = 1.1 x the largest 4 ms RMS envelope of a "
-             "separate no-contact motion recording processed by the same method; FA/min = false alarms per "
-             "minute. Experiment (a): taps on the moving hand; (b): stationary taps, scaled to the largest "
-             "noise magnitude, added to motion ego-vibration. The band-pass-only row is also the raw "
-             "detector (same signal, same threshold rule).", "",
-             TABLE_HEADER, "|" + "---|" * (TABLE_HEADER.count("|") - 1)]
+    """The results tables (paper vs ours; every experiment x speed x method) and the
+    must-show check."""
+    lines = [
+        "# Evaluation results",
+        "",
+        f"Model: {results['model_summary']}.",
+        "",
+        "Regenerate everything (this file, docs/eval_results.json, docs/eval_*.png): "
+        "`egovib figures --out docs`. Method and notes: docs/eval_notes.md.",
+        "",
+        "## Paper vs this replication (paper's method, experiment (a))",
+        "",
+        paper_comparison_markdown(results),
+        "",
+        "## All methods, both experiments, all speeds",
+        "",
+        "Metrics (CONTRACT section 6): noise = mean |x| of the combined, 150-750 Hz band-passed "
+        "signal outside contacts; red. = noise reduction; spike = 99.9th percentile of |x| outside "
+        "contacts; peak = mean per-tap peak |x|; thr = calibrated detection threshold (on the "
+        "envelope); peak SNR = 20 log10(peak / noise); gain = peak SNR improvement; segSNR = mean "
+        "clamped [-10, 35] dB SNR of 64-sample segments (50 % overlap) inside contacts against the "
+        "band-passed ground-truth contact signal (raw: see the band-pass row); P/R/F1 with "
+        "+/-10 ms onset tolerance, threshold = 1.1 x the largest 4 ms RMS envelope of a separate "
+        "no-contact motion recording processed by the same method; FA/min = false alarms per "
+        "minute. Experiment (a): taps on the moving hand; (b): stationary taps, scaled to the "
+        "largest noise magnitude, added to motion ego-vibration. The band-pass-only row is also "
+        "the raw detector (same signal, same threshold rule).",
+        "",
+        TABLE_HEADER,
+        "|" + "---|" * (TABLE_HEADER.count("|") - 1),
+    ]
     for speed, both in results["speeds"].items():
         for exp, report in both.items():
             lines += _method_rows(exp, f"{speed:.0%}", report)
     if "robustness" in results:
         robust = results["robustness"]
-        lines += ["", f"## Broken model assumptions: `{robust['effects']}` at {robust['speed']:.0%} speed", "",
-                  "The paper saw noise spikes at fast motion and suspected a joint-position dependence. Here "
-                  "the simulator adds effects the velocity-only model cannot capture (CONTRACT section 5); "
-                  "sweep, model and test all include them.", "",
-                  TABLE_HEADER, "|" + "---|" * (TABLE_HEADER.count("|") - 1)]
+        lines += [
+            "",
+            f"## Broken model assumptions: `{robust['effects']}` at {robust['speed']:.0%} speed",
+            "",
+            "The paper saw noise spikes at fast motion and suspected a joint-position dependence. "
+            "Here the simulator adds effects the velocity-only model cannot capture (CONTRACT "
+            "section 5); sweep, model and test all include them.",
+            "",
+            TABLE_HEADER,
+            "|" + "---|" * (TABLE_HEADER.count("|") - 1),
+        ]
         lines += _method_rows("a", f"{robust['speed']:.0%}", robust["a"])
     if "fig4_error" in results:
         err = results["fig4_error"]
-        lines += ["", f"Eq. 6 superposition error of the simulated hand (Fig. 4 analogue, "
-                      f"eval_fig4_superposition.png): max {err['max_pct']:.1f} %, mean {err['mean_pct']:.1f} % "
-                      f"(paper: up to 15 % at high wrist speed)."]
+        lines += [
+            "",
+            f"Eq. 6 superposition error of the simulated hand (Fig. 4 analogue, "
+            f"eval_fig4_superposition.png): max {err['max_pct']:.1f} %, "
+            f"mean {err['mean_pct']:.1f} % "
+            f"(paper: up to 15 % at high wrist speed).",
+        ]
     lines += ["", "## Must show (issue 5), experiment (a), paper method", ""]
     for speed, checks in results["must_show"].items():
         passed = [name for name, ok in checks.items() if ok]
         failed = [name for name, ok in checks.items() if not ok]
-        lines.append(f"- {speed}: passed {', '.join(passed) or 'none'}"
-                     + (f"; **missed** {', '.join(failed)}" if failed else ""))
-    missed = {name for checks in results["must_show"].values() for name, ok in checks.items() if not ok}
+        lines.append(
+            f"- {speed}: passed {', '.join(passed) or 'none'}"
+            + (f"; **missed** {', '.join(failed)}" if failed else "")
+        )
+    missed = {
+        name for checks in results["must_show"].values() for name, ok in checks.items() if not ok
+    }
     notes = [f"- {name}: {KNOWN_GAPS[name]}" for name in sorted(missed) if name in KNOWN_GAPS]
     if notes:
         lines += ["", "Why (measured, see docs/eval_notes.md):", *notes]
@@ -344,19 +519,25 @@ def validation_figures(results: dict, out_dir) -> list:
     """
     from pathlib import Path
 
-    from egovib_ros.sim import validation
     from egovib_ros.fileutil import atomic_output
+    from egovib_ros.sim import validation
 
     config = results["config"]
     out_dir = Path(out_dir)
     dwell = min(2.0, config["sweep_dwell_s"])
-    stats = validation.sweep_cell_stats(grid="full", dwell_s=dwell, settle_s=config["sweep_settle_s"],
-                                        seed=config["seed"])
+    stats = validation.sweep_cell_stats(
+        grid="full", dwell_s=dwell, settle_s=config["sweep_settle_s"], seed=config["seed"]
+    )
     fig3, fig4 = out_dir / "eval_fig3_spectra.png", out_dir / "eval_fig4_superposition.png"
     with atomic_output(fig3) as tmp:
         validation.plot_fig3(stats, tmp.with_suffix(".png"))
     error = validation.superposition_error(stats)
     with atomic_output(fig4) as tmp:
-        validation.plot_fig4(error, tmp.with_suffix(".png"), "Simulated hand: Eq. 6 superposition error")
-    results["fig4_error"] = {"max_pct": float(np.nanmax(error)), "mean_pct": float(np.nanmean(error))}
+        validation.plot_fig4(
+            error, tmp.with_suffix(".png"), "Simulated hand: Eq. 6 superposition error"
+        )
+    results["fig4_error"] = {
+        "max_pct": float(np.nanmax(error)),
+        "mean_pct": float(np.nanmean(error)),
+    }
     return [fig3, fig4]

@@ -28,7 +28,15 @@ Definitions (paper section 4, CONTRACT section 6):
 Alignment: output sample k of the core's denoiser carries input stamp k, so the
 denoised array is compared with the raw/reference arrays index by index.
 `estimate_lag` checks this (it should return 0).
+
+Bad samples (non-finite, or beyond the sensor's range) are missing data, never
+measured: `bad_samples` finds them, `fill_missing` bridges them so filters stay
+finite, and `exclude_samples` removes every sample they can have touched from the
+noise mean, the tap peaks (a tap touched by them is dropped and counted), the
+segmental SNR and the event scores. More than MAX_BAD_FRACTION of bad samples is an
+error, not a result (evaluate.py).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -36,16 +44,19 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.stream import MAX_BAD_SHARE
+
 SEGMENT_LENGTH = 64
 SEGMENT_HOP = 32
 SEGSNR_CLAMP_DB = (-10.0, 35.0)
 
 # Contact segmentation defaults (seconds).
-MARGIN_BEFORE_S = 0.010      # block smearing / pre-echo reaches up to one block (21 ms) early;
-MARGIN_AFTER_S = 0.030       # the band-pass ringing and the block tail come after the contact
-MIN_GAP_S = 0.030            # contact activity closer than this belongs to the same tap
-SPIKE_QUANTILE = 0.999       # "noise spikes": 99.9th percentile of the no-contact magnitude
-EDGE_S = 0.10                # ignore filter/denoiser start-up and flush at both ends
+MARGIN_BEFORE_S = 0.010  # block smearing / pre-echo reaches up to one block (21 ms) early;
+MARGIN_AFTER_S = 0.030  # the band-pass ringing and the block tail come after the contact
+MIN_GAP_S = 0.030  # contact activity closer than this belongs to the same tap
+SPIKE_QUANTILE = 0.999  # "noise spikes": 99.9th percentile of the no-contact magnitude
+EDGE_S = 0.10  # ignore filter/denoiser start-up and flush at both ends
+MAX_BAD_FRACTION = MAX_BAD_SHARE  # more bad than this: refused, not scored (as calibrate/denoise)
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,8 @@ class ContactSegmentation:
     contact_mask: (N,) bool, contact activity dilated by the margins.
     active_mask:  (N,) bool, contact activity itself (for segmental SNR).
     no_contact_mask: (N,) bool, neither contact nor the start/end edges.
+    excluded_mask: (N,) bool or None, samples touched by bad input (`exclude_samples`).
+    n_taps_excluded: taps dropped because bad input touched their window.
     """
 
     onsets: np.ndarray
@@ -64,6 +77,8 @@ class ContactSegmentation:
     contact_mask: np.ndarray
     active_mask: np.ndarray
     no_contact_mask: np.ndarray
+    excluded_mask: np.ndarray | None = None
+    n_taps_excluded: int = 0
 
     @property
     def n_taps(self) -> int:
@@ -89,18 +104,24 @@ def _merge_runs(runs: np.ndarray, min_gap: int) -> np.ndarray:
     return np.stack([starts, stops], axis=1)
 
 
-def activity_threshold(contact: np.ndarray, *, relative: float = 1e-3, floor: float = 1e-6) -> float:
+def activity_threshold(
+    contact: np.ndarray, *, relative: float = 1e-3, floor: float = 1e-6
+) -> float:
     """Default level above which the ground-truth contact magnitude counts as contact."""
     peak = float(np.max(np.abs(contact))) if contact.size else 0.0
     return max(relative * peak, floor)
 
 
-def segment_contacts(contact: np.ndarray, *, sample_rate_hz: float,
-                     threshold: float | None = None,
-                     margin_before_s: float = MARGIN_BEFORE_S,
-                     margin_after_s: float = MARGIN_AFTER_S,
-                     min_gap_s: float = MIN_GAP_S,
-                     edge_s: float = EDGE_S) -> ContactSegmentation:
+def segment_contacts(
+    contact: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    threshold: float | None = None,
+    margin_before_s: float = MARGIN_BEFORE_S,
+    margin_after_s: float = MARGIN_AFTER_S,
+    min_gap_s: float = MIN_GAP_S,
+    edge_s: float = EDGE_S,
+) -> ContactSegmentation:
     """Split a recording into taps and no-contact time from the ground-truth contact signal.
 
     `contact` is the 1-D ground-truth contact signal (combined axes, band-passed
@@ -114,8 +135,11 @@ def segment_contacts(contact: np.ndarray, *, sample_rate_hz: float,
     runs = _merge_runs(_runs(active), max(1, int(round(min_gap_s * sample_rate_hz))))
     before = int(round(margin_before_s * sample_rate_hz))
     after = int(round(margin_after_s * sample_rate_hz))
-    windows = np.stack([np.clip(runs[:, 0] - before, 0, n),
-                        np.clip(runs[:, 1] + after, 0, n)], axis=1) if runs.size else np.zeros((0, 2), int)
+    windows = (
+        np.stack([np.clip(runs[:, 0] - before, 0, n), np.clip(runs[:, 1] + after, 0, n)], axis=1)
+        if runs.size
+        else np.zeros((0, 2), int)
+    )
     contact_mask = np.zeros(n, bool)
     for start, stop in windows:
         contact_mask[start:stop] = True
@@ -125,11 +149,14 @@ def segment_contacts(contact: np.ndarray, *, sample_rate_hz: float,
     edge = min(int(round(edge_s * sample_rate_hz)), n // 2)
     no_contact = ~contact_mask
     no_contact[:edge] = False
-    no_contact[n - edge:] = False
-    return ContactSegmentation(onsets=runs[:, 0].astype(np.int64) if runs.size else np.zeros(0, np.int64),
-                               tap_windows=windows.astype(np.int64),
-                               contact_mask=contact_mask, active_mask=active_mask,
-                               no_contact_mask=no_contact)
+    no_contact[n - edge :] = False
+    return ContactSegmentation(
+        onsets=runs[:, 0].astype(np.int64) if runs.size else np.zeros(0, np.int64),
+        tap_windows=windows.astype(np.int64),
+        contact_mask=contact_mask,
+        active_mask=active_mask,
+        no_contact_mask=no_contact,
+    )
 
 
 def noise_mean(x: np.ndarray, no_contact_mask: np.ndarray) -> float:
@@ -138,8 +165,11 @@ def noise_mean(x: np.ndarray, no_contact_mask: np.ndarray) -> float:
     return float(values.mean()) if values.size else float("nan")
 
 
-def noise_spike(x: np.ndarray, no_contact_mask: np.ndarray, quantile: float = SPIKE_QUANTILE) -> float:
-    """High quantile (99.9 %) of the no-contact magnitude: the noise spikes a threshold must clear."""
+def noise_spike(
+    x: np.ndarray, no_contact_mask: np.ndarray, quantile: float = SPIKE_QUANTILE
+) -> float:
+    """High quantile (99.9 %) of the no-contact magnitude: the noise spikes a threshold
+    must clear."""
     values = np.abs(np.asarray(x, float)[no_contact_mask])
     return float(np.quantile(values, quantile)) if values.size else float("nan")
 
@@ -165,9 +195,14 @@ def segment_starts(n: int, length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP)
     return np.arange(0, max(n - length, -1) + 1, hop)
 
 
-def segmental_snr(reference: np.ndarray, estimate: np.ndarray, *,
-                  length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP,
-                  clamp_db: tuple[float, float] = SEGSNR_CLAMP_DB) -> np.ndarray:
+def segmental_snr(
+    reference: np.ndarray,
+    estimate: np.ndarray,
+    *,
+    length: int = SEGMENT_LENGTH,
+    hop: int = SEGMENT_HOP,
+    clamp_db: tuple[float, float] = SEGSNR_CLAMP_DB,
+) -> np.ndarray:
     """Per-segment SNR in dB of `estimate` against the clean `reference`, clamped.
 
     Segments are `length` samples with `hop` spacing (64 / 32 = 50 % overlap).
@@ -179,17 +214,22 @@ def segmental_snr(reference: np.ndarray, estimate: np.ndarray, *,
         return np.zeros(0)
     ref_frames = np.lib.stride_tricks.sliding_window_view(reference, length)[::hop]
     err_frames = np.lib.stride_tricks.sliding_window_view(error, length)[::hop]
-    signal_energy = np.sum(ref_frames ** 2, axis=1)
-    error_energy = np.sum(err_frames ** 2, axis=1)
+    signal_energy = np.sum(ref_frames**2, axis=1)
+    error_energy = np.sum(err_frames**2, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         snr = 10.0 * np.log10(signal_energy / error_energy)
-    snr = np.where(error_energy == 0, clamp_db[1], snr)        # perfect segment
-    snr = np.where(signal_energy == 0, clamp_db[0], snr)       # nothing to recover
+    snr = np.where(error_energy == 0, clamp_db[1], snr)  # perfect segment
+    snr = np.where(signal_energy == 0, clamp_db[0], snr)  # nothing to recover
     return np.clip(snr, *clamp_db)
 
 
-def segments_in_mask(mask: np.ndarray, *, length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP,
-                     min_fraction: float = 0.5) -> np.ndarray:
+def segments_in_mask(
+    mask: np.ndarray,
+    *,
+    length: int = SEGMENT_LENGTH,
+    hop: int = SEGMENT_HOP,
+    min_fraction: float = 0.5,
+) -> np.ndarray:
     """(S,) bool: which segments have at least `min_fraction` of their samples in `mask`."""
     mask = np.asarray(mask, float)
     if mask.size < length:
@@ -198,10 +238,18 @@ def segments_in_mask(mask: np.ndarray, *, length: int = SEGMENT_LENGTH, hop: int
     return frames.mean(axis=1) >= min_fraction
 
 
-def mean_segmental_snr(reference: np.ndarray, estimate: np.ndarray, mask: np.ndarray) -> float:
-    """Mean clamped segmental SNR over the segments that lie in `mask` (nan if none)."""
+def mean_segmental_snr(
+    reference: np.ndarray,
+    estimate: np.ndarray,
+    mask: np.ndarray,
+    excluded: np.ndarray | None = None,
+) -> float:
+    """Mean clamped segmental SNR over the segments that lie in `mask` and hold no
+    `excluded` sample (nan if none)."""
     values = segmental_snr(reference, estimate)
     chosen = segments_in_mask(mask)
+    if excluded is not None and chosen.size:
+        chosen &= ~segments_in_mask(excluded, min_fraction=1e-9)
     return float(values[chosen].mean()) if chosen.any() else float("nan")
 
 
@@ -218,8 +266,9 @@ def estimate_lag(reference: np.ndarray, x: np.ndarray, *, max_lag: int = 96) -> 
     return int(lags[keep][np.argmax(corr[keep])])
 
 
-def signal_metrics(raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray,
-                   seg: ContactSegmentation) -> dict:
+def signal_metrics(
+    raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray, seg: ContactSegmentation
+) -> dict:
     """The signal-quality JSON fields of CONTRACT section 6 (all but the event F1s).
 
     raw, denoised, reference: (N,) band-passed 1-D signals on the same stamps.
@@ -227,8 +276,10 @@ def signal_metrics(raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray,
     raw = np.asarray(raw, float)
     denoised = np.asarray(denoised, float)
     if not (raw.shape == denoised.shape == reference.shape):
-        raise ValueError(f"signal lengths differ: raw {raw.shape}, denoised {denoised.shape}, "
-                         f"reference {reference.shape}")
+        raise ValueError(
+            f"signal lengths differ: raw {raw.shape}, denoised {denoised.shape}, "
+            f"reference {reference.shape}"
+        )
     noise_raw = noise_mean(raw, seg.no_contact_mask)
     noise_den = noise_mean(denoised, seg.no_contact_mask)
     peaks_raw = tap_peaks(raw, seg.tap_windows)
@@ -249,10 +300,102 @@ def signal_metrics(raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray,
         "peak_snr_raw_db": snr_raw,
         "peak_snr_denoised_db": snr_den,
         "peak_snr_improvement_db": snr_den - snr_raw,
-        "segsnr_contact_raw_db": mean_segmental_snr(reference, raw, seg.active_mask),
-        "segsnr_contact_denoised_db": mean_segmental_snr(reference, denoised, seg.active_mask),
+        "segsnr_contact_raw_db": mean_segmental_snr(
+            reference, raw, seg.active_mask, seg.excluded_mask
+        ),
+        "segsnr_contact_denoised_db": mean_segmental_snr(
+            reference, denoised, seg.active_mask, seg.excluded_mask
+        ),
         "n_taps": seg.n_taps,
     }
+
+
+def bad_samples(values: np.ndarray, sensor_range: float = np.inf) -> tuple[np.ndarray, int, int]:
+    """(N,) bool of samples (rows) that are missing data, and how many of them are
+    non-finite and how many finite but beyond +/- `sensor_range` (the sensor cannot
+    have measured them: corrupt data)."""
+    values = np.asarray(values, float)
+    if values.ndim == 1:
+        values = values[:, None]
+    nonfinite = ~np.all(np.isfinite(values), axis=1)
+    with np.errstate(invalid="ignore"):
+        beyond = ~nonfinite & np.any(np.abs(values) > sensor_range, axis=1)
+    return nonfinite | beyond, int(nonfinite.sum()), int(beyond.sum())
+
+
+def fill_missing(values: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """Copy of `values` with bad rows linearly bridged from the good ones on either side
+    (held at the ends), so that filters run on finite data; the bridged samples and what
+    they touch are excluded from every metric (`exclude_samples`)."""
+    values = np.array(values, float, copy=True)
+    bad = np.asarray(bad, bool)
+    if not bad.any():
+        return values
+    good = np.flatnonzero(~bad)
+    if good.size == 0:
+        raise ValueError("no valid sample at all")
+    missing = np.flatnonzero(bad)
+    flat = values.reshape(len(values), -1)
+    for column in range(flat.shape[1]):
+        flat[missing, column] = np.interp(missing, good, flat[good, column])
+    return flat.reshape(values.shape)
+
+
+def exclusion_mask(bad: np.ndarray, *, margin: int, settle_max: int) -> np.ndarray:
+    """Each run [a, b) of `bad` widened to [a - margin, b + margin + min(b - a, settle_max)):
+    what bridging the run can have disturbed (blocks holding it, then filter settling)."""
+    bad = np.asarray(bad, bool)
+    runs = _runs(bad)
+    n = bad.size
+    if runs.size == 0:
+        return np.zeros(n, bool)
+    length = runs[:, 1] - runs[:, 0]
+    starts = np.clip(runs[:, 0] - margin, 0, n)
+    stops = np.clip(runs[:, 1] + margin + np.minimum(length, settle_max), 0, n)
+    edges = np.zeros(n + 1, np.int64)
+    np.add.at(edges, starts, 1)
+    np.add.at(edges, stops, -1)
+    return np.cumsum(edges[:n]) > 0
+
+
+def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSegmentation:
+    """`seg` without the samples in `excluded` (bad input and what it touched).
+
+    No-contact statistics skip them; a tap whose window holds one is dropped whole
+    (its peak and onset would be guesses), counted in `n_taps_excluded`, and its window
+    joins the excluded samples (so its detection counts neither way).
+    """
+    excluded = np.asarray(excluded, bool)
+    if excluded.shape != seg.no_contact_mask.shape:
+        raise ValueError(
+            f"excluded mask has shape {excluded.shape}, signals {seg.no_contact_mask.shape}"
+        )
+    if seg.excluded_mask is not None:
+        excluded = excluded | seg.excluded_mask
+    if not excluded.any():
+        return seg
+    cumulative = np.concatenate(([0], np.cumsum(excluded)))
+    windows = seg.tap_windows
+    keep = (
+        (cumulative[windows[:, 1]] - cumulative[windows[:, 0]]) == 0
+        if windows.size
+        else np.zeros(0, bool)
+    )
+    active = np.zeros_like(seg.active_mask)
+    for start, stop in windows[keep]:
+        active[start:stop] = seg.active_mask[start:stop]
+    excluded = excluded.copy()
+    for start, stop in windows[~keep]:  # a dropped tap's detection must not count as false
+        excluded[start:stop] = True
+    return ContactSegmentation(
+        onsets=seg.onsets[keep],
+        tap_windows=windows[keep],
+        contact_mask=seg.contact_mask,
+        active_mask=active,
+        no_contact_mask=seg.no_contact_mask & ~excluded,
+        excluded_mask=excluded,
+        n_taps_excluded=seg.n_taps_excluded + int(np.count_nonzero(~keep)),
+    )
 
 
 def json_safe(value):

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from egovib_ros import cliutil
 from egovib_ros.errors import ConfigError
+from egovib_ros.fileutil import prepare_output, prepare_outputs_in
 
 
 def register(subparsers) -> None:
@@ -21,33 +23,39 @@ def register(subparsers) -> None:
                         help="write the fitted effect into a copy of the sim config as OUT/sim_updated.yaml "
                              "and check it on the held-out data")
     parser.add_argument("--sim-params", metavar="YAML", help="simulator config (default config/sim.yaml)")
-    parser.add_argument("--reference-lag", type=float, metavar="SECONDS",
+    parser.add_argument("--reference-lag", type=cliutil.float_in(-1.0, 1.0), metavar="SECONDS",
                         help="lag between joint states and vibration that counts as in sync (default: "
                              "measured on the simulator for this robot's model, else 0)")
-    parser.add_argument("--folds", type=int, default=5,
+    parser.add_argument("--folds", type=cliutil.int_in(2, 20), default=5,
                         help="blocked cross-validation in time: contiguous folds, each held out once (default 5)")
-    parser.add_argument("--train-fraction", type=float, default=None,
-                        help="instead of cross-validation: fit on this leading share of the recording, test on the rest")
+    parser.add_argument("--train-fraction", type=cliutil.float_in(0.2, 0.9), default=None,
+                        help="instead of cross-validation: fit on this leading share of the recording (0.2 .. 0.9), "
+                             "test on the rest")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing report directory of egovib")
     val = parser.add_argument_group("validate")
     val.add_argument("--reality", choices=["sim", "alt"], default="sim",
                      help="where the blind \"real\" bags come from: our simulator, or the independent "
                           "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
                           "on our simulator (validate)")
-    val.add_argument("--seeds", type=int, default=5, help="seeds per effect class (validate)")
-    val.add_argument("--master-seed", type=int, default=2026,
+    val.add_argument("--seeds", type=cliutil.positive_int, default=5,
+                     help="seeds per effect class (validate)")
+    val.add_argument("--master-seed", type=cliutil.int_in(0, 2 ** 31), default=2026,
                      help="seed from which all runs' classes, strengths and seeds are drawn (validate)")
-    val.add_argument("--duration", type=float, default=120.0, help="seconds per simulated real bag (validate)")
-    val.add_argument("--jobs", type=int, default=1, help="parallel worker processes (validate)")
+    val.add_argument("--duration", type=cliutil.float_in(30.0, 3600.0), default=120.0,
+                     help="seconds per blind real bag, 30 .. 3600 (validate)")
+    val.add_argument("--jobs", type=cliutil.positive_int, default=1,
+                     help="parallel worker processes (validate)")
     val.add_argument("--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "validate":
-        from egovib_ros.gap.validate import run_validation
+        from egovib_ros.gap.validate import output_names, run_validation
         out = args.out or "docs"
-        if args.seeds < 1 or args.duration < 30:
-            raise ConfigError("gap validate: --seeds must be >= 1 and --duration >= 30 s")
+        # before any work
+        prepare_outputs_in(out, output_names(args.reality), force=args.force)
         summary = run_validation(seeds=args.seeds, duration_s=args.duration, out_dir=out, jobs=args.jobs,
                                  ladder=not args.no_ladder, progress=True, reality=args.reality,
                                  master_seed=args.master_seed)
@@ -60,8 +68,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)")
     if args.train_fraction is not None and not 0.2 <= args.train_fraction <= 0.9:
         raise ConfigError(f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}")
-    if not 2 <= args.folds <= 20:
-        raise ConfigError(f"gap: --folds must be within [2, 20], got {args.folds}")
+    from egovib_ros.core.noise_model import NoiseModel
+    NoiseModel.load(args.model)              # a broken model is named first, as before
+    # before any work
+    prepare_output(args.out, force=args.force, inputs=[args.model, args.real, args.sim_params],
+                   kind="report")
     from egovib_ros.gap.pipeline import run_gap
     report = run_gap(args.model, args.real, args.out, write_back=args.write_back, sim_params=args.sim_params,
                      reference_lag=args.reference_lag, train_fraction=args.train_fraction, folds=args.folds)

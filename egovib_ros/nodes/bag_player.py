@@ -1,27 +1,57 @@
 """bag_player: play a rosbag2 (MCAP or sqlite3) at its recorded timing, then exit.
 
+The bag is read by the bag layer (egovib_ros.bag.BagReader), batch by batch.
+
 Messages are published as stored (serialized bytes) at their bag receive times,
 scaled by `rate`; bag topic names drop their leading '/' so that namespaces and
 remappings apply. With `clock: true`, /clock (rosgraph_msgs/Clock) carries the
 bag time, so nodes started with use_sim_time run on the recording's time base.
 """
+
 from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Iterator
 
+import numpy as np
 import rclpy
 from rclpy.node import Node
-from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.bag import BagReader
+from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
-from egovib_ros.nodes.common import declare, run_node, stream_publisher_qos
+from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
 from egovib_ros.ros_convert import ns_to_stamp
 
-TICK_S = 0.002          # publishing granularity: messages due within a tick go out together
-CLOCK_PERIOD_NS = 1_000_000   # /clock at up to 1 kHz of bag time
+TICK_S = 0.002  # publishing granularity: messages due within a tick go out together
+CLOCK_PERIOD_NS = 1_000_000  # /clock at up to 1 kHz of bag time
+PARAMETERS = (
+    Param("bag", "", "rosbag2 directory to play"),
+    Param("rate", 1.0, "playback speed factor (2.0 = twice as fast)", range=(0.001, 1000.0)),
+    Param("clock", False, "publish /clock with the bag time"),
+    Param("topics", [""], "topics to play (bag names); empty = all"),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "wait until every played topic has at least this many subscribers before starting",
+        range=(0, 100),
+    ),
+    Param(
+        "wait_timeout",
+        10.0,
+        "seconds to wait for subscribers before giving up",
+        range=(0.0, 3600.0),
+    ),
+    Param("start_delay", 0.0, "seconds to wait before playing", range=(0.0, 3600.0)),
+    Param(
+        "linger",
+        0.5,
+        "seconds to stay up after the last message, to let it be delivered",
+        range=(0.0, 3600.0),
+    ),
+)
 
 
 class BagPlayer(Node):
@@ -29,48 +59,45 @@ class BagPlayer(Node):
 
     def __init__(self):
         super().__init__("bag_player")
-        self.bag = Path(declare(self, "bag", "", "rosbag2 directory to play"))
-        self.rate = float(declare(self, "rate", 1.0, "playback speed factor (2.0 = twice as fast)"))
-        self.publish_clock = declare(self, "clock", False, "publish /clock with the bag time")
-        topics = declare(self, "topics", [""], "topics to play (bag names); empty = all")
-        self.wait_for_subscribers = declare(
-            self, "wait_for_subscribers", 0,
-            "wait until every played topic has at least this many subscribers before starting")
-        self.wait_timeout = float(declare(self, "wait_timeout", 10.0,
-                                          "seconds to wait for subscribers before giving up"))
-        self.start_delay = float(declare(self, "start_delay", 0.0, "seconds to wait before playing"))
-        self.linger = float(declare(self, "linger", 0.5,
-                                    "seconds to stay up after the last message, to let it be delivered"))
-        if self.rate <= 0:
-            raise ConfigError(f"bag_player: rate must be > 0, not {self.rate}")
+        params = declare_parameters(self, PARAMETERS)
+        self.bag = Path(params["bag"])
+        self.rate = params["rate"]
+        self.publish_clock = params["clock"]
+        topics = params["topics"] or []
+        self.wait_for_subscribers = params["wait_for_subscribers"]
+        self.wait_timeout = params["wait_timeout"]
+        self.start_delay = params["start_delay"]
+        self.linger = params["linger"]
         if not (self.bag / "metadata.yaml").is_file():
             raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
-        try:
-            self.reader = Reader(self.bag)
-            self.reader.open()
-        except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
-            raise BagError(f"{self.bag}: cannot open bag: {exc}") from None
+        self.reader = BagReader(self.bag)  # the bag layer: BagError on an unreadable bag
         wanted = {t for t in topics if t}
-        self.connections = [c for c in self.reader.connections if not wanted or c.topic in wanted]
-        if not self.connections:
-            raise BagError(f"{self.bag}: none of the topics {sorted(wanted)} is in the bag")
+        missing = sorted(wanted - set(self.reader.topics))
+        if missing and len(missing) == len(wanted):
+            raise BagError(f"{self.bag}: none of the topics {missing} is in the bag")
         qos = stream_publisher_qos()
         self.topic_publishers = {}
-        for conn in self.connections:
-            try:
-                msg_class = message_class(conn.msgtype)
-            except (ImportError, AttributeError):
-                self.get_logger().warning(f"{conn.topic}: type {conn.msgtype} not available, skipped")
+        for topic, info in self.reader.topics.items():
+            if wanted and topic not in wanted:
                 continue
-            self.topic_publishers[conn.id] = self.create_publisher(msg_class, conn.topic.lstrip("/"), qos)
-        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+            try:
+                msg_class = message_class(info.msgtype)
+            except (ImportError, AttributeError):
+                self.get_logger().warning(f"{topic}: type {info.msgtype} not available, skipped")
+                continue
+            self.topic_publishers[topic] = self.create_publisher(msg_class, topic.lstrip("/"), qos)
+        self.clock_publisher = (
+            self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+        )
         self.published = 0
 
     def _wait_for_subscribers(self) -> None:
         deadline = time.monotonic() + self.wait_timeout
         while rclpy.ok() and time.monotonic() < deadline:
-            if all(p.get_subscription_count() >= self.wait_for_subscribers
-                   for p in self.topic_publishers.values()):
+            if all(
+                p.get_subscription_count() >= self.wait_for_subscribers
+                for p in self.topic_publishers.values()
+            ):
                 return
             time.sleep(0.05)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")
@@ -80,14 +107,15 @@ class BagPlayer(Node):
         if self.wait_for_subscribers > 0:
             self._wait_for_subscribers()
         time.sleep(self.start_delay)
-        connections = [c for c in self.connections if c.id in self.topic_publishers]
-        start_bag_ns = self.reader.start_time
-        self.get_logger().info(f"playing {self.bag} ({self.reader.message_count} messages, "
-                               f"{self.reader.duration / 1e9:.1f} s) at rate {self.rate}")
-        start_wall = time.monotonic()
+        topics = list(self.topic_publishers)
+        count = sum(self.reader.topics[t].count for t in topics)
+        self.get_logger().info(f"playing {self.bag} ({count} messages) at rate {self.rate}")
+        start_wall, start_bag_ns = time.monotonic(), None
         clock_msg = Clock()
         last_clock_ns = None
-        for conn, bag_ns, data in self.reader.messages(connections=connections):
+        for bag_ns, topic, data in self._in_time_order(topics):
+            if start_bag_ns is None:
+                start_bag_ns = bag_ns
             due = start_wall + (bag_ns - start_bag_ns) / 1e9 / self.rate
             wait = due - time.monotonic()
             if wait > TICK_S:
@@ -97,15 +125,40 @@ class BagPlayer(Node):
                 return 0
             # /clock at most every CLOCK_PERIOD_NS of bag time, always before the message it covers.
             if self.clock_publisher is not None and (
-                    last_clock_ns is None or bag_ns - last_clock_ns >= CLOCK_PERIOD_NS):
+                last_clock_ns is None or bag_ns - last_clock_ns >= CLOCK_PERIOD_NS
+            ):
                 clock_msg.clock = ns_to_stamp(bag_ns)
                 self.clock_publisher.publish(clock_msg)
                 last_clock_ns = bag_ns
-            self.topic_publishers[conn.id].publish(bytes(data))
+            self.topic_publishers[topic].publish(data)
             self.published += 1
         time.sleep(self.linger)
         self.get_logger().info(f"done: {self.published} messages played")
         return 0
+
+    def _in_time_order(self, topics: list[str]) -> Iterator[tuple[int, str, bytes]]:
+        """(log time, topic, message) of `topics` in log-time order, read batch by batch by
+        the bag layer; messages later than a batch's frontier wait for the next batches."""
+        held_t, held_topic, held_data = np.zeros(0, np.int64), [], []
+        for batch in self.reader.batches(topics):
+            for topic, messages in batch.messages.items():
+                held_t = np.concatenate([held_t, messages.log_times])
+                held_topic += [topic] * len(messages)
+                held_data += messages.to_list()
+            order = np.argsort(held_t, kind="stable")
+            ready = (
+                len(order)
+                if batch.frontier_ns is None
+                else int(np.searchsorted(held_t[order], batch.frontier_ns, side="right"))
+            )
+            for i in order[:ready]:
+                yield int(held_t[i]), held_topic[i], held_data[i]
+            rest = order[ready:]
+            held_t = held_t[rest]
+            held_topic = [held_topic[i] for i in rest]
+            held_data = [held_data[i] for i in rest]
+        for i in np.argsort(held_t, kind="stable"):
+            yield int(held_t[i]), held_topic[i], held_data[i]
 
     def close(self) -> None:
         self.reader.close()

@@ -6,6 +6,7 @@ writes each message as received (receive time on the node clock), and at exit
 reports received vs written per topic. The bag directory appears only when it is
 complete (written to a temporary sibling and moved in place on a clean exit).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -16,20 +17,49 @@ from pathlib import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
-from egovib_ros.constants import (TOPIC_COMMANDS, TOPIC_CONTACT, TOPIC_DENOISED, TOPIC_EGO,
-                                  TOPIC_JOINT_STATES, TOPIC_RAW)
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.constants import (
+    TOPIC_COMMANDS,
+    TOPIC_CONTACT,
+    TOPIC_DENOISED,
+    TOPIC_EGO,
+    TOPIC_JOINT_STATES,
+    TOPIC_RAW,
+)
+from egovib_ros.errors import BagError
 from egovib_ros.fileutil import atomic_output
-from egovib_ros.nodes.common import declare, run_node
+from egovib_ros.nodes.common import Param, declare_parameters, run_node
 
-DEFAULT_TOPICS = [TOPIC_JOINT_STATES, TOPIC_RAW, TOPIC_DENOISED, TOPIC_CONTACT, TOPIC_EGO,
-                  TOPIC_COMMANDS]
+DEFAULT_TOPICS = [
+    TOPIC_JOINT_STATES,
+    TOPIC_RAW,
+    TOPIC_DENOISED,
+    TOPIC_CONTACT,
+    TOPIC_EGO,
+    TOPIC_COMMANDS,
+]
 # 10 s at 3 kHz: a reliable publisher's samples are acknowledged once in this queue, so
 # writing may lag that long on a busy machine without losing anything.
 RECORDER_QUEUE_DEPTH = 30000
 STORAGE = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+PARAMETERS = (
+    Param(
+        "topics",
+        DEFAULT_TOPICS,
+        "topics to record (relative names resolve in the node's namespace)",
+    ),
+    Param("output", "recording", "bag directory to write; must not exist yet"),
+    Param("storage", "mcap", "rosbag2 storage plugin", choices=tuple(STORAGE)),
+    Param("compress", False, "zstd compression: MCAP chunks (mcap) or each message (sqlite3)"),
+    Param(
+        "queue_depth",
+        RECORDER_QUEUE_DEPTH,
+        "subscription queue depth per topic (how far writing may lag)",
+        range=(1, 10_000_000),
+    ),
+)
 
 
 def message_class(type_name: str):
@@ -43,30 +73,36 @@ class BagRecorder(Node):
 
     def __init__(self):
         super().__init__("bag_recorder")
-        topics = declare(self, "topics", DEFAULT_TOPICS,
-                         "topics to record (relative names resolve in the node's namespace)")
-        self.output = Path(declare(self, "output", "recording",
-                                   "bag directory to write; must not exist yet"))
-        storage = declare(self, "storage", "mcap", "rosbag2 storage plugin: mcap | sqlite3")
-        self.queue_depth = declare(self, "queue_depth", RECORDER_QUEUE_DEPTH,
-                                   "subscription queue depth per topic (how far writing may lag)")
-        if storage not in STORAGE:
-            raise ConfigError(f"bag_recorder: storage must be mcap or sqlite3, not {storage!r}")
+        params = declare_parameters(self, PARAMETERS)
+        topics = params["topics"]
+        self.output = Path(params["output"])
+        storage = params["storage"]
+        compress = params["compress"]
+        self.queue_depth = params["queue_depth"]
         if self.output.exists():
             raise BagError(f"{self.output}: bag already exists")
         self.topics = [self.resolve_topic_name(t) for t in topics]
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._files = contextlib.ExitStack()
-        tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
-        self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
-        self.writer.open()
+        try:
+            tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
+            self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
+            if compress:  # readable by rosbags and `ros2 bag`, ~13x smaller for a 3 kHz Imu stream
+                mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
+                self.writer.set_compression(mode, CompressionFormat.ZSTD)
+            self.writer.open()
+        except OSError as exc:
+            raise BagError(f"{self.output}: cannot write the bag ({exc.strerror or exc})") from None
         self.connections: dict[str, object] = {}
         self.received = {t: 0 for t in self.topics}
         self.written = {t: 0 for t in self.topics}
         self._recording_subs = []
         self._discovery_timer = self.create_timer(0.1, self._discover)
         self._discover()
-        self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output} ({storage})")
+        self.get_logger().info(
+            f"recording {', '.join(self.topics)} to {self.output} ({storage}"
+            f"{', zstd' if compress else ''})"
+        )
 
     def _discover(self) -> None:
         """Subscribe every wanted topic that has a publisher now."""
@@ -77,12 +113,17 @@ class BagRecorder(Node):
             if not publishers:
                 continue
             type_name = publishers[0].topic_type
-            reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE
-                           for p in publishers)
-            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=self.queue_depth,
-                             reliability=(ReliabilityPolicy.RELIABLE if reliable
-                                          else ReliabilityPolicy.BEST_EFFORT),
-                             durability=DurabilityPolicy.VOLATILE)
+            reliable = all(
+                p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers
+            )
+            qos = QoSProfile(
+                history=HistoryPolicy.KEEP_LAST,
+                depth=self.queue_depth,
+                reliability=(
+                    ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
+                ),
+                durability=DurabilityPolicy.VOLATILE,
+            )
             try:
                 msg_class = message_class(type_name)
                 connection = self.writer.add_connection(topic, type_name, typestore=self.typestore)
@@ -91,10 +132,14 @@ class BagRecorder(Node):
                 self.connections[topic] = None
                 continue
             self.connections[topic] = connection
-            self._recording_subs.append(self.create_subscription(
-                msg_class, topic, self._make_callback(topic, connection), qos, raw=True))
-            self.get_logger().info(f"{topic}: subscribed ({type_name}, "
-                                   f"{'reliable' if reliable else 'best effort'})")
+            self._recording_subs.append(
+                self.create_subscription(
+                    msg_class, topic, self._make_callback(topic, connection), qos, raw=True
+                )
+            )
+            self.get_logger().info(
+                f"{topic}: subscribed ({type_name}, {'reliable' if reliable else 'best effort'})"
+            )
         if all(t in self.connections for t in self.topics):
             self._discovery_timer.cancel()
 
@@ -107,18 +152,20 @@ class BagRecorder(Node):
             def now_ns() -> int:
                 return clock.now().nanoseconds
         else:
-            now_ns = time.time_ns        # the system clock, 70 x cheaper than Clock.now()
+            now_ns = time.time_ns  # the system clock, 70 x cheaper than Clock.now()
 
         def on_message(data: bytes) -> None:
             received[topic] += 1
             write(connection, now_ns(), data)
             written[topic] += 1
+
         return on_message
 
     def summary(self) -> str:
         """One line per topic: received vs written."""
-        return "; ".join(f"{t}: received {self.received[t]}, written {self.written[t]}"
-                         for t in self.topics)
+        return "; ".join(
+            f"{t}: received {self.received[t]}, written {self.written[t]}" for t in self.topics
+        )
 
     def close(self) -> int:
         """Close the bag, move it in place, report counts. Exit status 1 if any message was lost."""

@@ -1,36 +1,83 @@
 """calibrator: live calibration of the noise model (egovib_ros.core.CalibrationAccumulator).
 
-Subscribes `joint_states` and `accelerometer/raw`; blocks are assigned to velocity
-cells from the measured joint velocities, so it needs no message from the driver
-and works with any driver or a real robot. A checkpoint model is written (atomically)
-whenever the blocks move on to another cell, i.e. after each completed cell, so a
-crash loses at most the cell in progress; a restarted calibrator resumes from it.
-At shutdown (Ctrl-C / SIGTERM) it writes the model to `output` and reports coverage.
+The robot profile (`robot`: a YAML path or a shipped name; default the PR2 hand) gives
+the sensor and joint-state topics (relative names: remappable), the Imu field, the
+joints (picked by name from JointStates with any joints in any order) and the grid.
+Blocks are assigned to velocity cells from the *measured* joint velocities, so the
+calibrator needs nothing from a driver: `grid` full | superposition for a sweep (e.g.
+the sweep_driver node), free for any no-contact motion (a flight, a day of normal
+operation), auto to decide from the data.
+
+A checkpoint model is written (atomically) when a sweep moves on to its next cell, or
+every `checkpoint_period` seconds of free motion, so a crash loses little; a restarted
+calibrator resumes from it. If a checkpoint cannot be written (read-only or missing
+directory, disk full) the statistics stay in memory, /diagnostics reports an ERROR
+naming the file, and the write is retried every `retry_period` seconds. At shutdown
+(Ctrl-C / SIGTERM) the model is written to `output` (or, if that fails, next to the
+system's temporary files, named in the error) and coverage is printed.
 """
+
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.constants import JOINT_NAMES, TOPIC_DIAGNOSTICS, TOPIC_JOINT_STATES, TOPIC_RAW
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.fileutil import atomic_output
-from egovib_ros.nodes.common import declare, run_node, sensor_subscription
-from egovib_ros.ros_convert import (decode_imu_messages, decode_joint_state_messages,
-                                    diagnostic_array)
-
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    StreamInput,
+    declare_parameters,
+    run_node,
+    stream_counters,
+)
+from egovib_ros.robot import load_profile
 
 # The two topics come on separate DDS readers: on a busy machine (e.g. while another
 # process starts) joint states can fall well behind the samples. Calibration has no latency
 # to keep, so blocks wait up to this long (stream time) for the joint states covering them.
 JOINT_WAIT_S = 2.0
+SWEEPS = ("full", "superposition")
+PARAMETERS = (
+    Param(
+        "robot",
+        "",
+        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
+    ),
+    Param("output", "noise_model.npz", "noise-model file written at shutdown"),
+    Param(
+        "grid",
+        "full",
+        "full | superposition: a sweep over grid velocities; free: any no-contact motion "
+        "(each steady block to its nearest cell); auto: decide from the data",
+        choices=("full", "superposition", "free", "auto"),
+    ),
+    Param("checkpoint", "", "checkpoint model path; empty = <output stem>.checkpoint.npz"),
+    Param("resume", True, "resume from the checkpoint if it exists"),
+    Param("batch_samples", 96, "sensor samples collected before processing", range=(1, 100_000)),
+    Param(
+        "checkpoint_period", 10.0, "free motion: seconds between checkpoints", range=(0.1, 3600.0)
+    ),
+    Param(
+        "retry_period",
+        5.0,
+        "seconds between attempts to write a checkpoint that failed",
+        range=(0.1, 3600.0),
+    ),
+    Param(
+        "stale_after",
+        1.5,
+        "seconds without input before /diagnostics reports STALE",
+        range=(0.1, 3600.0),
+    ),
+)
 
 
 def default_checkpoint(output: str) -> str:
@@ -42,142 +89,295 @@ def default_checkpoint(output: str) -> str:
 class Calibrator(Node):
     def __init__(self):
         super().__init__("calibrator")
-        self.output = declare(self, "output", "noise_model.npz", "noise-model file written at the end")
-        grid = declare(self, "grid", "full", "full (21 x 21 cells) | superposition (the 41 one-joint cells)")
-        self.checkpoint = declare(self, "checkpoint", "",
-                                  "checkpoint model path; empty = <output stem>.checkpoint.npz") \
-            or default_checkpoint(self.output)
-        resume = declare(self, "resume", True, "resume from the checkpoint if it exists")
-        self.batch_samples = int(declare(self, "batch_samples", 96,
-                                         "accelerometer samples collected before processing"))
-        if grid not in ("full", "superposition"):
-            raise ConfigError(f"calibrator: grid must be full or superposition, not {grid!r}")
-        self.grid = grid
-        if resume and os.path.exists(self.checkpoint):
-            self.acc = CalibrationAccumulator.from_model(NoiseModel.load(self.checkpoint), joint_wait_s=JOINT_WAIT_S)
-            if self.acc.sweep != grid:
-                raise ConfigError(f"{self.checkpoint}: checkpoint of a {self.acc.sweep} sweep, "
-                                  f"but grid is {grid}")
-            self.get_logger().info(f"resumed from {self.checkpoint}: "
-                                   f"{int((self.acc.counts > 0).sum())} cells, {int(self.acc.counts.sum())} blocks")
+        params = declare_parameters(self, PARAMETERS)
+        self.profile = load_profile(params["robot"] or None)
+        self.output = params["output"]
+        self.grid = params["grid"]
+        self.checkpoint = params["checkpoint"] or default_checkpoint(self.output)
+        self.checkpoint_period_s = params["checkpoint_period"]
+        self.retry_period_s = params["retry_period"]
+        self.input = StreamInput(
+            self, self.profile, batch_samples=params["batch_samples"], on_batch=self._process
+        )
+        source = self.input.sensor_topic
+        if params["resume"] and os.path.exists(self.checkpoint):
+            self.acc = self._resume(NoiseModel.load(self.checkpoint), source)
         else:
-            self.acc = CalibrationAccumulator(sweep=grid, joint_wait_s=JOINT_WAIT_S)
-        self.expected = self.acc.expected_cells
-        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
-        sensor_subscription(self, Imu, TOPIC_RAW, self._on_accel)
-        sensor_subscription(self, JointState, TOPIC_JOINT_STATES, self._on_joint_state)
-        self._accel_raw: list[bytes] = []
-        self._joint_raw: list[bytes] = []
-        self.bad_messages = 0
-        self._counts = self.acc.counts
-        self._current_cell: int | None = None
+            self.acc = CalibrationAccumulator(
+                profile=self.profile, sweep=self.grid, joint_wait_s=JOINT_WAIT_S, source=source
+            )
+        self.health = Health(
+            self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
+        )
+        self._counts = self._cell_count_map()
+        self._blocks_used = self.acc.stats["blocks_used"]
+        self._current_cell: tuple[int, ...] | None = None
         self._checkpoint_due = False
+        self._last_checkpoint = time.monotonic()
+        self._retry_at = 0.0
+        self.checkpoint_error: str | None = None
         self.checkpoints_written = 0
+        self.checkpoint_failures = 0
+        self.missing_joints: list[str] = []
+        self.stream_error: str | None = None
         self._last_input = time.monotonic()
+        self._last_report = (time.monotonic(), 0)
         self.create_timer(0.25, self._on_timer)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f"calibrating a {grid} grid into {self.output} "
-                               f"(checkpoint {self.checkpoint})")
+        self.get_logger().info(
+            f"calibrating {self.profile.name} ({self.grid} grid, joints "
+            f"{list(self.profile.joint_names)}) from {self.input.sensor_topic} "
+            f"({self.profile.sensor_field}) and {self.input.joints_topic} into "
+            f"{self.output} (checkpoint {self.checkpoint})"
+        )
+
+    def _resume(self, model: NoiseModel, source: str) -> CalibrationAccumulator:
+        where = self.checkpoint
+        if (
+            model.joint_names != self.profile.joint_names
+            or model.grid_shape != self.profile.grid_shape
+        ):
+            raise ConfigError(
+                f"{where}: checkpoint of joints {list(model.joint_names)} on a {model.grid_shape} "
+                f"grid, but robot {self.profile.name!r} has {list(self.profile.joint_names)} on "
+                f"{self.profile.grid_shape}"
+            )
+        if self.grid != "auto" and model.measured != self.grid:
+            raise ConfigError(
+                f"{where}: checkpoint of a {model.measured} calibration, but grid is {self.grid}"
+            )
+        acc = CalibrationAccumulator.from_model(model, joint_wait_s=JOINT_WAIT_S, source=source)
+        coverage = model.coverage()
+        self.get_logger().info(
+            f"resumed from {where}: {coverage['cells_measured']} cells, {coverage['blocks']} blocks"
+        )
+        return acc
 
     # --- input ------------------------------------------------------------------------
-    def _on_joint_state(self, data: bytes) -> None:
-        self._joint_raw.append(data)
-
-    def _on_accel(self, data: bytes) -> None:
-        self._accel_raw.append(data)
-        if len(self._accel_raw) >= self.batch_samples:
-            self._process()
-
     def _process(self) -> None:
         """Push what arrived, joint states first; the core holds each block until the
         joint states covering it are in (at most JOINT_WAIT_S)."""
         self._last_input = time.monotonic()
-        try:
-            if self._joint_raw:
-                raws, self._joint_raw = self._joint_raw, []
-                stamps, _, velocity, n_bad = decode_joint_state_messages(raws, JOINT_NAMES)
-                self.bad_messages += n_bad
-                if len(stamps):
-                    self.acc.push_joint_states(stamps, velocity)
-            if self._accel_raw:
-                raws, self._accel_raw = self._accel_raw, []
-                stamps, accel, n_bad = decode_imu_messages(raws, TOPIC_RAW)
-                self.bad_messages += n_bad
-                if len(stamps):
-                    self.acc.push_accel(stamps, accel)
-        except EgovibError as exc:
-            self.bad_messages += 1
-            self.get_logger().warning(f"dropped a batch: {exc}", throttle_duration_sec=5.0)
+        joints = self.input.take_joints()
+        if joints is not None and len(joints.stamps_ns):
+            missing = self.input.missing_joints()
+            if missing != self.missing_joints and missing:
+                self.get_logger().error(
+                    self.input.missing_joints_message(missing) + ": no block can be used"
+                )
+            self.missing_joints = missing
+            self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
+        batch = self.input.take_sensor()
+        if batch is not None and len(batch.stamps_ns):
+            try:
+                self.acc.push_accel(batch.stamps_ns, batch.values)
+            except EgovibError as exc:  # e.g. a stream at another rate than the profile's
+                self.get_logger().error(
+                    f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0
+                )
+                self.stream_error = str(exc)
         self._track_cells()
 
+    def _cell_count_map(self) -> dict[tuple[int, ...], int]:
+        cells, counts = self.acc.cell_counts()
+        return {tuple(int(i) for i in cell): int(n) for cell, n in zip(cells, counts)}
+
     def _track_cells(self) -> None:
-        """A cell is complete when blocks start landing in another one: checkpoint then."""
-        counts = self.acc.counts
-        grown = np.flatnonzero((counts - self._counts).ravel() > 0)
-        if grown.size:
-            newest = int(grown[np.argmax((counts - self._counts).ravel()[grown])])
+        """A sweep's cell is complete when blocks start landing in another one: checkpoint
+        then. Free motion visits cells in any order: checkpoint every checkpoint_period."""
+        used = self.acc.stats["blocks_used"]
+        if used == self._blocks_used:
+            return
+        self._blocks_used = used
+        if self.acc.mode not in SWEEPS:
+            if time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s:
+                self._checkpoint_due = True
+            return
+        counts = self._cell_count_map()
+        grown = {
+            cell: n - self._counts.get(cell, 0)
+            for cell, n in counts.items()
+            if n > self._counts.get(cell, 0)
+        }
+        if grown:
+            newest = max(grown, key=grown.get)
             if self._current_cell is not None and newest != self._current_cell:
                 self._log_cell(self._current_cell, counts)
                 self._checkpoint_due = True
             self._current_cell = newest
         self._counts = counts
 
-    def _log_cell(self, flat: int, counts: np.ndarray) -> None:
-        index = np.unravel_index(flat, counts.shape)
-        velocity = ", ".join(f"{self.acc.grid[j][i]:+.3g}" for j, i in enumerate(index))
-        covered = int((counts[self.expected] > 0).sum())
-        self.get_logger().info(f"cell [{velocity}] done: {counts[index]} blocks; "
-                               f"coverage {covered}/{int(self.expected.sum())} cells")
+    def _velocity_text(self, cell: tuple[int, ...]) -> str:
+        return ", ".join(f"{self.acc.grid[j][i]:+.3g}" for j, i in enumerate(cell))
+
+    def _log_cell(self, cell: tuple[int, ...], counts: dict) -> None:
+        covered, expected = self._sweep_coverage(counts)
+        self.get_logger().info(
+            f"cell [{self._velocity_text(cell)}] done: {counts.get(cell, 0)} blocks; "
+            f"coverage {covered}/{expected} cells"
+        )
+
+    def _sweep_coverage(self, counts: dict) -> tuple[int, int]:
+        expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
+        return sum(1 for cell in expected if counts.get(cell, 0) > 0), len(expected)
 
     def _on_timer(self) -> None:
-        if self._accel_raw and time.monotonic() - self._last_input > 0.05:
+        if self.input.sensor_pending and time.monotonic() - self._last_input > 0.05:
             self._process()
-        if self._checkpoint_due:
-            self._checkpoint_due = False
-            self.write_model(self.checkpoint)
-            self.checkpoints_written += 1
+        if (
+            self.acc.mode not in SWEEPS
+            and self.acc.stats["blocks_used"]
+            and time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s
+        ):
+            self._checkpoint_due = True
+        if self._checkpoint_due and time.monotonic() >= self._retry_at:
+            self._write_checkpoint()
 
     # --- output -----------------------------------------------------------------------
+    def _write_checkpoint(self) -> None:
+        try:
+            self.write_model(self.checkpoint)
+        except (OSError, EgovibError) as exc:
+            self.checkpoint_failures += 1
+            self._retry_at = time.monotonic() + self.retry_period_s
+            reason = getattr(exc, "strerror", None) or str(exc)
+            message = (
+                f"cannot write checkpoint {self.checkpoint} ({reason}); statistics kept in memory, "
+                f"retrying every {self.retry_period_s:g} s"
+            )
+            if message != self.checkpoint_error:
+                self.get_logger().error(message)
+            self.checkpoint_error = message
+            return
+        if self.checkpoint_error:
+            self.get_logger().info(f"checkpoint {self.checkpoint} written again")
+        self.checkpoint_error = None
+        self._checkpoint_due = False
+        self._last_checkpoint = time.monotonic()
+        self.checkpoints_written += 1
+
     def write_model(self, path: str) -> NoiseModel:
         """Write the model accumulated so far to `path`, atomically."""
-        model = self.acc.to_model(source=f"live:{self.resolve_topic_name(TOPIC_RAW)}", measured=self.grid)
+        model = self.acc.to_model(source=f"live:{self.input.sensor_topic}")
         with atomic_output(path) as tmp:
             model.save(tmp)
         return model
 
     def coverage(self) -> dict:
-        counts = self.acc.counts
-        missing = [tuple(float(self.acc.grid[j][i]) for j, i in enumerate(idx))
-                   for idx in zip(*np.nonzero(self.expected & (counts == 0)))]
-        return {"cells_covered": int((counts[self.expected] > 0).sum()),
-                "cells_expected": int(self.expected.sum()), "blocks": int(counts.sum()),
-                "min_blocks": int(counts[self.expected].min()), "missing_cells": missing}
+        counts = self._cell_count_map()
+        values = list(counts.values())
+        result = {
+            "mode": self.acc.mode,
+            "cells_measured": len(counts),
+            "cells_total": int(np.prod(self.profile.grid_shape, dtype=np.float64)),
+            "blocks": int(sum(values)),
+            "min_blocks": min(values) if values else 0,
+        }
+        if self.acc.mode in SWEEPS:
+            expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
+            missing = [cell for cell in expected if counts.get(cell, 0) == 0]
+            result.update(
+                cells_expected=len(expected),
+                cells_covered=len(expected) - len(missing),
+                min_blocks=min((counts.get(c, 0) for c in expected), default=0),
+                missing_cells=[self._velocity_text(c) for c in missing],
+            )
+        return result
 
     def _publish_diagnostics(self) -> None:
         cov = self.coverage()
-        values = {k: v for k, v in cov.items() if k != "missing_cells"}
-        values.update({"rejected": self.acc.stats["rejected"], "bad_messages": self.bad_messages,
-                       "checkpoints_written": self.checkpoints_written,
-                       "missing_cells": len(cov["missing_cells"])})
-        level = "ok" if not self.bad_messages else "warn"
-        message = f"{cov['cells_covered']}/{cov['cells_expected']} cells covered"
-        self.pub_diag.publish(diagnostic_array(self.get_clock().now().nanoseconds,
-                                               [("calibrator", level, message, values)]))
+        stats = self.acc.stats
+        inp = self.input
+        now = time.monotonic()
+        last_t, last_in = self._last_report
+        self._last_report = (now, inp.sensor_messages)
+        counters = stream_counters(inp, stats)
+        grown = self.health.changes(counters)
+        values = {
+            "input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),
+            "samples_in": inp.sensor_messages,
+            "joint_states_in": inp.joint_messages,
+            "mode": cov["mode"],
+            "cells_measured": cov["cells_measured"],
+            "cells_total": cov["cells_total"],
+            "cells_expected": cov.get("cells_expected", cov["cells_total"]),
+            "cells_covered": cov.get("cells_covered", cov["cells_measured"]),
+            "missing_cells": len(cov.get("missing_cells", [])),
+            "blocks": cov["blocks"],
+            "min_blocks": cov["min_blocks"],
+            "blocks_rejected": sum(stats["rejected"].values()),
+            **{f"rejected_{k}": v for k, v in stats["rejected"].items()},
+            **counters,
+            "checkpoints_written": self.checkpoints_written,
+            "checkpoint_failures": self.checkpoint_failures,
+        }
+        errors = [e for e in (self.stream_error, self.checkpoint_error) if e]
+        if self.missing_joints:
+            errors.append(inp.missing_joints_message(self.missing_joints))
+        warnings = [f"{grown[key]} {key.replace('_', ' ')}" for key in counters if grown[key]]
+        if cov["mode"] in SWEEPS:
+            ok = f"{cov['cells_covered']}/{cov['cells_expected']} cells covered"
+        else:
+            ok = f"{cov['cells_measured']} cells measured ({cov['mode']})"
+        self.health.publish(
+            errors=errors,
+            stale=self.health.stale_message(inp.last_sensor_s, inp.sensor_topic),
+            warnings=warnings,
+            ok=ok,
+            values=values,
+        )
 
     def close(self) -> int:
-        """Write the final model and report coverage; 1 if no block was collected."""
+        """Write the final model and report coverage; 1 if no block was collected, 2 if the
+        model could not be written where asked (it is then saved elsewhere, named)."""
         self._process()
         self.acc.flush()
         cov = self.coverage()
         if cov["blocks"] == 0:
-            print("calibrator: no steady block near any grid velocity: no model written", flush=True)
+            print(
+                "calibrator: no usable block (steady, with joint states): no model written",
+                flush=True,
+            )
             return 1
-        self.write_model(self.output)
+        try:
+            self.write_model(self.output)
+        except (OSError, EgovibError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc)
+            fallback = Path(tempfile.gettempdir()) / f"{Path(self.output).stem}.{os.getpid()}.npz"
+            try:
+                self.write_model(str(fallback))
+            except (OSError, EgovibError):
+                raise ConfigError(
+                    f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
+                    + (
+                        f"; the last checkpoint is {self.checkpoint}"
+                        if os.path.exists(self.checkpoint)
+                        else ""
+                    )
+                ) from None
+            raise ConfigError(
+                f"cannot write {self.output} ({reason}); the model was saved to {fallback}"
+            ) from None
         if os.path.exists(self.checkpoint):
             os.remove(self.checkpoint)
-        print(f"calibrator: wrote {self.output}: {cov['cells_covered']}/{cov['cells_expected']} cells, "
-              f"{cov['blocks']} blocks (min {cov['min_blocks']} per cell); missing cells: "
-              f"{cov['missing_cells'] or 'none'}; rejected: {self.acc.stats['rejected']}", flush=True)
+        missing = cov.get("missing_cells")
+        where = (
+            f"{cov['cells_covered']}/{cov['cells_expected']} cells"
+            if "cells_expected" in cov
+            else f"{cov['cells_measured']} of {cov['cells_total']} cells"
+        )
+        shown = (
+            "none"
+            if not missing
+            else ", ".join(f"[{m}]" for m in missing[:20])
+            + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+        )
+        print(
+            f"calibrator: wrote {self.output} ({cov['mode']}): {where}, {cov['blocks']} blocks "
+            f"(min {cov['min_blocks']} per cell); missing cells: {shown}; rejected blocks: "
+            f"{self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}",
+            flush=True,
+        )
         return 0
 
 

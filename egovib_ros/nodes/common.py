@@ -1,38 +1,69 @@
-"""Shared plumbing of the egovib_ros nodes: parameters, QoS, executor, clean shutdown."""
+"""Shared plumbing of the egovib_ros nodes: parameters, QoS, raw-message batching, health
+(/diagnostics), executor and clean shutdown."""
+
 from __future__ import annotations
 
+import math
+import os
 import sys
-from typing import Any, Callable
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
 
+import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.qos import (HistoryPolicy, QoSProfile, ReliabilityPolicy, DurabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rcl_interfaces.msg import ParameterDescriptor
+from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.errors import EgovibError
+from egovib_ros.cdr import hold_missing_joints
+from egovib_ros.errors import ConfigError, EgovibError
+from egovib_ros.ros_convert import (
+    decode_imu_raws,
+    decode_joint_state_raws,
+    diagnostic_array,
+    joint_names_of,
+)
 
 # Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
 # with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
 # a depth of 5 would cut, and a starved process must not lose what DDS delivered.
 SENSOR_QUEUE_DEPTH = 3000
 SPIN_TIMEOUT_S = 0.1
+DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
 def sensor_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
     """qos_profile_sensor_data with a queue deep enough for batched 3 kHz streams."""
-    profile = QoSProfile(**{k: getattr(qos_profile_sensor_data, k) for k in
-                            ("reliability", "durability", "history", "liveliness")}, depth=depth)
-    return profile
+    return QoSProfile(
+        **{
+            k: getattr(qos_profile_sensor_data, k)
+            for k in ("reliability", "durability", "history", "liveliness")
+        },
+        depth=depth,
+    )
 
 
 def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
     """Publishers of 3 kHz streams: reliable (so a reliable recorder can match too), keep-last."""
-    return QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                      history=HistoryPolicy.KEEP_LAST, depth=depth)
+    return QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+    )
 
 
 def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool = True):
@@ -40,15 +71,302 @@ def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool
     the standard ROS parameters `qos_overrides.<topic>.subscription.{reliability,depth}`
     (e.g. reliable for a lossless replay of a bag on a loaded machine)."""
     return node.create_subscription(
-        msg_type, topic, callback, sensor_qos(), raw=raw,
-        qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        msg_type,
+        topic,
+        callback,
+        sensor_qos(),
+        raw=raw,
+        qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+    )
 
 
-def declare(node: Node, name: str, default: Any, description: str) -> Any:
-    """Declare a parameter with a description and return its value."""
-    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+# --- parameters ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Param:
+    """A node parameter: declared with its description, range and read-only flag.
+
+    `read_only` (the default) for anything whose change needs a restart; `choices` are
+    checked at start (`ros2 param describe` shows them); `range` is inclusive and
+    enforced by rclpy on every set.
+    """
+
+    name: str
+    default: Any
+    description: str
+    read_only: bool = True
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] = ()
+
+    def descriptor(self, default: Any) -> ParameterDescriptor:
+        descriptor = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        if self.choices:
+            descriptor.additional_constraints = "one of: " + ", ".join(self.choices)
+        if self.range is not None:
+            low, high = self.range
+            if isinstance(default, bool) or not isinstance(default, (int, float)):
+                raise TypeError(f"{self.name}: a range needs a numeric default")
+            if isinstance(default, int):
+                descriptor.integer_range = [
+                    IntegerRange(from_value=int(low), to_value=int(high), step=1)
+                ]
+            else:
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)
+                ]
+        return descriptor
 
 
+def declare_parameters(
+    node: Node, params: Sequence[Param], defaults: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Declare `params` (defaults may be replaced, e.g. from a model) and return their values.
+
+    A value out of range, of the wrong type or not among the choices is a one-line
+    ConfigError naming the node and the parameter (exit status 2 via run_node)."""
+    values = {}
+    for param in params:
+        default = (defaults or {}).get(param.name, param.default)
+        try:
+            value = node.declare_parameter(param.name, default, param.descriptor(default)).value
+        except ParameterException as exc:
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}': {_parameter_reason(exc)}"
+            ) from None
+        if param.choices and value not in param.choices:
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}' must be one of "
+                f"{', '.join(param.choices)}; got {value!r}"
+            )
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(
+                f"{node.get_name()}: parameter '{param.name}' must be finite, got {value}"
+            )
+        values[param.name] = value
+    return values
+
+
+def _parameter_reason(exc: ParameterException) -> str:
+    text = str(exc)
+    if "Reason:" in text:  # InvalidParameterValueException: "... Reason: <why>: name"
+        text = text.split("Reason:", 1)[1].strip().rsplit(":", 1)[0]
+    elif "expecting type" in text:  # InvalidParameterTypeException
+        text = (
+            text.rsplit(":", 1)[0] + " (write floating-point values with a decimal point, e.g. 2.0)"
+        )
+    return text
+
+
+# --- raw input, batched ----------------------------------------------------------
+@dataclass
+class SensorBatch:
+    stamps_ns: np.ndarray  # (n,)
+    values: np.ndarray  # (n, 3) the profile's Imu field; non-finite kept
+    raws: list[bytes]  # (n) the input messages (kept for the drop-in output)
+    arrival_ns: np.ndarray  # (n,) monotonic receive time of each message
+
+
+@dataclass
+class JointBatch:
+    stamps_ns: np.ndarray  # (m,)
+    velocity: np.ndarray  # (m, J) in profile order; NaN where a message lacks a joint
+
+
+class StreamInput:
+    """The robot's sensor and joint-state topics (from the profile), subscribed raw.
+
+    Messages are collected as CDR bytes in the callbacks and decoded in batches;
+    `on_batch` is called every `batch_samples` sensor messages counted from the first
+    (with batch_samples = hop a batch ends exactly when a block completes).
+    Undecodable messages are counted and left out; everything else, NaN included, goes
+    to the core, which counts and handles it (one count for each problem).
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        profile,
+        *,
+        batch_samples: int,
+        on_batch: Callable[[], None],
+        on_joint_state: Callable[[], None] | None = None,
+    ):
+        self.field = profile.sensor_field
+        self.joint_names = tuple(profile.joint_names)
+        self.batch_samples = int(batch_samples)
+        self._on_batch = on_batch
+        self._on_joint_state = on_joint_state
+        sensor_subscription(node, Imu, profile.node_sensor_topic, self._on_sensor)
+        sensor_subscription(node, JointState, profile.node_joints_topic, self._on_joints)
+        self.sensor_topic = node.resolve_topic_name(profile.node_sensor_topic)
+        self.joints_topic = node.resolve_topic_name(profile.node_joints_topic)
+        self._sensor: list[bytes] = []
+        self._arrival: list[int] = []
+        self._joints: list[bytes] = []
+        self.sensor_messages = 0
+        self.joint_messages = 0
+        self.undecodable_sensor = 0
+        self.undecodable_joints = 0
+        self.last_sensor_s: float | None = None  # monotonic time of the last sensor message
+        self.first_joint_s: float | None = None
+        self.last_joint_s: float | None = None
+        self.joints_seen = np.zeros(len(self.joint_names), bool)
+        self._last_joint: np.ndarray | None = None  # (2, J) last position and velocity
+        self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
+
+    # callbacks: keep them minimal, 3 kHz
+    def _on_sensor(self, data: bytes) -> None:
+        self._sensor.append(data)
+        self._arrival.append(time.monotonic_ns())
+        self.sensor_messages += 1
+        if self.sensor_messages % self.batch_samples == 0:
+            self._on_batch()
+
+    def _on_joints(self, data: bytes) -> None:
+        self._joints.append(data)
+        self.joint_messages += 1
+        if self._on_joint_state is not None:
+            self._on_joint_state()
+
+    @property
+    def sensor_pending(self) -> int:
+        return len(self._sensor)
+
+    @property
+    def joints_pending(self) -> int:
+        return len(self._joints)
+
+    def take_sensor(self) -> SensorBatch | None:
+        """Decode the sensor messages received since the last call."""
+        if not self._sensor:
+            return None
+        raws, self._sensor = self._sensor, []
+        arrival, self._arrival = np.asarray(self._arrival, dtype=np.int64), []
+        self.last_sensor_s = arrival[-1] / 1e9
+        stamps, values, index = decode_imu_raws(raws, self.field)
+        if len(index) < len(raws):
+            self.undecodable_sensor += len(raws) - len(index)
+            raws = [raws[i] for i in index]
+            arrival = arrival[index]
+        return SensorBatch(stamps, values, raws, arrival)
+
+    def take_joints(self) -> JointBatch | None:
+        """Decode the joint states received since the last call (columns by name)."""
+        if not self._joints:
+            return None
+        raws, self._joints = self._joints, []
+        now = time.monotonic()
+        self.first_joint_s = self.first_joint_s or now
+        self.last_joint_s = now
+        stamps, position, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
+        self.undecodable_joints += bad
+        if len(stamps):
+            present = ~(np.isnan(position) & np.isnan(velocity))
+            self.joints_seen |= present.any(axis=0)
+            if not self.joints_seen.all() and not self.carried_joint_names:
+                self.carried_joint_names = joint_names_of(raws[-1])
+            # a joint a message lacks keeps its last value, as the bag layer reads it offline
+            _, velocity, self._last_joint = hold_missing_joints(
+                position, velocity, self._last_joint
+            )
+        return JointBatch(stamps, velocity)
+
+    def missing_joints(self) -> list[str]:
+        """Named joints that no joint state received so far has carried."""
+        if self.first_joint_s is None:
+            return []
+        return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
+
+    def missing_joints_message(self, missing: list[str]) -> str:
+        carried = (
+            f" (its messages carry {list(self.carried_joint_names)})"
+            if self.carried_joint_names
+            else ""
+        )
+        return (
+            f"{self.joints_topic}: joint{'s' if len(missing) > 1 else ''} "
+            f"{', '.join(repr(m) for m in missing)} never seen{carried}"
+        )
+
+
+# --- health ------------------------------------------------------------------------
+def stream_counters(inp: "StreamInput", stats: dict) -> dict[str, int]:
+    """The input-quality counters every stream node reports (cumulative): undecodable
+    messages from the node's input, the core's bad/out-of-order/gap/restart counts."""
+    return {
+        "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
+        "samples_bad": stats["samples_bad"],
+        "samples_out_of_order": stats["dropped_out_of_order"],
+        "gap_filled_samples": stats["gap_filled_samples"],
+        "stream_restarts": stats["resets"],
+        "joint_states_dropped": stats["joint_states_dropped"],
+    }
+
+
+class Health:
+    """The node's DiagnosticStatus on /diagnostics (~1 Hz), with the usual level semantics:
+
+    ERROR  a condition that stops the node doing its job (wrong model rate, a named joint
+           never seen, an unwritable output) - stays until the condition is gone;
+    STALE  no input for `stale_after_s` seconds;
+    WARN   something went wrong since the previous report (drops, gaps, restarts, bad
+           messages) - clears by itself once the stream is clean again;
+    OK     otherwise.
+
+    Every report has the same keys, numeric where possible, so a dashboard can plot them.
+    Status name: the node's fully qualified name without the leading '/'.
+    """
+
+    def __init__(self, node: Node, *, hardware_id: str = "", stale_after_s: float = 3.0):
+        self.node = node
+        self.name = node.get_fully_qualified_name().lstrip("/")
+        self.hardware_id = hardware_id
+        self.stale_after_s = float(stale_after_s)
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._previous: dict[str, float] = {}
+        self.level = "stale"
+
+    def changes(self, counters: dict[str, float]) -> dict[str, float]:
+        """How much each counter grew since the previous call."""
+        grown = {k: v - self._previous.get(k, 0) for k, v in counters.items()}
+        self._previous = dict(counters)
+        return grown
+
+    def stale_message(self, last_input_s: float | None, what: str) -> str | None:
+        """'no input ...' when nothing arrived for stale_after_s (or ever), else None."""
+        if last_input_s is None:
+            return f"no input on {what} yet"
+        idle = time.monotonic() - last_input_s
+        return f"no input on {what} for {idle:.1f} s" if idle >= self.stale_after_s else None
+
+    def publish(
+        self,
+        *,
+        errors: Sequence[str] = (),
+        stale: str | None = None,
+        warnings: Sequence[str] = (),
+        ok: str = "ok",
+        values: dict[str, object],
+    ) -> str:
+        if errors:
+            level, message = "error", "; ".join(errors)
+        elif stale:
+            level, message = "stale", stale
+        elif warnings:
+            level, message = "warn", "; ".join(warnings)
+        else:
+            level, message = "ok", ok
+        self.level = level
+        self.publisher.publish(
+            diagnostic_array(
+                self.node.get_clock().now().nanoseconds,
+                [(self.name, level, message, values)],
+                self.hardware_id,
+            )
+        )
+        return level
+
+
+# --- running ----------------------------------------------------------------------
 class NodeExit(Exception):
     """Raised inside a node callback to end spinning with an exit status."""
 
@@ -60,11 +378,11 @@ class NodeExit(Exception):
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin it on an EventsExecutor until it is done or Ctrl-C/SIGTERM.
 
-    A node with a `run()` method (no callbacks to serve) is run instead of spun;
-    its return value is the exit status. A node may define `done` (an rclpy Future: spinning stops when it completes, its
-    result being the exit status) and `close()` (called once at the end, also after
-    Ctrl-C: write files, log summaries). Bad input (EgovibError) is a one-line error
-    and exit status 2.
+    A node with a `run()` method (no callbacks to serve) is run instead of spun; its
+    return value is the exit status. A node may define `done` (an rclpy Future: spinning
+    stops when it completes, its result being the exit status) and `close()` (called
+    once at the end, also after Ctrl-C: write files, log summaries). Bad input
+    (EgovibError) is a one-line error and exit status 2.
     """
     rclpy.init(args=sys.argv if args is None else args)
     node = None
@@ -85,7 +403,10 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except EgovibError as exc:
-        print(f"{getattr(node, 'get_name', lambda: 'egovib_ros')()}: error: {exc}", file=sys.stderr)
+        name = (
+            node.get_name() if node is not None else os.path.basename(sys.argv[0]) or "egovib_ros"
+        )
+        print(f"{name}: error: {exc}", file=sys.stderr)
         status = 2
     finally:
         if node is not None:

@@ -1,212 +1,448 @@
 """denoiser: streaming spectral subtraction (egovib_ros.core.StreamingDenoiser) as a ROS 2 node.
 
-Subscribes `joint_states` and `accelerometer/raw` as raw CDR bytes (decoded in batches
-of `batch_samples`), publishes `accelerometer/denoised` with the stamps of the input
-samples, and node health on /diagnostics (~1 Hz). A bad message is counted and dropped,
-never fatal. With no joint state yet the band-passed signal is passed through (logged
-and reported as a warning). After `flush_after_idle` seconds without input the samples
-still held for overlap-add are emitted, so that a replayed bag comes out whole.
+Everything robot-specific comes from the noise model (`model.profile`): the sensor and
+joint-state topics (as relative names: remappable, namespaceable), the Imu field that
+is cleaned, the joints (picked by name from JointStates with any joints in any order)
+and the nominal rate. The output is the drop-in replacement of the input: each
+published Imu is the input message with the profile's field replaced by its cleaned
+value, every other byte (header, frame, orientation, covariances, other vector)
+copied; so the raw messages are kept until their samples come out.
+
+Health on /diagnostics (~1 Hz, see nodes.common.Health): ERROR, and nothing published,
+when the stream's rate does not fit the model or a named joint never appears in the
+joint states; STALE with no input for `stale_after` s; WARN for a period with bad,
+missing or out-of-order samples, restarts, blocks without joint state (passed through
+band-passed) or too many blocks on unmeasured cells. `oversubtraction` and `floor`
+change live (`ros2 param set`); the other parameters are read-only.
 """
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from sensor_msgs.msg import Imu, JointState
+from sensor_msgs.msg import Imu
 
-from egovib_ros.constants import (ACCEL_FRAME, JOINT_NAMES, TOPIC_DENOISED, TOPIC_DIAGNOSTICS,
-                                  TOPIC_JOINT_STATES, TOPIC_RAW)
+from egovib_ros.cdr import replace_imu_field
 from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.nodes.common import declare, run_node, sensor_subscription, stream_publisher_qos
-from egovib_ros.ros_convert import (decode_imu_messages, decode_joint_state_messages,
-                                    diagnostic_array, encode_imu_batch)
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    StreamInput,
+    declare_parameters,
+    run_node,
+    stream_counters,
+    stream_publisher_qos,
+)
+from egovib_ros.robot import RobotProfile
 
-_NS = 1_000_000_000
+LIVE = ("oversubtraction", "floor")
+# The core checks the stream's rate once it has accepted 2 blocks' worth of samples
+# (stream.BlockFramer); output waits for that, once, so that a stream at the wrong rate
+# publishes nothing at all (test_wrong_rate_... holds this to the core's rule).
+MODEL_PARAMETERS = (
+    Param(
+        "model",
+        "",
+        "noise-model file (.npz) from `egovib calibrate` or the calibrator node; the robot "
+        "profile it carries gives topics, Imu field, joints and rate",
+    ),
+    Param(
+        "channels",
+        "per_axis",
+        "per_axis: clean each axis (drop-in replacement) | combined: the paper's "
+        "1-D signal in x, y = z = 0",
+        choices=("per_axis", "combined"),
+    ),
+)
+PARAMETERS = MODEL_PARAMETERS + (
+    Param(
+        "oversubtraction",
+        1.0,
+        "alpha in max(|Y| - alpha N, beta N); changes live",
+        read_only=False,
+        range=(0.0, MAX_OVERSUBTRACTION),
+    ),
+    Param(
+        "floor",
+        0.0,
+        "beta in max(|Y| - alpha N, beta N); changes live",
+        read_only=False,
+        range=(0.0, MAX_FLOOR),
+    ),
+    Param(
+        "batch_samples",
+        32,
+        "process every this many sensor samples (default: the model's hop, i.e. as "
+        "soon as a block completes)",
+        range=(1, 100_000),
+    ),
+    Param(
+        "joint_wait",
+        0.02,
+        "seconds of stream time a completed block waits for the joint states covering it "
+        "(longer: exact for replays whose joint states may lag, at the cost of latency)",
+        range=(0.0, 10.0),
+    ),
+    Param(
+        "flush_after_idle",
+        0.5,
+        "seconds without input after which the samples held for overlap-add are "
+        "published (0 = never)",
+        range=(0.0, 3600.0),
+    ),
+    Param(
+        "stale_after",
+        1.5,
+        "seconds without input before /diagnostics reports STALE (reported at the "
+        "next 1 Hz report)",
+        range=(0.1, 3600.0),
+    ),
+    Param(
+        "unmeasured_warn_fraction",
+        0.25,
+        "WARN when more than this share of a second's blocks fell on cells the calibration "
+        "did not measure (full and free-motion models; a superposition model fills the "
+        "cells off the axes by Eq. 6 by design)",
+        range=(0.0, 1.0),
+    ),
+)
 
 
-class StreamGaps:
-    """Counts samples missing from a stream whose stamps should be evenly spaced."""
+class HeldInput:
+    """Input messages kept until their samples are output (for the drop-in output and the
+    wall-clock latency). The core outputs a subsequence of the input in arrival order:
+    it drops out-of-order samples and never outputs gap fill."""
 
-    def __init__(self, rate_hz: float):
-        self.period_ns = _NS / rate_hz
-        self.last_ns: int | None = None
-        self.missing = 0
+    def __init__(self):
+        self.stamps = np.zeros(0, dtype=np.int64)
+        self.arrival = np.zeros(0, dtype=np.int64)
+        self.raws: list[bytes] = []
 
-    def update(self, stamps_ns: np.ndarray) -> None:
-        if not len(stamps_ns):
-            return
-        previous = stamps_ns[:1] if self.last_ns is None else np.array([self.last_ns])
-        steps = np.round(np.diff(np.concatenate([previous, stamps_ns])) / self.period_ns)
-        self.missing += int(np.sum(np.clip(steps - 1, 0, None)))
-        self.last_ns = int(stamps_ns[-1])
+    def __len__(self) -> int:
+        return len(self.raws)
+
+    def add(self, stamps: np.ndarray, raws: list[bytes], arrival: np.ndarray) -> None:
+        self.stamps = np.concatenate([self.stamps, stamps])
+        self.arrival = np.concatenate([self.arrival, arrival])
+        self.raws.extend(raws)
+
+    def take(self, stamps: np.ndarray) -> tuple[list[bytes], np.ndarray]:
+        """The input messages (and arrival times) of the output samples `stamps`; held
+        messages before them are discarded (the core dropped them)."""
+        k = len(stamps)
+        if not k:
+            return [], np.zeros(0, dtype=np.int64)
+        if len(self.raws) >= k and np.array_equal(self.stamps[:k], stamps):  # the usual case
+            rows = np.arange(k)
+        else:
+            # Output = a subsequence of the input in arrival order (also across a clock jump).
+            held, rows, i = self.stamps.tolist(), [], 0
+            for stamp in stamps.tolist():
+                while i < len(held) and held[i] != stamp:
+                    i += 1
+                if i == len(held):
+                    raise RuntimeError(
+                        "denoiser: output stamps do not match the held input (internal error)"
+                    )
+                rows.append(i)
+                i += 1
+            rows = np.asarray(rows)
+        raws = [self.raws[i] for i in rows]
+        arrival = self.arrival[rows]
+        cut = int(rows[-1]) + 1
+        self.stamps, self.arrival, self.raws = (
+            self.stamps[cut:],
+            self.arrival[cut:],
+            self.raws[cut:],
+        )
+        return raws, arrival
+
+    def clear(self) -> int:
+        n = len(self.raws)
+        self.stamps, self.arrival, self.raws = self.stamps[:0], self.arrival[:0], []
+        return n
+
+
+def model_profile(model: NoiseModel) -> RobotProfile:
+    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2
+    hand)."""
+    if model.profile is None:
+        raise ConfigError(
+            f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
+            f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`"
+        )
+    return model.profile
 
 
 class Denoiser(Node):
     def __init__(self):
         super().__init__("denoiser")
-        model_path = declare(self, "model", "", "noise-model file (.npz) from egovib calibrate or the calibrator")
-        channels = declare(self, "channels", "per_axis",
-                           "per_axis: clean each axis | combined: the paper's 1-D signal in x, y = z = 0")
-        oversubtraction = float(declare(self, "oversubtraction", 1.0, "alpha in max(|Y| - alpha N, beta N)"))
-        floor = float(declare(self, "floor", 0.0, "beta in max(|Y| - alpha N, beta N)"))
-        self.batch_samples = int(declare(self, "batch_samples", 32,
-                                         "process every this many accelerometer samples (32 = one hop: as soon as a block completes)"))
-        self.flush_after_idle_s = float(declare(self, "flush_after_idle", 0.5,
-                                                "seconds without input after which held samples are emitted"))
-        self.frame_id = declare(self, "frame_id", ACCEL_FRAME, "frame_id of the published Imu messages")
-        if not model_path:
+        first = declare_parameters(self, MODEL_PARAMETERS)
+        if not first["model"]:
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
-        if channels not in ("per_axis", "combined"):
-            raise ConfigError(f"denoiser: channels must be per_axis or combined, not {channels!r}")
-        self.model = NoiseModel.load(model_path)
-        self.denoiser = StreamingDenoiser(self.model, channels=channels,
-                                          oversubtraction=oversubtraction, floor=floor)
-        self.channels = channels
+        self.model = NoiseModel.load(first["model"])
+        self.profile = model_profile(self.model)
+        params = declare_parameters(
+            self, PARAMETERS[len(MODEL_PARAMETERS) :], defaults={"batch_samples": self.model.hop}
+        )
+        self.channels = first["channels"]
+        self.flush_after_idle_s = params["flush_after_idle"]
+        self.unmeasured_warn = params["unmeasured_warn_fraction"]
+        self.denoiser = StreamingDenoiser(
+            self.model,
+            channels=self.channels,
+            oversubtraction=params["oversubtraction"],
+            floor=params["floor"],
+            joint_wait_s=params["joint_wait"],
+            source=self.resolve_topic_name(self.profile.node_sensor_topic),
+        )
+        self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.pub = self.create_publisher(Imu, TOPIC_DENOISED, stream_publisher_qos())
-        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
-        sensor_subscription(self, Imu, TOPIC_RAW, self._on_accel)
-        sensor_subscription(self, JointState, TOPIC_JOINT_STATES, self._on_joint_state)
-        self._accel_raw: list[bytes] = []
-        self._joint_raw: list[bytes] = []
-        self._accel_count = 0
-        self._held = False
+        self.input = StreamInput(
+            self,
+            self.profile,
+            batch_samples=params["batch_samples"],
+            on_batch=self._process,
+            on_joint_state=self._on_joint_state,
+        )
+        self.pub = self.create_publisher(
+            Imu, self.profile.node_denoised_topic, stream_publisher_qos()
+        )
+        self.output_topic = self.resolve_topic_name(self.profile.node_denoised_topic)
+        self.health = Health(
+            self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
+        )
+        self.held = HeldInput()
+        # Output waiting for the core's rate check: (messages, values, arrival) per chunk.
+        self._startup: list[tuple] = []
+        self._rate_proven = False
+        self._blocks_held_back = False
         self._last_input = time.monotonic()
         self._flushed = True
-        self.bad_accel = 0
-        self.bad_joint = 0
-        self.joint_states_in = 0
         self.samples_published = 0
-        self.gaps = StreamGaps(self.model.sample_rate_hz)
+        self.samples_withheld = 0  # input samples not published because of an ERROR
+        self.stream_error: str | None = None
+        self.missing_joints: list[str] = []
         self._latency_ms: list[np.ndarray] = []
-        self._passthrough_reported = False
-        self._last_diag = (time.monotonic(), 0)
+        self._last_report = (time.monotonic(), 0, 0)
         self.create_timer(0.05, self._on_idle_check)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f"denoising {self.resolve_topic_name(TOPIC_RAW)} -> "
-                               f"{self.resolve_topic_name(TOPIC_DENOISED)} ({channels}) with {model_path}")
+        self.get_logger().info(
+            f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, "
+            f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} ({self.channels}), "
+            f"joints {list(self.profile.joint_names)} from "
+            f"{self.input.joints_topic}, model {first['model']}"
+        )
 
-    # --- input ----------------------------------------------------------------------
-    def _on_joint_state(self, data: bytes) -> None:
-        self._joint_raw.append(data)
-        if self._held:
+    # --- parameters --------------------------------------------------------------------
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        """oversubtraction and floor take effect from the next block (rclpy has already
+        checked their ranges and refused read-only parameters)."""
+        changes = {p.name: p.value for p in params if p.name in LIVE}
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            self.denoiser.set_subtraction(**changes)
+        except EgovibError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        settings = self.denoiser.subtraction
+        self.get_logger().info(
+            f"oversubtraction {settings.oversubtraction:g}, floor {settings.floor:g}"
+        )
+        return SetParametersResult(successful=True)
+
+    # --- input ---------------------------------------------------------------------------
+    def _on_joint_state(self) -> None:
+        if self._blocks_held_back:
             # A completed block waits for the joint state covering its end: release it now
             # rather than at the next batch of samples (that would add up to a hop of delay).
             self._process_joints()
-            self._update_held()
-
-    def _on_accel(self, data: bytes) -> None:
-        self._accel_raw.append(data)
-        self._accel_count += 1
-        # Counted from the first sample, like the blocks: with batch_samples = hop a batch
-        # ends exactly when a block completes, so no sample waits for the next batch.
-        if self._accel_count % self.batch_samples == 0:
-            self._process()
+            self._update_held_back()
 
     def _process(self) -> None:
         """Decode what arrived, push joint states first (they cover the new blocks), publish."""
         self._last_input = time.monotonic()
         self._flushed = False
         self._process_joints()
-        if self._accel_raw:
-            raws, self._accel_raw = self._accel_raw, []
-            stamps, accel, n_bad = decode_imu_messages(raws, TOPIC_RAW)
-            self.bad_accel += n_bad
-            self.gaps.update(stamps)
-            self._publish(self._push(self.denoiser.push_accel, stamps, accel, "accel"))
-        self._update_held()
+        batch = self.input.take_sensor()
+        if batch is not None and len(batch.stamps_ns):
+            if self.stream_error is not None:  # the core refuses this stream for good
+                self.samples_withheld += len(batch.stamps_ns)
+                return
+            self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
+            try:
+                chunk = self.denoiser.push_accel(batch.stamps_ns, batch.values)
+            except EgovibError as exc:
+                self._refuse(str(exc))
+                return
+            self._publish(chunk)
+        self._update_held_back()
 
     def _process_joints(self) -> None:
-        if self._joint_raw:
-            raws, self._joint_raw = self._joint_raw, []
-            stamps, _, velocity, n_bad = decode_joint_state_messages(raws, JOINT_NAMES)
-            self.bad_joint += n_bad
-            self.joint_states_in += len(stamps)
-            self._publish(self._push(self.denoiser.push_joint_states, stamps, velocity, "joint"))
+        batch = self.input.take_joints()
+        if batch is None or not len(batch.stamps_ns):
+            return
+        missing = self.input.missing_joints()
+        if missing != self.missing_joints:
+            self.missing_joints = missing
+            if missing:
+                self.get_logger().error(
+                    self.input.missing_joints_message(missing)
+                    + ": cannot denoise, publishing nothing"
+                )
+        self._publish(self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity))
 
-    def _update_held(self) -> None:
+    def _refuse(self, reason: str) -> None:
+        """The core refused the stream (e.g. its rate does not fit the model): publish nothing."""
+        self.get_logger().error(f"{reason}: publishing nothing")
+        self.stream_error = reason
+        self.samples_withheld += self.held.clear() + sum(len(r) for r, _, _ in self._startup)
+        self._startup = []
+
+    def _update_held_back(self) -> None:
         """Is a completed block held back (more than a block of input not yet output)?"""
         stats = self.denoiser.stats
-        self._held = stats["samples_in"] - stats["samples_out"] >= self.model.block_length
+        self._blocks_held_back = (
+            stats["samples_in"] - stats["samples_out"] >= self.model.block_length
+        )
 
-    def _push(self, push, stamps: np.ndarray, values: np.ndarray, kind: str):
-        """Push into the core; a batch it rejects is counted and dropped, not fatal."""
-        if not len(stamps):
-            return None
-        try:
-            return push(stamps, values)
-        except EgovibError as exc:
-            if kind == "accel":
-                self.bad_accel += len(stamps)
-            else:
-                self.bad_joint += len(stamps)
-            self.get_logger().warning(f"dropped {len(stamps)} samples: {exc}", throttle_duration_sec=5.0)
-            return None
-
-    def _publish(self, chunk) -> None:
-        if chunk is None or not len(chunk):
+    def _publish(self, chunk, *, end_of_stream: bool = False) -> None:
+        if self.stream_error is not None:
             return
-        values = chunk.values
-        if values.shape[1] == 1:           # CONTRACT: combined signal in x, y = z = 0
-            values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-        for data in encode_imu_batch(chunk.stamps_ns, values, self.frame_id):
-            self.pub.publish(data)
-        self.samples_published += len(chunk)
-        # Latency: node clock at publish minus the stamp of each sample published.
-        self._latency_ms.append((self.get_clock().now().nanoseconds - chunk.stamps_ns) / 1e6)
+        if chunk is not None and len(chunk):
+            raws, arrival = self.held.take(chunk.stamps_ns)
+            if self.missing_joints:
+                self.samples_withheld += len(raws)  # no output claimed as denoised
+                return
+            self._startup.append((raws, chunk.values, arrival))
+        if not self._rate_proven:
+            # The core measures the stream's rate on its first samples; nothing is published
+            # before that has passed (a stream at the wrong rate gives no output at all).
+            if not self.denoiser.stats["rate_checked"] and not end_of_stream:
+                return
+            self._rate_proven = True
+        pending, self._startup = self._startup, []
+        for raws, values, arrival in pending:
+            if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
+                values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
+            for data in replace_imu_field(raws, values, self.profile.sensor_field):
+                self.pub.publish(data)
+            self.samples_published += len(raws)
+            # Latency on this machine's clock: receive of the input message -> publish of its
+            # output.
+            self._latency_ms.append((time.monotonic_ns() - arrival) / 1e6)
 
     def _on_idle_check(self) -> None:
         idle = time.monotonic() - self._last_input
-        if self._accel_raw and idle > 0.02:
+        if self.input.sensor_pending and idle > 0.02:
             self._process()
         elif not self._flushed and self.flush_after_idle_s > 0 and idle > self.flush_after_idle_s:
             self._flushed = True
-            self._publish(self.denoiser.flush())
+            self._publish(self.denoiser.flush(), end_of_stream=True)
+        # The stream stopping or coming back is reported at once, not at the next 1 Hz report.
+        last = self.input.last_sensor_s
+        if last is not None and self.health.level in ("ok", "warn", "stale"):
+            stale = time.monotonic() - last >= self.health.stale_after_s
+            if stale != (self.health.level == "stale"):
+                self._publish_diagnostics()
 
-    # --- health ---------------------------------------------------------------------
+    # --- health ----------------------------------------------------------------------------
     def _publish_diagnostics(self) -> None:
         stats = self.denoiser.stats
+        inp = self.input
         now = time.monotonic()
-        last_t, last_in = self._last_diag
-        rate = (stats["samples_in"] - last_in) / (now - last_t) if now > last_t else 0.0
-        self._last_diag = (now, stats["samples_in"])
+        last_t, last_in, last_out = self._last_report
+        period = max(now - last_t, 1e-3)
+        self._last_report = (now, inp.sensor_messages, self.samples_published)
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
-        blocks = max(stats["blocks"], 1)
-        passthrough = self.joint_states_in == 0 and stats["samples_in"] > 0
-        if passthrough and not self._passthrough_reported:
-            self.get_logger().warning("no joint state yet: passing the band-passed signal through")
-            self._passthrough_reported = True
-        drops = self.bad_accel + self.bad_joint + stats["dropped_out_of_order"] + self.gaps.missing
+        counters = {
+            **stream_counters(inp, stats),
+            "blocks": stats["blocks"],
+            "blocks_no_joint_state": stats["blocks_no_joint_state"],
+            "blocks_out_of_grid": stats["blocks_out_of_grid"],
+            "blocks_unmeasured": stats["blocks_unmeasured"],
+        }
+        grown = self.health.changes(counters)
+        blocks = max(grown["blocks"], 1)
+        fractions = {
+            key: grown[f"blocks_{key}"] / blocks
+            for key in ("no_joint_state", "out_of_grid", "unmeasured")
+        }
+        joint_age = now - inp.last_joint_s if inp.last_joint_s is not None else float("nan")
         values = {
-            "input_rate_hz": rate, "samples_in": stats["samples_in"],
-            "samples_published": self.samples_published, "missing_samples": self.gaps.missing,
-            "bad_messages": self.bad_accel + self.bad_joint,
-            "dropped_out_of_order": stats["dropped_out_of_order"],
-            "joint_states_in": self.joint_states_in,
+            "input_rate_hz": (inp.sensor_messages - last_in) / period,
+            "output_rate_hz": (self.samples_published - last_out) / period,
+            "samples_in": inp.sensor_messages,
+            "samples_published": self.samples_published,
+            "samples_withheld": self.samples_withheld,
+            **counters,
+            "joint_states_in": inp.joint_messages,
+            "joint_state_age_s": joint_age,
+            **{f"{key}_fraction": value for key, value in fractions.items()},
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
-            "out_of_grid_fraction": stats["blocks_out_of_grid"] / blocks,
-            "no_joint_state_fraction": stats["blocks_no_joint_state"] / blocks,
+            "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
+            "model_rate_hz": self.model.sample_rate_hz,
             "channels": self.channels,
+            "oversubtraction": self.denoiser.subtraction.oversubtraction,
+            "floor": self.denoiser.subtraction.floor,
         }
-        if passthrough:
-            level, message = "warn", "no joint state: passing the band-passed signal through"
-        elif drops:
-            level, message = "warn", f"{drops} samples dropped or missing so far"
-        else:
-            level, message = "ok", "denoising"
-        self.pub_diag.publish(diagnostic_array(self.get_clock().now().nanoseconds,
-                                               [("denoiser", level, message, values)]))
+        errors = []
+        if self.stream_error:
+            errors.append(self.stream_error)
+        if self.missing_joints:
+            errors.append(inp.missing_joints_message(self.missing_joints))
+        warnings = []
+        if inp.joint_messages == 0 and inp.sensor_messages > 0:
+            warnings.append(
+                f"no joint state on {inp.joints_topic}: passing the band-passed signal through"
+            )
+        elif grown["blocks_no_joint_state"]:
+            warnings.append(
+                f"{grown['blocks_no_joint_state']} blocks without joint state (passed through)"
+            )
+        for key, text in (
+            ("undecodable_messages", "undecodable messages"),
+            ("samples_bad", "bad samples"),
+            ("samples_out_of_order", "samples out of order"),
+            ("gap_filled_samples", "missing samples bridged"),
+            ("stream_restarts", "stream restarts (gap or clock jump)"),
+            ("joint_states_dropped", "joint states dropped"),
+        ):
+            if grown[key]:
+                warnings.append(f"{grown[key]} {text}")
+        if grown["blocks_out_of_grid"]:
+            warnings.append(
+                f"{fractions['out_of_grid']:.0%} of blocks beyond the model's velocity grid"
+            )
+        # A superposition model fills the cells off the axes by Eq. 6 by design: reported, not
+        # warned about; a full or free-motion model falls back there.
+        by_design = self.model.measured == "superposition"
+        if not by_design and fractions["unmeasured"] > self.unmeasured_warn:
+            warnings.append(
+                f"{fractions['unmeasured']:.0%} of blocks on cells the calibration did not measure"
+            )
+        stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
+        self.health.publish(
+            errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values
+        )
 
     def close(self) -> None:
         stats = self.denoiser.stats
-        print(f"denoiser: samples in {stats['samples_in']}, published {self.samples_published}, "
-              f"missing {self.gaps.missing}, bad messages {self.bad_accel + self.bad_joint}, "
-              f"out of grid blocks {stats['blocks_out_of_grid']}/{stats['blocks']}", flush=True)
+        print(
+            f"denoiser: samples in {self.input.sensor_messages}, "
+            f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
+            f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
+            f"restarts {stats['resets']}, "
+            f"blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}",
+            flush=True,
+        )
 
 
 def main(args: list[str] | None = None) -> int:

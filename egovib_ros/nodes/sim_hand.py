@@ -6,27 +6,74 @@ node clock (so `use_sim_time` works), `joint_states` (1 kHz), `accelerometer/raw
 `accelerometer/ego`. Every `publish_period` the samples due since the last tick are
 generated and sent as pre-serialised CDR, which keeps the CPU cost of 3 kHz low.
 """
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
-from rclpy.node import Node
-
-from egovib_ros.constants import (ACCEL_FRAME, ACCEL_RATE_HZ, JOINT_NAMES, TOPIC_COMMANDS,
-                                  TOPIC_CONTACT, TOPIC_DIAGNOSTICS, TOPIC_EGO, TOPIC_JOINT_STATES,
-                                  TOPIC_RAW)
-from egovib_ros.errors import ConfigError, StreamError
-from egovib_ros.nodes.common import declare, run_node, stream_publisher_qos
-from egovib_ros.ros_convert import (command_velocity, diagnostic_array, encode_imu_batch,
-                                    encode_joint_state_batch)
+from egovib_ros.constants import (
+    ACCEL_FRAME,
+    ACCEL_RATE_HZ,
+    TOPIC_COMMANDS,
+    TOPIC_CONTACT,
+    TOPIC_EGO,
+)
+from egovib_ros.errors import StreamError
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    declare_parameters,
+    run_node,
+    stream_publisher_qos,
+)
+from egovib_ros.robot import load_profile
+from egovib_ros.ros_convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.sim import HandSimulator, SimParams, format_effects, parse_effects
+from egovib_ros.sim.params import default_config_path
 
 _NS = 1_000_000_000
+PR2 = load_profile()  # the simulated robot: joint names and topics
+PARAMETERS = (
+    Param("seed", 0, "random seed of the simulator", range=(0, 2**31 - 1)),
+    Param("tap_rate_hz", 0.0, "mean rate of simulated taps (0 = none)", range=(0.0, 100.0)),
+    Param(
+        "tap_mode",
+        "random",
+        "tap onsets: random (Poisson) | periodic",
+        choices=("random", "periodic"),
+    ),
+    Param("effects", "none", "effects SPEC 'name=strength,...' (CONTRACT section 5), or none"),
+    Param("sim_params", "", "simulator parameter YAML; empty = config/sim.yaml of the package"),
+    Param(
+        "publish_period", 0.01, "seconds between publishing batches of samples", range=(0.0005, 1.0)
+    ),
+    Param("publish_ground_truth", True, "publish accelerometer/contact and accelerometer/ego"),
+    Param("publish_ego", True, "with publish_ground_truth: also publish accelerometer/ego"),
+    Param("frame_id", ACCEL_FRAME, "frame_id of the Imu messages"),
+    Param(
+        "max_batch",
+        0.1,
+        "most seconds of samples generated per tick when catching up",
+        range=(0.001, 10.0),
+    ),
+    Param(
+        "wait_for_subscribers",
+        0,
+        "start simulating only once every published stream has this many subscribers",
+        range=(0, 100),
+    ),
+    Param(
+        "wait_timeout",
+        30.0,
+        "seconds to wait for those subscribers before starting anyway",
+        range=(0.0, 3600.0),
+    ),
+)
 
 
 class SimHand(Node):
@@ -34,42 +81,40 @@ class SimHand(Node):
 
     def __init__(self):
         super().__init__("sim_hand")
-        seed = declare(self, "seed", 0, "random seed of the simulator")
-        tap_rate_hz = float(declare(self, "tap_rate_hz", 0.0, "mean rate of simulated taps (0 = none)"))
-        tap_mode = declare(self, "tap_mode", "random", "tap onsets: random (Poisson) | periodic")
-        effects_spec = declare(self, "effects", "none",
-                               "effects SPEC 'name=strength,...' (CONTRACT section 5), or none")
-        params_file = declare(self, "sim_params", "",
-                              "simulator parameter YAML; empty = the package's config/sim.yaml")
-        self.period_s = float(declare(self, "publish_period", 0.01,
-                                      "seconds between publishing batches of samples"))
-        self.ground_truth = bool(declare(self, "publish_ground_truth", True,
-                                         "publish accelerometer/contact and accelerometer/ego"))
-        publish_ego = bool(declare(self, "publish_ego", True,
-                                   "with publish_ground_truth: also publish accelerometer/ego"))
-        self.frame_id = declare(self, "frame_id", ACCEL_FRAME, "frame_id of the Imu messages")
-        self.max_batch_s = float(declare(self, "max_batch", 0.1,
-                                         "most seconds of samples generated per tick when catching up"))
-        self.wait_for_subscribers = int(declare(
-            self, "wait_for_subscribers", 0,
-            "start simulating only once every published stream has this many subscribers"))
-        self.wait_timeout_s = float(declare(self, "wait_timeout", 30.0,
-                                            "seconds to wait for those subscribers before starting anyway"))
-        if self.period_s <= 0:
-            raise ConfigError(f"sim_hand: publish_period must be > 0, not {self.period_s}")
-        self.effects = parse_effects(effects_spec)
-        self.params = SimParams.load(params_file or None)
+        params = declare_parameters(self, PARAMETERS)
+        seed, tap_rate_hz, tap_mode = params["seed"], params["tap_rate_hz"], params["tap_mode"]
+        self.period_s = params["publish_period"]
+        self.ground_truth = params["publish_ground_truth"]
+        publish_ego = params["publish_ego"]
+        self.frame_id = params["frame_id"]
+        self.max_batch_s = params["max_batch"]
+        self.wait_for_subscribers = params["wait_for_subscribers"]
+        self.wait_timeout_s = params["wait_timeout"]
+        self.effects = parse_effects(params["effects"])
+        self.params_file = params["sim_params"] or str(default_config_path())
+        self.params = SimParams.load(self.params_file)
         self.seed, self.tap_rate_hz, self.tap_mode = int(seed), tap_rate_hz, tap_mode
         self.sim: HandSimulator | None = None
-        HandSimulator(self.params, effects=self.effects, seed=self.seed, tap_rate_hz=tap_rate_hz,
-                      tap_mode=tap_mode)   # validate the settings now, not at the first tick
+        HandSimulator(
+            self.params,
+            effects=self.effects,
+            seed=self.seed,
+            tap_rate_hz=tap_rate_hz,
+            tap_mode=tap_mode,
+        )  # validate the settings now, not at the first tick
 
         qos = stream_publisher_qos()
-        self.pub_joint = self.create_publisher(JointState, TOPIC_JOINT_STATES, qos)
-        self.pub_raw = self.create_publisher(Imu, TOPIC_RAW, qos)
-        self.pub_contact = self.create_publisher(Imu, TOPIC_CONTACT, qos) if self.ground_truth else None
-        self.pub_ego = self.create_publisher(Imu, TOPIC_EGO, qos) if self.ground_truth and publish_ego else None
-        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
+        self.pub_joint = self.create_publisher(JointState, PR2.node_joints_topic, qos)
+        self.pub_raw = self.create_publisher(Imu, PR2.node_sensor_topic, qos)
+        self.pub_contact = (
+            self.create_publisher(Imu, TOPIC_CONTACT, qos) if self.ground_truth else None
+        )
+        self.pub_ego = (
+            self.create_publisher(Imu, TOPIC_EGO, qos)
+            if self.ground_truth and publish_ego
+            else None
+        )
+        self.health = Health(self, hardware_id=PR2.name)
         self.create_subscription(Float64MultiArray, TOPIC_COMMANDS, self._on_command, 10)
         self.commands_received = 0
         self.commands_rejected = 0
@@ -81,11 +126,14 @@ class SimHand(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"simulating seed {self.seed}, effects {format_effects(self.effects)}, taps "
-            f"{tap_rate_hz:g} Hz ({tap_mode}), ground truth {'on' if self.ground_truth else 'off'}")
+            f"{tap_rate_hz:g} Hz ({tap_mode}), "
+            f"ground truth {'on' if self.ground_truth else 'off'}, "
+            f"simulator parameters from {self.params_file}"
+        )
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         try:
-            velocity = command_velocity(msg, len(JOINT_NAMES), topic=TOPIC_COMMANDS)
+            velocity = command_velocity(msg, PR2.n_joints, topic=TOPIC_COMMANDS)
         except StreamError as exc:
             self.commands_rejected += 1
             self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
@@ -98,14 +146,19 @@ class SimHand(Node):
 
     def _tick(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
-        if now_ns <= 0:           # use_sim_time and no /clock yet
+        if now_ns <= 0:  # use_sim_time and no /clock yet
             return
         if self.sim is None:
             if not self._subscribers_ready():
                 return
-            self.sim = HandSimulator(self.params, effects=self.effects, seed=self.seed,
-                                     tap_rate_hz=self.tap_rate_hz, tap_mode=self.tap_mode,
-                                     start_ns=now_ns)
+            self.sim = HandSimulator(
+                self.params,
+                effects=self.effects,
+                seed=self.seed,
+                tap_rate_hz=self.tap_rate_hz,
+                tap_mode=self.tap_mode,
+                start_ns=now_ns,
+            )
             pending = getattr(self, "_pending_command", None)
             if pending is not None:
                 self.sim.set_command(pending)
@@ -118,9 +171,10 @@ class SimHand(Node):
         n = min(lag, max(1, int(self.max_batch_s * ACCEL_RATE_HZ)))
         chunk = self.sim.step(n)
         self.taps += len(chunk.tap_onsets_ns)
-        if len(chunk.joint_stamps_ns):      # a short step may hold no 1 kHz sample
-            for data in encode_joint_state_batch(chunk.joint_stamps_ns, chunk.joint_position,
-                                                 chunk.joint_velocity):
+        if len(chunk.joint_stamps_ns):  # a short step may hold no 1 kHz sample
+            for data in encode_joint_state_batch(
+                chunk.joint_stamps_ns, chunk.joint_position, chunk.joint_velocity, PR2.joint_names
+            ):
                 self.pub_joint.publish(data)
         for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.accel, self.frame_id):
             self.pub_raw.publish(data)
@@ -151,18 +205,31 @@ class SimHand(Node):
             return
         now_ns = self.get_clock().now().nanoseconds
         last_ns, last_samples = self._last_diag
-        rate = ((self.samples_published - last_samples) * _NS / (now_ns - last_ns)
-                if last_ns and now_ns > last_ns else 0.0)
+        rate = (
+            (self.samples_published - last_samples) * _NS / (now_ns - last_ns)
+            if last_ns and now_ns > last_ns
+            else 0.0
+        )
         self._last_diag = (now_ns, self.samples_published)
         velocity = self.sim.velocity
-        values = {"accel_rate_hz": rate, "samples_published": self.samples_published,
-                  "max_lag_samples": self.max_lag_samples, "taps": self.taps,
-                  "commands_received": self.commands_received,
-                  "commands_rejected": self.commands_rejected,
-                  "command": list(np.round(self.sim.command, 6)),
-                  "velocity": list(np.round(velocity, 6))}
-        level = "ok" if self.commands_rejected == 0 else "warn"
-        self.pub_diag.publish(diagnostic_array(now_ns, [("sim_hand", level, "simulating", values)]))
+        values = {
+            "accel_rate_hz": rate,
+            "samples_published": self.samples_published,
+            "max_lag_samples": self.max_lag_samples,
+            "taps": self.taps,
+            "commands_received": self.commands_received,
+            "commands_rejected": self.commands_rejected,
+            "command": list(np.round(self.sim.command, 6)),
+            "velocity": list(np.round(velocity, 6)),
+        }
+        rejected = self.health.changes({"commands_rejected": self.commands_rejected})[
+            "commands_rejected"
+        ]
+        self.health.publish(
+            warnings=[f"{rejected} commands rejected"] if rejected else [],
+            ok="simulating",
+            values=values,
+        )
         self.max_lag_samples = 0
 
 

@@ -1,65 +1,113 @@
-"""sweep_driver: command the calibration sweep over the velocity grid, then stop and exit 0.
+"""sweep_driver: command the calibration sweep over a robot's velocity grid, then stop and exit 0.
 
-For each cell (the 21 x 21 grid, or the 41-cell superposition sweep, in the order of
-egovib_ros.sim.sweep_cells) the joint velocities are commanded on
-`hand_velocity_controller/commands` for `settle` + `dwell` seconds of node-clock time
-(so it follows use_sim_time). Progress: a log line per cell and /diagnostics.
+The robot profile (`robot`: a profile path or a shipped name, default the PR2 hand)
+gives the joints and their grid (max speed, steps, one- or two-directional). For each
+cell of the grid (`full`: every cell, only for small grids; `superposition`: the rest
+cell, then each joint's other grid values with the others at rest, which Eq. 6 needs;
+the core's `sweep_cells` order) the joint velocities are commanded
+in the ros2_control forward-command convention (std_msgs/Float64MultiArray, one value
+per joint in profile order) on `hand_velocity_controller/commands` (remap it to your
+controller's `<controller>/commands`) for `settle` + `dwell` seconds of node-clock
+time (so it follows use_sim_time). Progress: a log line per cell and /diagnostics.
 `start_cell` resumes an interrupted sweep.
 """
+
 from __future__ import annotations
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.constants import TOPIC_COMMANDS, TOPIC_DIAGNOSTICS
+from egovib_ros.constants import TOPIC_COMMANDS
+from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.errors import ConfigError
-from egovib_ros.nodes.common import declare, run_node
-from egovib_ros.ros_convert import command_message, diagnostic_array
-from egovib_ros.sim.scenarios import sweep_cells
+from egovib_ros.nodes.common import Health, Param, declare_parameters, run_node
+from egovib_ros.robot import RobotProfile, load_profile
+from egovib_ros.ros_convert import command_message
 
 _NS = 1_000_000_000
-COMMAND_PERIOD_S = 0.05     # the command is repeated at 20 Hz (forward-command controllers hold it)
+COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
+MAX_SWEEP_CELLS = (
+    100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
+)
+PARAMETERS = (
+    Param(
+        "robot",
+        "",
+        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
+    ),
+    Param(
+        "grid",
+        "superposition",
+        "full (every cell of the grid) | superposition (cells with at most one joint moving)",
+        choices=("full", "superposition"),
+    ),
+    Param("dwell", 15.0, "seconds of data per cell, after settling", range=(0.001, 3600.0)),
+    Param("settle", 1.0, "seconds to reach a cell's velocity", range=(0.0, 3600.0)),
+    Param(
+        "start_cell",
+        0,
+        "first cell (0-based) to command: resumes a sweep",
+        range=(0, MAX_SWEEP_CELLS),
+    ),
+    Param(
+        "wait_for_subscriber",
+        10.0,
+        "seconds to wait for a subscriber of the commands before starting (0 = do not wait)",
+        range=(0.0, 3600.0),
+    ),
+)
+
+
+def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
+    """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
+    order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses)."""
+    n_cells = int(np.prod(profile.grid_shape, dtype=np.float64))
+    if grid == "full" and n_cells > MAX_SWEEP_CELLS:
+        raise ConfigError(
+            f"{profile.name}: a full sweep has {n_cells} "
+            f"cells (more than {MAX_SWEEP_CELLS}); sweep the superposition grid or calibrate "
+            f"from free motion"
+        )
+    axes = profile.grid()
+    cells = sweep_cells(axes, grid)
+    return np.column_stack([axes[j][cells[:, j]] for j in range(profile.n_joints)])
 
 
 class SweepDriver(Node):
     def __init__(self):
         super().__init__("sweep_driver")
-        grid = declare(self, "grid", "superposition", "full (441 cells) | superposition (41 cells)")
-        self.dwell_s = float(declare(self, "dwell", 15.0, "seconds of data per cell, after settling"))
-        self.settle_s = float(declare(self, "settle", 1.0, "seconds to reach a cell's velocity"))
-        self.start_cell = int(declare(self, "start_cell", 0, "first cell (0-based) to command: resumes a sweep"))
-        self.wait_for_subscriber = float(declare(
-            self, "wait_for_subscriber", 10.0,
-            "seconds to wait for a subscriber of the commands before starting (0 = do not wait)"))
-        if grid not in ("full", "superposition"):
-            raise ConfigError(f"sweep_driver: grid must be full or superposition, not {grid!r}")
-        if self.dwell_s <= 0 or self.settle_s < 0:
-            raise ConfigError("sweep_driver: dwell must be > 0 and settle >= 0")
-        self.cells = sweep_cells(grid)
+        params = declare_parameters(self, PARAMETERS)
+        self.profile = load_profile(params["robot"] or None)
+        grid = params["grid"]
+        self.dwell_s, self.settle_s = params["dwell"], params["settle"]
+        self.start_cell = params["start_cell"]
+        self.wait_for_subscriber = params["wait_for_subscriber"]
+        self.cells = sweep_velocities(self.profile, grid)
         if not 0 <= self.start_cell < len(self.cells):
             raise ConfigError(f"sweep_driver: start_cell must be in 0..{len(self.cells) - 1}")
         self.grid = grid
         self.pub = self.create_publisher(Float64MultiArray, TOPIC_COMMANDS, 10)
-        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
+        self.health = Health(self, hardware_id=self.profile.name)
         self.done = Future()
         self.cell = self.start_cell - 1
         self.cell_start_ns: int | None = None
-        self.waited_ns = 0
         self._created_ns: int | None = None
         self.create_timer(COMMAND_PERIOD_S, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         total = (len(self.cells) - self.start_cell) * (self.dwell_s + self.settle_s)
-        self.get_logger().info(f"{grid} sweep: cells {self.start_cell}..{len(self.cells) - 1}, "
-                               f"settle {self.settle_s:g} s + dwell {self.dwell_s:g} s, ~{total:.0f} s")
+        self.get_logger().info(
+            f"{grid} sweep of {self.profile.name} ({', '.join(self.profile.joint_names)}): "
+            f"cells {self.start_cell}..{len(self.cells) - 1}, "
+            f"settle {self.settle_s:g} s + dwell {self.dwell_s:g} s, ~{total:.0f} s"
+        )
 
     def _tick(self) -> None:
         if self.done.done():
             return
         now = self.get_clock().now().nanoseconds
-        if now <= 0:                    # use_sim_time and no /clock yet
+        if now <= 0:  # use_sim_time and no /clock yet
             return
         if self.cell_start_ns is None:
             if self._created_ns is None:
@@ -80,8 +128,10 @@ class SweepDriver(Node):
             return
         self.cell_start_ns = now
         velocity = self.cells[self.cell]
-        self.get_logger().info(f"cell {self.cell + 1}/{len(self.cells)}: wrist {velocity[0]:+.2f} rad/s, "
-                               f"gripper {velocity[1]:+.4f} m/s")
+        command = ", ".join(
+            f"{name} {v:+.4g}" for name, v in zip(self.profile.joint_names, velocity)
+        )
+        self.get_logger().info(f"cell {self.cell + 1}/{len(self.cells)}: {command}")
 
     def _finish(self) -> None:
         stop = command_message(np.zeros(self.cells.shape[1]))
@@ -94,14 +144,32 @@ class SweepDriver(Node):
     def _publish_diagnostics(self) -> None:
         index = max(self.cell, self.start_cell)
         finished = self.cell >= len(self.cells)
-        values = {"cell": min(index, len(self.cells) - 1) + 1, "cells": len(self.cells),
-                  "grid": self.grid, "dwell_s": self.dwell_s, "settle_s": self.settle_s}
-        if not finished and 0 <= self.cell < len(self.cells):
-            values["command"] = list(self.cells[self.cell])
-        message = "done" if finished else (f"cell {index + 1}/{len(self.cells)}"
-                                           if self.cell_start_ns is not None else "waiting")
-        self.pub_diag.publish(diagnostic_array(max(self.get_clock().now().nanoseconds, 0),
-                                               [("sweep_driver", "ok", message, values)]))
+        values = {
+            "cell": min(index, len(self.cells) - 1) + 1,
+            "cells": len(self.cells),
+            "grid": self.grid,
+            "dwell_s": self.dwell_s,
+            "settle_s": self.settle_s,
+        }
+        commanding = not finished and 0 <= self.cell < len(self.cells)
+        for j, name in enumerate(self.profile.joint_names):  # same keys every time (dashboards)
+            values[f"command.{name}"] = float(self.cells[self.cell][j]) if commanding else 0.0
+        message = (
+            "done"
+            if finished
+            else (
+                f"cell {index + 1}/{len(self.cells)}"
+                if self.cell_start_ns is not None
+                else "waiting"
+            )
+        )
+        waiting = self.cell_start_ns is None and not finished
+        warnings = (
+            ["no subscriber of the commands yet"]
+            if waiting and self.pub.get_subscription_count() == 0
+            else []
+        )
+        self.health.publish(warnings=warnings, ok=message, values=values)
 
     def close(self) -> None:
         # Interrupted or done: leave the joints stopped.

@@ -40,6 +40,7 @@ Effects (CONTRACT section 5), strength s; absent or 0 = bit-identical base:
                     (positive: joint states lag the accelerometer).
 * ``drift``:        all joint vibration x (1 + s t / drift_period_s), t = time since start.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -47,13 +48,21 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.constants import (ACCEL_BITS, ACCEL_RANGE_MS2, ACCEL_RATE_HZ, BAND_HZ, BAND_ORDER,
-                                  GRIPPER_GAP_RANGE_M, JOINT_RATE_HZ, MAX_SPEED)
+from egovib_ros.constants import (
+    ACCEL_BITS,
+    ACCEL_RANGE_MS2,
+    ACCEL_RATE_HZ,
+    BAND_HZ,
+    BAND_ORDER,
+    GRIPPER_GAP_RANGE_M,
+    JOINT_RATE_HZ,
+    MAX_SPEED,
+)
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.params import JointVibration, SimParams, validate_effects
 
-LSB_MS2 = 2.0 * ACCEL_RANGE_MS2 / 2 ** ACCEL_BITS
-HUM_PERIOD = 32                       # samples: hum lines on multiples of fs/32
+LSB_MS2 = 2.0 * ACCEL_RANGE_MS2 / 2**ACCEL_BITS
+HUM_PERIOD = 32  # samples: hum lines on multiples of fs/32
 _NS = 1_000_000_000
 
 
@@ -67,16 +76,16 @@ def quantise(accel: np.ndarray) -> np.ndarray:
 class SimChunk:
     """One step of the simulator; all stamps int64 ns."""
 
-    accel_stamps_ns: np.ndarray      # (n,)
-    accel: np.ndarray                # (n, 3) raw, quantised
-    contact: np.ndarray              # (n, 3) ground truth contact part
-    ego: np.ndarray                  # (n, 3) ground truth ego part (gravity + hum + vibration)
-    joint_stamps_ns: np.ndarray      # (m,) reported stamps (timing effect included)
-    joint_position: np.ndarray       # (m, J) encoder positions
-    joint_velocity: np.ndarray       # (m, J) first-order differences of encoder positions
-    tap_onsets_ns: np.ndarray        # (t,) accel stamps at which taps start
-    true_velocity: np.ndarray        # (n, J) joint velocities at the accel samples
-    true_position: np.ndarray        # (n, J)
+    accel_stamps_ns: np.ndarray  # (n,)
+    accel: np.ndarray  # (n, 3) raw, quantised
+    contact: np.ndarray  # (n, 3) ground truth contact part
+    ego: np.ndarray  # (n, 3) ground truth ego part (gravity + hum + vibration)
+    joint_stamps_ns: np.ndarray  # (m,) reported stamps (timing effect included)
+    joint_position: np.ndarray  # (m, J) encoder positions
+    joint_velocity: np.ndarray  # (m, J) first-order differences of encoder positions
+    tap_onsets_ns: np.ndarray  # (t,) accel stamps at which taps start
+    true_velocity: np.ndarray  # (n, J) joint velocities at the accel samples
+    true_position: np.ndarray  # (n, J)
 
 
 def _unit(v) -> np.ndarray:
@@ -90,7 +99,9 @@ def _unit(v) -> np.ndarray:
 class _JointSource:
     """Vibration source + structural path of one joint, with carried filter states."""
 
-    def __init__(self, p: JointVibration, vmax: float, streams: list[np.random.Generator], fs: float):
+    def __init__(
+        self, p: JointVibration, vmax: float, streams: list[np.random.Generator], fs: float
+    ):
         # one generator per kind of draw, so that chunking never reorders draws
         self.p, self.vmax, self.fs = p, vmax, fs
         rng_start, self.rng_walk, self.rng_jitter, self.rng_friction = streams
@@ -102,9 +113,11 @@ class _JointSource:
         self.phase_zi = rng_start.uniform(0, 2 * np.pi, (1, len(self.orders)))
         alpha = 1.0 - np.exp(-2 * np.pi * p.amp_jitter_hz / fs)
         self.jit_ba = (np.array([alpha]), np.array([1.0, alpha - 1.0]))
-        self.jit_scale = p.amp_jitter * np.sqrt((2.0 - alpha) / alpha)       # unit-rms low-pass noise
+        self.jit_scale = p.amp_jitter * np.sqrt((2.0 - alpha) / alpha)  # unit-rms low-pass noise
         self.jit_zi = np.zeros(1)
-        self.band_sos = signal.butter(p.path_order, p.path_band_hz, btype="band", fs=fs, output="sos")
+        self.band_sos = signal.butter(
+            p.path_order, p.path_band_hz, btype="band", fs=fs, output="sos"
+        )
         self.band_zi = np.zeros((self.band_sos.shape[0], 2))
         b, a = signal.iirpeak(p.resonance_hz, p.resonance_q, fs=fs)
         self.res_ba = (b * p.resonance_gain, a)
@@ -116,14 +129,20 @@ class _JointSource:
         p, n = self.p, len(speed)
         frac = speed / self.vmax
         # phase increments: line frequency (scales with speed) + random walk
-        walk = self.rng_walk.standard_normal((n, len(self.orders))) * (p.phase_jitter / np.sqrt(self.fs))
+        walk = self.rng_walk.standard_normal((n, len(self.orders))) * (
+            p.phase_jitter / np.sqrt(self.fs)
+        )
         inc = (2 * np.pi / self.fs) * np.outer(speed * p.line_hz_per_unit, self.orders) + walk
         phases, self.phase_zi = signal.lfilter([1.0], [1.0, -1.0], inc, axis=0, zi=self.phase_zi)
-        jit, self.jit_zi = signal.lfilter(*self.jit_ba, self.rng_jitter.standard_normal(n) * self.jit_scale,
-                                          zi=self.jit_zi)
-        lines = (np.sin(phases) * self.amps).sum(axis=1) * (frac ** p.line_speed_exponent) * (1.0 + jit)
-        friction = (p.friction_coulomb * (1.0 - np.exp(-frac / 0.02)) + p.friction_viscous * frac) \
-            * self.rng_friction.standard_normal(n)
+        jit, self.jit_zi = signal.lfilter(
+            *self.jit_ba, self.rng_jitter.standard_normal(n) * self.jit_scale, zi=self.jit_zi
+        )
+        lines = (
+            (np.sin(phases) * self.amps).sum(axis=1) * (frac**p.line_speed_exponent) * (1.0 + jit)
+        )
+        friction = (
+            p.friction_coulomb * (1.0 - np.exp(-frac / 0.02)) + p.friction_viscous * frac
+        ) * self.rng_friction.standard_normal(n)
         return lines + friction
 
     def path(self, src: np.ndarray) -> np.ndarray:
@@ -139,8 +158,16 @@ class HandSimulator:
     Chunked stepping equals one long step for the same seed and commands.
     """
 
-    def __init__(self, params: SimParams | None = None, *, effects: dict | None = None, seed: int = 0,
-                 tap_rate_hz: float = 0.0, tap_mode: str = "random", start_ns: int = 0):
+    def __init__(
+        self,
+        params: SimParams | None = None,
+        *,
+        effects: dict | None = None,
+        seed: int = 0,
+        tap_rate_hz: float = 0.0,
+        tap_mode: str = "random",
+        start_ns: int = 0,
+    ):
         self.params = p = params if params is not None else SimParams.load()
         self.effects = validate_effects({**p.effects, **(effects or {})})
         if tap_mode not in ("random", "periodic"):
@@ -155,9 +182,13 @@ class HandSimulator:
         self.vmax = np.asarray(MAX_SPEED, float)
         self.n_joints = len(self.vmax)
         streams = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(13)]
-        (self.rng_sensor, self.rng_taps, self.rng_acc_w, self.rng_acc_g, self.rng_coupling) = streams[8:]
-        self.joints = [_JointSource(p.wrist, self.vmax[0], streams[0:4], self.fs),
-                       _JointSource(p.gripper, self.vmax[1], streams[4:8], self.fs)]
+        (self.rng_sensor, self.rng_taps, self.rng_acc_w, self.rng_acc_g, self.rng_coupling) = (
+            streams[8:]
+        )
+        self.joints = [
+            _JointSource(p.wrist, self.vmax[0], streams[0:4], self.fs),
+            _JointSource(p.gripper, self.vmax[1], streams[4:8], self.fs),
+        ]
         # controller: v[k] = alpha * target[k] + (1 - alpha) v[k-1]
         alpha = 1.0 - np.exp(-self.dt / p.controller_tau_s)
         self.ctrl_ba = (np.array([alpha]), np.array([1.0, alpha - 1.0]))
@@ -166,19 +197,24 @@ class HandSimulator:
         self.velocity = np.zeros(self.n_joints)
         self.gripper_dir = 1.0
         self.command = np.zeros(self.n_joints)
-        self.index = 0                                         # next accel sample index
+        self.index = 0  # next accel sample index
         res = np.asarray(p.encoder_resolution, float)
         self.enc_res = res
         self.last_enc = np.round(self.position / res) * res
-        self.joint_frac = p.joint_phase_s * self.fs            # joint sample m sits at accel index 3m + frac
+        self.joint_frac = p.joint_phase_s * self.fs  # joint sample m sits at accel index 3m + frac
         self.joint_offset_ns = int(round(p.joint_phase_s * _NS))
         # hum: exactly periodic in the sample index
         harmonics = np.arange(1, len(p.hum_amps) + 1)
         k = np.arange(HUM_PERIOD)
         if len(p.hum_amps) > HUM_PERIOD // 2 - 1:
-            raise ConfigError(f"sim params: at most {HUM_PERIOD // 2 - 1} hum_amps (harmonics of fs/32 below Nyquist)")
+            raise ConfigError(
+                f"sim params: at most {HUM_PERIOD // 2 - 1} hum_amps "
+                "(harmonics of fs/32 below Nyquist)"
+            )
         # equal phases: each odd rfft bin then gets the in-phase leakage of both neighbouring lines
-        self.hum_period = np.sin(2 * np.pi * np.outer(k, harmonics) / HUM_PERIOD) @ np.asarray(p.hum_amps, float)
+        self.hum_period = np.sin(2 * np.pi * np.outer(k, harmonics) / HUM_PERIOD) @ np.asarray(
+            p.hum_amps, float
+        )
         self.hum_dir = _unit(p.hum_direction)
         self.zero_g_offset = np.asarray(p.zero_g_offset_ms2, float).reshape(3)
         # taps
@@ -193,7 +229,9 @@ class HandSimulator:
         """Target joint velocities [wrist rad/s, gripper m/s], held until the next command."""
         v = np.asarray(velocity, float).reshape(-1)
         if v.shape != (self.n_joints,) or not np.all(np.isfinite(v)):
-            raise ConfigError(f"command must be {self.n_joints} finite velocities, got {velocity!r}")
+            raise ConfigError(
+                f"command must be {self.n_joints} finite velocities, got {velocity!r}"
+            )
         self.command = v
 
     def stamps_ns(self, indices: np.ndarray) -> np.ndarray:
@@ -212,7 +250,7 @@ class HandSimulator:
     def _nominal_tap_peak(self) -> float:
         t = np.arange(self.tap_len * 4) / self.fs
         wave = self._tap_waveform(t, np.ones(len(self.params.tap_modes_hz)))
-        wave[self.tap_len:] = 0.0
+        wave[self.tap_len :] = 0.0
         sos = signal.butter(BAND_ORDER, BAND_HZ, btype="band", fs=self.fs, output="sos")
         return float(np.max(np.abs(signal.sosfilt(sos, wave * self.tap_dir.sum()))))
 
@@ -231,7 +269,7 @@ class HandSimulator:
     def _new_tap(self, onset: int) -> tuple[int, float, np.ndarray]:
         p = self.params
         z = self.rng_taps.standard_normal(1 + len(p.tap_modes_hz))
-        amp = self.tap_scale * np.exp(p.tap_peak_spread * z[0] - 0.5 * p.tap_peak_spread ** 2)
+        amp = self.tap_scale * np.exp(p.tap_peak_spread * z[0] - 0.5 * p.tap_peak_spread**2)
         return onset, float(amp), 1.0 + 0.03 * np.clip(z[1:], -3, 3)
 
     def _contact(self, i0: int, n: int) -> tuple[np.ndarray, list[int]]:
@@ -246,7 +284,7 @@ class HandSimulator:
             a, b = max(onset, i0), min(onset + self.tap_len, i0 + n)
             if b > a:
                 t = (np.arange(a, b) - onset) / self.fs
-                contact_1d[a - i0:b - i0] += amp * self._tap_waveform(t, fsc)
+                contact_1d[a - i0 : b - i0] += amp * self._tap_waveform(t, fsc)
             if onset + self.tap_len > i0 + n:
                 keep.append((onset, amp, fsc))
         self.active_taps = keep
@@ -254,12 +292,15 @@ class HandSimulator:
 
     # --- joints -------------------------------------------------------------------
     def _kinematics(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """True velocities and positions (n, J) at the accel samples; gripper reverses before its limits."""
+        """True velocities and positions (n, J) at the accel samples; gripper reverses before
+        its limits."""
         n = len(targets)
         vel = np.empty((n, self.n_joints))
         pos = np.empty((n, self.n_joints))
         integ = (np.array([self.dt]), np.array([1.0, -1.0]))
-        vel[:, 0], self.ctrl_zi[0] = signal.lfilter(*self.ctrl_ba, targets[:, 0], zi=self.ctrl_zi[0])
+        vel[:, 0], self.ctrl_zi[0] = signal.lfilter(
+            *self.ctrl_ba, targets[:, 0], zi=self.ctrl_zi[0]
+        )
         pos[:, 0], _ = signal.lfilter(*integ, vel[:, 0], zi=[self.position[0]])
         lo, hi = GRIPPER_GAP_RANGE_M
         tau = self.params.controller_tau_s
@@ -267,24 +308,30 @@ class HandSimulator:
         while start < n:
             seg_target = self.gripper_dir * targets[start:, 1]
             v, zf = signal.lfilter(*self.ctrl_ba, seg_target, zi=self.ctrl_zi[1])
-            p, _ = signal.lfilter(*integ, v, zi=[self.position[1] if start == 0 else pos[start - 1, 1]])
-            stop = p + v * tau                 # where the gap would come to rest
-            hit = np.flatnonzero(((seg_target > 0) & (stop >= hi)) | ((seg_target < 0) & (stop <= lo)))
+            p, _ = signal.lfilter(
+                *integ, v, zi=[self.position[1] if start == 0 else pos[start - 1, 1]]
+            )
+            stop = p + v * tau  # where the gap would come to rest
+            hit = np.flatnonzero(
+                ((seg_target > 0) & (stop >= hi)) | ((seg_target < 0) & (stop <= lo))
+            )
             end = n - start if hit.size == 0 else hit[0] + 1
-            vel[start:start + end, 1] = v[:end]
-            pos[start:start + end, 1] = p[:end]
+            vel[start : start + end, 1] = v[:end]
+            pos[start : start + end, 1] = p[:end]
             if hit.size == 0:
                 self.ctrl_zi[1] = zf
             else:
-                _, self.ctrl_zi[1] = signal.lfilter(*self.ctrl_ba, seg_target[:end], zi=self.ctrl_zi[1])
+                _, self.ctrl_zi[1] = signal.lfilter(
+                    *self.ctrl_ba, seg_target[:end], zi=self.ctrl_zi[1]
+                )
                 self.gripper_dir = -self.gripper_dir
             start += end
         return vel, pos
 
     def _joint_states(self, i0: int, n: int, pos: np.ndarray, prev_pos: np.ndarray):
         """Encoder readings at 1 kHz: sample m lies between accel samples 3m and 3m+1."""
-        m0 = -((1 - i0) // 3)                   # first m with 3m + 1 >= i0
-        m1 = (i0 + n - 2) // 3 + 1              # one past the last m with 3m + 1 <= i0 + n - 1
+        m0 = -((1 - i0) // 3)  # first m with 3m + 1 >= i0
+        m1 = (i0 + n - 2) // 3 + 1  # one past the last m with 3m + 1 <= i0 + n - 1
         m = np.arange(m0, max(m0, m1), dtype=np.int64)
         ext = np.vstack([prev_pos[None, :], pos])
         lo = ext[3 * m - i0 + 1]
@@ -333,26 +380,36 @@ class HandSimulator:
             src = joint.source(speed[:, j])
             if "position" in fx:
                 s = fx["position"]
-                gain = (1.0 + s * np.cos(pos[:, 0] - p.position_phase_rad)) if j == 0 else \
-                    (1.0 + s * (pos[:, 1] / GRIPPER_GAP_RANGE_M[1] - 0.5))
+                gain = (
+                    (1.0 + s * np.cos(pos[:, 0] - p.position_phase_rad))
+                    if j == 0
+                    else (1.0 + s * (pos[:, 1] / GRIPPER_GAP_RANGE_M[1] - 0.5))
+                )
                 src = src * gain
             if "acceleration" in fx:
                 acc = np.abs(np.diff(np.concatenate([[prev_vel[j]], vel[:, j]]))) * self.fs
                 a_ref = self.vmax[j] / p.controller_tau_s
                 rng = self.rng_acc_w if j == 0 else self.rng_acc_g
-                src = src + fx["acceleration"] * p.acceleration_gain * (acc / a_ref) * rng.standard_normal(n)
+                src = src + fx["acceleration"] * p.acceleration_gain * (
+                    acc / a_ref
+                ) * rng.standard_normal(n)
             if "coupling" in fx and j == 1:
-                src = src + fx["coupling"] * p.coupling_gain * frac[:, 0] * frac[:, 1] \
-                    * self.rng_coupling.standard_normal(n)
+                src = src + fx["coupling"] * p.coupling_gain * frac[:, 0] * frac[
+                    :, 1
+                ] * self.rng_coupling.standard_normal(n)
             if "drift" in fx:
                 src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
             ego += joint.path(src)[:, None] * joint.direction
         ego += self.hum_period[idx % HUM_PERIOD][:, None] * self.hum_dir
         tilt = p.gravity_tilt_rad
         if tilt:
-            ego += p.gravity_ms2 * np.column_stack([np.sin(tilt) * np.cos(pos[:, 0]),
-                                                    np.sin(tilt) * np.sin(pos[:, 0]),
-                                                    np.full(n, np.cos(tilt))])
+            ego += p.gravity_ms2 * np.column_stack(
+                [
+                    np.sin(tilt) * np.cos(pos[:, 0]),
+                    np.sin(tilt) * np.sin(pos[:, 0]),
+                    np.full(n, np.cos(tilt)),
+                ]
+            )
         else:
             ego[:, 2] += p.gravity_ms2
         contact, onsets = self._contact(i0, n)
@@ -360,7 +417,15 @@ class HandSimulator:
         raw = quantise(ego + contact + noise + self.zero_g_offset)
         j_stamps, j_pos, j_vel = self._joint_states(i0, n, pos, prev_pos)
         self.index += n
-        return SimChunk(accel_stamps_ns=self.stamps_ns(idx), accel=raw, contact=contact, ego=ego,
-                        joint_stamps_ns=j_stamps, joint_position=j_pos, joint_velocity=j_vel,
-                        tap_onsets_ns=self.stamps_ns(np.asarray(onsets, np.int64)),
-                        true_velocity=vel, true_position=pos)
+        return SimChunk(
+            accel_stamps_ns=self.stamps_ns(idx),
+            accel=raw,
+            contact=contact,
+            ego=ego,
+            joint_stamps_ns=j_stamps,
+            joint_position=j_pos,
+            joint_velocity=j_vel,
+            tap_onsets_ns=self.stamps_ns(np.asarray(onsets, np.int64)),
+            true_velocity=vel,
+            true_position=pos,
+        )

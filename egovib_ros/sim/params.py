@@ -1,4 +1,5 @@
 """Simulator parameters (config/sim.yaml) and the effects SPEC of CONTRACT section 5."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -11,8 +12,19 @@ import yaml
 
 from egovib_ros.constants import EFFECT_NAMES
 from egovib_ros.errors import ConfigError
+from egovib_ros.robot import config_dir
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "sim.yaml"
+
+def default_config_path() -> Path:
+    """config/sim.yaml of the package: the source tree's, or the installed share directory's
+    (colcon/ament or pip install), found like the robot profiles (robot.config_dir)."""
+    return config_dir() / "sim.yaml"
+
+
+def __getattr__(name: str):
+    if name == "DEFAULT_CONFIG":  # kept for callers of the former constant
+        return default_config_path()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -24,37 +36,61 @@ class JointVibration:
     1000 Hz) and lands on the joint's own sensor direction.
     """
 
-    line_hz_per_unit: float           # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
-    line_orders: list[float]          # multiples of the fundamental (mesh harmonics, commutation)
-    line_amps: list[float]            # amplitude (m/s^2) of each line at full speed, before the path
-    line_speed_exponent: float        # line amplitude ~ speed_fraction ** exponent
-    friction_coulomb: float           # friction broadband rms (m/s^2) once moving at all
-    friction_viscous: float           # extra friction broadband rms at full speed (linear in speed)
-    path_band_hz: list[float]         # structural band that carries this joint's vibration
-    path_order: int                   # Butterworth order of that band
-    resonance_hz: float               # structural resonance near 1000 Hz (removed by the band-pass)
+    line_hz_per_unit: float  # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
+    line_orders: list[float]  # multiples of the fundamental (mesh harmonics, commutation)
+    line_amps: list[float]  # amplitude (m/s^2) of each line at full speed, before the path
+    line_speed_exponent: float  # line amplitude ~ speed_fraction ** exponent
+    friction_coulomb: float  # friction broadband rms (m/s^2) once moving at all
+    friction_viscous: float  # extra friction broadband rms at full speed (linear in speed)
+    path_band_hz: list[float]  # structural band that carries this joint's vibration
+    path_order: int  # Butterworth order of that band
+    resonance_hz: float  # structural resonance near 1000 Hz (removed by the band-pass)
     resonance_q: float
     resonance_gain: float
-    direction: list[float]            # sensor direction (unit vector, normalised on use)
-    amp_jitter: float                 # relative amplitude jitter (rms) of the lines
-    amp_jitter_hz: float              # bandwidth of that jitter
-    phase_jitter: float               # phase random walk of the lines (rad per sqrt(s))
+    direction: list[float]  # sensor direction (unit vector, normalised on use)
+    amp_jitter: float  # relative amplitude jitter (rms) of the lines
+    amp_jitter_hz: float  # bandwidth of that jitter
+    phase_jitter: float  # phase random walk of the lines (rad per sqrt(s))
 
 
 def _wrist_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=60.0, line_orders=[1.0, 2.0, 3.0], line_amps=[2.2, 1.1, 0.77],
-                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
-                          path_band_hz=[150.0, 380.0], path_order=4, resonance_hz=980.0, resonance_q=12.0,
-                          resonance_gain=0.3, direction=[1.0, 0.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=20.0, phase_jitter=3.0)
+    return JointVibration(
+        line_hz_per_unit=60.0,
+        line_orders=[1.0, 2.0, 3.0],
+        line_amps=[2.2, 1.1, 0.77],
+        line_speed_exponent=0.7,
+        friction_coulomb=0.01,
+        friction_viscous=0.4,
+        path_band_hz=[150.0, 380.0],
+        path_order=4,
+        resonance_hz=980.0,
+        resonance_q=12.0,
+        resonance_gain=0.3,
+        direction=[1.0, 0.0, 0.0],
+        amp_jitter=0.12,
+        amp_jitter_hz=20.0,
+        phase_jitter=3.0,
+    )
 
 
 def _gripper_default() -> JointVibration:
-    return JointVibration(line_hz_per_unit=15000.0, line_orders=[1.0, 1.5, 2.0], line_amps=[2.2, 1.1, 0.77],
-                          line_speed_exponent=0.7, friction_coulomb=0.01, friction_viscous=0.4,
-                          path_band_hz=[480.0, 750.0], path_order=4, resonance_hz=1040.0, resonance_q=12.0,
-                          resonance_gain=0.3, direction=[0.0, 1.0, 0.0], amp_jitter=0.12,
-                          amp_jitter_hz=20.0, phase_jitter=3.0)
+    return JointVibration(
+        line_hz_per_unit=15000.0,
+        line_orders=[1.0, 1.5, 2.0],
+        line_amps=[2.2, 1.1, 0.77],
+        line_speed_exponent=0.7,
+        friction_coulomb=0.01,
+        friction_viscous=0.4,
+        path_band_hz=[480.0, 750.0],
+        path_order=4,
+        resonance_hz=1040.0,
+        resonance_q=12.0,
+        resonance_gain=0.3,
+        direction=[0.0, 1.0, 0.0],
+        amp_jitter=0.12,
+        amp_jitter_hz=20.0,
+        phase_jitter=3.0,
+    )
 
 
 @dataclass
@@ -108,7 +144,9 @@ class SimParams:
             if name in kwargs:
                 sub = kwargs[name] or {}
                 if not isinstance(sub, dict) or set(sub) - joint_fields:
-                    raise ConfigError(f"{source}: {name}: unknown field(s) {sorted(set(sub) - joint_fields)}")
+                    raise ConfigError(
+                        f"{source}: {name}: unknown field(s) {sorted(set(sub) - joint_fields)}"
+                    )
                 kwargs[name] = JointVibration(**{**dataclasses.asdict(default()), **sub})
         if "effects" in kwargs:
             kwargs["effects"] = validate_effects(kwargs["effects"] or {}, source=source)
@@ -119,11 +157,14 @@ class SimParams:
 
     @classmethod
     def load(cls, path: str | os.PathLike | None = None) -> "SimParams":
-        """Parameters from a YAML file (default config/sim.yaml; built-in defaults if it is absent)."""
+        """Parameters from a YAML file (default: the package's config/sim.yaml; a missing
+        default is an error, not a silent fall-back to built-in values)."""
         if path is None:
-            if not DEFAULT_CONFIG.exists():
-                return cls()
-            path = DEFAULT_CONFIG
+            path = default_config_path()
+            if not path.is_file():
+                raise ConfigError(
+                    f"{path}: the package's simulator parameters are missing; reinstall the package"
+                )
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
@@ -149,11 +190,15 @@ def validate_effects(effects: dict[str, Any], *, source: str = "effects") -> dic
         if name == "none":
             continue
         if name not in EFFECT_NAMES:
-            raise ConfigError(f"{source}: unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)}, none)")
+            raise ConfigError(
+                f"{source}: unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)}, none)"
+            )
         try:
             strength = float(value)
         except (TypeError, ValueError):
-            raise ConfigError(f"{source}: effect {name} has non-numeric strength {value!r}") from None
+            raise ConfigError(
+                f"{source}: effect {name} has non-numeric strength {value!r}"
+            ) from None
         if strength != strength or abs(strength) == float("inf"):
             raise ConfigError(f"{source}: effect {name} strength must be finite")
         if strength != 0.0:

@@ -3,6 +3,7 @@
 Both drive the same HandSimulator the ROS node `sim_hand` uses, with a
 command schedule instead of a topic, so live and offline data agree.
 """
+
 from __future__ import annotations
 
 from typing import Callable, Iterator
@@ -16,11 +17,12 @@ from egovib_ros.errors import ConfigError
 from egovib_ros.sim.hand import HandSimulator, SimChunk
 from egovib_ros.sim.params import SimParams
 
-CHUNK = 3000                      # samples per simulator step in offline runs (1 s)
+CHUNK = 3000  # samples per simulator step in offline runs (1 s)
 
 
 def sweep_cells(grid: str) -> np.ndarray:
-    """Velocity cells (C, 2) in sweep order: 'full' = 441 cells, 'superposition' = the 41 with <= 1 joint moving."""
+    """Velocity cells (C, 2) in sweep order: 'full' = 441 cells, 'superposition' = the
+    41 with <= 1 joint moving."""
     w = GRID_FRACTIONS * MAX_SPEED[0]
     g = GRID_FRACTIONS * MAX_SPEED[1]
     if grid == "full":
@@ -36,28 +38,43 @@ def sweep_cells(grid: str) -> np.ndarray:
 def _slice(chunk: SimChunk, command_stamps=(), commands=()) -> Recording:
     """One simulator chunk as a Recording time slice."""
     return Recording(
-        accel_stamps_ns=chunk.accel_stamps_ns, accel=chunk.accel,
-        joint_stamps_ns=chunk.joint_stamps_ns, joint_position=chunk.joint_position,
-        joint_velocity=chunk.joint_velocity, joint_names=JOINT_NAMES,
-        contact=chunk.contact, ego=chunk.ego,
+        accel_stamps_ns=chunk.accel_stamps_ns,
+        accel=chunk.accel,
+        joint_stamps_ns=chunk.joint_stamps_ns,
+        joint_position=chunk.joint_position,
+        joint_velocity=chunk.joint_velocity,
+        joint_names=JOINT_NAMES,
+        contact=chunk.contact,
+        ego=chunk.ego,
         command_stamps_ns=np.asarray(command_stamps, np.int64).reshape(-1),
-        commands=np.asarray(commands, float).reshape(-1, len(JOINT_NAMES)))
+        commands=np.asarray(commands, float).reshape(-1, len(JOINT_NAMES)),
+    )
 
 
 def concat_recordings(pieces: list[Recording]) -> Recording:
     """Join consecutive time slices into one Recording."""
+
     def cat(name: str):
         parts = [getattr(p, name) for p in pieces]
         return None if any(x is None for x in parts) else np.concatenate(parts)
-    return Recording(accel_stamps_ns=cat("accel_stamps_ns"), accel=cat("accel"),
-                     joint_stamps_ns=cat("joint_stamps_ns"), joint_position=cat("joint_position"),
-                     joint_velocity=cat("joint_velocity"), joint_names=JOINT_NAMES,
-                     contact=cat("contact"), ego=cat("ego"),
-                     command_stamps_ns=cat("command_stamps_ns"), commands=cat("commands"))
+
+    return Recording(
+        accel_stamps_ns=cat("accel_stamps_ns"),
+        accel=cat("accel"),
+        joint_stamps_ns=cat("joint_stamps_ns"),
+        joint_position=cat("joint_position"),
+        joint_velocity=cat("joint_velocity"),
+        joint_names=JOINT_NAMES,
+        contact=cat("contact"),
+        ego=cat("ego"),
+        command_stamps_ns=cat("command_stamps_ns"),
+        commands=cat("commands"),
+    )
 
 
-def iter_sweep(sim: HandSimulator, cells: np.ndarray, *, dwell_s: float, settle_s: float
-               ) -> Iterator[tuple[int, np.ndarray, int, SimChunk]]:
+def iter_sweep(
+    sim: HandSimulator, cells: np.ndarray, *, dwell_s: float, settle_s: float
+) -> Iterator[tuple[int, np.ndarray, int, SimChunk]]:
     """Yield (cell index, cell velocity, command stamp, chunk) while sweeping the cells."""
     if dwell_s <= 0 or settle_s < 0:
         raise ConfigError("sweep: dwell must be > 0 and settle >= 0 seconds")
@@ -72,13 +89,24 @@ def iter_sweep(sim: HandSimulator, cells: np.ndarray, *, dwell_s: float, settle_
             left -= n
 
 
-def sweep_slices(*, grid: str = "superposition", dwell_s: float = 15.0, settle_s: float = 1.0,
-                 effects: dict | None = None, seed: int = 0, params: SimParams | None = None,
-                 tap_rate_hz: float = 0.0, tap_mode: str = "random",
-                 progress: Callable[[float], None] | None = None) -> tuple[Iterator[Recording], dict]:
-    """Streaming form of simulate_sweep: (iterator of 1-s Recording slices, truth dict filled as it runs)."""
+def sweep_slices(
+    *,
+    grid: str = "superposition",
+    dwell_s: float = 15.0,
+    settle_s: float = 1.0,
+    effects: dict | None = None,
+    seed: int = 0,
+    params: SimParams | None = None,
+    tap_rate_hz: float = 0.0,
+    tap_mode: str = "random",
+    progress: Callable[[float], None] | None = None,
+) -> tuple[Iterator[Recording], dict]:
+    """Streaming form of simulate_sweep: (iterator of 1-s Recording slices, truth dict
+    filled as it runs)."""
     params = params if params is not None else SimParams.load()
-    sim = HandSimulator(params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode)
+    sim = HandSimulator(
+        params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode
+    )
     cells = sweep_cells(grid)
     if dwell_s <= 0 or settle_s < 0:
         raise ConfigError("sweep: dwell must be > 0 and settle >= 0 seconds")
@@ -97,10 +125,18 @@ def sweep_slices(*, grid: str = "superposition", dwell_s: float = 15.0, settle_s
     return generate(), truth
 
 
-def simulate_sweep(*, grid: str = "superposition", dwell_s: float = 15.0, settle_s: float = 1.0,
-                   effects: dict | None = None, seed: int = 0, params: SimParams | None = None,
-                   tap_rate_hz: float = 0.0, tap_mode: str = "random",
-                   progress: Callable[[float], None] | None = None) -> tuple[Recording, dict]:
+def simulate_sweep(
+    *,
+    grid: str = "superposition",
+    dwell_s: float = 15.0,
+    settle_s: float = 1.0,
+    effects: dict | None = None,
+    seed: int = 0,
+    params: SimParams | None = None,
+    tap_rate_hz: float = 0.0,
+    tap_mode: str = "random",
+    progress: Callable[[float], None] | None = None,
+) -> tuple[Recording, dict]:
     """Sweep the velocity grid: each cell is commanded for settle_s + dwell_s seconds.
 
     The gripper reverses at its gap limits (speed kept, sign flipped), so a
@@ -108,13 +144,23 @@ def simulate_sweep(*, grid: str = "superposition", dwell_s: float = 15.0, settle
     are unsteady; calibration bins blocks by measured velocity anyway.
     Returns the Recording (with ground truth) and the truth dict.
     """
-    slices, truth = sweep_slices(grid=grid, dwell_s=dwell_s, settle_s=settle_s, effects=effects, seed=seed,
-                                 params=params, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode, progress=progress)
+    slices, truth = sweep_slices(
+        grid=grid,
+        dwell_s=dwell_s,
+        settle_s=settle_s,
+        effects=effects,
+        seed=seed,
+        params=params,
+        tap_rate_hz=tap_rate_hz,
+        tap_mode=tap_mode,
+        progress=progress,
+    )
     return concat_recordings(list(slices)), truth
 
 
-def motion_commands(duration_s: float, max_speed: float, seed: int, *, rate_hz: float = 50.0,
-                    cutoff_hz: float = 0.4) -> tuple[np.ndarray, np.ndarray]:
+def motion_commands(
+    duration_s: float, max_speed: float, seed: int, *, rate_hz: float = 50.0, cutoff_hz: float = 0.4
+) -> tuple[np.ndarray, np.ndarray]:
     """Random smooth velocity commands: low-pass filtered white noise, within +/- max_speed * vmax.
 
     Returns (times_s (P,), commands (P, 2)) at `rate_hz`.
@@ -122,29 +168,44 @@ def motion_commands(duration_s: float, max_speed: float, seed: int, *, rate_hz: 
     if not 0.0 <= max_speed <= 1.0:
         raise ConfigError(f"--max-speed must be a fraction in [0, 1], not {max_speed}")
     n = max(1, int(np.ceil(duration_s * rate_hz)))
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6d6f74]))   # own stream: "mot"
-    warm = int(5 * rate_hz / cutoff_hz)              # let the filter settle before t = 0
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6D6F74]))  # own stream: "mot"
+    warm = int(5 * rate_hz / cutoff_hz)  # let the filter settle before t = 0
     sos = signal.butter(2, cutoff_hz, fs=rate_hz, output="sos")
     noise = rng.standard_normal((n + warm, len(MAX_SPEED)))
     smooth = signal.sosfilt(sos, noise, axis=0)[warm:]
-    smooth /= np.sqrt(cutoff_hz / rate_hz * np.pi / 2) / np.sqrt(2)   # ~unit rms for a 2nd-order low-pass
-    frac = np.clip(smooth / 2.0, -1.0, 1.0)           # ~2 sigma reaches the limit
+    smooth /= np.sqrt(cutoff_hz / rate_hz * np.pi / 2) / np.sqrt(
+        2
+    )  # ~unit rms for a 2nd-order low-pass
+    frac = np.clip(smooth / 2.0, -1.0, 1.0)  # ~2 sigma reaches the limit
     return np.arange(n) / rate_hz, frac * max_speed * np.asarray(MAX_SPEED)
 
 
-def motion_slices(*, duration_s: float, max_speed: float = 0.5, tap_rate_hz: float = 0.0,
-                  effects: dict | None = None, seed: int = 0, params: SimParams | None = None,
-                  tap_mode: str = "random", command_rate_hz: float = 50.0,
-                  progress: Callable[[float], None] | None = None) -> tuple[Iterator[Recording], dict]:
-    """Streaming form of simulate_motion: (iterator of 1-s Recording slices, truth dict filled as it runs)."""
+def motion_slices(
+    *,
+    duration_s: float,
+    max_speed: float = 0.5,
+    tap_rate_hz: float = 0.0,
+    effects: dict | None = None,
+    seed: int = 0,
+    params: SimParams | None = None,
+    tap_mode: str = "random",
+    command_rate_hz: float = 50.0,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[Iterator[Recording], dict]:
+    """Streaming form of simulate_motion: (iterator of 1-s Recording slices, truth dict
+    filled as it runs)."""
     if duration_s <= 0:
         raise ConfigError("--duration must be > 0 seconds")
     params = params if params is not None else SimParams.load()
-    sim = HandSimulator(params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode)
+    sim = HandSimulator(
+        params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode
+    )
     _, cmds = motion_commands(duration_s, max_speed, seed, rate_hz=command_rate_hz)
     total = int(round(duration_s * ACCEL_RATE_HZ))
     # zero-order hold of the commands at the accelerometer rate; a command is sent when it starts
-    hold = np.minimum((np.arange(total) * command_rate_hz / ACCEL_RATE_HZ).astype(np.int64), len(cmds) - 1)
+    hold = np.minimum(
+        (np.arange(total) * command_rate_hz / ACCEL_RATE_HZ).astype(np.int64), len(cmds) - 1
+    )
     starts = np.flatnonzero(np.diff(hold, prepend=-1))
     truth = truth_dict(seed, sim.effects, [])
 
@@ -161,18 +222,37 @@ def motion_slices(*, duration_s: float, max_speed: float = 0.5, tap_rate_hz: flo
     return generate(), truth
 
 
-def simulate_motion(*, duration_s: float, max_speed: float = 0.5, tap_rate_hz: float = 0.0,
-                    effects: dict | None = None, seed: int = 0, params: SimParams | None = None,
-                    tap_mode: str = "random", command_rate_hz: float = 50.0,
-                    progress: Callable[[float], None] | None = None) -> tuple[Recording, dict]:
+def simulate_motion(
+    *,
+    duration_s: float,
+    max_speed: float = 0.5,
+    tap_rate_hz: float = 0.0,
+    effects: dict | None = None,
+    seed: int = 0,
+    params: SimParams | None = None,
+    tap_mode: str = "random",
+    command_rate_hz: float = 50.0,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[Recording, dict]:
     """Random smooth motion (paper section 4) with optional taps; returns (Recording, truth)."""
-    slices, truth = motion_slices(duration_s=duration_s, max_speed=max_speed, tap_rate_hz=tap_rate_hz,
-                                  effects=effects, seed=seed, params=params, tap_mode=tap_mode,
-                                  command_rate_hz=command_rate_hz, progress=progress)
+    slices, truth = motion_slices(
+        duration_s=duration_s,
+        max_speed=max_speed,
+        tap_rate_hz=tap_rate_hz,
+        effects=effects,
+        seed=seed,
+        params=params,
+        tap_mode=tap_mode,
+        command_rate_hz=command_rate_hz,
+        progress=progress,
+    )
     return concat_recordings(list(slices)), truth
 
 
 def truth_dict(seed: int, effects: dict, onsets_ns) -> dict:
     """The `--truth` sidecar of CONTRACT section 3."""
-    return {"seed": int(seed), "effects": {k: float(v) for k, v in effects.items()},
-            "tap_onsets_ns": [int(x) for x in onsets_ns]}
+    return {
+        "seed": int(seed),
+        "effects": {k: float(v) for k, v in effects.items()},
+        "tap_onsets_ns": [int(x) for x in onsets_ns],
+    }

@@ -1,0 +1,251 @@
+"""Many bags at once: expand arguments to bags, run one task per bag, one progress bar,
+one summary; a failing bag is reported by name and never stops or spoils the others.
+
+Parallel runs go through Dask (`dask.distributed`): a LocalCluster of `jobs` worker
+processes, or an existing cluster given by its scheduler address (the workers must see
+the bags and output paths under the same names, e.g. a shared file system). The task
+is the same function the single-process path calls, on the same arguments, so the
+results are the same. With `jobs=1` and no scheduler nothing is started: the bags are
+processed one after the other in this process.
+
+    results = run_bags(functools.partial(denoise_bag, model=..., ...), bags, jobs=2)
+
+A task is a picklable callable `task(bag: Path, out: Path | None, progress)` returning
+a small picklable summary (dict); `progress(n_bytes)` may be called as the bag is read.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from egovib_ros.errors import BagError, ConfigError, EgovibError
+
+
+@dataclass
+class BagResult:
+    bag: str
+    ok: bool
+    value: Any = None
+    error: str = ""
+    seconds: float = 0.0
+    out: str | None = None
+    internal: bool = False  # not bad input but an unexpected exception (a bug?)
+
+
+@dataclass
+class BagJob:
+    bag: Path
+    out: Path | None = None
+    size: int = field(default=0)
+
+
+def is_bag(path: Path) -> bool:
+    return (path / "metadata.yaml").is_file()
+
+
+def expand_bags(specs: Sequence[str | os.PathLike]) -> list[tuple[Path, Path]]:
+    """(bag, name) pairs from bag directories and directories of bags (searched
+    recursively, in sorted order; hidden and `.partial` directories skipped). `name` is
+    the bag's path relative to the directory it was found in (its own name for a bag
+    given directly): where its output goes under an output directory. A path that does
+    not exist is kept, so its task reports it like any other bad bag."""
+    found: list[tuple[Path, Path]] = []
+    for spec in specs:
+        path = Path(spec)
+        if path.is_dir() and not is_bag(path):
+            bags = sorted(
+                p.parent
+                for p in path.rglob("metadata.yaml")
+                if not any(
+                    part.startswith(".") or part.endswith(".partial")
+                    for part in p.parent.relative_to(path).parts
+                )
+            )
+            bags = [
+                b for b in bags if not any(b != o and o in b.parents for o in bags)
+            ]  # no bags inside bags
+            if not bags:
+                raise BagError(
+                    f"{path}: no rosbag2 bags (directories with metadata.yaml) in this directory"
+                )
+            found += [(b, b.relative_to(path)) for b in bags]
+        else:
+            found.append((path, Path(path.name)))
+    names = [str(n) for _, n in found]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise ConfigError(
+            f"several input bags are named {duplicates[0]!r}; their outputs would collide "
+            f"(give them in separate runs or directories)"
+        )
+    return found
+
+
+def bag_size(path: Path) -> int:
+    try:
+        return sum(f.stat().st_size for f in path.iterdir() if f.is_file())
+    except OSError:
+        return 0
+
+
+def run_guarded(
+    task: Callable,
+    job: BagJob,
+    progress: Callable[[int], None] | None = None,
+    *,
+    reraise: bool = False,
+) -> BagResult:
+    """Run `task` on one bag; any failure becomes a BagResult naming the bag (bad input:
+    its one-line message; anything else: the exception, with the traceback logged)."""
+    start = time.perf_counter()
+    try:
+        value = task(job.bag, job.out, progress)
+        return BagResult(
+            str(job.bag),
+            True,
+            value=value,
+            seconds=time.perf_counter() - start,
+            out=None if job.out is None else str(job.out),
+        )
+    except EgovibError as exc:
+        message = str(exc)
+        message = message if str(job.bag) in message else f"{job.bag}: {message}"
+        return BagResult(str(job.bag), False, error=message, seconds=time.perf_counter() - start)
+    except Exception as exc:  # a bug or an unexpected file: report it, keep going with the others
+        if reraise:
+            raise
+        logging.getLogger("egovib_ros.bag").debug("%s", traceback.format_exc())
+        return BagResult(
+            str(job.bag),
+            False,
+            error=f"{job.bag}: {type(exc).__name__}: {exc}",
+            seconds=time.perf_counter() - start,
+            internal=True,
+        )
+
+
+def run_bags(
+    task: Callable,
+    jobs_list: Sequence[BagJob],
+    *,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    desc: str = "bags",
+    quiet: bool = False,
+) -> list[BagResult]:
+    """Run `task` on every bag; results in the order of `jobs_list`."""
+    from tqdm import tqdm
+
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    for job in jobs_list:
+        job.size = job.size or bag_size(job.bag)
+    total = sum(j.size for j in jobs_list)
+    bar = tqdm(
+        total=total,
+        unit="B",
+        unit_scale=True,
+        desc=desc,
+        disable=quiet or None,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
+    results: list[BagResult | None] = [None] * len(jobs_list)
+    try:
+        if jobs == 1 and scheduler is None:
+            for i, job in enumerate(jobs_list):
+                read = [0]
+
+                def progress(n: int, read=read, job=job) -> None:
+                    step = min(n, job.size - read[0])
+                    read[0] += step
+                    bar.update(step)
+
+                # a single bag in this process: let an unexpected exception show its traceback
+                results[i] = run_guarded(task, job, progress, reraise=len(jobs_list) == 1)
+                bar.update(job.size - read[0])
+        else:
+            results = _run_dask(task, jobs_list, jobs=jobs, scheduler=scheduler, bar=bar)
+    finally:
+        bar.close()
+    return results
+
+
+def _run_dask(
+    task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, scheduler: str | None, bar
+) -> list[BagResult]:
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise ConfigError(
+            "parallel runs need dask.distributed (pip install 'dask[distributed]')"
+        ) from None
+    cluster = None
+    quiet_loggers = {
+        name: logging.getLogger(name).level for name in ("distributed", "dask", "tornado", "bokeh")
+    }
+    for name in quiet_loggers:  # Dask reports at INFO level; our summary is the report
+        logging.getLogger(name).setLevel(logging.ERROR)
+    try:
+        if scheduler:
+            try:
+                client = Client(scheduler, timeout="10s")
+            except Exception as exc:
+                raise ConfigError(
+                    f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: {exc})"
+                ) from None
+        else:
+            cluster = LocalCluster(
+                n_workers=jobs,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                scheduler_kwargs={"dashboard": False},
+                silence_logs=logging.ERROR,
+            )
+            client = Client(cluster)
+        with client:
+            futures = client.map(run_guarded, [task] * len(jobs_list), list(jobs_list), pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            results: list[BagResult | None] = [None] * len(jobs_list)
+            for future in as_completed(futures):
+                i = index[future.key]
+                try:
+                    results[i] = future.result()
+                except Exception as exc:  # the worker died (memory, signal): only this bag fails
+                    results[i] = BagResult(
+                        str(jobs_list[i].bag),
+                        False,
+                        error=f"{jobs_list[i].bag}: worker failed ({type(exc).__name__}: {exc})",
+                    )
+                bar.update(jobs_list[i].size)
+            return results
+    finally:
+        if cluster is not None:
+            cluster.close()
+        for name, level in quiet_loggers.items():
+            logging.getLogger(name).setLevel(level)
+
+
+def summary_lines(results: Sequence[BagResult], describe: Callable[[Any], str] = str) -> list[str]:
+    """One line per bag and a total line."""
+    lines = []
+    for r in results:
+        if r.ok:
+            lines.append(
+                f"  ok     {r.bag} -> {r.out} ({r.seconds:.1f} s): {describe(r.value)}"
+                if r.out
+                else f"  ok     {r.bag} ({r.seconds:.1f} s): {describe(r.value)}"
+            )
+        else:
+            lines.append(f"  FAILED {r.error}")
+    failed = sum(not r.ok for r in results)
+    lines.append(f"{len(results)} bag(s): {len(results) - failed} done, {failed} failed")
+    return lines

@@ -1,0 +1,254 @@
+"""Reading rosbag2 bags batch by batch, in bounded memory.
+
+`BagReader(path)` opens a bag (MCAP or sqlite3; validated by rosbags) and
+`batches(topics)` yields `ReadBatch`es in file order: the messages of the wanted
+topics as packed `MessageBatch`es, and, for MCAP bags, the chunk they came from so a
+writer can copy it verbatim. MCAP files are scanned chunk by chunk (`mcapfile`);
+sqlite3 bags, file-compressed bags, and MCAP files the scan does not understand go
+through rosbags' reader, a fixed number of messages at a time.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+import yaml
+from rosbags.rosbag2 import Reader
+
+from egovib_ros.bag.mcapfile import ChunkData, McapDamaged, McapFormatError, McapScanner
+from egovib_ros.bag.messages import MessageBatch
+from egovib_ros.errors import BagError
+
+
+@dataclass
+class TopicInfo:
+    msgtype: str
+    count: int
+    metadata: dict  # the topic's entry in metadata.yaml (topic_metadata), for copying
+    msgdef: str = ""  # message definition (as rosbags has it)
+    msgdef_format: str = "ros2msg"
+    digest: str = ""
+
+
+@dataclass
+class ReadBatch:
+    """Messages of the wanted topics from one stretch of the bag, in file order."""
+
+    messages: dict[str, MessageBatch]
+    chunk: ChunkData | None = None  # the MCAP chunk they came from (verbatim copies)
+    scanner: McapScanner | None = None  # its schemas/channels
+    topic_of_channel: dict[int, str] = field(default_factory=dict)
+    bytes_read: int = 0  # of the bag's files, for progress bars
+    frontier_ns: int | None = None  # messages read later have log times >= this (None: unknown)
+
+
+class BagReader:
+    """A rosbag2 bag opened for reading (context manager)."""
+
+    rosbags_batch = 50_000  # messages per batch when reading through rosbags
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f"{self.path}: no such bag")
+        try:
+            self._reader = Reader(self.path)
+            self._reader.open()
+        except Exception as exc:  # rosbags raises several types for broken bags
+            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BagError(f"{self.path}: not a readable rosbag2 bag ({reason})") from None
+        self.info = self._metadata()
+        entries = {
+            e["topic_metadata"]["name"]: e["topic_metadata"]
+            for e in self.info.get("topics_with_message_count") or []
+            if "topic_metadata" in e
+        }
+        self.topics: dict[str, TopicInfo] = {}
+        for conn in self._reader.connections:
+            if conn.topic in self.topics:
+                continue
+            msgdef = getattr(conn, "msgdef", None)
+            self.topics[conn.topic] = TopicInfo(
+                msgtype=conn.msgtype,
+                count=self._reader.topics[conn.topic].msgcount,
+                metadata=dict(entries.get(conn.topic, {})),
+                msgdef=getattr(msgdef, "data", "") or "",
+                msgdef_format="ros2idl"
+                if str(getattr(getattr(msgdef, "format", None), "name", "")) == "IDL"
+                else "ros2msg",
+                digest=getattr(conn, "digest", "") or "",
+            )
+        self.files = [self.path / name for name in self.info.get("relative_file_paths") or []]
+        self.total_bytes = sum(f.stat().st_size for f in self.files if f.exists())
+
+    # --- facts -----------------------------------------------------------------
+    def _metadata(self) -> dict:
+        try:
+            return yaml.safe_load((self.path / "metadata.yaml").read_text())[
+                "rosbag2_bagfile_information"
+            ]
+        except Exception:
+            return {}
+
+    @property
+    def is_plain_mcap(self) -> bool:
+        """MCAP storage without file-level compression: the chunk scan applies."""
+        return (
+            self.info.get("storage_identifier") == "mcap"
+            and self.info.get("compression_mode") in ("", None)
+            and bool(self.files)
+            and all(f.suffix == ".mcap" and f.exists() for f in self.files)
+        )
+
+    def mcap_definitions(self):
+        """(schemas, channels) by id from the summary of the bag's first MCAP file (read with
+        the `mcap` library), or None (not MCAP, no summary)."""
+        if not hasattr(self, "_definitions"):
+            self._definitions = None
+            if self.is_plain_mcap:
+                from mcap.reader import make_reader
+
+                try:
+                    with open(self.files[0], "rb") as fh:
+                        summary = make_reader(fh).get_summary()
+                    if summary is not None:
+                        self._definitions = (dict(summary.schemas), dict(summary.channels))
+                except Exception:
+                    pass
+        return self._definitions
+
+    def require(self, topic: str, msgtype: str) -> None:
+        """BagError unless the bag has `topic` with type `msgtype`."""
+        if topic not in self.topics:
+            raise BagError(f"{self.path}: missing topic {topic}")
+        if self.topics[topic].msgtype != msgtype:
+            found = self.topics[topic].msgtype
+            raise BagError(f"{self.path}: topic {topic} has type {found}, expected {msgtype}")
+
+    # --- reading ---------------------------------------------------------------
+    def batches(self, topics: Iterable[str] | None = None) -> Iterator[ReadBatch]:
+        """ReadBatches of `topics` (default: all) in file order; BagError on unreadable data."""
+        wanted = set(self.topics) if topics is None else set(topics) & set(self.topics)
+        started = False
+        read = dict.fromkeys(wanted, 0)
+        if self.is_plain_mcap:
+            try:
+                for batch in self._mcap_batches(wanted):
+                    started = True
+                    for topic, messages in batch.messages.items():
+                        read[topic] += len(messages)
+                    yield batch
+                self._check_counts(read)
+                return
+            except McapFormatError as exc:
+                if started or isinstance(exc, McapDamaged):
+                    raise BagError(f"{self.path}: unreadable MCAP data ({exc})") from None
+            # not yet started: rosbags' reader gets its chance (and reports errors its way)
+        for batch in self._rosbags_batches(wanted):
+            for topic, messages in batch.messages.items():
+                read[topic] += len(messages)
+            yield batch
+        self._check_counts(read)
+
+    def _check_counts(self, read: dict[str, int]) -> None:
+        """Every message the bag's index counts must have been read: records damaged into
+        something else would otherwise be skipped without a word."""
+        for topic, n in sorted(read.items()):
+            expected = self.topics[topic].count
+            if expected and n != expected:
+                raise BagError(
+                    f"{self.path}: topic {topic}: {n} messages read, the bag lists {expected} "
+                    f"({expected - n} lost to damaged records)"
+                )
+
+    def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
+        for file in self.files:
+            scanner = McapScanner(file)
+            for chunk in scanner.chunks():
+                topic_of = {
+                    c: scanner.channels[c].topic for c in chunk.index if c in scanner.channels
+                }
+                missing = [c for c in chunk.index if c not in scanner.channels]
+                if missing:
+                    raise McapFormatError(f"messages on undefined channel {missing[0]}")
+                per_topic: dict[str, list[MessageBatch]] = {}
+                buf = chunk.buffer
+                for channel, topic in topic_of.items():
+                    if topic in wanted:
+                        times, starts, lengths = chunk.data_span(channel)
+                        per_topic.setdefault(topic, []).append(
+                            MessageBatch(buf, starts, lengths, times)
+                        )
+                messages = {
+                    t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()
+                }
+                yield ReadBatch(
+                    messages,
+                    chunk,
+                    scanner,
+                    topic_of,
+                    bytes_read=chunk.file_bytes,
+                    frontier_ns=chunk.frontier_ns,
+                )
+
+    def _rosbags_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
+        connections = [c for c in self._reader.connections if c.topic in wanted]
+        if not connections:
+            return
+        pending: dict[str, tuple[list, list]] = {}
+        count = 0
+        size = 0
+        latest = None
+
+        def emit() -> ReadBatch:
+            messages = {t: MessageBatch.from_list(d, ts) for t, (d, ts) in pending.items()}
+            return ReadBatch(
+                messages, bytes_read=size, frontier_ns=latest
+            )  # rosbags reads in log-time order
+
+        try:
+            for conn, log_time, raw in self._reader.messages(connections=connections):
+                datas, times = pending.setdefault(conn.topic, ([], []))
+                datas.append(bytes(raw))
+                times.append(log_time)
+                count += 1
+                size += len(raw)
+                latest = log_time
+                if count >= self.rosbags_batch:
+                    yield emit()
+                    pending, count, size = {}, 0, 0
+        except BagError:
+            raise
+        except Exception as exc:
+            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise BagError(f"{self.path}: unreadable bag data ({reason})") from None
+        if pending:
+            yield emit()
+
+    # --- lifetime ----------------------------------------------------------------
+    def close(self) -> None:
+        self._reader.close()
+
+    def __enter__(self) -> "BagReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:
+    """Several channels of one topic in a chunk (e.g. two QoS variants): one batch, in
+    log-time order."""
+    merged = MessageBatch.concat(batches)
+    order = np.argsort(merged.log_times, kind="stable")
+    return merged.take(order)
+
+
+def bag_topics(path: str | os.PathLike) -> dict[str, tuple[str, int]]:
+    """{topic: (msgtype, message count)} of a bag."""
+    with BagReader(path) as reader:
+        return {t: (i.msgtype, i.count) for t, i in reader.topics.items()}

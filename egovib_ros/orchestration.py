@@ -1,0 +1,192 @@
+"""Running the package's ROS 2 nodes as processes, without `launch` (not on PyPI).
+
+`NodeGroup` starts node executables (the console scripts beside this Python) in one
+private ROS domain with localhost-only discovery, so nothing else on the network sees
+or disturbs them, logs each to a file, and stops them all at the end. `Watcher` is an
+rclpy node inside the calling process: it follows /diagnostics and can publish joint
+commands. Used by `egovib demo`, `egovib live-bench` and the node tests.
+
+On a colcon install the launch files in `launch/` do the same job.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Mapping, Sequence
+
+BIN = Path(sys.executable).parent
+
+
+def param_text(value) -> str:
+    """A parameter value as `--ros-args -p name:=VALUE` text (YAML)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        items = (json.dumps(v) if isinstance(v, str) else param_text(v) for v in value)
+        return "[" + ",".join(items) + "]"
+    return str(value)
+
+
+def reliable_input(*topics: str) -> dict[str, str]:
+    """QoS override parameters that make a node's sensor subscriptions reliable (lossless
+    replay or calibration on a loaded machine). `topics` as the node resolves them
+    (absolute names, e.g. '/accelerometer/raw')."""
+    return {
+        f"qos_overrides.{'/' + t.lstrip('/')}.subscription.reliability": "reliable" for t in topics
+    }
+
+
+class NodeGroup:
+    """Node processes sharing one private ROS domain; `close()` stops them all."""
+
+    def __init__(self, log_dir: str | os.PathLike, domain_id: int | None = None):
+        self.domain_id = (
+            domain_id if domain_id is not None else random.SystemRandom().randint(1, 200)
+        )
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.env = dict(
+            os.environ,
+            ROS_DOMAIN_ID=str(self.domain_id),
+            ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+            PYTHONUNBUFFERED="1",
+            RCUTILS_COLORIZED_OUTPUT="0",
+        )
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def use_domain_here(self) -> None:
+        """Put this process in the group's domain (before rclpy.init)."""
+        os.environ["ROS_DOMAIN_ID"] = str(self.domain_id)
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+    def start(
+        self,
+        name: str,
+        executable: str,
+        params: Mapping | None = None,
+        *,
+        remap: Mapping[str, str] | None = None,
+        namespace: str = "",
+        args: Sequence[str] = (),
+    ) -> subprocess.Popen:
+        """Start `executable --ros-args -p k:=v ... -r from:=to ...` as process `name`."""
+        cmd = [str(BIN / executable), *args, "--ros-args"]
+        for key, value in (params or {}).items():
+            cmd += ["-p", f"{key}:={param_text(value)}"]
+        for source, target in (remap or {}).items():
+            cmd += ["-r", f"{source}:={target}"]
+        if namespace:
+            cmd += ["-r", f"__ns:={namespace}"]
+        with open(self.log_path(name), "w") as log:
+            proc = subprocess.Popen(
+                cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True
+            )
+        self.procs[name] = proc
+        return proc
+
+    def log_path(self, name: str) -> Path:
+        return self.log_dir / f"{name}.log"
+
+    def log(self, name: str) -> str:
+        return self.log_path(name).read_text()
+
+    def check_alive(self, *names: str) -> None:
+        for name in names:
+            code = self.procs[name].poll()
+            if code is not None:
+                raise RuntimeError(
+                    f"{name} exited with status {code}; its log:\n{self.log(name)[-3000:]}"
+                )
+
+    def wait_for_log(self, name: str, text: str, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while text not in self.log(name):
+            self.check_alive(name)
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"{name}: no '{text}' after {timeout:g} s; log:\n{self.log(name)[-3000:]}"
+                )
+            time.sleep(0.1)
+
+    def stop(self, name: str, timeout: float = 30.0, sig: int = signal.SIGINT) -> int:
+        """Ctrl-C the node (or send `sig`) and wait for it (kill after `timeout`)."""
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        return proc.returncode
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 10
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+class Watcher:
+    """An rclpy node in this process (own context): the latest /diagnostics status of each
+    node, and a publisher of joint commands (ros2_control forward-command convention)."""
+
+    def __init__(
+        self,
+        name: str = "egovib_watcher",
+        commands_topic: str = "hand_velocity_controller/commands",
+    ):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.experimental import EventsExecutor
+        from std_msgs.msg import Float64MultiArray
+
+        self.context = rclpy.Context()
+        rclpy.init(
+            context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
+        )
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = EventsExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.status: dict[str, str] = {}  # node status name -> message
+        self.statuses: dict[str, object] = {}  # node status name -> latest DiagnosticStatus
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+        self.commands = self.node.create_publisher(Float64MultiArray, commands_topic, 10)
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.status[status.name] = status.message
+            self.statuses[status.name] = status
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+__all__ = ["NodeGroup", "Watcher", "param_text", "reliable_input", "BIN"]

@@ -1,0 +1,52 @@
+"""`egovib real ...`: the real quadcopter flight, end to end.
+
+egovib real convert NPZ --out bags/quadcopter_ar8          # flight log -> rosbag2 bag
+egovib real evaluate --bag bags/quadcopter_ar8 --out docs   # the experiment: docs/real_*
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from egovib_ros.realdata import convert
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "real",
+        help="the real quadcopter flight log: convert, evaluate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="real_command", required=True, metavar="COMMAND")
+    conv = commands.add_parser(
+        "convert",
+        help="flight log (npz) -> rosbag2 bag (zstd MCAP)",
+        description=convert.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    convert.add_arguments(conv)
+    conv.set_defaults(func=convert.run)
+    from egovib_ros.realdata import experiment
+
+    ev = commands.add_parser(
+        "evaluate",
+        help="calibrate on the first part, denoise the rest with events added, "
+        "compare with the baselines; writes DIR/real_*",
+        description=experiment.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    experiment.add_arguments(ev)
+    ev.set_defaults(func=experiment.run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m egovib_ros.realdata.cli ...` = `egovib real ...`."""
+    from egovib_ros.cli import main as egovib_main
+
+    return egovib_main(["real", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,283 @@
+"""fileutil: outputs never destroy what they did not create (issue 11).
+
+prepare_output refuses before any work; atomic_output writes next to the target and
+renames into place only when complete, marking directory outputs as ours; stale
+staging directories of killed runs are cleaned, nothing else is.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from egovib_ros.fileutil import (
+    MARKER,
+    PARTIAL_MARKER,
+    OutputError,
+    atomic_output,
+    clean_stale_partials,
+    prepare_output,
+    prepare_outputs_in,
+    process_start_time,
+)
+
+
+def write_dir_output(path, files=("metadata.yaml", "data.mcap"), kind="bag"):
+    with atomic_output(path, directory=True, kind=kind) as tmp:
+        tmp.mkdir()
+        for name in files:
+            (tmp / name).write_text(name)
+
+
+def state(root):
+    return sorted(
+        (str(p.relative_to(root)), p.stat().st_mtime_ns, p.stat().st_size) for p in root.rglob("*")
+    )
+
+
+@pytest.fixture
+def cwd(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+# --- prepare_output ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", [".", "..", "./", "../", "sub/..", "/"])
+def test_dot_and_dotdot_refused(cwd, path):
+    with pytest.raises(OutputError, match=r"^--out .*(\.|working directory)"):
+        prepare_output(path, force=True, kind="bag")
+
+
+def test_working_directory_and_its_parents_refused(cwd):
+    for path in (cwd, cwd.parent, cwd / "a" / ".." / ".."):
+        with pytest.raises(OutputError):
+            prepare_output(path, force=True, kind="directory")
+
+
+def test_existing_output_needs_force(cwd):
+    (cwd / "out.json").write_text("{}")
+    with pytest.raises(OutputError, match=r"^--json out.json: already exists \(use --force"):
+        prepare_output("out.json", kind="json", option="--json")
+    assert prepare_output("out.json", force=True, kind="json", option="--json").name == "out.json"
+
+
+@pytest.mark.parametrize(
+    "relation,path",
+    [
+        ("is", "outer/bag"),
+        ("lies inside", "outer/bag/sub"),
+        ("holds", "outer"),
+        ("is", "outer/./bag/"),
+    ],
+)
+def test_output_overlapping_an_input_refused_even_with_force(cwd, relation, path):
+    (cwd / "outer" / "bag").mkdir(parents=True)
+    with pytest.raises(OutputError, match=f"^--out {path}: {relation} outer/bag, an input"):
+        prepare_output(path, force=True, inputs=["outer/bag"], kind="bag")
+
+
+def test_input_given_through_a_symlink_or_hard_link_is_still_the_input(cwd):
+    (cwd / "model.npz").write_bytes(b"x")
+    os.link(cwd / "model.npz", cwd / "hard.npz")
+    os.symlink(cwd / "model.npz", cwd / "soft.npz")
+    for alias in ("hard.npz", "soft.npz"):
+        with pytest.raises(OutputError, match="input"):
+            prepare_output(alias, force=True, inputs=["model.npz"], kind="model")
+
+
+def test_force_replaces_only_our_own_directories(cwd):
+    write_dir_output(cwd / "ours")
+    assert prepare_output("ours", force=True, kind="bag")
+    (cwd / "theirs").mkdir()
+    (cwd / "theirs" / "thesis.tex").write_text("years of work")
+    with pytest.raises(
+        OutputError, match="not an egovib output.*thesis.tex.*not replaced, even with --force"
+    ):
+        prepare_output("theirs", force=True, kind="bag")
+    # ours, but someone added a file since: not replaced either
+    (cwd / "ours" / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="did not write.*notes.txt"):
+        prepare_output("ours", force=True, kind="bag")
+
+
+def test_directory_never_replaced_by_a_file_and_back(cwd):
+    write_dir_output(cwd / "bag")
+    with pytest.raises(OutputError, match="is a directory"):
+        prepare_output("bag", force=True, kind="json")
+    (cwd / "model.npz").write_bytes(b"x")
+    with pytest.raises(OutputError, match="not a directory"):
+        prepare_output("model.npz", force=True, kind="bag")
+
+
+def test_force_replaces_a_model_file_only_if_it_is_a_noise_model(cwd):
+    (cwd / "notes.npz").write_text("not a model")
+    with pytest.raises(OutputError, match="not an egovib noise model"):
+        prepare_output("notes.npz", force=True, kind="model")
+    np.savez(cwd / "other.npz", schema=np.array("someone.else"))
+    with pytest.raises(OutputError, match="not an egovib noise model"):
+        prepare_output("other.npz", force=True, kind="model")
+    np.savez(cwd / "ours.npz", schema=np.array("egovib.noise_model"), schema_version=np.array(1))
+    assert prepare_output("ours.npz", force=True, kind="model")
+
+
+def test_legacy_outputs_without_marker_are_recognised(cwd):
+    """Gap reports and bags written before the marker existed can still be replaced."""
+    report = cwd / "report"
+    report.mkdir()
+    (report / "report.json").write_text(json.dumps({"schema": "egovib.gap/1"}))
+    (report / "report.md").write_text("# gap")
+    (report / "where_covariates.png").write_bytes(b"png")
+    assert prepare_output("report", force=True, kind="report")
+    bag = cwd / "denoised"
+    bag.mkdir()
+    (bag / "denoised_0.mcap").write_bytes(b"mcap")
+    head = (
+        "rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n"
+        "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/raw}\n"
+    )
+    denoised = "  - topic_metadata: {name: /accelerometer/denoised}\n"
+    (bag / "metadata.yaml").write_text(head + denoised)
+    assert prepare_output("denoised", force=True, kind="bag")
+    # a bag someone recorded on a robot (no topic only egovib writes) is not ours
+    (bag / "metadata.yaml").write_text(head)
+    with pytest.raises(OutputError, match="not an egovib output"):
+        prepare_output("denoised", force=True, kind="bag")
+
+
+def test_unwritable_parent_detected_before_work(cwd):
+    (cwd / "file").write_text("x")
+    with pytest.raises(OutputError, match="not a directory"):
+        prepare_output("file/out.json", kind="json")
+    if os.geteuid() != 0:
+        (cwd / "ro").mkdir()
+        (cwd / "ro").chmod(0o555)
+        try:
+            with pytest.raises(OutputError, match="cannot write in"):
+                prepare_output("ro/new/out.json", kind="json")
+        finally:
+            (cwd / "ro").chmod(0o755)
+    assert not any(p.name.endswith(".probe") for p in cwd.rglob("*"))
+
+
+def test_missing_parent_directories_are_fine(cwd):
+    assert prepare_output("a/b/c.json", kind="json")
+    assert not (cwd / "a").exists()  # nothing created before the work
+
+
+def test_prepare_outputs_in_adds_to_a_directory_but_replaces_files_only_with_force(cwd):
+    docs = cwd / "docs"
+    docs.mkdir()
+    (docs / "README.md").write_text("keep")
+    assert prepare_outputs_in("docs", ["eval.json", "eval.md"]) == docs.relative_to(cwd)
+    (docs / "eval.json").write_text("{}")
+    with pytest.raises(OutputError, match="already holds eval.json"):
+        prepare_outputs_in("docs", ["eval.json", "eval.md"])
+    assert prepare_outputs_in("docs", ["eval.json", "eval.md"], force=True)
+    (docs / "eval.json").write_text("not json")
+    with pytest.raises(OutputError, match="eval.json: is not a JSON file"):
+        prepare_outputs_in("docs", ["eval.json"], force=True)
+
+
+# --- atomic_output -------------------------------------------------------------------------
+
+
+def test_directory_output_is_marked_and_appears_only_when_complete(cwd):
+    with pytest.raises(RuntimeError):
+        with atomic_output("bag", directory=True, kind="bag") as tmp:
+            tmp.mkdir()
+            (tmp / "metadata.yaml").write_text("half")
+            raise RuntimeError("killed")
+    assert sorted(os.listdir(cwd)) == []  # no output, no staging left
+    write_dir_output(cwd / "bag")
+    marker = json.loads((cwd / "bag" / MARKER).read_text())
+    assert marker["schema"] == "egovib.output/1" and marker["kind"] == "bag"
+    assert marker["files"] == ["data.mcap", "metadata.yaml"]
+    assert sorted(os.listdir(cwd)) == ["bag"]
+
+
+def test_replacing_our_directory_keeps_the_old_one_until_the_new_one_is_complete(cwd):
+    write_dir_output(cwd / "bag", files=("old.mcap",))
+    with pytest.raises(RuntimeError):
+        with atomic_output("bag", directory=True) as tmp:
+            tmp.mkdir()
+            raise RuntimeError("killed")
+    assert (cwd / "bag" / "old.mcap").is_file()
+    write_dir_output(cwd / "bag", files=("new.mcap",))
+    assert sorted(os.listdir(cwd / "bag")) == [MARKER, "new.mcap"]
+    assert sorted(os.listdir(cwd)) == ["bag"]
+
+
+def test_atomic_output_never_replaces_a_foreign_directory(cwd):
+    """Even a caller that skipped prepare_output cannot destroy someone's directory."""
+    (cwd / "stuff").mkdir()
+    (cwd / "stuff" / "a.txt").write_text("precious")
+    before = state(cwd)
+    with pytest.raises(OutputError, match="stuff: .*not replaced"):
+        write_dir_output(cwd / "stuff")
+    with pytest.raises(OutputError, match="is a directory"):
+        with atomic_output(cwd / "stuff") as tmp:
+            tmp.write_text("{}")
+    assert state(cwd) == before
+
+
+def test_file_output_replaces_atomically(cwd):
+    (cwd / "out.json").write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_output("out.json") as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert (cwd / "out.json").read_text() == "old"
+    with atomic_output("out.json") as tmp:
+        tmp.write_text("new")
+    assert (cwd / "out.json").read_text() == "new"
+    assert sorted(os.listdir(cwd)) == ["out.json"]
+
+
+# --- stale staging directories ------------------------------------------------------------
+
+
+def _staging(cwd, name, pid, created):
+    path = cwd / f".{name}.{pid}.0badc0de.partial"
+    (path / name).mkdir(parents=True)
+    (path / name / "big.mcap").write_bytes(b"\0" * 4096)
+    (path / PARTIAL_MARKER).write_text(json.dumps({"pid": pid, "created": created}))
+    return path
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_stale_partials_of_dead_runs_are_cleaned_and_nothing_else(cwd):
+    old = process_start_time() - 60
+    dead = _staging(cwd, "bag", dead_pid(), old)
+    alive_other_run = _staging(cwd, "bag2", os.getppid(), old)  # a run still going
+    newer = _staging(cwd, "bag3", dead_pid(), time.time() + 60)  # not older than this process
+    legacy = cwd / ".model.npz.ab12cd34.partial"  # the previous version's shape
+    legacy.mkdir()
+    (legacy / "model.npz").write_bytes(b"x")
+    os.utime(legacy, (old, old))
+    legacy_foreign = cwd / ".notes.ab12cd34.partial"  # same shape, other content
+    legacy_foreign.mkdir()
+    (legacy_foreign / "thesis.tex").write_text("mine")
+    os.utime(legacy_foreign, (old, old))
+    no_marker = cwd / ".bag.12345.0badc0de.partial"  # our name, no marker
+    no_marker.mkdir()
+    removed = clean_stale_partials(cwd)
+    assert sorted(p.name for p in removed) == sorted([dead.name, legacy.name])
+    for kept in (alive_other_run, newer, legacy_foreign, no_marker):
+        assert kept.exists()
+
+
+def test_the_next_run_cleans_leftovers_next_to_its_output(cwd):
+    dead = _staging(cwd, "bag", dead_pid(), process_start_time() - 60)
+    prepare_output("bag", kind="bag")
+    assert not dead.exists()

@@ -1,0 +1,228 @@
+"""Each real-data baseline does what it claims, on synthetic signals with known lines."""
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from egovib_ros.realdata.events import EventSpec, make_events
+from egovib_ros.realdata.methods import build_methods, combined_bandpassed, single_joint_profile
+from egovib_ros.realdata.notch import (
+    HarmonicNotchBank,
+    SpeedFrequencyMap,
+    fit_speed_frequency_map,
+    fold,
+    notch_sos,
+)
+from egovib_ros.realdata.recording import FlightRecording
+from egovib_ros.robot import load_profile
+
+FS = 1000.0
+PROFILE = load_profile("quadcopter")
+
+
+def _stamps(n, seed=0):
+    """Jittery stamps like the log's (0.9-1.25 ms steps around 1 ms)."""
+    rng = np.random.default_rng(seed)
+    steps = np.where(rng.random(n) < 0.1, rng.uniform(0.9, 1.25, n), 1.0) * 1e6
+    return np.cumsum(steps).astype(np.int64)
+
+
+def _lines(stamps, commands, frequency_map, harmonics=(1.0, 0.6, 0.4), noise=0.002, seed=0):
+    """(N,) sum over motors of harmonic lines at h * f(u_m), folded by sampling."""
+    rng = np.random.default_rng(seed)
+    t = (stamps - stamps[0]) / 1e9
+    dt = np.diff(t, prepend=t[0])
+    x = rng.normal(0, noise, len(t))
+    for m in range(commands.shape[1]):
+        phase = 2 * np.pi * np.cumsum(frequency_map(commands[:, m]) * dt) + m
+        for h, amplitude in enumerate(harmonics, start=1):
+            x += amplitude * 0.05 * np.sin(h * phase)
+    return x
+
+
+def _recording(stamps, commands, x):
+    gyro = np.zeros((len(stamps), 3))
+    gyro[:, 0] = x
+    return FlightRecording(
+        stamps, gyro, stamps, commands, np.zeros_like(commands), tuple(PROFILE.joint_names)
+    )
+
+
+def test_fold_and_notch_match_sampling_and_scipy():
+    assert fold(np.array([125.0, 560.0, 690.0, 1020.0]), FS).tolist() == [125.0, 440.0, 310.0, 20.0]
+    for f0, q in ((125.0, 5.0), (333.0, 2.0)):
+        b, a = signal.iirnotch(f0, q, FS)
+        np.testing.assert_allclose(notch_sos(np.array([f0]), q, FS)[0], np.r_[b, a], rtol=1e-12)
+    half = notch_sos(np.array([200.0]), 5.0, FS, weight=0.5)[0]
+    _, h = signal.sosfreqz(half[None], worN=[200.0], fs=FS)
+    assert abs(h[0]) == pytest.approx(
+        0.5, abs=1e-6
+    )  # Betaflight's weighted notch: half the line passes
+
+
+def test_speed_frequency_map_is_recovered_from_lines():
+    truth = SpeedFrequencyMap(330.0, 0.8)
+    n = 12000
+    stamps = _stamps(n)
+    # Steady levels 0.2 .. 0.7 held 0.6 s each, the four motors a little apart.
+    level = np.repeat(np.linspace(0.2, 0.7, 20), n // 20)[:n]
+    commands = level[:, None] + np.array([0.0, 0.01, -0.01, 0.005])
+    x = _lines(stamps, commands, truth)
+    fitted = fit_speed_frequency_map(x, commands, FS)
+    u = np.linspace(0.25, 0.65, 9)
+    np.testing.assert_allclose(fitted(u), truth(u), rtol=0.03)
+
+
+def test_notch_bank_removes_the_tracked_lines_and_passes_a_tone_between_them():
+    truth = SpeedFrequencyMap(330.0, 0.8)
+    n = 6000
+    stamps = _stamps(n, seed=1)
+    ramp = np.linspace(0.3, 0.6, n)  # motors speed up: lines move 126 -> 220 Hz
+    commands = np.stack([ramp, ramp + 0.02, ramp - 0.02, ramp + 0.01], axis=1)
+    lines = _lines(stamps, commands, truth, noise=0.0)
+    bank = HarmonicNotchBank(truth, sample_rate_hz=FS, q=5.0)
+    out = bank.apply(stamps, lines, stamps, commands)
+    settle = slice(500, n)
+    assert 20 * np.log10(np.std(lines[settle]) / np.std(out[settle])) > 15  # keyed lines removed
+    t = (stamps - stamps[0]) / 1e9
+    tone = 0.05 * np.sin(
+        2 * np.pi * 95.0 * t
+    )  # below every notch (min 100 Hz, fundamentals >= 126)
+    assert np.std(bank.apply(stamps, tone, stamps, commands)[settle]) / np.std(tone[settle]) > 0.8
+    # Centres: 3 harmonics per motor, folded, constrained to [min_hz, 0.48 fs].
+    centres = bank.centres(np.array([[0.0, 0.5, 1.0, 0.9]]))[0]
+    assert centres.shape == (12,) and centres.min() >= 100.0 and centres.max() <= 480.0
+    np.testing.assert_allclose(centres[3:6], fold(np.array([1, 2, 3]) * truth(0.5), FS))
+
+
+def _two_regimes(seed=0):
+    """Motors in two combinations with the same mean command but different lines: motor 1 fast
+    (line at 300 Hz) or motor 2 fast (line at 150 Hz)."""
+    n = 12000
+    stamps = _stamps(n, seed=seed)
+    regime = (np.arange(n) // 1500) % 2  # 1.5 s each, alternating
+    commands = np.where(regime[:, None] == 0, [0.6, 0.2, 0.4, 0.4], [0.2, 0.6, 0.4, 0.4]).astype(
+        float
+    )
+    rng = np.random.default_rng(seed)
+    t = (stamps - stamps[0]) / 1e9
+    noise = rng.normal(0, 0.003, n)
+    line = np.where(regime == 0, np.sin(2 * np.pi * 300 * t), np.sin(2 * np.pi * 150 * t)) * 0.1
+    return _recording(stamps, commands, line + noise)
+
+
+def _reduction_db(method, cal, test):
+    method.fit(cal)
+    raw = combined_bandpassed(test.accel, PROFILE)
+    out = method.run(test)
+    keep = slice(200, len(raw) - 200)
+    return 20 * np.log10(np.mean(np.abs(raw[keep])) / np.mean(np.abs(out[keep])))
+
+
+def test_only_the_four_motor_table_keeps_a_signal_where_the_other_regime_has_its_line():
+    cal, test = _two_regimes(0), _two_regimes(1)
+    # A steady 150 Hz signal while motor 1 is fast (its line at 300 Hz): 150 Hz is where the
+    # *other* regime (same mean command) has its line.
+    t = (test.accel_stamps_ns - test.accel_stamps_ns[0]) / 1e9
+    regime0 = test.joint_velocity[:, 0] > 0.5
+    probe = np.zeros_like(test.accel)
+    probe[:, 1] = np.where(regime0, 0.05 * np.sin(2 * np.pi * 150 * t), 0.0)
+    test_with_probe = _recording(
+        test.accel_stamps_ns, test.joint_velocity, test.accel[:, 0] + probe[:, 1]
+    )
+    reference = combined_bandpassed(probe, PROFILE)
+    inside = regime0.copy()
+    inside[:200] = False
+    snr = {}
+    for name, method in build_methods(PROFILE, ("ours", "mean_command", "global")).items():
+        out = method.fit(cal).run(test_with_probe)
+        snr[name] = 10 * np.log10(
+            np.sum(reference[inside] ** 2) / np.sum((out - reference)[inside] ** 2)
+        )
+    assert snr["ours"] > snr["mean_command"] + 6, snr
+    assert snr["ours"] > snr["global"] + 6, snr
+    assert snr["ours"] > 6, snr
+
+
+def test_tables_remove_lines_keyed_on_the_motors():
+    cal, test = _two_regimes(0), _two_regimes(1)
+    for name, method in build_methods(PROFILE, ("ours", "mean_command", "global")).items():
+        assert _reduction_db(method, cal, test) > 12, name
+
+
+def test_mean_command_table_beats_the_global_average_when_speed_moves_the_line():
+    n = 12000
+    stamps = _stamps(n, seed=3)
+    level = np.where((np.arange(n) // 1000) % 2 == 0, 0.3, 0.6)
+    commands = np.repeat(level[:, None], 4, axis=1)
+    t = (stamps - stamps[0]) / 1e9
+    x = 0.1 * np.sin(2 * np.pi * np.where(level < 0.5, 150.0, 300.0) * t)
+    rec = _recording(stamps, commands, x + np.random.default_rng(0).normal(0, 0.003, n))
+    methods = build_methods(PROFILE, ("mean_command", "global"))
+    cal, test = rec.time_slice(0, stamps[n // 2]), rec.time_slice(stamps[n // 2], stamps[-1] + 1)
+    reduction = {name: _reduction_db(method, cal, test) for name, method in methods.items()}
+    assert reduction["mean_command"] > reduction["global"] + 6, reduction
+
+
+def test_single_joint_profiles_keep_the_robots_processing():
+    one = single_joint_profile(PROFILE, "mean_command")
+    assert (
+        one.joint_names == ("mean_command",)
+        and one.bidirectional == (False,)
+        and one.max_speed == (1.0,)
+    )
+    assert (one.rate_hz, one.block_length, one.hop, one.band_hz) == (
+        PROFILE.rate_hz,
+        PROFILE.block_length,
+        PROFILE.hop,
+        PROFILE.band_hz,
+    )
+    assert single_joint_profile(PROFILE, "constant", steps=1).grid_shape == (2,)
+
+
+def test_events_follow_their_documented_form_amplitude_and_timing():
+    n = 6000
+    stamps = _stamps(n, seed=4)
+    noise = np.random.default_rng(4).normal(0, 0.05, (n, 3))
+    spec = EventSpec(seed=7)
+    events = make_events(
+        stamps,
+        noise,
+        sample_rate_hz=FS,
+        band_hz=PROFILE.band_hz,
+        band_order=PROFILE.band_order,
+        spec=spec,
+    )
+    onset_s = (events.onset_ns - stamps[0]) / 1e9
+    assert len(events.onsets) == len(
+        np.arange(
+            spec.margin_s + spec.jitter_s,
+            (stamps[-1] - stamps[0]) / 1e9 - spec.margin_s - spec.jitter_s,
+            spec.spacing_s,
+        )
+    )
+    assert (
+        onset_s.min() >= spec.margin_s - 1e-9
+        and np.diff(onset_s).min() >= spec.spacing_s - 2 * spec.jitter_s
+    )
+    assert np.all((events.frequency_hz >= 100) & (events.frequency_hz <= 400))
+    noise_peak = np.abs(combined_bandpassed(noise, PROFILE)[100 : n - 100]).max()
+    assert events.target_peak == pytest.approx(noise_peak)
+    for k, onset in enumerate(events.onsets):  # each event alone peaks at the target
+        alone = np.zeros((n, 3))
+        stop = min(n, onset + 200)
+        alone[onset - 1 : stop] = events.signal[onset - 1 : stop]
+        assert np.abs(combined_bandpassed(alone, PROFILE)).max() == pytest.approx(
+            events.target_peak, rel=0.02
+        )
+        assert np.all(events.signal[onset - 1] == 0)  # starts from zero, on one axis
+        assert np.count_nonzero(np.any(events.signal[onset : onset + 5] != 0, axis=0)) == 1
+    again = make_events(
+        stamps,
+        noise,
+        sample_rate_hz=FS,
+        band_hz=PROFILE.band_hz,
+        band_order=PROFILE.band_order,
+        spec=spec,
+    )
+    np.testing.assert_array_equal(again.signal, events.signal)
