@@ -70,7 +70,7 @@ def test_timing_shifts_joint_stamps_both_ways():
 
 def test_effects_are_audible_where_they_act():
     for effect in ("position", "coupling", "acceleration"):
-        loud = effect_audibility_db(effect, 1.0, duration_s=20.0, seed=3)
+        loud = effect_audibility_db(effect, 2.0, duration_s=30.0, seed=3)
         assert loud["active_db"] > 1.0 and loud["active_fraction"] > 0.0, (effect, loud)
     drift = effect_audibility_db("drift", 0.5, duration_s=20.0, seed=3)
     assert abs(drift["overall_db"]) > 1.0

@@ -52,7 +52,7 @@ def run_gap(model_path: str | Path, real_path: str | Path, out_dir: str | Path, 
     model = NoiseModel.load(model_path)
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
-    rec = read_recording(real_path, ground_truth=False, denoised=False)
+    rec = read_recording(real_path, profile=model.profile, ground_truth=False, denoised=False)
     lag = reference_lag_for(model, reference_lag, sim_params)
     diag = diagnose_recording(rec, model, source=str(real_path), reference_lag_s=lag, **kwargs)
     with atomic_output(out_dir, directory=True) as tmp:

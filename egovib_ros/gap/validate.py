@@ -353,14 +353,20 @@ def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple
 def run_validation(*, seeds: int = 5, duration_s: float = 120.0, out_dir: str | Path = "docs", jobs: int = 1,
                    ladder: bool = True, progress: bool = False, master_seed: int = 2026,
                    calibration_dwell_s: float = CALIBRATION_DWELL_S, write: bool = True,
-                   reality: str = "sim") -> dict:
-    """Run the blind validation; write gap_validation[_alt].json/.md/.png into out_dir; return the summary."""
+                   reality: str = "sim", runs: list[dict] | None = None) -> dict:
+    """Run the blind validation; write gap_validation[_alt].json/.md/.png into out_dir; return the summary.
+
+    `runs`: an explicit list of runs (class, strength, seed) instead of the planned ones (tests).
+    """
     import tempfile
 
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
     start = time.perf_counter()
-    runs = plan_runs(seeds, ladder=ladder, master_seed=master_seed, reality=reality)
+    if runs is None:
+        runs = plan_runs(seeds, ladder=ladder, master_seed=master_seed, reality=reality)
+    else:
+        runs = [{**r, "reality": reality} for r in runs]
     with tempfile.TemporaryDirectory(prefix="egovib_gap_validate_") as tmp:
         model_paths, reference_lags = prepare_models(Path(tmp), reality, calibration_dwell_s)
         if jobs > 1:
