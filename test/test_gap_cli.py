@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from egovib_ros.bagio import write_recording
@@ -38,7 +39,9 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert set(report["gap"]) == {"sim_as_is", "after_refit", "after_effect", "floor"}
     assert set(report["where"]) == {"frequency_hz", "velocity_cells", "covariates"}
     assert {"effect", "heldout_gap", "reduction", "p_value"} <= set(report["candidates"][0])
-    assert report["split"]["train_s"] > report["split"]["heldout_s"] > 0
+    # Blocked cross-validation in time: every block held out once, fitted on the other folds.
+    assert report["split"]["folds"] == 5 and "cross-validation" in report["split"]["method"]
+    assert report["split"]["heldout_s"] > report["split"]["train_s"] > 0
     # The hidden effect is found and adding it shrinks the held-out gap towards the floor.
     assert report["verdict"]["effect"] == "position"
     gap = report["gap"]
@@ -57,6 +60,15 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     for fig in report["figures"].values():
         assert (out / fig).stat().st_size > 1000
         assert f"({fig})" in head
+    # Every candidate states its fitted shape; the position term peaks near the hidden phase.
+    assert "which_effect_shapes.png" in report["figures"].values()
+    pos = next(c for c in report["candidates"] if c["effect"] == "position")
+    wrist = pos["shape"]["position:r_wrist_roll_joint"]
+    peak = wrist["x"][int(np.argmax(wrist["gain_db"]))]
+    assert abs(np.angle(np.exp(1j * (peak - 0.6)))) < 0.6          # the simulator's phase is 0.6 rad
+    assert max(wrist["gain_db"]) - min(wrist["gain_db"]) > 3.0
+    assert "r_wrist_roll_joint" in pos["shape_summary"] and pos["shape_summary"] in "\n".join(md)
+    assert report["baseline"]["definition"] and "transients" in report
     # The covariate breakdown covers positions, accelerations, time and lag.
     covs = report["where"]["covariates"]
     assert {"elapsed_time", "stream_lag"} <= set(covs)
