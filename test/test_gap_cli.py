@@ -66,7 +66,7 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     wrist = pos["shape"]["position:r_wrist_roll_joint"]
     peak = wrist["x"][int(np.argmax(wrist["gain_db"]))]
     assert abs(np.angle(np.exp(1j * (peak - 0.6)))) < 0.6          # the simulator's phase is 0.6 rad
-    assert max(wrist["gain_db"]) - min(wrist["gain_db"]) > 3.0
+    assert max(wrist["gain_db"]) - min(wrist["gain_db"]) > 1.5      # band-averaged: the gripper band dilutes it
     assert "r_wrist_roll_joint" in pos["shape_summary"] and pos["shape_summary"] in "\n".join(md)
     assert report["baseline"]["definition"] and "transients" in report
     # The covariate breakdown covers positions, accelerations, time and lag.

@@ -42,6 +42,8 @@ def register(subparsers) -> None:
                      help="seeds per effect class (validate)")
     val.add_argument("--master-seed", type=cliutil.int_in(0, 2 ** 31), default=2026,
                      help="seed from which all runs' classes, strengths and seeds are drawn (validate)")
+    val.add_argument("--extra-none", type=cliutil.int_in(0, 1000), default=0,
+                     help="this many more bags of every `none` class, for the false-positive rate (validate)")
     val.add_argument("--duration", type=cliutil.float_in(30.0, 3600.0), default=120.0,
                      help="seconds per blind real bag, 30 .. 3600 (validate)")
     val.add_argument("--jobs", type=cliutil.positive_int, default=1,
@@ -58,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         prepare_outputs_in(out, output_names(args.reality), force=args.force)
         summary = run_validation(seeds=args.seeds, duration_s=args.duration, out_dir=out, jobs=args.jobs,
                                  ladder=not args.no_ladder, progress=True, reality=args.reality,
-                                 master_seed=args.master_seed)
+                                 master_seed=args.master_seed, extra_none=args.extra_none)
         print(f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
               f"none flagged {summary['none_false_positive_rate']:.3f}, "
               f"{summary['n_runs']} runs -> {summary['outputs']}")

@@ -40,7 +40,7 @@ from egovib_ros.gap.features import BlockTable, hat_basis
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
 POSITION_KNOTS = 7
-SPEED_KNOTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+SPEED_KNOTS = tuple(np.linspace(0.0, 1.0, 9))
 ACC_HINGES = (1.0, 3.0)
 REVERSAL_TAUS_S = (0.015, 0.05, 0.15)
 DRIFT_KNOTS = 5

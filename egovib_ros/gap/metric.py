@@ -104,6 +104,23 @@ def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, f
     return float(20.0 / np.log(10.0) * np.sqrt(np.mean(np.maximum(var, 0.0))))
 
 
+def floor_window_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 2) -> float:
+    """The floor estimated in the metric's own (log, window) domain.
+
+    e[w, f] = scatter + model error; the scatter of windows `far_lag` apart is independent
+    (no shared blocks), a slowly varying model error is shared: var(e) - cov(e_w, e_w+far)
+    estimates the scatter's variance.  Unlike `floor_db` it needs no linearisation of the
+    log, so a heavy-tailed ratio |Y|/m (a few loud blocks) does not inflate it.
+    """
+    e = window_errors_db(observed, predicted, windows)
+    if len(e) <= far_lag + 1:
+        return float("nan")
+    e = e - e.mean(axis=0)
+    var = np.mean(e * e, axis=0)
+    cov = np.mean(e[far_lag:] * e[:-far_lag], axis=0)
+    return float(np.sqrt(np.mean(np.maximum(var - np.maximum(cov, 0.0), 0.0))))
+
+
 def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
     """Split-half cross-check of `floor_db` (interleaved block pairs; overlap makes it a lower bound)."""
     e_a = window_errors_db(observed, predicted, windows, windows.half == 0)

@@ -184,6 +184,7 @@ def build_report(diag: Diagnosis, *, model_path: str, real_path: str, figures: d
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
         "residual_noise_db": {k: _r(v, 3) for k, v in diag.residual_noise.items()},
+        "floor_estimates": {k: _r(v) for k, v in diag.floor_estimates.items()},
         "baseline": {"definition": BASELINE_DEFINITION, **diag.models["refit"].parameters,
                      "in_sync_lag_s": _r(diag.sync_lag_s, 5), "reference_lag_s": _r(diag.reference_lag_s, 5)},
         "transients": {k: (_r(v, 6) if isinstance(v, float) else v) for k, v in diag.transients.items()},

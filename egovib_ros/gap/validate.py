@@ -90,8 +90,10 @@ def quieter_params(params, factor: float = 0.5):
     return out
 
 
-def plan_runs(seeds: int, *, ladder: bool, master_seed: int = 2026, reality: str = "sim") -> list[dict]:
-    """The blind runs: (class, strength, seed) drawn reproducibly from `master_seed`."""
+def plan_runs(seeds: int, *, ladder: bool, master_seed: int = 2026, reality: str = "sim",
+              extra_none: int = 0) -> list[dict]:
+    """The blind runs: (class, strength, seed) drawn reproducibly from `master_seed`;
+    `extra_none` more bags of every `none` class (drawn last: the other runs do not change)."""
     ranges = strength_ranges(reality)
     rng = np.random.default_rng([master_seed, REALITIES.index(reality)] if reality != "sim" else master_seed)
     runs = []
@@ -109,6 +111,9 @@ def plan_runs(seeds: int, *, ladder: bool, master_seed: int = 2026, reality: str
             for frac in LADDER_FRACTIONS:
                 runs.append({"truth": effect, "strength": round(ranges[effect][0] * frac, 5),
                              "seed": int(rng.integers(1, 2 ** 31)), "ladder": True})
+    for _ in range(extra_none):
+        for label in none_classes(reality):
+            runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2 ** 31))})
     for r in runs:
         r["reality"] = reality
     return runs
@@ -247,7 +252,9 @@ def render_markdown(report: dict) -> str:
     lines = [f"# Gap diagnosis: blind validation, reality `{reality}`", "",
              f"Model calibrated on our simulator ({st['calibration']}); \"real\" bags from {REALITY_TEXT[reality]}.", "",
              f"Top-1 accuracy **{s['accuracy']:.3f}** over {s['n_runs']} blind runs "
-             f"({st['seeds']} seeds per class, {st['duration_s']:.0f} s bags; effects only: "
+             f"({st['seeds']} seeds per class"
+             + (f", {st['extra_none']} more per `none` class" if st.get("extra_none") else "")
+             + f", {st['duration_s']:.0f} s bags; effects only: "
              f"{s['accuracy_effects']:.3f}); `none` wrongly flagged **{100 * s['none_false_positive_rate']:.1f} %** "
              f"({sum(1 for t in s['confusion'] if t.startswith('none'))} `none` classes). "
              "Produced by `" + st["command"] + f"` in {report['runtime_s'] / 60:.0f} min.", "",
@@ -353,7 +360,7 @@ def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple
 def run_validation(*, seeds: int = 5, duration_s: float = 120.0, out_dir: str | Path = "docs", jobs: int = 1,
                    ladder: bool = True, progress: bool = False, master_seed: int = 2026,
                    calibration_dwell_s: float = CALIBRATION_DWELL_S, write: bool = True,
-                   reality: str = "sim", runs: list[dict] | None = None) -> dict:
+                   reality: str = "sim", runs: list[dict] | None = None, extra_none: int = 0) -> dict:
     """Run the blind validation; write gap_validation[_alt].json/.md/.png into out_dir; return the summary.
 
     `runs`: an explicit list of runs (class, strength, seed) instead of the planned ones (tests).
@@ -364,7 +371,7 @@ def run_validation(*, seeds: int = 5, duration_s: float = 120.0, out_dir: str | 
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
     start = time.perf_counter()
     if runs is None:
-        runs = plan_runs(seeds, ladder=ladder, master_seed=master_seed, reality=reality)
+        runs = plan_runs(seeds, ladder=ladder, master_seed=master_seed, reality=reality, extra_none=extra_none)
     else:
         runs = [{**r, "reality": reality} for r in runs]
     with tempfile.TemporaryDirectory(prefix="egovib_gap_validate_") as tmp:
@@ -378,11 +385,11 @@ def run_validation(*, seeds: int = 5, duration_s: float = 120.0, out_dir: str | 
             results = _progress((run_one(r, duration_s) for r in runs), len(runs), progress)
     summary = summarise(results, reality)
     command = (f"egovib gap validate --reality {reality} --seeds {seeds} --duration {duration_s:g} "
-               f"--master-seed {master_seed}"
+               f"--master-seed {master_seed}" + (f" --extra-none {extra_none}" if extra_none else "")
                + ("" if ladder else " --no-ladder") + f" --out {out_dir}")
     json_name, md_name, png_name = output_names(reality)
     report = {"schema": "egovib.gap_validation/2", "summary": summary,
-              "settings": {"reality": reality, "seeds": seeds, "duration_s": duration_s, "max_speed": MAX_SPEED,
+              "settings": {"reality": reality, "seeds": seeds, "extra_none": extra_none, "duration_s": duration_s, "max_speed": MAX_SPEED,
                            "tap_rate_hz": TAP_RATE_HZ, "strength_ranges": strength_ranges(reality),
                            "master_seed": master_seed,
                            "calibration": f"superposition sweep of the simulator, {calibration_dwell_s:g} s dwell",
