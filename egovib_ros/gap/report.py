@@ -169,6 +169,7 @@ def build_report(diag: Diagnosis, *, model_path: str, real_path: str, figures: d
                   "covariates": where["covariates"]},
         "candidates": [{"effect": c["effect"], "heldout_gap": c["heldout_gap"], "reduction": c["reduction"],
                         "p_value": _r(c["p_value"], 6), "excess_removed": c["excess_removed"],
+                        "deviance_reduction": c["deviance_reduction"],
                         "block_mse_reduction_db2": c["block_mse_reduction_db2"],
                         **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
                         "parameters": _clean_params(diag.models[c["effect"]].parameters),
@@ -176,11 +177,12 @@ def build_report(diag: Diagnosis, *, model_path: str, real_path: str, figures: d
                         "shape_summary": describe_shape(c["effect"], diag.models[c["effect"]].shape or {})}
                        for c in diag.candidates],
         "verdict": {"effect": diag.verdict, "confidence": diag.confidence,
-                    "rule": "best held-out per-block gain among candidates with p < 0.01/number of candidates "
-                            "(paired sign-flip permutation test over 0.5 s held-out segments, vs the velocity-only "
-                            "baseline; drift: the better of two looks, Bonferroni x2) and a "
-                            "gain of at least 0.01 dB^2; confidence = block-bootstrap share of resamples in which "
-                            "the verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)"},
+                    "rule": "largest held-out reduction of the Gamma deviance of the expected power among the "
+                            "candidates with p < 0.01/number of candidates (paired sign-flip permutation test over "
+                            "0.5 s held-out segments, vs the velocity-only baseline; drift: the better of two looks, "
+                            "Bonferroni x2), a reduction of at least 0.004 per block and bin, and a smaller held-out "
+                            "gap than the baseline's; confidence = block-bootstrap share of resamples in which the "
+                            "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)"},
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
         "residual_noise_db": {k: _r(v, 3) for k, v in diag.residual_noise.items()},
