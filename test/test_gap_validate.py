@@ -1,4 +1,5 @@
 """`egovib gap validate` in its reduced form: one blind seed per class, short bags."""
+
 from __future__ import annotations
 
 from egovib_ros.gap.effects import EFFECTS
@@ -10,12 +11,14 @@ def test_plan_is_blind_and_covers_every_class():
     blind = [r for r in runs if not r.get("ladder")]
     assert {r["truth"] for r in blind} == {"none", MISCALIBRATED, *EFFECTS}
     assert len(blind) == 2 * (len(EFFECTS) + 2)
-    assert len({r["seed"] for r in runs}) == len(runs)          # every bag its own random seed
-    assert plan_runs(2, ladder=True) == runs                      # reproducible from the master seed
+    assert len({r["seed"] for r in runs}) == len(runs)  # every bag its own random seed
+    assert plan_runs(2, ladder=True) == runs  # reproducible from the master seed
 
 
 def test_reduced_blind_validation(tmp_path):
-    summary = run_validation(seeds=1, duration_s=60.0, out_dir=tmp_path, ladder=False, calibration_dwell_s=2.0)
+    summary = run_validation(
+        seeds=1, duration_s=60.0, out_dir=tmp_path, ladder=False, calibration_dwell_s=2.0
+    )
     report = summary["report"]
     assert summary["n_runs"] == len(EFFECTS) + 2
     # Every class has a confusion row summing to its runs, and the two `none` rows stay `none`.

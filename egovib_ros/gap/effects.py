@@ -25,6 +25,7 @@ predicted *mean* magnitude matches (the log of a Rayleigh-like magnitude is bias
 - timing: the refit after re-matching joint states with a lag fitted on the training
   split (grid search, then refinement).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -49,12 +50,14 @@ class FittedModel:
     """A fitted variant of the noise model: predictions for every block of a table."""
 
     name: str
-    predicted: np.ndarray                 # (B, F) expected magnitude, all blocks
-    std_scale: np.ndarray                 # (B, F) multiplicative gain applied to the model std too
+    predicted: np.ndarray  # (B, F) expected magnitude, all blocks
+    std_scale: np.ndarray  # (B, F) multiplicative gain applied to the model std too
     parameters: dict = field(default_factory=dict)
-    table: BlockTable | None = field(default=None, repr=False)   # the table it predicts (lag!)
-    coef: np.ndarray | None = field(default=None, repr=False)    # (1 + R, F) log-gain coefficients
-    refit_predicted: np.ndarray | None = field(default=None, repr=False)   # (B, F) before the effect term
+    table: BlockTable | None = field(default=None, repr=False)  # the table it predicts (lag!)
+    coef: np.ndarray | None = field(default=None, repr=False)  # (1 + R, F) log-gain coefficients
+    refit_predicted: np.ndarray | None = field(
+        default=None, repr=False
+    )  # (B, F) before the effect term
     scales: "Scales | None" = field(default=None, repr=False)
 
 
@@ -62,12 +65,12 @@ class FittedModel:
 class Scales:
     """Regressor scalings fixed on the training split (so held-out data are not peeked at)."""
 
-    periodic: np.ndarray        # (J,) bool: joint angle wraps (continuous revolute)
-    pos_centre: np.ndarray      # (J,)
-    pos_half: np.ndarray        # (J,)
-    acc_scale: np.ndarray       # (J,)
+    periodic: np.ndarray  # (J,) bool: joint angle wraps (continuous revolute)
+    pos_centre: np.ndarray  # (J,)
+    pos_half: np.ndarray  # (J,)
+    acc_scale: np.ndarray  # (J,)
     t_ref_s: float
-    power_ref: float = 1.0      # median modelled band power (train)
+    power_ref: float = 1.0  # median modelled band power (train)
 
 
 def fit_scales(table: BlockTable, train: np.ndarray) -> Scales:
@@ -75,13 +78,20 @@ def fit_scales(table: BlockTable, train: np.ndarray) -> Scales:
     span = pos.max(axis=0) - pos.min(axis=0)
     # An angle: a joint that turns through more than half a revolution in the data, or
     # is named as a roll/continuous joint (its harmonics then extrapolate boundedly).
-    named = np.array([any(k in n.lower() for k in ("roll", "continuous")) for n in table.joint_names])
+    named = np.array(
+        [any(k in n.lower() for k in ("roll", "continuous")) for n in table.joint_names]
+    )
     periodic = (span > np.pi) | named
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
-    return Scales(periodic=periodic, pos_centre=0.5 * (lo + hi), pos_half=np.maximum(0.5 * (hi - lo), 1e-9),
-                  acc_scale=np.maximum(acc, 1e-9), t_ref_s=float(table.t_mid_s[train].min()),
-                  power_ref=float(np.median(np.mean(table.base_mean[train] ** 2, axis=1))))
+    return Scales(
+        periodic=periodic,
+        pos_centre=0.5 * (lo + hi),
+        pos_half=np.maximum(0.5 * (hi - lo), 1e-9),
+        acc_scale=np.maximum(acc, 1e-9),
+        t_ref_s=float(table.t_mid_s[train].min()),
+        power_ref=float(np.median(np.mean(table.base_mean[train] ** 2, axis=1))),
+    )
 
 
 def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
@@ -91,11 +101,13 @@ def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
     log(1 + added / modelled): relatively more where the model is quiet.  Multiplying a
     regressor's square by this ratio gives the additive (power) form of the term.
     """
-    power = np.mean(table.base_mean ** 2, axis=1)
+    power = np.mean(table.base_mean**2, axis=1)
     return scales.power_ref / np.maximum(power, 1e-6 * scales.power_ref)
 
 
-def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[np.ndarray, list[str]]:
+def effect_regressors(
+    effect: str, table: BlockTable, scales: Scales
+) -> tuple[np.ndarray, list[str]]:
     """Regressor columns (B, R) of one candidate effect, with their names."""
     cols, names = [], []
     if effect == "position":
@@ -107,7 +119,7 @@ def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[n
                     names += [f"cos{k}({name})", f"sin{k}({name})"]
             else:
                 z = np.clip((p - scales.pos_centre[j]) / scales.pos_half[j], -1.5, 1.5)
-                cols += [z, z ** 2]
+                cols += [z, z**2]
                 names += [f"lin({name})", f"quad({name})"]
     elif effect == "coupling":
         speed = np.abs(table.velocity) / table.vmax
@@ -115,7 +127,7 @@ def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[n
         for i in range(speed.shape[1]):
             for j in range(i + 1, speed.shape[1]):
                 prod = speed[:, i] * speed[:, j]
-                cols += [prod, prod ** 2, np.minimum(prod ** 2 * rel, 25.0)]
+                cols += [prod, prod**2, np.minimum(prod**2 * rel, 25.0)]
                 names += [f"|v_{i}||v_{j}|", f"(|v_{i}||v_{j}|)^2", f"(|v_{i}||v_{j}|)^2/P"]
     elif effect == "acceleration":
         # Reversals and clunks reach 10-20x the typical (95th percentile) acceleration:
@@ -124,7 +136,7 @@ def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[n
         rel = relative_power(table, scales)
         for j, name in enumerate(table.joint_names):
             u = acc[:, j] / 10.0
-            cols += [np.log1p(acc[:, j]), u, u ** 2, np.minimum(u ** 2 * rel, 25.0)]
+            cols += [np.log1p(acc[:, j]), u, u**2, np.minimum(u**2 * rel, 25.0)]
             names += [f"log1p|a|({name})", f"|a|({name})", f"|a|^2({name})", f"|a|^2/P({name})"]
     elif effect == "drift":
         cols = [(table.t_mid_s - scales.t_ref_s) / 60.0]
@@ -145,7 +157,8 @@ def _ridge_fit(x: np.ndarray, z: np.ndarray, penalties: np.ndarray) -> np.ndarra
 
 
 def fit_refit_additive(table: BlockTable, train: np.ndarray) -> tuple[np.ndarray, dict]:
-    """The model's own structure refitted: velocity only, joints adding (Eq. 6), stationary, in sync.
+    """The model's own structure refitted: velocity only, joints adding (Eq. 6), stationary,
+    in sync.
 
     Independent sources add in power, so the refit works on mean-square spectra:
 
@@ -158,22 +171,35 @@ def fit_refit_additive(table: BlockTable, train: np.ndarray) -> tuple[np.ndarray
     representable; an interaction between joints, or a dependence on anything but
     velocity, is not.  Returns (predicted magnitude sqrt(S) (B, F), summary).
     """
-    hats = np.concatenate([refit_hats(table.velocity[:, j], table.vmax[j])
-                           for j in range(table.velocity.shape[1])], axis=1)          # (B, J*K)
-    joint_of = np.repeat(np.arange(table.velocity.shape[1]), hats.shape[1] // table.velocity.shape[1])
-    s0 = table.zero_mean ** 2
-    diff = table.axis_mean ** 2 - s0[None, None, :]                             # (B, J, F)
-    base = s0[None, :] + diff.sum(axis=1)                                       # Eq. 6 in power, model as is
+    hats = np.concatenate(
+        [refit_hats(table.velocity[:, j], table.vmax[j]) for j in range(table.velocity.shape[1])],
+        axis=1,
+    )  # (B, J*K)
+    joint_of = np.repeat(
+        np.arange(table.velocity.shape[1]), hats.shape[1] // table.velocity.shape[1]
+    )
+    s0 = table.zero_mean**2
+    diff = table.axis_mean**2 - s0[None, None, :]  # (B, J, F)
+    base = s0[None, :] + diff.sum(axis=1)  # Eq. 6 in power, model as is
     base = np.maximum(base, 1e-6 * np.max(base))
     n_bins = base.shape[1]
     # Design per bin, all bins at once: (F, B, P) with P = 1 + J*K.
-    x = np.concatenate([np.broadcast_to(s0[:, None, None], (n_bins, table.n_blocks, 1)),
-                        hats[None, :, :] * diff.transpose(2, 0, 1)[:, :, joint_of]], axis=2)
-    w = (1.0 / base).T                                                          # (F, B)
-    delta = _batched_ridge(x[:, train] * w[:, train, None],
-                           ((table.magnitude[train] ** 2 - base[train]).T * w[:, train]), RIDGE_REFIT, penalise_first=True)
+    x = np.concatenate(
+        [
+            np.broadcast_to(s0[:, None, None], (n_bins, table.n_blocks, 1)),
+            hats[None, :, :] * diff.transpose(2, 0, 1)[:, :, joint_of],
+        ],
+        axis=2,
+    )
+    w = (1.0 / base).T  # (F, B)
+    delta = _batched_ridge(
+        x[:, train] * w[:, train, None],
+        ((table.magnitude[train] ** 2 - base[train]).T * w[:, train]),
+        RIDGE_REFIT,
+        penalise_first=True,
+    )
     predicted = np.maximum(base + np.einsum("fbp,fp->bf", x, delta), 0.01 * base)
-    gains = 1.0 + delta                                                         # (F, P)
+    gains = 1.0 + delta  # (F, P)
     magnitude = np.sqrt(predicted)
     # Second stage, log domain, still separable per joint: the mean/rms ratio of a
     # magnitude depends on how tonal the bin is (hum and gear lines vs. broadband), which
@@ -181,17 +207,26 @@ def fit_refit_additive(table: BlockTable, train: np.ndarray) -> tuple[np.ndarray
     # Each joint's correction acts only on its own share of the bin's power, so it
     # cannot carry one joint's speed into another joint's band (that is coupling).
     z = np.log(np.maximum(table.magnitude, 1e-12)) - np.log(np.maximum(magnitude, 1e-12))
-    share = np.clip(diff / np.maximum(predicted, 1e-300)[:, None, :], 0.0, 1.0)      # (B, J, F)
-    sep = np.concatenate([np.ones((n_bins, table.n_blocks, 1)),
-                          hats[None, :, :] * share.transpose(2, 0, 1)[:, :, joint_of]], axis=2)
+    share = np.clip(diff / np.maximum(predicted, 1e-300)[:, None, :], 0.0, 1.0)  # (B, J, F)
+    sep = np.concatenate(
+        [
+            np.ones((n_bins, table.n_blocks, 1)),
+            hats[None, :, :] * share.transpose(2, 0, 1)[:, :, joint_of],
+        ],
+        axis=2,
+    )
     beta = _batched_ridge(sep[:, train], z[train].T, RIDGE_REFIT, penalise_first=False)
-    beta[:, 0] = 0.0                            # the overall level is set later (re-levelling)
+    beta[:, 0] = 0.0  # the overall level is set later (re-levelling)
     magnitude = magnitude * np.exp(np.einsum("fbp,fp->bf", sep, beta))
-    return magnitude, {"rest_gain_db": round(float(10 * np.log10(max(np.mean(gains[:, 0]), 1e-6))), 4),
-                       "n_parameters": int(gains.size + beta.size)}
+    return magnitude, {
+        "rest_gain_db": round(float(10 * np.log10(max(np.mean(gains[:, 0]), 1e-6))), 4),
+        "n_parameters": int(gains.size + beta.size),
+    }
 
 
-def _batched_ridge(x: np.ndarray, y: np.ndarray, ridge: float, *, penalise_first: bool) -> np.ndarray:
+def _batched_ridge(
+    x: np.ndarray, y: np.ndarray, ridge: float, *, penalise_first: bool
+) -> np.ndarray:
     """Per-bin ridge least squares: x (F, B, P), y (F, B) -> coefficients (F, P)."""
     n_par = x.shape[2]
     penalty = np.full(n_par, ridge)
@@ -210,9 +245,15 @@ def refit_hats(velocity: np.ndarray, vmax: float, n_knots: int = 11) -> np.ndarr
     return np.delete(hats, n_knots // 2, axis=1)
 
 
-def fit_variant(table: BlockTable, train: np.ndarray, effect: str, scales: Scales,
-                refit: tuple[np.ndarray, dict] | None = None) -> FittedModel:
-    """Refit, then one effect's regressors on top of it (log domain), fitted on the training rows."""
+def fit_variant(
+    table: BlockTable,
+    train: np.ndarray,
+    effect: str,
+    scales: Scales,
+    refit: tuple[np.ndarray, dict] | None = None,
+) -> FittedModel:
+    """Refit, then one effect's regressors on top of it (log domain),
+    fitted on the training rows."""
     refit_pred, refit_info = refit if refit is not None else fit_refit_additive(table, train)
     extra, names = effect_regressors(effect, table, scales)
     x = np.concatenate([np.ones((table.n_blocks, 1)), extra], axis=1)
@@ -226,21 +267,40 @@ def fit_variant(table: BlockTable, train: np.ndarray, effect: str, scales: Scale
     level = table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
     gain *= level
     beta[0] += np.log(level)
-    params = {"n_parameters": int(refit_info["n_parameters"] + x.shape[1] * z.shape[1]),
-              "refit_rest_gain_db": refit_info["rest_gain_db"]}
+    params = {
+        "n_parameters": int(refit_info["n_parameters"] + x.shape[1] * z.shape[1]),
+        "refit_rest_gain_db": refit_info["rest_gain_db"],
+    }
     if names:
         params["terms_db"] = {n: _db_summary(beta[1 + k]) for k, n in enumerate(names)}
-        params["coefficients_per_bin"] = {n: [round(float(c), 5) for c in beta[1 + k]] for k, n in enumerate(names)}
+        params["coefficients_per_bin"] = {
+            n: [round(float(c), 5) for c in beta[1 + k]] for k, n in enumerate(names)
+        }
     params.update(_effect_summary(effect, names, beta[1:], scales))
     predicted = refit_pred * gain
     std_scale = predicted / np.maximum(table.base_mean, 1e-12)
-    return FittedModel(name=effect, predicted=predicted, std_scale=std_scale, parameters=params, table=table,
-                       coef=beta, refit_predicted=refit_pred, scales=scales)
+    return FittedModel(
+        name=effect,
+        predicted=predicted,
+        std_scale=std_scale,
+        parameters=params,
+        table=table,
+        coef=beta,
+        refit_predicted=refit_pred,
+        scales=scales,
+    )
 
 
-def apply_effect_term(table: BlockTable, train: np.ndarray, refit_predicted: np.ndarray, effect: str,
-                      coef: np.ndarray, scales: Scales) -> np.ndarray:
-    """Predictions with a given (e.g. simulator-derived) effect term on top of a refit, re-levelled on train."""
+def apply_effect_term(
+    table: BlockTable,
+    train: np.ndarray,
+    refit_predicted: np.ndarray,
+    effect: str,
+    coef: np.ndarray,
+    scales: Scales,
+) -> np.ndarray:
+    """Predictions with a given (e.g. simulator-derived) effect term on top of a refit,
+    re-levelled on train."""
     extra, _ = effect_regressors(effect, table, scales)
     gain = np.exp(extra @ coef[1:]) if extra.shape[1] else np.ones_like(refit_predicted)
     predicted = refit_predicted * gain
@@ -263,13 +323,17 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
             if name.startswith("cos1("):
                 joint = name[5:-1]
                 amp = float(np.hypot(c[k], c[k + 1]))
-                out[joint] = {"relative_amplitude": round(amp, 4),
-                              "phase_rad": round(float(np.arctan2(c[k + 1], c[k])), 4)}
+                out[joint] = {
+                    "relative_amplitude": round(amp, 4),
+                    "phase_rad": round(float(np.arctan2(c[k + 1], c[k])), 4),
+                }
             if name.startswith("lin("):
                 joint = name[4:-1]
                 # log gain per half of the joint's travel (position scaled to [-1, 1])
-                out[joint] = {"relative_slope": round(float(c[k]), 4),
-                              "relative_curvature": round(float(c[k + 1]), 4)}
+                out[joint] = {
+                    "relative_slope": round(float(c[k]), 4),
+                    "relative_curvature": round(float(c[k + 1]), 4),
+                }
             k += 1
     elif effect == "coupling":
         out["log_gain_at_full_speeds"] = round(float(c[0] + c[1]), 4)
@@ -277,14 +341,17 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
     elif effect == "acceleration":
         out["acc_scale"] = [round(float(a), 5) for a in scales.acc_scale]
         out["log1p_coefficient"] = [round(float(c[4 * j]), 4) for j in range(len(c) // 4)]
-        out["relative_power_coefficient"] = [round(float(c[4 * j + 3]), 5) for j in range(len(c) // 4)]
+        out["relative_power_coefficient"] = [
+            round(float(c[4 * j + 3]), 5) for j in range(len(c) // 4)
+        ]
     elif effect == "drift":
         out["log_gain_per_minute"] = round(float(c[0]), 5)
     return out
 
 
-def fit_lag(table: BlockTable, train: np.ndarray, scales: Scales, *,
-            lag_range_s: float = LAG_RANGE_S) -> tuple[float, np.ndarray, np.ndarray]:
+def fit_lag(
+    table: BlockTable, train: np.ndarray, scales: Scales, *, lag_range_s: float = LAG_RANGE_S
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Lag (s) minimising the training residual of the refit; also (lags, residual curve)."""
 
     # The scan only needs training blocks; every other one (overlapping neighbours carry
@@ -299,10 +366,10 @@ def fit_lag(table: BlockTable, train: np.ndarray, scales: Scales, *,
         return float(np.mean((z - z.mean(axis=0)) ** 2))
 
     coarse = np.arange(-lag_range_s, lag_range_s + 1e-12, LAG_COARSE_S)
-    curve = np.array([residual(l) for l in coarse])
+    curve = np.array([residual(lag) for lag in coarse])
     best = coarse[int(np.argmin(curve))]
     fine = np.arange(best - LAG_COARSE_S, best + LAG_COARSE_S + 1e-12, LAG_FINE_S)
-    fine_curve = np.array([residual(l) for l in fine])
+    fine_curve = np.array([residual(lag) for lag in fine])
     lag = float(fine[int(np.argmin(fine_curve))])
     return lag, coarse, curve
 
@@ -313,12 +380,16 @@ def fit_timing(table: BlockTable, train: np.ndarray, scales: Scales) -> FittedMo
     fitted = fit_variant(lagged, train, "refit", scales)
     fitted.name = "timing"
     fitted.parameters["lag_s"] = round(lag, 5)
-    fitted.parameters["lag_scan"] = {"lag_s": [round(float(l), 4) for l in lags],
-                                     "train_log_residual": [round(float(c), 6) for c in curve]}
+    fitted.parameters["lag_scan"] = {
+        "lag_s": [round(float(lag), 4) for lag in lags],
+        "train_log_residual": [round(float(c), 6) for c in curve],
+    }
     return fitted
 
 
-def fit_all(table: BlockTable, train: np.ndarray, effects: tuple[str, ...] = EFFECTS) -> dict[str, FittedModel]:
+def fit_all(
+    table: BlockTable, train: np.ndarray, effects: tuple[str, ...] = EFFECTS
+) -> dict[str, FittedModel]:
     """Refit plus every candidate effect, all fitted on `train` rows only."""
     scales = fit_scales(table, train)
     refit = fit_refit_additive(table, train)

@@ -9,6 +9,7 @@ re-matches the joint states shifted by a candidate lag.
 Contact blocks are found from the data alone (energy outliers against the model);
 ground-truth topics are never read.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -35,27 +36,27 @@ ACCEL_SMOOTH_S = 0.031
 class JointSeries:
     """Joint-state streams on their own clock (seconds since the first accel sample)."""
 
-    t_s: np.ndarray               # (M,)
-    position: np.ndarray          # (M, J)
-    velocity: np.ndarray          # (M, J)
-    acceleration: np.ndarray      # (M, J) smoothed derivative of velocity
+    t_s: np.ndarray  # (M,)
+    position: np.ndarray  # (M, J)
+    velocity: np.ndarray  # (M, J)
+    acceleration: np.ndarray  # (M, J) smoothed derivative of velocity
 
 
 @dataclass
 class BlockTable:
     """Everything the diagnosis needs about the blocks of one recording."""
 
-    t_first_s: np.ndarray         # (B,) block start, s since the first accel sample
-    t_last_s: np.ndarray          # (B,)
-    magnitude: np.ndarray         # (B, F) observed |Y_b(f)|, in-band bins
-    freqs_hz: np.ndarray          # (F,)
-    velocity: np.ndarray          # (B, J) block mean joint velocity (lag 0)
-    position: np.ndarray          # (B, J)
-    acceleration: np.ndarray      # (B, J) block mean |joint acceleration|
-    base_mean: np.ndarray         # (B, F) model mean magnitude at the block velocity
-    base_std: np.ndarray          # (B, F) model std (for the denoising consequence)
-    contact: np.ndarray           # (B,) bool, detected contact (excluded)
-    vmax: np.ndarray              # (J,) largest grid speed per joint
+    t_first_s: np.ndarray  # (B,) block start, s since the first accel sample
+    t_last_s: np.ndarray  # (B,)
+    magnitude: np.ndarray  # (B, F) observed |Y_b(f)|, in-band bins
+    freqs_hz: np.ndarray  # (F,)
+    velocity: np.ndarray  # (B, J) block mean joint velocity (lag 0)
+    position: np.ndarray  # (B, J)
+    acceleration: np.ndarray  # (B, J) block mean |joint acceleration|
+    base_mean: np.ndarray  # (B, F) model mean magnitude at the block velocity
+    base_std: np.ndarray  # (B, F) model std (for the denoising consequence)
+    contact: np.ndarray  # (B,) bool, detected contact (excluded)
+    vmax: np.ndarray  # (J,) largest grid speed per joint
     joint_names: tuple[str, ...]
     model: object = field(repr=False, default=None)
     joints: JointSeries | None = field(repr=False, default=None)
@@ -70,9 +71,21 @@ class BlockTable:
 
     def subset(self, rows: np.ndarray) -> "BlockTable":
         """Rows of the table (boolean mask or indices)."""
-        pick = {name: getattr(self, name)[rows] for name in
-                ("t_first_s", "t_last_s", "magnitude", "velocity", "position", "acceleration",
-                 "base_mean", "base_std", "contact", "axis_mean")}
+        pick = {
+            name: getattr(self, name)[rows]
+            for name in (
+                "t_first_s",
+                "t_last_s",
+                "magnitude",
+                "velocity",
+                "position",
+                "acceleration",
+                "base_mean",
+                "base_std",
+                "contact",
+                "axis_mean",
+            )
+        }
         return replace(self, **pick)
 
     def at_lag(self, lag_s: float) -> "BlockTable":
@@ -83,15 +96,27 @@ class BlockTable:
         """
         if self.joints is None or self.model is None:
             raise ValueError("table has no joint series to re-match")
-        velocity, position, acceleration = _joint_block_means(self.joints, self.t_first_s, self.t_last_s, lag_s)
+        velocity, position, acceleration = _joint_block_means(
+            self.joints, self.t_first_s, self.t_last_s, lag_s
+        )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
         axis, zero = axis_spectra(self.model, velocity, self.freq_index)
-        return replace(self, velocity=velocity, position=position, acceleration=acceleration,
-                       base_mean=mean, base_std=std, axis_mean=axis, zero_mean=zero)
+        return replace(
+            self,
+            velocity=velocity,
+            position=position,
+            acceleration=acceleration,
+            base_mean=mean,
+            base_std=std,
+            axis_mean=axis,
+            zero_mean=zero,
+        )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
-    axis_mean: np.ndarray | None = field(repr=False, default=None)   # (B, J, F) Eq. 6 single-joint spectra
-    zero_mean: np.ndarray | None = field(repr=False, default=None)   # (F,) spectrum at rest
+    axis_mean: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J, F) Eq. 6 single-joint spectra
+    zero_mean: np.ndarray | None = field(repr=False, default=None)  # (F,) spectrum at rest
 
 
 def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
@@ -100,21 +125,30 @@ def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
     Returns (magnitude spectra (B, n_bins) of complete blocks with a joint state,
     t_first_ns (B,), t_last_ns (B,), block mean velocity (B, J)).
     """
-    settings = FramerSettings(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length,
-                              hop=model.hop, band_hz=model.band_hz, band_order=model.band_order,
-                              layout="combined", max_hold_s=max_hold_s)
-    batches, _ = frame_batch(settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel,
-                             rec.joint_stamps_ns, velocity)
+    # the model's framing, including its sensor range: bad samples are missing, as in calibration
+    settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
+    batches, _ = frame_batch(
+        settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, velocity
+    )
     batches = [b for b in batches if b.n]
     if not batches:
         n_bins = model.block_length // 2 + 1
-        return np.zeros((0, n_bins)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, velocity.shape[1]))
+        return (
+            np.zeros((0, n_bins)),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, velocity.shape[1])),
+        )
     samples = np.concatenate([b.samples[:, 0, :] for b in batches])
     t_first = np.concatenate([b.t_first_ns for b in batches])
     t_last = np.concatenate([b.t_last_ns for b in batches])
     v = np.concatenate([b.velocity for b in batches])
-    ok = np.concatenate([(b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
-                         for b in batches])
+    ok = np.concatenate(
+        [
+            (b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
+            for b in batches
+        ]
+    )
     spectra = np.abs(np.fft.rfft(samples[ok] * model.window, axis=1))
     return spectra, t_first[ok], t_last[ok], v[ok]
 
@@ -125,18 +159,24 @@ def in_band_bins(model) -> np.ndarray:
     return np.flatnonzero((f >= model.band_hz[0]) & (f <= model.band_hz[1]))
 
 
-def _interval_means(t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+def _interval_means(
+    t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray
+) -> np.ndarray:
     """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)."""
     dt = np.diff(t)
-    cum = np.concatenate([np.zeros((1, values.shape[1])),
-                          np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)])
+    cum = np.concatenate(
+        [
+            np.zeros((1, values.shape[1])),
+            np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0),
+        ]
+    )
 
     def integral(tq: np.ndarray) -> np.ndarray:
         tq = np.clip(tq, t[0], t[-1])
         i = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
         frac = (tq - t[i])[:, None]
         slope = (values[i + 1] - values[i]) / np.maximum(dt[i], 1e-12)[:, None]
-        return cum[i] + values[i] * frac + 0.5 * slope * frac ** 2
+        return cum[i] + values[i] * frac + 0.5 * slope * frac**2
 
     span = np.maximum(t1 - t0, 1e-9)[:, None]
     return (integral(t1) - integral(t0)) / span
@@ -150,7 +190,9 @@ def _joint_block_means(joints: JointSeries, t_first: np.ndarray, t_last: np.ndar
     return velocity, position, acceleration
 
 
-def _model_lookup(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _model_lookup(
+    model, velocity: np.ndarray, freq_index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     ch = model.channel_indices(("combined",))
     mean, _ = model.estimate(velocity, ch, include_std=False)
     full, _ = model.estimate(velocity, ch, include_std=True)
@@ -158,7 +200,9 @@ def _model_lookup(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[
     return mean, np.maximum(full[:, 0, freq_index] - mean, 0.0)
 
 
-def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def axis_spectra(
+    model, velocity: np.ndarray, freq_index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 6 ingredients: mean spectra with only joint j moving, (B, J, F), and at rest, (F,)."""
     ch = model.channel_indices(("combined",))
     n_joints = velocity.shape[1]
@@ -172,8 +216,14 @@ def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[n
     return axis, zero[0, 0, freq_index]
 
 
-def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarray, *,
-                    z: float = CONTACT_Z, dilate: int = CONTACT_DILATE) -> np.ndarray:
+def detect_contacts(
+    magnitude: np.ndarray,
+    predicted: np.ndarray,
+    t_s: np.ndarray,
+    *,
+    z: float = CONTACT_Z,
+    dilate: int = CONTACT_DILATE,
+) -> np.ndarray:
     """Flag blocks whose spectrum is an outlier above the model's prediction.
 
     The statistic (mean of the three largest per-bin log ratios) is compared with its
@@ -197,7 +247,7 @@ def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarra
         # A tap rings on after its onset: drop `dilate` blocks after each flagged block
         # and one before (the block straddling the onset may be below threshold).
         structure = np.zeros(2 * dilate + 1, dtype=bool)
-        structure[dilate - 1:] = True               # origin at the centre: -1 .. +dilate
+        structure[dilate - 1 :] = True  # origin at the centre: -1 .. +dilate
         flagged = ndimage.binary_dilation(flagged, structure=structure)
     return flagged
 
@@ -205,13 +255,20 @@ def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarra
 def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") -> BlockTable:
     """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel."""
     if model.n_joints != len(rec.joint_names):
-        raise ModelFileError(f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
-                             f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}")
+        raise ModelFileError(
+            f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
+            f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}"
+        )
     if tuple(model.joint_names) != tuple(rec.joint_names):
-        order = [list(rec.joint_names).index(n) if n in rec.joint_names else -1 for n in model.joint_names]
+        order = [
+            list(rec.joint_names).index(n) if n in rec.joint_names else -1
+            for n in model.joint_names
+        ]
         if min(order) < 0:
-            raise ModelFileError(f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
-                                 f"not in {source} joint_states {list(rec.joint_names)}")
+            raise ModelFileError(
+                f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
+                f"not in {source} joint_states {list(rec.joint_names)}"
+            )
     else:
         order = list(range(model.n_joints))
     if len(rec.accel_stamps_ns) < 4 * model.block_length:
@@ -222,7 +279,10 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
     velocity = rec.joint_velocity[:, order]
     spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
     if len(spectra) < 10:
-        raise BagError(f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not overlap?)")
+        raise BagError(
+            f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not "
+            "overlap?)"
+        )
     freq_index = in_band_bins(model)
     t0_ns = int(rec.accel_stamps_ns[0])
     t_first = (first_ns - t0_ns) / NS
@@ -233,20 +293,43 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
     position = np.unwrap(rec.joint_position[:, order], axis=0)
     window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
     window = max(window, 5)
-    acceleration = signal.savgol_filter(velocity, window, 2, deriv=1, axis=0,
-                                        delta=float(np.median(np.diff(joint_t))), mode="interp") \
-        if len(velocity) > window else np.zeros_like(velocity)
-    joints = JointSeries(t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration)
+    acceleration = (
+        signal.savgol_filter(
+            velocity,
+            window,
+            2,
+            deriv=1,
+            axis=0,
+            delta=float(np.median(np.diff(joint_t))),
+            mode="interp",
+        )
+        if len(velocity) > window
+        else np.zeros_like(velocity)
+    )
+    joints = JointSeries(
+        t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration
+    )
 
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)
     vmax = np.array([np.max(np.abs(g)) for g in model.grid])
-    table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=spectra[:, freq_index],
-                       freqs_hz=model.freqs_hz[freq_index], velocity=v_core, position=pos_b,
-                       acceleration=acc_b, base_mean=mean, base_std=std,
-                       contact=np.zeros(len(t_first), dtype=bool), vmax=vmax,
-                       joint_names=tuple(model.joint_names), model=model, joints=joints,
-                       freq_index=freq_index)
+    table = BlockTable(
+        t_first_s=t_first,
+        t_last_s=t_last,
+        magnitude=spectra[:, freq_index],
+        freqs_hz=model.freqs_hz[freq_index],
+        velocity=v_core,
+        position=pos_b,
+        acceleration=acc_b,
+        base_mean=mean,
+        base_std=std,
+        contact=np.zeros(len(t_first), dtype=bool),
+        vmax=vmax,
+        joint_names=tuple(model.joint_names),
+        model=model,
+        joints=joints,
+        freq_index=freq_index,
+    )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     return table
