@@ -1,0 +1,108 @@
+"""The alternate-reality hand: a valid, reproducible Recording, independent of the simulator."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from egovib_ros.altreality import (
+    EFFECTS,
+    HAND_JOINTS,
+    AltHand,
+    effect_audibility_db,
+    simulate_alt_motion,
+)
+from egovib_ros.altreality.motion import plan_motion, reversal_events
+
+PACKAGE = Path(__file__).resolve().parents[1] / "egovib_ros" / "altreality"
+
+
+def test_shares_no_code_with_the_simulator():
+    """Only numpy/scipy, its own modules and the Recording container may be imported."""
+    allowed = {
+        "numpy",
+        "scipy",
+        "dataclasses",
+        "__future__",
+        "egovib_ros.altreality",
+        "egovib_ros.bagio",
+    }
+    for path in PACKAGE.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            else:
+                continue
+            for name in names:
+                assert any(name == a or name.startswith(a + ".") for a in allowed), (
+                    f"{path.name} imports {name}"
+                )
+
+
+def test_recording_is_valid_and_reproducible():
+    rec, truth = simulate_alt_motion(duration_s=8.0, seed=3, tap_rate_hz=1.0)
+    n = len(rec.accel_stamps_ns)
+    assert n == 24000 and rec.accel.shape == (n, 3) and np.all(np.isfinite(rec.accel))
+    assert np.all(np.diff(rec.accel_stamps_ns) > 0)
+    assert abs(np.median(np.diff(rec.accel_stamps_ns)) - 1e9 / 3000) < 1
+    assert rec.joint_names == HAND_JOINTS
+    m = len(rec.joint_stamps_ns)
+    assert rec.joint_position.shape == rec.joint_velocity.shape == (m, 2)
+    assert 7500 < m < 8000  # 1 kHz minus a few dropped messages
+    assert np.all(np.diff(rec.joint_stamps_ns) > 0)
+    # The gripper stays inside its travel, the wrist angle is reported wrapped.
+    assert rec.joint_position[:, 1].min() >= 0.0 and rec.joint_position[:, 1].max() <= 0.09
+    assert np.all(np.abs(rec.joint_position[:, 0]) <= np.pi + 1e-9)
+    assert truth["tap_onsets_ns"] and truth["effects"] == {} and truth["reality"] == "alt"
+    again, _ = simulate_alt_motion(duration_s=8.0, seed=3, tap_rate_hz=1.0)
+    assert np.array_equal(again.accel, rec.accel) and np.array_equal(
+        again.joint_stamps_ns, rec.joint_stamps_ns
+    )
+    other, _ = simulate_alt_motion(duration_s=8.0, seed=4, tap_rate_hz=1.0)
+    assert not np.array_equal(other.accel, rec.accel)
+
+
+@pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "timing"])
+def test_an_effect_changes_only_the_vibration(effect):
+    base, _ = simulate_alt_motion(duration_s=10.0, seed=5)
+    with_fx, truth = simulate_alt_motion(
+        duration_s=10.0, seed=5, effects={effect: 2.0 if effect != "drift" else 0.8}
+    )
+    assert truth["effects"] == {effect: 2.0 if effect != "drift" else 0.8}
+    assert np.array_equal(base.joint_position, with_fx.joint_position)
+    assert np.array_equal(base.joint_stamps_ns, with_fx.joint_stamps_ns)
+    assert not np.array_equal(base.ego, with_fx.ego)
+
+
+def test_timing_shifts_joint_stamps_both_ways():
+    base, _ = simulate_alt_motion(duration_s=3.0, seed=2)
+    for lag in (0.025, -0.015):
+        shifted, _ = simulate_alt_motion(duration_s=3.0, seed=2, effects={"timing": lag})
+        assert np.all(shifted.joint_stamps_ns - base.joint_stamps_ns == round(lag * 1e9))
+        assert np.array_equal(shifted.accel, base.accel)
+
+
+def test_effects_are_audible_where_they_act():
+    for effect in ("position", "coupling", "acceleration"):
+        loud = effect_audibility_db(effect, 2.0, duration_s=30.0, seed=3)
+        assert loud["active_db"] > 1.0 and loud["active_fraction"] > 0.0, (effect, loud)
+    drift = effect_audibility_db("drift", 0.5, duration_s=20.0, seed=3)
+    assert abs(drift["overall_db"]) > 1.0
+
+
+def test_motion_styles_and_reversals():
+    rng = np.random.default_rng(0)
+    v, pos, acc = plan_motion(20.0, 3000.0, rng, style="smooth")
+    assert np.max(np.abs(v[:, 0])) <= 3.0 and np.max(np.abs(v[:, 1])) <= 0.04 * 1.05
+    idx, a = reversal_events(v[:, 1], 3000.0, 0.0008)
+    assert len(idx) >= 3 and np.all(a >= 0)
+    v2, _, _ = plan_motion(20.0, 3000.0, np.random.default_rng(0), style="segments")
+    assert v2.shape == v.shape and not np.array_equal(v, v2)
+    with pytest.raises(ValueError):
+        AltHand(effects={"wobble": 1.0})
