@@ -39,6 +39,6 @@ def simulator_reference_lag(
 
 def model_matches_simulator(model) -> bool:
     """The reference is meaningful only for a model of the simulated robot's joints."""
-    from egovib_ros.constants import JOINT_NAMES
+    from egovib_ros.robot import default_profile
 
-    return tuple(model.joint_names) == tuple(JOINT_NAMES)
+    return tuple(model.joint_names) == default_profile().joint_names

@@ -32,7 +32,7 @@ STRENGTH_RANGES = {
 }
 LADDER_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
 MISCALIBRATED = "none (sim 6 dB too loud)"
-MAX_SPEED = 0.8
+MOTION_MAX_SPEED = 0.8
 TAP_RATE_HZ = 0.5
 CALIBRATION_DWELL_S = 4.0
 
@@ -120,7 +120,7 @@ def run_one(run: dict, duration_s: float) -> dict:
     start = time.perf_counter()
     rec, _ = simulate_motion(
         duration_s=duration_s,
-        max_speed=MAX_SPEED,
+        max_speed=MOTION_MAX_SPEED,
         tap_rate_hz=TAP_RATE_HZ,
         effects=effects,
         seed=run["seed"],
@@ -335,7 +335,7 @@ def run_validation(
         "settings": {
             "seeds": seeds,
             "duration_s": duration_s,
-            "max_speed": MAX_SPEED,
+            "max_speed": MOTION_MAX_SPEED,
             "tap_rate_hz": TAP_RATE_HZ,
             "strength_ranges": STRENGTH_RANGES,
             "master_seed": master_seed,
