@@ -287,7 +287,7 @@ def write_interleaved_bag(
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-    from egovib_ros.bag.recording import _streams, bag_topic_names
+    from egovib_ros.bag.recording import bag_topic_names, recording_streams
     from egovib_ros.cdr import typestore
     from egovib_ros.sim.scenarios import motion_slices
 
@@ -302,7 +302,7 @@ def write_interleaved_bag(
         conns = {}
         for piece in slices:
             merged = []
-            for topic, msgtype, stamps, encode in _streams(
+            for topic, msgtype, stamps, encode in recording_streams(
                 piece, bag_topic_names(robot), robot.sensor_field
             ):
                 if topic not in conns:

@@ -23,7 +23,8 @@ import time
 from pathlib import Path
 
 from egovib_ros.errors import EgovibError
-from egovib_ros.orchestration import NodeGroup, Watcher, reliable_input
+from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.orchestration import NodeGroup, reliable_input
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
 

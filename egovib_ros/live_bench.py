@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.orchestration import NodeGroup, Watcher
+from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.orchestration import NodeGroup
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 

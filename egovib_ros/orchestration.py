@@ -2,9 +2,9 @@
 
 `NodeGroup` starts node executables (the console scripts beside this Python) in one
 private ROS domain with localhost-only discovery, so nothing else on the network sees
-or disturbs them, logs each to a file, and stops them all at the end. `Watcher` is an
-rclpy node inside the calling process: it follows /diagnostics and can publish joint
-commands. Used by `egovib demo`, `egovib live-bench` and the node tests.
+or disturbs them, logs each to a file, and stops them all at the end. No rclpy here: the
+in-process rclpy side (`Watcher`: /diagnostics, joint commands) is
+`egovib_ros.nodes.watcher`. Used by `egovib demo`, `egovib live-bench` and the node tests.
 
 On a colcon install the launch files in `launch/` do the same job.
 """
@@ -140,53 +140,4 @@ class NodeGroup:
                 proc.wait()
 
 
-class Watcher:
-    """An rclpy node in this process (own context): the latest /diagnostics status of each
-    node, and a publisher of joint commands (ros2_control forward-command convention)."""
-
-    def __init__(
-        self,
-        name: str = "egovib_watcher",
-        commands_topic: str = "hand_velocity_controller/commands",
-    ):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.experimental import EventsExecutor
-        from std_msgs.msg import Float64MultiArray
-
-        self.context = rclpy.Context()
-        rclpy.init(
-            context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
-        )
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.status: dict[str, str] = {}  # node status name -> message
-        self.statuses: dict[str, object] = {}  # node status name -> latest DiagnosticStatus
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.commands = self.node.create_publisher(Float64MultiArray, commands_topic, 10)
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            self.status[status.name] = status.message
-            self.statuses[status.name] = status
-
-    def spin_for(self, seconds: float) -> None:
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
-
-    def spin_until(self, predicate, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return bool(predicate())
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
-__all__ = ["NodeGroup", "Watcher", "param_text", "reliable_input", "BIN"]
+__all__ = ["NodeGroup", "param_text", "reliable_input", "BIN"]

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.orchestration import NodeGroup, Watcher
+from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.orchestration import NodeGroup
 
 
 class NodeProcesses(NodeGroup):

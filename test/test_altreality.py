@@ -1,4 +1,5 @@
 """The alternate-reality hand: a valid, reproducible Recording, independent of the simulator."""
+
 from __future__ import annotations
 
 import ast
@@ -7,7 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.altreality import EFFECTS, JOINT_NAMES, AltHand, effect_audibility_db, simulate_alt_motion
+from egovib_ros.altreality import (
+    EFFECTS,
+    JOINT_NAMES,
+    AltHand,
+    effect_audibility_db,
+    simulate_alt_motion,
+)
 from egovib_ros.altreality.motion import plan_motion, reversal_events
 
 PACKAGE = Path(__file__).resolve().parents[1] / "egovib_ros" / "altreality"
@@ -15,7 +22,14 @@ PACKAGE = Path(__file__).resolve().parents[1] / "egovib_ros" / "altreality"
 
 def test_shares_no_code_with_the_simulator():
     """Only numpy/scipy, its own modules and the Recording container may be imported."""
-    allowed = {"numpy", "scipy", "dataclasses", "__future__", "egovib_ros.altreality", "egovib_ros.bagio"}
+    allowed = {
+        "numpy",
+        "scipy",
+        "dataclasses",
+        "__future__",
+        "egovib_ros.altreality",
+        "egovib_ros.bagio",
+    }
     for path in PACKAGE.glob("*.py"):
         tree = ast.parse(path.read_text())
         for node in ast.walk(tree):
@@ -26,7 +40,9 @@ def test_shares_no_code_with_the_simulator():
             else:
                 continue
             for name in names:
-                assert any(name == a or name.startswith(a + ".") for a in allowed), f"{path.name} imports {name}"
+                assert any(name == a or name.startswith(a + ".") for a in allowed), (
+                    f"{path.name} imports {name}"
+                )
 
 
 def test_recording_is_valid_and_reproducible():
@@ -38,14 +54,16 @@ def test_recording_is_valid_and_reproducible():
     assert rec.joint_names == JOINT_NAMES
     m = len(rec.joint_stamps_ns)
     assert rec.joint_position.shape == rec.joint_velocity.shape == (m, 2)
-    assert 7500 < m < 8000                                          # 1 kHz minus a few dropped messages
+    assert 7500 < m < 8000  # 1 kHz minus a few dropped messages
     assert np.all(np.diff(rec.joint_stamps_ns) > 0)
     # The gripper stays inside its travel, the wrist angle is reported wrapped.
     assert rec.joint_position[:, 1].min() >= 0.0 and rec.joint_position[:, 1].max() <= 0.09
     assert np.all(np.abs(rec.joint_position[:, 0]) <= np.pi + 1e-9)
     assert truth["tap_onsets_ns"] and truth["effects"] == {} and truth["reality"] == "alt"
     again, _ = simulate_alt_motion(duration_s=8.0, seed=3, tap_rate_hz=1.0)
-    assert np.array_equal(again.accel, rec.accel) and np.array_equal(again.joint_stamps_ns, rec.joint_stamps_ns)
+    assert np.array_equal(again.accel, rec.accel) and np.array_equal(
+        again.joint_stamps_ns, rec.joint_stamps_ns
+    )
     other, _ = simulate_alt_motion(duration_s=8.0, seed=4, tap_rate_hz=1.0)
     assert not np.array_equal(other.accel, rec.accel)
 
@@ -53,7 +71,9 @@ def test_recording_is_valid_and_reproducible():
 @pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "timing"])
 def test_an_effect_changes_only_the_vibration(effect):
     base, _ = simulate_alt_motion(duration_s=10.0, seed=5)
-    with_fx, truth = simulate_alt_motion(duration_s=10.0, seed=5, effects={effect: 2.0 if effect != "drift" else 0.8})
+    with_fx, truth = simulate_alt_motion(
+        duration_s=10.0, seed=5, effects={effect: 2.0 if effect != "drift" else 0.8}
+    )
     assert truth["effects"] == {effect: 2.0 if effect != "drift" else 0.8}
     assert np.array_equal(base.joint_position, with_fx.joint_position)
     assert np.array_equal(base.joint_stamps_ns, with_fx.joint_stamps_ns)

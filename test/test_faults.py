@@ -41,15 +41,6 @@ BAG_READER = (
     "bag reader (helper 'bags'): MCAP records lost to corruption are skipped silently; "
     "they must be detected (e.g. against the summary's message counts)"
 )
-GAP_JOINTS = (
-    "gap pipeline (helper 'gap'): gap/features.py re-matches the raw joint velocities "
-    "(BlockTable.at_lag) and crashes on NaN; it must drop or refuse them, with counts"
-)
-GAP_COUNTS = (
-    "gap pipeline (helper 'gap'): gap/features.py frames without the profile's sensor "
-    "range (FramerSettings default inf), so 1e181 values pass (held-out gap 1039 dB, "
-    "verdict none); and `egovib gap` prints no count of bad samples"
-)
 SENSOR_RANGE = 78.5  # the PR2 profile's accelerometer range (config/robots/pr2_right_hand.yaml)
 FS = 3000
 
@@ -889,7 +880,6 @@ ROWS = [
         expect="either",
         check=mentions("500", "joint"),
         unchanged=False,
-        xfail=GAP_JOINTS,
     ),
     Row(
         "gap_nan_accel_counted",
@@ -897,7 +887,6 @@ ROWS = [
         expect="ok",
         check=mentions("1500", "bad"),
         unchanged=False,
-        xfail=GAP_COUNTS,
     ),
     # --- broken models -----------------------------------------------------------------------
     Row(

@@ -1,4 +1,6 @@
-"""`egovib gap` end to end on real bag files: simulator model, blind "real" bag, report directory."""
+"""`egovib gap` end to end on real bag files: simulator model, blind "real" bag,
+report directory."""
+
 from __future__ import annotations
 
 import json
@@ -11,7 +13,16 @@ from egovib_ros.cli import main
 from egovib_ros.gap.validate import calibrate_sim_model
 from egovib_ros.sim import simulate_motion
 
-CONTRACT_KEYS = {"schema", "metric", "split", "gap", "where", "candidates", "verdict", "added_effect"}
+CONTRACT_KEYS = {
+    "schema",
+    "metric",
+    "split",
+    "gap",
+    "where",
+    "candidates",
+    "verdict",
+    "added_effect",
+}
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +34,9 @@ def model_path(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def position_bag(tmp_path_factory):
-    rec, _ = simulate_motion(duration_s=60.0, max_speed=0.8, tap_rate_hz=0.5, effects={"position": 0.4}, seed=11)
+    rec, _ = simulate_motion(
+        duration_s=60.0, max_speed=0.8, tap_rate_hz=0.5, effects={"position": 0.4}, seed=11
+    )
     path = tmp_path_factory.mktemp("gap_real") / "real.bag"
     write_recording(path, rec)
     return path
@@ -31,8 +44,21 @@ def position_bag(tmp_path_factory):
 
 def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     out = tmp_path / "report"
-    assert main(["gap", "--model", str(model_path), "--real", str(position_bag), "--out", str(out),
-                 "--write-back"]) == 0
+    assert (
+        main(
+            [
+                "gap",
+                "--model",
+                str(model_path),
+                "--real",
+                str(position_bag),
+                "--out",
+                str(out),
+                "--write-back",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert CONTRACT_KEYS <= set(report)
     assert report["schema"] == "egovib.gap/1" and report["metric"]["unit"] == "dB"
@@ -49,6 +75,7 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert report["added_effect"]["effect"] == "position"
     # Written back into a sim config that the simulator accepts, and checked on held-out data.
     from egovib_ros.sim import SimParams
+
     updated = SimParams.load(out / "sim_updated.yaml")
     assert 0.2 < updated.effects["position"] < 0.6
     check = report["added_effect"]["simulator"]
@@ -56,7 +83,12 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     # The report's first lines answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
     head = "\n".join(md[:8])
-    assert "**Where:**" in head and "**Which:**" in head and "**How far:**" in head and "`position`" in head
+    assert (
+        "**Where:**" in head
+        and "**Which:**" in head
+        and "**How far:**" in head
+        and "`position`" in head
+    )
     for fig in report["figures"].values():
         assert (out / fig).stat().st_size > 1000
         assert f"({fig})" in head
@@ -65,20 +97,37 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     pos = next(c for c in report["candidates"] if c["effect"] == "position")
     wrist = pos["shape"]["position:r_wrist_roll_joint"]
     peak = wrist["x"][int(np.argmax(wrist["gain_db"]))]
-    assert abs(np.angle(np.exp(1j * (peak - 0.6)))) < 0.6          # the simulator's phase is 0.6 rad
-    assert max(wrist["gain_db"]) - min(wrist["gain_db"]) > 1.5      # band-averaged: the gripper band dilutes it
+    assert abs(np.angle(np.exp(1j * (peak - 0.6)))) < 0.6  # the simulator's phase is 0.6 rad
+    assert (
+        max(wrist["gain_db"]) - min(wrist["gain_db"]) > 1.5
+    )  # band-averaged: the gripper band dilutes it
     assert "r_wrist_roll_joint" in pos["shape_summary"] and pos["shape_summary"] in "\n".join(md)
     assert report["baseline"]["definition"] and "transients" in report
     # The covariate breakdown covers positions, accelerations, time and lag.
     covs = report["where"]["covariates"]
     assert {"elapsed_time", "stream_lag"} <= set(covs)
-    assert any(k.startswith("position:") for k in covs) and any(k.startswith("acceleration:") for k in covs)
+    assert any(k.startswith("position:") for k in covs) and any(
+        k.startswith("acceleration:") for k in covs
+    )
     assert "verdict position" in capsys.readouterr().out
 
 
 def test_gap_bad_input_is_one_line_error_without_output(model_path, tmp_path, capsys):
     out = tmp_path / "report"
-    assert main(["gap", "--model", str(model_path), "--real", str(tmp_path / "missing.bag"), "--out", str(out)]) == 2
+    assert (
+        main(
+            [
+                "gap",
+                "--model",
+                str(model_path),
+                "--real",
+                str(tmp_path / "missing.bag"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err.startswith("egovib: error:") and "missing.bag" in err and len(err.splitlines()) == 1
     assert not out.exists()

@@ -5,6 +5,7 @@ and smooth random joint motion; each block's observed magnitude is the true expe
 magnitude times Rayleigh scatter (unit mean).  "True" expected magnitude = model mean
 times a known effect, so the right answers are known without the simulator.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,8 +16,15 @@ from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import diagnose
-from egovib_ros.gap.features import (BlockTable, JointSeries, _joint_block_means, _model_lookup, attach_motion,
-                                     axis_spectra, in_band_bins)
+from egovib_ros.gap.features import (
+    BlockTable,
+    JointSeries,
+    _joint_block_means,
+    _model_lookup,
+    attach_motion,
+    axis_spectra,
+    in_band_bins,
+)
 
 VMAX = np.array([3.0, 0.04])
 
@@ -26,16 +34,28 @@ def synthetic_model() -> NoiseModel:
     f = np.fft.rfftfreq(64, 1 / 3000.0)
     sw = np.abs(grid[0])[:, None, None] / 3.0
     sg = np.abs(grid[1])[None, :, None] / 0.04
-    shape_w = np.exp(-((f - 300.0) / 120.0) ** 2)[None, None, :]
-    shape_g = np.exp(-((f - 600.0) / 120.0) ** 2)[None, None, :]
+    shape_w = np.exp(-(((f - 300.0) / 120.0) ** 2))[None, None, :]
+    shape_g = np.exp(-(((f - 600.0) / 120.0) ** 2))[None, None, :]
     mean = 0.05 + 1.5 * sw * shape_w + 1.0 * sg * shape_g
     mean = np.repeat(mean[:, :, None, :], 4, axis=2)
-    return NoiseModel(grid=grid, joint_names=("wrist_roll", "gripper"), mean=mean, std=0.5 * mean,
-                      counts=np.full((21, 21), 100), window=analysis_window(64, 32))
+    return NoiseModel(
+        grid=grid,
+        joint_names=("wrist_roll", "gripper"),
+        mean=mean,
+        std=0.5 * mean,
+        counts=np.full((21, 21), 100),
+        window=analysis_window(64, 32),
+    )
 
 
-def synthetic_table(effect: str = "none", strength: float = 0.0, *, duration_s: float = 40.0,
-                    seed: int = 0, gain: float = 1.0) -> BlockTable:
+def synthetic_table(
+    effect: str = "none",
+    strength: float = 0.0,
+    *,
+    duration_s: float = 40.0,
+    seed: int = 0,
+    gain: float = 1.0,
+) -> BlockTable:
     rng = np.random.default_rng(seed)
     model = synthetic_model()
     # Joint states at 1 kHz: low-pass random velocities up to 60 % of max speed.
@@ -44,10 +64,12 @@ def synthetic_table(effect: str = "none", strength: float = 0.0, *, duration_s: 
     sos = signal.butter(2, 1.0, fs=1000.0, output="sos")
     raw = rng.standard_normal((n, 2))
     vel = signal.sosfiltfilt(sos, raw, axis=0)
-    vel = np.clip(0.5 * VMAX * vel / np.percentile(np.abs(vel), 95, axis=0), -0.9 * VMAX, 0.9 * VMAX)
-    vel[:, 0] += 0.3      # the wrist keeps turning, so all angles are visited
+    vel = np.clip(
+        0.5 * VMAX * vel / np.percentile(np.abs(vel), 95, axis=0), -0.9 * VMAX, 0.9 * VMAX
+    )
+    vel[:, 0] += 0.3  # the wrist keeps turning, so all angles are visited
     pos = np.cumsum(vel, axis=0) / 1000.0
-    pos[:, 1] = 0.043 + 0.04 * np.sin(pos[:, 1] / 0.04 * 3)       # gripper gap stays in range
+    pos[:, 1] = 0.043 + 0.04 * np.sin(pos[:, 1] / 0.04 * 3)  # gripper gap stays in range
     acc = np.gradient(vel, t_joint, axis=0)
     joints = JointSeries(t_s=t_joint, position=pos, velocity=vel, acceleration=acc)
     n_blocks = int((duration_s * 3000 - 64) // 32)
@@ -65,7 +87,9 @@ def synthetic_table(effect: str = "none", strength: float = 0.0, *, duration_s: 
         # extra vibration power in the gripper's band growing with both speeds (joints no longer add)
         f = model.freqs_hz[freq_index]
         extra = strength * (np.abs(v_true[:, 0]) / 3.0) * (np.abs(v_true[:, 1]) / 0.04)
-        mean_true = np.sqrt(mean_true ** 2 + (extra[:, None] * np.exp(-((f - 600.0) / 120.0) ** 2)) ** 2)
+        mean_true = np.sqrt(
+            mean_true**2 + (extra[:, None] * np.exp(-(((f - 600.0) / 120.0) ** 2))) ** 2
+        )
     elif effect == "acceleration":
         factor *= 1.0 + strength * np.abs(a_true[:, 0]) / np.percentile(np.abs(a_true[:, 0]), 95)
     elif effect == "drift":
@@ -74,11 +98,25 @@ def synthetic_table(effect: str = "none", strength: float = 0.0, *, duration_s: 
     v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
     mean0, std0 = _model_lookup(model, v0, freq_index)
     axis0, zero0 = axis_spectra(model, v0, freq_index)
-    table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=magnitude,
-                       freqs_hz=model.freqs_hz[freq_index], velocity=v0, position=p0, acceleration=a0,
-                       base_mean=mean0, base_std=std0, contact=np.zeros(n_blocks, dtype=bool), vmax=VMAX,
-                       joint_names=("wrist_roll", "gripper"), model=model, joints=joints, freq_index=freq_index,
-                       axis_mean=axis0, zero_mean=zero0)
+    table = BlockTable(
+        t_first_s=t_first,
+        t_last_s=t_last,
+        magnitude=magnitude,
+        freqs_hz=model.freqs_hz[freq_index],
+        velocity=v0,
+        position=p0,
+        acceleration=a0,
+        base_mean=mean0,
+        base_std=std0,
+        contact=np.zeros(n_blocks, dtype=bool),
+        vmax=VMAX,
+        joint_names=("wrist_roll", "gripper"),
+        model=model,
+        joints=joints,
+        freq_index=freq_index,
+        axis_mean=axis0,
+        zero_mean=zero0,
+    )
     return attach_motion(table)
 
 
@@ -119,9 +157,16 @@ def test_miscalibrated_model_resolved_by_refit_gives_none():
     assert diag.verdict == "none"
 
 
-@pytest.mark.parametrize("effect,strength,duration", [("position", 0.4, 40.0), ("coupling", 5.0, 90.0),
-                                                      ("acceleration", 0.5, 40.0), ("drift", 0.5, 40.0),
-                                                      ("timing", 0.05, 40.0)])
+@pytest.mark.parametrize(
+    "effect,strength,duration",
+    [
+        ("position", 0.4, 40.0),
+        ("coupling", 5.0, 90.0),
+        ("acceleration", 0.5, 40.0),
+        ("drift", 0.5, 40.0),
+        ("timing", 0.05, 40.0),
+    ],
+)
 def test_effect_is_identified(effect, strength, duration):
     diag = diagnose(synthetic_table(effect, strength, seed=5, duration_s=duration))
     assert diag.verdict == effect, diag.candidates

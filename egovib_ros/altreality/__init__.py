@@ -27,5 +27,11 @@ the simulator's:
     simulate_alt_motion(duration_s=120, effects={"position": 1.0}, seed=0, tap_rate_hz=0.5)
         -> (egovib_ros.bagio.Recording, truth dict)
 """
-from egovib_ros.altreality.hand import (EFFECTS, JOINT_NAMES, AltHand, effect_audibility_db,  # noqa: F401
-                                        simulate_alt_motion)
+
+from egovib_ros.altreality.hand import (
+    EFFECTS,
+    JOINT_NAMES,
+    AltHand,
+    effect_audibility_db,  # noqa: F401
+    simulate_alt_motion,
+)

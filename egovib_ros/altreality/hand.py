@@ -3,6 +3,7 @@
 Everything here is this module's own invention (see the package docstring); numbers
 are physical choices of this imaginary robot, not fitted to anything.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,12 +11,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.altreality.motion import (GRIPPER_LIMIT, WRIST_LIMIT, plan_motion,
-                                          reversal_events)
+from egovib_ros.altreality.motion import GRIPPER_LIMIT, WRIST_LIMIT, plan_motion, reversal_events
 from egovib_ros.bagio import Recording
 
-FS = 3000.0                     # accelerometer output rate (Hz)
-JOINT_RATE = 1000.0             # joint_states rate (Hz)
+FS = 3000.0  # accelerometer output rate (Hz)
+JOINT_RATE = 1000.0  # joint_states rate (Hz)
 JOINT_NAMES = ("r_wrist_roll_joint", "r_gripper_joint")
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 _NS = 1_000_000_000
@@ -28,21 +28,25 @@ WRIST_MOTOR_REV_PER_RAD = 2.5 * 50.0 / (2 * np.pi)
 GRIPPER_MOTOR_REV_PER_M = 1.0 / (1.5e-3 * 1.2 * 14.0 / 41.0)
 #: Lines of each drive: (multiple of motor rev/s, amplitude at full speed [m/s^2], speed exponent).
 WRIST_LINES = (
-    (16.0, 0.55, 1.4),            # belt tooth mesh (955 Hz at full speed)
-    (32.0, 0.18, 1.4),            # its second harmonic
-    (24.0, 0.16, 0.3),            # motor cogging (12 slots x 8 poles): torque ripple, nearly speed-independent
-    (80.0, 0.30, 0.8),            # harmonic-drive tooth engagement (2 lobes x 100 teeth / belt 2.5)
-    (2 * 1.432, 0.22, 1.0),       # wave-generator bearing outer-race ball pass, harmonics 2..6
+    (16.0, 0.55, 1.4),  # belt tooth mesh (955 Hz at full speed)
+    (32.0, 0.18, 1.4),  # its second harmonic
+    (
+        24.0,
+        0.16,
+        0.3,
+    ),  # motor cogging (12 slots x 8 poles): torque ripple, nearly speed-independent
+    (80.0, 0.30, 0.8),  # harmonic-drive tooth engagement (2 lobes x 100 teeth / belt 2.5)
+    (2 * 1.432, 0.22, 1.0),  # wave-generator bearing outer-race ball pass, harmonics 2..6
     (3 * 1.432, 0.18, 1.0),
     (4 * 1.432, 0.16, 1.0),
     (5 * 1.432, 0.14, 1.0),
     (6 * 1.432, 0.12, 1.0),
 )
 GRIPPER_LINES = (
-    (14.0, 0.50, 1.2),            # spur-gear mesh (14-tooth pinion)
-    (28.0, 0.15, 1.2),            # its second harmonic
-    (10.0, 0.32, 0.6),            # brush commutation (5 segments, 2 per turn)
-    (2 * 1.605, 0.20, 1.0),       # ball-screw ball pass, harmonics 2..5
+    (14.0, 0.50, 1.2),  # spur-gear mesh (14-tooth pinion)
+    (28.0, 0.15, 1.2),  # its second harmonic
+    (10.0, 0.32, 0.6),  # brush commutation (5 segments, 2 per turn)
+    (2 * 1.605, 0.20, 1.0),  # ball-screw ball pass, harmonics 2..5
     (3 * 1.605, 0.17, 1.0),
     (4 * 1.605, 0.14, 1.0),
     (5 * 1.605, 0.12, 1.0),
@@ -51,14 +55,14 @@ GRIPPER_LINES = (
 DRIVE_GAIN = 2.0
 #: Lines fade out above this (the sensor's anti-alias filter), gone at ALIAS_STOP_HZ.
 ALIAS_START_HZ, ALIAS_STOP_HZ = 1300.0, 1450.0
-LINE_AM_SIGMA = 0.15            # slow load-dependent amplitude modulation (log-normal)
+LINE_AM_SIGMA = 0.15  # slow load-dependent amplitude modulation (log-normal)
 LINE_AM_HZ = 6.0
-LINE_PHASE_WALK = 1.5           # rad / sqrt(s)
+LINE_PHASE_WALK = 1.5  # rad / sqrt(s)
 
 # --- friction: stick-slip impulses + grinding -------------------------------------------------
-STICK_SLIP_RATE = (350.0, 550.0)      # impulses per second at full speed (wrist, gripper)
-STICK_SLIP_SIZE = (0.9, 0.8)          # impulse strength scale
-GRIND_RMS = (0.05, 0.06)              # broadband grinding at full speed (m/s^2)
+STICK_SLIP_RATE = (350.0, 550.0)  # impulses per second at full speed (wrist, gripper)
+STICK_SLIP_SIZE = (0.9, 0.8)  # impulse strength scale
+GRIND_RMS = (0.05, 0.06)  # broadband grinding at full speed (m/s^2)
 
 # --- housing: structural modes that mix into all three axes ---------------------------------------
 #: (frequency Hz, Q, sensor direction, participation of wrist drive, gripper drive, contact)
@@ -68,31 +72,35 @@ MODES = (
     (655.0, 5.0, (-0.30, 0.45, 0.84), 0.35, 1.00, 1.0),
     (1230.0, 12.0, (0.60, -0.60, 0.53), 0.50, 0.60, 0.6),
 )
-DIRECT_PATH = ((0.5, 0.5, 0.7), 0.25, 100.0)   # stiff mount: direction, weight, high-pass corner (Hz)
+DIRECT_PATH = (
+    (0.5, 0.5, 0.7),
+    0.25,
+    100.0,
+)  # stiff mount: direction, weight, high-pass corner (Hz)
 
 # --- sensor and background ----------------------------------------------------------------------
-SENSOR_RANGE = 78.45            # +/- 8 g
+SENSOR_RANGE = 78.45  # +/- 8 g
 SENSOR_BITS = 12
-SENSOR_NOISE = 0.012            # m/s^2 rms per axis
-SENSOR_LOWPASS_HZ = 1100.0      # the sensor's own first-order digital low-pass
+SENSOR_NOISE = 0.012  # m/s^2 rms per axis
+SENSOR_LOWPASS_HZ = 1100.0  # the sensor's own first-order digital low-pass
 GRAVITY = 9.81
-HAND_TILT = 0.4                 # rad between gravity and the roll axis: gravity turns with the wrist
+HAND_TILT = 0.4  # rad between gravity and the roll axis: gravity turns with the wrist
 MAINS_HARMONICS = ((3, 0.012), (5, 0.009), (7, 0.007), (9, 0.006), (11, 0.004), (13, 0.003))
 MAINS_HZ = 50.0
-FAN = (437.0, 2.0, 0.008)       # fan line: centre Hz, slow wander Hz, amplitude
+FAN = (437.0, 2.0, 0.008)  # fan line: centre Hz, slow wander Hz, amplitude
 
 # --- taps ----------------------------------------------------------------------------------------
 TAP_DEAD_S = 0.25
-TAP_FORCE = 7.0                 # half-sine force pulse scale
+TAP_FORCE = 7.0  # half-sine force pulse scale
 TAP_CONTACT_MODE = (330.0, 4.0)
 
 # --- effects -------------------------------------------------------------------------------------
-SPOT_WIDTH_RAD = 0.22           # position "spot": Gaussian-like width of the tight spot
-END_ZONE_M = 0.015              # position "end": rub within this distance of the closed end
-RUB_RMS = 2.6                   # rub broadband rms at full gripper speed deep in the zone (strength 1)
-INTERMOD = 2.4                  # coupling: intermodulation amplitude scale (strength 1)
-CLICK = 5.0                     # acceleration: backlash click scale (strength 1)
-CLICK_ACC_REF = (30.0, 0.4)     # |acceleration| (rad/s^2, m/s^2) of a "typical" reversal
+SPOT_WIDTH_RAD = 0.22  # position "spot": Gaussian-like width of the tight spot
+END_ZONE_M = 0.015  # position "end": rub within this distance of the closed end
+RUB_RMS = 2.6  # rub broadband rms at full gripper speed deep in the zone (strength 1)
+INTERMOD = 2.4  # coupling: intermodulation amplitude scale (strength 1)
+CLICK = 5.0  # acceleration: backlash click scale (strength 1)
+CLICK_ACC_REF = (30.0, 0.4)  # |acceleration| (rad/s^2, m/s^2) of a "typical" reversal
 REVERSAL_THRESHOLD = (0.05, 0.0008)
 
 
@@ -124,41 +132,71 @@ class Drive:
     lines: tuple
     limit: float
 
-    def line_signals(self, speed: np.ndarray, rng: np.random.Generator, fs: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def line_signals(
+        self, speed: np.ndarray, rng: np.random.Generator, fs: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-line (n, L) signals, their instantaneous frequencies and amplitudes."""
         n = len(speed)
-        motor = speed * self.motor_rev_per_unit                       # rev/s
+        motor = speed * self.motor_rev_per_unit  # rev/s
         frac = np.clip(speed / self.limit, 0.0, 1.5)
         mults = np.array([l[0] for l in self.lines])
         amps = np.array([l[1] for l in self.lines])
         exps = np.array([l[2] for l in self.lines])
         freq = motor[:, None] * mults[None, :]
         taper = np.clip((ALIAS_STOP_HZ - freq) / (ALIAS_STOP_HZ - ALIAS_START_HZ), 0.0, 1.0)
-        am = np.exp(LINE_AM_SIGMA * np.column_stack([_slow_noise(rng, n, LINE_AM_HZ, fs)
-                                                     for _ in self.lines]) - 0.5 * LINE_AM_SIGMA ** 2)
+        am = np.exp(
+            LINE_AM_SIGMA
+            * np.column_stack([_slow_noise(rng, n, LINE_AM_HZ, fs) for _ in self.lines])
+            - 0.5 * LINE_AM_SIGMA**2
+        )
         amplitude = amps[None, :] * frac[:, None] ** exps[None, :] * taper * am
-        walk = np.cumsum(rng.standard_normal((n, len(self.lines))), axis=0) * (LINE_PHASE_WALK / np.sqrt(fs))
-        phase = 2 * np.pi * np.cumsum(freq, axis=0) / fs + walk + rng.uniform(0, 2 * np.pi, len(self.lines))
+        walk = np.cumsum(rng.standard_normal((n, len(self.lines))), axis=0) * (
+            LINE_PHASE_WALK / np.sqrt(fs)
+        )
+        phase = (
+            2 * np.pi * np.cumsum(freq, axis=0) / fs
+            + walk
+            + rng.uniform(0, 2 * np.pi, len(self.lines))
+        )
         return amplitude * np.cos(phase), freq, amplitude
 
 
 class AltHand:
     """Generates one recording of the alternate-reality hand (whole arrays, not streaming)."""
 
-    def __init__(self, *, seed: int = 0, effects: dict | None = None, tap_rate_hz: float = 0.0,
-                 top_speed: float = 0.85, motion: str = "smooth"):
+    def __init__(
+        self,
+        *,
+        seed: int = 0,
+        effects: dict | None = None,
+        tap_rate_hz: float = 0.0,
+        top_speed: float = 0.85,
+        motion: str = "smooth",
+    ):
         self.seed = int(seed)
         self.effects = {k: float(v) for k, v in (effects or {}).items() if v}
         unknown = set(self.effects) - set(EFFECTS)
         if unknown:
-            raise ValueError(f"alternate reality: unknown effects {sorted(unknown)} (known: {list(EFFECTS)})")
+            raise ValueError(
+                f"alternate reality: unknown effects {sorted(unknown)} (known: {list(EFFECTS)})"
+            )
         self.tap_rate_hz = float(tap_rate_hz)
         self.top_speed = float(top_speed)
         self.motion = motion
         # Separate streams per ingredient: switching an effect on leaves everything else identical.
-        names = ("motion", "wrist_lines", "gripper_lines", "friction", "sensor", "background", "taps",
-                 "joints", "effect_params", "effect_noise", "start")
+        names = (
+            "motion",
+            "wrist_lines",
+            "gripper_lines",
+            "friction",
+            "sensor",
+            "background",
+            "taps",
+            "joints",
+            "effect_params",
+            "effect_noise",
+            "start",
+        )
         seqs = np.random.SeedSequence([self.seed, 0xA17]).spawn(len(names))
         self.rng = {n: np.random.default_rng(s) for n, s in zip(names, seqs)}
         p = self.rng["effect_params"]
@@ -177,11 +215,13 @@ class AltHand:
         rng = self.rng["friction"]
         limit = (WRIST_LIMIT, GRIPPER_LIMIT)[j]
         frac = np.clip(speed / limit, 0.0, 1.5)
-        counts = rng.poisson(STICK_SLIP_RATE[j] * frac ** 0.7 / FS)
+        counts = rng.poisson(STICK_SLIP_RATE[j] * frac**0.7 / FS)
         sizes = rng.lognormal(0.0, 0.7, len(speed)) * STICK_SLIP_SIZE[j] * (0.3 + frac)
         impulses = counts * sizes
         b, a = signal.butter(1, 600.0, fs=FS)
-        grind = signal.lfilter(b, a, rng.standard_normal(len(speed))) * GRIND_RMS[j] * frac ** 1.5 * 2.0
+        grind = (
+            signal.lfilter(b, a, rng.standard_normal(len(speed))) * GRIND_RMS[j] * frac**1.5 * 2.0
+        )
         return impulses + grind
 
     def _background(self, n: int) -> np.ndarray:
@@ -191,9 +231,13 @@ class AltHand:
         mains = MAINS_HZ + 0.03 * _slow_noise(rng, n, 0.2, FS)
         mains_phase = 2 * np.pi * np.cumsum(mains) / FS
         for k, amp in MAINS_HARMONICS:
-            out += (amp * np.sin(k * mains_phase + rng.uniform(0, 2 * np.pi)))[:, None] * _unit((0.3, 0.2, 0.93))
+            out += (amp * np.sin(k * mains_phase + rng.uniform(0, 2 * np.pi)))[:, None] * _unit(
+                (0.3, 0.2, 0.93)
+            )
         fan_f = FAN[0] + FAN[1] * _slow_noise(rng, n, 0.1, FS)
-        out += (FAN[2] * np.sin(2 * np.pi * np.cumsum(fan_f) / FS))[:, None] * _unit((0.8, -0.5, 0.3))
+        out += (FAN[2] * np.sin(2 * np.pi * np.cumsum(fan_f) / FS))[:, None] * _unit(
+            (0.8, -0.5, 0.3)
+        )
         del t
         return out
 
@@ -207,10 +251,14 @@ class AltHand:
         i = int(rng.exponential(1.0 / self.tap_rate_hz) * FS)
         while i < n:
             width = int(round(rng.uniform(0.0006, 0.0012) * FS)) + 2
-            pulse = np.sin(np.pi * np.arange(1, width) / width) * TAP_FORCE * rng.lognormal(0.0, 0.25)
-            force[i:i + len(pulse)] += pulse[:n - i]
+            pulse = (
+                np.sin(np.pi * np.arange(1, width) / width) * TAP_FORCE * rng.lognormal(0.0, 0.25)
+            )
+            force[i : i + len(pulse)] += pulse[: n - i]
             onsets.append(i)
-            i += int((TAP_DEAD_S + rng.exponential(max(1.0 / self.tap_rate_hz - TAP_DEAD_S, 0.05))) * FS)
+            i += int(
+                (TAP_DEAD_S + rng.exponential(max(1.0 / self.tap_rate_hz - TAP_DEAD_S, 0.05))) * FS
+            )
         return force, np.asarray(onsets, np.int64)
 
     def _clicks(self, velocity: np.ndarray, n: int) -> np.ndarray:
@@ -222,9 +270,15 @@ class AltHand:
         rng = self.rng["effect_noise"]
         for j in range(2):
             idx, acc = reversal_events(velocity[:, j], FS, REVERSAL_THRESHOLD[j])
-            idx = idx + int(0.002 * FS)                  # the backlash gap closes ~2 ms after motion resumes
+            idx = idx + int(0.002 * FS)  # the backlash gap closes ~2 ms after motion resumes
             keep = idx < n - 3
-            size = s * CLICK * DRIVE_GAIN * np.sqrt(acc[keep] / CLICK_ACC_REF[j]) * rng.lognormal(0.0, 0.2, keep.sum())
+            size = (
+                s
+                * CLICK
+                * DRIVE_GAIN
+                * np.sqrt(acc[keep] / CLICK_ACC_REF[j])
+                * rng.lognormal(0.0, 0.2, keep.sum())
+            )
             for k, shape in enumerate((0.5, 1.0, 0.5)):
                 np.add.at(out, idx[keep] + k, size * shape)
         return out
@@ -238,12 +292,14 @@ class AltHand:
         rng = self.rng["effect_noise"]
         out = np.zeros(n)
         ref = 0.3
-        for i in (0, 3, 4):                 # belt mesh, HD tooth, bearing
-            for k in (0, 2, 3):             # spur mesh, commutation, ball pass
+        for i in (0, 3, 4):  # belt mesh, HD tooth, bearing
+            for k in (0, 2, 3):  # spur mesh, commutation, ball pass
                 amp = s * INTERMOD * DRIVE_GAIN * w_amp[:, i] * g_amp[:, k] / ref
                 for sign in (1.0, -1.0):
                     f = np.abs(w_freq[:, i] + sign * g_freq[:, k])
-                    taper = np.clip((ALIAS_STOP_HZ - f) / (ALIAS_STOP_HZ - ALIAS_START_HZ), 0.0, 1.0)
+                    taper = np.clip(
+                        (ALIAS_STOP_HZ - f) / (ALIAS_STOP_HZ - ALIAS_START_HZ), 0.0, 1.0
+                    )
                     phase = 2 * np.pi * np.cumsum(f) / FS + rng.uniform(0, 2 * np.pi)
                     out += amp * taper * np.cos(phase)
         return out
@@ -262,8 +318,12 @@ class AltHand:
         n = len(next(iter(inputs.values())))
         out = np.zeros((n, 3))
         for f, q, direction, w_wrist, w_grip, w_contact in MODES:
-            u = (w_wrist * inputs["wrist"] + w_grip * inputs["gripper"] + w_contact * inputs["contact"]
-                 + 0.7 * inputs["shared"])
+            u = (
+                w_wrist * inputs["wrist"]
+                + w_grip * inputs["gripper"]
+                + w_contact * inputs["contact"]
+                + 0.7 * inputs["shared"]
+            )
             b, a = resonator(f, q, FS)
             out += signal.lfilter(b, a, u)[:, None] * _unit(direction)
         direction, weight, corner = DIRECT_PATH
@@ -275,8 +335,9 @@ class AltHand:
     # --- the recording ---------------------------------------------------------------------------
     def generate(self, duration_s: float) -> tuple[Recording, dict]:
         n = int(round(duration_s * FS))
-        velocity, position, accel_true = plan_motion(duration_s, FS, self.rng["motion"], top_speed=self.top_speed,
-                                                     style=self.motion)
+        velocity, position, accel_true = plan_motion(
+            duration_s, FS, self.rng["motion"], top_speed=self.top_speed, style=self.motion
+        )
         speed = np.abs(velocity)
         w_sig, w_freq, w_amp = self.wrist.line_signals(speed[:, 0], self.rng["wrist_lines"], FS)
         g_sig, g_freq, g_amp = self.gripper.line_signals(speed[:, 1], self.rng["gripper_lines"], FS)
@@ -285,46 +346,82 @@ class AltHand:
         fx = self.effects
         if "position" in fx:
             if self.variant == "spot":
-                bump = np.exp((np.cos(position[:, 0] - self.spot_angle) - 1.0) / SPOT_WIDTH_RAD ** 2)
+                bump = np.exp((np.cos(position[:, 0] - self.spot_angle) - 1.0) / SPOT_WIDTH_RAD**2)
                 wrist = wrist * (1.0 + fx["position"] * bump)
             else:
                 depth = np.clip((END_ZONE_M - position[:, 1]) / END_ZONE_M, 0.0, 1.0)
-                rub = self.rng["effect_noise"].standard_normal(n) * RUB_RMS * DRIVE_GAIN * fx["position"] \
-                    * np.clip(speed[:, 1] / GRIPPER_LIMIT, 0, 1.5) ** 0.8 * depth
+                rub = (
+                    self.rng["effect_noise"].standard_normal(n)
+                    * RUB_RMS
+                    * DRIVE_GAIN
+                    * fx["position"]
+                    * np.clip(speed[:, 1] / GRIPPER_LIMIT, 0, 1.5) ** 0.8
+                    * depth
+                )
                 gripper = gripper + rub
         shared = self._intermodulation(w_freq, w_amp, g_freq, g_amp) + self._clicks(velocity, n)
         level = self._drift_level(n)
         force, onsets = self._taps(n)
-        drive = {"wrist": wrist * level, "gripper": gripper * level, "shared": shared * level,
-                 "contact": np.zeros(n)}
+        drive = {
+            "wrist": wrist * level,
+            "gripper": gripper * level,
+            "shared": shared * level,
+            "contact": np.zeros(n),
+        }
         ego = self._housing(drive)
-        contact = self._housing({"wrist": np.zeros(n), "gripper": np.zeros(n), "shared": np.zeros(n),
-                                 "contact": force})
+        contact = self._housing(
+            {"wrist": np.zeros(n), "gripper": np.zeros(n), "shared": np.zeros(n), "contact": force}
+        )
         b, a = resonator(*TAP_CONTACT_MODE, FS)
         contact += (0.6 * signal.lfilter(b, a, force))[:, None] * _unit((0.2, 0.3, 0.93))
         ego += self._background(n)
         theta = position[:, 0]
-        ego += GRAVITY * np.column_stack([np.sin(HAND_TILT) * np.cos(theta), -np.sin(HAND_TILT) * np.sin(theta),
-                                          np.full(n, np.cos(HAND_TILT))])
+        ego += GRAVITY * np.column_stack(
+            [
+                np.sin(HAND_TILT) * np.cos(theta),
+                -np.sin(HAND_TILT) * np.sin(theta),
+                np.full(n, np.cos(HAND_TILT)),
+            ]
+        )
         raw = ego + contact + self.rng["sensor"].standard_normal((n, 3)) * SENSOR_NOISE
         b, a = signal.butter(1, SENSOR_LOWPASS_HZ, fs=FS)
         raw = signal.lfilter(b, a, raw, axis=0, zi=signal.lfilter_zi(b, a)[:, None] * raw[:1])[0]
-        lsb = 2 * SENSOR_RANGE / 2 ** SENSOR_BITS
-        raw = np.clip(np.round(raw / lsb), -2 ** (SENSOR_BITS - 1), 2 ** (SENSOR_BITS - 1) - 1) * lsb
+        lsb = 2 * SENSOR_RANGE / 2**SENSOR_BITS
+        raw = (
+            np.clip(np.round(raw / lsb), -(2 ** (SENSOR_BITS - 1)), 2 ** (SENSOR_BITS - 1) - 1)
+            * lsb
+        )
         accel_stamps = START_NS + (np.arange(n, dtype=np.int64) * _NS) // int(FS)
 
         j_stamps, j_pos, j_vel = self._joint_states(position, n)
-        rec = Recording(accel_stamps_ns=accel_stamps, accel=raw, joint_stamps_ns=j_stamps, joint_position=j_pos,
-                        joint_velocity=j_vel, joint_names=JOINT_NAMES, contact=contact, ego=ego)
-        truth = {"reality": "alt", "seed": self.seed, "effects": dict(self.effects), "motion": self.motion,
-                 "tap_onsets_ns": [int(x) for x in accel_stamps[onsets]]}
+        rec = Recording(
+            accel_stamps_ns=accel_stamps,
+            accel=raw,
+            joint_stamps_ns=j_stamps,
+            joint_position=j_pos,
+            joint_velocity=j_vel,
+            joint_names=JOINT_NAMES,
+            contact=contact,
+            ego=ego,
+        )
+        truth = {
+            "reality": "alt",
+            "seed": self.seed,
+            "effects": dict(self.effects),
+            "motion": self.motion,
+            "tap_onsets_ns": [int(x) for x in accel_stamps[onsets]],
+        }
         if "position" in fx:
             truth["position_variant"] = self.variant
-            truth["position_angle_rad" if self.variant == "spot" else "position_end_zone_m"] = \
+            truth["position_angle_rad" if self.variant == "spot" else "position_end_zone_m"] = (
                 round(self.spot_angle, 4) if self.variant == "spot" else END_ZONE_M
+            )
         if "drift" in fx:
-            truth["drift_step"] = {"centre_s": round(self.drift_centre_frac * duration_s, 3),
-                                   "width_s": round(self.drift_width_s, 3), "direction": self.drift_sign}
+            truth["drift_step"] = {
+                "centre_s": round(self.drift_centre_frac * duration_s, 3),
+                "width_s": round(self.drift_width_s, 3),
+                "direction": self.drift_sign,
+            }
         return rec, truth
 
     def _joint_states(self, position: np.ndarray, n: int):
@@ -337,32 +434,49 @@ class AltHand:
         i0 = np.minimum(idx.astype(np.int64), n - 2)
         frac = (idx - i0)[:, None]
         pos = position[i0] * (1 - frac) + position[i0 + 1] * frac
-        resolution = np.array([2 * np.pi / (8192 * 125.0), 1.0 / (GRIPPER_MOTOR_REV_PER_M * 2000.0)])
+        resolution = np.array(
+            [2 * np.pi / (8192 * 125.0), 1.0 / (GRIPPER_MOTOR_REV_PER_M * 2000.0)]
+        )
         enc = np.round(pos / resolution) * resolution
         vel = np.zeros_like(enc)
         vel[2:] = (enc[2:] - enc[:-2]) / (2.0 / JOINT_RATE)
         vel[1] = vel[2]
         vel[0] = vel[2]
         keep = rng.random(m) > 0.003
-        stamps = START_NS + np.round((t_true + self.effects.get("timing", 0.0)) * _NS).astype(np.int64)
+        stamps = START_NS + np.round((t_true + self.effects.get("timing", 0.0)) * _NS).astype(
+            np.int64
+        )
         # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's raw encoder count.
         enc[:, 0] = np.angle(np.exp(1j * enc[:, 0]))
         order = np.argsort(stamps[keep], kind="stable")
         return stamps[keep][order], enc[keep][order], vel[keep][order]
 
 
-def simulate_alt_motion(*, duration_s: float = 120.0, effects: dict | None = None, seed: int = 0,
-                        tap_rate_hz: float = 0.0, top_speed: float = 0.85,
-                        motion: str = "smooth") -> tuple[Recording, dict]:
+def simulate_alt_motion(
+    *,
+    duration_s: float = 120.0,
+    effects: dict | None = None,
+    seed: int = 0,
+    tap_rate_hz: float = 0.0,
+    top_speed: float = 0.85,
+    motion: str = "smooth",
+) -> tuple[Recording, dict]:
     """One recording of random motion ("smooth" or task-like "segments") of the alternate-reality hand."""
     if duration_s <= 0:
         raise ValueError("duration_s must be > 0")
-    return AltHand(seed=seed, effects=effects, tap_rate_hz=tap_rate_hz, top_speed=top_speed,
-                   motion=motion).generate(duration_s)
+    return AltHand(
+        seed=seed, effects=effects, tap_rate_hz=tap_rate_hz, top_speed=top_speed, motion=motion
+    ).generate(duration_s)
 
 
-def effect_audibility_db(effect: str, strength: float, *, duration_s: float = 60.0, seed: int = 0,
-                         band_hz: tuple[float, float] = (150.0, 750.0)) -> dict:
+def effect_audibility_db(
+    effect: str,
+    strength: float,
+    *,
+    duration_s: float = 60.0,
+    seed: int = 0,
+    band_hz: tuple[float, float] = (150.0, 750.0),
+) -> dict:
     """How loud an effect is: band-passed ego-vibration power with vs without it (same seed).
 
     Returns the overall power ratio (dB), and the ratio over the 20 ms frames where the
@@ -377,10 +491,13 @@ def effect_audibility_db(effect: str, strength: float, *, duration_s: float = 60
     b = signal.sosfilt(sos, base.ego.sum(axis=1))
     frame = int(0.02 * FS)
     k = len(a) // frame
-    pa = np.mean(a[:k * frame].reshape(k, frame) ** 2, axis=1)
-    pb = np.mean(b[:k * frame].reshape(k, frame) ** 2, axis=1)
+    pa = np.mean(a[: k * frame].reshape(k, frame) ** 2, axis=1)
+    pb = np.mean(b[: k * frame].reshape(k, frame) ** 2, axis=1)
     active = np.abs(pa / np.maximum(pb, 1e-12) - 1.0) > 0.1
     overall = 10 * np.log10(pa.sum() / pb.sum())
     act = 10 * np.log10(pa[active].sum() / pb[active].sum()) if active.any() else 0.0
-    return {"overall_db": round(float(overall), 3), "active_db": round(float(act), 3),
-            "active_fraction": round(float(active.mean()), 4)}
+    return {
+        "overall_db": round(float(overall), 3),
+        "active_db": round(float(act), 3),
+        "active_fraction": round(float(active.mean()), 4),
+    }

@@ -13,6 +13,7 @@ Two styles:
 Both references go through a second-order servo (natural frequency SERVO_HZ, damping
 SERVO_ZETA) that the robot actually follows.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -33,7 +34,9 @@ def smoothstep5(x: np.ndarray) -> np.ndarray:
     return x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
 
 
-def _blend_segments(t: np.ndarray, starts: np.ndarray, levels: np.ndarray, blends: np.ndarray) -> np.ndarray:
+def _blend_segments(
+    t: np.ndarray, starts: np.ndarray, levels: np.ndarray, blends: np.ndarray
+) -> np.ndarray:
     """Piecewise-constant levels entered through quintic blends starting at `starts`."""
     out = np.full(len(t), levels[0])
     bounds = np.append(np.searchsorted(t, starts), len(t))
@@ -79,8 +82,9 @@ def wrist_reference_smooth(t: np.ndarray, rng: np.random.Generator, top_speed: f
     return np.clip(ref, -top_speed * WRIST_LIMIT, top_speed * WRIST_LIMIT)
 
 
-def gripper_reference(t: np.ndarray, rng: np.random.Generator, top_speed: float, gap0: float, *,
-                      vary: bool = False) -> np.ndarray:
+def gripper_reference(
+    t: np.ndarray, rng: np.random.Generator, top_speed: float, gap0: float, *, vary: bool = False
+) -> np.ndarray:
     """Gripper gap velocity reference (m/s): strokes between random gap targets, dwells at the ends."""
     dt = t[1] - t[0]
     v = np.zeros(len(t))
@@ -94,7 +98,7 @@ def gripper_reference(t: np.ndarray, rng: np.random.Generator, top_speed: float,
         direction = np.sign(target - gap)
         speed = rng.uniform(0.1, 1.0) * top_speed * GRIPPER_LIMIT
         ramp = rng.uniform(0.06, 0.25)
-        if speed * ramp > dist:                       # short stroke: slower, shorter ramps
+        if speed * ramp > dist:  # short stroke: slower, shorter ramps
             ramp = min(ramp, 0.5 * dist / speed)
             speed = min(speed, dist / ramp) if ramp > 0 else speed
         cruise = max(dist - speed * ramp, 0.0) / speed
@@ -106,7 +110,9 @@ def gripper_reference(t: np.ndarray, rng: np.random.Generator, top_speed: float,
             # speed wanders along the stroke (a sum of two slow random sinusoids, +-45 %)
             u = np.arange(n_cruise) * dt
             for period in (rng.uniform(0.3, 0.8), rng.uniform(0.8, 2.0)):
-                shape += rng.uniform(0.1, 0.25) * np.sin(2 * np.pi * u / period + rng.uniform(0, 2 * np.pi))
+                shape += rng.uniform(0.1, 0.25) * np.sin(
+                    2 * np.pi * u / period + rng.uniform(0, 2 * np.pi)
+                )
             shape = np.clip(shape, 0.3, 1.0 / max(top_speed, 1e-9))
         profile = np.concatenate([up, shape, up[::-1]]) * speed * direction
         # rescale so the stroke travels exactly `dist`
@@ -114,7 +120,7 @@ def gripper_reference(t: np.ndarray, rng: np.random.Generator, top_speed: float,
         if travelled > 0:
             profile *= dist / travelled
         j = min(i + len(profile), len(t))
-        v[i:j] = profile[:j - i]
+        v[i:j] = profile[: j - i]
         gap += direction * dist
         i = j + int(round(rng.choice([0.0, rng.uniform(0.05, 1.2)], p=[0.3, 0.7]) / dt))
     return v
@@ -130,16 +136,31 @@ def servo(reference: np.ndarray, fs: float) -> np.ndarray:
 MOTION_STYLES = ("smooth", "segments")
 
 
-def plan_motion(duration_s: float, fs: float, rng: np.random.Generator, *, top_speed: float = 0.85,
-                gap0: float = 0.045, style: str = "smooth") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plan_motion(
+    duration_s: float,
+    fs: float,
+    rng: np.random.Generator,
+    *,
+    top_speed: float = 0.85,
+    gap0: float = 0.045,
+    style: str = "smooth",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True joint velocity, position and acceleration (n, 2) at the sensor rate."""
     if style not in MOTION_STYLES:
         raise ValueError(f"motion style must be one of {MOTION_STYLES}, not {style!r}")
     n = int(round(duration_s * fs))
     t = np.arange(n) / fs
-    wrist = wrist_reference_smooth(t, rng, top_speed) if style == "smooth" else wrist_reference(t, rng, top_speed)
-    v = np.column_stack([servo(wrist, fs),
-                         servo(gripper_reference(t, rng, top_speed, gap0, vary=style == "smooth"), fs)])
+    wrist = (
+        wrist_reference_smooth(t, rng, top_speed)
+        if style == "smooth"
+        else wrist_reference(t, rng, top_speed)
+    )
+    v = np.column_stack(
+        [
+            servo(wrist, fs),
+            servo(gripper_reference(t, rng, top_speed, gap0, vary=style == "smooth"), fs),
+        ]
+    )
     pos = np.cumsum(v, axis=0) / fs
     pos[:, 1] = np.clip(pos[:, 1] + gap0, GAP_MIN, GAP_MAX)
     pos[:, 0] += rng.uniform(-np.pi, np.pi)
@@ -147,7 +168,9 @@ def plan_motion(duration_s: float, fs: float, rng: np.random.Generator, *, top_s
     return v, pos, acc
 
 
-def reversal_events(velocity: np.ndarray, fs: float, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+def reversal_events(
+    velocity: np.ndarray, fs: float, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample indices where a joint starts moving opposite to its last direction, and the |accel| there.
 
     A direction is "moving" once |v| exceeds `threshold`; a reversal is the first

@@ -476,7 +476,7 @@ def write_recordings(
         path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc
     ) as bag:
         for rec in pieces:
-            streams = _streams(rec, names, field_, frame_id)
+            streams = recording_streams(rec, names, field_, frame_id)
             for topic, msgtype, _, _ in streams:
                 bag.add_topic(topic, msgtype)
             start = min(int(s[0]) for _, _, s, _ in streams if len(s))
@@ -493,7 +493,7 @@ def write_recordings(
                     progress(count)
 
 
-def _streams(rec: Recording, names: dict, field_: str, frame_id: str) -> list:
+def recording_streams(rec: Recording, names: dict, field_: str, frame_id: str = "") -> list:
     """(topic, type, stamps, encode(a, b)) per topic present in the recording."""
     n = len(rec.accel_stamps_ns)
 

@@ -33,6 +33,7 @@ What it cannot represent: anything that is not a sum over joints of a function o
 joint's velocity (interactions between joints, position, acceleration beyond what the
 block's velocity trajectory implies, time, lag): the five effects.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -58,10 +59,10 @@ RIDGE_RATIO = 10.0
 class Baseline:
     """A fitted velocity-only baseline."""
 
-    magnitude: np.ndarray            # (B, F) predicted expected magnitude
-    power: np.ndarray                # (B, F) predicted mean power
-    rest_power: np.ndarray           # (F,) c(f)
-    cell_power: np.ndarray           # (J, K, F) a_jk(f) at the fine cells (0 at rest)
+    magnitude: np.ndarray  # (B, F) predicted expected magnitude
+    power: np.ndarray  # (B, F) predicted mean power
+    rest_power: np.ndarray  # (F,) c(f)
+    cell_power: np.ndarray  # (J, K, F) a_jk(f) at the fine cells (0 at rest)
     info: dict = field(default_factory=dict)
 
 
@@ -87,23 +88,27 @@ def coarse_hats(table: BlockTable, hats: np.ndarray) -> np.ndarray:
     cknots = coarse_knots(table)
     out = np.zeros((hats.shape[0], len(cknots), max(len(g) for g in cknots)))
     for j, (f, c) in enumerate(zip(table.knots, cknots)):
-        out[:, j, :len(c)] = hats[:, j, :len(f)] @ coarsening(f, c)
+        out[:, j, : len(c)] = hats[:, j, : len(f)] @ coarsening(f, c)
     return out
 
 
-def design(hats: np.ndarray, knots: tuple[np.ndarray, ...]) -> tuple[sparse.csr_matrix, list[tuple[int, int]]]:
+def design(
+    hats: np.ndarray, knots: tuple[np.ndarray, ...]
+) -> tuple[sparse.csr_matrix, list[tuple[int, int]]]:
     """Sparse columns [1, H_bjk for every joint j and non-rest cell k]; also the (j, k) of each H column."""
     cols, where = [np.ones((hats.shape[0], 1))], []
     for j, g in enumerate(knots):
         for k in range(len(g)):
             if g[k] == 0.0:
                 continue
-            cols.append(hats[:, j, k:k + 1])
+            cols.append(hats[:, j, k : k + 1])
             where.append((j, k))
     return sparse.csr_matrix(np.concatenate(cols, axis=1)), where
 
 
-def simulator_cells(table: BlockTable, knots: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def simulator_cells(
+    table: BlockTable, knots: tuple[np.ndarray, ...] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The simulator model's power at rest (F,) and with one joint at each cell (J, K, F), minus rest."""
     model = table.model
     knots = coarse_knots(table) if knots is None else knots
@@ -116,12 +121,13 @@ def simulator_cells(table: BlockTable, knots: tuple[np.ndarray, ...] | None = No
         v = np.zeros((len(g), n_joints))
         v[:, j] = g
         m, _ = model.estimate(v, ch, include_std=False)
-        cells[j, :len(g)] = m[:, 0, table.freq_index] ** 2 - rest[None, :]
+        cells[j, : len(g)] = m[:, 0, table.freq_index] ** 2 - rest[None, :]
     return rest, cells
 
 
-def _smoothness_rows(knots: tuple[np.ndarray, ...], where: list[tuple[int, int]], n_par: int
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _smoothness_rows(
+    knots: tuple[np.ndarray, ...], where: list[tuple[int, int]], n_par: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Second differences along each joint's cells (the rest cell counts as a fixed 0), and the
     (up to three) columns each row involves, (R, 3) with -1 where the rest cell stands."""
     col = {jk: 1 + i for i, jk in enumerate(where)}
@@ -141,8 +147,16 @@ def _smoothness_rows(knots: tuple[np.ndarray, ...], where: list[tuple[int, int]]
     return np.array(rows), np.array(members)
 
 
-def _solve(xt: sparse.csr_matrix, yn: np.ndarray, weights: np.ndarray, prior: np.ndarray, prior_blocks: float,
-           scale: np.ndarray, d2: np.ndarray, centres: np.ndarray) -> np.ndarray:
+def _solve(
+    xt: sparse.csr_matrix,
+    yn: np.ndarray,
+    weights: np.ndarray,
+    prior: np.ndarray,
+    prior_blocks: float,
+    scale: np.ndarray,
+    d2: np.ndarray,
+    centres: np.ndarray,
+) -> np.ndarray:
     """Penalised weighted least squares per bin; all quantities in units of the bin's mean power."""
     n_par = xt.shape[1]
     coef = np.empty((yn.shape[1], n_par))
@@ -171,8 +185,14 @@ def _prior_matrix(where, rest: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return prior
 
 
-def fit_coarse(hats_c: np.ndarray, knots_c: tuple[np.ndarray, ...], power: np.ndarray, train: np.ndarray,
-               prior_rest: np.ndarray, prior_cells: np.ndarray):
+def fit_coarse(
+    hats_c: np.ndarray,
+    knots_c: tuple[np.ndarray, ...],
+    power: np.ndarray,
+    train: np.ndarray,
+    prior_rest: np.ndarray,
+    prior_cells: np.ndarray,
+):
     """Coarse-cell power model: coefficients (F, P) in units of the bin's training mean power, etc."""
     x, where = design(hats_c, knots_c)
     xt = x[np.flatnonzero(train)]
@@ -180,7 +200,9 @@ def fit_coarse(hats_c: np.ndarray, knots_c: tuple[np.ndarray, ...], power: np.nd
     yn = power[train] / yn_level
     prior = _prior_matrix(where, prior_rest, prior_cells)
     sim_mean = np.maximum(np.asarray(xt @ prior.T), 0.0).mean(axis=0)
-    prior = np.maximum(prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0)      # simulator at this level
+    prior = np.maximum(
+        prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0
+    )  # simulator at this level
     d2, centres = _smoothness_rows(knots_c, where, x.shape[1])
     scale = np.ones_like(prior)
     weights = np.ones_like(yn)
@@ -189,20 +211,27 @@ def fit_coarse(hats_c: np.ndarray, knots_c: tuple[np.ndarray, ...], power: np.nd
         coef[:, 1:] = np.maximum(coef[:, 1:], 0.0)
         coef[:, 0] = np.maximum(coef[:, 0], SCALE_FLOOR * 0.1)
         fitted = np.maximum(np.asarray(xt @ coef.T), SCALE_FLOOR)
-        weights = 1.0 / fitted ** 2
+        weights = 1.0 / fitted**2
         scale = np.maximum(np.maximum(coef, prior), SCALE_FLOOR)
     return coef, x, where, yn_level, weights
 
 
-def fit_baseline(table: BlockTable, train: np.ndarray, *, hats: np.ndarray | None = None,
-                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> Baseline:
+def fit_baseline(
+    table: BlockTable,
+    train: np.ndarray,
+    *,
+    hats: np.ndarray | None = None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Baseline:
     """Velocity-only baseline fitted on the `train` rows, predicting every block."""
     hats = table.hats if hats is None else hats
     knots_c = coarse_knots(table)
     hats_c = coarse_hats(table, hats)
     prior_rest, prior_cells = simulator_cells(table) if prior is None else prior
-    power = table.magnitude ** 2
-    coef_c, x_c, where_c, level, weights = fit_coarse(hats_c, knots_c, power, train, prior_rest, prior_cells)
+    power = table.magnitude**2
+    coef_c, x_c, where_c, level, weights = fit_coarse(
+        hats_c, knots_c, power, train, prior_rest, prior_cells
+    )
     # Fine cells: prior = the coarse fit interpolated to them.
     x, where = design(hats, table.knots)
     cells_c = np.zeros((len(knots_c), max(len(g) for g in knots_c), len(level)))
@@ -210,52 +239,72 @@ def fit_baseline(table: BlockTable, train: np.ndarray, *, hats: np.ndarray | Non
         cells_c[j, k] = coef_c[:, 1 + i]
     cells_f = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for j, (f, c) in enumerate(zip(table.knots, knots_c)):
-        cells_f[j, :len(f)] = coarsening(f, c) @ cells_c[j, :len(c)]
+        cells_f[j, : len(f)] = coarsening(f, c) @ cells_c[j, : len(c)]
     prior_f = _prior_matrix(where, coef_c[:, 0], cells_f)
     d2, centres = _smoothness_rows(table.knots, where, x.shape[1])
     scale = np.maximum(prior_f, SCALE_FLOOR)
     rows = np.flatnonzero(train)
-    coef = _solve(x[rows], power[train] / level, weights, prior_f, COARSE_PRIOR_BLOCKS, scale, d2, centres)
+    coef = _solve(
+        x[rows], power[train] / level, weights, prior_f, COARSE_PRIOR_BLOCKS, scale, d2, centres
+    )
     coef[:, 1:] = np.maximum(coef[:, 1:], 0.0)
     coef[:, 0] = np.maximum(coef[:, 0], SCALE_FLOOR * 0.1)
     coef = coef * level[:, None]
-    predicted = np.maximum(np.asarray(x @ coef.T), SCALE_FLOOR * 0.1 * level)         # (B, F)
+    predicted = np.maximum(np.asarray(x @ coef.T), SCALE_FLOOR * 0.1 * level)  # (B, F)
     magnitude = np.sqrt(predicted)
     # Mean/rms ratio per joint and coarse cell, on that joint's share of the bin's power.
     x_dense = x.toarray()
     per_joint = np.zeros((len(table.knots),) + predicted.shape)
     for i, (j, k) in enumerate(where):
         per_joint[j] += x_dense[:, 1 + i, None] * coef[None, :, 1 + i]
-    share = np.clip(per_joint / predicted[None], 0.0, 1.0)                          # (J, B, F)
+    share = np.clip(per_joint / predicted[None], 0.0, 1.0)  # (J, B, F)
     xc = x_c.toarray()
-    cols_j = [np.array([1 + i for i, (jj, _) in enumerate(where_c) if jj == j]) for j in range(len(knots_c))]
+    cols_j = [
+        np.array([1 + i for i, (jj, _) in enumerate(where_c) if jj == j])
+        for j in range(len(knots_c))
+    ]
     z = np.log(np.maximum(table.magnitude, 1e-300)) - np.log(magnitude)
     ratio = np.zeros_like(z)
     for f in range(z.shape[1]):
-        sep = np.concatenate([np.ones((len(z), 1))] + [xc[:, c] * share[j, :, f, None] for j, c in enumerate(cols_j)],
-                             axis=1)
+        sep = np.concatenate(
+            [np.ones((len(z), 1))]
+            + [xc[:, c] * share[j, :, f, None] for j, c in enumerate(cols_j)],
+            axis=1,
+        )
         a = sep[rows]
         pen = np.full(sep.shape[1], RIDGE_RATIO)
         pen[0] = 0.0
         beta = np.linalg.solve(a.T @ a + np.diag(pen), a.T @ z[rows, f])
-        beta[0] = 0.0                                 # the level is set below
+        beta[0] = 0.0  # the level is set below
         ratio[:, f] = sep @ beta
     magnitude = magnitude * np.exp(ratio)
-    magnitude = magnitude * (table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300))
+    magnitude = magnitude * (
+        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
+    )
     cells = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for i, (j, k) in enumerate(where):
         cells[j, k] = coef[:, 1 + i]
-    info = {"n_parameters": int(coef.size + len(level) * sum(len(c) for c in cols_j)),
-            "structure": "power-additive over joints, free per velocity cell and bin",
-            "cells_per_joint": [len(g) for g in table.knots]}
-    return Baseline(magnitude=magnitude, power=predicted, rest_power=coef[:, 0], cell_power=cells, info=info)
+    info = {
+        "n_parameters": int(coef.size + len(level) * sum(len(c) for c in cols_j)),
+        "structure": "power-additive over joints, free per velocity cell and bin",
+        "cells_per_joint": [len(g) for g in table.knots],
+    }
+    return Baseline(
+        magnitude=magnitude, power=predicted, rest_power=coef[:, 0], cell_power=cells, info=info
+    )
 
 
 def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> float:
     """Mean squared centred log residual of the coarse baseline fitted on `rows` with joint states at `lag_s`."""
     knots_c = coarse_knots(table)
-    hats, _, _ = motion_features(table.joints, table.t_first_s[rows], table.t_last_s[rows], lag_s, knots_c,
-                                 table.model.window)
+    hats, _, _ = motion_features(
+        table.joints,
+        table.t_first_s[rows],
+        table.t_last_s[rows],
+        lag_s,
+        knots_c,
+        table.model.window,
+    )
     power = table.magnitude[rows] ** 2
     every = np.ones(len(rows), bool)
     coef, x, _, level, _ = fit_coarse(hats, knots_c, power, every, *prior)

@@ -1,4 +1,5 @@
 """`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]` (CONTRACT section 3)."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,75 +12,152 @@ from egovib_ros.fileutil import prepare_output, prepare_outputs_in
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "gap", help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
+        "gap",
+        help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
         description="Where does a simulator-calibrated noise model miss a real recording, which unmodelled "
-                    "effect causes it, and how far does the gap shrink once it is added. "
-                    "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.")
-    parser.add_argument("action", nargs="?", choices=["validate"], help="run the blind validation instead")
+        "effect causes it, and how far does the gap shrink once it is added. "
+        "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.",
+    )
+    parser.add_argument(
+        "action", nargs="?", choices=["validate"], help="run the blind validation instead"
+    )
     parser.add_argument("--model", help="noise-model .npz calibrated on the simulator")
-    parser.add_argument("--real", help="real recording (rosbag2 with joint_states and accelerometer/raw)")
+    parser.add_argument(
+        "--real", help="real recording (rosbag2 with joint_states and accelerometer/raw)"
+    )
     parser.add_argument("--out", help="output directory (report.json, report.md, figures)")
-    parser.add_argument("--write-back", action="store_true",
-                        help="write the fitted effect into a copy of the sim config as OUT/sim_updated.yaml "
-                             "and check it on the held-out data")
-    parser.add_argument("--sim-params", metavar="YAML", help="simulator config (default config/sim.yaml)")
-    parser.add_argument("--reference-lag", type=cliutil.float_in(-1.0, 1.0), metavar="SECONDS",
-                        help="lag between joint states and vibration that counts as in sync (default: "
-                             "measured on the simulator for this robot's model, else 0)")
-    parser.add_argument("--folds", type=cliutil.int_in(2, 20), default=5,
-                        help="blocked cross-validation in time: contiguous folds, each held out once (default 5)")
-    parser.add_argument("--train-fraction", type=cliutil.float_in(0.2, 0.9), default=None,
-                        help="instead of cross-validation: fit on this leading share of the recording (0.2 .. 0.9), "
-                             "test on the rest")
-    parser.add_argument("--force", action="store_true",
-                        help="replace an existing report directory of egovib")
+    parser.add_argument(
+        "--write-back",
+        action="store_true",
+        help="write the fitted effect into a copy of the sim config as OUT/sim_updated.yaml "
+        "and check it on the held-out data",
+    )
+    parser.add_argument(
+        "--sim-params", metavar="YAML", help="simulator config (default config/sim.yaml)"
+    )
+    parser.add_argument(
+        "--reference-lag",
+        type=cliutil.float_in(-1.0, 1.0),
+        metavar="SECONDS",
+        help="lag between joint states and vibration that counts as in sync (default: "
+        "measured on the simulator for this robot's model, else 0)",
+    )
+    parser.add_argument(
+        "--folds",
+        type=cliutil.int_in(2, 20),
+        default=5,
+        help="blocked cross-validation in time: contiguous folds, each held out once (default 5)",
+    )
+    parser.add_argument(
+        "--train-fraction",
+        type=cliutil.float_in(0.2, 0.9),
+        default=None,
+        help="instead of cross-validation: fit on this leading share of the recording (0.2 .. 0.9), "
+        "test on the rest",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing report directory of egovib"
+    )
     val = parser.add_argument_group("validate")
-    val.add_argument("--reality", choices=["sim", "alt"], default="sim",
-                     help="where the blind \"real\" bags come from: our simulator, or the independent "
-                          "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
-                          "on our simulator (validate)")
-    val.add_argument("--seeds", type=cliutil.positive_int, default=5,
-                     help="seeds per effect class (validate)")
-    val.add_argument("--master-seed", type=cliutil.int_in(0, 2 ** 31), default=2026,
-                     help="seed from which all runs' classes, strengths and seeds are drawn (validate)")
-    val.add_argument("--extra-none", type=cliutil.int_in(0, 1000), default=0,
-                     help="this many more bags of every `none` class, for the false-positive rate (validate)")
-    val.add_argument("--duration", type=cliutil.float_in(30.0, 3600.0), default=120.0,
-                     help="seconds per blind real bag, 30 .. 3600 (validate)")
-    val.add_argument("--jobs", type=cliutil.positive_int, default=1,
-                     help="parallel worker processes (validate)")
-    val.add_argument("--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)")
+    val.add_argument(
+        "--reality",
+        choices=["sim", "alt"],
+        default="sim",
+        help='where the blind "real" bags come from: our simulator, or the independent '
+        "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
+        "on our simulator (validate)",
+    )
+    val.add_argument(
+        "--seeds", type=cliutil.positive_int, default=5, help="seeds per effect class (validate)"
+    )
+    val.add_argument(
+        "--master-seed",
+        type=cliutil.int_in(0, 2**31),
+        default=2026,
+        help="seed from which all runs' classes, strengths and seeds are drawn (validate)",
+    )
+    val.add_argument(
+        "--extra-none",
+        type=cliutil.int_in(0, 1000),
+        default=0,
+        help="this many more bags of every `none` class, for the false-positive rate (validate)",
+    )
+    val.add_argument(
+        "--duration",
+        type=cliutil.float_in(30.0, 3600.0),
+        default=120.0,
+        help="seconds per blind real bag, 30 .. 3600 (validate)",
+    )
+    val.add_argument(
+        "--jobs", type=cliutil.positive_int, default=1, help="parallel worker processes (validate)"
+    )
+    val.add_argument(
+        "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
+    )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "validate":
         from egovib_ros.gap.validate import output_names, run_validation
+
         out = args.out or "docs"
         # before any work
         prepare_outputs_in(out, output_names(args.reality), force=args.force)
-        summary = run_validation(seeds=args.seeds, duration_s=args.duration, out_dir=out, jobs=args.jobs,
-                                 ladder=not args.no_ladder, progress=True, reality=args.reality,
-                                 master_seed=args.master_seed, extra_none=args.extra_none)
-        print(f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
-              f"none flagged {summary['none_false_positive_rate']:.3f}, "
-              f"{summary['n_runs']} runs -> {summary['outputs']}")
+        summary = run_validation(
+            seeds=args.seeds,
+            duration_s=args.duration,
+            out_dir=out,
+            jobs=args.jobs,
+            ladder=not args.no_ladder,
+            progress=True,
+            reality=args.reality,
+            master_seed=args.master_seed,
+            extra_none=args.extra_none,
+        )
+        print(
+            f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
+            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"{summary['n_runs']} runs -> {summary['outputs']}"
+        )
         return 0
-    missing = [flag for flag, value in (("--model", args.model), ("--real", args.real), ("--out", args.out)) if not value]
+    missing = [
+        flag
+        for flag, value in (("--model", args.model), ("--real", args.real), ("--out", args.out))
+        if not value
+    ]
     if missing:
-        raise ConfigError(f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)")
+        raise ConfigError(
+            f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
+        )
     if args.train_fraction is not None and not 0.2 <= args.train_fraction <= 0.9:
-        raise ConfigError(f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}")
+        raise ConfigError(
+            f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
+        )
     from egovib_ros.core.noise_model import NoiseModel
-    NoiseModel.load(args.model)              # a broken model is named first, as before
+
+    NoiseModel.load(args.model)  # a broken model is named first, as before
     # before any work
-    prepare_output(args.out, force=args.force, inputs=[args.model, args.real, args.sim_params],
-                   kind="report")
+    prepare_output(
+        args.out, force=args.force, inputs=[args.model, args.real, args.sim_params], kind="report"
+    )
     from egovib_ros.gap.pipeline import run_gap
-    report = run_gap(args.model, args.real, args.out, write_back=args.write_back, sim_params=args.sim_params,
-                     reference_lag=args.reference_lag, train_fraction=args.train_fraction, folds=args.folds)
+
+    report = run_gap(
+        args.model,
+        args.real,
+        args.out,
+        write_back=args.write_back,
+        sim_params=args.sim_params,
+        reference_lag=args.reference_lag,
+        train_fraction=args.train_fraction,
+        folds=args.folds,
+    )
     g = report["gap"]
-    print(f"gap: sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
-          f"+{report['verdict']['effect']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
-          f"verdict {report['verdict']['effect']} -> {args.out}/report.md", file=sys.stdout)
+    print(
+        f"gap: sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
+        f"+{report['verdict']['effect']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
+        f"verdict {report['verdict']['effect']} -> {args.out}/report.md",
+        file=sys.stdout,
+    )
     return 0

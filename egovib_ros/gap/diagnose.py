@@ -4,20 +4,27 @@
 the figures need.  All gap figures are computed on the held-out (later) part of the
 recording; every fit uses only the training (earlier) part.
 """
+
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-from dataclasses import replace
-
 from scipy import ndimage, stats
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import fit_baseline, simulator_cells
-from egovib_ros.gap.effects import (EFFECTS, LAG_TOLERANCE_S, FittedModel, fit_power_term, fit_scales,
-                                    fit_variant, lag_scan, refine_lag, time_hats)
+from egovib_ros.gap.effects import (
+    EFFECTS,
+    LAG_TOLERANCE_S,
+    FittedModel,
+    fit_power_term,
+    fit_scales,
+    fit_variant,
+    lag_scan,
+    refine_lag,
+    time_hats,
+)
 from egovib_ros.gap.features import BlockTable, detect_contacts
 
 TRAIN_FRACTION = 0.6
@@ -58,7 +65,8 @@ METRIC_DEFINITION = (
     "bins, windows and window labels (velocity cell, covariate bin). floor = the score of a model equal to the "
     "real process, i.e. the scatter of window means alone, estimated from the held-out blocks' own ratio "
     "|Y|/m: its lag-0 and lag-1 (overlapping blocks) covariances minus the covariance 4 blocks apart, which "
-    "removes slowly varying model error.")
+    "removes slowly varying model error."
+)
 
 
 @dataclass
@@ -70,7 +78,7 @@ class Diagnosis:
     windows: metric.Windows
     split_time_s: float
     models: dict[str, FittedModel]
-    errors: dict[str, np.ndarray]            # name -> (n_windows, F) held-out window errors [dB]
+    errors: dict[str, np.ndarray]  # name -> (n_windows, F) held-out window errors [dB]
     gaps: dict[str, float]
     floor: float
     candidates: list[dict]
@@ -91,7 +99,9 @@ class Diagnosis:
         return self.models[self.verdict] if self.verdict != "none" else self.models["refit"]
 
 
-def time_split(table: BlockTable, train_fraction: float = TRAIN_FRACTION) -> tuple[np.ndarray, np.ndarray, float]:
+def time_split(
+    table: BlockTable, train_fraction: float = TRAIN_FRACTION
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Train = no-contact blocks in the first `train_fraction` of the time span, held out = the rest."""
     t = table.t_mid_s
     split = float(t[0] + train_fraction * (t[-1] - t[0]))
@@ -99,12 +109,15 @@ def time_split(table: BlockTable, train_fraction: float = TRAIN_FRACTION) -> tup
     return clean & (t < split), clean & (t >= split), split
 
 
-def heldout_errors(model_pred: np.ndarray, observed: np.ndarray, rows: np.ndarray,
-                   windows: metric.Windows) -> np.ndarray:
+def heldout_errors(
+    model_pred: np.ndarray, observed: np.ndarray, rows: np.ndarray, windows: metric.Windows
+) -> np.ndarray:
     return metric.window_errors_db(observed[rows], model_pred[rows], windows)
 
 
-def residual_noise_db(table: BlockTable, predicted: np.ndarray, std_scale: np.ndarray, rows: np.ndarray) -> float:
+def residual_noise_db(
+    table: BlockTable, predicted: np.ndarray, std_scale: np.ndarray, rows: np.ndarray
+) -> float:
     """Mean no-contact magnitude left after spectral subtraction (Eq. 3 with Eq. 5 noise), relative to raw [dB].
 
     The noise estimate is the variant's mean plus the calibrated std scaled by the same
@@ -123,12 +136,15 @@ def _segments(t: np.ndarray, rows: np.ndarray, origin: float) -> np.ndarray:
     return seg
 
 
-def _block_loss(observed: np.ndarray, predicted: np.ndarray, rows: np.ndarray, offset: np.ndarray) -> np.ndarray:
+def _block_loss(
+    observed: np.ndarray, predicted: np.ndarray, rows: np.ndarray, offset: np.ndarray
+) -> np.ndarray:
     return np.sum((metric.block_log_errors(observed[rows], predicted[rows]) - offset) ** 2, axis=1)
 
 
-def reversal_locked_transients(table: BlockTable, raw: np.ndarray, flagged: np.ndarray,
-                               train_region: np.ndarray) -> tuple[np.ndarray, dict]:
+def reversal_locked_transients(
+    table: BlockTable, raw: np.ndarray, flagged: np.ndarray, train_region: np.ndarray
+) -> tuple[np.ndarray, dict]:
     """Transients that start at joint reversals are the robot's own (backlash, clunks), not contacts.
 
     Contacts are external: their onsets fall near a reversal only as often as reversal
@@ -137,17 +153,36 @@ def reversal_locked_transients(table: BlockTable, raw: np.ndarray, flagged: np.n
     reversal are returned to the data as ego-vibration (everywhere, for every model).
     Returns the new contact mask and a summary.
     """
-    info = {"onsets": 0, "near_reversal": 0, "expected_near": 0.0, "p_value": 1.0, "returned_blocks": 0}
+    info = {
+        "onsets": 0,
+        "near_reversal": 0,
+        "expected_near": 0.0,
+        "p_value": 1.0,
+        "returned_blocks": 0,
+    }
     if table.reversal_after_s is None or not raw.any():
         return flagged, info
-    near = ((table.reversal_after_s <= LOCK_AFTER_S) | (table.reversal_before_s <= LOCK_BEFORE_S)).any(axis=1)
+    near = (
+        (table.reversal_after_s <= LOCK_AFTER_S) | (table.reversal_before_s <= LOCK_BEFORE_S)
+    ).any(axis=1)
     onset = raw & ~np.concatenate([[False], raw[:-1]])
     on_train = onset & train_region
     n, k = int(on_train.sum()), int((on_train & near).sum())
     share = float(near[train_region].mean()) if train_region.any() else 0.0
-    p = float(stats.binomtest(k, n, share, alternative="greater").pvalue) if n and 0 < share < 1 else 1.0
-    info.update({"onsets": n, "near_reversal": k, "expected_near": round(n * share, 2), "p_value": p,
-                 "window_s": [-LOCK_BEFORE_S, LOCK_AFTER_S]})
+    p = (
+        float(stats.binomtest(k, n, share, alternative="greater").pvalue)
+        if n and 0 < share < 1
+        else 1.0
+    )
+    info.update(
+        {
+            "onsets": n,
+            "near_reversal": k,
+            "expected_near": round(n * share, 2),
+            "p_value": p,
+            "window_s": [-LOCK_BEFORE_S, LOCK_AFTER_S],
+        }
+    )
     if p >= LOCK_ALPHA or k < LOCK_MIN_EVENTS:
         return flagged, info
     labels, _ = ndimage.label(flagged)
@@ -169,7 +204,9 @@ class Split:
 def blocked_folds(table: BlockTable, n_folds: int) -> list[Split]:
     """Contiguous time folds: each held out once, fitted on the others (no contact blocks anywhere)."""
     t = table.t_mid_s
-    fold = np.minimum(((t - t[0]) / max(t[-1] - t[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1)
+    fold = np.minimum(
+        ((t - t[0]) / max(t[-1] - t[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1
+    )
     clean = ~table.contact
     return [Split(clean & (fold != k), clean & (fold == k)) for k in range(n_folds)]
 
@@ -179,8 +216,9 @@ def forward_split(table: BlockTable, train_fraction: float) -> list[Split]:
     return [Split(train, held)]
 
 
-def interleaved_splits(table: BlockTable, chunk_s: float = INTERLEAVE_CHUNK_S,
-                       period: int = INTERLEAVE_PERIOD) -> list[Split]:
+def interleaved_splits(
+    table: BlockTable, chunk_s: float = INTERLEAVE_CHUNK_S, period: int = INTERLEAVE_PERIOD
+) -> list[Split]:
     """Chunks of `chunk_s`; rotation r holds out every `period`-th chunk starting at r."""
     t = table.t_mid_s
     chunk = np.floor((t - t[0]) / chunk_s).astype(np.int64) % period
@@ -192,10 +230,10 @@ def interleaved_splits(table: BlockTable, chunk_s: float = INTERLEAVE_CHUNK_S,
 class CrossFitted:
     """Out-of-split predictions of the baseline and each candidate, assembled over the splits."""
 
-    predicted: dict[str, np.ndarray]          # name -> (B, F) expected magnitude, valid on test rows
-    power: dict[str, np.ndarray]              # name -> (B, F) expected power, valid on test rows
-    offset: np.ndarray                        # (B, F) baseline training log offset of each row's split
-    rows: np.ndarray                          # tested rows (sorted)
+    predicted: dict[str, np.ndarray]  # name -> (B, F) expected magnitude, valid on test rows
+    power: dict[str, np.ndarray]  # name -> (B, F) expected power, valid on test rows
+    offset: np.ndarray  # (B, F) baseline training log offset of each row's split
+    rows: np.ndarray  # tested rows (sorted)
 
 
 def combined_floor(floors: dict[str, float]) -> float:
@@ -211,8 +249,15 @@ def combined_floor(floors: dict[str, float]) -> float:
     return float(min(values)) if values else float("nan")
 
 
-def cross_fit(base_table: BlockTable, splits: list[Split], effects: tuple[str, ...], prior, *,
-              timing_table: BlockTable | None = None, terms=None) -> CrossFitted:
+def cross_fit(
+    base_table: BlockTable,
+    splits: list[Split],
+    effects: tuple[str, ...],
+    prior,
+    *,
+    timing_table: BlockTable | None = None,
+    terms=None,
+) -> CrossFitted:
     """Fit the baseline and every candidate on each split's train rows; keep test-row predictions.
 
     `terms`: optional callable(table, train, baseline) -> {name: FittedModel} for extra
@@ -237,31 +282,49 @@ def cross_fit(base_table: BlockTable, splits: list[Split], effects: tuple[str, .
                 fits["timing"] = fits["refit"]
             else:
                 lag_base = fit_baseline(timing_table, split.train, prior=prior)
-                fits["timing"] = fit_variant(timing_table, split.train, "refit",
-                                             fit_scales(timing_table, split.train, lag_base.magnitude), lag_base)
+                fits["timing"] = fit_variant(
+                    timing_table,
+                    split.train,
+                    "refit",
+                    fit_scales(timing_table, split.train, lag_base.magnitude),
+                    lag_base,
+                )
         if terms is not None:
             fits.update(terms(base_table, split.train, base, scales))
         for name, fm in fits.items():
             mags.setdefault(name, np.zeros((n, n_bins)))[test] = fm.predicted[test]
             pows.setdefault(name, np.zeros((n, n_bins)))[test] = fm.power[test]
-        offset[test] = np.mean(metric.block_log_errors(observed[split.train], fits["refit"].predicted[split.train]),
-                               axis=0)
+        offset[test] = np.mean(
+            metric.block_log_errors(observed[split.train], fits["refit"].predicted[split.train]),
+            axis=0,
+        )
     rows = np.flatnonzero(np.any([s.test for s in splits], axis=0))
     return CrossFitted(predicted=mags, power=pows, offset=offset, rows=rows)
 
 
 def _time_trend_term(n_knots: int):
     """Candidate maker for the in-sample time trend: piecewise linear in elapsed time over the whole span."""
+
     def term(table: BlockTable, train: np.ndarray, base, scales) -> dict[str, FittedModel]:
         t = table.t_mid_s
         x = time_hats(t, float(t[0]), float(t[-1]), n_knots)
-        return {"drift_in_sample": fit_variant(table, train, "custom", scales, base, regressors=(x, [
-            f"time_hat{k + 1}" for k in range(x.shape[1])]))}
+        return {
+            "drift_in_sample": fit_variant(
+                table,
+                train,
+                "custom",
+                scales,
+                base,
+                regressors=(x, [f"time_hat{k + 1}" for k in range(x.shape[1])]),
+            )
+        }
+
     return term
 
 
-def _test(observed: np.ndarray, cf: CrossFitted, name: str, segments: np.ndarray,
-          rng: np.random.Generator) -> dict:
+def _test(
+    observed: np.ndarray, cf: CrossFitted, name: str, segments: np.ndarray, rng: np.random.Generator
+) -> dict:
     """Held-out comparison of one candidate with the baseline on the tested rows.
 
     Decision: per-block Gamma deviance of the expected power (paired sign-flip test over
@@ -272,19 +335,32 @@ def _test(observed: np.ndarray, cf: CrossFitted, name: str, segments: np.ndarray
     # Power summed over short runs of DEVIANCE_RUN consecutive tested blocks (sums of
     # expected powers are expected sums; the ratio of sums has lighter tails than one block's).
     run = np.arange(len(rows)) // DEVIANCE_RUN
-    sums = lambda a: np.stack([np.bincount(run, weights=a[:, f]) for f in range(a.shape[1])], axis=1)  # noqa: E731
+    sums = lambda a: np.stack(
+        [np.bincount(run, weights=a[:, f]) for f in range(a.shape[1])], axis=1
+    )  # noqa: E731
     y = sums(observed[rows] ** 2)
-    dev_base = np.repeat(metric.block_deviance(y, sums(cf.power["refit"][rows])), DEVIANCE_RUN)[:len(rows)]
-    dev_cand = np.repeat(metric.block_deviance(y, sums(cf.power[name][rows])), DEVIANCE_RUN)[:len(rows)]
+    dev_base = np.repeat(metric.block_deviance(y, sums(cf.power["refit"][rows])), DEVIANCE_RUN)[
+        : len(rows)
+    ]
+    dev_cand = np.repeat(metric.block_deviance(y, sums(cf.power[name][rows])), DEVIANCE_RUN)[
+        : len(rows)
+    ]
     p = metric.segment_signflip_pvalue(dev_base, dev_cand, segments, rng=rng)
     log_base = _block_loss(observed, cf.predicted["refit"], rows, cf.offset[rows])
     log_cand = _block_loss(observed, cf.predicted[name], rows, cf.offset[rows])
-    return {"p_value": p, "deviance_reduction": float(np.mean(dev_base - dev_cand)),
-            "block_mse_reduction_db2": float(np.mean(log_base - log_cand) / observed.shape[1]) * DB_PER_NEPER ** 2,
-            "loss_base": dev_base, "loss_cand": dev_cand}
+    return {
+        "p_value": p,
+        "deviance_reduction": float(np.mean(dev_base - dev_cand)),
+        "block_mse_reduction_db2": float(np.mean(log_base - log_cand) / observed.shape[1])
+        * DB_PER_NEPER**2,
+        "loss_base": dev_base,
+        "loss_cand": dev_cand,
+    }
 
 
-def _interleaved_drift(table: BlockTable, prior, window_blocks: int, rng: np.random.Generator) -> dict:
+def _interleaved_drift(
+    table: BlockTable, prior, window_blocks: int, rng: np.random.Generator
+) -> dict:
     """Drift checked in-sample: a time trend fitted on interleaved chunks, judged on the chunks between."""
     splits = interleaved_splits(table)
     if min(s.train.sum() for s in splits) < 200:
@@ -309,27 +385,52 @@ def _interleaved_drift(table: BlockTable, prior, window_blocks: int, rng: np.ran
     clean = ~table.contact
     base = fit_baseline(table, clean, prior=prior)
     x = time_hats(t, float(t[0]), float(t[-1]), n_knots)
-    coef, ridge = fit_power_term(x, table.magnitude ** 2 / np.maximum(base.power, 1e-300), clean)
+    coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), clean)
     curve_t = np.linspace(float(t[0]), float(t[-1]), 61)
     g = time_hats(curve_t, float(t[0]), float(t[-1]), n_knots) @ coef[1:].mean(axis=1)
-    return {"p_value": res["p_value"], "deviance_reduction": round(res["deviance_reduction"], 6),
-            "block_mse_reduction_db2": round(res["block_mse_reduction_db2"], 5),
-            "heldout_gap_baseline": round(metric.gap_db(e_base), 4), "heldout_gap_drift": round(metric.gap_db(e_drift), 4),
-            "floor": round(combined_floor({"block_ratio": metric.floor_db(observed[rows], cf.predicted[best][rows],
-                                                                          windows),
-                                           "window": metric.floor_window_db(observed[rows], cf.predicted[best][rows],
-                                                                            windows)}), 4),
-            "split": f"chunks of {INTERLEAVE_CHUNK_S:g} s, every {INTERLEAVE_PERIOD}rd held out in turn "
-                     f"({INTERLEAVE_PERIOD} rotations)", "knots": n_knots,
-            "ridge": {k: round(v, 5) for k, v in ridge.items()},
-            "shape": {"x": [round(float(v), 2) for v in curve_t], "unit": "s",
-                      "gain_db": [round(float(v) * DB_PER_NEPER, 3) for v in g - g.mean()]}}
+    return {
+        "p_value": res["p_value"],
+        "deviance_reduction": round(res["deviance_reduction"], 6),
+        "block_mse_reduction_db2": round(res["block_mse_reduction_db2"], 5),
+        "heldout_gap_baseline": round(metric.gap_db(e_base), 4),
+        "heldout_gap_drift": round(metric.gap_db(e_drift), 4),
+        "floor": round(
+            combined_floor(
+                {
+                    "block_ratio": metric.floor_db(
+                        observed[rows], cf.predicted[best][rows], windows
+                    ),
+                    "window": metric.floor_window_db(
+                        observed[rows], cf.predicted[best][rows], windows
+                    ),
+                }
+            ),
+            4,
+        ),
+        "split": f"chunks of {INTERLEAVE_CHUNK_S:g} s, every {INTERLEAVE_PERIOD}rd held out in turn "
+        f"({INTERLEAVE_PERIOD} rotations)",
+        "knots": n_knots,
+        "ridge": {k: round(v, 5) for k, v in ridge.items()},
+        "shape": {
+            "x": [round(float(v), 2) for v in curve_t],
+            "unit": "s",
+            "gain_db": [round(float(v) * DB_PER_NEPER, 3) for v in g - g.mean()],
+        },
+    }
 
 
-def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float | None = None,
-             window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS, alpha: float = ALPHA,
-             effects: tuple[str, ...] = EFFECTS, seed: int = 0, reference_lag_s: float = 0.0,
-             lag_tolerance_s: float = LAG_TOLERANCE_S) -> Diagnosis:
+def diagnose(
+    table: BlockTable,
+    *,
+    folds: int = N_FOLDS,
+    train_fraction: float | None = None,
+    window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS,
+    alpha: float = ALPHA,
+    effects: tuple[str, ...] = EFFECTS,
+    seed: int = 0,
+    reference_lag_s: float = 0.0,
+    lag_tolerance_s: float = LAG_TOLERANCE_S,
+) -> Diagnosis:
     """Run the whole diagnosis on one recording's block table.
 
     Held-out predictions come from blocked `folds`-fold cross-validation in time (each
@@ -350,20 +451,31 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
     lags, curve = lag_scan(table, clean, prior=prior)
     lo, hi = reference_lag_s - lag_tolerance_s, reference_lag_s + lag_tolerance_s
     sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
-    timing_lag = refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
+    timing_lag = (
+        refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
+    )
     base_table = table.at_lag(sync_lag)
     # Contacts again, now against the baseline fitted to this recording (the simulator's
     # spectra may differ in shape), and reversal-locked transients returned to the data.
     base = fit_baseline(base_table, clean, prior=prior)
     flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s, return_raw=True)
-    contact, transients = reversal_locked_transients(base_table, raw, flagged, np.ones(table.n_blocks, bool))
+    contact, transients = reversal_locked_transients(
+        base_table, raw, flagged, np.ones(table.n_blocks, bool)
+    )
     table.contact = contact
     base_table = replace(base_table, contact=contact)
     timing_table = None
     if "timing" in effects and abs(timing_lag - sync_lag) > 1e-4:
         timing_table = replace(table.at_lag(timing_lag), contact=contact)
-    splits = forward_split(table, train_fraction) if train_fraction is not None else blocked_folds(table, folds)
-    if min(s.train.sum() for s in splits) < 200 or sum(s.test.sum() for s in splits) < 4 * window_blocks:
+    splits = (
+        forward_split(table, train_fraction)
+        if train_fraction is not None
+        else blocked_folds(table, folds)
+    )
+    if (
+        min(s.train.sum() for s in splits) < 200
+        or sum(s.test.sum() for s in splits) < 4 * window_blocks
+    ):
         raise ValueError("too few no-contact blocks to fit and test")
     cf = cross_fit(base_table, splits, effects, prior, timing_table=timing_table)
     rows = cf.rows
@@ -373,23 +485,40 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
     clean = ~contact
     base = fit_baseline(base_table, clean, prior=prior)
     scales = fit_scales(base_table, clean, base.magnitude)
-    models: dict[str, FittedModel] = {"refit": fit_variant(base_table, clean, "refit", scales, base)}
+    models: dict[str, FittedModel] = {
+        "refit": fit_variant(base_table, clean, "refit", scales, base)
+    }
     for effect in effects:
         if effect == "timing":
             continue
         models[effect] = fit_variant(base_table, clean, effect, scales, base)
     if "timing" in effects:
-        fitted = FittedModel(name="timing", predicted=models["refit"].predicted, std_scale=models["refit"].std_scale,
-                             parameters=dict(models["refit"].parameters), table=timing_table or base_table,
-                             scales=scales)
-        fitted.parameters.update({"lag_s": round(timing_lag, 5), "sync_lag_s": round(sync_lag, 5),
-                                  "reference_lag_s": round(float(reference_lag_s), 5),
-                                  "lag_vs_simulator_s": round(float(timing_lag - reference_lag_s), 5),
-                                  "tolerance_s": lag_tolerance_s})
-        fitted.shape = {"timing:lag_scan": {"x": [round(float(l), 4) for l in lags], "unit": "s",
-                                            "train_log_residual": [round(float(c), 6) for c in curve],
-                                            "in_sync_band_s": [round(lo, 4), round(hi, 4)],
-                                            "fitted_lag_s": round(timing_lag, 5)}}
+        fitted = FittedModel(
+            name="timing",
+            predicted=models["refit"].predicted,
+            std_scale=models["refit"].std_scale,
+            parameters=dict(models["refit"].parameters),
+            table=timing_table or base_table,
+            scales=scales,
+        )
+        fitted.parameters.update(
+            {
+                "lag_s": round(timing_lag, 5),
+                "sync_lag_s": round(sync_lag, 5),
+                "reference_lag_s": round(float(reference_lag_s), 5),
+                "lag_vs_simulator_s": round(float(timing_lag - reference_lag_s), 5),
+                "tolerance_s": lag_tolerance_s,
+            }
+        )
+        fitted.shape = {
+            "timing:lag_scan": {
+                "x": [round(float(l), 4) for l in lags],
+                "unit": "s",
+                "train_log_residual": [round(float(c), 6) for c in curve],
+                "in_sync_band_s": [round(lo, 4), round(hi, 4)],
+                "fitted_lag_s": round(timing_lag, 5),
+            }
+        }
         models["timing"] = fitted
     # Held-out predictions replace the in-sample ones (all figures are held out).
     for name, fm in models.items():
@@ -405,31 +534,44 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
     # Scatter is estimated around the best held-out predictor: a model error that varies
     # from block to block (e.g. a wrong lag) would otherwise count as scatter.
     best = min(models, key=lambda name: gaps[name])
-    floors = {"block_ratio": metric.floor_db(observed[rows], cf.predicted[best][rows], windows),
-              "window": metric.floor_window_db(observed[rows], cf.predicted[best][rows], windows)}
+    floors = {
+        "block_ratio": metric.floor_db(observed[rows], cf.predicted[best][rows], windows),
+        "window": metric.floor_window_db(observed[rows], cf.predicted[best][rows], windows),
+    }
     floor = combined_floor(floors)
     # The decision uses every held-out block, not window means: per-block squared log
     # residuals (centred by the baseline's training offset of the row's split, the
     # log-of-Rayleigh bias common to all models), paired against the baseline,
     # contiguous SEGMENT_S segments.
     segments = _segments(table.t_mid_s, rows, float(table.t_mid_s[0]))
-    excess_refit = max(gaps["refit"] ** 2 - floor ** 2, 1e-12)
-    interleaved = _interleaved_drift(base_table, prior, window_blocks, rng) if "drift" in effects else {}
+    excess_refit = max(gaps["refit"] ** 2 - floor**2, 1e-12)
+    interleaved = (
+        _interleaved_drift(base_table, prior, window_blocks, rng) if "drift" in effects else {}
+    )
     loss = {}
     candidates = []
     for effect in effects:
         res = _test(observed, cf, effect, segments, rng)
         loss["refit"], loss[effect] = res["loss_base"], res["loss_cand"]
-        removed = float(np.clip((gaps["refit"] ** 2 - gaps[effect] ** 2) / excess_refit, -9.99, 1.0))
-        entry = {"effect": effect, "heldout_gap": round(gaps[effect], 4),
-                 "reduction": round(gaps["refit"] - gaps[effect], 4), "p_value": res["p_value"],
-                 "excess_removed": round(removed, 4), "deviance_reduction": round(res["deviance_reduction"], 6),
-                 "block_mse_reduction_db2": round(res["block_mse_reduction_db2"], 5)}
+        removed = float(
+            np.clip((gaps["refit"] ** 2 - gaps[effect] ** 2) / excess_refit, -9.99, 1.0)
+        )
+        entry = {
+            "effect": effect,
+            "heldout_gap": round(gaps[effect], 4),
+            "reduction": round(gaps["refit"] - gaps[effect], 4),
+            "p_value": res["p_value"],
+            "excess_removed": round(removed, 4),
+            "deviance_reduction": round(res["deviance_reduction"], 6),
+            "block_mse_reduction_db2": round(res["block_mse_reduction_db2"], 5),
+        }
         if effect == "drift" and interleaved:
             # Two looks at drift (a trend over the folds; in-sample on interleaved chunks):
             # Bonferroni over the two, gain of the look that decides.
             p = res["p_value"]
-            entry["folds"] = {k: entry[k] for k in ("p_value", "deviance_reduction", "block_mse_reduction_db2")}
+            entry["folds"] = {
+                k: entry[k] for k in ("p_value", "deviance_reduction", "block_mse_reduction_db2")
+            }
             entry["interleaved"] = {k: v for k, v in interleaved.items() if k != "shape"}
             decided = "interleaved" if interleaved["p_value"] < p else "folds"
             if decided == "interleaved":
@@ -438,8 +580,9 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
             entry["p_value"] = min(1.0, 2.0 * min(p, interleaved["p_value"]))
             entry["decided_by"] = decided
             if decided == "interleaved":
-                entry["gap_reduction_decisive"] = round(interleaved["heldout_gap_baseline"]
-                                                        - interleaved["heldout_gap_drift"], 4)
+                entry["gap_reduction_decisive"] = round(
+                    interleaved["heldout_gap_baseline"] - interleaved["heldout_gap_drift"], 4
+                )
         entry.setdefault("gap_reduction_decisive", entry["reduction"])
         candidates.append(entry)
     if "drift" in models and interleaved:
@@ -452,8 +595,13 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
     # magnitude gap is explaining something else (measured: the coupling term on weak
     # timing and acceleration bags of the simulator, and on a tiny non-additivity of
     # effect-free ones).
-    eligible = [c for c in candidates if c["p_value"] < level and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
-                and c["gap_reduction_decisive"] > 0.0]
+    eligible = [
+        c
+        for c in candidates
+        if c["p_value"] < level
+        and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
+        and c["gap_reduction_decisive"] > 0.0
+    ]
     verdict = eligible[0]["effect"] if eligible else "none"
     if verdict == "none":
         # How far the strongest candidate is from being named: 1 - its Bonferroni-adjusted p.
@@ -461,42 +609,89 @@ def diagnose(table: BlockTable, *, folds: int = N_FOLDS, train_fraction: float |
         confidence = round(float(1.0 - min(1.0, best_p * max(len(candidates), 1))), 4)
     else:
         by_name = {c["effect"]: c for c in candidates}
-        confidence = _bootstrap_confidence(loss, [c["effect"] for c in candidates], verdict, segments, rng,
-                                           interleaved=by_name.get("drift", {}).get("decided_by") == "interleaved")
+        confidence = _bootstrap_confidence(
+            loss,
+            [c["effect"] for c in candidates],
+            verdict,
+            segments,
+            rng,
+            interleaved=by_name.get("drift", {}).get("decided_by") == "interleaved",
+        )
 
     residual = {"raw": 0.0}
-    residual["sim_as_is"] = residual_noise_db(table, table.base_mean, np.ones_like(table.base_mean), rows)
-    residual["after_refit"] = residual_noise_db(table, models["refit"].predicted, models["refit"].std_scale, rows)
+    residual["sim_as_is"] = residual_noise_db(
+        table, table.base_mean, np.ones_like(table.base_mean), rows
+    )
+    residual["after_refit"] = residual_noise_db(
+        table, models["refit"].predicted, models["refit"].std_scale, rows
+    )
     vm = models[verdict] if verdict != "none" else models["refit"]
     residual["after_effect"] = residual_noise_db(table, vm.predicted, vm.std_scale, rows)
     heldout = np.zeros(table.n_blocks, bool)
     heldout[rows] = True
     t = table.t_mid_s
     if train_fraction is not None:
-        split_info = {"method": f"by time: first {100 * train_fraction:.0f} % of the recording fits (train), the rest "
-                                "is held out", "train_s": float(train_fraction * (t[-1] - t[0])),
-                      "heldout_s": float((1 - train_fraction) * (t[-1] - t[0]))}
+        split_info = {
+            "method": f"by time: first {100 * train_fraction:.0f} % of the recording fits (train), the rest "
+            "is held out",
+            "train_s": float(train_fraction * (t[-1] - t[0])),
+            "heldout_s": float((1 - train_fraction) * (t[-1] - t[0])),
+        }
         split_time = float(t[0] + train_fraction * (t[-1] - t[0]))
     else:
-        split_info = {"method": f"blocked {folds}-fold cross-validation in time: the recording is cut into {folds} "
-                                "contiguous folds, each predicted by models fitted on the other folds, so every "
-                                "block is held out once", "train_s": float((folds - 1) / folds * (t[-1] - t[0])),
-                      "heldout_s": float(t[-1] - t[0]), "folds": folds}
+        split_info = {
+            "method": f"blocked {folds}-fold cross-validation in time: the recording is cut into {folds} "
+            "contiguous folds, each predicted by models fitted on the other folds, so every "
+            "block is held out once",
+            "train_s": float((folds - 1) / folds * (t[-1] - t[0])),
+            "heldout_s": float(t[-1] - t[0]),
+            "folds": folds,
+        }
         split_time = float(t[0])
-    split_info["method"] += ("; contact blocks detected from the data (top-3-bin log-ratio outliers against the "
-                             "baseline) are excluded")
-    return Diagnosis(reference_lag_s=float(reference_lag_s), table=table, train=clean, heldout=heldout,
-                     heldout_rows=rows, windows=windows, split_time_s=split_time, models=models, errors=errors,
-                     gaps=gaps, floor=floor, candidates=candidates, verdict=verdict, confidence=confidence,
-                     residual_noise=residual, window_blocks=window_blocks, sync_lag_s=float(sync_lag),
-                     lag_scan={"lag_s": lags.tolist(), "train_log_residual": curve.tolist(),
-                               "sync_lag_s": sync_lag, "timing_lag_s": timing_lag},
-                     interleaved=interleaved, transients=transients, split_info=split_info,
-                     floor_estimates=floors)
+    split_info["method"] += (
+        "; contact blocks detected from the data (top-3-bin log-ratio outliers against the "
+        "baseline) are excluded"
+    )
+    return Diagnosis(
+        reference_lag_s=float(reference_lag_s),
+        table=table,
+        train=clean,
+        heldout=heldout,
+        heldout_rows=rows,
+        windows=windows,
+        split_time_s=split_time,
+        models=models,
+        errors=errors,
+        gaps=gaps,
+        floor=floor,
+        candidates=candidates,
+        verdict=verdict,
+        confidence=confidence,
+        residual_noise=residual,
+        window_blocks=window_blocks,
+        sync_lag_s=float(sync_lag),
+        lag_scan={
+            "lag_s": lags.tolist(),
+            "train_log_residual": curve.tolist(),
+            "sync_lag_s": sync_lag,
+            "timing_lag_s": timing_lag,
+        },
+        interleaved=interleaved,
+        transients=transients,
+        split_info=split_info,
+        floor_estimates=floors,
+    )
 
 
-def _bootstrap_confidence(loss: dict[str, np.ndarray], names: list[str], verdict: str, segments: np.ndarray,
-                          rng: np.random.Generator, *, interleaved: bool = False) -> float:
+def _bootstrap_confidence(
+    loss: dict[str, np.ndarray],
+    names: list[str],
+    verdict: str,
+    segments: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    interleaved: bool = False,
+) -> float:
     """Share of block-bootstrap resamples (held-out segments drawn with replacement) in which
     the verdict's effect has the largest held-out deviance reduction over the baseline (at
     least MIN_DEVIANCE_GAIN).  A drift verdict decided on the interleaved split is not
@@ -508,10 +703,12 @@ def _bootstrap_confidence(loss: dict[str, np.ndarray], names: list[str], verdict
         return 1.0
     n_seg = int(segments.max()) + 1
     seg_len = np.bincount(segments, minlength=n_seg)
-    gain = np.stack([np.bincount(segments, weights=loss["refit"] - loss[n], minlength=n_seg) for n in names])
+    gain = np.stack(
+        [np.bincount(segments, weights=loss["refit"] - loss[n], minlength=n_seg) for n in names]
+    )
     picks = rng.integers(0, n_seg, size=(N_BOOTSTRAP, n_seg))
     n_picked = np.maximum(seg_len[picks].sum(axis=1), 1)
-    mean_gain = gain[:, picks].sum(axis=2) / n_picked                                  # (K, N_BOOTSTRAP)
+    mean_gain = gain[:, picks].sum(axis=2) / n_picked  # (K, N_BOOTSTRAP)
     if interleaved and verdict == "drift":
         others = [i for i, n in enumerate(names) if n != "drift"]
         if not others:

@@ -28,6 +28,7 @@ Coefficients per frequency bin = a broadband part shared by all bins plus per-bi
 deviations, each ridge-shrunk with its own weight chosen by generalised cross-validation
 on the training rows (so a strong effect is barely shrunk and a spurious one is).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -72,46 +73,61 @@ class FittedModel:
     """A fitted variant of the noise model: predictions for every block of a table."""
 
     name: str
-    predicted: np.ndarray                 # (B, F) expected magnitude, all blocks
-    std_scale: np.ndarray                 # (B, F) multiplicative gain applied to the model std too
+    predicted: np.ndarray  # (B, F) expected magnitude, all blocks
+    std_scale: np.ndarray  # (B, F) multiplicative gain applied to the model std too
     parameters: dict = field(default_factory=dict)
-    table: BlockTable | None = field(default=None, repr=False)   # the table it predicts (lag!)
-    coef: np.ndarray | None = field(default=None, repr=False)    # (1 + R, F) intercept + per-bin coefficients
-    refit_predicted: np.ndarray | None = field(default=None, repr=False)   # (B, F) baseline before the term
+    table: BlockTable | None = field(default=None, repr=False)  # the table it predicts (lag!)
+    coef: np.ndarray | None = field(
+        default=None, repr=False
+    )  # (1 + R, F) intercept + per-bin coefficients
+    refit_predicted: np.ndarray | None = field(
+        default=None, repr=False
+    )  # (B, F) baseline before the term
     scales: "Scales | None" = field(default=None, repr=False)
-    shape: dict | None = field(default=None, repr=False)         # fitted shape(s) for the report
-    power: np.ndarray | None = field(default=None, repr=False)   # (B, F) expected power (mean |Y|^2)
+    shape: dict | None = field(default=None, repr=False)  # fitted shape(s) for the report
+    power: np.ndarray | None = field(default=None, repr=False)  # (B, F) expected power (mean |Y|^2)
 
 
 @dataclass
 class Scales:
     """Regressor scalings fixed on the training split (so held-out data are not peeked at)."""
 
-    periodic: np.ndarray        # (J,) bool: joint angle wraps (continuous revolute)
-    pos_lo: np.ndarray          # (J,)
-    pos_hi: np.ndarray          # (J,)
-    acc_scale: np.ndarray       # (J,)
-    t_ref_s: float              # start of the training span
-    t_end_s: float              # end of the training span
-    power_ref: float = 1.0      # median baseline band power (train)
-    band_power: np.ndarray | None = None   # (B,) baseline band power of every block
+    periodic: np.ndarray  # (J,) bool: joint angle wraps (continuous revolute)
+    pos_lo: np.ndarray  # (J,)
+    pos_hi: np.ndarray  # (J,)
+    acc_scale: np.ndarray  # (J,)
+    t_ref_s: float  # start of the training span
+    t_end_s: float  # end of the training span
+    power_ref: float = 1.0  # median baseline band power (train)
+    band_power: np.ndarray | None = None  # (B,) baseline band power of every block
 
 
-def fit_scales(table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None) -> Scales:
+def fit_scales(
+    table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None
+) -> Scales:
     pos = table.position[train]
     span = pos.max(axis=0) - pos.min(axis=0)
     # An angle: a joint that turns through more than half a revolution in the data, or
     # is named as a roll/continuous joint (its harmonics then extrapolate boundedly).
-    named = np.array([any(k in n.lower() for k in ("roll", "continuous")) for n in table.joint_names])
+    named = np.array(
+        [any(k in n.lower() for k in ("roll", "continuous")) for n in table.joint_names]
+    )
     periodic = (span > np.pi) | named
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
-    band = np.mean(m ** 2, axis=1)
+    band = np.mean(m**2, axis=1)
     t = table.t_mid_s[train]
-    return Scales(periodic=periodic, pos_lo=lo, pos_hi=np.maximum(hi, lo + 1e-9), acc_scale=np.maximum(acc, 1e-9),
-                  t_ref_s=float(t.min()), t_end_s=float(t.max()), power_ref=float(np.median(band[train])),
-                  band_power=band)
+    return Scales(
+        periodic=periodic,
+        pos_lo=lo,
+        pos_hi=np.maximum(hi, lo + 1e-9),
+        acc_scale=np.maximum(acc, 1e-9),
+        t_ref_s=float(t.min()),
+        t_end_s=float(t.max()),
+        power_ref=float(np.median(band[train])),
+        band_power=band,
+    )
 
 
 def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
@@ -120,8 +136,11 @@ def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
     An effect that *adds* vibration of a given power raises the log magnitude by about
     log(1 + added / modelled): relatively more where the model is quiet.
     """
-    band = scales.band_power if scales.band_power is not None and len(scales.band_power) == table.n_blocks \
-        else np.mean(table.base_mean ** 2, axis=1)
+    band = (
+        scales.band_power
+        if scales.band_power is not None and len(scales.band_power) == table.n_blocks
+        else np.mean(table.base_mean**2, axis=1)
+    )
     return np.minimum(scales.power_ref / np.maximum(band, 1e-9 * scales.power_ref), REL_CLIP)
 
 
@@ -150,11 +169,15 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
             labels += [f"cos{k}", f"sin{k}"]
         return np.stack(cols, axis=1), labels
     knots = np.linspace(scales.pos_lo[j], scales.pos_hi[j], POSITION_KNOTS)
-    h = np.delete(_hats(p, knots), POSITION_KNOTS // 2, axis=1)     # the middle of the travel is the reference
+    h = np.delete(
+        _hats(p, knots), POSITION_KNOTS // 2, axis=1
+    )  # the middle of the travel is the reference
     return h, [f"hat{k}" for k in range(POSITION_KNOTS) if k != POSITION_KNOTS // 2]
 
 
-def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[np.ndarray, list[str]]:
+def effect_regressors(
+    effect: str, table: BlockTable, scales: Scales
+) -> tuple[np.ndarray, list[str]]:
     """Regressor columns (B, R) of one candidate effect, with their names."""
     cols, names = [], []
     if effect == "position":
@@ -192,7 +215,10 @@ def effect_regressors(effect: str, table: BlockTable, scales: Scales) -> tuple[n
                 for tau in REVERSAL_TAUS_S:
                     ka, kb = np.exp(-after / tau), np.exp(-before / tau)
                     cols += [ka, kb]
-                    names += [f"after_rev_{1000 * tau:g}ms({name})", f"before_rev_{1000 * tau:g}ms({name})"]
+                    names += [
+                        f"after_rev_{1000 * tau:g}ms({name})",
+                        f"before_rev_{1000 * tau:g}ms({name})",
+                    ]
                 cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
                 names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
     elif effect == "drift":
@@ -221,15 +247,15 @@ def _gcv_ridge(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
     n_eff = EFFECTIVE_ROW_SHARE * n
     best, best_lam = np.inf, RIDGE_GRID[-1] * n
     for lam in RIDGE_GRID * n:
-        d = s ** 2 / (s ** 2 + lam)
-        rss = yy - float(np.sum((2 * d - d * d)[:, None] * uy ** 2))
+        d = s**2 / (s**2 + lam)
+        rss = yy - float(np.sum((2 * d - d * d)[:, None] * uy**2))
         dof = float(d.sum())
         if dof >= n_eff:
             continue
         score = rss / (1.0 - dof / n_eff) ** 2
         if score < best:
             best, best_lam = score, lam
-    d = s / (s ** 2 + best_lam)
+    d = s / (s**2 + best_lam)
     return vt.T @ (d[:, None] * uy), float(best_lam / n)
 
 
@@ -274,9 +300,11 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
     """
     log_ratio = np.log(np.maximum(ratio, 1e-300))
     coef, ridge = fit_term(x, log_ratio, train)
-    coef[0] += EULER_GAMMA                       # E log of an exponential variable = log mean - gamma
+    coef[0] += EULER_GAMMA  # E log of an exponential variable = log mean - gamma
     for _ in range(GLM_ITERATIONS):
-        eta = coef[0][None, :] + (np.clip(x @ coef[1:], -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN) if x.shape[1] else 0.0)
+        eta = coef[0][None, :] + (
+            np.clip(x @ coef[1:], -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN) if x.shape[1] else 0.0
+        )
         mu = np.exp(eta)
         work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
         coef, ridge = fit_term(x, work, train)
@@ -288,37 +316,64 @@ def _relevel(table: BlockTable, train: np.ndarray, predicted: np.ndarray) -> np.
     return table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
 
 
-def fit_variant(table: BlockTable, train: np.ndarray, effect: str, scales: Scales,
-                refit: Baseline | None = None, *, regressors: tuple[np.ndarray, list[str]] | None = None
-                ) -> FittedModel:
+def fit_variant(
+    table: BlockTable,
+    train: np.ndarray,
+    effect: str,
+    scales: Scales,
+    refit: Baseline | None = None,
+    *,
+    regressors: tuple[np.ndarray, list[str]] | None = None,
+) -> FittedModel:
     """Baseline, then one effect's regressors (or given `regressors`) on top of it (log domain),
     fitted on the training rows."""
     base = refit if refit is not None else fit_baseline(table, train)
-    extra, names = regressors if regressors is not None else effect_regressors(effect, table, scales)
-    coef, ridge = fit_power_term(extra, table.magnitude ** 2 / np.maximum(base.power, 1e-300), train)
+    extra, names = (
+        regressors if regressors is not None else effect_regressors(effect, table, scales)
+    )
+    coef, ridge = fit_power_term(extra, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
     predicted = base.magnitude * gain
     predicted = predicted * _relevel(table, train, predicted)
     # The same term on the expected power (what the decision compares: independent
     # sources add in power, and the power's mean is what a Gamma deviance rewards).
-    power = base.power * gain ** 2
-    power = power * (table.magnitude[train] ** 2).sum(axis=0) / np.maximum(power[train].sum(axis=0), 1e-300)
+    power = base.power * gain**2
+    power = (
+        power
+        * (table.magnitude[train] ** 2).sum(axis=0)
+        / np.maximum(power[train].sum(axis=0), 1e-300)
+    )
     params = {"n_parameters": int(base.info.get("n_parameters", 0) + coef.size)}
     if names:
         params["n_regressors"] = len(names)
         params["ridge"] = {k: round(v, 5) for k, v in ridge.items()}
     params.update(_effect_summary(effect, names, coef[1:], scales))
     std_scale = predicted / np.maximum(table.base_mean, 1e-12)
-    fm = FittedModel(name=effect, predicted=predicted, std_scale=std_scale, parameters=params, table=table,
-                     coef=coef, refit_predicted=base.magnitude, scales=scales, power=power)
+    fm = FittedModel(
+        name=effect,
+        predicted=predicted,
+        std_scale=std_scale,
+        parameters=params,
+        table=table,
+        coef=coef,
+        refit_predicted=base.magnitude,
+        scales=scales,
+        power=power,
+    )
     if names and regressors is None:
         fm.shape = effect_shape(effect, table, scales, coef, names)
     return fm
 
 
-def apply_effect_term(table: BlockTable, train: np.ndarray, refit_predicted: np.ndarray, effect: str,
-                      coef: np.ndarray, scales: Scales) -> np.ndarray:
+def apply_effect_term(
+    table: BlockTable,
+    train: np.ndarray,
+    refit_predicted: np.ndarray,
+    effect: str,
+    coef: np.ndarray,
+    scales: Scales,
+) -> np.ndarray:
     """Predictions with a given (e.g. simulator-derived) effect term on top of a baseline, re-levelled on train."""
     extra, _ = effect_regressors(effect, table, scales)
     gain = np.exp(extra @ coef[1:]) if extra.shape[1] else np.ones_like(refit_predicted)
@@ -333,14 +388,16 @@ def _db(log_gain) -> list:
     return [round(float(v) * DB_PER_NEPER, 3) for v in np.atleast_1d(log_gain)]
 
 
-def effect_shape(effect: str, table: BlockTable, scales: Scales, coef: np.ndarray, names: list[str]) -> dict:
+def effect_shape(
+    effect: str, table: BlockTable, scales: Scales, coef: np.ndarray, names: list[str]
+) -> dict:
     """The fitted term's broadband gain (dB, mean over bins) along each of its covariates.
 
     Each curve moves one covariate over its range with the other covariates' columns at
     their training means (rel = 1 for the power-relative columns); curves are centred to
     0 dB at their own mean so they show the shape, not the level.
     """
-    beta = coef[1:].mean(axis=1)                           # broadband part (R,)
+    beta = coef[1:].mean(axis=1)  # broadband part (R,)
     shapes: dict = {}
     if effect == "position":
         speed = np.abs(table.velocity) / table.vmax
@@ -352,11 +409,18 @@ def effect_shape(effect: str, table: BlockTable, scales: Scales, coef: np.ndarra
             basis, labels = position_basis(grid, j, scales)
             plain = np.array([names.index(f"{l}({name})") for l in labels])
             moving = np.array([names.index(f"{l}*|v|({name})") for l in labels])
-            typical = float(np.median(speed[:, j][speed[:, j] > 0.05])) if np.any(speed[:, j] > 0.05) else 0.5
+            typical = (
+                float(np.median(speed[:, j][speed[:, j] > 0.05]))
+                if np.any(speed[:, j] > 0.05)
+                else 0.5
+            )
             g = basis @ (beta[plain] + typical * beta[moving])
-            shapes[f"position:{name}"] = {"x": [round(float(v), 5) for v in grid], "unit": unit,
-                                          "gain_db": _db(g - g.mean()),
-                                          "note": f"at the joint's median moving speed fraction {typical:.2f}"}
+            shapes[f"position:{name}"] = {
+                "x": [round(float(v), 5) for v in grid],
+                "unit": unit,
+                "gain_db": _db(g - g.mean()),
+                "note": f"at the joint's median moving speed fraction {typical:.2f}",
+            }
     elif effect == "coupling":
         grid = np.linspace(0.0, 1.0, 11)
         knots = np.asarray(SPEED_KNOTS)
@@ -372,7 +436,9 @@ def effect_shape(effect: str, table: BlockTable, scales: Scales, coef: np.ndarra
                         k += 1
                 shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
                     "speed_fraction": [round(float(v), 3) for v in grid],
-                    "gain_db": [_db(row) for row in gmat], "unit": "speed fraction of each joint"}
+                    "gain_db": [_db(row) for row in gmat],
+                    "unit": "speed fraction of each joint",
+                }
     elif effect == "acceleration":
         for j, name in enumerate(table.joint_names):
             idx = {n: k for k, n in enumerate(names)}
@@ -381,28 +447,41 @@ def effect_shape(effect: str, table: BlockTable, scales: Scales, coef: np.ndarra
             for h in ACC_HINGES:
                 g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
             g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
-            shapes[f"acceleration:{name}"] = {"x": [round(float(v), 3) for v in grid],
-                                              "unit": "|acceleration| / training 95th percentile",
-                                              "gain_db": _db(g)}
+            shapes[f"acceleration:{name}"] = {
+                "x": [round(float(v), 3) for v in grid],
+                "unit": "|acceleration| / training 95th percentile",
+                "gain_db": _db(g),
+            }
             if f"after_rev_15ms({name})" in idx:
                 tgrid = np.linspace(-0.3, 0.3, 61)
                 g = np.zeros_like(tgrid)
                 for tau in REVERSAL_TAUS_S:
                     ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
                     kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                    g = g + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka \
+                    g = (
+                        g
+                        + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
                         + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
-                g = g + beta[idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]] * \
-                    np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0)
-                shapes[f"reversal:{name}"] = {"x": [round(float(v), 3) for v in tgrid],
-                                              "unit": "s from the joint's reversal", "gain_db": _db(g)}
+                    )
+                g = g + beta[
+                    idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]
+                ] * np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0)
+                shapes[f"reversal:{name}"] = {
+                    "x": [round(float(v), 3) for v in tgrid],
+                    "unit": "s from the joint's reversal",
+                    "gain_db": _db(g),
+                }
     elif effect == "drift":
         grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
         h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
         x = np.concatenate([h, ((grid - scales.t_ref_s) / 60.0)[:, None]], axis=1)
         g = x @ beta
-        shapes["drift:elapsed_time"] = {"x": [round(float(v), 2) for v in grid], "unit": "s",
-                                        "gain_db": _db(g - g[0]), "train_end_s": round(scales.t_end_s, 2)}
+        shapes["drift:elapsed_time"] = {
+            "x": [round(float(v), 2) for v in grid],
+            "unit": "s",
+            "gain_db": _db(g - g[0]),
+            "train_end_s": round(scales.t_end_s, 2),
+        }
     return shapes
 
 
@@ -416,8 +495,10 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
                 joint = name[5:-1]
                 j = names.index(f"sin1({joint})")
                 amp = float(np.hypot(c[k], c[j]))
-                out[joint] = {"first_harmonic_relative_amplitude": round(amp, 4),
-                              "first_harmonic_phase_rad": round(float(np.arctan2(c[j], c[k])), 4)}
+                out[joint] = {
+                    "first_harmonic_relative_amplitude": round(amp, 4),
+                    "first_harmonic_phase_rad": round(float(np.arctan2(c[j], c[k])), 4),
+                }
     elif effect == "drift":
         out["log_gain_per_minute"] = round(float(c[-1]), 5)
     elif effect == "acceleration":
@@ -425,24 +506,42 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
     return out
 
 
-def lag_scan(table: BlockTable, train: np.ndarray, *, lag_range_s: float = LAG_RANGE_S,
-             centre_s: float = 0.0, prior=None) -> tuple[np.ndarray, np.ndarray]:
+def lag_scan(
+    table: BlockTable,
+    train: np.ndarray,
+    *,
+    lag_range_s: float = LAG_RANGE_S,
+    centre_s: float = 0.0,
+    prior=None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Training residual of the baseline refitted with joint states re-matched at each lag of a grid."""
     rows = np.flatnonzero(train)[::LAG_SCAN_STRIDE]
     prior = simulator_cells(table) if prior is None else prior
-    lags = np.round(np.arange(centre_s - lag_range_s, centre_s + lag_range_s + 1e-12, LAG_COARSE_S), 6)
+    lags = np.round(
+        np.arange(centre_s - lag_range_s, centre_s + lag_range_s + 1e-12, LAG_COARSE_S), 6
+    )
     curve = np.array([lag_residual(table, rows, lag, prior) for lag in lags])
     return lags, curve
 
 
-def refine_lag(table: BlockTable, train: np.ndarray, lags: np.ndarray, curve: np.ndarray, *,
-               lo: float = -np.inf, hi: float = np.inf, prior=None) -> float:
+def refine_lag(
+    table: BlockTable,
+    train: np.ndarray,
+    lags: np.ndarray,
+    curve: np.ndarray,
+    *,
+    lo: float = -np.inf,
+    hi: float = np.inf,
+    prior=None,
+) -> float:
     """Best lag within [lo, hi]: best coarse grid point there, then the fine grid around it."""
     rows = np.flatnonzero(train)[::LAG_SCAN_STRIDE]
     prior = simulator_cells(table) if prior is None else prior
     inside = (lags >= lo - 1e-9) & (lags <= hi + 1e-9)
     if not inside.any():
-        inside = np.abs(lags - np.clip(lags, lo, hi)) == np.min(np.abs(lags - np.clip(lags, lo, hi)))
+        inside = np.abs(lags - np.clip(lags, lo, hi)) == np.min(
+            np.abs(lags - np.clip(lags, lo, hi))
+        )
     best = lags[inside][int(np.argmin(curve[inside]))]
     fine = np.arange(best - LAG_COARSE_S + LAG_FINE_S, best + LAG_COARSE_S - 1e-12, LAG_FINE_S)
     fine = fine[(fine >= lo - 1e-9) & (fine <= hi + 1e-9)]
@@ -451,8 +550,13 @@ def refine_lag(table: BlockTable, train: np.ndarray, lags: np.ndarray, curve: np
     return float(cand[int(np.argmin(vals))])
 
 
-def fit_lag(table: BlockTable, train: np.ndarray, scales: Scales | None = None, *,
-            lag_range_s: float = LAG_RANGE_S) -> tuple[float, np.ndarray, np.ndarray]:
+def fit_lag(
+    table: BlockTable,
+    train: np.ndarray,
+    scales: Scales | None = None,
+    *,
+    lag_range_s: float = LAG_RANGE_S,
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Lag (s) minimising the training residual of the baseline; also (lags, residual curve)."""
     prior = simulator_cells(table)
     lags, curve = lag_scan(table, train, lag_range_s=lag_range_s, prior=prior)

@@ -9,6 +9,7 @@ re-matches the joint states shifted by a candidate lag.
 Contact blocks are found from the data alone (energy outliers against the model);
 ground-truth topics are never read.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -35,30 +36,30 @@ ACCEL_SMOOTH_S = 0.031
 class JointSeries:
     """Joint-state streams on their own clock (seconds since the first accel sample)."""
 
-    t_s: np.ndarray               # (M,)
-    position: np.ndarray          # (M, J)
-    velocity: np.ndarray          # (M, J)
-    acceleration: np.ndarray      # (M, J) smoothed derivative of velocity
-    smooth_velocity: np.ndarray | None = None      # (M, J) Savitzky-Golay smoothed velocity
-    reversals: tuple[np.ndarray, ...] = ()         # per joint: joint-clock times (s) where motion
-                                                   # resumes opposite to the last direction
+    t_s: np.ndarray  # (M,)
+    position: np.ndarray  # (M, J)
+    velocity: np.ndarray  # (M, J)
+    acceleration: np.ndarray  # (M, J) smoothed derivative of velocity
+    smooth_velocity: np.ndarray | None = None  # (M, J) Savitzky-Golay smoothed velocity
+    reversals: tuple[np.ndarray, ...] = ()  # per joint: joint-clock times (s) where motion
+    # resumes opposite to the last direction
 
 
 @dataclass
 class BlockTable:
     """Everything the diagnosis needs about the blocks of one recording."""
 
-    t_first_s: np.ndarray         # (B,) block start, s since the first accel sample
-    t_last_s: np.ndarray          # (B,)
-    magnitude: np.ndarray         # (B, F) observed |Y_b(f)|, in-band bins
-    freqs_hz: np.ndarray          # (F,)
-    velocity: np.ndarray          # (B, J) block mean joint velocity (lag 0)
-    position: np.ndarray          # (B, J)
-    acceleration: np.ndarray      # (B, J) block mean |joint acceleration|
-    base_mean: np.ndarray         # (B, F) model mean magnitude at the block velocity
-    base_std: np.ndarray          # (B, F) model std (for the denoising consequence)
-    contact: np.ndarray           # (B,) bool, detected contact (excluded)
-    vmax: np.ndarray              # (J,) largest grid speed per joint
+    t_first_s: np.ndarray  # (B,) block start, s since the first accel sample
+    t_last_s: np.ndarray  # (B,)
+    magnitude: np.ndarray  # (B, F) observed |Y_b(f)|, in-band bins
+    freqs_hz: np.ndarray  # (F,)
+    velocity: np.ndarray  # (B, J) block mean joint velocity (lag 0)
+    position: np.ndarray  # (B, J)
+    acceleration: np.ndarray  # (B, J) block mean |joint acceleration|
+    base_mean: np.ndarray  # (B, F) model mean magnitude at the block velocity
+    base_std: np.ndarray  # (B, F) model std (for the denoising consequence)
+    contact: np.ndarray  # (B,) bool, detected contact (excluded)
+    vmax: np.ndarray  # (J,) largest grid speed per joint
     joint_names: tuple[str, ...]
     model: object = field(repr=False, default=None)
     joints: JointSeries | None = field(repr=False, default=None)
@@ -73,10 +74,25 @@ class BlockTable:
 
     def subset(self, rows: np.ndarray) -> "BlockTable":
         """Rows of the table (boolean mask or indices)."""
-        pick = {name: getattr(self, name)[rows] for name in
-                ("t_first_s", "t_last_s", "magnitude", "velocity", "position", "acceleration",
-                 "base_mean", "base_std", "contact", "axis_mean", "hats", "reversal_after_s",
-                 "reversal_before_s") if getattr(self, name) is not None}
+        pick = {
+            name: getattr(self, name)[rows]
+            for name in (
+                "t_first_s",
+                "t_last_s",
+                "magnitude",
+                "velocity",
+                "position",
+                "acceleration",
+                "base_mean",
+                "base_std",
+                "contact",
+                "axis_mean",
+                "hats",
+                "reversal_after_s",
+                "reversal_before_s",
+            )
+            if getattr(self, name) is not None
+        }
         return replace(self, **pick)
 
     def at_lag(self, lag_s: float) -> "BlockTable":
@@ -87,26 +103,46 @@ class BlockTable:
         """
         if self.joints is None or self.model is None:
             raise ValueError("table has no joint series to re-match")
-        velocity, position, acceleration = _joint_block_means(self.joints, self.t_first_s, self.t_last_s, lag_s)
+        velocity, position, acceleration = _joint_block_means(
+            self.joints, self.t_first_s, self.t_last_s, lag_s
+        )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
         axis, zero = axis_spectra(self.model, velocity, self.freq_index)
-        hats, after, before = motion_features(self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots,
-                                              self.model.window)
-        return replace(self, velocity=velocity, position=position, acceleration=acceleration,
-                       base_mean=mean, base_std=std, axis_mean=axis, zero_mean=zero, hats=hats,
-                       reversal_after_s=after, reversal_before_s=before, lag_s=float(lag_s))
+        hats, after, before = motion_features(
+            self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots, self.model.window
+        )
+        return replace(
+            self,
+            velocity=velocity,
+            position=position,
+            acceleration=acceleration,
+            base_mean=mean,
+            base_std=std,
+            axis_mean=axis,
+            zero_mean=zero,
+            hats=hats,
+            reversal_after_s=after,
+            reversal_before_s=before,
+            lag_s=float(lag_s),
+        )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
-    axis_mean: np.ndarray | None = field(repr=False, default=None)   # (B, J, F) Eq. 6 single-joint spectra
-    zero_mean: np.ndarray | None = field(repr=False, default=None)   # (F,) spectrum at rest
+    axis_mean: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J, F) Eq. 6 single-joint spectra
+    zero_mean: np.ndarray | None = field(repr=False, default=None)  # (F,) spectrum at rest
     #: Velocity knots per joint (the model's grid): the baseline's cells.
     knots: tuple[np.ndarray, ...] = field(repr=False, default=())
     #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
     #: velocity trajectory at the knots: what a velocity-only table predicts, linearly.
     hats: np.ndarray | None = field(repr=False, default=None)
-    reversal_after_s: np.ndarray | None = field(repr=False, default=None)    # (B, J) since last reversal
-    reversal_before_s: np.ndarray | None = field(repr=False, default=None)   # (B, J) until next reversal
-    lag_s: float = 0.0                                                         # joint-state lag of this table
+    reversal_after_s: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J) since last reversal
+    reversal_before_s: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J) until next reversal
+    lag_s: float = 0.0  # joint-state lag of this table
 
 
 #: The baseline's velocity cells: the model's grid with each interval split in this many
@@ -128,8 +164,14 @@ def hat_basis(values: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.nda
     return i, 1.0 - frac, frac
 
 
-def motion_features(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float,
-                    knots: tuple[np.ndarray, ...], window: np.ndarray):
+def motion_features(
+    joints: JointSeries,
+    t_first: np.ndarray,
+    t_last: np.ndarray,
+    lag_s: float,
+    knots: tuple[np.ndarray, ...],
+    window: np.ndarray,
+):
     """Velocity-trajectory hat features (B, J, K) and times since / until the nearest reversal (B, J).
 
     Each block's features are the analysis-window^2-weighted mean, over TRAJECTORY_POINTS
@@ -143,7 +185,7 @@ def motion_features(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray
     idx = np.clip(np.round(pts * (len(window) - 1)).astype(int), 0, len(window) - 1)
     weight = window[idx] ** 2
     weight = weight / weight.sum()
-    times = t_first[:, None] + pts[None, :] * (t_last - t_first)[:, None]           # (B, Q)
+    times = t_first[:, None] + pts[None, :] * (t_last - t_first)[:, None]  # (B, Q)
     t_joint = joints.t_s - lag_s
     vel = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
     n_knots = max(len(k) for k in knots)
@@ -170,7 +212,9 @@ def motion_features(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray
     return hats, after, before
 
 
-def detect_reversals(t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray) -> tuple[np.ndarray, ...]:
+def detect_reversals(
+    t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray
+) -> tuple[np.ndarray, ...]:
     """Per joint: times at which motion resumes opposite to the previous direction of motion."""
     out = []
     for j in range(smooth_velocity.shape[1]):
@@ -192,21 +236,30 @@ def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
     Returns (magnitude spectra (B, n_bins) of complete blocks with a joint state,
     t_first_ns (B,), t_last_ns (B,), block mean velocity (B, J)).
     """
-    settings = FramerSettings(sample_rate_hz=model.sample_rate_hz, block_length=model.block_length,
-                              hop=model.hop, band_hz=model.band_hz, band_order=model.band_order,
-                              layout="combined", max_hold_s=max_hold_s)
-    batches, _ = frame_batch(settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel,
-                             rec.joint_stamps_ns, velocity)
+    # the model's framing, including its sensor range: bad samples are missing, as in calibration
+    settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
+    batches, _ = frame_batch(
+        settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, velocity
+    )
     batches = [b for b in batches if b.n]
     if not batches:
         n_bins = model.block_length // 2 + 1
-        return np.zeros((0, n_bins)), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, velocity.shape[1]))
+        return (
+            np.zeros((0, n_bins)),
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros((0, velocity.shape[1])),
+        )
     samples = np.concatenate([b.samples[:, 0, :] for b in batches])
     t_first = np.concatenate([b.t_first_ns for b in batches])
     t_last = np.concatenate([b.t_last_ns for b in batches])
     v = np.concatenate([b.velocity for b in batches])
-    ok = np.concatenate([(b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
-                         for b in batches])
+    ok = np.concatenate(
+        [
+            (b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
+            for b in batches
+        ]
+    )
     spectra = np.abs(np.fft.rfft(samples[ok] * model.window, axis=1))
     return spectra, t_first[ok], t_last[ok], v[ok]
 
@@ -217,18 +270,24 @@ def in_band_bins(model) -> np.ndarray:
     return np.flatnonzero((f >= model.band_hz[0]) & (f <= model.band_hz[1]))
 
 
-def _interval_means(t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+def _interval_means(
+    t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray
+) -> np.ndarray:
     """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)."""
     dt = np.diff(t)
-    cum = np.concatenate([np.zeros((1, values.shape[1])),
-                          np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)])
+    cum = np.concatenate(
+        [
+            np.zeros((1, values.shape[1])),
+            np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0),
+        ]
+    )
 
     def integral(tq: np.ndarray) -> np.ndarray:
         tq = np.clip(tq, t[0], t[-1])
         i = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
         frac = (tq - t[i])[:, None]
         slope = (values[i + 1] - values[i]) / np.maximum(dt[i], 1e-12)[:, None]
-        return cum[i] + values[i] * frac + 0.5 * slope * frac ** 2
+        return cum[i] + values[i] * frac + 0.5 * slope * frac**2
 
     span = np.maximum(t1 - t0, 1e-9)[:, None]
     return (integral(t1) - integral(t0)) / span
@@ -242,7 +301,9 @@ def _joint_block_means(joints: JointSeries, t_first: np.ndarray, t_last: np.ndar
     return velocity, position, acceleration
 
 
-def _model_lookup(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _model_lookup(
+    model, velocity: np.ndarray, freq_index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     ch = model.channel_indices(("combined",))
     mean, _ = model.estimate(velocity, ch, include_std=False)
     full, _ = model.estimate(velocity, ch, include_std=True)
@@ -250,7 +311,9 @@ def _model_lookup(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[
     return mean, np.maximum(full[:, 0, freq_index] - mean, 0.0)
 
 
-def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def axis_spectra(
+    model, velocity: np.ndarray, freq_index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 6 ingredients: mean spectra with only joint j moving, (B, J, F), and at rest, (F,)."""
     ch = model.channel_indices(("combined",))
     n_joints = velocity.shape[1]
@@ -264,8 +327,15 @@ def axis_spectra(model, velocity: np.ndarray, freq_index: np.ndarray) -> tuple[n
     return axis, zero[0, 0, freq_index]
 
 
-def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarray, *,
-                    z: float = CONTACT_Z, dilate: int = CONTACT_DILATE, return_raw: bool = False):
+def detect_contacts(
+    magnitude: np.ndarray,
+    predicted: np.ndarray,
+    t_s: np.ndarray,
+    *,
+    z: float = CONTACT_Z,
+    dilate: int = CONTACT_DILATE,
+    return_raw: bool = False,
+):
     """Flag blocks whose spectrum is an outlier above the model's prediction.
 
     The statistic (mean of the three largest per-bin log ratios) is compared with its
@@ -290,13 +360,14 @@ def detect_contacts(magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarra
         # A tap rings on after its onset: drop `dilate` blocks after each flagged block
         # and one before (the block straddling the onset may be below threshold).
         structure = np.zeros(2 * dilate + 1, dtype=bool)
-        structure[dilate - 1:] = True               # origin at the centre: -1 .. +dilate
+        structure[dilate - 1 :] = True  # origin at the centre: -1 .. +dilate
         flagged = ndimage.binary_dilation(flagged, structure=structure)
     return (flagged, raw) if return_raw else flagged
 
 
-def baseline_knots(grid, refine: int = 1, low_refine: int | None = None,
-                   low_fraction: float = LOW_SPEED_FRACTION) -> tuple[np.ndarray, ...]:
+def baseline_knots(
+    grid, refine: int = 1, low_refine: int | None = None, low_fraction: float = LOW_SPEED_FRACTION
+) -> tuple[np.ndarray, ...]:
     """The model's velocity grid per joint, each interval split into `refine` cells
     (`low_refine` within `low_fraction` of the top speed: a line whose frequency is a
     high multiple of the shaft speed sweeps a DFT bin per ~1 % of speed there)."""
@@ -318,8 +389,11 @@ def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
     if joints.smooth_velocity is None:
         dt = float(np.median(np.diff(joints.t_s)))
         window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
-        joints.smooth_velocity = signal.savgol_filter(joints.velocity, window, 2, axis=0, mode="interp") \
-            if len(joints.velocity) > window else joints.velocity
+        joints.smooth_velocity = (
+            signal.savgol_filter(joints.velocity, window, 2, axis=0, mode="interp")
+            if len(joints.velocity) > window
+            else joints.velocity
+        )
     if not joints.reversals:
         joints.reversals = detect_reversals(joints.t_s, joints.smooth_velocity, vmax)
     return joints
@@ -328,24 +402,36 @@ def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
 def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> BlockTable:
     """Baseline cells, velocity-trajectory features and reversal times of a table built by hand."""
     smooth_joint_series(table.joints, table.vmax)
-    table.knots = baseline_knots(table.model.grid, knot_refine,
-                                 KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine)
+    table.knots = baseline_knots(
+        table.model.grid,
+        knot_refine,
+        KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine,
+    )
     table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
-        table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window)
+        table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
+    )
     return table
 
 
-def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag",
-                knot_refine: int = KNOT_REFINE) -> BlockTable:
+def build_table(
+    rec, model, *, max_hold_s: float = 0.05, source: str = "bag", knot_refine: int = KNOT_REFINE
+) -> BlockTable:
     """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel."""
     if model.n_joints != len(rec.joint_names):
-        raise ModelFileError(f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
-                             f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}")
+        raise ModelFileError(
+            f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
+            f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}"
+        )
     if tuple(model.joint_names) != tuple(rec.joint_names):
-        order = [list(rec.joint_names).index(n) if n in rec.joint_names else -1 for n in model.joint_names]
+        order = [
+            list(rec.joint_names).index(n) if n in rec.joint_names else -1
+            for n in model.joint_names
+        ]
         if min(order) < 0:
-            raise ModelFileError(f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
-                                 f"not in {source} joint_states {list(rec.joint_names)}")
+            raise ModelFileError(
+                f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
+                f"not in {source} joint_states {list(rec.joint_names)}"
+            )
     else:
         order = list(range(model.n_joints))
     if len(rec.accel_stamps_ns) < 4 * model.block_length:
@@ -356,7 +442,9 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag",
     velocity = rec.joint_velocity[:, order]
     spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
     if len(spectra) < 10:
-        raise BagError(f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not overlap?)")
+        raise BagError(
+            f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not overlap?)"
+        )
     freq_index = in_band_bins(model)
     t0_ns = int(rec.accel_stamps_ns[0])
     t_first = (first_ns - t0_ns) / NS
@@ -367,25 +455,61 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag",
     position = np.unwrap(rec.joint_position[:, order], axis=0)
     window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
     window = max(window, 5)
-    acceleration = signal.savgol_filter(velocity, window, 2, deriv=1, axis=0,
-                                        delta=float(np.median(np.diff(joint_t))), mode="interp") \
-        if len(velocity) > window else np.zeros_like(velocity)
-    smooth = signal.savgol_filter(velocity, window, 2, axis=0, mode="interp") if len(velocity) > window else velocity
+    acceleration = (
+        signal.savgol_filter(
+            velocity,
+            window,
+            2,
+            deriv=1,
+            axis=0,
+            delta=float(np.median(np.diff(joint_t))),
+            mode="interp",
+        )
+        if len(velocity) > window
+        else np.zeros_like(velocity)
+    )
+    smooth = (
+        signal.savgol_filter(velocity, window, 2, axis=0, mode="interp")
+        if len(velocity) > window
+        else velocity
+    )
     vmax = np.array([np.max(np.abs(g)) for g in model.grid])
-    joints = JointSeries(t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration,
-                         smooth_velocity=smooth, reversals=detect_reversals(joint_t, smooth, vmax))
+    joints = JointSeries(
+        t_s=joint_t,
+        position=position,
+        velocity=velocity,
+        acceleration=acceleration,
+        smooth_velocity=smooth,
+        reversals=detect_reversals(joint_t, smooth, vmax),
+    )
 
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)
-    knots = baseline_knots(model.grid, knot_refine, KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine)
+    knots = baseline_knots(
+        model.grid, knot_refine, KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine
+    )
     hats, after, before = motion_features(joints, t_first, t_last, 0.0, knots, model.window)
-    table = BlockTable(t_first_s=t_first, t_last_s=t_last, magnitude=spectra[:, freq_index],
-                       freqs_hz=model.freqs_hz[freq_index], velocity=v_core, position=pos_b,
-                       acceleration=acc_b, base_mean=mean, base_std=std,
-                       contact=np.zeros(len(t_first), dtype=bool), vmax=vmax,
-                       joint_names=tuple(model.joint_names), model=model, joints=joints,
-                       freq_index=freq_index, knots=knots, hats=hats, reversal_after_s=after,
-                       reversal_before_s=before)
+    table = BlockTable(
+        t_first_s=t_first,
+        t_last_s=t_last,
+        magnitude=spectra[:, freq_index],
+        freqs_hz=model.freqs_hz[freq_index],
+        velocity=v_core,
+        position=pos_b,
+        acceleration=acc_b,
+        base_mean=mean,
+        base_std=std,
+        contact=np.zeros(len(t_first), dtype=bool),
+        vmax=vmax,
+        joint_names=tuple(model.joint_names),
+        model=model,
+        joints=joints,
+        freq_index=freq_index,
+        knots=knots,
+        hats=hats,
+        reversal_after_s=after,
+        reversal_before_s=before,
+    )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     return table

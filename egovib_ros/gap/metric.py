@@ -21,6 +21,7 @@ of the per-block ratio |Y|/m at lags 0 and 1 (overlapping blocks) minus the
 covariance at a lag of 4 blocks (a slowly varying model error adds about the same to
 all three).  `floor_split_half_db` is a cross-check.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -36,9 +37,9 @@ DEVIANCE_CAP = 8.0
 class Windows:
     """Assignment of (held-out) blocks to consecutive windows."""
 
-    index: np.ndarray        # (B,) window id of each block, -1 = unused tail
+    index: np.ndarray  # (B,) window id of each block, -1 = unused tail
     n_windows: int
-    half: np.ndarray         # (B,) 0/1: split-half membership (interleaved pairs)
+    half: np.ndarray  # (B,) 0/1: split-half membership (interleaved pairs)
 
     def members(self) -> np.ndarray:
         return self.index >= 0
@@ -54,7 +55,9 @@ def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> W
     return Windows(index=index, n_windows=int(n_windows), half=half)
 
 
-def _window_sums(values: np.ndarray, windows: Windows, mask: np.ndarray | None = None) -> np.ndarray:
+def _window_sums(
+    values: np.ndarray, windows: Windows, mask: np.ndarray | None = None
+) -> np.ndarray:
     """Sum (B, F) values per window -> (n_windows, F); `mask` selects blocks."""
     keep = windows.members() if mask is None else windows.members() & mask
     out = np.zeros((windows.n_windows, values.shape[1]))
@@ -62,8 +65,9 @@ def _window_sums(values: np.ndarray, windows: Windows, mask: np.ndarray | None =
     return out
 
 
-def window_errors_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows,
-                     mask: np.ndarray | None = None) -> np.ndarray:
+def window_errors_db(
+    observed: np.ndarray, predicted: np.ndarray, windows: Windows, mask: np.ndarray | None = None
+) -> np.ndarray:
     """e[w, f] in dB: log ratio of window sums of observed vs predicted magnitudes."""
     obs = _window_sums(observed, windows, mask)
     pred = _window_sums(predicted, windows, mask)
@@ -76,7 +80,9 @@ def gap_db(errors_db: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(errors_db)))) if errors_db.size else float("nan")
 
 
-def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 4) -> float:
+def floor_db(
+    observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 4
+) -> float:
     """Estimate of the gap a perfect model would score on these windows (scatter only).
 
     The scatter of a window mean comes from the block-to-block scatter of the ratio
@@ -95,16 +101,18 @@ def floor_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, f
         return float("nan")
 
     def cov(k: int) -> np.ndarray:
-        return np.mean(r[k:] * r[:n - k], axis=0) if k else np.mean(r * r, axis=0)
+        return np.mean(r[k:] * r[: n - k], axis=0) if k else np.mean(r * r, axis=0)
 
     c_far = cov(far_lag)
     c0, c1 = cov(0) - c_far, np.maximum(cov(1) - c_far, 0.0)
     w = np.bincount(windows.index[keep]).mean()
-    var = (w * c0 + 2 * (w - 1) * c1) / w ** 2
+    var = (w * c0 + 2 * (w - 1) * c1) / w**2
     return float(20.0 / np.log(10.0) * np.sqrt(np.mean(np.maximum(var, 0.0))))
 
 
-def floor_window_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 2) -> float:
+def floor_window_db(
+    observed: np.ndarray, predicted: np.ndarray, windows: Windows, *, far_lag: int = 2
+) -> float:
     """The floor estimated in the metric's own (log, window) domain.
 
     e[w, f] = scatter + model error; the scatter of windows `far_lag` apart is independent
@@ -128,7 +136,9 @@ def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Wi
     return float(np.sqrt(np.mean(np.square(e_a - e_b)) / 4.0)) if e_a.size else float("nan")
 
 
-def contributions(errors_db: np.ndarray, labels: np.ndarray, n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+def contributions(
+    errors_db: np.ndarray, labels: np.ndarray, n_labels: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Split gap^2 over window labels: (share of gap^2 [dB^2] per label and bin, window count per label).
 
     share[k, f] = sum_{w: label w = k} e[w,f]^2 / (n_windows * n_bins); summing share over
@@ -143,8 +153,9 @@ def contributions(errors_db: np.ndarray, labels: np.ndarray, n_labels: int) -> t
     return share, counts
 
 
-def grouped_bias_db(observed: np.ndarray, predicted: np.ndarray, labels: np.ndarray,
-                    n_labels: int) -> tuple[np.ndarray, np.ndarray]:
+def grouped_bias_db(
+    observed: np.ndarray, predicted: np.ndarray, labels: np.ndarray, n_labels: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Band-summed observed/predicted ratio in dB per label group of blocks (for covariate profiles).
 
     Returns (bias_db (n_labels,), block counts); groups without blocks give NaN.
@@ -158,9 +169,14 @@ def grouped_bias_db(observed: np.ndarray, predicted: np.ndarray, labels: np.ndar
     return bias, counts
 
 
-def paired_signflip_pvalue(base_errors_db: np.ndarray, cand_errors_db: np.ndarray, *,
-                           segment_windows: int = 2, n_permutations: int = 20000,
-                           rng: np.random.Generator | None = None) -> float:
+def paired_signflip_pvalue(
+    base_errors_db: np.ndarray,
+    cand_errors_db: np.ndarray,
+    *,
+    segment_windows: int = 2,
+    n_permutations: int = 20000,
+    rng: np.random.Generator | None = None,
+) -> float:
     """One-sided p-value that the candidate's held-out errors are smaller than the base's.
 
     Paired permutation (sign-flip) test over contiguous segments of `segment_windows`
@@ -174,9 +190,9 @@ def paired_signflip_pvalue(base_errors_db: np.ndarray, cand_errors_db: np.ndarra
     n_seg = max(len(d_w) // segment_windows, 1)
     d_s = np.array([chunk.sum() for chunk in np.array_split(d_w, n_seg)])
     observed = d_s.mean()
-    if n_seg <= 16:   # exact: all 2^n sign patterns
-        signs = 1 - 2 * ((np.arange(2 ** n_seg)[:, None] >> np.arange(n_seg)) & 1)
-        null = (signs * d_s).mean(axis=1)       # includes the identity pattern
+    if n_seg <= 16:  # exact: all 2^n sign patterns
+        signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
+        null = (signs * d_s).mean(axis=1)  # includes the identity pattern
         return float(np.mean(null >= observed - 1e-12))
     signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
     null = (signs * d_s).mean(axis=1)
@@ -204,8 +220,14 @@ def block_deviance(observed_power: np.ndarray, predicted_power: np.ndarray) -> n
     return np.mean(np.minimum(ratio - np.log(ratio) - 1.0, DEVIANCE_CAP), axis=1)
 
 
-def segment_signflip_pvalue(base_loss: np.ndarray, cand_loss: np.ndarray, segments: np.ndarray, *,
-                            n_permutations: int = 20000, rng: np.random.Generator | None = None) -> float:
+def segment_signflip_pvalue(
+    base_loss: np.ndarray,
+    cand_loss: np.ndarray,
+    segments: np.ndarray,
+    *,
+    n_permutations: int = 20000,
+    rng: np.random.Generator | None = None,
+) -> float:
     """One-sided paired sign-flip test on per-block losses grouped in contiguous time segments.
 
     Under H0 (the candidate predicts held-out blocks no better than the base) each
@@ -217,7 +239,7 @@ def segment_signflip_pvalue(base_loss: np.ndarray, cand_loss: np.ndarray, segmen
     n_seg = len(d_s)
     observed = d_s.mean()
     if n_seg <= 16:
-        signs = 1 - 2 * ((np.arange(2 ** n_seg)[:, None] >> np.arange(n_seg)) & 1)
+        signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
         return float(np.mean((signs * d_s).mean(axis=1) >= observed - 1e-12))
     signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
     null = (signs * d_s).mean(axis=1)

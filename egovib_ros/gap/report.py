@@ -1,4 +1,5 @@
 """report.json (CONTRACT section 6), report.md and figures of a gap diagnosis."""
+
 from __future__ import annotations
 
 import json
@@ -71,28 +72,39 @@ def covariate_breakdown(diag: Diagnosis) -> dict:
         edges = _bin_edges(v, periodic)
         nb = len(edges) - 1
         labels = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, nb - 1)
-        bias_as_is, counts = metric.grouped_bias_db(t.magnitude[rows], t.base_mean[rows], labels, nb)
+        bias_as_is, counts = metric.grouped_bias_db(
+            t.magnitude[rows], t.base_mean[rows], labels, nb
+        )
         bias_refit, _ = metric.grouped_bias_db(t.magnitude[rows], refit[rows], labels, nb)
         wvals = _window_means(diag, values[:, None])[:, 0]
         wl = np.clip(np.searchsorted(edges, wvals, side="right") - 1, 0, nb - 1)
         share, wcount = metric.contributions(diag.errors["refit"], wl, nb)
-        out[name] = {"unit": unit, "bin_edges": [_r(e, 5) for e in edges],
-                     "blocks": counts.tolist(), "bias_db_sim_as_is": [_r(b, 3) for b in bias_as_is],
-                     "bias_db_after_refit": [_r(b, 3) for b in bias_refit],
-                     "gap2_share_after_refit_db2": [_r(s, 5) for s in share.sum(axis=1)],
-                     "spread_db_after_refit": _r(np.nanmax(bias_refit) - np.nanmin(bias_refit), 3)}
+        out[name] = {
+            "unit": unit,
+            "bin_edges": [_r(e, 5) for e in edges],
+            "blocks": counts.tolist(),
+            "bias_db_sim_as_is": [_r(b, 3) for b in bias_as_is],
+            "bias_db_after_refit": [_r(b, 3) for b in bias_refit],
+            "gap2_share_after_refit_db2": [_r(s, 5) for s in share.sum(axis=1)],
+            "spread_db_after_refit": _r(np.nanmax(bias_refit) - np.nanmin(bias_refit), 3),
+        }
     if diag.lag_scan:
         scan = diag.lag_scan
-        out["stream_lag"] = {"unit": "s", "fitted_lag_s": round(float(scan["timing_lag_s"]), 5),
-                             "in_sync_lag_s": round(float(scan["sync_lag_s"]), 5),
-                             "lag_s": [round(float(x), 4) for x in scan["lag_s"]],
-                             "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]],
-                             "note": "residual of the velocity-only baseline with joint states re-matched at each lag"}
+        out["stream_lag"] = {
+            "unit": "s",
+            "fitted_lag_s": round(float(scan["timing_lag_s"]), 5),
+            "in_sync_lag_s": round(float(scan["sync_lag_s"]), 5),
+            "lag_s": [round(float(x), 4) for x in scan["lag_s"]],
+            "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]],
+            "note": "residual of the velocity-only baseline with joint states re-matched at each lag",
+        }
     return out
 
 
 def _band_of_bins(freqs: np.ndarray) -> np.ndarray:
-    return np.clip(np.searchsorted(REGION_BANDS_HZ, freqs, side="right") - 1, 0, len(REGION_BANDS_HZ) - 2)
+    return np.clip(
+        np.searchsorted(REGION_BANDS_HZ, freqs, side="right") - 1, 0, len(REGION_BANDS_HZ) - 2
+    )
 
 
 def where_breakdown(diag: Diagnosis) -> dict:
@@ -101,12 +113,19 @@ def where_breakdown(diag: Diagnosis) -> dict:
     e_as_is, e_refit = diag.errors["sim_as_is"], diag.errors["refit"]
     e_eff = diag.errors[diag.verdict] if diag.verdict != "none" else e_refit
     total = max(metric.gap_db(e_as_is) ** 2, 1e-12)
-    freq = [{"hz": _r(f, 2), "sim_as_is_db": _r(np.sqrt(np.mean(e_as_is[:, k] ** 2)), 3),
-             "bias_db_sim_as_is": _r(np.mean(e_as_is[:, k]), 3),
-             "after_refit_db": _r(np.sqrt(np.mean(e_refit[:, k] ** 2)), 3),
-             "after_effect_db": _r(np.sqrt(np.mean(e_eff[:, k] ** 2)), 3),
-             "share_of_gap2_sim_as_is": _r(np.mean(e_as_is[:, k] ** 2) / e_as_is.shape[1] / total, 4)}
-            for k, f in enumerate(t.freqs_hz)]
+    freq = [
+        {
+            "hz": _r(f, 2),
+            "sim_as_is_db": _r(np.sqrt(np.mean(e_as_is[:, k] ** 2)), 3),
+            "bias_db_sim_as_is": _r(np.mean(e_as_is[:, k]), 3),
+            "after_refit_db": _r(np.sqrt(np.mean(e_refit[:, k] ** 2)), 3),
+            "after_effect_db": _r(np.sqrt(np.mean(e_eff[:, k] ** 2)), 3),
+            "share_of_gap2_sim_as_is": _r(
+                np.mean(e_as_is[:, k] ** 2) / e_as_is.shape[1] / total, 4
+            ),
+        }
+        for k, f in enumerate(t.freqs_hz)
+    ]
     wv = _window_means(diag, t.velocity)
     cell, grid = velocity_cells(diag, wv)
     shape = tuple(len(g) for g in grid)
@@ -116,18 +135,26 @@ def where_breakdown(diag: Diagnosis) -> dict:
     for c in np.flatnonzero(counts):
         idx = np.unravel_index(c, shape)
         sel = cell == c
-        cells.append({"velocity": [_r(grid[j][i], 5) for j, i in enumerate(idx)],
-                      "percent_of_max": [int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))
-                                         for j, i in enumerate(idx)],
-                      "windows": int(counts[c]),
-                      "bias_db_sim_as_is": _r(np.mean(e_as_is[sel]), 3),
-                      "gap2_share_sim_as_is_db2": _r(share[c].sum(), 5),
-                      "gap2_share_after_refit_db2": _r(share_r[c].sum(), 5)})
+        cells.append(
+            {
+                "velocity": [_r(grid[j][i], 5) for j, i in enumerate(idx)],
+                "percent_of_max": [
+                    int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))
+                    for j, i in enumerate(idx)
+                ],
+                "windows": int(counts[c]),
+                "bias_db_sim_as_is": _r(np.mean(e_as_is[sel]), 3),
+                "gap2_share_sim_as_is_db2": _r(share[c].sum(), 5),
+                "gap2_share_after_refit_db2": _r(share_r[c].sum(), 5),
+            }
+        )
     cells.sort(key=lambda d: -d["gap2_share_sim_as_is_db2"])
     # Ranked regions: (speed class of each joint, frequency band), by share of the sim's gap^2.
     bands = _band_of_bins(t.freqs_hz)
-    speed_class = np.digitize(np.abs(wv) / t.vmax, SPEED_CLASS_EDGES)          # (n_windows, J) 0..2
-    region_id = np.ravel_multi_index(tuple(speed_class.T), (len(SPEED_CLASSES),) * speed_class.shape[1])
+    speed_class = np.digitize(np.abs(wv) / t.vmax, SPEED_CLASS_EDGES)  # (n_windows, J) 0..2
+    region_id = np.ravel_multi_index(
+        tuple(speed_class.T), (len(SPEED_CLASSES),) * speed_class.shape[1]
+    )
     regions = []
     for rid in np.unique(region_id):
         sel = region_id == rid
@@ -137,62 +164,113 @@ def where_breakdown(diag: Diagnosis) -> dict:
             if not cols.any():
                 continue
             s2 = float(np.sum(e_as_is[sel][:, cols] ** 2) / e_as_is.size)
-            regions.append({"speeds": {n: SPEED_CLASSES[c] for n, c in zip(t.joint_names, classes)},
-                            "band_hz": [REGION_BANDS_HZ[b], min(REGION_BANDS_HZ[b + 1], 750.0)],
-                            "share_of_gap2": _r(s2 / total, 4), "bias_db": _r(np.mean(e_as_is[sel][:, cols]), 3),
-                            "rms_db": _r(np.sqrt(np.mean(e_as_is[sel][:, cols] ** 2)), 3),
-                            "windows": int(sel.sum())})
+            regions.append(
+                {
+                    "speeds": {n: SPEED_CLASSES[c] for n, c in zip(t.joint_names, classes)},
+                    "band_hz": [REGION_BANDS_HZ[b], min(REGION_BANDS_HZ[b + 1], 750.0)],
+                    "share_of_gap2": _r(s2 / total, 4),
+                    "bias_db": _r(np.mean(e_as_is[sel][:, cols]), 3),
+                    "rms_db": _r(np.sqrt(np.mean(e_as_is[sel][:, cols] ** 2)), 3),
+                    "windows": int(sel.sum()),
+                }
+            )
     regions.sort(key=lambda d: -d["share_of_gap2"])
-    return {"frequency_hz": freq, "velocity_cells": cells, "covariates": covariate_breakdown(diag),
-            "ranked_regions": regions[:15]}
+    return {
+        "frequency_hz": freq,
+        "velocity_cells": cells,
+        "covariates": covariate_breakdown(diag),
+        "ranked_regions": regions[:15],
+    }
 
 
-def build_report(diag: Diagnosis, *, model_path: str, real_path: str, figures: dict[str, str],
-                 runtime_s: float, write_back: dict | None = None) -> dict:
+def build_report(
+    diag: Diagnosis,
+    *,
+    model_path: str,
+    real_path: str,
+    figures: dict[str, str],
+    runtime_s: float,
+    write_back: dict | None = None,
+) -> dict:
     """The report.json dictionary (CONTRACT section 6 keys, plus documented extras)."""
     t = diag.table
     vm = diag.verdict_model
-    added = {"effect": diag.verdict, "parameters": _clean_params(vm.parameters) if diag.verdict != "none" else {}}
+    added = {
+        "effect": diag.verdict,
+        "parameters": _clean_params(vm.parameters) if diag.verdict != "none" else {},
+    }
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
     return {
         "schema": SCHEMA,
-        "metric": {"name": METRIC_NAME, "unit": "dB",
-                   "definition": METRIC_DEFINITION.format(w=diag.window_blocks,
-                                                          ws=diag.window_blocks * float(np.median(np.diff(t.t_mid_s))))},
+        "metric": {
+            "name": METRIC_NAME,
+            "unit": "dB",
+            "definition": METRIC_DEFINITION.format(
+                w=diag.window_blocks, ws=diag.window_blocks * float(np.median(np.diff(t.t_mid_s)))
+            ),
+        },
         "split": {k: (_r(v, 3) if isinstance(v, float) else v) for k, v in diag.split_info.items()},
-        "gap": {"sim_as_is": _r(diag.gaps["sim_as_is"]), "after_refit": _r(diag.gaps["refit"]),
-                "after_effect": _r(diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]),
-                "floor": _r(diag.floor)},
-        "where": {"frequency_hz": where["frequency_hz"], "velocity_cells": where["velocity_cells"],
-                  "covariates": where["covariates"]},
-        "candidates": [{"effect": c["effect"], "heldout_gap": c["heldout_gap"], "reduction": c["reduction"],
-                        "p_value": _r(c["p_value"], 6), "excess_removed": c["excess_removed"],
-                        "deviance_reduction": c["deviance_reduction"],
-                        "block_mse_reduction_db2": c["block_mse_reduction_db2"],
-                        **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
-                        "parameters": _clean_params(diag.models[c["effect"]].parameters),
-                        "shape": diag.models[c["effect"]].shape or {},
-                        "shape_summary": describe_shape(c["effect"], diag.models[c["effect"]].shape or {})}
-                       for c in diag.candidates],
-        "verdict": {"effect": diag.verdict, "confidence": diag.confidence,
-                    "rule": "largest held-out reduction of the Gamma deviance of the expected power among the "
-                            "candidates with p < 0.01/number of candidates (paired sign-flip permutation test over "
-                            "0.5 s held-out segments, vs the velocity-only baseline; drift: the better of two looks, "
-                            "Bonferroni x2), a reduction of at least 0.004 per block and bin, and a smaller held-out "
-                            "gap than the baseline's; confidence = block-bootstrap share of resamples in which the "
-                            "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)"},
+        "gap": {
+            "sim_as_is": _r(diag.gaps["sim_as_is"]),
+            "after_refit": _r(diag.gaps["refit"]),
+            "after_effect": _r(
+                diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]
+            ),
+            "floor": _r(diag.floor),
+        },
+        "where": {
+            "frequency_hz": where["frequency_hz"],
+            "velocity_cells": where["velocity_cells"],
+            "covariates": where["covariates"],
+        },
+        "candidates": [
+            {
+                "effect": c["effect"],
+                "heldout_gap": c["heldout_gap"],
+                "reduction": c["reduction"],
+                "p_value": _r(c["p_value"], 6),
+                "excess_removed": c["excess_removed"],
+                "deviance_reduction": c["deviance_reduction"],
+                "block_mse_reduction_db2": c["block_mse_reduction_db2"],
+                **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
+                "parameters": _clean_params(diag.models[c["effect"]].parameters),
+                "shape": diag.models[c["effect"]].shape or {},
+                "shape_summary": describe_shape(c["effect"], diag.models[c["effect"]].shape or {}),
+            }
+            for c in diag.candidates
+        ],
+        "verdict": {
+            "effect": diag.verdict,
+            "confidence": diag.confidence,
+            "rule": "largest held-out reduction of the Gamma deviance of the expected power among the "
+            "candidates with p < 0.01/number of candidates (paired sign-flip permutation test over "
+            "0.5 s held-out segments, vs the velocity-only baseline; drift: the better of two looks, "
+            "Bonferroni x2), a reduction of at least 0.004 per block and bin, and a smaller held-out "
+            "gap than the baseline's; confidence = block-bootstrap share of resamples in which the "
+            "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)",
+        },
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
         "residual_noise_db": {k: _r(v, 3) for k, v in diag.residual_noise.items()},
         "floor_estimates": {k: _r(v) for k, v in diag.floor_estimates.items()},
-        "baseline": {"definition": BASELINE_DEFINITION, **diag.models["refit"].parameters,
-                     "in_sync_lag_s": _r(diag.sync_lag_s, 5), "reference_lag_s": _r(diag.reference_lag_s, 5)},
-        "transients": {k: (_r(v, 6) if isinstance(v, float) else v) for k, v in diag.transients.items()},
-        "blocks": {"total": int(t.n_blocks), "contact_excluded": int(t.contact.sum()),
-                   "train": int(diag.train.sum()), "heldout": int(diag.heldout.sum()),
-                   "heldout_windows": int(diag.windows.n_windows)},
+        "baseline": {
+            "definition": BASELINE_DEFINITION,
+            **diag.models["refit"].parameters,
+            "in_sync_lag_s": _r(diag.sync_lag_s, 5),
+            "reference_lag_s": _r(diag.reference_lag_s, 5),
+        },
+        "transients": {
+            k: (_r(v, 6) if isinstance(v, float) else v) for k, v in diag.transients.items()
+        },
+        "blocks": {
+            "total": int(t.n_blocks),
+            "contact_excluded": int(t.contact.sum()),
+            "train": int(diag.train.sum()),
+            "heldout": int(diag.heldout.sum()),
+            "heldout_windows": int(diag.windows.n_windows),
+        },
         "inputs": {"model": str(model_path), "real": str(real_path)},
         "figures": figures,
         "runtime_s": _r(runtime_s, 2),
@@ -205,7 +283,8 @@ BASELINE_DEFINITION = (
     "model's grid, each step split 4x, 10x below 20 % of top speed; averaged over each block's velocity "
     "trajectory), neighbouring cells smoothed, the simulator's spectrum used only where cells are thin; then a "
     "per-joint, per-cell mean/rms correction. It cannot represent interactions between joints, position, "
-    "acceleration, time or lag.")
+    "acceleration, time or lag."
+)
 
 
 def _peak(x: list, g: list) -> tuple[float, float, float]:
@@ -220,30 +299,46 @@ def describe_shape(effect: str, shape: dict) -> str:
     for name, c in shape.items():
         if name.startswith("position:"):
             x, top, span = _peak(c["x"], c["gain_db"])
-            parts.append(f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {x:.3g} {c['unit']}")
+            parts.append(
+                f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {x:.3g} {c['unit']}"
+            )
         elif name.startswith("coupling:"):
             g = np.asarray(c["gain_db"], float)
             i, j = np.unravel_index(int(np.argmax(g)), g.shape)
             sp = c["speed_fraction"]
-            parts.append(f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
-                         f"({g[-1, -1]:+.1f} dB with both at full speed)")
+            parts.append(
+                f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
+                f"({g[-1, -1]:+.1f} dB with both at full speed)"
+            )
         elif name.startswith("acceleration:"):
             g = np.asarray(c["gain_db"], float)
             x = np.asarray(c["x"], float)
-            parts.append(f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical |acceleration|")
+            parts.append(
+                f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical |acceleration|"
+            )
         elif name.startswith("reversal:"):
             x, top, span = _peak(c["x"], c["gain_db"])
-            parts.append(f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal")
+            parts.append(
+                f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal"
+            )
         elif name.startswith("drift:"):
             g = np.asarray(c["gain_db"], float)
             x = np.asarray(c["x"], float)
             change = g[-1] - g[0]
-            reach = x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))] if abs(change) > 1e-9 else x[-1]
-            parts.append(f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at {reach:.0f} s "
-                         f"({g.max() - g.min():.1f} dB range)")
+            reach = (
+                x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))]
+                if abs(change) > 1e-9
+                else x[-1]
+            )
+            parts.append(
+                f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at {reach:.0f} s "
+                f"({g.max() - g.min():.1f} dB range)"
+            )
         elif name.startswith("timing:"):
-            parts.append(f"best lag {1000 * c.get('fitted_lag_s', 0.0):+.1f} ms (in sync: "
-                         f"{1000 * c['in_sync_band_s'][0]:+.0f}..{1000 * c['in_sync_band_s'][1]:+.0f} ms)")
+            parts.append(
+                f"best lag {1000 * c.get('fitted_lag_s', 0.0):+.1f} ms (in sync: "
+                f"{1000 * c['in_sync_band_s'][0]:+.0f}..{1000 * c['in_sync_band_s'][1]:+.0f} ms)"
+            )
     return "; ".join(parts)
 
 
@@ -253,18 +348,26 @@ def _clean_params(params: dict) -> dict:
 
 def _describe_region(r: dict, joint_names: tuple[str, ...]) -> str:
     speeds = ", ".join(f"{n} {c}" for n, c in r["speeds"].items())
-    return (f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
-            f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by {abs(r['bias_db']):.1f} dB on average, "
-            f"{100 * r['share_of_gap2']:.0f} % of the gap^2)")
+    return (
+        f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
+        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by {abs(r['bias_db']):.1f} dB on average, "
+        f"{100 * r['share_of_gap2']:.0f} % of the gap^2)"
+    )
 
 
 def _strongest_covariate(report: dict) -> str:
-    covs = {k: v for k, v in report["where"]["covariates"].items() if k != "stream_lag" and v["spread_db_after_refit"]}
+    covs = {
+        k: v
+        for k, v in report["where"]["covariates"].items()
+        if k != "stream_lag" and v["spread_db_after_refit"]
+    }
     if not covs:
         return ""
     name, c = max(covs.items(), key=lambda kv: kv[1]["spread_db_after_refit"])
-    return (f" After the velocity-only baseline, the remaining gap varies most with {name} (held-out bias spread "
-            f"{c['spread_db_after_refit']:.1f} dB across its bins).")
+    return (
+        f" After the velocity-only baseline, the remaining gap varies most with {name} (held-out bias spread "
+        f"{c['spread_db_after_refit']:.1f} dB across its bins)."
+    )
 
 
 def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
@@ -277,61 +380,114 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     worst_bin = max(freq, key=lambda f: f["sim_as_is_db"]) if freq else None
     mean_bias = float(np.mean([f["bias_db_sim_as_is"] for f in freq])) if freq else 0.0
     lines = ["# Sim-to-real gap report", ""]
-    lines.append(f"**Where:** on held-out real data the simulator's noise model is off by **{g['sim_as_is']:.2f} dB** "
-                 f"(floor {g['floor']:.2f} dB; overall the sim is {'too quiet' if mean_bias > 0 else 'too loud'} by "
-                 f"{abs(mean_bias):.1f} dB). Largest shares: " + "; ".join(_describe_region(r, joint_names) for r in top)
-                 + (f". Worst frequency bin {worst_bin['hz']:.0f} Hz ({worst_bin['sim_as_is_db']:.2f} dB)." if worst_bin else ".")
-                 + _strongest_covariate(report))
+    lines.append(
+        f"**Where:** on held-out real data the simulator's noise model is off by **{g['sim_as_is']:.2f} dB** "
+        f"(floor {g['floor']:.2f} dB; overall the sim is {'too quiet' if mean_bias > 0 else 'too loud'} by "
+        f"{abs(mean_bias):.1f} dB). Largest shares: "
+        + "; ".join(_describe_region(r, joint_names) for r in top)
+        + (
+            f". Worst frequency bin {worst_bin['hz']:.0f} Hz ({worst_bin['sim_as_is_db']:.2f} dB)."
+            if worst_bin
+            else "."
+        )
+        + _strongest_covariate(report)
+    )
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
-        lines.append(f"**Which:** the unmodelled effect is **`{v['effect']}`** (held-out reduction {c['reduction']:.3f} dB "
-                     f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, confidence {v['confidence']:.2f}). "
-                     f"Fitted shape: {c.get('shape_summary') or 'n/a'}.")
+        lines.append(
+            f"**Which:** the unmodelled effect is **`{v['effect']}`** (held-out reduction {c['reduction']:.3f} dB "
+            f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, confidence {v['confidence']:.2f}). "
+            f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
+        )
     else:
         best = cands[0] if cands else None
-        lines.append("**Which:** **no effect** (`none`): beyond the velocity-only baseline no candidate effect "
-                     "lowers the held-out gap significantly"
-                     + (f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = {best['p_value']:.2g})." if best else "."))
-    lines.append(f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> {g['after_refit']:.2f} dB "
-                 "(velocity-only baseline fitted on this recording) -> "
-                 f"**{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor {g['floor']:.2f} dB. "
-                 f"Residual no-contact noise after denoising held-out data: "
-                 + ", ".join(f"{k} {val:.2f} dB" for k, val in report["residual_noise_db"].items() if k != "raw")
-                 + " (relative to the raw signal).")
+        lines.append(
+            "**Which:** **no effect** (`none`): beyond the velocity-only baseline no candidate effect "
+            "lowers the held-out gap significantly"
+            + (
+                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = {best['p_value']:.2g})."
+                if best
+                else "."
+            )
+        )
+    lines.append(
+        f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> {g['after_refit']:.2f} dB "
+        "(velocity-only baseline fitted on this recording) -> "
+        f"**{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor {g['floor']:.2f} dB. "
+        f"Residual no-contact noise after denoising held-out data: "
+        + ", ".join(
+            f"{k} {val:.2f} dB" for k, val in report["residual_noise_db"].items() if k != "raw"
+        )
+        + " (relative to the raw signal)."
+    )
     figs = report["figures"]
     lines.append("")
     lines.append(" ".join(f"![{name}]({path})" for name, path in figs.items()))
-    lines += ["", "## Metric", "", f"{report['metric']['name']} [{report['metric']['unit']}]: {report['metric']['definition']}",
-              "", f"Split: {report['split']['method']} (train {report['split']['train_s']:.1f} s, held out "
-              f"{report['split']['heldout_s']:.1f} s). Blocks: {report['blocks']}.", "",
-              "## Candidates (held-out, ranked)", "", "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value | share of excess removed |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Metric",
+        "",
+        f"{report['metric']['name']} [{report['metric']['unit']}]: {report['metric']['definition']}",
+        "",
+        f"Split: {report['split']['method']} (train {report['split']['train_s']:.1f} s, held out "
+        f"{report['split']['heldout_s']:.1f} s). Blocks: {report['blocks']}.",
+        "",
+        "## Candidates (held-out, ranked)",
+        "",
+        "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value | share of excess removed |",
+        "|---|---|---|---|---|",
+    ]
     for c in cands:
-        lines.append(f"| {c['effect']} | {c['heldout_gap']:.3f} | {c['reduction']:+.3f} | {c['p_value']:.2g} | {c['excess_removed']:.2f} |")
+        lines.append(
+            f"| {c['effect']} | {c['heldout_gap']:.3f} | {c['reduction']:+.3f} | {c['p_value']:.2g} | {c['excess_removed']:.2f} |"
+        )
     lines += ["", "Fitted shapes of every candidate (which_effect_shapes.png): "]
     for c in cands:
         lines.append(f"- {c['effect']}: {c.get('shape_summary') or 'n/a'}")
     tr = report.get("transients", {})
     if tr.get("onsets"):
-        lines += ["", f"Transients (contact-like outliers): {tr['onsets']} onsets, {tr['near_reversal']} within "
-                  f"{tr.get('window_s')} s of a joint reversal (chance: {tr['expected_near']}), p = {tr['p_value']:.2g}; "
-                  + (f"{tr['returned_blocks']} blocks of reversal-locked transients returned to the data as "
-                     "ego-vibration." if tr.get("returned_blocks") else "treated as contacts.")]
-    lines += ["", f"Baseline: {report['baseline']['definition']}", "",
-              f"Verdict rule: {v['rule']}.", "", "## Added effect", "",
-              "Fitted term (log gain per regressor, dB averaged over bins) and, with --write-back, "
-              "the simulator strength that reproduces it:", "",
-              "```json", json.dumps(report["added_effect"], indent=1), "```", "",
-              "## Ranked regions (sim as-is)", ""]
+        lines += [
+            "",
+            f"Transients (contact-like outliers): {tr['onsets']} onsets, {tr['near_reversal']} within "
+            f"{tr.get('window_s')} s of a joint reversal (chance: {tr['expected_near']}), p = {tr['p_value']:.2g}; "
+            + (
+                f"{tr['returned_blocks']} blocks of reversal-locked transients returned to the data as "
+                "ego-vibration."
+                if tr.get("returned_blocks")
+                else "treated as contacts."
+            ),
+        ]
+    lines += [
+        "",
+        f"Baseline: {report['baseline']['definition']}",
+        "",
+        f"Verdict rule: {v['rule']}.",
+        "",
+        "## Added effect",
+        "",
+        "Fitted term (log gain per regressor, dB averaged over bins) and, with --write-back, "
+        "the simulator strength that reproduces it:",
+        "",
+        "```json",
+        json.dumps(report["added_effect"], indent=1),
+        "```",
+        "",
+        "## Ranked regions (sim as-is)",
+        "",
+    ]
     for r in report["ranked_regions"][:10]:
         lines.append(f"- {_describe_region(r, joint_names)}")
     lines += ["", "## Covariates (held-out bias after refit, dB per bin)", ""]
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":
-            lines.append(f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms (training residual scan in report.json)")
+            lines.append(
+                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms (training residual scan in report.json)"
+            )
         else:
-            lines.append(f"- {name} [{cov['unit']}]: spread {cov['spread_db_after_refit']} dB; bins "
-                         + ", ".join("-" if b is None else f"{b:+.2f}" for b in cov["bias_db_after_refit"]))
+            lines.append(
+                f"- {name} [{cov['unit']}]: spread {cov['spread_db_after_refit']} dB; bins "
+                + ", ".join("-" if b is None else f"{b:+.2f}" for b in cov["bias_db_after_refit"])
+            )
     lines.append("")
     return "\n".join(lines)
 
@@ -339,6 +495,7 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
 def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]:
     """Heat maps by frequency x velocity cell and on the velocity grid, covariate profiles, candidates."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -352,12 +509,23 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     e = diag.errors["sim_as_is"]
     mat = np.array([np.mean(e[cell == c], axis=0) for c in used]).T
     pct = [np.unravel_index(c, shape) for c in used]
-    labels = ["/".join(f"{int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))}" for j, i in enumerate(p))
-              for p in pct]
+    labels = [
+        "/".join(
+            f"{int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))}" for j, i in enumerate(p)
+        )
+        for p in pct
+    ]
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"width_ratios": [2.2, 1]})
     lim = max(1.0, float(np.nanmax(np.abs(mat))))
-    im = axes[0].imshow(mat, aspect="auto", origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim,
-                        extent=[-0.5, len(used) - 0.5, t.freqs_hz[0] - 23, t.freqs_hz[-1] + 23])
+    im = axes[0].imshow(
+        mat,
+        aspect="auto",
+        origin="lower",
+        cmap="RdBu_r",
+        vmin=-lim,
+        vmax=lim,
+        extent=[-0.5, len(used) - 0.5, t.freqs_hz[0] - 23, t.freqs_hz[-1] + 23],
+    )
     step = max(1, len(used) // 30)
     axes[0].set_xticks(range(0, len(used), step))
     axes[0].set_xticklabels(labels[::step], rotation=90, fontsize=6)
@@ -366,12 +534,23 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     axes[0].set_title("held-out error of sim as-is, dB (red: real louder)")
     fig.colorbar(im, ax=axes[0])
     # velocity grid map of the band-averaged bias
-    bias, counts = metric.grouped_bias_db(t.magnitude[diag.heldout_rows], t.base_mean[diag.heldout_rows],
-                                          velocity_cells(diag, t.velocity[diag.heldout_rows])[0], int(np.prod(shape)))
+    bias, counts = metric.grouped_bias_db(
+        t.magnitude[diag.heldout_rows],
+        t.base_mean[diag.heldout_rows],
+        velocity_cells(diag, t.velocity[diag.heldout_rows])[0],
+        int(np.prod(shape)),
+    )
     bias = np.where(counts >= 5, bias, np.nan).reshape(shape)
     if len(shape) == 2:
-        im2 = axes[1].imshow(bias.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim, aspect="auto",
-                             extent=[-105, 105, -105, 105])
+        im2 = axes[1].imshow(
+            bias.T,
+            origin="lower",
+            cmap="RdBu_r",
+            vmin=-lim,
+            vmax=lim,
+            aspect="auto",
+            extent=[-105, 105, -105, 105],
+        )
         axes[1].set_xlabel(f"{t.joint_names[0]} [% max]")
         axes[1].set_ylabel(f"{t.joint_names[1]} [% max]")
         axes[1].set_title("band-summed bias per velocity cell, dB")
@@ -395,8 +574,16 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
             continue
         edges = np.array(c["bin_edges"], dtype=float)
         mid = 0.5 * (edges[1:] + edges[:-1])
-        ax.plot(mid, np.array(c["bias_db_sim_as_is"], dtype=float), "o-", color="0.6", label="sim as-is")
-        ax.plot(mid, np.array(c["bias_db_after_refit"], dtype=float), "o-", color="C3", label="after refit")
+        ax.plot(
+            mid, np.array(c["bias_db_sim_as_is"], dtype=float), "o-", color="0.6", label="sim as-is"
+        )
+        ax.plot(
+            mid,
+            np.array(c["bias_db_after_refit"], dtype=float),
+            "o-",
+            color="C3",
+            label="after refit",
+        )
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel(c["unit"], fontsize=8)
@@ -410,8 +597,12 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     # 3. candidates
     fig, ax = plt.subplots(figsize=(7, 3.5))
     labels = ["sim as-is", "baseline"] + [c["effect"] for c in report["candidates"]]
-    values = [report["gap"]["sim_as_is"], report["gap"]["after_refit"]] + [c["heldout_gap"] for c in report["candidates"]]
-    colors = ["0.6", "0.3"] + ["C3" if c["effect"] == report["verdict"]["effect"] else "C0" for c in report["candidates"]]
+    values = [report["gap"]["sim_as_is"], report["gap"]["after_refit"]] + [
+        c["heldout_gap"] for c in report["candidates"]
+    ]
+    colors = ["0.6", "0.3"] + [
+        "C3" if c["effect"] == report["verdict"]["effect"] else "C0" for c in report["candidates"]
+    ]
     ax.bar(labels, values, color=colors)
     ax.axhline(report["gap"]["floor"], color="k", ls="--", label="floor")
     ax.set_ylabel("held-out gap [dB]")
@@ -428,10 +619,15 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
 def shape_figure(report: dict, path: Path) -> str:
     """One panel per fitted shape of every candidate (broadband gain, dB); the verdict's in red."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [(c["effect"], name, sh) for c in report["candidates"] for name, sh in c.get("shape", {}).items()]
+    panels = [
+        (c["effect"], name, sh)
+        for c in report["candidates"]
+        for name, sh in c.get("shape", {}).items()
+    ]
     n = max(len(panels), 1)
     cols = min(n, 4)
     rows = int(np.ceil(n / cols))
@@ -443,8 +639,15 @@ def shape_figure(report: dict, path: Path) -> str:
             g = np.asarray(sh["gain_db"], float)
             sp = sh["speed_fraction"]
             lim = max(float(np.max(np.abs(g))), 0.1)
-            im = ax.imshow(g.T, origin="lower", extent=[sp[0], sp[-1], sp[0], sp[-1]], cmap="RdBu_r",
-                           vmin=-lim, vmax=lim, aspect="auto")
+            im = ax.imshow(
+                g.T,
+                origin="lower",
+                extent=[sp[0], sp[-1], sp[0], sp[-1]],
+                cmap="RdBu_r",
+                vmin=-lim,
+                vmax=lim,
+                aspect="auto",
+            )
             fig.colorbar(im, ax=ax, label="dB")
             a, b = name[9:].split("x")
             ax.set_xlabel(f"|v| / max: {a}", fontsize=7)
@@ -467,9 +670,12 @@ def shape_figure(report: dict, path: Path) -> str:
             ax.set_ylabel("gain [dB]", fontsize=7)
         ax.set_title(f"{effect}: {name.split(':', 1)[1]}", fontsize=8, color=color)
         ax.tick_params(labelsize=7)
-    for ax in axes.ravel()[len(panels):]:
+    for ax in axes.ravel()[len(panels) :]:
         ax.axis("off")
-    fig.suptitle(f"fitted candidate terms (broadband gain over the band); verdict {verdict} in red", fontsize=9)
+    fig.suptitle(
+        f"fitted candidate terms (broadband gain over the band); verdict {verdict} in red",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

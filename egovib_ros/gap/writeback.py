@@ -12,6 +12,7 @@ predicted with the refit times the effect term *as the updated simulator produce
 (coefficients fitted on the simulator at the written-back strength, not on the real
 data), and the held-out gap is compared with the refit's.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -24,22 +25,42 @@ from egovib_ros.gap.effects import apply_effect_term, fit_scales, fit_variant
 from egovib_ros.gap.features import build_table
 
 TRIAL_STRENGTH = {"position": 0.3, "coupling": 3.0, "acceleration": 5.0, "drift": 0.3}
-STRENGTH_LIMITS = {"position": (0.0, 0.95), "coupling": (0.0, 20.0), "acceleration": (0.0, 50.0),
-                   "drift": (-0.9, 5.0)}
+STRENGTH_LIMITS = {
+    "position": (0.0, 0.95),
+    "coupling": (0.0, 20.0),
+    "acceleration": (0.0, 50.0),
+    "drift": (-0.9, 5.0),
+}
 TRIAL_SEED = 424242
 
 
-def _simulated_fit(effect: str, strength: float, params, duration_s: float, max_speed: float,
-                   model, train_fraction: float):
+def _simulated_fit(
+    effect: str,
+    strength: float,
+    params,
+    duration_s: float,
+    max_speed: float,
+    model,
+    train_fraction: float,
+):
     from egovib_ros.sim import simulate_motion
-    rec, _ = simulate_motion(duration_s=duration_s, max_speed=max_speed, tap_rate_hz=0.0,
-                             effects={effect: strength}, seed=TRIAL_SEED, params=params)
+
+    rec, _ = simulate_motion(
+        duration_s=duration_s,
+        max_speed=max_speed,
+        tap_rate_hz=0.0,
+        effects={effect: strength},
+        seed=TRIAL_SEED,
+        params=params,
+    )
     table = build_table(rec, model, source="write-back trial simulation")
     train, _, _ = time_split(table, train_fraction)
     return fit_variant(table, train, effect, fit_scales(table, train))
 
 
-def estimate_strength(diag: Diagnosis, params, *, rounds: int = 2) -> tuple[float, np.ndarray | None]:
+def estimate_strength(
+    diag: Diagnosis, params, *, rounds: int = 2
+) -> tuple[float, np.ndarray | None]:
     """Simulator strength reproducing the real data's fitted effect; also the simulator's coefficients."""
     effect = diag.verdict
     if effect == "timing":
@@ -52,7 +73,11 @@ def estimate_strength(diag: Diagnosis, params, *, rounds: int = 2) -> tuple[floa
     strength = TRIAL_STRENGTH[effect]
     if effect == "position":
         # The phase of the once-per-turn term is a parameter of its own: take it from the real fit.
-        phase = diag.models["position"].parameters.get(t.joint_names[0], {}).get("first_harmonic_phase_rad")
+        phase = (
+            diag.models["position"]
+            .parameters.get(t.joint_names[0], {})
+            .get("first_harmonic_phase_rad")
+        )
         if phase is not None:
             params.position_phase_rad = float(phase)
     sim_coef = None
@@ -64,7 +89,9 @@ def estimate_strength(diag: Diagnosis, params, *, rounds: int = 2) -> tuple[floa
         ratio = float(np.sum(real * sim) / max(np.sum(sim * sim), 1e-12))
         strength = float(np.clip(strength * ratio, lo, hi))
     # Coefficients of the simulator at the final strength, for the check.
-    sim_coef = _simulated_fit(effect, strength, params, duration, speed, t.model, train_fraction).coef
+    sim_coef = _simulated_fit(
+        effect, strength, params, duration, speed, t.model, train_fraction
+    ).coef
     return strength, sim_coef
 
 
@@ -87,13 +114,23 @@ def write_back(diag: Diagnosis, params_path: str | Path | None, out_path: str | 
         check = diag.gaps["timing"]
     else:
         fm = diag.models[effect]
-        pred = apply_effect_term(fm.table, diag.train, fm.refit_predicted, effect, sim_coef, fm.scales)
-        check = metric.gap_db(metric.window_errors_db(diag.table.magnitude[rows], pred[rows], diag.windows))
-    result.update({"effects": format_effects(params.effects), "strength": round(strength, 5),
-                   "method": "indirect inference through the simulator" if effect != "timing"
-                   else "fitted lag beyond the simulator's reference lag",
-                   "heldout_gap_refit": round(diag.gaps["refit"], 4),
-                   "heldout_gap_with_updated_simulator": round(float(check), 4)})
+        pred = apply_effect_term(
+            fm.table, diag.train, fm.refit_predicted, effect, sim_coef, fm.scales
+        )
+        check = metric.gap_db(
+            metric.window_errors_db(diag.table.magnitude[rows], pred[rows], diag.windows)
+        )
+    result.update(
+        {
+            "effects": format_effects(params.effects),
+            "strength": round(strength, 5),
+            "method": "indirect inference through the simulator"
+            if effect != "timing"
+            else "fitted lag beyond the simulator's reference lag",
+            "heldout_gap_refit": round(diag.gaps["refit"], 4),
+            "heldout_gap_with_updated_simulator": round(float(check), 4),
+        }
+    )
     if effect == "position":
         result["position_phase_rad"] = round(float(params.position_phase_rad), 4)
     return result

@@ -1,0 +1,56 @@
+"""Watcher: an rclpy node inside the calling process (its own context) that follows
+/diagnostics and publishes joint commands; the in-process side of `egovib demo`,
+`egovib live-bench` and the node tests (the processes: egovib_ros.orchestration)."""
+
+from __future__ import annotations
+
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.experimental import EventsExecutor
+from std_msgs.msg import Float64MultiArray
+
+
+class Watcher:
+    """An rclpy node in this process (own context): the latest /diagnostics status of each
+    node, and a publisher of joint commands (ros2_control forward-command convention)."""
+
+    def __init__(
+        self,
+        name: str = "egovib_watcher",
+        commands_topic: str = "hand_velocity_controller/commands",
+    ):
+        self.context = rclpy.Context()
+        rclpy.init(
+            context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
+        )
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = EventsExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.status: dict[str, str] = {}  # node status name -> message
+        self.statuses: dict[str, object] = {}  # node status name -> latest DiagnosticStatus
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+        self.commands = self.node.create_publisher(Float64MultiArray, commands_topic, 10)
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.status[status.name] = status.message
+            self.statuses[status.name] = status
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
+
+    def spin_until(self, predicate, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return bool(predicate())
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self.context.try_shutdown()
