@@ -84,7 +84,8 @@ def synthetic_table(
     if effect == "position":
         factor *= 1.0 + strength * np.cos(p_true[:, 0] - 0.7)
     elif effect == "coupling":
-        # extra vibration power in the gripper's band growing with both speeds (joints no longer add)
+        # extra vibration power in the gripper's band growing with both speeds
+        # (joints no longer add)
         f = model.freqs_hz[freq_index]
         extra = strength * (np.abs(v_true[:, 0]) / 3.0) * (np.abs(v_true[:, 1]) / 0.04)
         mean_true = np.sqrt(

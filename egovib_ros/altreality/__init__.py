@@ -32,6 +32,14 @@ from egovib_ros.altreality.hand import (
     EFFECTS,
     JOINT_NAMES,
     AltHand,
-    effect_audibility_db,  # noqa: F401
+    effect_audibility_db,
     simulate_alt_motion,
 )
+
+__all__ = [
+    "EFFECTS",
+    "JOINT_NAMES",
+    "AltHand",
+    "effect_audibility_db",
+    "simulate_alt_motion",
+]

@@ -139,9 +139,9 @@ class Drive:
         n = len(speed)
         motor = speed * self.motor_rev_per_unit  # rev/s
         frac = np.clip(speed / self.limit, 0.0, 1.5)
-        mults = np.array([l[0] for l in self.lines])
-        amps = np.array([l[1] for l in self.lines])
-        exps = np.array([l[2] for l in self.lines])
+        mults = np.array([line[0] for line in self.lines])
+        amps = np.array([line[1] for line in self.lines])
+        exps = np.array([line[2] for line in self.lines])
         freq = motor[:, None] * mults[None, :]
         taper = np.clip((ALIAS_STOP_HZ - freq) / (ALIAS_STOP_HZ - ALIAS_START_HZ), 0.0, 1.0)
         am = np.exp(
@@ -284,7 +284,8 @@ class AltHand:
         return out
 
     def _intermodulation(self, w_freq, w_amp, g_freq, g_amp) -> np.ndarray:
-        """Lines at f_w +- f_g for the main wrist and gripper lines (quadratic bearing stiffness)."""
+        """Lines at f_w +- f_g for the main wrist and gripper lines
+        (quadratic bearing stiffness)."""
         s = self.effects.get("coupling", 0.0)
         n = len(w_freq)
         if not s:
@@ -425,7 +426,8 @@ class AltHand:
         return rec, truth
 
     def _joint_states(self, position: np.ndarray, n: int):
-        """1 kHz encoder readings with stamp jitter and dropped messages; velocity over two samples."""
+        """1 kHz encoder readings with stamp jitter and dropped messages;
+        velocity over two samples."""
         rng = self.rng["joints"]
         m = int(n / FS * JOINT_RATE) - 2
         t_true = np.arange(m) / JOINT_RATE + 0.00031 + rng.normal(0.0, 25e-6, m)
@@ -446,7 +448,8 @@ class AltHand:
         stamps = START_NS + np.round((t_true + self.effects.get("timing", 0.0)) * _NS).astype(
             np.int64
         )
-        # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's raw encoder count.
+        # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's
+        # raw encoder count.
         enc[:, 0] = np.angle(np.exp(1j * enc[:, 0]))
         order = np.argsort(stamps[keep], kind="stable")
         return stamps[keep][order], enc[keep][order], vel[keep][order]
@@ -461,7 +464,8 @@ def simulate_alt_motion(
     top_speed: float = 0.85,
     motion: str = "smooth",
 ) -> tuple[Recording, dict]:
-    """One recording of random motion ("smooth" or task-like "segments") of the alternate-reality hand."""
+    """One recording of random motion ("smooth" or task-like "segments")
+    of the alternate-reality hand."""
     if duration_s <= 0:
         raise ValueError("duration_s must be > 0")
     return AltHand(

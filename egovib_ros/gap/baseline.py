@@ -84,7 +84,8 @@ def coarsening(fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
 
 
 def coarse_hats(table: BlockTable, hats: np.ndarray) -> np.ndarray:
-    """Hats (B, J, K_fine) of the table's fine knots re-expressed on the model grid (B, J, K_coarse)."""
+    """Hats (B, J, K_fine) of the table's fine knots re-expressed on the model grid
+    (B, J, K_coarse)."""
     cknots = coarse_knots(table)
     out = np.zeros((hats.shape[0], len(cknots), max(len(g) for g in cknots)))
     for j, (f, c) in enumerate(zip(table.knots, cknots)):
@@ -95,7 +96,8 @@ def coarse_hats(table: BlockTable, hats: np.ndarray) -> np.ndarray:
 def design(
     hats: np.ndarray, knots: tuple[np.ndarray, ...]
 ) -> tuple[sparse.csr_matrix, list[tuple[int, int]]]:
-    """Sparse columns [1, H_bjk for every joint j and non-rest cell k]; also the (j, k) of each H column."""
+    """Sparse columns [1, H_bjk for every joint j and non-rest cell k];
+    also the (j, k) of each H column."""
     cols, where = [np.ones((hats.shape[0], 1))], []
     for j, g in enumerate(knots):
         for k in range(len(g)):
@@ -109,7 +111,8 @@ def design(
 def simulator_cells(
     table: BlockTable, knots: tuple[np.ndarray, ...] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The simulator model's power at rest (F,) and with one joint at each cell (J, K, F), minus rest."""
+    """The simulator model's power at rest (F,) and with one joint at each cell (J, K, F),
+    minus rest."""
     model = table.model
     knots = coarse_knots(table) if knots is None else knots
     ch = model.channel_indices(("combined",))
@@ -193,7 +196,8 @@ def fit_coarse(
     prior_rest: np.ndarray,
     prior_cells: np.ndarray,
 ):
-    """Coarse-cell power model: coefficients (F, P) in units of the bin's training mean power, etc."""
+    """Coarse-cell power model: coefficients (F, P) in units of the bin's training mean
+    power, etc."""
     x, where = design(hats_c, knots_c)
     xt = x[np.flatnonzero(train)]
     yn_level = np.maximum(power[train].mean(axis=0), 1e-300)
@@ -295,7 +299,8 @@ def fit_baseline(
 
 
 def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> float:
-    """Mean squared centred log residual of the coarse baseline fitted on `rows` with joint states at `lag_s`."""
+    """Mean squared centred log residual of the coarse baseline fitted on `rows`
+    with joint states at `lag_s`."""
     knots_c = coarse_knots(table)
     hats, _, _ = motion_features(
         table.joints,

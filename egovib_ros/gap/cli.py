@@ -1,4 +1,5 @@
-"""`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]` (CONTRACT section 3)."""
+"""`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]`
+(CONTRACT section 3)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "gap",
         help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
-        description="Where does a simulator-calibrated noise model miss a real recording, which unmodelled "
-        "effect causes it, and how far does the gap shrink once it is added. "
+        description="Where does a simulator-calibrated noise model miss a real recording, "
+        "which unmodelled effect causes it, and how far does the gap shrink once it is added. "
         "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.",
     )
     parser.add_argument(
@@ -52,8 +53,8 @@ def register(subparsers) -> None:
         "--train-fraction",
         type=cliutil.float_in(0.2, 0.9),
         default=None,
-        help="instead of cross-validation: fit on this leading share of the recording (0.2 .. 0.9), "
-        "test on the rest",
+        help="instead of cross-validation: fit on this leading share of the recording "
+        "(0.2 .. 0.9), test on the rest",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"

@@ -60,12 +60,13 @@ METRIC_NAME = "windowed log-spectral distance"
 METRIC_DEFINITION = (
     "gap = sqrt(mean over held-out windows w and in-band DFT bins f of e[w,f]^2), "
     "e[w,f] = 20*log10(sum_b |Y_b(f)| / sum_b m_b(f)) over the no-contact blocks b of window w "
-    "({w} consecutive blocks, {ws:.2f} s); |Y_b| observed magnitude spectrum (band-passed sum of axes, "
-    "model window), m_b the model's expected magnitude (mean spectrum, no +sd). gap^2 is additive over "
-    "bins, windows and window labels (velocity cell, covariate bin). floor = the score of a model equal to the "
-    "real process, i.e. the scatter of window means alone, estimated from the held-out blocks' own ratio "
-    "|Y|/m: its lag-0 and lag-1 (overlapping blocks) covariances minus the covariance 4 blocks apart, which "
-    "removes slowly varying model error."
+    "({w} consecutive blocks, {ws:.2f} s); |Y_b| observed magnitude spectrum "
+    "(band-passed sum of axes, model window), m_b the model's expected magnitude "
+    "(mean spectrum, no +sd). gap^2 is additive over bins, windows and window labels "
+    "(velocity cell, covariate bin). floor = the score of a model equal to the real process, "
+    "i.e. the scatter of window means alone, estimated from the held-out blocks' own ratio "
+    "|Y|/m: its lag-0 and lag-1 (overlapping blocks) covariances minus the covariance "
+    "4 blocks apart, which removes slowly varying model error."
 )
 
 
@@ -102,7 +103,8 @@ class Diagnosis:
 def time_split(
     table: BlockTable, train_fraction: float = TRAIN_FRACTION
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Train = no-contact blocks in the first `train_fraction` of the time span, held out = the rest."""
+    """Train = no-contact blocks in the first `train_fraction` of the time span,
+    held out = the rest."""
     t = table.t_mid_s
     split = float(t[0] + train_fraction * (t[-1] - t[0]))
     clean = ~table.contact
@@ -118,7 +120,8 @@ def heldout_errors(
 def residual_noise_db(
     table: BlockTable, predicted: np.ndarray, std_scale: np.ndarray, rows: np.ndarray
 ) -> float:
-    """Mean no-contact magnitude left after spectral subtraction (Eq. 3 with Eq. 5 noise), relative to raw [dB].
+    """Mean no-contact magnitude left after spectral subtraction (Eq. 3 with Eq. 5 noise),
+    relative to raw [dB].
 
     The noise estimate is the variant's mean plus the calibrated std scaled by the same
     gain: |X| = max(|Y| - (m + g*sd), 0), summed over in-band bins and held-out blocks.
@@ -145,7 +148,8 @@ def _block_loss(
 def reversal_locked_transients(
     table: BlockTable, raw: np.ndarray, flagged: np.ndarray, train_region: np.ndarray
 ) -> tuple[np.ndarray, dict]:
-    """Transients that start at joint reversals are the robot's own (backlash, clunks), not contacts.
+    """Transients that start at joint reversals are the robot's own (backlash, clunks),
+    not contacts.
 
     Contacts are external: their onsets fall near a reversal only as often as reversal
     windows cover the time.  If, on the training part, transient onsets cluster there far
@@ -202,7 +206,8 @@ class Split:
 
 
 def blocked_folds(table: BlockTable, n_folds: int) -> list[Split]:
-    """Contiguous time folds: each held out once, fitted on the others (no contact blocks anywhere)."""
+    """Contiguous time folds: each held out once, fitted on the others
+    (no contact blocks anywhere)."""
     t = table.t_mid_s
     fold = np.minimum(
         ((t - t[0]) / max(t[-1] - t[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1
@@ -303,7 +308,8 @@ def cross_fit(
 
 
 def _time_trend_term(n_knots: int):
-    """Candidate maker for the in-sample time trend: piecewise linear in elapsed time over the whole span."""
+    """Candidate maker for the in-sample time trend: piecewise linear in elapsed time
+    over the whole span."""
 
     def term(table: BlockTable, train: np.ndarray, base, scales) -> dict[str, FittedModel]:
         t = table.t_mid_s
@@ -335,9 +341,10 @@ def _test(
     # Power summed over short runs of DEVIANCE_RUN consecutive tested blocks (sums of
     # expected powers are expected sums; the ratio of sums has lighter tails than one block's).
     run = np.arange(len(rows)) // DEVIANCE_RUN
-    sums = lambda a: np.stack(
-        [np.bincount(run, weights=a[:, f]) for f in range(a.shape[1])], axis=1
-    )  # noqa: E731
+
+    def sums(a):
+        return np.stack([np.bincount(run, weights=a[:, f]) for f in range(a.shape[1])], axis=1)
+
     y = sums(observed[rows] ** 2)
     dev_base = np.repeat(metric.block_deviance(y, sums(cf.power["refit"][rows])), DEVIANCE_RUN)[
         : len(rows)
@@ -361,7 +368,8 @@ def _test(
 def _interleaved_drift(
     table: BlockTable, prior, window_blocks: int, rng: np.random.Generator
 ) -> dict:
-    """Drift checked in-sample: a time trend fitted on interleaved chunks, judged on the chunks between."""
+    """Drift checked in-sample: a time trend fitted on interleaved chunks,
+    judged on the chunks between."""
     splits = interleaved_splits(table)
     if min(s.train.sum() for s in splits) < 200:
         return {}
@@ -407,8 +415,8 @@ def _interleaved_drift(
             ),
             4,
         ),
-        "split": f"chunks of {INTERLEAVE_CHUNK_S:g} s, every {INTERLEAVE_PERIOD}rd held out in turn "
-        f"({INTERLEAVE_PERIOD} rotations)",
+        "split": f"chunks of {INTERLEAVE_CHUNK_S:g} s, every {INTERLEAVE_PERIOD}rd held out "
+        f"in turn ({INTERLEAVE_PERIOD} rotations)",
         "knots": n_knots,
         "ridge": {k: round(v, 5) for k, v in ridge.items()},
         "shape": {
@@ -512,7 +520,7 @@ def diagnose(
         )
         fitted.shape = {
             "timing:lag_scan": {
-                "x": [round(float(l), 4) for l in lags],
+                "x": [round(float(lag), 4) for lag in lags],
                 "unit": "s",
                 "train_log_residual": [round(float(c), 6) for c in curve],
                 "in_sync_band_s": [round(lo, 4), round(hi, 4)],
@@ -632,17 +640,17 @@ def diagnose(
     t = table.t_mid_s
     if train_fraction is not None:
         split_info = {
-            "method": f"by time: first {100 * train_fraction:.0f} % of the recording fits (train), the rest "
-            "is held out",
+            "method": f"by time: first {100 * train_fraction:.0f} % of the recording "
+            "fits (train), the rest is held out",
             "train_s": float(train_fraction * (t[-1] - t[0])),
             "heldout_s": float((1 - train_fraction) * (t[-1] - t[0])),
         }
         split_time = float(t[0] + train_fraction * (t[-1] - t[0]))
     else:
         split_info = {
-            "method": f"blocked {folds}-fold cross-validation in time: the recording is cut into {folds} "
-            "contiguous folds, each predicted by models fitted on the other folds, so every "
-            "block is held out once",
+            "method": f"blocked {folds}-fold cross-validation in time: the recording is cut "
+            f"into {folds} contiguous folds, each predicted by models fitted on the other "
+            "folds, so every block is held out once",
             "train_s": float((folds - 1) / folds * (t[-1] - t[0])),
             "heldout_s": float(t[-1] - t[0]),
             "folds": folds,

@@ -155,13 +155,15 @@ def _hats(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
 
 
 def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
-    """Piecewise-linear basis in time over [t0, t1], flat beyond; the first knot is the reference."""
+    """Piecewise-linear basis in time over [t0, t1], flat beyond;
+    the first knot is the reference."""
     knots = np.linspace(t0, t1, n_knots) if t1 > t0 else np.array([t0, t0 + 1.0])
     return _hats(t, knots)[:, 1:]
 
 
 def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, list[str]]:
-    """Fourier series of a turning joint's angle, or hats over a bounded joint's travel (middle dropped)."""
+    """Fourier series of a turning joint's angle, or hats over a bounded joint's travel
+    (middle dropped)."""
     if scales.periodic[j]:
         cols, labels = [], []
         for k in range(1, POSITION_HARMONICS + 1):
@@ -260,7 +262,8 @@ def _gcv_ridge(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def fit_term(x: np.ndarray, z: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Per-bin log-gain coefficients: (1 + R, F) = [intercept; beta], broadband + per-bin parts by GCV ridge."""
+    """Per-bin log-gain coefficients: (1 + R, F) = [intercept; beta],
+    broadband + per-bin parts by GCV ridge."""
     n_bins = z.shape[1]
     zt = z[train]
     z_mean = zt.mean(axis=0)
@@ -289,7 +292,8 @@ def fit_term(x: np.ndarray, z: np.ndarray, train: np.ndarray) -> tuple[np.ndarra
 
 
 def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power: E[ratio] = exp(2 (a(f) + x beta(f))).
+    """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power:
+    E[ratio] = exp(2 (a(f) + x beta(f))).
 
     Targets the *mean* power (the quantity that adds over independent sources and that the
     held-out deviance judges), by iteratively reweighted least squares: for a log link and
@@ -374,7 +378,8 @@ def apply_effect_term(
     coef: np.ndarray,
     scales: Scales,
 ) -> np.ndarray:
-    """Predictions with a given (e.g. simulator-derived) effect term on top of a baseline, re-levelled on train."""
+    """Predictions with a given (e.g. simulator-derived) effect term on top of a baseline,
+    re-levelled on train."""
     extra, _ = effect_regressors(effect, table, scales)
     gain = np.exp(extra @ coef[1:]) if extra.shape[1] else np.ones_like(refit_predicted)
     predicted = refit_predicted * gain
@@ -407,8 +412,8 @@ def effect_shape(
             else:
                 grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
             basis, labels = position_basis(grid, j, scales)
-            plain = np.array([names.index(f"{l}({name})") for l in labels])
-            moving = np.array([names.index(f"{l}*|v|({name})") for l in labels])
+            plain = np.array([names.index(f"{label}({name})") for label in labels])
+            moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
             typical = (
                 float(np.median(speed[:, j][speed[:, j] > 0.05]))
                 if np.any(speed[:, j] > 0.05)
@@ -514,7 +519,8 @@ def lag_scan(
     centre_s: float = 0.0,
     prior=None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Training residual of the baseline refitted with joint states re-matched at each lag of a grid."""
+    """Training residual of the baseline refitted with joint states re-matched
+    at each lag of a grid."""
     rows = np.flatnonzero(train)[::LAG_SCAN_STRIDE]
     prior = simulator_cells(table) if prior is None else prior
     lags = np.round(
@@ -546,7 +552,7 @@ def refine_lag(
     fine = np.arange(best - LAG_COARSE_S + LAG_FINE_S, best + LAG_COARSE_S - 1e-12, LAG_FINE_S)
     fine = fine[(fine >= lo - 1e-9) & (fine <= hi + 1e-9)]
     cand = np.concatenate([[best], fine])
-    vals = [lag_residual(table, rows, float(l), prior) for l in cand]
+    vals = [lag_residual(table, rows, float(lag), prior) for lag in cand]
     return float(cand[int(np.argmin(vals))])
 
 

@@ -172,7 +172,8 @@ def motion_features(
     knots: tuple[np.ndarray, ...],
     window: np.ndarray,
 ):
-    """Velocity-trajectory hat features (B, J, K) and times since / until the nearest reversal (B, J).
+    """Velocity-trajectory hat features (B, J, K) and times since / until the nearest
+    reversal (B, J).
 
     Each block's features are the analysis-window^2-weighted mean, over TRAJECTORY_POINTS
     instants inside the block, of the hat functions of the (smoothed) joint velocity: a
@@ -443,7 +444,8 @@ def build_table(
     spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
     if len(spectra) < 10:
         raise BagError(
-            f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not overlap?)"
+            f"{source}: fewer than 10 usable blocks "
+            "(accelerometer and joint_states do not overlap?)"
         )
     freq_index = in_band_bins(model)
     t0_ns = int(rec.accel_stamps_ns[0])

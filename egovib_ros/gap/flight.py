@@ -140,10 +140,11 @@ def render_summary(summary: dict) -> str:
     lines = [
         "# Gap diagnosis on the real quadcopter flight",
         "",
-        f"Bag `{summary['bag']}` (profile `{summary['profile']}`): the noise model is calibrated on one half "
-        f"of the flight (free motion, split at {summary['split_s']} s, flight used up to {summary['end_s']} s) "
-        "and the gap diagnosis runs on the other half; no simulator exists, so the reference lag is 0. "
-        "Both directions are reported.",
+        f"Bag `{summary['bag']}` (profile `{summary['profile']}`): the noise model is "
+        "calibrated on one half of the flight (free motion, split at "
+        f"{summary['split_s']} s, flight used up to {summary['end_s']} s) "
+        "and the gap diagnosis runs on the other half; no simulator exists, so the "
+        "reference lag is 0. Both directions are reported.",
         "",
         "| calibrated on | verdict | confidence | gap as-is | baseline | after effect | floor |",
         "|---|---|---|---|---|---|---|",
@@ -151,9 +152,9 @@ def render_summary(summary: dict) -> str:
     for name, d in summary["directions"].items():
         g = d["gap"]
         lines.append(
-            f"| {name.replace('calibrated_on_', '').replace('_', ' ')} | {d['verdict']['effect']} | "
-            f"{d['verdict']['confidence']} | {g['sim_as_is']} | {g['after_refit']} | {g['after_effect']} | "
-            f"{g['floor']} |"
+            f"| {name.replace('calibrated_on_', '').replace('_', ' ')} | "
+            f"{d['verdict']['effect']} | {d['verdict']['confidence']} | "
+            f"{g['sim_as_is']} | {g['after_refit']} | {g['after_effect']} | {g['floor']} |"
         )
     for name, d in summary["directions"].items():
         lines += [
@@ -165,8 +166,8 @@ def render_summary(summary: dict) -> str:
         ]
         for c in d["candidates"]:
             lines.append(
-                f"| {c['effect']} | {c['p_value']:.2g} | {c['deviance_reduction']:.4f} | {c['heldout_gap']} | "
-                f"{c['shape_summary']} |"
+                f"| {c['effect']} | {c['p_value']:.2g} | {c['deviance_reduction']:.4f} | "
+                f"{c['heldout_gap']} | {c['shape_summary']} |"
             )
         lines += ["", f"Report: [{name}/report.md]({name}/report.md)"]
     lines.append("")
@@ -182,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = run_flight_gap(args.bag, args.out, split_s=args.split)
     for name, d in summary["directions"].items():
         print(
-            f"{name}: verdict {d['verdict']['effect']} (confidence {d['verdict']['confidence']}), gap {d['gap']}"
+            f"{name}: verdict {d['verdict']['effect']} "
+            f"(confidence {d['verdict']['confidence']}), gap {d['gap']}"
         )
     return 0
 

@@ -46,7 +46,8 @@ class Windows:
 
 
 def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> Windows:
-    """Cut `n_blocks` consecutive blocks into windows of `window_blocks` (the remainder is dropped)."""
+    """Cut `n_blocks` consecutive blocks into windows of `window_blocks`
+    (the remainder is dropped)."""
     n_windows = n_blocks // window_blocks
     index = np.full(n_blocks, -1, dtype=np.int64)
     used = n_windows * window_blocks
@@ -130,7 +131,8 @@ def floor_window_db(
 
 
 def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
-    """Split-half cross-check of `floor_db` (interleaved block pairs; overlap makes it a lower bound)."""
+    """Split-half cross-check of `floor_db`
+    (interleaved block pairs; overlap makes it a lower bound)."""
     e_a = window_errors_db(observed, predicted, windows, windows.half == 0)
     e_b = window_errors_db(observed, predicted, windows, windows.half == 1)
     return float(np.sqrt(np.mean(np.square(e_a - e_b)) / 4.0)) if e_a.size else float("nan")
@@ -139,7 +141,8 @@ def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Wi
 def contributions(
     errors_db: np.ndarray, labels: np.ndarray, n_labels: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Split gap^2 over window labels: (share of gap^2 [dB^2] per label and bin, window count per label).
+    """Split gap^2 over window labels:
+    (share of gap^2 [dB^2] per label and bin, window count per label).
 
     share[k, f] = sum_{w: label w = k} e[w,f]^2 / (n_windows * n_bins); summing share over
     k and f gives gap^2 exactly.  Windows with label < 0 are not counted in any label.
@@ -156,7 +159,8 @@ def contributions(
 def grouped_bias_db(
     observed: np.ndarray, predicted: np.ndarray, labels: np.ndarray, n_labels: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Band-summed observed/predicted ratio in dB per label group of blocks (for covariate profiles).
+    """Band-summed observed/predicted ratio in dB per label group of blocks
+    (for covariate profiles).
 
     Returns (bias_db (n_labels,), block counts); groups without blocks give NaN.
     """
@@ -200,14 +204,16 @@ def paired_signflip_pvalue(
 
 
 def block_log_errors(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
-    """Per-block, per-bin natural-log residuals ln |Y| - ln m (squared and summed, the test's loss)."""
+    """Per-block, per-bin natural-log residuals ln |Y| - ln m
+    (squared and summed, the test's loss)."""
     tiny = 1e-300
     r = np.log(np.maximum(observed, tiny)) - np.log(np.maximum(predicted, tiny))
     return r
 
 
 def block_deviance(observed_power: np.ndarray, predicted_power: np.ndarray) -> np.ndarray:
-    """Per-block Gamma deviance y/mu - ln(y/mu) - 1, averaged over bins (y = |Y|^2, mu = expected power).
+    """Per-block Gamma deviance y/mu - ln(y/mu) - 1, averaged over bins
+    (y = |Y|^2, mu = expected power).
 
     Minimised in expectation by mu = E[y], whatever the distribution of y: the right loss
     for a model of expected *power* (independent sources add in power, not in mean

@@ -1,4 +1,5 @@
-"""`egovib gap` end to end: read the model and the real bag, diagnose, write the report directory."""
+"""`egovib gap` end to end: read the model and the real bag, diagnose,
+write the report directory."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def diagnose_recording(rec, model, *, source: str = "bag", **kwargs) -> Diagnosi
 
 
 def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path | None) -> float:
-    """The lag timing is judged against: given, or measured on the simulator (0 for a foreign robot)."""
+    """The lag timing is judged against: given, or measured on the simulator
+    (0 for a foreign robot)."""
     if reference_lag is not None:
         return float(reference_lag)
     from egovib_ros.gap.simref import model_matches_simulator, simulator_reference_lag
@@ -54,7 +56,8 @@ def run_gap(
     figures: bool = True,
     **kwargs,
 ) -> dict:
-    """Diagnose `real_path` against the model file; write report.json, report.md and figures into out_dir.
+    """Diagnose `real_path` against the model file; write report.json, report.md and
+    figures into out_dir.
 
     The directory appears only when complete. With `write_back`, the verdict's fitted
     effect is written into a copy of the sim config `sim_params` (default

@@ -62,7 +62,8 @@ def _bin_edges(values: np.ndarray, periodic: bool) -> np.ndarray:
 
 
 def covariate_breakdown(diag: Diagnosis) -> dict:
-    """Per covariate: bins, held-out bias [dB] of sim as-is and after refit, share of the refit's gap^2."""
+    """Per covariate: bins, held-out bias [dB] of sim as-is and after refit,
+    share of the refit's gap^2."""
     rows = diag.heldout_rows
     t = diag.table
     refit = diag.models["refit"].predicted
@@ -96,7 +97,8 @@ def covariate_breakdown(diag: Diagnosis) -> dict:
             "in_sync_lag_s": round(float(scan["sync_lag_s"]), 5),
             "lag_s": [round(float(x), 4) for x in scan["lag_s"]],
             "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]],
-            "note": "residual of the velocity-only baseline with joint states re-matched at each lag",
+            "note": "residual of the velocity-only baseline with joint states "
+            "re-matched at each lag",
         }
     return out
 
@@ -244,11 +246,12 @@ def build_report(
         "verdict": {
             "effect": diag.verdict,
             "confidence": diag.confidence,
-            "rule": "largest held-out reduction of the Gamma deviance of the expected power among the "
-            "candidates with p < 0.01/number of candidates (paired sign-flip permutation test over "
-            "0.5 s held-out segments, vs the velocity-only baseline; drift: the better of two looks, "
-            "Bonferroni x2), a reduction of at least 0.004 per block and bin, and a smaller held-out "
-            "gap than the baseline's; confidence = block-bootstrap share of resamples in which the "
+            "rule": "largest held-out reduction of the Gamma deviance of the expected power "
+            "among the candidates with p < 0.01/number of candidates (paired sign-flip "
+            "permutation test over 0.5 s held-out segments, vs the velocity-only baseline; "
+            "drift: the better of two looks, Bonferroni x2), a reduction of at least 0.004 "
+            "per block and bin, and a smaller held-out gap than the baseline's; "
+            "confidence = block-bootstrap share of resamples in which the "
             "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)",
         },
         "added_effect": added,
@@ -278,12 +281,13 @@ def build_report(
 
 
 BASELINE_DEFINITION = (
-    "velocity-only table re-estimated on the training folds of this recording: expected power per frequency "
-    "bin = rest power + sum over joints of a free non-negative function of that joint's velocity (cells = the "
-    "model's grid, each step split 4x, 10x below 20 % of top speed; averaged over each block's velocity "
-    "trajectory), neighbouring cells smoothed, the simulator's spectrum used only where cells are thin; then a "
-    "per-joint, per-cell mean/rms correction. It cannot represent interactions between joints, position, "
-    "acceleration, time or lag."
+    "velocity-only table re-estimated on the training folds of this recording: expected power "
+    "per frequency bin = rest power + sum over joints of a free non-negative function of that "
+    "joint's velocity (cells = the model's grid, each step split 4x, 10x below 20 % of top "
+    "speed; averaged over each block's velocity trajectory), neighbouring cells smoothed, the "
+    "simulator's spectrum used only where cells are thin; then a per-joint, per-cell mean/rms "
+    "correction. It cannot represent interactions between joints, position, acceleration, "
+    "time or lag."
 )
 
 
@@ -314,7 +318,8 @@ def describe_shape(effect: str, shape: dict) -> str:
             g = np.asarray(c["gain_db"], float)
             x = np.asarray(c["x"], float)
             parts.append(
-                f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical |acceleration|"
+                f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical "
+                "|acceleration|"
             )
         elif name.startswith("reversal:"):
             x, top, span = _peak(c["x"], c["gain_db"])
@@ -331,8 +336,8 @@ def describe_shape(effect: str, shape: dict) -> str:
                 else x[-1]
             )
             parts.append(
-                f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at {reach:.0f} s "
-                f"({g.max() - g.min():.1f} dB range)"
+                f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at "
+                f"{reach:.0f} s ({g.max() - g.min():.1f} dB range)"
             )
         elif name.startswith("timing:"):
             parts.append(
@@ -350,7 +355,8 @@ def _describe_region(r: dict, joint_names: tuple[str, ...]) -> str:
     speeds = ", ".join(f"{n} {c}" for n, c in r["speeds"].items())
     return (
         f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
-        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by {abs(r['bias_db']):.1f} dB on average, "
+        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by "
+        f"{abs(r['bias_db']):.1f} dB on average, "
         f"{100 * r['share_of_gap2']:.0f} % of the gap^2)"
     )
 
@@ -365,8 +371,8 @@ def _strongest_covariate(report: dict) -> str:
         return ""
     name, c = max(covs.items(), key=lambda kv: kv[1]["spread_db_after_refit"])
     return (
-        f" After the velocity-only baseline, the remaining gap varies most with {name} (held-out bias spread "
-        f"{c['spread_db_after_refit']:.1f} dB across its bins)."
+        f" After the velocity-only baseline, the remaining gap varies most with {name} "
+        f"(held-out bias spread {c['spread_db_after_refit']:.1f} dB across its bins)."
     )
 
 
@@ -381,8 +387,9 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     mean_bias = float(np.mean([f["bias_db_sim_as_is"] for f in freq])) if freq else 0.0
     lines = ["# Sim-to-real gap report", ""]
     lines.append(
-        f"**Where:** on held-out real data the simulator's noise model is off by **{g['sim_as_is']:.2f} dB** "
-        f"(floor {g['floor']:.2f} dB; overall the sim is {'too quiet' if mean_bias > 0 else 'too loud'} by "
+        "**Where:** on held-out real data the simulator's noise model is off by "
+        f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the sim is "
+        f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
         f"{abs(mean_bias):.1f} dB). Largest shares: "
         + "; ".join(_describe_region(r, joint_names) for r in top)
         + (
@@ -395,23 +402,27 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
         lines.append(
-            f"**Which:** the unmodelled effect is **`{v['effect']}`** (held-out reduction {c['reduction']:.3f} dB "
-            f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, confidence {v['confidence']:.2f}). "
+            f"**Which:** the unmodelled effect is **`{v['effect']}`** "
+            f"(held-out reduction {c['reduction']:.3f} dB "
+            f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, "
+            f"confidence {v['confidence']:.2f}). "
             f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
         )
     else:
         best = cands[0] if cands else None
         lines.append(
-            "**Which:** **no effect** (`none`): beyond the velocity-only baseline no candidate effect "
-            "lowers the held-out gap significantly"
+            "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
+            "no candidate effect lowers the held-out gap significantly"
             + (
-                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = {best['p_value']:.2g})."
+                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, "
+                f"p = {best['p_value']:.2g})."
                 if best
                 else "."
             )
         )
     lines.append(
-        f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> {g['after_refit']:.2f} dB "
+        f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> "
+        f"{g['after_refit']:.2f} dB "
         "(velocity-only baseline fitted on this recording) -> "
         f"**{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor {g['floor']:.2f} dB. "
         f"Residual no-contact noise after denoising held-out data: "
@@ -427,19 +438,22 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
         "",
         "## Metric",
         "",
-        f"{report['metric']['name']} [{report['metric']['unit']}]: {report['metric']['definition']}",
+        f"{report['metric']['name']} [{report['metric']['unit']}]: "
+        f"{report['metric']['definition']}",
         "",
         f"Split: {report['split']['method']} (train {report['split']['train_s']:.1f} s, held out "
         f"{report['split']['heldout_s']:.1f} s). Blocks: {report['blocks']}.",
         "",
         "## Candidates (held-out, ranked)",
         "",
-        "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value | share of excess removed |",
+        "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value "
+        "| share of excess removed |",
         "|---|---|---|---|---|",
     ]
     for c in cands:
         lines.append(
-            f"| {c['effect']} | {c['heldout_gap']:.3f} | {c['reduction']:+.3f} | {c['p_value']:.2g} | {c['excess_removed']:.2f} |"
+            f"| {c['effect']} | {c['heldout_gap']:.3f} | {c['reduction']:+.3f} | "
+            f"{c['p_value']:.2g} | {c['excess_removed']:.2f} |"
         )
     lines += ["", "Fitted shapes of every candidate (which_effect_shapes.png): "]
     for c in cands:
@@ -448,11 +462,13 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     if tr.get("onsets"):
         lines += [
             "",
-            f"Transients (contact-like outliers): {tr['onsets']} onsets, {tr['near_reversal']} within "
-            f"{tr.get('window_s')} s of a joint reversal (chance: {tr['expected_near']}), p = {tr['p_value']:.2g}; "
+            f"Transients (contact-like outliers): {tr['onsets']} onsets, "
+            f"{tr['near_reversal']} within "
+            f"{tr.get('window_s')} s of a joint reversal (chance: {tr['expected_near']}), "
+            f"p = {tr['p_value']:.2g}; "
             + (
-                f"{tr['returned_blocks']} blocks of reversal-locked transients returned to the data as "
-                "ego-vibration."
+                f"{tr['returned_blocks']} blocks of reversal-locked transients returned to the "
+                "data as ego-vibration."
                 if tr.get("returned_blocks")
                 else "treated as contacts."
             ),
@@ -481,7 +497,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":
             lines.append(
-                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms (training residual scan in report.json)"
+                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms "
+                "(training residual scan in report.json)"
             )
         else:
             lines.append(
@@ -493,7 +510,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
 
 
 def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]:
-    """Heat maps by frequency x velocity cell and on the velocity grid, covariate profiles, candidates."""
+    """Heat maps by frequency x velocity cell and on the velocity grid,
+    covariate profiles, candidates."""
     import matplotlib
 
     matplotlib.use("Agg")

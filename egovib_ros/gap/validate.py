@@ -83,7 +83,8 @@ def shape_differs_params(params=None):
 
 
 def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100, params=None):
-    """Noise model of the (effect-free) simulator from a superposition sweep, as `egovib calibrate` would."""
+    """Noise model of the (effect-free) simulator from a superposition sweep,
+    as `egovib calibrate` would."""
     from egovib_ros.core import calibrate_arrays
     from egovib_ros.sim import simulate_sweep
 
@@ -102,7 +103,8 @@ def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100
 
 
 def quieter_params(params, factor: float = 0.5):
-    """Simulator parameters with every joint vibration mechanism scaled by `factor` (0.5 = -6 dB)."""
+    """Simulator parameters with every joint vibration mechanism scaled by `factor`
+    (0.5 = -6 dB)."""
     out = copy.deepcopy(params)
     for joint in (out.wrist, out.gripper):
         joint.line_amps = [a * factor for a in joint.line_amps]
@@ -331,14 +333,15 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
 
 REALITY_TEXT = {
     "sim": (
-        "our simulator (egovib_ros/sim) with one hidden effect per bag; two extra `none` classes: the simulator "
-        "6 dB louder than the robot, and a simulator whose spectra differ in shape (gear tones moved, wrist "
-        "resonance missing, gripper structural band shifted)"
+        "our simulator (egovib_ros/sim) with one hidden effect per bag; two extra `none` classes: "
+        "the simulator 6 dB louder than the robot, and a simulator whose spectra differ in shape "
+        "(gear tones moved, wrist resonance missing, gripper structural band shifted)"
     ),
     "alt": (
-        "the independent alternate-reality hand (egovib_ros/altreality: its own drive trains, housing modes, "
-        "impulsive friction, sensor and motion; effects as a tight spot per wrist turn or a rub near the "
-        "gripper's closed end, intermodulation lines, backlash clicks at reversals, a warm-up step, a stamp lag)"
+        "the independent alternate-reality hand (egovib_ros/altreality: its own drive trains, "
+        "housing modes, impulsive friction, sensor and motion; effects as a tight spot per wrist "
+        "turn or a rub near the gripper's closed end, intermodulation lines, backlash clicks at "
+        "reversals, a warm-up step, a stamp lag)"
     ),
 }
 
@@ -352,13 +355,15 @@ def render_markdown(report: dict) -> str:
     lines = [
         f"# Gap diagnosis: blind validation, reality `{reality}`",
         "",
-        f'Model calibrated on our simulator ({st["calibration"]}); "real" bags from {REALITY_TEXT[reality]}.',
+        f"Model calibrated on our simulator ({st['calibration']}); "
+        f'"real" bags from {REALITY_TEXT[reality]}.',
         "",
         f"Top-1 accuracy **{s['accuracy']:.3f}** over {s['n_runs']} blind runs "
         f"({st['seeds']} seeds per class"
         + (f", {st['extra_none']} more per `none` class" if st.get("extra_none") else "")
         + f", {st['duration_s']:.0f} s bags; effects only: "
-        f"{s['accuracy_effects']:.3f}); `none` wrongly flagged **{100 * s['none_false_positive_rate']:.1f} %** "
+        f"{s['accuracy_effects']:.3f}); `none` wrongly flagged "
+        f"**{100 * s['none_false_positive_rate']:.1f} %** "
         f"({sum(1 for t in s['confusion'] if t.startswith('none'))} `none` classes). "
         "Produced by `" + st["command"] + f"` in {report['runtime_s'] / 60:.0f} min.",
         "",
@@ -383,7 +388,8 @@ def render_markdown(report: dict) -> str:
         "",
         "## Held-out gap per correctly found effect (dB, mean over runs)",
         "",
-        "| effect | runs | sim as-is | after baseline | after effect | floor | worst above floor | within 1 dB |",
+        "| effect | runs | sim as-is | after baseline | after effect | floor "
+        "| worst above floor | within 1 dB |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for e, d in s["heldout_shrink"].items():
@@ -422,7 +428,8 @@ def render_markdown(report: dict) -> str:
         p = r["p_values"].get(label)
         details = ", ".join(f"{k}={v}" for k, v in r.get("truth_details", {}).items())
         lines.append(
-            f"| {r['truth']}{' (ladder)' if r.get('ladder') else ''} | {r['strength']} | {r['seed']} | "
+            f"| {r['truth']}{' (ladder)' if r.get('ladder') else ''} | "
+            f"{r['strength']} | {r['seed']} | "
             f"{r['verdict']} | {r['confidence']} | {g['sim_as_is']} | {g['after_refit']} | "
             f"{g['after_verdict']} | {g['floor']} | {'' if p is None else f'{p:.2g}'} | {details} |"
         )
@@ -490,7 +497,8 @@ def make_figure(summary: dict, path: Path) -> None:
 
 
 def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple[dict, dict]:
-    """Model files and reference lags: the default simulator, and for `sim` the shape-changed one."""
+    """Model files and reference lags: the default simulator,
+    and for `sim` the shape-changed one."""
     from egovib_ros.gap.simref import simulator_reference_lag
     from egovib_ros.sim import SimParams
 
@@ -521,7 +529,8 @@ def run_validation(
     runs: list[dict] | None = None,
     extra_none: int = 0,
 ) -> dict:
-    """Run the blind validation; write gap_validation[_alt].json/.md/.png into out_dir; return the summary.
+    """Run the blind validation; write gap_validation[_alt].json/.md/.png into out_dir;
+    return the summary.
 
     `runs`: an explicit list of runs (class, strength, seed) instead of the planned ones (tests).
     """

@@ -61,7 +61,8 @@ def _simulated_fit(
 def estimate_strength(
     diag: Diagnosis, params, *, rounds: int = 2
 ) -> tuple[float, np.ndarray | None]:
-    """Simulator strength reproducing the real data's fitted effect; also the simulator's coefficients."""
+    """Simulator strength reproducing the real data's fitted effect;
+    also the simulator's coefficients."""
     effect = diag.verdict
     if effect == "timing":
         return float(diag.models["timing"].parameters["lag_vs_simulator_s"]), None
