@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage, signal
 
-from egovib_ros.core.stream import FramerSettings, frame_batch
+from egovib_ros.core.stream import FramerSettings
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
 
@@ -143,6 +143,8 @@ class BlockTable:
         repr=False, default=None
     )  # (B, J) until next reversal
     lag_s: float = 0.0  # joint-state lag of this table
+    #: counts of bad input treated as missing (framer stats, joint states dropped)
+    bad_input: dict = field(repr=False, default_factory=dict)
 
 
 #: The baseline's velocity cells: the model's grid with each interval split in this many
@@ -231,38 +233,88 @@ def detect_reversals(
     return tuple(out)
 
 
-def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
-    """The core's own framing (`frame_batch`, as calibration uses): band-passed sum of axes.
+class BlockSpectra:
+    """The core's own framing (a BlockFramer, as calibration uses: band-passed sum of axes,
+    the model's window and sensor range) fed as a stream: push joint states, then sensor
+    samples, slice by slice; `finish()` gives the in-band magnitude spectra of the complete
+    blocks that have a joint state. The framer is the only state, so any slicing of the
+    same arrays gives the same blocks (tested); a bag is never held whole."""
 
-    Returns (magnitude spectra (B, n_bins) of complete blocks with a joint state,
-    t_first_ns (B,), t_last_ns (B,), block mean velocity (B, J)).
-    """
-    # the model's framing, including its sensor range: bad samples are missing, as in calibration
-    settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
-    batches, _ = frame_batch(
-        settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, velocity
-    )
-    batches = [b for b in batches if b.n]
-    if not batches:
-        n_bins = model.block_length // 2 + 1
-        return (
-            np.zeros((0, n_bins)),
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            np.zeros((0, velocity.shape[1])),
+    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05):
+        from egovib_ros.core.stream import BlockFramer
+
+        # the model's framing, including its sensor range: bad samples are missing
+        settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
+        self._framer = BlockFramer(settings, n_joints)
+        self._window = model.window
+        self._bins = in_band_bins(model)
+        self._n_joints = n_joints
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self.samples = 0
+        self.first_stamp_ns: int | None = None
+
+    @property
+    def stats(self) -> dict:
+        return dict(vars(self._framer.stats))
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        self._framer.push_joint_states(stamps_ns, velocity)
+        self._collect()
+
+    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        if len(stamps_ns) and self.first_stamp_ns is None:
+            self.first_stamp_ns = int(stamps_ns[0])
+        self.samples += len(stamps_ns)
+        self._framer.push_accel(stamps_ns, accel)
+        self._collect()
+
+    def _collect(self) -> None:
+        for b in self._framer.pop_blocks():
+            if not b.n:
+                continue
+            ok = (b.complete if b.complete is not None else np.ones(b.n, bool)) & (
+                b.status != MISSING
+            )
+            if ok.any():
+                spectra = np.abs(np.fft.rfft(b.samples[ok, 0, :] * self._window, axis=1))
+                self._parts.append(
+                    (spectra[:, self._bins], b.t_first_ns[ok], b.t_last_ns[ok], b.velocity[ok])
+                )
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Flush; (in-band magnitudes (B, F), t_first_ns (B,), t_last_ns (B,), block mean
+        velocity (B, J))."""
+        self._framer.flush()
+        self._collect()
+        if not self._parts:
+            return (
+                np.zeros((0, len(self._bins))),
+                np.zeros(0, np.int64),
+                np.zeros(0, np.int64),
+                np.zeros((0, self._n_joints)),
+            )
+        return tuple(np.concatenate(column) for column in zip(*self._parts))
+
+
+def usable_joint_states(position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """Rows whose position and velocity are finite (the rest are missing data, counted)."""
+    return np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(position), axis=1)
+
+
+def joint_order(model, joint_names, source: str) -> list[int]:
+    """Columns of a recording's joints in the model's joint order (ModelFileError if absent)."""
+    where = model.provenance.get("path", "noise model")
+    if model.n_joints != len(joint_names):
+        raise ModelFileError(
+            f"{where}: model has {model.n_joints} joints "
+            f"{list(model.joint_names)}, {source} has {list(joint_names)}"
         )
-    samples = np.concatenate([b.samples[:, 0, :] for b in batches])
-    t_first = np.concatenate([b.t_first_ns for b in batches])
-    t_last = np.concatenate([b.t_last_ns for b in batches])
-    v = np.concatenate([b.velocity for b in batches])
-    ok = np.concatenate(
-        [
-            (b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
-            for b in batches
-        ]
-    )
-    spectra = np.abs(np.fft.rfft(samples[ok] * model.window, axis=1))
-    return spectra, t_first[ok], t_last[ok], v[ok]
+    names = list(joint_names)
+    if any(n not in names for n in model.joint_names):
+        raise ModelFileError(
+            f"{where}: joints {list(model.joint_names)} not in {source} joint_states {names}"
+        )
+    return [names.index(n) for n in model.joint_names]
 
 
 def in_band_bins(model) -> np.ndarray:
@@ -417,44 +469,114 @@ def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> Block
 def build_table(
     rec, model, *, max_hold_s: float = 0.05, source: str = "bag", knot_refine: int = KNOT_REFINE
 ) -> BlockTable:
-    """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel."""
-    if model.n_joints != len(rec.joint_names):
-        raise ModelFileError(
-            f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
-            f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}"
-        )
-    if tuple(model.joint_names) != tuple(rec.joint_names):
-        order = [
-            list(rec.joint_names).index(n) if n in rec.joint_names else -1
-            for n in model.joint_names
-        ]
-        if min(order) < 0:
-            raise ModelFileError(
-                f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
-                f"not in {source} joint_states {list(rec.joint_names)}"
-            )
-    else:
-        order = list(range(model.n_joints))
-    if len(rec.accel_stamps_ns) < 4 * model.block_length:
-        raise BagError(f"{source}: /accelerometer/raw has only {len(rec.accel_stamps_ns)} samples")
-    if len(rec.joint_stamps_ns) < 10:
-        raise BagError(f"{source}: /joint_states has only {len(rec.joint_stamps_ns)} messages")
+    """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel
+    (the whole recording pushed as one slice; `table_from_bag` streams a bag)."""
+    order = joint_order(model, rec.joint_names, source)
+    good = usable_joint_states(rec.joint_position, rec.joint_velocity)
+    position = rec.joint_position[good][:, order]
+    velocity = rec.joint_velocity[good][:, order]
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
+    framing.push_joint_states(rec.joint_stamps_ns[good], velocity)
+    framing.push_accel(rec.accel_stamps_ns, rec.accel)
+    bad_input = dict(framing.stats, joint_states=len(good), joint_states_bad=int((~good).sum()))
+    return table_from_blocks(
+        model,
+        framing,
+        rec.joint_stamps_ns[good],
+        position,
+        velocity,
+        bad_input=bad_input,
+        source=source,
+        knot_refine=knot_refine,
+    )
 
-    velocity = rec.joint_velocity[:, order]
-    spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
-    if len(spectra) < 10:
+
+def table_from_bag(
+    path,
+    model,
+    *,
+    max_hold_s: float = 0.05,
+    knot_refine: int = KNOT_REFINE,
+    progress=None,
+) -> BlockTable:
+    """`build_table` of a bag read slice by slice (bag.iter_recording with the model's robot
+    profile): the sensor samples are framed as they arrive and never held; only the joint
+    states (joint rate) and the blocks' in-band spectra are kept. Same table as
+    `build_table(read_recording(path))` (tested)."""
+    from egovib_ros.bag import iter_recording
+
+    source = str(path)
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
+    stamps, positions, velocities = [], [], []
+    order, n_joint_states = None, 0
+    for piece in iter_recording(
+        path,
+        profile=model.profile,
+        ground_truth=False,
+        denoised=False,
+        commands=False,
+        progress=progress,
+    ):
+        if order is None:
+            order = joint_order(model, piece.joint_names, source)
+        good = usable_joint_states(piece.joint_position, piece.joint_velocity)
+        n_joint_states += len(good)
+        stamps.append(piece.joint_stamps_ns[good])
+        positions.append(piece.joint_position[good][:, order])
+        velocities.append(piece.joint_velocity[good][:, order])
+        framing.push_joint_states(stamps[-1], velocities[-1])
+        framing.push_accel(piece.accel_stamps_ns, piece.accel)
+    if order is None:
+        raise BagError(f"{source}: no sensor or joint-state messages")
+    joint_stamps = np.concatenate(stamps)
+    bad_input = dict(
+        framing.stats,
+        joint_states=n_joint_states,
+        joint_states_bad=n_joint_states - len(joint_stamps),
+    )
+    return table_from_blocks(
+        model,
+        framing,
+        joint_stamps,
+        np.concatenate(positions),
+        np.concatenate(velocities),
+        bad_input=bad_input,
+        source=source,
+        knot_refine=knot_refine,
+    )
+
+
+def table_from_blocks(
+    model,
+    framing: BlockSpectra,
+    joint_stamps_ns: np.ndarray,
+    position: np.ndarray,
+    velocity: np.ndarray,
+    *,
+    bad_input: dict,
+    source: str,
+    knot_refine: int = KNOT_REFINE,
+) -> BlockTable:
+    """The table from the framed blocks and the (usable, model-ordered) joint states."""
+    if framing.samples < 4 * model.block_length:
+        raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")
+    if len(joint_stamps_ns) < 10:
+        raise BagError(f"{source}: joint_states has only {len(joint_stamps_ns)} usable messages")
+    magnitude, first_ns, last_ns, v_core = framing.finish()
+    bad_input = dict(bad_input, samples_bad=framing.stats["samples_bad"])
+    if len(magnitude) < 10:
         raise BagError(
             f"{source}: fewer than 10 usable blocks "
             "(accelerometer and joint_states do not overlap?)"
         )
     freq_index = in_band_bins(model)
-    t0_ns = int(rec.accel_stamps_ns[0])
+    t0_ns = framing.first_stamp_ns
     t_first = (first_ns - t0_ns) / NS
     t_last = (last_ns - t0_ns) / NS
 
-    joint_t = (rec.joint_stamps_ns - t0_ns) / NS
+    joint_t = (joint_stamps_ns - t0_ns) / NS
     # Unwrap so a block mean of the continuous wrist angle never straddles a +-pi jump.
-    position = np.unwrap(rec.joint_position[:, order], axis=0)
+    position = np.unwrap(position, axis=0)
     window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
     window = max(window, 5)
     acceleration = (
@@ -494,7 +616,7 @@ def build_table(
     table = BlockTable(
         t_first_s=t_first,
         t_last_s=t_last,
-        magnitude=spectra[:, freq_index],
+        magnitude=magnitude,
         freqs_hz=model.freqs_hz[freq_index],
         velocity=v_core,
         position=pos_b,
@@ -514,4 +636,5 @@ def build_table(
     )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
+    table.bad_input = bad_input
     return table
