@@ -160,3 +160,35 @@ def test_streamed_table_equals_whole_recording(model_path, position_bag):
         np.testing.assert_array_equal(getattr(streamed, name), getattr(whole, name), err_msg=name)
     np.testing.assert_array_equal(streamed.contact, whole.contact)
     assert streamed.bad_input["samples_bad"] == whole.bad_input["samples_bad"] == 0
+
+
+def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tmp_path, capsys):
+    """A directory of bags: one report directory per bag; `--jobs 2` (a local Dask cluster)
+    gives the reports of the one-process run; a corrupt bag is named in the summary and the
+    others complete (exit status 2)."""
+    import shutil
+
+    bags = tmp_path / "bags"
+    for name in ("a", "b"):
+        shutil.copytree(position_bag, bags / name)
+    shutil.copytree(position_bag, bags / "corrupt")
+    mcap = next((bags / "corrupt").glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 3 : len(data) // 3 + 4096] = b"\xff" * 4096
+    mcap.write_bytes(bytes(data))
+
+    reports = {}
+    for jobs in ("1", "2"):
+        out = tmp_path / f"out{jobs}"
+        args = ["gap", "--model", str(model_path), "--real", str(bags), "--out", str(out)]
+        assert main(args + ["--jobs", jobs, "--reference-lag", "0", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "FAILED" in err and "corrupt" in err and "2 done, 1 failed" in err
+        assert not (out / "corrupt").exists()
+        reports[jobs] = {
+            name: json.loads((out / name / "report.json").read_text()) for name in ("a", "b")
+        }
+    for name in ("a", "b"):
+        one, two = reports["1"][name], reports["2"][name]
+        assert one["verdict"]["effect"] == "position"
+        assert one["gap"] == two["gap"] and one["candidates"] == two["candidates"]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 
 from egovib_ros import cliutil
@@ -24,9 +25,17 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--model", help="noise-model .npz calibrated on the simulator")
     parser.add_argument(
-        "--real", help="real recording (rosbag2 with joint_states and accelerometer/raw)"
+        "--real",
+        nargs="+",
+        metavar="BAG",
+        help="real recording(s): rosbag2 bags with the model's sensor and joint-state topics, "
+        "or directories of bags (several: one report directory per bag under --out)",
     )
-    parser.add_argument("--out", help="output directory (report.json, report.md, figures)")
+    parser.add_argument(
+        "--out",
+        help="output directory (report.json, report.md, figures); with several bags, the "
+        "directory holding one report directory per bag",
+    )
     parser.add_argument(
         "--write-back",
         action="store_true",
@@ -90,8 +99,19 @@ def register(subparsers) -> None:
         help="seconds per blind real bag, 30 .. 3600 (validate)",
     )
     val.add_argument(
-        "--jobs", type=cliutil.positive_int, default=1, help="parallel worker processes (validate)"
+        "--jobs",
+        type=cliutil.positive_int,
+        default=1,
+        help="parallel worker processes (validate; or bags diagnosed at once: a local Dask "
+        "cluster)",
     )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="diagnose the bags on an existing Dask cluster (e.g. tcp://host:8786)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     val.add_argument(
         "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
     )
@@ -135,30 +155,54 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
         )
+    from egovib_ros.bag.many import run_bags
     from egovib_ros.core.noise_model import NoiseModel
+    from egovib_ros.gap.pipeline import reference_lag_for
+    from egovib_ros.offline import output_jobs, report_results
 
-    NoiseModel.load(args.model)  # a broken model is named first, as before
-    # before any work
-    prepare_output(
-        args.out, force=args.force, inputs=[args.model, args.real, args.sim_params], kind="report"
-    )
-    from egovib_ros.gap.pipeline import run_gap
-
-    report = run_gap(
-        args.model,
-        args.real,
-        args.out,
+    model = NoiseModel.load(args.model)  # a broken model is named first, as before
+    jobs = output_jobs(args.real, args.out)
+    for job in jobs:  # before any work
+        prepare_output(
+            job.out, force=args.force, inputs=[args.model, job.bag, args.sim_params], kind="report"
+        )
+    # measured once on the simulator, not once per bag
+    lag = reference_lag_for(model, args.reference_lag, args.sim_params)
+    task = functools.partial(
+        gap_task,
+        model_path=args.model,
         write_back=args.write_back,
         sim_params=args.sim_params,
-        reference_lag=args.reference_lag,
+        reference_lag=lag,
         train_fraction=args.train_fraction,
         folds=args.folds,
     )
-    g = report["gap"]
-    print(
-        f"gap: sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
-        f"+{report['verdict']['effect']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
-        f"verdict {report['verdict']['effect']} -> {args.out}/report.md",
-        file=sys.stdout,
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet
     )
-    return 0
+    if len(jobs) == 1 and results[0].ok:  # one bag: its line on stdout, as before
+        print(f"gap: {describe_gap(results[0].value)}", file=sys.stdout)
+        return 0
+    return report_results(results, describe_gap, single=len(jobs) == 1)
+
+
+def gap_task(bag, out, progress, *, model_path, **options) -> dict:
+    """One bag's diagnosis into its report directory; the summary line's figures."""
+    from egovib_ros.gap.pipeline import run_gap
+
+    report = run_gap(model_path, bag, out, progress=progress, **options)
+    return {
+        "gap": report["gap"],
+        "verdict": report["verdict"]["effect"],
+        "confidence": report["verdict"].get("confidence"),
+        "report": f"{out}/report.md",
+    }
+
+
+def describe_gap(summary: dict) -> str:
+    g = summary["gap"]
+    return (
+        f"sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
+        f"+{summary['verdict']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
+        f"verdict {summary['verdict']} -> {summary['report']}"
+    )
