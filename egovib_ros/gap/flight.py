@@ -1,6 +1,6 @@
 """The gap diagnosis on the real quadcopter flight (bags/quadcopter_ar8): no simulator exists.
 
-    python -m egovib_ros.gap.flight --bag bags/quadcopter_ar8 --out docs/gap_flight
+    egovib real gap --bag bags/quadcopter_ar8 --out docs/gap_flight [--force]
 
 The noise model is calibrated on one part of the flight (free motion, `calibrate_arrays`
 with the quadcopter profile) and the gap diagnosis runs on the other part, in both
@@ -174,19 +174,47 @@ def render_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--bag", default="bags/quadcopter_ar8")
-    parser.add_argument("--out", default="docs/gap_flight")
-    parser.add_argument("--split", type=float, default=SPLIT_S)
-    args = parser.parse_args(argv)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from egovib_ros import cliutil
+
+    parser.add_argument("--bag", default="bags/quadcopter_ar8", help="the converted flight bag")
+    parser.add_argument(
+        "--out", default="docs/gap_flight", help="report directory (default docs/gap_flight)"
+    )
+    parser.add_argument(
+        "--split",
+        type=cliutil.float_in(2.0, FLIGHT_END_S - 2.0),
+        default=SPLIT_S,
+        metavar="SECONDS",
+        help=f"where the flight is cut into the two parts (default {SPLIT_S:g} s)",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing report directory of egovib"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from egovib_ros.errors import BagError
+    from egovib_ros.fileutil import prepare_output
+
+    if not Path(args.bag).exists():
+        raise BagError(f"{args.bag}: no such bag (egovib real convert makes it)")
+    prepare_output(args.out, force=args.force, inputs=[args.bag], kind="report")  # before work
     summary = run_flight_gap(args.bag, args.out, split_s=args.split)
     for name, d in summary["directions"].items():
         print(
             f"{name}: verdict {d['verdict']['effect']} "
             f"(confidence {d['verdict']['confidence']}), gap {d['gap']}"
         )
+    print(f"wrote {args.out}/summary.md")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m egovib_ros.gap.flight` = `egovib real gap`."""
+    from egovib_ros.cli import main as egovib_main
+
+    return egovib_main(["real", "gap", *(argv or [])])
 
 
 if __name__ == "__main__":
