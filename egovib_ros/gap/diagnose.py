@@ -64,9 +64,11 @@ METRIC_DEFINITION = (
     "(band-passed sum of axes, model window), m_b the model's expected magnitude "
     "(mean spectrum, no +sd). gap^2 is additive over bins, windows and window labels "
     "(velocity cell, covariate bin). floor = the score of a model equal to the real process, "
-    "i.e. the scatter of window means alone, estimated from the held-out blocks' own ratio "
-    "|Y|/m: its lag-0 and lag-1 (overlapping blocks) covariances minus the covariance "
-    "4 blocks apart, which removes slowly varying model error."
+    "i.e. the scatter of window means alone, estimated around the best held-out model in two "
+    "ways and the smaller reported: from the blocks' ratios |Y|/m (lag-0 and lag-1 "
+    "covariances minus the covariance 4 blocks apart, which removes slowly varying model "
+    "error) and from the window errors e[w,f] (their variance minus the covariance of windows "
+    "two apart)."
 )
 
 
