@@ -625,17 +625,15 @@ class LagCorrelation:
         if not m:
             return
         lag_max, o = self.max_lag, len(self._ref)
-        ref = np.concatenate([self._ref, np.asarray(reference, float)])
-        xs = np.concatenate([self._x, np.asarray(x, float)])
-        end = o + m
-        for lag in range(lag_max + 1):  # x[j] with ref[j - lag], j in this piece
-            j0 = max(o, lag)
-            if j0 < end:
-                self.corr[lag_max + lag] += np.dot(xs[j0:end], ref[j0 - lag : end - lag])
-        for lag in range(1, lag_max + 1):  # ref[j] with x[j - lag], j in this piece
-            j0 = max(o, lag)
-            if j0 < end:
-                self.corr[lag_max - lag] += np.dot(ref[j0:end], xs[j0 - lag : end - lag])
+        ref = np.concatenate([np.zeros(lag_max - o), self._ref, np.asarray(reference, float)])
+        xs = np.concatenate([np.zeros(lag_max - o), self._x, np.asarray(x, float)])
+        # FFT correlation, as estimate_lag (a direct sum is slow on a reference that decays
+        # into subnormal numbers between taps). Pairs whose later sample is in this piece:
+        # x[j] ref[j - lag] (lag >= 0) and ref[j] x[j + lag] (lag < 0), j in the piece.
+        late = signal.correlate(ref, xs[lag_max:], mode="valid", method="fft")  # lag L .. 0
+        early = signal.correlate(xs, ref[lag_max:], mode="valid", method="fft")  # -L .. 0
+        self.corr[lag_max:] += late[::-1]
+        self.corr[:lag_max] += early[:lag_max]
         self._ref, self._x = ref[-lag_max:], xs[-lag_max:]
         self.count += m
 
