@@ -64,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
         "auto = decided from the data",
     )
-    _parallel_options(cal)
+    parallel_options(cal)
     cal.add_argument(
         "--force", action="store_true", help="replace an existing model written by egovib"
     )
@@ -109,7 +109,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="none",
         help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)",
     )
-    _parallel_options(den)
+    parallel_options(den)
     den.add_argument(
         "--force", action="store_true", help="replace an existing bag written by egovib"
     )
@@ -117,7 +117,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     den.set_defaults(func=run_denoise)
 
 
-def _parallel_options(parser: argparse.ArgumentParser) -> None:
+def parallel_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--jobs",
         type=int_in(1, 4096),

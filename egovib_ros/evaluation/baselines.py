@@ -10,25 +10,31 @@ algorithmic latency of a streaming implementation, in ms:
   paper         the paper: subtract mean + std (Eq. 5/6)                      L/fs
   wiener        decision-directed Wiener gain (Ephraim-Malah 1984 a-priori
                 SNR) with the same noise table as noise amplitude             L/fs
-  noisereduce   stationary spectral gating (noisereduce), noise clip from
-                no-contact calibration data; offline, non-causal STFT         n_fft/fs
+  noisereduce   stationary spectral gating (noisereduce's gate as a stream,
+                `StationaryGate`), noise threshold from no-contact
+                calibration data; STFT with n_fft - 1 samples look-ahead      n_fft/fs
   per_axis      the paper's subtraction on x, y, z separately, then summed    L/fs
   paper_L32     the paper with 32-sample blocks (a model calibrated at L=32)  32/fs
 
-Everything block-based goes through the core (`denoise_batch` with its `rule`,
-`include_std`, `channels` options); nothing here re-implements framing.
+Every method is a stream (`method_stream`): pushed the recording slice by slice it gives
+the same output as pushed all at once (`run_method`). Everything block-based goes through
+the core's StreamingDenoiser (its `rule`, `include_std`, `channels` options); nothing here
+re-implements its framing.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
+from scipy import fft as sp_fft
+from scipy import signal
 
-from egovib_ros.core import NoiseModel, denoise_batch, filters
+from egovib_ros.core import NoiseModel, StreamingDenoiser, filters
 
 NOISEREDUCE_N_FFT = 64
+NOISEREDUCE_N_STD = 1.5  # reduce_noise's n_std_thresh_stationary
+NOISE_CLIP_SAMPLES = 600_000  # reduce_noise clips its noise clip to chunk_size samples
 
 #: name -> human label, in table order.
 METHOD_LABELS = {
@@ -114,44 +120,230 @@ class WienerRule:
         return cleaned
 
 
-def _core(rec, model: NoiseModel, **options) -> np.ndarray:
-    stamps, values, _ = denoise_batch(
-        rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity, model, **options
+# --------------------------------------------------------------------------
+# Each method as a stream: push joint states and sensor samples in any slices, get the
+# method's (combined, band-passed) output on the input samples as it becomes final.
+# run_method (whole arrays) pushes one slice through the same object.
+# --------------------------------------------------------------------------
+class MethodStream:
+    """push_joint_states(stamps, velocity) and push(stamps, accel, raw) return the output
+    samples that became final (in input order; `raw` is the combined band-passed input);
+    finish() returns the rest. Over a whole run the outputs add up to one per input."""
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        return _EMPTY
+
+    def push(self, stamps_ns: np.ndarray, accel: np.ndarray, raw: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def finish(self) -> np.ndarray:
+        return _EMPTY
+
+
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
+
+
+class BandpassStream(MethodStream):
+    """The band-passed input itself (causal, no delay)."""
+
+    def push(self, stamps_ns, accel, raw):
+        return np.asarray(raw, float)
+
+
+class CoreStream(MethodStream):
+    """The core's StreamingDenoiser, its output summed over channels and placed on the input
+    stamps (`on_input_stamps`: a sample the core drops gets 0). Causal: L - 1 samples of
+    delay plus the joint-state wait."""
+
+    def __init__(self, model: NoiseModel, *, source: str = "", **options):
+        self.denoiser = StreamingDenoiser(model, source=source, **options)
+        self._pending = np.zeros(0, np.int64)  # input stamps without output yet
+
+    def push_joint_states(self, stamps_ns, velocity):
+        return self._place(self.denoiser.push_joint_states(stamps_ns, velocity))
+
+    def push(self, stamps_ns, accel, raw):
+        self._pending = np.concatenate([self._pending, np.asarray(stamps_ns, np.int64)])
+        return self._place(self.denoiser.push_accel(stamps_ns, accel))
+
+    def finish(self):
+        out = self._place(self.denoiser.flush())
+        rest, self._pending = np.zeros(len(self._pending)), self._pending[:0]
+        return np.concatenate([out, rest])
+
+    def _place(self, chunk) -> np.ndarray:
+        if not len(chunk):
+            return _EMPTY
+        summed = np.asarray(chunk.values, float).sum(axis=1)
+        n, pending = len(chunk), self._pending
+        if n <= len(pending) and np.array_equal(pending[:n], chunk.stamps_ns):
+            self._pending = pending[n:]
+            return summed
+        index = np.searchsorted(pending, chunk.stamps_ns)
+        ok = index < len(pending)
+        ok[ok] = pending[index[ok]] == chunk.stamps_ns[ok]
+        if not ok.all():  # every output sample carries the stamp of an input sample
+            raise RuntimeError("denoised sample without its input sample")
+        out = np.zeros(int(index[-1]) + 1)
+        out[index] = summed
+        self._pending = pending[len(out) :]
+        return out
+
+
+class StationaryGate:
+    """noisereduce's stationary spectral gate (reduce_noise(stationary=True, n_fft=64, no
+    mask smoothing)) as a stream, with bounded look-ahead.
+
+    As noisereduce does it: Hann frames of n_fft samples every n_fft // 4 on the signal
+    zero-padded at both ends, a bin kept where its level 20 log10(|X| + eps) exceeds the
+    noise threshold of its frequency (mean + 1.5 std of the noise clip's levels, see
+    `gate_threshold`), else zeroed; inverse by windowed overlap-add. Output sample i is
+    final once the frame starting at the multiple of n_fft // 4 at or before i is complete:
+    up to n_fft - 1 samples of look-ahead (21 ms at 3 kHz).
+
+    One change makes it a stream: noisereduce floors each level at the maximum level of
+    its frequency over the whole signal (per 200 s chunk) minus 80 dB; that floor needs
+    the whole signal and is left out (it only matters where a bin is > 80 dB below the
+    loudest moment of its frequency and yet above the noise threshold).
+
+    `threshold` may come later (`set_threshold`): the input waits until then."""
+
+    def __init__(self, threshold: np.ndarray | None = None, *, n_fft: int = NOISEREDUCE_N_FFT):
+        self.n_fft, self.hop = int(n_fft), int(n_fft) // 4
+        self.overlap = self.n_fft // self.hop
+        self.window = signal.get_window("hann", self.n_fft)
+        self.scale = np.sqrt(1.0 / self.window.sum() ** 2)  # scipy.signal.stft, "spectrum"
+        # the sum of squared windows over a sample's frames, added in frame order as istft does
+        square = (self.window**2).reshape(self.overlap, self.hop)
+        norm = np.zeros(self.hop)
+        for k in range(self.overlap - 1, -1, -1):
+            norm = norm + square[k]
+        self.norm = np.where(norm > 1e-10, norm, 1.0)
+        self.threshold = None if threshold is None else np.asarray(threshold, float)
+        lead = self.n_fft - self.hop
+        self._buf = np.zeros(lead)  # input from sample -lead on (zero padding before 0)
+        self._tail = np.zeros((self.overlap - 1, self.hop))  # partial sums of coming hops
+        self._out_pos = -lead  # index of the next output sample (negative: padding)
+        self._waiting: list[np.ndarray] = []
+        self.count = 0  # input samples pushed
+
+    def set_threshold(self, threshold: np.ndarray) -> np.ndarray:
+        """Set the noise threshold; returns the output of the input pushed before."""
+        self.threshold = np.asarray(threshold, float)
+        waiting, self._waiting = self._waiting, []
+        return np.concatenate([_EMPTY] + [self._run(x) for x in waiting])
+
+    def push(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, float)
+        self.count += x.size
+        if self.threshold is None:
+            self._waiting.append(x)
+            return _EMPTY
+        return self._run(x)
+
+    def finish(self) -> np.ndarray:
+        if self.threshold is None:
+            raise ValueError("StationaryGate: no noise threshold")
+        if not self.count:
+            return _EMPTY
+        # zeros after the end until the frames covering the last sample are complete
+        last_hop = (self.count - 1) // self.hop * self.hop
+        start = self._out_pos
+        out = self._run(np.zeros(last_hop + self.n_fft - self.count))
+        return out[: self.count - max(start, 0)]
+
+    def _run(self, x: np.ndarray) -> np.ndarray:
+        buf = np.concatenate([self._buf, x])
+        n_frames = (len(buf) - self.n_fft) // self.hop + 1 if len(buf) >= self.n_fft else 0
+        if n_frames <= 0:
+            self._buf = buf
+            return _EMPTY
+        frames = np.lib.stride_tricks.sliding_window_view(buf, self.n_fft)[:: self.hop][:n_frames]
+        spectrum = sp_fft.rfft(self.window * frames, n=self.n_fft, axis=-1) * self.scale
+        level = 20 * np.log10(np.abs(spectrum) + np.finfo(np.float64).eps)
+        mask = (level > self.threshold) * 1.0  # prop_decrease = 1
+        pieces = sp_fft.irfft(spectrum * mask, n=self.n_fft, axis=-1)[:, : self.n_fft]
+        pieces = (pieces * self.window.sum()) * self.window
+        segments = pieces.reshape(n_frames, self.overlap, self.hop)
+        extended = np.zeros((n_frames + self.overlap - 1, self.hop))
+        extended[: self.overlap - 1] += self._tail
+        for k in range(self.overlap - 1, -1, -1):  # frame order, as scipy.signal.istft adds
+            extended[k : k + n_frames] += segments[:, k]
+        self._tail = extended[n_frames:]
+        self._buf = buf[n_frames * self.hop :]
+        out = (extended[:n_frames] / self.norm).reshape(-1)
+        start, self._out_pos = self._out_pos, self._out_pos + out.size
+        return out[max(-start, 0) :] if start < 0 else out
+
+
+def gate_threshold(noise_clip: np.ndarray, *, n_fft: int = NOISEREDUCE_N_FFT) -> np.ndarray:
+    """Per-frequency noise threshold (dB) of noisereduce's stationary gate from a noise clip
+    (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it): computed by
+    noisereduce's own code."""
+    from noisereduce.spectralgate.utils import _amp_to_db
+
+    clip = np.asarray(noise_clip, float)[:NOISE_CLIP_SAMPLES]
+    _, _, stft = signal.stft(
+        clip, nfft=n_fft, noverlap=n_fft - n_fft // 4, nperseg=n_fft, padded=False
     )
-    return on_input_stamps(stamps, values, rec.accel_stamps_ns)
+    level = _amp_to_db(stft)
+    return np.mean(level, axis=1) + np.std(level, axis=1) * NOISEREDUCE_N_STD
 
 
-def _noisereduce(rec, ctx: MethodContext) -> np.ndarray:
-    import noisereduce
+class GateStream(MethodStream):
+    """`StationaryGate` on the combined band-passed input."""
 
-    if ctx.noise_clip is None:
-        raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
-    signal = combined_bandpassed(rec.accel, ctx.model)
-    # No mask smoothing: a 64-sample STFT gate, the same latency class as the paper.
-    return noisereduce.reduce_noise(
-        y=signal,
-        sr=int(ctx.model.sample_rate_hz),
-        stationary=True,
-        y_noise=np.asarray(ctx.noise_clip, float),
-        n_fft=NOISEREDUCE_N_FFT,
-        freq_mask_smooth_hz=None,
-        time_mask_smooth_ms=None,
-    )
+    def __init__(self, threshold: np.ndarray | None = None):
+        self.gate = StationaryGate(threshold)
+
+    def push(self, stamps_ns, accel, raw):
+        return self.gate.push(raw)
+
+    def finish(self):
+        return self.gate.finish()
+
+
+CORE_OPTIONS = {
+    "boll": dict(channels="combined", include_std=False),
+    "paper": dict(channels="combined"),
+    "wiener": dict(channels="combined"),
+    "per_axis": dict(channels="per_axis"),
+    "paper_L32": dict(channels="combined"),
+}
+
+
+def method_stream(
+    name: str,
+    *,
+    model: NoiseModel,
+    model_short: NoiseModel | None = None,
+    gate: np.ndarray | None = None,
+    source: str = "",
+) -> MethodStream:
+    """A fresh stream of method `name` (`gate`: noisereduce's noise threshold, may be set
+    later on the stream's gate)."""
+    if name not in METHOD_LABELS:
+        raise ValueError(f"unknown method {name!r}; expected one of {list(METHOD_LABELS)}")
+    if name == "bandpass":
+        return BandpassStream()
+    if name == "noisereduce":
+        return GateStream(gate)
+    if name == "paper_L32":
+        if model_short is None:
+            raise ValueError(
+                "paper_L32 needs a model calibrated with 32-sample blocks "
+                "(MethodContext.model_short)"
+            )
+        model = model_short
+    options = dict(CORE_OPTIONS[name])
+    if name == "wiener":
+        options["rule"] = WienerRule()
+    return CoreStream(model, source=source, **options)
 
 
 def _block_delay_ms(model: NoiseModel | None) -> float | None:
     return None if model is None else 1e3 * model.block_length / model.sample_rate_hz
-
-
-RUNNERS: dict[str, Callable] = {
-    "bandpass": lambda rec, ctx: combined_bandpassed(rec.accel, ctx.model),
-    "boll": lambda rec, ctx: _core(rec, ctx.model, channels="combined", include_std=False),
-    "paper": lambda rec, ctx: _core(rec, ctx.model, channels="combined"),
-    "wiener": lambda rec, ctx: _core(rec, ctx.model, channels="combined", rule=WienerRule()),
-    "noisereduce": _noisereduce,
-    "per_axis": lambda rec, ctx: _core(rec, ctx.model, channels="per_axis"),
-    "paper_L32": lambda rec, ctx: _core(rec, ctx.model_short, channels="combined"),
-}
 
 
 def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
@@ -176,11 +368,20 @@ def available_methods(ctx: MethodContext) -> list[str]:
 
 
 def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
-    """(N,) combined band-passed output of method `name` on the recording `rec`."""
-    if name not in RUNNERS:
-        raise ValueError(f"unknown method {name!r}; expected one of {list(RUNNERS)}")
-    if name == "paper_L32" and ctx.model_short is None:
-        raise ValueError(
-            "paper_L32 needs a model calibrated with 32-sample blocks (MethodContext.model_short)"
-        )
-    return np.asarray(RUNNERS[name](rec, ctx), float)
+    """(N,) combined band-passed output of method `name` on the recording `rec`: its
+    stream (`method_stream`) fed the whole recording at once."""
+    if name not in METHOD_LABELS:
+        raise ValueError(f"unknown method {name!r}; expected one of {list(METHOD_LABELS)}")
+    gate = None
+    if name == "noisereduce":
+        if ctx.noise_clip is None:
+            raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
+        gate = gate_threshold(ctx.noise_clip)
+    stream = method_stream(name, model=ctx.model, model_short=ctx.model_short, gate=gate)
+    raw = combined_bandpassed(rec.accel, ctx.model)
+    parts = [
+        stream.push_joint_states(rec.joint_stamps_ns, rec.joint_velocity),
+        stream.push(rec.accel_stamps_ns, rec.accel, raw),
+        stream.finish(),
+    ]
+    return np.concatenate(parts)

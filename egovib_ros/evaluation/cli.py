@@ -1,6 +1,7 @@
 """`egovib evaluate` and `egovib figures` (CONTRACT sections 3 and 6).
 
-    egovib evaluate BAG --model MODEL.npz --json FILE [--calibration BAG]
+    egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration BAG]
+                    [--jobs N | --scheduler ADDRESS]
     egovib figures --out DIR [--quick]
 
 `evaluate_recording(rec, model, **opts) -> dict` is re-exported here for the demo.
@@ -13,6 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from egovib_ros import cliutil
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.evaluation import metrics
@@ -22,6 +25,7 @@ from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
     require_ground_truth,
 )
 from egovib_ros.fileutil import atomic_output, prepare_output, prepare_outputs_in
+from egovib_ros.offline import parallel_options
 
 __all__ = ["evaluate_recording", "register"]
 
@@ -48,21 +52,88 @@ def _calibration_bag(args, model) -> Path | None:
     return None
 
 
+def json_jobs(specs: list[str], out: str) -> list:
+    """One bag given as such -> `out` is the JSON file (CONTRACT); several bags or a
+    directory -> `out` is a directory holding <bag name>.json per bag (the bag's path
+    relative to the directory it was found in, e.g. OUT/day1/run0.json)."""
+    from egovib_ros.bag.many import BagJob, expand_bags
+
+    pairs = expand_bags(specs)
+    if len(specs) == 1 and len(pairs) == 1 and Path(specs[0]) == pairs[0][0]:
+        return [BagJob(pairs[0][0], Path(out))]
+    directory = Path(out)
+    if directory.exists() and not directory.is_dir():
+        raise ConfigError(f"--json {out}: with several bags --json must be a directory")
+    return [BagJob(bag, directory / f"{name}.json") for bag, name in pairs]
+
+
+def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options) -> dict:
+    """One bag: streamed evaluation, its JSON written atomically; returns the summary
+    figures (what the summary line shows). Runs in a worker with --jobs/--scheduler."""
+    from egovib_ros.evaluation.evaluate import evaluate_bag
+
+    calibration = options.get("calibration")
+    try:
+        report = evaluate_bag(bag, progress=progress, **options)
+    except ValueError as exc:  # a method that cannot run on these data
+        raise BagError(f"{bag}: {exc}") from None
+    report = {
+        "bag": str(bag),
+        "model": str(model_path),
+        "calibration_bag": str(calibration) if calibration else None,
+        **report,
+    }
+    with atomic_output(out) as tmp:
+        tmp.write_text(json.dumps(metrics.json_safe(report), indent=2) + "\n")
+    fields = (
+        "n_taps",
+        "noise_reduction_db",
+        "peak_snr_raw_db",
+        "peak_snr_denoised_db",
+        "tap_retention",
+        "f1_raw",
+        "f1_denoised",
+    )
+    return {
+        **{field: report[field] for field in fields},
+        "bad_samples": bad_samples_said(report["bad_samples"]),
+    }
+
+
+def _describe(figures: dict) -> str:
+    def number(value, form):
+        return "n/a" if value is None or not np.isfinite(value) else format(value, form)
+
+    text = (
+        f"{figures['n_taps']} taps, noise reduction {number(figures['noise_reduction_db'], '.1f')} "
+        f"dB, peak SNR {number(figures['peak_snr_raw_db'], '.1f')} -> "
+        f"{number(figures['peak_snr_denoised_db'], '.1f')} dB, retention "
+        f"{number(figures['tap_retention'], '.2f')}, F1 raw {figures['f1_raw']:.2f} -> "
+        f"denoised {figures['f1_denoised']:.2f}"
+    )
+    return text + (f"; {figures['bad_samples']}" if figures["bad_samples"] else "")
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
-    from egovib_ros.bagio import read_recording
+    import functools
+
+    from egovib_ros.bag.many import run_bags, summary_lines
     from egovib_ros.core import NoiseModel
     from egovib_ros.evaluation import baselines
+    from egovib_ros.offline import model_profile
 
-    model = NoiseModel.load(args.model)
+    model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
+    model_profile(model)
     calibration_path = _calibration_bag(args, model)
-    # before any work
-    prepare_output(
-        args.json,
-        force=args.force,
-        kind="json",
-        option="--json",
-        inputs=[args.bag, args.model, calibration_path, args.model_short],
-    )
+    jobs = json_jobs(args.bags, args.json)
+    for job in jobs:  # before any work: every JSON may be written (or replaced with --force)
+        prepare_output(
+            job.out,
+            force=args.force,
+            kind="json",
+            option="--json",
+            inputs=[job.bag, args.model, calibration_path, args.model_short],
+        )
     model_short = NoiseModel.load(args.model_short) if args.model_short else None
     methods = None
     if args.methods:
@@ -72,46 +143,30 @@ def run_evaluate(args: argparse.Namespace) -> int:
             raise ConfigError(
                 f"--methods: unknown method(s) {unknown}; expected {list(baselines.METHOD_LABELS)}"
             )
-    # The joints the model is keyed on, as denoise reads them: a bag without them is refused.
-    rec = read_recording(args.bag, denoised=True, joint_names=model.joint_names)
-    require_ground_truth(rec, where=str(args.bag))
-    calibration = None
-    if calibration_path is not None:
-        calibration = read_recording(
-            calibration_path, ground_truth=False, denoised=False, joint_names=model.joint_names
-        )
-    try:
-        report = evaluate_recording(
-            rec,
-            model,
-            calibration=calibration,
-            model_short=model_short,
-            methods=methods,
-            source=str(args.bag),
-            calibration_source=str(calibration_path),
-            max_bad_fraction=args.max_bad_fraction,
-        )
-    except ValueError as exc:
-        raise BagError(f"{args.bag}: {exc}") from None
-    report = {
-        "bag": str(args.bag),
-        "model": str(args.model),
-        "calibration_bag": str(calibration_path) if calibration_path else None,
-        **report,
-    }
-    with atomic_output(args.json) as tmp:
-        tmp.write_text(json.dumps(metrics.json_safe(report), indent=2) + "\n")
-    if bad_samples_said(report["bad_samples"]):  # always said, even with --quiet
-        print(f"{args.bag}: {bad_samples_said(report['bad_samples'])}", file=sys.stderr)
-    if not args.quiet:
-        print(
-            f"{args.bag}: {report['n_taps']} taps, "
-            f"noise reduction {report['noise_reduction_db']:.1f} dB, "
-            f"peak SNR {report['peak_snr_raw_db']:.1f} -> {report['peak_snr_denoised_db']:.1f} dB, "
-            f"retention {report['tap_retention']:.2f}, F1 raw {report['f1_raw']:.2f} -> "
-            f"denoised {report['f1_denoised']:.2f}; wrote {args.json}"
-        )
-    return 0
+    task = functools.partial(
+        evaluate_task,
+        model_path=str(args.model),
+        model=model,
+        calibration=calibration_path,
+        model_short=model_short,
+        methods=methods,
+        max_bad_fraction=args.max_bad_fraction,
+    )
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="evaluate", quiet=args.quiet
+    )
+    if len(jobs) == 1:
+        r = results[0]
+        if not r.ok:
+            raise BagError(r.error.splitlines()[0] if r.error else f"{r.bag}: failed")
+        if r.value["bad_samples"]:  # always said, even with --quiet
+            print(f"{r.bag}: {r.value['bad_samples']}", file=sys.stderr)
+        if not args.quiet:
+            print(f"{r.bag}: {_describe({**r.value, 'bad_samples': ''})}; wrote {r.out}")
+        return 0
+    for line in summary_lines(results, _describe):
+        print(line, file=sys.stderr)
+    return 0 if all(r.ok for r in results) else 2
 
 
 def run_figures(args: argparse.Namespace) -> int:
@@ -151,19 +206,29 @@ def run_figures(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     ev = subparsers.add_parser(
         "evaluate",
-        help="paper metrics on a bag with ground truth (JSON)",
+        help="paper metrics on bags with ground truth (JSON)",
         description="Denoise BAG with MODEL by every method and write the paper's "
         "metrics (CONTRACT section 6) as JSON. Needs the ground-truth "
         "topic /accelerometer/contact. If BAG also holds "
         "/accelerometer/denoised (from `egovib denoise` or the live node), "
-        "it is scored too, as method 'bag_denoised'.",
+        "it is scored too, as method 'bag_denoised'. Bags are streamed (memory does not "
+        "grow with their length). Several bags (or directories of bags): --json is a "
+        "directory, one JSON per bag (<bag name>.json), processed in parallel with --jobs.",
     )
     ev.add_argument(
-        "bag",
-        help="rosbag2 directory with /accelerometer/raw, /joint_states, /accelerometer/contact",
+        "bags",
+        nargs="+",
+        metavar="BAG",
+        help="rosbag2 bag(s) with /accelerometer/raw, /joint_states, /accelerometer/contact, "
+        "or directories of bags",
     )
     ev.add_argument("--model", required=True, help="noise model .npz")
-    ev.add_argument("--json", required=True, metavar="FILE", help="output JSON")
+    ev.add_argument(
+        "--json",
+        required=True,
+        metavar="FILE",
+        help="output JSON (one bag), or directory of <bag name>.json (several bags)",
+    )
     ev.add_argument(
         "--calibration",
         metavar="BAG",
@@ -181,6 +246,7 @@ def register(subparsers) -> None:
         help="refuse a recording with more bad (non-finite or out-of-range) samples "
         f"than this (default {metrics.MAX_BAD_FRACTION:g})",
     )
+    parallel_options(ev)
     ev.add_argument("--force", action="store_true", help="replace an existing JSON file")
     ev.add_argument("--quiet", action="store_true")
     ev.set_defaults(func=run_evaluate)

@@ -35,9 +35,7 @@ CALIBRATION_MARGIN = 1.1
 
 def envelope(x: np.ndarray, *, sample_rate_hz: float, window_s: float = ENVELOPE_S) -> np.ndarray:
     """Causal moving-RMS envelope of a 1-D signal (what the threshold is applied to)."""
-    n = max(1, int(round(window_s * sample_rate_hz)))
-    power = signal.lfilter(np.full(n, 1.0 / n), [1.0], np.asarray(x, float) ** 2)
-    return np.sqrt(np.maximum(power, 0.0))
+    return Envelope(sample_rate_hz=sample_rate_hz, window_s=window_s).process(x)
 
 
 def detect_events(
@@ -179,9 +177,168 @@ def pr2_magnitude(
 ) -> np.ndarray:
     """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper
     sensor's input)."""
-    sos = signal.butter(1, highpass_hz, btype="highpass", fs=sample_rate_hz, output="sos")
-    accel = np.asarray(accel, float)
-    # Start the filter at rest on the first sample so gravity does not produce a start-up spike.
-    zi = signal.sosfilt_zi(sos)[:, :, None] * accel[:1][None, :, :]
-    filtered, _ = signal.sosfilt(sos, accel, axis=0, zi=zi)
-    return np.linalg.norm(filtered, axis=1)
+    return PR2Magnitude(sample_rate_hz=sample_rate_hz, highpass_hz=highpass_hz).process(accel)
+
+
+class PR2Magnitude:
+    """`pr2_magnitude` with carried filter state (any chunking, the same samples)."""
+
+    def __init__(self, *, sample_rate_hz: float, highpass_hz: float = PR2_HIGHPASS_HZ):
+        self.sos = signal.butter(1, highpass_hz, btype="highpass", fs=sample_rate_hz, output="sos")
+        self._zi: np.ndarray | None = None
+
+    def process(self, accel: np.ndarray) -> np.ndarray:
+        accel = np.asarray(accel, float)
+        if not len(accel):
+            return np.zeros(0)
+        if self._zi is None:
+            # Start at rest on the first sample so gravity does not produce a start-up spike.
+            self._zi = signal.sosfilt_zi(self.sos)[:, :, None] * accel[:1][None, :, :]
+        filtered, self._zi = signal.sosfilt(self.sos, accel, axis=0, zi=self._zi)
+        return np.linalg.norm(filtered, axis=1)
+
+
+# --------------------------------------------------------------------------
+# Streaming forms (evaluation/stream.py): the same detector and scores over a signal
+# that arrives in pieces, with explicit carried state.
+# --------------------------------------------------------------------------
+class Envelope:
+    """`envelope` with carried filter state: any chunking gives the same samples."""
+
+    def __init__(self, *, sample_rate_hz: float, window_s: float = ENVELOPE_S):
+        n = max(1, int(round(window_s * sample_rate_hz)))
+        self._b = np.full(n, 1.0 / n)
+        self._zi = np.zeros(n - 1)
+
+    def process(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, float)
+        if not x.size:
+            return x.copy()
+        power, self._zi = signal.lfilter(self._b, [1.0], x**2, zi=self._zi)
+        return np.sqrt(np.maximum(power, 0.0))
+
+
+class EventDetector:
+    """`detect_events` over a magnitude stream. An event is emitted once no later sample
+    can join it (`refractory_s` below the threshold) or at `finish`; of an open event only
+    its running peak and the candidate onsets (strict running maxima of at least
+    `onset_fraction` of that peak) are kept, so memory does not grow with its length.
+
+    `horizon`: every onset still to come is at or after this sample."""
+
+    def __init__(
+        self,
+        threshold: float,
+        *,
+        sample_rate_hz: float,
+        refractory_s: float = REFRACTORY_S,
+        onset_fraction: float = ONSET_FRACTION,
+    ):
+        self.threshold = float(threshold)
+        self.gap = max(1, int(round(refractory_s * sample_rate_hz)))
+        self.fraction = float(onset_fraction)
+        self.pos = 0
+        self._open = False
+        self._start = self._last = 0
+        self._peak = -np.inf
+        self._records: list[tuple[int, float]] = []  # (index, value), increasing values
+        self._onsets: list[int] = []
+
+    @property
+    def horizon(self) -> int:
+        return self._start if self._open else self.pos
+
+    def push(self, magnitude: np.ndarray) -> None:
+        magnitude = np.asarray(magnitude, float)
+        p = self.pos
+        above = np.flatnonzero(magnitude > self.threshold) + p
+        if above.size:
+            previous = np.concatenate(([self._last if self._open else -(1 << 62)], above[:-1]))
+            new = np.flatnonzero(above - previous >= self.gap)
+            bounds = list(new) + [above.size]
+            if bounds[0] > 0:  # continues the open event
+                self._extend(magnitude, p, p, int(above[bounds[0] - 1]))
+            for k in range(len(bounds) - 1):
+                if self._open:
+                    self._close()
+                first, last = int(above[bounds[k]]), int(above[bounds[k + 1] - 1])
+                self._open, self._start = True, first
+                self._peak, self._records = -np.inf, []
+                self._extend(magnitude, p, first, last)
+        self.pos = p + magnitude.size
+        if self._open and self.pos - self._last >= self.gap:
+            self._close()
+
+    def _extend(self, magnitude: np.ndarray, p: int, first: int, last: int) -> None:
+        """Add samples [first, last] (global) of the open event; `last` is above threshold."""
+        span = magnitude[first - p : last - p + 1]
+        running = np.maximum.accumulate(span)
+        before = np.maximum(np.concatenate(([self._peak], running[:-1])), self._peak)
+        new = np.flatnonzero(span > before)
+        self._peak = max(self._peak, float(running[-1]))
+        floor = self.fraction * self._peak
+        records = [r for r in self._records if r[1] >= floor]
+        records += [(first + int(i), float(span[i])) for i in new if span[i] >= floor]
+        self._records = records
+        self._last = last
+
+    def _close(self) -> None:
+        level = self.fraction * self._peak
+        self._onsets.append(next(i for i, v in self._records if v >= level))
+        self._open = False
+
+    def finish(self) -> None:
+        if self._open:
+            self._close()
+
+    def take(self) -> np.ndarray:
+        """Onsets of the events closed since the last call (in order)."""
+        onsets, self._onsets = self._onsets, []
+        return np.asarray(onsets, np.int64)
+
+
+class EventMatcher:
+    """`precision_recall_f1` over onsets that arrive in order: the optimal one-to-one
+    assignment splits into groups no pair within the tolerance connects, so each group is
+    scored (match_events) once no later onset can join it, and only counts are kept."""
+
+    def __init__(self, *, sample_rate_hz: float, tolerance_s: float = TOLERANCE_S):
+        self.tolerance = int(round(tolerance_s * sample_rate_hz))
+        self._detected: list[int] = []
+        self._truth: list[int] = []
+        self.tp = self.fp = self.fn = 0
+
+    def add(self, detected=(), truth=()) -> None:
+        self._detected += [int(i) for i in detected]
+        self._truth += [int(i) for i in truth]
+
+    def advance(self, horizon: int) -> None:
+        """Score the groups that no onset at or after `horizon` can join."""
+        points = np.sort(np.asarray(self._detected + self._truth, np.int64))
+        if not points.size:
+            return
+        gaps = np.flatnonzero(np.diff(points) > self.tolerance) + 1
+        cuts = np.concatenate([gaps, [points.size]])
+        cuts = cuts[points[cuts - 1] + self.tolerance < horizon]
+        if cuts.size:
+            self._score(int(points[cuts[-1] - 1]))
+
+    def _score(self, upto: int) -> None:
+        """Score every pending onset <= upto."""
+        detected = [i for i in self._detected if i <= upto]
+        truth = [i for i in self._truth if i <= upto]
+        self._detected = [i for i in self._detected if i > upto]
+        self._truth = [i for i in self._truth if i > upto]
+        tp, fp, fn = match_events(np.asarray(detected), np.asarray(truth), self.tolerance)
+        self.tp, self.fp, self.fn = self.tp + tp, self.fp + fp, self.fn + fn
+
+    def finish(self) -> None:
+        self._score(np.iinfo(np.int64).max)
+
+    def scores(self) -> dict:
+        """precision_recall_f1's dict (call after `finish`)."""
+        tp, fp, fn = self.tp, self.fp, self.fn
+        precision = tp / (tp + fp) if tp + fp else 1.0
+        recall = tp / (tp + fn) if tp + fn else 1.0
+        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+        return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}

@@ -39,6 +39,7 @@ error, not a result (evaluate.py).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -411,3 +412,232 @@ def json_safe(value):
     if isinstance(value, np.ndarray):
         return json_safe(value.tolist())
     return value
+
+
+# --------------------------------------------------------------------------
+# Streaming forms (evaluation/stream.py): the same definitions over a signal that
+# arrives in pieces, with explicit carried state; memory is bounded by the longest
+# contact or bad-sample run, never by the recording.
+# --------------------------------------------------------------------------
+class BadRunExclusion:
+    """`exclusion_mask` over a bad-sample flag stream: each bad run [a, b) excludes
+    [a - margin, b + margin + min(b - a, settle_max)), clipped to [0, n).
+
+    `push(flags)` appends the flags of the next samples. The exclusion of sample i is
+    final once the flags up to i + margin are in (`known`)."""
+
+    def __init__(self, *, margin: int, settle_max: int, n: int):
+        self.margin, self.settle_max, self.n = int(margin), int(settle_max), int(n)
+        self.intervals: list[tuple[int, int]] = []  # [start, stop) of ended runs, by start
+        self.open_start: int | None = None  # first sample of a run not yet ended
+        self.known = 0  # flags are in for [0, known)
+        self.bad = 0
+
+    def push(self, flags: np.ndarray) -> None:
+        flags = np.asarray(flags, bool)
+        p = self.known
+        self.known += flags.size
+        if not flags.size:
+            return
+        self.bad += int(np.count_nonzero(flags))
+        if self.open_start is not None and not flags[0]:
+            self._close(self.open_start, p)
+            self.open_start = None
+        for a, b in _runs(flags) + p:
+            a, b = int(a), int(b)
+            if a == p and self.open_start is not None:  # continues the run open before
+                a, self.open_start = self.open_start, None
+            if b == self.known:  # may go on in the next flags
+                self.open_start = a
+            else:
+                self._close(a, b)
+
+    def _close(self, start: int, stop: int) -> None:
+        length = stop - start
+        self.intervals.append(
+            (
+                max(start - self.margin, 0),
+                min(stop + self.margin + min(length, self.settle_max), self.n),
+            )
+        )
+
+    def finish(self) -> None:
+        if self.open_start is not None:
+            self._close(self.open_start, self.known)
+            self.open_start = None
+
+    def _all(self) -> list[tuple[int, int]]:
+        if self.open_start is None:
+            return self.intervals
+        return self.intervals + [(max(self.open_start - self.margin, 0), self.n)]
+
+    def mask(self, p: int, q: int) -> np.ndarray:
+        """(q - p,) bool: excluded samples of [p, q) (final for q <= known - margin)."""
+        out = np.zeros(max(q - p, 0), bool)
+        for a, b in self._all():
+            if a < q and b > p:
+                out[max(a, p) - p : min(b, q) - p] = True
+        return out
+
+    def any_in(self, p: int, q: int) -> bool:
+        return any(a < q and b > p for a, b in self._all())
+
+    def prune(self, before: int) -> None:
+        """Forget intervals that end at or before `before` (no longer asked about)."""
+        self.intervals = [iv for iv in self.intervals if iv[1] > before]
+
+
+@dataclass
+class Tap:
+    """One tap of the ground truth: a merged run of contact activity [start, stop) and its
+    window [window_start, window_stop) (final once `closed`)."""
+
+    start: int
+    stop: int
+    closed: bool = False
+    window_start: int = 0
+    window_stop: int = 0
+    peaks: np.ndarray | None = None  # per metric signal, max |x| over the window so far
+    kept: bool | None = None  # decided: True kept, False dropped (bad input in its window)
+
+
+class ContactSegmenter:
+    """`segment_contacts` over a reference stream: taps appear as their contact starts and
+    close once no later activity can merge with them (`min_gap_s` of quiet).
+
+    The `level` is the activity threshold of the whole recording (activity_threshold of
+    its reference, found by a pass before). A sample's window membership is final once
+    the reference is in up to `lag` samples past it."""
+
+    def __init__(
+        self,
+        *,
+        level: float,
+        n: int,
+        sample_rate_hz: float,
+        margin_before_s: float = MARGIN_BEFORE_S,
+        margin_after_s: float = MARGIN_AFTER_S,
+        min_gap_s: float = MIN_GAP_S,
+    ):
+        self.level, self.n = float(level), int(n)
+        self.before = int(round(margin_before_s * sample_rate_hz))
+        self.after = int(round(margin_after_s * sample_rate_hz))
+        self.min_gap = max(1, int(round(min_gap_s * sample_rate_hz)))
+        self.lag = self.before + self.min_gap + 1
+        self.open: Tap | None = None
+        self.new: list[Tap] = []  # taps started since the last `take_new`
+        self.pos = 0
+
+    def push(self, reference: np.ndarray) -> None:
+        reference = np.asarray(reference, float)
+        p = self.pos
+        self.pos += reference.size
+        active = np.flatnonzero(np.abs(reference) > self.level) + p
+        if active.size:
+            # a new group where the quiet before an active sample is >= min_gap
+            previous = np.concatenate(([self.open.stop - 1 if self.open else -(1 << 62)], active))
+            starts = np.flatnonzero(active - previous[:-1] - 1 >= self.min_gap)
+            bounds = list(starts) + [active.size]
+            if bounds[0] > 0:  # the first active samples continue the open tap
+                self.open.stop = int(active[bounds[0] - 1]) + 1
+            for k in range(len(bounds) - 1):
+                if self.open is not None:
+                    self._close()
+                self.open = Tap(
+                    start=int(active[bounds[k]]), stop=int(active[bounds[k + 1] - 1]) + 1
+                )
+                self.open.window_start = max(self.open.start - self.before, 0)
+                self.new.append(self.open)
+        if self.open is not None:
+            self.open.window_stop = min(self.open.stop + self.after, self.n)
+            if self.pos - self.open.stop >= self.min_gap:
+                self._close()
+
+    def _close(self) -> None:
+        tap, self.open = self.open, None
+        tap.window_stop = min(tap.stop + self.after, self.n)
+        tap.closed = True
+
+    def finish(self) -> None:
+        if self.open is not None:
+            self._close()
+
+    def take_new(self) -> list[Tap]:
+        new, self.new = self.new, []
+        return new
+
+
+class TopValues:
+    """The largest `capacity` values pushed (and how many were pushed): enough for an exact
+    `quantile(q)` of everything pushed as long as (1 - q) * count + 3 <= capacity."""
+
+    def __init__(self, capacity: int):
+        self.capacity = max(int(capacity), 0)
+        self.values = np.zeros(0)
+        self.count = 0
+
+    @classmethod
+    def for_quantile(cls, quantile: float, max_count: int) -> "TopValues":
+        return cls(int(math.ceil((1.0 - quantile) * max_count)) + 3)
+
+    def push(self, values: np.ndarray) -> None:
+        values = np.asarray(values, float)
+        self.count += values.size
+        if not values.size or not self.capacity:
+            return
+        merged = np.concatenate([self.values, values])
+        if merged.size > self.capacity:
+            merged = np.partition(merged, merged.size - self.capacity)[-self.capacity :]
+        self.values = merged
+
+    def quantile(self, quantile: float) -> float:
+        """np.quantile(all values pushed, quantile) ('linear'), from the largest ones kept."""
+        m = self.count
+        if m == 0:
+            return float("nan")
+        top = np.sort(self.values)
+        virtual = (m - 1) * quantile
+        if virtual >= m - 1:
+            return float(top[-1])
+        below = int(math.floor(virtual))
+        gamma = virtual - below
+        first = below - (m - top.size)  # index into the kept values
+        if first < 0:
+            raise ValueError("TopValues: capacity too small for this quantile")
+        a, b = top[first], top[first + 1]
+        diff = b - a
+        return float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
+
+
+class LagCorrelation:
+    """`estimate_lag` over two streams: the cross-correlation sum_n x[n + lag] ref[n] for
+    |lag| <= max_lag, accumulated as pairs complete (history of max_lag samples)."""
+
+    def __init__(self, max_lag: int = 96):
+        self.max_lag = int(max_lag)
+        self.corr = np.zeros(2 * self.max_lag + 1)
+        self._ref = np.zeros(0)
+        self._x = np.zeros(0)
+        self.count = 0
+
+    def push(self, reference: np.ndarray, x: np.ndarray) -> None:
+        m = len(reference)
+        if not m:
+            return
+        lag_max, o = self.max_lag, len(self._ref)
+        ref = np.concatenate([np.zeros(lag_max - o), self._ref, np.asarray(reference, float)])
+        xs = np.concatenate([np.zeros(lag_max - o), self._x, np.asarray(x, float)])
+        # FFT correlation, as estimate_lag (a direct sum is slow on a reference that decays
+        # into subnormal numbers between taps). Pairs whose later sample is in this piece:
+        # x[j] ref[j - lag] (lag >= 0) and ref[j] x[j + lag] (lag < 0), j in the piece.
+        late = signal.correlate(ref, xs[lag_max:], mode="valid", method="fft")  # lag L .. 0
+        early = signal.correlate(xs, ref[lag_max:], mode="valid", method="fft")  # -L .. 0
+        self.corr[lag_max:] += late[::-1]
+        self.corr[:lag_max] += early[:lag_max]
+        self._ref, self._x = ref[-lag_max:], xs[-lag_max:]
+        self.count += m
+
+    def lag(self) -> int:
+        lags = np.arange(-self.max_lag, self.max_lag + 1)
+        keep = np.abs(lags) <= max(self.count - 1, 0)
+        return int(lags[keep][np.argmax(self.corr[keep])])

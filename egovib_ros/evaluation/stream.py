@@ -1,0 +1,1056 @@
+"""The evaluation as a stream: `egovib evaluate` over a recording pushed in time slices
+(`Recording`s, as `bag.iter_recording` yields them), in memory that does not grow with it.
+
+`evaluate.evaluate_recording` (whole arrays: `egovib figures`, experiments, the demo)
+pushes the recording as one slice through the very same objects, so a bag evaluated
+slice by slice gives the figures of the whole-array evaluation (tested for several
+slicings; sums are added in another order, so they agree to ~1e-15, all else exactly).
+
+Passes over the test recording (and the calibration recording):
+
+1. `SummaryPass` (test): what the evaluation needs of the whole run before it starts:
+   the number of samples, the peak of the ground-truth reference (the contact activity
+   threshold is 1e-3 of it), the largest joint speeds (the calibration samples that set
+   the detection thresholds are those within them), the bad-sample counts (more than
+   `max_bad_fraction` bad is refused before any other work) and whether the bag's own
+   denoised topic is combined or per axis.
+2. `CalibrationPass` (calibration data): every method run on the no-contact calibration
+   data, reduced to one detection threshold per method (1.1 x the largest envelope on
+   the masked samples) and noisereduce's per-frequency noise threshold (from the first
+   200 s, as noisereduce clips its noise clip). Without calibration data, an
+   `EvaluationPass` without thresholds takes its place: the largest envelope of each
+   method on the run's own no-contact samples.
+3. `EvaluationPass` (test): every method as a stream (`baselines.method_stream`) and the
+   metrics as accumulators: noise sums and the largest 0.1 % of no-contact magnitudes
+   (the 99.9 % spike quantile, exact), per-tap peaks, segmental SNR, event detection and
+   scoring, alignment lag; a sample is scored once every signal has it and its contact
+   and bad-input status is final (`look-ahead` below).
+
+What is held, and for how long (the bounded look-ahead):
+- a run of bad samples until the next good sample (they are bridged between them);
+- each method's own delay: the core's blocks (L - 1 samples + the joint-state wait),
+  noisereduce's frames (n_fft - 1 samples), the bag's denoised topic until its stamps
+  pass (at most 10 s);
+- the contact segmentation: margin before a tap + the merge gap (40 ms);
+- the exclusion around bad samples: one block (L samples);
+- per-segment SNRs, onsets and the bag-vs-batch difference inside a tap's window until
+  the tap is known to be kept or dropped (its window has passed).
+Nothing is held for the whole run but counts, sums, and the largest 0.1 % of the
+no-contact magnitudes (for the 99.9 % quantile: 8 bytes per 1000 samples and signal).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.core import NoiseModel
+from egovib_ros.core.filters import BandPass, channel_matrix
+from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.evaluation import baselines, detection, metrics
+
+SEGMENT_ACTIVE_MIN = metrics.SEGMENT_LENGTH // 2  # segments at least half inside a contact
+SPEED_MARGIN = 1.05  # calibration samples within 1.05 x the run's largest joint speeds
+RECORDED_MAX_WAIT_S = 10.0  # the bag's denoised topic may lag its raw samples this much
+
+
+def _combined(values: np.ndarray) -> np.ndarray:
+    return channel_matrix(values, "combined").T
+
+
+def _band(model: NoiseModel) -> BandPass:
+    """The core's band-pass for the combined signal (state carried across slices)."""
+    return BandPass(
+        sample_rate_hz=model.sample_rate_hz,
+        band_hz=model.band_hz,
+        order=model.band_order,
+        n_channels=1,
+    )
+
+
+class _Fifo:
+    """Samples of one signal from index `start` on: put at the end, taken from the front."""
+
+    def __init__(self, dtype=float):
+        self.parts: list[np.ndarray] = []
+        self.start = self.end = 0
+        self.dtype = dtype
+
+    def put(self, values: np.ndarray) -> None:
+        if len(values):
+            self.parts.append(values)
+            self.end += len(values)
+
+    def take(self, stop: int) -> np.ndarray:
+        """Samples [start, stop)."""
+        n = stop - self.start
+        if n <= 0:
+            return np.zeros(0, self.dtype)
+        data = self.parts[0] if len(self.parts) == 1 else np.concatenate(self.parts)
+        head, rest = data[:n], data[n:]
+        self.parts = [rest] if len(rest) else []
+        self.start = stop
+        return head
+
+
+# --------------------------------------------------------------------------
+# Input: bad samples, the bag's own denoised topic, the calibration speed mask
+# --------------------------------------------------------------------------
+class Screen:
+    """metrics.bad_samples + fill_missing over streams of (N, 3) samples on the same stamps:
+    a bad sample (non-finite or beyond its stream's range) is bridged linearly between
+    the good samples either side (held at the ends), so it is released once the next good
+    sample of its stream is in. Counts per stream: `nonfinite`, `beyond`."""
+
+    def __init__(self, ranges: Sequence[float]):
+        self.ranges = list(ranges)
+        k = len(self.ranges)
+        self.base = 0
+        self.stamps = np.zeros(0, np.int64)
+        self.values = [np.zeros((0, 3)) for _ in range(k)]
+        self.bad = [np.zeros(0, bool) for _ in range(k)]
+        self.anchor: list[tuple[int, np.ndarray] | None] = [None] * k
+        self.nonfinite = [0] * k
+        self.beyond = [0] * k
+
+    def push(self, stamps: np.ndarray, *streams: np.ndarray):
+        """-> (stamps, [filled values], [bad flags]) of the samples released."""
+        self.stamps = np.concatenate([self.stamps, np.asarray(stamps, np.int64)])
+        for i, values in enumerate(streams):
+            values = np.asarray(values, float).reshape(-1, 3)
+            bad, nonfinite, beyond = metrics.bad_samples(values, self.ranges[i])
+            self.nonfinite[i] += nonfinite
+            self.beyond[i] += beyond
+            self.values[i] = np.concatenate([self.values[i], values])
+            self.bad[i] = np.concatenate([self.bad[i], bad])
+        return self._release(min(self._resolved(i) for i in range(len(self.ranges))))
+
+    def finish(self):
+        return self._release(len(self.stamps), final=True)
+
+    def _resolved(self, i: int) -> int:
+        good = np.flatnonzero(~self.bad[i])
+        return int(good[-1]) + 1 if good.size else 0
+
+    def _release(self, r: int, final: bool = False):
+        out_values, out_bad = [], []
+        for i in range(len(self.ranges)):
+            values, bad = self.values[i], self.bad[i]
+            head, head_bad = values[:r], bad[:r]
+            if head_bad.any():
+                head = head.copy()
+                limit = len(values) if final else self._resolved(i)
+                good = np.flatnonzero(~bad[:limit])
+                xp, fp = good + self.base, values[good]
+                if self.anchor[i] is not None:
+                    xp = np.concatenate([[self.anchor[i][0]], xp])
+                    fp = np.concatenate([self.anchor[i][1][None, :], fp])
+                if not xp.size:
+                    raise ValueError("no valid sample at all")
+                missing = np.flatnonzero(head_bad)
+                for column in range(3):
+                    head[missing, column] = np.interp(missing + self.base, xp, fp[:, column])
+            good_head = np.flatnonzero(~head_bad)
+            if good_head.size:
+                g = int(good_head[-1])
+                self.anchor[i] = (self.base + g, values[g].copy())
+            out_values.append(head)
+            out_bad.append(head_bad)
+            self.values[i], self.bad[i] = values[r:], bad[r:]
+        stamps, self.stamps = self.stamps[:r], self.stamps[r:]
+        self.base += r
+        return stamps, out_values, out_bad
+
+
+class RecordedDenoised:
+    """The bag's own denoised topic on the input samples (baselines.on_input_stamps): the
+    sum of the axes of the message stamped like the input sample (the last one if several),
+    0 if none; a non-finite message counts as 0 and makes its sample bad. An input sample
+    is resolved once a denoised message stamped later has been read (or at the end, or
+    `max_pending` samples later: then it has none)."""
+
+    def __init__(self, *, max_pending: int):
+        self.max_pending = int(max_pending)
+        self.stamps = np.zeros(0, np.int64)
+        self.values = np.zeros(0)
+        self.bad = np.zeros(0, bool)
+        self.inputs = np.zeros(0, np.int64)
+        self.latest: int | None = None
+        self.rows = self.rows_bad = self.missing = 0
+        self.any_yz = False  # a (finite) message with y or z != 0: per-axis output
+
+    def add_denoised(self, stamps: np.ndarray | None, values: np.ndarray | None) -> None:
+        if stamps is None or not len(stamps):
+            return
+        values = np.asarray(values, float).reshape(-1, 3)
+        row_bad = ~np.all(np.isfinite(values), axis=1)
+        clean = np.where(row_bad[:, None], 0.0, values)
+        self.rows += len(values)
+        self.rows_bad += int(row_bad.sum())
+        self.any_yz = self.any_yz or bool(np.any(clean[:, 1:]))
+        stamps = np.asarray(stamps, np.int64)
+        all_stamps = np.concatenate([self.stamps, stamps])
+        order = np.argsort(all_stamps, kind="stable")
+        self.stamps = all_stamps[order]
+        self.values = np.concatenate([self.values, clean.sum(axis=1)])[order]
+        self.bad = np.concatenate([self.bad, row_bad])[order]
+        top = int(stamps.max())
+        self.latest = top if self.latest is None else max(self.latest, top)
+
+    def add_input(self, stamps: np.ndarray) -> None:
+        self.inputs = np.concatenate([self.inputs, np.asarray(stamps, np.int64)])
+
+    def take(self, final: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(values, bad flags) of the input samples resolved since the last call."""
+        if final:
+            k = len(self.inputs)
+        else:
+            k = 0 if self.latest is None else int(np.searchsorted(self.inputs, self.latest))
+            k = max(k, len(self.inputs) - self.max_pending)
+        if k <= 0:
+            return np.zeros(0), np.zeros(0, bool)
+        wanted, self.inputs = self.inputs[:k], self.inputs[k:]
+        left = np.searchsorted(self.stamps, wanted, side="left")
+        right = np.searchsorted(self.stamps, wanted, side="right")
+        found = right > left
+        values = np.zeros(k)
+        values[found] = self.values[right[found] - 1]
+        bad_before = np.concatenate([[0], np.cumsum(self.bad)])
+        bad = bad_before[right] - bad_before[left] > 0
+        self.missing += int(np.count_nonzero(~found))
+        cut = int(np.searchsorted(self.stamps, wanted.max(), side="right"))
+        self.stamps, self.values, self.bad = self.stamps[cut:], self.values[cut:], self.bad[cut:]
+        return values, bad
+
+
+class SpeedEnvelope:
+    """evaluate.speed_envelope_mask as a stream: the calibration samples whose joint speeds
+    (|velocity| interpolated at their stamps) stay within `limit`; a sample is resolved
+    once a joint state at or after its stamp is in (or at the end)."""
+
+    def __init__(self, limit: np.ndarray):
+        self.limit = np.asarray(limit, float)
+        self.joint_stamps = np.zeros(0, np.int64)
+        self.speed = np.zeros((0, len(self.limit)))
+        self.queries = np.zeros(0, np.int64)
+
+    def add_joint_states(self, stamps: np.ndarray, velocity: np.ndarray) -> None:
+        if len(stamps):
+            self.joint_stamps = np.concatenate([self.joint_stamps, np.asarray(stamps, np.int64)])
+            self.speed = np.concatenate([self.speed, np.abs(np.asarray(velocity, float))])
+
+    def add_samples(self, stamps: np.ndarray) -> None:
+        self.queries = np.concatenate([self.queries, np.asarray(stamps, np.int64)])
+
+    def take(self, final: bool) -> np.ndarray:
+        if not len(self.joint_stamps):
+            if final and len(self.queries):
+                raise ValueError("no joint states to match the calibration samples with")
+            return np.zeros(0, bool)
+        k = (
+            len(self.queries)
+            if final
+            else int(np.searchsorted(self.queries, self.joint_stamps[-1], side="right"))
+        )
+        wanted, self.queries = self.queries[:k], self.queries[k:]
+        mask = np.ones(k, bool)
+        for j in range(self.speed.shape[1]):
+            mask &= np.interp(wanted, self.joint_stamps, self.speed[:, j]) <= self.limit[j]
+        if k:  # keep the joint state before the next sample (interpolation's left end)
+            keep = max(int(np.searchsorted(self.joint_stamps, wanted[-1], side="right")) - 1, 0)
+            self.joint_stamps, self.speed = self.joint_stamps[keep:], self.speed[keep:]
+        return mask
+
+
+def _joints_nonfinite(piece) -> int:
+    return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
+
+
+def _require_contact(piece, source: str) -> None:
+    if piece.contact is None:
+        raise BagError(
+            f"{source}: missing ground-truth topic {BAG_TOPICS['contact']} "
+            f"(evaluate needs a simulated bag with ground truth)"
+        )
+    if len(piece.contact) != len(piece.accel):
+        raise BagError(
+            f"{source}: topic {BAG_TOPICS['contact']} has {len(piece.contact)} samples, "
+            f"{BAG_TOPICS['raw']} has {len(piece.accel)}"
+        )
+
+
+# --------------------------------------------------------------------------
+# Pass 1: what the evaluation needs of the whole run
+# --------------------------------------------------------------------------
+@dataclass
+class RunSummary:
+    samples: int
+    activity_level: float  # ground-truth contact threshold (metrics.activity_threshold)
+    joint_speed_max: np.ndarray  # (J,) largest |velocity| per joint (nan: none finite)
+    recorded: bool  # the run carries its own denoised topic
+    recorded_like: str | None  # which method made it: "paper" (y = z = 0) or "per_axis"
+    counts: dict = field(default_factory=dict)  # the report's "bad_samples" counts
+
+
+class SummaryPass:
+    """Pass 1 over the test run (see the module doc)."""
+
+    def __init__(
+        self,
+        model: NoiseModel,
+        *,
+        source: str = "recording",
+        max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
+    ):
+        self.model, self.source, self.max_bad_fraction = model, source, float(max_bad_fraction)
+        self.sensor_range = float(model.profile.sensor_range)
+        self.screen = Screen([self.sensor_range, np.inf])
+        self.band = _band(model)
+        self.recorded = RecordedDenoised(
+            max_pending=int(RECORDED_MAX_WAIT_S * model.sample_rate_hz)
+        )
+        self.bad = _Fifo(bool)
+        self.recorded_bad = _Fifo(bool)
+        self.peak = 0.0
+        self.speed: np.ndarray | None = None
+        self.joint_states_nonfinite = 0
+        self.union_bad = 0
+        self.n = 0
+
+    def push(self, piece) -> None:
+        _require_contact(piece, self.source)
+        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
+        if len(piece.joint_velocity):
+            speed = np.fmax.reduce(np.abs(piece.joint_velocity), axis=0)
+            self.speed = speed if self.speed is None else np.fmax(self.speed, speed)
+        self.joint_states_nonfinite += _joints_nonfinite(piece)
+        self._count(final=False)
+
+    def _rows(self, stamps, values, bad) -> None:
+        self.n += len(stamps)
+        if len(stamps):
+            reference = self.band.process(_combined(values[1]))[0]
+            self.peak = max(self.peak, float(np.max(np.abs(reference))))
+        self.bad.put(bad[0] | bad[1])
+        self.recorded.add_input(stamps)
+
+    def _count(self, final: bool) -> None:
+        """Bad samples: the screen's or those of a bad message of the denoised topic."""
+        self.recorded_bad.put(self.recorded.take(final)[1])
+        stop = min(self.bad.end, self.recorded_bad.end)
+        flags = self.bad.take(stop) | self.recorded_bad.take(stop)
+        self.union_bad += int(np.count_nonzero(flags))
+
+    def finish(self) -> RunSummary:
+        try:
+            self._rows(*self.screen.finish())
+        except ValueError as exc:
+            raise BagError(f"{self.source}: {exc}") from None
+        self._count(final=True)
+        n = self.n
+        counts = {
+            "raw_nonfinite": self.screen.nonfinite[0],
+            "raw_beyond_range": self.screen.beyond[0],
+            "contact_nonfinite": self.screen.nonfinite[1] + self.screen.beyond[1],
+            "denoised_nonfinite": self.recorded.rows_bad,
+            "joint_states_nonfinite": self.joint_states_nonfinite,
+            "samples": n,
+            "bad": self.union_bad,
+            "bad_fraction": self.union_bad / n if n else 0.0,
+            "max_bad_fraction": self.max_bad_fraction,
+            "sensor_range": self.sensor_range,
+        }
+        if n and self.union_bad / n > self.max_bad_fraction:
+            raise BagError(
+                f"{self.source}: {self.union_bad} of {n} samples ({self.union_bad / n:.1%}) are "
+                f"non-finite or beyond the sensor range (+/-{self.sensor_range:g}); more than "
+                f"{self.max_bad_fraction:.0%} bad: no metrics"
+            )
+        if n and self.union_bad == n:
+            raise BagError(f"{self.source}: no valid sample")
+        recorded = self.recorded.rows > 0
+        return RunSummary(
+            samples=n,
+            activity_level=max(1e-3 * self.peak, 1e-6),  # metrics.activity_threshold
+            joint_speed_max=(
+                self.speed if self.speed is not None else np.full(self.model.n_joints, np.nan)
+            ),
+            recorded=recorded,
+            recorded_like=("per_axis" if self.recorded.any_yz else "paper") if recorded else None,
+            counts=counts,
+        )
+
+
+# --------------------------------------------------------------------------
+# Pass 2: detection thresholds from calibration data
+# --------------------------------------------------------------------------
+@dataclass
+class CalibrationResult:
+    thresholds: dict  # "raw" and each method -> detection threshold
+    gate: np.ndarray | None  # noisereduce's noise threshold per frequency (dB)
+    bad: int  # bad calibration samples
+
+
+class _MaxReducer:
+    """Largest envelope of one signal over the calibration mask (base) and over the mask
+    restricted to the run's speed envelope."""
+
+    def __init__(self):
+        self.values = _Fifo()
+        self.base = -np.inf
+        self.within = -np.inf
+
+
+class CalibrationPass:
+    """Pass 2 over the calibration recording (see the module doc). Mask of the samples a
+    threshold is taken from (evaluate.py): not the first and last EDGE_S (filter start-up
+    and flush), no sample bad input can have touched, and, if at least 1 s of them
+    remains, only samples at joint speeds within 1.05 x the run's largest."""
+
+    def __init__(
+        self,
+        model: NoiseModel,
+        *,
+        names: Sequence[str],
+        model_short: NoiseModel | None,
+        speed_limit: np.ndarray,
+        source: str = "calibration recording",
+        max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
+    ):
+        self.model, self.source, self.max_bad_fraction = model, source, float(max_bad_fraction)
+        fs = model.sample_rate_hz
+        self.fs = fs
+        self.screen = Screen([float(model.profile.sensor_range)])
+        self.band = _band(model)
+        self.streams = {
+            name: baselines.method_stream(
+                name, model=model, model_short=model_short, source=f"{source}: {name}"
+            )
+            for name in names
+        }
+        self.needs_gate = "noisereduce" in self.streams
+        self.clip: list[np.ndarray] = []
+        self.clip_n = 0
+        self.gate: np.ndarray | None = None
+        self.envelopes = {key: detection.Envelope(sample_rate_hz=fs) for key in ["raw", *names]}
+        self.reducers = {key: _MaxReducer() for key in ["raw", *names]}
+        self.exclusion = metrics.BadRunExclusion(
+            margin=int(model.block_length),
+            settle_max=int(round(metrics.EDGE_S * fs)),
+            n=np.iinfo(np.int64).max // 4,
+        )
+        self.speeds = SpeedEnvelope(np.asarray(speed_limit, float))
+        self.within_fifo = _Fifo(bool)
+        self.edge = int(metrics.EDGE_S * fs)  # evaluate._edge_mask: min(this, n // 4)
+        self.mask_base = 0  # masks kept from this sample on
+        self.mask_end = 0  # masks known up to here
+        self.masks = (np.zeros(0, bool), np.zeros(0, bool))  # (base, within) from mask_base
+        self.within_count = 0
+        self.n = 0
+
+    def push(self, piece) -> None:
+        for name, stream in self.streams.items():
+            self._signal(
+                name, stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
+            )
+        self.speeds.add_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
+        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel))
+        self._advance(final=False)
+
+    def _rows(self, stamps, values, bad) -> None:
+        if not len(stamps):
+            return
+        accel = values[0]
+        self.n += len(stamps)
+        clip = self.band.process(_combined(accel))[0]
+        self._signal("raw", clip)
+        self.exclusion.push(bad[0])
+        self.speeds.add_samples(stamps)
+        if self.needs_gate and self.gate is None:
+            self.clip.append(clip[: baselines.NOISE_CLIP_SAMPLES - self.clip_n])
+            self.clip_n += len(self.clip[-1])
+            if self.clip_n >= baselines.NOISE_CLIP_SAMPLES:
+                self._set_gate()
+        for name, stream in self.streams.items():
+            self._signal(name, stream.push(stamps, accel, clip))
+
+    def _set_gate(self) -> None:
+        self.gate = baselines.gate_threshold(np.concatenate(self.clip))
+        self.clip = []
+        self._signal("noisereduce", self.streams["noisereduce"].gate.set_threshold(self.gate))
+
+    def _signal(self, key: str, values: np.ndarray) -> None:
+        if len(values):
+            self.reducers[key].values.put(self.envelopes[key].process(values))
+
+    def _advance(self, final: bool) -> None:
+        self.within_fifo.put(self.speeds.take(final))
+        if final:
+            self.exclusion.finish()
+            known = self.n
+            edge = min(self.edge, self.n // 4)
+        else:
+            known = min(
+                self.exclusion.known - self.exclusion.margin - 1,
+                self.within_fifo.end,
+                self.n - self.edge if self.n >= 4 * self.edge else 0,
+            )
+            edge = self.edge
+        if known > self.mask_end:
+            a, b = self.mask_end, known
+            index = np.arange(a, b)
+            base = (index >= edge) & (index < self.n - edge) & ~self.exclusion.mask(a, b)
+            within = base & self.within_fifo.take(b)
+            self.within_count += int(np.count_nonzero(within))
+            self.masks = (
+                np.concatenate([self.masks[0], base]),
+                np.concatenate([self.masks[1], within]),
+            )
+            self.mask_end = b
+            self.exclusion.prune(a - self.exclusion.margin)
+        for reducer in self.reducers.values():
+            stop = min(reducer.values.end, self.mask_end)
+            start = reducer.values.start
+            if stop > start:
+                env = reducer.values.take(stop)
+                lo, hi = start - self.mask_base, stop - self.mask_base
+                base, within = self.masks[0][lo:hi], self.masks[1][lo:hi]
+                if base.any():
+                    reducer.base = max(reducer.base, float(env[base].max()))
+                if within.any():
+                    reducer.within = max(reducer.within, float(env[within].max()))
+        low = min(r.values.start for r in self.reducers.values())
+        if low > self.mask_base:
+            cut = low - self.mask_base
+            self.masks = (self.masks[0][cut:], self.masks[1][cut:])
+            self.mask_base = low
+
+    def finish(self) -> CalibrationResult:
+        try:
+            self._rows(*self.screen.finish())
+        except ValueError as exc:
+            raise BagError(f"{self.source}: {exc}") from None
+        bad, n = self.exclusion.bad, self.n
+        if n and bad / n > self.max_bad_fraction:
+            raise BagError(
+                f"{self.source}: {bad} of {n} samples ({bad / n:.1%}) are non-finite or beyond "
+                f"the sensor range (+/-{self.model.profile.sensor_range:g}); more than "
+                f"{self.max_bad_fraction:.0%} bad: no metrics"
+            )
+        if self.needs_gate and self.gate is None:
+            if not self.clip_n:
+                raise ValueError("noisereduce needs a no-contact noise clip (calibration data)")
+            self._set_gate()
+        for name, stream in self.streams.items():
+            self._signal(name, stream.finish())
+        try:
+            self._advance(final=True)
+        except ValueError as exc:
+            raise BagError(f"{self.source}: {exc}") from None
+        use_within = self.within_count >= self.fs  # at least 1 s within the run's speeds
+        thresholds = {}
+        for key, reducer in self.reducers.items():
+            largest = reducer.within if use_within else reducer.base
+            if not np.isfinite(largest):
+                raise ValueError("no calibration samples to set a detection threshold from")
+            thresholds[key] = float(detection.CALIBRATION_MARGIN * largest)
+        return CalibrationResult(thresholds=thresholds, gate=self.gate, bad=bad)
+
+
+# --------------------------------------------------------------------------
+# Pass 3: the metrics
+# --------------------------------------------------------------------------
+@dataclass
+class _Pending:
+    """Segments (their SNRs) waiting for the taps around them to be decided."""
+
+    starts: np.ndarray
+    snr: np.ndarray  # (S, signals)
+
+
+class EvaluationPass:
+    """Pass 3 over the test run (see the module doc); without `thresholds` it only finds
+    them (the largest envelope of each signal on no-contact samples)."""
+
+    def __init__(
+        self,
+        model: NoiseModel,
+        *,
+        names: Sequence[str],
+        summary: RunSummary,
+        thresholds: dict | None,
+        model_short: NoiseModel | None = None,
+        gate: np.ndarray | None = None,
+        extra: Sequence[str] = (),
+        keep_signals: bool = False,
+        source: str = "recording",
+    ):
+        fs = model.sample_rate_hz
+        self.model, self.fs, self.source = model, fs, source
+        self.summary = summary
+        self.n = n = summary.samples
+        self.names = list(names)
+        self.recorded = (
+            RecordedDenoised(max_pending=int(RECORDED_MAX_WAIT_S * fs))
+            if summary.recorded
+            else None
+        )
+        self.like = summary.recorded_like
+        self.metric_keys = ["raw", *self.names] + (["bag_denoised"] if self.recorded else [])
+        self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
+        self.streams = {
+            name: baselines.method_stream(
+                name, model=model, model_short=model_short, gate=gate, source=f"{source}: {name}"
+            )
+            for name in self.detect_keys
+            if name not in ("raw", "bag_denoised")
+        }
+        self.screen = Screen([float(model.profile.sensor_range), np.inf])
+        self.raw_band, self.ref_band = _band(model), _band(model)
+        self.pr2 = detection.PR2Magnitude(sample_rate_hz=fs)
+        self.fifos = {key: _Fifo() for key in ["reference", "pr2", *self.detect_keys]}
+        self.screen_bad, self.recorded_bad = _Fifo(bool), _Fifo(bool)
+        self.segmenter = metrics.ContactSegmenter(
+            level=summary.activity_level, n=n, sample_rate_hz=fs
+        )
+        self.exclusion = metrics.BadRunExclusion(
+            margin=int(model.block_length), settle_max=int(round(metrics.EDGE_S * fs)), n=n
+        )
+        self.edge = min(int(round(metrics.EDGE_S * fs)), n // 2)
+        self.pos = 0  # samples scored
+        # accumulators (per metric signal)
+        k = len(self.metric_keys)
+        self.noise_sum, self.noise_count = np.zeros(k), 0
+        self.top = [metrics.TopValues.for_quantile(metrics.SPIKE_QUANTILE, n) for _ in range(k)]
+        self.peak_sum = np.zeros(k)
+        self.seg_sum, self.seg_count = np.zeros(k), 0
+        self.taps: deque[metrics.Tap] = deque()  # not decided yet (the last may be open)
+        self.decided: deque[metrics.Tap] = deque()  # decided, still needed for lookups
+        self.kept = self.dropped = 0
+        self.excluded = 0  # samples excluded (bad input around, dropped taps' windows)
+        self.dropped_until = 0  # dropped windows counted up to here
+        self.seg_next = 0
+        self.seg_tail = {key: np.zeros(0) for key in ["reference", *self.metric_keys]}
+        self.pending_segments: deque[_Pending] = deque()
+        # detection
+        self.envelopes = {key: detection.Envelope(sample_rate_hz=fs) for key in self.detect_keys}
+        self.noise_env_max = {key: -np.inf for key in self.detect_keys}
+        self.detectors: dict[str, tuple[str, detection.EventDetector]] = {}
+        if thresholds is not None:
+            for key in self.metric_keys:
+                self.detectors[key] = (
+                    key,
+                    detection.EventDetector(thresholds[key], sample_rate_hz=fs),
+                )
+            for level in detection.PR2_THRESHOLDS_MS2:
+                self.detectors[f"pr2_{level:g}ms2"] = (
+                    "pr2",
+                    detection.EventDetector(level, sample_rate_hz=fs),
+                )
+        self.thresholds = thresholds
+        self.matchers = {key: detection.EventMatcher(sample_rate_hz=fs) for key in self.detectors}
+        self.unfiltered = {key: np.zeros(0, np.int64) for key in self.detectors}
+        # alignment and the bag's own output against the batch method
+        self.lags = {key: metrics.LagCorrelation() for key in ("paper", "bag_denoised")}
+        self.compare = self.recorded is not None and self.like in self.names
+        self.held_difference: list[np.ndarray] = []  # (index, diff^2, batch^2) in tap windows
+        self.difference = np.zeros(2)
+        self.keep = keep_signals
+        self.kept_signals = {key: [] for key in ["reference", "excluded", *self.metric_keys]}
+
+    # --- input --------------------------------------------------------------------
+    def push(self, piece) -> None:
+        _require_contact(piece, self.source)
+        for name, stream in self.streams.items():
+            self.fifos[name].put(
+                stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
+            )
+        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        if self.recorded is not None:
+            self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
+        self._advance(final=False)
+
+    def finish(self) -> None:
+        try:
+            self._rows(*self.screen.finish())
+        except ValueError as exc:
+            raise BagError(f"{self.source}: {exc}") from None
+        for name, stream in self.streams.items():
+            self.fifos[name].put(stream.finish())
+        self._advance(final=True)
+
+    def _rows(self, stamps, values, bad) -> None:
+        if not len(stamps):
+            return
+        accel, contact = values
+        raw = self.raw_band.process(_combined(accel))[0]
+        reference = self.ref_band.process(_combined(contact))[0]
+        self.fifos["raw"].put(raw)
+        self.fifos["reference"].put(reference)
+        self.segmenter.push(reference)
+        self.screen_bad.put(bad[0] | bad[1])
+        self.fifos["pr2"].put(self.pr2.process(accel))
+        for name, stream in self.streams.items():
+            self.fifos[name].put(stream.push(stamps, accel, raw))
+        if self.recorded is not None:
+            self.recorded.add_input(stamps)
+
+    # --- scoring ------------------------------------------------------------------
+    def _advance(self, final: bool) -> None:
+        if self.recorded is not None:
+            values, flags = self.recorded.take(final)
+            self.fifos["bag_denoised"].put(values)
+            self.recorded_bad.put(flags)
+        stop = self.screen_bad.end
+        if self.recorded is not None:
+            stop = min(stop, self.recorded_bad.end)
+        if stop > self.exclusion.known:
+            flags = self.screen_bad.take(stop)
+            if self.recorded is not None:
+                flags = flags | self.recorded_bad.take(stop)
+            self.exclusion.push(flags)
+        if final:
+            self.exclusion.finish()
+            self.segmenter.finish()
+            horizon = self.n
+        else:
+            horizon = min(
+                min(f.end for f in self.fifos.values()),
+                self.exclusion.known - self.exclusion.margin - 1,
+                self.segmenter.pos - self.segmenter.lag,
+            )
+        for tap in self.segmenter.take_new():
+            tap.peaks = np.zeros(len(self.metric_keys))
+            self.taps.append(tap)
+        if horizon > self.pos:
+            self._score(self.pos, horizon)
+            self.pos = horizon
+        self._decide(final)
+
+    def _score(self, p: int, q: int) -> None:
+        data = {key: fifo.take(q) for key, fifo in self.fifos.items()}
+        excluded = self.exclusion.mask(p, q)
+        self.excluded += int(np.count_nonzero(excluded))
+        contact = np.zeros(q - p, bool)
+        for tap in self.taps:
+            if tap.window_start < q and tap.window_stop > p:
+                contact[max(tap.window_start, p) - p : min(tap.window_stop, q) - p] = True
+        index = np.arange(p, q)
+        no_contact = ~contact & ~excluded & (index >= self.edge) & (index < self.n - self.edge)
+        magnitudes = []
+        for i, key in enumerate(self.metric_keys):
+            magnitude = np.abs(data[key])
+            magnitudes.append(magnitude)
+            quiet = magnitude[no_contact]
+            self.noise_sum[i] += quiet.sum()
+            self.top[i].push(quiet)
+            for tap in self.taps:
+                a, b = max(tap.window_start, p), min(tap.window_stop, q)
+                if b > a:
+                    tap.peaks[i] = max(tap.peaks[i], float(magnitude[a - p : b - p].max()))
+        self.noise_count += int(np.count_nonzero(no_contact))
+        envelopes = {}
+        for key in self.detect_keys:
+            envelope = self.envelopes[key].process(data[key])
+            envelopes[key] = envelope
+            if no_contact.any():
+                self.noise_env_max[key] = max(
+                    self.noise_env_max[key], float(envelope[no_contact].max())
+                )
+        envelopes["pr2"] = data["pr2"]
+        for key, (signal_key, detector) in self.detectors.items():
+            detector.push(envelopes[signal_key])
+        self._segments(p, q, data)
+        self.lags["paper"].push(data["reference"], data["paper"])
+        if self.recorded is not None:
+            self.lags["bag_denoised"].push(data["reference"], data["bag_denoised"])
+            if self.compare:
+                batch = data[self.like]
+                keep = ~excluded
+                self.held_difference.append(
+                    np.stack(
+                        [
+                            index[keep],
+                            (data["bag_denoised"][keep] - batch[keep]) ** 2,
+                            batch[keep] ** 2,
+                        ]
+                    )
+                )
+        if self.keep:
+            for key in ["reference", *self.metric_keys]:
+                self.kept_signals[key].append(data[key])
+            self.kept_signals["excluded"].append(excluded)
+
+    def _segments(self, p: int, q: int, data: dict) -> None:
+        length, hop = metrics.SEGMENT_LENGTH, metrics.SEGMENT_HOP
+        keys = ["reference", *self.metric_keys]
+        ext_start = p - len(self.seg_tail["reference"])
+        extended = {key: np.concatenate([self.seg_tail[key], data[key]]) for key in keys}
+        starts = np.arange(self.seg_next, q - length + 1, hop)
+        if starts.size:
+            offsets = starts - ext_start
+            reference = extended["reference"]
+            ref_frames = np.lib.stride_tricks.sliding_window_view(reference, length)[offsets]
+            signal_energy = np.sum(ref_frames**2, axis=1)
+            snr = np.empty((starts.size, len(self.metric_keys)))
+            for i, key in enumerate(self.metric_keys):
+                error = extended[key] - reference
+                frames = np.lib.stride_tricks.sliding_window_view(error, length)[offsets]
+                error_energy = np.sum(frames**2, axis=1)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    value = 10.0 * np.log10(signal_energy / error_energy)
+                value = np.where(error_energy == 0, metrics.SEGSNR_CLAMP_DB[1], value)
+                value = np.where(signal_energy == 0, metrics.SEGSNR_CLAMP_DB[0], value)
+                snr[:, i] = np.clip(value, *metrics.SEGSNR_CLAMP_DB)
+            self.pending_segments.append(_Pending(starts, snr))
+            self.seg_next = int(starts[-1]) + hop
+        keep_from = max(self.seg_next, ext_start) - ext_start
+        self.seg_tail = {key: extended[key][keep_from:] for key in keys}
+
+    def _decide(self, final: bool) -> None:
+        settled = self.pos  # samples scored
+        while self.taps and self.taps[0].closed and self.taps[0].window_stop <= settled:
+            tap = self.taps.popleft()
+            a, b = tap.window_start, tap.window_stop
+            tap.kept = not self.exclusion.any_in(a, b)
+            if tap.kept:
+                self.kept += 1
+                self.peak_sum += tap.peaks
+                for matcher in self.matchers.values():
+                    matcher.add(truth=[tap.start])
+            else:
+                self.dropped += 1
+                lo = max(a, self.dropped_until)
+                if b > lo:
+                    self.excluded += int(np.count_nonzero(~self.exclusion.mask(lo, b)))
+                self.dropped_until = max(self.dropped_until, b)
+            self.decided.append(tap)
+        # every sample before `ready` is decided: scored and outside undecided tap windows
+        ready = min(settled, self.taps[0].window_start) if self.taps else settled
+        if final:
+            ready = self.n
+        self._resolve_segments(ready)
+        for key, (_, detector) in self.detectors.items():
+            if final:
+                detector.finish()
+            onsets = np.concatenate([self.unfiltered[key], detector.take()])
+            now, self.unfiltered[key] = onsets[onsets < ready], onsets[onsets >= ready]
+            keep = [int(o) for o in now if not self._excluded_at(int(o))]
+            matcher = self.matchers[key]
+            matcher.add(detected=keep)
+            if final:
+                matcher.finish()
+            else:
+                matcher.advance(min(ready, detector.horizon))
+        self._release_difference(ready)
+        low = ready - metrics.SEGMENT_LENGTH
+        while self.decided and self.decided[0].window_stop <= low:
+            self.decided.popleft()
+        self.exclusion.prune(low)
+
+    def _excluded_at(self, i: int) -> bool:
+        if self.exclusion.any_in(i, i + 1):
+            return True
+        return any(not tap.kept and tap.window_start <= i < tap.window_stop for tap in self.decided)
+
+    def _resolve_segments(self, ready: int) -> None:
+        length = metrics.SEGMENT_LENGTH
+        while self.pending_segments:
+            batch = self.pending_segments[0]
+            done = batch.starts + length <= ready
+            if not done.any():
+                return
+            starts, snr = batch.starts[done], batch.snr[done]
+            a, b = int(starts[0]), int(starts[-1]) + length
+            active = np.zeros(b - a, bool)
+            excluded = self.exclusion.mask(a, b)
+            for tap in self.decided:
+                if tap.kept:
+                    lo, hi = max(tap.start, a), min(tap.stop, b)
+                    if hi > lo:
+                        active[lo - a : hi - a] = True
+                else:
+                    lo, hi = max(tap.window_start, a), min(tap.window_stop, b)
+                    if hi > lo:
+                        excluded[lo - a : hi - a] = True
+            active_before = np.concatenate([[0], np.cumsum(active)])
+            excluded_before = np.concatenate([[0], np.cumsum(excluded)])
+            offsets = starts - a
+            chosen = (
+                active_before[offsets + length] - active_before[offsets] >= SEGMENT_ACTIVE_MIN
+            ) & (excluded_before[offsets + length] == excluded_before[offsets])
+            self.seg_sum += snr[chosen].sum(axis=0)
+            self.seg_count += int(np.count_nonzero(chosen))
+            if done.all():
+                self.pending_segments.popleft()
+                continue
+            self.pending_segments[0] = _Pending(batch.starts[~done], batch.snr[~done])
+            return
+
+    def _release_difference(self, ready: int) -> None:
+        if not self.held_difference:
+            return
+        held = np.concatenate(self.held_difference, axis=1)
+        index = held[0].astype(np.int64)
+        now = index < ready
+        use = now.copy()
+        for tap in self.decided:
+            if not tap.kept:
+                use &= ~((index >= tap.window_start) & (index < tap.window_stop))
+        self.difference += held[1:, use].sum(axis=1)
+        self.held_difference = [held[:, ~now]] if (~now).any() else []
+
+    # --- results ------------------------------------------------------------------
+    def noise_thresholds(self) -> dict:
+        """Detection thresholds from this run's own no-contact samples (no calibration)."""
+        out = {}
+        for key in self.detect_keys:
+            if not np.isfinite(self.noise_env_max[key]):
+                raise ValueError("no calibration samples to set a detection threshold from")
+            out[key] = float(detection.CALIBRATION_MARGIN * self.noise_env_max[key])
+        return out
+
+    def signal_metrics(self, key: str) -> dict:
+        """metrics.signal_metrics of signal `key` against the raw signal."""
+        i = self.metric_keys.index(key)
+        noise = (
+            self.noise_sum / self.noise_count
+            if self.noise_count
+            else np.full(len(self.top), np.nan)
+        )
+        peaks = self.peak_sum / self.kept if self.kept else np.full(len(self.top), np.nan)
+        segsnr = self.seg_sum / self.seg_count if self.seg_count else np.full(len(self.top), np.nan)
+        noise_raw, noise_den = float(noise[0]), float(noise[i])
+        peak_raw, peak_den = float(peaks[0]), float(peaks[i])
+        snr_raw = metrics.peak_snr_db(peak_raw, noise_raw)
+        snr_den = metrics.peak_snr_db(peak_den, noise_den)
+        return {
+            "noise_mean_raw": noise_raw,
+            "noise_mean_denoised": noise_den,
+            "noise_reduction_db": (
+                metrics.db20(noise_raw / noise_den) if noise_den > 0 else float("inf")
+            ),
+            "noise_spike_raw": self.top[0].quantile(metrics.SPIKE_QUANTILE),
+            "noise_spike_denoised": self.top[i].quantile(metrics.SPIKE_QUANTILE),
+            "tap_peak_raw": peak_raw,
+            "tap_peak_denoised": peak_den,
+            "tap_retention": peak_den / peak_raw if peak_raw > 0 else float("nan"),
+            "peak_snr_raw_db": snr_raw,
+            "peak_snr_denoised_db": snr_den,
+            "peak_snr_improvement_db": snr_den - snr_raw,
+            "segsnr_contact_raw_db": float(segsnr[0]),
+            "segsnr_contact_denoised_db": float(segsnr[i]),
+            "n_taps": self.kept,
+        }
+
+    def scores(self, key: str) -> dict:
+        """detection.evaluate_detector's dict for detector `key` (a signal or pr2_*)."""
+        scores = self.matchers[key].scores()
+        scores["threshold"] = float(self.detectors[key][1].threshold)
+        return scores
+
+    def minutes(self) -> float:
+        return (self.n - self.excluded) / self.fs / 60.0
+
+    def difference_vs_batch(self) -> float | None:
+        if not self.compare:
+            return None
+        diff, batch = self.difference
+        n = self.n - self.excluded
+        return float(np.sqrt(diff / n) / max(np.sqrt(batch / n), 1e-300)) if n else float("nan")
+
+    def signals(self) -> dict:
+        """The whole signals and the contact segmentation (keep_signals=True)."""
+        out = {
+            key: np.concatenate([np.zeros(0)] + parts)
+            for key, parts in self.kept_signals.items()
+            if key != "excluded"
+        }
+        excluded = np.concatenate([np.zeros(0, bool)] + self.kept_signals["excluded"])
+        seg = metrics.segment_contacts(
+            out["reference"], sample_rate_hz=self.fs, threshold=self.summary.activity_level
+        )
+        if excluded.any():
+            seg = metrics.exclude_samples(seg, excluded)
+        out["seg"] = seg
+        return out
+
+
+# --------------------------------------------------------------------------
+# Slices
+# --------------------------------------------------------------------------
+def rechunk(pieces: Iterable, samples: int) -> Iterator:
+    """The same recording in slices of `samples` sensor samples (the last one shorter).
+    Joint states and denoised messages go with the first slice cut after they arrived
+    (ahead of their samples, as the streaming consumers allow)."""
+    from egovib_ros.bag.recording import concat_recordings
+
+    samples = max(int(samples), 1)
+    held = []
+    held_n = 0
+    for piece in pieces:
+        held.append(piece)
+        held_n += len(piece.accel_stamps_ns)
+        while held_n >= samples:
+            whole = concat_recordings(held)
+            yield _cut(whole, 0, samples, first=True)
+            rest = _cut(whole, samples, len(whole.accel_stamps_ns), first=False)
+            held, held_n = [rest], len(rest.accel_stamps_ns)
+    if held:
+        yield concat_recordings(held)
+
+
+def _cut(rec, a: int, b: int, *, first: bool):
+    import dataclasses
+
+    changes = {
+        "accel_stamps_ns": rec.accel_stamps_ns[a:b],
+        "accel": rec.accel[a:b],
+        "contact": None if rec.contact is None else rec.contact[a:b],
+        "ego": None if rec.ego is None else rec.ego[a:b],
+    }
+    if not first:
+        width = rec.joint_velocity.shape[1]
+        changes.update(
+            joint_stamps_ns=rec.joint_stamps_ns[:0],
+            joint_position=np.zeros((0, width)),
+            joint_velocity=np.zeros((0, width)),
+            denoised_stamps_ns=None,
+            denoised=None,
+            command_stamps_ns=None,
+            commands=None,
+        )
+    return dataclasses.replace(rec, **changes)
+
+
+def method_names(
+    methods: Sequence[str] | None, *, calibration: bool, model_short: NoiseModel | None
+) -> list[str]:
+    """The methods to run: `methods` (the paper's always), else all that can run."""
+    if methods is None:
+        names = list(baselines.METHOD_LABELS)
+        if model_short is None:
+            names.remove("paper_L32")
+        if not calibration:
+            names.remove("noisereduce")
+    else:
+        names = list(methods)
+        unknown = [m for m in names if m not in baselines.METHOD_LABELS]
+        if unknown:
+            raise ConfigError(
+                f"methods: unknown method(s) {unknown}; expected {list(baselines.METHOD_LABELS)}"
+            )
+        if "noisereduce" in names and not calibration:
+            raise ValueError("noisereduce needs a no-contact noise clip (calibration data)")
+        if "paper_L32" in names and model_short is None:
+            raise ValueError(
+                "paper_L32 needs a model calibrated with 32-sample blocks (--model-short)"
+            )
+    if "paper" not in names:
+        names = ["paper"] + names
+    return names
