@@ -192,3 +192,22 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
         one, two = reports["1"][name], reports["2"][name]
         assert one["verdict"]["effect"] == "position"
         assert one["gap"] == two["gap"] and one["candidates"] == two["candidates"]
+
+
+def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
+    """Past the block budget the diagnosis keeps one run of blocks in every k over the
+    whole bag (memory and time stop growing); the kept blocks are the whole table's."""
+    from egovib_ros.core import NoiseModel
+    from egovib_ros.gap.features import THIN_RUN_BLOCKS, table_from_bag
+
+    model = NoiseModel.load(model_path)
+    whole = table_from_bag(position_bag, model)  # 60 s: within the default budget
+    thin = table_from_bag(position_bag, model, budget_minutes=0.25)
+    assert whole.bad_input["stride"] == 1 and thin.bad_input["stride"] == 4
+    assert 0.2 < thin.n_blocks / whole.n_blocks < 0.3
+    assert thin.t_first_s[-1] > 0.9 * whole.t_first_s[-1]  # spread over the whole bag
+    rows = np.searchsorted(whole.t_first_s, thin.t_first_s)
+    np.testing.assert_array_equal(whole.t_first_s[rows], thin.t_first_s)
+    np.testing.assert_array_equal(whole.magnitude[rows], thin.magnitude)
+    runs = np.flatnonzero(np.diff(rows) > 1)
+    assert np.all(np.diff(runs) >= THIN_RUN_BLOCKS // 2)  # whole runs, not scattered blocks

@@ -66,6 +66,14 @@ def register(subparsers) -> None:
         "(0.2 .. 0.9), test on the rest",
     )
     parser.add_argument(
+        "--budget-minutes",
+        type=cliutil.float_in(1.0, 1e6),
+        default=5.0,
+        metavar="MINUTES",
+        help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
+        "evenly over its whole length, so memory and time stop growing (default 5)",
+    )
+    parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
     )
     val = parser.add_argument_group("validate")
@@ -176,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
         reference_lag=lag,
         train_fraction=args.train_fraction,
         folds=args.folds,
+        budget_minutes=args.budget_minutes,
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet

@@ -233,6 +233,14 @@ def detect_reversals(
     return tuple(out)
 
 
+#: A bag longer than the block budget is thinned in runs of this many consecutive blocks
+#: (~0.7 s at 3 kHz): whole metric windows (8 blocks) and 0.5 s test segments stay intact.
+THIN_RUN_BLOCKS = 64
+#: Default budget of `egovib gap`: the diagnosis's memory and time grow with the blocks it
+#: fits (~100 MB per minute of 3 kHz recording), not with the bag beyond this.
+DEFAULT_BUDGET_MINUTES = 5.0
+
+
 class BlockSpectra:
     """The core's own framing (a BlockFramer, as calibration uses: band-passed sum of axes,
     the model's window and sensor range) fed as a stream: push joint states, then sensor
@@ -240,7 +248,9 @@ class BlockSpectra:
     blocks that have a joint state. The framer is the only state, so any slicing of the
     same arrays gives the same blocks (tested); a bag is never held whole."""
 
-    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05):
+    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, stride: int = 1):
+        """`stride` k > 1: keep one run of THIN_RUN_BLOCKS consecutive blocks in every k
+        (a long bag thinned evenly over its whole length, see `table_from_bag`)."""
         from egovib_ros.core.stream import BlockFramer
 
         # the model's framing, including its sensor range: bad samples are missing
@@ -250,6 +260,8 @@ class BlockSpectra:
         self._bins = in_band_bins(model)
         self._n_joints = n_joints
         self._parts: list[tuple[np.ndarray, ...]] = []
+        self._stride = int(stride)
+        self._blocks_seen = 0
         self.samples = 0
         self.first_stamp_ns: int | None = None
 
@@ -275,6 +287,10 @@ class BlockSpectra:
             ok = (b.complete if b.complete is not None else np.ones(b.n, bool)) & (
                 b.status != MISSING
             )
+            if self._stride > 1:
+                index = self._blocks_seen + np.arange(b.n)
+                ok &= (index // THIN_RUN_BLOCKS) % self._stride == 0
+            self._blocks_seen += b.n
             if ok.any():
                 spectra = np.abs(np.fft.rfft(b.samples[ok, 0, :] * self._window, axis=1))
                 self._parts.append(
@@ -497,16 +513,27 @@ def table_from_bag(
     *,
     max_hold_s: float = 0.05,
     knot_refine: int = KNOT_REFINE,
+    budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     progress=None,
 ) -> BlockTable:
     """`build_table` of a bag read slice by slice (bag.iter_recording with the model's robot
     profile): the sensor samples are framed as they arrive and never held; only the joint
     states (joint rate) and the blocks' in-band spectra are kept. Same table as
-    `build_table(read_recording(path))` (tested)."""
+    `build_table(read_recording(path))` (tested).
+
+    A bag longer than `budget_minutes` is thinned evenly: one run of THIN_RUN_BLOCKS
+    blocks in every k, k = ceil(duration / budget), so that memory and time stop growing
+    with the bag; `table.bad_input["stride"]` says k. None: no budget."""
+    import math
+
     from egovib_ros.bag import iter_recording
+    from egovib_ros.bag.recording import duration_of
 
     source = str(path)
-    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
+    stride = 1
+    if budget_minutes is not None:
+        stride = max(1, math.ceil(duration_of(path) / (60.0 * budget_minutes)))
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, stride=stride)
     stamps, positions, velocities = [], [], []
     order, n_joint_states = None, 0
     for piece in iter_recording(
@@ -533,6 +560,7 @@ def table_from_bag(
         framing.stats,
         joint_states=n_joint_states,
         joint_states_bad=n_joint_states - len(joint_stamps),
+        stride=stride,
     )
     return table_from_blocks(
         model,

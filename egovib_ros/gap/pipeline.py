@@ -11,7 +11,13 @@ from pathlib import Path
 from egovib_ros.errors import BagError, EgovibError
 from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.diagnose import Diagnosis, diagnose
-from egovib_ros.gap.features import BlockTable, build_table, table_from_bag
+from egovib_ros.gap.features import (
+    DEFAULT_BUDGET_MINUTES,
+    THIN_RUN_BLOCKS,
+    BlockTable,
+    build_table,
+    table_from_bag,
+)
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
 
 
@@ -72,6 +78,7 @@ def run_gap(
     sim_params: str | Path | None = None,
     reference_lag: float | None = None,
     figures: bool = True,
+    budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     progress=None,
     **kwargs,
 ) -> dict:
@@ -89,7 +96,13 @@ def run_gap(
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
     # streamed: the sensor samples are framed slice by slice, never held whole
-    table = table_from_bag(real_path, model, progress=progress)
+    table = table_from_bag(real_path, model, budget_minutes=budget_minutes, progress=progress)
+    if table.bad_input.get("stride", 1) > 1:
+        print(
+            f"gap: {real_path}: longer than the {budget_minutes:g}-minute budget: one "
+            f"{THIN_RUN_BLOCKS}-block run in every {table.bad_input['stride']} is diagnosed",
+            file=sys.stderr,
+        )
     topic = model.profile.sensor_topic if model.profile is not None else "sensor topic"
     said = screened_input(table, f"{real_path}: {topic}")
     if said:
