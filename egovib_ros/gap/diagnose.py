@@ -716,9 +716,12 @@ def _bootstrap_confidence(
     gain = np.stack(
         [np.bincount(segments, weights=loss["refit"] - loss[n], minlength=n_seg) for n in names]
     )
-    picks = rng.integers(0, n_seg, size=(N_BOOTSTRAP, n_seg))
-    n_picked = np.maximum(seg_len[picks].sum(axis=1), 1)
-    mean_gain = gain[:, picks].sum(axis=2) / n_picked  # (K, N_BOOTSTRAP)
+    mean_gain = np.empty((len(names), N_BOOTSTRAP))  # (K, N_BOOTSTRAP)
+    batch = 100  # resamples per draw: the same stream as one draw, in bounded memory
+    for start in range(0, N_BOOTSTRAP, batch):
+        picks = rng.integers(0, n_seg, size=(min(batch, N_BOOTSTRAP - start), n_seg))
+        n_picked = np.maximum(seg_len[picks].sum(axis=1), 1)
+        mean_gain[:, start : start + len(picks)] = gain[:, picks].sum(axis=2) / n_picked
     if interleaved and verdict == "drift":
         others = [i for i, n in enumerate(names) if n != "drift"]
         if not others:

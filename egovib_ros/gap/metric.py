@@ -198,9 +198,7 @@ def paired_signflip_pvalue(
         signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
         null = (signs * d_s).mean(axis=1)  # includes the identity pattern
         return float(np.mean(null >= observed - 1e-12))
-    signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
-    null = (signs * d_s).mean(axis=1)
-    return float((1 + np.sum(null >= observed - 1e-12)) / (1 + len(null)))
+    return _signflip_tail(d_s, observed, n_permutations, rng)
 
 
 def block_log_errors(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
@@ -247,6 +245,22 @@ def segment_signflip_pvalue(
     if n_seg <= 16:
         signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
         return float(np.mean((signs * d_s).mean(axis=1) >= observed - 1e-12))
-    signs = rng.choice(np.array([-1.0, 1.0]), size=(n_permutations, n_seg))
-    null = (signs * d_s).mean(axis=1)
-    return float((1 + np.sum(null >= observed - 1e-12)) / (1 + len(null)))
+    return _signflip_tail(d_s, observed, n_permutations, rng)
+
+
+#: Sign patterns drawn per batch: the same random stream as one draw of all of them
+#: (int64 draws are not buffered), in bounded memory however many segments a long bag has.
+PERMUTATION_BATCH = 1000
+
+
+def _signflip_tail(
+    d_s: np.ndarray, observed: float, n_permutations: int, rng: np.random.Generator
+) -> float:
+    """(1 + #{null mean >= observed}) / (1 + n_permutations), signs drawn in batches."""
+    at_least = 0
+    for start in range(0, n_permutations, PERMUTATION_BATCH):
+        signs = rng.choice(
+            np.array([-1.0, 1.0]), size=(min(PERMUTATION_BATCH, n_permutations - start), len(d_s))
+        )
+        at_least += int(np.sum((signs * d_s).mean(axis=1) >= observed - 1e-12))
+    return float((1 + at_least) / (1 + n_permutations))
