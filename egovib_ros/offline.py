@@ -433,10 +433,10 @@ def run_denoise(args: argparse.Namespace) -> int:
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet
     )
-    return _report(results, _describe_denoise, single=len(jobs) == 1)
+    return report_results(results, _describe_denoise, single=len(jobs) == 1)
 
 
-def _report(results, describe, *, single: bool) -> int:
+def report_results(results, describe, *, single: bool) -> int:
     """Single bag: its line, or its one-line error (exit 2). Several: the summary."""
     if single:
         r = results[0]

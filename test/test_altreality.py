@@ -10,7 +10,7 @@ import pytest
 
 from egovib_ros.altreality import (
     EFFECTS,
-    HAND_JOINTS,
+    JOINT_NAMES,
     AltHand,
     effect_audibility_db,
     simulate_alt_motion,
@@ -51,7 +51,7 @@ def test_recording_is_valid_and_reproducible():
     assert n == 24000 and rec.accel.shape == (n, 3) and np.all(np.isfinite(rec.accel))
     assert np.all(np.diff(rec.accel_stamps_ns) > 0)
     assert abs(np.median(np.diff(rec.accel_stamps_ns)) - 1e9 / 3000) < 1
-    assert rec.joint_names == HAND_JOINTS
+    assert rec.joint_names == JOINT_NAMES
     m = len(rec.joint_stamps_ns)
     assert rec.joint_position.shape == rec.joint_velocity.shape == (m, 2)
     assert 7500 < m < 8000  # 1 kHz minus a few dropped messages
@@ -106,3 +106,24 @@ def test_motion_styles_and_reversals():
     assert v2.shape == v.shape and not np.array_equal(v, v2)
     with pytest.raises(ValueError):
         AltHand(effects={"wobble": 1.0})
+
+
+def test_written_to_a_bag_that_a_pr2_model_reads(tmp_path, capsys):
+    """`python -m egovib_ros.altreality` writes a bag with the PR2 topics; the effects go to
+    the truth file only; an existing bag is not replaced without --force."""
+    import json
+
+    from egovib_ros.altreality.__main__ import main
+    from egovib_ros.bag import read_recording
+
+    bag, truth = tmp_path / "alt", tmp_path / "alt.truth.json"
+    args = ["--duration", "10", "--effects", "coupling=1.5", "--seed", "4", "--taps", "0"]
+    args += ["--out", str(bag)]
+    assert main(args + ["--truth", str(truth)]) == 0
+    rec = read_recording(bag)
+    direct, _ = simulate_alt_motion(duration_s=10.0, effects={"coupling": 1.5}, seed=4)
+    np.testing.assert_allclose(rec.accel, direct.accel, rtol=0, atol=1e-6)
+    assert rec.joint_names == direct.joint_names
+    assert json.loads(truth.read_text())["effects"] == {"coupling": 1.5}
+    assert "coupling" not in (bag / "metadata.yaml").read_text()
+    assert main(args) == 2 and "--force" in capsys.readouterr().err

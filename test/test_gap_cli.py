@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from egovib_ros.bagio import write_recording
@@ -64,7 +65,9 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert set(report["gap"]) == {"sim_as_is", "after_refit", "after_effect", "floor"}
     assert set(report["where"]) == {"frequency_hz", "velocity_cells", "covariates"}
     assert {"effect", "heldout_gap", "reduction", "p_value"} <= set(report["candidates"][0])
-    assert report["split"]["train_s"] > report["split"]["heldout_s"] > 0
+    # Blocked cross-validation in time: every block held out once, fitted on the other folds.
+    assert report["split"]["folds"] == 5 and "cross-validation" in report["split"]["method"]
+    assert report["split"]["heldout_s"] > report["split"]["train_s"] > 0
     # The hidden effect is found and adding it shrinks the held-out gap towards the floor.
     assert report["verdict"]["effect"] == "position"
     gap = report["gap"]
@@ -89,6 +92,17 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     for fig in report["figures"].values():
         assert (out / fig).stat().st_size > 1000
         assert f"({fig})" in head
+    # Every candidate states its fitted shape; the position term peaks near the hidden phase.
+    assert "which_effect_shapes.png" in report["figures"].values()
+    pos = next(c for c in report["candidates"] if c["effect"] == "position")
+    wrist = pos["shape"]["position:r_wrist_roll_joint"]
+    peak = wrist["x"][int(np.argmax(wrist["gain_db"]))]
+    assert abs(np.angle(np.exp(1j * (peak - 0.6)))) < 0.6  # the simulator's phase is 0.6 rad
+    assert (
+        max(wrist["gain_db"]) - min(wrist["gain_db"]) > 1.5
+    )  # band-averaged: the gripper band dilutes it
+    assert "r_wrist_roll_joint" in pos["shape_summary"] and pos["shape_summary"] in "\n".join(md)
+    assert report["baseline"]["definition"] and "transients" in report
     # The covariate breakdown covers positions, accelerations, time and lag.
     covs = report["where"]["covariates"]
     assert {"elapsed_time", "stream_lag"} <= set(covs)
@@ -124,3 +138,76 @@ def test_gap_bad_input_is_one_line_error_without_output(model_path, tmp_path, ca
     assert not out.exists()
     assert main(["gap", "--model", str(model_path)]) == 2
     assert "--real" in capsys.readouterr().err
+
+
+def test_streamed_table_equals_whole_recording(model_path, position_bag):
+    """`egovib gap` frames the bag slice by slice (never holding the sensor stream); the
+    table is the one built from the whole recording in memory."""
+    from egovib_ros.bag import iter_recording, read_recording
+    from egovib_ros.core import NoiseModel
+    from egovib_ros.gap.features import build_table, table_from_bag
+
+    model = NoiseModel.load(model_path)
+    slices = sum(1 for _ in iter_recording(position_bag, profile=model.profile))
+    assert slices > 3  # the bag really arrives in pieces
+    streamed = table_from_bag(position_bag, model)
+    whole = build_table(
+        read_recording(position_bag, profile=model.profile, ground_truth=False, denoised=False),
+        model,
+    )
+    assert streamed.n_blocks == whole.n_blocks > 1000
+    for name in ("t_first_s", "magnitude", "velocity", "position", "base_mean", "hats"):
+        np.testing.assert_array_equal(getattr(streamed, name), getattr(whole, name), err_msg=name)
+    np.testing.assert_array_equal(streamed.contact, whole.contact)
+    assert streamed.bad_input["samples_bad"] == whole.bad_input["samples_bad"] == 0
+
+
+def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tmp_path, capsys):
+    """A directory of bags: one report directory per bag; `--jobs 2` (a local Dask cluster)
+    gives the reports of the one-process run; a corrupt bag is named in the summary and the
+    others complete (exit status 2)."""
+    import shutil
+
+    bags = tmp_path / "bags"
+    for name in ("a", "b"):
+        shutil.copytree(position_bag, bags / name)
+    shutil.copytree(position_bag, bags / "corrupt")
+    mcap = next((bags / "corrupt").glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 3 : len(data) // 3 + 4096] = b"\xff" * 4096
+    mcap.write_bytes(bytes(data))
+
+    reports = {}
+    for jobs in ("1", "2"):
+        out = tmp_path / f"out{jobs}"
+        args = ["gap", "--model", str(model_path), "--real", str(bags), "--out", str(out)]
+        assert main(args + ["--jobs", jobs, "--reference-lag", "0", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "FAILED" in err and "corrupt" in err and "2 done, 1 failed" in err
+        assert not (out / "corrupt").exists()
+        reports[jobs] = {
+            name: json.loads((out / name / "report.json").read_text()) for name in ("a", "b")
+        }
+    for name in ("a", "b"):
+        one, two = reports["1"][name], reports["2"][name]
+        assert one["verdict"]["effect"] == "position"
+        assert one["gap"] == two["gap"] and one["candidates"] == two["candidates"]
+
+
+def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
+    """Past the block budget the diagnosis keeps one run of blocks in every k over the
+    whole bag (memory and time stop growing); the kept blocks are the whole table's."""
+    from egovib_ros.core import NoiseModel
+    from egovib_ros.gap.features import THIN_RUN_BLOCKS, table_from_bag
+
+    model = NoiseModel.load(model_path)
+    whole = table_from_bag(position_bag, model)  # 60 s: within the default budget
+    thin = table_from_bag(position_bag, model, budget_minutes=0.25)
+    assert whole.bad_input["stride"] == 1 and thin.bad_input["stride"] == 4
+    assert 0.2 < thin.n_blocks / whole.n_blocks < 0.3
+    assert thin.t_first_s[-1] > 0.9 * whole.t_first_s[-1]  # spread over the whole bag
+    rows = np.searchsorted(whole.t_first_s, thin.t_first_s)
+    np.testing.assert_array_equal(whole.t_first_s[rows], thin.t_first_s)
+    np.testing.assert_array_equal(whole.magnitude[rows], thin.magnitude)
+    runs = np.flatnonzero(np.diff(rows) > 1)
+    assert np.all(np.diff(runs) >= THIN_RUN_BLOCKS // 2)  # whole runs, not scattered blocks

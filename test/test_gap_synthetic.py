@@ -21,6 +21,7 @@ from egovib_ros.gap.features import (
     JointSeries,
     _joint_block_means,
     _model_lookup,
+    attach_motion,
     axis_spectra,
     in_band_bins,
 )
@@ -98,7 +99,7 @@ def synthetic_table(
     v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
     mean0, std0 = _model_lookup(model, v0, freq_index)
     axis0, zero0 = axis_spectra(model, v0, freq_index)
-    return BlockTable(
+    table = BlockTable(
         t_first_s=t_first,
         t_last_s=t_last,
         magnitude=magnitude,
@@ -117,6 +118,7 @@ def synthetic_table(
         axis_mean=axis0,
         zero_mean=zero0,
     )
+    return attach_motion(table)
 
 
 def test_perfect_model_scores_at_floor():

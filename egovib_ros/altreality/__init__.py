@@ -30,10 +30,16 @@ the simulator's:
 
 from egovib_ros.altreality.hand import (
     EFFECTS,
-    HAND_JOINTS,
+    JOINT_NAMES,
     AltHand,
     effect_audibility_db,
     simulate_alt_motion,
 )
 
-__all__ = ["EFFECTS", "HAND_JOINTS", "AltHand", "effect_audibility_db", "simulate_alt_motion"]
+__all__ = [
+    "EFFECTS",
+    "JOINT_NAMES",
+    "AltHand",
+    "effect_audibility_db",
+    "simulate_alt_motion",
+]

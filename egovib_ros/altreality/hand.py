@@ -16,7 +16,7 @@ from egovib_ros.bagio import Recording
 
 FS = 3000.0  # accelerometer output rate (Hz)
 JOINT_RATE = 1000.0  # joint_states rate (Hz)
-HAND_JOINTS = ("r_wrist_roll_joint", "r_gripper_joint")
+JOINT_NAMES = ("r_wrist_roll_joint", "r_gripper_joint")
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 _NS = 1_000_000_000
 START_NS = 1_726_000_000 * _NS  # wall-clock start of every recording (a real bag's epoch stamps)
@@ -284,8 +284,8 @@ class AltHand:
         return out
 
     def _intermodulation(self, w_freq, w_amp, g_freq, g_amp) -> np.ndarray:
-        """Lines at f_w +- f_g for the main wrist and gripper lines (quadratic bearing
-        stiffness)."""
+        """Lines at f_w +- f_g for the main wrist and gripper lines
+        (quadratic bearing stiffness)."""
         s = self.effects.get("coupling", 0.0)
         n = len(w_freq)
         if not s:
@@ -401,7 +401,7 @@ class AltHand:
             joint_stamps_ns=j_stamps,
             joint_position=j_pos,
             joint_velocity=j_vel,
-            joint_names=HAND_JOINTS,
+            joint_names=JOINT_NAMES,
             contact=contact,
             ego=ego,
         )
@@ -426,8 +426,8 @@ class AltHand:
         return rec, truth
 
     def _joint_states(self, position: np.ndarray, n: int):
-        """1 kHz encoder readings with stamp jitter and dropped messages; velocity over two
-        samples."""
+        """1 kHz encoder readings with stamp jitter and dropped messages;
+        velocity over two samples."""
         rng = self.rng["joints"]
         m = int(n / FS * JOINT_RATE) - 2
         t_true = np.arange(m) / JOINT_RATE + 0.00031 + rng.normal(0.0, 25e-6, m)
@@ -448,8 +448,8 @@ class AltHand:
         stamps = START_NS + np.round((t_true + self.effects.get("timing", 0.0)) * _NS).astype(
             np.int64
         )
-        # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's raw
-        # encoder count.
+        # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's
+        # raw encoder count.
         enc[:, 0] = np.angle(np.exp(1j * enc[:, 0]))
         order = np.argsort(stamps[keep], kind="stable")
         return stamps[keep][order], enc[keep][order], vel[keep][order]
@@ -464,8 +464,8 @@ def simulate_alt_motion(
     top_speed: float = 0.85,
     motion: str = "smooth",
 ) -> tuple[Recording, dict]:
-    """One recording of random motion ("smooth" or task-like "segments") of the
-    alternate-reality hand."""
+    """One recording of random motion ("smooth" or task-like "segments")
+    of the alternate-reality hand."""
     if duration_s <= 0:
         raise ValueError("duration_s must be > 0")
     return AltHand(

@@ -85,8 +85,8 @@ def wrist_reference_smooth(t: np.ndarray, rng: np.random.Generator, top_speed: f
 def gripper_reference(
     t: np.ndarray, rng: np.random.Generator, top_speed: float, gap0: float, *, vary: bool = False
 ) -> np.ndarray:
-    """Gripper gap velocity reference (m/s): strokes between random gap targets, dwells at
-    the ends."""
+    """Gripper gap velocity reference (m/s): strokes between random gap targets,
+    dwells at the ends."""
     dt = t[1] - t[0]
     v = np.zeros(len(t))
     gap, i = gap0, 0
@@ -172,8 +172,8 @@ def plan_motion(
 def reversal_events(
     velocity: np.ndarray, fs: float, threshold: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Sample indices where a joint starts moving opposite to its last direction, and the
-    |accel| there.
+    """Sample indices where a joint starts moving opposite to its last direction,
+    and the |accel| there.
 
     A direction is "moving" once |v| exceeds `threshold`; a reversal is the first
     sample of motion in the direction opposite to the previous motion (after a

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 
 from egovib_ros import cliutil
@@ -15,8 +16,8 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "gap",
         help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
-        description="Where does a simulator-calibrated noise model miss a real recording, which "
-        "unmodelled effect causes it, and how far does the gap shrink once it is added. "
+        description="Where does a simulator-calibrated noise model miss a real recording, "
+        "which unmodelled effect causes it, and how far does the gap shrink once it is added. "
         "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.",
     )
     parser.add_argument(
@@ -24,9 +25,17 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--model", help="noise-model .npz calibrated on the simulator")
     parser.add_argument(
-        "--real", help="real recording (rosbag2 with joint_states and accelerometer/raw)"
+        "--real",
+        nargs="+",
+        metavar="BAG",
+        help="real recording(s): rosbag2 bags with the model's sensor and joint-state topics, "
+        "or directories of bags (several: one report directory per bag under --out)",
     )
-    parser.add_argument("--out", help="output directory (report.json, report.md, figures)")
+    parser.add_argument(
+        "--out",
+        help="output directory (report.json, report.md, figures); with several bags, the "
+        "directory holding one report directory per bag",
+    )
     parser.add_argument(
         "--write-back",
         action="store_true",
@@ -44,27 +53,73 @@ def register(subparsers) -> None:
         "measured on the simulator for this robot's model, else 0)",
     )
     parser.add_argument(
+        "--folds",
+        type=cliutil.int_in(2, 20),
+        default=5,
+        help="blocked cross-validation in time: contiguous folds, each held out once (default 5)",
+    )
+    parser.add_argument(
         "--train-fraction",
         type=cliutil.float_in(0.2, 0.9),
-        default=0.6,
-        help="leading share of the recording used to fit, 0.2 .. 0.9",
+        default=None,
+        help="instead of cross-validation: fit on this leading share of the recording "
+        "(0.2 .. 0.9), test on the rest",
+    )
+    parser.add_argument(
+        "--budget-minutes",
+        type=cliutil.float_in(1.0, 1e6),
+        default=5.0,
+        metavar="MINUTES",
+        help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
+        "evenly over its whole length, so memory and time stop growing (default 5)",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
     )
     val = parser.add_argument_group("validate")
     val.add_argument(
+        "--reality",
+        choices=["sim", "alt"],
+        default="sim",
+        help='where the blind "real" bags come from: our simulator, or the independent '
+        "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
+        "on our simulator (validate)",
+    )
+    val.add_argument(
         "--seeds", type=cliutil.positive_int, default=5, help="seeds per effect class (validate)"
     )
     val.add_argument(
-        "--duration",
-        type=cliutil.positive_float,
-        default=120.0,
-        help="seconds per simulated real bag (validate)",
+        "--master-seed",
+        type=cliutil.int_in(0, 2**31),
+        default=2026,
+        help="seed from which all runs' classes, strengths and seeds are drawn (validate)",
     )
     val.add_argument(
-        "--jobs", type=cliutil.positive_int, default=1, help="parallel worker processes (validate)"
+        "--extra-none",
+        type=cliutil.int_in(0, 1000),
+        default=0,
+        help="this many more bags of every `none` class, for the false-positive rate (validate)",
     )
+    val.add_argument(
+        "--duration",
+        type=cliutil.float_in(30.0, 3600.0),
+        default=120.0,
+        help="seconds per blind real bag, 30 .. 3600 (validate)",
+    )
+    val.add_argument(
+        "--jobs",
+        type=cliutil.positive_int,
+        default=1,
+        help="parallel worker processes (validate; or bags diagnosed at once: a local Dask "
+        "cluster)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="diagnose the bags on an existing Dask cluster (e.g. tcp://host:8786)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     val.add_argument(
         "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
     )
@@ -73,11 +128,11 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "validate":
-        from egovib_ros.gap.validate import run_validation
+        from egovib_ros.gap.validate import output_names, run_validation
 
         out = args.out or "docs"
         # before any work
-        prepare_outputs_in(out, ("gap_validation.json", "gap_validation.md"), force=args.force)
+        prepare_outputs_in(out, output_names(args.reality), force=args.force)
         summary = run_validation(
             seeds=args.seeds,
             duration_s=args.duration,
@@ -85,11 +140,14 @@ def run(args: argparse.Namespace) -> int:
             jobs=args.jobs,
             ladder=not args.no_ladder,
             progress=True,
+            reality=args.reality,
+            master_seed=args.master_seed,
+            extra_none=args.extra_none,
         )
         print(
-            f"gap validate: accuracy {summary['accuracy']:.3f}, none flagged "
-            f"{summary['none_false_positive_rate']:.3f}, {summary['n_runs']} runs -> "
-            f"{summary['outputs']}"
+            f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
+            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"{summary['n_runs']} runs -> {summary['outputs']}"
         )
         return 0
     missing = [
@@ -101,33 +159,59 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
         )
-    if not 0.2 <= args.train_fraction <= 0.9:
+    if args.train_fraction is not None and not 0.2 <= args.train_fraction <= 0.9:
         raise ConfigError(
             f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
         )
+    from egovib_ros.bag.many import run_bags
     from egovib_ros.core.noise_model import NoiseModel
+    from egovib_ros.gap.pipeline import reference_lag_for
+    from egovib_ros.offline import output_jobs, report_results
 
-    NoiseModel.load(args.model)  # a broken model is named first, as before
-    # before any work
-    prepare_output(
-        args.out, force=args.force, inputs=[args.model, args.real, args.sim_params], kind="report"
-    )
-    from egovib_ros.gap.pipeline import run_gap
-
-    report = run_gap(
-        args.model,
-        args.real,
-        args.out,
+    model = NoiseModel.load(args.model)  # a broken model is named first, as before
+    jobs = output_jobs(args.real, args.out)
+    for job in jobs:  # before any work
+        prepare_output(
+            job.out, force=args.force, inputs=[args.model, job.bag, args.sim_params], kind="report"
+        )
+    # measured once on the simulator, not once per bag
+    lag = reference_lag_for(model, args.reference_lag, args.sim_params)
+    task = functools.partial(
+        gap_task,
+        model_path=args.model,
         write_back=args.write_back,
         sim_params=args.sim_params,
-        reference_lag=args.reference_lag,
+        reference_lag=lag,
         train_fraction=args.train_fraction,
+        folds=args.folds,
+        budget_minutes=args.budget_minutes,
     )
-    g = report["gap"]
-    print(
-        f"gap: sim as-is {g['sim_as_is']:.2f} dB, refit {g['after_refit']:.2f} dB, "
-        f"+{report['verdict']['effect']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
-        f"verdict {report['verdict']['effect']} -> {args.out}/report.md",
-        file=sys.stdout,
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet
     )
-    return 0
+    if len(jobs) == 1 and results[0].ok:  # one bag: its line on stdout, as before
+        print(f"gap: {describe_gap(results[0].value)}", file=sys.stdout)
+        return 0
+    return report_results(results, describe_gap, single=len(jobs) == 1)
+
+
+def gap_task(bag, out, progress, *, model_path, **options) -> dict:
+    """One bag's diagnosis into its report directory; the summary line's figures."""
+    from egovib_ros.gap.pipeline import run_gap
+
+    report = run_gap(model_path, bag, out, progress=progress, **options)
+    return {
+        "gap": report["gap"],
+        "verdict": report["verdict"]["effect"],
+        "confidence": report["verdict"].get("confidence"),
+        "report": f"{out}/report.md",
+    }
+
+
+def describe_gap(summary: dict) -> str:
+    g = summary["gap"]
+    return (
+        f"sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
+        f"+{summary['verdict']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
+        f"verdict {summary['verdict']} -> {summary['report']}"
+    )

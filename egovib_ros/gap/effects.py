@@ -1,29 +1,32 @@
-"""Refit and candidate effect models of the gap diagnosis.
+"""Baseline variants and the five generic candidate effect terms of the gap diagnosis.
 
-Refit (the model's own structure: velocity only, joints adding, stationary, in sync),
-fitted on the training split only (`fit_refit_additive`):
+The baseline (`baseline.fit_baseline`) is the velocity-only table re-estimated on the
+real training split.  Each candidate multiplies it by a flexible log-linear term
 
-    E|Y_b(f)|^2 = c(f) S_0(f) + sum_j g_j(f, v_j) [S(f, v_j alone) - S_0(f)],   S = mu^2
+    m_b(f) = m_base_b(f) * exp(alpha(f) + sum_r beta_r(f) x_br)
 
-(independent sources add in power; g_j piecewise linear over the velocity grid), then
-a per-joint (separable) log-domain speed correction.  It absorbs any mis-calibrated
-level per joint, speed and frequency, but no interaction, position, acceleration,
-time or lag dependence.
+in generic covariates that assume nothing about how the effect is produced:
 
-Each candidate multiplies the refit by a log-linear term fitted per frequency bin by
-ridge least squares on ln |Y| / m_refit of the training blocks, then re-levelled so the
-predicted *mean* magnitude matches (the log of a Rayleigh-like magnitude is biased):
+- position: Fourier series (harmonics 1..POSITION_HARMONICS) of every continuous
+  (revolute, turning) joint's angle; piecewise-linear functions (POSITION_KNOTS knots
+  over the travel seen in training) of every other joint's position.
+- coupling: products of piecewise-linear functions of two joints' speeds (zero when
+  either joint is still: main effects belong to the baseline), plain and relative to
+  the baseline's band power (an interaction that *adds* vibration power).
+- acceleration: magnitude of each joint's acceleration (log1p and hinges, relative to its
+  training 95th percentile) and reversals (exponential kernels of the time since and
+  until the joint last/next reverses direction), plain and relative to band power.
+- drift: piecewise-linear function of elapsed time over the training span, held flat
+  beyond it, plus a linear trend that extrapolates (forward split); and, checked on
+  interleaved held-out blocks, a piecewise-linear function of elapsed time over the whole
+  recording (`fit_drift_interleaved` in diagnose.py): a warm-up that saturates inside
+  the training span is in-sample structure that extrapolation alone cannot see.
+- timing: the baseline refitted with joint states re-matched at a lag fitted on train
+  (either sign), versus the best lag within LAG_TOLERANCE_S of the reference.
 
-- position: cos/sin of the first two harmonics of continuous (revolute) joint angles,
-  linear + quadratic terms of the others (e.g. gripper gap).
-- coupling: |v_i||v_j|, its square, and its square relative to the modelled band power
-  (an interaction that *adds* vibration) per joint pair, speeds as fractions of the
-  grid maximum: exactly the interaction that the additive structure lacks.
-- acceleration: log1p|a_j|, |a_j|, |a_j|^2 and |a_j|^2 relative to the modelled band
-  power, accelerations scaled by their training 95th percentile.
-- drift: elapsed time (minutes): a level trend extrapolated to held-out time.
-- timing: the refit after re-matching joint states with a lag fitted on the training
-  split (grid search, then refinement).
+Coefficients per frequency bin = a broadband part shared by all bins plus per-bin
+deviations, each ridge-shrunk with its own weight chosen by generalised cross-validation
+on the training rows (so a strong effect is barely shrunk and a spurious one is).
 """
 
 from __future__ import annotations
@@ -32,17 +35,37 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egovib_ros.gap.features import BlockTable
+from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, simulator_cells
+from egovib_ros.gap.features import BlockTable, hat_basis
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
-#: Ridge weight of the refit's velocity gains: cells with only a few blocks stay near
-#: the calibrated model instead of chasing noise.
-RIDGE_REFIT = 10.0
-RIDGE_EFFECT = 1.0
+POSITION_HARMONICS = 6
+POSITION_KNOTS = 7
+SPEED_KNOTS = tuple(np.linspace(0.0, 1.0, 9))
+ACC_HINGES = (1.0, 3.0)
+REVERSAL_TAUS_S = (0.015, 0.05, 0.15)
+DRIFT_KNOTS = 5
+#: Ridge weights tried by the generalised cross-validation (multiples of the training rows).
+RIDGE_GRID = np.array([1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0])
+#: Overlapping blocks are not independent: GCV counts half the rows as effective.
+EFFECTIVE_ROW_SHARE = 0.5
 #: Lag search (s): coarse grid, then +-1 coarse step at the fine step.
 LAG_RANGE_S = 0.1
 LAG_COARSE_S = 0.005
 LAG_FINE_S = 0.001
+#: Lags within this distance of the reference count as "in sync": an unknown robot's
+#: structural and sensor group delays differ from the simulator's by a few ms.
+LAG_TOLERANCE_S = 0.005
+#: The lag scan fits on every LAG_SCAN_STRIDE-th training block (overlapping neighbours add little).
+LAG_SCAN_STRIDE = 2
+REL_CLIP = 25.0
+#: An effect term never moves a prediction by more than this (nepers, ~26 dB).
+MAX_LOG_GAIN = 3.0
+#: Iterations of the Gamma GLM (IRLS) of a candidate term; working residuals clipped here
+#: (a block 20x above its mean power is an outlier, not information about a smooth term).
+GLM_ITERATIONS = 4
+WORKING_CLIP = 20.0
+EULER_GAMMA = 0.5772156649
 
 
 @dataclass
@@ -54,11 +77,15 @@ class FittedModel:
     std_scale: np.ndarray  # (B, F) multiplicative gain applied to the model std too
     parameters: dict = field(default_factory=dict)
     table: BlockTable | None = field(default=None, repr=False)  # the table it predicts (lag!)
-    coef: np.ndarray | None = field(default=None, repr=False)  # (1 + R, F) log-gain coefficients
+    coef: np.ndarray | None = field(
+        default=None, repr=False
+    )  # (1 + R, F) intercept + per-bin coefficients
     refit_predicted: np.ndarray | None = field(
         default=None, repr=False
-    )  # (B, F) before the effect term
+    )  # (B, F) baseline before the term
     scales: "Scales | None" = field(default=None, repr=False)
+    shape: dict | None = field(default=None, repr=False)  # fitted shape(s) for the report
+    power: np.ndarray | None = field(default=None, repr=False)  # (B, F) expected power (mean |Y|^2)
 
 
 @dataclass
@@ -66,14 +93,18 @@ class Scales:
     """Regressor scalings fixed on the training split (so held-out data are not peeked at)."""
 
     periodic: np.ndarray  # (J,) bool: joint angle wraps (continuous revolute)
-    pos_centre: np.ndarray  # (J,)
-    pos_half: np.ndarray  # (J,)
+    pos_lo: np.ndarray  # (J,)
+    pos_hi: np.ndarray  # (J,)
     acc_scale: np.ndarray  # (J,)
-    t_ref_s: float
-    power_ref: float = 1.0  # median modelled band power (train)
+    t_ref_s: float  # start of the training span
+    t_end_s: float  # end of the training span
+    power_ref: float = 1.0  # median baseline band power (train)
+    band_power: np.ndarray | None = None  # (B,) baseline band power of every block
 
 
-def fit_scales(table: BlockTable, train: np.ndarray) -> Scales:
+def fit_scales(
+    table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None
+) -> Scales:
     pos = table.position[train]
     span = pos.max(axis=0) - pos.min(axis=0)
     # An angle: a joint that turns through more than half a revolution in the data, or
@@ -84,25 +115,66 @@ def fit_scales(table: BlockTable, train: np.ndarray) -> Scales:
     periodic = (span > np.pi) | named
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
+    m = table.base_mean if baseline_magnitude is None else baseline_magnitude
+    band = np.mean(m**2, axis=1)
+    t = table.t_mid_s[train]
     return Scales(
         periodic=periodic,
-        pos_centre=0.5 * (lo + hi),
-        pos_half=np.maximum(0.5 * (hi - lo), 1e-9),
+        pos_lo=lo,
+        pos_hi=np.maximum(hi, lo + 1e-9),
         acc_scale=np.maximum(acc, 1e-9),
-        t_ref_s=float(table.t_mid_s[train].min()),
-        power_ref=float(np.median(np.mean(table.base_mean[train] ** 2, axis=1))),
+        t_ref_s=float(t.min()),
+        t_end_s=float(t.max()),
+        power_ref=float(np.median(band[train])),
+        band_power=band,
     )
 
 
 def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
-    """Reference power / modelled band power of each block.
+    """Reference power / baseline band power of each block, clipped.
 
     An effect that *adds* vibration of a given power raises the log magnitude by about
-    log(1 + added / modelled): relatively more where the model is quiet.  Multiplying a
-    regressor's square by this ratio gives the additive (power) form of the term.
+    log(1 + added / modelled): relatively more where the model is quiet.
     """
-    power = np.mean(table.base_mean**2, axis=1)
-    return scales.power_ref / np.maximum(power, 1e-6 * scales.power_ref)
+    band = (
+        scales.band_power
+        if scales.band_power is not None and len(scales.band_power) == table.n_blocks
+        else np.mean(table.base_mean**2, axis=1)
+    )
+    return np.minimum(scales.power_ref / np.maximum(band, 1e-9 * scales.power_ref), REL_CLIP)
+
+
+def _hats(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(n, K) piecewise-linear basis over `knots` (values clipped to the knot range)."""
+    i, wl, wr = hat_basis(values, knots)
+    out = np.zeros((len(values), len(knots)))
+    rows = np.arange(len(values))
+    out[rows, i] += wl
+    out[rows, i + 1] += wr
+    return out
+
+
+def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
+    """Piecewise-linear basis in time over [t0, t1], flat beyond;
+    the first knot is the reference."""
+    knots = np.linspace(t0, t1, n_knots) if t1 > t0 else np.array([t0, t0 + 1.0])
+    return _hats(t, knots)[:, 1:]
+
+
+def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, list[str]]:
+    """Fourier series of a turning joint's angle, or hats over a bounded joint's travel
+    (middle dropped)."""
+    if scales.periodic[j]:
+        cols, labels = [], []
+        for k in range(1, POSITION_HARMONICS + 1):
+            cols += [np.cos(k * p), np.sin(k * p)]
+            labels += [f"cos{k}", f"sin{k}"]
+        return np.stack(cols, axis=1), labels
+    knots = np.linspace(scales.pos_lo[j], scales.pos_hi[j], POSITION_KNOTS)
+    h = np.delete(
+        _hats(p, knots), POSITION_KNOTS // 2, axis=1
+    )  # the middle of the travel is the reference
+    return h, [f"hat{k}" for k in range(POSITION_KNOTS) if k != POSITION_KNOTS // 2]
 
 
 def effect_regressors(
@@ -111,36 +183,54 @@ def effect_regressors(
     """Regressor columns (B, R) of one candidate effect, with their names."""
     cols, names = [], []
     if effect == "position":
+        # Each function of a joint's position enters twice: as a gain, and weighted by that
+        # joint's speed fraction (a spot or rub that sounds only while the joint moves).
+        speed = np.abs(table.velocity) / table.vmax
         for j, name in enumerate(table.joint_names):
-            p = table.position[:, j]
-            if scales.periodic[j]:
-                for k in (1, 2):
-                    cols += [np.cos(k * p), np.sin(k * p)]
-                    names += [f"cos{k}({name})", f"sin{k}({name})"]
-            else:
-                z = np.clip((p - scales.pos_centre[j]) / scales.pos_half[j], -1.5, 1.5)
-                cols += [z, z**2]
-                names += [f"lin({name})", f"quad({name})"]
+            basis, labels = position_basis(table.position[:, j], j, scales)
+            for col, label in zip(basis.T, labels):
+                cols += [col, col * speed[:, j]]
+                names += [f"{label}({name})", f"{label}*|v|({name})"]
     elif effect == "coupling":
         speed = np.abs(table.velocity) / table.vmax
         rel = relative_power(table, scales)
+        knots = np.asarray(SPEED_KNOTS)
+        basis = [_hats(speed[:, j], knots)[:, 1:] for j in range(speed.shape[1])]
         for i in range(speed.shape[1]):
             for j in range(i + 1, speed.shape[1]):
-                prod = speed[:, i] * speed[:, j]
-                cols += [prod, prod**2, np.minimum(prod**2 * rel, 25.0)]
-                names += [f"|v_{i}||v_{j}|", f"(|v_{i}||v_{j}|)^2", f"(|v_{i}||v_{j}|)^2/P"]
+                for a in range(basis[i].shape[1]):
+                    for b in range(basis[j].shape[1]):
+                        prod = basis[i][:, a] * basis[j][:, b]
+                        cols += [prod]
+                        names += [f"s{i}={knots[a + 1]:g}*s{j}={knots[b + 1]:g}"]
     elif effect == "acceleration":
-        # Reversals and clunks reach 10-20x the typical (95th percentile) acceleration:
-        # keep that range (clip at 40x) and let log1p carry the bulk.
         acc = np.clip(table.acceleration / scales.acc_scale, 0.0, 40.0)
         rel = relative_power(table, scales)
         for j, name in enumerate(table.joint_names):
-            u = acc[:, j] / 10.0
-            cols += [np.log1p(acc[:, j]), u, u**2, np.minimum(u**2 * rel, 25.0)]
-            names += [f"log1p|a|({name})", f"|a|({name})", f"|a|^2({name})", f"|a|^2/P({name})"]
+            u = acc[:, j]
+            cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
+            names += [f"log1p|a|({name})"] + [f"(|a|-{h:g})+({name})" for h in ACC_HINGES]
+            cols.append(np.minimum((u / 10.0) ** 2 * rel, REL_CLIP))
+            names.append(f"|a|^2/P({name})")
+            if table.reversal_after_s is not None:
+                after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
+                for tau in REVERSAL_TAUS_S:
+                    ka, kb = np.exp(-after / tau), np.exp(-before / tau)
+                    cols += [ka, kb]
+                    names += [
+                        f"after_rev_{1000 * tau:g}ms({name})",
+                        f"before_rev_{1000 * tau:g}ms({name})",
+                    ]
+                cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
+                names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
     elif effect == "drift":
-        cols = [(table.t_mid_s - scales.t_ref_s) / 60.0]
-        names = ["t_min"]
+        t = table.t_mid_s
+        h = time_hats(t, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
+        for k in range(h.shape[1]):
+            cols.append(h[:, k])
+            names.append(f"time_hat{k + 1}")
+        cols.append((t - scales.t_ref_s) / 60.0)
+        names.append("t_min")
     elif effect in ("refit", "timing"):
         pass
     else:
@@ -150,99 +240,84 @@ def effect_regressors(
     return np.stack(cols, axis=1), names
 
 
-def _ridge_fit(x: np.ndarray, z: np.ndarray, penalties: np.ndarray) -> np.ndarray:
-    """Ridge least squares with per-column penalties (multiple right-hand sides)."""
-    xtx = x.T @ x + np.diag(penalties)
-    return np.linalg.solve(xtx, x.T @ z)
+def _gcv_ridge(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
+    """Ridge coefficients (R, T) for standardised x (n, R) and centred y (n, T), weight by GCV."""
+    n = len(x)
+    u, s, vt = np.linalg.svd(x, full_matrices=False)
+    uy = u.T @ y
+    yy = float(np.sum(y * y))
+    n_eff = EFFECTIVE_ROW_SHARE * n
+    best, best_lam = np.inf, RIDGE_GRID[-1] * n
+    for lam in RIDGE_GRID * n:
+        d = s**2 / (s**2 + lam)
+        rss = yy - float(np.sum((2 * d - d * d)[:, None] * uy**2))
+        dof = float(d.sum())
+        if dof >= n_eff:
+            continue
+        score = rss / (1.0 - dof / n_eff) ** 2
+        if score < best:
+            best, best_lam = score, lam
+    d = s / (s**2 + best_lam)
+    return vt.T @ (d[:, None] * uy), float(best_lam / n)
 
 
-def fit_refit_additive(table: BlockTable, train: np.ndarray) -> tuple[np.ndarray, dict]:
-    """The model's own structure refitted: velocity only, joints adding (Eq. 6), stationary,
-    in sync.
+def fit_term(x: np.ndarray, z: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Per-bin log-gain coefficients: (1 + R, F) = [intercept; beta],
+    broadband + per-bin parts by GCV ridge."""
+    n_bins = z.shape[1]
+    zt = z[train]
+    z_mean = zt.mean(axis=0)
+    if x.shape[1] == 0:
+        return z_mean[None, :], {}
+    xt = x[train]
+    # Columns are only centred, never scaled to unit variance: every regressor is built on
+    # a natural range of about [0, 1] (hats, kernels, harmonics), so a column that is non-zero
+    # on few training blocks keeps a small norm and is shrunk hard, instead of being blown
+    # up and extrapolated wildly on held-out blocks.
+    mu = xt.mean(axis=0)
+    sd = np.ones_like(mu)
+    live = np.ptp(xt, axis=0) > 1e-12
+    beta = np.zeros((x.shape[1], n_bins))
+    info = {}
+    if live.any():
+        xs = (xt[:, live] - mu[live]) / sd[live]
+        zc = zt - z_mean
+        broad = zc.mean(axis=1, keepdims=True)
+        b, lam_b = _gcv_ridge(xs, broad)
+        dev, lam_d = _gcv_ridge(xs, zc - broad)
+        beta[live] = (b + dev) / sd[live, None]
+        info = {"ridge_broadband": lam_b, "ridge_per_bin": lam_d}
+    intercept = z_mean - mu @ beta
+    return np.vstack([intercept[None, :], beta]), info
 
-    Independent sources add in power, so the refit works on mean-square spectra:
 
-        E|Y_b(f)|^2 = c(f) S_0(f) + sum_j g_j(f, v_j) [S(f, v_j alone) - S_0(f)],   S = mu^2
+def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power:
+    E[ratio] = exp(2 (a(f) + x beta(f))).
 
-    with g_j piecewise linear over the velocity grid (hat functions, 20 % steps) and c
-    per bin, fitted by ridge-weighted least squares (weights 1/S^2: the scatter of a
-    power grows with its mean) and shrunk towards the calibrated model (c = g = 1).
-    A vibration level that is wrong by any factor per joint, speed and frequency is
-    representable; an interaction between joints, or a dependence on anything but
-    velocity, is not.  Returns (predicted magnitude sqrt(S) (B, F), summary).
+    Targets the *mean* power (the quantity that adds over independent sources and that the
+    held-out deviance judges), by iteratively reweighted least squares: for a log link and
+    Gamma variance the working weights are constant, so each step is the same GCV ridge
+    fit (`fit_term`) on the working response eta + (ratio - mu) / mu.  Starts from the
+    least-squares fit of log ratio.  Returns coefficients on the magnitude scale (half the
+    power exponent), (1 + R, F).
     """
-    hats = np.concatenate(
-        [refit_hats(table.velocity[:, j], table.vmax[j]) for j in range(table.velocity.shape[1])],
-        axis=1,
-    )  # (B, J*K)
-    joint_of = np.repeat(
-        np.arange(table.velocity.shape[1]), hats.shape[1] // table.velocity.shape[1]
-    )
-    s0 = table.zero_mean**2
-    diff = table.axis_mean**2 - s0[None, None, :]  # (B, J, F)
-    base = s0[None, :] + diff.sum(axis=1)  # Eq. 6 in power, model as is
-    base = np.maximum(base, 1e-6 * np.max(base))
-    n_bins = base.shape[1]
-    # Design per bin, all bins at once: (F, B, P) with P = 1 + J*K.
-    x = np.concatenate(
-        [
-            np.broadcast_to(s0[:, None, None], (n_bins, table.n_blocks, 1)),
-            hats[None, :, :] * diff.transpose(2, 0, 1)[:, :, joint_of],
-        ],
-        axis=2,
-    )
-    w = (1.0 / base).T  # (F, B)
-    delta = _batched_ridge(
-        x[:, train] * w[:, train, None],
-        ((table.magnitude[train] ** 2 - base[train]).T * w[:, train]),
-        RIDGE_REFIT,
-        penalise_first=True,
-    )
-    predicted = np.maximum(base + np.einsum("fbp,fp->bf", x, delta), 0.01 * base)
-    gains = 1.0 + delta  # (F, P)
-    magnitude = np.sqrt(predicted)
-    # Second stage, log domain, still separable per joint: the mean/rms ratio of a
-    # magnitude depends on how tonal the bin is (hum and gear lines vs. broadband), which
-    # changes with speed, so a per-joint speed correction of the magnitude completes the refit.
-    # Each joint's correction acts only on its own share of the bin's power, so it
-    # cannot carry one joint's speed into another joint's band (that is coupling).
-    z = np.log(np.maximum(table.magnitude, 1e-12)) - np.log(np.maximum(magnitude, 1e-12))
-    share = np.clip(diff / np.maximum(predicted, 1e-300)[:, None, :], 0.0, 1.0)  # (B, J, F)
-    sep = np.concatenate(
-        [
-            np.ones((n_bins, table.n_blocks, 1)),
-            hats[None, :, :] * share.transpose(2, 0, 1)[:, :, joint_of],
-        ],
-        axis=2,
-    )
-    beta = _batched_ridge(sep[:, train], z[train].T, RIDGE_REFIT, penalise_first=False)
-    beta[:, 0] = 0.0  # the overall level is set later (re-levelling)
-    magnitude = magnitude * np.exp(np.einsum("fbp,fp->bf", sep, beta))
-    return magnitude, {
-        "rest_gain_db": round(float(10 * np.log10(max(np.mean(gains[:, 0]), 1e-6))), 4),
-        "n_parameters": int(gains.size + beta.size),
-    }
+    log_ratio = np.log(np.maximum(ratio, 1e-300))
+    coef, ridge = fit_term(x, log_ratio, train)
+    coef[0] += EULER_GAMMA  # E log of an exponential variable = log mean - gamma
+    for _ in range(GLM_ITERATIONS):
+        eta = coef[0][None, :] + (
+            np.clip(x @ coef[1:], -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN) if x.shape[1] else 0.0
+        )
+        mu = np.exp(eta)
+        work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
+        coef, ridge = fit_term(x, work, train)
+    return coef / 2.0, ridge
 
 
-def _batched_ridge(
-    x: np.ndarray, y: np.ndarray, ridge: float, *, penalise_first: bool
-) -> np.ndarray:
-    """Per-bin ridge least squares: x (F, B, P), y (F, B) -> coefficients (F, P)."""
-    n_par = x.shape[2]
-    penalty = np.full(n_par, ridge)
-    if not penalise_first:
-        penalty[0] = 0.0
-    xt = x.transpose(0, 2, 1)
-    return np.linalg.solve(xt @ x + np.diag(penalty)[None], (xt @ y[:, :, None]))[:, :, 0]
-
-
-def refit_hats(velocity: np.ndarray, vmax: float, n_knots: int = 11) -> np.ndarray:
-    """Hat functions over signed speed fractions -1..1 (knot at rest dropped: c carries it)."""
-    knots = np.linspace(-1.0, 1.0, n_knots)
-    step = knots[1] - knots[0]
-    frac = np.clip(velocity / vmax, -1.0, 1.0)
-    hats = np.maximum(0.0, 1.0 - np.abs(frac[:, None] - knots[None, :]) / step)
-    return np.delete(hats, n_knots // 2, axis=1)
+def _relevel(table: BlockTable, train: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """Per-bin factor so that the predicted *mean* magnitude matches on training blocks."""
+    return table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
 
 
 def fit_variant(
@@ -250,45 +325,49 @@ def fit_variant(
     train: np.ndarray,
     effect: str,
     scales: Scales,
-    refit: tuple[np.ndarray, dict] | None = None,
+    refit: Baseline | None = None,
+    *,
+    regressors: tuple[np.ndarray, list[str]] | None = None,
 ) -> FittedModel:
-    """Refit, then one effect's regressors on top of it (log domain),
+    """Baseline, then one effect's regressors (or given `regressors`) on top of it (log domain),
     fitted on the training rows."""
-    refit_pred, refit_info = refit if refit is not None else fit_refit_additive(table, train)
-    extra, names = effect_regressors(effect, table, scales)
-    x = np.concatenate([np.ones((table.n_blocks, 1)), extra], axis=1)
-    penalties = np.concatenate([[0.0], np.full(extra.shape[1], RIDGE_EFFECT)])
-    tiny = 1e-12
-    z = np.log(np.maximum(table.magnitude, tiny)) - np.log(np.maximum(refit_pred, tiny))
-    beta = _ridge_fit(x[train], z[train], penalties)
-    gain = np.exp(x @ beta)
-    predicted = refit_pred * gain
-    # Re-level: the mean magnitude (not the geometric mean) must match on training blocks.
-    level = table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
-    gain *= level
-    beta[0] += np.log(level)
-    params = {
-        "n_parameters": int(refit_info["n_parameters"] + x.shape[1] * z.shape[1]),
-        "refit_rest_gain_db": refit_info["rest_gain_db"],
-    }
+    base = refit if refit is not None else fit_baseline(table, train)
+    extra, names = (
+        regressors if regressors is not None else effect_regressors(effect, table, scales)
+    )
+    coef, ridge = fit_power_term(extra, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
+    term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
+    gain = np.exp(coef[0][None, :] + term)
+    predicted = base.magnitude * gain
+    predicted = predicted * _relevel(table, train, predicted)
+    # The same term on the expected power (what the decision compares: independent
+    # sources add in power, and the power's mean is what a Gamma deviance rewards).
+    power = base.power * gain**2
+    power = (
+        power
+        * (table.magnitude[train] ** 2).sum(axis=0)
+        / np.maximum(power[train].sum(axis=0), 1e-300)
+    )
+    params = {"n_parameters": int(base.info.get("n_parameters", 0) + coef.size)}
     if names:
-        params["terms_db"] = {n: _db_summary(beta[1 + k]) for k, n in enumerate(names)}
-        params["coefficients_per_bin"] = {
-            n: [round(float(c), 5) for c in beta[1 + k]] for k, n in enumerate(names)
-        }
-    params.update(_effect_summary(effect, names, beta[1:], scales))
-    predicted = refit_pred * gain
+        params["n_regressors"] = len(names)
+        params["ridge"] = {k: round(v, 5) for k, v in ridge.items()}
+    params.update(_effect_summary(effect, names, coef[1:], scales))
     std_scale = predicted / np.maximum(table.base_mean, 1e-12)
-    return FittedModel(
+    fm = FittedModel(
         name=effect,
         predicted=predicted,
         std_scale=std_scale,
         parameters=params,
         table=table,
-        coef=beta,
-        refit_predicted=refit_pred,
+        coef=coef,
+        refit_predicted=base.magnitude,
         scales=scales,
+        power=power,
     )
+    if names and regressors is None:
+        fm.shape = effect_shape(effect, table, scales, coef, names)
+    return fm
 
 
 def apply_effect_term(
@@ -299,18 +378,116 @@ def apply_effect_term(
     coef: np.ndarray,
     scales: Scales,
 ) -> np.ndarray:
-    """Predictions with a given (e.g. simulator-derived) effect term on top of a refit,
+    """Predictions with a given (e.g. simulator-derived) effect term on top of a baseline,
     re-levelled on train."""
     extra, _ = effect_regressors(effect, table, scales)
     gain = np.exp(extra @ coef[1:]) if extra.shape[1] else np.ones_like(refit_predicted)
     predicted = refit_predicted * gain
-    level = table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
-    return predicted * level
+    return predicted * _relevel(table, train, predicted)
 
 
-def _db_summary(log_gain: np.ndarray) -> float:
-    """Broadband size of a per-bin log gain, in dB (mean over bins)."""
-    return round(float(np.mean(log_gain) * 20.0 / np.log(10.0)), 4)
+DB_PER_NEPER = 20.0 / np.log(10.0)
+
+
+def _db(log_gain) -> list:
+    return [round(float(v) * DB_PER_NEPER, 3) for v in np.atleast_1d(log_gain)]
+
+
+def effect_shape(
+    effect: str, table: BlockTable, scales: Scales, coef: np.ndarray, names: list[str]
+) -> dict:
+    """The fitted term's broadband gain (dB, mean over bins) along each of its covariates.
+
+    Each curve moves one covariate over its range with the other covariates' columns at
+    their training means (rel = 1 for the power-relative columns); curves are centred to
+    0 dB at their own mean so they show the shape, not the level.
+    """
+    beta = coef[1:].mean(axis=1)  # broadband part (R,)
+    shapes: dict = {}
+    if effect == "position":
+        speed = np.abs(table.velocity) / table.vmax
+        for j, name in enumerate(table.joint_names):
+            if scales.periodic[j]:
+                grid, unit = np.linspace(0.0, 2 * np.pi, 73), "rad (mod 2pi)"
+            else:
+                grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
+            basis, labels = position_basis(grid, j, scales)
+            plain = np.array([names.index(f"{label}({name})") for label in labels])
+            moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
+            typical = (
+                float(np.median(speed[:, j][speed[:, j] > 0.05]))
+                if np.any(speed[:, j] > 0.05)
+                else 0.5
+            )
+            g = basis @ (beta[plain] + typical * beta[moving])
+            shapes[f"position:{name}"] = {
+                "x": [round(float(v), 5) for v in grid],
+                "unit": unit,
+                "gain_db": _db(g - g.mean()),
+                "note": f"at the joint's median moving speed fraction {typical:.2f}",
+            }
+    elif effect == "coupling":
+        grid = np.linspace(0.0, 1.0, 11)
+        knots = np.asarray(SPEED_KNOTS)
+        hb = _hats(grid, knots)[:, 1:]
+        n_j = len(table.joint_names)
+        k = 0
+        for i in range(n_j):
+            for j in range(i + 1, n_j):
+                gmat = np.zeros((len(grid), len(grid)))
+                for a in range(hb.shape[1]):
+                    for b in range(hb.shape[1]):
+                        gmat += beta[k] * np.outer(hb[:, a], hb[:, b])
+                        k += 1
+                shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
+                    "speed_fraction": [round(float(v), 3) for v in grid],
+                    "gain_db": [_db(row) for row in gmat],
+                    "unit": "speed fraction of each joint",
+                }
+    elif effect == "acceleration":
+        for j, name in enumerate(table.joint_names):
+            idx = {n: k for k, n in enumerate(names)}
+            grid = np.linspace(0.0, 20.0, 41)
+            g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
+            for h in ACC_HINGES:
+                g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
+            g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
+            shapes[f"acceleration:{name}"] = {
+                "x": [round(float(v), 3) for v in grid],
+                "unit": "|acceleration| / training 95th percentile",
+                "gain_db": _db(g),
+            }
+            if f"after_rev_15ms({name})" in idx:
+                tgrid = np.linspace(-0.3, 0.3, 61)
+                g = np.zeros_like(tgrid)
+                for tau in REVERSAL_TAUS_S:
+                    ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                    kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                    g = (
+                        g
+                        + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
+                        + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
+                    )
+                g = g + beta[
+                    idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]
+                ] * np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0)
+                shapes[f"reversal:{name}"] = {
+                    "x": [round(float(v), 3) for v in tgrid],
+                    "unit": "s from the joint's reversal",
+                    "gain_db": _db(g),
+                }
+    elif effect == "drift":
+        grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
+        h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
+        x = np.concatenate([h, ((grid - scales.t_ref_s) / 60.0)[:, None]], axis=1)
+        g = x @ beta
+        shapes["drift:elapsed_time"] = {
+            "x": [round(float(v), 2) for v in grid],
+            "unit": "s",
+            "gain_db": _db(g - g[0]),
+            "train_end_s": round(scales.t_end_s, 2),
+        }
+    return shapes
 
 
 def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Scales) -> dict:
@@ -318,85 +495,75 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
     c = coef.mean(axis=1) if len(coef) else coef
     out: dict = {}
     if effect == "position":
-        k = 0
-        for name in names:
-            if name.startswith("cos1("):
+        for k, name in enumerate(names):
+            if name.startswith("cos1(") and "*|v|" not in name:
                 joint = name[5:-1]
-                amp = float(np.hypot(c[k], c[k + 1]))
+                j = names.index(f"sin1({joint})")
+                amp = float(np.hypot(c[k], c[j]))
                 out[joint] = {
-                    "relative_amplitude": round(amp, 4),
-                    "phase_rad": round(float(np.arctan2(c[k + 1], c[k])), 4),
+                    "first_harmonic_relative_amplitude": round(amp, 4),
+                    "first_harmonic_phase_rad": round(float(np.arctan2(c[j], c[k])), 4),
                 }
-            if name.startswith("lin("):
-                joint = name[4:-1]
-                # log gain per half of the joint's travel (position scaled to [-1, 1])
-                out[joint] = {
-                    "relative_slope": round(float(c[k]), 4),
-                    "relative_curvature": round(float(c[k + 1]), 4),
-                }
-            k += 1
-    elif effect == "coupling":
-        out["log_gain_at_full_speeds"] = round(float(c[0] + c[1]), 4)
-        out["relative_power_coefficient"] = round(float(c[2]), 5)
+    elif effect == "drift":
+        out["log_gain_per_minute"] = round(float(c[-1]), 5)
     elif effect == "acceleration":
         out["acc_scale"] = [round(float(a), 5) for a in scales.acc_scale]
-        out["log1p_coefficient"] = [round(float(c[4 * j]), 4) for j in range(len(c) // 4)]
-        out["relative_power_coefficient"] = [
-            round(float(c[4 * j + 3]), 5) for j in range(len(c) // 4)
-        ]
-    elif effect == "drift":
-        out["log_gain_per_minute"] = round(float(c[0]), 5)
     return out
 
 
+def lag_scan(
+    table: BlockTable,
+    train: np.ndarray,
+    *,
+    lag_range_s: float = LAG_RANGE_S,
+    centre_s: float = 0.0,
+    prior=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Training residual of the baseline refitted with joint states re-matched
+    at each lag of a grid."""
+    rows = np.flatnonzero(train)[::LAG_SCAN_STRIDE]
+    prior = simulator_cells(table) if prior is None else prior
+    lags = np.round(
+        np.arange(centre_s - lag_range_s, centre_s + lag_range_s + 1e-12, LAG_COARSE_S), 6
+    )
+    curve = np.array([lag_residual(table, rows, lag, prior) for lag in lags])
+    return lags, curve
+
+
+def refine_lag(
+    table: BlockTable,
+    train: np.ndarray,
+    lags: np.ndarray,
+    curve: np.ndarray,
+    *,
+    lo: float = -np.inf,
+    hi: float = np.inf,
+    prior=None,
+) -> float:
+    """Best lag within [lo, hi]: best coarse grid point there, then the fine grid around it."""
+    rows = np.flatnonzero(train)[::LAG_SCAN_STRIDE]
+    prior = simulator_cells(table) if prior is None else prior
+    inside = (lags >= lo - 1e-9) & (lags <= hi + 1e-9)
+    if not inside.any():
+        inside = np.abs(lags - np.clip(lags, lo, hi)) == np.min(
+            np.abs(lags - np.clip(lags, lo, hi))
+        )
+    best = lags[inside][int(np.argmin(curve[inside]))]
+    fine = np.arange(best - LAG_COARSE_S + LAG_FINE_S, best + LAG_COARSE_S - 1e-12, LAG_FINE_S)
+    fine = fine[(fine >= lo - 1e-9) & (fine <= hi + 1e-9)]
+    cand = np.concatenate([[best], fine])
+    vals = [lag_residual(table, rows, float(lag), prior) for lag in cand]
+    return float(cand[int(np.argmin(vals))])
+
+
 def fit_lag(
-    table: BlockTable, train: np.ndarray, scales: Scales, *, lag_range_s: float = LAG_RANGE_S
+    table: BlockTable,
+    train: np.ndarray,
+    scales: Scales | None = None,
+    *,
+    lag_range_s: float = LAG_RANGE_S,
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Lag (s) minimising the training residual of the refit; also (lags, residual curve)."""
-
-    # The scan only needs training blocks; every other one (overlapping neighbours carry
-    # little extra information) halves its cost.
-    sub = table.subset(np.flatnonzero(train)[::2])
-    every = np.ones(sub.n_blocks, dtype=bool)
-
-    def residual(lag: float) -> float:
-        t = sub.at_lag(lag)
-        predicted, _ = fit_refit_additive(t, every)
-        z = np.log(np.maximum(t.magnitude, 1e-12)) - np.log(np.maximum(predicted, 1e-12))
-        return float(np.mean((z - z.mean(axis=0)) ** 2))
-
-    coarse = np.arange(-lag_range_s, lag_range_s + 1e-12, LAG_COARSE_S)
-    curve = np.array([residual(lag) for lag in coarse])
-    best = coarse[int(np.argmin(curve))]
-    fine = np.arange(best - LAG_COARSE_S, best + LAG_COARSE_S + 1e-12, LAG_FINE_S)
-    fine_curve = np.array([residual(lag) for lag in fine])
-    lag = float(fine[int(np.argmin(fine_curve))])
-    return lag, coarse, curve
-
-
-def fit_timing(table: BlockTable, train: np.ndarray, scales: Scales) -> FittedModel:
-    lag, lags, curve = fit_lag(table, train, scales)
-    lagged = table.at_lag(lag)
-    fitted = fit_variant(lagged, train, "refit", scales)
-    fitted.name = "timing"
-    fitted.parameters["lag_s"] = round(lag, 5)
-    fitted.parameters["lag_scan"] = {
-        "lag_s": [round(float(lag), 4) for lag in lags],
-        "train_log_residual": [round(float(c), 6) for c in curve],
-    }
-    return fitted
-
-
-def fit_all(
-    table: BlockTable, train: np.ndarray, effects: tuple[str, ...] = EFFECTS
-) -> dict[str, FittedModel]:
-    """Refit plus every candidate effect, all fitted on `train` rows only."""
-    scales = fit_scales(table, train)
-    refit = fit_refit_additive(table, train)
-    out = {"refit": fit_variant(table, train, "refit", scales, refit)}
-    for effect in effects:
-        if effect == "timing":
-            out[effect] = fit_timing(table, train, scales) if table.joints is not None else None
-        else:
-            out[effect] = fit_variant(table, train, effect, scales, refit)
-    return {k: v for k, v in out.items() if v is not None}
+    """Lag (s) minimising the training residual of the baseline; also (lags, residual curve)."""
+    prior = simulator_cells(table)
+    lags, curve = lag_scan(table, train, lag_range_s=lag_range_s, prior=prior)
+    return refine_lag(table, train, lags, curve, prior=prior), lags, curve

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage, signal
 
-from egovib_ros.core.stream import FramerSettings, frame_batch
+from egovib_ros.core.stream import FramerSettings
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
 
@@ -40,6 +40,9 @@ class JointSeries:
     position: np.ndarray  # (M, J)
     velocity: np.ndarray  # (M, J)
     acceleration: np.ndarray  # (M, J) smoothed derivative of velocity
+    smooth_velocity: np.ndarray | None = None  # (M, J) Savitzky-Golay smoothed velocity
+    reversals: tuple[np.ndarray, ...] = ()  # per joint: joint-clock times (s) where motion
+    # resumes opposite to the last direction
 
 
 @dataclass
@@ -84,7 +87,11 @@ class BlockTable:
                 "base_std",
                 "contact",
                 "axis_mean",
+                "hats",
+                "reversal_after_s",
+                "reversal_before_s",
             )
+            if getattr(self, name) is not None
         }
         return replace(self, **pick)
 
@@ -101,6 +108,9 @@ class BlockTable:
         )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
         axis, zero = axis_spectra(self.model, velocity, self.freq_index)
+        hats, after, before = motion_features(
+            self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots, self.model.window
+        )
         return replace(
             self,
             velocity=velocity,
@@ -110,6 +120,10 @@ class BlockTable:
             base_std=std,
             axis_mean=axis,
             zero_mean=zero,
+            hats=hats,
+            reversal_after_s=after,
+            reversal_before_s=before,
+            lag_s=float(lag_s),
         )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
@@ -117,40 +131,206 @@ class BlockTable:
         repr=False, default=None
     )  # (B, J, F) Eq. 6 single-joint spectra
     zero_mean: np.ndarray | None = field(repr=False, default=None)  # (F,) spectrum at rest
+    #: Velocity knots per joint (the model's grid): the baseline's cells.
+    knots: tuple[np.ndarray, ...] = field(repr=False, default=())
+    #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
+    #: velocity trajectory at the knots: what a velocity-only table predicts, linearly.
+    hats: np.ndarray | None = field(repr=False, default=None)
+    reversal_after_s: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J) since last reversal
+    reversal_before_s: np.ndarray | None = field(
+        repr=False, default=None
+    )  # (B, J) until next reversal
+    lag_s: float = 0.0  # joint-state lag of this table
+    #: counts of bad input treated as missing (framer stats, joint states dropped)
+    bad_input: dict = field(repr=False, default_factory=dict)
 
 
-def frame_blocks(rec, model, velocity: np.ndarray, max_hold_s: float):
-    """The core's own framing (`frame_batch`, as calibration uses): band-passed sum of axes.
+#: The baseline's velocity cells: the model's grid with each interval split in this many
+#: (tonal lines sweep a DFT bin within a fraction of a 10 % grid step).
+KNOT_REFINE = 4
+KNOT_REFINE_LOW = 10
+LOW_SPEED_FRACTION = 0.2
+#: Points per block at which the velocity trajectory is sampled for the baseline's features.
+TRAJECTORY_POINTS = 16
+#: A joint is moving in one direction once |smoothed velocity| exceeds this share of its top speed.
+REVERSAL_THRESHOLD = 0.03
 
-    Returns (magnitude spectra (B, n_bins) of complete blocks with a joint state,
-    t_first_ns (B,), t_last_ns (B,), block mean velocity (B, J)).
+
+def hat_basis(values: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Piecewise-linear interpolation weights: (left knot index, left weight, right weight)."""
+    v = np.clip(values, knots[0], knots[-1])
+    i = np.clip(np.searchsorted(knots, v, side="right") - 1, 0, len(knots) - 2)
+    frac = (v - knots[i]) / (knots[i + 1] - knots[i])
+    return i, 1.0 - frac, frac
+
+
+def motion_features(
+    joints: JointSeries,
+    t_first: np.ndarray,
+    t_last: np.ndarray,
+    lag_s: float,
+    knots: tuple[np.ndarray, ...],
+    window: np.ndarray,
+):
+    """Velocity-trajectory hat features (B, J, K) and times since / until the nearest
+    reversal (B, J).
+
+    Each block's features are the analysis-window^2-weighted mean, over TRAJECTORY_POINTS
+    instants inside the block, of the hat functions of the (smoothed) joint velocity: a
+    velocity table interpolated linearly between its cells and averaged over the block's
+    own velocity trajectory (a block straddling a reversal sees both directions' speeds,
+    not their mean, which is near zero).
     """
-    # the model's framing, including its sensor range: bad samples are missing, as in calibration
-    settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
-    batches, _ = frame_batch(
-        settings, velocity.shape[1], rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, velocity
-    )
-    batches = [b for b in batches if b.n]
-    if not batches:
-        n_bins = model.block_length // 2 + 1
-        return (
-            np.zeros((0, n_bins)),
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            np.zeros((0, velocity.shape[1])),
+    n_blocks, n_joints = len(t_first), len(knots)
+    pts = np.linspace(0.0, 1.0, TRAJECTORY_POINTS)
+    idx = np.clip(np.round(pts * (len(window) - 1)).astype(int), 0, len(window) - 1)
+    weight = window[idx] ** 2
+    weight = weight / weight.sum()
+    times = t_first[:, None] + pts[None, :] * (t_last - t_first)[:, None]  # (B, Q)
+    t_joint = joints.t_s - lag_s
+    vel = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
+    n_knots = max(len(k) for k in knots)
+    hats = np.zeros((n_blocks, n_joints, n_knots))
+    rows = np.repeat(np.arange(n_blocks), TRAJECTORY_POINTS)
+    w = np.tile(weight, n_blocks)
+    for j in range(n_joints):
+        v = np.interp(times.ravel(), t_joint, vel[:, j])
+        i, wl, wr = hat_basis(v, knots[j])
+        np.add.at(hats[:, j], (rows, i), w * wl)
+        np.add.at(hats[:, j], (rows, i + 1), w * wr)
+    t_mid = 0.5 * (t_first + t_last)
+    after = np.full((n_blocks, n_joints), np.inf)
+    before = np.full((n_blocks, n_joints), np.inf)
+    for j, events in enumerate(joints.reversals):
+        if len(events) == 0:
+            continue
+        ev = np.sort(events) - lag_s
+        k = np.searchsorted(ev, t_mid, side="right")
+        has_prev = k > 0
+        after[has_prev, j] = t_mid[has_prev] - ev[k[has_prev] - 1]
+        has_next = k < len(ev)
+        before[has_next, j] = ev[k[has_next]] - t_mid[has_next]
+    return hats, after, before
+
+
+def detect_reversals(
+    t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Per joint: times at which motion resumes opposite to the previous direction of motion."""
+    out = []
+    for j in range(smooth_velocity.shape[1]):
+        v = smooth_velocity[:, j]
+        thr = REVERSAL_THRESHOLD * vmax[j]
+        state = np.where(v > thr, 1, np.where(v < -thr, -1, 0))
+        moving = np.flatnonzero(state)
+        if len(moving) < 2:
+            out.append(np.zeros(0))
+            continue
+        flips = moving[1:][np.diff(state[moving]) != 0]
+        out.append(t_s[flips])
+    return tuple(out)
+
+
+#: A bag longer than the block budget is thinned in runs of this many consecutive blocks
+#: (~0.7 s at 3 kHz): whole metric windows (8 blocks) and 0.5 s test segments stay intact.
+THIN_RUN_BLOCKS = 64
+#: Default budget of `egovib gap`: the diagnosis's memory and time grow with the blocks it
+#: fits (~100 MB per minute of 3 kHz recording), not with the bag beyond this.
+DEFAULT_BUDGET_MINUTES = 5.0
+
+
+class BlockSpectra:
+    """The core's own framing (a BlockFramer, as calibration uses: band-passed sum of axes,
+    the model's window and sensor range) fed as a stream: push joint states, then sensor
+    samples, slice by slice; `finish()` gives the in-band magnitude spectra of the complete
+    blocks that have a joint state. The framer is the only state, so any slicing of the
+    same arrays gives the same blocks (tested); a bag is never held whole."""
+
+    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, stride: int = 1):
+        """`stride` k > 1: keep one run of THIN_RUN_BLOCKS consecutive blocks in every k
+        (a long bag thinned evenly over its whole length, see `table_from_bag`)."""
+        from egovib_ros.core.stream import BlockFramer
+
+        # the model's framing, including its sensor range: bad samples are missing
+        settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
+        self._framer = BlockFramer(settings, n_joints)
+        self._window = model.window
+        self._bins = in_band_bins(model)
+        self._n_joints = n_joints
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._stride = int(stride)
+        self._blocks_seen = 0
+        self.samples = 0
+        self.first_stamp_ns: int | None = None
+
+    @property
+    def stats(self) -> dict:
+        return dict(vars(self._framer.stats))
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        self._framer.push_joint_states(stamps_ns, velocity)
+        self._collect()
+
+    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        if len(stamps_ns) and self.first_stamp_ns is None:
+            self.first_stamp_ns = int(stamps_ns[0])
+        self.samples += len(stamps_ns)
+        self._framer.push_accel(stamps_ns, accel)
+        self._collect()
+
+    def _collect(self) -> None:
+        for b in self._framer.pop_blocks():
+            if not b.n:
+                continue
+            ok = (b.complete if b.complete is not None else np.ones(b.n, bool)) & (
+                b.status != MISSING
+            )
+            if self._stride > 1:
+                index = self._blocks_seen + np.arange(b.n)
+                ok &= (index // THIN_RUN_BLOCKS) % self._stride == 0
+            self._blocks_seen += b.n
+            if ok.any():
+                spectra = np.abs(np.fft.rfft(b.samples[ok, 0, :] * self._window, axis=1))
+                self._parts.append(
+                    (spectra[:, self._bins], b.t_first_ns[ok], b.t_last_ns[ok], b.velocity[ok])
+                )
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Flush; (in-band magnitudes (B, F), t_first_ns (B,), t_last_ns (B,), block mean
+        velocity (B, J))."""
+        self._framer.flush()
+        self._collect()
+        if not self._parts:
+            return (
+                np.zeros((0, len(self._bins))),
+                np.zeros(0, np.int64),
+                np.zeros(0, np.int64),
+                np.zeros((0, self._n_joints)),
+            )
+        return tuple(np.concatenate(column) for column in zip(*self._parts))
+
+
+def usable_joint_states(position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """Rows whose position and velocity are finite (the rest are missing data, counted)."""
+    return np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(position), axis=1)
+
+
+def joint_order(model, joint_names, source: str) -> list[int]:
+    """Columns of a recording's joints in the model's joint order (ModelFileError if absent)."""
+    where = model.provenance.get("path", "noise model")
+    if model.n_joints != len(joint_names):
+        raise ModelFileError(
+            f"{where}: model has {model.n_joints} joints "
+            f"{list(model.joint_names)}, {source} has {list(joint_names)}"
         )
-    samples = np.concatenate([b.samples[:, 0, :] for b in batches])
-    t_first = np.concatenate([b.t_first_ns for b in batches])
-    t_last = np.concatenate([b.t_last_ns for b in batches])
-    v = np.concatenate([b.velocity for b in batches])
-    ok = np.concatenate(
-        [
-            (b.complete if b.complete is not None else np.ones(b.n, bool)) & (b.status != MISSING)
-            for b in batches
-        ]
-    )
-    spectra = np.abs(np.fft.rfft(samples[ok] * model.window, axis=1))
-    return spectra, t_first[ok], t_last[ok], v[ok]
+    names = list(joint_names)
+    if any(n not in names for n in model.joint_names):
+        raise ModelFileError(
+            f"{where}: joints {list(model.joint_names)} not in {source} joint_states {names}"
+        )
+    return [names.index(n) for n in model.joint_names]
 
 
 def in_band_bins(model) -> np.ndarray:
@@ -223,7 +403,8 @@ def detect_contacts(
     *,
     z: float = CONTACT_Z,
     dilate: int = CONTACT_DILATE,
-) -> np.ndarray:
+    return_raw: bool = False,
+):
     """Flag blocks whose spectrum is an outlier above the model's prediction.
 
     The statistic (mean of the three largest per-bin log ratios) is compared with its
@@ -236,61 +417,194 @@ def detect_contacts(
     log_ratio = np.log(np.maximum(magnitude, 1e-300) / np.maximum(predicted, 1e-300))
     ratio = np.sort(log_ratio, axis=1)[:, -3:].mean(axis=1)
     if len(ratio) < 5:
-        return np.zeros(len(ratio), dtype=bool)
+        none = np.zeros(len(ratio), dtype=bool)
+        return (none, none.copy()) if return_raw else none
     dt = np.median(np.diff(t_s)) if len(t_s) > 1 else 0.01
     size = int(max(5, min(len(ratio), round(2.0 / max(dt, 1e-6))))) | 1
     local = ndimage.median_filter(ratio, size=size, mode="nearest")
     resid = ratio - local
     scale = 1.4826 * np.median(np.abs(resid - np.median(resid))) + 1e-9
-    flagged = resid > z * scale
+    flagged = raw = resid > z * scale
     if flagged.any():
         # A tap rings on after its onset: drop `dilate` blocks after each flagged block
         # and one before (the block straddling the onset may be below threshold).
         structure = np.zeros(2 * dilate + 1, dtype=bool)
         structure[dilate - 1 :] = True  # origin at the centre: -1 .. +dilate
         flagged = ndimage.binary_dilation(flagged, structure=structure)
-    return flagged
+    return (flagged, raw) if return_raw else flagged
 
 
-def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") -> BlockTable:
-    """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel."""
-    if model.n_joints != len(rec.joint_names):
-        raise ModelFileError(
-            f"{model.provenance.get('path', 'noise model')}: model has {model.n_joints} joints "
-            f"{list(model.joint_names)}, {source} has {list(rec.joint_names)}"
+def baseline_knots(
+    grid, refine: int = 1, low_refine: int | None = None, low_fraction: float = LOW_SPEED_FRACTION
+) -> tuple[np.ndarray, ...]:
+    """The model's velocity grid per joint, each interval split into `refine` cells
+    (`low_refine` within `low_fraction` of the top speed: a line whose frequency is a
+    high multiple of the shaft speed sweeps a DFT bin per ~1 % of speed there)."""
+    low_refine = refine if low_refine is None else low_refine
+    out = []
+    for g in grid:
+        g = np.asarray(g, float)
+        top = np.max(np.abs(g))
+        pieces = []
+        for a, b in zip(g[:-1], g[1:]):
+            n = low_refine if max(abs(a), abs(b)) <= low_fraction * top + 1e-12 else refine
+            pieces.append(np.linspace(a, b, n + 1)[:-1])
+        out.append(np.round(np.concatenate(pieces + [g[-1:]]), 12))
+    return tuple(out)
+
+
+def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
+    """Fill in the smoothed velocity and the reversal times of a joint series (if missing)."""
+    if joints.smooth_velocity is None:
+        dt = float(np.median(np.diff(joints.t_s)))
+        window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
+        joints.smooth_velocity = (
+            signal.savgol_filter(joints.velocity, window, 2, axis=0, mode="interp")
+            if len(joints.velocity) > window
+            else joints.velocity
         )
-    if tuple(model.joint_names) != tuple(rec.joint_names):
-        order = [
-            list(rec.joint_names).index(n) if n in rec.joint_names else -1
-            for n in model.joint_names
-        ]
-        if min(order) < 0:
-            raise ModelFileError(
-                f"{model.provenance.get('path', 'noise model')}: joints {list(model.joint_names)} "
-                f"not in {source} joint_states {list(rec.joint_names)}"
-            )
-    else:
-        order = list(range(model.n_joints))
-    if len(rec.accel_stamps_ns) < 4 * model.block_length:
-        raise BagError(f"{source}: /accelerometer/raw has only {len(rec.accel_stamps_ns)} samples")
-    if len(rec.joint_stamps_ns) < 10:
-        raise BagError(f"{source}: /joint_states has only {len(rec.joint_stamps_ns)} messages")
+    if not joints.reversals:
+        joints.reversals = detect_reversals(joints.t_s, joints.smooth_velocity, vmax)
+    return joints
 
-    velocity = rec.joint_velocity[:, order]
-    spectra, first_ns, last_ns, v_core = frame_blocks(rec, model, velocity, max_hold_s)
-    if len(spectra) < 10:
+
+def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> BlockTable:
+    """Baseline cells, velocity-trajectory features and reversal times of a table built by hand."""
+    smooth_joint_series(table.joints, table.vmax)
+    table.knots = baseline_knots(
+        table.model.grid,
+        knot_refine,
+        KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine,
+    )
+    table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
+        table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
+    )
+    return table
+
+
+def build_table(
+    rec, model, *, max_hold_s: float = 0.05, source: str = "bag", knot_refine: int = KNOT_REFINE
+) -> BlockTable:
+    """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel
+    (the whole recording pushed as one slice; `table_from_bag` streams a bag)."""
+    order = joint_order(model, rec.joint_names, source)
+    good = usable_joint_states(rec.joint_position, rec.joint_velocity)
+    position = rec.joint_position[good][:, order]
+    velocity = rec.joint_velocity[good][:, order]
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
+    framing.push_joint_states(rec.joint_stamps_ns[good], velocity)
+    framing.push_accel(rec.accel_stamps_ns, rec.accel)
+    bad_input = dict(framing.stats, joint_states=len(good), joint_states_bad=int((~good).sum()))
+    return table_from_blocks(
+        model,
+        framing,
+        rec.joint_stamps_ns[good],
+        position,
+        velocity,
+        bad_input=bad_input,
+        source=source,
+        knot_refine=knot_refine,
+    )
+
+
+def table_from_bag(
+    path,
+    model,
+    *,
+    max_hold_s: float = 0.05,
+    knot_refine: int = KNOT_REFINE,
+    budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
+    progress=None,
+) -> BlockTable:
+    """`build_table` of a bag read slice by slice (bag.iter_recording with the model's robot
+    profile): the sensor samples are framed as they arrive and never held; only the joint
+    states (joint rate) and the blocks' in-band spectra are kept. Same table as
+    `build_table(read_recording(path))` (tested).
+
+    A bag longer than `budget_minutes` is thinned evenly: one run of THIN_RUN_BLOCKS
+    blocks in every k, k = ceil(duration / budget), so that memory and time stop growing
+    with the bag; `table.bad_input["stride"]` says k. None: no budget."""
+    import math
+
+    from egovib_ros.bag import iter_recording
+    from egovib_ros.bag.recording import duration_of
+
+    source = str(path)
+    stride = 1
+    if budget_minutes is not None:
+        stride = max(1, math.ceil(duration_of(path) / (60.0 * budget_minutes)))
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, stride=stride)
+    stamps, positions, velocities = [], [], []
+    order, n_joint_states = None, 0
+    for piece in iter_recording(
+        path,
+        profile=model.profile,
+        ground_truth=False,
+        denoised=False,
+        commands=False,
+        progress=progress,
+    ):
+        if order is None:
+            order = joint_order(model, piece.joint_names, source)
+        good = usable_joint_states(piece.joint_position, piece.joint_velocity)
+        n_joint_states += len(good)
+        stamps.append(piece.joint_stamps_ns[good])
+        positions.append(piece.joint_position[good][:, order])
+        velocities.append(piece.joint_velocity[good][:, order])
+        framing.push_joint_states(stamps[-1], velocities[-1])
+        framing.push_accel(piece.accel_stamps_ns, piece.accel)
+    if order is None:
+        raise BagError(f"{source}: no sensor or joint-state messages")
+    joint_stamps = np.concatenate(stamps)
+    bad_input = dict(
+        framing.stats,
+        joint_states=n_joint_states,
+        joint_states_bad=n_joint_states - len(joint_stamps),
+        stride=stride,
+    )
+    return table_from_blocks(
+        model,
+        framing,
+        joint_stamps,
+        np.concatenate(positions),
+        np.concatenate(velocities),
+        bad_input=bad_input,
+        source=source,
+        knot_refine=knot_refine,
+    )
+
+
+def table_from_blocks(
+    model,
+    framing: BlockSpectra,
+    joint_stamps_ns: np.ndarray,
+    position: np.ndarray,
+    velocity: np.ndarray,
+    *,
+    bad_input: dict,
+    source: str,
+    knot_refine: int = KNOT_REFINE,
+) -> BlockTable:
+    """The table from the framed blocks and the (usable, model-ordered) joint states."""
+    if framing.samples < 4 * model.block_length:
+        raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")
+    if len(joint_stamps_ns) < 10:
+        raise BagError(f"{source}: joint_states has only {len(joint_stamps_ns)} usable messages")
+    magnitude, first_ns, last_ns, v_core = framing.finish()
+    bad_input = dict(bad_input, samples_bad=framing.stats["samples_bad"])
+    if len(magnitude) < 10:
         raise BagError(
-            f"{source}: fewer than 10 usable blocks (accelerometer and joint_states do not "
-            "overlap?)"
+            f"{source}: fewer than 10 usable blocks "
+            "(accelerometer and joint_states do not overlap?)"
         )
     freq_index = in_band_bins(model)
-    t0_ns = int(rec.accel_stamps_ns[0])
+    t0_ns = framing.first_stamp_ns
     t_first = (first_ns - t0_ns) / NS
     t_last = (last_ns - t0_ns) / NS
 
-    joint_t = (rec.joint_stamps_ns - t0_ns) / NS
+    joint_t = (joint_stamps_ns - t0_ns) / NS
     # Unwrap so a block mean of the continuous wrist angle never straddles a +-pi jump.
-    position = np.unwrap(rec.joint_position[:, order], axis=0)
+    position = np.unwrap(position, axis=0)
     window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
     window = max(window, 5)
     acceleration = (
@@ -306,17 +620,31 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
         if len(velocity) > window
         else np.zeros_like(velocity)
     )
+    smooth = (
+        signal.savgol_filter(velocity, window, 2, axis=0, mode="interp")
+        if len(velocity) > window
+        else velocity
+    )
+    vmax = np.array([np.max(np.abs(g)) for g in model.grid])
     joints = JointSeries(
-        t_s=joint_t, position=position, velocity=velocity, acceleration=acceleration
+        t_s=joint_t,
+        position=position,
+        velocity=velocity,
+        acceleration=acceleration,
+        smooth_velocity=smooth,
+        reversals=detect_reversals(joint_t, smooth, vmax),
     )
 
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)
-    vmax = np.array([np.max(np.abs(g)) for g in model.grid])
+    knots = baseline_knots(
+        model.grid, knot_refine, KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine
+    )
+    hats, after, before = motion_features(joints, t_first, t_last, 0.0, knots, model.window)
     table = BlockTable(
         t_first_s=t_first,
         t_last_s=t_last,
-        magnitude=spectra[:, freq_index],
+        magnitude=magnitude,
         freqs_hz=model.freqs_hz[freq_index],
         velocity=v_core,
         position=pos_b,
@@ -329,7 +657,12 @@ def build_table(rec, model, *, max_hold_s: float = 0.05, source: str = "bag") ->
         model=model,
         joints=joints,
         freq_index=freq_index,
+        knots=knots,
+        hats=hats,
+        reversal_after_s=after,
+        reversal_before_s=before,
     )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
+    table.bad_input = bad_input
     return table

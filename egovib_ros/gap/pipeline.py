@@ -4,17 +4,20 @@ write the report directory."""
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from egovib_ros.errors import BagError, EgovibError
 from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.diagnose import Diagnosis, diagnose
-from egovib_ros.gap.features import build_table
+from egovib_ros.gap.features import (
+    DEFAULT_BUDGET_MINUTES,
+    THIN_RUN_BLOCKS,
+    BlockTable,
+    build_table,
+    table_from_bag,
+)
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
 
 
@@ -24,11 +27,32 @@ class GapDataError(EgovibError):
 
 def diagnose_recording(rec, model, *, source: str = "bag", **kwargs) -> Diagnosis:
     """Diagnosis of an in-memory Recording against a NoiseModel (no files written)."""
-    table = build_table(rec, model, source=source)
+    return diagnose_table(build_table(rec, model, source=source), source=source, **kwargs)
+
+
+def diagnose_table(table: BlockTable, *, source: str = "bag", **kwargs) -> Diagnosis:
+    """Diagnosis of a block table (`build_table` / `table_from_bag`)."""
     try:
         return diagnose(table, **kwargs)
     except ValueError as exc:
         raise GapDataError(f"{source}: {exc}") from None
+
+
+def screened_input(table: BlockTable, where: str) -> str:
+    """Bad input is missing data, counted, never averaged in (sensor samples non-finite or
+    beyond the sensor range; joint states non-finite or out of order): more than
+    core.MAX_BAD_SHARE of either is refused (one-line StreamError); else the line of counts
+    to print, or "" if nothing was bad."""
+    from egovib_ros.cliutil import check_stream
+
+    counts = dict(table.bad_input)
+    dropped = counts.get("joint_states_dropped", 0) + counts.get("joint_states_bad", 0)
+    counts["joint_states_dropped"] = dropped
+    line = check_stream(counts, where, joint_states=int(counts.get("joint_states", 0)))
+    bad = dropped + sum(
+        int(counts.get(k, 0)) for k in ("samples_bad", "dropped_out_of_order", "resets")
+    )
+    return line if bad else ""
 
 
 def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path | None) -> float:
@@ -54,26 +78,37 @@ def run_gap(
     sim_params: str | Path | None = None,
     reference_lag: float | None = None,
     figures: bool = True,
+    budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
+    progress=None,
     **kwargs,
 ) -> dict:
-    """Diagnose `real_path` against the model file; write report.json,
-    report.md and figures into out_dir.
+    """Diagnose `real_path` against the model file; write report.json, report.md and
+    figures into out_dir.
 
     The directory appears only when complete. With `write_back`, the verdict's fitted
     effect is written into a copy of the sim config `sim_params` (default
     config/sim.yaml) as out_dir/sim_updated.yaml, and checked on the held-out data.
     """
-    from egovib_ros.bagio import read_recording
     from egovib_ros.core.noise_model import NoiseModel
 
     start = time.perf_counter()
     model = NoiseModel.load(model_path)
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
-    rec = read_recording(real_path, profile=model.profile, ground_truth=False, denoised=False)
-    rec = _without_bad_input(rec, model, str(real_path))
+    # streamed: the sensor samples are framed slice by slice, never held whole
+    table = table_from_bag(real_path, model, budget_minutes=budget_minutes, progress=progress)
+    if table.bad_input.get("stride", 1) > 1:
+        print(
+            f"gap: {real_path}: longer than the {budget_minutes:g}-minute budget: one "
+            f"{THIN_RUN_BLOCKS}-block run in every {table.bad_input['stride']} is diagnosed",
+            file=sys.stderr,
+        )
+    topic = model.profile.sensor_topic if model.profile is not None else "sensor topic"
+    said = screened_input(table, f"{real_path}: {topic}")
+    if said:
+        print(f"gap: {real_path}: {said}", file=sys.stderr)
     lag = reference_lag_for(model, reference_lag, sim_params)
-    diag = diagnose_recording(rec, model, source=str(real_path), reference_lag_s=lag, **kwargs)
+    diag = diagnose_table(table, source=str(real_path), reference_lag_s=lag, **kwargs)
     with atomic_output(out_dir, directory=True) as tmp:
         tmp.mkdir(parents=True)
         wb = None
@@ -91,52 +126,10 @@ def run_gap(
         )
         if figures:
             report["figures"] = make_figures(diag, report, tmp)
+        report["inputs"]["bad_input"] = {
+            k: int(v) for k, v in table.bad_input.items() if isinstance(v, (int, float))
+        }
         report["runtime_s"] = round(time.perf_counter() - start, 2)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
         (tmp / "report.md").write_text(render_markdown(report, diag.table.joint_names))
     return report
-
-
-def _without_bad_input(rec, model, where: str):
-    """Bad input is missing data, counted, never averaged in: joint states with a non-finite
-    velocity or position are dropped here; sensor samples that are non-finite or beyond the
-    sensor's range are dropped by the core's framer (FramerSettings.for_model). Both counts
-    are printed; more than 10 % bad is refused (core.MAX_BAD_SHARE)."""
-    import dataclasses
-
-    from egovib_ros.core import MAX_BAD_SHARE
-
-    sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
-    with np.errstate(invalid="ignore"):
-        bad_samples = int(
-            np.count_nonzero(
-                ~np.all(np.isfinite(rec.accel) & (np.abs(rec.accel) <= sensor_range), axis=1)
-            )
-        )
-    good_joints = np.all(np.isfinite(rec.joint_velocity), axis=1) & np.all(
-        np.isfinite(rec.joint_position), axis=1
-    )
-    bad_joints = int(np.count_nonzero(~good_joints))
-    for bad, total, what in (
-        (bad_samples, len(rec.accel), "sensor samples"),
-        (bad_joints, len(rec.joint_velocity), "joint states"),
-    ):
-        if total and bad > MAX_BAD_SHARE * total:
-            raise BagError(
-                f"{where}: {bad} of {total} {what} are bad (non-finite or out of range); "
-                f"more than {100 * MAX_BAD_SHARE:g} % is refused"
-            )
-    if bad_samples or bad_joints:
-        print(
-            f"gap: {where}: {bad_samples} bad sensor samples (non-finite or beyond the sensor "
-            f"range) and {bad_joints} joint states with a non-finite value treated as missing",
-            file=sys.stderr,
-        )
-    if bad_joints:
-        rec = dataclasses.replace(
-            rec,
-            joint_stamps_ns=rec.joint_stamps_ns[good_joints],
-            joint_position=rec.joint_position[good_joints],
-            joint_velocity=rec.joint_velocity[good_joints],
-        )
-    return rec

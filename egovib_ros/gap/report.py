@@ -89,15 +89,16 @@ def covariate_breakdown(diag: Diagnosis) -> dict:
             "gap2_share_after_refit_db2": [_r(s, 5) for s in share.sum(axis=1)],
             "spread_db_after_refit": _r(np.nanmax(bias_refit) - np.nanmin(bias_refit), 3),
         }
-    timing = diag.models.get("timing")
-    if timing is not None and "lag_scan" in timing.parameters:
-        scan = timing.parameters["lag_scan"]
+    if diag.lag_scan:
+        scan = diag.lag_scan
         out["stream_lag"] = {
             "unit": "s",
-            "fitted_lag_s": timing.parameters["lag_s"],
-            "lag_s": scan["lag_s"],
-            "train_log_residual": scan["train_log_residual"],
-            "note": "training residual of the refit with joint states re-matched at each lag",
+            "fitted_lag_s": round(float(scan["timing_lag_s"]), 5),
+            "in_sync_lag_s": round(float(scan["sync_lag_s"]), 5),
+            "lag_s": [round(float(x), 4) for x in scan["lag_s"]],
+            "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]],
+            "note": "residual of the velocity-only baseline with joint states "
+            "re-matched at each lag",
         }
     return out
 
@@ -195,9 +196,6 @@ def build_report(
 ) -> dict:
     """The report.json dictionary (CONTRACT section 6 keys, plus documented extras)."""
     t = diag.table
-    dt = t.t_mid_s
-    train_s = float(diag.split_time_s - dt[0])
-    heldout_s = float(dt[-1] - diag.split_time_s)
     vm = diag.verdict_model
     added = {
         "effect": diag.verdict,
@@ -212,16 +210,10 @@ def build_report(
             "name": METRIC_NAME,
             "unit": "dB",
             "definition": METRIC_DEFINITION.format(
-                w=diag.window_blocks, ws=diag.window_blocks * float(np.median(np.diff(dt)))
+                w=diag.window_blocks, ws=diag.window_blocks * float(np.median(np.diff(t.t_mid_s)))
             ),
         },
-        "split": {
-            "method": f"by time: first {100 * (train_s / max(train_s + heldout_s, 1e-9)):.0f} % "
-            "of the recording fits (train), the rest is held out; contact blocks detected from "
-            "the data (top-3-bin log-ratio outliers against the model) are excluded",
-            "train_s": _r(train_s, 3),
-            "heldout_s": _r(heldout_s, 3),
-        },
+        "split": {k: (_r(v, 3) if isinstance(v, float) else v) for k, v in diag.split_info.items()},
         "gap": {
             "sim_as_is": _r(diag.gaps["sim_as_is"]),
             "after_refit": _r(diag.gaps["refit"]),
@@ -242,22 +234,39 @@ def build_report(
                 "reduction": c["reduction"],
                 "p_value": _r(c["p_value"], 6),
                 "excess_removed": c["excess_removed"],
+                "deviance_reduction": c["deviance_reduction"],
+                "block_mse_reduction_db2": c["block_mse_reduction_db2"],
+                **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
                 "parameters": _clean_params(diag.models[c["effect"]].parameters),
+                "shape": diag.models[c["effect"]].shape or {},
+                "shape_summary": describe_shape(c["effect"], diag.models[c["effect"]].shape or {}),
             }
             for c in diag.candidates
         ],
         "verdict": {
             "effect": diag.verdict,
             "confidence": diag.confidence,
-            "rule": "best held-out per-block gain among candidates with p < 0.01/number of "
-            "candidates (paired sign-flip permutation test over 0.5 s held-out segments, vs the "
-            "refit) and a gain of at least 0.01 dB^2; confidence = block-bootstrap share of "
-            "resamples in which the verdict's effect stays best (for none: 1 - the strongest "
-            "candidate's adjusted p)",
+            "rule": "largest held-out reduction of the Gamma deviance of the expected power "
+            "among the candidates with p < 0.01/number of candidates (paired sign-flip "
+            "permutation test over 0.5 s held-out segments, vs the velocity-only baseline; "
+            "drift: the better of two looks, Bonferroni x2), a reduction of at least 0.004 "
+            "per block and bin, and a smaller held-out gap than the baseline's; "
+            "confidence = block-bootstrap share of resamples in which the "
+            "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)",
         },
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
         "residual_noise_db": {k: _r(v, 3) for k, v in diag.residual_noise.items()},
+        "floor_estimates": {k: _r(v) for k, v in diag.floor_estimates.items()},
+        "baseline": {
+            "definition": BASELINE_DEFINITION,
+            **diag.models["refit"].parameters,
+            "in_sync_lag_s": _r(diag.sync_lag_s, 5),
+            "reference_lag_s": _r(diag.reference_lag_s, 5),
+        },
+        "transients": {
+            k: (_r(v, 6) if isinstance(v, float) else v) for k, v in diag.transients.items()
+        },
         "blocks": {
             "total": int(t.n_blocks),
             "contact_excluded": int(t.contact.sum()),
@@ -271,6 +280,73 @@ def build_report(
     }
 
 
+BASELINE_DEFINITION = (
+    "velocity-only table re-estimated on the training folds of this recording: expected power "
+    "per frequency bin = rest power + sum over joints of a free non-negative function of that "
+    "joint's velocity (cells = the model's grid, each step split 4x, 10x below 20 % of top "
+    "speed; averaged over each block's velocity trajectory), neighbouring cells smoothed, the "
+    "simulator's spectrum used only where cells are thin; then a per-joint, per-cell mean/rms "
+    "correction. It cannot represent interactions between joints, position, acceleration, "
+    "time or lag."
+)
+
+
+def _peak(x: list, g: list) -> tuple[float, float, float]:
+    g = np.asarray(g, float)
+    k = int(np.argmax(g))
+    return float(x[k]), float(g[k]), float(g.max() - g.min())
+
+
+def describe_shape(effect: str, shape: dict) -> str:
+    """One sentence on the fitted shape of a candidate term (broadband gain, dB)."""
+    parts = []
+    for name, c in shape.items():
+        if name.startswith("position:"):
+            x, top, span = _peak(c["x"], c["gain_db"])
+            parts.append(
+                f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {x:.3g} {c['unit']}"
+            )
+        elif name.startswith("coupling:"):
+            g = np.asarray(c["gain_db"], float)
+            i, j = np.unravel_index(int(np.argmax(g)), g.shape)
+            sp = c["speed_fraction"]
+            parts.append(
+                f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
+                f"({g[-1, -1]:+.1f} dB with both at full speed)"
+            )
+        elif name.startswith("acceleration:"):
+            g = np.asarray(c["gain_db"], float)
+            x = np.asarray(c["x"], float)
+            parts.append(
+                f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical "
+                "|acceleration|"
+            )
+        elif name.startswith("reversal:"):
+            x, top, span = _peak(c["x"], c["gain_db"])
+            parts.append(
+                f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal"
+            )
+        elif name.startswith("drift:"):
+            g = np.asarray(c["gain_db"], float)
+            x = np.asarray(c["x"], float)
+            change = g[-1] - g[0]
+            reach = (
+                x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))]
+                if abs(change) > 1e-9
+                else x[-1]
+            )
+            parts.append(
+                f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at "
+                f"{reach:.0f} s ({g.max() - g.min():.1f} dB range)"
+            )
+        elif name.startswith("timing:"):
+            parts.append(
+                f"best lag {1000 * c.get('fitted_lag_s', 0.0):+.1f} ms (in sync: "
+                f"{1000 * c['in_sync_band_s'][0]:+.0f}..{1000 * c['in_sync_band_s'][1]:+.0f} ms)"
+            )
+    return "; ".join(parts)
+
+
 def _clean_params(params: dict) -> dict:
     return {k: v for k, v in params.items() if k not in ("coefficients_per_bin", "lag_scan")}
 
@@ -279,8 +355,9 @@ def _describe_region(r: dict, joint_names: tuple[str, ...]) -> str:
     speeds = ", ".join(f"{n} {c}" for n, c in r["speeds"].items())
     return (
         f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
-        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by {abs(r['bias_db']):.1f} dB on "
-        f"average, {100 * r['share_of_gap2']:.0f} % of the gap^2)"
+        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by "
+        f"{abs(r['bias_db']):.1f} dB on average, "
+        f"{100 * r['share_of_gap2']:.0f} % of the gap^2)"
     )
 
 
@@ -294,8 +371,8 @@ def _strongest_covariate(report: dict) -> str:
         return ""
     name, c = max(covs.items(), key=lambda kv: kv[1]["spread_db_after_refit"])
     return (
-        f" After the refit, the remaining gap varies most with {name} (held-out bias spread "
-        f"{c['spread_db_after_refit']:.1f} dB across its bins)."
+        f" After the velocity-only baseline, the remaining gap varies most with {name} "
+        f"(held-out bias spread {c['spread_db_after_refit']:.1f} dB across its bins)."
     )
 
 
@@ -312,8 +389,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     lines.append(
         "**Where:** on held-out real data the simulator's noise model is off by "
         f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the sim is "
-        f"{'too quiet' if mean_bias > 0 else 'too loud'} by {abs(mean_bias):.1f} dB). Largest "
-        "shares: "
+        f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
+        f"{abs(mean_bias):.1f} dB). Largest shares: "
         + "; ".join(_describe_region(r, joint_names) for r in top)
         + (
             f". Worst frequency bin {worst_bin['hz']:.0f} Hz ({worst_bin['sim_as_is_db']:.2f} dB)."
@@ -325,26 +402,30 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
         lines.append(
-            f"**Which:** the unmodelled effect is **`{v['effect']}`** (held-out reduction "
-            f"{c['reduction']:.3f} dB beyond the refit, p = {c['p_value']:.2g}, confidence "
-            f"{v['confidence']:.2f})."
+            f"**Which:** the unmodelled effect is **`{v['effect']}`** "
+            f"(held-out reduction {c['reduction']:.3f} dB "
+            f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, "
+            f"confidence {v['confidence']:.2f}). "
+            f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
         )
     else:
         best = cands[0] if cands else None
         lines.append(
-            "**Which:** **no effect** (`none`): after refitting the velocity-only model no "
-            "candidate effect lowers the held-out gap significantly"
+            "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
+            "no candidate effect lowers the held-out gap significantly"
             + (
-                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = "
-                f"{best['p_value']:.2g})."
+                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, "
+                f"p = {best['p_value']:.2g})."
                 if best
                 else "."
             )
         )
     lines.append(
-        f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> {g['after_refit']:.2f} "
-        f"dB (refit) -> **{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor "
-        f"{g['floor']:.2f} dB. Residual no-contact noise after denoising held-out data: "
+        f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> "
+        f"{g['after_refit']:.2f} dB "
+        "(velocity-only baseline fitted on this recording) -> "
+        f"**{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor {g['floor']:.2f} dB. "
+        f"Residual no-contact noise after denoising held-out data: "
         + ", ".join(
             f"{k} {val:.2f} dB" for k, val in report["residual_noise_db"].items() if k != "raw"
         )
@@ -365,8 +446,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
         "",
         "## Candidates (held-out, ranked)",
         "",
-        "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value | share of excess "
-        "removed |",
+        "| effect | held-out gap [dB] | reduction vs refit [dB] | p-value "
+        "| share of excess removed |",
         "|---|---|---|---|---|",
     ]
     for c in cands:
@@ -374,7 +455,27 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
             f"| {c['effect']} | {c['heldout_gap']:.3f} | {c['reduction']:+.3f} | "
             f"{c['p_value']:.2g} | {c['excess_removed']:.2f} |"
         )
+    lines += ["", "Fitted shapes of every candidate (which_effect_shapes.png): "]
+    for c in cands:
+        lines.append(f"- {c['effect']}: {c.get('shape_summary') or 'n/a'}")
+    tr = report.get("transients", {})
+    if tr.get("onsets"):
+        lines += [
+            "",
+            f"Transients (contact-like outliers): {tr['onsets']} onsets, "
+            f"{tr['near_reversal']} within "
+            f"{tr.get('window_s')} s of a joint reversal (chance: {tr['expected_near']}), "
+            f"p = {tr['p_value']:.2g}; "
+            + (
+                f"{tr['returned_blocks']} blocks of reversal-locked transients returned to the "
+                "data as ego-vibration."
+                if tr.get("returned_blocks")
+                else "treated as contacts."
+            ),
+        ]
     lines += [
+        "",
+        f"Baseline: {report['baseline']['definition']}",
         "",
         f"Verdict rule: {v['rule']}.",
         "",
@@ -396,8 +497,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":
             lines.append(
-                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms (training residual "
-                "scan in report.json)"
+                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms "
+                "(training residual scan in report.json)"
             )
         else:
             lines.append(
@@ -409,8 +510,8 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
 
 
 def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]:
-    """Heat maps by frequency x velocity cell and on the velocity grid, covariate profiles,
-    candidates."""
+    """Heat maps by frequency x velocity cell and on the velocity grid,
+    covariate profiles, candidates."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -513,7 +614,7 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
 
     # 3. candidates
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    labels = ["sim as-is", "refit"] + [c["effect"] for c in report["candidates"]]
+    labels = ["sim as-is", "baseline"] + [c["effect"] for c in report["candidates"]]
     values = [report["gap"]["sim_as_is"], report["gap"]["after_refit"]] + [
         c["heldout_gap"] for c in report["candidates"]
     ]
@@ -529,4 +630,71 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     fig.savefig(out_dir / "which_candidates.png", dpi=110)
     plt.close(fig)
     figs["which: candidates"] = "which_candidates.png"
+    figs["which: fitted effect shapes"] = shape_figure(report, out_dir / "which_effect_shapes.png")
     return figs
+
+
+def shape_figure(report: dict, path: Path) -> str:
+    """One panel per fitted shape of every candidate (broadband gain, dB); the verdict's in red."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [
+        (c["effect"], name, sh)
+        for c in report["candidates"]
+        for name, sh in c.get("shape", {}).items()
+    ]
+    n = max(len(panels), 1)
+    cols = min(n, 4)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), squeeze=False)
+    verdict = report["verdict"]["effect"]
+    for ax, (effect, name, sh) in zip(axes.ravel(), panels):
+        color = "C3" if effect == verdict else "C0"
+        if name.startswith("coupling:"):
+            g = np.asarray(sh["gain_db"], float)
+            sp = sh["speed_fraction"]
+            lim = max(float(np.max(np.abs(g))), 0.1)
+            im = ax.imshow(
+                g.T,
+                origin="lower",
+                extent=[sp[0], sp[-1], sp[0], sp[-1]],
+                cmap="RdBu_r",
+                vmin=-lim,
+                vmax=lim,
+                aspect="auto",
+            )
+            fig.colorbar(im, ax=ax, label="dB")
+            a, b = name[9:].split("x")
+            ax.set_xlabel(f"|v| / max: {a}", fontsize=7)
+            ax.set_ylabel(f"|v| / max: {b}", fontsize=7)
+        elif name.startswith("timing:"):
+            x = np.asarray(sh["x"], float) * 1000
+            ax.plot(x, sh["train_log_residual"], ".-", color=color)
+            lo, hi = sh["in_sync_band_s"]
+            ax.axvspan(lo * 1000, hi * 1000, color="0.85")
+            ax.axvline(sh.get("fitted_lag_s", 0.0) * 1000, color=color, ls="--")
+            ax.set_xlabel("joint-state lag [ms] (grey: in sync)", fontsize=7)
+            ax.set_ylabel("baseline log residual", fontsize=7)
+        else:
+            x = np.asarray(sh["x"], float)
+            ax.plot(x, sh["gain_db"], "-", color=color)
+            ax.axhline(0, color="k", lw=0.5)
+            if "train_end_s" in sh:
+                ax.axvline(sh["train_end_s"], color="0.6", ls=":")
+            ax.set_xlabel(sh.get("unit", ""), fontsize=7)
+            ax.set_ylabel("gain [dB]", fontsize=7)
+        ax.set_title(f"{effect}: {name.split(':', 1)[1]}", fontsize=8, color=color)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(panels) :]:
+        ax.axis("off")
+    fig.suptitle(
+        f"fitted candidate terms (broadband gain over the band); verdict {verdict} in red",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path.name

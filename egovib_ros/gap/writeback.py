@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.gap import metric
-from egovib_ros.gap.diagnose import Diagnosis, time_split
+from egovib_ros.gap.diagnose import TRAIN_FRACTION, Diagnosis, time_split
 from egovib_ros.gap.effects import apply_effect_term, fit_scales, fit_variant
 from egovib_ros.gap.features import build_table
 
@@ -70,13 +70,15 @@ def estimate_strength(
     t = diag.table
     duration = float(min(max(t.t_last_s[-1] - t.t_first_s[0], 60.0), 180.0))
     speed = float(np.clip(np.percentile(np.max(np.abs(t.velocity) / t.vmax, axis=1), 99), 0.2, 1.0))
-    train_fraction = float(
-        (diag.split_time_s - t.t_mid_s[0]) / max(t.t_mid_s[-1] - t.t_mid_s[0], 1e-9)
-    )
+    train_fraction = TRAIN_FRACTION
     strength = TRIAL_STRENGTH[effect]
     if effect == "position":
         # The phase of the once-per-turn term is a parameter of its own: take it from the real fit.
-        phase = diag.models["position"].parameters.get(t.joint_names[0], {}).get("phase_rad")
+        phase = (
+            diag.models["position"]
+            .parameters.get(t.joint_names[0], {})
+            .get("first_harmonic_phase_rad")
+        )
         if phase is not None:
             params.position_phase_rad = float(phase)
     sim_coef = None

@@ -2,6 +2,7 @@
 
 egovib real convert NPZ --out bags/quadcopter_ar8          # flight log -> rosbag2 bag
 egovib real evaluate --bag bags/quadcopter_ar8 --out docs   # the experiment: docs/real_*
+egovib real gap --bag bags/quadcopter_ar8 --out docs/gap_flight   # gap diagnosis, half vs half
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from egovib_ros.realdata import convert
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "real",
-        help="the real quadcopter flight log: convert, evaluate",
+        help="the real quadcopter flight log: convert, evaluate, gap",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -39,6 +40,17 @@ def register(subparsers) -> None:
     )
     experiment.add_arguments(ev)
     ev.set_defaults(func=experiment.run)
+    from egovib_ros.gap import flight
+
+    gap = commands.add_parser(
+        "gap",
+        help="gap diagnosis of the flight: a model calibrated on one half, diagnosed on the "
+        "other (both ways); writes DIR/summary.md and one report directory per direction",
+        description=flight.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    flight.add_arguments(gap)
+    gap.set_defaults(func=flight.run)
 
 
 def main(argv: list[str] | None = None) -> int:
