@@ -10,7 +10,7 @@ import pytest
 
 from egovib_ros.altreality import (
     EFFECTS,
-    JOINT_NAMES,
+    HAND_JOINTS,
     AltHand,
     effect_audibility_db,
     simulate_alt_motion,
@@ -62,7 +62,7 @@ def test_recording_is_valid_and_reproducible():
     assert n == 24000 and rec.accel.shape == (n, 3) and np.all(np.isfinite(rec.accel))
     assert np.all(np.diff(rec.accel_stamps_ns) > 0)
     assert abs(np.median(np.diff(rec.accel_stamps_ns)) - 1e9 / 3000) < 1
-    assert rec.joint_names == JOINT_NAMES
+    assert rec.joint_names == HAND_JOINTS
     m = len(rec.joint_stamps_ns)
     assert rec.joint_position.shape == rec.joint_velocity.shape == (m, 2)
     assert 7500 < m < 8000  # 1 kHz minus a few dropped messages

@@ -30,7 +30,7 @@ the simulator's:
 
 from egovib_ros.altreality.hand import (
     EFFECTS,
-    JOINT_NAMES,
+    HAND_JOINTS,
     AltHand,
     effect_audibility_db,
     simulate_alt_motion,
@@ -38,7 +38,7 @@ from egovib_ros.altreality.hand import (
 
 __all__ = [
     "EFFECTS",
-    "JOINT_NAMES",
+    "HAND_JOINTS",
     "AltHand",
     "effect_audibility_db",
     "simulate_alt_motion",

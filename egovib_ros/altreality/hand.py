@@ -16,7 +16,8 @@ from egovib_ros.bagio import Recording
 
 FS = 3000.0  # accelerometer output rate (Hz)
 JOINT_RATE = 1000.0  # joint_states rate (Hz)
-JOINT_NAMES = ("r_wrist_roll_joint", "r_gripper_joint")
+# The PR2 hand's joint names (this generator is of the same hand, so a PR2 model reads it).
+HAND_JOINTS = ("r_wrist_roll_joint", "r_gripper_joint")
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 _NS = 1_000_000_000
 START_NS = 1_726_000_000 * _NS  # wall-clock start of every recording (a real bag's epoch stamps)
@@ -401,7 +402,7 @@ class AltHand:
             joint_stamps_ns=j_stamps,
             joint_position=j_pos,
             joint_velocity=j_vel,
-            joint_names=JOINT_NAMES,
+            joint_names=HAND_JOINTS,
             contact=contact,
             ego=ego,
         )
