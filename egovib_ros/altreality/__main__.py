@@ -32,7 +32,10 @@ def _effects(text: str) -> dict[str, float]:
             effects[name] = float(value)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{item!r}: expected name=number") from None
-    return effects
+    try:  # finite and within the vocabulary's ranges (CONTRACT section 5)
+        return cliutil.check_effects(effects, source="--effects")
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.truth:
             with atomic_output(args.truth) as tmp:
                 tmp.write_text(json.dumps(truth, default=str) + "\n")
-    except (EgovibError, ConfigError) as exc:
+    except EgovibError as exc:
         print(f"egovib: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {out} ({args.duration:g} s of the alternate-reality hand)")

@@ -27,6 +27,7 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--real",
         nargs="+",
+        action="extend",
         metavar="BAG",
         help="real recording(s): rosbag2 bags with the model's sensor and joint-state topics, "
         "or directories of bags (several: one report directory per bag under --out)",
@@ -71,7 +72,8 @@ def register(subparsers) -> None:
         default=5.0,
         metavar="MINUTES",
         help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
-        "evenly over its whole length, so memory and time stop growing (default 5)",
+        "evenly over its whole length, so the diagnosis's memory and time stop growing "
+        "(reading the bag and its joint states still grow with it; default 5)",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
@@ -190,7 +192,10 @@ def run(args: argparse.Namespace) -> int:
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet
     )
     if len(jobs) == 1 and results[0].ok:  # one bag: its line on stdout, as before
-        print(f"gap: {describe_gap(results[0].value)}", file=sys.stdout)
+        summary = results[0].value
+        for notice in summary["notices"]:
+            print(f"gap: {jobs[0].bag}: {notice}", file=sys.stderr)
+        print(f"gap: {describe_gap(dict(summary, notices=()))}", file=sys.stdout)
         return 0
     return report_results(results, describe_gap, single=len(jobs) == 1)
 
@@ -201,6 +206,7 @@ def gap_task(bag, out, progress, *, model_path, **options) -> dict:
 
     report = run_gap(model_path, bag, out, progress=progress, **options)
     return {
+        "notices": report["inputs"]["notices"],
         "gap": report["gap"],
         "verdict": report["verdict"]["effect"],
         "confidence": report["verdict"].get("confidence"),
@@ -209,9 +215,13 @@ def gap_task(bag, out, progress, *, model_path, **options) -> dict:
 
 
 def describe_gap(summary: dict) -> str:
-    g = summary["gap"]
+    g = {
+        k: "n/a" if summary["gap"].get(k) is None else f"{summary['gap'][k]:.2f}"
+        for k in ("sim_as_is", "after_refit", "after_effect", "floor")
+    }
+    notices = "".join(f" ({n})" for n in summary.get("notices", ()))
     return (
-        f"sim as-is {g['sim_as_is']:.2f} dB, baseline {g['after_refit']:.2f} dB, "
-        f"+{summary['verdict']} {g['after_effect']:.2f} dB, floor {g['floor']:.2f} dB; "
-        f"verdict {summary['verdict']} -> {summary['report']}"
+        f"sim as-is {g['sim_as_is']} dB, baseline {g['after_refit']} dB, "
+        f"+{summary['verdict']} {g['after_effect']} dB, floor {g['floor']} dB; "
+        f"verdict {summary['verdict']} -> {summary['report']}{notices}"
     )

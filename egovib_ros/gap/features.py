@@ -234,7 +234,7 @@ def detect_reversals(
 
 
 #: A bag longer than the block budget is thinned in runs of this many consecutive blocks
-#: (~0.7 s at 3 kHz): whole metric windows (8 blocks) and 0.5 s test segments stay intact.
+#: (~0.7 s at 3 kHz): a run holds 8 metric windows and about one 0.5 s test segment.
 THIN_RUN_BLOCKS = 64
 #: Default budget of `egovib gap`: the diagnosis's memory and time grow with the blocks it
 #: fits (~100 MB per minute of 3 kHz recording), not with the bag beyond this.
@@ -248,9 +248,9 @@ class BlockSpectra:
     blocks that have a joint state. The framer is the only state, so any slicing of the
     same arrays gives the same blocks (tested); a bag is never held whole."""
 
-    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, stride: int = 1):
-        """`stride` k > 1: keep one run of THIN_RUN_BLOCKS consecutive blocks in every k
-        (a long bag thinned evenly over its whole length, see `table_from_bag`)."""
+    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, keep: float = 1.0):
+        """`keep` < 1: keep that share of the runs of THIN_RUN_BLOCKS consecutive blocks,
+        spread evenly (a long bag thinned over its whole length, see `table_from_bag`)."""
         from egovib_ros.core.stream import BlockFramer
 
         # the model's framing, including its sensor range: bad samples are missing
@@ -260,7 +260,7 @@ class BlockSpectra:
         self._bins = in_band_bins(model)
         self._n_joints = n_joints
         self._parts: list[tuple[np.ndarray, ...]] = []
-        self._stride = int(stride)
+        self._keep = float(keep)
         self._blocks_seen = 0
         self.samples = 0
         self.first_stamp_ns: int | None = None
@@ -287,9 +287,9 @@ class BlockSpectra:
             ok = (b.complete if b.complete is not None else np.ones(b.n, bool)) & (
                 b.status != MISSING
             )
-            if self._stride > 1:
-                index = self._blocks_seen + np.arange(b.n)
-                ok &= (index // THIN_RUN_BLOCKS) % self._stride == 0
+            if self._keep < 1.0:  # run r is kept when floor(r * keep) steps up
+                run = (self._blocks_seen + np.arange(b.n)) // THIN_RUN_BLOCKS
+                ok &= np.floor((run + 1) * self._keep) > np.floor(run * self._keep)
             self._blocks_seen += b.n
             if ok.any():
                 spectra = np.abs(np.fft.rfft(b.samples[ok, 0, :] * self._window, axis=1))
@@ -312,9 +312,31 @@ class BlockSpectra:
         return tuple(np.concatenate(column) for column in zip(*self._parts))
 
 
-def usable_joint_states(position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-    """Rows whose position and velocity are finite (the rest are missing data, counted)."""
-    return np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(position), axis=1)
+class JointScreen:
+    """Usable joint states, slice by slice: finite position and velocity, stamped after
+    every earlier usable one (a stuck or jumping clock); the rest are missing data,
+    counted. The covariates then see exactly the joint states the framer uses."""
+
+    def __init__(self):
+        self.last_ns = None
+        self.seen = 0
+        self.bad = 0
+
+    def __call__(self, stamps_ns: np.ndarray, position: np.ndarray, velocity: np.ndarray):
+        finite = np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(position), axis=1)
+        good = np.zeros(len(stamps_ns), dtype=bool)
+        last = self.last_ns
+        for i in np.flatnonzero(finite):  # joint rate: a Python loop is cheap here
+            if last is None or stamps_ns[i] > last:
+                good[i], last = True, int(stamps_ns[i])
+        self.last_ns = last
+        self.seen += len(good)
+        self.bad += int((~good).sum())
+        return good
+
+
+def _sensor_topic(model) -> str:
+    return model.profile.sensor_topic if model.profile is not None else "sensor topic"
 
 
 def joint_order(model, joint_names, source: str) -> list[int]:
@@ -488,13 +510,14 @@ def build_table(
     """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel
     (the whole recording pushed as one slice; `table_from_bag` streams a bag)."""
     order = joint_order(model, rec.joint_names, source)
-    good = usable_joint_states(rec.joint_position, rec.joint_velocity)
+    screen = JointScreen()
+    good = screen(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity)
     position = rec.joint_position[good][:, order]
     velocity = rec.joint_velocity[good][:, order]
     framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
     framing.push_joint_states(rec.joint_stamps_ns[good], velocity)
     framing.push_accel(rec.accel_stamps_ns, rec.accel)
-    bad_input = dict(framing.stats, joint_states=len(good), joint_states_bad=int((~good).sum()))
+    bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad)
     return table_from_blocks(
         model,
         framing,
@@ -522,20 +545,21 @@ def table_from_bag(
     `build_table(read_recording(path))` (tested).
 
     A bag longer than `budget_minutes` is thinned evenly: one run of THIN_RUN_BLOCKS
-    blocks in every k, k = ceil(duration / budget), so that memory and time stop growing
-    with the bag; `table.bad_input["stride"]` says k. None: no budget."""
-    import math
-
+    blocks kept in the share budget / duration, spread evenly, so that the diagnosis's
+    memory and time stop growing with the bag (the joint states are still kept whole);
+    `table.bad_input["kept_share"]` says the share. None: no budget."""
     from egovib_ros.bag import iter_recording
     from egovib_ros.bag.recording import duration_of
 
     source = str(path)
-    stride = 1
+    keep = 1.0
     if budget_minutes is not None:
-        stride = max(1, math.ceil(duration_of(path) / (60.0 * budget_minutes)))
-    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, stride=stride)
+        duration_s = duration_of(path)
+        if duration_s > 60.0 * budget_minutes:
+            keep = 60.0 * budget_minutes / duration_s
+    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, keep=keep)
     stamps, positions, velocities = [], [], []
-    order, n_joint_states = None, 0
+    order, screen = None, JointScreen()
     for piece in iter_recording(
         path,
         profile=model.profile,
@@ -546,8 +570,7 @@ def table_from_bag(
     ):
         if order is None:
             order = joint_order(model, piece.joint_names, source)
-        good = usable_joint_states(piece.joint_position, piece.joint_velocity)
-        n_joint_states += len(good)
+        good = screen(piece.joint_stamps_ns, piece.joint_position, piece.joint_velocity)
         stamps.append(piece.joint_stamps_ns[good])
         positions.append(piece.joint_position[good][:, order])
         velocities.append(piece.joint_velocity[good][:, order])
@@ -555,17 +578,11 @@ def table_from_bag(
         framing.push_accel(piece.accel_stamps_ns, piece.accel)
     if order is None:
         raise BagError(f"{source}: no sensor or joint-state messages")
-    joint_stamps = np.concatenate(stamps)
-    bad_input = dict(
-        framing.stats,
-        joint_states=n_joint_states,
-        joint_states_bad=n_joint_states - len(joint_stamps),
-        stride=stride,
-    )
+    bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad, kept_share=keep)
     return table_from_blocks(
         model,
         framing,
-        joint_stamps,
+        np.concatenate(stamps),
         np.concatenate(positions),
         np.concatenate(velocities),
         bad_input=bad_input,
@@ -585,13 +602,24 @@ def table_from_blocks(
     source: str,
     knot_refine: int = KNOT_REFINE,
 ) -> BlockTable:
-    """The table from the framed blocks and the (usable, model-ordered) joint states."""
+    """The table from the framed blocks and the (usable, model-ordered) joint states.
+    More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
+    StreamError) before anything else is said about the data."""
+    from egovib_ros.cliutil import check_stream
+
+    magnitude, first_ns, last_ns, v_core = framing.finish()
+    counts = {k: v for k, v in framing.stats.items() if isinstance(v, (int, float))}
+    bad_input = dict(counts, **bad_input)
+    bad_input["joint_states_dropped"] = bad_input.pop("joint_states_bad", 0) + counts.get(
+        "joint_states_dropped", 0
+    )
+    bad_input["said"] = check_stream(
+        bad_input, f"{source}: {_sensor_topic(model)}", joint_states=bad_input["joint_states"]
+    )
     if framing.samples < 4 * model.block_length:
         raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")
     if len(joint_stamps_ns) < 10:
         raise BagError(f"{source}: joint_states has only {len(joint_stamps_ns)} usable messages")
-    magnitude, first_ns, last_ns, v_core = framing.finish()
-    bad_input = dict(bad_input, samples_bad=framing.stats["samples_bad"])
     if len(magnitude) < 10:
         raise BagError(
             f"{source}: fewer than 10 usable blocks "

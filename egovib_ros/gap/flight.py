@@ -129,7 +129,7 @@ def run_flight_gap(
                     for c in report["candidates"]
                 ],
                 "blocks": report["blocks"],
-                "calibration_coverage": stats.get("coverage") if isinstance(stats, dict) else None,
+                "calibration_coverage": model.coverage(),
             }
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
         (tmp / "summary.md").write_text(render_summary(summary))
@@ -212,9 +212,11 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m egovib_ros.gap.flight` = `egovib real gap`."""
+    import sys
+
     from egovib_ros.cli import main as egovib_main
 
-    return egovib_main(["real", "gap", *(argv or [])])
+    return egovib_main(["real", "gap", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -4,7 +4,6 @@ write the report directory."""
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -38,21 +37,20 @@ def diagnose_table(table: BlockTable, *, source: str = "bag", **kwargs) -> Diagn
         raise GapDataError(f"{source}: {exc}") from None
 
 
-def screened_input(table: BlockTable, where: str) -> str:
-    """Bad input is missing data, counted, never averaged in (sensor samples non-finite or
-    beyond the sensor range; joint states non-finite or out of order): more than
-    core.MAX_BAD_SHARE of either is refused (one-line StreamError); else the line of counts
-    to print, or "" if nothing was bad."""
-    from egovib_ros.cliutil import check_stream
-
-    counts = dict(table.bad_input)
-    dropped = counts.get("joint_states_dropped", 0) + counts.get("joint_states_bad", 0)
-    counts["joint_states_dropped"] = dropped
-    line = check_stream(counts, where, joint_states=int(counts.get("joint_states", 0)))
-    bad = dropped + sum(
-        int(counts.get(k, 0)) for k in ("samples_bad", "dropped_out_of_order", "resets")
-    )
-    return line if bad else ""
+def input_notices(table: BlockTable, budget_minutes: float | None) -> list[str]:
+    """What the caller should say about the input: bad data treated as missing (counted;
+    more than core.MAX_BAD_SHARE was already refused) and the thinning of a long bag."""
+    bad = table.bad_input
+    notices = []
+    if any(bad.get(k, 0) for k in ("samples_bad", "dropped_out_of_order", "joint_states_dropped")):
+        notices.append(bad["said"])
+    if bad.get("kept_share", 1.0) < 1.0:
+        notices.append(
+            f"longer than the {budget_minutes:g}-minute budget: "
+            f"{100 * bad['kept_share']:.0f} % of the {THIN_RUN_BLOCKS}-block runs diagnosed, "
+            "spread evenly"
+        )
+    return notices
 
 
 def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path | None) -> float:
@@ -97,16 +95,7 @@ def run_gap(
         raise BagError(f"{real_path}: no such bag")
     # streamed: the sensor samples are framed slice by slice, never held whole
     table = table_from_bag(real_path, model, budget_minutes=budget_minutes, progress=progress)
-    if table.bad_input.get("stride", 1) > 1:
-        print(
-            f"gap: {real_path}: longer than the {budget_minutes:g}-minute budget: one "
-            f"{THIN_RUN_BLOCKS}-block run in every {table.bad_input['stride']} is diagnosed",
-            file=sys.stderr,
-        )
-    topic = model.profile.sensor_topic if model.profile is not None else "sensor topic"
-    said = screened_input(table, f"{real_path}: {topic}")
-    if said:
-        print(f"gap: {real_path}: {said}", file=sys.stderr)
+    notices = input_notices(table, budget_minutes)
     lag = reference_lag_for(model, reference_lag, sim_params)
     diag = diagnose_table(table, source=str(real_path), reference_lag_s=lag, **kwargs)
     with atomic_output(out_dir, directory=True) as tmp:
@@ -127,8 +116,11 @@ def run_gap(
         if figures:
             report["figures"] = make_figures(diag, report, tmp)
         report["inputs"]["bad_input"] = {
-            k: int(v) for k, v in table.bad_input.items() if isinstance(v, (int, float))
+            k: (round(v, 6) if isinstance(v, float) else int(v))
+            for k, v in table.bad_input.items()
+            if isinstance(v, (int, float))
         }
+        report["inputs"]["notices"] = notices
         report["runtime_s"] = round(time.perf_counter() - start, 2)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
         (tmp / "report.md").write_text(render_markdown(report, diag.table.joint_names))
