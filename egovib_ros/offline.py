@@ -398,17 +398,19 @@ def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
     return denoise_bag(bag, out, progress=progress, **options)
 
 
-def output_jobs(specs: Sequence[str], out: str | os.PathLike) -> list[BagJob]:
-    """One input bag -> `out` is the output bag; several (or a directory) -> `out` is a
-    directory holding one output bag per input, under the input's relative name."""
+def output_jobs(
+    specs: Sequence[str], out: str | os.PathLike, *, suffix: str = "", option: str = "--out"
+) -> list[BagJob]:
+    """One input bag -> `out` is its output; several (or a directory) -> `out` is a
+    directory holding one output per input, under the input's relative name + `suffix`."""
     pairs = expand_bags(specs)
     single = len(specs) == 1 and len(pairs) == 1 and Path(specs[0]) == pairs[0][0]
     if single:
         return [BagJob(pairs[0][0], Path(out))]
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: with several input bags --out must be a directory")
-    return [BagJob(bag, out / name) for bag, name in pairs]
+        raise ConfigError(f"{out}: with several input bags {option} must be a directory")
+    return [BagJob(bag, out / f"{name}{suffix}") for bag, name in pairs]
 
 
 def run_denoise(args: argparse.Namespace) -> int:

@@ -56,15 +56,9 @@ def json_jobs(specs: list[str], out: str) -> list:
     """One bag given as such -> `out` is the JSON file (CONTRACT); several bags or a
     directory -> `out` is a directory holding <bag name>.json per bag (the bag's path
     relative to the directory it was found in, e.g. OUT/day1/run0.json)."""
-    from egovib_ros.bag.many import BagJob, expand_bags
+    from egovib_ros.offline import output_jobs
 
-    pairs = expand_bags(specs)
-    if len(specs) == 1 and len(pairs) == 1 and Path(specs[0]) == pairs[0][0]:
-        return [BagJob(pairs[0][0], Path(out))]
-    directory = Path(out)
-    if directory.exists() and not directory.is_dir():
-        raise ConfigError(f"--json {out}: with several bags --json must be a directory")
-    return [BagJob(bag, directory / f"{name}.json") for bag, name in pairs]
+    return output_jobs(specs, out, suffix=".json", option="--json")
 
 
 def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options) -> dict:

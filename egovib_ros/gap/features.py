@@ -475,16 +475,21 @@ def baseline_knots(
     return tuple(out)
 
 
+def savgol_joint(t_s: np.ndarray, velocity: np.ndarray, *, deriv: int = 0) -> np.ndarray:
+    """Velocity smoothed (deriv 0) or differentiated (deriv 1) by a quadratic
+    Savitzky-Golay filter over ACCEL_SMOOTH_S; a series too short for it is returned as is
+    (deriv 0) or as zeros (deriv 1)."""
+    dt = float(np.median(np.diff(t_s)))
+    window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
+    if len(velocity) <= window:
+        return velocity if deriv == 0 else np.zeros_like(velocity)
+    return signal.savgol_filter(velocity, window, 2, deriv=deriv, axis=0, delta=dt, mode="interp")
+
+
 def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
     """Fill in the smoothed velocity and the reversal times of a joint series (if missing)."""
     if joints.smooth_velocity is None:
-        dt = float(np.median(np.diff(joints.t_s)))
-        window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
-        joints.smooth_velocity = (
-            signal.savgol_filter(joints.velocity, window, 2, axis=0, mode="interp")
-            if len(joints.velocity) > window
-            else joints.velocity
-        )
+        joints.smooth_velocity = savgol_joint(joints.t_s, joints.velocity)
     if not joints.reversals:
         joints.reversals = detect_reversals(joints.t_s, joints.smooth_velocity, vmax)
     return joints
@@ -633,26 +638,8 @@ def table_from_blocks(
     joint_t = (joint_stamps_ns - t0_ns) / NS
     # Unwrap so a block mean of the continuous wrist angle never straddles a +-pi jump.
     position = np.unwrap(position, axis=0)
-    window = int(round(ACCEL_SMOOTH_S / max(np.median(np.diff(joint_t)), 1e-6))) | 1
-    window = max(window, 5)
-    acceleration = (
-        signal.savgol_filter(
-            velocity,
-            window,
-            2,
-            deriv=1,
-            axis=0,
-            delta=float(np.median(np.diff(joint_t))),
-            mode="interp",
-        )
-        if len(velocity) > window
-        else np.zeros_like(velocity)
-    )
-    smooth = (
-        signal.savgol_filter(velocity, window, 2, axis=0, mode="interp")
-        if len(velocity) > window
-        else velocity
-    )
+    acceleration = savgol_joint(joint_t, velocity, deriv=1)
+    smooth = savgol_joint(joint_t, velocity)
     vmax = np.array([np.max(np.abs(g)) for g in model.grid])
     joints = JointSeries(
         t_s=joint_t,
