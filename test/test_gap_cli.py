@@ -138,6 +138,10 @@ def test_gap_bad_input_is_one_line_error_without_output(model_path, tmp_path, ca
     assert not out.exists()
     assert main(["gap", "--model", str(model_path)]) == 2
     assert "--real" in capsys.readouterr().err
+    # the validation runs on local processes: a cluster address is refused, not ignored
+    assert main(["gap", "validate", "--scheduler", "tcp://127.0.0.1:1", "--out", str(out)]) == 2
+    assert "--scheduler" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_streamed_table_equals_whole_recording(model_path, position_bag):
@@ -198,8 +202,16 @@ def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag
     """Past the block budget the diagnosis keeps one run of blocks in every k over the
     whole bag (memory and time stop growing); the kept blocks are the whole table's."""
     from egovib_ros.core import NoiseModel
-    from egovib_ros.gap.features import THIN_RUN_BLOCKS, table_from_bag
+    from egovib_ros.gap.cli import BUDGET_MINUTES
+    from egovib_ros.gap.effects import LAG_RANGE_S
+    from egovib_ros.gap.features import (
+        DEFAULT_BUDGET_MINUTES,
+        JOINT_MARGIN_S,
+        THIN_RUN_BLOCKS,
+        table_from_bag,
+    )
 
+    assert BUDGET_MINUTES == DEFAULT_BUDGET_MINUTES
     model = NoiseModel.load(model_path)
     whole = table_from_bag(position_bag, model)  # 60 s: within the default budget
     thin = table_from_bag(position_bag, model, budget_minutes=0.25)
@@ -211,6 +223,19 @@ def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag
     np.testing.assert_array_equal(whole.magnitude[rows], thin.magnitude)
     runs = np.flatnonzero(np.diff(rows) > 1)
     assert np.all(np.diff(runs) >= THIN_RUN_BLOCKS // 2)  # whole runs, not scattered blocks
+    # Only the joint states near the kept blocks are held, and the covariates are the whole
+    # table's, also at the lags the timing scan tries (block means are integrals from the
+    # series' start: equal to rounding).
+    assert 0.3 * len(whole.joints.t_s) < len(thin.joints.t_s) < 0.8 * len(whole.joints.t_s)
+    assert thin.bad_input["joint_states_kept"] == len(thin.joints.t_s)
+    for lag in (0.0, -LAG_RANGE_S, LAG_RANGE_S):
+        a, b = whole.at_lag(lag), thin.at_lag(lag)
+        for name in ("position", "acceleration", "hats", "reversal_after_s", "reversal_before_s"):
+            np.testing.assert_allclose(
+                getattr(b, name), getattr(a, name)[rows], rtol=1e-9, atol=1e-12, err_msg=name
+            )
+    with pytest.raises(ValueError, match="beyond"):
+        thin.at_lag(JOINT_MARGIN_S + 0.01)
 
 
 def test_out_of_order_joint_states_are_missing_for_the_covariates_too(model_path, position_bag):

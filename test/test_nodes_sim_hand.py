@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.bagio import read_recording, write_recording
@@ -45,8 +46,14 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
         and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
     )
     assert np.all(np.diff(stamps) > 0)
-    # Sim time runs at the bag's pace: ~3 kHz of sim time.
-    assert abs(len(stamps) / ((stamps[-1] - stamps[0]) / 1e9) - 3000) < 10
+    # Sim time runs at the bag's pace: samples 1/3 ms apart in sim time, and the stream
+    # spans the replayed clock. (A best-effort subscriber on a loaded machine may miss a
+    # few samples: the spacing, not the count, is what the sim sets.)
+    spacing = np.diff(stamps)
+    assert np.median(spacing) == pytest.approx(1e9 / 3000, abs=1)
+    span_s = (stamps[-1] - stamps[0]) / 1e9
+    assert span_s > 0.8 * recorded.duration_s
+    assert len(stamps) > 0.9 * 3000 * span_s
     # The hand follows the replayed commands: its wrist velocity tracks the recorded one.
     want = np.interp(j_stamps, recorded.joint_stamps_ns, recorded.joint_velocity[:, 0])
     late = j_stamps > j_stamps[0] + 500_000_000

@@ -98,14 +98,13 @@ def design(
 ) -> tuple[sparse.csr_matrix, list[tuple[int, int]]]:
     """Sparse columns [1, H_bjk for every joint j and non-rest cell k];
     also the (j, k) of each H column."""
-    cols, where = [np.ones((hats.shape[0], 1))], []
+    # Built joint by joint as sparse: the dense (B, P) matrix would be the peak memory.
+    cols, where = [sparse.csr_matrix(np.ones((hats.shape[0], 1)))], []
     for j, g in enumerate(knots):
-        for k in range(len(g)):
-            if g[k] == 0.0:
-                continue
-            cols.append(hats[:, j, k : k + 1])
-            where.append((j, k))
-    return sparse.csr_matrix(np.concatenate(cols, axis=1)), where
+        moving = [k for k in range(len(g)) if g[k] != 0.0]
+        cols.append(sparse.csr_matrix(hats[:, j, : len(g)])[:, moving])
+        where.extend((j, k) for k in moving)
+    return sparse.hstack(cols, format="csr"), where
 
 
 def simulator_cells(
@@ -257,10 +256,11 @@ def fit_baseline(
     predicted = np.maximum(np.asarray(x @ coef.T), SCALE_FLOOR * 0.1 * level)  # (B, F)
     magnitude = np.sqrt(predicted)
     # Mean/rms ratio per joint and coarse cell, on that joint's share of the bin's power.
-    x_dense = x.toarray()
     per_joint = np.zeros((len(table.knots),) + predicted.shape)
-    for i, (j, k) in enumerate(where):
-        per_joint[j] += x_dense[:, 1 + i, None] * coef[None, :, 1 + i]
+    for j in range(len(table.knots)):  # sparse products: x is (B, P), dense it is the peak
+        cols = [1 + i for i, (jj, _) in enumerate(where) if jj == j]
+        if cols:
+            per_joint[j] = np.asarray(x[:, cols] @ coef[:, cols].T)
     share = np.clip(per_joint / predicted[None], 0.0, 1.0)  # (J, B, F)
     xc = x_c.toarray()
     cols_j = [

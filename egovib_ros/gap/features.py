@@ -30,6 +30,12 @@ CONTACT_DILATE = 5
 #: Savitzky-Golay window for joint accelerations (s): long enough to average encoder
 #: quantisation, short compared with the motion.
 ACCEL_SMOOTH_S = 0.031
+#: The joint-state period is the median of the first this many intervals.
+PERIOD_INTERVALS = 1000
+#: A thinned table keeps the joint states within this time of a kept block (by default):
+#: the lags the diagnosis tries (effects.LAG_RANGE_S, refined by a coarse step, and a
+#: reference lag of a few ms) stay inside it.
+JOINT_MARGIN_S = 0.25
 
 
 @dataclass
@@ -43,6 +49,9 @@ class JointSeries:
     smooth_velocity: np.ndarray | None = None  # (M, J) Savitzky-Golay smoothed velocity
     reversals: tuple[np.ndarray, ...] = ()  # per joint: joint-clock times (s) where motion
     # resumes opposite to the last direction
+    #: Largest lag the series can be re-matched at: a thinned series holds the joint states
+    #: only within JOINT_MARGIN_S of the kept blocks.
+    max_lag_s: float = np.inf
 
 
 @dataclass
@@ -183,6 +192,7 @@ def motion_features(
     own velocity trajectory (a block straddling a reversal sees both directions' speeds,
     not their mean, which is near zero).
     """
+    check_lag(joints, lag_s)
     n_blocks, n_joints = len(t_first), len(knots)
     pts = np.linspace(0.0, 1.0, TRAJECTORY_POINTS)
     idx = np.clip(np.round(pts * (len(window) - 1)).astype(int), 0, len(window) - 1)
@@ -237,8 +247,9 @@ def detect_reversals(
 #: (~0.7 s at 3 kHz): a run holds 8 metric windows and about one 0.5 s test segment.
 THIN_RUN_BLOCKS = 64
 #: Default budget of `egovib gap`: the diagnosis's memory and time grow with the blocks it
-#: fits (~100 MB per minute of 3 kHz recording), not with the bag beyond this.
-DEFAULT_BUDGET_MINUTES = 5.0
+#: fits (~80 MB per minute of 3 kHz recording), not with the bag beyond this. Two minutes:
+#: the bag length `egovib gap validate` measures the diagnosis on.
+DEFAULT_BUDGET_MINUTES = 2.0
 
 
 class BlockSpectra:
@@ -264,6 +275,12 @@ class BlockSpectra:
         self._blocks_seen = 0
         self.samples = 0
         self.first_stamp_ns: int | None = None
+        #: Kept blocks as merged time spans (ns; blocks closer than 2 JOINT_MARGIN_S
+        #: joined) and the last stamp of the latest block framed: a joint state older than
+        #: that minus the margin can no longer come near a block still to come.
+        self.span_starts: list[int] = []
+        self.span_ends: list[int] = []
+        self.framed_until_ns: int | None = None
 
     @property
     def stats(self) -> dict:
@@ -291,11 +308,36 @@ class BlockSpectra:
                 run = (self._blocks_seen + np.arange(b.n)) // THIN_RUN_BLOCKS
                 ok &= np.floor((run + 1) * self._keep) > np.floor(run * self._keep)
             self._blocks_seen += b.n
+            self.framed_until_ns = int(b.t_last_ns.max())
             if ok.any():
+                if self.thinned:
+                    self._extend_spans(b.t_first_ns[ok], b.t_last_ns[ok])
                 spectra = np.abs(np.fft.rfft(b.samples[ok, 0, :] * self._window, axis=1))
                 self._parts.append(
                     (spectra[:, self._bins], b.t_first_ns[ok], b.t_last_ns[ok], b.velocity[ok])
                 )
+
+    def _extend_spans(self, t_first: np.ndarray, t_last: np.ndarray) -> None:
+        join = 2 * int(JOINT_MARGIN_S * NS)
+        for start, end in zip(t_first.tolist(), t_last.tolist()):
+            if self.span_ends and start <= self.span_ends[-1] + join:
+                self.span_ends[-1] = max(self.span_ends[-1], end)
+            else:
+                self.span_starts.append(start)
+                self.span_ends.append(end)
+
+    @property
+    def thinned(self) -> bool:
+        return self._keep < 1.0
+
+    def near_kept(self, stamps_ns: np.ndarray, margin_ns: int) -> np.ndarray:
+        """Which stamps lie within `margin_ns` of a kept block framed so far."""
+        if not self.span_starts:
+            return np.zeros(len(stamps_ns), dtype=bool)
+        starts = np.asarray(self.span_starts, dtype=np.int64) - margin_ns
+        ends = np.asarray(self.span_ends, dtype=np.int64) + margin_ns
+        i = np.searchsorted(starts, stamps_ns, side="right") - 1
+        return (i >= 0) & (stamps_ns <= ends[np.maximum(i, 0)])
 
     def finish(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Flush; (in-band magnitudes (B, F), t_first_ns (B,), t_last_ns (B,), block mean
@@ -333,6 +375,171 @@ class JointScreen:
         self.seen += len(good)
         self.bad += int((~good).sum())
         return good
+
+
+class JointFeatures:
+    """The joint series and its motion covariates, slice by slice: position unwrapped,
+    velocity smoothed and differentiated (`savgol_joint`'s filter), the reversal times.
+
+    The state is explicit (the filter's unfinished tail, the unwrapping's running
+    correction, each joint's last direction of motion), so any slicing gives the result
+    of one slice (tested). With `blocks` (a BlockSpectra thinning a long bag), only the
+    joint states within `margin_s` of a kept block are held, so the series grows
+    with the block budget, not with the bag; the reversal times (a few per second at
+    most) are kept for the whole bag."""
+
+    def __init__(
+        self,
+        vmax: np.ndarray,
+        *,
+        blocks: BlockSpectra | None = None,
+        margin_s: float = JOINT_MARGIN_S,
+    ):
+        self._vmax = np.asarray(vmax, dtype=float)
+        self._blocks = blocks if blocks is not None and blocks.thinned else None
+        self._margin_s = float(margin_s)
+        self._margin_ns = int(margin_s * NS)
+        self.count = 0  # joint states pushed
+        self._period_s: float | None = None
+        self._window = 0
+        # filter input: samples from global index _buf_start on; outputs before _emitted done
+        self._t = np.zeros(0, dtype=np.int64)
+        self._pos: np.ndarray | None = None
+        self._vel: np.ndarray | None = None
+        self._buf_start = 0
+        self._emitted = 0
+        self._last_raw: np.ndarray | None = None  # unwrapping: last raw position
+        self._correction: np.ndarray | None = None  # and the running 2 pi correction
+        self._direction: np.ndarray | None = None  # last non-zero direction per joint
+        self._reversals: list[list[np.ndarray]] = []
+        self._pending: list[tuple[np.ndarray, ...]] = []  # filtered, not yet kept or dropped
+        self._kept: list[tuple[np.ndarray, ...]] = []
+
+    def push(self, stamps_ns: np.ndarray, position: np.ndarray, velocity: np.ndarray) -> None:
+        """Usable joint states (JointScreen), stamps increasing, columns in model order."""
+        if len(stamps_ns) == 0:
+            return
+        position = self._unwrap(np.asarray(position, dtype=float))
+        if self._pos is None:
+            self._t = np.asarray(stamps_ns, dtype=np.int64)
+            self._pos, self._vel = position, np.asarray(velocity, dtype=float)
+            n_joints = position.shape[1]
+            self._direction = np.zeros(n_joints, dtype=int)
+            self._reversals = [[] for _ in range(n_joints)]
+        else:
+            self._t = np.concatenate([self._t, stamps_ns])
+            self._pos = np.concatenate([self._pos, position])
+            self._vel = np.concatenate([self._vel, velocity])
+        self.count += len(stamps_ns)
+        if self._period_s is None:
+            if self.count <= PERIOD_INTERVALS:
+                return
+            self._fix_period()
+        self._filter(final=False)
+        self._sort_out(final=False)
+
+    def finish(self, t0_ns: int) -> JointSeries:
+        """The series (times in s since `t0_ns`) once every joint state is pushed."""
+        if self.count == 0:
+            raise ValueError("no joint states")
+        if self._period_s is None:
+            self._fix_period()
+        self._filter(final=True)
+        self._sort_out(final=True)
+        empty = (np.zeros(0, np.int64),) + (np.zeros((0, self._pos.shape[1])),) * 4
+        parts = self._kept or [empty]
+        t, position, velocity, acceleration, smooth = (np.concatenate(c) for c in zip(*parts))
+        return JointSeries(
+            t_s=(t - t0_ns) / NS,
+            position=position,
+            velocity=velocity,
+            acceleration=acceleration,
+            smooth_velocity=smooth,
+            reversals=tuple(
+                (np.concatenate(r) - t0_ns) / NS if r else np.zeros(0) for r in self._reversals
+            ),
+            max_lag_s=self._margin_s if self._blocks is not None else np.inf,
+        )
+
+    def _unwrap(self, position: np.ndarray) -> np.ndarray:
+        # np.unwrap over the whole series, carried across slices: the correction is a
+        # running sum continued element by element, so slicing does not change it.
+        if self._last_raw is None:
+            self._last_raw = position[0].copy()
+            self._correction = np.zeros(position.shape[1])
+        steps = np.diff(np.concatenate([self._last_raw[None], position]), axis=0)
+        wrapped = np.mod(steps + np.pi, 2 * np.pi) - np.pi
+        wrapped[(wrapped == -np.pi) & (steps > 0)] = np.pi
+        fix = wrapped - steps
+        fix[np.abs(steps) < np.pi] = 0.0
+        running = np.cumsum(np.concatenate([self._correction[None], fix]), axis=0)[1:]
+        self._last_raw, self._correction = position[-1].copy(), running[-1].copy()
+        return position + running
+
+    def _fix_period(self) -> None:
+        # from the integer stamps: epoch seconds as floats are too coarse for a 1 ms step
+        self._period_s = joint_period(self._t, per_second=NS) if len(self._t) > 1 else 1e-3
+        self._window = savgol_window(self._period_s)
+
+    def _filter(self, *, final: bool) -> None:
+        """Filter what the buffer allows: a sample once its whole window is in (all at the
+        end), exactly as one filter over the whole series (scipy's 'interp' edges are fitted
+        only at the series' true ends: the buffer starts at the series' start until then)."""
+        n_total = self._buf_start + len(self._t)
+        w = self._window
+        stop = n_total if final else n_total - w // 2
+        if stop <= self._emitted:
+            return
+        if self.count <= w:  # too short for the filter (only at the end): as savgol_joint
+            smooth, acceleration = self._vel, np.zeros_like(self._vel)
+        else:
+            smooth, acceleration = (
+                signal.savgol_filter(
+                    self._vel, w, 2, deriv=d, axis=0, delta=self._period_s, mode="interp"
+                )
+                for d in (0, 1)
+            )
+        a, b = self._emitted - self._buf_start, stop - self._buf_start
+        out = (self._t[a:b], self._pos[a:b], self._vel[a:b], acceleration[a:b], smooth[a:b])
+        self._find_reversals(out[0], out[4])
+        self._pending.append(out)
+        self._emitted = stop
+        keep_from = max(0, stop - w - self._buf_start)  # the next outputs' left context
+        self._t, self._pos, self._vel = (x[keep_from:] for x in (self._t, self._pos, self._vel))
+        self._buf_start += keep_from
+
+    def _find_reversals(self, t_ns: np.ndarray, smooth: np.ndarray) -> None:
+        """`detect_reversals`, continued across slices by each joint's last direction."""
+        for j in range(smooth.shape[1]):
+            thr = REVERSAL_THRESHOLD * self._vmax[j]
+            state = np.where(smooth[:, j] > thr, 1, np.where(smooth[:, j] < -thr, -1, 0))
+            moving = np.flatnonzero(state)
+            if len(moving) == 0:
+                continue
+            seq = np.concatenate([[self._direction[j]], state[moving]])
+            flips = np.flatnonzero((np.diff(seq) != 0) & (seq[:-1] != 0))
+            if len(flips):
+                self._reversals[j].append(t_ns[moving[flips]])
+            self._direction[j] = state[moving[-1]]
+
+    def _sort_out(self, *, final: bool) -> None:
+        """Move filtered joint states to the kept series: all of them, or (thinning) those
+        near a kept block, once no block still to come can be near them."""
+        if not self._pending:
+            return
+        if self._blocks is None:
+            self._kept.extend(self._pending)
+            self._pending = []
+            return
+        until = self._blocks.framed_until_ns
+        if not final and until is None:
+            return
+        parts = [np.concatenate(c) for c in zip(*self._pending)]
+        settled = np.ones(len(parts[0]), bool) if final else parts[0] <= until - self._margin_ns
+        near = settled & self._blocks.near_kept(parts[0], self._margin_ns)
+        if near.any():
+            self._kept.append(tuple(x[near] for x in parts))
+        self._pending = [tuple(x[~settled] for x in parts)] if not settled.all() else []
 
 
 def _sensor_topic(model) -> str:
@@ -384,7 +591,17 @@ def _interval_means(
     return (integral(t1) - integral(t0)) / span
 
 
+def check_lag(joints: JointSeries, lag_s: float) -> None:
+    """A thinned series holds joint states only near its blocks: refuse a lag beyond that."""
+    if abs(lag_s) > joints.max_lag_s:
+        raise ValueError(
+            f"joint-state lag {lag_s:+.3f} s is beyond the +-{joints.max_lag_s:g} s of joint "
+            "states kept around the blocks of a thinned bag"
+        )
+
+
 def _joint_block_means(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float):
+    check_lag(joints, lag_s)
     t = joints.t_s - lag_s
     velocity = _interval_means(t, joints.velocity, t_first, t_last)
     position = _interval_means(t, joints.position, t_first, t_last)
@@ -475,12 +692,24 @@ def baseline_knots(
     return tuple(out)
 
 
+def joint_period(t: np.ndarray, *, per_second: float = 1.0) -> float:
+    """The joint-state period (s) the Savitzky-Golay filter assumes: the median of the first
+    PERIOD_INTERVALS intervals of the times `t` (`per_second` units per second; a stream
+    fixes the period early, not at the end of the bag)."""
+    return float(np.median(np.diff(t[: PERIOD_INTERVALS + 1]))) / per_second
+
+
+def savgol_window(period_s: float) -> int:
+    """Odd Savitzky-Golay window (samples) spanning ACCEL_SMOOTH_S at this joint period."""
+    return max(int(round(ACCEL_SMOOTH_S / max(period_s, 1e-6))) | 1, 5)
+
+
 def savgol_joint(t_s: np.ndarray, velocity: np.ndarray, *, deriv: int = 0) -> np.ndarray:
     """Velocity smoothed (deriv 0) or differentiated (deriv 1) by a quadratic
     Savitzky-Golay filter over ACCEL_SMOOTH_S; a series too short for it is returned as is
-    (deriv 0) or as zeros (deriv 1)."""
-    dt = float(np.median(np.diff(t_s)))
-    window = max(int(round(ACCEL_SMOOTH_S / max(dt, 1e-6))) | 1, 5)
+    (deriv 0) or as zeros (deriv 1). `JointFeatures` computes the same, slice by slice."""
+    dt = joint_period(t_s)
+    window = savgol_window(dt)
     if len(velocity) <= window:
         return velocity if deriv == 0 else np.zeros_like(velocity)
     return signal.savgol_filter(velocity, window, 2, deriv=deriv, axis=0, delta=dt, mode="interp")
@@ -517,22 +746,22 @@ def build_table(
     order = joint_order(model, rec.joint_names, source)
     screen = JointScreen()
     good = screen(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity)
-    position = rec.joint_position[good][:, order]
+    stamps = rec.joint_stamps_ns[good]
     velocity = rec.joint_velocity[good][:, order]
     framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
-    framing.push_joint_states(rec.joint_stamps_ns[good], velocity)
+    joints = JointFeatures(grid_speeds(model))
+    joints.push(stamps, rec.joint_position[good][:, order], velocity)
+    framing.push_joint_states(stamps, velocity)
     framing.push_accel(rec.accel_stamps_ns, rec.accel)
     bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad)
     return table_from_blocks(
-        model,
-        framing,
-        rec.joint_stamps_ns[good],
-        position,
-        velocity,
-        bad_input=bad_input,
-        source=source,
-        knot_refine=knot_refine,
+        model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
     )
+
+
+def grid_speeds(model) -> np.ndarray:
+    """Largest grid speed per joint (the reversal threshold's scale)."""
+    return np.array([np.max(np.abs(g)) for g in model.grid])
 
 
 def table_from_bag(
@@ -542,17 +771,19 @@ def table_from_bag(
     max_hold_s: float = 0.05,
     knot_refine: int = KNOT_REFINE,
     budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
+    max_lag_s: float = JOINT_MARGIN_S,
     progress=None,
 ) -> BlockTable:
     """`build_table` of a bag read slice by slice (bag.iter_recording with the model's robot
-    profile): the sensor samples are framed as they arrive and never held; only the joint
-    states (joint rate) and the blocks' in-band spectra are kept. Same table as
-    `build_table(read_recording(path))` (tested).
+    profile): the sensor samples are framed as they arrive and never held; the joint
+    states are filtered as they arrive. Same table as `build_table(read_recording(path))`
+    (tested).
 
     A bag longer than `budget_minutes` is thinned evenly: one run of THIN_RUN_BLOCKS
-    blocks kept in the share budget / duration, spread evenly, so that the diagnosis's
-    memory and time stop growing with the bag (the joint states are still kept whole);
-    `table.bad_input["kept_share"]` says the share. None: no budget."""
+    blocks kept in the share budget / duration, spread evenly, and the joint states
+    within `max_lag_s` of them (the largest lag the table can then be re-matched at), so
+    that memory and time stop growing with the bag; `table.bad_input["kept_share"]` says
+    the share. None: no budget."""
     from egovib_ros.bag import iter_recording
     from egovib_ros.bag.recording import duration_of
 
@@ -563,7 +794,7 @@ def table_from_bag(
         if duration_s > 60.0 * budget_minutes:
             keep = 60.0 * budget_minutes / duration_s
     framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, keep=keep)
-    stamps, positions, velocities = [], [], []
+    joints = JointFeatures(grid_speeds(model), blocks=framing, margin_s=max_lag_s)
     order, screen = None, JointScreen()
     for piece in iter_recording(
         path,
@@ -576,32 +807,24 @@ def table_from_bag(
         if order is None:
             order = joint_order(model, piece.joint_names, source)
         good = screen(piece.joint_stamps_ns, piece.joint_position, piece.joint_velocity)
-        stamps.append(piece.joint_stamps_ns[good])
-        positions.append(piece.joint_position[good][:, order])
-        velocities.append(piece.joint_velocity[good][:, order])
-        framing.push_joint_states(stamps[-1], velocities[-1])
+        stamps = piece.joint_stamps_ns[good]
+        velocity = piece.joint_velocity[good][:, order]
+        framing.push_joint_states(stamps, velocity)
         framing.push_accel(piece.accel_stamps_ns, piece.accel)
+        # after the framing, so the blocks these joint states may be near are known
+        joints.push(stamps, piece.joint_position[good][:, order], velocity)
     if order is None:
         raise BagError(f"{source}: no sensor or joint-state messages")
     bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad, kept_share=keep)
     return table_from_blocks(
-        model,
-        framing,
-        np.concatenate(stamps),
-        np.concatenate(positions),
-        np.concatenate(velocities),
-        bad_input=bad_input,
-        source=source,
-        knot_refine=knot_refine,
+        model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
     )
 
 
 def table_from_blocks(
     model,
     framing: BlockSpectra,
-    joint_stamps_ns: np.ndarray,
-    position: np.ndarray,
-    velocity: np.ndarray,
+    joint_features: JointFeatures,
     *,
     bad_input: dict,
     source: str,
@@ -623,8 +846,8 @@ def table_from_blocks(
     )
     if framing.samples < 4 * model.block_length:
         raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")
-    if len(joint_stamps_ns) < 10:
-        raise BagError(f"{source}: joint_states has only {len(joint_stamps_ns)} usable messages")
+    if joint_features.count < 10:
+        raise BagError(f"{source}: joint_states has only {joint_features.count} usable messages")
     if len(magnitude) < 10:
         raise BagError(
             f"{source}: fewer than 10 usable blocks "
@@ -634,21 +857,9 @@ def table_from_blocks(
     t0_ns = framing.first_stamp_ns
     t_first = (first_ns - t0_ns) / NS
     t_last = (last_ns - t0_ns) / NS
-
-    joint_t = (joint_stamps_ns - t0_ns) / NS
-    # Unwrap so a block mean of the continuous wrist angle never straddles a +-pi jump.
-    position = np.unwrap(position, axis=0)
-    acceleration = savgol_joint(joint_t, velocity, deriv=1)
-    smooth = savgol_joint(joint_t, velocity)
-    vmax = np.array([np.max(np.abs(g)) for g in model.grid])
-    joints = JointSeries(
-        t_s=joint_t,
-        position=position,
-        velocity=velocity,
-        acceleration=acceleration,
-        smooth_velocity=smooth,
-        reversals=detect_reversals(joint_t, smooth, vmax),
-    )
+    joints = joint_features.finish(t0_ns)
+    bad_input["joint_states_kept"] = len(joints.t_s)
+    vmax = grid_speeds(model)
 
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)

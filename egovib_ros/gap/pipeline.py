@@ -10,8 +10,10 @@ from pathlib import Path
 from egovib_ros.errors import BagError, EgovibError
 from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.diagnose import Diagnosis, diagnose
+from egovib_ros.gap.effects import LAG_COARSE_S, LAG_TOLERANCE_S
 from egovib_ros.gap.features import (
     DEFAULT_BUDGET_MINUTES,
+    JOINT_MARGIN_S,
     THIN_RUN_BLOCKS,
     BlockTable,
     build_table,
@@ -93,10 +95,20 @@ def run_gap(
     model = NoiseModel.load(model_path)
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
-    # streamed: the sensor samples are framed slice by slice, never held whole
-    table = table_from_bag(real_path, model, budget_minutes=budget_minutes, progress=progress)
-    notices = input_notices(table, budget_minutes)
     lag = reference_lag_for(model, reference_lag, sim_params)
+    # streamed: the sensor samples are framed slice by slice, never held whole; a thinned
+    # bag keeps the joint states near its blocks, as far as the lags tried reach
+    table = table_from_bag(
+        real_path,
+        model,
+        budget_minutes=budget_minutes,
+        max_lag_s=max(
+            JOINT_MARGIN_S,
+            abs(lag) + kwargs.get("lag_tolerance_s", LAG_TOLERANCE_S) + LAG_COARSE_S,
+        ),
+        progress=progress,
+    )
+    notices = input_notices(table, budget_minutes)
     diag = diagnose_table(table, source=str(real_path), reference_lag_s=lag, **kwargs)
     with atomic_output(out_dir, directory=True) as tmp:
         tmp.mkdir(parents=True)

@@ -22,7 +22,13 @@ from rosgraph_msgs.msg import Clock
 from egovib_ros.bag import BagReader
 from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
-from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
+from egovib_ros.nodes.common import (
+    MATCH_SETTLE_S,
+    Param,
+    declare_parameters,
+    run_node,
+    stream_publisher_qos,
+)
 from egovib_ros.ros_convert import ns_to_stamp
 
 TICK_S = 0.002  # publishing granularity: messages due within a tick go out together
@@ -98,6 +104,7 @@ class BagPlayer(Node):
                 p.get_subscription_count() >= self.wait_for_subscribers
                 for p in self.topic_publishers.values()
             ):
+                time.sleep(MATCH_SETTLE_S)
                 return
             time.sleep(0.05)
         self.get_logger().warning("not every topic has its subscribers; playing anyway")

@@ -42,6 +42,10 @@ from egovib_ros.ros_convert import (
 # a depth of 5 would cut, and a starved process must not lose what DDS delivered.
 SENSOR_QUEUE_DEPTH = 3000
 SPIN_TIMEOUT_S = 0.1
+#: After our writers see their subscribers, time for the subscribers' readers to see our
+#: writers too (DDS matches each side on its own): a reliable sample sent before that is
+#: resent only at the writer's next heartbeat (Fast DDS: every 3 s), i.e. arrives late.
+MATCH_SETTLE_S = 0.5
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 

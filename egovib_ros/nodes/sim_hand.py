@@ -25,6 +25,7 @@ from egovib_ros.constants import (
 )
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.common import (
+    MATCH_SETTLE_S,
     Health,
     Param,
     declare_parameters,
@@ -194,7 +195,10 @@ class SimHand(Node):
             self._wait_since = time.monotonic()
         streams = [p for p in (self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego) if p]
         if all(p.get_subscription_count() >= self.wait_for_subscribers for p in streams):
-            return True
+            # and the subscribers' side of the match: samples sent before it arrive late
+            if getattr(self, "_matched_since", None) is None:
+                self._matched_since = time.monotonic()
+            return time.monotonic() - self._matched_since >= MATCH_SETTLE_S
         if time.monotonic() - self._wait_since > self.wait_timeout_s:
             self.get_logger().warning("not every stream has its subscribers: starting anyway")
             return True

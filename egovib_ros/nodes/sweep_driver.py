@@ -15,6 +15,7 @@ time (so it follows use_sim_time). Progress: a log line per cell and /diagnostic
 from __future__ import annotations
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
@@ -28,6 +29,7 @@ from egovib_ros.ros_convert import command_message
 
 _NS = 1_000_000_000
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
+STOP_ACK_TIMEOUT_S = 2.0  # wall time allowed for the subscribers to acknowledge the stop
 MAX_SWEEP_CELLS = (
     100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
 )
@@ -137,6 +139,7 @@ class SweepDriver(Node):
         stop = command_message(np.zeros(self.cells.shape[1]))
         for _ in range(3):
             self.pub.publish(stop)
+        self._wait_for_delivery()
         self.get_logger().info(f"{self.grid} sweep done: joints stopped")
         self._publish_diagnostics()
         self.done.set_result(0)
@@ -171,10 +174,20 @@ class SweepDriver(Node):
         )
         self.health.publish(warnings=warnings, ok=message, values=values)
 
+    def _wait_for_delivery(self) -> None:
+        # The process exits right after the stop command: without waiting for the
+        # subscribers' acknowledgement (reliable QoS) DDS may drop it with the process.
+        if not self.pub.wait_for_all_acked(Duration(seconds=STOP_ACK_TIMEOUT_S)):
+            self.get_logger().warning(
+                f"stop command not acknowledged within {STOP_ACK_TIMEOUT_S:g} s by every "
+                f"subscriber of {self.pub.topic_name}"
+            )
+
     def close(self) -> None:
         # Interrupted or done: leave the joints stopped.
         try:
             self.pub.publish(command_message(np.zeros(self.cells.shape[1])))
+            self._wait_for_delivery()
         except Exception:  # noqa: BLE001 - context already shut down by Ctrl-C
             pass
 
