@@ -404,6 +404,10 @@ def output_jobs(
     """One input bag -> `out` is its output; several (or a directory) -> `out` is a
     directory holding one output per input, under the input's relative name + `suffix`."""
     pairs = expand_bags(specs)
+    target = Path(out).resolve()
+    for spec in specs:  # a later run over the same input would take the outputs for inputs
+        if target.is_relative_to(Path(spec).resolve()):
+            raise ConfigError(f"{out}: {option} is inside the input {spec}; write it elsewhere")
     single = len(specs) == 1 and len(pairs) == 1 and Path(specs[0]) == pairs[0][0]
     if single:
         return [BagJob(pairs[0][0], Path(out))]

@@ -345,6 +345,14 @@ def test_many_bags_in_parallel_equal_single_runs_and_a_broken_one_is_named(
         assert not list(out.rglob("*.partial"))
         for name, expected in singles.items():
             assert _messages(out / name, "/accelerometer/denoised") == expected, (jobs, name)
+    # Outputs inside the input directory would be taken for inputs by the next run.
+    inside = fleet / "clean"
+    result = egovib("denoise", fleet, "--model", model_path, "--out", inside, "--quiet")
+    assert result.returncode == 2 and "inside the input" in result.stderr
+    assert [line for line in result.stderr.splitlines() if "error" in line] == [
+        f"egovib: error: {inside}: --out is inside the input {fleet}; write it elsewhere"
+    ]
+    assert not inside.exists()
 
 
 def test_calibrate_pools_several_bags(bags, tmp_path):

@@ -50,7 +50,7 @@ class JointSeries:
     reversals: tuple[np.ndarray, ...] = ()  # per joint: joint-clock times (s) where motion
     # resumes opposite to the last direction
     #: Largest lag the series can be re-matched at: a thinned series holds the joint states
-    #: only within JOINT_MARGIN_S of the kept blocks.
+    #: only within this margin of the kept blocks.
     max_lag_s: float = np.inf
 
 
