@@ -111,10 +111,10 @@ def _describe(figures: dict) -> str:
 def run_evaluate(args: argparse.Namespace) -> int:
     import functools
 
-    from egovib_ros.bag.many import run_bags, summary_lines
+    from egovib_ros.bag.many import run_bags
     from egovib_ros.core import NoiseModel
     from egovib_ros.evaluation import baselines
-    from egovib_ros.offline import model_profile
+    from egovib_ros.offline import model_profile, report_results
 
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model_profile(model)
@@ -158,9 +158,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"{r.bag}: {_describe({**r.value, 'bad_samples': ''})}; wrote {r.out}")
         return 0
-    for line in summary_lines(results, _describe):
-        print(line, file=sys.stderr)
-    return 0 if all(r.ok for r in results) else 2
+    return report_results(results, _describe, single=False)
 
 
 def run_figures(args: argparse.Namespace) -> int:
