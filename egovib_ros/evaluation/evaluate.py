@@ -35,9 +35,9 @@ import numpy as np
 
 from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.core import NoiseModel
-from egovib_ros.errors import BagError
 from egovib_ros.evaluation import baselines, detection, metrics
 from egovib_ros.evaluation import stream as streaming
+from egovib_ros.evaluation.stream import require_ground_truth
 
 PRIMARY = "paper"
 CONTRACT_FIELDS = (
@@ -61,20 +61,6 @@ BAD_SAMPLE_RULE = (
     "settling after them are left out of every metric, and so is "
     "any tap they touch"
 )
-
-
-def require_ground_truth(rec, where: str = "recording") -> None:
-    """Raise BagError unless `rec` carries the ground-truth contact signal."""
-    if rec.contact is None:
-        raise BagError(
-            f"{where}: missing ground-truth topic {BAG_TOPICS['contact']} "
-            f"(evaluate needs a simulated bag with ground truth)"
-        )
-    if len(rec.contact) != len(rec.accel):
-        raise BagError(
-            f"{where}: topic {BAG_TOPICS['contact']} has {len(rec.contact)} samples, "
-            f"{BAG_TOPICS['raw']} has {len(rec.accel)}"
-        )
 
 
 def bad_samples_said(bad: dict) -> str:

@@ -270,16 +270,18 @@ def _joints_nonfinite(piece) -> int:
     return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
 
 
-def _require_contact(piece, source: str) -> None:
-    if piece.contact is None:
+def require_ground_truth(rec, where: str = "recording") -> None:
+    """Raise BagError unless `rec` (a Recording or a slice of one) carries the ground-truth
+    contact signal, sample for sample."""
+    if rec.contact is None:
         raise BagError(
-            f"{source}: missing ground-truth topic {BAG_TOPICS['contact']} "
+            f"{where}: missing ground-truth topic {BAG_TOPICS['contact']} "
             f"(evaluate needs a simulated bag with ground truth)"
         )
-    if len(piece.contact) != len(piece.accel):
+    if len(rec.contact) != len(rec.accel):
         raise BagError(
-            f"{source}: topic {BAG_TOPICS['contact']} has {len(piece.contact)} samples, "
-            f"{BAG_TOPICS['raw']} has {len(piece.accel)}"
+            f"{where}: topic {BAG_TOPICS['contact']} has {len(rec.contact)} samples, "
+            f"{BAG_TOPICS['raw']} has {len(rec.accel)}"
         )
 
 
@@ -322,7 +324,7 @@ class SummaryPass:
         self.n = 0
 
     def push(self, piece) -> None:
-        _require_contact(piece, self.source)
+        require_ground_truth(piece, self.source)
         self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         if len(piece.joint_velocity):
@@ -665,7 +667,7 @@ class EvaluationPass:
 
     # --- input --------------------------------------------------------------------
     def push(self, piece) -> None:
-        _require_contact(piece, self.source)
+        require_ground_truth(piece, self.source)
         for name, stream in self.streams.items():
             self.fifos[name].put(
                 stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
