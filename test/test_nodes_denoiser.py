@@ -243,8 +243,14 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
     stream.run(1.5)
     # Both joints moving: the calibration (a full-grid one that reached only the axes) measured
     # no such cell, which /diagnostics reports as model coverage.
+    # Counted since the start: the first block can begin before the first joint state (passed
+    # through), and the latest status's window may hold it under load.
     status = ros_client.statuses["denoiser"]
-    assert float(diagnostic_values(status)["unmeasured_fraction"]) == 1.0
+    values = diagnostic_values(status)
+    blocks, no_joint = int(values["blocks"]), int(values["blocks_no_joint_state"])
+    assert blocks > 0 and no_joint <= 1, values
+    assert int(values["blocks_unmeasured"]) == blocks - no_joint, values
+    assert float(values["unmeasured_fraction"]) > 0.9, values
     assert status.level == DiagnosticStatus.WARN and "did not measure" in status.message
 
     refused = set_parameters(ros_client, "denoiser", model="other.npz", channels="combined")
