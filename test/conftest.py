@@ -45,6 +45,13 @@ class NodeProcesses(NodeGroup):
         """Send `sig` (Ctrl-C by default) and wait; kill if it does not end in time."""
         return super().stop(self._name(proc), timeout, sig)
 
+    def wait_for_log(self, proc: subprocess.Popen, text: str, timeout: float = 60.0) -> None:
+        """Until `text` is in the process's log; fails at once if the process ended."""
+        deadline = time.monotonic() + timeout
+        while text not in self.log(proc):
+            assert time.monotonic() < deadline and proc.poll() is None, self.log(proc)
+            time.sleep(0.1)
+
     def cleanup(self) -> None:
         self.close()
 
@@ -123,13 +130,34 @@ class Feeder:
         self.values: list[np.ndarray] = []
 
     def wait_for_subscribers(self, timeout: float = 30.0) -> bool:
-        return self.client.spin_until(
+        """Both writers see a subscriber, then MATCH_SETTLE_S for the subscribers' readers to
+        see the writers (a reliable sample sent before that would wait for a heartbeat)."""
+        from egovib_ros.nodes.common import MATCH_SETTLE_S
+
+        matched = self.client.spin_until(
             lambda: (
                 self.raw_pub.get_subscription_count() > 0
                 and self.joint_pub.get_subscription_count() > 0
             ),
             timeout,
         )
+        if matched:
+            self.client.spin_for(MATCH_SETTLE_S)
+        return matched
+
+    def publish_joint_state(self) -> None:
+        """One JointState stamped just before the stream: the node knows the joints before
+        the first sensor sample (else it passes samples through until joint states come)."""
+        from egovib_ros.ros_convert import encode_joint_state_batch
+
+        names = self.joint_names
+        for data in encode_joint_state_batch(
+            np.array([self.stamp0 - 1_000_000]),
+            np.zeros((1, len(names))),
+            self.velocity[None],
+            names,
+        ):
+            self.joint_pub.publish(data)
 
     def run(self, seconds: float, *, skip_s: float = 0.0) -> None:
         """Publish `seconds` of white noise at constant joint velocities; `skip_s` first jumps

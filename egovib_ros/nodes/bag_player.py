@@ -23,11 +23,12 @@ from egovib_ros.bag import BagReader
 from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
 from egovib_ros.nodes.common import (
-    MATCH_SETTLE_S,
     Param,
+    SubscriberGate,
     declare_parameters,
     run_node,
     stream_publisher_qos,
+    wait_for_delivery,
 )
 from egovib_ros.ros_convert import ns_to_stamp
 
@@ -54,7 +55,7 @@ PARAMETERS = (
     Param(
         "linger",
         0.5,
-        "seconds to stay up after the last message, to let it be delivered",
+        "seconds to stay up after the last message was acknowledged (or not within 5 s)",
         range=(0.0, 3600.0),
     ),
 )
@@ -98,16 +99,13 @@ class BagPlayer(Node):
         self.published = 0
 
     def _wait_for_subscribers(self) -> None:
-        deadline = time.monotonic() + self.wait_timeout
-        while rclpy.ok() and time.monotonic() < deadline:
-            if all(
-                p.get_subscription_count() >= self.wait_for_subscribers
-                for p in self.topic_publishers.values()
-            ):
-                time.sleep(MATCH_SETTLE_S)
-                return
+        gate = SubscriberGate(
+            list(self.topic_publishers.values()), self.wait_for_subscribers, self.wait_timeout
+        )
+        while rclpy.ok() and not gate.is_open():
             time.sleep(0.05)
-        self.get_logger().warning("not every topic has its subscribers; playing anyway")
+        if gate.timed_out:
+            self.get_logger().warning("not every topic has its subscribers; playing anyway")
 
     def run(self) -> int:
         """Publish every message at its recorded time (scaled by rate); 0 when all are out."""
@@ -139,6 +137,7 @@ class BagPlayer(Node):
                 last_clock_ns = bag_ns
             self.topic_publishers[topic].publish(data)
             self.published += 1
+        wait_for_delivery(self, list(self.topic_publishers.values()), "the last messages")
         time.sleep(self.linger)
         self.get_logger().info(f"done: {self.published} messages played")
         return 0

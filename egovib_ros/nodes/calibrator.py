@@ -118,7 +118,6 @@ class Calibrator(Node):
         self.checkpoint_error: str | None = None
         self.checkpoints_written = 0
         self.checkpoint_failures = 0
-        self.missing_joints: list[str] = []
         self.stream_error: str | None = None
         self._last_input = time.monotonic()
         self._last_report = (time.monotonic(), 0)
@@ -160,12 +159,6 @@ class Calibrator(Node):
         self._last_input = time.monotonic()
         joints = self.input.take_joints()
         if joints is not None and len(joints.stamps_ns):
-            missing = self.input.missing_joints()
-            if missing != self.missing_joints and missing:
-                self.get_logger().error(
-                    self.input.missing_joints_message(missing) + ": no block can be used"
-                )
-            self.missing_joints = missing
             self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
@@ -312,8 +305,9 @@ class Calibrator(Node):
             "checkpoint_failures": self.checkpoint_failures,
         }
         errors = [e for e in (self.stream_error, self.checkpoint_error) if e]
-        if self.missing_joints:
-            errors.append(inp.missing_joints_message(self.missing_joints))
+        missing = inp.missing_joints_error("no block can be used")
+        if missing:
+            errors.append(missing)
         warnings = [f"{grown[key]} {key.replace('_', ' ')}" for key in counters if grown[key]]
         if cov["mode"] in SWEEPS:
             ok = f"{cov['cells_covered']}/{cov['cells_expected']} cells covered"

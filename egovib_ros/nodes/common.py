@@ -14,6 +14,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
@@ -45,7 +46,10 @@ SPIN_TIMEOUT_S = 0.1
 #: After our writers see their subscribers, time for the subscribers' readers to see our
 #: writers too (DDS matches each side on its own): a reliable sample sent before that is
 #: resent only at the writer's next heartbeat (Fast DDS: every 3 s), i.e. arrives late.
-MATCH_SETTLE_S = 0.5
+MATCH_SETTLE_S = 1.0
+#: How long a node that is about to exit waits for its subscribers to acknowledge what it
+#: sent last (reliable QoS): unacknowledged samples die with the process.
+DELIVERY_TIMEOUT_S = 5.0
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
@@ -68,6 +72,54 @@ def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
         history=HistoryPolicy.KEEP_LAST,
         depth=depth,
     )
+
+
+class SubscriberGate:
+    """Whether a node may start publishing: every one of `publishers` has `count` subscribers
+    and MATCH_SETTLE_S has passed since (the subscribers' side of the match), or `timeout_s`
+    has passed (`timed_out` then says so). `count` 0: open at once. Polled, never blocks."""
+
+    def __init__(self, publishers: Sequence, count: int, timeout_s: float):
+        self.publishers = [p for p in publishers if p is not None]
+        self.count, self.timeout_s = count, timeout_s
+        self.timed_out = False
+        self._since: float | None = None
+        self._matched_since: float | None = None
+
+    def is_open(self) -> bool:
+        if self.count <= 0 or self.timed_out:
+            return True
+        now = time.monotonic()
+        if self._since is None:
+            self._since = now
+        if all(p.get_subscription_count() >= self.count for p in self.publishers):
+            if self._matched_since is None:
+                self._matched_since = now
+            if now - self._matched_since >= MATCH_SETTLE_S:
+                return True
+        else:
+            self._matched_since = None
+        if now - self._since > self.timeout_s:
+            self.timed_out = True
+            return True
+        return False
+
+
+def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
+    """Before exiting: wait up to DELIVERY_TIMEOUT_S for every subscriber to acknowledge what
+    `publishers` sent (reliable QoS); warn naming the topics that were not acknowledged."""
+    deadline = time.monotonic() + DELIVERY_TIMEOUT_S
+    late = []
+    for pub in publishers:
+        left = max(deadline - time.monotonic(), 0.0)
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            late.append(pub.topic_name)
+    if late:
+        node.get_logger().warning(
+            f"{what} not acknowledged within {DELIVERY_TIMEOUT_S:g} s by every subscriber of "
+            f"{', '.join(late)}"
+        )
+    return not late
 
 
 def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool = True):
@@ -201,6 +253,8 @@ class StreamInput:
         self._on_joint_state = on_joint_state
         sensor_subscription(node, Imu, profile.node_sensor_topic, self._on_sensor)
         sensor_subscription(node, JointState, profile.node_joints_topic, self._on_joints)
+        self._logger = node.get_logger()
+        self._logged_missing: list[str] = []
         self.sensor_topic = node.resolve_topic_name(profile.node_sensor_topic)
         self.joints_topic = node.resolve_topic_name(profile.node_joints_topic)
         self._sensor: list[bytes] = []
@@ -279,6 +333,19 @@ class StreamInput:
         if self.first_joint_s is None:
             return []
         return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
+
+    def missing_joints_error(self, consequence: str) -> str | None:
+        """For the node's periodic report: the ERROR text for named joints never seen (None
+        when all were), logged with its `consequence` once per change. Not at the message
+        itself: joint states split over several publishers lack some joints until every
+        publisher has been heard once."""
+        missing = self.missing_joints()
+        message = self.missing_joints_message(missing) if missing else None
+        if missing != self._logged_missing:
+            self._logged_missing = missing
+            if message:
+                self._logger.error(f"{message}: {consequence}")
+        return message
 
     def missing_joints_message(self, missing: list[str]) -> str:
         carried = (
@@ -406,6 +473,12 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
                 status = int(done.result())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # Ctrl-C shuts the context down, possibly while a callback is publishing: rcl then
+        # fails that publish ("context is invalid", an RCLError, i.e. a RuntimeError). That
+        # is the interruption, not a failure; with the context still up it is a failure.
+        if rclpy.ok():
+            raise
     except EgovibError as exc:
         name = (
             node.get_name() if node is not None else os.path.basename(sys.argv[0]) or "egovib_ros"

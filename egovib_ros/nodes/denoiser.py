@@ -258,9 +258,11 @@ class Denoiser(Node):
 
     # --- input ---------------------------------------------------------------------------
     def _on_joint_state(self) -> None:
-        if self._blocks_held_back:
-            # A completed block waits for the joint state covering its end: release it now
-            # rather than at the next batch of samples (that would add up to a hop of delay).
+        # A completed block waits for the joint state covering its end: release it now
+        # rather than at the next batch of samples (that would add up to a hop of delay).
+        # Before the first sensor sample, take joint states as they come: a joint they lack
+        # is an ERROR before any output (and is reported while the sensor is silent).
+        if self._blocks_held_back or self.input.sensor_messages == 0:
             self._process_joints()
             self._update_held_back()
 
@@ -287,14 +289,7 @@ class Denoiser(Node):
         batch = self.input.take_joints()
         if batch is None or not len(batch.stamps_ns):
             return
-        missing = self.input.missing_joints()
-        if missing != self.missing_joints:
-            self.missing_joints = missing
-            if missing:
-                self.get_logger().error(
-                    self.input.missing_joints_message(missing)
-                    + ": cannot denoise, publishing nothing"
-                )
+        self.missing_joints = self.input.missing_joints()  # output withheld while any
         self._publish(self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity))
 
     def _refuse(self, reason: str) -> None:
@@ -396,8 +391,9 @@ class Denoiser(Node):
         errors = []
         if self.stream_error:
             errors.append(self.stream_error)
-        if self.missing_joints:
-            errors.append(inp.missing_joints_message(self.missing_joints))
+        missing = inp.missing_joints_error("cannot denoise, publishing nothing")
+        if missing:
+            errors.append(missing)
         warnings = []
         if inp.joint_messages == 0 and inp.sensor_messages > 0:
             warnings.append(

@@ -9,8 +9,6 @@ generated and sent as pre-serialised CDR, which keeps the CPU cost of 3 kHz low.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
@@ -25,9 +23,9 @@ from egovib_ros.constants import (
 )
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.common import (
-    MATCH_SETTLE_S,
     Health,
     Param,
+    SubscriberGate,
     declare_parameters,
     run_node,
     stream_publisher_qos,
@@ -115,6 +113,11 @@ class SimHand(Node):
             if self.ground_truth and publish_ego
             else None
         )
+        self.gate = SubscriberGate(
+            [self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego],
+            self.wait_for_subscribers,
+            self.wait_timeout_s,
+        )
         self.health = Health(self, hardware_id=PR2.name)
         self.create_subscription(Float64MultiArray, TOPIC_COMMANDS, self._on_command, 10)
         self.commands_received = 0
@@ -189,18 +192,9 @@ class SimHand(Node):
 
     def _subscribers_ready(self) -> bool:
         """All streams matched (or waited long enough): recordings then start complete."""
-        if self.wait_for_subscribers <= 0:
-            return True
-        if getattr(self, "_wait_since", None) is None:
-            self._wait_since = time.monotonic()
-        streams = [p for p in (self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego) if p]
-        if all(p.get_subscription_count() >= self.wait_for_subscribers for p in streams):
-            # and the subscribers' side of the match: samples sent before it arrive late
-            if getattr(self, "_matched_since", None) is None:
-                self._matched_since = time.monotonic()
-            return time.monotonic() - self._matched_since >= MATCH_SETTLE_S
-        if time.monotonic() - self._wait_since > self.wait_timeout_s:
-            self.get_logger().warning("not every stream has its subscribers: starting anyway")
+        if self.gate.is_open():
+            if self.gate.timed_out:
+                self.get_logger().warning("not every stream has its subscribers: starting anyway")
             return True
         return False
 

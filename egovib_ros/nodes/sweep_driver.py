@@ -15,7 +15,6 @@ time (so it follows use_sim_time). Progress: a log line per cell and /diagnostic
 from __future__ import annotations
 
 import numpy as np
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
@@ -23,13 +22,19 @@ from std_msgs.msg import Float64MultiArray
 from egovib_ros.constants import TOPIC_COMMANDS
 from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.errors import ConfigError
-from egovib_ros.nodes.common import Health, Param, declare_parameters, run_node
+from egovib_ros.nodes.common import (
+    Health,
+    Param,
+    SubscriberGate,
+    declare_parameters,
+    run_node,
+    wait_for_delivery,
+)
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.ros_convert import command_message
 
 _NS = 1_000_000_000
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
-STOP_ACK_TIMEOUT_S = 2.0  # wall time allowed for the subscribers to acknowledge the stop
 MAX_SWEEP_CELLS = (
     100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
 )
@@ -95,7 +100,9 @@ class SweepDriver(Node):
         self.done = Future()
         self.cell = self.start_cell - 1
         self.cell_start_ns: int | None = None
-        self._created_ns: int | None = None
+        self.gate = SubscriberGate(
+            [self.pub], 1 if self.wait_for_subscriber > 0 else 0, self.wait_for_subscriber
+        )
         self.create_timer(COMMAND_PERIOD_S, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         total = (len(self.cells) - self.start_cell) * (self.dwell_s + self.settle_s)
@@ -112,10 +119,7 @@ class SweepDriver(Node):
         if now <= 0:  # use_sim_time and no /clock yet
             return
         if self.cell_start_ns is None:
-            if self._created_ns is None:
-                self._created_ns = now
-            waited = (now - self._created_ns) / _NS
-            if self.pub.get_subscription_count() == 0 and waited < self.wait_for_subscriber:
+            if not self.gate.is_open():
                 return
             self._next_cell(now)
         elif now - self.cell_start_ns >= (self.settle_s + self.dwell_s) * _NS:
@@ -175,13 +179,9 @@ class SweepDriver(Node):
         self.health.publish(warnings=warnings, ok=message, values=values)
 
     def _wait_for_delivery(self) -> None:
-        # The process exits right after the stop command: without waiting for the
-        # subscribers' acknowledgement (reliable QoS) DDS may drop it with the process.
-        if not self.pub.wait_for_all_acked(Duration(seconds=STOP_ACK_TIMEOUT_S)):
-            self.get_logger().warning(
-                f"stop command not acknowledged within {STOP_ACK_TIMEOUT_S:g} s by every "
-                f"subscriber of {self.pub.topic_name}"
-            )
+        # The process exits right after the stop command: without the subscribers'
+        # acknowledgement (reliable QoS) DDS may drop it with the process.
+        wait_for_delivery(self, [self.pub], "stop command")
 
     def close(self) -> None:
         # Interrupted or done: leave the joints stopped.
