@@ -89,7 +89,7 @@ def test_resumed_sweep_of_a_three_joint_robot_commands_remaining_cells_then_stop
         },
     )
     assert ros_client.spin_until(lambda: driver.poll() is not None, timeout=30), nodes.log(driver)
-    ros_client.spin_for(0.2)
+    assert ros_client.drain(received)
     assert driver.returncode == 0, nodes.log(driver)
 
     cells = sweep_velocities(ROBOT, "superposition")

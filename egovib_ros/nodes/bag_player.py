@@ -42,7 +42,8 @@ PARAMETERS = (
     Param(
         "wait_for_subscribers",
         0,
-        "wait until every played topic has at least this many subscribers before starting",
+        "wait until every played topic has at least this many subscribers (and /clock one, "
+        "when published) before starting",
         range=(0, 100),
     ),
     Param(
@@ -99,12 +100,17 @@ class BagPlayer(Node):
         self.published = 0
 
     def _wait_for_subscribers(self) -> None:
-        gate = SubscriberGate(
-            list(self.topic_publishers.values()), self.wait_for_subscribers, self.wait_timeout
-        )
-        while rclpy.ok() and not gate.is_open():
+        gates = [
+            SubscriberGate(
+                list(self.topic_publishers.values()), self.wait_for_subscribers, self.wait_timeout
+            )
+        ]
+        if self.clock_publisher is not None:
+            # the nodes on sim time: a /clock they miss at the start shifts their start
+            gates.append(SubscriberGate([self.clock_publisher], 1, self.wait_timeout))
+        while rclpy.ok() and not all([gate.is_open() for gate in gates]):  # poll every gate
             time.sleep(0.05)
-        if gate.timed_out:
+        if any(gate.timed_out for gate in gates):
             self.get_logger().warning("not every topic has its subscribers; playing anyway")
 
     def run(self) -> int:

@@ -51,6 +51,20 @@ class Watcher:
             self.executor.spin_once(timeout_sec=0.05)
         return bool(predicate())
 
+    def drain(self, *received: list, quiet_s: float = 0.5, timeout: float = 20.0) -> bool:
+        """Spin until none of the `received` lists (filled by subscriptions) has grown for
+        `quiet_s`: what DDS delivered but this process had not taken yet is then taken."""
+        deadline = time.monotonic() + timeout
+        sizes, since = None, time.monotonic()
+        while time.monotonic() < deadline:
+            now_sizes = [len(r) for r in received]
+            if now_sizes != sizes:
+                sizes, since = now_sizes, time.monotonic()
+            elif time.monotonic() - since >= quiet_s:
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return False
+
     def close(self) -> None:
         self.node.destroy_node()
         self.context.try_shutdown()
