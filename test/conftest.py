@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import random
 import signal
+import struct
 import subprocess
 import time
 from pathlib import Path
@@ -224,6 +225,24 @@ class Feeder:
 
     def sent(self) -> tuple[np.ndarray, np.ndarray]:
         return np.concatenate(self.stamps), np.concatenate(self.values)
+
+
+def header_stamp_ns(raw: bytes) -> int:
+    """The header stamp of a serialised message that starts with a std_msgs/Header (Imu,
+    JointState): little-endian CDR, sec and nanosec right after the encapsulation header."""
+    assert raw[1] == 1, "big-endian CDR"
+    sec, nanosec = struct.unpack_from("<iI", raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def wait_for_stream_end(client, *received: list, end_ns: int, timeout: float = 15.0) -> bool:
+    """Spin until every `received` list (filled by a reliable subscription) holds a message
+    stamped at or after `end_ns`. A reliable link repairs a lost packet at the writer's next
+    heartbeat (3 s in Fast DDS) and holds back the samples after it until then: stopping
+    the writer before that would lose them."""
+    return client.spin_until(
+        lambda: all(r and header_stamp_ns(r[-1]) >= end_ns for r in received), timeout
+    )
 
 
 def many_joints(profile) -> list[str]:

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from conftest import many_joints
+from conftest import many_joints, wait_for_stream_end
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -77,6 +77,10 @@ def test_live_denoiser_keeps_stamps_lowers_noise_and_copies_the_input_message(
     for _ in range(60):  # 3 s of motion, command repeated
         ros_client.commands.publish(moving)
         ros_client.spin_for(0.05)
+    # sim_hand stamps with the wall clock: both streams complete up to now (less the
+    # denoiser's block delay) before the writers stop
+    end_ns = time.time_ns() - 100_000_000
+    assert wait_for_stream_end(ros_client, raw, denoised, end_ns=end_ns), (len(raw), len(denoised))
     assert nodes.stop(den) == 0
     assert nodes.stop(sim) == 0
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import wait_for_stream_end
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.bagio import read_recording, write_recording
@@ -36,8 +37,11 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     )
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
     assert player.returncode == 0, nodes.log(player)
-    assert nodes.stop(sim) == 0, nodes.log(sim)  # its clock has stopped: nothing more comes
-    assert ros_client.drain(raw, joints)  # what a loaded test process had not taken yet
+    # The sim runs until the last /clock (the bag's last message): wait for the streams to
+    # arrive up to it before stopping the sim (their writer).
+    last_clock = recorded.accel_stamps_ns[-1] - 100_000_000
+    assert wait_for_stream_end(ros_client, raw, joints, end_ns=last_clock), (len(raw), len(joints))
+    assert nodes.stop(sim) == 0, nodes.log(sim)
 
     stamps, _, _ = decode_imu_messages(raw)
     j_stamps, _, velocity, _ = decode_joint_state_messages(joints, load_profile().joint_names)
