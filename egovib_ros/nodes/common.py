@@ -77,17 +77,19 @@ def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
 class SubscriberGate:
     """Whether a node may start publishing: every one of `publishers` has `count` subscribers
     and MATCH_SETTLE_S has passed since (the subscribers' side of the match), or `timeout_s`
-    has passed (`timed_out` then says so). `count` 0: open at once. Polled, never blocks."""
+    has passed (`timed_out` then says so). `count` 0: open at once. Polled, never blocks;
+    once open it stays open."""
 
     def __init__(self, publishers: Sequence, count: int, timeout_s: float):
         self.publishers = [p for p in publishers if p is not None]
         self.count, self.timeout_s = count, timeout_s
         self.timed_out = False
+        self._open = count <= 0
         self._since: float | None = None
         self._matched_since: float | None = None
 
     def is_open(self) -> bool:
-        if self.count <= 0 or self.timed_out:
+        if self._open:
             return True
         now = time.monotonic()
         if self._since is None:
@@ -95,14 +97,12 @@ class SubscriberGate:
         if all(p.get_subscription_count() >= self.count for p in self.publishers):
             if self._matched_since is None:
                 self._matched_since = now
-            if now - self._matched_since >= MATCH_SETTLE_S:
-                return True
+            self._open = now - self._matched_since >= MATCH_SETTLE_S
         else:
             self._matched_since = None
-        if now - self._since > self.timeout_s:
-            self.timed_out = True
-            return True
-        return False
+        if not self._open and now - self._since > self.timeout_s:
+            self.timed_out = self._open = True
+        return self._open
 
 
 def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
