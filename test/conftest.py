@@ -146,6 +146,15 @@ class Feeder:
             self.client.spin_for(MATCH_SETTLE_S)
         return matched
 
+    def run_until(self, predicate, at_most_s: float = 3.0) -> bool:
+        """Publish 0.1 s at a time until `predicate()` holds, for at most `at_most_s` (e.g.
+        until a report's window is past the start of the stream); returns `predicate()`."""
+        fed = 0.0
+        while not predicate() and fed < at_most_s:
+            self.run(0.1)
+            fed += 0.1
+        return bool(predicate())
+
     def publish_joint_state(self) -> None:
         """One JointState stamped just before the stream: the node knows the joints before
         the first sensor sample (else it passes samples through until joint states come)."""
@@ -225,6 +234,17 @@ class Feeder:
 
     def sent(self) -> tuple[np.ndarray, np.ndarray]:
         return np.concatenate(self.stamps), np.concatenate(self.values)
+
+
+def reports(client, node: str, level: int | None = None, *texts: str) -> bool:
+    """Whether `node`'s latest /diagnostics status has `level` (any if None) and every one
+    of `texts` in its message."""
+    status = client.statuses.get(node)
+    return (
+        status is not None
+        and (level is None or status.level == level)
+        and all(text in status.message for text in texts)
+    )
 
 
 def header_stamp_ns(raw: bytes) -> int:

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from conftest import reports
 from diagnostic_msgs.msg import DiagnosticStatus
 from robots import profile, recording
 
@@ -157,12 +158,12 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
     stream.publish(t_acc[:half], accel[:half], t_joint[:joint_half], velocity[:joint_half])
 
     def failing() -> bool:
-        status = ros_client.statuses.get("calibrator")
-        return (
-            status is not None
-            and status.level == DiagnosticStatus.ERROR
-            and "cannot write checkpoint" in status.message
-            and str(output.parent) in status.message
+        return reports(
+            ros_client,
+            "calibrator",
+            DiagnosticStatus.ERROR,
+            "cannot write checkpoint",
+            str(output.parent),
         )
 
     assert ros_client.spin_until(failing, timeout=10.0), (

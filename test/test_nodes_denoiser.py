@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from conftest import many_joints, wait_for_stream_end
+from conftest import many_joints, reports, wait_for_stream_end
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -190,11 +190,10 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
         nodes.log(den)
     )
     stream.run(2.5)
-    fed = 0.0  # the first report's window may still hold the first, partial joint state (WARN)
-    while level_of(ros_client) != DiagnosticStatus.OK and fed < 3.0:
-        stream.run(0.1)
-        fed += 0.1
-    assert level_of(ros_client) == DiagnosticStatus.OK, ros_client.statuses["denoiser"]
+    # the first report's window may still hold the first, partial joint state (WARN)
+    assert stream.run_until(lambda: reports(ros_client, "denoiser", DiagnosticStatus.OK)), (
+        ros_client.statuses["denoiser"]
+    )
     # The sensor stops: STALE after stale_after (1.5 s), reported within a few seconds.
     stopped = time.monotonic()
     assert ros_client.spin_until(lambda: level_of(ros_client) == DiagnosticStatus.STALE, 6.0), (
@@ -258,20 +257,10 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
     # no such cell, which /diagnostics reports as model coverage (a WARN). Fed on until a
     # report's window is past the first blocks (the very first may precede the first joint
     # state and pass through), at most 3 s more.
-    def warned() -> bool:
-        status = ros_client.statuses.get("denoiser")
-        return (
-            status is not None
-            and status.level == DiagnosticStatus.WARN
-            and "did not measure" in status.message
-        )
-
-    fed = 0.0
-    while not warned() and fed < 3.0:
-        stream.run(0.1)
-        fed += 0.1
+    assert stream.run_until(
+        lambda: reports(ros_client, "denoiser", DiagnosticStatus.WARN, "did not measure")
+    ), ros_client.statuses["denoiser"]
     status = ros_client.statuses["denoiser"]
-    assert warned(), status
     values = diagnostic_values(status)
     assert float(values["unmeasured_fraction"]) > 0.9, values
     # Counted since the start: every block with a joint state fell on an unmeasured cell.
@@ -336,11 +325,9 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
     # (samples before any joint state would pass through band-passed, by design).
     no_gripper.publish_joint_state()
 
-    def lacking_reported() -> bool:
-        status = ros_client.statuses.get("no_gripper/denoiser")
-        return status is not None and PR2.joint_names[1] in status.message
-
-    assert ros_client.spin_until(lacking_reported, 10.0), nodes.log(lacking)
+    assert ros_client.spin_until(
+        lambda: reports(ros_client, "no_gripper/denoiser", None, PR2.joint_names[1]), 10.0
+    ), nodes.log(lacking)
     for _ in range(25):
         slow.run(0.1)
         no_gripper.run(0.1)
