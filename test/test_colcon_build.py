@@ -10,6 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 NODES = ("sim_hand", "sweep_driver", "calibrator", "denoiser", "bag_recorder", "bag_player")

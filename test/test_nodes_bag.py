@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu
@@ -21,6 +22,8 @@ from egovib_ros.orchestration import reliable_input
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import diagnostic_values, stamp_to_ns
 from egovib_ros.sim import simulate_motion
+
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 REPO = Path(__file__).resolve().parents[1]

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import reports
 from diagnostic_msgs.msg import DiagnosticStatus
 from robots import profile, recording
@@ -16,6 +17,8 @@ from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
 from egovib_ros.orchestration import reliable_input
 from egovib_ros.ros_convert import diagnostic_values
+
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}

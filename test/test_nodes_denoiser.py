@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import many_joints, reports, wait_for_stream_end
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -35,6 +36,8 @@ from egovib_ros.ros_convert import (
     diagnostic_values,
     encode_imu_batch,
 )
+
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 PR2 = load_profile()  # the simulated hand; sim_model_path is calibrated on it
 BIN = Path(sys.executable).parent

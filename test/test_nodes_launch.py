@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 LAUNCH_FILES = sorted((REPO / "launch").glob("*.launch.py"))

@@ -13,6 +13,8 @@ from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.sim import simulate_motion
 
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
+
 
 def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_client, tmp_path):
     bag = tmp_path / "motion"

@@ -13,6 +13,8 @@ from egovib_ros.nodes.sweep_driver import sweep_velocities
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim import sweep_cells as simulator_sweep
 
+pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
+
 # Three joints, the last one-directional (a motor that only spins one way), 2 steps.
 ROBOT = RobotProfile(
     name="three_joint_arm",
