@@ -61,8 +61,10 @@ def test_colcon_build_installs_every_node(tmp_path):
         "sim",
     ):
         assert (share / "config" / f"{name}.yaml").is_file()
-    for source in sorted((REPO / "config" / "robots").glob("*.yaml")) + sorted(
-        (REPO / "launch").glob("*.py")
+    for source in (
+        sorted((REPO / "config" / "robots").glob("*.yaml"))
+        + sorted((REPO / "launch").glob("*.py"))
+        + [REPO / "config" / "fastdds_profiles.xml"]
     ):
         installed = share / source.relative_to(REPO)
         assert installed.is_file() and installed.read_text() == source.read_text(), (

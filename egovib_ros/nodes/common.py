@@ -31,6 +31,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.cdr import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
+from egovib_ros.robot import config_dir
 from egovib_ros.ros_convert import (
     decode_imu_raws,
     decode_joint_state_raws,
@@ -51,6 +52,24 @@ MATCH_SETTLE_S = 1.0
 #: sent last (reliable QoS): unacknowledged samples die with the process.
 DELIVERY_TIMEOUT_S = 5.0
 DIAGNOSTICS_TOPIC = "/diagnostics"
+FASTDDS_PROFILES_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+
+def use_package_fastdds_profiles() -> None:
+    """Call before rclpy.init: unless the user chose Fast DDS profiles (the variable is set)
+    or another middleware, point Fast DDS at config/fastdds_profiles.xml, which lets every
+    queue have the depth its QoS asks for. Fast DDS 2.x otherwise caps each reader's queue
+    at 5000 samples whatever the depth (bag_recorder asks 30000: 10 s at 3 kHz)."""
+    if os.environ.get(FASTDDS_PROFILES_VARIABLE):
+        return
+    if not os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
+        return
+    try:
+        path = config_dir() / "fastdds_profiles.xml"
+    except ConfigError:
+        return
+    if path.is_file():
+        os.environ[FASTDDS_PROFILES_VARIABLE] = str(path)
 
 
 def sensor_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
@@ -455,6 +474,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     once at the end, also after Ctrl-C: write files, log summaries). Bad input
     (EgovibError) is a one-line error and exit status 2.
     """
+    use_package_fastdds_profiles()
     rclpy.init(args=sys.argv if args is None else args)
     node = None
     status = 0

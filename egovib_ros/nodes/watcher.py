@@ -11,6 +11,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.experimental import EventsExecutor
 from std_msgs.msg import Float64MultiArray
 
+from egovib_ros.nodes.common import use_package_fastdds_profiles
+
 
 class Watcher:
     """An rclpy node in this process (own context): the latest /diagnostics status of each
@@ -21,6 +23,7 @@ class Watcher:
         name: str = "egovib_watcher",
         commands_topic: str = "hand_velocity_controller/commands",
     ):
+        use_package_fastdds_profiles()  # queue depths as asked (the tests ask 10 s)
         self.context = rclpy.Context()
         rclpy.init(
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
