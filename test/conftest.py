@@ -130,21 +130,21 @@ class Feeder:
         self.stamps: list[np.ndarray] = []
         self.values: list[np.ndarray] = []
 
-    def wait_for_subscribers(self, timeout: float = 30.0) -> bool:
-        """Both writers see a subscriber, then MATCH_SETTLE_S for the subscribers' readers to
-        see the writers (a reliable sample sent before that would wait for a heartbeat)."""
-        from egovib_ros.nodes.common import MATCH_SETTLE_S
-
-        matched = self.client.spin_until(
+    def wait_for_subscribers(self, node: str, timeout: float = 60.0) -> bool:
+        """Until both sides of both links to `node` (its /diagnostics status name) have
+        matched: these writers see its readers, and its report says its readers see
+        publishers. DDS matches each side on its own; a reliable sample sent before the
+        reader's side has matched is dropped there and resent only if the writer still
+        holds it when the reader asks, so a guessed delay could lose the start on a busy
+        machine."""
+        return self.client.spin_until(
             lambda: (
                 self.raw_pub.get_subscription_count() > 0
                 and self.joint_pub.get_subscription_count() > 0
+                and matched(self.client, node, sensor_publishers=1, joint_state_publishers=1)
             ),
             timeout,
         )
-        if matched:
-            self.client.spin_for(MATCH_SETTLE_S)
-        return matched
 
     def run_until(self, predicate, at_most_s: float = 3.0) -> bool:
         """Publish 0.1 s at a time until `predicate()` holds, for at most `at_most_s` (e.g.
@@ -244,6 +244,30 @@ def reports(client, node: str, level: int | None = None, *texts: str) -> bool:
         status is not None
         and (level is None or status.level == level)
         and all(text in status.message for text in texts)
+    )
+
+
+def matched(client, node: str, **at_least: int) -> bool:
+    """Whether `node`'s latest /diagnostics status reports at least these DDS match counts
+    (e.g. output_subscribers=1): the node's side of those matches is done."""
+    from egovib_ros.ros_convert import diagnostic_values
+
+    status = client.statuses.get(node)
+    if status is None:
+        return False
+    values = diagnostic_values(status)
+    return all(int(values.get(key, 0)) >= count for key, count in at_least.items())
+
+
+def wait_for_output(client, subscription, node: str, timeout: float = 60.0) -> bool:
+    """Until `subscription` (this process's reader of `node`'s output) and `node` (its
+    writer, as its /diagnostics report) have both matched. The output is volatile: what
+    the node publishes before its writer has matched this reader never reaches it."""
+    return client.spin_until(
+        lambda: (
+            subscription.get_publisher_count() > 0 and matched(client, node, output_subscribers=1)
+        ),
+        timeout,
     )
 
 

@@ -149,7 +149,7 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
         },
     )
     stream = feeder(robot)
-    assert stream.wait_for_subscribers(), nodes.log(cal)
+    assert stream.wait_for_subscribers("calibrator"), nodes.log(cal)
     t_acc, accel, t_joint, velocity = (
         data["t_acc"],
         data["accel"],

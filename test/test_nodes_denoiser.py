@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import many_joints, reports, wait_for_stream_end
+from conftest import many_joints, matched, reports, wait_for_output, wait_for_stream_end
 from diagnostic_msgs.msg import DiagnosticStatus
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -134,14 +134,19 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(
 ):
     den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE})
     denoised = []
-    ros_client.node.create_subscription(
+    output = ros_client.node.create_subscription(
         Imu, "accelerometer/denoised", denoised.append, LOSSLESS, raw=True
     )
     raw_pub = ros_client.node.create_publisher(Imu, "accelerometer/raw", stream_publisher_qos())
-    assert ros_client.spin_until(lambda: raw_pub.get_subscription_count() > 0, timeout=30), (
-        nodes.log(den)
-    )
-    ros_client.spin_for(0.5)
+    # Both sides of both links matched before the first sample (see Feeder.wait_for_subscribers)
+    assert wait_for_output(ros_client, output, "denoiser"), nodes.log(den)
+    assert ros_client.spin_until(
+        lambda: (
+            raw_pub.get_subscription_count() > 0
+            and matched(ros_client, "denoiser", sensor_publishers=1)
+        ),
+        timeout=60,
+    ), nodes.log(den)
 
     rng = np.random.default_rng(1)
     n = 3000
@@ -187,7 +192,7 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
     stream = feeder(
         PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0}, split_joints=True
     )
-    assert stream.wait_for_subscribers(), nodes.log(den)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
     # No input at all: STALE from the first report.
     assert ros_client.spin_until(lambda: level_of(ros_client) == DiagnosticStatus.STALE, 6.0), (
         nodes.log(den)
@@ -249,11 +254,12 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
     NoiseModel.load(sim_model_path).replace(measured="full").save(model)
     den = nodes.start("denoiser", {"model": str(model), **RELIABLE})
     denoised = []
-    ros_client.node.create_subscription(
+    output = ros_client.node.create_subscription(
         Imu, "accelerometer/denoised", denoised.append, LOSSLESS, raw=True
     )
     stream = feeder(PR2, velocity={PR2.joint_names[0]: 1.5, PR2.joint_names[1]: 0.02})
-    assert stream.wait_for_subscribers(), nodes.log(den)
+    assert wait_for_output(ros_client, output, "denoiser"), nodes.log(den)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
     stream.run(1.5)
 
     # Both joints moving: the calibration (a full-grid one that reached only the axes) measured
@@ -311,8 +317,12 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
     wrong, lacking = started["/wrong_rate"], started["/no_gripper"]
     output = {"wrong_rate": [], "no_gripper": []}
     for ns, received in output.items():
-        ros_client.node.create_subscription(
+        subscription = ros_client.node.create_subscription(
             Imu, f"/{ns}/accelerometer/denoised", received.append, LOSSLESS, raw=True
+        )
+        # matched, so that an output would be seen here
+        assert wait_for_output(ros_client, subscription, f"{ns}/denoiser"), nodes.log(
+            started[f"/{ns}"]
         )
     slow = feeder(PR2, namespace="/wrong_rate", rate_hz=1000.0)
     no_gripper = feeder(
@@ -321,9 +331,9 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
         seed=1,
         joint_names=[n for n in many_joints(PR2) if n != PR2.joint_names[1]],
     )
-    assert slow.wait_for_subscribers() and no_gripper.wait_for_subscribers(), nodes.log(
-        wrong
-    ) + nodes.log(lacking)
+    assert slow.wait_for_subscribers("wrong_rate/denoiser") and no_gripper.wait_for_subscribers(
+        "no_gripper/denoiser"
+    ), nodes.log(wrong) + nodes.log(lacking)
     # The lacking joint state first: the node knows the joint is missing before any sample
     # (samples before any joint state would pass through band-passed, by design).
     no_gripper.publish_joint_state()

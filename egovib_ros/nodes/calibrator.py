@@ -290,6 +290,7 @@ class Calibrator(Node):
             "input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),
             "samples_in": inp.sensor_messages,
             "joint_states_in": inp.joint_messages,
+            **inp.publisher_counts(),
             "mode": cov["mode"],
             "cells_measured": cov["cells_measured"],
             "cells_total": cov["cells_total"],

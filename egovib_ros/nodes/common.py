@@ -270,8 +270,12 @@ class StreamInput:
         self.batch_samples = int(batch_samples)
         self._on_batch = on_batch
         self._on_joint_state = on_joint_state
-        sensor_subscription(node, Imu, profile.node_sensor_topic, self._on_sensor)
-        sensor_subscription(node, JointState, profile.node_joints_topic, self._on_joints)
+        self._sensor_sub = sensor_subscription(
+            node, Imu, profile.node_sensor_topic, self._on_sensor
+        )
+        self._joints_sub = sensor_subscription(
+            node, JointState, profile.node_joints_topic, self._on_joints
+        )
         self._logger = node.get_logger()
         self._logged_missing: list[str] = []
         self.sensor_topic = node.resolve_topic_name(profile.node_sensor_topic)
@@ -303,6 +307,15 @@ class StreamInput:
         self.joint_messages += 1
         if self._on_joint_state is not None:
             self._on_joint_state()
+
+    def publisher_counts(self) -> dict[str, int]:
+        """How many publishers this node's readers have matched, per input topic (for
+        /diagnostics: 0 names a topic nobody publishes, e.g. a wrong remapping; and it lets
+        a publisher see that this side of the match is done, not only its own)."""
+        return {
+            "sensor_publishers": self._sensor_sub.get_publisher_count(),
+            "joint_state_publishers": self._joints_sub.get_publisher_count(),
+        }
 
     @property
     def sensor_pending(self) -> int:

@@ -379,6 +379,8 @@ class Denoiser(Node):
             **counters,
             "joint_states_in": inp.joint_messages,
             "joint_state_age_s": joint_age,
+            **inp.publisher_counts(),
+            "output_subscribers": self.pub.get_subscription_count(),
             **{f"{key}_fraction": value for key, value in fractions.items()},
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
