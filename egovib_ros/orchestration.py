@@ -34,13 +34,22 @@ def param_text(value) -> str:
     return str(value)
 
 
-def reliable_input(*topics: str) -> dict[str, str]:
-    """QoS override parameters that make a node's sensor subscriptions reliable (lossless
-    replay or calibration on a loaded machine). `topics` as the node resolves them
-    (absolute names, e.g. '/accelerometer/raw')."""
-    return {
-        f"qos_overrides.{'/' + t.lstrip('/')}.subscription.reliability": "reliable" for t in topics
-    }
+#: Queue of a lossless input: 10 s at 3 kHz. Reliable is not enough: a reliable reader whose
+#: keep-last queue is full drops its oldest samples, so a node starved for longer than its
+#: queue (1 s by default) would lose input; with 10 s it catches up instead.
+RELIABLE_INPUT_DEPTH = 30_000
+
+
+def reliable_input(*topics: str, depth: int = RELIABLE_INPUT_DEPTH) -> dict[str, object]:
+    """QoS override parameters that make a node's sensor subscriptions reliable and `depth`
+    deep (lossless replay or calibration on a loaded machine). `topics` as the node
+    resolves them (absolute names, e.g. '/accelerometer/raw')."""
+    params: dict[str, object] = {}
+    for topic in topics:
+        prefix = f"qos_overrides./{topic.lstrip('/')}.subscription"
+        params[f"{prefix}.reliability"] = "reliable"
+        params[f"{prefix}.depth"] = depth
+    return params
 
 
 class NodeGroup:
@@ -140,4 +149,4 @@ class NodeGroup:
                 proc.wait()
 
 
-__all__ = ["NodeGroup", "param_text", "reliable_input", "BIN"]
+__all__ = ["NodeGroup", "param_text", "reliable_input", "RELIABLE_INPUT_DEPTH", "BIN"]
