@@ -84,8 +84,10 @@ class NodeGroup:
         remap: Mapping[str, str] | None = None,
         namespace: str = "",
         args: Sequence[str] = (),
+        env: Mapping[str, str] | None = None,
     ) -> subprocess.Popen:
-        """Start `executable --ros-args -p k:=v ... -r from:=to ...` as process `name`."""
+        """Start `executable --ros-args -p k:=v ... -r from:=to ...` as process `name`
+        (`env`: variables added to the group's environment for this process)."""
         cmd = [str(BIN / executable), *args, "--ros-args"]
         for key, value in (params or {}).items():
             cmd += ["-p", f"{key}:={param_text(value)}"]
@@ -95,7 +97,11 @@ class NodeGroup:
             cmd += ["-r", f"__ns:={namespace}"]
         with open(self.log_path(name), "w") as log:
             proc = subprocess.Popen(
-                cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, start_new_session=True
+                cmd,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env={**self.env, **(env or {})},
+                start_new_session=True,
             )
         self.procs[name] = proc
         return proc
