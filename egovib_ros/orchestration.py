@@ -52,6 +52,13 @@ def reliable_input(*topics: str, depth: int = RELIABLE_INPUT_DEPTH) -> dict[str,
     return params
 
 
+def deep_output(*topics: str, depth: int = RELIABLE_INPUT_DEPTH) -> dict[str, object]:
+    """QoS override parameters that give a node's stream publishers `depth` samples of
+    history, so that a reliable subscriber on a loaded machine still gets a lost sample
+    resent (nodes.common.stream_publisher says why). `topics` as the node resolves them."""
+    return {f"qos_overrides./{topic.lstrip('/')}.publisher.depth": depth for topic in topics}
+
+
 class NodeGroup:
     """Node processes sharing one private ROS domain; `close()` stops them all."""
 
@@ -155,4 +162,11 @@ class NodeGroup:
                 proc.wait()
 
 
-__all__ = ["NodeGroup", "param_text", "reliable_input", "RELIABLE_INPUT_DEPTH", "BIN"]
+__all__ = [
+    "NodeGroup",
+    "param_text",
+    "reliable_input",
+    "deep_output",
+    "RELIABLE_INPUT_DEPTH",
+    "BIN",
+]

@@ -18,7 +18,11 @@ import numpy as np
 import pytest
 
 from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.orchestration import NodeGroup
+from egovib_ros.orchestration import RELIABLE_INPUT_DEPTH, NodeGroup
+
+#: History of this process's stream writers and queue of its readers (10 s at 3 kHz):
+#: reliable links that lose nothing on a loaded machine (nodes.common.stream_publisher).
+LOSSLESS_DEPTH = RELIABLE_INPUT_DEPTH
 
 
 class NodeProcesses(NodeGroup):
@@ -109,11 +113,10 @@ class Feeder:
 
         prefix = f"{namespace.rstrip('/')}/" if namespace else ""
         self.client, self.profile = client, profile
-        self.raw_pub = client.node.create_publisher(
-            Imu, prefix + profile.node_sensor_topic, stream_publisher_qos()
-        )
+        qos = stream_publisher_qos(depth=LOSSLESS_DEPTH)
+        self.raw_pub = client.node.create_publisher(Imu, prefix + profile.node_sensor_topic, qos)
         self.joint_pub = client.node.create_publisher(
-            JointState, prefix + profile.node_joints_topic, stream_publisher_qos()
+            JointState, prefix + profile.node_joints_topic, qos
         )
         self.rate_hz = rate_hz or profile.rate_hz
         self.joint_names = list(joint_names) if joint_names is not None else many_joints(profile)
@@ -259,13 +262,17 @@ def matched(client, node: str, **at_least: int) -> bool:
     return all(int(values.get(key, 0)) >= count for key, count in at_least.items())
 
 
-def wait_for_output(client, subscription, node: str, timeout: float = 60.0) -> bool:
+def wait_for_output(
+    client, subscription, node: str, *, subscribers: int = 1, timeout: float = 60.0
+) -> bool:
     """Until `subscription` (this process's reader of `node`'s output) and `node` (its
-    writer, as its /diagnostics report) have both matched. The output is volatile: what
-    the node publishes before its writer has matched this reader never reaches it."""
+    writer, as its /diagnostics report: `subscribers` readers, this one included) have both
+    matched. The output is volatile: what the node publishes before its writer has matched
+    a reader never reaches that reader."""
     return client.spin_until(
         lambda: (
-            subscription.get_publisher_count() > 0 and matched(client, node, output_subscribers=1)
+            subscription.get_publisher_count() > 0
+            and matched(client, node, output_subscribers=subscribers)
         ),
         timeout,
     )

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import LOSSLESS_DEPTH, wait_for_output
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu
@@ -18,7 +19,7 @@ from egovib_ros.cdr import (
     decode_imu_batch,
 )
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import reliable_input
+from egovib_ros.orchestration import deep_output, reliable_input
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import diagnostic_values, stamp_to_ns
 from egovib_ros.sim import simulate_motion
@@ -99,6 +100,7 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
             # late on their own DDS reader) so that the output is exactly the offline one.
             "joint_wait": 1.0,
             **reliable_input(topic_in, joints_in),
+            **deep_output(topic_out),
         },
         remap={
             robot.node_sensor_topic: topic_in,
@@ -112,13 +114,18 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
     )
     nodes.wait_for_log(rec, f"{topic_out}: subscribed")
     seen = []  # the output as a second subscriber sees it: when it has all, so has the recorder
-    ros_client.node.create_subscription(
-        Imu, topic_out, seen.append, stream_publisher_qos(depth=30_000), raw=True
+    output = ros_client.node.create_subscription(
+        Imu, topic_out, seen.append, stream_publisher_qos(depth=LOSSLESS_DEPTH), raw=True
     )
-    ros_client.spin_for(0.5)
+    assert wait_for_output(ros_client, output, "denoiser", subscribers=2), nodes.log(den)
     player = nodes.start(
         "bag_player",
-        {"bag": str(bag), "wait_for_subscribers": 1, **({"topics": topics} if topics else {})},
+        {
+            "bag": str(bag),
+            "wait_for_subscribers": 1,
+            **({"topics": topics} if topics else {}),
+            **deep_output(topic_in, joints_in),
+        },
         namespace=ns,
     )
     reports = []
@@ -174,7 +181,7 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
         Imu,
         "accelerometer/raw",
         lambda m: (raw.append(m), arrival.append(time.monotonic())),
-        stream_publisher_qos(depth=30_000),  # reliable, 10 s deep: about timing, not load
+        stream_publisher_qos(depth=LOSSLESS_DEPTH),  # reliable, 10 s: about timing, not load
         raw=True,
     )
     node.create_subscription(Clock, "/clock", lambda m: clock.append(stamp_to_ns(m.clock)), 100)
@@ -186,6 +193,7 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
             "clock": True,
             "wait_for_subscribers": 1,
             "topics": ["/accelerometer/raw"],
+            **deep_output("/accelerometer/raw"),
         },
     )
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)

@@ -16,7 +16,7 @@ from robots import profile, recording
 
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
-from egovib_ros.orchestration import reliable_input
+from egovib_ros.orchestration import deep_output, reliable_input
 from egovib_ros.robot import config_dir
 from egovib_ros.ros_convert import diagnostic_values
 
@@ -24,8 +24,9 @@ pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}
-# Lossless input on a loaded machine (standard QoS override parameters).
+# Lossless links on a loaded machine (standard QoS override parameters).
 RELIABLE = reliable_input("/accelerometer/raw", "/joint_states")
+DEEP_OUTPUT = deep_output("/accelerometer/raw", "/joint_states")  # sim_hand's
 
 
 def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_path):
@@ -38,7 +39,8 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     )
     # sim_hand starts once both calibrator and recorder are matched: both see every sample.
     sim = nodes.start(
-        "sim_hand", {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2}
+        "sim_hand",
+        {"seed": 21, "publish_ground_truth": False, "wait_for_subscribers": 2, **DEEP_OUTPUT},
     )
     nodes.wait_for_log(rec, "/accelerometer/raw: subscribed")
     nodes.wait_for_log(rec, "/joint_states: subscribed")
@@ -108,7 +110,7 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     model_path, checkpoint = tmp_path / "model.npz", tmp_path / "model.checkpoint.npz"
     params = {"output": str(model_path), "grid": "superposition", **RELIABLE}
     first = nodes.start("calibrator", params)
-    sim = nodes.start("sim_hand", {"seed": 22, "publish_ground_truth": False})
+    sim = nodes.start("sim_hand", {"seed": 22, "publish_ground_truth": False, **DEEP_OUTPUT})
     nodes.wait_for_log(first, "calibrating")
     driver = nodes.start("sweep_driver", SWEEP)
 

@@ -9,6 +9,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.bagio import read_recording, write_recording
 from egovib_ros.nodes.common import stream_publisher_qos
+from egovib_ros.orchestration import deep_output
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.sim import simulate_motion
@@ -26,7 +27,15 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     lossless = stream_publisher_qos(depth=30_000)  # reliable, 10 s deep
     node.create_subscription(Imu, "accelerometer/raw", raw.append, lossless, raw=True)
     node.create_subscription(JointState, "joint_states", joints.append, lossless, raw=True)
-    sim = nodes.start("sim_hand", {"use_sim_time": True, "publish_ground_truth": False, "seed": 2})
+    sim = nodes.start(
+        "sim_hand",
+        {
+            "use_sim_time": True,
+            "publish_ground_truth": False,
+            "seed": 2,
+            **deep_output("/accelerometer/raw", "/joint_states"),  # lossless to this test
+        },
+    )
     player = nodes.start(
         "bag_player",
         {

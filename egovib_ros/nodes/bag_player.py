@@ -27,7 +27,7 @@ from egovib_ros.nodes.common import (
     SubscriberGate,
     declare_parameters,
     run_node,
-    stream_publisher_qos,
+    stream_publisher,
     wait_for_delivery,
 )
 from egovib_ros.ros_convert import ns_to_stamp
@@ -83,7 +83,6 @@ class BagPlayer(Node):
         missing = sorted(wanted - set(self.reader.topics))
         if missing and len(missing) == len(wanted):
             raise BagError(f"{self.bag}: none of the topics {missing} is in the bag")
-        qos = stream_publisher_qos()
         self.topic_publishers = {}
         for topic, info in self.reader.topics.items():
             if wanted and topic not in wanted:
@@ -93,7 +92,7 @@ class BagPlayer(Node):
             except (ImportError, AttributeError):
                 self.get_logger().warning(f"{topic}: type {info.msgtype} not available, skipped")
                 continue
-            self.topic_publishers[topic] = self.create_publisher(msg_class, topic.lstrip("/"), qos)
+            self.topic_publishers[topic] = stream_publisher(self, msg_class, topic.lstrip("/"))
         self.clock_publisher = (
             self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
         )

@@ -36,7 +36,7 @@ from egovib_ros.nodes.common import (
     declare_parameters,
     run_node,
     stream_counters,
-    stream_publisher_qos,
+    stream_publisher,
 )
 from egovib_ros.robot import RobotProfile
 
@@ -210,9 +210,7 @@ class Denoiser(Node):
             on_batch=self._process,
             on_joint_state=self._on_joint_state,
         )
-        self.pub = self.create_publisher(
-            Imu, self.profile.node_denoised_topic, stream_publisher_qos()
-        )
+        self.pub = stream_publisher(self, Imu, self.profile.node_denoised_topic)
         self.output_topic = self.resolve_topic_name(self.profile.node_denoised_topic)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]

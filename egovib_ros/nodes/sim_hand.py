@@ -28,7 +28,7 @@ from egovib_ros.nodes.common import (
     SubscriberGate,
     declare_parameters,
     run_node,
-    stream_publisher_qos,
+    stream_publisher,
 )
 from egovib_ros.robot import load_profile
 from egovib_ros.ros_convert import command_velocity, encode_imu_batch, encode_joint_state_batch
@@ -102,16 +102,11 @@ class SimHand(Node):
             tap_mode=tap_mode,
         )  # validate the settings now, not at the first tick
 
-        qos = stream_publisher_qos()
-        self.pub_joint = self.create_publisher(JointState, PR2.node_joints_topic, qos)
-        self.pub_raw = self.create_publisher(Imu, PR2.node_sensor_topic, qos)
-        self.pub_contact = (
-            self.create_publisher(Imu, TOPIC_CONTACT, qos) if self.ground_truth else None
-        )
+        self.pub_joint = stream_publisher(self, JointState, PR2.node_joints_topic)
+        self.pub_raw = stream_publisher(self, Imu, PR2.node_sensor_topic)
+        self.pub_contact = stream_publisher(self, Imu, TOPIC_CONTACT) if self.ground_truth else None
         self.pub_ego = (
-            self.create_publisher(Imu, TOPIC_EGO, qos)
-            if self.ground_truth and publish_ego
-            else None
+            stream_publisher(self, Imu, TOPIC_EGO) if self.ground_truth and publish_ego else None
         )
         self.gate = SubscriberGate(
             [self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego],
