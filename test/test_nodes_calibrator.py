@@ -71,7 +71,10 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     live, offline = NoiseModel.load(live_model), NoiseModel.load(offline_model)
     assert live.measured == offline.measured == "superposition"
     axis = live.axis_mask()
-    assert np.all(live.counts[axis] > 5), live.counts[axis]
+    # Every cell of the sweep measured. Not many blocks per cell: on a busy machine the
+    # simulated hand may produce its 3 kHz slower than real time (17.5 s of samples during
+    # a 32-s sweep in one stress run), and each wall-clock cell then holds fewer samples.
+    assert np.all(live.counts[axis] > 0), live.counts[axis]
     # Both saw the stream from its first sample: the same blocks in the same cells. Slack:
     # one block per moving cell; at rest (zero cell: stream start and end, where the first
     # joint states may reach the two subscribers at different moments) 5 %.
