@@ -149,14 +149,16 @@ class Feeder:
             timeout,
         )
 
-    def run_until(self, predicate, at_most_s: float = 3.0) -> bool:
-        """Publish 0.1 s at a time until `predicate()` holds, for at most `at_most_s` (e.g.
-        until a report's window is past the start of the stream); returns `predicate()`."""
+    def run_until(self, predicate, at_most_s: float = 3.0, then_wait_s: float = 30.0) -> bool:
+        """Publish 0.1 s at a time until `predicate()` holds, for at most `at_most_s` of
+        stream (e.g. until a report's window is past the start of the stream), then wait up
+        to `then_wait_s` more without publishing: a node with a backlog on a busy machine
+        reports what it received seconds late. Returns `predicate()`."""
         fed = 0.0
         while not predicate() and fed < at_most_s:
             self.run(0.1)
             fed += 0.1
-        return bool(predicate())
+        return self.client.spin_until(predicate, then_wait_s)
 
     def publish_joint_state(self) -> None:
         """One JointState stamped just before the stream: the node knows the joints before
