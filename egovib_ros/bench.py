@@ -326,9 +326,7 @@ def _stream_copy(src: Path, dst: Path) -> None:
         for topic in reader.topics:
             writer.copy_topic(reader, topic)
         for batch in reader.batches():
-            if not writer.write_chunk(batch.chunk, batch.scanner.schemas, batch.scanner.channels):
-                for topic, messages in batch.messages.items():
-                    writer.write_batch(topic, messages.log_times, messages)
+            writer.copy_batch(batch)
 
 
 def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:

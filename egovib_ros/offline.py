@@ -32,7 +32,7 @@ from egovib_ros.bag import (
 )
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
-from egovib_ros.bag.messages import decode_imu, imu_layout, replace_imu_field
+from egovib_ros.bag.messages import imu_layout, replace_imu_field
 from egovib_ros.cliutil import check_stream, int_in, nonneg_float
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser
 from egovib_ros.core.noise_model import sweep_mask
@@ -147,151 +147,126 @@ def model_profile(model: NoiseModel) -> RobotProfile:
 
 
 class _DenoisedTopic:
-    """Pairs denoiser output with the raw messages it replaces and releases the output
-    bag's content in input order: each input unit (an MCAP chunk copied verbatim, or a
-    batch of messages per topic) followed by the denoised messages of its raw samples,
-    once every one of those samples is final.
+    """Writes the profile's denoised topic: for every sample the denoiser outputs, the raw
+    message with that header stamp, its field replaced (every other byte kept), at the raw
+    message's log time.
 
-    A denoised message is its raw message with the field replaced, built straight into
-    MCAP message records: one copy of the raw bytes out of the input chunk, then the 24
-    bytes of the field. Raw samples the denoiser drops (out of order, bad) have no
-    denoised message; they are counted."""
+    Raw messages are held by stamp, not by their place in the file: a bag may hold its
+    messages in any order (topic by topic, chunks overlapping in time, stamps swapped), and
+    the recording stream hands the denoiser its samples in stamp order. The denoiser's
+    output stamps increase strictly, so each is found by a binary search among the held
+    stamps; a held message the output has passed without taking it (out of order, a bad
+    sample, a second message with the same stamp) gets no denoised message and is counted.
+    Memory: the raw messages the denoiser has not answered yet (a block plus the stream's
+    look-ahead)."""
 
-    def __init__(
-        self,
-        writer: BagWriter,
-        raw_topic: str,
-        denoised_topic: str,
-        field: str,
-        copy_topics: set[str],
-    ):
+    def __init__(self, writer: BagWriter, denoised_topic: str, field: str):
         self.writer = writer
-        self.raw_topic, self.denoised_topic, self.field = raw_topic, denoised_topic, field
+        self.denoised_topic, self.field = denoised_topic, field
         self.channel_id = writer.topics[denoised_topic].channel_id
-        self.copy_topics = copy_topics
-        self.units: list[
-            tuple[object, int]
-        ] = []  # (ReadBatch, global index past its last raw message)
-        self.raw_read = 0  # raw messages read so far
-        self.resolved = 0  # raw messages before this are matched or dropped
-        self.pending: list[
-            tuple[MessageBatch, int, int | None]
-        ] = []  # (raw batch, global start, field offset)
-        self.pending_stamps = np.zeros(0, np.int64)  # stamps of raw messages from `resolved` on
-        self.out: list[
-            tuple[np.ndarray, np.ndarray, object]
-        ] = []  # (global index, log times, records|batch)
+        self._batches: dict[int, tuple[MessageBatch, int | None]] = {}  # id -> (raw, field offset)
+        self._next_id = 0
+        # the held raw messages, sorted by stamp (ties in the order read): stamp, batch id, row
+        self._stamp = np.zeros(0, np.int64)
+        self._batch = np.zeros(0, np.int64)
+        self._row = np.zeros(0, np.int64)
+        self._passed: int | None = None  # stamp of the last output sample
+        self.raw_read = 0
         self.written = 0
         self.dropped = 0
-        self.verbatim_chunks = 0
-        self.copied_chunks = 0
 
-    def add_input(self, batch, raw_stamps: np.ndarray | None) -> None:
-        raw = batch.messages.get(self.raw_topic)
-        if raw is not None and len(raw):
-            stamps = raw_stamps if raw_stamps is not None else decode_imu(raw, self.field)[0]
-            self.pending.append((raw, self.raw_read, imu_layout(raw, self.field)))
-            self.pending_stamps = np.concatenate([self.pending_stamps, stamps])
-            self.raw_read += len(raw)
-        self.units.append((batch, self.raw_read))
+    def add_raw(self, raw: MessageBatch, stamps: np.ndarray) -> None:
+        """Hold raw messages (any order) until the denoiser answers their stamps."""
+        if len(raw) == 0:
+            return
+        self.raw_read += len(raw)
+        rows_ = np.arange(len(raw), dtype=np.int64)
+        if self._passed is not None:  # stamped before the output's progress: never answered
+            late = stamps <= self._passed
+            if late.any():
+                self.dropped += int(late.sum())
+                stamps, rows_ = stamps[~late], rows_[~late]
+                if len(stamps) == 0:
+                    return
+        ident = self._next_id
+        self._next_id += 1
+        self._batches[ident] = (raw, imu_layout(raw, self.field))
+        in_order = np.all(stamps[1:] >= stamps[:-1]) and (
+            len(self._stamp) == 0 or stamps[0] >= self._stamp[-1]
+        )
+        self._stamp = np.concatenate([self._stamp, stamps])
+        self._batch = np.concatenate([self._batch, np.full(len(stamps), ident, np.int64)])
+        self._row = np.concatenate([self._row, rows_])
+        if not in_order:
+            order = np.argsort(self._stamp, kind="stable")
+            self._stamp, self._batch, self._row = (
+                self._stamp[order],
+                self._batch[order],
+                self._row[order],
+            )
 
     def add_output(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        """Write the denoised messages of these output samples (stamps strictly increasing)."""
         if len(stamps) == 0:
             return
-        if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
+        values = np.asarray(values, np.float64)
+        if values.shape[1] == 1:  # the combined signal goes in x, y = z = 0
             values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-        index = self.resolved + self._match(stamps)
-        self.out.append((index,) + self._denoised(index, values))
-        done = int(index[-1]) + 1
-        self.dropped += done - self.resolved - len(index)
-        self.pending_stamps = self.pending_stamps[done - self.resolved :]
-        self.resolved = done
-        self.pending = [p for p in self.pending if p[1] + len(p[0]) > done]
-        self._emit()
+        at = np.searchsorted(self._stamp, stamps, side="left")
+        found = at < len(self._stamp)
+        found[found] = self._stamp[at[found]] == stamps[found]
+        if not found.all():  # cannot happen: every output sample is a raw sample held here
+            stamp = int(stamps[~found][0])
+            raise RuntimeError(f"denoised sample stamped {stamp} has no held raw message")
+        batches, rows_ = self._batch[at], self._row[at]
+        self._write(batches, rows_, values)
+        done = int(at[-1]) + 1
+        self.dropped += done - len(at)
+        self._passed = int(stamps[-1])
+        self._stamp, self._batch, self._row = (
+            self._stamp[done:],
+            self._batch[done:],
+            self._row[done:],
+        )
+        still = set(np.unique(self._batch).tolist())
+        for ident in [i for i in self._batches if i not in still]:
+            del self._batches[ident]
 
     def finish(self) -> None:
-        self.dropped += self.raw_read - self.resolved
-        self.resolved = self.raw_read
-        self.pending, self.pending_stamps = [], np.zeros(0, np.int64)
-        self._emit()
+        """End of the bag: raw messages never answered are counted."""
+        self.dropped += len(self._stamp)
+        self._stamp, self._batch, self._row = self._stamp[:0], self._batch[:0], self._row[:0]
+        self._batches.clear()
 
-    def _denoised(self, index: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, object]:
-        """(log times, MCAP records or a MessageBatch) of the raw messages at global `index`
-        with the field set to `values`."""
-        parts = []
-        for raw, first, offset in self.pending:
-            lo, hi = np.searchsorted(index, [first, first + len(raw)])
-            if hi > lo:
-                parts.append((raw, index[lo:hi] - first, offset))
-        widths = {raw.uniform_length for raw, _, _ in parts}
-        offsets = {offset for _, _, offset in parts}
-        log_times = np.concatenate([raw.log_times[local] for raw, local, _ in parts])
+    def _write(self, batches: np.ndarray, rows_: np.ndarray, values: np.ndarray) -> None:
+        # runs of consecutive messages from one raw batch, in output order
+        cuts = np.flatnonzero(batches[1:] != batches[:-1]) + 1
+        runs = [
+            (self._batches[int(batches[a])], rows_[a:b])
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(batches)])
+        ]
+        log_times = np.concatenate([raw.log_times[r] for (raw, _), r in runs])
+        widths = {raw.uniform_length for (raw, _), _ in runs}
+        offsets = {offset for (_, offset), _ in runs}
         if len(widths) != 1 or None in widths or len(offsets) != 1 or None in offsets:
             # unusual messages: the codec's general path
-            messages = MessageBatch.concat([raw.take(local) for raw, local, _ in parts])
-            return log_times, replace_imu_field(messages, values, self.field)
-        width, offset = widths.pop(), offsets.pop()
-        records = message_records(self.channel_id, log_times, None, width)
-        row = 0
-        for raw, local, _ in parts:
-            records[row : row + len(local), MESSAGE_HEADER:] = rows(
-                raw.buf, raw.starts[local], width
+            messages = MessageBatch.concat([raw.take(r) for (raw, _), r in runs])
+            self.writer.write_batch(
+                self.denoised_topic, log_times, replace_imu_field(messages, values, self.field)
             )
-            row += len(local)
-        at = MESSAGE_HEADER + offset
-        records[:, at : at + 24] = values.astype("<f8").view(np.uint8).reshape(-1, 24)
-        return log_times, records
-
-    def _match(self, stamps: np.ndarray) -> np.ndarray:
-        """Positions (from `resolved`) of the raw messages of these output stamps (in order)."""
-        n, known = len(stamps), self.pending_stamps
-        if n <= len(known) and np.array_equal(known[:n], stamps):
-            return np.arange(n)
-        index = np.empty(n, np.int64)  # some raw samples were dropped: walk (rare)
-        j = 0
-        for k, stamp in enumerate(stamps.tolist()):
-            while j < len(known) and known[j] != stamp:
-                j += 1
-            if j == len(known):
-                raise RuntimeError(f"denoised sample stamped {stamp} has no raw message")
-            index[k] = j
-            j += 1
-        return index
-
-    def _emit(self) -> None:
-        while self.units and self.units[0][1] <= self.resolved:
-            batch, raw_end = self.units.pop(0)
-            self._copy(batch)
-            while self.out and self.out[0][0][0] < raw_end:
-                index, log_times, data = self.out[0]
-                k = int(np.searchsorted(index, raw_end))
-                if isinstance(data, MessageBatch):
-                    self.writer.write_batch(
-                        self.denoised_topic, log_times[:k], data.take(np.arange(k))
-                    )
-                    rest = data.take(np.arange(k, len(index)))
-                else:
-                    self.writer.write_message_records(self.denoised_topic, log_times[:k], data[:k])
-                    rest = data[k:]
-                self.written += k
-                if k < len(index):
-                    self.out[0] = (index[k:], log_times[k:], rest)
-                else:
-                    self.out.pop(0)
-
-    def _copy(self, batch) -> None:
-        chunk = batch.chunk
-        if chunk is not None:
-            other = {c for c, t in batch.topic_of_channel.items() if t not in self.copy_topics}
-            if other:
-                chunk = chunk.without(other)
-            if self.writer.write_chunk(chunk, batch.scanner.schemas, batch.scanner.channels):
-                self.verbatim_chunks += 1
-                return
-        self.copied_chunks += 1
-        for topic, messages in batch.messages.items():
-            if topic in self.copy_topics and len(messages):
-                self.writer.write_batch(topic, messages.log_times, messages)
+        else:
+            width, offset = widths.pop(), offsets.pop()
+            records = message_records(self.channel_id, log_times, None, width)
+            row = 0
+            for (raw, _), r in runs:
+                records[row : row + len(r), MESSAGE_HEADER:] = rows(raw.buf, raw.starts[r], width)
+                row += len(r)
+            at = MESSAGE_HEADER + offset
+            records[:, at : at + 24] = (
+                np.ascontiguousarray(values, "<f8").view(np.uint8).reshape(-1, 24)
+            )
+            self.writer.write_message_records(self.denoised_topic, log_times, records)
+        self.written += len(batches)
 
 
 def denoise_bag(
@@ -331,9 +306,8 @@ def denoise_bag(
                 for topic in copy_topics:
                     writer.copy_topic(reader, topic)
                 writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
-                job = _DenoisedTopic(
-                    writer, raw_topic, denoised_topic, profile.sensor_field, set(copy_topics)
-                )
+                job = _DenoisedTopic(writer, denoised_topic, profile.sensor_field)
+                copied = {"verbatim": 0, "rewritten": 0}  # chunks copied as they were; batches
 
                 def push(pieces) -> None:
                     for piece in pieces:
@@ -344,8 +318,12 @@ def denoise_bag(
                             job.add_output(chunk.stamps_ns, chunk.values)
 
                 for batch in reader.batches(copy_topics):
+                    verbatim = writer.copy_batch(batch, set(copy_topics))
+                    copied["verbatim"] += verbatim
+                    copied["rewritten"] += verbatim == 0
                     pieces = stream.add(batch)
-                    job.add_input(batch, stream.decoded.get("raw", (None,))[0])
+                    if "raw" in stream.decoded:
+                        job.add_raw(batch.messages[raw_topic], stream.decoded["raw"][0])
                     push(pieces)
                     if progress is not None:
                         progress(batch.bytes_read)
@@ -371,8 +349,8 @@ def denoise_bag(
         "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
         "dropped_out_of_order": stats["dropped_out_of_order"],
         "channels": channels,
-        "chunks_copied_verbatim": job.verbatim_chunks,
-        "chunks_rewritten": job.copied_chunks,
+        "chunks_copied_verbatim": copied["verbatim"],
+        "batches_rewritten": copied["rewritten"],
         "size_ratio": ratio,
         "compression": compression_name(compress) or "none",
         "input_counts": counts,

@@ -116,3 +116,21 @@ def recording(
         "contact": contact,
         "onsets": onsets,
     }
+
+
+def as_recording(p: RobotProfile, arrays: dict):
+    """`recording`'s arrays as a bag Recording of profile `p` (joint positions integrated
+    from the velocities)."""
+    from egovib_ros.bag import Recording
+
+    t_joint = arrays["t_joint"]
+    dt = np.diff(t_joint, prepend=t_joint[0]) / 1e9
+    return Recording(
+        accel_stamps_ns=arrays["t_acc"],
+        accel=arrays["accel"],
+        joint_stamps_ns=t_joint,
+        joint_position=np.cumsum(arrays["velocity"] * dt[:, None], axis=0),
+        joint_velocity=arrays["velocity"],
+        joint_names=p.joint_names,
+        contact=arrays["contact"],
+    )

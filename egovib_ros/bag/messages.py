@@ -157,7 +157,9 @@ def replace_imu_field(
             cdr.replace_imu_field(batch.to_list(), values, field), batch.log_times
         )
     matrix = np.array(batch.matrix())  # a copy: the input stays as it was
-    matrix[:, offset : offset + 24] = values.astype("<f8").view(np.uint8).reshape(-1, 24)
+    matrix[:, offset : offset + 24] = (
+        np.ascontiguousarray(values, "<f8").view(np.uint8).reshape(-1, 24)
+    )
     return MessageBatch.from_matrix(matrix, batch.log_times)
 
 

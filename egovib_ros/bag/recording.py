@@ -180,6 +180,10 @@ class RecordingStream:
         self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
         self._joint_seen = np.zeros(len(self.joint_names), bool)
         self._frontier_ns: int | None = None
+        # per stream, the least (header stamp - log time) seen: where the frontier of log
+        # times falls among its stamps (stamps may trail log times by a latency, or run on
+        # another clock altogether, e.g. simulated time in a bag logged in wall time)
+        self._lead_ns: dict[str, int] = {}
         self.counts = {k: 0 for k in self.present}
         self.decoded: dict[str, tuple] = {}  # the last batch's decoded streams, by key (raw, ...)
 
@@ -222,14 +226,26 @@ class RecordingStream:
             stamps, values = decode_imu(messages, self.field)
             self._sensor[key].append((stamps, values))
             self.decoded[key] = (stamps, values)
+            self._note_lead(key, stamps, messages.log_times)
         elif key == "joint_states":
             stamps, position, velocity = decode_joint_states(messages, self.joint_names)
             self._joints.append(self._merge_partial(stamps, position, velocity))
+            self._note_lead(key, stamps, messages.log_times)
         elif key == "denoised":
             self._denoised.append(decode_imu(messages, self.field))
         elif key == "commands":
             values = [decode_commands(r) for r in messages.to_list()]
             self._commands.append((messages.log_times.copy(), values))
+
+    def _note_lead(self, key: str, stamps: np.ndarray, log_times: np.ndarray) -> None:
+        lead = int((stamps - log_times).min())
+        self._lead_ns[key] = min(lead, self._lead_ns.get(key, lead))
+
+    def _stamp_frontier(self, key: str) -> int:
+        """Stamps of `key` not read yet are at least this (from the log-time frontier)."""
+        if self._frontier_ns is None:
+            return np.iinfo(np.int64).max
+        return self._frontier_ns + self._lead_ns.get(key, 0)
 
     def _merge_partial(self, stamps, position, velocity):
         """Fill a joint missing from a message with its last published value."""
@@ -250,11 +266,10 @@ class RecordingStream:
         if final:
             take = n
         else:
-            # Everything not yet read is logged at or after the frontier: a sample that far
-            # before it has its joint states (up to the horizon) and all earlier samples in.
-            frontier = (
-                self._frontier_ns if self._frontier_ns is not None else np.iinfo(np.int64).max
-            )
+            # Everything not yet read is logged at or after the frontier: a sample stamped
+            # that far before it (on each stream's clock) has its joint states (up to the
+            # horizon) and all earlier samples in.
+            frontier = min(self._stamp_frontier(k) for k in [*self._sensor_keys, "joint_states"])
             take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
             if n - take > self.max_pending:
                 # a frontier that does not move (odd files): hold no more than max_lag_s of samples
@@ -274,7 +289,7 @@ class RecordingStream:
             len(js_stamps)
             if final or self._frontier_ns is None
             else max(
-                int(np.searchsorted(js_stamps, self._frontier_ns, side="left")),
+                int(np.searchsorted(js_stamps, self._stamp_frontier("joint_states"), side="left")),
                 int(
                     np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")
                 )

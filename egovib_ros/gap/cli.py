@@ -127,6 +127,11 @@ def register(subparsers) -> None:
         help="diagnose the bags on an existing Dask cluster (e.g. tcp://host:8786)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-figures",
+        action="store_true",
+        help="write report.json and report.md only (quicker, for many bags)",
+    )
     val.add_argument(
         "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
     )
@@ -197,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         folds=args.folds,
         budget_minutes=args.budget_minutes,
+        figures=not args.no_figures,
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet
