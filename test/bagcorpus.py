@@ -55,7 +55,7 @@ LAYOUTS = (
     Layout("receive_time_logs", log="latency"),
     Layout("wall_clock_logs", log="offset", order="topic"),
     Layout("swapped_stamps", swap=0.01),
-    Layout("project_zstd", writer="project", compression="zstd"),
+    Layout("project_topic_zstd", writer="project", order="topic", compression="zstd"),
 )
 
 
@@ -264,7 +264,10 @@ def _write_project(out: Path, conns, messages, layout: Layout) -> None:
                 type_hash=c.rihs01 or None,
                 offered_qos_profiles=c.qos,
             )
-        for topic in [c.topic for c in conns]:  # one topic after the other, each in log order
-            mine = [(t, d) for tp, t, d in messages if tp == topic]
-            if mine:
-                w.write_many(topic, [t for t, _ in mine], [d for _, d in mine])
+        run: list = []  # consecutive messages of one topic, written together
+        for message in [*messages, None]:
+            if run and (message is None or message[0] != run[0][0]):
+                w.write_many(run[0][0], [m[1] for m in run], [m[2] for m in run])
+                run = []
+            if message is not None:
+                run.append(message)

@@ -7,6 +7,7 @@ all at the end, also when the test fails.
 
 from __future__ import annotations
 
+import os
 import random
 import signal
 import struct
@@ -16,9 +17,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from egovib_ros.nodes.watcher import Watcher
 from egovib_ros.orchestration import NodeGroup
+
+# Property-based tests: "ci" (default) is deterministic and short enough for `make test`;
+# HYPOTHESIS_PROFILE=long draws many more examples for a local run.
+settings.register_profile("ci", max_examples=20, derandomize=True, deadline=None, database=None)
+settings.register_profile("long", max_examples=300, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 class NodeProcesses(NodeGroup):
