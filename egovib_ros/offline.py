@@ -95,6 +95,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x",
     )
     den.add_argument(
+        "--output",
+        choices=("dropin", "bandpassed"),
+        default=None,
+        help="dropin (default with per_axis): the raw field minus the estimated ego-vibration, "
+        "gravity and everything outside the band kept; bandpassed: the cleaned band-passed "
+        "signal (the paper's; always with --channels combined)",
+    )
+    den.add_argument(
         "--oversubtraction",
         type=nonneg_float,
         default=1.0,
@@ -275,6 +283,7 @@ def denoise_bag(
     *,
     model: NoiseModel | str | os.PathLike,
     channels: str = "per_axis",
+    output: str | None = None,
     oversubtraction: float = 1.0,
     floor: float = 0.0,
     compress: bool | str = False,
@@ -297,6 +306,7 @@ def denoise_bag(
         denoiser = StreamingDenoiser(
             model,
             channels=channels,
+            output=output,
             oversubtraction=oversubtraction,
             floor=floor,
             source=f"{bag}: {raw_topic}",
@@ -349,6 +359,7 @@ def denoise_bag(
         "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
         "dropped_out_of_order": stats["dropped_out_of_order"],
         "channels": channels,
+        "output": denoiser.output,
         "chunks_copied_verbatim": copied["verbatim"],
         "batches_rewritten": copied["rewritten"],
         "size_ratio": ratio,
@@ -359,7 +370,8 @@ def denoise_bag(
 
 def _describe_denoise(figures: dict) -> str:
     text = (
-        f"{figures['denoised_messages']} samples denoised ({figures['channels']}); "
+        f"{figures['denoised_messages']} samples denoised ({figures['channels']}, "
+        f"{figures['output']}); "
         f"blocks {figures['blocks']}, out of grid {figures['blocks_out_of_grid']}, "
         f"no joint state {figures['blocks_no_joint_state']}"
     )
@@ -401,7 +413,11 @@ def run_denoise(args: argparse.Namespace) -> int:
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
     StreamingDenoiser(
-        model, channels=args.channels, oversubtraction=args.oversubtraction, floor=args.floor
+        model,
+        channels=args.channels,
+        output=args.output,
+        oversubtraction=args.oversubtraction,
+        floor=args.floor,
     )
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
@@ -410,6 +426,7 @@ def run_denoise(args: argparse.Namespace) -> int:
         _denoise_task,
         model=model,
         channels=args.channels,
+        output=args.output,
         oversubtraction=args.oversubtraction,
         floor=args.floor,
         compress=args.compress,

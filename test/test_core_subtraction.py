@@ -44,11 +44,17 @@ def collect(chunks):
     return np.concatenate([c.stamps_ns for c in chunks]), np.concatenate([c.values for c in chunks])
 
 
-@pytest.mark.parametrize("channels", ["per_axis", "combined"])
-def test_zero_noise_estimate_gives_bandpassed_input_delayed_by_one_block(model, channels):
+@pytest.mark.parametrize(
+    "channels, output", [("per_axis", "bandpassed"), ("combined", None), ("per_axis", "dropin")]
+)
+def test_zero_noise_estimate_gives_the_input_delayed_by_one_block(model, channels, output):
+    """Nothing to subtract: the band-passed input, or for the drop-in output the input
+    itself, gravity included (to rounding)."""
     data = stream(3, [(1.5, 0.02)], seed=1)
-    expected = bandpassed(data["accel"], channels)
-    denoiser = StreamingDenoiser(zero(model), channels=channels)
+    data["accel"] = data["accel"] + [0.3, -0.2, 9.81]  # gravity, tilted
+    dropin = output == "dropin"
+    expected = data["accel"] if dropin else bandpassed(data["accel"], channels)
+    denoiser = StreamingDenoiser(zero(model), channels=channels, output=output)
     denoiser.push_joint_states(data["t_joint"], data["velocity"])
     lo, hi = denoiser.delay_samples
     assert (lo, hi) == (32, 63)  # 10.7 .. 21 ms at 3 kHz
@@ -63,7 +69,7 @@ def test_zero_noise_estimate_gives_bandpassed_input_delayed_by_one_block(model, 
     chunks.append(denoiser.flush())
     stamps, values = collect(chunks)
     np.testing.assert_array_equal(stamps, data["t_acc"])
-    assert np.max(np.abs(values - expected)) <= 1e-9
+    assert np.max(np.abs(values - expected)) <= (1e-12 if dropin else 1e-9)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -95,13 +101,15 @@ def test_combined_channel_streaming_equals_batch_and_reduces_noise(model):
     assert np.mean(np.abs(values)) < 0.3 * np.mean(np.abs(raw))
 
 
-def test_no_joint_state_passes_bandpassed_signal_and_counts(model, caplog):
+@pytest.mark.parametrize("output", ["bandpassed", "dropin"])
+def test_no_joint_state_passes_the_signal_and_counts(model, caplog, output):
     data = stream(2, [(1.5, 0.0)], seed=2)
-    denoiser = StreamingDenoiser(model, channels="per_axis")
+    denoiser = StreamingDenoiser(model, channels="per_axis", output=output)
     with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
         chunks = [denoiser.push_accel(data["t_acc"], data["accel"]), denoiser.flush()]
     _, values = collect(chunks)
-    assert np.max(np.abs(values - bandpassed(data["accel"], "per_axis"))) <= 1e-9
+    expected = data["accel"] if output == "dropin" else bandpassed(data["accel"], "per_axis")
+    assert np.max(np.abs(values - expected)) <= 1e-9
     assert denoiser.stats["blocks_no_joint_state"] == denoiser.stats["blocks"] > 0
     assert "no joint state" in caplog.text
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from egovib_ros.bag import read_recording
 from egovib_ros.bagio import write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays
@@ -178,10 +179,16 @@ def test_figures_quick_regenerates_table_and_every_figure(tmp_path):
     assert not [p for p in out.iterdir() if p.name.endswith(".partial")]
 
 
-@pytest.mark.parametrize("channels, like", [("combined", "paper"), ("per_axis", "per_axis")])
-def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, like):
+@pytest.mark.parametrize(
+    "channels, output, like",
+    [("combined", "bandpassed", "paper"), ("per_axis", "bandpassed", "per_axis"),
+     ("per_axis", "dropin", "per_axis")],
+)  # fmt: skip
+def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, output, like):
     """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch
-    method it came from."""
+    method it came from; a drop-in output (gravity and all outside the band kept) is
+    recognised and band-passed first, and then differs from the band-passed method only
+    by where the subtraction happened (on the band-passed or the unfiltered block)."""
     denoised_bag = tmp_path / "denoised_bag"
     assert (
         main(
@@ -194,6 +201,8 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
                 str(denoised_bag),
                 "--channels",
                 channels,
+                "--output",
+                output,
                 "--quiet",
             ]
         )
@@ -219,6 +228,13 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
         == 0
     )
     bag = json.loads(out.read_text())["methods"]["bag_denoised"]
-    assert like in bag["label"]
+    assert like in bag["label"] and ("drop-in" in bag["label"]) == (output == "dropin")
     assert bag["samples_missing"] == 0 and bag["alignment_lag_samples"] == 0
-    assert bag["rms_difference_vs_batch"] < 1e-6
+    assert bag["rms_difference_vs_batch"] < (1e-6 if output == "bandpassed" else 0.1)
+    if output == "dropin":
+        # in-band noise reduction within 0.5 dB of the band-passed output; gravity kept
+        methods = json.loads(out.read_text())["methods"]
+        assert abs(bag["noise_reduction_db"] - methods[like]["noise_reduction_db"]) < 0.5
+        rec = read_recording(denoised_bag)
+        assert rec.accel[:, 2].mean() > 9.0
+        assert abs(rec.denoised[:, 2].mean() - rec.accel[:, 2].mean()) < 1e-3

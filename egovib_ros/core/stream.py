@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
-from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
+from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -74,6 +74,7 @@ class FramerSettings:
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
+    keep_raw: bool = False  # blocks also carry the unfiltered samples (the drop-in output)
     source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
@@ -160,7 +161,10 @@ class FramerSettings:
 class Blocks:
     """A batch of analysis blocks (B may be 0)."""
 
-    samples: np.ndarray  # (B, C, L) band-passed, not yet windowed
+    # (B, C, L) band-passed, not yet windowed; with FramerSettings.keep_raw (B, 3C, L): the
+    # C band-passed channels, then the same C channels unfiltered, then those minus what
+    # lies far below the band (filters.BelowBand: gravity, rigid-body motion)
+    samples: np.ndarray
     t_first_ns: np.ndarray  # (B,) stamp of the first real sample in the block
     t_last_ns: np.ndarray  # (B,)
     velocity: np.ndarray  # (B, J) mean joint velocity (NaN when MISSING)
@@ -333,6 +337,7 @@ class BlockFramer:
         self.s = settings
         self.n_joints = int(n_joints)
         self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
+        self._rows = self.n_channels * (3 if settings.keep_raw else 1)  # rows of the buffer
         self.window = analysis_window(settings.block_length, settings.hop)
         self.stats = FramerStats()
         self._cleaner = _Cleaner(settings, self.stats)
@@ -340,6 +345,11 @@ class BlockFramer:
             sample_rate_hz=settings.sample_rate_hz,
             band_hz=settings.band_hz,
             order=settings.band_order,
+            n_channels=self.n_channels,
+        )
+        self._below_band = BelowBand(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
             n_channels=self.n_channels,
         )
         self._joint_t = np.zeros(0, dtype=np.int64)
@@ -437,9 +447,10 @@ class BlockFramer:
     def _start_segment(self) -> None:
         pad = self.s.block_length - self.s.hop
         # Front padding so the first real sample is covered by L/hop blocks like all others.
-        self._buf_x = np.zeros((self.n_channels, pad))  # channels first
+        self._buf_x = np.zeros((self._rows, pad))  # channels first
         self._buf_t = np.full(pad, -1, dtype=np.int64)
         self._bandpass.reset()
+        self._below_band.reset()
 
     def _check_rate(self, stamps: np.ndarray) -> None:
         if self._rate_checked:
@@ -463,8 +474,12 @@ class BlockFramer:
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
             return
-        filtered = self._bandpass.process(channel_matrix(values, self.s.layout).T)
-        self._buf_x = np.concatenate([self._buf_x, filtered], axis=1)
+        channels = channel_matrix(values, self.s.layout).T
+        rows = self._bandpass.process(channels)
+        if self.s.keep_raw:
+            above = channels - self._below_band.process(channels)
+            rows = np.concatenate([rows, channels, above], axis=0)
+        self._buf_x = np.concatenate([self._buf_x, rows], axis=1)
         self._buf_t = np.concatenate([self._buf_t, stamps])
 
     def _close_segment(self, *, wait_for_joints: bool) -> None:
@@ -479,7 +494,7 @@ class BlockFramer:
             required = (int(real_pos[-1]) // H) * H + L
             if required > len(buf_t):
                 need = required - len(buf_t)
-                buf_x = np.concatenate([buf_x, np.zeros((self.n_channels, need))], axis=1)
+                buf_x = np.concatenate([buf_x, np.zeros((self._rows, need))], axis=1)
                 buf_t = np.concatenate([buf_t, np.full(need, -1, dtype=np.int64)])
             self._closed.append([buf_x, buf_t, wait_for_joints])
         self._start_segment()

@@ -157,7 +157,10 @@ class CoreStream(MethodStream):
     delay plus the joint-state wait."""
 
     def __init__(self, model: NoiseModel, *, source: str = "", **options):
-        self.denoiser = StreamingDenoiser(model, source=source, **options)
+        # the metrics are those of the band-passed signal (the paper's): band-passed output
+        self.denoiser = StreamingDenoiser(
+            model, source=source, **{"output": "bandpassed", **options}
+        )
         self._pending = np.zeros(0, np.int64)  # input stamps without output yet
 
     def push_joint_states(self, stamps_ns, velocity):

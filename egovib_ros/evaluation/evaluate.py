@@ -212,7 +212,8 @@ def _report(
         result = _method_result(
             run,
             "bag_denoised",
-            f"from bag: {BAG_TOPICS['denoised']} (like {like})",
+            f"from bag: {BAG_TOPICS['denoised']} (like {like}"
+            + (", drop-in output band-passed)" if summary.recorded_dropin else ")"),
             None,
             minutes,
         )

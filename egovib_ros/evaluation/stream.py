@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
+from scipy import signal
 
 from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.core import NoiseModel
@@ -60,6 +61,23 @@ RECORDED_MAX_WAIT_S = 10.0  # the bag's denoised topic may lag its raw samples t
 
 def _combined(values: np.ndarray) -> np.ndarray:
     return channel_matrix(values, "combined").T
+
+
+class LowBandEnergy:
+    """Energy of a signal far below the band (below a quarter of its low edge; 2nd-order
+    Butterworth low-pass, state carried across slices)."""
+
+    def __init__(self, model: NoiseModel):
+        self.sos = signal.butter(
+            2, model.band_hz[0] / 4, btype="lowpass", fs=model.sample_rate_hz, output="sos"
+        )
+        self.zi = np.zeros((self.sos.shape[0], 2))
+        self.energy = 0.0
+
+    def push(self, values: np.ndarray) -> None:
+        if len(values):
+            low, self.zi = signal.sosfilt(self.sos, values, zi=self.zi)
+            self.energy += float(np.dot(low, low))
 
 
 def _band(model: NoiseModel) -> BandPass:
@@ -295,6 +313,9 @@ class RunSummary:
     joint_speed_max: np.ndarray  # (J,) largest |velocity| per joint (nan: none finite)
     recorded: bool  # the run carries its own denoised topic
     recorded_like: str | None  # which method made it: "paper" (y = z = 0) or "per_axis"
+    # the recorded output is the drop-in kind (raw minus the ego-vibration: out-of-band
+    # content kept), scored like the others once band-passed
+    recorded_dropin: bool = False
     counts: dict = field(default_factory=dict)  # the report's "bad_samples" counts
 
 
@@ -317,6 +338,7 @@ class SummaryPass:
         )
         self.bad = _Fifo(bool)
         self.recorded_bad = _Fifo(bool)
+        self.low_raw, self.low_recorded = LowBandEnergy(model), LowBandEnergy(model)
         self.peak = 0.0
         self.speed: np.ndarray | None = None
         self.joint_states_nonfinite = 0
@@ -338,12 +360,15 @@ class SummaryPass:
         if len(stamps):
             reference = self.band.process(_combined(values[1]))[0]
             self.peak = max(self.peak, float(np.max(np.abs(reference))))
+            self.low_raw.push(_combined(values[0])[0])
         self.bad.put(bad[0] | bad[1])
         self.recorded.add_input(stamps)
 
     def _count(self, final: bool) -> None:
         """Bad samples: the screen's or those of a bad message of the denoised topic."""
-        self.recorded_bad.put(self.recorded.take(final)[1])
+        values, flags = self.recorded.take(final)
+        self.low_recorded.push(values)
+        self.recorded_bad.put(flags)
         stop = min(self.bad.end, self.recorded_bad.end)
         flags = self.bad.take(stop) | self.recorded_bad.take(stop)
         self.union_bad += int(np.count_nonzero(flags))
@@ -384,6 +409,11 @@ class SummaryPass:
             ),
             recorded=recorded,
             recorded_like=("per_axis" if self.recorded.any_yz else "paper") if recorded else None,
+            # drop-in output keeps what lies far below the band (gravity, motion), band-passed
+            # output keeps none of it (4th order: -48 dB at a quarter of the band's low edge)
+            recorded_dropin=recorded
+            and self.low_raw.energy > 0
+            and self.low_recorded.energy > 0.1 * self.low_raw.energy,
             counts=counts,
         )
 
@@ -603,6 +633,7 @@ class EvaluationPass:
             else None
         )
         self.like = summary.recorded_like
+        self.recorded_band = _band(model) if summary.recorded_dropin else None
         self.metric_keys = ["raw", *self.names] + (["bag_denoised"] if self.recorded else [])
         self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
         self.streams = {
@@ -706,6 +737,8 @@ class EvaluationPass:
     def _advance(self, final: bool) -> None:
         if self.recorded is not None:
             values, flags = self.recorded.take(final)
+            if self.recorded_band is not None and len(values):
+                values = self.recorded_band.process(values[None, :])[0]
             self.fifos["bag_denoised"].put(values)
             self.recorded_bad.put(flags)
         stop = self.screen_bad.end

@@ -58,6 +58,14 @@ MODEL_PARAMETERS = (
         "1-D signal in x, y = z = 0",
         choices=("per_axis", "combined"),
     ),
+    Param(
+        "output",
+        "dropin",
+        "dropin: the raw field minus the estimated ego-vibration (gravity, motion and all "
+        "outside the band kept) | bandpassed: the cleaned band-passed signal; channels "
+        "combined is always band-passed",
+        choices=("dropin", "bandpassed"),
+    ),
 )
 PARAMETERS = MODEL_PARAMETERS + (
     Param(
@@ -196,6 +204,7 @@ class Denoiser(Node):
         self.denoiser = StreamingDenoiser(
             self.model,
             channels=self.channels,
+            output=first["output"] if self.channels == "per_axis" else "bandpassed",
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
             joint_wait_s=params["joint_wait"],

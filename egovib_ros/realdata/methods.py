@@ -118,6 +118,7 @@ class SpectralTable:
             self.joints(rec),
             self.model,
             channels=self.channels,
+            output="bandpassed",  # scored as band-passed signals, like every method here
         )
         return on_input_stamps(stamps, values, rec.accel_stamps_ns)
 
