@@ -29,6 +29,8 @@ SCHEMA = "egovib.robot/1"
 PACKAGE = "egovib_ros"
 DEFAULT_PROFILE = "pr2_right_hand"
 SENSOR_FIELDS = ("linear_acceleration", "angular_velocity")
+#: Where joint velocity comes from (`joints.velocity`; see core.velocity.JointVelocity).
+VELOCITY_SOURCES = ("auto", "measured", "from_position")
 MAX_JOINTS = 8
 
 
@@ -47,6 +49,9 @@ class RobotProfile:
     max_speed: tuple[float, ...]
     bidirectional: tuple[bool, ...]
     steps: int = 10
+    # joint velocity: the message's (measured), differentiated positions (from_position), or
+    # the message's where it has one and positions elsewhere (auto: drivers without velocity)
+    velocity_source: str = "auto"
     sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
     block_length: int = 64
     hop: int = 32
@@ -91,6 +96,11 @@ class RobotProfile:
             raise bad(f"bidirectional must be true/false per joint, got {list(self.bidirectional)}")
         set_(self, "bidirectional", tuple(bool(b) for b in self.bidirectional))
         set_(self, "steps", _integer(self.steps, "steps", 1, 100, bad))
+        if self.velocity_source not in VELOCITY_SOURCES:
+            raise bad(
+                f"joints.velocity must be one of {list(VELOCITY_SOURCES)}, "
+                f"got {self.velocity_source!r}"
+            )
         set_(
             self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True)
         )
@@ -164,6 +174,7 @@ class RobotProfile:
                 "max_speed": list(self.max_speed),
                 "bidirectional": list(self.bidirectional),
                 "steps": self.steps,
+                "velocity": self.velocity_source,
             },
             "processing": {
                 "block_length": self.block_length,
@@ -194,7 +205,10 @@ class RobotProfile:
             sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where
         )
         _no_unknown(
-            joints, ("topic", "names", "max_speed", "bidirectional", "steps"), "joints", where
+            joints,
+            ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
+            "joints",
+            where,
         )
         _no_unknown(
             processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where
@@ -218,6 +232,7 @@ class RobotProfile:
             max_speed=joints["max_speed"],
             bidirectional=joints.get("bidirectional", True),
             steps=joints.get("steps", defaults["steps"].default),
+            velocity_source=joints.get("velocity", defaults["velocity_source"].default),
             sensor_range=sensor.get("range", math.inf),
             block_length=processing.get("block_length", defaults["block_length"].default),
             hop=processing.get("hop", defaults["hop"].default),

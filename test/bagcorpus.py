@@ -38,6 +38,7 @@ class Layout:
     chunked: bool = True  # mcap library: False writes loose messages
     log: str = "stamp"  # stamp | latency (receive times, 0-30 ms late) | offset (+1 h)
     swap: float = 0.0  # share of neighbouring sensor samples whose header stamps swap
+    velocity: bool = True  # False: JointStates carry positions only (many real drivers)
 
 
 LAYOUTS = (
@@ -104,15 +105,29 @@ def _with_stamp(data: bytes, stamp: int) -> bytes:
     return data[:4] + struct.pack("<iI", sec, nsec) + data[12:]
 
 
+def _without_velocity(data: bytes) -> bytes:
+    from egovib_ros.cdr import JOINT_STATE_TYPE, typestore
+
+    msg = typestore().deserialize_cdr(data, JOINT_STATE_TYPE)
+    msg.velocity = np.zeros(0, np.float64)
+    return bytes(typestore().serialize_cdr(msg, JOINT_STATE_TYPE))
+
+
 def arrange(
     conns: list[Connection], messages: list, layout: Layout, *, seed: int = 5
 ) -> list[tuple[str, int, bytes]]:
     """The messages with the layout's log times, stamps and file order."""
     rng = np.random.default_rng(seed)
+    joint_topics = {c.topic for c in conns if c.msgtype == "sensor_msgs/msg/JointState"}
     stamped = {
         c.topic for c in conns if c.msgtype in ("sensor_msgs/msg/Imu", "sensor_msgs/msg/JointState")
     }
     out = list(messages)
+    if not layout.velocity:
+        out = [
+            (t, log, _without_velocity(d)) if t in joint_topics else (t, log, d)
+            for t, log, d in out
+        ]
     if layout.swap:
         # Swap the header stamps of the same neighbouring samples on every Imu topic (the
         # raw stream and its ground truth share stamps).

@@ -46,6 +46,7 @@ from egovib_ros.cdr import (
     hold_missing_joints,
 )
 from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.core.velocity import JointVelocity
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile, load_profile
 
@@ -179,6 +180,11 @@ class RecordingStream:
         self._commands: list[tuple] = []
         self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
         self._joint_seen = np.zeros(len(self.joint_names), bool)
+        # velocity from positions where the driver publishes none (profile joints.velocity)
+        self.joint_velocity = JointVelocity(
+            len(self.joint_names), source=self.profile.velocity_source
+        )
+        self._velocity_usable = np.zeros(len(self.joint_names), np.int64)
         self._frontier_ns: int | None = None
         # per stream, the least (header stamp - log time) seen: where the frontier of log
         # times falls among its stamps (stamps may trail log times by a latency, or run on
@@ -219,6 +225,18 @@ class RecordingStream:
                 f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
                 f"(named by robot profile {self.profile.name!r})"
             )
+        if not self._velocity_usable.all():
+            joints = [n for n, k in zip(self.joint_names, self._velocity_usable) if not k]
+            why = (
+                "no velocity (the profile's joints.velocity is 'measured'; 'auto' would "
+                "differentiate positions)"
+                if self.profile.velocity_source == "measured"
+                else "neither a velocity nor positions to differentiate"
+            )
+            raise BagError(
+                f"{where}: topic {self.names['joint_states']}: joint(s) {', '.join(joints)} "
+                f"carry {why}"
+            )
         return pieces
 
     def _add(self, key: str, messages: MessageBatch) -> None:
@@ -229,6 +247,8 @@ class RecordingStream:
             self._note_lead(key, stamps, messages.log_times)
         elif key == "joint_states":
             stamps, position, velocity = decode_joint_states(messages, self.joint_names)
+            velocity = self.joint_velocity.push(stamps, position, velocity)
+            self._velocity_usable += np.isfinite(velocity).sum(axis=0)
             self._joints.append(self._merge_partial(stamps, position, velocity))
             self._note_lead(key, stamps, messages.log_times)
         elif key == "denoised":
