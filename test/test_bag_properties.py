@@ -25,7 +25,7 @@ import bagcorpus
 import numpy as np
 import robots
 from bagcorpus import Layout
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from egovib_ros.bag import read_recording, write_recording
@@ -119,11 +119,20 @@ def _model(stream: Stream, p):
         profile=p,
         sweep="free",
     )
+    # at the lowest rates a 64-sample block spans seconds of motion: no block may be steady
+    assume(len(model.cells) > 0)
     return model
 
 
 @settings(suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(streams(), layouts(), layouts())
+# found by the long profile: 50 Hz, joint states at 12.5 Hz, written topic by topic by rosbags
+# (one chunk held every sensor sample and the first third of the joint states)
+@example(
+    Stream(50.0, 1, 1492, 0, 0.0, 0.25, ()),
+    Layout("drawn", writer="rosbags", order="time", chunk_bytes=4096),
+    Layout("drawn", writer="rosbags", order="topic", chunk_bytes=4096),
+)
 def test_denoise_and_calibrate_agree_with_batch_and_across_file_layouts(stream, first, second):
     p = stream.profile()
     rec = stream.recording(p)

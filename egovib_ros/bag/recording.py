@@ -10,12 +10,15 @@ Slices are aligned for the streaming core: each slice carries every joint state 
 so far and only sensor samples whose joint states (up to `horizon_s` past them) and
 earlier samples are all in, so pushing a slice's joint states and then its sensor
 samples into a StreamingDenoiser or CalibrationAccumulator gives the whole-array
-result (tested). "In" means the reader has passed that time: chunks are read in
-log-time order and every message not yet read is logged after the reader's frontier
-(log time ~ header stamp: a message logged much later than stamped is late, as it
-would be live). Once `max_lag_s` of sensor samples wait (a
-joint-state stream far behind in the file, or gone), the oldest go on without them:
-memory stays bounded, and those blocks are treated as a live denoiser treats them.
+result (tested). "In" means the reader has passed that time: chunks are read in the
+order of their first log time, and every message not yet read is logged after the
+reader's frontier; each stream's stamps are placed against log times by the least
+(stamp - log time) it has shown (receive-time logs, another clock). A chunk may hold a
+whole topic (files written topic by topic): its samples wait, in memory with the chunk,
+until the next chunks bring the other topics. Only when log times stop advancing for
+two batches while `max_lag_s` of sensor samples wait do the oldest go on without their
+joint states (memory stays bounded; counted in `released_early`, and those blocks are
+treated as a live denoiser treats them).
 
 JointState messages that carry only some of the named joints (robots where each
 controller publishes its own JointState) are merged as joint_state_publisher does:
@@ -25,6 +28,7 @@ never appears is a BagError naming the joint and the topic.
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
@@ -50,6 +54,7 @@ from egovib_ros.core.velocity import JointVelocity
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile, load_profile
 
+LOG = logging.getLogger("egovib_ros.bag")
 COMMANDS_TOPIC = BAG_TOPICS["commands"]  # ros2_control forward-command topic (sim, sweeps)
 
 
@@ -186,6 +191,8 @@ class RecordingStream:
         )
         self._velocity_usable = np.zeros(len(self.joint_names), np.int64)
         self._frontier_ns: int | None = None
+        self._stuck = 0  # batches read since the frontier last moved
+        self.released_early = 0  # sensor samples let go before their joint states could be in
         # per stream, the least (header stamp - log time) seen: where the frontier of log
         # times falls among its stamps (stamps may trail log times by a latency, or run on
         # another clock altogether, e.g. simulated time in a bag logged in wall time)
@@ -196,6 +203,12 @@ class RecordingStream:
     # --- input -------------------------------------------------------------------------
     def add(self, batch: ReadBatch) -> list[Recording]:
         self.decoded = {}
+        if batch.frontier_ns is None or (
+            self._frontier_ns is not None and batch.frontier_ns <= self._frontier_ns
+        ):
+            self._stuck += 1
+        else:
+            self._stuck = 0
         self._frontier_ns = batch.frontier_ns
         for topic, messages in batch.messages.items():
             key = self._key_of.get(topic)
@@ -216,6 +229,11 @@ class RecordingStream:
         """The remaining slices; then checks what the whole bag must satisfy."""
         pieces = self._release(final=True)
         where = self.reader.path
+        if self.released_early:
+            LOG.warning(
+                f"{where}: {self.released_early} sensor samples went on before their joint "
+                f"states could be read (the bag's log times stop advancing)"
+            )
         for key in ("raw", "joint_states"):
             if self.counts[key] == 0:
                 raise BagError(f"{where}: topic {self.names[key]} has no messages")
@@ -291,8 +309,11 @@ class RecordingStream:
             # horizon) and all earlier samples in.
             frontier = min(self._stamp_frontier(k) for k in [*self._sensor_keys, "joint_states"])
             take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
-            if n - take > self.max_pending:
-                # a frontier that does not move (odd files): hold no more than max_lag_s of samples
+            if n - take > self.max_pending and self._stuck >= 2:
+                # A frontier that does not move (log times that do not advance): hold no more
+                # than max_lag_s of samples. A chunk holding much of one topic is not that:
+                # its samples are in memory already, and the next chunk moves the frontier.
+                self.released_early += n - self.max_pending - take
                 take = n - self.max_pending
             span = int(raw_stamps[take - 1]) - int(raw_stamps[0]) if take else 0
             if span < self.min_slice_ns:
