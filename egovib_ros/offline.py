@@ -33,6 +33,7 @@ from egovib_ros.bag import (
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.messages import imu_layout, replace_imu_field
+from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.cliutil import check_stream, int_in, nonneg_float
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser
 from egovib_ros.core.noise_model import sweep_mask
@@ -525,13 +526,19 @@ def calibrate_bags(
     acc = merge_accumulators([r.value for r in results])
     for r, stats in zip(results, per_bag):  # what the summary shows per bag
         r.value = stats
-    names = [str(b) for b, _ in pairs]
+    # absolute paths: `evaluate` finds the calibration bag from any directory, and its
+    # fingerprint tells whether it is still the bag the model was made from
+    names = [str(Path(b).resolve()) for b, _ in pairs]
     source = (
         names[0]
         if len(names) == 1
         else f"{len(names)} bags: " + ", ".join(names[:20]) + (", ..." if len(names) > 20 else "")
     )
-    return acc.to_model(source=source), acc.stats, results
+    model = acc.to_model(source=source)
+    if len(names) == 1:
+        model.provenance["source_bag"] = names[0]
+        model.provenance["source_fingerprint"] = bag_fingerprint(names[0])
+    return model, acc.stats, results
 
 
 def _describe_calibrate(stats: dict) -> str:

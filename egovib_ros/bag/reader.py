@@ -277,6 +277,23 @@ def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:
     return merged.take(order)
 
 
+def bag_fingerprint(path: str | os.PathLike) -> str:
+    """SHA-256 of a bag's content (metadata.yaml and its data files, in the order the
+    metadata lists them): tells whether a bag is still the one a model was made from."""
+    import hashlib
+
+    path = Path(path)
+    digest = hashlib.sha256()
+    with BagReader(path) as reader:
+        files = [path / "metadata.yaml", *reader.files]
+    for file in files:
+        digest.update(file.name.encode() + b"\0")
+        with open(file, "rb") as fh:
+            while block := fh.read(1 << 22):
+                digest.update(block)
+    return digest.hexdigest()
+
+
 def bag_topics(path: str | os.PathLike) -> dict[str, tuple[str, int]]:
     """{topic: (msgtype, message count)} of a bag."""
     with BagReader(path) as reader:

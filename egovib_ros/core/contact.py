@@ -2,10 +2,11 @@
 `egovib detect` (numpy/scipy only; live and offline call the same class).
 
 The signal: the three axes band-passed (the model's band), then a 4 ms causal RMS envelope
-of their vector (not the paper's sum of axes, in which a contact along (1, -1, 0) cancels). An event starts where the envelope crosses a threshold fixed
-beforehand from no-contact data (`no_contact_threshold`); above-threshold samples less
-than `refractory_s` after the previous ones belong to the same event. Each event is
-reported `report_after_s` after its crossing, without waiting for its end:
+of their vector (not the paper's sum of axes, in which a contact along (1, -1, 0) cancels).
+An event starts where the envelope crosses a threshold fixed beforehand from no-contact
+data (`no_contact_threshold`); above-threshold samples less than `refractory_s` after the
+previous ones belong to the same event. Each event is reported `report_after_s` after its
+crossing, without waiting for its end:
 
 - onset: the first sample, at most `lookback_s` before the crossing, where the envelope
   reaches `onset_fraction` of its peak so far (constant-fraction timing, as the

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import cliutil
+from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
@@ -43,13 +44,33 @@ FIGURE_OUTPUTS = (
 
 
 def _calibration_bag(args, model) -> Path | None:
-    """--calibration, else the model's source bag if it still exists (no-contact sweep data)."""
+    """The no-contact bag the detection thresholds come from: --calibration, else the
+    bag the model was calibrated from (`egovib calibrate` stores its absolute path and
+    fingerprint), found and unchanged. A model that names a bag that is gone or changed is
+    refused, not silently scored with thresholds from the run itself (that takes
+    --thresholds-from-run). Models without a stored bag (made from arrays, or before
+    paths were stored) use their `source` if it is a bag found here, else the run."""
     if args.calibration:
         return Path(args.calibration)
-    source = model.provenance.get("source", "")
-    if source and (Path(source) / "metadata.yaml").is_file():
-        return Path(source)
-    return None
+    if args.thresholds_from_run:
+        return None
+    where = model.provenance.get("path", "noise model")
+    stored = model.provenance.get("source_bag", "")
+    if not stored:
+        source = Path(model.provenance.get("source", "") or "-")
+        return source if (source / "metadata.yaml").is_file() else None
+    fix = "give --calibration BAG (no-contact data) or --thresholds-from-run"
+    if not (Path(stored) / "metadata.yaml").is_file():
+        raise ConfigError(
+            f"{where}: the bag it was calibrated from ({stored}) is not found; it sets the "
+            f"detection thresholds: {fix}"
+        )
+    fingerprint = model.provenance.get("source_fingerprint")
+    if fingerprint and bag_fingerprint(stored) != fingerprint:
+        raise ConfigError(
+            f"{where}: the bag it was calibrated from ({stored}) has changed since; {fix}"
+        )
+    return Path(stored)
 
 
 def json_jobs(specs: list[str], out: str) -> list:
@@ -224,7 +245,14 @@ def register(subparsers) -> None:
     ev.add_argument(
         "--calibration",
         metavar="BAG",
-        help="no-contact bag for detection thresholds (default: the model's source bag if present)",
+        help="no-contact bag for detection thresholds (default: the bag the model was "
+        "calibrated from; refused if it is gone or changed)",
+    )
+    ev.add_argument(
+        "--thresholds-from-run",
+        action="store_true",
+        help="take detection thresholds from this run's own no-contact samples (no "
+        "calibration bag)",
     )
     ev.add_argument(
         "--model-short", metavar="MODEL", help="model with 32-sample blocks (adds method paper_L32)"

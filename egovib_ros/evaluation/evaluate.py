@@ -33,7 +33,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation import baselines, detection, metrics
 from egovib_ros.evaluation import stream as streaming
@@ -212,7 +212,7 @@ def _report(
         result = _method_result(
             run,
             "bag_denoised",
-            f"from bag: {BAG_TOPICS['denoised']} (like {like}"
+            f"from bag: {bag_topic_names(model.profile)['denoised']} (like {like}"
             + (", drop-in output band-passed)" if summary.recorded_dropin else ")"),
             None,
             minutes,
@@ -309,7 +309,7 @@ def evaluate_recording(
     pr_curves: also return PR curves of the raw and each method's signal ("pr_curves").
     source, calibration_source: names for errors; max_bad_fraction: see stream.SummaryPass.
     """
-    require_ground_truth(rec, where=source)
+    require_ground_truth(rec, where=source, profile=model.profile)
     return evaluate_pieces(
         lambda: [rec],
         model,

@@ -48,7 +48,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from scipy import signal
 
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.filters import BandPass, channel_matrix
 from egovib_ros.errors import BagError, ConfigError
@@ -288,18 +288,21 @@ def _joints_nonfinite(piece) -> int:
     return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
 
 
-def require_ground_truth(rec, where: str = "recording") -> None:
+def require_ground_truth(rec, where: str = "recording", profile=None) -> None:
     """Raise BagError unless `rec` (a Recording or a slice of one) carries the ground-truth
-    contact signal, sample for sample."""
+    contact signal, sample for sample (the topic `contact` beside the profile's sensor
+    topic, e.g. /accelerometer/contact for /accelerometer/raw)."""
+    names = bag_topic_names(profile)
     if rec.contact is None:
         raise BagError(
-            f"{where}: missing ground-truth topic {BAG_TOPICS['contact']} "
-            f"(evaluate needs a simulated bag with ground truth)"
+            f"{where}: missing ground-truth topic {names['contact']} (the contact-only part "
+            f"of {names['raw']}; evaluate needs a recording with ground truth, e.g. from "
+            f"`egovib simulate`)"
         )
     if len(rec.contact) != len(rec.accel):
         raise BagError(
-            f"{where}: topic {BAG_TOPICS['contact']} has {len(rec.contact)} samples, "
-            f"{BAG_TOPICS['raw']} has {len(rec.accel)}"
+            f"{where}: topic {names['contact']} has {len(rec.contact)} samples, "
+            f"{names['raw']} has {len(rec.accel)}"
         )
 
 
@@ -346,7 +349,7 @@ class SummaryPass:
         self.n = 0
 
     def push(self, piece) -> None:
-        require_ground_truth(piece, self.source)
+        require_ground_truth(piece, self.source, self.model.profile)
         self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         if len(piece.joint_velocity):
@@ -698,7 +701,7 @@ class EvaluationPass:
 
     # --- input --------------------------------------------------------------------
     def push(self, piece) -> None:
-        require_ground_truth(piece, self.source)
+        require_ground_truth(piece, self.source, self.model.profile)
         for name, stream in self.streams.items():
             self.fifos[name].put(
                 stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
