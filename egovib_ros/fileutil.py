@@ -19,6 +19,17 @@ Two steps, used by every command that writes:
    marker file (MARKER) listing the files we wrote, which is what makes them
    recognisable (and replaceable with --force) later.
 
+Two runs never claim the same output: `prepare_output` takes an exclusive lock on the
+target (flock on `.NAME.egovib-lock` beside it) and holds it until `release_outputs()`
+(the CLI calls it when the command ends; atexit otherwise). A second run is refused at
+once with one line naming the run that holds it, rather than made to wait: after the
+wait it would find the output there and be refused anyway (or, with --force, silently
+replace what the first run just wrote).
+
+A write that fails for lack of space (or a quota, a file-size limit, a file system
+turned read-only) is an OutputError naming the output and the free space left; the
+staging directory goes at once, as for any failure inside `atomic_output`.
+
 Staging directories left by killed runs are removed on the next run that writes next
 to them, but only our own (they carry PARTIAL_MARKER, or have the exact shape the
 previous version left), only when older than the running process and only when the
@@ -27,9 +38,12 @@ process that made them is gone.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import dataclasses
 import datetime as _dt
 import errno
+import fcntl
 import json
 import os
 import re
@@ -47,6 +61,14 @@ MARKER = ".egovib-output"  # JSON marker inside every directory output we write
 MARKER_SCHEMA = "egovib.output/1"
 PARTIAL_SUFFIX = ".partial"
 PARTIAL_MARKER = ".egovib-partial"  # JSON {pid, created} inside every staging directory
+LOCK_SUFFIX = ".egovib-lock"  # `.NAME.egovib-lock` beside an output: flocked while a run claims it
+# A write failing with these means the output's file system cannot take it (not bad code).
+_WRITE_FULL = {
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large for the file system",
+    errno.EROFS: "the file system became read-only",
+}
 GAP_REPORT_SCHEMA = "egovib.gap/1"
 MODEL_SCHEMA = "egovib.noise_model"
 
@@ -93,15 +115,25 @@ def prepare_output(
     label = f"{option} {path}" if option else str(path)
     target = _check_path_itself(path, label)
     _check_not_an_input(target, inputs, label)
+    _check_existing(target, force, kind, label)
+    _check_writable(target, label)
+    claim_output(target, label)
+    try:  # again under the lock: a run that held it may have written the output meanwhile
+        _check_existing(target, force, kind, label)
+    except OutputError:
+        release_outputs(target)
+        raise
+    clean_stale_partials(target.parent)
+    return target
+
+
+def _check_existing(target: Path, force: bool, kind: str, label: str) -> None:
     if os.path.lexists(target):
         if not force:
             raise OutputError(f"{label}: already exists (use --force to replace it)")
         reason = _why_not_ours(target, kind)
         if reason:
             raise OutputError(f"{label}: {reason}; not replaced, even with --force")
-    _check_writable(target, label)
-    clean_stale_partials(target.parent)
-    return target
 
 
 def prepare_outputs_in(
@@ -130,6 +162,7 @@ def prepare_outputs_in(
         if reason:
             raise OutputError(f"{label}: {name}: {reason}; not replaced, even with --force")
     _check_writable(target / (names[0] if names else "x"), label)
+    claim_output(target, label)
     if target.is_dir():
         clean_stale_partials(target)
     return target
@@ -187,20 +220,160 @@ def _check_not_an_input(
 
 
 def _check_writable(target: Path, label: str) -> None:
-    """Create (and remove) a probe file where the output will be written."""
+    """Create (and remove) a probe file where the output will be written, with one block of
+    data in it: a full file system is refused here, before any work."""
     parent = _resolve(target).parent
     ancestor = parent
     while not ancestor.exists():
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise OutputError(f"{label}: {ancestor} is not a directory")
+    probe = None
     try:
         fd, probe = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".probe", dir=ancestor)
-        os.close(fd)
-        os.unlink(probe)
+        try:
+            os.write(fd, bytes(4096))
+        finally:
+            os.close(fd)
     except OSError as exc:
         reason = "read-only file system" if exc.errno == errno.EROFS else (exc.strerror or str(exc))
         raise OutputError(f"{label}: cannot write in {ancestor} ({reason})") from None
+    finally:
+        if probe is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(probe)
+
+
+# --- a stop requested by a signal ------------------------------------------------------------
+
+_STOP: list[type[BaseException]] = []
+
+
+def request_stop(exception: type[BaseException]) -> None:
+    """Record that the run must stop (the CLI's Ctrl-C and SIGTERM handlers call this before
+    raising `exception`). A library that swallows the exception (a bare `except:`, C code
+    clearing the error) cannot make the run commit an output anyway: `atomic_output`
+    raises it again instead of moving the output into place."""
+    if not _STOP:
+        _STOP.append(exception)
+
+
+def stop_requested() -> type[BaseException] | None:
+    return _STOP[0] if _STOP else None
+
+
+def clear_stop() -> None:
+    _STOP.clear()
+
+
+# --- one run per output ----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _Claim:
+    lock_path: Path
+    fd: int
+    made_dirs: list[Path]  # parent directories created for the lock file (removed if empty)
+
+
+_CLAIMS: dict[Path, _Claim] = {}
+
+
+def claim_output(target: str | os.PathLike, label: str = "") -> None:
+    """Take an exclusive lock on the output `target` for this run: `.NAME.egovib-lock`
+    beside it, flocked (released by the kernel if the process dies, whatever kills it).
+    Another process holding it: OutputError naming its pid. Missing parent directories
+    are created for the lock file and removed again on release if still empty. A claim
+    this process already holds is kept."""
+    key = _resolve(Path(target))
+    if key in _CLAIMS:
+        return
+    label = label or str(target)
+    made = _make_parents(key.parent, label)
+    lock_path = key.parent / f".{key.name}{LOCK_SUFFIX}"
+    try:
+        while True:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                holder = _lock_holder(fd)
+                os.close(fd)
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                    raise OutputError(
+                        f"{label}: cannot lock {lock_path} ({exc.strerror})"
+                    ) from None
+                raise OutputError(
+                    f"{label}: another egovib run{holder} is writing it; wait for it to end "
+                    f"or choose another output"
+                ) from None
+            # The run that held it removes the lock file as it ends: lock the file that is
+            # there now, not one already unlinked.
+            try:
+                here = os.stat(lock_path)
+                mine = os.fstat(fd)
+                if (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino):
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
+    except OSError as exc:
+        _remove_empty(made)
+        raise OutputError(f"{label}: cannot create {lock_path} ({exc.strerror})") from None
+    except BaseException:
+        _remove_empty(made)
+        raise
+    with contextlib.suppress(OSError):  # only for the message of a run refused; may not fit
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+    _CLAIMS[key] = _Claim(lock_path, fd, made)
+
+
+def release_outputs(*targets: str | os.PathLike) -> None:
+    """Release the claims on `targets` (all claims of this process if none given): the lock
+    file is removed, then unlocked; directories made for it go if empty."""
+    keys = [_resolve(Path(t)) for t in targets] if targets else list(_CLAIMS)
+    for key in keys:
+        claim = _CLAIMS.pop(key, None)
+        if claim is None:
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(claim.lock_path)
+        os.close(claim.fd)
+        _remove_empty(claim.made_dirs)
+
+
+atexit.register(release_outputs)
+
+
+def _lock_holder(fd: int) -> str:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return ""
+    return f" (pid {text})" if text.isdigit() else ""
+
+
+def _make_parents(directory: Path, label: str) -> list[Path]:
+    missing = []
+    while not directory.exists():
+        missing.append(directory)
+        directory = directory.parent
+    made = []
+    try:
+        for path in reversed(missing):
+            path.mkdir()
+            made.append(path)
+    except OSError as exc:
+        _remove_empty(made)
+        raise OutputError(f"{label}: cannot create {path} ({exc.strerror})") from None
+    return made
+
+
+def _remove_empty(directories: list[Path]) -> None:
+    for path in reversed(directories):
+        with contextlib.suppress(OSError):
+            path.rmdir()
 
 
 # --- what counts as ours -----------------------------------------------------------------
@@ -320,21 +493,38 @@ def atomic_output(
     tmp = staging / final.name
     try:
         yield tmp
+        if _STOP:  # Ctrl-C or SIGTERM came, and something swallowed what they raised
+            raise _STOP[0]()
         if directory and tmp.is_dir():
             _write_marker(tmp, kind)
         _move_into_place(tmp, final, directory=directory, staging=staging)
+    except OSError as exc:
+        if exc.errno not in _WRITE_FULL:
+            raise
+        where = f"{_resolve(parent)}{_free_space(parent)}"
+        raise OutputError(f"{final}: not written: {_WRITE_FULL[exc.errno]} in {where}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 
 
-def _make_staging(parent: Path, name: str) -> Path:
+def _free_space(directory: Path) -> str:
+    """' (N MB free)' for the file system of `directory`, '' if unknown."""
     try:
-        staging = parent / f".{name}.{os.getpid()}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+        st = os.statvfs(directory)
+    except OSError:
+        return ""
+    return f" ({st.f_bavail * st.f_frsize / 1e6:.1f} MB free)"
+
+
+def _make_staging(parent: Path, name: str) -> Path:
+    staging = parent / f".{name}.{os.getpid()}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+    try:
         staging.mkdir()
         (staging / PARTIAL_MARKER).write_text(
             json.dumps({"pid": os.getpid(), "created": time.time()})
         )
     except OSError as exc:
+        shutil.rmtree(staging, ignore_errors=True)  # made, but its marker did not fit
         raise OutputError(f"{parent / name}: cannot write in {parent} ({exc.strerror})") from None
     return staging
 

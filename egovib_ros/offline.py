@@ -30,7 +30,7 @@ from egovib_ros.bag import (
     compression_name,
     iter_recording,
 )
-from egovib_ros.bag.many import BagJob, expand_bags, run_bags, summary_lines
+from egovib_ros.bag.many import BagJob, expand_bags, raise_if_bugs, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.messages import imu_layout, replace_imu_field
 from egovib_ros.bag.reader import bag_fingerprint
@@ -449,6 +449,7 @@ def report_results(results, describe, *, single: bool) -> int:
         return 0
     for line in summary_lines(results, describe):
         print(line, file=sys.stderr)
+    raise_if_bugs(results)  # a bag failed on a bug: an internal error (exit 1), not bad input
     return 0 if all(r.ok for r in results) else 2
 
 
@@ -465,7 +466,7 @@ def calibrate_bag(
     """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice. The
     accumulator's `input_counts` is the line of bad-input counts to print."""
     where = f"{bag}: {profile.sensor_topic}"
-    acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=str(bag))
+    acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=where)
     joint_states = 0
     for piece in iter_recording(
         bag, profile=profile, ground_truth=False, denoised=False, commands=False, progress=progress
@@ -588,6 +589,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise BagError(results[0].error)
         for line in summary_lines(results, _describe_calibrate):
             print(line, file=sys.stderr)
+        raise_if_bugs(results)
         if model is None:
             print(
                 f"egovib: error: no model written: {sum(not r.ok for r in results)} bag(s) failed",

@@ -72,6 +72,17 @@ class RobotProfile:
             value = getattr(self, key)
             if not isinstance(value, str) or not value.strip("/"):
                 raise bad(f"{key} must be a topic name, got {value!r}")
+        # One topic for two roles: the denoiser would read its own output, offline the
+        # denoised topic would replace the raw one. Named by their keys in the YAML file.
+        roles = (
+            ("sensor.topic", self.sensor_topic),
+            ("sensor.denoised_topic", self.denoised_topic),
+            ("joints.topic", self.joints_topic),
+        )
+        for i, (key, topic) in enumerate(roles):
+            for other, other_topic in roles[i + 1 :]:
+                if topic.strip("/") == other_topic.strip("/"):
+                    raise bad(f"{other} is {other_topic}, the same topic as {key}")
         if self.sensor_field not in SENSOR_FIELDS:
             raise bad(f"sensor field must be one of {SENSOR_FIELDS}, got {self.sensor_field!r}")
         set_(self, "rate_hz", _positive(self.rate_hz, "rate_hz", bad))
@@ -194,6 +205,12 @@ class RobotProfile:
             raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
         if data.get("schema") != SCHEMA:
             raise ConfigError(f"{where}: schema must be {SCHEMA!r}, got {data.get('schema')!r}")
+        top = sorted(set(data) - {"schema", "name", "sensor", "joints", "processing"}, key=str)
+        if top:  # a misspelt section would silently give its defaults
+            raise ConfigError(
+                f"{where}: unknown top-level key(s) {top} (known: "
+                f"['schema', 'name', 'sensor', 'joints', 'processing'])"
+            )
         sections = {}
         for key in ("sensor", "joints", "processing"):
             value = data.get(key, {} if key == "processing" else None)

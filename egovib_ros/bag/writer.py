@@ -129,20 +129,32 @@ class BagWriter:
         if self._rosbags is not None:
             self._rosbags.close()
             return
-        self._drain_buffer()
-        self._mcap.flush_chunk()  # the last chunk's times count in the metadata
-        info = self._metadata()
-        text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
-        self._mcap.close(
-            metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}}
-        )
+        try:
+            self._drain_buffer()
+            self._mcap.flush_chunk()  # the last chunk's times count in the metadata
+            info = self._metadata()
+            text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+            self._mcap.close(
+                metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}}
+            )
+        except BaseException:  # e.g. the disk is full: the file is given up, not left open
+            self._abort_mcap()
+            raise
         (self.path / "metadata.yaml").write_text(text)
 
     def abort(self) -> None:
         if self._open:
             self._open = False
-            if self._mcap is not None:
+            self._abort_mcap()
+
+    def _abort_mcap(self) -> None:
+        """Close the MCAP file of a bag that is given up. Its buffered bytes cannot be written
+        when the disk is full: that second failure would hide the first, so it is dropped."""
+        if self._mcap is not None:
+            try:
                 self._mcap.abort()
+            except OSError:
+                pass
 
     @property
     def size_ratio(self) -> float | None:

@@ -16,6 +16,11 @@ Bad-input policy (counted in `stats`, never a silent wrong result):
   segment: pending samples are flushed as at end of stream and the filter restarts;
 - stamps may jitter around the nominal rate (+-30 % per step): the stream is
   treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
+- the rate is measured on the first 2 blocks' worth of samples, then again on every
+  further RATE_WINDOW_BLOCKS blocks' worth (`measured_period`); off by more than
+  `rate_tolerance` at the start, or on two windows in a row later (a sustained change,
+  not a glitch), the stream is refused: StreamError now and on every later push. A
+  stream whose rate halves would otherwise be "bridged" into invented samples;
 - a block with no joint state in or shortly before its span is MISSING: the
   denoiser passes it through band-passed only, the calibrator skips it.
 """
@@ -38,6 +43,24 @@ LOG = logging.getLogger("egovib_ros.core")
 #: A recording with more bad samples than this share (non-finite, beyond the sensor range,
 #: out of order) gives an error, not a result: whatever came out would describe the faults.
 MAX_BAD_SHARE = 0.1
+#: After the start, the sample rate is measured again on every window of this many blocks'
+#: worth of samples; two windows in a row beyond the tolerance are a rate mismatch.
+RATE_WINDOW_BLOCKS = 4
+
+
+def measured_period(steps: np.ndarray, period: float) -> float:
+    """The sample period a run of stamp steps shows, robust to jitter and to lost samples.
+
+    Steps of 1.5 nominal periods or more are gaps (lost samples, bridged or not). While
+    they are the minority, the period is the mean of the other steps: per-step jitter
+    averages out (also when it alternates, where a median would pick one side), and lost
+    samples do not count. When most steps are gaps, the stream runs slower than nominal
+    and their median is its period."""
+    steps = np.asarray(steps, dtype=np.float64)
+    gaps = steps >= 1.5 * period
+    if 2 * np.count_nonzero(gaps) > len(steps):
+        return float(np.median(steps))
+    return float(steps[~gaps].mean())
 
 
 def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> None:
@@ -356,7 +379,11 @@ class BlockFramer:
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
         self._rate_error = ""
-        self._rate_stamps: list[np.ndarray] = []
+        self._rate_steps: list[np.ndarray] = []  # stamp steps not yet measured
+        self._rate_ends: list[np.ndarray] = []  # the stamp each of those steps ends at
+        self._rate_count = 0  # how many
+        self._rate_last: int | None = None  # last real stamp of the open segment
+        self._rate_off_windows = 0  # consecutive windows measured beyond the tolerance
         self._ready: list[Blocks] = []
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
@@ -417,6 +444,7 @@ class BlockFramer:
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
+                self._rate_last = None  # no step is measured across a long gap or a clock jump
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
             self._drain(final=False)
 
@@ -453,23 +481,48 @@ class BlockFramer:
         self._below_band.reset()
 
     def _check_rate(self, stamps: np.ndarray) -> None:
-        if self._rate_checked:
-            if self._rate_error:
-                raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
+        """Measure the rate on the steps between real samples of a segment: the first
+        2 blocks' worth, then every RATE_WINDOW_BLOCKS blocks' worth. The windows are
+        counted in samples, so any chunking measures the same windows."""
+        if self._rate_error:
+            raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
+        real = stamps[stamps >= 0]
+        if len(real) == 0:
             return
-        self._rate_stamps.append(stamps[stamps >= 0])
-        seen = np.concatenate(self._rate_stamps)
-        if len(seen) < 2 * self.s.block_length:
-            return
-        measured = 1e9 / float(np.median(np.diff(seen)))
-        self._rate_checked = True
-        self._rate_stamps = []
-        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = (
-                f"sensor stream runs at {measured:.0f} Hz but the model expects "
-                f"{self.s.sample_rate_hz:g} Hz"
-            )
-            raise self.s.error(self._rate_error)
+        if self._rate_last is not None:
+            steps, ends = np.diff(real, prepend=self._rate_last), real
+        else:
+            steps, ends = np.diff(real), real[1:]
+        self._rate_last = int(real[-1])
+        self._rate_steps.append(steps)
+        self._rate_ends.append(ends)
+        self._rate_count += len(steps)
+        L = self.s.block_length
+        while self._rate_count >= (need := (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L):
+            seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
+            window, window_end = seen[:need], int(ends[need - 1])
+            self._rate_steps, self._rate_ends = [seen[need:]], [ends[need:]]
+            self._rate_count = len(seen) - need
+            measured = 1e9 / measured_period(window, self.s.period_ns)
+            off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
+            if not self._rate_checked:
+                self._rate_checked = True
+                if off:
+                    self._rate_error = (
+                        f"sensor stream runs at {measured:.0f} Hz but the model expects "
+                        f"{self.s.sample_rate_hz:g} Hz"
+                    )
+                    raise self.s.error(self._rate_error)
+                continue
+            self._rate_off_windows = self._rate_off_windows + 1 if off else 0
+            if self._rate_off_windows >= 2:
+                self._rate_error = (
+                    f"sensor rate changed: the stream ran at {measured:.0f} Hz over the "
+                    f"{need} samples up to stamp {window_end / 1e9:.3f} s but the model "
+                    f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
+                    f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
+                )
+                raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
