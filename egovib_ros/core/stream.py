@@ -74,6 +74,9 @@ class FramerSettings:
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
+    # The samples were band-passed already (a residual computed on the band-passed signal):
+    # frame them as they are.
+    prefiltered: bool = False
     source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
@@ -463,7 +466,8 @@ class BlockFramer:
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
             return
-        filtered = self._bandpass.process(channel_matrix(values, self.s.layout).T)
+        channels = channel_matrix(values, self.s.layout).T
+        filtered = np.array(channels) if self.s.prefiltered else self._bandpass.process(channels)
         self._buf_x = np.concatenate([self._buf_x, filtered], axis=1)
         self._buf_t = np.concatenate([self._buf_t, stamps])
 
