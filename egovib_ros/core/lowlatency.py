@@ -191,6 +191,7 @@ class FilterBank:
 def _gain_kernel(
     r,
     noise,
+    row,
     poles,
     alpha,
     bias,
@@ -251,7 +252,7 @@ def _gain_kernel(
             update = a_track > 0.0 and (phase + i) % TRACK_EVERY == 0
             for k in range(B):
                 p = power[c, k]
-                expected = noise[i, c, k]
+                expected = noise[row[i], c, k]
                 if update and expected > 0.0 and p > SILENCE * expected:
                     # (A silent channel - an axis at rest reads a constant - teaches nothing.)
                     step = math.log(p / expected) - log_ratio[c, k]
@@ -390,15 +391,31 @@ class LowLatencyGain:
         self.state.log_ratio, self.state.correction = kept.log_ratio, kept.correction
         self.state.position[1] = kept.position[1]
 
-    def process(self, r: np.ndarray, noise: np.ndarray, *, collect: bool = False):
+    def process(
+        self,
+        r: np.ndarray,
+        noise: np.ndarray,
+        *,
+        index: np.ndarray | None = None,
+        collect: bool = False,
+    ):
+        """r (n, C) samples; noise (n, C, B) expected band powers per sample, or (R, C, B)
+        rows with `index` (n,) naming each sample's row (held joint states: one row per
+        joint state, not per sample)."""
         r = np.ascontiguousarray(r, dtype=np.float64)
         noise = np.ascontiguousarray(noise, dtype=np.float64)
         C, B = self.n_channels, self.bank.n_bands
-        if r.ndim != 2 or r.shape[1] != C or noise.shape != (len(r), C, B):
+        rows = len(r) if index is None else len(noise)
+        if r.ndim != 2 or r.shape[1] != C or noise.shape != (rows, C, B):
             raise ConfigError(
-                f"gain: expected ({len(r)}, {C}) samples and ({len(r)}, {C}, {B}) noise powers, "
+                f"gain: expected ({len(r)}, {C}) samples and ({rows}, {C}, {B}) noise powers, "
                 f"got {r.shape} and {noise.shape}"
             )
+        if index is None:
+            index = np.arange(len(r))
+        index = np.ascontiguousarray(index, dtype=np.int64)
+        if index.shape != (len(r),) or (len(r) and (index.min() < 0 or index.max() >= rows)):
+            raise ConfigError(f"gain: index must name a noise row for each of the {len(r)} samples")
         out = np.empty_like(r)
         ratios = np.empty((len(r), C, B + 1)) if collect else np.empty((0, C, B + 1))
         if len(r):
@@ -407,6 +424,7 @@ class LowLatencyGain:
             _gain_kernel(
                 r,
                 noise,
+                index,
                 self.bank.poles,
                 self.alpha,
                 self.bias,

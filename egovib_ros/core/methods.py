@@ -241,23 +241,28 @@ class ResidualTable:
 
     def powers(self, velocity: np.ndarray) -> np.ndarray:
         """(n, J) velocities (NaN rows: no joint state) -> (n, 3, B) band powers (0 where NaN)."""
+        rows, index = self.rows(velocity)
+        return rows[index]
+
+    def rows(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The band powers once per run of equal velocities (joint states are held between
+        updates): ((R, 3, B) powers, (n,) row of each sample); a sample without joint
+        state gets a row of zeros (its gains stay open)."""
         n = len(velocity)
-        out = np.zeros((n, len(AXES), self.weights.shape[0]))
         ok = np.all(np.isfinite(velocity), axis=1)
-        if not ok.any():
-            return out
-        # Joint states are held between updates: look up each run of equal velocities once.
-        held = velocity[ok]
-        change = np.ones(len(held), bool)
-        change[1:] = np.any(held[1:] != held[:-1], axis=1)
+        change = np.ones(n, bool)
+        change[1:] = np.any(velocity[1:] != velocity[:-1], axis=1) | (ok[1:] != ok[:-1])
         starts = np.flatnonzero(change)
-        inverse = np.cumsum(change) - 1
-        values, measured, outside = self._at(held[starts])
-        values = np.maximum(values, self.floor)
-        out[ok] = values[inverse]
-        self.samples_unmeasured += int(np.count_nonzero(~measured[inverse]))
-        self.samples_out_of_grid += int(np.count_nonzero(outside[inverse]))
-        return out
+        index = np.cumsum(change) - 1
+        values = np.zeros((len(starts), len(AXES), self.weights.shape[0]))
+        known = ok[starts]
+        if known.any():
+            found, measured, outside = self._at(velocity[starts[known]])
+            values[known] = np.maximum(found, self.floor)
+            runs = np.diff(np.append(starts, n))[known]
+            self.samples_unmeasured += int(runs[~measured].sum())
+            self.samples_out_of_grid += int(runs[outside].sum())
+        return values, index
 
     def _at(self, rows: np.ndarray):
         if self._dense is None:
@@ -622,8 +627,8 @@ class SampleMethodDenoiser:
     def _run(self, stamps: np.ndarray, values: np.ndarray, velocity: np.ndarray):
         residual = self._canceller.process(values, velocity)
         if self._gain is not None:
-            noise = self._table.powers(velocity)
-            cleaned = self._gain.process(residual, noise)
+            rows, index = self._table.rows(velocity)
+            cleaned = self._gain.process(residual, rows, index=index)
             stamps_all = np.concatenate([self._lag_stamps, stamps])
             out_stamps = stamps_all[: len(stamps)]
             self._lag_stamps = stamps_all[len(stamps) :]
