@@ -464,6 +464,37 @@ def calibrate_methods(
 # --------------------------------------------------------------------------------------
 # The streaming denoisers
 # --------------------------------------------------------------------------------------
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every per-sample kernel now, on a few dummy
+    samples: the first compile takes seconds, which a live stream must not wait for."""
+    global _WARM
+    if _WARM:
+        return
+    hmap = HarmonicMap(
+        joint_names=("j",),
+        exponent=np.ones(1),
+        tau_up_s=np.zeros(1),
+        tau_down_s=np.zeros(1),
+        min_speed=np.zeros(1),
+        line_joint=np.zeros(1, np.int64),
+        line_coefficient=np.ones(1),
+        line_score_db=np.zeros(1),
+        residual_rms=np.ones(3),
+    )
+    HarmonicCanceller(hmap, sample_rate_hz=100.0, band_hz=(1.0, 40.0), n_channels=3).process(
+        np.zeros((2, 3)), np.ones((2, 1))
+    )
+    bank = FilterBank(sample_rate_hz=100.0, band_hz=(1.0, 40.0), bands=1)
+    LowLatencyGain(bank, GainSettings(), n_channels=3).process(np.zeros((2, 3)), np.ones((2, 3, 2)))
+    _multilinear(
+        np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.ones(1, np.int64), np.ones((2, 1))
+    )
+    _WARM = True
+
+
 class SampleMethodDenoiser:
     """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
     each push returns the samples that became final (DenoisedChunk; output sample k
@@ -512,6 +543,7 @@ class SampleMethodDenoiser:
         self.method = method
         self.channels = channels
         self.calibration = MethodCalibration.from_model(model)
+        warm_up()
         cal = self.calibration
         fs = model.sample_rate_hz
         self.settings = FramerSettings.for_model(
@@ -714,4 +746,5 @@ __all__ = [
     "denoise_batch_method",
     "make_denoiser",
     "method_delay_ms",
+    "warm_up",
 ]
