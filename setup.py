@@ -20,7 +20,9 @@ setup(
     # install, or from requirements-ros.txt in the project venv: not listed here.
     install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml",
                       # bags: zstd MCAP chunks; many bags on a Dask cluster (local or remote)
-                      "zstandard", "dask", "distributed"],
+                      "zstandard", "dask", "distributed",
+                      # per-sample loops of the low-latency methods (cancel, hybrid) at kHz
+                      "numba"],
     zip_safe=True,
     maintainer="egovib_ros developers",
     maintainer_email="egovib@example.com",

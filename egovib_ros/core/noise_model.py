@@ -8,7 +8,7 @@ which for J = 2 is exactly the paper's equation, including its + sd(0, 0)^2 term
 at an on-axis cell Eq. 6 gives sqrt(sd^2 + sd0^2), and at (0, 0) sqrt(3) sd0, not the
 measured sd: the paper's over-subtraction), and for J = 1 returns the measured table.
 
-Storage is sparse (schema version 2): only measured cells are kept, as grid indices
+Storage is sparse (schema version 2, 3): only measured cells are kept, as grid indices
 (K, J) with their spectra, so a model of 8 joints (21^8 grid points) costs what its
 measurements cost. How a velocity is looked up:
 
@@ -47,7 +47,9 @@ from egovib_ros.robot import RobotProfile
 LOG = logging.getLogger("egovib_ros.core")
 
 SCHEMA = "egovib.noise_model"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3  # 3: optional `extras` (what other denoising methods calibrated); 1, 2 load
+#: Prefix of the extras' keys in the .npz.
+EXTRA_PREFIX = "extra."
 MODEL_CHANNELS = ("combined", "x", "y", "z")
 MEASURED_KINDS = ("full", "superposition", "free")
 MIN_BLOCKS_FOR_STD = 5
@@ -87,8 +89,11 @@ class NoiseModel:
         measured: str = "full",
         profile: RobotProfile | None = None,
         provenance: dict | None = None,
+        extras: dict[str, np.ndarray] | None = None,
     ):
         self.provenance = dict(provenance or {})
+        # Arrays other methods fitted at calibration (core.methods), saved beside the table.
+        self.extras = {str(k): np.asarray(v) for k, v in (extras or {}).items()}
         where = self.provenance.get("path", "noise model")
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in grid)
         self.joint_names = tuple(str(n) for n in joint_names)
@@ -722,6 +727,7 @@ class NoiseModel:
             measured=self.measured,
             profile=self.profile,
             provenance=dict(self.provenance),
+            extras=dict(self.extras),
         )
         if {"mean", "std", "counts"} & set(changes):
             fields.update(cells=None, mean=self.mean, std=self.std, counts=self.counts)
@@ -764,6 +770,8 @@ class NoiseModel:
         }
         for j, g in enumerate(self.grid):
             arrays[f"grid_{j}"] = g
+        for key, value in self.extras.items():
+            arrays[EXTRA_PREFIX + key] = value
         with open(path, "wb") as fh:
             np.savez_compressed(fh, **arrays)
 
@@ -873,6 +881,9 @@ class NoiseModel:
             provenance=provenance,
         )
         cells = fields["cells"] if version >= 2 else None
+        common["extras"] = {
+            k[len(EXTRA_PREFIX) :]: v for k, v in fields.items() if k.startswith(EXTRA_PREFIX)
+        }
         if version < 2:  # v1: dense tables of a 2-joint PR2-style grid
             for name in ("mean", "std"):
                 if not (np.all(np.isfinite(fields[name])) and np.all(fields[name] >= 0)):

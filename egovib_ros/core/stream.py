@@ -98,6 +98,9 @@ class FramerSettings:
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
     keep_raw: bool = False  # blocks also carry the unfiltered samples (the drop-in output)
+    # The samples were band-passed already (a residual computed on the band-passed signal):
+    # frame them as they are.
+    prefiltered: bool = False
     source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
@@ -528,7 +531,7 @@ class BlockFramer:
         if len(stamps) == 0:
             return
         channels = channel_matrix(values, self.s.layout).T
-        rows = self._bandpass.process(channels)
+        rows = np.array(channels) if self.s.prefiltered else self._bandpass.process(channels)
         if self.s.keep_raw:
             above = channels - self._below_band.process(channels)
             rows = np.concatenate([rows, channels, above], axis=0)
