@@ -243,7 +243,7 @@ def bench_calibration(cell_s: float = 2.0) -> dict:
 
 def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
     """Simulator speed and bag write/read throughput on one simulated motion recording."""
-    from egovib_ros.bagio import read_recording, write_recording
+    from egovib_ros.bag import read_recording, write_recording
     from egovib_ros.sim import simulate_motion
 
     start = time.perf_counter()
@@ -287,8 +287,8 @@ def write_interleaved_bag(
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
+    from egovib_ros.bag.codec import typestore
     from egovib_ros.bag.recording import bag_topic_names, recording_streams
-    from egovib_ros.cdr import typestore
     from egovib_ros.sim.scenarios import motion_slices
 
     robot = _robot()
@@ -396,15 +396,15 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
     from egovib_ros.bag import BagReader, BagWriter, iter_recording
-    from egovib_ros.cdr import decode_imu_batch, decode_joint_state_batch, typestore
+    from egovib_ros.bag.codec import decode_imu, decode_joint_states, typestore
 
     robot = _robot()
     topics = [robot.sensor_topic, robot.joints_topic]
     figures: dict = {}
 
     def decode(raw: dict) -> int:
-        decode_imu_batch(raw[robot.sensor_topic], robot.sensor_field)
-        decode_joint_state_batch(raw[robot.joints_topic], robot.joint_names)
+        decode_imu(raw[robot.sensor_topic], robot.sensor_field)
+        decode_joint_states(raw[robot.joints_topic], robot.joint_names)
         return sum(len(v) for v in raw.values())
 
     def read_mcap_library() -> int:

@@ -30,9 +30,9 @@ from egovib_ros.bag import (
     compression_name,
     iter_recording,
 )
+from egovib_ros.bag.codec import imu_layout, replace_imu_field
 from egovib_ros.bag.many import BagJob, expand_bags, raise_if_bugs, run_bags, summary_lines
 from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
-from egovib_ros.bag.messages import imu_layout, replace_imu_field
 from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.cliutil import check_stream, int_in, nonneg_float
 from egovib_ros.core import CalibrationAccumulator, NoiseModel, StreamingDenoiser

@@ -3,7 +3,7 @@
 Stamps are int64 nanoseconds throughout, as in the core. The 3 kHz Imu and 1 kHz
 JointState streams have a fast path: nodes publish CDR bytes (rclpy's
 `Publisher.publish` takes bytes) and subscribe with `raw=True`, collecting bytes and
-decoding them in batches with the vectorised codec of egovib_ros.cdr. Nothing here
+decoding them in batches with the vectorised codec of egovib_ros.bag.codec. Nothing here
 knows a particular robot: joint names, the Imu field and frames come from the caller
 (the robot profile or the input messages).
 """
@@ -18,11 +18,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.cdr import (
-    decode_imu_batch,
-    decode_joint_state_batch,
+from egovib_ros.bag.codec import (
+    decode_imu,
+    decode_joint_states,
     encode_imu_batch,
     encode_joint_state_batch,
+    joint_state_layout,
 )
 from egovib_ros.errors import StreamError
 
@@ -40,9 +41,9 @@ __all__ = [
     "diagnostic_array",
     "diagnostic_values",
     "LEVELS",
-    # the codec of egovib_ros.cdr, for the nodes and their tests
-    "decode_imu_batch",
-    "decode_joint_state_batch",
+    # the codec of egovib_ros.bag.codec, for the nodes and their tests
+    "decode_imu",
+    "decode_joint_states",
     "encode_imu_batch",
     "encode_joint_state_batch",
 ]
@@ -90,14 +91,14 @@ def decode_imu_raws(
     so that only the bad messages are lost.
     """
     try:
-        stamps, values = decode_imu_batch(raws, field)
+        stamps, values = decode_imu(raws, field)
         return stamps, values, np.arange(len(raws))
     except Exception:  # noqa: BLE001 - any decoding failure: fall back to one by one
         pass
     stamps, values, index = [], [], []
     for i, raw in enumerate(raws):
         try:
-            stamp, value = decode_imu_batch([raw], field)
+            stamp, value = decode_imu([raw], field)
         except Exception:  # noqa: BLE001
             continue
         stamps.append(stamp[0])
@@ -127,14 +128,14 @@ def decode_joint_state_raws(
     of undecodable messages left out). Columns follow `names` (messages may list more
     joints, in any order); a joint a message lacks is NaN in its row."""
     try:
-        stamps, position, velocity, _ = decode_joint_state_batch(raws, names=names)
+        stamps, position, velocity = decode_joint_states(raws, names)
         return stamps, position, velocity, 0
     except Exception:  # noqa: BLE001 - decode one by one, leaving out the bad ones
         pass
     parts = []
     for raw in raws:
         try:
-            parts.append(decode_joint_state_batch([raw], names=names)[:3])
+            parts.append(decode_joint_states([raw], names))
         except Exception:  # noqa: BLE001
             continue
     if not parts:
@@ -161,7 +162,7 @@ def decode_joint_state_messages(
 def joint_names_of(raw: bytes) -> tuple[str, ...]:
     """The joint names a serialised JointState carries (for error messages); () if undecodable."""
     try:
-        return tuple(decode_joint_state_batch([raw])[3])
+        return joint_state_layout(raw)[0]
     except Exception:  # noqa: BLE001
         return ()
 

@@ -106,7 +106,7 @@ def _with_stamp(data: bytes, stamp: int) -> bytes:
 
 
 def _without_velocity(data: bytes) -> bytes:
-    from egovib_ros.cdr import JOINT_STATE_TYPE, typestore
+    from egovib_ros.bag.codec import JOINT_STATE_TYPE, typestore
 
     msg = typestore().deserialize_cdr(data, JOINT_STATE_TYPE)
     msg.velocity = np.zeros(0, np.float64)

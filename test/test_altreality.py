@@ -30,7 +30,7 @@ def test_shares_no_code_with_the_simulator():
         "dataclasses",
         "__future__",
         "egovib_ros.altreality",
-        "egovib_ros.bagio",
+        "egovib_ros.bag",
     }
     writer = PACKAGE / "__main__.py"
     tree = ast.parse(writer.read_text())

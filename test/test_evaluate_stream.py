@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from egovib_ros.bagio import read_recording, write_recording
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.evaluation import baselines, detection, metrics

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from egovib_ros.bagio import Recording
+from egovib_ros.bag import Recording
 from egovib_ros.constants import MAX_SPEED, default_grid
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.evaluation import baselines, metrics

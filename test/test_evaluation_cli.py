@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.bag import read_recording
-from egovib_ros.bagio import write_recording
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS

@@ -41,8 +41,8 @@ import numpy as np
 import pytest
 
 from egovib_ros import cli
-from egovib_ros.bagio import BagWriter, read_recording, write_recording
-from egovib_ros.cdr import encode_imu_batch, imu_field_offset
+from egovib_ros.bag import BagWriter, read_recording, write_recording
+from egovib_ros.bag.codec import encode_imu_batch, imu_field_offset
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 BAG_READER = (

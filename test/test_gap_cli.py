@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from egovib_ros.bagio import write_recording
+from egovib_ros.bag import write_recording
 from egovib_ros.cli import main
 from egovib_ros.gap.validate import calibrate_sim_model
 from egovib_ros.sim import simulate_motion

@@ -14,9 +14,9 @@ from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.bagio import read_recording, write_recording
-from egovib_ros.cdr import (
-    decode_imu_batch,
+from egovib_ros.bag import read_recording, write_recording
+from egovib_ros.bag.codec import (
+    decode_imu,
 )
 from egovib_ros.nodes.common import stream_publisher_qos
 from egovib_ros.orchestration import reliable_input
@@ -35,7 +35,7 @@ def bag_imu(
     with Reader(path) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         raws = [bytes(data) for _, _, data in reader.messages(connections=conns)]
-    return decode_imu_batch(raws, field)
+    return decode_imu(raws, field)
 
 
 def make_motion_bag(path: Path, seconds: float, seed: int) -> None:
@@ -191,7 +191,7 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
     assert ros_client.drain(raw, clock)  # what a loaded test process had not taken yet
     assert player.returncode == 0, nodes.log(player)
 
-    stamps, _ = decode_imu_batch(raw)
+    stamps, _ = decode_imu(raw)
     np.testing.assert_array_equal(stamps, want.accel_stamps_ns)
     # Paced at rate 2 (d/2 on the wall clock), seen through this process's callbacks (which a
     # loaded machine delays): not all at once, and faster than real time.
@@ -231,7 +231,7 @@ def test_player_plays_a_bag_written_topic_by_topic_in_log_time_order(nodes, ros_
     assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
     assert ros_client.drain(raw, joints, clock)
     assert player.returncode == 0, nodes.log(player)
-    stamps, _ = decode_imu_batch(raw)
+    stamps, _ = decode_imu(raw)
     np.testing.assert_array_equal(stamps, want.accel_stamps_ns)
     assert [header_stamp_ns(m) for m in joints] == want.joint_stamps_ns.tolist()
     clock = np.asarray(clock)

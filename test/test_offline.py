@@ -12,9 +12,8 @@ import pytest
 import robots
 from rosbags.rosbag2 import Reader
 
-from egovib_ros.bag import BagWriter
-from egovib_ros.bagio import bag_topics, read_recording, write_recording
-from egovib_ros.cdr import (
+from egovib_ros.bag import BagWriter, bag_topics, read_recording, write_recording
+from egovib_ros.bag.codec import (
     encode_imu_batch,
     encode_joint_state_batch,
     imu_field_offset,

@@ -88,7 +88,7 @@ def test_converter_round_trip_gives_the_samples_and_stamps(tmp_path):
 def test_converted_imu_is_rep145_with_the_gyro_in_angular_velocity(tmp_path):
     from rosbags.rosbag2 import Reader
 
-    from egovib_ros.cdr import typestore
+    from egovib_ros.bag.codec import typestore
 
     _small_npz(tmp_path / "log.npz", n=20)
     convert(tmp_path / "log.npz", tmp_path / "bag")

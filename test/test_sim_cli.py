@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from egovib_ros.bagio import bag_topics, read_recording
+from egovib_ros.bag import bag_topics, read_recording
 from egovib_ros.cli import main
 from egovib_ros.constants import BAG_TOPICS
 

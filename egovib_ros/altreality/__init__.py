@@ -25,7 +25,7 @@ the simulator's:
 * ``timing``:       joint-state stamps shifted by s seconds (either sign).
 
     simulate_alt_motion(duration_s=120, effects={"position": 1.0}, seed=0, tap_rate_hz=0.5)
-        -> (egovib_ros.bagio.Recording, truth dict)
+        -> (egovib_ros.bag.Recording, truth dict)
 """
 
 from egovib_ros.altreality.hand import (

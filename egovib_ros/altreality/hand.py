@@ -12,7 +12,7 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.altreality.motion import GRIPPER_LIMIT, WRIST_LIMIT, plan_motion, reversal_events
-from egovib_ros.bagio import Recording
+from egovib_ros.bag import Recording
 
 FS = 3000.0  # accelerometer output rate (Hz)
 JOINT_RATE = 1000.0  # joint_states rate (Hz)

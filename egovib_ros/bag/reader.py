@@ -19,8 +19,8 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
+from egovib_ros.bag.codec import MessageBatch
 from egovib_ros.bag.mcapfile import ChunkData, McapDamaged, McapFormatError, McapScanner
-from egovib_ros.bag.messages import MessageBatch
 from egovib_ros.errors import BagError
 
 

@@ -36,21 +36,22 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states
-from egovib_ros.bag.reader import BagReader, ReadBatch
-from egovib_ros.bag.writer import BagWriter
-from egovib_ros.cdr import (
+from egovib_ros.bag.codec import (
     COMMANDS_TYPE,
     IMU_TYPE,
     JOINT_STATE_TYPE,
+    MessageBatch,
     decode_commands,
+    decode_imu,
+    decode_joint_states,
     encode_commands,
     encode_imu_batch,
     encode_joint_state_batch,
-    hold_missing_joints,
 )
+from egovib_ros.bag.reader import BagReader, ReadBatch
+from egovib_ros.bag.writer import BagWriter
 from egovib_ros.constants import BAG_TOPICS
-from egovib_ros.core.velocity import JointVelocity
+from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile, load_profile
 

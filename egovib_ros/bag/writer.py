@@ -15,9 +15,8 @@ from typing import Iterable
 import numpy as np
 import yaml
 
+from egovib_ros.bag.codec import MessageBatch, typestore
 from egovib_ros.bag.mcapfile import ChunkData, McapWriter
-from egovib_ros.bag.messages import MessageBatch
-from egovib_ros.cdr import typestore
 from egovib_ros.errors import BagError
 
 COMPRESSIONS = ("none", "zstd")

@@ -193,3 +193,26 @@ class JointVelocity:
         use = ~np.isfinite(velocity) & np.isfinite(derived)
         self.derived += int(use.sum())
         return np.where(use, derived, velocity)
+
+
+def hold_missing_joints(
+    position: np.ndarray, velocity: np.ndarray, last: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Partial JointStates (robots where each controller publishes some of the joints):
+    a joint a message lacks (NaN in both columns, as `bag.codec.decode_joint_states` gives it)
+    keeps its last published value. `last` (2, J) carries position and velocity across
+    batches (None at the start: NaN until first seen). Returns (position, velocity, last).
+    Used alike by the bag layer offline and the nodes live."""
+    both = np.stack([position, velocity], axis=1)  # (M, 2, J)
+    if not len(both):
+        return position, velocity, last
+    present = ~(np.isnan(position) & np.isnan(velocity))
+    if present.all():
+        return position, velocity, both[-1].copy()
+    start = last if last is not None else np.full(both.shape[1:], np.nan)
+    rows = np.where(present[:, None, :], np.arange(len(both))[:, None, None], -1)
+    newest = np.maximum.accumulate(rows, axis=0)  # the last row holding each joint
+    filled = np.where(
+        newest >= 0, np.take_along_axis(both, np.maximum(newest, 0), axis=0), start[None]
+    )
+    return filled[:, 0], filled[:, 1], filled[-1]

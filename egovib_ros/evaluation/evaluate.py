@@ -298,7 +298,7 @@ def evaluate_recording(
     calibration_source: str = "calibration recording",
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
 ) -> dict:
-    """Metrics of every method on `rec` (a bagio.Recording with ground truth), pushed as one
+    """Metrics of every method on `rec` (a bag.Recording with ground truth), pushed as one
     slice through the streaming evaluation.
 
     calibration: a no-contact Recording (e.g. the calibration sweep or a no-contact

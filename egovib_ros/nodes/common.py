@@ -29,7 +29,7 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.cdr import hold_missing_joints
+from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.ros_convert import (
     decode_imu_raws,

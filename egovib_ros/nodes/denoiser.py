@@ -25,7 +25,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from egovib_ros.cdr import replace_imu_field
+from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.core import NoiseModel, StreamingDenoiser
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError

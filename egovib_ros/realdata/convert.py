@@ -36,7 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.cdr import IMU_TYPE, JOINT_STATE_TYPE, encode_imu_batch, encode_joint_state_batch
+from egovib_ros.bag.codec import (
+    IMU_TYPE,
+    JOINT_STATE_TYPE,
+    encode_imu_batch,
+    encode_joint_state_batch,
+)
 from egovib_ros.fileutil import atomic_output, prepare_output
 from egovib_ros.realdata import ATTRIBUTION
 from egovib_ros.realdata.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
@@ -92,7 +97,7 @@ def convert(
     npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotProfile | None = None
 ) -> dict:
     """Write the bag (atomically: nothing at `out` unless complete). Returns a summary."""
-    from egovib_ros.bagio import BagWriter
+    from egovib_ros.bag import BagWriter
 
     profile = profile or load_profile(PROFILE_NAME)
     log = load_flight_log(npz)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egovib_ros.bag import bag_topics, read_recording
-from egovib_ros.cdr import IMU_TYPE
+from egovib_ros.bag.codec import IMU_TYPE
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile
 
@@ -19,7 +19,7 @@ FILTERED_TOPIC = "/imu/data_filtered"
 
 @dataclass
 class FlightRecording:
-    """What the experiment needs of the bag (same attribute names as bagio.Recording)."""
+    """What the experiment needs of the bag (same attribute names as bag.Recording)."""
 
     accel_stamps_ns: np.ndarray  # (N,) sensor stamps (the profile's Imu topic)
     accel: np.ndarray  # (N, 3) the profile's field (here: gyro, rad/s)

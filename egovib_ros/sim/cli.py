@@ -6,7 +6,7 @@ import argparse
 import json
 
 from egovib_ros import cliutil
-from egovib_ros.bagio import write_recordings
+from egovib_ros.bag import write_recordings
 from egovib_ros.constants import ACCEL_FRAME
 from egovib_ros.errors import ConfigError
 from egovib_ros.fileutil import atomic_output, prepare_output

@@ -11,7 +11,7 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy import signal
 
-from egovib_ros.bagio import Recording
+from egovib_ros.bag import Recording
 from egovib_ros.constants import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.hand import HandSimulator, SimChunk

@@ -235,7 +235,7 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
     import shutil
     import tempfile
 
-    from egovib_ros.bagio import read_recording, write_recording
+    from egovib_ros.bag import read_recording, write_recording
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
     n_messages = 3 * len(rec.accel) + len(rec.joint_stamps_ns) + len(rec.commands)
