@@ -20,7 +20,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q -p no:cacheprovider test
 
 demo: $(STAMP)
-	$(PY) -m egovib_ros.demo
+	$(VENV)/bin/egovib demo
 
 bench: $(STAMP)
 	$(VENV)/bin/egovib bench --json docs/bench.json --force

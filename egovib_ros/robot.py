@@ -29,6 +29,9 @@ SCHEMA = "egovib.robot/1"
 PACKAGE = "egovib_ros"
 DEFAULT_PROFILE = "pr2_right_hand"
 SENSOR_FIELDS = ("linear_acceleration", "angular_velocity")
+#: The joint-velocity commands of any robot's sweep (ros2_control's forward-command
+#: convention; the simulated hand follows them too), relative to the node's namespace.
+COMMANDS_TOPIC = "hand_velocity_controller/commands"
 #: Where joint velocity comes from (`joints.velocity`; see core.velocity.JointVelocity).
 VELOCITY_SOURCES = ("auto", "measured", "from_position")
 MAX_JOINTS = 8

@@ -20,7 +20,7 @@ import pytest
 from hypothesis import settings
 
 from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.orchestration import NodeGroup
+from egovib_ros.tools.orchestration import NodeGroup
 
 # Property-based tests: "ci" (default) is deterministic and short enough for `make test`;
 # HYPOTHESIS_PROFILE=long draws many more examples for a local run.
@@ -166,7 +166,7 @@ class Feeder:
     def publish_joint_state(self) -> None:
         """One JointState stamped just before the stream: the node knows the joints before
         the first sensor sample (else it passes samples through until joint states come)."""
-        from egovib_ros.ros_convert import encode_joint_state_batch
+        from egovib_ros.nodes.convert import encode_joint_state_batch
 
         names = self.joint_names
         for data in encode_joint_state_batch(
@@ -199,7 +199,7 @@ class Feeder:
     ) -> None:
         """Publish recorded arrays at their own pace (stamps relative to the first); velocities
         are of the profile's joints unless `all_joints` (then of `joint_names`)."""
-        from egovib_ros.ros_convert import encode_imu_batch, encode_joint_state_batch
+        from egovib_ros.nodes.convert import encode_imu_batch, encode_joint_state_batch
 
         names = self.joint_names
         if not all_joints:

@@ -29,8 +29,9 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from egovib_ros.bag import read_recording, write_recording
+from egovib_ros.bag.calibrate import calibrate_bag
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import calibrate_arrays, denoise_batch
-from egovib_ros.offline import calibrate_bag, denoise_bag
 
 RATES = (50.0, 120.0, 250.0, 1000.0, 2000.0, 3000.0, 8000.0, 10_000.0)
 

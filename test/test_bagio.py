@@ -22,9 +22,9 @@ from egovib_ros.bag import (
 )
 from egovib_ros.bag.codec import joint_state_layout
 from egovib_ros.bag.many import expand_bags
-from egovib_ros.constants import BAG_TOPICS, JOINT_NAMES
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.robot import RobotProfile
+from egovib_ros.sim.pr2 import BAG_TOPICS, JOINT_NAMES
 
 
 def _random_recording(seed: int = 0, seconds: float = 0.5, with_truth: bool = True) -> Recording:

@@ -6,9 +6,9 @@ import pytest
 from scipy import signal
 
 from egovib_ros.bag import Recording
-from egovib_ros.constants import MAX_SPEED, default_grid
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.evaluation import baselines, metrics
+from egovib_ros.sim.pr2 import MAX_SPEED, default_grid
 
 FS = 3000.0
 

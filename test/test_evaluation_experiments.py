@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from egovib_ros.core import calibrate_arrays, denoise_batch
-from egovib_ros.evaluation import baselines, experiments
+from egovib_ros.evaluation import baselines
 from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS
+from egovib_ros.experiments import paper as experiments
 
 SPEEDS = (0.25, 0.5)
 

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from egovib_ros.fileutil import (
+from egovib_ros.outputs import (
     MARKER,
     PARTIAL_MARKER,
     OutputError,
@@ -185,7 +185,7 @@ def test_missing_parent_directories_are_fine(cwd):
 # Claims an output in another process, says so, and holds it until stdin closes.
 _HOLDER = """
 import sys
-from egovib_ros.fileutil import prepare_output
+from egovib_ros.outputs import prepare_output
 prepare_output(sys.argv[1], kind="bag")
 print("claimed", flush=True)
 sys.stdin.read()

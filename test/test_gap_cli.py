@@ -10,7 +10,7 @@ import pytest
 
 from egovib_ros.bag import write_recording
 from egovib_ros.cli import main
-from egovib_ros.gap.validate import calibrate_sim_model
+from egovib_ros.experiments.gap_validation import calibrate_sim_model
 from egovib_ros.sim import simulate_motion
 
 CONTRACT_KEYS = {
@@ -201,8 +201,8 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
 def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
     """Past the block budget the diagnosis keeps one run of blocks in every k over the
     whole bag (memory and time stop growing); the kept blocks are the whole table's."""
+    from egovib_ros.cli.gap import BUDGET_MINUTES
     from egovib_ros.core import NoiseModel
-    from egovib_ros.gap.cli import BUDGET_MINUTES
     from egovib_ros.gap.effects import LAG_RANGE_S
     from egovib_ros.gap.features import (
         DEFAULT_BUDGET_MINUTES,

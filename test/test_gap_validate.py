@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import json
 
-from egovib_ros.gap.effects import EFFECTS
-from egovib_ros.gap.pipeline import diagnose_recording
-from egovib_ros.gap.simref import simulator_reference_lag
-from egovib_ros.gap.validate import (
+from egovib_ros.experiments.gap_validation import (
     MISCALIBRATED,
     REALITIES,
     SHAPE_DIFFERS,
@@ -18,6 +15,9 @@ from egovib_ros.gap.validate import (
     run_validation,
     shape_differs_params,
 )
+from egovib_ros.gap.effects import EFFECTS
+from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.simref import simulator_reference_lag
 
 
 def test_plan_is_blind_and_covers_every_class():

@@ -19,10 +19,10 @@ from egovib_ros.bag.codec import (
     decode_imu,
 )
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import reliable_input
+from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import diagnostic_values, stamp_to_ns
 from egovib_ros.sim import simulate_motion
+from egovib_ros.tools.orchestration import reliable_input
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 REPO = Path(__file__).resolve().parents[1]

@@ -14,8 +14,8 @@ from robots import profile, recording
 
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
-from egovib_ros.orchestration import reliable_input
-from egovib_ros.ros_convert import diagnostic_values
+from egovib_ros.nodes.convert import diagnostic_values
+from egovib_ros.tools.orchestration import reliable_input
 
 EGOVIB = str(Path(sys.executable).parent / "egovib")
 SWEEP = {"grid": "superposition", "dwell": 0.3, "settle": 0.2}

@@ -27,14 +27,14 @@ from sensor_msgs.msg import Imu
 
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import reliable_input
-from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import (
+from egovib_ros.nodes.convert import (
     command_message,
     decode_imu_messages,
     diagnostic_values,
     encode_imu_batch,
 )
+from egovib_ros.robot import load_profile
+from egovib_ros.tools.orchestration import reliable_input
 
 PR2 = load_profile()  # the simulated hand; sim_model_path is calibrated on it
 BIN = Path(sys.executable).parent

@@ -20,8 +20,8 @@ from egovib_ros.bag.codec import (
     joint_state_message,
     typestore,
 )
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
-from egovib_ros.offline import denoise_bag
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion, simulate_sweep
 

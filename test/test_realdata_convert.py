@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from egovib_ros.cli import main as egovib
-from egovib_ros.realdata.convert import FILTERED_TOPIC, convert, motor_positions
-from egovib_ros.realdata.flightlog import MOTOR_NAMES, FlightLogError, load_flight_log
-from egovib_ros.realdata.recording import read_flight_bag
+from egovib_ros.experiments.flight.convert import FILTERED_TOPIC, convert, motor_positions
+from egovib_ros.experiments.flight.flightlog import MOTOR_NAMES, FlightLogError, load_flight_log
+from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 
 REPO = Path(__file__).resolve().parents[1]
@@ -166,7 +166,7 @@ def test_converter_module_main(tmp_path):
         [
             sys.executable,
             "-m",
-            "egovib_ros.realdata.convert",
+            "egovib_ros.experiments.flight.convert",
             str(tmp_path / "log.npz"),
             "--out",
             str(tmp_path / "bag"),

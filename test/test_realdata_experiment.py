@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from egovib_ros.cli import main as egovib
-from egovib_ros.realdata.events import EventSpec
-from egovib_ros.realdata.experiment import RealConfig, run_experiment, run_fold
-from egovib_ros.realdata.recording import read_flight_bag
+from egovib_ros.experiments.flight.events import EventSpec
+from egovib_ros.experiments.flight.experiment import RealConfig, run_experiment, run_fold
+from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 
 REPO = Path(__file__).resolve().parents[1]

@@ -4,16 +4,20 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from egovib_ros.realdata.events import EventSpec, make_events
-from egovib_ros.realdata.methods import build_methods, combined_bandpassed, single_joint_profile
-from egovib_ros.realdata.notch import (
+from egovib_ros.experiments.flight.events import EventSpec, make_events
+from egovib_ros.experiments.flight.methods import (
+    build_methods,
+    combined_bandpassed,
+    single_joint_profile,
+)
+from egovib_ros.experiments.flight.notch import (
     HarmonicNotchBank,
     SpeedFrequencyMap,
     fit_speed_frequency_map,
     fold,
     notch_sos,
 )
-from egovib_ros.realdata.recording import FlightRecording
+from egovib_ros.experiments.flight.recording import FlightRecording
 from egovib_ros.robot import load_profile
 
 FS = 1000.0

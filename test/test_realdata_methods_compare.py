@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.realdata.methods_compare import flight_checks, pool, waveform_correlation
+from egovib_ros.experiments.flight.methods_compare import flight_checks, pool, waveform_correlation
 
 
 def test_waveform_correlation_is_per_event_and_ignores_silent_windows():

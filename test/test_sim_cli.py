@@ -10,7 +10,7 @@ import numpy as np
 
 from egovib_ros.bag import bag_topics, read_recording
 from egovib_ros.cli import main
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.sim.pr2 import BAG_TOPICS
 
 
 def test_simulate_motion_bag_and_truth(tmp_path):

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.constants import EFFECT_NAMES, GRIPPER_GAP_RANGE_M, MAX_SPEED
-from egovib_ros.sim import HandSimulator, SimParams
-from egovib_ros.sim.validation import (
+from egovib_ros.experiments.sim_validation import (
     BAND_BINS,
     bandpass_combined,
     block_magnitudes,
     sweep_cell_stats,
 )
+from egovib_ros.sim import HandSimulator, SimParams
+from egovib_ros.sim.pr2 import EFFECT_NAMES, GRIPPER_GAP_RANGE_M, MAX_SPEED
 
 FS = 3000
 FIELDS = (

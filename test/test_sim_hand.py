@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.constants import GRIPPER_GAP_RANGE_M, JOINT_RATE_HZ, MAX_SPEED
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim import HandSimulator, SimParams
 from egovib_ros.sim.hand import LSB_MS2, quantise
+from egovib_ros.sim.pr2 import GRIPPER_GAP_RANGE_M, JOINT_RATE_HZ, MAX_SPEED
 
 FIELDS = (
     "accel_stamps_ns",
@@ -116,7 +116,7 @@ def test_velocity_controller_is_smooth(params):
 
 
 def test_stationary_background_is_small_and_vibration_grows_with_speed(params):
-    from egovib_ros.sim.validation import bandpass_combined
+    from egovib_ros.experiments.sim_validation import bandpass_combined
 
     levels = []
     for frac in (0.0, 0.3, 1.0):

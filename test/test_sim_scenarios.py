@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.constants import GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim import motion_commands, simulate_motion, simulate_sweep, sweep_cells
+from egovib_ros.sim.pr2 import GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 
 
 def test_sweep_cells():

@@ -50,13 +50,11 @@ from egovib_ros.bag.codec import (
 )
 from egovib_ros.bag.reader import BagReader, ReadBatch
 from egovib_ros.bag.writer import BagWriter
-from egovib_ros.constants import BAG_TOPICS
 from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
 from egovib_ros.errors import BagError
-from egovib_ros.robot import RobotProfile, load_profile
+from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile, load_profile
 
 LOG = logging.getLogger("egovib_ros.bag")
-COMMANDS_TOPIC = BAG_TOPICS["commands"]  # ros2_control forward-command topic (sim, sweeps)
 
 
 @lru_cache(maxsize=1)
@@ -104,7 +102,7 @@ def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
         "joint_states": profile.joints_topic,
         "contact": f"{head}/contact",
         "ego": f"{head}/ego",
-        "commands": COMMANDS_TOPIC,
+        "commands": f"/{COMMANDS_TOPIC}",
     }
 
 

@@ -707,6 +707,17 @@ class NoiseModel:
         return out[None], np.array([outside]), bool(measured_grid[nearest])
 
     # --- copies ---------------------------------------------------------------------
+    def robot_profile(self) -> RobotProfile:
+        """The robot profile the model was calibrated with (topics, field, joints); a
+        one-line ConfigError for a model that carries none."""
+        if self.profile is None:
+            raise ConfigError(
+                f"{self.provenance.get('path', 'noise model')}: the model carries no robot "
+                f"profile (topics, Imu field); calibrate it again with `egovib calibrate --robot "
+                f"PROFILE`"
+            )
+        return self.profile
+
     def replace(self, **changes) -> "NoiseModel":
         """A copy with some fields changed (dense `mean`/`std`/`counts` for small grids)."""
         fields = dict(

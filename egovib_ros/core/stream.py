@@ -78,6 +78,34 @@ def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> No
         )
 
 
+def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | None = None) -> str:
+    """Refuse a recording the core found mostly unusable; else the line of counts to print.
+
+    stats: of calibrate_arrays / denoise_batch. Refused (one-line StreamError naming
+    `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
+    (non-finite, beyond the sensor range, out of order), or of the `joint_states`
+    messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
+    """
+    limit = MAX_BAD_SHARE if limit is None else limit
+    check_bad_share(stats, where, limit)
+    dropped = int(stats.get("joint_states_dropped", 0))
+    if joint_states and dropped > limit * joint_states:
+        raise StreamError(
+            f"{where}: {dropped} of {joint_states} joint states "
+            f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
+            f"not "
+            f"stamped after the previous one: a stuck clock?); more than "
+            f"{100 * limit:g} % is refused"
+        )
+    return (
+        f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
+        f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
+        f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
+        f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
+        f"dropped"
+    )
+
+
 @dataclass(frozen=True, kw_only=True)
 class FramerSettings:
     """How a sensor stream is cleaned, filtered and cut into blocks. Every field is

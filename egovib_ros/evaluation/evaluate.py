@@ -341,9 +341,8 @@ def evaluate_bag(
     the bag's own (tests). `progress(bytes)` as the bag is read (all passes together
     count as its size once)."""
     from egovib_ros.bag import iter_recording
-    from egovib_ros.offline import model_profile
 
-    profile = model_profile(model)
+    profile = model.robot_profile()
     passes = 2 if calibration is not None else 3
     size_share = None if progress is None else (lambda n: progress(n / passes))
 

@@ -833,7 +833,7 @@ def table_from_blocks(
     """The table from the framed blocks and the (usable, model-ordered) joint states.
     More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
     StreamError) before anything else is said about the data."""
-    from egovib_ros.cliutil import check_stream
+    from egovib_ros.core.stream import check_stream
 
     magnitude, first_ns, last_ns, v_core = framing.finish()
     counts = {k: v for k, v in framing.stats.items() if isinstance(v, (int, float))}

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 from egovib_ros.errors import BagError, EgovibError
-from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.diagnose import Diagnosis, diagnose
 from egovib_ros.gap.effects import LAG_COARSE_S, LAG_TOLERANCE_S
 from egovib_ros.gap.features import (
@@ -20,6 +19,7 @@ from egovib_ros.gap.features import (
     table_from_bag,
 )
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
+from egovib_ros.outputs import atomic_output
 
 
 class GapDataError(EgovibError):

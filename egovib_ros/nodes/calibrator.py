@@ -29,7 +29,6 @@ from rclpy.node import Node
 
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.fileutil import atomic_output
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -38,6 +37,7 @@ from egovib_ros.nodes.common import (
     run_node,
     stream_counters,
 )
+from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import load_profile
 
 # The two topics come on separate DDS readers: on a busy machine (e.g. while another

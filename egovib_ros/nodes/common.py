@@ -31,7 +31,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.ros_convert import (
+from egovib_ros.nodes.convert import (
     decode_imu_raws,
     decode_joint_state_raws,
     diagnostic_array,

@@ -38,7 +38,6 @@ from egovib_ros.nodes.common import (
     stream_counters,
     stream_publisher_qos,
 )
-from egovib_ros.robot import RobotProfile
 
 LIVE = ("oversubtraction", "floor")
 # The core checks the stream's rate once it has accepted 2 blocks' worth of samples
@@ -176,17 +175,6 @@ class HeldInput:
         return n
 
 
-def model_profile(model: NoiseModel) -> RobotProfile:
-    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2
-    hand)."""
-    if model.profile is None:
-        raise ConfigError(
-            f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
-            f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`"
-        )
-    return model.profile
-
-
 class Denoiser(Node):
     def __init__(self):
         super().__init__("denoiser")
@@ -194,7 +182,7 @@ class Denoiser(Node):
         if not first["model"]:
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
         self.model = NoiseModel.load(first["model"])
-        self.profile = model_profile(self.model)
+        self.profile = self.model.robot_profile()
         params = declare_parameters(
             self, PARAMETERS[len(MODEL_PARAMETERS) :], defaults={"batch_samples": self.model.hop}
         )

@@ -14,13 +14,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.constants import (
-    ACCEL_FRAME,
-    ACCEL_RATE_HZ,
-    TOPIC_COMMANDS,
-    TOPIC_CONTACT,
-    TOPIC_EGO,
-)
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.common import (
     Health,
@@ -30,10 +23,17 @@ from egovib_ros.nodes.common import (
     run_node,
     stream_publisher_qos,
 )
+from egovib_ros.nodes.convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.sim import HandSimulator, SimParams, format_effects, parse_effects
 from egovib_ros.sim.params import default_config_path
+from egovib_ros.sim.pr2 import (
+    ACCEL_FRAME,
+    ACCEL_RATE_HZ,
+    TOPIC_COMMANDS,
+    TOPIC_CONTACT,
+    TOPIC_EGO,
+)
 
 _NS = 1_000_000_000
 PR2 = load_profile()  # the simulated robot: joint names and topics

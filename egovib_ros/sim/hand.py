@@ -48,7 +48,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.constants import (
+from egovib_ros.errors import ConfigError
+from egovib_ros.sim.params import JointVibration, SimParams, validate_effects
+from egovib_ros.sim.pr2 import (
     ACCEL_BITS,
     ACCEL_RANGE_MS2,
     ACCEL_RATE_HZ,
@@ -58,8 +60,6 @@ from egovib_ros.constants import (
     JOINT_RATE_HZ,
     MAX_SPEED,
 )
-from egovib_ros.errors import ConfigError
-from egovib_ros.sim.params import JointVibration, SimParams, validate_effects
 
 LSB_MS2 = 2.0 * ACCEL_RANGE_MS2 / 2**ACCEL_BITS
 HUM_PERIOD = 32  # samples: hum lines on multiples of fs/32

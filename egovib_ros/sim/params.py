@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,9 +11,9 @@ from typing import Any
 
 import yaml
 
-from egovib_ros.constants import EFFECT_NAMES
 from egovib_ros.errors import ConfigError
 from egovib_ros.robot import config_dir
+from egovib_ros.sim.pr2 import EFFECT_NAMES
 
 
 def default_config_path() -> Path:
@@ -204,6 +205,30 @@ def validate_effects(effects: dict[str, Any], *, source: str = "effects") -> dic
         if strength != 0.0:
             out[name] = strength
     return out
+
+
+# Effect strengths the simulator models sensibly (sim/hand.py):
+# position scales a source by 1 + s cos(...), so |s| <= 1 keeps it non-negative;
+# coupling/acceleration/drift are gains (>= 0); timing is a clock offset in seconds.
+EFFECT_RANGES: dict[str, tuple[float, float]] = {
+    "position": (-1.0, 1.0),
+    "coupling": (0.0, 100.0),
+    "acceleration": (0.0, 100.0),
+    "timing": (-1.0, 1.0),
+    "drift": (0.0, 100.0),
+}
+
+
+def check_effects(effects: dict[str, float], *, source: str = "--effects") -> dict[str, float]:
+    """Raise ConfigError unless every strength is finite and within EFFECT_RANGES."""
+    for name, strength in effects.items():
+        if not math.isfinite(strength):
+            raise ConfigError(f"{source}: {name}={strength!r}: strength must be finite")
+        low, high = EFFECT_RANGES.get(name, (-math.inf, math.inf))
+        if not low <= strength <= high:
+            unit = " s" if name == "timing" else ""
+            raise ConfigError(f"{source}: {name}={strength:g} is outside [{low:g}, {high:g}]{unit}")
+    return effects
 
 
 def parse_effects(spec: str | None) -> dict[str, float]:

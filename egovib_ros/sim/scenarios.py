@@ -12,10 +12,10 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.bag import Recording
-from egovib_ros.constants import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.hand import HandSimulator, SimChunk
 from egovib_ros.sim.params import SimParams
+from egovib_ros.sim.pr2 import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 
 CHUNK = 3000  # samples per simulator step in offline runs (1 s)
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.fileutil import atomic_output
-from egovib_ros.realdata.methods import LABELS
+from egovib_ros.experiments.flight.methods import LABELS
+from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import RobotProfile
 
 BASELINES = ("global", "mean_command", "notch_q5", "notch_q2")

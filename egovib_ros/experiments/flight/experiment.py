@@ -44,10 +44,15 @@ import numpy as np
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
-from egovib_ros.realdata import ATTRIBUTION
-from egovib_ros.realdata.events import EventSpec, make_events
-from egovib_ros.realdata.methods import LABELS, METHODS, build_methods, combined_bandpassed
-from egovib_ros.realdata.recording import FlightRecording, read_flight_bag
+from egovib_ros.experiments.flight import ATTRIBUTION
+from egovib_ros.experiments.flight.events import EventSpec, make_events
+from egovib_ros.experiments.flight.methods import (
+    LABELS,
+    METHODS,
+    build_methods,
+    combined_bandpassed,
+)
+from egovib_ros.experiments.flight.recording import FlightRecording, read_flight_bag
 from egovib_ros.robot import RobotProfile, load_profile
 
 SCHEMA = "egovib.real/1"
@@ -456,8 +461,8 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.fileutil import prepare_outputs_in
-    from egovib_ros.realdata import report as report_module
+    from egovib_ros.experiments.flight import report as report_module
+    from egovib_ros.outputs import prepare_outputs_in
 
     # before any work: never replace what this command did not write
     prepare_outputs_in(

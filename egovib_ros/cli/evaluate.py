@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros import cliutil
 from egovib_ros.bag.reader import bag_fingerprint
+from egovib_ros.cli import options
+from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
@@ -25,8 +26,7 @@ from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
     evaluate_recording,
     require_ground_truth,
 )
-from egovib_ros.fileutil import atomic_output, prepare_output, prepare_outputs_in
-from egovib_ros.offline import parallel_options
+from egovib_ros.outputs import atomic_output, prepare_output, prepare_outputs_in
 
 __all__ = ["evaluate_recording", "register"]
 
@@ -77,7 +77,6 @@ def json_jobs(specs: list[str], out: str) -> list:
     """One bag given as such -> `out` is the JSON file (CONTRACT); several bags or a
     directory -> `out` is a directory holding <bag name>.json per bag (the bag's path
     relative to the directory it was found in, e.g. OUT/day1/run0.json)."""
-    from egovib_ros.offline import output_jobs
 
     return output_jobs(specs, out, suffix=".json", option="--json")
 
@@ -135,10 +134,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from egovib_ros.bag.many import run_bags
     from egovib_ros.core import NoiseModel
     from egovib_ros.evaluation import baselines
-    from egovib_ros.offline import model_profile, report_results
 
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
-    model_profile(model)
+    model.robot_profile()
     calibration_path = _calibration_bag(args, model)
     jobs = json_jobs(args.bags, args.json)
     for job in jobs:  # before any work: every JSON may be written (or replaced with --force)
@@ -185,7 +183,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_figures(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from egovib_ros.evaluation import experiments, figures
+    from egovib_ros.experiments import paper as experiments
+    from egovib_ros.experiments import paper_figures as figures
 
     out = prepare_outputs_in(args.out, FIGURE_OUTPUTS, force=args.force)  # before any work
     config = experiments.ExperimentConfig(seed=args.seed)
@@ -260,7 +259,7 @@ def register(subparsers) -> None:
     ev.add_argument("--methods", help="comma list of methods (default: all that can run)")
     ev.add_argument(
         "--max-bad-fraction",
-        type=cliutil.fraction,
+        type=options.fraction,
         default=metrics.MAX_BAD_FRACTION,
         metavar="FRACTION",
         help="refuse a recording with more bad (non-finite or out-of-range) samples "
@@ -278,7 +277,7 @@ def register(subparsers) -> None:
         "all methods) and write eval_results.md/.json and eval_*.png.",
     )
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")
-    fig.add_argument("--seed", type=cliutil.seed, default=1)
+    fig.add_argument("--seed", type=options.seed, default=1)
     fig.add_argument("--quick", action="store_true", help="small run (for tests)")
     fig.add_argument(
         "--force", action="store_true", help="replace the files of a previous run in DIR"

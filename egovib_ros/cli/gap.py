@@ -7,9 +7,9 @@ import argparse
 import functools
 import sys
 
-from egovib_ros import cliutil
+from egovib_ros.cli import options
 from egovib_ros.errors import ConfigError
-from egovib_ros.fileutil import prepare_output, prepare_outputs_in
+from egovib_ros.outputs import prepare_output, prepare_outputs_in
 
 #: gap.features.DEFAULT_BUDGET_MINUTES (tested equal; not imported: the CLI starts
 #: without numpy and scipy)
@@ -52,27 +52,27 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--reference-lag",
-        type=cliutil.float_in(-1.0, 1.0),
+        type=options.float_in(-1.0, 1.0),
         metavar="SECONDS",
         help="lag between joint states and vibration that counts as in sync (default: "
         "measured on the simulator for this robot's model, else 0)",
     )
     parser.add_argument(
         "--folds",
-        type=cliutil.int_in(2, 20),
+        type=options.int_in(2, 20),
         default=5,
         help="blocked cross-validation in time: contiguous folds, each held out once (default 5)",
     )
     parser.add_argument(
         "--train-fraction",
-        type=cliutil.float_in(0.2, 0.9),
+        type=options.float_in(0.2, 0.9),
         default=None,
         help="instead of cross-validation: fit on this leading share of the recording "
         "(0.2 .. 0.9), test on the rest",
     )
     parser.add_argument(
         "--budget-minutes",
-        type=cliutil.float_in(1.0, 1e6),
+        type=options.float_in(1.0, 1e6),
         default=BUDGET_MINUTES,
         metavar="MINUTES",
         help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
@@ -93,29 +93,29 @@ def register(subparsers) -> None:
         "on our simulator (validate)",
     )
     val.add_argument(
-        "--seeds", type=cliutil.positive_int, default=5, help="seeds per effect class (validate)"
+        "--seeds", type=options.positive_int, default=5, help="seeds per effect class (validate)"
     )
     val.add_argument(
         "--master-seed",
-        type=cliutil.int_in(0, 2**31),
+        type=options.int_in(0, 2**31),
         default=2026,
         help="seed from which all runs' classes, strengths and seeds are drawn (validate)",
     )
     val.add_argument(
         "--extra-none",
-        type=cliutil.int_in(0, 1000),
+        type=options.int_in(0, 1000),
         default=0,
         help="this many more bags of every `none` class, for the false-positive rate (validate)",
     )
     val.add_argument(
         "--duration",
-        type=cliutil.float_in(30.0, 3600.0),
+        type=options.float_in(30.0, 3600.0),
         default=120.0,
         help="seconds per blind real bag, 30 .. 3600 (validate)",
     )
     val.add_argument(
         "--jobs",
-        type=cliutil.positive_int,
+        type=options.positive_int,
         default=1,
         help="parallel worker processes (validate; or bags diagnosed at once: a local Dask "
         "cluster)",
@@ -140,7 +140,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "validate":
-        from egovib_ros.gap.validate import output_names, run_validation
+        from egovib_ros.experiments.gap_validation import output_names, run_validation
 
         if args.scheduler:
             raise ConfigError(
@@ -181,9 +181,9 @@ def run(args: argparse.Namespace) -> int:
             f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
         )
     from egovib_ros.bag.many import run_bags
+    from egovib_ros.cli.jobs import output_jobs, report_results
     from egovib_ros.core.noise_model import NoiseModel
     from egovib_ros.gap.pipeline import reference_lag_for
-    from egovib_ros.offline import output_jobs, report_results
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
     jobs = output_jobs(args.real, args.out)

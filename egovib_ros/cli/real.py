@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from egovib_ros.realdata import convert
+from egovib_ros.experiments.flight import convert
 
 
 def register(subparsers) -> None:
@@ -29,7 +29,7 @@ def register(subparsers) -> None:
     )
     convert.add_arguments(conv)
     conv.set_defaults(func=convert.run)
-    from egovib_ros.realdata import experiment
+    from egovib_ros.experiments.flight import experiment
 
     ev = commands.add_parser(
         "evaluate",
@@ -40,7 +40,7 @@ def register(subparsers) -> None:
     )
     experiment.add_arguments(ev)
     ev.set_defaults(func=experiment.run)
-    from egovib_ros.gap import flight
+    from egovib_ros.experiments import gap_flight as flight
 
     gap = commands.add_parser(
         "gap",
@@ -54,7 +54,7 @@ def register(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.realdata.cli ...` = `egovib real ...`."""
+    """`python -m egovib_ros.cli.real ...` = `egovib real ...`."""
     from egovib_ros.cli import main as egovib_main
 
     return egovib_main(["real", *(sys.argv[1:] if argv is None else argv)])

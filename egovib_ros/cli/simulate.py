@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 
-from egovib_ros import cliutil
 from egovib_ros.bag import write_recordings
-from egovib_ros.constants import ACCEL_FRAME
+from egovib_ros.cli import options
 from egovib_ros.errors import ConfigError
-from egovib_ros.fileutil import atomic_output, prepare_output
+from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.sim.params import SimParams
+from egovib_ros.sim.pr2 import ACCEL_FRAME
 from egovib_ros.sim.scenarios import motion_slices, sweep_cells, sweep_slices
 
 
@@ -32,12 +32,12 @@ def register(subparsers) -> None:
         p.add_argument(
             "--effects",
             default={},
-            type=cliutil.effects_spec,
+            type=options.effects_spec,
             metavar="SPEC",
             help="comma list name=strength over position, coupling, acceleration, timing, drift "
             "(e.g. position=0.5,timing=0.03); never written into the bag",
         )
-        p.add_argument("--seed", type=cliutil.seed, default=0, help=f"0 .. {cliutil.MAX_SEED}")
+        p.add_argument("--seed", type=options.seed, default=0, help=f"0 .. {options.MAX_SEED}")
         p.add_argument(
             "--truth",
             metavar="FILE",
@@ -71,21 +71,21 @@ def register(subparsers) -> None:
     )
     sweep.add_argument(
         "--dwell",
-        type=cliutil.positive_float,
+        type=options.positive_float,
         required=True,
         metavar="SECONDS",
         help="recorded time per cell",
     )
     sweep.add_argument(
         "--settle",
-        type=cliutil.nonneg_float,
+        type=options.nonneg_float,
         default=1.0,
         metavar="SECONDS",
         help="time per cell for the controller to settle before the dwell (default 1.0)",
     )
     sweep.add_argument(
         "--taps",
-        type=cliutil.nonneg_float,
+        type=options.nonneg_float,
         default=0.0,
         metavar="RATE_HZ",
         help="tap rate (default 0)",
@@ -94,16 +94,16 @@ def register(subparsers) -> None:
     sweep.set_defaults(func=run)
 
     motion = scen.add_parser("motion", help="random smooth motion with taps (paper section 4)")
-    motion.add_argument("--duration", type=cliutil.positive_float, required=True, metavar="SECONDS")
+    motion.add_argument("--duration", type=options.positive_float, required=True, metavar="SECONDS")
     motion.add_argument(
         "--max-speed",
-        type=cliutil.positive_fraction,
+        type=options.positive_fraction,
         required=True,
         metavar="FRACTION",
         help="commands stay within this fraction of each joint's max speed",
     )
     motion.add_argument(
-        "--taps", type=cliutil.nonneg_float, required=True, metavar="RATE_HZ", help="mean tap rate"
+        "--taps", type=options.nonneg_float, required=True, metavar="RATE_HZ", help="mean tap rate"
     )
     common(motion)
     motion.set_defaults(func=run)

@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egovib_ros.constants import BLOCK_LENGTH, HOP
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.evaluation import baselines, metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
+from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
 EXPERIMENTS = {
@@ -515,12 +515,12 @@ def results_markdown(results: dict) -> str:
 def validation_figures(results: dict, out_dir) -> list:
     """Paper Fig. 3 (noise spectra per cell) and Fig. 4 (Eq. 6 superposition error) analogues.
 
-    Drawn by egovib_ros.sim.validation from a full-grid simulated sweep.
+    Drawn by egovib_ros.experiments.sim_validation from a full-grid simulated sweep.
     """
     from pathlib import Path
 
-    from egovib_ros.fileutil import atomic_output
-    from egovib_ros.sim import validation
+    from egovib_ros.experiments import sim_validation as validation
+    from egovib_ros.outputs import atomic_output
 
     config = results["config"]
     out_dir = Path(out_dir)

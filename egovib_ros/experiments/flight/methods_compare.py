@@ -1,6 +1,6 @@
 """`paper`, `cancel` and `hybrid` side by side, on the real flight and on the simulated PR2.
 
-    python -m egovib_ros.realdata.methods_compare --out DIR [--cache DIR] [--event-sets 5]
+    python -m egovib_ros.experiments.flight.methods_compare --out DIR [--cache DIR] [--event-sets 5]
 
 Flight (bags/quadcopter_ar8, profile `quadcopter`): three splits, each calibrated on one
 time range and tested on another, never the same -
@@ -56,10 +56,10 @@ from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.realdata import ATTRIBUTION
-from egovib_ros.realdata.events import EventSpec, make_events
-from egovib_ros.realdata.methods import build_methods, combined_bandpassed
-from egovib_ros.realdata.recording import read_flight_bag
+from egovib_ros.experiments.flight import ATTRIBUTION
+from egovib_ros.experiments.flight.events import EventSpec, make_events
+from egovib_ros.experiments.flight.methods import build_methods, combined_bandpassed
+from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 
 LOG = logging.getLogger("egovib_ros.methods_compare")
@@ -324,7 +324,7 @@ def flight_checks(splits: dict) -> dict:
 def pr2_data(cache: Path | None):
     """The published experiment setup (evaluation.experiments, seed 1): models, the sweep,
     and per speed (calibration, (a), taps, ego) recordings. Cached as a pickle if asked."""
-    from egovib_ros.evaluation.experiments import ExperimentConfig, build_models, motion
+    from egovib_ros.experiments.paper import ExperimentConfig, build_models, motion
 
     config = ExperimentConfig()
     path = cache / f"pr2_seed{config.seed}.pkl" if cache else None
@@ -383,7 +383,7 @@ def _pr2_output(rec, model, method: str) -> np.ndarray:
 
 def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dict:
     from egovib_ros.evaluation.baselines import combined_bandpassed as bp
-    from egovib_ros.evaluation.experiments import added_taps_recording
+    from egovib_ros.experiments.paper import added_taps_recording
 
     config, models, recordings = pr2_data(cache)
     sweep = models.sweep
@@ -723,7 +723,7 @@ def main(argv: list[str] | None = None) -> int:
             for a in [
                 "python",
                 "-m",
-                "egovib_ros.realdata.methods_compare",
+                "egovib_ros.experiments.flight.methods_compare",
                 *(argv or sys.argv[1:]),
             ]
         ),

@@ -34,14 +34,15 @@ if TYPE_CHECKING:
 
 # Order = order in `egovib --help`.
 COMMAND_MODULES = (
-    "egovib_ros.sim.cli",  # simulate sweep|motion
-    "egovib_ros.offline",  # calibrate, denoise
-    "egovib_ros.evaluation.cli",  # evaluate, figures
-    "egovib_ros.gap.cli",  # gap, gap validate
-    "egovib_ros.bench",  # bench
-    "egovib_ros.realdata.cli",  # real convert|evaluate
-    "egovib_ros.demo",  # demo (live, ROS 2 nodes)
-    "egovib_ros.live_bench",  # live-bench (live, ROS 2 nodes)
+    "egovib_ros.cli.simulate",  # simulate sweep|motion
+    "egovib_ros.cli.calibrate",
+    "egovib_ros.cli.denoise",
+    "egovib_ros.cli.evaluate",  # evaluate, figures
+    "egovib_ros.cli.gap",  # gap, gap validate
+    "egovib_ros.cli.bench",  # bench
+    "egovib_ros.cli.real",  # real convert|evaluate
+    "egovib_ros.cli.demo",  # demo (live, ROS 2 nodes)
+    "egovib_ros.cli.live_bench",  # live-bench (live, ROS 2 nodes)
 )
 EXIT_BUG, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 130, 143
 # Arguments that name what a command reads, in the order they are named in a bug report.
@@ -57,7 +58,7 @@ class Terminated(BaseException):
 def build_parser() -> "argparse.ArgumentParser":
     import importlib
 
-    from egovib_ros.cliutil import OneLineErrorParser
+    from egovib_ros.cli.options import OneLineErrorParser
 
     parser = OneLineErrorParser(  # one-line errors for bad options, like every bad input
         prog="egovib",
@@ -82,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         print("egovib: terminated (SIGTERM)", file=sys.stderr)
         return EXIT_TERMINATED
     finally:
-        fileutil = sys.modules.get("egovib_ros.fileutil")  # claimed nothing if not loaded
+        fileutil = sys.modules.get("egovib_ros.outputs")  # claimed nothing if not loaded
         if fileutil is not None:
             fileutil.release_outputs()
             fileutil.clear_stop()
@@ -128,7 +129,7 @@ def _request_stop(exception: type[BaseException]) -> None:
     """Record the stop here and, once loaded, where outputs are committed."""
     if not _stopped:
         _stopped.append(exception)
-    fileutil = sys.modules.get("egovib_ros.fileutil")
+    fileutil = sys.modules.get("egovib_ros.outputs")
     if fileutil is not None and hasattr(fileutil, "request_stop"):  # not while it loads
         fileutil.request_stop(exception)
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.fileutil import atomic_output
+from egovib_ros.outputs import atomic_output
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
 #: landing (motors cut, gyro saturating), not free motion (see docs/real_results.md).
@@ -175,7 +175,7 @@ def render_summary(summary: dict) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from egovib_ros import cliutil
+    from egovib_ros.cli import options
 
     parser.add_argument("--bag", default="bags/quadcopter_ar8", help="the converted flight bag")
     parser.add_argument(
@@ -183,7 +183,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--split",
-        type=cliutil.float_in(2.0, FLIGHT_END_S - 2.0),
+        type=options.float_in(2.0, FLIGHT_END_S - 2.0),
         default=SPLIT_S,
         metavar="SECONDS",
         help=f"where the flight is cut into the two parts (default {SPLIT_S:g} s)",
@@ -195,7 +195,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from egovib_ros.errors import BagError
-    from egovib_ros.fileutil import prepare_output
+    from egovib_ros.outputs import prepare_output
 
     if not Path(args.bag).exists():
         raise BagError(f"{args.bag}: no such bag (egovib real convert makes it)")
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.gap.flight` = `egovib real gap`."""
+    """`python -m egovib_ros.experiments.gap_flight` = `egovib real gap`."""
     import sys
 
     from egovib_ros.cli import main as egovib_main

@@ -9,8 +9,8 @@
 
 The nodes run as separate processes (the console scripts beside this Python) in a
 private random ROS domain with localhost-only discovery, so nothing else on the
-network sees or disturbs them (egovib_ros.orchestration). Usage: `egovib demo [--out DIR]`
-(or python -m egovib_ros.demo).
+network sees or disturbs them (egovib_ros.tools.orchestration). Usage: `egovib demo [--out DIR]`
+(or python -m egovib_ros.tools.demo).
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-from egovib_ros.errors import EgovibError
 from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.orchestration import NodeGroup, reliable_input
+from egovib_ros.tools.orchestration import NodeGroup, reliable_input
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
 
@@ -83,7 +82,7 @@ def run_motion(
     tap_rate_hz: float,
     seed: int,
 ) -> None:
-    from egovib_ros.ros_convert import command_message
+    from egovib_ros.nodes.convert import command_message
     from egovib_ros.sim import motion_commands
 
     print(
@@ -154,7 +153,7 @@ def read_live_recording(bag: Path):
     import numpy as np
 
     from egovib_ros.bag import BagReader, decode_imu, read_recording
-    from egovib_ros.constants import BAG_TOPICS
+    from egovib_ros.sim.pr2 import BAG_TOPICS
 
     rec = read_recording(bag, ground_truth=False, denoised=True)
     truth = {}
@@ -191,9 +190,10 @@ def read_live_recording(bag: Path):
 
 def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
     from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation import figures, metrics
+    from egovib_ros.evaluation import metrics
     from egovib_ros.evaluation.evaluate import evaluate_recording
-    from egovib_ros.fileutil import atomic_output
+    from egovib_ros.experiments import paper_figures as figures
+    from egovib_ros.outputs import atomic_output
 
     print("[3/3] evaluation of the recorded run", flush=True)
     model = NoiseModel.load(model_path)
@@ -242,47 +242,10 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
     return summary
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--out", default="demo_output", help="directory for the model, bag, logs, figures"
-    )
-    parser.add_argument("--dwell", type=float, default=1.0, help="sweep dwell per cell (s)")
-    parser.add_argument("--settle", type=float, default=0.3, help="sweep settle time per cell (s)")
-    parser.add_argument(
-        "--seconds", type=float, default=30.0, help="length of the recorded run (s)"
-    )
-    parser.add_argument("--max-speed", type=float, default=0.5, help="fraction of max joint speed")
-    parser.add_argument("--taps", type=float, default=2.0, help="tap rate (Hz)")
-    parser.add_argument("--seed", type=int, default=7)
-
-
-def register(subparsers) -> None:
-    """`egovib demo`."""
-    parser = subparsers.add_parser(
-        "demo",
-        help="the whole pipeline live on ROS 2 nodes (make demo)",
-        description=__doc__.split("\n\n")[0],
-    )
-    add_arguments(parser)
-    parser.set_defaults(func=run)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m egovib_ros.demo", description=__doc__.split("\n\n")[0]
-    )
-    add_arguments(parser)
-    try:
-        return run(parser.parse_args(argv))
-    except EgovibError as exc:
-        print(f"demo: error: {exc}", file=sys.stderr)
-        return 2
-
-
 def clear_previous_run(out: Path) -> None:
     """Remove what a previous demo run left in `out` - only if it is recognisably ours
     (fileutil.prepare_output); anything else there is refused, never deleted."""
-    from egovib_ros.fileutil import prepare_output
+    from egovib_ros.outputs import prepare_output
 
     outputs = {
         "noise_model.npz": "model",
@@ -352,7 +315,3 @@ def run(args: argparse.Namespace) -> int:
         f"  report: {out / 'demo_evaluation.json'}\n  logs:   {out / 'logs'}/"
     )
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -18,7 +18,7 @@ block (settling and gripper reversals are left out).  This validates the
 simulator's physics; the project's calibrator does the same from bags by
 measured velocity.
 
-Run `python -m egovib_ros.sim.validation --out docs` to regenerate the figures
+Run `python -m egovib_ros.experiments.sim_validation --out docs` to regenerate the figures
 and docs/sim_results.json.
 """
 
@@ -33,7 +33,9 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from egovib_ros.constants import (
+from egovib_ros.sim.hand import HandSimulator
+from egovib_ros.sim.params import SimParams
+from egovib_ros.sim.pr2 import (
     ACCEL_RATE_HZ,
     BAND_HZ,
     BAND_ORDER,
@@ -42,8 +44,6 @@ from egovib_ros.constants import (
     HOP,
     MAX_SPEED,
 )
-from egovib_ros.sim.hand import HandSimulator
-from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.scenarios import iter_sweep, simulate_motion, sweep_cells
 
 STEADY_TOLERANCE = 0.005  # of max speed

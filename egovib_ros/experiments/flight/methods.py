@@ -33,7 +33,7 @@ import numpy as np
 
 from egovib_ros.core import BandPass, calibrate_arrays, denoise_batch, filters
 from egovib_ros.evaluation.baselines import on_input_stamps
-from egovib_ros.realdata.notch import (
+from egovib_ros.experiments.flight.notch import (
     ARDUPILOT_Q,
     BETAFLIGHT_Q,
     HarmonicNotchBank,

@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 from scipy import signal  # noqa: E402
 
 from egovib_ros.evaluation import baselines  # noqa: E402
-from egovib_ros.fileutil import atomic_output  # noqa: E402
+from egovib_ros.outputs import atomic_output  # noqa: E402
 
 SHOWN_S = 5.0  # seconds of signal in the time-series figures
 

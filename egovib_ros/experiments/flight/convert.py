@@ -1,7 +1,7 @@
 """Flight log (npz) -> rosbag2 bag: the real recording in the form the package consumes.
 
     egovib real convert ../shared/real/quadcopter_ar8_flight.npz --out bags/quadcopter_ar8
-    python -m egovib_ros.realdata.convert NPZ --out BAG         (the same)
+    python -m egovib_ros.experiments.flight.convert NPZ --out BAG         (the same)
 
 Topics (robot profile ``config/robots/quadcopter.yaml``), one message per log sample,
 header stamp = the log's own jittery sample time (ns, bag log time the same):
@@ -42,9 +42,9 @@ from egovib_ros.bag.codec import (
     encode_imu_batch,
     encode_joint_state_batch,
 )
-from egovib_ros.fileutil import atomic_output, prepare_output
-from egovib_ros.realdata import ATTRIBUTION
-from egovib_ros.realdata.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
+from egovib_ros.experiments.flight import ATTRIBUTION
+from egovib_ros.experiments.flight.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
+from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, load_profile
 
 FRAME_ID = "imu_link"
@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.realdata.convert NPZ --out BAG` (same as `egovib real convert`)."""
+    """`python -m egovib_ros.experiments.flight.convert NPZ --out BAG` = `egovib real convert`."""
     from egovib_ros.cli import main as egovib_main
 
     return egovib_main(["real", "convert", *(sys.argv[1:] if argv is None else argv)])

@@ -1,4 +1,4 @@
-"""Option checks for the `egovib` commands, in one place (issue 11).
+"""Option checks for the `egovib` commands, in one place.
 
 Every numeric option is checked by its argparse `type=` before any work starts:
 finite, in range, integral where it must be. A bad value is a one-line error naming
@@ -13,16 +13,6 @@ from typing import Callable, NoReturn
 
 from egovib_ros.errors import ConfigError
 
-# Effect strengths the simulator models sensibly (CONTRACT section 5, sim/hand.py):
-# position scales a source by 1 + s cos(...), so |s| <= 1 keeps it non-negative;
-# coupling/acceleration/drift are gains (>= 0); timing is a clock offset in seconds.
-EFFECT_RANGES: dict[str, tuple[float, float]] = {
-    "position": (-1.0, 1.0),
-    "coupling": (0.0, 100.0),
-    "acceleration": (0.0, 100.0),
-    "timing": (-1.0, 1.0),
-    "drift": (0.0, 100.0),
-}
 MAX_SEED = 2**32 - 1
 
 
@@ -112,21 +102,9 @@ positive_int = int_in(1)
 seed = int_in(0, MAX_SEED)
 
 
-def check_effects(effects: dict[str, float], *, source: str = "--effects") -> dict[str, float]:
-    """Raise ConfigError unless every strength is finite and within EFFECT_RANGES."""
-    for name, strength in effects.items():
-        if not math.isfinite(strength):
-            raise ConfigError(f"{source}: {name}={strength!r}: strength must be finite")
-        low, high = EFFECT_RANGES.get(name, (-math.inf, math.inf))
-        if not low <= strength <= high:
-            unit = " s" if name == "timing" else ""
-            raise ConfigError(f"{source}: {name}={strength:g} is outside [{low:g}, {high:g}]{unit}")
-    return effects
-
-
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (CONTRACT section 3), checked."""
-    from egovib_ros.sim.params import parse_effects
+    from egovib_ros.sim.params import check_effects, parse_effects
 
     try:
         return check_effects(parse_effects(text), source="SPEC")
@@ -138,34 +116,3 @@ def effects_spec_text(text: str) -> str:
     """Like effects_spec but keeps the text (for commands that pass the SPEC on)."""
     effects_spec(text)
     return text
-
-
-def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | None = None) -> str:
-    """Refuse a recording the core found mostly unusable; else the line of counts to print.
-
-    stats: of calibrate_arrays / denoise_batch. Refused (one-line StreamError naming
-    `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
-    (non-finite, beyond the sensor range, out of order), or of the `joint_states`
-    messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
-    """
-    from egovib_ros.core import MAX_BAD_SHARE, check_bad_share
-    from egovib_ros.errors import StreamError
-
-    limit = MAX_BAD_SHARE if limit is None else limit
-    check_bad_share(stats, where, limit)
-    dropped = int(stats.get("joint_states_dropped", 0))
-    if joint_states and dropped > limit * joint_states:
-        raise StreamError(
-            f"{where}: {dropped} of {joint_states} joint states "
-            f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
-            f"not "
-            f"stamped after the previous one: a stuck clock?); more than "
-            f"{100 * limit:g} % is refused"
-        )
-    return (
-        f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
-        f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
-        f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
-        f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
-        f"dropped"
-    )

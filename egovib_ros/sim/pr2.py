@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from egovib_ros.robot import COMMANDS_TOPIC
+
 # --- robot (CONTRACT section 1) -------------------------------------------
 JOINT_NAMES: tuple[str, ...] = ("r_wrist_roll_joint", "r_gripper_joint")
 MAX_SPEED: tuple[float, ...] = (3.0, 0.04)  # rad/s, m/s
@@ -42,7 +44,7 @@ TOPIC_RAW = "accelerometer/raw"
 TOPIC_DENOISED = "accelerometer/denoised"
 TOPIC_CONTACT = "accelerometer/contact"
 TOPIC_EGO = "accelerometer/ego"
-TOPIC_COMMANDS = "hand_velocity_controller/commands"
+TOPIC_COMMANDS = COMMANDS_TOPIC
 TOPIC_DIAGNOSTICS = "/diagnostics"
 
 # Topic names inside bags (root namespace, CONTRACT section 4).

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
-from egovib_ros.fileutil import atomic_output, prepare_output
+from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, default_profile
 
 SYNTHETIC_JOINT_RATE_HZ = 1000.0  # joint states of the synthetic streams
@@ -333,7 +333,7 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
     """`egovib denoise` (the same function) on `bag`, side by side with a file copy of the
     bag and a chunk-by-chunk bag copy, in alternation, best of `repeats`; plus zstd output."""
     from egovib_ros.bag import BagReader
-    from egovib_ros.offline import denoise_bag
+    from egovib_ros.bag.denoise import denoise_bag
 
     with BagReader(bag) as reader:
         duration_s = float(reader.info["duration"]["nanoseconds"]) / 1e9
@@ -698,38 +698,3 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(markdown_summary(results))
     return 0
-
-
-def register(subparsers) -> None:
-    parser = subparsers.add_parser(
-        "bench",
-        help="performance figures (x real time) as JSON + markdown",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument(
-        "--json", required=True, metavar="FILE", help="where to write the JSON figures"
-    )
-    parser.add_argument(
-        "--markdown", metavar="FILE", help="markdown summary (default: FILE with .md suffix)"
-    )
-    parser.add_argument("--quick", action="store_true", help="short inputs (seconds), for tests")
-    parser.add_argument(
-        "--bag-seconds",
-        type=float,
-        default=None,
-        metavar="S",
-        help="length of the simulated bag for the bag figures (default 60; quick 3)",
-    )
-    parser.add_argument(
-        "--bag", type=Path, default=None, help="measure the bag figures on this bag instead"
-    )
-    parser.add_argument(
-        "--workdir",
-        type=Path,
-        default=None,
-        help="where the bench writes its bags (default: the system temp directory)",
-    )
-    parser.add_argument("--force", action="store_true", help="replace existing output files")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
-    parser.set_defaults(func=run)

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -34,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.orchestration import NodeGroup
+from egovib_ros.tools.orchestration import NodeGroup
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -103,7 +102,7 @@ def run_bench(
     from sensor_msgs.msg import Imu
 
     from egovib_ros.nodes.common import sensor_qos
-    from egovib_ros.ros_convert import command_message, decode_imu_messages, diagnostic_values
+    from egovib_ros.nodes.convert import command_message, decode_imu_messages, diagnostic_values
     from egovib_ros.sim import motion_commands
 
     workdir = Path(workdir or tempfile.mkdtemp(prefix="egovib_live_bench_"))
@@ -238,41 +237,8 @@ def run_bench(
     }
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", required=True, help="output JSON file")
-    parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--warmup", type=float, default=5.0)
-    parser.add_argument("--model", help="noise model (default: a quick offline calibration)")
-    parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
-    parser.add_argument(
-        "--publish-period",
-        type=float,
-        default=0.002,
-        help="sim_hand's batching period (s): part of the measured latency",
-    )
-
-
-def register(subparsers) -> None:
-    """`egovib live-bench`."""
-    parser = subparsers.add_parser(
-        "live-bench",
-        help="does the denoiser node keep up live (drops, CPU, latency)",
-        description=__doc__.split("\n\n")[0],
-    )
-    add_arguments(parser)
-    parser.set_defaults(func=run)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m egovib_ros.live_bench", description=__doc__.split("\n\n")[0]
-    )
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.fileutil import atomic_output
+    from egovib_ros.outputs import atomic_output
 
     result = run_bench(
         seconds=args.seconds,
@@ -295,7 +261,3 @@ def run(args: argparse.Namespace) -> int:
         f"{result['cpu_cores']} cores); wrote {args.json}"
     )
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

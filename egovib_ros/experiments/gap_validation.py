@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.effects import EFFECTS
+from egovib_ros.outputs import atomic_output
 
 REALITIES = ("sim", "alt")
 #: Strength ranges of the blind runs (CONTRACT section 5 units: timing in seconds, sign random).
