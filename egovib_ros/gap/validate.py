@@ -30,7 +30,48 @@ import numpy as np
 from egovib_ros.fileutil import atomic_output
 from egovib_ros.gap.effects import EFFECTS
 
-REALITIES = ("sim", "alt")
+REALITIES = ("sim", "alt", "real")
+#: The functional forms of each effect the blind runs draw from, per generated reality (the
+#: generators' own form names; timing "lag"/"lead" are the stamp shift of either sign).
+#: Together: position 5 forms, coupling 4, acceleration 4, timing 3, drift 5 (docs/gap.md).
+FORMS = {
+    "sim": {
+        "position": ("gain", "closing_rub"),
+        "coupling": ("broadband", "signed"),
+        "acceleration": ("broadband", "speeding_up"),
+        "timing": ("lag", "lead", "filtered"),
+        "drift": ("linear", "warmup", "additive"),
+    },
+    "alt": {
+        "position": ("spot", "end", "closing"),
+        "coupling": ("intermod", "signed"),
+        "acceleration": ("clicks", "braking"),
+        "timing": ("lag", "lead", "filtered"),
+        "drift": ("step", "wear"),
+    },
+}
+#: What each form is (for the reports).
+FORM_TEXT = {
+    "gain": "multiplicative: wrist x (1 + s cos angle), gripper linear in gap (unsigned, tonal)",
+    "closing_rub": "additive broadband on the gripper path only while closing (signed)",
+    "broadband": "additive broadband ~ product of speeds (unsigned)",
+    "signed": "wrist lines x exp(+-s ...): louder same direction, quieter opposite (signed, tonal)",
+    "speeding_up": "source gain only while the joint speeds up (signed, multiplicative)",
+    "lag": "joint-state stamps late",
+    "lead": "joint-state stamps early",
+    "filtered": "reported velocity through a first-order low-pass (dispersive lag)",
+    "linear": "gain 1 + s t / 60 s (multiplicative)",
+    "warmup": "gain 1 + s (1 - exp(-t / 20 s)) (multiplicative, saturating)",
+    "additive": "wear broadband added, growing with time (additive)",
+    "spot": "tight spot once per wrist turn (multiplicative, tonal)",
+    "end": "rub near the gripper's closed end (additive broadband)",
+    "closing": "rub only while the gripper closes (signed, additive)",
+    "intermod": "intermodulation lines f_w +- f_g (additive, tonal, unsigned)",
+    "clicks": "backlash clicks at reversals (impulsive)",
+    "braking": "broadband while a joint slows down (signed, additive)",
+    "step": "warm-up step, logistic, up or down (multiplicative)",
+    "wear": "grinding added, growing with time (additive)",
+}
 #: Strength ranges of the blind runs (CONTRACT section 5 units: timing in seconds, sign random).
 STRENGTH_RANGES = {
     "position": (0.2, 0.5),
@@ -50,7 +91,7 @@ ALT_STRENGTH_RANGES = {
     "timing": (0.012, 0.04),
     "drift": (0.4, 1.0),
 }
-LADDER_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+LADDER_FRACTIONS = (0.25, 0.5)
 MISCALIBRATED = "none (sim 6 dB too loud)"
 SHAPE_DIFFERS = "none (sim shape differs)"
 MOTION_MAX_SPEED = 0.8
@@ -116,8 +157,9 @@ def quieter_params(params, factor: float = 0.5):
 def plan_runs(
     seeds: int, *, ladder: bool, master_seed: int = 2026, reality: str = "sim", extra_none: int = 0
 ) -> list[dict]:
-    """The blind runs: (class, strength, seed) drawn reproducibly from `master_seed`;
-    `extra_none` more bags of every `none` class (drawn last: the other runs do not change)."""
+    """The blind runs: (class, form, strength, seed) drawn reproducibly from `master_seed`;
+    every form of every effect `seeds` times; the ladder one run per form and rung;
+    `extra_none` more bags of every `none` class (drawn last)."""
     ranges = strength_ranges(reality)
     rng = np.random.default_rng(
         [master_seed, REALITIES.index(reality)] if reality != "sim" else master_seed
@@ -128,23 +170,32 @@ def plan_runs(
             runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
         for effect in EFFECTS:
             lo, hi = ranges[effect]
-            s = float(rng.uniform(lo, hi))
-            if effect == "timing" and rng.random() < 0.5:
-                s = -s  # joint states lead instead of lag
-            runs.append(
-                {"truth": effect, "strength": round(s, 4), "seed": int(rng.integers(1, 2**31))}
-            )
-    if ladder:
-        for effect in EFFECTS:
-            for frac in LADDER_FRACTIONS:
+            for form in FORMS[reality][effect]:
+                s = float(rng.uniform(lo, hi))
+                if form == "lead":
+                    s = -s
                 runs.append(
                     {
                         "truth": effect,
-                        "strength": round(ranges[effect][0] * frac, 5),
+                        "form": form,
+                        "strength": round(s, 4),
                         "seed": int(rng.integers(1, 2**31)),
-                        "ladder": True,
                     }
                 )
+    if ladder:
+        for effect in EFFECTS:
+            for form in FORMS[reality][effect]:
+                for frac in LADDER_FRACTIONS:
+                    s = ranges[effect][0] * frac * (-1 if form == "lead" else 1)
+                    runs.append(
+                        {
+                            "truth": effect,
+                            "form": form,
+                            "strength": round(s, 5),
+                            "seed": int(rng.integers(1, 2**31)),
+                            "ladder": True,
+                        }
+                    )
     for _ in range(extra_none):
         for label in none_classes(reality):
             runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
@@ -164,16 +215,24 @@ def make_recording(run: dict, duration_s: float):
     """The blind "real" recording of a run (ground truth stripped) and its truth dict."""
     truth_label = run["truth"]
     effects = {} if truth_label.startswith("none") else {truth_label: run["strength"]}
+    form = run.get("form")
+    generator_form = "stamps" if form in ("lag", "lead") else form
     if run.get("reality", "sim") == "alt":
         from egovib_ros.altreality import simulate_alt_motion
 
         rec, truth = simulate_alt_motion(
-            duration_s=duration_s, effects=effects, seed=run["seed"], tap_rate_hz=TAP_RATE_HZ
+            duration_s=duration_s,
+            effects=effects,
+            seed=run["seed"],
+            tap_rate_hz=TAP_RATE_HZ,
+            forms={truth_label: generator_form} if form else None,
         )
     else:
         from egovib_ros.sim import SimParams, simulate_motion
 
         params = SimParams.load()
+        if form:
+            params.effect_forms = {truth_label: generator_form}
         if truth_label == MISCALIBRATED:
             params = quieter_params(params)
         rec, truth = simulate_motion(
@@ -310,8 +369,46 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
             ],
             "range_of_blind_runs": list(ranges[e]),
         }
+    per_form = {}
+    for e in EFFECTS:
+        for form in FORMS.get(reality, {}).get(e, ()):
+            rs = [r for r in blind if r["truth"] == e and r.get("form") == form]
+            lad = sorted(
+                [
+                    r
+                    for r in results
+                    if r.get("ladder") and r["truth"] == e and r.get("form") == form
+                ],
+                key=lambda r: abs(r["strength"]),
+            )
+            found = [r["correct"] for r in lad] + [True]
+            per_form[f"{e}/{form}"] = {
+                "effect": e,
+                "form": form,
+                "what": FORM_TEXT.get(form, ""),
+                "runs": len(rs),
+                "correct": int(sum(r["correct"] for r in rs)),
+                "top1": round(float(np.mean([r["correct"] for r in rs])), 4) if rs else None,
+                "missed_as_none": int(sum(r["verdict"] == "none" for r in rs)),
+                "verdicts": [r["verdict"] for r in rs],
+                "strengths": [r["strength"] for r in rs],
+                "ladder": [{"strength": r["strength"], "verdict": r["verdict"]} for r in lad],
+                "detected_from_strength": next(
+                    (abs(lad[i]["strength"]) for i in range(len(lad)) if all(found[i:])),
+                    None if lad else None,
+                ),
+            }
+    none_flags = {
+        t: {
+            "runs": sum(r["truth"] == t for r in blind),
+            "wrongly_flagged": sum(r["truth"] == t and r["verdict"] != "none" for r in blind),
+        }
+        for t in none_classes(reality)
+    }
     return {
         "reality": reality,
+        "per_form": per_form,
+        "none_false_flags": none_flags,
         "accuracy": round(float(np.mean([r["correct"] for r in blind])), 4),
         "accuracy_effects": round(float(np.mean([r["correct"] for r in effects_only])), 4)
         if effects_only
@@ -410,6 +507,30 @@ def render_markdown(report: dict) -> str:
             f"| {t} | {d['runs']} | {d['mean_gap_sim_as_is']} | {d['mean_gap_after_refit']} | "
             f"{d['mean_floor']} | {d['max_refit_above_floor_db']} |"
         )
+    if s.get("per_form"):
+        lines += [
+            "",
+            "## Per form: top-1 and the ladder (one seed per rung, x the lower end of the range)",
+            "",
+            "| effect | form | what | blind runs | top-1 | missed as none | ladder "
+            "| detected from |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for d in s["per_form"].values():
+            ladder = ", ".join(f"{r['strength']:g} -> {r['verdict']}" for r in d["ladder"])
+            lines.append(
+                f"| {d['effect']} | {d['form']} | {d['what']} | {d['runs']} | "
+                f"{d['correct']}/{d['runs']} | {d['missed_as_none']} | {ladder} | "
+                f"{d['detected_from_strength']} |"
+            )
+        lines += [
+            "",
+            "`none` wrongly flagged per `none` class: "
+            + ", ".join(
+                f"{t} {d['wrongly_flagged']}/{d['runs']}" for t, d in s["none_false_flags"].items()
+            )
+            + ".",
+        ]
     lines += ["", "## Detectability (strength ladder below the blind ranges, one seed each)", ""]
     for e, d in s["detectability"].items():
         ladder = ", ".join(f"{r['strength']:g} -> {r['verdict']}" for r in d["ladder"])
@@ -427,8 +548,9 @@ def render_markdown(report: dict) -> str:
         label = "none" if r["truth"].startswith("none") else r["truth"]
         p = r["p_values"].get(label)
         details = ", ".join(f"{k}={v}" for k, v in r.get("truth_details", {}).items())
+        form = f"/{r['form']}" if r.get("form") else ""
         lines.append(
-            f"| {r['truth']}{' (ladder)' if r.get('ladder') else ''} | "
+            f"| {r['truth']}{form}{' (ladder)' if r.get('ladder') else ''} | "
             f"{r['strength']} | {r['seed']} | "
             f"{r['verdict']} | {r['confidence']} | {g['sim_as_is']} | {g['after_refit']} | "
             f"{g['after_verdict']} | {g['floor']} | {'' if p is None else f'{p:.2g}'} | {details} |"
