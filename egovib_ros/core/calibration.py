@@ -108,6 +108,7 @@ class CalibrationAccumulator:
         free_steady_tolerance: float = 0.5,
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
+        joint_lag_s: float = 0.0,
         source: str = "",
     ):
         if sweep not in SWEEPS:
@@ -157,6 +158,7 @@ class CalibrationAccumulator:
             sensor_range=base.sensor_range,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
+            joint_lag_s=joint_lag_s,
             source=source,
         )
         self._framer = BlockFramer(self.settings, len(self.grid))

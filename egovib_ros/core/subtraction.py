@@ -104,6 +104,7 @@ class StreamingDenoiser:
         rule: MagnitudeRule | None = None,
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
+        joint_lag_s: float = 0.0,
         max_fill_samples: int = 8,
         sample_rate_hz: float | None = None,
         block_length: int | None = None,
@@ -136,6 +137,7 @@ class StreamingDenoiser:
             max_fill_samples=max_fill_samples,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
+            joint_lag_s=joint_lag_s,
             with_steadiness=False,
             source=source,
         )

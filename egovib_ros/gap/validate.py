@@ -660,6 +660,8 @@ def run_validation(
 
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
+    if reality == "real":
+        return _run_real(out_dir, write)
     start = time.perf_counter()
     if runs is None:
         runs = plan_runs(
@@ -723,6 +725,35 @@ def run_validation(
         outputs.append(str(out / png_name))
     summary["outputs"] = outputs
     summary["report"] = report
+    return summary
+
+
+def _run_real(out_dir, write: bool) -> dict:
+    """Known effects injected into the real flight (gap/realinject.py)."""
+    from egovib_ros.gap.realinject import render_markdown as render_real
+    from egovib_ros.gap.realinject import run_real_validation
+
+    report = run_real_validation()
+    report["settings"]["command"] = f"egovib gap validate --reality real --out {out_dir}"
+    summary = dict(report["summary"])
+    summary["accuracy"] = summary["accuracy_injected"]
+    untouched = summary["untouched_correct"]
+    summary["none_false_positive_rate"] = round(1.0 - float(np.mean(untouched)), 4)
+    outputs = []
+    if write:
+        json_name, md_name, _ = output_names("real")
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        for name, text in (
+            (json_name, json.dumps(report, indent=1)),
+            (md_name, render_real(report)),
+        ):
+            with atomic_output(out / name) as tmp_path:
+                tmp_path.write_text(text)
+            outputs.append(str(out / name))
+    summary["outputs"] = outputs
+    summary["report"] = report
+    summary["n_runs"] = report["summary"]["n_runs"]
     return summary
 
 
