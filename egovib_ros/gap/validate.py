@@ -61,7 +61,7 @@ FORM_TEXT = {
     "lead": "joint-state stamps early",
     "filtered": "reported velocity through a first-order low-pass (dispersive lag)",
     "linear": "gain 1 + s t / 60 s (multiplicative)",
-    "warmup": "gain 1 + s (1 - exp(-t / 20 s)) (multiplicative, saturating)",
+    "warmup": "gain 1 + 2 s (1 - exp(-t / 20 s)) (multiplicative, saturating)",
     "additive": "wear broadband added, growing with time (additive)",
     "spot": "tight spot once per wrist turn (multiplicative, tonal)",
     "end": "rub near the gripper's closed end (additive broadband)",

@@ -52,7 +52,7 @@ Each effect can take another functional form (``effect_forms`` in the params, EF
   max(d|v|/dt, 0) / (vmax / controller_tau_s)): louder only while the joint speeds up.
 * timing ``filtered``: the reported joint velocity passes a first-order low-pass with time
   constant |s| (a velocity estimator's lag; stamps and positions are exact).
-* drift ``warmup``: all joint vibration x (1 + s (1 - exp(-t / warmup_tau_s)));
+* drift ``warmup``: all joint vibration x (1 + 2 s (1 - exp(-t / warmup_tau_s)));
   ``additive``: wear broadband added on each joint's path, rms s * wear_gain * s_j *
   t / drift_period_s.
 """
@@ -446,7 +446,9 @@ class HandSimulator:
                 if forms["drift"] == "linear":
                     src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
                 elif forms["drift"] == "warmup":
-                    src = src * (1.0 + fx["drift"] * (1.0 - np.exp(-t / p.warmup_tau_s)))
+                    # twice the strength: after warm-up the level has changed as much as the
+                    # linear form's after two drift periods
+                    src = src * (1.0 + 2.0 * fx["drift"] * (1.0 - np.exp(-t / p.warmup_tau_s)))
                 else:  # additive wear broadband
                     rng = self.rng_wear_w if j == 0 else self.rng_wear_g
                     src = src + fx["drift"] * p.wear_gain * frac[:, j] * (
