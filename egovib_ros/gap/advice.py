@@ -84,9 +84,10 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
         if curve:
             k = int(np.argmax(curve["gain_db"]))
             loud = f", loudest at {curve['x'][k]:.3g} {curve.get('unit', '')}"
+        where = f"{joint}: {span:.1f} dB peak-to-trough{loud}" if span >= 0.1 else "bin by bin"
         return (
-            f"position-dependent ({joint}: {span:.1f} dB peak-to-trough{loud}): calibrate with "
-            "position as a key (or avoid that range while sensing)",
+            f"position-dependent ({where}): calibrate with position as a key (or avoid that "
+            "range while sensing)",
             {"calibration_key": "position", "joint": joint},
         )
     if effect == "coupling":
@@ -97,11 +98,15 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
             if signed.size and np.max(np.abs(signed)) >= 0.5
             else ""
         )
+        where = (
+            f"{pair.replace('x', ' x ')}: up to {span:.1f} dB{direction}"
+            if span >= 0.1
+            else "bin by bin, flat across the band"
+        )
         return (
-            f"joints do not add ({pair.replace('x', ' x ')}: up to {span:.1f} dB{direction}): "
-            "calibrate these joints on a joint velocity grid (sweep 'full' or free motion "
-            "covering their combinations), not by superposition",
-            {"calibration_sweep": "full", "joints": pair.split("x") if pair else []},
+            f"joints do not add ({where}): calibrate these joints on a joint velocity grid "
+            "(sweep 'full' or free motion covering their combinations), not by superposition",
+            {"calibration_sweep": "full", "joints": pair.split("x") if span >= 0.1 else []},
         )
     if effect == "acceleration":
         return (
