@@ -32,14 +32,14 @@ import numpy as np
 
 from egovib_ros.gap.flight import FLIGHT_END_S, SPLIT_S, _slice
 
-#: (effect, label, strengths): two strengths per injection (the weaker one a rung below).
+#: (effect, label, strengths): a ladder of three strengths per injection.
 INJECTIONS = (
-    ("timing", "lag", (0.02, 0.04)),
-    ("timing", "lead", (-0.02, -0.04)),
-    ("drift", "warm-up", (0.3, 0.8)),
-    ("position", "motor1 position", (0.3, 0.8)),
-    ("acceleration", "motor1 speeding up", (0.3, 0.8)),
-    ("coupling", "motors 1x3 signed", (0.3, 0.8)),
+    ("timing", "lag", (0.02, 0.04, 0.08)),
+    ("timing", "lead", (-0.02, -0.04, -0.08)),
+    ("drift", "warm-up", (0.3, 0.8, 2.0)),
+    ("position", "motor1 position", (0.3, 0.8, 2.0)),
+    ("acceleration", "motor1 speeding up", (0.3, 0.8, 2.0)),
+    ("coupling", "motors 1x3 signed", (0.3, 0.8, 2.0)),
 )
 WARMUP_TAU_S = 2.0
 POSITION_PERIOD = 1.5
@@ -185,7 +185,16 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
                 }
     injected = [r for r in results if r["truth"] != "none"]
     strong = [r for r in injected if abs(r["strength"]) == max(abs(s) for s in _strengths(r))]
+    named_from = {}
+    for e, label, strengths in INJECTIONS:
+        for name in directions:
+            found = [
+                r["correct"] for r in results if r["direction"] == name and r["injection"] == label
+            ]
+            first = next((i for i in range(len(found)) if all(found[i:])), None)
+            named_from.setdefault(label, {})[name] = None if first is None else strengths[first]
     summary = {
+        "named_from_strength": named_from,
         "reality": "real",
         "bag": bag,
         "directions": directions,
@@ -230,10 +239,19 @@ def render_markdown(report: dict) -> str:
         f"{report['runtime_s'] / 60:.1f} min.",
         "",
         f"Injected effects named: **{100 * s['accuracy_injected']:.0f} %** of "
-        f"{sum(1 for r in report['runs'] if r['truth'] != 'none')} runs (the stronger "
+        f"{sum(1 for r in report['runs'] if r['truth'] != 'none')} runs (the strongest "
         f"strength of each: {100 * s['accuracy_stronger']:.0f} %).",
         "",
+        "Named from strength (every stronger rung named too; - = not at the strongest):",
+        "",
+        "| injected | " + " | ".join(s["directions"]) + " |",
+        "|---" * (1 + len(s["directions"])) + "|",
     ]
+    for label, by in s.get("named_from_strength", {}).items():
+        lines.append(
+            f"| {label} | " + " | ".join("-" if v is None else f"{v:g}" for v in by.values()) + " |"
+        )
+    lines.append("")
     for name, d in s["directions"].items():
         u = d.get("untouched", {})
         lines += [
