@@ -23,6 +23,9 @@ import numpy as np
 
 from egovib_ros.gap.diagnose import Diagnosis
 
+#: A `none` verdict whose baseline stays more than this above the floor says so.
+UNEXPLAINED_NOTE_DB = 0.3
+
 
 def _noise_reduction(diag: Diagnosis, name: str) -> float:
     return -float(diag.residual_noise.get(name, float("nan")))
@@ -114,6 +117,14 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
             "motion with speed changes like the task's, or over-subtract while joints "
             "accelerate",
             {"calibration_sweep": "free"},
+        )
+    above = float(diag.gaps["refit"] - diag.floor)
+    if above > UNEXPLAINED_NOTE_DB:
+        return (
+            f"no effect of the vocabulary explains the rest ({above:.2f} dB above the floor "
+            "stays unexplained): keep calibrating on velocity; record longer or more varied "
+            "motion to tell more",
+            {},
         )
     return ("the velocity-only model fits this recording: nothing to change", {})
 
