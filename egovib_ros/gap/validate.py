@@ -54,7 +54,8 @@ FORMS = {
 FORM_TEXT = {
     "gain": "multiplicative: wrist x (1 + s cos angle), gripper linear in gap (unsigned, tonal)",
     "closing_rub": "additive broadband on the gripper path only while closing (signed)",
-    "broadband": "additive broadband ~ product of speeds (unsigned)",
+    "coupling/broadband": "additive broadband ~ product of speeds (unsigned)",
+    "acceleration/broadband": "additive broadband ~ |acceleration| (unsigned)",
     "signed": "wrist lines x exp(+-s ...): louder same direction, quieter opposite (signed, tonal)",
     "speeding_up": "source gain only while the joint speeds up (signed, multiplicative)",
     "lag": "joint-state stamps late",
@@ -385,7 +386,7 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
             per_form[f"{e}/{form}"] = {
                 "effect": e,
                 "form": form,
-                "what": FORM_TEXT.get(form, ""),
+                "what": FORM_TEXT.get(f"{e}/{form}", FORM_TEXT.get(form, "")),
                 "runs": len(rs),
                 "correct": int(sum(r["correct"] for r in rs)),
                 "top1": round(float(np.mean([r["correct"] for r in rs])), 4) if rs else None,
@@ -432,13 +433,16 @@ REALITY_TEXT = {
     "sim": (
         "our simulator (egovib_ros/sim) with one hidden effect per bag; two extra `none` classes: "
         "the simulator 6 dB louder than the robot, and a simulator whose spectra differ in shape "
-        "(gear tones moved, wrist resonance missing, gripper structural band shifted)"
+        "(gear tones moved, wrist resonance missing, gripper structural band shifted); every "
+        "effect in each of its forms (table below)"
     ),
     "alt": (
         "the independent alternate-reality hand (egovib_ros/altreality: its own drive trains, "
         "housing modes, impulsive friction, sensor and motion; effects as a tight spot per wrist "
         "turn or a rub near the gripper's closed end, intermodulation lines, backlash clicks at "
-        "reversals, a warm-up step, a stamp lag)"
+        "reversals, a warm-up step, a stamp lag, and the forms added since: a rub only while "
+        "closing, a signed wrist x gripper interaction, broadband while braking, a filtered "
+        "velocity, wear; table below)"
     ),
 }
 
@@ -456,7 +460,7 @@ def render_markdown(report: dict) -> str:
         f'"real" bags from {REALITY_TEXT[reality]}.',
         "",
         f"Top-1 accuracy **{s['accuracy']:.3f}** over {s['n_runs']} blind runs "
-        f"({st['seeds']} seeds per class"
+        f"({st['seeds']} seeds per form of every effect and per `none` class"
         + (f", {st['extra_none']} more per `none` class" if st.get("extra_none") else "")
         + f", {st['duration_s']:.0f} s bags; effects only: "
         f"{s['accuracy_effects']:.3f}); `none` wrongly flagged "
