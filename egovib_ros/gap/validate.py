@@ -9,12 +9,16 @@ would).  The "real" recordings come from either
   structural band shifted) from the effect-free "real" robot;
 * `--reality alt`: the independent alternate-reality generator (egovib_ros.altreality),
   which shares no code or formulas with the simulator and has each effect in its own
-  functional form.
+  functional forms;
+* `--reality real`: known effects injected into one part of a real flight, the model
+  calibrated on the other part (gap/realinject.py).
 
-For every class, `seeds` recordings are made with a random strength drawn from the
-reality's STRENGTH_RANGES and a random seed; ground truth is stripped and the effect is
-never passed on, so the diagnosis sees only joint_states and accelerometer/raw.  A
-strength ladder below each range shows where detection stops (reported, not hidden).
+Every effect is drawn in each of its functional forms (FORMS: signed or not,
+multiplicative or additive, tonal or broadband), `seeds` recordings per form with a
+random strength from the reality's STRENGTH_RANGES and a random seed; ground truth is
+stripped and the effect is never passed on, so the diagnosis sees only joint_states and
+accelerometer/raw.  A strength ladder below each range, per form, shows where detection
+stops (reported, not hidden).
 """
 
 from __future__ import annotations
