@@ -80,9 +80,16 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert 0.2 < updated.effects["position"] < 0.6
     check = report["added_effect"]["simulator"]
     assert check["heldout_gap_with_updated_simulator"] < check["heldout_gap_refit"]
-    # The report's first lines answer where, which and how far, with figures that exist.
+    # The report's first lines say what to do, what it costs the denoiser and what is left,
+    # then answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
-    head = "\n".join(md[:8])
+    assert md[2].startswith("**What to do:** position-dependent")
+    assert md[3].startswith("**What it costs the denoiser:**")
+    assert md[4].startswith("**Left unexplained:**")
+    advice = report["advice"]
+    assert advice["settings"]["calibration_key"] == "position"
+    assert advice["denoiser"]["gain_db"] > 0  # the position term denoises held-out data better
+    head = "\n".join(md[:12])
     assert (
         "**Where:**" in head
         and "**Which:**" in head

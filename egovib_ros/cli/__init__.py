@@ -13,8 +13,8 @@ the parser it adds sets `func(args) -> int`. How a run ends:
 - any other exception is a bug: one line naming the command, its input and the
   exception, the traceback written to a log file whose path is printed, exit status 1.
 
-Every way out releases the outputs the run claimed (fileutil.release_outputs); staged
-outputs are removed by the exception unwinding through fileutil.atomic_output.
+Every way out releases the outputs the run claimed (outputs.release_outputs); staged
+outputs are removed by the exception unwinding through outputs.atomic_output.
 Module-level imports are kept to the standard library's smallest, so that Ctrl-C while
 the commands' modules load is caught here too.
 """
@@ -83,10 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         print("egovib: terminated (SIGTERM)", file=sys.stderr)
         return EXIT_TERMINATED
     finally:
-        fileutil = sys.modules.get("egovib_ros.outputs")  # claimed nothing if not loaded
-        if fileutil is not None:
-            fileutil.release_outputs()
-            fileutil.clear_stop()
+        outputs = sys.modules.get("egovib_ros.outputs")  # claimed nothing if not loaded
+        if outputs is not None:
+            outputs.release_outputs()
+            outputs.clear_stop()
         _stopped.clear()
 
 
@@ -120,7 +120,7 @@ def _main(argv: list[str]) -> int:
 def _raise_if_stopped() -> None:
     """A Ctrl-C or SIGTERM whose exception a library swallowed (C code clearing errors while
     modules load, a bare `except:`) still stops the run, here or before an output is
-    committed (fileutil.atomic_output)."""
+    committed (outputs.atomic_output)."""
     if _stopped:
         raise _stopped[0]()
 
@@ -129,9 +129,9 @@ def _request_stop(exception: type[BaseException]) -> None:
     """Record the stop here and, once loaded, where outputs are committed."""
     if not _stopped:
         _stopped.append(exception)
-    fileutil = sys.modules.get("egovib_ros.outputs")
-    if fileutil is not None and hasattr(fileutil, "request_stop"):  # not while it loads
-        fileutil.request_stop(exception)
+    outputs = sys.modules.get("egovib_ros.outputs")
+    if outputs is not None and hasattr(outputs, "request_stop"):  # not while it loads
+        outputs.request_stop(exception)
 
 
 @contextlib.contextmanager

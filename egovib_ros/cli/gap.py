@@ -86,11 +86,12 @@ def register(subparsers) -> None:
     val = parser.add_argument_group("validate")
     val.add_argument(
         "--reality",
-        choices=["sim", "alt"],
+        choices=["sim", "alt", "real"],
         default="sim",
         help='where the blind "real" bags come from: our simulator, or the independent '
-        "alternate-reality generator (egovib_ros.altreality); the model is always calibrated "
-        "on our simulator (validate)",
+        "alternate-reality generator (egovib_ros.altreality), the model always calibrated "
+        "on our simulator; or `real`: known effects injected into one part of the real "
+        "flight bags/quadcopter_ar8, the model calibrated on the other part (validate)",
     )
     val.add_argument(
         "--seeds", type=options.positive_int, default=5, help="seeds per effect class (validate)"

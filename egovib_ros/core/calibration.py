@@ -109,6 +109,7 @@ class CalibrationAccumulator:
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
         prefiltered: bool = False,
+        joint_lag_s: float = 0.0,
         source: str = "",
     ):
         if sweep not in SWEEPS:
@@ -159,6 +160,7 @@ class CalibrationAccumulator:
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
             prefiltered=prefiltered,
+            joint_lag_s=joint_lag_s,
             source=source,
         )
         self._framer = BlockFramer(self.settings, len(self.grid))

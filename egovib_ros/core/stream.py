@@ -122,6 +122,10 @@ class FramerSettings:
     max_fill_samples: int = 8
     joint_wait_s: float = 0.02  # give joint states this long to cover a block
     max_hold_s: float = 0.05  # use a joint state this old when none falls in a block
+    #: The vibration trails the joint states by this much (s): joint-state stamps are moved
+    #: this much later before they are matched to blocks (negative: earlier). A robot whose
+    #: joint states lead (motor commands ahead of the speed they cause) needs a positive lag.
+    joint_lag_s: float = 0.0
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
@@ -144,6 +148,15 @@ class FramerSettings:
             ("sensor_range", self.sensor_range, 0.0, math.inf, True),
             ("joint_wait_s", self.joint_wait_s, 0.0, 10.0, False),
             ("max_hold_s", self.max_hold_s, 0.0, 10.0, False),
+            (
+                "joint_lag_s",
+                abs(self.joint_lag_s)
+                if isinstance(self.joint_lag_s, (int, float))
+                else self.joint_lag_s,
+                0.0,
+                1.0,
+                False,
+            ),
             ("rate_tolerance", self.rate_tolerance, 0.0, 1.0, False),
             ("clock_jump_s", self.clock_jump_s, 0.0, 3600.0, False),
         )
@@ -154,7 +167,7 @@ class FramerSettings:
                 and not math.isnan(value)
                 and (math.isfinite(value) or inf_ok)
                 and low <= value <= high
-                and (value > 0 or name in ("joint_wait_s", "max_hold_s"))
+                and (value > 0 or name in ("joint_wait_s", "max_hold_s", "joint_lag_s"))
             )
             if not ok:
                 raise ConfigError(
@@ -419,7 +432,9 @@ class BlockFramer:
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
-        self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
+        self._joint_lag_ns = int(round(settings.joint_lag_s * 1e9))
+        # joint states moved later arrive that much later relative to the blocks they cover
+        self._joint_wait_ns = int(settings.joint_wait_s * 1e9) + max(self._joint_lag_ns, 0)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -434,6 +449,8 @@ class BlockFramer:
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
+        if self._joint_lag_ns:
+            stamps_ns = stamps_ns + self._joint_lag_ns
         last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
         if (
             stamps_ns[0] > last
@@ -453,14 +470,15 @@ class BlockFramer:
         if len(jump):
             # The joint clock went back (bag loop, reset): forget the old timeline.
             i = int(jump[0])
-            self.push_joint_states(stamps_ns[:i], velocity[:i])
+            # (the pushes below shift the stamps again: undo the shift here)
+            self.push_joint_states(stamps_ns[:i] - self._joint_lag_ns, velocity[:i])
             self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
             # Complete the accelerometer blocks still pending on the old clock with its joint
             # states, then forget them.
             self._close_segment(wait_for_joints=False)
             self._drain(final=False)
             self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
-            self.push_joint_states(stamps_ns[i:], velocity[i:])
+            self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
             self.stats.joint_states_in += i
             return
         keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)

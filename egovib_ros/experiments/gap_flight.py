@@ -129,6 +129,7 @@ def run_flight_gap(
                     for c in report["candidates"]
                 ],
                 "blocks": report["blocks"],
+                "advice": report["advice"],
                 "calibration_coverage": model.coverage(),
             }
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
@@ -146,16 +147,23 @@ def render_summary(summary: dict) -> str:
         "and the gap diagnosis runs on the other half; no simulator exists, so the "
         "reference lag is 0. Both directions are reported.",
         "",
-        "| calibrated on | verdict | confidence | gap as-is | baseline | after effect | floor |",
-        "|---|---|---|---|---|---|---|",
+        "| calibrated on | verdict | confidence | gap as-is | baseline | after effect | floor "
+        "| left above floor |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, d in summary["directions"].items():
         g = d["gap"]
+        left = d.get("advice", {}).get("unexplained", {}).get("above_floor_db")
         lines.append(
             f"| {name.replace('calibrated_on_', '').replace('_', ' ')} | "
             f"{d['verdict']['effect']} | {d['verdict']['confidence']} | "
-            f"{g['sim_as_is']} | {g['after_refit']} | {g['after_effect']} | {g['floor']} |"
+            f"{g['sim_as_is']} | {g['after_refit']} | {g['after_effect']} | {g['floor']} | "
+            f"{left} |"
         )
+    lines.append("")
+    for name, d in summary["directions"].items():
+        if "advice" in d:
+            lines.append(f"- {name.replace('_', ' ')}: **what to do:** {d['advice']['action']}")
     for name, d in summary["directions"].items():
         lines += [
             "",

@@ -9,12 +9,16 @@ would).  The "real" recordings come from either
   structural band shifted) from the effect-free "real" robot;
 * `--reality alt`: the independent alternate-reality generator (egovib_ros.altreality),
   which shares no code or formulas with the simulator and has each effect in its own
-  functional form.
+  functional forms;
+* `--reality real`: known effects injected into one part of a real flight, the model
+  calibrated on the other part (gap/realinject.py).
 
-For every class, `seeds` recordings are made with a random strength drawn from the
-reality's STRENGTH_RANGES and a random seed; ground truth is stripped and the effect is
-never passed on, so the diagnosis sees only joint_states and accelerometer/raw.  A
-strength ladder below each range shows where detection stops (reported, not hidden).
+Every effect is drawn in each of its functional forms (FORMS: signed or not,
+multiplicative or additive, tonal or broadband), `seeds` recordings per form with a
+random strength from the reality's STRENGTH_RANGES and a random seed; ground truth is
+stripped and the effect is never passed on, so the diagnosis sees only joint_states and
+accelerometer/raw.  A strength ladder below each range, per form, shows where detection
+stops (reported, not hidden).
 """
 
 from __future__ import annotations
@@ -30,7 +34,49 @@ import numpy as np
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.outputs import atomic_output
 
-REALITIES = ("sim", "alt")
+REALITIES = ("sim", "alt", "real")
+#: The functional forms of each effect the blind runs draw from, per generated reality (the
+#: generators' own form names; timing "lag"/"lead" are the stamp shift of either sign).
+#: Together: position 5 forms, coupling 4, acceleration 4, timing 3, drift 5 (docs/gap.md).
+FORMS = {
+    "sim": {
+        "position": ("gain", "closing_rub"),
+        "coupling": ("broadband", "signed"),
+        "acceleration": ("broadband", "speeding_up"),
+        "timing": ("lag", "lead", "filtered"),
+        "drift": ("linear", "warmup", "additive"),
+    },
+    "alt": {
+        "position": ("spot", "end", "closing"),
+        "coupling": ("intermod", "signed"),
+        "acceleration": ("clicks", "braking"),
+        "timing": ("lag", "lead", "filtered"),
+        "drift": ("step", "wear"),
+    },
+}
+#: What each form is (for the reports).
+FORM_TEXT = {
+    "gain": "multiplicative: wrist x (1 + s cos angle), gripper linear in gap (unsigned, tonal)",
+    "closing_rub": "additive broadband on the gripper path only while closing (signed)",
+    "coupling/broadband": "additive broadband ~ product of speeds (unsigned)",
+    "acceleration/broadband": "additive broadband ~ |acceleration| (unsigned)",
+    "signed": "wrist lines x exp(+-s ...): louder same direction, quieter opposite (signed, tonal)",
+    "speeding_up": "source gain only while the joint speeds up (signed, multiplicative)",
+    "lag": "joint-state stamps late",
+    "lead": "joint-state stamps early",
+    "filtered": "reported velocity through a first-order low-pass (dispersive lag)",
+    "linear": "gain 1 + s t / 60 s (multiplicative)",
+    "warmup": "gain 1 + 2 s (1 - exp(-t / 20 s)) (multiplicative, saturating)",
+    "additive": "wear broadband added, growing with time (additive)",
+    "spot": "tight spot once per wrist turn (multiplicative, tonal)",
+    "end": "rub near the gripper's closed end (additive broadband)",
+    "closing": "rub only while the gripper closes (signed, additive)",
+    "intermod": "intermodulation lines f_w +- f_g (additive, tonal, unsigned)",
+    "clicks": "backlash clicks at reversals (impulsive)",
+    "braking": "broadband while a joint slows down (signed, additive)",
+    "step": "warm-up step, logistic, up or down (multiplicative)",
+    "wear": "grinding added, growing with time (additive)",
+}
 #: Strength ranges of the blind runs (CONTRACT section 5 units: timing in seconds, sign random).
 STRENGTH_RANGES = {
     "position": (0.2, 0.5),
@@ -50,7 +96,7 @@ ALT_STRENGTH_RANGES = {
     "timing": (0.012, 0.04),
     "drift": (0.4, 1.0),
 }
-LADDER_FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+LADDER_FRACTIONS = (0.25, 0.5)
 MISCALIBRATED = "none (sim 6 dB too loud)"
 SHAPE_DIFFERS = "none (sim shape differs)"
 MOTION_MAX_SPEED = 0.8
@@ -116,8 +162,9 @@ def quieter_params(params, factor: float = 0.5):
 def plan_runs(
     seeds: int, *, ladder: bool, master_seed: int = 2026, reality: str = "sim", extra_none: int = 0
 ) -> list[dict]:
-    """The blind runs: (class, strength, seed) drawn reproducibly from `master_seed`;
-    `extra_none` more bags of every `none` class (drawn last: the other runs do not change)."""
+    """The blind runs: (class, form, strength, seed) drawn reproducibly from `master_seed`;
+    every form of every effect `seeds` times; the ladder one run per form and rung;
+    `extra_none` more bags of every `none` class (drawn last)."""
     ranges = strength_ranges(reality)
     rng = np.random.default_rng(
         [master_seed, REALITIES.index(reality)] if reality != "sim" else master_seed
@@ -128,23 +175,32 @@ def plan_runs(
             runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
         for effect in EFFECTS:
             lo, hi = ranges[effect]
-            s = float(rng.uniform(lo, hi))
-            if effect == "timing" and rng.random() < 0.5:
-                s = -s  # joint states lead instead of lag
-            runs.append(
-                {"truth": effect, "strength": round(s, 4), "seed": int(rng.integers(1, 2**31))}
-            )
-    if ladder:
-        for effect in EFFECTS:
-            for frac in LADDER_FRACTIONS:
+            for form in FORMS[reality][effect]:
+                s = float(rng.uniform(lo, hi))
+                if form == "lead":
+                    s = -s
                 runs.append(
                     {
                         "truth": effect,
-                        "strength": round(ranges[effect][0] * frac, 5),
+                        "form": form,
+                        "strength": round(s, 4),
                         "seed": int(rng.integers(1, 2**31)),
-                        "ladder": True,
                     }
                 )
+    if ladder:
+        for effect in EFFECTS:
+            for form in FORMS[reality][effect]:
+                for frac in LADDER_FRACTIONS:
+                    s = ranges[effect][0] * frac * (-1 if form == "lead" else 1)
+                    runs.append(
+                        {
+                            "truth": effect,
+                            "form": form,
+                            "strength": round(s, 5),
+                            "seed": int(rng.integers(1, 2**31)),
+                            "ladder": True,
+                        }
+                    )
     for _ in range(extra_none):
         for label in none_classes(reality):
             runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
@@ -164,16 +220,24 @@ def make_recording(run: dict, duration_s: float):
     """The blind "real" recording of a run (ground truth stripped) and its truth dict."""
     truth_label = run["truth"]
     effects = {} if truth_label.startswith("none") else {truth_label: run["strength"]}
+    form = run.get("form")
+    generator_form = "stamps" if form in ("lag", "lead") else form
     if run.get("reality", "sim") == "alt":
         from egovib_ros.altreality import simulate_alt_motion
 
         rec, truth = simulate_alt_motion(
-            duration_s=duration_s, effects=effects, seed=run["seed"], tap_rate_hz=TAP_RATE_HZ
+            duration_s=duration_s,
+            effects=effects,
+            seed=run["seed"],
+            tap_rate_hz=TAP_RATE_HZ,
+            forms={truth_label: generator_form} if form else None,
         )
     else:
         from egovib_ros.sim import SimParams, simulate_motion
 
         params = SimParams.load()
+        if form:
+            params.effect_forms = {truth_label: generator_form}
         if truth_label == MISCALIBRATED:
             params = quieter_params(params)
         rec, truth = simulate_motion(
@@ -310,8 +374,46 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
             ],
             "range_of_blind_runs": list(ranges[e]),
         }
+    per_form = {}
+    for e in EFFECTS:
+        for form in FORMS.get(reality, {}).get(e, ()):
+            rs = [r for r in blind if r["truth"] == e and r.get("form") == form]
+            lad = sorted(
+                [
+                    r
+                    for r in results
+                    if r.get("ladder") and r["truth"] == e and r.get("form") == form
+                ],
+                key=lambda r: abs(r["strength"]),
+            )
+            found = [r["correct"] for r in lad] + [True]
+            per_form[f"{e}/{form}"] = {
+                "effect": e,
+                "form": form,
+                "what": FORM_TEXT.get(f"{e}/{form}", FORM_TEXT.get(form, "")),
+                "runs": len(rs),
+                "correct": int(sum(r["correct"] for r in rs)),
+                "top1": round(float(np.mean([r["correct"] for r in rs])), 4) if rs else None,
+                "missed_as_none": int(sum(r["verdict"] == "none" for r in rs)),
+                "verdicts": [r["verdict"] for r in rs],
+                "strengths": [r["strength"] for r in rs],
+                "ladder": [{"strength": r["strength"], "verdict": r["verdict"]} for r in lad],
+                "detected_from_strength": next(
+                    (abs(lad[i]["strength"]) for i in range(len(lad)) if all(found[i:])),
+                    None if lad else None,
+                ),
+            }
+    none_flags = {
+        t: {
+            "runs": sum(r["truth"] == t for r in blind),
+            "wrongly_flagged": sum(r["truth"] == t and r["verdict"] != "none" for r in blind),
+        }
+        for t in none_classes(reality)
+    }
     return {
         "reality": reality,
+        "per_form": per_form,
+        "none_false_flags": none_flags,
         "accuracy": round(float(np.mean([r["correct"] for r in blind])), 4),
         "accuracy_effects": round(float(np.mean([r["correct"] for r in effects_only])), 4)
         if effects_only
@@ -335,13 +437,16 @@ REALITY_TEXT = {
     "sim": (
         "our simulator (egovib_ros/sim) with one hidden effect per bag; two extra `none` classes: "
         "the simulator 6 dB louder than the robot, and a simulator whose spectra differ in shape "
-        "(gear tones moved, wrist resonance missing, gripper structural band shifted)"
+        "(gear tones moved, wrist resonance missing, gripper structural band shifted); every "
+        "effect in each of its forms (table below)"
     ),
     "alt": (
         "the independent alternate-reality hand (egovib_ros/altreality: its own drive trains, "
         "housing modes, impulsive friction, sensor and motion; effects as a tight spot per wrist "
         "turn or a rub near the gripper's closed end, intermodulation lines, backlash clicks at "
-        "reversals, a warm-up step, a stamp lag)"
+        "reversals, a warm-up step, a stamp lag, and the forms added since: a rub only while "
+        "closing, a signed wrist x gripper interaction, broadband while braking, a filtered "
+        "velocity, wear; table below)"
     ),
 }
 
@@ -359,7 +464,7 @@ def render_markdown(report: dict) -> str:
         f'"real" bags from {REALITY_TEXT[reality]}.',
         "",
         f"Top-1 accuracy **{s['accuracy']:.3f}** over {s['n_runs']} blind runs "
-        f"({st['seeds']} seeds per class"
+        f"({st['seeds']} seeds per form of every effect and per `none` class"
         + (f", {st['extra_none']} more per `none` class" if st.get("extra_none") else "")
         + f", {st['duration_s']:.0f} s bags; effects only: "
         f"{s['accuracy_effects']:.3f}); `none` wrongly flagged "
@@ -410,6 +515,30 @@ def render_markdown(report: dict) -> str:
             f"| {t} | {d['runs']} | {d['mean_gap_sim_as_is']} | {d['mean_gap_after_refit']} | "
             f"{d['mean_floor']} | {d['max_refit_above_floor_db']} |"
         )
+    if s.get("per_form"):
+        lines += [
+            "",
+            "## Per form: top-1 and the ladder (one seed per rung, x the lower end of the range)",
+            "",
+            "| effect | form | what | blind runs | top-1 | missed as none | ladder "
+            "| detected from |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for d in s["per_form"].values():
+            ladder = ", ".join(f"{r['strength']:g} -> {r['verdict']}" for r in d["ladder"])
+            lines.append(
+                f"| {d['effect']} | {d['form']} | {d['what']} | {d['runs']} | "
+                f"{d['correct']}/{d['runs']} | {d['missed_as_none']} | {ladder} | "
+                f"{d['detected_from_strength']} |"
+            )
+        lines += [
+            "",
+            "`none` wrongly flagged per `none` class: "
+            + ", ".join(
+                f"{t} {d['wrongly_flagged']}/{d['runs']}" for t, d in s["none_false_flags"].items()
+            )
+            + ".",
+        ]
     lines += ["", "## Detectability (strength ladder below the blind ranges, one seed each)", ""]
     for e, d in s["detectability"].items():
         ladder = ", ".join(f"{r['strength']:g} -> {r['verdict']}" for r in d["ladder"])
@@ -427,8 +556,9 @@ def render_markdown(report: dict) -> str:
         label = "none" if r["truth"].startswith("none") else r["truth"]
         p = r["p_values"].get(label)
         details = ", ".join(f"{k}={v}" for k, v in r.get("truth_details", {}).items())
+        form = f"/{r['form']}" if r.get("form") else ""
         lines.append(
-            f"| {r['truth']}{' (ladder)' if r.get('ladder') else ''} | "
+            f"| {r['truth']}{form}{' (ladder)' if r.get('ladder') else ''} | "
             f"{r['strength']} | {r['seed']} | "
             f"{r['verdict']} | {r['confidence']} | {g['sim_as_is']} | {g['after_refit']} | "
             f"{g['after_verdict']} | {g['floor']} | {'' if p is None else f'{p:.2g}'} | {details} |"
@@ -538,6 +668,8 @@ def run_validation(
 
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
+    if reality == "real":
+        return _run_real(out_dir, write)
     start = time.perf_counter()
     if runs is None:
         runs = plan_runs(
@@ -601,6 +733,35 @@ def run_validation(
         outputs.append(str(out / png_name))
     summary["outputs"] = outputs
     summary["report"] = report
+    return summary
+
+
+def _run_real(out_dir, write: bool) -> dict:
+    """Known effects injected into the real flight (gap/realinject.py)."""
+    from egovib_ros.experiments.gap_real_injection import render_markdown as render_real
+    from egovib_ros.experiments.gap_real_injection import run_real_validation
+
+    report = run_real_validation()
+    report["settings"]["command"] = f"egovib gap validate --reality real --out {out_dir}"
+    summary = dict(report["summary"])
+    summary["accuracy"] = summary["accuracy_injected"]
+    untouched = summary["untouched_correct"]
+    summary["none_false_positive_rate"] = round(1.0 - float(np.mean(untouched)), 4)
+    outputs = []
+    if write:
+        json_name, md_name, _ = output_names("real")
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        for name, text in (
+            (json_name, json.dumps(report, indent=1)),
+            (md_name, render_real(report)),
+        ):
+            with atomic_output(out / name) as tmp_path:
+                tmp_path.write_text(text)
+            outputs.append(str(out / name))
+    summary["outputs"] = outputs
+    summary["report"] = report
+    summary["n_runs"] = report["summary"]["n_runs"]
     return summary
 
 

@@ -7,4 +7,6 @@ Public entry points:
     run_validation(seeds=5, duration_s=120.0, out_dir="docs", ...)      (validate)
     simulator_reference_lag(model)                                       (simref)
     write_back(diagnosis, sim_params_path, out_yaml)                     (writeback)
+    advise(diagnosis) -> what to do, the denoiser's cost, what is left   (advice)
+    run_real_validation()  known effects injected into the real flight    (realinject)
 """

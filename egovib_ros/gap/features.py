@@ -99,6 +99,7 @@ class BlockTable:
                 "hats",
                 "reversal_after_s",
                 "reversal_before_s",
+                "speed_rate",
             )
             if getattr(self, name) is not None
         }
@@ -132,6 +133,7 @@ class BlockTable:
             hats=hats,
             reversal_after_s=after,
             reversal_before_s=before,
+            speed_rate=speed_rate_means(self.joints, self.t_first_s, self.t_last_s, lag_s),
             lag_s=float(lag_s),
         )
 
@@ -152,6 +154,9 @@ class BlockTable:
         repr=False, default=None
     )  # (B, J) until next reversal
     lag_s: float = 0.0  # joint-state lag of this table
+    #: (B, J) block mean rate of change of the joint's *speed* (d|v|/dt, joint unit/s^2):
+    #: positive while it speeds up, negative while it slows down
+    speed_rate: np.ndarray | None = field(repr=False, default=None)
     #: counts of bad input treated as missing (framer stats, joint states dropped)
     bad_input: dict = field(repr=False, default_factory=dict)
 
@@ -591,6 +596,18 @@ def _interval_means(
     return (integral(t1) - integral(t0)) / span
 
 
+def speed_rate_means(
+    joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float
+) -> np.ndarray:
+    """Block means of d|v|/dt (sign of the smoothed velocity times its derivative): speeding
+    up vs slowing down, whichever the direction of travel."""
+    check_lag(joints, lag_s)
+    smooth = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
+    return _interval_means(
+        joints.t_s - lag_s, np.sign(smooth) * joints.acceleration, t_first, t_last
+    )
+
+
 def check_lag(joints: JointSeries, lag_s: float) -> None:
     """A thinned series holds joint states only near its blocks: refuse a lag beyond that."""
     if abs(lag_s) > joints.max_lag_s:
@@ -735,6 +752,7 @@ def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> Block
     table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
         table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
     )
+    table.speed_rate = speed_rate_means(table.joints, table.t_first_s, table.t_last_s, table.lag_s)
     return table
 
 
@@ -887,6 +905,7 @@ def table_from_blocks(
         hats=hats,
         reversal_after_s=after,
         reversal_before_s=before,
+        speed_rate=speed_rate_means(joints, t_first, t_last, 0.0),
     )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
