@@ -1,4 +1,5 @@
-"""`egovib simulate sweep|motion` (CONTRACT section 3)."""
+"""`egovib simulate sweep|motion` (the PR2 hand) and `simulate robot` (any profile,
+sim/robot_cli.py) (CONTRACT section 3)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from egovib_ros.bagio import write_recordings
 from egovib_ros.constants import ACCEL_FRAME
 from egovib_ros.errors import ConfigError
 from egovib_ros.fileutil import atomic_output, prepare_output
+from egovib_ros.sim import robot_cli
 from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.scenarios import motion_slices, sweep_cells, sweep_slices
 
@@ -18,10 +20,10 @@ def register(subparsers) -> None:
     """Add `simulate` with its `sweep` and `motion` subcommands."""
     sim = subparsers.add_parser(
         "simulate",
-        help="simulate the PR2 hand and write a rosbag2 (MCAP) bag",
+        help="simulate the PR2 hand or any robot profile and write a rosbag2 (MCAP) bag",
         description="Simulate the PR2 right hand (wrist roll + gripper) with its "
-        "accelerometer and write a rosbag2 MCAP bag with the contract's "
-        "topics, including the ground-truth contact/ego topics.",
+        "accelerometer (sweep, motion), or any robot profile (robot), and write a rosbag2 "
+        "MCAP bag with the contract's topics, including the ground-truth contact/ego topics.",
     )
     scen = sim.add_subparsers(dest="scenario", required=True, metavar="SCENARIO")
 
@@ -107,6 +109,8 @@ def register(subparsers) -> None:
     )
     common(motion)
     motion.set_defaults(func=run)
+
+    robot_cli.register(scen)
 
 
 def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str = "simulate"):
