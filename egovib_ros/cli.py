@@ -34,8 +34,9 @@ if TYPE_CHECKING:
 
 # Order = order in `egovib --help`.
 COMMAND_MODULES = (
-    "egovib_ros.sim.cli",  # simulate sweep|motion
+    "egovib_ros.sim.cli",  # simulate sweep|motion|robot
     "egovib_ros.offline",  # calibrate, denoise
+    "egovib_ros.modelview",  # model show
     "egovib_ros.evaluation.cli",  # evaluate, figures
     "egovib_ros.gap.cli",  # gap, gap validate
     "egovib_ros.bench",  # bench
