@@ -247,7 +247,8 @@ def spectra_panels(model) -> list[SpectraPanel]:
     panels = []
     for j, g in enumerate(model.grid):
         top = float(np.max(np.abs(g)))
-        panel = SpectraPanel(title=f"{model.joint_names[j]} moving, the others at rest")
+        others = ", the others at rest" if model.n_joints > 1 else ""
+        panel = SpectraPanel(title=f"{model.joint_names[j]} moving{others}")
         if rest_row >= 0:
             panel.curves.append((f"rest ({counts[rest_row]} blocks)", rest_row))
         for fraction in SPEED_FRACTIONS:

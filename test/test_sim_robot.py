@@ -192,7 +192,7 @@ def test_motion_and_sweep_bags_calibrate_denoise_and_reduce_noise(arm, arm_path,
         raw = _in_band_rms(arm, rec.accel, quiet)
         cleaned = _in_band_rms(arm, rec.denoised, quiet)
         reductions[name] = 20 * np.log10(raw / cleaned)
-    # measured: sweep 24 dB, 40 s of free motion 13 dB
+    # measured: sweep 23.3 dB, 40 s of free motion 10.7 dB (in-band, away from the taps)
     assert reductions["sweep"] > 15 and reductions["motion"] > 8, reductions
 
 
