@@ -34,9 +34,10 @@ if TYPE_CHECKING:
 
 # Order = order in `egovib --help`.
 COMMAND_MODULES = (
-    "egovib_ros.cli.simulate",  # simulate sweep|motion
+    "egovib_ros.cli.simulate",  # simulate sweep|motion|robot
     "egovib_ros.cli.calibrate",
     "egovib_ros.cli.denoise",
+    "egovib_ros.cli.model",  # model show
     "egovib_ros.cli.evaluate",  # evaluate, figures
     "egovib_ros.cli.gap",  # gap, gap validate
     "egovib_ros.cli.bench",  # bench

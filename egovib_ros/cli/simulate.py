@@ -1,4 +1,5 @@
-"""`egovib simulate sweep|motion` (CONTRACT section 3)."""
+"""`egovib simulate sweep|motion` (the PR2 hand) and `simulate robot` (any profile:
+cli/simulate_robot.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import argparse
 import json
 
 from egovib_ros.bag import write_recordings
-from egovib_ros.cli import options
+from egovib_ros.cli import options, simulate_robot
 from egovib_ros.errors import ConfigError
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.sim.params import SimParams
@@ -18,10 +19,10 @@ def register(subparsers) -> None:
     """Add `simulate` with its `sweep` and `motion` subcommands."""
     sim = subparsers.add_parser(
         "simulate",
-        help="simulate the PR2 hand and write a rosbag2 (MCAP) bag",
+        help="simulate the PR2 hand or any robot profile and write a rosbag2 (MCAP) bag",
         description="Simulate the PR2 right hand (wrist roll + gripper) with its "
-        "accelerometer and write a rosbag2 MCAP bag with the contract's "
-        "topics, including the ground-truth contact/ego topics.",
+        "accelerometer (sweep, motion), or any robot profile (robot), and write a rosbag2 "
+        "MCAP bag with the contract's topics, including the ground-truth contact/ego topics.",
     )
     scen = sim.add_subparsers(dest="scenario", required=True, metavar="SCENARIO")
 
@@ -107,6 +108,8 @@ def register(subparsers) -> None:
     )
     common(motion)
     motion.set_defaults(func=run)
+
+    simulate_robot.register(scen)
 
 
 def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str = "simulate"):

@@ -11,7 +11,7 @@ would).  The "real" recordings come from either
   which shares no code or formulas with the simulator and has each effect in its own
   functional forms;
 * `--reality real`: known effects injected into one part of a real flight, the model
-  calibrated on the other part (gap/realinject.py).
+  calibrated on the other part (experiments/gap_real_injection.py).
 
 Every effect is drawn in each of its functional forms (FORMS: signed or not,
 multiplicative or additive, tonal or broadband), `seeds` recordings per form with a
@@ -737,7 +737,7 @@ def run_validation(
 
 
 def _run_real(out_dir, write: bool) -> dict:
-    """Known effects injected into the real flight (gap/realinject.py)."""
+    """Known effects injected into the real flight (experiments/gap_real_injection.py)."""
     from egovib_ros.experiments.gap_real_injection import render_markdown as render_real
     from egovib_ros.experiments.gap_real_injection import run_real_validation
 
