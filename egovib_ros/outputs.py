@@ -1,4 +1,4 @@
-"""Outputs that never destroy what they did not create (CONTRACT section 3, issue 11).
+"""Outputs that never destroy what they did not create (INTERFACES.md section 3).
 
 Two steps, used by every command that writes:
 

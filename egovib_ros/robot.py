@@ -1,4 +1,4 @@
-"""Robot profiles (CONTRACT section 1b, schema ``egovib.robot/1``).
+"""Robot profiles (INTERFACES.md section 1b, schema ``egovib.robot/1``).
 
 Everything robot-specific - which Imu topic and field is cleaned, at what nominal
 rate, which joints key the noise and how fast they go, how the velocity grid is
@@ -169,7 +169,7 @@ class RobotProfile:
 
     # --- (de)serialisation ----------------------------------------------------
     def to_dict(self) -> dict:
-        """The profile as the YAML mapping of CONTRACT section 1b (plus `sensor.range`)."""
+        """The profile as the YAML mapping of INTERFACES.md section 1b (plus `sensor.range`)."""
         sensor = {
             "topic": self.sensor_topic,
             "field": self.sensor_field,

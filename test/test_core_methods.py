@@ -100,7 +100,7 @@ def model() -> NoiseModel:
 
 
 def combined_bp(values: np.ndarray) -> np.ndarray:
-    return filters.combined_bandpassed(values, sample_rate_hz=FS, band_hz=PROFILE.band_hz, order=4)
+    return filters.combined_bandpassed(values, PROFILE)
 
 
 def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):

@@ -10,7 +10,7 @@ import pytest
 from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays
-from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_evaluate_writes_contract_fields(simulated, capsys):
     )
     assert code == 0
     report = json.loads(out.read_text())
-    for field in CONTRACT_FIELDS:
+    for field in REPORT_FIELDS:
         assert field in report, field
     # The taps found from the contact topic are the simulator's taps (truth file onsets).
     onsets_ns = simulated["truth"].get("tap_onsets_ns", [])

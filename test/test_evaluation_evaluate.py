@@ -7,7 +7,7 @@ import pytest
 
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.errors import BagError
-from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS, evaluate_recording, require_ground_truth
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS, evaluate_recording, require_ground_truth
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 
@@ -35,7 +35,7 @@ def recording():
 def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recording):
     rec, truth = recording
     report = evaluate_recording(rec, model, keep_signals=True, pr_curves=True)
-    for field in CONTRACT_FIELDS:
+    for field in REPORT_FIELDS:
         assert field in report
     assert report["threshold_source"].startswith("no-contact part of this recording")
     # No noise clip and no short-block model: those two baselines cannot run.

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.experiments.flight.methods import (
     build_methods,
-    combined_bandpassed,
     single_joint_profile,
 )
 from egovib_ros.experiments.flight.notch import (

@@ -10,7 +10,7 @@ accelerometer, its own motion (segments with quintic blends, gripper strokes wit
 dwells) and its own joint-state reporting (two-sample encoder differences,
 stamp jitter, occasional dropped messages).
 
-Its effects (CONTRACT section 5 vocabulary), each in a functional form unlike
+Its effects (INTERFACES.md section 5 vocabulary), each in a functional form unlike
 the simulator's:
 
 * ``position``:     variant "spot": a tight spot once per wrist turn (a burr on the

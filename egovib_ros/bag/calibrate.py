@@ -24,12 +24,16 @@ def calibrate_bag(
     *,
     profile: RobotProfile,
     sweep: str = "auto",
+    joint_lag_s: float = 0.0,
     progress: Callable[[int], None] | None = None,
 ) -> CalibrationAccumulator:
     """Stream one bag into a CalibrationAccumulator (flushed). Memory: one slice. The
-    accumulator's `input_counts` is the line of bad-input counts to print."""
+    accumulator's `input_counts` is the line of bad-input counts to print. `joint_lag_s`:
+    the joint states lag the sensor by this much (their stamps are moved later)."""
     where = f"{bag}: {profile.sensor_topic}"
-    acc = CalibrationAccumulator(profile=profile, sweep=sweep, source=where)
+    acc = CalibrationAccumulator(
+        profile=profile, sweep=sweep, source=where, joint_lag_s=joint_lag_s
+    )
     joint_states = 0
     for piece in iter_recording(
         bag, profile=profile, ground_truth=False, denoised=False, commands=False, progress=progress
@@ -64,6 +68,7 @@ def calibrate_bags(
     *,
     profile: RobotProfile | None = None,
     sweep: str = "auto",
+    joint_lag_s: float = 0.0,
     jobs: int = 1,
     scheduler: str | None = None,
     quiet: bool = True,
@@ -73,7 +78,7 @@ def calibrate_bags(
     failed (the results say which and why)."""
     profile = profile or load_profile(None)
     pairs = expand_bags(bags)
-    task = functools.partial(_calibrate_task, profile=profile, sweep=sweep)
+    task = functools.partial(_calibrate_task, profile=profile, sweep=sweep, joint_lag_s=joint_lag_s)
     results = run_bags(
         task,
         [BagJob(bag) for bag, _ in pairs],
@@ -103,3 +108,23 @@ def calibrate_bags(
         model.provenance["source_bag"] = names[0]
         model.provenance["source_fingerprint"] = bag_fingerprint(names[0])
     return model, acc.stats, results
+
+
+def calibrate_bag_methods(bag: str | os.PathLike, model, *, joint_lag_s: float = 0.0):
+    """Fit what methods `cancel` and `hybrid` need (core.methods.calibrate_methods) on the
+    calibration bag of `model`; returns (model with them, what was fitted). The fit takes
+    the recording whole: memory grows with the bag (a calibration run: minutes)."""
+    from egovib_ros.bag.recording import read_recording
+    from egovib_ros.core.methods import calibrate_methods  # numba: only when asked for
+
+    profile = model.robot_profile()
+    rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
+    joints = rec.joint_stamps_ns + int(round(joint_lag_s * 1e9))
+    return calibrate_methods(
+        model,
+        rec.accel_stamps_ns,
+        rec.accel,
+        joints,
+        rec.joint_velocity,
+        source=f"{bag}: {profile.sensor_topic}",
+    )

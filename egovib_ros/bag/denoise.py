@@ -150,15 +150,28 @@ class _DenoisedTopic:
         self.written += len(batches)
 
 
+def make_method_denoiser(model: NoiseModel, method: str, **options):
+    """The streaming denoiser of `method` (paper | cancel | hybrid; core.methods.make_denoiser
+    states the options each takes). The paper's is built without loading the compiled
+    methods (numba), which take a few seconds to import."""
+    if method == "paper":
+        return StreamingDenoiser(model, **options)
+    from egovib_ros.core.methods import make_denoiser
+
+    return make_denoiser(model, method, **options)
+
+
 def denoise_bag(
     bag: str | os.PathLike,
     out: str | os.PathLike,
     *,
     model: NoiseModel | str | os.PathLike,
+    method: str = "paper",
     channels: str = "per_axis",
     output: str | None = None,
     oversubtraction: float = 1.0,
     floor: float = 0.0,
+    joint_lag_s: float = 0.0,
     compress: bool | str = False,
     progress: Callable[[int], None] | None = None,
 ) -> dict:
@@ -176,12 +189,14 @@ def denoise_bag(
         )
         raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
         copy_topics = [t for t in reader.topics if t != denoised_topic]
-        denoiser = StreamingDenoiser(
+        denoiser = make_method_denoiser(
             model,
+            method,
             channels=channels,
             output=output,
             oversubtraction=oversubtraction,
             floor=floor,
+            joint_lag_s=joint_lag_s,
             source=f"{bag}: {raw_topic}",
         )
         with atomic_output(out, directory=True, kind="bag") as tmp:
@@ -226,13 +241,15 @@ def denoise_bag(
         "samples_in": job.raw_read,
         "denoised_messages": job.written,
         "raw_without_output": job.dropped,
-        "blocks": stats["blocks"],
-        "blocks_out_of_grid": stats["blocks_out_of_grid"],
-        "blocks_no_joint_state": stats["blocks_no_joint_state"],
+        "method": method,
+        "blocks": stats.get("blocks", 0),
+        "blocks_out_of_grid": stats.get("blocks_out_of_grid", 0),
+        "blocks_no_joint_state": stats.get("blocks_no_joint_state", 0),
         "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
+        "samples_no_joint_state": stats.get("samples_no_joint_state", 0),
         "dropped_out_of_order": stats["dropped_out_of_order"],
         "channels": channels,
-        "output": denoiser.output,
+        "output": getattr(denoiser, "output", "bandpassed"),
         "chunks_copied_verbatim": copied["verbatim"],
         "batches_rewritten": copied["rewritten"],
         "size_ratio": ratio,

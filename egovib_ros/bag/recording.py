@@ -2,7 +2,7 @@
 
 `iter_recording(path, profile=...)` yields consecutive time slices of a bag as
 `Recording`s; `read_recording` joins them. Topics, the Imu field and the joints come
-from the robot profile (CONTRACT 1b; default the PR2 hand): the sensor topic's
+from the robot profile (INTERFACES.md section 1b; default the PR2 hand): the sensor topic's
 `sensor.field` vector becomes `accel`, whatever its name, and the joints are picked
 by name from JointStates with any number and order of joints.
 

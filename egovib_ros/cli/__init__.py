@@ -1,4 +1,4 @@
-"""`egovib` console script (CONTRACT section 3).
+"""`egovib` console script (INTERFACES.md section 3).
 
 Each command lives in its own module, which exposes `register(subparsers)`;
 the parser it adds sets `func(args) -> int`. How a run ends:

@@ -8,12 +8,13 @@ import sys
 
 import numpy as np
 
-from egovib_ros.bag.calibrate import calibrate_bags
-from egovib_ros.bag.many import raise_if_bugs, summary_lines
+from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
+from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
 from egovib_ros.cli.jobs import parallel_options
+from egovib_ros.cli.options import float_in
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.noise_model import sweep_mask
-from egovib_ros.errors import BagError
+from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import load_profile
 
@@ -23,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "calibrate",
         help="build a noise model from a calibration sweep or any no-contact recording",
         description="Assign blocks of the bags' sensor signal to joint-velocity cells and write "
-        "the per-cell mean/std noise spectra (CONTRACT section 4). Several bags (or directories "
+        "the per-cell mean/std noise spectra (INTERFACES.md section 4). Several bags (or "
+        "directories "
         "of bags) give one model; they are read in parallel with --jobs.",
     )
     cal.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
@@ -42,6 +44,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "auto = decided from the data",
     )
     parallel_options(cal)
+    cal.add_argument(
+        "--methods",
+        choices=("paper", "hybrid"),
+        default="paper",
+        help="paper: the paper's table (default); hybrid: also what methods cancel and hybrid "
+        "need (the speed -> line map, the residual's table, the gain), fitted on one bag",
+    )
+    cal.add_argument(
+        "--joint-lag",
+        type=float_in(-1.0, 1.0),
+        default=0.0,
+        metavar="SECONDS",
+        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
+        "measures it; negative: they lead)",
+    )
     cal.add_argument(
         "--force", action="store_true", help="replace an existing model written by egovib"
     )
@@ -80,13 +97,25 @@ def coverage_lines(model: NoiseModel) -> list[str]:
     return lines
 
 
+def describe_methods(fitted: dict) -> str:
+    """What `--methods hybrid` fitted, in one line."""
+    bands = ", ".join(f"{f:g}" for f in fitted["gain"]["bands_hz"])
+    return (
+        f"harmonic cancellation removes {fitted['cancellation_db_on_calibration']:g} dB of the "
+        f"calibration data; gain bands at {bands} Hz"
+    )
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
+    if args.methods == "hybrid" and len(expand_bags(args.bags)) != 1:
+        raise ConfigError("--methods hybrid: fitted on one calibration bag; give one")
     model, stats, results = calibrate_bags(
         args.bags,
         profile=profile,
         sweep=args.grid,
+        joint_lag_s=args.joint_lag,
         jobs=args.jobs,
         scheduler=args.scheduler,
         quiet=args.quiet,
@@ -109,6 +138,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
             f"{where}: no steady block near any grid velocity "
             f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?"
         )
+    if args.methods == "hybrid":
+        model, fitted = calibrate_bag_methods(
+            expand_bags(args.bags)[0][0], model, joint_lag_s=args.joint_lag
+        )
+        print(f"methods cancel and hybrid: {describe_methods(fitted)}", file=sys.stderr)
     with atomic_output(args.out) as tmp:
         model.save(tmp)
     for line in coverage_lines(model):

@@ -6,11 +6,11 @@ import argparse
 import functools
 from pathlib import Path
 
-from egovib_ros.bag.denoise import denoise_bag
+from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
 from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
-from egovib_ros.cli.options import nonneg_float
-from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.cli.options import float_in, nonneg_float
+from egovib_ros.core import NoiseModel
 from egovib_ros.outputs import prepare_output
 
 
@@ -31,6 +31,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         required=True,
         metavar="BAG",
         help="output bag directory (one input bag) or directory of output bags (several)",
+    )
+    den.add_argument(
+        "--method",
+        choices=("paper", "cancel", "hybrid"),
+        default="paper",
+        help="paper: the paper's block spectral subtraction (default; a block of delay); "
+        "cancel: speed-locked harmonic cancellation (no delay); hybrid: cancel, then a "
+        "low-latency gain (4 ms); cancel and hybrid need a model calibrated with "
+        "--methods hybrid",
+    )
+    den.add_argument(
+        "--joint-lag",
+        type=float_in(-1.0, 1.0),
+        default=0.0,
+        metavar="SECONDS",
+        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
+        "measures it; negative: they lead)",
     )
     den.add_argument(
         "--channels",
@@ -94,12 +111,14 @@ def run_denoise(args: argparse.Namespace) -> int:
     model.robot_profile()
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
-    StreamingDenoiser(
+    make_method_denoiser(
         model,
+        args.method,
         channels=args.channels,
         output=args.output,
         oversubtraction=args.oversubtraction,
         floor=args.floor,
+        joint_lag_s=args.joint_lag,
     )
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
@@ -107,10 +126,12 @@ def run_denoise(args: argparse.Namespace) -> int:
     task = functools.partial(
         _denoise_task,
         model=model,
+        method=args.method,
         channels=args.channels,
         output=args.output,
         oversubtraction=args.oversubtraction,
         floor=args.floor,
+        joint_lag_s=args.joint_lag,
         compress=args.compress,
     )
     results = run_bags(

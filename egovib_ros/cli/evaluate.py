@@ -1,4 +1,4 @@
-"""`egovib evaluate` and `egovib figures` (CONTRACT sections 3 and 6).
+"""`egovib evaluate` and `egovib figures` (INTERFACES.md sections 3 and 6).
 
     egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration BAG]
                     [--jobs N | --scheduler ADDRESS]
@@ -74,7 +74,7 @@ def _calibration_bag(args, model) -> Path | None:
 
 
 def json_jobs(specs: list[str], out: str) -> list:
-    """One bag given as such -> `out` is the JSON file (CONTRACT); several bags or a
+    """One bag given as such -> `out` is the JSON file (docs/INTERFACES.md); several bags or a
     directory -> `out` is a directory holding <bag name>.json per bag (the bag's path
     relative to the directory it was found in, e.g. OUT/day1/run0.json)."""
 
@@ -220,7 +220,7 @@ def register(subparsers) -> None:
         "evaluate",
         help="paper metrics on bags with ground truth (JSON)",
         description="Denoise BAG with MODEL by every method and write the paper's "
-        "metrics (CONTRACT section 6) as JSON. Needs the ground-truth "
+        "metrics (INTERFACES.md section 6) as JSON. Needs the ground-truth "
         "topic /accelerometer/contact. If BAG also holds "
         "/accelerometer/denoised (from `egovib denoise` or the live node), "
         "it is scored too, as method 'bag_denoised'. Bags are streamed (memory does not "

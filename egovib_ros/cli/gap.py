@@ -1,5 +1,5 @@
 """`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]`
-(CONTRACT section 3)."""
+(INTERFACES.md section 3)."""
 
 from __future__ import annotations
 

@@ -103,7 +103,7 @@ seed = int_in(0, MAX_SEED)
 
 
 def effects_spec(text: str) -> dict[str, float]:
-    """argparse type: the effects SPEC `name=strength,...` (CONTRACT section 3), checked."""
+    """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
     from egovib_ros.sim.params import check_effects, parse_effects
 
     try:

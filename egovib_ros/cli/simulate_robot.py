@@ -23,7 +23,8 @@ def register(scenarios) -> None:
     robot = scenarios.add_parser(
         "robot",
         help="free motion or a grid sweep of any robot profile (generic N-joint simulator)",
-        description="Simulate a robot described by a profile (CONTRACT 1b): each joint's motor "
+        description="Simulate a robot described by a profile (INTERFACES.md section 1b): each "
+        "joint's motor "
         "shakes the sensor with a line rising with its speed plus harmonics, over a sensor floor "
         "(gravity on z for linear_acceleration), stamps jittering around the nominal rate, "
         "optional taps. Writes a rosbag2 MCAP bag with the profile's sensor and joint topics "

@@ -126,10 +126,14 @@ class BelowBand(CarriedFilter):
         super().__init__(sos, n_channels=n_channels)
 
 
-def combined_bandpassed(
-    values: np.ndarray, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
-) -> np.ndarray:
+def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
     """(N,) sum of the three axes of (N, 3) samples, band-passed with the streaming filter
-    from steady state: the paper's 1-D signal, the reference every metric is taken on."""
-    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
+    from steady state in the robot profile's band (`profile`: a RobotProfile): the paper's
+    1-D signal, the reference every metric is taken on."""
+    band = BandPass(
+        sample_rate_hz=profile.rate_hz,
+        band_hz=profile.band_hz,
+        order=profile.band_order,
+        n_channels=1,
+    )
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows

@@ -138,8 +138,8 @@ class MethodCalibration:
         extras = model.extras
         if HARMONIC_PREFIX + "exponent" not in extras:
             raise ModelFileError(
-                f"{where}: calibrated for the paper's method only; calibrate again (this "
-                f"version fits `cancel` and `hybrid` too) to use them"
+                f"{where}: calibrated for the paper's method only; calibrate it with "
+                f"`egovib calibrate --methods hybrid` to use methods cancel and hybrid"
             )
         harmonic = HarmonicMap.from_arrays(extras, HARMONIC_PREFIX, where=where)
         if harmonic.joint_names != model.joint_names:
@@ -672,9 +672,12 @@ class SampleMethodDenoiser:
         return out_stamps[real], cleaned[real]
 
 
-def make_denoiser(model: NoiseModel, method: str = "paper", **options):
+def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):
     """The streaming denoiser of `method` for `model` (same push interface for all).
-    Options the method does not take are refused (ConfigError naming them)."""
+    Options the method does not take are refused (ConfigError naming them); an option at
+    the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
+    is no option. `cancel` and `hybrid` give the band-passed signal (their trackers run on
+    the band-passed axes): `output` "dropin" is the paper's only."""
     check_method(method)
     if method == "paper":
         if options.pop("lookahead_ms", None) is not None:
@@ -683,8 +686,17 @@ def make_denoiser(model: NoiseModel, method: str = "paper", **options):
             )
         if options.get("floor") is None:
             options.pop("floor", None)
-        return StreamingDenoiser(model, **options)
-    paper_only = {"oversubtraction", "include_std", "rule"} & set(options)
+        return StreamingDenoiser(model, output=output, **options)
+    if output == "dropin":
+        raise ConfigError(
+            f"output: dropin is made by method paper; method {method} gives the band-passed "
+            f"signal (output: bandpassed)"
+        )
+    defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0}
+    for name, value in defaults.items():
+        if name in options and options[name] == value:
+            del options[name]
+    paper_only = {"oversubtraction", "include_std", "rule", "joint_lag_s"} & set(options)
     if paper_only:
         raise ConfigError(f"method {method}: option(s) {sorted(paper_only)} apply to `paper` only")
     return SampleMethodDenoiser(model, method=method, **options)

@@ -747,7 +747,7 @@ class NoiseModel:
         fields.update(changes)
         return NoiseModel(**fields)
 
-    # --- file I/O (CONTRACT section 4) --------------------------------------
+    # --- file I/O (INTERFACES.md section 4) --------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write the .npz (loadable with allow_pickle=False). Use atomic_output for safety."""
         provenance = {
@@ -945,18 +945,20 @@ def sweep_mask(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
 
 
 def sweep_cells(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
-    """Grid indices (K, J) of the cells a sweep visits, without allocating the grid for
-    the superposition sweep (41 cells of the PR2; 1 + sum(n_j - 1) for any robot)."""
+    """Grid indices (K, J) of the cells a sweep visits, in sweep order, without allocating
+    the grid for the superposition sweep (41 cells of the PR2; 1 + sum(n_j - 1) for any
+    robot): the first joint's whole axis (rest included), then each other joint's axis
+    without the rest cell."""
     shape = tuple(len(g) for g in grid)
     if sweep == "full":
         return np.indices(shape).reshape(len(shape), -1).T
     if sweep != "superposition":
         raise ConfigError(f"grid: expected 'full' or 'superposition', got {sweep!r}")
     zero = np.array([int(np.argmin(np.abs(g))) for g in grid])
-    cells = [zero]
+    cells = []
     for j, n in enumerate(shape):
         for i in range(n):
-            if i != zero[j]:
+            if j == 0 or i != zero[j]:
                 cell = zero.copy()
                 cell[j] = i
                 cells.append(cell)

@@ -1,4 +1,4 @@
-"""Evaluate denoising methods on one recording with ground truth (CONTRACT section 6).
+"""Evaluate denoising methods on one recording with ground truth (INTERFACES.md section 6).
 
 `evaluate_bag(bag, model=...)` streams a bag (any length, flat memory);
 `evaluate_recording(rec, model, ...)` takes whole arrays (figures, experiments, demo).
@@ -40,7 +40,7 @@ from egovib_ros.evaluation import stream as streaming
 from egovib_ros.evaluation.stream import require_ground_truth
 
 PRIMARY = "paper"
-CONTRACT_FIELDS = (
+REPORT_FIELDS = (
     "noise_mean_raw",
     "noise_mean_denoised",
     "noise_reduction_db",
@@ -96,7 +96,7 @@ def evaluate_pieces(
     `open_calibration()`) return a fresh iterable of its Recording slices each time they
     are called (once per pass, see evaluation/stream.py). Returns the report."""
     names = streaming.method_names(
-        methods, calibration=open_calibration is not None, model_short=model_short
+        methods, calibration=open_calibration is not None, model_short=model_short, model=model
     )
     first = streaming.SummaryPass(model, source=source, max_bad_fraction=max_bad_fraction)
     for piece in open_run():
@@ -226,7 +226,7 @@ def _report(
     counts = dict(summary.counts)
     if calibration_bad is not None:
         counts["calibration_bad"] = calibration_bad
-    report = {field: primary[field] for field in CONTRACT_FIELDS if field in primary}
+    report = {field: primary[field] for field in REPORT_FIELDS if field in primary}
     report.update(
         {
             "f1_raw": raw_detection["f1"],

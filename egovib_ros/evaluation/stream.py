@@ -1067,15 +1067,22 @@ def _cut(rec, a: int, b: int, *, first: bool):
 
 
 def method_names(
-    methods: Sequence[str] | None, *, calibration: bool, model_short: NoiseModel | None
+    methods: Sequence[str] | None,
+    *,
+    calibration: bool,
+    model_short: NoiseModel | None,
+    model: NoiseModel | None = None,
 ) -> list[str]:
     """The methods to run: `methods` (the paper's always), else all that can run."""
+    fitted = model is not None and baselines.has_method_calibration(model)
     if methods is None:
         names = list(baselines.METHOD_LABELS)
         if model_short is None:
             names.remove("paper_L32")
         if not calibration:
             names.remove("noisereduce")
+        if not fitted:
+            names = [n for n in names if n not in baselines.NEEDS_METHOD_CALIBRATION]
     else:
         names = list(methods)
         unknown = [m for m in names if m not in baselines.METHOD_LABELS]
@@ -1088,6 +1095,12 @@ def method_names(
         if "paper_L32" in names and model_short is None:
             raise ValueError(
                 "paper_L32 needs a model calibrated with 32-sample blocks (--model-short)"
+            )
+        needs = [n for n in names if n in baselines.NEEDS_METHOD_CALIBRATION]
+        if needs and not fitted:
+            raise ConfigError(
+                f"methods {needs} need a model calibrated with `egovib calibrate --methods "
+                f"hybrid`"
             )
     if "paper" not in names:
         names = ["paper"] + names

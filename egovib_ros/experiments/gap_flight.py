@@ -182,25 +182,6 @@ def render_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from egovib_ros.cli import options
-
-    parser.add_argument("--bag", default="bags/quadcopter_ar8", help="the converted flight bag")
-    parser.add_argument(
-        "--out", default="docs/gap_flight", help="report directory (default docs/gap_flight)"
-    )
-    parser.add_argument(
-        "--split",
-        type=options.float_in(2.0, FLIGHT_END_S - 2.0),
-        default=SPLIT_S,
-        metavar="SECONDS",
-        help=f"where the flight is cut into the two parts (default {SPLIT_S:g} s)",
-    )
-    parser.add_argument(
-        "--force", action="store_true", help="replace an existing report directory of egovib"
-    )
-
-
 def run(args: argparse.Namespace) -> int:
     from egovib_ros.errors import BagError
     from egovib_ros.outputs import prepare_output
@@ -216,16 +197,3 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"wrote {args.out}/summary.md")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.experiments.gap_flight` = `egovib real gap`."""
-    import sys
-
-    from egovib_ros.cli import main as egovib_main
-
-    return egovib_main(["real", "gap", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

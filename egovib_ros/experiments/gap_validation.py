@@ -77,7 +77,7 @@ FORM_TEXT = {
     "step": "warm-up step, logistic, up or down (multiplicative)",
     "wear": "grinding added, growing with time (additive)",
 }
-#: Strength ranges of the blind runs (CONTRACT section 5 units: timing in seconds, sign random).
+#: Strength ranges of the blind runs (INTERFACES.md section 5 units: timing in s, sign random).
 STRENGTH_RANGES = {
     "position": (0.2, 0.5),
     "coupling": (2.0, 5.0),

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from egovib_ros.core import calibrate_arrays
-from egovib_ros.evaluation import baselines, metrics
+from egovib_ros.core.filters import combined_bandpassed
+from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
 from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
@@ -37,7 +38,7 @@ EXPERIMENTS = {
     "b": "stationary taps added to motion ego-vibration (Fig. 5 right)",
 }
 
-#: Issue 5 "Must show" thresholds, checked on experiment (a) at <= 50 % speed.
+#: The replication's acceptance thresholds, checked on experiment (a) at <= 50 % speed.
 MUST_SHOW = {
     "peak_snr_improvement_db": 14.0,
     "noise_reduction_db": 20.0,
@@ -77,7 +78,7 @@ class ExperimentConfig:
     seed: int = 1
     short_block_length: int = 32
     # Paper section 3: "as speeds increase ... changes that appear to depend on joint position".
-    # Extra run at full speed with effects that break the model's assumptions (CONTRACT section 5).
+    # Extra run at full speed with effects that break the model's assumptions (INTERFACES.md 5).
     robustness_effects: str = "position=0.5,acceleration=1"
     robustness_speed: float = 1.0
 
@@ -155,9 +156,9 @@ def added_taps_recording(taps_rec, motion_rec, model):
     """
     n = min(len(taps_rec.accel), len(motion_rec.accel))
     taps = taps_rec.contact[:n]
-    tap_signal = baselines.combined_bandpassed(taps, model)
+    tap_signal = combined_bandpassed(taps, model.robot_profile())
     seg = metrics.segment_contacts(tap_signal, sample_rate_hz=model.sample_rate_hz)
-    noise = baselines.combined_bandpassed(motion_rec.accel[:n], model)
+    noise = combined_bandpassed(motion_rec.accel[:n], model.robot_profile())
     edge = int(metrics.EDGE_S * model.sample_rate_hz)
     peak = metrics.tap_peaks(tap_signal, seg.tap_windows).mean()
     scale = np.abs(noise[edge : n - edge]).max() / peak
@@ -299,7 +300,7 @@ MUST_SHOW_CRITERIA = (
 
 
 def must_show_check(results: dict) -> dict:
-    """Issue 5's "Must show" criteria on experiment (a) at speeds <= 50 %.
+    """The replication's acceptance criteria on experiment (a) at speeds <= 50 %.
 
     Returns {speed: {criterion: bool}}.
     """
@@ -450,7 +451,8 @@ def results_markdown(results: dict) -> str:
         "",
         "## All methods, both experiments, all speeds",
         "",
-        "Metrics (CONTRACT section 6): noise = mean |x| of the combined, 150-750 Hz band-passed "
+        "Metrics (INTERFACES.md section 6): noise = mean |x| of the combined, 150-750 Hz "
+        "band-passed "
         "signal outside contacts; red. = noise reduction; spike = 99.9th percentile of |x| outside "
         "contacts; peak = mean per-tap peak |x|; thr = calibrated detection threshold (on the "
         "envelope); peak SNR = 20 log10(peak / noise); gain = peak SNR improvement; segSNR = mean "
@@ -475,7 +477,7 @@ def results_markdown(results: dict) -> str:
             f"## Broken model assumptions: `{robust['effects']}` at {robust['speed']:.0%} speed",
             "",
             "The paper saw noise spikes at fast motion and suspected a joint-position dependence. "
-            "Here the simulator adds effects the velocity-only model cannot capture (CONTRACT "
+            "Here the simulator adds effects the velocity-only model cannot capture (INTERFACES "
             "section 5); sweep, model and test all include them.",
             "",
             TABLE_HEADER,
@@ -491,7 +493,7 @@ def results_markdown(results: dict) -> str:
             f"mean {err['mean_pct']:.1f} % "
             f"(paper: up to 15 % at high wrist speed).",
         ]
-    lines += ["", "## Must show (issue 5), experiment (a), paper method", ""]
+    lines += ["", "## Acceptance criteria, experiment (a), paper method", ""]
     for speed, checks in results["must_show"].items():
         passed = [name for name, ok in checks.items() if ok]
         failed = [name for name, ok in checks.items() if not ok]

@@ -1,4 +1,4 @@
-"""report.json (CONTRACT section 6), report.md and figures of a gap diagnosis."""
+"""report.json (INTERFACES.md section 6), report.md and figures of a gap diagnosis."""
 
 from __future__ import annotations
 
@@ -194,7 +194,7 @@ def build_report(
     runtime_s: float,
     write_back: dict | None = None,
 ) -> dict:
-    """The report.json dictionary (CONTRACT section 6 keys, plus documented extras)."""
+    """The report.json dictionary (INTERFACES.md section 6 keys, plus documented extras)."""
     t = diag.table
     vm = diag.verdict_model
     added = {

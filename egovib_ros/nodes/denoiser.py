@@ -320,7 +320,7 @@ class Denoiser(Node):
             self._rate_proven = True
         pending, self._startup = self._startup, []
         for raws, values, arrival in pending:
-            if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
+            if values.shape[1] == 1:  # docs/INTERFACES.md: combined signal in x, y = z = 0
                 values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
             for data in replace_imu_field(raws, values, self.profile.sensor_field):
                 self.pub.publish(data)

@@ -46,7 +46,7 @@ PARAMETERS = (
         "tap onsets: random (Poisson) | periodic",
         choices=("random", "periodic"),
     ),
-    Param("effects", "none", "effects SPEC 'name=strength,...' (CONTRACT section 5), or none"),
+    Param("effects", "none", "effects SPEC 'name=strength,...' (INTERFACES.md section 5), or none"),
     Param("sim_params", "", "simulator parameter YAML; empty = config/sim.yaml of the package"),
     Param(
         "publish_period", 0.01, "seconds between publishing batches of samples", range=(0.0005, 1.0)

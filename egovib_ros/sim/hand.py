@@ -28,7 +28,7 @@ Base model (obeys the paper's assumptions exactly):
 * Taps: solenoid-like transients, a few exponentially decaying modes,
   Poisson onsets with a dead time ("random") or evenly spaced ("periodic").
 
-Effects (CONTRACT section 5), strength s; absent or 0 = bit-identical base:
+Effects (INTERFACES.md section 5), strength s; absent or 0 = bit-identical base:
 
 * ``position``:     wrist source x (1 + s cos(theta_w - position_phase_rad)),
                     gripper source x (1 + s (gap / 0.086 - 0.5)).

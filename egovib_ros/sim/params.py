@@ -1,4 +1,4 @@
-"""Simulator parameters (config/sim.yaml) and the effects SPEC of CONTRACT section 5."""
+"""Simulator parameters (config/sim.yaml) and the effects SPEC of INTERFACES.md section 5."""
 
 from __future__ import annotations
 
@@ -272,7 +272,8 @@ def validate_forms(forms: dict[str, Any], *, source: str = "effect_forms") -> di
 
 
 def parse_effects(spec: str | None) -> dict[str, float]:
-    """Parse the SPEC `name=strength,...` (CONTRACT section 3); '' / None / 'none' = no effect."""
+    """Parse the SPEC `name=strength,...` (INTERFACES.md section 3); '' / None / 'none':
+    no effect."""
     if spec is None or not spec.strip():
         return {}
     raw: dict[str, str] = {}

@@ -1,4 +1,4 @@
-"""Robot and interface constants fixed by shared/CONTRACT.md (sections 1-2).
+"""Robot and interface constants fixed by docs/INTERFACES.md (sections 1-2).
 
 Pure Python/numpy: imported by the core, the simulator, the nodes and the CLI.
 """
@@ -9,7 +9,7 @@ import numpy as np
 
 from egovib_ros.robot import COMMANDS_TOPIC
 
-# --- robot (CONTRACT section 1) -------------------------------------------
+# --- robot (INTERFACES.md section 1) -------------------------------------------
 JOINT_NAMES: tuple[str, ...] = ("r_wrist_roll_joint", "r_gripper_joint")
 MAX_SPEED: tuple[float, ...] = (3.0, 0.04)  # rad/s, m/s
 GRIPPER_GAP_RANGE_M: tuple[float, float] = (0.0, 0.086)
@@ -38,7 +38,7 @@ HOP: int = 32
 BAND_HZ: tuple[float, float] = (150.0, 750.0)
 BAND_ORDER: int = 4  # 4th-order Butterworth band-pass
 
-# --- ROS names (CONTRACT section 2), all relative ---------------------------
+# --- ROS names (INTERFACES.md section 2), all relative ---------------------------
 TOPIC_JOINT_STATES = "joint_states"
 TOPIC_RAW = "accelerometer/raw"
 TOPIC_DENOISED = "accelerometer/denoised"
@@ -47,7 +47,7 @@ TOPIC_EGO = "accelerometer/ego"
 TOPIC_COMMANDS = COMMANDS_TOPIC
 TOPIC_DIAGNOSTICS = "/diagnostics"
 
-# Topic names inside bags (root namespace, CONTRACT section 4).
+# Topic names inside bags (root namespace, INTERFACES.md section 4).
 BAG_TOPICS = {
     "joint_states": "/joint_states",
     "raw": "/accelerometer/raw",

@@ -1,6 +1,6 @@
 """`egovib bench`: performance figures as ratios to real time, with the machine noted.
 
-Measured (issue 2/3/10 targets in brackets):
+Measured (targets in brackets):
   batch denoise throughput, 3 kHz 3-axis        (>= 1000x real time, one core)
   streaming cost per 32-sample hop, median/p99  (<= 150 us median)
   calibration of 441 cells x 2 s of data        (<= 5 s)
@@ -10,7 +10,7 @@ Measured (issue 2/3/10 targets in brackets):
   bag (file copy, and a chunk-by-chunk bag copy) and with zstd output, and the
   zstd size ratio of the 3 kHz Imu stream       (>= 30x real time)
   reading / writing MCAP: this package's chunk scanner and writer next to the
-  `mcap` library and rosbags, on the same bag   (figures for issue 10.6)
+  `mcap` library and rosbags, on the same bag   (docs/bench_bags.md)
 
 Inputs are synthetic (seeded) or simulated, so the figures do not depend on any
 file; the robot is the default profile (the PR2 hand) and the noise model a
@@ -277,7 +277,7 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
 
 
 # --------------------------------------------------------------------------
-# Bags at recording scale (issue 10)
+# Bags at recording scale
 # --------------------------------------------------------------------------
 def write_interleaved_bag(
     path: Path, duration_s: float, *, seed: int = 3, compress: bool = False

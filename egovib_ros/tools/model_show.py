@@ -383,11 +383,10 @@ def nearest_cells(grid, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     """Stream a bag through BagPlacement (the model's topics, field and joints)."""
     from egovib_ros.bag import BagReader, iter_recording
-    from egovib_ros.cliutil import check_stream
+    from egovib_ros.core.stream import check_stream
     from egovib_ros.errors import BagError
-    from egovib_ros.offline import model_profile
 
-    profile = model_profile(model)
+    profile = model.robot_profile()
     where = f"{bag}: {profile.sensor_topic}"
     placement = BagPlacement(model, source=where)
     bar = None

@@ -3,7 +3,7 @@
 Data: Betaflight blackbox log ``LOG00037.BFL`` of a 5-inch FPV quadcopter ("AR8",
 KakuteF7, Betaflight 4.2.0), from the public repository ``ilya-epifanov/fc-blackbox``
 (file ``src/test-data/LOG00037.BFL``, licence MIT OR Apache-2.0; the log was first
-posted in ``gyroflow/gyroflow`` issue 72), decoded with the ``orangebox`` parser.
+posted in ``gyroflow/gyroflow`` issues/72), decoded with the ``orangebox`` parser.
 Keep this attribution wherever the data or anything derived from it is shipped.
 
 Modules:
@@ -22,5 +22,5 @@ Modules:
 ATTRIBUTION = (
     "Betaflight blackbox log LOG00037.BFL (quadcopter 'AR8', KakuteF7, Betaflight 4.2.0) from "
     "github.com/ilya-epifanov/fc-blackbox, src/test-data/LOG00037.BFL, licence MIT OR Apache-2.0; "
-    "first posted in github.com/gyroflow/gyroflow issue 72; decoded with the orangebox parser."
+    "first posted in github.com/gyroflow/gyroflow/issues/72; decoded with the orangebox parser."
 )

@@ -1,7 +1,6 @@
 """Flight log (npz) -> rosbag2 bag: the real recording in the form the package consumes.
 
     egovib real convert ../shared/real/quadcopter_ar8_flight.npz --out bags/quadcopter_ar8
-    python -m egovib_ros.experiments.flight.convert NPZ --out BAG         (the same)
 
 Topics (robot profile ``config/robots/quadcopter.yaml``), one message per log sample,
 header stamp = the log's own jittery sample time (ns, bag log time the same):
@@ -22,7 +21,7 @@ messages uncompressed).
 
 Data: Betaflight blackbox log LOG00037.BFL from github.com/ilya-epifanov/fc-blackbox
 (src/test-data/LOG00037.BFL, licence MIT OR Apache-2.0; first posted in
-github.com/gyroflow/gyroflow issue 72), decoded with orangebox. The converter writes a
+github.com/gyroflow/gyroflow/issues/72), decoded with orangebox. The converter writes a
 README.md with this attribution into the bag directory.
 """
 
@@ -31,7 +30,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -156,14 +154,3 @@ def run(args: argparse.Namespace) -> int:
         f"{', '.join(summary['topics'])}; {summary['bytes'] / 1e6:.2f} MB"
     )
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.experiments.flight.convert NPZ --out BAG` = `egovib real convert`."""
-    from egovib_ros.cli import main as egovib_main
-
-    return egovib_main(["real", "convert", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
@@ -50,7 +51,6 @@ from egovib_ros.experiments.flight.methods import (
     LABELS,
     METHODS,
     build_methods,
-    combined_bandpassed,
 )
 from egovib_ros.experiments.flight.recording import FlightRecording, read_flight_bag
 from egovib_ros.robot import RobotProfile, load_profile
@@ -390,7 +390,7 @@ def run_experiment(
                 "tolerance_s": detection.TOLERANCE_S,
                 "threshold": f"{detection.CALIBRATION_MARGIN} x max envelope on calibration data",
             },
-            "metrics": "egovib_ros.evaluation.metrics (CONTRACT section 6), on the combined, "
+            "metrics": "egovib_ros.evaluation.metrics (INTERFACES.md section 6), on the combined, "
             f"{profile.band_hz[0]:g}-{profile.band_hz[1]:g} Hz band-passed gyro, rad/s",
         },
         "primary": run_fold(

@@ -53,13 +53,6 @@ LABELS = {
 METHODS = tuple(LABELS)
 
 
-def combined_bandpassed(values: np.ndarray, profile: RobotProfile) -> np.ndarray:
-    """(N,) sum of the three axes, band-passed with the core's causal filter, profile's band."""
-    return filters.combined_bandpassed(
-        values, sample_rate_hz=profile.rate_hz, band_hz=profile.band_hz, order=profile.band_order
-    )
-
-
 def single_joint_profile(
     profile: RobotProfile, joint: str, *, steps: int | None = None
 ) -> RobotProfile:
@@ -186,7 +179,7 @@ class BandPassOnly:
         return self
 
     def run(self, rec) -> np.ndarray:
-        return combined_bandpassed(rec.accel, self.profile)
+        return filters.combined_bandpassed(rec.accel, self.profile)
 
     def info(self) -> dict:
         return {"band_hz": list(self.profile.band_hz), "order": self.profile.band_order}

@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.core import calibrate_arrays
+from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, method_delay_ms
 from egovib_ros.evaluation import detection, metrics
@@ -58,7 +59,7 @@ from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
-from egovib_ros.experiments.flight.methods import build_methods, combined_bandpassed
+from egovib_ros.experiments.flight.methods import build_methods
 from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 

@@ -300,7 +300,8 @@ def _protocol(result: dict) -> str:
             "envelope; never tuned on the test part (for the noise tables that part is also their",
             "training data, so their calibration residual is smaller than on new data: a threshold",
             "biased low, towards false alarms, i.e. against them). Metrics:",
-            "`egovib_ros.evaluation.metrics` / `detection` (CONTRACT section 6) on the summed,",
+            "`egovib_ros.evaluation.metrics` / `detection` (INTERFACES.md section 6) on the "
+            "summed,",
             "band-passed gyro; event F1 with +-10 ms onset tolerance (also +-30 ms: IIR notches",
             "ring and delay an event).",
         )
@@ -429,10 +430,11 @@ def readme_section(result: dict) -> str:
     swapped = result.get("swapped")
     worse = comparison_values(swapped)["ours"] if swapped else None
     lines = [
-        "### On real data (a quadcopter's gyro, issue 9)",
+        "### On real data (a quadcopter's gyro)",
         "",
         "A real Betaflight flight log (LOG00037.BFL from ilya-epifanov/fc-blackbox, MIT OR "
-        "Apache-2.0, first posted in gyroflow issue 72) ships as `bags/quadcopter_ar8` with the "
+        "Apache-2.0, first posted in gyroflow/gyroflow/issues/72) ships as "
+        "`bags/quadcopter_ar8` with the "
         "profile `config/robots/quadcopter.yaml`. Calibrated on the first half of the flight (free "
         "motion), tested on the rest with known contact-like events added to the real noise "
         f"(the paper's experiment (b)); `{result['command']}`:",

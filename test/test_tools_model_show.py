@@ -10,9 +10,9 @@ import robots
 from matplotlib import image
 
 from egovib_ros.bag import Recording, write_recording
+from egovib_ros.bag.calibrate import calibrate_bags
 from egovib_ros.cli import main
 from egovib_ros.core.noise_model import NoiseModel, sweep_cells
-from egovib_ros.offline import calibrate_bags
 from egovib_ros.outputs import MARKER
 from egovib_ros.robot import default_profile, load_profile
 from egovib_ros.sim.robot import as_recording, free_motion_arrays
