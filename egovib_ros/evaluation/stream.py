@@ -1099,8 +1099,7 @@ def method_names(
         needs = [n for n in names if n in baselines.NEEDS_METHOD_CALIBRATION]
         if needs and not fitted:
             raise ConfigError(
-                f"methods {needs} need a model calibrated with `egovib calibrate --methods "
-                f"hybrid`"
+                f"methods {needs} need a model calibrated with `egovib calibrate --methods hybrid`"
             )
     if "paper" not in names:
         names = ["paper"] + names
