@@ -169,7 +169,7 @@ class CoreStream(MethodStream):
 
     def push(self, stamps_ns, accel, raw):
         self._pending = np.concatenate([self._pending, np.asarray(stamps_ns, np.int64)])
-        return self._place(self.denoiser.push_accel(stamps_ns, accel))
+        return self._place(self.denoiser.push_sensor(stamps_ns, accel))
 
     def finish(self):
         out = self._place(self.denoiser.flush())
@@ -394,10 +394,10 @@ def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
             raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
         gate = gate_threshold(ctx.noise_clip)
     stream = method_stream(name, model=ctx.model, model_short=ctx.model_short, gate=gate)
-    raw = filters.combined_bandpassed(rec.accel, ctx.model.robot_profile())
+    raw = filters.combined_bandpassed(rec.sensor, ctx.model.robot_profile())
     parts = [
         stream.push_joint_states(rec.joint_stamps_ns, rec.joint_velocity),
-        stream.push(rec.accel_stamps_ns, rec.accel, raw),
+        stream.push(rec.sensor_stamps_ns, rec.sensor, raw),
         stream.finish(),
     ]
     return np.concatenate(parts)

@@ -87,17 +87,17 @@ def _stream(
         bag, profile=profile, ground_truth=ground_truth, denoised=False, commands=False
     ):
         if ground_truth and piece.contact is not None:
-            truth.update(zip(piece.accel_stamps_ns.tolist(), piece.contact))
+            truth.update(zip(piece.sensor_stamps_ns.tolist(), piece.contact))
         if speed_limit is not None:
-            speed_ok.update(zip(piece.accel_stamps_ns.tolist(), _within(piece, speed_limit)))
+            speed_ok.update(zip(piece.sensor_stamps_ns.tolist(), _within(piece, speed_limit)))
         if denoiser is None:
-            outputs = [(piece.accel_stamps_ns, piece.accel)]
+            outputs = [(piece.sensor_stamps_ns, piece.sensor)]
         else:
             outputs = [
                 (c.stamps_ns, c.values)
                 for c in (
                     denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
-                    denoiser.push_accel(piece.accel_stamps_ns, piece.accel),
+                    denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
                 )
             ]
         for stamps, values in outputs:
@@ -113,8 +113,8 @@ def _stream(
 def _within(piece, speed_limit: np.ndarray) -> np.ndarray:
     """Per sensor sample: the last joint state before it has every |speed| within limit."""
     if not len(piece.joint_stamps_ns):
-        return np.zeros(len(piece.accel_stamps_ns), bool)
-    at = np.searchsorted(piece.joint_stamps_ns, piece.accel_stamps_ns, side="right") - 1
+        return np.zeros(len(piece.sensor_stamps_ns), bool)
+    at = np.searchsorted(piece.joint_stamps_ns, piece.sensor_stamps_ns, side="right") - 1
     speeds = np.abs(piece.joint_velocity[np.maximum(at, 0)])
     return (at >= 0) & np.all(speeds <= speed_limit, axis=1)
 
