@@ -1,4 +1,4 @@
-"""Robot profiles (CONTRACT section 1b, schema ``egovib.robot/1``).
+"""Robot profiles (INTERFACES.md section 1b, schema ``egovib.robot/1``).
 
 Everything robot-specific - which Imu topic and field is cleaned, at what nominal
 rate, which joints key the noise and how fast they go, how the velocity grid is
@@ -29,6 +29,11 @@ SCHEMA = "egovib.robot/1"
 PACKAGE = "egovib_ros"
 DEFAULT_PROFILE = "pr2_right_hand"
 SENSOR_FIELDS = ("linear_acceleration", "angular_velocity")
+#: The joint-velocity commands of any robot's sweep (ros2_control's forward-command
+#: convention; the simulated hand follows them too), relative to the node's namespace.
+COMMANDS_TOPIC = "hand_velocity_controller/commands"
+#: Where joint velocity comes from (`joints.velocity`; see core.velocity.JointVelocity).
+VELOCITY_SOURCES = ("auto", "measured", "from_position")
 MAX_JOINTS = 8
 
 
@@ -47,6 +52,9 @@ class RobotProfile:
     max_speed: tuple[float, ...]
     bidirectional: tuple[bool, ...]
     steps: int = 10
+    # joint velocity: the message's (measured), differentiated positions (from_position), or
+    # the message's where it has one and positions elsewhere (auto: drivers without velocity)
+    velocity_source: str = "auto"
     sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
     block_length: int = 64
     hop: int = 32
@@ -67,6 +75,17 @@ class RobotProfile:
             value = getattr(self, key)
             if not isinstance(value, str) or not value.strip("/"):
                 raise bad(f"{key} must be a topic name, got {value!r}")
+        # One topic for two roles: the denoiser would read its own output, offline the
+        # denoised topic would replace the raw one. Named by their keys in the YAML file.
+        roles = (
+            ("sensor.topic", self.sensor_topic),
+            ("sensor.denoised_topic", self.denoised_topic),
+            ("joints.topic", self.joints_topic),
+        )
+        for i, (key, topic) in enumerate(roles):
+            for other, other_topic in roles[i + 1 :]:
+                if topic.strip("/") == other_topic.strip("/"):
+                    raise bad(f"{other} is {other_topic}, the same topic as {key}")
         if self.sensor_field not in SENSOR_FIELDS:
             raise bad(f"sensor field must be one of {SENSOR_FIELDS}, got {self.sensor_field!r}")
         set_(self, "rate_hz", _positive(self.rate_hz, "rate_hz", bad))
@@ -91,6 +110,11 @@ class RobotProfile:
             raise bad(f"bidirectional must be true/false per joint, got {list(self.bidirectional)}")
         set_(self, "bidirectional", tuple(bool(b) for b in self.bidirectional))
         set_(self, "steps", _integer(self.steps, "steps", 1, 100, bad))
+        if self.velocity_source not in VELOCITY_SOURCES:
+            raise bad(
+                f"joints.velocity must be one of {list(VELOCITY_SOURCES)}, "
+                f"got {self.velocity_source!r}"
+            )
         set_(
             self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True)
         )
@@ -145,7 +169,7 @@ class RobotProfile:
 
     # --- (de)serialisation ----------------------------------------------------
     def to_dict(self) -> dict:
-        """The profile as the YAML mapping of CONTRACT section 1b (plus `sensor.range`)."""
+        """The profile as the YAML mapping of INTERFACES.md section 1b (plus `sensor.range`)."""
         sensor = {
             "topic": self.sensor_topic,
             "field": self.sensor_field,
@@ -164,6 +188,7 @@ class RobotProfile:
                 "max_speed": list(self.max_speed),
                 "bidirectional": list(self.bidirectional),
                 "steps": self.steps,
+                "velocity": self.velocity_source,
             },
             "processing": {
                 "block_length": self.block_length,
@@ -183,6 +208,12 @@ class RobotProfile:
             raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
         if data.get("schema") != SCHEMA:
             raise ConfigError(f"{where}: schema must be {SCHEMA!r}, got {data.get('schema')!r}")
+        top = sorted(set(data) - {"schema", "name", "sensor", "joints", "processing"}, key=str)
+        if top:  # a misspelt section would silently give its defaults
+            raise ConfigError(
+                f"{where}: unknown top-level key(s) {top} (known: "
+                f"['schema', 'name', 'sensor', 'joints', 'processing'])"
+            )
         sections = {}
         for key in ("sensor", "joints", "processing"):
             value = data.get(key, {} if key == "processing" else None)
@@ -194,7 +225,10 @@ class RobotProfile:
             sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where
         )
         _no_unknown(
-            joints, ("topic", "names", "max_speed", "bidirectional", "steps"), "joints", where
+            joints,
+            ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
+            "joints",
+            where,
         )
         _no_unknown(
             processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where
@@ -218,6 +252,7 @@ class RobotProfile:
             max_speed=joints["max_speed"],
             bidirectional=joints.get("bidirectional", True),
             steps=joints.get("steps", defaults["steps"].default),
+            velocity_source=joints.get("velocity", defaults["velocity_source"].default),
             sensor_range=sensor.get("range", math.inf),
             block_length=processing.get("block_length", defaults["block_length"].default),
             hop=processing.get("hop", defaults["hop"].default),

@@ -54,6 +54,7 @@ def _denoiser(context):
                 {
                     "model": LaunchConfiguration("model"),
                     "channels": LaunchConfiguration("channels"),
+                    "output": LaunchConfiguration("output"),
                     "oversubtraction": LaunchConfiguration("oversubtraction"),
                     "floor": LaunchConfiguration("floor"),
                 },
@@ -73,6 +74,11 @@ def generate_launch_description():
                 "channels",
                 default_value="per_axis",
                 description="per_axis (drop-in replacement) | combined (the paper's 1-D signal)",
+            ),
+            DeclareLaunchArgument(
+                "output",
+                default_value="dropin",
+                description="dropin (raw minus the ego-vibration, gravity kept) | bandpassed",
             ),
             DeclareLaunchArgument(
                 "oversubtraction", default_value="1.0", description="alpha; changes live"

@@ -7,6 +7,7 @@ all at the end, also when the test fails.
 
 from __future__ import annotations
 
+import os
 import random
 import signal
 import struct
@@ -16,13 +17,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.orchestration import RELIABLE_INPUT_DEPTH, NodeGroup
+from egovib_ros.tools.orchestration import RELIABLE_INPUT_DEPTH, NodeGroup
 
 #: History of this process's stream writers and queue of its readers (10 s at 3 kHz):
 #: reliable links that lose nothing on a loaded machine (nodes.common.stream_publisher).
 LOSSLESS_DEPTH = RELIABLE_INPUT_DEPTH
+
+# Property-based tests: "ci" (default) is deterministic and short enough for `make test`;
+# HYPOTHESIS_PROFILE=long draws many more examples for a local run.
+settings.register_profile("ci", max_examples=20, derandomize=True, deadline=None, database=None)
+settings.register_profile("long", max_examples=300, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 class NodeProcesses(NodeGroup):
@@ -163,7 +171,7 @@ class Feeder:
     def publish_joint_state(self) -> None:
         """One JointState stamped just before the stream: the node knows the joints before
         the first sensor sample (else it passes samples through until joint states come)."""
-        from egovib_ros.ros_convert import encode_joint_state_batch
+        from egovib_ros.nodes.convert import encode_joint_state_batch
 
         names = self.joint_names
         for data in encode_joint_state_batch(
@@ -196,7 +204,7 @@ class Feeder:
     ) -> None:
         """Publish recorded arrays at their own pace (stamps relative to the first); velocities
         are of the profile's joints unless `all_joints` (then of `joint_names`)."""
-        from egovib_ros.ros_convert import encode_imu_batch, encode_joint_state_batch
+        from egovib_ros.nodes.convert import encode_imu_batch, encode_joint_state_batch
 
         names = self.joint_names
         if not all_joints:
@@ -255,7 +263,7 @@ def reports(client, node: str, level: int | None = None, *texts: str) -> bool:
 def matched(client, node: str, **at_least: int) -> bool:
     """Whether `node`'s latest /diagnostics status reports at least these DDS match counts
     (e.g. output_subscribers=1): the node's side of those matches is done."""
-    from egovib_ros.ros_convert import diagnostic_values
+    from egovib_ros.nodes.convert import diagnostic_values
 
     status = client.statuses.get(node)
     if status is None:
@@ -319,8 +327,8 @@ def sim_model_path(tmp_path_factory) -> Path:
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=11)
     model, _ = calibrate_arrays(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         sweep="superposition",

@@ -1,8 +1,10 @@
-"""Per-block joint velocity matched by stamps (issue 2)."""
+"""Per-block joint velocity matched by stamps; velocity from positions (JointVelocity)."""
 
 import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
 
-from egovib_ros.core import HELD, MATCHED, MISSING, block_mean_velocity
+from egovib_ros.core import HELD, MATCHED, MISSING, JointVelocity, block_mean_velocity
 
 
 def test_mean_over_span_hold_and_missing():
@@ -32,3 +34,74 @@ def test_one_block_path_is_bit_identical_to_vectorised():
             t, v, first[b : b + 1], last[b : b + 1], max_hold_ns=50_000_000, with_steadiness=False
         )[0]
         np.testing.assert_array_equal(one[0], many[b])
+
+
+def _positions(seed: int, n: int = 400, joints: int = 2):
+    """Smooth motion of a continuous joint (reported within +-pi, so it wraps) and a
+    linear one, sampled with jittering stamps."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(1_000_000 + rng.integers(-300_000, 300_000, n)).astype(np.int64)
+    seconds = t / 1e9
+    velocity = np.column_stack([4.0 + np.sin(3 * seconds), 0.04 * np.cos(2 * seconds)])
+    position = np.column_stack(
+        [4.0 * seconds - np.cos(3 * seconds) / 3, 0.02 * np.sin(2 * seconds)]
+    )[:, :joints]
+    position[:, 0] = (position[:, 0] + np.pi) % (2 * np.pi) - np.pi  # wraps at +-pi
+    return t, position, velocity[:, :joints]
+
+
+@given(st.integers(0, 1000), st.lists(st.integers(1, 60), min_size=1, max_size=12))
+def test_velocity_from_positions_any_chunking_equals_whole(seed, cuts):
+    t, position, _ = _positions(seed)
+    whole = JointVelocity(2, source="from_position").push(
+        t, position, np.full_like(position, np.nan)
+    )
+    jv, parts, start = JointVelocity(2, source="from_position"), [], 0
+    for size in [*cuts, len(t)]:
+        stop = min(len(t), start + size)
+        parts.append(
+            jv.push(t[start:stop], position[start:stop], np.full((stop - start, 2), np.nan))
+        )
+        start = stop
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+
+
+def test_velocity_from_positions_unwraps_and_matches_the_motion():
+    t, position, velocity = _positions(3)
+    derived = JointVelocity(2, source="from_position").push(
+        t, position, np.full((len(t), 2), np.nan)
+    )
+    assert np.isnan(derived[0]).all()  # the first position has no difference
+    # a backward difference: the mean velocity over the step, across the +-pi cut too
+    seconds = t / 1e9
+    mid = 0.5 * (seconds[1:] + seconds[:-1])
+    want = np.column_stack([4.0 + np.sin(3 * mid), 0.04 * np.cos(2 * mid)])
+    error = np.abs(derived[1:] - want) / np.abs(want).max(axis=0)
+    assert error.max() < 2e-3, error.max(axis=0)
+
+
+def test_auto_takes_the_measured_velocity_where_there_is_one():
+    t, position, velocity = _positions(4)
+    measured = velocity.copy()
+    measured[::3, 0] = np.nan  # some messages without velocity for joint 0
+    jv = JointVelocity(2, source="auto")
+    out = jv.push(t, position, measured)
+    np.testing.assert_array_equal(out[1::3], measured[1::3])
+    assert np.isfinite(out[3::3, 0]).all() and jv.derived == len(out[3::3])
+    assert np.array_equal(
+        JointVelocity(2, source="measured").push(t, position, measured), measured, equal_nan=True
+    )
+
+
+def test_split_publishers_differentiate_each_joint_over_its_own_messages():
+    """Each joint in its own JointState (NaN where a message lacks it): a joint's difference
+    spans back to its own previous position, not to the other publisher's message."""
+    t, position, _ = _positions(5)
+    split = np.full_like(position, np.nan)
+    split[0::2, 0], split[1::2, 1] = position[0::2, 0], position[1::2, 1]
+    out = JointVelocity(2, source="from_position").push(t, split, np.full_like(split, np.nan))
+    alone0 = JointVelocity(1, source="from_position").push(
+        t[0::2], position[0::2, :1], np.full((len(t[0::2]), 1), np.nan)
+    )
+    np.testing.assert_array_equal(out[0::2, 0], alone0[:, 0])
+    assert np.isnan(out[1::2, 0]).all() and np.isnan(out[0::2, 1]).all()

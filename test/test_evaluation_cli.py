@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.bagio import write_recording
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays
-from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS
 
 
 @pytest.fixture(scope="module")
@@ -23,8 +23,8 @@ def simulated(tmp_path_factory):
         grid="superposition", dwell_s=1.0, settle_s=0.3, effects={}, seed=11, params=None
     )
     model, _ = calibrate_arrays(
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
         sweep="superposition",
@@ -71,7 +71,7 @@ def test_evaluate_writes_contract_fields(simulated, capsys):
     )
     assert code == 0
     report = json.loads(out.read_text())
-    for field in CONTRACT_FIELDS:
+    for field in REPORT_FIELDS:
         assert field in report, field
     # The taps found from the contact topic are the simulator's taps (truth file onsets).
     onsets_ns = simulated["truth"].get("tap_onsets_ns", [])
@@ -178,10 +178,16 @@ def test_figures_quick_regenerates_table_and_every_figure(tmp_path):
     assert not [p for p in out.iterdir() if p.name.endswith(".partial")]
 
 
-@pytest.mark.parametrize("channels, like", [("combined", "paper"), ("per_axis", "per_axis")])
-def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, like):
+@pytest.mark.parametrize(
+    "channels, output, like",
+    [("combined", "bandpassed", "paper"), ("per_axis", "bandpassed", "per_axis"),
+     ("per_axis", "dropin", "per_axis")],
+)  # fmt: skip
+def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channels, output, like):
     """A bag from `egovib denoise` is scored as 'bag_denoised' and matches the batch
-    method it came from."""
+    method it came from; a drop-in output (gravity and all outside the band kept) is
+    recognised and band-passed first, and then differs from the band-passed method only
+    by where the subtraction happened (on the band-passed or the unfiltered block)."""
     denoised_bag = tmp_path / "denoised_bag"
     assert (
         main(
@@ -194,6 +200,8 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
                 str(denoised_bag),
                 "--channels",
                 channels,
+                "--output",
+                output,
                 "--quiet",
             ]
         )
@@ -219,6 +227,13 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
         == 0
     )
     bag = json.loads(out.read_text())["methods"]["bag_denoised"]
-    assert like in bag["label"]
+    assert like in bag["label"] and ("drop-in" in bag["label"]) == (output == "dropin")
     assert bag["samples_missing"] == 0 and bag["alignment_lag_samples"] == 0
-    assert bag["rms_difference_vs_batch"] < 1e-6
+    assert bag["rms_difference_vs_batch"] < (1e-6 if output == "bandpassed" else 0.1)
+    if output == "dropin":
+        # in-band noise reduction within 0.5 dB of the band-passed output; gravity kept
+        methods = json.loads(out.read_text())["methods"]
+        assert abs(bag["noise_reduction_db"] - methods[like]["noise_reduction_db"]) < 0.5
+        rec = read_recording(denoised_bag)
+        assert rec.sensor[:, 2].mean() > 9.0
+        assert abs(rec.denoised[:, 2].mean() - rec.sensor[:, 2].mean()) < 1e-3

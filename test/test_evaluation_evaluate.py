@@ -7,7 +7,7 @@ import pytest
 
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.errors import BagError
-from egovib_ros.evaluation.evaluate import CONTRACT_FIELDS, evaluate_recording, require_ground_truth
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS, evaluate_recording, require_ground_truth
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 
@@ -15,8 +15,8 @@ from egovib_ros.sim import simulate_motion, simulate_sweep
 def model():
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.6, settle_s=0.3, effects={}, seed=21)
     model, _ = calibrate_arrays(
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
         sweep="superposition",
@@ -35,18 +35,18 @@ def recording():
 def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recording):
     rec, truth = recording
     report = evaluate_recording(rec, model, keep_signals=True, pr_curves=True)
-    for field in CONTRACT_FIELDS:
+    for field in REPORT_FIELDS:
         assert field in report
     assert report["threshold_source"].startswith("no-contact part of this recording")
     # No noise clip and no short-block model: those two baselines cannot run.
     assert set(report["methods"]) == {"bandpass", "boll", "paper", "wiener", "per_axis"}
     assert report["n_taps"] == len(truth["tap_onsets_ns"])
     # Taps found from the contact topic start within a millisecond of the simulator's onsets.
-    found = rec.accel_stamps_ns[report["signals"]["seg"].onsets]
+    found = rec.sensor_stamps_ns[report["signals"]["seg"].onsets]
     assert np.max(np.abs(found - np.asarray(truth["tap_onsets_ns"]))) <= 1_000_000
     curve = report["pr_curves"]["paper"]
     assert curve["precision"].shape == curve["recall"].shape == curve["threshold"].shape
-    assert report["signals"]["paper"].shape == rec.accel[:, 0].shape
+    assert report["signals"]["paper"].shape == rec.sensor[:, 0].shape
 
 
 def test_primary_fields_are_the_paper_methods(model, recording):

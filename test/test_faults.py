@@ -12,7 +12,12 @@ with the reason: they turn into failures when that work lands, and are then un-x
 
 The commands run in-process (`egovib_ros.cli.main`, the console script's entry point)
 to keep the suite fast; the read-only file-system rows and the issue's headline case
-run in child processes.
+run in child processes, and so do the cases that need a process of their own: a full
+file system (a 5 MB tmpfs in a private mount namespace), two runs claiming one output,
+SIGTERM and Ctrl-C (real signals), and internal errors (a core function patched to raise
+in the child, which then runs the console entry point). Warnings logged along the way
+(e.g. about the model's filled cells) are not counted as error lines in those. The last
+test runs the denoiser node on real DDS (a stream whose rate halves).
 """
 
 from __future__ import annotations
@@ -23,9 +28,12 @@ import hashlib
 import io
 import json
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -33,8 +41,8 @@ import numpy as np
 import pytest
 
 from egovib_ros import cli
-from egovib_ros.bagio import BagWriter, read_recording, write_recording
-from egovib_ros.cdr import encode_imu_batch, imu_field_offset
+from egovib_ros.bag import BagWriter, read_recording, write_recording
+from egovib_ros.bag.codec import encode_imu_batch, imu_field_offset
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 BAG_READER = (
@@ -46,6 +54,14 @@ FS = 3000
 
 
 # --- running commands ----------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def state_home(tmp_path_factory, monkeypatch) -> Path:
+    """Where the traceback logs of internal errors go (here and in child processes)."""
+    path = tmp_path_factory.mktemp("state")
+    monkeypatch.setenv("XDG_STATE_HOME", str(path))
+    return path
 
 
 @dataclasses.dataclass
@@ -172,8 +188,8 @@ def _raw_only_bag(path: Path, rec) -> None:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
         bag.write_many(
             "/accelerometer/raw",
-            rec.accel_stamps_ns,
-            encode_imu_batch(rec.accel_stamps_ns, rec.accel),
+            rec.sensor_stamps_ns,
+            encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),
         )
 
 
@@ -193,7 +209,7 @@ def _flip_value_bytes(bag: Path, rec, first: int, count: int) -> None:
     data = bytearray(mcap.read_bytes())
     part = slice(first, first + count)
     pos = 0
-    for message in encode_imu_batch(rec.accel_stamps_ns[part], rec.accel[part]):
+    for message in encode_imu_batch(rec.sensor_stamps_ns[part], rec.sensor[part]):
         at = data.find(message, pos)
         assert at >= 0
         data[at + imu_field_offset(len(_frame_id(message))) + 7] ^= 0x65
@@ -207,9 +223,9 @@ def _drop_records(bag: Path, rec, first: int, count: int) -> None:
     mcap = _mcap(bag)
     data = bytearray(mcap.read_bytes())
     part = slice(first, first + count)
-    for values in (rec.accel, rec.contact, rec.ego):
+    for values in (rec.sensor, rec.contact, rec.ego):
         pos = 0
-        for message in encode_imu_batch(rec.accel_stamps_ns[part], values[part]):
+        for message in encode_imu_batch(rec.sensor_stamps_ns[part], values[part]):
             at = data.find(message, pos)
             assert at >= 31 and data[at - 31] == 0x05  # opcode 0x05: a Message record
             data[at - 31] = 0xFA
@@ -294,16 +310,16 @@ def lab(tmp_path_factory) -> Lab:
     p["no_joint_states"] = root / "no_joint_states"
     _raw_only_bag(p["no_joint_states"], motion)
     p["stamps_zero"] = root / "stamps_zero"
-    write_recording(p["stamps_zero"], _with(motion, accel_stamps_ns=0 * motion.accel_stamps_ns))
+    write_recording(p["stamps_zero"], _with(motion, sensor_stamps_ns=0 * motion.sensor_stamps_ns))
     p["stuck_joint_clock"] = root / "stuck_joint_clock"  # the first 10 s of the sweep
     n = 10 * FS
-    m = int(np.searchsorted(sweep.joint_stamps_ns, sweep.accel_stamps_ns[n]))
+    m = int(np.searchsorted(sweep.joint_stamps_ns, sweep.sensor_stamps_ns[n]))
     write_recording(
         p["stuck_joint_clock"],
         _with(
             sweep,
-            accel_stamps_ns=sweep.accel_stamps_ns[:n],
-            accel=sweep.accel[:n],
+            sensor_stamps_ns=sweep.sensor_stamps_ns[:n],
+            sensor=sweep.sensor[:n],
             joint_stamps_ns=np.full(m, sweep.joint_stamps_ns[0]),
             joint_position=sweep.joint_position[:m],
             joint_velocity=sweep.joint_velocity[:m],
@@ -312,21 +328,56 @@ def lab(tmp_path_factory) -> Lab:
         ),
     )
 
-    bad12 = motion.accel.copy()  # 12 scattered bad samples, as in the issue
+    # the sensor rate halves in the middle: every other sample kept after 1.5 s (calibrate:
+    # the first 10 s of the sweep, halved after 5 s)
+    index = np.arange(len(motion.sensor_stamps_ns))
+    keep = (index < 1.5 * FS) | (index % 2 == 0)
+    p["rate_halves"] = root / "rate_halves"
+    write_recording(
+        p["rate_halves"],
+        _with(
+            motion,
+            sensor_stamps_ns=motion.sensor_stamps_ns[keep],
+            sensor=motion.sensor[keep],
+            contact=motion.contact[keep],
+            ego=motion.ego[keep],
+        ),
+    )
+    keep = np.flatnonzero((np.arange(n) < 5 * FS) | (np.arange(n) % 2 == 0))
+    p["sweep_rate_halves"] = root / "sweep_rate_halves"
+    write_recording(
+        p["sweep_rate_halves"],
+        _with(
+            sweep,
+            sensor_stamps_ns=sweep.sensor_stamps_ns[keep],
+            sensor=sweep.sensor[keep],
+            joint_stamps_ns=sweep.joint_stamps_ns[:m],
+            joint_position=sweep.joint_position[:m],
+            joint_velocity=sweep.joint_velocity[:m],
+            commands=None,
+            command_stamps_ns=None,
+        ),
+    )
+
+    bad12 = motion.sensor.copy()  # 12 scattered bad samples, as in the issue
     rows = np.linspace(1000, 8000, 12).astype(int)
     bad12[rows[:4], 0] = np.nan
     bad12[rows[4:8], 1] = np.inf
     bad12[rows[8:], 2] = -np.inf
     p["nan12"] = root / "nan12"
-    write_recording(p["nan12"], _with(motion, accel=bad12))
+    write_recording(p["nan12"], _with(motion, sensor=bad12))
     p["nan_burst"] = root / "nan_burst"  # 0.2 s: 6.7 % of the samples
-    write_recording(p["nan_burst"], _with(motion, accel=_with_bad_samples(motion.accel, 4500, 600)))
+    write_recording(
+        p["nan_burst"], _with(motion, sensor=_with_bad_samples(motion.sensor, 4500, 600))
+    )
     p["mostly_nan"] = root / "mostly_nan"  # 1 s of 3 s: above the 10 % refused
     write_recording(
-        p["mostly_nan"], _with(motion, accel=_with_bad_samples(motion.accel, 3000, 3000))
+        p["mostly_nan"], _with(motion, sensor=_with_bad_samples(motion.sensor, 3000, 3000))
     )
     p["sweep_nan"] = root / "sweep_nan"  # 1 s of bad samples in the sweep
-    write_recording(p["sweep_nan"], _with(sweep, accel=_with_bad_samples(sweep.accel, 30000, 3000)))
+    write_recording(
+        p["sweep_nan"], _with(sweep, sensor=_with_bad_samples(sweep.sensor, 30000, 3000))
+    )
 
     gap_rec, _ = simulate_motion(duration_s=8.0, max_speed=0.5, tap_rate_hz=0.5, seed=7)
     gap_rec = _with(gap_rec, contact=None, ego=None)
@@ -336,7 +387,7 @@ def lab(tmp_path_factory) -> Lab:
     write_recording(p["gap_nan_velocity"], _with(gap_rec, joint_velocity=velocity))
     p["gap_nan_accel"] = root / "gap_nan_accel"
     write_recording(
-        p["gap_nan_accel"], _with(gap_rec, accel=_with_bad_samples(gap_rec.accel, 9000, 1500))
+        p["gap_nan_accel"], _with(gap_rec, sensor=_with_bad_samples(gap_rec.sensor, 9000, 1500))
     )
 
     # models broken the ways the issue found them
@@ -438,7 +489,7 @@ def counted(
                 assert isinstance(report[key], float) and np.isfinite(report[key]), key
         if output:
             rec = read_recording(work / output)
-            assert len(rec.denoised) >= 0.9 * len(rec.accel)
+            assert len(rec.denoised) >= 0.9 * len(rec.sensor)
             assert np.all(np.isfinite(rec.denoised))
             assert np.max(np.abs(rec.denoised)) <= SENSOR_RANGE
 
@@ -459,7 +510,7 @@ def f1_close_to_clean(result: Result, work: Path, lab: Lab) -> None:
 def replaced_own_output(result: Result, work: Path, lab: Lab) -> None:
     marker = json.loads((work / "den" / ".egovib-output").read_text())
     assert marker["kind"] == "bag" and "metadata.yaml" in marker["files"]
-    assert len(read_recording(work / "den").denoised) == len(read_recording(lab["motion"]).accel)
+    assert len(read_recording(work / "den").denoised) == len(read_recording(lab["motion"]).sensor)
     assert not list(work.glob(".*.partial"))
 
 
@@ -499,6 +550,23 @@ def mentions(*words: str) -> Check:
             assert all(word.lower() in said for word in words), (words, said)
 
     return check
+
+
+def robot_profile(name: str, **changes: str) -> Callable[[Path, Lab], None]:
+    """The shipped PR2 profile written to `name` with lines changed: `key=new text` replaces
+    the line starting with `key:` (indentation kept)."""
+
+    def setup(work: Path, lab: Lab) -> None:
+        from egovib_ros.robot import config_dir
+
+        lines = (config_dir() / "robots" / "pr2_right_hand.yaml").read_text().splitlines()
+        for key, text in changes.items():
+            at = next(i for i, line in enumerate(lines) if line.strip().startswith(f"{key}:"))
+            indent = lines[at][: len(lines[at]) - len(lines[at].lstrip())]
+            lines[at] = indent + text
+        (work / name).write_text("\n".join(lines) + "\n")
+
+    return setup
 
 
 def no_pickle_advice(result: Result, work: Path, lab: Lab) -> None:
@@ -874,11 +942,12 @@ ROWS = [
         unchanged=False,
     ),
     Row(
-        "gap_nan_joint_velocity",
+        # no velocity in 500 joint states, positions there: velocity from positions
+        # (profile joints.velocity: auto), diagnosed as any other bag
+        "gap_nan_joint_velocity_from_positions",
         gap("gap_nan_velocity"),
-        ("gap_nan_velocity",),
-        expect="either",
-        check=mentions("500", "joint"),
+        expect="ok",
+        check=mentions("verdict"),
         unchanged=False,
     ),
     Row(
@@ -887,6 +956,44 @@ ROWS = [
         expect="ok",
         check=mentions("1500", "bad"),
         unchanged=False,
+    ),
+    # --- the sensor rate changes in the middle of a bag: refused, not bridged ----------------
+    Row(
+        "denoise_sensor_rate_halves_mid_bag",
+        den("rate_halves"),
+        ("rate_halves", "/accelerometer/raw", "rate changed", "1500 Hz"),
+        check=no_output("den"),
+    ),
+    Row(
+        "calibrate_sensor_rate_halves_mid_bag",
+        cal("sweep_rate_halves"),
+        ("sweep_rate_halves", "/accelerometer/raw", "rate changed", "1500 Hz"),
+        check=no_output("m.npz"),
+    ),
+    Row(
+        "evaluate_sensor_rate_halves_mid_bag",
+        ev("rate_halves"),
+        ("rate_halves", "rate changed"),
+        check=no_output("eval.json"),
+    ),
+    # --- robot profiles refused when loaded --------------------------------------------------
+    Row(
+        "calibrate_profile_denoised_topic_is_the_sensor_topic",
+        cal("sweep", "--robot", "arm.yaml"),
+        ("arm.yaml", "sensor.denoised_topic", "sensor.topic"),
+        setup=robot_profile("arm.yaml", denoised_topic="denoised_topic: /accelerometer/raw"),
+    ),
+    Row(
+        "calibrate_profile_denoised_topic_is_the_joints_topic",
+        cal("sweep", "--robot", "arm.yaml"),
+        ("arm.yaml", "joints.topic", "sensor.denoised_topic"),
+        setup=robot_profile("arm.yaml", denoised_topic="denoised_topic: joint_states"),
+    ),
+    Row(
+        "calibrate_profile_top_level_key_misspelt",
+        cal("sweep", "--robot", "arm.yaml"),
+        ("arm.yaml", "procesing"),
+        setup=robot_profile("arm.yaml", processing="procesing:"),
     ),
     # --- broken models -----------------------------------------------------------------------
     Row(
@@ -1085,7 +1192,7 @@ def bad_second(tmp_path_factory):
     rec, _ = simulate_motion(duration_s=30.0, max_speed=0.5, tap_rate_hz=3.0, seed=21)
     rec = _with(rec, ego=None)  # evaluate needs only the contact truth
     write_recording(root / "clean", rec)
-    write_recording(root / "bad", _with(rec, accel=_with_bad_samples(rec.accel, 8 * FS, FS)))
+    write_recording(root / "bad", _with(rec, sensor=_with_bad_samples(rec.sensor, 8 * FS, FS)))
     return root
 
 
@@ -1159,8 +1266,8 @@ def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     bad = read_recording(tmp_path / "bad")
     clean = read_recording(bad_second / "clean")
     stamps, values, _ = denoise_batch(
-        clean.accel_stamps_ns,
-        clean.accel,
+        clean.sensor_stamps_ns,
+        clean.sensor,
         clean.joint_stamps_ns,
         clean.joint_velocity,
         NoiseModel.load(lab["model"]),
@@ -1168,10 +1275,450 @@ def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     assert np.all(np.isfinite(bad.denoised)) and np.max(np.abs(bad.denoised)) <= SENSOR_RANGE
     assert len(bad.denoised_stamps_ns) >= 0.9 * len(stamps)
     # compared outside the bad second and a second either side of it
-    around = (stamps >= clean.accel_stamps_ns[7 * FS]) & (stamps < clean.accel_stamps_ns[10 * FS])
+    around = (stamps >= clean.sensor_stamps_ns[7 * FS]) & (stamps < clean.sensor_stamps_ns[10 * FS])
     chosen = ~around & np.isin(stamps, bad.denoised_stamps_ns)
     assert np.count_nonzero(chosen) >= 0.8 * len(stamps)
     level_clean = np.sqrt(np.mean(values[chosen] ** 2))
     index = np.searchsorted(bad.denoised_stamps_ns, stamps[chosen])
     level_bad = np.sqrt(np.mean(bad.denoised[index] ** 2))
     assert db(level_bad, level_clean) <= 0.5
+
+
+# --- writes that run out of space: one line, exit 2, staging removed at once ---------------
+
+# In a private mount namespace with a 5 MB tmpfs at argv[1]: for each [free bytes, argv],
+# fill the file system to leave that much (null: leave it empty), run the command, list
+# what is left on the file system, empty it. Prints [[exit status, stderr, left], ...].
+_FULL_DRIVER = """
+import contextlib, io, json, os, shutil, sys
+from egovib_ros import cli
+mount = sys.argv[1]
+results = []
+for free, argv in json.loads(sys.argv[2]):
+    if free is not None:
+        fd = os.open(os.path.join(mount, "fill"), os.O_WRONLY | os.O_CREAT)
+        block = bytes(4096)
+        try:
+            while True:
+                st = os.statvfs(mount)
+                if st.f_bavail * st.f_frsize <= free:
+                    break
+                os.write(fd, block)
+        except OSError:  # full: 0 bytes free
+            pass
+        os.close(fd)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = cli.main(argv)
+    left = sorted(
+        os.path.relpath(os.path.join(d, n), mount)
+        for d, dirs, files in os.walk(mount) for n in dirs + files
+    )
+    results.append([code, err.getvalue(), left])
+    for name in os.listdir(mount):
+        path = os.path.join(mount, name)
+        shutil.rmtree(path) if os.path.isdir(path) else os.unlink(path)
+print(json.dumps(results))
+"""
+
+
+def _namespace_command() -> list[str] | None:
+    """How to mount a small tmpfs here: a private mount namespace as root, or (unprivileged)
+    in a user namespace; None if neither works."""
+    if shutil.which("unshare") is None:
+        return None
+    candidates = [["unshare", "-m", "--propagation", "private"]] if os.geteuid() == 0 else []
+    candidates.append(["unshare", "-r", "-m", "--propagation", "private"])
+    for command in candidates:
+        probe = subprocess.run(
+            [*command, "sh", "-c", 'd=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs "$d"'],
+            capture_output=True,
+        )
+        if probe.returncode == 0:
+            return command
+    return None
+
+
+NAMESPACE = _namespace_command()
+NO_TMPFS = "cannot mount a small tmpfs here (needs root or unprivileged user namespaces)"
+
+
+def error_lines(err: str) -> list[str]:
+    """stderr without warnings logged along the way (e.g. about the model's filled cells)."""
+    return [line for line in err.splitlines() if line.strip() and ": WARNING: " not in line]
+
+
+FULL_ROWS = [
+    # (id, bytes left free (None: the 5 MB file system empty), argv; output under full/)
+    ("denoise_onto_5_mb", None, den("motion", out="full/den")),
+    ("denoise_nearly_full", 16 << 10, den("motion", out="full/den")),
+    ("denoise_0_bytes_free", 0, den("motion", out="full/den")),
+    ("calibrate_nearly_full", 16 << 10, cal("sweep", out="full/model.npz")),
+    ("calibrate_0_bytes_free", 0, cal("sweep", out="full/model.npz")),
+    ("evaluate_0_bytes_free", 0, ev("motion", out="full/eval.json")),
+]
+
+
+@pytest.fixture(scope="module")
+def full_results(lab, tmp_path_factory):
+    """All rows in one child process, on one 5 MB tmpfs mounted at work/full."""
+    work = tmp_path_factory.mktemp("full")
+    (work / "full").mkdir()
+    commands = [[free, _format(args, lab)] for _, free, args in FULL_ROWS]
+    script = f'mount -t tmpfs -o size=5m tmpfs {work / "full"} && exec "$@"'
+    proc = subprocess.run(
+        [*NAMESPACE, "sh", "-c", script, "sh", sys.executable, "-c", _FULL_DRIVER]
+        + [str(work / "full"), json.dumps(commands)],
+        cwd=work,
+        env=_child_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads(proc.stdout.splitlines()[-1])
+    return {"results": dict(zip([row[0] for row in FULL_ROWS], results)), "work": work}
+
+
+@pytest.mark.skipif(NAMESPACE is None, reason=NO_TMPFS)
+@pytest.mark.parametrize("row", FULL_ROWS, ids=[row[0] for row in FULL_ROWS])
+def test_output_file_system_full(row, full_results):
+    """A full file system: one line naming the output and 'no space', exit 2; nothing left
+    on it but what filled it: the staging directory removed at once (with 0 bytes free the
+    run is refused before any work; mid-write, when the write fails)."""
+    name, free, args = row
+    code, err, left = full_results["results"][name]
+    assert code == 2, err
+    lines = error_lines(err)
+    assert len(lines) == 1, err
+    output = args[args.index("--out") + 1] if "--out" in args else args[args.index("--json") + 1]
+    assert lines[0].startswith("egovib: error:") and output in lines[0], lines[0]
+    assert "no space left on device" in lines[0].lower(), lines[0]
+    assert left == ([] if free is None else ["fill"]), left
+    assert sorted(p.name for p in full_results["work"].iterdir()) == ["full"]
+
+
+# --- real processes, real signals: two runs, SIGTERM, Ctrl-C ------------------------------
+
+# The console script's entry, after one line on stdout that says main() is about to run.
+_ENTRY = "import sys\nfrom egovib_ros.cli import main\nprint('main', flush=True)\nsys.exit(main())"
+
+
+def _default_signals() -> None:
+    # a test runner started in the background may ignore SIGINT; its children would too
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def start_egovib(*args, cwd: Path) -> subprocess.Popen:
+    """`egovib ARGS` started in its own process; returns once main() is about to run."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _ENTRY, *map(str, args)],
+        cwd=cwd,
+        env=_child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_signals,
+    )
+    assert proc.stdout.readline().strip() == "main"
+    return proc
+
+
+def wait_for(predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError):  # a file vanishing while looked at
+            if predicate():
+                return True
+        time.sleep(0.002)
+    return False
+
+
+def _denoise_long(lab, bad_second, out: str = "den", *extra) -> list[str]:
+    """A denoise that runs a few seconds: the 30 s bag."""
+    return ["denoise", bad_second / "clean", "--model", lab["model"], "--out", out, "--quiet"] + [
+        *extra
+    ]
+
+
+def test_two_runs_cannot_both_claim_one_output(lab, bad_second, tmp_path):
+    """The first run locks the output (flock on .den.egovib-lock) for its whole run; a second
+    one is refused at once, with one line naming the output and the first run's pid, exit 2
+    (with --force too): waiting would only end in 'already exists', or with --force in the
+    first result silently replaced. The first run is frozen (SIGSTOP) while the others try,
+    so the test does not depend on timing."""
+    first = start_egovib(*_denoise_long(lab, bad_second), cwd=tmp_path)
+    lock = tmp_path / ".den.egovib-lock"
+    try:
+        assert wait_for(lambda: lock.read_text().strip() == str(first.pid), 60)
+        first.send_signal(signal.SIGSTOP)
+        second = egovib_subprocess(*_denoise_long(lab, bad_second), cwd=tmp_path)
+        forced = egovib_subprocess(*_denoise_long(lab, bad_second, "den", "--force"), cwd=tmp_path)
+    finally:
+        first.send_signal(signal.SIGCONT)
+    _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    for result in (second, forced):
+        assert result.code == 2, result.err
+        lines = error_lines(result.err)
+        assert len(lines) == 1, result.err
+        assert "--out den" in lines[0] and f"another egovib run (pid {first.pid})" in lines[0]
+    assert len(read_recording(tmp_path / "den").denoised) == 30 * FS  # the first run's, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["den"]  # no lock file, no staging
+
+
+def test_the_next_run_takes_the_output_once_the_first_has_ended(lab, tmp_path, monkeypatch):
+    """The lock is the run's, not the output's: once the first run has ended, the output is
+    free again (refused without --force because it exists, replaced with --force)."""
+    monkeypatch.chdir(tmp_path)
+    assert egovib(*_format(den("motion"), lab)).code == 0
+    again = egovib(*_format(den("motion"), lab))
+    assert again.code == 2 and "already exists" in again.err
+    assert egovib(*_format(den("motion", "--force"), lab)).code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["den"]
+
+
+def test_sigterm_mid_denoise_one_line_exit_143_staging_removed(lab, bad_second, tmp_path):
+    """SIGTERM while the output bag is being written: one line, exit 143 (128 + 15, what a
+    shell reports for a process ended by SIGTERM, so scripts see 'stopped', not 'bad input'),
+    and the staging directory is gone at once, not at the next run."""
+    run = start_egovib(*_denoise_long(lab, bad_second), cwd=tmp_path)
+
+    def writing() -> bool:
+        return any(mcap.stat().st_size > 0 for mcap in tmp_path.glob(".den.*.partial/den/*.mcap"))
+
+    assert wait_for(writing, 60), run.stderr.read() if run.poll() is not None else "not yet"
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 143, err
+    assert error_lines(err) == ["egovib: terminated (SIGTERM)"], err
+    assert list(tmp_path.iterdir()) == []  # no staging, no lock file, no output
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.05, 0.2, 0.5, 1.0])
+def test_ctrl_c_during_start_up_one_line_exit_130(lab, bad_second, tmp_path, delay_s):
+    """Ctrl-C while the command's modules load, the model loads or the bag starts: no
+    KeyboardInterrupt traceback, one line, exit 130, nothing left (start-up takes ~1.5 s)."""
+    run = start_egovib(*_denoise_long(lab, bad_second), cwd=tmp_path)
+    time.sleep(delay_s)
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert error_lines(err) == ["egovib: interrupted"], err
+    assert list(tmp_path.iterdir()) == []
+
+
+# A library that swallows the KeyboardInterrupt (C code clearing errors while modules load
+# does; here a bare `except:` around the framer, hit by a real SIGINT mid-run).
+_SWALLOWING = """
+import os, signal, sys
+from egovib_ros.core import stream
+append, sent = stream.BlockFramer._append, []
+def swallowing_append(self, *args):
+    if not sent:
+        sent.append(True)
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            sum(range(1000))  # bytecode: the handler runs here and raises
+        except:  # noqa: E722
+            pass
+    return append(self, *args)
+stream.BlockFramer._append = swallowing_append
+from egovib_ros.cli import main
+sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("sigterm", [False, True], ids=["ctrl_c", "sigterm"])
+def test_a_swallowed_interrupt_still_stops_before_the_output_is_committed(lab, tmp_path, sigterm):
+    driver = _SWALLOWING.replace("SIGINT", "SIGTERM") if sigterm else _SWALLOWING
+    proc = subprocess.run(
+        [sys.executable, "-c", driver, *_format(den("motion"), lab)],
+        cwd=tmp_path,
+        env=_child_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=_default_signals,
+    )
+    assert proc.returncode == (143 if sigterm else 130), proc.stderr
+    line = "egovib: terminated (SIGTERM)" if sigterm else "egovib: interrupted"
+    assert error_lines(proc.stderr) == [line], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- an unexpected exception is a bug: one line, exit 1, traceback in a log ----------------
+
+# A genuine internal error, provoked in a child process: a core function patched to raise
+# in the middle of the work (after the output is staged), then the console entry point.
+_BUG_DRIVER = """
+import sys
+{patch}
+from egovib_ros import cli
+sys.exit(cli.main(sys.argv[1:]))
+"""
+_BUG_IN_FRAMER = """
+from egovib_ros.core import stream
+def failing_append(self, *args):  # the output bag is staged and being written by now
+    raise ValueError("injected failure\\nwith a second line")
+stream.BlockFramer._append = failing_append
+"""
+_BUG_IN_SAVE = """
+from egovib_ros.core import NoiseModel
+def failing_save(self, path):
+    with open(path, "wb") as fh:
+        fh.write(b"half a model")
+    raise RuntimeError("injected failure")
+NoiseModel.save = failing_save
+"""
+BUG_ROWS = [
+    ("denoise", _BUG_IN_FRAMER, den("motion"), "motion", "ValueError: injected failure", "den"),
+    ("calibrate", _BUG_IN_SAVE, cal("sweep"), "sweep", "RuntimeError: injected failure", "m.npz"),
+]
+
+
+@pytest.mark.parametrize("row", BUG_ROWS, ids=[row[0] for row in BUG_ROWS])
+@pytest.mark.parametrize("log_dir", ["state", "temp"])
+def test_internal_error_one_line_exit_1_traceback_logged(row, log_dir, lab, tmp_path):
+    """`egovib: internal error in COMMAND (INPUT): TYPE: MESSAGE; traceback written to PATH`,
+    exit 1 (bad input keeps 2), the log holding the command line and the traceback, no
+    output, staging or lock left. The log goes to $XDG_STATE_HOME/egovib, or to the temp
+    directory when that cannot be written."""
+    command, patch, args, bag, summary, output = row
+    work, temp = tmp_path / "work", tmp_path / "tmp"
+    work.mkdir()
+    temp.mkdir()
+    env = {**_child_env(), "TMPDIR": str(temp)}
+    if log_dir == "temp":
+        env["XDG_STATE_HOME"] = str(tmp_path / "a_file")
+        (tmp_path / "a_file").write_text("not a directory\n")
+    proc = subprocess.run(
+        [sys.executable, "-c", _BUG_DRIVER.format(patch=patch), *_format(args, lab)],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 1, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert len(lines) == 1, proc.stderr
+    match = re.fullmatch(
+        rf"egovib: internal error in {command} \((.+)\): (.+); traceback written to (.+)",
+        lines[0],
+    )
+    assert match, lines[0]
+    assert match[1] == str(lab[bag]) and match[2] == summary, lines[0]
+    log = Path(match[3])
+    expected_dir = Path(env["XDG_STATE_HOME"]) / "egovib" if log_dir == "state" else temp
+    assert log.parent == expected_dir and log.is_file(), log
+    text = log.read_text()
+    assert f"command: egovib {command}" in text
+    assert "Traceback (most recent call last)" in text and summary in text
+    assert "with a second line" in text or command != "denoise"  # the whole message is kept
+    assert list(work.iterdir()) == [], f"left: {list(work.iterdir())}"
+    assert sorted(p.name for p in temp.iterdir()) == ([log.name] if log_dir == "temp" else [])
+
+
+def test_internal_error_in_one_of_several_bags_is_still_a_bug(lab, tmp_path, state_home):
+    """Several bags: the others complete and the summary names the failed one; a failure that
+    is a bug still ends the run as an internal error (exit 1) with its traceback logged."""
+    (tmp_path / "in").mkdir()
+    for name in ("a", "b"):
+        shutil.copytree(lab["motion"], tmp_path / "in" / name)
+    patch = _BUG_IN_FRAMER.replace(
+        "def failing_append(self, *args):",
+        "append = stream.BlockFramer._append\ndef failing_append(self, *args):\n"
+        "    if 'in/a' not in self.s.source:\n        return append(self, *args)",
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", _BUG_DRIVER.format(patch=patch)]
+        + ["denoise", "in", "--model", str(lab["model"]), "--out", "out", "--quiet"],
+        cwd=tmp_path,
+        env=_child_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 1, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert "FAILED in/a: ValueError: injected failure" in proc.stderr
+    assert "2 bag(s): 1 done, 1 failed" in proc.stderr
+    assert lines[-1].startswith("egovib: internal error in denoise (in): BagTaskBug: 1 of 2")
+    log = Path(lines[-1].rsplit("traceback written to ", 1)[1])
+    assert log.parent == state_home / "egovib" and "in/a" in log.read_text()
+    assert "ValueError: injected failure" in log.read_text()
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["b"]  # nothing of a
+
+
+def test_bad_input_keeps_exit_2_and_writes_no_log(lab, tmp_path, state_home, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = egovib(*_format(den("truncated"), lab))
+    assert result.code == 2 and "internal error" not in result.err
+    assert not (state_home / "egovib").exists()
+
+
+# --- live: the denoiser node refuses a stream whose rate changes ---------------------------
+
+
+def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
+    nodes, ros_client, feeder, sim_model_path
+):
+    """The node on real DDS, fed 1 s at 3 kHz, then 1.5 s at 1.5 kHz: /diagnostics turns
+    ERROR naming the rate (it said "N missing samples bridged" each second before), output
+    stops within 3 rate windows of the change, the rest is withheld, the node keeps running."""
+    from conftest import reports
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from sensor_msgs.msg import Imu
+
+    from egovib_ros.nodes.common import stream_publisher_qos
+    from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
+    from egovib_ros.robot import load_profile
+    from egovib_ros.tools.orchestration import reliable_input
+
+    profile = load_profile()
+    den = nodes.start(
+        "denoiser",
+        {
+            "model": str(sim_model_path),
+            **reliable_input(profile.sensor_topic, profile.joints_topic),
+        },
+    )
+    received = []
+    ros_client.node.create_subscription(
+        Imu,
+        profile.node_denoised_topic,
+        received.append,
+        stream_publisher_qos(depth=30_000),
+        raw=True,
+    )
+    feed = feeder(profile)
+    assert feed.wait_for_subscribers(), nodes.log(den)
+    feed.publish_joint_state()
+    rate = profile.rate_hz
+    before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
+    after = before[-1] + (np.arange(1, int(0.75 * rate) + 1) * 2e9 / rate).astype(np.int64)
+    stamps = np.r_[before, after]
+    joint_stamps = np.arange(stamps[0], stamps[-1], 1_000_000)
+    velocity = np.tile([0.3 * v for v in profile.max_speed], (len(joint_stamps), 1))
+    feed.publish(stamps, feed.rng.normal(0.0, 0.5, (len(stamps), 3)), joint_stamps, velocity)
+    assert ros_client.spin_until(
+        lambda: reports(ros_client, "denoiser", DiagnosticStatus.ERROR, "rate changed", "1500 Hz"),
+        10.0,
+    ), nodes.log(den)
+    window = 4 * 64  # RATE_WINDOW_BLOCKS blocks of the model's 64 samples
+
+    def withheld() -> int:  # by the latest 1 Hz report
+        return int(diagnostic_values(ros_client.statuses["denoiser"])["samples_withheld"])
+
+    assert ros_client.spin_until(lambda: withheld() >= len(after) - 3 * window, 5.0), withheld()
+
+    def output_before_the_change() -> int:  # denoised as usual
+        return int(np.count_nonzero(decode_imu_messages(received)[0] <= before[-1]))
+
+    assert ros_client.spin_until(lambda: output_before_the_change() > 0.9 * len(before), 5.0)
+    out_stamps, _, _ = decode_imu_messages(received)
+    assert np.count_nonzero(out_stamps > before[-1]) <= 3 * window
+    assert "rate changed" in nodes.log(den) and den.poll() is None

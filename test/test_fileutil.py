@@ -1,10 +1,13 @@
 """fileutil: outputs never destroy what they did not create (issue 11).
 
-prepare_output refuses before any work; atomic_output writes next to the target and
-renames into place only when complete, marking directory outputs as ours; stale
-staging directories of killed runs are cleaned, nothing else is.
+prepare_output refuses before any work and claims the output (a lock no other run can
+take); atomic_output writes next to the target and renames into place only when
+complete, marking directory outputs as ours, and removes its staging at once when the
+block fails (a full disk included); stale staging directories of killed runs are
+cleaned, nothing else is.
 """
 
+import errno
 import json
 import os
 import subprocess
@@ -14,15 +17,17 @@ import time
 import numpy as np
 import pytest
 
-from egovib_ros.fileutil import (
+from egovib_ros.outputs import (
     MARKER,
     PARTIAL_MARKER,
     OutputError,
     atomic_output,
+    claim_output,
     clean_stale_partials,
     prepare_output,
     prepare_outputs_in,
     process_start_time,
+    release_outputs,
 )
 
 
@@ -42,7 +47,8 @@ def state(root):
 @pytest.fixture
 def cwd(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    return tmp_path
+    yield tmp_path
+    release_outputs()  # what the CLI does when a command ends
 
 
 # --- prepare_output ------------------------------------------------------------------------
@@ -166,8 +172,66 @@ def test_unwritable_parent_detected_before_work(cwd):
 
 
 def test_missing_parent_directories_are_fine(cwd):
+    """They are made to hold the lock file beside the output, and go with it when the run
+    ends without output."""
     assert prepare_output("a/b/c.json", kind="json")
-    assert not (cwd / "a").exists()  # nothing created before the work
+    assert sorted(os.listdir(cwd / "a" / "b")) == [".c.json.egovib-lock"]
+    release_outputs()
+    assert list(cwd.iterdir()) == []
+
+
+# --- one run per output --------------------------------------------------------------------
+
+# Claims an output in another process, says so, and holds it until stdin closes.
+_HOLDER = """
+import sys
+from egovib_ros.outputs import prepare_output
+prepare_output(sys.argv[1], kind="bag")
+print("claimed", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_an_output_claimed_by_another_run_is_refused_until_that_run_ends(cwd):
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, "den"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "claimed"
+        for force in (False, True):
+            with pytest.raises(
+                OutputError, match=rf"^--out den: another egovib run \(pid {holder.pid}\)"
+            ):
+                prepare_output("den", force=force, kind="bag")
+    finally:
+        holder.communicate("", timeout=60)
+    assert sorted(os.listdir(cwd)) == []  # the holder removed its lock file as it ended
+    assert prepare_output("den", kind="bag")
+
+
+def test_the_lock_file_of_a_killed_run_does_not_block(cwd):
+    """A run killed with SIGKILL leaves its lock file, but the kernel dropped its lock."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, "den"], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+    assert holder.stdout.readline().strip() == b"claimed"
+    holder.kill()
+    holder.communicate(timeout=60)
+    assert (cwd / ".den.egovib-lock").is_file()
+    assert prepare_output("den", kind="bag")
+    release_outputs()
+    assert sorted(os.listdir(cwd)) == []
+
+
+def test_a_claim_is_kept_until_released_and_taken_once_per_process(cwd):
+    prepare_output("den", kind="bag")
+    claim_output("den")  # the same process again: kept, not refused
+    (cwd / "den").mkdir()  # its own output appeared meanwhile: the claim still holds
+    release_outputs("den")
+    assert sorted(os.listdir(cwd)) == ["den"]
 
 
 def test_prepare_outputs_in_adds_to_a_directory_but_replaces_files_only_with_force(cwd):
@@ -224,6 +288,20 @@ def test_atomic_output_never_replaces_a_foreign_directory(cwd):
         with atomic_output(cwd / "stuff") as tmp:
             tmp.write_text("{}")
     assert state(cwd) == before
+
+
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EDQUOT, errno.EFBIG])
+def test_a_full_disk_is_one_line_naming_the_output_and_the_staging_goes_at_once(cwd, code):
+    with pytest.raises(OutputError, match=r"^bag: not written: .* in .*\(.* MB free\)$"):
+        with atomic_output("bag", directory=True, kind="bag") as tmp:
+            tmp.mkdir()
+            (tmp / "data.mcap").write_bytes(b"\0" * 4096)
+            raise OSError(code, os.strerror(code))
+    assert sorted(os.listdir(cwd)) == []
+    with pytest.raises(PermissionError):  # other OS errors are not the disk's: unchanged
+        with atomic_output("bag", directory=True, kind="bag") as tmp:
+            raise PermissionError(errno.EACCES, "denied")
+    assert sorted(os.listdir(cwd)) == []
 
 
 def test_file_output_replaces_atomically(cwd):

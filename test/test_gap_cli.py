@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from egovib_ros.bagio import write_recording
+from egovib_ros.bag import write_recording
 from egovib_ros.cli import main
-from egovib_ros.gap.validate import calibrate_sim_model
+from egovib_ros.experiments.gap_validation import calibrate_sim_model
 from egovib_ros.sim import simulate_motion
 
 CONTRACT_KEYS = {
@@ -80,9 +80,16 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert 0.2 < updated.effects["position"] < 0.6
     check = report["added_effect"]["simulator"]
     assert check["heldout_gap_with_updated_simulator"] < check["heldout_gap_refit"]
-    # The report's first lines answer where, which and how far, with figures that exist.
+    # The report's first lines say what to do, what it costs the denoiser and what is left,
+    # then answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
-    head = "\n".join(md[:8])
+    assert md[2].startswith("**What to do:** position-dependent")
+    assert md[3].startswith("**What it costs the denoiser:**")
+    assert md[4].startswith("**Left unexplained:**")
+    advice = report["advice"]
+    assert advice["settings"]["calibration_key"] == "position"
+    assert advice["denoiser"]["gain_db"] > 0  # the position term denoises held-out data better
+    head = "\n".join(md[:12])
     assert (
         "**Where:**" in head
         and "**Which:**" in head
@@ -201,8 +208,8 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
 def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
     """Past the block budget the diagnosis keeps one run of blocks in every k over the
     whole bag (memory and time stop growing); the kept blocks are the whole table's."""
+    from egovib_ros.cli.gap import BUDGET_MINUTES
     from egovib_ros.core import NoiseModel
-    from egovib_ros.gap.cli import BUDGET_MINUTES
     from egovib_ros.gap.effects import LAG_RANGE_S
     from egovib_ros.gap.features import (
         DEFAULT_BUDGET_MINUTES,
@@ -282,7 +289,7 @@ def test_scattered_bad_samples_above_a_tenth_are_refused_as_such(model_path, pos
 
     model = NoiseModel.load(model_path)
     rec = read_recording(position_bag, profile=model.profile, ground_truth=False, denoised=False)
-    accel = rec.accel.copy()
+    accel = rec.sensor.copy()
     accel[np.random.default_rng(0).random(len(accel)) < 0.15] = np.nan
     with pytest.raises(StreamError, match="bad|non-finite"):
-        build_table(dataclasses.replace(rec, accel=accel), model)
+        build_table(dataclasses.replace(rec, sensor=accel), model)

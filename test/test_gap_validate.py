@@ -4,12 +4,9 @@ from __future__ import annotations
 
 import json
 
-from egovib_ros.gap.effects import EFFECTS
-from egovib_ros.gap.pipeline import diagnose_recording
-from egovib_ros.gap.simref import simulator_reference_lag
-from egovib_ros.gap.validate import (
+from egovib_ros.experiments.gap_validation import (
+    FORMS,
     MISCALIBRATED,
-    REALITIES,
     SHAPE_DIFFERS,
     calibrate_sim_model,
     make_recording,
@@ -18,15 +15,24 @@ from egovib_ros.gap.validate import (
     run_validation,
     shape_differs_params,
 )
+from egovib_ros.gap.effects import EFFECTS
+from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.simref import simulator_reference_lag
 
 
 def test_plan_is_blind_and_covers_every_class():
-    for reality in REALITIES:
+    for reality in ("sim", "alt"):
         runs = plan_runs(2, ladder=True, reality=reality)
         blind = [r for r in runs if not r.get("ladder")]
         nones = {"none", MISCALIBRATED, SHAPE_DIFFERS} if reality == "sim" else {"none"}
         assert {r["truth"] for r in blind} == nones | set(EFFECTS)
-        assert len(blind) == 2 * (len(EFFECTS) + len(nones))
+        n_forms = sum(len(f) for f in FORMS[reality].values())
+        assert len(blind) == 2 * (n_forms + len(nones))
+        # every form of every effect, the signed ones included; leads are negative lags
+        assert {(r["truth"], r["form"]) for r in blind if "form" in r} == {
+            (e, f) for e, forms in FORMS[reality].items() for f in forms
+        }
+        assert all(r["strength"] < 0 for r in runs if r.get("form") == "lead")
         assert len({r["seed"] for r in runs}) == len(runs)  # every bag its own random seed
         assert (
             plan_runs(2, ladder=True, reality=reality) == runs

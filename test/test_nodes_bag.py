@@ -7,21 +7,22 @@ import sys
 import time
 from pathlib import Path
 
+import bagcorpus
 import numpy as np
 import pytest
-from conftest import LOSSLESS_DEPTH, wait_for_output
+from conftest import LOSSLESS_DEPTH, header_stamp_ns, wait_for_output
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.bagio import read_recording, write_recording
-from egovib_ros.cdr import (
-    decode_imu_batch,
+from egovib_ros.bag import read_recording, write_recording
+from egovib_ros.bag.codec import (
+    decode_imu,
 )
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import deep_output, reliable_input
+from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
+from egovib_ros.tools.orchestration import deep_output, reliable_input
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import diagnostic_values, stamp_to_ns
 from egovib_ros.sim import simulate_motion
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
@@ -37,7 +38,7 @@ def bag_imu(
     with Reader(path) as reader:
         conns = [c for c in reader.connections if c.topic == topic]
         raws = [bytes(data) for _, _, data in reader.messages(connections=conns)]
-    return decode_imu_batch(raws, field)
+    return decode_imu(raws, field)
 
 
 def make_motion_bag(path: Path, seconds: float, seed: int) -> None:
@@ -200,8 +201,8 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
     assert ros_client.drain(raw, clock)  # what a loaded test process had not taken yet
     assert player.returncode == 0, nodes.log(player)
 
-    stamps, _ = decode_imu_batch(raw)
-    np.testing.assert_array_equal(stamps, want.accel_stamps_ns)
+    stamps, _ = decode_imu(raw)
+    np.testing.assert_array_equal(stamps, want.sensor_stamps_ns)
     # Paced at rate 2 (d/2 on the wall clock), seen through this process's callbacks (which a
     # loaded machine delays): not all at once, and faster than real time.
     played_s = arrival[-1] - arrival[0]
@@ -210,3 +211,39 @@ def test_player_timing_rate_and_clock(nodes, ros_client, tmp_path):
     assert len(clock) > 100 and np.all(np.diff(clock) > 0)
     with Reader(source) as reader:
         assert reader.start_time <= clock[0] and clock[-1] <= reader.end_time
+
+
+def test_player_plays_a_bag_written_topic_by_topic_in_log_time_order(nodes, ros_client, tmp_path):
+    """A converter's bag holds all joint states, then all sensor samples (rosbags' writer,
+    topic by topic): played in log-time order all the same, /clock never going back."""
+    make_motion_bag(tmp_path / "motion", 2.0, seed=5)
+    source = bagcorpus.write_layout(
+        tmp_path / "motion", tmp_path / "by_topic", bagcorpus.Layout("by_topic", order="topic")
+    )
+    want = read_recording(source, ground_truth=False, denoised=False)
+    raw, joints, clock = [], [], []
+    qos = stream_publisher_qos(depth=30_000)
+    ros_client.node.create_subscription(Imu, "accelerometer/raw", raw.append, qos, raw=True)
+    ros_client.node.create_subscription(JointState, "joint_states", joints.append, qos, raw=True)
+    ros_client.node.create_subscription(
+        Clock, "/clock", lambda m: clock.append(stamp_to_ns(m.clock)), 1000
+    )
+    player = nodes.start(
+        "bag_player",
+        {
+            "bag": str(source),
+            "rate": 4.0,
+            "clock": True,
+            "wait_for_subscribers": 1,
+            "topics": ["/accelerometer/raw", "/joint_states"],
+        },
+    )
+    assert ros_client.spin_until(lambda: player.poll() is not None, timeout=60), nodes.log(player)
+    assert ros_client.drain(raw, joints, clock)
+    assert player.returncode == 0, nodes.log(player)
+    stamps, _ = decode_imu(raw)
+    np.testing.assert_array_equal(stamps, want.sensor_stamps_ns)
+    assert [header_stamp_ns(m) for m in joints] == want.joint_stamps_ns.tolist()
+    clock = np.asarray(clock)
+    assert len(clock) > 100 and np.all(np.diff(clock) > 0)
+    assert clock[0] <= min(want.sensor_stamps_ns[0], want.joint_stamps_ns[0]) + 5_000_000

@@ -35,14 +35,14 @@ from sensor_msgs.msg import Imu
 
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import deep_output, reliable_input
-from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import (
+from egovib_ros.nodes.convert import (
     command_message,
     decode_imu_messages,
     diagnostic_values,
     encode_imu_batch,
 )
+from egovib_ros.robot import load_profile
+from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
@@ -138,8 +138,9 @@ def test_live_denoiser_keeps_stamps_lowers_noise_and_copies_the_input_message(
     assert seen.sum() == span.sum()
     # Drop-in output: the input message with only linear_acceleration replaced.
     by_stamp = dict(zip(raw_stamps.tolist(), raw))
-    # (samples this subscriber also saw raw: the denoised stream lags behind the raw one,
-    # by more than 1000 samples when the denoiser has a backlog)
+    # (samples this subscriber also saw raw, while the hand moves - at rest raw minus nothing
+    # is raw; the denoised stream lags behind the raw one, by more than 1000 samples when the
+    # denoiser has a backlog)
     for data in [denoised[i] for i in np.flatnonzero(seen)[1000:1010]]:
         out = deserialize_message(data, Imu)
         stamp = out.header.stamp.sec * 1_000_000_000 + out.header.stamp.nanosec
@@ -164,8 +165,13 @@ def test_live_denoiser_keeps_stamps_lowers_noise_and_copies_the_input_message(
     # the denoiser has a backlog and this test waited for it).
     half = motion_start_ns + (end_ns - motion_start_ns) // 2
     raw_level = np.abs(bandpass(raw_accel)[(raw_stamps >= half) & (raw_stamps <= end_ns)]).mean()
-    den_level = np.abs(den_accel[(den_stamps >= half) & (den_stamps <= end_ns)]).mean()
+    # the default output is the drop-in one: raw minus the ego-vibration, scored band-passed
+    den_in = (den_stamps >= half) & (den_stamps <= end_ns)
+    den_level = np.abs(bandpass(den_accel)[den_in]).mean()
     assert den_level < 0.7 * raw_level, (raw_level, den_level)
+    # gravity (the simulator's 9.81 m/s^2 on z) passes untouched
+    assert raw_accel[:, 2].mean() > 9.0
+    assert abs(den_accel[:, 2].mean() - raw_accel[:, 2].mean()) < 0.05
     # The input rate of a report is what the node took in its last second: a starved node
     # takes less one second and more the next, so the middle one of the motion's reports.
     rates = [float(diagnostic_values(r)["input_rate_hz"]) for r in reports]
@@ -214,11 +220,11 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(
 
     den_stamps, den_accel, _ = decode_imu_messages(denoised)
     np.testing.assert_array_equal(den_stamps, np.delete(stamps, 2000))
-    # No joint state: the output is the band-passed input (per axis); the NaN sample is a
-    # one-sample gap, bridged by the core (so compare before it).
-    expected = bandpass(accel[:2000])
+    # No joint state: the output is the input itself (drop-in, per axis); the NaN sample
+    # is a one-sample gap, bridged by the core (so compare before it).
+    expected = accel[:2000]
     np.testing.assert_allclose(
-        den_accel[200:2000], expected[200:], atol=1e-6 * np.abs(expected).max()
+        den_accel[200:2000], expected[200:], atol=1e-9 * np.abs(expected).max()
     )
     values = diagnostic_values(ros_client.statuses["denoiser"])
     assert int(values["undecodable_messages"]) == 1 and int(values["samples_bad"]) == 1
@@ -350,12 +356,12 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
 
     out_stamps, out, _ = decode_imu_messages(denoised)
     np.testing.assert_array_equal(out_stamps, stamps)
-    expected = bandpass(values)
     # (200 samples: an output sample sums the overlapping blocks around it)
     before = slice(int(0.5 * RATE), published_before_change - 200)  # alpha = 1: subtracted
-    after = slice(published_after_change + 200, len(out))  # alpha = 0: the band-passed input
-    np.testing.assert_allclose(out[after], expected[after], atol=1e-9 * np.abs(expected).max())
-    assert np.abs(out[before]).mean() < 0.8 * np.abs(expected[before]).mean()
+    after = slice(published_after_change + 200, len(out))  # alpha = 0: the input (drop-in)
+    np.testing.assert_allclose(out[after], values[after], atol=1e-9 * np.abs(values).max())
+    expected = bandpass(values)
+    assert np.abs(bandpass(out)[before]).mean() < 0.8 * np.abs(expected[before]).mean()
     assert "oversubtraction 0, floor 0" in nodes.log(den)
 
 

@@ -89,7 +89,10 @@ def test_demo_and_live_bench_are_egovib_subcommands(capsys):
     from egovib_ros.cli import build_parser, main
 
     parser = build_parser()
-    for command, module in (("demo", "egovib_ros.demo"), ("live-bench", "egovib_ros.live_bench")):
+    for command, module in (
+        ("demo", "egovib_ros.tools.demo"),
+        ("live-bench", "egovib_ros.tools.live_bench"),
+    ):
         args = parser.parse_args(
             [command] + (["--json", "x.json"] if command == "live-bench" else [])
         )

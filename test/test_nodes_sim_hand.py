@@ -7,11 +7,11 @@ import pytest
 from conftest import wait_for_stream_end
 from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.bagio import read_recording, write_recording
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.orchestration import deep_output
+from egovib_ros.nodes.convert import decode_imu_messages, decode_joint_state_messages
+from egovib_ros.tools.orchestration import deep_output
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.sim import simulate_motion
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
@@ -50,7 +50,7 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     assert player.returncode == 0, nodes.log(player)
     # The sim runs until the last /clock (the bag's last message): wait for the streams to
     # arrive up to it before stopping the sim (their writer).
-    last_clock = recorded.accel_stamps_ns[-1] - 100_000_000
+    last_clock = recorded.sensor_stamps_ns[-1] - 100_000_000
     assert wait_for_stream_end(ros_client, raw, joints, end_ns=last_clock), (len(raw), len(joints))
     assert nodes.stop(sim) == 0, nodes.log(sim)
 
@@ -59,8 +59,8 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     # Stamps come from /clock (the bag's time base, starting near 0), not the wall clock.
     assert len(stamps) > 3000
     assert (
-        recorded.accel_stamps_ns[0] <= stamps[0]
-        and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+        recorded.sensor_stamps_ns[0] <= stamps[0]
+        and stamps[-1] <= recorded.sensor_stamps_ns[-1] + 50_000_000
     )
     assert np.all(np.diff(stamps) > 0)
     # Sim time runs at the bag's pace: samples 1/3 ms apart in sim time, and the stream

@@ -1,26 +1,28 @@
 """`egovib calibrate` and `egovib denoise` on real bag files, as a user runs them."""
 
 import dataclasses
+import json
 import shutil
 import subprocess
 import sys
 
+import bagcorpus
 import numpy as np
 import pytest
 import robots
 from rosbags.rosbag2 import Reader
 
-from egovib_ros.bag import BagWriter
-from egovib_ros.bagio import bag_topics, read_recording, write_recording
-from egovib_ros.cdr import (
+from egovib_ros.bag import BagWriter, bag_topics, read_recording, write_recording
+from egovib_ros.bag.codec import (
     encode_imu_batch,
     encode_joint_state_batch,
     imu_field_offset,
     joint_state_message,
     typestore,
 )
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
-from egovib_ros.offline import denoise_bag
+from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 
@@ -71,9 +73,9 @@ def test_calibrate_then_denoise_round_trip(bags):
     for topic in ("/joint_states", "/accelerometer/contact", "/accelerometer/ego"):
         assert topic in topics
     rec = read_recording(out)
-    np.testing.assert_array_equal(rec.denoised_stamps_ns, rec.accel_stamps_ns)
+    np.testing.assert_array_equal(rec.denoised_stamps_ns, rec.sensor_stamps_ns)
     _, expected, _ = denoise_batch(
-        rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity, model
+        rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity, model
     )
     np.testing.assert_allclose(rec.denoised, expected, rtol=0, atol=1e-12)
 
@@ -165,7 +167,7 @@ def test_streaming_through_small_chunks_equals_batch(bags, model_path, tmp_path)
     figures = denoise_bag(tmp_path / "small", out, model=model)
     assert figures["chunks_copied_verbatim"] > 100
     _, expected, _ = denoise_batch(
-        motion.accel_stamps_ns, motion.accel, motion.joint_stamps_ns, motion.joint_velocity, model
+        motion.sensor_stamps_ns, motion.sensor, motion.joint_stamps_ns, motion.joint_velocity, model
     )
     np.testing.assert_array_equal(read_recording(out).denoised, expected)
 
@@ -387,14 +389,14 @@ def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
     """Raw messages whose frame_id changes length mid-stream (no fixed layout): the output is
     still each input message with only the field replaced, as the vectorised path makes it."""
     motion = read_recording(bags / "motion")
-    n = len(motion.accel_stamps_ns)
+    n = len(motion.sensor_stamps_ns)
     half = n // 2
     with BagWriter(tmp_path / "mixed") as bag:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
         bag.add_topic("/joint_states", "sensor_msgs/msg/JointState")
-        stamps = motion.accel_stamps_ns
-        raws = encode_imu_batch(stamps[:half], motion.accel[:half], "imu") + encode_imu_batch(
-            stamps[half:], motion.accel[half:], "imu_link_long_name"
+        stamps = motion.sensor_stamps_ns
+        raws = encode_imu_batch(stamps[:half], motion.sensor[:half], "imu") + encode_imu_batch(
+            stamps[half:], motion.sensor[half:], "imu_link_long_name"
         )
         bag.write_batch("/accelerometer/raw", stamps, raws)
         bag.write_batch(
@@ -409,8 +411,8 @@ def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
         )
     denoise_bag(tmp_path / "mixed", tmp_path / "out", model=NoiseModel.load(model_path))
     _, expected, _ = denoise_batch(
-        motion.accel_stamps_ns,
-        motion.accel,
+        motion.sensor_stamps_ns,
+        motion.sensor,
         motion.joint_stamps_ns,
         motion.joint_velocity,
         NoiseModel.load(model_path),
@@ -429,3 +431,45 @@ def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
         assert (
             a[:at] == b[:at] and a[at + 24 :] == b[at + 24 :] and a[at : at + 24] != b[at : at + 24]
         )
+
+
+def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(bags, tmp_path):
+    """A driver that publishes JointState positions only (no velocity): calibrate, denoise
+    and evaluate differentiate the positions (profile joints.velocity: auto) and denoise
+    within 0.5 dB of the same run with velocities."""
+    positions_only = bagcorpus.Layout("positions_only", velocity=False)
+    figures = {}
+    for name, layout in (("with", None), ("without", positions_only)):
+        sweep, motion = bags / "sweep", bags / "motion"
+        if layout is not None:
+            sweep = bagcorpus.write_layout(sweep, tmp_path / "sweep_positions", layout)
+            motion = bagcorpus.write_layout(motion, tmp_path / "motion_positions", layout)
+        model = tmp_path / f"{name}.npz"
+        result = egovib("calibrate", sweep, "--out", model, "--quiet")
+        assert result.returncode == 0, result.stderr
+        result = egovib("denoise", motion, "--model", model, "--out", tmp_path / f"den_{name}")
+        assert result.returncode == 0, result.stderr
+        report = tmp_path / f"{name}.json"
+        result = egovib("evaluate", motion, "--model", model, "--json", report, "--quiet")
+        assert result.returncode == 0, result.stderr
+        figures[name] = json.loads(report.read_text())["noise_reduction_db"]
+    assert figures["with"] > 15 and abs(figures["with"] - figures["without"]) < 0.5, figures
+    with Reader(tmp_path / "motion_positions") as reader:  # positions only, indeed
+        conn = next(c for c in reader.connections if c.msgtype.endswith("JointState"))
+        _, _, data = next(reader.messages(connections=[conn]))
+        assert len(typestore().deserialize_cdr(data, conn.msgtype).velocity) == 0
+
+
+def test_joint_states_without_velocity_or_position_are_named(bags, tmp_path):
+    """Neither is usable: one line naming the joint-state topic and the joint."""
+    profile = tmp_path / "measured.yaml"
+    text = load_profile(None).dumps().replace("velocity: auto", "velocity: measured")
+    profile.write_text(text)
+    motion = bagcorpus.write_layout(
+        bags / "motion", tmp_path / "positions", bagcorpus.Layout("p", velocity=False)
+    )
+    result = egovib("calibrate", motion, "--robot", profile, "--out", tmp_path / "m.npz")
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert "/joint_states" in lines[0] and "r_wrist_roll_joint" in lines[0], lines[0]
+    assert "no velocity" in lines[0] and "auto" in lines[0]

@@ -8,7 +8,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.errors import StreamError
-from egovib_ros.ros_convert import (
+from egovib_ros.nodes.convert import (
     command_message,
     command_velocity,
     decode_imu_messages,

@@ -6,9 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.constants import MAX_SPEED
-from egovib_ros.sim.scenarios import sweep_cells
-from egovib_ros.sim.validation import (
+from egovib_ros.experiments.sim_validation import (
     BAND_BINS,
     motion_levels,
     plot_fig3,
@@ -16,6 +14,8 @@ from egovib_ros.sim.validation import (
     superposition_error,
     sweep_cell_stats,
 )
+from egovib_ros.sim.pr2 import MAX_SPEED
+from egovib_ros.sim.scenarios import sweep_cells
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ accelerometer, its own motion (segments with quintic blends, gripper strokes wit
 dwells) and its own joint-state reporting (two-sample encoder differences,
 stamp jitter, occasional dropped messages).
 
-Its effects (CONTRACT section 5 vocabulary), each in a functional form unlike
+Its effects (INTERFACES.md section 5 vocabulary), each in a functional form unlike
 the simulator's:
 
 * ``position``:     variant "spot": a tight spot once per wrist turn (a burr on the
@@ -25,7 +25,7 @@ the simulator's:
 * ``timing``:       joint-state stamps shifted by s seconds (either sign).
 
     simulate_alt_motion(duration_s=120, effects={"position": 1.0}, seed=0, tap_rate_hz=0.5)
-        -> (egovib_ros.bagio.Recording, truth dict)
+        -> (egovib_ros.bag.Recording, truth dict)
 """
 
 from egovib_ros.altreality.hand import (

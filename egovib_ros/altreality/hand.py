@@ -11,8 +11,16 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.altreality.motion import GRIPPER_LIMIT, WRIST_LIMIT, plan_motion, reversal_events
-from egovib_ros.bagio import Recording
+from egovib_ros.altreality.motion import (
+    GAP_MAX as GAP_MAX_M,
+)
+from egovib_ros.altreality.motion import (
+    GRIPPER_LIMIT,
+    WRIST_LIMIT,
+    plan_motion,
+    reversal_events,
+)
+from egovib_ros.bag import Recording
 
 FS = 3000.0  # accelerometer output rate (Hz)
 JOINT_RATE = 1000.0  # joint_states rate (Hz)
@@ -103,6 +111,21 @@ INTERMOD = 2.4  # coupling: intermodulation amplitude scale (strength 1)
 CLICK = 5.0  # acceleration: backlash click scale (strength 1)
 CLICK_ACC_REF = (30.0, 0.4)  # |acceleration| (rad/s^2, m/s^2) of a "typical" reversal
 REVERSAL_THRESHOLD = (0.05, 0.0008)
+#: Each effect's functional forms in this hand (the first ones are the original ones; a form
+#: of None for position draws "spot" or "end" per seed as before).
+EFFECT_FORMS = {
+    "position": ("spot", "end", "closing"),
+    "coupling": ("intermod", "signed"),
+    "acceleration": ("clicks", "braking"),
+    "timing": ("stamps", "filtered"),
+    "drift": ("step", "wear"),
+}
+CLOSING_RUB_RMS = 1.6  # position "closing": rub rms at full closing speed (strength 1)
+SIGNED_COUPLING = 1.6  # coupling "signed": log-gain of the wrist lines at full speeds (strength 1)
+SIGNED_GRIND = 0.5  # coupling "signed": same-direction grinding rms at full speeds (strength 1)
+BRAKING_RMS = 0.9  # acceleration "braking": broadband rms per unit deceleration / reference
+BRAKING_ACC_REF = (20.0, 0.25)  # deceleration (rad/s^2, m/s^2) of reference
+WEAR_RMS = 0.8  # drift "wear": grinding rms at full speed after 60 s (strength 1)
 
 
 def resonator(freq_hz: float, q: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
@@ -173,8 +196,13 @@ class AltHand:
         tap_rate_hz: float = 0.0,
         top_speed: float = 0.85,
         motion: str = "smooth",
+        forms: dict | None = None,
     ):
         self.seed = int(seed)
+        self.forms = dict(forms or {})
+        for name, form in self.forms.items():
+            if name not in EFFECT_FORMS or (form is not None and form not in EFFECT_FORMS[name]):
+                raise ValueError(f"alternate reality: unknown form {form!r} of {name!r}")
         self.effects = {k: float(v) for k, v in (effects or {}).items() if v}
         unknown = set(self.effects) - set(EFFECTS)
         if unknown:
@@ -203,6 +231,8 @@ class AltHand:
         p = self.rng["effect_params"]
         # Effect parameters drawn whatever the effects are, so they do not shift other draws.
         self.variant = "spot" if p.random() < 0.5 else "end"
+        if self.forms.get("position"):
+            self.variant = self.forms["position"]
         self.spot_angle = float(p.uniform(-np.pi, np.pi))
         self.drift_centre_frac = float(p.uniform(0.1, 0.45))
         self.drift_width_s = float(p.uniform(1.5, 5.0))
@@ -266,7 +296,7 @@ class AltHand:
         """Backlash clicks at each joint's reversals: impact strength ~ sqrt(|a| / a_ref)."""
         out = np.zeros(n)
         s = self.effects.get("acceleration", 0.0)
-        if not s:
+        if not s or self._form("acceleration") != "clicks":
             return out
         rng = self.rng["effect_noise"]
         for j in range(2):
@@ -289,7 +319,7 @@ class AltHand:
         (quadratic bearing stiffness)."""
         s = self.effects.get("coupling", 0.0)
         n = len(w_freq)
-        if not s:
+        if not s or self._form("coupling") != "intermod":
             return np.zeros(n)
         rng = self.rng["effect_noise"]
         out = np.zeros(n)
@@ -306,9 +336,40 @@ class AltHand:
                     out += amp * taper * np.cos(phase)
         return out
 
+    def _form(self, effect: str) -> str:
+        return self.forms.get(effect) or EFFECT_FORMS[effect][0]
+
+    def _braking(self, velocity: np.ndarray, n: int) -> np.ndarray:
+        """Broadband while a joint slows down (regenerative braking chatter), rms ~ deceleration."""
+        out = np.zeros(n)
+        s = self.effects.get("acceleration", 0.0)
+        if not s or self._form("acceleration") != "braking":
+            return out
+        rng = self.rng["effect_noise"]
+        for j in range(2):
+            speed = np.abs(velocity[:, j])
+            b, a = signal.butter(1, 15.0, fs=FS)
+            rate = signal.filtfilt(b, a, np.gradient(speed) * FS)
+            slowing = np.clip(-rate / BRAKING_ACC_REF[j], 0.0, 4.0)
+            out += s * BRAKING_RMS * DRIVE_GAIN * slowing * rng.standard_normal(n)
+        return out
+
+    def _wear(self, speed: np.ndarray, n: int) -> np.ndarray:
+        """Grinding added as the drives wear: grows linearly with time, while moving."""
+        s = self.effects.get("drift", 0.0)
+        if not s or self._form("drift") != "wear":
+            return np.zeros(n)
+        t = np.arange(n) / FS
+        frac = np.clip(speed[:, 0] / WRIST_LIMIT, 0, 1.5) + np.clip(
+            speed[:, 1] / GRIPPER_LIMIT, 0, 1.5
+        )
+        b, a = signal.butter(1, 800.0, fs=FS)
+        noise = signal.lfilter(b, a, self.rng["effect_noise"].standard_normal(n))
+        return s * WEAR_RMS * DRIVE_GAIN * 2.0 * frac * (t / 60.0) * noise
+
     def _drift_level(self, n: int) -> np.ndarray:
         s = self.effects.get("drift", 0.0)
-        if not s:
+        if not s or self._form("drift") != "step":
             return np.ones(n)
         t = np.arange(n) / FS
         centre = self.drift_centre_frac * n / FS
@@ -346,7 +407,27 @@ class AltHand:
         wrist = DRIVE_GAIN * (w_sig.sum(axis=1) + self._friction(speed[:, 0], 0))
         gripper = DRIVE_GAIN * (g_sig.sum(axis=1) + self._friction(speed[:, 1], 1))
         fx = self.effects
-        if "position" in fx:
+        if "coupling" in fx and self._form("coupling") == "signed":
+            # the wrist gear is loaded one way when the gripper moves the same way as the
+            # wrist turns, relieved the other: its lines grow or shrink with the directions
+            same = (
+                np.sign(velocity[:, 0])
+                * np.sign(velocity[:, 1])
+                * np.clip(speed[:, 0] / WRIST_LIMIT, 0, 1.5)
+                * np.clip(speed[:, 1] / GRIPPER_LIMIT, 0, 1.5)
+            )
+            wrist = wrist * np.exp(fx["coupling"] * SIGNED_COUPLING * same)
+            b, a = signal.butter(1, 700.0, fs=FS)
+            grind = signal.lfilter(b, a, self.rng["effect_noise"].standard_normal(n))
+            wrist = wrist + fx["coupling"] * SIGNED_GRIND * DRIVE_GAIN * np.maximum(same, 0) * grind
+        if "position" in fx and self.variant == "closing":
+            # a rub anywhere along the travel, but only while the fingers close
+            closing = np.clip(-velocity[:, 1] / GRIPPER_LIMIT, 0.0, 1.5)
+            rub = self.rng["effect_noise"].standard_normal(n) * CLOSING_RUB_RMS * DRIVE_GAIN
+            gripper = gripper + fx["position"] * closing * rub * (
+                1.0 - np.clip(position[:, 1] / GAP_MAX_M, 0, 1)
+            )
+        elif "position" in fx:
             if self.variant == "spot":
                 bump = np.exp((np.cos(position[:, 0] - self.spot_angle) - 1.0) / SPOT_WIDTH_RAD**2)
                 wrist = wrist * (1.0 + fx["position"] * bump)
@@ -361,7 +442,12 @@ class AltHand:
                     * depth
                 )
                 gripper = gripper + rub
-        shared = self._intermodulation(w_freq, w_amp, g_freq, g_amp) + self._clicks(velocity, n)
+        shared = (
+            self._intermodulation(w_freq, w_amp, g_freq, g_amp)
+            + self._clicks(velocity, n)
+            + self._braking(velocity, n)
+            + self._wear(speed, n)
+        )
         level = self._drift_level(n)
         force, onsets = self._taps(n)
         drive = {
@@ -397,8 +483,8 @@ class AltHand:
 
         j_stamps, j_pos, j_vel = self._joint_states(position, n)
         rec = Recording(
-            accel_stamps_ns=accel_stamps,
-            accel=raw,
+            sensor_stamps_ns=accel_stamps,
+            sensor=raw,
             joint_stamps_ns=j_stamps,
             joint_position=j_pos,
             joint_velocity=j_vel,
@@ -418,7 +504,8 @@ class AltHand:
             truth["position_angle_rad" if self.variant == "spot" else "position_end_zone_m"] = (
                 round(self.spot_angle, 4) if self.variant == "spot" else END_ZONE_M
             )
-        if "drift" in fx:
+        truth["forms"] = {k: self._form(k) for k in fx if k != "position"}
+        if "drift" in fx and self._form("drift") == "step":
             truth["drift_step"] = {
                 "centre_s": round(self.drift_centre_frac * duration_s, 3),
                 "width_s": round(self.drift_width_s, 3),
@@ -446,9 +533,15 @@ class AltHand:
         vel[1] = vel[2]
         vel[0] = vel[2]
         keep = rng.random(m) > 0.003
-        stamps = START_NS + np.round((t_true + self.effects.get("timing", 0.0)) * _NS).astype(
-            np.int64
-        )
+        timing = self.effects.get("timing", 0.0)
+        if timing and self._form("timing") == "filtered":
+            # the drive reports a velocity estimate through a first-order low-pass
+            alpha = 1.0 - np.exp(-1.0 / (abs(timing) * JOINT_RATE))
+            vel = signal.lfilter(
+                [alpha], [1.0, alpha - 1.0], vel, axis=0, zi=vel[:1] * (1 - alpha)
+            )[0]
+            timing = 0.0
+        stamps = START_NS + np.round((t_true + timing) * _NS).astype(np.int64)
         # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's
         # raw encoder count.
         enc[:, 0] = np.angle(np.exp(1j * enc[:, 0]))
@@ -464,13 +557,19 @@ def simulate_alt_motion(
     tap_rate_hz: float = 0.0,
     top_speed: float = 0.85,
     motion: str = "smooth",
+    forms: dict | None = None,
 ) -> tuple[Recording, dict]:
     """One recording of random motion ("smooth" or task-like "segments")
-    of the alternate-reality hand."""
+    of the alternate-reality hand; `forms`: effect -> form (EFFECT_FORMS)."""
     if duration_s <= 0:
         raise ValueError("duration_s must be > 0")
     return AltHand(
-        seed=seed, effects=effects, tap_rate_hz=tap_rate_hz, top_speed=top_speed, motion=motion
+        seed=seed,
+        effects=effects,
+        tap_rate_hz=tap_rate_hz,
+        top_speed=top_speed,
+        motion=motion,
+        forms=forms,
     ).generate(duration_s)
 
 

@@ -11,19 +11,34 @@ Streaming a bag through the core (what `egovib calibrate` does; evaluate and gap
 
     for piece in iter_recording(bag, profile=model.profile):   # topics, field, joints
         consumer.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-        out = consumer.push_accel(piece.accel_stamps_ns, piece.accel)
+        out = consumer.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         # piece.contact / piece.ego: ground truth of the same samples (sim bags)
     consumer.flush()
 
 gives the whole-array result (`feed` on read_recording's arrays) in memory that does not
 grow with the bag.
 
-Layers: `mcapfile` (MCAP records, chunk by chunk, numpy), `messages` (packed
-messages, Imu/JointState decoding), `reader`/`writer` (rosbag2 directories),
+Layers: `mcapfile` (MCAP records, chunk by chunk, numpy), `codec` (packed
+messages, the one CDR codec of Imu/JointState/commands), `reader`/`writer` (rosbag2 directories),
 `recording` (profile-keyed arrays), `many` (several bags).
 """
 
-from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states, replace_imu_field
+from egovib_ros.bag.codec import (
+    COMMANDS_TYPE,
+    IMU_TYPE,
+    JOINT_STATE_TYPE,
+    MessageBatch,
+    decode_commands,
+    decode_imu,
+    decode_joint_states,
+    encode_commands,
+    encode_imu_batch,
+    encode_joint_state_batch,
+    imu_message,
+    joint_state_message,
+    replace_imu_field,
+    typestore,
+)
 from egovib_ros.bag.reader import BagReader, ReadBatch, TopicInfo, bag_topics
 from egovib_ros.bag.recording import (
     Recording,
@@ -38,10 +53,20 @@ from egovib_ros.bag.recording import (
 from egovib_ros.bag.writer import COMPRESSIONS, BagWriter, compression_name
 
 __all__ = [
+    "COMMANDS_TYPE",
+    "IMU_TYPE",
+    "JOINT_STATE_TYPE",
     "MessageBatch",
+    "decode_commands",
     "decode_imu",
     "decode_joint_states",
+    "encode_commands",
+    "encode_imu_batch",
+    "encode_joint_state_batch",
+    "imu_message",
+    "joint_state_message",
     "replace_imu_field",
+    "typestore",
     "BagReader",
     "ReadBatch",
     "TopicInfo",

@@ -37,6 +37,26 @@ class BagResult:
     seconds: float = 0.0
     out: str | None = None
     internal: bool = False  # not bad input but an unexpected exception (a bug?)
+    traceback: str = ""  # of that exception
+
+
+class BagTaskBug(Exception):
+    """Some bags of a run failed on an unexpected exception (a bug): the CLI reports it as
+    an internal error (exit status 1) with their tracebacks (`details`) in its log."""
+
+    def __init__(self, results: Sequence[BagResult]):
+        bugs = [r for r in results if r.internal]
+        super().__init__(
+            f"{len(bugs)} of {len(results)} bag(s) failed on an unexpected exception "
+            f"(first: {bugs[0].error})"
+        )
+        self.details = "\n".join(f"--- {r.bag}\n{r.traceback}" for r in bugs)
+
+
+def raise_if_bugs(results: Sequence[BagResult]) -> None:
+    """After the summary of a run over several bags: BagTaskBug if any failed on a bug."""
+    if any(r.internal for r in results):
+        raise BagTaskBug(results)
 
 
 @dataclass
@@ -121,13 +141,16 @@ def run_guarded(
     except Exception as exc:  # a bug or an unexpected file: report it, keep going with the others
         if reraise:
             raise
-        logging.getLogger("egovib_ros.bag").debug("%s", traceback.format_exc())
+        details = traceback.format_exc()
+        logging.getLogger("egovib_ros.bag").debug("%s", details)
+        first = (str(exc).strip().splitlines() or [""])[0]
         return BagResult(
             str(job.bag),
             False,
-            error=f"{job.bag}: {type(exc).__name__}: {exc}",
+            error=f"{job.bag}: {type(exc).__name__}: {first}",
             seconds=time.perf_counter() - start,
             internal=True,
+            traceback=details,
         )
 
 
@@ -185,7 +208,8 @@ def _run_dask(
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise ConfigError(
-            "parallel runs need dask.distributed (pip install 'dask[distributed]')"
+            "parallel runs need dask.distributed (pip install 'egovib_ros[cluster]', or apt "
+            "python3-distributed)"
         ) from None
     cluster = None
     quiet_loggers = {

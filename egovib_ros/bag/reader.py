@@ -19,8 +19,8 @@ import numpy as np
 import yaml
 from rosbags.rosbag2 import Reader
 
+from egovib_ros.bag.codec import MessageBatch
 from egovib_ros.bag.mcapfile import ChunkData, McapDamaged, McapFormatError, McapScanner
-from egovib_ros.bag.messages import MessageBatch
 from egovib_ros.errors import BagError
 
 
@@ -39,8 +39,10 @@ class ReadBatch:
     """Messages of the wanted topics from one stretch of the bag, in file order."""
 
     messages: dict[str, MessageBatch]
-    chunk: ChunkData | None = None  # the MCAP chunk they came from (verbatim copies)
-    scanner: McapScanner | None = None  # its schemas/channels
+    # the MCAP chunks they came from, in order (verbatim copies); small chunks are read
+    # several to a batch, so that per-batch work does not multiply with tiny chunks
+    chunks: list[ChunkData] = field(default_factory=list)
+    scanner: McapScanner | None = None  # their schemas/channels
     topic_of_channel: dict[int, str] = field(default_factory=dict)
     bytes_read: int = 0  # of the bag's files, for progress bars
     frontier_ns: int | None = None  # messages read later have log times >= this (None: unknown)
@@ -50,6 +52,7 @@ class BagReader:
     """A rosbag2 bag opened for reading (context manager)."""
 
     rosbags_batch = 50_000  # messages per batch when reading through rosbags
+    batch_bytes = 1 << 20  # MCAP chunks smaller than this are read several to a batch
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
@@ -137,10 +140,8 @@ class BagReader:
         read = dict.fromkeys(wanted, 0)
         if self.is_plain_mcap:
             try:
-                for batch in self._mcap_batches(wanted):
+                for batch in self._checked(self._mcap_batches(wanted), read):
                     started = True
-                    for topic, messages in batch.messages.items():
-                        read[topic] += len(messages)
                     yield batch
                 self._check_counts(read)
                 return
@@ -148,11 +149,29 @@ class BagReader:
                 if started or isinstance(exc, McapDamaged):
                     raise BagError(f"{self.path}: unreadable MCAP data ({exc})") from None
             # not yet started: rosbags' reader gets its chance (and reports errors its way)
-        for batch in self._rosbags_batches(wanted):
+        yield from self._checked(self._rosbags_batches(wanted), read)
+        self._check_counts(read)
+
+    def _checked(self, batches: Iterator[ReadBatch], read: dict[str, int]) -> Iterator[ReadBatch]:
+        """Count the messages read, and hold each batch to the promise of the one before: no
+        message logged before its frontier. Files with a chunk index are read in chunk start
+        order, and sqlite3 in log-time order, so the promise holds whatever the order of the
+        messages in the file; a file with neither index nor order cannot be streamed."""
+        frontier = None
+        for batch in batches:
             for topic, messages in batch.messages.items():
                 read[topic] += len(messages)
+                if frontier is not None and len(messages) and messages.log_times.min() < frontier:
+                    raise BagError(
+                        f"{self.path}: topic {topic}: messages are not in log-time order and the "
+                        f"file has no chunk index to read them in order (re-index it, e.g. "
+                        f"`mcap recover`, or rewrite it with rosbags)"
+                    )
+            if batch.frontier_ns is not None:
+                frontier = (
+                    batch.frontier_ns if frontier is None else max(frontier, batch.frontier_ns)
+                )
             yield batch
-        self._check_counts(read)
 
     def _check_counts(self, read: dict[str, int]) -> None:
         """Every message the bag's index counts must have been read: records damaged into
@@ -168,32 +187,42 @@ class BagReader:
     def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         for file in self.files:
             scanner = McapScanner(file)
+            group: list[ChunkData] = []
+            size = 0
             for chunk in scanner.chunks():
-                topic_of = {
-                    c: scanner.channels[c].topic for c in chunk.index if c in scanner.channels
-                }
                 missing = [c for c in chunk.index if c not in scanner.channels]
                 if missing:
                     raise McapFormatError(f"messages on undefined channel {missing[0]}")
-                per_topic: dict[str, list[MessageBatch]] = {}
-                buf = chunk.buffer
-                for channel, topic in topic_of.items():
-                    if topic in wanted:
-                        times, starts, lengths = chunk.data_span(channel)
-                        per_topic.setdefault(topic, []).append(
-                            MessageBatch(buf, starts, lengths, times)
-                        )
-                messages = {
-                    t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()
-                }
-                yield ReadBatch(
-                    messages,
-                    chunk,
-                    scanner,
-                    topic_of,
-                    bytes_read=chunk.file_bytes,
-                    frontier_ns=chunk.frontier_ns,
-                )
+                group.append(chunk)
+                size += len(chunk.records)
+                if size >= self.batch_bytes:
+                    yield self._chunk_batch(group, scanner, wanted)
+                    group, size = [], 0
+            if group:
+                yield self._chunk_batch(group, scanner, wanted)
+
+    @staticmethod
+    def _chunk_batch(chunks: list[ChunkData], scanner: McapScanner, wanted: set[str]) -> ReadBatch:
+        topic_of = {c: scanner.channels[c].topic for chunk in chunks for c in chunk.index}
+        per_topic: dict[str, list[MessageBatch]] = {}
+        for chunk in chunks:
+            buf = chunk.buffer
+            for channel in chunk.index:
+                topic = topic_of[channel]
+                if topic in wanted:
+                    times, starts, lengths = chunk.data_span(channel)
+                    per_topic.setdefault(topic, []).append(
+                        MessageBatch(buf, starts, lengths, times)
+                    )
+        messages = {t: (b[0] if len(b) == 1 else _merge_by_time(b)) for t, b in per_topic.items()}
+        return ReadBatch(
+            messages,
+            chunks,
+            scanner,
+            topic_of,
+            bytes_read=sum(c.file_bytes for c in chunks),
+            frontier_ns=chunks[-1].frontier_ns,
+        )
 
     def _rosbags_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         connections = [c for c in self._reader.connections if c.topic in wanted]
@@ -241,11 +270,28 @@ class BagReader:
 
 
 def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:
-    """Several channels of one topic in a chunk (e.g. two QoS variants): one batch, in
-    log-time order."""
+    """Several chunks, or several channels of one topic in a chunk (e.g. two QoS variants):
+    one batch, in log-time order."""
     merged = MessageBatch.concat(batches)
     order = np.argsort(merged.log_times, kind="stable")
     return merged.take(order)
+
+
+def bag_fingerprint(path: str | os.PathLike) -> str:
+    """SHA-256 of a bag's content (metadata.yaml and its data files, in the order the
+    metadata lists them): tells whether a bag is still the one a model was made from."""
+    import hashlib
+
+    path = Path(path)
+    digest = hashlib.sha256()
+    with BagReader(path) as reader:
+        files = [path / "metadata.yaml", *reader.files]
+    for file in files:
+        digest.update(file.name.encode() + b"\0")
+        with open(file, "rb") as fh:
+            while block := fh.read(1 << 22):
+                digest.update(block)
+    return digest.hexdigest()
 
 
 def bag_topics(path: str | os.PathLike) -> dict[str, tuple[str, int]]:

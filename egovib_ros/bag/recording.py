@@ -2,7 +2,7 @@
 
 `iter_recording(path, profile=...)` yields consecutive time slices of a bag as
 `Recording`s; `read_recording` joins them. Topics, the Imu field and the joints come
-from the robot profile (CONTRACT 1b; default the PR2 hand): the sensor topic's
+from the robot profile (INTERFACES.md section 1b; default the PR2 hand): the sensor topic's
 `sensor.field` vector becomes `accel`, whatever its name, and the joints are picked
 by name from JointStates with any number and order of joints.
 
@@ -10,12 +10,15 @@ Slices are aligned for the streaming core: each slice carries every joint state 
 so far and only sensor samples whose joint states (up to `horizon_s` past them) and
 earlier samples are all in, so pushing a slice's joint states and then its sensor
 samples into a StreamingDenoiser or CalibrationAccumulator gives the whole-array
-result (tested). "In" means the reader has passed that time: chunks are read in
-log-time order and every message not yet read is logged after the reader's frontier
-(log time ~ header stamp: a message logged much later than stamped is late, as it
-would be live). Once `max_lag_s` of sensor samples wait (a
-joint-state stream far behind in the file, or gone), the oldest go on without them:
-memory stays bounded, and those blocks are treated as a live denoiser treats them.
+result (tested). "In" means the reader has passed that time: chunks are read in the
+order of their first log time, and every message not yet read is logged after the
+reader's frontier; each stream's stamps are placed against log times by the least
+(stamp - log time) it has shown (receive-time logs, another clock). A chunk may hold a
+whole topic (files written topic by topic): its samples wait, in memory with the chunk,
+until the next chunks bring the other topics. Only when log times stop advancing for
+two batches while `max_lag_s` of sensor samples wait do the oldest go on without their
+joint states (memory stays bounded; counted in `released_early`, and those blocks are
+treated as a live denoiser treats them).
 
 JointState messages that carry only some of the named joints (robots where each
 controller publishes its own JointState) are merged as joint_state_publisher does:
@@ -25,6 +28,7 @@ never appears is a BagError naming the joint and the topic.
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
@@ -32,24 +36,25 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from egovib_ros.bag.messages import MessageBatch, decode_imu, decode_joint_states
-from egovib_ros.bag.reader import BagReader, ReadBatch
-from egovib_ros.bag.writer import BagWriter
-from egovib_ros.cdr import (
+from egovib_ros.bag.codec import (
     COMMANDS_TYPE,
     IMU_TYPE,
     JOINT_STATE_TYPE,
+    MessageBatch,
     decode_commands,
+    decode_imu,
+    decode_joint_states,
     encode_commands,
     encode_imu_batch,
     encode_joint_state_batch,
-    hold_missing_joints,
 )
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.bag.reader import BagReader, ReadBatch
+from egovib_ros.bag.writer import BagWriter
+from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
 from egovib_ros.errors import BagError
-from egovib_ros.robot import RobotProfile, load_profile
+from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile, load_profile
 
-COMMANDS_TOPIC = BAG_TOPICS["commands"]  # ros2_control forward-command topic (sim, sweeps)
+LOG = logging.getLogger("egovib_ros.bag")
 
 
 @lru_cache(maxsize=1)
@@ -65,8 +70,8 @@ def _default_joint_names() -> tuple[str, ...]:
 class Recording:
     """Everything the project keeps of a bag, as numpy arrays (see docs/DESIGN.md)."""
 
-    accel_stamps_ns: np.ndarray  # (N,) int64, sensor sample stamps
-    accel: np.ndarray  # (N, 3) float64, the profile's field (raw topic)
+    sensor_stamps_ns: np.ndarray  # (N,) int64, sensor sample stamps
+    sensor: np.ndarray  # (N, 3) float64, the profile's field (raw topic)
     joint_stamps_ns: np.ndarray  # (M,) int64
     joint_position: np.ndarray  # (M, J) float64
     joint_velocity: np.ndarray  # (M, J) float64
@@ -81,9 +86,9 @@ class Recording:
     @property
     def duration_s(self) -> float:
         """Time span of the sensor stream in seconds."""
-        if len(self.accel_stamps_ns) < 2:
+        if len(self.sensor_stamps_ns) < 2:
             return 0.0
-        return float(self.accel_stamps_ns[-1] - self.accel_stamps_ns[0]) / 1e9
+        return float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / 1e9
 
 
 def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
@@ -97,7 +102,7 @@ def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
         "joint_states": profile.joints_topic,
         "contact": f"{head}/contact",
         "ego": f"{head}/ego",
-        "commands": COMMANDS_TOPIC,
+        "commands": f"/{COMMANDS_TOPIC}",
     }
 
 
@@ -179,13 +184,30 @@ class RecordingStream:
         self._commands: list[tuple] = []
         self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
         self._joint_seen = np.zeros(len(self.joint_names), bool)
+        # velocity from positions where the driver publishes none (profile joints.velocity)
+        self.joint_velocity = JointVelocity(
+            len(self.joint_names), source=self.profile.velocity_source
+        )
+        self._velocity_usable = np.zeros(len(self.joint_names), np.int64)
         self._frontier_ns: int | None = None
+        self._stuck = 0  # batches read since the frontier last moved
+        self.released_early = 0  # sensor samples let go before their joint states could be in
+        # per stream, the least (header stamp - log time) seen: where the frontier of log
+        # times falls among its stamps (stamps may trail log times by a latency, or run on
+        # another clock altogether, e.g. simulated time in a bag logged in wall time)
+        self._lead_ns: dict[str, int] = {}
         self.counts = {k: 0 for k in self.present}
         self.decoded: dict[str, tuple] = {}  # the last batch's decoded streams, by key (raw, ...)
 
     # --- input -------------------------------------------------------------------------
     def add(self, batch: ReadBatch) -> list[Recording]:
         self.decoded = {}
+        if batch.frontier_ns is None or (
+            self._frontier_ns is not None and batch.frontier_ns <= self._frontier_ns
+        ):
+            self._stuck += 1
+        else:
+            self._stuck = 0
         self._frontier_ns = batch.frontier_ns
         for topic, messages in batch.messages.items():
             key = self._key_of.get(topic)
@@ -206,6 +228,11 @@ class RecordingStream:
         """The remaining slices; then checks what the whole bag must satisfy."""
         pieces = self._release(final=True)
         where = self.reader.path
+        if self.released_early:
+            LOG.warning(
+                f"{where}: {self.released_early} sensor samples went on before their joint "
+                f"states could be read (the bag's log times stop advancing)"
+            )
         for key in ("raw", "joint_states"):
             if self.counts[key] == 0:
                 raise BagError(f"{where}: topic {self.names[key]} has no messages")
@@ -215,6 +242,18 @@ class RecordingStream:
                 f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
                 f"(named by robot profile {self.profile.name!r})"
             )
+        if not self._velocity_usable.all():
+            joints = [n for n, k in zip(self.joint_names, self._velocity_usable) if not k]
+            why = (
+                "no velocity (the profile's joints.velocity is 'measured'; 'auto' would "
+                "differentiate positions)"
+                if self.profile.velocity_source == "measured"
+                else "neither a velocity nor positions to differentiate"
+            )
+            raise BagError(
+                f"{where}: topic {self.names['joint_states']}: joint(s) {', '.join(joints)} "
+                f"carry {why}"
+            )
         return pieces
 
     def _add(self, key: str, messages: MessageBatch) -> None:
@@ -222,14 +261,28 @@ class RecordingStream:
             stamps, values = decode_imu(messages, self.field)
             self._sensor[key].append((stamps, values))
             self.decoded[key] = (stamps, values)
+            self._note_lead(key, stamps, messages.log_times)
         elif key == "joint_states":
             stamps, position, velocity = decode_joint_states(messages, self.joint_names)
+            velocity = self.joint_velocity.push(stamps, position, velocity)
+            self._velocity_usable += np.isfinite(velocity).sum(axis=0)
             self._joints.append(self._merge_partial(stamps, position, velocity))
+            self._note_lead(key, stamps, messages.log_times)
         elif key == "denoised":
             self._denoised.append(decode_imu(messages, self.field))
         elif key == "commands":
             values = [decode_commands(r) for r in messages.to_list()]
             self._commands.append((messages.log_times.copy(), values))
+
+    def _note_lead(self, key: str, stamps: np.ndarray, log_times: np.ndarray) -> None:
+        lead = int((stamps - log_times).min())
+        self._lead_ns[key] = min(lead, self._lead_ns.get(key, lead))
+
+    def _stamp_frontier(self, key: str) -> int:
+        """Stamps of `key` not read yet are at least this (from the log-time frontier)."""
+        if self._frontier_ns is None:
+            return np.iinfo(np.int64).max
+        return self._frontier_ns + self._lead_ns.get(key, 0)
 
     def _merge_partial(self, stamps, position, velocity):
         """Fill a joint missing from a message with its last published value."""
@@ -250,14 +303,16 @@ class RecordingStream:
         if final:
             take = n
         else:
-            # Everything not yet read is logged at or after the frontier: a sample that far
-            # before it has its joint states (up to the horizon) and all earlier samples in.
-            frontier = (
-                self._frontier_ns if self._frontier_ns is not None else np.iinfo(np.int64).max
-            )
+            # Everything not yet read is logged at or after the frontier: a sample stamped
+            # that far before it (on each stream's clock) has its joint states (up to the
+            # horizon) and all earlier samples in.
+            frontier = min(self._stamp_frontier(k) for k in [*self._sensor_keys, "joint_states"])
             take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
-            if n - take > self.max_pending:
-                # a frontier that does not move (odd files): hold no more than max_lag_s of samples
+            if n - take > self.max_pending and self._stuck >= 2:
+                # A frontier that does not move (log times that do not advance): hold no more
+                # than max_lag_s of samples. A chunk holding much of one topic is not that:
+                # its samples are in memory already, and the next chunk moves the frontier.
+                self.released_early += n - self.max_pending - take
                 take = n - self.max_pending
             span = int(raw_stamps[take - 1]) - int(raw_stamps[0]) if take else 0
             if span < self.min_slice_ns:
@@ -274,7 +329,7 @@ class RecordingStream:
             len(js_stamps)
             if final or self._frontier_ns is None
             else max(
-                int(np.searchsorted(js_stamps, self._frontier_ns, side="left")),
+                int(np.searchsorted(js_stamps, self._stamp_frontier("joint_states"), side="left")),
                 int(
                     np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")
                 )
@@ -289,8 +344,8 @@ class RecordingStream:
         )
         js_stamps, js_position, js_velocity = js_stamps[:cut], js_position[:cut], js_velocity[:cut]
         piece = Recording(
-            accel_stamps_ns=raw_stamps[:take],
-            accel=sensor["raw"][1][:take],
+            sensor_stamps_ns=raw_stamps[:take],
+            sensor=sensor["raw"][1][:take],
             joint_stamps_ns=js_stamps,
             joint_position=js_position,
             joint_velocity=js_velocity,
@@ -406,9 +461,9 @@ def read_recording(
 
 def _sorted(rec: Recording) -> Recording:
     """Streams in stamp order (a bag's file order is receive order)."""
-    if np.any(np.diff(rec.accel_stamps_ns) < 0):
-        order = np.argsort(rec.accel_stamps_ns, kind="stable")
-        rec.accel_stamps_ns, rec.accel = rec.accel_stamps_ns[order], rec.accel[order]
+    if np.any(np.diff(rec.sensor_stamps_ns) < 0):
+        order = np.argsort(rec.sensor_stamps_ns, kind="stable")
+        rec.sensor_stamps_ns, rec.sensor = rec.sensor_stamps_ns[order], rec.sensor[order]
         for key in ("contact", "ego"):
             if getattr(rec, key) is not None:
                 setattr(rec, key, getattr(rec, key)[order])
@@ -495,13 +550,13 @@ def write_recordings(
 
 def recording_streams(rec: Recording, names: dict, field_: str, frame_id: str = "") -> list:
     """(topic, type, stamps, encode(a, b)) per topic present in the recording."""
-    n = len(rec.accel_stamps_ns)
+    n = len(rec.sensor_stamps_ns)
 
     def imu(values, stamps):
         return lambda a, b: encode_imu_batch(stamps[a:b], values[a:b], frame_id, field_)
 
-    stamps = np.asarray(rec.accel_stamps_ns, np.int64)
-    streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.accel, stamps))]
+    stamps = np.asarray(rec.sensor_stamps_ns, np.int64)
+    streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.sensor, stamps))]
     for key in ("contact", "ego"):
         values = getattr(rec, key)
         if values is not None:

@@ -15,9 +15,8 @@ from typing import Iterable
 import numpy as np
 import yaml
 
+from egovib_ros.bag.codec import MessageBatch, typestore
 from egovib_ros.bag.mcapfile import ChunkData, McapWriter
-from egovib_ros.bag.messages import MessageBatch
-from egovib_ros.cdr import typestore
 from egovib_ros.errors import BagError
 
 COMPRESSIONS = ("none", "zstd")
@@ -129,20 +128,32 @@ class BagWriter:
         if self._rosbags is not None:
             self._rosbags.close()
             return
-        self._drain_buffer()
-        self._mcap.flush_chunk()  # the last chunk's times count in the metadata
-        info = self._metadata()
-        text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
-        self._mcap.close(
-            metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}}
-        )
+        try:
+            self._drain_buffer()
+            self._mcap.flush_chunk()  # the last chunk's times count in the metadata
+            info = self._metadata()
+            text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+            self._mcap.close(
+                metadata={"rosbag2": {"serialized_metadata": yaml.safe_dump(info, sort_keys=False)}}
+            )
+        except BaseException:  # e.g. the disk is full: the file is given up, not left open
+            self._abort_mcap()
+            raise
         (self.path / "metadata.yaml").write_text(text)
 
     def abort(self) -> None:
         if self._open:
             self._open = False
-            if self._mcap is not None:
+            self._abort_mcap()
+
+    def _abort_mcap(self) -> None:
+        """Close the MCAP file of a bag that is given up. Its buffered bytes cannot be written
+        when the disk is full: that second failure would hide the first, so it is dropped."""
+        if self._mcap is not None:
+            try:
                 self._mcap.abort()
+            except OSError:
+                pass
 
     @property
     def size_ratio(self) -> float | None:
@@ -294,19 +305,46 @@ class BagWriter:
         self._mcap.add_message_records(self.topics[topic].channel_id, log_times, records)
         self.topics[topic].count += len(log_times)
 
-    def write_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
-        """Copy an input MCAP chunk's records as they are, if its channel ids and
-        definitions are this bag's; returns False (nothing written) otherwise."""
+    def accepts_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
+        """Whether `write_chunk` can copy this input chunk as it is: MCAP output, and the
+        chunk's channel ids and definitions are this bag's."""
         if self._mcap is None or not self._mcap.accepts_verbatim(chunk, schemas, channels):
+            return False
+        ours = {t.channel_id for t in self.topics.values()}
+        return all(c in ours for c in chunk.index)
+
+    def write_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
+        """Copy an input MCAP chunk's records as they are, if `accepts_chunk`; returns False
+        (nothing written) otherwise."""
+        if not self.accepts_chunk(chunk, schemas, channels):
             return False
         self._drain_buffer()
         by_id = {t.channel_id: t for t in self.topics.values()}
-        if any(c not in by_id for c in chunk.index):
-            return False
         self._mcap.add_chunk_records(chunk)
         for channel, (times, _) in chunk.index.items():
             by_id[channel].count += len(times)
         return True
+
+    def copy_batch(self, batch, topics: set[str] | None = None) -> int:
+        """Copy a `ReadBatch`'s messages of `topics` (default: all of the batch's): its
+        input MCAP chunks as they are when each can be (returns how many), else message by
+        message (returns 0). Topics must have been declared (`copy_topic`)."""
+        if batch.chunks:
+            other = (
+                {c for c, t in batch.topic_of_channel.items() if t not in topics}
+                if topics is not None
+                else set()
+            )
+            chunks = [chunk.without(other) if other else chunk for chunk in batch.chunks]
+            schemas, channels = batch.scanner.schemas, batch.scanner.channels
+            if all(self.accepts_chunk(chunk, schemas, channels) for chunk in chunks):
+                for chunk in chunks:
+                    self.write_chunk(chunk, schemas, channels)
+                return len(chunks)
+        for topic, messages in batch.messages.items():
+            if (topics is None or topic in topics) and len(messages):
+                self.write_batch(topic, messages.log_times, messages)
+        return 0
 
     def flush_chunk(self) -> None:
         """End the current chunk here (e.g. at a natural boundary)."""

@@ -5,6 +5,7 @@ Public surface:
     CalibrationAccumulator            one-pass per-cell statistics -> NoiseModel
     StreamingDenoiser, denoise_batch  spectral subtraction, streaming and batch
     block_mean_velocity               per-block joint velocity matched by stamps
+    JointVelocity                     velocity from positions for drivers without it
     BandPass, channel_matrix          axis handling and band-pass
     analysis_window, overlap_add      block-processing primitives
 """
@@ -29,7 +30,14 @@ from egovib_ros.core.subtraction import (
     denoise_batch,
     paper_rule,
 )
-from egovib_ros.core.velocity import HELD, MATCHED, MISSING, block_mean_velocity
+from egovib_ros.core.velocity import (
+    HELD,
+    MATCHED,
+    MISSING,
+    VELOCITY_SOURCES,
+    JointVelocity,
+    block_mean_velocity,
+)
 
 __all__ = [
     "analysis_window",
@@ -57,4 +65,6 @@ __all__ = [
     "MATCHED",
     "MISSING",
     "block_mean_velocity",
+    "JointVelocity",
+    "VELOCITY_SOURCES",
 ]

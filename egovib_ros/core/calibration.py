@@ -108,6 +108,8 @@ class CalibrationAccumulator:
         free_steady_tolerance: float = 0.5,
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
+        prefiltered: bool = False,
+        joint_lag_s: float = 0.0,
         source: str = "",
     ):
         if sweep not in SWEEPS:
@@ -157,6 +159,8 @@ class CalibrationAccumulator:
             sensor_range=base.sensor_range,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
+            prefiltered=prefiltered,
+            joint_lag_s=joint_lag_s,
             source=source,
         )
         self._framer = BlockFramer(self.settings, len(self.grid))
@@ -240,8 +244,8 @@ class CalibrationAccumulator:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._accumulate(self._framer.pop_blocks())
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        self._framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        self._framer.push_sensor(stamps_ns, accel)
         self._accumulate(self._framer.pop_blocks())
 
     def flush(self) -> None:
@@ -397,7 +401,7 @@ class CalibrationAccumulator:
 
 
 def calibrate_arrays(
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -414,7 +418,7 @@ def calibrate_arrays(
     acc = CalibrationAccumulator(source=source, **options)
     feed(
         acc,
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,

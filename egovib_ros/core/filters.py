@@ -72,17 +72,16 @@ def _load_kernel():
 _SOS_KERNEL = _load_kernel()
 
 
-class BandPass:
-    """Band-pass with carried filter state, channels-first: (C, N) in, (C, N) out.
+class CarriedFilter:
+    """An IIR filter (second-order sections `sos`) with carried state, channels-first:
+    (C, N) in, (C, N) out.
 
-    The state starts in steady state for the first sample (no start-up ringing from
-    the gravity offset), so chunked and whole-signal filtering agree exactly.
+    The state starts in steady state for the first sample (no start-up ringing from the
+    gravity offset), so chunked and whole-signal filtering agree exactly.
     """
 
-    def __init__(
-        self, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int, n_channels: int
-    ):
-        self.sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+    def __init__(self, sos: np.ndarray, *, n_channels: int):
+        self.sos = sos
         self.n_channels = int(n_channels)
         self._zi: np.ndarray | None = None  # (C, n_sections, 2)
 
@@ -93,7 +92,7 @@ class BandPass:
         """Filter (C, N) samples; returns a new (C, N) array."""
         x = np.array(x, dtype=np.float64, order="C")
         if x.ndim != 2 or x.shape[0] != self.n_channels:
-            raise StreamError(f"band-pass expects ({self.n_channels}, N) samples, got {x.shape}")
+            raise StreamError(f"filter expects ({self.n_channels}, N) samples, got {x.shape}")
         if x.shape[1] == 0:
             return x
         if self._zi is None:
@@ -107,10 +106,34 @@ class BandPass:
         return y
 
 
-def combined_bandpassed(
-    values: np.ndarray, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
-) -> np.ndarray:
+class BandPass(CarriedFilter):
+    """The paper's band-pass (Butterworth, `design_bandpass`) with carried state."""
+
+    def __init__(
+        self, *, sample_rate_hz: float, band_hz: tuple[float, float], order: int, n_channels: int
+    ):
+        sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+        super().__init__(sos, n_channels=n_channels)
+
+
+class BelowBand(CarriedFilter):
+    """What lies far below the band: a 4th-order Butterworth low-pass at a quarter of the
+    band's low edge (-48 dB at the edge). Gravity and rigid-body motion are in it; the
+    band is not (its complement, input minus this, is the input to within 0.4 % there)."""
+
+    def __init__(self, *, sample_rate_hz: float, band_hz: tuple[float, float], n_channels: int):
+        sos = signal.butter(4, band_hz[0] / 4.0, btype="lowpass", fs=sample_rate_hz, output="sos")
+        super().__init__(sos, n_channels=n_channels)
+
+
+def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
     """(N,) sum of the three axes of (N, 3) samples, band-passed with the streaming filter
-    from steady state: the paper's 1-D signal, the reference every metric is taken on."""
-    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
+    from steady state in the robot profile's band (`profile`: a RobotProfile): the paper's
+    1-D signal, the reference every metric is taken on."""
+    band = BandPass(
+        sample_rate_hz=profile.rate_hz,
+        band_hz=profile.band_hz,
+        order=profile.band_order,
+        n_channels=1,
+    )
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows

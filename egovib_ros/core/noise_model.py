@@ -8,7 +8,7 @@ which for J = 2 is exactly the paper's equation, including its + sd(0, 0)^2 term
 at an on-axis cell Eq. 6 gives sqrt(sd^2 + sd0^2), and at (0, 0) sqrt(3) sd0, not the
 measured sd: the paper's over-subtraction), and for J = 1 returns the measured table.
 
-Storage is sparse (schema version 2): only measured cells are kept, as grid indices
+Storage is sparse (schema version 2, 3): only measured cells are kept, as grid indices
 (K, J) with their spectra, so a model of 8 joints (21^8 grid points) costs what its
 measurements cost. How a velocity is looked up:
 
@@ -47,7 +47,9 @@ from egovib_ros.robot import RobotProfile
 LOG = logging.getLogger("egovib_ros.core")
 
 SCHEMA = "egovib.noise_model"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3  # 3: optional `extras` (what other denoising methods calibrated); 1, 2 load
+#: Prefix of the extras' keys in the .npz.
+EXTRA_PREFIX = "extra."
 MODEL_CHANNELS = ("combined", "x", "y", "z")
 MEASURED_KINDS = ("full", "superposition", "free")
 MIN_BLOCKS_FOR_STD = 5
@@ -87,8 +89,11 @@ class NoiseModel:
         measured: str = "full",
         profile: RobotProfile | None = None,
         provenance: dict | None = None,
+        extras: dict[str, np.ndarray] | None = None,
     ):
         self.provenance = dict(provenance or {})
+        # Arrays other methods fitted at calibration (core.methods), saved beside the table.
+        self.extras = {str(k): np.asarray(v) for k, v in (extras or {}).items()}
         where = self.provenance.get("path", "noise model")
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in grid)
         self.joint_names = tuple(str(n) for n in joint_names)
@@ -545,14 +550,14 @@ class NoiseModel:
             values, measured = self._cell_estimates(cells, include_std)
             table = values.reshape(self.grid_shape + values.shape[1:])
             filled = ~measured.reshape(self.grid_shape)
-            if filled.any() and include_std:
-                LOG.warning(
-                    "noise model: %d of %d cells are empty; filled (%s)",
+            if filled.any() and include_std and self.measured != "superposition":
+                # a superposition sweep fills the cells off the axes by Eq. 6 by design; for
+                # other models the calibration's coverage lines and `egovib model show` say it
+                LOG.info(
+                    "noise model: %d of %d cells are not measured; filled by Eq. 6 or the "
+                    "nearest measured cell",
                     int(filled.sum()),
                     filled.size,
-                    "Eq. 6"
-                    if self.measured == "superposition"
-                    else "Eq. 6 or nearest measured cell",
                 )
             self._cache[key] = table
             self._cache["filled"] = filled
@@ -702,6 +707,17 @@ class NoiseModel:
         return out[None], np.array([outside]), bool(measured_grid[nearest])
 
     # --- copies ---------------------------------------------------------------------
+    def robot_profile(self) -> RobotProfile:
+        """The robot profile the model was calibrated with (topics, field, joints); a
+        one-line ConfigError for a model that carries none."""
+        if self.profile is None:
+            raise ConfigError(
+                f"{self.provenance.get('path', 'noise model')}: the model carries no robot "
+                f"profile (topics, Imu field); calibrate it again with `egovib calibrate --robot "
+                f"PROFILE`"
+            )
+        return self.profile
+
     def replace(self, **changes) -> "NoiseModel":
         """A copy with some fields changed (dense `mean`/`std`/`counts` for small grids)."""
         fields = dict(
@@ -722,6 +738,7 @@ class NoiseModel:
             measured=self.measured,
             profile=self.profile,
             provenance=dict(self.provenance),
+            extras=dict(self.extras),
         )
         if {"mean", "std", "counts"} & set(changes):
             fields.update(cells=None, mean=self.mean, std=self.std, counts=self.counts)
@@ -730,7 +747,7 @@ class NoiseModel:
         fields.update(changes)
         return NoiseModel(**fields)
 
-    # --- file I/O (CONTRACT section 4) --------------------------------------
+    # --- file I/O (INTERFACES.md section 4) --------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write the .npz (loadable with allow_pickle=False). Use atomic_output for safety."""
         provenance = {
@@ -764,6 +781,8 @@ class NoiseModel:
         }
         for j, g in enumerate(self.grid):
             arrays[f"grid_{j}"] = g
+        for key, value in self.extras.items():
+            arrays[EXTRA_PREFIX + key] = value
         with open(path, "wb") as fh:
             np.savez_compressed(fh, **arrays)
 
@@ -873,6 +892,9 @@ class NoiseModel:
             provenance=provenance,
         )
         cells = fields["cells"] if version >= 2 else None
+        common["extras"] = {
+            k[len(EXTRA_PREFIX) :]: v for k, v in fields.items() if k.startswith(EXTRA_PREFIX)
+        }
         if version < 2:  # v1: dense tables of a 2-joint PR2-style grid
             for name in ("mean", "std"):
                 if not (np.all(np.isfinite(fields[name])) and np.all(fields[name] >= 0)):
@@ -923,18 +945,20 @@ def sweep_mask(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
 
 
 def sweep_cells(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
-    """Grid indices (K, J) of the cells a sweep visits, without allocating the grid for
-    the superposition sweep (41 cells of the PR2; 1 + sum(n_j - 1) for any robot)."""
+    """Grid indices (K, J) of the cells a sweep visits, in sweep order, without allocating
+    the grid for the superposition sweep (41 cells of the PR2; 1 + sum(n_j - 1) for any
+    robot): the first joint's whole axis (rest included), then each other joint's axis
+    without the rest cell."""
     shape = tuple(len(g) for g in grid)
     if sweep == "full":
         return np.indices(shape).reshape(len(shape), -1).T
     if sweep != "superposition":
         raise ConfigError(f"grid: expected 'full' or 'superposition', got {sweep!r}")
     zero = np.array([int(np.argmin(np.abs(g))) for g in grid])
-    cells = [zero]
+    cells = []
     for j, n in enumerate(shape):
         for i in range(n):
-            if i != zero[j]:
+            if j == 0 or i != zero[j]:
                 cell = zero.copy()
                 cell[j] = i
                 cells.append(cell)

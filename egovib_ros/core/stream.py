@@ -16,6 +16,11 @@ Bad-input policy (counted in `stats`, never a silent wrong result):
   segment: pending samples are flushed as at end of stream and the filter restarts;
 - stamps may jitter around the nominal rate (+-30 % per step): the stream is
   treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
+- the rate is measured on the first 2 blocks' worth of samples, then again on every
+  further RATE_WINDOW_BLOCKS blocks' worth (`measured_period`); off by more than
+  `rate_tolerance` at the start, or on two windows in a row later (a sustained change,
+  not a glitch), the stream is refused: StreamError now and on every later push. A
+  stream whose rate halves would otherwise be "bridged" into invented samples;
 - a block with no joint state in or shortly before its span is MISSING: the
   denoiser passes it through band-passed only, the calibrator skips it.
 """
@@ -29,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
-from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, channel_matrix
+from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -38,6 +43,24 @@ LOG = logging.getLogger("egovib_ros.core")
 #: A recording with more bad samples than this share (non-finite, beyond the sensor range,
 #: out of order) gives an error, not a result: whatever came out would describe the faults.
 MAX_BAD_SHARE = 0.1
+#: After the start, the sample rate is measured again on every window of this many blocks'
+#: worth of samples; two windows in a row beyond the tolerance are a rate mismatch.
+RATE_WINDOW_BLOCKS = 4
+
+
+def measured_period(steps: np.ndarray, period: float) -> float:
+    """The sample period a run of stamp steps shows, robust to jitter and to lost samples.
+
+    Steps of 1.5 nominal periods or more are gaps (lost samples, bridged or not). While
+    they are the minority, the period is the mean of the other steps: per-step jitter
+    averages out (also when it alternates, where a median would pick one side), and lost
+    samples do not count. When most steps are gaps, the stream runs slower than nominal
+    and their median is its period."""
+    steps = np.asarray(steps, dtype=np.float64)
+    gaps = steps >= 1.5 * period
+    if 2 * np.count_nonzero(gaps) > len(steps):
+        return float(np.median(steps))
+    return float(steps[~gaps].mean())
 
 
 def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> None:
@@ -53,6 +76,34 @@ def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> No
             f"(non-finite, beyond the sensor range or out of order); more than "
             f"{100 * limit:g} % is refused"
         )
+
+
+def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | None = None) -> str:
+    """Refuse a recording the core found mostly unusable; else the line of counts to print.
+
+    stats: of calibrate_arrays / denoise_batch. Refused (one-line StreamError naming
+    `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
+    (non-finite, beyond the sensor range, out of order), or of the `joint_states`
+    messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
+    """
+    limit = MAX_BAD_SHARE if limit is None else limit
+    check_bad_share(stats, where, limit)
+    dropped = int(stats.get("joint_states_dropped", 0))
+    if joint_states and dropped > limit * joint_states:
+        raise StreamError(
+            f"{where}: {dropped} of {joint_states} joint states "
+            f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
+            f"not "
+            f"stamped after the previous one: a stuck clock?); more than "
+            f"{100 * limit:g} % is refused"
+        )
+    return (
+        f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
+        f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
+        f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
+        f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
+        f"dropped"
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,9 +122,17 @@ class FramerSettings:
     max_fill_samples: int = 8
     joint_wait_s: float = 0.02  # give joint states this long to cover a block
     max_hold_s: float = 0.05  # use a joint state this old when none falls in a block
+    #: The vibration trails the joint states by this much (s): joint-state stamps are moved
+    #: this much later before they are matched to blocks (negative: earlier). A robot whose
+    #: joint states lead (motor commands ahead of the speed they cause) needs a positive lag.
+    joint_lag_s: float = 0.0
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
+    keep_raw: bool = False  # blocks also carry the unfiltered samples (the drop-in output)
+    # The samples were band-passed already (a residual computed on the band-passed signal):
+    # frame them as they are.
+    prefiltered: bool = False
     source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
@@ -89,6 +148,15 @@ class FramerSettings:
             ("sensor_range", self.sensor_range, 0.0, math.inf, True),
             ("joint_wait_s", self.joint_wait_s, 0.0, 10.0, False),
             ("max_hold_s", self.max_hold_s, 0.0, 10.0, False),
+            (
+                "joint_lag_s",
+                abs(self.joint_lag_s)
+                if isinstance(self.joint_lag_s, (int, float))
+                else self.joint_lag_s,
+                0.0,
+                1.0,
+                False,
+            ),
             ("rate_tolerance", self.rate_tolerance, 0.0, 1.0, False),
             ("clock_jump_s", self.clock_jump_s, 0.0, 3600.0, False),
         )
@@ -99,7 +167,7 @@ class FramerSettings:
                 and not math.isnan(value)
                 and (math.isfinite(value) or inf_ok)
                 and low <= value <= high
-                and (value > 0 or name in ("joint_wait_s", "max_hold_s"))
+                and (value > 0 or name in ("joint_wait_s", "max_hold_s", "joint_lag_s"))
             )
             if not ok:
                 raise ConfigError(
@@ -160,7 +228,10 @@ class FramerSettings:
 class Blocks:
     """A batch of analysis blocks (B may be 0)."""
 
-    samples: np.ndarray  # (B, C, L) band-passed, not yet windowed
+    # (B, C, L) band-passed, not yet windowed; with FramerSettings.keep_raw (B, 3C, L): the
+    # C band-passed channels, then the same C channels unfiltered, then those minus what
+    # lies far below the band (filters.BelowBand: gravity, rigid-body motion)
+    samples: np.ndarray
     t_first_ns: np.ndarray  # (B,) stamp of the first real sample in the block
     t_last_ns: np.ndarray  # (B,)
     velocity: np.ndarray  # (B, J) mean joint velocity (NaN when MISSING)
@@ -333,6 +404,7 @@ class BlockFramer:
         self.s = settings
         self.n_joints = int(n_joints)
         self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
+        self._rows = self.n_channels * (3 if settings.keep_raw else 1)  # rows of the buffer
         self.window = analysis_window(settings.block_length, settings.hop)
         self.stats = FramerStats()
         self._cleaner = _Cleaner(settings, self.stats)
@@ -342,16 +414,27 @@ class BlockFramer:
             order=settings.band_order,
             n_channels=self.n_channels,
         )
+        self._below_band = BelowBand(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            n_channels=self.n_channels,
+        )
         self._joint_t = np.zeros(0, dtype=np.int64)
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
         self._rate_error = ""
-        self._rate_stamps: list[np.ndarray] = []
+        self._rate_steps: list[np.ndarray] = []  # stamp steps not yet measured
+        self._rate_ends: list[np.ndarray] = []  # the stamp each of those steps ends at
+        self._rate_count = 0  # how many
+        self._rate_last: int | None = None  # last real stamp of the open segment
+        self._rate_off_windows = 0  # consecutive windows measured beyond the tolerance
         self._ready: list[Blocks] = []
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
         self._max_hold_ns = int(settings.max_hold_s * 1e9)
-        self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
+        self._joint_lag_ns = int(round(settings.joint_lag_s * 1e9))
+        # joint states moved later arrive that much later relative to the blocks they cover
+        self._joint_wait_ns = int(settings.joint_wait_s * 1e9) + max(self._joint_lag_ns, 0)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -366,6 +449,8 @@ class BlockFramer:
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
+        if self._joint_lag_ns:
+            stamps_ns = stamps_ns + self._joint_lag_ns
         last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
         if (
             stamps_ns[0] > last
@@ -385,14 +470,15 @@ class BlockFramer:
         if len(jump):
             # The joint clock went back (bag loop, reset): forget the old timeline.
             i = int(jump[0])
-            self.push_joint_states(stamps_ns[:i], velocity[:i])
+            # (the pushes below shift the stamps again: undo the shift here)
+            self.push_joint_states(stamps_ns[:i] - self._joint_lag_ns, velocity[:i])
             self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
             # Complete the accelerometer blocks still pending on the old clock with its joint
             # states, then forget them.
             self._close_segment(wait_for_joints=False)
             self._drain(final=False)
             self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
-            self.push_joint_states(stamps_ns[i:], velocity[i:])
+            self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
             self.stats.joint_states_in += i
             return
         keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
@@ -402,11 +488,12 @@ class BlockFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
         self._drain(final=False)
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         for segment in self._cleaner.segments(stamps_ns, accel):
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
+                self._rate_last = None  # no step is measured across a long gap or a clock jump
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
             self._drain(final=False)
 
@@ -437,34 +524,64 @@ class BlockFramer:
     def _start_segment(self) -> None:
         pad = self.s.block_length - self.s.hop
         # Front padding so the first real sample is covered by L/hop blocks like all others.
-        self._buf_x = np.zeros((self.n_channels, pad))  # channels first
+        self._buf_x = np.zeros((self._rows, pad))  # channels first
         self._buf_t = np.full(pad, -1, dtype=np.int64)
         self._bandpass.reset()
+        self._below_band.reset()
 
     def _check_rate(self, stamps: np.ndarray) -> None:
-        if self._rate_checked:
-            if self._rate_error:
-                raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
+        """Measure the rate on the steps between real samples of a segment: the first
+        2 blocks' worth, then every RATE_WINDOW_BLOCKS blocks' worth. The windows are
+        counted in samples, so any chunking measures the same windows."""
+        if self._rate_error:
+            raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
+        real = stamps[stamps >= 0]
+        if len(real) == 0:
             return
-        self._rate_stamps.append(stamps[stamps >= 0])
-        seen = np.concatenate(self._rate_stamps)
-        if len(seen) < 2 * self.s.block_length:
-            return
-        measured = 1e9 / float(np.median(np.diff(seen)))
-        self._rate_checked = True
-        self._rate_stamps = []
-        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = (
-                f"sensor stream runs at {measured:.0f} Hz but the model expects "
-                f"{self.s.sample_rate_hz:g} Hz"
-            )
-            raise self.s.error(self._rate_error)
+        if self._rate_last is not None:
+            steps, ends = np.diff(real, prepend=self._rate_last), real
+        else:
+            steps, ends = np.diff(real), real[1:]
+        self._rate_last = int(real[-1])
+        self._rate_steps.append(steps)
+        self._rate_ends.append(ends)
+        self._rate_count += len(steps)
+        L = self.s.block_length
+        while self._rate_count >= (need := (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L):
+            seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
+            window, window_end = seen[:need], int(ends[need - 1])
+            self._rate_steps, self._rate_ends = [seen[need:]], [ends[need:]]
+            self._rate_count = len(seen) - need
+            measured = 1e9 / measured_period(window, self.s.period_ns)
+            off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
+            if not self._rate_checked:
+                self._rate_checked = True
+                if off:
+                    self._rate_error = (
+                        f"sensor stream runs at {measured:.0f} Hz but the model expects "
+                        f"{self.s.sample_rate_hz:g} Hz"
+                    )
+                    raise self.s.error(self._rate_error)
+                continue
+            self._rate_off_windows = self._rate_off_windows + 1 if off else 0
+            if self._rate_off_windows >= 2:
+                self._rate_error = (
+                    f"sensor rate changed: the stream ran at {measured:.0f} Hz over the "
+                    f"{need} samples up to stamp {window_end / 1e9:.3f} s but the model "
+                    f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
+                    f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
+                )
+                raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
             return
-        filtered = self._bandpass.process(channel_matrix(values, self.s.layout).T)
-        self._buf_x = np.concatenate([self._buf_x, filtered], axis=1)
+        channels = channel_matrix(values, self.s.layout).T
+        rows = np.array(channels) if self.s.prefiltered else self._bandpass.process(channels)
+        if self.s.keep_raw:
+            above = channels - self._below_band.process(channels)
+            rows = np.concatenate([rows, channels, above], axis=0)
+        self._buf_x = np.concatenate([self._buf_x, rows], axis=1)
         self._buf_t = np.concatenate([self._buf_t, stamps])
 
     def _close_segment(self, *, wait_for_joints: bool) -> None:
@@ -479,7 +596,7 @@ class BlockFramer:
             required = (int(real_pos[-1]) // H) * H + L
             if required > len(buf_t):
                 need = required - len(buf_t)
-                buf_x = np.concatenate([buf_x, np.zeros((self.n_channels, need))], axis=1)
+                buf_x = np.concatenate([buf_x, np.zeros((self._rows, need))], axis=1)
                 buf_t = np.concatenate([buf_t, np.full(need, -1, dtype=np.int64)])
             self._closed.append([buf_x, buf_t, wait_for_joints])
         self._start_segment()
@@ -634,7 +751,7 @@ class BlockFramer:
 def frame_batch(
     settings: FramerSettings,
     n_joints: int,
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -642,14 +759,14 @@ def frame_batch(
     """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
     framer = BlockFramer(settings, n_joints)
     framer.push_joint_states(joint_stamps_ns, joint_velocity)
-    framer.push_accel(accel_stamps_ns, accel)
+    framer.push_sensor(sensor_stamps_ns, accel)
     framer.flush()
     return framer.pop_blocks(), framer.stats
 
 
 def feed(
     consumer,
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -659,24 +776,24 @@ def feed(
     chunk_s: float = 10.0,
     progress=None,
 ) -> list:
-    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_accel`)
+    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_sensor`)
     `chunk_s` seconds at a time, joint states first up to a little past each sensor
     chunk so that no block waits: the one loop behind every batch path (denoise_batch,
     calibrate_arrays, benchmarks, tests). Returns what the pushes returned, in order;
     the caller flushes. `progress(n)` is called with sensor samples consumed."""
-    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
+    sensor_stamps_ns = np.asarray(sensor_stamps_ns, dtype=np.int64).reshape(-1)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
     step = max(1, int(chunk_s * sample_rate_hz))
     wait_ns = int(joint_wait_s * 1e9) + 1
     outputs, joint_pos = [], 0
-    for start in range(0, len(accel_stamps_ns), step):
-        stop = min(start + step, len(accel_stamps_ns))
-        last = stop == len(accel_stamps_ns)
+    for start in range(0, len(sensor_stamps_ns), step):
+        stop = min(start + step, len(sensor_stamps_ns))
+        last = stop == len(sensor_stamps_ns)
         joint_stop = (
             len(joint_stamps_ns)
             if last
             else int(
-                np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right")
+                np.searchsorted(joint_stamps_ns, sensor_stamps_ns[stop - 1] + wait_ns, side="right")
             )
         )
         if joint_stop > joint_pos:
@@ -686,7 +803,7 @@ def feed(
                 )
             )
             joint_pos = joint_stop
-        outputs.append(consumer.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
+        outputs.append(consumer.push_sensor(sensor_stamps_ns[start:stop], accel[start:stop]))
         if progress is not None:
             progress(stop - start)
     if joint_pos < len(joint_stamps_ns):

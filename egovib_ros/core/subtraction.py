@@ -4,6 +4,17 @@ Per block: X = max(|Y| - alpha * N, beta * N) with the noisy phase (alpha = 1, b
 is the paper: negatives set to zero), N from the noise model at the block's mean joint
 velocity, then overlap-add. `rule` can replace the magnitude rule (baselines such as
 Wiener gains use it); it maps (|Y| (B, C, F), N (B, C, F)) -> |X|.
+
+Two outputs. "bandpassed" (the paper's): the cleaned band-passed signal. "dropin" (the
+default per axis): the raw signal minus the estimated ego-vibration, so that gravity,
+rigid-body motion and everything outside the band pass untouched, as a drop-in
+replacement for the raw Imu. Its gain per bin is the paper's, decided on the band-passed
+block where the model was calibrated. What it removes, (1 - gain) of each bin that the
+band-pass passes at half amplitude or more, is taken from the same block unfiltered
+(with the raw signal's phase, which the causal band-pass would shift), less what lies far
+below the band (gravity and motion would otherwise leak into the band's bins through the
+window), and overlap-added: output = raw - removed. With nothing to subtract the output
+is the input exactly, delayed by the block.
 """
 
 from __future__ import annotations
@@ -14,8 +25,9 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from scipy import signal
 
-from egovib_ros.core.filters import CHANNEL_LAYOUTS
+from egovib_ros.core.filters import CHANNEL_LAYOUTS, design_bandpass
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
 from egovib_ros.core.velocity import MISSING
@@ -26,6 +38,7 @@ LOG = logging.getLogger("egovib_ros.core")
 MagnitudeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
+OUTPUTS = ("dropin", "bandpassed")
 MAX_OVERSUBTRACTION = 10.0
 MAX_FLOOR = 1.0
 
@@ -98,12 +111,14 @@ class StreamingDenoiser:
         model: NoiseModel,
         *,
         channels: str = "per_axis",
+        output: str | None = None,
         oversubtraction: float = 1.0,
         floor: float = 0.0,
         include_std: bool = True,
         rule: MagnitudeRule | None = None,
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
+        joint_lag_s: float = 0.0,
         max_fill_samples: int = 8,
         sample_rate_hz: float | None = None,
         block_length: int | None = None,
@@ -112,6 +127,14 @@ class StreamingDenoiser:
     ):
         if channels not in ("per_axis", "combined"):
             raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
+        output = output or ("dropin" if channels == "per_axis" else "bandpassed")
+        if output not in OUTPUTS:
+            raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
+        if output == "dropin" and channels == "combined":
+            raise ConfigError(
+                "output: dropin needs channels per_axis (the combined signal is the paper's "
+                "band-passed 1-D signal)"
+            )
         if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
             raise StreamError(
                 f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
@@ -129,6 +152,7 @@ class StreamingDenoiser:
             )
         self.model = model
         self.channels = channels
+        self.output = output
         self.subtraction = SubtractionSettings(oversubtraction=oversubtraction, floor=floor)
         self.settings = FramerSettings.for_model(
             model,
@@ -136,7 +160,9 @@ class StreamingDenoiser:
             max_fill_samples=max_fill_samples,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
+            joint_lag_s=joint_lag_s,
             with_steadiness=False,
+            keep_raw=output == "dropin",
             source=source,
         )
         self._framer = BlockFramer(self.settings, model.n_joints)
@@ -146,6 +172,15 @@ class StreamingDenoiser:
                 f"{model.window_name} for L={model.block_length}, hop={model.hop}"
             )
         self._window = model.window
+        # The drop-in output changes the bins the band-pass passes at half amplitude or more:
+        # the band and its skirts, where the calibrated (band-passed) spectra speak for the raw
+        # signal; the bins beyond, gravity's among them, are left as they are.
+        freqs = np.fft.rfftfreq(model.block_length, 1.0 / model.sample_rate_hz)
+        sos = design_bandpass(
+            sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order
+        )
+        response = np.abs(signal.sosfreqz(sos, worN=freqs, fs=model.sample_rate_hz)[1])
+        self._outside_band = response < 0.5  # (F,)
         self.channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
         self._include_std = include_std
         self._table = model.table(
@@ -189,8 +224,8 @@ class StreamingDenoiser:
         self._framer.push_joint_states(stamps_ns, velocity)
         return self._process(self._framer.pop_blocks())
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
         return self._process(self._framer.pop_blocks())
 
     def flush(self) -> DenoisedChunk:
@@ -272,8 +307,22 @@ class StreamingDenoiser:
         return extended[:n_blocks].transpose(0, 2, 1)
 
     def _subtract(self, blocks: Blocks) -> np.ndarray:
-        spectrum = np.fft.rfft(blocks.samples * self._window, axis=-1)  # (B, C, F)
-        magnitude = np.abs(spectrum)
+        """(B, C, L) blocks to overlap-add: the cleaned windowed blocks, or for the drop-in
+        output the windowed raw blocks less what is removed from them."""
+        if self.output == "bandpassed":
+            spectrum = np.fft.rfft(blocks.samples * self._window, axis=-1)  # (B, C, F)
+            gain = self._block_gain(blocks, np.abs(spectrum))
+            return np.fft.irfft(spectrum * gain, n=self.model.block_length, axis=-1)
+        c = len(self.channel_index)
+        band = np.fft.rfft(blocks.samples[:, :c] * self._window, axis=-1)
+        removed = 1.0 - self._block_gain(blocks, np.abs(band))  # (B, C, F)
+        removed[..., self._outside_band] = 0.0
+        above = np.fft.rfft(blocks.samples[:, 2 * c :] * self._window, axis=-1)
+        removed = np.fft.irfft(above * removed, n=self.model.block_length, axis=-1)
+        return blocks.samples[:, c : 2 * c] * self._window - removed
+
+    def _block_gain(self, blocks: Blocks, magnitude: np.ndarray) -> np.ndarray:
+        """(B, C, F) gain of each bin: the rule's |X| / |Y| at the blocks' noise estimates."""
         usable = blocks.status != MISSING
         if blocks.n == 1 and usable[0] and self._table is not None:
             # One block (the live case): skip the general lookup's bookkeeping.
@@ -288,7 +337,7 @@ class StreamingDenoiser:
             gain = self._gain(magnitude, noise, outside)
         else:
             self._warn_once(
-                "missing", "no joint state for a block: passing the band-passed signal through"
+                "missing", f"no joint state for a block: passing the {self.output} signal through"
             )
             gain = np.ones_like(magnitude)
             if usable.any():
@@ -297,7 +346,7 @@ class StreamingDenoiser:
                 )
                 self.blocks_unmeasured += int((~measured).sum())
                 gain[usable] = self._gain(magnitude[usable], noise, outside)
-        return np.fft.irfft(spectrum * gain, n=self.model.block_length, axis=-1)
+        return gain
 
     def _gain(self, magnitude: np.ndarray, noise: np.ndarray, outside: np.ndarray) -> np.ndarray:
         n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())
@@ -317,7 +366,7 @@ class StreamingDenoiser:
 
 
 def denoise_batch(
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -337,7 +386,7 @@ def denoise_batch(
     denoiser = StreamingDenoiser(model, channels=channels, **options)
     chunks = feed(
         denoiser,
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,

@@ -45,7 +45,11 @@ METHOD_LABELS = {
     "noisereduce": "noisereduce (stationary gate)",
     "per_axis": "paper, per axis",
     "paper_L32": "paper, L = 32",
+    "cancel": "speed-locked harmonic cancellation",
+    "hybrid": "cancellation + low-latency gain",
 }
+#: methods that need what `egovib calibrate --methods hybrid` fits (the model's extras)
+NEEDS_METHOD_CALIBRATION = ("cancel", "hybrid")
 
 
 @dataclass
@@ -60,14 +64,6 @@ class MethodContext:
     model: NoiseModel
     model_short: NoiseModel | None = None
     noise_clip: np.ndarray | None = None
-
-
-def combined_bandpassed(accel: np.ndarray, model: NoiseModel) -> np.ndarray:
-    """(N,) sum of the three axes, band-passed with the core's causal filter and the
-    model's band."""
-    return filters.combined_bandpassed(
-        accel, sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order
-    )
 
 
 def on_input_stamps(
@@ -156,8 +152,16 @@ class CoreStream(MethodStream):
     stamps (`on_input_stamps`: a sample the core drops gets 0). Causal: L - 1 samples of
     delay plus the joint-state wait."""
 
-    def __init__(self, model: NoiseModel, *, source: str = "", **options):
-        self.denoiser = StreamingDenoiser(model, source=source, **options)
+    def __init__(self, model: NoiseModel, *, method: str = "paper", source: str = "", **options):
+        # the metrics are those of the band-passed signal (the paper's): band-passed output
+        if method == "paper":
+            self.denoiser = StreamingDenoiser(
+                model, source=source, **{"output": "bandpassed", **options}
+            )
+        else:
+            from egovib_ros.core.methods import make_denoiser  # numba: only when asked for
+
+            self.denoiser = make_denoiser(model, method, source=source, **options)
         self._pending = np.zeros(0, np.int64)  # input stamps without output yet
 
     def push_joint_states(self, stamps_ns, velocity):
@@ -165,7 +169,7 @@ class CoreStream(MethodStream):
 
     def push(self, stamps_ns, accel, raw):
         self._pending = np.concatenate([self._pending, np.asarray(stamps_ns, np.int64)])
-        return self._place(self.denoiser.push_accel(stamps_ns, accel))
+        return self._place(self.denoiser.push_sensor(stamps_ns, accel))
 
     def finish(self):
         out = self._place(self.denoiser.flush())
@@ -279,15 +283,14 @@ class StationaryGate:
 
 def gate_threshold(noise_clip: np.ndarray, *, n_fft: int = NOISEREDUCE_N_FFT) -> np.ndarray:
     """Per-frequency noise threshold (dB) of noisereduce's stationary gate from a noise clip
-    (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it): computed by
-    noisereduce's own code."""
-    from noisereduce.spectralgate.utils import _amp_to_db
-
+    (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it), as noisereduce 3.0
+    computes it: levels 20 log10(|X| + eps), floored 80 dB below each frame's top level."""
     clip = np.asarray(noise_clip, float)[:NOISE_CLIP_SAMPLES]
     _, _, stft = signal.stft(
         clip, nfft=n_fft, noverlap=n_fft - n_fft // 4, nperseg=n_fft, padded=False
     )
-    level = _amp_to_db(stft)
+    level = 20 * np.log10(np.abs(stft) + np.finfo(np.float64).eps)
+    level = np.maximum(level, np.max(level, axis=-1, keepdims=True) - 80.0)
     return np.mean(level, axis=1) + np.std(level, axis=1) * NOISEREDUCE_N_STD
 
 
@@ -310,6 +313,8 @@ CORE_OPTIONS = {
     "wiener": dict(channels="combined"),
     "per_axis": dict(channels="per_axis"),
     "paper_L32": dict(channels="combined"),
+    "cancel": dict(channels="combined", method="cancel"),
+    "hybrid": dict(channels="combined", method="hybrid"),
 }
 
 
@@ -354,6 +359,10 @@ def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
         return 1e3 * NOISEREDUCE_N_FFT / ctx.model.sample_rate_hz
     if name == "paper_L32":
         return _block_delay_ms(ctx.model_short)
+    if name in NEEDS_METHOD_CALIBRATION:
+        from egovib_ros.core.methods import method_delay_ms as core_delay_ms
+
+        return core_delay_ms(ctx.model, name)
     return _block_delay_ms(ctx.model)
 
 
@@ -364,7 +373,14 @@ def available_methods(ctx: MethodContext) -> list[str]:
         names.remove("paper_L32")
     if ctx.noise_clip is None:
         names.remove("noisereduce")
+    if not has_method_calibration(ctx.model):
+        names = [n for n in names if n not in NEEDS_METHOD_CALIBRATION]
     return names
+
+
+def has_method_calibration(model: NoiseModel) -> bool:
+    """The model carries what methods cancel and hybrid need."""
+    return any(key.startswith("harmonic.") for key in model.extras)
 
 
 def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
@@ -378,10 +394,10 @@ def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
             raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
         gate = gate_threshold(ctx.noise_clip)
     stream = method_stream(name, model=ctx.model, model_short=ctx.model_short, gate=gate)
-    raw = combined_bandpassed(rec.accel, ctx.model)
+    raw = filters.combined_bandpassed(rec.sensor, ctx.model.robot_profile())
     parts = [
         stream.push_joint_states(rec.joint_stamps_ns, rec.joint_velocity),
-        stream.push(rec.accel_stamps_ns, rec.accel, raw),
+        stream.push(rec.sensor_stamps_ns, rec.sensor, raw),
         stream.finish(),
     ]
     return np.concatenate(parts)

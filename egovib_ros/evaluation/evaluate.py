@@ -1,4 +1,4 @@
-"""Evaluate denoising methods on one recording with ground truth (CONTRACT section 6).
+"""Evaluate denoising methods on one recording with ground truth (INTERFACES.md section 6).
 
 `evaluate_bag(bag, model=...)` streams a bag (any length, flat memory);
 `evaluate_recording(rec, model, ...)` takes whole arrays (figures, experiments, demo).
@@ -33,14 +33,14 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation import baselines, detection, metrics
 from egovib_ros.evaluation import stream as streaming
 from egovib_ros.evaluation.stream import require_ground_truth
 
 PRIMARY = "paper"
-CONTRACT_FIELDS = (
+REPORT_FIELDS = (
     "noise_mean_raw",
     "noise_mean_denoised",
     "noise_reduction_db",
@@ -96,7 +96,7 @@ def evaluate_pieces(
     `open_calibration()`) return a fresh iterable of its Recording slices each time they
     are called (once per pass, see evaluation/stream.py). Returns the report."""
     names = streaming.method_names(
-        methods, calibration=open_calibration is not None, model_short=model_short
+        methods, calibration=open_calibration is not None, model_short=model_short, model=model
     )
     first = streaming.SummaryPass(model, source=source, max_bad_fraction=max_bad_fraction)
     for piece in open_run():
@@ -212,7 +212,8 @@ def _report(
         result = _method_result(
             run,
             "bag_denoised",
-            f"from bag: {BAG_TOPICS['denoised']} (like {like})",
+            f"from bag: {bag_topic_names(model.profile)['denoised']} (like {like}"
+            + (", drop-in output band-passed)" if summary.recorded_dropin else ")"),
             None,
             minutes,
         )
@@ -225,7 +226,7 @@ def _report(
     counts = dict(summary.counts)
     if calibration_bad is not None:
         counts["calibration_bad"] = calibration_bad
-    report = {field: primary[field] for field in CONTRACT_FIELDS if field in primary}
+    report = {field: primary[field] for field in REPORT_FIELDS if field in primary}
     report.update(
         {
             "f1_raw": raw_detection["f1"],
@@ -297,7 +298,7 @@ def evaluate_recording(
     calibration_source: str = "calibration recording",
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
 ) -> dict:
-    """Metrics of every method on `rec` (a bagio.Recording with ground truth), pushed as one
+    """Metrics of every method on `rec` (a bag.Recording with ground truth), pushed as one
     slice through the streaming evaluation.
 
     calibration: a no-contact Recording (e.g. the calibration sweep or a no-contact
@@ -308,7 +309,7 @@ def evaluate_recording(
     pr_curves: also return PR curves of the raw and each method's signal ("pr_curves").
     source, calibration_source: names for errors; max_bad_fraction: see stream.SummaryPass.
     """
-    require_ground_truth(rec, where=source)
+    require_ground_truth(rec, where=source, profile=model.profile)
     return evaluate_pieces(
         lambda: [rec],
         model,
@@ -340,9 +341,8 @@ def evaluate_bag(
     the bag's own (tests). `progress(bytes)` as the bag is read (all passes together
     count as its size once)."""
     from egovib_ros.bag import iter_recording
-    from egovib_ros.offline import model_profile
 
-    profile = model_profile(model)
+    profile = model.robot_profile()
     passes = 2 if calibration is not None else 3
     size_share = None if progress is None else (lambda n: progress(n / passes))
 
@@ -378,10 +378,10 @@ def speed_envelope_mask(calibration, rec, margin: float = 1.05) -> np.ndarray:
     """Calibration accelerometer samples whose joint speeds stay within the largest joint
     speeds of `rec` (per joint, times `margin`)."""
     limit = np.nanmax(np.abs(rec.joint_velocity), axis=0) * margin
-    mask = np.ones(len(calibration.accel_stamps_ns), bool)
+    mask = np.ones(len(calibration.sensor_stamps_ns), bool)
     for j in range(calibration.joint_velocity.shape[1]):
         speed = np.interp(
-            calibration.accel_stamps_ns,
+            calibration.sensor_stamps_ns,
             calibration.joint_stamps_ns,
             np.abs(calibration.joint_velocity[:, j]),
         )

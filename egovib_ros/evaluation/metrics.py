@@ -1,11 +1,11 @@
-"""Paper metrics (CONTRACT section 6) as pure functions on 1-D arrays.
+"""Paper metrics (INTERFACES.md section 6) as pure functions on 1-D arrays.
 
 Every signal here is already in the paper's measurement space: axes combined
 and band-passed (150-750 Hz) with the *same causal filter* for the raw signal,
 the denoised output and the clean reference, so that all three share phase and
 can be compared sample by sample.
 
-Definitions (paper section 4, CONTRACT section 6):
+Definitions (paper section 4, INTERFACES.md section 6):
 
 * magnitude            |x[k]| of the band-passed 1-D signal.
 * noise mean           mean magnitude over no-contact samples (contacts dilated
@@ -270,7 +270,7 @@ def estimate_lag(reference: np.ndarray, x: np.ndarray, *, max_lag: int = 96) -> 
 def signal_metrics(
     raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray, seg: ContactSegmentation
 ) -> dict:
-    """The signal-quality JSON fields of CONTRACT section 6 (all but the event F1s).
+    """The signal-quality JSON fields of INTERFACES.md section 6 (all but the event F1s).
 
     raw, denoised, reference: (N,) band-passed 1-D signals on the same stamps.
     """

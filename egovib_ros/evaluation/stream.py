@@ -46,8 +46,9 @@ from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
+from scipy import signal
 
-from egovib_ros.constants import BAG_TOPICS
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.filters import BandPass, channel_matrix
 from egovib_ros.errors import BagError, ConfigError
@@ -60,6 +61,23 @@ RECORDED_MAX_WAIT_S = 10.0  # the bag's denoised topic may lag its raw samples t
 
 def _combined(values: np.ndarray) -> np.ndarray:
     return channel_matrix(values, "combined").T
+
+
+class LowBandEnergy:
+    """Energy of a signal far below the band (below a quarter of its low edge; 2nd-order
+    Butterworth low-pass, state carried across slices)."""
+
+    def __init__(self, model: NoiseModel):
+        self.sos = signal.butter(
+            2, model.band_hz[0] / 4, btype="lowpass", fs=model.sample_rate_hz, output="sos"
+        )
+        self.zi = np.zeros((self.sos.shape[0], 2))
+        self.energy = 0.0
+
+    def push(self, values: np.ndarray) -> None:
+        if len(values):
+            low, self.zi = signal.sosfilt(self.sos, values, zi=self.zi)
+            self.energy += float(np.dot(low, low))
 
 
 def _band(model: NoiseModel) -> BandPass:
@@ -270,18 +288,21 @@ def _joints_nonfinite(piece) -> int:
     return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
 
 
-def require_ground_truth(rec, where: str = "recording") -> None:
+def require_ground_truth(rec, where: str = "recording", profile=None) -> None:
     """Raise BagError unless `rec` (a Recording or a slice of one) carries the ground-truth
-    contact signal, sample for sample."""
+    contact signal, sample for sample (the topic `contact` beside the profile's sensor
+    topic, e.g. /accelerometer/contact for /accelerometer/raw)."""
+    names = bag_topic_names(profile)
     if rec.contact is None:
         raise BagError(
-            f"{where}: missing ground-truth topic {BAG_TOPICS['contact']} "
-            f"(evaluate needs a simulated bag with ground truth)"
+            f"{where}: missing ground-truth topic {names['contact']} (the contact-only part "
+            f"of {names['raw']}; evaluate needs a recording with ground truth, e.g. from "
+            f"`egovib simulate`)"
         )
-    if len(rec.contact) != len(rec.accel):
+    if len(rec.contact) != len(rec.sensor):
         raise BagError(
-            f"{where}: topic {BAG_TOPICS['contact']} has {len(rec.contact)} samples, "
-            f"{BAG_TOPICS['raw']} has {len(rec.accel)}"
+            f"{where}: topic {names['contact']} has {len(rec.contact)} samples, "
+            f"{names['raw']} has {len(rec.sensor)}"
         )
 
 
@@ -295,6 +316,9 @@ class RunSummary:
     joint_speed_max: np.ndarray  # (J,) largest |velocity| per joint (nan: none finite)
     recorded: bool  # the run carries its own denoised topic
     recorded_like: str | None  # which method made it: "paper" (y = z = 0) or "per_axis"
+    # the recorded output is the drop-in kind (raw minus the ego-vibration: out-of-band
+    # content kept), scored like the others once band-passed
+    recorded_dropin: bool = False
     counts: dict = field(default_factory=dict)  # the report's "bad_samples" counts
 
 
@@ -317,6 +341,7 @@ class SummaryPass:
         )
         self.bad = _Fifo(bool)
         self.recorded_bad = _Fifo(bool)
+        self.low_raw, self.low_recorded = LowBandEnergy(model), LowBandEnergy(model)
         self.peak = 0.0
         self.speed: np.ndarray | None = None
         self.joint_states_nonfinite = 0
@@ -324,8 +349,8 @@ class SummaryPass:
         self.n = 0
 
     def push(self, piece) -> None:
-        require_ground_truth(piece, self.source)
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        require_ground_truth(piece, self.source, self.model.profile)
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         if len(piece.joint_velocity):
             speed = np.fmax.reduce(np.abs(piece.joint_velocity), axis=0)
@@ -338,12 +363,15 @@ class SummaryPass:
         if len(stamps):
             reference = self.band.process(_combined(values[1]))[0]
             self.peak = max(self.peak, float(np.max(np.abs(reference))))
+            self.low_raw.push(_combined(values[0])[0])
         self.bad.put(bad[0] | bad[1])
         self.recorded.add_input(stamps)
 
     def _count(self, final: bool) -> None:
         """Bad samples: the screen's or those of a bad message of the denoised topic."""
-        self.recorded_bad.put(self.recorded.take(final)[1])
+        values, flags = self.recorded.take(final)
+        self.low_recorded.push(values)
+        self.recorded_bad.put(flags)
         stop = min(self.bad.end, self.recorded_bad.end)
         flags = self.bad.take(stop) | self.recorded_bad.take(stop)
         self.union_bad += int(np.count_nonzero(flags))
@@ -384,6 +412,11 @@ class SummaryPass:
             ),
             recorded=recorded,
             recorded_like=("per_axis" if self.recorded.any_yz else "paper") if recorded else None,
+            # drop-in output keeps what lies far below the band (gravity, motion), band-passed
+            # output keeps none of it (4th order: -48 dB at a quarter of the band's low edge)
+            recorded_dropin=recorded
+            and self.low_raw.energy > 0
+            and self.low_recorded.energy > 0.1 * self.low_raw.energy,
             counts=counts,
         )
 
@@ -461,7 +494,7 @@ class CalibrationPass:
                 name, stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
         self.speeds.add_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel))
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor))
         self._advance(final=False)
 
     def _rows(self, stamps, values, bad) -> None:
@@ -603,6 +636,7 @@ class EvaluationPass:
             else None
         )
         self.like = summary.recorded_like
+        self.recorded_band = _band(model) if summary.recorded_dropin else None
         self.metric_keys = ["raw", *self.names] + (["bag_denoised"] if self.recorded else [])
         self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
         self.streams = {
@@ -667,12 +701,12 @@ class EvaluationPass:
 
     # --- input --------------------------------------------------------------------
     def push(self, piece) -> None:
-        require_ground_truth(piece, self.source)
+        require_ground_truth(piece, self.source, self.model.profile)
         for name, stream in self.streams.items():
             self.fifos[name].put(
                 stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         if self.recorded is not None:
             self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         self._advance(final=False)
@@ -706,6 +740,8 @@ class EvaluationPass:
     def _advance(self, final: bool) -> None:
         if self.recorded is not None:
             values, flags = self.recorded.take(final)
+            if self.recorded_band is not None and len(values):
+                values = self.recorded_band.process(values[None, :])[0]
             self.fifos["bag_denoised"].put(values)
             self.recorded_bad.put(flags)
         stop = self.screen_bad.end
@@ -997,12 +1033,12 @@ def rechunk(pieces: Iterable, samples: int) -> Iterator:
     held_n = 0
     for piece in pieces:
         held.append(piece)
-        held_n += len(piece.accel_stamps_ns)
+        held_n += len(piece.sensor_stamps_ns)
         while held_n >= samples:
             whole = concat_recordings(held)
             yield _cut(whole, 0, samples, first=True)
-            rest = _cut(whole, samples, len(whole.accel_stamps_ns), first=False)
-            held, held_n = [rest], len(rest.accel_stamps_ns)
+            rest = _cut(whole, samples, len(whole.sensor_stamps_ns), first=False)
+            held, held_n = [rest], len(rest.sensor_stamps_ns)
     if held:
         yield concat_recordings(held)
 
@@ -1011,8 +1047,8 @@ def _cut(rec, a: int, b: int, *, first: bool):
     import dataclasses
 
     changes = {
-        "accel_stamps_ns": rec.accel_stamps_ns[a:b],
-        "accel": rec.accel[a:b],
+        "sensor_stamps_ns": rec.sensor_stamps_ns[a:b],
+        "sensor": rec.sensor[a:b],
         "contact": None if rec.contact is None else rec.contact[a:b],
         "ego": None if rec.ego is None else rec.ego[a:b],
     }
@@ -1031,15 +1067,22 @@ def _cut(rec, a: int, b: int, *, first: bool):
 
 
 def method_names(
-    methods: Sequence[str] | None, *, calibration: bool, model_short: NoiseModel | None
+    methods: Sequence[str] | None,
+    *,
+    calibration: bool,
+    model_short: NoiseModel | None,
+    model: NoiseModel | None = None,
 ) -> list[str]:
     """The methods to run: `methods` (the paper's always), else all that can run."""
+    fitted = model is not None and baselines.has_method_calibration(model)
     if methods is None:
         names = list(baselines.METHOD_LABELS)
         if model_short is None:
             names.remove("paper_L32")
         if not calibration:
             names.remove("noisereduce")
+        if not fitted:
+            names = [n for n in names if n not in baselines.NEEDS_METHOD_CALIBRATION]
     else:
         names = list(methods)
         unknown = [m for m in names if m not in baselines.METHOD_LABELS]
@@ -1052,6 +1095,11 @@ def method_names(
         if "paper_L32" in names and model_short is None:
             raise ValueError(
                 "paper_L32 needs a model calibrated with 32-sample blocks (--model-short)"
+            )
+        needs = [n for n in names if n in baselines.NEEDS_METHOD_CALIBRATION]
+        if needs and not fitted:
+            raise ConfigError(
+                f"methods {needs} need a model calibrated with `egovib calibrate --methods hybrid`"
             )
     if "paper" not in names:
         names = ["paper"] + names

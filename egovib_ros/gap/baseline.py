@@ -225,8 +225,10 @@ def fit_baseline(
     *,
     hats: np.ndarray | None = None,
     prior: tuple[np.ndarray, np.ndarray] | None = None,
+    velocity_gain: bool = True,
 ) -> Baseline:
-    """Velocity-only baseline fitted on the `train` rows, predicting every block."""
+    """Velocity-only baseline fitted on the `train` rows, predicting every block
+    (`velocity_gain`: with its per-bin log-gain stage in each joint's velocity)."""
     hats = table.hats if hats is None else hats
     knots_c = coarse_knots(table)
     hats_c = coarse_hats(table, hats)
@@ -290,11 +292,46 @@ def fit_baseline(
         cells[j, k] = coef[:, 1 + i]
     info = {
         "n_parameters": int(coef.size + len(level) * sum(len(c) for c in cols_j)),
-        "structure": "power-additive over joints, free per velocity cell and bin",
+        "structure": "power-additive over joints, free per velocity cell and bin, "
+        "then a per-bin log-gain in each joint's signed velocity",
         "cells_per_joint": [len(g) for g in table.knots],
     }
-    return Baseline(
+    base = Baseline(
         magnitude=magnitude, power=predicted, rest_power=coef[:, 0], cell_power=cells, info=info
+    )
+    return velocity_stage(table, train, base) if velocity_gain else base
+
+
+def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Baseline:
+    """The table's prediction times a per-bin log-gain in each joint's signed velocity
+    (Gamma GLM of the power ratio, GCV ridge: `effects.fit_power_term`): what the additive
+    power cells miss of a velocity-only spectrum (direction, the shape of the magnitude
+    distribution, a line between cells), fitted once and shared by every candidate."""
+    from egovib_ros.gap.effects import MAX_LOG_GAIN, fit_power_term, velocity_regressors
+
+    x, names = velocity_regressors(table)
+    coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
+    gain = np.exp(coef[0][None, :] + np.clip(x @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN))
+    magnitude = base.magnitude * gain
+    magnitude = magnitude * (
+        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
+    )
+    power = base.power * gain**2
+    power = power * (
+        (table.magnitude[train] ** 2).sum(axis=0) / np.maximum(power[train].sum(axis=0), 1e-300)
+    )
+    info = dict(base.info)
+    info["n_parameters"] = int(info.get("n_parameters", 0) + coef.size)
+    info["velocity_gain"] = {
+        "regressors": len(names),
+        "ridge": {k: round(v, 5) for k, v in ridge.items()},
+    }
+    return Baseline(
+        magnitude=magnitude,
+        power=power,
+        rest_power=base.rest_power,
+        cell_power=base.cell_power,
+        info=info,
     )
 
 

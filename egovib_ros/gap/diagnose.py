@@ -49,6 +49,9 @@ INTERLEAVE_CHUNK_S = 4.0
 INTERLEAVE_PERIOD = 3
 #: Knot spacing (s) of the in-sample time trend checked on interleaved blocks (at most 12 knots).
 INTERLEAVE_KNOT_S = 10.0
+#: ... but at least this many chunks and knot intervals over the recording (short ones).
+INTERLEAVE_MIN_CHUNKS = 10
+INTERLEAVE_MIN_KNOTS = 8
 #: A transient (detected like a contact) counts as reversal-locked if it starts within this
 #: window around a joint reversal (s after, s before).
 LOCK_AFTER_S, LOCK_BEFORE_S = 0.08, 0.03
@@ -372,12 +375,16 @@ def _interleaved_drift(
 ) -> dict:
     """Drift checked in-sample: a time trend fitted on interleaved chunks,
     judged on the chunks between."""
-    splits = interleaved_splits(table)
-    if min(s.train.sum() for s in splits) < 200:
-        return {}
     t = table.t_mid_s
     span = float(t[-1] - t[0])
-    n_knots = int(np.clip(round(span / INTERLEAVE_KNOT_S) + 1, 3, 12))
+    # A short recording (a real part of a few seconds) gets shorter chunks and knots, so that
+    # it still has several chunks per rotation and a warm-up of a few seconds has knots.
+    chunk_s = min(INTERLEAVE_CHUNK_S, span / INTERLEAVE_MIN_CHUNKS)
+    knot_s = min(INTERLEAVE_KNOT_S, span / INTERLEAVE_MIN_KNOTS)
+    splits = interleaved_splits(table, chunk_s=chunk_s)
+    if min(s.train.sum() for s in splits) < 200:
+        return {}
+    n_knots = int(np.clip(round(span / knot_s) + 1, 3, 12))
     term = _time_trend_term(n_knots)
 
     cf = cross_fit(table, splits, (), prior, terms=term)
@@ -417,7 +424,7 @@ def _interleaved_drift(
             ),
             4,
         ),
-        "split": f"chunks of {INTERLEAVE_CHUNK_S:g} s, every {INTERLEAVE_PERIOD}rd held out "
+        "split": f"chunks of {chunk_s:.3g} s, every {INTERLEAVE_PERIOD}rd held out "
         f"in turn ({INTERLEAVE_PERIOD} rotations)",
         "knots": n_knots,
         "ridge": {k: round(v, 5) for k, v in ridge.items()},

@@ -42,6 +42,21 @@ EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
 POSITION_KNOTS = 7
 SPEED_KNOTS = tuple(np.linspace(0.0, 1.0, 9))
+#: Coupling products: at most this many speed knots per joint (quantiles of the training
+#: speeds, where the data are), fewer with many joint pairs (8 / sqrt(pairs), at least 3),
+#: so the term does not outgrow the others (four motors: 6 pairs x 3 x 3, not 6 x 8 x 8).
+COUPLING_KNOTS = 8
+#: Speed fraction above which a joint counts as moving (direction, knots).
+MOVING_FRACTION = 0.03
+#: A joint is direction-capable when it moves each way in at least this share of training.
+BIDIRECTIONAL_SHARE = 0.05
+#: Speed fraction over which the soft direction sign goes from -1 to +1.
+SIGN_SOFT = 0.05
+#: Knots (signed speed fraction) of the baseline's velocity-only log-gain stage
+#: (`baseline.fit_baseline`): a second, per-bin look at each joint's velocity on top of the
+#: cell table, shared by every candidate, so that no candidate wins by absorbing
+#: velocity-only misfit.
+VELOCITY_KNOTS = (-1.0, -0.75, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 0.75, 1.0)
 ACC_HINGES = (1.0, 3.0)
 REVERSAL_TAUS_S = (0.015, 0.05, 0.15)
 DRIFT_KNOTS = 5
@@ -100,6 +115,11 @@ class Scales:
     t_end_s: float  # end of the training span
     power_ref: float = 1.0  # median baseline band power (train)
     band_power: np.ndarray | None = None  # (B,) baseline band power of every block
+    #: (J,) bool: the joint moves both ways in training (direction-dependent terms apply)
+    bidirectional: np.ndarray | None = None
+    #: per joint: speed-fraction knots of the coupling products (quantiles of training speeds)
+    speed_knots: tuple[np.ndarray, ...] = ()
+    rate_scale: np.ndarray | None = None  # (J,) 95th percentile of |d|v|/dt| (train)
 
 
 def fit_scales(
@@ -118,7 +138,31 @@ def fit_scales(
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
     band = np.mean(m**2, axis=1)
     t = table.t_mid_s[train]
+    frac = table.velocity[train] / table.vmax
+    moving = np.abs(frac) > MOVING_FRACTION
+    both = np.array(
+        [
+            min(np.mean(frac[:, j] > MOVING_FRACTION), np.mean(frac[:, j] < -MOVING_FRACTION))
+            > BIDIRECTIONAL_SHARE
+            for j in range(frac.shape[1])
+        ]
+    )
+    n_pairs = frac.shape[1] * (frac.shape[1] - 1) // 2
+    n_knots = int(np.clip(round(COUPLING_KNOTS / np.sqrt(max(n_pairs, 1))), 3, COUPLING_KNOTS))
+    knots = []
+    for j in range(frac.shape[1]):
+        speeds = np.abs(frac[moving[:, j], j])
+        q = (
+            np.quantile(speeds, np.arange(1, n_knots + 1) / n_knots)
+            if len(speeds) > 20
+            else np.linspace(1.0 / n_knots, 1.0, n_knots)
+        )
+        knots.append(np.unique(np.concatenate([[0.0], np.maximum(q, 1e-3)])))
+    rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(table.velocity)
     return Scales(
+        bidirectional=both,
+        speed_knots=tuple(knots),
+        rate_scale=np.maximum(np.percentile(np.abs(rate[train]), 95, axis=0), 1e-9),
         periodic=periodic,
         pos_lo=lo,
         pos_hi=np.maximum(hi, lo + 1e-9),
@@ -177,41 +221,98 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
     return h, [f"hat{k}" for k in range(POSITION_KNOTS) if k != POSITION_KNOTS // 2]
 
 
+def direction(table: BlockTable) -> np.ndarray:
+    """(B, J) soft sign of each joint's velocity (+1 one way, -1 the other, 0 at rest)."""
+    return np.tanh(table.velocity / (SIGN_SOFT * table.vmax))
+
+
+def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
+    """The baseline's velocity-only log-gain columns (hats of the signed speed fraction per
+    joint, rest dropped: the intercept holds it)."""
+    frac = table.velocity / table.vmax
+    knots = np.asarray(VELOCITY_KNOTS)
+    rest = int(np.flatnonzero(knots == 0.0)[0])
+    cols, names = [], []
+    for j, name in enumerate(table.joint_names):
+        h = np.delete(_hats(frac[:, j], knots), rest, axis=1)
+        cols.append(h)
+        names += [f"v={k:g}({name})" for k in np.delete(knots, rest)]
+    return np.concatenate(cols, axis=1), names
+
+
 def effect_regressors(
     effect: str, table: BlockTable, scales: Scales
 ) -> tuple[np.ndarray, list[str]]:
-    """Regressor columns (B, R) of one candidate effect, with their names."""
+    """Regressor columns (B, R) of one candidate effect, with their names (none for the
+    baseline and timing)."""
     cols, names = [], []
+    both = (
+        scales.bidirectional
+        if scales.bidirectional is not None
+        else np.ones(len(table.joint_names), bool)
+    )
     if effect == "position":
-        # Each function of a joint's position enters twice: as a gain, and weighted by that
-        # joint's speed fraction (a spot or rub that sounds only while the joint moves).
+        # Each function of a joint's position enters as a gain, weighted by that joint's speed
+        # fraction (a spot or rub that sounds only while the joint moves) and, for a joint
+        # that moves both ways, by its signed speed (louder one way of travel: hysteresis, a
+        # rub only when closing).
         speed = np.abs(table.velocity) / table.vmax
+        signed = table.velocity / table.vmax
         for j, name in enumerate(table.joint_names):
             basis, labels = position_basis(table.position[:, j], j, scales)
             for col, label in zip(basis.T, labels):
                 cols += [col, col * speed[:, j]]
                 names += [f"{label}({name})", f"{label}*|v|({name})"]
+                if both[j]:
+                    cols.append(col * signed[:, j])
+                    names.append(f"{label}*v({name})")
     elif effect == "coupling":
+        # Products of two joints' speed hats (zero when either is still: main effects belong
+        # to the baseline), and, for two joints that both move either way, the same on a
+        # coarser grid times the product of their directions: an interaction that is louder
+        # when they move the same way and quieter when opposite (or the reverse) averages
+        # out in the unsigned products.
         speed = np.abs(table.velocity) / table.vmax
-        rel = relative_power(table, scales)
-        knots = np.asarray(SPEED_KNOTS)
-        basis = [_hats(speed[:, j], knots)[:, 1:] for j in range(speed.shape[1])]
-        for i in range(speed.shape[1]):
-            for j in range(i + 1, speed.shape[1]):
+        sign = direction(table)
+        n_j = speed.shape[1]
+        knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+        basis = [_hats(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
+        coarse = [
+            _hats(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
+            for j in range(n_j)
+        ]
+        for i in range(n_j):
+            for j in range(i + 1, n_j):
                 for a in range(basis[i].shape[1]):
                     for b in range(basis[j].shape[1]):
-                        prod = basis[i][:, a] * basis[j][:, b]
-                        cols += [prod]
-                        names += [f"s{i}={knots[a + 1]:g}*s{j}={knots[b + 1]:g}"]
+                        cols.append(basis[i][:, a] * basis[j][:, b])
+                        names.append(f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}")
+                if both[i] and both[j]:
+                    for a in range(coarse[i].shape[1]):
+                        for b in range(coarse[j].shape[1]):
+                            cols.append(coarse[i][:, a] * coarse[j][:, b] * sign[:, i] * sign[:, j])
+                            names.append(f"dir{i}*dir{j}:c{a}*c{b}")
     elif effect == "acceleration":
         acc = np.clip(table.acceleration / scales.acc_scale, 0.0, 40.0)
         rel = relative_power(table, scales)
+        rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(acc)
+        rate_scale = scales.rate_scale if scales.rate_scale is not None else np.ones(acc.shape[1])
+        up = np.clip(rate / rate_scale, 0.0, 40.0)
+        down = np.clip(-rate / rate_scale, 0.0, 40.0)
         for j, name in enumerate(table.joint_names):
             u = acc[:, j]
             cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
             names += [f"log1p|a|({name})"] + [f"(|a|-{h:g})+({name})" for h in ACC_HINGES]
             cols.append(np.minimum((u / 10.0) ** 2 * rel, REL_CLIP))
             names.append(f"|a|^2/P({name})")
+            # speeding up vs slowing down (d|v|/dt of either sign), as a gain and as added power
+            cols += [np.log1p(up[:, j]), np.log1p(down[:, j])]
+            names += [f"log1p(speeding_up)({name})", f"log1p(slowing_down)({name})"]
+            cols += [
+                np.minimum((up[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+                np.minimum((down[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+            ]
+            names += [f"speeding_up^2/P({name})", f"slowing_down^2/P({name})"]
             if table.reversal_after_s is not None:
                 after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
                 for tau in REVERSAL_TAUS_S:
@@ -231,7 +332,7 @@ def effect_regressors(
             names.append(f"time_hat{k + 1}")
         cols.append((t - scales.t_ref_s) / 60.0)
         names.append("t_min")
-    elif effect in ("refit", "timing"):
+    elif effect in ("refit", "timing", "custom"):
         pass
     else:
         raise ValueError(f"unknown effect {effect!r}")
@@ -240,11 +341,25 @@ def effect_regressors(
     return np.stack(cols, axis=1), names
 
 
-def _gcv_ridge(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
+def gram_decomposition(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values s and right singular vectors V (R, r) of x (n, R), from the Gram
+    matrix: the same numbers as a thin SVD without forming U (n x R), which cost most of a
+    diagnosis's time. Directions below 1e-6 of the largest singular value are dropped (the
+    ridge shrinks them to nothing anyway)."""
+    evals, v = np.linalg.eigh(x.T @ x)
+    order = np.argsort(evals)[::-1]
+    s = np.sqrt(np.maximum(evals[order], 0.0))
+    keep = s > (s[0] * 1e-6 if len(s) else 0.0)
+    return s[keep], v[:, order][:, keep]
+
+
+def _gcv_ridge(
+    x: np.ndarray, y: np.ndarray, decomposition: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, float]:
     """Ridge coefficients (R, T) for standardised x (n, R) and centred y (n, T), weight by GCV."""
     n = len(x)
-    u, s, vt = np.linalg.svd(x, full_matrices=False)
-    uy = u.T @ y
+    s, v = gram_decomposition(x) if decomposition is None else decomposition
+    uy = (v.T @ (x.T @ y)) / s[:, None]
     yy = float(np.sum(y * y))
     n_eff = EFFECTIVE_ROW_SHARE * n
     best, best_lam = np.inf, RIDGE_GRID[-1] * n
@@ -258,34 +373,40 @@ def _gcv_ridge(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
         if score < best:
             best, best_lam = score, lam
     d = s / (s**2 + best_lam)
-    return vt.T @ (d[:, None] * uy), float(best_lam / n)
+    return v @ (d[:, None] * uy), float(best_lam / n)
 
 
-def fit_term(x: np.ndarray, z: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
+def fit_term(
+    x: np.ndarray, z: np.ndarray, train: np.ndarray, cache: dict | None = None
+) -> tuple[np.ndarray, dict]:
     """Per-bin log-gain coefficients: (1 + R, F) = [intercept; beta],
-    broadband + per-bin parts by GCV ridge."""
+    broadband + per-bin parts by GCV ridge. `cache`: keeps the decomposition of the
+    training columns between calls with the same x and rows (the GLM's iterations)."""
     n_bins = z.shape[1]
     zt = z[train]
     z_mean = zt.mean(axis=0)
     if x.shape[1] == 0:
         return z_mean[None, :], {}
-    xt = x[train]
-    # Columns are only centred, never scaled to unit variance: every regressor is built on
-    # a natural range of about [0, 1] (hats, kernels, harmonics), so a column that is non-zero
-    # on few training blocks keeps a small norm and is shrunk hard, instead of being blown
-    # up and extrapolated wildly on held-out blocks.
-    mu = xt.mean(axis=0)
-    sd = np.ones_like(mu)
-    live = np.ptp(xt, axis=0) > 1e-12
+    cache = {} if cache is None else cache
+    if "xs" not in cache:
+        xt = x[train]
+        # Columns are only centred, never scaled to unit variance: every regressor is built
+        # on a natural range of about [0, 1] (hats, kernels, harmonics), so a column that is
+        # non-zero on few training blocks keeps a small norm and is shrunk hard, instead of
+        # being blown up and extrapolated wildly on held-out blocks.
+        mu = xt.mean(axis=0)
+        live = np.ptp(xt, axis=0) > 1e-12
+        xs = xt[:, live] - mu[live]
+        cache.update(mu=mu, live=live, xs=xs, dec=gram_decomposition(xs) if live.any() else None)
+    mu, live, xs = cache["mu"], cache["live"], cache["xs"]
     beta = np.zeros((x.shape[1], n_bins))
     info = {}
     if live.any():
-        xs = (xt[:, live] - mu[live]) / sd[live]
         zc = zt - z_mean
         broad = zc.mean(axis=1, keepdims=True)
-        b, lam_b = _gcv_ridge(xs, broad)
-        dev, lam_d = _gcv_ridge(xs, zc - broad)
-        beta[live] = (b + dev) / sd[live, None]
+        b, lam_b = _gcv_ridge(xs, broad, cache["dec"])
+        dev, lam_d = _gcv_ridge(xs, zc - broad, cache["dec"])
+        beta[live] = b + dev
         info = {"ridge_broadband": lam_b, "ridge_per_bin": lam_d}
     intercept = z_mean - mu @ beta
     return np.vstack([intercept[None, :], beta]), info
@@ -303,7 +424,8 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
     power exponent), (1 + R, F).
     """
     log_ratio = np.log(np.maximum(ratio, 1e-300))
-    coef, ridge = fit_term(x, log_ratio, train)
+    cache: dict = {}
+    coef, ridge = fit_term(x, log_ratio, train, cache)
     coef[0] += EULER_GAMMA  # E log of an exponential variable = log mean - gamma
     for _ in range(GLM_ITERATIONS):
         eta = coef[0][None, :] + (
@@ -311,7 +433,7 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
         )
         mu = np.exp(eta)
         work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
-        coef, ridge = fit_term(x, work, train)
+        coef, ridge = fit_term(x, work, train, cache)
     return coef / 2.0, ridge
 
 
@@ -427,22 +549,35 @@ def effect_shape(
                 "note": f"at the joint's median moving speed fraction {typical:.2f}",
             }
     elif effect == "coupling":
+        # The gain over the two speeds with both joints moving the same way, and (for two
+        # joints that move either way) the difference to moving opposite ways.
         grid = np.linspace(0.0, 1.0, 11)
-        knots = np.asarray(SPEED_KNOTS)
-        hb = _hats(grid, knots)[:, 1:]
+        idx = {n: k for k, n in enumerate(names)}
         n_j = len(table.joint_names)
-        k = 0
+        knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
         for i in range(n_j):
             for j in range(i + 1, n_j):
+                hi_, hj = _hats(grid, knots[i])[:, 1:], _hats(grid, knots[j])[:, 1:]
                 gmat = np.zeros((len(grid), len(grid)))
-                for a in range(hb.shape[1]):
-                    for b in range(hb.shape[1]):
-                        gmat += beta[k] * np.outer(hb[:, a], hb[:, b])
-                        k += 1
+                for a in range(hi_.shape[1]):
+                    for b in range(hj.shape[1]):
+                        key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
+                        if key in idx:
+                            gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
+                signed = np.zeros_like(gmat)
+                ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
+                cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
+                hci, hcj = _hats(grid, ci)[:, 1:], _hats(grid, cj)[:, 1:]
+                for a in range(hci.shape[1]):
+                    for b in range(hcj.shape[1]):
+                        key = f"dir{i}*dir{j}:c{a}*c{b}"
+                        if key in idx:
+                            signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
                 shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
                     "speed_fraction": [round(float(v), 3) for v in grid],
-                    "gain_db": [_db(row) for row in gmat],
-                    "unit": "speed fraction of each joint",
+                    "gain_db": [_db(row) for row in gmat + signed],
+                    "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
+                    "unit": "speed fraction of each joint (same direction of travel)",
                 }
     elif effect == "acceleration":
         for j, name in enumerate(table.joint_names):

@@ -99,6 +99,7 @@ class BlockTable:
                 "hats",
                 "reversal_after_s",
                 "reversal_before_s",
+                "speed_rate",
             )
             if getattr(self, name) is not None
         }
@@ -132,6 +133,7 @@ class BlockTable:
             hats=hats,
             reversal_after_s=after,
             reversal_before_s=before,
+            speed_rate=speed_rate_means(self.joints, self.t_first_s, self.t_last_s, lag_s),
             lag_s=float(lag_s),
         )
 
@@ -152,6 +154,9 @@ class BlockTable:
         repr=False, default=None
     )  # (B, J) until next reversal
     lag_s: float = 0.0  # joint-state lag of this table
+    #: (B, J) block mean rate of change of the joint's *speed* (d|v|/dt, joint unit/s^2):
+    #: positive while it speeds up, negative while it slows down
+    speed_rate: np.ndarray | None = field(repr=False, default=None)
     #: counts of bad input treated as missing (framer stats, joint states dropped)
     bad_input: dict = field(repr=False, default_factory=dict)
 
@@ -290,11 +295,11 @@ class BlockSpectra:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._collect()
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         if len(stamps_ns) and self.first_stamp_ns is None:
             self.first_stamp_ns = int(stamps_ns[0])
         self.samples += len(stamps_ns)
-        self._framer.push_accel(stamps_ns, accel)
+        self._framer.push_sensor(stamps_ns, accel)
         self._collect()
 
     def _collect(self) -> None:
@@ -591,6 +596,18 @@ def _interval_means(
     return (integral(t1) - integral(t0)) / span
 
 
+def speed_rate_means(
+    joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float
+) -> np.ndarray:
+    """Block means of d|v|/dt (sign of the smoothed velocity times its derivative): speeding
+    up vs slowing down, whichever the direction of travel."""
+    check_lag(joints, lag_s)
+    smooth = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
+    return _interval_means(
+        joints.t_s - lag_s, np.sign(smooth) * joints.acceleration, t_first, t_last
+    )
+
+
 def check_lag(joints: JointSeries, lag_s: float) -> None:
     """A thinned series holds joint states only near its blocks: refuse a lag beyond that."""
     if abs(lag_s) > joints.max_lag_s:
@@ -735,6 +752,7 @@ def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> Block
     table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
         table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
     )
+    table.speed_rate = speed_rate_means(table.joints, table.t_first_s, table.t_last_s, table.lag_s)
     return table
 
 
@@ -752,7 +770,7 @@ def build_table(
     joints = JointFeatures(grid_speeds(model))
     joints.push(stamps, rec.joint_position[good][:, order], velocity)
     framing.push_joint_states(stamps, velocity)
-    framing.push_accel(rec.accel_stamps_ns, rec.accel)
+    framing.push_sensor(rec.sensor_stamps_ns, rec.sensor)
     bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad)
     return table_from_blocks(
         model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
@@ -810,7 +828,7 @@ def table_from_bag(
         stamps = piece.joint_stamps_ns[good]
         velocity = piece.joint_velocity[good][:, order]
         framing.push_joint_states(stamps, velocity)
-        framing.push_accel(piece.accel_stamps_ns, piece.accel)
+        framing.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         # after the framing, so the blocks these joint states may be near are known
         joints.push(stamps, piece.joint_position[good][:, order], velocity)
     if order is None:
@@ -833,7 +851,7 @@ def table_from_blocks(
     """The table from the framed blocks and the (usable, model-ordered) joint states.
     More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
     StreamError) before anything else is said about the data."""
-    from egovib_ros.cliutil import check_stream
+    from egovib_ros.core.stream import check_stream
 
     magnitude, first_ns, last_ns, v_core = framing.finish()
     counts = {k: v for k, v in framing.stats.items() if isinstance(v, (int, float))}
@@ -887,6 +905,7 @@ def table_from_blocks(
         hats=hats,
         reversal_after_s=after,
         reversal_before_s=before,
+        speed_rate=speed_rate_means(joints, t_first, t_last, 0.0),
     )
     table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)

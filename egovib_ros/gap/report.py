@@ -1,4 +1,4 @@
-"""report.json (CONTRACT section 6), report.md and figures of a gap diagnosis."""
+"""report.json (INTERFACES.md section 6), report.md and figures of a gap diagnosis."""
 
 from __future__ import annotations
 
@@ -194,7 +194,7 @@ def build_report(
     runtime_s: float,
     write_back: dict | None = None,
 ) -> dict:
-    """The report.json dictionary (CONTRACT section 6 keys, plus documented extras)."""
+    """The report.json dictionary (INTERFACES.md section 6 keys, plus documented extras)."""
     t = diag.table
     vm = diag.verdict_model
     added = {
@@ -204,8 +204,11 @@ def build_report(
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
+    from egovib_ros.gap.advice import advise
+
     return {
         "schema": SCHEMA,
+        "advice": advise(diag),
         "metric": {
             "name": METRIC_NAME,
             "unit": "dB",
@@ -310,9 +313,16 @@ def describe_shape(effect: str, shape: dict) -> str:
             g = np.asarray(c["gain_db"], float)
             i, j = np.unravel_index(int(np.argmax(g)), g.shape)
             sp = c["speed_fraction"]
+            signed = np.asarray(c.get("same_minus_opposite_direction_db", [[0.0]]), float)
             parts.append(
                 f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
-                f"({g[-1, -1]:+.1f} dB with both at full speed)"
+                f"({g[-1, -1]:+.1f} dB with both at full speed"
+                + (
+                    f"; same vs opposite direction {signed.flat[np.argmax(np.abs(signed))]:+.1f} dB"
+                    if np.max(np.abs(signed)) >= 0.05
+                    else ""
+                )
+                + ")"
             )
         elif name.startswith("acceleration:"):
             g = np.asarray(c["gain_db"], float)
@@ -386,9 +396,15 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
     worst_bin = max(freq, key=lambda f: f["sim_as_is_db"]) if freq else None
     mean_bias = float(np.mean([f["bias_db_sim_as_is"] for f in freq])) if freq else 0.0
     lines = ["# Sim-to-real gap report", ""]
+    if "advice" in report:
+        from egovib_ros.gap.advice import first_lines
+
+        lines += first_lines(report["advice"]) + [""]
+    from_simulator = report["inputs"].get("model_kind", "simulator") == "simulator"
+    model_name = "the simulator's noise model" if from_simulator else "the noise model"
     lines.append(
-        "**Where:** on held-out real data the simulator's noise model is off by "
-        f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the sim is "
+        f"**Where:** on held-out real data {model_name} is off by "
+        f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the model is "
         f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
         f"{abs(mean_bias):.1f} dB). Largest shares: "
         + "; ".join(_describe_region(r, joint_names) for r in top)

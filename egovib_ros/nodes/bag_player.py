@@ -30,7 +30,7 @@ from egovib_ros.nodes.common import (
     stream_publisher,
     wait_for_delivery,
 )
-from egovib_ros.ros_convert import ns_to_stamp
+from egovib_ros.nodes.convert import ns_to_stamp
 
 TICK_S = 0.002  # publishing granularity: messages due within a tick go out together
 CLOCK_PERIOD_NS = 1_000_000  # /clock at up to 1 kHz of bag time

@@ -20,7 +20,10 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
-from egovib_ros.constants import (
+from egovib_ros.errors import BagError
+from egovib_ros.nodes.common import Param, declare_parameters, run_node
+from egovib_ros.outputs import atomic_output
+from egovib_ros.sim.pr2 import (
     TOPIC_COMMANDS,
     TOPIC_CONTACT,
     TOPIC_DENOISED,
@@ -28,9 +31,6 @@ from egovib_ros.constants import (
     TOPIC_JOINT_STATES,
     TOPIC_RAW,
 )
-from egovib_ros.errors import BagError
-from egovib_ros.fileutil import atomic_output
-from egovib_ros.nodes.common import Param, declare_parameters, run_node
 
 DEFAULT_TOPICS = [
     TOPIC_JOINT_STATES,

@@ -29,7 +29,6 @@ from rclpy.node import Node
 
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.fileutil import atomic_output
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -38,6 +37,7 @@ from egovib_ros.nodes.common import (
     run_node,
     stream_counters,
 )
+from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import load_profile
 
 # The two topics come on separate DDS readers: on a busy machine (e.g. while another
@@ -163,7 +163,7 @@ class Calibrator(Node):
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
             try:
-                self.acc.push_accel(batch.stamps_ns, batch.values)
+                self.acc.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:  # e.g. a stream at another rate than the profile's
                 self.get_logger().error(
                     f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0

@@ -29,10 +29,10 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
-from egovib_ros.cdr import hold_missing_joints
+from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.robot import config_dir
-from egovib_ros.ros_convert import (
+from egovib_ros.nodes.convert import (
     decode_imu_raws,
     decode_joint_state_raws,
     diagnostic_array,

@@ -25,7 +25,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
-from egovib_ros.cdr import replace_imu_field
+from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.core import NoiseModel, StreamingDenoiser
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
@@ -38,7 +38,6 @@ from egovib_ros.nodes.common import (
     stream_counters,
     stream_publisher,
 )
-from egovib_ros.robot import RobotProfile
 
 LIVE = ("oversubtraction", "floor")
 # The core checks the stream's rate once it has accepted 2 blocks' worth of samples
@@ -57,6 +56,14 @@ MODEL_PARAMETERS = (
         "per_axis: clean each axis (drop-in replacement) | combined: the paper's "
         "1-D signal in x, y = z = 0",
         choices=("per_axis", "combined"),
+    ),
+    Param(
+        "output",
+        "dropin",
+        "dropin: the raw field minus the estimated ego-vibration (gravity, motion and all "
+        "outside the band kept) | bandpassed: the cleaned band-passed signal; channels "
+        "combined is always band-passed",
+        choices=("dropin", "bandpassed"),
     ),
 )
 PARAMETERS = MODEL_PARAMETERS + (
@@ -168,17 +175,6 @@ class HeldInput:
         return n
 
 
-def model_profile(model: NoiseModel) -> RobotProfile:
-    """The robot profile the model was calibrated with (a v1 model of the PR2 grid: the PR2
-    hand)."""
-    if model.profile is None:
-        raise ConfigError(
-            f"{model.provenance.get('path', 'noise model')}: the model carries no robot profile "
-            f"(topics, Imu field); calibrate it again with `egovib calibrate --robot PROFILE`"
-        )
-    return model.profile
-
-
 class Denoiser(Node):
     def __init__(self):
         super().__init__("denoiser")
@@ -186,7 +182,7 @@ class Denoiser(Node):
         if not first["model"]:
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
         self.model = NoiseModel.load(first["model"])
-        self.profile = model_profile(self.model)
+        self.profile = self.model.robot_profile()
         params = declare_parameters(
             self, PARAMETERS[len(MODEL_PARAMETERS) :], defaults={"batch_samples": self.model.hop}
         )
@@ -196,6 +192,7 @@ class Denoiser(Node):
         self.denoiser = StreamingDenoiser(
             self.model,
             channels=self.channels,
+            output=first["output"] if self.channels == "per_axis" else "bandpassed",
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
             joint_wait_s=params["joint_wait"],
@@ -276,7 +273,7 @@ class Denoiser(Node):
                 return
             self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
             try:
-                chunk = self.denoiser.push_accel(batch.stamps_ns, batch.values)
+                chunk = self.denoiser.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:
                 self._refuse(str(exc))
                 return
@@ -321,7 +318,7 @@ class Denoiser(Node):
             self._rate_proven = True
         pending, self._startup = self._startup, []
         for raws, values, arrival in pending:
-            if values.shape[1] == 1:  # CONTRACT: combined signal in x, y = z = 0
+            if values.shape[1] == 1:  # docs/INTERFACES.md: combined signal in x, y = z = 0
                 values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
             for data in replace_imu_field(raws, values, self.profile.sensor_field):
                 self.pub.publish(data)

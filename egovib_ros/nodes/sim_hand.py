@@ -14,13 +14,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.constants import (
-    ACCEL_FRAME,
-    ACCEL_RATE_HZ,
-    TOPIC_COMMANDS,
-    TOPIC_CONTACT,
-    TOPIC_EGO,
-)
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.common import (
     Health,
@@ -30,10 +23,17 @@ from egovib_ros.nodes.common import (
     run_node,
     stream_publisher,
 )
+from egovib_ros.nodes.convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.robot import load_profile
-from egovib_ros.ros_convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.sim import HandSimulator, SimParams, format_effects, parse_effects
 from egovib_ros.sim.params import default_config_path
+from egovib_ros.sim.pr2 import (
+    ACCEL_FRAME,
+    ACCEL_RATE_HZ,
+    TOPIC_COMMANDS,
+    TOPIC_CONTACT,
+    TOPIC_EGO,
+)
 
 _NS = 1_000_000_000
 PR2 = load_profile()  # the simulated robot: joint names and topics
@@ -46,7 +46,7 @@ PARAMETERS = (
         "tap onsets: random (Poisson) | periodic",
         choices=("random", "periodic"),
     ),
-    Param("effects", "none", "effects SPEC 'name=strength,...' (CONTRACT section 5), or none"),
+    Param("effects", "none", "effects SPEC 'name=strength,...' (INTERFACES.md section 5), or none"),
     Param("sim_params", "", "simulator parameter YAML; empty = config/sim.yaml of the package"),
     Param(
         "publish_period", 0.01, "seconds between publishing batches of samples", range=(0.0005, 1.0)
@@ -175,13 +175,13 @@ class SimHand(Node):
                 chunk.joint_stamps_ns, chunk.joint_position, chunk.joint_velocity, PR2.joint_names
             ):
                 self.pub_joint.publish(data)
-        for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.accel, self.frame_id):
+        for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.sensor, self.frame_id):
             self.pub_raw.publish(data)
         if self.pub_contact is not None:
-            for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.contact, self.frame_id):
+            for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.contact, self.frame_id):
                 self.pub_contact.publish(data)
         if self.pub_ego is not None:
-            for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.ego, self.frame_id):
+            for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.ego, self.frame_id):
                 self.pub_ego.publish(data)
         self.samples_published += n
 

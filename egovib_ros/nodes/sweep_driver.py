@@ -19,7 +19,6 @@ from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.constants import TOPIC_COMMANDS
 from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import (
@@ -30,8 +29,9 @@ from egovib_ros.nodes.common import (
     run_node,
     wait_for_delivery,
 )
+from egovib_ros.nodes.convert import command_message
 from egovib_ros.robot import RobotProfile, load_profile
-from egovib_ros.ros_convert import command_message
+from egovib_ros.sim.pr2 import TOPIC_COMMANDS
 
 _NS = 1_000_000_000
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)

@@ -1,6 +1,6 @@
 """Watcher: an rclpy node inside the calling process (its own context) that follows
 /diagnostics and publishes joint commands; the in-process side of `egovib demo`,
-`egovib live-bench` and the node tests (the processes: egovib_ros.orchestration)."""
+`egovib live-bench` and the node tests (the processes: egovib_ros.tools.orchestration)."""
 
 from __future__ import annotations
 

@@ -28,7 +28,7 @@ Base model (obeys the paper's assumptions exactly):
 * Taps: solenoid-like transients, a few exponentially decaying modes,
   Poisson onsets with a dead time ("random") or evenly spaced ("periodic").
 
-Effects (CONTRACT section 5), strength s; absent or 0 = bit-identical base:
+Effects (INTERFACES.md section 5), strength s; absent or 0 = bit-identical base:
 
 * ``position``:     wrist source x (1 + s cos(theta_w - position_phase_rad)),
                     gripper source x (1 + s (gap / 0.086 - 0.5)).
@@ -39,6 +39,22 @@ Effects (CONTRACT section 5), strength s; absent or 0 = bit-identical base:
 * ``timing``:       reported joint_states stamps = true time + s seconds
                     (positive: joint states lag the accelerometer).
 * ``drift``:        all joint vibration x (1 + s t / drift_period_s), t = time since start.
+
+Each effect can take another functional form (``effect_forms`` in the params, EFFECT_FORMS):
+
+* position ``closing_rub``: broadband added on the gripper path only while the gripper
+  closes, rms s * closing_rub_gain * s_g * (1 - gap / 0.086) (signed by the direction of
+  travel, additive, louder towards the closed end).
+* coupling ``signed``: the wrist source x exp(s * signed_coupling_gain * dir_w * dir_g *
+  s_w * s_g): louder when both joints move the same way, quieter when opposite
+  (multiplicative, tonal: the wrist's lines dominate its source).
+* acceleration ``speeding_up``: each joint's source x (1 + s * speeding_up_gain *
+  max(d|v|/dt, 0) / (vmax / controller_tau_s)): louder only while the joint speeds up.
+* timing ``filtered``: the reported joint velocity passes a first-order low-pass with time
+  constant |s| (a velocity estimator's lag; stamps and positions are exact).
+* drift ``warmup``: all joint vibration x (1 + 2 s (1 - exp(-t / warmup_tau_s)));
+  ``additive``: wear broadband added on each joint's path, rms s * wear_gain * s_j *
+  t / drift_period_s.
 """
 
 from __future__ import annotations
@@ -48,7 +64,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from egovib_ros.constants import (
+from egovib_ros.errors import ConfigError
+from egovib_ros.sim.params import EFFECT_FORMS, JointVibration, SimParams, validate_effects
+from egovib_ros.sim.pr2 import (
     ACCEL_BITS,
     ACCEL_RANGE_MS2,
     ACCEL_RATE_HZ,
@@ -58,8 +76,6 @@ from egovib_ros.constants import (
     JOINT_RATE_HZ,
     MAX_SPEED,
 )
-from egovib_ros.errors import ConfigError
-from egovib_ros.sim.params import JointVibration, SimParams, validate_effects
 
 LSB_MS2 = 2.0 * ACCEL_RANGE_MS2 / 2**ACCEL_BITS
 HUM_PERIOD = 32  # samples: hum lines on multiples of fs/32
@@ -76,8 +92,8 @@ def quantise(accel: np.ndarray) -> np.ndarray:
 class SimChunk:
     """One step of the simulator; all stamps int64 ns."""
 
-    accel_stamps_ns: np.ndarray  # (n,)
-    accel: np.ndarray  # (n, 3) raw, quantised
+    sensor_stamps_ns: np.ndarray  # (n,)
+    sensor: np.ndarray  # (n, 3) raw, quantised
     contact: np.ndarray  # (n, 3) ground truth contact part
     ego: np.ndarray  # (n, 3) ground truth ego part (gravity + hum + vibration)
     joint_stamps_ns: np.ndarray  # (m,) reported stamps (timing effect included)
@@ -181,10 +197,17 @@ class HandSimulator:
         self.start_ns = int(start_ns)
         self.vmax = np.asarray(MAX_SPEED, float)
         self.n_joints = len(self.vmax)
-        streams = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(13)]
+        # Children of a SeedSequence depend only on their index: streams added for the
+        # effect forms (13 on) leave the first 13 as they were.
+        streams = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(16)]
         (self.rng_sensor, self.rng_taps, self.rng_acc_w, self.rng_acc_g, self.rng_coupling) = (
-            streams[8:]
+            streams[8:13]
         )
+        self.rng_rub, self.rng_wear_w, self.rng_wear_g = streams[13:16]
+        self.forms = {
+            name: p.effect_forms.get(name, forms[0]) for name, forms in EFFECT_FORMS.items()
+        }
+        self.vel_filter_zi: np.ndarray | None = None
         self.joints = [
             _JointSource(p.wrist, self.vmax[0], streams[0:4], self.fs),
             _JointSource(p.gripper, self.vmax[1], streams[4:8], self.fs),
@@ -344,8 +367,16 @@ class HandSimulator:
             self.last_enc = enc[-1]
         stamps = self.start_ns + self.joint_offset_ns + m * (_NS // int(JOINT_RATE_HZ))
         timing = self.effects.get("timing", 0.0)
-        if timing:
+        if timing and self.forms["timing"] == "stamps":
             stamps = stamps + int(round(timing * _NS))
+        elif timing and len(m):  # the reported velocity through a first-order low-pass
+            alpha = 1.0 - np.exp(-1.0 / (abs(timing) * JOINT_RATE_HZ))
+            if self.vel_filter_zi is None:
+                self.vel_filter_zi = velocity[0] * (1.0 - alpha)
+            velocity, zf = signal.lfilter(
+                [alpha], [1.0, alpha - 1.0], velocity, axis=0, zi=self.vel_filter_zi[None, :]
+            )
+            self.vel_filter_zi = zf[0]
         return stamps, enc, velocity
 
     # --- main step ----------------------------------------------------------------
@@ -376,9 +407,10 @@ class HandSimulator:
         t = idx / self.fs
 
         ego = np.zeros((n, 3))
+        forms = self.forms
         for j, joint in enumerate(self.joints):
             src = joint.source(speed[:, j])
-            if "position" in fx:
+            if "position" in fx and forms["position"] == "gain":
                 s = fx["position"]
                 gain = (
                     (1.0 + s * np.cos(pos[:, 0] - p.position_phase_rad))
@@ -386,19 +418,42 @@ class HandSimulator:
                     else (1.0 + s * (pos[:, 1] / GRIPPER_GAP_RANGE_M[1] - 0.5))
                 )
                 src = src * gain
+            if "position" in fx and forms["position"] == "closing_rub" and j == 1:
+                closing = (vel[:, 1] < 0) * frac[:, 1]
+                depth = np.clip(1.0 - pos[:, 1] / GRIPPER_GAP_RANGE_M[1], 0.0, 1.0)
+                src = src + fx["position"] * p.closing_rub_gain * closing * depth * (
+                    self.rng_rub.standard_normal(n)
+                )
             if "acceleration" in fx:
-                acc = np.abs(np.diff(np.concatenate([[prev_vel[j]], vel[:, j]]))) * self.fs
+                dv = np.diff(np.concatenate([[prev_vel[j]], vel[:, j]])) * self.fs
                 a_ref = self.vmax[j] / p.controller_tau_s
-                rng = self.rng_acc_w if j == 0 else self.rng_acc_g
-                src = src + fx["acceleration"] * p.acceleration_gain * (
-                    acc / a_ref
-                ) * rng.standard_normal(n)
-            if "coupling" in fx and j == 1:
+                if forms["acceleration"] == "broadband":
+                    rng = self.rng_acc_w if j == 0 else self.rng_acc_g
+                    src = src + fx["acceleration"] * p.acceleration_gain * (
+                        np.abs(dv) / a_ref
+                    ) * rng.standard_normal(n)
+                else:  # speeding up: d|v|/dt > 0
+                    up = np.maximum(np.sign(vel[:, j]) * dv, 0.0) / a_ref
+                    src = src * (1.0 + fx["acceleration"] * p.speeding_up_gain * up)
+            if "coupling" in fx and forms["coupling"] == "broadband" and j == 1:
                 src = src + fx["coupling"] * p.coupling_gain * frac[:, 0] * frac[
                     :, 1
                 ] * self.rng_coupling.standard_normal(n)
+            if "coupling" in fx and forms["coupling"] == "signed" and j == 0:
+                same = np.sign(vel[:, 0]) * np.sign(vel[:, 1]) * frac[:, 0] * frac[:, 1]
+                src = src * np.exp(fx["coupling"] * p.signed_coupling_gain * same)
             if "drift" in fx:
-                src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
+                if forms["drift"] == "linear":
+                    src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
+                elif forms["drift"] == "warmup":
+                    # twice the strength: after warm-up the level has changed as much as the
+                    # linear form's after two drift periods
+                    src = src * (1.0 + 2.0 * fx["drift"] * (1.0 - np.exp(-t / p.warmup_tau_s)))
+                else:  # additive wear broadband
+                    rng = self.rng_wear_w if j == 0 else self.rng_wear_g
+                    src = src + fx["drift"] * p.wear_gain * frac[:, j] * (
+                        t / p.drift_period_s
+                    ) * rng.standard_normal(n)
             ego += joint.path(src)[:, None] * joint.direction
         ego += self.hum_period[idx % HUM_PERIOD][:, None] * self.hum_dir
         tilt = p.gravity_tilt_rad
@@ -418,8 +473,8 @@ class HandSimulator:
         j_stamps, j_pos, j_vel = self._joint_states(i0, n, pos, prev_pos)
         self.index += n
         return SimChunk(
-            accel_stamps_ns=self.stamps_ns(idx),
-            accel=raw,
+            sensor_stamps_ns=self.stamps_ns(idx),
+            sensor=raw,
             contact=contact,
             ego=ego,
             joint_stamps_ns=j_stamps,

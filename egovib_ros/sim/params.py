@@ -1,8 +1,9 @@
-"""Simulator parameters (config/sim.yaml) and the effects SPEC of CONTRACT section 5."""
+"""Simulator parameters (config/sim.yaml) and the effects SPEC of INTERFACES.md section 5."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,9 +11,9 @@ from typing import Any
 
 import yaml
 
-from egovib_ros.constants import EFFECT_NAMES
 from egovib_ros.errors import ConfigError
 from egovib_ros.robot import config_dir
+from egovib_ros.sim.pr2 import EFFECT_NAMES
 
 
 def default_config_path() -> Path:
@@ -126,6 +127,17 @@ class SimParams:
     coupling_gain: float = 1.6
     acceleration_gain: float = 1.5
     drift_period_s: float = 60.0
+    #: Functional form of each effect (EFFECT_FORMS; a missing effect takes its first form).
+    effect_forms: dict[str, str] = field(default_factory=dict)
+    #: Forms' own parameters: rub rms on the gripper path at full closing speed (position
+    #: "closing_rub"), log-gain of the signed wrist-line coupling, gain per unit of speeding
+    #: up relative to vmax/controller_tau_s (acceleration "speeding_up"), wear broadband rms
+    #: at full speed after drift_period_s (drift "additive"), warm-up time constant.
+    closing_rub_gain: float = 6.0
+    signed_coupling_gain: float = 0.6
+    speeding_up_gain: float = 2.0
+    wear_gain: float = 10.0
+    warmup_tau_s: float = 20.0
     effects: dict[str, float] = field(default_factory=dict)
 
     # --- YAML round trip -------------------------------------------------
@@ -150,6 +162,8 @@ class SimParams:
                 kwargs[name] = JointVibration(**{**dataclasses.asdict(default()), **sub})
         if "effects" in kwargs:
             kwargs["effects"] = validate_effects(kwargs["effects"] or {}, source=source)
+        if "effect_forms" in kwargs:
+            kwargs["effect_forms"] = validate_forms(kwargs["effect_forms"] or {}, source=source)
         try:
             return cls(**kwargs)
         except TypeError as exc:
@@ -206,8 +220,60 @@ def validate_effects(effects: dict[str, Any], *, source: str = "effects") -> dic
     return out
 
 
+# Effect strengths the simulator models sensibly (sim/hand.py):
+# position scales a source by 1 + s cos(...), so |s| <= 1 keeps it non-negative;
+# coupling/acceleration/drift are gains (>= 0); timing is a clock offset in seconds.
+EFFECT_RANGES: dict[str, tuple[float, float]] = {
+    "position": (-1.0, 1.0),
+    "coupling": (0.0, 100.0),
+    "acceleration": (0.0, 100.0),
+    "timing": (-1.0, 1.0),
+    "drift": (0.0, 100.0),
+}
+
+
+def check_effects(effects: dict[str, float], *, source: str = "--effects") -> dict[str, float]:
+    """Raise ConfigError unless every strength is finite and within EFFECT_RANGES."""
+    for name, strength in effects.items():
+        if not math.isfinite(strength):
+            raise ConfigError(f"{source}: {name}={strength!r}: strength must be finite")
+        low, high = EFFECT_RANGES.get(name, (-math.inf, math.inf))
+        if not low <= strength <= high:
+            unit = " s" if name == "timing" else ""
+            raise ConfigError(f"{source}: {name}={strength:g} is outside [{low:g}, {high:g}]{unit}")
+    return effects
+
+
+#: The functional forms each effect can take in the simulator (the first is the default):
+#: which mechanism carries it (multiplicative gain or added power, tonal or broadband,
+#: signed by the direction of travel or not).
+EFFECT_FORMS: dict[str, tuple[str, ...]] = {
+    "position": ("gain", "closing_rub"),
+    "coupling": ("broadband", "signed"),
+    "acceleration": ("broadband", "speeding_up"),
+    "timing": ("stamps", "filtered"),
+    "drift": ("linear", "warmup", "additive"),
+}
+
+
+def validate_forms(forms: dict[str, Any], *, source: str = "effect_forms") -> dict[str, str]:
+    """Check each effect's form against EFFECT_FORMS."""
+    out: dict[str, str] = {}
+    for name, form in forms.items():
+        if name not in EFFECT_FORMS:
+            raise ConfigError(f"{source}: effect_forms: unknown effect {name!r}")
+        if form not in EFFECT_FORMS[name]:
+            raise ConfigError(
+                f"{source}: effect_forms: {name} has no form {form!r} "
+                f"(known: {', '.join(EFFECT_FORMS[name])})"
+            )
+        out[name] = str(form)
+    return out
+
+
 def parse_effects(spec: str | None) -> dict[str, float]:
-    """Parse the SPEC `name=strength,...` (CONTRACT section 3); '' / None / 'none' = no effect."""
+    """Parse the SPEC `name=strength,...` (INTERFACES.md section 3); '' / None / 'none':
+    no effect."""
     if spec is None or not spec.strip():
         return {}
     raw: dict[str, str] = {}

@@ -11,35 +11,29 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy import signal
 
-from egovib_ros.bagio import Recording
-from egovib_ros.constants import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
+from egovib_ros.bag import Recording, concat_recordings
+from egovib_ros.core.noise_model import sweep_cells as grid_sweep_cells
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.hand import HandSimulator, SimChunk
 from egovib_ros.sim.params import SimParams
+from egovib_ros.sim.pr2 import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 
 CHUNK = 3000  # samples per simulator step in offline runs (1 s)
 
 
 def sweep_cells(grid: str) -> np.ndarray:
-    """Velocity cells (C, 2) in sweep order: 'full' = 441 cells, 'superposition' = the
-    41 with <= 1 joint moving."""
-    w = GRID_FRACTIONS * MAX_SPEED[0]
-    g = GRID_FRACTIONS * MAX_SPEED[1]
-    if grid == "full":
-        ww, gg = np.meshgrid(w, g, indexing="ij")
-        return np.column_stack([ww.ravel(), gg.ravel()])
-    if grid == "superposition":
-        wrist_axis = np.column_stack([w, np.zeros_like(w)])
-        gripper_axis = np.column_stack([np.zeros(np.count_nonzero(g)), g[g != 0]])
-        return np.vstack([wrist_axis, gripper_axis])
-    raise ConfigError(f"grid must be 'full' or 'superposition', not {grid!r}")
+    """The hand's velocity cells (C, 2) in sweep order (core.noise_model.sweep_cells on its
+    21 x 21 grid): 'full' = 441 cells, 'superposition' = the 41 with <= 1 joint moving."""
+    axes = (GRID_FRACTIONS * MAX_SPEED[0], GRID_FRACTIONS * MAX_SPEED[1])
+    index = grid_sweep_cells(axes, grid)
+    return np.column_stack([axes[j][index[:, j]] for j in range(2)])
 
 
 def _slice(chunk: SimChunk, command_stamps=(), commands=()) -> Recording:
     """One simulator chunk as a Recording time slice."""
     return Recording(
-        accel_stamps_ns=chunk.accel_stamps_ns,
-        accel=chunk.accel,
+        sensor_stamps_ns=chunk.sensor_stamps_ns,
+        sensor=chunk.sensor,
         joint_stamps_ns=chunk.joint_stamps_ns,
         joint_position=chunk.joint_position,
         joint_velocity=chunk.joint_velocity,
@@ -48,27 +42,6 @@ def _slice(chunk: SimChunk, command_stamps=(), commands=()) -> Recording:
         ego=chunk.ego,
         command_stamps_ns=np.asarray(command_stamps, np.int64).reshape(-1),
         commands=np.asarray(commands, float).reshape(-1, len(JOINT_NAMES)),
-    )
-
-
-def concat_recordings(pieces: list[Recording]) -> Recording:
-    """Join consecutive time slices into one Recording."""
-
-    def cat(name: str):
-        parts = [getattr(p, name) for p in pieces]
-        return None if any(x is None for x in parts) else np.concatenate(parts)
-
-    return Recording(
-        accel_stamps_ns=cat("accel_stamps_ns"),
-        accel=cat("accel"),
-        joint_stamps_ns=cat("joint_stamps_ns"),
-        joint_position=cat("joint_position"),
-        joint_velocity=cat("joint_velocity"),
-        joint_names=JOINT_NAMES,
-        contact=cat("contact"),
-        ego=cat("ego"),
-        command_stamps_ns=cat("command_stamps_ns"),
-        commands=cat("commands"),
     )
 
 
@@ -119,7 +92,7 @@ def sweep_slices(
             last_cell = ci
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
-                progress(len(chunk.accel) / ACCEL_RATE_HZ)
+                progress(len(chunk.sensor) / ACCEL_RATE_HZ)
             yield _slice(chunk, [stamp] if new_cell else [], [cell] if new_cell else [])
 
     return generate(), truth
@@ -216,7 +189,7 @@ def motion_slices(
             sent = starts[(starts >= a) & (starts < b)]
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
-                progress(len(chunk.accel) / ACCEL_RATE_HZ)
+                progress(len(chunk.sensor) / ACCEL_RATE_HZ)
             yield _slice(chunk, sim.stamps_ns(sent), cmds[hold[sent]])
 
     return generate(), truth
@@ -250,7 +223,7 @@ def simulate_motion(
 
 
 def truth_dict(seed: int, effects: dict, onsets_ns) -> dict:
-    """The `--truth` sidecar of CONTRACT section 3."""
+    """The `--truth` sidecar of INTERFACES.md section 3."""
     return {
         "seed": int(seed),
         "effects": {k: float(v) for k, v in effects.items()},

@@ -1,0 +1,258 @@
+"""`egovib denoise` as a library: the core's denoiser run on a recorded bag.
+
+denoise_bag(bag, out, model=..., channels=..., output=..., compress=...) -> figures
+
+The bag is streamed (memory does not grow with the recording): input MCAP chunks are
+copied verbatim (topics never decoded but the sensor and joint topics) and the profile's
+denoised topic is added, one message per valid raw sample, each the raw message with the
+cleaned field and every other byte kept. The same core as the denoiser node, so live and
+offline results agree.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from egovib_ros.bag.codec import MessageBatch, imu_layout, replace_imu_field
+from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
+from egovib_ros.bag.reader import BagReader
+from egovib_ros.bag.recording import RecordingStream
+from egovib_ros.bag.writer import BagWriter, compression_name
+from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core.stream import check_stream
+from egovib_ros.outputs import atomic_output
+
+
+class _DenoisedTopic:
+    """Writes the profile's denoised topic: for every sample the denoiser outputs, the raw
+    message with that header stamp, its field replaced (every other byte kept), at the raw
+    message's log time.
+
+    Raw messages are held by stamp, not by their place in the file: a bag may hold its
+    messages in any order (topic by topic, chunks overlapping in time, stamps swapped), and
+    the recording stream hands the denoiser its samples in stamp order. The denoiser's
+    output stamps increase strictly, so each is found by a binary search among the held
+    stamps; a held message the output has passed without taking it (out of order, a bad
+    sample, a second message with the same stamp) gets no denoised message and is counted.
+    Memory: the raw messages the denoiser has not answered yet (a block plus the stream's
+    look-ahead)."""
+
+    def __init__(self, writer: BagWriter, denoised_topic: str, field: str):
+        self.writer = writer
+        self.denoised_topic, self.field = denoised_topic, field
+        self.channel_id = writer.topics[denoised_topic].channel_id
+        self._batches: dict[int, tuple[MessageBatch, int | None]] = {}  # id -> (raw, field offset)
+        self._next_id = 0
+        # the held raw messages, sorted by stamp (ties in the order read): stamp, batch id, row
+        self._stamp = np.zeros(0, np.int64)
+        self._batch = np.zeros(0, np.int64)
+        self._row = np.zeros(0, np.int64)
+        self._passed: int | None = None  # stamp of the last output sample
+        self.raw_read = 0
+        self.written = 0
+        self.dropped = 0
+
+    def add_raw(self, raw: MessageBatch, stamps: np.ndarray) -> None:
+        """Hold raw messages (any order) until the denoiser answers their stamps."""
+        if len(raw) == 0:
+            return
+        self.raw_read += len(raw)
+        rows_ = np.arange(len(raw), dtype=np.int64)
+        if self._passed is not None:  # stamped before the output's progress: never answered
+            late = stamps <= self._passed
+            if late.any():
+                self.dropped += int(late.sum())
+                stamps, rows_ = stamps[~late], rows_[~late]
+                if len(stamps) == 0:
+                    return
+        ident = self._next_id
+        self._next_id += 1
+        self._batches[ident] = (raw, imu_layout(raw, self.field))
+        in_order = np.all(stamps[1:] >= stamps[:-1]) and (
+            len(self._stamp) == 0 or stamps[0] >= self._stamp[-1]
+        )
+        self._stamp = np.concatenate([self._stamp, stamps])
+        self._batch = np.concatenate([self._batch, np.full(len(stamps), ident, np.int64)])
+        self._row = np.concatenate([self._row, rows_])
+        if not in_order:
+            order = np.argsort(self._stamp, kind="stable")
+            self._stamp, self._batch, self._row = (
+                self._stamp[order],
+                self._batch[order],
+                self._row[order],
+            )
+
+    def add_output(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        """Write the denoised messages of these output samples (stamps strictly increasing)."""
+        if len(stamps) == 0:
+            return
+        values = np.asarray(values, np.float64)
+        if values.shape[1] == 1:  # the combined signal goes in x, y = z = 0
+            values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
+        at = np.searchsorted(self._stamp, stamps, side="left")
+        found = at < len(self._stamp)
+        found[found] = self._stamp[at[found]] == stamps[found]
+        if not found.all():  # cannot happen: every output sample is a raw sample held here
+            stamp = int(stamps[~found][0])
+            raise RuntimeError(f"denoised sample stamped {stamp} has no held raw message")
+        batches, rows_ = self._batch[at], self._row[at]
+        self._write(batches, rows_, values)
+        done = int(at[-1]) + 1
+        self.dropped += done - len(at)
+        self._passed = int(stamps[-1])
+        self._stamp, self._batch, self._row = (
+            self._stamp[done:],
+            self._batch[done:],
+            self._row[done:],
+        )
+        still = set(np.unique(self._batch).tolist())
+        for ident in [i for i in self._batches if i not in still]:
+            del self._batches[ident]
+
+    def finish(self) -> None:
+        """End of the bag: raw messages never answered are counted."""
+        self.dropped += len(self._stamp)
+        self._stamp, self._batch, self._row = self._stamp[:0], self._batch[:0], self._row[:0]
+        self._batches.clear()
+
+    def _write(self, batches: np.ndarray, rows_: np.ndarray, values: np.ndarray) -> None:
+        # runs of consecutive messages from one raw batch, in output order
+        cuts = np.flatnonzero(batches[1:] != batches[:-1]) + 1
+        runs = [
+            (self._batches[int(batches[a])], rows_[a:b])
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(batches)])
+        ]
+        log_times = np.concatenate([raw.log_times[r] for (raw, _), r in runs])
+        widths = {raw.uniform_length for (raw, _), _ in runs}
+        offsets = {offset for (_, offset), _ in runs}
+        if len(widths) != 1 or None in widths or len(offsets) != 1 or None in offsets:
+            # unusual messages: the codec's general path
+            messages = MessageBatch.concat([raw.take(r) for (raw, _), r in runs])
+            self.writer.write_batch(
+                self.denoised_topic, log_times, replace_imu_field(messages, values, self.field)
+            )
+        else:
+            width, offset = widths.pop(), offsets.pop()
+            records = message_records(self.channel_id, log_times, None, width)
+            row = 0
+            for (raw, _), r in runs:
+                records[row : row + len(r), MESSAGE_HEADER:] = rows(raw.buf, raw.starts[r], width)
+                row += len(r)
+            at = MESSAGE_HEADER + offset
+            records[:, at : at + 24] = (
+                np.ascontiguousarray(values, "<f8").view(np.uint8).reshape(-1, 24)
+            )
+            self.writer.write_message_records(self.denoised_topic, log_times, records)
+        self.written += len(batches)
+
+
+def make_method_denoiser(model: NoiseModel, method: str, **options):
+    """The streaming denoiser of `method` (paper | cancel | hybrid; core.methods.make_denoiser
+    states the options each takes). The paper's is built without loading the compiled
+    methods (numba), which take a few seconds to import."""
+    if method == "paper":
+        return StreamingDenoiser(model, **options)
+    from egovib_ros.core.methods import make_denoiser
+
+    return make_denoiser(model, method, **options)
+
+
+def denoise_bag(
+    bag: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    model: NoiseModel | str | os.PathLike,
+    method: str = "paper",
+    channels: str = "per_axis",
+    output: str | None = None,
+    oversubtraction: float = 1.0,
+    floor: float = 0.0,
+    joint_lag_s: float = 0.0,
+    compress: bool | str = False,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
+    """Denoise one bag into `out` (written atomically: nothing appears unless complete).
+
+    Streams the bag: input MCAP chunks are copied verbatim (topics never decoded but
+    the sensor and joint topics), the profile's denoised topic is added, one message
+    per raw sample. Returns figures (samples, blocks, size ratio, ...)."""
+    model = model if isinstance(model, NoiseModel) else NoiseModel.load(model)
+    profile = model.robot_profile()
+    bag = Path(bag)
+    with BagReader(bag) as reader:
+        stream = RecordingStream(
+            reader, profile, ground_truth=False, denoised=False, commands=False
+        )
+        raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
+        copy_topics = [t for t in reader.topics if t != denoised_topic]
+        denoiser = make_method_denoiser(
+            model,
+            method,
+            channels=channels,
+            output=output,
+            oversubtraction=oversubtraction,
+            floor=floor,
+            joint_lag_s=joint_lag_s,
+            source=f"{bag}: {raw_topic}",
+        )
+        with atomic_output(out, directory=True, kind="bag") as tmp:
+            with BagWriter(tmp, compress=compress) as writer:
+                for topic in copy_topics:
+                    writer.copy_topic(reader, topic)
+                writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
+                job = _DenoisedTopic(writer, denoised_topic, profile.sensor_field)
+                copied = {"verbatim": 0, "rewritten": 0}  # chunks copied as they were; batches
+
+                def push(pieces) -> None:
+                    for piece in pieces:
+                        for chunk in (
+                            denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
+                            denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
+                        ):
+                            job.add_output(chunk.stamps_ns, chunk.values)
+
+                for batch in reader.batches(copy_topics):
+                    verbatim = writer.copy_batch(batch, set(copy_topics))
+                    copied["verbatim"] += verbatim
+                    copied["rewritten"] += verbatim == 0
+                    pieces = stream.add(batch)
+                    if "raw" in stream.decoded:
+                        job.add_raw(batch.messages[raw_topic], stream.decoded["raw"][0])
+                    push(pieces)
+                    if progress is not None:
+                        progress(batch.bytes_read)
+                push(stream.finish())
+                final = denoiser.flush()
+                job.add_output(final.stamps_ns, final.values)
+                job.finish()
+                # too many bad samples or unusable joint states: refused (before the bag appears)
+                counts = check_stream(
+                    denoiser.stats,
+                    f"{bag}: {raw_topic}",
+                    joint_states=stream.counts["joint_states"],
+                )
+                ratio = writer.size_ratio
+    stats = denoiser.stats
+    return {
+        "samples_in": job.raw_read,
+        "denoised_messages": job.written,
+        "raw_without_output": job.dropped,
+        "method": method,
+        "blocks": stats.get("blocks", 0),
+        "blocks_out_of_grid": stats.get("blocks_out_of_grid", 0),
+        "blocks_no_joint_state": stats.get("blocks_no_joint_state", 0),
+        "blocks_unmeasured": stats.get("blocks_unmeasured", 0),
+        "samples_no_joint_state": stats.get("samples_no_joint_state", 0),
+        "dropped_out_of_order": stats["dropped_out_of_order"],
+        "channels": channels,
+        "output": getattr(denoiser, "output", "bandpassed"),
+        "chunks_copied_verbatim": copied["verbatim"],
+        "batches_rewritten": copied["rewritten"],
+        "size_ratio": ratio,
+        "compression": compression_name(compress) or "none",
+        "input_counts": counts,
+    }

@@ -1,0 +1,253 @@
+"""`egovib` console script (INTERFACES.md section 3).
+
+Each command lives in its own module, which exposes `register(subparsers)`;
+the parser it adds sets `func(args) -> int`. How a run ends:
+
+- bad input raises EgovibError: its one line, exit status 2;
+- Ctrl-C (also during start-up: imports, model load): one line, exit status 130;
+- SIGTERM: one line, exit status 143 (128 + 15, what a shell reports for a process
+  the signal ended: "stopped", never "bad input"). It unwinds like Ctrl-C, so staging
+  directories are removed at once; a second SIGTERM ends the process without cleanup.
+  Both are recorded before they raise: where a library swallows the exception (C code
+  clearing errors while modules load), the run still stops before committing an output;
+- any other exception is a bug: one line naming the command, its input and the
+  exception, the traceback written to a log file whose path is printed, exit status 1.
+
+Every way out releases the outputs the run claimed (outputs.release_outputs); staged
+outputs are removed by the exception unwinding through outputs.atomic_output.
+Module-level imports are kept to the standard library's smallest, so that Ctrl-C while
+the commands' modules load is caught here too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+from typing import TYPE_CHECKING
+
+from egovib_ros import __version__
+
+if TYPE_CHECKING:
+    import argparse
+
+# Order = order in `egovib --help`.
+COMMAND_MODULES = (
+    "egovib_ros.cli.simulate",  # simulate sweep|motion|robot
+    "egovib_ros.cli.calibrate",
+    "egovib_ros.cli.denoise",
+    "egovib_ros.cli.model",  # model show
+    "egovib_ros.cli.evaluate",  # evaluate, figures
+    "egovib_ros.cli.detect",  # detect
+    "egovib_ros.cli.gap",  # gap, gap validate
+    "egovib_ros.cli.bench",  # bench
+    "egovib_ros.cli.real",  # real convert|evaluate
+    "egovib_ros.cli.demo",  # demo (live, ROS 2 nodes)
+    "egovib_ros.cli.live_bench",  # live-bench (live, ROS 2 nodes)
+)
+EXIT_BUG, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 130, 143
+# Arguments that name what a command reads, in the order they are named in a bug report.
+_INPUT_ARGUMENTS = ("bags", "bag", "real", "npz", "model")
+_stopped: list[type[BaseException]] = []  # Ctrl-C or SIGTERM received during this run
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived. A BaseException, like KeyboardInterrupt: no `except Exception`
+    swallows it, and every `finally` (staging directories, writers, Dask clusters) runs."""
+
+
+def build_parser() -> "argparse.ArgumentParser":
+    import importlib
+
+    from egovib_ros.cli.options import OneLineErrorParser
+
+    parser = OneLineErrorParser(  # one-line errors for bad options, like every bad input
+        prog="egovib",
+        description="Ego-vibration removal for robot accelerometers (spectral subtraction).",
+    )
+    parser.add_argument("--version", action="version", version=f"egovib {__version__}")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:  # first: a Ctrl-C even before our handlers are in place ends in one line
+        _stopped.clear()
+        with _signals_raise():
+            return _main(list(sys.argv[1:] if argv is None else argv))
+    except KeyboardInterrupt:
+        print("egovib: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Terminated:
+        print("egovib: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
+    finally:
+        outputs = sys.modules.get("egovib_ros.outputs")  # claimed nothing if not loaded
+        if outputs is not None:
+            outputs.release_outputs()
+            outputs.clear_stop()
+        _stopped.clear()
+
+
+def _main(argv: list[str]) -> int:
+    from egovib_ros.errors import EgovibError
+
+    args = None
+    try:
+        import logging
+
+        logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help / --version (0), a bad option (2, one line printed)
+            return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
+        _raise_if_stopped()
+        code = int(args.func(args) or 0)
+        _raise_if_stopped()
+        return code
+    except EgovibError as exc:
+        _raise_if_stopped()  # an error that a swallowed Ctrl-C or SIGTERM left behind
+        print(f"egovib: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug
+        _raise_if_stopped()  # e.g. an extension module's import failing on a Ctrl-C
+        print(_internal_error(exc, args, argv), file=sys.stderr)
+        return EXIT_BUG
+
+
+def _raise_if_stopped() -> None:
+    """A Ctrl-C or SIGTERM whose exception a library swallowed (C code clearing errors while
+    modules load, a bare `except:`) still stops the run, here or before an output is
+    committed (outputs.atomic_output)."""
+    if _stopped:
+        raise _stopped[0]()
+
+
+def _request_stop(exception: type[BaseException]) -> None:
+    """Record the stop here and, once loaded, where outputs are committed."""
+    if not _stopped:
+        _stopped.append(exception)
+    outputs = sys.modules.get("egovib_ros.outputs")
+    if outputs is not None and hasattr(outputs, "request_stop"):  # not while it loads
+        outputs.request_stop(exception)
+
+
+@contextlib.contextmanager
+def _signals_raise():
+    """While the command runs, Ctrl-C raises KeyboardInterrupt and SIGTERM Terminated, each
+    recorded first (`_request_stop`). Only in the main thread (elsewhere Python cannot
+    install handlers), never for a signal this process was started ignoring (a background
+    job's SIGINT); the previous handlers are restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_sigint(signum, frame):
+        _request_stop(KeyboardInterrupt)
+        raise KeyboardInterrupt
+
+    def on_sigterm(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends it at once
+        _request_stop(Terminated)
+        raise Terminated
+
+    previous = {}
+    for number, handler in ((signal.SIGINT, on_sigint), (signal.SIGTERM, on_sigterm)):
+        if signal.getsignal(number) is not signal.SIG_IGN:
+            previous[number] = signal.signal(number, handler)
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, signal.SIG_DFL if handler is None else handler)
+
+
+# --- bugs ----------------------------------------------------------------------------------
+
+
+def _internal_error(exc: Exception, args, argv: list[str]) -> str:
+    """The one line for an unexpected exception; its traceback goes to a log file."""
+    command = _command_name(args, argv)
+    inputs = _inputs(args)
+    what = f"{command} ({inputs})" if inputs else command
+    text = str(exc).strip().splitlines()
+    summary = f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+    log, problem = write_traceback_log(exc, command, argv)
+    where = f"traceback written to {log}" if log else f"traceback not written ({problem})"
+    return f"egovib: internal error in {what}: {summary}; {where}"
+
+
+def _command_name(args, argv: list[str]) -> str:
+    if args is None:
+        words = [a for a in argv[:1] if not a.startswith("-")]
+        return words[0] if words else "egovib"
+    parts = [getattr(args, "command", None)]
+    for sub in ("scenario", "real_command", "action"):
+        value = getattr(args, sub, None)
+        if isinstance(value, str):
+            parts.append(value)
+    return " ".join(p for p in parts if p) or "egovib"
+
+
+def _inputs(args) -> str:
+    for name in _INPUT_ARGUMENTS:
+        value = getattr(args, name, None)
+        if isinstance(value, (list, tuple)):
+            if value:
+                more = f" and {len(value) - 1} more" if len(value) > 1 else ""
+                return f"{value[0]}{more}"
+        elif value:
+            return str(value)
+    return ""
+
+
+def log_directories() -> list:
+    """Where a traceback log may go, in order: $XDG_STATE_HOME/egovib (default
+    ~/.local/state/egovib, the XDG place for logs), then the system temp directory."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(
+        os.path.expanduser("~"), ".local", "state"
+    )
+    return [Path(state) / "egovib", Path(tempfile.gettempdir())]
+
+
+def write_traceback_log(exc: BaseException, command: str, argv: list[str]):
+    """(path, None) of the log written, or (None, reason) if no directory would take it."""
+    import datetime
+    import os
+    import platform
+    import shlex
+    import traceback
+
+    stamp = datetime.datetime.now().strftime("%Y%m%dT%H%M%S")
+    name = f"egovib-{command.replace(' ', '-')}-{stamp}-{os.getpid()}.log"
+    text = (
+        f"egovib {__version__}, Python {platform.python_version()}, {platform.platform()}\n"
+        f"command: egovib {shlex.join(argv)}\n"
+        f"working directory: {os.getcwd()}\n\n"
+        + "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+        + (f"\nin the workers:\n{exc.details}" if getattr(exc, "details", "") else "")
+    )
+    problem = "no log directory"
+    for directory in log_directories():
+        path = directory / name
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+            return path, None
+        except OSError as error:
+            problem = f"{directory}: {error.strerror or error}"
+            with contextlib.suppress(OSError):
+                path.unlink()
+    return None, problem
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,154 @@
+"""`egovib calibrate`: a noise model from a sweep or any no-contact recording
+(egovib_ros.bag.calibrate)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
+from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
+from egovib_ros.cli.jobs import parallel_options
+from egovib_ros.cli.options import float_in
+from egovib_ros.core import NoiseModel
+from egovib_ros.core.noise_model import sweep_mask
+from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.robot import load_profile
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    cal = subparsers.add_parser(
+        "calibrate",
+        help="build a noise model from a calibration sweep or any no-contact recording",
+        description="Assign blocks of the bags' sensor signal to joint-velocity cells and write "
+        "the per-cell mean/std noise spectra (INTERFACES.md section 4). Several bags (or "
+        "directories "
+        "of bags) give one model; they are read in parallel with --jobs.",
+    )
+    cal.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
+    cal.add_argument("--out", required=True, metavar="MODEL.npz", help="noise-model file to write")
+    cal.add_argument(
+        "--robot",
+        metavar="PROFILE",
+        default=None,
+        help="robot profile (YAML path or shipped name); default the PR2 hand",
+    )
+    cal.add_argument(
+        "--grid",
+        choices=("auto", "full", "superposition", "free"),
+        default="auto",
+        help="what the bags hold: a full or superposition sweep, or free (any no-contact) motion; "
+        "auto = decided from the data",
+    )
+    parallel_options(cal)
+    cal.add_argument(
+        "--methods",
+        choices=("paper", "hybrid"),
+        default="paper",
+        help="paper: the paper's table (default); hybrid: also what methods cancel and hybrid "
+        "need (the speed -> line map, the residual's table, the gain), fitted on one bag",
+    )
+    cal.add_argument(
+        "--joint-lag",
+        type=float_in(-1.0, 1.0),
+        default=0.0,
+        metavar="SECONDS",
+        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
+        "measures it; negative: they lead)",
+    )
+    cal.add_argument(
+        "--force", action="store_true", help="replace an existing model written by egovib"
+    )
+    cal.add_argument("--quiet", action="store_true", help="no progress bar")
+    cal.set_defaults(func=run_calibrate)
+
+
+def _describe_calibrate(stats: dict) -> str:
+    return (
+        f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
+        f"({stats['mode']}); {stats['input_counts']}"
+    )
+
+
+def coverage_lines(model: NoiseModel) -> list[str]:
+    """What `egovib calibrate` prints about the model's coverage."""
+    c = model.coverage()
+    lines = [
+        model.summary(),
+        f"coverage: {c['cells_measured']} of {c['cells_total']} cells measured "
+        f"({100 * c['fraction_measured']:.1f} %), {c['blocks']} blocks; blocks per measured cell: "
+        f"min {c['min_blocks']}, median {c['median_blocks']:g}"
+        + (
+            f"; {c['cells_under_min_blocks']} cells have too few blocks for a std"
+            if c.get("cells_under_min_blocks")
+            else ""
+        ),
+    ]
+    if model.measured != "free" and model.dense_ok:
+        missing = int(np.sum(model.counts[sweep_mask(model.grid, model.measured)] == 0))
+        if missing:
+            lines.append(
+                f"warning: {missing} cells of the {model.measured} grid have no block; "
+                f"they are filled at load time (see NoiseModel)"
+            )
+    return lines
+
+
+def describe_methods(fitted: dict) -> str:
+    """What `--methods hybrid` fitted, in one line."""
+    bands = ", ".join(f"{f:g}" for f in fitted["gain"]["bands_hz"])
+    return (
+        f"harmonic cancellation removes {fitted['cancellation_db_on_calibration']:g} dB of the "
+        f"calibration data; gain bands at {bands} Hz"
+    )
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
+    profile = load_profile(args.robot)
+    if args.methods == "hybrid" and len(expand_bags(args.bags)) != 1:
+        raise ConfigError("--methods hybrid: fitted on one calibration bag; give one")
+    model, stats, results = calibrate_bags(
+        args.bags,
+        profile=profile,
+        sweep=args.grid,
+        joint_lag_s=args.joint_lag,
+        jobs=args.jobs,
+        scheduler=args.scheduler,
+        quiet=args.quiet,
+    )
+    if len(results) > 1 or model is None:
+        if len(results) == 1:
+            raise BagError(results[0].error)
+        for line in summary_lines(results, _describe_calibrate):
+            print(line, file=sys.stderr)
+        raise_if_bugs(results)
+        if model is None:
+            print(
+                f"egovib: error: no model written: {sum(not r.ok for r in results)} bag(s) failed",
+                file=sys.stderr,
+            )
+            return 2
+    where = args.bags[0] if len(args.bags) == 1 else f"{len(results)} bags"
+    if model.coverage()["blocks"] == 0:
+        raise BagError(
+            f"{where}: no steady block near any grid velocity "
+            f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?"
+        )
+    if args.methods == "hybrid":
+        model, fitted = calibrate_bag_methods(
+            expand_bags(args.bags)[0][0], model, joint_lag_s=args.joint_lag
+        )
+        print(f"methods cancel and hybrid: {describe_methods(fitted)}", file=sys.stderr)
+    with atomic_output(args.out) as tmp:
+        model.save(tmp)
+    for line in coverage_lines(model):
+        print(line, file=sys.stderr)
+    print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
+    if len(results) == 1:
+        print(results[0].value["input_counts"], file=sys.stderr)
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,140 @@
+"""`egovib denoise`: remove ego-vibration from bags (egovib_ros.bag.denoise)."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+from pathlib import Path
+
+from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
+from egovib_ros.bag.many import run_bags
+from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
+from egovib_ros.cli.options import float_in, nonneg_float
+from egovib_ros.core import NoiseModel
+from egovib_ros.outputs import prepare_output
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    den = subparsers.add_parser(
+        "denoise",
+        help="remove ego-vibration from bags",
+        description="Spectral subtraction of the model's noise at the recorded joint velocities; "
+        "writes a bag with the input topics (copied as they are) plus the model's denoised "
+        "topic: one message per raw sample, the input message with the cleaned field, the raw "
+        "sample's stamp. Several bags (or directories of bags): --out is a directory, one "
+        "output bag per input.",
+    )
+    den.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
+    den.add_argument("--model", required=True, metavar="MODEL.npz")
+    den.add_argument(
+        "--out",
+        required=True,
+        metavar="BAG",
+        help="output bag directory (one input bag) or directory of output bags (several)",
+    )
+    den.add_argument(
+        "--method",
+        choices=("paper", "cancel", "hybrid"),
+        default="paper",
+        help="paper: the paper's block spectral subtraction (default; a block of delay); "
+        "cancel: speed-locked harmonic cancellation (no delay); hybrid: cancel, then a "
+        "low-latency gain (4 ms); cancel and hybrid need a model calibrated with "
+        "--methods hybrid",
+    )
+    den.add_argument(
+        "--joint-lag",
+        type=float_in(-1.0, 1.0),
+        default=0.0,
+        metavar="SECONDS",
+        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
+        "measures it; negative: they lead)",
+    )
+    den.add_argument(
+        "--channels",
+        choices=("per_axis", "combined"),
+        default="per_axis",
+        help="per_axis: each axis cleaned (default); combined: the paper's 1-D signal in x",
+    )
+    den.add_argument(
+        "--output",
+        choices=("dropin", "bandpassed"),
+        default=None,
+        help="dropin (default with per_axis): the raw field minus the estimated ego-vibration, "
+        "gravity and everything outside the band kept; bandpassed: the cleaned band-passed "
+        "signal (the paper's; always with --channels combined)",
+    )
+    den.add_argument(
+        "--oversubtraction",
+        type=nonneg_float,
+        default=1.0,
+        help="alpha in max(|Y| - alpha N, beta N)",
+    )
+    den.add_argument(
+        "--floor", type=nonneg_float, default=0.0, help="beta in max(|Y| - alpha N, beta N)"
+    )
+    den.add_argument(
+        "--compress",
+        choices=("none", "zstd"),
+        default="none",
+        help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)",
+    )
+    parallel_options(den)
+    den.add_argument(
+        "--force", action="store_true", help="replace an existing bag written by egovib"
+    )
+    den.add_argument("--quiet", action="store_true", help="no progress bar")
+    den.set_defaults(func=run_denoise)
+
+
+def _describe_denoise(figures: dict) -> str:
+    text = (
+        f"{figures['denoised_messages']} samples denoised ({figures['channels']}, "
+        f"{figures['output']}); "
+        f"blocks {figures['blocks']}, out of grid {figures['blocks_out_of_grid']}, "
+        f"no joint state {figures['blocks_no_joint_state']}"
+    )
+    if figures.get("blocks_unmeasured"):
+        text += f", on unmeasured cells {figures['blocks_unmeasured']}"
+    if figures["raw_without_output"]:
+        text += f", raw samples dropped (out of order / non-finite) {figures['raw_without_output']}"
+    if figures["compression"] != "none" and figures["size_ratio"]:
+        text += f"; zstd size ratio {figures['size_ratio']:.1f}"
+    return text + f"; {figures['input_counts']}"
+
+
+def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
+    return denoise_bag(bag, out, progress=progress, **options)
+
+
+def run_denoise(args: argparse.Namespace) -> int:
+    model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
+    model.robot_profile()
+    # Bad options fail here too; this also builds the model's look-up table once, which
+    # the workers then receive with the model instead of each building (and logging) it.
+    make_method_denoiser(
+        model,
+        args.method,
+        channels=args.channels,
+        output=args.output,
+        oversubtraction=args.oversubtraction,
+        floor=args.floor,
+        joint_lag_s=args.joint_lag,
+    )
+    jobs = output_jobs(args.bags, args.out)
+    for job in jobs:  # before any work: every output may be written (or replaced with --force)
+        prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
+    task = functools.partial(
+        _denoise_task,
+        model=model,
+        method=args.method,
+        channels=args.channels,
+        output=args.output,
+        oversubtraction=args.oversubtraction,
+        floor=args.floor,
+        joint_lag_s=args.joint_lag,
+        compress=args.compress,
+    )
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet
+    )
+    return report_results(results, _describe_denoise, single=len(jobs) == 1)

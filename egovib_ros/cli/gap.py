@@ -1,0 +1,244 @@
+"""`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]`
+(INTERFACES.md section 3)."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+
+from egovib_ros.cli import options
+from egovib_ros.errors import ConfigError
+from egovib_ros.outputs import prepare_output, prepare_outputs_in
+
+#: gap.features.DEFAULT_BUDGET_MINUTES (tested equal; not imported: the CLI starts
+#: without numpy and scipy)
+BUDGET_MINUTES = 2.0
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "gap",
+        help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
+        description="Where does a simulator-calibrated noise model miss a real recording, "
+        "which unmodelled effect causes it, and how far does the gap shrink once it is added. "
+        "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.",
+    )
+    parser.add_argument(
+        "action", nargs="?", choices=["validate"], help="run the blind validation instead"
+    )
+    parser.add_argument("--model", help="noise-model .npz calibrated on the simulator")
+    parser.add_argument(
+        "--real",
+        nargs="+",
+        action="extend",
+        metavar="BAG",
+        help="real recording(s): rosbag2 bags with the model's sensor and joint-state topics, "
+        "or directories of bags (several: one report directory per bag under --out)",
+    )
+    parser.add_argument(
+        "--out",
+        help="output directory (report.json, report.md, figures); with several bags, the "
+        "directory holding one report directory per bag",
+    )
+    parser.add_argument(
+        "--write-back",
+        action="store_true",
+        help="write the fitted effect into a copy of the sim config as OUT/sim_updated.yaml "
+        "and check it on the held-out data",
+    )
+    parser.add_argument(
+        "--sim-params", metavar="YAML", help="simulator config (default config/sim.yaml)"
+    )
+    parser.add_argument(
+        "--reference-lag",
+        type=options.float_in(-1.0, 1.0),
+        metavar="SECONDS",
+        help="lag between joint states and vibration that counts as in sync (default: "
+        "measured on the simulator for this robot's model, else 0)",
+    )
+    parser.add_argument(
+        "--folds",
+        type=options.int_in(2, 20),
+        default=5,
+        help="blocked cross-validation in time: contiguous folds, each held out once (default 5)",
+    )
+    parser.add_argument(
+        "--train-fraction",
+        type=options.float_in(0.2, 0.9),
+        default=None,
+        help="instead of cross-validation: fit on this leading share of the recording "
+        "(0.2 .. 0.9), test on the rest",
+    )
+    parser.add_argument(
+        "--budget-minutes",
+        type=options.float_in(1.0, 1e6),
+        default=BUDGET_MINUTES,
+        metavar="MINUTES",
+        help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
+        "evenly over its whole length (with the joint states near the kept blocks), so "
+        "memory and time stop growing with the bag "
+        f"(default {BUDGET_MINUTES:g}, the bag length the diagnosis is validated on)",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing report directory of egovib"
+    )
+    val = parser.add_argument_group("validate")
+    val.add_argument(
+        "--reality",
+        choices=["sim", "alt", "real"],
+        default="sim",
+        help='where the blind "real" bags come from: our simulator, or the independent '
+        "alternate-reality generator (egovib_ros.altreality), the model always calibrated "
+        "on our simulator; or `real`: known effects injected into one part of the real "
+        "flight bags/quadcopter_ar8, the model calibrated on the other part (validate)",
+    )
+    val.add_argument(
+        "--seeds", type=options.positive_int, default=5, help="seeds per effect class (validate)"
+    )
+    val.add_argument(
+        "--master-seed",
+        type=options.int_in(0, 2**31),
+        default=2026,
+        help="seed from which all runs' classes, strengths and seeds are drawn (validate)",
+    )
+    val.add_argument(
+        "--extra-none",
+        type=options.int_in(0, 1000),
+        default=0,
+        help="this many more bags of every `none` class, for the false-positive rate (validate)",
+    )
+    val.add_argument(
+        "--duration",
+        type=options.float_in(30.0, 3600.0),
+        default=120.0,
+        help="seconds per blind real bag, 30 .. 3600 (validate)",
+    )
+    val.add_argument(
+        "--jobs",
+        type=options.positive_int,
+        default=1,
+        help="parallel worker processes (validate; or bags diagnosed at once: a local Dask "
+        "cluster)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="diagnose the bags on an existing Dask cluster (e.g. tcp://host:8786)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-figures",
+        action="store_true",
+        help="write report.json and report.md only (quicker, for many bags)",
+    )
+    val.add_argument(
+        "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "validate":
+        from egovib_ros.experiments.gap_validation import output_names, run_validation
+
+        if args.scheduler:
+            raise ConfigError(
+                "gap validate: --scheduler is for diagnosing bags; the validation runs on "
+                "local processes (--jobs)"
+            )
+        out = args.out or "docs"
+        # before any work
+        prepare_outputs_in(out, output_names(args.reality), force=args.force)
+        summary = run_validation(
+            seeds=args.seeds,
+            duration_s=args.duration,
+            out_dir=out,
+            jobs=args.jobs,
+            ladder=not args.no_ladder,
+            progress=not args.quiet,
+            reality=args.reality,
+            master_seed=args.master_seed,
+            extra_none=args.extra_none,
+        )
+        print(
+            f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
+            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"{summary['n_runs']} runs -> {summary['outputs']}"
+        )
+        return 0
+    missing = [
+        flag
+        for flag, value in (("--model", args.model), ("--real", args.real), ("--out", args.out))
+        if not value
+    ]
+    if missing:
+        raise ConfigError(
+            f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
+        )
+    if args.train_fraction is not None and not 0.2 <= args.train_fraction <= 0.9:
+        raise ConfigError(
+            f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
+        )
+    from egovib_ros.bag.many import run_bags
+    from egovib_ros.cli.jobs import output_jobs, report_results
+    from egovib_ros.core.noise_model import NoiseModel
+    from egovib_ros.gap.pipeline import reference_lag_for
+
+    model = NoiseModel.load(args.model)  # a broken model is named first, as before
+    jobs = output_jobs(args.real, args.out)
+    for job in jobs:  # before any work
+        prepare_output(
+            job.out, force=args.force, inputs=[args.model, job.bag, args.sim_params], kind="report"
+        )
+    # measured once on the simulator, not once per bag
+    lag = reference_lag_for(model, args.reference_lag, args.sim_params)
+    task = functools.partial(
+        gap_task,
+        model_path=args.model,
+        write_back=args.write_back,
+        sim_params=args.sim_params,
+        reference_lag=lag,
+        train_fraction=args.train_fraction,
+        folds=args.folds,
+        budget_minutes=args.budget_minutes,
+        figures=not args.no_figures,
+    )
+    results = run_bags(
+        task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="gap", quiet=args.quiet
+    )
+    if len(jobs) == 1 and results[0].ok:  # one bag: its line on stdout, as before
+        summary = results[0].value
+        for notice in summary["notices"]:
+            print(f"gap: {jobs[0].bag}: {notice}", file=sys.stderr)
+        print(f"gap: {describe_gap(dict(summary, notices=()))}", file=sys.stdout)
+        return 0
+    return report_results(results, describe_gap, single=len(jobs) == 1)
+
+
+def gap_task(bag, out, progress, *, model_path, **options) -> dict:
+    """One bag's diagnosis into its report directory; the summary line's figures."""
+    from egovib_ros.gap.pipeline import run_gap
+
+    report = run_gap(model_path, bag, out, progress=progress, **options)
+    return {
+        "notices": report["inputs"]["notices"],
+        "gap": report["gap"],
+        "verdict": report["verdict"]["effect"],
+        "confidence": report["verdict"].get("confidence"),
+        "report": f"{out}/report.md",
+    }
+
+
+def describe_gap(summary: dict) -> str:
+    g = {
+        k: "n/a" if summary["gap"].get(k) is None else f"{summary['gap'][k]:.2f}"
+        for k in ("sim_as_is", "after_refit", "after_effect", "floor")
+    }
+    notices = "".join(f" ({n})" for n in summary.get("notices", ()))
+    return (
+        f"sim as-is {g['sim_as_is']} dB, baseline {g['after_refit']} dB, "
+        f"+{summary['verdict']} {g['after_effect']} dB, floor {g['floor']} dB; "
+        f"verdict {summary['verdict']} -> {summary['report']}{notices}"
+    )

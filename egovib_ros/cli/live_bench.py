@@ -1,0 +1,32 @@
+"""`egovib live-bench`: does the denoiser node keep up live (tools/live_bench.py)."""
+
+from __future__ import annotations
+
+import argparse
+
+from egovib_ros.tools import live_bench as tool
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--warmup", type=float, default=5.0)
+    parser.add_argument("--model", help="noise model (default: a quick offline calibration)")
+    parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
+    parser.add_argument(
+        "--publish-period",
+        type=float,
+        default=0.002,
+        help="sim_hand's batching period (s): part of the measured latency",
+    )
+
+
+def register(subparsers) -> None:
+    """`egovib live-bench`."""
+    parser = subparsers.add_parser(
+        "live-bench",
+        help="does the denoiser node keep up live (drops, CPU, latency)",
+        description=tool.__doc__.split("\n\n")[0],
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=tool.run)

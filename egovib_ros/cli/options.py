@@ -1,0 +1,118 @@
+"""Option checks for the `egovib` commands, in one place.
+
+Every numeric option is checked by its argparse `type=` before any work starts:
+finite, in range, integral where it must be. A bad value is a one-line error naming
+the option (`OneLineErrorParser`), exit status 2, like every other bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable, NoReturn
+
+from egovib_ros.errors import ConfigError
+
+MAX_SEED = 2**32 - 1
+
+
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse parser whose errors are one line (`PROG: error: ...`), exit status 2.
+
+    Subparsers inherit the class, so every subcommand reports bad options this way.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def float_in(
+    low: float = -math.inf,
+    high: float = math.inf,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    what: str = "",
+) -> Callable[[str], float]:
+    """argparse type: a finite float in [low, high] (open ends where asked)."""
+
+    def parse(text: str) -> float:
+        value = _number(text)
+        too_low = value <= low if low_open else value < low
+        too_high = value >= high if high_open else value > high
+        if too_low or too_high:
+            raise argparse.ArgumentTypeError(f"expected {describe()}, got {text!r}")
+        return value
+
+    def describe() -> str:
+        if what:
+            return what
+        if math.isinf(low) and math.isinf(high):
+            return "a finite number"
+        if math.isinf(high):
+            return f"a finite number {'>' if low_open else '>='} {low:g}"
+        if math.isinf(low):
+            return f"a finite number {'<' if high_open else '<='} {high:g}"
+        left, right = "(" if low_open else "[", ")" if high_open else "]"
+        return f"a number in {left}{low:g}, {high:g}{right}"
+
+    parse.__name__ = "number"
+    return parse
+
+
+def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer in [low, high]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text, 10)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if (low is not None and value < low) or (high is not None and value > high):
+            if high is None:
+                expected = f"an integer >= {low}"
+            elif low is None:
+                expected = f"an integer <= {high}"
+            else:
+                expected = f"an integer in [{low}, {high}]"
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+finite_float = float_in()
+positive_float = float_in(0.0, low_open=True)
+nonneg_float = float_in(0.0)
+fraction = float_in(0.0, 1.0)  # [0, 1]
+positive_fraction = float_in(0.0, 1.0, low_open=True)  # (0, 1]
+nonneg_int = int_in(0)
+positive_int = int_in(1)
+seed = int_in(0, MAX_SEED)
+
+
+def effects_spec(text: str) -> dict[str, float]:
+    """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
+    from egovib_ros.sim.params import check_effects, parse_effects
+
+    try:
+        return check_effects(parse_effects(text), source="SPEC")
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def effects_spec_text(text: str) -> str:
+    """Like effects_spec but keeps the text (for commands that pass the SPEC on)."""
+    effects_spec(text)
+    return text

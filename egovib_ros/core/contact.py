@@ -1,0 +1,226 @@
+"""Contact events from a sensor stream: the detector of the contact_detector node and of
+`egovib detect` (numpy/scipy only; live and offline call the same class).
+
+The signal: the three axes band-passed (the model's band) and summed (the paper's 1-D
+signal, the one `egovib evaluate` scores detection on), then a 4 ms causal RMS envelope.
+A contact along a direction whose components cancel in the sum (1, -1, 0) is seen weakly:
+the paper's choice, kept so that live and evaluated figures agree.
+An event starts where the envelope crosses a threshold fixed beforehand from no-contact
+data (`no_contact_threshold`); above-threshold samples less than `refractory_s` after the
+previous ones belong to the same event. Each event is reported `report_after_s` after its
+crossing, without waiting for its end:
+
+- onset: the first sample, at most `lookback_s` before the crossing, where the envelope
+  reaches `onset_fraction` of its peak so far (constant-fraction timing, as the
+  evaluation's detector);
+- peak: the band-passed vector at the sample of largest magnitude from the onset to the
+  report (its components keep their signs: the contact's direction), in the sensor
+  field's unit; strength: the envelope's peak.
+
+So an event is out `report_after_s` (10 ms) after its crossing, whatever its length. The
+input may be the raw stream, the denoiser's drop-in output or its band-passed output (the
+band-pass is applied in every case; thresholds must come from data processed alike).
+State is explicit: any chunking gives the same events.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from egovib_ros.core.filters import BandPass
+from egovib_ros.errors import ConfigError
+
+ENVELOPE_S = 0.004  # RMS window: shorter than a tap's ring-down, longer than a noise spike
+REFRACTORY_S = 0.05
+ONSET_FRACTION = 0.25
+THRESHOLD_MARGIN = 1.1  # no false-alarm budget: 1.1 x the largest no-contact envelope
+
+
+@dataclass(frozen=True, kw_only=True)
+class ContactSettings:
+    """How events are found; validated on construction (one-line ConfigError)."""
+
+    sample_rate_hz: float
+    band_hz: tuple[float, float]
+    band_order: int = 4
+    threshold: float  # on the envelope, in the sensor field's unit
+    envelope_s: float = ENVELOPE_S
+    refractory_s: float = REFRACTORY_S
+    onset_fraction: float = ONSET_FRACTION
+    report_after_s: float = 0.010
+    lookback_s: float = 0.010
+
+    def __post_init__(self) -> None:
+        for name in ("sample_rate_hz", "threshold", "envelope_s", "refractory_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"contact detector: {name} must be a number > 0, got {value!r}")
+        for name in ("report_after_s", "lookback_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0 <= value <= 1.0):
+                raise ConfigError(f"contact detector: {name} must be in [0, 1] s, got {value!r}")
+        if not 0 < self.onset_fraction <= 1:
+            raise ConfigError(
+                f"contact detector: onset_fraction must be in (0, 1], got {self.onset_fraction!r}"
+            )
+
+    def samples(self, seconds: float) -> int:
+        return max(1, int(round(seconds * self.sample_rate_hz)))
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    onset_ns: int  # stamp of the onset sample
+    peak: tuple[float, float, float]  # band-passed vector at the event's largest sample
+    strength: float  # envelope peak (what was thresholded)
+    crossing_ns: int  # stamp where the envelope crossed the threshold
+    report_ns: int  # stamp of the sample after which the event was reported
+
+
+class DetectionEnvelope:
+    """The signal the detector thresholds, as a stream: the three axes band-passed, then the
+    causal RMS of their sum over `envelope_s`. `process` returns (band-passed axes (N, 3),
+    envelope (N,)); any chunking gives the same samples."""
+
+    def __init__(self, settings: ContactSettings):
+        self._band = BandPass(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            order=settings.band_order,
+            n_channels=3,
+        )
+        n = settings.samples(settings.envelope_s)
+        self._b, self._zi = np.full(n, 1.0 / n), np.zeros(n - 1)
+
+    def process(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        values = np.asarray(values, np.float64).reshape(-1, 3)
+        if not len(values):
+            return np.zeros((0, 3)), np.zeros(0)
+        axes = self._band.process(values.T).T
+        power, self._zi = signal.lfilter(self._b, [1.0], axes.sum(axis=1) ** 2, zi=self._zi)
+        return axes, np.sqrt(np.maximum(power, 0.0))
+
+
+class ContactDetector:
+    """Streaming contact-event detector (see the module doc).
+
+    >>> detector = ContactDetector(ContactSettings(sample_rate_hz=3000, band_hz=(150, 750),
+    ...                                           threshold=0.4))
+    >>> events = detector.push(stamps_ns, values)   # (N,), (N, 3): any chunk sizes
+    >>> events += detector.finish()
+    """
+
+    def __init__(self, settings: ContactSettings):
+        self.s = settings
+        self._envelope = DetectionEnvelope(settings)
+        self._gap = settings.samples(settings.refractory_s)
+        self._after = settings.samples(settings.report_after_s)
+        self._back = settings.samples(settings.lookback_s)
+        # history of the last samples (for onsets and peaks): global index of its first row
+        self._base = 0
+        self._stamps = np.zeros(0, np.int64)
+        self._env = np.zeros(0)
+        self._axes = np.zeros((0, 3))
+        self._last_above: int | None = None  # global index of the last above-threshold sample
+        self._pending: list[int] = []  # crossings whose report is not due yet
+        self.samples = 0
+        self.events = 0
+
+    def push(self, stamps_ns: np.ndarray, values: np.ndarray) -> list[ContactEvent]:
+        """Events reported by the end of these samples (stamps (N,), values (N, 3))."""
+        stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
+        values = np.asarray(values, np.float64).reshape(-1, 3)
+        if not len(stamps_ns):
+            return []
+        axes, envelope = self._envelope.process(values)
+        start = self._base + len(self._stamps)
+        self._stamps = np.concatenate([self._stamps, stamps_ns])
+        self._env = np.concatenate([self._env, envelope])
+        self._axes = np.concatenate([self._axes, axes])
+        for i in (np.flatnonzero(envelope > self.s.threshold) + start).tolist():
+            if self._last_above is None or i - self._last_above >= self._gap:
+                self._pending.append(i)
+            self._last_above = i
+        self.samples += len(stamps_ns)
+        events = self._report(final=False)
+        self._trim()
+        return events
+
+    def finish(self) -> list[ContactEvent]:
+        """End of stream: events whose report falls after the last sample, reported now."""
+        return self._report(final=True)
+
+    def _report(self, *, final: bool) -> list[ContactEvent]:
+        end = self._base + len(self._stamps)  # global index past the last sample
+        events = []
+        while self._pending and (final or self._pending[0] + self._after <= end):
+            crossing = self._pending.pop(0)
+            report = min(crossing + self._after, end)
+            first = max(crossing - self._back, self._base)
+            env = self._env[first - self._base : report - self._base]
+            running = np.maximum.accumulate(env)
+            onset = first + int(np.argmax(env >= self.s.onset_fraction * running[-1]))
+            axes = self._axes[onset - self._base : report - self._base]
+            peak = axes[int(np.argmax(np.square(axes).sum(axis=1)))]
+            events.append(
+                ContactEvent(
+                    onset_ns=int(self._stamps[onset - self._base]),
+                    peak=tuple(float(v) for v in peak),
+                    strength=float(running[-1]),
+                    crossing_ns=int(self._stamps[crossing - self._base]),
+                    report_ns=int(self._stamps[report - 1 - self._base]),
+                )
+            )
+        self.events += len(events)
+        return events
+
+    def _trim(self) -> None:
+        """Keep what a pending or a future event may still look back at."""
+        end = self._base + len(self._stamps)
+        keep_from = end - self._back - self._after
+        if self._pending:
+            keep_from = min(keep_from, self._pending[0] - self._back)
+        cut = max(0, keep_from - self._base)
+        if cut > 4096:
+            self._stamps, self._env, self._axes = (
+                self._stamps[cut:],
+                self._env[cut:],
+                self._axes[cut:],
+            )
+            self._base += cut
+
+
+def detection_envelope(values: np.ndarray, settings: ContactSettings) -> np.ndarray:
+    """The envelope the detector thresholds, of whole arrays (for thresholds)."""
+    return DetectionEnvelope(settings).process(values)[1]
+
+
+def no_contact_threshold(
+    envelope: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    false_alarms_per_min: float = 0.0,
+    refractory_s: float = REFRACTORY_S,
+    margin: float = THRESHOLD_MARGIN,
+) -> tuple[float, float]:
+    """(threshold, false alarms per minute it gives on these data) from the detection
+    envelope of no-contact data. With no budget (or too little data for one false alarm),
+    `margin` x the largest envelope (no event on the data); else the level of the
+    (k + 1)-th largest envelope peak (peaks `refractory_s` apart), k = budget x minutes."""
+    envelope = np.asarray(envelope, np.float64)
+    if not envelope.size:
+        raise ConfigError("no no-contact samples to set a detection threshold from")
+    minutes = envelope.size / sample_rate_hz / 60.0
+    allowed = int(math.floor(false_alarms_per_min * minutes))
+    gap = max(1, int(round(refractory_s * sample_rate_hz)))
+    peaks = np.sort(envelope[signal.find_peaks(envelope, distance=gap)[0]])[::-1]
+    if allowed < 1 or allowed >= len(peaks):
+        threshold = margin * float(envelope.max())
+    else:
+        threshold = float(peaks[allowed])
+    rate = float(np.count_nonzero(peaks > threshold)) / minutes if minutes > 0 else 0.0
+    return threshold, rate

@@ -1,0 +1,791 @@
+"""Speed-locked harmonic cancellation: each actuator's vibration lines tracked and subtracted.
+
+A motor, gear or propeller shakes the sensor at frequencies proportional to its speed
+(gear mesh, commutation, blade pass). Where the paper subtracts a magnitude spectrum per
+block, this stage predicts each line sample by sample and subtracts it, so it neither
+delays the signal nor touches what is not a line (a contact event keeps its waveform).
+
+Per actuator (joint) j the map from speed to line frequency is
+
+    s_j      = |v_j| through a first-order lag, tau_up when speeding up, tau_down when
+               slowing down (a rotor's inertia; the joint state may lead the vibration)
+    f_l      = c_l * s_j ** p_j * (1 + d_j)      for each line l of joint j
+
+with coefficients c_l (Hz per unit of speed**p_j: the line "orders", found from the
+data by `fit_harmonic_map`), exponent p_j, and d_j a bounded per-actuator frequency
+correction tracked online (the command or reported velocity is only a proxy of the
+real speed: a few % off, varying with load and battery). Lines above Nyquist need no
+special care: the reference oscillators run at the unfolded frequency, and sampling
+folds them exactly as it folds the vibration (a log decimated without anti-aliasing).
+
+Per line and channel, the amplitude and phase are two weights on cos/sin references,
+adapted by LMS (`tracking_hz` sets the notch-like bandwidth each line's tracker has).
+Per joint, a second-order phase-locked loop (`pll_hz`) moves the joint's phase and its
+correction d_j along the gradient of the squared error with respect to the phase of
+all its lines together (harmonics stay locked to each other). Robust to events: the
+error that drives both is clipped at `clip_sigma` times a running robust spread of the
+error, so a tap (far above the residual spread) barely moves the weights or the PLL.
+
+`HarmonicCanceller.process` keeps all state between calls (any chunking gives the same
+result, to the bit); the per-sample loop is compiled with numba (`cache=True`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+
+import numba
+import numpy as np
+
+from egovib_ros.errors import ConfigError, ModelFileError
+
+TWO_PI = 2.0 * math.pi
+
+#: Exponents p tried when fitting the speed -> frequency map (1 = proportional, as a gear
+#: mesh; < 1 as a propeller whose speed saturates with command).
+EXPONENTS = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)
+#: Orders tried relative to a joint's strongest line: k / m for m = 1..4 (the strongest line
+#: may be a harmonic, and commutation lines sit between gear-mesh harmonics), 1/4 .. 8.
+ORDERS = tuple(
+    sorted(
+        {round(k / m, 6) for m in (1, 2, 3, 4) for k in range(1, 8 * m + 1) if 0.25 <= k / m <= 8}
+        - {1.0}
+    )
+)
+#: Seconds of a recording whose spectra find the strongest lines and the exponent.
+SPECTRA_SECONDS = 600.0
+#: Orders (ranked by how high they stand in the spectra) the refinement tries per joint.
+ORDER_CANDIDATES = 8
+#: Lags tried for speeding up / slowing down, seconds.
+LAGS_S = (0.0, 0.01, 0.02, 0.035, 0.05, 0.08)
+
+
+def fold(freq_hz, sample_rate_hz: float):
+    """Where a line at `freq_hz` appears when sampled at `sample_rate_hz` (no anti-aliasing)."""
+    f = np.mod(np.asarray(freq_hz, float), sample_rate_hz)
+    return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
+
+
+# --------------------------------------------------------------------------------------
+# The map
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class HarmonicMap:
+    """Per joint: exponent, lags, speed below which its lines are off; per line: the joint it
+    belongs to and its coefficient (Hz per unit speed**exponent). `line_score_db` is how far
+    above the local spectral floor the line stood in calibration (information only)."""
+
+    joint_names: tuple[str, ...]
+    exponent: np.ndarray  # (J,)
+    tau_up_s: np.ndarray  # (J,)
+    tau_down_s: np.ndarray  # (J,)
+    min_speed: np.ndarray  # (J,)
+    line_joint: np.ndarray  # (L,) int
+    line_coefficient: np.ndarray  # (L,) Hz per unit**exponent
+    line_score_db: np.ndarray  # (L,)
+    residual_rms: np.ndarray  # (C,) spread of the calibration signal per channel (x, y, z)
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        J = len(self.joint_names)
+        for name in ("exponent", "tau_up_s", "tau_down_s", "min_speed"):
+            value = np.asarray(getattr(self, name), float).reshape(-1)
+            if value.shape != (J,) or not np.all(np.isfinite(value)) or np.any(value < 0):
+                raise ModelFileError(f"harmonic map: {name} must hold {J} finite values >= 0")
+            set_(self, name, value)
+        if np.any(self.exponent <= 0) or np.any(self.exponent > 4):
+            raise ModelFileError("harmonic map: exponents must lie in (0, 4]")
+        line_joint = np.asarray(self.line_joint, np.int64).reshape(-1)
+        coefficient = np.asarray(self.line_coefficient, float).reshape(-1)
+        score = np.asarray(self.line_score_db, float).reshape(-1)
+        if not (len(line_joint) == len(coefficient) == len(score)):
+            raise ModelFileError("harmonic map: one joint, coefficient and score per line")
+        if np.any(line_joint < 0) or np.any(line_joint >= J):
+            raise ModelFileError("harmonic map: a line names a joint that does not exist")
+        if not np.all(np.isfinite(coefficient)) or np.any(coefficient <= 0):
+            raise ModelFileError("harmonic map: line coefficients must be finite and > 0")
+        rms = np.asarray(self.residual_rms, float).reshape(-1)
+        if not np.all(np.isfinite(rms)) or np.any(rms < 0):
+            raise ModelFileError("harmonic map: residual_rms must be finite and >= 0")
+        set_(self, "line_joint", line_joint)
+        set_(self, "line_coefficient", coefficient)
+        set_(self, "line_score_db", score)
+        set_(self, "residual_rms", rms)
+        set_(self, "joint_names", tuple(str(n) for n in self.joint_names))
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_lines(self) -> int:
+        return len(self.line_coefficient)
+
+    def frequencies(self, speed: np.ndarray) -> np.ndarray:
+        """(N, L) unfolded line frequencies for (N, J) lagged speeds (no correction)."""
+        speed = np.abs(np.atleast_2d(np.asarray(speed, float)))
+        g = speed[:, self.line_joint] ** self.exponent[self.line_joint]
+        g = np.where(speed[:, self.line_joint] > self.min_speed[self.line_joint], g, 0.0)
+        return g * self.line_coefficient
+
+    def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[prefix + f.name] = (
+                np.array([str(n) for n in value]) if f.name == "joint_names" else np.asarray(value)
+            )
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, prefix: str, *, where: str = "model") -> "HarmonicMap":
+        try:
+            values = {f.name: arrays[prefix + f.name] for f in fields(cls)}
+        except KeyError as exc:
+            raise ModelFileError(f"{where}: harmonic map lacks {exc.args[0]!r}") from None
+        values["joint_names"] = tuple(str(n) for n in np.asarray(values["joint_names"]).reshape(-1))
+        try:
+            return cls(**values)
+        except ModelFileError as exc:
+            raise ModelFileError(f"{where}: {exc}") from None
+
+    def describe(self) -> dict:
+        lines = []
+        for q in range(self.n_lines):
+            j = int(self.line_joint[q])
+            lines.append(
+                {
+                    "joint": self.joint_names[j],
+                    "coefficient_hz": round(float(self.line_coefficient[q]), 3),
+                    "score_db": round(float(self.line_score_db[q]), 1),
+                }
+            )
+        return {
+            "form": "f = coefficient * lag(|v|)**exponent * (1 + correction)",
+            "exponent": self.exponent.round(3).tolist(),
+            "tau_up_ms": (1e3 * self.tau_up_s).round(1).tolist(),
+            "tau_down_ms": (1e3 * self.tau_down_s).round(1).tolist(),
+            "lines": lines,
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Fitting the map from a no-contact recording (free motion or a sweep)
+# --------------------------------------------------------------------------------------
+@numba.njit(cache=True)
+def _lag_filter(speed, fs, tau_up, tau_down, start):
+    """First-order lag with separate time constants up / down, from `start`."""
+    out = np.empty_like(speed)
+    a_up = 1.0 - math.exp(-1.0 / (fs * tau_up)) if tau_up > 0 else 1.0
+    a_dn = 1.0 - math.exp(-1.0 / (fs * tau_down)) if tau_down > 0 else 1.0
+    s = start
+    for i in range(speed.shape[0]):
+        v = speed[i]
+        s += (a_up if v > s else a_dn) * (v - s)
+        out[i] = s
+    return out
+
+
+def _pieces(n: int, total: int, piece: int) -> np.ndarray:
+    """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
+    keep = np.zeros(n, bool)
+    if n <= total:
+        keep[:] = True
+        return keep
+    count = max(1, total // piece)
+    for start in np.linspace(0, n - piece, count).astype(np.int64):
+        keep[start : start + piece] = True
+    return keep
+
+
+def _window_spectra(
+    x: np.ndarray,
+    speed: np.ndarray,
+    min_speed: np.ndarray,
+    window: int,
+    nfft: int,
+    fs: float,
+    band_hz,
+):
+    """Log spectra of windows (hop window/2), summed over channels, relative to a floor:
+    the running median over ~1/6 of the band, or, where higher, the mean spectrum of the
+    windows in which no joint moves (lines that are there at rest - a fan's hum - are
+    background, whatever the joints do). Returns (window starts, (W, F) log ratios, freqs)."""
+    from scipy.ndimage import median_filter
+
+    hop = window // 2
+    starts = np.arange(0, len(x) - window + 1, hop)
+    taper = np.hanning(window)
+    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
+    power = np.zeros((len(starts), len(freqs)))
+    index = starts[:, None] + np.arange(window)[None, :]
+    for first in range(0, len(starts), 256):  # bounded memory
+        rows = index[first : first + 256]
+        for c in range(x.shape[1]):
+            frames = x[rows, c]
+            frames = frames - frames.mean(axis=1, keepdims=True)
+            power[first : first + 256] += np.abs(np.fft.rfft(frames * taper, nfft, axis=1)) ** 2
+    band = (freqs >= band_hz[0]) & (freqs <= band_hz[1])
+    width = max(3, int(round((band_hz[1] - band_hz[0]) / 6 / (freqs[1] - freqs[0]))) | 1)
+    floor = median_filter(power, size=(1, width), mode="nearest") + 1e-30
+    at_rest = (
+        np.all(speed[starts + window // 2] <= min_speed[None, :], axis=1)
+        if len(starts)
+        else np.zeros(0, bool)
+    )
+    if np.count_nonzero(at_rest) >= 5:
+        floor = np.maximum(floor, power[at_rest].mean(axis=0)[None, :])
+    ratio = np.log(power / floor + 1e-12)
+    ratio[:, ~band] = 0.0
+    return starts, ratio, freqs
+
+
+def _strongest_lines(
+    ratio, starts, freqs, speed, window, fs, band_hz, min_speed, exponents
+) -> list[tuple[float, float, float, int]]:
+    """Per joint: (score, exponent, coefficient, steady windows) of its strongest line.
+
+    In windows where joint j moves steadily, the spectrum's log height above its local
+    floor is read at fold(c * s**p) for a grid of coefficients c; a line of that joint is
+    a coefficient scoring high in every such window (lines of other joints move
+    differently and average out)."""
+    df = freqs[1] - freqs[0]
+    out = []
+    curves = []
+    for j in range(speed.shape[1]):
+        seg = (
+            np.stack([speed[s : s + window, j] for s in starts])
+            if len(starts)
+            else np.zeros((0, window))
+        )
+        mean_speed = seg.mean(axis=1) if len(seg) else np.zeros(0)
+        steady = (seg.std(axis=1) <= 0.05 * np.maximum(mean_speed, 1e-12)) & (
+            mean_speed > min_speed[j]
+        )
+        best = (0.0, 1.0, 0.0, int(steady.sum()))
+        curve = (np.ones(1), np.zeros(1))
+        g_all = mean_speed[steady]
+        if len(g_all) < 5:
+            out.append(best)
+            curves.append(curve)
+            continue
+        rows = ratio[steady]
+        for p in exponents:
+            g = g_all**p
+            # Lines up to 1.5 x the sample rate (folded once or twice: a log decimated
+            # without anti-aliasing); beyond, coincidences of folding would pass for lines.
+            coefficients = np.exp(
+                np.arange(math.log(band_hz[0] / g.max()), math.log(1.5 * fs / g.max()), 0.003)
+            )
+            f = fold(coefficients[None, :] * g[:, None], fs)  # (W, K)
+            inside = (f >= band_hz[0]) & (f <= band_hz[1])
+            idx = np.clip(np.rint(f / df).astype(np.int64), 0, ratio.shape[1] - 1)
+            values = np.take_along_axis(rows, idx, axis=1)
+            count = inside.sum(axis=0)
+            score = np.where(
+                count >= max(5, 0.2 * len(g)),
+                (values * inside).sum(axis=0) / np.maximum(count, 1),
+                0.0,
+            )
+            q = int(np.argmax(score))
+            if score[q] > best[0]:
+                best = (float(score[q]), p, float(coefficients[q]), int(steady.sum()))
+                curve = (coefficients, score)
+        out.append(best)
+        curves.append(curve)
+    return out, curves
+
+
+def fit_harmonic_map(
+    x: np.ndarray,
+    speed: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    band_hz: tuple[float, float],
+    joint_names: tuple[str, ...],
+    max_speed: np.ndarray,
+    settings: "CancellerSettings | None" = None,
+    max_lines_per_joint: int = 4,
+    min_score_db: float = 3.0,
+    min_gain_db: float = 0.05,
+    exponents: tuple[float, ...] = EXPONENTS,
+    lags_s: tuple[float, ...] = LAGS_S,
+    max_seconds: float = 20.0,
+    rounds: int = 2,
+) -> tuple[HarmonicMap, dict]:
+    """Fit the speed -> line-frequency map on no-contact data (free motion or a sweep).
+
+    x: (N, C) band-passed sensor channels; speed: (N, J) joint velocity held on the same
+    samples. First, per joint, the strongest line and the exponent from the spectra of
+    steady windows (`_strongest_lines`); a joint whose strongest line stands less than
+    `min_score_db` above the floor gets no line. Then the map is refined on what matters,
+    the canceller's own residual on this recording (mean power over channels, the first
+    10 % left out while the trackers settle): per joint in turn, add the line order (of
+    ORDERS, relative to the strongest line) that lowers the residual most while it gains
+    at least `min_gain_db`, then the best scale of its coefficients (+-10 % in 1 % steps),
+    exponent (the frequency at the joint's median speed kept), speed-up lag and slow-down
+    lag; `rounds` times over all joints. At most `max_seconds` of the recording are used
+    (evenly spaced 1 s pieces). Returns (map, info)."""
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    speed = np.abs(np.asarray(speed, float))
+    fs = float(sample_rate_hz)
+    n, J = speed.shape
+    if len(x) != n:
+        raise ConfigError(f"fit_harmonic_map: {len(x)} sensor samples but {n} speed samples")
+    settings = settings or CancellerSettings()
+    max_speed = np.asarray(max_speed, float).reshape(-1)
+    x = np.ascontiguousarray(x)
+    speed = np.ascontiguousarray(speed)
+    min_speed = 0.05 * max_speed
+    residual_rms = np.sqrt(np.mean(x**2, axis=0)) if n else np.zeros(x.shape[1])
+    window = int(2 ** round(math.log2(0.128 * fs)))
+    # Spectra of at most SPECTRA_SECONDS (pieces of 8 windows spread over the recording).
+    keep = _pieces(n, int(SPECTRA_SECONDS * fs), 8 * window)
+    starts, ratio, freqs = _window_spectra(
+        x[keep], speed[keep], min_speed, window, 4 * window, fs, band_hz
+    )
+    strongest, curves = _strongest_lines(
+        ratio, starts, freqs, speed[keep], window, fs, band_hz, min_speed, exponents
+    )
+    # The refinement runs the canceller on at most `max_seconds` (0.5 s pieces spread over
+    # the recording: a sweep keeps every cell).
+    keep = _pieces(n, int(max_seconds * fs), int(0.5 * fs))
+    x, speed = np.ascontiguousarray(x[keep]), np.ascontiguousarray(speed[keep])
+    n = len(x)
+    db = 10.0 / math.log(10.0)
+    # The map as lists per joint: orders (relative to the strongest line), coefficient, p, lags.
+    joints = []
+    for j, (score, p, coefficient, _) in enumerate(strongest):
+        has = score * db >= min_score_db
+        # Orders worth trying: those whose line stands highest in the same spectra.
+        grid, curve = curves[j]
+        ranked = []
+        for order in ORDERS if has else ():
+            near = np.abs(np.log(grid / (order * coefficient))) <= 0.01
+            if near.any():
+                ranked.append((float(curve[near].max()), order))
+        candidates = [o for _, o in sorted(ranked, reverse=True)[:ORDER_CANDIDATES]]
+        joints.append(
+            {
+                "orders": [1.0] if has else [],
+                "c": coefficient,
+                "p": p,
+                "up": 0.02,
+                "down": 0.02,
+                "score": score * db,
+                "candidates": candidates,
+            }
+        )
+    settle = n // 10
+    # Without the frequency correction: it would make up for a wrong map and flatten the cost.
+    fit_settings = dataclasses.replace(settings, pll_hz=0.0)
+
+    def build(js) -> HarmonicMap:
+        lj, lc = [], []
+        for j, d in enumerate(js):
+            lj += [j] * len(d["orders"])
+            lc += [o * d["c"] for o in d["orders"]]
+        return HarmonicMap(
+            joint_names=tuple(joint_names),
+            exponent=np.array([d["p"] for d in js]),
+            tau_up_s=np.array([d["up"] for d in js]),
+            tau_down_s=np.array([d["down"] for d in js]),
+            min_speed=min_speed,
+            line_joint=np.array(lj, np.int64),
+            line_coefficient=np.array(lc, float),
+            line_score_db=np.zeros(len(lc)),
+            residual_rms=residual_rms,
+        )
+
+    def cost(js) -> float:
+        canceller = HarmonicCanceller(
+            build(js),
+            sample_rate_hz=fs,
+            band_hz=band_hz,
+            n_channels=x.shape[1],
+            settings=fit_settings,
+        )
+        r = canceller.process(x, speed)[settle:]
+        return float(np.mean(r**2)) + 1e-300
+
+    evaluations = 0
+    current = cost(joints)
+    start_cost = current
+    with_lines = [j for j, d in enumerate(joints) if d["orders"]]
+    alike = False
+    if len(with_lines) > 1:
+        # Alike actuators (a multirotor's motors): every joint with the best joint's line.
+        best_j = max(with_lines, key=lambda j: joints[j]["score"])
+        shared = [
+            dict(d, c=joints[best_j]["c"], p=joints[best_j]["p"]) if d["orders"] else dict(d)
+            for d in joints
+        ]
+        value = cost(shared)
+        evaluations += 1
+        if value < current:
+            current, joints, alike = value, shared, True
+    moving = [speed[:, j] > min_speed[j] for j in range(J)]
+    median_speed = [float(np.median(speed[m, j])) if m.any() else 1.0 for j, m in enumerate(moving)]
+
+    def try_all(changes) -> bool:
+        """changes: list of {joint: {field: value}}; keep the best if it gains enough."""
+        nonlocal current, joints, evaluations
+        best = None
+        for change in changes:
+            trial = [dict(d, **change.get(j, {})) for j, d in enumerate(joints)]
+            value = cost(trial)
+            evaluations += 1
+            if best is None or value < best[0]:
+                best = (value, trial)
+        if best is not None and db * math.log(current / best[0]) >= min_gain_db:
+            current, joints = best
+            return True
+        return False
+
+    # Alike actuators are refined together first, then each on its own.
+    groups = ([with_lines] if alike else []) + [[j] for j in with_lines]
+    for _ in range(rounds):
+        for group in groups:
+            while max(len(joints[j]["orders"]) for j in group) < max_lines_per_joint:
+                tried = sorted({o for j in group for o in (1.0, *joints[j]["candidates"])})
+                missing = [o for o in tried if all(o not in joints[j]["orders"] for j in group)]
+                if not try_all(
+                    [{j: {"orders": joints[j]["orders"] + [o]} for j in group} for o in missing]
+                ):
+                    break
+            try_all(
+                [
+                    {j: {"c": joints[j]["c"] * (1 + k / 100)} for j in group}
+                    for k in range(-10, 11)
+                    if k
+                ]
+            )
+            try_all(
+                [
+                    {j: {"c": joints[j]["c"] * (1 + k / 400)} for j in group}
+                    for k in range(-4, 5)
+                    if k
+                ]
+            )
+            # Exponent and scale together (the frequency at the median speed kept, then +-3 %).
+            try_all(
+                [
+                    {
+                        j: {
+                            "p": p,
+                            "c": joints[j]["c"]
+                            * median_speed[j] ** (joints[j]["p"] - p)
+                            * (1 + k / 200),
+                        }
+                        for j in group
+                    }
+                    for p in exponents
+                    if p != joints[group[0]]["p"]
+                    for k in range(-6, 7)
+                ]
+            )
+            try_all([{j: {"up": tau} for j in group} for tau in lags_s])
+            try_all([{j: {"down": tau} for j in group} for tau in lags_s])
+    hmap = build(joints)
+    info = {
+        "residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / current), 2)
+        if n > settle
+        else 0.0,
+        "start_residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / start_cost), 2)
+        if n > settle
+        else 0.0,
+        "evaluations": evaluations,
+        "seconds_used": round(n / fs, 1),
+        "alike_joints": alike,
+        "joints": {
+            # Orders relative to the joint's lowest line (its "fundamental").
+            joint_names[j]: {
+                "orders": sorted(round(o / min(d["orders"]), 4) for o in d["orders"])
+                if d["orders"]
+                else [],
+                "coefficient_hz": round(d["c"] * min(d["orders"]), 2) if d["orders"] else None,
+                "exponent": d["p"],
+                "tau_up_ms": 1e3 * d["up"],
+                "tau_down_ms": 1e3 * d["down"],
+                "strongest_line_db": round(d["score"], 1),
+            }
+            for j, d in enumerate(joints)
+        },
+    }
+    scores = (
+        np.concatenate([[joints[j]["score"]] * len(joints[j]["orders"]) for j in range(J)])
+        if hmap.n_lines
+        else np.zeros(0)
+    )
+    return dataclasses.replace(hmap, line_score_db=scores), info
+
+
+# --------------------------------------------------------------------------------------
+# The canceller
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, kw_only=True)
+class CancellerSettings:
+    """tracking_hz: bandwidth of each line's amplitude/phase tracker (LMS step
+    2 pi tracking_hz / fs); pll_hz: natural frequency of each joint's phase-locked loop
+    (0: no correction, the map alone); pll_damping: its damping ratio; max_correction:
+    bound of the per-joint relative frequency correction; clip_sigma: the error driving the
+    trackers is clipped at this many running spreads (events do not drag them);
+    spread_s: time constant of that running spread."""
+
+    tracking_hz: float = 8.0
+    pll_hz: float = 2.0
+    pll_damping: float = 1.0
+    max_correction: float = 0.2
+    clip_sigma: float = 2.5
+    spread_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        for name, low, high in (
+            ("tracking_hz", 0.0, 1000.0),
+            ("pll_hz", 0.0, 100.0),
+            ("pll_damping", 0.05, 10.0),
+            ("max_correction", 0.0, 0.5),
+            ("clip_sigma", 0.5, 100.0),
+            ("spread_s", 1e-3, 100.0),
+        ):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (low <= value <= high)
+            ):
+                raise ConfigError(
+                    f"canceller: {name} must be a number in [{low:g}, {high:g}], got {value!r}"
+                )
+
+    def gains(self, sample_rate_hz: float) -> tuple[float, float, float, float]:
+        """(LMS step, PLL proportional gain, PLL integral gain, spread rate) per sample."""
+        mu = TWO_PI * self.tracking_hz / sample_rate_hz
+        wn = TWO_PI * self.pll_hz / sample_rate_hz
+        return (
+            mu,
+            2.0 * self.pll_damping * wn,
+            wn * wn,
+            1.0 - math.exp(-1.0 / (self.spread_s * sample_rate_hz)),
+        )
+
+
+@numba.njit(cache=True, fastmath=True)
+def _cancel_kernel(
+    x,
+    speed,
+    known,
+    fs,
+    exponent,
+    tau_up,
+    tau_down,
+    min_speed,
+    line_joint,
+    line_coef,
+    mu,
+    kp,
+    ki,
+    bound,
+    clip,
+    spread_rate,
+    f_lo,
+    f_hi,
+    lagged,
+    correction,
+    theta,
+    weights,
+    spread2,
+    out,
+):
+    """One pass over (n, C) band-passed samples; every state array is updated in place.
+    out[i, c] = x[i, c] - predicted lines. See the module docstring."""
+    n, C = x.shape
+    J = speed.shape[1]
+    L = line_coef.shape[0]
+    a_up = np.empty(J)
+    a_dn = np.empty(J)
+    for j in range(J):
+        a_up[j] = 1.0 - math.exp(-1.0 / (fs * tau_up[j])) if tau_up[j] > 0 else 1.0
+        a_dn[j] = 1.0 - math.exp(-1.0 / (fs * tau_down[j])) if tau_down[j] > 0 else 1.0
+    g = np.empty(J)
+    pd_num = np.empty(J)
+    pd_den = np.empty(J)
+    active = np.zeros(L, np.bool_)
+    cosv = np.empty(L)
+    sinv = np.empty(L)
+    nyquist = 0.5 * fs
+    for i in range(n):
+        for j in range(J):
+            v = abs(speed[i, j]) if known[i] else lagged[j]  # no joint state: hold the speed
+            lagged[j] += (a_up[j] if v > lagged[j] else a_dn[j]) * (v - lagged[j])
+            s = lagged[j]
+            g[j] = s ** exponent[j] if s > min_speed[j] else 0.0
+            pd_num[j] = 0.0
+            pd_den[j] = 0.0
+        for q in range(L):
+            j = line_joint[q]
+            rate = line_coef[q] * g[j] * (1.0 + correction[j])  # Hz, unfolded
+            folded = rate - fs * math.floor(rate / fs)
+            if folded > nyquist:
+                folded = fs - folded
+            active[q] = g[j] > 0.0 and folded >= f_lo and folded <= f_hi
+            t = theta[q] + rate / fs
+            theta[q] = t - math.floor(t)
+            cosv[q] = math.cos(TWO_PI * theta[q])
+            sinv[q] = math.sin(TWO_PI * theta[q])
+        for c in range(C):
+            estimate = 0.0
+            for q in range(L):
+                if active[q]:
+                    estimate += weights[c, q, 0] * cosv[q] + weights[c, q, 1] * sinv[q]
+            e = x[i, c] - estimate
+            out[i, c] = e
+            limit = clip * math.sqrt(spread2[c])
+            ec = min(max(e, -limit), limit)
+            spread2[c] += spread_rate * (ec * ec - spread2[c])
+            for q in range(L):
+                if active[q]:
+                    wa = weights[c, q, 0]
+                    wb = weights[c, q, 1]
+                    j = line_joint[q]
+                    # d(estimate)/d(joint phase): line phase = coefficient * joint phase.
+                    k = TWO_PI * line_coef[q]
+                    pd_num[j] += ec * k * (wb * cosv[q] - wa * sinv[q])
+                    pd_den[j] += 0.5 * k * k * (wa * wa + wb * wb)
+                    weights[c, q, 0] = wa + mu * ec * cosv[q]
+                    weights[c, q, 1] = wb + mu * ec * sinv[q]
+        if kp > 0.0:
+            noise = 0.0
+            for c in range(C):
+                noise += spread2[c]
+            for j in range(J):
+                if g[j] > 0.0 and pd_den[j] > 0.0:
+                    # Phase error of joint j (in joint-phase units), shrunk when its lines are weak.
+                    err = pd_num[j] / (pd_den[j] + noise)
+                    for q in range(L):
+                        if line_joint[q] == j:
+                            t = theta[q] + kp * err * line_coef[q]
+                            theta[q] = t - math.floor(t)
+                    correction[j] += ki * err * fs / g[j]
+                    if correction[j] > bound:
+                        correction[j] = bound
+                    elif correction[j] < -bound:
+                        correction[j] = -bound
+    return out
+
+
+@dataclass
+class CancellerState:
+    """Everything the canceller carries between chunks."""
+
+    lagged: np.ndarray  # (J,) lagged speed
+    correction: np.ndarray  # (J,) relative frequency correction
+    theta: np.ndarray  # (L,) line phase, cycles
+    weights: np.ndarray  # (C, L, 2) cos/sin weights
+    spread2: np.ndarray  # (C,) running robust error variance
+
+    def copy(self) -> "CancellerState":
+        return CancellerState(*(np.array(getattr(self, f.name)) for f in fields(self)))
+
+
+class HarmonicCanceller:
+    """Streaming harmonic canceller for C channels keyed on J joint speeds.
+
+    process(x (n, C), speed (n, J)) -> residual (n, C); speed NaN = hold the last one.
+    The state is explicit (`state`), so any chunking gives the result of one call."""
+
+    def __init__(
+        self,
+        hmap: HarmonicMap,
+        *,
+        sample_rate_hz: float,
+        band_hz: tuple[float, float],
+        n_channels: int,
+        settings: CancellerSettings | None = None,
+        initial_spread: np.ndarray | None = None,
+    ):
+        self.map = hmap
+        self.settings = settings or CancellerSettings()
+        self.sample_rate_hz = float(sample_rate_hz)
+        self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+        self.n_channels = int(n_channels)
+        self._mu, self._kp, self._ki, self._spread_rate = self.settings.gains(self.sample_rate_hz)
+        if self.settings.pll_hz == 0.0:
+            self._kp = self._ki = 0.0
+        spread = (
+            np.full(
+                self.n_channels,
+                float(np.mean(hmap.residual_rms)) if hmap.residual_rms.size else 1.0,
+            )
+            if initial_spread is None
+            else np.asarray(initial_spread, float).reshape(-1)
+        )
+        if spread.shape != (self.n_channels,):
+            raise ConfigError(f"canceller: initial spread needs {self.n_channels} values")
+        self._initial_spread2 = np.maximum(spread, 1e-12) ** 2
+        self.state = self.initial_state()
+
+    def initial_state(self) -> CancellerState:
+        J, L = self.map.n_joints, self.map.n_lines
+        return CancellerState(
+            lagged=np.zeros(J),
+            correction=np.zeros(J),
+            theta=np.zeros(L),
+            weights=np.zeros((self.n_channels, L, 2)),
+            spread2=self._initial_spread2.copy(),
+        )
+
+    def reset(self) -> None:
+        self.state = self.initial_state()
+
+    def process(self, x: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        speed = np.ascontiguousarray(speed, dtype=np.float64)
+        if (
+            x.ndim != 2
+            or x.shape[1] != self.n_channels
+            or speed.shape != (len(x), self.map.n_joints)
+        ):
+            raise ConfigError(
+                f"canceller: expected ({len(x)}, {self.n_channels}) samples and "
+                f"({len(x)}, {self.map.n_joints}) speeds, got {x.shape} and {speed.shape}"
+            )
+        out = np.empty_like(x)
+        if len(x) == 0:
+            return out
+        known = np.all(np.isfinite(speed), axis=1)
+        if not known.all():
+            speed = np.where(known[:, None], speed, 0.0)
+        st = self.state
+        m = self.map
+        _cancel_kernel(
+            x,
+            speed,
+            known,
+            self.sample_rate_hz,
+            m.exponent,
+            m.tau_up_s,
+            m.tau_down_s,
+            m.min_speed,
+            m.line_joint,
+            m.line_coefficient,
+            self._mu,
+            self._kp,
+            self._ki,
+            float(self.settings.max_correction),
+            float(self.settings.clip_sigma),
+            self._spread_rate,
+            self.band_hz[0],
+            self.band_hz[1],
+            st.lagged,
+            st.correction,
+            st.theta,
+            st.weights,
+            st.spread2,
+            out,
+        )
+        return out

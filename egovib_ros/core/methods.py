@@ -1,0 +1,762 @@
+"""Denoising methods selectable by name: `paper`, `cancel`, `hybrid`.
+
+    paper   the paper's block spectral subtraction (core.subtraction.StreamingDenoiser):
+            block_length - 1 samples of delay (21 ms for the PR2, 32 ms for the quadcopter)
+    cancel  speed-locked harmonic cancellation (core.harmonic) on each band-passed axis:
+            no delay, removes the actuators' lines only, leaves everything else untouched
+    hybrid  cancel, then the low-latency gain (core.lowlatency) keyed on the velocity table
+            of what cancellation leaves: `lookahead_ms` of delay (4 ms by default)
+
+`cancel` and `hybrid` need what `calibrate_methods` fits on the calibration recording
+(the speed -> line-frequency map, the residual's velocity table, the gain's per-band
+oversubtraction and offset); it is stored in the noise model's `extras`, so one model
+file serves every method. All three have the same push interface (push_joint_states,
+push_sensor, flush -> DenoisedChunk; stats; delay_samples); `make_denoiser` builds one
+by name and `denoise_batch_method` runs whole arrays through it (as `feed` does for any
+consumer), so batch equals streaming for any chunking.
+
+Both new methods work on x, y and z separately (each axis has its own line weights,
+noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
+of the three cleaned axes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from egovib_ros.core.calibration import calibrate_arrays
+from egovib_ros.core.harmonic import (
+    CancellerSettings,
+    HarmonicCanceller,
+    HarmonicMap,
+    fit_harmonic_map,
+)
+from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, LowLatencyGain
+from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.core.sampleframer import SampleFramer
+from egovib_ros.core.stream import FramerSettings, feed
+from egovib_ros.core.subtraction import DenoisedChunk, StreamingDenoiser
+from egovib_ros.errors import ConfigError, ModelFileError, StreamError
+
+LOG = logging.getLogger("egovib_ros.core")
+
+METHODS = ("paper", "cancel", "hybrid")
+AXES = ("x", "y", "z")
+#: Keys of the noise model's extras written by calibrate_methods.
+HARMONIC_PREFIX = "harmonic."
+RESIDUAL_PREFIX = "residual."
+GAIN_PREFIX = "gain."
+CANCELLER_PREFIX = "canceller."
+GAIN_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(GainSettings))
+CANCELLER_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(CancellerSettings))
+#: Calibration samples the gain statistics skip while the trackers settle (seconds).
+SETTLE_S = 0.5
+#: Least expected residual power, dB below the channel and band's mean over measured cells.
+FLOOR_DB = 30.0
+
+
+def check_method(method: str) -> str:
+    if method not in METHODS:
+        raise ConfigError(f"method: expected one of {list(METHODS)}, got {method!r}")
+    return method
+
+
+# --------------------------------------------------------------------------------------
+# What the methods calibrate, stored in the model's extras
+# --------------------------------------------------------------------------------------
+def _settings_arrays(prefix: str, settings) -> dict[str, np.ndarray]:
+    out = {}
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        out[prefix + f.name] = np.array(np.nan if value is None else value)
+    return out
+
+
+def _settings_from(extras: dict, prefix: str, cls, where: str):
+    values = {}
+    for f in dataclasses.fields(cls):
+        key = prefix + f.name
+        if key not in extras:
+            continue  # written by an older version: the default
+        value = np.asarray(extras[key])
+        if value.ndim != 0 or value.dtype.kind not in "iuf":
+            raise ModelFileError(f"{where}: malformed field {key!r}")
+        number = float(value)
+        if f.name == "oversubtraction" and math.isnan(number):
+            values[f.name] = None
+        elif f.name == "bands":
+            values[f.name] = int(number)
+        else:
+            values[f.name] = number
+    try:
+        return cls(**values)
+    except ConfigError as exc:
+        raise ModelFileError(f"{where}: {exc}") from None
+
+
+@dataclass
+class MethodCalibration:
+    """What `cancel` and `hybrid` need beyond the paper's table."""
+
+    harmonic: HarmonicMap
+    canceller: CancellerSettings
+    residual: NoiseModel  # the velocity table of the cancellation residual (x, y, z)
+    gain: GainSettings
+    alpha: np.ndarray  # (3, B) per axis and band
+    bias: np.ndarray  # (3, B)
+    open_alpha: np.ndarray  # (3,) per axis
+    info: dict = dataclasses.field(default_factory=dict)
+
+    def to_extras(self) -> dict[str, np.ndarray]:
+        extras = self.harmonic.to_arrays(HARMONIC_PREFIX)
+        extras.update(_settings_arrays(CANCELLER_PREFIX, self.canceller))
+        extras.update(_settings_arrays(GAIN_PREFIX, self.gain))
+        r = self.residual
+        extras.update(
+            {
+                RESIDUAL_PREFIX + "cells": r.cells.astype(np.int32),
+                RESIDUAL_PREFIX + "mean": r.cell_mean,
+                RESIDUAL_PREFIX + "std": r.cell_std,
+                RESIDUAL_PREFIX + "counts": r.cell_counts,
+                RESIDUAL_PREFIX + "measured": np.array(r.measured),
+                GAIN_PREFIX + "alpha": self.alpha,
+                GAIN_PREFIX + "bias": self.bias,
+                GAIN_PREFIX + "open_alpha": self.open_alpha,
+            }
+        )
+        return extras
+
+    @classmethod
+    def from_model(cls, model: NoiseModel) -> "MethodCalibration":
+        where = model.provenance.get("path", "noise model")
+        extras = model.extras
+        if HARMONIC_PREFIX + "exponent" not in extras:
+            raise ModelFileError(
+                f"{where}: calibrated for the paper's method only; calibrate it with "
+                f"`egovib calibrate --methods hybrid` to use methods cancel and hybrid"
+            )
+        harmonic = HarmonicMap.from_arrays(extras, HARMONIC_PREFIX, where=where)
+        if harmonic.joint_names != model.joint_names:
+            raise ModelFileError(f"{where}: harmonic map joints differ from the model's")
+        canceller = _settings_from(extras, CANCELLER_PREFIX, CancellerSettings, where)
+        gain = _settings_from(extras, GAIN_PREFIX, GainSettings, where)
+        keys = [RESIDUAL_PREFIX + k for k in ("cells", "mean", "std", "counts", "measured")]
+        missing = [k for k in keys if k not in extras]
+        if missing:
+            raise ModelFileError(f"{where}: missing field(s) {missing}")
+        residual = NoiseModel(
+            grid=model.grid,
+            joint_names=model.joint_names,
+            cells=extras[keys[0]],
+            mean=extras[keys[1]],
+            std=extras[keys[2]],
+            counts=extras[keys[3]],
+            sample_rate_hz=model.sample_rate_hz,
+            block_length=model.block_length,
+            hop=model.hop,
+            window=model.window,
+            window_name=model.window_name,
+            band_hz=model.band_hz,
+            band_order=model.band_order,
+            channels=model.channels,
+            measured=str(extras[keys[4]]),
+            profile=model.profile,
+            provenance={**model.provenance, "path": f"{where} (residual table)"},
+        )
+        bands = gain.bands + 1
+        alpha = np.asarray(extras.get(GAIN_PREFIX + "alpha", np.zeros(0)), float)
+        bias = np.asarray(extras.get(GAIN_PREFIX + "bias", np.zeros(0)), float)
+        for name, value in (("alpha", alpha), ("bias", bias)):
+            if value.shape != (len(AXES), bands) or not np.all(np.isfinite(value)):
+                raise ModelFileError(f"{where}: gain {name} must be finite with shape (3, {bands})")
+        open_alpha = np.asarray(extras.get(GAIN_PREFIX + "open_alpha", np.ones(len(AXES))), float)
+        if open_alpha.shape != (len(AXES),) or not np.all(
+            np.isfinite(open_alpha) & (open_alpha > 0)
+        ):
+            raise ModelFileError(f"{where}: gain open_alpha must hold 3 positive values")
+        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha)
+
+
+@numba.njit(cache=True)
+def _multilinear(lower, frac, strides, table):
+    """Multilinear interpolation of a flattened grid table (cells, M) at R points given by
+    their lower grid index and fraction per joint (R, J): (R, M)."""
+    R, J = lower.shape
+    M = table.shape[1]
+    out = np.zeros((R, M))
+    for r in range(R):
+        for corner in range(1 << J):
+            weight = 1.0
+            index = 0
+            for j in range(J):
+                if (corner >> j) & 1:
+                    weight *= frac[r, j]
+                    index += (lower[r, j] + 1) * strides[j]
+                else:
+                    weight *= 1.0 - frac[r, j]
+                    index += lower[r, j] * strides[j]
+            if weight != 0.0:
+                for m in range(M):
+                    out[r, m] += weight * table[index, m]
+    return out
+
+
+class ResidualTable:
+    """Expected band powers of the residual at joint velocities, from the residual's
+    velocity table (Eq. 5/6 and the nearest-cell rules of NoiseModel): a block's expected
+    |X(f)|^2 = mean^2 + std^2, turned into each band's power by the bank's responses."""
+
+    def __init__(self, residual: NoiseModel, bank: FilterBank):
+        self.model = residual
+        self.channel_index = residual.channel_indices(AXES)
+        self.weights = bank.power_weights(residual.block_length, residual.window)  # (B, F)
+        self._dense = None
+        if residual.dense_ok:
+            mean = residual.table(self.channel_index, include_std=False)
+            high = residual.table(self.channel_index, include_std=True)
+            power = mean**2 + (high - mean) ** 2  # (grid..., C, F)
+            self._dense = np.ascontiguousarray(power @ self.weights.T)  # (grid..., C, B)
+            self._measured = residual.counts > 0
+        # A channel the joints never shake (an axis at rest reads a constant) has a table of
+        # zeros: keep every expected power at least FLOOR_DB below the channel's typical one.
+        cells = (
+            residual.cell_mean[:, self.channel_index, :] ** 2
+            + residual.cell_std[:, self.channel_index, :] ** 2
+        )
+        typical = (
+            (cells @ self.weights.T).mean(axis=0)
+            if len(cells)
+            else np.zeros((len(AXES), self.weights.shape[0]))
+        )
+        self.floor = np.maximum(typical * 10 ** (-FLOOR_DB / 10), 1e-300)
+        self._grids = residual.grid
+        self.samples_unmeasured = 0
+        self.samples_out_of_grid = 0
+
+    def powers(self, velocity: np.ndarray) -> np.ndarray:
+        """(n, J) velocities (NaN rows: no joint state) -> (n, 3, B) band powers (0 where NaN)."""
+        rows, index = self.rows(velocity)
+        return rows[index]
+
+    def rows(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The band powers once per run of equal velocities (joint states are held between
+        updates): ((R, 3, B) powers, (n,) row of each sample); a sample without joint
+        state gets a row of zeros (its gains stay open)."""
+        n = len(velocity)
+        ok = np.all(np.isfinite(velocity), axis=1)
+        change = np.ones(n, bool)
+        change[1:] = np.any(velocity[1:] != velocity[:-1], axis=1) | (ok[1:] != ok[:-1])
+        starts = np.flatnonzero(change)
+        index = np.cumsum(change) - 1
+        values = np.zeros((len(starts), len(AXES), self.weights.shape[0]))
+        known = ok[starts]
+        if known.any():
+            found, measured, outside = self._at(velocity[starts[known]])
+            values[known] = np.maximum(found, self.floor)
+            runs = np.diff(np.append(starts, n))[known]
+            self.samples_unmeasured += int(runs[~measured].sum())
+            self.samples_out_of_grid += int(runs[outside].sum())
+        return values, index
+
+    def _at(self, rows: np.ndarray):
+        if self._dense is None:
+            mean, outside, measured = self.model.lookup(rows, self.channel_index, include_std=False)
+            high, _, _ = self.model.lookup(rows, self.channel_index, include_std=True)
+            return (mean**2 + (high - mean) ** 2) @ self.weights.T, measured, outside
+        lower, frac = [], []
+        outside = np.zeros(len(rows), bool)
+        for j, g in enumerate(self._grids):
+            v = rows[:, j]
+            outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
+            position = np.interp(v, g, np.arange(len(g), dtype=float))
+            i0 = np.minimum(np.floor(position).astype(np.intp), len(g) - 2)
+            lower.append(i0)
+            frac.append(position - i0)
+        shape = self._dense.shape
+        J = len(self._grids)
+        flat = self._dense.reshape(int(np.prod(shape[:J])), -1)
+        strides = np.array([int(np.prod(shape[j + 1 : J])) for j in range(J)], np.int64)
+        values = _multilinear(
+            np.ascontiguousarray(np.stack(lower, axis=1), dtype=np.int64),
+            np.ascontiguousarray(np.stack(frac, axis=1)),
+            strides,
+            flat,
+        ).reshape((len(rows),) + shape[J:])
+        nearest = tuple(lo + (fr >= 0.5) for lo, fr in zip(lower, frac))
+        return values, self._measured[nearest], outside
+
+
+def _band_passed_calibration(
+    model: NoiseModel, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, source: str
+):
+    """Run the calibration recording through a SampleFramer: real samples only."""
+    settings = FramerSettings.for_model(
+        model, layout="per_axis", with_steadiness=False, source=source
+    )
+    framer = SampleFramer(settings, model.n_joints)
+    feed(
+        _Collector(framer),
+        sensor_stamps_ns,
+        accel,
+        joint_stamps_ns,
+        joint_velocity,
+        sample_rate_hz=model.sample_rate_hz,
+        joint_wait_s=settings.joint_wait_s,
+        chunk_s=10.0,
+    )
+    framer.flush()
+    batches = framer.pop()
+    stamps = np.concatenate([b.stamps_ns for b in batches]) if batches else np.zeros(0, np.int64)
+    values = np.concatenate([b.values for b in batches]) if batches else np.zeros((0, 3))
+    velocity = (
+        np.concatenate([b.velocity for b in batches]) if batches else np.zeros((0, model.n_joints))
+    )
+    return stamps, values, velocity
+
+
+class _Collector:
+    """feed() consumer that only pushes (the framer keeps what it releases)."""
+
+    def __init__(self, framer: SampleFramer):
+        self.framer = framer
+
+    def push_joint_states(self, stamps, velocity):
+        self.framer.push_joint_states(stamps, velocity)
+
+    def push_sensor(self, stamps, accel):
+        self.framer.push_sensor(stamps, accel)
+
+
+def calibrate_methods(
+    model: NoiseModel,
+    sensor_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    *,
+    canceller: CancellerSettings | None = None,
+    gain: GainSettings | None = None,
+    harmonic: HarmonicMap | None = None,
+    source: str = "",
+) -> tuple[NoiseModel, dict]:
+    """Fit what `cancel` and `hybrid` need on the calibration recording the paper's table
+    `model` came from (or any other no-contact recording of the robot); returns the model
+    with them in its extras, and what was fitted (for reports).
+
+    1. The speed -> line-frequency map (core.harmonic.fit_harmonic_map) on the band-passed
+       axes with each sample's held joint velocity.
+    2. The canceller runs over the recording; its residual gets its own velocity table
+       (the paper's calibration on it: same grid, blocks, sweep or free-motion rules).
+    3. The gain stage runs over the residual: `bias` = mean log of band power over the
+       table's prediction; `alpha` = the `opening_quantile` of that ratio once corrected.
+    `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
+    instead of fitting one."""
+    canceller = canceller or CancellerSettings()
+    gain = gain or GainSettings()
+    if model.profile is None:
+        raise ConfigError("calibrate_methods: the model carries no robot profile")
+    fs = model.sample_rate_hz
+    stamps, x, velocity = _band_passed_calibration(
+        model, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, source
+    )
+    real = stamps >= 0
+    known = real & np.all(np.isfinite(velocity), axis=1)
+    if np.count_nonzero(known) < 2 * model.block_length:
+        raise StreamError(
+            f"{source or 'calibration'}: too few samples with joint states to calibrate"
+        )
+    profile = model.profile
+    fit_info = {"given": True}
+    if harmonic is None:
+        harmonic, fit_info = fit_harmonic_map(
+            x[known],
+            velocity[known],
+            sample_rate_hz=fs,
+            band_hz=model.band_hz,
+            joint_names=model.joint_names,
+            max_speed=np.array(profile.max_speed, float),
+            settings=canceller,
+        )
+    cancel = HarmonicCanceller(
+        harmonic, sample_rate_hz=fs, band_hz=model.band_hz, n_channels=3, settings=canceller
+    )
+    residual = cancel.process(x, np.where(np.isfinite(velocity), velocity, np.nan))
+    residual_model, residual_stats = calibrate_arrays(
+        stamps[real],
+        residual[real],
+        joint_stamps_ns,
+        joint_velocity,
+        profile=profile,
+        sweep=model.measured if model.measured != "full" else "auto",
+        prefiltered=True,
+        source=source,
+    )
+    bank = FilterBank(
+        sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
+    )
+    table = ResidualTable(residual_model, bank)
+    noise = table.powers(velocity)
+    settle = min(int(SETTLE_S * fs), len(x) // 4)
+    use = known.copy()
+    use[:settle] = False
+    probe = LowLatencyGain(
+        bank, dataclasses.replace(gain, track_s=0.0, oversubtraction=1.0), n_channels=3
+    )
+    _, ratios = probe.process(residual, noise, collect=True)
+    ratios = ratios[:, :, :-1]
+    # Statistics where the table expects noise on that channel and band (an axis at rest
+    # reads a constant: no power, nothing to learn there).
+    usable = use[:, None, None] & (noise > 1.001 * table.floor[None]) & (ratios > 0)
+    logs = np.where(usable, np.clip(np.log(np.where(usable, ratios, 1.0)), -20.0, 20.0), 0.0)
+    bias = logs.sum(axis=0) / np.maximum(usable.sum(axis=0), 1)
+    probe = LowLatencyGain(
+        bank, dataclasses.replace(gain, oversubtraction=1.0), n_channels=3, bias=bias
+    )
+    _, ratios = probe.process(residual, noise, collect=True)
+    alpha = np.ones_like(bias)
+    for c in range(alpha.shape[0]):
+        for b in range(alpha.shape[1]):
+            values = ratios[usable[:, c, b], c, b]
+            values = values[np.isfinite(values) & (values > 0)]
+            if len(values):
+                alpha[c, b] = float(np.quantile(values, gain.opening_quantile))
+    # The opening score (largest P / (alpha N) over bands) of the calibration residual.
+    probe = LowLatencyGain(bank, gain, n_channels=3, alpha=alpha, bias=bias)
+    _, ratios = probe.process(residual, noise, collect=True)
+    open_alpha = np.ones(3)
+    for c in range(3):
+        values = ratios[usable[:, c].any(axis=1), c, -1]
+        values = values[np.isfinite(values) & (values > 0)]
+        if len(values):
+            open_alpha[c] = float(np.quantile(values, gain.open_quantile))
+    calibration = MethodCalibration(
+        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha
+    )
+    info = {
+        "harmonic": {**harmonic.describe(), "fit": fit_info},
+        "residual_table": residual_model.coverage(),
+        "residual_calibration": {k: v for k, v in residual_stats.items() if k != "rejected"},
+        "gain": {
+            "bands_hz": bank.centres_hz.round(1).tolist(),
+            "alpha_median": float(np.median(alpha)),
+            "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
+        },
+        "cancellation_db_on_calibration": round(
+            10
+            * math.log10(
+                float(np.mean(x[use] ** 2)) / max(float(np.mean(residual[use] ** 2)), 1e-300)
+            ),
+            2,
+        )
+        if use.any()
+        else 0.0,
+    }
+    extras = {**model.extras, **calibration.to_extras()}
+    return model.replace(extras=extras), info
+
+
+# --------------------------------------------------------------------------------------
+# The streaming denoisers
+# --------------------------------------------------------------------------------------
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every per-sample kernel now, on a few dummy
+    samples: the first compile takes seconds, which a live stream must not wait for."""
+    global _WARM
+    if _WARM:
+        return
+    hmap = HarmonicMap(
+        joint_names=("j",),
+        exponent=np.ones(1),
+        tau_up_s=np.zeros(1),
+        tau_down_s=np.zeros(1),
+        min_speed=np.zeros(1),
+        line_joint=np.zeros(1, np.int64),
+        line_coefficient=np.ones(1),
+        line_score_db=np.zeros(1),
+        residual_rms=np.ones(3),
+    )
+    HarmonicCanceller(hmap, sample_rate_hz=100.0, band_hz=(1.0, 40.0), n_channels=3).process(
+        np.zeros((2, 3)), np.ones((2, 1))
+    )
+    bank = FilterBank(sample_rate_hz=100.0, band_hz=(1.0, 40.0), bands=1)
+    LowLatencyGain(bank, GainSettings(), n_channels=3).process(np.zeros((2, 3)), np.ones((2, 3, 2)))
+    _multilinear(
+        np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.ones(1, np.int64), np.ones((2, 1))
+    )
+    _WARM = True
+
+
+class SampleMethodDenoiser:
+    """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
+    each push returns the samples that became final (DenoisedChunk; output sample k
+    carries input stamp k). `cancel` releases a sample as soon as its joint state is in;
+    `hybrid` `lookahead_ms` later (the algorithmic delay, `delay_samples`)."""
+
+    def __init__(
+        self,
+        model: NoiseModel,
+        *,
+        method: str = "hybrid",
+        channels: str = "per_axis",
+        joint_wait_s: float = 0.02,
+        max_hold_s: float = 0.05,
+        max_fill_samples: int = 8,
+        sample_rate_hz: float | None = None,
+        block_length: int | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        floor: float | None = None,
+        lookahead_ms: float | None = None,
+        source: str = "",
+    ):
+        if check_method(method) == "paper":
+            raise ConfigError(
+                "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"
+            )
+        if channels not in ("per_axis", "combined"):
+            raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
+        where = model.provenance.get("path", "model")
+        if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
+            raise StreamError(
+                f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
+                f"{model.sample_rate_hz:g} Hz ({where})"
+            )
+        if block_length is not None and block_length != model.block_length:
+            raise StreamError(
+                f"block length {block_length} differs from the model's {model.block_length} "
+                f"({where})"
+            )
+        if joint_names is not None and tuple(joint_names) != model.joint_names:
+            raise StreamError(
+                f"{where}: model joints {list(model.joint_names)} do not match the stream's "
+                f"{list(joint_names)}"
+            )
+        self.model = model
+        self.method = method
+        self.channels = channels
+        self.calibration = MethodCalibration.from_model(model)
+        warm_up()
+        cal = self.calibration
+        fs = model.sample_rate_hz
+        self.settings = FramerSettings.for_model(
+            model,
+            layout="per_axis",
+            max_fill_samples=max_fill_samples,
+            joint_wait_s=joint_wait_s,
+            max_hold_s=max_hold_s,
+            with_steadiness=False,
+            source=source,
+        )
+        self._framer = SampleFramer(self.settings, model.n_joints)
+        self._canceller = HarmonicCanceller(
+            cal.harmonic,
+            sample_rate_hz=fs,
+            band_hz=model.band_hz,
+            n_channels=3,
+            settings=cal.canceller,
+        )
+        self._gain = None
+        self._table = None
+        if method == "hybrid":
+            gain = cal.gain
+            if floor is not None:
+                gain = dataclasses.replace(gain, floor=floor)
+            if lookahead_ms is not None:
+                gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
+            bank = FilterBank(
+                sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
+            )
+            self._gain = LowLatencyGain(
+                bank, gain, n_channels=3, alpha=cal.alpha, bias=cal.bias, open_alpha=cal.open_alpha
+            )
+            self._table = ResidualTable(cal.residual, bank)
+        self.delay = self._gain.delay if self._gain is not None else 0
+        # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
+        self._lag_stamps = np.full(self.delay, -1, dtype=np.int64)
+        n_out = 3 if channels == "per_axis" else 1
+        self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
+        self.samples_out = 0
+        self.samples_no_joint_state = 0
+
+    # --- API -------------------------------------------------------------------
+    @property
+    def delay_samples(self) -> tuple[int, int]:
+        """(min, max) samples between a sample's arrival and its output (joint wait aside)."""
+        return self.delay, self.delay
+
+    @property
+    def delay_ms(self) -> float:
+        return 1e3 * self.delay / self.model.sample_rate_hz
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
+        self._framer.push_joint_states(stamps_ns, velocity)
+        return self._process(self._framer.pop())
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
+        return self._process(self._framer.pop())
+
+    def flush(self) -> DenoisedChunk:
+        self._framer.flush()
+        return self._process(self._framer.pop())
+
+    @property
+    def stats(self) -> dict:
+        s = self._framer.stats
+        out = {
+            "method": self.method,
+            "samples_in": s.samples_in,
+            "samples_out": self.samples_out,
+            "dropped_out_of_order": s.dropped_out_of_order,
+            "samples_bad": s.samples_bad,
+            "gap_filled_samples": s.gap_filled_samples,
+            "resets": s.resets,
+            "joint_states_in": s.joint_states_in,
+            "joint_states_dropped": s.joint_states_dropped,
+            "samples_no_joint_state": self._framer.samples_no_joint_state,
+            "rate_checked": self._framer.rate_checked,
+            "delay_samples": self.delay,
+            "frequency_correction": self._canceller.state.correction.round(4).tolist(),
+        }
+        if self._table is not None:
+            out["samples_unmeasured"] = self._table.samples_unmeasured
+            out["samples_out_of_grid"] = self._table.samples_out_of_grid
+        return out
+
+    # --- internals ---------------------------------------------------------------
+    def _process(self, batches) -> DenoisedChunk:
+        if not batches:
+            return self._empty
+        stamps_out, values_out = [], []
+        for batch in batches:
+            if len(batch):
+                s, v = self._run(batch.stamps_ns, batch.values, batch.velocity)
+                stamps_out.append(s)
+                values_out.append(v)
+            if batch.ends_segment and self.delay:
+                # Release the look-ahead with zeros after the last sample, then start afresh.
+                pad = np.zeros((self.delay, 3))
+                nan = np.full((self.delay, self.model.n_joints), np.nan)
+                s, v = self._run(np.full(self.delay, -1, np.int64), pad, nan)
+                stamps_out.append(s)
+                values_out.append(v)
+                self._gain.reset_signal()
+                self._lag_stamps[:] = -1
+        if not stamps_out:
+            return self._empty
+        chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
+        self.samples_out += len(chunk)
+        return chunk
+
+    def _run(self, stamps: np.ndarray, values: np.ndarray, velocity: np.ndarray):
+        residual = self._canceller.process(values, velocity)
+        if self._gain is not None:
+            rows, index = self._table.rows(velocity)
+            cleaned = self._gain.process(residual, rows, index=index)
+            stamps_all = np.concatenate([self._lag_stamps, stamps])
+            out_stamps = stamps_all[: len(stamps)]
+            self._lag_stamps = stamps_all[len(stamps) :]
+        else:
+            cleaned, out_stamps = residual, stamps
+        real = out_stamps >= 0
+        if self.channels == "combined":
+            cleaned = cleaned.sum(axis=1, keepdims=True)
+        return out_stamps[real], cleaned[real]
+
+
+def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):
+    """The streaming denoiser of `method` for `model` (same push interface for all).
+    Options the method does not take are refused (ConfigError naming them); an option at
+    the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
+    is no option. `cancel` and `hybrid` give the band-passed signal (their trackers run on
+    the band-passed axes): `output` "dropin" is the paper's only."""
+    check_method(method)
+    if method == "paper":
+        if options.pop("lookahead_ms", None) is not None:
+            raise ConfigError(
+                "method paper: lookahead_ms applies to `hybrid` only (paper: a block)"
+            )
+        if options.get("floor") is None:
+            options.pop("floor", None)
+        return StreamingDenoiser(model, output=output, **options)
+    if output == "dropin":
+        raise ConfigError(
+            f"output: dropin is made by method paper; method {method} gives the band-passed "
+            f"signal (output: bandpassed)"
+        )
+    defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0}
+    for name, value in defaults.items():
+        if name in options and options[name] == value:
+            del options[name]
+    paper_only = {"oversubtraction", "include_std", "rule", "joint_lag_s"} & set(options)
+    if paper_only:
+        raise ConfigError(f"method {method}: option(s) {sorted(paper_only)} apply to `paper` only")
+    return SampleMethodDenoiser(model, method=method, **options)
+
+
+def denoise_batch_method(
+    sensor_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    model: NoiseModel,
+    *,
+    method: str = "paper",
+    channels: str = "per_axis",
+    chunk_s: float = 30.0,
+    **options,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Whole arrays through the streaming denoiser of `method` (as denoise_batch does for
+    `paper`): (stamps (K,), values (K, C), stats)."""
+    denoiser = make_denoiser(model, method, channels=channels, **options)
+    chunks = feed(
+        denoiser,
+        sensor_stamps_ns,
+        accel,
+        joint_stamps_ns,
+        joint_velocity,
+        chunk_s=chunk_s,
+        sample_rate_hz=model.sample_rate_hz,
+        joint_wait_s=denoiser.settings.joint_wait_s,
+    )
+    chunks.append(denoiser.flush())
+    n_out = 3 if channels == "per_axis" else 1
+    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
+    values = np.concatenate([np.zeros((0, n_out))] + [c.values for c in chunks])
+    return stamps, values, denoiser.stats
+
+
+def method_delay_ms(model: NoiseModel, method: str, **options) -> float:
+    """Algorithmic delay of `method` for `model`, ms (the paper: a whole block)."""
+    check_method(method)
+    if method == "paper":
+        return 1e3 * (model.block_length - 1) / model.sample_rate_hz
+    if method == "cancel":
+        return 0.0
+    gain = MethodCalibration.from_model(model).gain
+    if options.get("lookahead_ms") is not None:
+        gain = dataclasses.replace(gain, lookahead_ms=options["lookahead_ms"])
+    return 1e3 * gain.delay_samples(model.sample_rate_hz) / model.sample_rate_hz
+
+
+__all__ = [
+    "METHODS",
+    "MAX_DELAY_MS",
+    "MethodCalibration",
+    "ResidualTable",
+    "SampleMethodDenoiser",
+    "calibrate_methods",
+    "check_method",
+    "denoise_batch_method",
+    "make_denoiser",
+    "method_delay_ms",
+    "warm_up",
+]

@@ -1,0 +1,244 @@
+"""From a sensor sample stream to band-passed samples, each with its joint velocity.
+
+The sample-by-sample counterpart of `stream.BlockFramer` for methods that work per
+sample (harmonic cancellation, the low-latency gain): the same input cleaning (the
+framer's `_Cleaner`: out-of-order samples dropped, non-finite or out-of-range samples
+treated as missing, gaps of up to `max_fill_samples` bridged by synthetic samples that
+are never output, longer gaps and clock jumps end the segment and restart the filter),
+the same band-pass with carried state, and the same rule for joint states: a sample is
+released once a joint state stamped at or after it has arrived, or `joint_wait_s` of
+sensor time later. Its velocity is the latest joint state at or before its stamp
+(zero-order hold), if that one is at most `max_hold_s` old; else NaN (no joint state:
+the methods pass the band-passed sample through, counted).
+
+Any chunking of either stream, pushed in the order `feed` uses (joint states up to a
+little past each sensor chunk first), releases the same samples with the same
+velocities as one push of everything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from egovib_ros.core.filters import BandPass
+from egovib_ros.core.stream import FramerSettings, FramerStats, _Cleaner
+
+RATE_CHECK_SAMPLES = 128
+
+
+@dataclass
+class SampleBatch:
+    """Samples released together, in order, all from one segment."""
+
+    stamps_ns: np.ndarray  # (n,) input stamp; -1 for a synthetic (gap-fill) sample
+    values: np.ndarray  # (n, 3) band-passed x, y, z
+    velocity: np.ndarray  # (n, J) held joint velocity, NaN where there is none
+    ends_segment: bool = False  # the last samples before a long gap, a clock jump or the end
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+
+class SampleFramer:
+    """Streaming: push joint states and sensor chunks in any sizes, `pop()` the released
+    samples as SampleBatch objects."""
+
+    def __init__(self, settings: FramerSettings, n_joints: int):
+        if settings.layout != "per_axis":
+            settings = dataclasses.replace(settings, layout="per_axis")
+        self.s = settings
+        self.n_joints = int(n_joints)
+        self.stats = FramerStats()
+        self._cleaner = _Cleaner(settings, self.stats)
+        self._bandpass = BandPass(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            order=settings.band_order,
+            n_channels=3,
+        )
+        self._joint_t = np.zeros(0, dtype=np.int64)
+        self._joint_v = np.zeros((0, self.n_joints))
+        # Pending samples of the open segment: stamp, effective time (synthetic samples get
+        # the time they stand for), band-passed values.
+        self._pend_t = np.zeros(0, dtype=np.int64)
+        self._pend_time = np.zeros(0, dtype=np.int64)
+        self._pend_x = np.zeros((0, 3))
+        self._closed: list[list] = []  # [stamps, times, values, wait_for_joints] of ended segments
+        self._ready: list[SampleBatch] = []
+        self._last_time: int | None = None  # effective time of the last real sample appended
+        self._segment_open = False  # samples appended since the segment started
+        self._rate_checked = False
+        self._rate_error = ""
+        self._rate_stamps: list[np.ndarray] = []
+        self._max_hold_ns = int(settings.max_hold_s * 1e9)
+        self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
+        self.samples_no_joint_state = 0
+
+    # --- input ---------------------------------------------------------------
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        velocity = np.asarray(velocity, dtype=np.float64)
+        if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
+            raise self.s.error(
+                f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
+                f"got {stamps_ns.shape} and {velocity.shape}"
+            )
+        self.stats.joint_states_in += len(stamps_ns)
+        if len(stamps_ns) == 0:
+            return
+        last = int(self._joint_t[-1]) if len(self._joint_t) else None
+        jump_ns = int(self.s.clock_jump_s * 1e9)
+        if last is not None and int(stamps_ns.min()) < last - jump_ns:
+            # The joint clock went back: finish what waits on the old clock, then forget it.
+            i = int(np.argmax(stamps_ns < last - jump_ns))
+            self.stats.joint_states_in -= len(stamps_ns)
+            self.push_joint_states(stamps_ns[:i], velocity[:i])
+            self._close_segment(wait_for_joints=False)
+            self._drain()
+            self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
+            self.stats.joint_states_in += len(stamps_ns) - i
+            self.push_joint_states(stamps_ns[i:], velocity[i:])
+            self.stats.joint_states_in -= len(stamps_ns) - i  # counted once, above
+            return
+        before = np.maximum.accumulate(
+            np.concatenate([[last if last is not None else np.iinfo(np.int64).min], stamps_ns[:-1]])
+        )
+        keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
+        self.stats.joint_states_dropped += int((~keep).sum())
+        if keep.any():
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
+            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
+        self._drain()
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        for segment in self._cleaner.segments(stamps_ns, accel):
+            self._check_rate(segment.stamps)
+            self._append(segment.stamps, segment.values)
+            if segment.ends_stream:
+                self._close_segment(wait_for_joints=segment.wait_for_joints)
+            self._drain()
+
+    def flush(self) -> None:
+        """End of stream: release everything pending (the last segment ends here)."""
+        self._close_segment(wait_for_joints=False)
+        self._drain(final=True)
+
+    def pop(self) -> list[SampleBatch]:
+        ready, self._ready = self._ready, []
+        return ready
+
+    @property
+    def rate_checked(self) -> bool:
+        return self._rate_checked and not self._rate_error
+
+    @property
+    def backlog(self) -> tuple[int, int]:
+        return len(self._pend_t), len(self._joint_t)
+
+    # --- internals -------------------------------------------------------------
+    def _check_rate(self, stamps: np.ndarray) -> None:
+        if self._rate_checked:
+            if self._rate_error:
+                raise self.s.error(self._rate_error)
+            return
+        self._rate_stamps.append(stamps[stamps >= 0])
+        seen = np.concatenate(self._rate_stamps)
+        if len(seen) < RATE_CHECK_SAMPLES:
+            return
+        measured = 1e9 / float(np.median(np.diff(seen)))
+        self._rate_checked = True
+        self._rate_stamps = []
+        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
+            self._rate_error = (
+                f"sensor stream runs at {measured:.0f} Hz but the model expects "
+                f"{self.s.sample_rate_hz:g} Hz"
+            )
+            raise self.s.error(self._rate_error)
+
+    def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        if len(stamps) == 0:
+            return
+        filtered = self._bandpass.process(np.array(values, dtype=np.float64).T).T
+        # Effective times: a synthetic sample stands one period after the one before it.
+        times = stamps.copy()
+        synthetic = np.flatnonzero(stamps < 0)
+        if len(synthetic):
+            period = int(round(self.s.period_ns))
+            for i in synthetic:
+                previous = times[i - 1] if i > 0 else self._last_time
+                times[i] = (previous if previous is not None else 0) + period
+        self._last_time = int(times[-1])
+        self._segment_open = True
+        self._pend_t = np.concatenate([self._pend_t, stamps])
+        self._pend_time = np.concatenate([self._pend_time, times])
+        self._pend_x = np.concatenate([self._pend_x, filtered])
+
+    def _close_segment(self, *, wait_for_joints: bool) -> None:
+        # Even when every sample of the segment is out already, its end is passed on (the
+        # methods flush what they hold back, e.g. a look-ahead).
+        if len(self._pend_t) or self._segment_open:
+            self._closed.append([self._pend_t, self._pend_time, self._pend_x, wait_for_joints])
+        self._segment_open = False
+        self._pend_t = self._pend_t[:0]
+        self._pend_time = self._pend_time[:0]
+        self._pend_x = self._pend_x[:0]
+        self._last_time = None
+        self._bandpass.reset()
+
+    def _drain(self, *, final: bool = False) -> None:
+        while self._closed:
+            stamps, times, values, wait = self._closed[0]
+            n = self._releasable(times, wait=wait and not final)
+            if n or not len(stamps):
+                self._emit(stamps[:n], times[:n], values[:n], ends=n == len(stamps))
+            if n < len(stamps):
+                self._closed[0][:3] = stamps[n:], times[n:], values[n:]
+                return
+            self._closed.pop(0)
+        if final or not len(self._pend_t):
+            return
+        n = self._releasable(self._pend_time, wait=True)
+        if n:
+            self._emit(self._pend_t[:n], self._pend_time[:n], self._pend_x[:n], ends=False)
+            self._pend_t, self._pend_time, self._pend_x = (
+                self._pend_t[n:],
+                self._pend_time[n:],
+                self._pend_x[n:],
+            )
+
+    def _releasable(self, times: np.ndarray, *, wait: bool) -> int:
+        """How many leading samples may be released (strictly in order)."""
+        if not wait or not len(times):
+            return len(times)
+        latest_joint = int(self._joint_t[-1]) if len(self._joint_t) else None
+        newest = self._cleaner.last_stamp
+        limit = newest - self._joint_wait_ns if newest is not None else None
+        n = 0
+        if latest_joint is not None:
+            n = int(np.searchsorted(times, latest_joint, side="right"))
+        if limit is not None:
+            n = max(n, int(np.searchsorted(times, limit, side="right")))
+        return n
+
+    def _emit(self, stamps, times, values, *, ends: bool) -> None:
+        index = np.searchsorted(self._joint_t, times, side="right") - 1
+        velocity = np.full((len(times), self.n_joints), np.nan)
+        have = index >= 0
+        if have.any():
+            fresh = have.copy()
+            fresh[have] = (times[have] - self._joint_t[index[have]]) <= self._max_hold_ns
+            velocity[fresh] = self._joint_v[index[fresh]]
+            self.samples_no_joint_state += int(np.count_nonzero(~fresh & (stamps >= 0)))
+        else:
+            self.samples_no_joint_state += int(np.count_nonzero(stamps >= 0))
+        self._ready.append(SampleBatch(stamps, values, velocity, ends_segment=ends))
+        if not len(times):
+            return
+        # Keep the joint state that holds for the next sample and anything after it.
+        cut = int(np.searchsorted(self._joint_t, times[-1], side="right")) - 1
+        if cut > 256:
+            self._joint_t = self._joint_t[cut:]
+            self._joint_v = self._joint_v[cut:]

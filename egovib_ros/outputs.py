@@ -1,0 +1,645 @@
+"""Outputs that never destroy what they did not create (INTERFACES.md section 3).
+
+Two steps, used by every command that writes:
+
+1. `prepare_output(path, force=..., inputs=..., kind=...)` BEFORE any work: refuses
+   `.`/`..` (and the working directory or its parents), an output that is, holds or
+   lies inside an input of the same run (always, even with --force), an existing
+   output without --force, an existing output that is not a previous output of ours
+   (even with --force), and an output that cannot be written (read-only directory or
+   file system: probed by creating a file there). Each refusal is an OutputError:
+   one line naming the option, the path and the problem (exit 2 in the CLI).
+   `prepare_outputs_in(directory, names, ...)` does the same for commands that write
+   named files into a directory (figures, gap validate).
+
+2. `atomic_output(path, directory=...)`: the output is written in a hidden staging
+   directory next to its target (`.NAME.PID.XXXX.partial`) and renamed into place
+   only when the block succeeds. An existing target is replaced only if it is of the
+   same type and, for a directory, recognisably ours. Directory outputs get a small
+   marker file (MARKER) listing the files we wrote, which is what makes them
+   recognisable (and replaceable with --force) later.
+
+Two runs never claim the same output: `prepare_output` takes an exclusive lock on the
+target (flock on `.NAME.egovib-lock` beside it) and holds it until `release_outputs()`
+(the CLI calls it when the command ends; atexit otherwise). A second run is refused at
+once with one line naming the run that holds it, rather than made to wait: after the
+wait it would find the output there and be refused anyway (or, with --force, silently
+replace what the first run just wrote).
+
+A write that fails for lack of space (or a quota, a file-size limit, a file system
+turned read-only) is an OutputError naming the output and the free space left; the
+staging directory goes at once, as for any failure inside `atomic_output`.
+
+Staging directories left by killed runs are removed on the next run that writes next
+to them, but only our own (they carry PARTIAL_MARKER, or have the exact shape the
+previous version left), only when older than the running process and only when the
+process that made them is gone.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import dataclasses
+import datetime as _dt
+import errno
+import fcntl
+import json
+import os
+import re
+import secrets
+import shutil
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+from egovib_ros.errors import EgovibError
+
+MARKER = ".egovib-output"  # JSON marker inside every directory output we write
+MARKER_SCHEMA = "egovib.output/1"
+PARTIAL_SUFFIX = ".partial"
+PARTIAL_MARKER = ".egovib-partial"  # JSON {pid, created} inside every staging directory
+LOCK_SUFFIX = ".egovib-lock"  # `.NAME.egovib-lock` beside an output: flocked while a run claims it
+# A write failing with these means the output's file system cannot take it (not bad code).
+_WRITE_FULL = {
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large for the file system",
+    errno.EROFS: "the file system became read-only",
+}
+GAP_REPORT_SCHEMA = "egovib.gap/1"
+MODEL_SCHEMA = "egovib.noise_model"
+
+# kind -> what the output is; directories and files never replace each other.
+DIRECTORY_KINDS = ("bag", "report", "directory")
+FILE_KINDS = ("model", "json", "file")
+
+# Files a gap report directory written before the marker existed may hold.
+_LEGACY_REPORT_FILE = re.compile(r"^(report\.json|report\.md|sim_updated\.yaml|[\w.-]+\.png)$")
+# Topics only our simulator, denoiser and sim recorders write (ground truth, denoised output).
+_OUR_BAG_TOPICS = ("/accelerometer/contact", "/accelerometer/ego", "/accelerometer/denoised")
+# Staging directory of the previous version: tempfile.mkdtemp(prefix=".NAME.", suffix=".partial").
+_LEGACY_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.partial$")
+_PARTIAL = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]{8}\.partial$")
+
+
+class OutputError(EgovibError):
+    """An output path is refused: it exists, is an input, is not ours, or cannot be written."""
+
+
+# --- checks done before any work ---------------------------------------------------------
+
+
+def prepare_output(
+    path: str | os.PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    kind: str = "file",
+    option: str = "--out",
+) -> Path:
+    """Check that `path` may be written by this run; raise OutputError (one line) if not.
+
+    inputs: paths this run reads (and other outputs of the same run): the output may
+        not be one of them, lie inside one, or hold one, whatever --force says.
+    kind: "bag" | "report" | "directory" (directories) or "model" | "json" | "file".
+        With --force an existing output is replaced only if it is a previous output of
+        ours of that type (see `_why_not_ours`).
+    Also removes our own stale staging directories next to the output.
+    Returns `path` as a Path.
+    """
+    if kind not in DIRECTORY_KINDS + FILE_KINDS:
+        raise ValueError(f"unknown output kind {kind!r}")
+    label = f"{option} {path}" if option else str(path)
+    target = _check_path_itself(path, label)
+    _check_not_an_input(target, inputs, label)
+    _check_existing(target, force, kind, label)
+    _check_writable(target, label)
+    claim_output(target, label)
+    try:  # again under the lock: a run that held it may have written the output meanwhile
+        _check_existing(target, force, kind, label)
+    except OutputError:
+        release_outputs(target)
+        raise
+    clean_stale_partials(target.parent)
+    return target
+
+
+def _check_existing(target: Path, force: bool, kind: str, label: str) -> None:
+    if os.path.lexists(target):
+        if not force:
+            raise OutputError(f"{label}: already exists (use --force to replace it)")
+        reason = _why_not_ours(target, kind)
+        if reason:
+            raise OutputError(f"{label}: {reason}; not replaced, even with --force")
+
+
+def prepare_outputs_in(
+    directory: str | os.PathLike,
+    names: Sequence[str],
+    *,
+    force: bool = False,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    option: str = "--out",
+) -> Path:
+    """Like prepare_output for a command that writes the files `names` into `directory`.
+
+    The directory itself may exist (it is added to, never replaced); each named file
+    that exists needs --force, and must then be a regular file (.json files: JSON).
+    """
+    label = f"{option} {directory}" if option else str(directory)
+    target = _check_path_itself(directory, label)
+    _check_not_an_input(target, inputs, label)
+    if os.path.lexists(target) and not target.is_dir():
+        raise OutputError(f"{label}: exists and is not a directory")
+    existing = [name for name in names if os.path.lexists(target / name)]
+    if existing and not force:
+        raise OutputError(f"{label}: already holds {', '.join(existing)} (use --force to replace)")
+    for name in existing:
+        reason = _why_not_ours(target / name, "json" if name.endswith(".json") else "file")
+        if reason:
+            raise OutputError(f"{label}: {name}: {reason}; not replaced, even with --force")
+    _check_writable(target / (names[0] if names else "x"), label)
+    claim_output(target, label)
+    if target.is_dir():
+        clean_stale_partials(target)
+    return target
+
+
+def _check_path_itself(path: str | os.PathLike, label: str) -> Path:
+    text = os.fspath(path)
+    if not text.strip():
+        raise OutputError(f"{label or 'output'}: empty path")
+    target = Path(text)
+    if (
+        target.name in ("", ".", "..")
+        or text.rstrip("/").endswith(("/.", "/.."))
+        or text.rstrip("/") in (".", "..")
+    ):
+        raise OutputError(
+            f"{label}: refusing to write to '.' or '..'; name a new file or directory"
+        )
+    resolved = _resolve(target)
+    cwd = _resolve(Path.cwd())
+    if resolved == cwd or resolved in cwd.parents or resolved == Path(resolved.anchor):
+        raise OutputError(
+            f"{label}: is the working directory or one of its parents; name a new file or directory"
+        )
+    return target
+
+
+def _resolve(path: Path) -> Path:
+    """Absolute path with symlinks resolved as far as the path exists."""
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def _check_not_an_input(
+    target: Path, inputs: Iterable[str | os.PathLike | None], label: str
+) -> None:
+    out = _resolve(target)
+    for item in inputs:
+        if item is None or not os.fspath(item):
+            continue
+        src = _resolve(Path(item))
+        same = out == src
+        if not same and os.path.exists(target) and os.path.exists(item):
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(target, item)  # hard links, bind mounts
+        if same:
+            raise OutputError(f"{label}: is {item}, an input of this run; refusing to overwrite it")
+        if src in out.parents:
+            raise OutputError(
+                f"{label}: lies inside {item}, an input of this run; write it elsewhere"
+            )
+        if out in src.parents:
+            raise OutputError(
+                f"{label}: holds {item}, an input of this run; refusing to replace it"
+            )
+
+
+def _check_writable(target: Path, label: str) -> None:
+    """Create (and remove) a probe file where the output will be written, with one block of
+    data in it: a full file system is refused here, before any work."""
+    parent = _resolve(target).parent
+    ancestor = parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OutputError(f"{label}: {ancestor} is not a directory")
+    probe = None
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".probe", dir=ancestor)
+        try:
+            os.write(fd, bytes(4096))
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        reason = "read-only file system" if exc.errno == errno.EROFS else (exc.strerror or str(exc))
+        raise OutputError(f"{label}: cannot write in {ancestor} ({reason})") from None
+    finally:
+        if probe is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(probe)
+
+
+# --- a stop requested by a signal ------------------------------------------------------------
+
+_STOP: list[type[BaseException]] = []
+
+
+def request_stop(exception: type[BaseException]) -> None:
+    """Record that the run must stop (the CLI's Ctrl-C and SIGTERM handlers call this before
+    raising `exception`). A library that swallows the exception (a bare `except:`, C code
+    clearing the error) cannot make the run commit an output anyway: `atomic_output`
+    raises it again instead of moving the output into place."""
+    if not _STOP:
+        _STOP.append(exception)
+
+
+def stop_requested() -> type[BaseException] | None:
+    return _STOP[0] if _STOP else None
+
+
+def clear_stop() -> None:
+    _STOP.clear()
+
+
+# --- one run per output ----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _Claim:
+    lock_path: Path
+    fd: int
+    made_dirs: list[Path]  # parent directories created for the lock file (removed if empty)
+
+
+_CLAIMS: dict[Path, _Claim] = {}
+
+
+def claim_output(target: str | os.PathLike, label: str = "") -> None:
+    """Take an exclusive lock on the output `target` for this run: `.NAME.egovib-lock`
+    beside it, flocked (released by the kernel if the process dies, whatever kills it).
+    Another process holding it: OutputError naming its pid. Missing parent directories
+    are created for the lock file and removed again on release if still empty. A claim
+    this process already holds is kept."""
+    key = _resolve(Path(target))
+    if key in _CLAIMS:
+        return
+    label = label or str(target)
+    made = _make_parents(key.parent, label)
+    lock_path = key.parent / f".{key.name}{LOCK_SUFFIX}"
+    try:
+        while True:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                holder = _lock_holder(fd)
+                os.close(fd)
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                    raise OutputError(
+                        f"{label}: cannot lock {lock_path} ({exc.strerror})"
+                    ) from None
+                raise OutputError(
+                    f"{label}: another egovib run{holder} is writing it; wait for it to end "
+                    f"or choose another output"
+                ) from None
+            # The run that held it removes the lock file as it ends: lock the file that is
+            # there now, not one already unlinked.
+            try:
+                here = os.stat(lock_path)
+                mine = os.fstat(fd)
+                if (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino):
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
+    except OSError as exc:
+        _remove_empty(made)
+        raise OutputError(f"{label}: cannot create {lock_path} ({exc.strerror})") from None
+    except BaseException:
+        _remove_empty(made)
+        raise
+    with contextlib.suppress(OSError):  # only for the message of a run refused; may not fit
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+    _CLAIMS[key] = _Claim(lock_path, fd, made)
+
+
+def release_outputs(*targets: str | os.PathLike) -> None:
+    """Release the claims on `targets` (all claims of this process if none given): the lock
+    file is removed, then unlocked; directories made for it go if empty."""
+    keys = [_resolve(Path(t)) for t in targets] if targets else list(_CLAIMS)
+    for key in keys:
+        claim = _CLAIMS.pop(key, None)
+        if claim is None:
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(claim.lock_path)
+        os.close(claim.fd)
+        _remove_empty(claim.made_dirs)
+
+
+atexit.register(release_outputs)
+
+
+def _lock_holder(fd: int) -> str:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return ""
+    return f" (pid {text})" if text.isdigit() else ""
+
+
+def _make_parents(directory: Path, label: str) -> list[Path]:
+    missing = []
+    while not directory.exists():
+        missing.append(directory)
+        directory = directory.parent
+    made = []
+    try:
+        for path in reversed(missing):
+            path.mkdir()
+            made.append(path)
+    except OSError as exc:
+        _remove_empty(made)
+        raise OutputError(f"{label}: cannot create {path} ({exc.strerror})") from None
+    return made
+
+
+def _remove_empty(directories: list[Path]) -> None:
+    for path in reversed(directories):
+        with contextlib.suppress(OSError):
+            path.rmdir()
+
+
+# --- what counts as ours -----------------------------------------------------------------
+
+
+def _why_not_ours(path: Path, kind: str) -> str | None:
+    """None if `path` is a previous output of ours that an output of `kind` may replace,
+    else a short reason."""
+    if kind in DIRECTORY_KINDS:
+        if path.is_symlink() or not path.is_dir():
+            return "exists and is not a directory"
+        return _why_not_our_directory(path)
+    if path.is_dir():
+        return "is a directory"
+    if kind == "model":
+        return None if _is_our_model(path) else "is not an egovib noise model"
+    if kind == "json":
+        try:
+            json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError):
+            return "is not a JSON file"
+    return None
+
+
+def _why_not_our_directory(path: Path) -> str | None:
+    files = _relative_files(path)
+    marker = _read_json(path / MARKER)
+    if isinstance(marker, dict) and marker.get("schema") == MARKER_SCHEMA:
+        ours = set(marker.get("files", [])) | {MARKER}
+        foreign = sorted(f for f in files if f not in ours)
+        if foreign:
+            return f"holds files egovib did not write ({_short_list(foreign)})"
+        return None
+    if not files:
+        return None  # an empty directory loses nothing
+    report = _read_json(path / "report.json")
+    if isinstance(report, dict) and report.get("schema") == GAP_REPORT_SCHEMA:
+        foreign = sorted(f for f in files if not _LEGACY_REPORT_FILE.match(f))
+        return f"holds files egovib did not write ({_short_list(foreign)})" if foreign else None
+    if _is_our_legacy_bag(path, files):
+        return None
+    return f"is not an egovib output (no {MARKER} marker; holds {_short_list(sorted(files))})"
+
+
+def _is_our_legacy_bag(path: Path, files: list[str]) -> bool:
+    """A bag written by egovib before the marker existed: nothing but metadata.yaml and its
+    storage files, with ground-truth or denoised topics that only egovib writes."""
+    try:
+        import yaml
+
+        meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        listed = {str(p) for p in meta.get("relative_file_paths", [])} | {"metadata.yaml"}
+        topics = {t["topic_metadata"]["name"] for t in meta.get("topics_with_message_count", [])}
+    except (OSError, KeyError, TypeError, ValueError, ImportError, AttributeError):
+        return False
+    except Exception:  # yaml.YAMLError and friends
+        return False
+    return set(files) <= listed and any(t in topics for t in _OUR_BAG_TOPICS)
+
+
+def _is_our_model(path: Path) -> bool:
+    try:
+        with zipfile.ZipFile(path) as zf:
+            if "schema.npy" not in zf.namelist():
+                return False
+        import numpy as np
+
+        with np.load(path, allow_pickle=False) as data:
+            return str(data["schema"]) == MODEL_SCHEMA
+    except Exception:  # any unreadable file is not ours
+        return False
+
+
+def _relative_files(path: Path) -> list[str]:
+    out = []
+    for root, dirs, names in os.walk(path):
+        for name in names + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+            out.append(os.path.relpath(os.path.join(root, name), path))
+    return out
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+
+
+def _short_list(items: list[str], limit: int = 3) -> str:
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more
+
+
+# --- writing -------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def atomic_output(
+    path: str | os.PathLike, *, directory: bool = False, kind: str | None = None
+) -> Iterator[Path]:
+    """Yield a temporary sibling path; move it onto `path` only if the block succeeds.
+
+    For `directory=True` (rosbag2 bags, report directories) the yielded path does not
+    exist yet, so writers that insist on creating the directory themselves can do so;
+    the marker listing its files is added before it is moved into place. An existing
+    `path` is replaced only if it has the same type and, for a directory, is ours;
+    otherwise OutputError and the new output is discarded.
+    """
+    final = Path(path)
+    parent = final.parent if str(final.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{final}: cannot create {parent} ({exc.strerror})") from None
+    clean_stale_partials(parent)
+    staging = _make_staging(parent, final.name)
+    tmp = staging / final.name
+    try:
+        yield tmp
+        if _STOP:  # Ctrl-C or SIGTERM came, and something swallowed what they raised
+            raise _STOP[0]()
+        if directory and tmp.is_dir():
+            _write_marker(tmp, kind)
+        _move_into_place(tmp, final, directory=directory, staging=staging)
+    except OSError as exc:
+        if exc.errno not in _WRITE_FULL:
+            raise
+        where = f"{_resolve(parent)}{_free_space(parent)}"
+        raise OutputError(f"{final}: not written: {_WRITE_FULL[exc.errno]} in {where}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _free_space(directory: Path) -> str:
+    """' (N MB free)' for the file system of `directory`, '' if unknown."""
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return ""
+    return f" ({st.f_bavail * st.f_frsize / 1e6:.1f} MB free)"
+
+
+def _make_staging(parent: Path, name: str) -> Path:
+    staging = parent / f".{name}.{os.getpid()}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+    try:
+        staging.mkdir()
+        (staging / PARTIAL_MARKER).write_text(
+            json.dumps({"pid": os.getpid(), "created": time.time()})
+        )
+    except OSError as exc:
+        shutil.rmtree(staging, ignore_errors=True)  # made, but its marker did not fit
+        raise OutputError(f"{parent / name}: cannot write in {parent} ({exc.strerror})") from None
+    return staging
+
+
+def _write_marker(directory: Path, kind: str | None) -> None:
+    from egovib_ros import __version__
+
+    files = sorted(_relative_files(directory))
+    marker = {
+        "schema": MARKER_SCHEMA,
+        "kind": kind or "directory",
+        "files": files,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "software_version": __version__,
+    }
+    (directory / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
+
+
+def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) -> None:
+    if not os.path.lexists(final):
+        os.replace(tmp, final)
+        return
+    if directory:
+        reason = _why_not_ours(final, "directory")
+        if reason:
+            raise OutputError(f"{final}: {reason}; not replaced")
+        # Old output aside first, new one in, then the old one goes: never neither.
+        old = staging / ".replaced"
+        os.replace(final, old)
+        try:
+            os.replace(tmp, final)
+        except OSError:
+            os.replace(old, final)
+            raise
+        return
+    if final.is_dir():
+        raise OutputError(f"{final}: is a directory; not replaced")
+    os.replace(tmp, final)
+
+
+# --- stale staging directories -----------------------------------------------------------
+
+
+def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
+    """Remove our own staging directories in `directory` left by runs that are gone.
+
+    Only directories we made (PARTIAL_MARKER inside, or the exact shape the previous
+    version left: `.NAME.XXXXXXXX.partial` holding nothing but NAME), only if older than
+    this process, and only if the process that made them no longer runs. Returns what
+    was removed.
+    """
+    directory = Path(directory)
+    removed = []
+    try:
+        entries = list(directory.iterdir())
+    except OSError:
+        return removed
+    started = process_start_time()
+    for entry in entries:
+        name = entry.name
+        if (
+            not (name.startswith(".") and name.endswith(PARTIAL_SUFFIX))
+            or entry.is_symlink()
+            or not entry.is_dir()
+        ):
+            continue
+        try:
+            if not _is_stale_partial(entry, started):
+                continue
+            shutil.rmtree(entry)
+            removed.append(entry)
+        except OSError:
+            continue  # read-only or racing: leave it
+    return removed
+
+
+def _is_stale_partial(entry: Path, started: float) -> bool:
+    marker = _read_json(entry / PARTIAL_MARKER)
+    if isinstance(marker, dict) and _PARTIAL.match(entry.name):
+        pid, created = marker.get("pid"), marker.get("created")
+        if not isinstance(pid, int) or not isinstance(created, (int, float)):
+            return False
+        return created < started and not _pid_alive(pid)
+    legacy = _LEGACY_PARTIAL.match(entry.name)
+    if legacy is None:
+        return False
+    content = [p.name for p in entry.iterdir()]
+    return set(content) <= {legacy.group("name")} and entry.stat().st_mtime < started
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by someone else
+    return True
+
+
+_IMPORT_TIME = time.time()
+
+
+def process_start_time() -> float:
+    """Wall-clock start of this process (Linux /proc), else when this module was imported."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        ticks = int(fields[19])  # field 22: starttime, clock ticks after boot
+        boot = next(
+            float(line.split()[1])
+            for line in Path("/proc/stat").read_text().splitlines()
+            if line.startswith("btime ")
+        )
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return _IMPORT_TIME

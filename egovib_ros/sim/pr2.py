@@ -1,0 +1,60 @@
+"""Robot and interface constants fixed by docs/INTERFACES.md (sections 1-2).
+
+Pure Python/numpy: imported by the core, the simulator, the nodes and the CLI.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from egovib_ros.robot import COMMANDS_TOPIC
+
+# --- robot (INTERFACES.md section 1) -------------------------------------------
+JOINT_NAMES: tuple[str, ...] = ("r_wrist_roll_joint", "r_gripper_joint")
+MAX_SPEED: tuple[float, ...] = (3.0, 0.04)  # rad/s, m/s
+GRIPPER_GAP_RANGE_M: tuple[float, float] = (0.0, 0.086)
+ACCEL_RATE_HZ: float = 3000.0
+JOINT_RATE_HZ: float = 1000.0
+ACCEL_RANGE_MS2: float = 78.5  # +/- 8 g
+ACCEL_BITS: int = 10
+ACCEL_FRAME: str = "r_gripper_motor_accelerometer_link"
+
+# Velocity grid: -100 % .. +100 % of max speed in 10 % steps (21 x 21 = 441 cells).
+GRID_FRACTIONS: np.ndarray = np.round(np.arange(-10, 11) / 10.0, 10)
+
+
+def grid_values(joint: int) -> np.ndarray:
+    """Grid velocities of one joint in its own unit (rad/s or m/s)."""
+    return GRID_FRACTIONS * MAX_SPEED[joint]
+
+
+def default_grid() -> tuple[np.ndarray, ...]:
+    return tuple(grid_values(j) for j in range(len(JOINT_NAMES)))
+
+
+# --- paper's algorithm defaults (sections 2-3) -----------------------------
+BLOCK_LENGTH: int = 64
+HOP: int = 32
+BAND_HZ: tuple[float, float] = (150.0, 750.0)
+BAND_ORDER: int = 4  # 4th-order Butterworth band-pass
+
+# --- ROS names (INTERFACES.md section 2), all relative ---------------------------
+TOPIC_JOINT_STATES = "joint_states"
+TOPIC_RAW = "accelerometer/raw"
+TOPIC_DENOISED = "accelerometer/denoised"
+TOPIC_CONTACT = "accelerometer/contact"
+TOPIC_EGO = "accelerometer/ego"
+TOPIC_COMMANDS = COMMANDS_TOPIC
+TOPIC_DIAGNOSTICS = "/diagnostics"
+
+# Topic names inside bags (root namespace, INTERFACES.md section 4).
+BAG_TOPICS = {
+    "joint_states": "/joint_states",
+    "raw": "/accelerometer/raw",
+    "denoised": "/accelerometer/denoised",
+    "contact": "/accelerometer/contact",
+    "ego": "/accelerometer/ego",
+    "commands": "/hand_velocity_controller/commands",
+}
+
+EFFECT_NAMES: tuple[str, ...] = ("position", "coupling", "acceleration", "timing", "drift")

@@ -1,0 +1,1 @@
+"""Tools around the package: the live demo, benchmarks, node-process orchestration."""

@@ -1,0 +1,700 @@
+"""`egovib bench`: performance figures as ratios to real time, with the machine noted.
+
+Measured (targets in brackets):
+  batch denoise throughput, 3 kHz 3-axis        (>= 1000x real time, one core)
+  streaming cost per 32-sample hop, median/p99  (<= 150 us median)
+  calibration of 441 cells x 2 s of data        (<= 5 s)
+  simulator speed                               (>= 200x real time)
+  bag write / read throughput                   (x real time)
+  `egovib denoise` end to end on a bag, side by side with a plain copy of the same
+  bag (file copy, and a chunk-by-chunk bag copy) and with zstd output, and the
+  zstd size ratio of the 3 kHz Imu stream       (>= 30x real time)
+  reading / writing MCAP: this package's chunk scanner and writer next to the
+  `mcap` library and rosbags, on the same bag   (docs/bench_bags.md)
+
+Inputs are synthetic (seeded) or simulated, so the figures do not depend on any
+file; the robot is the default profile (the PR2 hand) and the noise model a
+synthetic table of its shape (21 x 21 cells, 4 channels, 33 bins). Writes FILE
+(JSON) and a markdown summary next to it (FILE.md). `--bag-seconds` sets the length
+of the simulated bag (the 10-minute figures of docs/bench_bags.md: 600).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import shutil
+import tempfile
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from egovib_ros import __version__
+from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.robot import RobotProfile, default_profile
+
+SYNTHETIC_JOINT_RATE_HZ = 1000.0  # joint states of the synthetic streams
+
+
+@lru_cache(maxsize=1)
+def _robot() -> RobotProfile:
+    """The robot the figures are for: the default profile (PR2 hand, 3 kHz, 2 joints)."""
+    return default_profile()
+
+
+TARGETS = {
+    "batch_x_realtime": (">=", 1000.0),
+    "stream_hop_median_us": ("<=", 150.0),
+    "calibration_s": ("<=", 5.0),
+    "simulation_x_realtime": (">=", 200.0),
+    "denoise_bag_x_realtime": (">=", 30.0),
+}
+
+
+def machine_info() -> dict:
+    """Platform, CPU model, core count and library versions of this machine."""
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import scipy
+
+    try:
+        load = [round(x, 2) for x in os.getloadavg()]  # other work on the machine skews timings
+    except OSError:
+        load = None
+    return {
+        "platform": platform.platform(),
+        "cpu_model": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "egovib_ros": __version__,
+        "load_average_1_5_15min": load,
+    }
+
+
+def synthetic_streams(duration_s: float, *, seed: int = 0) -> dict:
+    """Seeded accelerometer (3 kHz, 3 axes) and joint-state (1 kHz) arrays with smooth
+    velocities."""
+    rng = np.random.default_rng(seed)
+    robot = _robot()
+    n_accel = int(duration_s * robot.rate_hz)
+    n_joint = int(duration_s * SYNTHETIC_JOINT_RATE_HZ)
+    accel_stamps = (np.arange(n_accel) * (1e9 / robot.rate_hz)).astype(np.int64)
+    joint_stamps = (np.arange(n_joint) * (1e9 / SYNTHETIC_JOINT_RATE_HZ)).astype(np.int64)
+    accel = rng.normal(scale=0.5, size=(n_accel, 3)) + np.array([0.0, 0.0, 9.81])
+    t = joint_stamps / 1e9
+    velocity = np.stack(
+        [
+            0.8 * robot.max_speed[j] * np.sin(2 * np.pi * (0.13 + 0.07 * j) * t + j)
+            for j in range(robot.n_joints)
+        ],
+        axis=1,
+    )
+    return {
+        "sensor_stamps_ns": accel_stamps,
+        "accel": accel,
+        "joint_stamps_ns": joint_stamps,
+        "joint_velocity": velocity,
+    }
+
+
+def synthetic_model(*, seed: int = 0):
+    """A NoiseModel of the real shape filled with seeded positive spectra."""
+    from egovib_ros.core.blocks import analysis_window, n_bins
+    from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
+
+    rng = np.random.default_rng(seed)
+    robot = _robot()
+    grid = robot.grid()
+    shape = robot.grid_shape + (len(MODEL_CHANNELS), n_bins(robot.block_length))
+    return NoiseModel(
+        grid=grid,
+        joint_names=robot.joint_names,
+        mean=rng.uniform(0.05, 1.0, shape),
+        std=rng.uniform(0.01, 0.3, shape),
+        counts=np.full(robot.grid_shape, 100),
+        sample_rate_hz=robot.rate_hz,
+        block_length=robot.block_length,
+        hop=robot.hop,
+        window=analysis_window(robot.block_length, robot.hop),
+        band_hz=robot.band_hz,
+        band_order=robot.band_order,
+        profile=robot,
+        provenance={"source": "bench synthetic"},
+    )
+
+
+def _best_of(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
+    """Whole-array denoising (combined channel, the paper's pipeline) in x real time."""
+    from egovib_ros.core import denoise_batch
+
+    data, model = synthetic_streams(duration_s), synthetic_model()
+    seconds = _best_of(
+        lambda: denoise_batch(
+            data["sensor_stamps_ns"],
+            data["accel"],
+            data["joint_stamps_ns"],
+            data["joint_velocity"],
+            model,
+            channels="combined",
+        ),
+        repeats,
+    )
+    seconds_axes = _best_of(
+        lambda: denoise_batch(
+            data["sensor_stamps_ns"],
+            data["accel"],
+            data["joint_stamps_ns"],
+            data["joint_velocity"],
+            model,
+            channels="per_axis",
+        ),
+        repeats,
+    )
+    return {
+        "signal_s": duration_s,
+        "seconds": seconds,
+        "batch_x_realtime": duration_s / seconds,
+        "batch_per_axis_x_realtime": duration_s / seconds_axes,
+    }
+
+
+def bench_stream(duration_s: float = 10.0) -> dict:
+    """StreamingDenoiser cost of one 32-sample hop (with its ~11 joint states), in microseconds."""
+    from egovib_ros.core import StreamingDenoiser
+
+    data, model = synthetic_streams(duration_s, seed=1), synthetic_model()
+    denoiser = StreamingDenoiser(model, channels="combined")
+    joint_t, accel_t = data["joint_stamps_ns"], data["sensor_stamps_ns"]
+    costs = []
+    joint_from = 0
+    hop = _robot().hop
+    for start in range(0, len(accel_t) - hop + 1, hop):
+        stop = start + hop
+        joint_to = int(np.searchsorted(joint_t, accel_t[stop - 1], side="right"))
+        begin = time.perf_counter_ns()
+        denoiser.push_joint_states(
+            joint_t[joint_from:joint_to], data["joint_velocity"][joint_from:joint_to]
+        )
+        denoiser.push_sensor(accel_t[start:stop], data["accel"][start:stop])
+        costs.append(time.perf_counter_ns() - begin)
+        joint_from = joint_to
+    costs_us = np.array(costs[len(costs) // 10 :]) / 1e3  # skip warm-up
+    hop_us = hop / _robot().rate_hz * 1e6
+    return {
+        "hops": int(costs_us.size),
+        "stream_hop_median_us": float(np.median(costs_us)),
+        "stream_hop_p99_us": float(np.percentile(costs_us, 99)),
+        "stream_x_realtime": float(hop_us / np.median(costs_us)),
+    }
+
+
+def bench_calibration(cell_s: float = 2.0) -> dict:
+    """CalibrationAccumulator over 441 cells x `cell_s` s of data (3 kHz accel, 1 kHz joints)."""
+    from egovib_ros.core import calibrate_arrays
+
+    robot = _robot()
+    grid = robot.grid()
+    cells = list(itertools.product(*grid))
+    data = synthetic_streams(cell_s * len(cells), seed=2)
+    # Hold each cell's velocity for `cell_s` seconds, as in a sweep.
+    per_cell = int(round(cell_s * SYNTHETIC_JOINT_RATE_HZ))
+    velocity = np.repeat(np.array(cells), per_cell, axis=0)[: len(data["joint_stamps_ns"])]
+    start = time.perf_counter()
+    model, _ = calibrate_arrays(
+        data["sensor_stamps_ns"],
+        data["accel"],
+        data["joint_stamps_ns"],
+        velocity,
+        profile=robot,
+        sweep="full",
+        source="bench synthetic",
+    )
+    seconds = time.perf_counter() - start
+    signal_s = cell_s * len(cells)
+    return {
+        "cells": len(cells),
+        "signal_s": signal_s,
+        "calibration_s": seconds,
+        "calibration_x_realtime": signal_s / seconds,
+    }
+
+
+def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
+    """Simulator speed and bag write/read throughput on one simulated motion recording."""
+    from egovib_ros.bag import read_recording, write_recording
+    from egovib_ros.sim import simulate_motion
+
+    start = time.perf_counter()
+    rec, _ = simulate_motion(
+        duration_s=duration_s, max_speed=1.0, tap_rate_hz=1.0, effects={}, seed=3
+    )
+    sim_s = time.perf_counter() - start
+    with tempfile.TemporaryDirectory(prefix="egovib-bench-") as tmp:
+        bag = Path(tmp) / "bench_bag"
+        start = time.perf_counter()
+        write_recording(bag, rec)
+        write_s = time.perf_counter() - start
+        start = time.perf_counter()
+        read_recording(bag)
+        read_s = time.perf_counter() - start
+        size = sum(f.stat().st_size for f in bag.iterdir())
+    n_messages = len(rec.sensor_stamps_ns) * (
+        1 + (rec.contact is not None) + (rec.ego is not None)
+    ) + len(rec.joint_stamps_ns)
+    return {
+        "signal_s": duration_s,
+        "simulation_s": sim_s,
+        "simulation_x_realtime": duration_s / sim_s,
+        "bag_messages": int(n_messages),
+        "bag_bytes": int(size),
+        "bag_write_x_realtime": duration_s / write_s,
+        "bag_read_x_realtime": duration_s / read_s,
+        "bag_write_msgs_per_s": n_messages / write_s,
+        "bag_read_msgs_per_s": n_messages / read_s,
+    }
+
+
+# --------------------------------------------------------------------------
+# Bags at recording scale
+# --------------------------------------------------------------------------
+def write_interleaved_bag(
+    path: Path, duration_s: float, *, seed: int = 3, compress: bool = False
+) -> None:
+    """A simulated motion bag laid out as a recorder writes one: one message at a time in
+    stamp order (all topics interleaved), rosbags' writer, 1 MB chunks."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    from egovib_ros.bag.codec import typestore
+    from egovib_ros.bag.recording import bag_topic_names, recording_streams
+    from egovib_ros.sim.scenarios import motion_slices
+
+    robot = _robot()
+    slices, _ = motion_slices(
+        duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=seed
+    )
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compress:
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        conns = {}
+        for piece in slices:
+            merged = []
+            for topic, msgtype, stamps, encode in recording_streams(
+                piece, bag_topic_names(robot), robot.sensor_field
+            ):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=typestore())
+                merged += [
+                    (int(t), topic, d) for t, d in zip(stamps.tolist(), encode(0, len(stamps)))
+                ]
+            for stamp, topic, data in sorted(merged, key=lambda m: m[0]):
+                writer.write(conns[topic], stamp, data)
+
+
+def _bag_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.iterdir() if f.is_file())
+
+
+def _stream_copy(src: Path, dst: Path) -> None:
+    """A plain bag copy through this package: every chunk copied as it is."""
+    from egovib_ros.bag import BagReader, BagWriter
+
+    with BagReader(src) as reader, BagWriter(dst) as writer:
+        for topic in reader.topics:
+            writer.copy_topic(reader, topic)
+        for batch in reader.batches():
+            writer.copy_batch(batch)
+
+
+def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
+    """`egovib denoise` (the same function) on `bag`, side by side with a file copy of the
+    bag and a chunk-by-chunk bag copy, in alternation, best of `repeats`; plus zstd output."""
+    from egovib_ros.bag import BagReader
+    from egovib_ros.bag.denoise import denoise_bag
+
+    with BagReader(bag) as reader:
+        duration_s = float(reader.info["duration"]["nanoseconds"]) / 1e9
+    model = synthetic_model()
+    runs = {
+        "file_copy": lambda out: shutil.copytree(bag, out),
+        "bag_copy": lambda out: _stream_copy(bag, out),
+        "denoise": lambda out: denoise_bag(bag, out, model=model),
+        "denoise_zstd": lambda out: denoise_bag(bag, out, model=model, compress="zstd"),
+    }
+    best = {name: float("inf") for name in runs}
+    sizes = {}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            out = workdir / f"bench_{name}"
+            start = time.perf_counter()
+            run(out)
+            best[name] = min(best[name], time.perf_counter() - start)
+            sizes[name] = _bag_bytes(out)
+            shutil.rmtree(out)
+    figures = {"bag_signal_s": duration_s, "bag_input_bytes": _bag_bytes(bag)}
+    for name, seconds in best.items():
+        figures[f"{name}_s"] = seconds
+        figures[f"{name}_x_realtime"] = duration_s / seconds
+        figures[f"{name}_output_bytes"] = sizes[name]
+    figures["denoise_bag_x_realtime"] = figures["denoise_x_realtime"]
+    figures["denoise_vs_file_copy"] = best["denoise"] / best["file_copy"]
+    figures["denoise_vs_bag_copy"] = best["denoise"] / best["bag_copy"]
+    figures["zstd_output_size_ratio"] = sizes["denoise"] / sizes["denoise_zstd"]
+    figures["imu_stream_zstd_size_ratio"] = imu_stream_size_ratio(bag, workdir)
+    return figures
+
+
+def imu_stream_size_ratio(bag: Path, workdir: Path) -> float:
+    """Size of the 3 kHz Imu topic alone, uncompressed / zstd MCAP chunks."""
+    from egovib_ros.bag import BagReader, BagWriter
+
+    topic = _robot().sensor_topic
+    sizes = []
+    for compress in (False, True):
+        out = workdir / f"imu_only_{int(compress)}"
+        with BagReader(bag) as reader, BagWriter(out, compress=compress) as writer:
+            writer.copy_topic(reader, topic)
+            for batch in reader.batches([topic]):
+                messages = batch.messages.get(topic)
+                if messages is not None:
+                    writer.write_batch(topic, messages.log_times, messages)
+        sizes.append(next(out.glob("*.mcap")).stat().st_size)
+        shutil.rmtree(out)
+    return sizes[0] / sizes[1]
+
+
+def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
+    """Reading the sensor and joint topics of `bag` into arrays, and writing the sensor
+    topic, with this package's chunk scanner / writer, the `mcap` library and rosbags.
+    Every reader hands its raw messages to the same vectorised decoders."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapLibWriter
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    from egovib_ros.bag import BagReader, BagWriter, iter_recording
+    from egovib_ros.bag.codec import decode_imu, decode_joint_states, typestore
+
+    robot = _robot()
+    topics = [robot.sensor_topic, robot.joints_topic]
+    figures: dict = {}
+
+    def decode(raw: dict) -> int:
+        decode_imu(raw[robot.sensor_topic], robot.sensor_field)
+        decode_joint_states(raw[robot.joints_topic], robot.joint_names)
+        return sum(len(v) for v in raw.values())
+
+    def read_mcap_library() -> int:
+        raw = {t: [] for t in topics}
+        with open(next(bag.glob("*.mcap")), "rb") as fh:
+            for _, channel, message in make_reader(fh).iter_messages(
+                topics=topics, log_time_order=False
+            ):
+                raw[channel.topic].append(message.data)
+        return decode(raw)
+
+    def read_rosbags() -> int:
+        raw = {t: [] for t in topics}
+        with Reader(bag) as reader:
+            conns = [c for c in reader.connections if c.topic in topics]
+            for conn, _, data in reader.messages(connections=conns):
+                raw[conn.topic].append(data)
+        return decode(raw)
+
+    def read_scanner() -> int:
+        return sum(
+            len(p.sensor_stamps_ns) + len(p.joint_stamps_ns)
+            for p in iter_recording(
+                bag, profile=robot, ground_truth=False, denoised=False, commands=False
+            )
+        )
+
+    for name, read in (
+        ("scanner", read_scanner),
+        ("mcap_library", read_mcap_library),
+        ("rosbags", read_rosbags),
+    ):
+        start = time.perf_counter()
+        n = read()
+        seconds = time.perf_counter() - start
+        figures[f"read_{name}_msgs_per_s"] = n / seconds
+        figures[f"read_{name}_s"] = seconds
+
+    with BagReader(bag) as reader:
+        batches = [
+            b.messages[robot.sensor_topic]
+            for b in reader.batches([robot.sensor_topic])
+            if robot.sensor_topic in b.messages
+        ]
+    stamps = np.concatenate([b.log_times for b in batches])
+    datas = [d for b in batches for d in b.to_list()]
+    msgdef, _ = typestore().generate_msgdef("sensor_msgs/msg/Imu", ros_version=2)
+
+    def write_package(out: Path) -> None:
+        with BagWriter(out) as writer:
+            writer.add_topic(robot.sensor_topic, "sensor_msgs/msg/Imu")
+            for b in batches:
+                writer.write_batch(robot.sensor_topic, b.log_times, b)
+
+    def write_mcap_library(out: Path) -> None:
+        out.mkdir()
+        with open(out / "out.mcap", "wb") as fh:
+            writer = McapLibWriter(fh, compression=CompressionType.NONE)
+            writer.start(profile="ros2", library="bench")
+            schema = writer.register_schema("sensor_msgs/msg/Imu", "ros2msg", msgdef.encode())
+            channel = writer.register_channel(robot.sensor_topic, "cdr", schema)
+            for t, d in zip(stamps.tolist(), datas):
+                writer.add_message(channel, t, d, t)
+            writer.finish()
+
+    def write_rosbags(out: Path) -> None:
+        with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conn = writer.add_connection(
+                robot.sensor_topic, "sensor_msgs/msg/Imu", typestore=typestore()
+            )
+            for t, d in zip(stamps.tolist(), datas):
+                writer.write(conn, t, d)
+
+    for name, write in (
+        ("package", write_package),
+        ("mcap_library", write_mcap_library),
+        ("rosbags", write_rosbags),
+    ):
+        out = workdir / f"write_{name}"
+        start = time.perf_counter()
+        write(out)
+        seconds = time.perf_counter() - start
+        shutil.rmtree(out)
+        figures[f"write_{name}_msgs_per_s"] = len(datas) / seconds
+        figures[f"write_{name}_s"] = seconds
+    figures["messages_read"] = n
+    figures["messages_written"] = len(datas)
+    return figures
+
+
+def bench_bags(
+    duration_s: float = 60.0,
+    *,
+    repeats: int = 1,
+    bag: Path | None = None,
+    workdir: Path | None = None,
+) -> dict:
+    """Bag-scale figures on a simulated recorder-style bag of `duration_s` (or on `bag`)."""
+    with tempfile.TemporaryDirectory(prefix="egovib-bench-bags-", dir=workdir) as tmp:
+        tmp = Path(tmp)
+        if bag is None:
+            bag = tmp / "input_bag"
+            write_interleaved_bag(bag, duration_s)
+        figures = bench_bag_denoise(Path(bag), tmp, repeats=repeats)
+        figures["mcap"] = bench_mcap_libraries(Path(bag), tmp)
+    return figures
+
+
+def run_benchmarks(
+    *,
+    quick: bool = False,
+    progress=None,
+    bag_seconds: float | None = None,
+    bag: Path | None = None,
+    workdir: Path | None = None,
+) -> dict:
+    """All figures as one dict (`quick` shortens the inputs, for tests)."""
+    bag_seconds = bag_seconds if bag_seconds is not None else (3.0 if quick else 60.0)
+    steps = [
+        ("batch", lambda: bench_batch(10.0 if quick else 60.0, 1 if quick else 3)),
+        ("stream", lambda: bench_stream(2.0 if quick else 10.0)),
+        ("calibration", lambda: bench_calibration(0.2 if quick else 2.0)),
+        ("simulation_and_bags", lambda: bench_simulation_and_bags(2.0 if quick else 20.0)),
+        (
+            "bags",
+            lambda: bench_bags(bag_seconds, repeats=1 if quick else 2, bag=bag, workdir=workdir),
+        ),
+    ]
+    results = {"schema": "egovib.bench/1", "machine": machine_info(), "quick": quick}
+    for name, step in steps:
+        results[name] = step()
+        if progress is not None:
+            progress(name)
+    flat = {
+        k: v
+        for section in results.values()
+        if isinstance(section, dict)
+        for k, v in section.items()
+        if not isinstance(v, dict)
+    }
+    results["targets"] = {
+        key: {
+            "value": flat.get(key),
+            "target": f"{op} {limit:g}",
+            "met": (flat[key] >= limit if op == ">=" else flat[key] <= limit)
+            if key in flat
+            else None,
+        }
+        for key, (op, limit) in TARGETS.items()
+    }
+    return results
+
+
+def markdown_summary(results: dict) -> str:
+    """Human-readable table of `run_benchmarks` results."""
+    m = results["machine"]
+    b, s, c, g = (
+        results["batch"],
+        results["stream"],
+        results["calibration"],
+        results["simulation_and_bags"],
+    )
+    bags = results.get("bags")
+    rows = [
+        (
+            "Batch denoise, combined (3 kHz, 3 axes)",
+            f"{b['batch_x_realtime']:.0f}x real time",
+            ">= 1000x",
+        ),
+        ("Batch denoise, per axis", f"{b['batch_per_axis_x_realtime']:.0f}x real time", ""),
+        (
+            "Streaming, per 32-sample hop (median)",
+            f"{s['stream_hop_median_us']:.0f} us",
+            "<= 150 us",
+        ),
+        ("Streaming, per hop (p99)", f"{s['stream_hop_p99_us']:.0f} us", ""),
+        ("Streaming, ratio to real time", f"{s['stream_x_realtime']:.0f}x", ""),
+        (
+            f"Calibration, {c['cells']} cells x {c['signal_s'] / c['cells']:g} s",
+            f"{c['calibration_s']:.2f} s ({c['calibration_x_realtime']:.0f}x real time)",
+            "<= 5 s",
+        ),
+        ("Simulator", f"{g['simulation_x_realtime']:.0f}x real time", ">= 200x"),
+        (
+            "Bag write (MCAP)",
+            f"{g['bag_write_x_realtime']:.1f}x real time "
+            f"({g['bag_write_msgs_per_s'] / 1e3:.0f}k msg/s)",
+            "",
+        ),
+        (
+            "Bag read",
+            f"{g['bag_read_x_realtime']:.1f}x real time "
+            f"({g['bag_read_msgs_per_s'] / 1e3:.0f}k msg/s)",
+            "",
+        ),
+    ]
+    if bags:
+        mc = bags["mcap"]
+        name = f"{bags['bag_signal_s']:.0f} s bag, {bags['bag_input_bytes'] / 1e6:.0f} MB"
+        rows += [
+            (
+                f"`egovib denoise`, {name}",
+                f"{bags['denoise_x_realtime']:.0f}x real time "
+                f"({bags['denoise_s']:.1f} s; {bags['denoise_vs_file_copy']:.2f}x a file copy, "
+                f"{bags['denoise_vs_bag_copy']:.2f}x a bag copy)",
+                ">= 30x",
+            ),
+            (
+                "... with zstd output",
+                f"{bags['denoise_zstd_x_realtime']:.0f}x real time, output "
+                f"{bags['zstd_output_size_ratio']:.1f}x smaller",
+                "",
+            ),
+            (
+                "File copy / bag copy of the same bag",
+                f"{bags['file_copy_x_realtime']:.0f}x / "
+                f"{bags['bag_copy_x_realtime']:.0f}x real time",
+                "",
+            ),
+            ("zstd size ratio, 3 kHz Imu stream", f"{bags['imu_stream_zstd_size_ratio']:.1f}", ""),
+            (
+                "Read sensor + joints: scanner / mcap library / rosbags",
+                " / ".join(
+                    f"{mc[f'read_{k}_msgs_per_s'] / 1e3:.0f}k"
+                    for k in ("scanner", "mcap_library", "rosbags")
+                )
+                + " msg/s",
+                "",
+            ),
+            (
+                "Write the Imu stream: package / mcap library / rosbags",
+                " / ".join(
+                    f"{mc[f'write_{k}_msgs_per_s'] / 1e3:.0f}k"
+                    for k in ("package", "mcap_library", "rosbags")
+                )
+                + " msg/s",
+                "",
+            ),
+        ]
+    lines = [
+        "# egovib bench",
+        "",
+        f"Machine: {m['cpu_model']}, {m['cores']} cores, {m['platform']}, "
+        f"Python {m['python']}, numpy {m['numpy']}, scipy {m['scipy']}"
+        + (
+            f"; load average {m['load_average_1_5_15min']} while measuring"
+            if m.get("load_average_1_5_15min")
+            else ""
+        )
+        + (" (quick run)" if results.get("quick") else ""),
+        "",
+        "Regenerate: `egovib bench --json docs/bench.json` (also writes docs/bench.md).",
+        "",
+        "| figure | measured | target |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {name} | {value} | {target} |" for name, value, target in rows]
+    unmet = [k for k, t in results["targets"].items() if t["met"] is False]
+    lines += ["", "All targets met." if not unmet else f"Targets missed: {', '.join(unmet)}.", ""]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    # before any work
+    prepare_output(
+        args.json, force=args.force, kind="json", option="--json", inputs=[args.markdown]
+    )
+    prepare_output(
+        args.markdown or Path(args.json).with_suffix(".md"),
+        force=args.force,
+        kind="file",
+        option="--markdown",
+        inputs=[args.json],
+    )
+    with tqdm(total=5, desc="bench", unit="step", disable=args.quiet) as bar:
+        results = run_benchmarks(
+            quick=args.quick,
+            bag_seconds=args.bag_seconds,
+            bag=args.bag,
+            workdir=args.workdir,
+            progress=lambda name: (bar.set_postfix_str(name), bar.update()),
+        )
+    json_path = Path(args.json)
+    md_path = Path(args.markdown) if args.markdown else json_path.with_suffix(".md")
+    with atomic_output(json_path) as tmp:
+        tmp.write_text(json.dumps(results, indent=2) + "\n")
+    with atomic_output(md_path) as tmp:
+        tmp.write_text(markdown_summary(results))
+    if not args.quiet:
+        print(markdown_summary(results))
+    return 0

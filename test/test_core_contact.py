@@ -1,0 +1,92 @@
+"""The contact detector (core.contact): events, onsets, peaks, thresholds, chunking."""
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from egovib_ros.core.contact import (
+    ContactDetector,
+    ContactSettings,
+    detection_envelope,
+    no_contact_threshold,
+)
+from egovib_ros.errors import ConfigError
+
+FS = 3000.0
+BAND = (150.0, 750.0)
+
+
+def taps(seconds=4.0, onsets_s=(0.5, 1.3, 1.35, 2.2, 3.1), seed=0, noise=0.05):
+    """Noise plus damped 400 Hz bursts along a fixed direction (the 1.35 s one 50 ms after
+    the 1.30 s one: one event, the refractory time)."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * FS)
+    stamps = 1_000_000_000 + np.arange(n, dtype=np.int64) * 333_333
+    values = noise * rng.normal(size=(n, 3)) + [0.0, 0.0, 9.81]
+    k = np.arange(int(0.04 * FS)) / FS
+    burst = 3.0 * np.exp(-k / 0.006) * np.sin(2 * np.pi * 400 * k)
+    direction = np.array([0.6, 0.8, 0.0])
+    for onset in onsets_s:
+        i = int(onset * FS)
+        values[i : i + len(burst)] += burst[:, None] * direction[None, :]
+    return stamps, values, [int(o * FS) for o in onsets_s]
+
+
+def settings(threshold=0.5, **kw):
+    return ContactSettings(sample_rate_hz=FS, band_hz=BAND, threshold=threshold, **kw)
+
+
+def run(detector, stamps, values, cuts):
+    events, start = [], 0
+    for size in [*cuts, len(stamps)]:
+        stop = min(len(stamps), start + size)
+        events += detector.push(stamps[start:stop], values[start:stop])
+        start = stop
+    return events + detector.finish()
+
+
+def test_each_tap_is_one_event_at_its_onset_with_its_peak_per_axis():
+    stamps, values, onsets = taps()
+    events = run(ContactDetector(settings()), stamps, values, [])
+    # 1.30 and 1.35 s: within the refractory time of each other's ring-down, one event
+    want = [onsets[0], onsets[1], onsets[3], onsets[4]]
+    assert len(events) == 4
+    for event, onset in zip(events, want):
+        assert abs(event.onset_ns - stamps[onset]) <= 2_000_000  # within 2 ms of the true onset
+        x, y, z = event.peak
+        assert x * y > 0 and abs(y) > abs(x) > 5 * abs(z)  # along (0.6, 0.8, 0)
+        assert event.report_ns - event.crossing_ns <= 10_000_000 + 333_333  # out 10 ms later
+        assert event.strength > 0.5
+
+
+def test_gravity_and_noise_alone_raise_nothing():
+    stamps, values, _ = taps(onsets_s=())
+    assert run(ContactDetector(settings(threshold=0.3)), stamps, values, []) == []
+
+
+@given(st.lists(st.integers(1, 700), max_size=30))
+def test_any_chunking_gives_the_same_events(cuts):
+    stamps, values, _ = taps(seconds=2.5, onsets_s=(0.3, 0.9, 1.6, 2.45))
+    whole = run(ContactDetector(settings()), stamps, values, [])
+    assert run(ContactDetector(settings()), stamps, values, cuts) == whole
+    assert len(whole) == 4  # the last one reported at the end of the stream
+
+
+def test_threshold_from_no_contact_data_and_its_false_alarm_rate():
+    stamps, values, _ = taps(seconds=30.0, onsets_s=())
+    envelope = detection_envelope(values, settings())
+    strict, rate = no_contact_threshold(envelope, sample_rate_hz=FS)
+    assert strict == pytest.approx(1.1 * envelope.max()) and rate == 0.0
+    budget, rate = no_contact_threshold(envelope, sample_rate_hz=FS, false_alarms_per_min=10)
+    assert budget < strict and 0 < rate <= 10
+    # on the same data, the detector raises as many events as stated
+    events = run(ContactDetector(settings(threshold=budget)), stamps, values, [])
+    assert len(events) <= rate * 0.5 + 1e-9
+
+
+def test_settings_are_validated():
+    with pytest.raises(ConfigError, match="threshold"):
+        settings(threshold=float("nan"))
+    with pytest.raises(ConfigError, match="report_after_s"):
+        settings(report_after_s=-1)

@@ -1,0 +1,265 @@
+"""core.methods: `paper | cancel | hybrid` behind one push interface, their calibration and
+its storage in the noise model (schema 3, older models still load)."""
+
+from __future__ import annotations
+
+import math
+import zipfile
+
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from scipy import signal
+
+from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
+from egovib_ros.core.lowlatency import MAX_DELAY_MS
+from egovib_ros.core.methods import (
+    MethodCalibration,
+    SampleMethodDenoiser,
+    calibrate_methods,
+    denoise_batch_method,
+    make_denoiser,
+    method_delay_ms,
+)
+from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.errors import ConfigError, ModelFileError
+from egovib_ros.robot import RobotProfile
+
+FS = 1000.0
+PROFILE = RobotProfile(
+    name="two_motor_test",
+    sensor_topic="/imu/data_raw",
+    sensor_field="angular_velocity",
+    rate_hz=FS,
+    denoised_topic="/imu/denoised",
+    joints_topic="/joint_states",
+    joint_names=("m1", "m2"),
+    max_speed=(1.0, 1.0),
+    bidirectional=(False, False),
+    steps=10,
+    sensor_range=100.0,
+    block_length=32,
+    hop=16,
+    band_hz=(60.0, 450.0),
+    band_order=4,
+)
+
+
+def recording(duration_s: float, *, seed: int, taps_per_s: float = 0.0, tap_peak: float = 2.0):
+    """Two motors: lines at 210 v and 420 v (motor 1), 160 v^0.8 and 240 v^0.8 (motor 2),
+    the real speed 3 % off the reported one, broadband growing with speed, jittery stamps."""
+    rng = np.random.default_rng(seed)
+    n = int(duration_s * FS)
+    steps = 1.0 + rng.uniform(-0.2, 0.2, n)
+    t = (10**9 + np.round(np.cumsum(steps) * 1e6)).astype(np.int64)
+    sos = signal.butter(2, 0.5, fs=FS, output="sos")
+    speed = np.empty((n, 2))
+    for j in range(2):
+        walk = signal.sosfiltfilt(sos, rng.normal(size=n + 2000))[1000:-1000]
+        speed[:, j] = np.clip(0.55 + 0.2 * walk / walk.std(), 0.1, 1.0)
+    accel = np.zeros((n, 3))
+    accel[:, 2] = 9.81
+    mixing = rng.normal(size=(4, 3))
+    lines = ((0, 210.0, 1.0), (0, 420.0, 1.0), (1, 160.0, 0.8), (1, 240.0, 0.8))
+    for k, (j, c, p) in enumerate(lines):
+        freq = c * (1.03 * speed[:, j]) ** p
+        phase = 2 * np.pi * np.cumsum(freq * steps) / FS
+        accel += (0.6 * speed[:, j] * np.sin(phase + k))[:, None] * mixing[k][None, :]
+    accel += (0.02 + 0.05 * speed.mean(axis=1))[:, None] * rng.normal(size=(n, 3))
+    contact = np.zeros((n, 3))
+    onsets = np.zeros(0, dtype=np.int64)
+    if taps_per_s:
+        gap = int(FS / taps_per_s)
+        onsets = np.arange(gap // 2, n - int(0.2 * FS), gap)
+        k = np.arange(int(0.04 * FS)) / FS
+        for o in onsets:
+            f = rng.uniform(120, 380)
+            burst = np.exp(-k / 0.008) * np.sin(2 * np.pi * f * k)
+            contact[o : o + len(k), rng.integers(0, 3)] += tap_peak * burst
+    pick = np.arange(0, n, 2)  # joint states at 500 Hz
+    return {
+        "t": t,
+        "accel": accel + contact,
+        "tj": t[pick] + 300_000,
+        "velocity": speed[pick],
+        "contact": contact,
+        "onsets": onsets,
+    }
+
+
+@pytest.fixture(scope="module")
+def model() -> NoiseModel:
+    rec = recording(25.0, seed=1)
+    paper, _ = calibrate_arrays(
+        rec["t"], rec["accel"], rec["tj"], rec["velocity"], profile=PROFILE, sweep="free"
+    )
+    full, info = calibrate_methods(paper, rec["t"], rec["accel"], rec["tj"], rec["velocity"])
+    assert info["harmonic"]["fit"]["joints"]["m1"]["orders"][:2] == [1.0, 2.0]
+    return full
+
+
+def combined_bp(values: np.ndarray) -> np.ndarray:
+    return filters.combined_bandpassed(values, PROFILE)
+
+
+def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):
+    # taps about as high as the largest noise peaks (the evaluation's event rule)
+    rec = recording(10.0, seed=2, taps_per_s=2.0, tap_peak=4.0)
+    quiet_rec = recording(10.0, seed=2)  # the same noise without the taps
+    raw = combined_bp(rec["accel"])
+    truth = combined_bp(rec["contact"])
+    outputs, without = {}, {}
+    for method in ("paper", "cancel", "hybrid"):
+        for r, store in ((rec, outputs), (quiet_rec, without)):
+            stamps, values, stats = denoise_batch_method(
+                r["t"],
+                r["accel"],
+                r["tj"],
+                r["velocity"],
+                model,
+                method=method,
+                channels="combined",
+            )
+            assert np.array_equal(stamps, r["t"])  # one output per input, its stamp
+            store[method] = values[:, 0]
+    quiet = np.ones(len(raw), bool)
+    for o in rec["onsets"]:
+        quiet[o - 20 : o + 80] = False
+    quiet[:1000] = False
+    taps = [slice(o, o + 40) for o in rec["onsets"][2:]]
+
+    def reduction(out):
+        return 20 * math.log10(np.abs(raw[quiet]).mean() / np.abs(out[quiet]).mean())
+
+    def kept(method):  # what the method left of each tap: with it minus without it
+        diff = outputs[method] - without[method]
+        peaks = [np.abs(diff[w]).max() / np.abs(truth[w]).max() for w in taps]
+        corr = [np.corrcoef(diff[w], truth[w])[0, 1] for w in taps]
+        return np.mean(peaks), np.mean(corr)
+
+    assert reduction(outputs["cancel"]) > 6.0
+    assert kept("cancel")[0] > 0.95 and kept("cancel")[1] > 0.95
+    assert reduction(outputs["hybrid"]) > 15.0
+    peak, corr = kept("hybrid")
+    assert peak > 0.9 and corr > 0.9
+    assert peak > kept("paper")[0]
+    # and the output itself looks like the tap
+    assert np.mean([np.corrcoef(outputs["hybrid"][w], truth[w])[0, 1] for w in taps]) > 0.9
+    assert method_delay_ms(model, "hybrid") <= MAX_DELAY_MS
+    assert method_delay_ms(model, "cancel") == 0.0
+    assert method_delay_ms(model, "paper") == pytest.approx(31.0)
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    st.sampled_from(["cancel", "hybrid"]),
+    st.lists(st.integers(min_value=1, max_value=900), min_size=1, max_size=8),
+    st.sampled_from(["per_axis", "combined"]),
+)
+# a chunk ending just before the gap: the segment's end must still release the look-ahead
+@example("hybrid", [1, 1, 298, 900], "per_axis")
+def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
+    rec = recording(3.0, seed=3, taps_per_s=2.0)
+    keep = np.ones(len(rec["t"]), bool)
+    keep[1200:1230] = False  # a long gap: the segment ends and restarts
+    t, accel = rec["t"][keep], rec["accel"][keep]
+    want_t, want, _ = denoise_batch_method(
+        t, accel, rec["tj"], rec["velocity"], model, method=method, channels=channels
+    )
+    denoiser = make_denoiser(model, method, channels=channels)
+    edges = np.r_[np.unique(np.clip(np.cumsum(cuts), 1, len(t))), len(t)]
+    got_t, got, j_pos, start = [], [], 0, 0
+    for stop in np.unique(edges):
+        limit = int(np.searchsorted(rec["tj"], t[stop - 1] + 21_000_000, side="right"))
+        for a in range(j_pos, limit, 7):  # joint states in small batches
+            chunk = denoiser.push_joint_states(
+                rec["tj"][a : min(a + 7, limit)], rec["velocity"][a : min(a + 7, limit)]
+            )
+            got_t.append(chunk.stamps_ns)
+            got.append(chunk.values)
+        j_pos = max(j_pos, limit)
+        chunk = denoiser.push_sensor(t[start:stop], accel[start:stop])
+        got_t.append(chunk.stamps_ns)
+        got.append(chunk.values)
+        start = stop
+    chunk = denoiser.push_joint_states(rec["tj"][j_pos:], rec["velocity"][j_pos:])
+    got_t.append(chunk.stamps_ns)
+    got.append(chunk.values)
+    chunk = denoiser.flush()
+    got_t.append(chunk.stamps_ns)
+    got.append(chunk.values)
+    assert np.array_equal(np.concatenate(got_t), want_t)
+    assert np.array_equal(np.concatenate(got), want)
+    assert np.array_equal(want_t, t)
+
+
+def test_combined_is_the_sum_of_the_cleaned_axes(model):
+    rec = recording(2.0, seed=4)
+    _, per_axis, _ = denoise_batch_method(
+        rec["t"], rec["accel"], rec["tj"], rec["velocity"], model, method="hybrid"
+    )
+    _, combined, _ = denoise_batch_method(
+        rec["t"],
+        rec["accel"],
+        rec["tj"],
+        rec["velocity"],
+        model,
+        method="hybrid",
+        channels="combined",
+    )
+    np.testing.assert_allclose(combined[:, 0], per_axis.sum(axis=1), rtol=0, atol=1e-12)
+
+
+def test_the_model_file_carries_the_methods_and_older_models_still_load(model, tmp_path):
+    path = tmp_path / "model.npz"
+    model.save(path)
+    with np.load(path, allow_pickle=False) as data:
+        assert int(data["schema_version"]) == 3
+        assert any(k.startswith("extra.harmonic.") for k in data.files)
+    loaded = NoiseModel.load(path)
+    a, b = MethodCalibration.from_model(model), MethodCalibration.from_model(loaded)
+    np.testing.assert_array_equal(a.harmonic.line_coefficient, b.harmonic.line_coefficient)
+    np.testing.assert_array_equal(a.alpha, b.alpha)
+    assert a.gain == b.gain and a.canceller == b.canceller
+    rec = recording(1.0, seed=5)
+    args = (rec["t"], rec["accel"], rec["tj"], rec["velocity"])
+    np.testing.assert_array_equal(
+        denoise_batch_method(*args, model, method="hybrid")[1],
+        denoise_batch_method(*args, loaded, method="hybrid")[1],
+    )
+    # A version-2 file (no extras) loads; `paper` runs on it, the new methods say what is missing.
+    old = tmp_path / "old.npz"
+    with np.load(path, allow_pickle=False) as data:
+        fields = {k: data[k] for k in data.files if not k.startswith("extra.")}
+    fields["schema_version"] = np.array(2)
+    with open(old, "wb") as fh:
+        np.savez_compressed(fh, **fields)
+    v2 = NoiseModel.load(old)
+    assert v2.extras == {}
+    assert isinstance(make_denoiser(v2, "paper"), StreamingDenoiser)
+    with pytest.raises(ModelFileError, match="old.npz: calibrated for the paper's method only"):
+        make_denoiser(v2, "hybrid")
+    # A damaged extra is a one-line model error, not a crash.
+    broken = tmp_path / "broken.npz"
+    with np.load(path, allow_pickle=False) as data:
+        fields = {k: data[k] for k in data.files}
+    fields["extra.gain.alpha"] = fields["extra.gain.alpha"][:, :1]
+    with open(broken, "wb") as fh:
+        np.savez_compressed(fh, **fields)
+    with pytest.raises(ModelFileError, match="broken.npz: gain alpha"):
+        make_denoiser(NoiseModel.load(broken), "hybrid")
+    assert zipfile.is_zipfile(path)
+
+
+def test_methods_are_chosen_by_name_with_their_own_options(model):
+    assert isinstance(make_denoiser(model, "paper", oversubtraction=2.0), StreamingDenoiser)
+    hybrid = make_denoiser(model, "hybrid", floor=0.1, lookahead_ms=2.0)
+    assert isinstance(hybrid, SampleMethodDenoiser)
+    assert hybrid.delay_samples == (2, 2)
+    with pytest.raises(ConfigError, match="method: expected one of"):
+        make_denoiser(model, "wiener")
+    with pytest.raises(ConfigError, match="oversubtraction.*paper"):
+        make_denoiser(model, "hybrid", oversubtraction=2.0)
+    with pytest.raises(ConfigError, match="lookahead_ms applies to `hybrid`"):
+        make_denoiser(model, "paper", lookahead_ms=2.0)
