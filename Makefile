@@ -13,7 +13,7 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements-ros.txt -r requirements-dev.txt
-	$(PY) -m pip install -q -e .
+	$(PY) -m pip install -q -e ".[cluster]"
 	touch $(STAMP)
 
 test: $(STAMP)

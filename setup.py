@@ -3,7 +3,16 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "egovib_ros"
-NODES = ("sim_hand", "sweep_driver", "calibrator", "denoiser", "bag_recorder", "bag_player")
+# the executables (egovib_ros/nodes/<name>.py, main()); the one list of them
+NODES = (
+    "sim_hand",
+    "sweep_driver",
+    "calibrator",
+    "denoiser",
+    "contact_detector",
+    "bag_recorder",
+    "bag_player",
+)
 
 setup(
     name=PACKAGE,
@@ -19,10 +28,12 @@ setup(
     # ROS client libraries (rclpy, message packages) come from apt on a ROS
     # install, or from requirements-ros.txt in the project venv: not listed here.
     install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml",
-                      # bags: zstd MCAP chunks; many bags on a Dask cluster (local or remote)
-                      "zstandard", "dask", "distributed",
+                      # bags: zstd MCAP chunks
+                      "zstandard",
                       # per-sample loops of the low-latency methods (cancel, hybrid) at kHz
                       "numba"],
+    # many bags at once (--jobs N, --scheduler): a Dask cluster, local or remote
+    extras_require={"cluster": ["dask", "distributed"]},
     zip_safe=True,
     maintainer="egovib_ros developers",
     maintainer_email="egovib@example.com",

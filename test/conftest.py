@@ -294,8 +294,8 @@ def sim_model_path(tmp_path_factory) -> Path:
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=11)
     model, _ = calibrate_arrays(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         sweep="superposition",

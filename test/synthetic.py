@@ -66,7 +66,7 @@ def push_random_chunks(
         if j_stop > j:
             out.append(processor.push_joint_states(t_joint[j:j_stop], velocity[j:j_stop]))
             j = j_stop
-        out.append(processor.push_accel(t_acc[i : i + k], accel[i : i + k]))
+        out.append(processor.push_sensor(t_acc[i : i + k], accel[i : i + k]))
         i += k
     if j < len(t_joint):
         out.append(processor.push_joint_states(t_joint[j:], velocity[j:]))

@@ -58,10 +58,10 @@ def test_shares_no_code_with_the_simulator():
 
 def test_recording_is_valid_and_reproducible():
     rec, truth = simulate_alt_motion(duration_s=8.0, seed=3, tap_rate_hz=1.0)
-    n = len(rec.accel_stamps_ns)
-    assert n == 24000 and rec.accel.shape == (n, 3) and np.all(np.isfinite(rec.accel))
-    assert np.all(np.diff(rec.accel_stamps_ns) > 0)
-    assert abs(np.median(np.diff(rec.accel_stamps_ns)) - 1e9 / 3000) < 1
+    n = len(rec.sensor_stamps_ns)
+    assert n == 24000 and rec.sensor.shape == (n, 3) and np.all(np.isfinite(rec.sensor))
+    assert np.all(np.diff(rec.sensor_stamps_ns) > 0)
+    assert abs(np.median(np.diff(rec.sensor_stamps_ns)) - 1e9 / 3000) < 1
     assert rec.joint_names == HAND_JOINTS
     m = len(rec.joint_stamps_ns)
     assert rec.joint_position.shape == rec.joint_velocity.shape == (m, 2)
@@ -72,11 +72,11 @@ def test_recording_is_valid_and_reproducible():
     assert np.all(np.abs(rec.joint_position[:, 0]) <= np.pi + 1e-9)
     assert truth["tap_onsets_ns"] and truth["effects"] == {} and truth["reality"] == "alt"
     again, _ = simulate_alt_motion(duration_s=8.0, seed=3, tap_rate_hz=1.0)
-    assert np.array_equal(again.accel, rec.accel) and np.array_equal(
+    assert np.array_equal(again.sensor, rec.sensor) and np.array_equal(
         again.joint_stamps_ns, rec.joint_stamps_ns
     )
     other, _ = simulate_alt_motion(duration_s=8.0, seed=4, tap_rate_hz=1.0)
-    assert not np.array_equal(other.accel, rec.accel)
+    assert not np.array_equal(other.sensor, rec.sensor)
 
 
 @pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "timing"])
@@ -96,7 +96,7 @@ def test_timing_shifts_joint_stamps_both_ways():
     for lag in (0.025, -0.015):
         shifted, _ = simulate_alt_motion(duration_s=3.0, seed=2, effects={"timing": lag})
         assert np.all(shifted.joint_stamps_ns - base.joint_stamps_ns == round(lag * 1e9))
-        assert np.array_equal(shifted.accel, base.accel)
+        assert np.array_equal(shifted.sensor, base.sensor)
 
 
 def test_effects_are_audible_where_they_act():
@@ -133,7 +133,7 @@ def test_written_to_a_bag_that_a_pr2_model_reads(tmp_path, capsys):
     assert main(args + ["--truth", str(truth)]) == 0
     rec = read_recording(bag)
     direct, _ = simulate_alt_motion(duration_s=10.0, effects={"coupling": 1.5}, seed=4)
-    np.testing.assert_allclose(rec.accel, direct.accel, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(rec.sensor, direct.sensor, rtol=0, atol=1e-6)
     assert rec.joint_names == direct.joint_names
     assert json.loads(truth.read_text())["effects"] == {"coupling": 1.5}
     assert "coupling" not in (bag / "metadata.yaml").read_text()

@@ -138,21 +138,21 @@ def test_every_command_gives_the_same_answer_whatever_the_file_layout(
     # the bag's own arrays, and to the reference bag's output
     bag = read_recording(corpus / layout.name, ground_truth=False, denoised=False)
     stamps, values, stats = denoise_batch(
-        bag.accel_stamps_ns,
-        bag.accel,
+        bag.sensor_stamps_ns,
+        bag.sensor,
         bag.joint_stamps_ns,
         bag.joint_velocity,
         NoiseModel.load(corpus / "model.npz"),
     )
     got = outputs["denoised"]
     assert stats["dropped_out_of_order"] == 0 and stats["samples_bad"] == 0
-    np.testing.assert_array_equal(got.denoised_stamps_ns, bag.accel_stamps_ns)
+    np.testing.assert_array_equal(got.denoised_stamps_ns, bag.sensor_stamps_ns)
     np.testing.assert_array_equal(got.denoised_stamps_ns, stamps)
     np.testing.assert_allclose(got.denoised, values, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(got.denoised_stamps_ns, want["denoised"].denoised_stamps_ns)
     np.testing.assert_allclose(got.denoised, want["denoised"].denoised, rtol=0, atol=1e-12)
     # the other topics are copied, message for message
-    np.testing.assert_array_equal(got.accel, bag.accel)
+    np.testing.assert_array_equal(got.sensor, bag.sensor)
     np.testing.assert_array_equal(got.joint_velocity, bag.joint_velocity)
 
     # evaluate: the same figures
@@ -198,10 +198,10 @@ def test_a_250_hz_gyro_bag_of_alternating_messages_denoises_per_axis(tmp_path):
     assert code == 0, err
     out = read_recording(tmp_path / "out", profile=p)
     stamps, values, _ = denoise_batch(
-        rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity, model
+        rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity, model
     )
     np.testing.assert_array_equal(out.denoised_stamps_ns, stamps)
-    assert len(stamps) == len(rec.accel_stamps_ns) == 10_000
+    assert len(stamps) == len(rec.sensor_stamps_ns) == 10_000
     np.testing.assert_allclose(out.denoised, values, rtol=0, atol=1e-12)
 
 

@@ -113,8 +113,8 @@ def _model(stream: Stream, p):
     """A free-motion model of the drawn robot, from a longer recording of its own."""
     rec = stream.recording(p, seconds=max(20.0, 4000 / stream.rate_hz), seed=stream.seed + 1)
     model, _ = calibrate_arrays(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         profile=p,
@@ -148,14 +148,14 @@ def test_denoise_and_calibrate_agree_with_batch_and_across_file_layouts(stream, 
             out = read_recording(tmp / f"out{k}", profile=p, ground_truth=False)
             arrays = read_recording(bag, profile=p, ground_truth=False, denoised=False)
             stamps, values, stats = denoise_batch(
-                arrays.accel_stamps_ns,
-                arrays.accel,
+                arrays.sensor_stamps_ns,
+                arrays.sensor,
                 arrays.joint_stamps_ns,
                 arrays.joint_velocity,
                 model,
             )
             # one message per valid raw sample (all are valid here), the batch core's values
-            np.testing.assert_array_equal(out.denoised_stamps_ns, arrays.accel_stamps_ns)
+            np.testing.assert_array_equal(out.denoised_stamps_ns, arrays.sensor_stamps_ns)
             np.testing.assert_array_equal(out.denoised_stamps_ns, stamps)
             np.testing.assert_allclose(out.denoised, values, rtol=0, atol=1e-12)
             acc = calibrate_bag(bag, profile=p, sweep="free")

@@ -36,8 +36,8 @@ def _random_recording(seed: int = 0, seconds: float = 0.5, with_truth: bool = Tr
     contact = rng.normal(size=(n, 3))
     ego = rng.normal(size=(n, 3))
     rec = Recording(
-        accel_stamps_ns=accel_stamps,
-        accel=contact + ego,
+        sensor_stamps_ns=accel_stamps,
+        sensor=contact + ego,
         joint_stamps_ns=joint_stamps,
         joint_position=rng.normal(size=(m, 2)),
         joint_velocity=rng.normal(size=(m, 2)),
@@ -152,8 +152,8 @@ def test_recording_round_trip(tmp_path, storage, compress):
     assert (out / "metadata.yaml").exists()
     back = read_recording(out)
     for name in (
-        "accel_stamps_ns",
-        "accel",
+        "sensor_stamps_ns",
+        "sensor",
         "joint_stamps_ns",
         "joint_position",
         "joint_velocity",
@@ -173,15 +173,15 @@ def test_recording_round_trip(tmp_path, storage, compress):
         }
         conn = [c for c in reader.connections if c.topic == BAG_TOPICS["raw"]]
         log_time, raw = next((t, r) for _, t, r in reader.messages(connections=conn))
-        assert log_time == decode_imu([raw])[0][0] == rec.accel_stamps_ns[0]
+        assert log_time == decode_imu([raw])[0][0] == rec.sensor_stamps_ns[0]
         times = [t for _, t, _ in reader.messages()]
         assert times == sorted(times)
 
 
 def test_denoised_topic_round_trip(tmp_path):
     rec = _random_recording(with_truth=False)
-    rec.denoised_stamps_ns = rec.accel_stamps_ns[:100]
-    rec.denoised = rec.accel[:100] * 0.5
+    rec.denoised_stamps_ns = rec.sensor_stamps_ns[:100]
+    rec.denoised = rec.sensor[:100] * 0.5
     write_recording(tmp_path / "bag", rec)
     back = read_recording(tmp_path / "bag")
     assert back.contact is None and back.ego is None
@@ -202,7 +202,7 @@ def test_bag_writer_raw_bytes(tmp_path):
             encode_joint_state_batch([0], [[0.0, 0.01]], [[1.0, 0.02]], JOINT_NAMES)[0],
         )
     back = read_recording(tmp_path / "bag")
-    np.testing.assert_array_equal(back.accel, accel)
+    np.testing.assert_array_equal(back.sensor, accel)
     np.testing.assert_array_equal(back.joint_velocity, [[1.0, 0.02]])
 
 
@@ -238,8 +238,8 @@ def test_existing_output_is_refused(tmp_path):
 
 
 FIELDS = (
-    "accel_stamps_ns",
-    "accel",
+    "sensor_stamps_ns",
+    "sensor",
     "joint_stamps_ns",
     "joint_position",
     "joint_velocity",
@@ -255,7 +255,7 @@ FIELDS = (
 @pytest.mark.parametrize("compress", [False, True])
 def test_chunk_scan_equals_rosbags_reader(tmp_path, monkeypatch, compress):
     rec = _random_recording(seconds=2.0)
-    rec.denoised_stamps_ns, rec.denoised = rec.accel_stamps_ns, rec.accel * 0.25
+    rec.denoised_stamps_ns, rec.denoised = rec.sensor_stamps_ns, rec.sensor * 0.25
     write_recording(tmp_path / "bag", rec, compress=compress)
     with BagReader(tmp_path / "bag") as reader:
         assert reader.is_plain_mcap
@@ -362,8 +362,8 @@ def _write_robot_bag(
 def test_profile_picks_topics_field_and_joints_by_name(tmp_path):
     stamps, gyro, js_stamps, pos, vel = _write_robot_bag(tmp_path / "bag")
     rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
-    np.testing.assert_array_equal(rec.accel_stamps_ns, stamps)
-    np.testing.assert_array_equal(rec.accel, gyro)  # the profile's field, whatever its name
+    np.testing.assert_array_equal(rec.sensor_stamps_ns, stamps)
+    np.testing.assert_array_equal(rec.sensor, gyro)  # the profile's field, whatever its name
     assert rec.joint_names == GYRO_ROBOT.joint_names
     np.testing.assert_array_equal(rec.joint_stamps_ns, js_stamps)
     np.testing.assert_array_equal(rec.joint_position, pos)
@@ -426,7 +426,7 @@ def test_slices_are_bounded_and_join_to_the_whole(tmp_path):
     for piece in slices[:-1]:
         joints_so_far += len(piece.joint_stamps_ns)
         needed = np.searchsorted(
-            rec.joint_stamps_ns, piece.accel_stamps_ns.max() + int(0.1e9), side="right"
+            rec.joint_stamps_ns, piece.sensor_stamps_ns.max() + int(0.1e9), side="right"
         )
         assert joints_so_far >= needed
         assert piece.duration_s < 4.0
@@ -493,7 +493,7 @@ def test_written_mcap_is_valid_for_the_mcap_library_and_rosbags(tmp_path):
         reader = make_reader(fh, validate_crcs=True)
         summary = reader.get_summary()
         times = [m.log_time for _, _, m in reader.iter_messages(log_time_order=True)]
-    n = len(rec.accel_stamps_ns)
+    n = len(rec.sensor_stamps_ns)
     expected = 3 * n + len(rec.joint_stamps_ns) + len(rec.commands)
     assert summary.statistics.message_count == len(times) == expected
     assert all(ci.compression == "zstd" for ci in summary.chunk_indexes)
@@ -564,20 +564,20 @@ def test_single_messages_and_batches_mix_in_log_time_order(tmp_path):
         times = [t for _, t, _ in reader.messages()]
         assert times == sorted(times) and len(times) == 210
     back = read_recording(tmp_path / "bag")
-    np.testing.assert_array_equal(back.accel[:, 0], np.repeat(np.arange(0, 200, 20), 20))
+    np.testing.assert_array_equal(back.sensor[:, 0], np.repeat(np.arange(0, 200, 20), 20))
     np.testing.assert_array_equal(back.joint_velocity[:, 0], np.arange(0, 200, 20))
 
 
 def test_zstd_chunks_shrink_the_imu_stream(tmp_path):
     rec = _random_recording(seconds=2.0, with_truth=False)
-    rec.accel = np.round(rec.accel * 20) / 20  # 10-bit-like sensor values, as recorded
+    rec.sensor = np.round(rec.sensor * 20) / 20  # 10-bit-like sensor values, as recorded
     write_recording(tmp_path / "plain", rec)
     write_recording(tmp_path / "zstd", rec, compress="zstd")
     size = {
         name: next((tmp_path / name).glob("*.mcap")).stat().st_size for name in ("plain", "zstd")
     }
     assert size["plain"] / size["zstd"] > 4
-    np.testing.assert_array_equal(read_recording(tmp_path / "zstd").accel, rec.accel)
+    np.testing.assert_array_equal(read_recording(tmp_path / "zstd").sensor, rec.sensor)
 
 
 # --------------------------------------------------------------------------
@@ -615,7 +615,9 @@ def test_topics_written_apart_are_read_together(tmp_path):
         bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
         bag.write_batch(
-            BAG_TOPICS["raw"], rec.accel_stamps_ns, encode_imu_batch(rec.accel_stamps_ns, rec.accel)
+            BAG_TOPICS["raw"],
+            rec.sensor_stamps_ns,
+            encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),
         )
         bag.write_batch(
             BAG_TOPICS["joint_states"],
@@ -629,7 +631,7 @@ def test_topics_written_apart_are_read_together(tmp_path):
     slices = list(iter_recording(tmp_path / "bag", min_slice_s=0.5))
     assert len(slices) >= 5
     whole = concat_recordings(slices)
-    for name in ("accel_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity"):
+    for name in ("sensor_stamps_ns", "sensor", "joint_stamps_ns", "joint_velocity"):
         np.testing.assert_array_equal(getattr(whole, name), getattr(rec, name), err_msg=name)
 
 
@@ -641,7 +643,7 @@ def test_damaged_records_are_detected(tmp_path, crc):
     write_recording(tmp_path / "bag", rec, crc=crc)
     mcap = next((tmp_path / "bag").glob("*.mcap"))
     data = bytearray(mcap.read_bytes())
-    at = data.find(encode_imu_batch(rec.accel_stamps_ns[4000:4001], rec.accel[4000:4001])[0])
+    at = data.find(encode_imu_batch(rec.sensor_stamps_ns[4000:4001], rec.sensor[4000:4001])[0])
     assert at > 31 and data[at - 31] == 0x05
     data[at - 31] = 0xFA  # no longer a message record
     mcap.write_bytes(bytes(data))

@@ -77,7 +77,7 @@ def test_memory_stays_bounded_however_long_the_recording():
             data["t_acc"][[start, min(stop, len(data["t_acc"])) - 1]] + [0, 25_000_000],
         )
         acc.push_joint_states(data["t_joint"][j0:j1], data["velocity"][j0:j1])
-        acc.push_accel(data["t_acc"][start:stop], data["accel"][start:stop])
+        acc.push_sensor(data["t_acc"][start:stop], data["accel"][start:stop])
         sizes.append(acc.backlog)
     assert max(s[0] for s in sizes) < 200 and max(s[1] for s in sizes) < 1400
 
@@ -120,7 +120,7 @@ def test_resume_from_checkpoint_keeps_cells_and_adds_new_ones(tmp_path, calibrat
     np.testing.assert_allclose(again.std, model.std, rtol=1e-6, atol=1e-12)
     more = stream(4, [(0.9, 0.0)], seed=8)
     resumed.push_joint_states(more["t_joint"], more["velocity"])
-    resumed.push_accel(more["t_acc"], more["accel"])
+    resumed.push_sensor(more["t_acc"], more["accel"])
     resumed.flush()
     grown = resumed.to_model()
     assert grown.counts[cell_index(grown, (0.9, 0.0))] > 0

@@ -179,7 +179,7 @@ def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
             got_t.append(chunk.stamps_ns)
             got.append(chunk.values)
         j_pos = max(j_pos, limit)
-        chunk = denoiser.push_accel(t[start:stop], accel[start:stop])
+        chunk = denoiser.push_sensor(t[start:stop], accel[start:stop])
         got_t.append(chunk.stamps_ns)
         got.append(chunk.values)
         start = stop

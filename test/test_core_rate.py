@@ -94,7 +94,7 @@ def test_rate_change_mid_stream_is_refused_for_any_chunking(model, motion, facto
             push_random_chunks(denoiser, data, np.random.default_rng(seed))
         assert str(streamed.value) == line
         with pytest.raises(StreamError, match="sensor rate changed"):
-            denoiser.push_accel(data["t_acc"][-5:] + 10**9, data["accel"][-5:])
+            denoiser.push_sensor(data["t_acc"][-5:] + 10**9, data["accel"][-5:])
 
 
 def test_rate_change_is_refused_within_three_windows(model, motion):
@@ -107,7 +107,7 @@ def test_rate_change_is_refused_within_three_windows(model, motion):
     refused_at = None
     for i in range(0, len(data["t_acc"]), 32):  # as live: a hop at a time
         try:
-            denoiser.push_accel(data["t_acc"][i : i + 32], data["accel"][i : i + 32])
+            denoiser.push_sensor(data["t_acc"][i : i + 32], data["accel"][i : i + 32])
         except StreamError:
             refused_at = i + 32
             break

@@ -40,7 +40,7 @@ def test_samples_are_band_passed_and_carry_the_latest_joint_state():
     t, accel, tj, vel = streams()
     framer = SampleFramer(SETTINGS, 2)
     framer.push_joint_states(tj, vel)
-    framer.push_accel(t, accel)
+    framer.push_sensor(t, accel)
     framer.flush()
     _, (stamps, values, velocity) = collect(framer)
     assert np.array_equal(stamps, t)
@@ -61,7 +61,7 @@ def test_any_chunking_releases_the_same_samples(accel_cuts, joint_cuts):
     t, accel, tj, vel = streams(2000, seed=1)
     whole = SampleFramer(SETTINGS, 2)
     whole.push_joint_states(tj, vel)
-    whole.push_accel(t, accel)
+    whole.push_sensor(t, accel)
     whole.flush()
     _, want = collect(whole)
     framer = SampleFramer(SETTINGS, 2)
@@ -77,7 +77,7 @@ def test_any_chunking_releases_the_same_samples(accel_cuts, joint_cuts):
                 tj[j_pos : min(j_pos + step, limit)], vel[j_pos : min(j_pos + step, limit)]
             )
             j_pos = min(j_pos + step, limit)
-        framer.push_accel(t[start:stop], accel[start:stop])
+        framer.push_sensor(t[start:stop], accel[start:stop])
         start = stop
     framer.push_joint_states(tj[j_pos:], vel[j_pos:])
     framer.flush()
@@ -93,7 +93,7 @@ def test_a_long_gap_ends_the_segment_and_restarts_the_filter():
     keep[1500:1503] = False  # 3 missing: bridged, never output
     framer = SampleFramer(SETTINGS, 2)
     framer.push_joint_states(tj, vel)
-    framer.push_accel(t[keep], accel[keep])
+    framer.push_sensor(t[keep], accel[keep])
     framer.flush()
     batches, (stamps, values, _) = collect(framer)
     assert [b.ends_segment for b in batches if b.ends_segment] == [True, True]
@@ -113,7 +113,7 @@ def test_bad_samples_and_stale_joint_states_are_counted_never_passed_on():
         FramerSettings(**{**SETTINGS.__dict__, "sensor_range": 100.0, "max_hold_s": 0.05}), 2
     )
     framer.push_joint_states(tj[:100], vel[:100])  # none after ~0.3 s
-    framer.push_accel(t, accel)
+    framer.push_sensor(t, accel)
     framer.flush()
     _, (stamps, values, velocity) = collect(framer)
     assert framer.stats.samples_bad == 2
@@ -132,4 +132,4 @@ def test_a_stream_at_another_rate_is_refused():
     with pytest.raises(
         StreamError, match=r"runs at (4[5-9][0-9]|5[0-4][0-9]) Hz but the model expects 1000 Hz"
     ):
-        framer.push_accel(t[0] + 2 * (t - t[0]), accel)
+        framer.push_sensor(t[0] + 2 * (t - t[0]), accel)

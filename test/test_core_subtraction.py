@@ -60,12 +60,12 @@ def test_zero_noise_estimate_gives_the_input_delayed_by_one_block(model, channel
     assert (lo, hi) == (32, 63)  # 10.7 .. 21 ms at 3 kHz
     chunks, emitted = [], 0
     for n in range(1, 700):  # one sample at a time
-        chunk = denoiser.push_accel(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n])
+        chunk = denoiser.push_sensor(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n])
         chunks.append(chunk)
         emitted += len(chunk)
         if n >= 64:
             assert lo <= n - emitted <= hi
-    chunks.append(denoiser.push_accel(data["t_acc"][699:], data["accel"][699:]))
+    chunks.append(denoiser.push_sensor(data["t_acc"][699:], data["accel"][699:]))
     chunks.append(denoiser.flush())
     stamps, values = collect(chunks)
     np.testing.assert_array_equal(stamps, data["t_acc"])
@@ -106,7 +106,7 @@ def test_no_joint_state_passes_the_signal_and_counts(model, caplog, output):
     data = stream(2, [(1.5, 0.0)], seed=2)
     denoiser = StreamingDenoiser(model, channels="per_axis", output=output)
     with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
-        chunks = [denoiser.push_accel(data["t_acc"], data["accel"]), denoiser.flush()]
+        chunks = [denoiser.push_sensor(data["t_acc"], data["accel"]), denoiser.flush()]
     _, values = collect(chunks)
     expected = data["accel"] if output == "dropin" else bandpassed(data["accel"], "per_axis")
     assert np.max(np.abs(values - expected)) <= 1e-9
@@ -118,7 +118,7 @@ def test_stale_joint_state_is_held_briefly_then_missing(model):
     data = stream(2, [(1.5, 0.0)], seed=2)
     denoiser = StreamingDenoiser(model, max_hold_s=0.05)
     denoiser.push_joint_states(data["t_joint"][:200], data["velocity"][:200])  # first 0.2 s only
-    denoiser.push_accel(data["t_acc"], data["accel"])
+    denoiser.push_sensor(data["t_acc"], data["accel"])
     denoiser.flush()
     stats = denoiser.stats
     assert stats["blocks_held_joint_state"] >= 1
@@ -185,9 +185,11 @@ def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
     data = stream(1, [(0.0, 0.0)])
     denoiser = StreamingDenoiser(model)
     with pytest.raises(StreamError, match="1500 Hz but the model expects 3000 Hz"):
-        denoiser.push_accel((np.arange(1000) * 666_667).astype(np.int64), data["accel"][:1000])
+        denoiser.push_sensor((np.arange(1000) * 666_667).astype(np.int64), data["accel"][:1000])
     with pytest.raises(StreamError, match="1500 Hz"):  # and it keeps refusing
-        denoiser.push_accel((np.arange(1000, 1100) * 666_667).astype(np.int64), data["accel"][:100])
+        denoiser.push_sensor(
+            (np.arange(1000, 1100) * 666_667).astype(np.int64), data["accel"][:100]
+        )
     with pytest.raises(StreamError, match="sample rate"):
         StreamingDenoiser(model, sample_rate_hz=1000.0)
     with pytest.raises(StreamError, match="block length 32"):
@@ -197,7 +199,7 @@ def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
 def test_bad_shapes_are_errors(model):
     denoiser = StreamingDenoiser(model)
     with pytest.raises(StreamError, match=r"\(N, 3\)"):
-        denoiser.push_accel(np.arange(10, dtype=np.int64), np.zeros((10, 2)))
+        denoiser.push_sensor(np.arange(10, dtype=np.int64), np.zeros((10, 2)))
     with pytest.raises(StreamError, match="joint states"):
         denoiser.push_joint_states(np.arange(10, dtype=np.int64), np.zeros((10, 3)))
 
@@ -245,11 +247,11 @@ def test_other_block_settings_keep_latency_and_streaming_equal_batch(length, hop
     denoiser.push_joint_states(data["t_joint"], data["velocity"])
     emitted, chunks = 0, []
     for n in range(1, 400):
-        chunks.append(denoiser.push_accel(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n]))
+        chunks.append(denoiser.push_sensor(data["t_acc"][n - 1 : n], data["accel"][n - 1 : n]))
         emitted += len(chunks[-1])
         if n >= length:
             assert length - hop <= n - emitted <= length - 1
-    chunks += [denoiser.push_accel(data["t_acc"][399:], data["accel"][399:]), denoiser.flush()]
+    chunks += [denoiser.push_sensor(data["t_acc"][399:], data["accel"][399:]), denoiser.flush()]
     stamps, values = collect(chunks)
     b_stamps, b_values, _ = denoise_batch(
         data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
@@ -313,7 +315,7 @@ def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
 def test_stream_errors_name_their_source(model):
     denoiser = StreamingDenoiser(model, source="/accelerometer/raw")
     with pytest.raises(StreamError, match=r"^/accelerometer/raw: sensor chunk"):
-        denoiser.push_accel(np.arange(4, dtype=np.int64), np.zeros((4, 2)))
+        denoiser.push_sensor(np.arange(4, dtype=np.int64), np.zeros((4, 2)))
 
 
 def test_a_mostly_bad_recording_is_refused_not_denoised(model):

@@ -171,8 +171,8 @@ def lab(tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate_stream")
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.6, settle_s=0.3, seed=31)
     model, _ = calibrate_arrays(
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
         sweep="superposition",
@@ -180,18 +180,18 @@ def lab(tmp_path_factory):
     )
     model.save(root / "model.npz")
     rec, _ = simulate_motion(duration_s=15.0, max_speed=0.5, tap_rate_hz=2.0, seed=32)
-    accel = rec.accel.copy()
+    accel = rec.sensor.copy()
     accel[int(4.2 * FS) : int(4.25 * FS)] = np.nan  # a burst inside or near a tap
     accel[int(9 * FS), 2] = 1e3  # beyond the sensor range
     stamps, values, _ = denoise_batch(
-        rec.accel_stamps_ns, accel, rec.joint_stamps_ns, rec.joint_velocity, model
+        rec.sensor_stamps_ns, accel, rec.joint_stamps_ns, rec.joint_velocity, model
     )
     keep = np.ones(len(stamps), bool)
     keep[5000:5010] = False  # a few samples without a denoised message
     values = values.copy()
     values[7000] = np.nan
     rec = dataclasses.replace(
-        rec, accel=accel, ego=None, denoised_stamps_ns=stamps[keep], denoised=values[keep]
+        rec, sensor=accel, ego=None, denoised_stamps_ns=stamps[keep], denoised=values[keep]
     )
     write_recording(root / "motion", rec, chunk_bytes=200_000, window_s=0.25)
     quiet, _ = simulate_motion(duration_s=6.0, max_speed=0.5, tap_rate_hz=0.0, seed=33)
@@ -246,7 +246,7 @@ def test_without_calibration_any_slicing_gives_the_whole_array_report(lab):
 
 def test_rechunk_keeps_every_sample_in_order(lab):
     pieces = list(rechunk([read_recording(lab["bag"], profile=lab["model"].profile)], 4000))
-    assert [len(p.accel_stamps_ns) for p in pieces] == [4000] * 11 + [1000]
+    assert [len(p.sensor_stamps_ns) for p in pieces] == [4000] * 11 + [1000]
     assert sum(len(p.joint_stamps_ns) for p in pieces) == len(pieces[0].joint_stamps_ns)
 
 

@@ -23,8 +23,8 @@ def simulated(tmp_path_factory):
         grid="superposition", dwell_s=1.0, settle_s=0.3, effects={}, seed=11, params=None
     )
     model, _ = calibrate_arrays(
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
         sweep="superposition",
@@ -235,5 +235,5 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
         methods = json.loads(out.read_text())["methods"]
         assert abs(bag["noise_reduction_db"] - methods[like]["noise_reduction_db"]) < 0.5
         rec = read_recording(denoised_bag)
-        assert rec.accel[:, 2].mean() > 9.0
-        assert abs(rec.denoised[:, 2].mean() - rec.accel[:, 2].mean()) < 1e-3
+        assert rec.sensor[:, 2].mean() > 9.0
+        assert abs(rec.denoised[:, 2].mean() - rec.sensor[:, 2].mean()) < 1e-3

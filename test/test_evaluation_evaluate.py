@@ -15,8 +15,8 @@ from egovib_ros.sim import simulate_motion, simulate_sweep
 def model():
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.6, settle_s=0.3, effects={}, seed=21)
     model, _ = calibrate_arrays(
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
         sweep="superposition",
@@ -42,11 +42,11 @@ def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recordi
     assert set(report["methods"]) == {"bandpass", "boll", "paper", "wiener", "per_axis"}
     assert report["n_taps"] == len(truth["tap_onsets_ns"])
     # Taps found from the contact topic start within a millisecond of the simulator's onsets.
-    found = rec.accel_stamps_ns[report["signals"]["seg"].onsets]
+    found = rec.sensor_stamps_ns[report["signals"]["seg"].onsets]
     assert np.max(np.abs(found - np.asarray(truth["tap_onsets_ns"]))) <= 1_000_000
     curve = report["pr_curves"]["paper"]
     assert curve["precision"].shape == curve["recall"].shape == curve["threshold"].shape
-    assert report["signals"]["paper"].shape == rec.accel[:, 0].shape
+    assert report["signals"]["paper"].shape == rec.sensor[:, 0].shape
 
 
 def test_primary_fields_are_the_paper_methods(model, recording):

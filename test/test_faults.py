@@ -188,8 +188,8 @@ def _raw_only_bag(path: Path, rec) -> None:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
         bag.write_many(
             "/accelerometer/raw",
-            rec.accel_stamps_ns,
-            encode_imu_batch(rec.accel_stamps_ns, rec.accel),
+            rec.sensor_stamps_ns,
+            encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),
         )
 
 
@@ -209,7 +209,7 @@ def _flip_value_bytes(bag: Path, rec, first: int, count: int) -> None:
     data = bytearray(mcap.read_bytes())
     part = slice(first, first + count)
     pos = 0
-    for message in encode_imu_batch(rec.accel_stamps_ns[part], rec.accel[part]):
+    for message in encode_imu_batch(rec.sensor_stamps_ns[part], rec.sensor[part]):
         at = data.find(message, pos)
         assert at >= 0
         data[at + imu_field_offset(len(_frame_id(message))) + 7] ^= 0x65
@@ -223,9 +223,9 @@ def _drop_records(bag: Path, rec, first: int, count: int) -> None:
     mcap = _mcap(bag)
     data = bytearray(mcap.read_bytes())
     part = slice(first, first + count)
-    for values in (rec.accel, rec.contact, rec.ego):
+    for values in (rec.sensor, rec.contact, rec.ego):
         pos = 0
-        for message in encode_imu_batch(rec.accel_stamps_ns[part], values[part]):
+        for message in encode_imu_batch(rec.sensor_stamps_ns[part], values[part]):
             at = data.find(message, pos)
             assert at >= 31 and data[at - 31] == 0x05  # opcode 0x05: a Message record
             data[at - 31] = 0xFA
@@ -310,16 +310,16 @@ def lab(tmp_path_factory) -> Lab:
     p["no_joint_states"] = root / "no_joint_states"
     _raw_only_bag(p["no_joint_states"], motion)
     p["stamps_zero"] = root / "stamps_zero"
-    write_recording(p["stamps_zero"], _with(motion, accel_stamps_ns=0 * motion.accel_stamps_ns))
+    write_recording(p["stamps_zero"], _with(motion, sensor_stamps_ns=0 * motion.sensor_stamps_ns))
     p["stuck_joint_clock"] = root / "stuck_joint_clock"  # the first 10 s of the sweep
     n = 10 * FS
-    m = int(np.searchsorted(sweep.joint_stamps_ns, sweep.accel_stamps_ns[n]))
+    m = int(np.searchsorted(sweep.joint_stamps_ns, sweep.sensor_stamps_ns[n]))
     write_recording(
         p["stuck_joint_clock"],
         _with(
             sweep,
-            accel_stamps_ns=sweep.accel_stamps_ns[:n],
-            accel=sweep.accel[:n],
+            sensor_stamps_ns=sweep.sensor_stamps_ns[:n],
+            sensor=sweep.sensor[:n],
             joint_stamps_ns=np.full(m, sweep.joint_stamps_ns[0]),
             joint_position=sweep.joint_position[:m],
             joint_velocity=sweep.joint_velocity[:m],
@@ -330,15 +330,15 @@ def lab(tmp_path_factory) -> Lab:
 
     # the sensor rate halves in the middle: every other sample kept after 1.5 s (calibrate:
     # the first 10 s of the sweep, halved after 5 s)
-    index = np.arange(len(motion.accel_stamps_ns))
+    index = np.arange(len(motion.sensor_stamps_ns))
     keep = (index < 1.5 * FS) | (index % 2 == 0)
     p["rate_halves"] = root / "rate_halves"
     write_recording(
         p["rate_halves"],
         _with(
             motion,
-            accel_stamps_ns=motion.accel_stamps_ns[keep],
-            accel=motion.accel[keep],
+            sensor_stamps_ns=motion.sensor_stamps_ns[keep],
+            sensor=motion.sensor[keep],
             contact=motion.contact[keep],
             ego=motion.ego[keep],
         ),
@@ -349,8 +349,8 @@ def lab(tmp_path_factory) -> Lab:
         p["sweep_rate_halves"],
         _with(
             sweep,
-            accel_stamps_ns=sweep.accel_stamps_ns[keep],
-            accel=sweep.accel[keep],
+            sensor_stamps_ns=sweep.sensor_stamps_ns[keep],
+            sensor=sweep.sensor[keep],
             joint_stamps_ns=sweep.joint_stamps_ns[:m],
             joint_position=sweep.joint_position[:m],
             joint_velocity=sweep.joint_velocity[:m],
@@ -359,21 +359,25 @@ def lab(tmp_path_factory) -> Lab:
         ),
     )
 
-    bad12 = motion.accel.copy()  # 12 scattered bad samples, as in the issue
+    bad12 = motion.sensor.copy()  # 12 scattered bad samples, as in the issue
     rows = np.linspace(1000, 8000, 12).astype(int)
     bad12[rows[:4], 0] = np.nan
     bad12[rows[4:8], 1] = np.inf
     bad12[rows[8:], 2] = -np.inf
     p["nan12"] = root / "nan12"
-    write_recording(p["nan12"], _with(motion, accel=bad12))
+    write_recording(p["nan12"], _with(motion, sensor=bad12))
     p["nan_burst"] = root / "nan_burst"  # 0.2 s: 6.7 % of the samples
-    write_recording(p["nan_burst"], _with(motion, accel=_with_bad_samples(motion.accel, 4500, 600)))
+    write_recording(
+        p["nan_burst"], _with(motion, sensor=_with_bad_samples(motion.sensor, 4500, 600))
+    )
     p["mostly_nan"] = root / "mostly_nan"  # 1 s of 3 s: above the 10 % refused
     write_recording(
-        p["mostly_nan"], _with(motion, accel=_with_bad_samples(motion.accel, 3000, 3000))
+        p["mostly_nan"], _with(motion, sensor=_with_bad_samples(motion.sensor, 3000, 3000))
     )
     p["sweep_nan"] = root / "sweep_nan"  # 1 s of bad samples in the sweep
-    write_recording(p["sweep_nan"], _with(sweep, accel=_with_bad_samples(sweep.accel, 30000, 3000)))
+    write_recording(
+        p["sweep_nan"], _with(sweep, sensor=_with_bad_samples(sweep.sensor, 30000, 3000))
+    )
 
     gap_rec, _ = simulate_motion(duration_s=8.0, max_speed=0.5, tap_rate_hz=0.5, seed=7)
     gap_rec = _with(gap_rec, contact=None, ego=None)
@@ -383,7 +387,7 @@ def lab(tmp_path_factory) -> Lab:
     write_recording(p["gap_nan_velocity"], _with(gap_rec, joint_velocity=velocity))
     p["gap_nan_accel"] = root / "gap_nan_accel"
     write_recording(
-        p["gap_nan_accel"], _with(gap_rec, accel=_with_bad_samples(gap_rec.accel, 9000, 1500))
+        p["gap_nan_accel"], _with(gap_rec, sensor=_with_bad_samples(gap_rec.sensor, 9000, 1500))
     )
 
     # models broken the ways the issue found them
@@ -485,7 +489,7 @@ def counted(
                 assert isinstance(report[key], float) and np.isfinite(report[key]), key
         if output:
             rec = read_recording(work / output)
-            assert len(rec.denoised) >= 0.9 * len(rec.accel)
+            assert len(rec.denoised) >= 0.9 * len(rec.sensor)
             assert np.all(np.isfinite(rec.denoised))
             assert np.max(np.abs(rec.denoised)) <= SENSOR_RANGE
 
@@ -506,7 +510,7 @@ def f1_close_to_clean(result: Result, work: Path, lab: Lab) -> None:
 def replaced_own_output(result: Result, work: Path, lab: Lab) -> None:
     marker = json.loads((work / "den" / ".egovib-output").read_text())
     assert marker["kind"] == "bag" and "metadata.yaml" in marker["files"]
-    assert len(read_recording(work / "den").denoised) == len(read_recording(lab["motion"]).accel)
+    assert len(read_recording(work / "den").denoised) == len(read_recording(lab["motion"]).sensor)
     assert not list(work.glob(".*.partial"))
 
 
@@ -1188,7 +1192,7 @@ def bad_second(tmp_path_factory):
     rec, _ = simulate_motion(duration_s=30.0, max_speed=0.5, tap_rate_hz=3.0, seed=21)
     rec = _with(rec, ego=None)  # evaluate needs only the contact truth
     write_recording(root / "clean", rec)
-    write_recording(root / "bad", _with(rec, accel=_with_bad_samples(rec.accel, 8 * FS, FS)))
+    write_recording(root / "bad", _with(rec, sensor=_with_bad_samples(rec.sensor, 8 * FS, FS)))
     return root
 
 
@@ -1262,8 +1266,8 @@ def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     bad = read_recording(tmp_path / "bad")
     clean = read_recording(bad_second / "clean")
     stamps, values, _ = denoise_batch(
-        clean.accel_stamps_ns,
-        clean.accel,
+        clean.sensor_stamps_ns,
+        clean.sensor,
         clean.joint_stamps_ns,
         clean.joint_velocity,
         NoiseModel.load(lab["model"]),
@@ -1271,7 +1275,7 @@ def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     assert np.all(np.isfinite(bad.denoised)) and np.max(np.abs(bad.denoised)) <= SENSOR_RANGE
     assert len(bad.denoised_stamps_ns) >= 0.9 * len(stamps)
     # compared outside the bad second and a second either side of it
-    around = (stamps >= clean.accel_stamps_ns[7 * FS]) & (stamps < clean.accel_stamps_ns[10 * FS])
+    around = (stamps >= clean.sensor_stamps_ns[7 * FS]) & (stamps < clean.sensor_stamps_ns[10 * FS])
     chosen = ~around & np.isin(stamps, bad.denoised_stamps_ns)
     assert np.count_nonzero(chosen) >= 0.8 * len(stamps)
     level_clean = np.sqrt(np.mean(values[chosen] ** 2))

@@ -60,16 +60,16 @@ def test_real_injections_change_only_what_they_say():
     part = _slice(rec, 0.0, SPLIT_S)
     late = inject(part, "timing", 0.04)
     assert np.array_equal(late.joint_stamps_ns, part.joint_stamps_ns + 40_000_000)
-    assert np.array_equal(late.accel, part.accel)
+    assert np.array_equal(late.sensor, part.sensor)
     for effect in ("drift", "position", "acceleration", "coupling"):
         out = inject(part, effect, 0.8)
         assert np.array_equal(out.joint_velocity, part.joint_velocity), effect
-        nonzero = np.all(part.accel != 0, axis=1)
-        gain = out.accel[nonzero] / part.accel[nonzero]
+        nonzero = np.all(part.sensor != 0, axis=1)
+        gain = out.sensor[nonzero] / part.sensor[nonzero]
         g = np.median(gain, axis=1)
         assert np.max(np.abs(gain - g[:, None])) < 1e-9, effect  # one gain for all axes
         assert np.max(g) > 1.2 and np.min(g) > 0, effect
     warm = inject(part, "drift", 0.8)
-    nonzero = part.accel[:, 0] != 0
-    g = warm.accel[nonzero, 0] / part.accel[nonzero, 0]
+    nonzero = part.sensor[:, 0] != 0
+    g = warm.sensor[nonzero, 0] / part.sensor[nonzero, 0]
     assert g[0] < 1.05 and g[-1] > 1.75  # warms up from 1 towards 1.8

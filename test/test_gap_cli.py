@@ -289,7 +289,7 @@ def test_scattered_bad_samples_above_a_tenth_are_refused_as_such(model_path, pos
 
     model = NoiseModel.load(model_path)
     rec = read_recording(position_bag, profile=model.profile, ground_truth=False, denoised=False)
-    accel = rec.accel.copy()
+    accel = rec.sensor.copy()
     accel[np.random.default_rng(0).random(len(accel)) < 0.15] = np.nan
     with pytest.raises(StreamError, match="bad|non-finite"):
-        build_table(dataclasses.replace(rec, accel=accel), model)
+        build_table(dataclasses.replace(rec, sensor=accel), model)

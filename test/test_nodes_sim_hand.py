@@ -39,7 +39,7 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     assert player.returncode == 0, nodes.log(player)
     # The sim runs until the last /clock (the bag's last message): wait for the streams to
     # arrive up to it before stopping the sim (their writer).
-    last_clock = recorded.accel_stamps_ns[-1] - 100_000_000
+    last_clock = recorded.sensor_stamps_ns[-1] - 100_000_000
     assert wait_for_stream_end(ros_client, raw, joints, end_ns=last_clock), (len(raw), len(joints))
     assert nodes.stop(sim) == 0, nodes.log(sim)
 
@@ -48,8 +48,8 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     # Stamps come from /clock (the bag's time base, starting near 0), not the wall clock.
     assert len(stamps) > 3000
     assert (
-        recorded.accel_stamps_ns[0] <= stamps[0]
-        and stamps[-1] <= recorded.accel_stamps_ns[-1] + 50_000_000
+        recorded.sensor_stamps_ns[0] <= stamps[0]
+        and stamps[-1] <= recorded.sensor_stamps_ns[-1] + 50_000_000
     )
     assert np.all(np.diff(stamps) > 0)
     # Sim time runs at the bag's pace: samples 1/3 ms apart in sim time, and the stream

@@ -32,7 +32,7 @@ ROBOT = RobotProfile(
 def test_sweep_cells_come_from_the_profile_grid():
     cells = sweep_velocities(ROBOT, "superposition")
     assert cells.shape == (1 + 4 + 4 + 2, 3)
-    np.testing.assert_array_equal(cells[0], [0, 0, 0])  # the rest cell first
+    assert sum(not c.any() for c in cells) == 1  # the rest cell, once
     assert np.all((cells != 0).sum(axis=1) <= 1)
     np.testing.assert_allclose(sorted(cells[:, 2][cells[:, 2] != 0]), [25.0, 50.0])  # 0..max only
     assert len(sweep_velocities(ROBOT, "full")) == 5 * 5 * 3

@@ -73,9 +73,9 @@ def test_calibrate_then_denoise_round_trip(bags):
     for topic in ("/joint_states", "/accelerometer/contact", "/accelerometer/ego"):
         assert topic in topics
     rec = read_recording(out)
-    np.testing.assert_array_equal(rec.denoised_stamps_ns, rec.accel_stamps_ns)
+    np.testing.assert_array_equal(rec.denoised_stamps_ns, rec.sensor_stamps_ns)
     _, expected, _ = denoise_batch(
-        rec.accel_stamps_ns, rec.accel, rec.joint_stamps_ns, rec.joint_velocity, model
+        rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity, model
     )
     np.testing.assert_allclose(rec.denoised, expected, rtol=0, atol=1e-12)
 
@@ -167,7 +167,7 @@ def test_streaming_through_small_chunks_equals_batch(bags, model_path, tmp_path)
     figures = denoise_bag(tmp_path / "small", out, model=model)
     assert figures["chunks_copied_verbatim"] > 100
     _, expected, _ = denoise_batch(
-        motion.accel_stamps_ns, motion.accel, motion.joint_stamps_ns, motion.joint_velocity, model
+        motion.sensor_stamps_ns, motion.sensor, motion.joint_stamps_ns, motion.joint_velocity, model
     )
     np.testing.assert_array_equal(read_recording(out).denoised, expected)
 
@@ -389,14 +389,14 @@ def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
     """Raw messages whose frame_id changes length mid-stream (no fixed layout): the output is
     still each input message with only the field replaced, as the vectorised path makes it."""
     motion = read_recording(bags / "motion")
-    n = len(motion.accel_stamps_ns)
+    n = len(motion.sensor_stamps_ns)
     half = n // 2
     with BagWriter(tmp_path / "mixed") as bag:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
         bag.add_topic("/joint_states", "sensor_msgs/msg/JointState")
-        stamps = motion.accel_stamps_ns
-        raws = encode_imu_batch(stamps[:half], motion.accel[:half], "imu") + encode_imu_batch(
-            stamps[half:], motion.accel[half:], "imu_link_long_name"
+        stamps = motion.sensor_stamps_ns
+        raws = encode_imu_batch(stamps[:half], motion.sensor[:half], "imu") + encode_imu_batch(
+            stamps[half:], motion.sensor[half:], "imu_link_long_name"
         )
         bag.write_batch("/accelerometer/raw", stamps, raws)
         bag.write_batch(
@@ -411,8 +411,8 @@ def test_unusual_imu_messages_take_the_general_path(bags, model_path, tmp_path):
         )
     denoise_bag(tmp_path / "mixed", tmp_path / "out", model=NoiseModel.load(model_path))
     _, expected, _ = denoise_batch(
-        motion.accel_stamps_ns,
-        motion.accel,
+        motion.sensor_stamps_ns,
+        motion.sensor,
         motion.joint_stamps_ns,
         motion.joint_velocity,
         NoiseModel.load(model_path),

@@ -68,11 +68,11 @@ def test_converter_round_trip_gives_the_samples_and_stamps(tmp_path):
     profile = load_profile("quadcopter")
     rec = read_flight_bag(tmp_path / "bag", profile)
     stamps = np.round(fields["time_s"] * 1e6).astype(np.int64) * 1000
-    np.testing.assert_array_equal(rec.accel_stamps_ns, stamps)  # the log's jittery sample times
+    np.testing.assert_array_equal(rec.sensor_stamps_ns, stamps)  # the log's jittery sample times
     np.testing.assert_array_equal(rec.joint_stamps_ns, stamps)  # joint states at the sensor rate
     np.testing.assert_array_equal(rec.filtered_stamps_ns, stamps)
     np.testing.assert_allclose(
-        rec.accel, np.deg2rad(fields["gyro_unfiltered_dps"].astype(float)), rtol=0, atol=0
+        rec.sensor, np.deg2rad(fields["gyro_unfiltered_dps"].astype(float)), rtol=0, atol=0
     )
     np.testing.assert_allclose(
         rec.filtered, np.deg2rad(fields["gyro_filtered_dps"].astype(float)), rtol=0, atol=0
@@ -114,11 +114,11 @@ def test_converted_imu_is_rep145_with_the_gyro_in_angular_velocity(tmp_path):
 def test_shipped_bag_holds_the_flight_log():
     log = load_flight_log(NPZ)
     rec = read_flight_bag(SHIPPED_BAG, load_profile("quadcopter"))
-    np.testing.assert_array_equal(rec.accel_stamps_ns, log.stamps_ns)
-    np.testing.assert_array_equal(rec.accel, log.gyro)
+    np.testing.assert_array_equal(rec.sensor_stamps_ns, log.stamps_ns)
+    np.testing.assert_array_equal(rec.sensor, log.gyro)
     np.testing.assert_array_equal(rec.filtered, log.gyro_filtered)
     np.testing.assert_array_equal(rec.joint_velocity, log.motors)
-    steps = np.diff(rec.accel_stamps_ns) / 1e6
+    steps = np.diff(rec.sensor_stamps_ns) / 1e6
     assert 0.85 < steps.min() < 0.95 and 1.2 < steps.max() < 1.3  # the log's jitter is kept
     assert sum(f.stat().st_size for f in SHIPPED_BAG.iterdir()) < 4e6  # small (zstd MCAP chunks)
     assert "MIT OR Apache-2.0" in (SHIPPED_BAG / "README.md").read_text()
@@ -160,13 +160,13 @@ def test_a_joint_the_bag_lacks_is_named(tmp_path):
         read_flight_bag(tmp_path / "bag", other)
 
 
-def test_converter_module_main(tmp_path):
+def test_converter_command(tmp_path):
     _small_npz(tmp_path / "log.npz", n=50)
     done = subprocess.run(
         [
             sys.executable,
             "-m",
-            "egovib_ros.experiments.flight.convert",
+            "egovib_ros.cli", "real", "convert",
             str(tmp_path / "log.npz"),
             "--out",
             str(tmp_path / "bag"),

@@ -98,12 +98,12 @@ def test_thresholds_come_from_the_calibration_part_only(flight):
     config = RealConfig(**{**SHORT, "methods": ("raw", "ours", "notch_q5")})
     base = run_fold(flight, PROFILE, (0.0, 4.0), (4.0, 6.0), config)
     # Multiply the test part's gyro by 10: no threshold may move (they never look at it) ...
-    t0 = flight.accel_stamps_ns[0]
-    louder = flight.accel.copy()
-    test = (flight.accel_stamps_ns >= t0 + 4e9) & (flight.accel_stamps_ns < t0 + 6e9)
+    t0 = flight.sensor_stamps_ns[0]
+    louder = flight.sensor.copy()
+    test = (flight.sensor_stamps_ns >= t0 + 4e9) & (flight.sensor_stamps_ns < t0 + 6e9)
     louder[test] *= 10.0
     loud = run_fold(
-        dataclasses.replace(flight, accel=louder), PROFILE, (0.0, 4.0), (4.0, 6.0), config
+        dataclasses.replace(flight, sensor=louder), PROFILE, (0.0, 4.0), (4.0, 6.0), config
     )
     for name in config.methods:
         assert loud["methods"][name]["threshold"] == base["methods"][name]["threshold"], name
@@ -112,10 +112,10 @@ def test_thresholds_come_from_the_calibration_part_only(flight):
         > 5 * base["results"]["1"]["raw"]["noise_mean_raw"]
     )
     # ... while changing the calibration part does move them.
-    quieter = flight.accel.copy()
+    quieter = flight.sensor.copy()
     quieter[~test] *= 0.5
     cal = run_fold(
-        dataclasses.replace(flight, accel=quieter), PROFILE, (0.0, 4.0), (4.0, 6.0), config
+        dataclasses.replace(flight, sensor=quieter), PROFILE, (0.0, 4.0), (4.0, 6.0), config
     )
     assert cal["methods"]["raw"]["threshold"] == pytest.approx(
         0.5 * base["methods"]["raw"]["threshold"]

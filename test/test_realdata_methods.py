@@ -117,7 +117,7 @@ def _two_regimes(seed=0):
 
 def _reduction_db(method, cal, test):
     method.fit(cal)
-    raw = combined_bandpassed(test.accel, PROFILE)
+    raw = combined_bandpassed(test.sensor, PROFILE)
     out = method.run(test)
     keep = slice(200, len(raw) - 200)
     return 20 * np.log10(np.mean(np.abs(raw[keep])) / np.mean(np.abs(out[keep])))
@@ -127,12 +127,12 @@ def test_only_the_four_motor_table_keeps_a_signal_where_the_other_regime_has_its
     cal, test = _two_regimes(0), _two_regimes(1)
     # A steady 150 Hz signal while motor 1 is fast (its line at 300 Hz): 150 Hz is where the
     # *other* regime (same mean command) has its line.
-    t = (test.accel_stamps_ns - test.accel_stamps_ns[0]) / 1e9
+    t = (test.sensor_stamps_ns - test.sensor_stamps_ns[0]) / 1e9
     regime0 = test.joint_velocity[:, 0] > 0.5
-    probe = np.zeros_like(test.accel)
+    probe = np.zeros_like(test.sensor)
     probe[:, 1] = np.where(regime0, 0.05 * np.sin(2 * np.pi * 150 * t), 0.0)
     test_with_probe = _recording(
-        test.accel_stamps_ns, test.joint_velocity, test.accel[:, 0] + probe[:, 1]
+        test.sensor_stamps_ns, test.joint_velocity, test.sensor[:, 0] + probe[:, 1]
     )
     reference = combined_bandpassed(probe, PROFILE)
     inside = regime0.copy()

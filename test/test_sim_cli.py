@@ -46,7 +46,7 @@ def test_simulate_motion_bag_and_truth(tmp_path):
     data = json.loads(truth.read_text())
     assert data["seed"] == 7 and data["effects"] == {"position": 0.5, "timing": 0.01}
     rec = read_recording(out)
-    assert np.all(np.isin(data["tap_onsets_ns"], rec.accel_stamps_ns))
+    assert np.all(np.isin(data["tap_onsets_ns"], rec.sensor_stamps_ns))
     # nothing about the effects inside the bag
     blob = b"".join(p.read_bytes() for p in out.iterdir())
     assert b"effects" not in blob and b"timing" not in blob and b"position=" not in blob
@@ -79,7 +79,7 @@ def test_simulate_sweep_cli_matches_library(tmp_path):
     )
     rec = read_recording(out)
     ref, _ = simulate_sweep(grid="superposition", dwell_s=0.1, settle_s=0.05, seed=3)
-    np.testing.assert_array_equal(rec.accel, ref.accel)
+    np.testing.assert_array_equal(rec.sensor, ref.sensor)
     np.testing.assert_array_equal(rec.joint_velocity, ref.joint_velocity)
     np.testing.assert_array_equal(rec.ego, ref.ego)
 

@@ -17,7 +17,7 @@ from egovib_ros.sim.pr2 import EFFECT_NAMES, GRIPPER_GAP_RANGE_M, MAX_SPEED
 
 FS = 3000
 FIELDS = (
-    "accel",
+    "sensor",
     "contact",
     "ego",
     "joint_stamps_ns",
@@ -60,7 +60,7 @@ def test_strength_zero_is_bit_identical(params, name):
         np.testing.assert_array_equal(getattr(off, field), getattr(base, field), err_msg=field)
     on = run(params, command, 3.0, effects={name: 0.5}, taps=2.0)
     changed = [f for f in FIELDS if not np.array_equal(getattr(on, f), getattr(base, f))]
-    assert changed == (["joint_stamps_ns"] if name == "timing" else ["accel", "ego"])
+    assert changed == (["joint_stamps_ns"] if name == "timing" else ["sensor", "ego"])
 
 
 def test_position_spectrum_depends_on_wrist_angle(params):
@@ -69,7 +69,7 @@ def test_position_spectrum_depends_on_wrist_angle(params):
     levels = {}
     for s in (0.0, 0.5):
         chunk = run(params, [speed, 0.0], 12.0, effects={"position": s} if s else None)
-        mags = block_magnitudes(bandpass_combined(chunk.accel))[:, BAND_BINS].sum(axis=1)
+        mags = block_magnitudes(bandpass_combined(chunk.sensor))[:, BAND_BINS].sum(axis=1)
         angle = chunk.true_position[32::32, 0][: len(mags)]
         near = np.cos(angle - angle_of_max)
         levels[s] = mags[near > 0.9].mean() / mags[near < -0.9].mean()
@@ -126,9 +126,9 @@ def test_acceleration_adds_vibration_at_speed_changes(params):
 def _lag_joint_states_vs_vibration(chunk) -> float:
     """Time from the vibration change to the reported joint-velocity change, for a
     0 -> 2 rad/s step at 1 s."""
-    level = band_rms(chunk.accel, 48)
+    level = band_rms(chunk.sensor, 48)
     steady = level[int(2.0 * FS) :].mean()
-    t_accel = chunk.accel_stamps_ns / 1e9
+    t_accel = chunk.sensor_stamps_ns / 1e9
     t_vib = t_accel[np.argmax((level > 0.5 * steady) & (t_accel > 0.9))]
     js_speed = np.abs(chunk.joint_velocity[:, 0])
     t_js = chunk.joint_stamps_ns[np.argmax(js_speed > 0.5 * 2.0)] / 1e9
@@ -153,7 +153,7 @@ def test_drift_changes_level_at_fixed_velocity(params):
     ratios = {}
     for s in (0.0, 1.0):
         chunk = run(params, command, 40.0, effects={"drift": s} if s else None)
-        bp = bandpass_combined(chunk.accel)
+        bp = bandpass_combined(chunk.sensor)
         ratios[s] = np.sqrt(np.mean(bp[-5 * FS :] ** 2) / np.mean(bp[FS : 6 * FS] ** 2))
     assert 0.93 < ratios[0.0] < 1.07
     expected = (1 + 37.5 / 60) / (1 + 3.5 / 60)

@@ -11,8 +11,8 @@ from egovib_ros.sim.hand import LSB_MS2, quantise
 from egovib_ros.sim.pr2 import GRIPPER_GAP_RANGE_M, JOINT_RATE_HZ, MAX_SPEED
 
 FIELDS = (
-    "accel_stamps_ns",
-    "accel",
+    "sensor_stamps_ns",
+    "sensor",
     "contact",
     "ego",
     "joint_stamps_ns",
@@ -72,12 +72,12 @@ def test_deterministic_per_seed(params):
     c = _run(params, [6000], seed=2)
     for f in FIELDS:
         np.testing.assert_array_equal(a[f], b[f])
-    assert not np.array_equal(a["accel"], c["accel"])
+    assert not np.array_equal(a["sensor"], c["sensor"])
 
 
 def test_accelerometer_is_quantised_and_clipped(params):
     out = _run(params, [3000])
-    codes = out["accel"] / LSB_MS2
+    codes = out["sensor"] / LSB_MS2
     np.testing.assert_allclose(codes, np.round(codes), atol=1e-9)
     assert LSB_MS2 == pytest.approx(157.0 / 1024)
     clipped = quantise(np.array([[1000.0, -1000.0, 0.0]]))
@@ -85,7 +85,7 @@ def test_accelerometer_is_quantised_and_clipped(params):
         -512 * LSB_MS2
     )
     # raw = quantised (ego + contact + small sensor noise): within half an LSB + a few noise sigma
-    resid = out["accel"] - out["ego"] - out["contact"] - np.asarray(params.zero_g_offset_ms2)
+    resid = out["sensor"] - out["ego"] - out["contact"] - np.asarray(params.zero_g_offset_ms2)
     assert np.abs(resid).max() < LSB_MS2 / 2 + 6 * params.sensor_noise_rms
 
 
@@ -93,7 +93,7 @@ def test_joint_states_like_the_pr2(params):
     out = _run(params, [3000 * 4])
     stamps = out["joint_stamps_ns"]
     assert np.all(np.diff(stamps) == 1_000_000)  # 1 kHz
-    phase = (stamps[0] - out["accel_stamps_ns"][0]) % (10**9 // 3000)
+    phase = (stamps[0] - out["sensor_stamps_ns"][0]) % (10**9 // 3000)
     assert phase != 0  # own clock phase vs the accelerometer
     pos, vel = out["joint_position"], out["joint_velocity"]
     res = np.asarray(params.encoder_resolution)
@@ -123,7 +123,7 @@ def test_stationary_background_is_small_and_vibration_grows_with_speed(params):
         sim = HandSimulator(params, seed=0)
         sim.set_command([frac * MAX_SPEED[0], frac * MAX_SPEED[1]])
         sim.step(600)
-        levels.append(np.abs(bandpass_combined(sim.step(6000).accel))[600:].mean())
+        levels.append(np.abs(bandpass_combined(sim.step(6000).sensor))[600:].mean())
     assert levels[0] < 0.05
     assert levels[0] < levels[1] < levels[2]
 
@@ -138,7 +138,7 @@ def test_taps_periodic_and_random(params):
     assert gaps.min() >= params.tap_dead_time_s - 1e-3
     assert 1.5 < len(chunk.tap_onsets_ns) / 30 < 2.5
     # contact truth is non-zero only right after onsets
-    k = np.searchsorted(chunk.accel_stamps_ns, chunk.tap_onsets_ns)
+    k = np.searchsorted(chunk.sensor_stamps_ns, chunk.tap_onsets_ns)
     assert np.all(np.abs(chunk.contact[k + 3]).sum(axis=1) > 0)
     active = np.zeros(len(chunk.contact), bool)
     for start in k:

@@ -81,8 +81,8 @@ def test_any_cut_of_a_run_gives_the_same_samples_and_seeds_decide(arm):
     cut, cut_taps = run(3, rng.choice(np.arange(1, n), 40, replace=False))
     assert taps == cut_taps and len(taps) >= 5
     for name in (
-        "accel_stamps_ns",
-        "accel",
+        "sensor_stamps_ns",
+        "sensor",
         "contact",
         "ego",
         "joint_stamps_ns",
@@ -91,12 +91,12 @@ def test_any_cut_of_a_run_gives_the_same_samples_and_seeds_decide(arm):
     ):
         np.testing.assert_array_equal(_concat(whole, name), _concat(cut, name), err_msg=name)
     other, other_taps = run(4, [])
-    assert not np.array_equal(_concat(other, "accel"), _concat(whole, "accel"))
+    assert not np.array_equal(_concat(other, "sensor"), _concat(whole, "sensor"))
     assert other_taps != taps
     # same profile, another seed: the same robot (build), other motion and noise
     assert np.array_equal(RobotSimulator(arm, seed=4).build.idle, RobotSimulator(arm).build.idle)
 
-    stamps = _concat(whole, "accel_stamps_ns")
+    stamps = _concat(whole, "sensor_stamps_ns")
     steps = np.diff(stamps)
     assert stamps[0] == 1_000_000_000 and steps.min() >= 0.69 * 5e5 and steps.max() <= 1.31 * 5e5
     assert steps.std() > 0.1 * 5e5  # jittered, not uniform
@@ -115,7 +115,7 @@ def test_gravity_on_z_for_an_accelerometer_none_for_a_gyro(arm):
     )
     for profile, z in ((arm, GRAVITY_MS2), (gyro, 0.0)):
         pieces, _, _ = robot_slices(profile, mode="motion", duration_s=3.0, seed=1)
-        accel = _concat(list(pieces), "accel")
+        accel = _concat(list(pieces), "sensor")
         assert abs(accel[:, 2].mean() - z) < 0.05 and np.all(np.abs(accel[:, :2].mean(0)) < 0.05)
 
 
@@ -184,12 +184,12 @@ def test_motion_and_sweep_bags_calibrate_denoise_and_reduce_noise(arm, arm_path,
         denoised = tmp_path / f"{name}.denoised"
         assert _run("denoise", test, "--model", model, "--out", denoised, "--quiet") == 0
         rec = read_recording(denoised, profile=arm)
-        assert np.array_equal(rec.denoised_stamps_ns, rec.accel_stamps_ns)
+        assert np.array_equal(rec.denoised_stamps_ns, rec.sensor_stamps_ns)
         # drop-in output: gravity kept
         assert abs(rec.denoised[:, 2].mean() - GRAVITY_MS2) < 0.05
         quiet = signal.convolve(np.abs(rec.contact).sum(1) > 0, np.ones(200), mode="same") == 0
         quiet[:2000] = quiet[-2000:] = False  # leave the filters' edges out
-        raw = _in_band_rms(arm, rec.accel, quiet)
+        raw = _in_band_rms(arm, rec.sensor, quiet)
         cleaned = _in_band_rms(arm, rec.denoised, quiet)
         reductions[name] = 20 * np.log10(raw / cleaned)
     # measured: sweep 23.3 dB, 40 s of free motion 10.7 dB (in-band, away from the taps)
@@ -203,7 +203,7 @@ def test_truth_onsets_are_where_the_contact_topic_starts(arm, arm_path, tmp_path
     data = json.loads(truth.read_text())
     assert data["seed"] == 5 and data["effects"] == {}
     pieces = list(iter_recording(out, profile=arm))
-    stamps, contact = _concat(pieces, "accel_stamps_ns"), _concat(pieces, "contact")
+    stamps, contact = _concat(pieces, "sensor_stamps_ns"), _concat(pieces, "contact")
     active = np.abs(contact).sum(axis=1) > 0
     # a burst rises from zero at its onset (as the PR2 simulator's): the onset is the sample
     # just before the first non-zero one

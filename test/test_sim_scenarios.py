@@ -24,7 +24,7 @@ def test_sweep_cells():
 
 def test_simulate_sweep_recording():
     rec, truth = simulate_sweep(grid="superposition", dwell_s=0.2, settle_s=0.1, seed=4)
-    assert len(rec.accel) == 41 * 900
+    assert len(rec.sensor) == 41 * 900
     assert rec.joint_names == JOINT_NAMES
     assert rec.commands.shape == (41, 2) and len(rec.command_stamps_ns) == 41
     np.testing.assert_array_equal(rec.commands, sweep_cells("superposition"))
@@ -37,7 +37,7 @@ def test_simulate_sweep_recording():
             np.abs(cmd),
             atol=0.02 * np.asarray(MAX_SPEED).max() + 1e-3,
         )
-    np.testing.assert_allclose(rec.accel, rec.accel)  # finite
+    np.testing.assert_allclose(rec.sensor, rec.sensor)  # finite
     assert truth == {"seed": 4, "effects": {}, "tap_onsets_ns": []}
 
 
@@ -58,12 +58,12 @@ def test_simulate_motion_with_taps_and_truth():
     rec, truth = simulate_motion(
         duration_s=8.0, max_speed=0.5, tap_rate_hz=1.0, seed=2, effects={"position": 0.3}
     )
-    assert len(rec.accel) == 24000
+    assert len(rec.sensor) == 24000
     assert truth["seed"] == 2 and truth["effects"] == {"position": 0.3}
     onsets = np.asarray(truth["tap_onsets_ns"])
     assert 3 <= len(onsets) <= 16
-    assert np.all(np.isin(onsets, rec.accel_stamps_ns))
-    k = np.searchsorted(rec.accel_stamps_ns, onsets)
+    assert np.all(np.isin(onsets, rec.sensor_stamps_ns))
+    k = np.searchsorted(rec.sensor_stamps_ns, onsets)
     assert np.all(np.abs(rec.contact[k + 5]).sum(axis=1) > 0)
     # commands topic: within the speed limit; the reported joint speeds follow them
     assert np.all(np.abs(rec.commands) <= 0.5 * np.asarray(MAX_SPEED) + 1e-12)

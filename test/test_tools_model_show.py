@@ -60,8 +60,8 @@ def pr2_bag_beyond(tmp_path_factory) -> Path:
     velocity[third : 2 * third] = [1.5, 0.02]
     velocity[2 * third :] = [4.5, 0.0]
     rec = Recording(
-        accel_stamps_ns=stamps,
-        accel=np.random.default_rng(0).normal(size=(len(stamps), 3)),
+        sensor_stamps_ns=stamps,
+        sensor=np.random.default_rng(0).normal(size=(len(stamps), 3)),
         joint_stamps_ns=joint_stamps,
         joint_position=np.cumsum(velocity, axis=0) / 1000.0,
         joint_velocity=velocity,
@@ -146,7 +146,8 @@ def test_fill_rules_and_lookups_follow_the_noise_model():
     rng = np.random.default_rng(1)
     every = np.indices(p.grid_shape).reshape(3, -1).T
     axis = sweep_cells(p.grid(), "superposition")
-    cells = np.unique(np.vstack([axis[rng.random(len(axis)) < 0.6], axis[:1], every[::5]]), axis=0)
+    rest = np.array([[int(np.argmin(np.abs(g))) for g in p.grid()]])  # Eq. 6 needs it
+    cells = np.unique(np.vstack([axis[rng.random(len(axis)) < 0.6], rest, every[::5]]), axis=0)
     bins = p.block_length // 2 + 1
     mean = rng.uniform(0.1, 1.0, (len(cells), 4, bins))
     model = NoiseModel(

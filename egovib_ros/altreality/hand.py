@@ -483,8 +483,8 @@ class AltHand:
 
         j_stamps, j_pos, j_vel = self._joint_states(position, n)
         rec = Recording(
-            accel_stamps_ns=accel_stamps,
-            accel=raw,
+            sensor_stamps_ns=accel_stamps,
+            sensor=raw,
             joint_stamps_ns=j_stamps,
             joint_position=j_pos,
             joint_velocity=j_vel,

@@ -11,7 +11,7 @@ Streaming a bag through the core (what `egovib calibrate` does; evaluate and gap
 
     for piece in iter_recording(bag, profile=model.profile):   # topics, field, joints
         consumer.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-        out = consumer.push_accel(piece.accel_stamps_ns, piece.accel)
+        out = consumer.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         # piece.contact / piece.ego: ground truth of the same samples (sim bags)
     consumer.flush()
 

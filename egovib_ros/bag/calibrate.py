@@ -39,7 +39,7 @@ def calibrate_bag(
         bag, profile=profile, ground_truth=False, denoised=False, commands=False, progress=progress
     ):
         acc.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-        acc.push_accel(piece.accel_stamps_ns, piece.accel)
+        acc.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         joint_states += len(piece.joint_stamps_ns)
     acc.flush()
     # too many bad samples or unusable joint states: refused; else counted
@@ -122,8 +122,8 @@ def calibrate_bag_methods(bag: str | os.PathLike, model, *, joint_lag_s: float =
     joints = rec.joint_stamps_ns + int(round(joint_lag_s * 1e9))
     return calibrate_methods(
         model,
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         joints,
         rec.joint_velocity,
         source=f"{bag}: {profile.sensor_topic}",

@@ -211,7 +211,7 @@ def denoise_bag(
                     for piece in pieces:
                         for chunk in (
                             denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
-                            denoiser.push_accel(piece.accel_stamps_ns, piece.accel),
+                            denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
                         ):
                             job.add_output(chunk.stamps_ns, chunk.values)
 

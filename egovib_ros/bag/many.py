@@ -208,7 +208,8 @@ def _run_dask(
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise ConfigError(
-            "parallel runs need dask.distributed (pip install 'dask[distributed]')"
+            "parallel runs need dask.distributed (pip install 'egovib_ros[cluster]', or apt "
+            "python3-distributed)"
         ) from None
     cluster = None
     quiet_loggers = {

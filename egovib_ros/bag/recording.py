@@ -70,8 +70,8 @@ def _default_joint_names() -> tuple[str, ...]:
 class Recording:
     """Everything the project keeps of a bag, as numpy arrays (see docs/DESIGN.md)."""
 
-    accel_stamps_ns: np.ndarray  # (N,) int64, sensor sample stamps
-    accel: np.ndarray  # (N, 3) float64, the profile's field (raw topic)
+    sensor_stamps_ns: np.ndarray  # (N,) int64, sensor sample stamps
+    sensor: np.ndarray  # (N, 3) float64, the profile's field (raw topic)
     joint_stamps_ns: np.ndarray  # (M,) int64
     joint_position: np.ndarray  # (M, J) float64
     joint_velocity: np.ndarray  # (M, J) float64
@@ -86,9 +86,9 @@ class Recording:
     @property
     def duration_s(self) -> float:
         """Time span of the sensor stream in seconds."""
-        if len(self.accel_stamps_ns) < 2:
+        if len(self.sensor_stamps_ns) < 2:
             return 0.0
-        return float(self.accel_stamps_ns[-1] - self.accel_stamps_ns[0]) / 1e9
+        return float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / 1e9
 
 
 def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
@@ -344,8 +344,8 @@ class RecordingStream:
         )
         js_stamps, js_position, js_velocity = js_stamps[:cut], js_position[:cut], js_velocity[:cut]
         piece = Recording(
-            accel_stamps_ns=raw_stamps[:take],
-            accel=sensor["raw"][1][:take],
+            sensor_stamps_ns=raw_stamps[:take],
+            sensor=sensor["raw"][1][:take],
             joint_stamps_ns=js_stamps,
             joint_position=js_position,
             joint_velocity=js_velocity,
@@ -461,9 +461,9 @@ def read_recording(
 
 def _sorted(rec: Recording) -> Recording:
     """Streams in stamp order (a bag's file order is receive order)."""
-    if np.any(np.diff(rec.accel_stamps_ns) < 0):
-        order = np.argsort(rec.accel_stamps_ns, kind="stable")
-        rec.accel_stamps_ns, rec.accel = rec.accel_stamps_ns[order], rec.accel[order]
+    if np.any(np.diff(rec.sensor_stamps_ns) < 0):
+        order = np.argsort(rec.sensor_stamps_ns, kind="stable")
+        rec.sensor_stamps_ns, rec.sensor = rec.sensor_stamps_ns[order], rec.sensor[order]
         for key in ("contact", "ego"):
             if getattr(rec, key) is not None:
                 setattr(rec, key, getattr(rec, key)[order])
@@ -550,13 +550,13 @@ def write_recordings(
 
 def recording_streams(rec: Recording, names: dict, field_: str, frame_id: str = "") -> list:
     """(topic, type, stamps, encode(a, b)) per topic present in the recording."""
-    n = len(rec.accel_stamps_ns)
+    n = len(rec.sensor_stamps_ns)
 
     def imu(values, stamps):
         return lambda a, b: encode_imu_batch(stamps[a:b], values[a:b], frame_id, field_)
 
-    stamps = np.asarray(rec.accel_stamps_ns, np.int64)
-    streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.accel, stamps))]
+    stamps = np.asarray(rec.sensor_stamps_ns, np.int64)
+    streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.sensor, stamps))]
     for key in ("contact", "ego"):
         values = getattr(rec, key)
         if values is not None:

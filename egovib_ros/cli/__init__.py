@@ -39,6 +39,7 @@ COMMAND_MODULES = (
     "egovib_ros.cli.denoise",
     "egovib_ros.cli.model",  # model show
     "egovib_ros.cli.evaluate",  # evaluate, figures
+    "egovib_ros.cli.detect",  # detect
     "egovib_ros.cli.gap",  # gap, gap validate
     "egovib_ros.cli.bench",  # bench
     "egovib_ros.cli.real",  # real convert|evaluate

@@ -43,16 +43,16 @@ FIGURE_OUTPUTS = (
 )
 
 
-def _calibration_bag(args, model) -> Path | None:
+def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path | None:
     """The no-contact bag the detection thresholds come from: --calibration, else the
     bag the model was calibrated from (`egovib calibrate` stores its absolute path and
     fingerprint), found and unchanged. A model that names a bag that is gone or changed is
     refused, not silently scored with thresholds from the run itself (that takes
     --thresholds-from-run). Models without a stored bag (made from arrays, or before
     paths were stored) use their `source` if it is a bag found here, else the run."""
-    if args.calibration:
-        return Path(args.calibration)
-    if args.thresholds_from_run:
+    if given:
+        return Path(given)
+    if thresholds_from_run:
         return None
     where = model.provenance.get("path", "noise model")
     stored = model.provenance.get("source_bag", "")
@@ -137,7 +137,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
-    calibration_path = _calibration_bag(args, model)
+    calibration_path = calibration_bag(
+        args.calibration, model, thresholds_from_run=args.thresholds_from_run
+    )
     jobs = json_jobs(args.bags, args.json)
     for job in jobs:  # before any work: every JSON may be written (or replaced with --force)
         prepare_output(

@@ -244,8 +244,8 @@ class CalibrationAccumulator:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._accumulate(self._framer.pop_blocks())
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        self._framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        self._framer.push_sensor(stamps_ns, accel)
         self._accumulate(self._framer.pop_blocks())
 
     def flush(self) -> None:
@@ -401,7 +401,7 @@ class CalibrationAccumulator:
 
 
 def calibrate_arrays(
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -418,7 +418,7 @@ def calibrate_arrays(
     acc = CalibrationAccumulator(source=source, **options)
     feed(
         acc,
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,

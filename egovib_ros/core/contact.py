@@ -1,8 +1,10 @@
 """Contact events from a sensor stream: the detector of the contact_detector node and of
 `egovib detect` (numpy/scipy only; live and offline call the same class).
 
-The signal: the three axes band-passed (the model's band), then a 4 ms causal RMS envelope
-of their vector (not the paper's sum of axes, in which a contact along (1, -1, 0) cancels).
+The signal: the three axes band-passed (the model's band) and summed (the paper's 1-D
+signal, the one `egovib evaluate` scores detection on), then a 4 ms causal RMS envelope.
+A contact along a direction whose components cancel in the sum (1, -1, 0) is seen weakly:
+the paper's choice, kept so that live and evaluated figures agree.
 An event starts where the envelope crosses a threshold fixed beforehand from no-contact
 data (`no_contact_threshold`); above-threshold samples less than `refractory_s` after the
 previous ones belong to the same event. Each event is reported `report_after_s` after its
@@ -79,6 +81,30 @@ class ContactEvent:
     report_ns: int  # stamp of the sample after which the event was reported
 
 
+class DetectionEnvelope:
+    """The signal the detector thresholds, as a stream: the three axes band-passed, then the
+    causal RMS of their sum over `envelope_s`. `process` returns (band-passed axes (N, 3),
+    envelope (N,)); any chunking gives the same samples."""
+
+    def __init__(self, settings: ContactSettings):
+        self._band = BandPass(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            order=settings.band_order,
+            n_channels=3,
+        )
+        n = settings.samples(settings.envelope_s)
+        self._b, self._zi = np.full(n, 1.0 / n), np.zeros(n - 1)
+
+    def process(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        values = np.asarray(values, np.float64).reshape(-1, 3)
+        if not len(values):
+            return np.zeros((0, 3)), np.zeros(0)
+        axes = self._band.process(values.T).T
+        power, self._zi = signal.lfilter(self._b, [1.0], axes.sum(axis=1) ** 2, zi=self._zi)
+        return axes, np.sqrt(np.maximum(power, 0.0))
+
+
 class ContactDetector:
     """Streaming contact-event detector (see the module doc).
 
@@ -90,14 +116,7 @@ class ContactDetector:
 
     def __init__(self, settings: ContactSettings):
         self.s = settings
-        self._band = BandPass(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            order=settings.band_order,
-            n_channels=3,
-        )
-        n = settings.samples(settings.envelope_s)
-        self._env_b, self._env_zi = np.full(n, 1.0 / n), np.zeros(n - 1)
+        self._envelope = DetectionEnvelope(settings)
         self._gap = settings.samples(settings.refractory_s)
         self._after = settings.samples(settings.report_after_s)
         self._back = settings.samples(settings.lookback_s)
@@ -117,11 +136,7 @@ class ContactDetector:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(stamps_ns):
             return []
-        axes = self._band.process(values.T).T  # (N, 3)
-        power, self._env_zi = signal.lfilter(
-            self._env_b, [1.0], np.square(axes).sum(axis=1), zi=self._env_zi
-        )
-        envelope = np.sqrt(np.maximum(power, 0.0))
+        axes, envelope = self._envelope.process(values)
         start = self._base + len(self._stamps)
         self._stamps = np.concatenate([self._stamps, stamps_ns])
         self._env = np.concatenate([self._env, envelope])
@@ -179,16 +194,9 @@ class ContactDetector:
             self._base += cut
 
 
-def detection_envelope(
-    values: np.ndarray, *, sample_rate_hz: float, band_hz, band_order: int = 4,
-    envelope_s: float = ENVELOPE_S,
-) -> np.ndarray:  # fmt: skip
+def detection_envelope(values: np.ndarray, settings: ContactSettings) -> np.ndarray:
     """The envelope the detector thresholds, of whole arrays (for thresholds)."""
-    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=band_order, n_channels=3)
-    squared = np.square(band.process(np.asarray(values, np.float64).T)).sum(axis=0)
-    n = max(1, int(round(envelope_s * sample_rate_hz)))
-    power = signal.lfilter(np.full(n, 1.0 / n), [1.0], squared)
-    return np.sqrt(np.maximum(power, 0.0))
+    return DetectionEnvelope(settings).process(values)[1]
 
 
 def no_contact_threshold(

@@ -11,7 +11,7 @@
 (the speed -> line-frequency map, the residual's velocity table, the gain's per-band
 oversubtraction and offset); it is stored in the noise model's `extras`, so one model
 file serves every method. All three have the same push interface (push_joint_states,
-push_accel, flush -> DenoisedChunk; stats; delay_samples); `make_denoiser` builds one
+push_sensor, flush -> DenoisedChunk; stats; delay_samples); `make_denoiser` builds one
 by name and `denoise_batch_method` runs whole arrays through it (as `feed` does for any
 consumer), so batch equals streaming for any chunking.
 
@@ -293,7 +293,7 @@ class ResidualTable:
 
 
 def _band_passed_calibration(
-    model: NoiseModel, accel_stamps_ns, accel, joint_stamps_ns, joint_velocity, source: str
+    model: NoiseModel, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, source: str
 ):
     """Run the calibration recording through a SampleFramer: real samples only."""
     settings = FramerSettings.for_model(
@@ -302,7 +302,7 @@ def _band_passed_calibration(
     framer = SampleFramer(settings, model.n_joints)
     feed(
         _Collector(framer),
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,
@@ -329,13 +329,13 @@ class _Collector:
     def push_joint_states(self, stamps, velocity):
         self.framer.push_joint_states(stamps, velocity)
 
-    def push_accel(self, stamps, accel):
-        self.framer.push_accel(stamps, accel)
+    def push_sensor(self, stamps, accel):
+        self.framer.push_sensor(stamps, accel)
 
 
 def calibrate_methods(
     model: NoiseModel,
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -363,7 +363,7 @@ def calibrate_methods(
         raise ConfigError("calibrate_methods: the model carries no robot profile")
     fs = model.sample_rate_hz
     stamps, x, velocity = _band_passed_calibration(
-        model, accel_stamps_ns, accel, joint_stamps_ns, joint_velocity, source
+        model, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, source
     )
     real = stamps >= 0
     known = real & np.all(np.isfinite(velocity), axis=1)
@@ -605,8 +605,8 @@ class SampleMethodDenoiser:
         self._framer.push_joint_states(stamps_ns, velocity)
         return self._process(self._framer.pop())
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
         return self._process(self._framer.pop())
 
     def flush(self) -> DenoisedChunk:
@@ -725,7 +725,7 @@ def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **op
 
 
 def denoise_batch_method(
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -741,7 +741,7 @@ def denoise_batch_method(
     denoiser = make_denoiser(model, method, channels=channels, **options)
     chunks = feed(
         denoiser,
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,

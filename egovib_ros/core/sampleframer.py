@@ -113,7 +113,7 @@ class SampleFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
         self._drain()
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         for segment in self._cleaner.segments(stamps_ns, accel):
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)

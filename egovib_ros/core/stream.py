@@ -488,7 +488,7 @@ class BlockFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
         self._drain(final=False)
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         for segment in self._cleaner.segments(stamps_ns, accel):
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
@@ -751,7 +751,7 @@ class BlockFramer:
 def frame_batch(
     settings: FramerSettings,
     n_joints: int,
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -759,14 +759,14 @@ def frame_batch(
     """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
     framer = BlockFramer(settings, n_joints)
     framer.push_joint_states(joint_stamps_ns, joint_velocity)
-    framer.push_accel(accel_stamps_ns, accel)
+    framer.push_sensor(sensor_stamps_ns, accel)
     framer.flush()
     return framer.pop_blocks(), framer.stats
 
 
 def feed(
     consumer,
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -776,24 +776,24 @@ def feed(
     chunk_s: float = 10.0,
     progress=None,
 ) -> list:
-    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_accel`)
+    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_sensor`)
     `chunk_s` seconds at a time, joint states first up to a little past each sensor
     chunk so that no block waits: the one loop behind every batch path (denoise_batch,
     calibrate_arrays, benchmarks, tests). Returns what the pushes returned, in order;
     the caller flushes. `progress(n)` is called with sensor samples consumed."""
-    accel_stamps_ns = np.asarray(accel_stamps_ns, dtype=np.int64).reshape(-1)
+    sensor_stamps_ns = np.asarray(sensor_stamps_ns, dtype=np.int64).reshape(-1)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
     step = max(1, int(chunk_s * sample_rate_hz))
     wait_ns = int(joint_wait_s * 1e9) + 1
     outputs, joint_pos = [], 0
-    for start in range(0, len(accel_stamps_ns), step):
-        stop = min(start + step, len(accel_stamps_ns))
-        last = stop == len(accel_stamps_ns)
+    for start in range(0, len(sensor_stamps_ns), step):
+        stop = min(start + step, len(sensor_stamps_ns))
+        last = stop == len(sensor_stamps_ns)
         joint_stop = (
             len(joint_stamps_ns)
             if last
             else int(
-                np.searchsorted(joint_stamps_ns, accel_stamps_ns[stop - 1] + wait_ns, side="right")
+                np.searchsorted(joint_stamps_ns, sensor_stamps_ns[stop - 1] + wait_ns, side="right")
             )
         )
         if joint_stop > joint_pos:
@@ -803,7 +803,7 @@ def feed(
                 )
             )
             joint_pos = joint_stop
-        outputs.append(consumer.push_accel(accel_stamps_ns[start:stop], accel[start:stop]))
+        outputs.append(consumer.push_sensor(sensor_stamps_ns[start:stop], accel[start:stop]))
         if progress is not None:
             progress(stop - start)
     if joint_pos < len(joint_stamps_ns):

@@ -224,8 +224,8 @@ class StreamingDenoiser:
         self._framer.push_joint_states(stamps_ns, velocity)
         return self._process(self._framer.pop_blocks())
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
         return self._process(self._framer.pop_blocks())
 
     def flush(self) -> DenoisedChunk:
@@ -366,7 +366,7 @@ class StreamingDenoiser:
 
 
 def denoise_batch(
-    accel_stamps_ns: np.ndarray,
+    sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
@@ -386,7 +386,7 @@ def denoise_batch(
     denoiser = StreamingDenoiser(model, channels=channels, **options)
     chunks = feed(
         denoiser,
-        accel_stamps_ns,
+        sensor_stamps_ns,
         accel,
         joint_stamps_ns,
         joint_velocity,

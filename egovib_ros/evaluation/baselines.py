@@ -169,7 +169,7 @@ class CoreStream(MethodStream):
 
     def push(self, stamps_ns, accel, raw):
         self._pending = np.concatenate([self._pending, np.asarray(stamps_ns, np.int64)])
-        return self._place(self.denoiser.push_accel(stamps_ns, accel))
+        return self._place(self.denoiser.push_sensor(stamps_ns, accel))
 
     def finish(self):
         out = self._place(self.denoiser.flush())
@@ -283,15 +283,14 @@ class StationaryGate:
 
 def gate_threshold(noise_clip: np.ndarray, *, n_fft: int = NOISEREDUCE_N_FFT) -> np.ndarray:
     """Per-frequency noise threshold (dB) of noisereduce's stationary gate from a noise clip
-    (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it): computed by
-    noisereduce's own code."""
-    from noisereduce.spectralgate.utils import _amp_to_db
-
+    (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it), as noisereduce 3.0
+    computes it: levels 20 log10(|X| + eps), floored 80 dB below each frame's top level."""
     clip = np.asarray(noise_clip, float)[:NOISE_CLIP_SAMPLES]
     _, _, stft = signal.stft(
         clip, nfft=n_fft, noverlap=n_fft - n_fft // 4, nperseg=n_fft, padded=False
     )
-    level = _amp_to_db(stft)
+    level = 20 * np.log10(np.abs(stft) + np.finfo(np.float64).eps)
+    level = np.maximum(level, np.max(level, axis=-1, keepdims=True) - 80.0)
     return np.mean(level, axis=1) + np.std(level, axis=1) * NOISEREDUCE_N_STD
 
 
@@ -395,10 +394,10 @@ def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
             raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
         gate = gate_threshold(ctx.noise_clip)
     stream = method_stream(name, model=ctx.model, model_short=ctx.model_short, gate=gate)
-    raw = filters.combined_bandpassed(rec.accel, ctx.model.robot_profile())
+    raw = filters.combined_bandpassed(rec.sensor, ctx.model.robot_profile())
     parts = [
         stream.push_joint_states(rec.joint_stamps_ns, rec.joint_velocity),
-        stream.push(rec.accel_stamps_ns, rec.accel, raw),
+        stream.push(rec.sensor_stamps_ns, rec.sensor, raw),
         stream.finish(),
     ]
     return np.concatenate(parts)

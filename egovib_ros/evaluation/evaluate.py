@@ -378,10 +378,10 @@ def speed_envelope_mask(calibration, rec, margin: float = 1.05) -> np.ndarray:
     """Calibration accelerometer samples whose joint speeds stay within the largest joint
     speeds of `rec` (per joint, times `margin`)."""
     limit = np.nanmax(np.abs(rec.joint_velocity), axis=0) * margin
-    mask = np.ones(len(calibration.accel_stamps_ns), bool)
+    mask = np.ones(len(calibration.sensor_stamps_ns), bool)
     for j in range(calibration.joint_velocity.shape[1]):
         speed = np.interp(
-            calibration.accel_stamps_ns,
+            calibration.sensor_stamps_ns,
             calibration.joint_stamps_ns,
             np.abs(calibration.joint_velocity[:, j]),
         )

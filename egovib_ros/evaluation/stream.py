@@ -299,10 +299,10 @@ def require_ground_truth(rec, where: str = "recording", profile=None) -> None:
             f"of {names['raw']}; evaluate needs a recording with ground truth, e.g. from "
             f"`egovib simulate`)"
         )
-    if len(rec.contact) != len(rec.accel):
+    if len(rec.contact) != len(rec.sensor):
         raise BagError(
             f"{where}: topic {names['contact']} has {len(rec.contact)} samples, "
-            f"{names['raw']} has {len(rec.accel)}"
+            f"{names['raw']} has {len(rec.sensor)}"
         )
 
 
@@ -350,7 +350,7 @@ class SummaryPass:
 
     def push(self, piece) -> None:
         require_ground_truth(piece, self.source, self.model.profile)
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         if len(piece.joint_velocity):
             speed = np.fmax.reduce(np.abs(piece.joint_velocity), axis=0)
@@ -494,7 +494,7 @@ class CalibrationPass:
                 name, stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
         self.speeds.add_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel))
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor))
         self._advance(final=False)
 
     def _rows(self, stamps, values, bad) -> None:
@@ -706,7 +706,7 @@ class EvaluationPass:
             self.fifos[name].put(
                 stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
-        self._rows(*self.screen.push(piece.accel_stamps_ns, piece.accel, piece.contact))
+        self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         if self.recorded is not None:
             self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         self._advance(final=False)
@@ -1033,12 +1033,12 @@ def rechunk(pieces: Iterable, samples: int) -> Iterator:
     held_n = 0
     for piece in pieces:
         held.append(piece)
-        held_n += len(piece.accel_stamps_ns)
+        held_n += len(piece.sensor_stamps_ns)
         while held_n >= samples:
             whole = concat_recordings(held)
             yield _cut(whole, 0, samples, first=True)
-            rest = _cut(whole, samples, len(whole.accel_stamps_ns), first=False)
-            held, held_n = [rest], len(rest.accel_stamps_ns)
+            rest = _cut(whole, samples, len(whole.sensor_stamps_ns), first=False)
+            held, held_n = [rest], len(rest.sensor_stamps_ns)
     if held:
         yield concat_recordings(held)
 
@@ -1047,8 +1047,8 @@ def _cut(rec, a: int, b: int, *, first: bool):
     import dataclasses
 
     changes = {
-        "accel_stamps_ns": rec.accel_stamps_ns[a:b],
-        "accel": rec.accel[a:b],
+        "sensor_stamps_ns": rec.sensor_stamps_ns[a:b],
+        "sensor": rec.sensor[a:b],
         "contact": None if rec.contact is None else rec.contact[a:b],
         "ego": None if rec.ego is None else rec.ego[a:b],
     }
@@ -1099,8 +1099,7 @@ def method_names(
         needs = [n for n in names if n in baselines.NEEDS_METHOD_CALIBRATION]
         if needs and not fitted:
             raise ConfigError(
-                f"methods {needs} need a model calibrated with `egovib calibrate --methods "
-                f"hybrid`"
+                f"methods {needs} need a model calibrated with `egovib calibrate --methods hybrid`"
             )
     if "paper" not in names:
         names = ["paper"] + names

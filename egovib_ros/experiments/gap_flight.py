@@ -30,18 +30,19 @@ SPLIT_S = 8.5
 def _slice(rec, start_s: float, stop_s: float):
     from dataclasses import replace
 
-    t0 = int(rec.accel_stamps_ns[0])
+    t0 = int(rec.sensor_stamps_ns[0])
     lo, hi = t0 + int(start_s * 1e9), t0 + int(stop_s * 1e9)
     a = slice(
-        int(np.searchsorted(rec.accel_stamps_ns, lo)), int(np.searchsorted(rec.accel_stamps_ns, hi))
+        int(np.searchsorted(rec.sensor_stamps_ns, lo)),
+        int(np.searchsorted(rec.sensor_stamps_ns, hi)),
     )
     j = slice(
         int(np.searchsorted(rec.joint_stamps_ns, lo)), int(np.searchsorted(rec.joint_stamps_ns, hi))
     )
     return replace(
         rec,
-        accel_stamps_ns=rec.accel_stamps_ns[a],
-        accel=rec.accel[a],
+        sensor_stamps_ns=rec.sensor_stamps_ns[a],
+        sensor=rec.sensor[a],
         joint_stamps_ns=rec.joint_stamps_ns[j],
         joint_position=rec.joint_position[j],
         joint_velocity=rec.joint_velocity[j],
@@ -80,8 +81,8 @@ def run_flight_gap(
             start = time.perf_counter()
             cal = _slice(rec, *parts[calib])
             model, stats = calibrate_arrays(
-                cal.accel_stamps_ns,
-                cal.accel,
+                cal.sensor_stamps_ns,
+                cal.sensor,
                 cal.joint_stamps_ns,
                 cal.joint_velocity,
                 profile=profile,

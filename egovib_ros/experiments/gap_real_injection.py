@@ -49,7 +49,7 @@ SPEEDING_UP_QUANTILE = 0.8
 def _at_accel(rec, values: np.ndarray) -> np.ndarray:
     return np.stack(
         [
-            np.interp(rec.accel_stamps_ns, rec.joint_stamps_ns, values[:, j])
+            np.interp(rec.sensor_stamps_ns, rec.joint_stamps_ns, values[:, j])
             for j in range(values.shape[1])
         ],
         axis=1,
@@ -60,7 +60,7 @@ def inject(rec, effect: str, strength: float):
     """The recording with one known effect injected into its real data."""
     if effect == "timing":
         return replace(rec, joint_stamps_ns=rec.joint_stamps_ns + int(round(strength * 1e9)))
-    t = (rec.accel_stamps_ns - rec.accel_stamps_ns[0]) / 1e9
+    t = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
     cmd = _at_accel(rec, rec.joint_velocity)
     if effect == "drift":
         gain = 1.0 + strength * (1.0 - np.exp(-t / WARMUP_TAU_S))
@@ -82,7 +82,7 @@ def inject(rec, effect: str, strength: float):
         gain = np.exp(strength * np.clip(z[0] * z[1], -3, 3))
     else:
         raise ValueError(f"unknown injection {effect!r}")
-    return replace(rec, accel=rec.accel * gain[:, None])
+    return replace(rec, sensor=rec.sensor * gain[:, None])
 
 
 def _own_lag(model, cal, profile) -> float:
@@ -110,8 +110,8 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     for calib, test in (("first", "second"), ("second", "first")):
         cal = _slice(rec, *parts[calib])
         model, _ = calibrate_arrays(
-            cal.accel_stamps_ns,
-            cal.accel,
+            cal.sensor_stamps_ns,
+            cal.sensor,
             cal.joint_stamps_ns,
             cal.joint_velocity,
             profile=profile,

@@ -138,8 +138,8 @@ def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100
         grid="superposition", dwell_s=dwell_s, settle_s=0.5, seed=seed, params=params
     )
     model, _ = calibrate_arrays(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         sweep="superposition",

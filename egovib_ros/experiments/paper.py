@@ -119,7 +119,7 @@ def build_models(config: ExperimentConfig, params=None, effects: dict | None = N
         params=params,
     )
     common = dict(sweep=config.sweep_grid, source="simulated calibration sweep")
-    arrays = (sweep.accel_stamps_ns, sweep.accel, sweep.joint_stamps_ns, sweep.joint_velocity)
+    arrays = (sweep.sensor_stamps_ns, sweep.sensor, sweep.joint_stamps_ns, sweep.joint_velocity)
     model, _ = calibrate_arrays(*arrays, block_length=BLOCK_LENGTH, hop=HOP, **common)
     short = config.short_block_length
     model_short, _ = calibrate_arrays(*arrays, block_length=short, hop=short // 2, **common)
@@ -154,18 +154,18 @@ def added_taps_recording(taps_rec, motion_rec, model):
     largest band-passed ego-vibration magnitude of the motion recording ("the
     magnitude of the original taps is similar to the maximum noise magnitude").
     """
-    n = min(len(taps_rec.accel), len(motion_rec.accel))
+    n = min(len(taps_rec.sensor), len(motion_rec.sensor))
     taps = taps_rec.contact[:n]
     tap_signal = combined_bandpassed(taps, model.robot_profile())
     seg = metrics.segment_contacts(tap_signal, sample_rate_hz=model.sample_rate_hz)
-    noise = combined_bandpassed(motion_rec.accel[:n], model.robot_profile())
+    noise = combined_bandpassed(motion_rec.sensor[:n], model.robot_profile())
     edge = int(metrics.EDGE_S * model.sample_rate_hz)
     peak = metrics.tap_peaks(tap_signal, seg.tap_windows).mean()
     scale = np.abs(noise[edge : n - edge]).max() / peak
     return dataclasses.replace(
         motion_rec,
-        accel_stamps_ns=motion_rec.accel_stamps_ns[:n],
-        accel=motion_rec.accel[:n] + scale * taps,
+        sensor_stamps_ns=motion_rec.sensor_stamps_ns[:n],
+        sensor=motion_rec.sensor[:n] + scale * taps,
         contact=scale * taps,
         ego=None if motion_rec.ego is None else motion_rec.ego[:n],
         denoised=None,

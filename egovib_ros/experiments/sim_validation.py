@@ -97,11 +97,11 @@ def sweep_cell_stats(
     vmax = np.asarray(MAX_SPEED)
     pieces: dict[int, list] = {}
     for ci, cell, _, chunk in iter_sweep(sim, cells, dwell_s=dwell_s, settle_s=settle_s):
-        bp, zi = signal.sosfilt(sos, chunk.accel.sum(axis=1), zi=zi)
+        bp, zi = signal.sosfilt(sos, chunk.sensor.sum(axis=1), zi=zi)
         if ci not in pieces:
             # frame on the global hop grid, as a continuous calibrator does (blocks start at
             # multiples of 32 samples, so the 32-periodic idle hum looks the same in every cell)
-            first = int(round((chunk.accel_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / 1e9))
+            first = int(round((chunk.sensor_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / 1e9))
             skip = (-first) % HOP
             pieces[ci] = []
             bp, vel = bp[skip:], chunk.true_velocity[skip:]
@@ -188,8 +188,8 @@ def motion_levels(
         seed=seed,
         params=params,
     )
-    bp = np.abs(bandpass_combined(rec.accel))
-    onsets = np.searchsorted(rec.accel_stamps_ns, np.asarray(truth["tap_onsets_ns"], np.int64))
+    bp = np.abs(bandpass_combined(rec.sensor))
+    onsets = np.searchsorted(rec.sensor_stamps_ns, np.asarray(truth["tap_onsets_ns"], np.int64))
     in_contact = np.zeros(len(bp), bool)
     win, excl = int(0.03 * ACCEL_RATE_HZ), int(0.06 * ACCEL_RATE_HZ)
     peaks = []
@@ -203,7 +203,7 @@ def motion_levels(
         int(5 * ACCEL_RATE_HZ)
     )
     background = float(
-        np.abs(bandpass_combined(stationary.accel))[int(0.1 * ACCEL_RATE_HZ) :].mean()
+        np.abs(bandpass_combined(stationary.sensor))[int(0.1 * ACCEL_RATE_HZ) :].mean()
     )
     return {
         "noise_mean_raw": noise,
@@ -238,7 +238,7 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
     from egovib_ros.bag import read_recording, write_recording
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
-    n_messages = 3 * len(rec.accel) + len(rec.joint_stamps_ns) + len(rec.commands)
+    n_messages = 3 * len(rec.sensor) + len(rec.joint_stamps_ns) + len(rec.commands)
     tmp = Path(tempfile.mkdtemp(prefix="egovib_bagio_"))
     try:
         t0 = time.perf_counter()

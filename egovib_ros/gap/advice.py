@@ -193,8 +193,8 @@ def measure_joint_lag(
     for name, lag in (("without", 0.0), ("with", float(joint_lag_s))):
         cal_lag = lag if calibration_lag_s is None or name == "without" else calibration_lag_s
         model, _ = calibrate_arrays(
-            cal.accel_stamps_ns,
-            cal.accel,
+            cal.sensor_stamps_ns,
+            cal.sensor,
             cal.joint_stamps_ns,
             cal.joint_velocity,
             profile=profile,
@@ -202,8 +202,8 @@ def measure_joint_lag(
             **options,
         )
         _, den, _ = denoise_batch(
-            test.accel_stamps_ns,
-            test.accel,
+            test.sensor_stamps_ns,
+            test.sensor,
             test.joint_stamps_ns,
             test.joint_velocity,
             model,
@@ -216,7 +216,7 @@ def measure_joint_lag(
             order=model.band_order,
             n_channels=1,
         )
-        raw = bp.process(test.accel.sum(axis=1)[None, :])[0]
+        raw = bp.process(test.sensor.sum(axis=1)[None, :])[0]
         skip = model.block_length * 4  # filter start-up
         noise_raw = float(np.mean(np.abs(raw[skip:])))
         noise_den = float(np.mean(np.abs(den[skip:, 0])))

@@ -295,11 +295,11 @@ class BlockSpectra:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._collect()
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         if len(stamps_ns) and self.first_stamp_ns is None:
             self.first_stamp_ns = int(stamps_ns[0])
         self.samples += len(stamps_ns)
-        self._framer.push_accel(stamps_ns, accel)
+        self._framer.push_sensor(stamps_ns, accel)
         self._collect()
 
     def _collect(self) -> None:
@@ -770,7 +770,7 @@ def build_table(
     joints = JointFeatures(grid_speeds(model))
     joints.push(stamps, rec.joint_position[good][:, order], velocity)
     framing.push_joint_states(stamps, velocity)
-    framing.push_accel(rec.accel_stamps_ns, rec.accel)
+    framing.push_sensor(rec.sensor_stamps_ns, rec.sensor)
     bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad)
     return table_from_blocks(
         model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
@@ -828,7 +828,7 @@ def table_from_bag(
         stamps = piece.joint_stamps_ns[good]
         velocity = piece.joint_velocity[good][:, order]
         framing.push_joint_states(stamps, velocity)
-        framing.push_accel(piece.accel_stamps_ns, piece.accel)
+        framing.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         # after the framing, so the blocks these joint states may be near are known
         joints.push(stamps, piece.joint_position[good][:, order], velocity)
     if order is None:

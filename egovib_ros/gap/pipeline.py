@@ -19,6 +19,7 @@ from egovib_ros.gap.features import (
     table_from_bag,
 )
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
+from egovib_ros.gap.simref import model_matches_simulator
 from egovib_ros.outputs import atomic_output
 
 
@@ -133,6 +134,10 @@ def run_gap(
             if isinstance(v, (int, float))
         }
         report["inputs"]["notices"] = notices
+        # what the model was calibrated on: our simulator (a sim-to-real gap), or a recording
+        report["inputs"]["model_kind"] = (
+            "simulator" if model_matches_simulator(model) else "recording"
+        )
         report["runtime_s"] = round(time.perf_counter() - start, 2)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
         (tmp / "report.md").write_text(render_markdown(report, diag.table.joint_names))

@@ -400,9 +400,11 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
         from egovib_ros.gap.advice import first_lines
 
         lines += first_lines(report["advice"]) + [""]
+    from_simulator = report["inputs"].get("model_kind", "simulator") == "simulator"
+    model_name = "the simulator's noise model" if from_simulator else "the noise model"
     lines.append(
-        "**Where:** on held-out real data the simulator's noise model is off by "
-        f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the sim is "
+        f"**Where:** on held-out real data {model_name} is off by "
+        f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the model is "
         f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
         f"{abs(mean_bias):.1f} dB). Largest shares: "
         + "; ".join(_describe_region(r, joint_names) for r in top)

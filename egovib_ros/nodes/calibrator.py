@@ -163,7 +163,7 @@ class Calibrator(Node):
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
             try:
-                self.acc.push_accel(batch.stamps_ns, batch.values)
+                self.acc.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:  # e.g. a stream at another rate than the profile's
                 self.get_logger().error(
                     f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0

@@ -275,7 +275,7 @@ class Denoiser(Node):
                 return
             self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
             try:
-                chunk = self.denoiser.push_accel(batch.stamps_ns, batch.values)
+                chunk = self.denoiser.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:
                 self._refuse(str(exc))
                 return

@@ -180,13 +180,13 @@ class SimHand(Node):
                 chunk.joint_stamps_ns, chunk.joint_position, chunk.joint_velocity, PR2.joint_names
             ):
                 self.pub_joint.publish(data)
-        for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.accel, self.frame_id):
+        for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.sensor, self.frame_id):
             self.pub_raw.publish(data)
         if self.pub_contact is not None:
-            for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.contact, self.frame_id):
+            for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.contact, self.frame_id):
                 self.pub_contact.publish(data)
         if self.pub_ego is not None:
-            for data in encode_imu_batch(chunk.accel_stamps_ns, chunk.ego, self.frame_id):
+            for data in encode_imu_batch(chunk.sensor_stamps_ns, chunk.ego, self.frame_id):
                 self.pub_ego.publish(data)
         self.samples_published += n
 

@@ -92,8 +92,8 @@ def quantise(accel: np.ndarray) -> np.ndarray:
 class SimChunk:
     """One step of the simulator; all stamps int64 ns."""
 
-    accel_stamps_ns: np.ndarray  # (n,)
-    accel: np.ndarray  # (n, 3) raw, quantised
+    sensor_stamps_ns: np.ndarray  # (n,)
+    sensor: np.ndarray  # (n, 3) raw, quantised
     contact: np.ndarray  # (n, 3) ground truth contact part
     ego: np.ndarray  # (n, 3) ground truth ego part (gravity + hum + vibration)
     joint_stamps_ns: np.ndarray  # (m,) reported stamps (timing effect included)
@@ -473,8 +473,8 @@ class HandSimulator:
         j_stamps, j_pos, j_vel = self._joint_states(i0, n, pos, prev_pos)
         self.index += n
         return SimChunk(
-            accel_stamps_ns=self.stamps_ns(idx),
-            accel=raw,
+            sensor_stamps_ns=self.stamps_ns(idx),
+            sensor=raw,
             contact=contact,
             ego=ego,
             joint_stamps_ns=j_stamps,

@@ -125,7 +125,7 @@ class RobotSimulator:
 
     >>> sim = RobotSimulator(profile, seed=1, tap_rate_hz=0.5)
     >>> piece = sim.step(velocity)          # (n, J) true joint velocities, one per sample
-    >>> piece.accel, piece.contact, sim.tap_onsets_ns
+    >>> piece.sensor, piece.contact, sim.tap_onsets_ns
     """
 
     def __init__(
@@ -266,8 +266,8 @@ class RobotSimulator:
         if n:
             self.last_stamp_ns = int(stamps[-1])
         return Recording(
-            accel_stamps_ns=stamps,
-            accel=accel,
+            sensor_stamps_ns=stamps,
+            sensor=accel,
             joint_stamps_ns=stamps[pick] + JOINT_LAG_NS,
             joint_position=position[pick],
             joint_velocity=measured,
@@ -460,11 +460,11 @@ def free_motion_arrays(
     def cat(name):
         return np.concatenate([getattr(piece, name) for piece in pieces])
 
-    t_acc = cat("accel_stamps_ns")
+    t_acc = cat("sensor_stamps_ns")
     onsets_ns = np.asarray(truth["tap_onsets_ns"], dtype=np.int64)
     return {
         "t_acc": t_acc,
-        "accel": cat("accel"),
+        "accel": cat("sensor"),
         "t_joint": cat("joint_stamps_ns"),
         "velocity": cat("joint_velocity"),
         "position": cat("joint_position"),
@@ -479,8 +479,8 @@ def as_recording(profile: RobotProfile, arrays: dict) -> Recording:
     """`free_motion_arrays`'s arrays as a bag Recording of the profile (the contact as
     ground truth; callers may have cut the sensor arrays, so not the ego)."""
     return Recording(
-        accel_stamps_ns=arrays["t_acc"],
-        accel=arrays["accel"],
+        sensor_stamps_ns=arrays["t_acc"],
+        sensor=arrays["accel"],
         joint_stamps_ns=arrays["t_joint"],
         joint_position=arrays["position"],
         joint_velocity=arrays["velocity"],

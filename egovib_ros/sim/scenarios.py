@@ -32,8 +32,8 @@ def sweep_cells(grid: str) -> np.ndarray:
 def _slice(chunk: SimChunk, command_stamps=(), commands=()) -> Recording:
     """One simulator chunk as a Recording time slice."""
     return Recording(
-        accel_stamps_ns=chunk.accel_stamps_ns,
-        accel=chunk.accel,
+        sensor_stamps_ns=chunk.sensor_stamps_ns,
+        sensor=chunk.sensor,
         joint_stamps_ns=chunk.joint_stamps_ns,
         joint_position=chunk.joint_position,
         joint_velocity=chunk.joint_velocity,
@@ -92,7 +92,7 @@ def sweep_slices(
             last_cell = ci
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
-                progress(len(chunk.accel) / ACCEL_RATE_HZ)
+                progress(len(chunk.sensor) / ACCEL_RATE_HZ)
             yield _slice(chunk, [stamp] if new_cell else [], [cell] if new_cell else [])
 
     return generate(), truth
@@ -189,7 +189,7 @@ def motion_slices(
             sent = starts[(starts >= a) & (starts < b)]
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
-                progress(len(chunk.accel) / ACCEL_RATE_HZ)
+                progress(len(chunk.sensor) / ACCEL_RATE_HZ)
             yield _slice(chunk, sim.stamps_ns(sent), cmds[hold[sent]])
 
     return generate(), truth

@@ -103,7 +103,7 @@ def synthetic_streams(duration_s: float, *, seed: int = 0) -> dict:
         axis=1,
     )
     return {
-        "accel_stamps_ns": accel_stamps,
+        "sensor_stamps_ns": accel_stamps,
         "accel": accel,
         "joint_stamps_ns": joint_stamps,
         "joint_velocity": velocity,
@@ -152,7 +152,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     data, model = synthetic_streams(duration_s), synthetic_model()
     seconds = _best_of(
         lambda: denoise_batch(
-            data["accel_stamps_ns"],
+            data["sensor_stamps_ns"],
             data["accel"],
             data["joint_stamps_ns"],
             data["joint_velocity"],
@@ -163,7 +163,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     )
     seconds_axes = _best_of(
         lambda: denoise_batch(
-            data["accel_stamps_ns"],
+            data["sensor_stamps_ns"],
             data["accel"],
             data["joint_stamps_ns"],
             data["joint_velocity"],
@@ -186,7 +186,7 @@ def bench_stream(duration_s: float = 10.0) -> dict:
 
     data, model = synthetic_streams(duration_s, seed=1), synthetic_model()
     denoiser = StreamingDenoiser(model, channels="combined")
-    joint_t, accel_t = data["joint_stamps_ns"], data["accel_stamps_ns"]
+    joint_t, accel_t = data["joint_stamps_ns"], data["sensor_stamps_ns"]
     costs = []
     joint_from = 0
     hop = _robot().hop
@@ -197,7 +197,7 @@ def bench_stream(duration_s: float = 10.0) -> dict:
         denoiser.push_joint_states(
             joint_t[joint_from:joint_to], data["joint_velocity"][joint_from:joint_to]
         )
-        denoiser.push_accel(accel_t[start:stop], data["accel"][start:stop])
+        denoiser.push_sensor(accel_t[start:stop], data["accel"][start:stop])
         costs.append(time.perf_counter_ns() - begin)
         joint_from = joint_to
     costs_us = np.array(costs[len(costs) // 10 :]) / 1e3  # skip warm-up
@@ -223,7 +223,7 @@ def bench_calibration(cell_s: float = 2.0) -> dict:
     velocity = np.repeat(np.array(cells), per_cell, axis=0)[: len(data["joint_stamps_ns"])]
     start = time.perf_counter()
     model, _ = calibrate_arrays(
-        data["accel_stamps_ns"],
+        data["sensor_stamps_ns"],
         data["accel"],
         data["joint_stamps_ns"],
         velocity,
@@ -260,7 +260,7 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
         read_recording(bag)
         read_s = time.perf_counter() - start
         size = sum(f.stat().st_size for f in bag.iterdir())
-    n_messages = len(rec.accel_stamps_ns) * (
+    n_messages = len(rec.sensor_stamps_ns) * (
         1 + (rec.contact is not None) + (rec.ego is not None)
     ) + len(rec.joint_stamps_ns)
     return {
@@ -426,7 +426,7 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
 
     def read_scanner() -> int:
         return sum(
-            len(p.accel_stamps_ns) + len(p.joint_stamps_ns)
+            len(p.sensor_stamps_ns) + len(p.joint_stamps_ns)
             for p in iter_recording(
                 bag, profile=robot, ground_truth=False, denoised=False, commands=False
             )

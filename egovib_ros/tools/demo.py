@@ -169,18 +169,18 @@ def read_live_recording(bag: Path):
         stamps = np.concatenate([s for s, _ in decoded])
         order = np.argsort(stamps, kind="stable")
         truth[key] = (stamps[order], np.concatenate([v for _, v in decoded])[order])
-    keep = np.ones(len(rec.accel_stamps_ns), bool)
+    keep = np.ones(len(rec.sensor_stamps_ns), bool)
     for stamps, _ in truth.values():
-        keep &= np.isin(rec.accel_stamps_ns, stamps)
+        keep &= np.isin(rec.sensor_stamps_ns, stamps)
     first, last = np.flatnonzero(keep)[[0, -1]]
     keep[:first] = keep[last + 1 :] = False
-    stamps = rec.accel_stamps_ns[keep]
+    stamps = rec.sensor_stamps_ns[keep]
     values = {key: v[np.searchsorted(s, stamps)] for key, (s, v) in truth.items()}
     joints = (rec.joint_stamps_ns >= stamps[0]) & (rec.joint_stamps_ns <= stamps[-1])
     return dataclasses.replace(
         rec,
-        accel_stamps_ns=stamps,
-        accel=rec.accel[keep],
+        sensor_stamps_ns=stamps,
+        sensor=rec.sensor[keep],
         **values,
         joint_stamps_ns=rec.joint_stamps_ns[joints],
         joint_position=rec.joint_position[joints],

@@ -265,8 +265,8 @@ class BagPlacement:
         self.framer.push_joint_states(stamps_ns, velocity)
         self._collect()
 
-    def push_accel(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        self.framer.push_accel(stamps_ns, accel)
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        self.framer.push_sensor(stamps_ns, accel)
         self._collect()
 
     def flush(self) -> None:
@@ -406,7 +406,7 @@ def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
             progress=bar.update if bar is not None else None,
         ):
             placement.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
-            placement.push_accel(piece.accel_stamps_ns, piece.accel)
+            placement.push_sensor(piece.sensor_stamps_ns, piece.sensor)
         placement.flush()
     finally:
         if bar is not None:

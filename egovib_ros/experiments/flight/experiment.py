@@ -92,7 +92,7 @@ def _edge_mask(n: int, fs: float) -> np.ndarray:
 
 
 def _with_signal(rec: FlightRecording, accel: np.ndarray) -> FlightRecording:
-    return dataclasses.replace(rec, accel=accel)
+    return dataclasses.replace(rec, sensor=accel)
 
 
 def score_events(
@@ -107,21 +107,21 @@ def score_events(
 ) -> dict:
     """Add one set of events to the test part, run every fitted method, score it."""
     fs = profile.rate_hz
-    t0 = int(test.accel_stamps_ns[0])
+    t0 = int(test.sensor_stamps_ns[0])
     events = make_events(
-        test.accel_stamps_ns,
-        test.accel,
+        test.sensor_stamps_ns,
+        test.sensor,
         sample_rate_hz=fs,
         band_hz=profile.band_hz,
         band_order=profile.band_order,
         spec=spec,
     )
-    noisy = _with_signal(test, test.accel + events.signal)
+    noisy = _with_signal(test, test.sensor + events.signal)
     reference = combined_bandpassed(events.signal, profile)
     seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
     truth = seg.onsets
-    raw = combined_bandpassed(noisy.accel, profile)
-    minutes = len(test.accel_stamps_ns) / fs / 60.0
+    raw = combined_bandpassed(noisy.sensor, profile)
+    minutes = len(test.sensor_stamps_ns) / fs / 60.0
     rows, signals = {}, {}
     for name, method in fitted.items():
         output = method.run(noisy)
@@ -174,7 +174,7 @@ def score_events(
                 "raw_input": raw,
                 "reference": reference,
                 "seg": seg,
-                "stamps_ns": test.accel_stamps_ns,
+                "stamps_ns": test.sensor_stamps_ns,
                 "firmware": firmware_bp,
             }
         )
@@ -189,7 +189,7 @@ def firmware_transfer(test: FlightRecording, profile: RobotProfile, nperseg: int
     fs = profile.rate_hz
     gains, coherences = [], []
     for axis in range(3):
-        x, y = test.accel[:, axis], test.filtered[:, axis]
+        x, y = test.sensor[:, axis], test.filtered[:, axis]
         freqs, pxy = sps.csd(x, y, fs=fs, nperseg=nperseg)
         _, pxx = sps.welch(x, fs=fs, nperseg=nperseg)
         _, coherence = sps.coherence(x, y, fs=fs, nperseg=nperseg)
@@ -252,21 +252,21 @@ def run_fold(
 ) -> dict:
     """Calibrate on one time range, test on another; every method, every event amplitude."""
     fs = profile.rate_hz
-    t0 = int(rec.accel_stamps_ns[0])
+    t0 = int(rec.sensor_stamps_ns[0])
     cal = rec.time_slice(t0 + int(calibration_s[0] * 1e9), t0 + int(calibration_s[1] * 1e9))
     test = rec.time_slice(t0 + int(test_s[0] * 1e9), t0 + int(test_s[1] * 1e9))
     for part, name in ((cal, "calibration"), (test, "test")):
-        if len(part.accel_stamps_ns) < 4 * profile.block_length or len(part.joint_stamps_ns) == 0:
+        if len(part.sensor_stamps_ns) < 4 * profile.block_length or len(part.joint_stamps_ns) == 0:
             raise ConfigError(
                 f"{name} part {calibration_s if name == 'calibration' else test_s} s holds "
-                f"{len(part.accel_stamps_ns)} samples: too short"
+                f"{len(part.sensor_stamps_ns)} samples: too short"
             )
 
     def env(x: np.ndarray) -> np.ndarray:
         return detection.envelope(x, sample_rate_hz=fs)
 
     methods = build_methods(profile, config.methods)
-    cal_mask = _edge_mask(len(cal.accel_stamps_ns), fs)
+    cal_mask = _edge_mask(len(cal.sensor_stamps_ns), fs)
     in_envelope = speed_envelope_mask(cal, test)
     if np.count_nonzero(cal_mask & in_envelope) >= fs:  # at least 1 s left
         cal_mask &= in_envelope
@@ -312,8 +312,8 @@ def run_fold(
     fold = {
         "calibration_s": [float(calibration_s[0]), float(calibration_s[1])],
         "test_s": [float(test_s[0]), float(test_s[1])],
-        "calibration_samples": int(len(cal.accel_stamps_ns)),
-        "test_samples": int(len(test.accel_stamps_ns)),
+        "calibration_samples": int(len(cal.sensor_stamps_ns)),
+        "test_samples": int(len(test.sensor_stamps_ns)),
         "motor_command_range": {
             "calibration": [float(cal.joint_velocity.min()), float(cal.joint_velocity.max())],
             "test": [float(test.joint_velocity.min()), float(test.joint_velocity.max())],
@@ -362,7 +362,7 @@ def run_experiment(
         raise ConfigError(
             f"split {config.split_s} s must lie inside the recording (0 .. {end:.2f} s)"
         )
-    steps = np.diff(rec.accel_stamps_ns) / 1e6
+    steps = np.diff(rec.sensor_stamps_ns) / 1e6
     report = {
         "schema": SCHEMA,
         "data": {

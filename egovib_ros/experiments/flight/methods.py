@@ -72,8 +72,8 @@ def calibrate_free(profile: RobotProfile, rec, joint_velocity: np.ndarray, *, so
     """Calibrate a noise model from no-contact free motion (every steady block to its nearest
     cell of the profile's grid): (model, stats)."""
     return calibrate_arrays(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         joint_velocity,
         profile=profile,
@@ -105,15 +105,15 @@ class SpectralTable:
 
     def run(self, rec) -> np.ndarray:
         stamps, values, self.denoise_stats = denoise_batch(
-            rec.accel_stamps_ns,
-            rec.accel,
+            rec.sensor_stamps_ns,
+            rec.sensor,
             rec.joint_stamps_ns,
             self.joints(rec),
             self.model,
             channels=self.channels,
             output="bandpassed",  # scored as band-passed signals, like every method here
         )
-        return on_input_stamps(stamps, values, rec.accel_stamps_ns)
+        return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
 
     def info(self) -> dict:
         model = self.model
@@ -141,14 +141,16 @@ class NotchMethod:
         self.bank: HarmonicNotchBank | None = None
 
     def fit(self, rec) -> "NotchMethod":
-        motors = _hold(rec.joint_stamps_ns, rec.joint_velocity, rec.accel_stamps_ns)
-        frequency_map = fit_speed_frequency_map(rec.accel.sum(axis=1), motors, self.profile.rate_hz)
+        motors = _hold(rec.joint_stamps_ns, rec.joint_velocity, rec.sensor_stamps_ns)
+        frequency_map = fit_speed_frequency_map(
+            rec.sensor.sum(axis=1), motors, self.profile.rate_hz
+        )
         self.bank = HarmonicNotchBank(frequency_map, sample_rate_hz=self.profile.rate_hz, q=self.q)
         return self
 
     def run(self, rec) -> np.ndarray:
         notched = self.bank.apply(
-            rec.accel_stamps_ns, rec.accel.sum(axis=1), rec.joint_stamps_ns, rec.joint_velocity
+            rec.sensor_stamps_ns, rec.sensor.sum(axis=1), rec.joint_stamps_ns, rec.joint_velocity
         )
         band = BandPass(
             sample_rate_hz=self.profile.rate_hz,
@@ -179,7 +181,7 @@ class BandPassOnly:
         return self
 
     def run(self, rec) -> np.ndarray:
-        return filters.combined_bandpassed(rec.accel, self.profile)
+        return filters.combined_bandpassed(rec.sensor, self.profile)
 
     def info(self) -> dict:
         return {"band_hz": list(self.profile.band_hz), "order": self.profile.band_order}

@@ -151,8 +151,8 @@ class NewMethod:
             self.model, self.info = shared.model, shared.info
         else:
             paper, _ = calibrate_arrays(
-                rec.accel_stamps_ns,
-                rec.accel,
+                rec.sensor_stamps_ns,
+                rec.sensor,
                 rec.joint_stamps_ns,
                 rec.joint_velocity,
                 profile=self.profile,
@@ -160,8 +160,8 @@ class NewMethod:
             )
             self.model, self.info = calibrate_methods(
                 paper,
-                rec.accel_stamps_ns,
-                rec.accel,
+                rec.sensor_stamps_ns,
+                rec.sensor,
                 rec.joint_stamps_ns,
                 rec.joint_velocity,
                 gain=self.gain,
@@ -171,15 +171,15 @@ class NewMethod:
 
     def run(self, rec) -> np.ndarray:
         stamps, values, _ = denoise_batch_method(
-            rec.accel_stamps_ns,
-            rec.accel,
+            rec.sensor_stamps_ns,
+            rec.sensor,
             rec.joint_stamps_ns,
             rec.joint_velocity,
             self.model,
             method=self.method,
             channels="combined",
         )
-        return on_input_stamps(stamps, values, rec.accel_stamps_ns)
+        return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
 
 
 def flight_split(
@@ -187,7 +187,7 @@ def flight_split(
 ) -> dict:
     (c0, c1), (t0, t1) = SPLITS[name]
     fs = profile.rate_hz
-    start = int(rec.accel_stamps_ns[0])
+    start = int(rec.sensor_stamps_ns[0])
     cal = rec.time_slice(start + int(c0 * 1e9), start + int(c1 * 1e9))
     test = rec.time_slice(start + int(t0 * 1e9), start + int(t1 * 1e9))
     old = build_methods(profile, ("raw", "ours", "mean_command", "notch_q5"))
@@ -196,7 +196,7 @@ def flight_split(
     methods.update({"cancel": cancel, "hybrid": NewMethod(profile, "hybrid", gain)})
     methods.update({"mean_command": old["mean_command"], "notch_q5": old["notch_q5"]})
     edge = int(metrics.EDGE_S * fs)
-    cal_mask = np.ones(len(cal.accel_stamps_ns), bool)
+    cal_mask = np.ones(len(cal.sensor_stamps_ns), bool)
     cal_mask[:edge] = False
     cal_mask[-edge:] = False
     within = speed_envelope_mask(cal, test)
@@ -220,7 +220,7 @@ def flight_split(
     )  # the last sample of a block waits L - 1
     delays["mean_command"] = delays["paper"]
     firmware = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
-    minutes = len(test.accel_stamps_ns) / fs / 60.0
+    minutes = len(test.sensor_stamps_ns) / fs / 60.0
     results, spectrogram = {}, None
     for strength in STRENGTHS:
         per_set: dict[str, list] = {key: [] for key in methods}
@@ -228,17 +228,17 @@ def flight_split(
         for seed in range(1, event_sets + 1):
             spec = EventSpec(relative_amplitude=strength, seed=seed)
             events = make_events(
-                test.accel_stamps_ns,
-                test.accel,
+                test.sensor_stamps_ns,
+                test.sensor,
                 sample_rate_hz=fs,
                 band_hz=profile.band_hz,
                 band_order=profile.band_order,
                 spec=spec,
             )
-            noisy = dataclasses.replace(test, accel=test.accel + events.signal)
+            noisy = dataclasses.replace(test, sensor=test.sensor + events.signal)
             reference = combined_bandpassed(events.signal, profile)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
-            raw = combined_bandpassed(noisy.accel, profile)
+            raw = combined_bandpassed(noisy.sensor, profile)
             outputs = {}
             for key, method in methods.items():
                 outputs[key] = method.run(noisy)
@@ -367,17 +367,17 @@ def pr2_data(cache: Path | None):
 
 def _pr2_output(rec, model, method: str) -> np.ndarray:
     if method == "raw":
-        return combined_bandpassed(rec.accel, model.robot_profile())
+        return combined_bandpassed(rec.sensor, model.robot_profile())
     stamps, values, _ = denoise_batch_method(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         model,
         method=method,
         channels="combined",
     )
-    return on_input_stamps(stamps, values, rec.accel_stamps_ns)
+    return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
 
 
 def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dict:
@@ -391,8 +391,8 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
     begin = time.perf_counter()
     full, info = calibrate_methods(
         models.model,
-        sweep.accel_stamps_ns,
-        sweep.accel,
+        sweep.sensor_stamps_ns,
+        sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
     )
@@ -409,23 +409,23 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
         rec_b, scale = added_taps_recording(taps, ego, full)
         half = dataclasses.replace(
             rec_b,
-            accel=ego.accel[: len(rec_b.accel)] + 0.5 * rec_b.contact,
+            sensor=ego.sensor[: len(rec_b.sensor)] + 0.5 * rec_b.contact,
             contact=0.5 * rec_b.contact,
         )
         cal_out = {m: _pr2_output(calibration, full, m) for m in PR2_METHODS}
         edge = int(metrics.EDGE_S * fs)
         rows = {}
         for label, rec in (("a", rec_a), ("b", rec_b), ("b_half", half)):
-            mask = np.ones(len(calibration.accel_stamps_ns), bool)
+            mask = np.ones(len(calibration.sensor_stamps_ns), bool)
             mask[:edge] = False
             mask[-edge:] = False
             within = speed_envelope_mask(calibration, rec)
             if np.count_nonzero(mask & within) >= fs:
                 mask &= within
-            raw = bp(rec.accel, full)
+            raw = bp(rec.sensor, full)
             reference = bp(rec.contact, full)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
-            minutes = len(rec.accel_stamps_ns) / fs / 60.0
+            minutes = len(rec.sensor_stamps_ns) / fs / 60.0
             rows[label] = {
                 "oracle": {
                     "tap_retention": metrics.signal_metrics(raw, reference, reference, seg)[
@@ -456,8 +456,8 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
         for _ in range(repeats):
             begin, begin_cpu = time.perf_counter(), time.process_time()
             denoise_batch_method(
-                rec.accel_stamps_ns,
-                rec.accel,
+                rec.sensor_stamps_ns,
+                rec.sensor,
                 rec.joint_stamps_ns,
                 rec.joint_velocity,
                 model,

@@ -21,8 +21,8 @@ FILTERED_TOPIC = "/imu/data_filtered"
 class FlightRecording:
     """What the experiment needs of the bag (same attribute names as bag.Recording)."""
 
-    accel_stamps_ns: np.ndarray  # (N,) sensor stamps (the profile's Imu topic)
-    accel: np.ndarray  # (N, 3) the profile's field (here: gyro, rad/s)
+    sensor_stamps_ns: np.ndarray  # (N,) sensor stamps (the profile's Imu topic)
+    sensor: np.ndarray  # (N, 3) the profile's field (here: gyro, rad/s)
     joint_stamps_ns: np.ndarray  # (M,)
     joint_velocity: np.ndarray  # (M, J) joints in profile order
     joint_position: np.ndarray  # (M, J)
@@ -33,8 +33,8 @@ class FlightRecording:
     @property
     def duration_s(self) -> float:
         return (
-            float(self.accel_stamps_ns[-1] - self.accel_stamps_ns[0]) / 1e9
-            if len(self.accel_stamps_ns) > 1
+            float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / 1e9
+            if len(self.sensor_stamps_ns) > 1
             else 0.0
         )
 
@@ -46,11 +46,11 @@ class FlightRecording:
                 int(np.searchsorted(stamps, start_ns)), int(np.searchsorted(stamps, stop_ns))
             )
 
-        a, j = cut(self.accel_stamps_ns), cut(self.joint_stamps_ns)
+        a, j = cut(self.sensor_stamps_ns), cut(self.joint_stamps_ns)
         f = cut(self.filtered_stamps_ns) if self.filtered_stamps_ns is not None else None
         return FlightRecording(
-            self.accel_stamps_ns[a],
-            self.accel[a],
+            self.sensor_stamps_ns[a],
+            self.sensor[a],
             self.joint_stamps_ns[j],
             self.joint_velocity[j],
             self.joint_position[j],
@@ -76,10 +76,10 @@ def read_flight_bag(
             )
         other = dataclasses.replace(profile, sensor_topic=filtered_topic)
         firmware = read_recording(path, profile=other, ground_truth=False, denoised=False)
-        filtered = (firmware.accel_stamps_ns, firmware.accel)
+        filtered = (firmware.sensor_stamps_ns, firmware.sensor)
     return FlightRecording(
-        rec.accel_stamps_ns,
-        rec.accel,
+        rec.sensor_stamps_ns,
+        rec.sensor,
         rec.joint_stamps_ns,
         rec.joint_velocity,
         rec.joint_position,
