@@ -134,9 +134,39 @@ def test_a_tap_passes_the_canceller_and_does_not_drag_its_weights():
     assert db(x[after], with_tap[after]) > db(x[after], clean[after]) - 1.0
 
 
+def test_lines_that_stop_at_once_are_not_subtracted_on():
+    """The motors stop shaking the sensor at once (a stop, a reversal) while the reported
+    speed still says they run: the trackers keep predicting the lines for tens of ms, and
+    subtracting them would add a burst the sensor never felt. The guard keeps the output
+    about as quiet as the input; without it the output is the whole prediction."""
+    truth = two_joint_map()
+    x, speed = robot(5.0, seed=5, truth=truth)
+    stop = int(4.0 * FS)
+    quiet = 0.01 * np.random.default_rng(6).normal(size=x[stop:].shape)
+    x[stop:] = quiet
+    # The input's short-time power takes ~7 guard time constants to fall 30 dB.
+    after = slice(stop + int(0.03 * FS), stop + int(0.1 * FS))
+    results = {}
+    for guard_ms in (0.0, CancellerSettings().guard_ms):
+        canceller = HarmonicCanceller(
+            truth,
+            sample_rate_hz=FS,
+            band_hz=BAND,
+            n_channels=3,
+            settings=CancellerSettings(guard_ms=guard_ms),
+        )
+        results[guard_ms] = canceller.process(x, speed)
+    before = slice(stop - int(1.0 * FS), stop)
+    # while the lines are there the guard changes nothing
+    assert db(results[0.0][before], results[3.0][before]) == pytest.approx(0.0, abs=0.2)
+    assert db(results[0.0][after], x[after]) > 20.0  # the prediction, subtracted from silence
+    assert db(results[3.0][after], x[after]) < 4.0  # about the input (<= +3 dB at most)
+
+
 def reference_cancel(hmap: HarmonicMap, x, speed, s: CancellerSettings, band):
     """The canceller written as plain Python/numpy, one sample at a time."""
-    mu, kp, ki, rate = s.gains(FS)
+    mu, kp, ki, rate, guard = s.gains(FS)
+    p_in, p_res = np.zeros(x.shape[1]), np.zeros(x.shape[1])
     n, C = x.shape
     J, L = hmap.n_joints, hmap.n_lines
     lagged, corr, theta = np.zeros(J), np.zeros(J), np.zeros(L)
@@ -159,8 +189,12 @@ def reference_cancel(hmap: HarmonicMap, x, speed, s: CancellerSettings, band):
         cos, sin = np.cos(2 * np.pi * theta), np.sin(2 * np.pi * theta)
         num, den = np.zeros(J), np.zeros(J)
         for c in range(C):
-            e = x[i, c] - np.sum(active * (w[c, :, 0] * cos + w[c, :, 1] * sin))
-            out[i, c] = e
+            estimate = np.sum(active * (w[c, :, 0] * cos + w[c, :, 1] * sin))
+            e = x[i, c] - estimate
+            p_in[c] += guard * (x[i, c] ** 2 - p_in[c])
+            p_res[c] += guard * (e**2 - p_res[c])
+            scale = math.sqrt(p_in[c] / p_res[c]) if p_res[c] > p_in[c] else 1.0
+            out[i, c] = x[i, c] - scale * estimate
             limit = s.clip_sigma * math.sqrt(spread2[c])
             ec = min(max(e, -limit), limit)
             spread2[c] += rate * (ec * ec - spread2[c])

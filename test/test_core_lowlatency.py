@@ -84,6 +84,31 @@ def test_noise_at_the_table_level_is_gated_and_a_burst_keeps_its_waveform():
     assert np.corrcoef(aligned[event], burst[event, 0])[0, 1] > min(0.93, raw - 0.01)
 
 
+def test_after_a_speed_drop_the_noise_fading_out_is_not_taken_for_an_event():
+    """The table's value drops 30 dB at once (the joints slowed down) while the residual
+    fades out over ~10 ms (the canceller's trackers settle, a rotor spins down): the noise
+    held from before keeps the gate shut; without the hold the fading noise passes."""
+    rng = np.random.default_rng(5)
+    n = int(2 * FS)
+    drop = int(1.0 * FS)
+    fb = bank(3)
+    window = analysis_window(64, 32)
+    loud = fb.power_weights(64, window) @ np.full(33, 0.01 * np.sum(window**2))
+    level = np.ones(n)
+    level[drop:] = np.maximum(np.exp(-np.arange(n - drop) / (0.01 * FS)), 10**-1.5)
+    residual = 0.1 * level[:, None] * rng.normal(size=(n, 1))
+    table = np.ones((n, 1, fb.n_bands)) * loud
+    table[drop:] *= 1e-3
+    after = slice(drop, drop + int(0.1 * FS))
+    peaks = {}
+    for hold_ms in (0.0, GainSettings().hold_ms):
+        stage = LowLatencyGain(fb, GainSettings(oversubtraction=4.0, hold_ms=hold_ms), n_channels=1)
+        out = stage.process(residual, table)[stage.delay :, 0]
+        peaks[hold_ms] = np.abs(out[after]).max() / np.abs(residual[after, 0]).max()
+    assert peaks[0.0] > 0.5  # the fading noise passes nearly whole
+    assert peaks[GainSettings().hold_ms] < 0.2
+
+
 def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_alpha):
     """The gain stage in plain Python, one sample at a time (no look-ahead ring tricks)."""
     n, C = r.shape
@@ -98,6 +123,8 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
     a_track = 1 - math.exp(-every / (s.track_s * FS))
     span = s.open_span
     decay = math.exp(-1 / (s.open_hold_ms * 1e-3 * FS))
+    hold = math.exp(-1 / (s.hold_ms * 1e-3 * FS)) if s.hold_ms > 0 else 0.0
+    held = np.zeros((C, B))
     rng_ = s.track_range_db * math.log(10) / 10
     z = np.zeros((C, K), complex)
     power = np.zeros((C, B))
@@ -122,6 +149,8 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
             score = 0.0
             for k in range(B):
                 expected = noise[i, c, k]
+                if expected > 0:
+                    expected = held[c, k] = max(expected, held[c, k] * hold)
                 if i % every == 0 and power[c, k] > 1e-6 * expected:
                     step = min(
                         max(math.log(power[c, k] / expected) - log_ratio[c, k], -s.track_clip),

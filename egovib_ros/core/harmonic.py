@@ -26,6 +26,14 @@ all its lines together (harmonics stay locked to each other). Robust to events: 
 error that drives both is clipped at `clip_sigma` times a running robust spread of the
 error, so a tap (far above the residual spread) barely moves the weights or the PLL.
 
+Never worse than doing nothing: when the vibration changes faster than the trackers follow
+(a speed step, a reversal, a motor stopping), the weights go on predicting lines that are
+no longer there, and subtracting them would add a burst the sensor never felt. Per
+channel, the short-time power (`guard_ms`) of the input and of the full residual are
+compared; where the residual is the louder, the prediction is scaled down by
+sqrt(P_in / P_residual) before it is subtracted (the trackers still learn from the full
+error). A contact event adds to both powers alike and leaves the scale at 1.
+
 `HarmonicCanceller.process` keeps all state between calls (any chunking gives the same
 result, to the bit); the per-sample loop is compiled with numba (`cache=True`).
 """
@@ -381,8 +389,9 @@ def fit_harmonic_map(
             }
         )
     settle = n // 10
-    # Without the frequency correction: it would make up for a wrong map and flatten the cost.
-    fit_settings = dataclasses.replace(settings, pll_hz=0.0)
+    # Without the frequency correction (it would make up for a wrong map and flatten the
+    # cost) nor the guard (it would hide the bursts a wrong map makes).
+    fit_settings = dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0)
 
     def build(js) -> HarmonicMap:
         lj, lc = [], []
@@ -534,7 +543,9 @@ class CancellerSettings:
     (0: no correction, the map alone); pll_damping: its damping ratio; max_correction:
     bound of the per-joint relative frequency correction; clip_sigma: the error driving the
     trackers is clipped at this many running spreads (events do not drag them);
-    spread_s: time constant of that running spread."""
+    spread_s: time constant of that running spread; guard_ms: time constant of the
+    short-time powers of input and residual that scale the prediction down where it would
+    make the signal louder (0: no guard)."""
 
     tracking_hz: float = 8.0
     pll_hz: float = 2.0
@@ -542,6 +553,7 @@ class CancellerSettings:
     max_correction: float = 0.2
     clip_sigma: float = 2.5
     spread_s: float = 0.2
+    guard_ms: float = 3.0
 
     def __post_init__(self) -> None:
         for name, low, high in (
@@ -551,6 +563,7 @@ class CancellerSettings:
             ("max_correction", 0.0, 0.5),
             ("clip_sigma", 0.5, 100.0),
             ("spread_s", 1e-3, 100.0),
+            ("guard_ms", 0.0, 1000.0),
         ):
             value = getattr(self, name)
             if (
@@ -562,8 +575,9 @@ class CancellerSettings:
                     f"canceller: {name} must be a number in [{low:g}, {high:g}], got {value!r}"
                 )
 
-    def gains(self, sample_rate_hz: float) -> tuple[float, float, float, float]:
-        """(LMS step, PLL proportional gain, PLL integral gain, spread rate) per sample."""
+    def gains(self, sample_rate_hz: float) -> tuple[float, float, float, float, float]:
+        """(LMS step, PLL proportional gain, PLL integral gain, spread rate, guard rate)
+        per sample (guard rate 0: no guard)."""
         mu = TWO_PI * self.tracking_hz / sample_rate_hz
         wn = TWO_PI * self.pll_hz / sample_rate_hz
         return (
@@ -571,6 +585,9 @@ class CancellerSettings:
             2.0 * self.pll_damping * wn,
             wn * wn,
             1.0 - math.exp(-1.0 / (self.spread_s * sample_rate_hz)),
+            1.0 - math.exp(-1.0 / (self.guard_ms * 1e-3 * sample_rate_hz))
+            if self.guard_ms > 0
+            else 0.0,
         )
 
 
@@ -592,6 +609,7 @@ def _cancel_kernel(
     bound,
     clip,
     spread_rate,
+    guard_rate,
     f_lo,
     f_hi,
     lagged,
@@ -599,10 +617,13 @@ def _cancel_kernel(
     theta,
     weights,
     spread2,
+    power_in,
+    power_residual,
     out,
 ):
     """One pass over (n, C) band-passed samples; every state array is updated in place.
-    out[i, c] = x[i, c] - predicted lines. See the module docstring."""
+    out[i, c] = x[i, c] - predicted lines (scaled down where they would make the signal
+    louder). See the module docstring."""
     n, C = x.shape
     J = speed.shape[1]
     L = line_coef.shape[0]
@@ -643,7 +664,15 @@ def _cancel_kernel(
                 if active[q]:
                     estimate += weights[c, q, 0] * cosv[q] + weights[c, q, 1] * sinv[q]
             e = x[i, c] - estimate
-            out[i, c] = e
+            if guard_rate > 0.0:
+                power_in[c] += guard_rate * (x[i, c] * x[i, c] - power_in[c])
+                power_residual[c] += guard_rate * (e * e - power_residual[c])
+                if power_residual[c] > power_in[c]:
+                    out[i, c] = x[i, c] - estimate * math.sqrt(power_in[c] / power_residual[c])
+                else:
+                    out[i, c] = e
+            else:
+                out[i, c] = e
             limit = clip * math.sqrt(spread2[c])
             ec = min(max(e, -limit), limit)
             spread2[c] += spread_rate * (ec * ec - spread2[c])
@@ -687,6 +716,8 @@ class CancellerState:
     theta: np.ndarray  # (L,) line phase, cycles
     weights: np.ndarray  # (C, L, 2) cos/sin weights
     spread2: np.ndarray  # (C,) running robust error variance
+    power_in: np.ndarray  # (C,) short-time power of the input (the guard)
+    power_residual: np.ndarray  # (C,) short-time power of the full residual (the guard)
 
     def copy(self) -> "CancellerState":
         return CancellerState(*(np.array(getattr(self, f.name)) for f in fields(self)))
@@ -713,7 +744,9 @@ class HarmonicCanceller:
         self.sample_rate_hz = float(sample_rate_hz)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
         self.n_channels = int(n_channels)
-        self._mu, self._kp, self._ki, self._spread_rate = self.settings.gains(self.sample_rate_hz)
+        self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
+            self.sample_rate_hz
+        )
         if self.settings.pll_hz == 0.0:
             self._kp = self._ki = 0.0
         spread = (
@@ -737,6 +770,8 @@ class HarmonicCanceller:
             theta=np.zeros(L),
             weights=np.zeros((self.n_channels, L, 2)),
             spread2=self._initial_spread2.copy(),
+            power_in=np.zeros(self.n_channels),
+            power_residual=np.zeros(self.n_channels),
         )
 
     def reset(self) -> None:
@@ -779,6 +814,7 @@ class HarmonicCanceller:
             float(self.settings.max_correction),
             float(self.settings.clip_sigma),
             self._spread_rate,
+            self._guard_rate,
             self.band_hz[0],
             self.band_hz[1],
             st.lagged,
@@ -786,6 +822,8 @@ class HarmonicCanceller:
             st.theta,
             st.weights,
             st.spread2,
+            st.power_in,
+            st.power_residual,
             out,
         )
         return out

@@ -24,8 +24,13 @@ the algorithmic delay is exactly D samples.
 Noise: N = table(velocity) x c, where c is a slow per-band correction (`track_s`,
 log-domain, each step clipped, so a short event barely moves it) that follows how the
 real noise level drifts from the table (speeds beyond the calibration, battery,
-temperature). `alpha` per band is set in calibration as the `opening_quantile` of P/N
-on the calibration residual: the gain opens where the noise alone gets only that rarely.
+temperature). After the joints slow down, what was shaking a moment ago has not gone
+yet (the trackers of the canceller take tens of ms to settle on the new lines, a rotor
+spins down): N is the larger of the table at the current velocity and N held from before,
+decaying with `hold_ms`, so a speed step does not pass for an event.
+
+`alpha` per band is set in calibration as the `opening_quantile` of P/N on the
+calibration residual: the gain opens where the noise alone gets only that rarely.
 `bias` per band removes the offset between the table's block spectra and the bank's
 power measure, and the mean of log P/N, so c = 1 on calibration-like data.
 
@@ -70,7 +75,9 @@ class GainSettings:
     `oversubtraction` is given); exponent: 1 Wiener, 0.5 power subtraction; floor: least
     gain; track_s: time constant of the noise-level correction (0: none); track_clip:
     largest log step it takes per update before smoothing; track_range_db: how far it may
-    move from the table; open_hold_ms: how long a channel stays open after an event is
+    move from the table; hold_ms: time constant of the decay of the expected noise after
+    the table's value drops (0: the table's value at once); open_hold_ms: how long a
+    channel stays open after an event is
     seen (0: no opening); open_quantile: quantile of the opening score on calibration
     data above which it opens; open_span: how far beyond that (relative) it is fully open."""
 
@@ -86,6 +93,7 @@ class GainSettings:
     track_s: float = 0.3
     track_clip: float = 1.0
     track_range_db: float = 15.0
+    hold_ms: float = 20.0
     open_hold_ms: float = 20.0
     open_quantile: float = 0.99
     open_span: float = 1.0
@@ -102,6 +110,7 @@ class GainSettings:
             ("track_s", 0.0, 1000.0),
             ("track_clip", 0.0, 100.0),
             ("track_range_db", 0.0, 100.0),
+            ("hold_ms", 0.0, 10000.0),
             ("open_hold_ms", 0.0, 10000.0),
             ("open_quantile", 0.5, 1.0),
             ("open_span", 0.01, 100.0),
@@ -205,6 +214,7 @@ def _gain_kernel(
     track_range,
     open_decay,
     open_span,
+    hold_decay,
     z,
     power,
     hist,
@@ -212,6 +222,7 @@ def _gain_kernel(
     log_ratio,
     correction,
     opening,
+    noise_held,
     out,
     collect,
 ):
@@ -253,6 +264,12 @@ def _gain_kernel(
             for k in range(B):
                 p = power[c, k]
                 expected = noise[row[i], c, k]
+                if expected > 0.0:
+                    # The noise of the speeds just left, decaying (see the module doc).
+                    decayed = noise_held[c, k] * hold_decay
+                    if decayed > expected:
+                        expected = decayed
+                noise_held[c, k] = expected  # no joint state (0): start afresh
                 if update and expected > 0.0 and p > SILENCE * expected:
                     # (A silent channel - an axis at rest reads a constant - teaches nothing.)
                     step = math.log(p / expected) - log_ratio[c, k]
@@ -311,6 +328,7 @@ class GainState:
     log_ratio: np.ndarray  # (C, B) tracked log(P / table)
     correction: np.ndarray  # (C, B) exp(log_ratio - bias)
     opening: np.ndarray  # (C,) how far all bands are held open
+    noise_held: np.ndarray  # (C, B) expected band noise, held after the table's value drops
 
     def copy(self) -> "GainState":
         return GainState(*(np.array(getattr(self, f.name)) for f in fields(self)))
@@ -370,6 +388,9 @@ class LowLatencyGain:
             if settings.open_hold_ms > 0
             else 0.0
         )
+        self._hold_decay = (
+            math.exp(-1.0 / (settings.hold_ms * 1e-3 * fs)) if settings.hold_ms > 0 else 0.0
+        )
         self.state = self.initial_state()
 
     def initial_state(self) -> GainState:
@@ -382,6 +403,7 @@ class LowLatencyGain:
             log_ratio=self.bias.copy(),
             correction=np.ones((C, B)),
             opening=np.zeros(C),
+            noise_held=np.zeros((C, B)),
         )
 
     def reset_signal(self) -> None:
@@ -438,6 +460,7 @@ class LowLatencyGain:
                 float(self.settings.track_range_db) * math.log(10.0) / 10.0,
                 self._open_decay,
                 span,
+                self._hold_decay,
                 s.z,
                 s.power,
                 s.hist,
@@ -445,6 +468,7 @@ class LowLatencyGain:
                 s.log_ratio,
                 s.correction,
                 s.opening,
+                s.noise_held,
                 out,
                 ratios,
             )

@@ -405,8 +405,12 @@ def calibrate_methods(
     settle = min(int(SETTLE_S * fs), len(x) // 4)
     use = known.copy()
     use[:settle] = False
+    # The statistics describe how the residual scatters about the table's value at the
+    # current velocity: without the hold after speed drops (a run-time guard that only ever
+    # makes the gain more cautious).
+    steady = dataclasses.replace(gain, hold_ms=0.0)
     probe = LowLatencyGain(
-        bank, dataclasses.replace(gain, track_s=0.0, oversubtraction=1.0), n_channels=3
+        bank, dataclasses.replace(steady, track_s=0.0, oversubtraction=1.0), n_channels=3
     )
     _, ratios = probe.process(residual, noise, collect=True)
     ratios = ratios[:, :, :-1]
@@ -416,7 +420,7 @@ def calibrate_methods(
     logs = np.where(usable, np.clip(np.log(np.where(usable, ratios, 1.0)), -20.0, 20.0), 0.0)
     bias = logs.sum(axis=0) / np.maximum(usable.sum(axis=0), 1)
     probe = LowLatencyGain(
-        bank, dataclasses.replace(gain, oversubtraction=1.0), n_channels=3, bias=bias
+        bank, dataclasses.replace(steady, oversubtraction=1.0), n_channels=3, bias=bias
     )
     _, ratios = probe.process(residual, noise, collect=True)
     alpha = np.ones_like(bias)
@@ -427,7 +431,7 @@ def calibrate_methods(
             if len(values):
                 alpha[c, b] = float(np.quantile(values, gain.opening_quantile))
     # The opening score (largest P / (alpha N) over bands) of the calibration residual.
-    probe = LowLatencyGain(bank, gain, n_channels=3, alpha=alpha, bias=bias)
+    probe = LowLatencyGain(bank, steady, n_channels=3, alpha=alpha, bias=bias)
     _, ratios = probe.process(residual, noise, collect=True)
     open_alpha = np.ones(3)
     for c in range(3):
@@ -581,6 +585,7 @@ class SampleMethodDenoiser:
         self.delay = self._gain.delay if self._gain is not None else 0
         # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
         self._lag_stamps = np.full(self.delay, -1, dtype=np.int64)
+        self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
         self.samples_out = 0
@@ -642,14 +647,9 @@ class SampleMethodDenoiser:
                 stamps_out.append(s)
                 values_out.append(v)
             if batch.ends_segment and self.delay:
-                # Release the look-ahead with zeros after the last sample, then start afresh.
-                pad = np.zeros((self.delay, 3))
-                nan = np.full((self.delay, self.model.n_joints), np.nan)
-                s, v = self._run(np.full(self.delay, -1, np.int64), pad, nan)
+                s, v = self._release_lookahead()
                 stamps_out.append(s)
                 values_out.append(v)
-                self._gain.reset_signal()
-                self._lag_stamps[:] = -1
         if not stamps_out:
             return self._empty
         chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
@@ -658,18 +658,40 @@ class SampleMethodDenoiser:
 
     def _run(self, stamps: np.ndarray, values: np.ndarray, velocity: np.ndarray):
         residual = self._canceller.process(values, velocity)
-        if self._gain is not None:
-            rows, index = self._table.rows(velocity)
-            cleaned = self._gain.process(residual, rows, index=index)
-            stamps_all = np.concatenate([self._lag_stamps, stamps])
-            out_stamps = stamps_all[: len(stamps)]
-            self._lag_stamps = stamps_all[len(stamps) :]
-        else:
-            cleaned, out_stamps = residual, stamps
-        real = out_stamps >= 0
+        if self._gain is None:
+            return self._output(stamps, residual)
+        if len(velocity):
+            self._last_velocity = velocity[-1]
+        return self._gained(stamps, residual, velocity)
+
+    def _gained(self, stamps: np.ndarray, residual: np.ndarray, velocity: np.ndarray):
+        rows, index = self._table.rows(velocity)
+        cleaned = self._gain.process(residual, rows, index=index)
+        stamps_all = np.concatenate([self._lag_stamps, stamps])
+        out_stamps = stamps_all[: len(stamps)]
+        self._lag_stamps = stamps_all[len(stamps) :]
+        return self._output(out_stamps, cleaned)
+
+    def _release_lookahead(self):
+        """The segment ended: push silence through the gain to release the last samples it
+        holds, then start the gain afresh. The silence keeps the last joint velocity (the
+        noise the table expects for the last samples is that of their own speed; a NaN
+        would read "no joint state" and open the gain on them), and never reaches the
+        canceller (it holds nothing back, and silence would drag its trackers)."""
+        velocity = np.broadcast_to(self._last_velocity, (self.delay, self.model.n_joints))
+        out = self._gained(
+            np.full(self.delay, -1, np.int64), np.zeros((self.delay, 3)), np.array(velocity)
+        )
+        self._gain.reset_signal()
+        self._lag_stamps[:] = -1
+        self._last_velocity = np.full(self.model.n_joints, np.nan)
+        return out
+
+    def _output(self, stamps: np.ndarray, cleaned: np.ndarray):
+        real = stamps >= 0
         if self.channels == "combined":
             cleaned = cleaned.sum(axis=1, keepdims=True)
-        return out_stamps[real], cleaned[real]
+        return stamps[real], cleaned[real]
 
 
 def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):

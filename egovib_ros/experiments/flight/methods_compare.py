@@ -366,10 +366,8 @@ def pr2_data(cache: Path | None):
 
 
 def _pr2_output(rec, model, method: str) -> np.ndarray:
-    from egovib_ros.evaluation.baselines import combined_bandpassed as bp
-
     if method == "raw":
-        return bp(rec.sensor, model)
+        return combined_bandpassed(rec.sensor, model.robot_profile())
     stamps, values, _ = denoise_batch_method(
         rec.sensor_stamps_ns,
         rec.sensor,
@@ -383,8 +381,10 @@ def _pr2_output(rec, model, method: str) -> np.ndarray:
 
 
 def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dict:
-    from egovib_ros.evaluation.baselines import combined_bandpassed as bp
     from egovib_ros.experiments.paper import added_taps_recording
+
+    def bp(values, model):
+        return combined_bandpassed(values, model.robot_profile())
 
     config, models, recordings = pr2_data(cache)
     sweep = models.sweep
