@@ -1,4 +1,4 @@
-# Two commands (CONTRACT section 7): `make demo` and `make test`.
+# Two commands (docs/INTERFACES.md section 7): `make demo` and `make test`.
 # Both create .venv if missing and install everything into it.
 PYTHON ?= python3
 VENV   := .venv
