@@ -25,8 +25,10 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
     node = ros_client.node
     raw, joints = [], []
     lossless = stream_publisher_qos(depth=30_000)  # reliable, 10 s deep
-    node.create_subscription(Imu, "accelerometer/raw", raw.append, lossless, raw=True)
-    node.create_subscription(JointState, "joint_states", joints.append, lossless, raw=True)
+    readers = [
+        node.create_subscription(Imu, "accelerometer/raw", raw.append, lossless, raw=True),
+        node.create_subscription(JointState, "joint_states", joints.append, lossless, raw=True),
+    ]
     sim = nodes.start(
         "sim_hand",
         {
@@ -36,6 +38,11 @@ def test_sim_hand_runs_on_sim_time_and_follows_replayed_commands(nodes, ros_clie
             **deep_output("/accelerometer/raw", "/joint_states"),  # lossless to this test
         },
     )
+    # This test's readers matched to sim_hand's streams before the clock starts: what
+    # sim_hand publishes before a match is not sent to a reader that comes later.
+    assert ros_client.spin_until(
+        lambda: all(r.get_publisher_count() > 0 for r in readers), timeout=60
+    ), nodes.log(sim)
     player = nodes.start(
         "bag_player",
         {
