@@ -93,16 +93,23 @@ class DetectionEnvelope:
             order=settings.band_order,
             n_channels=3,
         )
-        n = settings.samples(settings.envelope_s)
-        self._b, self._zi = np.full(n, 1.0 / n), np.zeros(n - 1)
+        self._n = settings.samples(settings.envelope_s)
+        self._tail = np.zeros(self._n - 1)  # the last n - 1 squared sums (zeros before the start)
 
     def process(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(values):
             return np.zeros((0, 3)), np.zeros(0)
         axes = self._band.process(values.T).T
-        power, self._zi = signal.lfilter(self._b, [1.0], axes.sum(axis=1) ** 2, zi=self._zi)
-        return axes, np.sqrt(np.maximum(power, 0.0))
+        # Moving mean over n samples, added tap by tap in a fixed order: every output sums the
+        # same values in the same order whatever the chunking (lfilter's FIR state does not:
+        # it differs in the last bit between chunkings).
+        squared = np.concatenate([self._tail, axes.sum(axis=1) ** 2])
+        total = np.zeros(len(values))
+        for k in range(self._n):
+            total += squared[k : k + len(values)]
+        self._tail = squared[len(values) :]
+        return axes, np.sqrt(total / self._n)
 
 
 class ContactDetector:
