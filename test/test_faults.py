@@ -291,7 +291,7 @@ def lab(tmp_path_factory) -> Lab:
     motion, _ = simulate_motion(duration_s=3.0, max_speed=0.5, tap_rate_hz=2.0, seed=4)
     p["motion"] = root / "motion"
     # without chunk CRCs (as rosbags and many recorders write bags): the bytes flipped below
-    # must reach the decoder; with CRCs the damage is refused as a whole (test_bagio)
+    # must reach the decoder; with CRCs the damage is refused as a whole (test_bag_mcapfile)
     write_recording(p["motion"], motion, crc=False)
 
     # bags broken the ways the issue found them
@@ -1255,7 +1255,7 @@ def test_bad_second_model_within_half_db(lab, tmp_path):
 def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     """denoise: the output outside the bad second has the clean run's level (0.5 dB), holds
     no non-finite or beyond-range value, and the count is printed. (The clean run's output
-    comes from the same core in-process: `egovib denoise` equals it, test_offline.)"""
+    comes from the same core in-process: `egovib denoise` equals it, test_cli_denoise.)"""
     from egovib_ros.core import NoiseModel, denoise_batch
 
     result = egovib(
