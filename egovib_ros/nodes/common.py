@@ -31,13 +31,13 @@ from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.robot import config_dir
 from egovib_ros.nodes.convert import (
     decode_imu_raws,
     decode_joint_state_raws,
     diagnostic_array,
     joint_names_of,
 )
+from egovib_ros.robot import config_dir
 
 # Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
 # with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
