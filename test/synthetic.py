@@ -114,3 +114,10 @@ def random_recording(seed: int = 0, seconds: float = 0.5, with_truth: bool = Tru
     if with_truth:
         rec.contact, rec.ego = contact, ego
     return rec
+
+
+def jittery_stamps(n: int, seed: int = 0) -> np.ndarray:
+    """Jittery 1 kHz stamps like the quadcopter log's (0.9-1.25 ms steps around 1 ms)."""
+    rng = np.random.default_rng(seed)
+    steps = np.where(rng.random(n) < 0.1, rng.uniform(0.9, 1.25, n), 1.0) * 1e6
+    return np.cumsum(steps).astype(np.int64)

@@ -1,12 +1,14 @@
-"""The sample rate is checked all along the stream, not only at its start.
+"""egovib_ros.core.stream: BlockFramer cuts a sensor stream into blocks with matched joint
+velocity, the same for any chunking as frame_batch; bad input is counted (check_stream refuses
+a mostly bad recording in one line); joint_lag_s moves joint states in time.
 
-A stream whose rate changes in the middle (e.g. halves) used to be "bridged": every
-step of two periods looked like one missing sample and was filled by interpolation,
-seconds of invented samples without a word. Now two windows in a row off by more than
-the framer's tolerance are a rate mismatch (StreamError naming the source, and on every
-later push), for any chunking. Jitter (+-30 % per step, random or alternating), lost
-samples (up to a third, scattered) and a short glitch stay what they were: bridged and
-counted.
+The sample rate is checked all along the stream, not only at its start. A stream whose rate
+changes in the middle (e.g. halves) must not be "bridged" (every step of two periods looking
+like one missing sample, filled by interpolation: seconds of invented samples). Two windows
+in a row off by more than the framer's tolerance are a rate mismatch (StreamError naming the
+source, and on every later push), for any chunking. Jitter (+-30 % per step, random or
+alternating), lost samples (up to a third, scattered) and a short glitch stay what they
+were: bridged and counted.
 """
 
 import numpy as np
@@ -14,8 +16,16 @@ import pytest
 from synthetic import FS, push_random_chunks, stream
 
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, denoise_batch
-from egovib_ros.core.stream import RATE_WINDOW_BLOCKS, measured_period
-from egovib_ros.errors import StreamError
+from egovib_ros.core.stream import (
+    RATE_WINDOW_BLOCKS,
+    BlockFramer,
+    FramerSettings,
+    check_stream,
+    frame_batch,
+    measured_period,
+)
+from egovib_ros.core.velocity import HELD, MATCHED, MISSING
+from egovib_ros.errors import ConfigError, StreamError
 
 CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
 PERIOD_NS = 1e9 / FS
@@ -158,3 +168,184 @@ def test_calibration_refuses_a_rate_change_too(motion):
     data = rate_changed_at(motion, 3.0, 0.5, np.random.default_rng(1))
     with pytest.raises(StreamError, match="sensor rate changed.*1500 Hz"):
         calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
+
+
+def _stream(seed: int = 0, n: int = 6000):
+    rng = np.random.default_rng(seed)
+    stamps = np.arange(n, dtype=np.int64) * 333_333
+    accel = rng.standard_normal((n, 3))
+    joint_stamps = np.arange(0, n * 333_333, 1_000_000, dtype=np.int64) + 170_000
+    t = joint_stamps / 1e9
+    velocity = np.column_stack([np.sin(2 * np.pi * 0.7 * t), np.cos(2 * np.pi * 1.3 * t)])
+    return stamps, accel, joint_stamps, velocity
+
+
+@pytest.mark.parametrize("lag_s", [0.023, -0.031])
+def test_joint_lag_equals_restamped_joint_states(lag_s):
+    """joint_lag_s moves joint-state stamps later by that much before matching: the blocks
+    equal those of joint states re-stamped by hand."""
+    stamps, accel, joint_stamps, velocity = _stream()
+    shifted = FramerSettings(joint_lag_s=lag_s)
+    by_hand = FramerSettings()
+    a, _ = frame_batch(shifted, 2, stamps, accel, joint_stamps, velocity)
+    b, _ = frame_batch(by_hand, 2, stamps, accel, joint_stamps + int(round(lag_s * 1e9)), velocity)
+    va = np.concatenate([x.velocity for x in a])
+    vb = np.concatenate([x.velocity for x in b])
+    assert va.shape == vb.shape and len(va) > 100
+    np.testing.assert_allclose(va, vb)
+    unshifted, _ = frame_batch(FramerSettings(), 2, stamps, accel, joint_stamps, velocity)
+    assert not np.allclose(va, np.concatenate([x.velocity for x in unshifted]))
+
+
+def test_joint_lag_out_of_range_is_refused():
+    with pytest.raises(ConfigError, match="joint_lag_s"):
+        FramerSettings(joint_lag_s=2.0)
+    with pytest.raises(ConfigError, match="joint_lag_s"):
+        FramerSettings(joint_lag_s=float("nan"))
+
+
+# --------------------------------------------------------------------------
+# BlockFramer: blocks, their joint velocity, any chunking, bad input counted
+# --------------------------------------------------------------------------
+def _framed(blocks):
+    """The fields of a list of Blocks, concatenated."""
+    return {
+        name: np.concatenate([getattr(b, name) for b in blocks])
+        for name in ("samples", "t_first_ns", "t_last_ns", "velocity", "status", "out_stamps_ns")
+    }
+
+
+def test_block_framer_in_any_chunks_equals_frame_batch(motion):
+    settings = FramerSettings(source=SOURCE)
+    whole, whole_stats = frame_batch(
+        settings, 2, motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"]
+    )
+    expected = _framed(whole)
+    for seed in range(3):
+        framer = BlockFramer(settings, 2)
+        push_random_chunks(framer, motion, np.random.default_rng(seed), max_chunk=700)
+        framer.flush()
+        got = _framed(framer.pop_blocks())
+        for name, value in expected.items():
+            np.testing.assert_array_equal(got[name], value, err_msg=f"{name}, seed {seed}")
+        assert framer.stats.blocks == whole_stats.blocks == len(expected["status"])
+    n = len(motion["t_acc"])
+    # one block every hop; each real sample is completed by exactly one block
+    assert abs(len(expected["status"]) - n / settings.hop) <= 2
+    out = expected["out_stamps_ns"].reshape(-1)
+    np.testing.assert_array_equal(out[out >= 0], motion["t_acc"])
+
+
+def test_blocks_carry_the_mean_joint_velocity_of_their_span(motion):
+    settings = FramerSettings()
+    blocks, stats = frame_batch(
+        settings, 2, motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"]
+    )
+    f = _framed(blocks)
+    matched = f["status"] == MATCHED
+    assert matched.mean() > 0.99 and stats.blocks_missing == 0
+    assert np.all(f["t_last_ns"] - f["t_first_ns"] <= (settings.block_length - 1) * PERIOD_NS + 1)
+    # inside a segment of constant velocity the block mean is that velocity
+    for k, cell in enumerate(CELLS):
+        lo, hi = motion["t_acc"][motion["segment"] == k][[0, -1]]
+        inside = matched & (f["t_first_ns"] > lo + 20_000_000) & (f["t_last_ns"] < hi - 20_000_000)
+        assert inside.sum() > 50
+        np.testing.assert_allclose(f["velocity"][inside], np.broadcast_to(cell, (inside.sum(), 2)))
+
+
+def test_blocks_without_joint_states_are_held_then_missing(motion):
+    """Joint states stop after 2 s: blocks up to max_hold_s later are HELD (the last one's
+    velocity), later blocks MISSING (NaN, not denoised or calibrated)."""
+    settings = FramerSettings(max_hold_s=0.05)
+    keep = motion["t_joint"] < motion["t_joint"][0] + 2_000_000_000
+    blocks, stats = frame_batch(
+        settings, 2, motion["t_acc"], motion["accel"], motion["t_joint"][keep],
+        motion["velocity"][keep],
+    )  # fmt: skip
+    f = _framed(blocks)
+    last_joint = motion["t_joint"][keep][-1]
+    after = f["t_first_ns"] > last_joint
+    held = f["status"] == HELD
+    assert held.any() and np.all(f["t_first_ns"][held] <= last_joint + 50_000_000)
+    np.testing.assert_array_equal(
+        f["velocity"][held], np.tile(motion["velocity"][keep][-1], (held.sum(), 1))
+    )
+    missing = f["status"] == MISSING
+    assert np.array_equal(missing, after & ~held)
+    assert np.isnan(f["velocity"][missing]).all()
+    assert stats.blocks_missing == missing.sum() and stats.blocks_held == held.sum()
+
+
+def test_gaps_are_bridged_or_end_the_segment_and_bad_samples_are_counted(motion):
+    t, x = motion["t_acc"].copy(), motion["accel"].copy()
+    short = np.r_[3000:3005]  # 5 samples lost: bridged
+    long = np.r_[6000:6050]  # 50 lost: the segment ends, the filter restarts
+    x[9000] = np.nan  # a bad sample: missing, bridged, never output
+    x[9500] = [1e9, 0.0, 0.0]
+    t[12_000] = t[11_990]  # stamped before its predecessor: dropped
+    keep = np.ones(len(t), bool)
+    keep[short] = keep[long] = False
+    blocks, stats = frame_batch(
+        FramerSettings(max_fill_samples=8, sensor_range=1e6), 2, t[keep], x[keep],
+        motion["t_joint"], motion["velocity"],
+    )  # fmt: skip
+    # the short gap, the two bad samples and the hole the dropped sample leaves
+    assert stats.gap_filled_samples == 5 + 2 + 1
+    assert stats.samples_bad == 2 and stats.dropped_out_of_order == 1 and stats.resets == 1
+    assert sum(b.ends_segment for b in blocks) >= 1
+    out = _framed(blocks)["out_stamps_ns"].reshape(-1)
+    output = out[out >= 0]
+    # every good sample once, in order; not the bad ones, not the dropped repeat
+    expected = np.unique(t[keep])
+    np.testing.assert_array_equal(output, expected[~np.isin(expected, t[[9000, 9500]])])
+
+
+def test_the_backlog_stays_bounded_on_a_long_stream():
+    data = stream(60, CELLS, seed=5)
+    framer = BlockFramer(FramerSettings(), 2)
+    most = 0
+    for i in range(0, len(data["t_acc"]), 3000):
+        j = np.searchsorted(data["t_joint"], data["t_acc"][min(i + 2999, len(data["t_acc"]) - 1)])
+        j0 = np.searchsorted(data["t_joint"], data["t_acc"][i] - 1) if i else 0
+        framer.push_joint_states(data["t_joint"][j0 : j + 20], data["velocity"][j0 : j + 20])
+        framer.push_sensor(data["t_acc"][i : i + 3000], data["accel"][i : i + 3000])
+        framer.pop_blocks()
+        most = max(most, *framer.backlog)
+    assert most < 4000  # about a second of either stream, not the minute
+
+
+def test_a_wrong_shape_is_one_line_naming_the_source():
+    framer = BlockFramer(FramerSettings(source=SOURCE), 2)
+    with pytest.raises(StreamError, match=f"^{SOURCE}: sensor chunk: expected"):
+        framer.push_sensor(np.arange(4), np.zeros((4, 2)))
+    with pytest.raises(StreamError, match=f"^{SOURCE}: joint states: expected"):
+        framer.push_joint_states(np.arange(4), np.zeros((4, 3)))
+
+
+@pytest.mark.parametrize(
+    "name, value, named",
+    [("sample_rate_hz", 0.0, "sample_rate_hz"), ("band_hz", (800.0, 100.0), "band_hz"),
+     ("layout", "diagonal", "channels"), ("max_fill_samples", -1, "max_fill_samples"),
+     ("rate_tolerance", float("nan"), "rate_tolerance"), ("band_order", True, "band_order")],
+)  # fmt: skip
+def test_bad_settings_are_one_line_config_errors(name, value, named):
+    with pytest.raises(ConfigError, match=f"^{SOURCE}: {named}") as info:
+        FramerSettings(**{name: value}, source=SOURCE)
+    assert "\n" not in str(info.value)
+
+
+def test_check_stream_prints_the_counts_and_refuses_a_mostly_bad_recording():
+    stats = dict(samples_in=1000, samples_bad=30, dropped_out_of_order=20, gap_filled_samples=45,
+                 resets=1, joint_states_dropped=3)  # fmt: skip
+    line = check_stream(stats, "bag", joint_states=500)
+    assert line == (
+        "bad input treated as missing: 30 sensor samples non-finite or beyond the sensor "
+        "range, 20 out of order, 45 bridged, 1 restarts; 3 of 500 joint states dropped"
+    )
+    with pytest.raises(StreamError, match=r"^bag: 150 of 1000 sensor samples \(15.0 %\) are bad"):
+        check_stream(dict(stats, samples_bad=130), "bag", joint_states=500)
+    with pytest.raises(StreamError, match=r"^bag: 60 of 500 joint states \(12.0 %\) are unusable"):
+        check_stream(dict(stats, joint_states_dropped=60), "bag", joint_states=500)
+    assert check_stream(dict(stats, samples_bad=130), "bag", joint_states=500, limit=0.2)
+    with pytest.raises(StreamError, match="^bag: no sensor samples"):
+        check_stream({}, "bag", joint_states=0)

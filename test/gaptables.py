@@ -1,0 +1,118 @@
+"""Block tables of a synthetic spectral process with known effects, for the gap tests.
+
+The process: a real NoiseModel (grid of mean/std spectra, separable in the two joints)
+and smooth random joint motion; each block's observed magnitude is the true expected
+magnitude times Rayleigh scatter (unit mean).  "True" expected magnitude = model mean
+times a known effect, so the right answers are known without the simulator.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+from egovib_ros.core.blocks import analysis_window
+from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.gap.features import (
+    BlockTable,
+    JointSeries,
+    _joint_block_means,
+    _model_lookup,
+    attach_motion,
+    axis_spectra,
+    in_band_bins,
+)
+
+VMAX = np.array([3.0, 0.04])
+
+
+def synthetic_model() -> NoiseModel:
+    grid = tuple(np.round(np.arange(-10, 11) / 10.0, 10) * v for v in VMAX)
+    f = np.fft.rfftfreq(64, 1 / 3000.0)
+    sw = np.abs(grid[0])[:, None, None] / 3.0
+    sg = np.abs(grid[1])[None, :, None] / 0.04
+    shape_w = np.exp(-(((f - 300.0) / 120.0) ** 2))[None, None, :]
+    shape_g = np.exp(-(((f - 600.0) / 120.0) ** 2))[None, None, :]
+    mean = 0.05 + 1.5 * sw * shape_w + 1.0 * sg * shape_g
+    mean = np.repeat(mean[:, :, None, :], 4, axis=2)
+    return NoiseModel(
+        grid=grid,
+        joint_names=("wrist_roll", "gripper"),
+        mean=mean,
+        std=0.5 * mean,
+        counts=np.full((21, 21), 100),
+        window=analysis_window(64, 32),
+    )
+
+
+def synthetic_table(
+    effect: str = "none",
+    strength: float = 0.0,
+    *,
+    duration_s: float = 40.0,
+    seed: int = 0,
+    gain: float = 1.0,
+) -> BlockTable:
+    rng = np.random.default_rng(seed)
+    model = synthetic_model()
+    # Joint states at 1 kHz: low-pass random velocities up to 60 % of max speed.
+    n = int(duration_s * 1000)
+    t_joint = np.arange(n) / 1000.0
+    sos = signal.butter(2, 1.0, fs=1000.0, output="sos")
+    raw = rng.standard_normal((n, 2))
+    vel = signal.sosfiltfilt(sos, raw, axis=0)
+    vel = np.clip(
+        0.5 * VMAX * vel / np.percentile(np.abs(vel), 95, axis=0), -0.9 * VMAX, 0.9 * VMAX
+    )
+    vel[:, 0] += 0.3  # the wrist keeps turning, so all angles are visited
+    pos = np.cumsum(vel, axis=0) / 1000.0
+    pos[:, 1] = 0.043 + 0.04 * np.sin(pos[:, 1] / 0.04 * 3)  # gripper gap stays in range
+    acc = np.gradient(vel, t_joint, axis=0)
+    joints = JointSeries(t_s=t_joint, position=pos, velocity=vel, acceleration=acc)
+    n_blocks = int((duration_s * 3000 - 64) // 32)
+    t_first = np.arange(n_blocks) * 32 / 3000.0
+    t_last = t_first + 63 / 3000.0
+    freq_index = in_band_bins(model)
+    true_lag = strength if effect == "timing" else 0.0
+    # The vibration follows the true motion; the reported joint states are stamped true_lag late.
+    v_true, p_true, a_true = _joint_block_means(joints, t_first, t_last, true_lag)
+    mean_true, _ = _model_lookup(model, v_true, freq_index)
+    factor = np.full(n_blocks, gain)
+    if effect == "position":
+        factor *= 1.0 + strength * np.cos(p_true[:, 0] - 0.7)
+    elif effect == "coupling":
+        # extra vibration power in the gripper's band growing with both speeds
+        # (joints no longer add)
+        f = model.freqs_hz[freq_index]
+        extra = strength * (np.abs(v_true[:, 0]) / 3.0) * (np.abs(v_true[:, 1]) / 0.04)
+        mean_true = np.sqrt(
+            mean_true**2 + (extra[:, None] * np.exp(-(((f - 600.0) / 120.0) ** 2))) ** 2
+        )
+    elif effect == "acceleration":
+        factor *= 1.0 + strength * np.abs(a_true[:, 0]) / np.percentile(np.abs(a_true[:, 0]), 95)
+    elif effect == "drift":
+        factor *= 1.0 + strength * t_first / 60.0
+    magnitude = mean_true * factor[:, None] * rng.rayleigh(np.sqrt(2 / np.pi), mean_true.shape)
+    v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
+    mean0, std0 = _model_lookup(model, v0, freq_index)
+    axis0, zero0 = axis_spectra(model, v0, freq_index)
+    table = BlockTable(
+        t_first_s=t_first,
+        t_last_s=t_last,
+        magnitude=magnitude,
+        freqs_hz=model.freqs_hz[freq_index],
+        velocity=v0,
+        position=p0,
+        acceleration=a0,
+        base_mean=mean0,
+        base_std=std0,
+        contact=np.zeros(n_blocks, dtype=bool),
+        vmax=VMAX,
+        joint_names=("wrist_roll", "gripper"),
+        model=model,
+        joints=joints,
+        freq_index=freq_index,
+        axis_mean=axis0,
+        zero_mean=zero0,
+    )
+    return attach_motion(table)
