@@ -114,6 +114,7 @@ TEST_DIR = Path(__file__).resolve().parent
 UNTESTED = {
     "errors": "exception classes only; every bad-input test checks their messages",
     "sim/pr2": "the PR2 hand's published constants, no behaviour",
+    "core/timebase": "one constant (ns per s)",
     "cli/bench": "`egovib bench` runs in test_tools_bench",
     "cli/demo": "starts ROS 2 nodes; parsed in test_nodes_launch, run by `make demo`",
     "cli/live_bench": "starts ROS 2 nodes; parsed in test_nodes_launch",

@@ -18,10 +18,10 @@ import numpy as np
 from scipy import ndimage, signal
 
 from egovib_ros.core.stream import FramerSettings
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
 
-NS = 1_000_000_000
 #: A block counts as contact if its top-3-bin log ratio to the model exceeds the local
 #: typical level by this many robust standard deviations.
 CONTACT_Z = 3.5
@@ -323,7 +323,7 @@ class BlockSpectra:
                 )
 
     def _extend_spans(self, t_first: np.ndarray, t_last: np.ndarray) -> None:
-        join = 2 * int(JOINT_MARGIN_S * NS)
+        join = 2 * int(JOINT_MARGIN_S * NS_PER_S)
         for start, end in zip(t_first.tolist(), t_last.tolist()):
             if self.span_ends and start <= self.span_ends[-1] + join:
                 self.span_ends[-1] = max(self.span_ends[-1], end)
@@ -403,7 +403,7 @@ class JointFeatures:
         self._vmax = np.asarray(vmax, dtype=float)
         self._blocks = blocks if blocks is not None and blocks.thinned else None
         self._margin_s = float(margin_s)
-        self._margin_ns = int(margin_s * NS)
+        self._margin_ns = int(margin_s * NS_PER_S)
         self.count = 0  # joint states pushed
         self._period_s: float | None = None
         self._window = 0
@@ -455,13 +455,14 @@ class JointFeatures:
         parts = self._kept or [empty]
         t, position, velocity, acceleration, smooth = (np.concatenate(c) for c in zip(*parts))
         return JointSeries(
-            t_s=(t - t0_ns) / NS,
+            t_s=(t - t0_ns) / NS_PER_S,
             position=position,
             velocity=velocity,
             acceleration=acceleration,
             smooth_velocity=smooth,
             reversals=tuple(
-                (np.concatenate(r) - t0_ns) / NS if r else np.zeros(0) for r in self._reversals
+                (np.concatenate(r) - t0_ns) / NS_PER_S if r else np.zeros(0)
+                for r in self._reversals
             ),
             max_lag_s=self._margin_s if self._blocks is not None else np.inf,
         )
@@ -483,7 +484,7 @@ class JointFeatures:
 
     def _fix_period(self) -> None:
         # from the integer stamps: epoch seconds as floats are too coarse for a 1 ms step
-        self._period_s = joint_period(self._t, per_second=NS) if len(self._t) > 1 else 1e-3
+        self._period_s = joint_period(self._t, per_second=NS_PER_S) if len(self._t) > 1 else 1e-3
         self._window = savgol_window(self._period_s)
 
     def _filter(self, *, final: bool) -> None:
@@ -873,8 +874,8 @@ def table_from_blocks(
         )
     freq_index = in_band_bins(model)
     t0_ns = framing.first_stamp_ns
-    t_first = (first_ns - t0_ns) / NS
-    t_last = (last_ns - t0_ns) / NS
+    t_first = (first_ns - t0_ns) / NS_PER_S
+    t_last = (last_ns - t0_ns) / NS_PER_S
     joints = joint_features.finish(t0_ns)
     bad_input["joint_states_kept"] = len(joints.t_s)
     vmax = grid_speeds(model)

@@ -29,6 +29,7 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.convert import (
@@ -146,7 +147,7 @@ def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
     late = []
     for pub in publishers:
         left = max(deadline - time.monotonic(), 0.0)
-        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * NS_PER_S))):
             late.append(pub.topic_name)
     if late:
         node.get_logger().warning(
@@ -346,7 +347,7 @@ class StreamInput:
             return None
         raws, self._sensor = self._sensor, []
         arrival, self._arrival = np.asarray(self._arrival, dtype=np.int64), []
-        self.last_sensor_s = arrival[-1] / 1e9
+        self.last_sensor_s = arrival[-1] / NS_PER_S
         stamps, values, index = decode_imu_raws(raws, self.field)
         if len(index) < len(raws):
             self.undecodable_sensor += len(raws) - len(index)
