@@ -19,7 +19,6 @@ from egovib_ros.gap.features import (
     _joint_block_means,
     _model_lookup,
     attach_motion,
-    axis_spectra,
     in_band_bins,
 )
 
@@ -95,7 +94,6 @@ def synthetic_table(
     magnitude = mean_true * factor[:, None] * rng.rayleigh(np.sqrt(2 / np.pi), mean_true.shape)
     v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
     mean0, std0 = _model_lookup(model, v0, freq_index)
-    axis0, zero0 = axis_spectra(model, v0, freq_index)
     table = BlockTable(
         t_first_s=t_first,
         t_last_s=t_last,
@@ -112,7 +110,5 @@ def synthetic_table(
         model=model,
         joints=joints,
         freq_index=freq_index,
-        axis_mean=axis0,
-        zero_mean=zero0,
     )
     return attach_motion(table)

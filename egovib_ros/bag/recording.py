@@ -437,23 +437,11 @@ def read_recording(
     profile: RobotProfile | None = None,
     ground_truth: bool = True,
     denoised: bool = True,
-    joint_names: Sequence[str] | None = None,
 ) -> Recording:
     """A whole bag as one Recording (MCAP or sqlite3): the profile's sensor topic and joints
     (default PR2), plus ground truth, denoised and command topics when present and asked
-    for. Streams are sorted by stamp. BagError names the bag and the problem.
-
-    `joint_names` (older callers) overrides the profile's joints."""
+    for. Streams are sorted by stamp. BagError names the bag and the problem."""
     profile = profile or _default_profile()
-    if joint_names is not None and tuple(joint_names) != profile.joint_names:
-        import dataclasses
-
-        profile = dataclasses.replace(
-            profile,
-            joint_names=tuple(joint_names),
-            max_speed=(1.0,) * len(joint_names),
-            bidirectional=(True,) * len(joint_names),
-        )
     rec = concat_recordings(
         list(iter_recording(path, profile=profile, ground_truth=ground_truth, denoised=denoised))
     )

@@ -53,8 +53,6 @@ HARMONIC_PREFIX = "harmonic."
 RESIDUAL_PREFIX = "residual."
 GAIN_PREFIX = "gain."
 CANCELLER_PREFIX = "canceller."
-GAIN_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(GainSettings))
-CANCELLER_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(CancellerSettings))
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
 SETTLE_S = 0.5
 #: Least expected residual power, dB below the channel and band's mean over measured cells.

@@ -517,10 +517,6 @@ class BlockFramer:
         """(samples buffered, joint states held): bounded however long the stream runs."""
         return len(self._buf_t), len(self._joint_t)
 
-    @property
-    def latest_accel_ns(self) -> int | None:
-        return self._cleaner.last_stamp
-
     # --- internals -------------------------------------------------------------
     def _start_segment(self) -> None:
         pad = self.s.block_length - self.s.hop

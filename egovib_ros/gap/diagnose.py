@@ -82,7 +82,6 @@ class Diagnosis:
     heldout: np.ndarray
     heldout_rows: np.ndarray
     windows: metric.Windows
-    split_time_s: float
     models: dict[str, FittedModel]
     errors: dict[str, np.ndarray]  # name -> (n_windows, F) held-out window errors [dB]
     gaps: dict[str, float]
@@ -654,7 +653,6 @@ def diagnose(
             "train_s": float(train_fraction * (t[-1] - t[0])),
             "heldout_s": float((1 - train_fraction) * (t[-1] - t[0])),
         }
-        split_time = float(t[0] + train_fraction * (t[-1] - t[0]))
     else:
         split_info = {
             "method": f"blocked {folds}-fold cross-validation in time: the recording is cut "
@@ -664,7 +662,6 @@ def diagnose(
             "heldout_s": float(t[-1] - t[0]),
             "folds": folds,
         }
-        split_time = float(t[0])
     split_info["method"] += (
         "; contact blocks detected from the data (top-3-bin log-ratio outliers against the "
         "baseline) are excluded"
@@ -676,7 +673,6 @@ def diagnose(
         heldout=heldout,
         heldout_rows=rows,
         windows=windows,
-        split_time_s=split_time,
         models=models,
         errors=errors,
         gaps=gaps,

@@ -81,30 +81,6 @@ class BlockTable:
     def t_mid_s(self) -> np.ndarray:
         return 0.5 * (self.t_first_s + self.t_last_s)
 
-    def subset(self, rows: np.ndarray) -> "BlockTable":
-        """Rows of the table (boolean mask or indices)."""
-        pick = {
-            name: getattr(self, name)[rows]
-            for name in (
-                "t_first_s",
-                "t_last_s",
-                "magnitude",
-                "velocity",
-                "position",
-                "acceleration",
-                "base_mean",
-                "base_std",
-                "contact",
-                "axis_mean",
-                "hats",
-                "reversal_after_s",
-                "reversal_before_s",
-                "speed_rate",
-            )
-            if getattr(self, name) is not None
-        }
-        return replace(self, **pick)
-
     def at_lag(self, lag_s: float) -> "BlockTable":
         """The table with joint states re-matched as if their stamps were `lag_s` late.
 
@@ -117,7 +93,6 @@ class BlockTable:
             self.joints, self.t_first_s, self.t_last_s, lag_s
         )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
-        axis, zero = axis_spectra(self.model, velocity, self.freq_index)
         hats, after, before = motion_features(
             self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots, self.model.window
         )
@@ -128,8 +103,6 @@ class BlockTable:
             acceleration=acceleration,
             base_mean=mean,
             base_std=std,
-            axis_mean=axis,
-            zero_mean=zero,
             hats=hats,
             reversal_after_s=after,
             reversal_before_s=before,
@@ -138,10 +111,6 @@ class BlockTable:
         )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
-    axis_mean: np.ndarray | None = field(
-        repr=False, default=None
-    )  # (B, J, F) Eq. 6 single-joint spectra
-    zero_mean: np.ndarray | None = field(repr=False, default=None)  # (F,) spectrum at rest
     #: Velocity knots per joint (the model's grid): the baseline's cells.
     knots: tuple[np.ndarray, ...] = field(repr=False, default=())
     #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
@@ -637,22 +606,6 @@ def _model_lookup(
     return mean, np.maximum(full[:, 0, freq_index] - mean, 0.0)
 
 
-def axis_spectra(
-    model, velocity: np.ndarray, freq_index: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 6 ingredients: mean spectra with only joint j moving, (B, J, F), and at rest, (F,)."""
-    ch = model.channel_indices(("combined",))
-    n_joints = velocity.shape[1]
-    zero, _ = model.estimate(np.zeros((1, n_joints)), ch, include_std=False)
-    axis = np.empty((len(velocity), n_joints, len(freq_index)))
-    for j in range(n_joints):
-        only = np.zeros_like(velocity)
-        only[:, j] = velocity[:, j]
-        m, _ = model.estimate(only, ch, include_std=False)
-        axis[:, j] = m[:, 0, freq_index]
-    return axis, zero[0, 0, freq_index]
-
-
 def detect_contacts(
     magnitude: np.ndarray,
     predicted: np.ndarray,
@@ -908,7 +861,6 @@ def table_from_blocks(
         reversal_before_s=before,
         speed_rate=speed_rate_means(joints, t_first, t_last, 0.0),
     )
-    table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     table.bad_input = bad_input
     return table

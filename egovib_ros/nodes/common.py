@@ -337,10 +337,6 @@ class StreamInput:
     def sensor_pending(self) -> int:
         return len(self._sensor)
 
-    @property
-    def joints_pending(self) -> int:
-        return len(self._joints)
-
     def take_sensor(self) -> SensorBatch | None:
         """Decode the sensor messages received since the last call."""
         if not self._sensor:
@@ -486,14 +482,6 @@ class Health:
 
 
 # --- running ----------------------------------------------------------------------
-class NodeExit(Exception):
-    """Raised inside a node callback to end spinning with an exit status."""
-
-    def __init__(self, status: int = 0):
-        super().__init__(status)
-        self.status = status
-
-
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin it on an EventsExecutor until it is done or Ctrl-C/SIGTERM.
 
