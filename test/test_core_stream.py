@@ -21,6 +21,7 @@ from egovib_ros.core.stream import (
     BlockFramer,
     FramerSettings,
     check_stream,
+    feed,
     frame_batch,
     measured_period,
 )
@@ -349,3 +350,39 @@ def test_check_stream_prints_the_counts_and_refuses_a_mostly_bad_recording():
     assert check_stream(dict(stats, samples_bad=130), "bag", joint_states=500, limit=0.2)
     with pytest.raises(StreamError, match="^bag: no sensor samples"):
         check_stream({}, "bag", joint_states=0)
+
+
+def test_every_streaming_class_is_a_stream_consumer(model):
+    from egovib_ros.core import CalibrationAccumulator, StreamConsumer
+    from egovib_ros.core.methods import SampleMethodDenoiser
+    from egovib_ros.core.sampleframer import SampleFramer
+
+    settings = FramerSettings()
+    for consumer in (
+        BlockFramer(settings, 2),
+        SampleFramer(settings, 2),
+        StreamingDenoiser(model),
+        CalibrationAccumulator(),
+    ):
+        assert isinstance(consumer, StreamConsumer), type(consumer).__name__
+    assert issubclass(SampleMethodDenoiser, StreamConsumer)
+    assert not isinstance(object(), StreamConsumer)
+
+
+def test_feed_pushes_everything_in_time_order_for_any_chunk_length(model, motion):
+    """feed gives a consumer every joint state and sensor sample once, joint states ahead of
+    the sensor chunk they cover, so no block waits: the framing of the whole arrays."""
+    expected, _ = frame_batch(
+        FramerSettings(), 2, motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"]
+    )
+    for chunk_s in (0.05, 0.7, 10.0):
+        framer = BlockFramer(FramerSettings(), 2)
+        pushed = feed(
+            framer, motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"],
+            sample_rate_hz=FS, joint_wait_s=0.02, chunk_s=chunk_s,
+        )  # fmt: skip
+        assert pushed and all(p is None for p in pushed)  # the framer keeps what it releases
+        framer.flush()
+        got = _framed(framer.pop_blocks())
+        for name, value in _framed(expected).items():
+            np.testing.assert_array_equal(got[name], value, err_msg=f"{name}, chunk {chunk_s}")

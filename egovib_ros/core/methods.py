@@ -298,8 +298,8 @@ def _band_passed_calibration(
         model, layout="per_axis", with_steadiness=False, source=source
     )
     framer = SampleFramer(settings, model.n_joints)
-    feed(
-        _Collector(framer),
+    feed(  # the framer keeps what it releases
+        framer,
         sensor_stamps_ns,
         accel,
         joint_stamps_ns,
@@ -316,19 +316,6 @@ def _band_passed_calibration(
         np.concatenate([b.velocity for b in batches]) if batches else np.zeros((0, model.n_joints))
     )
     return stamps, values, velocity
-
-
-class _Collector:
-    """feed() consumer that only pushes (the framer keeps what it releases)."""
-
-    def __init__(self, framer: SampleFramer):
-        self.framer = framer
-
-    def push_joint_states(self, stamps, velocity):
-        self.framer.push_joint_states(stamps, velocity)
-
-    def push_sensor(self, stamps, accel):
-        self.framer.push_sensor(stamps, accel)
 
 
 def calibrate_methods(

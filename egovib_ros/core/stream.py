@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -761,8 +762,22 @@ def frame_batch(
     return framer.pop_blocks(), framer.stats
 
 
+@runtime_checkable
+class StreamConsumer(Protocol):
+    """What `feed` drives, and what every streaming class of the core is (BlockFramer,
+    SampleFramer, StreamingDenoiser, the methods' denoisers, CalibrationAccumulator; the
+    gap's and evaluation's accumulators on top of them): joint states and sensor chunks
+    pushed in time order, in any sizes. Each push returns what became ready (a
+    DenoisedChunk), or None for a consumer that keeps its results; ending the stream
+    (`flush()`) is the caller's."""
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> Any: ...
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> Any: ...
+
+
 def feed(
-    consumer,
+    consumer: StreamConsumer,
     sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
