@@ -94,14 +94,20 @@ class DetectionEnvelope:
             n_channels=3,
         )
         n = settings.samples(settings.envelope_s)
-        self._b, self._zi = np.full(n, 1.0 / n), np.zeros(n - 1)
+        self._b = np.full(n, 1.0 / n)
+        self._history = np.zeros(n - 1)  # the last n - 1 squared sums (zeros before the stream)
 
     def process(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(values):
             return np.zeros((0, 3)), np.zeros(0)
         axes = self._band.process(values.T).T
-        power, self._zi = signal.lfilter(self._b, [1.0], axes.sum(axis=1) ** 2, zi=self._zi)
+        # Each output is the dot product of the same n inputs whatever the chunking (lfilter
+        # with carried state adds the state to a chunk's first outputs afterwards: the last
+        # bits then depend on where the chunks start).
+        squared = np.concatenate([self._history, axes.sum(axis=1) ** 2])
+        power = np.convolve(squared, self._b, mode="valid")
+        self._history = squared[len(squared) - len(self._history) :]
         return axes, np.sqrt(np.maximum(power, 0.0))
 
 
