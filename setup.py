@@ -1,18 +1,22 @@
+import ast
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "egovib_ros"
-# the executables (egovib_ros/nodes/<name>.py, main()); the one list of them
-NODES = (
-    "sim_hand",
-    "sweep_driver",
-    "calibrator",
-    "denoiser",
-    "contact_detector",
-    "bag_recorder",
-    "bag_player",
-)
+
+
+def _nodes() -> tuple[str, ...]:
+    """egovib_ros.nodes.NODES, read from the source (setup.py must not import the package)."""
+    source = Path(__file__).resolve().parent / PACKAGE / "nodes" / "__init__.py"
+    for node in ast.parse(source.read_text()).body:
+        if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["NODES"]:
+            return ast.literal_eval(node.value)
+    raise RuntimeError(f"{source}: no NODES = (...) assignment")
+
+
+NODES = _nodes()
 
 setup(
     name=PACKAGE,

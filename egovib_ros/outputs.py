@@ -31,9 +31,8 @@ turned read-only) is an OutputError naming the output and the free space left; t
 staging directory goes at once, as for any failure inside `atomic_output`.
 
 Staging directories left by killed runs are removed on the next run that writes next
-to them, but only our own (they carry PARTIAL_MARKER, or have the exact shape the
-previous version left), only when older than the running process and only when the
-process that made them is gone.
+to them, but only our own (they carry PARTIAL_MARKER), only when older than the running
+process and only when the process that made them is gone.
 """
 
 from __future__ import annotations
@@ -69,19 +68,13 @@ _WRITE_FULL = {
     errno.EFBIG: "file too large for the file system",
     errno.EROFS: "the file system became read-only",
 }
-GAP_REPORT_SCHEMA = "egovib.gap/1"
 MODEL_SCHEMA = "egovib.noise_model"
 
 # kind -> what the output is; directories and files never replace each other.
 DIRECTORY_KINDS = ("bag", "report", "directory")
 FILE_KINDS = ("model", "json", "file")
 
-# Files a gap report directory written before the marker existed may hold.
-_LEGACY_REPORT_FILE = re.compile(r"^(report\.json|report\.md|sim_updated\.yaml|[\w.-]+\.png)$")
-# Topics only our simulator, denoiser and sim recorders write (ground truth, denoised output).
-_OUR_BAG_TOPICS = ("/accelerometer/contact", "/accelerometer/ego", "/accelerometer/denoised")
-# Staging directory of the previous version: tempfile.mkdtemp(prefix=".NAME.", suffix=".partial").
-_LEGACY_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.partial$")
+_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.partial$")
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]{8}\.partial$")
 
 
@@ -258,10 +251,6 @@ def request_stop(exception: type[BaseException]) -> None:
         _STOP.append(exception)
 
 
-def stop_requested() -> type[BaseException] | None:
-    return _STOP[0] if _STOP else None
-
-
 def clear_stop() -> None:
     _STOP.clear()
 
@@ -409,29 +398,7 @@ def _why_not_our_directory(path: Path) -> str | None:
         return None
     if not files:
         return None  # an empty directory loses nothing
-    report = _read_json(path / "report.json")
-    if isinstance(report, dict) and report.get("schema") == GAP_REPORT_SCHEMA:
-        foreign = sorted(f for f in files if not _LEGACY_REPORT_FILE.match(f))
-        return f"holds files egovib did not write ({_short_list(foreign)})" if foreign else None
-    if _is_our_legacy_bag(path, files):
-        return None
     return f"is not an egovib output (no {MARKER} marker; holds {_short_list(sorted(files))})"
-
-
-def _is_our_legacy_bag(path: Path, files: list[str]) -> bool:
-    """A bag written by egovib before the marker existed: nothing but metadata.yaml and its
-    storage files, with ground-truth or denoised topics that only egovib writes."""
-    try:
-        import yaml
-
-        meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-        listed = {str(p) for p in meta.get("relative_file_paths", [])} | {"metadata.yaml"}
-        topics = {t["topic_metadata"]["name"] for t in meta.get("topics_with_message_count", [])}
-    except (OSError, KeyError, TypeError, ValueError, ImportError, AttributeError):
-        return False
-    except Exception:  # yaml.YAMLError and friends
-        return False
-    return set(files) <= listed and any(t in topics for t in _OUR_BAG_TOPICS)
 
 
 def _is_our_model(path: Path) -> bool:
@@ -571,10 +538,8 @@ def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) 
 def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
     """Remove our own staging directories in `directory` left by runs that are gone.
 
-    Only directories we made (PARTIAL_MARKER inside, or the exact shape the previous
-    version left: `.NAME.XXXXXXXX.partial` holding nothing but NAME), only if older than
-    this process, and only if the process that made them no longer runs. Returns what
-    was removed.
+    Only directories we made (PARTIAL_MARKER inside), only if older than this process, and
+    only if the process that made them no longer runs. Returns what was removed.
     """
     directory = Path(directory)
     removed = []
@@ -608,11 +573,7 @@ def _is_stale_partial(entry: Path, started: float) -> bool:
         if not isinstance(pid, int) or not isinstance(created, (int, float)):
             return False
         return created < started and not _pid_alive(pid)
-    legacy = _LEGACY_PARTIAL.match(entry.name)
-    if legacy is None:
-        return False
-    content = [p.name for p in entry.iterdir()]
-    return set(content) <= {legacy.group("name")} and entry.stat().st_mtime < started
+    return False
 
 
 def _pid_alive(pid: int) -> bool:

@@ -338,3 +338,22 @@ def sim_model_path(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("model") / "model.npz"
     model.save(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def sim_bags(tmp_path_factory) -> Path:
+    """A directory with a simulated calibration sweep (`sweep`) and a motion bag (`motion`)."""
+    import simbags
+
+    return simbags.write_sim_bags(tmp_path_factory.mktemp("sim_bags"))
+
+
+@pytest.fixture(scope="session")
+def sim_bags_model(sim_bags) -> Path:
+    """The model `egovib calibrate` makes of sim_bags/sweep."""
+    import simbags
+
+    path = sim_bags / "fixture_model.npz"
+    result = simbags.egovib("calibrate", sim_bags / "sweep", "--out", path, "--quiet")
+    assert result.returncode == 0, result.stderr
+    return path

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from egovib_ros.bag import Recording
+from egovib_ros.sim.pr2 import JOINT_NAMES
+
 FS = 3000.0
 JOINT_FS = 1000.0
 
@@ -71,3 +74,50 @@ def push_random_chunks(
     if j < len(t_joint):
         out.append(processor.push_joint_states(t_joint[j:], velocity[j:]))
     return out
+
+
+# every array field of a Recording
+RECORDING_FIELDS = (
+    "sensor_stamps_ns",
+    "sensor",
+    "joint_stamps_ns",
+    "joint_position",
+    "joint_velocity",
+    "contact",
+    "ego",
+    "denoised_stamps_ns",
+    "denoised",
+    "command_stamps_ns",
+    "commands",
+)
+
+
+def random_recording(seed: int = 0, seconds: float = 0.5, with_truth: bool = True) -> Recording:
+    """`seconds` of random PR2-hand streams (3 kHz sensor, 1 kHz joints), truth optional."""
+    rng = np.random.default_rng(seed)
+    n, m = int(3000 * seconds), int(1000 * seconds)
+    t0 = 1_700_000_000 * 10**9 + 123
+    accel_stamps = t0 + np.round(np.arange(n) * 1e9 / 3000).astype(np.int64)
+    joint_stamps = t0 + 170_000 + np.arange(m, dtype=np.int64) * 1_000_000
+    contact = rng.normal(size=(n, 3))
+    ego = rng.normal(size=(n, 3))
+    rec = Recording(
+        sensor_stamps_ns=accel_stamps,
+        sensor=contact + ego,
+        joint_stamps_ns=joint_stamps,
+        joint_position=rng.normal(size=(m, 2)),
+        joint_velocity=rng.normal(size=(m, 2)),
+        joint_names=JOINT_NAMES,
+        command_stamps_ns=joint_stamps[::100],
+        commands=rng.normal(size=(len(joint_stamps[::100]), 2)),
+    )
+    if with_truth:
+        rec.contact, rec.ego = contact, ego
+    return rec
+
+
+def jittery_stamps(n: int, seed: int = 0) -> np.ndarray:
+    """Jittery 1 kHz stamps like the quadcopter log's (0.9-1.25 ms steps around 1 ms)."""
+    rng = np.random.default_rng(seed)
+    steps = np.where(rng.random(n) < 0.1, rng.uniform(0.9, 1.25, n), 1.0) * 1e6
+    return np.cumsum(steps).astype(np.int64)

@@ -12,11 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from egovib_ros.nodes import NODES
+
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-NODES = ("sim_hand", "sweep_driver", "calibrator", "denoiser", "bag_recorder", "bag_player")
 
 
 def test_colcon_build_installs_every_node(tmp_path):
@@ -51,15 +52,7 @@ def test_colcon_build_installs_every_node(tmp_path):
     assert (
         prefix / "share" / "ament_index" / "resource_index" / "packages" / "egovib_ros"
     ).is_file()
-    for name in (
-        "sim_hand",
-        "sweep_driver",
-        "calibrator",
-        "denoiser",
-        "bag_recorder",
-        "bag_player",
-        "sim",
-    ):
+    for name in (*NODES, "sim"):
         assert (share / "config" / f"{name}.yaml").is_file()
     for source in (
         sorted((REPO / "config" / "robots").glob("*.yaml"))

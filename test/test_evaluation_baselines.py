@@ -78,7 +78,9 @@ def test_every_method_runs_with_shape_and_delay(context, moving):
     names = baselines.available_methods(context)
     # cancel and hybrid only when the model was calibrated for them (this one was not)
     assert not baselines.has_method_calibration(context.model)
-    assert names == [m for m in baselines.METHOD_LABELS if m not in baselines.NEEDS_METHOD_CALIBRATION]
+    assert names == [
+        m for m in baselines.METHOD_LABELS if m not in baselines.NEEDS_METHOD_CALIBRATION
+    ]
     raw = combined_bandpassed(moving.sensor, context.model.robot_profile())
     for name in names:
         out = baselines.run_method(name, moving, context)

@@ -291,7 +291,7 @@ def lab(tmp_path_factory) -> Lab:
     motion, _ = simulate_motion(duration_s=3.0, max_speed=0.5, tap_rate_hz=2.0, seed=4)
     p["motion"] = root / "motion"
     # without chunk CRCs (as rosbags and many recorders write bags): the bytes flipped below
-    # must reach the decoder; with CRCs the damage is refused as a whole (test_bagio)
+    # must reach the decoder; with CRCs the damage is refused as a whole (test_bag_mcapfile)
     write_recording(p["motion"], motion, crc=False)
 
     # bags broken the ways the issue found them
@@ -515,15 +515,15 @@ def replaced_own_output(result: Result, work: Path, lab: Lab) -> None:
 
 
 def stale_partials(work: Path, lab: Lab) -> None:
-    """Leftovers of killed runs: ours (marker, dead pid; and the previous version's shape)
-    and a foreign hidden directory that only looks similar."""
+    """Leftovers of killed runs: ours (marker, dead pid), and foreign hidden directories
+    that only look similar (no marker)."""
     dead = work / ".den.999999999.0badc0de.partial"
     (dead / "den").mkdir(parents=True)
     (dead / "den" / "den.mcap").write_bytes(b"\0" * 1000)
     (dead / ".egovib-partial").write_text(json.dumps({"pid": 999999999, "created": 1.0}))
-    legacy = work / ".den.k2j4h5g6.partial"
-    (legacy / "den").mkdir(parents=True)
-    os.utime(legacy, (1.0, 1.0))
+    unmarked = work / ".den.k2j4h5g6.partial"
+    (unmarked / "den").mkdir(parents=True)
+    os.utime(unmarked, (1.0, 1.0))
     foreign = work / ".notes.partial"
     foreign.mkdir()
     (foreign / "keep.txt").write_text("not ours\n")
@@ -531,7 +531,7 @@ def stale_partials(work: Path, lab: Lab) -> None:
 
 def partials_cleaned(result: Result, work: Path, lab: Lab) -> None:
     assert not (work / ".den.999999999.0badc0de.partial").exists()
-    assert not (work / ".den.k2j4h5g6.partial").exists()
+    assert (work / ".den.k2j4h5g6.partial" / "den").is_dir()  # no marker: not ours
     assert (work / ".notes.partial" / "keep.txt").read_text() == "not ours\n"
     assert (work / "den" / "metadata.yaml").is_file()
 
@@ -1255,7 +1255,7 @@ def test_bad_second_model_within_half_db(lab, tmp_path):
 def test_bad_second_denoised_within_half_db(lab, bad_second, tmp_path):
     """denoise: the output outside the bad second has the clean run's level (0.5 dB), holds
     no non-finite or beyond-range value, and the count is printed. (The clean run's output
-    comes from the same core in-process: `egovib denoise` equals it, test_offline.)"""
+    comes from the same core in-process: `egovib denoise` equals it, test_cli_denoise.)"""
     from egovib_ros.core import NoiseModel, denoise_batch
 
     result = egovib(

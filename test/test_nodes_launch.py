@@ -17,12 +17,13 @@ from pathlib import Path
 import pytest
 import yaml
 
+from egovib_ros.nodes import NODES
+
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 LAUNCH_FILES = sorted((REPO / "launch").glob("*.launch.py"))
-NODES = ("sim_hand", "sweep_driver", "calibrator", "denoiser", "bag_recorder", "bag_player")
 
 
 def declared(executable: str) -> set[str]:
@@ -99,3 +100,16 @@ def test_demo_and_live_bench_are_egovib_subcommands(capsys):
         assert args.func is importlib.import_module(module).run
     assert main(["live-bench"]) == 2  # --json is required: a one-line usage error, exit 2
     assert "--json" in capsys.readouterr().err
+
+
+def test_the_node_list_names_every_module_with_a_main_and_each_is_installed():
+    with_main = {
+        p.stem
+        for p in (REPO / "egovib_ros" / "nodes").glob("*.py")
+        if any(
+            isinstance(n, ast.FunctionDef) and n.name == "main"
+            for n in ast.parse(p.read_text()).body
+        )
+    }
+    assert with_main == set(NODES)
+    assert all((BIN / name).is_file() for name in NODES)  # setup.py's entry points

@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 
 from egovib_ros.errors import ConfigError
-from egovib_ros.sim.params import DEFAULT_CONFIG, SimParams, format_effects, parse_effects
+from egovib_ros.sim.params import SimParams, default_config_path, format_effects, parse_effects
 
 
 def test_config_file_equals_defaults_and_round_trips(tmp_path):
-    assert DEFAULT_CONFIG.exists()
+    assert default_config_path().exists()
     loaded = SimParams.load()
     assert loaded == SimParams()
     loaded.wrist.line_amps = [0.5, 0.2, 0.1]

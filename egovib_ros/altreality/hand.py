@@ -21,14 +21,15 @@ from egovib_ros.altreality.motion import (
     reversal_events,
 )
 from egovib_ros.bag import Recording
+from egovib_ros.core.timebase import NS_PER_S
 
 FS = 3000.0  # accelerometer output rate (Hz)
 JOINT_RATE = 1000.0  # joint_states rate (Hz)
 # The PR2 hand's joint names (this generator is of the same hand, so a PR2 model reads it).
 HAND_JOINTS = ("r_wrist_roll_joint", "r_gripper_joint")
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
-_NS = 1_000_000_000
-START_NS = 1_726_000_000 * _NS  # wall-clock start of every recording (a real bag's epoch stamps)
+# wall-clock start of every recording (a real bag's epoch stamps)
+START_NS = 1_726_000_000 * NS_PER_S
 
 # --- drive trains -------------------------------------------------------------------------------
 #: Wrist: BLDC motor -> timing belt (16:40 teeth) -> harmonic drive (50:1, 100-tooth flexspline).
@@ -479,7 +480,7 @@ class AltHand:
             np.clip(np.round(raw / lsb), -(2 ** (SENSOR_BITS - 1)), 2 ** (SENSOR_BITS - 1) - 1)
             * lsb
         )
-        accel_stamps = START_NS + (np.arange(n, dtype=np.int64) * _NS) // int(FS)
+        accel_stamps = START_NS + (np.arange(n, dtype=np.int64) * NS_PER_S) // int(FS)
 
         j_stamps, j_pos, j_vel = self._joint_states(position, n)
         rec = Recording(
@@ -541,7 +542,7 @@ class AltHand:
                 [alpha], [1.0, alpha - 1.0], vel, axis=0, zi=vel[:1] * (1 - alpha)
             )[0]
             timing = 0.0
-        stamps = START_NS + np.round((t_true + timing) * _NS).astype(np.int64)
+        stamps = START_NS + np.round((t_true + timing) * NS_PER_S).astype(np.int64)
         # The wrist reports its angle wrapped to (-pi, pi] like a continuous joint's
         # raw encoder count.
         enc[:, 0] = np.angle(np.exp(1j * enc[:, 0]))

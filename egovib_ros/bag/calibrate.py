@@ -16,6 +16,7 @@ from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.bag.recording import iter_recording
 from egovib_ros.core import CalibrationAccumulator
 from egovib_ros.core.stream import check_stream
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.robot import RobotProfile, load_profile
 
 
@@ -119,7 +120,7 @@ def calibrate_bag_methods(bag: str | os.PathLike, model, *, joint_lag_s: float =
 
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
-    joints = rec.joint_stamps_ns + int(round(joint_lag_s * 1e9))
+    joints = rec.joint_stamps_ns + int(round(joint_lag_s * NS_PER_S))
     return calibrate_methods(
         model,
         rec.sensor_stamps_ns,

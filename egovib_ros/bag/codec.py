@@ -30,6 +30,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from egovib_ros.bag.mcapfile import gather, rows
+from egovib_ros.core.timebase import NS_PER_S
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
@@ -37,7 +38,6 @@ COMMANDS_TYPE = "std_msgs/msg/Float64MultiArray"
 IMU_FIELDS = ("linear_acceleration", "angular_velocity")
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
-_NS = 1_000_000_000  # ns per s
 # doubles between the end of the header and each vector: orientation (4) + its covariance (9)
 # [+ angular_velocity (3) + its covariance (9)]
 _FIELD_DOUBLES = {"angular_velocity": 13, "linear_acceleration": 25}
@@ -153,7 +153,7 @@ def _split(buf: bytes, n: int, length: int) -> list[bytes]:
 
 def _stamp_fields(stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    return stamps_ns // _NS, stamps_ns % _NS
+    return stamps_ns // NS_PER_S, stamps_ns % NS_PER_S
 
 
 # --------------------------------------------------------------------------
@@ -211,7 +211,8 @@ def imu_message(
     vectors[_check_field(field)] = Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
     return Imu(
         header=Header(
-            stamp=Time(sec=int(stamp_ns // _NS), nanosec=int(stamp_ns % _NS)), frame_id=frame_id
+            stamp=Time(sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S)),
+            frame_id=frame_id,
         ),
         orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=unknown.copy(),
@@ -258,7 +259,7 @@ def encode_imu_batch(
 def _decode_imu_slow(raw: bytes, field: str) -> tuple[int, np.ndarray]:
     msg = typestore().deserialize_cdr(raw, IMU_TYPE)
     v = getattr(msg, field)
-    return msg.header.stamp.sec * _NS + msg.header.stamp.nanosec, np.array([v.x, v.y, v.z])
+    return msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec, np.array([v.x, v.y, v.z])
 
 
 def imu_layout(batch: MessageBatch, field: str) -> int | None:
@@ -307,7 +308,9 @@ def decode_imu(
         for i, raw in enumerate(batch.to_list()):
             stamps[i], values[i] = _decode_imu_slow(raw, field)
         return stamps, values
-    stamps = batch.field(4, "<i4").astype(np.int64) * _NS + batch.field(8, "<u4").astype(np.int64)
+    stamps = batch.field(4, "<i4").astype(np.int64) * NS_PER_S + batch.field(8, "<u4").astype(
+        np.int64
+    )
     return stamps, _vectors(batch, offset)
 
 
@@ -351,7 +354,8 @@ def joint_state_message(
     )
     return JointState(
         header=Header(
-            stamp=Time(sec=int(stamp_ns // _NS), nanosec=int(stamp_ns % _NS)), frame_id=frame_id
+            stamp=Time(sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S)),
+            frame_id=frame_id,
         ),
         name=list(names),
         position=np.asarray(position, np.float64),
@@ -453,7 +457,7 @@ def decode_joint_states(
     column = {name: j for j, name in enumerate(names)}
     for i, raw in enumerate(raws):
         msg = typestore().deserialize_cdr(raw, JOINT_STATE_TYPE)
-        stamps[i] = msg.header.stamp.sec * _NS + msg.header.stamp.nanosec
+        stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
         for k, name in enumerate(msg.name):
             j = column.get(name)
             if j is None:
@@ -486,7 +490,9 @@ def _joint_states_fast(batch: MessageBatch, names: tuple[str, ...]):
     ):
         return None
     columns = [msg_names.index(n) for n in names]
-    stamps = batch.field(4, "<i4").astype(np.int64) * _NS + batch.field(8, "<u4").astype(np.int64)
+    stamps = batch.field(4, "<i4").astype(np.int64) * NS_PER_S + batch.field(8, "<u4").astype(
+        np.int64
+    )
     position = (
         rows(batch.buf, batch.starts + pos_off, 8 * n_pos)
         .view("<f8")[:, columns]

@@ -23,6 +23,7 @@ from egovib_ros.bag.reader import BagReader
 from egovib_ros.bag.recording import RecordingStream
 from egovib_ros.bag.writer import BagWriter, compression_name
 from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core.held import output_rows
 from egovib_ros.core.stream import check_stream
 from egovib_ros.outputs import atomic_output
 
@@ -36,8 +37,9 @@ class _DenoisedTopic:
     messages in any order (topic by topic, chunks overlapping in time, stamps swapped), and
     the recording stream hands the denoiser its samples in stamp order. The denoiser's
     output stamps increase strictly, so each is found by a binary search among the held
-    stamps; a held message the output has passed without taking it (out of order, a bad
-    sample, a second message with the same stamp) gets no denoised message and is counted.
+    stamps (core.held.output_rows); a held message the output has passed without taking it
+    (out of order, a bad sample, a second message with the same stamp) gets no denoised
+    message and is counted.
     Memory: the raw messages the denoiser has not answered yet (a block plus the stream's
     look-ahead)."""
 
@@ -93,12 +95,7 @@ class _DenoisedTopic:
         values = np.asarray(values, np.float64)
         if values.shape[1] == 1:  # the combined signal goes in x, y = z = 0
             values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-        at = np.searchsorted(self._stamp, stamps, side="left")
-        found = at < len(self._stamp)
-        found[found] = self._stamp[at[found]] == stamps[found]
-        if not found.all():  # cannot happen: every output sample is a raw sample held here
-            stamp = int(stamps[~found][0])
-            raise RuntimeError(f"denoised sample stamped {stamp} has no held raw message")
+        at = output_rows(self._stamp, stamps)  # held sorted by stamp, as the denoiser was fed
         batches, rows_ = self._batch[at], self._row[at]
         self._write(batches, rows_, values)
         done = int(at[-1]) + 1

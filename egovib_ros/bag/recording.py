@@ -50,6 +50,7 @@ from egovib_ros.bag.codec import (
 )
 from egovib_ros.bag.reader import BagReader, ReadBatch
 from egovib_ros.bag.writer import BagWriter
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
 from egovib_ros.errors import BagError
 from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile, load_profile
@@ -88,7 +89,7 @@ class Recording:
         """Time span of the sensor stream in seconds."""
         if len(self.sensor_stamps_ns) < 2:
             return 0.0
-        return float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / 1e9
+        return float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / NS_PER_S
 
 
 def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
@@ -172,9 +173,9 @@ class RecordingStream:
                 self.present.add(key)
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
-        self.horizon_ns = int(horizon_s * 1e9)
+        self.horizon_ns = int(horizon_s * NS_PER_S)
         self.max_pending = max(1, int(max_lag_s * self.profile.rate_hz))
-        self.min_slice_ns = int(min_slice_s * 1e9)
+        self.min_slice_ns = int(min_slice_s * NS_PER_S)
         self._sensor_keys = [k for k in ("raw", "contact", "ego") if k in self.present]
         self._sensor: dict[str, list] = {
             k: [] for k in self._sensor_keys
@@ -436,23 +437,11 @@ def read_recording(
     profile: RobotProfile | None = None,
     ground_truth: bool = True,
     denoised: bool = True,
-    joint_names: Sequence[str] | None = None,
 ) -> Recording:
     """A whole bag as one Recording (MCAP or sqlite3): the profile's sensor topic and joints
     (default PR2), plus ground truth, denoised and command topics when present and asked
-    for. Streams are sorted by stamp. BagError names the bag and the problem.
-
-    `joint_names` (older callers) overrides the profile's joints."""
+    for. Streams are sorted by stamp. BagError names the bag and the problem."""
     profile = profile or _default_profile()
-    if joint_names is not None and tuple(joint_names) != profile.joint_names:
-        import dataclasses
-
-        profile = dataclasses.replace(
-            profile,
-            joint_names=tuple(joint_names),
-            max_speed=(1.0,) * len(joint_names),
-            bidirectional=(True,) * len(joint_names),
-        )
     rec = concat_recordings(
         list(iter_recording(path, profile=profile, ground_truth=ground_truth, denoised=denoised))
     )
@@ -536,7 +525,7 @@ def write_recordings(
                 bag.add_topic(topic, msgtype)
             start = min(int(s[0]) for _, _, s, _ in streams if len(s))
             stop = max(int(s[-1]) for _, _, s, _ in streams if len(s)) + 1
-            step = max(1, int(window_s * 1e9))
+            step = max(1, int(window_s * NS_PER_S))
             for t0 in range(start, stop, step):
                 count = 0
                 for topic, _, stamps, encode in streams:
@@ -610,4 +599,4 @@ def _reordered(encode, order):
 def duration_of(path: str | os.PathLike) -> float:
     """Seconds spanned by a bag (metadata.yaml)."""
     with BagReader(path) as reader:
-        return float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / 1e9
+        return float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / NS_PER_S

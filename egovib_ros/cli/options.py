@@ -92,12 +92,10 @@ def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], i
     return parse
 
 
-finite_float = float_in()
 positive_float = float_in(0.0, low_open=True)
 nonneg_float = float_in(0.0)
 fraction = float_in(0.0, 1.0)  # [0, 1]
 positive_fraction = float_in(0.0, 1.0, low_open=True)  # (0, 1]
-nonneg_int = int_in(0)
 positive_int = int_in(1)
 seed = int_in(0, MAX_SEED)
 
@@ -110,9 +108,3 @@ def effects_spec(text: str) -> dict[str, float]:
         return check_effects(parse_effects(text), source="SPEC")
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def effects_spec_text(text: str) -> str:
-    """Like effects_spec but keeps the text (for commands that pass the SPEC on)."""
-    effects_spec(text)
-    return text

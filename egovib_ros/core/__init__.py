@@ -4,6 +4,7 @@ Public surface:
     NoiseModel                        noise table, Eq. 5/6 estimate, .npz I/O
     CalibrationAccumulator            one-pass per-cell statistics -> NoiseModel
     StreamingDenoiser, denoise_batch  spectral subtraction, streaming and batch
+    StreamConsumer, feed              the push protocol of every streaming class; its driver
     block_mean_velocity               per-block joint velocity matched by stamps
     JointVelocity                     velocity from positions for drivers without it
     BandPass, channel_matrix          axis handling and band-pass
@@ -19,6 +20,7 @@ from egovib_ros.core.stream import (
     BlockFramer,
     Blocks,
     FramerSettings,
+    StreamConsumer,
     check_bad_share,
     feed,
     frame_batch,
@@ -52,6 +54,7 @@ __all__ = [
     "BlockFramer",
     "Blocks",
     "FramerSettings",
+    "StreamConsumer",
     "feed",
     "frame_batch",
     "MAX_BAD_SHARE",

@@ -21,7 +21,7 @@ import numpy as np
 
 from egovib_ros import __version__
 from egovib_ros.core.filters import CHANNEL_LAYOUTS
-from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel, sweep_cells, sweep_mask
+from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel, sweep_cells
 from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
 from egovib_ros.core.velocity import MATCHED
 from egovib_ros.errors import ConfigError
@@ -193,11 +193,6 @@ class CalibrationAccumulator:
 
     def _tally(self) -> _Tally:
         return self._free_tally if self.mode == "free" else self._sweep_tally
-
-    @property
-    def expected_cells(self) -> np.ndarray:
-        """Grid-shaped mask of the cells this sweep should visit (small grids)."""
-        return sweep_mask(self.grid, "full" if self.mode == "free" else self.mode)
 
     def expected_cell_list(self) -> np.ndarray:
         """Grid indices (K, J) of the cells this sweep should visit."""

@@ -131,13 +131,6 @@ class HarmonicMap:
     def n_lines(self) -> int:
         return len(self.line_coefficient)
 
-    def frequencies(self, speed: np.ndarray) -> np.ndarray:
-        """(N, L) unfolded line frequencies for (N, J) lagged speeds (no correction)."""
-        speed = np.abs(np.atleast_2d(np.asarray(speed, float)))
-        g = speed[:, self.line_joint] ** self.exponent[self.line_joint]
-        g = np.where(speed[:, self.line_joint] > self.min_speed[self.line_joint], g, 0.0)
-        return g * self.line_coefficient
-
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         out = {}
         for f in fields(self):
@@ -182,20 +175,6 @@ class HarmonicMap:
 # --------------------------------------------------------------------------------------
 # Fitting the map from a no-contact recording (free motion or a sweep)
 # --------------------------------------------------------------------------------------
-@numba.njit(cache=True)
-def _lag_filter(speed, fs, tau_up, tau_down, start):
-    """First-order lag with separate time constants up / down, from `start`."""
-    out = np.empty_like(speed)
-    a_up = 1.0 - math.exp(-1.0 / (fs * tau_up)) if tau_up > 0 else 1.0
-    a_dn = 1.0 - math.exp(-1.0 / (fs * tau_down)) if tau_down > 0 else 1.0
-    s = start
-    for i in range(speed.shape[0]):
-        v = speed[i]
-        s += (a_up if v > s else a_dn) * (v - s)
-        out[i] = s
-    return out
-
-
 def _pieces(n: int, total: int, piece: int) -> np.ndarray:
     """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
     keep = np.zeros(n, bool)

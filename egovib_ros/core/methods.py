@@ -53,8 +53,6 @@ HARMONIC_PREFIX = "harmonic."
 RESIDUAL_PREFIX = "residual."
 GAIN_PREFIX = "gain."
 CANCELLER_PREFIX = "canceller."
-GAIN_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(GainSettings))
-CANCELLER_SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(CancellerSettings))
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
 SETTLE_S = 0.5
 #: Least expected residual power, dB below the channel and band's mean over measured cells.
@@ -300,8 +298,8 @@ def _band_passed_calibration(
         model, layout="per_axis", with_steadiness=False, source=source
     )
     framer = SampleFramer(settings, model.n_joints)
-    feed(
-        _Collector(framer),
+    feed(  # the framer keeps what it releases
+        framer,
         sensor_stamps_ns,
         accel,
         joint_stamps_ns,
@@ -318,19 +316,6 @@ def _band_passed_calibration(
         np.concatenate([b.velocity for b in batches]) if batches else np.zeros((0, model.n_joints))
     )
     return stamps, values, velocity
-
-
-class _Collector:
-    """feed() consumer that only pushes (the framer keeps what it releases)."""
-
-    def __init__(self, framer: SampleFramer):
-        self.framer = framer
-
-    def push_joint_states(self, stamps, velocity):
-        self.framer.push_joint_states(stamps, velocity)
-
-    def push_sensor(self, stamps, accel):
-        self.framer.push_sensor(stamps, accel)
 
 
 def calibrate_methods(

@@ -25,6 +25,7 @@ import numpy as np
 
 from egovib_ros.core.filters import BandPass
 from egovib_ros.core.stream import FramerSettings, FramerStats, _Cleaner
+from egovib_ros.core.timebase import NS_PER_S
 
 RATE_CHECK_SAMPLES = 128
 
@@ -73,8 +74,8 @@ class SampleFramer:
         self._rate_checked = False
         self._rate_error = ""
         self._rate_stamps: list[np.ndarray] = []
-        self._max_hold_ns = int(settings.max_hold_s * 1e9)
-        self._joint_wait_ns = int(settings.joint_wait_s * 1e9)
+        self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
+        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S)
         self.samples_no_joint_state = 0
 
     # --- input ---------------------------------------------------------------
@@ -90,7 +91,7 @@ class SampleFramer:
         if len(stamps_ns) == 0:
             return
         last = int(self._joint_t[-1]) if len(self._joint_t) else None
-        jump_ns = int(self.s.clock_jump_s * 1e9)
+        jump_ns = int(self.s.clock_jump_s * NS_PER_S)
         if last is not None and int(stamps_ns.min()) < last - jump_ns:
             # The joint clock went back: finish what waits on the old clock, then forget it.
             i = int(np.argmax(stamps_ns < last - jump_ns))
@@ -148,7 +149,7 @@ class SampleFramer:
         seen = np.concatenate(self._rate_stamps)
         if len(seen) < RATE_CHECK_SAMPLES:
             return
-        measured = 1e9 / float(np.median(np.diff(seen)))
+        measured = NS_PER_S / float(np.median(np.diff(seen)))
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:

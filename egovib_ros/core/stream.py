@@ -30,11 +30,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -218,7 +220,7 @@ class FramerSettings:
 
     @property
     def period_ns(self) -> float:
-        return 1e9 / self.sample_rate_hz
+        return NS_PER_S / self.sample_rate_hz
 
     def error(self, message: str) -> StreamError:
         return StreamError(f"{self.source}: {message}" if self.source else message)
@@ -317,7 +319,7 @@ class _Cleaner:
         )
         known = before != np.iinfo(np.int64).min  # the sentinel would wrap when subtracted from
         jump = np.flatnonzero(
-            known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9))
+            known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * NS_PER_S))
         )
         if len(jump):
             # The clock went back (bag loop, sensor reset): end the segment, start afresh.
@@ -431,10 +433,10 @@ class BlockFramer:
         self._ready: list[Blocks] = []
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
-        self._max_hold_ns = int(settings.max_hold_s * 1e9)
-        self._joint_lag_ns = int(round(settings.joint_lag_s * 1e9))
+        self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
+        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
         # joint states moved later arrive that much later relative to the blocks they cover
-        self._joint_wait_ns = int(settings.joint_wait_s * 1e9) + max(self._joint_lag_ns, 0)
+        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -465,7 +467,7 @@ class BlockFramer:
         before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
         known = before != np.iinfo(np.int64).min
         jump = np.flatnonzero(
-            known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * 1e9))
+            known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * NS_PER_S))
         )
         if len(jump):
             # The joint clock went back (bag loop, reset): forget the old timeline.
@@ -516,10 +518,6 @@ class BlockFramer:
         """(samples buffered, joint states held): bounded however long the stream runs."""
         return len(self._buf_t), len(self._joint_t)
 
-    @property
-    def latest_accel_ns(self) -> int | None:
-        return self._cleaner.last_stamp
-
     # --- internals -------------------------------------------------------------
     def _start_segment(self) -> None:
         pad = self.s.block_length - self.s.hop
@@ -552,7 +550,7 @@ class BlockFramer:
             window, window_end = seen[:need], int(ends[need - 1])
             self._rate_steps, self._rate_ends = [seen[need:]], [ends[need:]]
             self._rate_count = len(seen) - need
-            measured = 1e9 / measured_period(window, self.s.period_ns)
+            measured = NS_PER_S / measured_period(window, self.s.period_ns)
             off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
             if not self._rate_checked:
                 self._rate_checked = True
@@ -567,7 +565,7 @@ class BlockFramer:
             if self._rate_off_windows >= 2:
                 self._rate_error = (
                     f"sensor rate changed: the stream ran at {measured:.0f} Hz over the "
-                    f"{need} samples up to stamp {window_end / 1e9:.3f} s but the model "
+                    f"{need} samples up to stamp {window_end / NS_PER_S:.3f} s but the model "
                     f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
                     f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
                 )
@@ -639,7 +637,7 @@ class BlockFramer:
         t_first = np.where(real, window_t, np.iinfo(np.int64).max).min(axis=1)
         if wait:
             latest_joint = self._joint_t[-1] if len(self._joint_t) else None
-            waited = (self._cleaner.last_stamp - t_last) >= int(self.s.joint_wait_s * 1e9)
+            waited = (self._cleaner.last_stamp - t_last) >= int(self.s.joint_wait_s * NS_PER_S)
             ready = waited if latest_joint is None else (t_last <= latest_joint) | waited
             if not ready.all():  # blocks are released strictly in order
                 n_blocks = int(np.argmin(ready))
@@ -764,8 +762,22 @@ def frame_batch(
     return framer.pop_blocks(), framer.stats
 
 
+@runtime_checkable
+class StreamConsumer(Protocol):
+    """What `feed` drives, and what every streaming class of the core is (BlockFramer,
+    SampleFramer, StreamingDenoiser, the methods' denoisers, CalibrationAccumulator; the
+    gap's and evaluation's accumulators on top of them): joint states and sensor chunks
+    pushed in time order, in any sizes. Each push returns what became ready (a
+    DenoisedChunk), or None for a consumer that keeps its results; ending the stream
+    (`flush()`) is the caller's."""
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> Any: ...
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> Any: ...
+
+
 def feed(
-    consumer,
+    consumer: StreamConsumer,
     sensor_stamps_ns: np.ndarray,
     accel: np.ndarray,
     joint_stamps_ns: np.ndarray,
@@ -784,7 +796,7 @@ def feed(
     sensor_stamps_ns = np.asarray(sensor_stamps_ns, dtype=np.int64).reshape(-1)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
     step = max(1, int(chunk_s * sample_rate_hz))
-    wait_ns = int(joint_wait_s * 1e9) + 1
+    wait_ns = int(joint_wait_s * NS_PER_S) + 1
     outputs, joint_pos = [], 0
     for start in range(0, len(sensor_stamps_ns), step):
         stop = min(start + step, len(sensor_stamps_ns))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.robot import VELOCITY_SOURCES
 
 #: Status of a block's joint velocity.
@@ -182,7 +183,7 @@ class JointVelocity:
             t = np.concatenate([[self._last_t[j]], stamps_ns[rows]])
             step = np.diff(p)
             step = np.where(np.abs(step) > np.pi, (step + np.pi) % (2 * np.pi) - np.pi, step)
-            dt = np.diff(t).astype(np.float64) / 1e9
+            dt = np.diff(t).astype(np.float64) / NS_PER_S
             first = t[:-1] == np.iinfo(np.int64).min
             with np.errstate(divide="ignore", invalid="ignore"):
                 derived[rows, j] = np.where((dt > 0) & ~first, step / dt, np.nan)

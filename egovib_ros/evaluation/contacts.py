@@ -31,6 +31,7 @@ from egovib_ros.core.contact import (
     DetectionEnvelope,
     no_contact_threshold,
 )
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 
 METHODS = ("paper", "cancel", "hybrid", "raw")
@@ -226,7 +227,7 @@ def detect_bag(
             truth_parts.append(contact)
     events += detector.finish()
     stamps = np.concatenate(stamp_parts) if stamp_parts else np.zeros(0, np.int64)
-    duration_s = float(stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else 0.0
+    duration_s = float(stamps[-1] - stamps[0]) / NS_PER_S if len(stamps) > 1 else 0.0
     result = Detection(
         events=events,
         threshold=float(threshold),
@@ -255,14 +256,14 @@ def score_events(events, stamps, contact, model: NoiseModel, result: Detection) 
     onsets = stamps[segment_contacts(reference, sample_rate_hz=model.sample_rate_hz).onsets]
     detected = np.array([e.onset_ns for e in events], np.int64)
     us = 1000  # match in microseconds
-    tp, fp, fn = match_events(detected // us, onsets // us, int(TOLERANCE_S * 1e9) // us)
+    tp, fp, fn = match_events(detected // us, onsets // us, int(TOLERANCE_S * NS_PER_S) // us)
     precision = tp / (tp + fp) if tp + fp else 1.0
     recall = tp / (tp + fn) if tp + fn else 1.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
     minutes = result.duration_s / 60.0
     latency = []
     for event in events:
-        near = onsets[np.abs(onsets - event.onset_ns) <= TOLERANCE_S * 1e9]
+        near = onsets[np.abs(onsets - event.onset_ns) <= TOLERANCE_S * NS_PER_S]
         if len(near):
             latency.append((event.report_ns - near[0]) / 1e6 + result.method_delay_ms)
     return {

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
@@ -31,7 +32,7 @@ def _slice(rec, start_s: float, stop_s: float):
     from dataclasses import replace
 
     t0 = int(rec.sensor_stamps_ns[0])
-    lo, hi = t0 + int(start_s * 1e9), t0 + int(stop_s * 1e9)
+    lo, hi = t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S)
     a = slice(
         int(np.searchsorted(rec.sensor_stamps_ns, lo)),
         int(np.searchsorted(rec.sensor_stamps_ns, hi)),

@@ -30,6 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice
 
 #: (effect, label, strengths): a ladder of three strengths per injection.
@@ -59,8 +60,8 @@ def _at_accel(rec, values: np.ndarray) -> np.ndarray:
 def inject(rec, effect: str, strength: float):
     """The recording with one known effect injected into its real data."""
     if effect == "timing":
-        return replace(rec, joint_stamps_ns=rec.joint_stamps_ns + int(round(strength * 1e9)))
-    t = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
+        return replace(rec, joint_stamps_ns=rec.joint_stamps_ns + int(round(strength * NS_PER_S)))
+    t = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / NS_PER_S
     cmd = _at_accel(rec, rec.joint_velocity)
     if effect == "drift":
         gain = 1.0 + strength * (1.0 - np.exp(-t / WARMUP_TAU_S))

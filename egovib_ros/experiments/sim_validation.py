@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.sim.hand import HandSimulator
 from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.pr2 import (
@@ -101,7 +102,9 @@ def sweep_cell_stats(
         if ci not in pieces:
             # frame on the global hop grid, as a continuous calibrator does (blocks start at
             # multiples of 32 samples, so the 32-periodic idle hum looks the same in every cell)
-            first = int(round((chunk.sensor_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / 1e9))
+            first = int(
+                round((chunk.sensor_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / NS_PER_S)
+            )
             skip = (-first) % HOP
             pieces[ci] = []
             bp, vel = bp[skip:], chunk.true_velocity[skip:]

@@ -82,7 +82,6 @@ class Diagnosis:
     heldout: np.ndarray
     heldout_rows: np.ndarray
     windows: metric.Windows
-    split_time_s: float
     models: dict[str, FittedModel]
     errors: dict[str, np.ndarray]  # name -> (n_windows, F) held-out window errors [dB]
     gaps: dict[str, float]
@@ -457,33 +456,18 @@ def diagnose(
     vibration (see `simulator_reference_lag`); lags within `lag_tolerance_s` of it count as
     in sync (the baseline and all non-timing candidates use the best of them), timing is a
     lag beyond that.
+
+    The steps: lags and contacts (`_align`), the splits, held-out predictions of the
+    baseline and every candidate (`cross_fit`), the fitted terms for the report
+    (`_fitted_models`), held-out gaps and the floor (`_heldout_gaps`), each candidate
+    tested against the baseline (`_candidates`), the verdict (`_verdict`).
     """
     rng = np.random.default_rng(seed)
-    clean = ~table.contact
-    if clean.sum() < 400:
-        raise ValueError(f"too few no-contact blocks ({int(clean.sum())})")
+    if (~table.contact).sum() < 400:
+        raise ValueError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
-    # Lags: one scan of the baseline's residual (a single nuisance parameter, fitted on
-    # every other clean block); "in sync" = the best lag within the tolerance.
-    lags, curve = lag_scan(table, clean, prior=prior)
-    lo, hi = reference_lag_s - lag_tolerance_s, reference_lag_s + lag_tolerance_s
-    sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
-    timing_lag = (
-        refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
-    )
-    base_table = table.at_lag(sync_lag)
-    # Contacts again, now against the baseline fitted to this recording (the simulator's
-    # spectra may differ in shape), and reversal-locked transients returned to the data.
-    base = fit_baseline(base_table, clean, prior=prior)
-    flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s, return_raw=True)
-    contact, transients = reversal_locked_transients(
-        base_table, raw, flagged, np.ones(table.n_blocks, bool)
-    )
-    table.contact = contact
-    base_table = replace(base_table, contact=contact)
-    timing_table = None
-    if "timing" in effects and abs(timing_lag - sync_lag) > 1e-4:
-        timing_table = replace(table.at_lag(timing_lag), contact=contact)
+    aligned = _align(table, effects, prior, reference_lag_s, lag_tolerance_s)
+    base_table = aligned.base_table
     splits = (
         forward_split(table, train_fraction)
         if train_fraction is not None
@@ -494,12 +478,133 @@ def diagnose(
         or sum(s.test.sum() for s in splits) < 4 * window_blocks
     ):
         raise ValueError("too few no-contact blocks to fit and test")
-    cf = cross_fit(base_table, splits, effects, prior, timing_table=timing_table)
+    cf = cross_fit(base_table, splits, effects, prior, timing_table=aligned.timing_table)
     rows = cf.rows
     windows = metric.make_windows(len(rows), window_blocks)
+    clean = ~aligned.contact
+    models = _fitted_models(table, aligned, effects, prior, cf, reference_lag_s, lag_tolerance_s)
+    errors, gaps, floors = _heldout_gaps(table, models, cf, windows)
+    floor = combined_floor(floors)
+    # The decision uses every held-out block, not window means: per-block squared log
+    # residuals (centred by the baseline's training offset of the row's split, the
+    # log-of-Rayleigh bias common to all models), paired against the baseline,
+    # contiguous SEGMENT_S segments.
+    segments = _segments(table.t_mid_s, rows, float(table.t_mid_s[0]))
+    interleaved = (
+        _interleaved_drift(base_table, prior, window_blocks, rng) if "drift" in effects else {}
+    )
+    candidates, loss = _candidates(
+        table.magnitude, cf, effects, gaps, floor, segments, interleaved, rng
+    )
+    if "drift" in models and interleaved:
+        models["drift"].shape = dict(models["drift"].shape or {})
+        models["drift"].shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
+    verdict, confidence = _verdict(candidates, loss, alpha, segments, rng)
+    vm = models[verdict] if verdict != "none" else models["refit"]
+    residual = {
+        "raw": 0.0,
+        "sim_as_is": residual_noise_db(table, table.base_mean, np.ones_like(table.base_mean), rows),
+        "after_refit": residual_noise_db(
+            table, models["refit"].predicted, models["refit"].std_scale, rows
+        ),
+        "after_effect": residual_noise_db(table, vm.predicted, vm.std_scale, rows),
+    }
+    heldout = np.zeros(table.n_blocks, bool)
+    heldout[rows] = True
+    return Diagnosis(
+        reference_lag_s=float(reference_lag_s),
+        table=table,
+        train=clean,
+        heldout=heldout,
+        heldout_rows=rows,
+        windows=windows,
+        models=models,
+        errors=errors,
+        gaps=gaps,
+        floor=floor,
+        candidates=candidates,
+        verdict=verdict,
+        confidence=confidence,
+        residual_noise=residual,
+        window_blocks=window_blocks,
+        sync_lag_s=float(aligned.sync_lag),
+        lag_scan={
+            "lag_s": aligned.lags.tolist(),
+            "train_log_residual": aligned.curve.tolist(),
+            "sync_lag_s": aligned.sync_lag,
+            "timing_lag_s": aligned.timing_lag,
+        },
+        interleaved=interleaved,
+        transients=aligned.transients,
+        split_info=_split_info(table.t_mid_s, folds, train_fraction),
+        floor_estimates=floors,
+    )
 
-    # Fitted terms (parameters, shapes) for the report: every clean block.
-    clean = ~contact
+
+@dataclass
+class _Aligned:
+    """The lags found and the contacts detected against the recording's own baseline."""
+
+    lags: np.ndarray  # the lags scanned (s)
+    curve: np.ndarray  # training log residual of the baseline at each
+    sync_lag: float  # best lag within the tolerance of the simulator's own
+    timing_lag: float  # best lag anywhere (the timing candidate's)
+    sync_band: tuple[float, float]
+    base_table: BlockTable  # the table at the sync lag, contacts detected
+    timing_table: BlockTable | None  # at the timing lag, if that differs
+    contact: np.ndarray
+    transients: dict
+
+
+def _align(
+    table: BlockTable, effects, prior, reference_lag_s: float, lag_tolerance_s: float
+) -> _Aligned:
+    """Lags: one scan of the baseline's residual (a single nuisance parameter, fitted on
+    every other clean block); "in sync" = the best lag within the tolerance. Then contacts
+    again, against the baseline fitted to this recording (the simulator's spectra may differ
+    in shape), with reversal-locked transients returned to the data. Sets table.contact."""
+    clean = ~table.contact
+    lags, curve = lag_scan(table, clean, prior=prior)
+    lo, hi = reference_lag_s - lag_tolerance_s, reference_lag_s + lag_tolerance_s
+    sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
+    timing_lag = (
+        refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
+    )
+    base_table = table.at_lag(sync_lag)
+    base = fit_baseline(base_table, clean, prior=prior)
+    flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s, return_raw=True)
+    contact, transients = reversal_locked_transients(
+        base_table, raw, flagged, np.ones(table.n_blocks, bool)
+    )
+    table.contact = contact
+    timing_table = None
+    if "timing" in effects and abs(timing_lag - sync_lag) > 1e-4:
+        timing_table = replace(table.at_lag(timing_lag), contact=contact)
+    return _Aligned(
+        lags=lags,
+        curve=curve,
+        sync_lag=sync_lag,
+        timing_lag=timing_lag,
+        sync_band=(lo, hi),
+        base_table=replace(base_table, contact=contact),
+        timing_table=timing_table,
+        contact=contact,
+        transients=transients,
+    )
+
+
+def _fitted_models(
+    table: BlockTable,
+    aligned: _Aligned,
+    effects,
+    prior,
+    cf: CrossFitted,
+    reference_lag_s: float,
+    lag_tolerance_s: float,
+) -> dict[str, FittedModel]:
+    """The fitted terms (parameters, shapes) for the report, fitted on every clean block;
+    their predictions then replaced by the held-out ones (all figures are held out)."""
+    base_table, clean = aligned.base_table, ~aligned.contact
     base = fit_baseline(base_table, clean, prior=prior)
     scales = fit_scales(base_table, clean, base.magnitude)
     models: dict[str, FittedModel] = {
@@ -510,61 +615,82 @@ def diagnose(
             continue
         models[effect] = fit_variant(base_table, clean, effect, scales, base)
     if "timing" in effects:
-        fitted = FittedModel(
-            name="timing",
-            predicted=models["refit"].predicted,
-            std_scale=models["refit"].std_scale,
-            parameters=dict(models["refit"].parameters),
-            table=timing_table or base_table,
-            scales=scales,
+        models["timing"] = _timing_model(
+            models["refit"], aligned, scales, reference_lag_s, lag_tolerance_s
         )
-        fitted.parameters.update(
-            {
-                "lag_s": round(timing_lag, 5),
-                "sync_lag_s": round(sync_lag, 5),
-                "reference_lag_s": round(float(reference_lag_s), 5),
-                "lag_vs_simulator_s": round(float(timing_lag - reference_lag_s), 5),
-                "tolerance_s": lag_tolerance_s,
-            }
-        )
-        fitted.shape = {
-            "timing:lag_scan": {
-                "x": [round(float(lag), 4) for lag in lags],
-                "unit": "s",
-                "train_log_residual": [round(float(c), 6) for c in curve],
-                "in_sync_band_s": [round(lo, 4), round(hi, 4)],
-                "fitted_lag_s": round(timing_lag, 5),
-            }
-        }
-        models["timing"] = fitted
-    # Held-out predictions replace the in-sample ones (all figures are held out).
     for name, fm in models.items():
         fm.refit_predicted = cf.predicted["refit"]
         fm.predicted = cf.predicted[name]
         fm.std_scale = fm.predicted / np.maximum(table.base_mean, 1e-12)
+    return models
 
-    observed = table.magnitude
+
+def _timing_model(
+    refit: FittedModel, aligned: _Aligned, scales, reference_lag_s: float, lag_tolerance_s: float
+) -> FittedModel:
+    """The timing candidate: the refit at the timing lag, with the lag scan as its shape."""
+    lo, hi = aligned.sync_band
+    fitted = FittedModel(
+        name="timing",
+        predicted=refit.predicted,
+        std_scale=refit.std_scale,
+        parameters=dict(refit.parameters),
+        table=aligned.timing_table or aligned.base_table,
+        scales=scales,
+    )
+    fitted.parameters.update(
+        {
+            "lag_s": round(aligned.timing_lag, 5),
+            "sync_lag_s": round(aligned.sync_lag, 5),
+            "reference_lag_s": round(float(reference_lag_s), 5),
+            "lag_vs_simulator_s": round(float(aligned.timing_lag - reference_lag_s), 5),
+            "tolerance_s": lag_tolerance_s,
+        }
+    )
+    fitted.shape = {
+        "timing:lag_scan": {
+            "x": [round(float(lag), 4) for lag in aligned.lags],
+            "unit": "s",
+            "train_log_residual": [round(float(c), 6) for c in aligned.curve],
+            "in_sync_band_s": [round(lo, 4), round(hi, 4)],
+            "fitted_lag_s": round(aligned.timing_lag, 5),
+        }
+    }
+    return fitted
+
+
+def _heldout_gaps(
+    table: BlockTable, models: dict[str, FittedModel], cf: CrossFitted, windows: metric.Windows
+) -> tuple[dict[str, np.ndarray], dict[str, float], dict[str, float]]:
+    """Held-out window errors and gaps of the simulator as is and of every model, and the two
+    floor estimates. Scatter is estimated around the best held-out predictor: a model error
+    that varies from block to block (e.g. a wrong lag) would otherwise count as scatter."""
+    observed, rows = table.magnitude, cf.rows
     errors = {"sim_as_is": heldout_errors(table.base_mean, observed, rows, windows)}
     for name in models:
         errors[name] = heldout_errors(cf.predicted[name], observed, rows, windows)
     gaps = {name: metric.gap_db(e) for name, e in errors.items()}
-    # Scatter is estimated around the best held-out predictor: a model error that varies
-    # from block to block (e.g. a wrong lag) would otherwise count as scatter.
     best = min(models, key=lambda name: gaps[name])
     floors = {
         "block_ratio": metric.floor_db(observed[rows], cf.predicted[best][rows], windows),
         "window": metric.floor_window_db(observed[rows], cf.predicted[best][rows], windows),
     }
-    floor = combined_floor(floors)
-    # The decision uses every held-out block, not window means: per-block squared log
-    # residuals (centred by the baseline's training offset of the row's split, the
-    # log-of-Rayleigh bias common to all models), paired against the baseline,
-    # contiguous SEGMENT_S segments.
-    segments = _segments(table.t_mid_s, rows, float(table.t_mid_s[0]))
+    return errors, gaps, floors
+
+
+def _candidates(
+    observed: np.ndarray,
+    cf: CrossFitted,
+    effects,
+    gaps: dict[str, float],
+    floor: float,
+    segments: np.ndarray,
+    interleaved: dict,
+    rng: np.random.Generator,
+) -> tuple[list[dict], dict[str, np.ndarray]]:
+    """Each candidate tested against the baseline on the held-out blocks, sorted by its
+    deviance reduction; and the per-block losses the bootstrap resamples."""
     excess_refit = max(gaps["refit"] ** 2 - floor**2, 1e-12)
-    interleaved = (
-        _interleaved_drift(base_table, prior, window_blocks, rng) if "drift" in effects else {}
-    )
     loss = {}
     candidates = []
     for effect in effects:
@@ -583,35 +709,48 @@ def diagnose(
             "block_mse_reduction_db2": round(res["block_mse_reduction_db2"], 5),
         }
         if effect == "drift" and interleaved:
-            # Two looks at drift (a trend over the folds; in-sample on interleaved chunks):
-            # Bonferroni over the two, gain of the look that decides.
-            p = res["p_value"]
-            entry["folds"] = {
-                k: entry[k] for k in ("p_value", "deviance_reduction", "block_mse_reduction_db2")
-            }
-            entry["interleaved"] = {k: v for k, v in interleaved.items() if k != "shape"}
-            decided = "interleaved" if interleaved["p_value"] < p else "folds"
-            if decided == "interleaved":
-                entry["deviance_reduction"] = interleaved["deviance_reduction"]
-                entry["block_mse_reduction_db2"] = interleaved["block_mse_reduction_db2"]
-            entry["p_value"] = min(1.0, 2.0 * min(p, interleaved["p_value"]))
-            entry["decided_by"] = decided
-            if decided == "interleaved":
-                entry["gap_reduction_decisive"] = round(
-                    interleaved["heldout_gap_baseline"] - interleaved["heldout_gap_drift"], 4
-                )
+            _two_looks_at_drift(entry, interleaved)
         entry.setdefault("gap_reduction_decisive", entry["reduction"])
         candidates.append(entry)
-    if "drift" in models and interleaved:
-        models["drift"].shape = dict(models["drift"].shape or {})
-        models["drift"].shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
     candidates.sort(key=lambda c: -c["deviance_reduction"])
+    return candidates, loss
+
+
+def _two_looks_at_drift(entry: dict, interleaved: dict) -> None:
+    """Drift is looked at twice (a trend over the folds; in-sample on interleaved chunks):
+    Bonferroni over the two, the gain of the look that decides."""
+    p = entry["p_value"]
+    entry["folds"] = {
+        k: entry[k] for k in ("p_value", "deviance_reduction", "block_mse_reduction_db2")
+    }
+    entry["interleaved"] = {k: v for k, v in interleaved.items() if k != "shape"}
+    decided = "interleaved" if interleaved["p_value"] < p else "folds"
+    if decided == "interleaved":
+        entry["deviance_reduction"] = interleaved["deviance_reduction"]
+        entry["block_mse_reduction_db2"] = interleaved["block_mse_reduction_db2"]
+    entry["p_value"] = min(1.0, 2.0 * min(p, interleaved["p_value"]))
+    entry["decided_by"] = decided
+    if decided == "interleaved":
+        entry["gap_reduction_decisive"] = round(
+            interleaved["heldout_gap_baseline"] - interleaved["heldout_gap_drift"], 4
+        )
+
+
+def _verdict(
+    candidates: list[dict],
+    loss: dict[str, np.ndarray],
+    alpha: float,
+    segments: np.ndarray,
+    rng: np.random.Generator,
+) -> tuple[str, float]:
+    """The effect named and its confidence.
+
+    Named only if significant, large enough, and the held-out gap (the metric the report
+    shows) actually shrinks: a term that improves the power deviance but worsens the
+    magnitude gap is explaining something else (measured: the coupling term on weak
+    timing and acceleration bags of the simulator, and on a tiny non-additivity of
+    effect-free ones)."""
     level = alpha / max(len(candidates), 1)
-    # Named only if significant, large enough, and the held-out gap (the metric the report
-    # shows) actually shrinks: a term that improves the power deviance but worsens the
-    # magnitude gap is explaining something else (measured: the coupling term on weak
-    # timing and acceleration bags of the simulator, and on a tiny non-additivity of
-    # effect-free ones).
     eligible = [
         c
         for c in candidates
@@ -619,44 +758,34 @@ def diagnose(
         and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
         and c["gap_reduction_decisive"] > 0.0
     ]
-    verdict = eligible[0]["effect"] if eligible else "none"
-    if verdict == "none":
+    if not eligible:
         # How far the strongest candidate is from being named: 1 - its Bonferroni-adjusted p.
         best_p = min([c["p_value"] for c in candidates], default=1.0)
-        confidence = round(float(1.0 - min(1.0, best_p * max(len(candidates), 1))), 4)
-    else:
-        by_name = {c["effect"]: c for c in candidates}
-        confidence = _bootstrap_confidence(
-            loss,
-            [c["effect"] for c in candidates],
-            verdict,
-            segments,
-            rng,
-            interleaved=by_name.get("drift", {}).get("decided_by") == "interleaved",
-        )
+        return "none", round(float(1.0 - min(1.0, best_p * max(len(candidates), 1))), 4)
+    verdict = eligible[0]["effect"]
+    by_name = {c["effect"]: c for c in candidates}
+    confidence = _bootstrap_confidence(
+        loss,
+        [c["effect"] for c in candidates],
+        verdict,
+        segments,
+        rng,
+        interleaved=by_name.get("drift", {}).get("decided_by") == "interleaved",
+    )
+    return verdict, confidence
 
-    residual = {"raw": 0.0}
-    residual["sim_as_is"] = residual_noise_db(
-        table, table.base_mean, np.ones_like(table.base_mean), rows
-    )
-    residual["after_refit"] = residual_noise_db(
-        table, models["refit"].predicted, models["refit"].std_scale, rows
-    )
-    vm = models[verdict] if verdict != "none" else models["refit"]
-    residual["after_effect"] = residual_noise_db(table, vm.predicted, vm.std_scale, rows)
-    heldout = np.zeros(table.n_blocks, bool)
-    heldout[rows] = True
-    t = table.t_mid_s
+
+def _split_info(t: np.ndarray, folds: int, train_fraction: float | None) -> dict:
+    """How the recording was split, for the report."""
     if train_fraction is not None:
-        split_info = {
+        info = {
             "method": f"by time: first {100 * train_fraction:.0f} % of the recording "
             "fits (train), the rest is held out",
             "train_s": float(train_fraction * (t[-1] - t[0])),
             "heldout_s": float((1 - train_fraction) * (t[-1] - t[0])),
         }
-        split_time = float(t[0] + train_fraction * (t[-1] - t[0]))
     else:
-        split_info = {
+        info = {
             "method": f"blocked {folds}-fold cross-validation in time: the recording is cut "
             f"into {folds} contiguous folds, each predicted by models fitted on the other "
             "folds, so every block is held out once",
@@ -664,40 +793,11 @@ def diagnose(
             "heldout_s": float(t[-1] - t[0]),
             "folds": folds,
         }
-        split_time = float(t[0])
-    split_info["method"] += (
+    info["method"] += (
         "; contact blocks detected from the data (top-3-bin log-ratio outliers against the "
         "baseline) are excluded"
     )
-    return Diagnosis(
-        reference_lag_s=float(reference_lag_s),
-        table=table,
-        train=clean,
-        heldout=heldout,
-        heldout_rows=rows,
-        windows=windows,
-        split_time_s=split_time,
-        models=models,
-        errors=errors,
-        gaps=gaps,
-        floor=floor,
-        candidates=candidates,
-        verdict=verdict,
-        confidence=confidence,
-        residual_noise=residual,
-        window_blocks=window_blocks,
-        sync_lag_s=float(sync_lag),
-        lag_scan={
-            "lag_s": lags.tolist(),
-            "train_log_residual": curve.tolist(),
-            "sync_lag_s": sync_lag,
-            "timing_lag_s": timing_lag,
-        },
-        interleaved=interleaved,
-        transients=transients,
-        split_info=split_info,
-        floor_estimates=floors,
-    )
+    return info
 
 
 def _bootstrap_confidence(

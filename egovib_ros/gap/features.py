@@ -18,10 +18,10 @@ import numpy as np
 from scipy import ndimage, signal
 
 from egovib_ros.core.stream import FramerSettings
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
 
-NS = 1_000_000_000
 #: A block counts as contact if its top-3-bin log ratio to the model exceeds the local
 #: typical level by this many robust standard deviations.
 CONTACT_Z = 3.5
@@ -81,30 +81,6 @@ class BlockTable:
     def t_mid_s(self) -> np.ndarray:
         return 0.5 * (self.t_first_s + self.t_last_s)
 
-    def subset(self, rows: np.ndarray) -> "BlockTable":
-        """Rows of the table (boolean mask or indices)."""
-        pick = {
-            name: getattr(self, name)[rows]
-            for name in (
-                "t_first_s",
-                "t_last_s",
-                "magnitude",
-                "velocity",
-                "position",
-                "acceleration",
-                "base_mean",
-                "base_std",
-                "contact",
-                "axis_mean",
-                "hats",
-                "reversal_after_s",
-                "reversal_before_s",
-                "speed_rate",
-            )
-            if getattr(self, name) is not None
-        }
-        return replace(self, **pick)
-
     def at_lag(self, lag_s: float) -> "BlockTable":
         """The table with joint states re-matched as if their stamps were `lag_s` late.
 
@@ -117,7 +93,6 @@ class BlockTable:
             self.joints, self.t_first_s, self.t_last_s, lag_s
         )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
-        axis, zero = axis_spectra(self.model, velocity, self.freq_index)
         hats, after, before = motion_features(
             self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots, self.model.window
         )
@@ -128,8 +103,6 @@ class BlockTable:
             acceleration=acceleration,
             base_mean=mean,
             base_std=std,
-            axis_mean=axis,
-            zero_mean=zero,
             hats=hats,
             reversal_after_s=after,
             reversal_before_s=before,
@@ -138,10 +111,6 @@ class BlockTable:
         )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
-    axis_mean: np.ndarray | None = field(
-        repr=False, default=None
-    )  # (B, J, F) Eq. 6 single-joint spectra
-    zero_mean: np.ndarray | None = field(repr=False, default=None)  # (F,) spectrum at rest
     #: Velocity knots per joint (the model's grid): the baseline's cells.
     knots: tuple[np.ndarray, ...] = field(repr=False, default=())
     #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
@@ -323,7 +292,7 @@ class BlockSpectra:
                 )
 
     def _extend_spans(self, t_first: np.ndarray, t_last: np.ndarray) -> None:
-        join = 2 * int(JOINT_MARGIN_S * NS)
+        join = 2 * int(JOINT_MARGIN_S * NS_PER_S)
         for start, end in zip(t_first.tolist(), t_last.tolist()):
             if self.span_ends and start <= self.span_ends[-1] + join:
                 self.span_ends[-1] = max(self.span_ends[-1], end)
@@ -403,7 +372,7 @@ class JointFeatures:
         self._vmax = np.asarray(vmax, dtype=float)
         self._blocks = blocks if blocks is not None and blocks.thinned else None
         self._margin_s = float(margin_s)
-        self._margin_ns = int(margin_s * NS)
+        self._margin_ns = int(margin_s * NS_PER_S)
         self.count = 0  # joint states pushed
         self._period_s: float | None = None
         self._window = 0
@@ -455,13 +424,14 @@ class JointFeatures:
         parts = self._kept or [empty]
         t, position, velocity, acceleration, smooth = (np.concatenate(c) for c in zip(*parts))
         return JointSeries(
-            t_s=(t - t0_ns) / NS,
+            t_s=(t - t0_ns) / NS_PER_S,
             position=position,
             velocity=velocity,
             acceleration=acceleration,
             smooth_velocity=smooth,
             reversals=tuple(
-                (np.concatenate(r) - t0_ns) / NS if r else np.zeros(0) for r in self._reversals
+                (np.concatenate(r) - t0_ns) / NS_PER_S if r else np.zeros(0)
+                for r in self._reversals
             ),
             max_lag_s=self._margin_s if self._blocks is not None else np.inf,
         )
@@ -483,7 +453,7 @@ class JointFeatures:
 
     def _fix_period(self) -> None:
         # from the integer stamps: epoch seconds as floats are too coarse for a 1 ms step
-        self._period_s = joint_period(self._t, per_second=NS) if len(self._t) > 1 else 1e-3
+        self._period_s = joint_period(self._t, per_second=NS_PER_S) if len(self._t) > 1 else 1e-3
         self._window = savgol_window(self._period_s)
 
     def _filter(self, *, final: bool) -> None:
@@ -634,22 +604,6 @@ def _model_lookup(
     full, _ = model.estimate(velocity, ch, include_std=True)
     mean = mean[:, 0, freq_index]
     return mean, np.maximum(full[:, 0, freq_index] - mean, 0.0)
-
-
-def axis_spectra(
-    model, velocity: np.ndarray, freq_index: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 6 ingredients: mean spectra with only joint j moving, (B, J, F), and at rest, (F,)."""
-    ch = model.channel_indices(("combined",))
-    n_joints = velocity.shape[1]
-    zero, _ = model.estimate(np.zeros((1, n_joints)), ch, include_std=False)
-    axis = np.empty((len(velocity), n_joints, len(freq_index)))
-    for j in range(n_joints):
-        only = np.zeros_like(velocity)
-        only[:, j] = velocity[:, j]
-        m, _ = model.estimate(only, ch, include_std=False)
-        axis[:, j] = m[:, 0, freq_index]
-    return axis, zero[0, 0, freq_index]
 
 
 def detect_contacts(
@@ -873,8 +827,8 @@ def table_from_blocks(
         )
     freq_index = in_band_bins(model)
     t0_ns = framing.first_stamp_ns
-    t_first = (first_ns - t0_ns) / NS
-    t_last = (last_ns - t0_ns) / NS
+    t_first = (first_ns - t0_ns) / NS_PER_S
+    t_last = (last_ns - t0_ns) / NS_PER_S
     joints = joint_features.finish(t0_ns)
     bad_input["joint_states_kept"] = len(joints.t_s)
     vmax = grid_speeds(model)
@@ -907,7 +861,6 @@ def table_from_blocks(
         reversal_before_s=before,
         speed_rate=speed_rate_means(joints, t_first, t_last, 0.0),
     )
-    table.axis_mean, table.zero_mean = axis_spectra(model, v_core, freq_index)
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     table.bad_input = bad_input
     return table

@@ -19,7 +19,7 @@ A model equal to the real process still scores > 0: finite-sample scatter of the
 window means.  `floor_db` estimates that from the data itself, from the covariances
 of the per-block ratio |Y|/m at lags 0 and 1 (overlapping blocks) minus the
 covariance at a lag of 4 blocks (a slowly varying model error adds about the same to
-all three).  `floor_split_half_db` is a cross-check.
+all three).
 """
 
 from __future__ import annotations
@@ -39,7 +39,6 @@ class Windows:
 
     index: np.ndarray  # (B,) window id of each block, -1 = unused tail
     n_windows: int
-    half: np.ndarray  # (B,) 0/1: split-half membership (interleaved pairs)
 
     def members(self) -> np.ndarray:
         return self.index >= 0
@@ -52,26 +51,21 @@ def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> W
     index = np.full(n_blocks, -1, dtype=np.int64)
     used = n_windows * window_blocks
     index[:used] = np.arange(used) // window_blocks
-    half = (np.arange(n_blocks) // 2) % 2
-    return Windows(index=index, n_windows=int(n_windows), half=half)
+    return Windows(index=index, n_windows=int(n_windows))
 
 
-def _window_sums(
-    values: np.ndarray, windows: Windows, mask: np.ndarray | None = None
-) -> np.ndarray:
-    """Sum (B, F) values per window -> (n_windows, F); `mask` selects blocks."""
-    keep = windows.members() if mask is None else windows.members() & mask
+def _window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
+    """Sum (B, F) values per window -> (n_windows, F)."""
+    keep = windows.members()
     out = np.zeros((windows.n_windows, values.shape[1]))
     np.add.at(out, windows.index[keep], values[keep])
     return out
 
 
-def window_errors_db(
-    observed: np.ndarray, predicted: np.ndarray, windows: Windows, mask: np.ndarray | None = None
-) -> np.ndarray:
+def window_errors_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> np.ndarray:
     """e[w, f] in dB: log ratio of window sums of observed vs predicted magnitudes."""
-    obs = _window_sums(observed, windows, mask)
-    pred = _window_sums(predicted, windows, mask)
+    obs = _window_sums(observed, windows)
+    pred = _window_sums(predicted, windows)
     tiny = np.finfo(float).tiny
     return 20.0 * np.log10(np.maximum(obs, tiny) / np.maximum(pred, tiny))
 
@@ -128,14 +122,6 @@ def floor_window_db(
     var = np.mean(e * e, axis=0)
     cov = np.mean(e[far_lag:] * e[:-far_lag], axis=0)
     return float(np.sqrt(np.mean(np.maximum(var - np.maximum(cov, 0.0), 0.0))))
-
-
-def floor_split_half_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> float:
-    """Split-half cross-check of `floor_db`
-    (interleaved block pairs; overlap makes it a lower bound)."""
-    e_a = window_errors_db(observed, predicted, windows, windows.half == 0)
-    e_b = window_errors_db(observed, predicted, windows, windows.half == 1)
-    return float(np.sqrt(np.mean(np.square(e_a - e_b)) / 4.0)) if e_a.size else float("nan")
 
 
 def contributions(

@@ -20,6 +20,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from egovib_ros.bag import BagReader
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError
 from egovib_ros.nodes.bag_recorder import message_class
 from egovib_ros.nodes.common import (
@@ -126,7 +127,7 @@ class BagPlayer(Node):
         for bag_ns, topic, data in self._in_time_order(topics):
             if start_bag_ns is None:
                 start_bag_ns = bag_ns
-            due = start_wall + (bag_ns - start_bag_ns) / 1e9 / self.rate
+            due = start_wall + (bag_ns - start_bag_ns) / NS_PER_S / self.rate
             wait = due - time.monotonic()
             if wait > TICK_S:
                 time.sleep(wait)

@@ -29,15 +29,16 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
-from egovib_ros.robot import config_dir
 from egovib_ros.nodes.convert import (
     decode_imu_raws,
     decode_joint_state_raws,
     diagnostic_array,
     joint_names_of,
 )
+from egovib_ros.robot import config_dir
 
 # Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
 # with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
@@ -146,7 +147,7 @@ def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
     late = []
     for pub in publishers:
         left = max(deadline - time.monotonic(), 0.0)
-        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * NS_PER_S))):
             late.append(pub.topic_name)
     if late:
         node.get_logger().warning(
@@ -336,17 +337,13 @@ class StreamInput:
     def sensor_pending(self) -> int:
         return len(self._sensor)
 
-    @property
-    def joints_pending(self) -> int:
-        return len(self._joints)
-
     def take_sensor(self) -> SensorBatch | None:
         """Decode the sensor messages received since the last call."""
         if not self._sensor:
             return None
         raws, self._sensor = self._sensor, []
         arrival, self._arrival = np.asarray(self._arrival, dtype=np.int64), []
-        self.last_sensor_s = arrival[-1] / 1e9
+        self.last_sensor_s = arrival[-1] / NS_PER_S
         stamps, values, index = decode_imu_raws(raws, self.field)
         if len(index) < len(raws):
             self.undecodable_sensor += len(raws) - len(index)
@@ -485,14 +482,6 @@ class Health:
 
 
 # --- running ----------------------------------------------------------------------
-class NodeExit(Exception):
-    """Raised inside a node callback to end spinning with an exit status."""
-
-    def __init__(self, status: int = 0):
-        super().__init__(status)
-        self.status = status
-
-
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin it on an EventsExecutor until it is done or Ctrl-C/SIGTERM.
 

@@ -25,6 +25,7 @@ from egovib_ros.bag.codec import (
     encode_joint_state_batch,
     joint_state_layout,
 )
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import StreamError
 
 __all__ = [
@@ -48,18 +49,16 @@ __all__ = [
     "encode_joint_state_batch",
 ]
 
-_NS_PER_S = 1_000_000_000
-
 
 # --- stamps ------------------------------------------------------------------
 def stamp_to_ns(stamp: Time) -> int:
     """builtin_interfaces/Time -> int nanoseconds."""
-    return int(stamp.sec) * _NS_PER_S + int(stamp.nanosec)
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def ns_to_stamp(stamp_ns: int) -> Time:
     """int nanoseconds -> builtin_interfaces/Time."""
-    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
 
 

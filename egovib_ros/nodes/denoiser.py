@@ -27,6 +27,7 @@ from sensor_msgs.msg import Imu
 
 from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core.held import output_rows
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.common import (
@@ -141,24 +142,9 @@ class HeldInput:
     def take(self, stamps: np.ndarray) -> tuple[list[bytes], np.ndarray]:
         """The input messages (and arrival times) of the output samples `stamps`; held
         messages before them are discarded (the core dropped them)."""
-        k = len(stamps)
-        if not k:
+        if not len(stamps):
             return [], np.zeros(0, dtype=np.int64)
-        if len(self.raws) >= k and np.array_equal(self.stamps[:k], stamps):  # the usual case
-            rows = np.arange(k)
-        else:
-            # Output = a subsequence of the input in arrival order (also across a clock jump).
-            held, rows, i = self.stamps.tolist(), [], 0
-            for stamp in stamps.tolist():
-                while i < len(held) and held[i] != stamp:
-                    i += 1
-                if i == len(held):
-                    raise RuntimeError(
-                        "denoiser: output stamps do not match the held input (internal error)"
-                    )
-                rows.append(i)
-                i += 1
-            rows = np.asarray(rows)
+        rows = output_rows(self.stamps, stamps)  # in arrival order, also across a clock jump
         raws = [self.raws[i] for i in rows]
         arrival = self.arrival[rows]
         cut = int(rows[-1]) + 1

@@ -14,6 +14,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.common import (
     Health,
@@ -35,7 +36,6 @@ from egovib_ros.sim.pr2 import (
     TOPIC_EGO,
 )
 
-_NS = 1_000_000_000
 PR2 = load_profile()  # the simulated robot: joint names and topics
 PARAMETERS = (
     Param("seed", 0, "random seed of the simulator", range=(0, 2**31 - 1)),
@@ -162,7 +162,7 @@ class SimHand(Node):
             if pending is not None:
                 self.sim.set_command(pending)
             self.get_logger().info(f"simulation started at stamp {now_ns} ns")
-        due = (now_ns - self.sim.start_ns) * int(ACCEL_RATE_HZ) // _NS + 1
+        due = (now_ns - self.sim.start_ns) * int(ACCEL_RATE_HZ) // NS_PER_S + 1
         lag = due - self.sim.index
         if lag <= 0:
             return
@@ -199,7 +199,7 @@ class SimHand(Node):
         now_ns = self.get_clock().now().nanoseconds
         last_ns, last_samples = self._last_diag
         rate = (
-            (self.samples_published - last_samples) * _NS / (now_ns - last_ns)
+            (self.samples_published - last_samples) * NS_PER_S / (now_ns - last_ns)
             if last_ns and now_ns > last_ns
             else 0.0
         )

@@ -20,6 +20,7 @@ from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
 from egovib_ros.core.noise_model import sweep_cells
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import (
     Health,
@@ -33,7 +34,6 @@ from egovib_ros.nodes.convert import command_message
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim.pr2 import TOPIC_COMMANDS
 
-_NS = 1_000_000_000
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
 MAX_SWEEP_CELLS = (
     100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
@@ -122,7 +122,7 @@ class SweepDriver(Node):
             if not self.gate.is_open():
                 return
             self._next_cell(now)
-        elif now - self.cell_start_ns >= (self.settle_s + self.dwell_s) * _NS:
+        elif now - self.cell_start_ns >= (self.settle_s + self.dwell_s) * NS_PER_S:
             self._next_cell(now)
         if not self.done.done():
             self.pub.publish(command_message(self.cells[self.cell]))

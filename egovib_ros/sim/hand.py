@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.params import EFFECT_FORMS, JointVibration, SimParams, validate_effects
 from egovib_ros.sim.pr2 import (
@@ -79,7 +80,6 @@ from egovib_ros.sim.pr2 import (
 
 LSB_MS2 = 2.0 * ACCEL_RANGE_MS2 / 2**ACCEL_BITS
 HUM_PERIOD = 32  # samples: hum lines on multiples of fs/32
-_NS = 1_000_000_000
 
 
 def quantise(accel: np.ndarray) -> np.ndarray:
@@ -225,7 +225,7 @@ class HandSimulator:
         self.enc_res = res
         self.last_enc = np.round(self.position / res) * res
         self.joint_frac = p.joint_phase_s * self.fs  # joint sample m sits at accel index 3m + frac
-        self.joint_offset_ns = int(round(p.joint_phase_s * _NS))
+        self.joint_offset_ns = int(round(p.joint_phase_s * NS_PER_S))
         # hum: exactly periodic in the sample index
         harmonics = np.arange(1, len(p.hum_amps) + 1)
         k = np.arange(HUM_PERIOD)
@@ -260,7 +260,7 @@ class HandSimulator:
     def stamps_ns(self, indices: np.ndarray) -> np.ndarray:
         """Accelerometer stamps of sample indices."""
         indices = np.asarray(indices, np.int64)
-        return self.start_ns + (indices * _NS + int(self.fs) // 2) // int(self.fs)
+        return self.start_ns + (indices * NS_PER_S + int(self.fs) // 2) // int(self.fs)
 
     # --- taps -------------------------------------------------------------------
     def _tap_waveform(self, t: np.ndarray, freq_scale: np.ndarray) -> np.ndarray:
@@ -365,10 +365,10 @@ class HandSimulator:
         velocity = (enc - prev) * JOINT_RATE_HZ
         if len(m):
             self.last_enc = enc[-1]
-        stamps = self.start_ns + self.joint_offset_ns + m * (_NS // int(JOINT_RATE_HZ))
+        stamps = self.start_ns + self.joint_offset_ns + m * (NS_PER_S // int(JOINT_RATE_HZ))
         timing = self.effects.get("timing", 0.0)
         if timing and self.forms["timing"] == "stamps":
-            stamps = stamps + int(round(timing * _NS))
+            stamps = stamps + int(round(timing * NS_PER_S))
         elif timing and len(m):  # the reported velocity through a first-order low-pass
             alpha = 1.0 - np.exp(-1.0 / (abs(timing) * JOINT_RATE_HZ))
             if self.vel_filter_zi is None:

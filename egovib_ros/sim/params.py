@@ -22,12 +22,6 @@ def default_config_path() -> Path:
     return config_dir() / "sim.yaml"
 
 
-def __getattr__(name: str):
-    if name == "DEFAULT_CONFIG":  # kept for callers of the former constant
-        return default_config_path()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 @dataclass
 class JointVibration:
     """Ego-vibration mechanisms of one joint, reaching the sensor through its own path.

@@ -45,7 +45,6 @@ TOPIC_DENOISED = "accelerometer/denoised"
 TOPIC_CONTACT = "accelerometer/contact"
 TOPIC_EGO = "accelerometer/ego"
 TOPIC_COMMANDS = COMMANDS_TOPIC
-TOPIC_DIAGNOSTICS = "/diagnostics"
 
 # Topic names inside bags (root namespace, INTERFACES.md section 4).
 BAG_TOPICS = {

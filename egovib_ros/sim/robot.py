@@ -51,6 +51,7 @@ from scipy import signal
 
 from egovib_ros.bag.recording import Recording
 from egovib_ros.core.noise_model import sweep_cells
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.robot import RobotProfile
 
@@ -206,14 +207,14 @@ class RobotSimulator:
         out = np.zeros(n)
         still = []
         for onset, amplitude in self._taps:
-            tau = (stamps - onset) / 1e9
+            tau = (stamps - onset) / NS_PER_S
             on = (tau >= 0) & (tau < TAP_LENGTH_S)
             out[on] += (
                 amplitude
                 * np.exp(-tau[on] / TAP_DECAY_S)
                 * np.sin(2 * np.pi * self.tap_hz * tau[on])
             )
-            if len(stamps) and (stamps[-1] - onset) / 1e9 < TAP_LENGTH_S:
+            if len(stamps) and (stamps[-1] - onset) / NS_PER_S < TAP_LENGTH_S:
                 still.append((onset, amplitude))
         self._taps = still
         return out
@@ -229,14 +230,14 @@ class RobotSimulator:
             raise ConfigError(
                 f"simulator: velocities must be (n, {p.n_joints}), got {velocity.shape}"
             )
-        period_ns = 1e9 / self.fs
+        period_ns = NS_PER_S / self.fs
         steps_ns = np.maximum(
             1, np.rint(period_ns * (1.0 + self.rng["jitter"].uniform(-1, 1, n) * self.jitter))
         ).astype(np.int64)
         if self.index == 0 and n:
             steps_ns[0] = 0  # the first sample sits at START_NS
         stamps = self.last_stamp_ns + np.cumsum(steps_ns)  # integers: exact in any cut
-        dt = steps_ns / 1e9
+        dt = steps_ns / NS_PER_S
         ego = np.zeros((n, 3))
         speed = np.abs(velocity) / self.max_speed
         for j in range(p.n_joints):

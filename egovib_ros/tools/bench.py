@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, default_profile
 
@@ -91,10 +92,10 @@ def synthetic_streams(duration_s: float, *, seed: int = 0) -> dict:
     robot = _robot()
     n_accel = int(duration_s * robot.rate_hz)
     n_joint = int(duration_s * SYNTHETIC_JOINT_RATE_HZ)
-    accel_stamps = (np.arange(n_accel) * (1e9 / robot.rate_hz)).astype(np.int64)
-    joint_stamps = (np.arange(n_joint) * (1e9 / SYNTHETIC_JOINT_RATE_HZ)).astype(np.int64)
+    accel_stamps = (np.arange(n_accel) * (NS_PER_S / robot.rate_hz)).astype(np.int64)
+    joint_stamps = (np.arange(n_joint) * (NS_PER_S / SYNTHETIC_JOINT_RATE_HZ)).astype(np.int64)
     accel = rng.normal(scale=0.5, size=(n_accel, 3)) + np.array([0.0, 0.0, 9.81])
-    t = joint_stamps / 1e9
+    t = joint_stamps / NS_PER_S
     velocity = np.stack(
         [
             0.8 * robot.max_speed[j] * np.sin(2 * np.pi * (0.13 + 0.07 * j) * t + j)
@@ -336,7 +337,7 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
     from egovib_ros.bag.denoise import denoise_bag
 
     with BagReader(bag) as reader:
-        duration_s = float(reader.info["duration"]["nanoseconds"]) / 1e9
+        duration_s = float(reader.info["duration"]["nanoseconds"]) / NS_PER_S
     model = synthetic_model()
     runs = {
         "file_copy": lambda out: shutil.copytree(bag, out),

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.nodes.watcher import Watcher
 from egovib_ros.tools.orchestration import NodeGroup
 
@@ -173,7 +174,7 @@ def run_bench(
     latency_ms = (arrival - stamps) / 1e6
     # sim_hand stamps samples exactly at the nominal rate: the span received says how many
     # were sent.
-    missing_out = int(round((stamps[-1] - stamps[0]) * 3000.0 / 1e9)) + 1 - len(stamps)
+    missing_out = int(round((stamps[-1] - stamps[0]) * 3000.0 / NS_PER_S)) + 1 - len(stamps)
     first, last = denoiser_diag[diag0 - 1] if diag0 else denoiser_diag[0], denoiser_diag[-1]
     node_drops = {
         key: int(last[key]) - int(first[key])
@@ -200,7 +201,7 @@ def run_bench(
         "cpu_cores": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0],
         "denoised_samples_received": int(len(stamps)),
-        "denoised_rate_hz": (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9),
+        "denoised_rate_hz": (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / NS_PER_S),
         "dropped_samples": {
             "denoiser_input": node_drops,
             "denoised_output_gaps": missing_out,

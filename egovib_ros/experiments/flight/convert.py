@@ -40,6 +40,7 @@ from egovib_ros.bag.codec import (
     encode_imu_batch,
     encode_joint_state_batch,
 )
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
 from egovib_ros.outputs import atomic_output, prepare_output
@@ -52,7 +53,7 @@ PROFILE_NAME = "quadcopter"
 
 def motor_positions(stamps_ns: np.ndarray, motors: np.ndarray) -> np.ndarray:
     """(N, 4) running time integral of the command fractions (trapezoid rule), 0 at the start."""
-    dt = np.diff(stamps_ns).astype(np.float64) / 1e9
+    dt = np.diff(stamps_ns).astype(np.float64) / NS_PER_S
     steps = 0.5 * (motors[1:] + motors[:-1]) * dt[:, None]
     return np.concatenate([np.zeros((1, motors.shape[1])), np.cumsum(steps, axis=0)])
 

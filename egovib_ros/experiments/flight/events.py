@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from egovib_ros.core import BandPass, channel_matrix
+from egovib_ros.core.timebase import NS_PER_S
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ def make_events(
     stamps_ns = np.asarray(stamps_ns, np.int64)
     n = len(stamps_ns)
     rng = np.random.default_rng(spec.seed)
-    t = (stamps_ns - stamps_ns[0]) / 1e9
+    t = (stamps_ns - stamps_ns[0]) / NS_PER_S
     duration = t[-1]
     centres = np.arange(
         spec.margin_s + spec.jitter_s, duration - spec.margin_s - spec.jitter_s, spec.spacing_s
@@ -112,7 +113,7 @@ def make_events(
     return Events(
         signal=total,
         onsets=onsets.astype(np.int64),
-        onset_ns=stamps_ns[0] + np.round(onset_s * 1e9).astype(np.int64),
+        onset_ns=stamps_ns[0] + np.round(onset_s * NS_PER_S).astype(np.int64),
         axis=axis,
         frequency_hz=frequency,
         decay_s=decay,

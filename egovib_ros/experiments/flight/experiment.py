@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.core.filters import combined_bandpassed
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
@@ -162,7 +163,7 @@ def score_events(
         "n_events": int(len(events.onsets)),
         "n_taps_segmented": seg.n_taps,
         "target_peak_rad_s": events.target_peak,
-        "onsets_s": ((events.onset_ns - t0) / 1e9).round(4).tolist(),
+        "onsets_s": ((events.onset_ns - t0) / NS_PER_S).round(4).tolist(),
         "axis": events.axis.tolist(),
         "frequency_hz": events.frequency_hz.round(1).tolist(),
         "decay_ms": (1e3 * events.decay_s).round(2).tolist(),
@@ -253,8 +254,10 @@ def run_fold(
     """Calibrate on one time range, test on another; every method, every event amplitude."""
     fs = profile.rate_hz
     t0 = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(t0 + int(calibration_s[0] * 1e9), t0 + int(calibration_s[1] * 1e9))
-    test = rec.time_slice(t0 + int(test_s[0] * 1e9), t0 + int(test_s[1] * 1e9))
+    cal = rec.time_slice(
+        t0 + int(calibration_s[0] * NS_PER_S), t0 + int(calibration_s[1] * NS_PER_S)
+    )
+    test = rec.time_slice(t0 + int(test_s[0] * NS_PER_S), t0 + int(test_s[1] * NS_PER_S))
     for part, name in ((cal, "calibration"), (test, "test")):
         if len(part.sensor_stamps_ns) < 4 * profile.block_length or len(part.joint_stamps_ns) == 0:
             raise ConfigError(

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import EgovibError
 
 REQUIRED = ("time_s", "gyro_unfiltered_dps", "gyro_filtered_dps", "motor_cmd_frac")
@@ -44,7 +45,7 @@ class FlightLog:
 
     @property
     def duration_s(self) -> float:
-        return float(self.stamps_ns[-1] - self.stamps_ns[0]) / 1e9 if self.n > 1 else 0.0
+        return float(self.stamps_ns[-1] - self.stamps_ns[0]) / NS_PER_S if self.n > 1 else 0.0
 
     def slice(self, start: int, stop: int) -> "FlightLog":
         return FlightLog(

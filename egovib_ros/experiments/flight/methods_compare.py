@@ -53,6 +53,7 @@ from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, method_delay_ms
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
@@ -188,8 +189,8 @@ def flight_split(
     (c0, c1), (t0, t1) = SPLITS[name]
     fs = profile.rate_hz
     start = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(start + int(c0 * 1e9), start + int(c1 * 1e9))
-    test = rec.time_slice(start + int(t0 * 1e9), start + int(t1 * 1e9))
+    cal = rec.time_slice(start + int(c0 * NS_PER_S), start + int(c1 * NS_PER_S))
+    test = rec.time_slice(start + int(t0 * NS_PER_S), start + int(t1 * NS_PER_S))
     old = build_methods(profile, ("raw", "ours", "mean_command", "notch_q5"))
     methods = {"raw": old["raw"], "paper": old["ours"]}
     cancel = NewMethod(profile, "cancel", gain)

@@ -11,6 +11,7 @@ import numpy as np
 
 from egovib_ros.bag import bag_topics, read_recording
 from egovib_ros.bag.codec import IMU_TYPE
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile
 
@@ -33,7 +34,7 @@ class FlightRecording:
     @property
     def duration_s(self) -> float:
         return (
-            float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / 1e9
+            float(self.sensor_stamps_ns[-1] - self.sensor_stamps_ns[0]) / NS_PER_S
             if len(self.sensor_stamps_ns) > 1
             else 0.0
         )

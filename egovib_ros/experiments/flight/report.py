@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.outputs import atomic_output
@@ -543,7 +544,7 @@ def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
     fold = result["primary"]
     sig = fold["signals"]
     best = best_baseline(fold)
-    t = (sig["stamps_ns"] - sig["t0_ns"]) / 1e9
+    t = (sig["stamps_ns"] - sig["t0_ns"]) / NS_PER_S
     panels = [
         ("raw_input", "raw gyro + added events (band-passed)"),
         ("ours", LABELS["ours"]),
@@ -577,7 +578,7 @@ def timeseries_figure(result: dict, profile: RobotProfile, window_s: float = 2.0
     sig = fold["signals"]
     fs = profile.rate_hz
     best = best_baseline(fold)
-    t = (sig["stamps_ns"] - sig["t0_ns"]) / 1e9
+    t = (sig["stamps_ns"] - sig["t0_ns"]) / NS_PER_S
     onsets = sig["seg"].onsets
     start = max(0, int(onsets[1] - 0.25 * fs) if len(onsets) > 1 else 0)
     window = slice(start, min(len(t), start + int(window_s * fs)))

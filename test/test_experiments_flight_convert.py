@@ -166,7 +166,9 @@ def test_converter_command(tmp_path):
         [
             sys.executable,
             "-m",
-            "egovib_ros.cli", "real", "convert",
+            "egovib_ros.cli",
+            "real",
+            "convert",
             str(tmp_path / "log.npz"),
             "--out",
             str(tmp_path / "bag"),

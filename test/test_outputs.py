@@ -132,28 +132,23 @@ def test_force_replaces_a_model_file_only_if_it_is_a_noise_model(cwd):
     assert prepare_output("ours.npz", force=True, kind="model")
 
 
-def test_legacy_outputs_without_marker_are_recognised(cwd):
-    """Gap reports and bags written before the marker existed can still be replaced."""
-    report = cwd / "report"
-    report.mkdir()
-    (report / "report.json").write_text(json.dumps({"schema": "egovib.gap/1"}))
-    (report / "report.md").write_text("# gap")
-    (report / "where_covariates.png").write_bytes(b"png")
-    assert prepare_output("report", force=True, kind="report")
+def test_directories_without_our_marker_are_not_ours(cwd):
+    """A bag or report directory without the marker is refused even with --force, whatever
+    topics or files it holds: only what egovib marked is replaced."""
     bag = cwd / "denoised"
     bag.mkdir()
     (bag / "denoised_0.mcap").write_bytes(b"mcap")
-    head = (
+    (bag / "metadata.yaml").write_text(
         "rosbag2_bagfile_information:\n  relative_file_paths: [denoised_0.mcap]\n"
-        "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/raw}\n"
+        "  topics_with_message_count:\n  - topic_metadata: {name: /accelerometer/denoised}\n"
     )
-    denoised = "  - topic_metadata: {name: /accelerometer/denoised}\n"
-    (bag / "metadata.yaml").write_text(head + denoised)
-    assert prepare_output("denoised", force=True, kind="bag")
-    # a bag someone recorded on a robot (no topic only egovib writes) is not ours
-    (bag / "metadata.yaml").write_text(head)
-    with pytest.raises(OutputError, match="not an egovib output"):
+    with pytest.raises(OutputError, match="denoised: .*not an egovib output"):
         prepare_output("denoised", force=True, kind="bag")
+    report = cwd / "report"
+    report.mkdir()
+    (report / "report.json").write_text(json.dumps({"schema": "egovib.gap/1"}))
+    with pytest.raises(OutputError, match="report: .*not an egovib output"):
+        prepare_output("report", force=True, kind="report")
 
 
 def test_unwritable_parent_detected_before_work(cwd):
@@ -339,19 +334,15 @@ def test_stale_partials_of_dead_runs_are_cleaned_and_nothing_else(cwd):
     dead = _staging(cwd, "bag", dead_pid(), old)
     alive_other_run = _staging(cwd, "bag2", os.getppid(), old)  # a run still going
     newer = _staging(cwd, "bag3", dead_pid(), time.time() + 60)  # not older than this process
-    legacy = cwd / ".model.npz.ab12cd34.partial"  # the previous version's shape
-    legacy.mkdir()
-    (legacy / "model.npz").write_bytes(b"x")
-    os.utime(legacy, (old, old))
-    legacy_foreign = cwd / ".notes.ab12cd34.partial"  # same shape, other content
-    legacy_foreign.mkdir()
-    (legacy_foreign / "thesis.tex").write_text("mine")
-    os.utime(legacy_foreign, (old, old))
+    unmarked = cwd / ".model.npz.ab12cd34.partial"  # a staging-like name without our marker
+    unmarked.mkdir()
+    (unmarked / "model.npz").write_bytes(b"x")
+    os.utime(unmarked, (old, old))
     no_marker = cwd / ".bag.12345.0badc0de.partial"  # our name, no marker
     no_marker.mkdir()
     removed = clean_stale_partials(cwd)
-    assert sorted(p.name for p in removed) == sorted([dead.name, legacy.name])
-    for kept in (alive_other_run, newer, legacy_foreign, no_marker):
+    assert [p.name for p in removed] == [dead.name]
+    for kept in (alive_other_run, newer, unmarked, no_marker):
         assert kept.exists()
 
 

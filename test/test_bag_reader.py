@@ -1,0 +1,75 @@
+"""egovib_ros.bag.reader: the chunk scan reads what rosbags' reader reads, from this project's
+bags and from the layouts the `mcap` library writes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic import RECORDING_FIELDS, random_recording
+
+from egovib_ros.bag import BagReader, read_recording, write_recording
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_chunk_scan_equals_rosbags_reader(tmp_path, monkeypatch, compress):
+    rec = random_recording(seconds=2.0)
+    rec.denoised_stamps_ns, rec.denoised = rec.sensor_stamps_ns, rec.sensor * 0.25
+    write_recording(tmp_path / "bag", rec, compress=compress)
+    with BagReader(tmp_path / "bag") as reader:
+        assert reader.is_plain_mcap
+    fast = read_recording(tmp_path / "bag")
+    monkeypatch.setattr(
+        BagReader, "is_plain_mcap", property(lambda self: False)
+    )  # force rosbags' reader
+    slow = read_recording(tmp_path / "bag")
+    for name in RECORDING_FIELDS:
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(fast, name), getattr(rec, name), err_msg=name)
+
+
+# --------------------------------------------------------------------------
+# MCAP as other writers lay it out
+# --------------------------------------------------------------------------
+def _rewrite_with_mcap_library(bag, **writer_options):
+    """Rewrite a bag's .mcap with the `mcap` library's writer (same topics, schemas, times)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    mcap = next(bag.glob("*.mcap"))
+    with open(mcap, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        messages = [(c.id, m.log_time, m.data) for _, c, m in reader.iter_messages()]
+    with open(mcap, "wb") as out:
+        writer = Writer(out, **writer_options)
+        writer.start(profile="ros2", library="test")
+        for s in summary.schemas.values():
+            writer.register_schema(s.name, s.encoding, s.data)
+        for c in summary.channels.values():
+            writer.register_channel(c.topic, c.message_encoding, c.schema_id, dict(c.metadata))
+        for channel, t, data in messages:
+            writer.add_message(channel, t, data, t)
+        writer.finish()
+
+
+@pytest.mark.parametrize("layout", ["indexed_zstd", "chunks_without_index", "unchunked"])
+def test_reads_mcap_from_other_writers(tmp_path, monkeypatch, layout):
+    from mcap.writer import CompressionType, IndexType
+
+    options = {
+        "indexed_zstd": dict(chunk_size=20_000, compression=CompressionType.ZSTD),
+        "chunks_without_index": dict(
+            chunk_size=50_000, compression=CompressionType.NONE, index_types=IndexType.NONE
+        ),
+        "unchunked": dict(use_chunking=False, compression=CompressionType.NONE),
+    }[layout]
+    rec = random_recording(seconds=1.0)
+    write_recording(tmp_path / "bag", rec)
+    _rewrite_with_mcap_library(tmp_path / "bag", **options)
+    fast = read_recording(tmp_path / "bag")
+    monkeypatch.setattr(BagReader, "is_plain_mcap", property(lambda self: False))
+    slow = read_recording(tmp_path / "bag")
+    for name in RECORDING_FIELDS:
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+        np.testing.assert_array_equal(getattr(fast, name), getattr(rec, name), err_msg=name)

@@ -1,0 +1,287 @@
+"""egovib_ros.bag.recording: Recordings written and read back, sliced in time, from any robot
+profile (topics, the Imu field, joints picked by name); bad bags are one-line BagErrors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+from synthetic import RECORDING_FIELDS, random_recording
+
+from egovib_ros.bag import (
+    BagWriter,
+    codec,
+    concat_recordings,
+    decode_imu,
+    encode_imu_batch,
+    encode_joint_state_batch,
+    iter_recording,
+    read_recording,
+    write_recording,
+)
+from egovib_ros.errors import BagError
+from egovib_ros.robot import RobotProfile
+from egovib_ros.sim.pr2 import BAG_TOPICS, JOINT_NAMES
+
+
+@pytest.mark.parametrize("storage,compress", [("mcap", False), ("mcap", True), ("sqlite3", False)])
+def test_recording_round_trip(tmp_path, storage, compress):
+    rec = random_recording()
+    out = tmp_path / "bag"
+    write_recording(out, rec, storage=storage, compress=compress)
+    assert (out / "metadata.yaml").exists()
+    back = read_recording(out)
+    for name in (
+        "sensor_stamps_ns",
+        "sensor",
+        "joint_stamps_ns",
+        "joint_position",
+        "joint_velocity",
+        "contact",
+        "ego",
+        "command_stamps_ns",
+        "commands",
+    ):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name), err_msg=name)
+    assert back.joint_names == JOINT_NAMES
+    assert back.denoised is None
+    # rosbags' own reader sees the contract's topics, log time = header stamp.
+    with Reader(out) as reader:
+        topics = {c.topic for c in reader.connections}
+        assert topics == {
+            BAG_TOPICS[k] for k in ("raw", "contact", "ego", "joint_states", "commands")
+        }
+        conn = [c for c in reader.connections if c.topic == BAG_TOPICS["raw"]]
+        log_time, raw = next((t, r) for _, t, r in reader.messages(connections=conn))
+        assert log_time == decode_imu([raw])[0][0] == rec.sensor_stamps_ns[0]
+        times = [t for _, t, _ in reader.messages()]
+        assert times == sorted(times)
+
+
+def test_denoised_topic_round_trip(tmp_path):
+    rec = random_recording(with_truth=False)
+    rec.denoised_stamps_ns = rec.sensor_stamps_ns[:100]
+    rec.denoised = rec.sensor[:100] * 0.5
+    write_recording(tmp_path / "bag", rec)
+    back = read_recording(tmp_path / "bag")
+    assert back.contact is None and back.ego is None
+    np.testing.assert_array_equal(back.denoised, rec.denoised)
+    np.testing.assert_array_equal(back.denoised_stamps_ns, rec.denoised_stamps_ns)
+
+
+def test_missing_topic_is_bag_error(tmp_path):
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
+        bag.write(BAG_TOPICS["raw"], 1, encode_imu_batch([1], [[0.0, 0.0, 1.0]])[0])
+    with pytest.raises(BagError, match=r"bag.*/joint_states"):
+        read_recording(tmp_path / "bag")
+
+
+def test_bad_bags_are_bag_errors(tmp_path):
+    with pytest.raises(BagError, match="no such bag"):
+        read_recording(tmp_path / "nothing")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "metadata.yaml").write_text("not: a rosbag2 metadata\n")
+    with pytest.raises(BagError, match="broken"):
+        read_recording(broken)
+    # A truncated .mcap file.
+    rec = random_recording(seconds=0.1)
+    write_recording(tmp_path / "trunc", rec)
+    mcap = next((tmp_path / "trunc").glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[:5000])
+    with pytest.raises(BagError, match="trunc"):
+        read_recording(tmp_path / "trunc")
+
+
+def test_existing_output_is_refused(tmp_path):
+    (tmp_path / "bag").mkdir()
+    with pytest.raises(BagError, match="already exists"):
+        write_recording(tmp_path / "bag", random_recording(seconds=0.01))
+
+
+def test_missing_joint_is_bag_error(tmp_path):
+    ts = codec.typestore()
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        bag.write(BAG_TOPICS["raw"], 1, encode_imu_batch([1], [[0.0, 0.0, 1.0]])[0])
+        raw = ts.serialize_cdr(
+            codec.joint_state_message(1, [JOINT_NAMES[0]], [0.0], [0.0]), codec.JOINT_STATE_TYPE
+        )
+        bag.write(BAG_TOPICS["joint_states"], 1, bytes(raw))
+    with pytest.raises(BagError, match=JOINT_NAMES[1]):
+        read_recording(tmp_path / "bag")
+
+
+# --------------------------------------------------------------------------
+# Robot profiles: other topics, the gyro field, JointStates of a whole robot
+# --------------------------------------------------------------------------
+GYRO_ROBOT = RobotProfile(
+    name="test_arm",
+    sensor_topic="/imu/data_raw",
+    sensor_field="angular_velocity",
+    rate_hz=1600.0,
+    denoised_topic="/imu/data_denoised",
+    joints_topic="/arm/joint_states",
+    joint_names=("elbow", "wrist", "spindle"),
+    max_speed=(2.0, 3.0, 50.0),
+    bidirectional=(True, True, False),
+    band_hz=(100.0, 600.0),
+)
+FULL_ROBOT = (
+    "base",
+    "shoulder",
+    "spindle",
+    "elbow",
+    "head_pan",
+    "head_tilt",
+    "wrist",
+    "torso",
+    "finger_1",
+    "finger_2",
+    "finger_3",
+    "caster",
+)
+
+
+def _write_robot_bag(
+    path, *, seconds=1.0, names=FULL_ROBOT, shuffle=True, seed=0, writer_options=None
+):
+    """A bag of GYRO_ROBOT: gyro Imu (angular_velocity) and a 12-joint JointState whose joint
+    order changes between messages. Returns the arrays written, joints in profile order."""
+    rng = np.random.default_rng(seed)
+    ts = codec.typestore()
+    n, m = int(1600 * seconds), int(500 * seconds)
+    stamps = 5_000_000_000 + np.round(np.arange(n) * 1e9 / 1600).astype(np.int64)
+    gyro = rng.normal(size=(n, 3))
+    js_stamps = 5_000_000_000 + np.arange(m, dtype=np.int64) * 2_000_000
+    pos, vel = rng.normal(size=(m, len(names))), rng.normal(size=(m, len(names)))
+    with BagWriter(path, **(writer_options or {})) as bag:
+        bag.add_topic("/imu/data_raw", codec.IMU_TYPE)
+        bag.add_topic("/arm/joint_states", codec.JOINT_STATE_TYPE)
+        bag.write_batch(
+            "/imu/data_raw",
+            stamps,
+            encode_imu_batch(stamps, gyro, "imu_link", "angular_velocity"),
+        )
+        for k in range(m):
+            order = rng.permutation(len(names)) if shuffle else np.arange(len(names))
+            msg = codec.joint_state_message(
+                int(js_stamps[k]), [names[i] for i in order], pos[k, order], vel[k, order]
+            )
+            bag.write(
+                "/arm/joint_states",
+                int(js_stamps[k]),
+                bytes(ts.serialize_cdr(msg, codec.JOINT_STATE_TYPE)),
+            )
+    columns = [names.index(j) for j in GYRO_ROBOT.joint_names if j in names]
+    return stamps, gyro, js_stamps, pos[:, columns], vel[:, columns]
+
+
+def test_profile_picks_topics_field_and_joints_by_name(tmp_path):
+    stamps, gyro, js_stamps, pos, vel = _write_robot_bag(tmp_path / "bag")
+    rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
+    np.testing.assert_array_equal(rec.sensor_stamps_ns, stamps)
+    np.testing.assert_array_equal(rec.sensor, gyro)  # the profile's field, whatever its name
+    assert rec.joint_names == GYRO_ROBOT.joint_names
+    np.testing.assert_array_equal(rec.joint_stamps_ns, js_stamps)
+    np.testing.assert_array_equal(rec.joint_position, pos)
+    np.testing.assert_array_equal(rec.joint_velocity, vel)
+    assert rec.contact is None and rec.denoised is None
+
+
+def test_joint_states_in_one_order_take_the_vectorised_path(tmp_path):
+    _, _, _, pos, vel = _write_robot_bag(tmp_path / "bag", shuffle=False)
+    rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
+    np.testing.assert_array_equal(rec.joint_position, pos)
+    np.testing.assert_array_equal(rec.joint_velocity, vel)
+
+
+def test_named_joint_never_seen_is_bag_error_naming_joint_and_topic(tmp_path):
+    names = tuple(n for n in FULL_ROBOT if n != "spindle")
+    _write_robot_bag(tmp_path / "bag", names=names)
+    with pytest.raises(
+        BagError, match=r"bag: topic /arm/joint_states lacks joint\(s\) spindle"
+    ) as info:
+        read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
+    assert "\n" not in str(info.value)
+
+
+def test_partial_joint_states_are_merged_per_joint(tmp_path):
+    """Two controllers publish their own JointState on one topic: each joint keeps its
+    last published value (as joint_state_publisher merges them)."""
+    ts = codec.typestore()
+    stamps = np.arange(3000, dtype=np.int64) * 625_000
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic("/imu/data_raw", codec.IMU_TYPE)
+        bag.add_topic("/arm/joint_states", codec.JOINT_STATE_TYPE)
+        bag.write_batch("/imu/data_raw", stamps, encode_imu_batch(stamps, np.zeros((3000, 3))))
+        for k in range(10):
+            arm = codec.joint_state_message(
+                k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k]
+            )
+            tool = codec.joint_state_message(
+                k * 2_000_000 + 1_000_000, ["spindle"], [7.0], [20.0 + k]
+            )
+            for stamp, msg in ((k * 2_000_000, arm), (k * 2_000_000 + 1_000_000, tool)):
+                bag.write(
+                    "/arm/joint_states", stamp, bytes(ts.serialize_cdr(msg, codec.JOINT_STATE_TYPE))
+                )
+    rec = read_recording(tmp_path / "bag", profile=GYRO_ROBOT)
+    assert len(rec.joint_stamps_ns) == 20
+    assert np.isnan(rec.joint_velocity[0, 2])  # spindle not heard of yet
+    np.testing.assert_array_equal(rec.joint_velocity[1], [0.0, 1.0, 20.0])
+    np.testing.assert_array_equal(rec.joint_velocity[2], [0.1, 2.0, 20.0])
+    np.testing.assert_array_equal(rec.joint_velocity[-1], [0.9, 10.0, 29.0])
+
+
+def test_slices_are_bounded_and_join_to_the_whole(tmp_path):
+    rec = random_recording(seconds=12.0, with_truth=True)
+    write_recording(tmp_path / "bag", rec, compress=True)
+    slices = list(iter_recording(tmp_path / "bag", min_slice_s=1.0))
+    assert len(slices) >= 6
+    # when a slice's sensor samples come, every joint state up to the horizon past them has come
+    joints_so_far = 0
+    for piece in slices[:-1]:
+        joints_so_far += len(piece.joint_stamps_ns)
+        needed = np.searchsorted(
+            rec.joint_stamps_ns, piece.sensor_stamps_ns.max() + int(0.1e9), side="right"
+        )
+        assert joints_so_far >= needed
+        assert piece.duration_s < 4.0
+    whole = concat_recordings(slices)
+    for name in RECORDING_FIELDS:
+        if getattr(rec, name) is not None:
+            np.testing.assert_array_equal(getattr(whole, name), getattr(rec, name), err_msg=name)
+
+
+def test_topics_written_apart_are_read_together(tmp_path):
+    """A bag whose sensor chunks all come before its joint-state chunks (a writer that
+    flushes per topic): chunks are read in log-time order (seeking along the chunk index),
+    so no slice waits long for its joint states and the slices equal the whole."""
+    from egovib_ros.bag.mcapfile import McapScanner
+
+    rec = random_recording(seconds=6.0, with_truth=False)
+    with BagWriter(tmp_path / "bag", chunk_bytes=200_000) as bag:
+        bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        bag.write_batch(
+            BAG_TOPICS["raw"],
+            rec.sensor_stamps_ns,
+            encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),
+        )
+        bag.write_batch(
+            BAG_TOPICS["joint_states"],
+            rec.joint_stamps_ns,
+            encode_joint_state_batch(
+                rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity, JOINT_NAMES
+            ),
+        )
+    starts = [c.start_ns for c in McapScanner(next((tmp_path / "bag").glob("*.mcap"))).chunks()]
+    assert starts == sorted(starts) and len(starts) > 10
+    slices = list(iter_recording(tmp_path / "bag", min_slice_s=0.5))
+    assert len(slices) >= 5
+    whole = concat_recordings(slices)
+    for name in ("sensor_stamps_ns", "sensor", "joint_stamps_ns", "joint_velocity"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(rec, name), err_msg=name)

@@ -1,0 +1,81 @@
+"""`egovib calibrate` on real bag files, as a user runs it: sweeps of the PR2 hand and of any
+robot profile, several bags pooled, bad input one line and exit 2.
+"""
+
+import dataclasses
+import shutil
+
+import bagcorpus
+import numpy as np
+import robots
+from simbags import egovib, write_robot_bag
+
+from egovib_ros.bag import write_recording
+from egovib_ros.core import NoiseModel
+from egovib_ros.robot import load_profile
+from egovib_ros.sim import simulate_sweep
+
+
+def test_missing_joint_is_one_line_exit_2(tmp_path):
+    p = robots.profile(3, rate_hz=1600.0)
+    (tmp_path / "robot.yaml").write_text(p.dumps())
+    data = robots.recording(p, 2.0, seed=3, joint_rate_hz=400.0)
+    renamed = dataclasses.replace(p, joint_names=("joint_0", "joint_1", "other"))
+    write_robot_bag(tmp_path / "bag", renamed, data)
+    result = egovib(
+        "calibrate",
+        tmp_path / "bag",
+        "--robot",
+        tmp_path / "robot.yaml",
+        "--out",
+        tmp_path / "m.npz",
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0
+    assert (
+        "joint_2" in result.stderr and "/joint_states" in result.stderr and "bag" in result.stderr
+    )
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_calibrate_pools_several_bags(sim_bags, tmp_path):
+    sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.5, settle_s=0.3, seed=8)
+    write_recording(
+        tmp_path / "more" / "sweep2", dataclasses.replace(sweep, contact=None, ego=None)
+    )
+    shutil.copytree(sim_bags / "sweep", tmp_path / "more" / "sweep1")
+    results = {}
+    for name, args in (
+        ("one", [tmp_path / "more" / "sweep1"]),
+        ("two", [tmp_path / "more" / "sweep2"]),
+        ("both", [tmp_path / "more"]),
+        ("both_j2", [tmp_path / "more", "--jobs", "2"]),
+    ):
+        result = egovib("calibrate", *args, "--out", tmp_path / f"{name}.npz", "--quiet")
+        assert result.returncode == 0, result.stderr
+        results[name] = NoiseModel.load(tmp_path / f"{name}.npz")
+    one, two, both = results["one"], results["two"], results["both"]
+    assert both.measured == "superposition"
+    np.testing.assert_array_equal(both.counts, one.counts + two.counts)
+    n1, n2 = one.counts[..., None, None], two.counts[..., None, None]
+    pooled = np.divide(
+        one.mean * n1 + two.mean * n2, n1 + n2, out=np.zeros_like(one.mean), where=n1 + n2 > 0
+    )
+    np.testing.assert_allclose(both.mean, pooled, rtol=1e-9, atol=1e-12)
+    for name in ("cells", "cell_mean", "cell_std", "cell_counts"):
+        np.testing.assert_array_equal(getattr(results["both_j2"], name), getattr(both, name))
+
+
+def test_joint_states_without_velocity_or_position_are_named(sim_bags, tmp_path):
+    """Neither is usable: one line naming the joint-state topic and the joint."""
+    profile = tmp_path / "measured.yaml"
+    text = load_profile(None).dumps().replace("velocity: auto", "velocity: measured")
+    profile.write_text(text)
+    motion = bagcorpus.write_layout(
+        sim_bags / "motion", tmp_path / "positions", bagcorpus.Layout("p", velocity=False)
+    )
+    result = egovib("calibrate", motion, "--robot", profile, "--out", tmp_path / "m.npz")
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert "/joint_states" in lines[0] and "r_wrist_roll_joint" in lines[0], lines[0]
+    assert "no velocity" in lines[0] and "auto" in lines[0]

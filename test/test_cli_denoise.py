@@ -1,0 +1,264 @@
+"""`egovib denoise` on real bag files, as a user runs it after `egovib calibrate`: the drop-in
+output, channels, compression, any robot profile, many bags in parallel, bad input."""
+
+import json
+import shutil
+
+import bagcorpus
+import numpy as np
+import pytest
+import robots
+from rosbags.rosbag2 import Reader
+from simbags import egovib, topic_messages, write_robot_bag
+
+from egovib_ros.bag import bag_topics, read_recording, write_recording
+from egovib_ros.bag.codec import imu_field_offset, typestore
+from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
+from egovib_ros.sim import simulate_motion
+
+
+def test_calibrate_then_denoise_round_trip(sim_bags):
+    model_path = sim_bags / "model.npz"
+    result = egovib("calibrate", sim_bags / "sweep", "--out", model_path, "--quiet")
+    assert result.returncode == 0, result.stderr
+    model = NoiseModel.load(model_path)
+    assert model.measured == "superposition"  # auto-detected
+    assert np.all(model.counts[model.axis_mask()] > 0)
+    assert model.provenance["source"].endswith("sweep")
+
+    out = sim_bags / "denoised"
+    result = egovib("denoise", sim_bags / "motion", "--model", model_path, "--out", out, "--quiet")
+    assert result.returncode == 0, result.stderr
+    topics = bag_topics(out)
+    raw_count = topics["/accelerometer/raw"][1]
+    assert topics["/accelerometer/denoised"] == ("sensor_msgs/msg/Imu", raw_count)
+    for topic in ("/joint_states", "/accelerometer/contact", "/accelerometer/ego"):
+        assert topic in topics
+    rec = read_recording(out)
+    np.testing.assert_array_equal(rec.denoised_stamps_ns, rec.sensor_stamps_ns)
+    _, expected, _ = denoise_batch(
+        rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity, model
+    )
+    np.testing.assert_allclose(rec.denoised, expected, rtol=0, atol=1e-12)
+
+
+def test_combined_channel_goes_to_x(sim_bags):
+    model_path = sim_bags / "model_c.npz"
+    assert egovib("calibrate", sim_bags / "sweep", "--out", model_path, "--quiet").returncode == 0
+    out = sim_bags / "denoised_combined"
+    result = egovib(
+        "denoise",
+        sim_bags / "motion",
+        "--model",
+        model_path,
+        "--out",
+        out,
+        "--channels",
+        "combined",
+        "--quiet",
+    )
+    assert result.returncode == 0, result.stderr
+    rec = read_recording(out)
+    assert np.all(rec.denoised[:, 1:] == 0) and np.any(rec.denoised[:, 0] != 0)
+
+
+def test_bad_input_is_one_line_exit_2_and_leaves_nothing(sim_bags, tmp_path):
+    result = egovib("calibrate", tmp_path / "absent", "--out", tmp_path / "m.npz")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "absent: no such bag" in result.stderr
+    assert not (tmp_path / "m.npz").exists()
+
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"PK\x03\x04 not really a zip")
+    result = egovib("denoise", sim_bags / "motion", "--model", broken, "--out", tmp_path / "out")
+    assert result.returncode == 2 and "broken.npz" in result.stderr
+    assert result.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob("*.partial"))
+
+    # A bag without steady grid velocities is not a calibration sweep.
+    result = egovib("calibrate", sim_bags / "motion", "--out", tmp_path / "m.npz", "--quiet")
+    if result.returncode == 2:
+        assert "calibration sweep" in result.stderr and not (tmp_path / "m.npz").exists()
+    else:  # random motion does cross grid cells now and then; then a (sparse) model is fine
+        assert NoiseModel.load(tmp_path / "m.npz").counts.sum() > 0
+
+
+def test_denoised_message_is_the_raw_message_with_the_field_replaced(sim_bags, sim_bags_model):
+    out = sim_bags / "dropin"
+    assert (
+        egovib(
+            "denoise", sim_bags / "motion", "--model", sim_bags_model, "--out", out, "--quiet"
+        ).returncode
+        == 0
+    )
+    raw, den = (
+        topic_messages(out, "/accelerometer/raw"),
+        topic_messages(out, "/accelerometer/denoised"),
+    )
+    assert len(raw) == len(den)
+    assert [t for t, _ in raw] == [t for t, _ in den]  # the raw sample's stamp and log time
+    a = np.frombuffer(b"".join(d for _, d in raw), np.uint8).reshape(len(raw), -1)
+    b = np.frombuffer(b"".join(d for _, d in den), np.uint8).reshape(len(den), -1)
+    frame_len = int.from_bytes(raw[0][1][12:16], "little") - 1  # the CDR string length of frame_id
+    field_at = imu_field_offset(frame_len, "linear_acceleration")
+    changed = np.flatnonzero((a != b).any(axis=0))
+    assert changed.min() >= field_at and changed.max() < field_at + 24
+    # every input topic is in the output byte for byte
+    for topic in (
+        "/accelerometer/raw",
+        "/accelerometer/contact",
+        "/joint_states",
+        "/hand_velocity_controller/commands",
+    ):
+        assert topic_messages(out, topic) == topic_messages(sim_bags / "motion", topic), topic
+
+
+def test_zstd_output_reads_back_identical(sim_bags, sim_bags_model):
+    plain, packed = sim_bags / "out_plain", sim_bags / "out_zstd"
+    for out, extra in ((plain, ()), (packed, ("--compress", "zstd"))):
+        result = egovib(
+            "denoise",
+            sim_bags / "motion",
+            "--model",
+            sim_bags_model,
+            "--out",
+            out,
+            "--quiet",
+            *extra,
+        )
+        assert result.returncode == 0, result.stderr
+    assert "zstd size ratio" in result.stderr
+    assert topic_messages(plain, "/accelerometer/denoised") == topic_messages(
+        packed, "/accelerometer/denoised"
+    )
+    size = {p: next(p.glob("*.mcap")).stat().st_size for p in (plain, packed)}
+    assert size[plain] > 5 * size[packed]
+
+
+def test_any_robot_from_profile_to_denoised_bag(tmp_path):
+    p = robots.profile(3, rate_hz=1600.0)
+    (tmp_path / "robot.yaml").write_text(p.dumps())
+    train, test = (
+        robots.recording(p, 60.0, seed=1, joint_rate_hz=400.0),
+        robots.recording(p, 8.0, seed=2, joint_rate_hz=400.0, taps_per_s=2.0),
+    )
+    write_robot_bag(tmp_path / "train", p, train)
+    write_robot_bag(tmp_path / "test", p, test)
+    result = egovib(
+        "calibrate",
+        tmp_path / "train",
+        "--robot",
+        tmp_path / "robot.yaml",
+        "--grid",
+        "free",
+        "--out",
+        tmp_path / "m.npz",
+        "--quiet",
+    )
+    assert result.returncode == 0, result.stderr
+    assert "coverage:" in result.stderr and "blocks per measured cell" in result.stderr
+    model = NoiseModel.load(tmp_path / "m.npz")
+    expected_model, _ = calibrate_arrays(
+        train["t_acc"], train["accel"], train["t_joint"], train["velocity"], profile=p, sweep="free"
+    )
+    assert model.profile == p
+    np.testing.assert_array_equal(model.cells, expected_model.cells)
+    np.testing.assert_array_equal(model.cell_counts, expected_model.cell_counts)
+    np.testing.assert_allclose(model.cell_mean, expected_model.cell_mean, rtol=1e-12, atol=0)
+
+    result = egovib(
+        "denoise",
+        tmp_path / "test",
+        "--model",
+        tmp_path / "m.npz",
+        "--out",
+        tmp_path / "out",
+        "--quiet",
+    )
+    assert result.returncode == 0, result.stderr
+    assert set(bag_topics(tmp_path / "out")) == {p.sensor_topic, p.joints_topic, p.denoised_topic}
+    out = read_recording(tmp_path / "out", profile=p)
+    stamps, values, _ = denoise_batch(
+        test["t_acc"], test["accel"], test["t_joint"], test["velocity"], model
+    )
+    np.testing.assert_array_equal(out.denoised_stamps_ns, stamps)
+    np.testing.assert_array_equal(out.denoised, values)
+
+
+# --------------------------------------------------------------------------
+# Many bags
+# --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def fleet(sim_bags):
+    """Four short bags (one broken) in a directory tree."""
+    root = sim_bags / "fleet"
+    for seed in range(3):
+        motion, _ = simulate_motion(duration_s=2.0, max_speed=0.5, tap_rate_hz=1.0, seed=20 + seed)
+        write_recording(root / ("day1" if seed < 2 else "day2") / f"run{seed}", motion)
+    broken = root / "day2" / "broken"
+    shutil.copytree(root / "day1" / "run0", broken)
+    mcap = next(broken.glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[: len(mcap.read_bytes()) // 2])
+    return root
+
+
+def test_many_bags_in_parallel_equal_single_runs_and_a_broken_one_is_named(
+    sim_bags, fleet, sim_bags_model, tmp_path
+):
+    singles = {}
+    for name in ("day1/run0", "day1/run1", "day2/run2"):
+        out = tmp_path / "single" / name
+        assert (
+            egovib(
+                "denoise", fleet / name, "--model", sim_bags_model, "--out", out, "--quiet"
+            ).returncode
+            == 0
+        )
+        singles[name] = topic_messages(out, "/accelerometer/denoised")
+    for jobs in ("1", "2"):
+        out = tmp_path / f"jobs{jobs}"
+        result = egovib(
+            "denoise", fleet, "--model", sim_bags_model, "--out", out, "--jobs", jobs, "--quiet"
+        )
+        assert result.returncode == 2
+        assert "day2/broken" in result.stderr and "FAILED" in result.stderr
+        assert "4 bag(s): 3 done, 1 failed" in result.stderr
+        assert not (out / "day2" / "broken").exists()
+        assert not list(out.rglob("*.partial"))
+        for name, expected in singles.items():
+            assert topic_messages(out / name, "/accelerometer/denoised") == expected, (jobs, name)
+    # Outputs inside the input directory would be taken for inputs by the next run.
+    inside = fleet / "clean"
+    result = egovib("denoise", fleet, "--model", sim_bags_model, "--out", inside, "--quiet")
+    assert result.returncode == 2 and "inside the input" in result.stderr
+    assert [line for line in result.stderr.splitlines() if "error" in line] == [
+        f"egovib: error: {inside}: --out is inside the input {fleet}; write it elsewhere"
+    ]
+    assert not inside.exists()
+
+
+def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(sim_bags, tmp_path):
+    """A driver that publishes JointState positions only (no velocity): calibrate, denoise
+    and evaluate differentiate the positions (profile joints.velocity: auto) and denoise
+    within 0.5 dB of the same run with velocities."""
+    positions_only = bagcorpus.Layout("positions_only", velocity=False)
+    figures = {}
+    for name, layout in (("with", None), ("without", positions_only)):
+        sweep, motion = sim_bags / "sweep", sim_bags / "motion"
+        if layout is not None:
+            sweep = bagcorpus.write_layout(sweep, tmp_path / "sweep_positions", layout)
+            motion = bagcorpus.write_layout(motion, tmp_path / "motion_positions", layout)
+        model = tmp_path / f"{name}.npz"
+        result = egovib("calibrate", sweep, "--out", model, "--quiet")
+        assert result.returncode == 0, result.stderr
+        result = egovib("denoise", motion, "--model", model, "--out", tmp_path / f"den_{name}")
+        assert result.returncode == 0, result.stderr
+        report = tmp_path / f"{name}.json"
+        result = egovib("evaluate", motion, "--model", model, "--json", report, "--quiet")
+        assert result.returncode == 0, result.stderr
+        figures[name] = json.loads(report.read_text())["noise_reduction_db"]
+    assert figures["with"] > 15 and abs(figures["with"] - figures["without"]) < 0.5, figures
+    with Reader(tmp_path / "motion_positions") as reader:  # positions only, indeed
+        conn = next(c for c in reader.connections if c.msgtype.endswith("JointState"))
+        _, _, data = next(reader.messages(connections=[conn]))
+        assert len(typestore().deserialize_cdr(data, conn.msgtype).velocity) == 0
