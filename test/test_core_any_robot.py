@@ -1,4 +1,4 @@
-"""Core on robots that are not the PR2 (issue 9): N joints, any rate, gyro field, jittery
+"""Core on robots that are not the PR2: N joints, any rate, gyro field, jittery
 stamps, free-motion calibration, sparse models, coverage, streaming == batch."""
 
 import tracemalloc

@@ -1,4 +1,4 @@
-"""Calibration: known per-cell noise recovered, one pass, rejection, resume (issue 2)."""
+"""Calibration: known per-cell noise recovered, one pass, rejection, resume."""
 
 import numpy as np
 import pytest

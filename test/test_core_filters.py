@@ -1,4 +1,4 @@
-"""Axis handling, band-pass with carried state, window and overlap-add (issue 2)."""
+"""Axis handling, band-pass with carried state, window and overlap-add."""
 
 import numpy as np
 import pytest

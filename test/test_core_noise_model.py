@@ -1,4 +1,4 @@
-"""Noise model: Eq. 5/6, interpolation, empty cells, file round trip and bad files (issue 2)."""
+"""Noise model: Eq. 5/6, interpolation, empty cells, file round trip and bad files."""
 
 import logging
 

@@ -1,4 +1,4 @@
-"""Spectral subtraction: latency, streaming == batch, and bad input (issue 2)."""
+"""Spectral subtraction: latency, streaming == batch, and bad input."""
 
 import logging
 

@@ -1,4 +1,4 @@
-"""Metrics of CONTRACT section 6 on synthetic signals with known answers."""
+"""Metrics of docs/INTERFACES.md section 6 on synthetic signals with known answers."""
 
 import numpy as np
 import pytest

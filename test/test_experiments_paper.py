@@ -1,7 +1,7 @@
 """The paper's experiments on a modest simulated run: structure, the table, and
-issue 5's "Must show".
+the replication's targets.
 
-Thresholds (issue 5, experiment (a) at <= 50 % speed, paper method): peak SNR
+Targets (experiment (a) at <= 50 % speed, paper method): peak SNR
 improvement >= 14 dB, no-contact noise reduction >= 20 dB, tap retention >= 0.5,
 F1 >= 0.95 and above the raw band-passed detector and both PR2 thresholds.
 A criterion the current simulator misses is reported as xfail with the measured

@@ -1,4 +1,4 @@
-"""Fault injection (issue 11): broken bags, models, options and outputs, as a careless
+"""Fault injection: broken bags, models, options and outputs, as a careless
 user and a broken robot produce them.
 
 One table, one row per case. Every input is generated here, on the fly, from small
@@ -11,7 +11,7 @@ Rows that need work of other helpers (bag reader, gap pipeline) are xfail(strict
 with the reason: they turn into failures when that work lands, and are then un-xfailed.
 
 The commands run in-process (`egovib_ros.cli.main`, the console script's entry point)
-to keep the suite fast; the read-only file-system rows and the issue's headline case
+to keep the suite fast; the read-only file-system rows and the calibrate-onto-its-input case
 run in child processes, and so do the cases that need a process of their own: a full
 file system (a 5 MB tmpfs in a private mount namespace), two runs claiming one output,
 SIGTERM and Ctrl-C (real signals), and internal errors (a core function patched to raise
@@ -1113,7 +1113,7 @@ def test_fault(row: Row, lab: Lab, tmp_path: Path, monkeypatch) -> None:
     assert after == before, f"changed: {sorted(set(after.items()) ^ set(before.items()))[:5]}"
 
 
-# --- the issue's headline case, as the user typed it ---------------------------------------
+# --- a calibrate onto its own input, as a user typed it ---------------------------------
 
 
 def test_calibrate_motion_out_motion_leaves_the_bag_intact(lab, tmp_path):

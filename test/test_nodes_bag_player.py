@@ -47,7 +47,7 @@ def make_motion_bag(path: Path, seconds: float, seed: int) -> None:
 
 
 def test_real_flight_replayed_live_equals_offline(nodes, ros_client, tmp_path):
-    """Issue 9 item 8 on the real quadcopter flight (bags/quadcopter_ar8: 17 s of gyro at
+    """Live equals offline on the real quadcopter flight (bags/quadcopter_ar8: 17 s of gyro at
     ~1 kHz with jittering stamps, four motor commands): bag_player replays it under a
     namespace into the remapped denoiser; the live output equals `egovib denoise`, sample
     for sample, as many samples out as in, none dropped, latency sane on the wall clock."""

@@ -1,4 +1,4 @@
-"""fileutil: outputs never destroy what they did not create (issue 11).
+"""outputs: never destroy what a run did not create.
 
 prepare_output refuses before any work and claims the output (a lock no other run can
 take); atomic_output writes next to the target and renames into place only when

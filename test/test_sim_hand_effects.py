@@ -1,4 +1,4 @@
-"""Each effect of CONTRACT section 5, switched on alone, changes the simulated signal the way its
+"""Each effect of docs/INTERFACES.md section 5, switched on alone, changes the simulated signal the way its
 name says; switched off (absent or strength 0) it leaves the base output bit-identical."""
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ def test_bench_quick_writes_json_and_markdown(tmp_path):
         assert figures[key] > 0, key
     assert figures["stream_hop_p99_us"] >= figures["stream_hop_median_us"]
     assert data["calibration"]["cells"] == 441
-    bags = data["bags"]  # denoise end to end beside a copy of the same bag (issue 10)
+    bags = data["bags"]  # denoise end to end beside a copy of the same bag
     for key in (
         "denoise_x_realtime",
         "denoise_zstd_x_realtime",
