@@ -1113,7 +1113,7 @@ def test_fault(row: Row, lab: Lab, tmp_path: Path, monkeypatch) -> None:
     assert after == before, f"changed: {sorted(set(after.items()) ^ set(before.items()))[:5]}"
 
 
-# --- a calibrate onto its own input, as a user typed it ---------------------------------
+# --- a calibrate onto its own input, as a user typed it ------------------------------
 
 
 def test_calibrate_motion_out_motion_leaves_the_bag_intact(lab, tmp_path):
