@@ -1,5 +1,6 @@
-"""Each effect of docs/INTERFACES.md section 5, switched on alone, changes the simulated signal
-the way its name says; switched off (absent or strength 0) it leaves the base output bit-identical."""
+"""Each effect of docs/INTERFACES.md section 5, switched on alone, changes the simulated
+signal the way its name says; switched off (absent or strength 0) it leaves the base
+output bit-identical."""
 
 from __future__ import annotations
 
