@@ -1,4 +1,4 @@
-"""realdata.methods_compare: the figures it adds to the evaluation's (waveform correlation,
+"""experiments.flight.methods_compare: the figures it adds to the evaluation's (waveform correlation,
 pooling over event sets, the pass/fail table), on signals with known answers. The driver
 itself runs for minutes (docs/methods_compare.md says how)."""
 

@@ -242,7 +242,7 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
     n_messages = 3 * len(rec.sensor) + len(rec.joint_stamps_ns) + len(rec.commands)
-    tmp = Path(tempfile.mkdtemp(prefix="egovib_bagio_"))
+    tmp = Path(tempfile.mkdtemp(prefix="egovib_sim_validation_"))
     try:
         t0 = time.perf_counter()
         write_recording(tmp / "bag", rec, compress=compress)

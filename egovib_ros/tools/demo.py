@@ -244,7 +244,7 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
 
 def clear_previous_run(out: Path) -> None:
     """Remove what a previous demo run left in `out` - only if it is recognisably ours
-    (fileutil.prepare_output); anything else there is refused, never deleted."""
+    (outputs.prepare_output); anything else there is refused, never deleted."""
     from egovib_ros.outputs import prepare_output
 
     outputs = {

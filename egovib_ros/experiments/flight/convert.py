@@ -74,7 +74,7 @@ Keep this attribution wherever the data or anything derived from it is shipped.
 
 Converted from `quadcopter_ar8_flight.npz` (sha256 `{sha256}`) by
 `egovib real convert quadcopter_ar8_flight.npz --out bags/quadcopter_ar8`
-(`egovib_ros/realdata/convert.py`).
+(`egovib_ros/experiments/flight/convert.py`, `egovib real convert`).
 
 ## Topics ({log.n} messages each, one per log sample, stamps = the log's jittery sample times)
 

@@ -10,7 +10,7 @@ time range and tested on another, never the same -
               calibration saw 0.22-0.42 - speeds beyond the calibration
     beyond    calibrate 8.5-16.85 s, test 5.8-8.5 s (the punch-outs and flips alone)
 
-Known events are added to the test part's real gyro (realdata.events: damped sines, one
+Known events are added to the test part's real gyro (experiments.flight.events: damped sines, one
 random axis, 100-400 Hz, 4-12 ms decay, every 0.5 s), at the project's rule (each
 event's band-passed peak = the largest band-passed noise magnitude of the test part) and
 at half of it, `event_sets` seeds each. Methods: band-pass only, `paper` (the 4-motor
