@@ -1,6 +1,6 @@
-"""experiments.flight.methods_compare: the figures it adds to the evaluation's (waveform correlation,
-pooling over event sets, the pass/fail table), on signals with known answers. The driver
-itself runs for minutes (docs/methods_compare.md says how)."""
+"""experiments.flight.methods_compare: the figures it adds to the evaluation's (waveform
+correlation, pooling over event sets, the pass/fail table), on signals with known answers.
+The driver itself runs for minutes (docs/methods_compare.md says how)."""
 
 from __future__ import annotations
 
