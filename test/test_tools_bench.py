@@ -52,6 +52,14 @@ def test_bench_quick_writes_json_and_markdown(tmp_path):
         "write_rosbags",
     ):
         assert bags["mcap"][f"{key}_msgs_per_s"] > 0, key
+    methods = data["methods"]  # paper, cancel, hybrid on a simulated PR2 run
+    for method in bench.METHODS:
+        for name in ("batch", "batch_per_axis", "stream"):
+            assert methods[f"{method}_{name}_x_realtime"] > 0
+            assert methods[f"{method}_{name}_x_realtime_cpu"] > 0
+    for method in ("cancel", "hybrid"):
+        assert methods[f"{method}_batch_cpu_over_paper"] > 0
+    assert "Method `hybrid`" in (tmp_path / "bench.md").read_text()
     assert "a bag copy" in (tmp_path / "bench.md").read_text()
     assert set(data["targets"]) == set(bench.TARGETS)
     assert all(t["met"] in (True, False) for t in data["targets"].values())

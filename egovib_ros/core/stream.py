@@ -545,11 +545,16 @@ class BlockFramer:
         self._rate_ends.append(ends)
         self._rate_count += len(steps)
         L = self.s.block_length
-        while self._rate_count >= (need := (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L):
-            seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
-            window, window_end = seen[:need], int(ends[need - 1])
-            self._rate_steps, self._rate_ends = [seen[need:]], [ends[need:]]
-            self._rate_count = len(seen) - need
+        if self._rate_count < (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L:
+            return
+        # joined once per chunk and walked by offset: a long chunk (batch) holds many windows
+        seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
+        start = 0
+        while len(seen) - start >= (need := (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L):
+            window, window_end = seen[start : start + need], int(ends[start + need - 1])
+            start += need
+            self._rate_steps, self._rate_ends = [seen[start:]], [ends[start:]]
+            self._rate_count = len(seen) - start
             measured = NS_PER_S / measured_period(window, self.s.period_ns)
             off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
             if not self._rate_checked:

@@ -111,6 +111,26 @@ def _stream(
             yield stamps, chunk.values, _truth(truth, stamps), _pop(speed_ok, stamps)
 
 
+def method_output(
+    bag, model: NoiseModel, method: str, joint_lag_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(stamps (N,), values (N, 3), ground truth (N, 3) or None): what `detect_bag` feeds
+    its detector on `bag` (the method's streaming output, or the raw stream), whole; for
+    looking at why a method detects what it does."""
+    stamps, values, truth = [], [], []
+    for s, v, contact, _ in _stream(bag, model, method, joint_lag_s, ground_truth=True):
+        stamps.append(s)
+        values.append(v)
+        if contact is not None:
+            truth.append(contact)
+    stamps_all = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
+    values_all = np.concatenate(values) if values else np.zeros((0, 3))
+    contact_all = np.concatenate(truth) if truth else None
+    if contact_all is not None and len(contact_all) != len(stamps_all):
+        contact_all = None
+    return stamps_all, values_all, contact_all
+
+
 def _within(piece, speed_limit: np.ndarray) -> np.ndarray:
     """Per sensor sample: the last joint state before it has every |speed| within limit."""
     if not len(piece.joint_stamps_ns):
