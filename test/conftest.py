@@ -358,6 +358,23 @@ def feeder(ros_client):
 
 
 @pytest.fixture(scope="session")
+def sim_methods_model_path(tmp_path_factory) -> Path:
+    """A free-motion noise model of the simulated hand calibrated for every method (paper,
+    cancel, hybrid: `egovib calibrate --methods hybrid`), from 4 s of simulated motion."""
+    from egovib_ros.core import calibrate_arrays
+    from egovib_ros.core.methods import calibrate_methods
+    from egovib_ros.sim import simulate_motion
+
+    rec, _ = simulate_motion(duration_s=4.0, max_speed=0.5, seed=4)
+    arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
+    paper, _ = calibrate_arrays(*arrays, sweep="free", source="test motion")
+    model, _ = calibrate_methods(paper, *arrays, source="test motion")
+    path = tmp_path_factory.mktemp("model") / "methods.npz"
+    model.save(path)
+    return path
+
+
+@pytest.fixture(scope="session")
 def sim_model_path(tmp_path_factory) -> Path:
     """A noise model calibrated offline from a short simulated superposition sweep."""
     from egovib_ros.core import calibrate_arrays
