@@ -21,9 +21,9 @@ from egovib_ros.bag.codec import (
 )
 from egovib_ros.nodes.common import stream_publisher_qos
 from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
-from egovib_ros.tools.orchestration import deep_output, reliable_input
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion
+from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 
@@ -72,7 +72,8 @@ def test_real_flight_replayed_live_equals_offline(nodes, ros_client, tmp_path):
         bag,
         model,
         robot,
-        topics=[robot.sensor_topic, robot.joints_topic],
+        # bag names with and without the leading slash (as bag_recorder takes them)
+        topics=[robot.sensor_topic, robot.joints_topic.lstrip("/")],
     )
     n = len(raw_stamps)
     assert int(values["samples_in"]) == int(values["samples_published"]) == n
