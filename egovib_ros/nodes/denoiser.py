@@ -247,12 +247,13 @@ class Denoiser(Node):
         self.channels = first["channels"]
         self.flush_after_idle_s = params["flush_after_idle"]
         self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
+        self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
         # the same construction as `egovib denoise --method` (bad combinations: one line)
         self.denoiser = make_method_denoiser(
             self.model,
             self.method,
             channels=self.channels,
-            output=params["output"] if self.channels == "per_axis" else "bandpassed",
+            output=self.output,
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
             joint_wait_s=params["joint_wait"],
@@ -462,6 +463,7 @@ class Denoiser(Node):
             "model_rate_hz": self.model.sample_rate_hz,
             "method": self.method,
             "channels": self.channels,
+            "output": self.output,
             "oversubtraction": (
                 self.denoiser.subtraction.oversubtraction if self.method == "paper" else nan
             ),
@@ -476,7 +478,8 @@ class Denoiser(Node):
         warnings = []
         if inp.joint_messages == 0 and inp.sensor_messages > 0:
             warnings.append(
-                f"no joint state on {inp.joints_topic}: passing the band-passed signal through"
+                f"no joint state on {inp.joints_topic}: passing the "
+                f"{'input' if self.output == 'dropin' else 'band-passed signal'} through"
             )
         elif grown[f"{unit}_no_joint_state"]:
             warnings.append(
