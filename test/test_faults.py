@@ -1695,7 +1695,7 @@ def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
         raw=True,
     )
     feed = feeder(profile)
-    assert feed.wait_for_subscribers(), nodes.log(den)
+    assert feed.wait_for_subscribers("denoiser"), nodes.log(den)
     feed.publish_joint_state()
     rate = profile.rate_hz
     before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
