@@ -3,6 +3,7 @@
     ros2 launch egovib_ros denoise.launch.py model:=/path/to/model.npz
     ros2 launch egovib_ros denoise.launch.py model:=quad.npz sensor_topic:=/fc/imu/raw \
         joints_topic:=/motors/joint_states denoised_topic:=/fc/imu/clean channels:=combined
+    ros2 launch egovib_ros denoise.launch.py model:=hybrid.npz method:=hybrid
 
 The model carries the robot profile it was calibrated with: the Imu field to clean,
 the joints and the topic names (relative, so `namespace:=` applies). `sensor_topic`,
@@ -20,12 +21,11 @@ from launch import LaunchDescription
 
 def _denoiser(context):
     from egovib_ros.core import NoiseModel  # the installed package
-    from egovib_ros.nodes.denoiser import model_profile
 
     def arg(name: str) -> str:
         return LaunchConfiguration(name).perform(context)
 
-    profile = model_profile(NoiseModel.load(arg("model")))
+    profile = NoiseModel.load(arg("model")).robot_profile()
     remappings = [
         (source, target)
         for source, target in (
@@ -35,13 +35,14 @@ def _denoiser(context):
         )
         if target
     ]
-    qos = {}
+    # output: the method's default (dropin with paper, bandpassed with cancel and hybrid)
+    extra = {"output": arg("output")} if arg("output") else {}
     if arg("reliable").lower() == "true":
         for topic in (
             arg("sensor_topic") or profile.sensor_topic,
             arg("joints_topic") or profile.joints_topic,
         ):
-            qos[f"qos_overrides./{topic.lstrip('/')}.subscription.reliability"] = "reliable"
+            extra[f"qos_overrides./{topic.lstrip('/')}.subscription.reliability"] = "reliable"
     return [
         Node(
             package="egovib_ros",
@@ -54,11 +55,11 @@ def _denoiser(context):
                 {
                     "model": LaunchConfiguration("model"),
                     "channels": LaunchConfiguration("channels"),
-                    "output": LaunchConfiguration("output"),
+                    "method": LaunchConfiguration("method"),
                     "oversubtraction": LaunchConfiguration("oversubtraction"),
                     "floor": LaunchConfiguration("floor"),
                 },
-                qos,
+                extra,
             ],
         )
     ]
@@ -76,14 +77,23 @@ def generate_launch_description():
                 description="per_axis (drop-in replacement) | combined (the paper's 1-D signal)",
             ),
             DeclareLaunchArgument(
-                "output",
-                default_value="dropin",
-                description="dropin (raw minus the ego-vibration, gravity kept) | bandpassed",
+                "method",
+                default_value="paper",
+                description="paper (a block of delay) | cancel | hybrid (4 ms; need a model from "
+                "`egovib calibrate --methods hybrid`)",
             ),
             DeclareLaunchArgument(
-                "oversubtraction", default_value="1.0", description="alpha; changes live"
+                "output",
+                default_value="",
+                description="dropin (raw minus the ego-vibration, gravity kept; paper only) | "
+                "bandpassed; empty: dropin with paper, bandpassed with cancel and hybrid",
             ),
-            DeclareLaunchArgument("floor", default_value="0.0", description="beta; changes live"),
+            DeclareLaunchArgument(
+                "oversubtraction", default_value="1.0", description="alpha (paper); changes live"
+            ),
+            DeclareLaunchArgument(
+                "floor", default_value="0.0", description="beta (paper); changes live"
+            ),
             DeclareLaunchArgument(
                 "namespace", default_value="", description="namespace of the node and its topics"
             ),

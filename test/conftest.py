@@ -101,7 +101,10 @@ class Feeder:
     """Publishes a robot's sensor stream (Imu, one message per sample, the profile's field)
     and JointStates from the test process in real time, 10 ms at a time, and keeps what it
     sent. JointStates carry `joint_names` (default: the profile's joints among ten others,
-    in an order of their own, as a real robot's joint_state_broadcaster does)."""
+    in an order of their own, as a real robot's joint_state_broadcaster does), positions
+    (the velocities integrated over the stamps) and velocities, or with `positions_only` an
+    empty velocity field (as many real drivers). `keep_messages`: keep every message sent
+    as (topic, stamp, bytes) in `messages` (to write the same stream into a bag)."""
 
     def __init__(
         self,
@@ -114,6 +117,8 @@ class Feeder:
         rate_hz: float | None = None,
         seed: int = 0,
         split_joints: bool = False,
+        positions_only: bool = False,
+        keep_messages: bool = False,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -135,23 +140,27 @@ class Feeder:
         }
         self.velocity = np.array([speeds[name] for name in self.joint_names])
         self.split_joints = split_joints  # two publishers, each with half of the joints
+        self.positions_only = positions_only
+        self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
+        self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
+        self.last_joint_stamp: int | None = None
         self.rng = np.random.default_rng(seed)
         self.stamp0 = time.time_ns()
         self.next_index = 0
         self.stamps: list[np.ndarray] = []
         self.values: list[np.ndarray] = []
 
-    def wait_for_subscribers(self, node: str, timeout: float = 60.0) -> bool:
+    def wait_for_subscribers(self, node: str, timeout: float = 60.0, count: int = 1) -> bool:
         """Until both sides of both links to `node` (its /diagnostics status name) have
         matched: these writers see its readers, and its report says its readers see
         publishers. DDS matches each side on its own; a reliable sample sent before the
         reader's side has matched is dropped there and resent only if the writer still
         holds it when the reader asks, so a guessed delay could lose the start on a busy
-        machine."""
+        machine. `count`: the readers these writers must see (other nodes beside `node`)."""
         return self.client.spin_until(
             lambda: (
-                self.raw_pub.get_subscription_count() > 0
-                and self.joint_pub.get_subscription_count() > 0
+                self.raw_pub.get_subscription_count() >= count
+                and self.joint_pub.get_subscription_count() >= count
                 and matched(self.client, node, sensor_publishers=1, joint_state_publishers=1)
             ),
             timeout,
@@ -173,14 +182,28 @@ class Feeder:
         the first sensor sample (else it passes samples through until joint states come)."""
         from egovib_ros.nodes.convert import encode_joint_state_batch
 
-        names = self.joint_names
+        stamps = np.array([self.stamp0 - 1_000_000])
         for data in encode_joint_state_batch(
-            np.array([self.stamp0 - 1_000_000]),
-            np.zeros((1, len(names))),
-            self.velocity[None],
-            names,
+            stamps,
+            self._positions(stamps, self.velocity[None]),
+            None if self.positions_only else self.velocity[None],
+            self.joint_names,
         ):
-            self.joint_pub.publish(data)
+            self._publish(self.joint_pub, data)
+
+    def _positions(self, stamps: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        """Joint positions at `stamps`: each step adds velocity x the time since the last
+        joint state (the backward difference of the positions gives the velocities back)."""
+        previous = self.last_joint_stamp if self.last_joint_stamp is not None else stamps[0]
+        dt = np.diff(np.concatenate([[previous], stamps])).astype(np.float64) / 1e9
+        position = self.position + np.cumsum(velocity * dt[:, None], axis=0)
+        self.position, self.last_joint_stamp = position[-1], int(stamps[-1])
+        return position
+
+    def _publish(self, publisher, data: bytes) -> None:
+        publisher.publish(data)
+        if self.messages is not None:
+            self.messages.append((publisher.topic_name, header_stamp_ns(data), data))
 
     def run(self, seconds: float, *, skip_s: float = 0.0) -> None:
         """Publish `seconds` of white noise at constant joint velocities; `skip_s` first jumps
@@ -223,23 +246,24 @@ class Feeder:
                 parts = [slice(None)]
                 if self.split_joints:
                     parts = [slice(0, len(names) // 2), slice(len(names) // 2, None)]
+                position = self._positions(joint_stamps[k:k_end], joint_velocity[k:k_end])
                 messages = [
                     encode_joint_state_batch(
                         joint_stamps[k:k_end] + h * 100_000,
-                        np.zeros((k_end - k, len(names[part]))),
-                        joint_velocity[k:k_end, part],
+                        position[:, part],
+                        None if self.positions_only else joint_velocity[k:k_end, part],
                         names[part],
                     )
                     for h, part in enumerate(parts)
                 ]
                 for row in zip(*messages):  # in stamp order, publisher after publisher
                     for data in row:
-                        self.joint_pub.publish(data)
+                        self._publish(self.joint_pub, data)
             if i_end > i:
                 for data in encode_imu_batch(
                     stamps[i:i_end], values[i:i_end], "imu_link", self.profile.sensor_field
                 ):
-                    self.raw_pub.publish(data)
+                    self._publish(self.raw_pub, data)
             i, k = i_end, k_end
             self.client.spin_for(0.01)
         self.stamps.append(np.asarray(stamps))
@@ -247,6 +271,20 @@ class Feeder:
 
     def sent(self) -> tuple[np.ndarray, np.ndarray]:
         return np.concatenate(self.stamps), np.concatenate(self.values)
+
+    def write_bag(self, path: Path) -> Path:
+        """The messages sent (`keep_messages`), as they were, into a bag (log time = stamp):
+        what `egovib` commands read offline."""
+        from egovib_ros.bag.codec import IMU_TYPE, JOINT_STATE_TYPE
+        from egovib_ros.bag.writer import BagWriter
+
+        types = {self.raw_pub.topic_name: IMU_TYPE, self.joint_pub.topic_name: JOINT_STATE_TYPE}
+        with BagWriter(path) as bag:
+            for topic, msgtype in types.items():
+                bag.add_topic(topic, msgtype)
+            for topic, stamp, data in sorted(self.messages, key=lambda m: m[1]):
+                bag.write(topic, stamp, data)
+        return path
 
 
 def reports(client, node: str, level: int | None = None, *texts: str) -> bool:
@@ -317,6 +355,23 @@ def many_joints(profile) -> list[str]:
 def feeder(ros_client):
     """Feeder factory bound to the test's ros_client: feeder(profile, **options)."""
     return lambda profile, **options: Feeder(ros_client, profile, **options)
+
+
+@pytest.fixture(scope="session")
+def sim_methods_model_path(tmp_path_factory) -> Path:
+    """A free-motion noise model of the simulated hand calibrated for every method (paper,
+    cancel, hybrid: `egovib calibrate --methods hybrid`), from 4 s of simulated motion."""
+    from egovib_ros.core import calibrate_arrays
+    from egovib_ros.core.methods import calibrate_methods
+    from egovib_ros.sim import simulate_motion
+
+    rec, _ = simulate_motion(duration_s=4.0, max_speed=0.5, seed=4)
+    arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
+    paper, _ = calibrate_arrays(*arrays, sweep="free", source="test motion")
+    model, _ = calibrate_methods(paper, *arrays, source="test motion")
+    path = tmp_path_factory.mktemp("model") / "methods.npz"
+    model.save(path)
+    return path
 
 
 @pytest.fixture(scope="session")

@@ -72,7 +72,8 @@ def test_real_flight_replayed_live_equals_offline(nodes, ros_client, tmp_path):
         bag,
         model,
         robot,
-        topics=[robot.sensor_topic, robot.joints_topic],
+        # bag names with and without the leading slash (as bag_recorder takes them)
+        topics=[robot.sensor_topic, robot.joints_topic.lstrip("/")],
     )
     n = len(raw_stamps)
     assert int(values["samples_in"]) == int(values["samples_published"]) == n

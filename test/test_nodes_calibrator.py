@@ -172,10 +172,13 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
     nodes, ros_client, feeder, tmp_path
 ):
     """A robot that is not the PR2 (3 joints, one one-directional, a gyro at 1 kHz with
-    jittery stamps, joint states at 500 Hz among ten other joints): free-motion calibration
-    through its profile. The checkpoint directory is unusable at first (a file stands where
-    it should be): ERROR on /diagnostics, statistics kept, the write retried; once the
-    directory exists the checkpoint appears, and the final model equals the offline one."""
+    jittery stamps, joint states at 500 Hz among ten other joints, positions only, as many
+    drivers publish them): free-motion calibration through its profile, velocities
+    differentiated from the positions (profile joints.velocity: auto). The checkpoint
+    directory is unusable at first (a file stands where it should be): ERROR on
+    /diagnostics, statistics kept, the write retried; once the directory exists the
+    checkpoint appears, and the final model equals the offline one (calibrated from the
+    velocities themselves)."""
     robot = profile(3, rate_hz=1000.0)
     robot_path = tmp_path / "robot.yaml"
     robot_path.write_text(robot.dumps())
@@ -194,7 +197,7 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
             **reliable_input(robot.sensor_topic, robot.joints_topic),
         },
     )
-    stream = feeder(robot)
+    stream = feeder(robot, positions_only=True)
     assert stream.wait_for_subscribers("calibrator"), nodes.log(cal)
     t_acc, accel, t_joint, velocity = (
         data["t_acc"],
@@ -239,7 +242,14 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
     assert ros_client.spin_until(everything_received, timeout=30.0), diagnostic_values(
         ros_client.statuses["calibrator"]
     )
+    assert diagnostic_values(ros_client.statuses["calibrator"])["velocity_source"] == (
+        "from_position"
+    )
     assert nodes.stop(cal) == 0, nodes.log(cal)
+    # free motion measures some of the grid: the summary says how much, never "missing: none"
+    summary = next(line for line in nodes.log(cal).splitlines() if "calibrator: wrote" in line)
+    total = int(np.prod(robot.grid_shape))
+    assert re.search(rf"\d+ of {total} grid cells measured", summary) and "none" not in summary
     assert failures >= 1 and "cannot write checkpoint" in nodes.log(cal)
 
     live = NoiseModel.load(output)

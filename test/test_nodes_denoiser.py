@@ -4,8 +4,10 @@ Covers: stamps, noise reduction and the drop-in output (input message copied, on
 profile's field replaced); joints picked by name from a 12-joint JointState in shuffled
 order; bad input counted once; health (STALE without input, OK again after a restart,
 ERROR and no output for a wrong-rate stream or a joint that never appears); live
-parameters (oversubtraction changes the output, read-only parameters refused) and a
-refused `batch_samples:=0`.
+parameters (oversubtraction changes the output, read-only parameters refused); refused
+starts (`batch_samples:=0`, method hybrid without its calibration or with the drop-in
+output); JointStates with positions only, methods paper and hybrid, equal to `egovib
+denoise`; the model-coverage WARN's window and hysteresis.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from rclpy.serialization import deserialize_message
 from scipy import signal
 from sensor_msgs.msg import Imu
 
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import stream_publisher_qos
 from egovib_ros.nodes.convert import (
@@ -42,6 +45,7 @@ from egovib_ros.nodes.convert import (
     encode_imu_batch,
 )
 from egovib_ros.robot import load_profile
+from egovib_ros.sim import simulate_motion
 from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
@@ -60,6 +64,10 @@ LOSSLESS = stream_publisher_qos(depth=LOSSLESS_DEPTH)  # this test's own links: 
 # ones after it until resent), and a block passed through without them would be counted
 # and warned about as a block without joint state - not what these tests are about.
 LATE_JOINTS = {"joint_wait": 1.0}
+# Where the output must equal the offline one exactly, even on a loaded machine: a joint
+# state lost on the way is resent at the writer's next heartbeat (Fast DDS: 3 s), so blocks
+# wait up to 5 s of stream time for it, and the last ones are flushed only after 4 s idle.
+EXACT_REPLAY = {"joint_wait": 5.0, "flush_after_idle": 4.0}
 
 
 def bandpass(values: np.ndarray) -> np.ndarray:
@@ -436,20 +444,134 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
     assert wrong.poll() is None and lacking.poll() is None
 
 
-def test_zero_batch_samples_is_refused_at_start(sim_model_path, ros_domain):
-    run = subprocess.run(
-        [
-            str(BIN / "denoiser"),
-            "--ros-args",
-            "-p",
-            f"model:={sim_model_path}",
-            "-p",
-            "batch_samples:=0",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
+def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_path, ros_domain):
+    """One line naming the problem, exit status 2: batch_samples 0; method hybrid with a
+    model calibrated for the paper's method only; method hybrid with the drop-in output
+    (made by method paper only)."""
+    cases = {
+        "batch_samples": ([f"model:={sim_model_path}", "batch_samples:=0"], "range"),
+        "--methods hybrid": ([f"model:={sim_model_path}", "method:=hybrid"], "paper"),
+        "dropin": (
+            [f"model:={sim_methods_model_path}", "method:=hybrid", "output:=dropin"],
+            "bandpassed",
+        ),
+    }
+    runs = {
+        key: subprocess.Popen(
+            [str(BIN / "denoiser"), "--ros-args"] + [a for p in params for a in ("-p", p)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for key, (params, _) in cases.items()
+    }
+    for key, run in runs.items():
+        stdout, stderr = run.communicate(timeout=60)
+        assert run.returncode == 2, (key, stdout + stderr)
+        errors = [line for line in stderr.splitlines() if "error" in line]
+        assert len(errors) == 1 and key in errors[0] and cases[key][1] in errors[0], stderr
+
+
+def bag_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps and linear_acceleration of an Imu topic of a bag."""
+    from rosbags.rosbag2 import Reader
+
+    from egovib_ros.bag.codec import decode_imu
+
+    with Reader(path) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        return decode_imu([bytes(d) for _, _, d in reader.messages(connections=conns)])
+
+
+def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
+    nodes, ros_client, feeder, sim_methods_model_path, tmp_path
+):
+    """A driver that publishes JointState positions only (empty velocity): the denoiser
+    differentiates them as the offline commands do (profile joints.velocity: auto), says so
+    on /diagnostics, and its output equals `egovib denoise` on a bag of the same messages,
+    sample for sample, with method paper and with method hybrid (two denoisers side by
+    side, one model calibrated for both). No block goes without joint state."""
+    model = str(sim_methods_model_path)
+    common = {"model": model, **RELIABLE, **EXACT_REPLAY}
+    hybrid_topic = "/accelerometer/denoised_hybrid"
+    started = {
+        "denoiser": nodes.start("denoiser", {**common, **DEEP_OUTPUT}),
+        "denoiser_hybrid": nodes.start(
+            "denoiser",
+            {**common, "method": "hybrid", **deep_output(hybrid_topic)},
+            remap={"__node": "denoiser_hybrid", PR2.node_denoised_topic: hybrid_topic},
+        ),
+    }
+    received = {"denoiser": [], "denoiser_hybrid": []}
+    for name, topic in (("denoiser", PR2.denoised_topic), ("denoiser_hybrid", hybrid_topic)):
+        output = ros_client.node.create_subscription(
+            Imu, topic, received[name].append, LOSSLESS, raw=True
+        )
+        assert wait_for_output(ros_client, output, name), nodes.log(started[name])
+    stream = feeder(PR2, positions_only=True, keep_messages=True)
+    assert stream.wait_for_subscribers("denoiser", count=2) and ros_client.spin_until(
+        lambda: matched(
+            ros_client, "denoiser_hybrid", sensor_publishers=1, joint_state_publishers=1
+        ),
+        60.0,
+    ), nodes.log(started["denoiser_hybrid"])
+
+    # 3 s of the simulated hand in random motion with taps, on this machine's clock; the
+    # samples start after the second joint state (the first has no velocity: nothing to
+    # difference it with).
+    rec, _ = simulate_motion(duration_s=3.0, max_speed=0.5, tap_rate_hz=2.0, seed=7)
+    shift = time.time_ns() - int(rec.joint_stamps_ns[0])
+    joint_stamps = rec.joint_stamps_ns + shift
+    keep = rec.sensor_stamps_ns + shift > joint_stamps[1]
+    stamps, sensor = rec.sensor_stamps_ns[keep] + shift, rec.sensor[keep]
+    stream.publish(stamps, sensor, joint_stamps, rec.joint_velocity)
+    n = len(stamps)
+    assert ros_client.spin_until(
+        lambda: all(len(r) >= n for r in received.values()), timeout=60.0
+    ), ({k: len(r) for k, r in received.items()}, n)
+
+    def reported_all() -> bool:  # reports made after the last output
+        return all(
+            int(diagnostic_values(ros_client.statuses[name])["samples_published"]) == n
+            for name in received
+        )
+
+    assert ros_client.spin_until(reported_all, 30.0), (
+        shown(ros_client),
+        shown(ros_client, "denoiser_hybrid"),
     )
-    assert run.returncode == 2, run.stdout + run.stderr
-    errors = [line for line in run.stderr.splitlines() if "error" in line]
-    assert len(errors) == 1 and "batch_samples" in errors[0] and "range" in errors[0], run.stderr
+    for name, proc in started.items():
+        assert nodes.stop(proc) == 0, nodes.log(proc)
+    values = {name: diagnostic_values(ros_client.statuses[name]) for name in received}
+    for name, unit in (("denoiser", "blocks"), ("denoiser_hybrid", "samples")):
+        assert values[name]["velocity_setting"] == "auto", values[name]
+        assert values[name]["velocity_source"] == "from_position", values[name]
+        assert int(values[name][f"{unit}_no_joint_state"]) == 0, (name, values[name])
+    assert values["denoiser_hybrid"]["method"] == "hybrid"
+
+    bag = stream.write_bag(tmp_path / "positions_only")
+    # what `egovib denoise BAG --model M --out OUT [--method hybrid]` runs
+    offline = {"denoiser": tmp_path / "paper", "denoiser_hybrid": tmp_path / "hybrid"}
+    for name, out in offline.items():
+        denoise_bag(bag, out, model=model, method="hybrid" if "hybrid" in name else "paper")
+    for name, out in offline.items():
+        want_stamps, want = bag_topic(out, PR2.denoised_topic)
+        got_stamps, got, _ = decode_imu_messages(received[name])
+        assert len(want_stamps) == n, (name, len(want_stamps), n)
+        np.testing.assert_array_equal(got_stamps, want_stamps)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+def test_coverage_warning_does_not_flip_with_a_share_hovering_at_the_limit():
+    """A free-motion model: the share of blocks on unmeasured cells goes 30 %, 20 %, 30 %,
+    ... from one second to the next around the 25 % limit (a per-second rule would flip
+    OK/WARN every report). Over the 10 s window with hysteresis the WARN comes once and
+    stays; it clears once the share falls below half the limit."""
+    from egovib_ros.nodes.denoiser import COVERAGE_WINDOW_S, CoverageWarning
+
+    coverage = CoverageWarning(0.25)
+    levels = [coverage.update(100, 20 if s % 2 else 30, now=float(s)) for s in range(30)]
+    assert levels[0] and all(levels), levels
+    clearing = [coverage.update(100, 5, now=30.0 + s) for s in range(int(COVERAGE_WINDOW_S) + 2)]
+    assert clearing[0] and not clearing[-1], clearing  # within the window, once
+    assert sum(a != b for a, b in zip(clearing, clearing[1:])) == 1, clearing

@@ -401,26 +401,31 @@ def joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int,
 def encode_joint_state_batch(
     stamps_ns: np.ndarray,
     position: np.ndarray,
-    velocity: np.ndarray,
+    velocity: np.ndarray | None,
     names: Sequence[str],
 ) -> list[bytes]:
-    """Serialise one JointState (name, position, velocity; no effort) per row to CDR bytes."""
+    """Serialise one JointState (name, position, velocity; no effort) per row to CDR bytes.
+    `velocity` None: an empty velocity field, as drivers that publish positions only."""
     if len(stamps_ns) == 0:
         return []
     position = np.asarray(position, np.float64).reshape(len(stamps_ns), -1)
-    velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
     n, n_joints = position.shape
+    n_velocity = n_joints if velocity is not None else 0
     template = bytes(
         typestore().serialize_cdr(
-            joint_state_message(0, names, np.zeros(n_joints), np.zeros(n_joints)), JOINT_STATE_TYPE
+            joint_state_message(0, names, np.zeros(n_joints), np.zeros(n_velocity)),
+            JOINT_STATE_TYPE,
         )
     )
     _, pos_off, _, vel_off, _, _ = joint_state_layout(template)
+    fields = {"sec": ("<i4", 4), "nanosec": ("<u4", 8), "pos": (("<f8", n_joints), pos_off)}
+    if velocity is not None:
+        fields["vel"] = (("<f8", n_joints), vel_off)
     dtype = np.dtype(
         {
-            "names": ["sec", "nanosec", "pos", "vel"],
-            "formats": ["<i4", "<u4", ("<f8", n_joints), ("<f8", n_joints)],
-            "offsets": [4, 8, pos_off, vel_off],
+            "names": list(fields),
+            "formats": [f for f, _ in fields.values()],
+            "offsets": [o for _, o in fields.values()],
             "itemsize": len(template),
         }
     )
@@ -428,7 +433,8 @@ def encode_joint_state_batch(
     arr = buf.view(dtype)
     arr["sec"], arr["nanosec"] = _stamp_fields(stamps_ns)
     arr["pos"] = position
-    arr["vel"] = velocity
+    if velocity is not None:
+        arr["vel"] = np.asarray(velocity, np.float64).reshape(n, n_joints)
     return _split(buf.tobytes(), n, len(template))
 
 

@@ -19,6 +19,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.002,
         help="sim_hand's batching period (s): part of the measured latency",
     )
+    parser.add_argument(
+        "--contacts",
+        action="store_true",
+        help="also run contact_detector on the denoised and on the raw stream, sim_hand "
+        "tapping: event F1 and onset-to-event-message latency",
+    )
+    parser.add_argument("--tap-rate", type=float, default=1.0, help="taps per second (--contacts)")
+    parser.add_argument(
+        "--calibration-seconds",
+        type=float,
+        default=30.0,
+        help="no-contact motion simulated for the detectors' thresholds (--contacts)",
+    )
 
 
 def register(subparsers) -> None:

@@ -39,7 +39,12 @@ PARAMETERS = (
     Param("bag", "", "rosbag2 directory to play"),
     Param("rate", 1.0, "playback speed factor (2.0 = twice as fast)", range=(0.001, 1000.0)),
     Param("clock", False, "publish /clock with the bag time"),
-    Param("topics", [""], "topics to play (bag names); empty = all"),
+    Param(
+        "topics",
+        [""],
+        "topics to play (bag names, with or without the leading '/', as bag_recorder takes "
+        "them); empty = all",
+    ),
     Param(
         "wait_for_subscribers",
         0,
@@ -63,6 +68,12 @@ PARAMETERS = (
 )
 
 
+def bag_topic_key(name: str) -> str:
+    """A topic name as bags and the `topics` parameter are compared: bags store absolute
+    names ('/joint_states'), users write them either way ('joint_states')."""
+    return "/" + name.strip().lstrip("/")
+
+
 class BagPlayer(Node):
     """Plays the bag `bag`; `run()` returns when every message was published."""
 
@@ -80,13 +91,15 @@ class BagPlayer(Node):
         if not (self.bag / "metadata.yaml").is_file():
             raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
         self.reader = BagReader(self.bag)  # the bag layer: BagError on an unreadable bag
-        wanted = {t for t in topics if t}
-        missing = sorted(wanted - set(self.reader.topics))
+        wanted = {bag_topic_key(t) for t in topics if t.strip()}
+        missing = sorted(wanted - {bag_topic_key(t) for t in self.reader.topics})
         if missing and len(missing) == len(wanted):
             raise BagError(f"{self.bag}: none of the topics {missing} is in the bag")
+        if missing:
+            self.get_logger().warning(f"{self.bag}: topics {missing} are not in the bag")
         self.topic_publishers = {}
         for topic, info in self.reader.topics.items():
-            if wanted and topic not in wanted:
+            if wanted and bag_topic_key(topic) not in wanted:
                 continue
             try:
                 msg_class = message_class(info.msgtype)

@@ -80,6 +80,27 @@ PARAMETERS = (
 )
 
 
+def coverage_text(cov: dict) -> str:
+    """How much of the grid the model measured, for the summary line: a sweep names the
+    cells it should have reached and did not; free motion reaches the cells it reaches, so
+    only the count of the grid's cells measured is said (never "missing: none" for a grid
+    mostly unmeasured)."""
+    measured = f"{cov['cells_measured']} of {cov['cells_total']} grid cells measured"
+    if "cells_expected" not in cov:
+        return f"{measured} (free motion: the rest are unmeasured)"
+    missing = cov["missing_cells"]
+    shown = (
+        "none"
+        if not missing
+        else ", ".join(f"[{m}]" for m in missing[:20])
+        + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+    )
+    return (
+        f"{cov['cells_covered']}/{cov['cells_expected']} cells of the {cov['mode']} sweep "
+        f"covered ({measured}); sweep cells missing: {shown}"
+    )
+
+
 def default_checkpoint(output: str) -> str:
     """Checkpoint path beside the model: MODEL.checkpoint.npz."""
     path = Path(output)
@@ -290,6 +311,7 @@ class Calibrator(Node):
             "input_rate_hz": (inp.sensor_messages - last_in) / max(now - last_t, 1e-3),
             "samples_in": inp.sensor_messages,
             "joint_states_in": inp.joint_messages,
+            **inp.velocity_values(),
             **inp.publisher_counts(),
             "mode": cov["mode"],
             "cells_measured": cov["cells_measured"],
@@ -355,22 +377,10 @@ class Calibrator(Node):
             ) from None
         if os.path.exists(self.checkpoint):
             os.remove(self.checkpoint)
-        missing = cov.get("missing_cells")
-        where = (
-            f"{cov['cells_covered']}/{cov['cells_expected']} cells"
-            if "cells_expected" in cov
-            else f"{cov['cells_measured']} of {cov['cells_total']} cells"
-        )
-        shown = (
-            "none"
-            if not missing
-            else ", ".join(f"[{m}]" for m in missing[:20])
-            + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
-        )
         print(
-            f"calibrator: wrote {self.output} ({cov['mode']}): {where}, {cov['blocks']} blocks "
-            f"(min {cov['min_blocks']} per cell); missing cells: {shown}; rejected blocks: "
-            f"{self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}",
+            f"calibrator: wrote {self.output} ({cov['mode']}): {coverage_text(cov)}, "
+            f"{cov['blocks']} blocks (min {cov['min_blocks']} per measured cell); rejected "
+            f"blocks: {self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}",
             flush=True,
         )
         return 0

@@ -30,7 +30,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.core.velocity import hold_missing_joints
+from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.convert import (
     decode_imu_raws,
@@ -270,6 +270,10 @@ class StreamInput:
     (with batch_samples = hop a batch ends exactly when a block completes).
     Undecodable messages are counted and left out; everything else, NaN included, goes
     to the core, which counts and handles it (one count for each problem).
+    Joint velocity comes as offline (bag.recording.RecordingStream): the profile's
+    `joints.velocity` through core.velocity.JointVelocity (auto: the message's velocity
+    where finite, else differentiated positions), then a joint a message lacks keeps its
+    last value.
     """
 
     def __init__(
@@ -307,6 +311,9 @@ class StreamInput:
         self.first_joint_s: float | None = None
         self.last_joint_s: float | None = None
         self.joints_seen = np.zeros(len(self.joint_names), bool)
+        self.velocity_setting = profile.velocity_source
+        self._joint_velocity = JointVelocity(len(self.joint_names), source=self.velocity_setting)
+        self.velocities_measured = 0  # joint velocities taken from the messages
         self._last_joint: np.ndarray | None = None  # (2, J) last position and velocity
         self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
 
@@ -366,11 +373,32 @@ class StreamInput:
             self.joints_seen |= present.any(axis=0)
             if not self.joints_seen.all() and not self.carried_joint_names:
                 self.carried_joint_names = joint_names_of(raws[-1])
+            derived_before = self._joint_velocity.derived
+            velocity = self._joint_velocity.push(stamps, position, velocity)
+            usable = int(np.isfinite(velocity).sum())
+            self.velocities_measured += usable - (self._joint_velocity.derived - derived_before)
             # a joint a message lacks keeps its last value, as the bag layer reads it offline
             _, velocity, self._last_joint = hold_missing_joints(
                 position, velocity, self._last_joint
             )
         return JointBatch(stamps, velocity)
+
+    @property
+    def velocity_source(self) -> str:
+        """Where the joint velocities received so far came from: measured (the messages'),
+        from_position (differentiated), both (auto, some of each) or none (yet)."""
+        derived = self._joint_velocity.derived
+        if derived and self.velocities_measured:
+            return "both"
+        return "from_position" if derived else "measured" if self.velocities_measured else "none"
+
+    def velocity_values(self) -> dict[str, object]:
+        """For /diagnostics: the profile's setting and what it gave."""
+        return {
+            "velocity_setting": self.velocity_setting,
+            "velocity_source": self.velocity_source,
+            "joint_velocities_from_position": self._joint_velocity.derived,
+        }
 
     def missing_joints(self) -> list[str]:
         """Named joints that no joint state received so far has carried."""

@@ -114,7 +114,7 @@ class ContactDetectorNode(Node):
         )
         self.input_topic = self.resolve_topic_name(topic)
         self._pending: list[bytes] = []
-        sensor_subscription(self, Imu, topic, self._pending.append, raw=True)
+        self._input = sensor_subscription(self, Imu, topic, self._on_sample, raw=True)
         self.pub = self.create_publisher(Vector3Stamped, "contact_events", 100)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
@@ -155,6 +155,10 @@ class ContactDetectorNode(Node):
         )
         return threshold, f"no-contact data of {bag} through {method}", rate
 
+    def _on_sample(self, data: bytes) -> None:
+        # not bound to the list itself: _process replaces it with a fresh one
+        self._pending.append(data)
+
     def _process(self) -> None:
         if not self._pending:
             return
@@ -191,6 +195,9 @@ class ContactDetectorNode(Node):
             ),
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
+            # DDS matches (0 publishers: nobody publishes the input, e.g. a wrong remapping)
+            "input_publishers": self._input.get_publisher_count(),
+            "event_subscribers": self.pub.get_subscription_count(),
         }
         grown = self.health.changes({"undecodable": self.undecodable})
         warnings = (

@@ -1,9 +1,12 @@
-"""denoiser: streaming spectral subtraction (egovib_ros.core.StreamingDenoiser) as a ROS 2 node.
+"""denoiser: streaming ego-vibration removal as a ROS 2 node, by `method` (paper: the paper's
+spectral subtraction, egovib_ros.core.StreamingDenoiser; cancel, hybrid: core.methods), built
+by the same function as `egovib denoise --method`, so live equals offline.
 
 Everything robot-specific comes from the noise model (`model.profile`): the sensor and
 joint-state topics (as relative names: remappable, namespaceable), the Imu field that
-is cleaned, the joints (picked by name from JointStates with any joints in any order)
-and the nominal rate. The output is the drop-in replacement of the input: each
+is cleaned, the joints (picked by name from JointStates with any joints in any order;
+velocity as the profile's `joints.velocity` says, measured, from_position or auto, as
+offline) and the nominal rate. The output is the drop-in replacement of the input: each
 published Imu is the input message with the profile's field replaced by its cleaned
 value, every other byte (header, frame, orientation, covariances, other vector)
 copied; so the raw messages are kept until their samples come out.
@@ -11,14 +14,17 @@ copied; so the raw messages are kept until their samples come out.
 Health on /diagnostics (~1 Hz, see nodes.common.Health): ERROR, and nothing published,
 when the stream's rate does not fit the model or a named joint never appears in the
 joint states; STALE with no input for `stale_after` s; WARN for a period with bad,
-missing or out-of-order samples, restarts, blocks without joint state (passed through
-band-passed) or too many blocks on unmeasured cells. `oversubtraction` and `floor`
-change live (`ros2 param set`); the other parameters are read-only.
+missing or out-of-order samples, restarts, blocks without joint state (passed through)
+or too many blocks on unmeasured cells (over a COVERAGE_WINDOW_S window, with hysteresis:
+see `unmeasured_warn_fraction`). With method paper `oversubtraction` and `floor` change
+live (`ros2 param set`); the other parameters are read-only.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
+from math import nan
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
@@ -26,7 +32,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from egovib_ros.bag.codec import replace_imu_field
-from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.bag.denoise import make_method_denoiser
+from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError
@@ -41,6 +48,13 @@ from egovib_ros.nodes.common import (
 )
 
 LIVE = ("oversubtraction", "floor")
+METHODS = ("paper", "cancel", "hybrid")
+#: The model-coverage WARN looks at the blocks of the last this many seconds (a free-motion
+#: model's share of unmeasured cells varies from one second to the next) ...
+COVERAGE_WINDOW_S = 10.0
+#: ... and clears only once that share is below this fraction of unmeasured_warn_fraction
+#: (hysteresis: a share hovering at the limit does not flip OK/WARN every report).
+COVERAGE_CLEAR_FRACTION = 0.5
 # The core checks the stream's rate once it has accepted 2 blocks' worth of samples
 # (stream.BlockFramer); output waits for that, once, so that a stream at the wrong rate
 # publishes nothing at all (test_wrong_rate_... holds this to the core's rule).
@@ -59,15 +73,26 @@ MODEL_PARAMETERS = (
         choices=("per_axis", "combined"),
     ),
     Param(
-        "output",
-        "dropin",
-        "dropin: the raw field minus the estimated ego-vibration (gravity, motion and all "
-        "outside the band kept) | bandpassed: the cleaned band-passed signal; channels "
-        "combined is always band-passed",
-        choices=("dropin", "bandpassed"),
+        "method",
+        "paper",
+        "paper: the paper's block spectral subtraction (a block of delay) | cancel: "
+        "speed-locked harmonic cancellation (no delay) | hybrid: cancel, then a low-latency "
+        "gain (4 ms); cancel and hybrid give the band-passed signal and need a model "
+        "calibrated with `egovib calibrate --methods hybrid`",
+        choices=METHODS,
     ),
 )
+OUTPUT_PARAMETER = Param(
+    "output",
+    "dropin",
+    "dropin (default with method paper): the raw field minus the estimated ego-vibration "
+    "(gravity, motion and all outside the band kept) | bandpassed (default with cancel and "
+    "hybrid, the only output they make): the cleaned band-passed signal; channels combined "
+    "is always band-passed",
+    choices=("dropin", "bandpassed"),
+)
 PARAMETERS = MODEL_PARAMETERS + (
+    OUTPUT_PARAMETER,
     Param(
         "oversubtraction",
         1.0,
@@ -113,12 +138,39 @@ PARAMETERS = MODEL_PARAMETERS + (
     Param(
         "unmeasured_warn_fraction",
         0.25,
-        "WARN when more than this share of a second's blocks fell on cells the calibration "
-        "did not measure (full and free-motion models; a superposition model fills the "
-        "cells off the axes by Eq. 6 by design)",
+        "WARN when more than this share of the blocks of the last 10 s fell on cells the "
+        "calibration did not measure (full and free-motion models; a superposition model "
+        "fills the cells off the axes by Eq. 6 by design); the WARN clears below half of it",
         range=(0.0, 1.0),
     ),
 )
+
+
+class CoverageWarning:
+    """Whether to WARN about model coverage: the share of the last COVERAGE_WINDOW_S of
+    blocks (or samples) on unmeasured cells exceeds `limit`; once on, it stays on until
+    that share falls below COVERAGE_CLEAR_FRACTION x `limit` (a free-motion model's share
+    from one second to the next hovers around any limit)."""
+
+    def __init__(self, limit: float):
+        self.limit = float(limit)
+        self._reports: deque = deque()  # (monotonic time, counted, unmeasured) per report
+        self.share = 0.0
+        self.active = False
+
+    def update(self, counted: int, unmeasured: int, now: float | None = None) -> bool:
+        """Add a report's counts (`now`: its monotonic time); whether to WARN."""
+        now = time.monotonic() if now is None else now
+        self._reports.append((now, counted, unmeasured))
+        while now - self._reports[0][0] > COVERAGE_WINDOW_S:
+            self._reports.popleft()
+        total = sum(r[1] for r in self._reports)
+        self.share = sum(r[2] for r in self._reports) / total if total else 0.0
+        if self.active:
+            self.active = self.share >= COVERAGE_CLEAR_FRACTION * self.limit
+        else:
+            self.active = self.share > self.limit
+        return self.active
 
 
 class HeldInput:
@@ -169,16 +221,25 @@ class Denoiser(Node):
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
         self.model = NoiseModel.load(first["model"])
         self.profile = self.model.robot_profile()
+        self.method = first["method"]
         params = declare_parameters(
-            self, PARAMETERS[len(MODEL_PARAMETERS) :], defaults={"batch_samples": self.model.hop}
+            self,
+            PARAMETERS[len(MODEL_PARAMETERS) :],
+            defaults={
+                "batch_samples": self.model.hop,
+                "output": "dropin" if self.method == "paper" else "bandpassed",
+            },
         )
         self.channels = first["channels"]
         self.flush_after_idle_s = params["flush_after_idle"]
-        self.unmeasured_warn = params["unmeasured_warn_fraction"]
-        self.denoiser = StreamingDenoiser(
+        self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
+        self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
+        # the same construction as `egovib denoise --method` (bad combinations: one line)
+        self.denoiser = make_method_denoiser(
             self.model,
+            self.method,
             channels=self.channels,
-            output=first["output"] if self.channels == "per_axis" else "bandpassed",
+            output=self.output,
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
             joint_wait_s=params["joint_wait"],
@@ -215,7 +276,8 @@ class Denoiser(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, "
-            f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} ({self.channels}), "
+            f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} (method {self.method}, "
+            f"{self.channels}), "
             f"joints {list(self.profile.joint_names)} from "
             f"{self.input.joints_topic}, model {first['model']}"
         )
@@ -227,6 +289,12 @@ class Denoiser(Node):
         changes = {p.name: p.value for p in params if p.name in LIVE}
         if not changes:
             return SetParametersResult(successful=True)
+        if self.method != "paper":
+            return SetParametersResult(
+                successful=False,
+                reason=f"{', '.join(changes)} change live with method paper only "
+                f"(this denoiser runs {self.method})",
+            )
         try:
             self.denoiser.set_subtraction(**changes)
         except EgovibError as exc:
@@ -337,19 +405,29 @@ class Denoiser(Node):
         self._last_report = (now, inp.sensor_messages, self.samples_published)
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
+        # paper counts blocks; cancel and hybrid work sample by sample
+        unit = "blocks" if self.method == "paper" else "samples"
+        total = stats["blocks"] if unit == "blocks" else stats["samples_in"]
         counters = {
             **stream_counters(inp, stats),
-            "blocks": stats["blocks"],
-            "blocks_no_joint_state": stats["blocks_no_joint_state"],
-            "blocks_out_of_grid": stats["blocks_out_of_grid"],
-            "blocks_unmeasured": stats["blocks_unmeasured"],
+            unit: total,
+            **{
+                f"{unit}_{key}": stats.get(f"{unit}_{key}", 0)
+                for key in ("no_joint_state", "out_of_grid", "unmeasured")
+            },
         }
         grown = self.health.changes(counters)
-        blocks = max(grown["blocks"], 1)
+        blocks = max(grown[unit], 1)
         fractions = {
-            key: grown[f"blocks_{key}"] / blocks
+            key: grown[f"{unit}_{key}"] / blocks
             for key in ("no_joint_state", "out_of_grid", "unmeasured")
         }
+        # A superposition model fills the cells off the axes by Eq. 6 by design: reported,
+        # not warned about; a full or free-motion model falls back there.
+        by_design = self.model.measured == "superposition"
+        coverage_warn = (
+            self.coverage.update(grown[unit], grown[f"{unit}_unmeasured"]) and not by_design
+        )
         joint_age = now - inp.last_joint_s if inp.last_joint_s is not None else float("nan")
         values = {
             "input_rate_hz": (inp.sensor_messages - last_in) / period,
@@ -360,16 +438,22 @@ class Denoiser(Node):
             **counters,
             "joint_states_in": inp.joint_messages,
             "joint_state_age_s": joint_age,
+            **inp.velocity_values(),
             **inp.publisher_counts(),
             "output_subscribers": self.pub.get_subscription_count(),
             **{f"{key}_fraction": value for key, value in fractions.items()},
+            "unmeasured_fraction_window": self.coverage.share,
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
             "model_rate_hz": self.model.sample_rate_hz,
+            "method": self.method,
             "channels": self.channels,
-            "oversubtraction": self.denoiser.subtraction.oversubtraction,
-            "floor": self.denoiser.subtraction.floor,
+            "output": self.output,
+            "oversubtraction": (
+                self.denoiser.subtraction.oversubtraction if self.method == "paper" else nan
+            ),
+            "floor": self.denoiser.subtraction.floor if self.method == "paper" else nan,
         }
         errors = []
         if self.stream_error:
@@ -380,11 +464,12 @@ class Denoiser(Node):
         warnings = []
         if inp.joint_messages == 0 and inp.sensor_messages > 0:
             warnings.append(
-                f"no joint state on {inp.joints_topic}: passing the band-passed signal through"
+                f"no joint state on {inp.joints_topic}: passing the "
+                f"{'input' if self.output == 'dropin' else 'band-passed signal'} through"
             )
-        elif grown["blocks_no_joint_state"]:
+        elif grown[f"{unit}_no_joint_state"]:
             warnings.append(
-                f"{grown['blocks_no_joint_state']} blocks without joint state (passed through)"
+                f"{grown[f'{unit}_no_joint_state']} {unit} without joint state (passed through)"
             )
         for key, text in (
             ("undecodable_messages", "undecodable messages"),
@@ -396,16 +481,14 @@ class Denoiser(Node):
         ):
             if grown[key]:
                 warnings.append(f"{grown[key]} {text}")
-        if grown["blocks_out_of_grid"]:
+        if grown[f"{unit}_out_of_grid"]:
             warnings.append(
-                f"{fractions['out_of_grid']:.0%} of blocks beyond the model's velocity grid"
+                f"{fractions['out_of_grid']:.0%} of {unit} beyond the model's velocity grid"
             )
-        # A superposition model fills the cells off the axes by Eq. 6 by design: reported, not
-        # warned about; a full or free-motion model falls back there.
-        by_design = self.model.measured == "superposition"
-        if not by_design and fractions["unmeasured"] > self.unmeasured_warn:
+        if coverage_warn:
             warnings.append(
-                f"{fractions['unmeasured']:.0%} of blocks on cells the calibration did not measure"
+                f"{self.coverage.share:.0%} of {unit} in the last {COVERAGE_WINDOW_S:g} s on "
+                f"cells the calibration did not measure"
             )
         stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
         self.health.publish(
@@ -418,8 +501,12 @@ class Denoiser(Node):
             f"denoiser: samples in {self.input.sensor_messages}, "
             f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
             f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
-            f"restarts {stats['resets']}, "
-            f"blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}",
+            f"restarts {stats['resets']}"
+            + (
+                f", blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}"
+                if "blocks" in stats
+                else ""
+            ),
             flush=True,
         )
 
