@@ -135,7 +135,6 @@ UNTESTED = {
     "gap/writeback": "`egovib gap --write-back` in test_cli_gap",
     "nodes/bag_recorder": "records the replay in test_nodes_bag_player",
     "nodes/common": "the nodes' shared support, run by every test_nodes_* file",
-    "nodes/contact_detector": "to come: test_nodes_contact_detector (drop this line then)",
     "nodes/watcher": "the test harness's diagnostics reader (conftest)",
     "tools/demo": "ROS 2 processes; run by `make demo`",
     "tools/live_bench": "ROS 2 processes; run by `egovib live-bench`, figures in docs/",
