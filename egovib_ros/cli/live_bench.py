@@ -14,6 +14,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", help="noise model (default: a quick offline calibration)")
     parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
     parser.add_argument(
+        "--method",
+        choices=("paper", "cancel", "hybrid"),
+        default="paper",
+        help="the denoiser's method (cancel, hybrid: the default model is fitted for them)",
+    )
+    parser.add_argument(
         "--publish-period",
         type=float,
         default=0.002,

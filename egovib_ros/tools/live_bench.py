@@ -57,34 +57,38 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
-def bench_model(path: Path) -> Path:
-    """A noise model from a short offline superposition sweep (the bench needs any valid model)."""
+def bench_model(path: Path, *, method: str = "paper") -> Path:
+    """A noise model from a short offline superposition sweep (the bench needs any valid model),
+    with what `cancel` and `hybrid` need fitted on the same sweep when `method` is one of them."""
     from egovib_ros.core import calibrate_arrays
     from egovib_ros.sim import simulate_sweep
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=5)
-    model, _ = calibrate_arrays(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        rec.joint_velocity,
-        sweep="superposition",
-        source="live_bench sweep",
-    )
+    arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
+    model, _ = calibrate_arrays(*arrays, sweep="superposition", source="live_bench sweep")
+    if method != "paper":
+        from egovib_ros.core.methods import calibrate_methods  # numba: only when asked for
+
+        model, _ = calibrate_methods(model, *arrays, source="live_bench sweep")
     model.save(path)
     return path
 
 
 def algorithmic_latency_ms(
-    model_path: Path, *, publish_period: float = 0.002, seconds: float = 10.0
+    model_path: Path,
+    *,
+    publish_period: float = 0.002,
+    seconds: float = 10.0,
+    method: str = "paper",
 ) -> dict:
     """The latency the pipeline would have with zero transport and scheduling cost.
 
-    sim_hand publishes each `publish_period`'s samples at its end; the denoiser node
-    processes every hop of samples, and input sample k is output with the block that
-    ends at input sample e(k) = floor((k + L - H) / H) * H + H - 1 (the first block starts
-    with L - H samples of padding). Latency of sample k = stamp of the last sample of the
-    batch that carries e(k) - stamp of k.
+    sim_hand publishes each `publish_period`'s samples at its end. The paper's denoiser
+    processes every hop of samples, and input sample k is output with the block that ends
+    at input sample e(k) = floor((k + L - H) / H) * H + H - 1 (the first block starts with
+    L - H samples of padding); `cancel` and `hybrid` output sample k once sample
+    e(k) = k + d is in (d: the method's look-ahead). Latency of sample k = stamp of the last
+    sample of the batch that carries e(k) - stamp of k.
     """
     from egovib_ros.core import NoiseModel
 
@@ -92,7 +96,12 @@ def algorithmic_latency_ms(
     rate, length, hop = model.sample_rate_hz, model.block_length, model.hop
     per_batch = max(1, int(round(publish_period * rate)))
     k = np.arange(int(seconds * rate))
-    completing = (k + length - hop) // hop * hop + hop - 1
+    if method == "paper":
+        completing = (k + length - hop) // hop * hop + hop - 1
+    else:
+        from egovib_ros.core.methods import make_denoiser
+
+        completing = k + make_denoiser(model, method).delay
     published_with = (completing // per_batch + 1) * per_batch - 1
     values = (published_with - k)[int(rate) :] / rate * 1e3  # after the first second
     return {
@@ -108,10 +117,11 @@ def run_bench(
     warmup: float = 5.0,
     model: Path | None = None,
     channels: str = "per_axis",
+    method: str = "paper",
     publish_period: float = 0.002,
     workdir: Path | None = None,
 ) -> dict:
-    """Run sim_hand + denoiser for `seconds` (after `warmup`) and return the figures."""
+    """Run sim_hand + denoiser (`method`) for `seconds` (after `warmup`); return the figures."""
     from sensor_msgs.msg import Imu
 
     from egovib_ros.nodes.common import sensor_qos
@@ -119,7 +129,7 @@ def run_bench(
     from egovib_ros.sim import motion_commands
 
     workdir = Path(workdir or tempfile.mkdtemp(prefix="egovib_live_bench_"))
-    model = model or bench_model(workdir / "model.npz")
+    model = model or bench_model(workdir / "model.npz", method=method)
     group = NodeGroup(workdir / "logs")
     group.use_domain_here()
     watcher = None
@@ -147,7 +157,9 @@ def run_bench(
 
         watcher.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
 
-        den = group.start("denoiser", "denoiser", {"model": str(model), "channels": channels})
+        den = group.start(
+            "denoiser", "denoiser", {"model": str(model), "channels": channels, "method": method}
+        )
         sim = group.start(
             "sim_hand",
             "sim_hand",
@@ -204,11 +216,12 @@ def run_bench(
         for d in denoiser_diag[diag0:]
         if d["latency_p50_ms"] != "nan"
     ]
-    algorithmic = algorithmic_latency_ms(model, publish_period=publish_period)
+    algorithmic = algorithmic_latency_ms(model, publish_period=publish_period, method=method)
     return {
         "duration_s": wall,
         "warmup_s": warmup,
         "channels": channels,
+        "method": method,
         "sim_hand_publish_period_s": publish_period,
         "cpu_cores": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0],
@@ -225,12 +238,13 @@ def run_bench(
             "p50": float(np.percentile(latency_ms, 50)),
             "p99": float(np.percentile(latency_ms, 99)),
             "max": float(latency_ms.max()),
-            "block_length_ms": 64 / 3.0,
+            "block_length_ms": 64 / 3.0 if method == "paper" else None,
         },
         "latency_definition": "receive time of accelerometer/denoised in a subscriber process "
         "minus the "
         "header stamp (= raw sample time set by sim_hand); includes sim_hand's "
-        f"{publish_period * 1e3:g} ms batching, the 32-63 sample block delay, "
+        f"{publish_period * 1e3:g} ms batching, the method's delay (paper: the 32-63 sample "
+        "block delay), "
         "processing and two DDS hops",
         "algorithmic_latency_ms": {
             **algorithmic,
@@ -496,6 +510,7 @@ def run(args: argparse.Namespace) -> int:
         seconds=args.seconds,
         warmup=args.warmup,
         channels=args.channels,
+        method=args.method,
         model=Path(args.model) if args.model else None,
         publish_period=args.publish_period,
     )
@@ -504,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
     lat, drops, cpu = result["latency_ms"], result["dropped_samples"], result["cpu_share"]
     algorithmic = result["algorithmic_latency_ms"]
     print(
-        f"{result['duration_s']:.0f} s at {result['denoised_rate_hz']:.0f} Hz: "
+        f"{result['method']}, {result['duration_s']:.0f} s at {result['denoised_rate_hz']:.0f} Hz: "
         f"dropped {drops['total']}, denoiser CPU {cpu['denoiser']:.1%} of a core "
         f"(sim_hand {cpu['sim_hand']:.1%}), latency p50 "
         f"{lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms (algorithmic p50 "
