@@ -180,8 +180,7 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
     import shutil
 
     bags = tmp_path / "bags"
-    for name in ("a", "b"):
-        shutil.copytree(position_bag, bags / name)
+    shutil.copytree(position_bag, bags / "a")  # (one good bag: each diagnosis takes ~15 s)
     shutil.copytree(position_bag, bags / "corrupt")
     mcap = next((bags / "corrupt").glob("*.mcap"))
     data = bytearray(mcap.read_bytes())
@@ -194,15 +193,12 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
         args = ["gap", "--model", str(model_path), "--real", str(bags), "--out", str(out)]
         assert main(args + ["--jobs", jobs, "--reference-lag", "0", "--quiet"]) == 2
         err = capsys.readouterr().err
-        assert "FAILED" in err and "corrupt" in err and "2 done, 1 failed" in err
+        assert "FAILED" in err and "corrupt" in err and "1 done, 1 failed" in err
         assert not (out / "corrupt").exists()
-        reports[jobs] = {
-            name: json.loads((out / name / "report.json").read_text()) for name in ("a", "b")
-        }
-    for name in ("a", "b"):
-        one, two = reports["1"][name], reports["2"][name]
-        assert one["verdict"]["effect"] == "position"
-        assert one["gap"] == two["gap"] and one["candidates"] == two["candidates"]
+        reports[jobs] = json.loads((out / "a" / "report.json").read_text())
+    one, two = reports["1"], reports["2"]
+    assert one["verdict"]["effect"] == "position"
+    assert one["gap"] == two["gap"] and one["candidates"] == two["candidates"]
 
 
 def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
