@@ -251,7 +251,8 @@ def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(si
         model = tmp_path / f"{name}.npz"
         result = egovib("calibrate", sweep, "--out", model, "--quiet")
         assert result.returncode == 0, result.stderr
-        # (evaluate runs the same denoiser; `egovib denoise` on this layout: test_bag_conformance)
+        result = egovib("denoise", motion, "--model", model, "--out", tmp_path / f"den_{name}")
+        assert result.returncode == 0, result.stderr
         report = tmp_path / f"{name}.json"
         result = egovib("evaluate", motion, "--model", model, "--json", report, "--quiet")
         assert result.returncode == 0, result.stderr
