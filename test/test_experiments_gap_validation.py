@@ -59,6 +59,7 @@ def test_reduced_blind_validation_on_the_alternate_reality(tmp_path):
         calibration_dwell_s=2.0,
         reality="alt",
         runs=runs,
+        jobs=2,  # the process pool of `gap validate --jobs` (and half the time on 2 cores)
     )
     report = summary["report"]
     assert summary["n_runs"] == len(runs)
