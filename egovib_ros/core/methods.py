@@ -41,7 +41,11 @@ from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, L
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleFramer
 from egovib_ros.core.stream import FramerSettings, feed
-from egovib_ros.core.subtraction import DenoisedChunk, StreamingDenoiser
+from egovib_ros.core.subtraction import (
+    DenoisedChunk,
+    StreamingDenoiser,
+    check_stream_fits_model,
+)
 from egovib_ros.errors import ConfigError, ModelFileError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
@@ -512,22 +516,9 @@ class SampleMethodDenoiser:
             )
         if channels not in ("per_axis", "combined"):
             raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
-        where = model.provenance.get("path", "model")
-        if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
-            raise StreamError(
-                f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
-                f"{model.sample_rate_hz:g} Hz ({where})"
-            )
-        if block_length is not None and block_length != model.block_length:
-            raise StreamError(
-                f"block length {block_length} differs from the model's {model.block_length} "
-                f"({where})"
-            )
-        if joint_names is not None and tuple(joint_names) != model.joint_names:
-            raise StreamError(
-                f"{where}: model joints {list(model.joint_names)} do not match the stream's "
-                f"{list(joint_names)}"
-            )
+        check_stream_fits_model(
+            model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
+        )
         self.model = model
         self.method = method
         self.channels = channels

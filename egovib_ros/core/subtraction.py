@@ -96,6 +96,32 @@ class DenoisedChunk:
         return len(self.stamps_ns)
 
 
+def check_stream_fits_model(
+    model: NoiseModel,
+    *,
+    sample_rate_hz: float | None = None,
+    block_length: int | None = None,
+    joint_names=None,
+) -> None:
+    """StreamError (one line naming the model) when a stream's stated rate, block length or
+    joints differ from the model's; None means "not stated" (nothing to check)."""
+    where = model.provenance.get("path", "model")
+    if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
+        raise StreamError(
+            f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
+            f"{model.sample_rate_hz:g} Hz ({where})"
+        )
+    if block_length is not None and block_length != model.block_length:
+        raise StreamError(
+            f"block length {block_length} differs from the model's {model.block_length} ({where})"
+        )
+    if joint_names is not None and tuple(joint_names) != model.joint_names:
+        raise StreamError(
+            f"{where}: model joints {list(model.joint_names)} do not match the stream's "
+            f"{list(joint_names)}"
+        )
+
+
 class StreamingDenoiser:
     """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
     size (in any interleaving); each push returns the samples that became final.
@@ -135,21 +161,9 @@ class StreamingDenoiser:
                 "output: dropin needs channels per_axis (the combined signal is the paper's "
                 "band-passed 1-D signal)"
             )
-        if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
-            raise StreamError(
-                f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
-                f"{model.sample_rate_hz:g} Hz ({model.provenance.get('path', 'model')})"
-            )
-        if block_length is not None and block_length != model.block_length:
-            raise StreamError(
-                f"block length {block_length} differs from the model's {model.block_length} "
-                f"({model.provenance.get('path', 'model')})"
-            )
-        if joint_names is not None and tuple(joint_names) != model.joint_names:
-            raise StreamError(
-                f"{model.provenance.get('path', 'model')}: model joints {list(model.joint_names)} "
-                f"do not match the stream's {list(joint_names)}"
-            )
+        check_stream_fits_model(
+            model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
+        )
         self.model = model
         self.channels = channels
         self.output = output

@@ -34,18 +34,21 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.robot import load_profile
 from egovib_ros.sim.hand import HandSimulator
 from egovib_ros.sim.params import SimParams
-from egovib_ros.sim.pr2 import (
-    ACCEL_RATE_HZ,
-    BAND_HZ,
-    BAND_ORDER,
-    BLOCK_LENGTH,
-    GRID_FRACTIONS,
-    HOP,
-    MAX_SPEED,
-)
 from egovib_ros.sim.scenarios import iter_sweep, simulate_motion, sweep_cells
+
+# The simulated hand's settings come from its robot profile (the PR2 right hand, the default),
+# as for any robot: rate, band, blocks, top speeds and the grid's speed fractions.
+PROFILE = load_profile()
+ACCEL_RATE_HZ = PROFILE.rate_hz
+BAND_HZ = PROFILE.band_hz
+BAND_ORDER = PROFILE.band_order
+BLOCK_LENGTH = PROFILE.block_length
+HOP = PROFILE.hop
+MAX_SPEED = PROFILE.max_speed
+GRID_FRACTIONS = PROFILE.grid_values(0) / PROFILE.max_speed[0]  # the same for both joints
 
 STEADY_TOLERANCE = 0.005  # of max speed
 FREQS_HZ = np.fft.rfftfreq(BLOCK_LENGTH, 1.0 / ACCEL_RATE_HZ)
