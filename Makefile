@@ -16,8 +16,12 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py
 	$(PY) -m pip install -q -e ".[cluster]"
 	touch $(STAMP)
 
+# The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests one at
+# a time: they measure stream timing and must not share the cores with a parallel test.
 test: $(STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider test
+	$(PY) -m pytest -q -p no:cacheprovider -n 2 -m "not nodes" test; a=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider -m nodes test; b=$$?; \
+	test $$a -eq 0 && test $$b -eq 0
 
 demo: $(STAMP)
 	$(VENV)/bin/egovib demo

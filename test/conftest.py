@@ -33,6 +33,19 @@ settings.register_profile("long", max_examples=300, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+#: Fixtures that start ROS 2 processes or a DDS participant: a test using one is a node test.
+NODE_FIXTURES = {"nodes", "ros_client", "ros_domain", "feeder"}
+
+
+def pytest_collection_modifyitems(items):
+    """Mark every test that runs ROS 2 over DDS `nodes`, whatever its file: `make test` runs
+    them one at a time after the others (which run on two workers), since they measure
+    stream timing and must not compete with a parallel test for the cores."""
+    for item in items:
+        if NODE_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.nodes)
+
+
 class NodeProcesses(NodeGroup):
     """orchestration.NodeGroup, addressed by process handle as the tests like it."""
 

@@ -1499,11 +1499,17 @@ def test_sigterm_mid_denoise_one_line_exit_143_staging_removed(lab, bad_second, 
 @pytest.mark.parametrize("delay_s", [0.0, 0.05, 0.2, 0.5, 1.0])
 def test_ctrl_c_during_start_up_one_line_exit_130(lab, bad_second, tmp_path, delay_s):
     """Ctrl-C while the command's modules load, the model loads or the bag starts: no
-    KeyboardInterrupt traceback, one line, exit 130, nothing left (start-up takes ~1.5 s)."""
+    KeyboardInterrupt traceback, one line, exit 130, nothing left (start-up takes ~1.5 s).
+    On a fast machine the whole run can end before a late Ctrl-C (seen at 1 s): then its
+    output is whole and nothing is said of an interrupt."""
     run = start_egovib(*_denoise_long(lab, bad_second), cwd=tmp_path)
     time.sleep(delay_s)
     run.send_signal(signal.SIGINT)
     _, err = run.communicate(timeout=60)
+    if run.returncode != 130 and "wrote den" in err:  # finished first
+        assert "Traceback" not in err and "interrupted" not in err, err
+        assert len(read_recording(tmp_path / "den").denoised) == 30 * FS
+        return
     assert run.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert error_lines(err) == ["egovib: interrupted"], err
