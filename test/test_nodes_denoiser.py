@@ -575,3 +575,15 @@ def test_coverage_warning_does_not_flip_with_a_share_hovering_at_the_limit():
     clearing = [coverage.update(100, 5, now=30.0 + s) for s in range(int(COVERAGE_WINDOW_S) + 2)]
     assert clearing[0] and not clearing[-1], clearing  # within the window, once
     assert sum(a != b for a, b in zip(clearing, clearing[1:])) == 1, clearing
+
+
+def test_per_sample_methods_are_processed_every_2_ms_and_paper_every_hop(sim_model_path):
+    """The paper's output appears when a block completes, so its batches end there; cancel
+    and hybrid output each sample a fixed delay after it, so a batch of a hop would only add
+    up to a hop of latency (10.7 ms at 3 kHz): they run every 2 ms of samples."""
+    from egovib_ros.nodes.denoiser import default_batch_samples
+
+    model = NoiseModel.load(sim_model_path)
+    assert default_batch_samples(model, "paper") == model.hop == 32
+    for method in ("cancel", "hybrid"):
+        assert default_batch_samples(model, method) == round(0.002 * model.sample_rate_hz) == 6
