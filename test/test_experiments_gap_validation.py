@@ -15,6 +15,7 @@ from egovib_ros.experiments.gap_validation import (
     run_validation,
     shape_differs_params,
 )
+from egovib_ros.gap.diagnose import DiagnosisOptions
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.gap.pipeline import diagnose_recording
 from egovib_ros.gap.simref import simulator_reference_lag
@@ -88,7 +89,11 @@ def test_simulator_with_other_spectral_shape_and_no_effect_gives_none():
     model = calibrate_sim_model(dwell_s=2.0, params=params)
     rec, _ = make_recording({"truth": "none", "strength": 0.0, "seed": 21, "reality": "sim"}, 60.0)
     diag = diagnose_recording(
-        rec, model, reference_lag_s=simulator_reference_lag(model, params=params, duration_s=30.0)
+        rec,
+        model,
+        options=DiagnosisOptions(
+            reference_lag_s=simulator_reference_lag(model, params=params, duration_s=30.0)
+        ),
     )
     assert diag.gaps["sim_as_is"] > 6.0
     assert diag.gaps["refit"] - diag.floor < 0.5

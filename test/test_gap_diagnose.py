@@ -9,6 +9,7 @@ import pytest
 from gaptables import synthetic_table
 
 from egovib_ros.gap.diagnose import (
+    DiagnosisOptions,
     blocked_folds,
     combined_floor,
     diagnose,
@@ -74,7 +75,7 @@ def test_the_floor_is_the_smaller_finite_estimate():
 
 def test_a_forward_split_tests_only_the_later_part():
     table = synthetic_table(seed=2)
-    diag = diagnose(table, train_fraction=0.6, effects=("drift",))
+    diag = diagnose(table, DiagnosisOptions(train_fraction=0.6, effects=("drift",)))
     assert diag.split_info["train_s"] == pytest.approx(0.6 * np.ptp(table.t_mid_s))
     assert diag.heldout_rows.min() > 0.55 * table.n_blocks
     assert diag.verdict == "none" and set(diag.gaps) == {"sim_as_is", "refit", "drift"}
@@ -87,3 +88,29 @@ def test_too_few_clean_blocks_are_refused():
     table.contact[:300] = False
     with pytest.raises(ValueError, match="too few no-contact blocks"):
         diagnose(table)
+
+
+@pytest.mark.parametrize(
+    "bad, named",
+    [
+        ({"folds": 1}, "folds"),
+        ({"train_fraction": 1.0}, "train_fraction"),
+        ({"alpha": 0.0}, "alpha"),
+        ({"effects": ("friction",)}, "effects"),
+        ({"effects": ()}, "effects"),
+        ({"reference_lag_s": float("nan")}, "reference_lag_s"),
+        ({"lag_tolerance_s": -0.001}, "lag_tolerance_s"),
+        ({"window_blocks": 0}, "window_blocks"),
+    ],
+)
+def test_options_are_checked_when_made_one_line_naming_the_setting(bad, named):
+    with pytest.raises(ValueError) as raised:
+        DiagnosisOptions(**bad)
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith(f"gap options: {named} must be")
+
+
+def test_options_are_keyword_only_and_effects_a_tuple():
+    with pytest.raises(TypeError):
+        DiagnosisOptions(5)
+    assert DiagnosisOptions(effects=["drift", "timing"]).effects == ("drift", "timing")

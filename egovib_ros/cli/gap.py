@@ -184,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
     from egovib_ros.bag.many import run_bags
     from egovib_ros.cli.jobs import output_jobs, report_results
     from egovib_ros.core.noise_model import NoiseModel
+    from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import reference_lag_for
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
@@ -200,8 +201,7 @@ def run(args: argparse.Namespace) -> int:
         write_back=args.write_back,
         sim_params=args.sim_params,
         reference_lag=lag,
-        train_fraction=args.train_fraction,
-        folds=args.folds,
+        options=DiagnosisOptions(train_fraction=args.train_fraction, folds=args.folds),
         budget_minutes=args.budget_minutes,
         figures=not args.no_figures,
     )

@@ -61,6 +61,7 @@ def run_flight_gap(
 ) -> dict:
     from egovib_ros.bag import read_recording
     from egovib_ros.core import calibrate_arrays
+    from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import diagnose_recording
     from egovib_ros.gap.report import build_report, make_figures, render_markdown
     from egovib_ros.robot import load_profile
@@ -95,7 +96,7 @@ def run_flight_gap(
                 real,
                 model,
                 source=f"{bag} [{parts[test][0]:g}, {parts[test][1]:g}) s",
-                reference_lag_s=0.0,
+                options=DiagnosisOptions(reference_lag_s=0.0),
             )
             name = f"calibrated_on_{calib}_half"
             sub = tmp / name

@@ -100,6 +100,7 @@ def _own_lag(model, cal, profile) -> float:
 def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     from egovib_ros.bag import read_recording
     from egovib_ros.core import calibrate_arrays
+    from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import diagnose_recording
     from egovib_ros.robot import load_profile
 
@@ -130,7 +131,10 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
             t0 = time.perf_counter()
             data = real if effect == "none" else inject(real, effect, strength)
             diag = diagnose_recording(
-                data, model, source=f"{name}: {label}", reference_lag_s=own_lag
+                data,
+                model,
+                source=f"{name}: {label}",
+                options=DiagnosisOptions(reference_lag_s=own_lag),
             )
             by = {c["effect"]: c for c in diag.candidates}
             results.append(

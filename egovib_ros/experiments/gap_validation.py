@@ -254,6 +254,7 @@ def make_recording(run: dict, duration_s: float):
 
 def run_one(run: dict, duration_s: float) -> dict:
     """Make one blind "real" bag and diagnose it; returns the run with the outcome."""
+    from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import diagnose_recording
 
     start = time.perf_counter()
@@ -264,7 +265,7 @@ def run_one(run: dict, duration_s: float) -> dict:
         rec,
         _WORKER["models"][key],
         source=f"blind run seed {run['seed']}",
-        reference_lag_s=_WORKER["reference_lags"][key],
+        options=DiagnosisOptions(reference_lag_s=_WORKER["reference_lags"][key]),
     )
     label = "none" if run["truth"].startswith("none") else run["truth"]
     extra = {k: v for k, v in truth.items() if k.startswith(("position_", "drift_"))}

@@ -178,7 +178,13 @@ def first_lines(advice: dict) -> list[str]:
 
 
 def measure_joint_lag(
-    cal, test, profile, joint_lag_s: float, *, calibration_lag_s: float | None = None, **options
+    cal,
+    test,
+    profile,
+    joint_lag_s: float,
+    *,
+    calibration_lag_s: float | None = None,
+    sweep: str = "free",
 ) -> dict:
     """Noise reduction on `test` (Recording) by the core denoiser calibrated on `cal`, with
     joint_lag_s 0 and with the given lag (in the calibration too, or `calibration_lag_s`
@@ -199,7 +205,7 @@ def measure_joint_lag(
             cal.joint_velocity,
             profile=profile,
             joint_lag_s=cal_lag,
-            **options,
+            sweep=sweep,
         )
         _, den, _ = denoise_batch(
             test.sensor_stamps_ns,

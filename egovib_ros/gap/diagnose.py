@@ -435,34 +435,69 @@ def _interleaved_drift(
     }
 
 
-def diagnose(
-    table: BlockTable,
-    *,
-    folds: int = N_FOLDS,
-    train_fraction: float | None = None,
-    window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS,
-    alpha: float = ALPHA,
-    effects: tuple[str, ...] = EFFECTS,
-    seed: int = 0,
-    reference_lag_s: float = 0.0,
-    lag_tolerance_s: float = LAG_TOLERANCE_S,
-) -> Diagnosis:
-    """Run the whole diagnosis on one recording's block table.
+@dataclass(frozen=True, kw_only=True)
+class DiagnosisOptions:
+    """How `diagnose` splits, tests and aligns (keyword-only, checked when made).
 
     Held-out predictions come from blocked `folds`-fold cross-validation in time (each
     contiguous fold predicted by models fitted on the others), or with `train_fraction`
     from a single forward split (fit on the leading share, test on the rest).
+    `window_blocks`: blocks per window of the gap metric. `alpha`: the significance level a
+    candidate must reach. `effects`: the candidates tried. `seed`: the randomisation tests'.
     `reference_lag_s`: the lag the simulator itself shows between joint states and
     vibration (see `simulator_reference_lag`); lags within `lag_tolerance_s` of it count as
     in sync (the baseline and all non-timing candidates use the best of them), timing is a
     lag beyond that.
+    """
+
+    folds: int = N_FOLDS
+    train_fraction: float | None = None
+    window_blocks: int = metric.DEFAULT_WINDOW_BLOCKS
+    alpha: float = ALPHA
+    effects: tuple[str, ...] = EFFECTS
+    seed: int = 0
+    reference_lag_s: float = 0.0
+    lag_tolerance_s: float = LAG_TOLERANCE_S
+
+    def __post_init__(self):
+        def bad(name: str, want: str):
+            raise ValueError(f"gap options: {name} must be {want}, got {getattr(self, name)!r}")
+
+        if not isinstance(self.folds, int) or not 2 <= self.folds <= 50:
+            bad("folds", "an integer in [2, 50]")
+        if self.train_fraction is not None and not 0.0 < self.train_fraction < 1.0:
+            bad("train_fraction", "None or within (0, 1)")
+        if not isinstance(self.window_blocks, int) or self.window_blocks < 1:
+            bad("window_blocks", "a positive integer")
+        if not 0.0 < self.alpha < 1.0:
+            bad("alpha", "within (0, 1)")
+        if not self.effects or not set(self.effects) <= set(EFFECTS):
+            bad("effects", f"a non-empty subset of {EFFECTS}")
+        if not np.isfinite(self.reference_lag_s) or abs(self.reference_lag_s) > 1.0:
+            bad("reference_lag_s", "finite seconds within +-1")
+        if not 0.0 <= self.lag_tolerance_s <= 1.0:
+            bad("lag_tolerance_s", "seconds within [0, 1]")
+        object.__setattr__(self, "effects", tuple(self.effects))
+
+
+def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diagnosis:
+    """Run the whole diagnosis on one recording's block table (`options`: DiagnosisOptions,
+    the defaults when None).
 
     The steps: lags and contacts (`_align`), the splits, held-out predictions of the
     baseline and every candidate (`cross_fit`), the fitted terms for the report
     (`_fitted_models`), held-out gaps and the floor (`_heldout_gaps`), each candidate
     tested against the baseline (`_candidates`), the verdict (`_verdict`).
     """
-    rng = np.random.default_rng(seed)
+    o = options or DiagnosisOptions()
+    folds, train_fraction, window_blocks, effects = (
+        o.folds,
+        o.train_fraction,
+        o.window_blocks,
+        o.effects,
+    )
+    reference_lag_s, lag_tolerance_s = o.reference_lag_s, o.lag_tolerance_s
+    rng = np.random.default_rng(o.seed)
     if (~table.contact).sum() < 400:
         raise ValueError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
@@ -499,7 +534,7 @@ def diagnose(
     if "drift" in models and interleaved:
         models["drift"].shape = dict(models["drift"].shape or {})
         models["drift"].shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
-    verdict, confidence = _verdict(candidates, loss, alpha, segments, rng)
+    verdict, confidence = _verdict(candidates, loss, o.alpha, segments, rng)
     vm = models[verdict] if verdict != "none" else models["refit"]
     residual = {
         "raw": 0.0,

@@ -3,13 +3,14 @@ write the report directory."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
 
 from egovib_ros.errors import BagError, EgovibError
-from egovib_ros.gap.diagnose import Diagnosis, diagnose
-from egovib_ros.gap.effects import LAG_COARSE_S, LAG_TOLERANCE_S
+from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
+from egovib_ros.gap.effects import LAG_COARSE_S
 from egovib_ros.gap.features import (
     DEFAULT_BUDGET_MINUTES,
     JOINT_MARGIN_S,
@@ -27,15 +28,19 @@ class GapDataError(EgovibError):
     """The recording does not hold enough usable (no-contact, matched) data for a diagnosis."""
 
 
-def diagnose_recording(rec, model, *, source: str = "bag", **kwargs) -> Diagnosis:
+def diagnose_recording(
+    rec, model, *, source: str = "bag", options: DiagnosisOptions | None = None
+) -> Diagnosis:
     """Diagnosis of an in-memory Recording against a NoiseModel (no files written)."""
-    return diagnose_table(build_table(rec, model, source=source), source=source, **kwargs)
+    return diagnose_table(build_table(rec, model, source=source), source=source, options=options)
 
 
-def diagnose_table(table: BlockTable, *, source: str = "bag", **kwargs) -> Diagnosis:
+def diagnose_table(
+    table: BlockTable, *, source: str = "bag", options: DiagnosisOptions | None = None
+) -> Diagnosis:
     """Diagnosis of a block table (`build_table` / `table_from_bag`)."""
     try:
-        return diagnose(table, **kwargs)
+        return diagnose(table, options)
     except ValueError as exc:
         raise GapDataError(f"{source}: {exc}") from None
 
@@ -81,7 +86,7 @@ def run_gap(
     figures: bool = True,
     budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     progress=None,
-    **kwargs,
+    options: DiagnosisOptions | None = None,
 ) -> dict:
     """Diagnose `real_path` against the model file; write report.json, report.md and
     figures into out_dir.
@@ -89,6 +94,8 @@ def run_gap(
     The directory appears only when complete. With `write_back`, the verdict's fitted
     effect is written into a copy of the sim config `sim_params` (default
     config/sim.yaml) as out_dir/sim_updated.yaml, and checked on the held-out data.
+    `options`: how the diagnosis runs; its reference lag is replaced by `reference_lag`
+    (or, when None, the lag measured on the simulator: `reference_lag_for`).
     """
     from egovib_ros.core.noise_model import NoiseModel
 
@@ -97,6 +104,7 @@ def run_gap(
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
     lag = reference_lag_for(model, reference_lag, sim_params)
+    options = dataclasses.replace(options or DiagnosisOptions(), reference_lag_s=lag)
     # streamed: the sensor samples are framed slice by slice, never held whole; a thinned
     # bag keeps the joint states near its blocks, as far as the lags tried reach
     table = table_from_bag(
@@ -105,12 +113,12 @@ def run_gap(
         budget_minutes=budget_minutes,
         max_lag_s=max(
             JOINT_MARGIN_S,
-            abs(lag) + kwargs.get("lag_tolerance_s", LAG_TOLERANCE_S) + LAG_COARSE_S,
+            abs(lag) + options.lag_tolerance_s + LAG_COARSE_S,
         ),
         progress=progress,
     )
     notices = input_notices(table, budget_minutes)
-    diag = diagnose_table(table, source=str(real_path), reference_lag_s=lag, **kwargs)
+    diag = diagnose_table(table, source=str(real_path), options=options)
     with atomic_output(out_dir, directory=True) as tmp:
         tmp.mkdir(parents=True)
         wb = None
