@@ -87,6 +87,7 @@ LABELS = {
 KEYS = (
     "noise_reduction_db",
     "tap_retention",
+    "event_retention",
     "waveform_corr",
     "peak_snr_improvement_db",
     "false_alarms_per_min",
@@ -108,6 +109,14 @@ def waveform_correlation(output: np.ndarray, reference: np.ndarray, windows: np.
 
 def score(output, raw, reference, seg, threshold, fs, minutes) -> dict:
     row = metrics.signal_metrics(raw, output, reference, seg)
+    # tap_retention (as `egovib evaluate` reports it) divides by the raw peak, noise included:
+    # a perfect denoiser scores below 1. Here the true event is known: its own peak.
+    peaks_true = metrics.tap_peaks(reference, seg.tap_windows)
+    row["event_retention"] = (
+        float(metrics.tap_peaks(output, seg.tap_windows).mean() / peaks_true.mean())
+        if peaks_true.size
+        else float("nan")
+    )
     scores = detection.evaluate_detector(
         detection.envelope(output, sample_rate_hz=fs), seg.onsets, threshold, sample_rate_hz=fs
     )
@@ -285,13 +294,18 @@ def flight_checks(splits: dict) -> dict:
         firmware = r1.get("firmware", {}).get("noise_reduction_db", float("nan"))
         checks[name] = {
             "noise_reduction >= firmware": [hy["noise_reduction_db"], firmware],
-            "retention >= 0.9": [hy["tap_retention"], 0.9],
-            "(retention of the true event alone)": [r1["oracle"]["tap_retention"], 0.0],
+            "retention of the true event's peak >= 0.9": [hy["event_retention"], 0.9],
+            "(retention of the raw peak, noise included)": [hy["tap_retention"], 0.0],
+            "(the same for the true event alone)": [r1["oracle"]["tap_retention"], 0.0],
             "waveform_corr >= 0.9": [hy["waveform_corr"], 0.9],
             "f1 >= paper": [hy["f1"], pa["f1"]],
             "delay_ms <= 5": [splits[name]["delay_ms"]["hybrid"], MAX_DELAY_MS],
-            "retention at half strength >= 0.7": [r05["hybrid"]["tap_retention"], 0.7],
-            "(retention of the true event alone, half strength)": [
+            "retention of the true event's peak at half strength >= 0.7": [
+                r05["hybrid"]["event_retention"],
+                0.7,
+            ],
+            "(retention of the raw peak at half strength)": [r05["hybrid"]["tap_retention"], 0.0],
+            "(the same for the true event alone, half strength)": [
                 r05["oracle"]["tap_retention"],
                 0.0,
             ],
@@ -508,9 +522,10 @@ def _f(value, digits=1) -> str:
 
 def flight_table(split: dict) -> list[str]:
     lines = [
-        "| method | delay ms | noise red. dB 1x / 0.5x | retention 1x / 0.5x "
+        "| method | delay ms | noise red. dB 1x / 0.5x | retention of the event 1x / 0.5x "
+        "| retention of the raw peak 1x / 0.5x "
         "| waveform corr 1x / 0.5x | peak-SNR gain dB 1x | F1 1x / 0.5x | FA/min 1x |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     r1, r05 = split["results"]["1"], split["results"]["0.5"]
 
@@ -523,6 +538,7 @@ def flight_table(split: dict) -> list[str]:
             LABELS[key],
             _f(split["delay_ms"][key]),
             pair("noise_reduction_db", 1, a, b),
+            pair("event_retention", 2, a, b),
             pair("tap_retention", 2, a, b),
             pair("waveform_corr", 2, a, b),
             _f(a["peak_snr_improvement_db"]),
@@ -532,17 +548,20 @@ def flight_table(split: dict) -> list[str]:
         lines.append("| " + " | ".join(cells) + " |")
     if "firmware" in r1:
         firmware = _f(r1["firmware"]["noise_reduction_db"])
-        lines.append(f"| {LABELS['firmware']} | n/a | {firmware} | n/a | n/a | n/a | n/a | n/a |")
+        lines.append(
+            f"| {LABELS['firmware']} | n/a | {firmware} | n/a | n/a | n/a | n/a | n/a | n/a |"
+        )
     oracle = pair("tap_retention", 2, r1["oracle"], r05["oracle"])
-    lines.append(f"| {LABELS['oracle']} | n/a | n/a | {oracle} | 1 / 1 | n/a | n/a | n/a |")
+    lines.append(f"| {LABELS['oracle']} | n/a | n/a | 1 / 1 | {oracle} | 1 / 1 | n/a | n/a | n/a |")
     return lines
 
 
 def pr2_table(pr2: dict) -> list[str]:
     lines = [
-        "| speed | exp. | method | noise red. dB | retention (perfect: ...) | waveform corr "
+        "| speed | exp. | method | noise red. dB | retention of the event "
+        "| retention of the raw peak (perfect: ...) | waveform corr "
         "| peak-SNR gain dB | F1 | FA/min |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for speed, exps in pr2["speeds"].items():
         for exp, rows in exps.items():
@@ -551,7 +570,8 @@ def pr2_table(pr2: dict) -> list[str]:
                 perfect = _f(rows["oracle"]["tap_retention"], 2)
                 lines.append(
                     f"| {float(speed):.0%} | {exp} | {method} | {_f(r['noise_reduction_db'])} | "
-                    f"{_f(r['tap_retention'], 2)} ({perfect}) | {_f(r['waveform_corr'], 2)} | "
+                    f"{_f(r['event_retention'], 2)} | {_f(r['tap_retention'], 2)} ({perfect}) | "
+                    f"{_f(r['waveform_corr'], 2)} | "
                     f"{_f(r['peak_snr_improvement_db'])} | {_f(r['f1'], 2)} | "
                     f"{_f(r['false_alarms_per_min'])} |"
                 )
@@ -572,11 +592,13 @@ def checks_lines(checks: dict) -> list[str]:
 NOTES = [
     "## How to read it",
     "",
-    "- Retention is the event's peak in the output over its peak in the raw signal, and the raw",
-    "  peak has the noise under the event in it: the true event alone (a perfect denoiser) scores",
-    "  the 'true event alone' row, below 1 wherever the noise is not small against the event. A",
-    "  method beats that row only by passing noise along with the event (the hybrid's opening",
-    "  does, for 20 ms). Waveform correlation does not reward that.",
+    "- Retention of the event: the event's peak in the output over the true event's own peak",
+    "  (the added event is known): a perfect denoiser scores 1. This is what the targets use.",
+    "  Above 1, noise under the event passes along with it (the hybrid's opening does, for",
+    "  20 ms); waveform correlation does not reward that.",
+    "- Retention of the raw peak is `egovib evaluate`'s `tap_retention`: the output's peak over",
+    "  the raw signal's, noise included, so the true event alone scores below 1 (the 'true",
+    "  event alone' row) wherever the noise is not small against the event.",
     "- F1 thresholds come from each method's own output on its calibration part (1.1 x the",
     "  largest 4 ms envelope): a method that cleans the calibration part best gets the lowest",
     "  threshold, and any leak on speeds the calibration never saw becomes a false alarm",
@@ -655,7 +677,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
         for strength, rows in split["results"].items():
             for key in FLIGHT_METHODS:
                 ax.scatter(
-                    rows[key]["tap_retention"],
+                    rows[key]["event_retention"],
                     rows[key]["noise_reduction_db"],
                     marker=markers[strength],
                     color=colors[key],
@@ -665,7 +687,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
                 ax.axhline(
                     rows["firmware"]["noise_reduction_db"], color="k", ls=":", label="firmware"
                 )
-        ax.set_xlabel("event peak retention")
+        ax.set_xlabel("retention of the true event's peak")
         ax.set_ylabel("noise reduction outside events (dB)")
         ax.set_title(f"flight, {name} split")
         ax.grid(alpha=0.3)
