@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egovib_ros.core.filters import BandPass
-from egovib_ros.core.stream import FramerSettings, FramerStats, _Cleaner
+from egovib_ros.core.stream import FramerSettings, FramerStats, _Cleaner, joint_state_arrays
 from egovib_ros.core.timebase import NS_PER_S
 
 RATE_CHECK_SAMPLES = 128
@@ -80,13 +80,7 @@ class SampleFramer:
 
     # --- input ---------------------------------------------------------------
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
-        stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-        velocity = np.asarray(velocity, dtype=np.float64)
-        if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
-            raise self.s.error(
-                f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
-                f"got {stamps_ns.shape} and {velocity.shape}"
-            )
+        stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return

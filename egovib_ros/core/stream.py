@@ -272,6 +272,19 @@ class FramerStats:
     extra: dict = field(default_factory=dict)
 
 
+def joint_state_arrays(stamps_ns, velocity, n_joints: int, error) -> tuple[np.ndarray, np.ndarray]:
+    """Joint-state input as (stamps int64 (M,), velocities float (M, n_joints)); a wrong shape
+    raises `error(message)` (FramerSettings.error: one line naming the source)."""
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    velocity = np.asarray(velocity, dtype=np.float64)
+    if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), n_joints):
+        raise error(
+            f"joint states: expected stamps (M,) and velocities (M, {n_joints}), "
+            f"got {stamps_ns.shape} and {velocity.shape}"
+        )
+    return stamps_ns, velocity
+
+
 class _Cleaner:
     """Sequential input checks (order, finiteness, gaps) with carried state."""
 
@@ -441,13 +454,7 @@ class BlockFramer:
 
     # --- input ---------------------------------------------------------------
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
-        stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
-        velocity = np.asarray(velocity, dtype=np.float64)
-        if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), self.n_joints):
-            raise self.s.error(
-                f"joint states: expected stamps (M,) and velocities (M, {self.n_joints}), "
-                f"got {stamps_ns.shape} and {velocity.shape}"
-            )
+        stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
