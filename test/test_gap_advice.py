@@ -1,0 +1,84 @@
+"""gap.advice: the report's first lines, from diagnoses of synthetic block tables with a
+known effect (test/gaptables.py), and the lag advice applied with the core."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from gaptables import synthetic_table
+
+from egovib_ros.gap.advice import UNEXPLAINED_NOTE_DB, action, advise, first_lines
+from egovib_ros.gap.diagnose import diagnose
+
+
+@pytest.fixture(scope="module")
+def diagnoses() -> dict:
+    """One diagnosis per effect whose advice names a setting, and one without an effect."""
+    cases = {"none": ("none", 0.0), "timing": ("timing", 0.05), "drift": ("drift", 0.5)}
+    cases["position"] = ("position", 0.4)
+    return {name: diagnose(synthetic_table(e, s, seed=5)) for name, (e, s) in cases.items()}
+
+
+def test_a_lag_is_advised_as_the_joint_lag_that_undoes_it(diagnoses):
+    diag = diagnoses["timing"]
+    assert diag.verdict == "timing"
+    text, settings = action(diag)
+    p = diag.models["timing"].parameters
+    offset = p["lag_s"] - p.get("reference_lag_s", 0.0)
+    # joint states stamped 50 ms after the vibration: moved earlier by as much
+    assert settings["joint_lag_s"] == pytest.approx(-offset, abs=1e-4)
+    assert settings["joint_lag_s"] == pytest.approx(-0.05, abs=0.005)
+    assert f"joint_lag: {settings['joint_lag_s']:g}" in text and "lag the vibration" in text
+
+
+def test_the_sign_of_the_lag_names_lead_or_lag(diagnoses):
+    diag = diagnoses["timing"]
+    model = diag.models["timing"]
+    lead = dataclasses.replace(model, parameters={**model.parameters, "lag_s": -0.03})
+    text, settings = action(dataclasses.replace(diag, models={**diag.models, "timing": lead}))
+    assert "lead the vibration by 30 ms" in text and settings["joint_lag_s"] == pytest.approx(0.03)
+
+
+def test_drift_and_position_name_what_to_change(diagnoses):
+    drift_text, drift = action(diagnoses["drift"])
+    assert diagnoses["drift"].verdict == "drift"
+    assert "recalibrate" in drift_text and drift["level_change_percent"] != 0.0
+    position_text, position = action(diagnoses["position"])
+    assert diagnoses["position"].verdict == "position"
+    assert position == {"calibration_key": "position", "joint": position["joint"]}
+    assert "calibrate with position as a key" in position_text
+
+
+def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):
+    for name, diag in diagnoses.items():
+        advice = advise(diag)
+        gaps, floor = diag.gaps, diag.floor
+        after = gaps[diag.verdict] if diag.verdict != "none" else gaps["refit"]
+        assert advice["unexplained"]["above_floor_db"] == pytest.approx(after - floor, abs=1e-3)
+        share = advice["unexplained"]["share_of_baseline_excess"]
+        assert 0.0 <= share <= 1.0 + 1e-9, name
+        d = advice["denoiser"]
+        assert d["gain_db"] == pytest.approx(
+            d["noise_reduction_with_db"] - d["noise_reduction_without_db"], abs=2e-3
+        )
+        lines = first_lines(advice)
+        assert lines[0].startswith("**What to do:**") and lines[-1].startswith("**Left unexplained")
+        # the cost line only where an effect was found
+        assert any("What it costs" in line for line in lines) == (diag.verdict != "none")
+
+
+def test_no_effect_says_whether_the_velocity_model_leaves_much(diagnoses):
+    diag = diagnoses["none"]
+    assert diag.verdict == "none"
+    text, settings = action(diag)
+    above = diag.gaps["refit"] - diag.floor
+    assert settings == {}
+    if above > UNEXPLAINED_NOTE_DB:
+        assert "unexplained" in text
+    else:
+        assert text == "the velocity-only model fits this recording: nothing to change"
+    worse = dataclasses.replace(diag, gaps={**diag.gaps, "refit": diag.floor + 1.0})
+    assert "1.00 dB above the floor stays unexplained" in action(worse)[0]
+    assert np.isfinite(advise(worse)["unexplained"]["above_floor_db"])
