@@ -145,7 +145,7 @@ def test_every_command_gives_the_same_answer_whatever_the_file_layout(
         NoiseModel.load(corpus / "model.npz"),
     )
     got = outputs["denoised"]
-    assert stats["dropped_out_of_order"] == 0 and stats["samples_bad"] == 0
+    assert stats.dropped_out_of_order == 0 and stats.samples_bad == 0
     np.testing.assert_array_equal(got.denoised_stamps_ns, bag.sensor_stamps_ns)
     np.testing.assert_array_equal(got.denoised_stamps_ns, stamps)
     np.testing.assert_allclose(got.denoised, values, rtol=0, atol=1e-12)

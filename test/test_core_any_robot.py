@@ -40,11 +40,11 @@ def three_joint():
 
 def test_free_motion_is_recognised_and_calibrates_a_sparse_model(three_joint):
     p, model, stats = three_joint
-    assert stats["mode"] == "free" and model.measured == "free"
+    assert stats.mode == "free" and model.measured == "free"
     assert model.profile == p and model.grid_shape == (21, 21, 11)
     cov = model.coverage()
     assert cov["cells_measured"] == len(model.cells) > 100 and cov["cells_total"] == 21 * 21 * 11
-    assert cov["blocks"] == stats["blocks_used"] > 0.8 * stats["blocks"]
+    assert cov["blocks"] == stats.blocks_used > 0.8 * stats.blocks
     # the one-directional joint is never measured below zero
     assert model.grid[2][0] == 0.0 and np.all(model.cells[:, 2] >= 0)
 
@@ -103,7 +103,7 @@ def test_keyed_free_motion_model_beats_a_global_average_spectrum(three_joint):
     reduction = 20 * np.log10(np.mean(np.abs(raw[quiet])) / np.mean(np.abs(keyed[quiet, 0])))
     assert reduction > 4.0 and peak_keyed / peak_raw > 0.6, (reduction, peak_keyed / peak_raw)
     assert snr_keyed - snr_raw > (snr_flat - snr_raw) + 1.5, (snr_raw, snr_keyed, snr_flat)
-    assert stats["blocks_unmeasured"] < 0.5 * stats["blocks"]
+    assert stats.blocks_unmeasured < 0.5 * stats.blocks
 
 
 def test_three_joint_streaming_equals_batch_for_any_chunking(three_joint):
@@ -142,7 +142,7 @@ def test_joint_states_slower_than_the_sensor_and_model_round_trip(three_joint, t
     a = denoise_batch(test["t_acc"], test["accel"], test["t_joint"], test["velocity"], model)
     b = denoise_batch(test["t_acc"], test["accel"], test["t_joint"], test["velocity"], loaded)
     np.testing.assert_array_equal(a[1], b[1])
-    assert a[2]["blocks_no_joint_state"] == 0
+    assert a[2].blocks_no_joint_state == 0
 
 
 def test_auto_recognises_a_sweep_and_the_superposition_sweep():
@@ -157,7 +157,7 @@ def test_auto_recognises_a_sweep_and_the_superposition_sweep():
     )
     accel = rng.normal(size=(len(t), 3)) * (1 + np.abs(velocity).sum(axis=1))[:, None]
     model, stats = calibrate_arrays(t, accel, t, velocity, profile=p, sweep="auto")
-    assert stats["mode"] == model.measured == "superposition"
+    assert stats.mode == model.measured == "superposition"
     assert len(model.cells) == len(cells) == 1 + 8 + 4
 
 

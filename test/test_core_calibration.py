@@ -48,7 +48,7 @@ def test_matches_an_independent_reference_computation():
         stft.stft(y, p0=0, p1=(len(y) - 64) // 32 + 1, k_offset=32)
     )  # blocks fully inside
     cell = cell_index(model, (0.9, -0.012))
-    assert model.counts[cell] == spectra.shape[1] == stats["blocks_used"]
+    assert model.counts[cell] == spectra.shape[1] == stats.blocks_used
     np.testing.assert_allclose(model.mean[cell][0], spectra.mean(axis=1), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(
         model.std[cell][0], spectra.std(axis=1, ddof=1), rtol=1e-7, atol=1e-12
@@ -89,12 +89,12 @@ def test_reversals_are_rejected_as_unsteady_and_off_grid_blocks_too():
     data["velocity"] = np.stack([1.5 * sign, np.zeros_like(t)], axis=1)
     model, stats = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
     n_reversals = int(np.sum(np.diff(sign) != 0))
-    assert stats["rejected"]["unsteady"] >= n_reversals
+    assert stats.rejected["unsteady"] >= n_reversals
     used = np.argwhere(model.counts > 0)
     assert sorted(model.grid[0][used[:, 0]].tolist()) == [-1.5, 1.5]
     data["velocity"] = np.tile([0.15, 0.0], (len(t), 1))  # half way between cells
     model, stats = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
-    assert model.counts.sum() == 0 and stats["rejected"]["off_grid"] > 0
+    assert model.counts.sum() == 0 and stats.rejected["off_grid"] > 0
 
 
 def test_superposition_sweep_ignores_cells_with_both_joints_moving():
@@ -103,9 +103,7 @@ def test_superposition_sweep_ignores_cells_with_both_joints_moving():
         data["t_acc"], data["accel"], data["t_joint"], data["velocity"], sweep="superposition"
     )
     assert model.measured == "superposition"
-    assert (
-        model.counts[cell_index(model, (1.5, 0.02))] == 0 and stats["rejected"]["not_in_sweep"] > 0
-    )
+    assert model.counts[cell_index(model, (1.5, 0.02))] == 0 and stats.rejected["not_in_sweep"] > 0
     assert model.counts[cell_index(model, (1.5, 0.0))] > 0
 
 

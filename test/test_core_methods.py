@@ -122,6 +122,11 @@ def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):
                 channels="combined",
             )
             assert np.array_equal(stamps, r["t"])  # one output per input, its stamp
+            assert stats.samples_out == len(r["t"]) and stats.samples_bad == 0
+            if method != "paper":  # typed; the per-sample methods' own fields, no blocks
+                assert stats.method == method and stats.blocks is None
+                assert stats.delay_samples >= 0 and "blocks" not in stats.as_dict()
+                assert len(stats.frequency_correction) == r["velocity"].shape[1]
             store[method] = values[:, 0]
     quiet = np.ones(len(raw), bool)
     for o in rec["onsets"]:

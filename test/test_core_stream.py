@@ -148,7 +148,7 @@ def test_jitter_and_lost_samples_are_not_a_rate_change(model, motion, case):
     )
     np.testing.assert_array_equal(stamps, data["t_acc"])  # one output per input sample
     if case in ("lost_30_percent", "bridged_gaps"):
-        assert stats["gap_filled_samples"] > 0  # bridged and counted, as before
+        assert stats.gap_filled_samples > 0  # bridged and counted, as before
     s_stamps, s_values, _ = denoise_streaming(model, data, seed=2)
     np.testing.assert_array_equal(s_stamps, stamps)
     assert np.max(np.abs(s_values - values)) <= 1e-12
@@ -162,7 +162,7 @@ def test_a_short_glitch_at_half_rate_is_bridged_not_refused(model, motion):
     stamps, _, stats = denoise_batch(
         data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
     )
-    assert len(stamps) == len(data["t_acc"]) and stats["gap_filled_samples"] == 250
+    assert len(stamps) == len(data["t_acc"]) and stats.gap_filled_samples == 250
 
 
 def test_calibration_refuses_a_rate_change_too(motion):
@@ -336,20 +336,24 @@ def test_bad_settings_are_one_line_config_errors(name, value, named):
 
 
 def test_check_stream_prints_the_counts_and_refuses_a_mostly_bad_recording():
-    stats = dict(samples_in=1000, samples_bad=30, dropped_out_of_order=20, gap_filled_samples=45,
-                 resets=1, joint_states_dropped=3)  # fmt: skip
+    from dataclasses import replace
+
+    from egovib_ros.core.stream import FramerStats
+
+    stats = FramerStats(samples_in=1000, samples_bad=30, dropped_out_of_order=20,
+                        gap_filled_samples=45, resets=1, joint_states_dropped=3)  # fmt: skip
     line = check_stream(stats, "bag", joint_states=500)
     assert line == (
         "bad input treated as missing: 30 sensor samples non-finite or beyond the sensor "
         "range, 20 out of order, 45 bridged, 1 restarts; 3 of 500 joint states dropped"
     )
     with pytest.raises(StreamError, match=r"^bag: 150 of 1000 sensor samples \(15.0 %\) are bad"):
-        check_stream(dict(stats, samples_bad=130), "bag", joint_states=500)
+        check_stream(replace(stats, samples_bad=130), "bag", joint_states=500)
     with pytest.raises(StreamError, match=r"^bag: 60 of 500 joint states \(12.0 %\) are unusable"):
-        check_stream(dict(stats, joint_states_dropped=60), "bag", joint_states=500)
-    assert check_stream(dict(stats, samples_bad=130), "bag", joint_states=500, limit=0.2)
+        check_stream(replace(stats, joint_states_dropped=60), "bag", joint_states=500)
+    assert check_stream(replace(stats, samples_bad=130), "bag", joint_states=500, limit=0.2)
     with pytest.raises(StreamError, match="^bag: no sensor samples"):
-        check_stream({}, "bag", joint_states=0)
+        check_stream(FramerStats(), "bag", joint_states=0)
 
 
 def test_every_streaming_class_is_a_stream_consumer(model):

@@ -110,7 +110,7 @@ def test_no_joint_state_passes_the_signal_and_counts(model, caplog, output):
     _, values = collect(chunks)
     expected = data["accel"] if output == "dropin" else bandpassed(data["accel"], "per_axis")
     assert np.max(np.abs(values - expected)) <= 1e-9
-    assert denoiser.stats["blocks_no_joint_state"] == denoiser.stats["blocks"] > 0
+    assert denoiser.stats.blocks_no_joint_state == denoiser.stats.blocks > 0
     assert "no joint state" in caplog.text
 
 
@@ -121,8 +121,8 @@ def test_stale_joint_state_is_held_briefly_then_missing(model):
     denoiser.push_sensor(data["t_acc"], data["accel"])
     denoiser.flush()
     stats = denoiser.stats
-    assert stats["blocks_held_joint_state"] >= 1
-    assert stats["blocks_no_joint_state"] > stats["blocks"] // 2
+    assert stats.blocks_held_joint_state >= 1
+    assert stats.blocks_no_joint_state > stats.blocks // 2
 
 
 def test_bad_samples_are_missing_counted_and_never_output(model):
@@ -134,7 +134,7 @@ def test_bad_samples_are_missing_counted_and_never_output(model):
         data["t_acc"], accel, data["t_joint"], data["velocity"], model
     )
     assert np.all(np.isfinite(values)) and len(values) == len(accel) - 4
-    assert stats["samples_bad"] == 4 and stats["gap_filled_samples"] == 4
+    assert stats.samples_bad == 4 and stats.gap_filled_samples == 4
     assert not np.isin(data["t_acc"][[100, 101, 2000, 3000]], stamps).any()
     # bridged like any short gap: the same as never having received those samples
     keep = np.ones(len(accel), dtype=bool)
@@ -155,9 +155,9 @@ def test_gaps_small_filled_long_reset_out_of_order_dropped_and_streaming_agrees(
     t_acc[[7000, 7001]] = t_acc[[7001, 7000]]  # one sample out of order
     stamps, values, stats = denoise_batch(t_acc, accel, data["t_joint"], data["velocity"], model)
     # 3 bridged + 1: dropping the late sample leaves a one-sample hole, bridged too.
-    assert stats["gap_filled_samples"] == 4
-    assert stats["resets"] == 1
-    assert stats["dropped_out_of_order"] == 1
+    assert stats.gap_filled_samples == 4
+    assert stats.resets == 1
+    assert stats.dropped_out_of_order == 1
     assert len(stamps) == len(t_acc) - 1 and np.all(np.diff(stamps) > 0)
     data_gappy = dict(data, t_acc=t_acc, accel=accel)
     denoiser = StreamingDenoiser(model)
@@ -177,7 +177,7 @@ def test_out_of_grid_velocity_uses_edge_cells_and_is_counted(model):
     _, clamped, _ = denoise_batch(
         edge["t_acc"], edge["accel"], edge["t_joint"], edge["velocity"], model
     )
-    assert stats["blocks_out_of_grid"] == stats["blocks"]
+    assert stats.blocks_out_of_grid == stats.blocks
     np.testing.assert_array_equal(outside, clamped)
 
 
@@ -223,7 +223,7 @@ def test_joint_states_lagging_the_accelerometer_across_long_gaps_still_equal_bat
     b_stamps, b_values, stats = denoise_batch(
         data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
     )
-    assert stats["resets"] == 3
+    assert stats.resets == 3
     denoiser = StreamingDenoiser(model)  # joint states arrive 10 ms late (< joint_wait 20 ms)
     chunks = push_random_chunks(denoiser, data, np.random.default_rng(4), joint_lead_ns=-10_000_000)
     stamps, values = collect(chunks + [denoiser.flush()])
@@ -293,10 +293,8 @@ def test_backward_clock_jump_restarts_instead_of_dropping_everything(model):
     expected = np.concatenate([first["t_acc"], second["t_acc"]])
     np.testing.assert_array_equal(stamps, expected)
     stats = denoiser.stats
-    assert (
-        stats["resets"] == 1 and stats["dropped_out_of_order"] == stats["joint_states_dropped"] == 0
-    )
-    assert stats["blocks_no_joint_state"] == 0 and np.all(np.isfinite(values))
+    assert stats.resets == 1 and stats.dropped_out_of_order == stats.joint_states_dropped == 0
+    assert stats.blocks_no_joint_state == 0 and np.all(np.isfinite(values))
 
 
 def test_model_for_other_joints_is_refused_with_its_path(model, tmp_path):
@@ -325,9 +323,39 @@ def test_a_mostly_bad_recording_is_refused_not_denoised(model):
     accel = data["accel"].copy()
     accel[: len(accel) // 4] = np.nan  # 25 % bad
     _, _, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
-    assert stats["samples_bad"] == len(accel) // 4
+    assert stats.samples_bad == len(accel) // 4
     with pytest.raises(
         StreamError, match=r"bag.mcap: 1500 of 6000 sensor samples \(25.0 %\) are bad"
     ):
         check_bad_share(stats, "bag.mcap")
     check_bad_share(stats, "bag.mcap", limit=0.3)
+
+
+def test_stats_are_typed_frozen_and_report_the_paper_denoisers_keys(model):
+    """`stats` is a DenoiserStats read by attribute; as_dict() gives what reports and
+    /diagnostics have always shown for the paper's method (no per-sample-method fields)."""
+    import dataclasses
+
+    data = stream(1, [(1.5, 0.02)], seed=4)
+    accel = data["accel"].copy()
+    accel[50, 0] = np.nan
+    _, _, stats = denoise_batch(data["t_acc"], accel, data["t_joint"], data["velocity"], model)
+    assert stats.samples_bad == 1 and stats.method is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        stats.samples_bad = 0
+    assert list(stats.as_dict()) == [
+        "samples_in",
+        "samples_out",
+        "dropped_out_of_order",
+        "samples_bad",
+        "gap_filled_samples",
+        "resets",
+        "joint_states_in",
+        "joint_states_dropped",
+        "blocks",
+        "blocks_held_joint_state",
+        "blocks_no_joint_state",
+        "blocks_out_of_grid",
+        "blocks_unmeasured",
+        "rate_checked",
+    ]

@@ -13,6 +13,7 @@ from egovib_ros.bag import Recording, write_recording
 from egovib_ros.bag.calibrate import calibrate_bags
 from egovib_ros.cli import main
 from egovib_ros.core.noise_model import NoiseModel, sweep_cells
+from egovib_ros.core.stream import CalibrationStats
 from egovib_ros.outputs import MARKER
 from egovib_ros.robot import default_profile, load_profile
 from egovib_ros.sim.robot import as_recording, free_motion_arrays
@@ -73,7 +74,7 @@ def pr2_bag_beyond(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def quadcopter_model(tmp_path_factory) -> tuple[Path, dict]:
+def quadcopter_model(tmp_path_factory) -> tuple[Path, CalibrationStats]:
     """Free-motion model of the shipped quadcopter flight (its own profile)."""
     profile = load_profile(REPO / "config" / "robots" / "quadcopter.yaml")
     model, stats, _ = calibrate_bags([REPO / "bags" / "quadcopter_ar8"], profile=profile)
@@ -197,7 +198,7 @@ def test_free_motion_quadcopter_model_and_its_own_flight(quadcopter_model, tmp_p
     c = model.coverage()
     assert _row(text, "grid") == "11 x 11 x 11 x 11 (14 641 cells)"
     assert _row(text, "cells measured").startswith(f"{c['cells_measured']} of 14 641 (")
-    assert _row(text, "blocks") == str(stats["blocks_used"]) == str(c["blocks"])
+    assert _row(text, "blocks") == str(stats.blocks_used) == str(c["blocks"])
     # motors move together: no single-motor cell, the best-populated cells by mean speed
     (panel,) = spectra_panels(model)
     assert panel.title.startswith("best-populated")
@@ -207,7 +208,7 @@ def test_free_motion_quadcopter_model_and_its_own_flight(quadcopter_model, tmp_p
     placement = place_bag(model, flight)
     s = placement.shares()
     # the calibration's blocks are this flight's: all placed, nearly all on measured cells
-    assert s["blocks"] + s["blocks_no_joint_state"] == stats["blocks"]
+    assert s["blocks"] + s["blocks_no_joint_state"] == stats.blocks
     assert s["share_measured"] > 0.9
     assert s["blocks_measured"] + s["blocks_outside"] >= c["blocks"]
     assert s["blocks_eq6"] + s["blocks_nearest"] + s["blocks_outside"] > 0

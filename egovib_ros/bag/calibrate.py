@@ -91,7 +91,7 @@ def calibrate_bags(
     if not all(r.ok for r in results):
         return None, None, results
     per_bag = [
-        dict(r.value.stats, input_counts=r.value.input_counts) for r in results
+        dict(r.value.stats.as_dict(), input_counts=r.value.input_counts) for r in results
     ]  # before pooling
     acc = merge_accumulators([r.value for r in results])
     for r, stats in zip(results, per_bag):  # what the summary shows per bag

@@ -66,10 +66,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.set_defaults(func=run_calibrate)
 
 
-def _describe_calibrate(stats: dict) -> str:
+def _describe_calibrate(row: dict) -> str:
+    """One bag's summary line, from its report row (CalibrationStats.as_dict + input counts)."""
     return (
-        f"{stats['samples_in']} samples, {stats['blocks']} blocks, {stats['blocks_used']} used "
-        f"({stats['mode']}); {stats['input_counts']}"
+        f"{row['samples_in']} samples, {row['blocks']} blocks, {row['blocks_used']} used "
+        f"({row['mode']}); {row['input_counts']}"
     )
 
 
@@ -136,7 +137,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if model.coverage()["blocks"] == 0:
         raise BagError(
             f"{where}: no steady block near any grid velocity "
-            f"(rejected: {stats['rejected']}); is this a calibration sweep or free motion?"
+            f"(rejected: {stats.rejected}); is this a calibration sweep or free motion?"
         )
     if args.methods == "hybrid":
         model, fitted = calibrate_bag_methods(
@@ -147,7 +148,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         model.save(tmp)
     for line in coverage_lines(model):
         print(line, file=sys.stderr)
-    print(f"rejected blocks: {stats['rejected']}", file=sys.stderr)
+    print(f"rejected blocks: {stats.rejected}", file=sys.stderr)
     if len(results) == 1:
         print(results[0].value["input_counts"], file=sys.stderr)
     print(f"wrote {args.out}", file=sys.stderr)

@@ -12,7 +12,7 @@ Two ways a recording can calibrate, tallied side by side:
 - free motion (a flight, random motion, a day of normal operation): any steady
   block counts for the cell nearest its velocity.
 `sweep="auto"` picks the sweep tally when most usable blocks sat on grid points
-(AUTO_SWEEP_SHARE), else free motion, and says which in `stats["mode"]`.
+(AUTO_SWEEP_SHARE), else free motion, and says which in `stats.mode`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 from egovib_ros import __version__
 from egovib_ros.core.filters import CHANNEL_LAYOUTS
 from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel, sweep_cells
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
+from egovib_ros.core.stream import BlockFramer, Blocks, CalibrationStats, FramerSettings, feed
 from egovib_ros.core.velocity import MATCHED
 from egovib_ros.errors import ConfigError
 from egovib_ros.robot import RobotProfile, default_profile
@@ -213,22 +213,22 @@ class CalibrationAccumulator:
         return cells, counts
 
     @property
-    def stats(self) -> dict:
+    def stats(self) -> CalibrationStats:
         s = self._framer.stats
         tally = self._tally()
-        return {
-            "mode": self.mode,
-            "samples_in": s.samples_in,
-            "samples_bad": s.samples_bad,
-            "blocks": s.blocks,
-            "blocks_used": int(tally.counts.sum()),
-            "cells": tally.n,
-            "rejected": dict(tally.rejected),
-            "dropped_out_of_order": s.dropped_out_of_order,
-            "gap_filled_samples": s.gap_filled_samples,
-            "resets": s.resets,
-            "joint_states_dropped": s.joint_states_dropped,
-        }
+        return CalibrationStats(
+            mode=self.mode,
+            samples_in=s.samples_in,
+            samples_bad=s.samples_bad,
+            blocks=s.blocks,
+            blocks_used=int(tally.counts.sum()),
+            cells=tally.n,
+            rejected=dict(tally.rejected),
+            dropped_out_of_order=s.dropped_out_of_order,
+            gap_filled_samples=s.gap_filled_samples,
+            resets=s.resets,
+            joint_states_dropped=s.joint_states_dropped,
+        )
 
     @property
     def backlog(self) -> tuple[int, int]:
@@ -405,7 +405,7 @@ def calibrate_arrays(
     source: str = "",
     progress=None,
     **options,
-) -> tuple[NoiseModel, dict]:
+) -> tuple[NoiseModel, CalibrationStats]:
     """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
 
     `options` go to CalibrationAccumulator (profile, sweep, overrides). `progress`, if

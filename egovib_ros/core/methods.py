@@ -40,7 +40,7 @@ from egovib_ros.core.harmonic import (
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, LowLatencyGain
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleFramer
-from egovib_ros.core.stream import FramerSettings, feed
+from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
 from egovib_ros.core.subtraction import (
     DenoisedChunk,
     StreamingDenoiser,
@@ -434,7 +434,9 @@ def calibrate_methods(
     info = {
         "harmonic": {**harmonic.describe(), "fit": fit_info},
         "residual_table": residual_model.coverage(),
-        "residual_calibration": {k: v for k, v in residual_stats.items() if k != "rejected"},
+        "residual_calibration": {
+            k: v for k, v in residual_stats.as_dict().items() if k != "rejected"
+        },
         "gain": {
             "bands_hz": bank.centres_hz.round(1).tolist(),
             "alpha_median": float(np.median(alpha)),
@@ -590,27 +592,25 @@ class SampleMethodDenoiser:
         return self._process(self._framer.pop())
 
     @property
-    def stats(self) -> dict:
-        s = self._framer.stats
-        out = {
-            "method": self.method,
-            "samples_in": s.samples_in,
-            "samples_out": self.samples_out,
-            "dropped_out_of_order": s.dropped_out_of_order,
-            "samples_bad": s.samples_bad,
-            "gap_filled_samples": s.gap_filled_samples,
-            "resets": s.resets,
-            "joint_states_in": s.joint_states_in,
-            "joint_states_dropped": s.joint_states_dropped,
-            "samples_no_joint_state": self._framer.samples_no_joint_state,
-            "rate_checked": self._framer.rate_checked,
-            "delay_samples": self.delay,
-            "frequency_correction": self._canceller.state.correction.round(4).tolist(),
-        }
-        if self._table is not None:
-            out["samples_unmeasured"] = self._table.samples_unmeasured
-            out["samples_out_of_grid"] = self._table.samples_out_of_grid
-        return out
+    def stats(self) -> DenoiserStats:
+        s, table = self._framer.stats, self._table
+        return DenoiserStats(
+            method=self.method,
+            samples_in=s.samples_in,
+            samples_out=self.samples_out,
+            dropped_out_of_order=s.dropped_out_of_order,
+            samples_bad=s.samples_bad,
+            gap_filled_samples=s.gap_filled_samples,
+            resets=s.resets,
+            joint_states_in=s.joint_states_in,
+            joint_states_dropped=s.joint_states_dropped,
+            samples_no_joint_state=self._framer.samples_no_joint_state,
+            rate_checked=self._framer.rate_checked,
+            delay_samples=self.delay,
+            frequency_correction=self._canceller.state.correction.round(4).tolist(),
+            samples_unmeasured=None if table is None else table.samples_unmeasured,
+            samples_out_of_grid=None if table is None else table.samples_out_of_grid,
+        )
 
     # --- internals ---------------------------------------------------------------
     def _process(self, batches) -> DenoisedChunk:
@@ -711,7 +711,7 @@ def denoise_batch_method(
     channels: str = "per_axis",
     chunk_s: float = 30.0,
     **options,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
     """Whole arrays through the streaming denoiser of `method` (as denoise_batch does for
     `paper`): (stamps (K,), values (K, C), stats)."""
     denoiser = make_denoiser(model, method, channels=channels, **options)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -65,11 +65,11 @@ def measured_period(steps: np.ndarray, period: float) -> float:
     return float(steps[~gaps].mean())
 
 
-def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> None:
+def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
     """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
-    (`stats` of a StreamingDenoiser or CalibrationAccumulator)."""
-    total = int(stats.get("samples_in", 0))
-    bad = int(stats.get("samples_bad", 0)) + int(stats.get("dropped_out_of_order", 0))
+    (`stats`: DenoiserStats, CalibrationStats or a framer's FramerStats)."""
+    total = int(stats.samples_in)
+    bad = int(stats.samples_bad) + int(stats.dropped_out_of_order)
     if total == 0:
         raise StreamError(f"{where}: no sensor samples")
     if bad > limit * total:
@@ -80,17 +80,17 @@ def check_bad_share(stats: dict, where: str, limit: float = MAX_BAD_SHARE) -> No
         )
 
 
-def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | None = None) -> str:
+def check_stream(stats, where: str, *, joint_states: int, limit: float | None = None) -> str:
     """Refuse a recording the core found mostly unusable; else the line of counts to print.
 
-    stats: of calibrate_arrays / denoise_batch. Refused (one-line StreamError naming
+    stats: of calibrate_arrays / denoise_batch, or a framer's. Refused (one-line StreamError naming
     `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
     (non-finite, beyond the sensor range, out of order), or of the `joint_states`
     messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
     """
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
-    dropped = int(stats.get("joint_states_dropped", 0))
+    dropped = int(stats.joint_states_dropped)
     if joint_states and dropped > limit * joint_states:
         raise StreamError(
             f"{where}: {dropped} of {joint_states} joint states "
@@ -100,10 +100,10 @@ def check_stream(stats: dict, where: str, *, joint_states: int, limit: float | N
             f"{100 * limit:g} % is refused"
         )
     return (
-        f"bad input treated as missing: {int(stats.get('samples_bad', 0))} sensor samples "
-        f"non-finite or beyond the sensor range, {int(stats.get('dropped_out_of_order', 0))} "
-        f"out of order, {int(stats.get('gap_filled_samples', 0))} bridged, "
-        f"{int(stats.get('resets', 0))} restarts; {dropped} of {joint_states} joint states "
+        f"bad input treated as missing: {int(stats.samples_bad)} sensor samples "
+        f"non-finite or beyond the sensor range, {int(stats.dropped_out_of_order)} "
+        f"out of order, {int(stats.gap_filled_samples)} bridged, "
+        f"{int(stats.resets)} restarts; {dropped} of {joint_states} joint states "
         f"dropped"
     )
 
@@ -269,7 +269,63 @@ class FramerStats:
     blocks: int = 0
     blocks_held: int = 0
     blocks_missing: int = 0
-    extra: dict = field(default_factory=dict)
+
+
+def _present(stats) -> dict:
+    """The fields of a stats dataclass that apply (not None), in declaration order."""
+    return {k: v for k, v in asdict(stats).items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class DenoiserStats:
+    """What a denoiser counted (`.stats` of StreamingDenoiser and of the per-sample methods):
+    bad input is counted here, never averaged in. Fields of the other kind of denoiser are
+    None (blocks for `paper`, the per-sample counts for `cancel` and `hybrid`);
+    `as_dict()` leaves them out (reports and /diagnostics)."""
+
+    method: str | None = None  # cancel | hybrid (None: the paper's StreamingDenoiser)
+    samples_in: int
+    samples_out: int
+    dropped_out_of_order: int
+    samples_bad: int
+    gap_filled_samples: int
+    resets: int
+    joint_states_in: int
+    joint_states_dropped: int
+    blocks: int | None = None
+    blocks_held_joint_state: int | None = None
+    blocks_no_joint_state: int | None = None
+    blocks_out_of_grid: int | None = None
+    blocks_unmeasured: int | None = None
+    samples_no_joint_state: int | None = None
+    rate_checked: bool
+    delay_samples: int | None = None
+    frequency_correction: list | None = None  # per actuator, relative
+    samples_unmeasured: int | None = None
+    samples_out_of_grid: int | None = None
+
+    def as_dict(self) -> dict:
+        return _present(self)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CalibrationStats:
+    """What a CalibrationAccumulator counted (`.stats`); `mode` is sweep or free."""
+
+    mode: str
+    samples_in: int
+    samples_bad: int
+    blocks: int
+    blocks_used: int
+    cells: int
+    rejected: dict  # reason -> blocks
+    dropped_out_of_order: int
+    gap_filled_samples: int
+    resets: int
+    joint_states_dropped: int
+
+    def as_dict(self) -> dict:
+        return _present(self)
 
 
 def joint_state_arrays(stamps_ns, velocity, n_joints: int, error) -> tuple[np.ndarray, np.ndarray]:

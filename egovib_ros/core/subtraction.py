@@ -29,7 +29,7 @@ from scipy import signal
 
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, design_bandpass
 from egovib_ros.core.noise_model import NoiseModel
-from egovib_ros.core.stream import BlockFramer, Blocks, FramerSettings, feed
+from egovib_ros.core.stream import BlockFramer, Blocks, DenoiserStats, FramerSettings, feed
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -247,24 +247,24 @@ class StreamingDenoiser:
         return self._process(self._framer.pop_blocks())
 
     @property
-    def stats(self) -> dict:
+    def stats(self) -> DenoiserStats:
         s = self._framer.stats
-        return {
-            "samples_in": s.samples_in,
-            "samples_out": self.samples_out,
-            "dropped_out_of_order": s.dropped_out_of_order,
-            "samples_bad": s.samples_bad,
-            "gap_filled_samples": s.gap_filled_samples,
-            "resets": s.resets,
-            "joint_states_in": s.joint_states_in,
-            "joint_states_dropped": s.joint_states_dropped,
-            "blocks": s.blocks,
-            "blocks_held_joint_state": s.blocks_held,
-            "blocks_no_joint_state": s.blocks_missing,
-            "blocks_out_of_grid": self.blocks_out_of_grid,
-            "blocks_unmeasured": self.blocks_unmeasured,
-            "rate_checked": self._framer.rate_checked,
-        }
+        return DenoiserStats(
+            samples_in=s.samples_in,
+            samples_out=self.samples_out,
+            dropped_out_of_order=s.dropped_out_of_order,
+            samples_bad=s.samples_bad,
+            gap_filled_samples=s.gap_filled_samples,
+            resets=s.resets,
+            joint_states_in=s.joint_states_in,
+            joint_states_dropped=s.joint_states_dropped,
+            blocks=s.blocks,
+            blocks_held_joint_state=s.blocks_held,
+            blocks_no_joint_state=s.blocks_missing,
+            blocks_out_of_grid=self.blocks_out_of_grid,
+            blocks_unmeasured=self.blocks_unmeasured,
+            rate_checked=self._framer.rate_checked,
+        )
 
     # --- internals -------------------------------------------------------------
     def _process(self, batches: list[Blocks]) -> DenoisedChunk:
@@ -389,7 +389,7 @@ def denoise_batch(
     channels: str = "per_axis",
     chunk_s: float = 30.0,
     **options,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
     """Denoise whole arrays. Returns (stamps_ns (K,), values (K, C), stats); K equals the
     number of valid input samples (all of them unless some were out of order or non-finite
     before the first finite one).

@@ -257,8 +257,9 @@ class BlockSpectra:
         self.framed_until_ns: int | None = None
 
     @property
-    def stats(self) -> dict:
-        return dict(vars(self._framer.stats))
+    def stats(self):
+        """The framer's counts (core.stream.FramerStats)."""
+        return self._framer.stats
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self._framer.push_joint_states(stamps_ns, velocity)
@@ -805,16 +806,22 @@ def table_from_blocks(
     """The table from the framed blocks and the (usable, model-ordered) joint states.
     More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
     StreamError) before anything else is said about the data."""
+    import dataclasses
+
     from egovib_ros.core.stream import check_stream
 
     magnitude, first_ns, last_ns, v_core = framing.finish()
-    counts = {k: v for k, v in framing.stats.items() if isinstance(v, (int, float))}
+    counts = dict(vars(framing.stats))
     bad_input = dict(counts, **bad_input)
     bad_input["joint_states_dropped"] = bad_input.pop("joint_states_bad", 0) + counts.get(
         "joint_states_dropped", 0
     )
+    # the framer's counts, with the joint states the bag reader already found unusable
+    counted = dataclasses.replace(
+        framing.stats, joint_states_dropped=bad_input["joint_states_dropped"]
+    )
     bad_input["said"] = check_stream(
-        bad_input, f"{source}: {_sensor_topic(model)}", joint_states=bad_input["joint_states"]
+        counted, f"{source}: {_sensor_topic(model)}", joint_states=bad_input["joint_states"]
     )
     if framing.samples < 4 * model.block_length:
         raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")

@@ -131,7 +131,7 @@ class Calibrator(Node):
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
         )
         self._counts = self._cell_count_map()
-        self._blocks_used = self.acc.stats["blocks_used"]
+        self._blocks_used = self.acc.stats.blocks_used
         self._current_cell: tuple[int, ...] | None = None
         self._checkpoint_due = False
         self._last_checkpoint = time.monotonic()
@@ -199,7 +199,7 @@ class Calibrator(Node):
     def _track_cells(self) -> None:
         """A sweep's cell is complete when blocks start landing in another one: checkpoint
         then. Free motion visits cells in any order: checkpoint every checkpoint_period."""
-        used = self.acc.stats["blocks_used"]
+        used = self.acc.stats.blocks_used
         if used == self._blocks_used:
             return
         self._blocks_used = used
@@ -240,7 +240,7 @@ class Calibrator(Node):
             self._process()
         if (
             self.acc.mode not in SWEEPS
-            and self.acc.stats["blocks_used"]
+            and self.acc.stats.blocks_used
             and time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s
         ):
             self._checkpoint_due = True
@@ -321,8 +321,8 @@ class Calibrator(Node):
             "missing_cells": len(cov.get("missing_cells", [])),
             "blocks": cov["blocks"],
             "min_blocks": cov["min_blocks"],
-            "blocks_rejected": sum(stats["rejected"].values()),
-            **{f"rejected_{k}": v for k, v in stats["rejected"].items()},
+            "blocks_rejected": sum(stats.rejected.values()),
+            **{f"rejected_{k}": v for k, v in stats.rejected.items()},
             **counters,
             "checkpoints_written": self.checkpoints_written,
             "checkpoint_failures": self.checkpoint_failures,
@@ -380,7 +380,7 @@ class Calibrator(Node):
         print(
             f"calibrator: wrote {self.output} ({cov['mode']}): {coverage_text(cov)}, "
             f"{cov['blocks']} blocks (min {cov['min_blocks']} per measured cell); rejected "
-            f"blocks: {self.acc.stats['rejected']}; bad samples: {self.acc.stats['samples_bad']}",
+            f"blocks: {self.acc.stats.rejected}; bad samples: {self.acc.stats.samples_bad}",
             flush=True,
         )
         return 0

@@ -432,16 +432,17 @@ class StreamInput:
 
 
 # --- health ------------------------------------------------------------------------
-def stream_counters(inp: "StreamInput", stats: dict) -> dict[str, int]:
+def stream_counters(inp: "StreamInput", stats) -> dict[str, int]:
     """The input-quality counters every stream node reports (cumulative): undecodable
-    messages from the node's input, the core's bad/out-of-order/gap/restart counts."""
+    messages from the node's input, the core's bad/out-of-order/gap/restart counts
+    (`stats`: the core's DenoiserStats or CalibrationStats)."""
     return {
         "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
-        "samples_bad": stats["samples_bad"],
-        "samples_out_of_order": stats["dropped_out_of_order"],
-        "gap_filled_samples": stats["gap_filled_samples"],
-        "stream_restarts": stats["resets"],
-        "joint_states_dropped": stats["joint_states_dropped"],
+        "samples_bad": stats.samples_bad,
+        "samples_out_of_order": stats.dropped_out_of_order,
+        "gap_filled_samples": stats.gap_filled_samples,
+        "stream_restarts": stats.resets,
+        "joint_states_dropped": stats.joint_states_dropped,
     }
 
 

@@ -365,9 +365,7 @@ class Denoiser(Node):
     def _update_held_back(self) -> None:
         """Is a completed block held back (more than a block of input not yet output)?"""
         stats = self.denoiser.stats
-        self._blocks_held_back = (
-            stats["samples_in"] - stats["samples_out"] >= self.model.block_length
-        )
+        self._blocks_held_back = stats.samples_in - stats.samples_out >= self.model.block_length
 
     def _publish(self, chunk, *, end_of_stream: bool = False) -> None:
         if self.stream_error is not None:
@@ -381,7 +379,7 @@ class Denoiser(Node):
         if not self._rate_proven:
             # The core measures the stream's rate on its first samples; nothing is published
             # before that has passed (a stream at the wrong rate gives no output at all).
-            if not self.denoiser.stats["rate_checked"] and not end_of_stream:
+            if not self.denoiser.stats.rate_checked and not end_of_stream:
                 return
             self._rate_proven = True
         pending, self._startup = self._startup, []
@@ -421,12 +419,12 @@ class Denoiser(Node):
         self._latency_ms = []
         # paper counts blocks; cancel and hybrid work sample by sample
         unit = "blocks" if self.method == "paper" else "samples"
-        total = stats["blocks"] if unit == "blocks" else stats["samples_in"]
+        total = stats.blocks if unit == "blocks" else stats.samples_in
         counters = {
             **stream_counters(inp, stats),
             unit: total,
             **{
-                f"{unit}_{key}": stats.get(f"{unit}_{key}", 0)
+                f"{unit}_{key}": getattr(stats, f"{unit}_{key}") or 0
                 for key in ("no_joint_state", "out_of_grid", "unmeasured")
             },
         }
@@ -515,10 +513,10 @@ class Denoiser(Node):
             f"denoiser: samples in {self.input.sensor_messages}, "
             f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
             f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
-            f"restarts {stats['resets']}"
+            f"restarts {stats.resets}"
             + (
-                f", blocks out of grid {stats['blocks_out_of_grid']}/{stats['blocks']}"
-                if "blocks" in stats
+                f", blocks out of grid {stats.blocks_out_of_grid}/{stats.blocks}"
+                if stats.blocks is not None
                 else ""
             ),
             flush=True,

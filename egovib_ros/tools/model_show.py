@@ -412,7 +412,7 @@ def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
         if bar is not None:
             bar.close()
     placement.input_counts = check_stream(
-        vars(placement.framer.stats), where, joint_states=placement.joint_states
+        placement.framer.stats, where, joint_states=placement.joint_states
     )
     if placement.blocks == 0:
         raise BagError(

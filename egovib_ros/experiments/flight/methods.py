@@ -90,8 +90,8 @@ class SpectralTable:
         self.joints = joints  # rec -> (M, J) joint velocities on rec.joint_stamps_ns
         self.channels = channels
         self.model = None
-        self.calibration_stats: dict = {}
-        self.denoise_stats: dict = {}
+        self.calibration_stats = None  # core.CalibrationStats after fit
+        self.denoise_stats = None  # core.DenoiserStats after run
 
     @property
     def delay_ms(self) -> float:
@@ -122,11 +122,11 @@ class SpectralTable:
             "joints": list(self.profile.joint_names),
             "block_length": self.profile.block_length,
             "hop": self.profile.hop,
-            "calibration": _plain(self.calibration_stats),
+            "calibration": _plain(self.calibration_stats.as_dict()),
             "coverage": _plain(model.coverage()),
         }
-        if self.denoise_stats:
-            info["denoise"] = _plain(self.denoise_stats)
+        if self.denoise_stats is not None:
+            info["denoise"] = _plain(self.denoise_stats.as_dict())
         return info
 
 
