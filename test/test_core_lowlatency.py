@@ -54,7 +54,7 @@ def test_band_powers_predicted_from_block_spectra_match_the_bank():
     )
     _, ratios = stage.process(x, noise_powers(len(x), 1, expected), collect=True)
     # the band power measured by the stage (attack/release smoothed) over the expected one
-    measured = ratios[1000:, 0, :-1].mean(axis=0)
+    measured = ratios[1000:, 0, : fb.n_bands].mean(axis=0)
     np.testing.assert_allclose(measured, 1.0, atol=0.25)
 
 
@@ -109,7 +109,7 @@ def test_after_a_speed_drop_the_noise_fading_out_is_not_taken_for_an_event():
     assert peaks[GainSettings().hold_ms] < 0.2
 
 
-def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_alpha):
+def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_alpha, guard_ref):
     """The gain stage in plain Python, one sample at a time (no look-ahead ring tricks)."""
     n, C = r.shape
     K, B = len(fb.poles), fb.n_bands
@@ -131,6 +131,8 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
     log_ratio = bias.copy()
     correction = np.ones((C, B))
     opening = np.zeros(C)
+    a_up, a_down = rate(1e3 * s.guard_up_s), rate(1e3 * s.guard_down_s)
+    guard = guard_ref.copy()
     bands_hist = np.zeros((n + D, C, B))
     out = np.zeros((n, C))
     for i in range(n):
@@ -163,7 +165,13 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
                 expected *= correction[c, k]
                 ratio[k] = power[c, k] / expected
                 score = max(score, ratio[k] / alpha[c, k])
-            level = min(max((score / open_alpha[c] - 1) / span, 0.0), 1.0)
+            score /= open_alpha[c]
+            level_now = math.log(score)
+            guard[c] += (a_up if level_now > guard[c] else a_down) * (level_now - guard[c])
+            excess = max(guard[c] - guard_ref[c], 0.0)
+            score /= math.exp(excess)
+            ratio /= math.exp(s.guard_gain * excess)
+            level = min(max((score - 1) / span, 0.0), 1.0)
             opening[c] = max(level, opening[c] * decay)
             g = np.sqrt(np.clip(1 - alpha[c] / ratio, 0, None))
             g = np.maximum(np.maximum(g, opening[c]), s.floor)
@@ -181,10 +189,11 @@ def test_compiled_gain_equals_the_plain_reference():
     alpha = 1 + rng.uniform(size=(2, fb.n_bands))
     bias = 0.1 * rng.normal(size=(2, fb.n_bands))
     open_alpha = np.array([1.5, 2.0])
+    guard_ref = np.array([-1.0, 0.5])
     got = LowLatencyGain(
-        fb, s, n_channels=2, alpha=alpha, bias=bias, open_alpha=open_alpha
+        fb, s, n_channels=2, alpha=alpha, bias=bias, open_alpha=open_alpha, guard_ref=guard_ref
     ).process(r, noise)
-    want = reference_gain(fb, s, r, noise, alpha, bias, open_alpha)
+    want = reference_gain(fb, s, r, noise, alpha, bias, open_alpha, guard_ref)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
 
 
@@ -207,6 +216,50 @@ def test_any_chunking_gives_the_one_call_result_to_the_bit(cuts):
         stage.process(r[a:b], noise[a:b]) for a, b in zip(np.r_[0, edges], np.r_[edges, len(r)])
     ]
     assert np.array_equal(np.concatenate(pieces), whole)
+
+
+def test_a_lasting_excess_over_the_table_is_taken_for_noise_a_short_burst_still_opens():
+    # Noise 10 dB above what the table expects, for a second (speeds the calibration never
+    # saw): without the guard it passes as if it were an event; with it, it is removed as
+    # well as noise at the table's level is, and a burst on top of it still opens the gain.
+    rng = np.random.default_rng(8)
+    fb = bank(3)
+    n = int(1.2 * FS)
+    residual = rng.normal(size=(n, 1))
+    residual[int(0.1 * FS) :] *= math.sqrt(10.0)
+    burst = slice(int(0.9 * FS), int(0.91 * FS))
+    residual[burst] *= 8.0
+    window = analysis_window(64, 32)
+    unit = fb.power_weights(64, window) @ np.full(33, np.sum(window**2))  # unit white noise
+    table = noise_powers(n, 1, unit)
+    settled = slice(int(0.4 * FS), int(0.85 * FS))
+
+    def stage_(guard_ref):
+        return LowLatencyGain(
+            fb,
+            GainSettings(track_s=0.0),
+            n_channels=1,
+            alpha=np.full((1, fb.n_bands), 2.0),
+            open_alpha=np.array([2.0]),
+            guard_ref=guard_ref,
+        )
+
+    # The guard's reference as calibration sets it: its 99 % level on noise at the table.
+    calm = rng.normal(size=(int(FS), 1))
+    probe = stage_(None)
+    out, collected = probe.process(calm, table[: len(calm)], collect=True)
+    reference = np.quantile(collected[int(0.1 * FS) :, 0, fb.n_bands + 1], 0.99)
+    at_table = np.sqrt(np.mean(out[int(0.1 * FS) :] ** 2) / np.mean(calm ** 2))
+    assert at_table < 0.5
+    kept = {}
+    for guard_ref in (None, np.array([reference])):
+        stage = stage_(guard_ref)
+        out = stage.process(residual, table)[stage.delay :, 0]
+        quiet = np.sqrt(np.mean(out[settled] ** 2) / np.mean(residual[settled, 0] ** 2))
+        kept[guard_ref is None] = quiet, np.abs(out[burst]).max() / np.abs(residual[burst, 0]).max()
+    assert kept[True][0] > 0.9  # no guard: the lasting excess passes
+    assert kept[False][0] < 1.2 * at_table  # the guard: removed as noise at the table is
+    assert kept[False][1] > 0.7  # and the burst on top of it is kept
 
 
 def test_settings_are_checked_with_one_line_errors():

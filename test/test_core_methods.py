@@ -245,6 +245,19 @@ def test_the_model_file_carries_the_methods_and_older_models_still_load(model, t
     assert isinstance(make_denoiser(v2, "paper"), StreamingDenoiser)
     with pytest.raises(ModelFileError, match="old.npz: calibrated for the paper's method only"):
         make_denoiser(v2, "hybrid")
+    # A model calibrated before the gain's guard (no gain.guard_ref and none of its settings)
+    # loads and runs hybrid without the guard: what it did before.
+    assert a.guard_ref is not None and b.guard_ref is not None
+    np.testing.assert_array_equal(a.guard_ref, b.guard_ref)
+    unguarded = tmp_path / "unguarded.npz"
+    with np.load(path, allow_pickle=False) as data:
+        fields = {k: data[k] for k in data.files if "guard" not in k}
+    with open(unguarded, "wb") as fh:
+        np.savez_compressed(fh, **fields)
+    before = MethodCalibration.from_model(NoiseModel.load(unguarded))
+    assert before.guard_ref is None
+    stage = make_denoiser(NoiseModel.load(unguarded), "hybrid")._gain
+    assert np.all(np.isinf(stage.guard_ref))
     # A damaged extra is a one-line model error, not a crash.
     broken = tmp_path / "broken.npz"
     with np.load(path, allow_pickle=False) as data:

@@ -41,8 +41,17 @@ fully at `open_span` beyond) and stays open for about `open_hold_ms`: the event 
 its whole waveform, the noise under it stays too (noise reduction is for the time
 between events).
 
+Guard: where the real noise stands above the table for longer than an event lasts (speeds
+the calibration never saw, a flight phase it did not hold, a speed ramp the trackers lag
+behind), every moment looks like an event. The guard is a slow level of the opening score
+(in logs; rising in `guard_up_s`, falling in `guard_down_s`); above what it reached on the
+calibration residual (its `guard_quantile`, stored in the model as `guard_ref`), the
+excess raises both the opening threshold and, to the power `guard_gain`, the expected
+noise of every band. An event is over before the guard has risen much; a lasting excess
+is treated as noise. Models calibrated before the guard have no `guard_ref`: no guard.
+
 Defaults (3 bands, 4 ms look-ahead, 1 / 10 ms attack / release, power subtraction,
--30 dB floor, 20 ms opening) were chosen on the simulator (seed 7, not the published
+-30 dB floor, 20 ms opening, 20 ms / 0.5 s guard) were chosen on the simulator (seed 7, not the published
 seeds) and on the first half of the shipped flight split in two; docs say where a
 figure was measured on data that also served for choosing them.
 """
@@ -64,6 +73,9 @@ MIN_POLE_RADIUS = 0.5
 SILENCE = 1e-6
 #: The noise-level correction moves every this many samples (its time constant is ~0.3 s).
 TRACK_EVERY = 8
+#: Least opening score the guard takes the log of.
+TINY = 1e-12
+LOG_TINY = math.log(TINY)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,7 +91,11 @@ class GainSettings:
     the table's value drops (0: the table's value at once); open_hold_ms: how long a
     channel stays open after an event is
     seen (0: no opening); open_quantile: quantile of the opening score on calibration
-    data above which it opens; open_span: how far beyond that (relative) it is fully open."""
+    data above which it opens; open_span: how far beyond that (relative) it is fully open;
+    guard_up_s / guard_down_s: time constants with which the guard (a slow level of the
+    opening score) rises / falls (guard_up_s 0: no guard); guard_quantile: quantile of the
+    guard on calibration data above which it raises the opening threshold; guard_gain:
+    the power of that excess by which the expected noise rises too (0: the opening only)."""
 
     bands: int = 3
     bandwidth: float = 1.0
@@ -95,8 +111,12 @@ class GainSettings:
     track_range_db: float = 15.0
     hold_ms: float = 20.0
     open_hold_ms: float = 20.0
-    open_quantile: float = 0.99
-    open_span: float = 1.0
+    open_quantile: float = 0.998
+    open_span: float = 2.0
+    guard_up_s: float = 0.02
+    guard_down_s: float = 0.5
+    guard_quantile: float = 0.99
+    guard_gain: float = 1.0
 
     def __post_init__(self) -> None:
         checks = (
@@ -114,6 +134,10 @@ class GainSettings:
             ("open_hold_ms", 0.0, 10000.0),
             ("open_quantile", 0.5, 1.0),
             ("open_span", 0.01, 100.0),
+            ("guard_up_s", 0.0, 1000.0),
+            ("guard_down_s", 0.0, 1000.0),
+            ("guard_quantile", 0.5, 1.0),
+            ("guard_gain", 0.0, 1.0),
         )
         for name, low, high in checks:
             value = getattr(self, name)
@@ -205,6 +229,7 @@ def _gain_kernel(
     alpha,
     bias,
     open_alpha,
+    guard_ref,
     floor,
     exponent,
     a_attack,
@@ -215,6 +240,9 @@ def _gain_kernel(
     open_decay,
     open_span,
     hold_decay,
+    a_guard_up,
+    a_guard_down,
+    guard_gain,
     z,
     power,
     hist,
@@ -223,13 +251,14 @@ def _gain_kernel(
     correction,
     opening,
     noise_held,
+    guard,
     out,
     collect,
 ):
     """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1); state updated in
     place; out[i] = output for the sample `D` before sample i (hist holds D + 1 samples
-    per band). collect (n, C, B + 1): P / N per band and the opening score (calibration),
-    or an empty array."""
+    per band). collect (n, C, B + 2): P / N per band, the opening score over open_alpha
+    and the guard's log level (calibration), or an empty array."""
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1
@@ -291,10 +320,25 @@ def _gain_kernel(
             # Opening: when some band stands out beyond what noise reaches, every band of
             # this channel opens for a while (the event keeps its waveform; the noise under
             # it is not touched either).
+            score /= open_alpha[c]
+            # The guard: a slow level of the score (in logs; rises in tens of ms, falls in
+            # hundreds). Where the noise stands above the table for longer than an event
+            # lasts (speeds the calibration never saw, a flight phase it did not hold),
+            # the opening asks for that much more.
+            if a_guard_up > 0.0:
+                log_score = math.log(score) if score > TINY else LOG_TINY
+                rate = a_guard_up if log_score > guard[c] else a_guard_down
+                guard[c] += rate * (log_score - guard[c])
+                if guard[c] > guard_ref[c]:
+                    score /= math.exp(guard[c] - guard_ref[c])
+                    lift = math.exp(guard_gain * (guard[c] - guard_ref[c]))
+                    for k in range(B):
+                        ratio[k] /= lift
             if keep:
                 collect[i, c, B] = score
+                collect[i, c, B + 1] = guard[c]
             if open_span > 0.0:
-                level = (score / open_alpha[c] - 1.0) / open_span
+                level = (score - 1.0) / open_span
                 level = 1.0 if level > 1.0 else (0.0 if level < 0.0 else level)
                 held = opening[c] * open_decay
                 opening[c] = level if level > held else held
@@ -329,6 +373,7 @@ class GainState:
     correction: np.ndarray  # (C, B) exp(log_ratio - bias)
     opening: np.ndarray  # (C,) how far all bands are held open
     noise_held: np.ndarray  # (C, B) expected band noise, held after the table's value drops
+    guard: np.ndarray  # (C,) log of the opening score's slow level
 
     def copy(self) -> "GainState":
         return GainState(*(np.array(getattr(self, f.name)) for f in fields(self)))
@@ -349,6 +394,7 @@ class LowLatencyGain:
         alpha: np.ndarray | None = None,
         bias: np.ndarray | None = None,
         open_alpha: np.ndarray | None = None,
+        guard_ref: np.ndarray | None = None,
     ):
         self.bank = bank
         self.settings = settings
@@ -374,6 +420,13 @@ class LowLatencyGain:
             else np.broadcast_to(np.asarray(open_alpha, float), (self.n_channels,)).copy()
         )
 
+        # No reference level (a model calibrated before the guard): the guard never acts.
+        self.guard_ref = (
+            np.full(self.n_channels, np.inf)
+            if guard_ref is None
+            else np.broadcast_to(np.asarray(guard_ref, float), (self.n_channels,)).copy()
+        )
+
         def rate(ms: float) -> float:
             return 1.0 - math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 1.0
 
@@ -391,6 +444,8 @@ class LowLatencyGain:
         self._hold_decay = (
             math.exp(-1.0 / (settings.hold_ms * 1e-3 * fs)) if settings.hold_ms > 0 else 0.0
         )
+        self._a_guard_up = rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0
+        self._a_guard_down = rate(1e3 * settings.guard_down_s)
         self.state = self.initial_state()
 
     def initial_state(self) -> GainState:
@@ -404,13 +459,18 @@ class LowLatencyGain:
             correction=np.ones((C, B)),
             opening=np.zeros(C),
             noise_held=np.zeros((C, B)),
+            # From below when there is no reference (calibration): the guard rises to the
+            # noise's level within a few guard_up_s, instead of falling for guard_down_s.
+            guard=np.where(np.isfinite(self.guard_ref), self.guard_ref, LOG_TINY),
         )
 
     def reset_signal(self) -> None:
-        """A new segment (after a long gap): forget the signal, keep the noise correction."""
+        """A new segment (after a long gap): forget the signal, keep the noise correction and
+        the guard (they describe the noise, not the signal)."""
         kept = self.state
         self.state = self.initial_state()
         self.state.log_ratio, self.state.correction = kept.log_ratio, kept.correction
+        self.state.guard = kept.guard
         self.state.position[1] = kept.position[1]
 
     def process(
@@ -439,7 +499,7 @@ class LowLatencyGain:
         if index.shape != (len(r),) or (len(r) and (index.min() < 0 or index.max() >= rows)):
             raise ConfigError(f"gain: index must name a noise row for each of the {len(r)} samples")
         out = np.empty_like(r)
-        ratios = np.empty((len(r), C, B + 1)) if collect else np.empty((0, C, B + 1))
+        ratios = np.empty((len(r), C, B + 2)) if collect else np.empty((0, C, B + 2))
         if len(r):
             s = self.state
             span = float(self.settings.open_span) if self.settings.open_hold_ms > 0 else 0.0
@@ -451,6 +511,7 @@ class LowLatencyGain:
                 self.alpha,
                 self.bias,
                 self.open_alpha,
+                self.guard_ref,
                 float(self.settings.floor),
                 float(self.settings.exponent),
                 self._a_attack,
@@ -461,6 +522,9 @@ class LowLatencyGain:
                 self._open_decay,
                 span,
                 self._hold_decay,
+                self._a_guard_up,
+                self._a_guard_down,
+                float(self.settings.guard_gain),
                 s.z,
                 s.power,
                 s.hist,
@@ -469,6 +533,7 @@ class LowLatencyGain:
                 s.correction,
                 s.opening,
                 s.noise_held,
+                s.guard,
                 out,
                 ratios,
             )

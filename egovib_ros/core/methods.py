@@ -113,6 +113,7 @@ class MethodCalibration:
     alpha: np.ndarray  # (3, B) per axis and band
     bias: np.ndarray  # (3, B)
     open_alpha: np.ndarray  # (3,) per axis
+    guard_ref: np.ndarray | None = None  # (3,) per axis; None: calibrated before the guard
     info: dict = dataclasses.field(default_factory=dict)
 
     def to_extras(self) -> dict[str, np.ndarray]:
@@ -132,6 +133,8 @@ class MethodCalibration:
                 GAIN_PREFIX + "open_alpha": self.open_alpha,
             }
         )
+        if self.guard_ref is not None:
+            extras[GAIN_PREFIX + "guard_ref"] = self.guard_ref
         return extras
 
     @classmethod
@@ -182,7 +185,12 @@ class MethodCalibration:
             np.isfinite(open_alpha) & (open_alpha > 0)
         ):
             raise ModelFileError(f"{where}: gain open_alpha must hold 3 positive values")
-        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha)
+        guard_ref = extras.get(GAIN_PREFIX + "guard_ref")
+        if guard_ref is not None:
+            guard_ref = np.asarray(guard_ref, float)
+            if guard_ref.shape != (len(AXES),) or not np.all(np.isfinite(guard_ref)):
+                raise ModelFileError(f"{where}: gain guard_ref must hold 3 finite values")
+        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha, guard_ref)
 
 
 @numba.njit(cache=True)
@@ -402,7 +410,7 @@ def calibrate_methods(
         bank, dataclasses.replace(steady, track_s=0.0, oversubtraction=1.0), n_channels=3
     )
     _, ratios = probe.process(residual, noise, collect=True)
-    ratios = ratios[:, :, :-1]
+    ratios = ratios[:, :, : bank.n_bands]
     # Statistics where the table expects noise on that channel and band (an axis at rest
     # reads a constant: no power, nothing to learn there).
     usable = use[:, None, None] & (noise > 1.001 * table.floor[None]) & (ratios > 0)
@@ -419,17 +427,23 @@ def calibrate_methods(
             values = values[np.isfinite(values) & (values > 0)]
             if len(values):
                 alpha[c, b] = float(np.quantile(values, gain.opening_quantile))
-    # The opening score (largest P / (alpha N) over bands) of the calibration residual.
+    # The opening score (largest P / (alpha N) over bands) of the calibration residual, and
+    # the guard's slow level of it (its log; shifted by log open_alpha once that is known).
     probe = LowLatencyGain(bank, steady, n_channels=3, alpha=alpha, bias=bias)
     _, ratios = probe.process(residual, noise, collect=True)
     open_alpha = np.ones(3)
+    guard_ref = np.zeros(3)
     for c in range(3):
-        values = ratios[usable[:, c].any(axis=1), c, -1]
+        where = usable[:, c].any(axis=1)
+        values = ratios[where, c, bank.n_bands]
         values = values[np.isfinite(values) & (values > 0)]
         if len(values):
             open_alpha[c] = float(np.quantile(values, gain.open_quantile))
+        levels = ratios[where, c, bank.n_bands + 1]
+        if len(levels):
+            guard_ref[c] = float(np.quantile(levels, gain.guard_quantile)) - math.log(open_alpha[c])
     calibration = MethodCalibration(
-        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha
+        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha, guard_ref
     )
     info = {
         "harmonic": {**harmonic.describe(), "fit": fit_info},
@@ -441,6 +455,7 @@ def calibrate_methods(
             "bands_hz": bank.centres_hz.round(1).tolist(),
             "alpha_median": float(np.median(alpha)),
             "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
+            "guard_ref_db": (10 * guard_ref / math.log(10)).round(1).tolist(),
         },
         "cancellation_db_on_calibration": round(
             10
@@ -557,7 +572,13 @@ class SampleMethodDenoiser:
                 sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
             )
             self._gain = LowLatencyGain(
-                bank, gain, n_channels=3, alpha=cal.alpha, bias=cal.bias, open_alpha=cal.open_alpha
+                bank,
+                gain,
+                n_channels=3,
+                alpha=cal.alpha,
+                bias=cal.bias,
+                open_alpha=cal.open_alpha,
+                guard_ref=cal.guard_ref,
             )
             self._table = ResidualTable(cal.residual, bank)
         self.delay = self._gain.delay if self._gain is not None else 0
