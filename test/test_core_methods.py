@@ -125,7 +125,13 @@ def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):
             assert stats.samples_out == len(r["t"]) and stats.samples_bad == 0
             if method != "paper":  # typed; the per-sample methods' own fields, no blocks
                 assert stats.method == method and stats.blocks is None
-                assert stats.delay_samples >= 0 and "blocks" not in stats.as_dict()
+                table = ["samples_unmeasured", "samples_out_of_grid"] * (method == "hybrid")
+                assert stats.delay_samples >= 0 and list(stats.as_dict()) == [
+                    "method", "samples_in", "samples_out", "dropped_out_of_order",
+                    "samples_bad", "gap_filled_samples", "resets", "joint_states_in",
+                    "joint_states_dropped", "samples_no_joint_state", "rate_checked",
+                    "delay_samples", "frequency_correction", *table,
+                ]  # fmt: skip
                 assert len(stats.frequency_correction) == r["velocity"].shape[1]
             store[method] = values[:, 0]
     quiet = np.ones(len(raw), bool)

@@ -390,3 +390,78 @@ def test_feed_pushes_everything_in_time_order_for_any_chunk_length(model, motion
         got = _framed(framer.pop_blocks())
         for name, value in _framed(expected).items():
             np.testing.assert_array_equal(got[name], value, err_msg=f"{name}, chunk {chunk_s}")
+
+
+#: The keys of the stats as written (reports, /diagnostics), in their order.
+PAPER_KEYS = [
+    "samples_in", "samples_out", "dropped_out_of_order", "samples_bad", "gap_filled_samples",
+    "resets", "joint_states_in", "joint_states_dropped", "blocks", "blocks_held_joint_state",
+    "blocks_no_joint_state", "blocks_out_of_grid", "blocks_unmeasured", "rate_checked",
+]  # fmt: skip
+PER_SAMPLE_KEYS = [
+    "method", "samples_in", "samples_out", "dropped_out_of_order", "samples_bad",
+    "gap_filled_samples", "resets", "joint_states_in", "joint_states_dropped",
+    "samples_no_joint_state", "rate_checked", "delay_samples", "frequency_correction",
+    "samples_unmeasured", "samples_out_of_grid",
+]  # fmt: skip
+CALIBRATION_KEYS = [
+    "mode", "samples_in", "samples_bad", "blocks", "blocks_used", "cells", "rejected",
+    "dropped_out_of_order", "gap_filled_samples", "resets", "joint_states_dropped",
+]  # fmt: skip
+
+
+def test_stats_take_the_framers_counts_and_write_only_the_fields_that_apply():
+    from egovib_ros.core import CalibrationStats, DenoiserStats
+    from egovib_ros.core.stream import FramerStats
+
+    framer = FramerStats(*range(1, 11))  # every count distinct: 1 .. 10 in declaration order
+    paper = DenoiserStats.of(
+        framer, samples_out=11, blocks=8, blocks_held_joint_state=9, blocks_no_joint_state=10,
+        blocks_out_of_grid=12, blocks_unmeasured=13, rate_checked=True,
+    )  # fmt: skip
+    assert list(paper.as_dict().items()) == list(
+        zip(PAPER_KEYS, [1, 11, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 13, True])
+    )
+    hybrid = DenoiserStats.of(
+        framer, method="hybrid", samples_out=11, samples_no_joint_state=12, rate_checked=False,
+        delay_samples=4, frequency_correction=[0.01, -0.02], samples_unmeasured=13,
+        samples_out_of_grid=14,
+    )  # fmt: skip
+    assert list(hybrid.as_dict().items()) == list(
+        zip(
+            PER_SAMPLE_KEYS,
+            ["hybrid", 1, 11, 2, 3, 4, 5, 6, 7, 12, False, 4, [0.01, -0.02], 13, 14],
+        )
+    )
+    # without a table (cancel): its counts are None and left out; what is given wins
+    cancel = DenoiserStats.of(
+        framer, method="cancel", samples_in=99, samples_out=11, samples_no_joint_state=0,
+        rate_checked=True, delay_samples=0, frequency_correction=[0.0], samples_unmeasured=None,
+    )  # fmt: skip
+    assert list(cancel.as_dict()) == PER_SAMPLE_KEYS[:-2] and cancel.samples_in == 99
+    calibration = CalibrationStats.of(
+        framer, mode="free", blocks_used=7, cells=3, rejected={"partial": 1}
+    )
+    assert list(calibration.as_dict().items()) == list(
+        zip(CALIBRATION_KEYS, ["free", 1, 3, 8, 7, 3, {"partial": 1}, 2, 4, 5, 7])
+    )
+
+
+def test_stats_of_the_streaming_classes_keep_their_keys(model, motion):
+    from egovib_ros.core import CalibrationAccumulator
+
+    _, _, stats = denoise_streaming(model, motion, seed=0)
+    assert list(stats.as_dict()) == PAPER_KEYS
+    assert stats.samples_in == len(motion["t_acc"]) and stats.blocks > 0
+    _, calibrated = calibrate_arrays(
+        motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"]
+    )
+    accumulator = CalibrationAccumulator()
+    feed(
+        accumulator, motion["t_acc"], motion["accel"], motion["t_joint"], motion["velocity"],
+        sample_rate_hz=FS, joint_wait_s=0.02, chunk_s=0.5,
+    )  # fmt: skip
+    accumulator.flush()
+    for cal in (calibrated, accumulator.stats):
+        assert list(cal.as_dict()) == CALIBRATION_KEYS
+        assert cal.samples_in == len(motion["t_acc"]) and cal.blocks >= cal.blocks_used > 0

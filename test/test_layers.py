@@ -124,7 +124,6 @@ UNTESTED = {
     "cli/simulate_robot": "`egovib simulate robot` runs in test_sim_robot",
     "experiments/flight/flightlog": "read by the converter in test_experiments_flight_convert",
     "experiments/flight/recording": "built from the shipped bag in test_experiments_flight_*",
-    "experiments/flight/report": "written by `egovib real evaluate` in _flight_experiment",
     "experiments/paper_figures": "drawn by `egovib figures --quick` in test_cli_evaluate",
     "gap/baseline": "fitted inside every diagnosis (test_gap_diagnose, test_cli_gap)",
     "gap/effects": "the candidates diagnose fits; identified by name in test_gap_diagnose",

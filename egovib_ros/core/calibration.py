@@ -214,20 +214,13 @@ class CalibrationAccumulator:
 
     @property
     def stats(self) -> CalibrationStats:
-        s = self._framer.stats
         tally = self._tally()
-        return CalibrationStats(
+        return CalibrationStats.of(
+            self._framer.stats,
             mode=self.mode,
-            samples_in=s.samples_in,
-            samples_bad=s.samples_bad,
-            blocks=s.blocks,
             blocks_used=int(tally.counts.sum()),
             cells=tally.n,
             rejected=dict(tally.rejected),
-            dropped_out_of_order=s.dropped_out_of_order,
-            gap_filled_samples=s.gap_filled_samples,
-            resets=s.resets,
-            joint_states_dropped=s.joint_states_dropped,
         )
 
     @property

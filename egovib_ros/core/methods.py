@@ -614,17 +614,11 @@ class SampleMethodDenoiser:
 
     @property
     def stats(self) -> DenoiserStats:
-        s, table = self._framer.stats, self._table
-        return DenoiserStats(
+        table = self._table
+        return DenoiserStats.of(
+            self._framer.stats,
             method=self.method,
-            samples_in=s.samples_in,
             samples_out=self.samples_out,
-            dropped_out_of_order=s.dropped_out_of_order,
-            samples_bad=s.samples_bad,
-            gap_filled_samples=s.gap_filled_samples,
-            resets=s.resets,
-            joint_states_in=s.joint_states_in,
-            joint_states_dropped=s.joint_states_dropped,
             samples_no_joint_state=self._framer.samples_no_joint_state,
             rate_checked=self._framer.rate_checked,
             delay_samples=self.delay,

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING as NO_DEFAULT
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -271,13 +272,29 @@ class FramerStats:
     blocks_missing: int = 0
 
 
-def _present(stats) -> dict:
-    """The fields of a stats dataclass that apply (not None), in declaration order."""
-    return {k: v for k, v in asdict(stats).items() if v is not None}
+class _Counts:
+    """Base of the typed stats of a streaming class: what its framer counted plus its own."""
+
+    @classmethod
+    def of(cls, framer: FramerStats, **own):
+        """The stats from a framer's FramerStats and the class's own counts (`own`): every
+        required field named as a FramerStats field is read from `framer` unless given; the
+        optional ones (None: the field does not apply to this kind) only when given."""
+        counted = {f.name for f in fields(FramerStats)}
+        taken = {
+            f.name: getattr(framer, f.name)
+            for f in fields(cls)
+            if f.name in counted and f.default is NO_DEFAULT and f.name not in own
+        }
+        return cls(**taken, **own)
+
+    def as_dict(self) -> dict:
+        """The fields that apply (not None), in declaration order."""
+        return {k: v for k, v in asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True, kw_only=True)
-class DenoiserStats:
+class DenoiserStats(_Counts):
     """What a denoiser counted (`.stats` of StreamingDenoiser and of the per-sample methods):
     bad input is counted here, never averaged in. Fields of the other kind of denoiser are
     None (blocks for `paper`, the per-sample counts for `cancel` and `hybrid`);
@@ -304,12 +321,9 @@ class DenoiserStats:
     samples_unmeasured: int | None = None
     samples_out_of_grid: int | None = None
 
-    def as_dict(self) -> dict:
-        return _present(self)
-
 
 @dataclass(frozen=True, kw_only=True)
-class CalibrationStats:
+class CalibrationStats(_Counts):
     """What a CalibrationAccumulator counted (`.stats`); `mode` is sweep or free."""
 
     mode: str
@@ -323,9 +337,6 @@ class CalibrationStats:
     gap_filled_samples: int
     resets: int
     joint_states_dropped: int
-
-    def as_dict(self) -> dict:
-        return _present(self)
 
 
 def joint_state_arrays(stamps_ns, velocity, n_joints: int, error) -> tuple[np.ndarray, np.ndarray]:

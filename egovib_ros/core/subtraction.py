@@ -249,15 +249,9 @@ class StreamingDenoiser:
     @property
     def stats(self) -> DenoiserStats:
         s = self._framer.stats
-        return DenoiserStats(
-            samples_in=s.samples_in,
+        return DenoiserStats.of(
+            s,
             samples_out=self.samples_out,
-            dropped_out_of_order=s.dropped_out_of_order,
-            samples_bad=s.samples_bad,
-            gap_filled_samples=s.gap_filled_samples,
-            resets=s.resets,
-            joint_states_in=s.joint_states_in,
-            joint_states_dropped=s.joint_states_dropped,
             blocks=s.blocks,
             blocks_held_joint_state=s.blocks_held,
             blocks_no_joint_state=s.blocks_missing,
