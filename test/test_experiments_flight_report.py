@@ -13,6 +13,7 @@ import pytest
 from egovib_ros.evaluation.metrics import segment_contacts
 from egovib_ros.experiments.flight import report
 from egovib_ros.experiments.flight.events import EventSpec
+from egovib_ros.experiments.flight.experiment import FLIGHT_PHASES
 from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.robot import load_profile
 
@@ -172,7 +173,9 @@ def signals(n: int = 2000) -> dict:
     }
 
 
-def result(*, swapped: bool = True, over_seeds=OVER_SEEDS, keep_signals: bool = False) -> dict:
+def result(
+    *, swapped: bool = True, over_seeds=OVER_SEEDS, keep_signals: bool = False, phases=FLIGHT_PHASES
+) -> dict:
     out = {
         "schema": "egovib.real/1",
         "command": "egovib real evaluate --bag bags/quadcopter_ar8 --out docs",
@@ -185,7 +188,7 @@ def result(*, swapped: bool = True, over_seeds=OVER_SEEDS, keep_signals: bool = 
             "sample_step_ms": {"min": 0.9, "median": 1.0, "max": 1.25, "mean": 1.0},
         },
         "profile": PROFILE.to_dict(),
-        "protocol": {"events": EventSpec().to_dict()},
+        "protocol": {"events": EventSpec().to_dict(), "phases": phases},
         "primary": fold(
             over_seeds=over_seeds,
             transfer={"band_hz": [80, 450], "median_gain_db": -1.5, "median_coherence": 0.95},
@@ -342,7 +345,8 @@ def test_markdown_sections_and_numbers_come_from_the_result():
     assert "16977 samples in 17.04 s, steps 0.900-1.250 ms (median 1.000)." in text
     assert "4 one-directional joints, 10 steps, L = 32, hop 16, band 80-450 Hz." in text
     # protocol: the split, the motor commands (no "-0.00"), the events
-    assert "Calibrate on 0-8.5 s" in text and "motor commands 0.00-0.91);" in text
+    assert "Calibrate on 0-8.5 s (idle, take-off" in text and "motor commands 0.00-0.91);" in text
+    assert "(hover with stick inputs, commands" in text and "left out of both." in text
     assert "15 known events" in text and "100-400 Hz, tau uniform in 4-12 ms" in text
     assert "(0.457 rad/s;" in text and "(seed 1)" in text
     assert "3 of 40 test blocks fell on cells the calibration never measured" in text
@@ -356,6 +360,17 @@ def test_markdown_sections_and_numbers_come_from_the_result():
     swapped = text.split("## Swapped")[1]
     assert report.table(result()["swapped"])[3] in swapped
     assert "motor commands 0.25-0.50, the calibration only" in swapped
+
+
+def test_another_split_names_no_flight_phases():
+    # The phases are those of the shipped flight at the default split: with another split
+    # (egovib real evaluate --split/--end) they would describe the wrong seconds.
+    text = report.markdown(result(phases=None)) + report.readme_section(result(phases=None))
+    for phase in FLIGHT_PHASES.values():
+        assert phase not in text
+    assert "Calibrate on 0-8.5 s, motor commands 0.00-0.91; test on 8.5-16.85 s" in text
+    assert "## Swapped: calibrate on 8.5-16.85 s, test on 0-8.5 s" in text
+    assert "With the halves swapped ours gives 12.0 dB" in text
 
 
 def test_markdown_without_event_sets_or_swapped_fold():

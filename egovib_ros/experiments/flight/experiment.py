@@ -63,6 +63,17 @@ LENIENT_TOLERANCE_S = (
 )
 
 
+#: What happens in the shipped flight's parts at the default split (the report tells it only
+#: for that split: other splits hold other phases).
+FLIGHT_PHASES = {
+    "calibration": "idle, take-off, hover, both punch-outs and flips: free motion",
+    "test": "hover with stick inputs",
+    "left_out": "the final impact at 16.9 s is left out of both",
+    "swapped_calibration": "hover only",
+    "swapped_test": "idle on the ground, take-off, punch-outs and flips",
+}
+
+
 @dataclass
 class RealConfig:
     split_s: float = 8.5  # calibration = [start, split), test = [split, end)
@@ -384,6 +395,9 @@ def run_experiment(
         "protocol": {
             "split_s": config.split_s,
             "end_s": end,
+            "phases": FLIGHT_PHASES
+            if (config.split_s, config.end_s) == (RealConfig.split_s, RealConfig.end_s)
+            else None,
             "events": config.events.to_dict(),
             "amplitudes": list(config.amplitudes),
             "primary_amplitude": PRIMARY_AMPLITUDE,

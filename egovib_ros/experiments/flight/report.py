@@ -277,6 +277,31 @@ def _span_s(span: list) -> str:
     return f"{span[0]:g}-{span[1]:g} s"
 
 
+def _phase(result: dict, part: str, lead: str = " (", tail: str = ")") -> str:
+    """The flight phases of a part, where the split is the one they were written for."""
+    phases = result["protocol"].get("phases")
+    return f"{lead}{phases[part]}{tail}" if phases else ""
+
+
+def _swapped_phases(result: dict) -> str:
+    calibration = _phase(result, "swapped_calibration", "calibrated on ", "")
+    test = _phase(result, "swapped_test", "tested on ", "")
+    return f" ({calibration}, {test})" if calibration else ""
+
+
+def _split_sentence(result: dict) -> str:
+    primary, phases = result["primary"], result["protocol"].get("phases")
+    calibration = f"motor commands {_range(primary, 'calibration')}"
+    test = f"commands {_range(primary, 'test')}"
+    spans = _span_s(primary["calibration_s"]), _span_s(primary["test_s"])
+    if not phases:
+        return f"Calibrate on {spans[0]}, {calibration}; test on {spans[1]}, {test}."
+    return (
+        f"Calibrate on {spans[0]} ({phases['calibration']}, {calibration}); test on {spans[1]} "
+        f"({phases['test']}, {test}); {phases['left_out']}."
+    )
+
+
 def _protocol(result: dict) -> str:
     primary = result["primary"]
     spec = result["protocol"]["events"]
@@ -285,11 +310,7 @@ def _protocol(result: dict) -> str:
     tau_low, tau_high = (1e3 * t for t in spec["decay_s"])
     return " ".join(
         (
-            f"Calibrate on {_span_s(primary['calibration_s'])} (idle, take-off, hover, both",
-            f"punch-outs and flips: free motion, motor commands {_range(primary, 'calibration')});",
-            f"test on {_span_s(primary['test_s'])} (hover with stick inputs, commands",
-            f"{_range(primary, 'test')});",
-            "the final impact at 16.9 s is left out of both.",
+            _split_sentence(result),
             f"{events['n_events']} known events are added to the test part's real gyro: damped",
             "sinusoids e(t) = A exp(-t/tau) sin(2 pi f t) on one random axis, f uniform in",
             f"{f_low:g}-{f_high:g} Hz, tau uniform in {tau_low:g}-{tau_high:g} ms, one every",
@@ -388,13 +409,13 @@ def markdown(result: dict) -> str:
     if "swapped" in result:
         swapped = result["swapped"]
         lines += [
-            f"## Swapped: calibrate on {_span_s(swapped['calibration_s'])} (hover only), test on "
-            f"{_span_s(swapped['test_s'])}",
+            f"## Swapped: calibrate on {_span_s(swapped['calibration_s'])}"
+            f"{_phase(result, 'swapped_calibration')}, test on {_span_s(swapped['test_s'])}",
             "",
             " ".join(
                 (
-                    "The test part now holds idle on the ground, take-off, punch-outs and flips:",
-                    f"motor commands {_range(swapped, 'test')}, the calibration only",
+                    f"The test part now holds{_phase(result, 'swapped_test', ' ', ':')} motor",
+                    f"commands {_range(swapped, 'test')}, the calibration only",
                     f"{_range(swapped, 'calibration')}. Events are scaled to this part's largest",
                     f"noise ({swapped['events'][AT_1X]['target_peak_rad_s']:.3f} rad/s, from the",
                     "punch-outs).",
@@ -436,8 +457,9 @@ def readme_section(result: dict) -> str:
         "A real Betaflight flight log (LOG00037.BFL from ilya-epifanov/fc-blackbox, MIT OR "
         "Apache-2.0, first posted in gyroflow/gyroflow/issues/72) ships as "
         "`bags/quadcopter_ar8` with the "
-        "profile `config/robots/quadcopter.yaml`. Calibrated on the first half of the flight (free "
-        "motion), tested on the rest with known contact-like events added to the real noise "
+        "profile `config/robots/quadcopter.yaml`. Calibrated on "
+        f"{_span_s(primary['calibration_s'])} of the flight{_phase(result, 'calibration')}, "
+        "tested on the rest with known contact-like events added to the real noise "
         f"(the paper's experiment (b)); `{result['command']}`:",
         "",
         *_header(
@@ -478,8 +500,8 @@ def readme_section(result: dict) -> str:
     ]
     if worse:
         lines.append(
-            "With the halves swapped (calibrated on hover only, tested on idle, take-off "
-            f"and punch-outs) ours gives {_fmt(worse['noise_reduction_db'])} dB, gain "
+            f"With the halves swapped{_swapped_phases(result)} ours gives "
+            f"{_fmt(worse['noise_reduction_db'])} dB, gain "
             f"{_fmt(worse['peak_snr_improvement_db'])} dB, F1 {_fmt(worse['f1'], 2)}: the "
             "worse figure."
         )
