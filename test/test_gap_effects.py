@@ -1,0 +1,195 @@
+"""gap.effects: the candidate terms on synthetic block tables with one known effect
+(test/gaptables.py). The term of the effect generated into the data is the one that
+predicts held-out blocks better, the others gain (almost) nothing; its fitted shape and
+parameters are the generated ones; the GLM and the lag scan find known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaptables import synthetic_table
+
+from egovib_ros.gap import metric
+from egovib_ros.gap.baseline import fit_baseline
+from egovib_ros.gap.diagnose import MIN_DEVIANCE_GAIN, interleaved_splits
+from egovib_ros.gap.effects import (
+    DRIFT_KNOTS,
+    POSITION_HARMONICS,
+    apply_effect_term,
+    effect_regressors,
+    fit_lag,
+    fit_power_term,
+    fit_scales,
+    fit_term,
+    fit_variant,
+    time_hats,
+)
+
+CANDIDATES = ("position", "coupling", "acceleration", "drift")
+
+
+def heldout_gains(effect: str, strength: float, seed: int = 5) -> dict[str, float]:
+    """Held-out reduction of the Gamma deviance of the expected power, per block and bin,
+    of each candidate over the baseline (interleaved 2 s chunks: fitted on two of every
+    three, tested on the third, so no term has to extrapolate in time)."""
+    table = synthetic_table(effect, strength, seed=seed, duration_s=30.0)
+    split = interleaved_splits(table, chunk_s=2.0, period=3)[1]
+    base = fit_baseline(table, split.train)
+    scales = fit_scales(table, split.train, base.magnitude)
+    power = table.magnitude[split.test] ** 2
+
+    def deviance(effect_name: str) -> float:
+        fitted = fit_variant(table, split.train, effect_name, scales, base)
+        return float(np.mean(metric.block_deviance(power, fitted.power[split.test])))
+
+    before = deviance("refit")
+    return {name: before - deviance(name) for name in CANDIDATES}
+
+
+@pytest.mark.parametrize(
+    "effect, strength",
+    [("position", 0.4), ("acceleration", 0.5), ("drift", 1.0), ("coupling", 10.0)],
+)
+def test_the_generated_effect_is_what_its_candidate_picks_up(effect, strength):
+    gains = heldout_gains(effect, strength)
+    others = max(v for k, v in gains.items() if k != effect)
+    assert gains[effect] >= MIN_DEVIANCE_GAIN, gains  # what the verdict asks of a candidate
+    assert gains[effect] > 2.0 * max(others, 0.0), gains
+
+
+def test_no_candidate_gains_on_a_velocity_only_process():
+    """GCV shrinks a term that explains nothing to (almost) nothing."""
+    gains = heldout_gains("none", 0.0)
+    assert all(abs(g) < 0.1 * MIN_DEVIANCE_GAIN for g in gains.values()), gains
+
+
+def fitted_on_all(effect: str, strength: float):
+    """The table and the effect's variant fitted on all its clean blocks (as for the report)."""
+    table = synthetic_table(effect, strength, seed=5, duration_s=30.0)
+    clean = ~table.contact
+    base = fit_baseline(table, clean)
+    scales = fit_scales(table, clean, base.magnitude)
+    return table, fit_variant(table, clean, effect, scales, base)
+
+
+@pytest.fixture(scope="module")
+def position_fit():
+    return fitted_on_all("position", 0.4)
+
+
+def test_the_position_term_has_the_generated_phase(position_fit):
+    """Gain 1 + 0.4 cos(wrist angle - 0.7): first harmonic at phase 0.7 rad; the wrist's
+    shape spans more than the gripper's (which has no effect)."""
+    _, fitted = position_fit
+    wrist = fitted.parameters["wrist_roll"]
+    assert wrist["first_harmonic_phase_rad"] == pytest.approx(0.7, abs=0.25)
+    assert 0.15 < wrist["first_harmonic_relative_amplitude"] < 0.6  # log(1 + 0.4 cos): 0.42
+    spans = {k: np.ptp(v["gain_db"]) for k, v in fitted.shape.items()}
+    assert spans["position:wrist_roll"] > 3.0 * spans["position:gripper"]
+
+
+def test_the_drift_term_rises_with_elapsed_time():
+    """Gain 1 + t / 60 s over 30 s: +3.5 dB from start to end. Part of it the velocity-only
+    baseline already takes (the motion's speed changes over time too), the rest is the term's."""
+    table, fitted = fitted_on_all("drift", 1.0)
+    curve = fitted.shape["drift:elapsed_time"]
+    rise = 20.0 * np.log10(1.0 + table.t_mid_s.max() / 60.0)
+    gain = np.asarray(curve["gain_db"])
+    assert 0.6 * rise < gain[-1] - gain[0] < 1.1 * rise
+    assert np.all(np.diff(gain) > -0.05)  # rising throughout, as generated
+    assert fitted.parameters["log_gain_per_minute"] > 0.0
+
+
+def test_the_acceleration_term_grows_with_the_wrists_acceleration():
+    """Gain 1 + 0.5 |a_wrist| / its 95th percentile: louder with acceleration, for the wrist."""
+    _, fitted = fitted_on_all("acceleration", 0.5)
+    wrist = np.asarray(fitted.shape["acceleration:wrist_roll"]["gain_db"])
+    gripper = np.asarray(fitted.shape["acceleration:gripper"]["gain_db"])
+    x = np.asarray(fitted.shape["acceleration:wrist_roll"]["x"])
+    at_typical = wrist[np.searchsorted(x, 1.0)]
+    assert 0.5 < at_typical < 6.0  # generated: 20 log10(1.5) = 3.5 dB at the 95th percentile
+    assert wrist[np.searchsorted(x, 3.0)] > at_typical
+    assert np.abs(gripper[: np.searchsorted(x, 1.0) + 1]).max() < at_typical
+
+
+def test_the_lag_is_found_with_its_sign():
+    """Joint states stamped 50 ms late: +50 ms (+-3 ms); in sync: within the 5 ms step."""
+    table = synthetic_table("timing", 0.05, seed=5, duration_s=30.0)
+    lag, lags, curve = fit_lag(table, ~table.contact, lag_range_s=0.07)
+    assert lag == pytest.approx(0.05, abs=0.003)
+    assert lags.min() == pytest.approx(-0.07) and lags.max() == pytest.approx(0.07)
+    assert curve[np.argmin(np.abs(lags))] > curve.min()
+    table = synthetic_table(seed=5, duration_s=30.0)
+    lag, _, _ = fit_lag(table, ~table.contact, lag_range_s=0.02)
+    assert abs(lag) <= 0.005
+
+
+def test_the_ridge_term_recovers_known_coefficients_and_shrinks_noise():
+    """z = a(f) + b(f) x0 + noise, with a second column x1 of pure noise: fit_term finds a
+    and b per bin (broadband part + per-bin deviations) and leaves x1 near zero."""
+    rng = np.random.default_rng(0)
+    n, a, b = 3000, np.array([0.2, -0.1, 0.0, 0.3]), np.array([0.5, 0.6, 0.4, 0.7])
+    x = rng.uniform(0.0, 1.0, (n, 2))
+    z = a + x[:, :1] * b + rng.normal(0.0, 0.1, (n, len(a)))
+    every = np.ones(n, bool)
+    coef, ridge = fit_term(x, z, every)
+    assert coef.shape == (3, len(a))
+    np.testing.assert_allclose(coef[0], a, atol=0.05)
+    np.testing.assert_allclose(coef[1], b, atol=0.03)
+    assert np.abs(coef[2]).max() < 0.05
+    assert set(ridge) == {"ridge_broadband", "ridge_per_bin"}
+    # only the training rows count
+    z_wild = z.copy()
+    z_wild[n // 2 :] += 5.0 * x[n // 2 :, 1:]
+    first_half = np.arange(n) < n // 2
+    np.testing.assert_allclose(fit_term(x, z_wild, first_half)[0], fit_term(x, z, first_half)[0])
+
+
+def test_the_power_glm_finds_the_log_gain_of_exponential_power():
+    """|Y|^2 of Rayleigh scatter is exponential: ratio ~ Exp(mean exp(2 (a + b x))); the GLM
+    returns (a, b) on the magnitude scale, where a log-least-squares fit would be off by
+    Euler's gamma / 2."""
+    rng = np.random.default_rng(1)
+    n, a, b = 6000, np.array([0.1, -0.2]), np.array([0.8, 0.4])
+    x = rng.uniform(0.0, 1.0, (n, 1))
+    ratio = rng.exponential(np.exp(2.0 * (a + x * b)))
+    coef, _ = fit_power_term(x, ratio, np.ones(n, bool))
+    np.testing.assert_allclose(coef[0], a, atol=0.05)
+    np.testing.assert_allclose(coef[1], b, atol=0.08)
+    # no regressors: the log mean power ratio / 2
+    only, _ = fit_power_term(np.zeros((n, 0)), ratio, np.ones(n, bool))
+    np.testing.assert_allclose(only[0], 0.5 * np.log(ratio.mean(axis=0)), atol=0.01)
+
+
+def test_a_fitted_term_applied_again_gives_the_same_prediction(position_fit):
+    """apply_effect_term (the simulator's term on a baseline, writeback) reproduces the
+    variant's own prediction from its baseline and coefficients."""
+    table, fitted = position_fit
+    again = apply_effect_term(
+        table, ~table.contact, fitted.refit_predicted, "position", fitted.coef, fitted.scales
+    )
+    np.testing.assert_allclose(again, fitted.predicted, rtol=1e-9)
+
+
+def test_the_regressors_of_each_candidate():
+    table = synthetic_table(seed=5, duration_s=10.0)
+    clean = ~table.contact
+    scales = fit_scales(table, clean)
+    assert list(scales.periodic) == [True, False]  # a roll joint turns, a gripper does not
+    for effect in ("refit", "timing"):
+        x, names = effect_regressors(effect, table, scales)
+        assert x.shape == (table.n_blocks, 0) and names == []
+    x, names = effect_regressors("position", table, scales)
+    assert x.shape == (table.n_blocks, len(names)) and np.all(np.isfinite(x))
+    wrist = [n for n in names if n.endswith("(wrist_roll)") and "*" not in n]
+    assert len(wrist) == 2 * POSITION_HARMONICS  # cos and sin of each harmonic
+    x, names = effect_regressors("drift", table, scales)
+    assert names == [f"time_hat{k}" for k in range(1, DRIFT_KNOTS)] + ["t_min"]
+    with pytest.raises(ValueError, match="unknown effect 'friction'"):
+        effect_regressors("friction", table, scales)
+
+
+def test_time_hats_are_flat_beyond_the_span_and_drop_the_reference():
+    t = np.array([-5.0, 0.0, 5.0, 10.0, 20.0, 30.0])
+    h = time_hats(t, 0.0, 10.0, 3)  # knots 0, 5, 10; the first is the reference
+    np.testing.assert_allclose(h, [[0, 0], [0, 0], [1, 0], [0, 1], [0, 1], [0, 1]])
