@@ -21,3 +21,7 @@ class ConfigError(EgovibError, ValueError):
 
 class StreamError(EgovibError, ValueError):
     """Data given to a streaming processor do not fit its settings."""
+
+
+class GapDataError(EgovibError):
+    """A recording does not hold enough usable (no-contact, matched) data for a gap diagnosis."""

@@ -14,11 +14,10 @@ from gaptables import synthetic_model, synthetic_table
 
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel
-from egovib_ros.errors import BagError, EgovibError, ModelFileError
+from egovib_ros.errors import BagError, EgovibError, GapDataError, ModelFileError
 from egovib_ros.gap.diagnose import DiagnosisOptions
 from egovib_ros.gap.features import THIN_RUN_BLOCKS
 from egovib_ros.gap.pipeline import (
-    GapDataError,
     diagnose_recording,
     diagnose_table,
     input_notices,

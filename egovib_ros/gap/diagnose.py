@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage, stats
 
+from egovib_ros.errors import GapDataError
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import fit_baseline, simulator_cells
 from egovib_ros.gap.effects import (
@@ -499,7 +500,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     reference_lag_s, lag_tolerance_s = o.reference_lag_s, o.lag_tolerance_s
     rng = np.random.default_rng(o.seed)
     if (~table.contact).sum() < 400:
-        raise ValueError(f"too few no-contact blocks ({int((~table.contact).sum())})")
+        raise GapDataError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
     aligned = _align(table, effects, prior, reference_lag_s, lag_tolerance_s)
     base_table = aligned.base_table
@@ -512,7 +513,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         min(s.train.sum() for s in splits) < 200
         or sum(s.test.sum() for s in splits) < 4 * window_blocks
     ):
-        raise ValueError("too few no-contact blocks to fit and test")
+        raise GapDataError("too few no-contact blocks to fit and test")
     cf = cross_fit(base_table, splits, effects, prior, timing_table=aligned.timing_table)
     rows = cf.rows
     windows = metric.make_windows(len(rows), window_blocks)

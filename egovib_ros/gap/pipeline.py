@@ -8,7 +8,7 @@ import json
 import time
 from pathlib import Path
 
-from egovib_ros.errors import BagError, EgovibError
+from egovib_ros.errors import BagError, GapDataError
 from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
 from egovib_ros.gap.effects import LAG_COARSE_S
 from egovib_ros.gap.features import (
@@ -24,10 +24,6 @@ from egovib_ros.gap.simref import model_matches_simulator
 from egovib_ros.outputs import atomic_output
 
 
-class GapDataError(EgovibError):
-    """The recording does not hold enough usable (no-contact, matched) data for a diagnosis."""
-
-
 def diagnose_recording(
     rec, model, *, source: str = "bag", options: DiagnosisOptions | None = None
 ) -> Diagnosis:
@@ -41,7 +37,7 @@ def diagnose_table(
     """Diagnosis of a block table (`build_table` / `table_from_bag`)."""
     try:
         return diagnose(table, options)
-    except ValueError as exc:
+    except GapDataError as exc:
         raise GapDataError(f"{source}: {exc}") from None
 
 
