@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage, stats
 
-from egovib_ros.errors import GapDataError
+from egovib_ros.errors import ConfigError, GapDataError
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import fit_baseline, simulator_cells
 from egovib_ros.gap.effects import (
@@ -462,7 +462,7 @@ class DiagnosisOptions:
 
     def __post_init__(self):
         def bad(name: str, want: str):
-            raise ValueError(f"gap options: {name} must be {want}, got {getattr(self, name)!r}")
+            raise ConfigError(f"gap options: {name} must be {want}, got {getattr(self, name)!r}")
 
         if not isinstance(self.folds, int) or not 2 <= self.folds <= 50:
             bad("folds", "an integer in [2, 50]")
