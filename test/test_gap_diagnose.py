@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from gaptables import synthetic_table
 
+from egovib_ros.errors import GapDataError
 from egovib_ros.gap.diagnose import (
     DiagnosisOptions,
     blocked_folds,
@@ -42,6 +43,16 @@ def test_effect_is_identified(effect, strength, duration):
     assert diag.gaps[effect] < diag.floor + 1.0
     if effect == "timing":
         assert diag.models["timing"].parameters["lag_s"] == pytest.approx(strength, abs=0.004)
+
+
+def test_a_robot_whose_own_lag_is_beyond_the_scan_range_is_in_sync_at_it():
+    # Joint states 150 ms late on the robot itself (its reference lag), beyond the +-0.1 s a
+    # scan centred on zero covers: the scan is centred on the reference, so the robot is in
+    # sync at its own lag and no timing effect is named.
+    table = synthetic_table("timing", 0.15, seed=5, duration_s=30.0)
+    diag = diagnose(table, DiagnosisOptions(reference_lag_s=0.15, effects=("timing",)))
+    assert diag.sync_lag_s == pytest.approx(0.15, abs=0.005)
+    assert diag.verdict == "none", diag.candidates
 
 
 def test_splits_partition_the_clean_blocks_in_time():
@@ -86,7 +97,7 @@ def test_too_few_clean_blocks_are_refused():
     table = synthetic_table(duration_s=10.0)
     table.contact[:] = True
     table.contact[:300] = False
-    with pytest.raises(ValueError, match="too few no-contact blocks"):
+    with pytest.raises(GapDataError, match="too few no-contact blocks"):
         diagnose(table)
 
 

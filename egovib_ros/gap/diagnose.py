@@ -596,11 +596,14 @@ def _align(
     table: BlockTable, effects, prior, reference_lag_s: float, lag_tolerance_s: float
 ) -> _Aligned:
     """Lags: one scan of the baseline's residual (a single nuisance parameter, fitted on
-    every other clean block); "in sync" = the best lag within the tolerance. Then contacts
+    every other clean block, +-LAG_RANGE_S around the reference); "in sync" = the best lag
+    within the tolerance. Then contacts
     again, against the baseline fitted to this recording (the simulator's spectra may differ
     in shape), with reversal-locked transients returned to the data. Sets table.contact."""
     clean = ~table.contact
-    lags, curve = lag_scan(table, clean, prior=prior)
+    # Centred on the reference: the in-sync band is always inside the grid, and a lag is
+    # looked for as far on either side of the robot's own lag.
+    lags, curve = lag_scan(table, clean, prior=prior, centre_s=reference_lag_s)
     lo, hi = reference_lag_s - lag_tolerance_s, reference_lag_s + lag_tolerance_s
     sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
     timing_lag = (
