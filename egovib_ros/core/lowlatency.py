@@ -324,7 +324,7 @@ def _gain_kernel(
             # The guard: a slow level of the score (in logs; rises in tens of ms, falls in
             # hundreds). Where the noise stands above the table for longer than an event
             # lasts (speeds the calibration never saw, a flight phase it did not hold),
-            # the opening asks for that much more.
+            # the opening asks for that much more and the expected noise rises with it.
             if a_guard_up > 0.0:
                 log_score = math.log(score) if score > TINY else LOG_TINY
                 rate = a_guard_up if log_score > guard[c] else a_guard_down
