@@ -51,9 +51,9 @@ noise of every band. An event is over before the guard has risen much; a lasting
 is treated as noise. Models calibrated before the guard have no `guard_ref`: no guard.
 
 Defaults (3 bands, 4 ms look-ahead, 1 / 10 ms attack / release, power subtraction,
--30 dB floor, 20 ms opening, 20 ms / 0.5 s guard) were chosen on the simulator (seed 7, not the published
-seeds) and on the first half of the shipped flight split in two; docs say where a
-figure was measured on data that also served for choosing them.
+-30 dB floor, 20 ms opening, 20 ms / 0.5 s guard) were chosen on the simulator (seed 7,
+not the published seeds) and on the first half of the shipped flight split in two; docs
+say where a figure was measured on data that also served for choosing them.
 """
 
 from __future__ import annotations
