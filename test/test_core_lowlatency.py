@@ -249,7 +249,7 @@ def test_a_lasting_excess_over_the_table_is_taken_for_noise_a_short_burst_still_
     probe = stage_(None)
     out, collected = probe.process(calm, table[: len(calm)], collect=True)
     reference = np.quantile(collected[int(0.1 * FS) :, 0, fb.n_bands + 1], 0.99)
-    at_table = np.sqrt(np.mean(out[int(0.1 * FS) :] ** 2) / np.mean(calm ** 2))
+    at_table = np.sqrt(np.mean(out[int(0.1 * FS) :] ** 2) / np.mean(calm**2))
     assert at_table < 0.5
     kept = {}
     for guard_ref in (None, np.array([reference])):
