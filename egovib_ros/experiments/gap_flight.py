@@ -112,7 +112,7 @@ def run_flight_gap(
             report["figures"] = make_figures(diag, report, sub)
             report["runtime_s"] = round(time.perf_counter() - start, 2)
             (sub / "report.json").write_text(json.dumps(report, indent=1))
-            (sub / "report.md").write_text(render_markdown(report, diag.table.joint_names))
+            (sub / "report.md").write_text(render_markdown(report))
             summary["directions"][name] = {
                 "verdict": report["verdict"],
                 "gap": report["gap"],

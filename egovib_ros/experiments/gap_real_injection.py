@@ -86,7 +86,7 @@ def inject(rec, effect: str, strength: float):
     return replace(rec, sensor=rec.sensor * gain[:, None])
 
 
-def _own_lag(model, cal, profile) -> float:
+def _own_lag(model, cal) -> float:
     """The robot's own joint-state lag: best lag of the velocity-only baseline on the
     calibration part itself (the same scan the diagnosis runs)."""
     from egovib_ros.gap.effects import fit_lag
@@ -120,7 +120,7 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
             sweep="free",
             source=f"{bag} [{parts[calib][0]:g}, {parts[calib][1]:g}) s",
         )
-        own_lag = _own_lag(model, cal, profile)
+        own_lag = _own_lag(model, cal)
         real = _slice(rec, *parts[test])
         name = f"calibrated on {calib} part, diagnosed {parts[test][0]:g}-{parts[test][1]:g} s"
         directions[name] = {"reference_lag_s": round(own_lag, 4)}
