@@ -237,14 +237,7 @@ def flight_split(
         firmware_db, oracle = [], []
         for seed in range(1, event_sets + 1):
             spec = EventSpec(relative_amplitude=strength, seed=seed)
-            events = make_events(
-                test.sensor_stamps_ns,
-                test.sensor,
-                sample_rate_hz=fs,
-                band_hz=profile.band_hz,
-                band_order=profile.band_order,
-                spec=spec,
-            )
+            events = make_events(test.sensor_stamps_ns, test.sensor, profile, spec=spec)
             noisy = dataclasses.replace(test, sensor=test.sensor + events.signal)
             reference = combined_bandpassed(events.signal, profile)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
