@@ -25,3 +25,18 @@ class StreamError(EgovibError, ValueError):
 
 class GapDataError(EgovibError):
     """A recording does not hold enough usable (no-contact, matched) data for a gap diagnosis."""
+
+
+def check_ranges(obj, checks, what: str = "") -> None:
+    """ConfigError unless each attribute `name` of `obj` in `checks` ((name, low, high), ...)
+    is a number (not a bool) in [low, high]; the message starts with `what`."""
+    for name, low, high in checks:
+        value = getattr(obj, name)
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not low <= value <= high
+        ):
+            raise ConfigError(
+                f"{what}{name} must be a number in [{low:g}, {high:g}], got {value!r}"
+            )

@@ -10,7 +10,6 @@ from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.robot import load_profile
 
-FS = 1000.0  # the flight log's rate
 PROFILE = load_profile("quadcopter")
 
 
@@ -19,14 +18,7 @@ def test_events_follow_their_documented_form_amplitude_and_timing():
     stamps = jittery_stamps(n, seed=4)
     noise = np.random.default_rng(4).normal(0, 0.05, (n, 3))
     spec = EventSpec(seed=7)
-    events = make_events(
-        stamps,
-        noise,
-        sample_rate_hz=FS,
-        band_hz=PROFILE.band_hz,
-        band_order=PROFILE.band_order,
-        spec=spec,
-    )
+    events = make_events(stamps, noise, PROFILE, spec=spec)
     onset_s = (events.onset_ns - stamps[0]) / 1e9
     assert len(events.onsets) == len(
         np.arange(
@@ -51,12 +43,5 @@ def test_events_follow_their_documented_form_amplitude_and_timing():
         )
         assert np.all(events.signal[onset - 1] == 0)  # starts from zero, on one axis
         assert np.count_nonzero(np.any(events.signal[onset : onset + 5] != 0, axis=0)) == 1
-    again = make_events(
-        stamps,
-        noise,
-        sample_rate_hz=FS,
-        band_hz=PROFILE.band_hz,
-        band_order=PROFILE.band_order,
-        spec=spec,
-    )
+    again = make_events(stamps, noise, PROFILE, spec=spec)
     np.testing.assert_array_equal(again.signal, events.signal)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from egovib_ros.bag import write_recordings
 from egovib_ros.cli import options, simulate_robot
@@ -121,17 +122,33 @@ def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str =
     return (lambda s: bar.update(s)), bar.close
 
 
-def run(args: argparse.Namespace) -> int:
-    # Everything that can be refused is refused before the first sample is simulated.
-    out = prepare_output(args.out, force=args.force, inputs=[args.params, args.truth], kind="bag")
+def prepare_outputs(args: argparse.Namespace, source) -> Path:
+    """Refuse before any work: the bag --out and the --truth file (`source`: the file they
+    are made from, never to be replaced)."""
+    out = prepare_output(args.out, force=args.force, inputs=[source, args.truth], kind="bag")
     if args.truth:
         prepare_output(
-            args.truth,
-            force=args.force,
-            inputs=[args.params, args.out],
-            kind="json",
-            option="--truth",
+            args.truth, force=args.force, inputs=[source, args.out], kind="json", option="--truth"
         )
+    return out
+
+
+def write_bag(args: argparse.Namespace, out: Path, slices, truth: dict, close, **options) -> None:
+    """Simulate and write slice by slice (constant memory however long the run), then the
+    --truth file; `close` (the progress bar's) runs whatever happens."""
+    try:
+        with atomic_output(out, directory=True, kind="bag") as tmp:
+            write_recordings(tmp, slices, storage=args.storage, compress=args.compress, **options)
+            if args.truth:
+                with atomic_output(args.truth) as tmp_truth:
+                    tmp_truth.write_text(json.dumps(truth) + "\n")
+    finally:
+        close()
+
+
+def run(args: argparse.Namespace) -> int:
+    # Everything that can be refused is refused before the first sample is simulated.
+    out = prepare_outputs(args, args.params)
     effects = args.effects
     if effects.get("timing", 0.0) < 0:
         # The simulated clock starts at 0: leading joint stamps would be negative.
@@ -168,17 +185,7 @@ def run(args: argparse.Namespace) -> int:
             tap_mode=args.tap_mode,
             progress=update,
         )
-    # simulate and write slice by slice: constant memory however long the run
-    try:
-        with atomic_output(out, directory=True, kind="bag") as tmp:
-            write_recordings(
-                tmp, slices, storage=args.storage, compress=args.compress, frame_id=ACCEL_FRAME
-            )
-            if args.truth:
-                with atomic_output(args.truth) as tmp_truth:
-                    tmp_truth.write_text(json.dumps(truth) + "\n")
-    finally:
-        close()
+    write_bag(args, out, slices, truth, close, frame_id=ACCEL_FRAME)
     if not args.quiet:
         print(f"wrote {out} ({total:.1f} s simulated, {len(truth['tap_onsets_ns'])} taps)")
     return 0

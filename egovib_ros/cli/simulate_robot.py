@@ -10,7 +10,6 @@ profile's topics, plus the ground truth beside the sensor topic (`<parent>/conta
 from __future__ import annotations
 
 import argparse
-import json
 
 from egovib_ros.cli import options
 
@@ -122,9 +121,8 @@ _SWEEP_ONLY = (("grid", "--grid"), ("dwell", "--dwell"), ("settle", "--settle"))
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.bag import write_recordings
+    from egovib_ros.cli.simulate import prepare_outputs, write_bag
     from egovib_ros.errors import ConfigError
-    from egovib_ros.outputs import atomic_output, prepare_output
     from egovib_ros.robot import load_profile
     from egovib_ros.sim.robot import robot_slices
 
@@ -133,15 +131,7 @@ def run(args: argparse.Namespace) -> int:
     given = [option for name, option in other if getattr(args, name) is not None]
     if given:
         raise ConfigError(f"{', '.join(given)}: not an option of --mode {args.mode}")
-    out = prepare_output(args.out, force=args.force, inputs=[args.robot, args.truth], kind="bag")
-    if args.truth:
-        prepare_output(
-            args.truth,
-            force=args.force,
-            inputs=[args.robot, args.out],
-            kind="json",
-            option="--truth",
-        )
+    out = prepare_outputs(args, args.robot)
     profile = load_profile(args.robot)
     bars = []  # the progress bar, once the length of the run is known
 
@@ -163,22 +153,15 @@ def run(args: argparse.Namespace) -> int:
         from tqdm import tqdm
 
         bars.append(tqdm(total=round(total, 1), unit="sim-s", desc="simulate", leave=False))
-    try:
-        with atomic_output(out, directory=True, kind="bag") as tmp:
-            write_recordings(
-                tmp,
-                slices,
-                profile=profile,
-                storage=args.storage,
-                compress=args.compress,
-                frame_id=SENSOR_FRAME,
-            )
-            if args.truth:
-                with atomic_output(args.truth) as tmp_truth:
-                    tmp_truth.write_text(json.dumps(truth) + "\n")
-    finally:
-        for bar in bars:
-            bar.close()
+    write_bag(
+        args,
+        out,
+        slices,
+        truth,
+        lambda: [bar.close() for bar in bars],
+        profile=profile,
+        frame_id=SENSOR_FRAME,
+    )
     if not args.quiet:
         print(
             f"wrote {out} ({profile.name}, {args.mode}, {total:.1f} s simulated, "

@@ -47,7 +47,7 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
-from egovib_ros.errors import ConfigError, ModelFileError
+from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
 
 TWO_PI = 2.0 * math.pi
 
@@ -535,7 +535,7 @@ class CancellerSettings:
     guard_ms: float = 3.0
 
     def __post_init__(self) -> None:
-        for name, low, high in (
+        checks = (
             ("tracking_hz", 0.0, 1000.0),
             ("pll_hz", 0.0, 100.0),
             ("pll_damping", 0.05, 10.0),
@@ -543,16 +543,8 @@ class CancellerSettings:
             ("clip_sigma", 0.5, 100.0),
             ("spread_s", 1e-3, 100.0),
             ("guard_ms", 0.0, 1000.0),
-        ):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (low <= value <= high)
-            ):
-                raise ConfigError(
-                    f"canceller: {name} must be a number in [{low:g}, {high:g}], got {value!r}"
-                )
+        )
+        check_ranges(self, checks, "canceller: ")
 
     def gains(self, sample_rate_hz: float) -> tuple[float, float, float, float, float]:
         """(LMS step, PLL proportional gain, PLL integral gain, spread rate, guard rate)

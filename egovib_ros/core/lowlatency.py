@@ -64,7 +64,7 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
-from egovib_ros.errors import ConfigError
+from egovib_ros.errors import ConfigError, check_ranges
 
 #: Algorithmic delay the low-latency methods promise at most (milliseconds).
 MAX_DELAY_MS = 5.0
@@ -139,16 +139,7 @@ class GainSettings:
             ("guard_quantile", 0.5, 1.0),
             ("guard_gain", 0.0, 1.0),
         )
-        for name, low, high in checks:
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (low <= value <= high)
-            ):
-                raise ConfigError(
-                    f"gain: {name} must be a number in [{low:g}, {high:g}], got {value!r}"
-                )
+        check_ranges(self, checks, "gain: ")
         if (
             isinstance(self.bands, bool)
             or not isinstance(self.bands, int)

@@ -31,7 +31,7 @@ from egovib_ros.core.filters import CHANNEL_LAYOUTS, design_bandpass
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.stream import BlockFramer, Blocks, DenoiserStats, FramerSettings, feed
 from egovib_ros.core.velocity import MISSING
-from egovib_ros.errors import ConfigError, StreamError
+from egovib_ros.errors import ConfigError, StreamError, check_ranges
 
 LOG = logging.getLogger("egovib_ros.core")
 
@@ -53,17 +53,8 @@ class SubtractionSettings:
     floor: float = 0.0
 
     def __post_init__(self) -> None:
-        for name, value, high in (
-            ("oversubtraction", self.oversubtraction, MAX_OVERSUBTRACTION),
-            ("floor", self.floor, MAX_FLOOR),
-        ):
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or math.isnan(value)
-                or not 0.0 <= value <= high
-            ):
-                raise ConfigError(f"{name} must be a number in [0, {high:g}], got {value!r}")
+        checks = (("oversubtraction", 0.0, MAX_OVERSUBTRACTION), ("floor", 0.0, MAX_FLOOR))
+        check_ranges(self, checks)
 
     def rule(self) -> MagnitudeRule:
         return paper_rule(self.oversubtraction, self.floor)

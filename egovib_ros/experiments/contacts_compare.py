@@ -361,7 +361,6 @@ def flight_case(
     cal_bag = work / f"flight_{split}_calibration"
     write_recording(cal_bag, _as_recording(cal), profile=profile)
     model = calibrated(cal_bag, profile)
-    fs = profile.rate_hz
     results, origins = {}, {}
     for strength in STRENGTHS:
         sets = []
@@ -369,9 +368,7 @@ def flight_case(
             events = make_events(
                 test.sensor_stamps_ns,
                 test.sensor,
-                sample_rate_hz=fs,
-                band_hz=profile.band_hz,
-                band_order=profile.band_order,
+                profile,
                 spec=EventSpec(relative_amplitude=strength, seed=seed),
             )
             test_bag = work / f"flight_{split}_events_{strength:g}_{seed}"

@@ -56,11 +56,27 @@ def _slice(rec, start_s: float, stop_s: float):
     )
 
 
+def calibrate_part(rec, profile, bag, part: tuple[float, float]):
+    """The flight's `part` ((start, stop) s) and its free-motion noise model: (slice, model)."""
+    from egovib_ros.core import calibrate_arrays
+
+    cal = _slice(rec, *part)
+    model, _ = calibrate_arrays(
+        cal.sensor_stamps_ns,
+        cal.sensor,
+        cal.joint_stamps_ns,
+        cal.joint_velocity,
+        profile=profile,
+        sweep="free",
+        source=f"{bag} [{part[0]:g}, {part[1]:g}) s",
+    )
+    return cal, model
+
+
 def run_flight_gap(
     bag: str | Path, out_dir: str | Path, *, split_s: float = SPLIT_S, end_s: float = FLIGHT_END_S
 ) -> dict:
     from egovib_ros.bag import read_recording
-    from egovib_ros.core import calibrate_arrays
     from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import diagnose_recording
     from egovib_ros.gap.report import build_report, make_figures, render_markdown
@@ -81,16 +97,7 @@ def run_flight_gap(
         tmp.mkdir(parents=True)
         for calib, test in (("first", "second"), ("second", "first")):
             start = time.perf_counter()
-            cal = _slice(rec, *parts[calib])
-            model, stats = calibrate_arrays(
-                cal.sensor_stamps_ns,
-                cal.sensor,
-                cal.joint_stamps_ns,
-                cal.joint_velocity,
-                profile=profile,
-                sweep="free",
-                source=f"{bag} [{parts[calib][0]:g}, {parts[calib][1]:g}) s",
-            )
+            _, model = calibrate_part(rec, profile, bag, parts[calib])
             real = _slice(rec, *parts[test])
             diag = diagnose_recording(
                 real,
@@ -112,7 +119,7 @@ def run_flight_gap(
             report["figures"] = make_figures(diag, report, sub)
             report["runtime_s"] = round(time.perf_counter() - start, 2)
             (sub / "report.json").write_text(json.dumps(report, indent=1))
-            (sub / "report.md").write_text(render_markdown(report, diag.table.joint_names))
+            (sub / "report.md").write_text(render_markdown(report))
             summary["directions"][name] = {
                 "verdict": report["verdict"],
                 "gap": report["gap"],

@@ -31,7 +31,7 @@ from dataclasses import replace
 import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice
+from egovib_ros.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice, calibrate_part
 
 #: (effect, label, strengths): a ladder of three strengths per injection.
 INJECTIONS = (
@@ -86,7 +86,7 @@ def inject(rec, effect: str, strength: float):
     return replace(rec, sensor=rec.sensor * gain[:, None])
 
 
-def _own_lag(model, cal, profile) -> float:
+def _own_lag(model, cal) -> float:
     """The robot's own joint-state lag: best lag of the velocity-only baseline on the
     calibration part itself (the same scan the diagnosis runs)."""
     from egovib_ros.gap.effects import fit_lag
@@ -99,7 +99,6 @@ def _own_lag(model, cal, profile) -> float:
 
 def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     from egovib_ros.bag import read_recording
-    from egovib_ros.core import calibrate_arrays
     from egovib_ros.gap.diagnose import DiagnosisOptions
     from egovib_ros.gap.pipeline import diagnose_recording
     from egovib_ros.robot import load_profile
@@ -110,17 +109,8 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     parts = {"first": (0.0, SPLIT_S), "second": (SPLIT_S, FLIGHT_END_S)}
     results, directions = [], {}
     for calib, test in (("first", "second"), ("second", "first")):
-        cal = _slice(rec, *parts[calib])
-        model, _ = calibrate_arrays(
-            cal.sensor_stamps_ns,
-            cal.sensor,
-            cal.joint_stamps_ns,
-            cal.joint_velocity,
-            profile=profile,
-            sweep="free",
-            source=f"{bag} [{parts[calib][0]:g}, {parts[calib][1]:g}) s",
-        )
-        own_lag = _own_lag(model, cal, profile)
+        cal, model = calibrate_part(rec, profile, bag, parts[calib])
+        own_lag = _own_lag(model, cal)
         real = _slice(rec, *parts[test])
         name = f"calibrated on {calib} part, diagnosed {parts[test][0]:g}-{parts[test][1]:g} s"
         directions[name] = {"reference_lag_s": round(own_lag, 4)}

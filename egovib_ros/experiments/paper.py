@@ -126,25 +126,35 @@ def build_models(config: ExperimentConfig, params=None, effects: dict | None = N
     return Models(model, model_short, sweep)
 
 
-def motion(
+def speed_recordings(
     config: ExperimentConfig,
+    speed: float,
     *,
-    max_speed: float,
-    tap_rate_hz: float,
-    duration_s: float,
-    seed: int,
+    index: int,
     params=None,
     effects: dict | None = None,
+    only_a: bool = False,
 ):
-    """One simulated random-motion recording (and its truth dict)."""
-    return _sim().simulate_motion(
-        duration_s=duration_s,
-        max_speed=max_speed,
-        tap_rate_hz=tap_rate_hz,
-        effects=effects or {},
-        seed=seed,
-        params=params,
-    )
+    """The simulated recordings of both experiments at one speed limit: (calibration, (a),
+    taps, ego); taps and ego are None if `only_a` (the effects apply to the first two)."""
+    seed = config.seed * 1000 + index * 10
+
+    def motion(max_speed, tap_rate_hz, duration_s, k, effects=None):
+        return _sim().simulate_motion(
+            duration_s=duration_s,
+            max_speed=max_speed,
+            tap_rate_hz=tap_rate_hz,
+            effects=effects or {},
+            seed=seed + k,
+            params=params,
+        )[0]
+
+    calibration = motion(speed, 0.0, config.calibration_s, 1, effects)
+    rec_a = motion(speed, config.tap_rate_hz, config.duration_s, 2, effects)
+    if only_a:
+        return calibration, rec_a, None, None
+    taps = motion(0.0, config.tap_rate_hz, config.duration_s, 3)
+    return calibration, rec_a, taps, motion(speed, 0.0, config.duration_s, 4)
 
 
 def added_taps_recording(taps_rec, motion_rec, model):
@@ -185,15 +195,8 @@ def run_speed(
     only_a: bool = False,
 ) -> dict:
     """Both experiments at one speed limit: {"a": report, "b": report} (only "a" if `only_a`)."""
-    seed = config.seed * 1000 + index * 10
-    calibration, _ = motion(
-        config,
-        max_speed=speed,
-        tap_rate_hz=0.0,
-        duration_s=config.calibration_s,
-        seed=seed + 1,
-        params=params,
-        effects=effects,
+    calibration, rec_a, taps_rec, ego_rec = speed_recordings(
+        config, speed, index=index, params=params, effects=effects, only_a=only_a
     )
     kwargs = dict(
         calibration=calibration,
@@ -201,34 +204,9 @@ def run_speed(
         keep_signals=keep_signals,
         pr_curves=keep_signals,
     )
-    rec_a, _ = motion(
-        config,
-        max_speed=speed,
-        tap_rate_hz=config.tap_rate_hz,
-        duration_s=config.duration_s,
-        seed=seed + 2,
-        params=params,
-        effects=effects,
-    )
     report_a = evaluate_recording(rec_a, models.model, **kwargs)
     if only_a:
         return {"a": report_a}
-    taps_rec, _ = motion(
-        config,
-        max_speed=0.0,
-        tap_rate_hz=config.tap_rate_hz,
-        duration_s=config.duration_s,
-        seed=seed + 3,
-        params=params,
-    )
-    ego_rec, _ = motion(
-        config,
-        max_speed=speed,
-        tap_rate_hz=0.0,
-        duration_s=config.duration_s,
-        seed=seed + 4,
-        params=params,
-    )
     rec_b, scale = added_taps_recording(taps_rec, ego_rec, models.model)
     report_b = evaluate_recording(rec_b, models.model, **kwargs)
     report_b["tap_scale"] = scale

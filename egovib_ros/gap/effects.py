@@ -694,7 +694,6 @@ def refine_lag(
 def fit_lag(
     table: BlockTable,
     train: np.ndarray,
-    scales: Scales | None = None,
     *,
     lag_range_s: float = LAG_RANGE_S,
 ) -> tuple[float, np.ndarray, np.ndarray]:

@@ -144,5 +144,5 @@ def run_gap(
         )
         report["runtime_s"] = round(time.perf_counter() - start, 2)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
-        (tmp / "report.md").write_text(render_markdown(report, diag.table.joint_names))
+        (tmp / "report.md").write_text(render_markdown(report))
     return report

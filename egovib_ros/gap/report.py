@@ -242,7 +242,7 @@ def build_report(
                 **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
                 "parameters": _clean_params(diag.models[c["effect"]].parameters),
                 "shape": diag.models[c["effect"]].shape or {},
-                "shape_summary": describe_shape(c["effect"], diag.models[c["effect"]].shape or {}),
+                "shape_summary": describe_shape(diag.models[c["effect"]].shape or {}),
             }
             for c in diag.candidates
         ],
@@ -300,7 +300,7 @@ def _peak(x: list, g: list) -> tuple[float, float, float]:
     return float(x[k]), float(g[k]), float(g.max() - g.min())
 
 
-def describe_shape(effect: str, shape: dict) -> str:
+def describe_shape(shape: dict) -> str:
     """One sentence on the fitted shape of a candidate term (broadband gain, dB)."""
     parts = []
     for name, c in shape.items():
@@ -361,7 +361,7 @@ def _clean_params(params: dict) -> dict:
     return {k: v for k, v in params.items() if k not in ("coefficients_per_bin", "lag_scan")}
 
 
-def _describe_region(r: dict, joint_names: tuple[str, ...]) -> str:
+def _describe_region(r: dict) -> str:
     speeds = ", ".join(f"{n} {c}" for n, c in r["speeds"].items())
     return (
         f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
@@ -386,7 +386,7 @@ def _strongest_covariate(report: dict) -> str:
     )
 
 
-def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
+def render_markdown(report: dict) -> str:
     """report.md: the answer first (where, which, how far), then the evidence."""
     g = report["gap"]
     v = report["verdict"]
@@ -407,7 +407,7 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
         f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the model is "
         f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
         f"{abs(mean_bias):.1f} dB). Largest shares: "
-        + "; ".join(_describe_region(r, joint_names) for r in top)
+        + "; ".join(_describe_region(r) for r in top)
         + (
             f". Worst frequency bin {worst_bin['hz']:.0f} Hz ({worst_bin['sim_as_is_db']:.2f} dB)."
             if worst_bin
@@ -508,7 +508,7 @@ def render_markdown(report: dict, joint_names: tuple[str, ...]) -> str:
         "",
     ]
     for r in report["ranked_regions"][:10]:
-        lines.append(f"- {_describe_region(r, joint_names)}")
+        lines.append(f"- {_describe_region(r)}")
     lines += ["", "## Covariates (held-out bias after refit, dB per bin)", ""]
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":

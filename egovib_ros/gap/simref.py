@@ -9,7 +9,7 @@ recording.
 
 from __future__ import annotations
 
-from egovib_ros.gap.effects import fit_lag, fit_scales
+from egovib_ros.gap.effects import fit_lag
 from egovib_ros.gap.features import build_table
 
 REFERENCE_DURATION_S = 60.0
@@ -33,7 +33,7 @@ def simulator_reference_lag(
     table = build_table(rec, model, source="simulated reference motion")
     train = ~table.contact
     # The simulator's own lag is a few ms (group delays): a +-30 ms scan suffices.
-    lag, _, _ = fit_lag(table, train, fit_scales(table, train), lag_range_s=0.03)
+    lag, _, _ = fit_lag(table, train, lag_range_s=0.03)
     return float(lag)
 
 

@@ -158,27 +158,10 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     from egovib_ros.core import denoise_batch
 
     data, model = synthetic_streams(duration_s), synthetic_model()
-    seconds = _best_of(
-        lambda: denoise_batch(
-            data["sensor_stamps_ns"],
-            data["accel"],
-            data["joint_stamps_ns"],
-            data["joint_velocity"],
-            model,
-            channels="combined",
-        ),
-        repeats,
-    )
-    seconds_axes = _best_of(
-        lambda: denoise_batch(
-            data["sensor_stamps_ns"],
-            data["accel"],
-            data["joint_stamps_ns"],
-            data["joint_velocity"],
-            model,
-            channels="per_axis",
-        ),
-        repeats,
+    streams = [data[k] for k in ("sensor_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity")]
+    seconds, seconds_axes = (
+        _best_of(lambda: denoise_batch(*streams, model, channels=channels), repeats)
+        for channels in ("combined", "per_axis")
     )
     return {
         "signal_s": duration_s,

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from egovib_ros.core import BandPass, channel_matrix
+from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.timebase import NS_PER_S
 
 
@@ -59,25 +59,17 @@ class Events:
     target_peak: float  # band-passed peak every event was scaled to
 
 
-def _bandpassed_combined(
-    values: np.ndarray, sample_rate_hz: float, band_hz, order: int
-) -> np.ndarray:
-    band = BandPass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order, n_channels=1)
-    return band.process(channel_matrix(values, "combined").T)[0]
-
-
 def make_events(
     stamps_ns: np.ndarray,
     noise: np.ndarray,
+    profile,
     *,
-    sample_rate_hz: float,
-    band_hz,
-    band_order: int,
     spec: EventSpec = EventSpec(),
     edge_s: float = 0.1,
 ) -> Events:
     """Events for a recording with sensor stamps `stamps_ns` and sensor values `noise` (N, 3)
-    (the real signal they will be added to; only its band-passed maximum is used)."""
+    (the real signal they will be added to; only its band-passed maximum is used), in the
+    band of the robot profile `profile`."""
     stamps_ns = np.asarray(stamps_ns, np.int64)
     n = len(stamps_ns)
     rng = np.random.default_rng(spec.seed)
@@ -93,8 +85,8 @@ def make_events(
     frequency = rng.uniform(*spec.frequency_hz, count)
     decay = rng.uniform(*spec.decay_s, count)
 
-    edge = int(round(edge_s * sample_rate_hz))
-    noise_bp = _bandpassed_combined(noise, sample_rate_hz, band_hz, band_order)
+    edge = int(round(edge_s * profile.rate_hz))
+    noise_bp = combined_bandpassed(noise, profile)
     target = spec.relative_amplitude * float(np.abs(noise_bp[edge : n - edge]).max())
 
     total = np.zeros((n, 3))
@@ -107,7 +99,7 @@ def make_events(
         unit[active, axis[k]] = (
             sign[k] * np.exp(-dt[active] / decay[k]) * np.sin(2 * np.pi * frequency[k] * dt[active])
         )
-        peak = np.abs(_bandpassed_combined(unit, sample_rate_hz, band_hz, band_order)).max()
+        peak = np.abs(combined_bandpassed(unit, profile)).max()
         amplitude[k] = target / peak
         total += amplitude[k] * unit
     return Events(

@@ -120,14 +120,7 @@ def score_events(
     """Add one set of events to the test part, run every fitted method, score it."""
     fs = profile.rate_hz
     t0 = int(test.sensor_stamps_ns[0])
-    events = make_events(
-        test.sensor_stamps_ns,
-        test.sensor,
-        sample_rate_hz=fs,
-        band_hz=profile.band_hz,
-        band_order=profile.band_order,
-        spec=spec,
-    )
+    events = make_events(test.sensor_stamps_ns, test.sensor, profile, spec=spec)
     noisy = _with_signal(test, test.sensor + events.signal)
     reference = combined_bandpassed(events.signal, profile)
     seg = metrics.segment_contacts(reference, sample_rate_hz=fs)

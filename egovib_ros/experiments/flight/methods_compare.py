@@ -237,14 +237,7 @@ def flight_split(
         firmware_db, oracle = [], []
         for seed in range(1, event_sets + 1):
             spec = EventSpec(relative_amplitude=strength, seed=seed)
-            events = make_events(
-                test.sensor_stamps_ns,
-                test.sensor,
-                sample_rate_hz=fs,
-                band_hz=profile.band_hz,
-                band_order=profile.band_order,
-                spec=spec,
-            )
+            events = make_events(test.sensor_stamps_ns, test.sensor, profile, spec=spec)
             noisy = dataclasses.replace(test, sensor=test.sensor + events.signal)
             reference = combined_bandpassed(events.signal, profile)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
@@ -340,7 +333,7 @@ def flight_checks(splits: dict) -> dict:
 def pr2_data(cache: Path | None):
     """The published experiment setup (evaluation.experiments, seed 1): models, the sweep,
     and per speed (calibration, (a), taps, ego) recordings. Cached as a pickle if asked."""
-    from egovib_ros.experiments.paper import ExperimentConfig, build_models, motion
+    from egovib_ros.experiments.paper import ExperimentConfig, build_models, speed_recordings
 
     config = ExperimentConfig()
     path = cache / f"pr2_seed{config.seed}.pkl" if cache else None
@@ -350,28 +343,7 @@ def pr2_data(cache: Path | None):
     models = build_models(config)
     recordings = {}
     for index, speed in enumerate(config.speeds):
-        seed = config.seed * 1000 + index * 10  # as experiments.run_speed
-        calibration, _ = motion(
-            config, max_speed=speed, tap_rate_hz=0.0, duration_s=config.calibration_s, seed=seed + 1
-        )
-        a, _ = motion(
-            config,
-            max_speed=speed,
-            tap_rate_hz=config.tap_rate_hz,
-            duration_s=config.duration_s,
-            seed=seed + 2,
-        )
-        taps, _ = motion(
-            config,
-            max_speed=0.0,
-            tap_rate_hz=config.tap_rate_hz,
-            duration_s=config.duration_s,
-            seed=seed + 3,
-        )
-        ego, _ = motion(
-            config, max_speed=speed, tap_rate_hz=0.0, duration_s=config.duration_s, seed=seed + 4
-        )
-        recordings[speed] = (calibration, a, taps, ego)
+        recordings[speed] = speed_recordings(config, speed, index=index)
     data = (config, models, recordings)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
