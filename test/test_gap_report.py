@@ -56,7 +56,7 @@ def test_report_json_holds_the_diagnosis(position):
     assert [c["effect"] for c in report["candidates"]] == [c["effect"] for c in position.candidates]
     for c in report["candidates"]:
         assert c["heldout_gap"] == pytest.approx(position.gaps[c["effect"]], abs=1e-4)
-        assert c["shape_summary"] == describe_shape(c["effect"], c["shape"])
+        assert c["shape_summary"] == describe_shape(c["shape"])
     assert report["verdict"]["effect"] == "position"
     assert report["added_effect"]["effect"] == "position"
     fitted = position.models["position"].parameters
@@ -120,7 +120,7 @@ def test_the_position_breakdown_shows_the_generated_gain(position):
 
 def test_report_md_opens_with_the_advice_then_where_which_how_far(position):
     report = report_of(position)
-    md = render_markdown(report, position.table.joint_names)
+    md = render_markdown(report)
     lines = md.splitlines()
     advice = first_lines(report["advice"])
     assert lines[0] == "# Sim-to-real gap report" and lines[1] == ""
@@ -154,7 +154,7 @@ def test_no_effect_and_a_model_from_a_recording_are_said_so(position):
     assert report["gap"]["after_effect"] == report["gap"]["after_refit"]
     assert report["added_effect"] == {"effect": "none", "parameters": {}}
     report["inputs"]["model_kind"] = "recording"
-    md = render_markdown(report, none.table.joint_names)
+    md = render_markdown(report)
     best = report["candidates"][0]
     assert "**Which:** **no effect** (`none`)" in md
     assert f"(best: `{best['effect']}`, {best['reduction']:+.3f} dB" in md
@@ -202,13 +202,11 @@ def known_shapes() -> dict[str, tuple[dict, str]]:
 def test_shapes_are_described_in_one_sentence_each():
     shapes = known_shapes()
     for name, (shape, sentence) in shapes.items():
-        assert describe_shape(name.split(":")[0], {name: shape}) == sentence
+        assert describe_shape({name: shape}) == sentence
     # several shapes: their sentences in order, joined
     two = ["timing:lag_scan", "drift:elapsed_time"]
-    assert describe_shape("timing", {k: shapes[k][0] for k in two}) == "; ".join(
-        shapes[k][1] for k in two
-    )
-    assert describe_shape("position", {}) == ""
+    assert describe_shape({k: shapes[k][0] for k in two}) == "; ".join(shapes[k][1] for k in two)
+    assert describe_shape({}) == ""
 
 
 def test_figures_are_written_and_named(position, tmp_path):
