@@ -382,6 +382,7 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
         sweep.sensor,
         sweep.joint_stamps_ns,
         sweep.joint_velocity,
+        gain=gain,
     )
     calibration_s = time.perf_counter() - begin
     fs = full.sample_rate_hz
