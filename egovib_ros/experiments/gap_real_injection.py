@@ -228,7 +228,8 @@ def render_markdown(report: dict) -> str:
         "",
         f"Bag `{s['bag']}` (real quadcopter flight, profile `quadcopter`): a free-motion model "
         "is calibrated on one part of the flight; into the real gyro and joint states of the "
-        "other part one known effect is injected (experiments/gap_real_injection.py), and the "
+        "other part one known effect is injected (egovib_ros/experiments/gap_real_injection.py), "
+        "and the "
         "diagnosis must name it. The reference lag (in sync) is the robot's own lag measured "
         "on the calibration part. Produced by `" + report["settings"]["command"] + "` in "
         f"{report['runtime_s'] / 60:.1f} min.",

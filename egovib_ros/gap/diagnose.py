@@ -53,6 +53,11 @@ INTERLEAVE_KNOT_S = 10.0
 #: ... but at least this many chunks and knot intervals over the recording (short ones).
 INTERLEAVE_MIN_CHUNKS = 10
 INTERLEAVE_MIN_KNOTS = 8
+#: ... and knots never closer than this many chunk lengths (10 s / 4 s on long recordings):
+#: a held-out chunk is then predicted by a trend that spans several training chunks, not
+#: by the local level of its two neighbours (on a short real flight, knots 1.25 chunks
+#: apart took the motion-specific misfit of a flip into the next chunk: -4 dB there).
+INTERLEAVE_KNOT_CHUNKS = 2.5
 #: A transient (detected like a contact) counts as reversal-locked if it starts within this
 #: window around a joint reversal (s after, s before).
 LOCK_AFTER_S, LOCK_BEFORE_S = 0.08, 0.03
@@ -380,7 +385,9 @@ def _interleaved_drift(
     # A short recording (a real part of a few seconds) gets shorter chunks and knots, so that
     # it still has several chunks per rotation and a warm-up of a few seconds has knots.
     chunk_s = min(INTERLEAVE_CHUNK_S, span / INTERLEAVE_MIN_CHUNKS)
-    knot_s = min(INTERLEAVE_KNOT_S, span / INTERLEAVE_MIN_KNOTS)
+    knot_s = max(
+        min(INTERLEAVE_KNOT_S, span / INTERLEAVE_MIN_KNOTS), INTERLEAVE_KNOT_CHUNKS * chunk_s
+    )
     splits = interleaved_splits(table, chunk_s=chunk_s)
     if min(s.train.sum() for s in splits) < 200:
         return {}
@@ -797,12 +804,18 @@ def _verdict(
         and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
         and c["gap_reduction_decisive"] > 0.0
     ]
-    if not eligible:
-        # How far the strongest candidate is from being named: 1 - its Bonferroni-adjusted p.
-        best_p = min([c["p_value"] for c in candidates], default=1.0)
-        return "none", round(float(1.0 - min(1.0, best_p * max(len(candidates), 1))), 4)
-    verdict = eligible[0]["effect"]
     by_name = {c["effect"]: c for c in candidates}
+    if not eligible:
+        # The same bootstrap as for a named effect: the share of resamples in which no
+        # candidate reaches the minimum gain. (It was 1 - the strongest candidate's adjusted
+        # p, which is largest when a candidate only just misses significance: `none` with
+        # confidence 0.97 beside a drift term that took 0.6 dB off a baseline 2 dB above
+        # the floor at p = 0.0066.)
+        confidence = _bootstrap_confidence(
+            loss, [c["effect"] for c in candidates], "none", segments, rng
+        )
+        return "none", confidence
+    verdict = eligible[0]["effect"]
     confidence = _bootstrap_confidence(
         loss,
         [c["effect"] for c in candidates],
@@ -850,9 +863,9 @@ def _bootstrap_confidence(
 ) -> float:
     """Share of block-bootstrap resamples (held-out segments drawn with replacement) in which
     the verdict's effect has the largest held-out deviance reduction over the baseline (at
-    least MIN_DEVIANCE_GAIN).  A drift verdict decided on the interleaved split is not
-    comparable segment by segment: its confidence is the share in which no other candidate
-    reaches the minimum gain.
+    least MIN_DEVIANCE_GAIN); for `none`, the share in which no candidate reaches it.  A drift
+    verdict decided on the interleaved split is not comparable segment by segment: its
+    confidence is the share in which no other candidate reaches the minimum gain.
     """
     names = [n for n in names if n in loss]
     if not names:
@@ -868,6 +881,8 @@ def _bootstrap_confidence(
         picks = rng.integers(0, n_seg, size=(min(batch, N_BOOTSTRAP - start), n_seg))
         n_picked = np.maximum(seg_len[picks].sum(axis=1), 1)
         mean_gain[:, start : start + len(picks)] = gain[:, picks].sum(axis=2) / n_picked
+    if verdict == "none":
+        return round(float(np.mean(np.max(mean_gain, axis=0) < MIN_DEVIANCE_GAIN)), 4)
     if interleaved and verdict == "drift":
         others = [i for i, n in enumerate(names) if n != "drift"]
         if not others:

@@ -198,6 +198,15 @@ def _hats(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
     return out
 
 
+def trend_unit_s(scales) -> float:
+    """Time unit of the drift term's linear trend: a minute, or the training span if shorter.
+
+    Columns are centred, not scaled, so each must keep a natural range of about [0, 1]; per
+    minute over 8 s of a real flight the trend spanned 0.11 and the ridge shrank it to
+    nothing, leaving a warm-up of the held-out first fold without its extrapolation."""
+    return float(min(60.0, max(scales.t_end_s - scales.t_ref_s, 1e-3)))
+
+
 def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
     """Piecewise-linear basis in time over [t0, t1], flat beyond;
     the first knot is the reference."""
@@ -330,7 +339,7 @@ def effect_regressors(
         for k in range(h.shape[1]):
             cols.append(h[:, k])
             names.append(f"time_hat{k + 1}")
-        cols.append((t - scales.t_ref_s) / 60.0)
+        cols.append((t - scales.t_ref_s) / trend_unit_s(scales))
         names.append("t_min")
     elif effect in ("refit", "timing", "custom"):
         pass
@@ -614,7 +623,7 @@ def effect_shape(
     elif effect == "drift":
         grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
         h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        x = np.concatenate([h, ((grid - scales.t_ref_s) / 60.0)[:, None]], axis=1)
+        x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
         g = x @ beta
         shapes["drift:elapsed_time"] = {
             "x": [round(float(v), 2) for v in grid],
