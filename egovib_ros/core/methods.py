@@ -194,27 +194,83 @@ class MethodCalibration:
 
 
 @numba.njit(cache=True)
-def _multilinear(lower, frac, strides, table):
-    """Multilinear interpolation of a flattened grid table (cells, M) at R points given by
-    their lower grid index and fraction per joint (R, J): (R, M)."""
-    R, J = lower.shape
+def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):
+    """Expected band powers once per run of equal velocities, by multilinear interpolation
+    of the flattened dense table (cells, M) (np.interp's position rule per joint, clamped
+    at the grid's edges), at least `floor` (M,). Returns (values (n, M): the first R rows
+    used, zeros where a run has no joint state; index (n,) row of each sample; R; samples
+    whose nearest cell is unmeasured; samples outside the grid). One compiled pass: a live
+    stream calls this every few samples, where numpy's per-call overhead dominated."""
+    n, J = velocity.shape
     M = table.shape[1]
-    out = np.zeros((R, M))
-    for r in range(R):
-        for corner in range(1 << J):
-            weight = 1.0
-            index = 0
+    values = np.zeros((n, M))
+    index = np.empty(n, np.int64)
+    lower = np.empty(J, np.int64)
+    frac = np.empty(J)
+    r = -1
+    known = False
+    unmeasured = False
+    outside = False
+    n_unmeasured = 0
+    n_outside = 0
+    previous_ok = False
+    for i in range(n):
+        ok = True
+        for j in range(J):
+            if not np.isfinite(velocity[i, j]):
+                ok = False
+        change = i == 0 or ok != previous_ok
+        if not change:
             for j in range(J):
-                if (corner >> j) & 1:
-                    weight *= frac[r, j]
-                    index += (lower[r, j] + 1) * strides[j]
-                else:
-                    weight *= 1.0 - frac[r, j]
-                    index += lower[r, j] * strides[j]
-            if weight != 0.0:
+                if velocity[i, j] != velocity[i - 1, j]:
+                    change = True
+        previous_ok = ok
+        if change:
+            r += 1
+            known = ok
+            unmeasured = False
+            outside = False
+            if ok:
+                nearest = 0
+                for j in range(J):
+                    g = grids[j]
+                    last = grid_len[j] - 1
+                    v = velocity[i, j]
+                    if v < g[0] - 1e-9 * abs(g[0]) or v > g[last] + 1e-9 * abs(g[last]):
+                        outside = True
+                    if v <= g[0]:
+                        position = 0.0
+                    elif v >= g[last]:
+                        position = float(last)
+                    else:
+                        k = np.searchsorted(g[: last + 1], v, side="right") - 1
+                        position = (v - g[k]) * (1.0 / (g[k + 1] - g[k])) + k
+                    i0 = min(int(math.floor(position)), last - 1)
+                    lower[j] = i0
+                    frac[j] = position - i0
+                    nearest += (i0 + (1 if frac[j] >= 0.5 else 0)) * strides[j]
+                unmeasured = not measured[nearest]
+                for corner in range(1 << J):
+                    weight = 1.0
+                    cell = 0
+                    for j in range(J):
+                        if (corner >> j) & 1:
+                            weight *= frac[j]
+                            cell += (lower[j] + 1) * strides[j]
+                        else:
+                            weight *= 1.0 - frac[j]
+                            cell += lower[j] * strides[j]
+                    if weight != 0.0:
+                        for m in range(M):
+                            values[r, m] += weight * table[cell, m]
                 for m in range(M):
-                    out[r, m] += weight * table[index, m]
-    return out
+                    if values[r, m] < floor[m]:
+                        values[r, m] = floor[m]
+        index[i] = r
+        if known:
+            n_unmeasured += unmeasured
+            n_outside += outside
+    return values, index, r + 1, n_unmeasured, n_outside
 
 
 class ResidualTable:
@@ -231,8 +287,18 @@ class ResidualTable:
             mean = residual.table(self.channel_index, include_std=False)
             high = residual.table(self.channel_index, include_std=True)
             power = mean**2 + (high - mean) ** 2  # (grid..., C, F)
-            self._dense = np.ascontiguousarray(power @ self.weights.T)  # (grid..., C, B)
-            self._measured = residual.counts > 0
+            dense = power @ self.weights.T  # (grid..., C, B)
+            J = residual.n_joints
+            self._table = np.ascontiguousarray(dense.reshape(int(np.prod(dense.shape[:J])), -1))
+            self._strides = np.array(
+                [int(np.prod(dense.shape[j + 1 : J])) for j in range(J)], np.int64
+            )
+            self._measured = np.ascontiguousarray((residual.counts > 0).reshape(-1))
+            self._grid_len = np.array([len(g) for g in residual.grid], np.int64)
+            self._grid_rows = np.zeros((J, int(self._grid_len.max())))
+            for j, g in enumerate(residual.grid):
+                self._grid_rows[j, : len(g)] = g
+            self._dense = dense
         # A channel the joints never shake (an axis at rest reads a constant) has a table of
         # zeros: keep every expected power at least FLOOR_DB below the channel's typical one.
         cells = (
@@ -245,7 +311,6 @@ class ResidualTable:
             else np.zeros((len(AXES), self.weights.shape[0]))
         )
         self.floor = np.maximum(typical * 10 ** (-FLOOR_DB / 10), 1e-300)
-        self._grids = residual.grid
         self.samples_unmeasured = 0
         self.samples_out_of_grid = 0
 
@@ -258,13 +323,27 @@ class ResidualTable:
         """The band powers once per run of equal velocities (joint states are held between
         updates): ((R, 3, B) powers, (n,) row of each sample); a sample without joint
         state gets a row of zeros (its gains stay open)."""
+        B = self.weights.shape[0]
+        if self._dense is not None:
+            values, index, R, unmeasured, outside = _dense_rows(
+                np.ascontiguousarray(velocity, dtype=np.float64),
+                self._grid_rows,
+                self._grid_len,
+                self._table,
+                self._strides,
+                self._measured,
+                np.ascontiguousarray(self.floor.reshape(-1)),
+            )
+            self.samples_unmeasured += unmeasured
+            self.samples_out_of_grid += outside
+            return values[:R].reshape(R, len(AXES), B), index
         n = len(velocity)
         ok = np.all(np.isfinite(velocity), axis=1)
         change = np.ones(n, bool)
         change[1:] = np.any(velocity[1:] != velocity[:-1], axis=1) | (ok[1:] != ok[:-1])
         starts = np.flatnonzero(change)
         index = np.cumsum(change) - 1
-        values = np.zeros((len(starts), len(AXES), self.weights.shape[0]))
+        values = np.zeros((len(starts), len(AXES), B))
         known = ok[starts]
         if known.any():
             found, measured, outside = self._at(velocity[starts[known]])
@@ -275,31 +354,10 @@ class ResidualTable:
         return values, index
 
     def _at(self, rows: np.ndarray):
-        if self._dense is None:
-            mean, outside, measured = self.model.lookup(rows, self.channel_index, include_std=False)
-            high, _, _ = self.model.lookup(rows, self.channel_index, include_std=True)
-            return (mean**2 + (high - mean) ** 2) @ self.weights.T, measured, outside
-        lower, frac = [], []
-        outside = np.zeros(len(rows), bool)
-        for j, g in enumerate(self._grids):
-            v = rows[:, j]
-            outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
-            position = np.interp(v, g, np.arange(len(g), dtype=float))
-            i0 = np.minimum(np.floor(position).astype(np.intp), len(g) - 2)
-            lower.append(i0)
-            frac.append(position - i0)
-        shape = self._dense.shape
-        J = len(self._grids)
-        flat = self._dense.reshape(int(np.prod(shape[:J])), -1)
-        strides = np.array([int(np.prod(shape[j + 1 : J])) for j in range(J)], np.int64)
-        values = _multilinear(
-            np.ascontiguousarray(np.stack(lower, axis=1), dtype=np.int64),
-            np.ascontiguousarray(np.stack(frac, axis=1)),
-            strides,
-            flat,
-        ).reshape((len(rows),) + shape[J:])
-        nearest = tuple(lo + (fr >= 0.5) for lo, fr in zip(lower, frac))
-        return values, self._measured[nearest], outside
+        """Sparse tables (no dense grid): the model's own nearest-cell lookup."""
+        mean, outside, measured = self.model.lookup(rows, self.channel_index, include_std=False)
+        high, _, _ = self.model.lookup(rows, self.channel_index, include_std=True)
+        return (mean**2 + (high - mean) ** 2) @ self.weights.T, measured, outside
 
 
 def _band_passed_calibration(
@@ -499,8 +557,14 @@ def warm_up() -> None:
     )
     bank = FilterBank(sample_rate_hz=100.0, band_hz=(1.0, 40.0), bands=1)
     LowLatencyGain(bank, GainSettings(), n_channels=3).process(np.zeros((2, 3)), np.ones((2, 3, 2)))
-    _multilinear(
-        np.zeros((1, 1), np.int64), np.zeros((1, 1)), np.ones(1, np.int64), np.ones((2, 1))
+    _dense_rows(
+        np.zeros((2, 1)),
+        np.array([[0.0, 1.0]]),
+        np.array([2], np.int64),
+        np.ones((2, 1)),
+        np.ones(1, np.int64),
+        np.ones(2, np.bool_),
+        np.zeros(1),
     )
     _WARM = True
 
