@@ -66,6 +66,28 @@ def test_velocity_from_positions_any_chunking_equals_whole(seed, cuts):
     np.testing.assert_array_equal(np.concatenate(parts), whole)
 
 
+@given(st.integers(0, 1000), st.lists(st.integers(1, 60), min_size=1, max_size=12))
+def test_auto_any_chunking_equals_whole_with_measured_stretches(seed, cuts):
+    # Drivers that measure velocity most of the time: chunks whose velocities are all
+    # measured take the short path (nothing derived, the last positions kept); a later
+    # chunk with gaps must still derive from those positions as one call over all would.
+    t, position, velocity = _positions(seed)
+    velocity = velocity.copy()
+    rng = np.random.default_rng(seed)
+    velocity[rng.uniform(size=velocity.shape) < 0.1] = np.nan
+    velocity[: len(t) // 3] = np.where(
+        np.isnan(velocity[: len(t) // 3]), 0.5, velocity[: len(t) // 3]
+    )
+    position[rng.uniform(size=position.shape) < 0.05] = np.nan
+    whole = JointVelocity(2, source="auto").push(t, position, velocity)
+    jv, parts, start = JointVelocity(2, source="auto"), [], 0
+    for size in [*cuts, len(t)]:
+        stop = min(len(t), start + size)
+        parts.append(jv.push(t[start:stop], position[start:stop], velocity[start:stop]))
+        start = stop
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+
+
 def test_velocity_from_positions_unwraps_and_matches_the_motion():
     t, position, velocity = _positions(3)
     derived = JointVelocity(2, source="from_position").push(

@@ -174,6 +174,15 @@ class JointVelocity:
             return velocity
         position = np.asarray(position, dtype=np.float64)
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        if self.source == "auto" and np.isfinite(velocity).all():
+            # Every velocity measured (the common driver): nothing to derive, only the last
+            # position of each joint to keep (a live node calls this every few ms).
+            finite = np.isfinite(position)
+            seen = finite.any(axis=0)
+            last = len(position) - 1 - np.argmax(finite[::-1], axis=0)
+            self._last_p[seen] = position[last[seen], np.flatnonzero(seen)]
+            self._last_t[seen] = stamps_ns[last[seen]]
+            return velocity
         derived = np.full(position.shape, np.nan)
         for j in range(position.shape[1]):
             rows = np.flatnonzero(np.isfinite(position[:, j]))

@@ -35,7 +35,7 @@ from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.bag.denoise import make_method_denoiser
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
-from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
+from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION, DenoisedChunk
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.common import (
     Health,
@@ -333,7 +333,7 @@ class Denoiser(Node):
         """Decode what arrived, push joint states first (they cover the new blocks), publish."""
         self._last_input = time.monotonic()
         self._flushed = False
-        self._process_joints()
+        released = self._push_joints()
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
             if self.stream_error is not None:  # the core refuses this stream for good
@@ -345,15 +345,25 @@ class Denoiser(Node):
             except EgovibError as exc:
                 self._refuse(str(exc))
                 return
-            self._publish(chunk)
+            if released is not None and len(released):  # one publish pass for both
+                chunk = DenoisedChunk(
+                    np.concatenate([released.stamps_ns, chunk.stamps_ns]),
+                    np.concatenate([released.values, chunk.values]),
+                )
+            released = chunk
+        self._publish(released)
         self._update_held_back()
 
     def _process_joints(self) -> None:
+        self._publish(self._push_joints())
+
+    def _push_joints(self):
+        """Joint states received so far into the core; the output they release (or None)."""
         batch = self.input.take_joints()
         if batch is None or not len(batch.stamps_ns):
-            return
+            return None
         self.missing_joints = self.input.missing_joints()  # output withheld while any
-        self._publish(self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity))
+        return self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity)
 
     def _refuse(self, reason: str) -> None:
         """The core refused the stream (e.g. its rate does not fit the model): publish nothing."""
