@@ -20,7 +20,7 @@ from egovib_ros.gap.diagnose import (
     interleaved_splits,
     time_split,
 )
-from egovib_ros.gap.effects import effect_regressors, fit_scales, trend_unit_s
+from egovib_ros.gap.effects import _effect_summary, effect_regressors, fit_scales, trend_unit_s
 
 
 def test_miscalibrated_model_resolved_by_refit_gives_none():
@@ -207,6 +207,12 @@ def test_drift_trend_column_spans_the_training_range_on_a_short_recording():
     x, names = effect_regressors("drift", table, scales)
     trend = x[:, names.index("t_min")]
     assert np.ptp(trend[train]) == pytest.approx(1.0)
+    # the reported slope stays per minute: a coefficient of 0.1 per 8 s span is 0.75 / min
+    coef = np.zeros((len(names), 4))  # (regressors, bins)
+    coef[names.index("t_min")] = 0.1
+    summary = _effect_summary("drift", names, coef, scales)
+    assert summary["log_gain_per_minute"] == pytest.approx(6.0 / trend_unit_s(scales), abs=1e-4)
+    assert trend_unit_s(scales) == pytest.approx(np.ptp(table.t_mid_s[train]), rel=0.02)
     # a minute stays the unit once the training span is longer
     scales.t_end_s = scales.t_ref_s + 96.0
     assert trend_unit_s(scales) == 60.0

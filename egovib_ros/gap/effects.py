@@ -649,7 +649,8 @@ def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Sca
                     "first_harmonic_phase_rad": round(float(np.arctan2(c[j], c[k])), 4),
                 }
     elif effect == "drift":
-        out["log_gain_per_minute"] = round(float(c[-1]), 5)
+        # The trend column is per trend_unit_s (a minute, or a shorter training span).
+        out["log_gain_per_minute"] = round(float(c[-1]) * 60.0 / trend_unit_s(scales), 5)
     elif effect == "acceleration":
         out["acc_scale"] = [round(float(a), 5) for a in scales.acc_scale]
     return out
