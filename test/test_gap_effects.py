@@ -14,6 +14,7 @@ from egovib_ros.gap.baseline import fit_baseline
 from egovib_ros.gap.diagnose import MIN_DEVIANCE_GAIN, interleaved_splits
 from egovib_ros.gap.effects import (
     DRIFT_KNOTS,
+    MAX_LOG_GAIN,
     POSITION_HARMONICS,
     apply_effect_term,
     effect_regressors,
@@ -169,6 +170,14 @@ def test_a_fitted_term_applied_again_gives_the_same_prediction(position_fit):
         table, ~table.contact, fitted.refit_predicted, "position", fitted.coef, fitted.scales
     )
     np.testing.assert_allclose(again, fitted.predicted, rtol=1e-9)
+    # An extreme term is capped as the fit caps it (+-MAX_LOG_GAIN nepers before re-levelling).
+    wild = fitted.coef.copy()
+    wild[1:] *= 1e3
+    ratio = apply_effect_term(
+        table, ~table.contact, fitted.refit_predicted, "position", wild, fitted.scales
+    ) / np.maximum(fitted.refit_predicted, 1e-300)
+    spread = np.log(ratio.max(axis=0) / ratio.min(axis=0))
+    assert np.all(spread <= 2 * MAX_LOG_GAIN + 1e-9)
 
 
 def test_the_regressors_of_each_candidate():

@@ -512,7 +512,12 @@ def apply_effect_term(
     """Predictions with a given (e.g. simulator-derived) effect term on top of a baseline,
     re-levelled on train."""
     extra, _ = effect_regressors(effect, table, scales)
-    gain = np.exp(extra @ coef[1:]) if extra.shape[1] else np.ones_like(refit_predicted)
+    # Capped as fit_variant caps the fitted term (the write-back check must see that term).
+    gain = (
+        np.exp(np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN))
+        if extra.shape[1]
+        else np.ones_like(refit_predicted)
+    )
     predicted = refit_predicted * gain
     return predicted * _relevel(table, train, predicted)
 
