@@ -1,8 +1,8 @@
 """Does the simulator reproduce what the paper observed?  Fig. 3 / Fig. 4 analogues and levels.
 
-Spectra are computed as in the paper: sum of the 3 axes, 4th-order
-Butterworth band-pass 150-750 Hz, 64-sample blocks with hop 32, periodic
-Hamming window, magnitude of the rfft; per velocity cell the mean mu(f) and
+Spectra are computed as in the paper, with the robot profile's settings (the PR2 hand's:
+sum of the 3 axes, 4th-order Butterworth band-pass 150-750 Hz, 64-sample blocks with hop
+32), the core's periodic Hamming window, magnitude of the rfft; per velocity cell the mean mu(f) and
 standard deviation sd(f) over the blocks, N(f) = mu + sd (Eq. 5).
 
 Fig. 4 metric (superposition error of one cell (w, g)):
@@ -10,7 +10,7 @@ Fig. 4 metric (superposition error of one cell (w, g)):
     N6(f)  = mu(w,0) + mu(0,g) - mu(0,0) + sqrt(sd(w,0)^2 + sd(0,g)^2 + sd(0,0)^2) (Eq. 6, literal)
     Nobs(f) = mu(w,g) + sd(w,g)
     error   = 100 * |sum_f N6(f) - sum_f Nobs(f)| / sum_f Nobs(f),
-              f over the rfft bins in 150..750 Hz
+              f over the rfft bins in the profile's band
 
 Blocks are assigned to cells by the commanded cell and kept only when the true
 joint speeds stay within 0.5 % of max speed of the cell's speeds over the whole
@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.robot import load_profile
 from egovib_ros.sim.hand import HandSimulator
@@ -56,19 +57,17 @@ BAND_BINS = (FREQS_HZ >= BAND_HZ[0]) & (FREQS_HZ <= BAND_HZ[1])
 
 
 def bandpass_combined(accel: np.ndarray) -> np.ndarray:
-    """Sum of the 3 axes, band-passed (4th-order Butterworth, 150-750 Hz, causal)."""
+    """Sum of the 3 axes, band-passed (the profile's Butterworth band-pass, causal)."""
     sos = signal.butter(BAND_ORDER, BAND_HZ, btype="band", fs=ACCEL_RATE_HZ, output="sos")
     return signal.sosfilt(sos, np.asarray(accel, float).sum(axis=1))
 
 
 def block_magnitudes(x: np.ndarray) -> np.ndarray:
-    """|rfft(window * block)| of 64-sample blocks with hop 32: (B, 33)."""
+    """|rfft(window * block)| of the profile's blocks and hop: (B, F)."""
     if len(x) < BLOCK_LENGTH:
         return np.zeros((0, len(FREQS_HZ)))
     blocks = np.lib.stride_tricks.sliding_window_view(x, BLOCK_LENGTH)[::HOP]
-    window = signal.get_window("hamming", BLOCK_LENGTH, fftbins=True)
-    window = window * (HOP / window.sum())  # the core's normalisation (COLA to one)
-    return np.abs(np.fft.rfft(blocks * window, axis=1))
+    return np.abs(np.fft.rfft(blocks * analysis_window(BLOCK_LENGTH, HOP), axis=1))
 
 
 @dataclass
@@ -104,7 +103,7 @@ def sweep_cell_stats(
         bp, zi = signal.sosfilt(sos, chunk.sensor.sum(axis=1), zi=zi)
         if ci not in pieces:
             # frame on the global hop grid, as a continuous calibrator does (blocks start at
-            # multiples of 32 samples, so the 32-periodic idle hum looks the same in every cell)
+            # multiples of the hop, so a hop-periodic idle hum looks the same in every cell)
             first = int(
                 round((chunk.sensor_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / NS_PER_S)
             )
@@ -133,14 +132,14 @@ def sweep_cell_stats(
 
 
 def _grid_index(stats: CellStats) -> np.ndarray:
-    """(C, 2) integer grid indices of the cells."""
+    """(C, 2) integer grid indices of the cells (the nearest of the profile's grid fractions)."""
     frac = stats.cells / np.asarray(MAX_SPEED)
-    return np.rint((frac + 1.0) * 10).astype(int)
+    return np.abs(frac[..., None] - GRID_FRACTIONS).argmin(axis=-1)
 
 
 def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.ndarray:
-    """(21, 21) Fig. 4 error map in % (rows wrist, columns gripper); Eq. 6 from `axes`
-    (default: `full`)."""
+    """(G, G) Fig. 4 error map in % (G grid points per joint, 21 for the PR2; rows wrist,
+    columns gripper); Eq. 6 from `axes` (default: `full`)."""
     axes = axes if axes is not None else full
     n = len(GRID_FRACTIONS)
     mu = np.full((n, n, len(FREQS_HZ)), np.nan)
@@ -279,13 +278,14 @@ def plot_fig3(stats: CellStats, path: str | Path) -> None:
 
     idx = _grid_index(stats)
     lookup = {(i, j): k for k, (i, j) in enumerate(idx)}
-    levels = [0, 3, 6, 10]  # 0, 30, 60, 100 % speed
+    zero = len(GRID_FRACTIONS) // 2  # the grid's 0 (symmetric: both directions)
+    levels = [int(round(f * zero)) for f in (0.0, 0.3, 0.6, 1.0)]  # grid steps from 0
     fig, axs = plt.subplots(len(levels), len(levels), figsize=(12, 10), sharex=True, sharey=True)
     for r, lw in enumerate(levels):
         for c, lg in enumerate(levels):
             ax = axs[r, c]
             for sw, sg, style in ((1, 1, "-"), (1, -1, "--"), (-1, 1, "-."), (-1, -1, ":")):
-                k = lookup.get((10 + sw * lw, 10 + sg * lg))
+                k = lookup.get((zero + sw * lw, zero + sg * lg))
                 if k is None or stats.counts[k] == 0:
                     continue
                 ax.plot(
@@ -297,14 +297,17 @@ def plot_fig3(stats: CellStats, path: str | Path) -> None:
                 )
             ax.axvspan(*BAND_HZ, color="0.92", zorder=0)
             if r == 0:
-                ax.set_title(f"gripper {lg * 10} %", fontsize=9)
+                ax.set_title(f"gripper {100 * GRID_FRACTIONS[zero + lg]:.0f} %", fontsize=9)
             if c == 0:
-                ax.set_ylabel(f"wrist {lw * 10} %\n|N| (Eq. 5)", fontsize=9)
+                ax.set_ylabel(
+                    f"wrist {100 * GRID_FRACTIONS[zero + lw]:.0f} %\n|N| (Eq. 5)", fontsize=9
+                )
             if r == len(levels) - 1:
                 ax.set_xlabel("Hz")
     axs[0, 0].legend(fontsize=6)
     fig.suptitle(
-        "Simulated ego-vibration spectra mu+sd (sum of axes, band-passed; shaded = 150-750 Hz)"
+        "Simulated ego-vibration spectra mu+sd (sum of axes, band-passed; "
+        f"shaded = {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -320,10 +323,11 @@ def plot_fig4(error: np.ndarray, path: str | Path, title: str) -> None:
 
     fig, ax = plt.subplots(figsize=(6.5, 5.2))
     pct = GRID_FRACTIONS * 100
+    half = (pct[1] - pct[0]) / 2  # a cell is one grid step wide
     im = ax.imshow(
         error,
         origin="lower",
-        extent=(pct[0] - 5, pct[-1] + 5, pct[0] - 5, pct[-1] + 5),
+        extent=(pct[0] - half, pct[-1] + half, pct[0] - half, pct[-1] + half),
         cmap="viridis",
         vmin=0,
         vmax=max(20.0, float(np.nanmax(error))),
