@@ -282,7 +282,7 @@ class ResidualTable:
         self.model = residual
         self.channel_index = residual.channel_indices(AXES)
         self.weights = bank.power_weights(residual.block_length, residual.window)  # (B, F)
-        self._dense = None
+        self._table = None  # (cells, 3 B) band powers of the dense grid, where there is one
         if residual.dense_ok:
             mean = residual.table(self.channel_index, include_std=False)
             high = residual.table(self.channel_index, include_std=True)
@@ -298,7 +298,6 @@ class ResidualTable:
             self._grid_rows = np.zeros((J, int(self._grid_len.max())))
             for j, g in enumerate(residual.grid):
                 self._grid_rows[j, : len(g)] = g
-            self._dense = dense
         # A channel the joints never shake (an axis at rest reads a constant) has a table of
         # zeros: keep every expected power at least FLOOR_DB below the channel's typical one.
         cells = (
@@ -311,6 +310,7 @@ class ResidualTable:
             else np.zeros((len(AXES), self.weights.shape[0]))
         )
         self.floor = np.maximum(typical * 10 ** (-FLOOR_DB / 10), 1e-300)
+        self._floor_flat = np.ascontiguousarray(self.floor.reshape(-1))  # per call: no copy
         self.samples_unmeasured = 0
         self.samples_out_of_grid = 0
 
@@ -324,7 +324,7 @@ class ResidualTable:
         updates): ((R, 3, B) powers, (n,) row of each sample); a sample without joint
         state gets a row of zeros (its gains stay open)."""
         B = self.weights.shape[0]
-        if self._dense is not None:
+        if self._table is not None:
             values, index, R, unmeasured, outside = _dense_rows(
                 np.ascontiguousarray(velocity, dtype=np.float64),
                 self._grid_rows,
@@ -332,7 +332,7 @@ class ResidualTable:
                 self._table,
                 self._strides,
                 self._measured,
-                np.ascontiguousarray(self.floor.reshape(-1)),
+                self._floor_flat,
             )
             self.samples_unmeasured += unmeasured
             self.samples_out_of_grid += outside
