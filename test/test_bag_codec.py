@@ -167,3 +167,47 @@ def test_empty_joint_state_batch_encodes_to_nothing():
         )
         == []
     )
+
+
+def _joint_state(stamp, names, position, velocity, frame_id=""):
+    msg = codec.joint_state_message(stamp, names, position, velocity, frame_id)
+    return bytes(codec.typestore().serialize_cdr(msg, codec.JOINT_STATE_TYPE))
+
+
+def test_joint_state_layouts_alternating_between_calls_decode_by_name():
+    # the fast path remembers the last layout: a batch of another layout of the same length
+    # (joints swapped, another frame of the same length, more joints) is walked afresh
+    a, b = JOINT_NAMES
+    layouts = [
+        ((a, b), "base"),
+        ((b, a), "base"),
+        ((a, b), "hand"),
+        ((a, "x", b), "base"),
+        ((a, b), "base"),
+    ]
+    for k, (names, frame) in enumerate(layouts * 2):
+        values = {n: 10.0 * k + i for i, n in enumerate(names)}
+        raws = [
+            _joint_state(k, names, [values[n] for n in names], [-values[n] for n in names], frame)
+            for _ in range(2)
+        ]
+        _, p, v = decode_joint_states(raws, JOINT_NAMES)
+        np.testing.assert_array_equal(p, [[values[a], values[b]]] * 2)
+        np.testing.assert_array_equal(v, [[-values[a], -values[b]]] * 2)
+
+
+def test_packed_and_scattered_batches_read_the_same_bytes():
+    rng = np.random.default_rng(0)
+    raws = [rng.integers(0, 256, 40, dtype=np.uint8).tobytes() for _ in range(5)]
+    packed = codec.MessageBatch.from_list(raws, np.zeros(5, np.int64))
+    assert packed.packed is not None
+    # the same messages inside a larger buffer, in another order: no packed view
+    buf = np.frombuffer(b"".join([b"\0" * 3 + r for r in raws[::-1]]), np.uint8)
+    starts = np.arange(4, -1, -1) * 43 + 3
+    scattered = codec.MessageBatch(buf, starts, np.full(5, 40), np.zeros(5, np.int64))
+    assert scattered.packed is None
+    for at, dtype in ((0, "<u2"), (4, "<i4"), (13, "<f8"), (32, "<u8")):
+        np.testing.assert_array_equal(packed.field(at, dtype), scattered.field(at, dtype))
+    np.testing.assert_array_equal(packed.columns(7, 20), scattered.columns(7, 20))
+    np.testing.assert_array_equal(packed.matrix(), scattered.matrix())
+    assert packed.to_list() == scattered.to_list() == raws

@@ -80,6 +80,8 @@ def test_random_chunkings_of_60_s_equal_batch(model, seed):
     )
     denoiser = StreamingDenoiser(model)
     chunks = push_random_chunks(denoiser, data, np.random.default_rng(seed))
+    stats = denoiser.stats  # the node's cheap count agrees with the stats
+    assert denoiser.samples_pending == stats.samples_in - stats.samples_out > 0
     stamps, values = collect(chunks + [denoiser.flush()])
     np.testing.assert_array_equal(stamps, b_stamps)
     assert np.max(np.abs(values - b_values)) <= 1e-12

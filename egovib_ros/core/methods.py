@@ -677,6 +677,12 @@ class SampleMethodDenoiser:
         return self._process(self._framer.pop())
 
     @property
+    def samples_pending(self) -> int:
+        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
+        without building the stats: a live node asks at every batch)."""
+        return self._framer.stats.samples_in - self.samples_out
+
+    @property
     def stats(self) -> DenoiserStats:
         table = self._table
         return DenoiserStats.of(

@@ -238,6 +238,12 @@ class StreamingDenoiser:
         return self._process(self._framer.pop_blocks())
 
     @property
+    def samples_pending(self) -> int:
+        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
+        without building the stats: a live node asks at every batch)."""
+        return self._framer.stats.samples_in - self.samples_out
+
+    @property
     def stats(self) -> DenoiserStats:
         s = self._framer.stats
         return DenoiserStats.of(

@@ -110,8 +110,8 @@ PARAMETERS = MODEL_PARAMETERS + (
     Param(
         "batch_samples",
         32,
-        "process every this many sensor samples (default: paper, the model's hop, i.e. as "
-        "soon as a block completes; cancel and hybrid, 2 ms of samples)",
+        "process once this many sensor samples are waiting (default: paper, the model's hop, "
+        "i.e. as soon as a block completes; cancel and hybrid, 2 ms of samples)",
         range=(1, 100_000),
     ),
     Param(
@@ -374,8 +374,7 @@ class Denoiser(Node):
 
     def _update_held_back(self) -> None:
         """Is a completed block held back (more than a block of input not yet output)?"""
-        stats = self.denoiser.stats
-        self._blocks_held_back = stats.samples_in - stats.samples_out >= self.model.block_length
+        self._blocks_held_back = self.denoiser.samples_pending >= self.model.block_length
 
     def _publish(self, chunk, *, end_of_stream: bool = False) -> None:
         if self.stream_error is not None:
