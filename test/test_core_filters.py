@@ -42,6 +42,30 @@ def test_bandpass_chunked_equals_whole_and_scipy(monkeypatch, use_kernel):
     assert np.max(np.abs(flat)) < 1e-9
 
 
+@pytest.mark.parametrize("use_kernels", [True, False])
+def test_carried_lfilter_and_sosfilt_equal_scipy_to_the_bit(monkeypatch, use_kernels):
+    if not use_kernels:
+        monkeypatch.setattr(filters, "_LFILTER_KERNEL", None)
+        monkeypatch.setattr(filters, "_SOS_KERNEL", None)
+    rng = np.random.default_rng(4)
+    x1, x2 = rng.normal(size=37), rng.normal(size=(37, 4))
+    for b, a in (([1.0], [1.0, -1.0]), signal.iirpeak(1000, 8, fs=3000), ([0.2], [1.0, -0.8])):
+        zi1 = rng.normal(size=len(a) - 1)
+        y, zf = filters.lfilter_carried(b, a, x1, list(zi1))  # a list, as a caller may give
+        want_y, want_zf = signal.lfilter(b, a, x1, zi=zi1)
+        assert np.array_equal(y, want_y) and np.array_equal(zf, want_zf)
+        zi2 = rng.normal(size=(len(a) - 1, 4))
+        y, zf = filters.lfilter_carried(b, a, x2, zi2, axis=0)
+        want_y, want_zf = signal.lfilter(b, a, x2, axis=0, zi=zi2)
+        assert np.array_equal(y, want_y) and np.array_equal(zf, want_zf)
+    sos = signal.butter(3, [100, 900], btype="band", fs=3000, output="sos")
+    zi = rng.normal(size=(sos.shape[0], 2))
+    y, zf = filters.sosfilt_carried(sos, x1, zi)
+    want_y, want_zf = signal.sosfilt(sos, x1, zi=zi)
+    assert np.array_equal(y, want_y) and np.array_equal(zf, want_zf)
+    assert np.array_equal(x1, np.random.default_rng(4).normal(size=37))  # input untouched
+
+
 def test_bandpass_rejects_bad_settings():
     with pytest.raises(ConfigError, match="Nyquist"):
         BandPass(sample_rate_hz=1000, band_hz=(150, 750), order=4, n_channels=1)

@@ -72,6 +72,51 @@ def _load_kernel():
 _SOS_KERNEL = _load_kernel()
 
 
+def _load_linear_filter():
+    """scipy's compiled direct-form filter, the one `signal.lfilter` runs for a denominator
+    of two or more coefficients after ~15 us of argument conversion (a simulator step of
+    a few samples runs ten filters): used when present and equal to the public function
+    (checked here), else lfilter."""
+    try:
+        from scipy.signal._sigtools import _linear_filter
+    except ImportError:  # pragma: no cover - depends on the scipy build
+        return None
+    b, a = signal.butter(2, 0.2)
+    x = np.random.default_rng(0).normal(size=(50, 2))
+    zi = np.ones((2, 2))
+    want = signal.lfilter(b, a, x, axis=0, zi=zi)
+    try:
+        got = _linear_filter(b, a, x, 0, zi)
+    except Exception:  # pragma: no cover
+        return None
+    same = all(np.array_equal(g, w) for g, w in zip(got, want))
+    return _linear_filter if same else None
+
+
+_LFILTER_KERNEL = _load_linear_filter()
+
+
+def lfilter_carried(b, a, x, zi, *, axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """`signal.lfilter(b, a, x, axis=axis, zi=zi)`: (y, final state), to the bit."""
+    b, a = np.atleast_1d(np.asarray(b, np.float64)), np.atleast_1d(np.asarray(a, np.float64))
+    if _LFILTER_KERNEL is None or len(a) < 2:
+        return signal.lfilter(b, a, x, axis=axis, zi=zi)
+    return _LFILTER_KERNEL(b, a, np.asarray(x, np.float64), axis, np.asarray(zi, np.float64))
+
+
+def sosfilt_carried(
+    sos: np.ndarray, x: np.ndarray, zi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """`signal.sosfilt(sos, x, zi=zi)` of a 1-D `x`: (y, final state (n_sections, 2)), to
+    the bit (the same kernel, without its argument checks)."""
+    if _SOS_KERNEL is None:
+        return signal.sosfilt(sos, x, zi=zi)
+    y = np.array(x, dtype=np.float64, order="C").reshape(1, -1)
+    state = np.array(zi, dtype=np.float64, order="C").reshape(1, -1, 2)
+    _SOS_KERNEL(np.asarray(sos, np.float64), y, state)  # in place
+    return y[0], state[0]
+
+
 class CarriedFilter:
     """An IIR filter (second-order sections `sos`) with carried state, channels-first:
     (C, N) in, (C, N) out.

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import gc
 import math
 import os
 import sys
@@ -280,9 +279,9 @@ class StreamInput:
     """The robot's sensor and joint-state topics (from the profile), subscribed raw.
 
     Messages are collected as CDR bytes in the callbacks and decoded in batches;
-    `on_batch` is called once `batch_samples` sensor messages are waiting, a burst that
-    arrived together being taken whole (with batch_samples = hop a block is processed as
-    soon as its last sample is in).
+    `on_batch` is called at every `batch_samples`-th sensor message counted from the first,
+    with the rest of a burst that arrived together (with batch_samples = hop a block is
+    processed as soon as its last sample is in).
     Undecodable messages are counted and left out; everything else, NaN included, goes
     to the core, which counts and handles it (one count for each problem).
     Joint velocity comes as offline (bag.recording.RecordingStream): the profile's
@@ -338,8 +337,8 @@ class StreamInput:
         now = time.monotonic_ns()
         self._sensor.extend(taken)
         self._arrival.extend([now] * len(taken))
-        self.sensor_messages += len(taken)
-        if len(self._sensor) >= self.batch_samples:
+        before, self.sensor_messages = self.sensor_messages, self.sensor_messages + len(taken)
+        if self.sensor_messages // self.batch_samples > before // self.batch_samples:
             self._on_batch()
 
     def _on_joints(self, data: bytes) -> None:
@@ -544,11 +543,6 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     status = 0
     try:
         node = make_node()
-        # What start-up built (models, tables, rclpy objects) never becomes garbage: out of
-        # the collector's sight, a full collection no longer walks it in the middle of a
-        # 3 kHz stream (a latency spike of milliseconds).
-        gc.collect()
-        gc.freeze()
         executor = EventsExecutor()
         executor.add_node(node)
         done = getattr(node, "done", None)

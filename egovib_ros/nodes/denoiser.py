@@ -110,8 +110,8 @@ PARAMETERS = MODEL_PARAMETERS + (
     Param(
         "batch_samples",
         32,
-        "process once this many sensor samples are waiting (default: paper, the model's hop, "
-        "i.e. as soon as a block completes; cancel and hybrid, 2 ms of samples)",
+        "process every this many sensor samples (default: paper, the model's hop, i.e. as "
+        "soon as a block completes; cancel and hybrid, 2 ms of samples)",
         range=(1, 100_000),
     ),
     Param(

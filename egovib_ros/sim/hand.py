@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.filters import lfilter_carried, sosfilt_carried
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.params import EFFECT_FORMS, JointVibration, SimParams, validate_effects
@@ -149,9 +150,9 @@ class _JointSource:
             p.phase_jitter / np.sqrt(self.fs)
         )
         inc = (2 * np.pi / self.fs) * np.outer(speed * p.line_hz_per_unit, self.orders) + walk
-        phases, self.phase_zi = signal.lfilter([1.0], [1.0, -1.0], inc, axis=0, zi=self.phase_zi)
-        jit, self.jit_zi = signal.lfilter(
-            *self.jit_ba, self.rng_jitter.standard_normal(n) * self.jit_scale, zi=self.jit_zi
+        phases, self.phase_zi = lfilter_carried([1.0], [1.0, -1.0], inc, self.phase_zi, axis=0)
+        jit, self.jit_zi = lfilter_carried(
+            *self.jit_ba, self.rng_jitter.standard_normal(n) * self.jit_scale, self.jit_zi
         )
         lines = (
             (np.sin(phases) * self.amps).sum(axis=1) * (frac**p.line_speed_exponent) * (1.0 + jit)
@@ -163,8 +164,8 @@ class _JointSource:
 
     def path(self, src: np.ndarray) -> np.ndarray:
         """Structural path: band of modes + resonance near 1000 Hz (states carried)."""
-        band, self.band_zi = signal.sosfilt(self.band_sos, src, zi=self.band_zi)
-        res, self.res_zi = signal.lfilter(*self.res_ba, src, zi=self.res_zi)
+        band, self.band_zi = sosfilt_carried(self.band_sos, src, self.band_zi)
+        res, self.res_zi = lfilter_carried(*self.res_ba, src, self.res_zi)
         return band + res
 
 
@@ -321,18 +322,16 @@ class HandSimulator:
         vel = np.empty((n, self.n_joints))
         pos = np.empty((n, self.n_joints))
         integ = (np.array([self.dt]), np.array([1.0, -1.0]))
-        vel[:, 0], self.ctrl_zi[0] = signal.lfilter(
-            *self.ctrl_ba, targets[:, 0], zi=self.ctrl_zi[0]
-        )
-        pos[:, 0], _ = signal.lfilter(*integ, vel[:, 0], zi=[self.position[0]])
+        vel[:, 0], self.ctrl_zi[0] = lfilter_carried(*self.ctrl_ba, targets[:, 0], self.ctrl_zi[0])
+        pos[:, 0], _ = lfilter_carried(*integ, vel[:, 0], [self.position[0]])
         lo, hi = GRIPPER_GAP_RANGE_M
         tau = self.params.controller_tau_s
         start = 0
         while start < n:
             seg_target = self.gripper_dir * targets[start:, 1]
-            v, zf = signal.lfilter(*self.ctrl_ba, seg_target, zi=self.ctrl_zi[1])
-            p, _ = signal.lfilter(
-                *integ, v, zi=[self.position[1] if start == 0 else pos[start - 1, 1]]
+            v, zf = lfilter_carried(*self.ctrl_ba, seg_target, self.ctrl_zi[1])
+            p, _ = lfilter_carried(
+                *integ, v, [self.position[1] if start == 0 else pos[start - 1, 1]]
             )
             stop = p + v * tau  # where the gap would come to rest
             hit = np.flatnonzero(
@@ -344,8 +343,8 @@ class HandSimulator:
             if hit.size == 0:
                 self.ctrl_zi[1] = zf
             else:
-                _, self.ctrl_zi[1] = signal.lfilter(
-                    *self.ctrl_ba, seg_target[:end], zi=self.ctrl_zi[1]
+                _, self.ctrl_zi[1] = lfilter_carried(
+                    *self.ctrl_ba, seg_target[:end], self.ctrl_zi[1]
                 )
                 self.gripper_dir = -self.gripper_dir
             start += end
@@ -373,8 +372,8 @@ class HandSimulator:
             alpha = 1.0 - np.exp(-1.0 / (abs(timing) * JOINT_RATE_HZ))
             if self.vel_filter_zi is None:
                 self.vel_filter_zi = velocity[0] * (1.0 - alpha)
-            velocity, zf = signal.lfilter(
-                [alpha], [1.0, alpha - 1.0], velocity, axis=0, zi=self.vel_filter_zi[None, :]
+            velocity, zf = lfilter_carried(
+                [alpha], [1.0, alpha - 1.0], velocity, self.vel_filter_zi[None, :], axis=0
             )
             self.vel_filter_zi = zf[0]
         return stamps, enc, velocity
