@@ -36,6 +36,7 @@ from egovib_ros.nodes.common import (
     Health,
     Param,
     declare_parameters,
+    drain,
     run_node,
     sensor_subscription,
 )
@@ -157,7 +158,7 @@ class ContactDetectorNode(Node):
 
     def _on_sample(self, data: bytes) -> None:
         # not bound to the list itself: _process replaces it with a fresh one
-        self._pending.append(data)
+        self._pending.extend(drain(self._input, Imu, data))
 
     def _process(self) -> None:
         if not self._pending:
