@@ -510,14 +510,25 @@ def _write_marker(directory: Path, kind: str | None) -> None:
     (directory / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
 
 
+def check_replaceable(path: str | os.PathLike, *, directory: bool = False) -> None:
+    """OutputError now, before any work, if `atomic_output(path, directory=...)` would
+    refuse to replace what is there at the end."""
+    final = Path(path)
+    if not os.path.lexists(final):
+        return
+    reason = _why_not_ours(final, "directory") if directory else None
+    if reason is None and not directory and final.is_dir():
+        reason = "is a directory"
+    if reason:
+        raise OutputError(f"{final}: {reason}; not replaced")
+
+
 def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) -> None:
     if not os.path.lexists(final):
         os.replace(tmp, final)
         return
     if directory:
-        reason = _why_not_ours(final, "directory")
-        if reason:
-            raise OutputError(f"{final}: {reason}; not replaced")
+        check_replaceable(final, directory=True)
         # Old output aside first, new one in, then the old one goes: never neither.
         old = staging / ".replaced"
         os.replace(final, old)

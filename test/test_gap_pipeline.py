@@ -111,10 +111,18 @@ def test_options_and_reference_lag_are_passed_through_and_its_own_output_replace
     assert written["gap"]["floor"] == pytest.approx(diag.floor, abs=1e-4)
 
 
-def test_an_output_it_did_not_create_is_left_alone(sim_model_path, recordings, tmp_path):
+def test_an_output_it_did_not_create_is_left_alone(
+    sim_model_path, recordings, tmp_path, monkeypatch
+):
     out = tmp_path / "report"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
+
+    def never(*args, **kwargs):
+        raise AssertionError("the bag was read although the output cannot be written")
+
+    # refused before minutes of work, not after
+    monkeypatch.setattr("egovib_ros.gap.pipeline.table_from_bag", never)
     with pytest.raises(OutputError, match="not an egovib output"):
         run_gap(
             sim_model_path,

@@ -145,7 +145,28 @@ def test_report_md_opens_with_the_advice_then_where_which_how_far(position):
     # one table row per candidate, in the report's order
     rows = [line for line in lines if line.startswith("| ") and not line.startswith("| effect")]
     assert [row.split(" | ")[0][2:] for row in rows] == [c["effect"] for c in report["candidates"]]
+    blocks = report["blocks"]
+    assert (
+        f"Blocks: {blocks['total']} in all, {blocks['contact_excluded']} set aside as "
+        f"contact-like, {blocks['train']} to fit, {blocks['heldout']} held out in "
+        f"{blocks['heldout_windows']} windows." in md
+    )
     assert md.endswith("\n")
+
+
+def test_a_joint_named_roll_in_any_case_is_an_angle_for_the_model_and_the_report(position):
+    from egovib_ros.gap.effects import fit_scales
+    from egovib_ros.gap.report import covariate_series
+
+    table = position.table
+    names = ("R_WRIST_ROLL", *table.joint_names[1:])
+    renamed = dataclasses.replace(position, table=dataclasses.replace(table, joint_names=names))
+    quiet = dataclasses.replace(
+        renamed.table,
+        position=np.zeros_like(table.position),  # no travel: the name decides
+    )
+    assert fit_scales(quiet, np.ones(table.n_blocks, bool)).periodic[0]
+    assert covariate_series(dataclasses.replace(renamed, table=quiet))["position:R_WRIST_ROLL"][2]
 
 
 def test_no_effect_and_a_model_from_a_recording_are_said_so(position):

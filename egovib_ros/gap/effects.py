@@ -122,17 +122,20 @@ class Scales:
     rate_scale: np.ndarray | None = None  # (J,) 95th percentile of |d|v|/dt| (train)
 
 
+def angle_joints(joint_names, position: np.ndarray) -> np.ndarray:
+    """(J,) bool: joints whose position is an angle that wraps: turned through more than
+    half a revolution in `position` (n, J), or named as a roll/continuous joint (their
+    harmonics then extrapolate boundedly)."""
+    span = position.max(axis=0) - position.min(axis=0)
+    named = np.array([any(k in n.lower() for k in ("roll", "continuous")) for n in joint_names])
+    return (span > np.pi) | named
+
+
 def fit_scales(
     table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None
 ) -> Scales:
     pos = table.position[train]
-    span = pos.max(axis=0) - pos.min(axis=0)
-    # An angle: a joint that turns through more than half a revolution in the data, or
-    # is named as a roll/continuous joint (its harmonics then extrapolate boundedly).
-    named = np.array(
-        [any(k in n.lower() for k in ("roll", "continuous")) for n in table.joint_names]
-    )
-    periodic = (span > np.pi) | named
+    periodic = angle_joints(table.joint_names, pos)
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude

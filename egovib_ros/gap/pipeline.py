@@ -21,7 +21,7 @@ from egovib_ros.gap.features import (
 )
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
 from egovib_ros.gap.simref import model_matches_simulator
-from egovib_ros.outputs import atomic_output
+from egovib_ros.outputs import atomic_output, check_replaceable
 
 
 def diagnose_recording(
@@ -99,6 +99,7 @@ def run_gap(
     model = NoiseModel.load(model_path)
     if not Path(real_path).exists():
         raise BagError(f"{real_path}: no such bag")
+    check_replaceable(out_dir, directory=True)  # refused now, not after the diagnosis
     lag = reference_lag_for(model, reference_lag, sim_params)
     options = dataclasses.replace(options or DiagnosisOptions(), reference_lag_s=lag)
     # streamed: the sensor samples are framed slice by slice, never held whole; a thinned

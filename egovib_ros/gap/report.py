@@ -9,6 +9,7 @@ import numpy as np
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
+from egovib_ros.gap.effects import angle_joints
 
 SCHEMA = "egovib.gap/1"
 #: Frequency bands used to name regions (Hz edges; bins are assigned by centre frequency).
@@ -44,8 +45,9 @@ def covariate_series(diag: Diagnosis) -> dict[str, tuple[np.ndarray, str, bool]]
     """name -> (per-block value, unit, periodic) for the covariate breakdowns."""
     t = diag.table
     out = {}
+    angles = angle_joints(t.joint_names, t.position)
     for j, name in enumerate(t.joint_names):
-        periodic = bool(np.ptp(t.position[:, j]) > np.pi or "roll" in name or "continuous" in name)
+        periodic = bool(angles[j])
         pos = np.mod(t.position[:, j], 2 * np.pi) if periodic else t.position[:, j]
         out[f"position:{name}"] = (pos, "rad (mod 2pi)" if periodic else "joint unit", periodic)
     for j, name in enumerate(t.joint_names):
@@ -386,6 +388,14 @@ def _strongest_covariate(report: dict) -> str:
     )
 
 
+def _blocks_text(blocks: dict) -> str:
+    return (
+        f"{blocks['total']} in all, {blocks['contact_excluded']} set aside as contact-like, "
+        f"{blocks['train']} to fit, {blocks['heldout']} held out in "
+        f"{blocks['heldout_windows']} windows"
+    )
+
+
 def render_markdown(report: dict) -> str:
     """report.md: the answer first (where, which, how far), then the evidence."""
     g = report["gap"]
@@ -458,7 +468,7 @@ def render_markdown(report: dict) -> str:
         f"{report['metric']['definition']}",
         "",
         f"Split: {report['split']['method']} (train {report['split']['train_s']:.1f} s, held out "
-        f"{report['split']['heldout_s']:.1f} s). Blocks: {report['blocks']}.",
+        f"{report['split']['heldout_s']:.1f} s). Blocks: {_blocks_text(report['blocks'])}.",
         "",
         "## Candidates (held-out, ranked)",
         "",
