@@ -126,7 +126,6 @@ UNTESTED = {
     "experiments/flight/recording": "built from the shipped bag in test_experiments_flight_*",
     "experiments/paper_figures": "drawn by `egovib figures --quick` in test_cli_evaluate",
     "nodes/bag_recorder": "records the replay in test_nodes_bag_player",
-    "nodes/common": "the nodes' shared support, run by every test_nodes_* file",
     "nodes/watcher": "the test harness's diagnostics reader (conftest)",
     "tools/demo": "ROS 2 processes; run by `make demo`",
     "tools/live_bench": "ROS 2 processes; run by `egovib live-bench`, figures in docs/",

@@ -1,9 +1,14 @@
 """egovib_ros.nodes.common over real DDS: a raw subscription drained per callback takes
-every message once, in order, a burst at a time."""
+every message once, in order, a burst at a time; run_node's exit status and close() for an
+error raised in a callback and for SIGTERM."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
+import pytest
 from sensor_msgs.msg import Imu
 
 from egovib_ros.bag.codec import decode_imu, encode_imu_batch
@@ -29,3 +34,42 @@ def test_drain_takes_each_message_once_in_order_a_burst_per_callback(ros_client)
     stamps, _ = decode_imu([raw for batch in batches for raw in batch])
     np.testing.assert_array_equal(stamps, np.arange(len(raws)))
     assert len(batches) < len(raws) / 2  # bursts taken whole, not a callback per message
+
+
+NODE_SCRIPT = """
+import os, signal, sys, threading
+from rclpy.node import Node
+from egovib_ros.errors import ConfigError
+from egovib_ros.nodes.common import run_node
+
+class Probe(Node):
+    def __init__(self):
+        super().__init__("probe")
+        if sys.argv[1] == "raise":
+            self.create_timer(0.2, self.fail)
+        else:  # "term": stopped from outside while spinning
+            threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGTERM)).start()
+
+    def fail(self):
+        raise ConfigError("probe: a bad setting found in a callback")
+
+    def close(self):
+        print("closed", flush=True)
+
+sys.exit(run_node(Probe, []))
+"""
+
+
+@pytest.mark.parametrize(
+    "mode, status, text",
+    [("raise", 2, "probe: error: probe: a bad setting found in a callback"), ("term", 0, "closed")],
+)
+def test_run_node_exit_status_and_close_for_errors_in_callbacks_and_sigterm(
+    ros_domain, mode, status, text
+):
+    done = subprocess.run(
+        [sys.executable, "-c", NODE_SCRIPT, mode], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == status, done.stderr
+    assert text in done.stdout + done.stderr
+    assert "closed" in done.stdout  # close() runs on every way out
