@@ -43,31 +43,28 @@ from egovib_ros.sim.scenarios import iter_sweep, simulate_motion, sweep_cells
 # The simulated hand's settings come from its robot profile (the PR2 right hand, the default),
 # as for any robot: rate, band, blocks, top speeds and the grid's speed fractions.
 PROFILE = load_profile()
-ACCEL_RATE_HZ = PROFILE.rate_hz
-BAND_HZ = PROFILE.band_hz
-BAND_ORDER = PROFILE.band_order
-BLOCK_LENGTH = PROFILE.block_length
-HOP = PROFILE.hop
-MAX_SPEED = PROFILE.max_speed
-GRID_FRACTIONS = PROFILE.grid_values(0) / PROFILE.max_speed[0]  # the same for both joints
+# the grid's speeds as fractions of max speed (the same for both joints)
+CELL_FRACTIONS = PROFILE.grid_values(0) / PROFILE.max_speed[0]
 
 STEADY_TOLERANCE = 0.005  # of max speed
-FREQS_HZ = np.fft.rfftfreq(BLOCK_LENGTH, 1.0 / ACCEL_RATE_HZ)
-BAND_BINS = (FREQS_HZ >= BAND_HZ[0]) & (FREQS_HZ <= BAND_HZ[1])
+FREQS_HZ = np.fft.rfftfreq(PROFILE.block_length, 1.0 / PROFILE.rate_hz)
+BAND_BINS = (FREQS_HZ >= PROFILE.band_hz[0]) & (FREQS_HZ <= PROFILE.band_hz[1])
 
 
 def bandpass_combined(accel: np.ndarray) -> np.ndarray:
     """Sum of the 3 axes, band-passed (the profile's Butterworth band-pass, causal)."""
-    sos = signal.butter(BAND_ORDER, BAND_HZ, btype="band", fs=ACCEL_RATE_HZ, output="sos")
+    sos = signal.butter(
+        PROFILE.band_order, PROFILE.band_hz, btype="band", fs=PROFILE.rate_hz, output="sos"
+    )
     return signal.sosfilt(sos, np.asarray(accel, float).sum(axis=1))
 
 
 def block_magnitudes(x: np.ndarray) -> np.ndarray:
     """|rfft(window * block)| of the profile's blocks and hop: (B, F)."""
-    if len(x) < BLOCK_LENGTH:
+    if len(x) < PROFILE.block_length:
         return np.zeros((0, len(FREQS_HZ)))
-    blocks = np.lib.stride_tricks.sliding_window_view(x, BLOCK_LENGTH)[::HOP]
-    return np.abs(np.fft.rfft(blocks * analysis_window(BLOCK_LENGTH, HOP), axis=1))
+    blocks = np.lib.stride_tricks.sliding_window_view(x, PROFILE.block_length)[:: PROFILE.hop]
+    return np.abs(np.fft.rfft(blocks * analysis_window(PROFILE.block_length, PROFILE.hop), axis=1))
 
 
 @dataclass
@@ -95,9 +92,11 @@ def sweep_cell_stats(
     params = params if params is not None else SimParams.load()
     sim = HandSimulator(params, effects=effects, seed=seed)
     cells = sweep_cells(grid) if cells is None else np.asarray(cells, float).reshape(-1, 2)
-    sos = signal.butter(BAND_ORDER, BAND_HZ, btype="band", fs=ACCEL_RATE_HZ, output="sos")
+    sos = signal.butter(
+        PROFILE.band_order, PROFILE.band_hz, btype="band", fs=PROFILE.rate_hz, output="sos"
+    )
     zi = np.zeros((sos.shape[0], 2))
-    vmax = np.asarray(MAX_SPEED)
+    vmax = np.asarray(PROFILE.max_speed)
     pieces: dict[int, list] = {}
     for ci, cell, _, chunk in iter_sweep(sim, cells, dwell_s=dwell_s, settle_s=settle_s):
         bp, zi = signal.sosfilt(sos, chunk.sensor.sum(axis=1), zi=zi)
@@ -105,9 +104,9 @@ def sweep_cell_stats(
             # frame on the global hop grid, as a continuous calibrator does (blocks start at
             # multiples of the hop, so a hop-periodic idle hum looks the same in every cell)
             first = int(
-                round((chunk.sensor_stamps_ns[0] - sim.start_ns) * ACCEL_RATE_HZ / NS_PER_S)
+                round((chunk.sensor_stamps_ns[0] - sim.start_ns) * PROFILE.rate_hz / NS_PER_S)
             )
-            skip = (-first) % HOP
+            skip = (-first) % PROFILE.hop
             pieces[ci] = []
             bp, vel = bp[skip:], chunk.true_velocity[skip:]
         else:
@@ -122,7 +121,10 @@ def sweep_cell_stats(
         off = np.abs(np.abs(vel) - np.abs(cells[ci])) / vmax  # (n, 2)
         bad = np.any(off > STEADY_TOLERANCE, axis=1).astype(float)
         bad_blocks = (
-            np.lib.stride_tricks.sliding_window_view(bad, BLOCK_LENGTH)[::HOP].max(axis=1) > 0
+            np.lib.stride_tricks.sliding_window_view(bad, PROFILE.block_length)[:: PROFILE.hop].max(
+                axis=1
+            )
+            > 0
         )
         mags = block_magnitudes(bp)[~bad_blocks]
         counts[ci] = len(mags)
@@ -133,15 +135,15 @@ def sweep_cell_stats(
 
 def _grid_index(stats: CellStats) -> np.ndarray:
     """(C, 2) integer grid indices of the cells (the nearest of the profile's grid fractions)."""
-    frac = stats.cells / np.asarray(MAX_SPEED)
-    return np.abs(frac[..., None] - GRID_FRACTIONS).argmin(axis=-1)
+    frac = stats.cells / np.asarray(PROFILE.max_speed)
+    return np.abs(frac[..., None] - CELL_FRACTIONS).argmin(axis=-1)
 
 
 def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.ndarray:
     """(G, G) Fig. 4 error map in % (G grid points per joint, 21 for the PR2; rows wrist,
     columns gripper); Eq. 6 from `axes` (default: `full`)."""
     axes = axes if axes is not None else full
-    n = len(GRID_FRACTIONS)
+    n = len(CELL_FRACTIONS)
     mu = np.full((n, n, len(FREQS_HZ)), np.nan)
     sd = np.full_like(mu, np.nan)
     for src in (axes, full) if axes is not full else (full,):
@@ -159,7 +161,7 @@ def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.nd
 
 
 def _error_from_tables(mu, sd, mu_obs, sd_obs) -> np.ndarray:
-    z = len(GRID_FRACTIONS) // 2
+    z = len(CELL_FRACTIONS) // 2
     n6 = (
         mu[:, z][:, None]
         + mu[z, :][None, :]
@@ -196,19 +198,19 @@ def motion_levels(
     bp = np.abs(bandpass_combined(rec.sensor))
     onsets = np.searchsorted(rec.sensor_stamps_ns, np.asarray(truth["tap_onsets_ns"], np.int64))
     in_contact = np.zeros(len(bp), bool)
-    win, excl = int(0.03 * ACCEL_RATE_HZ), int(0.06 * ACCEL_RATE_HZ)
+    win, excl = int(0.03 * PROFILE.rate_hz), int(0.06 * PROFILE.rate_hz)
     peaks = []
     for k in onsets:
         in_contact[k : k + excl] = True
         if k + win <= len(bp):
             peaks.append(bp[k : k + win].max())
-    noise = float(bp[~in_contact][int(0.1 * ACCEL_RATE_HZ) :].mean())
+    noise = float(bp[~in_contact][int(0.1 * PROFILE.rate_hz) :].mean())
     peak = float(np.mean(peaks)) if peaks else float("nan")
     stationary = HandSimulator(params if params is not None else SimParams.load(), seed=seed).step(
-        int(5 * ACCEL_RATE_HZ)
+        int(5 * PROFILE.rate_hz)
     )
     background = float(
-        np.abs(bandpass_combined(stationary.sensor))[int(0.1 * ACCEL_RATE_HZ) :].mean()
+        np.abs(bandpass_combined(stationary.sensor))[int(0.1 * PROFILE.rate_hz) :].mean()
     )
     return {
         "noise_mean_raw": noise,
@@ -224,10 +226,10 @@ def motion_levels(
 def generation_speed(seconds: float = 20.0, seed: int = 0) -> float:
     """Signal generation speed as a multiple of real time (both joints moving, taps on)."""
     sim = HandSimulator(SimParams.load(), seed=seed, tap_rate_hz=1.0)
-    sim.set_command([0.5 * MAX_SPEED[0], 0.5 * MAX_SPEED[1]])
+    sim.set_command([0.5 * PROFILE.max_speed[0], 0.5 * PROFILE.max_speed[1]])
     t0 = time.perf_counter()
     for _ in range(int(seconds)):
-        sim.step(int(ACCEL_RATE_HZ))
+        sim.step(int(PROFILE.rate_hz))
     return seconds / (time.perf_counter() - t0)
 
 
@@ -278,7 +280,7 @@ def plot_fig3(stats: CellStats, path: str | Path) -> None:
 
     idx = _grid_index(stats)
     lookup = {(i, j): k for k, (i, j) in enumerate(idx)}
-    zero = len(GRID_FRACTIONS) // 2  # the grid's 0 (symmetric: both directions)
+    zero = len(CELL_FRACTIONS) // 2  # the grid's 0 (symmetric: both directions)
     levels = [int(round(f * zero)) for f in (0.0, 0.3, 0.6, 1.0)]  # grid steps from 0
     fig, axs = plt.subplots(len(levels), len(levels), figsize=(12, 10), sharex=True, sharey=True)
     for r, lw in enumerate(levels):
@@ -295,19 +297,19 @@ def plot_fig3(stats: CellStats, path: str | Path) -> None:
                     lw=1,
                     label=f"w{'+' if sw > 0 else '-'} g{'+' if sg > 0 else '-'}",
                 )
-            ax.axvspan(*BAND_HZ, color="0.92", zorder=0)
+            ax.axvspan(*PROFILE.band_hz, color="0.92", zorder=0)
             if r == 0:
-                ax.set_title(f"gripper {100 * GRID_FRACTIONS[zero + lg]:.0f} %", fontsize=9)
+                ax.set_title(f"gripper {100 * CELL_FRACTIONS[zero + lg]:.0f} %", fontsize=9)
             if c == 0:
                 ax.set_ylabel(
-                    f"wrist {100 * GRID_FRACTIONS[zero + lw]:.0f} %\n|N| (Eq. 5)", fontsize=9
+                    f"wrist {100 * CELL_FRACTIONS[zero + lw]:.0f} %\n|N| (Eq. 5)", fontsize=9
                 )
             if r == len(levels) - 1:
                 ax.set_xlabel("Hz")
     axs[0, 0].legend(fontsize=6)
     fig.suptitle(
         "Simulated ego-vibration spectra mu+sd (sum of axes, band-passed; "
-        f"shaded = {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)"
+        f"shaded = {PROFILE.band_hz[0]:g}-{PROFILE.band_hz[1]:g} Hz)"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -322,7 +324,7 @@ def plot_fig4(error: np.ndarray, path: str | Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 5.2))
-    pct = GRID_FRACTIONS * 100
+    pct = CELL_FRACTIONS * 100
     half = (pct[1] - pct[0]) / 2  # a cell is one grid step wide
     im = ax.imshow(
         error,
