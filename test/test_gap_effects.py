@@ -17,6 +17,7 @@ from egovib_ros.gap.effects import (
     MAX_LOG_GAIN,
     POSITION_HARMONICS,
     apply_effect_term,
+    covered_harmonics,
     effect_regressors,
     fit_lag,
     fit_power_term,
@@ -196,6 +197,28 @@ def test_the_regressors_of_each_candidate():
     assert names == [f"time_hat{k}" for k in range(1, DRIFT_KNOTS)] + ["t_min"]
     with pytest.raises(ValueError, match="unknown effect 'friction'"):
         effect_regressors("friction", table, scales)
+
+
+def test_a_harmonic_is_fitted_only_where_the_training_angles_span_its_period():
+    """A turning joint seen over less than a turn: only the harmonics whose period the
+    training angles cover (a lower one would be a time trend along a monotone angle and
+    extrapolate on held-out blocks); over a whole turn, all of them."""
+    assert covered_harmonics(2 * np.pi) == tuple(range(1, POSITION_HARMONICS + 1))
+    assert covered_harmonics(2.8) == (3, 4, 5, 6)  # periods 2.09 rad and shorter
+    assert covered_harmonics(0.5) == ()
+    table = synthetic_table(seed=5, duration_s=10.0)
+    clean = ~table.contact
+    turn = table.position[:, 0] - table.position[clean, 0].min()
+    short = np.flatnonzero(clean & (turn < 2.5))  # the wrist's first 2.5 rad only
+    train = np.zeros(table.n_blocks, bool)
+    train[short] = True
+    scales = fit_scales(table, train)
+    assert scales.periodic[0] and scales.harmonics[0] == (3, 4, 5, 6)
+    _, names = effect_regressors("position", table, scales)
+    wrist = [n for n in names if n.endswith("(wrist_roll)") and "*" not in n]
+    assert wrist == [f"{f}{k}(wrist_roll)" for k in (3, 4, 5, 6) for f in ("cos", "sin")]
+    fitted = fit_variant(table, train, "position", scales)  # the shape skips nothing it needs
+    assert np.all(np.isfinite(fitted.power)) and "position:wrist_roll" in fitted.shape
 
 
 def test_time_hats_are_flat_beyond_the_span_and_drop_the_reference():

@@ -181,3 +181,23 @@ def test_the_reference_lag_is_the_given_one_or_none_for_a_foreign_robot():
     assert reference_lag_for(foreign, None, None) == 0.0
     given = reference_lag_for(foreign, np.float32(0.012), None)
     assert type(given) is float and given == pytest.approx(0.012)
+
+
+def test_a_thinned_bag_keeps_the_joint_states_the_lag_scan_reaches(
+    sim_model_path, recordings, tmp_path
+):
+    """A bag thinned to its time budget holds only the joint states near its kept blocks:
+    as far as the lag scan reaches around the reference (+-LAG_RANGE_S), not a fixed
+    margin that a large reference lag would overrun."""
+    root, _ = recordings
+    report = run_gap(
+        sim_model_path,
+        root / "motion",
+        tmp_path / "report",
+        reference_lag=0.1,  # the scan reaches 0.3 s, beyond the default margin
+        budget_minutes=0.1,  # 8 s bag, 6 s budget: thinned
+        options=QUICK,
+        figures=False,
+    )
+    assert report["inputs"]["bad_input"]["kept_share"] < 1.0
+    assert report["baseline"]["reference_lag_s"] == 0.1

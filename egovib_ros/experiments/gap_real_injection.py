@@ -9,8 +9,11 @@ multiply the real gyro sample by sample, with joint states interpolated to its s
 
 * timing, either sign: joint-state stamps re-stamped `s` seconds late (+) or early (-);
 * drift: a warm-up gain 1 + s (1 - exp(-t / 2 s));
-* position: a gain 1 + s (1 + cos(2 pi x1 / 1.5)) / 2 in motor 1's reported position
-  x1 (the integral of its command, the only position this robot reports);
+* position: a gain 1 + s (1 + cos(4 x1)) / 2 in motor 1's reported position x1 (the
+  integral of its command, the only position this robot reports), a function of x1 as
+  an angle (the same at x1 and x1 + 2 pi, as a position effect of a turning part is):
+  its 4th harmonic, a period of 1.57, of which each part of the flight (x1 spans ~2.6
+  and ~3.0) covers ~1.8 (the earlier period of 1.5 was not a function of the angle);
 * acceleration: a gain 1 + s while motor 1 speeds up (d|u1|/dt above its 80th
   percentile), 1 otherwise (a direction of change, not a position);
 * coupling: a gain exp(s z1 z3) with z = (u - median) / (90th - 10th percentile) of
@@ -31,19 +34,23 @@ from dataclasses import replace
 import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.errors import GapDataError
 from egovib_ros.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice, calibrate_part
 
-#: (effect, label, strengths): a ladder of three strengths per injection.
+#: (effect, label, strengths): a ladder of four strengths per injection, the last well
+#: beyond what a robot would show, so that the report can say from which strength each
+#: effect is named on 8.5 s of real flight, or that it is not named at all.
 INJECTIONS = (
-    ("timing", "lag", (0.02, 0.04, 0.08)),
-    ("timing", "lead", (-0.02, -0.04, -0.08)),
-    ("drift", "warm-up", (0.3, 0.8, 2.0)),
-    ("position", "motor1 position", (0.3, 0.8, 2.0)),
-    ("acceleration", "motor1 speeding up", (0.3, 0.8, 2.0)),
-    ("coupling", "motors 1x3 signed", (0.3, 0.8, 2.0)),
+    ("timing", "lag", (0.02, 0.04, 0.08, 0.15)),
+    ("timing", "lead", (-0.02, -0.04, -0.08, -0.15)),
+    ("drift", "warm-up", (0.3, 0.8, 2.0, 4.0)),
+    ("position", "motor1 position", (0.3, 0.8, 2.0, 4.0)),
+    ("acceleration", "motor1 speeding up", (0.3, 0.8, 2.0, 4.0)),
+    ("coupling", "motors 1x3 signed", (0.3, 0.8, 2.0, 4.0)),
 )
 WARMUP_TAU_S = 2.0
-POSITION_PERIOD = 1.5
+#: The position injection's harmonic of motor 1's angle (a function of the angle mod 2 pi).
+POSITION_HARMONIC = 4
 SPEEDING_UP_QUANTILE = 0.8
 
 
@@ -67,7 +74,7 @@ def inject(rec, effect: str, strength: float):
         gain = 1.0 + strength * (1.0 - np.exp(-t / WARMUP_TAU_S))
     elif effect == "position":
         x = _at_accel(rec, rec.joint_position)[:, 0]
-        gain = 1.0 + strength * 0.5 * (1.0 + np.cos(2 * np.pi * x / POSITION_PERIOD))
+        gain = 1.0 + strength * 0.5 * (1.0 + np.cos(POSITION_HARMONIC * x))
     elif effect == "acceleration":
         dt = np.gradient(t)
         from scipy import signal
@@ -99,8 +106,6 @@ def _own_lag(model, cal) -> float:
 
 def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     from egovib_ros.bag import read_recording
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import diagnose_recording
     from egovib_ros.robot import load_profile
 
     start = time.perf_counter()
@@ -118,46 +123,11 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
             (e, label, s) for e, label, strengths in INJECTIONS for s in strengths
         ]
         for effect, label, strength in cases:
-            t0 = time.perf_counter()
             data = real if effect == "none" else inject(real, effect, strength)
-            diag = diagnose_recording(
-                data,
-                model,
-                source=f"{name}: {label}",
-                options=DiagnosisOptions(reference_lag_s=own_lag),
-            )
-            by = {c["effect"]: c for c in diag.candidates}
-            results.append(
-                {
-                    "direction": name,
-                    "truth": effect,
-                    "injection": label,
-                    "strength": strength,
-                    "verdict": diag.verdict,
-                    "confidence": diag.confidence,
-                    "correct": diag.verdict == effect,
-                    "p_truth": by[effect]["p_value"] if effect in by else None,
-                    "deviance_gain_truth": by[effect]["deviance_reduction"]
-                    if effect in by
-                    else None,
-                    "runner_up": next(
-                        (c["effect"] for c in diag.candidates if c["effect"] != diag.verdict), None
-                    ),
-                    "gap": {
-                        "sim_as_is": round(diag.gaps["sim_as_is"], 4),
-                        "after_refit": round(diag.gaps["refit"], 4),
-                        "after_verdict": round(
-                            diag.gaps[diag.verdict]
-                            if diag.verdict != "none"
-                            else diag.gaps["refit"],
-                            4,
-                        ),
-                        "floor": round(diag.floor, 4),
-                    },
-                    "fitted_lag_s": round(float(diag.lag_scan.get("timing_lag_s", 0.0)), 4),
-                    "seconds": round(time.perf_counter() - t0, 1),
-                }
-            )
+            diag, entry = diagnose_case(data, model, own_lag, name, effect, label, strength)
+            results.append(entry)
+            if diag is None:
+                continue
             if diag.verdict == "timing":
                 # apply the advice with the core: denoise this part with the advised joint
                 # lag (the model calibrated as before), and without
@@ -180,7 +150,7 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
                 }
     injected = [r for r in results if r["truth"] != "none"]
     strong = [r for r in injected if abs(r["strength"]) == max(abs(s) for s in _strengths(r))]
-    named_from = {}
+    named_from, named_at = {}, {}
     for e, label, strengths in INJECTIONS:
         for name in directions:
             found = [
@@ -188,8 +158,13 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
             ]
             first = next((i for i in range(len(found)) if all(found[i:])), None)
             named_from.setdefault(label, {})[name] = None if first is None else strengths[first]
+            named_at.setdefault(label, {})[name] = [s for s, ok in zip(strengths, found) if ok]
+    pairs = [v for by in named_at.values() for v in by.values()]
     summary = {
         "named_from_strength": named_from,
+        "named_at_strengths": named_at,
+        # injection x direction pairs named at one strength of the ladder at least
+        "named_at_some_strength": round(float(np.mean([bool(v) for v in pairs])), 4),
         "reality": "real",
         "bag": bag,
         "directions": directions,
@@ -208,9 +183,77 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
                 {"effect": e, "label": label, "strengths": list(s)} for e, label, s in INJECTIONS
             ],
             "warmup_tau_s": WARMUP_TAU_S,
-            "position_period": POSITION_PERIOD,
+            "position_harmonic": POSITION_HARMONIC,
         },
         "runtime_s": round(time.perf_counter() - start, 1),
+    }
+
+
+def diagnose_case(
+    data, model, own_lag: float, direction: str, effect: str, label: str, strength: float
+):
+    """One run: (diagnosis or None, its entry). An injection so strong that most blocks
+    look like contacts is refused by the diagnosis: a miss, not the end of the validation."""
+    from egovib_ros.gap.diagnose import DiagnosisOptions
+    from egovib_ros.gap.pipeline import diagnose_recording
+
+    t0 = time.perf_counter()
+    try:
+        diag = diagnose_recording(
+            data,
+            model,
+            source=f"{direction}: {label}",
+            options=DiagnosisOptions(reference_lag_s=own_lag),
+        )
+    except GapDataError as exc:
+        return None, _refused(direction, effect, label, strength, str(exc), t0)
+    return diag, _run_entry(diag, direction, effect, label, strength, t0)
+
+
+def _run_entry(diag, direction: str, effect: str, label: str, strength: float, t0: float) -> dict:
+    by = {c["effect"]: c for c in diag.candidates}
+    return {
+        "direction": direction,
+        "truth": effect,
+        "injection": label,
+        "strength": strength,
+        "verdict": diag.verdict,
+        "confidence": diag.confidence,
+        "correct": diag.verdict == effect,
+        "p_truth": by[effect]["p_value"] if effect in by else None,
+        "deviance_gain_truth": by[effect]["deviance_reduction"] if effect in by else None,
+        "runner_up": next(
+            (c["effect"] for c in diag.candidates if c["effect"] != diag.verdict), None
+        ),
+        "gap": {
+            "sim_as_is": round(diag.gaps["sim_as_is"], 4),
+            "after_refit": round(diag.gaps["refit"], 4),
+            "after_verdict": round(
+                diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"], 4
+            ),
+            "floor": round(diag.floor, 4),
+        },
+        "fitted_lag_s": round(float(diag.lag_scan.get("timing_lag_s", 0.0)), 4),
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def _refused(direction: str, effect: str, label: str, strength: float, why: str, t0: float) -> dict:
+    return {
+        "direction": direction,
+        "truth": effect,
+        "injection": label,
+        "strength": strength,
+        "verdict": "refused",
+        "refused": why,
+        "confidence": None,
+        "correct": False,
+        "p_truth": None,
+        "deviance_gain_truth": None,
+        "runner_up": None,
+        "gap": None,
+        "fitted_lag_s": None,
+        "seconds": round(time.perf_counter() - t0, 1),
     }
 
 
@@ -238,14 +281,24 @@ def render_markdown(report: dict) -> str:
         f"{sum(1 for r in report['runs'] if r['truth'] != 'none')} runs (the strongest "
         f"strength of each: {100 * s['accuracy_stronger']:.0f} %).",
         "",
-        "Named from strength (every stronger rung named too; - = not at the strongest):",
+        f"Injection and direction named at one strength of the ladder at least: "
+        f"**{100 * s['named_at_some_strength']:.0f} %**.",
+        "",
+        "Strengths at which each is named (- = at none; the ladder: "
+        + "; ".join(
+            f"{e['label']} {', '.join(f'{v:g}' for v in e['strengths'])}"
+            for e in report["settings"]["injections"]
+        )
+        + "):",
         "",
         "| injected | " + " | ".join(s["directions"]) + " |",
         "|---" * (1 + len(s["directions"])) + "|",
     ]
-    for label, by in s.get("named_from_strength", {}).items():
+    for label, by in s.get("named_at_strengths", {}).items():
         lines.append(
-            f"| {label} | " + " | ".join("-" if v is None else f"{v:g}" for v in by.values()) + " |"
+            f"| {label} | "
+            + " | ".join(", ".join(f"{v:g}" for v in at) if at else "-" for at in by.values())
+            + " |"
         )
     lines.append("")
     for name, d in s["directions"].items():
@@ -264,6 +317,12 @@ def render_markdown(report: dict) -> str:
             if r["direction"] != name:
                 continue
             p = r["p_truth"]
+            if r["verdict"] == "refused":
+                lines.append(
+                    f"| {r['injection']} | {r['truth']} | {r['strength']:g} | refused: "
+                    f"{r['refused']} |  |  |  |  |  |  |"
+                )
+                continue
             lines.append(
                 f"| {r['injection']} | {r['truth']} | {r['strength']:g} | {r['verdict']} | "
                 f"{r['confidence']} | {'' if p is None else f'{p:.2g}'} | {r['runner_up']} | "

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from egovib_ros.errors import BagError, GapDataError
 from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
-from egovib_ros.gap.effects import LAG_COARSE_S
+from egovib_ros.gap.effects import LAG_COARSE_S, LAG_RANGE_S
 from egovib_ros.gap.features import (
     DEFAULT_BUDGET_MINUTES,
     JOINT_MARGIN_S,
@@ -110,7 +110,7 @@ def run_gap(
         budget_minutes=budget_minutes,
         max_lag_s=max(
             JOINT_MARGIN_S,
-            abs(lag) + options.lag_tolerance_s + LAG_COARSE_S,
+            abs(lag) + max(LAG_RANGE_S, options.lag_tolerance_s) + LAG_COARSE_S,
         ),
         progress=progress,
     )
