@@ -79,3 +79,37 @@ def test_joint_states_without_velocity_or_position_are_named(sim_bags, tmp_path)
     assert result.returncode == 2 and len(lines) == 1, result.stderr
     assert "/joint_states" in lines[0] and "r_wrist_roll_joint" in lines[0], lines[0]
     assert "no velocity" in lines[0] and "auto" in lines[0]
+
+
+def test_several_bags_one_of_them_bad_names_it_and_writes_nothing(sim_bags, tmp_path):
+    """Pooling bags where one is unreadable: each bag's line (the good one's counts), the
+    bad one named, exit 2 and no model."""
+    shutil.copytree(sim_bags / "sweep", tmp_path / "bad")
+    mcap = next((tmp_path / "bad").glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[:100])  # truncated
+    result = egovib(
+        "calibrate", sim_bags / "sweep", tmp_path / "bad", "--out", tmp_path / "m.npz", "--quiet"
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert any(line.strip().startswith("ok") and "blocks" in line for line in lines), lines
+    assert any(line.strip().startswith("FAILED") and "bad" in line for line in lines), lines
+    assert "no model written" in lines[-1] and "internal error" not in result.stderr
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_bags_of_one_name_in_different_directories_pool_into_one_model(sim_bags, tmp_path):
+    """Calibration writes one model, so two bags both named 'bag' do not collide."""
+    for d in ("day1", "day2"):
+        shutil.copytree(sim_bags / "sweep", tmp_path / d / "bag")
+    result = egovib(
+        "calibrate", tmp_path / "day1" / "bag", tmp_path / "day2" / "bag",
+        "--out", tmp_path / "m.npz", "--quiet",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    one = egovib("calibrate", sim_bags / "sweep", "--out", tmp_path / "one.npz", "--quiet")
+    assert one.returncode == 0, one.stderr
+    np.testing.assert_array_equal(
+        NoiseModel.load(tmp_path / "m.npz").cell_counts,
+        2 * NoiseModel.load(tmp_path / "one.npz").cell_counts,
+    )

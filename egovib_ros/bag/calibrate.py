@@ -78,7 +78,7 @@ def calibrate_bags(
     Dask `scheduler`). Returns (model, stats, per-bag results); model is None if a bag
     failed (the results say which and why)."""
     profile = profile or load_profile(None)
-    pairs = expand_bags(bags)
+    pairs = expand_bags(bags, outputs_per_bag=False)  # one model from all of them
     task = functools.partial(_calibrate_task, profile=profile, sweep=sweep, joint_lag_s=joint_lag_s)
     results = run_bags(
         task,
@@ -88,14 +88,13 @@ def calibrate_bags(
         desc="calibrate",
         quiet=quiet,
     )
+    accumulators = [r.value for r in results if r.ok]
+    for r in results:  # what the summary shows per bag (before pooling)
+        if r.ok:
+            r.value = dict(r.value.stats.as_dict(), input_counts=r.value.input_counts)
     if not all(r.ok for r in results):
         return None, None, results
-    per_bag = [
-        dict(r.value.stats.as_dict(), input_counts=r.value.input_counts) for r in results
-    ]  # before pooling
-    acc = merge_accumulators([r.value for r in results])
-    for r, stats in zip(results, per_bag):  # what the summary shows per bag
-        r.value = stats
+    acc = merge_accumulators(accumulators)
     # absolute paths: `evaluate` finds the calibration bag from any directory, and its
     # fingerprint tells whether it is still the bag the model was made from
     names = [str(Path(b).resolve()) for b, _ in pairs]

@@ -70,12 +70,16 @@ def is_bag(path: Path) -> bool:
     return (path / "metadata.yaml").is_file()
 
 
-def expand_bags(specs: Sequence[str | os.PathLike]) -> list[tuple[Path, Path]]:
+def expand_bags(
+    specs: Sequence[str | os.PathLike], *, outputs_per_bag: bool = True
+) -> list[tuple[Path, Path]]:
     """(bag, name) pairs from bag directories and directories of bags (searched
     recursively, in sorted order; hidden and `.partial` directories skipped). `name` is
     the bag's path relative to the directory it was found in (its own name for a bag
-    given directly): where its output goes under an output directory. A path that does
-    not exist is kept, so its task reports it like any other bad bag."""
+    given directly): where its output goes under an output directory, so two bags of one
+    name are refused when `outputs_per_bag` (not when all bags make one output, as
+    calibration's model). A path that does not exist is kept, so its task reports it like
+    any other bad bag."""
     found: list[tuple[Path, Path]] = []
     for spec in specs:
         path = Path(spec)
@@ -100,7 +104,7 @@ def expand_bags(specs: Sequence[str | os.PathLike]) -> list[tuple[Path, Path]]:
             found.append((path, Path(path.name)))
     names = [str(n) for _, n in found]
     duplicates = sorted({n for n in names if names.count(n) > 1})
-    if duplicates:
+    if duplicates and outputs_per_bag:
         raise ConfigError(
             f"several input bags are named {duplicates[0]!r}; their outputs would collide "
             f"(give them in separate runs or directories)"

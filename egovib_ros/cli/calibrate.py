@@ -110,7 +110,7 @@ def describe_methods(fitted: dict) -> str:
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
-    if args.methods == "hybrid" and len(expand_bags(args.bags)) != 1:
+    if args.methods == "hybrid" and len(expand_bags(args.bags, outputs_per_bag=False)) != 1:
         raise ConfigError("--methods hybrid: fitted on one calibration bag; give one")
     model, stats, results = calibrate_bags(
         args.bags,
@@ -141,7 +141,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     if args.methods == "hybrid":
         model, fitted = calibrate_bag_methods(
-            expand_bags(args.bags)[0][0], model, joint_lag_s=args.joint_lag
+            expand_bags(args.bags, outputs_per_bag=False)[0][0], model, joint_lag_s=args.joint_lag
         )
         print(f"methods cancel and hybrid: {describe_methods(fitted)}", file=sys.stderr)
     with atomic_output(args.out) as tmp:

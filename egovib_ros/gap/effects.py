@@ -135,9 +135,7 @@ def covered_harmonics(span_rad: float) -> tuple[int, ...]:
     time trend on held-out blocks (measured on the real flight: a lower-harmonic term fitted
     on 4/5 of an 8.5 s part cost 1.7 dB on the fifth).  Over a whole turn every harmonic is
     identified."""
-    return tuple(
-        k for k in range(1, POSITION_HARMONICS + 1) if 2 * np.pi / k <= span_rad + 1e-9
-    )
+    return tuple(k for k in range(1, POSITION_HARMONICS + 1) if 2 * np.pi / k <= span_rad + 1e-9)
 
 
 def angle_joints(joint_names, position: np.ndarray) -> np.ndarray:
