@@ -36,9 +36,13 @@ class Layout:
     compression: str = ""  # "" | zstd | lz4 (chunk compression)
     chunk_bytes: int = 1 << 20
     chunked: bool = True  # mcap library: False writes loose messages
-    log: str = "stamp"  # stamp | latency (receive times, 0-30 ms late) | offset (+1 h)
+    # stamp | latency (receive times, 0-30 ms late) | offset (+1 h) | writer (a converter's
+    # own clock as it writes the file: one topic after the other in log time too) | same
+    # (every message at one log time)
+    log: str = "stamp"
     swap: float = 0.0  # share of neighbouring sensor samples whose header stamps swap
     velocity: bool = True  # False: JointStates carry positions only (many real drivers)
+    files: str = "one"  # one | topic (sensor topics in one file, the others in another)
 
 
 LAYOUTS = (
@@ -57,6 +61,10 @@ LAYOUTS = (
     Layout("wall_clock_logs", log="offset", order="topic"),
     Layout("swapped_stamps", swap=0.01),
     Layout("project_topic_zstd", writer="project", order="topic", compression="zstd"),
+    Layout("converter_clock_logs", order="topic", log="writer"),
+    Layout("converter_clock_logs_reversed", order="rtopic", log="writer"),
+    Layout("topics_in_two_files", files="topic"),
+    Layout("sqlite3_topics_in_two_files", storage="sqlite3", files="topic", order="rtopic"),
 )
 
 
@@ -142,7 +150,7 @@ def arrange(
                 si, sj = header_stamp(out[i][2]), header_stamp(out[j][2])
                 out[i] = (out[i][0], out[i][1], _with_stamp(out[i][2], sj))
                 out[j] = (out[j][0], out[j][1], _with_stamp(out[j][2], si))
-    if layout.log != "stamp":
+    if layout.log not in ("stamp", "writer", "same"):
         relogged = []
         for topic, log_time, data in out:
             stamp = header_stamp(data) if topic in stamped else None
@@ -163,6 +171,10 @@ def arrange(
         out.sort(key=lambda m: (m[1] // (_NS // 2), rank[m[0]], m[1]))
     else:
         raise ValueError(layout.order)
+    if layout.log == "same":  # every message at one log time (a converter's constant)
+        out = [(t, 1_800_000_000 * _NS, d) for t, _, d in out]
+    if layout.log == "writer":  # 10 us per message written, on the day of the conversion
+        out = [(t, 1_800_000_000 * _NS + 10_000 * k, d) for k, (t, _, d) in enumerate(out)]
     return out
 
 
@@ -170,7 +182,9 @@ def write_layout(source: Path, out: Path, layout: Layout) -> Path:
     """Rewrite the bag `source` into the bag directory `out` in `layout`."""
     conns, messages = read_messages(source)
     messages = arrange(conns, messages, layout)
-    if layout.writer == "rosbags":
+    if layout.files == "topic":
+        _write_rosbags_per_topic(out, conns, messages, layout)
+    elif layout.writer == "rosbags":
         _write_rosbags(out, conns, messages, layout)
     elif layout.writer == "mcap":
         _write_mcap_library(out, conns, messages, layout)
@@ -195,6 +209,45 @@ def _write_rosbags(out: Path, conns, messages, layout: Layout) -> None:
         }
         for topic, log_time, data in messages:
             writer.write(ids[topic], log_time, data)
+
+
+def _write_rosbags_per_topic(out: Path, conns, messages, layout: Layout) -> None:
+    """Two storage files in one bag: the Imu topics in the first, the others in the second
+    (a recorder per topic group, merged into one bag directory), each spanning the whole
+    recording; metadata.yaml lists both."""
+    groups = [
+        [c for c in conns if c.msgtype == "sensor_msgs/msg/Imu"],
+        [c for c in conns if c.msgtype != "sensor_msgs/msg/Imu"],
+    ]
+    out.mkdir(parents=True)
+    infos, names = [], []
+    for k, group in enumerate(groups):
+        topics = {c.topic for c in group}
+        part = out.parent / f".{out.name}_part{k}"
+        _write_rosbags(part, group, [m for m in messages if m[0] in topics], layout)
+        info = yaml.safe_load((part / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        (name,) = info["relative_file_paths"]
+        names.append(f"{out.name}_{k}{Path(name).suffix}")
+        (part / name).rename(out / names[-1])
+        infos.append(info)
+        for leftover in part.iterdir():
+            leftover.unlink()
+        part.rmdir()
+    start = min(i["starting_time"]["nanoseconds_since_epoch"] for i in infos)
+    end = max(
+        i["starting_time"]["nanoseconds_since_epoch"] + i["duration"]["nanoseconds"] for i in infos
+    )
+    info = dict(infos[0])
+    info.update(
+        relative_file_paths=names,
+        files=[dict(i["files"][0], path=n) for i, n in zip(infos, names)],
+        topics_with_message_count=[e for i in infos for e in i["topics_with_message_count"]],
+        message_count=sum(i["message_count"] for i in infos),
+        starting_time={"nanoseconds_since_epoch": start},
+        duration={"nanoseconds": end - start},
+    )
+    text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+    (out / "metadata.yaml").write_text(text)
 
 
 def _write_mcap_library(out: Path, conns, messages, layout: Layout) -> None:

@@ -10,6 +10,8 @@ through rosbags' reader, a fixed number of messages at a time.
 
 from __future__ import annotations
 
+import contextlib
+import heapq
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -185,21 +187,43 @@ class BagReader:
                 )
 
     def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
-        for file in self.files:
-            scanner = McapScanner(file)
-            group: list[ChunkData] = []
-            size = 0
-            for chunk in scanner.chunks():
-                missing = [c for c in chunk.index if c not in scanner.channels]
-                if missing:
-                    raise McapFormatError(f"messages on undefined channel {missing[0]}")
-                group.append(chunk)
-                size += len(chunk.records)
-                if size >= self.batch_bytes:
-                    yield self._chunk_batch(group, scanner, wanted)
-                    group, size = [], 0
-            if group:
-                yield self._chunk_batch(group, scanner, wanted)
+        """Batches of chunks from every file of the bag, merged in log-time order: a bag may
+        be split by time (one file after the other) or by topic (each file spans the whole
+        recording), so the next chunk is the one that starts first in any file. One
+        decompressed chunk per file is held; a batch holds chunks of one file (its scanner's
+        channel ids)."""
+        scanners = [McapScanner(file) for file in self.files]
+        chunks = [self._checked_chunks(scanner) for scanner in scanners]
+        heads = [next(it, None) for it in chunks]
+        group: list[ChunkData] = []
+        group_file, size = None, 0
+        while any(h is not None for h in heads):
+            k = min(
+                (i for i, h in enumerate(heads) if h is not None),
+                key=lambda i: (_first_time(heads[i]), i),
+            )
+            chunk, heads[k] = heads[k], next(chunks[k], None)
+            # what is still unread in the other files starts no earlier than their next chunk
+            bounds = [chunk.frontier_ns] + [
+                _first_time(h) for i, h in enumerate(heads) if h is not None and i != k
+            ]
+            chunk.frontier_ns = None if None in bounds else min(bounds)
+            if group and (k != group_file or size >= self.batch_bytes):
+                yield self._chunk_batch(group, scanners[group_file], wanted)
+                group, size = [], 0
+            group.append(chunk)
+            group_file = k
+            size += len(chunk.records)
+        if group:
+            yield self._chunk_batch(group, scanners[group_file], wanted)
+
+    @staticmethod
+    def _checked_chunks(scanner: McapScanner) -> Iterator[ChunkData]:
+        for chunk in scanner.chunks():
+            missing = [c for c in chunk.index if c not in scanner.channels]
+            if missing:
+                raise McapFormatError(f"messages on undefined channel {missing[0]}")
+            yield chunk
 
     @staticmethod
     def _chunk_batch(chunks: list[ChunkData], scanner: McapScanner, wanted: set[str]) -> ReadBatch:
@@ -240,8 +264,8 @@ class BagReader:
             )  # rosbags reads in log-time order
 
         try:
-            for conn, log_time, raw in self._reader.messages(connections=connections):
-                datas, times = pending.setdefault(conn.topic, ([], []))
+            for topic, log_time, raw in self._rosbags_messages(connections):
+                datas, times = pending.setdefault(topic, ([], []))
                 datas.append(bytes(raw))
                 times.append(log_time)
                 count += 1
@@ -258,6 +282,31 @@ class BagReader:
         if pending:
             yield emit()
 
+    def _rosbags_messages(self, connections) -> Iterator[tuple[str, int, bytes]]:
+        """(topic, log time, data) in log-time order. rosbags reads a bag's files one after
+        the other; a bag split by topic (each file spanning the whole recording) is read
+        file by file, each in log-time order, merged."""
+        plain = (
+            len(self.files) > 1
+            and self.info.get("compression_mode") in ("", None)
+            and all(f.suffix in (".db3", ".mcap") and f.exists() for f in self.files)
+        )
+        if not plain:
+            for conn, log_time, raw in self._reader.messages(connections=connections):
+                yield conn.topic, log_time, raw
+            return
+        wanted = {c.topic for c in connections}
+        with contextlib.ExitStack() as stack:
+            streams = []
+            for file in self.files:
+                reader = stack.enter_context(Reader(file))
+                conns = [c for c in reader.connections if c.topic in wanted]
+                if conns:  # none: rosbags would read every connection
+                    streams.append(
+                        (c.topic, t, raw) for c, t, raw in reader.messages(connections=conns)
+                    )
+            yield from heapq.merge(*streams, key=lambda m: m[1])
+
     # --- lifetime ----------------------------------------------------------------
     def close(self) -> None:
         self._reader.close()
@@ -267,6 +316,14 @@ class BagReader:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _first_time(chunk: ChunkData) -> int:
+    """The earliest log time in a chunk (its record's start time, or its messages' least)."""
+    if chunk.start_ns is not None:
+        return chunk.start_ns
+    times = [t.min() for t, _ in chunk.index.values() if len(t)]
+    return int(min(times)) if times else np.iinfo(np.int64).max
 
 
 def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:

@@ -171,6 +171,12 @@ class RecordingStream:
                         f"expected {expected}"
                     )
                 self.present.add(key)
+        # a topic the bag's index counts no message of cannot hold back the others
+        self.present = {
+            k
+            for k in self.present
+            if k in ("raw", "joint_states") or reader.topics[self.names[k]].count > 0
+        }
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
         self.horizon_ns = int(horizon_s * NS_PER_S)
@@ -280,10 +286,16 @@ class RecordingStream:
         self._lead_ns[key] = min(lead, self._lead_ns.get(key, lead))
 
     def _stamp_frontier(self, key: str) -> int:
-        """Stamps of `key` not read yet are at least this (from the log-time frontier)."""
+        """Stamps of `key` not read yet are at least this (from the log-time frontier).
+
+        A stream with no message read yet may still hold any stamp: a converter that wrote
+        one topic after the other, logging its own clock, puts every joint state after
+        every sensor sample in log time, and nothing can go on before they are in."""
         if self._frontier_ns is None:
             return np.iinfo(np.int64).max
-        return self._frontier_ns + self._lead_ns.get(key, 0)
+        if key not in self._lead_ns:
+            return np.iinfo(np.int64).min
+        return self._frontier_ns + self._lead_ns[key]
 
     def _merge_partial(self, stamps, position, velocity):
         """Fill a joint missing from a message with its last published value."""
@@ -309,16 +321,18 @@ class RecordingStream:
             # horizon) and all earlier samples in.
             frontier = min(self._stamp_frontier(k) for k in [*self._sensor_keys, "joint_states"])
             take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
+            early = 0
             if n - take > self.max_pending and self._stuck >= 2:
                 # A frontier that does not move (log times that do not advance): hold no more
                 # than max_lag_s of samples. A chunk holding much of one topic is not that:
                 # its samples are in memory already, and the next chunk moves the frontier.
-                self.released_early += n - self.max_pending - take
+                early = n - self.max_pending - take
                 take = n - self.max_pending
             span = int(raw_stamps[take - 1]) - int(raw_stamps[0]) if take else 0
             if span < self.min_slice_ns:
                 self._sensor = {k: [v] for k, v in sensor.items()}
                 return []
+            self.released_early += early  # counted once, when they do go on
         width = len(self.joint_names)
         js_stamps, js_position, js_velocity = _by_stamp(
             _concat([j[0] for j in self._joints], None),
