@@ -86,3 +86,49 @@ def test_unusual_imu_messages_take_the_general_path(sim_bags, sim_bags_model, tm
         assert (
             a[:at] == b[:at] and a[at + 24 :] == b[at + 24 :] and a[at : at + 24] != b[at : at + 24]
         )
+
+
+def test_a_topic_on_two_connections_stays_readable_by_rosbags(sim_bags, sim_bags_model, tmp_path):
+    """The sensor topic recorded on two connections with different QoS (two publishers, a
+    reliable and a best-effort one): the output declares the topic alike in metadata.yaml
+    and in the MCAP file, so rosbags reads every message of it and of its denoised copy."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    best_effort = Qos(
+        QosHistory.KEEP_LAST, 10, QosReliability.BEST_EFFORT, QosDurability.VOLATILE,
+        QosTime(0, 0), QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False,
+    )  # fmt: skip
+    with Reader(sim_bags / "motion") as reader:
+        messages = [(c.topic, c.msgtype, t, bytes(d)) for c, t, d in reader.messages()]
+        topics = {c.topic: c.msgtype for c in reader.connections}
+    bag = tmp_path / "two_connections"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {t: writer.add_connection(t, m, typestore=store) for t, m in topics.items()}
+        second = writer.add_connection(
+            "/accelerometer/raw", topics["/accelerometer/raw"], typestore=store,
+            offered_qos_profiles=[best_effort],
+        )  # fmt: skip
+        k = 0
+        for topic, _, log_time, data in sorted(messages, key=lambda m: m[2]):
+            conn = conns[topic]
+            if topic == "/accelerometer/raw":
+                k += 1
+                conn = second if (k // 500) % 2 else conn
+            writer.write(conn, log_time, data)
+    out = tmp_path / "out"
+    denoise_bag(bag, out, model=NoiseModel.load(sim_bags_model))
+    n_raw = sum(1 for m in messages if m[0] == "/accelerometer/raw")
+    for topic in ("/accelerometer/raw", "/accelerometer/denoised"):
+        with Reader(out) as reader:
+            conns = [c for c in reader.connections if c.topic == topic]
+            assert sum(1 for _ in reader.messages(connections=conns)) == n_raw, topic

@@ -243,13 +243,19 @@ class BagWriter:
             schemas, channels = definitions
             channel = next((c for c in channels.values() if c.topic == topic), None)
             schema = schemas.get(channel.schema_id) if channel is not None else None
+        qos = info.metadata.get("offered_qos_profiles")
+        if channel is not None and "offered_qos_profiles" in channel.metadata:
+            # rosbags pairs metadata.yaml's topics with the file's channels by QoS too: a
+            # topic recorded on several connections (QoS variants) is written as one
+            # channel, declared alike in both places
+            qos = yaml.safe_load(channel.metadata["offered_qos_profiles"]) or []
         return self.add_topic(
             name,
             info.msgtype,
             msgdef=info.msgdef or None,
             msgdef_format=info.msgdef_format,
             type_hash=info.metadata.get("type_description_hash") or info.digest or None,
-            offered_qos_profiles=info.metadata.get("offered_qos_profiles"),
+            offered_qos_profiles=qos,
             channel_metadata=dict(channel.metadata) if channel is not None else None,
             channel_id=channel.id if channel is not None and as_topic is None else None,
             schema=schema,
