@@ -7,6 +7,8 @@ import struct
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from synthetic import random_recording
 
 from egovib_ros.bag import BagReader, encode_imu_batch, read_recording, write_recording
@@ -179,3 +181,53 @@ def test_not_mcap_and_truncated_files_are_format_errors(tmp_path):
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
     with pytest.raises(McapFormatError):
         list(McapScanner(tmp_path / "cut.mcap").chunks())
+
+
+@pytest.fixture(scope="module")
+def small_zstd_bag(tmp_path_factory):
+    """A 1 s bag in zstd chunks without CRCs (damage is met by the parser, not the CRC), and
+    where its chunk records and message indexes start (damage there is what a parser meets
+    first: compression names, sizes, frame headers, index lengths)."""
+    from mcap.reader import make_reader
+
+    path = tmp_path_factory.mktemp("fuzz") / "bag"
+    write_recording(path, random_recording(seconds=1.0), compress=True, crc=False)
+    with open(next(path.glob("*.mcap")), "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    spots = [c.chunk_start_offset for c in chunks]
+    spots += [c.chunk_start_offset + c.chunk_length for c in chunks]  # message indexes
+    return path, spots
+
+
+@settings(
+    max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    spot=st.integers(0, 10_000),
+    offset=st.integers(0, 80),
+    anywhere=st.floats(0.0, 1.0, exclude_max=True),
+    near_structure=st.booleans(),
+    junk=st.binary(min_size=1, max_size=8),
+)
+def test_damaged_bytes_anywhere_are_a_bag_error_or_nothing(
+    small_zstd_bag, tmp_path, spot, offset, anywhere, near_structure, junk
+):
+    """Bytes overwritten in the MCAP file (near a chunk record's or message index's start,
+    or anywhere): reading gives the recording or one BagError line, never another exception
+    (an unexpected one would be an internal error, exit 1)."""
+    import shutil
+    import uuid
+
+    source, spots = small_zstd_bag
+    bag = tmp_path / uuid.uuid4().hex
+    shutil.copytree(source, bag)
+    mcap = next(bag.glob("*.mcap"))
+    data = bytearray(mcap.read_bytes())
+    at = spots[spot % len(spots)] + offset if near_structure else int(anywhere * len(data))
+    at = min(at, len(data) - 1)
+    data[at : at + len(junk)] = junk[: len(data) - at]
+    mcap.write_bytes(bytes(data))
+    try:
+        read_recording(bag)
+    except BagError as exc:
+        assert "\n" not in str(exc)

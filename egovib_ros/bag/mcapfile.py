@@ -191,7 +191,17 @@ class McapScanner:
         """Chunks in order of their first message's log time: file order for files written
         in time order (read front to back), else by seeking along the summary's chunk
         index (files whose chunks were written per topic, or out of order) so that the
-        streams of different topics arrive together."""
+        streams of different topics arrive together. Bytes that do not parse are damage
+        (McapDamaged), whatever part of the file they are in."""
+        try:
+            yield from self._chunks()
+        except McapFormatError:
+            raise
+        except Exception as exc:  # struct, decoding, seeks and reads sized by damaged fields
+            reason = (str(exc).splitlines() or [""])[0]
+            raise McapDamaged(f"damaged record ({type(exc).__name__}: {reason})") from None
+
+    def _chunks(self) -> Iterator[ChunkData]:
         with open(self.path, "rb") as fh:
             if hasattr(os, "posix_fadvise"):  # one pass front to back: read ahead further
                 os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
@@ -315,6 +325,17 @@ class McapScanner:
         return op, channel.id
 
     def _finish_chunk(self, body: bytes, index_bodies: list[bytes]) -> ChunkData:
+        """The chunk's records, decompressed and indexed. Any failure to parse them is
+        damage (McapDamaged): the bytes of a chunk record are the file's, not ours."""
+        try:
+            return self._parse_chunk(body, index_bodies)
+        except McapFormatError:
+            raise
+        except Exception as exc:  # struct, decoding, decompression, index arithmetic
+            reason = (str(exc).splitlines() or [""])[0]
+            raise McapDamaged(f"damaged chunk ({type(exc).__name__}: {reason})") from None
+
+    def _parse_chunk(self, body: bytes, index_bodies: list[bytes]) -> ChunkData:
         start, end, size, crc = struct.unpack_from("<QQQI", body, 0)
         n = struct.unpack_from("<I", body, 28)[0]
         compression = bytes(body[32 : 32 + n]).decode()
@@ -322,6 +343,8 @@ class McapScanner:
         data = memoryview(body)[40 + n : 40 + n + compressed_size]
         if len(data) != compressed_size:
             raise McapFormatError("chunk shorter than its declared size")
+        if compression and size > max(1 << 30, 1000 * compressed_size):
+            raise McapDamaged(f"chunk claims {size} bytes from {compressed_size} (damaged size)")
         records = _decompress(data, compression, size)
         if crc and zlib.crc32(records) != crc:
             raise McapDamaged("chunk CRC mismatch (damaged file)")
@@ -339,9 +362,13 @@ class McapScanner:
             listed = {c: len(t) for c, (t, _) in index.items() if len(t)}
             found = {c: len(t) for c, (t, _) in chunk.index.items() if len(t)}
             if listed != found:
+                differ = sorted(c for c in {*listed, *found} if listed.get(c) != found.get(c))
                 raise McapDamaged(
-                    f"a chunk holds {sum(found.values())} message records but its index "
-                    f"lists {sum(listed.values())} (damaged records)"
+                    "a chunk's message records do not match its index (damaged records): "
+                    + ", ".join(
+                        f"channel {c}: {found.get(c, 0)} records, {listed.get(c, 0)} indexed"
+                        for c in differ[:3]
+                    )
                 )
         chunk.start_ns, chunk.end_ns = start, end
         return chunk
@@ -428,6 +455,9 @@ class McapScanner:
 
 
 def _read_exact(fh: BinaryIO, n: int) -> bytes:
+    # a damaged length field must not become a read of exabytes (MemoryError, EINVAL)
+    if n > os.fstat(fh.fileno()).st_size - fh.tell():
+        raise McapDamaged("a record runs past the end of the file (damaged length)")
     data = fh.read(n)
     if len(data) != n:
         raise McapFormatError("truncated record")
