@@ -52,11 +52,13 @@ import tempfile
 import time
 import zipfile
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 from egovib_ros.errors import EgovibError
 
 MARKER = ".egovib-output"  # JSON marker inside every directory output we write
+#: The keys of a --truth file (`egovib simulate`, the alternate reality; INTERFACES.md section 3)
+TRUTH_KEYS = ("seed", "effects", "tap_onsets_ns")
 MARKER_SCHEMA = "egovib.output/1"
 PARTIAL_SUFFIX = ".partial"
 PARTIAL_MARKER = ".egovib-partial"  # JSON {pid, created} inside every staging directory
@@ -92,6 +94,7 @@ def prepare_output(
     inputs: Iterable[str | os.PathLike | None] = (),
     kind: str = "file",
     option: str = "--out",
+    ours: Callable[[Path], bool] | None = None,
 ) -> Path:
     """Check that `path` may be written by this run; raise OutputError (one line) if not.
 
@@ -99,7 +102,8 @@ def prepare_output(
         not be one of them, lie inside one, or hold one, whatever --force says.
     kind: "bag" | "report" | "directory" (directories) or "model" | "json" | "file".
         With --force an existing output is replaced only if it is a previous output of
-        ours of that type (see `_why_not_ours`).
+        ours of that type (see `_why_not_ours`); `ours(path)`, if given, tells a file this
+        command wrote from any other file of that type (a JSON or CSV of the user's).
     Also removes our own stale staging directories next to the output.
     Returns `path` as a Path.
     """
@@ -108,11 +112,11 @@ def prepare_output(
     label = f"{option} {path}" if option else str(path)
     target = _check_path_itself(path, label)
     _check_not_an_input(target, inputs, label)
-    _check_existing(target, force, kind, label)
+    _check_existing(target, force, kind, label, ours)
     _check_writable(target, label)
     claim_output(target, label)
     try:  # again under the lock: a run that held it may have written the output meanwhile
-        _check_existing(target, force, kind, label)
+        _check_existing(target, force, kind, label, ours)
     except OutputError:
         release_outputs(target)
         raise
@@ -120,11 +124,15 @@ def prepare_output(
     return target
 
 
-def _check_existing(target: Path, force: bool, kind: str, label: str) -> None:
+def _check_existing(
+    target: Path, force: bool, kind: str, label: str, ours: Callable[[Path], bool] | None = None
+) -> None:
     if os.path.lexists(target):
         if not force:
             raise OutputError(f"{label}: already exists (use --force to replace it)")
         reason = _why_not_ours(target, kind)
+        if reason is None and ours is not None and not _safely(ours, target):
+            reason = "is not an output of this command"
         if reason:
             raise OutputError(f"{label}: {reason}; not replaced, even with --force")
 
@@ -366,6 +374,37 @@ def _remove_empty(directories: list[Path]) -> None:
 
 
 # --- what counts as ours -----------------------------------------------------------------
+
+
+def json_holding(keys: Iterable[str] = (), **values) -> Callable[[Path], bool]:
+    """`ours` for prepare_output: a JSON object with these keys, and these values."""
+
+    def ours(path: Path) -> bool:
+        body = json.loads(path.read_text())
+        return (
+            isinstance(body, dict)
+            and set(keys) <= set(body)
+            and all(body.get(k) == v for k, v in values.items())
+        )
+
+    return ours
+
+
+def text_starting_with(first_line: str) -> Callable[[Path], bool]:
+    """`ours` for prepare_output: a text file whose first line is `first_line`."""
+
+    def ours(path: Path) -> bool:
+        with open(path, encoding="utf-8") as fh:
+            return fh.readline().rstrip("\r\n") == first_line
+
+    return ours
+
+
+def _safely(ours: Callable[[Path], bool], path: Path) -> bool:
+    try:
+        return bool(ours(path))
+    except Exception:  # an unreadable or odd file is not ours
+        return False
 
 
 def _why_not_ours(path: Path, kind: str) -> str | None:

@@ -50,3 +50,18 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
         err = capsys.readouterr().err.strip()
         assert named in err and "\n" not in err, err
         assert not out.exists()
+
+
+def test_force_replaces_only_event_files_detect_wrote(sim_bags, sim_bags_model, tmp_path, capsys):
+    """--force replaces a previous events file, never a JSON or CSV of the user's."""
+    args = ["detect", str(sim_bags / "motion"), "--model", str(sim_bags_model), "--force"]
+    for name, foreign in (("events.json", "[1, 2, 3]\n"), ("events.csv", "a,b\n1,2\n")):
+        out = tmp_path / name
+        out.write_text(foreign)
+        assert main([*args, "--out", str(out), "--threshold", "0.7"]) == 2
+        assert "not an output of this command" in capsys.readouterr().err
+        assert out.read_text() == foreign
+        out.unlink()
+        assert main([*args, "--out", str(out), "--threshold", "0.7"]) == 0
+        assert main([*args, "--out", str(out), "--threshold", "0.9"]) == 0  # ours: replaced
+        capsys.readouterr()

@@ -237,3 +237,20 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
         rec = read_recording(denoised_bag)
         assert rec.sensor[:, 2].mean() > 9.0
         assert abs(rec.denoised[:, 2].mean() - rec.sensor[:, 2].mean()) < 1e-3
+
+
+def test_force_replaces_only_a_report_evaluate_wrote(simulated, tmp_path, capsys):
+    """--force replaces a previous report, never a JSON of the user's."""
+    out = tmp_path / "settings.json"
+    out.write_text('{"my": "settings"}\n')
+    args = [
+        "evaluate", str(simulated["bag"]), "--model", str(simulated["model"]),
+        "--calibration", str(simulated["quiet_bag"]), "--json", str(out), "--force", "--quiet",
+    ]  # fmt: skip
+    assert main(args) == 2
+    assert "not an output of this command" in capsys.readouterr().err
+    assert out.read_text() == '{"my": "settings"}\n'
+    out.unlink()
+    assert main(args) == 0
+    first = out.read_text()
+    assert main(args) == 0 and out.read_text() == first  # ours: replaced (same figures)

@@ -24,10 +24,12 @@ from egovib_ros.outputs import (
     atomic_output,
     claim_output,
     clean_stale_partials,
+    json_holding,
     prepare_output,
     prepare_outputs_in,
     process_start_time,
     release_outputs,
+    text_starting_with,
 )
 
 
@@ -130,6 +132,31 @@ def test_force_replaces_a_model_file_only_if_it_is_a_noise_model(cwd):
         prepare_output("other.npz", force=True, kind="model")
     np.savez(cwd / "ours.npz", schema=np.array("egovib.noise_model"), schema_version=np.array(1))
     assert prepare_output("ours.npz", force=True, kind="model")
+
+
+def test_force_replaces_a_json_or_text_file_only_if_this_command_wrote_it(cwd):
+    """A JSON or CSV of the user's is not replaced, even with --force; one this command
+    wrote (recognised by its keys, schema or first line) is."""
+    (cwd / "settings.json").write_text('{"my": "settings"}')
+    (cwd / "list.json").write_text("[1, 2, 3]")
+    (cwd / "report.json").write_text('{"noise_reduction_db": 20.0, "n_taps": 3, "x": 1}')
+    (cwd / "events.json").write_text('{"schema": "egovib.events/1", "events": []}')
+    (cwd / "notes.csv").write_text("a,b\n1,2\n")
+    (cwd / "events.csv").write_text("onset_ns,peak\n1,2\n")
+    (cwd / "broken.json").write_bytes(b"\xff{")
+    report = json_holding(("noise_reduction_db", "n_taps"))
+    events = json_holding(schema="egovib.events/1")
+    for name, ours in (("settings.json", report), ("list.json", events), ("broken.json", events)):
+        with pytest.raises(
+            OutputError, match=f"{name}: .*not an output of this command|not a JSON"
+        ):
+            prepare_output(name, force=True, kind="json", ours=ours)
+    assert prepare_output("report.json", force=True, kind="json", ours=report)
+    assert prepare_output("events.json", force=True, kind="json", ours=events)
+    csv = text_starting_with("onset_ns,peak")
+    with pytest.raises(OutputError, match="notes.csv: is not an output of this command"):
+        prepare_output("notes.csv", force=True, kind="file", ours=csv)
+    assert prepare_output("events.csv", force=True, kind="file", ours=csv)
 
 
 def test_directories_without_our_marker_are_not_ours(cwd):

@@ -19,7 +19,7 @@ import sys
 from egovib_ros.altreality.hand import EFFECTS, simulate_alt_motion
 from egovib_ros.cli import options
 from egovib_ros.errors import EgovibError
-from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.outputs import TRUTH_KEYS, atomic_output, json_holding, prepare_output
 
 # This generator's own strengths (not the simulator's ranges): a gain above the base
 # vibration for position, coupling, acceleration and drift; seconds of either sign for timing.
@@ -63,7 +63,13 @@ def main(argv: list[str] | None = None) -> int:
 
         out = prepare_output(args.out, force=args.force, kind="bag")
         if args.truth:
-            prepare_output(args.truth, force=args.force, kind="json", option="--truth")
+            prepare_output(
+                args.truth,
+                force=args.force,
+                kind="json",
+                option="--truth",
+                ours=json_holding(TRUTH_KEYS),
+            )
         rec, truth = simulate_alt_motion(
             duration_s=args.duration, effects=args.effects, seed=args.seed, tap_rate_hz=args.taps
         )

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from egovib_ros.cli.options import float_in, nonneg_float
-from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 
 SCHEMA = "egovib.events/1"
 
@@ -73,7 +73,13 @@ def run(args: argparse.Namespace) -> int:
 
     kind = "file" if Path(args.out).suffix.lower() == ".csv" else "json"
     prepare_output(
-        args.out, force=args.force, inputs=[args.bag, args.model, args.calibration], kind=kind
+        args.out,
+        force=args.force,
+        inputs=[args.bag, args.model, args.calibration],
+        kind=kind,
+        ours=text_starting_with(",".join(CSV_HEADER))
+        if kind == "file"
+        else json_holding(schema=SCHEMA),
     )
     model = NoiseModel.load(args.model)
     model.robot_profile()
@@ -137,10 +143,13 @@ def render_json(result, args) -> str:
     return json.dumps(body, indent=1) + "\n"
 
 
+CSV_HEADER = ["onset_ns", "peak_x", "peak_y", "peak_z", "strength", "report_ns"]
+
+
 def render_csv(result) -> str:
     out = io.StringIO()
     writer = csv.writer(out)
-    writer.writerow(["onset_ns", "peak_x", "peak_y", "peak_z", "strength", "report_ns"])
+    writer.writerow(CSV_HEADER)
     for e in result.events:
         writer.writerow(
             [e.onset_ns, *(f"{v:.6g}" for v in e.peak), f"{e.strength:.6g}", e.report_ns]

@@ -22,11 +22,12 @@ from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.errors import BagError, ConfigError
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
+    REPORT_FIELDS,
     bad_samples_said,
     evaluate_recording,
     require_ground_truth,
 )
-from egovib_ros.outputs import atomic_output, prepare_output, prepare_outputs_in
+from egovib_ros.outputs import atomic_output, json_holding, prepare_output, prepare_outputs_in
 
 __all__ = ["evaluate_recording", "register"]
 
@@ -148,6 +149,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             kind="json",
             option="--json",
             inputs=[job.bag, args.model, calibration_path, args.model_short],
+            ours=json_holding(REPORT_FIELDS),  # what egovib evaluate wrote
         )
     model_short = NoiseModel.load(args.model_short) if args.model_short else None
     methods = None

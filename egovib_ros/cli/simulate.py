@@ -10,7 +10,7 @@ from pathlib import Path
 from egovib_ros.bag import write_recordings
 from egovib_ros.cli import options, simulate_robot
 from egovib_ros.errors import ConfigError
-from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.outputs import TRUTH_KEYS, atomic_output, json_holding, prepare_output
 from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.pr2 import ACCEL_FRAME
 from egovib_ros.sim.scenarios import motion_slices, sweep_cells, sweep_slices
@@ -128,7 +128,12 @@ def prepare_outputs(args: argparse.Namespace, source) -> Path:
     out = prepare_output(args.out, force=args.force, inputs=[source, args.truth], kind="bag")
     if args.truth:
         prepare_output(
-            args.truth, force=args.force, inputs=[source, args.out], kind="json", option="--truth"
+            args.truth,
+            force=args.force,
+            inputs=[source, args.out],
+            kind="json",
+            option="--truth",
+            ours=json_holding(TRUTH_KEYS),
         )
     return out
 

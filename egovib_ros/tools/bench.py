@@ -41,10 +41,13 @@ import numpy as np
 
 from egovib_ros import __version__
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 from egovib_ros.robot import RobotProfile, default_profile
 
 SYNTHETIC_JOINT_RATE_HZ = 1000.0  # joint states of the synthetic streams
+#: What --force may replace: files whose schema / title say `egovib bench` wrote them.
+BENCH_SCHEMA = "egovib.bench/1"
+MARKDOWN_TITLE = "# egovib bench"
 
 
 @lru_cache(maxsize=1)
@@ -606,7 +609,7 @@ def run_benchmarks(
             lambda: bench_bags(bag_seconds, repeats=1 if quick else 2, bag=bag, workdir=workdir),
         ),
     ]
-    results = {"schema": "egovib.bench/1", "machine": machine_info(), "quick": quick}
+    results = {"schema": BENCH_SCHEMA, "machine": machine_info(), "quick": quick}
     for name, step in steps:
         results[name] = step()
         if progress is not None:
@@ -748,7 +751,7 @@ def markdown_summary(results: dict) -> str:
             ),
         ]
     lines = [
-        "# egovib bench",
+        MARKDOWN_TITLE,
         "",
         f"Machine: {m['cpu_model']}, {m['cores']} cores, {m['platform']}, "
         f"Python {m['python']}, numpy {m['numpy']}, scipy {m['scipy']}"
@@ -775,7 +778,12 @@ def run(args: argparse.Namespace) -> int:
 
     # before any work
     prepare_output(
-        args.json, force=args.force, kind="json", option="--json", inputs=[args.markdown]
+        args.json,
+        force=args.force,
+        kind="json",
+        option="--json",
+        inputs=[args.markdown],
+        ours=json_holding(schema=BENCH_SCHEMA),
     )
     prepare_output(
         args.markdown or Path(args.json).with_suffix(".md"),
@@ -783,6 +791,7 @@ def run(args: argparse.Namespace) -> int:
         kind="file",
         option="--markdown",
         inputs=[args.json],
+        ours=text_starting_with(MARKDOWN_TITLE),
     )
     with tqdm(total=6, desc="bench", unit="step", disable=args.quiet) as bar:
         results = run_benchmarks(
