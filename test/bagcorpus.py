@@ -43,6 +43,7 @@ class Layout:
     swap: float = 0.0  # share of neighbouring sensor samples whose header stamps swap
     velocity: bool = True  # False: JointStates carry positions only (many real drivers)
     files: str = "one"  # one | topic (sensor topics in one file, the others in another)
+    joints: str = "one"  # one | per_joint (a JointState per joint, all with one stamp)
 
 
 LAYOUTS = (
@@ -61,6 +62,7 @@ LAYOUTS = (
     Layout("wall_clock_logs", log="offset", order="topic"),
     Layout("swapped_stamps", swap=0.01),
     Layout("project_topic_zstd", writer="project", order="topic", compression="zstd"),
+    Layout("joint_state_per_joint", joints="per_joint", compression="zstd"),
     Layout("converter_clock_logs", order="topic", log="writer"),
     Layout("converter_clock_logs_reversed", order="rtopic", log="writer"),
     Layout("topics_in_two_files", files="topic"),
@@ -121,6 +123,25 @@ def _without_velocity(data: bytes) -> bytes:
     return bytes(typestore().serialize_cdr(msg, JOINT_STATE_TYPE))
 
 
+def _per_joint(data: bytes) -> list[bytes]:
+    """One JointState per joint, each with the message's stamp (per-joint drivers)."""
+    from egovib_ros.bag.codec import JOINT_STATE_TYPE, typestore
+
+    store = typestore()
+    msg = store.deserialize_cdr(data, JOINT_STATE_TYPE)
+    out = []
+    for k, name in enumerate(msg.name):
+        part = dataclasses.replace(
+            msg,
+            name=[name],
+            position=msg.position[k : k + 1],
+            velocity=msg.velocity[k : k + 1] if len(msg.velocity) else msg.velocity,
+            effort=msg.effort[k : k + 1] if len(msg.effort) else msg.effort,
+        )
+        out.append(bytes(store.serialize_cdr(part, JOINT_STATE_TYPE)))
+    return out
+
+
 def arrange(
     conns: list[Connection], messages: list, layout: Layout, *, seed: int = 5
 ) -> list[tuple[str, int, bytes]]:
@@ -135,6 +156,12 @@ def arrange(
         out = [
             (t, log, _without_velocity(d)) if t in joint_topics else (t, log, d)
             for t, log, d in out
+        ]
+    if layout.joints == "per_joint":
+        out = [
+            (t, log, part)
+            for t, log, d in out
+            for part in (_per_joint(d) if t in joint_topics else [d])
         ]
     if layout.swap:
         # Swap the header stamps of the same neighbouring samples on every Imu topic (the

@@ -260,14 +260,15 @@ class Feeder:
                 if self.split_joints:
                     parts = [slice(0, len(names) // 2), slice(len(names) // 2, None)]
                 position = self._positions(joint_stamps[k:k_end], joint_velocity[k:k_end])
+                # split: both publishers stamp a control tick alike (per-joint drivers)
                 messages = [
                     encode_joint_state_batch(
-                        joint_stamps[k:k_end] + h * 100_000,
+                        joint_stamps[k:k_end],
                         position[:, part],
                         None if self.positions_only else joint_velocity[k:k_end, part],
                         names[part],
                     )
-                    for h, part in enumerate(parts)
+                    for part in parts
                 ]
                 for row in zip(*messages):  # in stamp order, publisher after publisher
                     for data in row:

@@ -5,14 +5,14 @@ order, topic by topic, topics reversed), by the `mcap` library (zstd and lz4 chu
 chunks, one huge chunk, no chunks, overlapping chunks), by the project's writer, in sqlite3
 storage, with log times that are receive times or another clock or a converter's clock as
 it wrote one topic after the other, with the topics split over two storage files (MCAP and
-sqlite3), and with 1 % of the sensor stamps swapped with their neighbour. Each bag goes
-through `egovib calibrate`, `egovib denoise` and `egovib evaluate`, which must give the
-answer they give on the reference bag (the same messages, written by the project in time
-order), and `denoise` must equal `denoise_batch` on the bag's arrays, one message per
-valid raw sample. `egovib gap` reads every layout through its streamed reader, whose block
-table (all the diagnosis sees of a bag) must equal the reference's; the whole command,
-diagnosis and report, runs on two layouts (topics one after the other; log times on
-another clock).
+sqlite3), with one JointState per joint (all of one stamp), and with 1 % of the sensor
+stamps swapped with their neighbour. Each bag goes through `egovib calibrate`, `egovib
+denoise` and `egovib evaluate`, which must give the answer they give on the reference bag
+(the same messages, written by the project in time order), and `denoise` must equal
+`denoise_batch` on the bag's arrays, one message per valid raw sample. `egovib gap` reads
+every layout through its streamed reader, whose block table (all the diagnosis sees of a
+bag) must equal the reference's; the whole command, diagnosis and report, runs on two
+layouts (topics one after the other; log times on another clock).
 """
 
 from __future__ import annotations

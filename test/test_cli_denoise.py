@@ -262,3 +262,25 @@ def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(si
         conn = next(c for c in reader.connections if c.msgtype.endswith("JointState"))
         _, _, data = next(reader.messages(connections=[conn]))
         assert len(typestore().deserialize_cdr(data, conn.msgtype).velocity) == 0
+
+
+def test_joint_states_of_a_stuck_clock_are_refused_naming_the_joint_state_topic(
+    sim_bags, sim_bags_model, tmp_path
+):
+    """A driver that stamps every JointState 0: one line naming the joint-state topic (not
+    the sensor topic), exit 2, no output."""
+    conns, messages = bagcorpus.read_messages(sim_bags / "motion")
+    stuck = [
+        (t, log, bagcorpus._with_stamp(d, 0)) if t == "/joint_states" else (t, log, d)
+        for t, log, d in messages
+    ]
+    bagcorpus._write_rosbags(tmp_path / "stuck", conns, stuck, bagcorpus.Layout("stuck"))
+    result = egovib(
+        "denoise", tmp_path / "stuck", "--model", sim_bags_model, "--out", tmp_path / "out"
+    )
+    assert result.returncode == 2
+    assert result.stderr.count("error:") == 1
+    line = result.stderr.strip().splitlines()[-1]  # after the warnings it met on the way
+    assert "stuck: /joint_states: " in line and "joint states" in line
+    assert "/accelerometer/raw" not in line
+    assert not (tmp_path / "out").exists()

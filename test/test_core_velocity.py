@@ -5,6 +5,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from egovib_ros.core import HELD, MATCHED, MISSING, JointVelocity, block_mean_velocity
+from egovib_ros.core.velocity import SplitJointStates
 
 
 def test_mean_over_span_hold_and_missing():
@@ -127,3 +128,56 @@ def test_split_publishers_differentiate_each_joint_over_its_own_messages():
     )
     np.testing.assert_array_equal(out[0::2, 0], alone0[:, 0])
     assert np.isnan(out[1::2, 0]).all() and np.isnan(out[0::2, 1]).all()
+
+
+def _per_joint_messages(seed: int, n: int = 120, joints: int = 3):
+    """Joint states as per-joint drivers publish them: each stamp's joints in separate
+    messages (in a random order, sometimes two joints together), and the rows one
+    JointState per stamp would have given."""
+    rng = np.random.default_rng(seed)
+    rows_t, rows_p, whole_t, whole_p = [], [], [], []
+    for k in range(n):
+        stamp = 1_000_000 * (k + 1)
+        p = rng.normal(size=joints)
+        order = rng.permutation(joints)
+        groups = np.split(
+            order, np.sort(rng.choice(np.arange(1, joints), rng.integers(0, joints), replace=False))
+        )
+        for g in groups:
+            row = np.full(joints, np.nan)
+            row[g] = p[g]
+            rows_t.append(stamp)
+            rows_p.append(row)
+        whole_t.append(stamp)
+        whole_p.append(p)
+    t, p = np.array(rows_t, np.int64), np.array(rows_p)
+    return t, p, p * 10.0, np.array(whole_t, np.int64), np.array(whole_p)
+
+
+@given(st.integers(0, 1000), st.lists(st.integers(1, 40), min_size=1, max_size=12))
+def test_split_joint_messages_join_into_one_row_per_stamp_for_any_chunking(seed, cuts):
+    """One message per joint with one stamp: one row per stamp with every joint, however
+    the messages are cut into batches (the last stamp held until it is complete or the end)."""
+    t, p, v, want_t, want_p = _per_joint_messages(seed)
+    split, parts, start = SplitJointStates(), [], 0
+    for size in [*cuts, len(t)]:
+        stop = min(len(t), start + size)
+        parts.append(split.push(t[start:stop], p[start:stop], v[start:stop]))
+        start = stop
+    held = split.flush()
+    parts += [held] if held is not None else []
+    got_t, got_p, got_v = (np.concatenate([part[i] for part in parts]) for i in range(3))
+    np.testing.assert_array_equal(got_t, want_t)
+    np.testing.assert_array_equal(got_p, want_p)
+    np.testing.assert_array_equal(got_v, want_p * 10.0)
+
+
+def test_a_stamp_that_repeats_a_joint_is_left_to_the_stuck_clock_check():
+    """Two messages of one stamp that both carry a joint are not one message split up:
+    they are passed on as they are (the framer drops the second, counted)."""
+    nan = np.nan
+    t = np.array([5, 5, 6], np.int64)
+    p = np.array([[1.0, nan], [2.0, 3.0], [4.0, 5.0]])
+    got = SplitJointStates().push(t, p, p)
+    np.testing.assert_array_equal(got[0], t)
+    np.testing.assert_array_equal(got[1], p)

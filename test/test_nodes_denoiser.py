@@ -250,7 +250,8 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
     nodes, ros_client, feeder, sim_model_path
 ):
     den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE, **LATE_JOINTS})
-    # Joint states from two publishers, each with some of the joints: merged by name.
+    # Joint states from two publishers, each with some of the joints and both stamping a tick
+    # alike: joined into one row per stamp, as offline (none dropped as a stuck clock).
     stream = feeder(
         PR2, velocity={PR2.joint_names[0]: 1.2, PR2.joint_names[1]: 0.0}, split_joints=True
     )

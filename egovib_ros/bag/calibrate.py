@@ -44,7 +44,9 @@ def calibrate_bag(
         joint_states += len(piece.joint_stamps_ns)
     acc.flush()
     # too many bad samples or unusable joint states: refused; else counted
-    acc.input_counts = check_stream(acc.stats, where, joint_states=joint_states)
+    acc.input_counts = check_stream(
+        acc.stats, where, joint_states=joint_states, joints_where=f"{bag}: {profile.joints_topic}"
+    )
     return acc
 
 

@@ -231,6 +231,7 @@ def denoise_bag(
                     denoiser.stats,
                     f"{bag}: {raw_topic}",
                     joint_states=stream.counts["joint_states"],
+                    joints_where=f"{bag}: {stream.names['joint_states']}",
                 )
                 ratio = writer.size_ratio
     stats = denoiser.stats

@@ -51,7 +51,7 @@ from egovib_ros.bag.codec import (
 from egovib_ros.bag.reader import BagReader, ReadBatch
 from egovib_ros.bag.writer import BagWriter
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
+from egovib_ros.core.velocity import JointVelocity, SplitJointStates, hold_missing_joints
 from egovib_ros.errors import BagError
 from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile, load_profile
 
@@ -190,6 +190,7 @@ class RecordingStream:
         self._denoised: list[tuple] = []
         self._commands: list[tuple] = []
         self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
+        self._split_joints = SplitJointStates()  # one message per joint, one stamp: one row
         self._joint_seen = np.zeros(len(self.joint_names), bool)
         # velocity from positions where the driver publishes none (profile joints.velocity)
         self.joint_velocity = JointVelocity(
@@ -233,6 +234,9 @@ class RecordingStream:
 
     def finish(self) -> list[Recording]:
         """The remaining slices; then checks what the whole bag must satisfy."""
+        held = self._split_joints.flush()  # the last stamp's joint states
+        if held is not None:
+            self._add_joint_rows(*held)
         pieces = self._release(final=True)
         where = self.reader.path
         if self.released_early:
@@ -271,15 +275,18 @@ class RecordingStream:
             self._note_lead(key, stamps, messages.log_times)
         elif key == "joint_states":
             stamps, position, velocity = decode_joint_states(messages, self.joint_names)
-            velocity = self.joint_velocity.push(stamps, position, velocity)
-            self._velocity_usable += np.isfinite(velocity).sum(axis=0)
-            self._joints.append(self._merge_partial(stamps, position, velocity))
             self._note_lead(key, stamps, messages.log_times)
+            self._add_joint_rows(*self._split_joints.push(stamps, position, velocity))
         elif key == "denoised":
             self._denoised.append(decode_imu(messages, self.field))
         elif key == "commands":
             values = [decode_commands(r) for r in messages.to_list()]
             self._commands.append((messages.log_times.copy(), values))
+
+    def _add_joint_rows(self, stamps, position, velocity) -> None:
+        velocity = self.joint_velocity.push(stamps, position, velocity)
+        self._velocity_usable += np.isfinite(velocity).sum(axis=0)
+        self._joints.append(self._merge_partial(stamps, position, velocity))
 
     def _note_lead(self, key: str, stamps: np.ndarray, log_times: np.ndarray) -> None:
         lead = int((stamps - log_times).min())

@@ -81,20 +81,28 @@ def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
         )
 
 
-def check_stream(stats, where: str, *, joint_states: int, limit: float | None = None) -> str:
+def check_stream(
+    stats,
+    where: str,
+    *,
+    joint_states: int,
+    limit: float | None = None,
+    joints_where: str | None = None,
+) -> str:
     """Refuse a recording the core found mostly unusable; else the line of counts to print.
 
     stats: of calibrate_arrays / denoise_batch, or a framer's. Refused (one-line StreamError naming
     `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
     (non-finite, beyond the sensor range, out of order), or of the `joint_states`
-    messages dropped (non-finite, or stamped not after the previous one: a stuck clock).
+    messages dropped (non-finite, or stamped not after the previous one: a stuck clock),
+    then naming `joints_where` (the joint-state topic) if given.
     """
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
     dropped = int(stats.joint_states_dropped)
     if joint_states and dropped > limit * joint_states:
         raise StreamError(
-            f"{where}: {dropped} of {joint_states} joint states "
+            f"{joints_where or where}: {dropped} of {joint_states} joint states "
             f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
             f"not "
             f"stamped after the previous one: a stuck clock?); more than "

@@ -205,6 +205,70 @@ class JointVelocity:
         return np.where(use, derived, velocity)
 
 
+class SplitJointStates:
+    """Joint states published one message per joint (or per controller) with one stamp:
+    the messages of one stamp whose joints do not overlap are joined into one row, as one
+    JointState would have carried them. Rows of one stamp that repeat a joint are left as
+    they are (a stuck clock: the framer counts and drops them).
+
+    Streaming: `push` holds back the rows of the last stamp while some joint is missing
+    from them (the next message may complete it); `flush` gives them at the end. Joining
+    happens before velocities are derived from positions and before missing joints are
+    held (`hold_missing_joints`), offline and live alike.
+    """
+
+    def __init__(self) -> None:
+        self._tail: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def push(
+        self, stamps: np.ndarray, position: np.ndarray, velocity: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._tail is not None:
+            stamps, position, velocity = (
+                np.concatenate([a, b]) for a, b in zip(self._tail, (stamps, position, velocity))
+            )
+            self._tail = None
+        n = len(stamps)
+        if n == 0:
+            return stamps, position, velocity
+        present = ~(np.isnan(position) & np.isnan(velocity))
+        starts = np.flatnonzero(np.r_[True, stamps[1:] != stamps[:-1]])
+        per_run = np.add.reduceat(present.astype(np.int64), starts, axis=0)  # (R, J)
+        if not present[starts[-1] :].any(axis=0).all():  # the last stamp may still grow
+            last = starts[-1]
+            self._tail = (stamps[last:], position[last:], velocity[last:])
+            stamps, position, velocity = stamps[:last], position[:last], velocity[:last]
+            starts, per_run = starts[:-1], per_run[:-1]
+            n = last
+        if n == 0:
+            return stamps, position, velocity
+        sizes = np.diff(np.r_[starts, n])
+        joined = (sizes > 1) & (per_run.max(axis=1) <= 1)  # disjoint joints in one stamp
+        if not joined.any():
+            return stamps, position, velocity
+        position, velocity = position.copy(), velocity.copy()
+        with np.errstate(invalid="ignore"):  # fmax skips NaN: each joint from its own row
+            position[starts[joined]] = np.fmax.reduceat(position, starts, axis=0)[joined]
+            velocity[starts[joined]] = np.fmax.reduceat(velocity, starts, axis=0)[joined]
+        run = np.repeat(np.arange(len(starts)), sizes)
+        keep = ~joined[run] | (np.arange(n) == starts[run])
+        return stamps[keep], position[keep], velocity[keep]
+
+    def flush(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The rows held back (the last stamp's), joined as far as they go; None if none."""
+        if self._tail is None:
+            return None
+        stamps, position, velocity = self._tail
+        self._tail = None
+        present = ~(np.isnan(position) & np.isnan(velocity))
+        if len(stamps) > 1 and present.sum(axis=0).max() <= 1:
+            with np.errstate(invalid="ignore"):
+                position = np.fmax.reduce(position, axis=0, keepdims=True)
+                velocity = np.fmax.reduce(velocity, axis=0, keepdims=True)
+            stamps = stamps[:1]
+        return stamps, position, velocity
+
+
 def hold_missing_joints(
     position: np.ndarray, velocity: np.ndarray, last: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

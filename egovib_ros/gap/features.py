@@ -522,6 +522,10 @@ def _sensor_topic(model) -> str:
     return model.profile.sensor_topic if model.profile is not None else "sensor topic"
 
 
+def _joints_topic(model) -> str:
+    return model.profile.joints_topic if model.profile is not None else "joint-state topic"
+
+
 def joint_order(model, joint_names, source: str) -> list[int]:
     """Columns of a recording's joints in the model's joint order (ModelFileError if absent)."""
     where = model.provenance.get("path", "noise model")
@@ -821,7 +825,10 @@ def table_from_blocks(
         framing.stats, joint_states_dropped=bad_input["joint_states_dropped"]
     )
     bad_input["said"] = check_stream(
-        counted, f"{source}: {_sensor_topic(model)}", joint_states=bad_input["joint_states"]
+        counted,
+        f"{source}: {_sensor_topic(model)}",
+        joint_states=bad_input["joint_states"],
+        joints_where=f"{source}: {_joints_topic(model)}",
     )
     if framing.samples < 4 * model.block_length:
         raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")

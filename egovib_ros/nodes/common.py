@@ -31,7 +31,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.core.velocity import JointVelocity, hold_missing_joints
+from egovib_ros.core.velocity import JointVelocity, SplitJointStates, hold_missing_joints
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.nodes.convert import (
     decode_imu_raws,
@@ -329,6 +329,7 @@ class StreamInput:
         self._joint_velocity = JointVelocity(len(self.joint_names), source=self.velocity_setting)
         self.velocities_measured = 0  # joint velocities taken from the messages
         self._last_joint: np.ndarray | None = None  # (2, J) last position and velocity
+        self._split_joints = SplitJointStates()  # per-joint messages of one stamp joined
         self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
 
     # callbacks: keep them minimal, 3 kHz
@@ -385,6 +386,8 @@ class StreamInput:
         self.last_joint_s = now
         stamps, position, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
         self.undecodable_joints += bad
+        # one message per joint, one stamp: one row, as the bag layer reads it offline
+        stamps, position, velocity = self._split_joints.push(stamps, position, velocity)
         if len(stamps):
             present = ~(np.isnan(position) & np.isnan(velocity))
             self.joints_seen |= present.any(axis=0)

@@ -412,7 +412,10 @@ def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
         if bar is not None:
             bar.close()
     placement.input_counts = check_stream(
-        placement.framer.stats, where, joint_states=placement.joint_states
+        placement.framer.stats,
+        where,
+        joint_states=placement.joint_states,
+        joints_where=f"{bag}: {profile.joints_topic}",
     )
     if placement.blocks == 0:
         raise BagError(
