@@ -199,26 +199,41 @@ def test_the_regressors_of_each_candidate():
         effect_regressors("friction", table, scales)
 
 
-def test_a_harmonic_is_fitted_only_where_the_training_angles_span_its_period():
-    """A turning joint seen over less than a turn: only the harmonics whose period the
-    training angles cover (a lower one would be a time trend along a monotone angle and
-    extrapolate on held-out blocks); over a whole turn, all of them."""
+def test_a_turning_joints_harmonics_are_those_its_training_motion_identifies():
+    """A roll joint that turned a whole revolution: every harmonic. One turning one way over
+    part of a turn (a motor's integrated position): only the harmonics whose period it spans
+    (a lower one would be a time trend along a monotone angle and extrapolate). One turned
+    back and forth over less than a turn: hats over its travel, like a bounded joint."""
+    import dataclasses
+
     assert covered_harmonics(2 * np.pi) == tuple(range(1, POSITION_HARMONICS + 1))
     assert covered_harmonics(2.8) == (3, 4, 5, 6)  # periods 2.09 rad and shorter
     assert covered_harmonics(0.5) == ()
     table = synthetic_table(seed=5, duration_s=10.0)
     clean = ~table.contact
-    turn = table.position[:, 0] - table.position[clean, 0].min()
-    short = np.flatnonzero(clean & (turn < 2.5))  # the wrist's first 2.5 rad only
-    train = np.zeros(table.n_blocks, bool)
-    train[short] = True
-    scales = fit_scales(table, train)
-    assert scales.periodic[0] and scales.harmonics[0] == (3, 4, 5, 6)
-    _, names = effect_regressors("position", table, scales)
-    wrist = [n for n in names if n.endswith("(wrist_roll)") and "*" not in n]
-    assert wrist == [f"{f}{k}(wrist_roll)" for k in (3, 4, 5, 6) for f in ("cos", "sin")]
-    fitted = fit_variant(table, train, "position", scales)  # the shape skips nothing it needs
-    assert np.all(np.isfinite(fitted.power)) and "position:wrist_roll" in fitted.shape
+    t = table.t_mid_s - table.t_mid_s[0]
+    speed = np.full(table.n_blocks, 0.28 * 3.0)  # one way, 2.8 rad over the 10 s
+    cases = {
+        "whole turns": (t * 2.0, np.full(table.n_blocks, 2.0)),
+        "one way, part of a turn": (0.28 * t, speed),
+        "back and forth": (0.5 * np.sin(t), 0.5 * np.cos(t)),
+    }
+    got = {}
+    for name, (angle, velocity) in cases.items():
+        pos, vel = table.position.copy(), table.velocity.copy()
+        pos[:, 0], vel[:, 0] = angle, velocity
+        case = dataclasses.replace(table, position=pos, velocity=vel)
+        scales = fit_scales(case, clean)
+        _, names = effect_regressors("position", case, scales)
+        got[name] = [
+            n[: n.index("(")] for n in names if n.endswith("(wrist_roll)") and "*" not in n
+        ]
+        fitted = fit_variant(case, clean, "position", scales)
+        assert np.all(np.isfinite(fitted.power)) and "position:wrist_roll" in fitted.shape
+    harmonics = lambda ks: [f"{f}{k}" for k in ks for f in ("cos", "sin")]  # noqa: E731
+    assert got["whole turns"] == harmonics(range(1, POSITION_HARMONICS + 1))
+    assert got["one way, part of a turn"] == harmonics((3, 4, 5, 6))
+    assert got["back and forth"] and all(n.startswith("hat") for n in got["back and forth"])
 
 
 def test_time_hats_are_flat_beyond_the_span_and_drop_the_reference():

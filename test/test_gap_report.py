@@ -155,7 +155,10 @@ def test_report_md_opens_with_the_advice_then_where_which_how_far(position):
 
 
 def test_a_joint_named_roll_in_any_case_is_an_angle_for_the_model_and_the_report(position):
-    from egovib_ros.gap.effects import fit_scales
+    """One rule, case-insensitive: a joint named roll is an angle (the report bins it by
+    angle whatever its travel; the model fits its harmonics once it has turned a
+    revolution in training, over its travel before that)."""
+    from egovib_ros.gap.effects import angle_joints, fit_scales
     from egovib_ros.gap.report import covariate_series
 
     table = position.table
@@ -165,8 +168,13 @@ def test_a_joint_named_roll_in_any_case_is_an_angle_for_the_model_and_the_report
         renamed.table,
         position=np.zeros_like(table.position),  # no travel: the name decides
     )
-    assert fit_scales(quiet, np.ones(table.n_blocks, bool)).periodic[0]
+    assert angle_joints(names, quiet.position)[0]
     assert covariate_series(dataclasses.replace(renamed, table=quiet))["position:R_WRIST_ROLL"][2]
+    everywhere = np.ones(table.n_blocks, bool)
+    assert not fit_scales(quiet, everywhere).periodic[0]  # no travel: hats, not harmonics
+    turned = quiet.position.copy()
+    turned[:, 0] = np.linspace(0.0, 7.0, table.n_blocks)  # a whole turn: its harmonics
+    assert fit_scales(dataclasses.replace(quiet, position=turned), everywhere).periodic[0]
 
 
 def test_no_effect_and_a_model_from_a_recording_are_said_so(position):

@@ -8,8 +8,9 @@ real training split.  Each candidate multiplies it by a flexible log-linear term
 in generic covariates that assume nothing about how the effect is produced:
 
 - position: Fourier series (harmonics 1..POSITION_HARMONICS) of every continuous
-  (revolute, turning) joint's angle, each harmonic only if the training angles span one of
-  its periods (`covered_harmonics`); piecewise-linear functions (POSITION_KNOTS knots
+  (revolute, turning) joint's angle that turned a whole revolution in training, or of one
+  that turned one way over part of a turn the harmonics whose period it spans;
+  piecewise-linear functions (POSITION_KNOTS knots
   over the travel seen in training) of every other joint's position.
 - coupling: products of piecewise-linear functions of two joints' speeds (zero when
   either joint is still: main effects belong to the baseline), plain and relative to
@@ -49,6 +50,8 @@ SPEED_KNOTS = tuple(np.linspace(0.0, 1.0, 9))
 COUPLING_KNOTS = 8
 #: Speed fraction above which a joint counts as moving (direction, knots).
 MOVING_FRACTION = 0.03
+#: A joint turns one way when at least this share of its moving training blocks do.
+ONE_WAY_SHARE = 0.95
 #: A joint is direction-capable when it moves each way in at least this share of training.
 BIDIRECTIONAL_SHARE = 0.05
 #: Speed fraction over which the soft direction sign goes from -1 to +1.
@@ -108,7 +111,7 @@ class FittedModel:
 class Scales:
     """Regressor scalings fixed on the training split (so held-out data are not peeked at)."""
 
-    periodic: np.ndarray  # (J,) bool: joint angle wraps (continuous revolute)
+    periodic: np.ndarray  # (J,) bool: fitted by harmonics of its angle (see `harmonics`)
     pos_lo: np.ndarray  # (J,)
     pos_hi: np.ndarray  # (J,)
     acc_scale: np.ndarray  # (J,)
@@ -121,20 +124,12 @@ class Scales:
     #: per joint: speed-fraction knots of the coupling products (quantiles of training speeds)
     speed_knots: tuple[np.ndarray, ...] = ()
     rate_scale: np.ndarray | None = None  # (J,) 95th percentile of |d|v|/dt| (train)
-    #: per joint: the Fourier harmonics of a turning joint's angle the training data identify
+    #: per joint: the harmonics of its angle the training data identify (none: hats)
     harmonics: tuple[tuple[int, ...], ...] = ()
 
 
 def covered_harmonics(span_rad: float) -> tuple[int, ...]:
-    """The harmonics (1..POSITION_HARMONICS) of an angle whose period fits inside `span_rad`,
-    the angle range the training blocks cover.
-
-    A harmonic seen over less than one period is a smooth trend along the angle, not a
-    periodic function: where a joint turns one way only (a motor's integrated position, a
-    short recording) the angle is monotone in time, so such a column is an extrapolating
-    time trend on held-out blocks (measured on the real flight: a lower-harmonic term fitted
-    on 4/5 of an 8.5 s part cost 1.7 dB on the fifth).  Over a whole turn every harmonic is
-    identified."""
+    """The harmonics (1..POSITION_HARMONICS) of an angle whose period fits in `span_rad`."""
     return tuple(k for k in range(1, POSITION_HARMONICS + 1) if 2 * np.pi / k <= span_rad + 1e-9)
 
 
@@ -151,7 +146,33 @@ def fit_scales(
     table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None
 ) -> Scales:
     pos = table.position[train]
-    periodic = angle_joints(table.joint_names, pos)
+    # A turning joint's harmonics where training identifies them: all of them once it has
+    # turned a whole revolution; turning one way over part of a turn (a motor's integrated
+    # position on a short recording), only those whose period the angles span, since a
+    # harmonic seen over part of its period is a trend along a monotone angle, i.e. in
+    # time, that extrapolates on held-out blocks (the real flight: -1.7 dB). A joint turned
+    # back and forth over less than a turn (a wrist at +-0.5 rad) is fitted over its travel
+    # like a bounded joint.
+    span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(pos.shape[1])
+    frac_train = table.velocity[train] / table.vmax
+    moving_train = np.abs(frac_train) > MOVING_FRACTION
+    one_way = np.array(
+        [
+            max(np.mean(f[m] > 0), np.mean(f[m] < 0)) >= ONE_WAY_SHARE if m.any() else False
+            for f, m in zip(frac_train.T, moving_train.T)
+        ]
+    )
+    full_turn = angle_joints(table.joint_names, pos) & (span >= 2 * np.pi)
+    # a joint that turns one way over part of a turn (a motor): the harmonics it covers
+    turning = ~full_turn & one_way & (span >= 2 * np.pi / POSITION_HARMONICS)
+    harmonics = tuple(
+        tuple(range(1, POSITION_HARMONICS + 1))
+        if full
+        else covered_harmonics(float(sp))
+        if turn
+        else ()
+        for full, turn, sp in zip(full_turn, turning, span)
+    )
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
@@ -178,13 +199,12 @@ def fit_scales(
         )
         knots.append(np.unique(np.concatenate([[0.0], np.maximum(q, 1e-3)])))
     rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(table.velocity)
-    span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(frac.shape[1])
     return Scales(
-        harmonics=tuple(covered_harmonics(float(s)) for s in span),
+        harmonics=harmonics,
         bidirectional=both,
         speed_knots=tuple(knots),
         rate_scale=np.maximum(np.percentile(np.abs(rate[train]), 95, axis=0), 1e-9),
-        periodic=periodic,
+        periodic=np.array([len(h) > 0 for h in harmonics]),
         pos_lo=lo,
         pos_hi=np.maximum(hi, lo + 1e-9),
         acc_scale=np.maximum(acc, 1e-9),
@@ -241,8 +261,6 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
     if scales.periodic[j]:
         cols, labels = [], []
         harmonics = scales.harmonics[j] if scales.harmonics else range(1, POSITION_HARMONICS + 1)
-        if not len(harmonics):
-            return np.zeros((len(p), 0)), []
         for k in harmonics:
             cols += [np.cos(k * p), np.sin(k * p)]
             labels += [f"cos{k}", f"sin{k}"]
@@ -572,8 +590,6 @@ def effect_shape(
             else:
                 grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
             basis, labels = position_basis(grid, j, scales)
-            if not labels:  # no harmonic identified on this joint's training angles
-                continue
             plain = np.array([names.index(f"{label}({name})") for label in labels])
             moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
             typical = (
