@@ -394,8 +394,8 @@ def text_starting_with(first_line: str) -> Callable[[Path], bool]:
     """`ours` for prepare_output: a text file whose first line is `first_line`."""
 
     def ours(path: Path) -> bool:
-        with open(path, encoding="utf-8") as fh:
-            return fh.readline().rstrip("\r\n") == first_line
+        with open(path, encoding="utf-8") as fh:  # a file without newlines is not read whole
+            return fh.readline(len(first_line) + 2).rstrip("\r\n") == first_line
 
     return ours
 

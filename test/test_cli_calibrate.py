@@ -113,3 +113,11 @@ def test_bags_of_one_name_in_different_directories_pool_into_one_model(sim_bags,
         NoiseModel.load(tmp_path / "m.npz").cell_counts,
         2 * NoiseModel.load(tmp_path / "one.npz").cell_counts,
     )
+
+
+def test_one_bag_given_twice_is_refused_not_counted_twice(sim_bags, tmp_path):
+    shutil.copytree(sim_bags / "sweep", tmp_path / "bags" / "sweep")
+    for args in ([tmp_path / "bags", tmp_path / "bags" / "sweep"], [sim_bags / "sweep"] * 2):
+        result = egovib("calibrate", *args, "--out", tmp_path / "m.npz", "--quiet")
+        assert result.returncode == 2 and "given twice" in result.stderr, result.stderr
+        assert not (tmp_path / "m.npz").exists()

@@ -181,3 +181,31 @@ def test_a_stamp_that_repeats_a_joint_is_left_to_the_stuck_clock_check():
     got = SplitJointStates().push(t, p, p)
     np.testing.assert_array_equal(got[0], t)
     np.testing.assert_array_equal(got[1], p)
+
+
+def test_partial_messages_that_never_share_a_stamp_are_held_only_while_probing():
+    """An arm and a gripper publishing at their own times: every row lacks a joint, none
+    shares a stamp; after PROBE_STAMPS stamps they go out as they come (no latency)."""
+    nan = np.nan
+    split = SplitJointStates()
+    out = []
+    for k in range(40):
+        row = np.array([[float(k), nan]]) if k % 2 else np.array([[nan, float(k)]])
+        got = split.push(np.array([1000 * k], np.int64), row, row)
+        out.append(len(got[0]))
+    assert out[: SplitJointStates.PROBE_STAMPS] == [0] + [1] * (SplitJointStates.PROBE_STAMPS - 1)
+    assert out[SplitJointStates.PROBE_STAMPS + 1 :] == [1] * (39 - SplitJointStates.PROBE_STAMPS)
+    assert split.flush() is None
+
+
+def test_a_message_without_our_joints_at_a_stamp_already_given_is_dropped():
+    """The arm broadcaster (every joint) and a wheel broadcaster (none of ours) stamping a
+    tick alike, pushed message by message as a live node takes them: one row per stamp."""
+    nan = np.nan
+    split, rows = SplitJointStates(), []
+    for k in range(20):
+        for row in (np.array([[1.0 * k, 2.0 * k]]), np.array([[nan, nan]])):
+            rows.append(split.push(np.array([1000 * k], np.int64), row, row)[0])
+    held = split.flush()
+    stamps = np.concatenate(rows + ([held[0]] if held is not None else []))
+    np.testing.assert_array_equal(stamps, 1000 * np.arange(20))

@@ -203,9 +203,11 @@ def denoise_bag(
                 writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
                 job = _DenoisedTopic(writer, denoised_topic, profile.sensor_field)
                 copied = {"verbatim": 0, "rewritten": 0}  # chunks copied as they were; batches
+                joint_rows = [0]  # joint states as the core gets them (split messages joined)
 
                 def push(pieces) -> None:
                     for piece in pieces:
+                        joint_rows[0] += len(piece.joint_stamps_ns)
                         for chunk in (
                             denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
                             denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
@@ -230,7 +232,7 @@ def denoise_bag(
                 counts = check_stream(
                     denoiser.stats,
                     f"{bag}: {raw_topic}",
-                    joint_states=stream.counts["joint_states"],
+                    joint_states=joint_rows[0],  # rows, as calibrate, gap, model show
                     joints_where=f"{bag}: {stream.names['joint_states']}",
                 )
                 ratio = writer.size_ratio

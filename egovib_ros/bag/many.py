@@ -103,6 +103,12 @@ def expand_bags(
         else:
             found.append((path, Path(path.name)))
     names = [str(n) for _, n in found]
+    resolved = [str(b.resolve()) for b, _ in found]
+    twice = sorted({str(b) for (b, _), r in zip(found, resolved) if resolved.count(r) > 1})
+    if twice:  # e.g. a directory and a bag inside it: its data would count twice
+        raise ConfigError(
+            f"{twice[0]}: the same bag is given twice (directly or inside a directory)"
+        )
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates and outputs_per_bag:
         raise ConfigError(

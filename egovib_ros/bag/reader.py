@@ -188,25 +188,34 @@ class BagReader:
 
     def _mcap_batches(self, wanted: set[str]) -> Iterator[ReadBatch]:
         """Batches of chunks from every file of the bag, merged in log-time order: a bag may
-        be split by time (one file after the other) or by topic (each file spans the whole
-        recording), so the next chunk is the one that starts first in any file. One
-        decompressed chunk per file is held; a batch holds chunks of one file (its scanner's
-        channel ids)."""
+        be split by time (one file after the other) or by topic (each file spanning the whole
+        recording), so the next chunk is the one that starts first in any file. A file is
+        opened when the merge reaches the start time metadata.yaml gives it (all at once if
+        it gives none), so a bag of many files split by time holds one open at a time; one
+        decompressed chunk is held per open file, and a batch holds chunks of one file (its
+        scanner's channel ids)."""
         scanners = [McapScanner(file) for file in self.files]
-        chunks = [self._checked_chunks(scanner) for scanner in scanners]
-        heads = [next(it, None) for it in chunks]
+        chunks: list = [None] * len(scanners)  # iterators of the files opened
+        heads: list = [None] * len(scanners)  # the next chunk of each open file
+        starts = self._file_starts()
+        waiting = set(range(len(scanners)))  # not opened yet
         group: list[ChunkData] = []
         group_file, size = None, 0
-        while any(h is not None for h in heads):
-            k = min(
-                (i for i, h in enumerate(heads) if h is not None),
-                key=lambda i: (_first_time(heads[i]), i),
-            )
+        while waiting or any(h is not None for h in heads):
+            keys = {i: (_first_time(h), i) for i, h in enumerate(heads) if h is not None}
+            keys.update({i: (starts[i], i) for i in waiting})
+            k = min(keys, key=keys.get)
+            if k in waiting:  # open it: its first chunk joins the merge
+                waiting.discard(k)
+                chunks[k] = self._checked_chunks(scanners[k])
+                heads[k] = next(chunks[k], None)
+                continue
             chunk, heads[k] = heads[k], next(chunks[k], None)
-            # what is still unread in the other files starts no earlier than their next chunk
-            bounds = [chunk.frontier_ns] + [
-                _first_time(h) for i, h in enumerate(heads) if h is not None and i != k
-            ]
+            # what is still unread in the other files starts no earlier than their next
+            # chunk, or than the start metadata.yaml gives a file not opened yet
+            bounds = [chunk.frontier_ns]
+            bounds += [_first_time(h) for i, h in enumerate(heads) if h is not None and i != k]
+            bounds += [starts[i] for i in waiting]
             chunk.frontier_ns = None if None in bounds else min(bounds)
             if group and (k != group_file or size >= self.batch_bytes):
                 yield self._chunk_batch(group, scanners[group_file], wanted)
@@ -216,6 +225,19 @@ class BagReader:
             size += len(chunk.records)
         if group:
             yield self._chunk_batch(group, scanners[group_file], wanted)
+
+    def _file_starts(self) -> list[int]:
+        """Each file's first log time from metadata.yaml (`files`), or the earliest
+        possible time for all of them when it does not give every one."""
+        entries = {
+            e.get("path"): e.get("starting_time", {}).get("nanoseconds_since_epoch")
+            for e in self.info.get("files") or []
+            if isinstance(e, dict) and isinstance(e.get("starting_time"), dict)
+        }
+        starts = [entries.get(f.name) for f in self.files]
+        if any(not isinstance(t, int) for t in starts):
+            return [np.iinfo(np.int64).min] * len(self.files)
+        return starts
 
     @staticmethod
     def _checked_chunks(scanner: McapScanner) -> Iterator[ChunkData]:

@@ -171,12 +171,6 @@ class RecordingStream:
                         f"expected {expected}"
                     )
                 self.present.add(key)
-        # a topic the bag's index counts no message of cannot hold back the others
-        self.present = {
-            k
-            for k in self.present
-            if k in ("raw", "joint_states") or reader.topics[self.names[k]].count > 0
-        }
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
         self.horizon_ns = int(horizon_s * NS_PER_S)
@@ -302,7 +296,9 @@ class RecordingStream:
             return np.iinfo(np.int64).max
         if key not in self._lead_ns:
             return np.iinfo(np.int64).min
-        return self._frontier_ns + self._lead_ns[key]
+        frontier = self._frontier_ns + self._lead_ns[key]
+        held = self._split_joints.held_from_ns if key == "joint_states" else None
+        return frontier if held is None else min(frontier, held)  # read, not yet in
 
     def _merge_partial(self, stamps, position, velocity):
         """Fill a joint missing from a message with its last published value."""
@@ -314,6 +310,8 @@ class RecordingStream:
 
     # --- output ------------------------------------------------------------------------
     def _release(self, *, final: bool) -> list[Recording]:
+        if not final and any(k not in self._lead_ns for k in [*self._sensor_keys, "joint_states"]):
+            return []  # a stream not read yet may hold any stamp (and nothing is re-copied)
         sensor = {
             k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
             for k, v in self._sensor.items()

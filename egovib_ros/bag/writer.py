@@ -248,7 +248,12 @@ class BagWriter:
             # rosbags pairs metadata.yaml's topics with the file's channels by QoS too: a
             # topic recorded on several connections (QoS variants) is written as one
             # channel, declared alike in both places
-            qos = yaml.safe_load(channel.metadata["offered_qos_profiles"]) or []
+            try:
+                qos = yaml.safe_load(channel.metadata["offered_qos_profiles"]) or []
+            except yaml.YAMLError:
+                raise BagError(
+                    f"{reader.path}: topic {topic}: its channel's QoS profiles are not YAML"
+                ) from None
         return self.add_topic(
             name,
             info.msgtype,

@@ -209,21 +209,40 @@ class SplitJointStates:
     """Joint states published one message per joint (or per controller) with one stamp:
     the messages of one stamp whose joints do not overlap are joined into one row, as one
     JointState would have carried them. Rows of one stamp that repeat a joint are left as
-    they are (a stuck clock: the framer counts and drops them).
+    they are (a stuck clock: the framer counts and drops them); a row with none of the
+    joints that repeats the stamp before it (another controller's message) is dropped.
 
     Streaming: `push` holds back the rows of the last stamp while some joint is missing
-    from them (the next message may complete it); `flush` gives them at the end. Joining
-    happens before velocities are derived from positions and before missing joints are
-    held (`hold_missing_joints`), offline and live alike.
+    from them (the next message may complete it); `flush` gives them at the end of the
+    stream. A robot whose partial messages never share a stamp (an arm and a gripper
+    publishing at their own times) is held back for its first PROBE_STAMPS stamps only,
+    then not at all (unless a split stamp comes after all). Joining happens
+    before velocities are derived from positions and before missing joints are held
+    (`hold_missing_joints`), offline and live alike.
     """
+
+    #: Partial stamps held without anything to join before holding stops.
+    PROBE_STAMPS = 10
 
     def __init__(self) -> None:
         self._tail: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._joining = False  # a stamp has come in several messages: hold the last one
+        self._holding = True  # hold partial last stamps (probing, or joining)
+        self._unjoined = 0  # stamps held that had nothing to join
+        self._last_stamp: int | None = None  # of the last row given out
+        self._last_present: np.ndarray | None = None
+
+    @property
+    def held_from_ns(self) -> int | None:
+        """The stamp of the rows held back (None: none); later stamps may still come."""
+        return None if self._tail is None else int(self._tail[0][0])
 
     def push(
         self, stamps: np.ndarray, position: np.ndarray, velocity: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        held = 0
         if self._tail is not None:
+            held = len(self._tail[0])
             stamps, position, velocity = (
                 np.concatenate([a, b]) for a, b in zip(self._tail, (stamps, position, velocity))
             )
@@ -232,27 +251,47 @@ class SplitJointStates:
         if n == 0:
             return stamps, position, velocity
         present = ~(np.isnan(position) & np.isnan(velocity))
+        if self._last_stamp is not None and stamps[0] == self._last_stamp:
+            # the stamp of a row already given out: it cannot be joined any more
+            if not present[0].any():  # another controller's message: nothing of ours
+                stamps, position, velocity, present = (
+                    stamps[1:], position[1:], velocity[1:], present[1:]
+                )  # fmt: skip
+                n -= 1
+            elif not (present[0] & self._last_present).any():
+                self._joining = self._holding = True  # split messages after all: hold
+        if n == 0:
+            return stamps, position, velocity
         starts = np.flatnonzero(np.r_[True, stamps[1:] != stamps[:-1]])
         per_run = np.add.reduceat(present.astype(np.int64), starts, axis=0)  # (R, J)
-        if not present[starts[-1] :].any(axis=0).all():  # the last stamp may still grow
+        sizes = np.diff(np.r_[starts, n])
+        joined = (sizes > 1) & (per_run.max(axis=1) <= 1)  # disjoint joints in one stamp
+        if joined.any():
+            self._joining = self._holding = True
+        elif held and not self._joining and n > held and stamps[held] != stamps[0]:
+            self._unjoined += 1  # the stamp held had nothing to join
+            self._holding = self._unjoined < self.PROBE_STAMPS
+        if self._holding and not (per_run[-1] > 0).all():  # the last stamp may still grow
             last = starts[-1]
             self._tail = (stamps[last:], position[last:], velocity[last:])
-            stamps, position, velocity = stamps[:last], position[:last], velocity[:last]
-            starts, per_run = starts[:-1], per_run[:-1]
+            stamps, position, velocity, present = (
+                stamps[:last], position[:last], velocity[:last], present[:last]
+            )  # fmt: skip
+            starts, sizes, joined = starts[:-1], sizes[:-1], joined[:-1]
             n = last
         if n == 0:
             return stamps, position, velocity
-        sizes = np.diff(np.r_[starts, n])
-        joined = (sizes > 1) & (per_run.max(axis=1) <= 1)  # disjoint joints in one stamp
-        if not joined.any():
-            return stamps, position, velocity
-        position, velocity = position.copy(), velocity.copy()
-        with np.errstate(invalid="ignore"):  # fmax skips NaN: each joint from its own row
-            position[starts[joined]] = np.fmax.reduceat(position, starts, axis=0)[joined]
-            velocity[starts[joined]] = np.fmax.reduceat(velocity, starts, axis=0)[joined]
-        run = np.repeat(np.arange(len(starts)), sizes)
-        keep = ~joined[run] | (np.arange(n) == starts[run])
-        return stamps[keep], position[keep], velocity[keep]
+        if joined.any():
+            position, velocity = position.copy(), velocity.copy()
+            with np.errstate(invalid="ignore"):  # fmax skips NaN: each joint from its own row
+                position[starts[joined]] = np.fmax.reduceat(position, starts, axis=0)[joined]
+                velocity[starts[joined]] = np.fmax.reduceat(velocity, starts, axis=0)[joined]
+            run = np.repeat(np.arange(len(starts)), sizes)
+            keep = ~joined[run] | (np.arange(n) == starts[run])
+            stamps, position, velocity = stamps[keep], position[keep], velocity[keep]
+        self._last_stamp = int(stamps[-1])
+        self._last_present = ~(np.isnan(position[-1]) & np.isnan(velocity[-1]))
+        return stamps, position, velocity
 
     def flush(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The rows held back (the last stamp's), joined as far as they go; None if none."""
@@ -266,6 +305,8 @@ class SplitJointStates:
                 position = np.fmax.reduce(position, axis=0, keepdims=True)
                 velocity = np.fmax.reduce(velocity, axis=0, keepdims=True)
             stamps = stamps[:1]
+        self._last_stamp = int(stamps[-1])
+        self._last_present = ~(np.isnan(position[-1]) & np.isnan(velocity[-1]))
         return stamps, position, velocity
 
 

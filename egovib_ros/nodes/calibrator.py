@@ -174,11 +174,12 @@ class Calibrator(Node):
         return acc
 
     # --- input ------------------------------------------------------------------------
-    def _process(self) -> None:
+    def _process(self, *, final: bool = False) -> None:
         """Push what arrived, joint states first; the core holds each block until the
-        joint states covering it are in (at most JOINT_WAIT_S)."""
+        joint states covering it are in (at most JOINT_WAIT_S). `final`: at the end, the
+        last stamp's held joint states too."""
         self._last_input = time.monotonic()
-        joints = self.input.take_joints()
+        joints = self.input.take_joints(final=final)
         if joints is not None and len(joints.stamps_ns):
             self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
         batch = self.input.take_sensor()
@@ -347,7 +348,7 @@ class Calibrator(Node):
     def close(self) -> int:
         """Write the final model and report coverage; 1 if no block was collected, 2 if the
         model could not be written where asked (it is then saved elsewhere, named)."""
-        self._process()
+        self._process(final=True)
         self.acc.flush()
         cov = self.coverage()
         if cov["blocks"] == 0:

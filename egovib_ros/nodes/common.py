@@ -376,18 +376,27 @@ class StreamInput:
             arrival = arrival[index]
         return SensorBatch(stamps, values, raws, arrival)
 
-    def take_joints(self) -> JointBatch | None:
-        """Decode the joint states received since the last call (columns by name)."""
-        if not self._joints:
+    def take_joints(self, *, final: bool = False) -> JointBatch | None:
+        """Decode the joint states received since the last call (columns by name); `final`
+        (the stream has gone quiet): also the last stamp's, held back while the next
+        message could still complete it."""
+        flush = final and self._split_joints.held_from_ns is not None
+        if not self._joints and not flush:
             return None
         raws, self._joints = self._joints, []
-        now = time.monotonic()
-        self.first_joint_s = self.first_joint_s or now
-        self.last_joint_s = now
+        if raws:
+            now = time.monotonic()
+            self.first_joint_s = self.first_joint_s or now
+            self.last_joint_s = now
         stamps, position, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
         self.undecodable_joints += bad
         # one message per joint, one stamp: one row, as the bag layer reads it offline
         stamps, position, velocity = self._split_joints.push(stamps, position, velocity)
+        held = self._split_joints.flush() if final else None
+        if held is not None:  # the end of the stream: the last stamp's, held back, goes last
+            stamps, position, velocity = (
+                np.concatenate([a, b]) for a, b in zip((stamps, position, velocity), held)
+            )
         if len(stamps):
             present = ~(np.isnan(position) & np.isnan(velocity))
             self.joints_seen |= present.any(axis=0)

@@ -357,9 +357,10 @@ class Denoiser(Node):
     def _process_joints(self) -> None:
         self._publish(self._push_joints())
 
-    def _push_joints(self):
-        """Joint states received so far into the core; the output they release (or None)."""
-        batch = self.input.take_joints()
+    def _push_joints(self, *, final: bool = False):
+        """Joint states received so far into the core; the output they release (or None).
+        `final`: the input has gone quiet, the last stamp's held joint states go in too."""
+        batch = self.input.take_joints(final=final)
         if batch is None or not len(batch.stamps_ns):
             return None
         self.missing_joints = self.input.missing_joints()  # output withheld while any
@@ -408,6 +409,7 @@ class Denoiser(Node):
             self._process()
         elif not self._flushed and self.flush_after_idle_s > 0 and idle > self.flush_after_idle_s:
             self._flushed = True
+            self._publish(self._push_joints(final=True))
             self._publish(self.denoiser.flush(), end_of_stream=True)
         # The stream stopping or coming back is reported at once, not at the next 1 Hz report.
         last = self.input.last_sensor_s
