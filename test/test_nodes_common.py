@@ -73,3 +73,36 @@ def test_run_node_exit_status_and_close_for_errors_in_callbacks_and_sigterm(
     assert done.returncode == status, done.stderr
     assert text in done.stdout + done.stderr
     assert "closed" in done.stdout  # close() runs on every way out
+
+
+def test_joint_states_split_per_joint_are_joined_live_and_the_held_stamp_flushed_at_the_end(
+    ros_client,
+):
+    """StreamInput (the nodes' input) joins one message per joint of one stamp into one row,
+    as the bag reader does offline; when the input goes quiet (`final`) the last stamp,
+    held back while it could still grow, comes out too, even with no new message."""
+    from egovib_ros.bag.codec import encode_joint_state_batch
+    from egovib_ros.nodes.common import StreamInput
+    from egovib_ros.robot import load_profile
+
+    profile = load_profile(None)  # the PR2 hand: two joints
+    names = list(profile.joint_names)
+    inp = StreamInput(ros_client.node, profile, batch_samples=32, on_batch=lambda: None)
+    stamps = np.arange(1, 6, dtype=np.int64) * 1_000_000
+    velocity = np.column_stack([np.arange(5.0), -np.arange(5.0)])
+    for k, name in enumerate(names):  # one publisher per joint, both stamping a tick alike
+        raws = encode_joint_state_batch(
+            stamps, velocity[:, k : k + 1] * 0, velocity[:, k : k + 1], [name]
+        )
+        inp._joints += [bytes(r) for r in raws]  # as the subscription callback collects them
+    per_joint = inp._joints
+    # interleaved in arrival, and the second joint's message of the last stamp never comes
+    inp._joints = [per_joint[i // 2 + (i % 2) * 5] for i in range(9)]
+    first = inp.take_joints()
+    np.testing.assert_array_equal(first.stamps_ns, stamps[:4])  # the last stamp held
+    np.testing.assert_array_equal(first.velocity, velocity[:4])
+    assert inp.take_joints() is None  # nothing new, not the end: still held
+    last = inp.take_joints(final=True)
+    np.testing.assert_array_equal(last.stamps_ns, stamps[4:])
+    # the joint it lacks keeps its last value (hold_missing_joints), as offline
+    np.testing.assert_array_equal(last.velocity, [[velocity[4, 0], velocity[3, 1]]])

@@ -400,7 +400,7 @@ class StreamInput:
         if len(stamps):
             present = ~(np.isnan(position) & np.isnan(velocity))
             self.joints_seen |= present.any(axis=0)
-            if not self.joints_seen.all() and not self.carried_joint_names:
+            if not self.joints_seen.all() and not self.carried_joint_names and raws:
                 self.carried_joint_names = joint_names_of(raws[-1])
             derived_before = self._joint_velocity.derived
             velocity = self._joint_velocity.push(stamps, position, velocity)
