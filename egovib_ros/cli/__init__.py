@@ -22,7 +22,6 @@ the commands' modules load is caught here too.
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import sys
 import threading
@@ -157,21 +156,15 @@ def _signals_raise():
         raise Terminated
 
     previous_hook = sys.unraisablehook
-    active = [True]
-
-    def send_again() -> None:
-        if active[0]:
-            os.kill(os.getpid(), signal.SIGINT)
 
     def on_unraisable(unraisable):
         # A stop raised inside a callback Python cannot propagate from (measured: the import
         # system's module-lock weakref callback, Ctrl-C during start-up) would be printed as
-        # "Exception ignored" with a traceback and then lost. It is recorded already: Ctrl-C
-        # is sent again a moment later, from another thread, to land where it propagates; a
-        # SIGTERM's stop is acted on as recorded (`_request_stop`).
-        if _stopped and unraisable.exc_type is KeyboardInterrupt:
-            threading.Timer(0.01, send_again).start()
-        elif not (_stopped and unraisable.exc_type is Terminated):
+        # "Exception ignored" with a traceback. It is recorded already (`_request_stop`)
+        # and acted on where outputs are committed and when the command returns (exit 130):
+        # not printed. (Sending the signal again from a timer thread was tried: under load
+        # it landed after the command, in whatever ran next.)
+        if not (_stopped and unraisable.exc_type in (KeyboardInterrupt, Terminated)):
             previous_hook(unraisable)
 
     previous = {}
@@ -182,7 +175,6 @@ def _signals_raise():
     try:
         yield
     finally:
-        active[0] = False
         sys.unraisablehook = previous_hook
         for number, handler in previous.items():
             signal.signal(number, signal.SIG_DFL if handler is None else handler)
