@@ -287,15 +287,10 @@ class RecordingStream:
         self._lead_ns[key] = min(lead, self._lead_ns.get(key, lead))
 
     def _stamp_frontier(self, key: str) -> int:
-        """Stamps of `key` not read yet are at least this (from the log-time frontier).
-
-        A stream with no message read yet may still hold any stamp: a converter that wrote
-        one topic after the other, logging its own clock, puts every joint state after
-        every sensor sample in log time, and nothing can go on before they are in."""
+        """Stamps of `key` not read yet are at least this (from the log-time frontier; a
+        stream with none read yet holds everything back, see `_release`)."""
         if self._frontier_ns is None:
             return np.iinfo(np.int64).max
-        if key not in self._lead_ns:
-            return np.iinfo(np.int64).min
         frontier = self._frontier_ns + self._lead_ns[key]
         held = self._split_joints.held_from_ns if key == "joint_states" else None
         return frontier if held is None else min(frontier, held)  # read, not yet in
@@ -311,7 +306,10 @@ class RecordingStream:
     # --- output ------------------------------------------------------------------------
     def _release(self, *, final: bool) -> list[Recording]:
         if not final and any(k not in self._lead_ns for k in [*self._sensor_keys, "joint_states"]):
-            return []  # a stream not read yet may hold any stamp (and nothing is re-copied)
+            # A stream with no message read yet may still hold any stamp: a converter that
+            # wrote one topic after the other, logging its own clock, puts every joint state
+            # after every sensor sample in log time. Nothing goes on (nor is re-copied).
+            return []
         sensor = {
             k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
             for k, v in self._sensor.items()

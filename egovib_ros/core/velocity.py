@@ -297,17 +297,12 @@ class SplitJointStates:
         """The rows held back (the last stamp's), joined as far as they go; None if none."""
         if self._tail is None:
             return None
-        stamps, position, velocity = self._tail
-        self._tail = None
-        present = ~(np.isnan(position) & np.isnan(velocity))
-        if len(stamps) > 1 and present.sum(axis=0).max() <= 1:
-            with np.errstate(invalid="ignore"):
-                position = np.fmax.reduce(position, axis=0, keepdims=True)
-                velocity = np.fmax.reduce(velocity, axis=0, keepdims=True)
-            stamps = stamps[:1]
-        self._last_stamp = int(stamps[-1])
-        self._last_present = ~(np.isnan(position[-1]) & np.isnan(velocity[-1]))
-        return stamps, position, velocity
+        empty = tuple(a[:0] for a in self._tail)
+        holding, self._holding = self._holding, False  # the end: nothing more can come
+        try:
+            return self.push(*empty)
+        finally:
+            self._holding = holding
 
 
 def hold_missing_joints(

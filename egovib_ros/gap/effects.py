@@ -154,12 +154,12 @@ def fit_scales(
     # back and forth over less than a turn (a wrist at +-0.5 rad) is fitted over its travel
     # like a bounded joint.
     span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(pos.shape[1])
-    frac_train = table.velocity[train] / table.vmax
-    moving_train = np.abs(frac_train) > MOVING_FRACTION
+    frac = table.velocity[train] / table.vmax
+    moving = np.abs(frac) > MOVING_FRACTION
     one_way = np.array(
         [
             max(np.mean(f[m] > 0), np.mean(f[m] < 0)) >= ONE_WAY_SHARE if m.any() else False
-            for f, m in zip(frac_train.T, moving_train.T)
+            for f, m in zip(frac.T, moving.T)
         ]
     )
     full_turn = angle_joints(table.joint_names, pos) & (span >= 2 * np.pi)
@@ -178,8 +178,6 @@ def fit_scales(
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
     band = np.mean(m**2, axis=1)
     t = table.t_mid_s[train]
-    frac = table.velocity[train] / table.vmax
-    moving = np.abs(frac) > MOVING_FRACTION
     both = np.array(
         [
             min(np.mean(frac[:, j] > MOVING_FRACTION), np.mean(frac[:, j] < -MOVING_FRACTION))
