@@ -82,3 +82,22 @@ def test_no_effect_says_whether_the_velocity_model_leaves_much(diagnoses):
     worse = dataclasses.replace(diag, gaps={**diag.gaps, "refit": diag.floor + 1.0})
     assert "1.00 dB above the floor stays unexplained" in action(worse)[0]
     assert np.isfinite(advise(worse)["unexplained"]["above_floor_db"])
+
+
+def test_the_lag_advice_applied_with_the_core_is_scored_like_for_like(caplog):
+    """Joint states stamped 50 ms late in the recording denoised, not in the calibration:
+    the advised joint_lag (-50 ms) removes more noise; both runs are scored on the same
+    samples (the end blocks the lag leaves without joint states are counted, not scored,
+    and not warned about)."""
+    from egovib_ros.gap.advice import measure_joint_lag
+    from egovib_ros.robot import load_profile
+    from egovib_ros.sim import simulate_motion
+
+    cal, _ = simulate_motion(duration_s=20.0, max_speed=0.8, seed=3)
+    test, _ = simulate_motion(duration_s=20.0, max_speed=0.8, seed=4, effects={"timing": 0.05})
+    with caplog.at_level("WARNING", logger="egovib_ros.core"):
+        out = measure_joint_lag(cal, test, load_profile(), -0.05, calibration_lag_s=0.0)
+    assert not [r for r in caplog.records if "no joint state" in r.getMessage()]
+    assert out["with"]["blocks_no_joint_state"] + out["without"]["blocks_no_joint_state"] > 0
+    assert 0 < out["scored_samples"] < len(test.sensor)
+    assert out["gain_db"] > 0.3, out

@@ -331,7 +331,13 @@ def render_markdown(report: dict) -> str:
         lines.append("")
     advised = [r for r in report["runs"] if r.get("denoiser_with_advice")]
     if advised:
-        lines += ["## The advice applied (timing verdicts)", ""]
+        lines += [
+            "## The advice applied (timing verdicts)",
+            "",
+            "Both runs are scored on the same samples: the part's ends, as far as the lag "
+            "reaches, are left out (their blocks have no joint state with the lag).",
+            "",
+        ]
         for r in advised:
             d = r["denoiser_with_advice"]
             lines.append(
