@@ -257,7 +257,8 @@ def build_report(
             "drift: the better of two looks, Bonferroni x2), a reduction of at least 0.004 "
             "per block and bin, and a smaller held-out gap than the baseline's; "
             "confidence = block-bootstrap share of resamples in which the "
-            "verdict's effect stays best (for none: 1 - the strongest candidate's adjusted p)",
+            "verdict's effect stays best (for none: in which no candidate reaches the minimum "
+            "reduction)",
         },
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
