@@ -44,6 +44,9 @@ class Layout:
     velocity: bool = True  # False: JointStates carry positions only (many real drivers)
     files: str = "one"  # one | topic (sensor topics in one file, the others in another)
     joints: str = "one"  # one | per_joint (a JointState per joint, all with one stamp)
+    # bytes after every message: rclpy's serialize_message leaves 8 stray ones after some
+    # JointStates (positions only), and bags written with it (rosbag2_py) keep them
+    trailing: int = 0
 
 
 LAYOUTS = (
@@ -67,6 +70,7 @@ LAYOUTS = (
     Layout("converter_clock_logs_reversed", order="rtopic", log="writer"),
     Layout("topics_in_two_files", files="topic"),
     Layout("sqlite3_topics_in_two_files", storage="sqlite3", files="topic", order="rtopic"),
+    Layout("trailing_bytes", trailing=8),
 )
 
 
@@ -202,6 +206,11 @@ def arrange(
         out = [(t, 1_800_000_000 * _NS, d) for t, _, d in out]
     if layout.log == "writer":  # 10 us per message written, on the day of the conversion
         out = [(t, 1_800_000_000 * _NS + 10_000 * k, d) for k, (t, _, d) in enumerate(out)]
+    if layout.trailing:
+        stray = bytes([0x97, 0x7F, 0, 0, 0x70, 0x5B, 0x60, 0x0D] * layout.trailing)[
+            : layout.trailing
+        ]
+        out = [(t, log, d + stray) for t, log, d in out]
     return out
 
 

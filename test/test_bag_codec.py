@@ -211,3 +211,25 @@ def test_packed_and_scattered_batches_read_the_same_bytes():
     np.testing.assert_array_equal(packed.columns(7, 20), scattered.columns(7, 20))
     np.testing.assert_array_equal(packed.matrix(), scattered.matrix())
     assert packed.to_list() == scattered.to_list() == raws
+
+
+def test_messages_serialised_by_rclpy_decode_with_their_stray_trailing_bytes():
+    """rclpy's serialize_message (what rosbag2_py writers are given) leaves 8 stray bytes
+    after a positions-only JointState; rosbags refuses more than 3, a DDS reader ignores
+    them, and so does the codec (bags written that way were refused as undecodable)."""
+    serialization = pytest.importorskip("rclpy.serialization")
+    from sensor_msgs.msg import Imu, JointState
+
+    msg = JointState(name=list(JOINT_NAMES), position=[0.5, 0.02])
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 345
+    raw = bytes(serialization.serialize_message(msg))
+    stamps, position, velocity = decode_joint_states([raw], JOINT_NAMES)
+    assert stamps.tolist() == [12_000_000_345]
+    np.testing.assert_array_equal(position, [[0.5, 0.02]])
+    assert np.isnan(velocity).all()
+    imu = Imu()
+    imu.header.frame_id = "imu_link"
+    imu.linear_acceleration.z = 9.81
+    padded = bytes(serialization.serialize_message(imu)) + bytes(8)
+    _, values = decode_imu([padded])
+    np.testing.assert_array_equal(values, [[0.0, 0.0, 9.81]])

@@ -28,6 +28,7 @@ from functools import lru_cache
 from typing import Sequence, Union
 
 import numpy as np
+from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from egovib_ros.bag.mcapfile import gather, rows
@@ -48,6 +49,22 @@ _FIELD_DOUBLES = {"angular_velocity": 13, "linear_acceleration": 25}
 def typestore():
     """The ROS 2 Jazzy typestore of rosbags (cached)."""
     return get_typestore(Stores.ROS2_JAZZY)
+
+
+def deserialize(raw: bytes | memoryview, typename: str):
+    """One message from its CDR bytes, read as a DDS reader reads it: bytes after the
+    message are ignored. rclpy's serialize_message leaves 8 stray bytes after some
+    JointStates (positions only), bags written with it (rosbag2_py) keep them, and
+    rosbags' deserialize_cdr refuses more than 3 bytes of padding."""
+    if len(raw) < 4 or bytes(raw[:2]) not in (b"\x00\x00", b"\x00\x01"):
+        raise SerdeError(f"{typename}: invalid or unsupported CDR encapsulation")
+    ts = typestore()
+    msgdef = ts.get_msgdef(typename)
+    read = msgdef.deserialize_cdr_le if raw[1] else msgdef.deserialize_cdr_be
+    try:
+        return read(memoryview(raw)[4:], 0, msgdef.cls, ts)[0]
+    except (struct.error, UnicodeDecodeError, ValueError, IndexError) as exc:
+        raise SerdeError(f"could not deserialize {typename}: {exc}") from exc
 
 
 # --------------------------------------------------------------------------
@@ -280,7 +297,7 @@ def encode_imu_batch(
 
 
 def _decode_imu_slow(raw: bytes, field: str) -> tuple[int, np.ndarray]:
-    msg = typestore().deserialize_cdr(raw, IMU_TYPE)
+    msg = deserialize(raw, IMU_TYPE)
     v = getattr(msg, field)
     return msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec, np.array([v.x, v.y, v.z])
 
@@ -349,7 +366,7 @@ def replace_imu_field(messages: Messages, values: np.ndarray, field: str = "line
         ts = typestore()
         out = []
         for raw, xyz in zip(batch.to_list(), values):
-            msg = ts.deserialize_cdr(raw, IMU_TYPE)
+            msg = deserialize(raw, IMU_TYPE)
             vector = getattr(msg, field)
             vector.x, vector.y, vector.z = (float(v) for v in xyz)
             out.append(bytes(ts.serialize_cdr(msg, IMU_TYPE)))
@@ -485,7 +502,7 @@ def decode_joint_states(
     velocity = np.full((n, len(names)), np.nan)
     column = {name: j for j, name in enumerate(names)}
     for i, raw in enumerate(raws):
-        msg = typestore().deserialize_cdr(raw, JOINT_STATE_TYPE)
+        msg = deserialize(raw, JOINT_STATE_TYPE)
         stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
         for k, name in enumerate(msg.name):
             j = column.get(name)
@@ -575,4 +592,4 @@ def encode_commands(values: Sequence[float]) -> bytes:
 
 def decode_commands(raw: bytes) -> np.ndarray:
     """The data array of a serialised Float64MultiArray."""
-    return np.asarray(typestore().deserialize_cdr(raw, COMMANDS_TYPE).data, np.float64)
+    return np.asarray(deserialize(raw, COMMANDS_TYPE).data, np.float64)
