@@ -117,7 +117,8 @@ class Feeder:
     in an order of their own, as a real robot's joint_state_broadcaster does), positions
     (the velocities integrated over the stamps) and velocities, or with `positions_only` an
     empty velocity field (as many real drivers). `keep_messages`: keep every message sent
-    as (topic, stamp, bytes) in `messages` (to write the same stream into a bag)."""
+    as (topic, stamp, bytes) in `messages` (to write the same stream into a bag).
+    `undecodable_joints`: every JointState cut to half its bytes (a broken driver)."""
 
     def __init__(
         self,
@@ -132,6 +133,7 @@ class Feeder:
         split_joints: bool = False,
         positions_only: bool = False,
         keep_messages: bool = False,
+        undecodable_joints: bool = False,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -154,6 +156,7 @@ class Feeder:
         self.velocity = np.array([speeds[name] for name in self.joint_names])
         self.split_joints = split_joints  # two publishers, each with half of the joints
         self.positions_only = positions_only
+        self.undecodable_joints = undecodable_joints
         self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
         self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
         self.last_joint_stamp: int | None = None
@@ -214,6 +217,8 @@ class Feeder:
         return position
 
     def _publish(self, publisher, data: bytes) -> None:
+        if self.undecodable_joints and publisher is self.joint_pub:
+            data = bytes(data)[: len(data) // 2]
         publisher.publish(data)
         if self.messages is not None:
             self.messages.append((publisher.topic_name, header_stamp_ns(data), data))

@@ -106,3 +106,37 @@ def test_joint_states_split_per_joint_are_joined_live_and_the_held_stamp_flushed
     np.testing.assert_array_equal(last.stamps_ns, stamps[4:])
     # the joint it lacks keeps its last value (hold_missing_joints), as offline
     np.testing.assert_array_equal(last.velocity, [[velocity[4, 0], velocity[3, 1]]])
+
+
+def test_a_joint_never_seen_says_why_undecodable_or_without_values(ros_client):
+    """The missing-joint ERROR names the cause: messages that do not decode, or messages
+    that name the joints with no position or velocity (effort only)."""
+    from rosbags.typesys.stores.ros2_jazzy import (
+        builtin_interfaces__msg__Time as Time,
+    )
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__JointState as JointState
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
+
+    from egovib_ros.bag.codec import JOINT_STATE_TYPE, typestore
+    from egovib_ros.nodes.common import StreamInput
+    from egovib_ros.robot import load_profile
+
+    profile = load_profile(None)
+    names = list(profile.joint_names)
+    empty = np.zeros(0)
+    effort_only = JointState(
+        header=Header(stamp=Time(sec=1, nanosec=0), frame_id=""),
+        name=names,
+        position=empty,
+        velocity=empty,
+        effort=np.ones(len(names)),
+    )
+    raw = bytes(typestore().serialize_cdr(effort_only, JOINT_STATE_TYPE))
+    cases = {"with no position or velocity": [raw], "2 of its messages undecodable": [raw[:9]] * 2}
+    for why, raws in cases.items():
+        inp = StreamInput(ros_client.node, profile, batch_samples=32, on_batch=lambda: None)
+        inp._joints += raws  # as the subscription callback collects them
+        inp.take_joints(final=True)  # the row is not held back as a stamp still growing
+        assert inp.missing_joints() == names
+        message = inp.missing_joints_message(inp.missing_joints())
+        assert why in message and all(name in message for name in names), message

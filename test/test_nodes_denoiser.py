@@ -377,18 +377,19 @@ def test_parameters_oversubtraction_changes_output_live_and_read_only_refused(
 def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
     nodes, ros_client, feeder, sim_model_path
 ):
-    # Two denoisers side by side: one fed a 1 kHz stream (the model is 3 kHz), one fed
-    # joint states that lack one of the model's joints.
+    # Three denoisers side by side: one fed a 1 kHz stream (the model is 3 kHz), one fed
+    # joint states that lack one of the model's joints, one fed joint states none of which
+    # decodes (it published the input as "denoised" before: no decoded row, no check).
     started = {
         ns: nodes.start(
             "denoiser",
             {"model": str(sim_model_path), **reliable_input(*(ns + t for t in TOPICS_IN))},
             namespace=ns,
         )
-        for ns in ("/wrong_rate", "/no_gripper")
+        for ns in ("/wrong_rate", "/no_gripper", "/undecodable")
     }
-    wrong, lacking = started["/wrong_rate"], started["/no_gripper"]
-    output = {"wrong_rate": [], "no_gripper": []}
+    wrong, lacking, broken = (started[ns] for ns in ("/wrong_rate", "/no_gripper", "/undecodable"))
+    output = {"wrong_rate": [], "no_gripper": [], "undecodable": []}
     for ns, received in output.items():
         subscription = ros_client.node.create_subscription(
             Imu, f"/{ns}/accelerometer/denoised", received.append, LOSSLESS, raw=True
@@ -404,31 +405,39 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
         seed=1,
         joint_names=[n for n in many_joints(PR2) if n != PR2.joint_names[1]],
     )
-    assert slow.wait_for_subscribers("wrong_rate/denoiser") and no_gripper.wait_for_subscribers(
-        "no_gripper/denoiser"
-    ), nodes.log(wrong) + nodes.log(lacking)
+    garbled = feeder(PR2, namespace="/undecodable", seed=2, undecodable_joints=True)
+    assert (
+        slow.wait_for_subscribers("wrong_rate/denoiser")
+        and no_gripper.wait_for_subscribers("no_gripper/denoiser")
+        and garbled.wait_for_subscribers("undecodable/denoiser")
+    ), nodes.log(wrong) + nodes.log(lacking) + nodes.log(broken)
     # The lacking joint state first: the node knows the joint is missing before any sample
     # (samples before any joint state would pass through band-passed, by design).
     no_gripper.publish_joint_state()
+    garbled.publish_joint_state()
 
     assert ros_client.spin_until(
-        lambda: reports(ros_client, "no_gripper/denoiser", None, PR2.joint_names[1]), 30.0
-    ), nodes.log(lacking)
+        lambda: (
+            reports(ros_client, "no_gripper/denoiser", None, PR2.joint_names[1])
+            and reports(ros_client, "undecodable/denoiser", None, "undecodable")
+        ),
+        30.0,
+    ), nodes.log(lacking) + nodes.log(broken)
+    streams = (("wrong_rate", slow), ("no_gripper", no_gripper), ("undecodable", garbled))
     for _ in range(25):
-        slow.run(0.1)
-        no_gripper.run(0.1)
+        for _, stream in streams:
+            stream.run(0.1)
 
     def taken_in() -> bool:  # each node's report counts every sample fed to it
         return all(
             int(diagnostic_values(ros_client.statuses[f"{ns}/denoiser"])["samples_in"])
             == len(stream.sent()[0])
-            for ns, stream in (("wrong_rate", slow), ("no_gripper", no_gripper))
+            for ns, stream in streams
         )
 
-    assert ros_client.spin_until(taken_in, 30.0), (
-        shown(ros_client, "wrong_rate/denoiser"),
-        shown(ros_client, "no_gripper/denoiser"),
-    )
+    assert ros_client.spin_until(taken_in, 30.0), [
+        shown(ros_client, f"{ns}/denoiser") for ns, _ in streams
+    ]
 
     rate_status = ros_client.statuses["wrong_rate/denoiser"]
     assert rate_status.level == DiagnosticStatus.ERROR
@@ -439,10 +448,18 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
     assert (
         joint_status.level == DiagnosticStatus.ERROR and PR2.joint_names[1] in joint_status.message
     )
-    assert output == {"wrong_rate": [], "no_gripper": []}  # nothing claimed as denoised
+    broken_status = ros_client.statuses["undecodable/denoiser"]
+    assert broken_status.level == DiagnosticStatus.ERROR and all(
+        name in broken_status.message for name in PR2.joint_names
+    ), broken_status.message
+    assert int(diagnostic_values(broken_status)["undecodable_messages"]) > 1000
+    # nothing claimed as denoised
+    assert output == {"wrong_rate": [], "no_gripper": [], "undecodable": []}
     assert int(diagnostic_values(rate_status)["samples_withheld"]) > 1000
+    assert int(diagnostic_values(broken_status)["samples_withheld"]) > 1000
     assert PR2.joint_names[1] in nodes.log(lacking) and "3000 Hz" in nodes.log(wrong)
-    assert wrong.poll() is None and lacking.poll() is None
+    assert "undecodable" in nodes.log(broken)
+    assert wrong.poll() is None and lacking.poll() is None and broken.poll() is None
 
 
 def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_path, ros_domain):

@@ -449,14 +449,18 @@ class StreamInput:
         return message
 
     def missing_joints_message(self, missing: list[str]) -> str:
-        carried = (
-            f" (its messages carry {list(self.carried_joint_names)})"
-            if self.carried_joint_names
-            else ""
-        )
+        carried = set(self.carried_joint_names)
+        if self.undecodable_joints and not self.joints_seen.any():
+            why = f" ({self.undecodable_joints} of its messages undecodable)"
+        elif carried and set(missing) <= carried:
+            why = " (its messages name them, with no position or velocity)"
+        elif carried:
+            why = f" (its messages carry {list(self.carried_joint_names)})"
+        else:
+            why = ""
         return (
             f"{self.joints_topic}: joint{'s' if len(missing) > 1 else ''} "
-            f"{', '.join(repr(m) for m in missing)} never seen{carried}"
+            f"{', '.join(repr(m) for m in missing)} never seen{why}"
         )
 
 

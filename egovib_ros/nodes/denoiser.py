@@ -361,9 +361,11 @@ class Denoiser(Node):
         """Joint states received so far into the core; the output they release (or None).
         `final`: the input has gone quiet, the last stamp's held joint states go in too."""
         batch = self.input.take_joints(final=final)
+        # Output is withheld while any named joint is missing, also while joint states
+        # arrive and none decodes (no row at all).
+        self.missing_joints = self.input.missing_joints()
         if batch is None or not len(batch.stamps_ns):
             return None
-        self.missing_joints = self.input.missing_joints()  # output withheld while any
         return self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity)
 
     def _refuse(self, reason: str) -> None:
