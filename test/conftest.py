@@ -118,7 +118,8 @@ class Feeder:
     (the velocities integrated over the stamps) and velocities, or with `positions_only` an
     empty velocity field (as many real drivers). `keep_messages`: keep every message sent
     as (topic, stamp, bytes) in `messages` (to write the same stream into a bag).
-    `undecodable_joints`: every JointState cut to half its bytes (a broken driver)."""
+    `undecodable_joints`: every JointState cut to half its bytes (a broken driver);
+    `joint_clock_offset_s`: JointStates stamped by a clock this far ahead (sim vs wall time)."""
 
     def __init__(
         self,
@@ -134,6 +135,7 @@ class Feeder:
         positions_only: bool = False,
         keep_messages: bool = False,
         undecodable_joints: bool = False,
+        joint_clock_offset_s: float = 0.0,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -157,6 +159,7 @@ class Feeder:
         self.split_joints = split_joints  # two publishers, each with half of the joints
         self.positions_only = positions_only
         self.undecodable_joints = undecodable_joints
+        self.joint_clock_offset_ns = int(round(joint_clock_offset_s * 1e9))
         self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
         self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
         self.last_joint_stamp: int | None = None
@@ -268,7 +271,7 @@ class Feeder:
                 # split: both publishers stamp a control tick alike (per-joint drivers)
                 messages = [
                     encode_joint_state_batch(
-                        joint_stamps[k:k_end],
+                        joint_stamps[k:k_end] + self.joint_clock_offset_ns,
                         position[:, part],
                         None if self.positions_only else joint_velocity[k:k_end, part],
                         names[part],

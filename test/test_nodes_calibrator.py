@@ -266,3 +266,26 @@ def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_che
         and abs(live_counts.sum() - counts.sum()) <= 0.01 * counts.sum()
     )
     assert not checkpoint.exists()
+
+
+def test_joint_states_on_another_clock_are_said_while_calibrating(
+    nodes, ros_client, feeder, tmp_path
+):
+    """Joint states stamped by another clock (sim time beside wall time): no block has a
+    joint state. /diagnostics said OK ('0 cells measured') for the whole run, and only the
+    exit said 'no usable block'; now it warns while it happens and names the clocks."""
+    from egovib_ros.robot import load_profile
+
+    output = tmp_path / "model.npz"
+    cal = nodes.start("calibrator", {"grid": "free", "output": str(output), **RELIABLE})
+    stream = feeder(load_profile(None), joint_clock_offset_s=1000.0)
+    assert stream.wait_for_subscribers("calibrator"), nodes.log(cal)
+
+    def warned() -> bool:
+        return reports(ros_client, "calibrator", DiagnosticStatus.WARN, "different clocks")
+
+    assert stream.run_until(warned, at_most_s=4.0), ros_client.statuses.get("calibrator")
+    assert "blocks without joint state, not used" in ros_client.statuses["calibrator"].message
+    assert "1e+03 s ahead" in ros_client.statuses["calibrator"].message
+    assert nodes.stop(cal) == 1 and not output.exists()
+    assert "no usable block" in nodes.log(cal)

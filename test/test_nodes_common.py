@@ -140,3 +140,32 @@ def test_a_joint_never_seen_says_why_undecodable_or_without_values(ros_client):
         assert inp.missing_joints() == names
         message = inp.missing_joints_message(inp.missing_joints())
         assert why in message and all(name in message for name in names), message
+
+
+def test_the_clock_note_names_stamps_far_apart_while_joint_states_arrive(ros_client):
+    """Latest sensor and joint-state stamps more than a second apart, with joint states
+    arriving: two clocks, ahead or behind; a few ms apart (any lag): nothing."""
+    from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch
+    from egovib_ros.nodes.common import StreamInput
+    from egovib_ros.robot import load_profile
+
+    profile = load_profile(None)
+    names = list(profile.joint_names)
+    sensor = np.arange(1, 31, dtype=np.int64) * 333_333 + 1_700_000_000 * 10**9
+    notes = {}
+    for offset_s in (0.005, 5.0, -1.8e9):
+        inp = StreamInput(ros_client.node, profile, batch_samples=32, on_batch=lambda: None)
+        joints = sensor[::3] + int(offset_s * 1e9)
+        inp._sensor += [bytes(r) for r in encode_imu_batch(sensor, np.zeros((30, 3)))]
+        inp._arrival += [0] * 30
+        inp._joints += [
+            bytes(r)
+            for r in encode_joint_state_batch(joints, np.zeros((10, 2)), np.ones((10, 2)), names)
+        ]
+        inp.take_sensor()
+        inp.take_joints(final=True)
+        notes[offset_s] = inp.clock_note()
+    assert notes[0.005] == ""
+    assert notes[5.0].startswith("joint-state stamps 5 s ahead of the sensor's"), notes
+    assert notes[-1.8e9].startswith("joint-state stamps 1.8e+09 s behind"), notes
+    assert all("different clocks" in notes[k] for k in (5.0, -1.8e9))

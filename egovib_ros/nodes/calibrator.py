@@ -142,6 +142,7 @@ class Calibrator(Node):
         self.stream_error: str | None = None
         self._last_input = time.monotonic()
         self._last_report = (time.monotonic(), 0)
+        self._blocks_reported = (0, 0)  # blocks without joint state, all blocks: last report
         self.create_timer(0.25, self._on_timer)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
@@ -333,6 +334,16 @@ class Calibrator(Node):
         if missing:
             errors.append(missing)
         warnings = [f"{grown[key]} {key.replace('_', ' ')}" for key in counters if grown[key]]
+        # Most blocks since the last report set aside for want of a joint state: no cell
+        # learns from them (a few at the start, before the first joint state, are normal).
+        seen = (stats.rejected.get("no_joint_state", 0), cov["blocks"] + values["blocks_rejected"])
+        no_joint, total = (now_ - before for now_, before in zip(seen, self._blocks_reported))
+        if no_joint > 0.5 * total:
+            warnings.append(
+                f"{no_joint} of {total} blocks without joint state, not used"
+                + (f" ({note})" if (note := inp.clock_note()) else "")
+            )
+        self._blocks_reported = seen
         if cov["mode"] in SWEEPS:
             ok = f"{cov['cells_covered']}/{cov['cells_expected']} cells covered"
         else:

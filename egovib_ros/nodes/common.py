@@ -54,6 +54,9 @@ MATCH_SETTLE_S = 1.0
 #: sent last (reliable QoS): unacknowledged samples die with the process.
 DELIVERY_TIMEOUT_S = 5.0
 DIAGNOSTICS_TOPIC = "/diagnostics"
+#: Latest sensor and joint-state stamps further apart than this (s), with joint states
+#: still arriving, are two clocks (any lag a robot has is well below it).
+CLOCKS_APART_S = 1.0
 FASTDDS_PROFILES_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 
 
@@ -331,6 +334,9 @@ class StreamInput:
         self._last_joint: np.ndarray | None = None  # (2, J) last position and velocity
         self._split_joints = SplitJointStates()  # per-joint messages of one stamp joined
         self.carried_joint_names: tuple[str, ...] = ()  # names in a message lacking a named joint
+        # header stamps of the last decoded sensor sample and joint state (ns), for clocks
+        self.last_sensor_stamp_ns: int | None = None
+        self.last_joint_stamp_ns: int | None = None
 
     # callbacks: keep them minimal, 3 kHz
     def _on_sensor(self, data: bytes) -> None:
@@ -374,6 +380,8 @@ class StreamInput:
             self.undecodable_sensor += len(raws) - len(index)
             raws = [raws[i] for i in index]
             arrival = arrival[index]
+        if len(stamps):
+            self.last_sensor_stamp_ns = int(stamps[-1])
         return SensorBatch(stamps, values, raws, arrival)
 
     def take_joints(self, *, final: bool = False) -> JointBatch | None:
@@ -410,6 +418,8 @@ class StreamInput:
             _, velocity, self._last_joint = hold_missing_joints(
                 position, velocity, self._last_joint
             )
+        if len(stamps):
+            self.last_joint_stamp_ns = int(stamps[-1])
         return JointBatch(stamps, velocity)
 
     @property
@@ -428,6 +438,24 @@ class StreamInput:
             "velocity_source": self.velocity_source,
             "joint_velocities_from_position": self._joint_velocity.derived,
         }
+
+    def clock_note(self) -> str:
+        """'joint-state stamps X s behind the sensor's: ...' when the two streams' latest
+        stamps are further apart than any lag (CLOCKS_APART_S), else ''. Blocks then have no
+        joint state while joint states keep coming: two clocks (sim time and wall time, a
+        driver that stamps zero), which the count of such blocks alone does not say."""
+        if self.last_sensor_stamp_ns is None or self.last_joint_stamp_ns is None:
+            return ""
+        if self.last_joint_s is None or time.monotonic() - self.last_joint_s > CLOCKS_APART_S:
+            return ""  # joint states stopped: not a clock
+        apart = (self.last_sensor_stamp_ns - self.last_joint_stamp_ns) / NS_PER_S
+        if abs(apart) <= CLOCKS_APART_S:
+            return ""
+        way = "behind" if apart > 0 else "ahead of"
+        return (
+            f"joint-state stamps {abs(apart):.3g} s {way} the sensor's: the two topics are "
+            "stamped by different clocks?"
+        )
 
     def missing_joints(self) -> list[str]:
         """Named joints that no joint state received so far has carried."""

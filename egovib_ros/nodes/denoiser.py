@@ -494,7 +494,9 @@ class Denoiser(Node):
             )
         elif grown[f"{unit}_no_joint_state"]:
             warnings.append(
-                f"{grown[f'{unit}_no_joint_state']} {unit} without joint state (passed through)"
+                f"{grown[f'{unit}_no_joint_state']} {unit} without joint state (passed through"
+                + (f"; {note}" if (note := inp.clock_note()) else "")
+                + ")"
             )
         for key, text in (
             ("undecodable_messages", "undecodable messages"),
