@@ -169,3 +169,39 @@ def test_the_clock_note_names_stamps_far_apart_while_joint_states_arrive(ros_cli
     assert notes[5.0].startswith("joint-state stamps 5 s ahead of the sensor's"), notes
     assert notes[-1.8e9].startswith("joint-state stamps 1.8e+09 s behind"), notes
     assert all("different clocks" in notes[k] for k in (5.0, -1.8e9))
+
+
+def test_stamps_that_repeat_are_said_with_their_likely_cause(ros_client):
+    """Most of a report's sensor samples dropped as out of order (every stamp zero): the
+    report says the stamps repeat and names the likely causes; a few: nothing more."""
+    from egovib_ros.nodes.common import StreamInput
+    from egovib_ros.robot import load_profile
+
+    inp = StreamInput(ros_client.node, load_profile(None), batch_samples=32, on_batch=lambda: None)
+    inp.sensor_messages, inp.joint_messages = 3000, 1000
+    notes = inp.stamp_notes({"samples_out_of_order": 2999, "joint_states_dropped": 3})
+    assert len(notes) == 1 and notes[0].startswith(f"{inp.sensor_topic}: most stamps repeat")
+    assert "stamps zero" in notes[0]
+    inp.sensor_messages, inp.joint_messages = 6000, 2000  # the next report: counted anew
+    assert inp.stamp_notes({"samples_out_of_order": 10, "joint_states_dropped": 999}) == [
+        f"{inp.joints_topic}: most stamps repeat or go back (a driver that stamps zero, or a "
+        "stuck clock?)"
+    ]
+
+
+def test_two_publishers_on_the_sensor_topic_are_named(ros_client):
+    """Two sensors on one topic look like one stream at another rate: the refusal says how
+    many publish on it."""
+    from egovib_ros.nodes.common import StreamInput
+    from egovib_ros.robot import load_profile
+
+    profile = load_profile(None)
+    inp = StreamInput(ros_client.node, profile, batch_samples=32, on_batch=lambda: None)
+    assert inp.publishers_note() == ""
+    publishers = [
+        ros_client.node.create_publisher(Imu, profile.node_sensor_topic, 10) for _ in range(2)
+    ]
+    assert ros_client.spin_until(lambda: inp.publisher_counts()["sensor_publishers"] == 2, 10.0)
+    assert inp.publishers_note() == f" (2 publishers on {inp.sensor_topic})"
+    for publisher in publishers:
+        ros_client.node.destroy_publisher(publisher)

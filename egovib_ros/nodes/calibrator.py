@@ -191,7 +191,7 @@ class Calibrator(Node):
                 self.get_logger().error(
                     f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0
                 )
-                self.stream_error = str(exc)
+                self.stream_error = str(exc) + self.input.publishers_note()
         self._track_cells()
 
     def _cell_count_map(self) -> dict[tuple[int, ...], int]:
@@ -334,6 +334,7 @@ class Calibrator(Node):
         if missing:
             errors.append(missing)
         warnings = [f"{grown[key]} {key.replace('_', ' ')}" for key in counters if grown[key]]
+        warnings += inp.stamp_notes(grown)
         # Most blocks since the last report set aside for want of a joint state: no cell
         # learns from them (a few at the start, before the first joint state, are normal).
         seen = (stats.rejected.get("no_joint_state", 0), cov["blocks"] + values["blocks_rejected"])

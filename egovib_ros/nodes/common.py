@@ -337,6 +337,7 @@ class StreamInput:
         # header stamps of the last decoded sensor sample and joint state (ns), for clocks
         self.last_sensor_stamp_ns: int | None = None
         self.last_joint_stamp_ns: int | None = None
+        self._counted = (0, 0)  # sensor and joint-state messages at the last stamp_notes
 
     # callbacks: keep them minimal, 3 kHz
     def _on_sensor(self, data: bytes) -> None:
@@ -438,6 +439,37 @@ class StreamInput:
             "velocity_source": self.velocity_source,
             "joint_velocities_from_position": self._joint_velocity.derived,
         }
+
+    def stamp_notes(self, grown: dict[str, float]) -> list[str]:
+        """For the node's periodic report (`grown`: the stream counters' growth since the
+        last one): a topic most of whose messages since then were dropped because their
+        stamps repeat or go back. Counted as 'out of order' alone, it did not say why: a
+        driver that stamps zero, a stuck clock, two publishers on one topic."""
+        received = (self.sensor_messages, self.joint_messages)
+        sensor_in, joints_in = (now - before for now, before in zip(received, self._counted))
+        self._counted = received
+        notes = []
+        for topic, dropped, came in (
+            (self.sensor_topic, grown.get("samples_out_of_order", 0), sensor_in),
+            (self.joints_topic, grown.get("joint_states_dropped", 0), joints_in),
+        ):
+            if came and dropped > 0.5 * came:
+                publishers = self.publisher_counts()[
+                    "sensor_publishers" if topic == self.sensor_topic else "joint_state_publishers"
+                ]
+                why = (
+                    f"{publishers} publishers on it: two sensors, or one twice?"
+                    if publishers > 1
+                    else "a driver that stamps zero, or a stuck clock?"
+                )
+                notes.append(f"{topic}: most stamps repeat or go back ({why})")
+        return notes
+
+    def publishers_note(self) -> str:
+        """' (N publishers on the sensor topic)' when more than one: two sensors on one topic
+        look like one stream at another rate."""
+        n = self.publisher_counts()["sensor_publishers"]
+        return f" ({n} publishers on {self.sensor_topic})" if n > 1 else ""
 
     def clock_note(self) -> str:
         """'joint-state stamps X s behind the sensor's: ...' when the two streams' latest

@@ -370,6 +370,7 @@ class Denoiser(Node):
 
     def _refuse(self, reason: str) -> None:
         """The core refused the stream (e.g. its rate does not fit the model): publish nothing."""
+        reason += self.input.publishers_note()
         self.get_logger().error(f"{reason}: publishing nothing")
         self.stream_error = reason
         self.samples_withheld += self.held.clear() + sum(len(r) for r, _, _ in self._startup)
@@ -508,6 +509,7 @@ class Denoiser(Node):
         ):
             if grown[key]:
                 warnings.append(f"{grown[key]} {text}")
+        warnings += inp.stamp_notes(grown)
         if grown[f"{unit}_out_of_grid"]:
             warnings.append(
                 f"{fractions['out_of_grid']:.0%} of {unit} beyond the model's velocity grid"
