@@ -233,3 +233,23 @@ def test_messages_serialised_by_rclpy_decode_with_their_stray_trailing_bytes():
     padded = bytes(serialization.serialize_message(imu)) + bytes(8)
     _, values = decode_imu([padded])
     np.testing.assert_array_equal(values, [[0.0, 0.0, 9.81]])
+
+
+def test_a_joint_named_twice_decodes_to_its_first_values_in_any_batch():
+    """A JointState naming a joint twice (a broken driver) gives the first occurrence's
+    values whether its batch takes the packed path or the per-message one."""
+    from egovib_ros.bag.codec import JOINT_STATE_TYPE, joint_state_message, typestore
+
+    def cdr(names, position, velocity) -> bytes:
+        msg = joint_state_message(
+            10**18, names, np.array(position, float), np.array(velocity, float)
+        )
+        return bytes(typestore().serialize_cdr(msg, JOINT_STATE_TYPE))
+
+    names = list(JOINT_NAMES)
+    twice = cdr([*names, names[0]], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0])
+    alone = decode_joint_states([twice], names)
+    mixed = decode_joint_states([twice, cdr(names, [1.0, 2.0], [4.0, 5.0])], names)
+    for _, position, velocity in (alone, mixed):
+        np.testing.assert_array_equal(position[0], [1.0, 2.0])
+        np.testing.assert_array_equal(velocity[0], [4.0, 5.0])

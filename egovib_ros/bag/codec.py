@@ -504,10 +504,12 @@ def decode_joint_states(
     for i, raw in enumerate(raws):
         msg = deserialize(raw, JOINT_STATE_TYPE)
         stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        taken = set()
         for k, name in enumerate(msg.name):
             j = column.get(name)
-            if j is None:
+            if j is None or j in taken:  # a name given twice: its first values, as the fast path
                 continue
+            taken.add(j)
             if k < len(msg.position):
                 position[i, j] = msg.position[k]
             if k < len(msg.velocity):
