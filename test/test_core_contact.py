@@ -73,6 +73,24 @@ def test_any_chunking_gives_the_same_events(cuts):
     assert len(whole) == 4  # the last one reported at the end of the stream
 
 
+@given(st.lists(st.integers(1, 700), max_size=20))
+def test_bad_samples_are_counted_held_and_do_not_end_detection(cuts):
+    """A NaN, an inf and a spike beyond the sensor's range before the taps: counted, held at
+    the last good value, no event of their own and every tap still found (one NaN in the
+    band-pass state ended detection for good), for any chunking."""
+    stamps, values, onsets = taps()
+    values[100] = [np.nan, 0.0, 9.81]
+    values[900, 2] = np.inf
+    values[1200] = [1e6, 0.0, 9.81]  # the PR2's range is 78.5 m/s^2
+    clean = run(ContactDetector(settings()), *taps()[:2], [])
+    detector = ContactDetector(settings(sensor_range=78.5))
+    events = run(detector, stamps, values, cuts)
+    assert detector.samples_bad == 3
+    assert [e.onset_ns for e in events] == [e.onset_ns for e in clean]
+    assert all(np.isfinite(e.peak).all() for e in events)
+    assert len(events) == 4 and events[0].onset_ns > stamps[onsets[0]] - 2_000_000
+
+
 def test_threshold_from_no_contact_data_and_its_false_alarm_rate():
     stamps, values, _ = taps(seconds=30.0, onsets_s=())
     envelope = detection_envelope(values, settings())

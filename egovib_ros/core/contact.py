@@ -20,7 +20,10 @@ crossing, without waiting for its end:
 So an event is out `report_after_s` (10 ms) after its crossing, whatever its length. The
 input may be the raw stream, the denoiser's drop-in output or its band-passed output (the
 band-pass is applied in every case; thresholds must come from data processed alike).
-State is explicit: any chunking gives the same events.
+A bad sample (non-finite, or beyond `sensor_range` on any axis) is counted and held at the
+last good value: one NaN in the band-pass state would end detection for good, and a
+spike beyond the sensor's range is not a contact. State is explicit: any chunking gives
+the same events.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ class ContactSettings:
     onset_fraction: float = ONSET_FRACTION
     report_after_s: float = 0.010
     lookback_s: float = 0.010
+    sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
 
     def __post_init__(self) -> None:
         for name in ("sample_rate_hz", "threshold", "envelope_s", "refractory_s"):
@@ -63,6 +67,10 @@ class ContactSettings:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value <= 1.0):
                 raise ConfigError(f"contact detector: {name} must be in [0, 1] s, got {value!r}")
+        if not (isinstance(self.sensor_range, (int, float)) and self.sensor_range > 0):
+            raise ConfigError(
+                f"contact detector: sensor_range must be a number > 0, got {self.sensor_range!r}"
+            )
         if not 0 < self.onset_fraction <= 1:
             raise ConfigError(
                 f"contact detector: onset_fraction must be in (0, 1], got {self.onset_fraction!r}"
@@ -134,7 +142,9 @@ class ContactDetector:
         self._axes = np.zeros((0, 3))
         self._last_above: int | None = None  # global index of the last above-threshold sample
         self._pending: list[int] = []  # crossings whose report is not due yet
+        self._last_good = np.zeros(3)  # what a bad sample is held at
         self.samples = 0
+        self.samples_bad = 0
         self.events = 0
 
     def push(self, stamps_ns: np.ndarray, values: np.ndarray) -> list[ContactEvent]:
@@ -143,6 +153,7 @@ class ContactDetector:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(stamps_ns):
             return []
+        values = self._hold_bad(values)
         axes, envelope = self._envelope.process(values)
         start = self._base + len(self._stamps)
         self._stamps = np.concatenate([self._stamps, stamps_ns])
@@ -156,6 +167,17 @@ class ContactDetector:
         events = self._report(final=False)
         self._trim()
         return events
+
+    def _hold_bad(self, values: np.ndarray) -> np.ndarray:
+        """Bad samples counted and replaced by the last good one (carried across pushes)."""
+        bad = ~np.isfinite(values).all(axis=1) | (np.abs(values) > self.s.sensor_range).any(axis=1)
+        if bad.any():
+            self.samples_bad += int(bad.sum())
+            # index of the last good row at or before each row (-1: before this push)
+            last = np.maximum.accumulate(np.where(bad, -1, np.arange(len(values))))
+            values = np.vstack([self._last_good[None], values])[last + 1]
+        self._last_good = values[-1].copy()
+        return values
 
     def finish(self) -> list[ContactEvent]:
         """End of stream: events whose report falls after the last sample, reported now."""

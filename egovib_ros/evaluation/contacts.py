@@ -171,6 +171,7 @@ def _settings(model: NoiseModel, threshold: float) -> ContactSettings:
         band_hz=model.band_hz,
         band_order=model.band_order,
         threshold=threshold,
+        sensor_range=model.robot_profile().sensor_range,
     )
 
 

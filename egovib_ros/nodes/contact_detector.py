@@ -106,6 +106,7 @@ class ContactDetectorNode(Node):
                 band_hz=self.model.band_hz,
                 band_order=self.model.band_order,
                 threshold=self.threshold,
+                sensor_range=self.profile.sensor_range,
             )
         )
         topic = (
@@ -187,6 +188,7 @@ class ContactDetectorNode(Node):
         values = {
             "samples_in": self.samples,
             "undecodable_messages": self.undecodable,
+            "samples_bad": self.detector.samples_bad,
             "events": self.events,
             "events_per_min": round(self.events / minutes, 3),
             "threshold": self.threshold,
@@ -200,10 +202,17 @@ class ContactDetectorNode(Node):
             "input_publishers": self._input.get_publisher_count(),
             "event_subscribers": self.pub.get_subscription_count(),
         }
-        grown = self.health.changes({"undecodable": self.undecodable})
+        grown = self.health.changes(
+            {"undecodable": self.undecodable, "bad": self.detector.samples_bad}
+        )
         warnings = (
             [f"{grown['undecodable']:.0f} undecodable messages"] if grown["undecodable"] else []
         )
+        if grown["bad"]:
+            warnings.append(
+                f"{grown['bad']:.0f} bad samples (non-finite or beyond the sensor's range: "
+                "held at the last good value)"
+            )
         self.health.publish(
             stale=self.health.stale_message(self._last_input, self.input_topic),
             warnings=warnings,
