@@ -30,6 +30,8 @@ from egovib_ros.robot import RobotProfile, default_profile
 SWEEPS = ("auto", "full", "superposition", "free")
 #: In "auto", the share of usable blocks that must sit on grid points to call it a sweep.
 AUTO_SWEEP_SHARE = 0.7
+#: A block with at most this many gap-filled samples inside it (both ends real) is used.
+MAX_BRIDGED_SAMPLES = 2
 
 
 class _Tally:
@@ -255,8 +257,12 @@ class CalibrationAccumulator:
         for blocks in batches:
             if blocks.n == 0:
                 continue
-            # Blocks holding start/end padding or gap-filled samples would bias the statistics.
+            # Blocks holding start/end padding or runs of gap fill would bias the statistics;
+            # a sample or two bridged inside a block (a bad sample now and then) does not,
+            # and rejecting those left no block of a stream with 1.6 % NaN samples.
             complete = blocks.complete
+            if blocks.bridged is not None:
+                complete = complete | (blocks.bridged <= MAX_BRIDGED_SAMPLES)
             usable = complete & (blocks.status == MATCHED)
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, distance = self.cell_of(velocity)

@@ -252,6 +252,9 @@ class Blocks:
     out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
     ends_segment: bool = False  # last blocks before a flush or a long gap
     complete: np.ndarray | None = None  # (B,) every sample real (no padding or gap fill)
+    # (B,) gap-filled samples inside a block whose first and last samples are real (a
+    # bridged bad or missing sample); the block length when an end is padding or fill
+    bridged: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -762,6 +765,7 @@ class BlockFramer:
                 window_t[:, :H],
                 ends_segment=closing and len(rest_t) < L,
                 complete=real.all(axis=1),
+                bridged=np.where(real[:, 0] & real[:, -1], L - real.sum(axis=1), L),
             )
         )
         if any_real.any():
@@ -820,6 +824,7 @@ class BlockFramer:
                 window_t[None, :H],
                 ends_segment=False,
                 complete=np.array([complete]),
+                bridged=np.array([L - int(real.sum()) if real[0] and real[-1] else L]),
             )
         )
         self._buf_x, self._buf_t = self._buf_x[:, H:], self._buf_t[H:]

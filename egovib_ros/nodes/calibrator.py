@@ -364,8 +364,14 @@ class Calibrator(Node):
         self.acc.flush()
         cov = self.coverage()
         if cov["blocks"] == 0:
+            rejected = {k: v for k, v in self.acc.stats.rejected.items() if v}
             print(
-                "calibrator: no usable block (steady, with joint states): no model written",
+                "calibrator: no usable block (steady, with joint states): no model written"
+                + (
+                    f"; blocks set aside: {', '.join(f'{k} {v}' for k, v in rejected.items())}"
+                    if rejected
+                    else ""
+                ),
                 flush=True,
             )
             return 1
