@@ -433,7 +433,9 @@ class Denoiser(Node):
         self._latency_ms = []
         # paper counts blocks; cancel and hybrid work sample by sample
         unit = "blocks" if self.method == "paper" else "samples"
-        total = stats.blocks if unit == "blocks" else stats.samples_in
+        # cancel and hybrid also process the samples bridged into gaps (and count them
+        # unmeasured or out of grid): counted in the total too, so no share exceeds 1
+        total = stats.blocks if unit == "blocks" else stats.samples_in + stats.gap_filled_samples
         counters = {
             **stream_counters(inp, stats),
             unit: total,
