@@ -398,7 +398,8 @@ class Calibrator(Node):
             os.remove(self.checkpoint)
         print(
             f"calibrator: wrote {self.output} ({cov['mode']}): {coverage_text(cov)}, "
-            f"{cov['blocks']} blocks (min {cov['min_blocks']} per measured cell); rejected "
+            f"{cov['blocks']} blocks (min {cov['min_blocks']} per "
+            f"{'sweep' if 'cells_expected' in cov else 'measured'} cell); rejected "
             f"blocks: {self.acc.stats.rejected}; bad samples: {self.acc.stats.samples_bad}",
             flush=True,
         )
