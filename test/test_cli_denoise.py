@@ -284,3 +284,37 @@ def test_joint_states_of_a_stuck_clock_are_refused_naming_the_joint_state_topic(
     assert "stuck: /joint_states: " in line and "joint states" in line
     assert "/accelerometer/raw" not in line
     assert not (tmp_path / "out").exists()
+
+
+def test_noise_gain_from_a_gap_report_follows_the_warm_up_and_bad_reports_are_one_line(
+    sim_bags, sim_bags_model, tmp_path
+):
+    """--noise-gain takes a gap report's drift advice (the fitted level change over elapsed
+    time): the denoiser's noise estimate follows it, so more is removed where it rose; a
+    file that is not a report with a drift verdict is one line, exit 2, nothing written."""
+    report = tmp_path / "report.json"
+    knots = [[0.0, 0.0], [1.0, 0.0], [2.0, 6.0]]  # 6 dB louder from 2 s on
+    report.write_text(json.dumps({"advice": {"settings": {"noise_gain_db": knots}}}))
+    outs = {}
+    for name, extra in (("plain", ()), ("followed", ("--noise-gain", report))):
+        outs[name] = tmp_path / name
+        result = egovib(
+            "denoise", sim_bags / "motion", "--model", sim_bags_model, "--out", outs[name],
+            "--channels", "combined", "--quiet", *extra,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+    plain, followed = (read_recording(outs[n], ground_truth=False) for n in ("plain", "followed"))
+    t = (plain.denoised_stamps_ns - plain.denoised_stamps_ns[0]) / 1e9
+    np.testing.assert_array_equal(plain.denoised[t < 0.9], followed.denoised[t < 0.9])
+    late = t > 2.5
+    assert np.abs(followed.denoised[late, 0]).mean() < 0.8 * np.abs(plain.denoised[late, 0]).mean()
+
+    no_drift = tmp_path / "no_drift.json"
+    no_drift.write_text(json.dumps({"advice": {"settings": {"joint_lag_s": 0.02}}}))
+    for bad, said in ((no_drift, "drift verdict"), (tmp_path / "absent.json", "absent.json")):
+        result = egovib(
+            "denoise", sim_bags / "motion", "--model", sim_bags_model, "--out", tmp_path / "x",
+            "--noise-gain", bad,
+        )  # fmt: skip
+        assert result.returncode == 2 and said in result.stderr, result.stderr
+        assert result.stderr.strip().count("\n") == 0 and not (tmp_path / "x").exists()

@@ -361,3 +361,36 @@ def test_stats_are_typed_frozen_and_report_the_paper_denoisers_keys(model):
         "blocks_unmeasured",
         "rate_checked",
     ]
+
+
+def test_a_noise_gain_over_time_follows_a_warm_up_and_streaming_equals_batch(model):
+    """The vibration 6 dB louder from 5 s on (a warm-up the gap diagnosis fits as drift):
+    with noise_gain_db following it, more of it is removed after 5 s and the same before;
+    any chunking gives the batch result; bad knots are refused in one line."""
+    from egovib_ros.errors import ConfigError
+
+    data = stream(10, CELLS[1:4], seed=7)
+    t = (data["t_acc"] - data["t_acc"][0]) / 1e9
+    louder = data["accel"].copy()
+    louder[t >= 5.0] = (louder[t >= 5.0] - [0.0, 0.0, 9.81]) * 2.0 + [0.0, 0.0, 9.81]
+    data = {**data, "accel": louder}
+    knots = ((0.0, 0.0), (4.9, 0.0), (5.1, 6.0))  # flat beyond the last knot
+    arrays = (data["t_acc"], louder, data["t_joint"], data["velocity"])
+    _, plain, _ = denoise_batch(*arrays, model, channels="combined")
+    _, followed, _ = denoise_batch(*arrays, model, channels="combined", noise_gain_db=knots)
+    raw = bandpassed(louder, "combined")
+    late, early = t >= 5.5, (t > 0.5) & (t < 4.5)
+
+    def reduction(values, rows):
+        return 20 * np.log10(np.mean(np.abs(raw[rows])) / np.mean(np.abs(values[rows])))
+
+    assert reduction(followed, late) > reduction(plain, late) + 3.0
+    assert reduction(followed, early) == pytest.approx(reduction(plain, early), abs=1e-9)
+    denoiser = StreamingDenoiser(model, channels="combined", noise_gain_db=knots)
+    _, values = collect(
+        push_random_chunks(denoiser, data, np.random.default_rng(4)) + [denoiser.flush()]
+    )
+    assert np.max(np.abs(values - followed)) <= 1e-12
+    for bad in (((1.0, 0.0), (0.5, 1.0)), ((0.0, 40.0),), ((0.0, float("nan")),), ((0.0,),)):
+        with pytest.raises(ConfigError, match="noise_gain_db"):
+            StreamingDenoiser(model, noise_gain_db=bad)

@@ -45,6 +45,11 @@ def test_drift_and_position_name_what_to_change(diagnoses):
     drift_text, drift = action(diagnoses["drift"])
     assert diagnoses["drift"].verdict == "drift"
     assert "recalibrate" in drift_text and drift["level_change_percent"] != 0.0
+    # the fitted level change from the start, for `egovib denoise --noise-gain`
+    knots = np.asarray(drift["noise_gain_db"])
+    assert knots[0].tolist() == [0.0, 0.0] and np.all(np.diff(knots[:, 0]) > 0)
+    pct = 100 * (10 ** (knots[-1, 1] / 20) - 1)
+    assert pct == pytest.approx(drift["level_change_percent"], abs=0.5)
     position_text, position = action(diagnoses["position"])
     assert diagnoses["position"].verdict == "position"
     assert position == {"calibration_key": "position", "joint": position["joint"]}

@@ -169,6 +169,7 @@ def denoise_bag(
     oversubtraction: float = 1.0,
     floor: float = 0.0,
     joint_lag_s: float = 0.0,
+    noise_gain_db: tuple[tuple[float, float], ...] = (),
     compress: bool | str = False,
     progress: Callable[[int], None] | None = None,
 ) -> dict:
@@ -194,6 +195,7 @@ def denoise_bag(
             oversubtraction=oversubtraction,
             floor=floor,
             joint_lag_s=joint_lag_s,
+            noise_gain_db=noise_gain_db,
             source=f"{bag}: {raw_topic}",
         )
         with atomic_output(out, directory=True, kind="bag") as tmp:

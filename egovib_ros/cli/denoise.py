@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 from pathlib import Path
 
 from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
@@ -11,6 +12,8 @@ from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.cli.options import float_in, nonneg_float
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.subtraction import noise_gain_curve
+from egovib_ros.errors import ConfigError
 from egovib_ros.outputs import prepare_output
 
 
@@ -48,6 +51,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="SECONDS",
         help="joint states lag the sensor by this much: move their stamps later (egovib gap "
         "measures it; negative: they lead)",
+    )
+    den.add_argument(
+        "--noise-gain",
+        metavar="REPORT.json",
+        default=None,
+        help="an egovib gap report whose verdict is drift: the noise estimate follows the "
+        "level change it fitted over the recording's elapsed time (a warm-up), from the "
+        "level the model was calibrated at",
     )
     den.add_argument(
         "--channels",
@@ -106,9 +117,28 @@ def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
     return denoise_bag(bag, out, progress=progress, **options)
 
 
+def noise_gain_from_report(path: str | None) -> tuple[tuple[float, float], ...]:
+    """The (elapsed s, dB) knots of a gap report's drift advice; () without a report."""
+    if path is None:
+        return ()
+    try:
+        report = json.loads(Path(path).read_text())
+        knots = report["advice"]["settings"]["noise_gain_db"]
+    except OSError as exc:
+        raise ConfigError(f"--noise-gain {path}: {exc.strerror or exc}") from None
+    except (ValueError, KeyError, TypeError):
+        raise ConfigError(
+            f"--noise-gain {path}: not an egovib gap report with a drift verdict "
+            "(advice.settings.noise_gain_db)"
+        ) from None
+    noise_gain_curve(knots)  # checked here, once, with the file named
+    return tuple((float(t), float(g)) for t, g in knots)
+
+
 def run_denoise(args: argparse.Namespace) -> int:
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
+    noise_gain_db = noise_gain_from_report(args.noise_gain)
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
     make_method_denoiser(
@@ -119,6 +149,7 @@ def run_denoise(args: argparse.Namespace) -> int:
         oversubtraction=args.oversubtraction,
         floor=args.floor,
         joint_lag_s=args.joint_lag,
+        noise_gain_db=noise_gain_db,
     )
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
@@ -132,6 +163,7 @@ def run_denoise(args: argparse.Namespace) -> int:
         oversubtraction=args.oversubtraction,
         floor=args.floor,
         joint_lag_s=args.joint_lag,
+        noise_gain_db=noise_gain_db,
         compress=args.compress,
     )
     results = run_bags(

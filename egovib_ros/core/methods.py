@@ -775,11 +775,13 @@ def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **op
             f"output: dropin is made by method paper; method {method} gives the band-passed "
             f"signal (output: bandpassed)"
         )
-    defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0}
+    defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0, "noise_gain_db": ()}
     for name, value in defaults.items():
-        if name in options and options[name] == value:
+        if name in options and (options[name] == value or options[name] is None):
             del options[name]
-    paper_only = {"oversubtraction", "include_std", "rule", "joint_lag_s"} & set(options)
+    paper_only = {"oversubtraction", "include_std", "rule", "joint_lag_s", "noise_gain_db"} & set(
+        options
+    )
     if paper_only:
         raise ConfigError(f"method {method}: option(s) {sorted(paper_only)} apply to `paper` only")
     return SampleMethodDenoiser(model, method=method, **options)

@@ -30,6 +30,7 @@ from scipy import signal
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, design_bandpass
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.stream import BlockFramer, Blocks, DenoiserStats, FramerSettings, feed
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import ConfigError, StreamError, check_ranges
 
@@ -41,6 +42,8 @@ MagnitudeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 OUTPUTS = ("dropin", "bandpassed")
 MAX_OVERSUBTRACTION = 10.0
 MAX_FLOOR = 1.0
+#: A level change over time beyond this (dB) is not a warm-up but a different robot.
+MAX_NOISE_GAIN_DB = 20.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,6 +116,27 @@ def check_stream_fits_model(
         )
 
 
+def noise_gain_curve(knots) -> tuple[np.ndarray, np.ndarray] | None:
+    """(elapsed s, dB) knots of a level change over time (a warm-up the gap diagnosis
+    fitted, `egovib gap`'s advice), checked: times ascending from 0, finite, at most
+    +-MAX_NOISE_GAIN_DB; None for no knots."""
+    if knots is None or len(knots) == 0:
+        return None
+    try:
+        arr = np.asarray(knots, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros((0, 0))
+    if arr.ndim != 2 or arr.shape[1] != 2 or not np.isfinite(arr).all():
+        raise ConfigError(f"noise_gain_db: expected (elapsed s, dB) pairs, got {knots!r}")
+    t, g = arr[:, 0], arr[:, 1]
+    if t[0] < 0 or np.any(np.diff(t) <= 0) or np.abs(g).max() > MAX_NOISE_GAIN_DB:
+        raise ConfigError(
+            "noise_gain_db: times must rise from >= 0 s and gains stay within "
+            f"+-{MAX_NOISE_GAIN_DB:g} dB, got {knots!r}"
+        )
+    return t, g
+
+
 class StreamingDenoiser:
     """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
     size (in any interleaving); each push returns the samples that became final.
@@ -136,6 +160,7 @@ class StreamingDenoiser:
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
         joint_lag_s: float = 0.0,
+        noise_gain_db: tuple[tuple[float, float], ...] = (),
         max_fill_samples: int = 8,
         sample_rate_hz: float | None = None,
         block_length: int | None = None,
@@ -203,6 +228,8 @@ class StreamingDenoiser:
         self.blocks_unmeasured = 0
         self.samples_out = 0
         self._warned: set[str] = set()
+        self._noise_gain = noise_gain_curve(noise_gain_db)
+        self._t0_ns: int | None = None  # the first block's first stamp: elapsed time's zero
 
     # --- API -----------------------------------------------------------------
     def set_subtraction(
@@ -333,13 +360,13 @@ class StreamingDenoiser:
             # One block (the live case): skip the general lookup's bookkeeping.
             noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
             self.blocks_unmeasured += not measured
-            gain = self._gain(magnitude, noise, outside)
+            gain = self._gain(magnitude, self._scaled(noise, blocks), outside)
         elif usable.all():
             noise, outside, measured = self.model.lookup(
                 blocks.velocity, self.channel_index, include_std=self._include_std
             )
             self.blocks_unmeasured += int((~measured).sum())
-            gain = self._gain(magnitude, noise, outside)
+            gain = self._gain(magnitude, self._scaled(noise, blocks), outside)
         else:
             self._warn_once(
                 "missing", f"no joint state for a block: passing the {self.output} signal through"
@@ -350,8 +377,23 @@ class StreamingDenoiser:
                     blocks.velocity[usable], self.channel_index, include_std=self._include_std
                 )
                 self.blocks_unmeasured += int((~measured).sum())
-                gain[usable] = self._gain(magnitude[usable], noise, outside)
+                gain[usable] = self._gain(
+                    magnitude[usable], self._scaled(noise, blocks, usable), outside
+                )
         return gain
+
+    def _scaled(self, noise: np.ndarray, blocks: Blocks, rows=None) -> np.ndarray:
+        """The noise estimate (B, C, F) times the level change `noise_gain_db` gives at each
+        block's elapsed time (from the first block's first stamp), when one is set."""
+        if self._noise_gain is None:
+            return noise
+        if self._t0_ns is None:
+            self._t0_ns = int(blocks.t_first_ns[0])
+        t_first = blocks.t_first_ns if rows is None else blocks.t_first_ns[rows]
+        elapsed = (t_first - self._t0_ns) / NS_PER_S
+        knots_s, gain_db = self._noise_gain
+        scale = 10.0 ** (np.interp(elapsed, knots_s, gain_db) / 20.0)
+        return noise * scale[:, None, None]
 
     def _gain(self, magnitude: np.ndarray, noise: np.ndarray, outside: np.ndarray) -> np.ndarray:
         n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())

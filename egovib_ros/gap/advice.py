@@ -81,7 +81,14 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
                 if saturates
                 else ": recalibrate periodically, or calibrate on a recording as long as use"
             ),
-            {"recalibrate_after_s": round(reach, 1), "level_change_percent": round(pct, 1)},
+            {
+                "recalibrate_after_s": round(reach, 1),
+                "level_change_percent": round(pct, 1),
+                # for `egovib denoise --noise-gain`: the level change from the start
+                "noise_gain_db": [
+                    [round(float(t - x[0]), 2), round(float(v - g[0]), 3)] for t, v in zip(x, g)
+                ],
+            },
         )
     if effect == "position":
         joint, span, curve = _shape_span(shape, "position:")
