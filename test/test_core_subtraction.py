@@ -391,6 +391,22 @@ def test_a_noise_gain_over_time_follows_a_warm_up_and_streaming_equals_batch(mod
         push_random_chunks(denoiser, data, np.random.default_rng(4)) + [denoiser.flush()]
     )
     assert np.max(np.abs(values - followed)) <= 1e-12
+    # joint states only from 0.5 s: the first blocks pass through, elapsed time still
+    # counts from the first block, in batch and streamed alike
+    late_joints = data["t_joint"] >= data["t_acc"][0] + 500_000_000
+    data = {
+        **data,
+        "t_joint": data["t_joint"][late_joints],
+        "velocity": data["velocity"][late_joints],
+    }
+    arrays = (data["t_acc"], louder, data["t_joint"], data["velocity"])
+    _, batch, _ = denoise_batch(*arrays, model, channels="combined", noise_gain_db=knots)
+    denoiser = StreamingDenoiser(model, channels="combined", noise_gain_db=knots)
+    _, values = collect(
+        push_random_chunks(denoiser, data, np.random.default_rng(5), max_chunk=40)
+        + [denoiser.flush()]
+    )
+    assert np.max(np.abs(values - batch)) <= 1e-12
     for bad in (((1.0, 0.0), (0.5, 1.0)), ((0.0, 40.0),), ((0.0, float("nan")),), ((0.0,),)):
         with pytest.raises(ConfigError, match="noise_gain_db"):
             StreamingDenoiser(model, noise_gain_db=bad)

@@ -145,6 +145,10 @@ class StreamingDenoiser:
     covering it is processed: `block_length - hop` .. `block_length - 1` samples after it
     arrived (10.7-21 ms at 3 kHz with L = 64, hop = 32), plus any wait for joint states
     (`joint_wait_s`).
+
+    `noise_gain_db`: (elapsed s, dB) knots of a level change over time (the gap
+    diagnosis's drift advice): the noise estimate of a block is multiplied by it at the
+    block's time since the first block (linear between knots, flat beyond).
     """
 
     def __init__(
@@ -356,6 +360,8 @@ class StreamingDenoiser:
     def _block_gain(self, blocks: Blocks, magnitude: np.ndarray) -> np.ndarray:
         """(B, C, F) gain of each bin: the rule's |X| / |Y| at the blocks' noise estimates."""
         usable = blocks.status != MISSING
+        if self._noise_gain is not None and self._t0_ns is None:  # any block, usable or not
+            self._t0_ns = int(blocks.t_first_ns[0])
         if blocks.n == 1 and usable[0] and self._table is not None:
             # One block (the live case): skip the general lookup's bookkeeping.
             noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
@@ -387,8 +393,6 @@ class StreamingDenoiser:
         block's elapsed time (from the first block's first stamp), when one is set."""
         if self._noise_gain is None:
             return noise
-        if self._t0_ns is None:
-            self._t0_ns = int(blocks.t_first_ns[0])
         t_first = blocks.t_first_ns if rows is None else blocks.t_first_ns[rows]
         elapsed = (t_first - self._t0_ns) / NS_PER_S
         knots_s, gain_db = self._noise_gain
