@@ -91,6 +91,25 @@ def test_bad_samples_are_counted_held_and_do_not_end_detection(cuts):
     assert len(events) == 4 and events[0].onset_ns > stamps[onsets[0]] - 2_000_000
 
 
+@given(st.lists(st.integers(1, 700), max_size=20))
+def test_stamps_that_go_back_are_dropped_and_a_restarted_clock_restarts(cuts):
+    """Repeated stamps (a duplicate publisher) are dropped and counted; stamps going back 2 s
+    (a restarted driver) report what was pending and detect afresh: every tap found once,
+    onsets at their own stamps, for any chunking."""
+    stamps, values, onsets = taps()
+    clean = run(ContactDetector(settings()), stamps, values, [])
+    half = len(stamps) // 2  # 2 s: between the taps at 1.35 and 2.2 s
+    restarted = np.concatenate([stamps[:half], stamps[half:] - 3_000_000_000])
+    doubled = np.insert(restarted, [500, 501], restarted[[499, 500]])  # two repeated stamps
+    twice = np.insert(values, [500, 501], values[[499, 500]], axis=0)
+    detector = ContactDetector(settings())
+    events = run(detector, doubled, twice, cuts)
+    assert detector.samples_out_of_order == 2 and detector.restarts == 1
+    assert [e.onset_ns for e in events] == [
+        e.onset_ns - (3_000_000_000 if e.onset_ns >= stamps[half] else 0) for e in clean
+    ]
+
+
 def test_threshold_from_no_contact_data_and_its_false_alarm_rate():
     stamps, values, _ = taps(seconds=30.0, onsets_s=())
     envelope = detection_envelope(values, settings())

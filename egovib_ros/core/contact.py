@@ -22,8 +22,10 @@ input may be the raw stream, the denoiser's drop-in output or its band-passed ou
 band-pass is applied in every case; thresholds must come from data processed alike).
 A bad sample (non-finite, or beyond `sensor_range` on any axis) is counted and held at the
 last good value: one NaN in the band-pass state would end detection for good, and a
-spike beyond the sensor's range is not a contact. State is explicit: any chunking gives
-the same events.
+spike beyond the sensor's range is not a contact. A sample stamped at or before an
+earlier one is dropped (counted); stamps going back by more than CLOCK_JUMP_S are a
+restarted clock: the events pending are reported and detection starts afresh (counted).
+State is explicit: any chunking gives the same events.
 """
 
 from __future__ import annotations
@@ -35,12 +37,14 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.core.filters import BandPass
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 
 ENVELOPE_S = 0.004  # RMS window: shorter than a tap's ring-down, longer than a noise spike
 REFRACTORY_S = 0.05
 ONSET_FRACTION = 0.25
 THRESHOLD_MARGIN = 1.1  # no false-alarm budget: 1.1 x the largest no-contact envelope
+CLOCK_JUMP_S = 1.0  # stamps this far back: a restarted clock (as core.stream's default)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -143,8 +147,11 @@ class ContactDetector:
         self._last_above: int | None = None  # global index of the last above-threshold sample
         self._pending: list[int] = []  # crossings whose report is not due yet
         self._last_good = np.zeros(3)  # what a bad sample is held at
+        self._last_stamp: int | None = None  # the latest stamp accepted since the (re)start
         self.samples = 0
         self.samples_bad = 0
+        self.samples_out_of_order = 0
+        self.restarts = 0
         self.events = 0
 
     def push(self, stamps_ns: np.ndarray, values: np.ndarray) -> list[ContactEvent]:
@@ -153,6 +160,23 @@ class ContactDetector:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(stamps_ns):
             return []
+        last = np.iinfo(np.int64).min if self._last_stamp is None else self._last_stamp
+        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
+        known = before != np.iinfo(np.int64).min
+        jump = np.flatnonzero(
+            known & (stamps_ns < np.where(known, before, 0) - int(CLOCK_JUMP_S * NS_PER_S))
+        )
+        if len(jump):  # a restarted clock: what came before, a fresh start, what follows
+            i = int(jump[0])
+            events = self.push(stamps_ns[:i], values[:i]) + self._restart()
+            return events + self.push(stamps_ns[i:], values[i:])
+        keep = stamps_ns > before
+        if not keep.all():
+            self.samples_out_of_order += int((~keep).sum())
+            stamps_ns, values = stamps_ns[keep], values[keep]
+            if not len(stamps_ns):
+                return []
+        self._last_stamp = int(stamps_ns[-1])
         values = self._hold_bad(values)
         axes, envelope = self._envelope.process(values)
         start = self._base + len(self._stamps)
@@ -166,6 +190,17 @@ class ContactDetector:
         self.samples += len(stamps_ns)
         events = self._report(final=False)
         self._trim()
+        return events
+
+    def _restart(self) -> list[ContactEvent]:
+        """The clock went back: report what is pending, then detect afresh (filter state,
+        history and refractory time cleared)."""
+        events = self._report(final=True)
+        self._envelope = DetectionEnvelope(self.s)
+        self._base += len(self._stamps)
+        self._stamps, self._env, self._axes = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+        self._last_above, self._pending, self._last_stamp = None, [], None
+        self.restarts += 1
         return events
 
     def _hold_bad(self, values: np.ndarray) -> np.ndarray:

@@ -189,6 +189,8 @@ class ContactDetectorNode(Node):
             "samples_in": self.samples,
             "undecodable_messages": self.undecodable,
             "samples_bad": self.detector.samples_bad,
+            "samples_out_of_order": self.detector.samples_out_of_order,
+            "stream_restarts": self.detector.restarts,
             "events": self.events,
             "events_per_min": round(self.events / minutes, 3),
             "threshold": self.threshold,
@@ -203,11 +205,22 @@ class ContactDetectorNode(Node):
             "event_subscribers": self.pub.get_subscription_count(),
         }
         grown = self.health.changes(
-            {"undecodable": self.undecodable, "bad": self.detector.samples_bad}
+            {
+                "undecodable": self.undecodable,
+                "bad": self.detector.samples_bad,
+                "out_of_order": self.detector.samples_out_of_order,
+                "restarts": self.detector.restarts,
+            }
         )
         warnings = (
             [f"{grown['undecodable']:.0f} undecodable messages"] if grown["undecodable"] else []
         )
+        if grown["out_of_order"]:
+            warnings.append(f"{grown['out_of_order']:.0f} samples out of order (dropped)")
+        if grown["restarts"]:
+            warnings.append(
+                f"{grown['restarts']:.0f} stream restarts (stamps went back: detection restarted)"
+            )
         if grown["bad"]:
             warnings.append(
                 f"{grown['bad']:.0f} bad samples (non-finite or beyond the sensor's range: "
