@@ -506,7 +506,7 @@ class Denoiser(Node):
             ("samples_bad", "bad samples"),
             ("samples_out_of_order", "samples out of order"),
             ("gap_filled_samples", "missing samples bridged"),
-            ("stream_restarts", "stream restarts (gap or clock jump)"),
+            ("stream_restarts", "stream restarts (a gap, a run of bad samples, or a clock jump)"),
             ("joint_states_dropped", "joint states dropped"),
         ):
             if grown[key]:
