@@ -37,6 +37,7 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.core.filters import BandPass
+from egovib_ros.core.stream import bad_samples, stamp_order
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 
@@ -160,17 +161,10 @@ class ContactDetector:
         values = np.asarray(values, np.float64).reshape(-1, 3)
         if not len(stamps_ns):
             return []
-        last = np.iinfo(np.int64).min if self._last_stamp is None else self._last_stamp
-        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
-        known = before != np.iinfo(np.int64).min
-        jump = np.flatnonzero(
-            known & (stamps_ns < np.where(known, before, 0) - int(CLOCK_JUMP_S * NS_PER_S))
-        )
-        if len(jump):  # a restarted clock: what came before, a fresh start, what follows
-            i = int(jump[0])
+        keep, i = stamp_order(self._last_stamp, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
+        if i is not None:  # a restarted clock: what came before, a fresh start, what follows
             events = self.push(stamps_ns[:i], values[:i]) + self._restart()
             return events + self.push(stamps_ns[i:], values[i:])
-        keep = stamps_ns > before
         if not keep.all():
             self.samples_out_of_order += int((~keep).sum())
             stamps_ns, values = stamps_ns[keep], values[keep]
@@ -205,7 +199,7 @@ class ContactDetector:
 
     def _hold_bad(self, values: np.ndarray) -> np.ndarray:
         """Bad samples counted and replaced by the last good one (carried across pushes)."""
-        bad = ~np.isfinite(values).all(axis=1) | (np.abs(values) > self.s.sensor_range).any(axis=1)
+        bad = bad_samples(values, self.s.sensor_range)
         if bad.any():
             self.samples_bad += int(bad.sum())
             # index of the last good row at or before each row (-1: before this push)

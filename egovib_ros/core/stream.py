@@ -66,6 +66,30 @@ def measured_period(steps: np.ndarray, period: float) -> float:
     return float(steps[~gaps].mean())
 
 
+def stamp_order(
+    last_ns: int | None, stamps_ns: np.ndarray, clock_jump_ns: int
+) -> tuple[np.ndarray, int | None]:
+    """Stamps against everything accepted before them (`last_ns`: the latest, None: none):
+    (keep (N,): later than every stamp before it; the index of the first stamp more than
+    `clock_jump_ns` before one earlier in the stream, a restarted clock, or None). The
+    framer's sensor and joint streams and the contact detector share this rule."""
+    sentinel = np.iinfo(np.int64).min
+    before = np.maximum.accumulate(
+        np.concatenate([[sentinel if last_ns is None else last_ns], stamps_ns[:-1]])
+    )
+    known = before != sentinel  # the sentinel would wrap when subtracted from
+    jump = np.flatnonzero(known & (stamps_ns < np.where(known, before, 0) - clock_jump_ns))
+    return stamps_ns > before, (int(jump[0]) if len(jump) else None)
+
+
+def bad_samples(values: np.ndarray, sensor_range: float) -> np.ndarray:
+    """(N,) samples (N, 3) that are non-finite or beyond `sensor_range` on any axis."""
+    with np.errstate(invalid="ignore"):
+        return ~(
+            np.all(np.isfinite(values), axis=1) & np.all(np.abs(values) <= sensor_range, axis=1)
+        )
+
+
 def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
     """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
     (`stats`: DenoiserStats, CalibrationStats or a framer's FramerStats)."""
@@ -400,21 +424,9 @@ class _Cleaner:
                 self.last_value = accel[-1].copy()
                 return [_Segment(stamps, accel, ends_stream=False)]
         # Out of order: keep a sample only if later than everything accepted before it.
-        before = np.maximum.accumulate(
-            np.concatenate(
-                [
-                    [self.last_stamp if self.last_stamp is not None else np.iinfo(np.int64).min],
-                    stamps[:-1],
-                ]
-            )
-        )
-        known = before != np.iinfo(np.int64).min  # the sentinel would wrap when subtracted from
-        jump = np.flatnonzero(
-            known & (stamps < np.where(known, before, 0) - int(self.s.clock_jump_s * NS_PER_S))
-        )
-        if len(jump):
+        keep, i = stamp_order(self.last_stamp, stamps, int(self.s.clock_jump_s * NS_PER_S))
+        if i is not None:
             # The clock went back (bag loop, sensor reset): end the segment, start afresh.
-            i = int(jump[0])
             head = self._segments(stamps[:i], accel[:i])
             if not head:
                 head = [_Segment(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), ends_stream=True)]
@@ -422,7 +434,6 @@ class _Cleaner:
             self.stats.resets += 1
             self.last_stamp = None
             return head + self._segments(stamps[i:], accel[i:])
-        keep = stamps > before
         if not keep.all():
             self.stats.dropped_out_of_order += int((~keep).sum())
             stamps, accel = stamps[keep], accel[keep]
@@ -430,11 +441,7 @@ class _Cleaner:
             return []
         # Bad samples (non-finite, beyond the sensor range) are missing: the gap rules below
         # bridge or restart around them, exactly as if they had never arrived.
-        with np.errstate(invalid="ignore"):
-            bad = ~(
-                np.all(np.isfinite(accel), axis=1)
-                & np.all(np.abs(accel) <= self.s.sensor_range, axis=1)
-            )
+        bad = bad_samples(accel, self.s.sensor_range)
         if bad.any():
             self.stats.samples_bad += int(bad.sum())
             stamps, accel = stamps[~bad], accel[~bad]
@@ -549,14 +556,11 @@ class BlockFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity])
             self._drain(final=False)
             return
-        before = np.maximum.accumulate(np.concatenate([[last], stamps_ns[:-1]]))
-        known = before != np.iinfo(np.int64).min
-        jump = np.flatnonzero(
-            known & (stamps_ns < np.where(known, before, 0) - int(self.s.clock_jump_s * NS_PER_S))
+        in_order, i = stamp_order(
+            last if len(self._joint_t) else None, stamps_ns, int(self.s.clock_jump_s * NS_PER_S)
         )
-        if len(jump):
+        if i is not None:
             # The joint clock went back (bag loop, reset): forget the old timeline.
-            i = int(jump[0])
             # (the pushes below shift the stamps again: undo the shift here)
             self.push_joint_states(stamps_ns[:i] - self._joint_lag_ns, velocity[:i])
             self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
@@ -568,7 +572,7 @@ class BlockFramer:
             self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
             self.stats.joint_states_in += i
             return
-        keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
+        keep = in_order & np.all(np.isfinite(velocity), axis=1)
         self.stats.joint_states_dropped += int((~keep).sum())
         if keep.any():
             self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
