@@ -27,6 +27,13 @@ class GapDataError(EgovibError):
     """A recording does not hold enough usable (no-contact, matched) data for a gap diagnosis."""
 
 
+def bag_error(where: str, exc: Exception) -> BagError:
+    """`exc` (a processor's ValueError) as the bag's error, naming `where` once: the
+    processor's message may name it already (its source)."""
+    text = str(exc)
+    return BagError(text if text.startswith(f"{where}: ") else f"{where}: {text}")
+
+
 def check_ranges(obj, checks, what: str = "") -> None:
     """ConfigError unless each attribute `name` of `obj` in `checks` ((name, low, high), ...)
     is a number (not a bool) in [low, high]; the message starts with `what`."""

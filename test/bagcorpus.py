@@ -47,6 +47,9 @@ class Layout:
     # bytes after every message: rclpy's serialize_message leaves 8 stray ones after some
     # JointStates (positions only), and bags written with it (rosbag2_py) keep them
     trailing: int = 0
+    # sample: header stamps mark sample times | receipt: a USB driver's, stamped as each
+    # message is read (1 ms frames, 0-0.2 ms host latency)
+    stamps: str = "sample"
 
 
 LAYOUTS = (
@@ -166,6 +169,19 @@ def arrange(
             (t, log, part)
             for t, log, d in out
             for part in (_per_joint(d) if t in joint_topics else [d])
+        ]
+    if layout.stamps == "receipt":
+        imu = {c.topic for c in conns if c.msgtype == "sensor_msgs/msg/Imu"}
+        # the raw stream and its ground truth share stamps: restamp them alike
+        sample = np.unique([header_stamp(d) for t, _, d in out if t in imu])
+        frame_end = (sample // 1_000_000 + 1) * 1_000_000
+        late = frame_end + rng.integers(0, 200_000, len(sample))
+        receipt = dict(
+            zip(sample.tolist(), (np.maximum.accumulate(late) + np.arange(len(sample))).tolist())
+        )
+        out = [
+            (t, log, _with_stamp(d, receipt[header_stamp(d)]) if t in imu else d)
+            for t, log, d in out
         ]
     if layout.swap:
         # Swap the header stamps of the same neighbouring samples on every Imu topic (the

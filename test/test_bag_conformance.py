@@ -218,3 +218,26 @@ def test_an_unindexed_file_out_of_log_time_order_is_refused_in_one_line(corpus, 
     assert code == 2 and len(lines) == 1, err
     assert str(bag) in lines[0] and "log-time order" in lines[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_a_bag_stamped_on_receipt_goes_through_every_command(corpus, reference_outputs):
+    """A USB IMU driver's stamps (each message stamped as read: 1 ms frames) are not sample
+    times: every command reads them on a rebuilt sample clock, with the reference's answer
+    within what 0-1.2 ms of joint-state matching moves."""
+    layout = Layout("receipt_stamps", stamps="receipt")
+    bagcorpus.write_layout(corpus / "reference", corpus / layout.name, layout)
+    outputs = run_commands(corpus, layout.name, gap=True)
+    want = reference_outputs["reference"]
+    bag = read_recording(corpus / layout.name, ground_truth=False, denoised=False)
+    steps = np.diff(bag.sensor_stamps_ns)
+    assert np.mean(steps < 1e9 / 6000) > 0.5  # most steps under half a period
+    np.testing.assert_array_equal(outputs["denoised"].denoised_stamps_ns, bag.sensor_stamps_ns)
+    got_cells, want_cells = ({tuple(c) for c in m.cells} for m in (outputs["model"], want["model"]))
+    assert len(got_cells ^ want_cells) <= 0.05 * len(want_cells)  # a cell at a border moves
+    assert outputs["model"].cell_counts.sum() == pytest.approx(
+        want["model"].cell_counts.sum(), rel=0.02
+    )
+    got, ref = outputs["evaluate"], want["evaluate"]
+    assert got["noise_reduction_db"] == pytest.approx(ref["noise_reduction_db"], abs=0.3)
+    assert got["peak_snr_denoised_db"] == pytest.approx(ref["peak_snr_denoised_db"], abs=0.5)
+    assert outputs["gap"]["verdict"] == want["gap"]["verdict"]

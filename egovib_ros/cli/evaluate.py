@@ -19,7 +19,7 @@ import numpy as np
 from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
     REPORT_FIELDS,
@@ -91,7 +91,7 @@ def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options)
     try:
         report = evaluate_bag(bag, progress=progress, **options)
     except ValueError as exc:  # a method that cannot run on these data
-        raise BagError(f"{bag}: {exc}") from None
+        raise bag_error(str(bag), exc) from None
     report = {
         "bag": str(bag),
         "model": str(model_path),

@@ -24,7 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from egovib_ros.core.filters import BandPass
-from egovib_ros.core.stream import FramerSettings, FramerStats, _Cleaner, joint_state_arrays
+from egovib_ros.core.stream import (
+    FramerSettings,
+    FramerStats,
+    _Cleaner,
+    joint_state_arrays,
+    rate_refusal,
+)
 from egovib_ros.core.timebase import NS_PER_S
 
 RATE_CHECK_SAMPLES = 128
@@ -109,8 +115,11 @@ class SampleFramer:
         self._drain()
 
     def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        for segment in self._cleaner.segments(stamps_ns, accel):
-            self._check_rate(segment.stamps)
+        self._push_segments(self._cleaner.segments(stamps_ns, accel))
+
+    def _push_segments(self, segments: list) -> None:
+        for segment in segments:
+            self._check_rate(segment.times)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
@@ -118,6 +127,7 @@ class SampleFramer:
 
     def flush(self) -> None:
         """End of stream: release everything pending (the last segment ends here)."""
+        self._push_segments(self._cleaner.finish())
         self._close_segment(wait_for_joints=False)
         self._drain(final=True)
 
@@ -131,7 +141,7 @@ class SampleFramer:
 
     @property
     def backlog(self) -> tuple[int, int]:
-        return len(self._pend_t), len(self._joint_t)
+        return len(self._pend_t) + self._cleaner.waiting, len(self._joint_t)
 
     # --- internals -------------------------------------------------------------
     def _check_rate(self, stamps: np.ndarray) -> None:
@@ -147,10 +157,7 @@ class SampleFramer:
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = (
-                f"sensor stream runs at {measured:.0f} Hz but the model expects "
-                f"{self.s.sample_rate_hz:g} Hz"
-            )
+            self._rate_error = rate_refusal(measured, self.s, self.stats)
             raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:

@@ -37,6 +37,7 @@ import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
+from egovib_ros.core.receipt import ReceiptClock, receipt_latency
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
@@ -49,6 +50,12 @@ MAX_BAD_SHARE = 0.1
 #: After the start, the sample rate is measured again on every window of this many blocks'
 #: worth of samples; two windows in a row beyond the tolerance are a rate mismatch.
 RATE_WINDOW_BLOCKS = 4
+#: With FramerSettings.stamps "auto", up to this many first samples wait while the stamps tell
+#: whether they mark sample times or a driver's receipt times (the first rate window); the
+#: first PROBE_EARLY are enough when none of their steps is shorter than half a period.
+PROBE_SAMPLES = 128
+PROBE_EARLY = 16
+STAMP_KINDS = ("auto", "sample", "receipt")
 
 
 def measured_period(steps: np.ndarray, period: float) -> float:
@@ -88,6 +95,22 @@ def bad_samples(values: np.ndarray, sensor_range: float) -> np.ndarray:
         return ~(
             np.all(np.isfinite(values), axis=1) & np.all(np.abs(values) <= sensor_range, axis=1)
         )
+
+
+def rate_refusal(measured_hz: float, settings: "FramerSettings", stats) -> str:
+    """Why a stream's first rate window is refused; repeated stamps named when they explain
+    it (a driver that stamps a packet of samples once: its later samples look dropped)."""
+    text = (
+        f"sensor stream runs at {measured_hz:.0f} Hz but the model expects "
+        f"{settings.sample_rate_hz:g} Hz"
+    )
+    dropped, total = int(stats.dropped_out_of_order), int(stats.samples_in)
+    if 4 * dropped > total:
+        text += (
+            f" ({dropped} of {total} samples stamped at or before the one before them: "
+            f"a driver stamping a packet of samples with one stamp?)"
+        )
+    return text
 
 
 def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
@@ -163,6 +186,10 @@ class FramerSettings:
     joint_lag_s: float = 0.0
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
+    #: What a sensor stamp marks: "sample" (its sample time, +-30 % jitter per step), "receipt"
+    #: (when a driver received it: core.receipt) or "auto" (told apart on the first
+    #: PROBE_SAMPLES samples, which wait for it).
+    stamps: str = "auto"
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
     keep_raw: bool = False  # blocks also carry the unfiltered samples (the drop-in output)
     # The samples were band-passed already (a residual computed on the band-passed signal):
@@ -173,6 +200,10 @@ class FramerSettings:
     def __post_init__(self) -> None:
         where = f"{self.source}: " if self.source else ""
         validate_blocking(self.block_length, self.hop)
+        if self.stamps not in STAMP_KINDS:
+            raise ConfigError(
+                f"{where}stamps must be one of {list(STAMP_KINDS)}, got {self.stamps!r}"
+            )
         if self.layout not in CHANNEL_LAYOUTS:
             raise ConfigError(
                 f"{where}channels: unknown layout {self.layout!r}; expected one of "
@@ -291,6 +322,13 @@ class _Segment:
     values: np.ndarray  # (n, 3) raw, cleaned
     ends_stream: bool  # a long gap or a clock jump follows: close the segment
     wait_for_joints: bool = True  # False after a clock jump: no more joint states on the old clock
+    # the sample times the rate is measured on: the stamps, or for stamps taken on receipt the
+    # rebuilt sample clock (-1 like the stamps for synthetic samples)
+    times: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.times is None:
+            self.times = self.stamps
 
 
 @dataclass
@@ -305,6 +343,7 @@ class FramerStats:
     blocks: int = 0
     blocks_held: int = 0
     blocks_missing: int = 0
+    receipt_latency_ns: int = 0  # stamps read as receipt times: their latency spread, else 0
 
 
 class _Counts:
@@ -395,6 +434,11 @@ class _Cleaner:
         self.stats = stats
         self.last_stamp: int | None = None
         self.last_value: np.ndarray | None = None
+        # what the stamps mark: "sample" or "receipt" (None: the first samples wait in _probe)
+        self.kind: str | None = "sample" if settings.stamps == "sample" else None
+        self.receipt: ReceiptClock | None = None  # the rebuilt sample clock, for "receipt"
+        self._probe: list[tuple[np.ndarray, np.ndarray]] = []
+        self._probe_n = 0
 
     def segments(self, stamps: np.ndarray, accel: np.ndarray) -> list[_Segment]:
         stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
@@ -405,12 +449,69 @@ class _Cleaner:
                 f"got {stamps.shape} and {accel.shape}"
             )
         self.stats.samples_in += len(stamps)
+        if self.kind is None:
+            self._probe.append((stamps, accel))
+            self._probe_n += len(stamps)
+            return self._decide(final=False)
+        return self._segments(stamps, accel)
+
+    def finish(self) -> list[_Segment]:
+        """End of stream: the samples still waiting to tell what their stamps mark."""
+        return self._decide(final=True) if self.kind is None else []
+
+    @property
+    def waiting(self) -> int:
+        """Samples held until the stamps are told apart (PROBE_SAMPLES at most)."""
+        return self._probe_n
+
+    def _decide(self, *, final: bool) -> list[_Segment]:
+        """Tell from the waiting samples' in-order, good stamps (up to a clock jump) whether
+        they mark sample times or receipt times, then pass the samples on. No step shorter
+        than half a period in the first PROBE_EARLY: sample times (a stream on its sensor's
+        clock waits no longer); else the whole probe decides (core.receipt)."""
+        if len(self._probe) > 1:
+            self._probe = [
+                (_cat_t([t for t, _ in self._probe]), _cat_v([v for _, v in self._probe]))
+            ]
+        stamps, accel = self._probe[0]
+        keep, jump = stamp_order(None, stamps, int(self.s.clock_jump_s * NS_PER_S))
+        good = keep & ~bad_samples(accel, self.s.sensor_range)
+        good[len(good) if jump is None else jump :] = False
+        in_order = stamps[good]
+        if (
+            self.s.stamps == "auto"
+            and len(in_order) >= PROBE_EARLY
+            and np.all(np.diff(in_order[:PROBE_EARLY]) >= 0.5 * self.s.period_ns)
+        ):
+            latency = None
+        elif self._probe_n < PROBE_SAMPLES and not final:
+            return []
+        else:
+            latency = receipt_latency(
+                in_order,
+                self.s.period_ns,
+                self.s.rate_tolerance,
+                known=self.s.stamps == "receipt",
+            )
+        self._probe, self._probe_n = [], 0
+        self.kind = "sample" if latency is None else "receipt"
+        if latency is not None:
+            self.receipt = ReceiptClock(self.s.period_ns, latency, self.s.max_fill_samples)
+            self.stats.receipt_latency_ns = int(latency)
+            if self.s.stamps == "auto":
+                LOG.warning(
+                    "%ssensor stamps step irregularly but keep the rate: read as receipt "
+                    "times (latency up to %.2f ms: a driver stamping on arrival?); samples "
+                    "counted on a rebuilt sample clock",
+                    f"{self.s.source}: " if self.s.source else "",
+                    latency / 1e6,
+                )
         return self._segments(stamps, accel)
 
     def _segments(self, stamps: np.ndarray, accel: np.ndarray) -> list[_Segment]:
         if len(stamps) == 0:
             return []
-        if self.last_stamp is not None:
+        if self.last_stamp is not None and self.receipt is None:
             # Fast path (the live case): in order, no gap, all finite.
             limit = 1.5 * self.s.period_ns
             first_step = int(stamps[0]) - self.last_stamp
@@ -447,34 +548,51 @@ class _Cleaner:
             stamps, accel = stamps[~bad], accel[~bad]
             if len(stamps) == 0:
                 return []
-        # Gaps, measured against the previous accepted sample.
-        prev_stamp = np.concatenate(
-            [[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]]
-        )
-        missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
-        missing[0] = missing[0] if self.last_stamp is not None else 0
+        if self.receipt is not None:
+            # Gaps against the rebuilt sample clock (the stamps trail it by a varying latency).
+            if self.last_stamp is None:
+                self.receipt.restart()
+            missing, clock = self.receipt.gaps(stamps)
+        else:
+            # Gaps, measured against the previous accepted sample.
+            prev_stamp = np.concatenate(
+                [[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]]
+            )
+            missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
+            missing[0] = missing[0] if self.last_stamp is not None else 0
+            clock = None
         segments: list[_Segment] = []
         prev_value = self.last_value
         start = 0
-        pieces_t, pieces_v = [], []
+        pieces_t, pieces_v, pieces_c = [], [], []
+
+        def segment(ends: bool) -> _Segment:
+            times = None if clock is None else _cat_t(pieces_c)
+            return _Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=ends, times=times)
+
         for i in np.flatnonzero(missing > 0):
             pieces_t.append(stamps[start:i])
             pieces_v.append(accel[start:i])
+            if clock is not None:
+                pieces_c.append(clock[start:i])
             left_value = accel[i - 1] if i > 0 else prev_value
             if missing[i] <= self.s.max_fill_samples and left_value is not None:
                 k = int(missing[i])
                 self.stats.gap_filled_samples += k
                 frac = (np.arange(1, k + 1) / (k + 1))[:, None]
                 pieces_t.append(np.full(k, -1, dtype=np.int64))
+                pieces_c.append(pieces_t[-1])
                 pieces_v.append(left_value[None, :] + frac * (accel[i] - left_value)[None, :])
             else:
                 self.stats.resets += 1
-                segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=True))
-                pieces_t, pieces_v = [], []
+                segments.append(segment(ends=True))
+                pieces_t, pieces_v, pieces_c = [], [], []
             start = i
         pieces_t.append(stamps[start:])
         pieces_v.append(accel[start:])
-        segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=False))
+        if clock is not None:
+            pieces_c.append(clock[start:])
+        segments.append(segment(ends=False))
         self.last_stamp = int(stamps[-1])
         self.last_value = accel[-1].copy()
         return segments
@@ -580,8 +698,11 @@ class BlockFramer:
         self._drain(final=False)
 
     def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        for segment in self._cleaner.segments(stamps_ns, accel):
-            self._check_rate(segment.stamps)
+        self._push_segments(self._cleaner.segments(stamps_ns, accel))
+
+    def _push_segments(self, segments: list[_Segment]) -> None:
+        for segment in segments:
+            self._check_rate(segment.times)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
                 self._rate_last = None  # no step is measured across a long gap or a clock jump
@@ -590,6 +711,7 @@ class BlockFramer:
 
     def flush(self) -> None:
         """End of stream: complete all pending blocks (zero padding at the end)."""
+        self._push_segments(self._cleaner.finish())
         self._drain(final=True)
 
     def pop_blocks(self) -> list[Blocks]:
@@ -605,7 +727,7 @@ class BlockFramer:
     @property
     def backlog(self) -> tuple[int, int]:
         """(samples buffered, joint states held): bounded however long the stream runs."""
-        return len(self._buf_t), len(self._joint_t)
+        return len(self._buf_t) + self._cleaner.waiting, len(self._joint_t)
 
     # --- internals -------------------------------------------------------------
     def _start_segment(self) -> None:
@@ -649,10 +771,7 @@ class BlockFramer:
             if not self._rate_checked:
                 self._rate_checked = True
                 if off:
-                    self._rate_error = (
-                        f"sensor stream runs at {measured:.0f} Hz but the model expects "
-                        f"{self.s.sample_rate_hz:g} Hz"
-                    )
+                    self._rate_error = rate_refusal(measured, self.s, self.stats)
                     raise self.s.error(self._rate_error)
                 continue
             self._rate_off_windows = self._rate_off_windows + 1 if off else 0

@@ -51,7 +51,7 @@ from scipy import signal
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.filters import BandPass, channel_matrix
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import baselines, detection, metrics
 
 SEGMENT_ACTIVE_MIN = metrics.SEGMENT_LENGTH // 2  # segments at least half inside a contact
@@ -380,7 +380,7 @@ class SummaryPass:
         try:
             self._rows(*self.screen.finish())
         except ValueError as exc:
-            raise BagError(f"{self.source}: {exc}") from None
+            raise bag_error(self.source, exc) from None
         self._count(final=True)
         n = self.n
         counts = {
@@ -569,7 +569,7 @@ class CalibrationPass:
         try:
             self._rows(*self.screen.finish())
         except ValueError as exc:
-            raise BagError(f"{self.source}: {exc}") from None
+            raise bag_error(self.source, exc) from None
         bad, n = self.exclusion.bad, self.n
         if n and bad / n > self.max_bad_fraction:
             raise BagError(
@@ -586,7 +586,7 @@ class CalibrationPass:
         try:
             self._advance(final=True)
         except ValueError as exc:
-            raise BagError(f"{self.source}: {exc}") from None
+            raise bag_error(self.source, exc) from None
         use_within = self.within_count >= self.fs  # at least 1 s within the run's speeds
         thresholds = {}
         for key, reducer in self.reducers.items():
@@ -715,7 +715,7 @@ class EvaluationPass:
         try:
             self._rows(*self.screen.finish())
         except ValueError as exc:
-            raise BagError(f"{self.source}: {exc}") from None
+            raise bag_error(self.source, exc) from None
         for name, stream in self.streams.items():
             self.fifos[name].put(stream.finish())
         self._advance(final=True)

@@ -1,0 +1,119 @@
+"""Sensor streams stamped on receipt.
+
+A driver that stamps each message as it receives it (a USB or serial IMU read a packet at a
+time, stamped with the host clock) gives stamps that trail the sample times by a latency
+that varies: steps of 0 to several periods, however regular the sensor. Judged step by step
+those read as lost samples and as a wrong rate. Such a stream is recognised on its first
+samples (`receipt_latency`) and judged against a sample clock rebuilt from the count of
+samples and the stamps' lower envelope (`ReceiptClock`): a gap is a stamp later than any
+latency seen.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+#: More than this share of steps shorter than half a period: stamps taken on receipt. A sensor
+#: sampling on its own clock never gives them (lost samples only lengthen steps), and a step
+#: jitter of +-30 % never reaches them.
+RECEIPT_SHORT_STEPS = 0.01
+#: Per sample, the rebuilt clock moves this share of a sample's lateness towards the stamps: it
+#: follows a sensor clock off the nominal rate (which the rate check then sees).
+RECEIPT_LEAK = 1.0 / 64.0
+#: Per sample, the latency bound forgets this share of itself (half-life ~7000 samples).
+RECEIPT_FORGET = 1e-4
+
+
+def receipt_latency(
+    stamps_ns: np.ndarray, period_ns: float, tolerance: float, *, known: bool = False
+) -> float | None:
+    """The latency spread (ns) of stamps taken on receipt, from the in-order stamps of a
+    stream's first samples; None when they mark sample times (steps of about a period or
+    whole periods more) or when their count does not keep the nominal rate (a wrong rate is
+    the rate check's to refuse). `known`: they are receipt times; only the spread is asked."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if len(stamps) < (2 if known else 16):
+        return 0.0 if known else None
+    steps = np.diff(stamps)
+    count_period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+    if not known and (
+        np.count_nonzero(steps < 0.5 * period_ns) <= RECEIPT_SHORT_STEPS * len(steps)
+        or abs(count_period / period_ns - 1.0) > tolerance
+    ):
+        return None
+    late = (stamps - stamps[0]) - np.arange(len(stamps)) * count_period
+    return float(late.max() - late.min())
+
+
+class ReceiptClock:
+    """The sample clock of a stream stamped on receipt, carried across chunks: `gaps(stamps)`
+    gives, per in-order sample, the samples missing before it and its rebuilt time."""
+
+    def __init__(self, period_ns: float, latency_ns: float, max_fill: int):
+        self.period = float(period_ns)
+        self.max_fill = int(max_fill)
+        self.origin: int | None = None  # ns; the clock runs in float ns after it (precision)
+        # [rebuilt time of the last sample - origin, latency bound, anchored 0/1]
+        self.state = np.array([0.0, float(latency_ns), 0.0])
+
+    def restart(self) -> None:
+        """A new segment (first sample, a clock jump): the next stamp anchors the clock."""
+        self.state[2] = 0.0
+
+    @property
+    def latency_ns(self) -> float:
+        return float(self.state[1])
+
+    def gaps(self, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(missing (N,) int64, rebuilt times (N,) int64) for in-order stamps (N,)."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        if self.origin is None and len(stamps_ns):
+            self.origin = int(stamps_ns[0])
+        missing = np.zeros(len(stamps_ns), dtype=np.int64)
+        offsets = np.zeros(len(stamps_ns))
+        _receipt_kernel(
+            (stamps_ns - (self.origin or 0)).astype(np.float64),
+            self.period,
+            RECEIPT_LEAK,
+            1.0 - RECEIPT_FORGET,
+            self.max_fill,
+            self.state,
+            missing,
+            offsets,
+        )
+        return missing, np.rint(offsets).astype(np.int64) + (self.origin or 0)
+
+
+@numba.njit(cache=True)
+def _receipt_kernel(stamps, period, leak, keep, max_fill, state, missing, times):
+    # Per sample (numba: a stream at kHz rates). grid: rebuilt time of the last sample;
+    # spread: how late stamps have been recently. A stamp more than the spread and 1.5
+    # periods beyond the next sample's time is late by lost samples (fewer are not told from
+    # latency); one earlier than it moves the clock back (stamps never come before their
+    # sample: the clock follows their lower envelope).
+    grid, spread, anchored = state[0], state[1], state[2] > 0.0
+    for k in range(len(stamps)):
+        s = stamps[k]
+        m = 0
+        if not anchored:
+            grid, anchored = s, True
+        else:
+            r = s - (grid + period)
+            if r > spread + 1.5 * period:
+                m = max(1, int(math.floor((r - 0.5 * spread) / period + 0.5)))
+            if m > max_fill:
+                grid = s  # a long gap: the segment restarts at this sample
+            else:
+                grid += (m + 1) * period
+                late = s - grid
+                if late < 0.0:
+                    grid, late = s, 0.0
+                else:
+                    grid += leak * late
+                spread = max(late, spread * keep)
+        missing[k] = m
+        times[k] = grid
+    state[0], state[1], state[2] = grid, spread, 1.0 if anchored else 0.0
