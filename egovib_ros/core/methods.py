@@ -43,6 +43,7 @@ from egovib_ros.core.sampleframer import SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
 from egovib_ros.core.subtraction import (
     DenoisedChunk,
+    FramedDenoiser,
     StreamingDenoiser,
     check_stream_fits_model,
 )
@@ -569,7 +570,7 @@ def warm_up() -> None:
     _WARM = True
 
 
-class SampleMethodDenoiser:
+class SampleMethodDenoiser(FramedDenoiser):
     """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
     each push returns the samples that became final (DenoisedChunk; output sample k
     carries input stamp k). `cancel` releases a sample as soon as its joint state is in;
@@ -664,23 +665,8 @@ class SampleMethodDenoiser:
     def delay_ms(self) -> float:
         return 1e3 * self.delay / self.model.sample_rate_hz
 
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
-        self._framer.push_joint_states(stamps_ns, velocity)
-        return self._process(self._framer.pop())
-
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_sensor(stamps_ns, accel)
-        return self._process(self._framer.pop())
-
-    def flush(self) -> DenoisedChunk:
-        self._framer.flush()
-        return self._process(self._framer.pop())
-
-    @property
-    def samples_pending(self) -> int:
-        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
-        without building the stats: a live node asks at every batch)."""
-        return self._framer.stats.samples_in - self.samples_out
+    def _pop(self):
+        return self._framer.pop()
 
     @property
     def stats(self) -> DenoiserStats:

@@ -137,7 +137,31 @@ def noise_gain_curve(knots) -> tuple[np.ndarray, np.ndarray] | None:
     return t, g
 
 
-class StreamingDenoiser:
+class FramedDenoiser:
+    """The push/flush interface of a denoiser fed through a framer (`self._framer`): each
+    call hands what the framer made ready (`_pop`) to `_process`, which returns the samples
+    that became final. Counts its output in `samples_out`."""
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
+        self._framer.push_joint_states(stamps_ns, velocity)
+        return self._process(self._pop())
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
+        return self._process(self._pop())
+
+    def flush(self) -> DenoisedChunk:
+        self._framer.flush()
+        return self._process(self._pop())
+
+    @property
+    def samples_pending(self) -> int:
+        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
+        without building the stats: a live node asks at every batch)."""
+        return self._framer.stats.samples_in - self.samples_out
+
+
+class StreamingDenoiser(FramedDenoiser):
     """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
     size (in any interleaving); each push returns the samples that became final.
 
@@ -256,23 +280,8 @@ class StreamingDenoiser:
         """(min, max) samples between a sample's arrival and its output."""
         return self.model.block_length - self.model.hop, self.model.block_length - 1
 
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
-        self._framer.push_joint_states(stamps_ns, velocity)
-        return self._process(self._framer.pop_blocks())
-
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_sensor(stamps_ns, accel)
-        return self._process(self._framer.pop_blocks())
-
-    def flush(self) -> DenoisedChunk:
-        self._framer.flush()
-        return self._process(self._framer.pop_blocks())
-
-    @property
-    def samples_pending(self) -> int:
-        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
-        without building the stats: a live node asks at every batch)."""
-        return self._framer.stats.samples_in - self.samples_out
+    def _pop(self) -> list[Blocks]:
+        return self._framer.pop_blocks()
 
     @property
     def stats(self) -> DenoiserStats:
