@@ -788,21 +788,7 @@ def denoise_batch_method(
     """Whole arrays through the streaming denoiser of `method` (as denoise_batch does for
     `paper`): (stamps (K,), values (K, C), stats)."""
     denoiser = make_denoiser(model, method, channels=channels, **options)
-    chunks = feed(
-        denoiser,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=denoiser.settings.joint_wait_s,
-    )
-    chunks.append(denoiser.flush())
-    n_out = 3 if channels == "per_axis" else 1
-    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
-    values = np.concatenate([np.zeros((0, n_out))] + [c.values for c in chunks])
-    return stamps, values, denoiser.stats
+    return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)
 
 
 def method_delay_ms(model: NoiseModel, method: str, **options) -> float:

@@ -160,6 +160,25 @@ class FramedDenoiser:
         without building the stats: a live node asks at every batch)."""
         return self._framer.stats.samples_in - self.samples_out
 
+    def run_arrays(
+        self, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s: float
+    ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
+        """Whole arrays through this denoiser, `chunk_s` seconds at a time (joint states
+        first), then flushed: (stamps_ns (K,), values (K, C), stats)."""
+        chunks = feed(
+            self,
+            sensor_stamps_ns,
+            accel,
+            joint_stamps_ns,
+            joint_velocity,
+            chunk_s=chunk_s,
+            sample_rate_hz=self.model.sample_rate_hz,
+            joint_wait_s=self.settings.joint_wait_s,
+        )
+        chunks = [self._empty, *chunks, self.flush()]  # _empty: the (0, C) shape if none
+        stamps = np.concatenate([c.stamps_ns for c in chunks])
+        return stamps, np.concatenate([c.values for c in chunks]), self.stats
+
 
 class StreamingDenoiser(FramedDenoiser):
     """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
@@ -444,18 +463,4 @@ def denoise_batch(
     so working memory does not grow with the recording (the output does, of course).
     """
     denoiser = StreamingDenoiser(model, channels=channels, **options)
-    chunks = feed(
-        denoiser,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=denoiser.settings.joint_wait_s,
-    )
-    chunks.append(denoiser.flush())
-    n_channels = len(denoiser.channel_index)
-    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
-    values = np.concatenate([np.zeros((0, n_channels))] + [c.values for c in chunks])
-    return stamps, values, denoiser.stats
+    return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)
