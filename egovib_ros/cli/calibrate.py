@@ -11,7 +11,7 @@ import numpy as np
 from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
 from egovib_ros.cli.jobs import parallel_options
-from egovib_ros.cli.options import float_in
+from egovib_ros.cli.options import joint_lag_option
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError, ConfigError
@@ -51,14 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="paper: the paper's table (default); hybrid: also what methods cancel and hybrid "
         "need (the speed -> line map, the residual's table, the gain), fitted on one bag",
     )
-    cal.add_argument(
-        "--joint-lag",
-        type=float_in(-1.0, 1.0),
-        default=0.0,
-        metavar="SECONDS",
-        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
-        "measures it; negative: they lead)",
-    )
+    joint_lag_option(cal)
     cal.add_argument(
         "--force", action="store_true", help="replace an existing model written by egovib"
     )

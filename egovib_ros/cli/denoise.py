@@ -10,7 +10,7 @@ from pathlib import Path
 from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
 from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
-from egovib_ros.cli.options import float_in, nonneg_float
+from egovib_ros.cli.options import joint_lag_option, nonneg_float
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.subtraction import noise_gain_curve
 from egovib_ros.errors import ConfigError
@@ -44,14 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "low-latency gain (4 ms); cancel and hybrid need a model calibrated with "
         "--methods hybrid",
     )
-    den.add_argument(
-        "--joint-lag",
-        type=float_in(-1.0, 1.0),
-        default=0.0,
-        metavar="SECONDS",
-        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
-        "measures it; negative: they lead)",
-    )
+    joint_lag_option(den)
     den.add_argument(
         "--noise-gain",
         metavar="REPORT.json",
@@ -139,11 +132,7 @@ def run_denoise(args: argparse.Namespace) -> int:
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
     noise_gain_db = noise_gain_from_report(args.noise_gain)
-    # Bad options fail here too; this also builds the model's look-up table once, which
-    # the workers then receive with the model instead of each building (and logging) it.
-    make_method_denoiser(
-        model,
-        args.method,
+    settings = dict(
         channels=args.channels,
         output=args.output,
         oversubtraction=args.oversubtraction,
@@ -151,20 +140,14 @@ def run_denoise(args: argparse.Namespace) -> int:
         joint_lag_s=args.joint_lag,
         noise_gain_db=noise_gain_db,
     )
+    # Bad options fail here too; this also builds the model's look-up table once, which
+    # the workers then receive with the model instead of each building (and logging) it.
+    make_method_denoiser(model, args.method, **settings)
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
         prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
     task = functools.partial(
-        _denoise_task,
-        model=model,
-        method=args.method,
-        channels=args.channels,
-        output=args.output,
-        oversubtraction=args.oversubtraction,
-        floor=args.floor,
-        joint_lag_s=args.joint_lag,
-        noise_gain_db=noise_gain_db,
-        compress=args.compress,
+        _denoise_task, model=model, method=args.method, compress=args.compress, **settings
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet

@@ -100,6 +100,18 @@ positive_int = int_in(1)
 seed = int_in(0, MAX_SEED)
 
 
+def joint_lag_option(parser: argparse.ArgumentParser) -> None:
+    """--joint-lag of the commands that read joint states against the sensor."""
+    parser.add_argument(
+        "--joint-lag",
+        type=float_in(-1.0, 1.0),
+        default=0.0,
+        metavar="SECONDS",
+        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
+        "measures it; negative: they lead)",
+    )
+
+
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
     from egovib_ros.sim.params import check_effects, parse_effects

@@ -39,13 +39,7 @@ def register(subparsers) -> None:
             help="comma list name=strength over position, coupling, acceleration, timing, drift "
             "(e.g. position=0.5,timing=0.03); never written into the bag",
         )
-        p.add_argument("--seed", type=options.seed, default=0, help=f"0 .. {options.MAX_SEED}")
-        p.add_argument(
-            "--truth",
-            metavar="FILE",
-            help="write {seed, effects, tap_onsets_ns} to this JSON file "
-            "(must not exist unless --force)",
-        )
+        seed_and_truth_options(p)
         p.add_argument(
             "--params", metavar="YAML", help="simulator parameters (default config/sim.yaml)"
         )
@@ -55,14 +49,7 @@ def register(subparsers) -> None:
             default="random",
             help="tap onsets: Poisson with dead time, or evenly spaced",
         )
-        p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
-        p.add_argument("--compress", action="store_true", help="zstd chunk compression (MCAP)")
-        p.add_argument(
-            "--force",
-            action="store_true",
-            help="replace an existing output bag / truth file written by egovib",
-        )
-        p.add_argument("--quiet", action="store_true", help="no progress bar")
+        bag_output_options(p)
 
     sweep = scen.add_parser("sweep", help="velocity-grid sweep for calibration (paper section 3)")
     sweep.add_argument(
@@ -111,6 +98,29 @@ def register(subparsers) -> None:
     motion.set_defaults(func=run)
 
     simulate_robot.register(scen)
+
+
+def seed_and_truth_options(parser: argparse.ArgumentParser) -> None:
+    """--seed and --truth of every `simulate` scenario (robot too)."""
+    parser.add_argument("--seed", type=options.seed, default=0, help=f"0 .. {options.MAX_SEED}")
+    parser.add_argument(
+        "--truth",
+        metavar="FILE",
+        help="write {seed, effects, tap_onsets_ns} to this JSON file "
+        "(must not exist unless --force)",
+    )
+
+
+def bag_output_options(parser: argparse.ArgumentParser) -> None:
+    """How every `simulate` scenario writes (`write_bag`): --storage .. --quiet."""
+    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    parser.add_argument("--compress", action="store_true", help="zstd chunk compression (MCAP)")
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing output bag / truth file written by egovib",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str = "simulate"):

@@ -19,6 +19,8 @@ SENSOR_FRAME = "imu_link"
 
 def register(scenarios) -> None:
     """Add `robot` to the `simulate` subcommands."""
+    from egovib_ros.cli.simulate import bag_output_options, seed_and_truth_options
+
     robot = scenarios.add_parser(
         "robot",
         help="free motion or a grid sweep of any robot profile (generic N-joint simulator)",
@@ -98,21 +100,8 @@ def register(scenarios) -> None:
         metavar="HZ",
         help="joint-state rate (default 1000, or the sensor rate if lower)",
     )
-    robot.add_argument("--seed", type=options.seed, default=0, help=f"0 .. {options.MAX_SEED}")
-    robot.add_argument(
-        "--truth",
-        metavar="FILE",
-        help="write {seed, effects, tap_onsets_ns} to this JSON file "
-        "(must not exist unless --force)",
-    )
-    robot.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
-    robot.add_argument("--compress", action="store_true", help="zstd chunk compression (MCAP)")
-    robot.add_argument(
-        "--force",
-        action="store_true",
-        help="replace an existing output bag / truth file written by egovib",
-    )
-    robot.add_argument("--quiet", action="store_true", help="no progress bar")
+    seed_and_truth_options(robot)
+    bag_output_options(robot)
     robot.set_defaults(func=run)
 
 

@@ -43,6 +43,7 @@ from egovib_ros.core.sampleframer import SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
 from egovib_ros.core.subtraction import (
     DenoisedChunk,
+    FramedDenoiser,
     StreamingDenoiser,
     check_stream_fits_model,
 )
@@ -569,7 +570,7 @@ def warm_up() -> None:
     _WARM = True
 
 
-class SampleMethodDenoiser:
+class SampleMethodDenoiser(FramedDenoiser):
     """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
     each push returns the samples that became final (DenoisedChunk; output sample k
     carries input stamp k). `cancel` releases a sample as soon as its joint state is in;
@@ -664,23 +665,8 @@ class SampleMethodDenoiser:
     def delay_ms(self) -> float:
         return 1e3 * self.delay / self.model.sample_rate_hz
 
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
-        self._framer.push_joint_states(stamps_ns, velocity)
-        return self._process(self._framer.pop())
-
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_sensor(stamps_ns, accel)
-        return self._process(self._framer.pop())
-
-    def flush(self) -> DenoisedChunk:
-        self._framer.flush()
-        return self._process(self._framer.pop())
-
-    @property
-    def samples_pending(self) -> int:
-        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
-        without building the stats: a live node asks at every batch)."""
-        return self._framer.stats.samples_in - self.samples_out
+    def _pop(self):
+        return self._framer.pop()
 
     @property
     def stats(self) -> DenoiserStats:
@@ -802,21 +788,7 @@ def denoise_batch_method(
     """Whole arrays through the streaming denoiser of `method` (as denoise_batch does for
     `paper`): (stamps (K,), values (K, C), stats)."""
     denoiser = make_denoiser(model, method, channels=channels, **options)
-    chunks = feed(
-        denoiser,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=denoiser.settings.joint_wait_s,
-    )
-    chunks.append(denoiser.flush())
-    n_out = 3 if channels == "per_axis" else 1
-    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
-    values = np.concatenate([np.zeros((0, n_out))] + [c.values for c in chunks])
-    return stamps, values, denoiser.stats
+    return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)
 
 
 def method_delay_ms(model: NoiseModel, method: str, **options) -> float:

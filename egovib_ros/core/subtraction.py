@@ -137,7 +137,50 @@ def noise_gain_curve(knots) -> tuple[np.ndarray, np.ndarray] | None:
     return t, g
 
 
-class StreamingDenoiser:
+class FramedDenoiser:
+    """The push/flush interface of a denoiser fed through a framer (`self._framer`): each
+    call hands what the framer made ready (`_pop`) to `_process`, which returns the samples
+    that became final. Counts its output in `samples_out`."""
+
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
+        self._framer.push_joint_states(stamps_ns, velocity)
+        return self._process(self._pop())
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
+        self._framer.push_sensor(stamps_ns, accel)
+        return self._process(self._pop())
+
+    def flush(self) -> DenoisedChunk:
+        self._framer.flush()
+        return self._process(self._pop())
+
+    @property
+    def samples_pending(self) -> int:
+        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
+        without building the stats: a live node asks at every batch)."""
+        return self._framer.stats.samples_in - self.samples_out
+
+    def run_arrays(
+        self, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s: float
+    ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
+        """Whole arrays through this denoiser, `chunk_s` seconds at a time (joint states
+        first), then flushed: (stamps_ns (K,), values (K, C), stats)."""
+        chunks = feed(
+            self,
+            sensor_stamps_ns,
+            accel,
+            joint_stamps_ns,
+            joint_velocity,
+            chunk_s=chunk_s,
+            sample_rate_hz=self.model.sample_rate_hz,
+            joint_wait_s=self.settings.joint_wait_s,
+        )
+        chunks = [self._empty, *chunks, self.flush()]  # _empty: the (0, C) shape if none
+        stamps = np.concatenate([c.stamps_ns for c in chunks])
+        return stamps, np.concatenate([c.values for c in chunks]), self.stats
+
+
+class StreamingDenoiser(FramedDenoiser):
     """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
     size (in any interleaving); each push returns the samples that became final.
 
@@ -256,23 +299,8 @@ class StreamingDenoiser:
         """(min, max) samples between a sample's arrival and its output."""
         return self.model.block_length - self.model.hop, self.model.block_length - 1
 
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
-        self._framer.push_joint_states(stamps_ns, velocity)
-        return self._process(self._framer.pop_blocks())
-
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> DenoisedChunk:
-        self._framer.push_sensor(stamps_ns, accel)
-        return self._process(self._framer.pop_blocks())
-
-    def flush(self) -> DenoisedChunk:
-        self._framer.flush()
-        return self._process(self._framer.pop_blocks())
-
-    @property
-    def samples_pending(self) -> int:
-        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
-        without building the stats: a live node asks at every batch)."""
-        return self._framer.stats.samples_in - self.samples_out
+    def _pop(self) -> list[Blocks]:
+        return self._framer.pop_blocks()
 
     @property
     def stats(self) -> DenoiserStats:
@@ -435,18 +463,4 @@ def denoise_batch(
     so working memory does not grow with the recording (the output does, of course).
     """
     denoiser = StreamingDenoiser(model, channels=channels, **options)
-    chunks = feed(
-        denoiser,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=denoiser.settings.joint_wait_s,
-    )
-    chunks.append(denoiser.flush())
-    n_channels = len(denoiser.channel_index)
-    stamps = np.concatenate([np.zeros(0, dtype=np.int64)] + [c.stamps_ns for c in chunks])
-    values = np.concatenate([np.zeros((0, n_channels))] + [c.values for c in chunks])
-    return stamps, values, denoiser.stats
+    return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)

@@ -281,33 +281,44 @@ def signal_metrics(
             f"signal lengths differ: raw {raw.shape}, denoised {denoised.shape}, "
             f"reference {reference.shape}"
         )
-    noise_raw = noise_mean(raw, seg.no_contact_mask)
-    noise_den = noise_mean(denoised, seg.no_contact_mask)
-    peaks_raw = tap_peaks(raw, seg.tap_windows)
-    peaks_den = tap_peaks(denoised, seg.tap_windows)
-    peak_raw = float(peaks_raw.mean()) if peaks_raw.size else float("nan")
-    peak_den = float(peaks_den.mean()) if peaks_den.size else float("nan")
+
+    def mean_peak(x: np.ndarray) -> float:
+        peaks = tap_peaks(x, seg.tap_windows)
+        return float(peaks.mean()) if peaks.size else float("nan")
+
+    return signal_figures(
+        noise=[noise_mean(x, seg.no_contact_mask) for x in (raw, denoised)],
+        spike=[noise_spike(x, seg.no_contact_mask) for x in (raw, denoised)],
+        peak=[mean_peak(x) for x in (raw, denoised)],
+        segsnr=[
+            mean_segmental_snr(reference, x, seg.active_mask, seg.excluded_mask)
+            for x in (raw, denoised)
+        ],
+        n_taps=seg.n_taps,
+    )
+
+
+def signal_figures(*, noise, spike, peak, segsnr, n_taps: int) -> dict:
+    """signal_metrics' dict from the (raw, denoised) pairs of the figures it is made of:
+    mean no-contact level, its spike, mean tap peak, segmental SNR over the contacts."""
+    (noise_raw, noise_den), (peak_raw, peak_den) = noise, peak
     snr_raw = peak_snr_db(peak_raw, noise_raw)
     snr_den = peak_snr_db(peak_den, noise_den)
     return {
         "noise_mean_raw": noise_raw,
         "noise_mean_denoised": noise_den,
         "noise_reduction_db": db20(noise_raw / noise_den) if noise_den > 0 else float("inf"),
-        "noise_spike_raw": noise_spike(raw, seg.no_contact_mask),
-        "noise_spike_denoised": noise_spike(denoised, seg.no_contact_mask),
+        "noise_spike_raw": spike[0],
+        "noise_spike_denoised": spike[1],
         "tap_peak_raw": peak_raw,
         "tap_peak_denoised": peak_den,
         "tap_retention": peak_den / peak_raw if peak_raw > 0 else float("nan"),
         "peak_snr_raw_db": snr_raw,
         "peak_snr_denoised_db": snr_den,
         "peak_snr_improvement_db": snr_den - snr_raw,
-        "segsnr_contact_raw_db": mean_segmental_snr(
-            reference, raw, seg.active_mask, seg.excluded_mask
-        ),
-        "segsnr_contact_denoised_db": mean_segmental_snr(
-            reference, denoised, seg.active_mask, seg.excluded_mask
-        ),
-        "n_taps": seg.n_taps,
+        "segsnr_contact_raw_db": segsnr[0],
+        "segsnr_contact_denoised_db": segsnr[1],
+        "n_taps": n_taps,
     }
 
 

@@ -963,28 +963,13 @@ class EvaluationPass:
         )
         peaks = self.peak_sum / self.kept if self.kept else np.full(len(self.top), np.nan)
         segsnr = self.seg_sum / self.seg_count if self.seg_count else np.full(len(self.top), np.nan)
-        noise_raw, noise_den = float(noise[0]), float(noise[i])
-        peak_raw, peak_den = float(peaks[0]), float(peaks[i])
-        snr_raw = metrics.peak_snr_db(peak_raw, noise_raw)
-        snr_den = metrics.peak_snr_db(peak_den, noise_den)
-        return {
-            "noise_mean_raw": noise_raw,
-            "noise_mean_denoised": noise_den,
-            "noise_reduction_db": (
-                metrics.db20(noise_raw / noise_den) if noise_den > 0 else float("inf")
-            ),
-            "noise_spike_raw": self.top[0].quantile(metrics.SPIKE_QUANTILE),
-            "noise_spike_denoised": self.top[i].quantile(metrics.SPIKE_QUANTILE),
-            "tap_peak_raw": peak_raw,
-            "tap_peak_denoised": peak_den,
-            "tap_retention": peak_den / peak_raw if peak_raw > 0 else float("nan"),
-            "peak_snr_raw_db": snr_raw,
-            "peak_snr_denoised_db": snr_den,
-            "peak_snr_improvement_db": snr_den - snr_raw,
-            "segsnr_contact_raw_db": float(segsnr[0]),
-            "segsnr_contact_denoised_db": float(segsnr[i]),
-            "n_taps": self.kept,
-        }
+        return metrics.signal_figures(
+            noise=(float(noise[0]), float(noise[i])),
+            spike=[self.top[k].quantile(metrics.SPIKE_QUANTILE) for k in (0, i)],
+            peak=(float(peaks[0]), float(peaks[i])),
+            segsnr=(float(segsnr[0]), float(segsnr[i])),
+            n_taps=self.kept,
+        )
 
     def scores(self, key: str) -> dict:
         """detection.evaluate_detector's dict for detector `key` (a signal or pr2_*)."""

@@ -721,14 +721,7 @@ def run_validation(
     outputs = []
     if write:
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, text in (
-            (json_name, json.dumps(report, indent=1)),
-            (md_name, render_markdown(report)),
-        ):
-            with atomic_output(out / name) as tmp_path:
-                tmp_path.write_text(text)
-            outputs.append(str(out / name))
+        outputs += _write_report(out, report, render_markdown(report), json_name, md_name)
         with atomic_output(out / png_name) as tmp_path:
             make_figure(summary, tmp_path)
         outputs.append(str(out / png_name))
@@ -751,19 +744,20 @@ def _run_real(out_dir, write: bool) -> dict:
     outputs = []
     if write:
         json_name, md_name, _ = output_names("real")
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, text in (
-            (json_name, json.dumps(report, indent=1)),
-            (md_name, render_real(report)),
-        ):
-            with atomic_output(out / name) as tmp_path:
-                tmp_path.write_text(text)
-            outputs.append(str(out / name))
+        outputs += _write_report(Path(out_dir), report, render_real(report), json_name, md_name)
     summary["outputs"] = outputs
     summary["report"] = report
     summary["n_runs"] = report["summary"]["n_runs"]
     return summary
+
+
+def _write_report(out: Path, report: dict, markdown: str, json_name: str, md_name: str) -> list:
+    """The report as JSON and as markdown in directory `out` (made if missing); their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, text in ((json_name, json.dumps(report, indent=1)), (md_name, markdown)):
+        with atomic_output(out / name) as tmp_path:
+            tmp_path.write_text(text)
+    return [str(out / json_name), str(out / md_name)]
 
 
 def _progress(iterator, total: int, show: bool) -> list:

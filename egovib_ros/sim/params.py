@@ -48,43 +48,40 @@ class JointVibration:
     phase_jitter: float  # phase random walk of the lines (rad per sqrt(s))
 
 
-def _wrist_default() -> JointVibration:
+def _joint_default(**own) -> JointVibration:
+    """A PR2 hand joint's defaults: what both joints share, and `own` (what differs)."""
     return JointVibration(
-        line_hz_per_unit=60.0,
-        line_orders=[1.0, 2.0, 3.0],
         line_amps=[2.2, 1.1, 0.77],
         line_speed_exponent=0.7,
         friction_coulomb=0.01,
         friction_viscous=0.4,
-        path_band_hz=[150.0, 380.0],
         path_order=4,
-        resonance_hz=980.0,
         resonance_q=12.0,
         resonance_gain=0.3,
-        direction=[1.0, 0.0, 0.0],
         amp_jitter=0.12,
         amp_jitter_hz=20.0,
         phase_jitter=3.0,
+        **own,
+    )
+
+
+def _wrist_default() -> JointVibration:
+    return _joint_default(
+        line_hz_per_unit=60.0,
+        line_orders=[1.0, 2.0, 3.0],
+        path_band_hz=[150.0, 380.0],
+        resonance_hz=980.0,
+        direction=[1.0, 0.0, 0.0],
     )
 
 
 def _gripper_default() -> JointVibration:
-    return JointVibration(
+    return _joint_default(
         line_hz_per_unit=15000.0,
         line_orders=[1.0, 1.5, 2.0],
-        line_amps=[2.2, 1.1, 0.77],
-        line_speed_exponent=0.7,
-        friction_coulomb=0.01,
-        friction_viscous=0.4,
         path_band_hz=[480.0, 750.0],
-        path_order=4,
         resonance_hz=1040.0,
-        resonance_q=12.0,
-        resonance_gain=0.3,
         direction=[0.0, 1.0, 0.0],
-        amp_jitter=0.12,
-        amp_jitter_hz=20.0,
-        phase_jitter=3.0,
     )
 
 

@@ -180,16 +180,7 @@ class NewMethod:
         return self
 
     def run(self, rec) -> np.ndarray:
-        stamps, values, _ = denoise_batch_method(
-            rec.sensor_stamps_ns,
-            rec.sensor,
-            rec.joint_stamps_ns,
-            rec.joint_velocity,
-            self.model,
-            method=self.method,
-            channels="combined",
-        )
-        return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
+        return _denoised_combined(rec, self.model, self.method)
 
 
 def flight_split(
@@ -352,9 +343,8 @@ def pr2_data(cache: Path | None):
     return data
 
 
-def _pr2_output(rec, model, method: str) -> np.ndarray:
-    if method == "raw":
-        return combined_bandpassed(rec.sensor, model.robot_profile())
+def _denoised_combined(rec, model, method: str) -> np.ndarray:
+    """`method`'s combined (1-D) output of `rec`, on the input's stamps."""
     stamps, values, _ = denoise_batch_method(
         rec.sensor_stamps_ns,
         rec.sensor,
@@ -365,6 +355,12 @@ def _pr2_output(rec, model, method: str) -> np.ndarray:
         channels="combined",
     )
     return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
+
+
+def _pr2_output(rec, model, method: str) -> np.ndarray:
+    if method == "raw":
+        return combined_bandpassed(rec.sensor, model.robot_profile())
+    return _denoised_combined(rec, model, method)
 
 
 def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dict:

@@ -481,16 +481,7 @@ def readme_section(result: dict) -> str:
         )
     if "firmware" in single:
         lines.append(
-            _row(
-                (
-                    FIRMWARE_LABEL,
-                    _fmt(single["firmware"]["noise_reduction_db"]),
-                    "n/a",
-                    "n/a",
-                    "n/a",
-                    "n/a",
-                )
-            )
+            _row((FIRMWARE_LABEL, _fmt(single["firmware"]["noise_reduction_db"])) + ("n/a",) * 4)
         )
     lines += [
         "",
