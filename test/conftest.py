@@ -119,7 +119,9 @@ class Feeder:
     empty velocity field (as many real drivers). `keep_messages`: keep every message sent
     as (topic, stamp, bytes) in `messages` (to write the same stream into a bag).
     `undecodable_joints`: every JointState cut to half its bytes (a broken driver);
-    `joint_clock_offset_s`: JointStates stamped by a clock this far ahead (sim vs wall time)."""
+    `joint_clock_offset_s`: JointStates stamped by a clock this far ahead (sim vs wall time);
+    `receipt_stamps`: sensor messages stamped as a USB driver reads them (1 ms frames, each
+    message at its frame's end plus 0-0.2 ms of host latency), not at their samples."""
 
     def __init__(
         self,
@@ -136,6 +138,7 @@ class Feeder:
         keep_messages: bool = False,
         undecodable_joints: bool = False,
         joint_clock_offset_s: float = 0.0,
+        receipt_stamps: bool = False,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -160,6 +163,8 @@ class Feeder:
         self.positions_only = positions_only
         self.undecodable_joints = undecodable_joints
         self.joint_clock_offset_ns = int(round(joint_clock_offset_s * 1e9))
+        self.receipt_stamps = receipt_stamps
+        self.last_receipt = 0
         self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
         self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
         self.last_joint_stamp: int | None = None
@@ -234,8 +239,14 @@ class Feeder:
         index = self.next_index + np.arange(n)
         stamps = self.stamp0 + (index * (1e9 / self.rate_hz)).astype(np.int64)
         joint_stamps = stamps[:: max(1, int(round(self.rate_hz / 1000.0)))]
+        sensor_stamps = stamps
+        if self.receipt_stamps:
+            frame_end = (stamps // 1_000_000 + 1) * 1_000_000
+            late = np.maximum(frame_end + self.rng.integers(0, 200_000, n), self.last_receipt)
+            sensor_stamps = np.maximum.accumulate(late) + 1 + np.arange(n)
+            self.last_receipt = int(sensor_stamps[-1])
         self.publish(
-            stamps,
+            sensor_stamps,
             self.rng.normal(0.0, 0.5, (n, 3)),
             joint_stamps,
             np.tile(self.velocity, (len(joint_stamps), 1)),

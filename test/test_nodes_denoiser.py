@@ -246,6 +246,30 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(
     assert nodes.stop(den) == 0
 
 
+def test_a_driver_stamping_on_receipt_is_denoised_on_a_rebuilt_sample_clock(
+    nodes, ros_client, feeder, sim_model_path
+):
+    """A USB IMU driver stamps each message as it reads it (1 ms frames): steps of 0 to 3
+    periods. Refused before as a stream at 1166 Hz; now every sample comes out, nothing is
+    bridged, and /diagnostics says what the stamps mark."""
+
+    den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE, **DEEP_OUTPUT})
+    stream = feeder(load_profile(None), receipt_stamps=True)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
+    stream.publish_joint_state()
+
+    def denoising() -> bool:
+        status = ros_client.statuses.get("denoiser")
+        values = diagnostic_values(status) if status is not None else {}
+        return values.get("sensor_stamps") == "receipt" and int(values["blocks"]) > 100
+
+    assert stream.run_until(denoising, at_most_s=4.0), shown(ros_client)
+    values = diagnostic_values(ros_client.statuses["denoiser"])
+    assert int(values["gap_filled_samples"]) == 0 and int(values["stream_restarts"]) == 0
+    assert ros_client.statuses["denoiser"].level != DiagnosticStatus.ERROR, shown(ros_client)
+    assert den.poll() is None and nodes.stop(den) == 0
+
+
 def test_health_stale_without_input_and_ok_again_after_a_restart(
     nodes, ros_client, feeder, sim_model_path
 ):

@@ -140,6 +140,12 @@ class SampleFramer:
         return self._rate_checked and not self._rate_error
 
     @property
+    def stamps(self) -> str:
+        """What the sensor stamps mark: "sample", "receipt" (with its latency in
+        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
+        return self._cleaner.kind or ""
+
+    @property
     def backlog(self) -> tuple[int, int]:
         return len(self._pend_t) + self._cleaner.waiting, len(self._joint_t)
 

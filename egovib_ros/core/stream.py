@@ -16,6 +16,9 @@ Bad-input policy (counted in `stats`, never a silent wrong result):
   segment: pending samples are flushed as at end of stream and the filter restarts;
 - stamps may jitter around the nominal rate (+-30 % per step): the stream is
   treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
+- stamps a driver took on receipt (steps of 0 to several periods while the count keeps
+  the rate: core.receipt) are told apart on the first samples, which wait for it; gaps
+  are then counted against a rebuilt sample clock, and the rate measured on it;
 - the rate is measured on the first 2 blocks' worth of samples, then again on every
   further RATE_WINDOW_BLOCKS blocks' worth (`measured_period`); off by more than
   `rate_tolerance` at the start, or on two windows in a row later (a sustained change,
@@ -723,6 +726,12 @@ class BlockFramer:
         """The stream's rate has been measured on its first 2 blocks of samples and found
         right (a wrong rate raises StreamError on every push instead)."""
         return self._rate_checked and not self._rate_error
+
+    @property
+    def stamps(self) -> str:
+        """What the sensor stamps mark: "sample", "receipt" (with its latency in
+        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
+        return self._cleaner.kind or ""
 
     @property
     def backlog(self) -> tuple[int, int]:

@@ -160,6 +160,12 @@ class FramedDenoiser:
         without building the stats: a live node asks at every batch)."""
         return self._framer.stats.samples_in - self.samples_out
 
+    @property
+    def sensor_stamps(self) -> str:
+        """What the sensor stamps mark: "sample" times, "receipt" times (a driver stamping
+        on arrival: core.receipt) or "" while the first samples still wait to tell."""
+        return self._framer.stamps
+
     def run_arrays(
         self, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s: float
     ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:

@@ -475,6 +475,8 @@ class Denoiser(Node):
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
             "model_rate_hz": self.model.sample_rate_hz,
+            # "receipt": a driver's arrival stamps, counted on a rebuilt sample clock
+            "sensor_stamps": self.denoiser.sensor_stamps,
             "method": self.method,
             "channels": self.channels,
             "output": self.output,
