@@ -35,7 +35,7 @@ ALLOWED = {
     "altreality": {"core", "bag", *BASE},  # never sim/: an independent generator
     "evaluation": {"core", "bag", "sim", *BASE},
     "gap": {"core", "bag", "sim", "evaluation", *BASE},
-    "nodes": {"core", "bag", "sim", "evaluation", *BASE},
+    "nodes": {"core", "bag", "sim", "evaluation", "gap", *BASE},  # gap: a report's advice
     "experiments": {"core", "bag", "sim", "altreality", "evaluation", "gap", "tools", *BASE},
     "tools": {"core", "bag", "sim", "evaluation", "gap", "nodes", "experiments", *BASE},
     "cli": {

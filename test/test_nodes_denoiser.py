@@ -489,13 +489,17 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
 def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_path, ros_domain):
     """One line naming the problem, exit status 2: batch_samples 0; method hybrid with a
     model calibrated for the paper's method only; method hybrid with the drop-in output
-    (made by method paper only)."""
+    (made by method paper only); a noise_gain file that is not a gap report."""
     cases = {
         "batch_samples": ([f"model:={sim_model_path}", "batch_samples:=0"], "range"),
         "--methods hybrid": ([f"model:={sim_model_path}", "method:=hybrid"], "paper"),
         "dropin": (
             [f"model:={sim_methods_model_path}", "method:=hybrid", "output:=dropin"],
             "bandpassed",
+        ),
+        "noise_gain": (
+            [f"model:={sim_model_path}", f"noise_gain:={sim_model_path}"],
+            "not an egovib gap report",
         ),
     }
     runs = {
@@ -602,6 +606,53 @@ def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
         assert len(want_stamps) == n, (name, len(want_stamps), n)
         np.testing.assert_array_equal(got_stamps, want_stamps)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+def test_gap_advice_applied_live_equals_egovib_denoise_with_it(
+    nodes, ros_client, feeder, sim_model_path, tmp_path
+):
+    """The corrections `egovib gap` advises, set on the node (joint_lag, noise_gain: a
+    report's level change over time) give what `egovib denoise --joint-lag --noise-gain`
+    gives on a bag of the same messages, sample for sample."""
+    import json
+
+    report = tmp_path / "report.json"  # a drift verdict's advice: +6 dB over 2 s
+    knots = [[0.0, 0.0], [1.0, 3.0], [2.0, 6.0]]
+    report.write_text(json.dumps({"advice": {"settings": {"noise_gain_db": knots}}}))
+    params = {"joint_lag": 0.015, "noise_gain": str(report)}
+    den = nodes.start(
+        "denoiser",
+        {"model": str(sim_model_path), **params, **RELIABLE, **EXACT_REPLAY, **DEEP_OUTPUT},
+    )
+    received = []
+    output = ros_client.node.create_subscription(
+        Imu, PR2.denoised_topic, received.append, LOSSLESS, raw=True
+    )
+    assert wait_for_output(ros_client, output, "denoiser"), nodes.log(den)
+    stream = feeder(PR2, keep_messages=True)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
+    rec, _ = simulate_motion(duration_s=2.5, max_speed=0.5, tap_rate_hz=2.0, seed=8)
+    shift = time.time_ns() - int(rec.joint_stamps_ns[0])
+    stamps = rec.sensor_stamps_ns + shift
+    stream.publish(stamps, rec.sensor, rec.joint_stamps_ns + shift, rec.joint_velocity)
+    n = len(stamps)
+    assert ros_client.spin_until(lambda: len(received) >= n, timeout=60.0), (len(received), n)
+    values = diagnostic_values(ros_client.statuses["denoiser"])
+    assert float(values["joint_lag_s"]) == 0.015
+    assert nodes.stop(den) == 0, nodes.log(den)
+
+    bag = stream.write_bag(tmp_path / "stream")
+    denoise_bag(
+        bag, tmp_path / "offline", model=str(sim_model_path), joint_lag_s=0.015,
+        noise_gain_db=tuple(map(tuple, knots)),
+    )  # fmt: skip
+    want_stamps, want = bag_topic(tmp_path / "offline", PR2.denoised_topic)
+    got_stamps, got, _ = decode_imu_messages(received)
+    np.testing.assert_array_equal(got_stamps, want_stamps)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+    # and the corrections did something: without them the output differs
+    denoise_bag(bag, tmp_path / "plain", model=str(sim_model_path))
+    assert not np.allclose(bag_topic(tmp_path / "plain", PR2.denoised_topic)[1], want)
 
 
 def test_coverage_warning_does_not_flip_with_a_share_hovering_at_the_limit():

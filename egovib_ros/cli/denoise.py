@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 from pathlib import Path
 
 from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
@@ -12,8 +11,7 @@ from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.cli.options import joint_lag_option, nonneg_float
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.subtraction import noise_gain_curve
-from egovib_ros.errors import ConfigError
+from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.outputs import prepare_output
 
 
@@ -110,28 +108,10 @@ def _denoise_task(bag: Path, out: Path, progress, **options) -> dict:
     return denoise_bag(bag, out, progress=progress, **options)
 
 
-def noise_gain_from_report(path: str | None) -> tuple[tuple[float, float], ...]:
-    """The (elapsed s, dB) knots of a gap report's drift advice; () without a report."""
-    if path is None:
-        return ()
-    try:
-        report = json.loads(Path(path).read_text())
-        knots = report["advice"]["settings"]["noise_gain_db"]
-    except OSError as exc:
-        raise ConfigError(f"--noise-gain {path}: {exc.strerror or exc}") from None
-    except (ValueError, KeyError, TypeError):
-        raise ConfigError(
-            f"--noise-gain {path}: not an egovib gap report with a drift verdict "
-            "(advice.settings.noise_gain_db)"
-        ) from None
-    noise_gain_curve(knots)  # checked here, once, with the file named
-    return tuple((float(t), float(g)) for t, g in knots)
-
-
 def run_denoise(args: argparse.Namespace) -> int:
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
-    noise_gain_db = noise_gain_from_report(args.noise_gain)
+    noise_gain_db = noise_gain_from_report(args.noise_gain, where="--noise-gain")
     settings = dict(
         channels=args.channels,
         output=args.output,

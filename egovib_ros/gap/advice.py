@@ -19,10 +19,14 @@ reduction (the real flight in docs/gap.md).
 
 from __future__ import annotations
 
+import json
 import logging
+from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core.subtraction import noise_gain_curve
+from egovib_ros.errors import ConfigError
 from egovib_ros.gap.diagnose import Diagnosis
 
 #: A `none` verdict whose baseline stays more than this above the floor says so.
@@ -184,6 +188,26 @@ def first_lines(advice: dict) -> list[str]:
         f"({100 * u['share_of_baseline_excess']:.0f} % of the baseline's excess)."
     )
     return lines
+
+
+def noise_gain_from_report(path: str | None, *, where: str) -> tuple[tuple[float, float], ...]:
+    """The (elapsed s, dB) knots of a gap report's drift advice, for the denoiser's
+    noise_gain_db; () without a report (`path` None or ""). Errors name `where` (the option
+    or parameter) and the file."""
+    if not path:
+        return ()
+    try:
+        report = json.loads(Path(path).read_text())
+        knots = report["advice"]["settings"]["noise_gain_db"]
+    except OSError as exc:
+        raise ConfigError(f"{where} {path}: {exc.strerror or exc}") from None
+    except (ValueError, KeyError, TypeError):
+        raise ConfigError(
+            f"{where} {path}: not an egovib gap report with a drift verdict "
+            "(advice.settings.noise_gain_db)"
+        ) from None
+    noise_gain_curve(knots)  # checked here, once, with the file named
+    return tuple((float(t), float(g)) for t, g in knots)
 
 
 def measure_joint_lag(

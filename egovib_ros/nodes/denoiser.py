@@ -37,6 +37,7 @@ from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION, DenoisedChunk
 from egovib_ros.errors import ConfigError, EgovibError
+from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -106,6 +107,19 @@ PARAMETERS = MODEL_PARAMETERS + (
         "beta in max(|Y| - alpha N, beta N); changes live",
         read_only=False,
         range=(0.0, MAX_FLOOR),
+    ),
+    Param(
+        "joint_lag",
+        0.0,
+        "seconds the vibration trails the joint states (`egovib gap` timing advice, as "
+        "`egovib denoise --joint-lag`); negative: it leads them",
+        range=(-1.0, 1.0),
+    ),
+    Param(
+        "noise_gain",
+        "",
+        "an `egovib gap` report with a drift verdict: its noise level change over time "
+        "applied from the stream's start, as `egovib denoise --noise-gain` (method paper)",
     ),
     Param(
         "batch_samples",
@@ -257,6 +271,8 @@ class Denoiser(Node):
             oversubtraction=params["oversubtraction"],
             floor=params["floor"],
             joint_wait_s=params["joint_wait"],
+            joint_lag_s=params["joint_lag"],
+            noise_gain_db=noise_gain_from_report(params["noise_gain"], where="noise_gain"),
             source=self.resolve_topic_name(self.profile.node_sensor_topic),
         )
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -475,6 +491,7 @@ class Denoiser(Node):
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_max_ms": float(latency.max()) if len(latency) else float("nan"),
             "model_rate_hz": self.model.sample_rate_hz,
+            "joint_lag_s": self.denoiser.settings.joint_lag_s,
             # "receipt": a driver's arrival stamps, counted on a rebuilt sample clock
             "sensor_stamps": self.denoiser.sensor_stamps,
             "method": self.method,
