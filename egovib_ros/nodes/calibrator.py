@@ -59,6 +59,13 @@ PARAMETERS = (
         "(each steady block to its nearest cell); auto: decide from the data",
         choices=("full", "superposition", "free", "auto"),
     ),
+    Param(
+        "joint_lag",
+        0.0,
+        "seconds the vibration trails the joint states (`egovib gap` timing advice, as "
+        "`egovib calibrate --joint-lag`); negative: it leads them",
+        range=(-1.0, 1.0),
+    ),
     Param("checkpoint", "", "checkpoint model path; empty = <output stem>.checkpoint.npz"),
     Param("resume", True, "resume from the checkpoint if it exists"),
     Param("batch_samples", 96, "sensor samples collected before processing", range=(1, 100_000)),
@@ -120,13 +127,16 @@ class Calibrator(Node):
         self.input = StreamInput(
             self, self.profile, batch_samples=params["batch_samples"], on_batch=self._process
         )
-        source = self.input.sensor_topic
+        # the same framing as `egovib calibrate` (a positive lag also waits that much longer)
+        framing = dict(
+            joint_wait_s=JOINT_WAIT_S,
+            joint_lag_s=params["joint_lag"],
+            source=self.input.sensor_topic,
+        )
         if params["resume"] and os.path.exists(self.checkpoint):
-            self.acc = self._resume(NoiseModel.load(self.checkpoint), source)
+            self.acc = self._resume(NoiseModel.load(self.checkpoint), framing)
         else:
-            self.acc = CalibrationAccumulator(
-                profile=self.profile, sweep=self.grid, joint_wait_s=JOINT_WAIT_S, source=source
-            )
+            self.acc = CalibrationAccumulator(profile=self.profile, sweep=self.grid, **framing)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
         )
@@ -152,7 +162,7 @@ class Calibrator(Node):
             f"{self.output} (checkpoint {self.checkpoint})"
         )
 
-    def _resume(self, model: NoiseModel, source: str) -> CalibrationAccumulator:
+    def _resume(self, model: NoiseModel, framing: dict) -> CalibrationAccumulator:
         where = self.checkpoint
         if (
             model.joint_names != self.profile.joint_names
@@ -167,7 +177,7 @@ class Calibrator(Node):
             raise ConfigError(
                 f"{where}: checkpoint of a {model.measured} calibration, but grid is {self.grid}"
             )
-        acc = CalibrationAccumulator.from_model(model, joint_wait_s=JOINT_WAIT_S, source=source)
+        acc = CalibrationAccumulator.from_model(model, **framing)
         coverage = model.coverage()
         self.get_logger().info(
             f"resumed from {where}: {coverage['cells_measured']} cells, {coverage['blocks']} blocks"
