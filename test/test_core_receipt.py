@@ -62,29 +62,29 @@ def test_sample_stamps_are_not_receipt_stamps():
     per_step = np.concatenate([[0], np.cumsum(rng.uniform(0.7, 1.3, 127) * PERIOD_NS)])
     lost = np.delete(t, rng.choice(np.arange(1, 127), 6, replace=False))
     for stamps in (t, t[0] + per_step.astype(np.int64), lost):
-        assert receipt_latency(stamps, PERIOD_NS, 0.1) is None
+        assert receipt_latency(stamps, PERIOD_NS) is None
 
 
 def test_receipt_stamps_are_told_with_their_latency():
     t = grid(128)
-    usb = receipt_latency(usb_frames(t), PERIOD_NS, 0.1)
-    late = receipt_latency(random_latency(t), PERIOD_NS, 0.1)
+    usb = receipt_latency(usb_frames(t), PERIOD_NS)
+    late = receipt_latency(random_latency(t), PERIOD_NS)
     assert usb is not None and 0.6e6 < usb < 1.4e6  # a frame (1 ms) plus host latency
     assert late is not None and 1.0e6 < late < 2.2e6
-    # the count does not keep the rate: not receipt stamps (the rate check refuses it)
-    assert receipt_latency(usb_frames(grid(256)[::2]), PERIOD_NS, 0.1) is None
+    # at another rate too: the rate check refuses it, measured as receipt stamps show it
+    assert receipt_latency(usb_frames(grid(256)[::2]), PERIOD_NS) is not None
 
 
 def test_the_rebuilt_clock_finds_a_long_gap_and_invents_nothing_else():
     t = grid(6000)
     stamps = usb_frames(t, seed=2)
-    clock = ReceiptClock(PERIOD_NS, receipt_latency(stamps[:128], PERIOD_NS, 0.1), max_fill=100)
+    clock = ReceiptClock(PERIOD_NS, receipt_latency(stamps[:128], PERIOD_NS), max_fill=100)
     missing, times = clock.gaps(stamps)
     assert missing.sum() == 0
     assert np.mean(np.diff(times)) == pytest.approx(PERIOD_NS, rel=1e-3)
     # 30 samples (10 ms, beyond any latency seen) lost at sample 3000, in chunks
     kept = np.delete(stamps, np.arange(3000, 3030))
-    clock = ReceiptClock(PERIOD_NS, receipt_latency(kept[:128], PERIOD_NS, 0.1), max_fill=100)
+    clock = ReceiptClock(PERIOD_NS, receipt_latency(kept[:128], PERIOD_NS), max_fill=100)
     missing = np.concatenate([clock.gaps(part)[0] for part in np.array_split(kept, 7)])
     assert np.flatnonzero(missing).tolist() == [3000]
     assert abs(int(missing[3000]) - 30) <= 3  # within the frame's latency
@@ -121,12 +121,68 @@ def test_receipt_stamps_stream_equal_batch_for_any_chunking(model, motion, seed,
     np.testing.assert_array_equal(got, want)
 
 
-def test_receipt_stamps_at_the_wrong_rate_are_still_refused(model, motion):
-    half = dict(
-        motion, t_acc=usb_frames(motion["t_acc"][0] + 2 * (motion["t_acc"] - motion["t_acc"][0]))
+@pytest.mark.parametrize("rate", [0.5, 0.85, 1.15, 2.0])
+def test_receipt_stamps_at_the_wrong_rate_are_refused_at_the_rate_they_show(model, motion, rate):
+    t = motion["t_acc"]
+    stamps = usb_frames(t[0] + ((t - t[0]) / rate).astype(np.int64))
+    with pytest.raises(StreamError, match="runs at (\\d+) Hz but the model expects 3000") as err:
+        denoise_batch(stamps, motion["accel"], motion["t_joint"], motion["velocity"], model)
+    shown = float(str(err.value).split("runs at ")[1].split(" Hz")[0])
+    assert shown == pytest.approx(FS * rate, rel=0.03)
+
+
+@pytest.mark.parametrize("frame_ms", [4, 10])
+def test_big_frames_and_a_clock_a_few_percent_off_are_accepted(model, motion, frame_ms):
+    """An IMU read from its FIFO every 10 ms, stamped as read: latency up to 10 ms. The rate
+    is measured on the least late samples (the first window used to see 3750 Hz)."""
+    t = motion["t_acc"]
+    for rate in (0.97, 1.0, 1.05):
+        stamps = usb_frames(t[0] + ((t - t[0]) / rate).astype(np.int64), frame_ns=frame_ms * 10**6)
+        _, _, stats = denoise_batch(
+            stamps, motion["accel"], motion["t_joint"], motion["velocity"], model
+        )
+        assert stats.rate_checked and stats.gap_filled_samples == 0, (frame_ms, rate, stats)
+
+
+def test_what_the_stamps_mark_is_told_on_the_first_samples_whatever_the_chunking(model, motion):
+    """A receipt stream that stops 2 s after 1 s: batch (one chunk) and any streaming
+    chunking decide alike, on the first samples, and give the same output."""
+    keep = np.r_[0:3000, 9000 : len(motion["t_acc"])]
+    data = dict(motion, t_acc=usb_frames(motion["t_acc"])[keep], accel=motion["accel"][keep])
+    _, want, stats = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
     )
-    with pytest.raises(StreamError, match="runs at \\d+ Hz but the model expects 3000"):
-        denoise_batch(half["t_acc"], half["accel"], half["t_joint"], half["velocity"], model)
+    assert stats.resets == 1 and stats.gap_filled_samples == 0
+    for max_chunk in (3, 50, 700):
+        denoiser = StreamingDenoiser(model)
+        chunks = push_random_chunks(denoiser, data, np.random.default_rng(max_chunk), max_chunk)
+        chunks.append(denoiser.flush())
+        got = np.concatenate([c.values for c in chunks if c is not None and len(c)])
+        np.testing.assert_array_equal(got, want)
+
+
+def test_bad_samples_of_a_receipt_stream_are_bridged_in_their_slots(model, motion):
+    data = dict(motion, t_acc=usb_frames(motion["t_acc"]), accel=motion["accel"].copy())
+    data["accel"][[500, 900, 2000, 2001, 2002, 2003, 2004]] = np.nan
+    _, _, stats = denoise_batch(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], model
+    )
+    assert stats.samples_bad == 7 and stats.gap_filled_samples == 7 and stats.resets == 0
+
+
+def test_nothing_in_gives_nothing_out(model):
+    assert len(StreamingDenoiser(model).flush()) == 0
+    stamps, values, stats = denoise_batch(
+        np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2)), model
+    )
+    assert len(stamps) == len(values) == stats.samples_in == 0
+
+
+def test_stamps_that_turn_to_receipt_times_mid_stream_are_named(model, motion):
+    t = motion["t_acc"]
+    stamps = np.concatenate([t[:6000], usb_frames(t[6000:])])
+    with pytest.raises(StreamError, match="stamped on receipt from there on"):
+        denoise_batch(stamps, motion["accel"], motion["t_joint"], motion["velocity"], model)
 
 
 def test_stamps_set_to_sample_refuse_receipt_stamps_as_before(motion):

@@ -28,24 +28,40 @@ RECEIPT_FORGET = 1e-4
 
 
 def receipt_latency(
-    stamps_ns: np.ndarray, period_ns: float, tolerance: float, *, known: bool = False
+    stamps_ns: np.ndarray, period_ns: float, *, known: bool = False
 ) -> float | None:
     """The latency spread (ns) of stamps taken on receipt, from the in-order stamps of a
     stream's first samples; None when they mark sample times (steps of about a period or
-    whole periods more) or when their count does not keep the nominal rate (a wrong rate is
-    the rate check's to refuse). `known`: they are receipt times; only the spread is asked."""
+    whole periods more). Whatever rate the stamps keep: a wrong one is the rate check's to
+    refuse, measured as receipt stamps show it (`envelope_period`). `known`: they are
+    receipt times; only the spread is asked."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     if len(stamps) < (2 if known else 16):
         return 0.0 if known else None
     steps = np.diff(stamps)
-    count_period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
-    if not known and (
-        np.count_nonzero(steps < 0.5 * period_ns) <= RECEIPT_SHORT_STEPS * len(steps)
-        or abs(count_period / period_ns - 1.0) > tolerance
-    ):
+    if not known and np.count_nonzero(steps < 0.5 * period_ns) <= RECEIPT_SHORT_STEPS * len(steps):
         return None
+    count_period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
     late = (stamps - stamps[0]) - np.arange(len(stamps)) * count_period
     return float(late.max() - late.min())
+
+
+def envelope_period(stamps_ns: np.ndarray, period_ns: float) -> float:
+    """The sample period a window of receipt stamps shows (-1: a sample bridged in, which
+    keeps the positions): the slope between the least late sample of each half of the
+    window. Stamps trail their samples by a varying latency; the least late ones lie
+    nearest their samples, so the slope holds to a fraction of a period per half window
+    when each half spans a few latencies (the mean step would carry the two ends'
+    latencies)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    position = np.flatnonzero(stamps >= 0)
+    half = len(stamps) // 2
+    first, second = position[position < half], position[position >= half]
+    if not len(first) or not len(second):
+        return float(period_ns)
+    i = first[np.argmin(stamps[first] - first * period_ns)]
+    j = second[np.argmin(stamps[second] - second * period_ns)]
+    return float(stamps[j] - stamps[i]) / float(j - i)
 
 
 class ReceiptClock:

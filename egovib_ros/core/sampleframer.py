@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from egovib_ros.core.filters import BandPass
+from egovib_ros.core.receipt import envelope_period
 from egovib_ros.core.stream import (
     FramerSettings,
     FramerStats,
@@ -119,7 +120,7 @@ class SampleFramer:
 
     def _push_segments(self, segments: list) -> None:
         for segment in segments:
-            self._check_rate(segment.times)
+            self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
@@ -155,11 +156,16 @@ class SampleFramer:
             if self._rate_error:
                 raise self.s.error(self._rate_error)
             return
-        self._rate_stamps.append(stamps[stamps >= 0])
+        receipt = self._cleaner.receipt is not None  # every sample's position counts
+        self._rate_stamps.append(stamps if receipt else stamps[stamps >= 0])
         seen = np.concatenate(self._rate_stamps)
         if len(seen) < RATE_CHECK_SAMPLES:
             return
-        measured = NS_PER_S / float(np.median(np.diff(seen)))
+        measured = NS_PER_S / (
+            envelope_period(seen[:RATE_CHECK_SAMPLES], self.s.period_ns)
+            if receipt
+            else float(np.median(np.diff(seen)))
+        )
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:

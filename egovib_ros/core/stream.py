@@ -40,7 +40,7 @@ import numpy as np
 
 from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
-from egovib_ros.core.receipt import ReceiptClock, receipt_latency
+from egovib_ros.core.receipt import ReceiptClock, envelope_period, receipt_latency
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
@@ -325,13 +325,6 @@ class _Segment:
     values: np.ndarray  # (n, 3) raw, cleaned
     ends_stream: bool  # a long gap or a clock jump follows: close the segment
     wait_for_joints: bool = True  # False after a clock jump: no more joint states on the old clock
-    # the sample times the rate is measured on: the stamps, or for stamps taken on receipt the
-    # rebuilt sample clock (-1 like the stamps for synthetic samples)
-    times: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.times is None:
-            self.times = self.stamps
 
 
 @dataclass
@@ -440,6 +433,7 @@ class _Cleaner:
         # what the stamps mark: "sample" or "receipt" (None: the first samples wait in _probe)
         self.kind: str | None = "sample" if settings.stamps == "sample" else None
         self.receipt: ReceiptClock | None = None  # the rebuilt sample clock, for "receipt"
+        self._bad_carry = 0  # receipt: slots of the bad samples after the last good one
         self._probe: list[tuple[np.ndarray, np.ndarray]] = []
         self._probe_n = 0
 
@@ -471,16 +465,20 @@ class _Cleaner:
         """Tell from the waiting samples' in-order, good stamps (up to a clock jump) whether
         they mark sample times or receipt times, then pass the samples on. No step shorter
         than half a period in the first PROBE_EARLY: sample times (a stream on its sensor's
-        clock waits no longer); else the whole probe decides (core.receipt)."""
+        clock waits no longer); else the first PROBE_SAMPLES decide (core.receipt), however
+        the stream came in chunks."""
+        if self._probe_n == 0:
+            return []  # nothing yet (an empty push, or a flush before any sample)
         if len(self._probe) > 1:
             self._probe = [
                 (_cat_t([t for t, _ in self._probe]), _cat_v([v for _, v in self._probe]))
             ]
         stamps, accel = self._probe[0]
-        keep, jump = stamp_order(None, stamps, int(self.s.clock_jump_s * NS_PER_S))
-        good = keep & ~bad_samples(accel, self.s.sensor_range)
+        head = slice(0, PROBE_SAMPLES)
+        keep, jump = stamp_order(None, stamps[head], int(self.s.clock_jump_s * NS_PER_S))
+        good = keep & ~bad_samples(accel[head], self.s.sensor_range)
         good[len(good) if jump is None else jump :] = False
-        in_order = stamps[good]
+        in_order = stamps[head][good]
         if (
             self.s.stamps == "auto"
             and len(in_order) >= PROBE_EARLY
@@ -490,12 +488,7 @@ class _Cleaner:
         elif self._probe_n < PROBE_SAMPLES and not final:
             return []
         else:
-            latency = receipt_latency(
-                in_order,
-                self.s.period_ns,
-                self.s.rate_tolerance,
-                known=self.s.stamps == "receipt",
-            )
+            latency = receipt_latency(in_order, self.s.period_ns, known=self.s.stamps == "receipt")
         self._probe, self._probe_n = [], 0
         self.kind = "sample" if latency is None else "receipt"
         if latency is not None:
@@ -503,9 +496,9 @@ class _Cleaner:
             self.stats.receipt_latency_ns = int(latency)
             if self.s.stamps == "auto":
                 LOG.warning(
-                    "%ssensor stamps step irregularly but keep the rate: read as receipt "
-                    "times (latency up to %.2f ms: a driver stamping on arrival?); samples "
-                    "counted on a rebuilt sample clock",
+                    "%ssensor stamps step under half a period: read as receipt times "
+                    "(latency up to %.2f ms: a driver stamping on arrival?); samples counted "
+                    "on a rebuilt sample clock",
                     f"{self.s.source}: " if self.s.source else "",
                     latency / 1e6,
                 )
@@ -546,59 +539,66 @@ class _Cleaner:
         # Bad samples (non-finite, beyond the sensor range) are missing: the gap rules below
         # bridge or restart around them, exactly as if they had never arrived.
         bad = bad_samples(accel, self.s.sensor_range)
+        if self.receipt is not None:
+            missing = self._receipt_gaps(stamps, bad)
         if bad.any():
             self.stats.samples_bad += int(bad.sum())
             stamps, accel = stamps[~bad], accel[~bad]
             if len(stamps) == 0:
                 return []
-        if self.receipt is not None:
-            # Gaps against the rebuilt sample clock (the stamps trail it by a varying latency).
-            if self.last_stamp is None:
-                self.receipt.restart()
-            missing, clock = self.receipt.gaps(stamps)
-        else:
+        if self.receipt is None:
             # Gaps, measured against the previous accepted sample.
             prev_stamp = np.concatenate(
                 [[self.last_stamp if self.last_stamp is not None else stamps[0]], stamps[:-1]]
             )
             missing = np.rint((stamps - prev_stamp) / self.s.period_ns).astype(np.int64) - 1
             missing[0] = missing[0] if self.last_stamp is not None else 0
-            clock = None
         segments: list[_Segment] = []
         prev_value = self.last_value
         start = 0
-        pieces_t, pieces_v, pieces_c = [], [], []
-
-        def segment(ends: bool) -> _Segment:
-            times = None if clock is None else _cat_t(pieces_c)
-            return _Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=ends, times=times)
-
+        pieces_t, pieces_v = [], []
         for i in np.flatnonzero(missing > 0):
             pieces_t.append(stamps[start:i])
             pieces_v.append(accel[start:i])
-            if clock is not None:
-                pieces_c.append(clock[start:i])
             left_value = accel[i - 1] if i > 0 else prev_value
             if missing[i] <= self.s.max_fill_samples and left_value is not None:
                 k = int(missing[i])
                 self.stats.gap_filled_samples += k
                 frac = (np.arange(1, k + 1) / (k + 1))[:, None]
                 pieces_t.append(np.full(k, -1, dtype=np.int64))
-                pieces_c.append(pieces_t[-1])
                 pieces_v.append(left_value[None, :] + frac * (accel[i] - left_value)[None, :])
             else:
                 self.stats.resets += 1
-                segments.append(segment(ends=True))
-                pieces_t, pieces_v, pieces_c = [], [], []
+                segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=True))
+                pieces_t, pieces_v = [], []
             start = i
         pieces_t.append(stamps[start:])
         pieces_v.append(accel[start:])
-        if clock is not None:
-            pieces_c.append(clock[start:])
-        segments.append(segment(ends=False))
+        segments.append(_Segment(_cat_t(pieces_t), _cat_v(pieces_v), ends_stream=False))
         self.last_stamp = int(stamps[-1])
         self.last_value = accel[-1].copy()
         return segments
+
+    def _receipt_gaps(self, stamps: np.ndarray, bad: np.ndarray) -> np.ndarray:
+        """Samples missing before each good sample, on the rebuilt sample clock (the stamps
+        trail it by a varying latency): the gap the clock finds before it plus the bad
+        samples since the previous good one. A bad sample's stamp still marks its slot, so
+        it is bridged like a lost sample, as with sample stamps."""
+        if self.last_stamp is None:  # a new segment: its first stamp anchors the clock
+            self.receipt.restart()
+            self._bad_carry = 0
+        own, _ = self.receipt.gaps(stamps)
+        slots = np.cumsum(own + bad)  # a bad sample: its own slot and the gap before it
+        good = np.flatnonzero(~bad)
+        if len(good) == 0:
+            self._bad_carry += int(slots[-1])
+            return np.zeros(0, dtype=np.int64)
+        before = np.concatenate([[-self._bad_carry], slots[good[:-1]]])
+        missing = slots[good] - before
+        self._bad_carry = int(slots[-1] - slots[good[-1]])
+        if self.last_stamp is None:
+            missing[0] = 0  # the first good sample of a segment: nothing before it to bridge
+        return missing
 
     def _all_good(self, accel: np.ndarray) -> bool:
         if not np.isfinite(accel).all():
@@ -705,10 +705,12 @@ class BlockFramer:
 
     def _push_segments(self, segments: list[_Segment]) -> None:
         for segment in segments:
-            self._check_rate(segment.times)
+            self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
                 self._rate_last = None  # no step is measured across a long gap or a clock jump
+                if self._cleaner.receipt is not None:  # nor a window of positions
+                    self._rate_steps, self._rate_ends, self._rate_count = [], [], 0
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
             self._drain(final=False)
 
@@ -747,35 +749,52 @@ class BlockFramer:
         self._bandpass.reset()
         self._below_band.reset()
 
+    def _rate_window(self) -> int:
+        """Samples (steps, for sample stamps) per rate window: the first 2 blocks' worth, then
+        RATE_WINDOW_BLOCKS blocks' worth; receipt stamps: each half at least 2 latencies."""
+        need = (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * self.s.block_length
+        if self._cleaner.receipt is not None:
+            latency = self._cleaner.receipt.latency_ns / self.s.period_ns
+            need = max(need, 4 * math.ceil(latency))
+        return need
+
     def _check_rate(self, stamps: np.ndarray) -> None:
-        """Measure the rate on the steps between real samples of a segment: the first
-        2 blocks' worth, then every RATE_WINDOW_BLOCKS blocks' worth. The windows are
-        counted in samples, so any chunking measures the same windows."""
+        """Measure the rate on the steps between real samples of a segment (receipt stamps:
+        on every sample's stamp, bridged ones included, core.receipt.envelope_period) over
+        consecutive windows (`_rate_window`). The windows are counted in samples, so any
+        chunking measures the same windows."""
         if self._rate_error:
             raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
-        real = stamps[stamps >= 0]
-        if len(real) == 0:
-            return
-        if self._rate_last is not None:
-            steps, ends = np.diff(real, prepend=self._rate_last), real
+        receipt = self._cleaner.receipt is not None
+        if receipt:
+            steps = ends = stamps  # the window keeps every sample's position
         else:
-            steps, ends = np.diff(real), real[1:]
-        self._rate_last = int(real[-1])
+            real = stamps[stamps >= 0]
+            if len(real) == 0:
+                return
+            if self._rate_last is not None:
+                steps, ends = np.diff(real, prepend=self._rate_last), real
+            else:
+                steps, ends = np.diff(real), real[1:]
+            self._rate_last = int(real[-1])
         self._rate_steps.append(steps)
         self._rate_ends.append(ends)
         self._rate_count += len(steps)
-        L = self.s.block_length
-        if self._rate_count < (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L:
+        if self._rate_count < self._rate_window():
             return
         # joined once per chunk and walked by offset: a long chunk (batch) holds many windows
         seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
         start = 0
-        while len(seen) - start >= (need := (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * L):
-            window, window_end = seen[start : start + need], int(ends[start + need - 1])
+        while len(seen) - start >= (need := self._rate_window()):
+            window, window_end = seen[start : start + need], int(ends[start : start + need].max())
             start += need
             self._rate_steps, self._rate_ends = [seen[start:]], [ends[start:]]
             self._rate_count = len(seen) - start
-            measured = NS_PER_S / measured_period(window, self.s.period_ns)
+            measured = NS_PER_S / (
+                envelope_period(window, self.s.period_ns)
+                if receipt
+                else measured_period(window, self.s.period_ns)
+            )
             off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
             if not self._rate_checked:
                 self._rate_checked = True
@@ -791,6 +810,11 @@ class BlockFramer:
                     f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
                     f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
                 )
+                if not receipt and np.mean(window < 0.5 * self.s.period_ns) > 0.1:
+                    self._rate_error += (
+                        "; many of its steps are under half a period: stamped on receipt "
+                        "from there on (the driver or its settings changed?)"
+                    )
                 raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
