@@ -121,7 +121,8 @@ class Feeder:
     `undecodable_joints`: every JointState cut to half its bytes (a broken driver);
     `joint_clock_offset_s`: JointStates stamped by a clock this far ahead (sim vs wall time);
     `receipt_stamps`: sensor messages stamped as a USB driver reads them (1 ms frames, each
-    message at its frame's end plus 0-0.2 ms of host latency), not at their samples."""
+    message at its frame's end plus 0-0.2 ms of host latency), not at their samples;
+    `joint_rate_hz`: how often JointStates are published (1 kHz)."""
 
     def __init__(
         self,
@@ -139,6 +140,7 @@ class Feeder:
         undecodable_joints: bool = False,
         joint_clock_offset_s: float = 0.0,
         receipt_stamps: bool = False,
+        joint_rate_hz: float = 1000.0,
     ):
         from sensor_msgs.msg import Imu, JointState
 
@@ -164,6 +166,7 @@ class Feeder:
         self.undecodable_joints = undecodable_joints
         self.joint_clock_offset_ns = int(round(joint_clock_offset_s * 1e9))
         self.receipt_stamps = receipt_stamps
+        self.joint_rate_hz = joint_rate_hz
         self.last_receipt = 0
         self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
         self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
@@ -238,7 +241,7 @@ class Feeder:
         n = int(round(seconds * self.rate_hz))
         index = self.next_index + np.arange(n)
         stamps = self.stamp0 + (index * (1e9 / self.rate_hz)).astype(np.int64)
-        joint_stamps = stamps[:: max(1, int(round(self.rate_hz / 1000.0)))]
+        joint_stamps = stamps[:: max(1, int(round(self.rate_hz / self.joint_rate_hz)))]
         sensor_stamps = stamps
         if self.receipt_stamps:
             frame_end = (stamps // 1_000_000 + 1) * 1_000_000

@@ -270,6 +270,21 @@ def test_a_driver_stamping_on_receipt_is_denoised_on_a_rebuilt_sample_clock(
     assert den.poll() is None and nodes.stop(den) == 0
 
 
+def test_joint_states_too_seldom_are_named_as_the_cause(nodes, ros_client, feeder, sim_model_path):
+    """A driver publishing joint states at 10 Hz: blocks more than 50 ms from one go without
+    (passed through); the WARN says why, not only how many."""
+    den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE, **DEEP_OUTPUT})
+    stream = feeder(PR2, joint_rate_hz=10.0)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
+
+    def warned() -> bool:
+        return reports(ros_client, "denoiser", DiagnosticStatus.WARN, "every 100 ms")
+
+    assert stream.run_until(warned, at_most_s=4.0), shown(ros_client)
+    assert "without joint state" in ros_client.statuses["denoiser"].message
+    assert nodes.stop(den) == 0, nodes.log(den)
+
+
 def test_health_stale_without_input_and_ok_again_after_a_restart(
     nodes, ros_client, feeder, sim_model_path
 ):

@@ -301,7 +301,7 @@ class Denoiser(Node):
         self.stream_error: str | None = None
         self.missing_joints: list[str] = []
         self._latency_ms: list[np.ndarray] = []
-        self._last_report = (time.monotonic(), 0, 0)
+        self._last_report = (time.monotonic(), 0, 0, 0)
         self.create_timer(0.05, self._on_idle_check)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
@@ -442,9 +442,10 @@ class Denoiser(Node):
         stats = self.denoiser.stats
         inp = self.input
         now = time.monotonic()
-        last_t, last_in, last_out = self._last_report
+        last_t, last_in, last_out, last_joints = self._last_report
         period = max(now - last_t, 1e-3)
-        self._last_report = (now, inp.sensor_messages, self.samples_published)
+        self._last_report = (now, inp.sensor_messages, self.samples_published, inp.joint_messages)
+        joint_rate_hz = (inp.joint_messages - last_joints) / period
         latency = np.concatenate(self._latency_ms) if self._latency_ms else np.zeros(0)
         self._latency_ms = []
         # paper counts blocks; cancel and hybrid work sample by sample
@@ -515,9 +516,10 @@ class Denoiser(Node):
                 f"{'input' if self.output == 'dropin' else 'band-passed signal'} through"
             )
         elif grown[f"{unit}_no_joint_state"]:
+            notes = [inp.clock_note(), self._joint_rate_note(joint_rate_hz)]
             warnings.append(
                 f"{grown[f'{unit}_no_joint_state']} {unit} without joint state (passed through"
-                + (f"; {note}" if (note := inp.clock_note()) else "")
+                + "".join(f"; {note}" for note in notes if note)
                 + ")"
             )
         for key, text in (
@@ -543,6 +545,17 @@ class Denoiser(Node):
         stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
         self.health.publish(
             errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values
+        )
+
+    def _joint_rate_note(self, rate_hz: float) -> str:
+        """Why samples go without joint state when the joint states come too seldom: each is
+        held at most max_hold_s (a 10 Hz driver leaves half of every 100 ms without)."""
+        hold_s = self.denoiser.settings.max_hold_s
+        if rate_hz <= 0 or 1.0 / rate_hz <= hold_s:
+            return ""
+        return (
+            f"joint states come every {1000 / rate_hz:.0f} ms, and one is held at most "
+            f"{1000 * hold_s:.0f} ms"
         )
 
     def close(self) -> None:
