@@ -6,7 +6,8 @@ that varies: steps of 0 to several periods, however regular the sensor. Judged s
 those read as lost samples and as a wrong rate. Such a stream is recognised on its first
 samples (`receipt_latency`) and judged against a sample clock rebuilt from the count of
 samples and the stamps' lower envelope (`ReceiptClock`): a gap is a stamp later than any
-latency seen.
+latency seen by 1.5 periods. Their rate is measured on the least late samples
+(`envelope_period`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 #: jitter of +-30 % never reaches them.
 RECEIPT_SHORT_STEPS = 0.01
 #: Per sample, the rebuilt clock moves this share of a sample's lateness towards the stamps: it
-#: follows a sensor clock off the nominal rate (which the rate check then sees).
+#: follows a sensor clock a little off the nominal rate, which would otherwise read as gaps.
 RECEIPT_LEAK = 1.0 / 64.0
 #: Per sample, the latency bound forgets this share of itself (half-life ~7000 samples).
 RECEIPT_FORGET = 1e-4
@@ -71,6 +72,7 @@ class ReceiptClock:
     def __init__(self, period_ns: float, latency_ns: float, max_fill: int):
         self.period = float(period_ns)
         self.max_fill = int(max_fill)
+        self.first_latency_ns = float(latency_ns)  # as the first samples showed it (fixed)
         self.origin: int | None = None  # ns; the clock runs in float ns after it (precision)
         # [rebuilt time of the last sample - origin, latency bound, anchored 0/1]
         self.state = np.array([0.0, float(latency_ns), 0.0])

@@ -754,7 +754,8 @@ class BlockFramer:
         RATE_WINDOW_BLOCKS blocks' worth; receipt stamps: each half at least 2 latencies."""
         need = (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * self.s.block_length
         if self._cleaner.receipt is not None:
-            latency = self._cleaner.receipt.latency_ns / self.s.period_ns
+            # fixed from the first samples, so any chunking cuts the same windows
+            latency = self._cleaner.receipt.first_latency_ns / self.s.period_ns
             need = max(need, 4 * math.ceil(latency))
         return need
 
