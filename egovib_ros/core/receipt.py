@@ -26,6 +26,8 @@ RECEIPT_SHORT_STEPS = 0.01
 RECEIPT_LEAK = 1.0 / 64.0
 #: Per sample, the latency bound forgets this share of itself (half-life ~7000 samples).
 RECEIPT_FORGET = 1e-4
+#: Samples in the first rate window of receipt stamps (2 ms of latency at 3 kHz: within 1 %).
+RECEIPT_FIRST_WINDOW = 512
 
 
 def receipt_latency(
@@ -48,21 +50,26 @@ def receipt_latency(
 
 
 def envelope_period(stamps_ns: np.ndarray, period_ns: float) -> float:
-    """The sample period a window of receipt stamps shows (-1: a sample bridged in, which
-    keeps the positions): the slope between the least late sample of each half of the
-    window. Stamps trail their samples by a varying latency; the least late ones lie
-    nearest their samples, so the slope holds to a fraction of a period per half window
-    when each half spans a few latencies (the mean step would carry the two ends'
-    latencies)."""
+    """The sample period a window of receipt stamps shows (-1: a sample the clock bridged
+    in, left out): the slope between the least late stamp of each half of the window, over
+    the samples received between them. Stamps trail their samples by a varying latency; the
+    least late ones lie nearest their samples, so the slope holds to a fraction of a period
+    per half window when each half spans a few latencies (the mean step would carry the
+    two ends' latencies). Counting received samples, not the clock's guesses of lost ones,
+    keeps a stream at the wrong rate from being bridged into the right one."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
-    position = np.flatnonzero(stamps >= 0)
+    stamps = stamps[stamps >= 0]
     half = len(stamps) // 2
-    first, second = position[position < half], position[position >= half]
-    if not len(first) or not len(second):
+    if half == 0:
         return float(period_ns)
-    i = first[np.argmin(stamps[first] - first * period_ns)]
-    j = second[np.argmin(stamps[second] - second * period_ns)]
-    return float(stamps[j] - stamps[i]) / float(j - i)
+    position = np.arange(len(stamps))
+    estimate = float(period_ns)
+    for _ in range(2):  # again with the first estimate: a clock off nominal tilts "least late"
+        late = stamps - position * estimate
+        i = int(np.argmin(late[:half]))
+        j = half + int(np.argmin(late[half:]))
+        estimate = float(stamps[j] - stamps[i]) / float(j - i)
+    return estimate
 
 
 class ReceiptClock:
@@ -80,6 +87,13 @@ class ReceiptClock:
     def restart(self) -> None:
         """A new segment (first sample, a clock jump): the next stamp anchors the clock."""
         self.state[2] = 0.0
+
+    def rate_window(self, samples: int, *, first: bool) -> int:
+        """Samples per rate window (at least `samples`): the first RECEIPT_FIRST_WINDOW, so
+        the least late stamps of each half lie near their samples; every half at least two
+        latencies (as the first samples showed it: any chunking cuts the same windows)."""
+        need = max(samples, RECEIPT_FIRST_WINDOW if first else 0)
+        return max(need, 4 * math.ceil(self.first_latency_ns / self.period))
 
     @property
     def latency_ns(self) -> float:

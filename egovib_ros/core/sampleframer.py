@@ -156,16 +156,18 @@ class SampleFramer:
             if self._rate_error:
                 raise self.s.error(self._rate_error)
             return
-        receipt = self._cleaner.receipt is not None  # every sample's position counts
-        self._rate_stamps.append(stamps if receipt else stamps[stamps >= 0])
+        receipt = self._cleaner.receipt
+        self._rate_stamps.append(stamps if receipt is not None else stamps[stamps >= 0])
         seen = np.concatenate(self._rate_stamps)
-        if len(seen) < RATE_CHECK_SAMPLES:
-            return
-        measured = NS_PER_S / (
-            envelope_period(seen[:RATE_CHECK_SAMPLES], self.s.period_ns)
-            if receipt
-            else float(np.median(np.diff(seen)))
-        )
+        if receipt is not None:  # the samples received (core.receipt)
+            need = receipt.rate_window(RATE_CHECK_SAMPLES, first=True)
+            if len(seen) < need:
+                return
+            measured = NS_PER_S / envelope_period(seen[:need], self.s.period_ns)
+        else:
+            if len(seen) < RATE_CHECK_SAMPLES:
+                return
+            measured = NS_PER_S / float(np.median(np.diff(seen)))
         self._rate_checked = True
         self._rate_stamps = []
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:

@@ -709,7 +709,9 @@ class BlockFramer:
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
                 self._rate_last = None  # no step is measured across a long gap or a clock jump
-                if self._cleaner.receipt is not None:  # nor a window of positions
+                if self._cleaner.receipt is not None and not segment.wait_for_joints:
+                    # receipt stamps: a window spans gaps (it counts samples received) but
+                    # not a clock jump
                     self._rate_steps, self._rate_ends, self._rate_count = [], [], 0
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
             self._drain(final=False)
@@ -751,12 +753,10 @@ class BlockFramer:
 
     def _rate_window(self) -> int:
         """Samples (steps, for sample stamps) per rate window: the first 2 blocks' worth, then
-        RATE_WINDOW_BLOCKS blocks' worth; receipt stamps: each half at least 2 latencies."""
+        RATE_WINDOW_BLOCKS blocks' worth; receipt stamps: core.receipt.rate_window."""
         need = (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * self.s.block_length
         if self._cleaner.receipt is not None:
-            # fixed from the first samples, so any chunking cuts the same windows
-            latency = self._cleaner.receipt.first_latency_ns / self.s.period_ns
-            need = max(need, 4 * math.ceil(latency))
+            need = self._cleaner.receipt.rate_window(need, first=not self._rate_checked)
         return need
 
     def _check_rate(self, stamps: np.ndarray) -> None:
@@ -768,7 +768,7 @@ class BlockFramer:
             raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
         receipt = self._cleaner.receipt is not None
         if receipt:
-            steps = ends = stamps  # the window keeps every sample's position
+            steps = ends = stamps  # every sample: envelope_period counts those received
         else:
             real = stamps[stamps >= 0]
             if len(real) == 0:
@@ -798,10 +798,7 @@ class BlockFramer:
             )
             off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
             if not self._rate_checked:
-                self._rate_checked = True
-                if off:
-                    self._rate_error = rate_refusal(measured, self.s, self.stats)
-                    raise self.s.error(self._rate_error)
+                self._judge_first_rate(measured)
                 continue
             self._rate_off_windows = self._rate_off_windows + 1 if off else 0
             if self._rate_off_windows >= 2:
@@ -817,6 +814,13 @@ class BlockFramer:
                         "from there on (the driver or its settings changed?)"
                     )
                 raise self.s.error(self._rate_error)
+
+    def _judge_first_rate(self, measured: float) -> None:
+        """The first window's rate: off by more than the tolerance, the stream is refused."""
+        self._rate_checked = True
+        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
+            self._rate_error = rate_refusal(measured, self.s, self.stats)
+            raise self.s.error(self._rate_error)
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
