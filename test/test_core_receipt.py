@@ -121,10 +121,14 @@ def test_receipt_stamps_stream_equal_batch_for_any_chunking(model, motion, seed,
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("frame_ms", [1, 4])
 @pytest.mark.parametrize("rate", [0.5, 0.85, 1.15, 2.0])
-def test_receipt_stamps_at_the_wrong_rate_are_refused_at_the_rate_they_show(model, motion, rate):
+def test_receipt_stamps_at_the_wrong_rate_are_refused_at_the_rate_they_show(
+    model, motion, rate, frame_ms
+):
+    """Half the rate in 4 ms frames used to restart the stream at every frame and pass."""
     t = motion["t_acc"]
-    stamps = usb_frames(t[0] + ((t - t[0]) / rate).astype(np.int64))
+    stamps = usb_frames(t[0] + ((t - t[0]) / rate).astype(np.int64), frame_ns=frame_ms * 10**6)
     with pytest.raises(StreamError, match="runs at (\\d+) Hz but the model expects 3000") as err:
         denoise_batch(stamps, motion["accel"], motion["t_joint"], motion["velocity"], model)
     shown = float(str(err.value).split("runs at ")[1].split(" Hz")[0])
@@ -136,12 +140,13 @@ def test_big_frames_and_a_clock_a_few_percent_off_are_accepted(model, motion, fr
     """An IMU read from its FIFO every 10 ms, stamped as read: latency up to 10 ms. The rate
     is measured on the least late samples (the first window used to see 3750 Hz)."""
     t = motion["t_acc"]
-    for rate in (0.97, 1.0, 1.05):
-        stamps = usb_frames(t[0] + ((t - t[0]) / rate).astype(np.int64), frame_ns=frame_ms * 10**6)
-        _, _, stats = denoise_batch(
-            stamps, motion["accel"], motion["t_joint"], motion["velocity"], model
-        )
-        assert stats.rate_checked and stats.gap_filled_samples == 0, (frame_ms, rate, stats)
+    for rate in (0.92, 0.97, 1.0, 1.05, 1.08):
+        clock = t[0] + ((t - t[0]) / rate).astype(np.int64)
+        for stamps in (usb_frames(clock, frame_ns=frame_ms * 10**6), random_latency(clock)):
+            _, _, stats = denoise_batch(
+                stamps, motion["accel"], motion["t_joint"], motion["velocity"], model
+            )
+            assert stats.rate_checked and stats.gap_filled_samples == 0, (frame_ms, rate, stats)
 
 
 def test_what_the_stamps_mark_is_told_on_the_first_samples_whatever_the_chunking(model, motion):
