@@ -294,3 +294,26 @@ def test_joint_states_on_another_clock_are_said_while_calibrating(
     assert "1e+03 s ahead" in ros_client.statuses["calibrator"].message
     assert nodes.stop(cal) == 1 and not output.exists()
     assert "no usable block" in nodes.log(cal)
+
+
+def test_a_driver_stamping_on_receipt_is_calibrated_on_a_rebuilt_sample_clock(
+    nodes, ros_client, feeder, tmp_path
+):
+    """Sensor messages stamped as a USB driver reads them (1 ms frames): the calibrator
+    counts blocks as with sample stamps (nothing bridged, no restart) and says what the
+    stamps mark."""
+    from egovib_ros.robot import load_profile
+
+    cal = nodes.start("calibrator", {"grid": "free", "output": str(tmp_path / "m.npz"), **RELIABLE})
+    stream = feeder(load_profile(None), receipt_stamps=True)
+    assert stream.wait_for_subscribers("calibrator"), nodes.log(cal)
+
+    def counted() -> bool:
+        status = ros_client.statuses.get("calibrator")
+        values = diagnostic_values(status) if status is not None else {}
+        return values.get("sensor_stamps") == "receipt" and int(values["blocks"]) > 50
+
+    assert stream.run_until(counted, at_most_s=4.0), ros_client.statuses.get("calibrator")
+    values = diagnostic_values(ros_client.statuses["calibrator"])
+    assert int(values["gap_filled_samples"]) == 0 and int(values["stream_restarts"]) == 0
+    assert nodes.stop(cal) == 0, nodes.log(cal)

@@ -230,6 +230,12 @@ class CalibrationAccumulator:
         """(samples buffered, joint states held) by the framer."""
         return self._framer.backlog
 
+    @property
+    def sensor_stamps(self) -> str:
+        """What the sensor stamps mark: "sample", "receipt" (core.receipt), or "" while the
+        first samples still wait to tell."""
+        return self._framer.stamps
+
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self._framer.push_joint_states(stamps_ns, velocity)
         self._accumulate(self._framer.pop_blocks())

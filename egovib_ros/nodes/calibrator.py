@@ -336,6 +336,7 @@ class Calibrator(Node):
             "blocks_rejected": sum(stats.rejected.values()),
             **{f"rejected_{k}": v for k, v in stats.rejected.items()},
             **counters,
+            "sensor_stamps": self.acc.sensor_stamps,
             "checkpoints_written": self.checkpoints_written,
             "checkpoint_failures": self.checkpoint_failures,
         }
