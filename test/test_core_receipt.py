@@ -217,3 +217,22 @@ def test_sample_stamps_wait_only_for_the_first_few_samples():
     assert framer._cleaner.kind is None and framer._cleaner.waiting == 100
     framer.push_sensor(stamps[100:], np.zeros((100, 3)))
     assert framer._cleaner.kind == "receipt" and framer.stats.receipt_latency_ns > 0
+
+
+def test_receipt_stamps_the_first_samples_cannot_tell_can_be_named():
+    """A 1 kHz sensor read in 1 ms USB frames steps a period, or two when its clock runs
+    slow and a frame comes empty: stamps alike to a sample clock losing samples, which is
+    what `auto` reads (bridging the empty frames). stamps="receipt" counts them right."""
+    t = (10**12 + np.round(np.arange(20_000) * 1e6 / 0.97)).astype(np.int64)  # 3 % slow
+    stamps = usb_frames(t)
+    got = {}
+    for kind in ("auto", "receipt"):
+        settings_ = FramerSettings(
+            sample_rate_hz=1000.0, band_hz=(50.0, 400.0), stamps=kind, source="imu"
+        )
+        framer = BlockFramer(settings_, n_joints=2)
+        framer.push_sensor(stamps, np.zeros((len(stamps), 3)))
+        framer.flush()
+        got[kind] = (framer.stamps, framer.stats.gap_filled_samples, framer.rate_checked)
+    assert got["auto"][0] == "sample" and got["auto"][1] > 300
+    assert got["receipt"] == ("receipt", 0, True)
