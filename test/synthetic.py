@@ -9,6 +9,18 @@ from egovib_ros.sim.pr2 import JOINT_NAMES
 
 FS = 3000.0
 JOINT_FS = 1000.0
+#: Two joints' cells the core tests stream through, with a noise level (std) each
+CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
+SIGMA = [0.2, 1.0, 0.6, 1.3, 2.0, 0.8]
+
+
+def calibrated_model():
+    """A model calibrated on 24 s over CELLS with the noise levels SIGMA."""
+    from egovib_ros.core import calibrate_arrays
+
+    data = stream(24, CELLS, sigma=SIGMA)
+    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
+    return model
 
 
 def stamps(n: int, rate_hz: float, offset_ns: int = 0) -> np.ndarray:

@@ -14,15 +14,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from synthetic import FS, push_random_chunks, stream
+from synthetic import CELLS, FS, calibrated_model, push_random_chunks, stream
 
-from egovib_ros.core import StreamingDenoiser, calibrate_arrays, denoise_batch
+from egovib_ros.core import StreamingDenoiser, denoise_batch
 from egovib_ros.core.receipt import ReceiptClock, receipt_latency
 from egovib_ros.core.stream import PROBE_EARLY, BlockFramer, FramerSettings
 from egovib_ros.errors import StreamError
 
 PERIOD_NS = 1e9 / FS
-CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
 
 
 def usb_frames(t_ns: np.ndarray, seed: int = 0, frame_ns: int = 1_000_000) -> np.ndarray:
@@ -46,9 +45,7 @@ def grid(n: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def model():
-    data = stream(24, CELLS, sigma=[0.2, 1.0, 0.6, 1.3, 2.0, 0.8])
-    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
-    return model
+    return calibrated_model()
 
 
 @pytest.fixture(scope="module")

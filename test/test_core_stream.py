@@ -13,7 +13,7 @@ were: bridged and counted.
 
 import numpy as np
 import pytest
-from synthetic import FS, push_random_chunks, stream
+from synthetic import CELLS, FS, calibrated_model, push_random_chunks, stream
 
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, denoise_batch
 from egovib_ros.core.stream import (
@@ -28,16 +28,13 @@ from egovib_ros.core.stream import (
 from egovib_ros.core.velocity import HELD, MATCHED, MISSING
 from egovib_ros.errors import ConfigError, StreamError
 
-CELLS = [(0.0, 0.0), (1.5, 0.0), (0.0, 0.02), (1.5, 0.02), (-3.0, -0.04), (0.9, -0.012)]
 PERIOD_NS = 1e9 / FS
 SOURCE = "bag: /accelerometer/raw"
 
 
 @pytest.fixture(scope="module")
 def model():
-    data = stream(24, CELLS, sigma=[0.2, 1.0, 0.6, 1.3, 2.0, 0.8])
-    model, _ = calibrate_arrays(data["t_acc"], data["accel"], data["t_joint"], data["velocity"])
-    return model
+    return calibrated_model()
 
 
 @pytest.fixture(scope="module")
