@@ -34,6 +34,9 @@ SENSOR_FIELDS = ("linear_acceleration", "angular_velocity")
 COMMANDS_TOPIC = "hand_velocity_controller/commands"
 #: Where joint velocity comes from (`joints.velocity`; see core.velocity.JointVelocity).
 VELOCITY_SOURCES = ("auto", "measured", "from_position")
+#: What the sensor's header stamps mark (`sensor.stamps`): told from the first samples (auto),
+#: sample times, or when a driver received each message (core.receipt).
+STAMP_KINDS = ("auto", "sample", "receipt")
 MAX_JOINTS = 8
 
 
@@ -56,6 +59,7 @@ class RobotProfile:
     # the message's where it has one and positions elsewhere (auto: drivers without velocity)
     velocity_source: str = "auto"
     sensor_range: float = math.inf  # |value| beyond this on any axis: a bad sample
+    sensor_stamps: str = "auto"  # STAMP_KINDS
     block_length: int = 64
     hop: int = 32
     band_hz: tuple[float, float] = (150.0, 750.0)
@@ -118,6 +122,10 @@ class RobotProfile:
         set_(
             self, "sensor_range", _positive(self.sensor_range, "sensor range", bad, allow_inf=True)
         )
+        if self.sensor_stamps not in STAMP_KINDS:
+            raise bad(
+                f"sensor.stamps must be one of {list(STAMP_KINDS)}, got {self.sensor_stamps!r}"
+            )
         set_(self, "block_length", _integer(self.block_length, "block_length", 4, 65536, bad))
         set_(self, "hop", _integer(self.hop, "hop", 1, 65536, bad))
         if self.block_length % self.hop or self.block_length // self.hop < 2:
@@ -178,6 +186,8 @@ class RobotProfile:
         }
         if math.isfinite(self.sensor_range):
             sensor["range"] = self.sensor_range
+        if self.sensor_stamps != "auto":
+            sensor["stamps"] = self.sensor_stamps
         return {
             "schema": SCHEMA,
             "name": self.name,
@@ -222,7 +232,10 @@ class RobotProfile:
             sections[key] = value
         sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
         _no_unknown(
-            sensor, ("topic", "field", "rate_hz", "denoised_topic", "range"), "sensor", where
+            sensor,
+            ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
+            "sensor",
+            where,
         )
         _no_unknown(
             joints,
@@ -254,6 +267,7 @@ class RobotProfile:
             steps=joints.get("steps", defaults["steps"].default),
             velocity_source=joints.get("velocity", defaults["velocity_source"].default),
             sensor_range=sensor.get("range", math.inf),
+            sensor_stamps=sensor.get("stamps", defaults["sensor_stamps"].default),
             block_length=processing.get("block_length", defaults["block_length"].default),
             hop=processing.get("hop", defaults["hop"].default),
             band_hz=processing.get("band_hz", defaults["band_hz"].default),

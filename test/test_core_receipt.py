@@ -233,3 +233,19 @@ def test_receipt_stamps_the_first_samples_cannot_tell_can_be_named():
         got[kind] = (framer.stamps, framer.stats.gap_filled_samples, framer.rate_checked)
     assert got["auto"][0] == "sample" and got["auto"][1] > 300
     assert got["receipt"] == ("receipt", 0, True)
+
+
+def test_a_profile_saying_receipt_stamps_reaches_every_framer_through_the_model(model):
+    """sensor.stamps in the robot profile (the model carries it): the calibrator's and every
+    denoiser's framing take it, so every command and node reads the stream alike."""
+    import dataclasses
+
+    from egovib_ros.core import CalibrationAccumulator
+    from egovib_ros.robot import load_profile
+
+    profile = dataclasses.replace(load_profile(), sensor_stamps="receipt")
+    assert CalibrationAccumulator(profile=profile).settings.stamps == "receipt"
+    usb_model = model.replace(profile=profile)
+    assert FramerSettings.for_model(usb_model, layout="per_axis").stamps == "receipt"
+    assert StreamingDenoiser(usb_model).settings.stamps == "receipt"
+    assert FramerSettings.for_model(model, layout="per_axis").stamps == "auto"

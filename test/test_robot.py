@@ -1,5 +1,7 @@
 """egovib_ros.robot: profiles load, validate every field with a one-line error, round-trip."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -35,6 +37,10 @@ def test_round_trip_and_one_directional_grid():
     )
     assert p.grid_shape == (6, 6) and np.allclose(p.grid()[1], [0, 0.2, 0.4, 0.6, 0.8, 1.0])
     assert RobotProfile.loads(p.dumps()) == p
+    # sensor.stamps: written only when not the default (auto), read back
+    assert "stamps" not in p.to_dict()["sensor"]
+    usb = dataclasses.replace(p, sensor_stamps="receipt")
+    assert usb.to_dict()["sensor"]["stamps"] == "receipt" and RobotProfile.loads(usb.dumps()) == usb
 
 
 @pytest.mark.parametrize(
@@ -55,6 +61,7 @@ def test_round_trip_and_one_directional_grid():
         (lambda d: d["processing"].update(band_hz=[150, 1600]), "Nyquist"),
         (lambda d: d["processing"].update(hop=48), "hop must divide"),
         (lambda d: d["joints"].update(colour="red"), "unknown key"),
+        (lambda d: d["sensor"].update(stamps="arrival"), "sensor.stamps must be one of"),
         (lambda d: d.update(schema="egovib.robot/9"), "schema"),
     ],
 )

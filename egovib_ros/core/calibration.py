@@ -159,6 +159,7 @@ class CalibrationAccumulator:
             band_order=band_order or base.band_order,
             layout="all",
             sensor_range=base.sensor_range,
+            stamps=base.sensor_stamps,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
             prefiltered=prefiltered,

@@ -44,6 +44,7 @@ from egovib_ros.core.receipt import ReceiptClock, envelope_period, receipt_laten
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
 from egovib_ros.errors import ConfigError, StreamError
+from egovib_ros.robot import STAMP_KINDS
 
 LOG = logging.getLogger("egovib_ros.core")
 
@@ -58,7 +59,6 @@ RATE_WINDOW_BLOCKS = 4
 #: first PROBE_EARLY are enough when none of their steps is shorter than half a period.
 PROBE_SAMPLES = 128
 PROBE_EARLY = 16
-STAMP_KINDS = ("auto", "sample", "receipt")
 
 
 def measured_period(steps: np.ndarray, period: float) -> float:
@@ -272,15 +272,16 @@ class FramerSettings:
     @classmethod
     def for_model(cls, model, *, layout: str, **overrides) -> "FramerSettings":
         """The framing a noise model was calibrated with, for a stream of `layout`."""
-        sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
+        profile = model.profile
         fields = dict(
+            stamps=profile.sensor_stamps if profile is not None else "auto",
             sample_rate_hz=model.sample_rate_hz,
             block_length=model.block_length,
             hop=model.hop,
             band_hz=model.band_hz,
             band_order=model.band_order,
             layout=layout,
-            sensor_range=sensor_range,
+            sensor_range=profile.sensor_range if profile is not None else math.inf,
         )
         fields.update(overrides)
         return cls(**fields)
