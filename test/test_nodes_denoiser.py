@@ -246,22 +246,26 @@ def test_bad_input_counted_once_and_pass_through_without_joint_states(
     assert nodes.stop(den) == 0
 
 
+@pytest.mark.parametrize("method", ["paper", "hybrid"])
 def test_a_driver_stamping_on_receipt_is_denoised_on_a_rebuilt_sample_clock(
-    nodes, ros_client, feeder, sim_model_path
+    nodes, ros_client, feeder, sim_model_path, sim_methods_model_path, method
 ):
     """A USB IMU driver stamps each message as it reads it (1 ms frames): steps of 0 to 3
     periods. Refused before as a stream at 1166 Hz; now every sample comes out, nothing is
-    bridged, and /diagnostics says what the stamps mark."""
-
-    den = nodes.start("denoiser", {"model": str(sim_model_path), **RELIABLE, **DEEP_OUTPUT})
+    bridged, and /diagnostics says what the stamps mark (block and per-sample methods)."""
+    model = sim_model_path if method == "paper" else sim_methods_model_path
+    den = nodes.start(
+        "denoiser", {"model": str(model), "method": method, **RELIABLE, **DEEP_OUTPUT}
+    )
     stream = feeder(load_profile(None), receipt_stamps=True)
     assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
     stream.publish_joint_state()
+    unit, enough = ("blocks", 100) if method == "paper" else ("samples", 3000)
 
     def denoising() -> bool:
         status = ros_client.statuses.get("denoiser")
         values = diagnostic_values(status) if status is not None else {}
-        return values.get("sensor_stamps") == "receipt" and int(values["blocks"]) > 100
+        return values.get("sensor_stamps") == "receipt" and int(values[unit]) > enough
 
     assert stream.run_until(denoising, at_most_s=4.0), shown(ros_client)
     values = diagnostic_values(ros_client.statuses["denoiser"])
