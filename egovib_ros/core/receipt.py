@@ -95,10 +95,6 @@ class ReceiptClock:
         need = max(samples, RECEIPT_FIRST_WINDOW if first else 0)
         return max(need, 4 * math.ceil(self.first_latency_ns / self.period))
 
-    @property
-    def latency_ns(self) -> float:
-        return float(self.state[1])
-
     def gaps(self, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(missing (N,) int64, rebuilt times (N,) int64) for in-order stamps (N,)."""
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
