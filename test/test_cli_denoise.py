@@ -83,14 +83,21 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(sim_bags, tmp_path):
         assert NoiseModel.load(tmp_path / "m.npz").counts.sum() > 0
 
 
-def test_denoised_message_is_the_raw_message_with_the_field_replaced(sim_bags, sim_bags_model):
-    out = sim_bags / "dropin"
-    assert (
-        egovib(
-            "denoise", sim_bags / "motion", "--model", sim_bags_model, "--out", out, "--quiet"
-        ).returncode
-        == 0
-    )
+@pytest.mark.parametrize("method", ["paper", "hybrid"])
+def test_denoised_message_is_the_raw_message_with_the_field_replaced(
+    sim_bags, sim_bags_model, sim_methods_model_path, method
+):
+    """The default output of every method is the drop-in one: gravity kept."""
+    out = sim_bags / f"dropin_{method}"
+    model = sim_bags_model if method == "paper" else sim_methods_model_path
+    run = egovib(
+        "denoise", sim_bags / "motion", "--model", model, "--method", method, "--out", out,
+        "--quiet",
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    rec = read_recording(out)
+    assert np.array_equal(rec.denoised_stamps_ns, rec.sensor_stamps_ns)
+    assert abs(rec.denoised[:, 2].mean() - rec.sensor[:, 2].mean()) < 0.01  # 9.81: gravity
     raw, den = (
         topic_messages(out, "/accelerometer/raw"),
         topic_messages(out, "/accelerometer/denoised"),

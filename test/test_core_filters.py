@@ -95,3 +95,21 @@ def test_blocking_validation_messages():
         validate_blocking(64, 64)
     with pytest.raises(ConfigError, match="block_length"):
         validate_blocking(2, 1)
+
+
+@pytest.mark.parametrize(
+    "fs, band", [(3000.0, (150.0, 750.0)), (1000.0, (80.0, 450.0)), (2000.0, (100.0, 800.0))]
+)
+def test_band_inverse_undoes_the_band_pass_inside_the_band_up_to_its_delay(fs, band):
+    taps, delay = filters.band_inverse(sample_rate_hz=fs, band_hz=band, order=4)
+    assert 1 <= delay <= round(filters.INVERSE_MAX_DELAY_S * fs) and len(taps) == 2 * delay + 1
+    freqs = np.linspace(0.0, fs / 2, 1000)
+    h = signal.sosfreqz(filters.design_bandpass(sample_rate_hz=fs, band_hz=band, order=4),
+                        worN=freqs, fs=fs)[1]  # fmt: skip
+    f = signal.freqz(taps, worN=freqs, fs=fs)[1]
+    inside = np.abs(h) >= 0.5
+    error = np.abs(h * f - np.exp(-2j * np.pi * freqs * delay / fs))[inside]
+    # the band's mean: the shortest delay that reaches -30 dB, or the longest allowed
+    assert 10 * np.log10(np.mean(error**2)) < -29.0 or delay == round(0.015 * fs)
+    assert 10 * np.log10(np.mean(error**2)) < -25.0
+    assert np.abs(f).max() < 5.0  # bounded outside the band

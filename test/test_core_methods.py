@@ -207,11 +207,46 @@ def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
     assert np.array_equal(want_t, t)
 
 
+@pytest.mark.parametrize("method", ["cancel", "hybrid"])
+def test_dropin_output_keeps_gravity_and_motion_and_removes_the_motors(model, method):
+    """The drop-in output: the raw samples less what the method took from the band, so what
+    lies below the band (gravity, a slow rigid-body motion) passes as it was."""
+    rec = recording(10.0, seed=2)
+    n = len(rec["t"])
+    motion = np.zeros((n, 3))
+    motion[:, 0] = 0.8 * np.sin(2 * np.pi * 2.0 * np.arange(n) / FS)  # 2 Hz, far below the band
+    raw = rec["accel"] + motion
+    args = (rec["t"], raw, rec["tj"], rec["velocity"], model)
+    stamps, dropin, stats = denoise_batch_method(*args, method=method)
+    _, band, _ = denoise_batch_method(*args, method=method, output="bandpassed")
+    assert np.array_equal(stamps, rec["t"]) and dropin.shape == raw.shape
+    assert stats.delay_samples > 0
+    low = signal.butter(8, 10.0, fs=FS, output="sos")  # steep: the removal is 60 Hz and up
+    settled = slice(1000, n - 1000)
+    below = signal.sosfiltfilt(low, dropin - raw, axis=0)[settled]
+    # gravity (9.81 on z) and the motion (0.8) pass: what moves below 10 Hz is the removal's
+    # own slow part, 0.1 % of gravity (the paper's drop-in: 0.021 here)
+    assert np.abs(below).max() < 0.012
+    quiet = np.zeros(n, bool)
+    quiet[settled] = True
+
+    def reduction(out):
+        return 20 * math.log10(
+            np.abs(combined_bp(raw)[quiet]).mean() / np.abs(combined_bp(out)[quiet]).mean()
+        )
+
+    # what the band-passed output removes, the drop-in removes from the raw signal too (up
+    # to the band-pass inverse's fit)
+    assert reduction(dropin) > (5.0 if method == "cancel" else 12.0)
+    assert reduction(dropin) > reduction(band[:, :]) - 10.0
+
+
 def test_combined_is_the_sum_of_the_cleaned_axes(model):
     rec = recording(2.0, seed=4)
     _, per_axis, _ = denoise_batch_method(
-        rec["t"], rec["accel"], rec["tj"], rec["velocity"], model, method="hybrid"
-    )
+        rec["t"], rec["accel"], rec["tj"], rec["velocity"], model, method="hybrid",
+        output="bandpassed",
+    )  # fmt: skip
     _, combined, _ = denoise_batch_method(
         rec["t"],
         rec["accel"],
@@ -280,9 +315,18 @@ def test_the_model_file_carries_the_methods_and_older_models_still_load(model, t
 
 def test_methods_are_chosen_by_name_with_their_own_options(model):
     assert isinstance(make_denoiser(model, "paper", oversubtraction=2.0), StreamingDenoiser)
-    hybrid = make_denoiser(model, "hybrid", floor=0.1, lookahead_ms=2.0)
+    hybrid = make_denoiser(model, "hybrid", floor=0.1, lookahead_ms=2.0, output="bandpassed")
     assert isinstance(hybrid, SampleMethodDenoiser)
     assert hybrid.delay_samples == (2, 2)
+    # the drop-in output (the default) comes the band-pass's inverse later
+    inverse = filters.band_inverse(sample_rate_hz=FS, band_hz=PROFILE.band_hz, order=4)[1]
+    dropin = make_denoiser(model, "hybrid", lookahead_ms=2.0)
+    assert dropin.output == "dropin" and dropin.delay_samples == (2 + inverse, 2 + inverse)
+    assert method_delay_ms(model, "hybrid", output="dropin") == pytest.approx(4.0 + inverse)
+    with pytest.raises(ConfigError, match="dropin needs channels per_axis"):
+        make_denoiser(model, "cancel", channels="combined", output="dropin")
+    with pytest.raises(ConfigError, match="output: expected one of"):
+        make_denoiser(model, "cancel", output="raw")
     with pytest.raises(ConfigError, match="method: expected one of"):
         make_denoiser(model, "wiener")
     with pytest.raises(ConfigError, match="oversubtraction.*paper"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -50,6 +52,20 @@ def test_samples_are_band_passed_and_carry_the_latest_joint_state():
     held = np.where(index[:, None] >= 0, vel[np.maximum(index, 0)], np.nan)
     np.testing.assert_array_equal(velocity, held)
     assert framer.samples_no_joint_state == int(np.count_nonzero(index < 0))
+
+
+def test_keep_raw_carries_each_sample_unfiltered_beside_its_band_passed_value():
+    t, accel, tj, vel = streams()
+    accel[:, 2] += 9.81
+    framer = SampleFramer(dataclasses.replace(SETTINGS, keep_raw=True), 2)
+    framer.push_joint_states(tj, vel)
+    framer.push_sensor(t, accel)
+    framer.flush()
+    batches, (stamps, values, _) = collect(framer)
+    assert np.array_equal(stamps, t)
+    np.testing.assert_array_equal(np.concatenate([b.raw for b in batches]), accel)
+    band = BandPass(sample_rate_hz=FS, band_hz=(80.0, 450.0), order=4, n_channels=3)
+    np.testing.assert_array_equal(values, band.process(accel.T).T)
 
 
 @settings(max_examples=20, deadline=None)

@@ -5,9 +5,9 @@ profile's field replaced); joints picked by name from a 12-joint JointState in s
 order; bad input counted once; health (STALE without input, OK again after a restart,
 ERROR and no output for a wrong-rate stream or a joint that never appears); live
 parameters (oversubtraction changes the output, read-only parameters refused); refused
-starts (`batch_samples:=0`, method hybrid without its calibration or with the drop-in
-output); JointStates with positions only, methods paper and hybrid, equal to `egovib
-denoise`; the model-coverage WARN's window and hysteresis.
+starts (`batch_samples:=0`, method hybrid without its calibration, an output no method
+makes); JointStates with positions only, methods paper and hybrid (both drop-in: gravity
+kept), equal to `egovib denoise`; the model-coverage WARN's window and hysteresis.
 """
 
 from __future__ import annotations
@@ -271,6 +271,9 @@ def test_a_driver_stamping_on_receipt_is_denoised_on_a_rebuilt_sample_clock(
     values = diagnostic_values(ros_client.statuses["denoiser"])
     assert int(values["gap_filled_samples"]) == 0 and int(values["stream_restarts"]) == 0
     assert ros_client.statuses["denoiser"].level != DiagnosticStatus.ERROR, shown(ros_client)
+    if method == "hybrid":  # its floor is fixed at start: advertised and refused as read-only
+        refused = set_parameters(ros_client, "denoiser", floor=0.1)
+        assert not refused[0].successful and "read-only" in refused[0].reason, refused
     assert den.poll() is None and nodes.stop(den) == 0
 
 
@@ -507,14 +510,14 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
 
 def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_path, ros_domain):
     """One line naming the problem, exit status 2: batch_samples 0; method hybrid with a
-    model calibrated for the paper's method only; method hybrid with the drop-in output
-    (made by method paper only); a noise_gain file that is not a gap report."""
+    model calibrated for the paper's method only; an output no method makes; a noise_gain
+    file that is not a gap report."""
     cases = {
         "batch_samples": ([f"model:={sim_model_path}", "batch_samples:=0"], "range"),
         "--methods hybrid": ([f"model:={sim_model_path}", "method:=hybrid"], "paper"),
-        "dropin": (
-            [f"model:={sim_methods_model_path}", "method:=hybrid", "output:=dropin"],
-            "bandpassed",
+        "output": (
+            [f"model:={sim_methods_model_path}", "method:=hybrid", "output:=raw"],
+            "dropin, bandpassed",
         ),
         "noise_gain": (
             [f"model:={sim_model_path}", f"noise_gain:={sim_model_path}"],
@@ -625,6 +628,9 @@ def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
         assert len(want_stamps) == n, (name, len(want_stamps), n)
         np.testing.assert_array_equal(got_stamps, want_stamps)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+        # the drop-in output of either method: gravity (the raw z's mean) kept
+        raw_stamps, raw = bag_topic(bag, PR2.sensor_topic)
+        assert abs(got[:, 2].mean() - raw[:, 2].mean()) < 0.01, name
 
 
 def test_gap_advice_applied_live_equals_egovib_denoise_with_it(

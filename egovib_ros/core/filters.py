@@ -182,3 +182,44 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
         n_channels=1,
     )
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows
+
+
+#: How close the band-pass followed by `band_inverse` comes to a pure delay, averaged over
+#: the band (where the band-pass passes at least half amplitude), dB.
+INVERSE_ERROR_DB = -30.0
+#: Longest delay `band_inverse` may take to get there (seconds).
+INVERSE_MAX_DELAY_S = 0.015
+
+
+def band_inverse(
+    *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
+) -> tuple[np.ndarray, int]:
+    """(taps, delay): a causal FIR that undoes the band-pass inside the band, up to `delay`
+    samples, and passes little outside it. What a method removes from the band-passed
+    signal, filtered by it, is what to remove from the raw signal (the drop-in output of the
+    per-sample methods): the band-pass's phase, not only its gain, matters there, and
+    raw - removed without it would leave more than it takes near the band's edges.
+
+    Least squares over the band's frequencies (|band-pass| >= 0.5) with a small penalty on
+    the FIR's gain everywhere; the delay is the shortest whole number of samples whose fit
+    reaches INVERSE_ERROR_DB on the band's mean, at most INVERSE_MAX_DELAY_S."""
+    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+    freqs = np.linspace(0.0, sample_rate_hz / 2.0, 2048)
+    response = signal.sosfreqz(sos, worN=freqs, fs=sample_rate_hz)[1]
+    band = np.abs(response) >= 0.5
+    omega = 2.0 * np.pi * freqs / sample_rate_hz
+    longest = max(1, int(round(INVERSE_MAX_DELAY_S * sample_rate_hz)))
+    for delay in range(1, longest + 1):
+        taps_range = np.arange(2 * delay + 1)
+        basis = np.exp(-1j * np.outer(omega, taps_range))  # (F, N): the FIR's response
+        fit = response[band, None] * basis[band]
+        target = np.exp(-1j * omega[band] * delay)
+        system = np.vstack([fit, np.sqrt(1e-3) * basis])
+        rhs = np.concatenate([target, np.zeros(len(freqs))])
+        taps = np.linalg.lstsq(
+            np.vstack([system.real, system.imag]), np.concatenate([rhs.real, rhs.imag]), rcond=None
+        )[0]
+        error_db = 10.0 * np.log10(np.mean(np.abs(fit @ taps - target) ** 2))
+        if error_db <= INVERSE_ERROR_DB:
+            break
+    return taps, delay

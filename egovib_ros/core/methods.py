@@ -17,7 +17,10 @@ consumer), so batch equals streaming for any chunking.
 
 Both new methods work on x, y and z separately (each axis has its own line weights,
 noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
-of the three cleaned axes.
+of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
+the raw samples less what they removed from the band-passed ones, mapped back through the
+band-pass's inverse (BandInverse): gravity and motion pass, a few ms later than the
+band-passed output.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numba
 import numpy as np
 
 from egovib_ros.core.calibration import calibrate_arrays
+from egovib_ros.core.filters import BelowBand, band_inverse
 from egovib_ros.core.harmonic import (
     CancellerSettings,
     HarmonicCanceller,
@@ -42,6 +46,7 @@ from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
 from egovib_ros.core.subtraction import (
+    OUTPUTS,
     DenoisedChunk,
     FramedDenoiser,
     StreamingDenoiser,
@@ -567,6 +572,7 @@ def warm_up() -> None:
         np.ones(2, np.bool_),
         np.zeros(1),
     )
+    _fir(np.ones(2), np.zeros((3, 3)))
     _WARM = True
 
 
@@ -590,6 +596,7 @@ class SampleMethodDenoiser(FramedDenoiser):
         joint_names: tuple[str, ...] | None = None,
         floor: float | None = None,
         lookahead_ms: float | None = None,
+        output: str | None = None,
         source: str = "",
     ):
         if check_method(method) == "paper":
@@ -598,12 +605,21 @@ class SampleMethodDenoiser(FramedDenoiser):
             )
         if channels not in ("per_axis", "combined"):
             raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
+        output = output or ("dropin" if channels == "per_axis" else "bandpassed")
+        if output not in OUTPUTS:
+            raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
+        if output == "dropin" and channels == "combined":
+            raise ConfigError(
+                "output: dropin needs channels per_axis (the combined signal is the paper's "
+                "band-passed 1-D sum)"
+            )
         check_stream_fits_model(
             model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
         )
         self.model = model
         self.method = method
         self.channels = channels
+        self.output = output
         self.calibration = MethodCalibration.from_model(model)
         warm_up()
         cal = self.calibration
@@ -615,6 +631,7 @@ class SampleMethodDenoiser(FramedDenoiser):
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
             with_steadiness=False,
+            keep_raw=output == "dropin",
             source=source,
         )
         self._framer = SampleFramer(self.settings, model.n_joints)
@@ -646,9 +663,19 @@ class SampleMethodDenoiser(FramedDenoiser):
                 guard_ref=cal.guard_ref,
             )
             self._table = ResidualTable(cal.residual, bank)
-        self.delay = self._gain.delay if self._gain is not None else 0
-        # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
-        self._lag_stamps = np.full(self.delay, -1, dtype=np.int64)
+        self.lookahead = self._gain.delay if self._gain is not None else 0
+        # Stamps of the samples inside the look-ahead (-1: synthetic or before the start),
+        # and for the drop-in output their band-passed and raw values.
+        self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
+        self._lag_band = np.zeros((self.lookahead, 3))
+        self._lag_raw = np.zeros((self.lookahead, 3))
+        self._inverse = None
+        if output == "dropin":
+            self._inverse = BandInverse(
+                *band_inverse(sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order),
+                BelowBand(sample_rate_hz=fs, band_hz=model.band_hz, n_channels=3),
+            )
+        self.delay = self.lookahead + (self._inverse.delay if self._inverse else 0)
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
@@ -690,11 +717,15 @@ class SampleMethodDenoiser(FramedDenoiser):
         stamps_out, values_out = [], []
         for batch in batches:
             if len(batch):
-                s, v = self._run(batch.stamps_ns, batch.values, batch.velocity)
+                s, v = self._run(batch.stamps_ns, batch.values, batch.velocity, batch.raw)
                 stamps_out.append(s)
                 values_out.append(v)
-            if batch.ends_segment and self.delay:
+            if batch.ends_segment and self.lookahead:
                 s, v = self._release_lookahead()
+                stamps_out.append(s)
+                values_out.append(v)
+            if batch.ends_segment and self._inverse is not None:
+                s, v = self._output(*self._inverse.release())
                 stamps_out.append(s)
                 values_out.append(v)
         if not stamps_out:
@@ -703,21 +734,23 @@ class SampleMethodDenoiser(FramedDenoiser):
         self.samples_out += len(chunk)
         return chunk
 
-    def _run(self, stamps: np.ndarray, values: np.ndarray, velocity: np.ndarray):
+    def _run(self, stamps, values, velocity, raw):
+        """Band-passed `values` (and `raw`, for the drop-in output) through the method."""
         residual = self._canceller.process(values, velocity)
         if self._gain is None:
-            return self._output(stamps, residual)
+            return self._output(stamps, residual, values, raw)
         if len(velocity):
             self._last_velocity = velocity[-1]
-        return self._gained(stamps, residual, velocity)
+        return self._gained(stamps, residual, velocity, values, raw)
 
-    def _gained(self, stamps: np.ndarray, residual: np.ndarray, velocity: np.ndarray):
+    def _gained(self, stamps, residual, velocity, values, raw):
         rows, index = self._table.rows(velocity)
         cleaned = self._gain.process(residual, rows, index=index)
-        stamps_all = np.concatenate([self._lag_stamps, stamps])
-        out_stamps = stamps_all[: len(stamps)]
-        self._lag_stamps = stamps_all[len(stamps) :]
-        return self._output(out_stamps, cleaned)
+        stamps, self._lag_stamps = _delayed(self._lag_stamps, stamps)
+        if self._inverse is not None:
+            values, self._lag_band = _delayed(self._lag_band, values)
+            raw, self._lag_raw = _delayed(self._lag_raw, raw)
+        return self._output(stamps, cleaned, values, raw)
 
     def _release_lookahead(self):
         """The segment ended: push silence through the gain to release the last samples it
@@ -725,28 +758,99 @@ class SampleMethodDenoiser(FramedDenoiser):
         noise the table expects for the last samples is that of their own speed; a NaN
         would read "no joint state" and open the gain on them), and never reaches the
         canceller (it holds nothing back, and silence would drag its trackers)."""
-        velocity = np.broadcast_to(self._last_velocity, (self.delay, self.model.n_joints))
-        out = self._gained(
-            np.full(self.delay, -1, np.int64), np.zeros((self.delay, 3)), np.array(velocity)
-        )
+        d = self.lookahead
+        velocity = np.broadcast_to(self._last_velocity, (d, self.model.n_joints))
+        zeros = np.zeros((d, 3))
+        out = self._gained(np.full(d, -1, np.int64), zeros, np.array(velocity), zeros, zeros)
         self._gain.reset_signal()
         self._lag_stamps[:] = -1
         self._last_velocity = np.full(self.model.n_joints, np.nan)
         return out
 
-    def _output(self, stamps: np.ndarray, cleaned: np.ndarray):
+    def _output(self, stamps, cleaned, band=None, raw=None):
+        """The released samples: the cleaned band-passed signal, or for the drop-in output
+        the raw samples less what the method took from the band (mapped back through the
+        band-pass, BandInverse)."""
+        if self._inverse is not None and band is not None:
+            stamps, cleaned = self._inverse.process(stamps, raw, band - cleaned)
         real = stamps >= 0
         if self.channels == "combined":
             cleaned = cleaned.sum(axis=1, keepdims=True)
         return stamps[real], cleaned[real]
 
 
+def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A delay line of len(line) samples: (the len(new) samples that leave it, the line
+    after `new` entered it)."""
+    both = np.concatenate([line, new])
+    return both[: len(new)], both[len(new) :]
+
+
+@numba.njit(cache=True)
+def _fir(taps, history):
+    """(n, C) outputs of the FIR `taps` over `history` (its N - 1 samples before, then the
+    n new ones), each a sum in the same order whatever the chunking (so streaming equals
+    batch to the bit, which scipy's lfilter with carried state does not give)."""
+    N = len(taps)
+    n = history.shape[0] - (N - 1)
+    out = np.zeros((n, history.shape[1]))
+    for i in range(n):
+        for c in range(history.shape[1]):
+            acc = 0.0
+            for k in range(N):
+                acc += taps[k] * history[i + N - 1 - k, c]
+            out[i, c] = acc
+    return out
+
+
+class BandInverse:
+    """The drop-in output of the per-sample methods, as a stream: raw samples `delay` late,
+    less what the method removed from the band-passed signal filtered by the band-pass's
+    inverse (core.filters.band_inverse). Below the band (gravity, rigid-body motion) and
+    wherever nothing was removed, the raw samples pass unchanged."""
+
+    def __init__(self, taps: np.ndarray, delay: int, below_band: BelowBand):
+        self.taps = np.asarray(taps, float)
+        self.delay = int(delay)
+        self.below_band = below_band
+        self.n_channels = below_band.n_channels
+        self.reset()
+
+    def reset(self) -> None:
+        self.below_band.reset()
+        self._removed = np.zeros((len(self.taps) - 1, self.n_channels))  # the FIR's history
+        self._stamps = np.full(self.delay, -1, np.int64)
+        self._raw = np.zeros((self.delay, self.n_channels))
+
+    def process(self, stamps, raw, removed) -> tuple[np.ndarray, np.ndarray]:
+        """(n,) stamps, (n, C) raw samples and what was removed from their band-passed
+        values -> the (n,) stamps and (n, C) drop-in values of the samples `delay` earlier."""
+        if not len(stamps):
+            return stamps, np.zeros((0, self.n_channels))
+        history = np.concatenate([self._removed, removed])
+        mapped = _fir(self.taps, history)
+        # nothing removed far below the band: the FIR is fitted to the band only
+        mapped -= self.below_band.process(mapped.T).T
+        self._removed = history[len(history) - len(self._removed) :]
+        stamps, self._stamps = _delayed(self._stamps, stamps)
+        raw, self._raw = _delayed(self._raw, raw)
+        return stamps, raw - mapped
+
+    def release(self):
+        """The segment ended: (stamps, values) of the samples still held, then a fresh start."""
+        zeros = np.zeros((self.delay, self.n_channels))
+        out = self.process(np.full(self.delay, -1, np.int64), zeros, zeros)
+        self.reset()
+        return out
+
+
 def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):
     """The streaming denoiser of `method` for `model` (same push interface for all).
     Options the method does not take are refused (ConfigError naming them); an option at
     the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
-    is no option. `cancel` and `hybrid` give the band-passed signal (their trackers run on
-    the band-passed axes): `output` "dropin" is the paper's only."""
+    is no option. `output`: "dropin" (the default with per-axis channels) or "bandpassed",
+    for every method (cancel and hybrid take their drop-in output `BandInverse.delay`
+    samples later than their band-passed one)."""
     check_method(method)
     if method == "paper":
         if options.pop("lookahead_ms", None) is not None:
@@ -756,11 +860,6 @@ def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **op
         if options.get("floor") is None:
             options.pop("floor", None)
         return StreamingDenoiser(model, output=output, **options)
-    if output == "dropin":
-        raise ConfigError(
-            f"output: dropin is made by method paper; method {method} gives the band-passed "
-            f"signal (output: bandpassed)"
-        )
     defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0, "noise_gain_db": ()}
     for name, value in defaults.items():
         if name in options and (options[name] == value or options[name] is None):
@@ -770,7 +869,7 @@ def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **op
     )
     if paper_only:
         raise ConfigError(f"method {method}: option(s) {sorted(paper_only)} apply to `paper` only")
-    return SampleMethodDenoiser(model, method=method, **options)
+    return SampleMethodDenoiser(model, method=method, output=output, **options)
 
 
 def denoise_batch_method(
@@ -791,22 +890,30 @@ def denoise_batch_method(
     return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)
 
 
-def method_delay_ms(model: NoiseModel, method: str, **options) -> float:
-    """Algorithmic delay of `method` for `model`, ms (the paper: a whole block)."""
+def method_delay_ms(
+    model: NoiseModel, method: str, *, output: str = "bandpassed", **options
+) -> float:
+    """Algorithmic delay of `method` for `model`, ms (the paper: a whole block, either
+    output; cancel and hybrid: their band-passed output's, or the drop-in's)."""
     check_method(method)
+    fs = model.sample_rate_hz
     if method == "paper":
-        return 1e3 * (model.block_length - 1) / model.sample_rate_hz
-    if method == "cancel":
-        return 0.0
-    gain = MethodCalibration.from_model(model).gain
-    if options.get("lookahead_ms") is not None:
-        gain = dataclasses.replace(gain, lookahead_ms=options["lookahead_ms"])
-    return 1e3 * gain.delay_samples(model.sample_rate_hz) / model.sample_rate_hz
+        return 1e3 * (model.block_length - 1) / fs
+    samples = 0
+    if method == "hybrid":
+        gain = MethodCalibration.from_model(model).gain
+        if options.get("lookahead_ms") is not None:
+            gain = dataclasses.replace(gain, lookahead_ms=options["lookahead_ms"])
+        samples = gain.delay_samples(fs)
+    if output == "dropin":
+        samples += band_inverse(sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order)[1]
+    return 1e3 * samples / fs
 
 
 __all__ = [
     "METHODS",
     "MAX_DELAY_MS",
+    "BandInverse",
     "MethodCalibration",
     "ResidualTable",
     "SampleMethodDenoiser",

@@ -45,6 +45,7 @@ class SampleBatch:
     values: np.ndarray  # (n, 3) band-passed x, y, z
     velocity: np.ndarray  # (n, J) held joint velocity, NaN where there is none
     ends_segment: bool = False  # the last samples before a long gap, a clock jump or the end
+    raw: np.ndarray | None = None  # (n, 3) the samples unfiltered (FramerSettings.keep_raw)
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -73,7 +74,8 @@ class SampleFramer:
         # the time they stand for), band-passed values.
         self._pend_t = np.zeros(0, dtype=np.int64)
         self._pend_time = np.zeros(0, dtype=np.int64)
-        self._pend_x = np.zeros((0, 3))
+        # band-passed x, y, z (and with keep_raw the same unfiltered)
+        self._pend_x = np.zeros((0, 6 if settings.keep_raw else 3))
         self._closed: list[list] = []  # [stamps, times, values, wait_for_joints] of ended segments
         self._ready: list[SampleBatch] = []
         self._last_time: int | None = None  # effective time of the last real sample appended
@@ -178,6 +180,8 @@ class SampleFramer:
         if len(stamps) == 0:
             return
         filtered = self._bandpass.process(np.array(values, dtype=np.float64).T).T
+        if self.s.keep_raw:
+            filtered = np.concatenate([filtered, values], axis=1)
         # Effective times: a synthetic sample stands one period after the one before it.
         times = stamps.copy()
         synthetic = np.flatnonzero(stamps < 0)
@@ -250,7 +254,8 @@ class SampleFramer:
             self.samples_no_joint_state += int(np.count_nonzero(~fresh & (stamps >= 0)))
         else:
             self.samples_no_joint_state += int(np.count_nonzero(stamps >= 0))
-        self._ready.append(SampleBatch(stamps, values, velocity, ends_segment=ends))
+        raw = values[:, 3:] if self.s.keep_raw else None
+        self._ready.append(SampleBatch(stamps, values[:, :3], velocity, ends, raw))
         if not len(times):
             return
         # Keep the joint state that holds for the next sample and anything after it.

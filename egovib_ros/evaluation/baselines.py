@@ -154,10 +154,9 @@ class CoreStream(MethodStream):
 
     def __init__(self, model: NoiseModel, *, method: str = "paper", source: str = "", **options):
         # the metrics are those of the band-passed signal (the paper's): band-passed output
+        options = {"output": "bandpassed", **options}
         if method == "paper":
-            self.denoiser = StreamingDenoiser(
-                model, source=source, **{"output": "bandpassed", **options}
-            )
+            self.denoiser = StreamingDenoiser(model, source=source, **options)
         else:
             from egovib_ros.core.methods import make_denoiser  # numba: only when asked for
 

@@ -58,8 +58,15 @@ def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str):
         return None
     from egovib_ros.bag.denoise import make_method_denoiser
 
+    # cancel and hybrid: the band-passed output, their drop-in's is later and the detector
+    # band-passes its input anyway
     return make_method_denoiser(
-        model, method, channels="per_axis", joint_lag_s=joint_lag_s, source=source
+        model,
+        method,
+        channels="per_axis",
+        output=None if method == "paper" else "bandpassed",
+        joint_lag_s=joint_lag_s,
+        source=source,
     )
 
 

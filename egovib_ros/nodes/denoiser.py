@@ -17,13 +17,15 @@ joint states; STALE with no input for `stale_after` s; WARN for a period with ba
 missing or out-of-order samples, restarts, blocks without joint state (passed through)
 or too many blocks on unmeasured cells (over a COVERAGE_WINDOW_S window, with hysteresis:
 see `unmeasured_warn_fraction`). With method paper `oversubtraction` and `floor` change
-live (`ros2 param set`); the other parameters are read-only.
+live (`ros2 param set`); the other parameters, and those two with cancel and hybrid, are
+read-only.
 """
 
 from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import replace
 from math import nan
 
 import numpy as np
@@ -78,18 +80,18 @@ MODEL_PARAMETERS = (
         "paper",
         "paper: the paper's block spectral subtraction (a block of delay) | cancel: "
         "speed-locked harmonic cancellation (no delay) | hybrid: cancel, then a low-latency "
-        "gain (4 ms); cancel and hybrid give the band-passed signal and need a model "
-        "calibrated with `egovib calibrate --methods hybrid`",
+        "gain (4 ms); cancel and hybrid need a model calibrated with "
+        "`egovib calibrate --methods hybrid`",
         choices=METHODS,
     ),
 )
 OUTPUT_PARAMETER = Param(
     "output",
     "dropin",
-    "dropin (default with method paper): the raw field minus the estimated ego-vibration "
-    "(gravity, motion and all outside the band kept) | bandpassed (default with cancel and "
-    "hybrid, the only output they make): the cleaned band-passed signal; channels combined "
-    "is always band-passed",
+    "dropin (default): the raw field minus the estimated ego-vibration (gravity, motion "
+    "and all outside the band kept; cancel and hybrid: a few ms later than their band-passed "
+    "output) | bandpassed: the cleaned band-passed signal; channels combined is always "
+    "band-passed",
     choices=("dropin", "bandpassed"),
 )
 PARAMETERS = MODEL_PARAMETERS + (
@@ -250,12 +252,14 @@ class Denoiser(Node):
         self.model = NoiseModel.load(first["model"])
         self.profile = self.model.robot_profile()
         self.method = first["method"]
+        rest = PARAMETERS[len(MODEL_PARAMETERS) :]
+        if self.method != "paper":  # their settings are fixed at start: advertised read-only
+            rest = tuple(replace(p, read_only=True) if p.name in LIVE else p for p in rest)
         params = declare_parameters(
             self,
-            PARAMETERS[len(MODEL_PARAMETERS) :],
+            rest,
             defaults={
                 "batch_samples": default_batch_samples(self.model, self.method),
-                "output": "dropin" if self.method == "paper" else "bandpassed",
             },
         )
         self.channels = first["channels"]
@@ -319,12 +323,6 @@ class Denoiser(Node):
         changes = {p.name: p.value for p in params if p.name in LIVE}
         if not changes:
             return SetParametersResult(successful=True)
-        if self.method != "paper":
-            return SetParametersResult(
-                successful=False,
-                reason=f"{', '.join(changes)} change live with method paper only "
-                f"(this denoiser runs {self.method})",
-            )
         try:
             self.denoiser.set_subtraction(**changes)
         except EgovibError as exc:

@@ -72,13 +72,14 @@ SPLITS = {
     "beyond": ((8.5, 16.85), (5.8, 8.5)),
 }
 STRENGTHS = (1.0, 0.5)
-FLIGHT_METHODS = ("raw", "paper", "cancel", "hybrid", "mean_command", "notch_q5")
+FLIGHT_METHODS = ("raw", "paper", "cancel", "hybrid", "hybrid_dropin", "mean_command", "notch_q5")
 PR2_METHODS = ("raw", "paper", "cancel", "hybrid")
 LABELS = {
     "raw": "band-pass only",
     "paper": "paper (block subtraction, all joints)",
     "cancel": "cancel (speed-locked harmonic cancellation)",
     "hybrid": "hybrid (cancel + low-latency gain)",
+    "hybrid_dropin": "hybrid, drop-in output (gravity kept; band-passed to score)",
     "mean_command": "paper's table on mean command (1-D)",
     "notch_q5": "notch bank per motor, 3 harmonics, Q 5",
     "firmware": "firmware's filtered gyro (noise only)",
@@ -150,8 +151,10 @@ def pool(rows: list[dict]) -> dict:
 class NewMethod:
     """`cancel` or `hybrid` on a FlightRecording, fitted with the paper's table."""
 
-    def __init__(self, profile, method: str, gain: GainSettings | None = None):
-        self.profile, self.method, self.gain = profile, method, gain
+    def __init__(
+        self, profile, method: str, gain: GainSettings | None = None, output: str = "bandpassed"
+    ):
+        self.profile, self.method, self.gain, self.output = profile, method, gain, output
         self.model = None
         self.info: dict = {}
         self.delay_ms = 0.0
@@ -176,10 +179,18 @@ class NewMethod:
                 rec.joint_velocity,
                 gain=self.gain,
             )
-        self.delay_ms = method_delay_ms(self.model, self.method)
+        self.delay_ms = method_delay_ms(self.model, self.method, output=self.output)
         return self
 
     def run(self, rec) -> np.ndarray:
+        if self.output == "dropin":  # the three axes, then the paper's 1-D band-passed signal
+            stamps, values, _ = denoise_batch_method(
+                rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity,
+                self.model, method=self.method, output="dropin",
+            )  # fmt: skip
+            placed = np.zeros((len(rec.sensor_stamps_ns), 3))
+            placed[np.searchsorted(rec.sensor_stamps_ns, stamps)] = values
+            return combined_bandpassed(placed, self.profile)
         return _denoised_combined(rec, self.model, self.method)
 
 
@@ -195,6 +206,7 @@ def flight_split(
     methods = {"raw": old["raw"], "paper": old["ours"]}
     cancel = NewMethod(profile, "cancel", gain)
     methods.update({"cancel": cancel, "hybrid": NewMethod(profile, "hybrid", gain)})
+    methods["hybrid_dropin"] = NewMethod(profile, "hybrid", gain, output="dropin")
     methods.update({"mean_command": old["mean_command"], "notch_q5": old["notch_q5"]})
     edge = int(metrics.EDGE_S * fs)
     cal_mask = np.ones(len(cal.sensor_stamps_ns), bool)
@@ -206,7 +218,7 @@ def flight_split(
     thresholds, fit_s, delays = {}, {}, {}
     for key, method in methods.items():
         begin = time.perf_counter()
-        if key == "hybrid":
+        if key in ("hybrid", "hybrid_dropin"):
             method.fit(cal, shared=cancel)
         else:
             method.fit(cal)
@@ -644,7 +656,8 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
     markers = {"1": "o", "0.5": "s"}
     colors = dict(
         zip(
-            FLIGHT_METHODS, ("grey", "tab:blue", "tab:orange", "tab:red", "tab:green", "tab:purple")
+            FLIGHT_METHODS,
+            ("grey", "tab:blue", "tab:orange", "tab:red", "tab:pink", "tab:green", "tab:purple"),
         )
     )
     for ax, name in zip(axes, ("primary", "swapped")):
