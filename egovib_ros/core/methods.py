@@ -46,10 +46,10 @@ from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
 from egovib_ros.core.subtraction import (
-    OUTPUTS,
     DenoisedChunk,
     FramedDenoiser,
     StreamingDenoiser,
+    check_output,
     check_stream_fits_model,
 )
 from egovib_ros.errors import ConfigError, ModelFileError, StreamError
@@ -603,16 +603,7 @@ class SampleMethodDenoiser(FramedDenoiser):
             raise ConfigError(
                 "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"
             )
-        if channels not in ("per_axis", "combined"):
-            raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
-        output = output or ("dropin" if channels == "per_axis" else "bandpassed")
-        if output not in OUTPUTS:
-            raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
-        if output == "dropin" and channels == "combined":
-            raise ConfigError(
-                "output: dropin needs channels per_axis (the combined signal is the paper's "
-                "band-passed 1-D sum)"
-            )
+        output = check_output(output, channels)
         check_stream_fits_model(
             model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
         )

@@ -90,6 +90,22 @@ class DenoisedChunk:
         return len(self.stamps_ns)
 
 
+def check_output(output: str | None, channels: str) -> str:
+    """The output a denoiser of any method makes for `channels` (None: its default, the
+    drop-in with per-axis channels); bad combinations are one ConfigError."""
+    if channels not in ("per_axis", "combined"):
+        raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
+    output = output or ("dropin" if channels == "per_axis" else "bandpassed")
+    if output not in OUTPUTS:
+        raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
+    if output == "dropin" and channels == "combined":
+        raise ConfigError(
+            "output: dropin needs channels per_axis (the combined signal is the paper's "
+            "band-passed 1-D signal)"
+        )
+    return output
+
+
 def check_stream_fits_model(
     model: NoiseModel,
     *,
@@ -220,16 +236,7 @@ class StreamingDenoiser(FramedDenoiser):
         joint_names: tuple[str, ...] | None = None,
         source: str = "",
     ):
-        if channels not in ("per_axis", "combined"):
-            raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
-        output = output or ("dropin" if channels == "per_axis" else "bandpassed")
-        if output not in OUTPUTS:
-            raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
-        if output == "dropin" and channels == "combined":
-            raise ConfigError(
-                "output: dropin needs channels per_axis (the combined signal is the paper's "
-                "band-passed 1-D signal)"
-            )
+        output = check_output(output, channels)
         check_stream_fits_model(
             model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
         )
