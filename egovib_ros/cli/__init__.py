@@ -92,6 +92,24 @@ def main(argv: list[str] | None = None) -> int:
         _stopped.clear()
 
 
+class _SaidOnce:
+    """A log filter that lets each message through once per run: a command running several
+    denoisers over one bag (evaluate: every method) would say the same warning for each."""
+
+    def __init__(self):
+        self.seen: set[str] = set()
+
+    def filter(self, record) -> bool:
+        text = record.getMessage()
+        if text in self.seen:
+            return False
+        self.seen.add(text)
+        return True
+
+
+_SAID_ONCE = _SaidOnce()
+
+
 def _main(argv: list[str]) -> int:
     from egovib_ros.errors import EgovibError
 
@@ -100,6 +118,10 @@ def _main(argv: list[str]) -> int:
         import logging
 
         logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
+        _SAID_ONCE.seen.clear()  # per run (tests call main in one process)
+        for handler in logging.getLogger().handlers:
+            if _SAID_ONCE not in handler.filters:
+                handler.addFilter(_SAID_ONCE)
         parser = build_parser()
         try:
             args = parser.parse_args(argv)

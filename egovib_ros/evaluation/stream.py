@@ -463,9 +463,7 @@ class CalibrationPass:
         self.screen = Screen([float(model.profile.sensor_range)])
         self.band = _band(model)
         self.streams = {
-            name: baselines.method_stream(
-                name, model=model, model_short=model_short, source=f"{source}: {name}"
-            )
+            name: baselines.method_stream(name, model=model, model_short=model_short, source=source)
             for name in names
         }
         self.needs_gate = "noisereduce" in self.streams
@@ -641,7 +639,7 @@ class EvaluationPass:
         self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
         self.streams = {
             name: baselines.method_stream(
-                name, model=model, model_short=model_short, gate=gate, source=f"{source}: {name}"
+                name, model=model, model_short=model_short, gate=gate, source=source
             )
             for name in self.detect_keys
             if name not in ("raw", "bag_denoised")

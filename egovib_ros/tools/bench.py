@@ -266,8 +266,9 @@ def bench_methods(
     """Methods paper, cancel and hybrid (core.methods) on a simulated PR2 motion run at 50 %
     speed with taps, the model calibrated on a simulated superposition sweep (`dwell_s`
     per cell; paper's table, then the harmonic map, canceller and gain): batch (combined,
-    per axis) and streaming in hops of the profile's hop, in x real time of wall and CPU
-    time, best of `repeats` after one warm-up (numba compiles on first use)."""
+    per axis: the drop-in output) and streaming in hops of the profile's hop, in x real
+    time of wall and CPU time, best of `repeats` after one warm-up (numba compiles on first
+    use)."""
     from egovib_ros.core import calibrate_arrays
     from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, make_denoiser
     from egovib_ros.sim import simulate_motion
@@ -700,7 +701,7 @@ def markdown_summary(results: dict) -> str:
         for method in METHODS:
             for name, label in (
                 ("batch", "batch, combined"),
-                ("batch_per_axis", "batch, per axis"),
+                ("batch_per_axis", "batch, per axis (drop-in output)"),
                 ("stream", f"streaming, {_robot().hop}-sample hops"),
             ):
                 over = (
