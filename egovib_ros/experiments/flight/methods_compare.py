@@ -15,7 +15,8 @@ random axis, 100-400 Hz, 4-12 ms decay, every 0.5 s), at the project's rule (eac
 event's band-passed peak = the largest band-passed noise magnitude of the test part) and
 at half of it, `event_sets` seeds each. Methods: band-pass only, `paper` (the 4-motor
 table, the existing `ours`), `cancel`, `hybrid` (both calibrated on the same part by
-core.methods.calibrate_methods), the paper's table keyed on the mean command (1-D), the
+core.methods.calibrate_methods; hybrid also by its drop-in output, band-passed to be
+scored like the others), the paper's table keyed on the mean command (1-D), the
 Betaflight-style notch bank (Q 5), and the firmware's own filtered gyro (noise only: it
 was filtered in flight, before any event could be added).
 
