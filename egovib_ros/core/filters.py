@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import signal
 
@@ -188,38 +190,71 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
 #: the band (where the band-pass passes at least half amplitude), dB.
 INVERSE_ERROR_DB = -30.0
 #: Longest delay `band_inverse` may take to get there (seconds).
-INVERSE_MAX_DELAY_S = 0.015
+INVERSE_MAX_DELAY_S = 0.020
+#: Below this share of the band's low edge the FIR's gain is held down with this weight:
+#: what it maps there lands below the band, where the drop-in output must pass the input.
+INVERSE_STOP_FRACTION = 0.5
+INVERSE_STOP_WEIGHT = 0.1
+#: ... and everywhere else with this one (a bounded filter).
+INVERSE_WEIGHT = 1e-3
 
 
 def band_inverse(
     *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
-) -> tuple[np.ndarray, int]:
-    """(taps, delay): a causal FIR that undoes the band-pass inside the band, up to `delay`
-    samples, and passes little outside it. What a method removes from the band-passed
-    signal, filtered by it, is what to remove from the raw signal (the drop-in output of the
-    per-sample methods): the band-pass's phase, not only its gain, matters there, and
-    raw - removed without it would leave more than it takes near the band's edges.
+) -> tuple[np.ndarray, int, float]:
+    """(taps, delay, error dB): a causal FIR that undoes the band-pass inside the band, up
+    to `delay` samples, and passes little below it. What a method removes from the
+    band-passed signal, filtered by it, is what to remove from the raw signal (the drop-in
+    output of the per-sample methods): the band-pass's phase, not only its gain, matters
+    there, and raw - removed without it would leave more than it takes near the band's
+    edges.
 
-    Least squares over the band's frequencies (|band-pass| >= 0.5) with a small penalty on
-    the FIR's gain everywhere; the delay is the shortest whole number of samples whose fit
-    reaches INVERSE_ERROR_DB on the band's mean, at most INVERSE_MAX_DELAY_S."""
+    Least squares over the band's frequencies (|band-pass| >= 0.5), with the FIR's gain
+    held down below the band (INVERSE_STOP_*) and bounded elsewhere; the delay is the
+    shortest whole number of samples whose fit reaches INVERSE_ERROR_DB on the band's mean,
+    else the longest allowed (INVERSE_MAX_DELAY_S), with the error it reaches."""
+    taps, delay, error_db = _band_inverse(
+        float(sample_rate_hz), (float(band_hz[0]), float(band_hz[1])), int(order)
+    )
+    return taps.copy(), delay, error_db
+
+
+@functools.lru_cache(maxsize=32)  # every denoiser of a model asks for the same one
+def _band_inverse(
+    sample_rate_hz: float, band_hz: tuple[float, float], order: int
+) -> tuple[np.ndarray, int, float]:
     sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
-    freqs = np.linspace(0.0, sample_rate_hz / 2.0, 2048)
+    # the band sampled densely whatever its width
+    freqs = np.unique(
+        np.r_[np.linspace(0.0, sample_rate_hz / 2.0, 1024), np.linspace(*band_hz, 256)]
+    )
     response = signal.sosfreqz(sos, worN=freqs, fs=sample_rate_hz)[1]
     band = np.abs(response) >= 0.5
     omega = 2.0 * np.pi * freqs / sample_rate_hz
-    longest = max(1, int(round(INVERSE_MAX_DELAY_S * sample_rate_hz)))
-    for delay in range(1, longest + 1):
-        taps_range = np.arange(2 * delay + 1)
-        basis = np.exp(-1j * np.outer(omega, taps_range))  # (F, N): the FIR's response
-        fit = response[band, None] * basis[band]
+    weight = np.sqrt(
+        np.where(freqs < INVERSE_STOP_FRACTION * band_hz[0], INVERSE_STOP_WEIGHT, INVERSE_WEIGHT)
+    )
+
+    def fit(delay: int) -> tuple[np.ndarray, float]:
+        basis = np.exp(-1j * np.outer(omega, np.arange(2 * delay + 1)))  # the FIR's response
+        passed = response[band, None] * basis[band]
         target = np.exp(-1j * omega[band] * delay)
-        system = np.vstack([fit, np.sqrt(1e-3) * basis])
-        rhs = np.concatenate([target, np.zeros(len(freqs))])
+        system = np.vstack([passed, weight[:, None] * basis])
+        rhs = np.r_[target, np.zeros(len(freqs))]
         taps = np.linalg.lstsq(
-            np.vstack([system.real, system.imag]), np.concatenate([rhs.real, rhs.imag]), rcond=None
+            np.vstack([system.real, system.imag]), np.r_[rhs.real, rhs.imag], rcond=None
         )[0]
-        error_db = 10.0 * np.log10(np.mean(np.abs(fit @ taps - target) ** 2))
-        if error_db <= INVERSE_ERROR_DB:
+        return taps, float(10.0 * np.log10(np.mean(np.abs(passed @ taps - target) ** 2)))
+
+    longest = max(1, int(INVERSE_MAX_DELAY_S * sample_rate_hz + 1e-9))
+    step = max(1, longest // 16)  # coarse steps up, then back sample by sample
+    delay = longest
+    for coarse in range(step, longest + step, step):
+        if fit(min(coarse, longest))[1] <= INVERSE_ERROR_DB:
+            delay = min(coarse, longest)
+            while delay > 1 and fit(delay - 1)[1] <= INVERSE_ERROR_DB:
+                delay -= 1
             break
-    return taps, delay
+    taps, error_db = fit(delay)
+    taps.flags.writeable = False
+    return taps, delay, error_db

@@ -34,7 +34,7 @@ import numba
 import numpy as np
 
 from egovib_ros.core.calibration import calibrate_arrays
-from egovib_ros.core.filters import BelowBand, band_inverse
+from egovib_ros.core.filters import INVERSE_ERROR_DB, band_inverse
 from egovib_ros.core.harmonic import (
     CancellerSettings,
     HarmonicCanceller,
@@ -662,10 +662,21 @@ class SampleMethodDenoiser(FramedDenoiser):
         self._lag_raw = np.zeros((self.lookahead, 3))
         self._inverse = None
         if output == "dropin":
-            self._inverse = BandInverse(
-                *band_inverse(sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order),
-                BelowBand(sample_rate_hz=fs, band_hz=model.band_hz, n_channels=3),
+            taps, delay, error_db = band_inverse(
+                sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order
             )
+            self._inverse = BandInverse(taps, delay)
+            if error_db > INVERSE_ERROR_DB:
+                LOG.warning(
+                    "%sdrop-in output: the band-pass's inverse fits the band to %.0f dB within "
+                    "%.0f ms (%g-%g Hz at %g Hz); the drop-in output removes less than the "
+                    "band-passed one (output: bandpassed)",
+                    f"{source}: " if source else "",
+                    error_db,
+                    1e3 * delay / fs,
+                    *model.band_hz,
+                    fs,
+                )
         self.delay = self.lookahead + (self._inverse.delay if self._inverse else 0)
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
@@ -797,18 +808,16 @@ def _fir(taps, history):
 class BandInverse:
     """The drop-in output of the per-sample methods, as a stream: raw samples `delay` late,
     less what the method removed from the band-passed signal filtered by the band-pass's
-    inverse (core.filters.band_inverse). Below the band (gravity, rigid-body motion) and
-    wherever nothing was removed, the raw samples pass unchanged."""
+    inverse (core.filters.band_inverse, which passes little below the band). Below the band
+    (gravity, rigid-body motion) and wherever nothing was removed, the raw samples pass."""
 
-    def __init__(self, taps: np.ndarray, delay: int, below_band: BelowBand):
+    def __init__(self, taps: np.ndarray, delay: int, n_channels: int = 3):
         self.taps = np.asarray(taps, float)
         self.delay = int(delay)
-        self.below_band = below_band
-        self.n_channels = below_band.n_channels
+        self.n_channels = int(n_channels)
         self.reset()
 
     def reset(self) -> None:
-        self.below_band.reset()
         self._removed = np.zeros((len(self.taps) - 1, self.n_channels))  # the FIR's history
         self._stamps = np.full(self.delay, -1, np.int64)
         self._raw = np.zeros((self.delay, self.n_channels))
@@ -820,8 +829,6 @@ class BandInverse:
             return stamps, np.zeros((0, self.n_channels))
         history = np.concatenate([self._removed, removed])
         mapped = _fir(self.taps, history)
-        # nothing removed far below the band: the FIR is fitted to the band only
-        mapped -= self.below_band.process(mapped.T).T
         self._removed = history[len(history) - len(self._removed) :]
         stamps, self._stamps = _delayed(self._stamps, stamps)
         raw, self._raw = _delayed(self._raw, raw)
@@ -882,11 +889,18 @@ def denoise_batch_method(
 
 
 def method_delay_ms(
-    model: NoiseModel, method: str, *, output: str = "bandpassed", **options
+    model: NoiseModel,
+    method: str,
+    *,
+    output: str | None = None,
+    channels: str = "per_axis",
+    **options,
 ) -> float:
-    """Algorithmic delay of `method` for `model`, ms (the paper: a whole block, either
-    output; cancel and hybrid: their band-passed output's, or the drop-in's)."""
+    """Algorithmic delay of `method`'s denoiser for `model` with these settings, ms (the
+    paper: a whole block, either output; cancel and hybrid: their band-passed output's, or
+    their drop-in output's, the default per axis, later)."""
     check_method(method)
+    output = check_output(output, channels)
     fs = model.sample_rate_hz
     if method == "paper":
         return 1e3 * (model.block_length - 1) / fs

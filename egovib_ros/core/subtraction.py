@@ -95,7 +95,8 @@ def check_output(output: str | None, channels: str) -> str:
     drop-in with per-axis channels); bad combinations are one ConfigError."""
     if channels not in ("per_axis", "combined"):
         raise ConfigError(f"channels: expected 'per_axis' or 'combined', got {channels!r}")
-    output = output or ("dropin" if channels == "per_axis" else "bandpassed")
+    if output is None:
+        output = "dropin" if channels == "per_axis" else "bandpassed"
     if output not in OUTPUTS:
         raise ConfigError(f"output: expected one of {list(OUTPUTS)}, got {output!r}")
     if output == "dropin" and channels == "combined":

@@ -361,7 +361,7 @@ def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
     if name in NEEDS_METHOD_CALIBRATION:
         from egovib_ros.core.methods import method_delay_ms as core_delay_ms
 
-        return core_delay_ms(ctx.model, name)
+        return core_delay_ms(ctx.model, name, output="bandpassed")  # what CoreStream runs
     return _block_delay_ms(ctx.model)
 
 

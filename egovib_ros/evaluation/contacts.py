@@ -77,7 +77,7 @@ def _delay_ms(model: NoiseModel, method: str) -> float:
         return 1e3 * (model.block_length - 1) / model.sample_rate_hz
     from egovib_ros.core.methods import method_delay_ms
 
-    return method_delay_ms(model, method)
+    return method_delay_ms(model, method, output="bandpassed")  # what _denoiser makes
 
 
 def _stream(

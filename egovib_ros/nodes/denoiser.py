@@ -89,7 +89,7 @@ OUTPUT_PARAMETER = Param(
     "output",
     "dropin",
     "dropin (default): the raw field minus the estimated ego-vibration (gravity, motion "
-    "and all outside the band kept; cancel and hybrid: 6-15 ms later than their band-passed "
+    "and all outside the band kept; cancel and hybrid: 9-20 ms later than their band-passed "
     "output) | bandpassed: the cleaned band-passed signal; channels combined is always "
     "band-passed",
     choices=("dropin", "bandpassed"),

@@ -399,7 +399,10 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
         "config": dataclasses.asdict(config),
         "methods_calibration": json_safe(info),
         "methods_calibration_s": round(calibration_s, 1),
-        "delay_ms": {m: (0.0 if m == "raw" else method_delay_ms(full, m)) for m in PR2_METHODS},
+        "delay_ms": {
+            m: (0.0 if m == "raw" else method_delay_ms(full, m, channels="combined"))
+            for m in PR2_METHODS
+        },
         "speeds": {},
     }
     for speed, (calibration, rec_a, taps, ego) in recordings.items():
