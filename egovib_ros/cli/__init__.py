@@ -117,11 +117,12 @@ def _main(argv: list[str]) -> int:
     try:
         import logging
 
+        before = list(logging.getLogger().handlers)
         logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
-        _SAID_ONCE.seen.clear()  # per run (tests call main in one process)
-        for handler in logging.getLogger().handlers:
-            if _SAID_ONCE not in handler.filters:
+        for handler in logging.getLogger().handlers:  # ours only, not a host's (pytest's)
+            if handler not in before:
                 handler.addFilter(_SAID_ONCE)
+        _SAID_ONCE.seen.clear()  # per run (main may run several times in one process)
         parser = build_parser()
         try:
             args = parser.parse_args(argv)
