@@ -1755,3 +1755,17 @@ def test_a_ctrl_c_raised_where_it_cannot_propagate_is_recorded_not_printed():
         sys.unraisablehook = hook
         cli._stopped[:] = stopped
         outputs.clear_stop()  # the stop recorded for commits too: not for the next tests
+
+
+def test_cli_main_leaves_the_logging_of_a_process_hosting_it_alone(caplog):
+    """egovib says each message once per run on its own stderr handler; a process that runs
+    cli.main in-process (a notebook, a test) keeps every record its own handlers get."""
+    import logging
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert cli.main(["--version"]) == 0
+    log = logging.getLogger("egovib_ros.core")
+    with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
+        log.warning("said twice")
+        log.warning("said twice")
+    assert caplog.text.count("said twice") == 2
