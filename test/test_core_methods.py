@@ -196,7 +196,7 @@ def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
         got.append(chunk.values)
         start = stop
         stats = denoiser.stats  # the node's cheap count agrees with the stats
-        assert denoiser.samples_pending == stats.samples_in - stats.samples_out
+        assert denoiser.samples_pending == stats.samples_in - stats.samples_out  # none bad
     chunk = denoiser.push_joint_states(rec["tj"][j_pos:], rec["velocity"][j_pos:])
     got_t.append(chunk.stamps_ns)
     got.append(chunk.values)

@@ -77,11 +77,27 @@ def test_random_chunkings_of_60_s_equal_batch(model, seed):
     denoiser = StreamingDenoiser(model)
     chunks = push_random_chunks(denoiser, data, np.random.default_rng(seed))
     stats = denoiser.stats  # the node's cheap count agrees with the stats
-    assert denoiser.samples_pending == stats.samples_in - stats.samples_out > 0
+    assert denoiser.samples_pending == stats.samples_in - stats.samples_out > 0  # none bad
     stamps, values = collect(chunks + [denoiser.flush()])
     np.testing.assert_array_equal(stamps, b_stamps)
     assert np.max(np.abs(values - b_values)) <= 1e-12
     assert len(stamps) == len(data["t_acc"])
+
+
+def test_samples_pending_leaves_out_what_is_never_output(model):
+    """Bad and out-of-order samples are counted, never output: nothing is pending after a
+    flush (a live node takes pending samples for blocks held back)."""
+    data = stream(2, CELLS[:2], seed=6)
+    accel, stamps = data["accel"].copy(), data["t_acc"].copy()
+    accel[100:400:7] = np.nan  # 43 bad samples, each bridged
+    stamps[1000], stamps[1001] = stamps[1001], stamps[1000]  # one goes back: dropped
+    denoiser = StreamingDenoiser(model)
+    denoiser.push_joint_states(data["t_joint"], data["velocity"])
+    denoiser.push_sensor(stamps, accel)
+    denoiser.flush()
+    stats = denoiser.stats
+    assert stats.samples_bad == 43 and stats.dropped_out_of_order == 1
+    assert stats.samples_out == len(stamps) - 44 and denoiser.samples_pending == 0
 
 
 def test_combined_channel_streaming_equals_batch_and_reduces_noise(model):

@@ -173,9 +173,13 @@ class FramedDenoiser:
 
     @property
     def samples_pending(self) -> int:
-        """Samples pushed and not yet output (what `stats` gives as samples_in - samples_out,
-        without building the stats: a live node asks at every batch)."""
-        return self._framer.stats.samples_in - self.samples_out
+        """Samples pushed that are still to be output: pushed less output, less those that
+        never will be (bad or out of order: counted, never output), without building the
+        stats (a live node asks at every batch)."""
+        counts = self._framer.stats
+        return (
+            counts.samples_in - self.samples_out - counts.samples_bad - counts.dropped_out_of_order
+        )
 
     @property
     def sensor_stamps(self) -> str:
