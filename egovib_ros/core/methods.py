@@ -19,8 +19,8 @@ Both new methods work on x, y and z separately (each axis has its own line weigh
 noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
 of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
 the raw samples less what they removed from the band-passed ones, mapped back through the
-band-pass's inverse (BandInverse): gravity and motion pass, a few ms later than the
-band-passed output.
+band-pass's inverse (BandInverse): gravity and motion pass, 9-20 ms later than the
+band-passed output (core.filters.band_inverse).
 """
 
 from __future__ import annotations
