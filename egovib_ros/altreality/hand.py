@@ -399,7 +399,7 @@ class AltHand:
     # --- the recording ---------------------------------------------------------------------------
     def generate(self, duration_s: float) -> tuple[Recording, dict]:
         n = int(round(duration_s * FS))
-        velocity, position, accel_true = plan_motion(
+        velocity, position, _ = plan_motion(
             duration_s, FS, self.rng["motion"], top_speed=self.top_speed, style=self.motion
         )
         speed = np.abs(velocity)

@@ -252,11 +252,6 @@ class ContactDetector:
             self._base += cut
 
 
-def detection_envelope(values: np.ndarray, settings: ContactSettings) -> np.ndarray:
-    """The envelope the detector thresholds, of whole arrays (for thresholds)."""
-    return DetectionEnvelope(settings).process(values)[1]
-
-
 def no_contact_threshold(
     envelope: np.ndarray,
     *,
