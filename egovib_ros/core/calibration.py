@@ -387,14 +387,9 @@ class CalibrationAccumulator:
         if len(cells):
             n = counts[:, None, None].astype(np.float64)
             tally = acc._tally()
-            tally.add(
-                np.ravel_multi_index(tuple(cells.T), acc._shape),
-                cells,
-                np.zeros_like(model.cell_mean),
-            )
-            rows = np.array(
-                [tally.row_of[int(i)] for i in np.ravel_multi_index(tuple(cells.T), acc._shape)]
-            )
+            flat = np.ravel_multi_index(tuple(cells.T), acc._shape)
+            tally.add(flat, cells, np.zeros_like(model.cell_mean))
+            rows = np.array([tally.row_of[int(i)] for i in flat])
             tally.counts[rows] = counts
             tally.sum[rows] = model.cell_mean * n
             tally.sumsq[rows] = model.cell_std**2 * np.maximum(n - 1, 0) + n * model.cell_mean**2

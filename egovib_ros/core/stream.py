@@ -243,23 +243,14 @@ class FramerSettings:
                     f"{where}{name} must be a number in {'(' if low == 0 else '['}{low:g}, "
                     f"{high:g}], got {value!r}"
                 )
-        if (
-            isinstance(self.max_fill_samples, bool)
-            or not isinstance(self.max_fill_samples, int)
-            or not 0 <= self.max_fill_samples <= 1000
+        for name, value, low, high in (
+            ("max_fill_samples", self.max_fill_samples, 0, 1000),
+            ("band_order", self.band_order, 1, 12),
         ):
-            raise ConfigError(
-                f"{where}max_fill_samples must be an integer in [0, 1000], "
-                f"got {self.max_fill_samples!r}"
-            )
-        if (
-            isinstance(self.band_order, bool)
-            or not isinstance(self.band_order, int)
-            or not 1 <= self.band_order <= 12
-        ):
-            raise ConfigError(
-                f"{where}band_order must be an integer in [1, 12], got {self.band_order!r}"
-            )
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ConfigError(
+                    f"{where}{name} must be an integer in [{low}, {high}], got {value!r}"
+                )
         low, high = self.band_hz
         if not (
             math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.sample_rate_hz / 2
