@@ -304,9 +304,8 @@ class CalibrationAccumulator:
             if not union.any():
                 continue
             magnitude = np.zeros((blocks.n,) + self._sweep_tally.sum.shape[1:])
-            magnitude[union] = np.abs(
-                np.fft.rfft(blocks.samples[union] * self.window, axis=-1)
-            )  # (b, C, F)
+            # (b, C, F)
+            magnitude[union] = np.abs(np.fft.rfft(blocks.samples[union] * self.window, axis=-1))
             ids = np.ravel_multi_index(tuple(index.T), self._shape)
             for tally, accept in zip((self._sweep_tally, self._free_tally), accepted):
                 if accept.any():
