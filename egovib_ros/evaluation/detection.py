@@ -105,12 +105,16 @@ def precision_recall_f1(
     sample_rate_hz: float,
     tolerance_s: float = TOLERANCE_S,
 ) -> dict:
-    """Precision, recall, F1 (and counts) of detected onsets against true onsets.
+    """Precision, recall, F1 (and counts) of detected onsets against true onsets."""
+    return scores_of(*match_events(detected, truth, int(round(tolerance_s * sample_rate_hz))))
+
+
+def scores_of(tp: int, fp: int, fn: int) -> dict:
+    """Precision, recall, F1 and the counts they come from.
 
     Conventions: precision = 1 when nothing is detected, recall = 1 when there
     is nothing to detect, F1 = 0 when precision + recall = 0.
     """
-    tp, fp, fn = match_events(detected, truth, int(round(tolerance_s * sample_rate_hz)))
     precision = tp / (tp + fp) if tp + fp else 1.0
     recall = tp / (tp + fn) if tp + fn else 1.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
@@ -330,8 +334,4 @@ class EventMatcher:
 
     def scores(self) -> dict:
         """precision_recall_f1's dict (call after `finish`)."""
-        tp, fp, fn = self.tp, self.fp, self.fn
-        precision = tp / (tp + fp) if tp + fp else 1.0
-        recall = tp / (tp + fn) if tp + fn else 1.0
-        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-        return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}
+        return scores_of(self.tp, self.fp, self.fn)
