@@ -273,12 +273,8 @@ class CalibrationAccumulator:
             usable = complete & (blocks.status == MATCHED)
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, distance = self.cell_of(velocity)
-            steadiness = np.empty_like(distance)
-            for j in range(len(self.grid)):
-                steadiness[:, j] = (
-                    np.nan_to_num(blocks.steadiness[:, j], nan=np.inf)
-                    / self._spacing[j][index[:, j]]
-                )
+            spacing = np.column_stack([s[index[:, j]] for j, s in enumerate(self._spacing)])
+            steadiness = np.nan_to_num(blocks.steadiness, nan=np.inf) / spacing
             # Beyond the grid edge by more than half a step: not this grid's velocity.
             inside = np.all(distance <= 0.5, axis=1)
             accepted = []
