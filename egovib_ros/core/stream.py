@@ -619,12 +619,7 @@ class _Framer:
         self.n_joints = int(n_joints)
         self.stats = FramerStats()
         self._cleaner = _Cleaner(settings, self.stats)
-        self._bandpass = BandPass(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            order=settings.band_order,
-            n_channels=n_channels,
-        )
+        self._bandpass = BandPass.of(settings, n_channels)
         self._joint_t = np.zeros(0, dtype=np.int64)
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
