@@ -525,8 +525,7 @@ class AltHand:
         enc = np.round(pos / resolution) * resolution
         vel = np.zeros_like(enc)
         vel[2:] = (enc[2:] - enc[:-2]) / (2.0 / JOINT_RATE)
-        vel[1] = vel[2]
-        vel[0] = vel[2]
+        vel[:2] = vel[2]
         keep = rng.random(m) > 0.003
         timing = self.effects.get("timing", 0.0)
         if timing and self._form("timing") == "filtered":
