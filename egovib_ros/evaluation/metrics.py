@@ -460,13 +460,8 @@ class BadRunExclusion:
                 self._close(a, b)
 
     def _close(self, start: int, stop: int) -> None:
-        length = stop - start
-        self.intervals.append(
-            (
-                max(start - self.margin, 0),
-                min(stop + self.margin + min(length, self.settle_max), self.n),
-            )
-        )
+        end = min(stop + self.margin + min(stop - start, self.settle_max), self.n)
+        self.intervals.append((max(start - self.margin, 0), end))
 
     def finish(self) -> None:
         if self.open_start is not None:
