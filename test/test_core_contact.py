@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from egovib_ros.core.contact import (
     ContactDetector,
     ContactSettings,
-    detection_envelope,
+    DetectionEnvelope,
     no_contact_threshold,
 )
 from egovib_ros.errors import ConfigError
@@ -112,7 +112,7 @@ def test_stamps_that_go_back_are_dropped_and_a_restarted_clock_restarts(cuts):
 
 def test_threshold_from_no_contact_data_and_its_false_alarm_rate():
     stamps, values, _ = taps(seconds=30.0, onsets_s=())
-    envelope = detection_envelope(values, settings())
+    envelope = DetectionEnvelope(settings()).process(values)[1]
     strict, rate = no_contact_threshold(envelope, sample_rate_hz=FS)
     assert strict == pytest.approx(1.1 * envelope.max()) and rate == 0.0
     budget, rate = no_contact_threshold(envelope, sample_rate_hz=FS, false_alarms_per_min=10)

@@ -39,14 +39,11 @@ def test_eq6_superposition_matches_hand_computation():
     mean[1, 2, 0] = [1.0, 1.0, 1.0]
     std[1, 2, 0] = [0.4, 0.4, 2.0]  # joint b = +0.5 alone
     model = tiny_model(mean=mean, std=std)
-    mu, sd = model.superposed()
-    # mu = 2 + 1 - 0.5 etc.; sd = sqrt(0.3^2 + 0.4^2 + 1.2^2) = sqrt(1.69) = 1.3
-    np.testing.assert_allclose(mu[0, 2, 0], [2.5, 3.5, 4.5])
-    np.testing.assert_allclose(sd[0, 2, 0], [1.3, 0.5, 2.0])
-    # Cells on an axis reproduce their own mean (the background cancels) and the estimate
-    # table (Eq. 5) is mean + std.
-    np.testing.assert_allclose(mu[0, 1, 0], mean[0, 1, 0])
+    # The estimate table (Eq. 5) is mean + std: mu = 2 + 1 - 0.5 etc.,
+    # sd = sqrt(0.3^2 + 0.4^2 + 1.2^2) = sqrt(1.69) = 1.3
     np.testing.assert_allclose(model.estimate_table()[0, 2, 0], [3.8, 4.0, 6.5])
+    # Cells on an axis reproduce their own mean (the background cancels).
+    np.testing.assert_allclose(model.estimate_table(include_std=False)[0, 1, 0], mean[0, 1, 0])
 
 
 def test_estimate_interpolates_bilinearly_and_clamps_outside_grid():
@@ -75,10 +72,10 @@ def test_empty_cells_are_filled_by_superposition_and_logged(caplog):
     model = tiny_model(measured="full", mean=mean, counts=counts)
     with caplog.at_level(logging.INFO, logger="egovib_ros.core"):
         table = model.estimate_table()
-    mu, sd = model.superposed()
-    np.testing.assert_allclose(table[0, 0], (mu + sd)[0, 0])
-    np.testing.assert_allclose(table[2, 2], mean[2, 2])
-    assert model.filled_cells[0, 0] and model.filled_cells.sum() == 1
+    # the one unmeasured cell by Eq. 6 (std 0), every other one its measurement
+    expected = mean.copy()
+    expected[0, 0] = mean[0, 1] + mean[1, 0] - mean[1, 1]
+    np.testing.assert_allclose(table, expected)
     # said once, at info level: the calibration's coverage lines and `model show` say it too
     assert "1 of 9 cells are not measured" in caplog.text
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
@@ -179,9 +176,9 @@ def test_superposition_for_one_and_three_joints():
         window=analysis_window(4, 2),
         measured="superposition",
     )
-    mu, sd = one.superposed()
-    np.testing.assert_allclose(mu, one.mean)  # one joint: Eq. 6 is the identity
-    np.testing.assert_allclose(sd, one.std)
+    # one joint: Eq. 6 is the identity
+    np.testing.assert_allclose(one.estimate_table(include_std=False), one.mean)
+    np.testing.assert_allclose(one.estimate_table(), one.mean + one.std)
     grid = tuple(np.array([-1.0, 0.0, 1.0]) for _ in range(3))
     mean, std = np.zeros((3, 3, 3, 1, 3)), np.zeros((3, 3, 3, 1, 3))
     mean[1, 1, 1], std[1, 1, 1] = 1.0, 0.2
@@ -199,11 +196,12 @@ def test_superposition_for_one_and_three_joints():
         window=analysis_window(4, 2),
         measured="superposition",
     )
-    mu, sd = three.superposed()
-    np.testing.assert_allclose(mu[2, 2, 2, 0], 3 + 4 + 5 - 2 * 1.0)
-    np.testing.assert_allclose(sd[2, 2, 2, 0], np.sqrt(0.09 + 0.16 + 0.25 + 2 * 0.04))
+    mu = three.estimate_table(include_std=False)[2, 2, 2]
+    np.testing.assert_allclose(mu[0], 3 + 4 + 5 - 2 * 1.0)
+    table = three.estimate_table()
+    np.testing.assert_allclose(table[2, 2, 2, 0] - mu[0], np.sqrt(0.09 + 0.16 + 0.25 + 2 * 0.04))
     value, _ = three.estimate(np.array([[1.0, 1.0, 1.0]]))
-    np.testing.assert_allclose(value[0], (mu + sd)[2, 2, 2])
+    np.testing.assert_allclose(value[0], table[2, 2, 2])
 
 
 def test_malformed_fields_and_empty_models_are_one_line_errors(tmp_path):

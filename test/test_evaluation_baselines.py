@@ -9,7 +9,8 @@ from egovib_ros.bag import Recording
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import baselines, metrics
-from egovib_ros.sim.pr2 import MAX_SPEED, default_grid
+from egovib_ros.evaluation.stream import method_names
+from egovib_ros.sim.pr2 import MAX_SPEED, grid_values
 
 FS = 3000.0
 
@@ -49,7 +50,7 @@ def _recording(velocity_of_t, duration_s, *, taps=(), seed=0):
 
 @pytest.fixture(scope="module")
 def context():
-    grid = default_grid()
+    grid = (grid_values(0), grid_values(1))
     cells = [(a, 0.0) for a in grid[0]] + [(0.0, b) for b in grid[1] if b != 0]
     dwell = 0.5
     sweep = _recording(
@@ -75,7 +76,12 @@ def moving():
 
 
 def test_every_method_runs_with_shape_and_delay(context, moving):
-    names = baselines.available_methods(context)
+    names = method_names(
+        None,
+        calibration=context.noise_clip is not None,
+        model_short=context.model_short,
+        model=context.model,
+    )
     # cancel and hybrid only when the model was calibrated for them (this one was not)
     assert not baselines.has_method_calibration(context.model)
     assert names == [
@@ -130,8 +136,8 @@ def test_wiener_rule_gain_between_zero_and_one_and_stateful():
 
 def test_methods_needing_extra_data_say_so(context, moving):
     bare = baselines.MethodContext(model=context.model)
-    assert "paper_L32" not in baselines.available_methods(bare)
-    assert "noisereduce" not in baselines.available_methods(bare)
+    names = method_names(None, calibration=False, model_short=None, model=bare.model)
+    assert "paper_L32" not in names and "noisereduce" not in names
     with pytest.raises(ValueError, match="32-sample"):
         baselines.run_method("paper_L32", moving, bare)
     with pytest.raises(ValueError, match="noise clip"):

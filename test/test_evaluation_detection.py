@@ -78,10 +78,10 @@ def test_pr_curve_sweeps_from_merged_noise_to_missed_taps():
 def test_pr2_magnitude_ignores_gravity_and_passes_vibration():
     t = np.arange(6000) / FS
     gravity = np.tile([0.0, 0.0, 9.81], (t.size, 1))
-    assert detection.pr2_magnitude(gravity, sample_rate_hz=FS).max() < 1e-9
+    assert detection.PR2Magnitude(sample_rate_hz=FS).process(gravity).max() < 1e-9
     vibration = gravity.copy()
     vibration[:, 0] += 3.0 * np.sin(2 * np.pi * 400 * t)
-    magnitude = detection.pr2_magnitude(vibration, sample_rate_hz=FS)
+    magnitude = detection.PR2Magnitude(sample_rate_hz=FS).process(vibration)
     assert magnitude[3000:].max() == pytest.approx(3.0, rel=0.03)
 
 

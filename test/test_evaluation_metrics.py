@@ -67,7 +67,7 @@ def test_segmental_snr_known_ratios_and_clamping(error_scale, expected):
     rng = np.random.default_rng(2)
     reference = rng.normal(size=640)
     snr = metrics.segmental_snr(reference, reference * (1 + error_scale))
-    assert snr.shape == (len(metrics.segment_starts(640)),) == (19,)
+    assert snr.shape == (19,)  # (640 - 64) / 32 + 1
     assert np.allclose(snr, expected, atol=1e-9)
 
 

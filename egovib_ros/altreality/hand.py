@@ -40,11 +40,8 @@ GRIPPER_MOTOR_REV_PER_M = 1.0 / (1.5e-3 * 1.2 * 14.0 / 41.0)
 WRIST_LINES = (
     (16.0, 0.55, 1.4),  # belt tooth mesh (955 Hz at full speed)
     (32.0, 0.18, 1.4),  # its second harmonic
-    (
-        24.0,
-        0.16,
-        0.3,
-    ),  # motor cogging (12 slots x 8 poles): torque ripple, nearly speed-independent
+    # motor cogging (12 slots x 8 poles): torque ripple, nearly speed-independent
+    (24.0, 0.16, 0.3),
     (80.0, 0.30, 0.8),  # harmonic-drive tooth engagement (2 lobes x 100 teeth / belt 2.5)
     (2 * 1.432, 0.22, 1.0),  # wave-generator bearing outer-race ball pass, harmonics 2..6
     (3 * 1.432, 0.18, 1.0),
@@ -82,11 +79,8 @@ MODES = (
     (655.0, 5.0, (-0.30, 0.45, 0.84), 0.35, 1.00, 1.0),
     (1230.0, 12.0, (0.60, -0.60, 0.53), 0.50, 0.60, 0.6),
 )
-DIRECT_PATH = (
-    (0.5, 0.5, 0.7),
-    0.25,
-    100.0,
-)  # stiff mount: direction, weight, high-pass corner (Hz)
+# stiff mount: direction, weight, high-pass corner (Hz)
+DIRECT_PATH = ((0.5, 0.5, 0.7), 0.25, 100.0)
 
 # --- sensor and background ----------------------------------------------------------------------
 SENSOR_RANGE = 78.45  # +/- 8 g
@@ -399,7 +393,7 @@ class AltHand:
     # --- the recording ---------------------------------------------------------------------------
     def generate(self, duration_s: float) -> tuple[Recording, dict]:
         n = int(round(duration_s * FS))
-        velocity, position, accel_true = plan_motion(
+        velocity, position, _ = plan_motion(
             duration_s, FS, self.rng["motion"], top_speed=self.top_speed, style=self.motion
         )
         speed = np.abs(velocity)
@@ -531,8 +525,7 @@ class AltHand:
         enc = np.round(pos / resolution) * resolution
         vel = np.zeros_like(enc)
         vel[2:] = (enc[2:] - enc[:-2]) / (2.0 / JOINT_RATE)
-        vel[1] = vel[2]
-        vel[0] = vel[2]
+        vel[:2] = vel[2]
         keep = rng.random(m) > 0.003
         timing = self.effects.get("timing", 0.0)
         if timing and self._form("timing") == "filtered":

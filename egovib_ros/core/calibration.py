@@ -273,12 +273,8 @@ class CalibrationAccumulator:
             usable = complete & (blocks.status == MATCHED)
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, distance = self.cell_of(velocity)
-            steadiness = np.empty_like(distance)
-            for j in range(len(self.grid)):
-                steadiness[:, j] = (
-                    np.nan_to_num(blocks.steadiness[:, j], nan=np.inf)
-                    / self._spacing[j][index[:, j]]
-                )
+            spacing = np.column_stack([s[index[:, j]] for j, s in enumerate(self._spacing)])
+            steadiness = np.nan_to_num(blocks.steadiness, nan=np.inf) / spacing
             # Beyond the grid edge by more than half a step: not this grid's velocity.
             inside = np.all(distance <= 0.5, axis=1)
             accepted = []
@@ -304,9 +300,8 @@ class CalibrationAccumulator:
             if not union.any():
                 continue
             magnitude = np.zeros((blocks.n,) + self._sweep_tally.sum.shape[1:])
-            magnitude[union] = np.abs(
-                np.fft.rfft(blocks.samples[union] * self.window, axis=-1)
-            )  # (b, C, F)
+            # (b, C, F)
+            magnitude[union] = np.abs(np.fft.rfft(blocks.samples[union] * self.window, axis=-1))
             ids = np.ravel_multi_index(tuple(index.T), self._shape)
             for tally, accept in zip((self._sweep_tally, self._free_tally), accepted):
                 if accept.any():
@@ -387,14 +382,9 @@ class CalibrationAccumulator:
         if len(cells):
             n = counts[:, None, None].astype(np.float64)
             tally = acc._tally()
-            tally.add(
-                np.ravel_multi_index(tuple(cells.T), acc._shape),
-                cells,
-                np.zeros_like(model.cell_mean),
-            )
-            rows = np.array(
-                [tally.row_of[int(i)] for i in np.ravel_multi_index(tuple(cells.T), acc._shape)]
-            )
+            flat = np.ravel_multi_index(tuple(cells.T), acc._shape)
+            tally.add(flat, cells, np.zeros_like(model.cell_mean))
+            rows = np.array([tally.row_of[int(i)] for i in flat])
             tally.counts[rows] = counts
             tally.sum[rows] = model.cell_mean * n
             tally.sumsq[rows] = model.cell_std**2 * np.maximum(n - 1, 0) + n * model.cell_mean**2

@@ -100,12 +100,7 @@ class DetectionEnvelope:
     envelope (N,)); any chunking gives the same samples."""
 
     def __init__(self, settings: ContactSettings):
-        self._band = BandPass(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            order=settings.band_order,
-            n_channels=3,
-        )
+        self._band = BandPass.of(settings, 3)
         self._n = settings.samples(settings.envelope_s)
         self._tail = np.zeros(self._n - 1)  # the last n - 1 squared sums (zeros before the start)
 
@@ -250,11 +245,6 @@ class ContactDetector:
                 self._axes[cut:],
             )
             self._base += cut
-
-
-def detection_envelope(values: np.ndarray, settings: ContactSettings) -> np.ndarray:
-    """The envelope the detector thresholds, of whole arrays (for thresholds)."""
-    return DetectionEnvelope(settings).process(values)[1]
 
 
 def no_contact_threshold(

@@ -162,6 +162,17 @@ class BandPass(CarriedFilter):
         sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
         super().__init__(sos, n_channels=n_channels)
 
+    @classmethod
+    def of(cls, source, n_channels: int) -> "BandPass":
+        """The band-pass of a NoiseModel, FramerSettings or ContactSettings (their
+        sample_rate_hz, band_hz and band_order)."""
+        return cls(
+            sample_rate_hz=source.sample_rate_hz,
+            band_hz=source.band_hz,
+            order=source.band_order,
+            n_channels=n_channels,
+        )
+
 
 class BelowBand(CarriedFilter):
     """What lies far below the band: a 4th-order Butterworth low-pass at a quarter of the

@@ -153,16 +153,14 @@ class HarmonicMap:
             raise ModelFileError(f"{where}: {exc}") from None
 
     def describe(self) -> dict:
-        lines = []
-        for q in range(self.n_lines):
-            j = int(self.line_joint[q])
-            lines.append(
-                {
-                    "joint": self.joint_names[j],
-                    "coefficient_hz": round(float(self.line_coefficient[q]), 3),
-                    "score_db": round(float(self.line_score_db[q]), 1),
-                }
-            )
+        lines = [
+            {
+                "joint": self.joint_names[int(self.line_joint[q])],
+                "coefficient_hz": round(float(self.line_coefficient[q]), 3),
+                "score_db": round(float(self.line_score_db[q]), 1),
+            }
+            for q in range(self.n_lines)
+        ]
         return {
             "form": "f = coefficient * lag(|v|)**exponent * (1 + correction)",
             "exponent": self.exponent.round(3).tolist(),

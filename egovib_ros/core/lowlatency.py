@@ -370,6 +370,13 @@ class GainState:
         return GainState(*(np.array(getattr(self, f.name)) for f in fields(self)))
 
 
+def _filled(value, default: float, shape: tuple) -> np.ndarray:
+    """A copy of `value` broadcast to `shape`; `default` everywhere if it is None."""
+    if value is None:
+        return np.full(shape, default)
+    return np.broadcast_to(np.asarray(value, float), shape).copy()
+
+
 class LowLatencyGain:
     """Streaming gain stage for C channels. process(r (n, C), noise (n, C, B)) returns n
     output samples, each D samples behind the input (the first D outputs of a stream
@@ -395,28 +402,12 @@ class LowLatencyGain:
         self.delay = settings.delay_samples(fs)
         if settings.oversubtraction is not None:
             alpha = np.full(shape, float(settings.oversubtraction))
-        self.alpha = (
-            np.ones(shape)
-            if alpha is None
-            else np.broadcast_to(np.asarray(alpha, float), shape).copy()
-        )
-        self.bias = (
-            np.zeros(shape)
-            if bias is None
-            else np.broadcast_to(np.asarray(bias, float), shape).copy()
-        )
-        self.open_alpha = (
-            np.ones(self.n_channels)
-            if open_alpha is None
-            else np.broadcast_to(np.asarray(open_alpha, float), (self.n_channels,)).copy()
-        )
+        self.alpha = _filled(alpha, 1.0, shape)
+        self.bias = _filled(bias, 0.0, shape)
+        self.open_alpha = _filled(open_alpha, 1.0, (self.n_channels,))
 
         # No reference level (a model calibrated before the guard): the guard never acts.
-        self.guard_ref = (
-            np.full(self.n_channels, np.inf)
-            if guard_ref is None
-            else np.broadcast_to(np.asarray(guard_ref, float), (self.n_channels,)).copy()
-        )
+        self.guard_ref = _filled(guard_ref, np.inf, (self.n_channels,))
 
         def rate(ms: float) -> float:
             return 1.0 - math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 1.0

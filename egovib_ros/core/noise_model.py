@@ -442,21 +442,6 @@ class NoiseModel:
 
         return self._cached("axis", make)
 
-    def superposed(self) -> tuple[np.ndarray, np.ndarray]:
-        """Eq. 6 mean and std for every cell of the grid (small grids), from the
-        single-joint cells (0 where one of them is unmeasured)."""
-        means, stds, _ = self._axis_tables()
-        zero = self.zero_index()
-        mu0, sd0 = means[0][zero[0]], stds[0][zero[0]]
-        mu = np.zeros(self.grid_shape + mu0.shape) - (self.n_joints - 1) * mu0
-        var = np.zeros_like(mu) + (self.n_joints - 1) * sd0**2
-        for j in range(self.n_joints):
-            expand = [np.newaxis] * self.n_joints
-            expand[j] = slice(None)
-            mu = mu + means[j][tuple(expand)]
-            var = var + stds[j][tuple(expand)] ** 2
-        return np.maximum(mu, 0.0), np.sqrt(var)
-
     def _filled_axes(self) -> tuple[list, list]:
         """Axis tables with unmeasured single-joint cells filled from the nearest measured
         one on the same axis (the superposition sweep with a cell missing)."""
@@ -560,15 +545,7 @@ class NoiseModel:
                     filled.size,
                 )
             self._cache[key] = table
-            self._cache["filled"] = filled
         return table
-
-    @property
-    def filled_cells(self) -> np.ndarray:
-        """Grid-shaped: True where the table is not a measurement of that cell."""
-        if "filled" not in self._cache:
-            self.estimate_table()
-        return self._cache["filled"]
 
     # --- look-ups ------------------------------------------------------------------
     def _table_for(self, channel_index, include_std: bool) -> np.ndarray:
@@ -646,10 +623,6 @@ class NoiseModel:
         """Noise magnitude spectra at velocities (B, J) -> ((B, C, F), out_of_grid (B,))."""
         noise, outside, _ = self.lookup(velocity, channel_index, include_std=include_std)
         return noise, outside
-
-    def measured_at(self, velocity: np.ndarray) -> np.ndarray:
-        """(B,) whether the grid cell nearest each velocity (B, J) was measured."""
-        return self.lookup(velocity)[2] if len(np.atleast_2d(velocity)) else np.zeros(0, dtype=bool)
 
     def table(
         self, channel_index: list[int] | slice = slice(None), *, include_std: bool = True

@@ -23,15 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egovib_ros.core.filters import BandPass
 from egovib_ros.core.receipt import envelope_period
-from egovib_ros.core.stream import (
-    FramerSettings,
-    FramerStats,
-    _Cleaner,
-    joint_state_arrays,
-    rate_refusal,
-)
+from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays, rate_refusal
 from egovib_ros.core.timebase import NS_PER_S
 
 RATE_CHECK_SAMPLES = 128
@@ -51,25 +44,14 @@ class SampleBatch:
         return len(self.stamps_ns)
 
 
-class SampleFramer:
+class SampleFramer(_Framer):
     """Streaming: push joint states and sensor chunks in any sizes, `pop()` the released
     samples as SampleBatch objects."""
 
     def __init__(self, settings: FramerSettings, n_joints: int):
         if settings.layout != "per_axis":
             settings = dataclasses.replace(settings, layout="per_axis")
-        self.s = settings
-        self.n_joints = int(n_joints)
-        self.stats = FramerStats()
-        self._cleaner = _Cleaner(settings, self.stats)
-        self._bandpass = BandPass(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            order=settings.band_order,
-            n_channels=3,
-        )
-        self._joint_t = np.zeros(0, dtype=np.int64)
-        self._joint_v = np.zeros((0, self.n_joints))
+        super().__init__(settings, n_joints, 3)
         # Pending samples of the open segment: stamp, effective time (synthetic samples get
         # the time they stand for), band-passed values.
         self._pend_t = np.zeros(0, dtype=np.int64)
@@ -80,10 +62,7 @@ class SampleFramer:
         self._ready: list[SampleBatch] = []
         self._last_time: int | None = None  # effective time of the last real sample appended
         self._segment_open = False  # samples appended since the segment started
-        self._rate_checked = False
-        self._rate_error = ""
         self._rate_stamps: list[np.ndarray] = []
-        self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
         self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S)
         self.samples_no_joint_state = 0
 
@@ -117,9 +96,6 @@ class SampleFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
         self._drain()
 
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        self._push_segments(self._cleaner.segments(stamps_ns, accel))
-
     def _push_segments(self, segments: list) -> None:
         for segment in segments:
             self._check_rate(segment.stamps)
@@ -137,16 +113,6 @@ class SampleFramer:
     def pop(self) -> list[SampleBatch]:
         ready, self._ready = self._ready, []
         return ready
-
-    @property
-    def rate_checked(self) -> bool:
-        return self._rate_checked and not self._rate_error
-
-    @property
-    def stamps(self) -> str:
-        """What the sensor stamps mark: "sample", "receipt" (with its latency in
-        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
-        return self._cleaner.kind or ""
 
     @property
     def backlog(self) -> tuple[int, int]:

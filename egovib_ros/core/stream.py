@@ -243,23 +243,14 @@ class FramerSettings:
                     f"{where}{name} must be a number in {'(' if low == 0 else '['}{low:g}, "
                     f"{high:g}], got {value!r}"
                 )
-        if (
-            isinstance(self.max_fill_samples, bool)
-            or not isinstance(self.max_fill_samples, int)
-            or not 0 <= self.max_fill_samples <= 1000
+        for name, value, low, high in (
+            ("max_fill_samples", self.max_fill_samples, 0, 1000),
+            ("band_order", self.band_order, 1, 12),
         ):
-            raise ConfigError(
-                f"{where}max_fill_samples must be an integer in [0, 1000], "
-                f"got {self.max_fill_samples!r}"
-            )
-        if (
-            isinstance(self.band_order, bool)
-            or not isinstance(self.band_order, int)
-            or not 1 <= self.band_order <= 12
-        ):
-            raise ConfigError(
-                f"{where}band_order must be an integer in [1, 12], got {self.band_order!r}"
-            )
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ConfigError(
+                    f"{where}{name} must be an integer in [{low}, {high}], got {value!r}"
+                )
         low, high = self.band_hz
         if not (
             math.isfinite(low) and math.isfinite(high) and 0 < low < high < self.sample_rate_hz / 2
@@ -618,33 +609,53 @@ def _cat_v(pieces: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(pieces) if pieces else np.zeros((0, 3))
 
 
-class BlockFramer:
+class _Framer:
+    """What BlockFramer and SampleFramer share: the input cleaning (`_Cleaner`), whose
+    segments go to the subclass's `_push_segments`, the band-pass, the joint states held
+    and the outcome of the rate check."""
+
+    def __init__(self, settings: FramerSettings, n_joints: int, n_channels: int):
+        self.s = settings
+        self.n_joints = int(n_joints)
+        self.stats = FramerStats()
+        self._cleaner = _Cleaner(settings, self.stats)
+        self._bandpass = BandPass.of(settings, n_channels)
+        self._joint_t = np.zeros(0, dtype=np.int64)
+        self._joint_v = np.zeros((0, self.n_joints))
+        self._rate_checked = False
+        self._rate_error = ""
+        self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
+
+    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
+        self._push_segments(self._cleaner.segments(stamps_ns, accel))
+
+    @property
+    def rate_checked(self) -> bool:
+        """The stream's rate has been measured on its first samples and found right (a
+        wrong rate raises StreamError on every push instead)."""
+        return self._rate_checked and not self._rate_error
+
+    @property
+    def stamps(self) -> str:
+        """What the sensor stamps mark: "sample", "receipt" (with its latency in
+        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
+        return self._cleaner.kind or ""
+
+
+class BlockFramer(_Framer):
     """Streaming framer. Push joint states and accelerometer chunks in any sizes;
     `pop_blocks()` returns the blocks that became ready."""
 
     def __init__(self, settings: FramerSettings, n_joints: int):
-        self.s = settings
-        self.n_joints = int(n_joints)
         self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
+        super().__init__(settings, n_joints, self.n_channels)
         self._rows = self.n_channels * (3 if settings.keep_raw else 1)  # rows of the buffer
         self.window = analysis_window(settings.block_length, settings.hop)
-        self.stats = FramerStats()
-        self._cleaner = _Cleaner(settings, self.stats)
-        self._bandpass = BandPass(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            order=settings.band_order,
-            n_channels=self.n_channels,
-        )
         self._below_band = BelowBand(
             sample_rate_hz=settings.sample_rate_hz,
             band_hz=settings.band_hz,
             n_channels=self.n_channels,
         )
-        self._joint_t = np.zeros(0, dtype=np.int64)
-        self._joint_v = np.zeros((0, self.n_joints))
-        self._rate_checked = False
-        self._rate_error = ""
         self._rate_steps: list[np.ndarray] = []  # stamp steps not yet measured
         self._rate_ends: list[np.ndarray] = []  # the stamp each of those steps ends at
         self._rate_count = 0  # how many
@@ -653,7 +664,6 @@ class BlockFramer:
         self._ready: list[Blocks] = []
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
-        self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
         self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
         # joint states moved later arrive that much later relative to the blocks they cover
         self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
@@ -701,9 +711,6 @@ class BlockFramer:
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
         self._drain(final=False)
 
-    def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
-        self._push_segments(self._cleaner.segments(stamps_ns, accel))
-
     def _push_segments(self, segments: list[_Segment]) -> None:
         for segment in segments:
             self._check_rate(segment.stamps)
@@ -725,18 +732,6 @@ class BlockFramer:
     def pop_blocks(self) -> list[Blocks]:
         ready, self._ready = self._ready, []
         return ready
-
-    @property
-    def rate_checked(self) -> bool:
-        """The stream's rate has been measured on its first 2 blocks of samples and found
-        right (a wrong rate raises StreamError on every push instead)."""
-        return self._rate_checked and not self._rate_error
-
-    @property
-    def stamps(self) -> str:
-        """What the sensor stamps mark: "sample", "receipt" (with its latency in
-        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
-        return self._cleaner.kind or ""
 
     @property
     def backlog(self) -> tuple[int, int]:

@@ -278,9 +278,8 @@ class StreamingDenoiser(FramedDenoiser):
         self._outside_band = response < 0.5  # (F,)
         self.channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
         self._include_std = include_std
-        self._table = model.table(
-            self.channel_index, include_std=include_std
-        )  # None for huge grids
+        # None for huge grids
+        self._table = model.table(self.channel_index, include_std=include_std)
         self._custom_rule = rule
         self._rule = rule if rule is not None else self.subtraction.rule()
         n_channels = len(self.channel_index)

@@ -365,18 +365,6 @@ def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
     return _block_delay_ms(ctx.model)
 
 
-def available_methods(ctx: MethodContext) -> list[str]:
-    """Methods that can run with what the context holds, in table order."""
-    names = list(METHOD_LABELS)
-    if ctx.model_short is None:
-        names.remove("paper_L32")
-    if ctx.noise_clip is None:
-        names.remove("noisereduce")
-    if not has_method_calibration(ctx.model):
-        names = [n for n in names if n not in NEEDS_METHOD_CALIBRATION]
-    return names
-
-
 def has_method_calibration(model: NoiseModel) -> bool:
     """The model carries what methods cancel and hybrid need."""
     return any(key.startswith("harmonic.") for key in model.extras)

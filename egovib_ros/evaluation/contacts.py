@@ -277,17 +277,16 @@ def score_events(events, stamps, contact, model: NoiseModel, result: Detection) 
     the latency from each detected tap's true onset to its event's report (with the
     method's delay: when a live system would publish it)."""
     from egovib_ros.core.filters import combined_bandpassed
-    from egovib_ros.evaluation.detection import match_events
+    from egovib_ros.evaluation.detection import match_events, scores_of
     from egovib_ros.evaluation.metrics import segment_contacts
 
     reference = combined_bandpassed(contact, model.robot_profile())
     onsets = stamps[segment_contacts(reference, sample_rate_hz=model.sample_rate_hz).onsets]
     detected = np.array([e.onset_ns for e in events], np.int64)
     us = 1000  # match in microseconds
-    tp, fp, fn = match_events(detected // us, onsets // us, int(TOLERANCE_S * NS_PER_S) // us)
-    precision = tp / (tp + fp) if tp + fp else 1.0
-    recall = tp / (tp + fn) if tp + fn else 1.0
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    scores = scores_of(
+        *match_events(detected // us, onsets // us, int(TOLERANCE_S * NS_PER_S) // us)
+    )
     minutes = result.duration_s / 60.0
     latency = []
     for event in events:
@@ -296,13 +295,8 @@ def score_events(events, stamps, contact, model: NoiseModel, result: Detection) 
             latency.append((event.report_ns - near[0]) / 1e6 + result.method_delay_ms)
     return {
         "n_taps": int(len(onsets)),
-        "f1": f1,
-        "precision": precision,
-        "recall": recall,
-        "tp": tp,
-        "fp": fp,
-        "fn": fn,
-        "false_alarms_per_min": fp / minutes if minutes > 0 else float("nan"),
+        **{key: scores[key] for key in ("f1", "precision", "recall", "tp", "fp", "fn")},
+        "false_alarms_per_min": scores["fp"] / minutes if minutes > 0 else float("nan"),
         "latency_ms_p50": float(np.percentile(latency, 50)) if latency else None,
         "latency_ms_p99": float(np.percentile(latency, 99)) if latency else None,
     }

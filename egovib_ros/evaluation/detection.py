@@ -13,7 +13,7 @@ Scoring: a detection is a true positive if its onset is within +/- 10 ms of a
 true tap onset; each true tap matches at most one detection (optimal one-to-one
 assignment by scipy's linear_sum_assignment).
 
-The PR2 gripper sensor comparison (`pr2_magnitude`) thresholds the vector
+The PR2 gripper sensor comparison (`PR2Magnitude`) thresholds the vector
 magnitude of the raw 3-axis acceleration after a first-order high-pass
 (RC = 3.3 ms, about 48 Hz, as in common PR2 contact-detection code) at fixed
 levels of 2 and 5 m/s^2.
@@ -105,12 +105,16 @@ def precision_recall_f1(
     sample_rate_hz: float,
     tolerance_s: float = TOLERANCE_S,
 ) -> dict:
-    """Precision, recall, F1 (and counts) of detected onsets against true onsets.
+    """Precision, recall, F1 (and counts) of detected onsets against true onsets."""
+    return scores_of(*match_events(detected, truth, int(round(tolerance_s * sample_rate_hz))))
+
+
+def scores_of(tp: int, fp: int, fn: int) -> dict:
+    """Precision, recall, F1 and the counts they come from.
 
     Conventions: precision = 1 when nothing is detected, recall = 1 when there
     is nothing to detect, F1 = 0 when precision + recall = 0.
     """
-    tp, fp, fn = match_events(detected, truth, int(round(tolerance_s * sample_rate_hz)))
     precision = tp / (tp + fp) if tp + fp else 1.0
     recall = tp / (tp + fn) if tp + fn else 1.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
@@ -172,16 +176,9 @@ def pr_curve(
     }
 
 
-def pr2_magnitude(
-    accel: np.ndarray, *, sample_rate_hz: float, highpass_hz: float = PR2_HIGHPASS_HZ
-) -> np.ndarray:
-    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper
-    sensor's input)."""
-    return PR2Magnitude(sample_rate_hz=sample_rate_hz, highpass_hz=highpass_hz).process(accel)
-
-
 class PR2Magnitude:
-    """`pr2_magnitude` with carried filter state (any chunking, the same samples)."""
+    """(N,) magnitude of the high-passed raw 3-axis acceleration (the PR2 gripper
+    sensor's input), with carried filter state (any chunking, the same samples)."""
 
     def __init__(self, *, sample_rate_hz: float, highpass_hz: float = PR2_HIGHPASS_HZ):
         self.sos = signal.butter(1, highpass_hz, btype="highpass", fs=sample_rate_hz, output="sos")
@@ -337,8 +334,4 @@ class EventMatcher:
 
     def scores(self) -> dict:
         """precision_recall_f1's dict (call after `finish`)."""
-        tp, fp, fn = self.tp, self.fp, self.fn
-        precision = tp / (tp + fp) if tp + fp else 1.0
-        recall = tp / (tp + fn) if tp + fn else 1.0
-        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-        return {"precision": precision, "recall": recall, "f1": f1, "tp": tp, "fp": fp, "fn": fn}
+        return scores_of(self.tp, self.fp, self.fn)

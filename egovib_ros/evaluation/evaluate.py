@@ -169,16 +169,9 @@ def _method_result(run: streaming.EvaluationPass, key: str, label: str, delay, m
     result["label"] = label
     result["delay_ms"] = delay
     scores = _detector_scores(run, key, minutes)
-    result.update(
-        {
-            "f1": scores["f1"],
-            "precision": scores["precision"],
-            "recall": scores["recall"],
-            "threshold": scores["threshold"],
-            "false_alarms": scores["fp"],
-            "false_alarms_per_min": scores["false_alarms_per_min"],
-        }
-    )
+    result.update({key: scores[key] for key in ("f1", "precision", "recall", "threshold")})
+    result["false_alarms"] = scores["fp"]
+    result["false_alarms_per_min"] = scores["false_alarms_per_min"]
     return result
 
 

@@ -192,10 +192,6 @@ def peak_snr_db(peak: float, noise: float) -> float:
     return db20(peak / noise) if noise > 0 else float("inf")
 
 
-def segment_starts(n: int, length: int = SEGMENT_LENGTH, hop: int = SEGMENT_HOP) -> np.ndarray:
-    return np.arange(0, max(n - length, -1) + 1, hop)
-
-
 def segmental_snr(
     reference: np.ndarray,
     estimate: np.ndarray,
@@ -207,7 +203,7 @@ def segmental_snr(
     """Per-segment SNR in dB of `estimate` against the clean `reference`, clamped.
 
     Segments are `length` samples with `hop` spacing (64 / 32 = 50 % overlap).
-    Returns one value per segment start of `segment_starts`.
+    Returns one value per segment (starts 0, hop, 2 hop, ... while a whole one fits).
     """
     reference = np.asarray(reference, float)
     error = np.asarray(estimate, float) - reference
@@ -464,13 +460,8 @@ class BadRunExclusion:
                 self._close(a, b)
 
     def _close(self, start: int, stop: int) -> None:
-        length = stop - start
-        self.intervals.append(
-            (
-                max(start - self.margin, 0),
-                min(stop + self.margin + min(length, self.settle_max), self.n),
-            )
-        )
+        end = min(stop + self.margin + min(stop - start, self.settle_max), self.n)
+        self.intervals.append((max(start - self.margin, 0), end))
 
     def finish(self) -> None:
         if self.open_start is not None:

@@ -80,16 +80,6 @@ class LowBandEnergy:
             self.energy += float(np.dot(low, low))
 
 
-def _band(model: NoiseModel) -> BandPass:
-    """The core's band-pass for the combined signal (state carried across slices)."""
-    return BandPass(
-        sample_rate_hz=model.sample_rate_hz,
-        band_hz=model.band_hz,
-        order=model.band_order,
-        n_channels=1,
-    )
-
-
 class _Fifo:
     """Samples of one signal from index `start` on: put at the end, taken from the front."""
 
@@ -335,7 +325,7 @@ class SummaryPass:
         self.model, self.source, self.max_bad_fraction = model, source, float(max_bad_fraction)
         self.sensor_range = float(model.profile.sensor_range)
         self.screen = Screen([self.sensor_range, np.inf])
-        self.band = _band(model)
+        self.band = BandPass.of(model, 1)
         self.recorded = RecordedDenoised(
             max_pending=int(RECORDED_MAX_WAIT_S * model.sample_rate_hz)
         )
@@ -461,7 +451,7 @@ class CalibrationPass:
         fs = model.sample_rate_hz
         self.fs = fs
         self.screen = Screen([float(model.profile.sensor_range)])
-        self.band = _band(model)
+        self.band = BandPass.of(model, 1)
         self.streams = {
             name: baselines.method_stream(name, model=model, model_short=model_short, source=source)
             for name in names
@@ -634,7 +624,7 @@ class EvaluationPass:
             else None
         )
         self.like = summary.recorded_like
-        self.recorded_band = _band(model) if summary.recorded_dropin else None
+        self.recorded_band = BandPass.of(model, 1) if summary.recorded_dropin else None
         self.metric_keys = ["raw", *self.names] + (["bag_denoised"] if self.recorded else [])
         self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
         self.streams = {
@@ -645,7 +635,7 @@ class EvaluationPass:
             if name not in ("raw", "bag_denoised")
         }
         self.screen = Screen([float(model.profile.sensor_range), np.inf])
-        self.raw_band, self.ref_band = _band(model), _band(model)
+        self.raw_band, self.ref_band = BandPass.of(model, 1), BandPass.of(model, 1)
         self.pr2 = detection.PR2Magnitude(sample_rate_hz=fs)
         self.fifos = {key: _Fifo() for key in ["reference", "pr2", *self.detect_keys]}
         self.screen_bad, self.recorded_bad = _Fifo(bool), _Fifo(bool)

@@ -28,10 +28,6 @@ def grid_values(joint: int) -> np.ndarray:
     return GRID_FRACTIONS * MAX_SPEED[joint]
 
 
-def default_grid() -> tuple[np.ndarray, ...]:
-    return tuple(grid_values(j) for j in range(len(JOINT_NAMES)))
-
-
 # --- paper's algorithm defaults (sections 2-3) -----------------------------
 BLOCK_LENGTH: int = 64
 HOP: int = 32

@@ -117,17 +117,7 @@ def simulate_sweep(
     are unsteady; calibration bins blocks by measured velocity anyway.
     Returns the Recording (with ground truth) and the truth dict.
     """
-    slices, truth = sweep_slices(
-        grid=grid,
-        dwell_s=dwell_s,
-        settle_s=settle_s,
-        effects=effects,
-        seed=seed,
-        params=params,
-        tap_rate_hz=tap_rate_hz,
-        tap_mode=tap_mode,
-        progress=progress,
-    )
+    slices, truth = sweep_slices(**locals())  # every argument, as given
     return concat_recordings(list(slices)), truth
 
 
@@ -146,9 +136,8 @@ def motion_commands(
     sos = signal.butter(2, cutoff_hz, fs=rate_hz, output="sos")
     noise = rng.standard_normal((n + warm, len(MAX_SPEED)))
     smooth = signal.sosfilt(sos, noise, axis=0)[warm:]
-    smooth /= np.sqrt(cutoff_hz / rate_hz * np.pi / 2) / np.sqrt(
-        2
-    )  # ~unit rms for a 2nd-order low-pass
+    # ~unit rms for a 2nd-order low-pass
+    smooth /= np.sqrt(cutoff_hz / rate_hz * np.pi / 2) / np.sqrt(2)
     frac = np.clip(smooth / 2.0, -1.0, 1.0)  # ~2 sigma reaches the limit
     return np.arange(n) / rate_hz, frac * max_speed * np.asarray(MAX_SPEED)
 
@@ -208,17 +197,7 @@ def simulate_motion(
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Recording, dict]:
     """Random smooth motion (paper section 4) with optional taps; returns (Recording, truth)."""
-    slices, truth = motion_slices(
-        duration_s=duration_s,
-        max_speed=max_speed,
-        tap_rate_hz=tap_rate_hz,
-        effects=effects,
-        seed=seed,
-        params=params,
-        tap_mode=tap_mode,
-        command_rate_hz=command_rate_hz,
-        progress=progress,
-    )
+    slices, truth = motion_slices(**locals())  # every argument, as given
     return concat_recordings(list(slices)), truth
 
 
