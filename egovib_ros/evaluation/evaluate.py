@@ -169,7 +169,7 @@ def _method_result(run: streaming.EvaluationPass, key: str, label: str, delay, m
     result["label"] = label
     result["delay_ms"] = delay
     scores = _detector_scores(run, key, minutes)
-    result.update({key: scores[key] for key in ("f1", "precision", "recall", "threshold")})
+    result.update({name: scores[name] for name in ("f1", "precision", "recall", "threshold")})
     result["false_alarms"] = scores["fp"]
     result["false_alarms_per_min"] = scores["false_alarms_per_min"]
     return result

@@ -117,7 +117,17 @@ def simulate_sweep(
     are unsteady; calibration bins blocks by measured velocity anyway.
     Returns the Recording (with ground truth) and the truth dict.
     """
-    slices, truth = sweep_slices(**locals())  # every argument, as given
+    slices, truth = sweep_slices(
+        grid=grid,
+        dwell_s=dwell_s,
+        settle_s=settle_s,
+        effects=effects,
+        seed=seed,
+        params=params,
+        tap_rate_hz=tap_rate_hz,
+        tap_mode=tap_mode,
+        progress=progress,
+    )
     return concat_recordings(list(slices)), truth
 
 
@@ -197,7 +207,17 @@ def simulate_motion(
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Recording, dict]:
     """Random smooth motion (paper section 4) with optional taps; returns (Recording, truth)."""
-    slices, truth = motion_slices(**locals())  # every argument, as given
+    slices, truth = motion_slices(
+        duration_s=duration_s,
+        max_speed=max_speed,
+        tap_rate_hz=tap_rate_hz,
+        effects=effects,
+        seed=seed,
+        params=params,
+        tap_mode=tap_mode,
+        command_rate_hz=command_rate_hz,
+        progress=progress,
+    )
     return concat_recordings(list(slices)), truth
 
 
