@@ -38,6 +38,12 @@ VELOCITY_SOURCES = ("auto", "measured", "from_position")
 #: sample times, or when a driver received each message (core.receipt).
 STAMP_KINDS = ("auto", "sample", "receipt")
 MAX_JOINTS = 8
+# The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`).
+_SECTION_KEYS = {
+    "sensor": ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
+    "joints": ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
+    "processing": ("block_length", "hop", "band_hz", "band_order"),
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -225,27 +231,14 @@ class RobotProfile:
                 f"['schema', 'name', 'sensor', 'joints', 'processing'])"
             )
         sections = {}
-        for key in ("sensor", "joints", "processing"):
+        for key in _SECTION_KEYS:
             value = data.get(key, {} if key == "processing" else None)
             if not isinstance(value, dict):
                 raise ConfigError(f"{where}: section '{key}' is missing or not a mapping")
             sections[key] = value
+        for key, known in _SECTION_KEYS.items():
+            _no_unknown(sections[key], known, key, where)
         sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
-        _no_unknown(
-            sensor,
-            ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
-            "sensor",
-            where,
-        )
-        _no_unknown(
-            joints,
-            ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
-            "joints",
-            where,
-        )
-        _no_unknown(
-            processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where
-        )
         for key in ("topic", "field", "rate_hz"):
             if key not in sensor:
                 raise ConfigError(f"{where}: sensor.{key} is required")
