@@ -105,12 +105,7 @@ def algorithmic_latency_ms(
 
         completing = k + make_denoiser(model, method, channels=channels).delay
     published_with = (completing // per_batch + 1) * per_batch - 1
-    values = (published_with - k)[int(rate) :] / rate * 1e3  # after the first second
-    return {
-        "p50": float(np.percentile(values, 50)),
-        "p99": float(np.percentile(values, 99)),
-        "max": float(values.max()),
-    }
+    return _percentiles((published_with - k)[int(rate) :] / rate * 1e3)  # after the first second
 
 
 def run_bench(
@@ -239,9 +234,7 @@ def run_bench(
         },
         "cpu_share": {name: round(value, 4) for name, value in cpu.items()},
         "latency_ms": {
-            "p50": float(np.percentile(latency_ms, 50)),
-            "p99": float(np.percentile(latency_ms, 99)),
-            "max": float(latency_ms.max()),
+            **_percentiles(latency_ms),
             "block_length_ms": 64 / 3.0 if method == "paper" else None,
         },
         "latency_definition": "receive time of accelerometer/denoised in a subscriber process "
