@@ -50,10 +50,7 @@ def spectra_png(channel: str) -> str:
 def _flat_ids(cells: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """Row-major cell ids (int64 holds 21^8 and more)."""
     cells = np.asarray(cells, dtype=np.int64).reshape(-1, len(shape))
-    ids = np.zeros(len(cells), dtype=np.int64)
-    for j, n in enumerate(shape):
-        ids = ids * n + cells[:, j]
-    return ids
+    return np.ravel_multi_index(tuple(cells.T), shape)
 
 
 @dataclass
@@ -143,8 +140,7 @@ def coverage_facts(model) -> dict:
     if model.measured in ("full", "superposition"):
         expected = _sweep_cell_count(model.grid_shape, model.measured)
         if model.measured == "superposition":
-            zero = index.zero
-            axis = (model.cells != zero[None, :]).sum(axis=1) <= 1
+            axis = (model.cells != index.zero[None, :]).sum(axis=1) <= 1
             in_sweep = int(axis.sum())
         else:
             in_sweep = facts["cells_measured"]
@@ -454,11 +450,10 @@ def summary_markdown(
 ) -> str:
     c = coverage_facts(model)
     p = model.profile
-    name = p.name if p is not None else "unnamed robot"
     rows = [
         f"# Noise model {Path(model_path).name or ''}".rstrip(),
         "",
-        f"Robot `{name}`"
+        f"Robot `{_robot_name(model)}`"
         + (
             f", sensor `{p.sensor_topic}` ({p.sensor_field}), joints on `{p.joints_topic}`"
             if p
@@ -564,11 +559,7 @@ def _velocity_ticks(ax, grid: np.ndarray, axis: str) -> None:
     step = max(1, int(round((len(grid) - 1) / 4)))
     zero = int(np.argmin(np.abs(grid)))
     ticks = np.arange(len(grid))[(np.arange(len(grid)) - zero) % step == 0]
-    labels = [f"{grid[i]:.3g}" for i in ticks]
-    if axis == "x":
-        ax.set_xticks(ticks, labels)
-    else:
-        ax.set_yticks(ticks, labels)
+    getattr(ax, f"set_{axis}ticks")(ticks, [f"{grid[i]:.3g}" for i in ticks])
 
 
 def _count_norm(values: np.ndarray):
