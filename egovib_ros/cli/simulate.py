@@ -123,12 +123,13 @@ def bag_output_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str = "simulate"):
+def progress_bar(total: float, quiet: bool):
+    """(update, close) of the progress bar of a run of `total` simulated seconds."""
     if quiet:
         return None, lambda: None
     from tqdm import tqdm
 
-    bar = tqdm(total=round(total, 1), unit=unit, desc=desc, leave=False)
+    bar = tqdm(total=round(total, 1), unit="sim-s", desc="simulate", leave=False)
     return (lambda s: bar.update(s)), bar.close
 
 
@@ -175,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
     params = SimParams.load(args.params)
     if args.scenario == "sweep":
         total = len(sweep_cells(args.grid)) * (args.dwell + args.settle)
-        update, close = _progress_bar(total, args.quiet)
+        update, close = progress_bar(total, args.quiet)
         slices, truth = sweep_slices(
             grid=args.grid,
             dwell_s=args.dwell,
@@ -189,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         total = args.duration
-        update, close = _progress_bar(total, args.quiet)
+        update, close = progress_bar(total, args.quiet)
         slices, truth = motion_slices(
             duration_s=args.duration,
             max_speed=args.max_speed,
