@@ -173,11 +173,8 @@ def _check_path_itself(path: str | os.PathLike, label: str) -> Path:
     if not text.strip():
         raise OutputError(f"{label or 'output'}: empty path")
     target = Path(text)
-    if (
-        target.name in ("", ".", "..")
-        or text.rstrip("/").endswith(("/.", "/.."))
-        or text.rstrip("/") in (".", "..")
-    ):
+    # Path drops a trailing "/." ("a/." is "a"): the text says it
+    if target.name in ("", ".", "..") or text.rstrip("/").endswith(("/.", "/..")):
         raise OutputError(
             f"{label}: refusing to write to '.' or '..'; name a new file or directory"
         )
