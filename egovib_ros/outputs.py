@@ -485,7 +485,7 @@ def atomic_output(
     otherwise OutputError and the new output is discarded.
     """
     final = Path(path)
-    parent = final.parent if str(final.parent) else Path(".")
+    parent = final.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -245,7 +245,6 @@ class RobotProfile:
         for key in ("names", "max_speed"):
             if key not in joints:
                 raise ConfigError(f"{where}: joints.{key} is required")
-        names = joints["names"]
         defaults = cls.__dataclass_fields__
         return cls(
             name=str(data.get("name", "")),
@@ -254,7 +253,7 @@ class RobotProfile:
             rate_hz=sensor["rate_hz"],
             denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
             joints_topic=joints.get("topic", "/joint_states"),
-            joint_names=tuple(names) if isinstance(names, list) else names,
+            joint_names=joints["names"],  # a tuple once checked
             max_speed=joints["max_speed"],
             bidirectional=joints.get("bidirectional", True),
             steps=joints.get("steps", defaults["steps"].default),
@@ -298,8 +297,7 @@ def _positive(value, name: str, bad, *, allow_inf: bool = False) -> float:
         raise bad(f"{name} must be a positive number, got {value!r}") from None
     if (
         isinstance(value, bool)
-        or not number > 0
-        or math.isnan(number)
+        or not number > 0  # NaN too
         or (math.isinf(number) and not allow_inf)
     ):
         raise bad(
