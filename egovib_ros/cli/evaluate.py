@@ -256,8 +256,7 @@ def register(subparsers) -> None:
         f"than this (default {metrics.MAX_BAD_FRACTION:g})",
     )
     parallel_options(ev)
-    ev.add_argument("--force", action="store_true", help="replace an existing JSON file")
-    ev.add_argument("--quiet", action="store_true")
+    options.force_and_quiet(ev, "replace an existing JSON file", None)
     ev.set_defaults(func=run_evaluate)
 
     fig = subparsers.add_parser(
@@ -269,8 +268,5 @@ def register(subparsers) -> None:
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")
     fig.add_argument("--seed", type=options.seed, default=1)
     fig.add_argument("--quick", action="store_true", help="small run (for tests)")
-    fig.add_argument(
-        "--force", action="store_true", help="replace the files of a previous run in DIR"
-    )
-    fig.add_argument("--quiet", action="store_true")
+    options.force_and_quiet(fig, "replace the files of a previous run in DIR", None)
     fig.set_defaults(func=run_figures)

@@ -112,6 +112,14 @@ def joint_lag_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def force_and_quiet(
+    parser: argparse.ArgumentParser, force_help: str, quiet_help: str | None = "no progress bar"
+) -> None:
+    """--force (replace an output: what it may replace in `force_help`) and --quiet."""
+    parser.add_argument("--force", action="store_true", help=force_help)
+    parser.add_argument("--quiet", action="store_true", help=quiet_help)
+
+
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
     from egovib_ros.sim.params import check_effects, parse_effects

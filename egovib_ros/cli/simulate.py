@@ -115,12 +115,7 @@ def bag_output_options(parser: argparse.ArgumentParser) -> None:
     """How every `simulate` scenario writes (`write_bag`): --storage .. --quiet."""
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     parser.add_argument("--compress", action="store_true", help="zstd chunk compression (MCAP)")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace an existing output bag / truth file written by egovib",
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    options.force_and_quiet(parser, "replace an existing output bag / truth file written by egovib")
 
 
 def progress_bar(total: float, quiet: bool):
