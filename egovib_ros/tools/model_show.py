@@ -137,22 +137,13 @@ def coverage_facts(model) -> dict:
         cells_nearest=total - facts["cells_measured"] - eq6,
         min_blocks_for_std=MIN_BLOCKS_FOR_STD,
     )
-    if model.measured in ("full", "superposition"):
-        expected = _sweep_cell_count(model.grid_shape, model.measured)
-        if model.measured == "superposition":
-            axis = (model.cells != index.zero[None, :]).sum(axis=1) <= 1
-            in_sweep = int(axis.sum())
-        else:
-            in_sweep = facts["cells_measured"]
-        facts["sweep_cells"] = expected
-        facts["sweep_cells_missing"] = expected - in_sweep
+    if model.measured == "full":  # the sweep's cells: every grid cell
+        facts.update(sweep_cells=total, sweep_cells_missing=total - facts["cells_measured"])
+    elif model.measured == "superposition":  # rest and the cells with one joint moving
+        in_sweep = int(((model.cells != index.zero[None, :]).sum(axis=1) <= 1).sum())
+        expected = 1 + sum(n - 1 for n in model.grid_shape)
+        facts.update(sweep_cells=expected, sweep_cells_missing=expected - in_sweep)
     return facts
-
-
-def _sweep_cell_count(shape: tuple[int, ...], kind: str) -> int:
-    if kind == "full":
-        return int(np.prod(shape, dtype=object))
-    return 1 + sum(n - 1 for n in shape)
 
 
 def joint_marginals(model) -> list[dict]:
