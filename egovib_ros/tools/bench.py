@@ -642,12 +642,7 @@ def run_benchmarks(
 def markdown_summary(results: dict) -> str:
     """Human-readable table of `run_benchmarks` results."""
     m = results["machine"]
-    b, s, c, g = (
-        results["batch"],
-        results["stream"],
-        results["calibration"],
-        results["simulation_and_bags"],
-    )
+    b, s, c, g = (results[k] for k in ("batch", "stream", "calibration", "simulation_and_bags"))
     bags = results.get("bags")
     rows = [
         (
