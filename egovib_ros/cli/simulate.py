@@ -4,6 +4,7 @@ cli/simulate_robot.py)."""
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 from pathlib import Path
 
@@ -171,31 +172,23 @@ def run(args: argparse.Namespace) -> int:
     params = SimParams.load(args.params)
     if args.scenario == "sweep":
         total = len(sweep_cells(args.grid)) * (args.dwell + args.settle)
-        update, close = progress_bar(total, args.quiet)
-        slices, truth = sweep_slices(
-            grid=args.grid,
-            dwell_s=args.dwell,
-            settle_s=args.settle,
-            effects=effects,
-            seed=args.seed,
-            params=params,
-            tap_rate_hz=args.taps,
-            tap_mode=args.tap_mode,
-            progress=update,
+        scenario = functools.partial(
+            sweep_slices, grid=args.grid, dwell_s=args.dwell, settle_s=args.settle
         )
     else:
         total = args.duration
-        update, close = progress_bar(total, args.quiet)
-        slices, truth = motion_slices(
-            duration_s=args.duration,
-            max_speed=args.max_speed,
-            tap_rate_hz=args.taps,
-            effects=effects,
-            seed=args.seed,
-            params=params,
-            tap_mode=args.tap_mode,
-            progress=update,
+        scenario = functools.partial(
+            motion_slices, duration_s=args.duration, max_speed=args.max_speed
         )
+    update, close = progress_bar(total, args.quiet)
+    slices, truth = scenario(
+        effects=effects,
+        seed=args.seed,
+        params=params,
+        tap_rate_hz=args.taps,
+        tap_mode=args.tap_mode,
+        progress=update,
+    )
     write_bag(args, out, slices, truth, close, frame_id=ACCEL_FRAME)
     if not args.quiet:
         print(f"wrote {out} ({total:.1f} s simulated, {len(truth['tap_onsets_ns'])} taps)")
