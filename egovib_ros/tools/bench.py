@@ -354,13 +354,10 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
 # --------------------------------------------------------------------------
 # Bags at recording scale
 # --------------------------------------------------------------------------
-def write_interleaved_bag(
-    path: Path, duration_s: float, *, seed: int = 3, compress: bool = False
-) -> None:
+def write_interleaved_bag(path: Path, duration_s: float) -> None:
     """A simulated motion bag laid out as a recorder writes one: one message at a time in
     stamp order (all topics interleaved), rosbags' writer, 1 MB chunks."""
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
     from egovib_ros.bag.codec import typestore
     from egovib_ros.bag.recording import bag_topic_names, recording_streams
@@ -368,12 +365,9 @@ def write_interleaved_bag(
 
     robot = _robot()
     slices, _ = motion_slices(
-        duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=seed
+        duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=3
     )
-    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    if compress:
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    with writer:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {}
         for piece in slices:
             merged = []
