@@ -46,6 +46,7 @@ import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.outputs import atomic_output
 from egovib_ros.tools.orchestration import NodeGroup
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -468,8 +469,6 @@ def run_contact_bench(
 
 
 def run_contacts(args: argparse.Namespace) -> int:
-    from egovib_ros.outputs import atomic_output
-
     result = run_contact_bench(
         seconds=args.seconds,
         warmup=args.warmup,
@@ -501,8 +500,6 @@ def run_contacts(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "contacts", False):
         return run_contacts(args)
-    from egovib_ros.outputs import atomic_output
-
     result = run_bench(
         seconds=args.seconds,
         warmup=args.warmup,
