@@ -76,7 +76,6 @@ MODEL_SCHEMA = "egovib.noise_model"
 DIRECTORY_KINDS = ("bag", "report", "directory")
 FILE_KINDS = ("model", "json", "file")
 
-_PARTIAL = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.partial$")
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]{8}\.partial$")
 
 
@@ -174,11 +173,8 @@ def _check_path_itself(path: str | os.PathLike, label: str) -> Path:
     if not text.strip():
         raise OutputError(f"{label or 'output'}: empty path")
     target = Path(text)
-    if (
-        target.name in ("", ".", "..")
-        or text.rstrip("/").endswith(("/.", "/.."))
-        or text.rstrip("/") in (".", "..")
-    ):
+    # Path drops a trailing "/." ("a/." is "a"): the text says it
+    if target.name in ("", ".", "..") or text.rstrip("/").endswith(("/.", "/..")):
         raise OutputError(
             f"{label}: refusing to write to '.' or '..'; name a new file or directory"
         )
@@ -489,7 +485,7 @@ def atomic_output(
     otherwise OutputError and the new output is discarded.
     """
     final = Path(path)
-    parent = final.parent if str(final.parent) else Path(".")
+    parent = final.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -563,23 +559,18 @@ def check_replaceable(path: str | os.PathLike, *, directory: bool = False) -> No
 
 
 def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) -> None:
-    if not os.path.lexists(final):
+    check_replaceable(final, directory=directory)
+    if not directory or not os.path.lexists(final):
         os.replace(tmp, final)
         return
-    if directory:
-        check_replaceable(final, directory=True)
-        # Old output aside first, new one in, then the old one goes: never neither.
-        old = staging / ".replaced"
-        os.replace(final, old)
-        try:
-            os.replace(tmp, final)
-        except OSError:
-            os.replace(old, final)
-            raise
-        return
-    if final.is_dir():
-        raise OutputError(f"{final}: is a directory; not replaced")
-    os.replace(tmp, final)
+    # Old output aside first, new one in, then the old one goes: never neither.
+    old = staging / ".replaced"
+    os.replace(final, old)
+    try:
+        os.replace(tmp, final)
+    except OSError:
+        os.replace(old, final)
+        raise
 
 
 # --- stale staging directories -----------------------------------------------------------

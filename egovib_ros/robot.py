@@ -38,6 +38,12 @@ VELOCITY_SOURCES = ("auto", "measured", "from_position")
 #: sample times, or when a driver received each message (core.receipt).
 STAMP_KINDS = ("auto", "sample", "receipt")
 MAX_JOINTS = 8
+# The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`).
+_SECTION_KEYS = {
+    "sensor": ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
+    "joints": ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
+    "processing": ("block_length", "hop", "band_hz", "band_order"),
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -225,34 +231,20 @@ class RobotProfile:
                 f"['schema', 'name', 'sensor', 'joints', 'processing'])"
             )
         sections = {}
-        for key in ("sensor", "joints", "processing"):
+        for key in _SECTION_KEYS:
             value = data.get(key, {} if key == "processing" else None)
             if not isinstance(value, dict):
                 raise ConfigError(f"{where}: section '{key}' is missing or not a mapping")
             sections[key] = value
+        for key, known in _SECTION_KEYS.items():
+            _no_unknown(sections[key], known, key, where)
         sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
-        _no_unknown(
-            sensor,
-            ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
-            "sensor",
-            where,
-        )
-        _no_unknown(
-            joints,
-            ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
-            "joints",
-            where,
-        )
-        _no_unknown(
-            processing, ("block_length", "hop", "band_hz", "band_order"), "processing", where
-        )
         for key in ("topic", "field", "rate_hz"):
             if key not in sensor:
                 raise ConfigError(f"{where}: sensor.{key} is required")
         for key in ("names", "max_speed"):
             if key not in joints:
                 raise ConfigError(f"{where}: joints.{key} is required")
-        names = joints["names"]
         defaults = cls.__dataclass_fields__
         return cls(
             name=str(data.get("name", "")),
@@ -261,7 +253,7 @@ class RobotProfile:
             rate_hz=sensor["rate_hz"],
             denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
             joints_topic=joints.get("topic", "/joint_states"),
-            joint_names=tuple(names) if isinstance(names, list) else names,
+            joint_names=joints["names"],  # a tuple once checked
             max_speed=joints["max_speed"],
             bidirectional=joints.get("bidirectional", True),
             steps=joints.get("steps", defaults["steps"].default),
@@ -305,8 +297,7 @@ def _positive(value, name: str, bad, *, allow_inf: bool = False) -> float:
         raise bad(f"{name} must be a positive number, got {value!r}") from None
     if (
         isinstance(value, bool)
-        or not number > 0
-        or math.isnan(number)
+        or not number > 0  # NaN too
         or (math.isinf(number) and not allow_inf)
     ):
         raise bad(

@@ -9,7 +9,7 @@ import re
 import pytest
 
 from egovib_ros.cli import options
-from egovib_ros.cli.options import OneLineErrorParser, float_in, int_in
+from egovib_ros.cli.options import OneLineErrorParser, float_in
 
 
 @pytest.mark.parametrize(
@@ -28,12 +28,10 @@ def test_values_in_range_are_taken(parse, text, value):
     [(float_in(0.0, 1.0), "1.5", "a number in [0, 1]"),
      (float_in(0.0, 1.0, low_open=True), "0", "a number in (0, 1]"),
      (options.positive_float, "0", "a finite number > 0"),
-     (float_in(high=5.0, high_open=True), "5", "a finite number < 5"),
      (options.nonneg_float, "nan", "a finite number"), (options.nonneg_float, "inf", "a finite"),
      (options.nonneg_float, "two", "a number"), (options.positive_int, "0", "an integer >= 1"),
-     (options.positive_int, "1.0", "an integer"), (int_in(high=3), "4", "an integer <= 3"),
-     (options.seed, "-1", f"an integer in [0, {options.MAX_SEED}]"),
-     (float_in(0.0, 9.0, what="a speed in rad/s"), "10", "a speed in rad/s")],
+     (options.positive_int, "1.0", "an integer"),
+     (options.seed, "-1", f"an integer in [0, {options.MAX_SEED}]")],
 )  # fmt: skip
 def test_values_out_of_range_name_what_was_expected(parse, text, expected):
     with pytest.raises(argparse.ArgumentTypeError, match=re.escape("expected " + expected)) as info:

@@ -92,22 +92,17 @@ def main(argv: list[str] | None = None) -> int:
         _stopped.clear()
 
 
-class _SaidOnce:
+_said: set[str] = set()  # the log messages said in this run
+
+
+def _said_once(record) -> bool:
     """A log filter that lets each message through once per run: a command running several
     denoisers over one bag (evaluate: every method) would say the same warning for each."""
-
-    def __init__(self):
-        self.seen: set[str] = set()
-
-    def filter(self, record) -> bool:
-        text = record.getMessage()
-        if text in self.seen:
-            return False
-        self.seen.add(text)
-        return True
-
-
-_SAID_ONCE = _SaidOnce()
+    text = record.getMessage()
+    if text in _said:
+        return False
+    _said.add(text)
+    return True
 
 
 def _main(argv: list[str]) -> int:
@@ -121,8 +116,8 @@ def _main(argv: list[str]) -> int:
         logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
         for handler in logging.getLogger().handlers:  # ours only, not a host's (pytest's)
             if handler not in before:
-                handler.addFilter(_SAID_ONCE)
-        _SAID_ONCE.seen.clear()  # per run (main may run several times in one process)
+                handler.addFilter(_said_once)
+        _said.clear()  # per run (main may run several times in one process)
         parser = build_parser()
         try:
             args = parser.parse_args(argv)
@@ -284,7 +279,3 @@ def write_traceback_log(exc: BaseException, command: str, argv: list[str]):
             with contextlib.suppress(OSError):
                 path.unlink()
     return None, problem
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -11,7 +11,7 @@ import numpy as np
 from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
 from egovib_ros.cli.jobs import parallel_options
-from egovib_ros.cli.options import joint_lag_option
+from egovib_ros.cli.options import force_and_quiet, joint_lag_option
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.errors import BagError, ConfigError
@@ -52,10 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "need (the speed -> line map, the residual's table, the gain), fitted on one bag",
     )
     joint_lag_option(cal)
-    cal.add_argument(
-        "--force", action="store_true", help="replace an existing model written by egovib"
-    )
-    cal.add_argument("--quiet", action="store_true", help="no progress bar")
+    force_and_quiet(cal, "replace an existing model written by egovib")
     cal.set_defaults(func=run_calibrate)
 
 

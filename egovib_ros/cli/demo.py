@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-import argparse
-
 from egovib_ros.tools import demo as tool
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "demo",
+        help="the whole pipeline live on ROS 2 nodes (make demo)",
+        description=tool.__doc__.split("\n\n")[0],
+    )
     parser.add_argument(
         "--out", default="demo_output", help="directory for the model, bag, logs, figures"
     )
@@ -19,14 +22,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-speed", type=float, default=0.5, help="fraction of max joint speed")
     parser.add_argument("--taps", type=float, default=2.0, help="tap rate (Hz)")
     parser.add_argument("--seed", type=int, default=7)
-
-
-def register(subparsers) -> None:
-    """`egovib demo`."""
-    parser = subparsers.add_parser(
-        "demo",
-        help="the whole pipeline live on ROS 2 nodes (make demo)",
-        description=tool.__doc__.split("\n\n")[0],
-    )
-    add_arguments(parser)
     parser.set_defaults(func=tool.run)

@@ -9,7 +9,7 @@ from pathlib import Path
 from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
 from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
-from egovib_ros.cli.options import joint_lag_option, nonneg_float
+from egovib_ros.cli.options import force_and_quiet, joint_lag_option, nonneg_float
 from egovib_ros.core import NoiseModel
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.outputs import prepare_output
@@ -81,10 +81,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)",
     )
     parallel_options(den)
-    den.add_argument(
-        "--force", action="store_true", help="replace an existing bag written by egovib"
-    )
-    den.add_argument("--quiet", action="store_true", help="no progress bar")
+    force_and_quiet(den, "replace an existing bag written by egovib")
     den.set_defaults(func=run_denoise)
 
 

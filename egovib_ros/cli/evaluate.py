@@ -1,10 +1,8 @@
 """`egovib evaluate` and `egovib figures` (INTERFACES.md sections 3 and 6).
 
-    egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration BAG]
-                    [--jobs N | --scheduler ADDRESS]
-    egovib figures --out DIR [--quick]
-
-`evaluate_recording(rec, model, **opts) -> dict` is re-exported here for the demo.
+egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration BAG]
+                [--jobs N | --scheduler ADDRESS]
+egovib figures --out DIR [--quick]
 """
 
 from __future__ import annotations
@@ -21,15 +19,8 @@ from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import metrics
-from egovib_ros.evaluation.evaluate import (  # noqa: F401 (API)
-    REPORT_FIELDS,
-    bad_samples_said,
-    evaluate_recording,
-    require_ground_truth,
-)
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, prepare_outputs_in
-
-__all__ = ["evaluate_recording", "register"]
 
 # What `egovib figures` writes into its --out directory (figures.py, experiments.py).
 FIGURE_OUTPUTS = (
@@ -72,14 +63,6 @@ def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path 
             f"{where}: the bag it was calibrated from ({stored}) has changed since; {fix}"
         )
     return Path(stored)
-
-
-def json_jobs(specs: list[str], out: str) -> list:
-    """One bag given as such -> `out` is the JSON file (docs/INTERFACES.md); several bags or a
-    directory -> `out` is a directory holding <bag name>.json per bag (the bag's path
-    relative to the directory it was found in, e.g. OUT/day1/run0.json)."""
-
-    return output_jobs(specs, out, suffix=".json", option="--json")
 
 
 def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options) -> dict:
@@ -141,7 +124,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     calibration_path = calibration_bag(
         args.calibration, model, thresholds_from_run=args.thresholds_from_run
     )
-    jobs = json_jobs(args.bags, args.json)
+    # One bag given as such -> --json is the JSON file (docs/INTERFACES.md); several bags or a
+    # directory -> a directory holding <bag name>.json per bag (the bag's path relative to the
+    # directory it was found in, e.g. OUT/day1/run0.json).
+    jobs = output_jobs(args.bags, args.json, suffix=".json", option="--json")
     for job in jobs:  # before any work: every JSON may be written (or replaced with --force)
         prepare_output(
             job.out,
@@ -270,8 +256,7 @@ def register(subparsers) -> None:
         f"than this (default {metrics.MAX_BAD_FRACTION:g})",
     )
     parallel_options(ev)
-    ev.add_argument("--force", action="store_true", help="replace an existing JSON file")
-    ev.add_argument("--quiet", action="store_true")
+    options.force_and_quiet(ev, "replace an existing JSON file", None)
     ev.set_defaults(func=run_evaluate)
 
     fig = subparsers.add_parser(
@@ -283,8 +268,5 @@ def register(subparsers) -> None:
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")
     fig.add_argument("--seed", type=options.seed, default=1)
     fig.add_argument("--quick", action="store_true", help="small run (for tests)")
-    fig.add_argument(
-        "--force", action="store_true", help="replace the files of a previous run in DIR"
-    )
-    fig.add_argument("--quiet", action="store_true")
+    options.force_and_quiet(fig, "replace the files of a previous run in DIR", None)
     fig.set_defaults(func=run_figures)

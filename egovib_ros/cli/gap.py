@@ -177,10 +177,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
         )
-    if args.train_fraction is not None and not 0.2 <= args.train_fraction <= 0.9:
-        raise ConfigError(
-            f"gap: --train-fraction must be within [0.2, 0.9], got {args.train_fraction}"
-        )
     from egovib_ros.bag.many import run_bags
     from egovib_ros.cli.jobs import output_jobs, report_results
     from egovib_ros.core.noise_model import NoiseModel

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-import argparse
-
 from egovib_ros.tools import live_bench as tool
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "live-bench",
+        help="does the denoiser node keep up live (drops, CPU, latency)",
+        description=tool.__doc__.split("\n\n")[0],
+    )
     parser.add_argument("--json", required=True, help="output JSON file")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--warmup", type=float, default=5.0)
@@ -38,14 +41,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=30.0,
         help="no-contact motion simulated for the detectors' thresholds (--contacts)",
     )
-
-
-def register(subparsers) -> None:
-    """`egovib live-bench`."""
-    parser = subparsers.add_parser(
-        "live-bench",
-        help="does the denoiser node keep up live (drops, CPU, latency)",
-        description=tool.__doc__.split("\n\n")[0],
-    )
-    add_arguments(parser)
     parser.set_defaults(func=tool.run)

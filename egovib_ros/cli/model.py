@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from egovib_ros.cli.options import force_and_quiet
 from egovib_ros.tools.model_show import place_bag, summary_lines, write_views
 
 
@@ -32,12 +33,7 @@ def register(subparsers) -> None:
         default=None,
         help="a recording of the model's robot: where its blocks fall against the model's cells",
     )
-    show.add_argument(
-        "--force",
-        action="store_true",
-        help="replace an existing output directory written by egovib",
-    )
-    show.add_argument("--quiet", action="store_true", help="no progress bar")
+    force_and_quiet(show, "replace an existing output directory written by egovib")
     show.set_defaults(func=run_show)
 
 

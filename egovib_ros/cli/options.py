@@ -37,54 +37,34 @@ def _number(text: str) -> float:
 
 
 def float_in(
-    low: float = -math.inf,
-    high: float = math.inf,
-    *,
-    low_open: bool = False,
-    high_open: bool = False,
-    what: str = "",
+    low: float, high: float = math.inf, *, low_open: bool = False
 ) -> Callable[[str], float]:
-    """argparse type: a finite float in [low, high] (open ends where asked)."""
+    """argparse type: a finite float in [low, high] ((low, high] with `low_open`)."""
+    if math.isinf(high):
+        expected = f"a finite number {'>' if low_open else '>='} {low:g}"
+    else:
+        expected = f"a number in {'(' if low_open else '['}{low:g}, {high:g}]"
 
     def parse(text: str) -> float:
         value = _number(text)
-        too_low = value <= low if low_open else value < low
-        too_high = value >= high if high_open else value > high
-        if too_low or too_high:
-            raise argparse.ArgumentTypeError(f"expected {describe()}, got {text!r}")
+        if (value <= low if low_open else value < low) or value > high:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return value
-
-    def describe() -> str:
-        if what:
-            return what
-        if math.isinf(low) and math.isinf(high):
-            return "a finite number"
-        if math.isinf(high):
-            return f"a finite number {'>' if low_open else '>='} {low:g}"
-        if math.isinf(low):
-            return f"a finite number {'<' if high_open else '<='} {high:g}"
-        left, right = "(" if low_open else "[", ")" if high_open else "]"
-        return f"a number in {left}{low:g}, {high:g}{right}"
 
     parse.__name__ = "number"
     return parse
 
 
-def int_in(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
-    """argparse type: an integer in [low, high]."""
+def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer in [low, high] (>= low without `high`)."""
+    expected = f"an integer >= {low}" if high is None else f"an integer in [{low}, {high}]"
 
     def parse(text: str) -> int:
         try:
             value = int(text, 10)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if (low is not None and value < low) or (high is not None and value > high):
-            if high is None:
-                expected = f"an integer >= {low}"
-            elif low is None:
-                expected = f"an integer <= {high}"
-            else:
-                expected = f"an integer in [{low}, {high}]"
+        if value < low or (high is not None and value > high):
             raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return value
 
@@ -110,6 +90,14 @@ def joint_lag_option(parser: argparse.ArgumentParser) -> None:
         help="joint states lag the sensor by this much: move their stamps later (egovib gap "
         "measures it; negative: they lead)",
     )
+
+
+def force_and_quiet(
+    parser: argparse.ArgumentParser, force_help: str, quiet_help: str | None = "no progress bar"
+) -> None:
+    """--force (replace an output: what it may replace in `force_help`) and --quiet."""
+    parser.add_argument("--force", action="store_true", help=force_help)
+    parser.add_argument("--quiet", action="store_true", help=quiet_help)
 
 
 def effects_spec(text: str) -> dict[str, float]:

@@ -8,7 +8,6 @@ egovib real gap --bag bags/quadcopter_ar8 --out docs/gap_flight   # gap diagnosi
 from __future__ import annotations
 
 import argparse
-import sys
 
 from egovib_ros.cli import options
 from egovib_ros.experiments.flight import convert
@@ -50,35 +49,18 @@ def register(subparsers) -> None:
         description=flight.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    _flight_gap_arguments(gap, flight)
-    gap.set_defaults(func=flight.run)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m egovib_ros.cli.real ...` = `egovib real ...`."""
-    from egovib_ros.cli import main as egovib_main
-
-    return egovib_main(["real", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
-def _flight_gap_arguments(parser: argparse.ArgumentParser, flight) -> None:
-    """Options of `egovib real gap` (experiments/gap_flight.py)."""
-
-    parser.add_argument("--bag", default="bags/quadcopter_ar8", help="the converted flight bag")
-    parser.add_argument(
+    gap.add_argument("--bag", default="bags/quadcopter_ar8", help="the converted flight bag")
+    gap.add_argument(
         "--out", default="docs/gap_flight", help="report directory (default docs/gap_flight)"
     )
-    parser.add_argument(
+    gap.add_argument(
         "--split",
         type=options.float_in(2.0, flight.FLIGHT_END_S - 2.0),
         default=flight.SPLIT_S,
         metavar="SECONDS",
         help=f"where the flight is cut into the two parts (default {flight.SPLIT_S:g} s)",
     )
-    parser.add_argument(
+    gap.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
     )
+    gap.set_defaults(func=flight.run)

@@ -4,6 +4,7 @@ cli/simulate_robot.py)."""
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 from pathlib import Path
 
@@ -115,20 +116,16 @@ def bag_output_options(parser: argparse.ArgumentParser) -> None:
     """How every `simulate` scenario writes (`write_bag`): --storage .. --quiet."""
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     parser.add_argument("--compress", action="store_true", help="zstd chunk compression (MCAP)")
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace an existing output bag / truth file written by egovib",
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    options.force_and_quiet(parser, "replace an existing output bag / truth file written by egovib")
 
 
-def _progress_bar(total: float, quiet: bool, *, unit: str = "sim-s", desc: str = "simulate"):
+def progress_bar(total: float, quiet: bool):
+    """(update, close) of the progress bar of a run of `total` simulated seconds."""
     if quiet:
         return None, lambda: None
     from tqdm import tqdm
 
-    bar = tqdm(total=round(total, 1), unit=unit, desc=desc, leave=False)
+    bar = tqdm(total=round(total, 1), unit="sim-s", desc="simulate", leave=False)
     return (lambda s: bar.update(s)), bar.close
 
 
@@ -175,31 +172,23 @@ def run(args: argparse.Namespace) -> int:
     params = SimParams.load(args.params)
     if args.scenario == "sweep":
         total = len(sweep_cells(args.grid)) * (args.dwell + args.settle)
-        update, close = _progress_bar(total, args.quiet)
-        slices, truth = sweep_slices(
-            grid=args.grid,
-            dwell_s=args.dwell,
-            settle_s=args.settle,
-            effects=effects,
-            seed=args.seed,
-            params=params,
-            tap_rate_hz=args.taps,
-            tap_mode=args.tap_mode,
-            progress=update,
+        scenario = functools.partial(
+            sweep_slices, grid=args.grid, dwell_s=args.dwell, settle_s=args.settle
         )
     else:
         total = args.duration
-        update, close = _progress_bar(total, args.quiet)
-        slices, truth = motion_slices(
-            duration_s=args.duration,
-            max_speed=args.max_speed,
-            tap_rate_hz=args.taps,
-            effects=effects,
-            seed=args.seed,
-            params=params,
-            tap_mode=args.tap_mode,
-            progress=update,
+        scenario = functools.partial(
+            motion_slices, duration_s=args.duration, max_speed=args.max_speed
         )
+    update, close = progress_bar(total, args.quiet)
+    slices, truth = scenario(
+        effects=effects,
+        seed=args.seed,
+        params=params,
+        tap_rate_hz=args.taps,
+        tap_mode=args.tap_mode,
+        progress=update,
+    )
     write_bag(args, out, slices, truth, close, frame_id=ACCEL_FRAME)
     if not args.quiet:
         print(f"wrote {out} ({total:.1f} s simulated, {len(truth['tap_onsets_ns'])} taps)")

@@ -110,7 +110,7 @@ _SWEEP_ONLY = (("grid", "--grid"), ("dwell", "--dwell"), ("settle", "--settle"))
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.cli.simulate import prepare_outputs, write_bag
+    from egovib_ros.cli.simulate import prepare_outputs, progress_bar, write_bag
     from egovib_ros.errors import ConfigError
     from egovib_ros.robot import load_profile
     from egovib_ros.sim.robot import robot_slices
@@ -122,8 +122,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{', '.join(given)}: not an option of --mode {args.mode}")
     out = prepare_outputs(args, args.robot)
     profile = load_profile(args.robot)
-    bars = []  # the progress bar, once the length of the run is known
-
     slices, truth, total = robot_slices(
         profile,
         mode=args.mode,
@@ -136,21 +134,12 @@ def run(args: argparse.Namespace) -> int:
         tap_mode=args.tap_mode,
         seed=args.seed,
         joint_rate_hz=args.joint_rate,
-        progress=lambda seconds: [bar.update(seconds) for bar in bars],
+        # the bar is made below, once the length of the run is known; it moves as the
+        # slices are simulated, in write_bag
+        progress=None if args.quiet else lambda seconds: update(seconds),
     )
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bars.append(tqdm(total=round(total, 1), unit="sim-s", desc="simulate", leave=False))
-    write_bag(
-        args,
-        out,
-        slices,
-        truth,
-        lambda: [bar.close() for bar in bars],
-        profile=profile,
-        frame_id=SENSOR_FRAME,
-    )
+    update, close = progress_bar(total, args.quiet)
+    write_bag(args, out, slices, truth, close, profile=profile, frame_id=SENSOR_FRAME)
     if not args.quiet:
         print(
             f"wrote {out} ({profile.name}, {args.mode}, {total:.1f} s simulated, "

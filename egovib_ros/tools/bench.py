@@ -148,15 +148,6 @@ def synthetic_model(*, seed: int = 0):
     )
 
 
-def _best_of(fn, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     """Whole-array denoising (combined channel, the paper's pipeline) in x real time."""
     from egovib_ros.core import denoise_batch
@@ -164,7 +155,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     data, model = synthetic_streams(duration_s), synthetic_model()
     streams = [data[k] for k in ("sensor_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity")]
     seconds, seconds_axes = (
-        _best_of(lambda: denoise_batch(*streams, model, channels=channels), repeats)
+        _best_wall_and_cpu(lambda: denoise_batch(*streams, model, channels=channels), repeats)[0]
         for channels in ("combined", "per_axis")
     )
     # the same samples stamped as a USB driver reads them (1 ms frames): the rebuilt clock
@@ -173,7 +164,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     core_log = logging.getLogger("egovib_ros.core")
     disabled, core_log.disabled = core_log.disabled, True  # its "read as receipt times" line
     try:
-        seconds_receipt = _best_of(
+        seconds_receipt, _ = _best_wall_and_cpu(
             lambda: denoise_batch(*receipt, model, channels="per_axis"), repeats
         )
     finally:
@@ -343,7 +334,7 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
         start = time.perf_counter()
         read_recording(bag)
         read_s = time.perf_counter() - start
-        size = sum(f.stat().st_size for f in bag.iterdir())
+        size = _bag_bytes(bag)
     n_messages = len(rec.sensor_stamps_ns) * (
         1 + (rec.contact is not None) + (rec.ego is not None)
     ) + len(rec.joint_stamps_ns)
@@ -363,13 +354,10 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
 # --------------------------------------------------------------------------
 # Bags at recording scale
 # --------------------------------------------------------------------------
-def write_interleaved_bag(
-    path: Path, duration_s: float, *, seed: int = 3, compress: bool = False
-) -> None:
+def write_interleaved_bag(path: Path, duration_s: float) -> None:
     """A simulated motion bag laid out as a recorder writes one: one message at a time in
     stamp order (all topics interleaved), rosbags' writer, 1 MB chunks."""
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
     from egovib_ros.bag.codec import typestore
     from egovib_ros.bag.recording import bag_topic_names, recording_streams
@@ -377,12 +365,9 @@ def write_interleaved_bag(
 
     robot = _robot()
     slices, _ = motion_slices(
-        duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=seed
+        duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, effects={}, seed=3
     )
-    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-    if compress:
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    with writer:
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {}
         for piece in slices:
             merged = []
@@ -651,12 +636,7 @@ def run_benchmarks(
 def markdown_summary(results: dict) -> str:
     """Human-readable table of `run_benchmarks` results."""
     m = results["machine"]
-    b, s, c, g = (
-        results["batch"],
-        results["stream"],
-        results["calibration"],
-        results["simulation_and_bags"],
-    )
+    b, s, c, g = (results[k] for k in ("batch", "stream", "calibration", "simulation_and_bags"))
     bags = results.get("bags")
     rows = [
         (
@@ -804,8 +784,10 @@ def run(args: argparse.Namespace) -> int:
         inputs=[args.markdown],
         ours=json_holding(schema=BENCH_SCHEMA),
     )
+    json_path = Path(args.json)
+    md_path = Path(args.markdown) if args.markdown else json_path.with_suffix(".md")
     prepare_output(
-        args.markdown or Path(args.json).with_suffix(".md"),
+        md_path,
         force=args.force,
         kind="file",
         option="--markdown",
@@ -820,8 +802,6 @@ def run(args: argparse.Namespace) -> int:
             workdir=args.workdir,
             progress=lambda name: (bar.set_postfix_str(name), bar.update()),
         )
-    json_path = Path(args.json)
-    md_path = Path(args.markdown) if args.markdown else json_path.with_suffix(".md")
     with atomic_output(json_path) as tmp:
         tmp.write_text(json.dumps(results, indent=2) + "\n")
     with atomic_output(md_path) as tmp:

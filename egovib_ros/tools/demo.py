@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.tools.orchestration import NodeGroup, reliable_input
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
@@ -193,7 +194,6 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
     from egovib_ros.evaluation import metrics
     from egovib_ros.evaluation.evaluate import evaluate_recording
     from egovib_ros.experiments import paper_figures as figures
-    from egovib_ros.outputs import atomic_output
 
     print("[3/3] evaluation of the recorded run", flush=True)
     model = NoiseModel.load(model_path)
@@ -245,8 +245,6 @@ def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
 def clear_previous_run(out: Path) -> None:
     """Remove what a previous demo run left in `out` - only if it is recognisably ours
     (outputs.prepare_output); anything else there is refused, never deleted."""
-    from egovib_ros.outputs import prepare_output
-
     outputs = {
         "noise_model.npz": "model",
         "run_bag": "bag",

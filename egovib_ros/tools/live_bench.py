@@ -46,6 +46,7 @@ import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.nodes.watcher import Watcher
+from egovib_ros.outputs import atomic_output
 from egovib_ros.tools.orchestration import NodeGroup
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -105,12 +106,7 @@ def algorithmic_latency_ms(
 
         completing = k + make_denoiser(model, method, channels=channels).delay
     published_with = (completing // per_batch + 1) * per_batch - 1
-    values = (published_with - k)[int(rate) :] / rate * 1e3  # after the first second
-    return {
-        "p50": float(np.percentile(values, 50)),
-        "p99": float(np.percentile(values, 99)),
-        "max": float(values.max()),
-    }
+    return _percentiles((published_with - k)[int(rate) :] / rate * 1e3)  # after the first second
 
 
 def run_bench(
@@ -239,9 +235,7 @@ def run_bench(
         },
         "cpu_share": {name: round(value, 4) for name, value in cpu.items()},
         "latency_ms": {
-            "p50": float(np.percentile(latency_ms, 50)),
-            "p99": float(np.percentile(latency_ms, 99)),
-            "max": float(latency_ms.max()),
+            **_percentiles(latency_ms),
             "block_length_ms": 64 / 3.0 if method == "paper" else None,
         },
         "latency_definition": "receive time of accelerometer/denoised in a subscriber process "
@@ -475,8 +469,6 @@ def run_contact_bench(
 
 
 def run_contacts(args: argparse.Namespace) -> int:
-    from egovib_ros.outputs import atomic_output
-
     result = run_contact_bench(
         seconds=args.seconds,
         warmup=args.warmup,
@@ -508,8 +500,6 @@ def run_contacts(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if getattr(args, "contacts", False):
         return run_contacts(args)
-    from egovib_ros.outputs import atomic_output
-
     result = run_bench(
         seconds=args.seconds,
         warmup=args.warmup,

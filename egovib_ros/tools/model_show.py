@@ -50,10 +50,7 @@ def spectra_png(channel: str) -> str:
 def _flat_ids(cells: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """Row-major cell ids (int64 holds 21^8 and more)."""
     cells = np.asarray(cells, dtype=np.int64).reshape(-1, len(shape))
-    ids = np.zeros(len(cells), dtype=np.int64)
-    for j, n in enumerate(shape):
-        ids = ids * n + cells[:, j]
-    return ids
+    return np.ravel_multi_index(tuple(cells.T), shape)
 
 
 @dataclass
@@ -140,23 +137,13 @@ def coverage_facts(model) -> dict:
         cells_nearest=total - facts["cells_measured"] - eq6,
         min_blocks_for_std=MIN_BLOCKS_FOR_STD,
     )
-    if model.measured in ("full", "superposition"):
-        expected = _sweep_cell_count(model.grid_shape, model.measured)
-        if model.measured == "superposition":
-            zero = index.zero
-            axis = (model.cells != zero[None, :]).sum(axis=1) <= 1
-            in_sweep = int(axis.sum())
-        else:
-            in_sweep = facts["cells_measured"]
-        facts["sweep_cells"] = expected
-        facts["sweep_cells_missing"] = expected - in_sweep
+    if model.measured == "full":  # the sweep's cells: every grid cell
+        facts.update(sweep_cells=total, sweep_cells_missing=total - facts["cells_measured"])
+    elif model.measured == "superposition":  # rest and the cells with one joint moving
+        in_sweep = int(((model.cells != index.zero[None, :]).sum(axis=1) <= 1).sum())
+        expected = 1 + sum(n - 1 for n in model.grid_shape)
+        facts.update(sweep_cells=expected, sweep_cells_missing=expected - in_sweep)
     return facts
-
-
-def _sweep_cell_count(shape: tuple[int, ...], kind: str) -> int:
-    if kind == "full":
-        return int(np.prod(shape, dtype=object))
-    return 1 + sum(n - 1 for n in shape)
 
 
 def joint_marginals(model) -> list[dict]:
@@ -454,11 +441,10 @@ def summary_markdown(
 ) -> str:
     c = coverage_facts(model)
     p = model.profile
-    name = p.name if p is not None else "unnamed robot"
     rows = [
         f"# Noise model {Path(model_path).name or ''}".rstrip(),
         "",
-        f"Robot `{name}`"
+        f"Robot `{_robot_name(model)}`"
         + (
             f", sensor `{p.sensor_topic}` ({p.sensor_field}), joints on `{p.joints_topic}`"
             if p
@@ -564,11 +550,7 @@ def _velocity_ticks(ax, grid: np.ndarray, axis: str) -> None:
     step = max(1, int(round((len(grid) - 1) / 4)))
     zero = int(np.argmin(np.abs(grid)))
     ticks = np.arange(len(grid))[(np.arange(len(grid)) - zero) % step == 0]
-    labels = [f"{grid[i]:.3g}" for i in ticks]
-    if axis == "x":
-        ax.set_xticks(ticks, labels)
-    else:
-        ax.set_yticks(ticks, labels)
+    getattr(ax, f"set_{axis}ticks")(ticks, [f"{grid[i]:.3g}" for i in ticks])
 
 
 def _count_norm(values: np.ndarray):
