@@ -55,6 +55,7 @@ from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
 from egovib_ros.evaluation.metrics import json_safe, segment_contacts
+from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.robot import load_profile
 
 LOG = logging.getLogger("egovib_ros.contacts_compare")
@@ -542,10 +543,7 @@ def markdown(result: dict) -> str:
 
 
 def figure(result: dict, example: dict | None, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     colors = {"raw": "grey", "paper": "tab:blue", "hybrid": "tab:red"}
     fig = plt.figure(figsize=(13, 7))
@@ -592,10 +590,7 @@ def figure(result: dict, example: dict | None, path: Path) -> Path:
                 )
                 axm.legend(fontsize=7, loc="upper right")
         axm.set_xlabel("s into the run")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------------------

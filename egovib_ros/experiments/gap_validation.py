@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.outputs import atomic_output
 
@@ -170,40 +171,31 @@ def plan_runs(
         [master_seed, REALITIES.index(reality)] if reality != "sim" else master_seed
     )
     runs = []
-    for k in range(seeds):
+
+    def add(run: dict, **after) -> None:
+        runs.append({**run, "seed": int(rng.integers(1, 2**31)), **after})
+
+    def add_nones() -> None:
         for label in none_classes(reality):
-            runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
+            add({"truth": label, "strength": 0.0})
+
+    for k in range(seeds):
+        add_nones()
         for effect in EFFECTS:
             lo, hi = ranges[effect]
             for form in FORMS[reality][effect]:
                 s = float(rng.uniform(lo, hi))
                 if form == "lead":
                     s = -s
-                runs.append(
-                    {
-                        "truth": effect,
-                        "form": form,
-                        "strength": round(s, 4),
-                        "seed": int(rng.integers(1, 2**31)),
-                    }
-                )
+                add({"truth": effect, "form": form, "strength": round(s, 4)})
     if ladder:
         for effect in EFFECTS:
             for form in FORMS[reality][effect]:
                 for frac in LADDER_FRACTIONS:
                     s = ranges[effect][0] * frac * (-1 if form == "lead" else 1)
-                    runs.append(
-                        {
-                            "truth": effect,
-                            "form": form,
-                            "strength": round(s, 5),
-                            "seed": int(rng.integers(1, 2**31)),
-                            "ladder": True,
-                        }
-                    )
+                    add({"truth": effect, "form": form, "strength": round(s, 5)}, ladder=True)
     for _ in range(extra_none):
-        for label in none_classes(reality):
-            runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
+        add_nones()
     for r in runs:
         r["reality"] = reality
     return runs
@@ -313,14 +305,10 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
             above = [r["gap"]["after_verdict"] - r["gap"]["floor"] for r in rs]
             shrink[e] = {
                 "runs": len(rs),
-                "mean_gap_sim_as_is": round(float(np.mean([r["gap"]["sim_as_is"] for r in rs])), 3),
-                "mean_gap_after_refit": round(
-                    float(np.mean([r["gap"]["after_refit"] for r in rs])), 3
-                ),
-                "mean_gap_after_effect": round(
-                    float(np.mean([r["gap"]["after_verdict"] for r in rs])), 3
-                ),
-                "mean_floor": round(float(np.mean([r["gap"]["floor"] for r in rs])), 3),
+                "mean_gap_sim_as_is": _mean_gap(rs, "sim_as_is"),
+                "mean_gap_after_refit": _mean_gap(rs, "after_refit"),
+                "mean_gap_after_effect": _mean_gap(rs, "after_verdict"),
+                "mean_floor": _mean_gap(rs, "floor"),
                 "max_above_floor_db": round(float(np.max(above)), 3),
                 "all_within_1db_of_floor": bool(np.max(above) <= 1.0),
             }
@@ -330,64 +318,30 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
         if rs:
             none_gap[t] = {
                 "runs": len(rs),
-                "mean_gap_sim_as_is": round(float(np.mean([r["gap"]["sim_as_is"] for r in rs])), 3),
-                "mean_gap_after_refit": round(
-                    float(np.mean([r["gap"]["after_refit"] for r in rs])), 3
-                ),
-                "mean_floor": round(float(np.mean([r["gap"]["floor"] for r in rs])), 3),
+                "mean_gap_sim_as_is": _mean_gap(rs, "sim_as_is"),
+                "mean_gap_after_refit": _mean_gap(rs, "after_refit"),
+                "mean_floor": _mean_gap(rs, "floor"),
                 "max_refit_above_floor_db": round(
                     float(np.max([r["gap"]["after_refit"] - r["gap"]["floor"] for r in rs])), 3
                 ),
             }
     detect = {}
     for e in EFFECTS:
-        lad = sorted(
-            [r for r in results if r.get("ladder") and r["truth"] == e],
-            key=lambda r: abs(r["strength"]),
-        )
+        lad = _ladder(results, e)
         blind_e = sorted([r for r in blind if r["truth"] == e], key=lambda r: abs(r["strength"]))
         if not lad and not blind_e:
             continue
-        found = [r["correct"] for r in lad]
-        # smallest ladder strength from which every stronger ladder run was found
-        threshold = None
-        for i in range(len(lad)):
-            if all(found[i:]):
-                threshold = abs(lad[i]["strength"])
-                break
         detect[e] = {
-            "ladder": [
-                {
-                    "strength": r["strength"],
-                    "verdict": r["verdict"],
-                    "p_value": r["p_values"].get(e),
-                }
-                for r in lad
-            ],
-            "detected_from_strength": threshold,
-            "blind": [
-                {
-                    "strength": r["strength"],
-                    "verdict": r["verdict"],
-                    "p_value": r["p_values"].get(e),
-                }
-                for r in blind_e
-            ],
+            "ladder": _points(lad, e),
+            "detected_from_strength": _detected_from(lad),
+            "blind": _points(blind_e, e),
             "range_of_blind_runs": list(ranges[e]),
         }
     per_form = {}
     for e in EFFECTS:
         for form in FORMS.get(reality, {}).get(e, ()):
             rs = [r for r in blind if r["truth"] == e and r.get("form") == form]
-            lad = sorted(
-                [
-                    r
-                    for r in results
-                    if r.get("ladder") and r["truth"] == e and r.get("form") == form
-                ],
-                key=lambda r: abs(r["strength"]),
-            )
-            found = [r["correct"] for r in lad] + [True]
+            lad = _ladder(results, e, form)
             per_form[f"{e}/{form}"] = {
                 "effect": e,
                 "form": form,
@@ -399,10 +353,7 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
                 "verdicts": [r["verdict"] for r in rs],
                 "strengths": [r["strength"] for r in rs],
                 "ladder": [{"strength": r["strength"], "verdict": r["verdict"]} for r in lad],
-                "detected_from_strength": next(
-                    (abs(lad[i]["strength"]) for i in range(len(lad)) if all(found[i:])),
-                    None if lad else None,
-                ),
+                "detected_from_strength": _detected_from(lad),
             }
     none_flags = {
         t: {
@@ -432,6 +383,35 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
         "n_runs": len(blind),
         "n_ladder_runs": len(results) - len(blind),
     }
+
+
+def _mean_gap(runs: list[dict], key: str) -> float:
+    return round(float(np.mean([r["gap"][key] for r in runs])), 3)
+
+
+def _ladder(results: list[dict], effect: str, form: str | None = None) -> list[dict]:
+    """The ladder runs of an effect (of one of its forms), weakest first."""
+    return sorted(
+        (
+            r
+            for r in results
+            if r.get("ladder") and r["truth"] == effect and form in (None, r.get("form"))
+        ),
+        key=lambda r: abs(r["strength"]),
+    )
+
+
+def _points(runs: list[dict], effect: str) -> list[dict]:
+    return [
+        {"strength": r["strength"], "verdict": r["verdict"], "p_value": r["p_values"].get(effect)}
+        for r in runs
+    ]
+
+
+def _detected_from(ladder: list[dict]) -> float | None:
+    """The smallest ladder strength from which every stronger ladder run was found."""
+    found = [r["correct"] for r in ladder]
+    return next((abs(r["strength"]) for i, r in enumerate(ladder) if all(found[i:])), None)
 
 
 REALITY_TEXT = {
@@ -575,10 +555,7 @@ def output_names(reality: str) -> tuple[str, str, str]:
 
 def make_figure(summary: dict, path: Path) -> None:
     """Confusion matrix and, per effect, verdicts along the strength ladder and the blind runs."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     labels = ["none"] + list(EFFECTS)
     rows = list(summary["confusion"])
@@ -622,9 +599,7 @@ def make_figure(summary: dict, path: Path) -> None:
     ax.set_yticklabels(list(summary["detectability"]), fontsize=8)
     ax.set_xlabel("strength / lower end of the blind range (squares: ladder, circles: blind runs)")
     ax.set_title("detected (green) or missed (red) by strength", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple[dict, dict]:

@@ -59,6 +59,7 @@ from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.evaluation.metrics import json_safe
+from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.experiments.flight.methods import build_methods
@@ -649,10 +650,7 @@ def markdown(result: dict) -> str:
 
 
 def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from scipy import signal
 
     written = []
@@ -684,11 +682,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
         ax.set_title(f"flight, {name} split")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    path = out_dir / "methods_compare_tradeoff.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    written.append(save_figure(fig, out_dir / "methods_compare_tradeoff.png"))
     spec = result["flight"]["primary"].get("spectrogram")
     if spec is not None:
         fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, sharey=True)
@@ -697,11 +691,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
             ax.pcolormesh(t, f, 10 * np.log10(s + 1e-12), vmin=-90, vmax=-30, shading="auto")
             ax.set_ylabel(f"{key}\nHz")
         axes[-1].set_xlabel("s into the test part (events at the project's rule, set 1)")
-        fig.tight_layout()
-        path = out_dir / "methods_compare_spectrogram.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, out_dir / "methods_compare_spectrogram.png"))
     return written
 
 

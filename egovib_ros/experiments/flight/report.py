@@ -14,6 +14,7 @@ import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.metrics import json_safe
+from egovib_ros.experiments import pyplot
 from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import RobotProfile
@@ -533,17 +534,8 @@ def strip_signals(result: dict) -> dict:
 
 
 # --- figures -----------------------------------------------------------------
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _png(fig) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=110, format="png")
     plt.close(fig)
@@ -553,7 +545,7 @@ def _png(fig) -> bytes:
 def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
     from scipy import signal as sps
 
-    plt = _pyplot()
+    plt = pyplot()
     fold = result["primary"]
     sig = fold["signals"]
     best = best_baseline(fold)
@@ -586,7 +578,7 @@ def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
 
 
 def timeseries_figure(result: dict, profile: RobotProfile, window_s: float = 2.0) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     fold = result["primary"]
     sig = fold["signals"]
     fs = profile.rate_hz
@@ -628,7 +620,7 @@ def timeseries_figure(result: dict, profile: RobotProfile, window_s: float = 2.0
 
 
 def methods_figure(result: dict) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     folds = [("primary", "calibrate on the 1st part, test the 2nd")]
     if "swapped" in result:
         folds.append(("swapped", "swapped"))
