@@ -3,7 +3,15 @@ the gap diagnosis's blind validation, the real quadcopter flights."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+
+def fmt(value, digits: int = 1) -> str:
+    """`value` with `digits` decimals; "n/a" for None and non-finite floats."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}"
 
 
 def pyplot():

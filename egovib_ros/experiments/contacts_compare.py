@@ -54,7 +54,7 @@ from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
-from egovib_ros.evaluation.metrics import json_safe, segment_contacts
+from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
 from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.robot import load_profile
 
@@ -177,21 +177,13 @@ def why(runs: dict, model) -> dict:
     reference = combined_bandpassed(raw["contact"], model.robot_profile())
     seg = segment_contacts(reference, sample_rate_hz=model.sample_rate_hz)
     quiet = seg.no_contact_mask
-
-    def tap_peaks(envelope):
-        return (
-            np.array([envelope[a:b].max() for a, b in seg.tap_windows])
-            if len(seg.tap_windows)
-            else np.zeros(0)
-        )
-
-    raw_peaks = tap_peaks(raw["envelope"])
+    raw_peaks = tap_peaks(raw["envelope"], seg.tap_windows)
     out = {"_onsets_ns": raw["stamps"][seg.onsets]}
     for method, run in runs.items():
         if not np.array_equal(run["stamps"], raw["stamps"]):
             raise RuntimeError(f"method {method}: output stamps differ from the input's")
         envelope, threshold = run["envelope"], run["detection"].threshold
-        peaks = tap_peaks(envelope)
+        peaks = tap_peaks(envelope, seg.tap_windows)
         power = np.mean(envelope[quiet] ** 2)
         at = np.searchsorted(run["stamps"], [e.onset_ns for e in run["detection"].events])
         in_quiet = int(np.count_nonzero(quiet[np.clip(at, 0, len(quiet) - 1)]))
@@ -356,9 +348,7 @@ def flight_case(
     (c0, c1), (t0, t1) = SPLITS[split]
     if test_s is not None:
         t0, t1 = test_s
-    start = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(start + int(c0 * 1e9), start + int(c1 * 1e9))
-    test = rec.time_slice(start + int(t0 * 1e9), start + int(t1 * 1e9))
+    cal, test = rec.part(c0, c1), rec.part(t0, t1)
     cal_bag = work / f"flight_{split}_calibration"
     write_recording(cal_bag, _as_recording(cal), profile=profile)
     model = calibrated(cal_bag, profile)

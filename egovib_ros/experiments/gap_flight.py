@@ -29,16 +29,13 @@ SPLIT_S = 8.5
 
 
 def _slice(rec, start_s: float, stop_s: float):
+    """The part [start_s, stop_s) s after the first sample, without ground truth or commands."""
     from dataclasses import replace
 
     t0 = int(rec.sensor_stamps_ns[0])
     lo, hi = t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S)
-    a = slice(
-        int(np.searchsorted(rec.sensor_stamps_ns, lo)),
-        int(np.searchsorted(rec.sensor_stamps_ns, hi)),
-    )
-    j = slice(
-        int(np.searchsorted(rec.joint_stamps_ns, lo)), int(np.searchsorted(rec.joint_stamps_ns, hi))
+    a, j = (
+        slice(*np.searchsorted(s, [lo, hi])) for s in (rec.sensor_stamps_ns, rec.joint_stamps_ns)
     )
     return replace(
         rec,

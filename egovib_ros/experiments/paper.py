@@ -30,6 +30,7 @@ from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
+from egovib_ros.experiments import fmt
 from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
@@ -304,12 +305,6 @@ def must_show_check(results: dict) -> dict:
 # ---------------------------------------------------------------------------
 # Tables
 # ---------------------------------------------------------------------------
-def _fmt(value, digits: int = 1) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}"
-
-
 def results_json(results: dict) -> dict:
     """JSON-ready copy of `run_experiments` results (no signals, no objects)."""
     out = {
@@ -359,13 +354,13 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
     rows = []
     for m in report["methods"].values():
         rows.append(
-            f"| {exp} | {speed_label} | {m['label']} | {_fmt(m['delay_ms'])} | "
-            f"{_fmt(m['noise_mean_denoised'], 3)} | {_fmt(m['noise_reduction_db'])} | "
-            f"{_fmt(m['noise_spike_denoised'], 3)} | {_fmt(m['tap_peak_denoised'], 2)} | "
-            f"{_fmt(m['tap_retention'], 2)} | {_fmt(m['peak_snr_denoised_db'])} | "
-            f"{_fmt(m['peak_snr_improvement_db'])} | {_fmt(m['segsnr_contact_denoised_db'])} | "
-            f"{_fmt(m['threshold'], 3)} | {_fmt(m['precision'], 2)} | {_fmt(m['recall'], 2)} | "
-            f"{_fmt(m['f1'], 2)} | {_fmt(m['false_alarms_per_min'])} |"
+            f"| {exp} | {speed_label} | {m['label']} | {fmt(m['delay_ms'])} | "
+            f"{fmt(m['noise_mean_denoised'], 3)} | {fmt(m['noise_reduction_db'])} | "
+            f"{fmt(m['noise_spike_denoised'], 3)} | {fmt(m['tap_peak_denoised'], 2)} | "
+            f"{fmt(m['tap_retention'], 2)} | {fmt(m['peak_snr_denoised_db'])} | "
+            f"{fmt(m['peak_snr_improvement_db'])} | {fmt(m['segsnr_contact_denoised_db'])} | "
+            f"{fmt(m['threshold'], 3)} | {fmt(m['precision'], 2)} | {fmt(m['recall'], 2)} | "
+            f"{fmt(m['f1'], 2)} | {fmt(m['false_alarms_per_min'])} |"
         )
     det = report["detection"]
     for label, key in (
@@ -376,8 +371,8 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
         rows.append(
             f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | "
             f"{d['threshold']:g} | "
-            f"{_fmt(d['precision'], 2)} | {_fmt(d['recall'], 2)} | {_fmt(d['f1'], 2)} | "
-            f"{_fmt(d['false_alarms_per_min'])} |"
+            f"{fmt(d['precision'], 2)} | {fmt(d['recall'], 2)} | {fmt(d['f1'], 2)} | "
+            f"{fmt(d['false_alarms_per_min'])} |"
         )
     return rows
 
@@ -401,13 +396,13 @@ def paper_comparison_markdown(results: dict) -> str:
         det = r["detection"]
         lines.append(
             f"| ours, sim, exp (a) {speed:.0%} | "
-            f"{_fmt(r['noise_mean_raw'], 3)} -> {_fmt(r['noise_mean_denoised'], 3)} | "
-            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | "
-            f"{_fmt(r['tap_retention'], 2)} | "
-            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | "
-            f"{_fmt(r['delay_ms'])} | "
-            f"{_fmt(det['raw_bandpassed']['f1'], 2)} / {_fmt(det['pr2_2ms2']['f1'], 2)} / "
-            f"{_fmt(det['pr2_5ms2']['f1'], 2)} -> {_fmt(r['f1_denoised'], 2)} |"
+            f"{fmt(r['noise_mean_raw'], 3)} -> {fmt(r['noise_mean_denoised'], 3)} | "
+            f"{fmt(r['tap_peak_raw'], 2)} -> {fmt(r['tap_peak_denoised'], 2)} | "
+            f"{fmt(r['tap_retention'], 2)} | "
+            f"{fmt(r['peak_snr_raw_db'])} -> {fmt(r['peak_snr_denoised_db'])} | "
+            f"{fmt(r['delay_ms'])} | "
+            f"{fmt(det['raw_bandpassed']['f1'], 2)} / {fmt(det['pr2_2ms2']['f1'], 2)} / "
+            f"{fmt(det['pr2_5ms2']['f1'], 2)} -> {fmt(r['f1_denoised'], 2)} |"
         )
     return "\n".join(lines)
 

@@ -95,16 +95,18 @@ class RealConfig:
             self.methods = ("raw",) + tuple(self.methods)
 
 
-def _edge_mask(n: int, fs: float) -> np.ndarray:
+def calibration_mask(cal, test, fs: float) -> np.ndarray:
+    """The calibration samples a detection threshold is taken on: the edges dropped, and
+    then only those at joint speeds the test part reaches if a second of them is left."""
+    n = len(cal.sensor_stamps_ns)
     edge = min(int(metrics.EDGE_S * fs), n // 4)
     mask = np.ones(n, bool)
     mask[:edge] = False
     mask[n - edge :] = False
+    within = speed_envelope_mask(cal, test)
+    if np.count_nonzero(mask & within) >= fs:
+        mask &= within
     return mask
-
-
-def _with_signal(rec: FlightRecording, accel: np.ndarray) -> FlightRecording:
-    return dataclasses.replace(rec, sensor=accel)
 
 
 def score_events(
@@ -121,7 +123,7 @@ def score_events(
     fs = profile.rate_hz
     t0 = int(test.sensor_stamps_ns[0])
     events = make_events(test.sensor_stamps_ns, test.sensor, profile, spec=spec)
-    noisy = _with_signal(test, test.sensor + events.signal)
+    noisy = dataclasses.replace(test, sensor=test.sensor + events.signal)
     reference = combined_bandpassed(events.signal, profile)
     seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
     truth = seg.onsets
@@ -258,10 +260,7 @@ def run_fold(
     """Calibrate on one time range, test on another; every method, every event amplitude."""
     fs = profile.rate_hz
     t0 = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(
-        t0 + int(calibration_s[0] * NS_PER_S), t0 + int(calibration_s[1] * NS_PER_S)
-    )
-    test = rec.time_slice(t0 + int(test_s[0] * NS_PER_S), t0 + int(test_s[1] * NS_PER_S))
+    cal, test = rec.part(*calibration_s), rec.part(*test_s)
     for part, name in ((cal, "calibration"), (test, "test")):
         if len(part.sensor_stamps_ns) < 4 * profile.block_length or len(part.joint_stamps_ns) == 0:
             raise ConfigError(
@@ -273,10 +272,7 @@ def run_fold(
         return detection.envelope(x, sample_rate_hz=fs)
 
     methods = build_methods(profile, config.methods)
-    cal_mask = _edge_mask(len(cal.sensor_stamps_ns), fs)
-    in_envelope = speed_envelope_mask(cal, test)
-    if np.count_nonzero(cal_mask & in_envelope) >= fs:  # at least 1 s left
-        cal_mask &= in_envelope
+    cal_mask = calibration_mask(cal, test, fs)
     fitted, thresholds, fit_seconds = {}, {}, {}
     for name, method in methods.items():
         start = time.perf_counter()

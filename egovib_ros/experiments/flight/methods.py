@@ -38,6 +38,7 @@ from egovib_ros.experiments.flight.notch import (
     BETAFLIGHT_Q,
     HarmonicNotchBank,
     fit_speed_frequency_map,
+    hold,
 )
 from egovib_ros.robot import RobotProfile
 
@@ -68,20 +69,6 @@ def single_joint_profile(
     )
 
 
-def calibrate_free(profile: RobotProfile, rec, joint_velocity: np.ndarray, *, source: str = ""):
-    """Calibrate a noise model from no-contact free motion (every steady block to its nearest
-    cell of the profile's grid): (model, stats)."""
-    return calibrate_arrays(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        joint_velocity,
-        profile=profile,
-        sweep="free",
-        source=source,
-    )
-
-
 class SpectralTable:
     """The core's spectral subtraction with a profile and a way to get its joint 'velocities'."""
 
@@ -98,8 +85,15 @@ class SpectralTable:
         return 1e3 * self.profile.block_length / self.profile.rate_hz
 
     def fit(self, rec) -> "SpectralTable":
-        self.model, self.calibration_stats = calibrate_free(
-            self.profile, rec, self.joints(rec), source=self.profile.name
+        # no-contact free motion: every steady block to its nearest cell of the profile's grid
+        self.model, self.calibration_stats = calibrate_arrays(
+            rec.sensor_stamps_ns,
+            rec.sensor,
+            rec.joint_stamps_ns,
+            self.joints(rec),
+            profile=self.profile,
+            sweep="free",
+            source=self.profile.name,
         )
         return self
 
@@ -141,7 +135,7 @@ class NotchMethod:
         self.bank: HarmonicNotchBank | None = None
 
     def fit(self, rec) -> "NotchMethod":
-        motors = _hold(rec.joint_stamps_ns, rec.joint_velocity, rec.sensor_stamps_ns)
+        motors = hold(rec.joint_stamps_ns, rec.joint_velocity, rec.sensor_stamps_ns)
         frequency_map = fit_speed_frequency_map(
             rec.sensor.sum(axis=1), motors, self.profile.rate_hz
         )
@@ -185,14 +179,6 @@ class BandPassOnly:
 
     def info(self) -> dict:
         return {"band_hz": list(self.profile.band_hz), "order": self.profile.band_order}
-
-
-def _hold(joint_stamps_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray) -> np.ndarray:
-    """The latest joint state at or before each stamp (zeros before the first)."""
-    index = np.searchsorted(joint_stamps_ns, at_ns, side="right") - 1
-    held = np.asarray(values, float)[np.maximum(index, 0)]
-    held[index < 0] = 0.0
-    return held
 
 
 def _plain(value):

@@ -54,14 +54,13 @@ from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, method_delay_ms
-from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
-from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.experiments import pyplot, save_figure
+from egovib_ros.experiments import fmt, pyplot, save_figure
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
+from egovib_ros.experiments.flight.experiment import calibration_mask
 from egovib_ros.experiments.flight.methods import build_methods
 from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
@@ -201,22 +200,14 @@ def flight_split(
 ) -> dict:
     (c0, c1), (t0, t1) = SPLITS[name]
     fs = profile.rate_hz
-    start = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(start + int(c0 * NS_PER_S), start + int(c1 * NS_PER_S))
-    test = rec.time_slice(start + int(t0 * NS_PER_S), start + int(t1 * NS_PER_S))
+    cal, test = rec.part(c0, c1), rec.part(t0, t1)
     old = build_methods(profile, ("raw", "ours", "mean_command", "notch_q5"))
     methods = {"raw": old["raw"], "paper": old["ours"]}
     cancel = NewMethod(profile, "cancel", gain)
     methods.update({"cancel": cancel, "hybrid": NewMethod(profile, "hybrid", gain)})
     methods["hybrid_dropin"] = NewMethod(profile, "hybrid", gain, output="dropin")
     methods.update({"mean_command": old["mean_command"], "notch_q5": old["notch_q5"]})
-    edge = int(metrics.EDGE_S * fs)
-    cal_mask = np.ones(len(cal.sensor_stamps_ns), bool)
-    cal_mask[:edge] = False
-    cal_mask[-edge:] = False
-    within = speed_envelope_mask(cal, test)
-    if np.count_nonzero(cal_mask & within) >= fs:
-        cal_mask &= within
+    cal_mask = calibration_mask(cal, test, fs)
     thresholds, fit_s, delays = {}, {}, {}
     for key, method in methods.items():
         begin = time.perf_counter()
@@ -414,15 +405,9 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
             contact=0.5 * rec_b.contact,
         )
         cal_out = {m: _pr2_output(calibration, full, m) for m in PR2_METHODS}
-        edge = int(metrics.EDGE_S * fs)
         rows = {}
         for label, rec in (("a", rec_a), ("b", rec_b), ("b_half", half)):
-            mask = np.ones(len(calibration.sensor_stamps_ns), bool)
-            mask[:edge] = False
-            mask[-edge:] = False
-            within = speed_envelope_mask(calibration, rec)
-            if np.count_nonzero(mask & within) >= fs:
-                mask &= within
+            mask = calibration_mask(calibration, rec, fs)
             raw = bp(rec.sensor, full)
             reference = bp(rec.contact, full)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
@@ -500,12 +485,6 @@ def pr2_checks(pr2: dict) -> dict:
 # --------------------------------------------------------------------------------------
 # Report
 # --------------------------------------------------------------------------------------
-def _f(value, digits=1) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}"
-
-
 def flight_table(split: dict) -> list[str]:
     lines = [
         "| method | delay ms | noise red. dB 1x / 0.5x | retention of the event 1x / 0.5x "
@@ -516,24 +495,24 @@ def flight_table(split: dict) -> list[str]:
     r1, r05 = split["results"]["1"], split["results"]["0.5"]
 
     def pair(key: str, digits: int, a: dict, b: dict) -> str:
-        return f"{_f(a[key], digits)} / {_f(b[key], digits)}"
+        return f"{fmt(a[key], digits)} / {fmt(b[key], digits)}"
 
     for key in FLIGHT_METHODS:
         a, b = r1[key], r05[key]
         cells = [
             LABELS[key],
-            _f(split["delay_ms"][key]),
+            fmt(split["delay_ms"][key]),
             pair("noise_reduction_db", 1, a, b),
             pair("event_retention", 2, a, b),
             pair("tap_retention", 2, a, b),
             pair("waveform_corr", 2, a, b),
-            _f(a["peak_snr_improvement_db"]),
+            fmt(a["peak_snr_improvement_db"]),
             pair("f1", 2, a, b),
-            _f(a["false_alarms_per_min"]),
+            fmt(a["false_alarms_per_min"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     if "firmware" in r1:
-        firmware = _f(r1["firmware"]["noise_reduction_db"])
+        firmware = fmt(r1["firmware"]["noise_reduction_db"])
         lines.append(
             f"| {LABELS['firmware']} | n/a | {firmware} | n/a | n/a | n/a | n/a | n/a | n/a |"
         )
@@ -553,13 +532,13 @@ def pr2_table(pr2: dict) -> list[str]:
         for exp, rows in exps.items():
             for method in PR2_METHODS[1:]:
                 r = rows[method]
-                perfect = _f(rows["oracle"]["tap_retention"], 2)
+                perfect = fmt(rows["oracle"]["tap_retention"], 2)
                 lines.append(
-                    f"| {float(speed):.0%} | {exp} | {method} | {_f(r['noise_reduction_db'])} | "
-                    f"{_f(r['event_retention'], 2)} | {_f(r['tap_retention'], 2)} ({perfect}) | "
-                    f"{_f(r['waveform_corr'], 2)} | "
-                    f"{_f(r['peak_snr_improvement_db'])} | {_f(r['f1'], 2)} | "
-                    f"{_f(r['false_alarms_per_min'])} |"
+                    f"| {float(speed):.0%} | {exp} | {method} | {fmt(r['noise_reduction_db'])} | "
+                    f"{fmt(r['event_retention'], 2)} | {fmt(r['tap_retention'], 2)} ({perfect}) | "
+                    f"{fmt(r['waveform_corr'], 2)} | "
+                    f"{fmt(r['peak_snr_improvement_db'])} | {fmt(r['f1'], 2)} | "
+                    f"{fmt(r['false_alarms_per_min'])} |"
                 )
     return lines
 
@@ -569,7 +548,7 @@ def checks_lines(checks: dict) -> list[str]:
     for where, group in checks.items():
         for key, c in group.items():
             lines.append(
-                f"| {where} | {key} | {_f(c['value'], 2)} | {_f(c['target'], 2)} | "
+                f"| {where} | {key} | {fmt(c['value'], 2)} | {fmt(c['target'], 2)} | "
                 f"{'yes' if c['met'] else '**no**'} |"
             )
     return lines
@@ -637,8 +616,8 @@ def markdown(result: dict) -> str:
             "",
             *pr2_table(result["pr2"]),
             "",
-            f"Algorithmic delay: paper {_f(delay['paper'])} ms, cancel 0 ms, hybrid "
-            f"{_f(delay['hybrid'])} ms. Batch, 3 kHz, 30 s at 50 % speed, best of 5, load "
+            f"Algorithmic delay: paper {fmt(delay['paper'])} ms, cancel 0 ms, hybrid "
+            f"{fmt(delay['hybrid'])} ms. Batch, 3 kHz, 30 s at 50 % speed, best of 5, load "
             f"average {bench['load_average_1min']}: paper {bench['paper_x_real_time']}x, "
             f"cancel {bench['cancel_x_real_time']}x, hybrid {bench['hybrid_x_real_time']}x "
             f"real time (wall); per CPU second {bench['paper_x_real_time_cpu']}x, "

@@ -139,6 +139,14 @@ def fit_speed_frequency_map(
     return SpeedFrequencyMap(float(np.exp(intercept)), float(slope), int(keep.sum()), rms)
 
 
+def hold(joint_stamps_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray) -> np.ndarray:
+    """The latest joint state at or before each stamp (zeros before the first): causal."""
+    index = np.searchsorted(joint_stamps_ns, at_ns, side="right") - 1
+    held = np.asarray(values, float)[np.maximum(index, 0)]
+    held[index < 0] = 0.0
+    return held
+
+
 class HarmonicNotchBank:
     """Notches at the folded harmonics h = 1..H of each motor's line, keyed on its command."""
 
@@ -179,10 +187,7 @@ class HarmonicNotchBank:
         x = np.asarray(x, float)
         n = len(x)
         starts = np.arange(0, n, self.update_samples)
-        # The latest command at or before each update block's first sample (causal hold).
-        index = np.searchsorted(joint_stamps_ns, stamps_ns[starts], side="right") - 1
-        held = np.asarray(commands, float)[np.maximum(index, 0)]
-        held[index < 0] = 0.0
+        held = hold(joint_stamps_ns, commands, stamps_ns[starts])  # at each update's first sample
         sos = notch_sos(self.centres(held), self.q, self.sample_rate_hz)  # (B, K, 6)
         out = np.empty(n)
         zi = np.zeros((sos.shape[1], 2))

@@ -60,6 +60,11 @@ class FlightRecording:
             None if f is None else self.filtered[f],
         )
 
+    def part(self, start_s: float, stop_s: float) -> "FlightRecording":
+        """`time_slice` from start_s to stop_s seconds after the first sensor sample."""
+        t0 = int(self.sensor_stamps_ns[0])
+        return self.time_slice(t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S))
+
 
 def read_flight_bag(
     path: str | os.PathLike, profile: RobotProfile, *, filtered_topic: str = FILTERED_TOPIC
