@@ -4,7 +4,15 @@ the gap diagnosis's blind validation, the real quadcopter flights."""
 from __future__ import annotations
 
 import math
+import shlex
+import sys
 from pathlib import Path
+
+
+def core_arrays(rec) -> tuple:
+    """(sensor stamps, sensor, joint stamps, joint velocity) of a recording: the arrays the
+    core's batch functions (calibrate_arrays, denoise_batch_method, ...) take first."""
+    return rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity
 
 
 def fmt(value, digits: int = 1) -> str:
@@ -12,6 +20,12 @@ def fmt(value, digits: int = 1) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "n/a"
     return f"{value:.{digits}f}"
+
+
+def python_command(module: str, argv: list[str] | None) -> str:
+    """The shell command `python -m module` with these arguments (None: this process's)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return " ".join(shlex.quote(a) for a in ["python", "-m", module, *argv])
 
 
 def pyplot():

@@ -39,9 +39,7 @@ import argparse
 import dataclasses
 import json
 import logging
-import shlex
 import shutil
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -55,7 +53,7 @@ from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
 from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
-from egovib_ros.experiments import pyplot, save_figure
+from egovib_ros.experiments import pyplot, python_command, save_figure
 from egovib_ros.robot import load_profile
 
 LOG = logging.getLogger("egovib_ros.contacts_compare")
@@ -639,10 +637,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("egovib_ros.core").setLevel(logging.ERROR)
-    argv = sys.argv[1:] if argv is None else argv
-    command = " ".join(
-        shlex.quote(a) for a in ["python", "-m", "egovib_ros.experiments.contacts_compare", *argv]
-    )
     out = Path(args.out)
     result = run(
         out,
@@ -650,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
         quick=args.quick,
         event_sets=args.event_sets,
         bag=args.bag,
-        command=command,
+        command=python_command("egovib_ros.experiments.contacts_compare", argv),
     )
     print(markdown(result))
     print(

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.experiments import core_arrays
 from egovib_ros.outputs import atomic_output
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
@@ -59,10 +60,7 @@ def calibrate_part(rec, profile, bag, part: tuple[float, float]):
 
     cal = _slice(rec, *part)
     model, _ = calibrate_arrays(
-        cal.sensor_stamps_ns,
-        cal.sensor,
-        cal.joint_stamps_ns,
-        cal.joint_velocity,
+        *core_arrays(cal),
         profile=profile,
         sweep="free",
         source=f"{bag} [{part[0]:g}, {part[1]:g}) s",

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.experiments import pyplot, save_figure
+from egovib_ros.experiments import core_arrays, pyplot, save_figure
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.outputs import atomic_output
 
@@ -139,10 +139,7 @@ def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100
         grid="superposition", dwell_s=dwell_s, settle_s=0.5, seed=seed, params=params
     )
     model, _ = calibrate_arrays(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        rec.joint_velocity,
+        *core_arrays(rec),
         sweep="superposition",
         source="simulated superposition sweep (gap validate)",
     )

@@ -30,7 +30,7 @@ from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
-from egovib_ros.experiments import fmt
+from egovib_ros.experiments import core_arrays, fmt
 from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
@@ -120,7 +120,7 @@ def build_models(config: ExperimentConfig, params=None, effects: dict | None = N
         params=params,
     )
     common = dict(sweep=config.sweep_grid, source="simulated calibration sweep")
-    arrays = (sweep.sensor_stamps_ns, sweep.sensor, sweep.joint_stamps_ns, sweep.joint_velocity)
+    arrays = core_arrays(sweep)
     model, _ = calibrate_arrays(*arrays, block_length=BLOCK_LENGTH, hop=HOP, **common)
     short = config.short_block_length
     model_short, _ = calibrate_arrays(*arrays, block_length=short, hop=short // 2, **common)

@@ -33,6 +33,7 @@ import numpy as np
 
 from egovib_ros.core import BandPass, calibrate_arrays, denoise_batch, filters
 from egovib_ros.evaluation.baselines import on_input_stamps
+from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.experiments.flight.notch import (
     ARDUPILOT_Q,
     BETAFLIGHT_Q,
@@ -116,11 +117,11 @@ class SpectralTable:
             "joints": list(self.profile.joint_names),
             "block_length": self.profile.block_length,
             "hop": self.profile.hop,
-            "calibration": _plain(self.calibration_stats.as_dict()),
-            "coverage": _plain(model.coverage()),
+            "calibration": json_safe(self.calibration_stats.as_dict()),
+            "coverage": json_safe(model.coverage()),
         }
         if self.denoise_stats is not None:
-            info["denoise"] = _plain(self.denoise_stats.as_dict())
+            info["denoise"] = json_safe(self.denoise_stats.as_dict())
         return info
 
 
@@ -179,19 +180,6 @@ class BandPassOnly:
 
     def info(self) -> dict:
         return {"band_hz": list(self.profile.band_hz), "order": self.profile.band_order}
-
-
-def _plain(value):
-    """JSON-friendly copy of a stats dict (numpy scalars/arrays to Python)."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def build_methods(profile: RobotProfile, names=METHODS) -> dict:

@@ -43,8 +43,6 @@ import logging
 import math
 import os
 import pickle
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -57,7 +55,7 @@ from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, met
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.experiments import fmt, pyplot, save_figure
+from egovib_ros.experiments import core_arrays, fmt, pyplot, python_command, save_figure
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.experiments.flight.experiment import calibration_mask
@@ -164,31 +162,16 @@ class NewMethod:
         if shared is not None and shared.model is not None:
             self.model, self.info = shared.model, shared.info
         else:
-            paper, _ = calibrate_arrays(
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                profile=self.profile,
-                sweep="free",
-            )
-            self.model, self.info = calibrate_methods(
-                paper,
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                gain=self.gain,
-            )
+            paper, _ = calibrate_arrays(*core_arrays(rec), profile=self.profile, sweep="free")
+            self.model, self.info = calibrate_methods(paper, *core_arrays(rec), gain=self.gain)
         self.delay_ms = method_delay_ms(self.model, self.method, output=self.output)
         return self
 
     def run(self, rec) -> np.ndarray:
         if self.output == "dropin":  # the three axes, then the paper's 1-D band-passed signal
             stamps, values, _ = denoise_batch_method(
-                rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity,
-                self.model, method=self.method, output="dropin",
-            )  # fmt: skip
+                *core_arrays(rec), self.model, method=self.method, output="dropin"
+            )
             placed = np.zeros((len(rec.sensor_stamps_ns), 3))
             placed[np.searchsorted(rec.sensor_stamps_ns, stamps)] = values
             return combined_bandpassed(placed, self.profile)
@@ -274,6 +257,15 @@ def flight_split(
     }
 
 
+def _judged(checks: dict) -> dict:
+    """Each criterion's [value, target] as value, target and met (a delay: at most the target)."""
+    for group in checks.values():
+        for key, (value, target) in group.items():
+            met = value <= target if key.startswith("delay") else value >= target
+            group[key] = {"value": value, "target": target, "met": bool(met)}
+    return checks
+
+
 def flight_checks(splits: dict) -> dict:
     """The issue's "must show" on the flight, pass/fail with the figures behind each."""
     checks = {}
@@ -316,11 +308,7 @@ def flight_checks(splits: dict) -> dict:
                 0.0,
             ],
         }
-    for group in checks.values():
-        for key, (value, target) in group.items():
-            met = value <= target if key.startswith("delay") else value >= target
-            group[key] = {"value": value, "target": target, "met": bool(met)}
-    return checks
+    return _judged(checks)
 
 
 # --------------------------------------------------------------------------------------
@@ -351,13 +339,7 @@ def pr2_data(cache: Path | None):
 def _denoised_combined(rec, model, method: str) -> np.ndarray:
     """`method`'s combined (1-D) output of `rec`, on the input's stamps."""
     stamps, values, _ = denoise_batch_method(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        rec.joint_velocity,
-        model,
-        method=method,
-        channels="combined",
+        *core_arrays(rec), model, method=method, channels="combined"
     )
     return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
 
@@ -377,14 +359,7 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
     config, models, recordings = pr2_data(cache)
     sweep = models.sweep
     begin = time.perf_counter()
-    full, info = calibrate_methods(
-        models.model,
-        sweep.sensor_stamps_ns,
-        sweep.sensor,
-        sweep.joint_stamps_ns,
-        sweep.joint_velocity,
-        gain=gain,
-    )
+    full, info = calibrate_methods(models.model, *core_arrays(sweep), gain=gain)
     calibration_s = time.perf_counter() - begin
     fs = full.sample_rate_hz
     out = {
@@ -441,15 +416,7 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
         wall = cpu = math.inf
         for _ in range(repeats):
             begin, begin_cpu = time.perf_counter(), time.process_time()
-            denoise_batch_method(
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                model,
-                method=method,
-                channels="combined",
-            )
+            denoise_batch_method(*core_arrays(rec), model, method=method, channels="combined")
             wall = min(wall, time.perf_counter() - begin)
             cpu = min(cpu, time.process_time() - begin_cpu)
         result[f"{method}_x_real_time"] = round(rec.duration_s / wall, 1)
@@ -475,11 +442,7 @@ def pr2_checks(pr2: dict) -> dict:
         "hybrid >= 300 x real time (wall)": [bench["hybrid_x_real_time"], 300.0],
         "hybrid >= 300 x real time (CPU time)": [bench["hybrid_x_real_time_cpu"], 300.0],
     }
-    for group in checks.values():
-        for key, (value, target) in group.items():
-            met = value <= target if key.startswith("delay") else value >= target
-            group[key] = {"value": value, "target": target, "met": bool(met)}
-    return checks
+    return _judged(checks)
 
 
 # --------------------------------------------------------------------------------------
@@ -705,15 +668,7 @@ def main(argv: list[str] | None = None) -> int:
     profile = load_profile("quadcopter")
     rec = read_flight_bag(args.bag, profile)
     result = {
-        "command": " ".join(
-            shlex.quote(a)
-            for a in [
-                "python",
-                "-m",
-                "egovib_ros.experiments.flight.methods_compare",
-                *(argv or sys.argv[1:]),
-            ]
-        ),
+        "command": python_command("egovib_ros.experiments.flight.methods_compare", argv),
         "event_sets": args.event_sets,
         "gain_settings": dataclasses.asdict(gain),
         "flight": {},
