@@ -157,21 +157,17 @@ def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.nd
     for (i, j), m, s, c in zip(_grid_index(full), full.mean, full.std, full.counts):
         if c > 0:
             mu_obs[i, j], sd_obs[i, j] = m, s
-    with np.errstate(invalid="ignore"):
-        return _error_from_tables(mu, sd, mu_obs, sd_obs)
-
-
-def _error_from_tables(mu, sd, mu_obs, sd_obs) -> np.ndarray:
     z = len(CELL_FRACTIONS) // 2
-    n6 = (
-        mu[:, z][:, None]
-        + mu[z, :][None, :]
-        - mu[z, z]
-        + np.sqrt(sd[:, z][:, None] ** 2 + sd[z, :][None, :] ** 2 + sd[z, z] ** 2)
-    )
-    n_obs = mu_obs + sd_obs
-    s6, sobs = n6[..., BAND_BINS].sum(axis=-1), n_obs[..., BAND_BINS].sum(axis=-1)
-    return 100.0 * np.abs(s6 - sobs) / sobs
+    with np.errstate(invalid="ignore"):
+        n6 = (
+            mu[:, z][:, None]
+            + mu[z, :][None, :]
+            - mu[z, z]
+            + np.sqrt(sd[:, z][:, None] ** 2 + sd[z, :][None, :] ** 2 + sd[z, z] ** 2)
+        )
+        n_obs = mu_obs + sd_obs
+        s6, sobs = n6[..., BAND_BINS].sum(axis=-1), n_obs[..., BAND_BINS].sum(axis=-1)
+        return 100.0 * np.abs(s6 - sobs) / sobs
 
 
 def motion_levels(
@@ -240,24 +236,21 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 
     Returns messages/s and multiples of real time for write_recording and read_recording.
     """
-    import shutil
     import tempfile
 
     from egovib_ros.bag import read_recording, write_recording
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
     n_messages = 3 * len(rec.sensor) + len(rec.joint_stamps_ns) + len(rec.commands)
-    tmp = Path(tempfile.mkdtemp(prefix="egovib_sim_validation_"))
-    try:
+    with tempfile.TemporaryDirectory(prefix="egovib_sim_validation_") as tmp:
+        bag = Path(tmp) / "bag"
         t0 = time.perf_counter()
-        write_recording(tmp / "bag", rec, compress=compress)
+        write_recording(bag, rec, compress=compress)
         t_write = time.perf_counter() - t0
         t0 = time.perf_counter()
-        read_recording(tmp / "bag")
+        read_recording(bag)
         t_read = time.perf_counter() - t0
-        size = sum(f.stat().st_size for f in (tmp / "bag").iterdir())
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        size = sum(f.stat().st_size for f in bag.iterdir())
     return {
         "seconds": seconds,
         "messages": n_messages,
