@@ -36,6 +36,7 @@ Writes DIR/contacts_compare.{md,json} and DIR/contacts_compare.png.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -597,13 +598,13 @@ def run(
 
     begin = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = None
     if work is None:
-        tmp = tempfile.TemporaryDirectory(prefix="egovib-contacts-")
-        work = Path(tmp.name)
+        scratch = tempfile.TemporaryDirectory(prefix="egovib-contacts-")
     else:
         work.mkdir(parents=True, exist_ok=True)
-    try:
+        scratch = contextlib.nullcontext(str(work))
+    with scratch as where:
+        work = Path(where)
         result = {"command": command, "attribution": ATTRIBUTION, "pr2": {}, "flight": {}}
         example = None
         for name, pr2_run in (QUICK_PR2_RUNS if quick else PR2_RUNS).items():
@@ -617,9 +618,6 @@ def run(
             result["flight"][split] = flight_case(
                 bag, split, work, 1 if quick else event_sets, (8.5, 11.0) if quick else None
             )
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
     result["runtime_s"] = time.perf_counter() - begin
     figure(result, example, out_dir / "contacts_compare.png")
     (out_dir / "contacts_compare.json").write_text(json.dumps(json_safe(result), indent=1) + "\n")

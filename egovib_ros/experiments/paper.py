@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from egovib_ros import sim
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import metrics
@@ -102,15 +103,8 @@ class Models:
     sweep: object
 
 
-def _sim():
-    from egovib_ros import sim
-
-    return sim
-
-
 def build_models(config: ExperimentConfig, params=None, effects: dict | None = None) -> Models:
     """Simulate the calibration sweep and calibrate the L = 64 and short-block models from it."""
-    sim = _sim()
     sweep, _ = sim.simulate_sweep(
         grid=config.sweep_grid,
         dwell_s=config.sweep_dwell_s,
@@ -141,7 +135,7 @@ def speed_recordings(
     seed = config.seed * 1000 + index * 10
 
     def motion(max_speed, tap_rate_hz, duration_s, k, effects=None):
-        return _sim().simulate_motion(
+        return sim.simulate_motion(
             duration_s=duration_s,
             max_speed=max_speed,
             tap_rate_hz=tap_rate_hz,
@@ -244,7 +238,7 @@ def run_experiments(
         if progress:
             progress(f"speed {speed:.0%}")
     if config.robustness_effects:
-        effects = _sim().parse_effects(config.robustness_effects)
+        effects = sim.parse_effects(config.robustness_effects)
         robust_models = build_models(config, params, effects=effects)
         report = run_speed(
             config,
