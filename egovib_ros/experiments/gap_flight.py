@@ -115,6 +115,7 @@ def run_flight_gap(
             report["runtime_s"] = round(time.perf_counter() - start, 2)
             (sub / "report.json").write_text(json.dumps(report, indent=1))
             (sub / "report.md").write_text(render_markdown(report))
+            deviance = {c["effect"]: c["deviance_reduction"] for c in diag.candidates}
             summary["directions"][name] = {
                 "verdict": report["verdict"],
                 "gap": report["gap"],
@@ -124,11 +125,7 @@ def run_flight_gap(
                         for k in ("effect", "p_value", "heldout_gap", "block_mse_reduction_db2")
                     }
                     | {
-                        "deviance_reduction": next(
-                            x["deviance_reduction"]
-                            for x in diag.candidates
-                            if x["effect"] == c["effect"]
-                        ),
+                        "deviance_reduction": deviance[c["effect"]],
                         "shape_summary": c.get("shape_summary", ""),
                     }
                     for c in report["candidates"]

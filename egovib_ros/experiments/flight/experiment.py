@@ -58,9 +58,8 @@ from egovib_ros.robot import RobotProfile, load_profile
 
 SCHEMA = "egovib.real/1"
 PRIMARY_AMPLITUDE = 1.0
-LENIENT_TOLERANCE_S = (
-    0.030  # also scored: an event found up to 30 ms off (IIR notches ring and delay)
-)
+# also scored: an event found up to 30 ms off (IIR notches ring and delay)
+LENIENT_TOLERANCE_S = 0.030
 SCORES = ("f1", "precision", "recall", "tp", "fp", "fn", "threshold")  # of the detector, per row
 
 

@@ -204,9 +204,7 @@ def flight_split(
             detection.envelope(output, sample_rate_hz=fs)[cal_mask]
         )
         delays[key] = float(method.delay_ms)
-    delays["paper"] = (
-        1e3 * (profile.block_length - 1) / fs
-    )  # the last sample of a block waits L - 1
+    delays["paper"] = 1e3 * (profile.block_length - 1) / fs  # a block's last sample waits L - 1
     delays["mean_command"] = delays["paper"]
     firmware = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
     minutes = len(test.sensor_stamps_ns) / fs / 60.0
