@@ -40,12 +40,9 @@ def fold(freq_hz: np.ndarray, sample_rate_hz: float) -> np.ndarray:
     return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
 
 
-def notch_sos(
-    freq_hz: np.ndarray, q: float, sample_rate_hz: float, weight: np.ndarray | float = 1.0
-) -> np.ndarray:
+def notch_sos(freq_hz: np.ndarray, q: float, sample_rate_hz: float) -> np.ndarray:
     """(..., 6) second-order sections of scipy.signal.iirnotch(f, q, fs) for every centre in
-    `freq_hz` (vectorised, same formulas), blended with a pass-through by `weight` as
-    Betaflight's weighted biquad: y = x + w (notch(x) - x)."""
+    `freq_hz` (vectorised, same formulas)."""
     w0 = 2.0 * np.asarray(freq_hz, float) / sample_rate_hz
     bandwidth = w0 / q * np.pi
     gain = 1.0 / (1.0 + np.tan(bandwidth / 2.0))
@@ -53,8 +50,7 @@ def notch_sos(
     one = np.ones_like(w0)
     b = gain[..., None] * np.stack([one, -2.0 * cos, one], axis=-1)
     a = np.stack([one, -2.0 * gain * cos, 2.0 * gain - 1.0], axis=-1)
-    weight = np.broadcast_to(np.asarray(weight, float), w0.shape)[..., None]
-    return np.concatenate([weight * b + (1.0 - weight) * a, a], axis=-1)
+    return np.concatenate([b, a], axis=-1)
 
 
 @dataclass(frozen=True)
