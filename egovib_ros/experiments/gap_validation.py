@@ -627,7 +627,6 @@ def run_validation(
     progress: bool = False,
     master_seed: int = 2026,
     calibration_dwell_s: float = CALIBRATION_DWELL_S,
-    write: bool = True,
     reality: str = "sim",
     runs: list[dict] | None = None,
     extra_none: int = 0,
@@ -642,7 +641,7 @@ def run_validation(
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
     if reality == "real":
-        return _run_real(out_dir, write)
+        return _run_real(out_dir)
     start = time.perf_counter()
     if runs is None:
         runs = plan_runs(
@@ -690,19 +689,16 @@ def run_validation(
         "runs": results,
         "runtime_s": round(time.perf_counter() - start, 1),
     }
-    outputs = []
-    if write:
-        out = Path(out_dir)
-        outputs += _write_report(out, report, render_markdown(report), json_name, md_name)
-        with atomic_output(out / png_name) as tmp_path:
-            make_figure(summary, tmp_path)
-        outputs.append(str(out / png_name))
-    summary["outputs"] = outputs
+    out = Path(out_dir)
+    outputs = _write_report(out, report, render_markdown(report), json_name, md_name)
+    with atomic_output(out / png_name) as tmp_path:
+        make_figure(summary, tmp_path)
+    summary["outputs"] = outputs + [str(out / png_name)]
     summary["report"] = report
     return summary
 
 
-def _run_real(out_dir, write: bool) -> dict:
+def _run_real(out_dir) -> dict:
     """Known effects injected into the real flight (experiments/gap_real_injection.py)."""
     from egovib_ros.experiments.gap_real_injection import render_markdown as render_real
     from egovib_ros.experiments.gap_real_injection import run_real_validation
@@ -713,11 +709,10 @@ def _run_real(out_dir, write: bool) -> dict:
     summary["accuracy"] = summary["accuracy_injected"]
     untouched = summary["untouched_correct"]
     summary["none_false_positive_rate"] = round(1.0 - float(np.mean(untouched)), 4)
-    outputs = []
-    if write:
-        json_name, md_name, _ = output_names("real")
-        outputs += _write_report(Path(out_dir), report, render_real(report), json_name, md_name)
-    summary["outputs"] = outputs
+    json_name, md_name, _ = output_names("real")
+    summary["outputs"] = _write_report(
+        Path(out_dir), report, render_real(report), json_name, md_name
+    )
     summary["report"] = report
     summary["n_runs"] = report["summary"]["n_runs"]
     return summary

@@ -140,23 +140,15 @@ def _grid_index(stats: CellStats) -> np.ndarray:
     return np.abs(frac[..., None] - CELL_FRACTIONS).argmin(axis=-1)
 
 
-def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.ndarray:
+def superposition_error(stats: CellStats) -> np.ndarray:
     """(G, G) Fig. 4 error map in % (G grid points per joint, 21 for the PR2; rows wrist,
-    columns gripper); Eq. 6 from `axes` (default: `full`)."""
-    axes = axes if axes is not None else full
+    columns gripper): each cell's mu + sd against Eq. 6 from the single-joint cells."""
     n = len(CELL_FRACTIONS)
     mu = np.full((n, n, len(FREQS_HZ)), np.nan)
     sd = np.full_like(mu, np.nan)
-    for src in (axes, full) if axes is not full else (full,):
-        idx = _grid_index(src)
-        for (i, j), m, s, c in zip(idx, src.mean, src.std, src.counts):
-            if c > 0 and np.isnan(mu[i, j, 0]):
-                mu[i, j], sd[i, j] = m, s
-    mu_obs = np.full_like(mu, np.nan)
-    sd_obs = np.full_like(mu, np.nan)
-    for (i, j), m, s, c in zip(_grid_index(full), full.mean, full.std, full.counts):
+    for (i, j), m, s, c in zip(_grid_index(stats), stats.mean, stats.std, stats.counts):
         if c > 0:
-            mu_obs[i, j], sd_obs[i, j] = m, s
+            mu[i, j], sd[i, j] = m, s
     z = len(CELL_FRACTIONS) // 2
     with np.errstate(invalid="ignore"):
         n6 = (
@@ -165,7 +157,7 @@ def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.nd
             - mu[z, z]
             + np.sqrt(sd[:, z][:, None] ** 2 + sd[z, :][None, :] ** 2 + sd[z, z] ** 2)
         )
-        n_obs = mu_obs + sd_obs
+        n_obs = mu + sd
         s6, sobs = n6[..., BAND_BINS].sum(axis=-1), n_obs[..., BAND_BINS].sum(axis=-1)
         return 100.0 * np.abs(s6 - sobs) / sobs
 
