@@ -315,12 +315,7 @@ def results_json(results: dict) -> dict:
     for speed, both in results["speeds"].items():
         out["speeds"][f"{speed:g}"] = {key: strip(report) for key, report in both.items()}
     if "robustness" in results:
-        robust = results["robustness"]
-        out["robustness"] = {
-            "effects": robust["effects"],
-            "speed": robust["speed"],
-            "a": strip(robust["a"]),
-        }
+        out["robustness"] = {**results["robustness"], "a": strip(results["robustness"]["a"])}
     if "fig4_error" in results:
         out["fig4_error"] = results["fig4_error"]
     return metrics.json_safe(out)

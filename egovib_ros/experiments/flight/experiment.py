@@ -169,13 +169,11 @@ def score_events(
     }
     if keep_signals:
         signals.update(
-            {
-                "raw_input": raw,
-                "reference": reference,
-                "seg": seg,
-                "stamps_ns": test.sensor_stamps_ns,
-                "firmware": firmware_bp,
-            }
+            raw_input=raw,
+            reference=reference,
+            seg=seg,
+            stamps_ns=test.sensor_stamps_ns,
+            firmware=firmware_bp,
         )
     return {"rows": rows, "events": info, "signals": signals}
 
@@ -288,7 +286,7 @@ def run_fold(
             keep_signals=keep_signals and primary,
         )
         results[f"{amplitude:g}"] = scored["rows"]
-        event_info[f"{amplitude:g}"] = {key: value for key, value in scored["events"].items()}
+        event_info[f"{amplitude:g}"] = dict(scored["events"])
         if keep_signals and primary:
             signals = {**scored["signals"], "t0_ns": t0}
     # Fifteen events or so per set: the same at the primary amplitude over several event sets.

@@ -385,13 +385,8 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
             reference = bp(rec.contact, full)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
             minutes = len(rec.sensor_stamps_ns) / fs / 60.0
-            rows[label] = {
-                "oracle": {
-                    "tap_retention": metrics.signal_metrics(raw, reference, reference, seg)[
-                        "tap_retention"
-                    ]
-                }
-            }
+            oracle = metrics.signal_metrics(raw, reference, reference, seg)["tap_retention"]
+            rows[label] = {"oracle": {"tap_retention": oracle}}
             for method in PR2_METHODS:
                 threshold = detection.threshold_from_calibration(
                     detection.envelope(cal_out[method], sample_rate_hz=fs)[mask]
