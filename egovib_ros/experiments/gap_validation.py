@@ -576,20 +576,18 @@ def make_figure(summary: dict, path: Path) -> None:
     )
     ax = axes[1]
     for k, (e, d) in enumerate(summary["detectability"].items()):
-        pts = [(abs(r["strength"]), r["verdict"] == e, "ladder") for r in d["ladder"]] + [
-            (abs(r["strength"]), r["verdict"] == e, "blind") for r in d["blind"]
-        ]
         lo = d["range_of_blind_runs"][0]
-        for x, ok, kind in pts:
-            ax.scatter(
-                x / lo,
-                k,
-                marker="o" if kind == "blind" else "s",
-                s=40,
-                color="C2" if ok else "C3",
-                edgecolor="k",
-                linewidth=0.5,
-            )
+        for kind, marker in (("ladder", "s"), ("blind", "o")):
+            for r in d[kind]:
+                ax.scatter(
+                    abs(r["strength"]) / lo,
+                    k,
+                    marker=marker,
+                    s=40,
+                    color="C2" if r["verdict"] == e else "C3",
+                    edgecolor="k",
+                    linewidth=0.5,
+                )
     ax.axvline(1.0, color="0.5", ls="--", lw=0.8)
     ax.set_xscale("log")
     ax.set_yticks(range(len(summary["detectability"])))

@@ -320,17 +320,13 @@ def pr2_data(cache: Path | None):
     config = ExperimentConfig()
     path = cache / f"pr2_seed{config.seed}.pkl" if cache else None
     if path is not None and path.is_file():
-        with open(path, "rb") as fh:
-            return pickle.load(fh)
+        return pickle.loads(path.read_bytes())
     models = build_models(config)
-    recordings = {}
-    for index, speed in enumerate(config.speeds):
-        recordings[speed] = speed_recordings(config, speed, index=index)
+    recordings = {s: speed_recordings(config, s, index=i) for i, s in enumerate(config.speeds)}
     data = (config, models, recordings)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
-            pickle.dump(data, fh)
+        path.write_bytes(pickle.dumps(data))
     return data
 
 
