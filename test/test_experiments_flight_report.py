@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from egovib_ros.evaluation.metrics import segment_contacts
+from egovib_ros.experiments import fmt
 from egovib_ros.experiments.flight import report
 from egovib_ros.experiments.flight.events import EventSpec
 from egovib_ros.experiments.flight.experiment import FLIGHT_PHASES
@@ -203,10 +204,10 @@ def result(
 
 # --- numbers -------------------------------------------------------------------
 def test_fmt_rounds_and_says_na_for_missing_or_non_finite():
-    assert report._fmt(12.345) == "12.3" and report._fmt(0.12345, 3) == "0.123"
-    assert report._fmt(32.0, 0) == "32" and report._fmt(np.float64(-1.25), 2) == "-1.25"
+    assert fmt(12.345) == "12.3" and fmt(0.12345, 3) == "0.123"
+    assert fmt(32.0, 0) == "32" and fmt(np.float64(-1.25), 2) == "-1.25"
     for missing in (None, float("nan"), float("inf"), -float("inf")):
-        assert report._fmt(missing) == "n/a"
+        assert fmt(missing) == "n/a"
 
 
 def test_comparison_values_are_the_single_set_or_the_means_over_sets():

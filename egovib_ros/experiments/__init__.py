@@ -1,2 +1,46 @@
 """Experiments that write docs/: the paper's tables and figures, the simulator's validation,
 the gap diagnosis's blind validation, the real quadcopter flights."""
+
+from __future__ import annotations
+
+import math
+import shlex
+import sys
+from pathlib import Path
+
+
+def core_arrays(rec) -> tuple:
+    """(sensor stamps, sensor, joint stamps, joint velocity) of a recording: the arrays the
+    core's batch functions (calibrate_arrays, denoise_batch_method, ...) take first."""
+    return rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity
+
+
+def fmt(value, digits: int = 1) -> str:
+    """`value` with `digits` decimals; "n/a" for None and non-finite floats."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def python_command(module: str, argv: list[str] | None) -> str:
+    """The shell command `python -m module` with these arguments (None: this process's)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return " ".join(shlex.quote(a) for a in ["python", "-m", module, *argv])
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only), imported when a figure is drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> Path:
+    """Lay `fig` out, write it to `path` and close it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return path

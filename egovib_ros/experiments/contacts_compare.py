@@ -36,12 +36,11 @@ Writes DIR/contacts_compare.{md,json} and DIR/contacts_compare.png.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
-import shlex
 import shutil
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -54,7 +53,8 @@ from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
-from egovib_ros.evaluation.metrics import json_safe, segment_contacts
+from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
+from egovib_ros.experiments import pyplot, python_command, save_figure
 from egovib_ros.robot import load_profile
 
 LOG = logging.getLogger("egovib_ros.contacts_compare")
@@ -176,21 +176,13 @@ def why(runs: dict, model) -> dict:
     reference = combined_bandpassed(raw["contact"], model.robot_profile())
     seg = segment_contacts(reference, sample_rate_hz=model.sample_rate_hz)
     quiet = seg.no_contact_mask
-
-    def tap_peaks(envelope):
-        return (
-            np.array([envelope[a:b].max() for a, b in seg.tap_windows])
-            if len(seg.tap_windows)
-            else np.zeros(0)
-        )
-
-    raw_peaks = tap_peaks(raw["envelope"])
+    raw_peaks = tap_peaks(raw["envelope"], seg.tap_windows)
     out = {"_onsets_ns": raw["stamps"][seg.onsets]}
     for method, run in runs.items():
         if not np.array_equal(run["stamps"], raw["stamps"]):
             raise RuntimeError(f"method {method}: output stamps differ from the input's")
         envelope, threshold = run["envelope"], run["detection"].threshold
-        peaks = tap_peaks(envelope)
+        peaks = tap_peaks(envelope, seg.tap_windows)
         power = np.mean(envelope[quiet] ** 2)
         at = np.searchsorted(run["stamps"], [e.onset_ns for e in run["detection"].events])
         in_quiet = int(np.count_nonzero(quiet[np.clip(at, 0, len(quiet) - 1)]))
@@ -355,9 +347,7 @@ def flight_case(
     (c0, c1), (t0, t1) = SPLITS[split]
     if test_s is not None:
         t0, t1 = test_s
-    start = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(start + int(c0 * 1e9), start + int(c1 * 1e9))
-    test = rec.time_slice(start + int(t0 * 1e9), start + int(t1 * 1e9))
+    cal, test = rec.part(c0, c1), rec.part(t0, t1)
     cal_bag = work / f"flight_{split}_calibration"
     write_recording(cal_bag, _as_recording(cal), profile=profile)
     model = calibrated(cal_bag, profile)
@@ -542,10 +532,7 @@ def markdown(result: dict) -> str:
 
 
 def figure(result: dict, example: dict | None, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     colors = {"raw": "grey", "paper": "tab:blue", "hybrid": "tab:red"}
     fig = plt.figure(figsize=(13, 7))
@@ -592,10 +579,7 @@ def figure(result: dict, example: dict | None, path: Path) -> Path:
                 )
                 axm.legend(fontsize=7, loc="upper right")
         axm.set_xlabel("s into the run")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------------------
@@ -614,13 +598,13 @@ def run(
 
     begin = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = None
     if work is None:
-        tmp = tempfile.TemporaryDirectory(prefix="egovib-contacts-")
-        work = Path(tmp.name)
+        scratch = tempfile.TemporaryDirectory(prefix="egovib-contacts-")
     else:
         work.mkdir(parents=True, exist_ok=True)
-    try:
+        scratch = contextlib.nullcontext(str(work))
+    with scratch as where:
+        work = Path(where)
         result = {"command": command, "attribution": ATTRIBUTION, "pr2": {}, "flight": {}}
         example = None
         for name, pr2_run in (QUICK_PR2_RUNS if quick else PR2_RUNS).items():
@@ -634,9 +618,6 @@ def run(
             result["flight"][split] = flight_case(
                 bag, split, work, 1 if quick else event_sets, (8.5, 11.0) if quick else None
             )
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
     result["runtime_s"] = time.perf_counter() - begin
     figure(result, example, out_dir / "contacts_compare.png")
     (out_dir / "contacts_compare.json").write_text(json.dumps(json_safe(result), indent=1) + "\n")
@@ -654,10 +635,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("egovib_ros.core").setLevel(logging.ERROR)
-    argv = sys.argv[1:] if argv is None else argv
-    command = " ".join(
-        shlex.quote(a) for a in ["python", "-m", "egovib_ros.experiments.contacts_compare", *argv]
-    )
     out = Path(args.out)
     result = run(
         out,
@@ -665,7 +642,7 @@ def main(argv: list[str] | None = None) -> int:
         quick=args.quick,
         event_sets=args.event_sets,
         bag=args.bag,
-        command=command,
+        command=python_command("egovib_ros.experiments.contacts_compare", argv),
     )
     print(markdown(result))
     print(

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.experiments import core_arrays
 from egovib_ros.outputs import atomic_output
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
@@ -29,16 +30,13 @@ SPLIT_S = 8.5
 
 
 def _slice(rec, start_s: float, stop_s: float):
+    """The part [start_s, stop_s) s after the first sample, without ground truth or commands."""
     from dataclasses import replace
 
     t0 = int(rec.sensor_stamps_ns[0])
     lo, hi = t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S)
-    a = slice(
-        int(np.searchsorted(rec.sensor_stamps_ns, lo)),
-        int(np.searchsorted(rec.sensor_stamps_ns, hi)),
-    )
-    j = slice(
-        int(np.searchsorted(rec.joint_stamps_ns, lo)), int(np.searchsorted(rec.joint_stamps_ns, hi))
+    a, j = (
+        slice(*np.searchsorted(s, [lo, hi])) for s in (rec.sensor_stamps_ns, rec.joint_stamps_ns)
     )
     return replace(
         rec,
@@ -62,10 +60,7 @@ def calibrate_part(rec, profile, bag, part: tuple[float, float]):
 
     cal = _slice(rec, *part)
     model, _ = calibrate_arrays(
-        cal.sensor_stamps_ns,
-        cal.sensor,
-        cal.joint_stamps_ns,
-        cal.joint_velocity,
+        *core_arrays(cal),
         profile=profile,
         sweep="free",
         source=f"{bag} [{part[0]:g}, {part[1]:g}) s",
@@ -120,6 +115,7 @@ def run_flight_gap(
             report["runtime_s"] = round(time.perf_counter() - start, 2)
             (sub / "report.json").write_text(json.dumps(report, indent=1))
             (sub / "report.md").write_text(render_markdown(report))
+            deviance = {c["effect"]: c["deviance_reduction"] for c in diag.candidates}
             summary["directions"][name] = {
                 "verdict": report["verdict"],
                 "gap": report["gap"],
@@ -129,11 +125,7 @@ def run_flight_gap(
                         for k in ("effect", "p_value", "heldout_gap", "block_mse_reduction_db2")
                     }
                     | {
-                        "deviance_reduction": next(
-                            x["deviance_reduction"]
-                            for x in diag.candidates
-                            if x["effect"] == c["effect"]
-                        ),
+                        "deviance_reduction": deviance[c["effect"]],
                         "shape_summary": c.get("shape_summary", ""),
                     }
                     for c in report["candidates"]

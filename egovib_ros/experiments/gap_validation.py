@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.experiments import core_arrays, pyplot, save_figure
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.outputs import atomic_output
 
@@ -138,10 +139,7 @@ def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100
         grid="superposition", dwell_s=dwell_s, settle_s=0.5, seed=seed, params=params
     )
     model, _ = calibrate_arrays(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        rec.joint_velocity,
+        *core_arrays(rec),
         sweep="superposition",
         source="simulated superposition sweep (gap validate)",
     )
@@ -170,40 +168,31 @@ def plan_runs(
         [master_seed, REALITIES.index(reality)] if reality != "sim" else master_seed
     )
     runs = []
-    for k in range(seeds):
+
+    def add(run: dict, **after) -> None:
+        runs.append({**run, "seed": int(rng.integers(1, 2**31)), **after})
+
+    def add_nones() -> None:
         for label in none_classes(reality):
-            runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
+            add({"truth": label, "strength": 0.0})
+
+    for k in range(seeds):
+        add_nones()
         for effect in EFFECTS:
             lo, hi = ranges[effect]
             for form in FORMS[reality][effect]:
                 s = float(rng.uniform(lo, hi))
                 if form == "lead":
                     s = -s
-                runs.append(
-                    {
-                        "truth": effect,
-                        "form": form,
-                        "strength": round(s, 4),
-                        "seed": int(rng.integers(1, 2**31)),
-                    }
-                )
+                add({"truth": effect, "form": form, "strength": round(s, 4)})
     if ladder:
         for effect in EFFECTS:
             for form in FORMS[reality][effect]:
                 for frac in LADDER_FRACTIONS:
                     s = ranges[effect][0] * frac * (-1 if form == "lead" else 1)
-                    runs.append(
-                        {
-                            "truth": effect,
-                            "form": form,
-                            "strength": round(s, 5),
-                            "seed": int(rng.integers(1, 2**31)),
-                            "ladder": True,
-                        }
-                    )
+                    add({"truth": effect, "form": form, "strength": round(s, 5)}, ladder=True)
     for _ in range(extra_none):
-        for label in none_classes(reality):
-            runs.append({"truth": label, "strength": 0.0, "seed": int(rng.integers(1, 2**31))})
+        add_nones()
     for r in runs:
         r["reality"] = reality
     return runs
@@ -313,14 +302,10 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
             above = [r["gap"]["after_verdict"] - r["gap"]["floor"] for r in rs]
             shrink[e] = {
                 "runs": len(rs),
-                "mean_gap_sim_as_is": round(float(np.mean([r["gap"]["sim_as_is"] for r in rs])), 3),
-                "mean_gap_after_refit": round(
-                    float(np.mean([r["gap"]["after_refit"] for r in rs])), 3
-                ),
-                "mean_gap_after_effect": round(
-                    float(np.mean([r["gap"]["after_verdict"] for r in rs])), 3
-                ),
-                "mean_floor": round(float(np.mean([r["gap"]["floor"] for r in rs])), 3),
+                "mean_gap_sim_as_is": _mean_gap(rs, "sim_as_is"),
+                "mean_gap_after_refit": _mean_gap(rs, "after_refit"),
+                "mean_gap_after_effect": _mean_gap(rs, "after_verdict"),
+                "mean_floor": _mean_gap(rs, "floor"),
                 "max_above_floor_db": round(float(np.max(above)), 3),
                 "all_within_1db_of_floor": bool(np.max(above) <= 1.0),
             }
@@ -330,64 +315,30 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
         if rs:
             none_gap[t] = {
                 "runs": len(rs),
-                "mean_gap_sim_as_is": round(float(np.mean([r["gap"]["sim_as_is"] for r in rs])), 3),
-                "mean_gap_after_refit": round(
-                    float(np.mean([r["gap"]["after_refit"] for r in rs])), 3
-                ),
-                "mean_floor": round(float(np.mean([r["gap"]["floor"] for r in rs])), 3),
+                "mean_gap_sim_as_is": _mean_gap(rs, "sim_as_is"),
+                "mean_gap_after_refit": _mean_gap(rs, "after_refit"),
+                "mean_floor": _mean_gap(rs, "floor"),
                 "max_refit_above_floor_db": round(
                     float(np.max([r["gap"]["after_refit"] - r["gap"]["floor"] for r in rs])), 3
                 ),
             }
     detect = {}
     for e in EFFECTS:
-        lad = sorted(
-            [r for r in results if r.get("ladder") and r["truth"] == e],
-            key=lambda r: abs(r["strength"]),
-        )
+        lad = _ladder(results, e)
         blind_e = sorted([r for r in blind if r["truth"] == e], key=lambda r: abs(r["strength"]))
         if not lad and not blind_e:
             continue
-        found = [r["correct"] for r in lad]
-        # smallest ladder strength from which every stronger ladder run was found
-        threshold = None
-        for i in range(len(lad)):
-            if all(found[i:]):
-                threshold = abs(lad[i]["strength"])
-                break
         detect[e] = {
-            "ladder": [
-                {
-                    "strength": r["strength"],
-                    "verdict": r["verdict"],
-                    "p_value": r["p_values"].get(e),
-                }
-                for r in lad
-            ],
-            "detected_from_strength": threshold,
-            "blind": [
-                {
-                    "strength": r["strength"],
-                    "verdict": r["verdict"],
-                    "p_value": r["p_values"].get(e),
-                }
-                for r in blind_e
-            ],
+            "ladder": _points(lad, e),
+            "detected_from_strength": _detected_from(lad),
+            "blind": _points(blind_e, e),
             "range_of_blind_runs": list(ranges[e]),
         }
     per_form = {}
     for e in EFFECTS:
         for form in FORMS.get(reality, {}).get(e, ()):
             rs = [r for r in blind if r["truth"] == e and r.get("form") == form]
-            lad = sorted(
-                [
-                    r
-                    for r in results
-                    if r.get("ladder") and r["truth"] == e and r.get("form") == form
-                ],
-                key=lambda r: abs(r["strength"]),
-            )
-            found = [r["correct"] for r in lad] + [True]
+            lad = _ladder(results, e, form)
             per_form[f"{e}/{form}"] = {
                 "effect": e,
                 "form": form,
@@ -399,10 +350,7 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
                 "verdicts": [r["verdict"] for r in rs],
                 "strengths": [r["strength"] for r in rs],
                 "ladder": [{"strength": r["strength"], "verdict": r["verdict"]} for r in lad],
-                "detected_from_strength": next(
-                    (abs(lad[i]["strength"]) for i in range(len(lad)) if all(found[i:])),
-                    None if lad else None,
-                ),
+                "detected_from_strength": _detected_from(lad),
             }
     none_flags = {
         t: {
@@ -432,6 +380,35 @@ def summarise(results: list[dict], reality: str = "sim") -> dict:
         "n_runs": len(blind),
         "n_ladder_runs": len(results) - len(blind),
     }
+
+
+def _mean_gap(runs: list[dict], key: str) -> float:
+    return round(float(np.mean([r["gap"][key] for r in runs])), 3)
+
+
+def _ladder(results: list[dict], effect: str, form: str | None = None) -> list[dict]:
+    """The ladder runs of an effect (of one of its forms), weakest first."""
+    return sorted(
+        (
+            r
+            for r in results
+            if r.get("ladder") and r["truth"] == effect and form in (None, r.get("form"))
+        ),
+        key=lambda r: abs(r["strength"]),
+    )
+
+
+def _points(runs: list[dict], effect: str) -> list[dict]:
+    return [
+        {"strength": r["strength"], "verdict": r["verdict"], "p_value": r["p_values"].get(effect)}
+        for r in runs
+    ]
+
+
+def _detected_from(ladder: list[dict]) -> float | None:
+    """The smallest ladder strength from which every stronger ladder run was found."""
+    found = [r["correct"] for r in ladder]
+    return next((abs(r["strength"]) for i, r in enumerate(ladder) if all(found[i:])), None)
 
 
 REALITY_TEXT = {
@@ -575,10 +552,7 @@ def output_names(reality: str) -> tuple[str, str, str]:
 
 def make_figure(summary: dict, path: Path) -> None:
     """Confusion matrix and, per effect, verdicts along the strength ladder and the blind runs."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     labels = ["none"] + list(EFFECTS)
     rows = list(summary["confusion"])
@@ -602,29 +576,25 @@ def make_figure(summary: dict, path: Path) -> None:
     )
     ax = axes[1]
     for k, (e, d) in enumerate(summary["detectability"].items()):
-        pts = [(abs(r["strength"]), r["verdict"] == e, "ladder") for r in d["ladder"]] + [
-            (abs(r["strength"]), r["verdict"] == e, "blind") for r in d["blind"]
-        ]
         lo = d["range_of_blind_runs"][0]
-        for x, ok, kind in pts:
-            ax.scatter(
-                x / lo,
-                k,
-                marker="o" if kind == "blind" else "s",
-                s=40,
-                color="C2" if ok else "C3",
-                edgecolor="k",
-                linewidth=0.5,
-            )
+        for kind, marker in (("ladder", "s"), ("blind", "o")):
+            for r in d[kind]:
+                ax.scatter(
+                    abs(r["strength"]) / lo,
+                    k,
+                    marker=marker,
+                    s=40,
+                    color="C2" if r["verdict"] == e else "C3",
+                    edgecolor="k",
+                    linewidth=0.5,
+                )
     ax.axvline(1.0, color="0.5", ls="--", lw=0.8)
     ax.set_xscale("log")
     ax.set_yticks(range(len(summary["detectability"])))
     ax.set_yticklabels(list(summary["detectability"]), fontsize=8)
     ax.set_xlabel("strength / lower end of the blind range (squares: ladder, circles: blind runs)")
     ax.set_title("detected (green) or missed (red) by strength", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple[dict, dict]:
@@ -655,7 +625,6 @@ def run_validation(
     progress: bool = False,
     master_seed: int = 2026,
     calibration_dwell_s: float = CALIBRATION_DWELL_S,
-    write: bool = True,
     reality: str = "sim",
     runs: list[dict] | None = None,
     extra_none: int = 0,
@@ -670,7 +639,7 @@ def run_validation(
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
     if reality == "real":
-        return _run_real(out_dir, write)
+        return _run_real(out_dir)
     start = time.perf_counter()
     if runs is None:
         runs = plan_runs(
@@ -718,19 +687,16 @@ def run_validation(
         "runs": results,
         "runtime_s": round(time.perf_counter() - start, 1),
     }
-    outputs = []
-    if write:
-        out = Path(out_dir)
-        outputs += _write_report(out, report, render_markdown(report), json_name, md_name)
-        with atomic_output(out / png_name) as tmp_path:
-            make_figure(summary, tmp_path)
-        outputs.append(str(out / png_name))
-    summary["outputs"] = outputs
+    out = Path(out_dir)
+    outputs = _write_report(out, report, render_markdown(report), json_name, md_name)
+    with atomic_output(out / png_name) as tmp_path:
+        make_figure(summary, tmp_path)
+    summary["outputs"] = outputs + [str(out / png_name)]
     summary["report"] = report
     return summary
 
 
-def _run_real(out_dir, write: bool) -> dict:
+def _run_real(out_dir) -> dict:
     """Known effects injected into the real flight (experiments/gap_real_injection.py)."""
     from egovib_ros.experiments.gap_real_injection import render_markdown as render_real
     from egovib_ros.experiments.gap_real_injection import run_real_validation
@@ -741,11 +707,10 @@ def _run_real(out_dir, write: bool) -> dict:
     summary["accuracy"] = summary["accuracy_injected"]
     untouched = summary["untouched_correct"]
     summary["none_false_positive_rate"] = round(1.0 - float(np.mean(untouched)), 4)
-    outputs = []
-    if write:
-        json_name, md_name, _ = output_names("real")
-        outputs += _write_report(Path(out_dir), report, render_real(report), json_name, md_name)
-    summary["outputs"] = outputs
+    json_name, md_name, _ = output_names("real")
+    summary["outputs"] = _write_report(
+        Path(out_dir), report, render_real(report), json_name, md_name
+    )
     summary["report"] = report
     summary["n_runs"] = report["summary"]["n_runs"]
     return summary

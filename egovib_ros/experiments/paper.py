@@ -26,10 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from egovib_ros import sim
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
+from egovib_ros.experiments import core_arrays, fmt
 from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
@@ -101,15 +103,8 @@ class Models:
     sweep: object
 
 
-def _sim():
-    from egovib_ros import sim
-
-    return sim
-
-
 def build_models(config: ExperimentConfig, params=None, effects: dict | None = None) -> Models:
     """Simulate the calibration sweep and calibrate the L = 64 and short-block models from it."""
-    sim = _sim()
     sweep, _ = sim.simulate_sweep(
         grid=config.sweep_grid,
         dwell_s=config.sweep_dwell_s,
@@ -119,7 +114,7 @@ def build_models(config: ExperimentConfig, params=None, effects: dict | None = N
         params=params,
     )
     common = dict(sweep=config.sweep_grid, source="simulated calibration sweep")
-    arrays = (sweep.sensor_stamps_ns, sweep.sensor, sweep.joint_stamps_ns, sweep.joint_velocity)
+    arrays = core_arrays(sweep)
     model, _ = calibrate_arrays(*arrays, block_length=BLOCK_LENGTH, hop=HOP, **common)
     short = config.short_block_length
     model_short, _ = calibrate_arrays(*arrays, block_length=short, hop=short // 2, **common)
@@ -140,7 +135,7 @@ def speed_recordings(
     seed = config.seed * 1000 + index * 10
 
     def motion(max_speed, tap_rate_hz, duration_s, k, effects=None):
-        return _sim().simulate_motion(
+        return sim.simulate_motion(
             duration_s=duration_s,
             max_speed=max_speed,
             tap_rate_hz=tap_rate_hz,
@@ -243,7 +238,7 @@ def run_experiments(
         if progress:
             progress(f"speed {speed:.0%}")
     if config.robustness_effects:
-        effects = _sim().parse_effects(config.robustness_effects)
+        effects = sim.parse_effects(config.robustness_effects)
         robust_models = build_models(config, params, effects=effects)
         report = run_speed(
             config,
@@ -304,12 +299,6 @@ def must_show_check(results: dict) -> dict:
 # ---------------------------------------------------------------------------
 # Tables
 # ---------------------------------------------------------------------------
-def _fmt(value, digits: int = 1) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}"
-
-
 def results_json(results: dict) -> dict:
     """JSON-ready copy of `run_experiments` results (no signals, no objects)."""
     out = {
@@ -326,12 +315,7 @@ def results_json(results: dict) -> dict:
     for speed, both in results["speeds"].items():
         out["speeds"][f"{speed:g}"] = {key: strip(report) for key, report in both.items()}
     if "robustness" in results:
-        robust = results["robustness"]
-        out["robustness"] = {
-            "effects": robust["effects"],
-            "speed": robust["speed"],
-            "a": strip(robust["a"]),
-        }
+        out["robustness"] = {**results["robustness"], "a": strip(results["robustness"]["a"])}
     if "fig4_error" in results:
         out["fig4_error"] = results["fig4_error"]
     return metrics.json_safe(out)
@@ -359,13 +343,13 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
     rows = []
     for m in report["methods"].values():
         rows.append(
-            f"| {exp} | {speed_label} | {m['label']} | {_fmt(m['delay_ms'])} | "
-            f"{_fmt(m['noise_mean_denoised'], 3)} | {_fmt(m['noise_reduction_db'])} | "
-            f"{_fmt(m['noise_spike_denoised'], 3)} | {_fmt(m['tap_peak_denoised'], 2)} | "
-            f"{_fmt(m['tap_retention'], 2)} | {_fmt(m['peak_snr_denoised_db'])} | "
-            f"{_fmt(m['peak_snr_improvement_db'])} | {_fmt(m['segsnr_contact_denoised_db'])} | "
-            f"{_fmt(m['threshold'], 3)} | {_fmt(m['precision'], 2)} | {_fmt(m['recall'], 2)} | "
-            f"{_fmt(m['f1'], 2)} | {_fmt(m['false_alarms_per_min'])} |"
+            f"| {exp} | {speed_label} | {m['label']} | {fmt(m['delay_ms'])} | "
+            f"{fmt(m['noise_mean_denoised'], 3)} | {fmt(m['noise_reduction_db'])} | "
+            f"{fmt(m['noise_spike_denoised'], 3)} | {fmt(m['tap_peak_denoised'], 2)} | "
+            f"{fmt(m['tap_retention'], 2)} | {fmt(m['peak_snr_denoised_db'])} | "
+            f"{fmt(m['peak_snr_improvement_db'])} | {fmt(m['segsnr_contact_denoised_db'])} | "
+            f"{fmt(m['threshold'], 3)} | {fmt(m['precision'], 2)} | {fmt(m['recall'], 2)} | "
+            f"{fmt(m['f1'], 2)} | {fmt(m['false_alarms_per_min'])} |"
         )
     det = report["detection"]
     for label, key in (
@@ -376,8 +360,8 @@ def _method_rows(exp: str, speed_label: str, report: dict) -> list[str]:
         rows.append(
             f"| {exp} | {speed_label} | detector: {label} | 0.0 | | | | | | | | | "
             f"{d['threshold']:g} | "
-            f"{_fmt(d['precision'], 2)} | {_fmt(d['recall'], 2)} | {_fmt(d['f1'], 2)} | "
-            f"{_fmt(d['false_alarms_per_min'])} |"
+            f"{fmt(d['precision'], 2)} | {fmt(d['recall'], 2)} | {fmt(d['f1'], 2)} | "
+            f"{fmt(d['false_alarms_per_min'])} |"
         )
     return rows
 
@@ -401,13 +385,13 @@ def paper_comparison_markdown(results: dict) -> str:
         det = r["detection"]
         lines.append(
             f"| ours, sim, exp (a) {speed:.0%} | "
-            f"{_fmt(r['noise_mean_raw'], 3)} -> {_fmt(r['noise_mean_denoised'], 3)} | "
-            f"{_fmt(r['tap_peak_raw'], 2)} -> {_fmt(r['tap_peak_denoised'], 2)} | "
-            f"{_fmt(r['tap_retention'], 2)} | "
-            f"{_fmt(r['peak_snr_raw_db'])} -> {_fmt(r['peak_snr_denoised_db'])} | "
-            f"{_fmt(r['delay_ms'])} | "
-            f"{_fmt(det['raw_bandpassed']['f1'], 2)} / {_fmt(det['pr2_2ms2']['f1'], 2)} / "
-            f"{_fmt(det['pr2_5ms2']['f1'], 2)} -> {_fmt(r['f1_denoised'], 2)} |"
+            f"{fmt(r['noise_mean_raw'], 3)} -> {fmt(r['noise_mean_denoised'], 3)} | "
+            f"{fmt(r['tap_peak_raw'], 2)} -> {fmt(r['tap_peak_denoised'], 2)} | "
+            f"{fmt(r['tap_retention'], 2)} | "
+            f"{fmt(r['peak_snr_raw_db'])} -> {fmt(r['peak_snr_denoised_db'])} | "
+            f"{fmt(r['delay_ms'])} | "
+            f"{fmt(det['raw_bandpassed']['f1'], 2)} / {fmt(det['pr2_2ms2']['f1'], 2)} / "
+            f"{fmt(det['pr2_5ms2']['f1'], 2)} -> {fmt(r['f1_denoised'], 2)} |"
         )
     return "\n".join(lines)
 

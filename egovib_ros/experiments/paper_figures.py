@@ -4,15 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from scipy import signal
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy import signal  # noqa: E402
+from egovib_ros.evaluation import baselines
+from egovib_ros.experiments import pyplot
+from egovib_ros.outputs import atomic_output
 
-from egovib_ros.evaluation import baselines  # noqa: E402
-from egovib_ros.outputs import atomic_output  # noqa: E402
+plt = pyplot()
 
 SHOWN_S = 5.0  # seconds of signal in the time-series figures
 

@@ -34,7 +34,9 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.core.blocks import analysis_window
+from egovib_ros.core.filters import design_bandpass
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.robot import load_profile
 from egovib_ros.sim.hand import HandSimulator
 from egovib_ros.sim.params import SimParams
@@ -51,20 +53,27 @@ FREQS_HZ = np.fft.rfftfreq(PROFILE.block_length, 1.0 / PROFILE.rate_hz)
 BAND_BINS = (FREQS_HZ >= PROFILE.band_hz[0]) & (FREQS_HZ <= PROFILE.band_hz[1])
 
 
+BAND_SOS = design_bandpass(
+    sample_rate_hz=PROFILE.rate_hz, band_hz=PROFILE.band_hz, order=PROFILE.band_order
+)
+
+
 def bandpass_combined(accel: np.ndarray) -> np.ndarray:
     """Sum of the 3 axes, band-passed (the profile's Butterworth band-pass, causal)."""
-    sos = signal.butter(
-        PROFILE.band_order, PROFILE.band_hz, btype="band", fs=PROFILE.rate_hz, output="sos"
-    )
-    return signal.sosfilt(sos, np.asarray(accel, float).sum(axis=1))
+    return signal.sosfilt(BAND_SOS, np.asarray(accel, float).sum(axis=1))
+
+
+def _blocks(x: np.ndarray) -> np.ndarray:
+    """(B, L) the profile's blocks of `x`, a hop apart."""
+    return np.lib.stride_tricks.sliding_window_view(x, PROFILE.block_length)[:: PROFILE.hop]
 
 
 def block_magnitudes(x: np.ndarray) -> np.ndarray:
     """|rfft(window * block)| of the profile's blocks and hop: (B, F)."""
     if len(x) < PROFILE.block_length:
         return np.zeros((0, len(FREQS_HZ)))
-    blocks = np.lib.stride_tricks.sliding_window_view(x, PROFILE.block_length)[:: PROFILE.hop]
-    return np.abs(np.fft.rfft(blocks * analysis_window(PROFILE.block_length, PROFILE.hop), axis=1))
+    window = analysis_window(PROFILE.block_length, PROFILE.hop)
+    return np.abs(np.fft.rfft(_blocks(x) * window, axis=1))
 
 
 @dataclass
@@ -92,14 +101,11 @@ def sweep_cell_stats(
     params = params if params is not None else SimParams.load()
     sim = HandSimulator(params, effects=effects, seed=seed)
     cells = sweep_cells(grid) if cells is None else np.asarray(cells, float).reshape(-1, 2)
-    sos = signal.butter(
-        PROFILE.band_order, PROFILE.band_hz, btype="band", fs=PROFILE.rate_hz, output="sos"
-    )
-    zi = np.zeros((sos.shape[0], 2))
+    zi = np.zeros((BAND_SOS.shape[0], 2))
     vmax = np.asarray(PROFILE.max_speed)
     pieces: dict[int, list] = {}
     for ci, cell, _, chunk in iter_sweep(sim, cells, dwell_s=dwell_s, settle_s=settle_s):
-        bp, zi = signal.sosfilt(sos, chunk.sensor.sum(axis=1), zi=zi)
+        bp, zi = signal.sosfilt(BAND_SOS, chunk.sensor.sum(axis=1), zi=zi)
         if ci not in pieces:
             # frame on the global hop grid, as a continuous calibrator does (blocks start at
             # multiples of the hop, so a hop-periodic idle hum looks the same in every cell)
@@ -120,13 +126,8 @@ def sweep_cell_stats(
         vel = np.concatenate([p[1] for p in parts])
         off = np.abs(np.abs(vel) - np.abs(cells[ci])) / vmax  # (n, 2)
         bad = np.any(off > STEADY_TOLERANCE, axis=1).astype(float)
-        bad_blocks = (
-            np.lib.stride_tricks.sliding_window_view(bad, PROFILE.block_length)[:: PROFILE.hop].max(
-                axis=1
-            )
-            > 0
-        )
-        mags = block_magnitudes(bp)[~bad_blocks]
+        steady = _blocks(bad).max(axis=1) == 0
+        mags = block_magnitudes(bp)[steady]
         counts[ci] = len(mags)
         if len(mags):
             mean[ci], std[ci] = mags.mean(axis=0), mags.std(axis=0)
@@ -139,38 +140,26 @@ def _grid_index(stats: CellStats) -> np.ndarray:
     return np.abs(frac[..., None] - CELL_FRACTIONS).argmin(axis=-1)
 
 
-def superposition_error(full: CellStats, axes: CellStats | None = None) -> np.ndarray:
+def superposition_error(stats: CellStats) -> np.ndarray:
     """(G, G) Fig. 4 error map in % (G grid points per joint, 21 for the PR2; rows wrist,
-    columns gripper); Eq. 6 from `axes` (default: `full`)."""
-    axes = axes if axes is not None else full
+    columns gripper): each cell's mu + sd against Eq. 6 from the single-joint cells."""
     n = len(CELL_FRACTIONS)
     mu = np.full((n, n, len(FREQS_HZ)), np.nan)
     sd = np.full_like(mu, np.nan)
-    for src in (axes, full) if axes is not full else (full,):
-        idx = _grid_index(src)
-        for (i, j), m, s, c in zip(idx, src.mean, src.std, src.counts):
-            if c > 0 and np.isnan(mu[i, j, 0]):
-                mu[i, j], sd[i, j] = m, s
-    mu_obs = np.full_like(mu, np.nan)
-    sd_obs = np.full_like(mu, np.nan)
-    for (i, j), m, s, c in zip(_grid_index(full), full.mean, full.std, full.counts):
+    for (i, j), m, s, c in zip(_grid_index(stats), stats.mean, stats.std, stats.counts):
         if c > 0:
-            mu_obs[i, j], sd_obs[i, j] = m, s
-    with np.errstate(invalid="ignore"):
-        return _error_from_tables(mu, sd, mu_obs, sd_obs)
-
-
-def _error_from_tables(mu, sd, mu_obs, sd_obs) -> np.ndarray:
+            mu[i, j], sd[i, j] = m, s
     z = len(CELL_FRACTIONS) // 2
-    n6 = (
-        mu[:, z][:, None]
-        + mu[z, :][None, :]
-        - mu[z, z]
-        + np.sqrt(sd[:, z][:, None] ** 2 + sd[z, :][None, :] ** 2 + sd[z, z] ** 2)
-    )
-    n_obs = mu_obs + sd_obs
-    s6, sobs = n6[..., BAND_BINS].sum(axis=-1), n_obs[..., BAND_BINS].sum(axis=-1)
-    return 100.0 * np.abs(s6 - sobs) / sobs
+    with np.errstate(invalid="ignore"):
+        n6 = (
+            mu[:, z][:, None]
+            + mu[z, :][None, :]
+            - mu[z, z]
+            + np.sqrt(sd[:, z][:, None] ** 2 + sd[z, :][None, :] ** 2 + sd[z, z] ** 2)
+        )
+        n_obs = mu + sd
+        s6, sobs = n6[..., BAND_BINS].sum(axis=-1), n_obs[..., BAND_BINS].sum(axis=-1)
+        return 100.0 * np.abs(s6 - sobs) / sobs
 
 
 def motion_levels(
@@ -239,24 +228,21 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 
     Returns messages/s and multiples of real time for write_recording and read_recording.
     """
-    import shutil
     import tempfile
 
     from egovib_ros.bag import read_recording, write_recording
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
     n_messages = 3 * len(rec.sensor) + len(rec.joint_stamps_ns) + len(rec.commands)
-    tmp = Path(tempfile.mkdtemp(prefix="egovib_sim_validation_"))
-    try:
+    with tempfile.TemporaryDirectory(prefix="egovib_sim_validation_") as tmp:
+        bag = Path(tmp) / "bag"
         t0 = time.perf_counter()
-        write_recording(tmp / "bag", rec, compress=compress)
+        write_recording(bag, rec, compress=compress)
         t_write = time.perf_counter() - t0
         t0 = time.perf_counter()
-        read_recording(tmp / "bag")
+        read_recording(bag)
         t_read = time.perf_counter() - t0
-        size = sum(f.stat().st_size for f in (tmp / "bag").iterdir())
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        size = sum(f.stat().st_size for f in bag.iterdir())
     return {
         "seconds": seconds,
         "messages": n_messages,
@@ -273,10 +259,7 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 def plot_fig3(stats: CellStats, path: str | Path) -> None:
     """Mean + std spectra (Eq. 5) for a subset of cells, 4 direction combinations each
     (paper Fig. 3)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     idx = _grid_index(stats)
     lookup = {(i, j): k for k, (i, j) in enumerate(idx)}
@@ -311,17 +294,12 @@ def plot_fig3(stats: CellStats, path: str | Path) -> None:
         "Simulated ego-vibration spectra mu+sd (sum of axes, band-passed; "
         f"shaded = {PROFILE.band_hz[0]:g}-{PROFILE.band_hz[1]:g} Hz)"
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def plot_fig4(error: np.ndarray, path: str | Path, title: str) -> None:
     """Superposition error map (paper Fig. 4)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6.5, 5.2))
     pct = CELL_FRACTIONS * 100
@@ -340,9 +318,7 @@ def plot_fig4(error: np.ndarray, path: str | Path, title: str) -> None:
         f"{title}\nmax {np.nanmax(error):.1f} %, mean {np.nanmean(error):.1f} %", fontsize=10
     )
     fig.colorbar(im, ax=ax, label="superposition error (%)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -43,11 +43,11 @@ from egovib_ros.bag.codec import (
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
+from egovib_ros.experiments.flight.recording import FILTERED_TOPIC
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import RobotProfile, load_profile
 
 FRAME_ID = "imu_link"
-FILTERED_TOPIC = "/imu/data_filtered"
 PROFILE_NAME = "quadcopter"
 
 

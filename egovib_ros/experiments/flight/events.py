@@ -31,6 +31,7 @@ import numpy as np
 
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.evaluation.metrics import EDGE_S
 
 
 @dataclass(frozen=True)
@@ -60,12 +61,7 @@ class Events:
 
 
 def make_events(
-    stamps_ns: np.ndarray,
-    noise: np.ndarray,
-    profile,
-    *,
-    spec: EventSpec = EventSpec(),
-    edge_s: float = 0.1,
+    stamps_ns: np.ndarray, noise: np.ndarray, profile, *, spec: EventSpec = EventSpec()
 ) -> Events:
     """Events for a recording with sensor stamps `stamps_ns` and sensor values `noise` (N, 3)
     (the real signal they will be added to; only its band-passed maximum is used), in the
@@ -85,7 +81,7 @@ def make_events(
     frequency = rng.uniform(*spec.frequency_hz, count)
     decay = rng.uniform(*spec.decay_s, count)
 
-    edge = int(round(edge_s * profile.rate_hz))
+    edge = int(round(EDGE_S * profile.rate_hz))
     noise_bp = combined_bandpassed(noise, profile)
     target = spec.relative_amplitude * float(np.abs(noise_bp[edge : n - edge]).max())
 

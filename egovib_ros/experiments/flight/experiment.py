@@ -58,9 +58,9 @@ from egovib_ros.robot import RobotProfile, load_profile
 
 SCHEMA = "egovib.real/1"
 PRIMARY_AMPLITUDE = 1.0
-LENIENT_TOLERANCE_S = (
-    0.030  # also scored: an event found up to 30 ms off (IIR notches ring and delay)
-)
+# also scored: an event found up to 30 ms off (IIR notches ring and delay)
+LENIENT_TOLERANCE_S = 0.030
+SCORES = ("f1", "precision", "recall", "tp", "fp", "fn", "threshold")  # of the detector, per row
 
 
 #: What happens in the shipped flight's parts at the default split (the report tells it only
@@ -95,16 +95,18 @@ class RealConfig:
             self.methods = ("raw",) + tuple(self.methods)
 
 
-def _edge_mask(n: int, fs: float) -> np.ndarray:
+def calibration_mask(cal, test, fs: float) -> np.ndarray:
+    """The calibration samples a detection threshold is taken on: the edges dropped, and
+    then only those at joint speeds the test part reaches if a second of them is left."""
+    n = len(cal.sensor_stamps_ns)
     edge = min(int(metrics.EDGE_S * fs), n // 4)
     mask = np.ones(n, bool)
     mask[:edge] = False
     mask[n - edge :] = False
+    within = speed_envelope_mask(cal, test)
+    if np.count_nonzero(mask & within) >= fs:
+        mask &= within
     return mask
-
-
-def _with_signal(rec: FlightRecording, accel: np.ndarray) -> FlightRecording:
-    return dataclasses.replace(rec, sensor=accel)
 
 
 def score_events(
@@ -121,7 +123,7 @@ def score_events(
     fs = profile.rate_hz
     t0 = int(test.sensor_stamps_ns[0])
     events = make_events(test.sensor_stamps_ns, test.sensor, profile, spec=spec)
-    noisy = _with_signal(test, test.sensor + events.signal)
+    noisy = dataclasses.replace(test, sensor=test.sensor + events.signal)
     reference = combined_bandpassed(events.signal, profile)
     seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
     truth = seg.onsets
@@ -136,19 +138,11 @@ def score_events(
         lenient = detection.evaluate_detector(
             envelope, truth, thresholds[name], sample_rate_hz=fs, tolerance_s=LENIENT_TOLERANCE_S
         )
+        row.update({key: scores[key] for key in SCORES})
         row.update(
-            {
-                "f1": scores["f1"],
-                "precision": scores["precision"],
-                "recall": scores["recall"],
-                "tp": scores["tp"],
-                "fp": scores["fp"],
-                "fn": scores["fn"],
-                "threshold": scores["threshold"],
-                "false_alarms": scores["fp"],
-                "false_alarms_per_min": scores["fp"] / minutes,
-                "f1_30ms": lenient["f1"],
-            }
+            false_alarms=scores["fp"],
+            false_alarms_per_min=scores["fp"] / minutes,
+            f1_30ms=lenient["f1"],
         )
         rows[name] = row
         if keep_signals:
@@ -175,13 +169,11 @@ def score_events(
     }
     if keep_signals:
         signals.update(
-            {
-                "raw_input": raw,
-                "reference": reference,
-                "seg": seg,
-                "stamps_ns": test.sensor_stamps_ns,
-                "firmware": firmware_bp,
-            }
+            raw_input=raw,
+            reference=reference,
+            seg=seg,
+            stamps_ns=test.sensor_stamps_ns,
+            firmware=firmware_bp,
         )
     return {"rows": rows, "events": info, "signals": signals}
 
@@ -258,10 +250,7 @@ def run_fold(
     """Calibrate on one time range, test on another; every method, every event amplitude."""
     fs = profile.rate_hz
     t0 = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(
-        t0 + int(calibration_s[0] * NS_PER_S), t0 + int(calibration_s[1] * NS_PER_S)
-    )
-    test = rec.time_slice(t0 + int(test_s[0] * NS_PER_S), t0 + int(test_s[1] * NS_PER_S))
+    cal, test = rec.part(*calibration_s), rec.part(*test_s)
     for part, name in ((cal, "calibration"), (test, "test")):
         if len(part.sensor_stamps_ns) < 4 * profile.block_length or len(part.joint_stamps_ns) == 0:
             raise ConfigError(
@@ -273,10 +262,7 @@ def run_fold(
         return detection.envelope(x, sample_rate_hz=fs)
 
     methods = build_methods(profile, config.methods)
-    cal_mask = _edge_mask(len(cal.sensor_stamps_ns), fs)
-    in_envelope = speed_envelope_mask(cal, test)
-    if np.count_nonzero(cal_mask & in_envelope) >= fs:  # at least 1 s left
-        cal_mask &= in_envelope
+    cal_mask = calibration_mask(cal, test, fs)
     fitted, thresholds, fit_seconds = {}, {}, {}
     for name, method in methods.items():
         start = time.perf_counter()
@@ -300,7 +286,7 @@ def run_fold(
             keep_signals=keep_signals and primary,
         )
         results[f"{amplitude:g}"] = scored["rows"]
-        event_info[f"{amplitude:g}"] = {key: value for key, value in scored["events"].items()}
+        event_info[f"{amplitude:g}"] = dict(scored["events"])
         if keep_signals and primary:
             signals = {**scored["signals"], "t0_ns": t0}
     # Fifteen events or so per set: the same at the primary amplitude over several event sets.

@@ -47,16 +47,6 @@ class FlightLog:
     def duration_s(self) -> float:
         return float(self.stamps_ns[-1] - self.stamps_ns[0]) / NS_PER_S if self.n > 1 else 0.0
 
-    def slice(self, start: int, stop: int) -> "FlightLog":
-        return FlightLog(
-            self.stamps_ns[start:stop],
-            self.gyro[start:stop],
-            self.gyro_filtered[start:stop],
-            self.motors[start:stop],
-            self.meta,
-            self.source,
-        )
-
 
 def seconds_to_ns(time_s: np.ndarray) -> np.ndarray:
     """The log's clock counts microseconds: round to them, then ns (exact, no float drift)."""

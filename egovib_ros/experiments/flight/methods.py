@@ -33,11 +33,13 @@ import numpy as np
 
 from egovib_ros.core import BandPass, calibrate_arrays, denoise_batch, filters
 from egovib_ros.evaluation.baselines import on_input_stamps
+from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.experiments.flight.notch import (
     ARDUPILOT_Q,
     BETAFLIGHT_Q,
     HarmonicNotchBank,
     fit_speed_frequency_map,
+    hold,
 )
 from egovib_ros.robot import RobotProfile
 
@@ -68,20 +70,6 @@ def single_joint_profile(
     )
 
 
-def calibrate_free(profile: RobotProfile, rec, joint_velocity: np.ndarray, *, source: str = ""):
-    """Calibrate a noise model from no-contact free motion (every steady block to its nearest
-    cell of the profile's grid): (model, stats)."""
-    return calibrate_arrays(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        joint_velocity,
-        profile=profile,
-        sweep="free",
-        source=source,
-    )
-
-
 class SpectralTable:
     """The core's spectral subtraction with a profile and a way to get its joint 'velocities'."""
 
@@ -98,8 +86,15 @@ class SpectralTable:
         return 1e3 * self.profile.block_length / self.profile.rate_hz
 
     def fit(self, rec) -> "SpectralTable":
-        self.model, self.calibration_stats = calibrate_free(
-            self.profile, rec, self.joints(rec), source=self.profile.name
+        # no-contact free motion: every steady block to its nearest cell of the profile's grid
+        self.model, self.calibration_stats = calibrate_arrays(
+            rec.sensor_stamps_ns,
+            rec.sensor,
+            rec.joint_stamps_ns,
+            self.joints(rec),
+            profile=self.profile,
+            sweep="free",
+            source=self.profile.name,
         )
         return self
 
@@ -122,11 +117,11 @@ class SpectralTable:
             "joints": list(self.profile.joint_names),
             "block_length": self.profile.block_length,
             "hop": self.profile.hop,
-            "calibration": _plain(self.calibration_stats.as_dict()),
-            "coverage": _plain(model.coverage()),
+            "calibration": json_safe(self.calibration_stats.as_dict()),
+            "coverage": json_safe(model.coverage()),
         }
         if self.denoise_stats is not None:
-            info["denoise"] = _plain(self.denoise_stats.as_dict())
+            info["denoise"] = json_safe(self.denoise_stats.as_dict())
         return info
 
 
@@ -141,7 +136,7 @@ class NotchMethod:
         self.bank: HarmonicNotchBank | None = None
 
     def fit(self, rec) -> "NotchMethod":
-        motors = _hold(rec.joint_stamps_ns, rec.joint_velocity, rec.sensor_stamps_ns)
+        motors = hold(rec.joint_stamps_ns, rec.joint_velocity, rec.sensor_stamps_ns)
         frequency_map = fit_speed_frequency_map(
             rec.sensor.sum(axis=1), motors, self.profile.rate_hz
         )
@@ -185,27 +180,6 @@ class BandPassOnly:
 
     def info(self) -> dict:
         return {"band_hz": list(self.profile.band_hz), "order": self.profile.band_order}
-
-
-def _hold(joint_stamps_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray) -> np.ndarray:
-    """The latest joint state at or before each stamp (zeros before the first)."""
-    index = np.searchsorted(joint_stamps_ns, at_ns, side="right") - 1
-    held = np.asarray(values, float)[np.maximum(index, 0)]
-    held[index < 0] = 0.0
-    return held
-
-
-def _plain(value):
-    """JSON-friendly copy of a stats dict (numpy scalars/arrays to Python)."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def build_methods(profile: RobotProfile, names=METHODS) -> dict:

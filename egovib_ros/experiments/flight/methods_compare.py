@@ -43,8 +43,6 @@ import logging
 import math
 import os
 import pickle
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -54,13 +52,13 @@ from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, method_delay_ms
-from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
-from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.evaluation.metrics import json_safe
+from egovib_ros.experiments import core_arrays, fmt, pyplot, python_command, save_figure
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
+from egovib_ros.experiments.flight.experiment import calibration_mask
 from egovib_ros.experiments.flight.methods import build_methods
 from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
@@ -164,31 +162,16 @@ class NewMethod:
         if shared is not None and shared.model is not None:
             self.model, self.info = shared.model, shared.info
         else:
-            paper, _ = calibrate_arrays(
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                profile=self.profile,
-                sweep="free",
-            )
-            self.model, self.info = calibrate_methods(
-                paper,
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                gain=self.gain,
-            )
+            paper, _ = calibrate_arrays(*core_arrays(rec), profile=self.profile, sweep="free")
+            self.model, self.info = calibrate_methods(paper, *core_arrays(rec), gain=self.gain)
         self.delay_ms = method_delay_ms(self.model, self.method, output=self.output)
         return self
 
     def run(self, rec) -> np.ndarray:
         if self.output == "dropin":  # the three axes, then the paper's 1-D band-passed signal
             stamps, values, _ = denoise_batch_method(
-                rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity,
-                self.model, method=self.method, output="dropin",
-            )  # fmt: skip
+                *core_arrays(rec), self.model, method=self.method, output="dropin"
+            )
             placed = np.zeros((len(rec.sensor_stamps_ns), 3))
             placed[np.searchsorted(rec.sensor_stamps_ns, stamps)] = values
             return combined_bandpassed(placed, self.profile)
@@ -200,22 +183,14 @@ def flight_split(
 ) -> dict:
     (c0, c1), (t0, t1) = SPLITS[name]
     fs = profile.rate_hz
-    start = int(rec.sensor_stamps_ns[0])
-    cal = rec.time_slice(start + int(c0 * NS_PER_S), start + int(c1 * NS_PER_S))
-    test = rec.time_slice(start + int(t0 * NS_PER_S), start + int(t1 * NS_PER_S))
+    cal, test = rec.part(c0, c1), rec.part(t0, t1)
     old = build_methods(profile, ("raw", "ours", "mean_command", "notch_q5"))
     methods = {"raw": old["raw"], "paper": old["ours"]}
     cancel = NewMethod(profile, "cancel", gain)
     methods.update({"cancel": cancel, "hybrid": NewMethod(profile, "hybrid", gain)})
     methods["hybrid_dropin"] = NewMethod(profile, "hybrid", gain, output="dropin")
     methods.update({"mean_command": old["mean_command"], "notch_q5": old["notch_q5"]})
-    edge = int(metrics.EDGE_S * fs)
-    cal_mask = np.ones(len(cal.sensor_stamps_ns), bool)
-    cal_mask[:edge] = False
-    cal_mask[-edge:] = False
-    within = speed_envelope_mask(cal, test)
-    if np.count_nonzero(cal_mask & within) >= fs:
-        cal_mask &= within
+    cal_mask = calibration_mask(cal, test, fs)
     thresholds, fit_s, delays = {}, {}, {}
     for key, method in methods.items():
         begin = time.perf_counter()
@@ -229,9 +204,7 @@ def flight_split(
             detection.envelope(output, sample_rate_hz=fs)[cal_mask]
         )
         delays[key] = float(method.delay_ms)
-    delays["paper"] = (
-        1e3 * (profile.block_length - 1) / fs
-    )  # the last sample of a block waits L - 1
+    delays["paper"] = 1e3 * (profile.block_length - 1) / fs  # a block's last sample waits L - 1
     delays["mean_command"] = delays["paper"]
     firmware = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
     minutes = len(test.sensor_stamps_ns) / fs / 60.0
@@ -282,6 +255,15 @@ def flight_split(
     }
 
 
+def _judged(checks: dict) -> dict:
+    """Each criterion's [value, target] as value, target and met (a delay: at most the target)."""
+    for group in checks.values():
+        for key, (value, target) in group.items():
+            met = value <= target if key.startswith("delay") else value >= target
+            group[key] = {"value": value, "target": target, "met": bool(met)}
+    return checks
+
+
 def flight_checks(splits: dict) -> dict:
     """The issue's "must show" on the flight, pass/fail with the figures behind each."""
     checks = {}
@@ -324,11 +306,7 @@ def flight_checks(splits: dict) -> dict:
                 0.0,
             ],
         }
-    for group in checks.values():
-        for key, (value, target) in group.items():
-            met = value <= target if key.startswith("delay") else value >= target
-            group[key] = {"value": value, "target": target, "met": bool(met)}
-    return checks
+    return _judged(checks)
 
 
 # --------------------------------------------------------------------------------------
@@ -342,30 +320,20 @@ def pr2_data(cache: Path | None):
     config = ExperimentConfig()
     path = cache / f"pr2_seed{config.seed}.pkl" if cache else None
     if path is not None and path.is_file():
-        with open(path, "rb") as fh:
-            return pickle.load(fh)
+        return pickle.loads(path.read_bytes())
     models = build_models(config)
-    recordings = {}
-    for index, speed in enumerate(config.speeds):
-        recordings[speed] = speed_recordings(config, speed, index=index)
+    recordings = {s: speed_recordings(config, s, index=i) for i, s in enumerate(config.speeds)}
     data = (config, models, recordings)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
-            pickle.dump(data, fh)
+        path.write_bytes(pickle.dumps(data))
     return data
 
 
 def _denoised_combined(rec, model, method: str) -> np.ndarray:
     """`method`'s combined (1-D) output of `rec`, on the input's stamps."""
     stamps, values, _ = denoise_batch_method(
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        rec.joint_stamps_ns,
-        rec.joint_velocity,
-        model,
-        method=method,
-        channels="combined",
+        *core_arrays(rec), model, method=method, channels="combined"
     )
     return on_input_stamps(stamps, values, rec.sensor_stamps_ns)
 
@@ -385,14 +353,7 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
     config, models, recordings = pr2_data(cache)
     sweep = models.sweep
     begin = time.perf_counter()
-    full, info = calibrate_methods(
-        models.model,
-        sweep.sensor_stamps_ns,
-        sweep.sensor,
-        sweep.joint_stamps_ns,
-        sweep.joint_velocity,
-        gain=gain,
-    )
+    full, info = calibrate_methods(models.model, *core_arrays(sweep), gain=gain)
     calibration_s = time.perf_counter() - begin
     fs = full.sample_rate_hz
     out = {
@@ -413,26 +374,15 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
             contact=0.5 * rec_b.contact,
         )
         cal_out = {m: _pr2_output(calibration, full, m) for m in PR2_METHODS}
-        edge = int(metrics.EDGE_S * fs)
         rows = {}
         for label, rec in (("a", rec_a), ("b", rec_b), ("b_half", half)):
-            mask = np.ones(len(calibration.sensor_stamps_ns), bool)
-            mask[:edge] = False
-            mask[-edge:] = False
-            within = speed_envelope_mask(calibration, rec)
-            if np.count_nonzero(mask & within) >= fs:
-                mask &= within
+            mask = calibration_mask(calibration, rec, fs)
             raw = bp(rec.sensor, full)
             reference = bp(rec.contact, full)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
             minutes = len(rec.sensor_stamps_ns) / fs / 60.0
-            rows[label] = {
-                "oracle": {
-                    "tap_retention": metrics.signal_metrics(raw, reference, reference, seg)[
-                        "tap_retention"
-                    ]
-                }
-            }
+            oracle = metrics.signal_metrics(raw, reference, reference, seg)["tap_retention"]
+            rows[label] = {"oracle": {"tap_retention": oracle}}
             for method in PR2_METHODS:
                 threshold = detection.threshold_from_calibration(
                     detection.envelope(cal_out[method], sample_rate_hz=fs)[mask]
@@ -455,15 +405,7 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
         wall = cpu = math.inf
         for _ in range(repeats):
             begin, begin_cpu = time.perf_counter(), time.process_time()
-            denoise_batch_method(
-                rec.sensor_stamps_ns,
-                rec.sensor,
-                rec.joint_stamps_ns,
-                rec.joint_velocity,
-                model,
-                method=method,
-                channels="combined",
-            )
+            denoise_batch_method(*core_arrays(rec), model, method=method, channels="combined")
             wall = min(wall, time.perf_counter() - begin)
             cpu = min(cpu, time.process_time() - begin_cpu)
         result[f"{method}_x_real_time"] = round(rec.duration_s / wall, 1)
@@ -489,22 +431,12 @@ def pr2_checks(pr2: dict) -> dict:
         "hybrid >= 300 x real time (wall)": [bench["hybrid_x_real_time"], 300.0],
         "hybrid >= 300 x real time (CPU time)": [bench["hybrid_x_real_time_cpu"], 300.0],
     }
-    for group in checks.values():
-        for key, (value, target) in group.items():
-            met = value <= target if key.startswith("delay") else value >= target
-            group[key] = {"value": value, "target": target, "met": bool(met)}
-    return checks
+    return _judged(checks)
 
 
 # --------------------------------------------------------------------------------------
 # Report
 # --------------------------------------------------------------------------------------
-def _f(value, digits=1) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}"
-
-
 def flight_table(split: dict) -> list[str]:
     lines = [
         "| method | delay ms | noise red. dB 1x / 0.5x | retention of the event 1x / 0.5x "
@@ -515,24 +447,24 @@ def flight_table(split: dict) -> list[str]:
     r1, r05 = split["results"]["1"], split["results"]["0.5"]
 
     def pair(key: str, digits: int, a: dict, b: dict) -> str:
-        return f"{_f(a[key], digits)} / {_f(b[key], digits)}"
+        return f"{fmt(a[key], digits)} / {fmt(b[key], digits)}"
 
     for key in FLIGHT_METHODS:
         a, b = r1[key], r05[key]
         cells = [
             LABELS[key],
-            _f(split["delay_ms"][key]),
+            fmt(split["delay_ms"][key]),
             pair("noise_reduction_db", 1, a, b),
             pair("event_retention", 2, a, b),
             pair("tap_retention", 2, a, b),
             pair("waveform_corr", 2, a, b),
-            _f(a["peak_snr_improvement_db"]),
+            fmt(a["peak_snr_improvement_db"]),
             pair("f1", 2, a, b),
-            _f(a["false_alarms_per_min"]),
+            fmt(a["false_alarms_per_min"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     if "firmware" in r1:
-        firmware = _f(r1["firmware"]["noise_reduction_db"])
+        firmware = fmt(r1["firmware"]["noise_reduction_db"])
         lines.append(
             f"| {LABELS['firmware']} | n/a | {firmware} | n/a | n/a | n/a | n/a | n/a | n/a |"
         )
@@ -552,13 +484,13 @@ def pr2_table(pr2: dict) -> list[str]:
         for exp, rows in exps.items():
             for method in PR2_METHODS[1:]:
                 r = rows[method]
-                perfect = _f(rows["oracle"]["tap_retention"], 2)
+                perfect = fmt(rows["oracle"]["tap_retention"], 2)
                 lines.append(
-                    f"| {float(speed):.0%} | {exp} | {method} | {_f(r['noise_reduction_db'])} | "
-                    f"{_f(r['event_retention'], 2)} | {_f(r['tap_retention'], 2)} ({perfect}) | "
-                    f"{_f(r['waveform_corr'], 2)} | "
-                    f"{_f(r['peak_snr_improvement_db'])} | {_f(r['f1'], 2)} | "
-                    f"{_f(r['false_alarms_per_min'])} |"
+                    f"| {float(speed):.0%} | {exp} | {method} | {fmt(r['noise_reduction_db'])} | "
+                    f"{fmt(r['event_retention'], 2)} | {fmt(r['tap_retention'], 2)} ({perfect}) | "
+                    f"{fmt(r['waveform_corr'], 2)} | "
+                    f"{fmt(r['peak_snr_improvement_db'])} | {fmt(r['f1'], 2)} | "
+                    f"{fmt(r['false_alarms_per_min'])} |"
                 )
     return lines
 
@@ -568,7 +500,7 @@ def checks_lines(checks: dict) -> list[str]:
     for where, group in checks.items():
         for key, c in group.items():
             lines.append(
-                f"| {where} | {key} | {_f(c['value'], 2)} | {_f(c['target'], 2)} | "
+                f"| {where} | {key} | {fmt(c['value'], 2)} | {fmt(c['target'], 2)} | "
                 f"{'yes' if c['met'] else '**no**'} |"
             )
     return lines
@@ -636,8 +568,8 @@ def markdown(result: dict) -> str:
             "",
             *pr2_table(result["pr2"]),
             "",
-            f"Algorithmic delay: paper {_f(delay['paper'])} ms, cancel 0 ms, hybrid "
-            f"{_f(delay['hybrid'])} ms. Batch, 3 kHz, 30 s at 50 % speed, best of 5, load "
+            f"Algorithmic delay: paper {fmt(delay['paper'])} ms, cancel 0 ms, hybrid "
+            f"{fmt(delay['hybrid'])} ms. Batch, 3 kHz, 30 s at 50 % speed, best of 5, load "
             f"average {bench['load_average_1min']}: paper {bench['paper_x_real_time']}x, "
             f"cancel {bench['cancel_x_real_time']}x, hybrid {bench['hybrid_x_real_time']}x "
             f"real time (wall); per CPU second {bench['paper_x_real_time_cpu']}x, "
@@ -649,10 +581,7 @@ def markdown(result: dict) -> str:
 
 
 def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from scipy import signal
 
     written = []
@@ -684,11 +613,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
         ax.set_title(f"flight, {name} split")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    path = out_dir / "methods_compare_tradeoff.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    written.append(save_figure(fig, out_dir / "methods_compare_tradeoff.png"))
     spec = result["flight"]["primary"].get("spectrogram")
     if spec is not None:
         fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True, sharey=True)
@@ -697,11 +622,7 @@ def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
             ax.pcolormesh(t, f, 10 * np.log10(s + 1e-12), vmin=-90, vmax=-30, shading="auto")
             ax.set_ylabel(f"{key}\nHz")
         axes[-1].set_xlabel("s into the test part (events at the project's rule, set 1)")
-        fig.tight_layout()
-        path = out_dir / "methods_compare_spectrogram.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, out_dir / "methods_compare_spectrogram.png"))
     return written
 
 
@@ -736,15 +657,7 @@ def main(argv: list[str] | None = None) -> int:
     profile = load_profile("quadcopter")
     rec = read_flight_bag(args.bag, profile)
     result = {
-        "command": " ".join(
-            shlex.quote(a)
-            for a in [
-                "python",
-                "-m",
-                "egovib_ros.experiments.flight.methods_compare",
-                *(argv or sys.argv[1:]),
-            ]
-        ),
+        "command": python_command("egovib_ros.experiments.flight.methods_compare", argv),
         "event_sets": args.event_sets,
         "gain_settings": dataclasses.asdict(gain),
         "flight": {},

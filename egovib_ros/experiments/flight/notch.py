@@ -40,12 +40,9 @@ def fold(freq_hz: np.ndarray, sample_rate_hz: float) -> np.ndarray:
     return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
 
 
-def notch_sos(
-    freq_hz: np.ndarray, q: float, sample_rate_hz: float, weight: np.ndarray | float = 1.0
-) -> np.ndarray:
+def notch_sos(freq_hz: np.ndarray, q: float, sample_rate_hz: float) -> np.ndarray:
     """(..., 6) second-order sections of scipy.signal.iirnotch(f, q, fs) for every centre in
-    `freq_hz` (vectorised, same formulas), blended with a pass-through by `weight` as
-    Betaflight's weighted biquad: y = x + w (notch(x) - x)."""
+    `freq_hz` (vectorised, same formulas)."""
     w0 = 2.0 * np.asarray(freq_hz, float) / sample_rate_hz
     bandwidth = w0 / q * np.pi
     gain = 1.0 / (1.0 + np.tan(bandwidth / 2.0))
@@ -53,8 +50,7 @@ def notch_sos(
     one = np.ones_like(w0)
     b = gain[..., None] * np.stack([one, -2.0 * cos, one], axis=-1)
     a = np.stack([one, -2.0 * gain * cos, 2.0 * gain - 1.0], axis=-1)
-    weight = np.broadcast_to(np.asarray(weight, float), w0.shape)[..., None]
-    return np.concatenate([weight * b + (1.0 - weight) * a, a], axis=-1)
+    return np.concatenate([b, a], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -139,6 +135,14 @@ def fit_speed_frequency_map(
     return SpeedFrequencyMap(float(np.exp(intercept)), float(slope), int(keep.sum()), rms)
 
 
+def hold(joint_stamps_ns: np.ndarray, values: np.ndarray, at_ns: np.ndarray) -> np.ndarray:
+    """The latest joint state at or before each stamp (zeros before the first): causal."""
+    index = np.searchsorted(joint_stamps_ns, at_ns, side="right") - 1
+    held = np.asarray(values, float)[np.maximum(index, 0)]
+    held[index < 0] = 0.0
+    return held
+
+
 class HarmonicNotchBank:
     """Notches at the folded harmonics h = 1..H of each motor's line, keyed on its command."""
 
@@ -179,10 +183,7 @@ class HarmonicNotchBank:
         x = np.asarray(x, float)
         n = len(x)
         starts = np.arange(0, n, self.update_samples)
-        # The latest command at or before each update block's first sample (causal hold).
-        index = np.searchsorted(joint_stamps_ns, stamps_ns[starts], side="right") - 1
-        held = np.asarray(commands, float)[np.maximum(index, 0)]
-        held[index < 0] = 0.0
+        held = hold(joint_stamps_ns, commands, stamps_ns[starts])  # at each update's first sample
         sos = notch_sos(self.centres(held), self.q, self.sample_rate_hz)  # (B, K, 6)
         out = np.empty(n)
         zi = np.zeros((sos.shape[1], 2))

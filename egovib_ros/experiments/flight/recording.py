@@ -60,22 +60,25 @@ class FlightRecording:
             None if f is None else self.filtered[f],
         )
 
+    def part(self, start_s: float, stop_s: float) -> "FlightRecording":
+        """`time_slice` from start_s to stop_s seconds after the first sensor sample."""
+        t0 = int(self.sensor_stamps_ns[0])
+        return self.time_slice(t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S))
 
-def read_flight_bag(
-    path: str | os.PathLike, profile: RobotProfile, *, filtered_topic: str = FILTERED_TOPIC
-) -> FlightRecording:
+
+def read_flight_bag(path: str | os.PathLike, profile: RobotProfile) -> FlightRecording:
     """Sensor topic/field and joints from `profile` (through the bag layer); the
     firmware-filtered gyro when the bag has it."""
     rec = read_recording(path, profile=profile, ground_truth=False, denoised=False)
     filtered = (None, None)
     topics = bag_topics(path)
-    if filtered_topic in topics:
-        if topics[filtered_topic][0] != IMU_TYPE:
+    if FILTERED_TOPIC in topics:
+        if topics[FILTERED_TOPIC][0] != IMU_TYPE:
             raise BagError(
-                f"{path}: topic {filtered_topic} has type {topics[filtered_topic][0]}, "
+                f"{path}: topic {FILTERED_TOPIC} has type {topics[FILTERED_TOPIC][0]}, "
                 f"expected {IMU_TYPE}"
             )
-        other = dataclasses.replace(profile, sensor_topic=filtered_topic)
+        other = dataclasses.replace(profile, sensor_topic=FILTERED_TOPIC)
         firmware = read_recording(path, profile=other, ground_truth=False, denoised=False)
         filtered = (firmware.sensor_stamps_ns, firmware.sensor)
     return FlightRecording(

@@ -14,6 +14,7 @@ import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.metrics import json_safe
+from egovib_ros.experiments import fmt, pyplot
 from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import RobotProfile
@@ -37,12 +38,6 @@ COMPARED = (
     ("false_alarms_per_min", "false alarms per minute", False),
 )
 AT_1X = "1"
-
-
-def _fmt(value, digits: int = 1) -> str:
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return "n/a"
-    return f"{value:.{digits}f}"
 
 
 def _row(cells) -> str:
@@ -115,20 +110,20 @@ def table(fold: dict) -> list[str]:
             _row(
                 (
                     LABELS[name],
-                    _fmt(methods[name]["delay_ms"], 0),
-                    _fmt(m["noise_mean_denoised"], 4),
-                    _fmt(m["noise_reduction_db"]),
-                    _fmt(m["noise_spike_denoised"], 3),
-                    _fmt(m["tap_peak_denoised"], 3),
-                    _fmt(m["tap_retention"], 2),
-                    _fmt(m["peak_snr_denoised_db"]),
-                    _fmt(m["peak_snr_improvement_db"]),
-                    _fmt(m["threshold"], 3),
-                    _fmt(m["precision"], 2),
-                    _fmt(m["recall"], 2),
-                    _fmt(m["f1"], 2),
-                    _fmt(m["f1_30ms"], 2),
-                    _fmt(m["false_alarms_per_min"]),
+                    fmt(methods[name]["delay_ms"], 0),
+                    fmt(m["noise_mean_denoised"], 4),
+                    fmt(m["noise_reduction_db"]),
+                    fmt(m["noise_spike_denoised"], 3),
+                    fmt(m["tap_peak_denoised"], 3),
+                    fmt(m["tap_retention"], 2),
+                    fmt(m["peak_snr_denoised_db"]),
+                    fmt(m["peak_snr_improvement_db"]),
+                    fmt(m["threshold"], 3),
+                    fmt(m["precision"], 2),
+                    fmt(m["recall"], 2),
+                    fmt(m["f1"], 2),
+                    fmt(m["f1_30ms"], 2),
+                    fmt(m["false_alarms_per_min"]),
                 )
             )
         )
@@ -139,9 +134,9 @@ def table(fold: dict) -> list[str]:
                 (
                     f"{FIRMWARE_LABEL}: filtered in flight, before any event",
                     "n/a",
-                    _fmt(fw["noise_mean_denoised"], 4),
-                    _fmt(fw["noise_reduction_db"]),
-                    _fmt(fw["noise_spike_denoised"], 3),
+                    fmt(fw["noise_mean_denoised"], 4),
+                    fmt(fw["noise_reduction_db"]),
+                    fmt(fw["noise_spike_denoised"], 3),
                 )
                 + ("n/a",) * 10
             )
@@ -169,7 +164,7 @@ def pooled_table(fold: dict) -> list[str]:
 
     def span(entry: dict, key: str, digits: int) -> str:
         v = entry[key]
-        return f"{_fmt(v['mean'], digits)} ({_fmt(v['min'], digits)}-{_fmt(v['max'], digits)})"
+        return f"{fmt(v['mean'], digits)} ({fmt(v['min'], digits)}-{fmt(v['max'], digits)})"
 
     for name, e in pooled["methods"].items():
         lines.append(
@@ -179,15 +174,15 @@ def pooled_table(fold: dict) -> list[str]:
                     span(e, "noise_reduction_db", 1),
                     span(e, "tap_retention", 2),
                     span(e, "peak_snr_improvement_db", 1),
-                    _fmt(e["f1_pooled"], 2),
-                    f"{_fmt(e['f1']['min'], 2)}-{_fmt(e['f1']['max'], 2)}",
+                    fmt(e["f1_pooled"], 2),
+                    f"{fmt(e['f1']['min'], 2)}-{fmt(e['f1']['max'], 2)}",
                     span(e, "false_alarms_per_min", 1),
                 )
             )
         )
     fw = single_rows(fold).get("firmware")
     if fw:
-        lines.append(_row((FIRMWARE_LABEL, _fmt(fw["noise_reduction_db"])) + ("n/a",) * 5))
+        lines.append(_row((FIRMWARE_LABEL, fmt(fw["noise_reduction_db"])) + ("n/a",) * 5))
     return lines
 
 
@@ -202,8 +197,8 @@ def amplitude_table(fold: dict) -> list[str]:
             _row(
                 (
                     LABELS[name],
-                    *(_fmt(r["f1"], 2) for r in rows),
-                    *(_fmt(r["peak_snr_improvement_db"]) for r in rows),
+                    *(fmt(r["f1"], 2) for r in rows),
+                    *(fmt(r["peak_snr_improvement_db"]) for r in rows),
                 )
             )
         )
@@ -227,7 +222,7 @@ def where_baselines_win(fold: dict) -> list[str]:
             if not (np.isfinite(a) and np.isfinite(b)):
                 continue
             if (a > b + 1e-9) if larger else (a < b - 1e-9):
-                wins.append(f"{label} {_fmt(a, 2)} vs ours {_fmt(b, 2)}")
+                wins.append(f"{label} {fmt(a, 2)} vs ours {fmt(b, 2)}")
         what = "event F1 and false alarms" if name == "raw" else "every metric"
         lines.append(
             f"- {LABELS[name]} beats ours on " + "; ".join(wins) + "."
@@ -239,9 +234,9 @@ def where_baselines_win(fold: dict) -> list[str]:
         fw, mine = single["firmware"], single["ours"]
         verdict = "less" if fw["noise_mean_denoised"] < mine["noise_mean_denoised"] else "more"
         text = (
-            f"- (d) the firmware's filtered gyro leaves {_fmt(fw['noise_mean_denoised'], 4)} "
-            f"rad/s of noise in the band ({_fmt(fw['noise_reduction_db'])} dB below raw), "
-            f"{verdict} than ours ({_fmt(mine['noise_mean_denoised'], 4)} rad/s)"
+            f"- (d) the firmware's filtered gyro leaves {fmt(fw['noise_mean_denoised'], 4)} "
+            f"rad/s of noise in the band ({fmt(fw['noise_reduction_db'])} dB below raw), "
+            f"{verdict} than ours ({fmt(mine['noise_mean_denoised'], 4)} rad/s)"
         )
         transfer = fold.get("firmware_transfer")
         if transfer:
@@ -249,8 +244,8 @@ def where_baselines_win(fold: dict) -> list[str]:
             text += (
                 ". It is no event-preserving filter: its estimated transfer from the raw "
                 "gyro (Welch cross-spectrum over the test part) has a median gain of "
-                f"{_fmt(transfer['median_gain_db'])} dB over {low:g}-{high:g} Hz (median "
-                f"coherence {_fmt(transfer['median_coherence'], 2)}), so an event in the band "
+                f"{fmt(transfer['median_gain_db'])} dB over {low:g}-{high:g} Hz (median "
+                f"coherence {fmt(transfer['median_coherence'], 2)}), so an event in the band "
                 "would be cut about as much as the noise."
             )
         lines.append(text if text.endswith(".") else text + ".")
@@ -471,17 +466,17 @@ def readme_section(result: dict) -> str:
             _row(
                 (
                     LABELS[name],
-                    _fmt(v["noise_reduction_db"]),
-                    _fmt(v["tap_retention"], 2),
-                    _fmt(v["peak_snr_improvement_db"]),
-                    _fmt(v["f1"], 2),
-                    _fmt(v["false_alarms_per_min"]),
+                    fmt(v["noise_reduction_db"]),
+                    fmt(v["tap_retention"], 2),
+                    fmt(v["peak_snr_improvement_db"]),
+                    fmt(v["f1"], 2),
+                    fmt(v["false_alarms_per_min"]),
                 )
             )
         )
     if "firmware" in single:
         lines.append(
-            _row((FIRMWARE_LABEL, _fmt(single["firmware"]["noise_reduction_db"])) + ("n/a",) * 4)
+            _row((FIRMWARE_LABEL, fmt(single["firmware"]["noise_reduction_db"])) + ("n/a",) * 4)
         )
     lines += [
         "",
@@ -492,8 +487,8 @@ def readme_section(result: dict) -> str:
     if worse:
         lines.append(
             f"With the halves swapped{_swapped_phases(result)} ours gives "
-            f"{_fmt(worse['noise_reduction_db'])} dB, gain "
-            f"{_fmt(worse['peak_snr_improvement_db'])} dB, F1 {_fmt(worse['f1'], 2)}: the "
+            f"{fmt(worse['noise_reduction_db'])} dB, gain "
+            f"{fmt(worse['peak_snr_improvement_db'])} dB, F1 {fmt(worse['f1'], 2)}: the "
             "worse figure."
         )
     lines += [
@@ -514,13 +509,13 @@ def summary_text(result: dict) -> str:
     out = [f"{'method':14s} {'noise red dB':>12s} {'retention':>10s} {'gain dB':>8s} {'F1':>5s}"]
     for name, v in rows.items():
         out.append(
-            f"{name:14s} {_fmt(v['noise_reduction_db']):>12s} "
-            f"{_fmt(v['tap_retention'], 2):>10s} {_fmt(v['peak_snr_improvement_db']):>8s} "
-            f"{_fmt(v['f1'], 2):>5s}"
+            f"{name:14s} {fmt(v['noise_reduction_db']):>12s} "
+            f"{fmt(v['tap_retention'], 2):>10s} {fmt(v['peak_snr_improvement_db']):>8s} "
+            f"{fmt(v['f1'], 2):>5s}"
         )
     firmware = single_rows(result["primary"]).get("firmware")
     if firmware:
-        out.append(f"{'firmware':14s} {_fmt(firmware['noise_reduction_db']):>12s}   (noise only)")
+        out.append(f"{'firmware':14s} {fmt(firmware['noise_reduction_db']):>12s}   (noise only)")
     return "\n".join(out)
 
 
@@ -533,17 +528,8 @@ def strip_signals(result: dict) -> dict:
 
 
 # --- figures -----------------------------------------------------------------
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _png(fig) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=110, format="png")
     plt.close(fig)
@@ -553,7 +539,7 @@ def _png(fig) -> bytes:
 def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
     from scipy import signal as sps
 
-    plt = _pyplot()
+    plt = pyplot()
     fold = result["primary"]
     sig = fold["signals"]
     best = best_baseline(fold)
@@ -586,7 +572,7 @@ def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
 
 
 def timeseries_figure(result: dict, profile: RobotProfile, window_s: float = 2.0) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     fold = result["primary"]
     sig = fold["signals"]
     fs = profile.rate_hz
@@ -628,7 +614,7 @@ def timeseries_figure(result: dict, profile: RobotProfile, window_s: float = 2.0
 
 
 def methods_figure(result: dict) -> bytes:
-    plt = _pyplot()
+    plt = pyplot()
     folds = [("primary", "calibrate on the 1st part, test the 2nd")]
     if "swapped" in result:
         folds.append(("swapped", "swapped"))
