@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.experiments import pyplot, save_figure
+
 #: Fractions of a joint's max speed whose single-joint cells the spectra show (with rest).
 SPEED_FRACTIONS = (0.25, 0.5, 0.75, 1.0)
 #: Recording blocks kept (evenly thinned) to draw those beyond a 2-joint grid.
@@ -527,20 +529,6 @@ def summary_markdown(
 
 
 # --- figures ---------------------------------------------------------------------------
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> None:
-    fig.savefig(path, dpi=100, format="png")
-    _pyplot().close(fig)
-
-
 def _robot_name(model) -> str:
     return model.profile.name if model.profile is not None else "unnamed robot"
 
@@ -566,7 +554,7 @@ def _count_norm(values: np.ndarray):
 def coverage_figure(model, path: Path) -> None:
     from matplotlib.lines import Line2D
 
-    plt = _pyplot()
+    plt = pyplot()
     c = coverage_facts(model)
     index = CellIndex.of(model)
     title = (
@@ -625,8 +613,7 @@ def coverage_figure(model, path: Path) -> None:
             frameon=False,
         )
         ax.set_title(title, fontsize=10)
-        fig.tight_layout()
-        _save(fig, path)
+        save_figure(fig, path, dpi=100)
         return
     marginals = joint_marginals(model)
     n_panels = model.n_joints + (1 if model.n_joints > 1 else 0)
@@ -665,12 +652,11 @@ def coverage_figure(model, path: Path) -> None:
     for ax in list(axes.flat)[n_panels:]:
         ax.set_visible(False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) -> None:
-    plt = _pyplot()
+    plt = pyplot()
     c = model.channels.index(channel)
     freqs = model.freqs_hz
     cols = 1 if len(panels) == 1 else 2
@@ -696,15 +682,14 @@ def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) 
         f"(mean solid, std dashed; shaded: band {model.band_hz[0]:g}-{model.band_hz[1]:g} Hz)",
         fontsize=10,
     )
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def bag_figure(model, placement: BagPlacement, path: Path) -> None:
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
 
-    plt = _pyplot()
+    plt = pyplot()
     s = placement.shares()
     title = (
         f"{Path(placement.bag).name}: {s['blocks']} blocks; outside the calibrated speeds "
@@ -831,8 +816,7 @@ def bag_figure(model, placement: BagPlacement, path: Path) -> None:
         share_ax = axes[rows, 0]
     _share_bar(share_ax, s)
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def _cell_edges(grid: np.ndarray) -> np.ndarray:
