@@ -228,11 +228,7 @@ def pool_seeds(per_seed: list[dict], seeds: list[int]) -> dict:
                 "max": float(values.max()),
             }
         tp, fp, fn = (sum(rows[name][k] for rows in per_seed) for k in ("tp", "fp", "fn"))
-        precision = tp / (tp + fp) if tp + fp else 1.0
-        recall = tp / (tp + fn) if tp + fn else 1.0
-        entry["f1_pooled"] = (
-            2 * precision * recall / (precision + recall) if precision + recall else 0.0
-        )
+        entry["f1_pooled"] = detection.scores_of(tp, fp, fn)["f1"]
         entry["events"] = int(tp + fn)
         pooled["methods"][name] = entry
     return pooled
