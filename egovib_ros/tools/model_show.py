@@ -371,6 +371,8 @@ def nearest_cells(grid, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     """Stream a bag through BagPlacement (the model's topics, field and joints)."""
+    from tqdm import tqdm
+
     from egovib_ros.bag import BagReader, iter_recording
     from egovib_ros.core.stream import check_stream
     from egovib_ros.errors import BagError
@@ -378,28 +380,22 @@ def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     profile = model.robot_profile()
     where = f"{bag}: {profile.sensor_topic}"
     placement = BagPlacement(model, source=where)
-    bar = None
-    if not quiet:
-        from tqdm import tqdm
-
-        with BagReader(bag) as reader:
-            total = reader.total_bytes
-        bar = tqdm(total=total, unit="B", unit_scale=True, desc="model show", leave=False)
-    try:
+    with BagReader(bag) as reader:
+        total = reader.total_bytes
+    with tqdm(
+        total=total, unit="B", unit_scale=True, desc="model show", leave=False, disable=quiet
+    ) as bar:
         for piece in iter_recording(
             bag,
             profile=profile,
             ground_truth=False,
             denoised=False,
             commands=False,
-            progress=bar.update if bar is not None else None,
+            progress=bar.update,
         ):
             placement.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             placement.push_sensor(piece.sensor_stamps_ns, piece.sensor)
-        placement.flush()
-    finally:
-        if bar is not None:
-            bar.close()
+    placement.flush()
     placement.input_counts = check_stream(
         placement.framer.stats,
         where,
