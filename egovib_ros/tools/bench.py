@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
+from egovib_ros.bag.many import bag_size
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 from egovib_ros.robot import RobotProfile, default_profile
@@ -337,7 +338,7 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
         bag = Path(tmp) / "bench_bag"
         _, write_s = _timed(lambda: write_recording(bag, rec))
         _, read_s = _timed(lambda: read_recording(bag))
-        size = _bag_bytes(bag)
+        size = bag_size(bag)
     n_messages = len(rec.sensor_stamps_ns) * (
         1 + (rec.contact is not None) + (rec.ego is not None)
     ) + len(rec.joint_stamps_ns)
@@ -386,10 +387,6 @@ def write_interleaved_bag(path: Path, duration_s: float) -> None:
                 writer.write(conns[topic], stamp, data)
 
 
-def _bag_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.iterdir() if f.is_file())
-
-
 def _stream_copy(src: Path, dst: Path) -> None:
     """A plain bag copy through this package: every chunk copied as it is."""
     from egovib_ros.bag import BagReader, BagWriter
@@ -422,9 +419,9 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
         for name, run in runs.items():
             out = workdir / f"bench_{name}"
             best[name] = min(best[name], _timed(lambda: run(out))[1])
-            sizes[name] = _bag_bytes(out)
+            sizes[name] = bag_size(out)
             shutil.rmtree(out)
-    figures = {"bag_signal_s": duration_s, "bag_input_bytes": _bag_bytes(bag)}
+    figures = {"bag_signal_s": duration_s, "bag_input_bytes": bag_size(bag)}
     for name, seconds in best.items():
         figures[f"{name}_s"] = seconds
         figures[f"{name}_x_realtime"] = duration_s / seconds
