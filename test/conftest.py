@@ -56,7 +56,7 @@ class NodeProcesses(NodeGroup):
         self, executable: str, params: dict | None = None, *, log_name: str | None = None, **options
     ):
         """Run `executable --ros-args -p name:=value ...`; output goes to a log file.
-        `options`: remap, namespace, args, env (see NodeGroup.start)."""
+        `options`: remap, namespace, env (see NodeGroup.start)."""
         return super().start(
             f"{log_name or executable}.{len(self.procs)}", executable, params, **options
         )

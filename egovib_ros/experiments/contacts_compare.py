@@ -53,6 +53,7 @@ from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
+from egovib_ros.evaluation.detection import scores_of
 from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
 from egovib_ros.experiments import pyplot, python_command, save_figure
 from egovib_ros.robot import load_profile
@@ -225,14 +226,13 @@ def pool(sets: list[dict]) -> dict:
         rows = [s[method] for s in sets]
         tp, fp, fn, near = (sum(r[k] for r in rows) for k in ("tp", "fp", "fn", "fp_near_taps"))
         minutes = sum(r["minutes"] for r in rows)
-        precision = tp / (tp + fp) if tp + fp else 1.0
-        recall = tp / (tp + fn) if tp + fn else 1.0
+        scores = scores_of(tp, fp, fn)
         p50 = [r["latency_ms_p50"] for r in rows if r["latency_ms_p50"] is not None]
         p99 = [r["latency_ms_p99"] for r in rows if r["latency_ms_p99"] is not None]
         out[method] = {
-            "f1": 2 * precision * recall / (precision + recall) if precision + recall else 0.0,
-            "precision": precision,
-            "recall": recall,
+            "f1": scores["f1"],
+            "precision": scores["precision"],
+            "recall": scores["recall"],
             "false_alarms_per_min": fp / minutes if minutes else None,
             "latency_ms_p50": float(np.median(p50)) if p50 else None,
             "latency_ms_p99": float(np.max(p99)) if p99 else None,

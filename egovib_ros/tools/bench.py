@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros import __version__
+from egovib_ros.bag.many import bag_size
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 from egovib_ros.robot import RobotProfile, default_profile
@@ -155,7 +156,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     data, model = synthetic_streams(duration_s), synthetic_model()
     streams = [data[k] for k in ("sensor_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity")]
     seconds, seconds_axes = (
-        _best_wall_and_cpu(lambda: denoise_batch(*streams, model, channels=channels), repeats)[0]
+        best_wall_and_cpu(lambda: denoise_batch(*streams, model, channels=channels), repeats)[0]
         for channels in ("combined", "per_axis")
     )
     # the same samples stamped as a USB driver reads them (1 ms frames): the rebuilt clock
@@ -164,7 +165,7 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     core_log = logging.getLogger("egovib_ros.core")
     disabled, core_log.disabled = core_log.disabled, True  # its "read as receipt times" line
     try:
-        seconds_receipt, _ = _best_wall_and_cpu(
+        seconds_receipt, _ = best_wall_and_cpu(
             lambda: denoise_batch(*receipt, model, channels="per_axis"), repeats
         )
     finally:
@@ -186,18 +187,12 @@ def bench_stream(duration_s: float = 10.0) -> dict:
     denoiser = StreamingDenoiser(model, channels="combined")
     joint_t, accel_t = data["joint_stamps_ns"], data["sensor_stamps_ns"]
     costs = []
-    joint_from = 0
     hop = _robot().hop
-    for start in range(0, len(accel_t) - hop + 1, hop):
-        stop = start + hop
-        joint_to = int(np.searchsorted(joint_t, accel_t[stop - 1], side="right"))
+    for samples, joints in _hops(accel_t, joint_t, hop, whole=True):
         begin = time.perf_counter_ns()
-        denoiser.push_joint_states(
-            joint_t[joint_from:joint_to], data["joint_velocity"][joint_from:joint_to]
-        )
-        denoiser.push_sensor(accel_t[start:stop], data["accel"][start:stop])
+        denoiser.push_joint_states(joint_t[joints], data["joint_velocity"][joints])
+        denoiser.push_sensor(accel_t[samples], data["accel"][samples])
         costs.append(time.perf_counter_ns() - begin)
-        joint_from = joint_to
     costs_us = np.array(costs[len(costs) // 10 :]) / 1e3  # skip warm-up
     hop_us = hop / _robot().rate_hz * 1e6
     return {
@@ -206,6 +201,18 @@ def bench_stream(duration_s: float = 10.0) -> dict:
         "stream_hop_p99_us": float(np.percentile(costs_us, 99)),
         "stream_x_realtime": float(hop_us / np.median(costs_us)),
     }
+
+
+def _hops(sensor_stamps, joint_stamps, hop: int, *, whole: bool = False):
+    """Per hop of `hop` sensor samples (`whole`: full hops only), its slice of the sensor
+    samples and the slice of the joint states that arrived up to its last sample: the
+    order in which a live stream feeds a denoiser."""
+    joint_from = 0
+    for start in range(0, len(sensor_stamps) - (hop - 1 if whole else 0), hop):
+        stop = min(start + hop, len(sensor_stamps))
+        joint_to = int(np.searchsorted(joint_stamps, sensor_stamps[stop - 1], side="right"))
+        yield slice(start, stop), slice(joint_from, joint_to)
+        joint_from = joint_to
 
 
 def bench_calibration(cell_s: float = 2.0) -> dict:
@@ -219,17 +226,17 @@ def bench_calibration(cell_s: float = 2.0) -> dict:
     # Hold each cell's velocity for `cell_s` seconds, as in a sweep.
     per_cell = int(round(cell_s * SYNTHETIC_JOINT_RATE_HZ))
     velocity = np.repeat(np.array(cells), per_cell, axis=0)[: len(data["joint_stamps_ns"])]
-    start = time.perf_counter()
-    model, _ = calibrate_arrays(
-        data["sensor_stamps_ns"],
-        data["accel"],
-        data["joint_stamps_ns"],
-        velocity,
-        profile=robot,
-        sweep="full",
-        source="bench synthetic",
+    _, seconds = _timed(
+        lambda: calibrate_arrays(
+            data["sensor_stamps_ns"],
+            data["accel"],
+            data["joint_stamps_ns"],
+            velocity,
+            profile=robot,
+            sweep="full",
+            source="bench synthetic",
+        )
     )
-    seconds = time.perf_counter() - start
     signal_s = cell_s * len(cells)
     return {
         "cells": len(cells),
@@ -239,7 +246,14 @@ def bench_calibration(cell_s: float = 2.0) -> dict:
     }
 
 
-def _best_wall_and_cpu(fn, repeats: int) -> tuple[float, float]:
+def _timed(fn) -> tuple:
+    """(fn(), its wall-clock seconds)."""
+    start = time.perf_counter()
+    result = fn()
+    return result, time.perf_counter() - start
+
+
+def best_wall_and_cpu(fn, repeats: int) -> tuple[float, float]:
     """Best wall-clock and best CPU seconds (this process) of `repeats` calls: on a shared
     machine the wall time also counts the time other jobs ran."""
     wall = cpu = float("inf")
@@ -268,26 +282,20 @@ def bench_methods(
     robot = _robot()
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=dwell_s, settle_s=settle_s, seed=1)
     arrays = (sweep.sensor_stamps_ns, sweep.sensor, sweep.joint_stamps_ns, sweep.joint_velocity)
-    begin = time.perf_counter()
-    paper, _ = calibrate_arrays(*arrays, profile=robot, sweep="superposition")
-    model, _ = calibrate_methods(paper, *arrays)
-    calibration_s = time.perf_counter() - begin
+    (model, _), calibration_s = _timed(
+        lambda: calibrate_methods(
+            calibrate_arrays(*arrays, profile=robot, sweep="superposition")[0], *arrays
+        )
+    )
     run, _ = simulate_motion(duration_s=duration_s, max_speed=0.5, tap_rate_hz=2.0, seed=7)
     args = (run.sensor_stamps_ns, run.sensor, run.joint_stamps_ns, run.joint_velocity, model)
     hop = robot.hop
 
     def streamed(method: str) -> None:
         denoiser = make_denoiser(model, method, channels="combined")
-        joints, stamps = run.joint_stamps_ns, run.sensor_stamps_ns
-        joint_from = 0
-        for start in range(0, len(stamps), hop):
-            stop = min(start + hop, len(stamps))
-            joint_to = int(np.searchsorted(joints, stamps[stop - 1], side="right"))
-            denoiser.push_joint_states(
-                joints[joint_from:joint_to], run.joint_velocity[joint_from:joint_to]
-            )
-            denoiser.push_sensor(stamps[start:stop], run.sensor[start:stop])
-            joint_from = joint_to
+        for samples, joints in _hops(run.sensor_stamps_ns, run.joint_stamps_ns, hop):
+            denoiser.push_joint_states(run.joint_stamps_ns[joints], run.joint_velocity[joints])
+            denoiser.push_sensor(run.sensor_stamps_ns[samples], run.sensor[samples])
         denoiser.flush()
 
     figures: dict = {
@@ -305,7 +313,7 @@ def bench_methods(
             "stream": lambda: streamed(method),
         }
         for name, fn in runs.items():
-            wall, cpu = _best_wall_and_cpu(fn, repeats)
+            wall, cpu = best_wall_and_cpu(fn, repeats)
             figures[f"{method}_{name}_x_realtime"] = run.duration_s / wall
             figures[f"{method}_{name}_x_realtime_cpu"] = run.duration_s / cpu
     for method in METHODS[1:]:
@@ -321,20 +329,16 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
     from egovib_ros.bag import read_recording, write_recording
     from egovib_ros.sim import simulate_motion
 
-    start = time.perf_counter()
-    rec, _ = simulate_motion(
-        duration_s=duration_s, max_speed=1.0, tap_rate_hz=1.0, effects={}, seed=3
+    (rec, _), sim_s = _timed(
+        lambda: simulate_motion(
+            duration_s=duration_s, max_speed=1.0, tap_rate_hz=1.0, effects={}, seed=3
+        )
     )
-    sim_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory(prefix="egovib-bench-") as tmp:
         bag = Path(tmp) / "bench_bag"
-        start = time.perf_counter()
-        write_recording(bag, rec)
-        write_s = time.perf_counter() - start
-        start = time.perf_counter()
-        read_recording(bag)
-        read_s = time.perf_counter() - start
-        size = _bag_bytes(bag)
+        _, write_s = _timed(lambda: write_recording(bag, rec))
+        _, read_s = _timed(lambda: read_recording(bag))
+        size = bag_size(bag)
     n_messages = len(rec.sensor_stamps_ns) * (
         1 + (rec.contact is not None) + (rec.ego is not None)
     ) + len(rec.joint_stamps_ns)
@@ -383,10 +387,6 @@ def write_interleaved_bag(path: Path, duration_s: float) -> None:
                 writer.write(conns[topic], stamp, data)
 
 
-def _bag_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.iterdir() if f.is_file())
-
-
 def _stream_copy(src: Path, dst: Path) -> None:
     """A plain bag copy through this package: every chunk copied as it is."""
     from egovib_ros.bag import BagReader, BagWriter
@@ -418,12 +418,10 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
     for _ in range(repeats):
         for name, run in runs.items():
             out = workdir / f"bench_{name}"
-            start = time.perf_counter()
-            run(out)
-            best[name] = min(best[name], time.perf_counter() - start)
-            sizes[name] = _bag_bytes(out)
+            best[name] = min(best[name], _timed(lambda: run(out))[1])
+            sizes[name] = bag_size(out)
             shutil.rmtree(out)
-    figures = {"bag_signal_s": duration_s, "bag_input_bytes": _bag_bytes(bag)}
+    figures = {"bag_signal_s": duration_s, "bag_input_bytes": bag_size(bag)}
     for name, seconds in best.items():
         figures[f"{name}_s"] = seconds
         figures[f"{name}_x_realtime"] = duration_s / seconds
@@ -506,9 +504,7 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
         ("mcap_library", read_mcap_library),
         ("rosbags", read_rosbags),
     ):
-        start = time.perf_counter()
-        n = read()
-        seconds = time.perf_counter() - start
+        n, seconds = _timed(read)
         figures[f"read_{name}_msgs_per_s"] = n / seconds
         figures[f"read_{name}_s"] = seconds
 
@@ -553,9 +549,7 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
         ("rosbags", write_rosbags),
     ):
         out = workdir / f"write_{name}"
-        start = time.perf_counter()
-        write(out)
-        seconds = time.perf_counter() - start
+        _, seconds = _timed(lambda: write(out))
         shutil.rmtree(out)
         figures[f"write_{name}_msgs_per_s"] = len(datas) / seconds
         figures[f"write_{name}_s"] = seconds

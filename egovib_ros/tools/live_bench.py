@@ -117,7 +117,6 @@ def run_bench(
     channels: str = "per_axis",
     method: str = "paper",
     publish_period: float = 0.002,
-    workdir: Path | None = None,
 ) -> dict:
     """Run sim_hand + denoiser (`method`) for `seconds` (after `warmup`); return the figures."""
     from sensor_msgs.msg import Imu
@@ -126,7 +125,7 @@ def run_bench(
     from egovib_ros.nodes.convert import command_message, decode_imu_messages, diagnostic_values
     from egovib_ros.sim import motion_commands
 
-    workdir = Path(workdir or tempfile.mkdtemp(prefix="egovib_live_bench_"))
+    workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
     model = model or bench_model(workdir / "model.npz", method=method)
     group = NodeGroup(workdir / "logs")
     group.use_domain_here()
@@ -330,7 +329,6 @@ def run_contact_bench(
     tap_rate_hz: float = 1.0,
     calibration_seconds: float = 30.0,
     publish_period: float = 0.002,
-    workdir: Path | None = None,
 ) -> dict:
     """sim_hand (taps) + denoiser + contact_detector on its output + contact_detector on the
     raw stream for `seconds` (after `warmup`); the figures (see the module doc)."""
@@ -350,7 +348,7 @@ def run_contact_bench(
     from egovib_ros.robot import load_profile
     from egovib_ros.sim import motion_commands
 
-    workdir = Path(workdir or tempfile.mkdtemp(prefix="egovib_live_bench_"))
+    workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
     model = model or bench_model(workdir / "model.npz")
     no_contact = calibration_bag(workdir / "no_contact", calibration_seconds)
     detectors = {"contact_detector": "denoised", "contact_detector_raw": "raw"}

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.experiments import pyplot, save_figure
+
 #: Fractions of a joint's max speed whose single-joint cells the spectra show (with rest).
 SPEED_FRACTIONS = (0.25, 0.5, 0.75, 1.0)
 #: Recording blocks kept (evenly thinned) to draw those beyond a 2-joint grid.
@@ -369,6 +371,8 @@ def nearest_cells(grid, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     """Stream a bag through BagPlacement (the model's topics, field and joints)."""
+    from tqdm import tqdm
+
     from egovib_ros.bag import BagReader, iter_recording
     from egovib_ros.core.stream import check_stream
     from egovib_ros.errors import BagError
@@ -376,28 +380,22 @@ def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     profile = model.robot_profile()
     where = f"{bag}: {profile.sensor_topic}"
     placement = BagPlacement(model, source=where)
-    bar = None
-    if not quiet:
-        from tqdm import tqdm
-
-        with BagReader(bag) as reader:
-            total = reader.total_bytes
-        bar = tqdm(total=total, unit="B", unit_scale=True, desc="model show", leave=False)
-    try:
+    with BagReader(bag) as reader:
+        total = reader.total_bytes
+    with tqdm(
+        total=total, unit="B", unit_scale=True, desc="model show", leave=False, disable=quiet
+    ) as bar:
         for piece in iter_recording(
             bag,
             profile=profile,
             ground_truth=False,
             denoised=False,
             commands=False,
-            progress=bar.update if bar is not None else None,
+            progress=bar.update,
         ):
             placement.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             placement.push_sensor(piece.sensor_stamps_ns, piece.sensor)
-        placement.flush()
-    finally:
-        if bar is not None:
-            bar.close()
+    placement.flush()
     placement.input_counts = check_stream(
         placement.framer.stats,
         where,
@@ -527,20 +525,6 @@ def summary_markdown(
 
 
 # --- figures ---------------------------------------------------------------------------
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> None:
-    fig.savefig(path, dpi=100, format="png")
-    _pyplot().close(fig)
-
-
 def _robot_name(model) -> str:
     return model.profile.name if model.profile is not None else "unnamed robot"
 
@@ -566,7 +550,7 @@ def _count_norm(values: np.ndarray):
 def coverage_figure(model, path: Path) -> None:
     from matplotlib.lines import Line2D
 
-    plt = _pyplot()
+    plt = pyplot()
     c = coverage_facts(model)
     index = CellIndex.of(model)
     title = (
@@ -625,8 +609,7 @@ def coverage_figure(model, path: Path) -> None:
             frameon=False,
         )
         ax.set_title(title, fontsize=10)
-        fig.tight_layout()
-        _save(fig, path)
+        save_figure(fig, path, dpi=100)
         return
     marginals = joint_marginals(model)
     n_panels = model.n_joints + (1 if model.n_joints > 1 else 0)
@@ -665,12 +648,11 @@ def coverage_figure(model, path: Path) -> None:
     for ax in list(axes.flat)[n_panels:]:
         ax.set_visible(False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) -> None:
-    plt = _pyplot()
+    plt = pyplot()
     c = model.channels.index(channel)
     freqs = model.freqs_hz
     cols = 1 if len(panels) == 1 else 2
@@ -696,15 +678,14 @@ def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) 
         f"(mean solid, std dashed; shaded: band {model.band_hz[0]:g}-{model.band_hz[1]:g} Hz)",
         fontsize=10,
     )
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def bag_figure(model, placement: BagPlacement, path: Path) -> None:
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
 
-    plt = _pyplot()
+    plt = pyplot()
     s = placement.shares()
     title = (
         f"{Path(placement.bag).name}: {s['blocks']} blocks; outside the calibrated speeds "
@@ -831,8 +812,7 @@ def bag_figure(model, placement: BagPlacement, path: Path) -> None:
         share_ax = axes[rows, 0]
     _share_bar(share_ax, s)
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path, dpi=100)
 
 
 def _cell_edges(grid: np.ndarray) -> np.ndarray:

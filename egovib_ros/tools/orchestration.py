@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 BIN = Path(sys.executable).parent
 
@@ -90,12 +90,11 @@ class NodeGroup:
         *,
         remap: Mapping[str, str] | None = None,
         namespace: str = "",
-        args: Sequence[str] = (),
         env: Mapping[str, str] | None = None,
     ) -> subprocess.Popen:
         """Start `executable --ros-args -p k:=v ... -r from:=to ...` as process `name`
         (`env`: variables added to the group's environment for this process)."""
-        cmd = [str(BIN / executable), *args, "--ros-args"]
+        cmd = [str(BIN / executable), "--ros-args"]
         for key, value in (params or {}).items():
             cmd += ["-p", f"{key}:={param_text(value)}"]
         for source, target in (remap or {}).items():

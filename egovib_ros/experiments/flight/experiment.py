@@ -228,11 +228,7 @@ def pool_seeds(per_seed: list[dict], seeds: list[int]) -> dict:
                 "max": float(values.max()),
             }
         tp, fp, fn = (sum(rows[name][k] for rows in per_seed) for k in ("tp", "fp", "fn"))
-        precision = tp / (tp + fp) if tp + fp else 1.0
-        recall = tp / (tp + fn) if tp + fn else 1.0
-        entry["f1_pooled"] = (
-            2 * precision * recall / (precision + recall) if precision + recall else 0.0
-        )
+        entry["f1_pooled"] = detection.scores_of(tp, fp, fn)["f1"]
         entry["events"] = int(tp + fn)
         pooled["methods"][name] = entry
     return pooled
@@ -258,18 +254,15 @@ def run_fold(
                 f"{len(part.sensor_stamps_ns)} samples: too short"
             )
 
-    def env(x: np.ndarray) -> np.ndarray:
-        return detection.envelope(x, sample_rate_hz=fs)
-
-    methods = build_methods(profile, config.methods)
+    fitted = build_methods(profile, config.methods)
     cal_mask = calibration_mask(cal, test, fs)
-    fitted, thresholds, fit_seconds = {}, {}, {}
-    for name, method in methods.items():
+    thresholds, fit_seconds = {}, {}
+    for name, method in fitted.items():
         start = time.perf_counter()
         method.fit(cal)
         fit_seconds[name] = time.perf_counter() - start
-        thresholds[name] = detection.threshold_from_calibration(env(method.run(cal))[cal_mask])
-        fitted[name] = method
+        envelope = detection.envelope(method.run(cal), sample_rate_hz=fs)
+        thresholds[name] = detection.threshold_from_calibration(envelope[cal_mask])
 
     firmware_bp = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
     results, event_info, signals = {}, {}, {}

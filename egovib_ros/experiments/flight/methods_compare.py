@@ -40,7 +40,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import math
 import os
 import pickle
 import time
@@ -62,6 +61,7 @@ from egovib_ros.experiments.flight.experiment import calibration_mask
 from egovib_ros.experiments.flight.methods import build_methods
 from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
+from egovib_ros.tools.bench import best_wall_and_cpu
 
 LOG = logging.getLogger("egovib_ros.methods_compare")
 
@@ -137,9 +137,7 @@ def pool(rows: list[dict]) -> dict:
     out = {k: float(np.mean([r[k] for r in rows])) for k in KEYS}
     out.update({f"{k}_min": float(np.min([r[k] for r in rows])) for k in KEYS})
     tp, fp, fn = (sum(r[k] for r in rows) for k in ("tp", "fp", "fn"))
-    precision = tp / (tp + fp) if tp + fp else 1.0
-    recall = tp / (tp + fn) if tp + fn else 1.0
-    out["f1"] = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    out["f1"] = detection.scores_of(tp, fp, fn)["f1"]
     out["events"] = int(tp + fn)
     return out
 
@@ -402,12 +400,12 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
     counts the time other jobs ran; best of `repeats`)."""
     result = {"load_average_1min": round(os.getloadavg()[0], 2), "duration_s": rec.duration_s}
     for method in ("paper", "cancel", "hybrid"):
-        wall = cpu = math.inf
-        for _ in range(repeats):
-            begin, begin_cpu = time.perf_counter(), time.process_time()
-            denoise_batch_method(*core_arrays(rec), model, method=method, channels="combined")
-            wall = min(wall, time.perf_counter() - begin)
-            cpu = min(cpu, time.process_time() - begin_cpu)
+        wall, cpu = best_wall_and_cpu(
+            lambda: denoise_batch_method(
+                *core_arrays(rec), model, method=method, channels="combined"
+            ),
+            repeats,
+        )
         result[f"{method}_x_real_time"] = round(rec.duration_s / wall, 1)
         result[f"{method}_x_real_time_cpu"] = round(rec.duration_s / cpu, 1)
     return result
