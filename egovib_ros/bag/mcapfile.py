@@ -47,23 +47,8 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = (
-    1,
-    2,
-    3,
-    4,
-    5,
-    6,
-    7,
-)
-OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA, OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = (
-    8,
-    11,
-    12,
-    13,
-    14,
-    15,
-)
+OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 2, 3, 4, 5, 6, 7
+OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA_INDEX, OP_DATA_END = 8, 11, 13, 15
 MESSAGE_HEADER = 31  # opcode 1 + length 8 + channel 2 + sequence 4 + log time 8 + publish time 8
 _U16, _U32, _U64 = np.dtype("<u2"), np.dtype("<u4"), np.dtype("<u8")
 _RECORD_HEADER = struct.Struct("<BQ")
@@ -128,9 +113,6 @@ class ChunkData:
     @property
     def buffer(self) -> np.ndarray:
         return np.frombuffer(self.records, np.uint8)
-
-    def message_count(self) -> int:
-        return sum(len(t) for t, _ in self.index.values())
 
     def data_span(self, channel_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(log times, data starts, data lengths) of a channel's messages in `records`."""
