@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import sparse
 
-from egovib_ros.gap.features import BlockTable, hat_basis, motion_features
+from egovib_ros.gap.features import BlockTable, hat_matrix, motion_features
 
 #: Prior weight of the simulator's power at a coarse cell, in equivalent blocks.
 PRIOR_BLOCKS = 0.3
@@ -70,26 +70,16 @@ def coarse_knots(table: BlockTable) -> tuple[np.ndarray, ...]:
     return tuple(np.asarray(g, float) for g in table.model.grid)
 
 
-def coarsening(fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
-    """(K_fine, K_coarse): hat functions on `coarse` knots as combinations of hats on `fine` knots.
-
-    Exact when every coarse knot is a fine knot (a piecewise-linear function on the coarse
-    knots is piecewise linear on the fine ones).
-    """
-    i, wl, wr = hat_basis(fine, coarse)
-    m = np.zeros((len(fine), len(coarse)))
-    m[np.arange(len(fine)), i] += wl
-    m[np.arange(len(fine)), i + 1] += wr
-    return m
-
-
 def coarse_hats(table: BlockTable, hats: np.ndarray) -> np.ndarray:
     """Hats (B, J, K_fine) of the table's fine knots re-expressed on the model grid
     (B, J, K_coarse)."""
     cknots = coarse_knots(table)
+    # hat_matrix(fine, coarse) (K_fine, K_coarse): the hat functions on the coarse knots as
+    # combinations of those on the fine knots; exact, as every coarse knot is a fine knot (a
+    # piecewise-linear function on the coarse knots is piecewise linear on the fine ones).
     out = np.zeros((hats.shape[0], len(cknots), max(len(g) for g in cknots)))
     for j, (f, c) in enumerate(zip(table.knots, cknots)):
-        out[:, j, : len(c)] = hats[:, j, : len(f)] @ coarsening(f, c)
+        out[:, j, : len(c)] = hats[:, j, : len(f)] @ hat_matrix(f, c)
     return out
 
 
@@ -244,7 +234,7 @@ def fit_baseline(
         cells_c[j, k] = coef_c[:, 1 + i]
     cells_f = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for j, (f, c) in enumerate(zip(table.knots, knots_c)):
-        cells_f[j, : len(f)] = coarsening(f, c) @ cells_c[j, : len(c)]
+        cells_f[j, : len(f)] = hat_matrix(f, c) @ cells_c[j, : len(c)]  # see coarse_hats
     prior_f = _prior_matrix(where, coef_c[:, 0], cells_f)
     d2, centres = _smoothness_rows(table.knots, where, x.shape[1])
     scale = np.maximum(prior_f, SCALE_FLOOR)

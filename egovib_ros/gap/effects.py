@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, simulator_cells
-from egovib_ros.gap.features import BlockTable, hat_basis
+from egovib_ros.gap.features import BlockTable, hat_matrix
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
@@ -94,12 +94,10 @@ class FittedModel:
     std_scale: np.ndarray  # (B, F) multiplicative gain applied to the model std too
     parameters: dict = field(default_factory=dict)
     table: BlockTable | None = field(default=None, repr=False)  # the table it predicts (lag!)
-    coef: np.ndarray | None = field(
-        default=None, repr=False
-    )  # (1 + R, F) intercept + per-bin coefficients
-    refit_predicted: np.ndarray | None = field(
-        default=None, repr=False
-    )  # (B, F) baseline before the term
+    #: (1 + R, F) intercept + per-bin coefficients
+    coef: np.ndarray | None = field(default=None, repr=False)
+    #: (B, F) baseline before the term
+    refit_predicted: np.ndarray | None = field(default=None, repr=False)
     scales: "Scales | None" = field(default=None, repr=False)
     shape: dict | None = field(default=None, repr=False)  # fitted shape(s) for the report
     power: np.ndarray | None = field(default=None, repr=False)  # (B, F) expected power (mean |Y|^2)
@@ -225,16 +223,6 @@ def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
     return np.minimum(scales.power_ref / np.maximum(band, 1e-9 * scales.power_ref), REL_CLIP)
 
 
-def _hats(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """(n, K) piecewise-linear basis over `knots` (values clipped to the knot range)."""
-    i, wl, wr = hat_basis(values, knots)
-    out = np.zeros((len(values), len(knots)))
-    rows = np.arange(len(values))
-    out[rows, i] += wl
-    out[rows, i + 1] += wr
-    return out
-
-
 def trend_unit_s(scales) -> float:
     """Time unit of the drift term's linear trend: a minute, or the training span if shorter.
 
@@ -248,7 +236,7 @@ def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
     """Piecewise-linear basis in time over [t0, t1], flat beyond;
     the first knot is the reference."""
     knots = np.linspace(t0, t1, n_knots) if t1 > t0 else np.array([t0, t0 + 1.0])
-    return _hats(t, knots)[:, 1:]
+    return hat_matrix(t, knots)[:, 1:]
 
 
 def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, list[str]]:
@@ -262,9 +250,8 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
             labels += [f"cos{k}", f"sin{k}"]
         return np.stack(cols, axis=1), labels
     knots = np.linspace(scales.pos_lo[j], scales.pos_hi[j], POSITION_KNOTS)
-    h = np.delete(
-        _hats(p, knots), POSITION_KNOTS // 2, axis=1
-    )  # the middle of the travel is the reference
+    # the middle of the travel is the reference
+    h = np.delete(hat_matrix(p, knots), POSITION_KNOTS // 2, axis=1)
     return h, [f"hat{k}" for k in range(POSITION_KNOTS) if k != POSITION_KNOTS // 2]
 
 
@@ -281,7 +268,7 @@ def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
     rest = int(np.flatnonzero(knots == 0.0)[0])
     cols, names = [], []
     for j, name in enumerate(table.joint_names):
-        h = np.delete(_hats(frac[:, j], knots), rest, axis=1)
+        h = np.delete(hat_matrix(frac[:, j], knots), rest, axis=1)
         cols.append(h)
         names += [f"v={k:g}({name})" for k in np.delete(knots, rest)]
     return np.concatenate(cols, axis=1), names
@@ -323,9 +310,9 @@ def effect_regressors(
         sign = direction(table)
         n_j = speed.shape[1]
         knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
-        basis = [_hats(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
+        basis = [hat_matrix(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
         coarse = [
-            _hats(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
+            hat_matrix(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
             for j in range(n_j)
         ]
         for i in range(n_j):
@@ -374,9 +361,8 @@ def effect_regressors(
     elif effect == "drift":
         t = table.t_mid_s
         h = time_hats(t, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        for k in range(h.shape[1]):
-            cols.append(h[:, k])
-            names.append(f"time_hat{k + 1}")
+        cols += list(h.T)
+        names += [f"time_hat{k + 1}" for k in range(h.shape[1])]
         cols.append((t - scales.t_ref_s) / trend_unit_s(scales))
         names.append("t_min")
     elif effect in ("refit", "timing", "custom"):
@@ -609,7 +595,7 @@ def effect_shape(
         knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
         for i in range(n_j):
             for j in range(i + 1, n_j):
-                hi_, hj = _hats(grid, knots[i])[:, 1:], _hats(grid, knots[j])[:, 1:]
+                hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
                 gmat = np.zeros((len(grid), len(grid)))
                 for a in range(hi_.shape[1]):
                     for b in range(hj.shape[1]):
@@ -619,7 +605,7 @@ def effect_shape(
                 signed = np.zeros_like(gmat)
                 ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
                 cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
-                hci, hcj = _hats(grid, ci)[:, 1:], _hats(grid, cj)[:, 1:]
+                hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
                 for a in range(hci.shape[1]):
                     for b in range(hcj.shape[1]):
                         key = f"dir{i}*dir{j}:c{a}*c{b}"
