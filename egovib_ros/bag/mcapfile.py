@@ -104,9 +104,8 @@ class ChunkData:
     file_bytes: int = 0  # bytes of the file consumed up to this chunk (progress bars)
     # No message read after this chunk has a log time below `frontier_ns` (None: unknown).
     frontier_ns: int | None = None
-    lengths: dict[int, np.ndarray] = field(
-        default_factory=dict
-    )  # record lengths per channel, if known
+    # record lengths per channel, if known
+    lengths: dict[int, np.ndarray] = field(default_factory=dict)
     start_ns: int | None = None  # the chunk record's message start/end time (None: loose messages)
     end_ns: int | None = None
 
@@ -159,9 +158,8 @@ class McapScanner:
     objects by id) fill in as their records are met, before the chunks that use them.
     """
 
-    loose_bytes = (
-        4 << 20
-    )  # group messages outside chunks (unchunked files) this many bytes at a time
+    # group messages outside chunks (unchunked files) this many bytes at a time
+    loose_bytes = 4 << 20
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -211,9 +209,8 @@ class McapScanner:
         if summary is None or not summary.chunk_indexes:
             return None, None
         by_file = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
-        by_time = sorted(
-            by_file, key=lambda c: c.message_start_time
-        )  # stable: ties keep file order
+        # stable: ties keep file order
+        by_time = sorted(by_file, key=lambda c: c.message_start_time)
         if [c.chunk_start_offset for c in by_time] == [c.chunk_start_offset for c in by_file]:
             return None, by_file
         self.schemas.update(summary.schemas)
@@ -539,9 +536,8 @@ class McapWriter:
         self._chunk_indexes: list[ChunkIndex] = []
         self._parts: list[tuple[bytes | np.ndarray, dict]] = []
         self._pending = 0
-        self._defined: set[tuple[int, int]] = (
-            set()
-        )  # definitions already written in the data section
+        # definitions already written in the data section
+        self._defined: set[tuple[int, int]] = set()
         self._fh.write(MAGIC)
         self._write_record(Header(profile="ros2", library=library))
 

@@ -193,9 +193,8 @@ def fit_coarse(
     yn = power[train] / yn_level
     prior = _prior_matrix(where, prior_rest, prior_cells)
     sim_mean = np.maximum(np.asarray(xt @ prior.T), 0.0).mean(axis=0)
-    prior = np.maximum(
-        prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0
-    )  # simulator at this level
+    # simulator at this level
+    prior = np.maximum(prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0)
     d2, centres = _smoothness_rows(knots_c, where, x.shape[1])
     scale = np.ones_like(prior)
     weights = np.ones_like(yn)
