@@ -54,7 +54,7 @@ def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> W
     return Windows(index=index, n_windows=int(n_windows))
 
 
-def _window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
+def window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
     """Sum (B, F) values per window -> (n_windows, F)."""
     keep = windows.members()
     out = np.zeros((windows.n_windows, values.shape[1]))
@@ -64,8 +64,8 @@ def _window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
 
 def window_errors_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> np.ndarray:
     """e[w, f] in dB: log ratio of window sums of observed vs predicted magnitudes."""
-    obs = _window_sums(observed, windows)
-    pred = _window_sums(predicted, windows)
+    obs = window_sums(observed, windows)
+    pred = window_sums(predicted, windows)
     tiny = np.finfo(float).tiny
     return 20.0 * np.log10(np.maximum(obs, tiny) / np.maximum(pred, tiny))
 

@@ -37,13 +37,10 @@ def _percent_of_max(grid: list[np.ndarray], index) -> list[int]:
 
 
 def _window_means(diag: Diagnosis, values: np.ndarray) -> np.ndarray:
-    rows = diag.heldout_rows
+    """Means of per-block values (B, K) over each held-out window."""
     w = diag.windows
-    keep = w.members()
-    sums = np.zeros((w.n_windows,) + values.shape[1:])
-    np.add.at(sums, w.index[keep], values[rows][keep])
-    counts = np.bincount(w.index[keep], minlength=w.n_windows).astype(float)
-    return sums / counts.reshape((-1,) + (1,) * (values.ndim - 1))
+    counts = np.bincount(w.index[w.members()], minlength=w.n_windows)
+    return metric.window_sums(values[diag.heldout_rows], w) / counts[:, None]
 
 
 def covariate_series(diag: Diagnosis) -> dict[str, tuple[np.ndarray, str, bool]]:
