@@ -722,10 +722,9 @@ def refine_lag(
     rows = np.flatnonzero(train)
     prior = simulator_cells(table) if prior is None else prior
     inside = (lags >= lo - 1e-9) & (lags <= hi + 1e-9)
-    if not inside.any():
-        inside = np.abs(lags - np.clip(lags, lo, hi)) == np.min(
-            np.abs(lags - np.clip(lags, lo, hi))
-        )
+    if not inside.any():  # the grid points nearest the band
+        outside = np.abs(lags - np.clip(lags, lo, hi))
+        inside = outside == outside.min()
     best = lags[inside][int(np.argmin(curve[inside]))]
     fine = np.arange(best - LAG_COARSE_S + LAG_FINE_S, best + LAG_COARSE_S - 1e-12, LAG_FINE_S)
     fine = fine[(fine >= lo - 1e-9) & (fine <= hi + 1e-9)]

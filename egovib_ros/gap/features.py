@@ -556,12 +556,8 @@ def _interval_means(
 ) -> np.ndarray:
     """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)."""
     dt = np.diff(t)
-    cum = np.concatenate(
-        [
-            np.zeros((1, values.shape[1])),
-            np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0),
-        ]
-    )
+    cum = np.zeros((len(t), values.shape[1]))
+    cum[1:] = np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)
 
     def integral(tq: np.ndarray) -> np.ndarray:
         tq = np.clip(tq, t[0], t[-1])
