@@ -663,6 +663,15 @@ def effect_shape(
     return shapes
 
 
+def drift_reach(x: np.ndarray, g: np.ndarray) -> tuple[float, float]:
+    """A drift curve's change from start to end (dB) and the time by which 90 % of it is
+    reached (the end when it does not change)."""
+    change = float(g[-1] - g[0]) if g.size else 0.0
+    if abs(change) <= 1e-9:
+        return change, float(x[-1])
+    return change, float(x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))])
+
+
 def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Scales) -> dict:
     """Physically readable effect parameters (broadband, averaged over bins)."""
     c = coef.mean(axis=1) if len(coef) else coef

@@ -9,7 +9,7 @@ import numpy as np
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
-from egovib_ros.gap.effects import angle_joints
+from egovib_ros.gap.effects import angle_joints, drift_reach
 
 SCHEMA = "egovib.gap/1"
 #: Frequency bands used to name regions (Hz edges; bins are assigned by centre frequency).
@@ -336,12 +336,7 @@ def describe_shape(shape: dict) -> str:
                 f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal"
             )
         elif name.startswith("drift:"):
-            change = g[-1] - g[0]
-            reach = (
-                x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))]
-                if abs(change) > 1e-9
-                else x[-1]
-            )
+            change, reach = drift_reach(x, g)
             parts.append(
                 f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at "
                 f"{reach:.0f} s ({g.max() - g.min():.1f} dB range)"
