@@ -273,9 +273,7 @@ def fit_baseline(
         beta[0] = 0.0  # the level is set below
         ratio[:, f] = sep @ beta
     magnitude = magnitude * np.exp(ratio)
-    magnitude = magnitude * (
-        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
-    )
+    magnitude = magnitude * relevel(table.magnitude, magnitude, train)
     cells = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for i, (j, k) in enumerate(where):
         cells[j, k] = coef[:, 1 + i]
@@ -302,13 +300,9 @@ def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Base
     coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     gain = np.exp(coef[0][None, :] + np.clip(x @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN))
     magnitude = base.magnitude * gain
-    magnitude = magnitude * (
-        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
-    )
+    magnitude = magnitude * relevel(table.magnitude, magnitude, train)
     power = base.power * gain**2
-    power = power * (
-        (table.magnitude[train] ** 2).sum(axis=0) / np.maximum(power[train].sum(axis=0), 1e-300)
-    )
+    power = power * relevel(table.magnitude**2, power, train)
     info = dict(base.info)
     info["n_parameters"] = int(info.get("n_parameters", 0) + coef.size)
     info["velocity_gain"] = {
@@ -322,6 +316,12 @@ def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Base
         cell_power=base.cell_power,
         info=info,
     )
+
+
+def relevel(observed: np.ndarray, predicted: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """Per-bin factor so that the predicted *mean* (magnitude or power) matches the observed
+    one on training blocks."""
+    return observed[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
 
 
 def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> float:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, simulator_cells
+from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, relevel, simulator_cells
 from egovib_ros.gap.features import BlockTable, hat_matrix
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
@@ -470,11 +470,6 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
     return coef / 2.0, ridge
 
 
-def _relevel(table: BlockTable, train: np.ndarray, predicted: np.ndarray) -> np.ndarray:
-    """Per-bin factor so that the predicted *mean* magnitude matches on training blocks."""
-    return table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
-
-
 def fit_variant(
     table: BlockTable,
     train: np.ndarray,
@@ -494,7 +489,7 @@ def fit_variant(
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
     predicted = base.magnitude * gain
-    predicted = predicted * _relevel(table, train, predicted)
+    predicted = predicted * relevel(table.magnitude, predicted, train)
     # The same term on the expected power (what the decision compares: independent
     # sources add in power, and the power's mean is what a Gamma deviance rewards).
     power = base.power * gain**2
@@ -543,7 +538,7 @@ def apply_effect_term(
         else np.ones_like(refit_predicted)
     )
     predicted = refit_predicted * gain
-    return predicted * _relevel(table, train, predicted)
+    return predicted * relevel(table.magnitude, predicted, train)
 
 
 DB_PER_NEPER = 20.0 / np.log(10.0)
