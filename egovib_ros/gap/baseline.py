@@ -36,7 +36,7 @@ block's velocity trajectory implies, time, lag): the five effects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import sparse
@@ -309,13 +309,7 @@ def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Base
         "regressors": len(names),
         "ridge": {k: round(v, 5) for k, v in ridge.items()},
     }
-    return Baseline(
-        magnitude=magnitude,
-        power=power,
-        rest_power=base.rest_power,
-        cell_power=base.cell_power,
-        info=info,
-    )
+    return replace(base, magnitude=magnitude, power=power, info=info)
 
 
 def relevel(observed: np.ndarray, predicted: np.ndarray, train: np.ndarray) -> np.ndarray:

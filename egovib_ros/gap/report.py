@@ -226,11 +226,7 @@ def build_report(
             ),
             "floor": _r(diag.floor),
         },
-        "where": {
-            "frequency_hz": where["frequency_hz"],
-            "velocity_cells": where["velocity_cells"],
-            "covariates": where["covariates"],
-        },
+        "where": {k: where[k] for k in ("frequency_hz", "velocity_cells", "covariates")},
         "candidates": [
             {
                 "effect": c["effect"],
