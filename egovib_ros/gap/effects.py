@@ -152,12 +152,9 @@ def fit_scales(
     span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(pos.shape[1])
     frac = table.velocity[train] / table.vmax
     moving = np.abs(frac) > MOVING_FRACTION
-    one_way = np.array(
-        [
-            max(np.mean(f[m] > 0), np.mean(f[m] < 0)) >= ONE_WAY_SHARE if m.any() else False
-            for f, m in zip(frac.T, moving.T)
-        ]
-    )
+    # the larger share of a joint's moving training blocks that move one way
+    way = np.maximum(((frac > 0) & moving).sum(axis=0), ((frac < 0) & moving).sum(axis=0))
+    one_way = moving.any(axis=0) & (way / np.maximum(moving.sum(axis=0), 1) >= ONE_WAY_SHARE)
     full_turn = angle_joints(table.joint_names, pos) & (span >= 2 * np.pi)
     # a joint that turns one way over part of a turn (a motor): the harmonics it covers
     turning = ~full_turn & one_way & (span >= 2 * np.pi / POSITION_HARMONICS)
@@ -174,13 +171,8 @@ def fit_scales(
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
     band = np.mean(m**2, axis=1)
     t = table.t_mid_s[train]
-    both = np.array(
-        [
-            min(np.mean(frac[:, j] > MOVING_FRACTION), np.mean(frac[:, j] < -MOVING_FRACTION))
-            > BIDIRECTIONAL_SHARE
-            for j in range(frac.shape[1])
-        ]
-    )
+    each_way = np.mean(frac > MOVING_FRACTION, axis=0), np.mean(frac < -MOVING_FRACTION, axis=0)
+    both = np.minimum(*each_way) > BIDIRECTIONAL_SHARE
     n_pairs = frac.shape[1] * (frac.shape[1] - 1) // 2
     n_knots = int(np.clip(round(COUPLING_KNOTS / np.sqrt(max(n_pairs, 1))), 3, COUPLING_KNOTS))
     knots = []

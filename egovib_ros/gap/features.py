@@ -592,12 +592,11 @@ def check_lag(joints: JointSeries, lag_s: float) -> None:
 
 
 def _joint_block_means(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float):
+    """Block means of velocity, position and |acceleration| (joint states `lag_s` late)."""
     check_lag(joints, lag_s)
     t = joints.t_s - lag_s
-    velocity = _interval_means(t, joints.velocity, t_first, t_last)
-    position = _interval_means(t, joints.position, t_first, t_last)
-    acceleration = _interval_means(t, np.abs(joints.acceleration), t_first, t_last)
-    return velocity, position, acceleration
+    series = (joints.velocity, joints.position, np.abs(joints.acceleration))
+    return tuple(_interval_means(t, s, t_first, t_last) for s in series)
 
 
 def _model_lookup(
