@@ -158,13 +158,10 @@ def fit_scales(
     full_turn = angle_joints(table.joint_names, pos) & (span >= 2 * np.pi)
     # a joint that turns one way over part of a turn (a motor): the harmonics it covers
     turning = ~full_turn & one_way & (span >= 2 * np.pi / POSITION_HARMONICS)
+    # (a full turn covers every harmonic's period)
     harmonics = tuple(
-        tuple(range(1, POSITION_HARMONICS + 1))
-        if full
-        else covered_harmonics(float(sp))
-        if turn
-        else ()
-        for full, turn, sp in zip(full_turn, turning, span)
+        covered_harmonics(float(sp)) if turns else ()
+        for turns, sp in zip(full_turn | turning, span)
     )
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
