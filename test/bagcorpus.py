@@ -387,7 +387,7 @@ def _write_project(out: Path, conns, messages, layout: Layout) -> None:
         run: list = []  # consecutive messages of one topic, written together
         for message in [*messages, None]:
             if run and (message is None or message[0] != run[0][0]):
-                w.write_many(run[0][0], [m[1] for m in run], [m[2] for m in run])
+                w.write_batch(run[0][0], [m[1] for m in run], [m[2] for m in run])
                 run = []
             if message is not None:
                 run.append(message)

@@ -100,7 +100,7 @@ def test_written_records_read_back_by_the_mcap_library_and_the_scanner(tmp_path,
     scanned = {"/a": [], "/b": []}
     frontier = None
     for chunk in scanner.chunks():
-        assert chunk.start_ns is not None and chunk.message_count() > 0
+        assert chunk.start_ns is not None and any(len(t) for t, _ in chunk.index.values())
         for channel, (times, _) in chunk.index.items():
             assert frontier is None or times.min() >= frontier  # no message older than promised
             log_times, starts, lengths = chunk.data_span(channel)

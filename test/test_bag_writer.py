@@ -26,7 +26,7 @@ def test_bag_writer_raw_bytes(tmp_path):
     with BagWriter(tmp_path / "bag") as bag:
         bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
         bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
-        bag.write_many(BAG_TOPICS["raw"], stamps, encode_imu_batch(stamps, accel))
+        bag.write_batch(BAG_TOPICS["raw"], stamps, encode_imu_batch(stamps, accel))
         bag.write(
             BAG_TOPICS["joint_states"],
             0,

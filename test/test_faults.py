@@ -186,7 +186,7 @@ def _raw_only_bag(path: Path, rec) -> None:
     """A bag with only /accelerometer/raw (no joint states)."""
     with BagWriter(path) as bag:
         bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
-        bag.write_many(
+        bag.write_batch(
             "/accelerometer/raw",
             rec.sensor_stamps_ns,
             encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),

@@ -15,24 +15,15 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import (
     coarse_hats,
     coarse_knots,
-    coarsening,
     fit_baseline,
     lag_residual,
     simulator_cells,
 )
 from egovib_ros.gap.diagnose import time_split
-from egovib_ros.gap.features import hat_basis, motion_features
+from egovib_ros.gap.features import hat_matrix, motion_features
 
 #: E|Y|^2 / (E|Y|)^2 of a Rayleigh magnitude: 4 / pi.
 RAYLEIGH_POWER = 4.0 / np.pi
-
-
-def hat_matrix(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    i, wl, wr = hat_basis(values, knots)
-    out = np.zeros((len(values), len(knots)))
-    np.add.at(out, (np.arange(len(values)), i), wl)
-    np.add.at(out, (np.arange(len(values)), i + 1), wr)
-    return out
 
 
 def db(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -124,7 +115,7 @@ def test_coarse_cells_are_exact_combinations_of_the_fine_ones():
     for fine, coarse in zip(table.knots, coarse_knots(table)):
         v = values * np.max(np.abs(coarse))
         np.testing.assert_allclose(
-            hat_matrix(v, fine) @ coarsening(fine, coarse), hat_matrix(v, coarse), atol=1e-12
+            hat_matrix(v, fine) @ hat_matrix(fine, coarse), hat_matrix(v, coarse), atol=1e-12
         )
     # the table's trajectory features, re-expressed on the model grid, are the grid's own
     direct, _, _ = motion_features(

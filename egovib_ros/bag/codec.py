@@ -191,6 +191,15 @@ def _split(buf: bytes, n: int, length: int) -> list[bytes]:
     return [buf[i : i + length] for i in range(0, n * length, length)]
 
 
+def _header(stamp_ns: int, frame_id: str):
+    """A rosbags std_msgs/Header."""
+    types = typestore().types
+    stamp = types["builtin_interfaces/msg/Time"](
+        sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S)
+    )
+    return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+
 def _stamp_fields(stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
     return stamps_ns // NS_PER_S, stamps_ns % NS_PER_S
@@ -236,12 +245,8 @@ def imu_message(
     """A rosbags Imu object following REP 145 with `xyz` in `field`; the other vector is
     zero and marked unknown (covariance[0] = -1), as is the orientation."""
     ts = typestore()
-    Imu, Header, Time = (
+    Imu, Quaternion, Vector3 = (
         ts.types[IMU_TYPE],
-        ts.types["std_msgs/msg/Header"],
-        ts.types["builtin_interfaces/msg/Time"],
-    )
-    Quaternion, Vector3 = (
         ts.types["geometry_msgs/msg/Quaternion"],
         ts.types["geometry_msgs/msg/Vector3"],
     )
@@ -250,10 +255,7 @@ def imu_message(
     vectors = {name: Vector3(x=0.0, y=0.0, z=0.0) for name in IMU_FIELDS}
     vectors[_check_field(field)] = Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
     return Imu(
-        header=Header(
-            stamp=Time(sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S)),
-            frame_id=frame_id,
-        ),
+        header=_header(stamp_ns, frame_id),
         orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=unknown.copy(),
         angular_velocity=vectors["angular_velocity"],
@@ -386,17 +388,8 @@ def joint_state_message(
     stamp_ns: int, names: Sequence[str], position, velocity, frame_id: str = ""
 ):
     """A rosbags JointState object (no effort)."""
-    ts = typestore()
-    JointState, Header, Time = (
-        ts.types[JOINT_STATE_TYPE],
-        ts.types["std_msgs/msg/Header"],
-        ts.types["builtin_interfaces/msg/Time"],
-    )
-    return JointState(
-        header=Header(
-            stamp=Time(sec=int(stamp_ns // NS_PER_S), nanosec=int(stamp_ns % NS_PER_S)),
-            frame_id=frame_id,
-        ),
+    return typestore().types[JOINT_STATE_TYPE](
+        header=_header(stamp_ns, frame_id),
         name=list(names),
         position=np.asarray(position, np.float64),
         velocity=np.asarray(velocity, np.float64),

@@ -49,10 +49,9 @@ class _DenoisedTopic:
         self.channel_id = writer.topics[denoised_topic].channel_id
         self._batches: dict[int, tuple[MessageBatch, int | None]] = {}  # id -> (raw, field offset)
         self._next_id = 0
-        # the held raw messages, sorted by stamp (ties in the order read): stamp, batch id, row
-        self._stamp = np.zeros(0, np.int64)
-        self._batch = np.zeros(0, np.int64)
-        self._row = np.zeros(0, np.int64)
+        # the held raw messages, sorted by stamp (ties in the order read), a row each:
+        # stamp, batch id, row in the batch
+        self._held = np.zeros((0, 3), np.int64)
         self._passed: int | None = None  # stamp of the last output sample
         self.raw_read = 0
         self.written = 0
@@ -75,18 +74,12 @@ class _DenoisedTopic:
         self._next_id += 1
         self._batches[ident] = (raw, imu_layout(raw, self.field))
         in_order = np.all(stamps[1:] >= stamps[:-1]) and (
-            len(self._stamp) == 0 or stamps[0] >= self._stamp[-1]
+            len(self._held) == 0 or stamps[0] >= self._held[-1, 0]
         )
-        self._stamp = np.concatenate([self._stamp, stamps])
-        self._batch = np.concatenate([self._batch, np.full(len(stamps), ident, np.int64)])
-        self._row = np.concatenate([self._row, rows_])
+        added = np.stack([stamps, np.full(len(stamps), ident, np.int64), rows_], axis=1)
+        self._held = np.concatenate([self._held, added])
         if not in_order:
-            order = np.argsort(self._stamp, kind="stable")
-            self._stamp, self._batch, self._row = (
-                self._stamp[order],
-                self._batch[order],
-                self._row[order],
-            )
+            self._held = self._held[np.argsort(self._held[:, 0], kind="stable")]
 
     def add_output(self, stamps: np.ndarray, values: np.ndarray) -> None:
         """Write the denoised messages of these output samples (stamps strictly increasing)."""
@@ -95,25 +88,21 @@ class _DenoisedTopic:
         values = np.asarray(values, np.float64)
         if values.shape[1] == 1:  # the combined signal goes in x, y = z = 0
             values = np.concatenate([values, np.zeros((len(values), 2))], axis=1)
-        at = output_rows(self._stamp, stamps)  # held sorted by stamp, as the denoiser was fed
-        batches, rows_ = self._batch[at], self._row[at]
+        at = output_rows(self._held[:, 0], stamps)  # held sorted by stamp, as the denoiser was fed
+        batches, rows_ = self._held[at, 1], self._held[at, 2]
         self._write(batches, rows_, values)
         done = int(at[-1]) + 1
         self.dropped += done - len(at)
         self._passed = int(stamps[-1])
-        self._stamp, self._batch, self._row = (
-            self._stamp[done:],
-            self._batch[done:],
-            self._row[done:],
-        )
-        still = set(np.unique(self._batch).tolist())
+        self._held = self._held[done:]
+        still = set(np.unique(self._held[:, 1]).tolist())
         for ident in [i for i in self._batches if i not in still]:
             del self._batches[ident]
 
     def finish(self) -> None:
         """End of the bag: raw messages never answered are counted."""
-        self.dropped += len(self._stamp)
-        self._stamp, self._batch, self._row = self._stamp[:0], self._batch[:0], self._row[:0]
+        self.dropped += len(self._held)
+        self._held = self._held[:0]
         self._batches.clear()
 
     def _write(self, batches: np.ndarray, rows_: np.ndarray, values: np.ndarray) -> None:

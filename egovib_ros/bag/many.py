@@ -92,9 +92,8 @@ def expand_bags(
                     for part in p.parent.relative_to(path).parts
                 )
             )
-            bags = [
-                b for b in bags if not any(b != o and o in b.parents for o in bags)
-            ]  # no bags inside bags
+            # no bags inside bags
+            bags = [b for b in bags if not any(b != o and o in b.parents for o in bags)]
             if not bags:
                 raise BagError(
                     f"{path}: no rosbag2 bags (directories with metadata.yaml) in this directory"

@@ -47,23 +47,8 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = (
-    1,
-    2,
-    3,
-    4,
-    5,
-    6,
-    7,
-)
-OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA, OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = (
-    8,
-    11,
-    12,
-    13,
-    14,
-    15,
-)
+OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 2, 3, 4, 5, 6, 7
+OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA_INDEX, OP_DATA_END = 8, 11, 13, 15
 MESSAGE_HEADER = 31  # opcode 1 + length 8 + channel 2 + sequence 4 + log time 8 + publish time 8
 _U16, _U32, _U64 = np.dtype("<u2"), np.dtype("<u4"), np.dtype("<u8")
 _RECORD_HEADER = struct.Struct("<BQ")
@@ -119,18 +104,14 @@ class ChunkData:
     file_bytes: int = 0  # bytes of the file consumed up to this chunk (progress bars)
     # No message read after this chunk has a log time below `frontier_ns` (None: unknown).
     frontier_ns: int | None = None
-    lengths: dict[int, np.ndarray] = field(
-        default_factory=dict
-    )  # record lengths per channel, if known
+    # record lengths per channel, if known
+    lengths: dict[int, np.ndarray] = field(default_factory=dict)
     start_ns: int | None = None  # the chunk record's message start/end time (None: loose messages)
     end_ns: int | None = None
 
     @property
     def buffer(self) -> np.ndarray:
         return np.frombuffer(self.records, np.uint8)
-
-    def message_count(self) -> int:
-        return sum(len(t) for t, _ in self.index.values())
 
     def data_span(self, channel_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(log times, data starts, data lengths) of a channel's messages in `records`."""
@@ -177,9 +158,8 @@ class McapScanner:
     objects by id) fill in as their records are met, before the chunks that use them.
     """
 
-    loose_bytes = (
-        4 << 20
-    )  # group messages outside chunks (unchunked files) this many bytes at a time
+    # group messages outside chunks (unchunked files) this many bytes at a time
+    loose_bytes = 4 << 20
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -229,9 +209,8 @@ class McapScanner:
         if summary is None or not summary.chunk_indexes:
             return None, None
         by_file = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
-        by_time = sorted(
-            by_file, key=lambda c: c.message_start_time
-        )  # stable: ties keep file order
+        # stable: ties keep file order
+        by_time = sorted(by_file, key=lambda c: c.message_start_time)
         if [c.chunk_start_offset for c in by_time] == [c.chunk_start_offset for c in by_file]:
             return None, by_file
         self.schemas.update(summary.schemas)
@@ -557,9 +536,8 @@ class McapWriter:
         self._chunk_indexes: list[ChunkIndex] = []
         self._parts: list[tuple[bytes | np.ndarray, dict]] = []
         self._pending = 0
-        self._defined: set[tuple[int, int]] = (
-            set()
-        )  # definitions already written in the data section
+        # definitions already written in the data section
+        self._defined: set[tuple[int, int]] = set()
         self._fh.write(MAGIC)
         self._write_record(Header(profile="ros2", library=library))
 

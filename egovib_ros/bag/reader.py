@@ -281,9 +281,8 @@ class BagReader:
 
         def emit() -> ReadBatch:
             messages = {t: MessageBatch.from_list(d, ts) for t, (d, ts) in pending.items()}
-            return ReadBatch(
-                messages, bytes_read=size, frontier_ns=latest
-            )  # rosbags reads in log-time order
+            # rosbags reads in log-time order
+            return ReadBatch(messages, bytes_read=size, frontier_ns=latest)
 
         try:
             for topic, log_time, raw in self._rosbags_messages(connections):

@@ -147,7 +147,6 @@ class RecordingStream:
         self.names = bag_topic_names(self.profile)
         self.field = self.profile.sensor_field
         self.joint_names = tuple(self.profile.joint_names)
-        where = reader.path
         reader.require(self.names["raw"], IMU_TYPE)
         reader.require(self.names["joint_states"], JOINT_STATE_TYPE)
         optional = {
@@ -164,12 +163,7 @@ class RecordingStream:
                 and topic in reader.topics
                 and topic not in (self.names["raw"], self.names["joint_states"])
             ):
-                expected = COMMANDS_TYPE if key == "commands" else IMU_TYPE
-                if reader.topics[topic].msgtype != expected:
-                    raise BagError(
-                        f"{where}: topic {topic} has type {reader.topics[topic].msgtype}, "
-                        f"expected {expected}"
-                    )
+                reader.require(topic, COMMANDS_TYPE if key == "commands" else IMU_TYPE)
                 self.present.add(key)
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
@@ -177,9 +171,8 @@ class RecordingStream:
         self.max_pending = max(1, int(max_lag_s * self.profile.rate_hz))
         self.min_slice_ns = int(min_slice_s * NS_PER_S)
         self._sensor_keys = [k for k in ("raw", "contact", "ego") if k in self.present]
-        self._sensor: dict[str, list] = {
-            k: [] for k in self._sensor_keys
-        }  # [(stamps, values), ...]
+        # [(stamps, values), ...] per sensor stream
+        self._sensor: dict[str, list] = {k: [] for k in self._sensor_keys}
         self._joints: list[tuple] = []
         self._denoised: list[tuple] = []
         self._commands: list[tuple] = []
@@ -386,10 +379,9 @@ class RecordingStream:
             piece.denoised = _concat([d[1] for d in self._denoised], 3)
             self._denoised = []
         if self._commands:
-            times = np.concatenate([c[0] for c in self._commands])
             values = [v for c in self._commands for v in c[1]]
             width_c = max(len(v) for v in values)
-            piece.command_stamps_ns = times
+            piece.command_stamps_ns = np.concatenate([c[0] for c in self._commands])
             piece.commands = np.array(
                 [np.pad(v, (0, width_c - len(v)), constant_values=np.nan) for v in values]
             )
@@ -467,22 +459,17 @@ def read_recording(
 
 def _sorted(rec: Recording) -> Recording:
     """Streams in stamp order (a bag's file order is receive order)."""
-    if np.any(np.diff(rec.sensor_stamps_ns) < 0):
-        order = np.argsort(rec.sensor_stamps_ns, kind="stable")
-        rec.sensor_stamps_ns, rec.sensor = rec.sensor_stamps_ns[order], rec.sensor[order]
-        for key in ("contact", "ego"):
-            if getattr(rec, key) is not None:
-                setattr(rec, key, getattr(rec, key)[order])
-    if np.any(np.diff(rec.joint_stamps_ns) < 0):
-        order = np.argsort(rec.joint_stamps_ns, kind="stable")
-        rec.joint_stamps_ns = rec.joint_stamps_ns[order]
-        rec.joint_position, rec.joint_velocity = (
-            rec.joint_position[order],
-            rec.joint_velocity[order],
-        )
-    if rec.denoised_stamps_ns is not None and np.any(np.diff(rec.denoised_stamps_ns) < 0):
-        order = np.argsort(rec.denoised_stamps_ns, kind="stable")
-        rec.denoised_stamps_ns, rec.denoised = rec.denoised_stamps_ns[order], rec.denoised[order]
+    truth = [key for key in ("contact", "ego") if getattr(rec, key) is not None]
+    rec.sensor_stamps_ns, rec.sensor, *values = _by_stamp(
+        rec.sensor_stamps_ns, rec.sensor, *(getattr(rec, key) for key in truth)
+    )
+    for key, value in zip(truth, values):
+        setattr(rec, key, value)
+    rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity = _by_stamp(
+        rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity
+    )
+    if rec.denoised_stamps_ns is not None:
+        rec.denoised_stamps_ns, rec.denoised = _by_stamp(rec.denoised_stamps_ns, rec.denoised)
     return rec
 
 

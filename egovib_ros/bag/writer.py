@@ -10,7 +10,6 @@ import os
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 import yaml
@@ -280,13 +279,6 @@ class BagWriter:
         if self._buffered_bytes >= self.chunk_bytes:
             self._drain_buffer()
             self._mcap.flush_chunk()
-
-    def write_many(self, topic: str, stamps_ns: Iterable[int], datas: Iterable[bytes]) -> None:
-        """Append many serialised messages of one topic."""
-        datas = list(datas)
-        self.write_batch(
-            topic, np.fromiter((int(s) for s in stamps_ns), np.int64, len(datas)), datas
-        )
 
     def write_batch(self, topic: str, log_times: np.ndarray, data) -> None:
         """Append messages of one topic: `data` is an (n, L) uint8 array, a MessageBatch or

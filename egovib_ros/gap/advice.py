@@ -28,6 +28,7 @@ import numpy as np
 from egovib_ros.core.subtraction import noise_gain_curve
 from egovib_ros.errors import ConfigError
 from egovib_ros.gap.diagnose import Diagnosis
+from egovib_ros.gap.effects import drift_reach
 
 #: A `none` verdict whose baseline stays more than this above the floor says so.
 UNEXPLAINED_NOTE_DB = 0.3
@@ -69,12 +70,7 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
         curve = curves[-1] if curves else {}
         g = np.asarray(curve.get("gain_db", [0.0]), float)
         x = np.asarray(curve.get("x", [0.0]), float)
-        change_db = float(g[-1] - g[0]) if g.size else 0.0
-        reach = (
-            float(x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change_db)))])
-            if abs(change_db) > 1e-9
-            else float(x[-1])
-        )
+        change_db, reach = drift_reach(x, g)
         pct = 100.0 * (10 ** (change_db / 20.0) - 1.0)
         span = float(x[-1] - x[0]) if x.size else 0.0
         saturates = reach < 0.7 * (x[-1] if x.size else 0.0)

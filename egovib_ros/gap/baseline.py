@@ -36,12 +36,12 @@ block's velocity trajectory implies, time, lag): the five effects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import sparse
 
-from egovib_ros.gap.features import BlockTable, hat_basis, motion_features
+from egovib_ros.gap.features import BlockTable, hat_matrix, motion_features
 
 #: Prior weight of the simulator's power at a coarse cell, in equivalent blocks.
 PRIOR_BLOCKS = 0.3
@@ -70,26 +70,16 @@ def coarse_knots(table: BlockTable) -> tuple[np.ndarray, ...]:
     return tuple(np.asarray(g, float) for g in table.model.grid)
 
 
-def coarsening(fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
-    """(K_fine, K_coarse): hat functions on `coarse` knots as combinations of hats on `fine` knots.
-
-    Exact when every coarse knot is a fine knot (a piecewise-linear function on the coarse
-    knots is piecewise linear on the fine ones).
-    """
-    i, wl, wr = hat_basis(fine, coarse)
-    m = np.zeros((len(fine), len(coarse)))
-    m[np.arange(len(fine)), i] += wl
-    m[np.arange(len(fine)), i + 1] += wr
-    return m
-
-
 def coarse_hats(table: BlockTable, hats: np.ndarray) -> np.ndarray:
     """Hats (B, J, K_fine) of the table's fine knots re-expressed on the model grid
     (B, J, K_coarse)."""
     cknots = coarse_knots(table)
+    # hat_matrix(fine, coarse) (K_fine, K_coarse): the hat functions on the coarse knots as
+    # combinations of those on the fine knots; exact, as every coarse knot is a fine knot (a
+    # piecewise-linear function on the coarse knots is piecewise linear on the fine ones).
     out = np.zeros((hats.shape[0], len(cknots), max(len(g) for g in cknots)))
     for j, (f, c) in enumerate(zip(table.knots, cknots)):
-        out[:, j, : len(c)] = hats[:, j, : len(f)] @ coarsening(f, c)
+        out[:, j, : len(c)] = hats[:, j, : len(f)] @ hat_matrix(f, c)
     return out
 
 
@@ -203,9 +193,8 @@ def fit_coarse(
     yn = power[train] / yn_level
     prior = _prior_matrix(where, prior_rest, prior_cells)
     sim_mean = np.maximum(np.asarray(xt @ prior.T), 0.0).mean(axis=0)
-    prior = np.maximum(
-        prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0
-    )  # simulator at this level
+    # simulator at this level
+    prior = np.maximum(prior / np.maximum(sim_mean, 1e-300)[:, None], 0.0)
     d2, centres = _smoothness_rows(knots_c, where, x.shape[1])
     scale = np.ones_like(prior)
     weights = np.ones_like(yn)
@@ -244,7 +233,7 @@ def fit_baseline(
         cells_c[j, k] = coef_c[:, 1 + i]
     cells_f = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for j, (f, c) in enumerate(zip(table.knots, knots_c)):
-        cells_f[j, : len(f)] = coarsening(f, c) @ cells_c[j, : len(c)]
+        cells_f[j, : len(f)] = hat_matrix(f, c) @ cells_c[j, : len(c)]  # see coarse_hats
     prior_f = _prior_matrix(where, coef_c[:, 0], cells_f)
     d2, centres = _smoothness_rows(table.knots, where, x.shape[1])
     scale = np.maximum(prior_f, SCALE_FLOOR)
@@ -284,9 +273,7 @@ def fit_baseline(
         beta[0] = 0.0  # the level is set below
         ratio[:, f] = sep @ beta
     magnitude = magnitude * np.exp(ratio)
-    magnitude = magnitude * (
-        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
-    )
+    magnitude = magnitude * relevel(table.magnitude, magnitude, train)
     cells = np.zeros((len(table.knots), hats.shape[2], len(level)))
     for i, (j, k) in enumerate(where):
         cells[j, k] = coef[:, 1 + i]
@@ -313,26 +300,22 @@ def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Base
     coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     gain = np.exp(coef[0][None, :] + np.clip(x @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN))
     magnitude = base.magnitude * gain
-    magnitude = magnitude * (
-        table.magnitude[train].sum(axis=0) / np.maximum(magnitude[train].sum(axis=0), 1e-300)
-    )
+    magnitude = magnitude * relevel(table.magnitude, magnitude, train)
     power = base.power * gain**2
-    power = power * (
-        (table.magnitude[train] ** 2).sum(axis=0) / np.maximum(power[train].sum(axis=0), 1e-300)
-    )
+    power = power * relevel(table.magnitude**2, power, train)
     info = dict(base.info)
     info["n_parameters"] = int(info.get("n_parameters", 0) + coef.size)
     info["velocity_gain"] = {
         "regressors": len(names),
         "ridge": {k: round(v, 5) for k, v in ridge.items()},
     }
-    return Baseline(
-        magnitude=magnitude,
-        power=power,
-        rest_power=base.rest_power,
-        cell_power=base.cell_power,
-        info=info,
-    )
+    return replace(base, magnitude=magnitude, power=power, info=info)
+
+
+def relevel(observed: np.ndarray, predicted: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """Per-bin factor so that the predicted *mean* (magnitude or power) matches the observed
+    one on training blocks."""
+    return observed[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
 
 
 def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> float:

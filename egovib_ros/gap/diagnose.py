@@ -264,6 +264,15 @@ def combined_floor(floors: dict[str, float]) -> float:
     return float(min(values)) if values else float("nan")
 
 
+def _fit(table: BlockTable, train: np.ndarray, effects, prior) -> tuple:
+    """(baseline, scales, {name: FittedModel}) fitted on the `train` rows: the refit and
+    every candidate but timing (a refit at another lag)."""
+    base = fit_baseline(table, train, prior=prior)
+    scales = fit_scales(table, train, base.magnitude)
+    names = ["refit"] + [effect for effect in effects if effect != "timing"]
+    return base, scales, {name: fit_variant(table, train, name, scales, base) for name in names}
+
+
 def cross_fit(
     base_table: BlockTable,
     splits: list[Split],
@@ -285,25 +294,11 @@ def cross_fit(
     observed = base_table.magnitude
     for split in splits:
         test = split.test
-        base = fit_baseline(base_table, split.train, prior=prior)
-        scales = fit_scales(base_table, split.train, base.magnitude)
-        fits = {"refit": fit_variant(base_table, split.train, "refit", scales, base)}
-        for effect in effects:
-            if effect == "timing":
-                continue
-            fits[effect] = fit_variant(base_table, split.train, effect, scales, base)
-        if "timing" in effects:
-            if timing_table is None:
-                fits["timing"] = fits["refit"]
-            else:
-                lag_base = fit_baseline(timing_table, split.train, prior=prior)
-                fits["timing"] = fit_variant(
-                    timing_table,
-                    split.train,
-                    "refit",
-                    fit_scales(timing_table, split.train, lag_base.magnitude),
-                    lag_base,
-                )
+        base, scales, fits = _fit(base_table, split.train, effects, prior)
+        if "timing" in effects and timing_table is None:
+            fits["timing"] = fits["refit"]
+        elif "timing" in effects:
+            fits["timing"] = _fit(timing_table, split.train, (), prior)[2]["refit"]
         if terms is not None:
             fits.update(terms(base_table, split.train, base, scales))
         for name, fm in fits.items():
@@ -356,12 +351,9 @@ def _test(
         return np.stack([np.bincount(run, weights=a[:, f]) for f in range(a.shape[1])], axis=1)
 
     y = sums(observed[rows] ** 2)
-    dev_base = np.repeat(metric.block_deviance(y, sums(cf.power["refit"][rows])), DEVIANCE_RUN)[
-        : len(rows)
-    ]
-    dev_cand = np.repeat(metric.block_deviance(y, sums(cf.power[name][rows])), DEVIANCE_RUN)[
-        : len(rows)
-    ]
+    # each block gets its run's deviance
+    dev_base = metric.block_deviance(y, sums(cf.power["refit"][rows]))[run]
+    dev_cand = metric.block_deviance(y, sums(cf.power[name][rows]))[run]
     p = metric.segment_signflip_pvalue(dev_base, dev_cand, segments, rng=rng)
     log_base = _block_loss(observed, cf.predicted["refit"], rows, cf.offset[rows])
     log_cand = _block_loss(observed, cf.predicted[name], rows, cf.offset[rows])
@@ -419,17 +411,7 @@ def _interleaved_drift(
         "heldout_gap_baseline": round(metric.gap_db(e_base), 4),
         "heldout_gap_drift": round(metric.gap_db(e_drift), 4),
         "floor": round(
-            combined_floor(
-                {
-                    "block_ratio": metric.floor_db(
-                        observed[rows], cf.predicted[best][rows], windows
-                    ),
-                    "window": metric.floor_window_db(
-                        observed[rows], cf.predicted[best][rows], windows
-                    ),
-                }
-            ),
-            4,
+            combined_floor(_floors(observed[rows], cf.predicted[best][rows], windows)), 4
         ),
         "split": f"chunks of {chunk_s:.3g} s, every {INTERLEAVE_PERIOD}rd held out "
         f"in turn ({INTERLEAVE_PERIOD} rotations)",
@@ -498,12 +480,8 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     tested against the baseline (`_candidates`), the verdict (`_verdict`).
     """
     o = options or DiagnosisOptions()
-    folds, train_fraction, window_blocks, effects = (
-        o.folds,
-        o.train_fraction,
-        o.window_blocks,
-        o.effects,
-    )
+    folds, train_fraction = o.folds, o.train_fraction
+    window_blocks, effects = o.window_blocks, o.effects
     reference_lag_s, lag_tolerance_s = o.reference_lag_s, o.lag_tolerance_s
     rng = np.random.default_rng(o.seed)
     if (~table.contact).sum() < 400:
@@ -650,16 +628,7 @@ def _fitted_models(
 ) -> dict[str, FittedModel]:
     """The fitted terms (parameters, shapes) for the report, fitted on every clean block;
     their predictions then replaced by the held-out ones (all figures are held out)."""
-    base_table, clean = aligned.base_table, ~aligned.contact
-    base = fit_baseline(base_table, clean, prior=prior)
-    scales = fit_scales(base_table, clean, base.magnitude)
-    models: dict[str, FittedModel] = {
-        "refit": fit_variant(base_table, clean, "refit", scales, base)
-    }
-    for effect in effects:
-        if effect == "timing":
-            continue
-        models[effect] = fit_variant(base_table, clean, effect, scales, base)
+    _, scales, models = _fit(aligned.base_table, ~aligned.contact, effects, prior)
     if "timing" in effects:
         models["timing"] = _timing_model(
             models["refit"], aligned, scales, reference_lag_s, lag_tolerance_s
@@ -717,11 +686,15 @@ def _heldout_gaps(
         errors[name] = heldout_errors(cf.predicted[name], observed, rows, windows)
     gaps = {name: metric.gap_db(e) for name, e in errors.items()}
     best = min(models, key=lambda name: gaps[name])
-    floors = {
-        "block_ratio": metric.floor_db(observed[rows], cf.predicted[best][rows], windows),
-        "window": metric.floor_window_db(observed[rows], cf.predicted[best][rows], windows),
+    return errors, gaps, _floors(observed[rows], cf.predicted[best][rows], windows)
+
+
+def _floors(observed: np.ndarray, predicted: np.ndarray, windows: metric.Windows) -> dict:
+    """The two floor estimates (see `combined_floor`) of held-out rows around `predicted`."""
+    return {
+        "block_ratio": metric.floor_db(observed, predicted, windows),
+        "window": metric.floor_window_db(observed, predicted, windows),
     }
-    return errors, gaps, floors
 
 
 def _candidates(
@@ -804,27 +777,19 @@ def _verdict(
         and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
         and c["gap_reduction_decisive"] > 0.0
     ]
-    by_name = {c["effect"]: c for c in candidates}
+    names = [c["effect"] for c in candidates]
     if not eligible:
         # The same bootstrap as for a named effect: the share of resamples in which no
         # candidate reaches the minimum gain. (It was 1 - the strongest candidate's adjusted
         # p, which is largest when a candidate only just misses significance: `none` with
         # confidence 0.97 beside a drift term that took 0.6 dB off a baseline 2 dB above
         # the floor at p = 0.0066.)
-        confidence = _bootstrap_confidence(
-            loss, [c["effect"] for c in candidates], "none", segments, rng
-        )
-        return "none", confidence
+        return "none", _bootstrap_confidence(loss, names, "none", segments, rng)
     verdict = eligible[0]["effect"]
-    confidence = _bootstrap_confidence(
-        loss,
-        [c["effect"] for c in candidates],
-        verdict,
-        segments,
-        rng,
-        interleaved=by_name.get("drift", {}).get("decided_by") == "interleaved",
+    interleaved = any(c.get("decided_by") == "interleaved" for c in candidates)  # drift's
+    return verdict, _bootstrap_confidence(
+        loss, names, verdict, segments, rng, interleaved=interleaved
     )
-    return verdict, confidence
 
 
 def _split_info(t: np.ndarray, folds: int, train_fraction: float | None) -> dict:

@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, simulator_cells
-from egovib_ros.gap.features import BlockTable, hat_basis
+from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, relevel, simulator_cells
+from egovib_ros.gap.features import BlockTable, hat_matrix
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
@@ -94,12 +94,10 @@ class FittedModel:
     std_scale: np.ndarray  # (B, F) multiplicative gain applied to the model std too
     parameters: dict = field(default_factory=dict)
     table: BlockTable | None = field(default=None, repr=False)  # the table it predicts (lag!)
-    coef: np.ndarray | None = field(
-        default=None, repr=False
-    )  # (1 + R, F) intercept + per-bin coefficients
-    refit_predicted: np.ndarray | None = field(
-        default=None, repr=False
-    )  # (B, F) baseline before the term
+    #: (1 + R, F) intercept + per-bin coefficients
+    coef: np.ndarray | None = field(default=None, repr=False)
+    #: (B, F) baseline before the term
+    refit_predicted: np.ndarray | None = field(default=None, repr=False)
     scales: "Scales | None" = field(default=None, repr=False)
     shape: dict | None = field(default=None, repr=False)  # fitted shape(s) for the report
     power: np.ndarray | None = field(default=None, repr=False)  # (B, F) expected power (mean |Y|^2)
@@ -154,35 +152,24 @@ def fit_scales(
     span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(pos.shape[1])
     frac = table.velocity[train] / table.vmax
     moving = np.abs(frac) > MOVING_FRACTION
-    one_way = np.array(
-        [
-            max(np.mean(f[m] > 0), np.mean(f[m] < 0)) >= ONE_WAY_SHARE if m.any() else False
-            for f, m in zip(frac.T, moving.T)
-        ]
-    )
+    # the larger share of a joint's moving training blocks that move one way
+    way = np.maximum(((frac > 0) & moving).sum(axis=0), ((frac < 0) & moving).sum(axis=0))
+    one_way = moving.any(axis=0) & (way / np.maximum(moving.sum(axis=0), 1) >= ONE_WAY_SHARE)
     full_turn = angle_joints(table.joint_names, pos) & (span >= 2 * np.pi)
     # a joint that turns one way over part of a turn (a motor): the harmonics it covers
     turning = ~full_turn & one_way & (span >= 2 * np.pi / POSITION_HARMONICS)
+    # (a full turn covers every harmonic's period)
     harmonics = tuple(
-        tuple(range(1, POSITION_HARMONICS + 1))
-        if full
-        else covered_harmonics(float(sp))
-        if turn
-        else ()
-        for full, turn, sp in zip(full_turn, turning, span)
+        covered_harmonics(float(sp)) if turns else ()
+        for turns, sp in zip(full_turn | turning, span)
     )
     lo, hi = np.percentile(pos, 1, axis=0), np.percentile(pos, 99, axis=0)
     acc = np.percentile(table.acceleration[train], 95, axis=0)
     m = table.base_mean if baseline_magnitude is None else baseline_magnitude
     band = np.mean(m**2, axis=1)
     t = table.t_mid_s[train]
-    both = np.array(
-        [
-            min(np.mean(frac[:, j] > MOVING_FRACTION), np.mean(frac[:, j] < -MOVING_FRACTION))
-            > BIDIRECTIONAL_SHARE
-            for j in range(frac.shape[1])
-        ]
-    )
+    each_way = np.mean(frac > MOVING_FRACTION, axis=0), np.mean(frac < -MOVING_FRACTION, axis=0)
+    both = np.minimum(*each_way) > BIDIRECTIONAL_SHARE
     n_pairs = frac.shape[1] * (frac.shape[1] - 1) // 2
     n_knots = int(np.clip(round(COUPLING_KNOTS / np.sqrt(max(n_pairs, 1))), 3, COUPLING_KNOTS))
     knots = []
@@ -225,16 +212,6 @@ def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
     return np.minimum(scales.power_ref / np.maximum(band, 1e-9 * scales.power_ref), REL_CLIP)
 
 
-def _hats(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """(n, K) piecewise-linear basis over `knots` (values clipped to the knot range)."""
-    i, wl, wr = hat_basis(values, knots)
-    out = np.zeros((len(values), len(knots)))
-    rows = np.arange(len(values))
-    out[rows, i] += wl
-    out[rows, i + 1] += wr
-    return out
-
-
 def trend_unit_s(scales) -> float:
     """Time unit of the drift term's linear trend: a minute, or the training span if shorter.
 
@@ -248,7 +225,7 @@ def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
     """Piecewise-linear basis in time over [t0, t1], flat beyond;
     the first knot is the reference."""
     knots = np.linspace(t0, t1, n_knots) if t1 > t0 else np.array([t0, t0 + 1.0])
-    return _hats(t, knots)[:, 1:]
+    return hat_matrix(t, knots)[:, 1:]
 
 
 def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, list[str]]:
@@ -262,9 +239,8 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
             labels += [f"cos{k}", f"sin{k}"]
         return np.stack(cols, axis=1), labels
     knots = np.linspace(scales.pos_lo[j], scales.pos_hi[j], POSITION_KNOTS)
-    h = np.delete(
-        _hats(p, knots), POSITION_KNOTS // 2, axis=1
-    )  # the middle of the travel is the reference
+    # the middle of the travel is the reference
+    h = np.delete(hat_matrix(p, knots), POSITION_KNOTS // 2, axis=1)
     return h, [f"hat{k}" for k in range(POSITION_KNOTS) if k != POSITION_KNOTS // 2]
 
 
@@ -281,7 +257,7 @@ def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
     rest = int(np.flatnonzero(knots == 0.0)[0])
     cols, names = [], []
     for j, name in enumerate(table.joint_names):
-        h = np.delete(_hats(frac[:, j], knots), rest, axis=1)
+        h = np.delete(hat_matrix(frac[:, j], knots), rest, axis=1)
         cols.append(h)
         names += [f"v={k:g}({name})" for k in np.delete(knots, rest)]
     return np.concatenate(cols, axis=1), names
@@ -323,9 +299,9 @@ def effect_regressors(
         sign = direction(table)
         n_j = speed.shape[1]
         knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
-        basis = [_hats(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
+        basis = [hat_matrix(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
         coarse = [
-            _hats(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
+            hat_matrix(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
             for j in range(n_j)
         ]
         for i in range(n_j):
@@ -374,9 +350,8 @@ def effect_regressors(
     elif effect == "drift":
         t = table.t_mid_s
         h = time_hats(t, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        for k in range(h.shape[1]):
-            cols.append(h[:, k])
-            names.append(f"time_hat{k + 1}")
+        cols += list(h.T)
+        names += [f"time_hat{k + 1}" for k in range(h.shape[1])]
         cols.append((t - scales.t_ref_s) / trend_unit_s(scales))
         names.append("t_min")
     elif effect in ("refit", "timing", "custom"):
@@ -484,11 +459,6 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
     return coef / 2.0, ridge
 
 
-def _relevel(table: BlockTable, train: np.ndarray, predicted: np.ndarray) -> np.ndarray:
-    """Per-bin factor so that the predicted *mean* magnitude matches on training blocks."""
-    return table.magnitude[train].sum(axis=0) / np.maximum(predicted[train].sum(axis=0), 1e-300)
-
-
 def fit_variant(
     table: BlockTable,
     train: np.ndarray,
@@ -508,7 +478,7 @@ def fit_variant(
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
     predicted = base.magnitude * gain
-    predicted = predicted * _relevel(table, train, predicted)
+    predicted = predicted * relevel(table.magnitude, predicted, train)
     # The same term on the expected power (what the decision compares: independent
     # sources add in power, and the power's mean is what a Gamma deviance rewards).
     power = base.power * gain**2
@@ -557,7 +527,7 @@ def apply_effect_term(
         else np.ones_like(refit_predicted)
     )
     predicted = refit_predicted * gain
-    return predicted * _relevel(table, train, predicted)
+    return predicted * relevel(table.magnitude, predicted, train)
 
 
 DB_PER_NEPER = 20.0 / np.log(10.0)
@@ -609,7 +579,7 @@ def effect_shape(
         knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
         for i in range(n_j):
             for j in range(i + 1, n_j):
-                hi_, hj = _hats(grid, knots[i])[:, 1:], _hats(grid, knots[j])[:, 1:]
+                hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
                 gmat = np.zeros((len(grid), len(grid)))
                 for a in range(hi_.shape[1]):
                     for b in range(hj.shape[1]):
@@ -619,7 +589,7 @@ def effect_shape(
                 signed = np.zeros_like(gmat)
                 ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
                 cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
-                hci, hcj = _hats(grid, ci)[:, 1:], _hats(grid, cj)[:, 1:]
+                hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
                 for a in range(hci.shape[1]):
                     for b in range(hcj.shape[1]):
                         key = f"dir{i}*dir{j}:c{a}*c{b}"
@@ -675,6 +645,15 @@ def effect_shape(
             "train_end_s": round(scales.t_end_s, 2),
         }
     return shapes
+
+
+def drift_reach(x: np.ndarray, g: np.ndarray) -> tuple[float, float]:
+    """A drift curve's change from start to end (dB) and the time by which 90 % of it is
+    reached (the end when it does not change)."""
+    change = float(g[-1] - g[0]) if g.size else 0.0
+    if abs(change) <= 1e-9:
+        return change, float(x[-1])
+    return change, float(x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))])
 
 
 def _effect_summary(effect: str, names: list[str], coef: np.ndarray, scales: Scales) -> dict:
@@ -736,10 +715,9 @@ def refine_lag(
     rows = np.flatnonzero(train)
     prior = simulator_cells(table) if prior is None else prior
     inside = (lags >= lo - 1e-9) & (lags <= hi + 1e-9)
-    if not inside.any():
-        inside = np.abs(lags - np.clip(lags, lo, hi)) == np.min(
-            np.abs(lags - np.clip(lags, lo, hi))
-        )
+    if not inside.any():  # the grid points nearest the band
+        outside = np.abs(lags - np.clip(lags, lo, hi))
+        inside = outside == outside.min()
     best = lags[inside][int(np.argmin(curve[inside]))]
     fine = np.arange(best - LAG_COARSE_S + LAG_FINE_S, best + LAG_COARSE_S - 1e-12, LAG_FINE_S)
     fine = fine[(fine >= lo - 1e-9) & (fine <= hi + 1e-9)]

@@ -93,21 +93,16 @@ class BlockTable:
             self.joints, self.t_first_s, self.t_last_s, lag_s
         )
         mean, std = _model_lookup(self.model, velocity, self.freq_index)
-        hats, after, before = motion_features(
-            self.joints, self.t_first_s, self.t_last_s, lag_s, self.knots, self.model.window
-        )
-        return replace(
-            self,
-            velocity=velocity,
-            position=position,
-            acceleration=acceleration,
-            base_mean=mean,
-            base_std=std,
-            hats=hats,
-            reversal_after_s=after,
-            reversal_before_s=before,
-            speed_rate=speed_rate_means(self.joints, self.t_first_s, self.t_last_s, lag_s),
-            lag_s=float(lag_s),
+        return _attach_trajectory(
+            replace(
+                self,
+                velocity=velocity,
+                position=position,
+                acceleration=acceleration,
+                base_mean=mean,
+                base_std=std,
+                lag_s=float(lag_s),
+            )
         )
 
     freq_index: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=np.intp))
@@ -116,12 +111,10 @@ class BlockTable:
     #: (B, J, K) window-weighted mean over each block of the hat functions of the joint's
     #: velocity trajectory at the knots: what a velocity-only table predicts, linearly.
     hats: np.ndarray | None = field(repr=False, default=None)
-    reversal_after_s: np.ndarray | None = field(
-        repr=False, default=None
-    )  # (B, J) since last reversal
-    reversal_before_s: np.ndarray | None = field(
-        repr=False, default=None
-    )  # (B, J) until next reversal
+    #: (B, J) time since the last reversal
+    reversal_after_s: np.ndarray | None = field(repr=False, default=None)
+    #: (B, J) time until the next reversal
+    reversal_before_s: np.ndarray | None = field(repr=False, default=None)
     lag_s: float = 0.0  # joint-state lag of this table
     #: (B, J) block mean rate of change of the joint's *speed* (d|v|/dt, joint unit/s^2):
     #: positive while it speeds up, negative while it slows down
@@ -147,6 +140,16 @@ def hat_basis(values: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.nda
     i = np.clip(np.searchsorted(knots, v, side="right") - 1, 0, len(knots) - 2)
     frac = (v - knots[i]) / (knots[i + 1] - knots[i])
     return i, 1.0 - frac, frac
+
+
+def hat_matrix(values: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(n, K) piecewise-linear basis over `knots` (values clipped to the knot range)."""
+    i, wl, wr = hat_basis(values, knots)
+    out = np.zeros((len(values), len(knots)))
+    rows = np.arange(len(values))
+    out[rows, i] += wl
+    out[rows, i + 1] += wr
+    return out
 
 
 def motion_features(
@@ -553,12 +556,8 @@ def _interval_means(
 ) -> np.ndarray:
     """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)."""
     dt = np.diff(t)
-    cum = np.concatenate(
-        [
-            np.zeros((1, values.shape[1])),
-            np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0),
-        ]
-    )
+    cum = np.zeros((len(t), values.shape[1]))
+    cum[1:] = np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)
 
     def integral(tq: np.ndarray) -> np.ndarray:
         tq = np.clip(tq, t[0], t[-1])
@@ -593,12 +592,11 @@ def check_lag(joints: JointSeries, lag_s: float) -> None:
 
 
 def _joint_block_means(joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float):
+    """Block means of velocity, position and |acceleration| (joint states `lag_s` late)."""
     check_lag(joints, lag_s)
     t = joints.t_s - lag_s
-    velocity = _interval_means(t, joints.velocity, t_first, t_last)
-    position = _interval_means(t, joints.position, t_first, t_last)
-    acceleration = _interval_means(t, np.abs(joints.acceleration), t_first, t_last)
-    return velocity, position, acceleration
+    series = (joints.velocity, joints.position, np.abs(joints.acceleration))
+    return tuple(_interval_means(t, s, t_first, t_last) for s in series)
 
 
 def _model_lookup(
@@ -708,6 +706,11 @@ def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> Block
         knot_refine,
         KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine,
     )
+    return _attach_trajectory(table)
+
+
+def _attach_trajectory(table: BlockTable) -> BlockTable:
+    """The velocity-trajectory features, reversal times and speed rates at the table's lag."""
     table.hats, table.reversal_after_s, table.reversal_before_s = motion_features(
         table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
     )
@@ -845,14 +848,8 @@ def table_from_blocks(
     t_last = (last_ns - t0_ns) / NS_PER_S
     joints = joint_features.finish(t0_ns)
     bad_input["joint_states_kept"] = len(joints.t_s)
-    vmax = grid_speeds(model)
-
     _, pos_b, acc_b = _joint_block_means(joints, t_first, t_last, 0.0)
     mean, std = _model_lookup(model, v_core, freq_index)
-    knots = baseline_knots(
-        model.grid, knot_refine, KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine
-    )
-    hats, after, before = motion_features(joints, t_first, t_last, 0.0, knots, model.window)
     table = BlockTable(
         t_first_s=t_first,
         t_last_s=t_last,
@@ -864,17 +861,13 @@ def table_from_blocks(
         base_mean=mean,
         base_std=std,
         contact=np.zeros(len(t_first), dtype=bool),
-        vmax=vmax,
+        vmax=grid_speeds(model),
         joint_names=tuple(model.joint_names),
         model=model,
         joints=joints,
         freq_index=freq_index,
-        knots=knots,
-        hats=hats,
-        reversal_after_s=after,
-        reversal_before_s=before,
-        speed_rate=speed_rate_means(joints, t_first, t_last, 0.0),
     )
+    attach_motion(table, knot_refine=knot_refine)  # the series is smoothed, reversals found
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     table.bad_input = bad_input
     return table

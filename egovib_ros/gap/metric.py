@@ -54,7 +54,7 @@ def make_windows(n_blocks: int, window_blocks: int = DEFAULT_WINDOW_BLOCKS) -> W
     return Windows(index=index, n_windows=int(n_windows))
 
 
-def _window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
+def window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
     """Sum (B, F) values per window -> (n_windows, F)."""
     keep = windows.members()
     out = np.zeros((windows.n_windows, values.shape[1]))
@@ -64,8 +64,8 @@ def _window_sums(values: np.ndarray, windows: Windows) -> np.ndarray:
 
 def window_errors_db(observed: np.ndarray, predicted: np.ndarray, windows: Windows) -> np.ndarray:
     """e[w, f] in dB: log ratio of window sums of observed vs predicted magnitudes."""
-    obs = _window_sums(observed, windows)
-    pred = _window_sums(predicted, windows)
+    obs = window_sums(observed, windows)
+    pred = window_sums(predicted, windows)
     tiny = np.finfo(float).tiny
     return 20.0 * np.log10(np.maximum(obs, tiny) / np.maximum(pred, tiny))
 
@@ -159,40 +159,11 @@ def grouped_bias_db(
     return bias, counts
 
 
-def paired_signflip_pvalue(
-    base_errors_db: np.ndarray,
-    cand_errors_db: np.ndarray,
-    *,
-    segment_windows: int = 2,
-    n_permutations: int = 20000,
-    rng: np.random.Generator | None = None,
-) -> float:
-    """One-sided p-value that the candidate's held-out errors are smaller than the base's.
-
-    Paired permutation (sign-flip) test over contiguous segments of `segment_windows`
-    windows: under H0 (candidate no better) each segment's improvement
-    d = sum (e_base^2 - e_cand^2) is symmetric about zero, so random sign flips give
-    the null distribution of the mean improvement.  Segments keep short-range
-    dependence between neighbouring windows together.
-    """
-    rng = np.random.default_rng(0) if rng is None else rng
-    d_w = np.mean(np.square(base_errors_db) - np.square(cand_errors_db), axis=1)
-    n_seg = max(len(d_w) // segment_windows, 1)
-    d_s = np.array([chunk.sum() for chunk in np.array_split(d_w, n_seg)])
-    observed = d_s.mean()
-    if n_seg <= 16:  # exact: all 2^n sign patterns
-        signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
-        null = (signs * d_s).mean(axis=1)  # includes the identity pattern
-        return float(np.mean(null >= observed - 1e-12))
-    return _signflip_tail(d_s, observed, n_permutations, rng)
-
-
 def block_log_errors(observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
     """Per-block, per-bin natural-log residuals ln |Y| - ln m
     (squared and summed, the test's loss)."""
     tiny = 1e-300
-    r = np.log(np.maximum(observed, tiny)) - np.log(np.maximum(predicted, tiny))
-    return r
+    return np.log(np.maximum(observed, tiny)) - np.log(np.maximum(predicted, tiny))
 
 
 def block_deviance(observed_power: np.ndarray, predicted_power: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ import numpy as np
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
-from egovib_ros.gap.effects import angle_joints
+from egovib_ros.gap.effects import angle_joints, drift_reach
 
 SCHEMA = "egovib.gap/1"
 #: Frequency bands used to name regions (Hz edges; bins are assigned by centre frequency).
@@ -31,14 +31,16 @@ def velocity_cells(diag: Diagnosis, velocity: np.ndarray) -> tuple[np.ndarray, l
     return np.ravel_multi_index(idx, tuple(len(g) for g in grid)), list(grid)
 
 
+def _percent_of_max(grid: list[np.ndarray], index) -> list[int]:
+    """A velocity cell's speeds, in % of each joint's top grid speed."""
+    return [int(round(100 * grid[j][i] / np.max(np.abs(grid[j])))) for j, i in enumerate(index)]
+
+
 def _window_means(diag: Diagnosis, values: np.ndarray) -> np.ndarray:
-    rows = diag.heldout_rows
+    """Means of per-block values (B, K) over each held-out window."""
     w = diag.windows
-    keep = w.members()
-    sums = np.zeros((w.n_windows,) + values.shape[1:])
-    np.add.at(sums, w.index[keep], values[rows][keep])
-    counts = np.bincount(w.index[keep], minlength=w.n_windows).astype(float)
-    return sums / counts.reshape((-1,) + (1,) * (values.ndim - 1))
+    counts = np.bincount(w.index[w.members()], minlength=w.n_windows)
+    return metric.window_sums(values[diag.heldout_rows], w) / counts[:, None]
 
 
 def covariate_series(diag: Diagnosis) -> dict[str, tuple[np.ndarray, str, bool]]:
@@ -81,7 +83,7 @@ def covariate_breakdown(diag: Diagnosis) -> dict:
         bias_refit, _ = metric.grouped_bias_db(t.magnitude[rows], refit[rows], labels, nb)
         wvals = _window_means(diag, values[:, None])[:, 0]
         wl = np.clip(np.searchsorted(edges, wvals, side="right") - 1, 0, nb - 1)
-        share, wcount = metric.contributions(diag.errors["refit"], wl, nb)
+        share, _ = metric.contributions(diag.errors["refit"], wl, nb)
         out[name] = {
             "unit": unit,
             "bin_edges": [_r(e, 5) for e in edges],
@@ -142,10 +144,7 @@ def where_breakdown(diag: Diagnosis) -> dict:
         cells.append(
             {
                 "velocity": [_r(grid[j][i], 5) for j, i in enumerate(idx)],
-                "percent_of_max": [
-                    int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))
-                    for j, i in enumerate(idx)
-                ],
+                "percent_of_max": _percent_of_max(grid, idx),
                 "windows": int(counts[c]),
                 "bias_db_sim_as_is": _r(np.mean(e_as_is[sel]), 3),
                 "gap2_share_sim_as_is_db2": _r(share[c].sum(), 5),
@@ -227,11 +226,7 @@ def build_report(
             ),
             "floor": _r(diag.floor),
         },
-        "where": {
-            "frequency_hz": where["frequency_hz"],
-            "velocity_cells": where["velocity_cells"],
-            "covariates": where["covariates"],
-        },
+        "where": {k: where[k] for k in ("frequency_hz", "velocity_cells", "covariates")},
         "candidates": [
             {
                 "effect": c["effect"],
@@ -297,8 +292,7 @@ BASELINE_DEFINITION = (
 )
 
 
-def _peak(x: list, g: list) -> tuple[float, float, float]:
-    g = np.asarray(g, float)
+def _peak(x: np.ndarray, g: np.ndarray) -> tuple[float, float, float]:
     k = int(np.argmax(g))
     return float(x[k]), float(g[k]), float(g.max() - g.min())
 
@@ -307,13 +301,13 @@ def describe_shape(shape: dict) -> str:
     """One sentence on the fitted shape of a candidate term (broadband gain, dB)."""
     parts = []
     for name, c in shape.items():
+        x, g = (np.asarray(c.get(key, ()), float) for key in ("x", "gain_db"))
         if name.startswith("position:"):
-            x, top, span = _peak(c["x"], c["gain_db"])
+            x, top, span = _peak(x, g)
             parts.append(
                 f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {x:.3g} {c['unit']}"
             )
         elif name.startswith("coupling:"):
-            g = np.asarray(c["gain_db"], float)
             i, j = np.unravel_index(int(np.argmax(g)), g.shape)
             sp = c["speed_fraction"]
             signed = np.asarray(c.get("same_minus_opposite_direction_db", [[0.0]]), float)
@@ -328,26 +322,17 @@ def describe_shape(shape: dict) -> str:
                 + ")"
             )
         elif name.startswith("acceleration:"):
-            g = np.asarray(c["gain_db"], float)
-            x = np.asarray(c["x"], float)
             parts.append(
                 f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical "
                 "|acceleration|"
             )
         elif name.startswith("reversal:"):
-            x, top, span = _peak(c["x"], c["gain_db"])
+            x, top, span = _peak(x, g)
             parts.append(
                 f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal"
             )
         elif name.startswith("drift:"):
-            g = np.asarray(c["gain_db"], float)
-            x = np.asarray(c["x"], float)
-            change = g[-1] - g[0]
-            reach = (
-                x[int(np.argmax(np.abs(g - g[0]) >= 0.9 * abs(change)))]
-                if abs(change) > 1e-9
-                else x[-1]
-            )
+            change, reach = drift_reach(x, g)
             parts.append(
                 f"{name[6:]}: {change:+.1f} dB from start to end, 90 % of it reached at "
                 f"{reach:.0f} s ({g.max() - g.min():.1f} dB range)"
@@ -553,13 +538,7 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     used = np.unique(cell)
     e = diag.errors["sim_as_is"]
     mat = np.array([np.mean(e[cell == c], axis=0) for c in used]).T
-    pct = [np.unravel_index(c, shape) for c in used]
-    labels = [
-        "/".join(
-            f"{int(round(100 * grid[j][i] / np.max(np.abs(grid[j]))))}" for j, i in enumerate(p)
-        )
-        for p in pct
-    ]
+    labels = ["/".join(map(str, _percent_of_max(grid, np.unravel_index(c, shape)))) for c in used]
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"width_ratios": [2.2, 1]})
     lim = max(1.0, float(np.nanmax(np.abs(mat))))
     im = axes[0].imshow(
@@ -619,16 +598,11 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
             continue
         edges = np.array(c["bin_edges"], dtype=float)
         mid = 0.5 * (edges[1:] + edges[:-1])
-        ax.plot(
-            mid, np.array(c["bias_db_sim_as_is"], dtype=float), "o-", color="0.6", label="sim as-is"
-        )
-        ax.plot(
-            mid,
-            np.array(c["bias_db_after_refit"], dtype=float),
-            "o-",
-            color="C3",
-            label="after refit",
-        )
+        for key, color, label in (
+            ("sim_as_is", "0.6", "sim as-is"),
+            ("after_refit", "C3", "after refit"),
+        ):
+            ax.plot(mid, np.array(c[f"bias_db_{key}"], dtype=float), "o-", color=color, label=label)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel(c["unit"], fontsize=8)

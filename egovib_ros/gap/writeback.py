@@ -41,7 +41,6 @@ def _simulated_fit(
     duration_s: float,
     max_speed: float,
     model,
-    train_fraction: float,
 ):
     from egovib_ros.sim import simulate_motion
 
@@ -54,7 +53,7 @@ def _simulated_fit(
         params=params,
     )
     table = build_table(rec, model, source="write-back trial simulation")
-    train, _, _ = time_split(table, train_fraction)
+    train, _, _ = time_split(table, TRAIN_FRACTION)
     return fit_variant(table, train, effect, fit_scales(table, train))
 
 
@@ -70,7 +69,6 @@ def estimate_strength(
     t = diag.table
     duration = float(min(max(t.t_last_s[-1] - t.t_first_s[0], 60.0), 180.0))
     speed = float(np.clip(np.percentile(np.max(np.abs(t.velocity) / t.vmax, axis=1), 99), 0.2, 1.0))
-    train_fraction = TRAIN_FRACTION
     strength = TRIAL_STRENGTH[effect]
     if effect == "position":
         # The phase of the once-per-turn term is a parameter of its own: take it from the real fit.
@@ -81,19 +79,13 @@ def estimate_strength(
         )
         if phase is not None:
             params.position_phase_rad = float(phase)
-    sim_coef = None
     lo, hi = STRENGTH_LIMITS[effect]
     for _ in range(rounds):
-        fitted = _simulated_fit(effect, strength, params, duration, speed, t.model, train_fraction)
-        sim_coef = fitted.coef
-        sim = sim_coef[1:]
+        sim = _simulated_fit(effect, strength, params, duration, speed, t.model).coef[1:]
         ratio = float(np.sum(real * sim) / max(np.sum(sim * sim), 1e-12))
         strength = float(np.clip(strength * ratio, lo, hi))
     # Coefficients of the simulator at the final strength, for the check.
-    sim_coef = _simulated_fit(
-        effect, strength, params, duration, speed, t.model, train_fraction
-    ).coef
-    return strength, sim_coef
+    return strength, _simulated_fit(effect, strength, params, duration, speed, t.model).coef
 
 
 def write_back(diag: Diagnosis, params_path: str | Path | None, out_path: str | Path) -> dict:
