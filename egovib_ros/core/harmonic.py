@@ -477,13 +477,15 @@ def fit_harmonic_map(
             try_all([{j: {"up": tau} for j in group} for tau in lags_s])
             try_all([{j: {"down": tau} for j in group} for tau in lags_s])
     hmap = build(joints)
+
+    def below_input_db(residual: float) -> float:
+        if n <= settle:
+            return 0.0
+        return round(db * math.log(float(np.mean(x[settle:] ** 2)) / residual), 2)
+
     info = {
-        "residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / current), 2)
-        if n > settle
-        else 0.0,
-        "start_residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / start_cost), 2)
-        if n > settle
-        else 0.0,
+        "residual_db": below_input_db(current),
+        "start_residual_db": below_input_db(start_cost),
         "evaluations": evaluations,
         "seconds_used": round(n / fs, 1),
         "alike_joints": alike,
@@ -688,9 +690,6 @@ class CancellerState:
     power_in: np.ndarray  # (C,) short-time power of the input (the guard)
     power_residual: np.ndarray  # (C,) short-time power of the full residual (the guard)
 
-    def copy(self) -> "CancellerState":
-        return CancellerState(*(np.array(getattr(self, f.name)) for f in fields(self)))
-
 
 class HarmonicCanceller:
     """Streaming harmonic canceller for C channels keyed on J joint speeds.
@@ -713,11 +712,10 @@ class HarmonicCanceller:
         self.sample_rate_hz = float(sample_rate_hz)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
         self.n_channels = int(n_channels)
+        # (pll_hz 0: both PLL gains are 0, the map alone)
         self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
             self.sample_rate_hz
         )
-        if self.settings.pll_hz == 0.0:
-            self._kp = self._ki = 0.0
         spread = (
             np.full(
                 self.n_channels,
@@ -742,9 +740,6 @@ class HarmonicCanceller:
             power_in=np.zeros(self.n_channels),
             power_residual=np.zeros(self.n_channels),
         )
-
-    def reset(self) -> None:
-        self.state = self.initial_state()
 
     def process(self, x: np.ndarray, speed: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)

@@ -362,13 +362,10 @@ class NoiseModel:
     def _rows_of(self, cells: np.ndarray) -> np.ndarray:
         """Row of each cell (B, J) in the measured table, -1 where not measured."""
         ids = self._flat(cells)
-        pos = np.minimum(np.searchsorted(self._cell_ids, ids), max(len(self._cell_ids) - 1, 0))
-        found = (
-            (len(self._cell_ids) > 0) & (self._cell_ids[pos] == ids)
-            if len(self._cell_ids)
-            else np.zeros(len(ids), dtype=bool)
-        )
-        return np.where(found, pos, -1)
+        if not len(self._cell_ids):
+            return np.full(len(ids), -1, dtype=np.intp)
+        pos = np.minimum(np.searchsorted(self._cell_ids, ids), len(self._cell_ids) - 1)
+        return np.where(self._cell_ids[pos] == ids, pos, -1)
 
     def _dense(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         if not self.dense_ok:
@@ -554,12 +551,12 @@ class NoiseModel:
             tuple(channel_index) if isinstance(channel_index, list) else str(channel_index),
             include_std,
         )
-        table = self._cache.get(key)
-        if table is None:
-            table = self._cache[key] = np.ascontiguousarray(
+        return self._cached(
+            key,
+            lambda: np.ascontiguousarray(
                 self.estimate_table(include_std=include_std)[..., channel_index, :]
-            )
-        return table
+            ),
+        )
 
     def _positions_of(self, velocity: np.ndarray) -> tuple[list, list, np.ndarray]:
         """Lower grid index and fraction per joint, and whether each block lies outside."""
@@ -638,9 +635,7 @@ class NoiseModel:
         operations in the same order on Python floats and array views, so the result is
         bit-identical to the vectorised path. Returns (noise (1, C, F), outside (1,),
         whether the nearest grid cell was measured)."""
-        measured_grid = self._cache.get("measured_grid")
-        if measured_grid is None:
-            measured_grid = self._cache["measured_grid"] = self.counts > 0
+        measured_grid = self._cached("measured_grid", lambda: self.counts > 0)
         lower, frac = [], []
         outside = False
         for j, (low, high) in enumerate(self._bounds):
