@@ -94,7 +94,7 @@ class NoiseModel:
         self.provenance = dict(provenance or {})
         # Arrays other methods fitted at calibration (core.methods), saved beside the table.
         self.extras = {str(k): np.asarray(v) for k, v in (extras or {}).items()}
-        where = self.provenance.get("path", "noise model")
+        where = self.where
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in grid)
         self.joint_names = tuple(str(n) for n in joint_names)
         self.channels = tuple(str(c) for c in channels)
@@ -295,6 +295,11 @@ class NoiseModel:
                 f"({'; '.join(problems)})"
             )
 
+    @property
+    def where(self) -> str:
+        """The model's file (or "noise model"), for error messages."""
+        return self.provenance.get("path", "noise model")
+
     # --- shape facts -------------------------------------------------------
     @property
     def grid_shape(self) -> tuple[int, ...]:
@@ -321,8 +326,7 @@ class NoiseModel:
         missing = [n for n in names if n not in self.channels]
         if missing:
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: no channel(s) {missing}; "
-                f"the model has {list(self.channels)}"
+                f"{self.where}: no channel(s) {missing}; the model has {list(self.channels)}"
             )
         return [self.channels.index(n) for n in names]
 
@@ -370,8 +374,8 @@ class NoiseModel:
     def _dense(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         if not self.dense_ok:
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: grid of {self.n_cells:.3g} "
-                f"cells is too large for a dense view; use cells_measured()"
+                f"{self.where}: grid of {self.n_cells:.3g} cells is too large for a dense view; "
+                f"use cells_measured()"
             )
         out = np.full(self.grid_shape + values.shape[1:], fill, dtype=values.dtype)
         out[tuple(self.cells.T)] = values
@@ -445,8 +449,7 @@ class NoiseModel:
         means, stds, have = self._axis_tables()
         if not all(h.any() for h in have):
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: superposition needs measured "
-                f"single-joint cells on every axis"
+                f"{self.where}: superposition needs measured single-joint cells on every axis"
             )
         out_mu, out_sd = [], []
         for mu, sd, ok in zip(means, stds, have):
@@ -478,9 +481,7 @@ class NoiseModel:
     def _nearest_measured(self, cells: np.ndarray) -> np.ndarray:
         """Row of the measured cell nearest (grid-index distance) to each cell (B, J)."""
         if not len(self.cells):
-            raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
-            )
+            raise ModelFileError(f"{self.where}: no measured cell at all")
         rows = np.empty(len(cells), dtype=np.int64)
         for start in range(0, len(cells), 4096):
             part = cells[start : start + 4096]
@@ -521,13 +522,9 @@ class NoiseModel:
         table = self._cache.get(key)
         if table is None:
             if not self.dense_ok:
-                raise ModelFileError(
-                    f"{self.provenance.get('path', 'noise model')}: grid too large for a table"
-                )
+                raise ModelFileError(f"{self.where}: grid too large for a table")
             if not len(self.cells):
-                raise ModelFileError(
-                    f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
-                )
+                raise ModelFileError(f"{self.where}: no measured cell at all")
             cells = np.indices(self.grid_shape).reshape(self.n_joints, -1).T
             values, measured = self._cell_estimates(cells, include_std)
             table = values.reshape(self.grid_shape + values.shape[1:])
@@ -680,9 +677,8 @@ class NoiseModel:
         one-line ConfigError for a model that carries none."""
         if self.profile is None:
             raise ConfigError(
-                f"{self.provenance.get('path', 'noise model')}: the model carries no robot "
-                f"profile (topics, Imu field); calibrate it again with `egovib calibrate --robot "
-                f"PROFILE`"
+                f"{self.where}: the model carries no robot profile (topics, Imu field); "
+                f"calibrate it again with `egovib calibrate --robot PROFILE`"
             )
         return self.profile
 
