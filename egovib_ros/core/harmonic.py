@@ -443,20 +443,14 @@ def fit_harmonic_map(
                     [{j: {"orders": joints[j]["orders"] + [o]} for j in group} for o in missing]
                 ):
                     break
-            try_all(
-                [
-                    {j: {"c": joints[j]["c"] * (1 + k / 100)} for j in group}
-                    for k in range(-10, 11)
-                    if k
-                ]
-            )
-            try_all(
-                [
-                    {j: {"c": joints[j]["c"] * (1 + k / 400)} for j in group}
-                    for k in range(-4, 5)
-                    if k
-                ]
-            )
+            for per, most in ((100, 10), (400, 4)):  # scale: +-10 % by 1 %, then +-1 % by 0.25 %
+                try_all(
+                    [
+                        {j: {"c": joints[j]["c"] * (1 + k / per)} for j in group}
+                        for k in range(-most, most + 1)
+                        if k
+                    ]
+                )
             # Exponent and scale together (the frequency at the median speed kept, then +-3 %).
             try_all(
                 [
