@@ -215,11 +215,7 @@ def _window_spectra(
     band = (freqs >= band_hz[0]) & (freqs <= band_hz[1])
     width = max(3, int(round((band_hz[1] - band_hz[0]) / 6 / (freqs[1] - freqs[0]))) | 1)
     floor = median_filter(power, size=(1, width), mode="nearest") + 1e-30
-    at_rest = (
-        np.all(speed[starts + window // 2] <= min_speed[None, :], axis=1)
-        if len(starts)
-        else np.zeros(0, bool)
-    )
+    at_rest = np.all(speed[starts + window // 2] <= min_speed[None, :], axis=1)
     if np.count_nonzero(at_rest) >= 5:
         floor = np.maximum(floor, power[at_rest].mean(axis=0)[None, :])
     ratio = np.log(power / floor + 1e-12)
@@ -240,12 +236,8 @@ def _strongest_lines(
     out = []
     curves = []
     for j in range(speed.shape[1]):
-        seg = (
-            np.stack([speed[s : s + window, j] for s in starts])
-            if len(starts)
-            else np.zeros((0, window))
-        )
-        mean_speed = seg.mean(axis=1) if len(seg) else np.zeros(0)
+        seg = speed[starts[:, None] + np.arange(window), j]  # (windows, window)
+        mean_speed = seg.mean(axis=1)
         steady = (seg.std(axis=1) <= 0.05 * np.maximum(mean_speed, 1e-12)) & (
             mean_speed > min_speed[j]
         )
@@ -498,11 +490,7 @@ def fit_harmonic_map(
             for j, d in enumerate(joints)
         },
     }
-    scores = (
-        np.concatenate([[joints[j]["score"]] * len(joints[j]["orders"]) for j in range(J)])
-        if hmap.n_lines
-        else np.zeros(0)
-    )
+    scores = np.concatenate([[d["score"]] * len(d["orders"]) for d in joints])
     return dataclasses.replace(hmap, line_score_db=scores), info
 
 
