@@ -731,14 +731,10 @@ class EvaluationPass:
                 values = self.recorded_band.process(values[None, :])[0]
             self.fifos["bag_denoised"].put(values)
             self.recorded_bad.put(flags)
-        stop = self.screen_bad.end
-        if self.recorded is not None:
-            stop = min(stop, self.recorded_bad.end)
-        if stop > self.exclusion.known:
-            flags = self.screen_bad.take(stop)
-            if self.recorded is not None:
-                flags = flags | self.recorded_bad.take(stop)
-            self.exclusion.push(flags)
+        # a sample is bad once it is bad in any stream (the bag's denoised topic may lag)
+        fifos = [self.screen_bad] + ([self.recorded_bad] if self.recorded is not None else [])
+        stop = min(fifo.end for fifo in fifos)
+        self.exclusion.push(np.logical_or.reduce([fifo.take(stop) for fifo in fifos]))
         if final:
             self.exclusion.finish()
             self.segmenter.finish()
