@@ -333,10 +333,7 @@ class NoiseModel:
     def _flat(self, cells: np.ndarray) -> np.ndarray:
         """Flat cell ids (row-major over the grid; int64 holds 21^8 and more)."""
         cells = np.asarray(cells, dtype=np.int64).reshape(-1, self.n_joints)
-        ids = np.zeros(len(cells), dtype=np.int64)
-        for j, n in enumerate(self.grid_shape):
-            ids = ids * n + cells[:, j]
-        return ids
+        return np.ravel_multi_index(tuple(cells.T), self.grid_shape)
 
     @property
     def dense_ok(self) -> bool:
