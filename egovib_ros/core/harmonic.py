@@ -132,13 +132,7 @@ class HarmonicMap:
         return len(self.line_coefficient)
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        out = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            out[prefix + f.name] = (
-                np.array([str(n) for n in value]) if f.name == "joint_names" else np.asarray(value)
-            )
-        return out
+        return {prefix + f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, prefix: str, *, where: str = "model") -> "HarmonicMap":
