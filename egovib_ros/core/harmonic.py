@@ -169,10 +169,9 @@ class HarmonicMap:
 # --------------------------------------------------------------------------------------
 def _pieces(n: int, total: int, piece: int) -> np.ndarray:
     """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
-    keep = np.zeros(n, bool)
     if n <= total:
-        keep[:] = True
-        return keep
+        return np.ones(n, bool)
+    keep = np.zeros(n, bool)
     count = max(1, total // piece)
     for start in np.linspace(0, n - piece, count).astype(np.int64):
         keep[start : start + piece] = True
