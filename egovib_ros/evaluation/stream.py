@@ -678,7 +678,6 @@ class EvaluationPass:
                     "pr2",
                     detection.EventDetector(level, sample_rate_hz=fs),
                 )
-        self.thresholds = thresholds
         self.matchers = {key: detection.EventMatcher(sample_rate_hz=fs) for key in self.detectors}
         self.unfiltered = {key: np.zeros(0, np.int64) for key in self.detectors}
         # alignment and the bag's own output against the batch method
