@@ -201,15 +201,6 @@ class CalibrationAccumulator:
         """Grid indices (K, J) of the cells this sweep should visit."""
         return sweep_cells(self.grid, "full" if self.mode == "free" else self.mode)
 
-    @property
-    def counts(self) -> np.ndarray:
-        """Dense grid-shaped block counts (small grids)."""
-        tally = self._tally()
-        out = np.zeros(self._shape, dtype=np.int64)
-        if tally.n:
-            out[tuple(tally.cells.T)] = tally.counts[: tally.n]
-        return out
-
     def cell_counts(self) -> tuple[np.ndarray, np.ndarray]:
         """(grid indices (K, J), block counts (K,)) of the cells measured so far."""
         cells, _, _, counts = self._tally().statistics()
@@ -382,9 +373,7 @@ class CalibrationAccumulator:
         if len(cells):
             n = counts[:, None, None].astype(np.float64)
             tally = acc._tally()
-            flat = np.ravel_multi_index(tuple(cells.T), acc._shape)
-            tally.add(flat, cells, np.zeros_like(model.cell_mean))
-            rows = np.array([tally.row_of[int(i)] for i in flat])
+            rows = tally.rows(np.ravel_multi_index(tuple(cells.T), acc._shape), cells)
             tally.counts[rows] = counts
             tally.sum[rows] = model.cell_mean * n
             tally.sumsq[rows] = model.cell_std**2 * np.maximum(n - 1, 0) + n * model.cell_mean**2

@@ -132,13 +132,7 @@ class HarmonicMap:
         return len(self.line_coefficient)
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        out = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            out[prefix + f.name] = (
-                np.array([str(n) for n in value]) if f.name == "joint_names" else np.asarray(value)
-            )
-        return out
+        return {prefix + f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, prefix: str, *, where: str = "model") -> "HarmonicMap":
@@ -175,10 +169,9 @@ class HarmonicMap:
 # --------------------------------------------------------------------------------------
 def _pieces(n: int, total: int, piece: int) -> np.ndarray:
     """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
-    keep = np.zeros(n, bool)
     if n <= total:
-        keep[:] = True
-        return keep
+        return np.ones(n, bool)
+    keep = np.zeros(n, bool)
     count = max(1, total // piece)
     for start in np.linspace(0, n - piece, count).astype(np.int64):
         keep[start : start + piece] = True
@@ -215,11 +208,7 @@ def _window_spectra(
     band = (freqs >= band_hz[0]) & (freqs <= band_hz[1])
     width = max(3, int(round((band_hz[1] - band_hz[0]) / 6 / (freqs[1] - freqs[0]))) | 1)
     floor = median_filter(power, size=(1, width), mode="nearest") + 1e-30
-    at_rest = (
-        np.all(speed[starts + window // 2] <= min_speed[None, :], axis=1)
-        if len(starts)
-        else np.zeros(0, bool)
-    )
+    at_rest = np.all(speed[starts + window // 2] <= min_speed[None, :], axis=1)
     if np.count_nonzero(at_rest) >= 5:
         floor = np.maximum(floor, power[at_rest].mean(axis=0)[None, :])
     ratio = np.log(power / floor + 1e-12)
@@ -240,12 +229,8 @@ def _strongest_lines(
     out = []
     curves = []
     for j in range(speed.shape[1]):
-        seg = (
-            np.stack([speed[s : s + window, j] for s in starts])
-            if len(starts)
-            else np.zeros((0, window))
-        )
-        mean_speed = seg.mean(axis=1) if len(seg) else np.zeros(0)
+        seg = speed[starts[:, None] + np.arange(window), j]  # (windows, window)
+        mean_speed = seg.mean(axis=1)
         steady = (seg.std(axis=1) <= 0.05 * np.maximum(mean_speed, 1e-12)) & (
             mean_speed > min_speed[j]
         )
@@ -443,20 +428,14 @@ def fit_harmonic_map(
                     [{j: {"orders": joints[j]["orders"] + [o]} for j in group} for o in missing]
                 ):
                     break
-            try_all(
-                [
-                    {j: {"c": joints[j]["c"] * (1 + k / 100)} for j in group}
-                    for k in range(-10, 11)
-                    if k
-                ]
-            )
-            try_all(
-                [
-                    {j: {"c": joints[j]["c"] * (1 + k / 400)} for j in group}
-                    for k in range(-4, 5)
-                    if k
-                ]
-            )
+            for per, most in ((100, 10), (400, 4)):  # scale: +-10 % by 1 %, then +-1 % by 0.25 %
+                try_all(
+                    [
+                        {j: {"c": joints[j]["c"] * (1 + k / per)} for j in group}
+                        for k in range(-most, most + 1)
+                        if k
+                    ]
+                )
             # Exponent and scale together (the frequency at the median speed kept, then +-3 %).
             try_all(
                 [
@@ -477,13 +456,15 @@ def fit_harmonic_map(
             try_all([{j: {"up": tau} for j in group} for tau in lags_s])
             try_all([{j: {"down": tau} for j in group} for tau in lags_s])
     hmap = build(joints)
+
+    def below_input_db(residual: float) -> float:
+        if n <= settle:
+            return 0.0
+        return round(db * math.log(float(np.mean(x[settle:] ** 2)) / residual), 2)
+
     info = {
-        "residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / current), 2)
-        if n > settle
-        else 0.0,
-        "start_residual_db": round(db * math.log(float(np.mean(x[settle:] ** 2)) / start_cost), 2)
-        if n > settle
-        else 0.0,
+        "residual_db": below_input_db(current),
+        "start_residual_db": below_input_db(start_cost),
         "evaluations": evaluations,
         "seconds_used": round(n / fs, 1),
         "alike_joints": alike,
@@ -502,11 +483,7 @@ def fit_harmonic_map(
             for j, d in enumerate(joints)
         },
     }
-    scores = (
-        np.concatenate([[joints[j]["score"]] * len(joints[j]["orders"]) for j in range(J)])
-        if hmap.n_lines
-        else np.zeros(0)
-    )
+    scores = np.concatenate([[d["score"]] * len(d["orders"]) for d in joints])
     return dataclasses.replace(hmap, line_score_db=scores), info
 
 
@@ -688,9 +665,6 @@ class CancellerState:
     power_in: np.ndarray  # (C,) short-time power of the input (the guard)
     power_residual: np.ndarray  # (C,) short-time power of the full residual (the guard)
 
-    def copy(self) -> "CancellerState":
-        return CancellerState(*(np.array(getattr(self, f.name)) for f in fields(self)))
-
 
 class HarmonicCanceller:
     """Streaming harmonic canceller for C channels keyed on J joint speeds.
@@ -713,11 +687,10 @@ class HarmonicCanceller:
         self.sample_rate_hz = float(sample_rate_hz)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
         self.n_channels = int(n_channels)
+        # (pll_hz 0: both PLL gains are 0, the map alone)
         self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
             self.sample_rate_hz
         )
-        if self.settings.pll_hz == 0.0:
-            self._kp = self._ki = 0.0
         spread = (
             np.full(
                 self.n_channels,
@@ -742,9 +715,6 @@ class HarmonicCanceller:
             power_in=np.zeros(self.n_channels),
             power_residual=np.zeros(self.n_channels),
         )
-
-    def reset(self) -> None:
-        self.state = self.initial_state()
 
     def process(self, x: np.ndarray, speed: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(x, dtype=np.float64)

@@ -59,7 +59,7 @@ say where a figure was measured on data that also served for choosing them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -366,9 +366,6 @@ class GainState:
     noise_held: np.ndarray  # (C, B) expected band noise, held after the table's value drops
     guard: np.ndarray  # (C,) log of the opening score's slow level
 
-    def copy(self) -> "GainState":
-        return GainState(*(np.array(getattr(self, f.name)) for f in fields(self)))
-
 
 def _filled(value, default: float, shape: tuple) -> np.ndarray:
     """A copy of `value` broadcast to `shape`; `default` everywhere if it is None."""
@@ -412,20 +409,17 @@ class LowLatencyGain:
         def rate(ms: float) -> float:
             return 1.0 - math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 1.0
 
+        def decay(ms: float) -> float:
+            return math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 0.0
+
         self._a_attack = rate(settings.attack_ms)
         self._a_release = rate(settings.release_ms)
         # The correction is updated every TRACK_EVERY samples: its rate per update.
         self._a_track = (
             1.0 - math.exp(-TRACK_EVERY / (settings.track_s * fs)) if settings.track_s > 0 else 0.0
         )
-        self._open_decay = (
-            math.exp(-1.0 / (settings.open_hold_ms * 1e-3 * fs))
-            if settings.open_hold_ms > 0
-            else 0.0
-        )
-        self._hold_decay = (
-            math.exp(-1.0 / (settings.hold_ms * 1e-3 * fs)) if settings.hold_ms > 0 else 0.0
-        )
+        self._open_decay = decay(settings.open_hold_ms)
+        self._hold_decay = decay(settings.hold_ms)
         self._a_guard_up = rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0
         self._a_guard_down = rate(1e3 * settings.guard_down_s)
         self.state = self.initial_state()

@@ -94,7 +94,7 @@ class NoiseModel:
         self.provenance = dict(provenance or {})
         # Arrays other methods fitted at calibration (core.methods), saved beside the table.
         self.extras = {str(k): np.asarray(v) for k, v in (extras or {}).items()}
-        where = self.provenance.get("path", "noise model")
+        where = self.where
         self.grid = tuple(np.asarray(g, dtype=np.float64) for g in grid)
         self.joint_names = tuple(str(n) for n in joint_names)
         self.channels = tuple(str(c) for c in channels)
@@ -295,6 +295,11 @@ class NoiseModel:
                 f"({'; '.join(problems)})"
             )
 
+    @property
+    def where(self) -> str:
+        """The model's file (or "noise model"), for error messages."""
+        return self.provenance.get("path", "noise model")
+
     # --- shape facts -------------------------------------------------------
     @property
     def grid_shape(self) -> tuple[int, ...]:
@@ -321,18 +326,14 @@ class NoiseModel:
         missing = [n for n in names if n not in self.channels]
         if missing:
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: no channel(s) {missing}; "
-                f"the model has {list(self.channels)}"
+                f"{self.where}: no channel(s) {missing}; the model has {list(self.channels)}"
             )
         return [self.channels.index(n) for n in names]
 
     def _flat(self, cells: np.ndarray) -> np.ndarray:
         """Flat cell ids (row-major over the grid; int64 holds 21^8 and more)."""
         cells = np.asarray(cells, dtype=np.int64).reshape(-1, self.n_joints)
-        ids = np.zeros(len(cells), dtype=np.int64)
-        for j, n in enumerate(self.grid_shape):
-            ids = ids * n + cells[:, j]
-        return ids
+        return np.ravel_multi_index(tuple(cells.T), self.grid_shape)
 
     @property
     def dense_ok(self) -> bool:
@@ -362,19 +363,16 @@ class NoiseModel:
     def _rows_of(self, cells: np.ndarray) -> np.ndarray:
         """Row of each cell (B, J) in the measured table, -1 where not measured."""
         ids = self._flat(cells)
-        pos = np.minimum(np.searchsorted(self._cell_ids, ids), max(len(self._cell_ids) - 1, 0))
-        found = (
-            (len(self._cell_ids) > 0) & (self._cell_ids[pos] == ids)
-            if len(self._cell_ids)
-            else np.zeros(len(ids), dtype=bool)
-        )
-        return np.where(found, pos, -1)
+        if not len(self._cell_ids):
+            return np.full(len(ids), -1, dtype=np.intp)
+        pos = np.minimum(np.searchsorted(self._cell_ids, ids), len(self._cell_ids) - 1)
+        return np.where(self._cell_ids[pos] == ids, pos, -1)
 
     def _dense(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         if not self.dense_ok:
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: grid of {self.n_cells:.3g} "
-                f"cells is too large for a dense view; use cells_measured()"
+                f"{self.where}: grid of {self.n_cells:.3g} cells is too large for a dense view; "
+                f"use cells_measured()"
             )
         out = np.full(self.grid_shape + values.shape[1:], fill, dtype=values.dtype)
         out[tuple(self.cells.T)] = values
@@ -448,8 +446,7 @@ class NoiseModel:
         means, stds, have = self._axis_tables()
         if not all(h.any() for h in have):
             raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: superposition needs measured "
-                f"single-joint cells on every axis"
+                f"{self.where}: superposition needs measured single-joint cells on every axis"
             )
         out_mu, out_sd = [], []
         for mu, sd, ok in zip(means, stds, have):
@@ -481,9 +478,7 @@ class NoiseModel:
     def _nearest_measured(self, cells: np.ndarray) -> np.ndarray:
         """Row of the measured cell nearest (grid-index distance) to each cell (B, J)."""
         if not len(self.cells):
-            raise ModelFileError(
-                f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
-            )
+            raise ModelFileError(f"{self.where}: no measured cell at all")
         rows = np.empty(len(cells), dtype=np.int64)
         for start in range(0, len(cells), 4096):
             part = cells[start : start + 4096]
@@ -524,13 +519,9 @@ class NoiseModel:
         table = self._cache.get(key)
         if table is None:
             if not self.dense_ok:
-                raise ModelFileError(
-                    f"{self.provenance.get('path', 'noise model')}: grid too large for a table"
-                )
+                raise ModelFileError(f"{self.where}: grid too large for a table")
             if not len(self.cells):
-                raise ModelFileError(
-                    f"{self.provenance.get('path', 'noise model')}: no measured cell at all"
-                )
+                raise ModelFileError(f"{self.where}: no measured cell at all")
             cells = np.indices(self.grid_shape).reshape(self.n_joints, -1).T
             values, measured = self._cell_estimates(cells, include_std)
             table = values.reshape(self.grid_shape + values.shape[1:])
@@ -554,12 +545,12 @@ class NoiseModel:
             tuple(channel_index) if isinstance(channel_index, list) else str(channel_index),
             include_std,
         )
-        table = self._cache.get(key)
-        if table is None:
-            table = self._cache[key] = np.ascontiguousarray(
+        return self._cached(
+            key,
+            lambda: np.ascontiguousarray(
                 self.estimate_table(include_std=include_std)[..., channel_index, :]
-            )
-        return table
+            ),
+        )
 
     def _positions_of(self, velocity: np.ndarray) -> tuple[list, list, np.ndarray]:
         """Lower grid index and fraction per joint, and whether each block lies outside."""
@@ -638,9 +629,7 @@ class NoiseModel:
         operations in the same order on Python floats and array views, so the result is
         bit-identical to the vectorised path. Returns (noise (1, C, F), outside (1,),
         whether the nearest grid cell was measured)."""
-        measured_grid = self._cache.get("measured_grid")
-        if measured_grid is None:
-            measured_grid = self._cache["measured_grid"] = self.counts > 0
+        measured_grid = self._cached("measured_grid", lambda: self.counts > 0)
         lower, frac = [], []
         outside = False
         for j, (low, high) in enumerate(self._bounds):
@@ -685,9 +674,8 @@ class NoiseModel:
         one-line ConfigError for a model that carries none."""
         if self.profile is None:
             raise ConfigError(
-                f"{self.provenance.get('path', 'noise model')}: the model carries no robot "
-                f"profile (topics, Imu field); calibrate it again with `egovib calibrate --robot "
-                f"PROFILE`"
+                f"{self.where}: the model carries no robot profile (topics, Imu field); "
+                f"calibrate it again with `egovib calibrate --robot PROFILE`"
             )
         return self.profile
 

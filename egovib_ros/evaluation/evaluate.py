@@ -98,10 +98,9 @@ def evaluate_pieces(
     names = streaming.method_names(
         methods, calibration=open_calibration is not None, model_short=model_short, model=model
     )
-    first = streaming.SummaryPass(model, source=source, max_bad_fraction=max_bad_fraction)
-    for piece in open_run():
-        first.push(piece)
-    summary = first.finish()
+    summary = _through(
+        streaming.SummaryPass(model, source=source, max_bad_fraction=max_bad_fraction), open_run()
+    )
     like = summary.recorded_like
     extra = [like] if like is not None and like not in names else []
     gate, calibration_bad = None, None
@@ -114,9 +113,7 @@ def evaluate_pieces(
             source=calibration_source,
             max_bad_fraction=max_bad_fraction,
         )
-        for piece in open_calibration():
-            calibration.push(piece)
-        result = calibration.finish()
+        result = _through(calibration, open_calibration())
         thresholds, gate, calibration_bad = result.thresholds, result.gate, result.bad
     else:
         own = streaming.EvaluationPass(
@@ -128,9 +125,7 @@ def evaluate_pieces(
             extra=extra,
             source=source,
         )
-        for piece in open_run():
-            own.push(piece)
-        own.finish()
+        _through(own, open_run())
         thresholds = own.noise_thresholds()
     if like is not None:
         thresholds["bag_denoised"] = thresholds[like]
@@ -144,9 +139,7 @@ def evaluate_pieces(
         keep_signals=keep_signals or pr_curves,
         source=source,
     )
-    for piece in open_run():
-        run.push(piece)
-    run.finish()
+    _through(run, open_run())
     return _report(
         run,
         model,
@@ -156,6 +149,13 @@ def evaluate_pieces(
         keep_signals=keep_signals,
         pr_curves=pr_curves,
     )
+
+
+def _through(stage, pieces: Iterable):
+    """Push every slice through a pass; its finish()."""
+    for piece in pieces:
+        stage.push(piece)
+    return stage.finish()
 
 
 def _detector_scores(run: streaming.EvaluationPass, key: str, minutes: float) -> dict:
@@ -265,13 +265,10 @@ def _report(
                 return env if excluded is None else np.where(excluded, 0.0, env)
 
             report["pr_curves"] = {
-                "raw_bandpassed": detection.pr_curve(
-                    env_kept(signals["raw"]), seg.onsets, sample_rate_hz=fs
-                ),
-                **{
-                    name: detection.pr_curve(env_kept(signals[name]), seg.onsets, sample_rate_hz=fs)
-                    for name in names
-                },
+                ("raw_bandpassed" if key == "raw" else key): detection.pr_curve(
+                    env_kept(signals[key]), seg.onsets, sample_rate_hz=fs
+                )
+                for key in ["raw", *names]
             }
         if keep_signals:
             report["signals"] = signals

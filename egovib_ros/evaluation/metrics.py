@@ -136,10 +136,8 @@ def segment_contacts(
     runs = _merge_runs(_runs(active), max(1, int(round(min_gap_s * sample_rate_hz))))
     before = int(round(margin_before_s * sample_rate_hz))
     after = int(round(margin_after_s * sample_rate_hz))
-    windows = (
-        np.stack([np.clip(runs[:, 0] - before, 0, n), np.clip(runs[:, 1] + after, 0, n)], axis=1)
-        if runs.size
-        else np.zeros((0, 2), int)
+    windows = np.stack(
+        [np.clip(runs[:, 0] - before, 0, n), np.clip(runs[:, 1] + after, 0, n)], axis=1
     )
     contact_mask = np.zeros(n, bool)
     for start, stop in windows:
@@ -152,7 +150,7 @@ def segment_contacts(
     no_contact[:edge] = False
     no_contact[n - edge :] = False
     return ContactSegmentation(
-        onsets=runs[:, 0].astype(np.int64) if runs.size else np.zeros(0, np.int64),
+        onsets=runs[:, 0].astype(np.int64),
         tap_windows=windows.astype(np.int64),
         contact_mask=contact_mask,
         active_mask=active_mask,
@@ -384,11 +382,7 @@ def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSe
         return seg
     cumulative = np.concatenate(([0], np.cumsum(excluded)))
     windows = seg.tap_windows
-    keep = (
-        (cumulative[windows[:, 1]] - cumulative[windows[:, 0]]) == 0
-        if windows.size
-        else np.zeros(0, bool)
-    )
+    keep = cumulative[windows[:, 1]] - cumulative[windows[:, 0]] == 0
     active = np.zeros_like(seg.active_mask)
     for start, stop in windows[keep]:
         active[start:stop] = seg.active_mask[start:stop]

@@ -274,6 +274,23 @@ class SpeedEnvelope:
         return mask
 
 
+def _screen_rest(screen: Screen, source: str):
+    """screen.finish(); a recording without any valid sample is the recording's error."""
+    try:
+        return screen.finish()
+    except ValueError as exc:
+        raise bag_error(source, exc) from None
+
+
+def _refuse_bad(source: str, bad: int, n: int, max_fraction: float, sensor_range: float):
+    """BagError if more than `max_fraction` of the `n` samples are bad."""
+    if n and bad / n > max_fraction:
+        raise BagError(
+            f"{source}: {bad} of {n} samples ({bad / n:.1%}) are non-finite or beyond the "
+            f"sensor range (+/-{sensor_range:g}); more than {max_fraction:.0%} bad: no metrics"
+        )
+
+
 def _joints_nonfinite(piece) -> int:
     return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
 
@@ -367,10 +384,7 @@ class SummaryPass:
         self.union_bad += int(np.count_nonzero(flags))
 
     def finish(self) -> RunSummary:
-        try:
-            self._rows(*self.screen.finish())
-        except ValueError as exc:
-            raise bag_error(self.source, exc) from None
+        self._rows(*_screen_rest(self.screen, self.source))
         self._count(final=True)
         n = self.n
         counts = {
@@ -385,12 +399,7 @@ class SummaryPass:
             "max_bad_fraction": self.max_bad_fraction,
             "sensor_range": self.sensor_range,
         }
-        if n and self.union_bad / n > self.max_bad_fraction:
-            raise BagError(
-                f"{self.source}: {self.union_bad} of {n} samples ({self.union_bad / n:.1%}) are "
-                f"non-finite or beyond the sensor range (+/-{self.sensor_range:g}); more than "
-                f"{self.max_bad_fraction:.0%} bad: no metrics"
-            )
+        _refuse_bad(self.source, self.union_bad, n, self.max_bad_fraction, self.sensor_range)
         if n and self.union_bad == n:
             raise BagError(f"{self.source}: no valid sample")
         recorded = self.recorded.rows > 0
@@ -554,17 +563,10 @@ class CalibrationPass:
             self.mask_base = low
 
     def finish(self) -> CalibrationResult:
-        try:
-            self._rows(*self.screen.finish())
-        except ValueError as exc:
-            raise bag_error(self.source, exc) from None
+        self._rows(*_screen_rest(self.screen, self.source))
         bad, n = self.exclusion.bad, self.n
-        if n and bad / n > self.max_bad_fraction:
-            raise BagError(
-                f"{self.source}: {bad} of {n} samples ({bad / n:.1%}) are non-finite or beyond "
-                f"the sensor range (+/-{self.model.profile.sensor_range:g}); more than "
-                f"{self.max_bad_fraction:.0%} bad: no metrics"
-            )
+        sensor_range = self.model.profile.sensor_range
+        _refuse_bad(self.source, bad, n, self.max_bad_fraction, sensor_range)
         if self.needs_gate and self.gate is None:
             if not self.clip_n:
                 raise ValueError("noisereduce needs a no-contact noise clip (calibration data)")
@@ -676,7 +678,6 @@ class EvaluationPass:
                     "pr2",
                     detection.EventDetector(level, sample_rate_hz=fs),
                 )
-        self.thresholds = thresholds
         self.matchers = {key: detection.EventMatcher(sample_rate_hz=fs) for key in self.detectors}
         self.unfiltered = {key: np.zeros(0, np.int64) for key in self.detectors}
         # alignment and the bag's own output against the batch method
@@ -700,10 +701,7 @@ class EvaluationPass:
         self._advance(final=False)
 
     def finish(self) -> None:
-        try:
-            self._rows(*self.screen.finish())
-        except ValueError as exc:
-            raise bag_error(self.source, exc) from None
+        self._rows(*_screen_rest(self.screen, self.source))
         for name, stream in self.streams.items():
             self.fifos[name].put(stream.finish())
         self._advance(final=True)
@@ -732,14 +730,10 @@ class EvaluationPass:
                 values = self.recorded_band.process(values[None, :])[0]
             self.fifos["bag_denoised"].put(values)
             self.recorded_bad.put(flags)
-        stop = self.screen_bad.end
-        if self.recorded is not None:
-            stop = min(stop, self.recorded_bad.end)
-        if stop > self.exclusion.known:
-            flags = self.screen_bad.take(stop)
-            if self.recorded is not None:
-                flags = flags | self.recorded_bad.take(stop)
-            self.exclusion.push(flags)
+        # a sample is bad once it is bad in any stream (the bag's denoised topic may lag)
+        fifos = [self.screen_bad] + ([self.recorded_bad] if self.recorded is not None else [])
+        stop = min(fifo.end for fifo in fifos)
+        self.exclusion.push(np.logical_or.reduce([fifo.take(stop) for fifo in fifos]))
         if final:
             self.exclusion.finish()
             self.segmenter.finish()
@@ -819,20 +813,14 @@ class EvaluationPass:
         extended = {key: np.concatenate([self.seg_tail[key], data[key]]) for key in keys}
         starts = np.arange(self.seg_next, q - length + 1, hop)
         if starts.size:
-            offsets = starts - ext_start
-            reference = extended["reference"]
-            ref_frames = np.lib.stride_tricks.sliding_window_view(reference, length)[offsets]
-            signal_energy = np.sum(ref_frames**2, axis=1)
-            snr = np.empty((starts.size, len(self.metric_keys)))
-            for i, key in enumerate(self.metric_keys):
-                error = extended[key] - reference
-                frames = np.lib.stride_tricks.sliding_window_view(error, length)[offsets]
-                error_energy = np.sum(frames**2, axis=1)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    value = 10.0 * np.log10(signal_energy / error_energy)
-                value = np.where(error_energy == 0, metrics.SEGSNR_CLAMP_DB[1], value)
-                value = np.where(signal_energy == 0, metrics.SEGSNR_CLAMP_DB[0], value)
-                snr[:, i] = np.clip(value, *metrics.SEGSNR_CLAMP_DB)
+            # the tail starts at seg_next (= starts[0]): the batch function frames the same
+            snr = np.stack(
+                [
+                    metrics.segmental_snr(extended["reference"], extended[key])
+                    for key in self.metric_keys
+                ],
+                axis=1,
+            )
             self.pending_segments.append(_Pending(starts, snr))
             self.seg_next = int(starts[-1]) + hop
         keep_from = max(self.seg_next, ext_start) - ext_start
@@ -944,13 +932,13 @@ class EvaluationPass:
     def signal_metrics(self, key: str) -> dict:
         """metrics.signal_metrics of signal `key` against the raw signal."""
         i = self.metric_keys.index(key)
-        noise = (
-            self.noise_sum / self.noise_count
-            if self.noise_count
-            else np.full(len(self.top), np.nan)
-        )
-        peaks = self.peak_sum / self.kept if self.kept else np.full(len(self.top), np.nan)
-        segsnr = self.seg_sum / self.seg_count if self.seg_count else np.full(len(self.top), np.nan)
+
+        def mean(total: np.ndarray, count: int) -> np.ndarray:
+            return total / count if count else np.full(len(total), np.nan)
+
+        noise = mean(self.noise_sum, self.noise_count)
+        peaks = mean(self.peak_sum, self.kept)
+        segsnr = mean(self.seg_sum, self.seg_count)
         return metrics.signal_figures(
             noise=(float(noise[0]), float(noise[i])),
             spike=[self.top[k].quantile(metrics.SPIKE_QUANTILE) for k in (0, i)],
