@@ -15,7 +15,7 @@ import numpy as np
 from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag import BagWriter, write_recording
-from egovib_ros.bag.codec import encode_imu_batch, joint_state_message, typestore
+from egovib_ros.bag.codec import encode_imu_batch, rosbags_joint_state, typestore
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 
@@ -71,7 +71,7 @@ def write_robot_bag(
             order = rng.permutation(len(names))
             pos = np.concatenate([position[k], np.zeros(len(extra_joints))])[order]
             vel = np.concatenate([data["velocity"][k], np.ones(len(extra_joints))])[order]
-            msg = joint_state_message(stamp, [names[i] for i in order], pos, vel)
+            msg = rosbags_joint_state(stamp, [names[i] for i in order], pos, vel)
             bag.write(
                 p.joints_topic, stamp, bytes(ts.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
             )

@@ -27,7 +27,7 @@ def test_imu_field_roundtrip_matches_rosbags(field, frame_id):
     ts = codec.typestore()
     for stamp, xyz, raw in zip(stamps, values, raws):
         assert raw == bytes(
-            ts.serialize_cdr(codec.imu_message(int(stamp), xyz, frame_id, field), codec.IMU_TYPE)
+            ts.serialize_cdr(codec.rosbags_imu(int(stamp), xyz, frame_id, field), codec.IMU_TYPE)
         )
     got_stamps, got = codec.decode_imu(raws, field)
     assert np.array_equal(got_stamps, stamps) and np.array_equal(got, values)
@@ -38,13 +38,13 @@ def test_imu_field_roundtrip_matches_rosbags(field, frame_id):
 @pytest.mark.parametrize("field", codec.IMU_FIELDS)
 def test_replace_field_keeps_every_other_byte(field):
     ts = codec.typestore()
-    msg = codec.imu_message(42, [1.0, 2.0, 3.0], "imu", "linear_acceleration")
+    msg = codec.rosbags_imu(42, [1.0, 2.0, 3.0], "imu", "linear_acceleration")
     msg.angular_velocity.x, msg.orientation.w, msg.orientation_covariance[4] = 5.0, 0.5, 0.25
     raw = bytes(ts.serialize_cdr(msg, codec.IMU_TYPE))
     fast = codec.replace_imu_field([raw, raw], np.array([[7.0, 8.0, 9.0], [0.0, 0.0, 1.0]]), field)
     # the per-message path (mixed lengths) gives the same bytes
     odd = bytes(
-        ts.serialize_cdr(codec.imu_message(1, [0, 0, 0], "a_longer_frame_name"), codec.IMU_TYPE)
+        ts.serialize_cdr(codec.rosbags_imu(1, [0, 0, 0], "a_longer_frame_name"), codec.IMU_TYPE)
     )
     slow = codec.replace_imu_field([raw, odd], np.array([[7.0, 8.0, 9.0], [0.0, 0.0, 1.0]]), field)
     assert fast[0] == slow[0]
@@ -70,7 +70,7 @@ def test_imu_codec_matches_rosbags_serialisation():
     accel = np.array([[0.0, -0.0, 1.5], [1e-9, 78.5, -78.5], [3.25, 2.0, 1.0], [-1.0, 0.5, 9.81]])
     fast = encode_imu_batch(stamps, accel)
     for stamp, xyz, raw in zip(stamps, accel, fast):
-        reference = bytes(ts.serialize_cdr(codec.imu_message(int(stamp), xyz), codec.IMU_TYPE))
+        reference = bytes(ts.serialize_cdr(codec.rosbags_imu(int(stamp), xyz), codec.IMU_TYPE))
         assert raw == reference
         assert raw[:4] == b"\x00\x01\x00\x00"
         msg = ts.deserialize_cdr(raw, codec.IMU_TYPE)
@@ -91,7 +91,7 @@ def test_imu_codec_other_frame_lengths(frame_id):
     accel = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
     fast = encode_imu_batch(stamps, accel, frame_id=frame_id)
     assert fast[1] == bytes(
-        ts.serialize_cdr(codec.imu_message(int(stamps[1]), accel[1], frame_id), codec.IMU_TYPE)
+        ts.serialize_cdr(codec.rosbags_imu(int(stamps[1]), accel[1], frame_id), codec.IMU_TYPE)
     )
     np.testing.assert_array_equal(decode_imu(fast)[1], accel)
 
@@ -113,7 +113,7 @@ def test_joint_state_codec_matches_rosbags():
     for i, raw in enumerate(fast):
         ref = bytes(
             ts.serialize_cdr(
-                codec.joint_state_message(int(stamps[i]), JOINT_NAMES, pos[i], vel[i]),
+                codec.rosbags_joint_state(int(stamps[i]), JOINT_NAMES, pos[i], vel[i]),
                 codec.JOINT_STATE_TYPE,
             )
         )
@@ -130,7 +130,7 @@ def test_joint_state_decode_reorders_by_name():
     ts = codec.typestore()
     raw = bytes(
         ts.serialize_cdr(
-            codec.joint_state_message(7, JOINT_NAMES[::-1], [1.0, 2.0], [3.0, 4.0]),
+            codec.rosbags_joint_state(7, JOINT_NAMES[::-1], [1.0, 2.0], [3.0, 4.0]),
             codec.JOINT_STATE_TYPE,
         )
     )
@@ -145,7 +145,7 @@ def test_joint_state_decode_picks_joints_from_a_full_robot():
     raws = [
         bytes(
             ts.serialize_cdr(
-                codec.joint_state_message(
+                codec.rosbags_joint_state(
                     k, names, [0.1, 0.02 + k, 0.3, 1.0 + k], [1.0, 0.01 * k, 3.0, 2.0 * k]
                 ),
                 codec.JOINT_STATE_TYPE,
@@ -170,7 +170,7 @@ def test_empty_joint_state_batch_encodes_to_nothing():
 
 
 def _joint_state(stamp, names, position, velocity, frame_id=""):
-    msg = codec.joint_state_message(stamp, names, position, velocity, frame_id)
+    msg = codec.rosbags_joint_state(stamp, names, position, velocity, frame_id)
     return bytes(codec.typestore().serialize_cdr(msg, codec.JOINT_STATE_TYPE))
 
 
@@ -238,10 +238,10 @@ def test_messages_serialised_by_rclpy_decode_with_their_stray_trailing_bytes():
 def test_a_joint_named_twice_decodes_to_its_first_values_in_any_batch():
     """A JointState naming a joint twice (a broken driver) gives the first occurrence's
     values whether its batch takes the packed path or the per-message one."""
-    from egovib_ros.bag.codec import JOINT_STATE_TYPE, joint_state_message, typestore
+    from egovib_ros.bag.codec import JOINT_STATE_TYPE, rosbags_joint_state, typestore
 
     def cdr(names, position, velocity) -> bytes:
-        msg = joint_state_message(
+        msg = rosbags_joint_state(
             10**18, names, np.array(position, float), np.array(velocity, float)
         )
         return bytes(typestore().serialize_cdr(msg, JOINT_STATE_TYPE))

@@ -107,7 +107,7 @@ def test_missing_joint_is_bag_error(tmp_path):
         bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
         bag.write(BAG_TOPICS["raw"], 1, encode_imu_batch([1], [[0.0, 0.0, 1.0]])[0])
         raw = ts.serialize_cdr(
-            codec.joint_state_message(1, [JOINT_NAMES[0]], [0.0], [0.0]), codec.JOINT_STATE_TYPE
+            codec.rosbags_joint_state(1, [JOINT_NAMES[0]], [0.0], [0.0]), codec.JOINT_STATE_TYPE
         )
         bag.write(BAG_TOPICS["joint_states"], 1, bytes(raw))
     with pytest.raises(BagError, match=JOINT_NAMES[1]):
@@ -167,7 +167,7 @@ def _write_robot_bag(
         )
         for k in range(m):
             order = rng.permutation(len(names)) if shuffle else np.arange(len(names))
-            msg = codec.joint_state_message(
+            msg = codec.rosbags_joint_state(
                 int(js_stamps[k]), [names[i] for i in order], pos[k, order], vel[k, order]
             )
             bag.write(
@@ -218,10 +218,10 @@ def test_partial_joint_states_are_merged_per_joint(tmp_path):
         bag.add_topic("/arm/joint_states", codec.JOINT_STATE_TYPE)
         bag.write_batch("/imu/data_raw", stamps, encode_imu_batch(stamps, np.zeros((3000, 3))))
         for k in range(10):
-            arm = codec.joint_state_message(
+            arm = codec.rosbags_joint_state(
                 k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k]
             )
-            tool = codec.joint_state_message(
+            tool = codec.rosbags_joint_state(
                 k * 2_000_000 + 1_000_000, ["spindle"], [7.0], [20.0 + k]
             )
             for stamp, msg in ((k * 2_000_000, arm), (k * 2_000_000 + 1_000_000, tool)):

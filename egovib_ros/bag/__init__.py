@@ -34,9 +34,9 @@ from egovib_ros.bag.codec import (
     encode_commands,
     encode_imu_batch,
     encode_joint_state_batch,
-    imu_message,
-    joint_state_message,
     replace_imu_field,
+    rosbags_imu,
+    rosbags_joint_state,
     typestore,
 )
 from egovib_ros.bag.reader import BagReader, ReadBatch, TopicInfo, bag_topics
@@ -63,9 +63,9 @@ __all__ = [
     "encode_commands",
     "encode_imu_batch",
     "encode_joint_state_batch",
-    "imu_message",
-    "joint_state_message",
     "replace_imu_field",
+    "rosbags_imu",
+    "rosbags_joint_state",
     "typestore",
     "BagReader",
     "ReadBatch",

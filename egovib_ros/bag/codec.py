@@ -236,7 +236,7 @@ def _imu_dtype(frame_len: int, field: str = "linear_acceleration") -> np.dtype:
     )
 
 
-def imu_message(
+def rosbags_imu(
     stamp_ns: int,
     xyz: Sequence[float],
     frame_id: str = "",
@@ -272,7 +272,7 @@ def imu_message(
 @lru_cache(maxsize=8)
 def _imu_template(frame_id: str, field: str = "linear_acceleration") -> bytes:
     return bytes(
-        typestore().serialize_cdr(imu_message(0, (0.0, 0.0, 0.0), frame_id, field), IMU_TYPE)
+        typestore().serialize_cdr(rosbags_imu(0, (0.0, 0.0, 0.0), frame_id, field), IMU_TYPE)
     )
 
 
@@ -283,7 +283,7 @@ def encode_imu_batch(
     field: str = "linear_acceleration",
 ) -> list[bytes]:
     """Serialise one Imu per sample, `values` in `field`, to CDR bytes (identical to
-    rclpy/rosbags serialisation of `imu_message`)."""
+    rclpy/rosbags serialisation of `rosbags_imu`)."""
     values = np.asarray(values, dtype=np.float64).reshape(-1, 3)
     n = len(values)
     if len(stamps_ns) != n:
@@ -384,7 +384,7 @@ def replace_imu_field(messages: Messages, values: np.ndarray, field: str = "line
 # --------------------------------------------------------------------------
 # JointState
 # --------------------------------------------------------------------------
-def joint_state_message(
+def rosbags_joint_state(
     stamp_ns: int, names: Sequence[str], position, velocity, frame_id: str = ""
 ):
     """A rosbags JointState object (no effort)."""
@@ -446,7 +446,7 @@ def encode_joint_state_batch(
     n_velocity = n_joints if velocity is not None else 0
     template = bytes(
         typestore().serialize_cdr(
-            joint_state_message(0, names, np.zeros(n_joints), np.zeros(n_velocity)),
+            rosbags_joint_state(0, names, np.zeros(n_joints), np.zeros(n_velocity)),
             JOINT_STATE_TYPE,
         )
     )
