@@ -38,7 +38,8 @@ VELOCITY_SOURCES = ("auto", "measured", "from_position")
 #: sample times, or when a driver received each message (core.receipt).
 STAMP_KINDS = ("auto", "sample", "receipt")
 MAX_JOINTS = 8
-# The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`).
+# The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`
+# and `sensor.stamps`).
 _SECTION_KEYS = {
     "sensor": ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
     "joints": ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),

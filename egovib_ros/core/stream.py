@@ -631,8 +631,9 @@ class _Framer:
 
     @property
     def rate_checked(self) -> bool:
-        """The stream's rate has been measured on its first samples and found right (a
-        wrong rate raises StreamError on every push instead)."""
+        """The stream's rate has been measured on its first samples (2 blocks' worth for
+        BlockFramer, 128 for SampleFramer) and found right (a wrong rate raises StreamError on
+        every push instead)."""
         return self._rate_checked and not self._rate_error
 
     @property

@@ -478,7 +478,7 @@ class CalibrationPass:
         )
         self.speeds = SpeedEnvelope(np.asarray(speed_limit, float))
         self.within_fifo = _Fifo(bool)
-        self.edge = int(metrics.EDGE_S * fs)  # evaluate._edge_mask: min(this, n // 4)
+        self.edge = int(metrics.EDGE_S * fs)  # each end of the data left out: min(this, n // 4)
         self.mask_base = 0  # masks kept from this sample on
         self.mask_end = 0  # masks known up to here
         self.masks = (np.zeros(0, bool), np.zeros(0, bool))  # (base, within) from mask_base
@@ -813,10 +813,10 @@ class EvaluationPass:
         extended = {key: np.concatenate([self.seg_tail[key], data[key]]) for key in keys}
         starts = np.arange(self.seg_next, q - length + 1, hop)
         if starts.size:
-            # the tail starts at seg_next (= starts[0]): the batch function frames the same
+            first = starts[0] - ext_start  # the batch function frames from there on
             snr = np.stack(
                 [
-                    metrics.segmental_snr(extended["reference"], extended[key])
+                    metrics.segmental_snr(extended["reference"][first:], extended[key][first:])
                     for key in self.metric_keys
                 ],
                 axis=1,

@@ -867,7 +867,7 @@ def table_from_blocks(
         joints=joints,
         freq_index=freq_index,
     )
-    attach_motion(table, knot_refine=knot_refine)  # the series is smoothed, reversals found
+    attach_motion(table, knot_refine=knot_refine)  # baseline cells, trajectory, reversals
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     table.bad_input = bad_input
     return table

@@ -778,10 +778,8 @@ def run(args: argparse.Namespace) -> int:
         inputs=[args.markdown],
         ours=json_holding(schema=BENCH_SCHEMA),
     )
-    json_path = Path(args.json)
-    md_path = Path(args.markdown) if args.markdown else json_path.with_suffix(".md")
     prepare_output(
-        md_path,
+        args.markdown or Path(args.json).with_suffix(".md"),  # as given (not through Path)
         force=args.force,
         kind="file",
         option="--markdown",
@@ -796,6 +794,8 @@ def run(args: argparse.Namespace) -> int:
             workdir=args.workdir,
             progress=lambda name: (bar.set_postfix_str(name), bar.update()),
         )
+    json_path = Path(args.json)
+    md_path = Path(args.markdown) if args.markdown else json_path.with_suffix(".md")
     with atomic_output(json_path) as tmp:
         tmp.write_text(json.dumps(results, indent=2) + "\n")
     with atomic_output(md_path) as tmp:
