@@ -12,6 +12,7 @@ kept), equal to `egovib denoise`; the model-coverage WARN's window and hysteresi
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import time
@@ -285,10 +286,20 @@ def test_joint_states_too_seldom_are_named_as_the_cause(nodes, ros_client, feede
     assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
 
     def warned() -> bool:
-        return reports(ros_client, "denoiser", DiagnosticStatus.WARN, "every 100 ms")
+        # the rate as received in the report's period: 100 ms, or more on a loaded machine
+        # whose feeder publishes late (a run beside stress-ng saw 118 ms, then only that)
+        return reports(
+            ros_client,
+            "denoiser",
+            DiagnosticStatus.WARN,
+            "joint states come every",
+            "held at most 50 ms",
+        )
 
     assert stream.run_until(warned, at_most_s=4.0), shown(ros_client)
-    assert "without joint state" in ros_client.statuses["denoiser"].message
+    message = ros_client.statuses["denoiser"].message
+    assert "without joint state" in message
+    assert int(re.search(r"come every (\d+) ms", message).group(1)) >= 95, message
     assert nodes.stop(den) == 0, nodes.log(den)
 
 
