@@ -298,7 +298,8 @@ def cross_fit(
         if "timing" in effects and timing_table is None:
             fits["timing"] = fits["refit"]
         elif "timing" in effects:
-            fits["timing"] = _fit(timing_table, split.train, (), prior)[2]["refit"]
+            _, _, lagged = _fit(timing_table, split.train, (), prior)  # the refit at the lag
+            fits["timing"] = lagged["refit"]
         if terms is not None:
             fits.update(terms(base_table, split.train, base, scales))
         for name, fm in fits.items():

@@ -303,9 +303,9 @@ def describe_shape(shape: dict) -> str:
     for name, c in shape.items():
         x, g = (np.asarray(c.get(key, ()), float) for key in ("x", "gain_db"))
         if name.startswith("position:"):
-            x, top, span = _peak(x, g)
+            at, top, span = _peak(x, g)
             parts.append(
-                f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {x:.3g} {c['unit']}"
+                f"{name[9:]}: {span:.1f} dB peak-to-trough, loudest at {at:.3g} {c['unit']}"
             )
         elif name.startswith("coupling:"):
             i, j = np.unravel_index(int(np.argmax(g)), g.shape)
@@ -327,9 +327,9 @@ def describe_shape(shape: dict) -> str:
                 "|acceleration|"
             )
         elif name.startswith("reversal:"):
-            x, top, span = _peak(x, g)
+            at, top, span = _peak(x, g)
             parts.append(
-                f"{name[9:]} reversals: {top:+.1f} dB at {1000 * x:+.0f} ms from the reversal"
+                f"{name[9:]} reversals: {top:+.1f} dB at {1000 * at:+.0f} ms from the reversal"
             )
         elif name.startswith("drift:"):
             change, reach = drift_reach(x, g)
