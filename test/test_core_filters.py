@@ -98,33 +98,51 @@ def test_blocking_validation_messages():
 
 
 @pytest.mark.parametrize(
-    "fs, band", [(3000.0, (150.0, 750.0)), (1000.0, (80.0, 450.0)), (2000.0, (100.0, 800.0))]
+    "fs, band", [(3000.0, (150.0, 750.0)), (1000.0, (80.0, 450.0)), (250.0, (40.0, 110.0))]
 )
-def test_band_inverse_undoes_the_band_pass_inside_the_band_up_to_its_delay(fs, band):
-    taps, delay, error_db = filters.band_inverse(sample_rate_hz=fs, band_hz=band, order=4)
-    assert 1 <= delay <= filters.INVERSE_MAX_DELAY_S * fs and len(taps) == 2 * delay + 1
+def test_the_dropin_split_passes_gravity_and_stops_the_band_with_no_phase(fs, band):
     freqs = np.linspace(0.0, fs / 2, 4000)
-    h = signal.sosfreqz(filters.design_bandpass(sample_rate_hz=fs, band_hz=band, order=4),
-                        worN=freqs, fs=fs)[1]  # fmt: skip
-    f = signal.freqz(taps, worN=freqs, fs=fs)[1]
-    inside = np.abs(h) >= 0.5
-    error = np.abs(h * f - np.exp(-2j * np.pi * freqs * delay / fs))[inside]
-    # the band's mean: these rates and bands reach the target, and say so
-    assert 10 * np.log10(np.mean(error**2)) < filters.INVERSE_ERROR_DB + 1.0
-    assert error_db <= filters.INVERSE_ERROR_DB
-    # below the band it passes little (what it maps there lands where gravity lives)
-    below = freqs < filters.INVERSE_STOP_FRACTION * band[0]
-    assert np.abs(f[below]).max() < 0.7 and np.abs(f[freqs < 5.0]).max() < 0.15
-    assert np.abs(f).max() < 5.0
+    for delay in (int(0.004 * fs), int(0.010 * fs)):
+        taps = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=delay)
+        assert len(taps) == 2 * delay + 1 and np.allclose(taps, taps[::-1])  # linear phase
+        response = np.abs(signal.freqz(taps, worN=freqs, fs=fs)[1])
+        assert taps.sum() == pytest.approx(1.0, abs=1e-12)  # gravity passes as it is
+        assert response.max() < 1.1  # nothing amplified
+    # a longer split stops the band better: 10 ms keep at most 3 % of it (PR2, flight)
+    if fs >= 1000:
+        assert response[freqs >= band[0]].max() < 0.03
+    assert filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=0).tolist() == [1.0]
 
 
-def test_band_inverse_says_when_it_misses_its_fit_and_keeps_to_its_longest_delay():
-    # a 250 Hz gyro with a band near Nyquist: no 20 ms FIR undoes it to -30 dB
-    taps, delay, error_db = filters.band_inverse(
-        sample_rate_hz=250.0, band_hz=(100.0, 124.0), order=4
-    )
-    assert delay == int(filters.INVERSE_MAX_DELAY_S * 250.0) and error_db > -30.0
-    assert np.all(np.isfinite(taps))
-    # a band far narrower than the design grid still has points to fit
-    taps, _, _ = filters.band_inverse(sample_rate_hz=3000.0, band_hz=(100.0, 100.1), order=2)
-    assert np.all(np.isfinite(taps)) and np.abs(taps).sum() > 0
+def test_the_split_takes_as_long_as_the_recordings_noise_near_the_band_asks():
+    fs, band = 3000.0, (150.0, 750.0)
+    freqs = np.linspace(0.0, fs / 2, 1501)
+    inside = ((freqs > 200) & (freqs < 700)).astype(float)
+    near_edge = inside + ((freqs > 120) & (freqs < 170))
+    args = dict(sample_rate_hz=fs, band_hz=band, order=4, freqs_hz=freqs)
+    mid = filters.split_delay_s(power=inside, **args)
+    edge = filters.split_delay_s(power=near_edge, **args)
+    assert 0 < mid < edge <= filters.SPLIT_MAX_DELAY_S
+
+    # its own criterion holds at the delay it gives, and failed one sample earlier
+    def leak_db(delay_s, power):
+        taps = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=round(delay_s * fs))
+        h = signal.sosfreqz(filters.design_bandpass(sample_rate_hz=fs, band_hz=band, order=4),
+                            worN=freqs, fs=fs)[1]  # fmt: skip
+        lp = np.abs(signal.freqz(taps, worN=freqs, fs=fs)[1])
+        return 10 * np.log10((power * abs(h) ** 2 * lp**2).sum() / (power * abs(h) ** 2).sum())
+
+    assert leak_db(edge, near_edge) <= filters.SPLIT_LEAK_DB
+    assert leak_db(edge - 1 / fs, near_edge) > filters.SPLIT_LEAK_DB
+
+
+def test_the_lines_highpass_is_undone_exactly_at_every_line():
+    fs, band = 1000.0, (80.0, 450.0)
+    inverse = filters.highpass_inverse(sample_rate_hz=fs, band_hz=band)
+    sos = filters.lines_highpass(sample_rate_hz=fs, band_hz=band)
+    freqs = np.linspace(0.0, fs / 2, len(inverse))
+    response = signal.sosfreqz(sos, worN=freqs, fs=fs)[1]
+    usable = freqs >= band[0] / 2
+    product = response[usable] * (inverse[usable, 0] + 1j * inverse[usable, 1])
+    np.testing.assert_allclose(product, 1.0, atol=1e-9)
+    assert np.abs(response[freqs < 2.0]).max() < 1e-4  # gravity and slow motion stopped

@@ -131,6 +131,7 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
     log_ratio = bias.copy()
     correction = np.ones((C, B))
     opening = np.zeros(C)
+    wait = np.zeros(C, int)
     a_up, a_down = rate(1e3 * s.guard_up_s), rate(1e3 * s.guard_down_s)
     guard = guard_ref.copy()
     bands_hist = np.zeros((n + D, C, B))
@@ -172,7 +173,12 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
             score /= math.exp(excess)
             ratio /= math.exp(s.guard_gain * excess)
             level = min(max((score - 1) / span, 0.0), 1.0)
-            opening[c] = max(level, opening[c] * decay)
+            if level >= opening[c]:  # held for the look-ahead, then decaying
+                opening[c], wait[c] = level, D
+            elif wait[c] > 0:
+                wait[c] -= 1
+            else:
+                opening[c] = max(level, opening[c] * decay)
             g = np.sqrt(np.clip(1 - alpha[c] / ratio, 0, None))
             g = np.maximum(np.maximum(g, opening[c]), s.floor)
             out[i, c] = np.sum(g * bands_hist[i, c])

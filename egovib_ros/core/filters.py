@@ -197,75 +197,108 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows
 
 
-#: How close the band-pass followed by `band_inverse` comes to a pure delay, averaged over
-#: the band (where the band-pass passes at least half amplitude), dB.
-INVERSE_ERROR_DB = -30.0
-#: Longest delay `band_inverse` may take to get there (seconds).
-INVERSE_MAX_DELAY_S = 0.020
-#: Below this share of the band's low edge the FIR's gain is held down with this weight:
-#: what it maps there lands below the band, where the drop-in output must pass the input.
-INVERSE_STOP_FRACTION = 0.5
-INVERSE_STOP_WEIGHT = 0.1
-#: ... and everywhere else with this one (a bounded filter).
-INVERSE_WEIGHT = 1e-3
+# --------------------------------------------------------------------------------------
+# The drop-in output of the per-sample methods (core.methods): what they remove from the
+# band-passed signal, removed from the unfiltered one with nothing below the band touched.
+# --------------------------------------------------------------------------------------
+#: The split's linear-phase low-pass (split_taps) passes up to this share of the band's low
+#: edge and stops from this share on (least squares, unit gain at 0 Hz).
+SPLIT_PASS_FRACTION = 0.1
+SPLIT_STOP_FRACTION = 0.9
+#: The split may pass at most this share (dB) of the band-passed noise of the calibration
+#: recording into its untouched low part: so little that the drop-in output removes as much
+#: as the band-passed one (measured: within 1 dB where the methods remove 30-37 dB).
+SPLIT_LEAK_DB = -40.0
+#: ... with the shortest delay that reaches it, at most this (a band low against the sample
+#: rate needs a long filter to stop it): 6 ms for the PR2 hand's band, 11 ms for the flight's.
+SPLIT_MAX_DELAY_S = 0.025
+#: The lines are tracked in the unfiltered signal after a 4th-order high-pass at this share of
+#: the band's low edge: gravity and motion do not reach their trackers, and the high-pass's
+#: phase at a line (undone exactly: `highpass_inverse`) barely changes over its tracking width.
+LINES_HIGHPASS_FRACTION = 0.25
 
 
-def band_inverse(
-    *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
-) -> tuple[np.ndarray, int, float]:
-    """(taps, delay, error dB): a causal FIR that undoes the band-pass inside the band, up
-    to `delay` samples, and passes little below it. What a method removes from the
-    band-passed signal, filtered by it, is what to remove from the raw signal (the drop-in
-    output of the per-sample methods): the band-pass's phase, not only its gain, matters
-    there, and raw - removed without it would leave more than it takes near the band's
-    edges.
-
-    Least squares over the band's frequencies (|band-pass| >= 0.5), with the FIR's gain
-    held down below the band (INVERSE_STOP_*) and bounded elsewhere; the delay is the
-    shortest whole number of samples whose fit reaches INVERSE_ERROR_DB on the band's mean,
-    else the longest allowed (INVERSE_MAX_DELAY_S), with the error it reaches."""
-    taps, delay, error_db = _band_inverse(
-        float(sample_rate_hz), (float(band_hz[0]), float(band_hz[1])), int(order)
-    )
-    return taps.copy(), delay, error_db
+def _split_response(taps: np.ndarray, freqs: np.ndarray, sample_rate_hz: float) -> np.ndarray:
+    return np.abs(signal.freqz(taps, 1, worN=freqs, fs=sample_rate_hz)[1])
 
 
-@functools.lru_cache(maxsize=32)  # every denoiser of a model asks for the same one
-def _band_inverse(
-    sample_rate_hz: float, band_hz: tuple[float, float], order: int
-) -> tuple[np.ndarray, int, float]:
-    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
-    # the band sampled densely whatever its width
-    freqs = np.unique(
-        np.r_[np.linspace(0.0, sample_rate_hz / 2.0, 1024), np.linspace(*band_hz, 256)]
-    )
-    response = signal.sosfreqz(sos, worN=freqs, fs=sample_rate_hz)[1]
-    band = np.abs(response) >= 0.5
+@functools.lru_cache(maxsize=64)
+def _split_taps(sample_rate_hz: float, low_edge_hz: float, delay: int) -> np.ndarray:
+    freqs = np.linspace(0.0, sample_rate_hz / 2.0, 2048)
     omega = 2.0 * np.pi * freqs / sample_rate_hz
-    weight = np.sqrt(
-        np.where(freqs < INVERSE_STOP_FRACTION * band_hz[0], INVERSE_STOP_WEIGHT, INVERSE_WEIGHT)
+    # symmetric taps h[delay +- k] = a_k: response e^{-j w delay} (a_0 + 2 sum_k a_k cos(w k))
+    basis = np.cos(np.outer(omega, np.arange(delay + 1)))
+    basis[:, 1:] *= 2.0
+    stop = freqs >= SPLIT_STOP_FRACTION * low_edge_hz
+    passed = freqs <= SPLIT_PASS_FRACTION * low_edge_hz
+    rows = np.vstack([basis[stop], basis[passed]])
+    target = np.r_[np.zeros(stop.sum()), np.ones(passed.sum())]
+    # least squares with the response at 0 Hz exactly 1: gravity passes as it is
+    dc = basis[0]
+    system = np.block([[rows.T @ rows, dc[:, None]], [dc[None, :], np.zeros((1, 1))]])
+    half = np.linalg.lstsq(system, np.r_[rows.T @ target, 1.0], rcond=None)[0][:-1]
+    taps = np.r_[half[:0:-1], half]
+    taps.flags.writeable = False
+    return taps
+
+
+def split_taps(*, sample_rate_hz: float, band_hz: tuple[float, float], delay: int) -> np.ndarray:
+    """(2 delay + 1,) symmetric taps of the drop-in split's linear-phase low-pass (unit gain
+    at 0 Hz; passes what lies far below the band, stops the band); delay 0: [1.0]."""
+    if delay <= 0:
+        return np.ones(1)
+    return _split_taps(float(sample_rate_hz), float(band_hz[0]), int(delay))
+
+
+def split_delay_s(
+    *,
+    sample_rate_hz: float,
+    band_hz: tuple[float, float],
+    order: int,
+    freqs_hz: np.ndarray,
+    power: np.ndarray,
+) -> float:
+    """The shortest split (seconds, whole samples) that passes at most SPLIT_LEAK_DB of the
+    band-passed power into its low part, for a recording of power spectrum `power` at
+    `freqs_hz` (its noise close below or inside the band's low edge decides), at most
+    SPLIT_MAX_DELAY_S."""
+    freqs_hz = np.asarray(freqs_hz, float)
+    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+    response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
+    band = np.asarray(power, float) * np.abs(response) ** 2
+    total = max(float(band.sum()), 1e-300)
+    longest = max(1, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
+    for delay in range(1, longest + 1):
+        taps = split_taps(sample_rate_hz=sample_rate_hz, band_hz=band_hz, delay=delay)
+        leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
+        if 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB:
+            return delay / sample_rate_hz
+    return longest / sample_rate_hz
+
+
+def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
+    """SOS of the high-pass the lines are tracked after in the unfiltered signal."""
+    return signal.butter(
+        4, LINES_HIGHPASS_FRACTION * band_hz[0], btype="highpass", fs=sample_rate_hz, output="sos"
     )
 
-    def fit(delay: int) -> tuple[np.ndarray, float]:
-        basis = np.exp(-1j * np.outer(omega, np.arange(2 * delay + 1)))  # the FIR's response
-        passed = response[band, None] * basis[band]
-        target = np.exp(-1j * omega[band] * delay)
-        system = np.vstack([passed, weight[:, None] * basis])
-        rhs = np.r_[target, np.zeros(len(freqs))]
-        taps = np.linalg.lstsq(
-            np.vstack([system.real, system.imag]), np.r_[rhs.real, rhs.imag], rcond=None
-        )[0]
-        return taps, float(10.0 * np.log10(np.mean(np.abs(passed @ taps - target) ** 2)))
 
-    longest = max(1, int(INVERSE_MAX_DELAY_S * sample_rate_hz + 1e-9))
-    step = max(1, longest // 16)  # coarse steps up, then back sample by sample
-    delay = longest
-    for coarse in range(step, longest + step, step):
-        if fit(min(coarse, longest))[1] <= INVERSE_ERROR_DB:
-            delay = min(coarse, longest)
-            while delay > 1 and fit(delay - 1)[1] <= INVERSE_ERROR_DB:
-                delay -= 1
-            break
-    taps, error_db = fit(delay)
-    taps.flags.writeable = False
-    return taps, delay, error_db
+@functools.lru_cache(maxsize=32)
+def _highpass_inverse(sample_rate_hz: float, band_hz: tuple[float, float], points: int):
+    sos = lines_highpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz)
+    freqs = np.linspace(0.0, sample_rate_hz / 2.0, points)
+    response = signal.sosfreqz(sos, worN=freqs, fs=sample_rate_hz)[1]
+    usable = np.abs(response) >= 0.01
+    inverse = np.where(usable, 1.0 / np.where(usable, response, 1.0), 0.0)
+    table = np.ascontiguousarray(np.stack([inverse.real, inverse.imag], axis=1))
+    table.flags.writeable = False
+    return table
+
+
+def highpass_inverse(
+    *, sample_rate_hz: float, band_hz: tuple[float, float], points: int = 4096
+) -> np.ndarray:
+    """(points, 2) real and imaginary parts of 1 / F(f) on `points` frequencies from 0 to
+    Nyquist, F the response of `lines_highpass` (0 where F stops): a line tracked with complex
+    amplitude A after the high-pass is A / F(f) in the unfiltered signal."""
+    return _highpass_inverse(float(sample_rate_hz), (float(band_hz[0]), float(band_hz[1])), points)

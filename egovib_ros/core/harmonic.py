@@ -558,6 +558,8 @@ def _cancel_kernel(
     guard_rate,
     f_lo,
     f_hi,
+    w,
+    inverse,
     lagged,
     correction,
     theta,
@@ -565,11 +567,17 @@ def _cancel_kernel(
     spread2,
     power_in,
     power_residual,
+    weights_w,
+    spread2_w,
     out,
+    raw_lines,
 ):
     """One pass over (n, C) band-passed samples; every state array is updated in place.
     out[i, c] = x[i, c] - predicted lines (scaled down where they would make the signal
-    louder). See the module docstring."""
+    louder). See the module docstring. With `w` (n, C) (else an empty array): the same
+    channels unfiltered (gravity and slow motion taken out), in which the same lines are
+    tracked by weights of their own (`weights_w`, `spread2_w`) on the same references:
+    raw_lines[i, c] = the lines as the unfiltered signal carries them, scaled as `out`'s."""
     n, C = x.shape
     J = speed.shape[1]
     L = line_coef.shape[0]
@@ -585,6 +593,10 @@ def _cancel_kernel(
     cosv = np.empty(L)
     sinv = np.empty(L)
     nyquist = 0.5 * fs
+    raw = w.shape[0] == n
+    G = inverse.shape[0]
+    inv_re = np.ones(L)
+    inv_im = np.zeros(L)
     for i in range(n):
         for j in range(J):
             v = abs(speed[i, j]) if known[i] else lagged[j]  # no joint state: hold the speed
@@ -597,30 +609,56 @@ def _cancel_kernel(
             j = line_joint[q]
             rate = line_coef[q] * g[j] * (1.0 + correction[j])  # Hz, unfolded
             folded = rate - fs * math.floor(rate / fs)
-            if folded > nyquist:
+            mirrored = folded > nyquist
+            if mirrored:
                 folded = fs - folded
             active[q] = g[j] > 0.0 and folded >= f_lo and folded <= f_hi
+            if raw and active[q] and G > 1:
+                # the inverse of w's filter at the line (a mirrored line: its conjugate)
+                k = int(folded / nyquist * (G - 1) + 0.5)
+                inv_re[q] = inverse[k, 0]
+                inv_im[q] = -inverse[k, 1] if mirrored else inverse[k, 1]
             t = theta[q] + rate / fs
             theta[q] = t - math.floor(t)
             cosv[q] = math.cos(TWO_PI * theta[q])
             sinv[q] = math.sin(TWO_PI * theta[q])
         for c in range(C):
             estimate = 0.0
+            unfiltered = 0.0
+            tracked = 0.0
             for q in range(L):
                 if active[q]:
                     estimate += weights[c, q, 0] * cosv[q] + weights[c, q, 1] * sinv[q]
+                    if raw:
+                        wa = weights_w[c, q, 0]
+                        wb = weights_w[c, q, 1]
+                        tracked += wa * cosv[q] + wb * sinv[q]
+                        # Re[(wa - j wb) / F e^{j phase}]
+                        pr = wa * inv_re[q] + wb * inv_im[q]
+                        pi = wa * inv_im[q] - wb * inv_re[q]
+                        unfiltered += pr * cosv[q] - pi * sinv[q]
             e = x[i, c] - estimate
+            scale = 1.0
             if guard_rate > 0.0:
                 power_in[c] += guard_rate * (x[i, c] * x[i, c] - power_in[c])
                 power_residual[c] += guard_rate * (e * e - power_residual[c])
                 if power_residual[c] > power_in[c]:
-                    out[i, c] = x[i, c] - estimate * math.sqrt(power_in[c] / power_residual[c])
-                else:
-                    out[i, c] = e
-            else:
-                out[i, c] = e
+                    scale = math.sqrt(power_in[c] / power_residual[c])
+            out[i, c] = e if scale == 1.0 else x[i, c] - estimate * scale
             limit = clip * math.sqrt(spread2[c])
             ec = min(max(e, -limit), limit)
+            if raw:
+                raw_lines[i, c] = unfiltered * scale
+                # The unfiltered lines' own trackers, their error shrunk as the band's is
+                # clipped (an event in the band slows both alike; no clipping of their own,
+                # which would turn slow motion into noise at the lines).
+                ew = w[i, c] - tracked
+                if ec != e:
+                    ew *= ec / e
+                for q in range(L):
+                    if active[q]:
+                        weights_w[c, q, 0] += mu * ew * cosv[q]
+                        weights_w[c, q, 1] += mu * ew * sinv[q]
             spread2[c] += spread_rate * (ec * ec - spread2[c])
             for q in range(L):
                 if active[q]:
@@ -664,6 +702,8 @@ class CancellerState:
     spread2: np.ndarray  # (C,) running robust error variance
     power_in: np.ndarray  # (C,) short-time power of the input (the guard)
     power_residual: np.ndarray  # (C,) short-time power of the full residual (the guard)
+    weights_w: np.ndarray  # (C, L, 2) cos/sin weights of the lines in the unfiltered signal
+    spread2_w: np.ndarray  # (C,) running robust error variance there
 
 
 class HarmonicCanceller:
@@ -681,12 +721,21 @@ class HarmonicCanceller:
         n_channels: int,
         settings: CancellerSettings | None = None,
         initial_spread: np.ndarray | None = None,
+        active_hz: tuple[float, float] | None = None,
+        unfiltered_inverse: np.ndarray | None = None,
     ):
+        """`band_hz`: the band the input was band-passed to; `active_hz`: where a line is
+        tracked and cancelled (default: the band)."""
         self.map = hmap
         self.settings = settings or CancellerSettings()
         self.sample_rate_hz = float(sample_rate_hz)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
+        self.active_hz = self.band_hz if active_hz is None else tuple(map(float, active_hz))
         self.n_channels = int(n_channels)
+        # 1 / F on a grid 0..Nyquist, F the filter the unfiltered input went through
+        self.unfiltered_inverse = (
+            np.zeros((1, 2)) if unfiltered_inverse is None else np.asarray(unfiltered_inverse)
+        )
         # (pll_hz 0: both PLL gains are 0, the map alone)
         self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
             self.sample_rate_hz
@@ -714,9 +763,16 @@ class HarmonicCanceller:
             spread2=self._initial_spread2.copy(),
             power_in=np.zeros(self.n_channels),
             power_residual=np.zeros(self.n_channels),
+            weights_w=np.zeros((self.n_channels, L, 2)),
+            spread2_w=self._initial_spread2.copy(),
         )
 
-    def process(self, x: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    def process(self, x: np.ndarray, speed: np.ndarray, *, unfiltered: np.ndarray | None = None):
+        """(n, C) band-passed samples and (n, J) speeds -> the residual (n, C). With
+        `unfiltered` (n, C), the same samples before the band-pass (gravity and slow motion
+        taken out): also the lines as they reach it, tracked there on the same references
+        (the drop-in output subtracts them): (residual, lines)."""
+        raw = unfiltered is not None
         x = np.ascontiguousarray(x, dtype=np.float64)
         speed = np.ascontiguousarray(speed, dtype=np.float64)
         if (
@@ -729,8 +785,12 @@ class HarmonicCanceller:
                 f"({len(x)}, {self.map.n_joints}) speeds, got {x.shape} and {speed.shape}"
             )
         out = np.empty_like(x)
+        w = np.ascontiguousarray(unfiltered, dtype=np.float64) if raw else np.empty((0, x.shape[1]))
+        if raw and w.shape != x.shape:
+            raise ConfigError(f"canceller: unfiltered samples {w.shape} differ from {x.shape}")
+        lines = np.empty_like(w)
         if len(x) == 0:
-            return out
+            return (out, lines) if raw else out
         known = np.all(np.isfinite(speed), axis=1)
         if not known.all():
             speed = np.where(known[:, None], speed, 0.0)
@@ -754,8 +814,10 @@ class HarmonicCanceller:
             float(self.settings.clip_sigma),
             self._spread_rate,
             self._guard_rate,
-            self.band_hz[0],
-            self.band_hz[1],
+            self.active_hz[0],
+            self.active_hz[1],
+            w,
+            self.unfiltered_inverse,
             st.lagged,
             st.correction,
             st.theta,
@@ -763,6 +825,9 @@ class HarmonicCanceller:
             st.spread2,
             st.power_in,
             st.power_residual,
+            st.weights_w,
+            st.spread2_w,
             out,
+            lines,
         )
-        return out
+        return (out, lines) if raw else out

@@ -83,6 +83,8 @@ class GainSettings:
     """bands: narrow bands across the band (plus the rest band); bandwidth: each resonator's
     3 dB width as a multiple of the spacing of the centres; lookahead_ms: algorithmic delay;
     attack_ms / release_ms: time constants of the band power when it rises / falls;
+    split_ms: the drop-in output's split (core.methods.DropInSplit) needs at least this
+    look-ahead for this robot (set in calibration; 0: the gain's own);
     opening_quantile: quantile of P/N on calibration data that sets alpha (ignored when
     `oversubtraction` is given); exponent: 1 Wiener, 0.5 power subtraction; floor: least
     gain; track_s: time constant of the noise-level correction (0: none); track_clip:
@@ -100,6 +102,7 @@ class GainSettings:
     bands: int = 3
     bandwidth: float = 1.0
     lookahead_ms: float = 4.0
+    split_ms: float = 0.0
     attack_ms: float = 1.0
     release_ms: float = 10.0
     opening_quantile: float = 0.99
@@ -122,6 +125,7 @@ class GainSettings:
         checks = (
             ("bandwidth", 0.05, 10.0),
             ("lookahead_ms", 0.0, 1000.0),
+            ("split_ms", 0.0, 1000.0),
             ("attack_ms", 0.0, 1000.0),
             ("release_ms", 0.0, 10000.0),
             ("opening_quantile", 0.5, 1.0),
@@ -241,20 +245,28 @@ def _gain_kernel(
     log_ratio,
     correction,
     opening,
+    open_wait,
     noise_held,
     guard,
     out,
     collect,
+    v,
+    zv,
+    out_v,
 ):
     """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1); state updated in
     place; out[i] = output for the sample `D` before sample i (hist holds D + 1 samples
     per band). collect (n, C, B + 2): P / N per band, the opening score over open_alpha
-    and the guard's log level (calibration), or an empty array."""
+    and the guard's log level (calibration), or an empty array. v (n, C), or an empty
+    array: a second signal split by the same bank (states zv) and weighted by the same
+    gains, with no look-ahead (`out_v`): the drop-in output's unfiltered counterpart of
+    the band-passed residual, given already `D` samples late."""
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1
     size = hist.shape[2]
     keep = collect.shape[0] == n
+    second = v.shape[0] == n
     pos = position[0]
     phase = position[1]  # samples since the last correction update
     ratio = np.empty(B)
@@ -331,9 +343,20 @@ def _gain_kernel(
             if open_span > 0.0:
                 level = (score - 1.0) / open_span
                 level = 1.0 if level > 1.0 else (0.0 if level < 0.0 else level)
-                held = opening[c] * open_decay
-                opening[c] = level if level > held else held
+                # An opening holds for the look-ahead (the event it saw leaves that much
+                # later), then decays over open_hold_ms.
+                if level >= opening[c]:
+                    opening[c] = level
+                    open_wait[c] = size - 1
+                elif open_wait[c] > 0:
+                    open_wait[c] -= 1
+                else:
+                    opening[c] *= open_decay
+                    if level > opening[c]:
+                        opening[c] = level
             y = 0.0
+            yv = 0.0
+            rest_v = v[i, c] if second else 0.0
             for k in range(B):
                 g = 1.0 - alpha[c, k] / ratio[k] if ratio[k] > 0.0 else 1.0
                 if g <= 0.0:
@@ -347,7 +370,19 @@ def _gain_kernel(
                 if g < floor:
                     g = floor
                 y += g * hist[c, k, read]
+                if second:
+                    if k < K:
+                        pole = poles[k]
+                        zk = pole * zv[c, k] + (1.0 - abs(pole)) * v[i, c]
+                        zv[c, k] = zk
+                        band = 2.0 * zk.real
+                        rest_v -= band
+                        yv += g * band
+                    else:
+                        yv += g * rest_v
             out[i, c] = y
+            if second:
+                out_v[i, c] = yv
         pos = read
     position[0] = pos
     position[1] = (phase + n) % TRACK_EVERY
@@ -363,8 +398,10 @@ class GainState:
     log_ratio: np.ndarray  # (C, B) tracked log(P / table)
     correction: np.ndarray  # (C, B) exp(log_ratio - bias)
     opening: np.ndarray  # (C,) how far all bands are held open
+    open_wait: np.ndarray  # (C,) samples the opening is held before it decays
     noise_held: np.ndarray  # (C, B) expected band noise, held after the table's value drops
     guard: np.ndarray  # (C,) log of the opening score's slow level
+    zv: np.ndarray  # (C, K) complex resonator states of the second signal (drop-in)
 
 
 def _filled(value, default: float, shape: tuple) -> np.ndarray:
@@ -434,10 +471,12 @@ class LowLatencyGain:
             log_ratio=self.bias.copy(),
             correction=np.ones((C, B)),
             opening=np.zeros(C),
+            open_wait=np.zeros(C, np.int64),
             noise_held=np.zeros((C, B)),
             # From below when there is no reference (calibration): the guard rises to the
             # noise's level within a few guard_up_s, instead of falling for guard_down_s.
             guard=np.where(np.isfinite(self.guard_ref), self.guard_ref, LOG_TINY),
+            zv=np.zeros((C, B - 1), complex),
         )
 
     def reset_signal(self) -> None:
@@ -456,10 +495,13 @@ class LowLatencyGain:
         *,
         index: np.ndarray | None = None,
         collect: bool = False,
+        unfiltered: np.ndarray | None = None,
     ):
         """r (n, C) samples; noise (n, C, B) expected band powers per sample, or (R, C, B)
         rows with `index` (n,) naming each sample's row (held joint states: one row per
-        joint state, not per sample)."""
+        joint state, not per sample). `unfiltered` (n, C): the signal whose band-passed
+        image, D samples late, is `r` (the drop-in output's); it is split by the same bank
+        and weighted by the same gains: returns (out, out_unfiltered)."""
         r = np.ascontiguousarray(r, dtype=np.float64)
         noise = np.ascontiguousarray(noise, dtype=np.float64)
         C, B = self.n_channels, self.bank.n_bands
@@ -476,6 +518,13 @@ class LowLatencyGain:
             raise ConfigError(f"gain: index must name a noise row for each of the {len(r)} samples")
         out = np.empty_like(r)
         ratios = np.empty((len(r), C, B + 2)) if collect else np.empty((0, C, B + 2))
+        if unfiltered is None:
+            v = np.empty((0, C))
+        else:
+            v = np.ascontiguousarray(unfiltered, dtype=np.float64)
+            if v.shape != r.shape:
+                raise ConfigError(f"gain: unfiltered samples {v.shape} differ from {r.shape}")
+        out_v = np.empty_like(v)
         if len(r):
             s = self.state
             span = float(self.settings.open_span) if self.settings.open_hold_ms > 0 else 0.0
@@ -508,9 +557,15 @@ class LowLatencyGain:
                 s.log_ratio,
                 s.correction,
                 s.opening,
+                s.open_wait,
                 s.noise_held,
                 s.guard,
                 out,
                 ratios,
+                v,
+                s.zv,
+                out_v,
             )
+        if unfiltered is not None:
+            return out, out_v
         return (out, ratios) if collect else out

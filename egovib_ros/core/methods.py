@@ -32,9 +32,16 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy import signal
 
 from egovib_ros.core.calibration import calibrate_arrays
-from egovib_ros.core.filters import INVERSE_ERROR_DB, band_inverse
+from egovib_ros.core.filters import (
+    CarriedFilter,
+    highpass_inverse,
+    lines_highpass,
+    split_delay_s,
+    split_taps,
+)
 from egovib_ros.core.harmonic import (
     CancellerSettings,
     HarmonicCanceller,
@@ -394,6 +401,30 @@ def _band_passed_calibration(
     return stamps, values, velocity
 
 
+def _split_ms(model: NoiseModel, accel: np.ndarray) -> float:
+    """The look-ahead the drop-in output's split needs for `model`: the time to tell the
+    band's low edge from what lies below it, as much as this robot's noise there asks
+    (core.filters.split_delay_s on the calibration recording's spectrum; 5.7 ms for the PR2
+    hand, 11 ms for the quadcopter), at least the gain's default look-ahead."""
+    values = np.asarray(accel, float)
+    values = values[np.all(np.isfinite(values), axis=1)]
+    fs = model.sample_rate_hz
+    default = GainSettings().lookahead_ms
+    if len(values) < 8 * model.block_length:
+        return default
+    freqs, power = signal.welch(
+        values - values.mean(axis=0), fs, nperseg=min(len(values), 1 << int(np.log2(fs))), axis=0
+    )
+    split = split_delay_s(
+        sample_rate_hz=fs,
+        band_hz=model.band_hz,
+        order=model.band_order,
+        freqs_hz=freqs,
+        power=power.sum(axis=1),
+    )
+    return max(default, round(1e3 * split, 3))
+
+
 def calibrate_methods(
     model: NoiseModel,
     sensor_stamps_ns: np.ndarray,
@@ -419,7 +450,8 @@ def calibrate_methods(
     `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
     instead of fitting one."""
     canceller = canceller or CancellerSettings()
-    gain = gain or GainSettings()
+    if gain is None:
+        gain = GainSettings(split_ms=_split_ms(model, accel))
     if model.profile is None:
         raise ConfigError("calibrate_methods: the model carries no robot profile")
     fs = model.sample_rate_hz
@@ -626,12 +658,22 @@ class SampleMethodDenoiser(FramedDenoiser):
             source=source,
         )
         self._framer = SampleFramer(self.settings, model.n_joints)
+        # The drop-in output: the lines tracked again in the unfiltered signal (high-passed
+        # below the band: gravity and motion never reach their trackers).
+        self._lines_input = (
+            CarriedFilter(lines_highpass(sample_rate_hz=fs, band_hz=model.band_hz), n_channels=3)
+            if output == "dropin"
+            else None
+        )
         self._canceller = HarmonicCanceller(
             cal.harmonic,
             sample_rate_hz=fs,
             band_hz=model.band_hz,
             n_channels=3,
             settings=cal.canceller,
+            unfiltered_inverse=None
+            if output != "dropin"
+            else highpass_inverse(sample_rate_hz=fs, band_hz=model.band_hz),
         )
         self._gain = None
         self._table = None
@@ -641,6 +683,8 @@ class SampleMethodDenoiser(FramedDenoiser):
                 gain = dataclasses.replace(gain, floor=floor)
             if lookahead_ms is not None:
                 gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
+            elif output == "dropin":
+                gain = dataclasses.replace(gain, lookahead_ms=dropin_lookahead_ms(gain))
             bank = FilterBank(
                 sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
             )
@@ -655,29 +699,15 @@ class SampleMethodDenoiser(FramedDenoiser):
             )
             self._table = ResidualTable(cal.residual, bank)
         self.lookahead = self._gain.delay if self._gain is not None else 0
-        # Stamps of the samples inside the look-ahead (-1: synthetic or before the start),
-        # and for the drop-in output their band-passed and raw values.
+        # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
         self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
-        self._lag_band = np.zeros((self.lookahead, 3))
-        self._lag_raw = np.zeros((self.lookahead, 3))
-        self._inverse = None
-        if output == "dropin":
-            taps, delay, error_db = band_inverse(
-                sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order
+        # ... less what the gains take from the same bands of it (split at the look-ahead).
+        self._split = None
+        if output == "dropin" and self._gain is not None:
+            self._split = DropInSplit(
+                split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.lookahead)
             )
-            self._inverse = BandInverse(taps, delay)
-            if error_db > INVERSE_ERROR_DB:
-                LOG.warning(
-                    "%sdrop-in output: the band-pass's inverse fits the band to %.0f dB within "
-                    "%.0f ms (%g-%g Hz at %g Hz); the drop-in output removes less than the "
-                    "band-passed one (output: bandpassed)",
-                    f"{source}: " if source else "",
-                    error_db,
-                    1e3 * delay / fs,
-                    *model.band_hz,
-                    fs,
-                )
-        self.delay = self.lookahead + (self._inverse.delay if self._inverse else 0)
+        self.delay = self.lookahead
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
@@ -726,10 +756,6 @@ class SampleMethodDenoiser(FramedDenoiser):
                 s, v = self._release_lookahead()
                 stamps_out.append(s)
                 values_out.append(v)
-            if batch.ends_segment and self._inverse is not None:
-                s, v = self._output(*self._inverse.release())
-                stamps_out.append(s)
-                values_out.append(v)
         if not stamps_out:
             return self._empty
         chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
@@ -738,21 +764,27 @@ class SampleMethodDenoiser(FramedDenoiser):
 
     def _run(self, stamps, values, velocity, raw):
         """Band-passed `values` (and `raw`, for the drop-in output) through the method."""
-        residual = self._canceller.process(values, velocity)
+        unfiltered = None
+        if self._lines_input is not None:
+            tracked = self._lines_input.process(raw.T).T
+            residual, lines = self._canceller.process(values, velocity, unfiltered=tracked)
+            unfiltered = (raw, raw - lines)
+        else:
+            residual = self._canceller.process(values, velocity)
         if self._gain is None:
-            return self._output(stamps, residual, values, raw)
+            return self._output(stamps, residual if unfiltered is None else unfiltered[1])
         if len(velocity):
             self._last_velocity = velocity[-1]
-        return self._gained(stamps, residual, velocity, values, raw)
+        return self._gained(stamps, residual, velocity, unfiltered)
 
-    def _gained(self, stamps, residual, velocity, values, raw):
+    def _gained(self, stamps, residual, velocity, unfiltered=None):
         rows, index = self._table.rows(velocity)
-        cleaned = self._gain.process(residual, rows, index=index)
         stamps, self._lag_stamps = _delayed(self._lag_stamps, stamps)
-        if self._inverse is not None:
-            values, self._lag_band = _delayed(self._lag_band, values)
-            raw, self._lag_raw = _delayed(self._lag_raw, raw)
-        return self._output(stamps, cleaned, values, raw)
+        if unfiltered is None:
+            return self._output(stamps, self._gain.process(residual, rows, index=index))
+        low, high = self._split.process(*unfiltered)
+        _, high = self._gain.process(residual, rows, index=index, unfiltered=high)
+        return self._output(stamps, low + high)
 
     def _release_lookahead(self):
         """The segment ended: push silence through the gain to release the last samples it
@@ -763,18 +795,22 @@ class SampleMethodDenoiser(FramedDenoiser):
         d = self.lookahead
         velocity = np.broadcast_to(self._last_velocity, (d, self.model.n_joints))
         zeros = np.zeros((d, 3))
-        out = self._gained(np.full(d, -1, np.int64), zeros, np.array(velocity), zeros, zeros)
+        out = self._gained(
+            np.full(d, -1, np.int64),
+            zeros,
+            np.array(velocity),
+            None if self._split is None else (zeros, zeros),
+        )
         self._gain.reset_signal()
+        if self._split is not None:
+            self._split.reset()
+            self._lines_input.reset()
         self._lag_stamps[:] = -1
         self._last_velocity = np.full(self.model.n_joints, np.nan)
         return out
 
-    def _output(self, stamps, cleaned, band=None, raw=None):
-        """The released samples: the cleaned band-passed signal, or for the drop-in output
-        the raw samples less what the method took from the band (mapped back through the
-        band-pass, BandInverse)."""
-        if self._inverse is not None and band is not None:
-            stamps, cleaned = self._inverse.process(stamps, raw, band - cleaned)
+    def _output(self, stamps, cleaned):
+        """The released samples (synthetic ones dropped), summed for `combined`."""
         real = stamps >= 0
         if self.channels == "combined":
             cleaned = cleaned.sum(axis=1, keepdims=True)
@@ -805,41 +841,40 @@ def _fir(taps, history):
     return out
 
 
-class BandInverse:
-    """The drop-in output of the per-sample methods, as a stream: raw samples `delay` late,
-    less what the method removed from the band-passed signal filtered by the band-pass's
-    inverse (core.filters.band_inverse, which passes little below the band). Below the band
-    (gravity, rigid-body motion) and wherever nothing was removed, the raw samples pass."""
+class DropInSplit:
+    """The drop-in output's split, `delay` samples late. `process(raw, cleaned)` with
+    `cleaned` = raw less its lines: (low, high), `low` the raw samples through a
+    linear-phase low-pass (core.filters.split_taps): gravity and motion, which the drop-in
+    output passes untouched; `high` = `cleaned`, delayed, less its own low part: inside the
+    band the cleaned samples themselves to within core.filters.SPLIT_ERROR_DB... with no
+    phase error (a causal IIR split of no delay would have one, or pass motion on to the
+    gains), so the gains take from it what they take from the band-passed signal. Whatever
+    slow part the subtracted lines had stays out of the output."""
 
-    def __init__(self, taps: np.ndarray, delay: int, n_channels: int = 3):
+    def __init__(self, taps: np.ndarray, n_channels: int = 3):
         self.taps = np.asarray(taps, float)
-        self.delay = int(delay)
+        self.delay = (len(self.taps) - 1) // 2
         self.n_channels = int(n_channels)
         self.reset()
 
     def reset(self) -> None:
-        self._removed = np.zeros((len(self.taps) - 1, self.n_channels))  # the FIR's history
-        self._stamps = np.full(self.delay, -1, np.int64)
-        self._raw = np.zeros((self.delay, self.n_channels))
+        self._raw = np.zeros((len(self.taps) - 1, self.n_channels))  # the FIRs' histories
+        self._cleaned = np.zeros_like(self._raw)
 
-    def process(self, stamps, raw, removed) -> tuple[np.ndarray, np.ndarray]:
-        """(n,) stamps, (n, C) raw samples and what was removed from their band-passed
-        values -> the (n,) stamps and (n, C) drop-in values of the samples `delay` earlier."""
-        if not len(stamps):
-            return stamps, np.zeros((0, self.n_channels))
-        history = np.concatenate([self._removed, removed])
-        mapped = _fir(self.taps, history)
-        self._removed = history[len(history) - len(self._removed) :]
-        stamps, self._stamps = _delayed(self._stamps, stamps)
-        raw, self._raw = _delayed(self._raw, raw)
-        return stamps, raw - mapped
+    def _low(self, history: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        both = np.concatenate([history, np.asarray(x, float)])
+        late = both[len(self.taps) - 1 - self.delay : len(both) - self.delay]
+        return _fir(self.taps, both), late, both[len(both) - len(history) :]
 
-    def release(self):
-        """The segment ended: (stamps, values) of the samples still held, then a fresh start."""
-        zeros = np.zeros((self.delay, self.n_channels))
-        out = self.process(np.full(self.delay, -1, np.int64), zeros, zeros)
-        self.reset()
-        return out
+    def process(self, raw: np.ndarray, cleaned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        low, _, self._raw = self._low(self._raw, raw)
+        cleaned_low, late, self._cleaned = self._low(self._cleaned, cleaned)
+        return low, late - cleaned_low
+
+
+def dropin_lookahead_ms(gain: GainSettings) -> float:
+    """The gain's look-ahead with the drop-in output: its own, or what the split needs."""
+    return max(gain.lookahead_ms, gain.split_ms)
 
 
 def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):
@@ -909,16 +944,16 @@ def method_delay_ms(
         gain = MethodCalibration.from_model(model).gain
         if options.get("lookahead_ms") is not None:
             gain = dataclasses.replace(gain, lookahead_ms=options["lookahead_ms"])
+        elif output == "dropin":
+            gain = dataclasses.replace(gain, lookahead_ms=dropin_lookahead_ms(gain))
         samples = gain.delay_samples(fs)
-    if output == "dropin":
-        samples += band_inverse(sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order)[1]
     return 1e3 * samples / fs
 
 
 __all__ = [
     "METHODS",
     "MAX_DELAY_MS",
-    "BandInverse",
+    "DropInSplit",
     "MethodCalibration",
     "ResidualTable",
     "SampleMethodDenoiser",
