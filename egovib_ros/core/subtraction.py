@@ -9,8 +9,9 @@ Two outputs. "bandpassed" (the paper's): the cleaned band-passed signal. "dropin
 default per axis): the raw signal minus the estimated ego-vibration, so that gravity,
 rigid-body motion and everything outside the band pass untouched, as a drop-in
 replacement for the raw Imu. Its gain per bin is the paper's, decided on the band-passed
-block where the model was calibrated. What it removes, (1 - gain) of each bin that the
-band-pass passes at half amplitude or more, is taken from the same block unfiltered
+block where the model was calibrated. What it removes, (1 - gain) of each bin from half the
+band's low edge up (the skirts too: a reader that band-passes the output would get their
+ego-vibration back), is taken from the same block unfiltered
 (with the raw signal's phase, which the causal band-pass would shift), less what lies far
 below the band (gravity and motion would otherwise leak into the band's bins through the
 window), and overlap-added: output = raw - removed. With nothing to subtract the output
@@ -25,9 +26,8 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy import signal
 
-from egovib_ros.core.filters import CHANNEL_LAYOUTS, design_bandpass
+from egovib_ros.core.filters import CHANNEL_LAYOUTS
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.stream import BlockFramer, Blocks, DenoiserStats, FramerSettings, feed
 from egovib_ros.core.timebase import NS_PER_S
@@ -42,6 +42,8 @@ MagnitudeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 OUTPUTS = ("dropin", "bandpassed")
 MAX_OVERSUBTRACTION = 10.0
 MAX_FLOOR = 1.0
+#: The drop-in output leaves the bins below this share of the band's low edge as they are.
+DROPIN_LOWEST_FRACTION = 0.5
 #: A level change over time beyond this (dB) is not a warm-up but a different robot.
 MAX_NOISE_GAIN_DB = 20.0
 
@@ -267,15 +269,12 @@ class StreamingDenoiser(FramedDenoiser):
                 f"{model.window_name} for L={model.block_length}, hop={model.hop}"
             )
         self._window = model.window
-        # The drop-in output changes the bins the band-pass passes at half amplitude or more:
-        # the band and its skirts, where the calibrated (band-passed) spectra speak for the raw
-        # signal; the bins beyond, gravity's among them, are left as they are.
+        # The drop-in output changes every bin from DROPIN_LOWEST_FRACTION of the band's low
+        # edge up: the band, its skirts and beyond, as the band-passed spectra (the gain is a
+        # ratio: the band-pass's gain cancels in it) judge them; the bins below, gravity's and
+        # motion's, are left as they are.
         freqs = np.fft.rfftfreq(model.block_length, 1.0 / model.sample_rate_hz)
-        sos = design_bandpass(
-            sample_rate_hz=model.sample_rate_hz, band_hz=model.band_hz, order=model.band_order
-        )
-        response = np.abs(signal.sosfreqz(sos, worN=freqs, fs=model.sample_rate_hz)[1])
-        self._outside_band = response < 0.5  # (F,)
+        self._outside_band = freqs < DROPIN_LOWEST_FRACTION * model.band_hz[0]  # (F,)
         self.channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
         self._include_std = include_std
         # None for huge grids
