@@ -8,7 +8,8 @@ from simbags import topic_messages
 from egovib_ros.bag import BagWriter, bag_topics, read_recording, write_recording
 from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch, imu_field_offset
 from egovib_ros.bag.denoise import denoise_bag
-from egovib_ros.core import NoiseModel, denoise_batch
+from egovib_ros.core import NoiseModel
+from egovib_ros.core.methods import denoise_batch_method
 
 
 def test_streaming_through_small_chunks_equals_batch(sim_bags, sim_bags_model, tmp_path):
@@ -20,9 +21,10 @@ def test_streaming_through_small_chunks_equals_batch(sim_bags, sim_bags_model, t
     model = NoiseModel.load(sim_bags_model)
     figures = denoise_bag(tmp_path / "small", out, model=model)
     assert figures["chunks_copied_verbatim"] > 100
-    _, expected, _ = denoise_batch(
+    _, expected, _ = denoise_batch_method(  # the model's default method (hybrid)
         motion.sensor_stamps_ns, motion.sensor, motion.joint_stamps_ns, motion.joint_velocity, model
     )
+    assert figures["method"] == "hybrid"
     np.testing.assert_array_equal(read_recording(out).denoised, expected)
 
 
@@ -65,7 +67,7 @@ def test_unusual_imu_messages_take_the_general_path(sim_bags, sim_bags_model, tm
             ),
         )
     denoise_bag(tmp_path / "mixed", tmp_path / "out", model=NoiseModel.load(sim_bags_model))
-    _, expected, _ = denoise_batch(
+    _, expected, _ = denoise_batch_method(
         motion.sensor_stamps_ns,
         motion.sensor,
         motion.joint_stamps_ns,

@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 import json
 
+import pytest
+
 from egovib_ros.cli import main
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation.contacts import detect_bag
@@ -13,19 +15,24 @@ from egovib_ros.evaluation.contacts import detect_bag
 
 def test_json_and_csv_hold_the_librarys_events(sim_bags, sim_bags_model, tmp_path, capsys):
     bag = sim_bags / "motion"
-    args = ["detect", str(bag), "--model", str(sim_bags_model), "--false-alarms-per-min", "1"]
+    args = ["detect", str(bag), "--model", str(sim_bags_model)]
     assert main([*args, "--out", str(tmp_path / "events.json")]) == 0
     line = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "events in 4.0 s (paper); against the ground truth: F1 1.00" in line
+    assert "events in 4.0 s after hybrid (the model's default), threshold" in line
+    assert "(stored in the model, 1/min); against the ground truth: F1 1.00" in line
     report = json.loads((tmp_path / "events.json").read_text())
-    # no --calibration: the threshold comes from the bag the model was calibrated from
+    # the threshold calibration stored: the calibration bag at the same budget gives it again
     expected = detect_bag(
         bag, model=NoiseModel.load(sim_bags_model), calibration=sim_bags / "sweep",
         false_alarms_per_min=1.0,
     )  # fmt: skip
-    assert report["threshold"] == expected.threshold
-    assert report["threshold_source"].endswith(str(sim_bags / "sweep"))
+    assert report["threshold"] == pytest.approx(expected.threshold, rel=1e-9)
+    assert report["method"] == "hybrid" and report["threshold_source"].startswith("stored")
     assert [e["onset_ns"] for e in report["events"]] == [e.onset_ns for e in expected.events]
+    # another budget: set from the bag the model was calibrated from
+    assert main([*args, "--false-alarms-per-min", "2", "--out", str(tmp_path / "b.json")]) == 0
+    other = json.loads((tmp_path / "b.json").read_text())
+    assert other["threshold_source"] == f"no-contact data {sim_bags / 'sweep'}, 2/min"
     assert report["scores"]["f1"] == 1.0 and report["counts"]["events"] == len(expected.events)
     assert main([*args, "--out", str(tmp_path / "events.csv"), "--threshold", "0.7"]) == 0
     with open(tmp_path / "events.csv") as fh:

@@ -113,10 +113,18 @@ def test_stamps_that_go_back_are_dropped_and_a_restarted_clock_restarts(cuts):
 def test_threshold_from_no_contact_data_and_its_false_alarm_rate():
     stamps, values, _ = taps(seconds=30.0, onsets_s=())
     envelope = DetectionEnvelope(settings()).process(values)[1]
-    strict, rate = no_contact_threshold(envelope, sample_rate_hz=FS)
+    strict, rate = no_contact_threshold(envelope, sample_rate_hz=FS, false_alarms_per_min=0)
     assert strict == pytest.approx(1.1 * envelope.max()) and rate == 0.0
-    budget, rate = no_contact_threshold(envelope, sample_rate_hz=FS, false_alarms_per_min=10)
-    assert budget < strict and 0 < rate <= 10
+    # the default budget (1 a minute): 1.1 x the level the envelope stays above 20 ms a minute
+    default, rate = no_contact_threshold(envelope, sample_rate_hz=FS)
+    assert default == pytest.approx(1.1 * np.quantile(envelope, 1 - 0.02 / 60))
+    assert default < strict and rate <= 1.0
+    # one burst in the no-contact data (a sweep's speed step) does not set the default
+    burst = envelope.copy()
+    burst[1000:1030] = 10 * envelope.max()
+    assert no_contact_threshold(burst, sample_rate_hz=FS)[0] < 1.2 * default
+    budget, rate = no_contact_threshold(envelope, sample_rate_hz=FS, false_alarms_per_min=30)
+    assert budget < default and rate > 0  # a larger budget: a lower threshold, what it gives
     # on the same data, the detector raises as many events as stated
     events = run(ContactDetector(settings(threshold=budget)), stamps, values, [])
     assert len(events) <= rate * 0.5 + 1e-9

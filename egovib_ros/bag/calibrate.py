@@ -112,21 +112,28 @@ def calibrate_bags(
     return model, acc.stats, results
 
 
-def calibrate_bag_methods(bag: str | os.PathLike, model, *, joint_lag_s: float = 0.0):
-    """Fit what methods `cancel` and `hybrid` need (core.methods.calibrate_methods) on the
-    calibration bag of `model`; returns (model with them, what was fitted). The fit takes
+def calibrate_bag_methods(
+    bag: str | os.PathLike, model, *, joint_lag_s: float = 0.0, methods: str = "all"
+):
+    """What the other methods need on top of the paper's table, fitted on the calibration
+    bag `bag` of `model`: with methods "all", what `cancel` and `hybrid` need
+    (core.methods.calibrate_methods); in every case the contact detector's thresholds for
+    each method the model can then run (core.methods.calibrate_detection). Returns (the
+    model with them, {"methods": what was fitted or None, "thresholds": ...}). The fit takes
     the recording whole: memory grows with the bag (a calibration run: minutes)."""
     from egovib_ros.bag.recording import read_recording
-    from egovib_ros.core.methods import calibrate_methods  # numba: only when asked for
+    from egovib_ros.core.methods import (  # numba: compiled when a model is calibrated
+        calibrate_detection,
+        calibrate_methods,
+    )
 
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
     joints = rec.joint_stamps_ns + int(round(joint_lag_s * NS_PER_S))
-    return calibrate_methods(
-        model,
-        rec.sensor_stamps_ns,
-        rec.sensor,
-        joints,
-        rec.joint_velocity,
-        source=f"{bag}: {profile.sensor_topic}",
-    )
+    arrays = (rec.sensor_stamps_ns, rec.sensor, joints, rec.joint_velocity)
+    source = f"{bag}: {profile.sensor_topic}"
+    fitted = None
+    if methods == "all":
+        model, fitted = calibrate_methods(model, *arrays, source=source)
+    model, thresholds = calibrate_detection(model, *arrays, source=source)
+    return model, {"methods": fitted, "thresholds": thresholds}

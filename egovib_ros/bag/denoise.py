@@ -22,8 +22,9 @@ from egovib_ros.bag.mcapfile import MESSAGE_HEADER, message_records, rows
 from egovib_ros.bag.reader import BagReader
 from egovib_ros.bag.recording import RecordingStream
 from egovib_ros.bag.writer import BagWriter, compression_name
-from egovib_ros.core import NoiseModel, StreamingDenoiser
+from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
+from egovib_ros.core.methods import make_denoiser, resolve_method
 from egovib_ros.core.stream import check_stream
 from egovib_ros.outputs import atomic_output
 
@@ -136,23 +137,12 @@ class _DenoisedTopic:
         self.written += len(batches)
 
 
-def make_method_denoiser(model: NoiseModel, method: str, **options):
-    """The streaming denoiser of `method` (paper | cancel | hybrid; core.methods.make_denoiser
-    states the options each takes). The paper's is built without loading the compiled
-    methods (numba), which take a few seconds to import."""
-    if method == "paper":
-        return StreamingDenoiser(model, **options)
-    from egovib_ros.core.methods import make_denoiser
-
-    return make_denoiser(model, method, **options)
-
-
 def denoise_bag(
     bag: str | os.PathLike,
     out: str | os.PathLike,
     *,
     model: NoiseModel | str | os.PathLike,
-    method: str = "paper",
+    method: str | None = None,
     channels: str = "per_axis",
     output: str | None = None,
     oversubtraction: float = 1.0,
@@ -176,7 +166,8 @@ def denoise_bag(
         )
         raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
         copy_topics = [t for t in reader.topics if t != denoised_topic]
-        denoiser = make_method_denoiser(
+        method = resolve_method(model, method)
+        denoiser = make_denoiser(
             model,
             method,
             channels=channels,
@@ -233,6 +224,11 @@ def denoise_bag(
         "denoised_messages": job.written,
         "raw_without_output": job.dropped,
         "method": method,
+        "delay_ms": 1e3 * denoiser.delay_samples[1] / model.sample_rate_hz,
+        # a superposition model fills the cells off its axes by design (Eq. 6): not unmeasured
+        "samples_unmeasured": 0
+        if model.measured == "superposition"
+        else (stats.samples_unmeasured or 0),
         "blocks": stats.blocks or 0,
         "blocks_out_of_grid": stats.blocks_out_of_grid or 0,
         "blocks_no_joint_state": stats.blocks_no_joint_state or 0,

@@ -14,7 +14,7 @@ from egovib_ros.cli.jobs import parallel_options
 from egovib_ros.cli.options import force_and_quiet, joint_lag_option
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.noise_model import sweep_mask
-from egovib_ros.errors import BagError, ConfigError
+from egovib_ros.errors import BagError
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import load_profile
 
@@ -46,10 +46,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parallel_options(cal)
     cal.add_argument(
         "--methods",
-        choices=("paper", "hybrid"),
-        default="paper",
-        help="paper: the paper's table (default); hybrid: also what methods cancel and hybrid "
-        "need (the speed -> line map, the residual's table, the gain), fitted on one bag",
+        choices=("all", "paper", "hybrid"),
+        default="all",
+        help="all (default; 'hybrid' is the same): the paper's table and what methods cancel "
+        "and hybrid need (the speed -> line map, the residual's table, the gain; fitted on the "
+        "first bag); paper: the paper's table only. Either way the contact detector's "
+        "thresholds for every method the model can run",
     )
     joint_lag_option(cal)
     force_and_quiet(cal, "replace an existing model written by egovib")
@@ -89,7 +91,7 @@ def coverage_lines(model: NoiseModel) -> list[str]:
 
 
 def describe_methods(fitted: dict) -> str:
-    """What `--methods hybrid` fitted, in one line."""
+    """What was fitted for cancel and hybrid, in one line."""
     bands = ", ".join(f"{f:g}" for f in fitted["gain"]["bands_hz"])
     return (
         f"harmonic cancellation removes {fitted['cancellation_db_on_calibration']:g} dB of the "
@@ -97,11 +99,15 @@ def describe_methods(fitted: dict) -> str:
     )
 
 
+def describe_thresholds(thresholds: dict) -> str:
+    """The contact detector's thresholds per method, in one line."""
+    return ", ".join(f"{method} {value:.3g}" for method, value in thresholds.items())
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
-    if args.methods == "hybrid" and len(expand_bags(args.bags, outputs_per_bag=False)) != 1:
-        raise ConfigError("--methods hybrid: fitted on one calibration bag; give one")
+    methods = "all" if args.methods == "hybrid" else args.methods
     model, stats, results = calibrate_bags(
         args.bags,
         profile=profile,
@@ -129,11 +135,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
             f"{where}: no steady block near any grid velocity "
             f"(rejected: {stats.rejected}); is this a calibration sweep or free motion?"
         )
-    if args.methods == "hybrid":
-        model, fitted = calibrate_bag_methods(
-            expand_bags(args.bags, outputs_per_bag=False)[0][0], model, joint_lag_s=args.joint_lag
-        )
-        print(f"methods cancel and hybrid: {describe_methods(fitted)}", file=sys.stderr)
+    first = expand_bags(args.bags, outputs_per_bag=False)[0][0]
+    model, fitted = calibrate_bag_methods(first, model, joint_lag_s=args.joint_lag, methods=methods)
+    on = "" if len(results) == 1 else f" (fitted on {first})"
+    if fitted["methods"] is not None:
+        print(f"methods cancel and hybrid{on}: {describe_methods(fitted['methods'])}",
+              file=sys.stderr)  # fmt: skip
+    print(
+        f"contact detector thresholds{on}, 1 false alarm a minute of it: "
+        f"{describe_thresholds(fitted['thresholds'])}",
+        file=sys.stderr,
+    )
     with atomic_output(args.out) as tmp:
         model.save(tmp)
     for line in coverage_lines(model):

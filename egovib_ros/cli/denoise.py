@@ -6,11 +6,12 @@ import argparse
 import functools
 from pathlib import Path
 
-from egovib_ros.bag.denoise import denoise_bag, make_method_denoiser
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.cli.options import force_and_quiet, joint_lag_option, nonneg_float
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.methods import make_denoiser, resolve_method
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.outputs import prepare_output
 
@@ -36,11 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     den.add_argument(
         "--method",
         choices=("paper", "cancel", "hybrid"),
-        default="paper",
-        help="paper: the paper's block spectral subtraction (default; a block of delay); "
-        "cancel: speed-locked harmonic cancellation (no delay); hybrid: cancel, then a "
-        "low-latency gain (4 ms); cancel and hybrid need a model calibrated with "
-        "--methods hybrid",
+        default=None,
+        help="hybrid (the default, where the model was calibrated for it): speed-locked "
+        "harmonic cancellation, then a low-latency gain (4 ms band-passed; the drop-in "
+        "output takes the look-ahead its split needs, 5-11 ms); paper: the paper's block "
+        "spectral subtraction (a block of delay); cancel: the cancellation alone (no delay)",
     )
     joint_lag_option(den)
     den.add_argument(
@@ -87,13 +88,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _describe_denoise(figures: dict) -> str:
     text = (
-        f"{figures['denoised_messages']} samples denoised ({figures['channels']}, "
-        f"{figures['output']}); "
-        f"blocks {figures['blocks']}, out of grid {figures['blocks_out_of_grid']}, "
-        f"no joint state {figures['blocks_no_joint_state']}"
+        f"{figures['denoised_messages']} samples denoised by {figures['method']} "
+        f"({figures['channels']}, {figures['output']}, {figures['delay_ms']:.1f} ms); "
     )
-    if figures.get("blocks_unmeasured"):
-        text += f", on unmeasured cells {figures['blocks_unmeasured']}"
+    if figures["method"] == "paper":
+        text += (
+            f"blocks {figures['blocks']}, out of grid {figures['blocks_out_of_grid']}, "
+            f"no joint state {figures['blocks_no_joint_state']}"
+        )
+        if figures.get("blocks_unmeasured"):
+            text += f", on unmeasured cells {figures['blocks_unmeasured']}"
+    else:
+        text += f"samples with no joint state {figures['samples_no_joint_state']}"
+        if figures.get("samples_unmeasured"):
+            text += f", on unmeasured cells {figures['samples_unmeasured']}"
     if figures["raw_without_output"]:
         text += f", raw samples dropped (out of order / non-finite) {figures['raw_without_output']}"
     if figures["compression"] != "none" and figures["size_ratio"]:
@@ -119,12 +127,13 @@ def run_denoise(args: argparse.Namespace) -> int:
     )
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
-    make_method_denoiser(model, args.method, **settings)
+    method = resolve_method(model, args.method)
+    make_denoiser(model, method, **settings)
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
         prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
     task = functools.partial(
-        _denoise_task, model=model, method=args.method, compress=args.compress, **settings
+        _denoise_task, model=model, method=method, compress=args.compress, **settings
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet

@@ -20,12 +20,13 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "detect",
         help="contact events (onset, peak per axis) in a bag, thresholds from no-contact data",
-        description="Run the model's denoiser over BAG and detect contact events on its output "
-        "(band-passed vector, 4 ms RMS envelope, 50 ms refractory time; each event reported "
-        "10 ms after it crosses the threshold, with its onset stamp and its peak vector, as "
-        "the contact_detector node publishes them). The threshold is fixed beforehand from "
-        "no-contact data processed the same way (the bag the model was calibrated from, or "
-        "--calibration) at a false-alarm budget per minute, or given (--threshold). With the "
+        description="Run the model's denoiser over BAG (its default output, as the denoiser "
+        "node publishes it) and detect contact events on it (band-passed vector, 4 ms RMS "
+        "envelope, 50 ms refractory time; each event reported 10 ms after it crosses the "
+        "threshold, with its onset stamp and its peak vector), as the contact_detector node "
+        "does and `egovib evaluate` scores. The threshold is fixed beforehand from no-contact "
+        "data processed the same way: the one `egovib calibrate` stored in the model, or one "
+        "from --calibration at a false-alarm budget, or given (--threshold). With the "
         "simulator's ground truth in BAG, the events are scored (F1, false alarms per minute, "
         "onset-to-report latency). --out: JSON (all of it) or CSV (one row per event).",
     )
@@ -35,14 +36,16 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--method",
         choices=("paper", "cancel", "hybrid", "raw"),
-        default="paper",
-        help="the denoiser before the detector (raw: none, the raw signal)",
+        default=None,
+        help="the denoiser before the detector (default: the model's, hybrid where it was "
+        "calibrated for it; raw: none, the raw signal)",
     )
     parser.add_argument(
         "--calibration",
         metavar="BAG",
         default=None,
-        help="no-contact bag for the threshold (default: the bag the model was calibrated from)",
+        help="no-contact bag to set the threshold from (default: the threshold stored in the "
+        "model, else the bag the model was calibrated from)",
     )
     parser.add_argument(
         "--threshold",
@@ -53,9 +56,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--false-alarms-per-min",
         type=nonneg_float,
-        default=0.0,
+        default=None,
         metavar="RATE",
-        help="false-alarm budget on the no-contact data (default 0: 1.1 x its largest envelope)",
+        help="false-alarm budget on the no-contact data (default: the model's, 1 a minute; "
+        "0: 1.1 x its largest envelope)",
     )
     parser.add_argument(
         "--joint-lag", type=float_in(-1.0, 1.0), default=0.0, metavar="SECONDS",
@@ -69,7 +73,11 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from egovib_ros.cli.evaluate import calibration_bag
     from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation.contacts import detect_bag
+    from egovib_ros.evaluation.contacts import (
+        check_detect_method,
+        detect_bag,
+        detection_threshold_needs_data,
+    )
 
     kind = "file" if Path(args.out).suffix.lower() == ".csv" else "json"
     prepare_output(
@@ -83,20 +91,24 @@ def run(args: argparse.Namespace) -> int:
     )
     model = NoiseModel.load(args.model)
     model.robot_profile()
+    method = check_detect_method(model, args.method)
     calibration = None
-    if args.threshold is None:
+    if args.threshold is None and (
+        args.calibration is not None
+        or detection_threshold_needs_data(model, method, args.false_alarms_per_min, args.joint_lag)
+    ):
         calibration = calibration_bag(args.calibration, model, thresholds_from_run=False)
         if calibration is None:
             from egovib_ros.errors import ConfigError
 
             raise ConfigError(
-                f"{args.model}: no calibration bag stored in the model; give --calibration BAG "
-                f"(no-contact data) or --threshold"
+                f"{args.model}: no threshold for {method} and no calibration bag stored in the "
+                f"model; give --calibration BAG (no-contact data) or --threshold"
             )
     result = detect_bag(
         args.bag,
         model=model,
-        method=args.method,
+        method=method,
         threshold=args.threshold,
         calibration=calibration,
         false_alarms_per_min=args.false_alarms_per_min,
@@ -104,7 +116,11 @@ def run(args: argparse.Namespace) -> int:
     )
     with atomic_output(args.out) as tmp:
         tmp.write_text(render_csv(result) if kind == "file" else render_json(result, args))
-    line = f"{len(result.events)} events in {result.duration_s:.1f} s ({result.method})"
+    default = " (the model's default)" if args.method is None else ""
+    line = (
+        f"{len(result.events)} events in {result.duration_s:.1f} s after {result.method}{default}, "
+        f"threshold {result.threshold:.3g} ({result.threshold_source})"
+    )
     if result.scores is not None:
         s = result.scores
         line += (

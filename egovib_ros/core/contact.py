@@ -44,7 +44,12 @@ from egovib_ros.errors import ConfigError
 ENVELOPE_S = 0.004  # RMS window: shorter than a tap's ring-down, longer than a noise spike
 REFRACTORY_S = 0.05
 ONSET_FRACTION = 0.25
-THRESHOLD_MARGIN = 1.1  # no false-alarm budget: 1.1 x the largest no-contact envelope
+THRESHOLD_MARGIN = 1.1  # the threshold: 1.1 x the no-contact envelope's level ...
+#: ... that the no-contact envelope stays above for at most this long per false alarm allowed
+#: per minute: an isolated burst (a speed step of a sweep, a gripper reversing) does not set it.
+BURST_S = 0.02
+#: The default false-alarm budget (per minute of no-contact data).
+FALSE_ALARMS_PER_MIN = 1.0
 CLOCK_JUMP_S = 1.0  # stamps this far back: a restarted clock (as core.stream's default)
 
 
@@ -84,6 +89,18 @@ class ContactSettings:
     def samples(self, seconds: float) -> int:
         return max(1, int(round(seconds * self.sample_rate_hz)))
 
+    @classmethod
+    def for_model(cls, model, threshold: float, **options) -> "ContactSettings":
+        """The settings for a noise model's stream (its rate, band and sensor range)."""
+        return cls(
+            sample_rate_hz=model.sample_rate_hz,
+            band_hz=model.band_hz,
+            band_order=model.band_order,
+            threshold=threshold,
+            sensor_range=model.robot_profile().sensor_range,
+            **options,
+        )
+
 
 @dataclass(frozen=True)
 class ContactEvent:
@@ -94,21 +111,33 @@ class ContactEvent:
     report_ns: int  # stamp of the sample after which the event was reported
 
 
+def _as_x(signal_1d: np.ndarray) -> np.ndarray:
+    """(N,) -> (N, 3) with the signal on x."""
+    out = np.zeros((signal_1d.size, 3))
+    out[:, 0] = signal_1d.reshape(-1)
+    return out
+
+
 class DetectionEnvelope:
     """The signal the detector thresholds, as a stream: the three axes band-passed, then the
     causal RMS of their sum over `envelope_s`. `process` returns (band-passed axes (N, 3),
     envelope (N,)); any chunking gives the same samples."""
 
-    def __init__(self, settings: ContactSettings):
-        self._band = BandPass.of(settings, 3)
+    def __init__(self, settings: ContactSettings, *, prefiltered: bool = False):
+        # prefiltered: the input is the 1-D signal, summed and band-passed already (what
+        # `egovib evaluate` scores every method on), taken as the x axis
+        self._band = None if prefiltered else BandPass.of(settings, 3)
         self._n = settings.samples(settings.envelope_s)
         self._tail = np.zeros(self._n - 1)  # the last n - 1 squared sums (zeros before the start)
 
     def process(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        values = np.asarray(values, np.float64).reshape(-1, 3)
+        values = np.asarray(values, np.float64)
+        if self._band is None and values.ndim == 1:
+            values = _as_x(values)
+        values = values.reshape(-1, 3)
         if not len(values):
             return np.zeros((0, 3)), np.zeros(0)
-        axes = self._band.process(values.T).T
+        axes = values if self._band is None else self._band.process(values.T).T
         # Moving mean over n samples, added tap by tap in a fixed order: every output sums the
         # same values in the same order whatever the chunking (lfilter's FIR state does not:
         # it differs in the last bit between chunkings).
@@ -129,9 +158,10 @@ class ContactDetector:
     >>> events += detector.finish()
     """
 
-    def __init__(self, settings: ContactSettings):
+    def __init__(self, settings: ContactSettings, *, prefiltered: bool = False):
         self.s = settings
-        self._envelope = DetectionEnvelope(settings)
+        self._prefiltered = prefiltered
+        self._envelope = DetectionEnvelope(settings, prefiltered=prefiltered)
         self._gap = settings.samples(settings.refractory_s)
         self._after = settings.samples(settings.report_after_s)
         self._back = settings.samples(settings.lookback_s)
@@ -151,9 +181,11 @@ class ContactDetector:
         self.events = 0
 
     def push(self, stamps_ns: np.ndarray, values: np.ndarray) -> list[ContactEvent]:
-        """Events reported by the end of these samples (stamps (N,), values (N, 3))."""
+        """Events reported by the end of these samples (stamps (N,), values (N, 3); with
+        `prefiltered`, the band-passed 1-D signal (N,))."""
         stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
-        values = np.asarray(values, np.float64).reshape(-1, 3)
+        values = np.asarray(values, np.float64)
+        values = (_as_x(values) if self._prefiltered else values).reshape(-1, 3)
         if not len(stamps_ns):
             return []
         keep, i = stamp_order(self._last_stamp, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
@@ -185,7 +217,7 @@ class ContactDetector:
         """The clock went back: report what is pending, then detect afresh (filter state,
         history and refractory time cleared)."""
         events = self._report(final=True)
-        self._envelope = DetectionEnvelope(self.s)
+        self._envelope = DetectionEnvelope(self.s, prefiltered=self._prefiltered)
         self._base += len(self._stamps)
         self._stamps, self._env, self._axes = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
         self._last_above, self._pending, self._last_stamp = None, [], None
@@ -251,24 +283,26 @@ def no_contact_threshold(
     envelope: np.ndarray,
     *,
     sample_rate_hz: float,
-    false_alarms_per_min: float = 0.0,
+    false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
     refractory_s: float = REFRACTORY_S,
     margin: float = THRESHOLD_MARGIN,
 ) -> tuple[float, float]:
     """(threshold, false alarms per minute it gives on these data) from the detection
-    envelope of no-contact data. With no budget (or too little data for one false alarm),
-    `margin` x the largest envelope (no event on the data); else the level of the
-    (k + 1)-th largest envelope peak (peaks `refractory_s` apart), k = budget x minutes."""
+    envelope of no-contact data: `margin` x the level the envelope stays above for
+    `false_alarms_per_min` x BURST_S seconds per minute (its 1 - budget x BURST_S / 60
+    quantile; budget 0: its largest value). The one threshold rule of `egovib detect`,
+    `egovib evaluate` and the contact_detector node; a quantile, not the k-th largest
+    peak, so a short calibration recording is not set by its single largest burst."""
     envelope = np.asarray(envelope, np.float64)
     if not envelope.size:
         raise ConfigError("no no-contact samples to set a detection threshold from")
+    if not (math.isfinite(false_alarms_per_min) and false_alarms_per_min >= 0):
+        raise ConfigError(
+            f"false_alarms_per_min must be a number >= 0, got {false_alarms_per_min!r}"
+        )
+    share = min(false_alarms_per_min * BURST_S / 60.0, 0.5)
+    threshold = margin * float(np.quantile(envelope, 1.0 - share) if share > 0 else envelope.max())
     minutes = envelope.size / sample_rate_hz / 60.0
-    allowed = int(math.floor(false_alarms_per_min * minutes))
     gap = max(1, int(round(refractory_s * sample_rate_hz)))
-    peaks = np.sort(envelope[signal.find_peaks(envelope, distance=gap)[0]])[::-1]
-    if allowed < 1 or allowed >= len(peaks):
-        threshold = margin * float(envelope.max())
-    else:
-        threshold = float(peaks[allowed])
-    rate = float(np.count_nonzero(peaks > threshold)) / minutes if minutes > 0 else 0.0
-    return threshold, rate
+    above = envelope[signal.find_peaks(envelope, distance=gap)[0]] > threshold
+    return threshold, float(np.count_nonzero(above)) / minutes if minutes > 0 else 0.0

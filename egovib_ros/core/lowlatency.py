@@ -253,6 +253,7 @@ def _gain_kernel(
     v,
     zv,
     out_v,
+    power_scale,
 ):
     """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1); state updated in
     place; out[i] = output for the sample `D` before sample i (hist holds D + 1 samples
@@ -260,13 +261,16 @@ def _gain_kernel(
     and the guard's log level (calibration), or an empty array. v (n, C), or an empty
     array: a second signal split by the same bank (states zv) and weighted by the same
     gains, with no look-ahead (`out_v`): the drop-in output's unfiltered counterpart of
-    the band-passed residual, given already `D` samples late."""
+    the band-passed residual, given already `D` samples late. power_scale (n,), or an empty
+    array: each sample's expected noise powers are multiplied by it (a level change over
+    time, the gap diagnosis's drift advice)."""
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1
     size = hist.shape[2]
     keep = collect.shape[0] == n
     second = v.shape[0] == n
+    scaled = power_scale.shape[0] == n
     pos = position[0]
     phase = position[1]  # samples since the last correction update
     ratio = np.empty(B)
@@ -296,6 +300,8 @@ def _gain_kernel(
             for k in range(B):
                 p = power[c, k]
                 expected = noise[row[i], c, k]
+                if scaled:
+                    expected *= power_scale[i]
                 if expected > 0.0:
                     # The noise of the speeds just left, decaying (see the module doc).
                     decayed = noise_held[c, k] * hold_decay
@@ -496,12 +502,14 @@ class LowLatencyGain:
         index: np.ndarray | None = None,
         collect: bool = False,
         unfiltered: np.ndarray | None = None,
+        power_scale: np.ndarray | None = None,
     ):
         """r (n, C) samples; noise (n, C, B) expected band powers per sample, or (R, C, B)
         rows with `index` (n,) naming each sample's row (held joint states: one row per
         joint state, not per sample). `unfiltered` (n, C): the signal whose band-passed
         image, D samples late, is `r` (the drop-in output's); it is split by the same bank
-        and weighted by the same gains: returns (out, out_unfiltered)."""
+        and weighted by the same gains: returns (out, out_unfiltered). `power_scale` (n,):
+        a factor on each sample's expected noise powers."""
         r = np.ascontiguousarray(r, dtype=np.float64)
         noise = np.ascontiguousarray(noise, dtype=np.float64)
         C, B = self.n_channels, self.bank.n_bands
@@ -525,6 +533,11 @@ class LowLatencyGain:
             if v.shape != r.shape:
                 raise ConfigError(f"gain: unfiltered samples {v.shape} differ from {r.shape}")
         out_v = np.empty_like(v)
+        scale = (
+            np.empty(0)
+            if power_scale is None
+            else np.ascontiguousarray(np.broadcast_to(power_scale, (len(r),)), dtype=np.float64)
+        )
         if len(r):
             s = self.state
             span = float(self.settings.open_span) if self.settings.open_hold_ms > 0 else 0.0
@@ -565,6 +578,7 @@ class LowLatencyGain:
                 v,
                 s.zv,
                 out_v,
+                scale,
             )
         if unfiltered is not None:
             return out, out_v

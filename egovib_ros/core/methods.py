@@ -35,6 +35,12 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.core.calibration import calibrate_arrays
+from egovib_ros.core.contact import (
+    FALSE_ALARMS_PER_MIN,
+    ContactSettings,
+    DetectionEnvelope,
+    no_contact_threshold,
+)
 from egovib_ros.core.filters import (
     CarriedFilter,
     highpass_inverse,
@@ -58,18 +64,28 @@ from egovib_ros.core.subtraction import (
     StreamingDenoiser,
     check_output,
     check_stream_fits_model,
+    noise_gain_curve,
 )
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError, ModelFileError, StreamError
 
 LOG = logging.getLogger("egovib_ros.core")
 
 METHODS = ("paper", "cancel", "hybrid")
+#: What a command or node runs when no method is named: the one that removes the most and
+#: keeps events best (docs/methods_compare.md), where the model carries what it needs.
+DEFAULT_METHOD = "hybrid"
 AXES = ("x", "y", "z")
 #: Keys of the noise model's extras written by calibrate_methods.
 HARMONIC_PREFIX = "harmonic."
 RESIDUAL_PREFIX = "residual."
 GAIN_PREFIX = "gain."
 CANCELLER_PREFIX = "canceller."
+#: ... and the contact detector's thresholds, per method (and "raw": no denoising)
+DETECTOR_PREFIX = "detector.threshold."
+DETECTOR_BUDGET = "detector.false_alarms_per_min"
+#: The ends of a calibration recording the thresholds leave out (filter start-up, flush).
+EDGE_S = 0.1
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
 SETTLE_S = 0.5
 #: Least expected residual power, dB below the channel and band's mean over measured cells.
@@ -80,6 +96,79 @@ def check_method(method: str) -> str:
     if method not in METHODS:
         raise ConfigError(f"method: expected one of {list(METHODS)}, got {method!r}")
     return method
+
+
+def has_method_calibration(model: NoiseModel) -> bool:
+    """Whether the model carries what `cancel` and `hybrid` need (calibrate_methods)."""
+    return HARMONIC_PREFIX + "exponent" in model.extras
+
+
+def default_method(model: NoiseModel) -> str:
+    """DEFAULT_METHOD, or `paper` for a model calibrated for the paper's method only."""
+    return DEFAULT_METHOD if has_method_calibration(model) else "paper"
+
+
+def resolve_method(model: NoiseModel, method: str | None) -> str:
+    """The method asked for (checked), or the model's default when none is."""
+    return default_method(model) if method is None else check_method(method)
+
+
+def stored_threshold(model: NoiseModel, method: str) -> float | None:
+    """The contact detector's threshold for `method`'s default output (or "raw") that
+    calibration stored in the model (calibrate_detection); None if it did not."""
+    value = model.extras.get(DETECTOR_PREFIX + method)
+    if value is None:
+        return None
+    value = np.asarray(value)
+    if value.ndim != 0 or value.dtype.kind not in "if" or not (np.isfinite(value) and value > 0):
+        where = model.provenance.get("path", "noise model")
+        raise ModelFileError(f"{where}: malformed field {DETECTOR_PREFIX + method!r}")
+    return float(value)
+
+
+def calibrate_detection(
+    model: NoiseModel,
+    sensor_stamps_ns: np.ndarray,
+    accel: np.ndarray,
+    joint_stamps_ns: np.ndarray,
+    joint_velocity: np.ndarray,
+    *,
+    false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
+    source: str = "",
+) -> tuple[NoiseModel, dict]:
+    """The contact detector's threshold for each method the model can run (its default
+    output, as `egovib detect` and the contact_detector node read it) and for the raw
+    signal, from no-contact data (the calibration recording): core.contact's rule at
+    `false_alarms_per_min`, the first and last EDGE_S left out. Returns the model with
+    them in its extras (so a model calibrated live feeds the detector alone) and them."""
+    settings = ContactSettings.for_model(model, 1.0)
+    edge = int(EDGE_S * model.sample_rate_hz)
+    methods = [m for m in METHODS if m == "paper" or has_method_calibration(model)]
+    thresholds = {}
+    for method in ["raw", *methods]:
+        if method == "raw":
+            values = np.asarray(accel, float)
+        else:
+            _, values, _ = denoise_batch_method(
+                sensor_stamps_ns,
+                accel,
+                joint_stamps_ns,
+                joint_velocity,
+                model,
+                method=method,
+                source=source,
+            )
+        envelope = DetectionEnvelope(settings).process(values)[1]
+        if len(envelope) <= 2 * edge:
+            raise StreamError(f"{source or 'calibration'}: too short for detection thresholds")
+        thresholds[method], _ = no_contact_threshold(
+            envelope[edge:-edge],
+            sample_rate_hz=model.sample_rate_hz,
+            false_alarms_per_min=false_alarms_per_min,
+        )
+    extras = {DETECTOR_PREFIX + m: np.array(t) for m, t in thresholds.items()}
+    extras[DETECTOR_BUDGET] = np.array(float(false_alarms_per_min))
+    return model.replace(extras={**model.extras, **extras}), thresholds
 
 
 # --------------------------------------------------------------------------------------
@@ -629,6 +718,8 @@ class SampleMethodDenoiser(FramedDenoiser):
         floor: float | None = None,
         lookahead_ms: float | None = None,
         output: str | None = None,
+        joint_lag_s: float = 0.0,
+        noise_gain_db: tuple[tuple[float, float], ...] = (),
         source: str = "",
     ):
         if check_method(method) == "paper":
@@ -655,9 +746,14 @@ class SampleMethodDenoiser(FramedDenoiser):
             max_hold_s=max_hold_s,
             with_steadiness=False,
             keep_raw=output == "dropin",
+            joint_lag_s=joint_lag_s,
             source=source,
         )
         self._framer = SampleFramer(self.settings, model.n_joints)
+        # the gap diagnosis's drift advice: the expected noise follows a level change over
+        # the elapsed time from the first sample (as the paper's StreamingDenoiser does)
+        self._noise_gain = noise_gain_curve(noise_gain_db)
+        self._t0_ns: int | None = None
         # The drop-in output: the lines tracked again in the unfiltered signal (high-passed
         # below the band: gravity and motion never reach their trackers).
         self._lines_input = (
@@ -779,12 +875,30 @@ class SampleMethodDenoiser(FramedDenoiser):
 
     def _gained(self, stamps, residual, velocity, unfiltered=None):
         rows, index = self._table.rows(velocity)
+        scale = self._power_scale(stamps)
         stamps, self._lag_stamps = _delayed(self._lag_stamps, stamps)
         if unfiltered is None:
-            return self._output(stamps, self._gain.process(residual, rows, index=index))
+            out = self._gain.process(residual, rows, index=index, power_scale=scale)
+            return self._output(stamps, out)
         low, high = self._split.process(*unfiltered)
-        _, high = self._gain.process(residual, rows, index=index, unfiltered=high)
+        _, high = self._gain.process(
+            residual, rows, index=index, unfiltered=high, power_scale=scale
+        )
         return self._output(stamps, low + high)
+
+    def _power_scale(self, stamps: np.ndarray) -> np.ndarray | None:
+        """Per sample, the factor on the expected noise power that `noise_gain_db` gives at
+        its time since the first sample (a synthetic sample: the last real one's); None
+        without a level change."""
+        if self._noise_gain is None:
+            return None
+        real = stamps >= 0
+        if self._t0_ns is None and real.any():
+            self._t0_ns = int(stamps[real][0])
+        t0 = self._t0_ns if self._t0_ns is not None else 0
+        held = np.maximum.accumulate(np.where(real, stamps, t0))
+        knots_s, gain_db = self._noise_gain
+        return 10.0 ** (np.interp((held - t0) / NS_PER_S, knots_s, gain_db) / 10.0)
 
     def _release_lookahead(self):
         """The segment ended: push silence through the gain to release the last samples it
@@ -799,7 +913,7 @@ class SampleMethodDenoiser(FramedDenoiser):
             np.full(d, -1, np.int64),
             zeros,
             np.array(velocity),
-            None if self._split is None else (zeros, zeros),
+            None if self._split is None else self._split.held(d),
         )
         self._gain.reset_signal()
         if self._split is not None:
@@ -858,8 +972,16 @@ class DropInSplit:
         self.reset()
 
     def reset(self) -> None:
-        self._raw = np.zeros((len(self.taps) - 1, self.n_channels))  # the FIRs' histories
-        self._cleaned = np.zeros_like(self._raw)
+        """A new segment: the FIRs' histories are filled with its first samples (as if the
+        stream had been steady before it: gravity passes from the first sample on)."""
+        self._raw: np.ndarray | None = None
+        self._cleaned: np.ndarray | None = None
+        self._last = (np.zeros((1, self.n_channels)), np.zeros((1, self.n_channels)))
+
+    def held(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """n more samples of each input held at its last value: what releases the last
+        `delay` samples at a segment's end with gravity still in them."""
+        return np.repeat(self._last[0], n, axis=0), np.repeat(self._last[1], n, axis=0)
 
     def _low(self, history: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         both = np.concatenate([history, np.asarray(x, float)])
@@ -867,6 +989,13 @@ class DropInSplit:
         return _fir(self.taps, both), late, both[len(both) - len(history) :]
 
     def process(self, raw: np.ndarray, cleaned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._raw is None:
+            if not len(raw):
+                return np.zeros((0, self.n_channels)), np.zeros((0, self.n_channels))
+            size = (len(self.taps) - 1, 1)
+            self._raw = np.tile(np.asarray(raw[:1], float), size)
+            self._cleaned = np.tile(np.asarray(cleaned[:1], float), size)
+        self._last = (np.asarray(raw[-1:], float), np.asarray(cleaned[-1:], float))
         low, _, self._raw = self._low(self._raw, raw)
         cleaned_low, late, self._cleaned = self._low(self._cleaned, cleaned)
         return low, late - cleaned_low
@@ -877,14 +1006,14 @@ def dropin_lookahead_ms(gain: GainSettings) -> float:
     return max(gain.lookahead_ms, gain.split_ms)
 
 
-def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **options):
+def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, **options):
     """The streaming denoiser of `method` for `model` (same push interface for all).
     Options the method does not take are refused (ConfigError naming them); an option at
     the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
     is no option. `output`: "dropin" (the default with per-axis channels) or "bandpassed",
     for every method (cancel and hybrid take their drop-in output `BandInverse.delay`
     samples later than their band-passed one)."""
-    check_method(method)
+    method = resolve_method(model, method)
     if method == "paper":
         if options.pop("lookahead_ms", None) is not None:
             raise ConfigError(
@@ -897,9 +1026,7 @@ def make_denoiser(model: NoiseModel, method: str = "paper", *, output=None, **op
     for name, value in defaults.items():
         if name in options and (options[name] == value or options[name] is None):
             del options[name]
-    paper_only = {"oversubtraction", "include_std", "rule", "joint_lag_s", "noise_gain_db"} & set(
-        options
-    )
+    paper_only = {"oversubtraction", "include_std", "rule"} & set(options)
     if paper_only:
         raise ConfigError(f"method {method}: option(s) {sorted(paper_only)} apply to `paper` only")
     return SampleMethodDenoiser(model, method=method, output=output, **options)
@@ -912,7 +1039,7 @@ def denoise_batch_method(
     joint_velocity: np.ndarray,
     model: NoiseModel,
     *,
-    method: str = "paper",
+    method: str | None = None,
     channels: str = "per_axis",
     chunk_s: float = 30.0,
     **options,
@@ -951,14 +1078,20 @@ def method_delay_ms(
 
 
 __all__ = [
+    "DEFAULT_METHOD",
     "METHODS",
     "MAX_DELAY_MS",
     "DropInSplit",
     "MethodCalibration",
     "ResidualTable",
     "SampleMethodDenoiser",
+    "calibrate_detection",
     "calibrate_methods",
     "check_method",
+    "default_method",
+    "has_method_calibration",
+    "resolve_method",
+    "stored_threshold",
     "denoise_batch_method",
     "make_denoiser",
     "method_delay_ms",

@@ -63,12 +63,18 @@ class SampleFramer(_Framer):
         self._last_time: int | None = None  # effective time of the last real sample appended
         self._segment_open = False  # samples appended since the segment started
         self._rate_stamps: list[np.ndarray] = []
-        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S)
+        # joint states that lag the sensor (FramerSettings.joint_lag_s) are moved later, and
+        # arrive that much later relative to the samples they cover
+        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
+        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
         self.samples_no_joint_state = 0
 
     # --- input ---------------------------------------------------------------
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
+        self._push_joint_states(stamps_ns + self._joint_lag_ns, velocity)
+
+    def _push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
@@ -78,12 +84,12 @@ class SampleFramer(_Framer):
             # The joint clock went back: finish what waits on the old clock, then forget it.
             i = int(np.argmax(stamps_ns < last - jump_ns))
             self.stats.joint_states_in -= len(stamps_ns)
-            self.push_joint_states(stamps_ns[:i], velocity[:i])
+            self._push_joint_states(stamps_ns[:i], velocity[:i])
             self._close_segment(wait_for_joints=False)
             self._drain()
             self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
             self.stats.joint_states_in += len(stamps_ns) - i
-            self.push_joint_states(stamps_ns[i:], velocity[i:])
+            self._push_joint_states(stamps_ns[i:], velocity[i:])
             self.stats.joint_states_in -= len(stamps_ns) - i  # counted once, above
             return
         before = np.maximum.accumulate(

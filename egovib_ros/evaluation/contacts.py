@@ -1,12 +1,14 @@
 """`egovib detect` as a library: contact events in a recorded bag (and their scores).
 
-The bag's sensor stream goes through the core's denoiser (any method; or none: `raw`),
-then through core.contact's detector, exactly as the denoiser and contact_detector nodes
-run live. The threshold is fixed before the bag is looked at: from no-contact data (the
-model's calibration bag, or another) processed the same way, at a stated false-alarm
-budget per minute (core.contact.no_contact_threshold), or given.
+The bag's sensor stream goes through the core's denoiser (any method, by default the
+model's default method and its drop-in output; or none: `raw`), then through core.contact's
+detector, exactly as the denoiser and contact_detector nodes run live. The threshold is
+fixed before the bag is looked at, by core.contact's one rule on no-contact data processed
+the same way: the one calibration stored in the model (core.methods.calibrate_detection),
+or computed again from a no-contact bag (`calibration`, or settings the stored one was not
+made with), or given.
 
-    detect_bag(bag, model=..., method=..., threshold=None, calibration=...) -> Detection
+    detect_bag(bag, model=..., method=None, threshold=None, calibration=None) -> Detection
 
 With the simulator's ground truth in the bag (`<sensor parent>/contact`), the events are
 scored against the true tap onsets (+-10 ms, as `egovib evaluate`): F1, false alarms per
@@ -25,17 +27,26 @@ import numpy as np
 from egovib_ros.bag.recording import iter_recording
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import (
+    FALSE_ALARMS_PER_MIN,
     ContactDetector,
     ContactEvent,
     ContactSettings,
     DetectionEnvelope,
     no_contact_threshold,
 )
+from egovib_ros.core.methods import (
+    DETECTOR_BUDGET,
+    EDGE_S,
+    METHODS,
+    make_denoiser,
+    method_delay_ms,
+    resolve_method,
+    stored_threshold,
+)
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 
-METHODS = ("paper", "cancel", "hybrid", "raw")
-EDGE_S = 0.1  # filter start-up and flush at the ends of a calibration recording
+DETECT_METHODS = (*METHODS, "raw")
 TOLERANCE_S = 0.010  # a detection within this of a true onset is a true positive
 
 
@@ -53,51 +64,36 @@ class Detection:
     counts: dict = field(default_factory=dict)
 
 
+def check_detect_method(model: NoiseModel, method: str | None) -> str:
+    """The method to detect after: the model's default when None, `raw` for none."""
+    if method == "raw":
+        return method
+    if method is not None and method not in DETECT_METHODS:
+        raise ConfigError(f"method: expected one of {list(DETECT_METHODS)}, got {method!r}")
+    return resolve_method(model, method)
+
+
 def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str):
     if method == "raw":
         return None
-    from egovib_ros.bag.denoise import make_method_denoiser
-
-    # cancel and hybrid: the band-passed output, their drop-in's is later and the detector
-    # band-passes its input anyway
-    return make_method_denoiser(
-        model,
-        method,
-        channels="per_axis",
-        output=None if method == "paper" else "bandpassed",
-        joint_lag_s=joint_lag_s,
-        source=source,
-    )
+    # the default output (the drop-in), as the denoiser node publishes it by default
+    return make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source)
 
 
 def _delay_ms(model: NoiseModel, method: str) -> float:
-    if method == "raw":
-        return 0.0
-    if method == "paper":
-        return 1e3 * (model.block_length - 1) / model.sample_rate_hz
-    from egovib_ros.core.methods import method_delay_ms
-
-    return method_delay_ms(model, method, output="bandpassed")  # what _denoiser makes
+    return 0.0 if method == "raw" else method_delay_ms(model, method)
 
 
-def _stream(
-    bag, model: NoiseModel, method: str, joint_lag_s: float, *, ground_truth: bool,
-    speed_limit: np.ndarray | None = None,
-):  # fmt: skip
-    """(stamps, values (N, 3), contact (N, 3) or None, within (N,) bool) of the method's
-    output on `bag`; `within`: the joint speeds held at each sample are within
-    `speed_limit` (all True without one)."""
+def _stream(bag, model: NoiseModel, method: str, joint_lag_s: float, *, ground_truth: bool):
+    """(stamps, values (N, 3), contact (N, 3) or None) of the method's output on `bag`."""
     profile = model.robot_profile()
     denoiser = _denoiser(model, method, joint_lag_s, f"{bag}: {profile.sensor_topic}")
     truth: dict[int, np.ndarray] = {}
-    speed_ok: dict[int, bool] = {}
     for piece in iter_recording(
         bag, profile=profile, ground_truth=ground_truth, denoised=False, commands=False
     ):
         if ground_truth and piece.contact is not None:
             truth.update(zip(piece.sensor_stamps_ns.tolist(), piece.contact))
-        if speed_limit is not None:
-            speed_ok.update(zip(piece.sensor_stamps_ns.tolist(), _within(piece, speed_limit)))
         if denoiser is None:
             outputs = [(piece.sensor_stamps_ns, piece.sensor)]
         else:
@@ -110,22 +106,22 @@ def _stream(
             ]
         for stamps, values in outputs:
             if len(stamps):
-                yield stamps, values, _truth(truth, stamps), _pop(speed_ok, stamps)
+                yield stamps, values, _truth(truth, stamps)
     if denoiser is not None:
         chunk = denoiser.flush()
         if len(chunk):
-            stamps = chunk.stamps_ns
-            yield stamps, chunk.values, _truth(truth, stamps), _pop(speed_ok, stamps)
+            yield chunk.stamps_ns, chunk.values, _truth(truth, chunk.stamps_ns)
 
 
 def method_output(
-    bag, model: NoiseModel, method: str, joint_lag_s: float = 0.0
+    bag, model: NoiseModel, method: str | None = None, joint_lag_s: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(stamps (N,), values (N, 3), ground truth (N, 3) or None): what `detect_bag` feeds
     its detector on `bag` (the method's streaming output, or the raw stream), whole; for
     looking at why a method detects what it does."""
+    method = check_detect_method(model, method)
     stamps, values, truth = [], [], []
-    for s, v, contact, _ in _stream(bag, model, method, joint_lag_s, ground_truth=True):
+    for s, v, contact in _stream(bag, model, method, joint_lag_s, ground_truth=True):
         stamps.append(s)
         values.append(v)
         if contact is not None:
@@ -138,48 +134,10 @@ def method_output(
     return stamps_all, values_all, contact_all
 
 
-def _within(piece, speed_limit: np.ndarray) -> np.ndarray:
-    """Per sensor sample: the last joint state before it has every |speed| within limit."""
-    if not len(piece.joint_stamps_ns):
-        return np.zeros(len(piece.sensor_stamps_ns), bool)
-    at = np.searchsorted(piece.joint_stamps_ns, piece.sensor_stamps_ns, side="right") - 1
-    speeds = np.abs(piece.joint_velocity[np.maximum(at, 0)])
-    return (at >= 0) & np.all(speeds <= speed_limit, axis=1)
-
-
-def _pop(flags: dict, stamps: np.ndarray) -> np.ndarray:
-    if not flags:
-        return np.ones(len(stamps), bool)
-    return np.array([flags.pop(int(s), False) for s in stamps.tolist()], bool)
-
-
-def run_speed_limit(bag, model: NoiseModel, margin: float = 1.05) -> np.ndarray:
-    """(J,) the run's largest |joint speed| per joint x `margin`: the calibration samples a
-    threshold is taken from stay within the speeds the run reaches (as `egovib evaluate`
-    does)."""
-    top = np.zeros(model.n_joints)
-    for piece in iter_recording(
-        bag, profile=model.robot_profile(), ground_truth=False, denoised=False, commands=False
-    ):
-        if len(piece.joint_velocity):
-            top = np.fmax(top, np.nanmax(np.abs(piece.joint_velocity), axis=0))
-    return margin * top
-
-
 def _truth(truth: dict, stamps: np.ndarray):
     if not truth:
         return None
     return np.array([truth.pop(int(s), np.zeros(3)) for s in stamps.tolist()]).reshape(-1, 3)
-
-
-def _settings(model: NoiseModel, threshold: float) -> ContactSettings:
-    return ContactSettings(
-        sample_rate_hz=model.sample_rate_hz,
-        band_hz=model.band_hz,
-        band_order=model.band_order,
-        threshold=threshold,
-        sensor_range=model.robot_profile().sensor_range,
-    )
 
 
 def calibration_threshold(
@@ -187,68 +145,103 @@ def calibration_threshold(
     model: NoiseModel,
     *,
     method: str,
-    false_alarms_per_min: float,
+    false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
     joint_lag_s: float = 0.0,
-    speed_limit: np.ndarray | None = None,
 ) -> tuple[float, float]:
     """(threshold, false alarms per minute on these data) from a no-contact bag processed
-    as the run will be (the method, then the detector's envelope); its first and last
-    EDGE_S left out (filter start-up and flush), and with `speed_limit` only the samples at
-    joint speeds within it (if at least a second of them remains)."""
-    envelope = DetectionEnvelope(_settings(model, 1.0))
-    parts, masks = [], []
-    for _, values, _, within in _stream(
-        bag, model, method, joint_lag_s, ground_truth=False, speed_limit=speed_limit
-    ):
-        parts.append(envelope.process(values)[1])
-        masks.append(within)
+    as the run will be (the method, then the detector's envelope), by core.contact's rule;
+    its first and last EDGE_S left out (filter start-up and flush)."""
+    envelope = DetectionEnvelope(ContactSettings.for_model(model, 1.0))
+    parts = [
+        envelope.process(values)[1]
+        for _, values, _ in _stream(bag, model, method, joint_lag_s, ground_truth=False)
+    ]
     values = np.concatenate(parts) if parts else np.zeros(0)
-    within = np.concatenate(masks) if masks else np.zeros(0, bool)
     edge = int(EDGE_S * model.sample_rate_hz)
     if len(values) <= 2 * edge:
         raise ConfigError(f"{bag}: too short for detection thresholds")
-    values, within = values[edge:-edge], within[edge:-edge]
-    if np.count_nonzero(within) >= model.sample_rate_hz:
-        values = values[within]
     return no_contact_threshold(
-        values,
+        values[edge:-edge],
         sample_rate_hz=model.sample_rate_hz,
         false_alarms_per_min=false_alarms_per_min,
     )
+
+
+def detection_threshold_needs_data(
+    model: NoiseModel, method: str, false_alarms_per_min: float | None, joint_lag_s: float
+) -> bool:
+    """Whether a threshold for these settings needs no-contact data: the model stores none
+    for `method`, or one made at another budget or without the joint lag."""
+    budget = model.extras.get(DETECTOR_BUDGET)
+    return (
+        stored_threshold(model, method) is None
+        or budget is None
+        or (false_alarms_per_min is not None and float(budget) != float(false_alarms_per_min))
+        or joint_lag_s != 0.0
+    )
+
+
+def detection_threshold(
+    model: NoiseModel,
+    method: str,
+    *,
+    threshold: float | None = None,
+    calibration: str | os.PathLike | None = None,
+    false_alarms_per_min: float | None = None,
+    joint_lag_s: float = 0.0,
+) -> tuple[float, str, float | None]:
+    """(threshold, where it came from, false alarms per minute it gave on its no-contact
+    data or None): `threshold` if given; else the model's stored one when nothing asks for
+    another (no `calibration` bag, no budget but the stored one's, no joint lag); else
+    computed from `calibration` (default: the bag the model was calibrated from)."""
+    if threshold is not None:
+        return float(threshold), "given", None
+    if calibration is None and not detection_threshold_needs_data(
+        model, method, false_alarms_per_min, joint_lag_s
+    ):
+        budget = float(model.extras[DETECTOR_BUDGET])
+        return stored_threshold(model, method), f"stored in the model, {budget:g}/min", None
+    calibration = calibration or model.provenance.get("source_bag")
+    if not calibration:
+        raise ConfigError(
+            "detect: the model stores no detection threshold for this method and names no "
+            "calibration bag: give --calibration (a no-contact bag) or --threshold"
+        )
+    budget = FALSE_ALARMS_PER_MIN if false_alarms_per_min is None else false_alarms_per_min
+    value, rate = calibration_threshold(
+        calibration,
+        model,
+        method=method,
+        false_alarms_per_min=budget,
+        joint_lag_s=joint_lag_s,
+    )
+    return value, f"no-contact data {Path(calibration)}, {budget:g}/min", rate
 
 
 def detect_bag(
     bag: str | os.PathLike,
     *,
     model: NoiseModel,
-    method: str = "paper",
+    method: str | None = None,
     threshold: float | None = None,
     calibration: str | os.PathLike | None = None,
-    false_alarms_per_min: float = 0.0,
+    false_alarms_per_min: float | None = None,
     joint_lag_s: float = 0.0,
 ) -> Detection:
-    """Contact events of `bag` (see the module doc). `threshold` given, else from the
-    no-contact bag `calibration`."""
-    if method not in METHODS:
-        raise ConfigError(f"method: expected one of {list(METHODS)}, got {method!r}")
-    if threshold is None:
-        if calibration is None:
-            raise ConfigError("detect: a threshold or a no-contact calibration bag is needed")
-        threshold, rate = calibration_threshold(
-            calibration,
-            model,
-            method=method,
-            false_alarms_per_min=false_alarms_per_min,
-            joint_lag_s=joint_lag_s,
-            speed_limit=run_speed_limit(bag, model),
-        )
-        source = f"no-contact data at this run's joint speeds: {Path(calibration)}"
-    else:
-        rate, source = None, "given"
-    detector = ContactDetector(_settings(model, threshold))
+    """Contact events of `bag` (see the module doc)."""
+    method = check_detect_method(model, method)
+    threshold, source, rate = detection_threshold(
+        model,
+        method,
+        threshold=threshold,
+        calibration=calibration,
+        false_alarms_per_min=false_alarms_per_min,
+        joint_lag_s=joint_lag_s,
+    )
+    detector = ContactDetector(ContactSettings.for_model(model, threshold))
     events: list[ContactEvent] = []
     truth_parts, stamp_parts = [], []
-    for stamps, values, contact, _ in _stream(bag, model, method, joint_lag_s, ground_truth=True):
+    for stamps, values, contact in _stream(bag, model, method, joint_lag_s, ground_truth=True):
         events += detector.push(stamps, values)
         stamp_parts.append(stamps)
         if contact is not None:
@@ -256,11 +249,14 @@ def detect_bag(
     events += detector.finish()
     stamps = np.concatenate(stamp_parts) if stamp_parts else np.zeros(0, np.int64)
     duration_s = float(stamps[-1] - stamps[0]) / NS_PER_S if len(stamps) > 1 else 0.0
+    budget = model.extras.get(DETECTOR_BUDGET, FALSE_ALARMS_PER_MIN)
     result = Detection(
         events=events,
         threshold=float(threshold),
         threshold_source=source,
-        false_alarm_budget_per_min=float(false_alarms_per_min),
+        false_alarm_budget_per_min=float(
+            false_alarms_per_min if false_alarms_per_min is not None else budget
+        ),
         calibration_false_alarms_per_min=rate,
         method=method,
         method_delay_ms=_delay_ms(model, method),
