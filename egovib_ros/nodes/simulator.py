@@ -40,6 +40,7 @@ from egovib_ros.nodes.common import (
     SubscriberGate,
     declare_parameters,
     stream_publisher,
+    wait_for_delivery,
 )
 from egovib_ros.nodes.convert import command_velocity, encode_imu_batch, encode_joint_state_batch
 from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile
@@ -53,6 +54,13 @@ def simulator_parameters(*, frame_id: str, truth: str) -> tuple[Param, ...]:
     the descriptions; `frame_id`: the default frame of its Imu messages)."""
     return (
         Param("seed", 0, "random seed of the simulator", range=(0, 2**31 - 1)),
+        Param(
+            "duration",
+            0.0,
+            "seconds to simulate, then exit 0 once the subscribers have the last samples "
+            "(0: until stopped)",
+            range=(0.0, 1e7),
+        ),
         Param("tap_rate_hz", 0.0, "mean rate of simulated taps (0 = none)", range=(0.0, 100.0)),
         Param(
             "tap_mode",
@@ -94,6 +102,7 @@ class Simulator(Protocol):
     """What a SimulatorNode needs of its simulator (sim.HandSimulator, sim.robot.CommandedRobot)."""
 
     command: np.ndarray  # (J,) the command held
+    index: int  # samples made so far
     velocity: np.ndarray  # (J,) true joint velocity at the last sample
 
     def set_command(self, velocity) -> Any: ...
@@ -117,6 +126,9 @@ class SimulatorNode(Node):
         self.ground_truth = params["publish_ground_truth"]
         self.frame_id = params["frame_id"]
         self.max_batch_s = params["max_batch"]
+        self.duration_s = params["duration"]
+        #: samples to simulate (0: until stopped)
+        self.total_samples = int(round(self.duration_s * self.profile.rate_hz))
         self.done = Future()  # run_node spins until it is done: its result, the exit status
         self.make(start_ns=0)  # validate the settings now, not at the first tick
         self.sim: Simulator | None = None
@@ -218,7 +230,7 @@ class SimulatorNode(Node):
         if self._stop_requested:
             return
         now_ns = self.get_clock().now().nanoseconds
-        if now_ns <= 0:  # use_sim_time and no /clock yet
+        if now_ns <= 0 or self.done.done():  # use_sim_time and no /clock yet; or finished
             return
         if self.sim is None:
             if not self._subscribers_ready():
@@ -230,6 +242,8 @@ class SimulatorNode(Node):
                 )
             self.get_logger().info(f"simulation started at stamp {now_ns} ns")
         lag = self.due(now_ns)
+        if self.total_samples:
+            lag = min(lag, self.total_samples - self.sim.index)
         if lag <= 0:
             return
         self.max_lag_samples = max(self.max_lag_samples, lag)
@@ -254,6 +268,18 @@ class SimulatorNode(Node):
                 for data in encode_imu_batch(chunk.sensor_stamps_ns, values, self.frame_id, field):
                     publisher.publish(data)
         self.samples_published += n
+        if self.total_samples and self.sim.index >= self.total_samples:
+            self._finish()
+
+    def _finish(self) -> None:
+        """`duration` simulated: the subscribers get the last samples, then exit status 0."""
+        self.get_logger().info(
+            f"simulated {self.duration_s:g} s: {self.samples_published} samples, {self.taps} taps"
+        )
+        publishers = [self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego]
+        wait_for_delivery(self, [p for p in publishers if p is not None], "the last samples")
+        self._publish_diagnostics()
+        self.done.set_result(0)
 
     def _subscribers_ready(self) -> bool:
         """All streams matched (or waited long enough): recordings then start complete."""
@@ -291,7 +317,9 @@ class SimulatorNode(Node):
             warnings=[
                 text.format(grown[key]) for key, text in self.WARN_COUNTERS.items() if grown[key]
             ],
-            ok="simulating",
+            ok="done"
+            if self.total_samples and self.sim.index >= self.total_samples
+            else "simulating",
             values=values,
         )
         self.max_lag_samples = 0
