@@ -1,8 +1,9 @@
 """sim_robot on real DDS: a robot that is not the PR2, live end to end, as README's "Your
-robot, live" runs it. config/robots/example_arm.yaml (3 joints, an accelerometer on
-/arm/imu at 2 kHz): sweep_driver commands its superposition grid to sim_robot, the
-calibrator measures the model while bag_recorder keeps the sweep (no contact: the
-detector's threshold); then sim_robot with taps, the denoiser with the live model, and
+robot, live" runs it, shortened (0.35 s per cell, a 6 s run whose motion this test
+commands). config/robots/example_arm.yaml (3 joints, an accelerometer on /arm/imu at
+2 kHz): sweep_driver commands its superposition grid to sim_robot, the calibrator measures
+the model while bag_recorder keeps the sweep (no contact: the detector's threshold, its
+`calibration_bag`); then sim_robot with taps, the denoiser with the live model, and
 contact_detector on its output find the simulator's true taps."""
 
 from __future__ import annotations
