@@ -8,6 +8,10 @@ contact_detector on its output find the simulator's true taps."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import matched
@@ -207,3 +211,27 @@ def test_example_arm_live_sweep_calibrate_denoise_and_detect_its_taps(nodes, ros
         f"noise {reduction_db:.1f} dB lower, {hits}/{len(truth)} taps found, "
         f"{false_alarms} false alarms, threshold {float(det_values['threshold']):.3g}"
     )
+
+
+def test_bad_parameters_are_one_line_exit_2(ros_domain):
+    """A profile that does not exist, more taps than the simulator makes: one line naming
+    the profile or the parameter (not the simulator's command-line option), exit status 2."""
+    cases = {
+        "no_such_arm": (["robot:=no_such_arm"], "no such robot profile"),
+        "'tap_rate_hz'": (["robot:=example_arm", "tap_rate_hz:=8.0"], "at most 6.67 taps"),
+    }
+    runs = {
+        key: subprocess.Popen(
+            [str(Path(sys.executable).parent / "sim_robot"), "--ros-args"]
+            + [a for p in params for a in ("-p", p)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for key, (params, _) in cases.items()
+    }
+    for key, run in runs.items():
+        stdout, stderr = run.communicate(timeout=60)
+        assert run.returncode == 2, (key, stdout + stderr)
+        errors = [line for line in stderr.splitlines() if "error" in line]
+        assert len(errors) == 1 and key in errors[0] and cases[key][1] in errors[0], stderr

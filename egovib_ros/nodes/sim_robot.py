@@ -19,10 +19,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import Param, run_node
 from egovib_ros.nodes.simulator import SimulatorNode, simulator_parameters
 from egovib_ros.robot import RobotProfile, load_profile
-from egovib_ros.sim.robot import DEFAULT_JOINT_RATE_HZ, SENSOR_FRAME, CommandedRobot
+from egovib_ros.sim.robot import (
+    DEFAULT_JOINT_RATE_HZ,
+    SENSOR_FRAME,
+    TAP_DEAD_TIME_S,
+    CommandedRobot,
+)
 
 PARAMETERS = (
     Param(
@@ -55,6 +61,12 @@ class SimRobot(SimulatorNode):
 
     def configure(self, params) -> RobotProfile:
         self.joint_rate_hz = params["joint_rate_hz"]
+        if params["tap_rate_hz"] > 1.0 / TAP_DEAD_TIME_S:  # said here in the node's terms
+            raise ConfigError(
+                f"sim_robot: parameter 'tap_rate_hz': at most {1.0 / TAP_DEAD_TIME_S:.3g} taps "
+                f"per second (taps are {TAP_DEAD_TIME_S:g} s apart at least), got "
+                f"{params['tap_rate_hz']:g}"
+            )
         return load_profile(params["robot"] or None)
 
     def make(self, start_ns: int) -> CommandedRobot:
