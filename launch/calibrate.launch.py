@@ -9,16 +9,20 @@ driver that commands the robot through its velocity grid.
         commands_topic:=/motor_velocity_controller/commands dwell:=5.0
     # the simulated PR2 hand, end to end:
     ros2 launch egovib_ros calibrate.launch.py sim:=true sweep:=true dwell:=2.0
+    # any profile simulated (sim_robot), end to end:
+    ros2 launch egovib_ros calibrate.launch.py robot:=example_arm sim:=true sweep:=true dwell:=1.0
 
-`robot` is a profile path or a shipped name (config/robots); empty = the PR2 hand. The
-calibrator writes a checkpoint after every cell and the model at Ctrl-C; a restarted
-calibrator resumes from the checkpoint. With `sweep:=true` the launch ends when the
+`robot` is a profile path or a shipped name (config/robots); empty = the PR2 hand.
+`sim:=true` simulates the robot too: sim_hand without `robot` (the PR2 hand), sim_robot
+with it (any profile; publishing, as sim_hand here, no ground truth). The calibrator
+writes a checkpoint after every cell and the model at Ctrl-C; a restarted calibrator
+resumes from the checkpoint. With `sweep:=true` the launch ends when the
 sweep has been commanded; stop the calibrator then (Ctrl-C) to write the model.
 """
 
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration
+from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
 from launch import LaunchDescription
@@ -27,6 +31,8 @@ from launch import LaunchDescription
 def generate_launch_description():
     robot, grid = LaunchConfiguration("robot"), LaunchConfiguration("grid")
     commands = [("hand_velocity_controller/commands", LaunchConfiguration("commands_topic"))]
+    sim = LaunchConfiguration("sim")
+    simulated = ["'", sim, "'.lower() in ('true', '1') and '", robot, "'"]
     return LaunchDescription(
         [
             DeclareLaunchArgument(
@@ -55,7 +61,9 @@ def generate_launch_description():
                 description="the velocity controller's command topic (Float64MultiArray)",
             ),
             DeclareLaunchArgument(
-                "sim", default_value="false", description="start the simulated PR2 hand too"
+                "sim",
+                default_value="false",
+                description="simulate the robot too: sim_hand without robot, sim_robot with it",
             ),
             Node(
                 package="egovib_ros",
@@ -87,9 +95,18 @@ def generate_launch_description():
                 executable="sim_hand",
                 name="sim_hand",
                 output="screen",
-                condition=IfCondition(LaunchConfiguration("sim")),
+                condition=IfCondition(PythonExpression(simulated + [" == ''"])),
                 remappings=commands,
                 parameters=[{"publish_ground_truth": False}],
+            ),
+            Node(
+                package="egovib_ros",
+                executable="sim_robot",
+                name="sim_robot",
+                output="screen",
+                condition=IfCondition(PythonExpression(simulated + [" != ''"])),
+                remappings=commands,
+                parameters=[{"robot": robot, "publish_ground_truth": False}],
             ),
         ]
     )

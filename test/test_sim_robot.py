@@ -16,7 +16,9 @@ from egovib_ros.cli import main
 from egovib_ros.errors import ConfigError
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim.robot import (
+    CONTROLLER_TAU_S,
     GRAVITY_MS2,
+    CommandedRobot,
     RobotSimulator,
     SmoothMotion,
     SweepSchedule,
@@ -152,6 +154,64 @@ def test_sweep_dwells_on_the_grid_cells(arm):
     with pytest.raises(ConfigError, match="superposition grid \\(161 cells\\)"):
         SweepSchedule(eight, "full", dwell_s=1.0, settle_s=0.5)
     assert len(SweepSchedule(eight, "superposition", dwell_s=0.01, settle_s=0.0).velocities) == 161
+
+
+def test_commanded_robot_follows_commands_within_the_joints_ranges_in_any_cut(arm):
+    """Live (sim_robot): a held command reached through the 50 ms controller, limited to
+    each joint's range; the same samples whatever the steps, for commands given at the
+    same samples; the stamps start at start_ns."""
+    commands = {0: [1.0, -2.0, 0.03], 3000: [-5.0, 1.0, -0.01], 5000: [0.0, 0.0, 0.05]}
+
+    def run(cuts):
+        robot = CommandedRobot(arm, seed=5, tap_rate_hz=1.0, start_ns=7_000_000_000)
+        bounds = np.unique(np.concatenate([[0, 8000], cuts, list(commands)]).astype(int))
+        within, pieces = [], []
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if a in commands:
+                within.append(robot.set_command(commands[a]))
+            pieces.append(robot.step(b - a))
+        return robot, pieces, within
+
+    robot, whole, within = run([])
+    assert within == [True, False, True]  # -5 beyond the shoulder's 2, -0.01 a one-way joint
+    np.testing.assert_array_equal(robot.command, [0.0, 0.0, 0.05])
+    _, cut, _ = run(np.random.default_rng(1).choice(np.arange(1, 8000), 30, replace=False))
+    for name in ("sensor_stamps_ns", "sensor", "contact", "joint_stamps_ns", "joint_velocity"):
+        np.testing.assert_array_equal(_concat(whole, name), _concat(cut, name), err_msg=name)
+    assert _concat(whole, "sensor_stamps_ns")[0] == 7_000_000_000
+    # the true velocity (no measurement noise): a first-order lag to the held command
+    velocity = robot.velocity
+    np.testing.assert_allclose(velocity, [0.0, 0.0, 0.05], atol=1e-3)
+    measured = _concat(whole, "joint_velocity")  # at 1 kHz, every other sample
+    settled = int(4 * CONTROLLER_TAU_S * 1000)  # 98 % of the step after 4 time constants
+    np.testing.assert_allclose(measured[1500 - 1], [1.0, -2.0, 0.03], atol=0.03)
+    np.testing.assert_allclose(measured[1500 + settled], [-2.0, 1.0, 0.0], atol=0.1)
+    assert measured[:, 2].min() >= 0.0 and np.abs(measured[:, 0]).max() <= 2.0 + 0.02
+    with pytest.raises(ConfigError, match="3 finite velocities"):
+        robot.set_command([1.0, np.nan, 0.0])
+
+
+def test_samples_due_keep_jittered_stamps_on_the_clock(arm):
+    """Counted from the last stamp, the stamps (+-30 % jitter per step, a random walk over
+    the samples) stay near the clock they are due by, however long the run: within 5
+    periods (2.5 ms at 2 kHz) at sim_robot's 10 ms ticks; within the walk of one tick at
+    1 s ticks for 10 minutes (counted from the start, they would have wandered ~190
+    periods)."""
+    start = 5_000_000_000
+    period = 1e9 / arm.rate_hz
+    robot = CommandedRobot(arm, seed=2, start_ns=start)
+    assert robot.samples_due(start - 1) == 0 and robot.samples_due(start) == 1
+
+    def worst(tick_ns: int, ticks: int) -> float:
+        now, most = int(robot.sim.last_stamp_ns), 0.0
+        for _ in range(ticks):
+            now += tick_ns
+            piece = robot.step(robot.samples_due(now))
+            most = max(most, abs(now - int(piece.sensor_stamps_ns[-1])) / period)
+        return most
+
+    assert worst(10_000_000, 2000) < 5.0  # 20 s; one tick's walk: 0.8 periods rms
+    assert worst(1_000_000_000, 600) < 40.0  # 10 min; one tick's walk: 7.7 periods rms
 
 
 def _in_band_rms(profile, values, keep):

@@ -13,9 +13,6 @@ import argparse
 
 from egovib_ros.cli import options
 
-#: Imu frame_id of the simulated sensor (the profile names no frame).
-SENSOR_FRAME = "imu_link"
-
 
 def register(scenarios) -> None:
     """Add `robot` to the `simulate` subcommands."""
@@ -113,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from egovib_ros.cli.simulate import prepare_outputs, progress_bar, write_bag
     from egovib_ros.errors import ConfigError
     from egovib_ros.robot import load_profile
-    from egovib_ros.sim.robot import robot_slices
+    from egovib_ros.sim.robot import SENSOR_FRAME, robot_slices
 
     # Everything that can be refused is refused before the first sample is simulated.
     other = _SWEEP_ONLY if args.mode == "motion" else _MOTION_ONLY

@@ -4,6 +4,7 @@
 #: assignment from the source, so it stays a literal tuple of names).
 NODES = (
     "sim_hand",
+    "sim_robot",
     "sweep_driver",
     "calibrator",
     "denoiser",

@@ -36,6 +36,11 @@ Streaming: `RobotSimulator.step(velocity)` makes any number of samples from expl
 state (clock, phases, filter state, taps under way); every random stream is drawn
 sample by sample in order and every running sum continues from its carried value, so
 the output does not depend on how a run is cut into steps (tested to the bit).
+
+Live (the `sim_robot` node): `CommandedRobot` follows velocity commands (one per joint,
+held until the next, as a ros2_control forward-command controller takes them) through a
+first-order velocity controller, and says how many samples are due at a clock time, so
+that the jittered stamps keep to the clock they are published on.
 numpy/scipy only.
 """
 
@@ -50,6 +55,7 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.bag.recording import Recording
+from egovib_ros.core.filters import lfilter_carried
 from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
@@ -60,6 +66,11 @@ GRIDS = ("full", "superposition")
 TAP_MODES = ("random", "periodic")
 GRAVITY_MS2 = 9.80665
 START_NS = 1_000_000_000  # first sensor stamp (a clock that is not at zero)
+#: Imu frame_id of the simulated sensor (the profile names no frame).
+SENSOR_FRAME = "imu_link"
+#: Live: time constant of the simulated joints' velocity controller (a step of the
+#: command is 98 % reached after 4 of them, 0.2 s).
+CONTROLLER_TAU_S = 0.05
 JOINT_LAG_NS = 150_000  # joint states stamped this long after their sensor sample
 DEFAULT_JOINT_RATE_HZ = 1000.0
 MOTION_CORNER_HZ = 0.3  # smooth random motion: a few direction changes per 10 s
@@ -139,6 +150,7 @@ class RobotSimulator:
         tap_amplitude: float | None = None,
         jitter: float = 0.3,
         joint_rate_hz: float | None = None,
+        start_ns: int = START_NS,
     ):
         if tap_mode not in TAP_MODES:
             raise ConfigError(f"tap mode must be one of {TAP_MODES}, got {tap_mode!r}")
@@ -174,7 +186,8 @@ class RobotSimulator:
         self.gravity = GRAVITY_MS2 if profile.sensor_field == "linear_acceleration" else 0.0
         # carried state
         self.index = 0  # next sensor sample
-        self.last_stamp_ns = START_NS  # stamp of the previous sample (the first is START_NS)
+        self.start_ns = int(start_ns)  # the first sample's stamp
+        self.last_stamp_ns = self.start_ns  # stamp of the previous sample (the first: start_ns)
         self.phase = np.zeros(profile.n_joints)
         self.position = np.zeros(profile.n_joints)
         self.tap_onsets_ns: list[int] = []
@@ -235,7 +248,7 @@ class RobotSimulator:
             1, np.rint(period_ns * (1.0 + self.rng["jitter"].uniform(-1, 1, n) * self.jitter))
         ).astype(np.int64)
         if self.index == 0 and n:
-            steps_ns[0] = 0  # the first sample sits at START_NS
+            steps_ns[0] = 0  # the first sample sits at start_ns
         stamps = self.last_stamp_ns + np.cumsum(steps_ns)  # integers: exact in any cut
         dt = steps_ns / NS_PER_S
         ego = np.zeros((n, 3))
@@ -276,6 +289,75 @@ class RobotSimulator:
             contact=contact,
             ego=ego,
         )
+
+
+# --- live: velocity commands in --------------------------------------------------------
+class CommandedRobot:
+    """A robot of a profile following velocity commands (the `sim_robot` node's simulator).
+
+    The command (one velocity per joint in profile order, held until the next, as a
+    ros2_control forward-command controller takes it) is limited to each joint's range
+    (-max..max, or 0..max for a one-way joint: a velocity controller saturates) and reached
+    through a first-order lag of `tau_s`, sample by sample; the RobotSimulator (keyword
+    `options`: its own, e.g. seed, tap_rate_hz, start_ns) makes the samples at the
+    resulting velocities. As with the simulator, any cut of a run gives the same samples.
+
+    >>> robot = CommandedRobot(profile, seed=1, start_ns=now_ns)
+    >>> robot.set_command([0.5, 0.0, -1.0])
+    >>> piece = robot.step(robot.samples_due(now_ns))      # a Recording, as sim.step's
+    """
+
+    def __init__(self, profile: RobotProfile, *, tau_s: float = CONTROLLER_TAU_S, **options):
+        if not (math.isfinite(tau_s) and tau_s > 0):
+            raise ConfigError(f"controller time constant must be > 0 s, got {tau_s!r}")
+        self.profile = profile
+        self.sim = RobotSimulator(profile, **options)
+        n = profile.n_joints
+        self.command = np.zeros(n)  # as held (within the joints' ranges)
+        self.velocity = np.zeros(n)  # true velocity at the last sample
+        top = np.asarray(profile.max_speed, dtype=np.float64)
+        self.low, self.high = np.where(profile.bidirectional, -top, 0.0), top
+        alpha = 1.0 - math.exp(-1.0 / (profile.rate_hz * tau_s))
+        self._ba = ([alpha], [1.0, alpha - 1.0])
+        self._zi = np.zeros((1, n))
+
+    def set_command(self, velocity) -> bool:
+        """Hold these joint velocities from the next sample on; False when some were beyond
+        their joint's range (then held at its limit)."""
+        v = np.asarray(velocity, dtype=np.float64).reshape(-1)
+        if v.shape != (self.profile.n_joints,) or not np.all(np.isfinite(v)):
+            raise ConfigError(
+                f"command must be {self.profile.n_joints} finite velocities, got {velocity!r}"
+            )
+        self.command = np.clip(v, self.low, self.high)
+        return bool(np.array_equal(self.command, v))
+
+    def samples_due(self, now_ns: int) -> int:
+        """How many samples are due by clock time `now_ns`: those the nominal rate puts
+        between the last sample's stamp and `now_ns` (the first sample sits at start_ns).
+        Counted from the last stamp, not from the start, the jittered stamps stay within a
+        few periods of the clock however long the run."""
+        sim, fs = self.sim, self.profile.rate_hz
+        if sim.index == 0:
+            return max(0, math.floor((now_ns - sim.start_ns) * fs / NS_PER_S) + 1)
+        return max(0, math.floor((now_ns - sim.last_stamp_ns) * fs / NS_PER_S))
+
+    @property
+    def index(self) -> int:
+        """Samples made so far."""
+        return self.sim.index
+
+    @property
+    def tap_onsets_ns(self) -> list[int]:
+        return self.sim.tap_onsets_ns
+
+    def step(self, n: int) -> Recording:
+        """The next n samples (and the joint states among them) at the held command."""
+        target = np.broadcast_to(self.command, (int(n), self.profile.n_joints))
+        velocity, self._zi = lfilter_carried(*self._ba, target, self._zi, axis=0)
+        if len(velocity):
+            self.velocity = velocity[-1].copy()
+        return self.sim.step(velocity)
 
 
 # --- velocity schedules ----------------------------------------------------------------
