@@ -137,6 +137,7 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
     bands_hist = np.zeros((n + D, C, B))
     out = np.zeros((n, C))
     for i in range(n):
+        ratios, levels = np.zeros((C, B)), np.zeros(C)
         for c in range(C):
             bands_ = np.zeros(B)
             for k in range(K):
@@ -171,15 +172,17 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
             guard[c] += (a_up if level_now > guard[c] else a_down) * (level_now - guard[c])
             excess = max(guard[c] - guard_ref[c], 0.0)
             score /= math.exp(excess)
-            ratio /= math.exp(s.guard_gain * excess)
-            level = min(max((score - 1) / span, 0.0), 1.0)
+            ratios[c] = ratio / math.exp(s.guard_gain * excess)
+            levels[c] = (score - 1) / span
+        level = min(max(levels.max(), 0.0), 1.0)  # an event on any channel opens them all
+        for c in range(C):
             if level >= opening[c]:  # held for the look-ahead, then decaying
                 opening[c], wait[c] = level, D
             elif wait[c] > 0:
                 wait[c] -= 1
             else:
                 opening[c] = max(level, opening[c] * decay)
-            g = np.sqrt(np.clip(1 - alpha[c] / ratio, 0, None))
+            g = np.sqrt(np.clip(1 - alpha[c] / ratios[c], 0, None))
             g = np.maximum(np.maximum(g, opening[c]), s.floor)
             out[i, c] = np.sum(g * bands_hist[i, c])
     return out

@@ -8,6 +8,7 @@ from scipy import signal
 from egovib_ros.bag import Recording
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
+from egovib_ros.core.methods import has_method_calibration
 from egovib_ros.evaluation import baselines, metrics
 from egovib_ros.evaluation.stream import method_names
 from egovib_ros.sim.pr2 import MAX_SPEED, grid_values
@@ -83,7 +84,7 @@ def test_every_method_runs_with_shape_and_delay(context, moving):
         model=context.model,
     )
     # cancel and hybrid only when the model was calibrated for them (this one was not)
-    assert not baselines.has_method_calibration(context.model)
+    assert not has_method_calibration(context.model)
     assert names == [
         m for m in baselines.METHOD_LABELS if m not in baselines.NEEDS_METHOD_CALIBRATION
     ]

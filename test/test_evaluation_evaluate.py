@@ -39,7 +39,7 @@ def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recordi
         assert field in report
     assert report["threshold_source"].startswith("no-contact part of this recording")
     # No noise clip and no short-block model: those two baselines cannot run.
-    assert set(report["methods"]) == {"bandpass", "boll", "paper", "wiener", "per_axis"}
+    assert set(report["methods"]) == {"default", "bandpass", "boll", "paper", "wiener", "per_axis"}
     assert report["n_taps"] == len(truth["tap_onsets_ns"])
     # Taps found from the contact topic start within a millisecond of the simulator's onsets.
     found = rec.sensor_stamps_ns[report["signals"]["seg"].onsets]
@@ -49,15 +49,18 @@ def test_without_calibration_uses_own_no_contact_part_and_says_so(model, recordi
     assert report["signals"]["paper"].shape == rec.sensor[:, 0].shape
 
 
-def test_primary_fields_are_the_paper_methods(model, recording):
+def test_primary_fields_are_the_default_methods(model, recording):
+    """The figures at the top are what a user gets without options: the model's default
+    method (here the paper's: the model holds no other) and its drop-in output."""
     rec, _ = recording
     report = evaluate_recording(rec, model, methods=["bandpass"])
-    assert "paper" in report["methods"]  # the primary method always runs
-    paper = report["methods"]["paper"]
-    assert report["noise_reduction_db"] == paper["noise_reduction_db"]
-    assert report["f1_denoised"] == paper["f1"]
+    assert {"default", "paper"} <= set(report["methods"])  # these two always run
+    default = report["methods"]["default"]
+    assert report["method"] == "paper"
+    assert report["noise_reduction_db"] == default["noise_reduction_db"]
+    assert report["f1_denoised"] == default["f1"]
     assert report["f1_raw"] == report["detection"]["raw_bandpassed"]["f1"]
-    assert report["delay_ms"] == pytest.approx(64 / 3.0)
+    assert report["delay_ms"] == pytest.approx(63 / 3.0)
 
 
 def test_require_ground_truth(recording):

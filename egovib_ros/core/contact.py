@@ -239,6 +239,14 @@ class ContactDetector:
         """End of stream: events whose report falls after the last sample, reported now."""
         return self._report(final=True)
 
+    @property
+    def onsets_settled(self) -> int:
+        """Every onset still to be reported lies at or after this sample (counted from the
+        first sample pushed): the pending crossings' and the next one's look-back."""
+        end = self._base + len(self._stamps)
+        first = self._pending[0] if self._pending else end
+        return max(first - self._back, 0)
+
     def _report(self, *, final: bool) -> list[ContactEvent]:
         end = self._base + len(self._stamps)  # global index past the last sample
         events = []

@@ -273,7 +273,8 @@ def _gain_kernel(
     scaled = power_scale.shape[0] == n
     pos = position[0]
     phase = position[1]  # samples since the last correction update
-    ratio = np.empty(B)
+    ratio = np.empty((C, B))
+    level = np.empty(C)
     for i in range(n):
         write = pos
         read = (pos + 1) % size  # the oldest: D samples ago
@@ -321,14 +322,14 @@ def _gain_kernel(
                     log_ratio[c, k] = low if value < low else (high if value > high else value)
                     correction[c, k] = math.exp(log_ratio[c, k] - bias[c, k])
                 expected *= correction[c, k]
-                ratio[k] = p / expected if expected > 0.0 else 0.0
+                ratio[c, k] = p / expected if expected > 0.0 else 0.0
                 if keep:
-                    collect[i, c, k] = ratio[k]
-                if expected > 0.0 and alpha[c, k] > 0.0 and ratio[k] > score * alpha[c, k]:
-                    score = ratio[k] / alpha[c, k]
-            # Opening: when some band stands out beyond what noise reaches, every band of
-            # this channel opens for a while (the event keeps its waveform; the noise under
-            # it is not touched either).
+                    collect[i, c, k] = ratio[c, k]
+                if expected > 0.0 and alpha[c, k] > 0.0 and ratio[c, k] > score * alpha[c, k]:
+                    score = ratio[c, k] / alpha[c, k]
+            # Opening: when some band stands out beyond what noise reaches, every band
+            # opens for a while (the event keeps its waveform; the noise under it is not
+            # touched either).
             score /= open_alpha[c]
             # The guard: a slow level of the score (in logs; rises in tens of ms, falls in
             # hundreds). Where the noise stands above the table for longer than an event
@@ -342,29 +343,38 @@ def _gain_kernel(
                     score /= math.exp(guard[c] - guard_ref[c])
                     lift = math.exp(guard_gain * (guard[c] - guard_ref[c]))
                     for k in range(B):
-                        ratio[k] /= lift
+                        ratio[c, k] /= lift
             if keep:
                 collect[i, c, B] = score
                 collect[i, c, B + 1] = guard[c]
+            level[c] = (score - 1.0) / open_span if open_span > 0.0 else 0.0
+        # A contact shakes the sensor, not one axis: an event seen on any channel opens
+        # every channel (an axis whose calibration residual had bursts would not open on
+        # its own and would take part of the event away).
+        shared = 0.0
+        for c in range(C):
+            if level[c] > shared:
+                shared = level[c]
+        if shared > 1.0:
+            shared = 1.0
+        for c in range(C):
             if open_span > 0.0:
-                level = (score - 1.0) / open_span
-                level = 1.0 if level > 1.0 else (0.0 if level < 0.0 else level)
                 # An opening holds for the look-ahead (the event it saw leaves that much
                 # later), then decays over open_hold_ms.
-                if level >= opening[c]:
-                    opening[c] = level
+                if shared >= opening[c]:
+                    opening[c] = shared
                     open_wait[c] = size - 1
                 elif open_wait[c] > 0:
                     open_wait[c] -= 1
                 else:
                     opening[c] *= open_decay
-                    if level > opening[c]:
-                        opening[c] = level
+                    if shared > opening[c]:
+                        opening[c] = shared
             y = 0.0
             yv = 0.0
             rest_v = v[i, c] if second else 0.0
             for k in range(B):
-                g = 1.0 - alpha[c, k] / ratio[k] if ratio[k] > 0.0 else 1.0
+                g = 1.0 - alpha[c, k] / ratio[c, k] if ratio[c, k] > 0.0 else 1.0
                 if g <= 0.0:
                     g = 0.0
                 elif exponent == 0.5:

@@ -15,6 +15,9 @@ algorithmic latency of a streaming implementation, in ms:
                 calibration data; STFT with n_fft - 1 samples look-ahead      n_fft/fs
   per_axis      the paper's subtraction on x, y, z separately, then summed    L/fs
   paper_L32     the paper with 32-sample blocks (a model calibrated at L=32)  32/fs
+  default       what `egovib denoise` writes and the denoiser node publishes without
+                options (hybrid where the model carries it), band-passed as a reader
+                of the topic sees it                                          its own
 
 Every method is a stream (`method_stream`): pushed the recording slice by slice it gives
 the same output as pushed all at once (`run_method`). Everything block-based goes through
@@ -30,7 +33,10 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import signal
 
-from egovib_ros.core import NoiseModel, StreamingDenoiser, filters
+from egovib_ros.core import NoiseModel, filters
+from egovib_ros.core.filters import BandPass
+from egovib_ros.core.methods import default_method, make_denoiser
+from egovib_ros.core.methods import method_delay_ms as core_delay_ms
 
 NOISEREDUCE_N_FFT = 64
 NOISEREDUCE_N_STD = 1.5  # reduce_noise's n_std_thresh_stationary
@@ -38,6 +44,7 @@ NOISE_CLIP_SAMPLES = 600_000  # reduce_noise clips its noise clip to chunk_size 
 
 #: name -> human label, in table order.
 METHOD_LABELS = {
+    "default": "the default: the model's default method, drop-in output band-passed",
     "bandpass": "band-pass only",
     "boll": "Boll (mean only)",
     "paper": "paper (mean + std)",
@@ -152,15 +159,14 @@ class CoreStream(MethodStream):
     stamps (`on_input_stamps`: a sample the core drops gets 0). Causal: L - 1 samples of
     delay plus the joint-state wait."""
 
-    def __init__(self, model: NoiseModel, *, method: str = "paper", source: str = "", **options):
-        # the metrics are those of the band-passed signal (the paper's): band-passed output
+    def __init__(
+        self, model: NoiseModel, *, method: str | None = "paper", source: str = "", **options
+    ):
+        # the metrics are those of the band-passed signal (the paper's): band-passed output,
+        # or the drop-in output band-passed after the sum, as a reader of the topic sees it
         options = {"output": "bandpassed", **options}
-        if method == "paper":
-            self.denoiser = StreamingDenoiser(model, source=source, **options)
-        else:
-            from egovib_ros.core.methods import make_denoiser  # numba: only when asked for
-
-            self.denoiser = make_denoiser(model, method, source=source, **options)
+        self.denoiser = make_denoiser(model, method, source=source, **options)
+        self._band = BandPass.of(model, 1) if options["output"] == "dropin" else None
         self._pending = np.zeros(0, np.int64)  # input stamps without output yet
 
     def push_joint_states(self, stamps_ns, velocity):
@@ -173,9 +179,15 @@ class CoreStream(MethodStream):
     def finish(self):
         out = self._place(self.denoiser.flush())
         rest, self._pending = np.zeros(len(self._pending)), self._pending[:0]
+        if self._band is not None and len(rest):
+            rest = self._band.process(rest[None])[0]
         return np.concatenate([out, rest])
 
     def _place(self, chunk) -> np.ndarray:
+        out = self._placed(chunk)
+        return out if self._band is None or not len(out) else self._band.process(out[None])[0]
+
+    def _placed(self, chunk) -> np.ndarray:
         if not len(chunk):
             return _EMPTY
         summed = np.asarray(chunk.values, float).sum(axis=1)
@@ -307,6 +319,7 @@ class GateStream(MethodStream):
 
 
 CORE_OPTIONS = {
+    "default": dict(channels="per_axis", method=None, output="dropin"),
     "boll": dict(channels="combined", include_std=False),
     "paper": dict(channels="combined"),
     "wiener": dict(channels="combined"),
@@ -358,16 +371,11 @@ def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
         return 1e3 * NOISEREDUCE_N_FFT / ctx.model.sample_rate_hz
     if name == "paper_L32":
         return _block_delay_ms(ctx.model_short)
+    if name == "default":
+        return core_delay_ms(ctx.model, default_method(ctx.model))
     if name in NEEDS_METHOD_CALIBRATION:
-        from egovib_ros.core.methods import method_delay_ms as core_delay_ms
-
         return core_delay_ms(ctx.model, name, output="bandpassed")  # what CoreStream runs
     return _block_delay_ms(ctx.model)
-
-
-def has_method_calibration(model: NoiseModel) -> bool:
-    """The model carries what methods cancel and hybrid need."""
-    return any(key.startswith("harmonic.") for key in model.extras)
 
 
 def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:

@@ -335,3 +335,84 @@ class EventMatcher:
     def scores(self) -> dict:
         """precision_recall_f1's dict (call after `finish`)."""
         return scores_of(self.tp, self.fp, self.fn)
+
+
+class OnsetStream:
+    """The one contact detector (core.contact.ContactDetector, as `egovib detect` and the
+    contact_detector node run it) on a band-passed 1-D signal arriving in pieces, its
+    events' onsets as sample indices, for `egovib evaluate`'s scoring (EventMatcher):
+    push(x), take() -> onsets closed since the last call, `horizon`: every onset still to
+    come is at or after this sample."""
+
+    def __init__(self, threshold: float, model):
+        from egovib_ros.core.contact import ContactDetector, ContactSettings
+
+        self.threshold = float(threshold)
+        self.detector = ContactDetector(
+            ContactSettings.for_model(model, self.threshold), prefiltered=True
+        )
+        self.pos = 0
+        self._onsets: list[int] = []
+
+    @property
+    def horizon(self) -> int:
+        return self.detector.onsets_settled
+
+    def push(self, x: np.ndarray) -> None:
+        x = np.asarray(x, float)
+        index = np.arange(self.pos, self.pos + x.size, dtype=np.int64)
+        self.pos += x.size
+        self._onsets += [e.onset_ns for e in self.detector.push(index, x)]
+
+    def finish(self) -> None:
+        self._onsets += [e.onset_ns for e in self.detector.finish()]
+
+    def take(self) -> np.ndarray:
+        onsets, self._onsets = self._onsets, []
+        return np.asarray(onsets, np.int64)
+
+
+class ThresholdReducer:
+    """core.contact.no_contact_threshold over an envelope arriving in pieces: the largest
+    values pushed are kept (a slack of twice the budget's share, and 256 more, over what
+    the quantile needs as the count grows), then the same rule. `threshold()` also says
+    the false alarms a minute it gives, counted on the kept values' peaks (as many as
+    rose above it)."""
+
+    def __init__(self, *, sample_rate_hz: float, false_alarms_per_min: float):
+        from egovib_ros.core.contact import BURST_S
+
+        self.fs = float(sample_rate_hz)
+        self.budget = float(false_alarms_per_min)
+        self.share = min(self.budget * BURST_S / 60.0, 0.5)
+        self.top = np.zeros(0)
+        self.largest = -np.inf
+        self.count = 0
+
+    def push(self, envelope: np.ndarray) -> None:
+        envelope = np.asarray(envelope, float)
+        if not envelope.size:
+            return
+        self.count += envelope.size
+        self.largest = max(self.largest, float(envelope.max()))
+        keep = int(2 * np.ceil(self.share * self.count)) + 256
+        merged = np.concatenate([self.top, envelope])
+        if merged.size > keep:
+            merged = np.partition(merged, merged.size - keep)[-keep:]
+        self.top = merged
+
+    def threshold(self) -> float:
+        from egovib_ros.core.contact import THRESHOLD_MARGIN
+
+        if not self.count:
+            raise ValueError("no calibration samples to set a detection threshold from")
+        if self.share <= 0:
+            return THRESHOLD_MARGIN * self.largest
+        top = np.sort(self.top)
+        q = 1.0 - self.share
+        virtual = (self.count - 1) * q  # np.quantile's 'linear' position, in the full count
+        below = int(np.floor(virtual)) - (self.count - top.size)
+        if below < 0:
+            raise ValueError("ThresholdReducer: the budget's quantile fell out of the kept values")
+        upper = top[min(below + 1, top.size - 1)]
+        return THRESHOLD_MARGIN * float(top[below] + (upper - top[below]) * (virtual % 1.0))

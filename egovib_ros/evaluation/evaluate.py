@@ -34,12 +34,13 @@ from typing import Callable, Iterable
 import numpy as np
 
 from egovib_ros.bag.recording import bag_topic_names
-from egovib_ros.core import NoiseModel
+from egovib_ros.core import NoiseModel, contact
+from egovib_ros.core.methods import default_method
 from egovib_ros.evaluation import baselines, detection, metrics
 from egovib_ros.evaluation import stream as streaming
 from egovib_ros.evaluation.stream import require_ground_truth
 
-PRIMARY = "paper"
+PRIMARY = "default"  # the figures at the top: what a user gets without options
 REPORT_FIELDS = (
     "noise_mean_raw",
     "noise_mean_denoised",
@@ -109,7 +110,6 @@ def evaluate_pieces(
             model,
             names=names + extra,
             model_short=model_short,
-            speed_limit=summary.joint_speed_max * streaming.SPEED_MARGIN,
             source=calibration_source,
             max_bad_fraction=max_bad_fraction,
         )
@@ -234,8 +234,9 @@ def _report(
                 "taps_excluded": run.dropped,
                 "rule": BAD_SAMPLE_RULE,
             },
+            "method": default_method(model),
             "threshold_source": (
-                "calibration data (no contact), at joint speeds within this run's envelope"
+                "calibration data (no contact)"
                 if calibration_bad is not None
                 else "no-contact part of this recording (no calibration data given)"
             ),
@@ -243,11 +244,16 @@ def _report(
                 "raw_bandpassed": raw_detection,
                 **pr2,
                 "rule": {
-                    "envelope": f"causal RMS over {detection.ENVELOPE_S * 1e3:g} ms",
-                    "refractory_s": detection.REFRACTORY_S,
+                    "detector": "core.contact.ContactDetector (egovib detect, contact_detector)",
+                    "envelope": f"causal RMS over {contact.ENVELOPE_S * 1e3:g} ms",
+                    "refractory_s": contact.REFRACTORY_S,
+                    "onset": f"first sample at {contact.ONSET_FRACTION:g} of the peak within "
+                    f"10 ms of the crossing",
                     "tolerance_s": detection.TOLERANCE_S,
                     "threshold": (
-                        f"{detection.CALIBRATION_MARGIN} x max envelope on calibration data"
+                        f"{contact.THRESHOLD_MARGIN} x the no-contact envelope's level exceeded "
+                        f"{contact.BURST_S * 1e3:g} ms a minute "
+                        f"({contact.FALSE_ALARMS_PER_MIN:g} false alarm a minute)"
                     ),
                 },
             },

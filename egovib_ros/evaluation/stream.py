@@ -10,21 +10,22 @@ Passes over the test recording (and the calibration recording):
 
 1. `SummaryPass` (test): what the evaluation needs of the whole run before it starts:
    the number of samples, the peak of the ground-truth reference (the contact activity
-   threshold is 1e-3 of it), the largest joint speeds (the calibration samples that set
-   the detection thresholds are those within them), the bad-sample counts (more than
-   `max_bad_fraction` bad is refused before any other work) and whether the bag's own
-   denoised topic is combined or per axis.
+   threshold is 1e-3 of it), the bad-sample counts (more than `max_bad_fraction` bad is
+   refused before any other work) and whether the bag's own denoised topic is combined
+   or per axis, drop-in or band-passed.
 2. `CalibrationPass` (calibration data): every method run on the no-contact calibration
-   data, reduced to one detection threshold per method (1.1 x the largest envelope on
-   the masked samples) and noisereduce's per-frequency noise threshold (from the first
-   200 s, as noisereduce clips its noise clip). Without calibration data, an
-   `EvaluationPass` without thresholds takes its place: the largest envelope of each
-   method on the run's own no-contact samples.
+   data, reduced to one detection threshold per method by the one rule of `egovib detect`
+   and the contact_detector node (core.contact.no_contact_threshold, its default budget,
+   on the one detector's envelope of the method's signal; detection.ThresholdReducer) and
+   noisereduce's per-frequency noise threshold (from the first 200 s, as noisereduce
+   clips its noise clip). Without calibration data, an `EvaluationPass` without thresholds
+   takes its place: the same rule on the run's own no-contact samples.
 3. `EvaluationPass` (test): every method as a stream (`baselines.method_stream`) and the
    metrics as accumulators: noise sums and the largest 0.1 % of no-contact magnitudes
-   (the 99.9 % spike quantile, exact), per-tap peaks, segmental SNR, event detection and
-   scoring, alignment lag; a sample is scored once every signal has it and its contact
-   and bad-input status is final (`look-ahead` below).
+   (the 99.9 % spike quantile, exact), per-tap peaks, segmental SNR, event detection by
+   the one contact detector (detection.OnsetStream) and its scoring, alignment lag; a
+   sample is scored once every signal has it and its contact and bad-input status is
+   final (`look-ahead` below).
 
 What is held, and for how long (the bounded look-ahead):
 - a run of bad samples until the next good sample (they are bridged between them);
@@ -50,17 +51,23 @@ from scipy import signal
 
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
+from egovib_ros.core.methods import has_method_calibration
 from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import baselines, detection, metrics
 
 SEGMENT_ACTIVE_MIN = metrics.SEGMENT_LENGTH // 2  # segments at least half inside a contact
-SPEED_MARGIN = 1.05  # calibration samples within 1.05 x the run's largest joint speeds
 RECORDED_MAX_WAIT_S = 10.0  # the bag's denoised topic may lag its raw samples this much
 
 
 def _combined(values: np.ndarray) -> np.ndarray:
     return channel_matrix(values, "combined").T
+
+
+def _envelope(model: NoiseModel) -> DetectionEnvelope:
+    """The one detector's envelope of a band-passed 1-D signal."""
+    return DetectionEnvelope(ContactSettings.for_model(model, 1.0), prefiltered=True)
 
 
 class LowBandEnergy:
@@ -106,7 +113,7 @@ class _Fifo:
 
 
 # --------------------------------------------------------------------------
-# Input: bad samples, the bag's own denoised topic, the calibration speed mask
+# Input: bad samples, the bag's own denoised topic
 # --------------------------------------------------------------------------
 class Screen:
     """metrics.bad_samples + fill_missing over streams of (N, 3) samples on the same stamps:
@@ -233,45 +240,6 @@ class RecordedDenoised:
         cut = int(np.searchsorted(self.stamps, wanted.max(), side="right"))
         self.stamps, self.values, self.bad = self.stamps[cut:], self.values[cut:], self.bad[cut:]
         return values, bad
-
-
-class SpeedEnvelope:
-    """evaluate.speed_envelope_mask as a stream: the calibration samples whose joint speeds
-    (|velocity| interpolated at their stamps) stay within `limit`; a sample is resolved
-    once a joint state at or after its stamp is in (or at the end)."""
-
-    def __init__(self, limit: np.ndarray):
-        self.limit = np.asarray(limit, float)
-        self.joint_stamps = np.zeros(0, np.int64)
-        self.speed = np.zeros((0, len(self.limit)))
-        self.queries = np.zeros(0, np.int64)
-
-    def add_joint_states(self, stamps: np.ndarray, velocity: np.ndarray) -> None:
-        if len(stamps):
-            self.joint_stamps = np.concatenate([self.joint_stamps, np.asarray(stamps, np.int64)])
-            self.speed = np.concatenate([self.speed, np.abs(np.asarray(velocity, float))])
-
-    def add_samples(self, stamps: np.ndarray) -> None:
-        self.queries = np.concatenate([self.queries, np.asarray(stamps, np.int64)])
-
-    def take(self, final: bool) -> np.ndarray:
-        if not len(self.joint_stamps):
-            if final and len(self.queries):
-                raise ValueError("no joint states to match the calibration samples with")
-            return np.zeros(0, bool)
-        k = (
-            len(self.queries)
-            if final
-            else int(np.searchsorted(self.queries, self.joint_stamps[-1], side="right"))
-        )
-        wanted, self.queries = self.queries[:k], self.queries[k:]
-        mask = np.ones(k, bool)
-        for j in range(self.speed.shape[1]):
-            mask &= np.interp(wanted, self.joint_stamps, self.speed[:, j]) <= self.limit[j]
-        if k:  # keep the joint state before the next sample (interpolation's left end)
-            keep = max(int(np.searchsorted(self.joint_stamps, wanted[-1], side="right")) - 1, 0)
-            self.joint_stamps, self.speed = self.joint_stamps[keep:], self.speed[keep:]
-        return mask
 
 
 def _screen_rest(screen: Screen, source: str):
@@ -403,6 +371,13 @@ class SummaryPass:
         if n and self.union_bad == n:
             raise BagError(f"{self.source}: no valid sample")
         recorded = self.recorded.rows > 0
+        # drop-in output keeps what lies far below the band (gravity, motion), band-passed
+        # output keeps none of it (4th order: -48 dB at a quarter of the band's low edge)
+        dropin = bool(
+            recorded
+            and self.low_raw.energy > 0
+            and self.low_recorded.energy > 0.1 * self.low_raw.energy
+        )
         return RunSummary(
             samples=n,
             activity_level=max(1e-3 * self.peak, 1e-6),  # metrics.activity_threshold
@@ -410,12 +385,10 @@ class SummaryPass:
                 self.speed if self.speed is not None else np.full(self.model.n_joints, np.nan)
             ),
             recorded=recorded,
-            recorded_like=("per_axis" if self.recorded.any_yz else "paper") if recorded else None,
+            recorded_like=_like(self.recorded.any_yz, dropin) if recorded else None,
             # drop-in output keeps what lies far below the band (gravity, motion), band-passed
             # output keeps none of it (4th order: -48 dB at a quarter of the band's low edge)
-            recorded_dropin=recorded
-            and self.low_raw.energy > 0
-            and self.low_recorded.energy > 0.1 * self.low_raw.energy,
+            recorded_dropin=dropin,
             counts=counts,
         )
 
@@ -430,21 +403,22 @@ class CalibrationResult:
     bad: int  # bad calibration samples
 
 
-class _MaxReducer:
-    """Largest envelope of one signal over the calibration mask (base) and over the mask
-    restricted to the run's speed envelope."""
+class _Reducer:
+    """The threshold rule's reducer of one signal's envelope over the calibration mask."""
 
-    def __init__(self):
+    def __init__(self, fs: float):
         self.values = _Fifo()
-        self.base = -np.inf
-        self.within = -np.inf
+        self.rule = detection.ThresholdReducer(
+            sample_rate_hz=fs, false_alarms_per_min=FALSE_ALARMS_PER_MIN
+        )
 
 
 class CalibrationPass:
     """Pass 2 over the calibration recording (see the module doc). Mask of the samples a
     threshold is taken from (evaluate.py): not the first and last EDGE_S (filter start-up
-    and flush), no sample bad input can have touched, and, if at least 1 s of them
-    remains, only samples at joint speeds within 1.05 x the run's largest."""
+    and flush), no sample bad input can have touched; the threshold rule is the one of
+    `egovib detect` and the contact_detector node (core.contact.no_contact_threshold at the
+    default budget), on the detector's envelope of each method's signal."""
 
     def __init__(
         self,
@@ -452,7 +426,6 @@ class CalibrationPass:
         *,
         names: Sequence[str],
         model_short: NoiseModel | None,
-        speed_limit: np.ndarray,
         source: str = "calibration recording",
         max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
     ):
@@ -469,20 +442,17 @@ class CalibrationPass:
         self.clip: list[np.ndarray] = []
         self.clip_n = 0
         self.gate: np.ndarray | None = None
-        self.envelopes = {key: detection.Envelope(sample_rate_hz=fs) for key in ["raw", *names]}
-        self.reducers = {key: _MaxReducer() for key in ["raw", *names]}
+        self.envelopes = {key: _envelope(model) for key in ["raw", *names]}
+        self.reducers = {key: _Reducer(fs) for key in ["raw", *names]}
         self.exclusion = metrics.BadRunExclusion(
             margin=int(model.block_length),
             settle_max=int(round(metrics.EDGE_S * fs)),
             n=np.iinfo(np.int64).max // 4,
         )
-        self.speeds = SpeedEnvelope(np.asarray(speed_limit, float))
-        self.within_fifo = _Fifo(bool)
         self.edge = int(metrics.EDGE_S * fs)  # each end of the data left out: min(this, n // 4)
-        self.mask_base = 0  # masks kept from this sample on
-        self.mask_end = 0  # masks known up to here
-        self.masks = (np.zeros(0, bool), np.zeros(0, bool))  # (base, within) from mask_base
-        self.within_count = 0
+        self.mask_base = 0  # the mask kept from this sample on
+        self.mask_end = 0  # the mask known up to here
+        self.mask = np.zeros(0, bool)  # from mask_base
         self.n = 0
 
     def push(self, piece) -> None:
@@ -490,7 +460,6 @@ class CalibrationPass:
             self._signal(
                 name, stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
-        self.speeds.add_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
         self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor))
         self._advance(final=False)
 
@@ -502,7 +471,6 @@ class CalibrationPass:
         clip = self.band.process(_combined(accel))[0]
         self._signal("raw", clip)
         self.exclusion.push(bad[0])
-        self.speeds.add_samples(stamps)
         if self.needs_gate and self.gate is None:
             self.clip.append(clip[: baselines.NOISE_CLIP_SAMPLES - self.clip_n])
             self.clip_n += len(self.clip[-1])
@@ -518,10 +486,9 @@ class CalibrationPass:
 
     def _signal(self, key: str, values: np.ndarray) -> None:
         if len(values):
-            self.reducers[key].values.put(self.envelopes[key].process(values))
+            self.reducers[key].values.put(self.envelopes[key].process(values)[1])
 
     def _advance(self, final: bool) -> None:
-        self.within_fifo.put(self.speeds.take(final))
         if final:
             self.exclusion.finish()
             known = self.n
@@ -529,7 +496,6 @@ class CalibrationPass:
         else:
             known = min(
                 self.exclusion.known - self.exclusion.margin - 1,
-                self.within_fifo.end,
                 self.n - self.edge if self.n >= 4 * self.edge else 0,
             )
             edge = self.edge
@@ -537,12 +503,7 @@ class CalibrationPass:
             a, b = self.mask_end, known
             index = np.arange(a, b)
             base = (index >= edge) & (index < self.n - edge) & ~self.exclusion.mask(a, b)
-            within = base & self.within_fifo.take(b)
-            self.within_count += int(np.count_nonzero(within))
-            self.masks = (
-                np.concatenate([self.masks[0], base]),
-                np.concatenate([self.masks[1], within]),
-            )
+            self.mask = np.concatenate([self.mask, base])
             self.mask_end = b
             self.exclusion.prune(a - self.exclusion.margin)
         for reducer in self.reducers.values():
@@ -551,15 +512,11 @@ class CalibrationPass:
             if stop > start:
                 env = reducer.values.take(stop)
                 lo, hi = start - self.mask_base, stop - self.mask_base
-                base, within = self.masks[0][lo:hi], self.masks[1][lo:hi]
-                if base.any():
-                    reducer.base = max(reducer.base, float(env[base].max()))
-                if within.any():
-                    reducer.within = max(reducer.within, float(env[within].max()))
+                reducer.rule.push(env[self.mask[lo:hi]])
         low = min(r.values.start for r in self.reducers.values())
         if low > self.mask_base:
             cut = low - self.mask_base
-            self.masks = (self.masks[0][cut:], self.masks[1][cut:])
+            self.mask = self.mask[cut:]
             self.mask_base = low
 
     def finish(self) -> CalibrationResult:
@@ -577,13 +534,7 @@ class CalibrationPass:
             self._advance(final=True)
         except ValueError as exc:
             raise bag_error(self.source, exc) from None
-        use_within = self.within_count >= self.fs  # at least 1 s within the run's speeds
-        thresholds = {}
-        for key, reducer in self.reducers.items():
-            largest = reducer.within if use_within else reducer.base
-            if not np.isfinite(largest):
-                raise ValueError("no calibration samples to set a detection threshold from")
-            thresholds[key] = float(detection.CALIBRATION_MARGIN * largest)
+        thresholds = {key: reducer.rule.threshold() for key, reducer in self.reducers.items()}
         return CalibrationResult(thresholds=thresholds, gate=self.gate, bad=bad)
 
 
@@ -664,15 +615,19 @@ class EvaluationPass:
         self.seg_tail = {key: np.zeros(0) for key in ["reference", *self.metric_keys]}
         self.pending_segments: deque[_Pending] = deque()
         # detection
-        self.envelopes = {key: detection.Envelope(sample_rate_hz=fs) for key in self.detect_keys}
-        self.noise_env_max = {key: -np.inf for key in self.detect_keys}
-        self.detectors: dict[str, tuple[str, detection.EventDetector]] = {}
+        self.envelopes = {key: _envelope(model) for key in self.detect_keys}
+        self.own_thresholds = {
+            key: detection.ThresholdReducer(
+                sample_rate_hz=fs, false_alarms_per_min=FALSE_ALARMS_PER_MIN
+            )
+            for key in self.detect_keys
+        }
+        # the one detector (core.contact) on each signal; the PR2 gripper's own magnitude
+        # thresholds are a baseline of their own (detection.PR2Magnitude)
+        self.detectors: dict[str, tuple] = {}
         if thresholds is not None:
             for key in self.metric_keys:
-                self.detectors[key] = (
-                    key,
-                    detection.EventDetector(thresholds[key], sample_rate_hz=fs),
-                )
+                self.detectors[key] = (key, detection.OnsetStream(thresholds[key], model))
             for level in detection.PR2_THRESHOLDS_MS2:
                 self.detectors[f"pr2_{level:g}ms2"] = (
                     "pr2",
@@ -681,7 +636,7 @@ class EvaluationPass:
         self.matchers = {key: detection.EventMatcher(sample_rate_hz=fs) for key in self.detectors}
         self.unfiltered = {key: np.zeros(0, np.int64) for key in self.detectors}
         # alignment and the bag's own output against the batch method
-        self.lags = {key: metrics.LagCorrelation() for key in ("paper", "bag_denoised")}
+        self.lags = {key: metrics.LagCorrelation() for key in ("default", "bag_denoised")}
         self.compare = self.recorded is not None and self.like in self.names
         self.held_difference: list[np.ndarray] = []  # (index, diff^2, batch^2) in tap windows
         self.difference = np.zeros(2)
@@ -774,19 +729,15 @@ class EvaluationPass:
                 if b > a:
                     tap.peaks[i] = max(tap.peaks[i], float(magnitude[a - p : b - p].max()))
         self.noise_count += int(np.count_nonzero(no_contact))
-        envelopes = {}
-        for key in self.detect_keys:
-            envelope = self.envelopes[key].process(data[key])
-            envelopes[key] = envelope
-            if no_contact.any():
-                self.noise_env_max[key] = max(
-                    self.noise_env_max[key], float(envelope[no_contact].max())
-                )
-        envelopes["pr2"] = data["pr2"]
-        for key, (signal_key, detector) in self.detectors.items():
-            detector.push(envelopes[signal_key])
+        if self.detectors:
+            for key, (signal_key, detector) in self.detectors.items():
+                detector.push(data[signal_key])
+        else:  # this pass only sets the thresholds, from the run's own no-contact samples
+            for key in self.detect_keys:
+                envelope = self.envelopes[key].process(data[key])[1]
+                self.own_thresholds[key].push(envelope[no_contact])
         self._segments(p, q, data)
-        self.lags["paper"].push(data["reference"], data["paper"])
+        self.lags["default"].push(data["reference"], data["default"])
         if self.recorded is not None:
             self.lags["bag_denoised"].push(data["reference"], data["bag_denoised"])
             if self.compare:
@@ -922,12 +873,7 @@ class EvaluationPass:
     # --- results ------------------------------------------------------------------
     def noise_thresholds(self) -> dict:
         """Detection thresholds from this run's own no-contact samples (no calibration)."""
-        out = {}
-        for key in self.detect_keys:
-            if not np.isfinite(self.noise_env_max[key]):
-                raise ValueError("no calibration samples to set a detection threshold from")
-            out[key] = float(detection.CALIBRATION_MARGIN * self.noise_env_max[key])
-        return out
+        return {key: self.own_thresholds[key].threshold() for key in self.detect_keys}
 
     def signal_metrics(self, key: str) -> dict:
         """metrics.signal_metrics of signal `key` against the raw signal."""
@@ -1027,6 +973,14 @@ def _cut(rec, a: int, b: int, *, first: bool):
     return dataclasses.replace(rec, **changes)
 
 
+def _like(per_axis: bool, dropin: bool) -> str:
+    """The method a recorded denoised topic is compared with: the default output (per axis,
+    drop-in), the paper's per-axis band-passed one, or the paper's combined one."""
+    if not per_axis:
+        return "paper"
+    return "default" if dropin else "per_axis"
+
+
 def method_names(
     methods: Sequence[str] | None,
     *,
@@ -1035,7 +989,7 @@ def method_names(
     model: NoiseModel | None = None,
 ) -> list[str]:
     """The methods to run: `methods` (the paper's always), else all that can run."""
-    fitted = model is not None and baselines.has_method_calibration(model)
+    fitted = model is not None and has_method_calibration(model)
     if methods is None:
         names = list(baselines.METHOD_LABELS)
         if model_short is None:
@@ -1062,6 +1016,8 @@ def method_names(
             raise ConfigError(
                 f"methods {needs} need a model calibrated with `egovib calibrate --methods hybrid`"
             )
-    if "paper" not in names:
-        names = ["paper"] + names
+    # the default (what a user gets: the figures reported at the top) and the paper's, always
+    for always in ("paper", "default"):
+        if always not in names:
+            names = [always] + names
     return names

@@ -8,11 +8,12 @@ on `contact_events`: header.stamp = the onset (a sensor sample's stamp), frame_i
 sensor's frame, vector = the band-passed vector at the event's peak, in the sensor field's
 unit. The same detector as `egovib detect`, so live and offline events agree.
 
-The threshold is fixed at start: `threshold` if given, else from no-contact data (the bag
-the model was calibrated from, or `calibration_bag`) run through the denoiser `method`
-and the detector's envelope, at the false-alarm budget `false_alarms_per_min`, keeping
-the calibration samples at joint speeds within `max_speed_fraction` of the robot's (the
-speeds the robot will run at: calibration at faster speeds would raise the threshold).
+The threshold is fixed at start by the rule `egovib detect` and `egovib evaluate` use:
+`threshold` if given, else the one `egovib calibrate` (or the calibrator node) stored in the
+model for `method` (default: the model's default method, the one the denoiser runs by
+default), else one from no-contact data (`calibration_bag`, or the bag the model was
+calibrated from) run through the denoiser `method` and the detector's envelope, at the
+false-alarm budget `false_alarms_per_min`.
 /diagnostics: events per minute, threshold, budget, the false-alarm rate on the
 calibration data, and the latency from an event's onset stamp to its message (p50, p99;
 meaningful when the sensor stamps run on this machine's clock).
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import struct
 import time
-from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
@@ -30,8 +30,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.contact import ContactDetector, ContactSettings
+from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactDetector, ContactSettings
 from egovib_ros.errors import ConfigError
+from egovib_ros.evaluation.contacts import check_detect_method, detection_threshold
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -52,29 +53,25 @@ PARAMETERS = (
     ),
     Param(
         "method",
-        "paper",
-        "the denoiser method producing the input (thresholds are taken from no-contact data "
-        "run through it): paper | cancel | hybrid; raw for source raw",
-        choices=("paper", "cancel", "hybrid", "raw"),
+        "",
+        "the denoiser method producing the input (its threshold): empty for the model's "
+        "default (hybrid where the model carries it, as the denoiser runs by default) | paper "
+        "| cancel | hybrid; raw for source raw",
+        choices=("", "paper", "cancel", "hybrid", "raw"),
     ),
     Param("threshold", 0.0, "envelope threshold (0: from no-contact data)", range=(0.0, 1e9)),
     Param(
         "calibration_bag",
         "",
-        "no-contact bag for the threshold (default: the bag the model was calibrated from)",
+        "no-contact bag to set the threshold from (default: the threshold stored in the model, "
+        "else the bag the model was calibrated from)",
     ),
     Param(
         "false_alarms_per_min",
-        0.0,
-        "false-alarm budget on the no-contact data (0: 1.1 x its largest envelope)",
+        FALSE_ALARMS_PER_MIN,
+        "false-alarm budget on the no-contact data (the model's thresholds: 1 a minute; 0: "
+        "1.1 x its largest envelope)",
         range=(0.0, 600.0),
-    ),
-    Param(
-        "max_speed_fraction",
-        1.0,
-        "take the threshold from calibration samples at joint speeds up to this fraction of "
-        "the robot's maximum",
-        range=(0.01, 10.0),
     ),
     Param("stale_after", 1.5, "seconds without input before STALE", range=(0.1, 3600.0)),
 )
@@ -95,20 +92,21 @@ class ContactDetectorNode(Node):
         self.model = NoiseModel.load(params["model"])
         self.profile = self.model.robot_profile()
         self.source = params["source"]
-        method = "raw" if self.source == "raw" else params["method"]
-        self.threshold, self.threshold_source, self.calibration_rate = self._threshold(
-            params, method
+        self.method = check_detect_method(
+            self.model, "raw" if self.source == "raw" else (params["method"] or None)
         )
         self.budget = params["false_alarms_per_min"]
-        self.detector = ContactDetector(
-            ContactSettings(
-                sample_rate_hz=self.model.sample_rate_hz,
-                band_hz=self.model.band_hz,
-                band_order=self.model.band_order,
-                threshold=self.threshold,
-                sensor_range=self.profile.sensor_range,
+        try:
+            self.threshold, self.threshold_source, self.calibration_rate = detection_threshold(
+                self.model,
+                self.method,
+                threshold=params["threshold"] or None,
+                calibration=params["calibration_bag"] or None,
+                false_alarms_per_min=self.budget,
             )
-        )
+        except ConfigError as exc:
+            raise ConfigError(f"contact_detector: {exc}; set calibration_bag or threshold")
+        self.detector = ContactDetector(ContactSettings.for_model(self.model, self.threshold))
         topic = (
             self.profile.node_denoised_topic
             if self.source == "denoised"
@@ -129,33 +127,10 @@ class ContactDetectorNode(Node):
         self.create_timer(0.002, self._process)  # batches of ~2 ms: latency small, cost low
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"contact events from {self.input_topic} ({self.profile.sensor_field}), threshold "
-            f"{self.threshold:.4g} ({self.threshold_source}) -> "
+            f"contact events from {self.input_topic} ({self.profile.sensor_field}, after "
+            f"{self.method}), threshold {self.threshold:.4g} ({self.threshold_source}) -> "
             f"{self.resolve_topic_name('contact_events')}"
         )
-
-    def _threshold(self, params: dict, method: str) -> tuple[float, str, float | None]:
-        if params["threshold"] > 0:
-            return float(params["threshold"]), "given", None
-        bag = params["calibration_bag"] or self.model.provenance.get("source_bag", "")
-        if not bag or not (Path(bag) / "metadata.yaml").is_file():
-            raise ConfigError(
-                f"contact_detector: no no-contact bag for the threshold ({bag or 'none stored in '}"
-                f"{'' if bag else params['model']}): set calibration_bag or threshold"
-            )
-        from egovib_ros.evaluation.contacts import calibration_threshold
-
-        limit = None
-        if params["max_speed_fraction"] < 1.0:
-            limit = params["max_speed_fraction"] * np.asarray(self.profile.max_speed)
-        threshold, rate = calibration_threshold(
-            bag,
-            self.model,
-            method=method,
-            false_alarms_per_min=params["false_alarms_per_min"],
-            speed_limit=limit,
-        )
-        return threshold, f"no-contact data of {bag} through {method}", rate
 
     def _on_sample(self, data: bytes) -> None:
         # not bound to the list itself: _process replaces it with a fresh one
@@ -193,6 +168,7 @@ class ContactDetectorNode(Node):
             "stream_restarts": self.detector.restarts,
             "events": self.events,
             "events_per_min": round(self.events / minutes, 3),
+            "method": self.method,
             "threshold": self.threshold,
             "false_alarm_budget_per_min": self.budget,
             "calibration_false_alarms_per_min": (

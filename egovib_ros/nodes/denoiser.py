@@ -34,9 +34,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu
 
 from egovib_ros.bag.codec import replace_imu_field
-from egovib_ros.bag.denoise import make_method_denoiser
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
+from egovib_ros.core.methods import METHODS, make_denoiser, resolve_method
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION, DenoisedChunk
 from egovib_ros.errors import ConfigError, EgovibError
 from egovib_ros.gap.advice import noise_gain_from_report
@@ -51,7 +51,6 @@ from egovib_ros.nodes.common import (
 )
 
 LIVE = ("oversubtraction", "floor")
-METHODS = ("paper", "cancel", "hybrid")
 #: The model-coverage WARN looks at the blocks of the last this many seconds (a free-motion
 #: model's share of unmeasured cells varies from one second to the next) ...
 COVERAGE_WINDOW_S = 10.0
@@ -77,21 +76,20 @@ MODEL_PARAMETERS = (
     ),
     Param(
         "method",
-        "paper",
-        "paper: the paper's block spectral subtraction (a block of delay) | cancel: "
-        "speed-locked harmonic cancellation (no delay) | hybrid: cancel, then a low-latency "
-        "gain (4 ms); cancel and hybrid need a model calibrated with "
-        "`egovib calibrate --methods hybrid`",
-        choices=METHODS,
+        "",
+        "empty: the model's default (hybrid where the model carries it) | hybrid: "
+        "speed-locked harmonic cancellation, then a low-latency gain (4 ms band-passed; the "
+        "drop-in output the look-ahead its split needs, 5-11 ms) | paper: the paper's block "
+        "spectral subtraction (a block of delay) | cancel: the cancellation alone (no delay)",
+        choices=("", *METHODS),
     ),
 )
 OUTPUT_PARAMETER = Param(
     "output",
     "dropin",
-    "dropin (default): the raw field minus the estimated ego-vibration (gravity, motion "
-    "and all outside the band kept; cancel and hybrid: 9-20 ms later than their band-passed "
-    "output) | bandpassed: the cleaned band-passed signal; channels combined is always "
-    "band-passed",
+    "dropin (default): the raw field minus the estimated ego-vibration (gravity and motion "
+    "below the band kept; hybrid: the look-ahead its split needs) | bandpassed: the cleaned "
+    "band-passed signal; channels combined is always band-passed",
     choices=("dropin", "bandpassed"),
 )
 PARAMETERS = MODEL_PARAMETERS + (
@@ -121,7 +119,7 @@ PARAMETERS = MODEL_PARAMETERS + (
         "noise_gain",
         "",
         "an `egovib gap` report with a drift verdict: its noise level change over time "
-        "applied from the stream's start, as `egovib denoise --noise-gain` (method paper)",
+        "applied from the stream's start, as `egovib denoise --noise-gain`",
     ),
     Param(
         "batch_samples",
@@ -251,7 +249,7 @@ class Denoiser(Node):
             raise ConfigError("denoiser: parameter 'model' (noise-model path) is required")
         self.model = NoiseModel.load(first["model"])
         self.profile = self.model.robot_profile()
-        self.method = first["method"]
+        self.method = resolve_method(self.model, first["method"] or None)
         rest = PARAMETERS[len(MODEL_PARAMETERS) :]
         if self.method != "paper":  # their settings are fixed at start: advertised read-only
             rest = tuple(replace(p, read_only=True) if p.name in LIVE else p for p in rest)
@@ -267,7 +265,7 @@ class Denoiser(Node):
         self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
         self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
         # the same construction as `egovib denoise --method` (bad combinations: one line)
-        self.denoiser = make_method_denoiser(
+        self.denoiser = make_denoiser(
             self.model,
             self.method,
             channels=self.channels,
