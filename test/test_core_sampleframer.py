@@ -149,3 +149,31 @@ def test_a_stream_at_another_rate_is_refused():
         StreamError, match=r"runs at (4[5-9][0-9]|5[0-4][0-9]) Hz but the model expects 1000 Hz"
     ):
         framer.push_sensor(t[0] + 2 * (t - t[0]), accel)
+
+
+@pytest.mark.parametrize("nominal_hz", [1600.0, 2000.0, 1333.0])
+def test_steps_alternating_500_and_750_us_are_the_same_stream_to_every_framer(nominal_hz):
+    """A small flight controller's gyro logged every 500 then 750 us (its mean: 1600 Hz):
+    the per-sample methods measure the rate as the paper's blocks do (one rate check, in
+    the framers' base; SampleFramer took the median step, 2000 Hz, and refused what the
+    paper's method accepted), so a stream one method accepts every method accepts."""
+    from egovib_ros.core.stream import BlockFramer
+
+    n = 4000
+    steps = np.tile([500_000, 750_000], n // 2)
+    t = 10**9 + np.cumsum(steps).astype(np.int64)
+    accel = np.random.default_rng(1).normal(size=(n, 3))
+    settings = dataclasses.replace(SETTINGS, sample_rate_hz=nominal_hz)
+    outcomes = []
+    for framer in (SampleFramer(settings, 2), BlockFramer(settings, 2)):
+        framer.push_joint_states(t[::4], np.zeros((n // 4, 2)))
+        try:
+            framer.push_sensor(t, accel)
+            framer.flush()
+            outcomes.append(framer.rate_checked)
+        except StreamError as exc:
+            assert f"expects {nominal_hz:g} Hz" in str(exc)
+            outcomes.append(False)
+    assert outcomes[0] == outcomes[1]
+    if nominal_hz == 1600.0:
+        assert outcomes == [True, True]

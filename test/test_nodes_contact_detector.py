@@ -13,6 +13,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.methods import default_method
 from egovib_ros.evaluation.contacts import TOLERANCE_S, calibration_threshold, detect_bag
 from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
@@ -30,8 +31,9 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
 ):
     """4 s of the simulated hand in random motion with taps (2 per second), stamped on this
     machine's clock, published by this test into the denoiser (paper) and on into
-    contact_detector (source denoised), its threshold from a no-contact bag (8 s) at no
-    false-alarm budget (1.1 x the largest envelope). Each event is a Vector3Stamped on
+    contact_detector (source denoised), its threshold from a no-contact bag (8 s) by the one
+    rule at no false-alarm budget (1.1 x its largest envelope: 8 s are too few to allow one
+    a minute). Each event is a Vector3Stamped on
     contact_events: stamp = onset, frame = the sensor's; the events are those
     `egovib_ros.evaluation.contacts.detect_bag` finds offline in a bag of the same
     messages (onsets equal to the nanosecond, peaks to 1e-9); one event per tap, its onset
@@ -57,6 +59,7 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
         {
             "model": str(sim_model_path),
             "calibration_bag": str(calibration),
+            "false_alarms_per_min": 0.0,
             **reliable_input(PR2.denoised_topic),
         },
     )
@@ -101,11 +104,11 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
     assert nodes.stop(detector) == 0, nodes.log(detector)
     assert nodes.stop(denoiser) == 0, nodes.log(denoiser)
 
-    # The threshold: the no-contact bag through the paper's method and the envelope.
+    # The threshold: the no-contact bag through the model's default method and the envelope.
     model = NoiseModel.load(sim_model_path)
-    threshold, _ = calibration_threshold(
-        calibration, model, method="paper", false_alarms_per_min=0.0
-    )
+    method = default_method(model)
+    assert values["method"] == method
+    threshold, _ = calibration_threshold(calibration, model, method=method, false_alarms_per_min=0)
     assert float(values["threshold"]) == pytest.approx(threshold, rel=1e-5)  # as reported
     assert float(values["false_alarm_budget_per_min"]) == 0.0
     assert int(values["events"]) == len(events) > 0, values
@@ -113,9 +116,7 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
 
     # Offline, on a bag of the very messages sent: the same events. The live detector
     # reports an event 10 ms after its crossing; one in the stream's last 10 ms never is.
-    offline = detect_bag(
-        stream.write_bag(tmp_path / "run"), model=model, method="paper", threshold=threshold
-    )
+    offline = detect_bag(stream.write_bag(tmp_path / "run"), model=model, threshold=threshold)
     expected = [e for e in offline.events if e.report_ns < stamps[-1]]
     onsets = np.array([stamp_to_ns(e.header.stamp) for e in events])
     np.testing.assert_array_equal(onsets, [e.onset_ns for e in expected])

@@ -574,10 +574,10 @@ def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
     common = {"model": model, **RELIABLE, **EXACT_REPLAY}
     hybrid_topic = "/accelerometer/denoised_hybrid"
     started = {
-        "denoiser": nodes.start("denoiser", {**common, **DEEP_OUTPUT}),
-        "denoiser_hybrid": nodes.start(
+        "denoiser": nodes.start("denoiser", {**common, "method": "paper", **DEEP_OUTPUT}),
+        "denoiser_hybrid": nodes.start(  # no method: the model's default, hybrid
             "denoiser",
-            {**common, "method": "hybrid", **deep_output(hybrid_topic)},
+            {**common, **deep_output(hybrid_topic)},
             remap={"__node": "denoiser_hybrid", PR2.node_denoised_topic: hybrid_topic},
         ),
     }
@@ -629,10 +629,10 @@ def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
     assert values["denoiser_hybrid"]["method"] == "hybrid"
 
     bag = stream.write_bag(tmp_path / "positions_only")
-    # what `egovib denoise BAG --model M --out OUT [--method hybrid]` runs
+    # what `egovib denoise BAG --model M --out OUT [--method paper]` runs
     offline = {"denoiser": tmp_path / "paper", "denoiser_hybrid": tmp_path / "hybrid"}
     for name, out in offline.items():
-        denoise_bag(bag, out, model=model, method="hybrid" if "hybrid" in name else "paper")
+        denoise_bag(bag, out, model=model, method=None if "hybrid" in name else "paper")
     for name, out in offline.items():
         want_stamps, want = bag_topic(out, PR2.denoised_topic)
         got_stamps, got, _ = decode_imu_messages(received[name])

@@ -23,11 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egovib_ros.core.receipt import envelope_period
-from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays, rate_refusal
+from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays
 from egovib_ros.core.timebase import NS_PER_S
-
-RATE_CHECK_SAMPLES = 128
 
 
 @dataclass
@@ -62,7 +59,6 @@ class SampleFramer(_Framer):
         self._ready: list[SampleBatch] = []
         self._last_time: int | None = None  # effective time of the last real sample appended
         self._segment_open = False  # samples appended since the segment started
-        self._rate_stamps: list[np.ndarray] = []
         # joint states that lag the sensor (FramerSettings.joint_lag_s) are moved later, and
         # arrive that much later relative to the samples they cover
         self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
@@ -107,6 +103,7 @@ class SampleFramer(_Framer):
             self._check_rate(segment.stamps)
             self._append(segment.stamps, segment.values)
             if segment.ends_stream:
+                self._rate_segment_ends(segment)
                 self._close_segment(wait_for_joints=segment.wait_for_joints)
             self._drain()
 
@@ -125,29 +122,6 @@ class SampleFramer(_Framer):
         return len(self._pend_t) + self._cleaner.waiting, len(self._joint_t)
 
     # --- internals -------------------------------------------------------------
-    def _check_rate(self, stamps: np.ndarray) -> None:
-        if self._rate_checked:
-            if self._rate_error:
-                raise self.s.error(self._rate_error)
-            return
-        receipt = self._cleaner.receipt
-        self._rate_stamps.append(stamps if receipt is not None else stamps[stamps >= 0])
-        seen = np.concatenate(self._rate_stamps)
-        if receipt is not None:  # the samples received (core.receipt)
-            need = receipt.rate_window(RATE_CHECK_SAMPLES, first=True)
-            if len(seen) < need:
-                return
-            measured = NS_PER_S / envelope_period(seen[:need], self.s.period_ns)
-        else:
-            if len(seen) < RATE_CHECK_SAMPLES:
-                return
-            measured = NS_PER_S / float(np.median(np.diff(seen)))
-        self._rate_checked = True
-        self._rate_stamps = []
-        if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
-            self._rate_error = rate_refusal(measured, self.s, self.stats)
-            raise self.s.error(self._rate_error)
-
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:
             return

@@ -624,6 +624,11 @@ class _Framer:
         self._joint_v = np.zeros((0, self.n_joints))
         self._rate_checked = False
         self._rate_error = ""
+        self._rate_steps: list[np.ndarray] = []  # stamp steps not yet measured
+        self._rate_ends: list[np.ndarray] = []  # the stamp each of those steps ends at
+        self._rate_count = 0  # how many
+        self._rate_last: int | None = None  # last real stamp of the open segment
+        self._rate_off_windows = 0  # consecutive windows measured beyond the tolerance
         self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
 
     def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
@@ -631,9 +636,8 @@ class _Framer:
 
     @property
     def rate_checked(self) -> bool:
-        """The stream's rate has been measured on its first samples (2 blocks' worth for
-        BlockFramer, 128 for SampleFramer) and found right (a wrong rate raises StreamError on
-        every push instead)."""
+        """The stream's rate has been measured on its first samples (2 blocks' worth) and
+        found right (a wrong rate raises StreamError on every push instead)."""
         return self._rate_checked and not self._rate_error
 
     @property
@@ -641,112 +645,6 @@ class _Framer:
         """What the sensor stamps mark: "sample", "receipt" (with its latency in
         stats.receipt_latency_ns), or "" while the first samples wait to tell."""
         return self._cleaner.kind or ""
-
-
-class BlockFramer(_Framer):
-    """Streaming framer. Push joint states and accelerometer chunks in any sizes;
-    `pop_blocks()` returns the blocks that became ready."""
-
-    def __init__(self, settings: FramerSettings, n_joints: int):
-        self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
-        super().__init__(settings, n_joints, self.n_channels)
-        self._rows = self.n_channels * (3 if settings.keep_raw else 1)  # rows of the buffer
-        self.window = analysis_window(settings.block_length, settings.hop)
-        self._below_band = BelowBand(
-            sample_rate_hz=settings.sample_rate_hz,
-            band_hz=settings.band_hz,
-            n_channels=self.n_channels,
-        )
-        self._rate_steps: list[np.ndarray] = []  # stamp steps not yet measured
-        self._rate_ends: list[np.ndarray] = []  # the stamp each of those steps ends at
-        self._rate_count = 0  # how many
-        self._rate_last: int | None = None  # last real stamp of the open segment
-        self._rate_off_windows = 0  # consecutive windows measured beyond the tolerance
-        self._ready: list[Blocks] = []
-        self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
-        self._offsets = np.arange(settings.block_length)
-        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
-        # joint states moved later arrive that much later relative to the blocks they cover
-        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
-        self._start_segment()
-
-    # --- input ---------------------------------------------------------------
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
-        stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
-        self.stats.joint_states_in += len(stamps_ns)
-        if len(stamps_ns) == 0:
-            return
-        if self._joint_lag_ns:
-            stamps_ns = stamps_ns + self._joint_lag_ns
-        last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
-        if (
-            stamps_ns[0] > last
-            and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all())
-            and np.isfinite(velocity).all()
-        ):
-            # Fast path (the live case): in order and finite.
-            self._joint_t = np.concatenate([self._joint_t, stamps_ns])
-            self._joint_v = np.concatenate([self._joint_v, velocity])
-            self._drain(final=False)
-            return
-        in_order, i = stamp_order(
-            last if len(self._joint_t) else None, stamps_ns, int(self.s.clock_jump_s * NS_PER_S)
-        )
-        if i is not None:
-            # The joint clock went back (bag loop, reset): forget the old timeline.
-            # (the pushes below shift the stamps again: undo the shift here)
-            self.push_joint_states(stamps_ns[:i] - self._joint_lag_ns, velocity[:i])
-            self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
-            # Complete the accelerometer blocks still pending on the old clock with its joint
-            # states, then forget them.
-            self._close_segment(wait_for_joints=False)
-            self._drain(final=False)
-            self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
-            self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
-            self.stats.joint_states_in += i
-            return
-        keep = in_order & np.all(np.isfinite(velocity), axis=1)
-        self.stats.joint_states_dropped += int((~keep).sum())
-        if keep.any():
-            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
-            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
-        self._drain(final=False)
-
-    def _push_segments(self, segments: list[_Segment]) -> None:
-        for segment in segments:
-            self._check_rate(segment.stamps)
-            self._append(segment.stamps, segment.values)
-            if segment.ends_stream:
-                self._rate_last = None  # no step is measured across a long gap or a clock jump
-                if self._cleaner.receipt is not None and not segment.wait_for_joints:
-                    # receipt stamps: a window spans gaps (it counts samples received) but
-                    # not a clock jump
-                    self._rate_steps, self._rate_ends, self._rate_count = [], [], 0
-                self._close_segment(wait_for_joints=segment.wait_for_joints)
-            self._drain(final=False)
-
-    def flush(self) -> None:
-        """End of stream: complete all pending blocks (zero padding at the end)."""
-        self._push_segments(self._cleaner.finish())
-        self._drain(final=True)
-
-    def pop_blocks(self) -> list[Blocks]:
-        ready, self._ready = self._ready, []
-        return ready
-
-    @property
-    def backlog(self) -> tuple[int, int]:
-        """(samples buffered, joint states held): bounded however long the stream runs."""
-        return len(self._buf_t) + self._cleaner.waiting, len(self._joint_t)
-
-    # --- internals -------------------------------------------------------------
-    def _start_segment(self) -> None:
-        pad = self.s.block_length - self.s.hop
-        # Front padding so the first real sample is covered by L/hop blocks like all others.
-        self._buf_x = np.zeros((self._rows, pad))  # channels first
-        self._buf_t = np.full(pad, -1, dtype=np.int64)
-        self._bandpass.reset()
-        self._below_band.reset()
 
     def _rate_window(self) -> int:
         """Samples (steps, for sample stamps) per rate window: the first 2 blocks' worth, then
@@ -760,7 +658,9 @@ class BlockFramer(_Framer):
         """Measure the rate on the steps between real samples of a segment (receipt stamps:
         on every sample's stamp, bridged ones included, core.receipt.envelope_period) over
         consecutive windows (`_rate_window`). The windows are counted in samples, so any
-        chunking measures the same windows."""
+        chunking measures the same windows; both framers measure alike, so a stream one
+        method accepts every method accepts (steps alternating 500 and 750 us: their mean
+        rate, 1600 Hz, not the shorter step's)."""
         if self._rate_error:
             raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
         receipt = self._cleaner.receipt is not None
@@ -818,6 +718,110 @@ class BlockFramer(_Framer):
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
             self._rate_error = rate_refusal(measured, self.s, self.stats)
             raise self.s.error(self._rate_error)
+
+    def _rate_segment_ends(self, segment) -> None:
+        """No step is measured across a long gap or a clock jump; receipt stamps: a window
+        spans gaps (it counts samples received) but not a clock jump."""
+        self._rate_last = None
+        if self._cleaner.receipt is not None and not segment.wait_for_joints:
+            self._rate_steps, self._rate_ends, self._rate_count = [], [], 0
+
+
+class BlockFramer(_Framer):
+    """Streaming framer. Push joint states and accelerometer chunks in any sizes;
+    `pop_blocks()` returns the blocks that became ready."""
+
+    def __init__(self, settings: FramerSettings, n_joints: int):
+        self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
+        super().__init__(settings, n_joints, self.n_channels)
+        self._rows = self.n_channels * (3 if settings.keep_raw else 1)  # rows of the buffer
+        self.window = analysis_window(settings.block_length, settings.hop)
+        self._below_band = BelowBand(
+            sample_rate_hz=settings.sample_rate_hz,
+            band_hz=settings.band_hz,
+            n_channels=self.n_channels,
+        )
+        self._ready: list[Blocks] = []
+        self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
+        self._offsets = np.arange(settings.block_length)
+        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
+        # joint states moved later arrive that much later relative to the blocks they cover
+        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
+        self._start_segment()
+
+    # --- input ---------------------------------------------------------------
+    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
+        self.stats.joint_states_in += len(stamps_ns)
+        if len(stamps_ns) == 0:
+            return
+        if self._joint_lag_ns:
+            stamps_ns = stamps_ns + self._joint_lag_ns
+        last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
+        if (
+            stamps_ns[0] > last
+            and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all())
+            and np.isfinite(velocity).all()
+        ):
+            # Fast path (the live case): in order and finite.
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns])
+            self._joint_v = np.concatenate([self._joint_v, velocity])
+            self._drain(final=False)
+            return
+        in_order, i = stamp_order(
+            last if len(self._joint_t) else None, stamps_ns, int(self.s.clock_jump_s * NS_PER_S)
+        )
+        if i is not None:
+            # The joint clock went back (bag loop, reset): forget the old timeline.
+            # (the pushes below shift the stamps again: undo the shift here)
+            self.push_joint_states(stamps_ns[:i] - self._joint_lag_ns, velocity[:i])
+            self.stats.joint_states_in -= len(stamps_ns)  # counted once, here
+            # Complete the accelerometer blocks still pending on the old clock with its joint
+            # states, then forget them.
+            self._close_segment(wait_for_joints=False)
+            self._drain(final=False)
+            self._joint_t, self._joint_v = self._joint_t[:0], self._joint_v[:0]
+            self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
+            self.stats.joint_states_in += i
+            return
+        keep = in_order & np.all(np.isfinite(velocity), axis=1)
+        self.stats.joint_states_dropped += int((~keep).sum())
+        if keep.any():
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
+            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
+        self._drain(final=False)
+
+    def _push_segments(self, segments: list[_Segment]) -> None:
+        for segment in segments:
+            self._check_rate(segment.stamps)
+            self._append(segment.stamps, segment.values)
+            if segment.ends_stream:
+                self._rate_segment_ends(segment)
+                self._close_segment(wait_for_joints=segment.wait_for_joints)
+            self._drain(final=False)
+
+    def flush(self) -> None:
+        """End of stream: complete all pending blocks (zero padding at the end)."""
+        self._push_segments(self._cleaner.finish())
+        self._drain(final=True)
+
+    def pop_blocks(self) -> list[Blocks]:
+        ready, self._ready = self._ready, []
+        return ready
+
+    @property
+    def backlog(self) -> tuple[int, int]:
+        """(samples buffered, joint states held): bounded however long the stream runs."""
+        return len(self._buf_t) + self._cleaner.waiting, len(self._joint_t)
+
+    # --- internals -------------------------------------------------------------
+    def _start_segment(self) -> None:
+        pad = self.s.block_length - self.s.hop
+        # Front padding so the first real sample is covered by L/hop blocks like all others.
+        self._buf_x = np.zeros((self._rows, pad))  # channels first
+        self._buf_t = np.full(pad, -1, dtype=np.int64)
+        self._bandpass.reset()
+        self._below_band.reset()
 
     def _append(self, stamps: np.ndarray, values: np.ndarray) -> None:
         if len(stamps) == 0:

@@ -66,6 +66,20 @@ PARAMETERS = (
         "`egovib calibrate --joint-lag`); negative: it leads them",
         range=(-1.0, 1.0),
     ),
+    Param(
+        "methods",
+        "all",
+        "all: at shutdown also fit what methods cancel and hybrid need and the contact "
+        "detector's thresholds, on the samples kept (as `egovib calibrate`); paper: the "
+        "paper's table and the detector's thresholds only",
+        choices=("all", "paper"),
+    ),
+    Param(
+        "keep_seconds",
+        600.0,
+        "seconds of the stream kept for that fit at shutdown (the first ones)",
+        range=(1.0, 7200.0),
+    ),
     Param("checkpoint", "", "checkpoint model path; empty = <output stem>.checkpoint.npz"),
     Param("resume", True, "resume from the checkpoint if it exists"),
     Param("batch_samples", 96, "sensor samples collected before processing", range=(1, 100_000)),
@@ -123,6 +137,14 @@ class Calibrator(Node):
         self.grid = params["grid"]
         self.checkpoint = params["checkpoint"] or default_checkpoint(self.output)
         self.checkpoint_period_s = params["checkpoint_period"]
+        self.methods = params["methods"]
+        self.joint_lag_s = params["joint_lag"]
+        # the stream itself, for what is fitted at shutdown on whole arrays (the methods'
+        # line map and gains, the detector's thresholds): at most keep_seconds of it
+        self._keep = int(params["keep_seconds"] * self.profile.rate_hz)
+        self._kept_sensor: list[tuple[np.ndarray, np.ndarray]] = []
+        self._kept_joints: list[tuple[np.ndarray, np.ndarray]] = []
+        self._kept = 0
         self.retry_period_s = params["retry_period"]
         self.input = StreamInput(
             self, self.profile, batch_samples=params["batch_samples"], on_batch=self._process
@@ -193,8 +215,13 @@ class Calibrator(Node):
         joints = self.input.take_joints(final=final)
         if joints is not None and len(joints.stamps_ns):
             self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
+            if self._kept < self._keep:
+                self._kept_joints.append((joints.stamps_ns.copy(), joints.velocity.copy()))
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
+            if self._kept < self._keep:
+                self._kept_sensor.append((batch.stamps_ns.copy(), batch.values.copy()))
+                self._kept += len(batch.stamps_ns)
             try:
                 self.acc.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:  # e.g. a stream at another rate than the profile's
@@ -282,12 +309,43 @@ class Calibrator(Node):
         self._last_checkpoint = time.monotonic()
         self.checkpoints_written += 1
 
-    def write_model(self, path: str) -> NoiseModel:
-        """Write the model accumulated so far to `path`, atomically."""
-        model = self.acc.to_model(source=f"live:{self.input.sensor_topic}")
+    def write_model(self, path: str, model: NoiseModel | None = None) -> NoiseModel:
+        """Write `model` (default: the one accumulated so far) to `path`, atomically."""
+        model = model or self.acc.to_model(source=f"live:{self.input.sensor_topic}")
         with atomic_output(path) as tmp:
             model.save(tmp)
         return model
+
+    def fitted_model(self) -> tuple[NoiseModel, str]:
+        """The final model: the table, and on the samples kept what `egovib calibrate` fits
+        beside it (methods cancel and hybrid with `methods: all`, the contact detector's
+        thresholds), so the model feeds the denoiser's default method and the
+        contact_detector alone. What was fitted, in words (or why not)."""
+        from egovib_ros.core.methods import (  # numba: compiled at shutdown, not at start
+            calibrate_detection,
+            calibrate_methods,
+        )
+
+        model = self.acc.to_model(source=f"live:{self.input.sensor_topic}")
+        if not self._kept_sensor or not self._kept_joints:
+            return model, "no samples kept"
+        stamps, values = (np.concatenate(p) for p in zip(*self._kept_sensor))
+        joint_stamps, velocity = (np.concatenate(p) for p in zip(*self._kept_joints))
+        joint_stamps = joint_stamps + int(round(self.joint_lag_s * 1e9))
+        arrays = (stamps, values, joint_stamps, velocity)
+        source = self.input.sensor_topic
+        try:
+            fitted = []
+            if self.methods == "all":
+                model, _ = calibrate_methods(model, *arrays, source=source)
+                fitted.append("methods cancel and hybrid")
+            model, thresholds = calibrate_detection(model, *arrays, source=source)
+            fitted.append(
+                "detector thresholds " + ", ".join(f"{m} {t:.3g}" for m, t in thresholds.items())
+            )
+        except EgovibError as exc:
+            return model, f"the paper's table only ({exc})"
+        return model, f"on {len(stamps) / self.profile.rate_hz:.0f} s kept: " + "; ".join(fitted)
 
     def coverage(self) -> dict:
         counts = self._cell_count_map()
@@ -386,13 +444,14 @@ class Calibrator(Node):
                 flush=True,
             )
             return 1
+        model, fitted = self.fitted_model()
         try:
-            self.write_model(self.output)
+            self.write_model(self.output, model)
         except (OSError, EgovibError) as exc:
             reason = getattr(exc, "strerror", None) or str(exc)
             fallback = Path(tempfile.gettempdir()) / f"{Path(self.output).stem}.{os.getpid()}.npz"
             try:
-                self.write_model(str(fallback))
+                self.write_model(str(fallback), model)
             except (OSError, EgovibError):
                 raise ConfigError(
                     f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
@@ -414,6 +473,7 @@ class Calibrator(Node):
             f"blocks: {self.acc.stats.rejected}; bad samples: {self.acc.stats.samples_bad}",
             flush=True,
         )
+        print(f"calibrator: fitted {fitted}", flush=True)
         return 0
 
 
