@@ -36,8 +36,9 @@ ALLOWED = {
     "evaluation": {"core", "bag", "sim", *BASE},
     "gap": {"core", "bag", "sim", "evaluation", *BASE},
     "nodes": {"core", "bag", "sim", "evaluation", "gap", *BASE},  # gap: a report's advice
-    "experiments": {"core", "bag", "sim", "altreality", "evaluation", "gap", "tools", *BASE},
-    "tools": {"core", "bag", "sim", "evaluation", "gap", "nodes", "experiments", *BASE},
+    "viz": {"core", "bag", *BASE},  # the figures of `egovib model show`
+    "experiments": {"core", "bag", "sim", "altreality", "evaluation", "gap", "tools", "viz", *BASE},
+    "tools": {"core", "bag", "sim", "evaluation", "gap", "nodes", "experiments", "viz", *BASE},
     "cli": {
         "core",
         "bag",
@@ -48,6 +49,7 @@ ALLOWED = {
         "nodes",
         "tools",
         "experiments",
+        "viz",
         *BASE,
     },  # fmt: skip
     "robot": {"errors"},
@@ -119,7 +121,7 @@ UNTESTED = {
     "cli/demo": "starts ROS 2 nodes; parsed in test_nodes_launch, run by `make demo`",
     "cli/live_bench": "starts ROS 2 nodes; parsed in test_nodes_launch",
     "cli/jobs": "--jobs/--scheduler of every many-bag command (test_cli_denoise, test_cli_gap)",
-    "cli/model": "`egovib model show` runs in test_tools_model_show",
+    "cli/model": "`egovib model show` runs in test_viz_model_show",
     "cli/real": "`egovib real convert|evaluate|gap` run in test_experiments_flight_*, _gap_flight",
     "cli/simulate_robot": "`egovib simulate robot` runs in test_sim_robot",
     "experiments/flight/flightlog": "read by the converter in test_experiments_flight_convert",

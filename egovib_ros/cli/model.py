@@ -1,12 +1,12 @@
 """`egovib model show MODEL.npz --out DIR [--bag BAG]`: look at a noise model
-(tools/model_show.py: coverage, spectra, where a recording falls)."""
+(viz/model_show.py: coverage, spectra, where a recording falls)."""
 
 from __future__ import annotations
 
 import argparse
 
 from egovib_ros.cli.options import force_and_quiet
-from egovib_ros.tools.model_show import place_bag, summary_lines, write_views
+from egovib_ros.viz.model_show import place_bag, summary_lines, write_views
 
 
 def register(subparsers) -> None:

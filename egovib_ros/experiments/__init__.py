@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import shlex
 import sys
-from pathlib import Path
 
 
 def core_arrays(rec) -> tuple:
@@ -26,21 +25,3 @@ def python_command(module: str, argv: list[str] | None) -> str:
     """The shell command `python -m module` with these arguments (None: this process's)."""
     argv = sys.argv[1:] if argv is None else argv
     return " ".join(shlex.quote(a) for a in ["python", "-m", module, *argv])
-
-
-def pyplot():
-    """matplotlib.pyplot on the Agg backend (files only), imported when a figure is drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path, dpi: int = 110) -> Path:
-    """Lay `fig` out, write it to `path` and close it."""
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
-    return path

@@ -55,8 +55,9 @@ from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.contacts import detect_bag, method_output
 from egovib_ros.evaluation.detection import scores_of
 from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
-from egovib_ros.experiments import pyplot, python_command, save_figure
+from egovib_ros.experiments import python_command
 from egovib_ros.robot import load_profile
+from egovib_ros.viz import pyplot, save_figure
 
 LOG = logging.getLogger("egovib_ros.contacts_compare")
 

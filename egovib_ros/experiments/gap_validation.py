@@ -31,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.experiments import core_arrays, pyplot, save_figure
+from egovib_ros.experiments import core_arrays
 from egovib_ros.gap.effects import EFFECTS
 from egovib_ros.outputs import atomic_output
+from egovib_ros.viz import pyplot, save_figure
 
 REALITIES = ("sim", "alt", "real")
 #: The functional forms of each effect the blind runs draw from, per generated reality (the

@@ -8,8 +8,8 @@ import numpy as np
 from scipy import signal
 
 from egovib_ros.evaluation import baselines
-from egovib_ros.experiments import pyplot
 from egovib_ros.outputs import atomic_output
+from egovib_ros.viz import pyplot
 
 plt = pyplot()
 

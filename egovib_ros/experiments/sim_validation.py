@@ -36,11 +36,11 @@ from scipy import signal
 from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.filters import design_bandpass
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.experiments import pyplot, save_figure
 from egovib_ros.robot import load_profile
 from egovib_ros.sim.hand import HandSimulator
 from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.scenarios import iter_sweep, simulate_motion, sweep_cells
+from egovib_ros.viz import pyplot, save_figure
 
 # The simulated hand's settings come from its robot profile (the PR2 right hand, the default),
 # as for any robot: rate, band, blocks, top speeds and the grid's speed fractions.

@@ -54,7 +54,7 @@ from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, met
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.experiments import core_arrays, fmt, pyplot, python_command, save_figure
+from egovib_ros.experiments import core_arrays, fmt, python_command
 from egovib_ros.experiments.flight import ATTRIBUTION
 from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.experiments.flight.experiment import calibration_mask
@@ -62,6 +62,7 @@ from egovib_ros.experiments.flight.methods import build_methods
 from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 from egovib_ros.tools.bench import best_wall_and_cpu
+from egovib_ros.viz import pyplot, save_figure
 
 LOG = logging.getLogger("egovib_ros.methods_compare")
 

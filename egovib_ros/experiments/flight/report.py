@@ -14,10 +14,11 @@ import numpy as np
 
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.metrics import json_safe
-from egovib_ros.experiments import fmt, pyplot
+from egovib_ros.experiments import fmt
 from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import RobotProfile
+from egovib_ros.viz import pyplot
 
 BASELINES = ("global", "mean_command", "notch_q5", "notch_q2")
 FIRMWARE_LABEL = "(d) firmware's own filtered gyro (noise only)"

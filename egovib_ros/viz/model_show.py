@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.experiments import pyplot, save_figure
+from egovib_ros.viz import pyplot, save_figure
 
 #: Fractions of a joint's max speed whose single-joint cells the spectra show (with rest).
 SPEED_FRACTIONS = (0.25, 0.5, 0.75, 1.0)

@@ -17,7 +17,7 @@ from egovib_ros.core.stream import CalibrationStats
 from egovib_ros.outputs import MARKER
 from egovib_ros.robot import default_profile, load_profile
 from egovib_ros.sim.robot import as_recording, free_motion_arrays
-from egovib_ros.tools.model_show import (
+from egovib_ros.viz.model_show import (
     CellIndex,
     coverage_facts,
     joint_marginals,
