@@ -130,7 +130,7 @@ def test_the_lag_scan_uses_every_training_block(sim_model_path):
     """A 17.5 ms lag in the alternate reality (a blind validation run): scanned on every
     other block the curve's deepest minimum was at 30 ms, where the timing term lost on
     held-out data; on every block it is at the generated lag."""
-    from egovib_ros.altreality import simulate_alt_motion
+    from egovib_research.altreality import simulate_alt_motion
     from egovib_ros.core import NoiseModel
     from egovib_ros.gap.pipeline import build_table
 

@@ -13,6 +13,11 @@ the parser it adds sets `func(args) -> int`. How a run ends:
 - any other exception is a bug: one line naming the command, its input and the
   exception, the traceback written to a log file whose path is printed, exit status 1.
 
+Other installed packages add commands through the entry-point group `egovib.commands`
+(COMMAND_GROUP): the repository's research package (research/, installed by `make venv`)
+adds bench, demo, figures, gap validate, live-bench and real so. Without it (a robot's
+install) each of those is refused in one line that says where it comes from.
+
 Every way out releases the outputs the run claimed (outputs.release_outputs); staged
 outputs are removed by the exception unwinding through outputs.atomic_output.
 Module-level imports are kept to the standard library's smallest, so that Ctrl-C while
@@ -38,14 +43,17 @@ COMMAND_MODULES = (
     "egovib_ros.cli.calibrate",
     "egovib_ros.cli.denoise",
     "egovib_ros.cli.model",  # model show
-    "egovib_ros.cli.evaluate",  # evaluate, figures
+    "egovib_ros.cli.evaluate",  # evaluate
     "egovib_ros.cli.detect",  # detect
-    "egovib_ros.cli.gap",  # gap, gap validate
-    "egovib_ros.cli.bench",  # bench
-    "egovib_ros.cli.real",  # real convert|evaluate
-    "egovib_ros.cli.demo",  # demo (live, ROS 2 nodes)
-    "egovib_ros.cli.live_bench",  # live-bench (live, ROS 2 nodes)
+    "egovib_ros.cli.gap",  # gap
 )
+#: Entry points of this group add commands: each is named for the command line it adds
+#: ("bench"; "gap validate": under `egovib gap`) and loads a register(subparsers) like those
+#: of COMMAND_MODULES, called with the sub-commands of the command its name continues.
+COMMAND_GROUP = "egovib.commands"
+#: The commands the repository's research package adds (research/pyproject.toml): named
+#: here only to refuse them in one line where it is not installed.
+REPOSITORY_COMMANDS = ("bench", "demo", "figures", "gap validate", "live-bench", "real")
 EXIT_BUG, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 130, 143
 # Arguments that name what a command reads, in the order they are named in a bug report.
 _INPUT_ARGUMENTS = ("bags", "bag", "real", "npz", "model")
@@ -70,7 +78,37 @@ def build_parser() -> "argparse.ArgumentParser":
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    add_commands(parser)
     return parser
+
+
+def add_commands(parser) -> None:
+    """The commands of the entry-point group COMMAND_GROUP, in the order of their names (a
+    command before its actions): each entry point's register() gets the sub-commands of
+    the command its name continues, made when it adds the first."""
+    from importlib.metadata import entry_points
+
+    for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        *parents, _ = entry.name.split()
+        target = parser
+        for word in parents:
+            target = target.commands.choices[word]
+        commands = target.commands or target.add_subparsers(dest="action", metavar="ACTION")
+        entry.load()(commands)
+
+
+def missing_command(parser, argv: list[str]) -> str | None:
+    """The repository command `argv` starts with when no installed package adds it."""
+    for command in REPOSITORY_COMMANDS:
+        words = command.split()
+        if argv[: len(words)] != words:
+            continue
+        target = parser
+        for word in words:
+            if target.commands is None or word not in target.commands.choices:
+                return command
+            target = target.commands.choices[word]
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -119,6 +157,12 @@ def _main(argv: list[str]) -> int:
                 handler.addFilter(_said_once)
         _said.clear()  # per run (main may run several times in one process)
         parser = build_parser()
+        missing = missing_command(parser, argv)
+        if missing:
+            raise EgovibError(
+                f"egovib {missing} is a tool of the egovib_ros repository, not of the "
+                "installed package: run it in a clone's venv (make venv installs research/)"
+            )
         try:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # --help / --version (0), a bad option (2, one line printed)

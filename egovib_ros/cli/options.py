@@ -22,6 +22,14 @@ class OneLineErrorParser(argparse.ArgumentParser):
     Subparsers inherit the class, so every subcommand reports bad options this way.
     """
 
+    #: the sub-commands of this command (`add_subparsers`), None if it has none: where the
+    #: commands of another package go (egovib_ros.cli.add_commands)
+    commands: argparse._SubParsersAction | None = None
+
+    def add_subparsers(self, **kwargs) -> argparse._SubParsersAction:
+        self.commands = super().add_subparsers(**kwargs)
+        return self.commands
+
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
