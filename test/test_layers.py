@@ -171,6 +171,7 @@ SYSTEM_TESTS = {
     "test_bag_properties": "property-based: reading, calibrating, denoising any bag",
     "test_colcon_build": "the package as colcon builds and installs it",
     "test_core_any_robot": "the core on robots other than the PR2 (N joints, any rate)",
+    "test_docs_links": "every relative link of README.md and docs/ resolves",
     "test_egovib_commands": "the egovib command set, with and without the research package",
     "test_faults": "the fault-injection table across every command",
     "test_layers": "this file: the layout",

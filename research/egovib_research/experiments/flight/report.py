@@ -441,7 +441,8 @@ def markdown(result: dict) -> str:
 
 
 def readme_section(result: dict) -> str:
-    """A short "On real data" section for the README, with the headline table."""
+    """A short "On real data" section for the README, with the headline table; its links
+    are relative to docs/, where it is written beside the files it links."""
     primary = result["primary"]
     rows = comparison_values(primary)
     single = single_rows(primary)
@@ -498,8 +499,9 @@ def readme_section(result: dict) -> str:
         "",
         *where_baselines_win(primary),
         "",
-        "Details and figures: [docs/real_results.md](docs/real_results.md), "
-        "![spectrogram](docs/real_spectrogram.png) ![methods](docs/real_methods.png)",
+        # linked from where the section is written, beside them (docs/)
+        "Details and figures: [docs/real_results.md](real_results.md), "
+        "![spectrogram](real_spectrogram.png) ![methods](real_methods.png)",
         "",
     ]
     return "\n".join(lines)
