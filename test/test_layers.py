@@ -150,6 +150,8 @@ UNTESTED = {
     "cli/jobs": "--jobs/--scheduler of every many-bag command (test_cli_denoise, test_cli_gap)",
     "cli/model": "`egovib model show` runs in test_viz_model_show",
     "cli/simulate_robot": "`egovib simulate robot` runs in test_sim_robot",
+    "cli/simulate_output": "every `egovib simulate` scenario writes through it (test_cli_simulate, "
+    "test_sim_robot)",
     "nodes/bag_recorder": "records the replay in test_nodes_bag_player",
     # research/egovib_research
     "commands/bench": "`egovib bench` runs in test_tools_bench",
