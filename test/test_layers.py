@@ -23,6 +23,9 @@ repository's research package (research/egovib_research), which sits above all o
 A package's `__main__.py` is an entry point like the commands and may use cli/'s option
 types.
 
+No two modules import each other, directly, round about or inside a function
+(test_no_import_cycles).
+
 Tests mirror modules: every module has test/test_<area>_<module>.py, or a reason in
 UNTESTED; every test file is named for a module, or is a whole-package test in SYSTEM_TESTS.
 """
@@ -128,6 +131,96 @@ def test_a_research_module_imports_only_its_layer_and_those_below(path):
     never = sorted(within(names, "egovib_ros") & RESEARCH_NEVER.get(own, set()))
     assert not never, f"egovib_research/{own}/ may not import egovib_ros {never}"
     assert not _ros(path, RESEARCH), f"only tools/ imports ROS 2 ({_ros(path, RESEARCH)})"
+
+
+def module_graph(roots: dict[str, Path]) -> dict[str, set[str]]:
+    """Module -> the modules of `roots` ({package name: its directory}) it imports, at any
+    depth of the file (function-local imports too), relative imports resolved: for
+    `import a.b` and `from a import b` the deepest module named (a.b if it is one, else
+    the package a, whose __init__ provides b)."""
+    files = {}
+    for name, root in roots.items():
+        for path in root.rglob("*.py"):
+            parts = [name, *path.relative_to(root).with_suffix("").parts]
+            files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+
+    def deepest(name: str) -> set[str]:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return {name} if name else set()
+
+    graph = {}
+    for module, path in files.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    targets |= deepest(alias.name)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                for alias in node.names:
+                    targets |= deepest(f"{base}.{alias.name}")
+        graph[module] = targets - {module}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import each other, directly or round about (Tarjan's
+    strongly connected components of more than one module)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_cycles():
+    """No two modules of either package import each other, not even round about or inside
+    a function (where a cycle hides until the first call)."""
+    graph = module_graph({"egovib_ros": PACKAGE, "egovib_research": RESEARCH})
+    assert len(graph) == len(MODULES) + len(RESEARCH_MODULES)
+    assert sum(map(len, graph.values())) > 300  # the imports were read
+    assert cycles(graph) == []
+
+
+def test_the_cycle_finder_finds_cycles_hidden_in_functions(tmp_path):
+    root = tmp_path / "pkg"
+    (root / "sub").mkdir(parents=True)
+    (root / "sub" / "__init__.py").write_text("")
+    (root / "a.py").write_text("from pkg.sub import b\n")
+    (root / "sub" / "b.py").write_text("def f():\n    from .. import c\n")
+    (root / "c.py").write_text("import pkg.a\n")
+    (root / "d.py").write_text("from pkg import a\n")  # imports into the cycle, not part of it
+    (root / "e.py").write_text("from pkg import f\n")  # a name of pkg/__init__.py ...
+    (root / "__init__.py").write_text("from pkg.e import g\nf = 1\n")  # ... which imports e
+    graph = module_graph({"pkg": root})
+    assert graph["pkg.sub.b"] == {"pkg.c"} and graph["pkg.a"] == {"pkg.sub.b"}
+    assert graph["pkg.e"] == {"pkg"} and graph["pkg.d"] == {"pkg.a"}
+    assert cycles(graph) == [["pkg", "pkg.e"], ["pkg.a", "pkg.c", "pkg.sub.b"]]
 
 
 def test_the_rules_cover_every_area():
