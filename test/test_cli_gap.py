@@ -200,17 +200,14 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
 def test_a_bag_longer_than_the_budget_is_thinned_evenly(model_path, position_bag):
     """Past the block budget the diagnosis keeps one run of blocks in every k over the
     whole bag (memory and time stop growing); the kept blocks are the whole table's."""
-    from egovib_ros.cli.gap import BUDGET_MINUTES
     from egovib_ros.core import NoiseModel
     from egovib_ros.gap.effects import LAG_RANGE_S
     from egovib_ros.gap.features import (
-        DEFAULT_BUDGET_MINUTES,
         JOINT_MARGIN_S,
         THIN_RUN_BLOCKS,
         table_from_bag,
     )
 
-    assert BUDGET_MINUTES == DEFAULT_BUDGET_MINUTES
     model = NoiseModel.load(model_path)
     whole = table_from_bag(position_bag, model)  # 60 s: within the default budget
     thin = table_from_bag(position_bag, model, budget_minutes=0.25)

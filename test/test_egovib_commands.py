@@ -8,6 +8,7 @@ import importlib.metadata
 
 import pytest
 
+from egovib_ros import cli
 from egovib_ros.cli import COMMAND_GROUP, REPOSITORY_COMMANDS, build_parser, main
 
 ROBOT_COMMANDS = ("simulate", "calibrate", "denoise", "model", "evaluate", "detect", "gap")
@@ -40,7 +41,7 @@ def robot_install(monkeypatch):
             return importlib.metadata.EntryPoints(())
         return real(**selection)
 
-    monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
+    monkeypatch.setattr(cli, "entry_points", entry_points)
 
 
 @pytest.mark.parametrize("command", REPOSITORY_COMMANDS)

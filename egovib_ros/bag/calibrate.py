@@ -13,8 +13,9 @@ from typing import Callable, Sequence
 
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags
 from egovib_ros.bag.reader import bag_fingerprint
-from egovib_ros.bag.recording import iter_recording
+from egovib_ros.bag.recording import iter_recording, read_recording
 from egovib_ros.core import CalibrationAccumulator
+from egovib_ros.core.methods import calibrate_methods
 from egovib_ros.core.stream import check_stream
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.robot import RobotProfile, load_profile
@@ -116,8 +117,6 @@ def calibrate_bag_methods(bag: str | os.PathLike, model, *, joint_lag_s: float =
     """Fit what methods `cancel` and `hybrid` need (core.methods.calibrate_methods) on the
     calibration bag of `model`; returns (model with them, what was fitted). The fit takes
     the recording whole: memory grows with the bag (a calibration run: minutes)."""
-    from egovib_ros.bag.recording import read_recording
-    from egovib_ros.core.methods import calibrate_methods  # numba: only when asked for
 
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)

@@ -20,22 +20,31 @@ install) each of those is refused in one line that says where it comes from.
 
 Every way out releases the outputs the run claimed (outputs.release_outputs); staged
 outputs are removed by the exception unwinding through outputs.atomic_output.
-Module-level imports are kept to the standard library's smallest, so that Ctrl-C while
-the commands' modules load is caught here too.
+Module-level imports are the standard library's and errors.py; the command modules, and
+numpy, scipy and numba with them, load in build_parser, once main() has its signal
+handlers in place, so that Ctrl-C while they load ends in one line too.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import datetime
+import importlib
+import logging
+import os
+import platform
+import shlex
 import signal
 import sys
+import tempfile
 import threading
-from typing import TYPE_CHECKING
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
 
 from egovib_ros import __version__
-
-if TYPE_CHECKING:
-    import argparse
+from egovib_ros.errors import EgovibError
 
 # Order = order in `egovib --help`.
 COMMAND_MODULES = (
@@ -65,9 +74,9 @@ class Terminated(BaseException):
     swallows it, and every `finally` (staging directories, writers, Dask clusters) runs."""
 
 
-def build_parser() -> "argparse.ArgumentParser":
-    import importlib
-
+def build_parser() -> argparse.ArgumentParser:
+    # deferred: the command modules and the library load from here on, after main() has
+    # put its signal handlers in place (module docstring)
     from egovib_ros.cli.options import OneLineErrorParser
 
     parser = OneLineErrorParser(  # one-line errors for bad options, like every bad input
@@ -86,8 +95,6 @@ def add_commands(parser) -> None:
     """The commands of the entry-point group COMMAND_GROUP, in the order of their names (a
     command before its actions): each entry point's register() gets the sub-commands of
     the command its name continues, made when it adds the first."""
-    from importlib.metadata import entry_points
-
     for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
         *parents, _ = entry.name.split()
         target = parser
@@ -144,12 +151,8 @@ def _said_once(record) -> bool:
 
 
 def _main(argv: list[str]) -> int:
-    from egovib_ros.errors import EgovibError
-
     args = None
     try:
-        import logging
-
         before = list(logging.getLogger().handlers)
         logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
         for handler in logging.getLogger().handlers:  # ours only, not a host's (pytest's)
@@ -284,10 +287,6 @@ def _inputs(args) -> str:
 def log_directories() -> list:
     """Where a traceback log may go, in order: $XDG_STATE_HOME/egovib (default
     ~/.local/state/egovib, the XDG place for logs), then the system temp directory."""
-    import os
-    import tempfile
-    from pathlib import Path
-
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(
         os.path.expanduser("~"), ".local", "state"
     )
@@ -296,12 +295,6 @@ def log_directories() -> list:
 
 def write_traceback_log(exc: BaseException, command: str, argv: list[str]):
     """(path, None) of the log written, or (None, reason) if no directory would take it."""
-    import datetime
-    import os
-    import platform
-    import shlex
-    import traceback
-
     stamp = datetime.datetime.now().strftime("%Y%m%dT%H%M%S")
     name = f"egovib-{command.replace(' ', '-')}-{stamp}-{os.getpid()}.log"
     text = (

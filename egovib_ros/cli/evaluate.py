@@ -7,18 +7,21 @@ egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration B
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.bag.many import run_bags
 from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
+from egovib_ros.core import NoiseModel
 from egovib_ros.errors import BagError, ConfigError, bag_error
-from egovib_ros.evaluation import metrics
-from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said
+from egovib_ros.evaluation import baselines, metrics
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said, evaluate_bag
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output
 
 
@@ -55,7 +58,6 @@ def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path 
 def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options) -> dict:
     """One bag: streamed evaluation, its JSON written atomically; returns the summary
     figures (what the summary line shows). Runs in a worker with --jobs/--scheduler."""
-    from egovib_ros.evaluation.evaluate import evaluate_bag
 
     calibration = options.get("calibration")
     try:
@@ -100,12 +102,6 @@ def _describe(figures: dict) -> str:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    import functools
-
-    from egovib_ros.bag.many import run_bags
-    from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation import baselines
-
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
     calibration_path = calibration_bag(

@@ -7,13 +7,15 @@ import argparse
 import functools
 import sys
 
+from egovib_ros.bag.many import run_bags
 from egovib_ros.cli import options
+from egovib_ros.cli.jobs import output_jobs, report_results
+from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError
+from egovib_ros.gap.diagnose import DiagnosisOptions
+from egovib_ros.gap.features import DEFAULT_BUDGET_MINUTES
+from egovib_ros.gap.pipeline import reference_lag_for, run_gap
 from egovib_ros.outputs import prepare_output
-
-#: gap.features.DEFAULT_BUDGET_MINUTES (tested equal; not imported: the CLI starts
-#: without numpy and scipy)
-BUDGET_MINUTES = 2.0
 
 
 def register(subparsers) -> None:
@@ -69,12 +71,12 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--budget-minutes",
         type=options.float_in(1.0, 1e6),
-        default=BUDGET_MINUTES,
+        default=DEFAULT_BUDGET_MINUTES,
         metavar="MINUTES",
         help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
         "evenly over its whole length (with the joint states near the kept blocks), so "
         "memory and time stop growing with the bag "
-        f"(default {BUDGET_MINUTES:g}, the bag length the diagnosis is validated on)",
+        f"(default {DEFAULT_BUDGET_MINUTES:g}, the bag length the diagnosis is validated on)",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
@@ -110,11 +112,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
         )
-    from egovib_ros.bag.many import run_bags
-    from egovib_ros.cli.jobs import output_jobs, report_results
-    from egovib_ros.core.noise_model import NoiseModel
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import reference_lag_for
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
     jobs = output_jobs(args.real, args.out)
@@ -148,7 +145,6 @@ def run(args: argparse.Namespace) -> int:
 
 def gap_task(bag, out, progress, *, model_path, **options) -> dict:
     """One bag's diagnosis into its report directory; the summary line's figures."""
-    from egovib_ros.gap.pipeline import run_gap
 
     report = run_gap(model_path, bag, out, progress=progress, **options)
     return {

@@ -12,6 +12,7 @@ import math
 from typing import Callable, NoReturn
 
 from egovib_ros.errors import ConfigError
+from egovib_ros.sim.params import check_effects, parse_effects
 
 MAX_SEED = 2**32 - 1
 
@@ -110,7 +111,6 @@ def force_and_quiet(
 
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
-    from egovib_ros.sim.params import check_effects, parse_effects
 
     try:
         return check_effects(parse_effects(text), source="SPEC")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 def pyplot():
     """matplotlib.pyplot on the Agg backend (files only), imported when a figure is drawn."""
-    # deferred: matplotlib takes about a second to import; only figure-drawing commands pay it
+    # deferred: matplotlib takes about a second to import; only what draws a figure pays it
     import matplotlib
 
     matplotlib.use("Agg")

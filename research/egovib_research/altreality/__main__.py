@@ -17,6 +17,7 @@ import json
 import sys
 
 from egovib_research.altreality.hand import EFFECTS, simulate_alt_motion
+from egovib_ros.bag import write_recording
 from egovib_ros.cli import options
 from egovib_ros.errors import EgovibError
 from egovib_ros.outputs import TRUTH_KEYS, atomic_output, json_holding, prepare_output
@@ -59,8 +60,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true")
     args = parser.parse_args(argv)
     try:
-        from egovib_ros.bag import write_recording
-
         out = prepare_output(args.out, force=args.force, kind="bag")
         if args.truth:
             prepare_output(

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import argparse
 
-from egovib_research.experiments.flight import convert
+from egovib_research.experiments import gap_flight as flight
+from egovib_research.experiments.flight import convert, experiment
 from egovib_ros.cli import options
 
 
@@ -29,7 +30,6 @@ def register(subparsers) -> None:
     )
     convert.add_arguments(conv)
     conv.set_defaults(func=convert.run)
-    from egovib_research.experiments.flight import experiment
 
     ev = commands.add_parser(
         "evaluate",
@@ -40,7 +40,6 @@ def register(subparsers) -> None:
     )
     experiment.add_arguments(ev)
     ev.set_defaults(func=experiment.run)
-    from egovib_research.experiments import gap_flight as flight
 
     gap = commands.add_parser(
         "gap",

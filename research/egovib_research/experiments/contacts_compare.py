@@ -49,14 +49,20 @@ from pathlib import Path
 import numpy as np
 
 from egovib_research.experiments import python_command
-from egovib_ros.bag import Recording, write_recording, write_recordings
+from egovib_research.experiments.flight import ATTRIBUTION
+from egovib_research.experiments.flight.events import EventSpec, make_events
+from egovib_research.experiments.flight.methods_compare import SPLITS
+from egovib_research.experiments.flight.recording import read_flight_bag
+from egovib_ros.bag import Recording, read_recording, write_recording, write_recordings
 from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
-from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
+from egovib_ros.core.contact import THRESHOLD_MARGIN, ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.evaluation.contacts import detect_bag, method_output
+from egovib_ros.evaluation.contacts import EDGE_S, detect_bag, method_output
 from egovib_ros.evaluation.detection import scores_of
 from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
 from egovib_ros.robot import load_profile
+from egovib_ros.sim.pr2 import ACCEL_FRAME
+from egovib_ros.sim.scenarios import motion_slices, sweep_slices
 from egovib_ros.viz import pyplot, save_figure
 
 LOG = logging.getLogger("egovib_ros.contacts_compare")
@@ -145,9 +151,6 @@ def threshold_origin(calibration: Path, model, method: str, threshold: float) ->
     time, the joint velocity held there and the time since the last commanded change (if
     the bag has commands); and how far the threshold sits above that recording's median
     envelope."""
-    from egovib_ros.bag import read_recording
-    from egovib_ros.core.contact import THRESHOLD_MARGIN
-    from egovib_ros.evaluation.contacts import EDGE_S
 
     stamps, values, _ = method_output(calibration, model, method)
     envelope = _envelope(values, model)
@@ -258,9 +261,6 @@ def pool(sets: list[dict]) -> dict:
 # PR2
 # --------------------------------------------------------------------------------------
 def pr2_case(name: str, run: Pr2Run, work: Path, keep_trace: bool) -> tuple[dict, dict | None]:
-    from egovib_ros.sim.pr2 import ACCEL_FRAME
-    from egovib_ros.sim.scenarios import motion_slices, sweep_slices
-
     profile = load_profile(None)
     sweep, motion = work / f"{name}_sweep", work / f"{name}_motion"
     slices, _ = sweep_slices(
@@ -339,10 +339,6 @@ def _as_recording(part, contact=None) -> Recording:
 def flight_case(
     bag: str, split: str, work: Path, event_sets: int, test_s: tuple | None = None
 ) -> dict:
-    from egovib_research.experiments.flight.events import EventSpec, make_events
-    from egovib_research.experiments.flight.methods_compare import SPLITS
-    from egovib_research.experiments.flight.recording import read_flight_bag
-
     profile = load_profile("quadcopter")
     rec = read_flight_bag(bag, profile)
     (c0, c1), (t0, t1) = SPLITS[split]
@@ -595,8 +591,6 @@ def run(
     bag: str = "bags/quadcopter_ar8",
     command: str = "",
 ) -> dict:
-    from egovib_research.experiments.flight import ATTRIBUTION
-
     begin = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
     if work is None:

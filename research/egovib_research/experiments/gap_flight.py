@@ -15,13 +15,21 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from egovib_research.experiments import core_arrays
+from egovib_ros.bag import read_recording
+from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.outputs import atomic_output
+from egovib_ros.errors import BagError
+from egovib_ros.gap.diagnose import DiagnosisOptions
+from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.report import build_report, make_figures, render_markdown
+from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.robot import load_profile
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
 #: landing (motors cut, gyro saturating), not free motion (see docs/real_results.md).
@@ -31,7 +39,6 @@ SPLIT_S = 8.5
 
 def _slice(rec, start_s: float, stop_s: float):
     """The part [start_s, stop_s) s after the first sample, without ground truth or commands."""
-    from dataclasses import replace
 
     t0 = int(rec.sensor_stamps_ns[0])
     lo, hi = t0 + int(start_s * NS_PER_S), t0 + int(stop_s * NS_PER_S)
@@ -56,7 +63,6 @@ def _slice(rec, start_s: float, stop_s: float):
 
 def calibrate_part(rec, profile, bag, part: tuple[float, float]):
     """The flight's `part` ((start, stop) s) and its free-motion noise model: (slice, model)."""
-    from egovib_ros.core import calibrate_arrays
 
     cal = _slice(rec, *part)
     model, _ = calibrate_arrays(
@@ -71,12 +77,6 @@ def calibrate_part(rec, profile, bag, part: tuple[float, float]):
 def run_flight_gap(
     bag: str | Path, out_dir: str | Path, *, split_s: float = SPLIT_S, end_s: float = FLIGHT_END_S
 ) -> dict:
-    from egovib_ros.bag import read_recording
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import diagnose_recording
-    from egovib_ros.gap.report import build_report, make_figures, render_markdown
-    from egovib_ros.robot import load_profile
-
     profile = load_profile("quadcopter")
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
     parts = {"first": (0.0, split_s), "second": (split_s, end_s)}
@@ -185,9 +185,6 @@ def render_summary(summary: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.errors import BagError
-    from egovib_ros.outputs import prepare_output
-
     if not Path(args.bag).exists():
         raise BagError(f"{args.bag}: no such bag (egovib real convert makes it)")
     prepare_output(args.out, force=args.force, inputs=[args.bag], kind="report")  # before work

@@ -32,10 +32,18 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy import signal
 
 from egovib_research.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice, calibrate_part
+from egovib_ros.bag import read_recording
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import GapDataError
+from egovib_ros.gap.advice import action, measure_joint_lag
+from egovib_ros.gap.diagnose import DiagnosisOptions
+from egovib_ros.gap.effects import fit_lag
+from egovib_ros.gap.features import build_table
+from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.robot import load_profile
 
 #: (effect, label, strengths): a ladder of four strengths per injection, the last well
 #: beyond what a robot would show, so that the report can say from which strength each
@@ -77,7 +85,6 @@ def inject(rec, effect: str, strength: float):
         gain = 1.0 + strength * 0.5 * (1.0 + np.cos(POSITION_HARMONIC * x))
     elif effect == "acceleration":
         dt = np.gradient(t)
-        from scipy import signal
 
         b, a = signal.butter(1, 10.0, fs=1.0 / float(np.median(dt)))
         rate = signal.filtfilt(b, a, np.gradient(np.abs(cmd[:, 0])) / np.maximum(dt, 1e-6))
@@ -96,8 +103,6 @@ def inject(rec, effect: str, strength: float):
 def _own_lag(model, cal) -> float:
     """The robot's own joint-state lag: best lag of the velocity-only baseline on the
     calibration part itself (the same scan the diagnosis runs)."""
-    from egovib_ros.gap.effects import fit_lag
-    from egovib_ros.gap.features import build_table
 
     table = build_table(cal, model, source="calibration part")
     lag, _, _ = fit_lag(table, ~table.contact)
@@ -105,9 +110,6 @@ def _own_lag(model, cal) -> float:
 
 
 def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
-    from egovib_ros.bag import read_recording
-    from egovib_ros.robot import load_profile
-
     start = time.perf_counter()
     profile = load_profile("quadcopter")
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
@@ -131,7 +133,6 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
             if diag.verdict == "timing":
                 # apply the advice with the core: denoise this part with the advised joint
                 # lag (the model calibrated as before), and without
-                from egovib_ros.gap.advice import action, measure_joint_lag
 
                 text, settings = action(diag)
                 results[-1]["advice"] = text
@@ -194,8 +195,6 @@ def diagnose_case(
 ):
     """One run: (diagnosis or None, its entry). An injection so strong that most blocks
     look like contacts is refused by the diagnosis: a miss, not the end of the validation."""
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import diagnose_recording
 
     t0 = time.perf_counter()
     try:

@@ -23,15 +23,18 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from egovib_research.experiments import core_arrays, fmt
+from egovib_research.experiments import sim_validation as validation
 from egovib_ros import sim
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
+from egovib_ros.outputs import atomic_output
 from egovib_ros.sim.pr2 import BLOCK_LENGTH, HOP
 
 SPEEDS = (0.25, 0.5, 0.75, 1.0)
@@ -481,10 +484,6 @@ def validation_figures(results: dict, out_dir) -> list:
 
     Drawn by egovib_research.experiments.sim_validation from a full-grid simulated sweep.
     """
-    from pathlib import Path
-
-    from egovib_research.experiments import sim_validation as validation
-    from egovib_ros.outputs import atomic_output
 
     config = results["config"]
     out_dir = Path(out_dir)

@@ -11,15 +11,13 @@ from egovib_ros.evaluation import baselines
 from egovib_ros.outputs import atomic_output
 from egovib_ros.viz import pyplot
 
-plt = pyplot()
-
 SHOWN_S = 5.0  # seconds of signal in the time-series figures
 
 
 def _save(fig, path: Path) -> Path:
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    pyplot().close(fig)
     return path
 
 
@@ -41,7 +39,7 @@ def fig5(
     sig = report["signals"]
     window = _window(report, fs)
     t = np.arange(window.start, window.stop) / fs
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True)
+    fig, axes = pyplot().subplots(4, 1, figsize=(10, 9), sharex=True)
     lim = 1.05 * np.abs(sig["raw"][window]).max()
     for ax, key, label in (
         (axes[0], "raw", "raw (band-passed)"),
@@ -84,7 +82,7 @@ def pr_figure(
     reports: dict[str, dict], path: Path, methods=("paper", "wiener", "per_axis", "bandpass")
 ) -> Path:
     """PR curves (threshold sweeps) with each detector's calibrated operating point."""
-    fig, axes = plt.subplots(1, len(reports), figsize=(5.0 * len(reports), 4.5), squeeze=False)
+    fig, axes = pyplot().subplots(1, len(reports), figsize=(5.0 * len(reports), 4.5), squeeze=False)
     for ax, (title, report) in zip(axes[0], reports.items()):
         curves = report["pr_curves"]
         raw = curves["raw_bandpassed"]
@@ -135,7 +133,7 @@ def speed_figure(results: dict, path: Path) -> Path:
         ("f1", "event F1"),
     ]
     experiments = list(next(iter(results["speeds"].values())).keys())
-    fig, axes = plt.subplots(
+    fig, axes = pyplot().subplots(
         len(experiments),
         len(keys),
         figsize=(4.2 * len(keys), 3.6 * len(experiments)),

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.filters import design_bandpass
 from egovib_ros.core.timebase import NS_PER_S
@@ -228,9 +230,6 @@ def bag_io_speed(seconds: float = 30.0, *, compress: bool = False, seed: int = 0
 
     Returns messages/s and multiples of real time for write_recording and read_recording.
     """
-    import tempfile
-
-    from egovib_ros.bag import read_recording, write_recording
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, tap_rate_hz=1.0, seed=seed)
     n_messages = 3 * len(rec.sensor) + len(rec.joint_stamps_ns) + len(rec.commands)

@@ -16,15 +16,26 @@ network sees or disturbs them (egovib_research.tools.orchestration). Usage: `ego
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
+from egovib_research.experiments import paper_figures as figures
 from egovib_research.tools.orchestration import NodeGroup, reliable_input
 from egovib_research.tools.watcher import Watcher
+from egovib_ros.bag import BagReader, decode_imu, read_recording
+from egovib_ros.core import NoiseModel
+from egovib_ros.evaluation import metrics
+from egovib_ros.evaluation.evaluate import evaluate_recording
+from egovib_ros.nodes.convert import command_message
 from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.sim import motion_commands
+from egovib_ros.sim.pr2 import BAG_TOPICS
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
 
@@ -83,9 +94,6 @@ def run_motion(
     tap_rate_hz: float,
     seed: int,
 ) -> None:
-    from egovib_ros.nodes.convert import command_message
-    from egovib_ros.sim import motion_commands
-
     print(
         f"[2/3] run: {seconds:g} s of random motion (max {max_speed:.0%} speed) with taps at "
         f"{tap_rate_hz:g} Hz; denoiser (combined, as in the paper) and recorder",
@@ -149,12 +157,6 @@ def run_motion(
 def read_live_recording(bag: Path):
     """read_recording for a bag recorded live: the recorder subscribed to each topic at a
     slightly different moment, so raw and ground truth are cut to the stamps they share."""
-    import dataclasses
-
-    import numpy as np
-
-    from egovib_ros.bag import BagReader, decode_imu, read_recording
-    from egovib_ros.sim.pr2 import BAG_TOPICS
 
     rec = read_recording(bag, ground_truth=False, denoised=True)
     truth = {}
@@ -190,11 +192,6 @@ def read_live_recording(bag: Path):
 
 
 def evaluate(model_path: Path, bag: Path, out: Path) -> dict:
-    from egovib_research.experiments import paper_figures as figures
-    from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation import metrics
-    from egovib_ros.evaluation.evaluate import evaluate_recording
-
     print("[3/3] evaluation of the recorded run", flush=True)
     model = NoiseModel.load(model_path)
     rec = read_live_recording(bag)

@@ -37,6 +37,7 @@ import numpy as np
 from egovib_research.experiments.flight import ATTRIBUTION
 from egovib_research.experiments.flight.flightlog import MOTOR_NAMES, FlightLog, load_flight_log
 from egovib_research.experiments.flight.recording import FILTERED_TOPIC
+from egovib_ros.bag import BagWriter
 from egovib_ros.bag.codec import (
     IMU_TYPE,
     JOINT_STATE_TYPE,
@@ -96,7 +97,6 @@ def convert(
     npz: str | os.PathLike, out: str | os.PathLike, *, profile: RobotProfile | None = None
 ) -> dict:
     """Write the bag (atomically: nothing at `out` unless complete). Returns a summary."""
-    from egovib_ros.bag import BagWriter
 
     profile = profile or load_profile(PROFILE_NAME)
     log = load_flight_log(npz)

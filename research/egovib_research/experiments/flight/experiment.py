@@ -40,8 +40,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy import signal as sps
 
 from egovib_research.experiments.flight import ATTRIBUTION
+from egovib_research.experiments.flight import report as report_module
 from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.methods import (
     LABELS,
@@ -54,6 +56,7 @@ from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.evaluate import speed_envelope_mask
+from egovib_ros.outputs import prepare_outputs_in
 from egovib_ros.robot import RobotProfile, load_profile
 
 SCHEMA = "egovib.real/1"
@@ -181,7 +184,6 @@ def score_events(
 def firmware_transfer(test: FlightRecording, profile: RobotProfile, nperseg: int = 128) -> dict:
     """How the firmware's filters treat the band: |H| = |P_xy / P_xx| from raw to filtered gyro and
     their coherence (Welch, per axis, then averaged in dB / linearly), summarised over the band."""
-    from scipy import signal as sps
 
     fs = profile.rate_hz
     gains, coherences = [], []
@@ -450,9 +452,6 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_research.experiments.flight import report as report_module
-    from egovib_ros.outputs import prepare_outputs_in
-
     # before any work: never replace what this command did not write
     prepare_outputs_in(
         args.out, list(report_module.FILES.values()), force=args.force, inputs=[args.bag]

@@ -47,6 +47,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import signal
 
 from egovib_research.experiments import best_wall_and_cpu, core_arrays, fmt, python_command
 from egovib_research.experiments.flight import ATTRIBUTION
@@ -54,6 +55,12 @@ from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.experiment import calibration_mask
 from egovib_research.experiments.flight.methods import build_methods
 from egovib_research.experiments.flight.recording import read_flight_bag
+from egovib_research.experiments.paper import (
+    ExperimentConfig,
+    added_taps_recording,
+    build_models,
+    speed_recordings,
+)
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
@@ -314,7 +321,6 @@ def flight_checks(splits: dict) -> dict:
 def pr2_data(cache: Path | None):
     """The published experiment setup (evaluation.experiments, seed 1): models, the sweep,
     and per speed (calibration, (a), taps, ego) recordings. Cached as a pickle if asked."""
-    from egovib_research.experiments.paper import ExperimentConfig, build_models, speed_recordings
 
     config = ExperimentConfig()
     path = cache / f"pr2_seed{config.seed}.pkl" if cache else None
@@ -344,8 +350,6 @@ def _pr2_output(rec, model, method: str) -> np.ndarray:
 
 
 def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dict:
-    from egovib_research.experiments.paper import added_taps_recording
-
     def bp(values, model):
         return combined_bandpassed(values, model.robot_profile())
 
@@ -581,7 +585,6 @@ def markdown(result: dict) -> str:
 
 def figures(result: dict, out_dir: Path, fs: float) -> list[Path]:
     plt = pyplot()
-    from scipy import signal
 
     written = []
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))

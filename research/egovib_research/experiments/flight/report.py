@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy import signal as sps
 
 from egovib_research.experiments import fmt
 from egovib_research.experiments.flight.methods import LABELS
@@ -540,8 +541,6 @@ def _png(fig) -> bytes:
 
 
 def spectrogram_figure(result: dict, profile: RobotProfile) -> bytes:
-    from scipy import signal as sps
-
     plt = pyplot()
     fold = result["primary"]
     sig = fold["signals"]
