@@ -422,104 +422,134 @@ def effect_shape(
     0 dB at their own mean so they show the shape, not the level.
     """
     beta = coef[1:].mean(axis=1)  # broadband part (R,)
+    shapes = _SHAPES.get(effect)
+    return shapes(table, scales, beta, names) if shapes else {}
+
+
+def _position_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain along each joint's position (a turn for a revolving joint), at its median moving
+    speed."""
     shapes: dict = {}
-    if effect == "position":
-        speed = np.abs(table.velocity) / table.vmax
-        for j, name in enumerate(table.joint_names):
-            if scales.periodic[j]:
-                grid, unit = np.linspace(0.0, 2 * np.pi, 73), "rad (mod 2pi)"
-            else:
-                grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
-            basis, labels = position_basis(grid, j, scales)
-            plain = np.array([names.index(f"{label}({name})") for label in labels])
-            moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
-            typical = (
-                float(np.median(speed[:, j][speed[:, j] > 0.05]))
-                if np.any(speed[:, j] > 0.05)
-                else 0.5
-            )
-            g = basis @ (beta[plain] + typical * beta[moving])
-            shapes[f"position:{name}"] = {
-                "x": [round(float(v), 5) for v in grid],
-                "unit": unit,
-                "gain_db": _db(g - g.mean()),
-                "note": f"at the joint's median moving speed fraction {typical:.2f}",
-            }
-    elif effect == "coupling":
-        # The gain over the two speeds with both joints moving the same way, and (for two
-        # joints that move either way) the difference to moving opposite ways.
-        grid = np.linspace(0.0, 1.0, 11)
-        idx = {n: k for k, n in enumerate(names)}
-        n_j = len(table.joint_names)
-        knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
-        for i in range(n_j):
-            for j in range(i + 1, n_j):
-                hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
-                gmat = np.zeros((len(grid), len(grid)))
-                for a in range(hi_.shape[1]):
-                    for b in range(hj.shape[1]):
-                        key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
-                        if key in idx:
-                            gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
-                signed = np.zeros_like(gmat)
-                ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
-                cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
-                hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
-                for a in range(hci.shape[1]):
-                    for b in range(hcj.shape[1]):
-                        key = f"dir{i}*dir{j}:c{a}*c{b}"
-                        if key in idx:
-                            signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
-                shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
-                    "speed_fraction": [round(float(v), 3) for v in grid],
-                    "gain_db": [_db(row) for row in gmat + signed],
-                    "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
-                    "unit": "speed fraction of each joint (same direction of travel)",
-                }
-    elif effect == "acceleration":
-        for j, name in enumerate(table.joint_names):
-            idx = {n: k for k, n in enumerate(names)}
-            grid = np.linspace(0.0, 20.0, 41)
-            g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
-            for h in ACC_HINGES:
-                g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
-            g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
-            shapes[f"acceleration:{name}"] = {
-                "x": [round(float(v), 3) for v in grid],
-                "unit": "|acceleration| / training 95th percentile",
-                "gain_db": _db(g),
-            }
-            if f"after_rev_15ms({name})" in idx:
-                tgrid = np.linspace(-0.3, 0.3, 61)
-                g = np.zeros_like(tgrid)
-                for tau in REVERSAL_TAUS_S:
-                    ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                    kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                    g = (
-                        g
-                        + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
-                        + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
-                    )
-                g = g + beta[
-                    idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]
-                ] * np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0)
-                shapes[f"reversal:{name}"] = {
-                    "x": [round(float(v), 3) for v in tgrid],
-                    "unit": "s from the joint's reversal",
-                    "gain_db": _db(g),
-                }
-    elif effect == "drift":
-        grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
-        h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
-        g = x @ beta
-        shapes["drift:elapsed_time"] = {
-            "x": [round(float(v), 2) for v in grid],
-            "unit": "s",
-            "gain_db": _db(g - g[0]),
-            "train_end_s": round(scales.t_end_s, 2),
+    speed = np.abs(table.velocity) / table.vmax
+    for j, name in enumerate(table.joint_names):
+        if scales.periodic[j]:
+            grid, unit = np.linspace(0.0, 2 * np.pi, 73), "rad (mod 2pi)"
+        else:
+            grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
+        basis, labels = position_basis(grid, j, scales)
+        plain = np.array([names.index(f"{label}({name})") for label in labels])
+        moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
+        typical = (
+            float(np.median(speed[:, j][speed[:, j] > 0.05])) if np.any(speed[:, j] > 0.05) else 0.5
+        )
+        g = basis @ (beta[plain] + typical * beta[moving])
+        shapes[f"position:{name}"] = {
+            "x": [round(float(v), 5) for v in grid],
+            "unit": unit,
+            "gain_db": _db(g - g.mean()),
+            "note": f"at the joint's median moving speed fraction {typical:.2f}",
         }
     return shapes
+
+
+def _coupling_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain over each pair of joints' speeds."""
+    shapes: dict = {}
+    # The gain over the two speeds with both joints moving the same way, and (for two
+    # joints that move either way) the difference to moving opposite ways.
+    grid = np.linspace(0.0, 1.0, 11)
+    idx = {n: k for k, n in enumerate(names)}
+    n_j = len(table.joint_names)
+    knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+    for i in range(n_j):
+        for j in range(i + 1, n_j):
+            hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
+            gmat = np.zeros((len(grid), len(grid)))
+            for a in range(hi_.shape[1]):
+                for b in range(hj.shape[1]):
+                    key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
+                    if key in idx:
+                        gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
+            signed = np.zeros_like(gmat)
+            ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
+            cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
+            hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
+            for a in range(hci.shape[1]):
+                for b in range(hcj.shape[1]):
+                    key = f"dir{i}*dir{j}:c{a}*c{b}"
+                    if key in idx:
+                        signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
+            shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
+                "speed_fraction": [round(float(v), 3) for v in grid],
+                "gain_db": [_db(row) for row in gmat + signed],
+                "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
+                "unit": "speed fraction of each joint (same direction of travel)",
+            }
+    return shapes
+
+
+def _acceleration_shapes(
+    table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]
+) -> dict:
+    """Gain along each joint's |acceleration|, and around its reversals."""
+    shapes: dict = {}
+    for j, name in enumerate(table.joint_names):
+        idx = {n: k for k, n in enumerate(names)}
+        grid = np.linspace(0.0, 20.0, 41)
+        g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
+        for h in ACC_HINGES:
+            g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
+        g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
+        shapes[f"acceleration:{name}"] = {
+            "x": [round(float(v), 3) for v in grid],
+            "unit": "|acceleration| / training 95th percentile",
+            "gain_db": _db(g),
+        }
+        if f"after_rev_15ms({name})" in idx:
+            tgrid = np.linspace(-0.3, 0.3, 61)
+            g = np.zeros_like(tgrid)
+            for tau in REVERSAL_TAUS_S:
+                ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                g = (
+                    g
+                    + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
+                    + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
+                )
+            g = g + beta[idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]] * np.where(
+                tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0
+            )
+            shapes[f"reversal:{name}"] = {
+                "x": [round(float(v), 3) for v in tgrid],
+                "unit": "s from the joint's reversal",
+                "gain_db": _db(g),
+            }
+    return shapes
+
+
+def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain along the elapsed time (0 dB at the start of the training span)."""
+    shapes: dict = {}
+    grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
+    h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
+    x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
+    g = x @ beta
+    shapes["drift:elapsed_time"] = {
+        "x": [round(float(v), 2) for v in grid],
+        "unit": "s",
+        "gain_db": _db(g - g[0]),
+        "train_end_s": round(scales.t_end_s, 2),
+    }
+    return shapes
+
+
+#: effect -> its shape curves (effect_shape); the others (timing: a lag) have none
+_SHAPES = {
+    "position": _position_shapes,
+    "coupling": _coupling_shapes,
+    "acceleration": _acceleration_shapes,
+    "drift": _drift_shapes,
+}
 
 
 def drift_reach(x: np.ndarray, g: np.ndarray) -> tuple[float, float]:

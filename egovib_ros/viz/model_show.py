@@ -32,7 +32,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from egovib_ros.bag import BagReader, iter_recording
+from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD
+from egovib_ros.core.stream import BlockFramer, FramerSettings, check_stream
+from egovib_ros.core.velocity import MISSING
+from egovib_ros.errors import BagError
 from egovib_ros.viz import pyplot, save_figure
 
 #: Fractions of a joint's max speed whose single-joint cells the spectra show (with rest).
@@ -126,7 +132,6 @@ class CellIndex:
 
 def coverage_facts(model) -> dict:
     """The coverage numbers of the summary (sparse: any number of joints)."""
-    from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD
 
     facts = dict(model.coverage())
     index = CellIndex.of(model)
@@ -231,8 +236,6 @@ class BagPlacement:
     KINDS = ("measured", "eq6", "nearest", "outside")
 
     def __init__(self, model, *, source: str = ""):
-        from egovib_ros.core.stream import BlockFramer, FramerSettings
-
         self.model = model
         self.index = CellIndex.of(model)
         settings = FramerSettings.for_model(
@@ -263,8 +266,6 @@ class BagPlacement:
         self._collect()
 
     def _collect(self) -> None:
-        from egovib_ros.core.velocity import MISSING
-
         for blocks in self.framer.pop_blocks():
             if not blocks.n:
                 continue
@@ -371,11 +372,6 @@ def nearest_cells(grid, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def place_bag(model, bag: str, *, quiet: bool = True) -> BagPlacement:
     """Stream a bag through BagPlacement (the model's topics, field and joints)."""
-    from tqdm import tqdm
-
-    from egovib_ros.bag import BagReader, iter_recording
-    from egovib_ros.core.stream import check_stream
-    from egovib_ros.errors import BagError
 
     profile = model.robot_profile()
     where = f"{bag}: {profile.sensor_topic}"
@@ -539,6 +535,7 @@ def _velocity_ticks(ax, grid: np.ndarray, axis: str) -> None:
 
 def _count_norm(values: np.ndarray):
     """Colour scale of block counts: logarithmic when they span more than a decade."""
+    # deferred like pyplot(): matplotlib loads only when a figure is drawn
     from matplotlib.colors import LogNorm, Normalize
 
     low, high = float(np.min(values)), float(np.max(values))
@@ -548,69 +545,80 @@ def _count_norm(values: np.ndarray):
 
 
 def coverage_figure(model, path: Path) -> None:
-    from matplotlib.lines import Line2D
-
-    plt = pyplot()
+    """Which cells the calibration measured, from how many blocks: the grid's map for two
+    joints, per joint marginals (and joints moving per cell) for any other number."""
     c = coverage_facts(model)
-    index = CellIndex.of(model)
     title = (
         f"{_robot_name(model)} ({model.measured}): {c['cells_measured']} of "
         f"{_fmt_count(c['cells_total'])} cells measured, {c['blocks']} blocks "
         f"(median {c['median_blocks']:g} per cell)"
     )
+    draw = _coverage_map if model.n_joints == 2 else _coverage_marginals
+    draw(model, c, CellIndex.of(model), title, path)
+
+
+def _coverage_map(model, c: dict, index: CellIndex, title: str, path: Path) -> None:
+    """Two joints: blocks per measured cell on the grid, the unmeasured cells marked by how
+    the model fills them, the cells too thin for a std ringed."""
+    # deferred like pyplot(): matplotlib loads only when a figure is drawn
+    from matplotlib.lines import Line2D
+
+    plt = pyplot()
     thin = model.cell_counts < c["min_blocks_for_std"]
-    if model.n_joints == 2:
-        shape = model.grid_shape
-        counts = np.zeros(shape)
-        counts[tuple(model.cells.T)] = model.cell_counts
-        every = np.indices(shape).reshape(2, -1).T
-        unmeasured = every[index.row_of(every) < 0]
-        by_eq6 = index.eq6(unmeasured)
-        fig, ax = plt.subplots(figsize=(8.5, 7))
-        shown = np.ma.masked_where(counts == 0, counts)
-        image = ax.imshow(
-            shown.T,
-            origin="lower",
-            cmap="viridis",
-            norm=_count_norm(model.cell_counts if len(model.cell_counts) else np.ones(1)),
-            aspect="auto",
-        )
-        ax.set_facecolor("#eeeeee")
-        fig.colorbar(image, ax=ax, label="blocks per measured cell")
-        ax.scatter(*unmeasured[by_eq6].T, s=6, c="0.55", marker="o", linewidths=0)
-        ax.scatter(*unmeasured[~by_eq6].T, s=22, c="tab:red", marker="x", linewidths=1)
-        ax.scatter(*model.cells[thin].T, s=60, facecolors="none", edgecolors="tab:orange")
-        _velocity_ticks(ax, model.grid[0], "x")
-        _velocity_ticks(ax, model.grid[1], "y")
-        ax.set_xlabel(model.joint_names[0])
-        ax.set_ylabel(model.joint_names[1])
-        handles = [
-            Line2D([], [], ls="", marker="s", color="tab:green", label="measured (colour: blocks)"),
-            Line2D([], [], ls="", marker="o", color="0.55", ms=4, label="not measured: Eq. 6"),
-            Line2D(
-                [], [], ls="", marker="x", color="tab:red", label="not measured: nearest measured"
-            ),
-            Line2D(
-                [],
-                [],
-                ls="",
-                marker="o",
-                mfc="none",
-                mec="tab:orange",
-                label=f"< {c['min_blocks_for_std']} blocks (std borrowed)",
-            ),
-        ]
-        ax.legend(
-            handles=handles,
-            loc="upper center",
-            bbox_to_anchor=(0.5, -0.1),
-            ncol=2,
-            fontsize=8,
-            frameon=False,
-        )
-        ax.set_title(title, fontsize=10)
-        save_figure(fig, path, dpi=100)
-        return
+    shape = model.grid_shape
+    counts = np.zeros(shape)
+    counts[tuple(model.cells.T)] = model.cell_counts
+    every = np.indices(shape).reshape(2, -1).T
+    unmeasured = every[index.row_of(every) < 0]
+    by_eq6 = index.eq6(unmeasured)
+    fig, ax = plt.subplots(figsize=(8.5, 7))
+    shown = np.ma.masked_where(counts == 0, counts)
+    image = ax.imshow(
+        shown.T,
+        origin="lower",
+        cmap="viridis",
+        norm=_count_norm(model.cell_counts if len(model.cell_counts) else np.ones(1)),
+        aspect="auto",
+    )
+    ax.set_facecolor("#eeeeee")
+    fig.colorbar(image, ax=ax, label="blocks per measured cell")
+    ax.scatter(*unmeasured[by_eq6].T, s=6, c="0.55", marker="o", linewidths=0)
+    ax.scatter(*unmeasured[~by_eq6].T, s=22, c="tab:red", marker="x", linewidths=1)
+    ax.scatter(*model.cells[thin].T, s=60, facecolors="none", edgecolors="tab:orange")
+    _velocity_ticks(ax, model.grid[0], "x")
+    _velocity_ticks(ax, model.grid[1], "y")
+    ax.set_xlabel(model.joint_names[0])
+    ax.set_ylabel(model.joint_names[1])
+    handles = [
+        Line2D([], [], ls="", marker="s", color="tab:green", label="measured (colour: blocks)"),
+        Line2D([], [], ls="", marker="o", color="0.55", ms=4, label="not measured: Eq. 6"),
+        Line2D([], [], ls="", marker="x", color="tab:red", label="not measured: nearest measured"),
+        Line2D(
+            [],
+            [],
+            ls="",
+            marker="o",
+            mfc="none",
+            mec="tab:orange",
+            label=f"< {c['min_blocks_for_std']} blocks (std borrowed)",
+        ),
+    ]
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.1),
+        ncol=2,
+        fontsize=8,
+        frameon=False,
+    )
+    ax.set_title(title, fontsize=10)
+    save_figure(fig, path, dpi=100)
+
+
+def _coverage_marginals(model, c: dict, index: CellIndex, title: str, path: Path) -> None:
+    """One joint or three and more: blocks and measured cells at each grid velocity of each
+    joint, and how many joints move in the measured cells."""
+    plt = pyplot()
     marginals = joint_marginals(model)
     n_panels = model.n_joints + (1 if model.n_joints > 1 else 0)
     cols = 1 if n_panels == 1 else 2
@@ -682,137 +690,158 @@ def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) 
 
 
 def bag_figure(model, placement: BagPlacement, path: Path) -> None:
-    from matplotlib.colors import LogNorm
-    from matplotlib.patches import Rectangle
-
-    plt = pyplot()
+    """Where the recording's blocks fall against the model's measured cells (a map for two
+    joints, per joint histograms else), over the shares bar."""
     s = placement.shares()
     title = (
         f"{Path(placement.bag).name}: {s['blocks']} blocks; outside the calibrated speeds "
         f"{100 * s['share_outside_calibrated']:.1f} % (unmeasured cells "
         f"{100 * s['share_unmeasured']:.1f} %, beyond the grid {100 * s['share_outside']:.1f} %)"
     )
-    cells, counts = placement.cell_counts()
-    if model.n_joints == 2:
-        fig, (ax, share_ax) = plt.subplots(
-            2, 1, figsize=(8.5, 8.2), gridspec_kw={"height_ratios": [7, 0.45]}
-        )
-        g0, g1 = model.grid
-        e0, e1 = _cell_edges(g0), _cell_edges(g1)
-        grid_counts = np.zeros(model.grid_shape)
-        if len(cells):
-            grid_counts[tuple(cells.T)] = counts
-        shown = np.ma.masked_where(grid_counts == 0, grid_counts)
-        mesh = ax.pcolormesh(
-            e0,
-            e1,
-            shown.T,
-            cmap="magma_r",
-            norm=LogNorm(vmin=1, vmax=max(2, grid_counts.max())),
-        )
-        fig.colorbar(mesh, ax=ax, label="recording blocks per cell")
-        for i0, i1 in model.cells:
-            ax.add_patch(
-                Rectangle(
-                    (e0[i0], e1[i1]),
-                    e0[i0 + 1] - e0[i0],
-                    e1[i1 + 1] - e1[i1],
-                    fill=False,
-                    ec="tab:blue",
-                    lw=0.8,
-                )
-            )
-        ax.add_patch(
-            Rectangle(
-                (e0[0], e1[0]), e0[-1] - e0[0], e1[-1] - e1[0], fill=False, ec="k", lw=1.2, ls="--"
-            )
-        )
-        if len(placement.outside_points):
-            ax.scatter(*placement.outside_points.T, s=10, c="tab:red", alpha=0.5, linewidths=0)
-        ax.set_xlabel(model.joint_names[0])
-        ax.set_ylabel(model.joint_names[1])
-        ax.plot([], [], "s", mfc="none", mec="tab:blue", label="measured cell")
-        ax.plot([], [], "--", color="k", label="grid edge")
-        ax.plot(
-            [], [], ".", color="tab:red", label=f"blocks beyond the grid ({s['blocks_outside']})"
-        )
-        ax.legend(fontsize=8, loc="upper left", framealpha=0.85)
-        # the view: the grid and the blocks beyond it, with a margin (pcolormesh would pin
-        # the limits to the grid's edges)
-        low = np.array([e0[0], e1[0]])
-        high = np.array([e0[-1], e1[-1]])
-        if len(placement.outside_points):
-            low = np.minimum(low, placement.outside_points.min(axis=0))
-            high = np.maximum(high, placement.outside_points.max(axis=0))
-        pad = 0.04 * (high - low)
-        ax.set_xlim(low[0] - pad[0], high[0] + pad[0])
-        ax.set_ylim(low[1] - pad[1], high[1] + pad[1])
-    else:
-        n = model.n_joints
-        cols = 1 if n == 1 else 2
-        rows = math.ceil(n / cols)
-        fig, axes = plt.subplots(
-            rows + 1,
-            cols,
-            figsize=(6 * cols, 2.5 * rows + 1.6),
-            squeeze=False,
-            gridspec_kw={"height_ratios": [2.5] * rows + [0.45]},
-        )
-        marginals = joint_marginals(model)
-        for j in range(n):
-            ax = axes[j // cols, j % cols]
-            edges = placement.edges[j]
-            hist = placement.histograms[j]
-            g = model.grid[j]
-            # bins between the edges; the two end bins also hold everything beyond them
-            counts_in_bins = hist[1:-1].copy()
-            counts_in_bins[0] += hist[0]
-            counts_in_bins[-1] += hist[-1]
-            centres = 0.5 * (edges[1:] + edges[:-1])
-            beyond = (centres < g[0]) | (centres > g[-1])
-            widths = np.diff(edges)
-            for mask, color, label in (
-                (~beyond, "tab:purple", "recording blocks"),
-                (beyond, "tab:red", "beyond the grid (end bins: and further)"),
-            ):
-                ax.bar(
-                    edges[:-1][mask],
-                    counts_in_bins[mask],
-                    width=widths[mask],
-                    align="edge",
-                    color=color,
-                    alpha=0.85,
-                    label=label,
-                )
-            used = np.flatnonzero(counts_in_bins)
-            low = min(g[0], edges[used[0]]) if len(used) else g[0]
-            high = max(g[-1], edges[used[-1] + 1]) if len(used) else g[-1]
-            pad = 0.05 * (high - low)
-            ax.set_xlim(low - pad, high + pad)
-            ax.axvspan(g[0], g[-1], color="0.93", zorder=0)
-            measured = g[marginals[j]["cells"] > 0]
-            ax.plot(
-                measured,
-                np.zeros(len(measured)),
-                "|",
-                color="tab:blue",
-                ms=14,
-                mew=2,
-                label="velocities with measured cells",
-            )
-            ax.set_yscale("symlog", linthresh=1)
-            ax.set_xlabel(f"{model.joint_names[j]} velocity (shaded: the grid)")
-            ax.set_ylabel("blocks")
-            if j == 0:
-                ax.legend(fontsize=7, loc="upper left")
-        for k in range(n, rows * cols):
-            axes[k // cols, k % cols].set_visible(False)
-        for k in range(1, cols):
-            axes[rows, k].set_visible(False)
-        share_ax = axes[rows, 0]
+    draw = _bag_map if model.n_joints == 2 else _bag_histograms
+    fig, share_ax = draw(model, placement, s)
     _share_bar(share_ax, s)
     fig.suptitle(title, fontsize=9)
     save_figure(fig, path, dpi=100)
+
+
+def _bag_map(model, placement: BagPlacement, s: dict):
+    """Two joints: the recording's blocks per cell, the measured cells outlined, the blocks
+    beyond the grid as points; (figure, the axes for the shares bar)."""
+    # deferred like pyplot(): matplotlib loads only when a figure is drawn
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Rectangle
+
+    plt = pyplot()
+    cells, counts = placement.cell_counts()
+    fig, (ax, share_ax) = plt.subplots(
+        2, 1, figsize=(8.5, 8.2), gridspec_kw={"height_ratios": [7, 0.45]}
+    )
+    g0, g1 = model.grid
+    e0, e1 = _cell_edges(g0), _cell_edges(g1)
+    grid_counts = np.zeros(model.grid_shape)
+    if len(cells):
+        grid_counts[tuple(cells.T)] = counts
+    shown = np.ma.masked_where(grid_counts == 0, grid_counts)
+    mesh = ax.pcolormesh(
+        e0,
+        e1,
+        shown.T,
+        cmap="magma_r",
+        norm=LogNorm(vmin=1, vmax=max(2, grid_counts.max())),
+    )
+    fig.colorbar(mesh, ax=ax, label="recording blocks per cell")
+    for i0, i1 in model.cells:
+        ax.add_patch(
+            Rectangle(
+                (e0[i0], e1[i1]),
+                e0[i0 + 1] - e0[i0],
+                e1[i1 + 1] - e1[i1],
+                fill=False,
+                ec="tab:blue",
+                lw=0.8,
+            )
+        )
+    ax.add_patch(
+        Rectangle(
+            (e0[0], e1[0]), e0[-1] - e0[0], e1[-1] - e1[0], fill=False, ec="k", lw=1.2, ls="--"
+        )
+    )
+    if len(placement.outside_points):
+        ax.scatter(*placement.outside_points.T, s=10, c="tab:red", alpha=0.5, linewidths=0)
+    ax.set_xlabel(model.joint_names[0])
+    ax.set_ylabel(model.joint_names[1])
+    ax.plot([], [], "s", mfc="none", mec="tab:blue", label="measured cell")
+    ax.plot([], [], "--", color="k", label="grid edge")
+    ax.plot([], [], ".", color="tab:red", label=f"blocks beyond the grid ({s['blocks_outside']})")
+    ax.legend(fontsize=8, loc="upper left", framealpha=0.85)
+    # the view: the grid and the blocks beyond it, with a margin (pcolormesh would pin
+    # the limits to the grid's edges)
+    low = np.array([e0[0], e1[0]])
+    high = np.array([e0[-1], e1[-1]])
+    if len(placement.outside_points):
+        low = np.minimum(low, placement.outside_points.min(axis=0))
+        high = np.maximum(high, placement.outside_points.max(axis=0))
+    pad = 0.04 * (high - low)
+    ax.set_xlim(low[0] - pad[0], high[0] + pad[0])
+    ax.set_ylim(low[1] - pad[1], high[1] + pad[1])
+    return fig, share_ax
+
+
+def _bag_histograms(model, placement: BagPlacement, s: dict):
+    """One joint or three and more: a histogram of the recording's blocks per joint;
+    (figure, the axes for the shares bar)."""
+    plt = pyplot()
+    n = model.n_joints
+    cols = 1 if n == 1 else 2
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(
+        rows + 1,
+        cols,
+        figsize=(6 * cols, 2.5 * rows + 1.6),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [2.5] * rows + [0.45]},
+    )
+    marginals = joint_marginals(model)
+    for j in range(n):
+        _bag_joint_panel(axes[j // cols, j % cols], model, placement, j, marginals[j]["cells"])
+    for k in range(n, rows * cols):
+        axes[k // cols, k % cols].set_visible(False)
+    for k in range(1, cols):
+        axes[rows, k].set_visible(False)
+    share_ax = axes[rows, 0]
+    return fig, share_ax
+
+
+def _bag_joint_panel(
+    ax, model, placement: BagPlacement, j: int, cells_measured: np.ndarray
+) -> None:
+    """Joint j's histogram of the recording's block velocities against the grid (shaded)
+    and the velocities with measured cells."""
+    edges = placement.edges[j]
+    hist = placement.histograms[j]
+    g = model.grid[j]
+    # bins between the edges; the two end bins also hold everything beyond them
+    counts_in_bins = hist[1:-1].copy()
+    counts_in_bins[0] += hist[0]
+    counts_in_bins[-1] += hist[-1]
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    beyond = (centres < g[0]) | (centres > g[-1])
+    widths = np.diff(edges)
+    for mask, color, label in (
+        (~beyond, "tab:purple", "recording blocks"),
+        (beyond, "tab:red", "beyond the grid (end bins: and further)"),
+    ):
+        ax.bar(
+            edges[:-1][mask],
+            counts_in_bins[mask],
+            width=widths[mask],
+            align="edge",
+            color=color,
+            alpha=0.85,
+            label=label,
+        )
+    used = np.flatnonzero(counts_in_bins)
+    low = min(g[0], edges[used[0]]) if len(used) else g[0]
+    high = max(g[-1], edges[used[-1] + 1]) if len(used) else g[-1]
+    pad = 0.05 * (high - low)
+    ax.set_xlim(low - pad, high + pad)
+    ax.axvspan(g[0], g[-1], color="0.93", zorder=0)
+    measured = g[cells_measured > 0]
+    ax.plot(
+        measured,
+        np.zeros(len(measured)),
+        "|",
+        color="tab:blue",
+        ms=14,
+        mew=2,
+        label="velocities with measured cells",
+    )
+    ax.set_yscale("symlog", linthresh=1)
+    ax.set_xlabel(f"{model.joint_names[j]} velocity (shaded: the grid)")
+    ax.set_ylabel("blocks")
+    if j == 0:
+        ax.legend(fontsize=7, loc="upper left")
 
 
 def _cell_edges(grid: np.ndarray) -> np.ndarray:

@@ -392,10 +392,62 @@ class AltHand:
 
     # --- the recording ---------------------------------------------------------------------------
     def generate(self, duration_s: float) -> tuple[Recording, dict]:
+        """`duration_s` seconds of the hand: the recording and its truth."""
         n = int(round(duration_s * FS))
         velocity, position, _ = plan_motion(
             duration_s, FS, self.rng["motion"], top_speed=self.top_speed, style=self.motion
         )
+        speed = np.abs(velocity)
+        wrist, gripper, lines = self._drives(velocity, position, n)
+        shared = (
+            self._intermodulation(*lines)
+            + self._clicks(velocity, n)
+            + self._braking(velocity, n)
+            + self._wear(speed, n)
+        )
+        level = self._drift_level(n)
+        force, onsets = self._taps(n)
+        drive = {
+            "wrist": wrist * level,
+            "gripper": gripper * level,
+            "shared": shared * level,
+            "contact": np.zeros(n),
+        }
+        ego = self._housing(drive)
+        contact = self._housing(
+            {"wrist": np.zeros(n), "gripper": np.zeros(n), "shared": np.zeros(n), "contact": force}
+        )
+        b, a = resonator(*TAP_CONTACT_MODE, FS)
+        contact += (0.6 * signal.lfilter(b, a, force))[:, None] * _unit((0.2, 0.3, 0.93))
+        ego += self._background(n)
+        theta = position[:, 0]
+        ego += GRAVITY * np.column_stack(
+            [
+                np.sin(HAND_TILT) * np.cos(theta),
+                -np.sin(HAND_TILT) * np.sin(theta),
+                np.full(n, np.cos(HAND_TILT)),
+            ]
+        )
+        raw = self._sensor(ego + contact)
+        accel_stamps = START_NS + (np.arange(n, dtype=np.int64) * NS_PER_S) // int(FS)
+
+        j_stamps, j_pos, j_vel = self._joint_states(position, n)
+        rec = Recording(
+            sensor_stamps_ns=accel_stamps,
+            sensor=raw,
+            joint_stamps_ns=j_stamps,
+            joint_position=j_pos,
+            joint_velocity=j_vel,
+            joint_names=HAND_JOINTS,
+            contact=contact,
+            ego=ego,
+        )
+        return rec, self._truth(duration_s, accel_stamps[onsets])
+
+    def _drives(self, velocity: np.ndarray, position: np.ndarray, n: int):
+        """The wrist's and the gripper's drive signals (their lines and friction, with the
+        coupling and position effects in force), and the lines' (frequencies, amplitudes)
+        of both for the intermodulation."""
         speed = np.abs(velocity)
         w_sig, w_freq, w_amp = self.wrist.line_signals(speed[:, 0], self.rng["wrist_lines"], FS)
         g_sig, g_freq, g_amp = self.gripper.line_signals(speed[:, 1], self.rng["gripper_lines"], FS)
@@ -437,36 +489,13 @@ class AltHand:
                     * depth
                 )
                 gripper = gripper + rub
-        shared = (
-            self._intermodulation(w_freq, w_amp, g_freq, g_amp)
-            + self._clicks(velocity, n)
-            + self._braking(velocity, n)
-            + self._wear(speed, n)
-        )
-        level = self._drift_level(n)
-        force, onsets = self._taps(n)
-        drive = {
-            "wrist": wrist * level,
-            "gripper": gripper * level,
-            "shared": shared * level,
-            "contact": np.zeros(n),
-        }
-        ego = self._housing(drive)
-        contact = self._housing(
-            {"wrist": np.zeros(n), "gripper": np.zeros(n), "shared": np.zeros(n), "contact": force}
-        )
-        b, a = resonator(*TAP_CONTACT_MODE, FS)
-        contact += (0.6 * signal.lfilter(b, a, force))[:, None] * _unit((0.2, 0.3, 0.93))
-        ego += self._background(n)
-        theta = position[:, 0]
-        ego += GRAVITY * np.column_stack(
-            [
-                np.sin(HAND_TILT) * np.cos(theta),
-                -np.sin(HAND_TILT) * np.sin(theta),
-                np.full(n, np.cos(HAND_TILT)),
-            ]
-        )
-        raw = ego + contact + self.rng["sensor"].standard_normal((n, 3)) * SENSOR_NOISE
+        return wrist, gripper, (w_freq, w_amp, g_freq, g_amp)
+
+    def _sensor(self, acceleration: np.ndarray) -> np.ndarray:
+        """The accelerometer's reading of `acceleration` (n, 3): its noise, its low-pass and
+        its quantisation over its range."""
+        n = len(acceleration)
+        raw = acceleration + self.rng["sensor"].standard_normal((n, 3)) * SENSOR_NOISE
         b, a = signal.butter(1, SENSOR_LOWPASS_HZ, fs=FS)
         raw = signal.lfilter(b, a, raw, axis=0, zi=signal.lfilter_zi(b, a)[:, None] * raw[:1])[0]
         lsb = 2 * SENSOR_RANGE / 2**SENSOR_BITS
@@ -474,25 +503,17 @@ class AltHand:
             np.clip(np.round(raw / lsb), -(2 ** (SENSOR_BITS - 1)), 2 ** (SENSOR_BITS - 1) - 1)
             * lsb
         )
-        accel_stamps = START_NS + (np.arange(n, dtype=np.int64) * NS_PER_S) // int(FS)
+        return raw
 
-        j_stamps, j_pos, j_vel = self._joint_states(position, n)
-        rec = Recording(
-            sensor_stamps_ns=accel_stamps,
-            sensor=raw,
-            joint_stamps_ns=j_stamps,
-            joint_position=j_pos,
-            joint_velocity=j_vel,
-            joint_names=HAND_JOINTS,
-            contact=contact,
-            ego=ego,
-        )
+    def _truth(self, duration_s: float, onsets_ns: np.ndarray) -> dict:
+        """What the generator put into the run (effects, their forms and variants, taps)."""
+        fx = self.effects
         truth = {
             "reality": "alt",
             "seed": self.seed,
             "effects": dict(self.effects),
             "motion": self.motion,
-            "tap_onsets_ns": [int(x) for x in accel_stamps[onsets]],
+            "tap_onsets_ns": [int(x) for x in onsets_ns],
         }
         if "position" in fx:
             truth["position_variant"] = self.variant
@@ -506,7 +527,7 @@ class AltHand:
                 "width_s": round(self.drift_width_s, 3),
                 "direction": self.drift_sign,
             }
-        return rec, truth
+        return truth
 
     def _joint_states(self, position: np.ndarray, n: int):
         """1 kHz encoder readings with stamp jitter and dropped messages;

@@ -25,15 +25,25 @@ from __future__ import annotations
 
 import copy
 import json
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from egovib_research.altreality import simulate_alt_motion
 from egovib_research.experiments import core_arrays
+from egovib_research.experiments.gap_real_injection import render_markdown as render_real
+from egovib_research.experiments.gap_real_injection import run_real_validation
+from egovib_ros.core import NoiseModel, calibrate_arrays
+from egovib_ros.gap.diagnose import DiagnosisOptions
 from egovib_ros.gap.effects import EFFECTS
+from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.simref import simulator_reference_lag
 from egovib_ros.outputs import atomic_output
+from egovib_ros.sim import SimParams, simulate_motion, simulate_sweep
 from egovib_ros.viz import pyplot, save_figure
 
 REALITIES = ("sim", "alt", "real")
@@ -119,7 +129,6 @@ def none_classes(reality: str) -> list[str]:
 def shape_differs_params(params=None):
     """A simulator whose spectra differ in shape: gear tones moved, the wrist resonance missing,
     the gripper's structural band shifted (the "real" robot stays the default simulator)."""
-    from egovib_ros.sim import SimParams
 
     out = copy.deepcopy(params if params is not None else SimParams.load())
     out.wrist.line_hz_per_unit *= 1.25
@@ -133,8 +142,6 @@ def shape_differs_params(params=None):
 def calibrate_sim_model(*, dwell_s: float = CALIBRATION_DWELL_S, seed: int = 100, params=None):
     """Noise model of the (effect-free) simulator from a superposition sweep,
     as `egovib calibrate` would."""
-    from egovib_ros.core import calibrate_arrays
-    from egovib_ros.sim import simulate_sweep
 
     rec, _ = simulate_sweep(
         grid="superposition", dwell_s=dwell_s, settle_s=0.5, seed=seed, params=params
@@ -200,8 +207,6 @@ def plan_runs(
 
 
 def _init_worker(model_paths: dict, reference_lags: dict) -> None:
-    from egovib_ros.core import NoiseModel
-
     _WORKER["models"] = {k: NoiseModel.load(p) for k, p in model_paths.items()}
     _WORKER["reference_lags"] = dict(reference_lags)
 
@@ -213,8 +218,6 @@ def make_recording(run: dict, duration_s: float):
     form = run.get("form")
     generator_form = "stamps" if form in ("lag", "lead") else form
     if run.get("reality", "sim") == "alt":
-        from egovib_research.altreality import simulate_alt_motion
-
         rec, truth = simulate_alt_motion(
             duration_s=duration_s,
             effects=effects,
@@ -223,8 +226,6 @@ def make_recording(run: dict, duration_s: float):
             forms={truth_label: generator_form} if form else None,
         )
     else:
-        from egovib_ros.sim import SimParams, simulate_motion
-
         params = SimParams.load()
         if form:
             params.effect_forms = {truth_label: generator_form}
@@ -244,8 +245,6 @@ def make_recording(run: dict, duration_s: float):
 
 def run_one(run: dict, duration_s: float) -> dict:
     """Make one blind "real" bag and diagnose it; returns the run with the outcome."""
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import diagnose_recording
 
     start = time.perf_counter()
     rec, truth = make_recording(run, duration_s)
@@ -431,6 +430,22 @@ REALITY_TEXT = {
 
 
 def render_markdown(report: dict) -> str:
+    """gap_validation*.md: the accuracy and its settings, the confusion matrix, the gaps of
+    the found effects and the `none` classes, per form, the detectability ladder, every run."""
+    s = report["summary"]
+    lines = (
+        _summary_lines(report)
+        + _gap_lines(s)
+        + _form_lines(s)
+        + _detectability_lines(s)
+        + _run_lines(report["runs"])
+    )
+    lines.append("")
+    return "\n".join(lines)
+
+
+def _summary_lines(report: dict) -> list[str]:
+    """Title, accuracy, settings, strength ranges, figure and the confusion matrix."""
     s = report["summary"]
     reality = s.get("reality", "sim")
     labels = ["none"] + list(EFFECTS)
@@ -468,7 +483,12 @@ def render_markdown(report: dict) -> str:
             + " | ".join(str(row[p]) for p in labels)
             + f" | {s['per_class_accuracy'][t]} |"
         )
-    lines += [
+    return lines
+
+
+def _gap_lines(s: dict) -> list[str]:
+    """The held-out gap of the correctly found effects and of the `none` classes."""
+    lines = [
         "",
         "## Held-out gap per correctly found effect (dB, mean over runs)",
         "",
@@ -494,6 +514,12 @@ def render_markdown(report: dict) -> str:
             f"| {t} | {d['runs']} | {d['mean_gap_sim_as_is']} | {d['mean_gap_after_refit']} | "
             f"{d['mean_floor']} | {d['max_refit_above_floor_db']} |"
         )
+    return lines
+
+
+def _form_lines(s: dict) -> list[str]:
+    """Per form of each effect: top-1 and the ladder; `none` wrongly flagged per class."""
+    lines = []
     if s.get("per_form"):
         lines += [
             "",
@@ -518,11 +544,21 @@ def render_markdown(report: dict) -> str:
             )
             + ".",
         ]
-    lines += ["", "## Detectability (strength ladder below the blind ranges, one seed each)", ""]
+    return lines
+
+
+def _detectability_lines(s: dict) -> list[str]:
+    """Per effect, the weakest strength of the ladder the diagnosis found."""
+    lines = ["", "## Detectability (strength ladder below the blind ranges, one seed each)", ""]
     for e, d in s["detectability"].items():
         ladder = ", ".join(f"{r['strength']:g} -> {r['verdict']}" for r in d["ladder"])
         lines.append(f"- {e}: detected from {d['detected_from_strength']} (ladder: {ladder})")
-    lines += [
+    return lines
+
+
+def _run_lines(runs: list[dict]) -> list[str]:
+    """One table row per run (blind and ladder)."""
+    lines = [
         "",
         "## Runs",
         "",
@@ -530,7 +566,7 @@ def render_markdown(report: dict) -> str:
         "p (truth) | details |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in report["runs"]:
+    for r in runs:
         g = r["gap"]
         label = "none" if r["truth"].startswith("none") else r["truth"]
         p = r["p_values"].get(label)
@@ -542,8 +578,7 @@ def render_markdown(report: dict) -> str:
             f"{r['verdict']} | {r['confidence']} | {g['sim_as_is']} | {g['after_refit']} | "
             f"{g['after_verdict']} | {g['floor']} | {'' if p is None else f'{p:.2g}'} | {details} |"
         )
-    lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def output_names(reality: str) -> tuple[str, str, str]:
@@ -601,8 +636,6 @@ def make_figure(summary: dict, path: Path) -> None:
 def prepare_models(tmp: Path, reality: str, calibration_dwell_s: float) -> tuple[dict, dict]:
     """Model files and reference lags: the default simulator,
     and for `sim` the shape-changed one."""
-    from egovib_ros.gap.simref import simulator_reference_lag
-    from egovib_ros.sim import SimParams
 
     paths, lags = {}, {}
     configs = {"sim": SimParams.load()}
@@ -635,7 +668,6 @@ def run_validation(
 
     `runs`: an explicit list of runs (class, strength, seed) instead of the planned ones (tests).
     """
-    import tempfile
 
     if reality not in REALITIES:
         raise ValueError(f"reality must be one of {REALITIES}, not {reality!r}")
@@ -699,8 +731,6 @@ def run_validation(
 
 def _run_real(out_dir) -> dict:
     """Known effects injected into the real flight (experiments/gap_real_injection.py)."""
-    from egovib_research.experiments.gap_real_injection import render_markdown as render_real
-    from egovib_research.experiments.gap_real_injection import run_real_validation
 
     report = run_real_validation()
     report["settings"]["command"] = f"egovib gap validate --reality real --out {out_dir}"
@@ -729,6 +759,5 @@ def _write_report(out: Path, report: dict, markdown: str, json_name: str, md_nam
 def _progress(iterator, total: int, show: bool) -> list:
     if not show:
         return list(iterator)
-    from tqdm import tqdm
 
     return list(tqdm(iterator, total=total, desc="gap validate", unit="run"))

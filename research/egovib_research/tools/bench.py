@@ -39,13 +39,29 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import scipy
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapLibWriter
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from tqdm import tqdm
 
 from egovib_research.experiments import best_wall_and_cpu
 from egovib_ros import __version__
+from egovib_ros.bag import BagReader, BagWriter, iter_recording, read_recording, write_recording
+from egovib_ros.bag.codec import decode_imu, decode_joint_states, typestore
+from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.bag.many import bag_size
+from egovib_ros.bag.recording import bag_topic_names, recording_streams
+from egovib_ros.core import StreamingDenoiser, calibrate_arrays, denoise_batch
+from egovib_ros.core.blocks import analysis_window, n_bins
+from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, make_denoiser
+from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 from egovib_ros.robot import RobotProfile, default_profile
+from egovib_ros.sim import simulate_motion
+from egovib_ros.sim.scenarios import motion_slices, simulate_sweep
 
 SYNTHETIC_JOINT_RATE_HZ = 1000.0  # joint states of the synthetic streams
 #: What --force may replace: files whose schema / title say `egovib bench` wrote them.
@@ -80,7 +96,6 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    import scipy
 
     try:
         load = [round(x, 2) for x in os.getloadavg()]  # other work on the machine skews timings
@@ -126,8 +141,6 @@ def synthetic_streams(duration_s: float, *, seed: int = 0) -> dict:
 
 def synthetic_model(*, seed: int = 0):
     """A NoiseModel of the real shape filled with seeded positive spectra."""
-    from egovib_ros.core.blocks import analysis_window, n_bins
-    from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
 
     rng = np.random.default_rng(seed)
     robot = _robot()
@@ -152,7 +165,6 @@ def synthetic_model(*, seed: int = 0):
 
 def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     """Whole-array denoising (combined channel, the paper's pipeline) in x real time."""
-    from egovib_ros.core import denoise_batch
 
     data, model = synthetic_streams(duration_s), synthetic_model()
     streams = [data[k] for k in ("sensor_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity")]
@@ -182,7 +194,6 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
 
 def bench_stream(duration_s: float = 10.0) -> dict:
     """StreamingDenoiser cost of one 32-sample hop (with its ~11 joint states), in microseconds."""
-    from egovib_ros.core import StreamingDenoiser
 
     data, model = synthetic_streams(duration_s, seed=1), synthetic_model()
     denoiser = StreamingDenoiser(model, channels="combined")
@@ -218,7 +229,6 @@ def _hops(sensor_stamps, joint_stamps, hop: int, *, whole: bool = False):
 
 def bench_calibration(cell_s: float = 2.0) -> dict:
     """CalibrationAccumulator over 441 cells x `cell_s` s of data (3 kHz accel, 1 kHz joints)."""
-    from egovib_ros.core import calibrate_arrays
 
     robot = _robot()
     grid = robot.grid()
@@ -263,10 +273,6 @@ def bench_methods(
     per axis: the drop-in output) and streaming in hops of the profile's hop, in x real
     time of wall and CPU time, best of `repeats` after one warm-up (numba compiles on first
     use)."""
-    from egovib_ros.core import calibrate_arrays
-    from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, make_denoiser
-    from egovib_ros.sim import simulate_motion
-    from egovib_ros.sim.scenarios import simulate_sweep
 
     robot = _robot()
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=dwell_s, settle_s=settle_s, seed=1)
@@ -315,8 +321,6 @@ def bench_methods(
 
 def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
     """Simulator speed and bag write/read throughput on one simulated motion recording."""
-    from egovib_ros.bag import read_recording, write_recording
-    from egovib_ros.sim import simulate_motion
 
     (rec, _), sim_s = _timed(
         lambda: simulate_motion(
@@ -350,11 +354,6 @@ def bench_simulation_and_bags(duration_s: float = 20.0) -> dict:
 def write_interleaved_bag(path: Path, duration_s: float) -> None:
     """A simulated motion bag laid out as a recorder writes one: one message at a time in
     stamp order (all topics interleaved), rosbags' writer, 1 MB chunks."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    from egovib_ros.bag.codec import typestore
-    from egovib_ros.bag.recording import bag_topic_names, recording_streams
-    from egovib_ros.sim.scenarios import motion_slices
 
     robot = _robot()
     slices, _ = motion_slices(
@@ -378,7 +377,6 @@ def write_interleaved_bag(path: Path, duration_s: float) -> None:
 
 def _stream_copy(src: Path, dst: Path) -> None:
     """A plain bag copy through this package: every chunk copied as it is."""
-    from egovib_ros.bag import BagReader, BagWriter
 
     with BagReader(src) as reader, BagWriter(dst) as writer:
         for topic in reader.topics:
@@ -390,8 +388,6 @@ def _stream_copy(src: Path, dst: Path) -> None:
 def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
     """`egovib denoise` (the same function) on `bag`, side by side with a file copy of the
     bag and a chunk-by-chunk bag copy, in alternation, best of `repeats`; plus zstd output."""
-    from egovib_ros.bag import BagReader
-    from egovib_ros.bag.denoise import denoise_bag
 
     with BagReader(bag) as reader:
         duration_s = float(reader.info["duration"]["nanoseconds"]) / NS_PER_S
@@ -425,7 +421,6 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
 
 def imu_stream_size_ratio(bag: Path, workdir: Path) -> float:
     """Size of the 3 kHz Imu topic alone, uncompressed / zstd MCAP chunks."""
-    from egovib_ros.bag import BagReader, BagWriter
 
     topic = _robot().sensor_topic
     sizes = []
@@ -446,13 +441,6 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
     """Reading the sensor and joint topics of `bag` into arrays, and writing the sensor
     topic, with this package's chunk scanner / writer, the `mcap` library and rosbags.
     Every reader hands its raw messages to the same vectorised decoders."""
-    from mcap.reader import make_reader
-    from mcap.writer import CompressionType
-    from mcap.writer import Writer as McapLibWriter
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-
-    from egovib_ros.bag import BagReader, BagWriter, iter_recording
-    from egovib_ros.bag.codec import decode_imu, decode_joint_states, typestore
 
     robot = _robot()
     topics = [robot.sensor_topic, robot.joints_topic]
@@ -619,9 +607,39 @@ def run_benchmarks(
 def markdown_summary(results: dict) -> str:
     """Human-readable table of `run_benchmarks` results."""
     m = results["machine"]
+    rows = _core_rows(results)
+    if results.get("methods"):
+        rows += _method_rows(results["methods"])
+    if results.get("bags"):
+        rows += _bag_rows(results["bags"])
+    lines = [
+        MARKDOWN_TITLE,
+        "",
+        f"Machine: {m['cpu_model']}, {m['cores']} cores, {m['platform']}, "
+        f"Python {m['python']}, numpy {m['numpy']}, scipy {m['scipy']}"
+        + (
+            f"; load average {m['load_average_1_5_15min']} while measuring"
+            if m.get("load_average_1_5_15min")
+            else ""
+        )
+        + (" (quick run)" if results.get("quick") else ""),
+        "",
+        "Regenerate: `egovib bench --json docs/bench.json` (also writes docs/bench.md).",
+        "",
+        "| figure | measured | target |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {name} | {value} | {target} |" for name, value, target in rows]
+    unmet = [k for k, t in results["targets"].items() if t["met"] is False]
+    lines += ["", "All targets met." if not unmet else f"Targets missed: {', '.join(unmet)}.", ""]
+    return "\n".join(lines)
+
+
+def _core_rows(results: dict) -> list[tuple[str, str, str]]:
+    """(figure, measured, target) of the batch, streaming, calibration, simulator and bag
+    figures."""
     b, s, c, g = (results[k] for k in ("batch", "stream", "calibration", "simulation_and_bags"))
-    bags = results.get("bags")
-    rows = [
+    return [
         (
             "Batch denoise, combined (3 kHz, 3 axes)",
             f"{b['batch_x_realtime']:.0f}x real time",
@@ -659,105 +677,88 @@ def markdown_summary(results: dict) -> str:
             "",
         ),
     ]
-    methods = results.get("methods")
-    if methods:
-        for method in METHODS:
-            for name, label in (
-                ("batch", "batch, combined"),
-                ("batch_per_axis", "batch, per axis (drop-in output)"),
-                ("stream", f"streaming, {_robot().hop}-sample hops"),
-            ):
-                over = (
-                    f"; {methods[f'{method}_{name}_cpu_over_paper']:.1f}x paper's CPU time"
-                    if method != "paper"
-                    else ""
-                )
-                target = ">= 300x (CPU)" if (method, name) == ("hybrid", "batch") else ""
-                rows.append(
-                    (
-                        f"Method `{method}`, {label} (PR2 run, {methods['signal_s']:.0f} s)",
-                        f"{methods[f'{method}_{name}_x_realtime']:.0f}x real time wall, "
-                        f"{methods[f'{method}_{name}_x_realtime_cpu']:.0f}x CPU{over}",
-                        target,
-                    )
-                )
-        rows.append(
-            (
-                "Calibration of cancel + hybrid (paper's table, harmonic map, canceller, gain)",
-                f"{methods['methods_calibration_s']:.1f} s for a "
-                f"{methods['calibration_sweep_s']:.0f} s sweep",
-                "",
+
+
+def _method_rows(methods: dict) -> list[tuple[str, str, str]]:
+    """(figure, measured, target) of each method, batch and streaming, and their calibration."""
+    rows = []
+    for method in METHODS:
+        for name, label in (
+            ("batch", "batch, combined"),
+            ("batch_per_axis", "batch, per axis (drop-in output)"),
+            ("stream", f"streaming, {_robot().hop}-sample hops"),
+        ):
+            over = (
+                f"; {methods[f'{method}_{name}_cpu_over_paper']:.1f}x paper's CPU time"
+                if method != "paper"
+                else ""
             )
-        )
-    if bags:
-        mc = bags["mcap"]
-        name = f"{bags['bag_signal_s']:.0f} s bag, {bags['bag_input_bytes'] / 1e6:.0f} MB"
-        rows += [
-            (
-                f"`egovib denoise`, {name}",
-                f"{bags['denoise_x_realtime']:.0f}x real time "
-                f"({bags['denoise_s']:.1f} s; {bags['denoise_vs_file_copy']:.2f}x a file copy, "
-                f"{bags['denoise_vs_bag_copy']:.2f}x a bag copy)",
-                ">= 30x",
-            ),
-            (
-                "... with zstd output",
-                f"{bags['denoise_zstd_x_realtime']:.0f}x real time, output "
-                f"{bags['zstd_output_size_ratio']:.1f}x smaller",
-                "",
-            ),
-            (
-                "File copy / bag copy of the same bag",
-                f"{bags['file_copy_x_realtime']:.0f}x / "
-                f"{bags['bag_copy_x_realtime']:.0f}x real time",
-                "",
-            ),
-            ("zstd size ratio, 3 kHz Imu stream", f"{bags['imu_stream_zstd_size_ratio']:.1f}", ""),
-            (
-                "Read sensor + joints: scanner / mcap library / rosbags",
-                " / ".join(
-                    f"{mc[f'read_{k}_msgs_per_s'] / 1e3:.0f}k"
-                    for k in ("scanner", "mcap_library", "rosbags")
+            target = ">= 300x (CPU)" if (method, name) == ("hybrid", "batch") else ""
+            rows.append(
+                (
+                    f"Method `{method}`, {label} (PR2 run, {methods['signal_s']:.0f} s)",
+                    f"{methods[f'{method}_{name}_x_realtime']:.0f}x real time wall, "
+                    f"{methods[f'{method}_{name}_x_realtime_cpu']:.0f}x CPU{over}",
+                    target,
                 )
-                + " msg/s",
-                "",
-            ),
-            (
-                "Write the Imu stream: package / mcap library / rosbags",
-                " / ".join(
-                    f"{mc[f'write_{k}_msgs_per_s'] / 1e3:.0f}k"
-                    for k in ("package", "mcap_library", "rosbags")
-                )
-                + " msg/s",
-                "",
-            ),
-        ]
-    lines = [
-        MARKDOWN_TITLE,
-        "",
-        f"Machine: {m['cpu_model']}, {m['cores']} cores, {m['platform']}, "
-        f"Python {m['python']}, numpy {m['numpy']}, scipy {m['scipy']}"
-        + (
-            f"; load average {m['load_average_1_5_15min']} while measuring"
-            if m.get("load_average_1_5_15min")
-            else ""
+            )
+    rows.append(
+        (
+            "Calibration of cancel + hybrid (paper's table, harmonic map, canceller, gain)",
+            f"{methods['methods_calibration_s']:.1f} s for a "
+            f"{methods['calibration_sweep_s']:.0f} s sweep",
+            "",
         )
-        + (" (quick run)" if results.get("quick") else ""),
-        "",
-        "Regenerate: `egovib bench --json docs/bench.json` (also writes docs/bench.md).",
-        "",
-        "| figure | measured | target |",
-        "|---|---|---|",
+    )
+    return rows
+
+
+def _bag_rows(bags: dict) -> list[tuple[str, str, str]]:
+    """(figure, measured, target) of `egovib denoise` on a bag and the MCAP comparison."""
+    mc = bags["mcap"]
+    name = f"{bags['bag_signal_s']:.0f} s bag, {bags['bag_input_bytes'] / 1e6:.0f} MB"
+    return [
+        (
+            f"`egovib denoise`, {name}",
+            f"{bags['denoise_x_realtime']:.0f}x real time "
+            f"({bags['denoise_s']:.1f} s; {bags['denoise_vs_file_copy']:.2f}x a file copy, "
+            f"{bags['denoise_vs_bag_copy']:.2f}x a bag copy)",
+            ">= 30x",
+        ),
+        (
+            "... with zstd output",
+            f"{bags['denoise_zstd_x_realtime']:.0f}x real time, output "
+            f"{bags['zstd_output_size_ratio']:.1f}x smaller",
+            "",
+        ),
+        (
+            "File copy / bag copy of the same bag",
+            f"{bags['file_copy_x_realtime']:.0f}x / {bags['bag_copy_x_realtime']:.0f}x real time",
+            "",
+        ),
+        ("zstd size ratio, 3 kHz Imu stream", f"{bags['imu_stream_zstd_size_ratio']:.1f}", ""),
+        (
+            "Read sensor + joints: scanner / mcap library / rosbags",
+            " / ".join(
+                f"{mc[f'read_{k}_msgs_per_s'] / 1e3:.0f}k"
+                for k in ("scanner", "mcap_library", "rosbags")
+            )
+            + " msg/s",
+            "",
+        ),
+        (
+            "Write the Imu stream: package / mcap library / rosbags",
+            " / ".join(
+                f"{mc[f'write_{k}_msgs_per_s'] / 1e3:.0f}k"
+                for k in ("package", "mcap_library", "rosbags")
+            )
+            + " msg/s",
+            "",
+        ),
     ]
-    lines += [f"| {name} | {value} | {target} |" for name, value, target in rows]
-    unmet = [k for k, t in results["targets"].items() if t["met"] is False]
-    lines += ["", "All targets met." if not unmet else f"Targets missed: {', '.join(unmet)}.", ""]
-    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     # before any work
     prepare_output(
         args.json,

@@ -43,11 +43,30 @@ import time
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from sensor_msgs.msg import Imu
 
 from egovib_research.tools.orchestration import NodeGroup
 from egovib_research.tools.watcher import Watcher
+from egovib_ros.bag import write_recording
+from egovib_ros.core import NoiseModel, calibrate_arrays
+from egovib_ros.core.filters import combined_bandpassed
+from egovib_ros.core.methods import calibrate_methods, make_denoiser
 from egovib_ros.core.timebase import NS_PER_S
+from egovib_ros.evaluation.contacts import TOLERANCE_S
+from egovib_ros.evaluation.detection import match_events
+from egovib_ros.evaluation.metrics import segment_contacts
+from egovib_ros.nodes.common import sensor_qos
+from egovib_ros.nodes.convert import (
+    command_message,
+    decode_imu_messages,
+    diagnostic_values,
+    stamp_to_ns,
+)
 from egovib_ros.outputs import atomic_output
+from egovib_ros.robot import load_profile
+from egovib_ros.sim import motion_commands, simulate_motion, simulate_sweep
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -61,15 +80,11 @@ def cpu_seconds(pid: int) -> float:
 def bench_model(path: Path, *, method: str = "paper") -> Path:
     """A noise model from a short offline superposition sweep (the bench needs any valid model),
     with what `cancel` and `hybrid` need fitted on the same sweep when `method` is one of them."""
-    from egovib_ros.core import calibrate_arrays
-    from egovib_ros.sim import simulate_sweep
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=5)
     arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
     model, _ = calibrate_arrays(*arrays, sweep="superposition", source="live_bench sweep")
     if method != "paper":
-        from egovib_ros.core.methods import calibrate_methods  # numba: only when asked for
-
         model, _ = calibrate_methods(model, *arrays, source="live_bench sweep")
     model.save(path)
     return path
@@ -93,7 +108,6 @@ def algorithmic_latency_ms(
     per axis, the band-pass inverse's delay). Latency of sample k = stamp of the last
     sample of the batch that carries e(k) - stamp of k.
     """
-    from egovib_ros.core import NoiseModel
 
     model = NoiseModel.load(model_path)
     rate, length, hop = model.sample_rate_hz, model.block_length, model.hop
@@ -102,11 +116,32 @@ def algorithmic_latency_ms(
     if method == "paper":
         completing = (k + length - hop) // hop * hop + hop - 1
     else:
-        from egovib_ros.core.methods import make_denoiser
-
         completing = k + make_denoiser(model, method, channels=channels).delay
     published_with = (completing // per_batch + 1) * per_batch - 1
     return _percentiles((published_with - k)[int(rate) :] / rate * 1e3)  # after the first second
+
+
+def drive_motion(
+    watcher: Watcher, processes: dict, warmup: float, seconds: float, at_measure
+) -> tuple[float, dict[str, float]]:
+    """Publish the bench's random motion (half speed) for `warmup` + `seconds`, spinning
+    `watcher`; `at_measure()` is called when the measurement starts, after the warm-up.
+    Returns the measured wall seconds and each process's CPU share over them."""
+    times, commands = motion_commands(warmup + seconds + 1.0, 0.5, seed=9)
+    start = time.monotonic()
+    i, cpu0 = 0, None
+    while time.monotonic() - start < warmup + seconds:
+        elapsed = time.monotonic() - start
+        while i < len(times) and times[i] <= elapsed:
+            watcher.commands.publish(command_message(commands[i]))
+            i += 1
+        if cpu0 is None and elapsed >= warmup:
+            measure_start = time.monotonic()
+            cpu0 = {name: cpu_seconds(p.pid) for name, p in processes.items()}
+            at_measure()
+        watcher.spin_for(0.02)
+    wall = time.monotonic() - measure_start
+    return wall, {name: (cpu_seconds(p.pid) - cpu0[name]) / wall for name, p in processes.items()}
 
 
 def run_bench(
@@ -119,12 +154,6 @@ def run_bench(
     publish_period: float = 0.002,
 ) -> dict:
     """Run sim_hand + denoiser (`method`) for `seconds` (after `warmup`); return the figures."""
-    from sensor_msgs.msg import Imu
-
-    from egovib_ros.nodes.common import sensor_qos
-    from egovib_ros.nodes.convert import command_message, decode_imu_messages, diagnostic_values
-    from egovib_ros.sim import motion_commands
-
     workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
     model = model or bench_model(workdir / "model.npz", method=method)
     group = NodeGroup(workdir / "logs")
@@ -150,8 +179,6 @@ def run_bench(
                 if status.name == "denoiser":
                     denoiser_diag.append(diagnostic_values(status))
 
-        from diagnostic_msgs.msg import DiagnosticArray
-
         watcher.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
 
         den = group.start(
@@ -163,26 +190,14 @@ def run_bench(
             {"seed": 3, "publish_ground_truth": False, "publish_period": publish_period},
         )
         group.wait_for_log("denoiser", "denoising")
-        times, commands = motion_commands(warmup + seconds + 1.0, 0.5, seed=9)
-        start = time.monotonic()
-        phase_marks: dict[str, float] = {}
-        i = 0
-        while time.monotonic() - start < warmup + seconds:
-            elapsed = time.monotonic() - start
-            while i < len(times) and times[i] <= elapsed:
-                watcher.commands.publish(command_message(commands[i]))
-                i += 1
-            if "measure" not in phase_marks and elapsed >= warmup:
-                phase_marks["measure"] = time.monotonic()
-                cpu0 = {"denoiser": cpu_seconds(den.pid), "sim_hand": cpu_seconds(sim.pid)}
-                n0 = len(received)
-                diag0 = len(denoiser_diag)
-            watcher.spin_for(0.02)
-        wall = time.monotonic() - phase_marks["measure"]
-        cpu = {
-            name: (cpu_seconds(p.pid) - cpu0[name]) / wall
-            for name, p in (("denoiser", den), ("sim_hand", sim))
-        }
+        first: dict[str, int] = {}  # messages and reports in before the measurement
+
+        def at_measure() -> None:
+            first.update(received=len(received), diagnostics=len(denoiser_diag))
+
+        wall, cpu = drive_motion(
+            watcher, {"denoiser": den, "sim_hand": sim}, warmup, seconds, at_measure
+        )
         group.check_alive("denoiser", "sim_hand")
         watcher.spin_for(1.5)  # last diagnostics
     finally:
@@ -190,8 +205,35 @@ def run_bench(
         if watcher is not None:
             watcher.close()
 
-    stamps, _, bad = decode_imu_messages(received[n0:])
-    arrival = np.asarray(arrival_ns[n0 : n0 + len(stamps)], dtype=np.int64)
+    return denoised_figures(
+        received[first["received"] :],
+        arrival_ns[first["received"] :],
+        denoiser_diag,
+        first["diagnostics"],
+        model=model,
+        run={"duration_s": wall, "warmup_s": warmup, "channels": channels, "method": method},
+        cpu=cpu,
+        publish_period=publish_period,
+    )
+
+
+def denoised_figures(
+    received: list[bytes],
+    arrival_ns: list[int],
+    denoiser_diag: list[dict],
+    diag0: int,
+    *,
+    model: Path,
+    run: dict,
+    cpu: dict[str, float],
+    publish_period: float,
+) -> dict:
+    """The live bench's figures from what the watcher received in the measured window (the
+    denoised messages and their arrival times) and the denoiser's reports (`diag0`: the
+    first of the window)."""
+    channels, method = run["channels"], run["method"]
+    stamps, _, bad = decode_imu_messages(received)
+    arrival = np.asarray(arrival_ns[: len(stamps)], dtype=np.int64)
     latency_ms = (arrival - stamps) / 1e6
     # sim_hand stamps samples exactly at the nominal rate: the span received says how many
     # were sent.
@@ -217,10 +259,7 @@ def run_bench(
         model, publish_period=publish_period, method=method, channels=channels
     )
     return {
-        "duration_s": wall,
-        "warmup_s": warmup,
-        "channels": channels,
-        "method": method,
+        **run,
         "sim_hand_publish_period_s": publish_period,
         "cpu_cores": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0],
@@ -264,8 +303,6 @@ def run_bench(
 def calibration_bag(path: Path, seconds: float) -> Path:
     """No-contact random motion of the simulated hand (as the bench drives it): the bag the
     contact detectors take their thresholds from."""
-    from egovib_ros.bag import write_recording
-    from egovib_ros.sim import simulate_motion
 
     rec, _ = simulate_motion(duration_s=seconds, max_speed=0.5, seed=17)
     write_recording(path, rec)
@@ -290,8 +327,6 @@ def contact_figures(
 ) -> dict:
     """Detection and latency figures of one detector: `events` as (onset stamp, receive
     time) in ns, the true tap onsets, the measured window [start, end] (ns)."""
-    from egovib_ros.evaluation.contacts import TOLERANCE_S
-    from egovib_ros.evaluation.detection import match_events
 
     start, end = window_ns
     onsets = true_onsets_ns[(true_onsets_ns >= start) & (true_onsets_ns <= end)]
@@ -332,22 +367,6 @@ def run_contact_bench(
 ) -> dict:
     """sim_hand (taps) + denoiser + contact_detector on its output + contact_detector on the
     raw stream for `seconds` (after `warmup`); the figures (see the module doc)."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import Vector3Stamped
-    from sensor_msgs.msg import Imu
-
-    from egovib_ros.core.filters import combined_bandpassed
-    from egovib_ros.evaluation.metrics import segment_contacts
-    from egovib_ros.nodes.common import sensor_qos
-    from egovib_ros.nodes.convert import (
-        command_message,
-        decode_imu_messages,
-        diagnostic_values,
-        stamp_to_ns,
-    )
-    from egovib_ros.robot import load_profile
-    from egovib_ros.sim import motion_commands
-
     workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
     model = model or bench_model(workdir / "model.npz")
     no_contact = calibration_bag(workdir / "no_contact", calibration_seconds)
@@ -401,22 +420,15 @@ def run_contact_bench(
         group.wait_for_log("denoiser", "denoising")
         for name in detectors:  # each takes its threshold from the no-contact bag first
             group.wait_for_log(name, "contact events from", timeout=120.0)
-        times, commands = motion_commands(warmup + seconds + 1.0, 0.5, seed=9)
-        start = time.monotonic()
-        i, cpu0, window_start_ns = 0, None, 0
-        while time.monotonic() - start < warmup + seconds:
-            elapsed = time.monotonic() - start
-            while i < len(times) and times[i] <= elapsed:
-                watcher.commands.publish(command_message(commands[i]))
-                i += 1
-            if cpu0 is None and elapsed >= warmup:
-                cpu0 = {name: cpu_seconds(p.pid) for name, p in processes.items()}
-                measure_start, window_start_ns = time.monotonic(), clock()
-                first = {name: len(d) for name, d in diagnostics.items()}
-            watcher.spin_for(0.02)
-        wall = time.monotonic() - measure_start
-        cpu = {name: (cpu_seconds(p.pid) - cpu0[name]) / wall for name, p in processes.items()}
-        window_end_ns = clock() - 100_000_000  # an event is out 10 ms after its crossing
+        first: dict[str, int] = {}  # reports of each node in before the measurement
+        window_ns = [0, 0]
+
+        def at_measure() -> None:
+            window_ns[0] = clock()
+            first.update({name: len(d) for name, d in diagnostics.items()})
+
+        wall, cpu = drive_motion(watcher, processes, warmup, seconds, at_measure)
+        window_ns[1] = clock() - 100_000_000  # an event is out 10 ms after its crossing
         group.check_alive(*processes)
         watcher.spin_for(1.5)  # the last events and reports
     finally:
@@ -424,6 +436,28 @@ def run_contact_bench(
         if watcher is not None:
             watcher.close()
 
+    run = {
+        "duration_s": wall,
+        "warmup_s": warmup,
+        "tap_rate_hz": tap_rate_hz,
+        "calibration_seconds": calibration_seconds,
+        "sim_hand_publish_period_s": publish_period,
+    }
+    return contact_figures_of_run(run, cpu, truth, events, diagnostics, first, window_ns, detectors)
+
+
+def contact_figures_of_run(
+    run: dict,
+    cpu: dict[str, float],
+    truth: list[bytes],
+    events: dict[str, list[tuple[int, int]]],
+    diagnostics: dict[str, list[dict]],
+    first: dict[str, int],
+    window_ns: list[int],
+    detectors: dict[str, str],
+) -> dict:
+    """The contact bench's figures: each detector's events against the taps of the
+    ground-truth contact signal in the measured window, and the denoiser's input losses."""
     profile = load_profile()
     stamps, contact, _ = decode_imu_messages(truth)
     order = np.argsort(stamps, kind="stable")
@@ -433,11 +467,7 @@ def run_contact_bench(
     gaps = int(round((stamps[-1] - stamps[0]) * profile.rate_hz / 1e9)) + 1 - len(stamps)
     den_first, den_last = diagnostics["denoiser"][first["denoiser"]], diagnostics["denoiser"][-1]
     result = {
-        "duration_s": wall,
-        "warmup_s": warmup,
-        "tap_rate_hz": tap_rate_hz,
-        "calibration_seconds": calibration_seconds,
-        "sim_hand_publish_period_s": publish_period,
+        **run,
         "cpu_cores": os.cpu_count(),
         "load_average_1min": os.getloadavg()[0],
         "cpu_share": {name: round(value, 4) for name, value in cpu.items()},
@@ -450,7 +480,7 @@ def run_contact_bench(
             source: contact_figures(
                 events[name],
                 true_onsets,
-                (window_start_ns, window_end_ns),
+                tuple(window_ns),
                 diagnostics[name][-1] if diagnostics[name] else {},
             )
             for name, source in detectors.items()
