@@ -9,11 +9,14 @@ STAMP  := $(VENV)/.installed
 
 venv: $(STAMP)
 
-$(STAMP): requirements-ros.txt requirements-dev.txt setup.py
+# The robot package (setup.py: egovib_ros, what `pip install .` or colcon installs) and,
+# beside it, the repository's research tools (research/: experiments, benchmarks, the demo;
+# their commands join `egovib`).
+$(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements-ros.txt -r requirements-dev.txt
-	$(PY) -m pip install -q -e ".[cluster]"
+	$(PY) -m pip install -q -e ".[cluster]" -e research/
 	touch $(STAMP)
 
 # The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests one at

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from egovib_ros.nodes.watcher import Watcher
-from egovib_ros.tools.orchestration import RELIABLE_INPUT_DEPTH, NodeGroup
+from egovib_research.tools.orchestration import RELIABLE_INPUT_DEPTH, NodeGroup
+from egovib_research.tools.watcher import Watcher
 
 #: History of this process's stream writers and queue of its readers (10 s at 3 kHz):
 #: reliable links that lose nothing on a loaded machine (nodes.common.stream_publisher).

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from egovib_ros.altreality import (
+from egovib_research.altreality import (
     EFFECTS,
     HAND_JOINTS,
     AltHand,
@@ -16,7 +16,7 @@ from egovib_ros.altreality import (
     simulate_alt_motion,
 )
 
-PACKAGE = Path(__file__).resolve().parents[1] / "egovib_ros" / "altreality"
+PACKAGE = Path(__file__).resolve().parents[1] / "research" / "egovib_research" / "altreality"
 
 
 def test_shares_no_code_with_the_simulator():
@@ -28,7 +28,7 @@ def test_shares_no_code_with_the_simulator():
         "scipy",
         "dataclasses",
         "__future__",
-        "egovib_ros.altreality",
+        "egovib_research.altreality",
         "egovib_ros.bag",
         "egovib_ros.core.timebase",
     }
@@ -113,11 +113,11 @@ def test_an_unknown_effect_is_refused():
 
 
 def test_written_to_a_bag_that_a_pr2_model_reads(tmp_path, capsys):
-    """`python -m egovib_ros.altreality` writes a bag with the PR2 topics; the effects go to
+    """`python -m egovib_research.altreality` writes a bag with the PR2 topics; the effects go to
     the truth file only; an existing bag is not replaced without --force."""
     import json
 
-    from egovib_ros.altreality.__main__ import main
+    from egovib_research.altreality.__main__ import main
     from egovib_ros.bag import read_recording
 
     bag, truth = tmp_path / "alt", tmp_path / "alt.truth.json"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.altreality.motion import (
+from egovib_research.altreality.motion import (
     GAP_MAX,
     GAP_MIN,
     GRIPPER_LIMIT,

@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from egovib_ros.experiments import contacts_compare
+from egovib_research.experiments import contacts_compare
 
 FIELDS = {
     "f1",

@@ -8,10 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from egovib_research.experiments.flight.convert import FILTERED_TOPIC, convert, motor_positions
+from egovib_research.experiments.flight.flightlog import (
+    MOTOR_NAMES,
+    FlightLogError,
+    load_flight_log,
+)
+from egovib_research.experiments.flight.recording import read_flight_bag
 from egovib_ros.cli import main as egovib
-from egovib_ros.experiments.flight.convert import FILTERED_TOPIC, convert, motor_positions
-from egovib_ros.experiments.flight.flightlog import MOTOR_NAMES, FlightLogError, load_flight_log
-from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 
 REPO = Path(__file__).resolve().parents[1]

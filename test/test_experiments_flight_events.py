@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from synthetic import jittery_stamps
 
+from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.experiments.flight.events import EventSpec, make_events
 from egovib_ros.robot import load_profile
 
 PROFILE = load_profile("quadcopter")

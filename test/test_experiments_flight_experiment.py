@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from egovib_research.experiments.flight.events import EventSpec
+from egovib_research.experiments.flight.experiment import RealConfig, run_experiment, run_fold
+from egovib_research.experiments.flight.recording import read_flight_bag
 from egovib_ros.cli import main as egovib
-from egovib_ros.experiments.flight.events import EventSpec
-from egovib_ros.experiments.flight.experiment import RealConfig, run_experiment, run_fold
-from egovib_ros.experiments.flight.recording import read_flight_bag
 from egovib_ros.robot import load_profile
 
 REPO = Path(__file__).resolve().parents[1]

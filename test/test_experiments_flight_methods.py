@@ -4,9 +4,9 @@ with known lines."""
 import numpy as np
 from synthetic import jittery_stamps
 
+from egovib_research.experiments.flight.methods import build_methods, single_joint_profile
+from egovib_research.experiments.flight.recording import FlightRecording
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.experiments.flight.methods import build_methods, single_joint_profile
-from egovib_ros.experiments.flight.recording import FlightRecording
 from egovib_ros.robot import load_profile
 
 FS = 1000.0

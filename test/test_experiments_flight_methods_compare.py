@@ -7,7 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.experiments.flight.methods_compare import flight_checks, pool, waveform_correlation
+from egovib_research.experiments.flight.methods_compare import (
+    flight_checks,
+    pool,
+    waveform_correlation,
+)
 
 
 def test_waveform_correlation_is_per_event_and_ignores_silent_windows():
@@ -81,8 +85,8 @@ def test_checks_compare_each_target_and_say_which_are_missed():
 def test_event_retention_divides_by_the_true_events_peak_not_the_noisy_raw_peak():
     """A perfect denoiser (output = the true event) keeps all of each event: 1.0, where the
     raw-peak retention is below 1 because the raw peak holds noise as well."""
+    from egovib_research.experiments.flight.methods_compare import score
     from egovib_ros.evaluation import metrics
-    from egovib_ros.experiments.flight.methods_compare import score
 
     fs = 1000.0
     n = 4000

@@ -6,7 +6,7 @@ import numpy as np
 from scipy import signal
 from synthetic import jittery_stamps
 
-from egovib_ros.experiments.flight.notch import (
+from egovib_research.experiments.flight.notch import (
     HarmonicNotchBank,
     SpeedFrequencyMap,
     fit_speed_frequency_map,

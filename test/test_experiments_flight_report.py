@@ -10,12 +10,12 @@ import struct
 import numpy as np
 import pytest
 
+from egovib_research.experiments import fmt
+from egovib_research.experiments.flight import report
+from egovib_research.experiments.flight.events import EventSpec
+from egovib_research.experiments.flight.experiment import FLIGHT_PHASES
+from egovib_research.experiments.flight.methods import LABELS
 from egovib_ros.evaluation.metrics import segment_contacts
-from egovib_ros.experiments import fmt
-from egovib_ros.experiments.flight import report
-from egovib_ros.experiments.flight.events import EventSpec
-from egovib_ros.experiments.flight.experiment import FLIGHT_PHASES
-from egovib_ros.experiments.flight.methods import LABELS
 from egovib_ros.robot import load_profile
 
 PROFILE = load_profile("quadcopter")  # 1 kHz

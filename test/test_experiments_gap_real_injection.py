@@ -8,9 +8,9 @@ import numpy as np
 def test_real_injections_change_only_what_they_say():
     """Timing re-stamps the joint states only; the gains multiply the real gyro only, by
     the stated functions of the joint states."""
+    from egovib_research.experiments.gap_flight import SPLIT_S, _slice
+    from egovib_research.experiments.gap_real_injection import inject
     from egovib_ros.bag import read_recording
-    from egovib_ros.experiments.gap_flight import SPLIT_S, _slice
-    from egovib_ros.experiments.gap_real_injection import inject
     from egovib_ros.robot import load_profile
 
     rec = read_recording(
@@ -38,8 +38,8 @@ def test_real_injections_change_only_what_they_say():
 
 
 def _flight_part(stop_s: float):
+    from egovib_research.experiments.gap_flight import _slice
     from egovib_ros.bag import read_recording
-    from egovib_ros.experiments.gap_flight import _slice
     from egovib_ros.robot import load_profile
 
     rec = read_recording(
@@ -56,8 +56,8 @@ def test_the_position_injection_is_a_function_of_the_turning_angle():
     is a harmonic of the motor's position taken as an angle (equal at x and x + 2 pi),
     with more than one of its periods inside the part, so that held-out blocks can be
     predicted from the training ones."""
-    from egovib_ros.experiments.gap_flight import SPLIT_S
-    from egovib_ros.experiments.gap_real_injection import POSITION_HARMONIC, _at_accel, inject
+    from egovib_research.experiments.gap_flight import SPLIT_S
+    from egovib_research.experiments.gap_real_injection import POSITION_HARMONIC, _at_accel, inject
 
     _, part = _flight_part(SPLIT_S)
     out = inject(part, "position", 0.8)
@@ -72,8 +72,8 @@ def test_the_position_injection_is_a_function_of_the_turning_angle():
 def test_an_injection_the_diagnosis_refuses_is_a_recorded_miss():
     """A part too short to diagnose is refused (too few blocks): the run is kept as a miss
     with the reason, and the validation goes on."""
-    from egovib_ros.experiments.gap_flight import calibrate_part
-    from egovib_ros.experiments.gap_real_injection import diagnose_case
+    from egovib_research.experiments.gap_flight import calibrate_part
+    from egovib_research.experiments.gap_real_injection import diagnose_case
     from egovib_ros.robot import load_profile
 
     rec, short = _flight_part(2.0)

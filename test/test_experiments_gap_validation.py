@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from egovib_ros.experiments.gap_validation import (
+from egovib_research.experiments.gap_validation import (
     FORMS,
     MISCALIBRATED,
     SHAPE_DIFFERS,

@@ -15,10 +15,10 @@ import json
 import numpy as np
 import pytest
 
+from egovib_research.experiments import paper as experiments
 from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.evaluation.evaluate import REPORT_FIELDS
-from egovib_ros.experiments import paper as experiments
 
 SPEEDS = (0.25, 0.5)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.experiments.sim_validation import (
+from egovib_research.experiments.sim_validation import (
     BAND_BINS,
     motion_levels,
     plot_fig3,

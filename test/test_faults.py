@@ -1679,10 +1679,10 @@ def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
     from diagnostic_msgs.msg import DiagnosticStatus
     from sensor_msgs.msg import Imu
 
+    from egovib_research.tools.orchestration import reliable_input
     from egovib_ros.nodes.common import stream_publisher_qos
     from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
     from egovib_ros.robot import load_profile
-    from egovib_ros.tools.orchestration import reliable_input
 
     profile = load_profile()
     den = nodes.start(

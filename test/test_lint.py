@@ -1,4 +1,5 @@
-"""The package, its tests and launch files are ruff-clean (ruff.toml: 100 columns, import order)."""
+"""The package, the research package, tests and launch files are ruff-clean (ruff.toml:
+100 columns, import order)."""
 
 import subprocess
 import sys
@@ -14,14 +15,17 @@ def ruff() -> list[str]:
 
 def test_ruff_check_is_clean():
     result = subprocess.run(
-        ruff() + ["check", "egovib_ros", "test", "launch"], cwd=ROOT, capture_output=True, text=True
+        ruff() + ["check", "egovib_ros", "research", "test", "launch"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 0, result.stdout + result.stderr
 
 
 def test_ruff_format_is_applied():
     result = subprocess.run(
-        ruff() + ["format", "--check", "egovib_ros", "test", "launch"],
+        ruff() + ["format", "--check", "egovib_ros", "research", "test", "launch"],
         cwd=ROOT,
         capture_output=True,
         text=True,

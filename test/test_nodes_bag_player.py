@@ -15,6 +15,7 @@ from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.bag.codec import (
     decode_imu,
@@ -23,7 +24,6 @@ from egovib_ros.nodes.common import stream_publisher_qos
 from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion
-from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 

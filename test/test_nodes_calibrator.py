@@ -14,11 +14,11 @@ from conftest import matched, reports
 from diagnostic_msgs.msg import DiagnosticStatus
 from robots import profile, recording
 
+from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
 from egovib_ros.nodes.convert import diagnostic_values
 from egovib_ros.robot import config_dir
-from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 

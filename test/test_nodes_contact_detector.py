@@ -11,6 +11,7 @@ from conftest import matched
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.methods import default_method
@@ -18,7 +19,6 @@ from egovib_ros.evaluation.contacts import TOLERANCE_S, calibration_threshold, d
 from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion
-from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 

@@ -36,6 +36,7 @@ from rclpy.serialization import deserialize_message
 from scipy import signal
 from sensor_msgs.msg import Imu
 
+from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import stream_publisher_qos
@@ -47,7 +48,6 @@ from egovib_ros.nodes.convert import (
 )
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion
-from egovib_ros.tools.orchestration import deep_output, reliable_input
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 

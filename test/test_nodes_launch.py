@@ -91,8 +91,8 @@ def test_demo_and_live_bench_are_egovib_subcommands(capsys):
 
     parser = build_parser()
     for command, module in (
-        ("demo", "egovib_ros.tools.demo"),
-        ("live-bench", "egovib_ros.tools.live_bench"),
+        ("demo", "egovib_research.tools.demo"),
+        ("live-bench", "egovib_research.tools.live_bench"),
     ):
         args = parser.parse_args(
             [command] + (["--json", "x.json"] if command == "live-bench" else [])

@@ -116,7 +116,7 @@ def test_velocity_controller_is_smooth(params):
 
 
 def test_stationary_background_is_small_and_vibration_grows_with_speed(params):
-    from egovib_ros.experiments.sim_validation import bandpass_combined
+    from egovib_research.experiments.sim_validation import bandpass_combined
 
     levels = []
     for frac in (0.0, 0.3, 1.0):

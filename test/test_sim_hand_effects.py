@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from egovib_ros.experiments.sim_validation import (
+from egovib_research.experiments.sim_validation import (
     BAND_BINS,
     bandpass_combined,
     block_magnitudes,

@@ -2,8 +2,8 @@
 
 import json
 
+from egovib_research.tools import bench
 from egovib_ros.cli import main
-from egovib_ros.tools import bench
 
 
 def test_bench_quick_writes_json_and_markdown(tmp_path):

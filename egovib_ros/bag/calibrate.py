@@ -13,8 +13,9 @@ from typing import Callable, Sequence
 
 from egovib_ros.bag.many import BagJob, expand_bags, run_bags
 from egovib_ros.bag.reader import bag_fingerprint
-from egovib_ros.bag.recording import iter_recording
+from egovib_ros.bag.recording import iter_recording, read_recording
 from egovib_ros.core import CalibrationAccumulator
+from egovib_ros.core.methods import calibrate_detection, calibrate_methods
 from egovib_ros.core.stream import check_stream
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.robot import RobotProfile, load_profile
@@ -121,11 +122,6 @@ def calibrate_bag_methods(
     each method the model can then run (core.methods.calibrate_detection). Returns (the
     model with them, {"methods": what was fitted or None, "thresholds": ...}). The fit takes
     the recording whole: memory grows with the bag (a calibration run: minutes)."""
-    from egovib_ros.bag.recording import read_recording
-    from egovib_ros.core.methods import (  # numba: compiled when a model is calibrated
-        calibrate_detection,
-        calibrate_methods,
-    )
 
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from tqdm import tqdm
+
 from egovib_ros.errors import BagError, ConfigError, EgovibError
 
 
@@ -173,7 +175,6 @@ def run_bags(
     quiet: bool = False,
 ) -> list[BagResult]:
     """Run `task` on every bag; results in the order of `jobs_list`."""
-    from tqdm import tqdm
 
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
@@ -213,7 +214,7 @@ def run_bags(
 def _run_dask(
     task: Callable, jobs_list: Sequence[BagJob], *, jobs: int, scheduler: str | None, bar
 ) -> list[BagResult]:
-    try:
+    try:  # deferred: an optional extra (egovib_ros[cluster]), and seconds to import
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise ConfigError(

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from egovib_ros.bag.codec import MessageBatch, typestore
 from egovib_ros.bag.mcapfile import ChunkData, McapWriter
@@ -99,9 +101,6 @@ class BagWriter:
                 crc=self.crc,
             )
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
-            from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-
             self._rosbags = Writer(self.path, version=9, storage_plugin=StoragePlugin.SQLITE3)
             if self.compression:
                 self._rosbags.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)

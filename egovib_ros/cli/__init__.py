@@ -13,24 +13,38 @@ the parser it adds sets `func(args) -> int`. How a run ends:
 - any other exception is a bug: one line naming the command, its input and the
   exception, the traceback written to a log file whose path is printed, exit status 1.
 
+Other installed packages add commands through the entry-point group `egovib.commands`
+(COMMAND_GROUP): the repository's research package (research/, installed by `make venv`)
+adds bench, demo, figures, gap validate, live-bench and real so. Without it (a robot's
+install) each of those is refused in one line that says where it comes from.
+
 Every way out releases the outputs the run claimed (outputs.release_outputs); staged
 outputs are removed by the exception unwinding through outputs.atomic_output.
-Module-level imports are kept to the standard library's smallest, so that Ctrl-C while
-the commands' modules load is caught here too.
+Module-level imports are the standard library's and errors.py; the command modules, and
+numpy, scipy and numba with them, load in build_parser, once main() has its signal
+handlers in place, so that Ctrl-C while they load ends in one line too.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import datetime
+import importlib
+import logging
+import os
+import platform
+import shlex
 import signal
 import sys
+import tempfile
 import threading
-from typing import TYPE_CHECKING
+import traceback
+from importlib.metadata import entry_points
+from pathlib import Path
 
 from egovib_ros import __version__
-
-if TYPE_CHECKING:
-    import argparse
+from egovib_ros.errors import EgovibError
 
 # Order = order in `egovib --help`.
 COMMAND_MODULES = (
@@ -38,14 +52,17 @@ COMMAND_MODULES = (
     "egovib_ros.cli.calibrate",
     "egovib_ros.cli.denoise",
     "egovib_ros.cli.model",  # model show
-    "egovib_ros.cli.evaluate",  # evaluate, figures
+    "egovib_ros.cli.evaluate",  # evaluate
     "egovib_ros.cli.detect",  # detect
-    "egovib_ros.cli.gap",  # gap, gap validate
-    "egovib_ros.cli.bench",  # bench
-    "egovib_ros.cli.real",  # real convert|evaluate
-    "egovib_ros.cli.demo",  # demo (live, ROS 2 nodes)
-    "egovib_ros.cli.live_bench",  # live-bench (live, ROS 2 nodes)
+    "egovib_ros.cli.gap",  # gap
 )
+#: Entry points of this group add commands: each is named for the command line it adds
+#: ("bench"; "gap validate": under `egovib gap`) and loads a register(subparsers) like those
+#: of COMMAND_MODULES, called with the sub-commands of the command its name continues.
+COMMAND_GROUP = "egovib.commands"
+#: The commands the repository's research package adds (research/pyproject.toml): named
+#: here only to refuse them in one line where it is not installed.
+REPOSITORY_COMMANDS = ("bench", "demo", "figures", "gap validate", "live-bench", "real")
 EXIT_BUG, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 130, 143
 # Arguments that name what a command reads, in the order they are named in a bug report.
 _INPUT_ARGUMENTS = ("bags", "bag", "real", "npz", "model")
@@ -57,9 +74,9 @@ class Terminated(BaseException):
     swallows it, and every `finally` (staging directories, writers, Dask clusters) runs."""
 
 
-def build_parser() -> "argparse.ArgumentParser":
-    import importlib
-
+def build_parser() -> argparse.ArgumentParser:
+    # deferred: the command modules and the library load from here on, after main() has
+    # put its signal handlers in place (module docstring)
     from egovib_ros.cli.options import OneLineErrorParser
 
     parser = OneLineErrorParser(  # one-line errors for bad options, like every bad input
@@ -70,7 +87,35 @@ def build_parser() -> "argparse.ArgumentParser":
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    add_commands(parser)
     return parser
+
+
+def add_commands(parser) -> None:
+    """The commands of the entry-point group COMMAND_GROUP, in the order of their names (a
+    command before its actions): each entry point's register() gets the sub-commands of
+    the command its name continues, made when it adds the first."""
+    for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        *parents, _ = entry.name.split()
+        target = parser
+        for word in parents:
+            target = target.commands.choices[word]
+        commands = target.commands or target.add_subparsers(dest="action", metavar="ACTION")
+        entry.load()(commands)
+
+
+def missing_command(parser, argv: list[str]) -> str | None:
+    """The repository command `argv` starts with when no installed package adds it."""
+    for command in REPOSITORY_COMMANDS:
+        words = command.split()
+        if argv[: len(words)] != words:
+            continue
+        target = parser
+        for word in words:
+            if target.commands is None or word not in target.commands.choices:
+                return command
+            target = target.commands.choices[word]
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,12 +151,8 @@ def _said_once(record) -> bool:
 
 
 def _main(argv: list[str]) -> int:
-    from egovib_ros.errors import EgovibError
-
     args = None
     try:
-        import logging
-
         before = list(logging.getLogger().handlers)
         logging.basicConfig(format="egovib: %(levelname)s: %(message)s")
         for handler in logging.getLogger().handlers:  # ours only, not a host's (pytest's)
@@ -119,6 +160,12 @@ def _main(argv: list[str]) -> int:
                 handler.addFilter(_said_once)
         _said.clear()  # per run (main may run several times in one process)
         parser = build_parser()
+        missing = missing_command(parser, argv)
+        if missing:
+            raise EgovibError(
+                f"egovib {missing} is a tool of the egovib_ros repository, not of the "
+                "installed package: run it in a clone's venv (make venv installs research/)"
+            )
         try:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # --help / --version (0), a bad option (2, one line printed)
@@ -240,10 +287,6 @@ def _inputs(args) -> str:
 def log_directories() -> list:
     """Where a traceback log may go, in order: $XDG_STATE_HOME/egovib (default
     ~/.local/state/egovib, the XDG place for logs), then the system temp directory."""
-    import os
-    import tempfile
-    from pathlib import Path
-
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(
         os.path.expanduser("~"), ".local", "state"
     )
@@ -252,12 +295,6 @@ def log_directories() -> list:
 
 def write_traceback_log(exc: BaseException, command: str, argv: list[str]):
     """(path, None) of the log written, or (None, reason) if no directory would take it."""
-    import datetime
-    import os
-    import platform
-    import shlex
-    import traceback
-
     stamp = datetime.datetime.now().strftime("%Y%m%dT%H%M%S")
     name = f"egovib-{command.replace(' ', '-')}-{stamp}-{os.getpid()}.log"
     text = (

@@ -1,38 +1,28 @@
-"""`egovib evaluate` and `egovib figures` (INTERFACES.md sections 3 and 6).
+"""`egovib evaluate` (INTERFACES.md sections 3 and 6).
 
 egovib evaluate BAG [BAG ...] --model MODEL.npz --json FILE|DIR [--calibration BAG]
                 [--jobs N | --scheduler ADDRESS]
-egovib figures --out DIR [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.bag.many import run_bags
 from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
+from egovib_ros.core import NoiseModel
 from egovib_ros.errors import BagError, ConfigError, bag_error
-from egovib_ros.evaluation import metrics
-from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said
-from egovib_ros.outputs import atomic_output, json_holding, prepare_output, prepare_outputs_in
-
-# What `egovib figures` writes into its --out directory (figures.py, experiments.py).
-FIGURE_OUTPUTS = (
-    "eval_results.json",
-    "eval_results.md",
-    "eval_fig5_a.png",
-    "eval_fig5_b.png",
-    "eval_pr_curve.png",
-    "eval_speed.png",
-    "eval_fig3_spectra.png",
-    "eval_fig4_superposition.png",
-)
+from egovib_ros.evaluation import baselines, metrics
+from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said, evaluate_bag
+from egovib_ros.outputs import atomic_output, json_holding, prepare_output
 
 
 def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path | None:
@@ -68,7 +58,6 @@ def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path 
 def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options) -> dict:
     """One bag: streamed evaluation, its JSON written atomically; returns the summary
     figures (what the summary line shows). Runs in a worker with --jobs/--scheduler."""
-    from egovib_ros.evaluation.evaluate import evaluate_bag
 
     calibration = options.get("calibration")
     try:
@@ -113,12 +102,6 @@ def _describe(figures: dict) -> str:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    import functools
-
-    from egovib_ros.bag.many import run_bags
-    from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation import baselines
-
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
     calibration_path = calibration_bag(
@@ -168,41 +151,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
             print(f"{r.bag}: {_describe({**r.value, 'bad_samples': ''})}; wrote {r.out}")
         return 0
     return report_results(results, _describe, single=False)
-
-
-def run_figures(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from egovib_ros.experiments import paper as experiments
-    from egovib_ros.experiments import paper_figures as figures
-
-    out = prepare_outputs_in(args.out, FIGURE_OUTPUTS, force=args.force)  # before any work
-    config = experiments.ExperimentConfig(seed=args.seed)
-    if args.quick:
-        config = config.quick()
-    steps = 1 + len(config.speeds) + bool(config.robustness_effects) + 2
-    with tqdm(total=steps, desc="figures", unit="step", disable=args.quiet) as bar:
-
-        def progress(name: str) -> None:
-            bar.set_postfix_str(name)
-            bar.update()
-
-        results = experiments.run_experiments(config, progress=progress, keep_signals=True)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = figures.make_figures(results, out)
-        progress("evaluation figures")
-        paths += experiments.validation_figures(results, out)
-        progress("Fig. 3 / Fig. 4 analogues")
-        with atomic_output(out / "eval_results.json") as tmp:
-            tmp.write_text(json.dumps(experiments.results_json(results), indent=2) + "\n")
-        with atomic_output(out / "eval_results.md") as tmp:
-            tmp.write_text(experiments.results_markdown(results))
-    if not args.quiet:
-        print(
-            f"wrote {out / 'eval_results.md'}, {out / 'eval_results.json'} and "
-            + ", ".join(str(p) for p in paths)
-        )
-    return 0
 
 
 def register(subparsers) -> None:
@@ -258,15 +206,3 @@ def register(subparsers) -> None:
     parallel_options(ev)
     options.force_and_quiet(ev, "replace an existing JSON file", None)
     ev.set_defaults(func=run_evaluate)
-
-    fig = subparsers.add_parser(
-        "figures",
-        help="regenerate the evaluation table and all figures",
-        description="Run the paper's experiments on the simulator (speeds 25-100 %%, "
-        "all methods) and write eval_results.md/.json and eval_*.png.",
-    )
-    fig.add_argument("--out", default="docs", help="output directory (default: docs)")
-    fig.add_argument("--seed", type=options.seed, default=1)
-    fig.add_argument("--quick", action="store_true", help="small run (for tests)")
-    options.force_and_quiet(fig, "replace the files of a previous run in DIR", None)
-    fig.set_defaults(func=run_figures)

@@ -1,5 +1,5 @@
-"""`egovib gap --model M --real BAG --out DIR` and `egovib gap validate [...]`
-(INTERFACES.md section 3)."""
+"""`egovib gap --model M --real BAG --out DIR` (INTERFACES.md section 3). In the
+repository's venv `egovib gap validate` joins it (research/: commands/gap_validate.py)."""
 
 from __future__ import annotations
 
@@ -7,25 +7,23 @@ import argparse
 import functools
 import sys
 
+from egovib_ros.bag.many import run_bags
 from egovib_ros.cli import options
+from egovib_ros.cli.jobs import output_jobs, report_results
+from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError
-from egovib_ros.outputs import prepare_output, prepare_outputs_in
-
-#: gap.features.DEFAULT_BUDGET_MINUTES (tested equal; not imported: the CLI starts
-#: without numpy and scipy)
-BUDGET_MINUTES = 2.0
+from egovib_ros.gap.diagnose import DiagnosisOptions
+from egovib_ros.gap.features import DEFAULT_BUDGET_MINUTES
+from egovib_ros.gap.pipeline import reference_lag_for, run_gap
+from egovib_ros.outputs import prepare_output
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "gap",
-        help="sim-to-real gap diagnosis (or `gap validate`: blind validation on simulated bags)",
+        help="sim-to-real gap diagnosis",
         description="Where does a simulator-calibrated noise model miss a real recording, "
-        "which unmodelled effect causes it, and how far does the gap shrink once it is added. "
-        "`egovib gap validate` checks the diagnosis blind on simulator bags with hidden effects.",
-    )
-    parser.add_argument(
-        "action", nargs="?", choices=["validate"], help="run the blind validation instead"
+        "which unmodelled effect causes it, and how far does the gap shrink once it is added.",
     )
     parser.add_argument("--model", help="noise-model .npz calibrated on the simulator")
     parser.add_argument(
@@ -73,53 +71,21 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--budget-minutes",
         type=options.float_in(1.0, 1e6),
-        default=BUDGET_MINUTES,
+        default=DEFAULT_BUDGET_MINUTES,
         metavar="MINUTES",
         help="diagnose at most this many minutes of blocks per bag: a longer bag is thinned "
         "evenly over its whole length (with the joint states near the kept blocks), so "
         "memory and time stop growing with the bag "
-        f"(default {BUDGET_MINUTES:g}, the bag length the diagnosis is validated on)",
+        f"(default {DEFAULT_BUDGET_MINUTES:g}, the bag length the diagnosis is validated on)",
     )
     parser.add_argument(
         "--force", action="store_true", help="replace an existing report directory of egovib"
     )
-    val = parser.add_argument_group("validate")
-    val.add_argument(
-        "--reality",
-        choices=["sim", "alt", "real"],
-        default="sim",
-        help='where the blind "real" bags come from: our simulator, or the independent '
-        "alternate-reality generator (egovib_ros.altreality), the model always calibrated "
-        "on our simulator; or `real`: known effects injected into one part of the real "
-        "flight bags/quadcopter_ar8, the model calibrated on the other part (validate)",
-    )
-    val.add_argument(
-        "--seeds", type=options.positive_int, default=5, help="seeds per effect class (validate)"
-    )
-    val.add_argument(
-        "--master-seed",
-        type=options.int_in(0, 2**31),
-        default=2026,
-        help="seed from which all runs' classes, strengths and seeds are drawn (validate)",
-    )
-    val.add_argument(
-        "--extra-none",
-        type=options.int_in(0, 1000),
-        default=0,
-        help="this many more bags of every `none` class, for the false-positive rate (validate)",
-    )
-    val.add_argument(
-        "--duration",
-        type=options.float_in(30.0, 3600.0),
-        default=120.0,
-        help="seconds per blind real bag, 30 .. 3600 (validate)",
-    )
-    val.add_argument(
+    parser.add_argument(
         "--jobs",
         type=options.positive_int,
         default=1,
-        help="parallel worker processes (validate; or bags diagnosed at once: a local Dask "
-        "cluster)",
+        help="bags diagnosed at once (a local Dask cluster)",
     )
     parser.add_argument(
         "--scheduler",
@@ -133,41 +99,10 @@ def register(subparsers) -> None:
         action="store_true",
         help="write report.json and report.md only (quicker, for many bags)",
     )
-    val.add_argument(
-        "--no-ladder", action="store_true", help="skip the detectability strength ladder (validate)"
-    )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.action == "validate":
-        from egovib_ros.experiments.gap_validation import output_names, run_validation
-
-        if args.scheduler:
-            raise ConfigError(
-                "gap validate: --scheduler is for diagnosing bags; the validation runs on "
-                "local processes (--jobs)"
-            )
-        out = args.out or "docs"
-        # before any work
-        prepare_outputs_in(out, output_names(args.reality), force=args.force)
-        summary = run_validation(
-            seeds=args.seeds,
-            duration_s=args.duration,
-            out_dir=out,
-            jobs=args.jobs,
-            ladder=not args.no_ladder,
-            progress=not args.quiet,
-            reality=args.reality,
-            master_seed=args.master_seed,
-            extra_none=args.extra_none,
-        )
-        print(
-            f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
-            f"none flagged {summary['none_false_positive_rate']:.3f}, "
-            f"{summary['n_runs']} runs -> {summary['outputs']}"
-        )
-        return 0
     missing = [
         flag
         for flag, value in (("--model", args.model), ("--real", args.real), ("--out", args.out))
@@ -177,11 +112,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"gap: missing {', '.join(missing)} (usage: egovib gap --model M --real BAG --out DIR)"
         )
-    from egovib_ros.bag.many import run_bags
-    from egovib_ros.cli.jobs import output_jobs, report_results
-    from egovib_ros.core.noise_model import NoiseModel
-    from egovib_ros.gap.diagnose import DiagnosisOptions
-    from egovib_ros.gap.pipeline import reference_lag_for
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
     jobs = output_jobs(args.real, args.out)
@@ -215,7 +145,6 @@ def run(args: argparse.Namespace) -> int:
 
 def gap_task(bag, out, progress, *, model_path, **options) -> dict:
     """One bag's diagnosis into its report directory; the summary line's figures."""
-    from egovib_ros.gap.pipeline import run_gap
 
     report = run_gap(model_path, bag, out, progress=progress, **options)
     return {

@@ -1,12 +1,15 @@
 """`egovib model show MODEL.npz --out DIR [--bag BAG]`: look at a noise model
-(tools/model_show.py: coverage, spectra, where a recording falls)."""
+(viz/model_show.py: coverage, spectra, where a recording falls)."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from egovib_ros.cli.options import force_and_quiet
-from egovib_ros.tools.model_show import place_bag, summary_lines, write_views
+from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.outputs import atomic_output, prepare_output
+from egovib_ros.viz.model_show import place_bag, summary_lines, write_views
 
 
 def register(subparsers) -> None:
@@ -38,11 +41,6 @@ def register(subparsers) -> None:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    import sys
-
-    from egovib_ros.core.noise_model import NoiseModel
-    from egovib_ros.outputs import atomic_output, prepare_output
-
     out = prepare_output(
         args.out, force=args.force, inputs=[args.model, args.bag], kind="directory"
     )

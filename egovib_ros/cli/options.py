@@ -12,6 +12,7 @@ import math
 from typing import Callable, NoReturn
 
 from egovib_ros.errors import ConfigError
+from egovib_ros.sim.params import check_effects, parse_effects
 
 MAX_SEED = 2**32 - 1
 
@@ -21,6 +22,14 @@ class OneLineErrorParser(argparse.ArgumentParser):
 
     Subparsers inherit the class, so every subcommand reports bad options this way.
     """
+
+    #: the sub-commands of this command (`add_subparsers`), None if it has none: where the
+    #: commands of another package go (egovib_ros.cli.add_commands)
+    commands: argparse._SubParsersAction | None = None
+
+    def add_subparsers(self, **kwargs) -> argparse._SubParsersAction:
+        self.commands = super().add_subparsers(**kwargs)
+        return self.commands
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -102,7 +111,6 @@ def force_and_quiet(
 
 def effects_spec(text: str) -> dict[str, float]:
     """argparse type: the effects SPEC `name=strength,...` (INTERFACES.md section 3), checked."""
-    from egovib_ros.sim.params import check_effects, parse_effects
 
     try:
         return check_effects(parse_effects(text), source="SPEC")

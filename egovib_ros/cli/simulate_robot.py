@@ -12,12 +12,20 @@ from __future__ import annotations
 import argparse
 
 from egovib_ros.cli import options
+from egovib_ros.cli.simulate_output import (
+    bag_output_options,
+    prepare_outputs,
+    progress_bar,
+    seed_and_truth_options,
+    write_bag,
+)
+from egovib_ros.errors import ConfigError
+from egovib_ros.robot import load_profile
+from egovib_ros.sim.robot import SENSOR_FRAME, robot_slices
 
 
 def register(scenarios) -> None:
     """Add `robot` to the `simulate` subcommands."""
-    from egovib_ros.cli.simulate import bag_output_options, seed_and_truth_options
-
     robot = scenarios.add_parser(
         "robot",
         help="free motion or a grid sweep of any robot profile (generic N-joint simulator)",
@@ -107,11 +115,6 @@ _SWEEP_ONLY = (("grid", "--grid"), ("dwell", "--dwell"), ("settle", "--settle"))
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.cli.simulate import prepare_outputs, progress_bar, write_bag
-    from egovib_ros.errors import ConfigError
-    from egovib_ros.robot import load_profile
-    from egovib_ros.sim.robot import SENSOR_FRAME, robot_slices
-
     # Everything that can be refused is refused before the first sample is simulated.
     other = _SWEEP_ONLY if args.mode == "motion" else _MOTION_ONLY
     given = [option for name, option in other if getattr(args, name) is not None]

@@ -33,6 +33,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from egovib_ros.bag import iter_recording
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel, contact
 from egovib_ros.core.methods import default_method
@@ -336,7 +337,6 @@ def evaluate_bag(
     detection thresholds. `chunk_s`: evaluate in slices of this many seconds instead of
     the bag's own (tests). `progress(bytes)` as the bag is read (all passes together
     count as its size once)."""
-    from egovib_ros.bag import iter_recording
 
     profile = model.robot_profile()
     passes = 2 if calibration is not None else 3

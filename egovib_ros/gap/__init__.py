@@ -12,5 +12,5 @@ Public entry points:
     advise(diagnosis) -> what to do, the denoiser's cost, what is left   (advice)
 
 The blind validations (simulator, alternate reality, real flight with injected effects)
-are experiments: egovib_ros/experiments/gap_validation.py, gap_real_injection.py.
+are experiments: research/egovib_research/experiments/gap_validation.py, gap_real_injection.py.
 """

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from egovib_ros.core import calibrate_arrays, denoise_batch
+from egovib_ros.core.filters import BandPass
 from egovib_ros.core.subtraction import noise_gain_curve
 from egovib_ros.errors import ConfigError
 from egovib_ros.gap.diagnose import Diagnosis
@@ -224,8 +226,6 @@ def measure_joint_lag(
     scored on the same samples, away from the ends by the lag: the blocks there have no
     joint state with the lag and pass through undenoised (counted in each run's
     `blocks_no_joint_state`; the core's warning about them is not printed)."""
-    from egovib_ros.core import calibrate_arrays, denoise_batch
-    from egovib_ros.core.filters import BandPass
 
     runs = {}
     core_log = logging.getLogger("egovib_ros.core")

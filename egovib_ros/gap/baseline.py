@@ -42,6 +42,13 @@ import numpy as np
 from scipy import sparse
 
 from egovib_ros.gap.features import BlockTable, hat_matrix, motion_features
+from egovib_ros.gap.regression import MAX_LOG_GAIN, fit_power_term
+
+#: Knots (signed speed fraction) of the baseline's velocity-only log-gain stage
+#: (`fit_baseline`): a second, per-bin look at each joint's velocity on top of the
+#: cell table, shared by every candidate, so that no candidate wins by absorbing
+#: velocity-only misfit.
+VELOCITY_KNOTS = (-1.0, -0.75, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 0.75, 1.0)
 
 #: Prior weight of the simulator's power at a coarse cell, in equivalent blocks.
 PRIOR_BLOCKS = 0.3
@@ -289,13 +296,25 @@ def fit_baseline(
     return velocity_stage(table, train, base) if velocity_gain else base
 
 
+def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
+    """The baseline's velocity-only log-gain columns (hats of the signed speed fraction per
+    joint, rest dropped: the intercept holds it)."""
+    frac = table.velocity / table.vmax
+    knots = np.asarray(VELOCITY_KNOTS)
+    rest = int(np.flatnonzero(knots == 0.0)[0])
+    cols, names = [], []
+    for j, name in enumerate(table.joint_names):
+        h = np.delete(hat_matrix(frac[:, j], knots), rest, axis=1)
+        cols.append(h)
+        names += [f"v={k:g}({name})" for k in np.delete(knots, rest)]
+    return np.concatenate(cols, axis=1), names
+
+
 def velocity_stage(table: BlockTable, train: np.ndarray, base: Baseline) -> Baseline:
     """The table's prediction times a per-bin log-gain in each joint's signed velocity
-    (Gamma GLM of the power ratio, GCV ridge: `effects.fit_power_term`): what the additive
+    (Gamma GLM of the power ratio, GCV ridge: `regression.fit_power_term`): what the additive
     power cells miss of a velocity-only spectrum (direction, the shape of the magnitude
     distribution, a line between cells), fitted once and shared by every candidate."""
-    from egovib_ros.gap.effects import MAX_LOG_GAIN, fit_power_term, velocity_regressors
-
     x, names = velocity_regressors(table)
     coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     gain = np.exp(coef[0][None, :] + np.clip(x @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN))

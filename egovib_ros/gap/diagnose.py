@@ -19,7 +19,6 @@ from egovib_ros.gap.effects import (
     EFFECTS,
     LAG_TOLERANCE_S,
     FittedModel,
-    fit_power_term,
     fit_scales,
     fit_variant,
     lag_scan,
@@ -27,6 +26,7 @@ from egovib_ros.gap.effects import (
     time_hats,
 )
 from egovib_ros.gap.features import BlockTable, detect_contacts
+from egovib_ros.gap.regression import fit_power_term
 
 TRAIN_FRACTION = 0.6
 #: Blocked cross-validation in time: this many contiguous folds.

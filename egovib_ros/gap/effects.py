@@ -39,6 +39,7 @@ import numpy as np
 
 from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, relevel, simulator_cells
 from egovib_ros.gap.features import BlockTable, hat_matrix
+from egovib_ros.gap.regression import MAX_LOG_GAIN, fit_power_term
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
@@ -56,18 +57,9 @@ ONE_WAY_SHARE = 0.95
 BIDIRECTIONAL_SHARE = 0.05
 #: Speed fraction over which the soft direction sign goes from -1 to +1.
 SIGN_SOFT = 0.05
-#: Knots (signed speed fraction) of the baseline's velocity-only log-gain stage
-#: (`baseline.fit_baseline`): a second, per-bin look at each joint's velocity on top of the
-#: cell table, shared by every candidate, so that no candidate wins by absorbing
-#: velocity-only misfit.
-VELOCITY_KNOTS = (-1.0, -0.75, -0.5, -0.25, -0.1, 0.0, 0.1, 0.25, 0.5, 0.75, 1.0)
 ACC_HINGES = (1.0, 3.0)
 REVERSAL_TAUS_S = (0.015, 0.05, 0.15)
 DRIFT_KNOTS = 5
-#: Ridge weights tried by the generalised cross-validation (multiples of the training rows).
-RIDGE_GRID = np.array([1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0])
-#: Overlapping blocks are not independent: GCV counts half the rows as effective.
-EFFECTIVE_ROW_SHARE = 0.5
 #: Lag search (s): coarse grid, then +-1 coarse step at the fine step.
 LAG_RANGE_S = 0.2
 LAG_COARSE_S = 0.005
@@ -76,13 +68,6 @@ LAG_FINE_S = 0.001
 #: structural and sensor group delays differ from the simulator's by a few ms.
 LAG_TOLERANCE_S = 0.005
 REL_CLIP = 25.0
-#: An effect term never moves a prediction by more than this (nepers, ~26 dB).
-MAX_LOG_GAIN = 3.0
-#: Iterations of the Gamma GLM (IRLS) of a candidate term; working residuals clipped here
-#: (a block 20x above its mean power is an outlier, not information about a smooth term).
-GLM_ITERATIONS = 4
-WORKING_CLIP = 20.0
-EULER_GAMMA = 0.5772156649
 
 
 @dataclass
@@ -249,20 +234,6 @@ def direction(table: BlockTable) -> np.ndarray:
     return np.tanh(table.velocity / (SIGN_SOFT * table.vmax))
 
 
-def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
-    """The baseline's velocity-only log-gain columns (hats of the signed speed fraction per
-    joint, rest dropped: the intercept holds it)."""
-    frac = table.velocity / table.vmax
-    knots = np.asarray(VELOCITY_KNOTS)
-    rest = int(np.flatnonzero(knots == 0.0)[0])
-    cols, names = [], []
-    for j, name in enumerate(table.joint_names):
-        h = np.delete(hat_matrix(frac[:, j], knots), rest, axis=1)
-        cols.append(h)
-        names += [f"v={k:g}({name})" for k in np.delete(knots, rest)]
-    return np.concatenate(cols, axis=1), names
-
-
 def effect_regressors(
     effect: str, table: BlockTable, scales: Scales
 ) -> tuple[np.ndarray, list[str]]:
@@ -363,102 +334,6 @@ def effect_regressors(
     return np.stack(cols, axis=1), names
 
 
-def gram_decomposition(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Singular values s and right singular vectors V (R, r) of x (n, R), from the Gram
-    matrix: the same numbers as a thin SVD without forming U (n x R), which cost most of a
-    diagnosis's time. Directions below 1e-6 of the largest singular value are dropped (the
-    ridge shrinks them to nothing anyway)."""
-    evals, v = np.linalg.eigh(x.T @ x)
-    order = np.argsort(evals)[::-1]
-    s = np.sqrt(np.maximum(evals[order], 0.0))
-    keep = s > (s[0] * 1e-6 if len(s) else 0.0)
-    return s[keep], v[:, order][:, keep]
-
-
-def _gcv_ridge(
-    x: np.ndarray, y: np.ndarray, decomposition: tuple[np.ndarray, np.ndarray] | None = None
-) -> tuple[np.ndarray, float]:
-    """Ridge coefficients (R, T) for standardised x (n, R) and centred y (n, T), weight by GCV."""
-    n = len(x)
-    s, v = gram_decomposition(x) if decomposition is None else decomposition
-    uy = (v.T @ (x.T @ y)) / s[:, None]
-    yy = float(np.sum(y * y))
-    n_eff = EFFECTIVE_ROW_SHARE * n
-    best, best_lam = np.inf, RIDGE_GRID[-1] * n
-    for lam in RIDGE_GRID * n:
-        d = s**2 / (s**2 + lam)
-        rss = yy - float(np.sum((2 * d - d * d)[:, None] * uy**2))
-        dof = float(d.sum())
-        if dof >= n_eff:
-            continue
-        score = rss / (1.0 - dof / n_eff) ** 2
-        if score < best:
-            best, best_lam = score, lam
-    d = s / (s**2 + best_lam)
-    return v @ (d[:, None] * uy), float(best_lam / n)
-
-
-def fit_term(
-    x: np.ndarray, z: np.ndarray, train: np.ndarray, cache: dict | None = None
-) -> tuple[np.ndarray, dict]:
-    """Per-bin log-gain coefficients: (1 + R, F) = [intercept; beta],
-    broadband + per-bin parts by GCV ridge. `cache`: keeps the decomposition of the
-    training columns between calls with the same x and rows (the GLM's iterations)."""
-    n_bins = z.shape[1]
-    zt = z[train]
-    z_mean = zt.mean(axis=0)
-    if x.shape[1] == 0:
-        return z_mean[None, :], {}
-    cache = {} if cache is None else cache
-    if "xs" not in cache:
-        xt = x[train]
-        # Columns are only centred, never scaled to unit variance: every regressor is built
-        # on a natural range of about [0, 1] (hats, kernels, harmonics), so a column that is
-        # non-zero on few training blocks keeps a small norm and is shrunk hard, instead of
-        # being blown up and extrapolated wildly on held-out blocks.
-        mu = xt.mean(axis=0)
-        live = np.ptp(xt, axis=0) > 1e-12
-        xs = xt[:, live] - mu[live]
-        cache.update(mu=mu, live=live, xs=xs, dec=gram_decomposition(xs) if live.any() else None)
-    mu, live, xs = cache["mu"], cache["live"], cache["xs"]
-    beta = np.zeros((x.shape[1], n_bins))
-    info = {}
-    if live.any():
-        zc = zt - z_mean
-        broad = zc.mean(axis=1, keepdims=True)
-        b, lam_b = _gcv_ridge(xs, broad, cache["dec"])
-        dev, lam_d = _gcv_ridge(xs, zc - broad, cache["dec"])
-        beta[live] = b + dev
-        info = {"ridge_broadband": lam_b, "ridge_per_bin": lam_d}
-    intercept = z_mean - mu @ beta
-    return np.vstack([intercept[None, :], beta]), info
-
-
-def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power:
-    E[ratio] = exp(2 (a(f) + x beta(f))).
-
-    Targets the *mean* power (the quantity that adds over independent sources and that the
-    held-out deviance judges), by iteratively reweighted least squares: for a log link and
-    Gamma variance the working weights are constant, so each step is the same GCV ridge
-    fit (`fit_term`) on the working response eta + (ratio - mu) / mu.  Starts from the
-    least-squares fit of log ratio.  Returns coefficients on the magnitude scale (half the
-    power exponent), (1 + R, F).
-    """
-    log_ratio = np.log(np.maximum(ratio, 1e-300))
-    cache: dict = {}
-    coef, ridge = fit_term(x, log_ratio, train, cache)
-    coef[0] += EULER_GAMMA  # E log of an exponential variable = log mean - gamma
-    for _ in range(GLM_ITERATIONS):
-        eta = coef[0][None, :] + (
-            np.clip(x @ coef[1:], -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN) if x.shape[1] else 0.0
-        )
-        mu = np.exp(eta)
-        work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
-        coef, ridge = fit_term(x, work, train, cache)
-    return coef / 2.0, ridge
-
-
 def fit_variant(
     table: BlockTable,
     train: np.ndarray,
@@ -547,104 +422,134 @@ def effect_shape(
     0 dB at their own mean so they show the shape, not the level.
     """
     beta = coef[1:].mean(axis=1)  # broadband part (R,)
+    shapes = _SHAPES.get(effect)
+    return shapes(table, scales, beta, names) if shapes else {}
+
+
+def _position_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain along each joint's position (a turn for a revolving joint), at its median moving
+    speed."""
     shapes: dict = {}
-    if effect == "position":
-        speed = np.abs(table.velocity) / table.vmax
-        for j, name in enumerate(table.joint_names):
-            if scales.periodic[j]:
-                grid, unit = np.linspace(0.0, 2 * np.pi, 73), "rad (mod 2pi)"
-            else:
-                grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
-            basis, labels = position_basis(grid, j, scales)
-            plain = np.array([names.index(f"{label}({name})") for label in labels])
-            moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
-            typical = (
-                float(np.median(speed[:, j][speed[:, j] > 0.05]))
-                if np.any(speed[:, j] > 0.05)
-                else 0.5
-            )
-            g = basis @ (beta[plain] + typical * beta[moving])
-            shapes[f"position:{name}"] = {
-                "x": [round(float(v), 5) for v in grid],
-                "unit": unit,
-                "gain_db": _db(g - g.mean()),
-                "note": f"at the joint's median moving speed fraction {typical:.2f}",
-            }
-    elif effect == "coupling":
-        # The gain over the two speeds with both joints moving the same way, and (for two
-        # joints that move either way) the difference to moving opposite ways.
-        grid = np.linspace(0.0, 1.0, 11)
-        idx = {n: k for k, n in enumerate(names)}
-        n_j = len(table.joint_names)
-        knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
-        for i in range(n_j):
-            for j in range(i + 1, n_j):
-                hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
-                gmat = np.zeros((len(grid), len(grid)))
-                for a in range(hi_.shape[1]):
-                    for b in range(hj.shape[1]):
-                        key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
-                        if key in idx:
-                            gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
-                signed = np.zeros_like(gmat)
-                ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
-                cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
-                hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
-                for a in range(hci.shape[1]):
-                    for b in range(hcj.shape[1]):
-                        key = f"dir{i}*dir{j}:c{a}*c{b}"
-                        if key in idx:
-                            signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
-                shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
-                    "speed_fraction": [round(float(v), 3) for v in grid],
-                    "gain_db": [_db(row) for row in gmat + signed],
-                    "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
-                    "unit": "speed fraction of each joint (same direction of travel)",
-                }
-    elif effect == "acceleration":
-        for j, name in enumerate(table.joint_names):
-            idx = {n: k for k, n in enumerate(names)}
-            grid = np.linspace(0.0, 20.0, 41)
-            g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
-            for h in ACC_HINGES:
-                g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
-            g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
-            shapes[f"acceleration:{name}"] = {
-                "x": [round(float(v), 3) for v in grid],
-                "unit": "|acceleration| / training 95th percentile",
-                "gain_db": _db(g),
-            }
-            if f"after_rev_15ms({name})" in idx:
-                tgrid = np.linspace(-0.3, 0.3, 61)
-                g = np.zeros_like(tgrid)
-                for tau in REVERSAL_TAUS_S:
-                    ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                    kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                    g = (
-                        g
-                        + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
-                        + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
-                    )
-                g = g + beta[
-                    idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]
-                ] * np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0)
-                shapes[f"reversal:{name}"] = {
-                    "x": [round(float(v), 3) for v in tgrid],
-                    "unit": "s from the joint's reversal",
-                    "gain_db": _db(g),
-                }
-    elif effect == "drift":
-        grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
-        h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
-        g = x @ beta
-        shapes["drift:elapsed_time"] = {
-            "x": [round(float(v), 2) for v in grid],
-            "unit": "s",
-            "gain_db": _db(g - g[0]),
-            "train_end_s": round(scales.t_end_s, 2),
+    speed = np.abs(table.velocity) / table.vmax
+    for j, name in enumerate(table.joint_names):
+        if scales.periodic[j]:
+            grid, unit = np.linspace(0.0, 2 * np.pi, 73), "rad (mod 2pi)"
+        else:
+            grid, unit = np.linspace(scales.pos_lo[j], scales.pos_hi[j], 41), "joint position"
+        basis, labels = position_basis(grid, j, scales)
+        plain = np.array([names.index(f"{label}({name})") for label in labels])
+        moving = np.array([names.index(f"{label}*|v|({name})") for label in labels])
+        typical = (
+            float(np.median(speed[:, j][speed[:, j] > 0.05])) if np.any(speed[:, j] > 0.05) else 0.5
+        )
+        g = basis @ (beta[plain] + typical * beta[moving])
+        shapes[f"position:{name}"] = {
+            "x": [round(float(v), 5) for v in grid],
+            "unit": unit,
+            "gain_db": _db(g - g.mean()),
+            "note": f"at the joint's median moving speed fraction {typical:.2f}",
         }
     return shapes
+
+
+def _coupling_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain over each pair of joints' speeds."""
+    shapes: dict = {}
+    # The gain over the two speeds with both joints moving the same way, and (for two
+    # joints that move either way) the difference to moving opposite ways.
+    grid = np.linspace(0.0, 1.0, 11)
+    idx = {n: k for k, n in enumerate(names)}
+    n_j = len(table.joint_names)
+    knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+    for i in range(n_j):
+        for j in range(i + 1, n_j):
+            hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
+            gmat = np.zeros((len(grid), len(grid)))
+            for a in range(hi_.shape[1]):
+                for b in range(hj.shape[1]):
+                    key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
+                    if key in idx:
+                        gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
+            signed = np.zeros_like(gmat)
+            ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
+            cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
+            hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
+            for a in range(hci.shape[1]):
+                for b in range(hcj.shape[1]):
+                    key = f"dir{i}*dir{j}:c{a}*c{b}"
+                    if key in idx:
+                        signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
+            shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
+                "speed_fraction": [round(float(v), 3) for v in grid],
+                "gain_db": [_db(row) for row in gmat + signed],
+                "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
+                "unit": "speed fraction of each joint (same direction of travel)",
+            }
+    return shapes
+
+
+def _acceleration_shapes(
+    table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]
+) -> dict:
+    """Gain along each joint's |acceleration|, and around its reversals."""
+    shapes: dict = {}
+    for j, name in enumerate(table.joint_names):
+        idx = {n: k for k, n in enumerate(names)}
+        grid = np.linspace(0.0, 20.0, 41)
+        g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
+        for h in ACC_HINGES:
+            g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
+        g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
+        shapes[f"acceleration:{name}"] = {
+            "x": [round(float(v), 3) for v in grid],
+            "unit": "|acceleration| / training 95th percentile",
+            "gain_db": _db(g),
+        }
+        if f"after_rev_15ms({name})" in idx:
+            tgrid = np.linspace(-0.3, 0.3, 61)
+            g = np.zeros_like(tgrid)
+            for tau in REVERSAL_TAUS_S:
+                ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+                g = (
+                    g
+                    + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
+                    + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
+                )
+            g = g + beta[idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]] * np.where(
+                tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0
+            )
+            shapes[f"reversal:{name}"] = {
+                "x": [round(float(v), 3) for v in tgrid],
+                "unit": "s from the joint's reversal",
+                "gain_db": _db(g),
+            }
+    return shapes
+
+
+def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
+    """Gain along the elapsed time (0 dB at the start of the training span)."""
+    shapes: dict = {}
+    grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
+    h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
+    x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
+    g = x @ beta
+    shapes["drift:elapsed_time"] = {
+        "x": [round(float(v), 2) for v in grid],
+        "unit": "s",
+        "gain_db": _db(g - g[0]),
+        "train_end_s": round(scales.t_end_s, 2),
+    }
+    return shapes
+
+
+#: effect -> its shape curves (effect_shape); the others (timing: a lag) have none
+_SHAPES = {
+    "position": _position_shapes,
+    "coupling": _coupling_shapes,
+    "acceleration": _acceleration_shapes,
+    "drift": _drift_shapes,
+}
 
 
 def drift_reach(x: np.ndarray, g: np.ndarray) -> tuple[float, float]:

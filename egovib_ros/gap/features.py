@@ -12,12 +12,15 @@ ground-truth topics are never read.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage, signal
 
-from egovib_ros.core.stream import FramerSettings
+from egovib_ros.bag import iter_recording
+from egovib_ros.bag.recording import duration_of
+from egovib_ros.core.stream import BlockFramer, FramerSettings, check_stream
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError, ModelFileError
@@ -239,7 +242,6 @@ class BlockSpectra:
     def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, keep: float = 1.0):
         """`keep` < 1: keep that share of the runs of THIN_RUN_BLOCKS consecutive blocks,
         spread evenly (a long bag thinned over its whole length, see `table_from_bag`)."""
-        from egovib_ros.core.stream import BlockFramer
 
         # the model's framing, including its sensor range: bad samples are missing
         settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
@@ -764,8 +766,6 @@ def table_from_bag(
     within `max_lag_s` of them (the largest lag the table can then be re-matched at), so
     that memory and time stop growing with the bag; `table.bad_input["kept_share"]` says
     the share. None: no budget."""
-    from egovib_ros.bag import iter_recording
-    from egovib_ros.bag.recording import duration_of
 
     source = str(path)
     keep = 1.0
@@ -813,9 +813,6 @@ def table_from_blocks(
     """The table from the framed blocks and the (usable, model-ordered) joint states.
     More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
     StreamError) before anything else is said about the data."""
-    import dataclasses
-
-    from egovib_ros.core.stream import check_stream
 
     magnitude, first_ns, last_ns, v_core = framing.finish()
     counts = dict(vars(framing.stats))

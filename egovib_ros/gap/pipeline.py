@@ -8,6 +8,7 @@ import json
 import time
 from pathlib import Path
 
+from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import BagError, GapDataError
 from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
 from egovib_ros.gap.effects import LAG_COARSE_S, LAG_RANGE_S
@@ -20,8 +21,10 @@ from egovib_ros.gap.features import (
     table_from_bag,
 )
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
-from egovib_ros.gap.simref import model_matches_simulator
+from egovib_ros.gap.simref import model_matches_simulator, simulator_reference_lag
+from egovib_ros.gap.writeback import write_back as do_write_back
 from egovib_ros.outputs import atomic_output, check_replaceable
+from egovib_ros.sim import SimParams
 
 
 def diagnose_recording(
@@ -62,11 +65,9 @@ def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path
     (0 for a foreign robot)."""
     if reference_lag is not None:
         return float(reference_lag)
-    from egovib_ros.gap.simref import model_matches_simulator, simulator_reference_lag
 
     if not model_matches_simulator(model):
         return 0.0
-    from egovib_ros.sim import SimParams
 
     return simulator_reference_lag(model, params=SimParams.load(sim_params))
 
@@ -93,7 +94,6 @@ def run_gap(
     `options`: how the diagnosis runs; its reference lag is replaced by `reference_lag`
     (or, when None, the lag measured on the simulator: `reference_lag_for`).
     """
-    from egovib_ros.core.noise_model import NoiseModel
 
     start = time.perf_counter()
     model = NoiseModel.load(model_path)
@@ -120,8 +120,6 @@ def run_gap(
         tmp.mkdir(parents=True)
         wb = None
         if write_back:
-            from egovib_ros.gap.writeback import write_back as do_write_back
-
             wb = do_write_back(diag, sim_params, tmp / "sim_updated.yaml")
         report = build_report(
             diag,

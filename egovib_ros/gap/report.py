@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.gap import metric
+from egovib_ros.gap.advice import advise, first_lines
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
 from egovib_ros.gap.effects import angle_joints, drift_reach
+from egovib_ros.viz import pyplot
 
 SCHEMA = "egovib.gap/1"
 #: Frequency bands used to name regions (Hz edges; bins are assigned by centre frequency).
@@ -205,7 +207,6 @@ def build_report(
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
-    from egovib_ros.gap.advice import advise
 
     return {
         "schema": SCHEMA,
@@ -384,26 +385,29 @@ def _blocks_text(blocks: dict) -> str:
 
 def render_markdown(report: dict) -> str:
     """report.md: the answer first (where, which, how far), then the evidence."""
+    lines = ["# Sim-to-real gap report", ""]
+    if "advice" in report:
+        lines += first_lines(report["advice"]) + [""]
+    lines += [_where_line(report), _which_line(report), _how_far_line(report), ""]
+    lines.append(" ".join(f"![{name}]({path})" for name, path in report["figures"].items()))
+    lines += _metric_lines(report) + _candidate_lines(report) + _effect_and_region_lines(report)
+    lines.append("")
+    return "\n".join(lines)
+
+
+def _where_line(report: dict) -> str:
     g = report["gap"]
-    v = report["verdict"]
-    cands = report["candidates"]
-    top = report["ranked_regions"][:3]
     freq = report["where"]["frequency_hz"]
     worst_bin = max(freq, key=lambda f: f["sim_as_is_db"]) if freq else None
     mean_bias = float(np.mean([f["bias_db_sim_as_is"] for f in freq])) if freq else 0.0
-    lines = ["# Sim-to-real gap report", ""]
-    if "advice" in report:
-        from egovib_ros.gap.advice import first_lines
-
-        lines += first_lines(report["advice"]) + [""]
     from_simulator = report["inputs"].get("model_kind", "simulator") == "simulator"
     model_name = "the simulator's noise model" if from_simulator else "the noise model"
-    lines.append(
+    return (
         f"**Where:** on held-out real data {model_name} is off by "
         f"**{g['sim_as_is']:.2f} dB** (floor {g['floor']:.2f} dB; overall the model is "
         f"{'too quiet' if mean_bias > 0 else 'too loud'} by "
         f"{abs(mean_bias):.1f} dB). Largest shares: "
-        + "; ".join(_describe_region(r) for r in top)
+        + "; ".join(_describe_region(r) for r in report["ranked_regions"][:3])
         + (
             f". Worst frequency bin {worst_bin['hz']:.0f} Hz ({worst_bin['sim_as_is_db']:.2f} dB)."
             if worst_bin
@@ -411,42 +415,50 @@ def render_markdown(report: dict) -> str:
         )
         + _strongest_covariate(report)
     )
+
+
+def _which_line(report: dict) -> str:
+    v = report["verdict"]
+    cands = report["candidates"]
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
-        lines.append(
+        return (
             f"**Which:** the unmodelled effect is **`{v['effect']}`** "
             f"(held-out reduction {c['reduction']:.3f} dB "
             f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, "
             f"confidence {v['confidence']:.2f}). "
             f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
         )
-    else:
-        best = cands[0] if cands else None
-        lines.append(
-            "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
-            "no candidate effect lowers the held-out gap significantly"
-            + (
-                f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, "
-                f"p = {best['p_value']:.2g})."
-                if best
-                else "."
-            )
+    best = cands[0] if cands else None
+    return (
+        "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
+        "no candidate effect lowers the held-out gap significantly"
+        + (
+            f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = {best['p_value']:.2g})."
+            if best
+            else "."
         )
-    lines.append(
+    )
+
+
+def _how_far_line(report: dict) -> str:
+    g = report["gap"]
+    return (
         f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> "
         f"{g['after_refit']:.2f} dB "
         "(velocity-only baseline fitted on this recording) -> "
-        f"**{g['after_effect']:.2f} dB** (refit + {v['effect']}), floor {g['floor']:.2f} dB. "
+        f"**{g['after_effect']:.2f} dB** (refit + {report['verdict']['effect']}), "
+        f"floor {g['floor']:.2f} dB. "
         f"Residual no-contact noise after denoising held-out data: "
         + ", ".join(
             f"{k} {val:.2f} dB" for k, val in report["residual_noise_db"].items() if k != "raw"
         )
         + " (relative to the raw signal)."
     )
-    figs = report["figures"]
-    lines.append("")
-    lines.append(" ".join(f"![{name}]({path})" for name, path in figs.items()))
-    lines += [
+
+
+def _metric_lines(report: dict) -> list[str]:
+    return [
         "",
         "## Metric",
         "",
@@ -455,6 +467,13 @@ def render_markdown(report: dict) -> str:
         "",
         f"Split: {report['split']['method']} (train {report['split']['train_s']:.1f} s, held out "
         f"{report['split']['heldout_s']:.1f} s). Blocks: {_blocks_text(report['blocks'])}.",
+    ]
+
+
+def _candidate_lines(report: dict) -> list[str]:
+    """The ranked candidates, their fitted shapes and the transients."""
+    cands = report["candidates"]
+    lines = [
         "",
         "## Candidates (held-out, ranked)",
         "",
@@ -485,11 +504,16 @@ def render_markdown(report: dict) -> str:
                 else "treated as contacts."
             ),
         ]
-    lines += [
+    return lines
+
+
+def _effect_and_region_lines(report: dict) -> list[str]:
+    """The baseline, the verdict rule, the added effect, the ranked regions, the covariates."""
+    lines = [
         "",
         f"Baseline: {report['baseline']['definition']}",
         "",
-        f"Verdict rule: {v['rule']}.",
+        f"Verdict rule: {report['verdict']['rule']}.",
         "",
         "## Added effect",
         "",
@@ -517,21 +541,27 @@ def render_markdown(report: dict) -> str:
                 f"- {name} [{cov['unit']}]: spread {cov['spread_db_after_refit']} dB; bins "
                 + ", ".join("-" if b is None else f"{b:+.2f}" for b in cov["bias_db_after_refit"])
             )
-    lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]:
     """Heat maps by frequency x velocity cell and on the velocity grid,
-    covariate profiles, candidates."""
-    import matplotlib
+    covariate profiles, candidates: {caption: file name in out_dir}."""
+    return {
+        "where: frequency x velocity cell": frequency_velocity_figure(
+            diag, out_dir / "where_frequency_velocity.png"
+        ),
+        "where: covariates": covariate_figure(report, out_dir / "where_covariates.png"),
+        "which: candidates": candidate_figure(report, out_dir / "which_candidates.png"),
+        "which: fitted effect shapes": shape_figure(report, out_dir / "which_effect_shapes.png"),
+    }
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
+def frequency_velocity_figure(diag: Diagnosis, path: Path) -> str:
+    """Held-out error of sim as-is per frequency bin x velocity cell (cells ordered by speed),
+    beside the band-summed bias on the velocity grid (two joints)."""
+    plt = pyplot()
     t = diag.table
-    figs = {}
-    # 1. frequency bin x velocity cell (sim as-is, held-out windows), cells ordered by speed.
     wv = _window_means(diag, t.velocity)
     cell, grid = velocity_cells(diag, wv)
     shape = tuple(len(g) for g in grid)
@@ -580,11 +610,14 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
         axes[1].set_title("band-summed bias per velocity cell, dB")
         fig.colorbar(im2, ax=axes[1])
     fig.tight_layout()
-    fig.savefig(out_dir / "where_frequency_velocity.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    figs["where: frequency x velocity cell"] = "where_frequency_velocity.png"
+    return path.name
 
-    # 2. covariate profiles after refit
+
+def covariate_figure(report: dict, path: Path) -> str:
+    """Held-out bias per covariate bin, sim as-is and after refit; the stream-lag scan."""
+    plt = pyplot()
     covs = report["where"]["covariates"]
     names = list(covs)
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.2))
@@ -609,11 +642,14 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     np.atleast_1d(axes)[0].set_ylabel("held-out bias [dB]")
     np.atleast_1d(axes)[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out_dir / "where_covariates.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    figs["where: covariates"] = "where_covariates.png"
+    return path.name
 
-    # 3. candidates
+
+def candidate_figure(report: dict, path: Path) -> str:
+    """Held-out gap of sim as-is, the baseline and every candidate; the verdict's in red."""
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.5))
     labels = ["sim as-is", "baseline"] + [c["effect"] for c in report["candidates"]]
     values = [report["gap"]["sim_as_is"], report["gap"]["after_refit"]] + [
@@ -628,20 +664,14 @@ def make_figures(diag: Diagnosis, report: dict, out_dir: Path) -> dict[str, str]
     ax.set_title(f"which effect: verdict {report['verdict']['effect']}")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out_dir / "which_candidates.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    figs["which: candidates"] = "which_candidates.png"
-    figs["which: fitted effect shapes"] = shape_figure(report, out_dir / "which_effect_shapes.png")
-    return figs
+    return path.name
 
 
 def shape_figure(report: dict, path: Path) -> str:
     """One panel per fitted shape of every candidate (broadband gain, dB); the verdict's in red."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     panels = [
         (c["effect"], name, sh)
         for c in report["candidates"]

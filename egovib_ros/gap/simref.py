@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from egovib_ros.gap.effects import fit_lag
 from egovib_ros.gap.features import build_table
+from egovib_ros.robot import default_profile
+from egovib_ros.sim import simulate_motion
 
 REFERENCE_DURATION_S = 60.0
 REFERENCE_MAX_SPEED = 0.8
@@ -20,7 +22,6 @@ def simulator_reference_lag(
     model, *, params=None, seed: int = 0, duration_s: float = REFERENCE_DURATION_S
 ) -> float:
     """Best-fitting lag (s) of an effect-free simulated random motion against `model`."""
-    from egovib_ros.sim import simulate_motion
 
     rec, _ = simulate_motion(
         duration_s=duration_s,
@@ -39,6 +40,5 @@ def simulator_reference_lag(
 
 def model_matches_simulator(model) -> bool:
     """The reference is meaningful only for a model of the simulated robot's joints."""
-    from egovib_ros.robot import default_profile
 
     return tuple(model.joint_names) == default_profile().joint_names

@@ -23,6 +23,7 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.diagnose import TRAIN_FRACTION, Diagnosis, time_split
 from egovib_ros.gap.effects import apply_effect_term, fit_scales, fit_variant
 from egovib_ros.gap.features import build_table
+from egovib_ros.sim import SimParams, format_effects, simulate_motion
 
 TRIAL_STRENGTH = {"position": 0.3, "coupling": 3.0, "acceleration": 5.0, "drift": 0.3}
 STRENGTH_LIMITS = {
@@ -42,8 +43,6 @@ def _simulated_fit(
     max_speed: float,
     model,
 ):
-    from egovib_ros.sim import simulate_motion
-
     rec, _ = simulate_motion(
         duration_s=duration_s,
         max_speed=max_speed,
@@ -90,7 +89,6 @@ def estimate_strength(
 
 def write_back(diag: Diagnosis, params_path: str | Path | None, out_path: str | Path) -> dict:
     """Write the updated sim config (YAML); return what was written and the held-out check."""
-    from egovib_ros.sim import SimParams, format_effects
 
     params = SimParams.load(params_path)
     effect = diag.verdict

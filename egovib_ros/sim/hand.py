@@ -388,7 +388,7 @@ class HandSimulator:
         n = int(n)
         if n < 0:
             raise ConfigError("step: n must be >= 0")
-        p, fx = self.params, self.effects
+        p = self.params
         i0 = self.index
         idx = np.arange(i0, i0 + n, dtype=np.int64)
         if commands is None:
@@ -406,53 +406,8 @@ class HandSimulator:
         t = idx / self.fs
 
         ego = np.zeros((n, 3))
-        forms = self.forms
         for j, joint in enumerate(self.joints):
-            src = joint.source(speed[:, j])
-            if "position" in fx and forms["position"] == "gain":
-                s = fx["position"]
-                gain = (
-                    (1.0 + s * np.cos(pos[:, 0] - p.position_phase_rad))
-                    if j == 0
-                    else (1.0 + s * (pos[:, 1] / GRIPPER_GAP_RANGE_M[1] - 0.5))
-                )
-                src = src * gain
-            if "position" in fx and forms["position"] == "closing_rub" and j == 1:
-                closing = (vel[:, 1] < 0) * frac[:, 1]
-                depth = np.clip(1.0 - pos[:, 1] / GRIPPER_GAP_RANGE_M[1], 0.0, 1.0)
-                src = src + fx["position"] * p.closing_rub_gain * closing * depth * (
-                    self.rng_rub.standard_normal(n)
-                )
-            if "acceleration" in fx:
-                dv = np.diff(np.concatenate([[prev_vel[j]], vel[:, j]])) * self.fs
-                a_ref = self.vmax[j] / p.controller_tau_s
-                if forms["acceleration"] == "broadband":
-                    rng = self.rng_acc_w if j == 0 else self.rng_acc_g
-                    src = src + fx["acceleration"] * p.acceleration_gain * (
-                        np.abs(dv) / a_ref
-                    ) * rng.standard_normal(n)
-                else:  # speeding up: d|v|/dt > 0
-                    up = np.maximum(np.sign(vel[:, j]) * dv, 0.0) / a_ref
-                    src = src * (1.0 + fx["acceleration"] * p.speeding_up_gain * up)
-            if "coupling" in fx and forms["coupling"] == "broadband" and j == 1:
-                src = src + fx["coupling"] * p.coupling_gain * frac[:, 0] * frac[
-                    :, 1
-                ] * self.rng_coupling.standard_normal(n)
-            if "coupling" in fx and forms["coupling"] == "signed" and j == 0:
-                same = np.sign(vel[:, 0]) * np.sign(vel[:, 1]) * frac[:, 0] * frac[:, 1]
-                src = src * np.exp(fx["coupling"] * p.signed_coupling_gain * same)
-            if "drift" in fx:
-                if forms["drift"] == "linear":
-                    src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
-                elif forms["drift"] == "warmup":
-                    # twice the strength: after warm-up the level has changed as much as the
-                    # linear form's after two drift periods
-                    src = src * (1.0 + 2.0 * fx["drift"] * (1.0 - np.exp(-t / p.warmup_tau_s)))
-                else:  # additive wear broadband
-                    rng = self.rng_wear_w if j == 0 else self.rng_wear_g
-                    src = src + fx["drift"] * p.wear_gain * frac[:, j] * (
-                        t / p.drift_period_s
-                    ) * rng.standard_normal(n)
+            src = self._with_effects(j, joint.source(speed[:, j]), vel, frac, pos, prev_vel[j], t)
             ego += joint.path(src)[:, None] * joint.direction
         ego += self.hum_period[idx % HUM_PERIOD][:, None] * self.hum_dir
         tilt = p.gravity_tilt_rad
@@ -483,3 +438,64 @@ class HandSimulator:
             true_velocity=vel,
             true_position=pos,
         )
+
+    def _with_effects(
+        self,
+        j: int,
+        src: np.ndarray,
+        vel: np.ndarray,
+        frac: np.ndarray,
+        pos: np.ndarray,
+        prev_vel_j: float,
+        t: np.ndarray,
+    ) -> np.ndarray:
+        """Joint j's vibration source (n,) with the effects in force: position, acceleration,
+        coupling and drift, each in its form (`forms`); random parts from each effect's own
+        generator, so that an effect added leaves the others' draws unchanged."""
+        p, fx, forms = self.params, self.effects, self.forms
+        n = len(src)
+        if "position" in fx and forms["position"] == "gain":
+            s = fx["position"]
+            gain = (
+                (1.0 + s * np.cos(pos[:, 0] - p.position_phase_rad))
+                if j == 0
+                else (1.0 + s * (pos[:, 1] / GRIPPER_GAP_RANGE_M[1] - 0.5))
+            )
+            src = src * gain
+        if "position" in fx and forms["position"] == "closing_rub" and j == 1:
+            closing = (vel[:, 1] < 0) * frac[:, 1]
+            depth = np.clip(1.0 - pos[:, 1] / GRIPPER_GAP_RANGE_M[1], 0.0, 1.0)
+            src = src + fx["position"] * p.closing_rub_gain * closing * depth * (
+                self.rng_rub.standard_normal(n)
+            )
+        if "acceleration" in fx:
+            dv = np.diff(np.concatenate([[prev_vel_j], vel[:, j]])) * self.fs
+            a_ref = self.vmax[j] / p.controller_tau_s
+            if forms["acceleration"] == "broadband":
+                rng = self.rng_acc_w if j == 0 else self.rng_acc_g
+                src = src + fx["acceleration"] * p.acceleration_gain * (
+                    np.abs(dv) / a_ref
+                ) * rng.standard_normal(n)
+            else:  # speeding up: d|v|/dt > 0
+                up = np.maximum(np.sign(vel[:, j]) * dv, 0.0) / a_ref
+                src = src * (1.0 + fx["acceleration"] * p.speeding_up_gain * up)
+        if "coupling" in fx and forms["coupling"] == "broadband" and j == 1:
+            src = src + fx["coupling"] * p.coupling_gain * frac[:, 0] * frac[
+                :, 1
+            ] * self.rng_coupling.standard_normal(n)
+        if "coupling" in fx and forms["coupling"] == "signed" and j == 0:
+            same = np.sign(vel[:, 0]) * np.sign(vel[:, 1]) * frac[:, 0] * frac[:, 1]
+            src = src * np.exp(fx["coupling"] * p.signed_coupling_gain * same)
+        if "drift" in fx:
+            if forms["drift"] == "linear":
+                src = src * (1.0 + fx["drift"] * t / p.drift_period_s)
+            elif forms["drift"] == "warmup":
+                # twice the strength: after warm-up the level has changed as much as the
+                # linear form's after two drift periods
+                src = src * (1.0 + 2.0 * fx["drift"] * (1.0 - np.exp(-t / p.warmup_tau_s)))
+            else:  # additive wear broadband
+                rng = self.rng_wear_w if j == 0 else self.rng_wear_g
+                src = src + fx["drift"] * p.wear_gain * frac[:, j] * (
+                    t / p.drift_period_s
+                ) * rng.standard_normal(n)
+        return src

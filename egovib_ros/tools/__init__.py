@@ -1,1 +1,0 @@
-"""Tools around the package: the live demo, benchmarks, node-process orchestration."""

@@ -1,0 +1,44 @@
+"""`egovib live-bench`: does the denoiser node keep up live (tools/live_bench.py)."""
+
+from __future__ import annotations
+
+from egovib_research.tools import live_bench as tool
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "live-bench",
+        help="does the denoiser node keep up live (drops, CPU, latency)",
+        description=tool.__doc__.split("\n\n")[0],
+    )
+    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--warmup", type=float, default=5.0)
+    parser.add_argument("--model", help="noise model (default: a quick offline calibration)")
+    parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
+    parser.add_argument(
+        "--method",
+        choices=("paper", "cancel", "hybrid"),
+        default="paper",
+        help="the denoiser's method (cancel, hybrid: the default model is fitted for them)",
+    )
+    parser.add_argument(
+        "--publish-period",
+        type=float,
+        default=0.002,
+        help="sim_hand's batching period (s): part of the measured latency",
+    )
+    parser.add_argument(
+        "--contacts",
+        action="store_true",
+        help="also run contact_detector on the denoised and on the raw stream, sim_hand "
+        "tapping: event F1 and onset-to-event-message latency",
+    )
+    parser.add_argument("--tap-rate", type=float, default=1.0, help="taps per second (--contacts)")
+    parser.add_argument(
+        "--calibration-seconds",
+        type=float,
+        default=30.0,
+        help="no-contact motion simulated for the detectors' thresholds (--contacts)",
+    )
+    parser.set_defaults(func=tool.run)
