@@ -941,18 +941,21 @@ def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 @numba.njit(cache=True)
 def _fir(taps, history):
     """(n, C) outputs of the FIR `taps` over `history` (its N - 1 samples before, then the
-    n new ones), each a sum in the same order whatever the chunking (so streaming equals
-    batch to the bit, which scipy's lfilter with carried state does not give)."""
+    n new ones), each a sum over the taps in the same order whatever the chunking (so
+    streaming equals batch to the bit, which scipy's lfilter with carried state does not
+    give); the loop over samples innermost, on contiguous channels, so it vectorises."""
     N = len(taps)
     n = history.shape[0] - (N - 1)
-    out = np.zeros((n, history.shape[1]))
-    for i in range(n):
-        for c in range(history.shape[1]):
-            acc = 0.0
-            for k in range(N):
-                acc += taps[k] * history[i + N - 1 - k, c]
-            out[i, c] = acc
-    return out
+    C = history.shape[1]
+    rows = np.ascontiguousarray(history.T)
+    out = np.zeros((C, n))
+    for c in range(C):
+        for k in range(N):
+            t = taps[k]
+            off = N - 1 - k
+            for i in range(n):
+                out[c, i] += t * rows[c, i + off]
+    return out.T.copy()
 
 
 class DropInSplit:
@@ -996,9 +999,12 @@ class DropInSplit:
             self._raw = np.tile(np.asarray(raw[:1], float), size)
             self._cleaned = np.tile(np.asarray(cleaned[:1], float), size)
         self._last = (np.asarray(raw[-1:], float), np.asarray(cleaned[-1:], float))
-        low, _, self._raw = self._low(self._raw, raw)
-        cleaned_low, late, self._cleaned = self._low(self._cleaned, cleaned)
-        return low, late - cleaned_low
+        # both streams through one FIR call (channels side by side)
+        both = np.concatenate([self._raw, self._cleaned], axis=1)
+        lows, late, both = self._low(both, np.concatenate([raw, cleaned], axis=1))
+        c = self.n_channels
+        self._raw, self._cleaned = both[:, :c], both[:, c:]
+        return lows[:, :c], late[:, c:] - lows[:, c:]
 
 
 def dropin_lookahead_ms(gain: GainSettings) -> float:
