@@ -120,20 +120,21 @@ def test_the_split_takes_as_long_as_the_recordings_noise_near_the_band_asks():
     inside = ((freqs > 200) & (freqs < 700)).astype(float)
     near_edge = inside + ((freqs > 120) & (freqs < 170))
     args = dict(sample_rate_hz=fs, band_hz=band, order=4, freqs_hz=freqs)
-    mid = filters.split_delay_s(power=inside, **args)
-    edge = filters.split_delay_s(power=near_edge, **args)
-    assert 0 < mid < edge <= filters.SPLIT_MAX_DELAY_S
+    h = signal.sosfreqz(filters.design_bandpass(sample_rate_hz=fs, band_hz=band, order=4),
+                        worN=freqs, fs=fs)[1]  # fmt: skip
 
-    # its own criterion holds at the delay it gives, and failed one sample earlier
-    def leak_db(delay_s, power):
-        taps = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=round(delay_s * fs))
-        h = signal.sosfreqz(filters.design_bandpass(sample_rate_hz=fs, band_hz=band, order=4),
-                            worN=freqs, fs=fs)[1]  # fmt: skip
+    def leak_db(taps, power):
         lp = np.abs(signal.freqz(taps, worN=freqs, fs=fs)[1])
         return 10 * np.log10((power * abs(h) ** 2 * lp**2).sum() / (power * abs(h) ** 2).sum())
 
-    assert leak_db(edge, near_edge) <= filters.SPLIT_LEAK_DB
-    assert leak_db(edge - 1 / fs, near_edge) > filters.SPLIT_LEAK_DB
+    mid, edge = (filters.split_for(power=p, **args) for p in (inside, near_edge))
+    assert 3 <= len(mid) < len(edge) <= 2 * filters.SPLIT_MAX_DELAY_S * fs + 1
+    for taps, power in ((mid, inside), (edge, near_edge)):
+        assert np.allclose(taps, taps[::-1]) and taps.sum() == pytest.approx(1.0, abs=1e-12)
+        assert leak_db(taps, power) <= filters.SPLIT_LEAK_DB  # its own criterion holds
+    # fitted to the noise, it stops more of it than the plain design of the same length
+    plain = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=(len(edge) - 1) // 2)
+    assert leak_db(edge, near_edge) < leak_db(plain, near_edge) - 3.0
 
 
 def test_the_lines_highpass_is_undone_exactly_at_every_line():

@@ -225,10 +225,11 @@ def test_dropin_output_keeps_gravity_and_motion_and_removes_the_motors(model, me
     low = signal.butter(8, 10.0, fs=FS, output="sos")  # steep: the removal is 60 Hz and up
     settled = slice(1000, n - 1000)
     below = signal.sosfiltfilt(low, dropin - raw, axis=0)[settled]
-    # gravity (9.81 on z) and the motion (0.8) pass: what moves below 10 Hz is the removal's
-    # own slow part: hybrid's split keeps it out (0.1 % of gravity); cancel, with no delay
-    # to split in, subtracts its lines' own slow part too (0.13 %; the paper's drop-in: 0.021)
-    assert np.abs(below).max() < (0.015 if method == "cancel" else 0.01)
+    # gravity (9.81 on z) passes exactly and the motion (0.8 at 2 Hz) to 1.5 %: what moves
+    # below 10 Hz is the removal's own slow part: hybrid's split keeps most of it out (its
+    # FIR, as short as its look-ahead, passes the motion to ~1 %); cancel, with no delay to
+    # split in, subtracts its lines' own slow part too (the paper's drop-in: 0.021)
+    assert np.abs(below).max() < (0.015 if method == "cancel" else 0.012)
     quiet = np.zeros(n, bool)
     quiet[settled] = True
 

@@ -208,10 +208,13 @@ SPLIT_STOP_FRACTION = 0.9
 #: The split may pass at most this share (dB) of the band-passed noise of the calibration
 #: recording into its untouched low part: so little that the drop-in output removes as much
 #: as the band-passed one (measured: within 1 dB where the methods remove 30-37 dB).
-SPLIT_LEAK_DB = -40.0
+SPLIT_LEAK_DB = -45.0
 #: ... with the shortest delay that reaches it, at most this (a band low against the sample
-#: rate needs a long filter to stop it): 6 ms for the PR2 hand's band, 11 ms for the flight's.
+#: rate needs a long filter to stop it): 5.7 ms for the PR2 hand's band, 12 ms for the flight's.
 SPLIT_MAX_DELAY_S = 0.025
+#: Weight of the split's passband (gravity, motion: exact at 0 Hz in any case) against the
+#: band-passed noise it must stop, in the design fitted to a recording.
+SPLIT_PASS_WEIGHT = 1e-3
 #: The lines are tracked in the unfiltered signal after a 4th-order high-pass at this share of
 #: the band's low edge: gravity and motion do not reach their trackers, and the high-pass's
 #: phase at a line (undone exactly: `highpass_inverse`) barely changes over its tracking width.
@@ -222,17 +225,21 @@ def _split_response(taps: np.ndarray, freqs: np.ndarray, sample_rate_hz: float) 
     return np.abs(signal.freqz(taps, 1, worN=freqs, fs=sample_rate_hz)[1])
 
 
-@functools.lru_cache(maxsize=64)
-def _split_taps(sample_rate_hz: float, low_edge_hz: float, delay: int) -> np.ndarray:
-    freqs = np.linspace(0.0, sample_rate_hz / 2.0, 2048)
+def _symmetric_lowpass(
+    sample_rate_hz: float, low_edge_hz: float, delay: int, freqs: np.ndarray, stop_weight
+) -> np.ndarray:
+    """(2 delay + 1,) symmetric taps, unit gain at 0 Hz, least squares: 1 over the passband
+    (SPLIT_PASS_FRACTION of the band's low edge), 0 elsewhere weighted by `stop_weight`."""
     omega = 2.0 * np.pi * freqs / sample_rate_hz
     # symmetric taps h[delay +- k] = a_k: response e^{-j w delay} (a_0 + 2 sum_k a_k cos(w k))
     basis = np.cos(np.outer(omega, np.arange(delay + 1)))
     basis[:, 1:] *= 2.0
-    stop = freqs >= SPLIT_STOP_FRACTION * low_edge_hz
     passed = freqs <= SPLIT_PASS_FRACTION * low_edge_hz
-    rows = np.vstack([basis[stop], basis[passed]])
-    target = np.r_[np.zeros(stop.sum()), np.ones(passed.sum())]
+    pass_weight = SPLIT_PASS_WEIGHT if stop_weight is not None else 1.0
+    if stop_weight is None:  # the band and everything from its edge's skirt up, alike
+        stop_weight = (freqs >= SPLIT_STOP_FRACTION * low_edge_hz).astype(float)
+    rows = np.vstack([np.sqrt(stop_weight)[:, None] * basis, pass_weight * basis[passed]])
+    target = np.r_[np.zeros(len(freqs)), pass_weight * np.ones(passed.sum())]
     # least squares with the response at 0 Hz exactly 1: gravity passes as it is
     dc = basis[0]
     system = np.block([[rows.T @ rows, dc[:, None]], [dc[None, :], np.zeros((1, 1))]])
@@ -242,38 +249,49 @@ def _split_taps(sample_rate_hz: float, low_edge_hz: float, delay: int) -> np.nda
     return taps
 
 
+@functools.lru_cache(maxsize=64)
+def _split_taps(sample_rate_hz: float, low_edge_hz: float, delay: int) -> np.ndarray:
+    freqs = np.linspace(0.0, sample_rate_hz / 2.0, 2048)
+    return _symmetric_lowpass(sample_rate_hz, low_edge_hz, delay, freqs, None)
+
+
 def split_taps(*, sample_rate_hz: float, band_hz: tuple[float, float], delay: int) -> np.ndarray:
     """(2 delay + 1,) symmetric taps of the drop-in split's linear-phase low-pass (unit gain
-    at 0 Hz; passes what lies far below the band, stops the band); delay 0: [1.0]."""
+    at 0 Hz; passes what lies far below the band, stops the band); delay 0: [1.0]. The
+    design for no recording in particular: a model fitted one to its calibration recording
+    (`split_for`) and carries it."""
     if delay <= 0:
         return np.ones(1)
     return _split_taps(float(sample_rate_hz), float(band_hz[0]), int(delay))
 
 
-def split_delay_s(
+def split_for(
     *,
     sample_rate_hz: float,
     band_hz: tuple[float, float],
     order: int,
     freqs_hz: np.ndarray,
     power: np.ndarray,
-) -> float:
-    """The shortest split (seconds, whole samples) that passes at most SPLIT_LEAK_DB of the
-    band-passed power into its low part, for a recording of power spectrum `power` at
-    `freqs_hz` (its noise close below or inside the band's low edge decides), at most
-    SPLIT_MAX_DELAY_S."""
+) -> np.ndarray:
+    """The drop-in split for a recording of power spectrum `power` at `freqs_hz`: the
+    shortest (at most SPLIT_MAX_DELAY_S) whose taps, fitted to stop that recording's
+    band-passed noise (least squares weighted by it: 5-6 dB less leak than the plain design
+    of the same length), pass at most SPLIT_LEAK_DB of it into the untouched low part."""
     freqs_hz = np.asarray(freqs_hz, float)
     sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
     response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
     band = np.asarray(power, float) * np.abs(response) ** 2
     total = max(float(band.sum()), 1e-300)
+    # what the split must stop: the band-passed noise from half the band's edge up
+    weight = np.where(freqs_hz >= 0.5 * band_hz[0], band / band.max(), 0.0) + 1e-6
     longest = max(1, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
+    taps = np.ones(1)
     for delay in range(1, longest + 1):
-        taps = split_taps(sample_rate_hz=sample_rate_hz, band_hz=band_hz, delay=delay)
+        taps = _symmetric_lowpass(sample_rate_hz, band_hz[0], delay, freqs_hz, weight)
         leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
         if 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB:
-            return delay / sample_rate_hz
-    return longest / sample_rate_hz
+            break
+    return taps
 
 
 def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:

@@ -45,7 +45,7 @@ from egovib_ros.core.filters import (
     CarriedFilter,
     highpass_inverse,
     lines_highpass,
-    split_delay_s,
+    split_for,
     split_taps,
 )
 from egovib_ros.core.harmonic import (
@@ -216,6 +216,7 @@ class MethodCalibration:
     bias: np.ndarray  # (3, B)
     open_alpha: np.ndarray  # (3,) per axis
     guard_ref: np.ndarray | None = None  # (3,) per axis; None: calibrated before the guard
+    split_taps: np.ndarray | None = None  # the drop-in output's split fitted to the recording
     info: dict = dataclasses.field(default_factory=dict)
 
     def to_extras(self) -> dict[str, np.ndarray]:
@@ -237,6 +238,8 @@ class MethodCalibration:
         )
         if self.guard_ref is not None:
             extras[GAIN_PREFIX + "guard_ref"] = self.guard_ref
+        if self.split_taps is not None:
+            extras[GAIN_PREFIX + "split_taps"] = np.asarray(self.split_taps, float)
         return extras
 
     @classmethod
@@ -292,7 +295,17 @@ class MethodCalibration:
             guard_ref = np.asarray(guard_ref, float)
             if guard_ref.shape != (len(AXES),) or not np.all(np.isfinite(guard_ref)):
                 raise ModelFileError(f"{where}: gain guard_ref must hold 3 finite values")
-        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha, guard_ref)
+        split = extras.get(GAIN_PREFIX + "split_taps")
+        if split is not None:
+            split = np.asarray(split, float)
+            if (
+                split.ndim != 1
+                or len(split) % 2 != 1
+                or not np.all(np.isfinite(split))
+                or not np.allclose(split, split[::-1])
+            ):
+                raise ModelFileError(f"{where}: gain split_taps must be symmetric, odd, finite")
+        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha, guard_ref, split)
 
 
 @numba.njit(cache=True)
@@ -490,28 +503,26 @@ def _band_passed_calibration(
     return stamps, values, velocity
 
 
-def _split_ms(model: NoiseModel, accel: np.ndarray) -> float:
-    """The look-ahead the drop-in output's split needs for `model`: the time to tell the
-    band's low edge from what lies below it, as much as this robot's noise there asks
-    (core.filters.split_delay_s on the calibration recording's spectrum; 5.7 ms for the PR2
-    hand, 11 ms for the quadcopter), at least the gain's default look-ahead."""
+def _split(model: NoiseModel, accel: np.ndarray) -> np.ndarray | None:
+    """The drop-in output's split for `model`, fitted to the calibration recording's
+    spectrum near the band (core.filters.split_for): its taps (their delay is the look-ahead
+    the drop-in output needs: 5.7 ms for the simulated PR2 hand, 12 ms for the flight);
+    None for a recording too short to tell."""
     values = np.asarray(accel, float)
     values = values[np.all(np.isfinite(values), axis=1)]
     fs = model.sample_rate_hz
-    default = GainSettings().lookahead_ms
     if len(values) < 8 * model.block_length:
-        return default
+        return None
     freqs, power = signal.welch(
         values - values.mean(axis=0), fs, nperseg=min(len(values), 1 << int(np.log2(fs))), axis=0
     )
-    split = split_delay_s(
+    return split_for(
         sample_rate_hz=fs,
         band_hz=model.band_hz,
         order=model.band_order,
         freqs_hz=freqs,
         power=power.sum(axis=1),
     )
-    return max(default, round(1e3 * split, 3))
 
 
 def calibrate_methods(
@@ -539,8 +550,11 @@ def calibrate_methods(
     `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
     instead of fitting one."""
     canceller = canceller or CancellerSettings()
-    if gain is None:
-        gain = GainSettings(split_ms=_split_ms(model, accel))
+    split = _split(model, accel)
+    if gain is None and split is not None:
+        delay_ms = 1e3 * ((len(split) - 1) // 2) / model.sample_rate_hz
+        gain = GainSettings(split_ms=max(GainSettings().lookahead_ms, round(delay_ms, 3)))
+    gain = gain or GainSettings()
     if model.profile is None:
         raise ConfigError("calibrate_methods: the model carries no robot profile")
     fs = model.sample_rate_hz
@@ -628,7 +642,7 @@ def calibrate_methods(
         if len(levels):
             guard_ref[c] = float(np.quantile(levels, gain.guard_quantile)) - math.log(open_alpha[c])
     calibration = MethodCalibration(
-        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha, guard_ref
+        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha, guard_ref, split
     )
     info = {
         "harmonic": {**harmonic.describe(), "fit": fit_info},
@@ -800,9 +814,10 @@ class SampleMethodDenoiser(FramedDenoiser):
         # ... less what the gains take from the same bands of it (split at the look-ahead).
         self._split = None
         if output == "dropin" and self._gain is not None:
-            self._split = DropInSplit(
-                split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.lookahead)
-            )
+            taps = cal.split_taps  # fitted to the robot's calibration recording
+            if taps is None or len(taps) != 2 * self.lookahead + 1:  # another look-ahead
+                taps = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.lookahead)
+            self._split = DropInSplit(taps)
         self.delay = self.lookahead
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
