@@ -19,8 +19,9 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--method",
         choices=("paper", "cancel", "hybrid"),
-        default="paper",
-        help="the denoiser's method (cancel, hybrid: the default model is fitted for them)",
+        default=None,
+        help="the denoiser's method (default: the model's, hybrid; the bench's own model is "
+        "calibrated for every method)",
     )
     parser.add_argument(
         "--publish-period",

@@ -52,7 +52,7 @@ from egovib_research.tools.watcher import Watcher
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.core.methods import calibrate_methods, make_denoiser
+from egovib_ros.core.methods import calibrate_methods, make_denoiser, resolve_method
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.contacts import TOLERANCE_S
 from egovib_ros.evaluation.detection import match_events
@@ -77,15 +77,14 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
-def bench_model(path: Path, *, method: str = "paper") -> Path:
-    """A noise model from a short offline superposition sweep (the bench needs any valid model),
-    with what `cancel` and `hybrid` need fitted on the same sweep when `method` is one of them."""
+def bench_model(path: Path) -> Path:
+    """A noise model from a short offline superposition sweep, as `egovib calibrate` makes it
+    (every method: the denoiser's default, hybrid, runs on it)."""
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=5)
     arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
     model, _ = calibrate_arrays(*arrays, sweep="superposition", source="live_bench sweep")
-    if method != "paper":
-        model, _ = calibrate_methods(model, *arrays, source="live_bench sweep")
+    model, _ = calibrate_methods(model, *arrays, source="live_bench sweep")
     model.save(path)
     return path
 
@@ -95,7 +94,7 @@ def algorithmic_latency_ms(
     *,
     publish_period: float = 0.002,
     seconds: float = 10.0,
-    method: str = "paper",
+    method: str | None = None,
     channels: str = "per_axis",
 ) -> dict:
     """The latency the pipeline would have with zero transport and scheduling cost.
@@ -104,12 +103,13 @@ def algorithmic_latency_ms(
     processes every hop of samples, and input sample k is output with the block that ends
     at input sample e(k) = floor((k + L - H) / H) * H + H - 1 (the first block starts with
     L - H samples of padding); `cancel` and `hybrid` output sample k once sample
-    e(k) = k + d is in (d: the method's look-ahead, and for their drop-in output, the default
-    per axis, the band-pass inverse's delay). Latency of sample k = stamp of the last
+    e(k) = k + d is in (d: the method's look-ahead; for hybrid's drop-in output, the default
+    per axis, the look-ahead its split needs). Latency of sample k = stamp of the last
     sample of the batch that carries e(k) - stamp of k.
     """
 
     model = NoiseModel.load(model_path)
+    method = resolve_method(model, method)
     rate, length, hop = model.sample_rate_hz, model.block_length, model.hop
     per_batch = max(1, int(round(publish_period * rate)))
     k = np.arange(int(seconds * rate))
@@ -150,12 +150,13 @@ def run_bench(
     warmup: float = 5.0,
     model: Path | None = None,
     channels: str = "per_axis",
-    method: str = "paper",
+    method: str | None = None,
     publish_period: float = 0.002,
 ) -> dict:
     """Run sim_hand + denoiser (`method`) for `seconds` (after `warmup`); return the figures."""
     workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
-    model = model or bench_model(workdir / "model.npz", method=method)
+    model = model or bench_model(workdir / "model.npz")
+    method = resolve_method(NoiseModel.load(model), method)  # none given: the model's default
     group = NodeGroup(workdir / "logs")
     group.use_domain_here()
     watcher = None
