@@ -544,8 +544,15 @@ def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_p
         )
         for key, (params, _) in cases.items()
     }
+    try:
+        outputs = {key: run.communicate(timeout=120) for key, run in runs.items()}
+    finally:  # a node that did not stop in time must not outlive the test
+        for run in runs.values():
+            if run.poll() is None:
+                run.kill()
+                run.wait()
     for key, run in runs.items():
-        stdout, stderr = run.communicate(timeout=60)
+        stdout, stderr = outputs[key]
         assert run.returncode == 2, (key, stdout + stderr)
         errors = [line for line in stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and key in errors[0] and cases[key][1] in errors[0], stderr
