@@ -9,10 +9,10 @@ sqlite3), with one JointState per joint (all of one stamp), and with 1 % of the 
 stamps swapped with their neighbour. Each bag goes through `egovib calibrate`, `egovib
 denoise` and `egovib evaluate`, which must give the answer they give on the reference bag
 (the same messages, written by the project in time order), and `denoise` must equal
-`denoise_batch` on the bag's arrays, one message per valid raw sample. `egovib gap` reads
-every layout through its streamed reader, whose block table (all the diagnosis sees of a
-bag) must equal the reference's; the whole command, diagnosis and report, runs on two
-layouts (topics one after the other; log times on another clock).
+`denoise_batch_method` (the default method) on the bag's arrays, one message per valid raw
+sample. `egovib gap` reads every layout through its streamed reader, whose block table (all
+the diagnosis sees of a bag) must equal the reference's; the whole command, diagnosis and
+report, runs on two layouts (topics one after the other; log times on another clock).
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from bagcorpus import LAYOUTS, Layout
 
 from egovib_ros import cli
 from egovib_ros.bag import read_recording, write_recording
-from egovib_ros.core import NoiseModel, calibrate_arrays, denoise_batch
+from egovib_ros.core import NoiseModel, calibrate_arrays
+from egovib_ros.core.methods import denoise_batch_method
 from egovib_ros.gap.features import table_from_bag
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
@@ -140,7 +141,7 @@ def test_every_command_gives_the_same_answer_whatever_the_file_layout(
     # denoise: one message per valid raw sample, stamped like it; equal to the batch core on
     # the bag's own arrays, and to the reference bag's output
     bag = read_recording(corpus / layout.name, ground_truth=False, denoised=False)
-    stamps, values, stats = denoise_batch(
+    stamps, values, stats = denoise_batch_method(
         bag.sensor_stamps_ns,
         bag.sensor,
         bag.joint_stamps_ns,
@@ -200,7 +201,7 @@ def test_a_250_hz_gyro_bag_of_alternating_messages_denoises_per_axis(tmp_path):
     )  # fmt: skip
     assert code == 0, err
     out = read_recording(tmp_path / "out", profile=p)
-    stamps, values, _ = denoise_batch(
+    stamps, values, _ = denoise_batch_method(
         rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity, model
     )
     np.testing.assert_array_equal(out.denoised_stamps_ns, stamps)

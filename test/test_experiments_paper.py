@@ -37,6 +37,7 @@ def test_results_cover_both_experiments_all_methods_and_speeds(results):
             for field in REPORT_FIELDS:
                 assert field in report
             assert set(report["methods"]) == {
+                "default",
                 "bandpass",
                 "boll",
                 "paper",
@@ -58,7 +59,7 @@ def test_results_cover_both_experiments_all_methods_and_speeds(results):
 
 def test_table_and_json_render(results):
     table = experiments.results_markdown(results)
-    assert table.count("| a | 50% |") == 7 + 2 and "Acceptance criteria" in table
+    assert table.count("| a | 50% |") == 8 + 2 and "Acceptance criteria" in table
     data = json.loads(json.dumps(experiments.results_json(results)))
     assert set(data["speeds"]) == {"0.25", "0.5"}
 

@@ -259,6 +259,9 @@ def _model_variant(source: Path, path: Path, *, drop: tuple[str, ...] = (), **fi
             for old, new in zip(("r_wrist_roll_joint", "r_gripper_joint"), value):
                 text = text.replace(old, str(new))
             arrays["profile"] = np.array(text)
+            for name in arrays:  # and in the methods' maps (harmonic.joint_names, ...)
+                if name != key and name.endswith(".joint_names"):
+                    arrays[name] = value
         arrays[key] = value
     with open(path, "wb") as fh:
         np.savez_compressed(fh, **arrays)
@@ -1521,7 +1524,7 @@ def test_ctrl_c_during_start_up_one_line_exit_130(lab, bad_second, tmp_path, del
 _SWALLOWING = """
 import os, signal, sys
 from egovib_ros.core import stream
-append, sent = stream.BlockFramer._append, []
+append, sent = stream._Framer.push_sensor, []
 def swallowing_append(self, *args):
     if not sent:
         sent.append(True)
@@ -1531,7 +1534,7 @@ def swallowing_append(self, *args):
         except:  # noqa: E722
             pass
     return append(self, *args)
-stream.BlockFramer._append = swallowing_append
+stream._Framer.push_sensor = swallowing_append
 from egovib_ros.cli import main
 sys.exit(main())
 """
@@ -1569,7 +1572,7 @@ _BUG_IN_FRAMER = """
 from egovib_ros.core import stream
 def failing_append(self, *args):  # the output bag is staged and being written by now
     raise ValueError("injected failure\\nwith a second line")
-stream.BlockFramer._append = failing_append
+stream._Framer.push_sensor = failing_append
 """
 _BUG_IN_SAVE = """
 from egovib_ros.core import NoiseModel
@@ -1636,7 +1639,7 @@ def test_internal_error_in_one_of_several_bags_is_still_a_bug(lab, tmp_path, sta
         shutil.copytree(lab["motion"], tmp_path / "in" / name)
     patch = _BUG_IN_FRAMER.replace(
         "def failing_append(self, *args):",
-        "append = stream.BlockFramer._append\ndef failing_append(self, *args):\n"
+        "append = stream._Framer.push_sensor\ndef failing_append(self, *args):\n"
         "    if 'in/a' not in self.s.source:\n        return append(self, *args)",
     )
     proc = subprocess.run(

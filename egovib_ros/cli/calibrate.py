@@ -137,6 +137,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     first = expand_bags(args.bags, outputs_per_bag=False)[0][0]
     model, fitted = calibrate_bag_methods(first, model, joint_lag_s=args.joint_lag, methods=methods)
+    with atomic_output(args.out) as tmp:  # said only once written: a failed save is one line
+        model.save(tmp)
     on = "" if len(results) == 1 else f" (fitted on {first})"
     if fitted["methods"] is not None:
         print(f"methods cancel and hybrid{on}: {describe_methods(fitted['methods'])}",
@@ -146,8 +148,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
         f"{describe_thresholds(fitted['thresholds'])}",
         file=sys.stderr,
     )
-    with atomic_output(args.out) as tmp:
-        model.save(tmp)
     for line in coverage_lines(model):
         print(line, file=sys.stderr)
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)

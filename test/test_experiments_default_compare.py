@@ -1,0 +1,48 @@
+"""experiments.default_compare: what the default commands give on the shipped real flight."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from egovib_research.experiments import default_compare
+
+
+@pytest.fixture(scope="module")
+def flight_result():
+    cases = default_compare.flight_cases(event_sets=1)
+    return {"cases": {case.name: default_compare.score(case) for case in cases}}
+
+
+def test_the_default_is_hybrid_and_removes_more_than_the_flight_controller(flight_result):
+    for name, case in flight_result["cases"].items():
+        figures = case["figures"]
+        assert case["default_method"] == "hybrid", name
+        default = figures["hybrid/dropin"]
+        assert default["noise_reduction_db"] > figures["firmware"]["noise_reduction_db"], name
+        assert default["noise_reduction_db"] > figures["paper/dropin"]["noise_reduction_db"], name
+        # the drop-in output, band-passed by its reader, within 1.5 dB of the band-passed one
+        bandpassed = figures["hybrid/bandpassed"]["noise_reduction_db"]
+        assert abs(default["noise_reduction_db"] - bandpassed) < 1.5, name
+        assert case["delay_ms"]["hybrid"] < 20.0, name
+
+
+def test_the_default_keeps_the_events_on_the_primary_split(flight_result):
+    figures = flight_result["cases"]["real flight, primary split"]["figures"]
+    assert figures["hybrid/dropin"]["f1"] >= 0.85
+    assert figures["hybrid/dropin"]["f1"] > figures["paper/dropin"]["f1"]
+    assert figures["hybrid/dropin"]["tap_retention"] >= 0.8
+
+
+def test_markdown_and_main_write_both_files(flight_result, tmp_path, monkeypatch):
+    result = dict(flight_result, command="python -m x", runtime_s=1.0)
+    text = default_compare.markdown(result)
+    assert "**the default** (hybrid)" in text
+    # per split: default, paper, no denoising, firmware; then its drop-in table row
+    assert text.count("real flight") == 2 * 5
+    monkeypatch.setattr(default_compare, "pr2_cases", lambda seconds: [])
+    assert default_compare.main(["--out", str(tmp_path), "--event-sets", "1"]) == 0
+    stored = json.loads((tmp_path / "default_compare.json").read_text())
+    assert set(stored["cases"]) == set(flight_result["cases"])
+    assert (tmp_path / "default_compare.md").read_text().startswith("# What a user gets")
