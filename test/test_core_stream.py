@@ -23,7 +23,7 @@ from egovib_ros.core.stream import (
     check_stream,
     feed,
     frame_batch,
-    measured_period,
+    measured_periods,
 )
 from egovib_ros.core.velocity import HELD, MATCHED, MISSING
 from egovib_ros.errors import ConfigError, StreamError
@@ -70,18 +70,22 @@ def denoise_streaming(model, data, seed):
     )
 
 
-def test_measured_period_ignores_jitter_and_lost_samples_but_sees_a_slower_clock():
+def test_measured_periods_ignore_jitter_and_lost_samples_but_see_a_slower_clock():
     rng = np.random.default_rng(0)
-    p = 1.0
-    assert measured_period(1 + rng.uniform(-0.3, 0.3, 256), p) == pytest.approx(1, abs=0.03)
     alternating = np.tile([0.7, 1.3], 128)[:255]  # an odd count: a median picks one side
     assert np.median(alternating) == pytest.approx(0.7)
-    assert measured_period(alternating, p) == pytest.approx(1, abs=0.01)
-    lost = np.where(rng.random(256) < 0.3, 2.0, 1.0)  # 30 % of the steps skip a sample
-    assert measured_period(lost, p) == pytest.approx(1)
-    assert measured_period(np.full(256, 2.0), p) == pytest.approx(2)  # the rate halved
-    assert measured_period(np.full(256, 0.5), p) == pytest.approx(0.5)  # doubled
-    assert measured_period(np.full(256, 1.25), p) == pytest.approx(1.25)  # 20 % slower
+    rows = {  # steps of one window -> the period it shows (nominal 1)
+        "jitter": (1 + rng.uniform(-0.3, 0.3, 255), 1.0),
+        "alternating": (alternating, 1.0),
+        "30 % of the steps skip a sample": (np.where(rng.random(255) < 0.3, 2.0, 1.0), 1.0),
+        "the rate halved": (np.full(255, 2.0), 2.0),
+        "doubled": (np.full(255, 0.5), 0.5),
+        "20 % slower": (np.full(255, 1.25), 1.25),
+    }
+    measured = measured_periods(np.array([steps for steps, _ in rows.values()]), 1.0)
+    for (name, (steps, period)), value in zip(rows.items(), measured):
+        assert value == pytest.approx(period, abs=0.03), name
+        assert measured_periods(steps[None, :], 1.0)[0] == value, name  # alone, the same
 
 
 @pytest.mark.parametrize(

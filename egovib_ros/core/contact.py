@@ -226,12 +226,8 @@ class ContactDetector:
 
     def _hold_bad(self, values: np.ndarray) -> np.ndarray:
         """Bad samples counted and replaced by the last good one (carried across pushes)."""
-        bad = bad_samples(values, self.s.sensor_range)
-        if bad.any():
-            self.samples_bad += int(bad.sum())
-            # index of the last good row at or before each row (-1: before this push)
-            last = np.maximum.accumulate(np.where(bad, -1, np.arange(len(values))))
-            values = np.vstack([self._last_good[None], values])[last + 1]
+        values, bad = hold_bad(values, self.s.sensor_range, self._last_good)
+        self.samples_bad += bad
         self._last_good = values[-1].copy()
         return values
 
@@ -285,6 +281,21 @@ class ContactDetector:
                 self._axes[cut:],
             )
             self._base += cut
+
+
+def hold_bad(
+    values: np.ndarray, sensor_range: float, last_good: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
+    """(values with each bad sample replaced by the last good one before it (`last_good`,
+    zeros by default, before the first), how many were bad)."""
+    values = np.asarray(values, np.float64)
+    bad = bad_samples(values, sensor_range)
+    if not bad.any():
+        return values, 0
+    # index of the last good row at or before each row (-1: before these values)
+    last = np.maximum.accumulate(np.where(bad, -1, np.arange(len(values))))
+    first = np.zeros(3) if last_good is None else last_good
+    return np.vstack([first[None], values])[last + 1], int(bad.sum())
 
 
 def no_contact_threshold(

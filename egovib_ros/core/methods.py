@@ -18,9 +18,10 @@ consumer), so batch equals streaming for any chunking.
 Both new methods work on x, y and z separately (each axis has its own line weights,
 noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
 of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
-the raw samples less what they removed from the band-passed ones, mapped back through the
-band-pass's inverse (BandInverse): gravity and motion pass, 9-20 ms later than the
-band-passed output (core.filters.band_inverse).
+the raw samples split by a linear-phase low-pass fitted to the calibration recording
+(DropInSplit): gravity and motion pass untouched, the band and its edges are cleaned,
+the split's delay (5.7 ms on the simulated PR2 hand, 13 ms on the 1 kHz flight) later than
+the band-passed output.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from egovib_ros.core.contact import (
     FALSE_ALARMS_PER_MIN,
     ContactSettings,
     DetectionEnvelope,
+    hold_bad,
     no_contact_threshold,
 )
 from egovib_ros.core.filters import (
@@ -57,7 +59,7 @@ from egovib_ros.core.harmonic import (
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, LowLatencyGain
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleFramer
-from egovib_ros.core.stream import DenoiserStats, FramerSettings, feed
+from egovib_ros.core.stream import DenoiserStats, FramerSettings, bad_samples, feed
 from egovib_ros.core.subtraction import (
     DenoisedChunk,
     FramedDenoiser,
@@ -146,8 +148,8 @@ def calibrate_detection(
     methods = [m for m in METHODS if m == "paper" or has_method_calibration(model)]
     thresholds = {}
     for method in ["raw", *methods]:
-        if method == "raw":
-            values = np.asarray(accel, float)
+        if method == "raw":  # bad samples held, as the detector holds them
+            values, _ = hold_bad(accel, settings.sensor_range)
         else:
             _, values, _ = denoise_batch_method(
                 sensor_stamps_ns,
@@ -509,7 +511,9 @@ def _split(model: NoiseModel, accel: np.ndarray) -> np.ndarray | None:
     the drop-in output needs: 5.7 ms for the simulated PR2 hand, 12 ms for the flight);
     None for a recording too short to tell."""
     values = np.asarray(accel, float)
-    values = values[np.all(np.isfinite(values), axis=1)]
+    # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
+    sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
+    values = values[~bad_samples(values, sensor_range)]
     fs = model.sample_rate_hz
     if len(values) < 8 * model.block_length:
         return None
@@ -1032,7 +1036,7 @@ def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, 
     Options the method does not take are refused (ConfigError naming them); an option at
     the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
     is no option. `output`: "dropin" (the default with per-axis channels) or "bandpassed",
-    for every method (cancel and hybrid take their drop-in output `BandInverse.delay`
+    for every method (cancel and hybrid take their drop-in output `DropInSplit.delay`
     samples later than their band-passed one)."""
     method = resolve_method(model, method)
     if method == "paper":

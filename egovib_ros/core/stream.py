@@ -20,7 +20,7 @@ Bad-input policy (counted in `stats`, never a silent wrong result):
   the rate: core.receipt) are told apart on the first samples, which wait for it; gaps
   are then counted against a rebuilt sample clock, and the rate measured on it;
 - the rate is measured on the first 2 blocks' worth of samples, then again on every
-  further RATE_WINDOW_BLOCKS blocks' worth (`measured_period`); off by more than
+  further RATE_WINDOW_BLOCKS blocks' worth (`measured_periods`); off by more than
   `rate_tolerance` at the start, or on two windows in a row later (a sustained change,
   not a glitch), the stream is refused: StreamError now and on every later push. A
   stream whose rate halves would otherwise be "bridged" into invented samples;
@@ -61,19 +61,24 @@ PROBE_SAMPLES = 128
 PROBE_EARLY = 16
 
 
-def measured_period(steps: np.ndarray, period: float) -> float:
-    """The sample period a run of stamp steps shows, robust to jitter and to lost samples.
+def measured_periods(windows: np.ndarray, period: float) -> np.ndarray:
+    """The sample period each row of (W, n) stamp steps shows, robust to jitter and to lost
+    samples (a batch holds hundreds of rate windows: one call, not one each).
 
     Steps of 1.5 nominal periods or more are gaps (lost samples, bridged or not). While
     they are the minority, the period is the mean of the other steps: per-step jitter
     averages out (also when it alternates, where a median would pick one side), and lost
     samples do not count. When most steps are gaps, the stream runs slower than nominal
     and their median is its period."""
-    steps = np.asarray(steps, dtype=np.float64)
-    gaps = steps >= 1.5 * period
-    if 2 * np.count_nonzero(gaps) > len(steps):
-        return float(np.median(steps))
-    return float(steps[~gaps].mean())
+    windows = np.asarray(windows, dtype=np.float64)
+    gaps = windows >= 1.5 * period
+    kept = windows.shape[1] - np.count_nonzero(gaps, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        periods = np.where(gaps, 0.0, windows).sum(axis=1) / kept
+    slow = 2 * (windows.shape[1] - kept) > windows.shape[1]
+    if slow.any():
+        periods[slow] = np.median(windows[slow], axis=1)
+    return periods
 
 
 def stamp_order(
@@ -684,33 +689,41 @@ class _Framer:
         seen, ends = np.concatenate(self._rate_steps), np.concatenate(self._rate_ends)
         start = 0
         while len(seen) - start >= (need := self._rate_window()):
-            window, window_end = seen[start : start + need], int(ends[start : start + need].max())
-            start += need
+            count = 1 if receipt or not self._rate_checked else (len(seen) - start) // need
+            windows = seen[start : start + count * need].reshape(count, need)
+            if receipt:
+                periods = np.array([envelope_period(windows[0], self.s.period_ns)])
+            else:  # every whole window of the chunk at once
+                periods = measured_periods(windows, self.s.period_ns)
+            first, start = start, start + count * need
             self._rate_steps, self._rate_ends = [seen[start:]], [ends[start:]]
             self._rate_count = len(seen) - start
-            measured = NS_PER_S / (
-                envelope_period(window, self.s.period_ns)
-                if receipt
-                else measured_period(window, self.s.period_ns)
-            )
-            off = abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
             if not self._rate_checked:
-                self._judge_first_rate(measured)
+                self._judge_first_rate(NS_PER_S / periods[0])
                 continue
-            self._rate_off_windows = self._rate_off_windows + 1 if off else 0
-            if self._rate_off_windows >= 2:
-                self._rate_error = (
-                    f"sensor rate changed: the stream ran at {measured:.0f} Hz over the "
-                    f"{need} samples up to stamp {window_end / NS_PER_S:.3f} s but the model "
-                    f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
-                    f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
-                )
-                if not receipt and np.mean(window < 0.5 * self.s.period_ns) > 0.1:
-                    self._rate_error += (
-                        "; many of its steps are under half a period: stamped on receipt "
-                        "from there on (the driver or its settings changed?)"
+            off = np.abs(NS_PER_S / periods / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance
+            for w in range(count):
+                self._rate_off_windows = self._rate_off_windows + 1 if off[w] else 0
+                if self._rate_off_windows >= 2:
+                    begin = first + w * need
+                    self._refuse_rate_change(
+                        NS_PER_S / periods[w], windows[w], int(ends[begin : begin + need].max())
                     )
-                raise self.s.error(self._rate_error)
+
+    def _refuse_rate_change(self, measured: float, window: np.ndarray, end_ns: int) -> None:
+        """Two windows in a row beyond the tolerance: refused from here on."""
+        self._rate_error = (
+            f"sensor rate changed: the stream ran at {measured:.0f} Hz over the "
+            f"{len(window)} samples up to stamp {end_ns / NS_PER_S:.3f} s but the model "
+            f"expects {self.s.sample_rate_hz:g} Hz (tolerance "
+            f"{100 * self.s.rate_tolerance:g} %); refused, not interpolated"
+        )
+        if self._cleaner.receipt is None and np.mean(window < 0.5 * self.s.period_ns) > 0.1:
+            self._rate_error += (
+                "; many of its steps are under half a period: stamped on receipt "
+                "from there on (the driver or its settings changed?)"
+            )
+        raise self.s.error(self._rate_error)
 
     def _judge_first_rate(self, measured: float) -> None:
         """The first window's rate: off by more than the tolerance, the stream is refused."""
