@@ -139,7 +139,7 @@ def test_a_bag_holding_the_denoised_topic_already_is_refused_unless_replaced(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["first"]
     again = egovib(
         "denoise", first, "--model", sim_bags_model, "--out", tmp_path / "again",
-        "--oversubtraction", "2", "--replace-denoised",
+        "--method", "paper", "--oversubtraction", "2", "--replace-denoised",
     )  # fmt: skip
     assert again.returncode == 0, again.stderr
     n = bag_topics(first)["/accelerometer/raw"][1]

@@ -2208,10 +2208,10 @@ def test_live_burst_at_ten_times_the_rate_refused_then_denoising_resumes(
     from diagnostic_msgs.msg import DiagnosticStatus
     from sensor_msgs.msg import Imu
 
+    from egovib_research.tools.orchestration import reliable_input
     from egovib_ros.nodes.common import stream_publisher_qos
     from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
     from egovib_ros.robot import load_profile
-    from egovib_ros.tools.orchestration import reliable_input
 
     profile = load_profile()
     den = nodes.start(

@@ -110,8 +110,8 @@ def test_diagnostic_values_are_plain_numbers_whatever_their_numpy_type():
     }
     status = diagnostic_array(0, [("sim_hand", "ok", "simulating", values)]).status[0]
     assert diagnostic_values(status) == {
-        "command": "[0, 0.0125]",
-        "velocity": "[1.5, -2]",
+        "command": "[0.0, 0.0125]",
+        "velocity": "[1.5, -2.0]",
         "count": "7",
         "rate": "2999.5",
         "joints": "['a', 'b']",

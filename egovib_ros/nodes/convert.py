@@ -220,11 +220,17 @@ def _format_value(value: object) -> str:
         return f"{float(value):.6g}"
     if isinstance(value, (int, np.integer)):
         return str(int(value))
-    if isinstance(value, (list, tuple, np.ndarray)):
+    if isinstance(value, (list, tuple, np.ndarray)):  # as Python prints a list of its numbers
         items = value.tolist() if isinstance(value, np.ndarray) else value
-        return (
-            "["
-            + ", ".join(repr(v) if isinstance(v, str) else _format_value(v) for v in items)
-            + "]"
-        )
+        return "[" + ", ".join(_list_item(v) for v in items) + "]"
     return str(value)
+
+
+def _list_item(value: object) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return repr(value)
