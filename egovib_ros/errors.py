@@ -23,6 +23,11 @@ class StreamError(EgovibError, ValueError):
     """Data given to a streaming processor do not fit its settings."""
 
 
+class RateError(StreamError):
+    """A stream's sample rate does not fit the model (at its start, or since it changed): the
+    stream is refused while it lasts; a live node waits for the rate to come back."""
+
+
 class GapDataError(EgovibError):
     """A recording does not hold enough usable (no-contact, matched) data for a gap diagnosis."""
 

@@ -608,13 +608,45 @@ def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
 
 
 def _is_stale_partial(entry: Path, started: float) -> bool:
+    named = _PARTIAL.match(entry.name)
+    if not named:
+        return False
     marker = _read_json(entry / PARTIAL_MARKER)
-    if isinstance(marker, dict) and _PARTIAL.match(entry.name):
+    if isinstance(marker, dict):
         pid, created = marker.get("pid"), marker.get("created")
         if not isinstance(pid, int) or not isinstance(created, (int, float)):
             return False
-        return created < started and not _pid_alive(pid)
-    return False
+    else:
+        # A run killed (SIGKILL) between making the directory and writing its marker: empty
+        # but for an empty marker, so nothing is lost with it; its pid is in its name.
+        contents = [p.name for p in entry.iterdir()]
+        empty = contents == [] or (
+            contents == [PARTIAL_MARKER] and (entry / PARTIAL_MARKER).stat().st_size == 0
+        )
+        if not empty:
+            return False
+        pid, created = int(named["pid"]), entry.stat().st_mtime
+    return created < started and not _pid_alive(pid)
+
+
+def clean_partials_of(directory: str | os.PathLike, pids: Iterable[int]) -> list[Path]:
+    """Remove the staging directories in `directory` of the processes `pids` once they are
+    gone (the workers of a parallel run stopped mid-bag: bag.many). Returns what was
+    removed."""
+    pids, removed = set(pids), []
+    with contextlib.suppress(OSError):
+        for entry in Path(directory).iterdir():
+            named = _PARTIAL.match(entry.name)
+            if (
+                named
+                and int(named["pid"]) in pids
+                and not _pid_alive(int(named["pid"]))
+                and not entry.is_symlink()
+                and (entry / PARTIAL_MARKER).is_file()
+            ):
+                shutil.rmtree(entry, ignore_errors=True)
+                removed.append(entry)
+    return removed
 
 
 def _pid_alive(pid: int) -> bool:
@@ -633,15 +665,14 @@ _IMPORT_TIME = time.time()
 
 
 def process_start_time() -> float:
-    """Wall-clock start of this process (Linux /proc), else when this module was imported."""
+    """Wall-clock start of this process (Linux /proc, to a clock tick: the time since it
+    started, from the uptime, subtracted from now; the boot time /proc/stat gives is whole
+    seconds, which made a run started within a second of a killed one take that run's
+    staging for its own age), else when this module was imported."""
     try:
         fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
         ticks = int(fields[19])  # field 22: starttime, clock ticks after boot
-        boot = next(
-            float(line.split()[1])
-            for line in Path("/proc/stat").read_text().splitlines()
-            if line.startswith("btime ")
-        )
-        return boot + ticks / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError, StopIteration):
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return time.time() - (uptime - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
         return _IMPORT_TIME

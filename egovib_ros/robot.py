@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,12 @@ VELOCITY_SOURCES = ("auto", "measured", "from_position")
 #: sample times, or when a driver received each message (core.receipt).
 STAMP_KINDS = ("auto", "sample", "receipt")
 MAX_JOINTS = 8
+#: The highest sensor rate a profile may give (Hz): beyond any IMU's and the fastest vibration
+#: DAQs' (51.2-102.4 kHz); a larger value is a typo (1e9 would size arrays of 500 GB).
+MAX_RATE_HZ = 200_000.0
+#: A ROS 2 topic name as rcl validates it (absolute or relative, no substitutions): tokens of
+#: letters, digits and '_' not starting with a digit, joined by single '/'.
+_TOPIC_NAME = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 # The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`
 # and `sensor.stamps`).
 _SECTION_KEYS = {
@@ -86,6 +93,13 @@ class RobotProfile:
             value = getattr(self, key)
             if not isinstance(value, str) or not value.strip("/"):
                 raise bad(f"{key} must be a topic name, got {value!r}")
+            if not _TOPIC_NAME.fullmatch(value):
+                yaml_key = {"sensor_topic": "sensor.topic", "joints_topic": "joints.topic"}
+                raise bad(
+                    f"{yaml_key.get(key, 'sensor.' + key)} {value!r} is not a valid ROS topic "
+                    f"name (letters, digits, '_' and '/' only, no token starting with a digit, "
+                    f"no '//' nor trailing '/')"
+                )
         # One topic for two roles: the denoiser would read its own output, offline the
         # denoised topic would replace the raw one. Named by their keys in the YAML file.
         roles = (
@@ -100,6 +114,8 @@ class RobotProfile:
         if self.sensor_field not in SENSOR_FIELDS:
             raise bad(f"sensor field must be one of {SENSOR_FIELDS}, got {self.sensor_field!r}")
         set_(self, "rate_hz", _positive(self.rate_hz, "rate_hz", bad))
+        if self.rate_hz > MAX_RATE_HZ:
+            raise bad(f"sensor.rate_hz {self.rate_hz:g} is beyond {MAX_RATE_HZ:g} Hz (a typo?)")
         names = (
             tuple(self.joint_names)
             if not isinstance(self.joint_names, str)

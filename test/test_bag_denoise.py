@@ -3,6 +3,7 @@ input message and, per raw sample, the raw message with the cleaned field.
 """
 
 import numpy as np
+import pytest
 from simbags import topic_messages
 
 from egovib_ros.bag import BagWriter, bag_topics, read_recording, write_recording
@@ -10,6 +11,7 @@ from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch, imu
 from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.methods import denoise_batch_method
+from egovib_ros.errors import BagError
 
 
 def test_streaming_through_small_chunks_equals_batch(sim_bags, sim_bags_model, tmp_path):
@@ -28,13 +30,20 @@ def test_streaming_through_small_chunks_equals_batch(sim_bags, sim_bags_model, t
     np.testing.assert_array_equal(read_recording(out).denoised, expected)
 
 
-def test_a_bag_already_denoised_gets_its_denoised_topic_replaced(
+def test_a_bag_already_denoised_is_refused_or_gets_its_denoised_topic_replaced(
     sim_bags, sim_bags_model, tmp_path
 ):
+    """A bag holding the denoised topic (a recorded live run) is refused, nothing written;
+    with replace_denoised its topic is cut out and the new one written (it was replaced
+    without a word)."""
     once, twice = tmp_path / "once", tmp_path / "twice"
     model = NoiseModel.load(sim_bags_model)
     denoise_bag(sim_bags / "motion", once, model=model)
-    figures = denoise_bag(once, twice, model=model, channels="combined")
+    with pytest.raises(BagError, match="already holds /accelerometer/denoised"):
+        denoise_bag(once, twice, model=model, channels="combined")
+    assert not twice.exists() and not list(tmp_path.glob(".*.partial"))
+    figures = denoise_bag(once, twice, model=model, channels="combined", replace_denoised=True)
+    assert figures["replaced_denoised"] == bag_topics(once)["/accelerometer/denoised"][1]
     assert figures["chunks_copied_verbatim"] > 0  # the old topic was cut out of the chunks
     topics = bag_topics(twice)
     assert topics["/accelerometer/denoised"][1] == topics["/accelerometer/raw"][1]

@@ -338,3 +338,126 @@ def test_log_times_that_never_advance_count_each_early_sample_once(tmp_path, cap
     assert f"{stream.released_early} sensor samples went on" in caplog.text
     whole = concat_recordings(pieces)
     np.testing.assert_array_equal(whole.sensor, rec.sensor)
+
+
+# --------------------------------------------------------------------------
+# A recorder's topics start and stop at their own moments (bag_recorder, ros2 bag record)
+# --------------------------------------------------------------------------
+def _truth_cut_bag(path, rec, cuts: dict[str, tuple[int, int]]) -> None:
+    """The recording with the ground-truth topics written from/up to other samples than
+    the raw topic: cuts = {"contact": (first, stop), "ego": (first, stop)}."""
+    with BagWriter(path) as bag:
+        for key, values in (("raw", rec.sensor), ("contact", rec.contact), ("ego", rec.ego)):
+            a, b = cuts.get(key, (0, len(values)))
+            stamps = rec.sensor_stamps_ns[a:b]
+            bag.add_topic(BAG_TOPICS[key], codec.IMU_TYPE)
+            bag.write_batch(BAG_TOPICS[key], stamps, encode_imu_batch(stamps, values[a:b]))
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        bag.write_batch(
+            BAG_TOPICS["joint_states"],
+            rec.joint_stamps_ns,
+            encode_joint_state_batch(
+                rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity, JOINT_NAMES
+            ),
+        )
+
+
+def test_ground_truth_starting_later_and_stopping_earlier_is_cut_to_the_shared_stamps(
+    tmp_path, caplog
+):
+    """The sensor topic and its ground truth are read over the stamps they share; the samples
+    at either end without their counterpart are left out and counted (one warning)."""
+    rec = random_recording(seconds=3.0)
+    n = len(rec.sensor_stamps_ns)
+    _truth_cut_bag(tmp_path / "bag", rec, {"contact": (5, n - 7), "ego": (3, n - 2)})
+    with caplog.at_level("WARNING", logger="egovib_ros.bag"):
+        back = read_recording(tmp_path / "bag")
+    np.testing.assert_array_equal(back.sensor_stamps_ns, rec.sensor_stamps_ns[5 : n - 7])
+    np.testing.assert_array_equal(back.sensor, rec.sensor[5 : n - 7])
+    np.testing.assert_array_equal(back.contact, rec.contact[5 : n - 7])
+    np.testing.assert_array_equal(back.ego, rec.ego[5 : n - 7])
+    (said,) = [r.getMessage() for r in caplog.records if "start or stop" in r.getMessage()]
+    assert "12 of /accelerometer/raw" in said and "7 of /accelerometer/ego" in said, said
+    assert "5 of /accelerometer/contact" not in said  # its own ends are the shared ones
+
+
+def test_ground_truth_missing_a_sample_in_the_middle_is_still_refused(tmp_path):
+    rec = random_recording(seconds=3.0)
+    with BagWriter(tmp_path / "bag") as bag:
+        for key, values in (("raw", rec.sensor), ("contact", rec.contact), ("ego", rec.ego)):
+            keep = np.ones(len(values), bool)
+            keep[4000] = key != "contact"
+            stamps = rec.sensor_stamps_ns[keep]
+            bag.add_topic(BAG_TOPICS[key], codec.IMU_TYPE)
+            bag.write_batch(BAG_TOPICS[key], stamps, encode_imu_batch(stamps, values[keep]))
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        bag.write_batch(
+            BAG_TOPICS["joint_states"],
+            rec.joint_stamps_ns,
+            encode_joint_state_batch(
+                rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity, JOINT_NAMES
+            ),
+        )
+    with pytest.raises(BagError, match="/accelerometer/contact does not have the stamps"):
+        read_recording(tmp_path / "bag")
+
+
+# --------------------------------------------------------------------------
+# JointStates that name the joints but carry too few numbers
+# --------------------------------------------------------------------------
+def _joint_state_bag(path, rec, position, velocity, effort) -> None:
+    """The recording's raw topic with JointStates whose arrays are built by the callables
+    `position(row)`, `velocity(row)`, `effort(row)` (any lengths)."""
+    ts = codec.typestore()
+    with BagWriter(path) as bag:
+        bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
+        bag.write_batch(
+            BAG_TOPICS["raw"],
+            rec.sensor_stamps_ns,
+            encode_imu_batch(rec.sensor_stamps_ns, rec.sensor),
+        )
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        for i, stamp in enumerate(rec.joint_stamps_ns.tolist()):
+            msg = codec.rosbags_joint_state(stamp, JOINT_NAMES, position(i), velocity(i))
+            msg.effort = effort(i)
+            bag.write(
+                BAG_TOPICS["joint_states"],
+                stamp,
+                bytes(ts.serialize_cdr(msg, codec.JOINT_STATE_TYPE)),
+            )
+
+
+def test_joint_states_with_effort_only_are_refused_as_such(tmp_path):
+    """Every message names both joints but carries only efforts: said so, not that the
+    topic lacks the joints."""
+    rec = random_recording(seconds=1.5, with_truth=False)
+    none = np.zeros(0)
+    _joint_state_bag(
+        tmp_path / "bag", rec, lambda i: none, lambda i: none, lambda i: np.array([0.1, 0.2])
+    )
+    with pytest.raises(BagError) as info:
+        read_recording(tmp_path / "bag")
+    message = str(info.value)
+    assert "r_wrist_roll_joint, r_gripper_joint named in its messages" in message, message
+    assert "effort only" in message and "lacks" not in message and "\n" not in message
+
+
+def test_a_velocity_array_shorter_than_the_names_is_said(tmp_path, caplog):
+    """Velocities for the first joint only: a malformed JointState. The value goes to the
+    first name, the second joint's velocity comes from its positions (joints.velocity:
+    auto), and a warning says how many messages were so."""
+    rec = random_recording(seconds=1.5, with_truth=False)
+    rec.joint_position = np.cumsum(np.full_like(rec.joint_position, 1e-3), axis=0)
+    _joint_state_bag(
+        tmp_path / "bag",
+        rec,
+        lambda i: rec.joint_position[i],
+        lambda i: rec.joint_velocity[i, :1],
+        lambda i: np.zeros(0),
+    )
+    with caplog.at_level("WARNING", logger="egovib_ros.bag"):
+        back = read_recording(tmp_path / "bag")
+    np.testing.assert_array_equal(back.joint_velocity[:, 0], rec.joint_velocity[:, 0])
+    assert np.allclose(back.joint_velocity[5:, 1], 1.0)  # 1e-3 per 1 ms, from the positions
+    said = caplog.text
+    assert f"{len(rec.joint_stamps_ns)} messages carry fewer velocity values than" in said, said

@@ -60,3 +60,83 @@ def test_a_bad_option_is_one_line_exit_2(capsys):
         "egovib run: error: argument --rate: expected a finite number > 0, got '-1' "
         "(see egovib run --help)\n"
     )
+
+
+def _subcommands(parser: argparse.ArgumentParser, prefix: str = "") -> dict:
+    """Every (sub)command's parser by its name ("gap", "simulate robot", ...)."""
+    found = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found[f"{prefix}{name}"] = sub
+                found.update(_subcommands(sub, f"{prefix}{name} "))
+    return found
+
+
+# bench: `egovib bench` says the same in its own words ("no progress bar or summary")
+OWN_QUIET = {"bench"}
+
+
+def test_quiet_means_the_same_in_every_command():
+    """--quiet was "no progress bar" in denoise, calibrate and gap, "no summary line" in
+    detect, both elsewhere: now one meaning, one help text."""
+    from egovib_ros.cli import build_parser
+
+    commands = _subcommands(build_parser())
+    quiet = {
+        name: next(a.help for a in sub._actions if "--quiet" in a.option_strings)
+        for name, sub in commands.items()
+        if any("--quiet" in a.option_strings for a in sub._actions) and name not in OWN_QUIET
+    }
+    assert {"denoise", "calibrate", "evaluate", "detect", "gap", "model show"} <= set(quiet)
+    assert set(quiet.values()) == {options.QUIET_HELP}, quiet
+
+
+def test_quiet_runs_say_only_the_bad_input(tmp_path):
+    """`denoise --quiet` of a clean bag says nothing; of a bag with bad samples only their
+    counts; `calibrate --quiet` likewise (and no coverage lines)."""
+    import contextlib
+    import io
+
+    import numpy as np
+
+    from egovib_ros import cli
+    from egovib_ros.bag import write_recording
+    from egovib_ros.sim import simulate_motion, simulate_sweep
+
+    def run(*args) -> str:
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(err):
+            assert cli.main([str(a) for a in args]) == 0, err.getvalue()
+        return err.getvalue()
+
+    sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.3, settle_s=0.2, seed=3)
+    write_recording(tmp_path / "sweep", sweep)
+    motion, _ = simulate_motion(duration_s=2.0, max_speed=0.5, seed=4)
+    write_recording(tmp_path / "clean", motion)
+    bad = motion.sensor.copy()
+    bad[1000:1012] = np.nan
+    motion.sensor = bad
+    write_recording(tmp_path / "bad", motion)
+    assert run("calibrate", tmp_path / "sweep", "--out", tmp_path / "m.npz", "--quiet") == ""
+    model = tmp_path / "m.npz"
+    assert (
+        run("denoise", tmp_path / "clean", "--model", model, "--out", tmp_path / "a", "--quiet")
+        == ""
+    )
+    said = run("denoise", tmp_path / "bad", "--model", model, "--out", tmp_path / "b", "--quiet")
+    assert said.count("\n") == 1 and "12 sensor samples non-finite" in said, said
+    loud = run("denoise", tmp_path / "clean", "--model", model, "--out", tmp_path / "c")
+    assert "samples denoised" in loud and "wrote" in loud
+
+
+def test_no_help_text_shows_a_doubled_percent_sign():
+    """`figures --help` printed "speeds 25-100 %%": argparse %-formats argument help, not a
+    description. Every command's help, as printed."""
+    from egovib_ros.cli import build_parser
+
+    parser = build_parser()
+    helps = {"egovib": parser.format_help()}
+    helps.update({name: sub.format_help() for name, sub in _subcommands(parser).items()})
+    assert "figures" in helps
+    assert not [name for name, text in helps.items() if "%%" in text]

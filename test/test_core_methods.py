@@ -131,6 +131,7 @@ def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):
                     "samples_bad", "gap_filled_samples", "resets", "joint_states_in",
                     "joint_states_dropped", "samples_no_joint_state", "rate_checked",
                     "delay_samples", "frequency_correction", *table,
+                    "duplicates", "joint_states_duplicates",
                 ]  # fmt: skip
                 assert len(stats.frequency_correction) == r["velocity"].shape[1]
             store[method] = values[:, 0]

@@ -398,16 +398,18 @@ PAPER_KEYS = [
     "samples_in", "samples_out", "dropped_out_of_order", "samples_bad", "gap_filled_samples",
     "resets", "joint_states_in", "joint_states_dropped", "blocks", "blocks_held_joint_state",
     "blocks_no_joint_state", "blocks_out_of_grid", "blocks_unmeasured", "rate_checked",
+    "duplicates", "joint_states_duplicates",
 ]  # fmt: skip
 PER_SAMPLE_KEYS = [
     "method", "samples_in", "samples_out", "dropped_out_of_order", "samples_bad",
     "gap_filled_samples", "resets", "joint_states_in", "joint_states_dropped",
     "samples_no_joint_state", "rate_checked", "delay_samples", "frequency_correction",
-    "samples_unmeasured", "samples_out_of_grid",
+    "samples_unmeasured", "samples_out_of_grid", "duplicates", "joint_states_duplicates",
 ]  # fmt: skip
 CALIBRATION_KEYS = [
     "mode", "samples_in", "samples_bad", "blocks", "blocks_used", "cells", "rejected",
     "dropped_out_of_order", "gap_filled_samples", "resets", "joint_states_dropped",
+    "duplicates", "joint_states_duplicates",
 ]  # fmt: skip
 
 
@@ -415,13 +417,13 @@ def test_stats_take_the_framers_counts_and_write_only_the_fields_that_apply():
     from egovib_ros.core import CalibrationStats, DenoiserStats
     from egovib_ros.core.stream import FramerStats
 
-    framer = FramerStats(*range(1, 11))  # every count distinct: 1 .. 10 in declaration order
+    framer = FramerStats(*range(1, 11), 0, 14, 15)  # distinct counts in declaration order
     paper = DenoiserStats.of(
         framer, samples_out=11, blocks=8, blocks_held_joint_state=9, blocks_no_joint_state=10,
         blocks_out_of_grid=12, blocks_unmeasured=13, rate_checked=True,
     )  # fmt: skip
     assert list(paper.as_dict().items()) == list(
-        zip(PAPER_KEYS, [1, 11, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 13, True])
+        zip(PAPER_KEYS, [1, 11, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 13, True, 14, 15])
     )
     hybrid = DenoiserStats.of(
         framer, method="hybrid", samples_out=11, samples_no_joint_state=12, rate_checked=False,
@@ -431,7 +433,7 @@ def test_stats_take_the_framers_counts_and_write_only_the_fields_that_apply():
     assert list(hybrid.as_dict().items()) == list(
         zip(
             PER_SAMPLE_KEYS,
-            ["hybrid", 1, 11, 2, 3, 4, 5, 6, 7, 12, False, 4, [0.01, -0.02], 13, 14],
+            ["hybrid", 1, 11, 2, 3, 4, 5, 6, 7, 12, False, 4, [0.01, -0.02], 13, 14, 14, 15],
         )
     )
     # without a table (cancel): its counts are None and left out; what is given wins
@@ -439,12 +441,13 @@ def test_stats_take_the_framers_counts_and_write_only_the_fields_that_apply():
         framer, method="cancel", samples_in=99, samples_out=11, samples_no_joint_state=0,
         rate_checked=True, delay_samples=0, frequency_correction=[0.0], samples_unmeasured=None,
     )  # fmt: skip
-    assert list(cancel.as_dict()) == PER_SAMPLE_KEYS[:-2] and cancel.samples_in == 99
+    assert list(cancel.as_dict()) == PER_SAMPLE_KEYS[:-4] + PER_SAMPLE_KEYS[-2:]
+    assert cancel.samples_in == 99
     calibration = CalibrationStats.of(
         framer, mode="free", blocks_used=7, cells=3, rejected={"partial": 1}
     )
     assert list(calibration.as_dict().items()) == list(
-        zip(CALIBRATION_KEYS, ["free", 1, 3, 8, 7, 3, {"partial": 1}, 2, 4, 5, 7])
+        zip(CALIBRATION_KEYS, ["free", 1, 3, 8, 7, 3, {"partial": 1}, 2, 4, 5, 7, 14, 15])
     )
 
 

@@ -195,6 +195,22 @@ def test_out_of_grid_velocity_uses_edge_cells_and_is_counted(model):
     np.testing.assert_array_equal(outside, clamped)
 
 
+def test_the_out_of_grid_warning_names_the_recording(model, caplog):
+    """`detect` and `evaluate` run the denoiser over the calibration bag too: the warning says
+    which recording went beyond the grid (it was the sweep, not the run)."""
+    data = stream(2, [(5.0, 0.02)], seed=6)
+    denoiser = StreamingDenoiser(model, source="sweep: /accelerometer/raw")
+    with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
+        denoiser.push_joint_states(data["t_joint"], data["velocity"])
+        denoiser.push_sensor(data["t_acc"], data["accel"])
+        denoiser.flush()
+    assert denoiser.stats.blocks_out_of_grid > 0
+    said = [r.getMessage() for r in caplog.records if "outside the model grid" in r.getMessage()]
+    assert said == [
+        "sweep: /accelerometer/raw: joint velocity outside the model grid: using the edge cells"
+    ]
+
+
 def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
     data = stream(1, [(0.0, 0.0)])
     denoiser = StreamingDenoiser(model)
@@ -372,6 +388,8 @@ def test_stats_are_typed_frozen_and_report_the_paper_denoisers_keys(model):
         "blocks_out_of_grid",
         "blocks_unmeasured",
         "rate_checked",
+        "duplicates",
+        "joint_states_duplicates",
     ]
 
 

@@ -169,11 +169,15 @@ def test_the_notices_say_what_was_missing_and_what_was_thinned():
     said = "real.bag: 12 sensor samples not finite, treated as missing"
     bad = dict(clean, samples_bad=12, said=said)
     assert input_notices(dataclasses.replace(table, bad_input=bad), 2.0) == [said]
-    thinned = dict(clean, kept_share=0.25, said="")
+    thinned = dict(clean, kept_share=0.25, said="", recorded_s=480.0)
     assert input_notices(dataclasses.replace(table, bad_input=thinned), 2.0) == [
-        f"longer than the 2-minute budget: 25 % of the {THIN_RUN_BLOCKS}-block runs "
-        "diagnosed, spread evenly"
+        "8.0 minutes of sensor data, more than the 2-minute budget (--budget-minutes): "
+        f"25 % of its {THIN_RUN_BLOCKS}-block runs diagnosed, spread evenly"
     ]
+    # just over the budget: some runs are left out, never said as "100 %"
+    barely = dict(thinned, kept_share=120 / 120.5, recorded_s=120.5)
+    (notice,) = input_notices(dataclasses.replace(table, bad_input=barely), 2.0)
+    assert "99.5 % of its" in notice and "100 %" not in notice
 
 
 def test_the_reference_lag_is_the_given_one_or_none_for_a_foreign_robot():

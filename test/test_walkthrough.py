@@ -32,7 +32,7 @@ def test_your_robot_in_five_commands(tmp_path):
     egovib("simulate", "robot", "--robot", robot, "--duration", "20", "--taps", "1",
            "--seed", "2", "--out", "arm_run", "--truth", "arm_run.truth.json", "--quiet",
            cwd=tmp_path)  # fmt: skip
-    coverage = egovib("calibrate", "arm_sweep", "--robot", robot, "--out", "arm.npz", "--quiet",
+    coverage = egovib("calibrate", "arm_sweep", "--robot", robot, "--out", "arm.npz",
                       cwd=tmp_path)  # fmt: skip
     assert "coverage:" in coverage
     egovib("model", "show", "arm.npz", "--out", "arm_model", "--bag", "arm_run", "--quiet",

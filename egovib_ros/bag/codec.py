@@ -472,11 +472,15 @@ def encode_joint_state_batch(
 
 
 def decode_joint_states(
-    messages: Messages, names: Sequence[str] | None = None
+    messages: Messages, names: Sequence[str] | None = None, notes: dict | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stamps (n,), positions and velocities (n, J) with columns picked by joint name
     (`names`; default the first message's joints), NaN where a message lacks a joint or
-    a value (a driver that publishes no velocity gives NaN velocities)."""
+    a value (a driver that publishes no velocity gives NaN velocities).
+
+    `notes` (a dict, updated): "named" (J,) bool, the joints some message names (with or
+    without a value: effort only); "short_position" / "short_velocity", how many messages
+    carry fewer values than names (neither empty nor one per name: malformed)."""
     batch = as_batch(messages)
     n = len(batch)
     if n == 0:
@@ -486,7 +490,11 @@ def decode_joint_states(
         names = joint_state_layout(batch.to_list()[0])[0]
     names = tuple(names)
     fast = _joint_states_fast(batch, names)
+    if notes is not None:
+        named = notes.setdefault("named", np.zeros(len(names), bool))
     if fast is not None:
+        if notes is not None:
+            named[:] = True  # every named joint, one value each (the fast path's condition)
         return fast
     raws = batch.to_list()
     # Unusual batch: rosbags per message, columns matched by joint name.
@@ -498,11 +506,17 @@ def decode_joint_states(
         msg = deserialize(raw, JOINT_STATE_TYPE)
         stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
         taken = set()
+        if notes is not None:
+            for key, values in (("short_position", msg.position), ("short_velocity", msg.velocity)):
+                if 0 < len(values) < len(msg.name):
+                    notes[key] = notes.get(key, 0) + 1
         for k, name in enumerate(msg.name):
             j = column.get(name)
             if j is None or j in taken:  # a name given twice: its first values, as the fast path
                 continue
             taken.add(j)
+            if notes is not None:
+                named[j] = True
             if k < len(msg.position):
                 position[i, j] = msg.position[k]
             if k < len(msg.velocity):

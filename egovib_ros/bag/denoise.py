@@ -25,7 +25,8 @@ from egovib_ros.bag.writer import BagWriter, compression_name
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import make_denoiser, resolve_method
-from egovib_ros.core.stream import check_stream
+from egovib_ros.core.stream import check_stream, has_bad_input
+from egovib_ros.errors import BagError
 from egovib_ros.outputs import atomic_output
 
 
@@ -150,13 +151,16 @@ def denoise_bag(
     joint_lag_s: float = 0.0,
     noise_gain_db: tuple[tuple[float, float], ...] = (),
     compress: bool | str = False,
+    replace_denoised: bool = False,
     progress: Callable[[int], None] | None = None,
 ) -> dict:
     """Denoise one bag into `out` (written atomically: nothing appears unless complete).
 
     Streams the bag: input MCAP chunks are copied verbatim (topics never decoded but
     the sensor and joint topics), the profile's denoised topic is added, one message
-    per raw sample. Returns figures (samples, blocks, size ratio, ...)."""
+    per raw sample. A bag that holds that topic already (a recorded live run) is refused
+    (BagError) unless `replace_denoised`: then its own is left out of the copy (counted in
+    the figures). Returns figures (samples, blocks, size ratio, ...)."""
     model = model if isinstance(model, NoiseModel) else NoiseModel.load(model)
     profile = model.robot_profile()
     bag = Path(bag)
@@ -166,6 +170,12 @@ def denoise_bag(
         )
         raw_topic, denoised_topic = stream.names["raw"], stream.names["denoised"]
         copy_topics = [t for t in reader.topics if t != denoised_topic]
+        replaced = reader.topics[denoised_topic].count if denoised_topic in reader.topics else 0
+        if denoised_topic in reader.topics and not replace_denoised:
+            raise BagError(
+                f"{bag}: already holds {denoised_topic} ({replaced} messages: a recorded "
+                f"denoiser's output?); not replaced without --replace-denoised"
+            )
         method = resolve_method(model, method)
         denoiser = make_denoiser(
             model,
@@ -242,4 +252,6 @@ def denoise_bag(
         "size_ratio": ratio,
         "compression": compression_name(compress) or "none",
         "input_counts": counts,
+        "bad_input": has_bad_input(stats),  # anything counted in input_counts
+        "replaced_denoised": replaced,  # messages of the bag's own denoised topic left out
     }

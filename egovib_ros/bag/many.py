@@ -16,9 +16,12 @@ a small picklable summary (dict); `progress(n_bytes)` may be called as the bag i
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -221,7 +224,7 @@ def _run_dask(
             "parallel runs need dask.distributed (pip install 'egovib_ros[cluster]', or apt "
             "python3-distributed)"
         ) from None
-    cluster = None
+    cluster, workers = None, set()
     quiet_loggers = {
         name: logging.getLogger(name).level for name in ("distributed", "dask", "tornado", "bokeh")
     }
@@ -236,15 +239,19 @@ def _run_dask(
                     f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: {exc})"
                 ) from None
         else:
-            cluster = LocalCluster(
-                n_workers=jobs,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                scheduler_kwargs={"dashboard": False},
-                silence_logs=logging.ERROR,
-            )
+            with _sigint_blocked():  # the workers never see Ctrl-C: this process handles it
+                cluster = LocalCluster(
+                    n_workers=jobs,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    scheduler_kwargs={"dashboard": False},
+                    # the workers' own logs: a stopped run's last heartbeats fail with an
+                    # ERROR and a traceback; what fails in a task comes back as its result
+                    silence_logs=logging.CRITICAL,
+                )
             client = Client(cluster)
+            workers = set(client.run(os.getpid).values())
         with client:
             futures = client.map(run_guarded, [task] * len(jobs_list), list(jobs_list), pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
@@ -263,9 +270,36 @@ def _run_dask(
             return results
     finally:
         if cluster is not None:
+            stopping = sys.exc_info()[0] is not None  # Ctrl-C, SIGTERM, an error: say nothing
+            if stopping:
+                logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
             cluster.close()
+            if stopping:  # the staging of the bags its workers were writing when stopped
+                from egovib_ros.outputs import clean_partials_of
+
+                for directory in {Path(j.out).parent for j in jobs_list if j.out is not None}:
+                    clean_partials_of(directory, workers)
         for name, level in quiet_loggers.items():
             logging.getLogger(name).setLevel(level)
+
+
+@contextlib.contextmanager
+def _sigint_blocked():
+    """While Dask starts its worker processes, SIGINT is ignored (the workers inherit that
+    across exec, so a Ctrl-C at the terminal reaches only this process, which stops the run
+    and closes the cluster; each worker would print a traceback) and blocked in this thread
+    (a blocked signal is kept pending, not discarded, so a Ctrl-C meanwhile is delivered here
+    once our handler is back)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def summary_lines(results: Sequence[BagResult], describe: Callable[[Any], str] = str) -> list[str]:

@@ -161,11 +161,20 @@ class McapScanner:
     # group messages outside chunks (unchunked files) this many bytes at a time
     loose_bytes = 4 << 20
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, *, cut: bool = False):
+        """`cut`: the file ends without its summary and footer (a recorder killed mid-write,
+        `ends_complete` False): read every complete record up to where it stops, and say
+        where that was in `cut_at` (file offset; None while not reached)."""
         self.path = Path(path)
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.summary_start = 0
+        self.cut = cut
+        self.cut_at: int | None = None
+        # A cut file's chunk index, rebuilt by a first scan (`chunk_index`): a second scanner
+        # given it (with the definitions) reads the chunks in time order, as from a summary.
+        self.chunk_index: list[ChunkIndex] = []
+        self.rebuilt: list[ChunkIndex] | None = None
 
     def chunks(self) -> Iterator[ChunkData]:
         """Chunks in order of their first message's log time: file order for files written
@@ -196,25 +205,36 @@ class McapScanner:
             else:
                 yield from self._seeking(fh, by_time)
 
+    def reuse(self, first: "McapScanner") -> "McapScanner":
+        """Read a cut file with the chunk index and definitions a first scan rebuilt."""
+        self.rebuilt = list(first.chunk_index)
+        self.schemas.update(first.schemas)
+        self.channels.update(first.channels)
+        return self
+
     def _time_order(self, fh) -> tuple[list | None, list | None]:
         """(the summary's chunk indexes by start time if that differs from file order, else
         None; the chunk indexes in file order, or None without a summary)."""
         from mcap.reader import make_reader
 
-        try:
-            fh.seek(0)
-            summary = make_reader(fh).get_summary()
-        except Exception:
-            return None, None
-        if summary is None or not summary.chunk_indexes:
-            return None, None
-        by_file = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        if self.rebuilt:
+            indexes = self.rebuilt
+        else:
+            try:
+                fh.seek(0)
+                summary = make_reader(fh).get_summary()
+            except Exception:
+                return None, None
+            if summary is None or not summary.chunk_indexes:
+                return None, None
+            indexes = summary.chunk_indexes
+            self.schemas.update(summary.schemas)
+            self.channels.update(summary.channels)
+        by_file = sorted(indexes, key=lambda c: c.chunk_start_offset)
         # stable: ties keep file order
         by_time = sorted(by_file, key=lambda c: c.message_start_time)
         if [c.chunk_start_offset for c in by_time] == [c.chunk_start_offset for c in by_file]:
             return None, by_file
-        self.schemas.update(summary.schemas)
-        self.channels.update(summary.channels)
         return by_time, by_file
 
     def _seeking(self, fh, order: list) -> Iterator[ChunkData]:
@@ -242,6 +262,7 @@ class McapScanner:
         """Front to back. `starts`: each chunk's first log time (from the summary), which
         tells where the next chunk begins; without it a chunk's own start is the bound."""
         pending: tuple | None = None  # a chunk waiting for its message indexes
+        pending_at = (0, 0)  # where its record starts and ends in the file
         loose: list[bytes] = []
         loose_size = 0
         consumed = 0
@@ -265,18 +286,30 @@ class McapScanner:
             return chunk
 
         while True:
+            at = fh.tell()
             head = fh.read(9)
             if len(head) < 9:
-                raise McapDamaged("truncated (no footer)")
+                if not self.cut:
+                    raise McapDamaged("truncated (no footer)")
+                self.cut_at = at
+                break
             op, length = _RECORD_HEADER.unpack(head)
+            if self.cut and length > os.fstat(fh.fileno()).st_size - fh.tell():
+                # the record the recorder was writing when it stopped: what came before is
+                # whole (a chunk whose message indexes are cut is read by its records)
+                self.cut_at = at
+                if op == OP_MESSAGE_INDEX and pending is not None:
+                    pending = (pending[0], [])
+                break
             if op == OP_MESSAGE_INDEX and pending is not None:
                 pending[1].append(_read_exact(fh, length))
                 continue
             if pending is not None:
                 yield progress(self._finish_chunk(*pending))
+                self._note_chunk(pending_at, at)
                 pending = None
             if op == OP_CHUNK:
-                pending = (_read_exact(fh, length), [])
+                pending, pending_at = (_read_exact(fh, length), []), (at, fh.tell())
             elif op == OP_MESSAGE:
                 loose.append(head + _read_exact(fh, length))
                 loose_size += 9 + length
@@ -289,10 +322,36 @@ class McapScanner:
                 break
             else:
                 fh.seek(length, io.SEEK_CUR)
+        if pending is not None:  # cut after this chunk
+            yield progress(self._finish_chunk(*pending))
+            self._note_chunk(pending_at, pending_at[1] if not pending[1] else self.cut_at)
         if loose:
             yield progress(self._walk(b"".join(loose)))
 
     # --- internals -------------------------------------------------------------
+    def _note_chunk(self, at: tuple[int, int], indexes_end: int) -> None:
+        """A cut file: the chunk index entry of a chunk read (record start and end, where its
+        message indexes end), as a summary would have listed it."""
+        if not self.cut:
+            return
+        start, end = at
+        with open(self.path, "rb") as fh:
+            fh.seek(start + 9)
+            first, last = struct.unpack("<QQ", fh.read(16))
+        self.chunk_index.append(
+            ChunkIndex(
+                message_start_time=first,
+                message_end_time=last,
+                chunk_start_offset=start,
+                chunk_length=end - start,
+                message_index_offsets={},
+                message_index_length=indexes_end - end,
+                compression="",
+                compressed_size=0,
+                uncompressed_size=0,
+            )
+        )
+
     def _define(self, op: int, body: bytes | memoryview) -> tuple[int, int]:
         stream = ReadDataStream(io.BytesIO(bytes(body)))
         if op == OP_SCHEMA:
@@ -431,6 +490,16 @@ class McapScanner:
         times = [t.max() for t, _ in index.values() if len(t)]
         chunk.end_ns = int(max(times)) if times else None  # loose messages: the latest log time
         return chunk
+
+
+def ends_complete(path: str | Path) -> bool:
+    """The file ends with the MCAP magic (its footer was written): not cut short."""
+    with open(path, "rb") as fh:
+        size = fh.seek(0, io.SEEK_END)
+        if size < 2 * len(MAGIC):
+            return False
+        fh.seek(size - len(MAGIC))
+        return fh.read(len(MAGIC)) == MAGIC
 
 
 def _read_exact(fh: BinaryIO, n: int) -> bytes:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import heapq
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,8 +23,16 @@ import yaml
 from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag.codec import MessageBatch
-from egovib_ros.bag.mcapfile import ChunkData, McapDamaged, McapFormatError, McapScanner
+from egovib_ros.bag.mcapfile import (
+    ChunkData,
+    McapDamaged,
+    McapFormatError,
+    McapScanner,
+    ends_complete,
+)
 from egovib_ros.errors import BagError
+
+LOG = logging.getLogger("egovib_ros.bag")
 
 
 @dataclass
@@ -60,13 +69,18 @@ class BagReader:
         self.path = Path(path)
         if not self.path.exists():
             raise BagError(f"{self.path}: no such bag")
+        self.info = self._metadata()
+        self.cut_files: dict[Path, int] = {}  # MCAP files cut short: their readable bytes
+        self._rebuilt: dict[Path, McapScanner] = {}
         try:
             self._reader = Reader(self.path)
             self._reader.open()
         except Exception as exc:  # rosbags raises several types for broken bags
             reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise BagError(f"{self.path}: not a readable rosbag2 bag ({reason})") from None
-        self.info = self._metadata()
+            self._reader = None
+            if not self._open_cut_mcap():
+                raise BagError(f"{self.path}: not a readable rosbag2 bag ({reason})") from None
+            return
         entries = {
             e["topic_metadata"]["name"]: e["topic_metadata"]
             for e in self.info.get("topics_with_message_count") or []
@@ -89,6 +103,82 @@ class BagReader:
             )
         self.files = [self.path / name for name in self.info.get("relative_file_paths") or []]
         self.total_bytes = sum(f.stat().st_size for f in self.files if f.exists())
+
+    def _open_cut_mcap(self) -> bool:
+        """A bag whose MCAP file(s) a recorder left without summary and footer (killed, out
+        of power): rosbags cannot open it, but every complete chunk is there. Read them
+        (topics, types and counts from one scan of the records), as `ros2 bag reindex` would
+        recover them, and say so; False if this is not such a bag (the caller refuses it)."""
+        files = [self.path / n for n in self.info.get("relative_file_paths") or []]
+        files = files or sorted(self.path.glob("*.mcap"))
+        if (
+            not files
+            or any(f.suffix != ".mcap" or not f.is_file() for f in files)
+            or self.info.get("storage_identifier", "mcap") != "mcap"
+            or self.info.get("compression_mode") not in ("", None)
+        ):
+            return False
+        cut = [f for f in files if not ends_complete(f)]
+        if not cut:
+            return False  # whole files rosbags still refused: not a cut recording
+        entries = {
+            e["topic_metadata"]["name"]: e["topic_metadata"]
+            for e in self.info.get("topics_with_message_count") or []
+            if "topic_metadata" in e
+        }
+        counts: dict[str, int] = {}
+        self.topics = {}
+        try:
+            for file in files:
+                scanner = McapScanner(file, cut=file in cut)
+                for chunk in scanner.chunks():
+                    for channel, (times, _) in chunk.index.items():
+                        topic = scanner.channels[channel].topic
+                        counts[topic] = counts.get(topic, 0) + len(times)
+                for channel in scanner.channels.values():
+                    if channel.topic in self.topics:
+                        continue
+                    schema = scanner.schemas.get(channel.schema_id)
+                    self.topics[channel.topic] = TopicInfo(
+                        msgtype=schema.name if schema is not None else "",
+                        count=0,
+                        metadata=dict(entries.get(channel.topic, {})),
+                        msgdef=schema.data.decode() if schema is not None else "",
+                        msgdef_format="ros2idl"
+                        if schema is not None and schema.encoding == "ros2idl"
+                        else "ros2msg",
+                    )
+                if scanner.cut_at is not None:
+                    self.cut_files[file] = scanner.cut_at
+                    self._rebuilt[file] = scanner  # its chunk index, for reading in time order
+        except (McapFormatError, KeyError, UnicodeDecodeError):
+            return False
+        if not any(counts.values()):
+            sizes = ", ".join(f"{f.name} ({f.stat().st_size} bytes)" for f in cut)
+            raise BagError(
+                f"{self.path}: {sizes} cut short without one complete chunk (a recorder killed "
+                f"at its start?): nothing to read"
+            )
+        for topic, info in self.topics.items():
+            info.count = counts.get(topic, 0)
+        self.info = {**self.info, "storage_identifier": "mcap"}
+        self.info.setdefault("relative_file_paths", [f.name for f in files])
+        self.files = files
+        self.total_bytes = sum(f.stat().st_size for f in files)
+        LOG.warning(
+            "%s: truncated: %s without summary and footer (the recorder stopped without "
+            "closing the file); read its %d complete messages%s (`ros2 bag reindex` or "
+            "`mcap recover` rebuild the file)",
+            self.path,
+            ", ".join(f.name for f in cut),
+            sum(counts.values()),
+            "".join(
+                f", {f.stat().st_size - at} incomplete bytes at the end of {f.name} skipped"
+                for f, at in self.cut_files.items()
+                if f.stat().st_size > at
+            ),
+        )
+        return True
 
     # --- facts -----------------------------------------------------------------
     def _metadata(self) -> dict:
@@ -194,7 +284,12 @@ class BagReader:
         it gives none), so a bag of many files split by time holds one open at a time; one
         decompressed chunk is held per open file, and a batch holds chunks of one file (its
         scanner's channel ids)."""
-        scanners = [McapScanner(file) for file in self.files]
+        scanners = [
+            McapScanner(file, cut=True).reuse(self._rebuilt[file])
+            if file in self._rebuilt
+            else McapScanner(file)
+            for file in self.files
+        ]
         chunks: list = [None] * len(scanners)  # iterators of the files opened
         heads: list = [None] * len(scanners)  # the next chunk of each open file
         starts = self._file_starts()
@@ -330,7 +425,8 @@ class BagReader:
 
     # --- lifetime ----------------------------------------------------------------
     def close(self) -> None:
-        self._reader.close()
+        if self._reader is not None:
+            self._reader.close()
 
     def __enter__(self) -> "BagReader":
         return self

@@ -50,6 +50,7 @@ from egovib_ros.bag.codec import (
 )
 from egovib_ros.bag.reader import BagReader, ReadBatch
 from egovib_ros.bag.writer import BagWriter
+from egovib_ros.core.stream import refuse_negative_stamps
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import JointVelocity, SplitJointStates, hold_missing_joints
 from egovib_ros.errors import BagError
@@ -179,6 +180,7 @@ class RecordingStream:
         self._last_joint_values: np.ndarray | None = None  # for merging partial JointStates
         self._split_joints = SplitJointStates()  # one message per joint, one stamp: one row
         self._joint_seen = np.zeros(len(self.joint_names), bool)
+        self._joint_notes: dict = {}  # codec.decode_joint_states: joints named, short arrays
         # velocity from positions where the driver publishes none (profile joints.velocity)
         self.joint_velocity = JointVelocity(
             len(self.joint_names), source=self.profile.velocity_source
@@ -192,6 +194,11 @@ class RecordingStream:
         # another clock altogether, e.g. simulated time in a bag logged in wall time)
         self._lead_ns: dict[str, int] = {}
         self.counts = {k: 0 for k in self.present}
+        self._started = False  # the sensor streams' starts aligned (`_align_ends`)
+        self.repeated = {k: 0 for k in self.present}  # messages recorded twice, read once
+        self._last_row: dict[str, np.ndarray] = {}
+        self._last_stamp: dict[str, int] = {}
+        self.unmatched_ends = {k: 0 for k in self._sensor_keys}
         self.decoded: dict[str, tuple] = {}  # the last batch's decoded streams, by key (raw, ...)
 
     # --- input -------------------------------------------------------------------------
@@ -226,6 +233,19 @@ class RecordingStream:
             self._add_joint_rows(*held)
         pieces = self._release(final=True)
         where = self.reader.path
+        if any(self.repeated.values()):
+            LOG.warning(
+                f"{where}: messages recorded twice (each the same stamp and numbers as the one "
+                f"before it), read once: "
+                + ", ".join(f"{n} of {self.names[k]}" for k, n in self.repeated.items() if n)
+            )
+        if any(self.unmatched_ends.values()):
+            LOG.warning(
+                f"{where}: the sensor topic and its ground truth start or stop at different "
+                f"times (a recorder started or stopped between them); samples without their "
+                f"counterpart left out: "
+                + ", ".join(f"{n} of {self.names[k]}" for k, n in self.unmatched_ends.items() if n)
+            )
         if self.released_early:
             LOG.warning(
                 f"{where}: {self.released_early} sensor samples went on before their joint "
@@ -240,6 +260,19 @@ class RecordingStream:
                 f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
                 f"(named by robot profile {self.profile.name!r})"
             )
+        short = {k: self._joint_notes.get(f"short_{k}", 0) for k in ("position", "velocity")}
+        for key, count in short.items():
+            if count:  # neither empty nor one value per name: which joint is which?
+                LOG.warning(
+                    f"{where}: topic {self.names['joint_states']}: {count} messages carry fewer "
+                    f"{key} values than joint names (a malformed JointState): the values "
+                    f"are matched to the first names, the joints after them have no {key}"
+                    + (
+                        " (differentiated from positions where joints.velocity allows it)"
+                        if key == "velocity"
+                        else ""
+                    )
+                )
         if not self._velocity_usable.all():
             joints = [n for n, k in zip(self.joint_names, self._velocity_usable) if not k]
             why = (
@@ -257,18 +290,46 @@ class RecordingStream:
     def _add(self, key: str, messages: MessageBatch) -> None:
         if key in self._sensor:
             stamps, values = decode_imu(messages, self.field)
-            self._sensor[key].append((stamps, values))
+            self._refuse_negative(key, stamps)
             self.decoded[key] = (stamps, values)
             self._note_lead(key, stamps, messages.log_times)
+            keep = self._not_repeated(key, stamps, values)
+            self._sensor[key].append((stamps[keep], values[keep]))
         elif key == "joint_states":
-            stamps, position, velocity = decode_joint_states(messages, self.joint_names)
+            stamps, position, velocity = decode_joint_states(
+                messages, self.joint_names, self._joint_notes
+            )
+            self._refuse_negative(key, stamps)
             self._note_lead(key, stamps, messages.log_times)
+            keep = self._not_repeated(key, stamps, position, velocity)
+            stamps, position, velocity = stamps[keep], position[keep], velocity[keep]
             self._add_joint_rows(*self._split_joints.push(stamps, position, velocity))
         elif key == "denoised":
             self._denoised.append(decode_imu(messages, self.field))
         elif key == "commands":
             values = [decode_commands(r) for r in messages.to_list()]
             self._commands.append((messages.log_times.copy(), values))
+
+    def _not_repeated(self, key: str, stamps: np.ndarray, *values: np.ndarray) -> np.ndarray:
+        """(n,) False for a message that repeats the one before it on its topic exactly (stamp
+        and numbers: a recorder that wrote it twice): read once, counted (`repeated`)."""
+        row = np.concatenate([stamps[:, None].astype(np.float64), *values], axis=1)
+        if len(row) == 0:
+            return np.ones(0, bool)
+        last = self._last_row.get(key)
+        before = np.concatenate([row[:1] * np.nan if last is None else last[None, :], row[:-1]])
+        same = np.all((row == before) | (np.isnan(row) & np.isnan(before)), axis=1)
+        same &= stamps == np.concatenate([[stamps[0] if last is not None else -1], stamps[:-1]])
+        if last is not None:
+            same[0] &= int(stamps[0]) == self._last_stamp[key]
+        self._last_row[key], self._last_stamp[key] = row[-1], int(stamps[-1])
+        self.repeated[key] += int(np.count_nonzero(same))
+        return ~same
+
+    def _refuse_negative(self, key: str, stamps: np.ndarray) -> None:
+        """Stamps before 1970 (core.stream.refuse_negative_stamps), named by bag and topic."""
+        where = f"{self.reader.path}: topic {self.names[key]}: messages"
+        refuse_negative_stamps(stamps, where, BagError)
 
     def _add_joint_rows(self, stamps, position, velocity) -> None:
         velocity = self.joint_velocity.push(stamps, position, velocity)
@@ -297,6 +358,47 @@ class RecordingStream:
         return stamps, position, velocity
 
     # --- output ------------------------------------------------------------------------
+    def _refuse_valueless_joints(self) -> None:
+        """Before any slice goes on: joints the messages name but never give a number (an
+        effort-only JointState) are refused as such, not as joints the topic lacks."""
+        named = self._joint_notes.get("named")
+        if named is None:
+            return
+        valueless = [n for n, a, b in zip(self.joint_names, named, self._joint_seen) if a and not b]
+        if valueless:
+            raise BagError(
+                f"{self.reader.path}: topic {self.names['joint_states']}: joint(s) "
+                f"{', '.join(valueless)} named in its messages but never given a position or a "
+                f"velocity (effort only?)"
+            )
+
+    def _align_ends(self, sensor: dict, *, final: bool) -> dict:
+        """The sensor topic and its ground truth (contact, ego) cut to the stamps they share
+        at the start (first release) and at the end (final): a recorder subscribes to the
+        topics, and stops, at slightly different times (`bag_recorder` stopped before or after
+        the simulator). The samples left out are counted (`unmatched_ends`) and said at the
+        end; a stamp missing in the middle is still refused (`_release`)."""
+        if len(sensor) < 2:
+            return sensor
+        if not self._started and all(len(s) for s, _ in sensor.values()):
+            first = max(int(s[0]) for s, _ in sensor.values())
+            if not final and first >= min(self._stamp_frontier(k) for k in sensor):
+                return sensor  # a stream's first samples may still be unread: `_release` waits
+            for k, (s, x) in sensor.items():
+                i = int(np.searchsorted(s, first))
+                if i and s[i : i + 1].tolist() == [first]:
+                    self.unmatched_ends[k] += i
+                    sensor[k] = (s[i:], x[i:])
+            self._started = True
+        if final:
+            n = min(len(s) for s, _ in sensor.values())
+            raw = sensor["raw"][0]
+            if all(np.array_equal(s[:n], raw[:n]) for s, _ in sensor.values()):
+                for k, (s, x) in sensor.items():
+                    self.unmatched_ends[k] += len(s) - n
+                    sensor[k] = (s[:n], x[:n])
+        return sensor
+
     def _release(self, *, final: bool) -> list[Recording]:
         if not final and any(k not in self._lead_ns for k in [*self._sensor_keys, "joint_states"]):
             # A stream with no message read yet may still hold any stamp: a converter that
@@ -307,6 +409,10 @@ class RecordingStream:
             k: _by_stamp(_concat([s for s, _ in v], None), _concat([x for _, x in v], 3))
             for k, v in self._sensor.items()
         }
+        sensor = self._align_ends(sensor, final=final)
+        if not final and not self._started and len(sensor) > 1:
+            self._sensor = {k: [v] for k, v in sensor.items()}
+            return []
         raw_stamps = sensor["raw"][0]
         n = min(len(s) for s, _ in sensor.values())
         if final:
@@ -329,6 +435,7 @@ class RecordingStream:
                 self._sensor = {k: [v] for k, v in sensor.items()}
                 return []
             self.released_early += early  # counted once, when they do go on
+        self._refuse_valueless_joints()
         width = len(self.joint_names)
         js_stamps, js_position, js_velocity = _by_stamp(
             _concat([j[0] for j in self._joints], None),
@@ -600,7 +707,14 @@ def _reordered(encode, order):
     return enc
 
 
-def duration_of(path: str | os.PathLike) -> float:
-    """Seconds spanned by a bag (metadata.yaml)."""
+def duration_of(path: str | os.PathLike, profile: RobotProfile | None = None) -> float:
+    """Seconds of recording a bag holds: its sensor topic's message count at the profile's rate
+    when the bag lists it (a pause in the recording does not count), else the time spanned
+    (metadata.yaml)."""
     with BagReader(path) as reader:
-        return float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / NS_PER_S
+        span = float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / NS_PER_S
+        if profile is None:
+            return span
+        topic = reader.topics.get(profile.sensor_topic)
+        count = topic.count if topic is not None else 0
+        return min(span, count / profile.rate_hz) if count else span

@@ -14,6 +14,7 @@ from egovib_ros.cli.jobs import parallel_options
 from egovib_ros.cli.options import force_and_quiet, joint_lag_option
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.noise_model import sweep_mask
+from egovib_ros.core.stream import has_bad_input
 from egovib_ros.errors import BagError
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import load_profile
@@ -121,7 +122,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if len(results) == 1:
             raise BagError(results[0].error)
         for line in summary_lines(results, _describe_calibrate):
-            print(line, file=sys.stderr)
+            if not args.quiet or line.startswith("  FAILED") or model is None:
+                print(line, file=sys.stderr)
         raise_if_bugs(results)
         if model is None:
             print(
@@ -140,14 +142,19 @@ def run_calibrate(args: argparse.Namespace) -> int:
     with atomic_output(args.out) as tmp:  # said only once written: a failed save is one line
         model.save(tmp)
     on = "" if len(results) == 1 else f" (fitted on {first})"
-    if fitted["methods"] is not None:
+    if fitted["methods"] is not None and not args.quiet:
         print(f"methods cancel and hybrid{on}: {describe_methods(fitted['methods'])}",
               file=sys.stderr)  # fmt: skip
-    print(
-        f"contact detector thresholds{on}, 1 false alarm a minute of it: "
-        f"{describe_thresholds(fitted['thresholds'])}",
-        file=sys.stderr,
-    )
+    if not args.quiet:
+        print(
+            f"contact detector thresholds{on}, 1 false alarm a minute of it: "
+            f"{describe_thresholds(fitted['thresholds'])}",
+            file=sys.stderr,
+        )
+    if args.quiet:  # the counts of bad input only, if any (--quiet)
+        if len(results) == 1 and has_bad_input(stats):
+            print(results[0].value["input_counts"], file=sys.stderr)
+        return 0
     for line in coverage_lines(model):
         print(line, file=sys.stderr)
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)

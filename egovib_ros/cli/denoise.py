@@ -81,6 +81,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="none",
         help="MCAP chunk compression of the output bag (readable by rosbags and ros2 bag)",
     )
+    den.add_argument(
+        "--replace-denoised",
+        action="store_true",
+        help="a bag that holds the model's denoised topic already (a recorded live run) is "
+        "refused; with this option that topic is left out of the copy and egovib's written in "
+        "its place",
+    )
     parallel_options(den)
     force_and_quiet(den, "replace an existing bag written by egovib")
     den.set_defaults(func=run_denoise)
@@ -103,7 +110,12 @@ def _describe_denoise(figures: dict) -> str:
         if figures.get("samples_unmeasured"):
             text += f", on unmeasured cells {figures['samples_unmeasured']}"
     if figures["raw_without_output"]:
-        text += f", raw samples dropped (out of order / non-finite) {figures['raw_without_output']}"
+        text += (
+            f", raw messages without a denoised one (bad, out of order or recorded twice) "
+            f"{figures['raw_without_output']}"
+        )
+    if figures.get("replaced_denoised"):
+        text += f", the bag's own denoised topic replaced ({figures['replaced_denoised']} messages)"
     if figures["compression"] != "none" and figures["size_ratio"]:
         text += f"; zstd size ratio {figures['size_ratio']:.1f}"
     return text + f"; {figures['input_counts']}"
@@ -133,9 +145,20 @@ def run_denoise(args: argparse.Namespace) -> int:
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
         prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
     task = functools.partial(
-        _denoise_task, model=model, method=method, compress=args.compress, **settings
+        _denoise_task,
+        model=model,
+        method=method,
+        compress=args.compress,
+        replace_denoised=args.replace_denoised,
+        **settings,
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="denoise", quiet=args.quiet
     )
-    return report_results(results, _describe_denoise, single=len(jobs) == 1)
+    return report_results(
+        results,
+        _describe_denoise,
+        single=len(jobs) == 1,
+        quiet=args.quiet,
+        said=lambda figures: figures["input_counts"] if figures["bad_input"] else "",
+    )

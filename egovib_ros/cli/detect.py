@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from egovib_ros.cli.options import float_in, nonneg_float
+from egovib_ros.cli.options import QUIET_HELP, float_in, nonneg_float
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 
 SCHEMA = "egovib.events/1"
@@ -66,7 +66,7 @@ def register(subparsers) -> None:
         help="joint states lag the sensor by this much (as egovib denoise)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="replace an output egovib wrote")
-    parser.add_argument("--quiet", action="store_true", help="no summary line of the scores")
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     parser.set_defaults(func=run)
 
 

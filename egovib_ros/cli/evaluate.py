@@ -150,7 +150,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"{r.bag}: {_describe({**r.value, 'bad_samples': ''})}; wrote {r.out}")
         return 0
-    return report_results(results, _describe, single=False)
+    return report_results(
+        results,
+        _describe,
+        single=False,
+        quiet=args.quiet,
+        said=lambda value: value["bad_samples"],
+    )
 
 
 def register(subparsers) -> None:
@@ -158,10 +164,12 @@ def register(subparsers) -> None:
         "evaluate",
         help="paper metrics on bags with ground truth (JSON)",
         description="Denoise BAG with MODEL by every method and write the paper's "
-        "metrics (INTERFACES.md section 6) as JSON. Needs the ground-truth "
-        "topic /accelerometer/contact. If BAG also holds "
-        "/accelerometer/denoised (from `egovib denoise` or the live node), "
-        "it is scored too, as method 'bag_denoised'. Bags are streamed (memory does not "
+        "metrics (INTERFACES.md section 6) as JSON. Topics come from the model's robot "
+        "profile: its sensor topic, joint states and the ground truth beside the sensor "
+        "topic, <parent of the sensor topic>/contact (PR2: /accelerometer/raw, "
+        "/joint_states, /accelerometer/contact). If BAG also holds the profile's denoised "
+        "topic (from `egovib denoise` or the live node), it is scored too, as method "
+        "'bag_denoised'. Bags are streamed (memory does not "
         "grow with their length). Several bags (or directories of bags): --json is a "
         "directory, one JSON per bag (<bag name>.json), processed in parallel with --jobs.",
     )
@@ -169,8 +177,8 @@ def register(subparsers) -> None:
         "bags",
         nargs="+",
         metavar="BAG",
-        help="rosbag2 bag(s) with /accelerometer/raw, /joint_states, /accelerometer/contact, "
-        "or directories of bags",
+        help="rosbag2 bag(s) with the model's sensor topic, joint states and ground truth "
+        "(<parent of the sensor topic>/contact), or directories of bags",
     )
     ev.add_argument("--model", required=True, help="noise model .npz")
     ev.add_argument(

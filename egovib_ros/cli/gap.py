@@ -93,7 +93,7 @@ def register(subparsers) -> None:
         default=None,
         help="diagnose the bags on an existing Dask cluster (e.g. tcp://host:8786)",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", action="store_true", help=options.QUIET_HELP)
     parser.add_argument(
         "--no-figures",
         action="store_true",
@@ -138,9 +138,16 @@ def run(args: argparse.Namespace) -> int:
         summary = results[0].value
         for notice in summary["notices"]:
             print(f"gap: {jobs[0].bag}: {notice}", file=sys.stderr)
-        print(f"gap: {describe_gap(dict(summary, notices=()))}", file=sys.stdout)
+        if not args.quiet:
+            print(f"gap: {describe_gap(dict(summary, notices=()))}", file=sys.stdout)
         return 0
-    return report_results(results, describe_gap, single=len(jobs) == 1)
+    return report_results(
+        results,
+        describe_gap,
+        single=len(jobs) == 1,
+        quiet=args.quiet,
+        said=lambda summary: "; ".join(summary["notices"]),
+    )
 
 
 def gap_task(bag, out, progress, *, model_path, **options) -> dict:

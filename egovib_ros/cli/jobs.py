@@ -48,16 +48,27 @@ def output_jobs(
     return [BagJob(bag, out / f"{name}{suffix}") for bag, name in pairs]
 
 
-def report_results(results, describe, *, single: bool) -> int:
-    """Single bag: its line, or its one-line error (exit 2). Several: the summary."""
+def report_results(results, describe, *, single: bool, quiet: bool = False, said=None) -> int:
+    """Single bag: its line, or its one-line error (exit 2). Several: the summary. `quiet`
+    (--quiet): only what `said(value)` gives (the counts of bad input, if any) and the
+    failures with the totals."""
     if single:
         r = results[0]
         if not r.ok:
             raise BagError(r.error.splitlines()[0]) if r.error else BagError(f"{r.bag}: failed")
-        print(describe(r.value), file=sys.stderr)
-        print(f"wrote {r.out}", file=sys.stderr)
+        if not quiet:
+            print(describe(r.value), file=sys.stderr)
+            print(f"wrote {r.out}", file=sys.stderr)
+        elif said is not None and said(r.value):
+            print(f"{r.bag}: {said(r.value)}", file=sys.stderr)
         return 0
-    for line in summary_lines(results, describe):
+    lines = summary_lines(results, describe)
+    if quiet:
+        lines = [f"  {r.bag}: {said(r.value)}" for r in results if r.ok and said and said(r.value)]
+        if not all(r.ok for r in results):
+            lines += [f"  FAILED {r.error}" for r in results if not r.ok]
+            lines.append(summary_lines(results, describe)[-1])
+    for line in lines:
         print(line, file=sys.stderr)
     raise_if_bugs(results)  # a bag failed on a bug: an internal error (exit 1), not bad input
     return 0 if all(r.ok for r in results) else 2

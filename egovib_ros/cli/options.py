@@ -101,12 +101,18 @@ def joint_lag_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def force_and_quiet(
-    parser: argparse.ArgumentParser, force_help: str, quiet_help: str | None = "no progress bar"
-) -> None:
-    """--force (replace an output: what it may replace in `force_help`) and --quiet."""
+#: What --quiet means in every command.
+QUIET_HELP = (
+    "no progress bar and no summary of the results; warnings, errors and the counts of bad "
+    "input, if any, are still said"
+)
+
+
+def force_and_quiet(parser: argparse.ArgumentParser, force_help: str, quiet_help=None) -> None:
+    """--force (replace an output: what it may replace in `force_help`) and --quiet
+    (QUIET_HELP, the same in every command)."""
     parser.add_argument("--force", action="store_true", help=force_help)
-    parser.add_argument("--quiet", action="store_true", help=quiet_help)
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
 
 
 def effects_spec(text: str) -> dict[str, float]:

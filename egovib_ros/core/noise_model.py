@@ -206,10 +206,15 @@ class NoiseModel:
             )
 
     def _check_cells(self, where: str) -> None:
-        if self.window.shape != (self.block_length,) or not np.all(np.isfinite(self.window)):
+        if self.window.shape != (self.block_length,):
             raise ModelFileError(
                 f"{where}: window has {self.window.size} samples, "
                 f"block_length is {self.block_length}"
+            )
+        if not np.all(np.isfinite(self.window)):
+            bad = int(np.count_nonzero(~np.isfinite(self.window)))
+            raise ModelFileError(
+                f"{where}: window holds {bad} non-finite value(s) of {self.block_length}"
             )
         k = len(self.cells)
         shape = (k, len(self.channels), n_bins(self.block_length))
@@ -756,7 +761,7 @@ class NoiseModel:
             with np.load(path, allow_pickle=False) as data:
                 if not hasattr(data, "files"):
                     raise ModelFileError(f"{where}: not a noise-model .npz (a single .npy array)")
-                fields = {k: data[k] for k in data.files}
+                fields = {k: _array_field(data, k, where) for k in data.files}
         except ModelFileError:
             raise
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
@@ -796,8 +801,8 @@ class NoiseModel:
             "counts",
             "measured",
         ]
-        if version >= 2:
-            required.append("cells")
+        if version >= 2:  # a model of schema 2 or later always carries its profile key
+            required += ["cells", "profile"]
         missing = [k for k in required if k not in fields]
         if missing:
             raise ModelFileError(f"{where}: missing field(s) {missing}")
@@ -807,6 +812,7 @@ class NoiseModel:
         grid_keys = [f"grid_{j}" for j in range(n_joints)]
         if any(k not in fields for k in grid_keys):
             raise ModelFileError(f"{where}: missing grid arrays for {n_joints} joints")
+        _check_dtypes(fields, grid_keys, where)
         try:
             return cls._from_fields(fields, grid_keys, where, version)
         except ModelFileError:
@@ -874,6 +880,42 @@ class NoiseModel:
             f"(median {c['median_blocks']:g} per cell), {self.sample_rate_hz:g} Hz, "
             f"L={self.block_length}, hop={self.hop}"
         )
+
+
+def _array_field(data, key: str, where: str) -> np.ndarray:
+    """One array of an open .npz; an object array (loadable only by unpickling, never done
+    here) is a one-line ModelFileError naming it."""
+    try:
+        return data[key]
+    except ValueError as exc:
+        if "pickle" not in str(exc):
+            raise
+        raise ModelFileError(
+            f"{where}: field {key!r} is an array of Python objects, which no noise model holds "
+            f"(not loaded: that would run code from the file)"
+        ) from None
+
+
+#: Tables stored as floating point numbers (an integer table would quantise the spectra).
+_FLOAT_FIELDS = ("mean", "std", "window")
+
+
+def _check_dtypes(fields: dict, grid_keys: list[str], where: str) -> None:
+    """Numbers where numbers belong: the spectra and the window as floating point (float32
+    or float64), grids, counts, cells and scalars as real numbers; complex values nowhere."""
+    for key, value in fields.items():
+        kind = np.asarray(value).dtype
+        if kind.kind == "c":
+            raise ModelFileError(f"{where}: field {key!r} holds complex numbers ({kind})")
+        wanted = None
+        if key in _FLOAT_FIELDS and not (kind.kind == "f" and kind.itemsize >= 4):
+            wanted = "float32 or float64"
+        elif key in ("counts", "cells") and kind.kind not in "iu":
+            wanted = "integers"
+        elif key in ("sample_rate_hz", "band_hz", *grid_keys) and kind.kind not in "iuf":
+            wanted = "real numbers"
+        if wanted:
+            raise ModelFileError(f"{where}: field {key!r} is stored as {kind}, expected {wanted}")
 
 
 def _integer_field(value: np.ndarray, name: str, where: str) -> int:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays
+from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays, repeats
 from egovib_ros.core.timebase import NS_PER_S
 
 
@@ -93,6 +93,9 @@ class SampleFramer(_Framer):
         )
         keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
         self.stats.joint_states_dropped += int((~keep).sum())
+        self.stats.joint_states_duplicates += repeats(
+            last, self._joint_v[-1] if last is not None else None, stamps_ns, velocity, keep
+        )
         if keep.any():
             self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])

@@ -43,7 +43,7 @@ from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channe
 from egovib_ros.core.receipt import ReceiptClock, envelope_period, receipt_latency
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
-from egovib_ros.errors import ConfigError, StreamError
+from egovib_ros.errors import ConfigError, RateError, StreamError
 from egovib_ros.robot import STAMP_KINDS
 
 LOG = logging.getLogger("egovib_ros.core")
@@ -81,6 +81,36 @@ def measured_periods(windows: np.ndarray, period: float) -> np.ndarray:
     return periods
 
 
+class RateWatch:
+    """After a stream was refused for its rate (RateError): the rate of the samples that keep
+    coming, on windows of `window` steps (sample stamps: `measured_periods`; receipt stamps:
+    `envelope_period`). `push(stamps)` gives the rate once two windows in a row fit the
+    model again (within `settings.rate_tolerance`), else None."""
+
+    def __init__(self, settings: "FramerSettings", *, receipt: bool = False, window: int = 0):
+        self.s, self.receipt = settings, receipt
+        self.window = window or RATE_WINDOW_BLOCKS * settings.block_length
+        self._stamps = np.zeros(0, np.int64)
+        self._fitting = 0
+
+    def push(self, stamps_ns: np.ndarray) -> float | None:
+        self._stamps = np.concatenate([self._stamps, np.asarray(stamps_ns, np.int64)])
+        while len(self._stamps) > self.window:
+            stamps, self._stamps = self._stamps[: self.window + 1], self._stamps[self.window :]
+            if self.receipt:
+                period = envelope_period(stamps, self.s.period_ns)
+            else:
+                steps = np.diff(stamps)
+                steps = steps[steps > 0]
+                period = measured_periods(steps[None], self.s.period_ns)[0] if len(steps) else 0
+            hz = NS_PER_S / period if period > 0 else math.inf
+            fits = abs(hz / self.s.sample_rate_hz - 1.0) <= self.s.rate_tolerance
+            self._fitting = self._fitting + 1 if fits else 0
+            if self._fitting >= 2:
+                return hz
+        return None
+
+
 def stamp_order(
     last_ns: int | None, stamps_ns: np.ndarray, clock_jump_ns: int
 ) -> tuple[np.ndarray, int | None]:
@@ -95,6 +125,21 @@ def stamp_order(
     known = before != sentinel  # the sentinel would wrap when subtracted from
     jump = np.flatnonzero(known & (stamps_ns < np.where(known, before, 0) - clock_jump_ns))
     return stamps_ns > before, (int(jump[0]) if len(jump) else None)
+
+
+def repeats(last_ns, last_values, stamps_ns, values, keep) -> int:
+    """How many rows dropped from a stream (~keep) repeat the row before them exactly (stamp
+    and values: a message recorded twice); the first row is compared with the last one
+    accepted before (`last_ns`, `last_values`; None: none). Counted, not bad input."""
+    dropped = np.flatnonzero(~keep)
+    if len(dropped) == 0:
+        return 0
+    prev_t = np.concatenate([[-1 if last_ns is None else last_ns], stamps_ns[:-1]])[dropped]
+    width = values.shape[1]
+    first = np.full(width, np.nan) if last_values is None else np.asarray(last_values, float)
+    prev_v = np.concatenate([first[None, :], values[:-1]])[dropped]
+    same = (prev_t == stamps_ns[dropped]) & np.all(prev_v == values[dropped], axis=1)
+    return int(np.count_nonzero(same))
 
 
 def bad_samples(values: np.ndarray, sensor_range: float) -> np.ndarray:
@@ -125,7 +170,10 @@ def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
     """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
     (`stats`: DenoiserStats, CalibrationStats or a framer's FramerStats)."""
     total = int(stats.samples_in)
-    bad = int(stats.samples_bad) + int(stats.dropped_out_of_order)
+    # exact duplicates (a message recorded twice) are dropped but not bad
+    duplicates = int(getattr(stats, "duplicates", 0) or 0)
+    bad = int(stats.samples_bad) + int(stats.dropped_out_of_order) - duplicates
+    total -= duplicates
     if total == 0:
         raise StreamError(f"{where}: no sensor samples")
     if bad > limit * total:
@@ -134,6 +182,20 @@ def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
             f"(non-finite, beyond the sensor range or out of order); more than "
             f"{100 * limit:g} % is refused"
         )
+
+
+def has_bad_input(stats) -> bool:
+    """Whether the line `check_stream` gives counts anything (else it says all is well)."""
+    return any(
+        int(getattr(stats, name, 0) or 0)
+        for name in (
+            "samples_bad",
+            "dropped_out_of_order",
+            "gap_filled_samples",
+            "resets",
+            "joint_states_dropped",
+        )
+    )
 
 
 def check_stream(
@@ -154,7 +216,10 @@ def check_stream(
     """
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
-    dropped = int(stats.joint_states_dropped)
+    duplicates = int(getattr(stats, "duplicates", 0) or 0)
+    out_of_order = int(stats.dropped_out_of_order) - duplicates
+    joint_duplicates = int(getattr(stats, "joint_states_duplicates", 0) or 0)
+    dropped = int(stats.joint_states_dropped) - joint_duplicates
     if joint_states and dropped > limit * joint_states:
         raise StreamError(
             f"{joints_where or where}: {dropped} of {joint_states} joint states "
@@ -165,10 +230,15 @@ def check_stream(
         )
     return (
         f"bad input treated as missing: {int(stats.samples_bad)} sensor samples "
-        f"non-finite or beyond the sensor range, {int(stats.dropped_out_of_order)} "
-        f"out of order, {int(stats.gap_filled_samples)} bridged, "
+        f"non-finite or beyond the sensor range, {out_of_order} out of order, "
+        f"{int(stats.gap_filled_samples)} bridged, "
         f"{int(stats.resets)} restarts; {dropped} of {joint_states} joint states "
         f"dropped"
+    ) + (
+        f"; duplicates (recorded twice) dropped: {duplicates} sensor samples, "
+        f"{joint_duplicates} joint states"
+        if duplicates or joint_duplicates
+        else ""
     )
 
 
@@ -286,8 +356,8 @@ class FramerSettings:
     def period_ns(self) -> float:
         return NS_PER_S / self.sample_rate_hz
 
-    def error(self, message: str) -> StreamError:
-        return StreamError(f"{self.source}: {message}" if self.source else message)
+    def error(self, message: str, kind: type[StreamError] = StreamError) -> StreamError:
+        return kind(f"{self.source}: {message}" if self.source else message)
 
 
 @dataclass
@@ -337,6 +407,10 @@ class FramerStats:
     blocks_held: int = 0
     blocks_missing: int = 0
     receipt_latency_ns: int = 0  # stamps read as receipt times: their latency spread, else 0
+    # of the samples and joint states dropped as out of order, the exact repeats of the one
+    # before them (stamp and values: a message recorded twice): dropped, but not bad input
+    duplicates: int = 0
+    joint_states_duplicates: int = 0
 
 
 class _Counts:
@@ -387,6 +461,8 @@ class DenoiserStats(_Counts):
     frequency_correction: list | None = None  # per actuator, relative
     samples_unmeasured: int | None = None
     samples_out_of_grid: int | None = None
+    duplicates: int  # of dropped_out_of_order: exact repeats (recorded twice), not bad input
+    joint_states_duplicates: int  # of joint_states_dropped: the same
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -404,6 +480,21 @@ class CalibrationStats(_Counts):
     gap_filled_samples: int
     resets: int
     joint_states_dropped: int
+    duplicates: int
+    joint_states_duplicates: int
+
+
+def refuse_negative_stamps(stamps_ns: np.ndarray, what: str, error) -> None:
+    """StreamError (`error(message)`) if a stamp lies before 1970. ROS messages can carry them
+    (int32 sec), e.g. a bag restamped to start at -2 s, but rclpy refuses such times and the
+    streaming core marks its synthetic samples with stamp -1: refused, never silently dropped."""
+    if len(stamps_ns) and int(stamps_ns.min()) < 0:
+        first = int(stamps_ns[np.argmax(stamps_ns < 0)])
+        raise error(
+            f"{what} stamped before 1970 ({first / NS_PER_S:.9f} s: a negative header stamp, "
+            f"e.g. a bag restamped to start before 0) are not supported (nor by rclpy); "
+            f"shift the stamps to start at or after 0"
+        )
 
 
 def joint_state_arrays(stamps_ns, velocity, n_joints: int, error) -> tuple[np.ndarray, np.ndarray]:
@@ -442,6 +533,7 @@ class _Cleaner:
                 f"sensor chunk: expected stamps (N,) and samples (N, 3), "
                 f"got {stamps.shape} and {accel.shape}"
             )
+        refuse_negative_stamps(stamps, "sensor samples", self.s.error)
         self.stats.samples_in += len(stamps)
         if self.kind is None:
             self._probe.append((stamps, accel))
@@ -530,6 +622,7 @@ class _Cleaner:
             return head + self._segments(stamps[i:], accel[i:])
         if not keep.all():
             self.stats.dropped_out_of_order += int((~keep).sum())
+            self.stats.duplicates += self._repeats(stamps, accel, keep)
             stamps, accel = stamps[keep], accel[keep]
         if len(stamps) == 0:
             return []
@@ -575,6 +668,10 @@ class _Cleaner:
         self.last_stamp = int(stamps[-1])
         self.last_value = accel[-1].copy()
         return segments
+
+    def _repeats(self, stamps: np.ndarray, accel: np.ndarray, keep: np.ndarray) -> int:
+        """How many of the dropped samples (~keep) repeat the sample before them exactly."""
+        return repeats(self.last_stamp, self.last_value, stamps, accel, keep)
 
     def _receipt_gaps(self, stamps: np.ndarray, bad: np.ndarray) -> np.ndarray:
         """Samples missing before each good sample, on the rebuilt sample clock (the stamps
@@ -667,7 +764,9 @@ class _Framer:
         method accepts every method accepts (steps alternating 500 and 750 us: their mean
         rate, 1600 Hz, not the shorter step's)."""
         if self._rate_error:
-            raise self.s.error(self._rate_error)  # a wrong rate stays wrong: refuse every chunk
+            # a wrong rate stays wrong: refuse every chunk (a live node restarts on a new
+            # framer once the rate is back: RateWatch)
+            raise self.s.error(self._rate_error, RateError)
         receipt = self._cleaner.receipt is not None
         if receipt:
             steps = ends = stamps  # every sample: envelope_period counts those received
@@ -723,14 +822,14 @@ class _Framer:
                 "; many of its steps are under half a period: stamped on receipt "
                 "from there on (the driver or its settings changed?)"
             )
-        raise self.s.error(self._rate_error)
+        raise self.s.error(self._rate_error, RateError)
 
     def _judge_first_rate(self, measured: float) -> None:
         """The first window's rate: off by more than the tolerance, the stream is refused."""
         self._rate_checked = True
         if abs(measured / self.s.sample_rate_hz - 1.0) > self.s.rate_tolerance:
             self._rate_error = rate_refusal(measured, self.s, self.stats)
-            raise self.s.error(self._rate_error)
+            raise self.s.error(self._rate_error, RateError)
 
     def _rate_segment_ends(self, segment) -> None:
         """No step is measured across a long gap or a clock jump; receipt stamps: a window
@@ -799,6 +898,10 @@ class BlockFramer(_Framer):
             return
         keep = in_order & np.all(np.isfinite(velocity), axis=1)
         self.stats.joint_states_dropped += int((~keep).sum())
+        last_v = self._joint_v[-1] if len(self._joint_v) else None
+        self.stats.joint_states_duplicates += repeats(
+            int(last) if len(self._joint_t) else None, last_v, stamps_ns, velocity, keep
+        )
         if keep.any():
             self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
             self._joint_v = np.concatenate([self._joint_v, velocity[keep]])

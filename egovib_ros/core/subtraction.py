@@ -457,7 +457,8 @@ class StreamingDenoiser(FramedDenoiser):
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
-            LOG.warning(message)
+            source = self.settings.source  # the bag and topic: e.g. detect's no-contact bag
+            LOG.warning(f"{source}: {message}" if source else message)
 
 
 def denoise_batch(

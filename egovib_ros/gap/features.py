@@ -343,15 +343,21 @@ class JointScreen:
         self.last_ns = None
         self.seen = 0
         self.bad = 0
+        self.duplicates = 0  # of the bad, exact repeats of the usable one before (recorded twice)
+        self._last_row = None
 
     def __call__(self, stamps_ns: np.ndarray, position: np.ndarray, velocity: np.ndarray):
         finite = np.all(np.isfinite(velocity), axis=1) & np.all(np.isfinite(position), axis=1)
         good = np.zeros(len(stamps_ns), dtype=bool)
-        last = self.last_ns
+        last, row = self.last_ns, self._last_row
         for i in np.flatnonzero(finite):  # joint rate: a Python loop is cheap here
             if last is None or stamps_ns[i] > last:
-                good[i], last = True, int(stamps_ns[i])
-        self.last_ns = last
+                good[i], last, row = True, int(stamps_ns[i]), (position[i], velocity[i])
+            elif stamps_ns[i] == last and all(
+                np.array_equal(a, b[i]) for a, b in zip(row, (position, velocity))
+            ):
+                self.duplicates += 1
+        self.last_ns, self._last_row = last, row
         self.seen += len(good)
         self.bad += int((~good).sum())
         return good
@@ -735,7 +741,11 @@ def build_table(
     joints.push(stamps, rec.joint_position[good][:, order], velocity)
     framing.push_joint_states(stamps, velocity)
     framing.push_sensor(rec.sensor_stamps_ns, rec.sensor)
-    bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad)
+    bad_input = dict(
+        joint_states=screen.seen,
+        joint_states_bad=screen.bad,
+        joint_states_duplicates=screen.duplicates,
+    )
     return table_from_blocks(
         model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
     )
@@ -768,9 +778,10 @@ def table_from_bag(
     the share. None: no budget."""
 
     source = str(path)
-    keep = 1.0
+    keep, duration_s = 1.0, None
     if budget_minutes is not None:
-        duration_s = duration_of(path)
+        # the seconds of data, not of stamps: a pause in the recording thins nothing
+        duration_s = duration_of(path, model.profile)
         if duration_s > 60.0 * budget_minutes:
             keep = 60.0 * budget_minutes / duration_s
     framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, keep=keep)
@@ -795,7 +806,14 @@ def table_from_bag(
         joints.push(stamps, piece.joint_position[good][:, order], velocity)
     if order is None:
         raise BagError(f"{source}: no sensor or joint-state messages")
-    bad_input = dict(joint_states=screen.seen, joint_states_bad=screen.bad, kept_share=keep)
+    bad_input = dict(
+        joint_states=screen.seen,
+        joint_states_bad=screen.bad,
+        joint_states_duplicates=screen.duplicates,
+        kept_share=keep,
+    )
+    if duration_s is not None:
+        bad_input["recorded_s"] = duration_s  # seconds of sensor data the budget was held to
     return table_from_blocks(
         model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
     )
@@ -822,7 +840,10 @@ def table_from_blocks(
     )
     # the framer's counts, with the joint states the bag reader already found unusable
     counted = dataclasses.replace(
-        framing.stats, joint_states_dropped=bad_input["joint_states_dropped"]
+        framing.stats,
+        joint_states_dropped=bad_input["joint_states_dropped"],
+        joint_states_duplicates=bad_input.pop("joint_states_duplicates", 0)
+        + counts.get("joint_states_duplicates", 0),
     )
     bad_input["said"] = check_stream(
         counted,

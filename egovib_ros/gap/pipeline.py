@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -52,10 +53,14 @@ def input_notices(table: BlockTable, budget_minutes: float | None) -> list[str]:
     if any(bad.get(k, 0) for k in ("samples_bad", "dropped_out_of_order", "joint_states_dropped")):
         notices.append(bad["said"])
     if bad.get("kept_share", 1.0) < 1.0:
+        share = 100 * bad["kept_share"]  # never rounded up to "100 %": some runs are left out
+        share = f"{share:.0f}" if share < 99.5 else f"{math.floor(10 * share) / 10:.1f}"
+        held = (
+            f"{bad['recorded_s'] / 60:.1f} minutes of sensor data, " if "recorded_s" in bad else ""
+        )
         notices.append(
-            f"longer than the {budget_minutes:g}-minute budget: "
-            f"{100 * bad['kept_share']:.0f} % of the {THIN_RUN_BLOCKS}-block runs diagnosed, "
-            "spread evenly"
+            f"{held}more than the {budget_minutes:g}-minute budget (--budget-minutes): "
+            f"{share} % of its {THIN_RUN_BLOCKS}-block runs diagnosed, spread evenly"
         )
     return notices
 

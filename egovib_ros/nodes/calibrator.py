@@ -466,11 +466,16 @@ class Calibrator(Node):
             ) from None
         if os.path.exists(self.checkpoint):
             os.remove(self.checkpoint)
+        # one line that ends whole: the blocks set aside by reason, not a dict's repr
+        aside = ", ".join(
+            f"{reason.replace('_', ' ')} {n}" for reason, n in self.acc.stats.rejected.items() if n
+        )
         print(
             f"calibrator: wrote {self.output} ({cov['mode']}): {coverage_text(cov)}, "
             f"{cov['blocks']} blocks (min {cov['min_blocks']} per "
-            f"{'sweep' if 'cells_expected' in cov else 'measured'} cell); rejected "
-            f"blocks: {self.acc.stats.rejected}; bad samples: {self.acc.stats.samples_bad}",
+            f"{'sweep' if 'cells_expected' in cov else 'measured'} cell)"
+            + (f"; blocks set aside: {aside}" if aside else "")
+            + f"; bad samples: {self.acc.stats.samples_bad}",
             flush=True,
         )
         print(f"calibrator: fitted {fitted}", flush=True)

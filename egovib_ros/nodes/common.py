@@ -3,9 +3,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -27,6 +30,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 from sensor_msgs.msg import Imu, JointState
 
@@ -46,6 +50,7 @@ from egovib_ros.robot import config_dir
 # a depth of 5 would cut, and a starved process must not lose what DDS delivered.
 SENSOR_QUEUE_DEPTH = 3000
 SPIN_TIMEOUT_S = 0.1
+_NO_HANDLERS = SignalHandlerOptions.NO  # run_node handles the signals (_StopOnSignal)
 #: After our writers see their subscribers, time for the subscribers' readers to see our
 #: writers too (DDS matches each side on its own): a reliable sample sent before that is
 #: resent only at the writer's next heartbeat (Fast DDS: every 3 s), i.e. arrives late.
@@ -533,6 +538,7 @@ def stream_counters(inp: "StreamInput", stats) -> dict[str, int]:
         "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
         "samples_bad": stats.samples_bad,
         "samples_out_of_order": stats.dropped_out_of_order,
+        "samples_duplicate": stats.duplicates,  # of those, exact repeats (recorded twice)
         "gap_filled_samples": stats.gap_filled_samples,
         "stream_restarts": stats.resets,
         "joint_states_dropped": stats.joint_states_dropped,
@@ -614,7 +620,13 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     (EgovibError) is a one-line error and exit status 2.
     """
     use_package_fastdds_profiles()
-    rclpy.init(args=sys.argv if args is None else args)
+    # Ctrl-C and SIGTERM are ours, not rclpy's: rclpy's handlers shut the context down at
+    # once, so a callback publishing then failed ("[FATAL] ... publisher's context is
+    # invalid" with a traceback) and every log line of `close()` with "Failed to publish
+    # log message to rosout". Here a signal while spinning only ends the spin loop (within
+    # SPIN_TIMEOUT_S); the node closes with its context valid, then rclpy shuts down.
+    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=_NO_HANDLERS)
+    stop = _StopOnSignal()
     node = None
     status = 0
     try:
@@ -629,8 +641,9 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
             # future with a timeout does not, and serves many events per call (a call per
             # event, spin_once, costs Python overhead at every message of a 3 kHz stream).
             until = done if done is not None else Future()
-            while rclpy.ok() and not until.done():
-                executor.spin_until_future_complete(until, timeout_sec=SPIN_TIMEOUT_S)
+            with stop.deferred():
+                while not stop.received and rclpy.ok() and not until.done():
+                    executor.spin_until_future_complete(until, timeout_sec=SPIN_TIMEOUT_S)
             if done is not None and done.done() and done.result() is not None:
                 status = int(done.result())
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -660,4 +673,38 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
                 status = 2
             node.destroy_node()
         rclpy.try_shutdown()
+        stop.restore()
     return status
+
+
+class _StopOnSignal:
+    """SIGINT and SIGTERM for a node process: outside `deferred()` (start-up, a node's own
+    `run()`) they raise KeyboardInterrupt at once; inside (the spin loop) they are recorded
+    in `received`, which the loop checks between spins, so no callback is interrupted. A
+    second signal meanwhile raises at once (a callback that does not return)."""
+
+    def __init__(self):
+        self.received: list[int] = []
+        self._deferring = False
+        self._previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for number in (signal.SIGINT, signal.SIGTERM):
+                if signal.getsignal(number) is not signal.SIG_IGN:  # a background job's stays
+                    self._previous[number] = signal.signal(number, self._on_signal)
+
+    def _on_signal(self, number, frame) -> None:
+        self.received.append(number)
+        if not self._deferring or len(self.received) > 1:
+            raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def deferred(self):
+        self._deferring = True
+        try:
+            yield
+        finally:
+            self._deferring = False
+
+    def restore(self) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)

@@ -15,8 +15,10 @@ default), else one from no-contact data (`calibration_bag`, or the bag the model
 calibrated from) run through the denoiser `method` and the detector's envelope, at the
 false-alarm budget `false_alarms_per_min`.
 /diagnostics: events per minute, threshold, budget, the false-alarm rate on the
-calibration data, and the latency from an event's onset stamp to its message (p50, p99;
-meaningful when the sensor stamps run on this machine's clock).
+calibration data, and the latency to an event's message (p50, p99): from its onset stamp
+when the sensor stamps run on this machine's clock, else (a replayed bag, simulated time:
+onset stamps more than REPLAYED_S away from the wall clock) from the arrival of the onset's
+sample; `latency_from` says which.
 """
 
 from __future__ import annotations
@@ -42,6 +44,9 @@ from egovib_ros.nodes.common import (
     sensor_subscription,
 )
 from egovib_ros.nodes.convert import decode_imu_raws, ns_to_stamp
+
+#: Onset stamps further than this from the wall clock are not on it (a replay, sim time).
+REPLAYED_S = 10.0
 
 PARAMETERS = (
     Param("model", "", "noise-model file (.npz): the robot profile (topics, field, band, rate)"),
@@ -114,6 +119,9 @@ class ContactDetectorNode(Node):
         )
         self.input_topic = self.resolve_topic_name(topic)
         self._pending: list[bytes] = []
+        self._pending_since = 0  # wall-clock arrival of the first pending message (ns)
+        self._arrivals: list[tuple[int, int]] = []  # (last stamp, arrival) of recent batches
+        self.latency_from = ""
         self._input = sensor_subscription(self, Imu, topic, self._on_sample, raw=True)
         self.pub = self.create_publisher(Vector3Stamped, "contact_events", 100)
         self.health = Health(
@@ -134,6 +142,8 @@ class ContactDetectorNode(Node):
 
     def _on_sample(self, data: bytes) -> None:
         # not bound to the list itself: _process replaces it with a fresh one
+        if not self._pending:
+            self._pending_since = time.time_ns()
         self._pending.extend(drain(self._input, Imu, data))
 
     def _process(self) -> None:
@@ -148,6 +158,7 @@ class ContactDetectorNode(Node):
         if self.frame_id is None:
             self.frame_id = frame_of(raws[int(index[0])])
         self.samples += len(stamps)
+        self._arrivals = self._arrivals[-2000:] + [(int(stamps.max()), self._pending_since)]
         for event in self.detector.push(stamps, values):
             msg = Vector3Stamped()
             msg.header.stamp = ns_to_stamp(event.onset_ns)
@@ -155,7 +166,18 @@ class ContactDetectorNode(Node):
             msg.vector.x, msg.vector.y, msg.vector.z = event.peak
             self.pub.publish(msg)
             self.events += 1
-            self._latency_ms.append((time.time_ns() - event.onset_ns) / 1e6)
+            self._latency_ms.append(self._latency(event.onset_ns) / 1e6)
+
+    def _latency(self, onset_ns: int) -> int:
+        """Now minus the onset stamp if that is on this machine's clock, else minus the
+        arrival of the onset's sample (ns)."""
+        now = time.time_ns()
+        if abs(now - onset_ns) <= REPLAYED_S * 1e9:
+            self.latency_from = "onset stamp"
+            return now - onset_ns
+        self.latency_from = "arrival of the onset's sample (replayed: stamps not on this clock)"
+        arrived = next((t for last, t in self._arrivals if last >= onset_ns), self._pending_since)
+        return now - arrived
 
     def _publish_diagnostics(self) -> None:
         minutes = max((time.monotonic() - self._started) / 60.0, 1e-9)
@@ -176,6 +198,7 @@ class ContactDetectorNode(Node):
             ),
             "latency_p50_ms": float(np.percentile(latency, 50)) if len(latency) else float("nan"),
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
+            "latency_from": self.latency_from,
             # DDS matches (0 publishers: nobody publishes the input, e.g. a wrong remapping)
             "input_publishers": self._input.get_publisher_count(),
             "event_subscribers": self.pub.get_subscription_count(),

@@ -212,8 +212,25 @@ def diagnostic_values(status: DiagnosticStatus) -> dict[str, str]:
 
 
 def _format_value(value: object) -> str:
+    """A diagnostic value as plain text: numbers as numbers (numpy's too: never
+    "np.float64(0.0)"), lists and arrays as "[a, b]" of such numbers."""
     if isinstance(value, (bool, np.bool_)):
         return "true" if value else "false"
     if isinstance(value, (float, np.floating)):
         return f"{float(value):.6g}"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (list, tuple, np.ndarray)):  # as Python prints a list of its numbers
+        items = value.tolist() if isinstance(value, np.ndarray) else value
+        return "[" + ", ".join(_list_item(v) for v in items) + "]"
     return str(value)
+
+
+def _list_item(value: object) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return repr(value)

@@ -37,8 +37,9 @@ from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import METHODS, make_denoiser, resolve_method
+from egovib_ros.core.stream import RateWatch
 from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION, DenoisedChunk
-from egovib_ros.errors import ConfigError, EgovibError
+from egovib_ros.errors import ConfigError, EgovibError, RateError
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.nodes.common import (
     Health,
@@ -265,9 +266,7 @@ class Denoiser(Node):
         self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
         self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
         # the same construction as `egovib denoise --method` (bad combinations: one line)
-        self.denoiser = make_denoiser(
-            self.model,
-            self.method,
+        self._options = dict(
             channels=self.channels,
             output=self.output,
             oversubtraction=params["oversubtraction"],
@@ -277,6 +276,9 @@ class Denoiser(Node):
             noise_gain_db=noise_gain_from_report(params["noise_gain"], where="noise_gain"),
             source=self.resolve_topic_name(self.profile.node_sensor_topic),
         )
+        self.denoiser = make_denoiser(self.model, self.method, **self._options)
+        self._rate_watch: RateWatch | None = None  # after a rate refusal: is it back?
+        self.rate_recoveries = 0
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.input = StreamInput(
@@ -348,14 +350,16 @@ class Denoiser(Node):
         released = self._push_joints()
         batch = self.input.take_sensor()
         if batch is not None and len(batch.stamps_ns):
-            if self.stream_error is not None:  # the core refuses this stream for good
+            if self.stream_error is not None:  # the core refuses this stream
                 self.samples_withheld += len(batch.stamps_ns)
+                if self._rate_watch is not None and self._rate_watch.push(batch.stamps_ns):
+                    self._restart()  # its rate is back: from the next batch on
                 return
             self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
             try:
                 chunk = self.denoiser.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:
-                self._refuse(str(exc))
+                self._refuse(str(exc), rate=isinstance(exc, RateError))
                 return
             if released is not None and len(released):  # one publish pass for both
                 chunk = DenoisedChunk(
@@ -380,13 +384,36 @@ class Denoiser(Node):
             return None
         return self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity)
 
-    def _refuse(self, reason: str) -> None:
-        """The core refused the stream (e.g. its rate does not fit the model): publish nothing."""
+    def _refuse(self, reason: str, *, rate: bool = False) -> None:
+        """The core refused the stream (e.g. its rate does not fit the model): publish nothing;
+        for a rate that changed (`rate`), until it is back (`_restart`)."""
         reason += self.input.publishers_note()
-        self.get_logger().error(f"{reason}: publishing nothing")
+        self.get_logger().error(
+            f"{reason}: publishing nothing" + (" until the rate is back" if rate else "")
+        )
         self.stream_error = reason
         self.samples_withheld += self.held.clear() + sum(len(r) for r, _, _ in self._startup)
         self._startup = []
+        if rate:
+            self._rate_watch = RateWatch(
+                self.denoiser.settings,
+                receipt=getattr(self.denoiser, "sensor_stamps", "") == "receipt",
+            )
+
+    def _restart(self) -> None:
+        """The stream's rate fits the model again (a burst at another rate has passed): the
+        denoiser starts afresh, as on a new stream (its settings as they are now)."""
+        live = getattr(self.denoiser, "subtraction", None)  # paper: as set at run time
+        if live is not None:
+            self._options.update(oversubtraction=live.oversubtraction, floor=live.floor)
+        self.denoiser = make_denoiser(self.model, self.method, **self._options)
+        self.get_logger().warning(
+            f"{self.input.sensor_topic}: the sensor rate fits the model again: denoising "
+            f"restarted ({self.samples_withheld} samples withheld so far)"
+        )
+        self.stream_error, self._rate_watch = None, None
+        self._rate_proven = False
+        self.rate_recoveries += 1
 
     def _update_held_back(self) -> None:
         """Is a completed block held back (more than a block of input not yet output)?"""
@@ -476,6 +503,7 @@ class Denoiser(Node):
             "samples_in": inp.sensor_messages,
             "samples_published": self.samples_published,
             "samples_withheld": self.samples_withheld,
+            "rate_recoveries": self.rate_recoveries,  # restarts once a changed rate was back
             **counters,
             "joint_states_in": inp.joint_messages,
             "joint_state_age_s": joint_age,

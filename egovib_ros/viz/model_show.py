@@ -311,13 +311,19 @@ class BagPlacement:
     def shares(self) -> dict:
         total = self.blocks
         share = {k: (v / total if total else 0.0) for k, v in self.tally.items()}
+        # a superposition model fills every other cell from Eq. 6 by design: those are not
+        # outside what it calibrated
+        eq6 = 0 if self.model.measured == "superposition" else 1
         return {
             "blocks": total,
             "blocks_no_joint_state": self.no_joint_state,
             **{f"blocks_{k}": v for k, v in self.tally.items()},
             **{f"share_{k}": v for k, v in share.items()},
             "share_unmeasured": share["eq6"] + share["nearest"],
-            "share_outside_calibrated": share["eq6"] + share["nearest"] + share["outside"],
+            "blocks_outside_calibrated": eq6 * self.tally["eq6"]
+            + self.tally["nearest"]
+            + self.tally["outside"],
+            "share_outside_calibrated": eq6 * share["eq6"] + share["nearest"] + share["outside"],
         }
 
     def cell_counts(self) -> tuple[np.ndarray, np.ndarray]:
@@ -503,8 +509,13 @@ def summary_markdown(
             f"{100 * s['share_nearest']:.1f} % |",
             f"| beyond the grid (edge cells used) | {s['blocks_outside']} | "
             f"{100 * s['share_outside']:.1f} % |",
-            f"| **outside the calibrated speeds** (unmeasured + beyond) | "
-            f"{s['blocks_eq6'] + s['blocks_nearest'] + s['blocks_outside']} | "
+            "| **outside the calibrated speeds** ("
+            + (
+                "nearest measured cell + beyond: Eq. 6 is the design of a superposition model"
+                if model.measured == "superposition"
+                else "unmeasured + beyond"
+            )
+            + f") | {s['blocks_outside_calibrated']} | "
             f"**{100 * s['share_outside_calibrated']:.1f} %** |",
             f"| without a joint state (not placed) | {s['blocks_no_joint_state']} | |",
             "",

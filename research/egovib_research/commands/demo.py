@@ -21,5 +21,7 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--max-speed", type=float, default=0.5, help="fraction of max joint speed")
     parser.add_argument("--taps", type=float, default=2.0, help="tap rate (Hz)")
-    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument(
+        "--seed", type=int, default=7, help="seed of the simulated hand (taps, noise; default 7)"
+    )
     parser.set_defaults(func=tool.run)

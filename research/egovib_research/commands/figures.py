@@ -60,7 +60,7 @@ def register(subparsers) -> None:
     fig = subparsers.add_parser(
         "figures",
         help="regenerate the evaluation table and all figures",
-        description="Run the paper's experiments on the simulator (speeds 25-100 %%, "
+        description="Run the paper's experiments on the simulator (speeds 25-100 %, "
         "all methods) and write eval_results.md/.json and eval_*.png.",
     )
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")

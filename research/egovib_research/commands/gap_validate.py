@@ -57,7 +57,7 @@ def register(subparsers) -> None:
     val.add_argument(
         "--force", action="store_true", help="replace the files of a previous run in DIR"
     )
-    val.add_argument("--quiet", action="store_true", help="no progress bar")
+    val.add_argument("--quiet", action="store_true", help=options.QUIET_HELP)
     val.set_defaults(func=run)
 
 
@@ -74,9 +74,10 @@ def run(args: argparse.Namespace) -> int:
         master_seed=args.master_seed,
         extra_none=args.extra_none,
     )
-    print(
-        f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
-        f"none flagged {summary['none_false_positive_rate']:.3f}, "
-        f"{summary['n_runs']} runs -> {summary['outputs']}"
-    )
+    if not args.quiet:
+        print(
+            f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
+            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"{summary['n_runs']} runs -> {summary['outputs']}"
+        )
     return 0

@@ -12,10 +12,19 @@ def register(subparsers) -> None:
         description=tool.__doc__.split("\n\n")[0],
     )
     parser.add_argument("--json", required=True, help="output JSON file")
-    parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--warmup", type=float, default=5.0)
+    parser.add_argument(
+        "--seconds", type=float, default=60.0, help="length of the measured run (s, default 60)"
+    )
+    parser.add_argument(
+        "--warmup", type=float, default=5.0, help="left out of the figures at the start (s)"
+    )
     parser.add_argument("--model", help="noise model (default: a quick offline calibration)")
-    parser.add_argument("--channels", choices=("per_axis", "combined"), default="per_axis")
+    parser.add_argument(
+        "--channels",
+        choices=("per_axis", "combined"),
+        default="per_axis",
+        help="the denoiser's channels: each axis cleaned, or the paper's 1-D sum",
+    )
     parser.add_argument(
         "--method",
         choices=("paper", "cancel", "hybrid"),

@@ -90,7 +90,7 @@ def calibrate(
     if group.stop("calibrator", timeout=300.0) != 0 or not model.exists():
         raise RuntimeError(f"calibrator failed:\n{group.log('calibrator')[-3000:]}")
     for line in group.log("calibrator").strip().splitlines()[-2:]:
-        print("      " + line[:300], flush=True)
+        print("      " + line, flush=True)  # whole (was cut at 300 characters, mid-dict)
 
 
 def run_motion(
