@@ -537,6 +537,28 @@ class CancellerSettings:
         )
 
 
+@numba.njit(cache=True, inline="always")
+def _cos_sin_turns(t):
+    """(cos, sin) of 2 pi t, t in turns: reduced to a quarter turn, then the Taylor
+    polynomials to y^10 on |y| <= pi/4 (error < 3e-9, far below any line's precision);
+    libm's pair per line and sample was a fifth of the canceller's time."""
+    k = math.floor(4.0 * t + 0.5)
+    y = TWO_PI * (t - 0.25 * k)
+    y2 = y * y
+    s = y * (1.0 + y2 * (-1.0 / 6.0 + y2 * (1.0 / 120.0 + y2 * (-1.0 / 5040.0 + y2 / 362880.0))))
+    c = 1.0 + y2 * (
+        -0.5 + y2 * (1.0 / 24.0 + y2 * (-1.0 / 720.0 + y2 * (1.0 / 40320.0 - y2 / 3628800.0)))
+    )
+    quadrant = int(k) & 3
+    if quadrant == 0:
+        return c, s
+    if quadrant == 1:
+        return -s, c
+    if quadrant == 2:
+        return -c, -s
+    return s, -c
+
+
 @numba.njit(cache=True, fastmath=True)
 def _cancel_kernel(
     x,
@@ -620,8 +642,7 @@ def _cancel_kernel(
                 inv_im[q] = -inverse[k, 1] if mirrored else inverse[k, 1]
             t = theta[q] + rate / fs
             theta[q] = t - math.floor(t)
-            cosv[q] = math.cos(TWO_PI * theta[q])
-            sinv[q] = math.sin(TWO_PI * theta[q])
+            cosv[q], sinv[q] = _cos_sin_turns(theta[q])
         for c in range(C):
             estimate = 0.0
             unfiltered = 0.0

@@ -275,6 +275,9 @@ def _gain_kernel(
     phase = position[1]  # samples since the last correction update
     ratio = np.empty((C, B))
     level = np.empty(C)
+    inflow = np.empty(K)  # each resonator's input gain, 1 - |pole| (a hypot: not per sample)
+    for k in range(K):
+        inflow[k] = 1.0 - abs(poles[k])
     for i in range(n):
         write = pos
         read = (pos + 1) % size  # the oldest: D samples ago
@@ -283,7 +286,7 @@ def _gain_kernel(
             total = 0.0
             for k in range(K):
                 pole = poles[k]
-                zk = pole * z[c, k] + (1.0 - abs(pole)) * x
+                zk = pole * z[c, k] + inflow[k] * x
                 z[c, k] = zk
                 band = 2.0 * zk.real
                 hist[c, k, write] = band
@@ -389,7 +392,7 @@ def _gain_kernel(
                 if second:
                     if k < K:
                         pole = poles[k]
-                        zk = pole * zv[c, k] + (1.0 - abs(pole)) * v[i, c]
+                        zk = pole * zv[c, k] + inflow[k] * v[i, c]
                         zv[c, k] = zk
                         band = 2.0 * zk.real
                         rest_v -= band

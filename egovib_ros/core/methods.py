@@ -711,7 +711,7 @@ def warm_up() -> None:
         np.ones(2, np.bool_),
         np.zeros(1),
     )
-    _fir(np.ones(2), np.zeros((3, 3)))
+    _fir(np.ones(3), np.zeros((4, 3)))
     _WARM = True
 
 
@@ -959,21 +959,27 @@ def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 @numba.njit(cache=True)
 def _fir(taps, history):
-    """(n, C) outputs of the FIR `taps` over `history` (its N - 1 samples before, then the
-    n new ones), each a sum over the taps in the same order whatever the chunking (so
+    """(n, C) outputs of the symmetric FIR `taps` (odd length N, as the model file checks)
+    over `history` (its N - 1 samples before, then the n new ones): each the middle tap's
+    product plus, per pair of equal taps, one multiply of the pair's summed samples (half
+    the multiplies of the plain sum); the sums in the same order whatever the chunking (so
     streaming equals batch to the bit, which scipy's lfilter with carried state does not
     give); the loop over samples innermost, on contiguous channels, so it vectorises."""
     N = len(taps)
+    mid = (N - 1) // 2
     n = history.shape[0] - (N - 1)
     C = history.shape[1]
     rows = np.ascontiguousarray(history.T)
-    out = np.zeros((C, n))
+    out = np.empty((C, n))
     for c in range(C):
-        for k in range(N):
+        t = taps[mid]
+        for i in range(n):
+            out[c, i] = t * rows[c, i + mid]
+        for k in range(mid):
             t = taps[k]
-            off = N - 1 - k
+            far = N - 1 - k
             for i in range(n):
-                out[c, i] += t * rows[c, i + off]
+                out[c, i] += t * (rows[c, i + far] + rows[c, i + k])
     return out.T.copy()
 
 
