@@ -80,3 +80,14 @@ def test_every_relative_link_resolves(page):
 def test_the_pages_have_links_to_check():
     """The link syntax is found: README alone links to docs/ many times."""
     assert len([t for t in links(ROOT / "README.md") if t.startswith("docs/")]) >= 5
+
+
+#: Paths of one machine: a clone has none of them (code blocks included).
+MACHINE_PATH = re.compile(r"(?<![\w.~-])/(?:tmp|work|home|root|Users|check)/[\w.-]")
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_path_of_one_machine(page):
+    text = page.read_text()
+    found = [m.group(0) for m in MACHINE_PATH.finditer(text)]
+    assert not found, f"{page.relative_to(ROOT)}: {found[:5]}"
