@@ -32,11 +32,19 @@ setup(
     ],
     # ROS client libraries (rclpy, message packages) come from apt on a ROS
     # install, or from requirements-ros.txt in the project venv: not listed here.
-    install_requires=["numpy", "scipy", "rosbags>=0.10", "mcap", "matplotlib", "tqdm", "pyyaml",
-                      # bags: zstd MCAP chunks
-                      "zstandard",
-                      # per-sample loops of the low-latency methods (cancel, hybrid) at kHz
-                      "numba"],
+    install_requires=[
+        "numpy",
+        "scipy",
+        "rosbags>=0.10",
+        "mcap",
+        "matplotlib",
+        "tqdm",
+        "pyyaml",
+        # bags: zstd MCAP chunks
+        "zstandard",
+        # per-sample loops of the low-latency methods (cancel, hybrid) at kHz
+        "numba",
+    ],
     # many bags at once (--jobs N, --scheduler): a Dask cluster, local or remote
     extras_require={"cluster": ["dask", "distributed"]},
     zip_safe=True,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import random
+import re
 import signal
 import struct
 import subprocess
@@ -37,13 +38,26 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 NODE_FIXTURES = {"nodes", "ros_client", "ros_domain", "feeder"}
 
 
+#: Test files outside `make check`'s fast lane: they run whole commands as processes, the
+#: experiments or the simulators for tens of seconds (measured with `pytest --durations`).
+SLOW_FILES = re.compile(
+    r"test_(cli|commands|experiments|tools)_.*|test_(faults|walkthrough|bag_conformance|"
+    r"bag_properties|bag_denoise|sim_robot|gap_advice|gap_writeback|gap_diagnose|gap_effects|"
+    r"gap_pipeline|gap_report|evaluation_stream|evaluation_contacts|core_receipt|"
+    r"viz_model_show|outputs)\.py"
+)
+
+
 def pytest_collection_modifyitems(items):
     """Mark every test that runs ROS 2 over DDS `nodes`, whatever its file: `make test` runs
     them one at a time after the others (which run on two workers), since they measure
-    stream timing and must not compete with a parallel test for the cores."""
+    stream timing and must not compete with a parallel test for the cores. Mark the tests
+    of SLOW_FILES `slow`: `make check` leaves them (and the node tests) out."""
     for item in items:
         if NODE_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.nodes)
+        if SLOW_FILES.fullmatch(item.path.name):
+            item.add_marker(pytest.mark.slow)
 
 
 class NodeProcesses(NodeGroup):

@@ -15,7 +15,7 @@ def ruff() -> list[str]:
 
 def test_ruff_check_is_clean():
     result = subprocess.run(
-        ruff() + ["check", "egovib_ros", "research", "test", "launch"],
+        ruff() + ["check", "egovib_ros", "research", "test", "launch", "setup.py"],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -25,7 +25,7 @@ def test_ruff_check_is_clean():
 
 def test_ruff_format_is_applied():
     result = subprocess.run(
-        ruff() + ["format", "--check", "egovib_ros", "research", "test", "launch"],
+        ruff() + ["format", "--check", "egovib_ros", "research", "test", "launch", "setup.py"],
         cwd=ROOT,
         capture_output=True,
         text=True,
