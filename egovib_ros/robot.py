@@ -80,7 +80,7 @@ class RobotProfile:
     band_order: int = 4
     source: str = field(default="", compare=False)  # where it was read (error messages)
 
-    def __post_init__(self) -> None:
+    def __post_init__(self) -> None:  # noqa: C901 (one check per profile field, each its own message)
         set_ = object.__setattr__
         where = self.source or f"robot profile {self.name!r}"
 

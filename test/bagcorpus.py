@@ -149,7 +149,7 @@ def _per_joint(data: bytes) -> list[bytes]:
     return out
 
 
-def arrange(
+def arrange(  # noqa: C901 (one branch per layout option)
     conns: list[Connection], messages: list, layout: Layout, *, seed: int = 5
 ) -> list[tuple[str, int, bytes]]:
     """The messages with the layout's log times, stamps and file order."""

@@ -37,7 +37,7 @@ def test_position_and_acceleration_are_the_integral_and_derivative_of_velocity(s
     # a stroke whose speed wanders may exceed top_speed, never the drive's limit
     assert np.max(np.abs(v[:, 1])) <= GRIPPER_LIMIT * 1.05
     np.testing.assert_allclose(np.diff(pos[:, 0]), v[1:, 0] / fs, rtol=0, atol=1e-12)
-    assert GAP_MIN <= pos[:, 1].min() and pos[:, 1].max() <= GAP_MAX
+    assert pos[:, 1].min() >= GAP_MIN and pos[:, 1].max() <= GAP_MAX
     np.testing.assert_array_equal(acc, np.gradient(v, 1.0 / fs, axis=0))
 
 

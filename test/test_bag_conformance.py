@@ -111,9 +111,13 @@ def figures(report: dict, prefix: str = "") -> dict:
         path = f"{prefix}/{key}"
         if isinstance(value, (dict, list)):
             out.update(figures(value, path))
-        elif isinstance(value, (int, float)) and not isinstance(value, bool):
-            if "runtime" not in path and "seconds" not in path:
-                out[path] = value
+        elif (
+            isinstance(value, (int, float))
+            and not isinstance(value, bool)
+            and "runtime" not in path
+            and "seconds" not in path
+        ):
+            out[path] = value
     return out
 
 

@@ -26,7 +26,7 @@ def test_chunk_without_channels(tmp_path):
         chunk = batch.chunks[0]
         kept = chunk.without(drop)
     assert set(kept.index) == set(chunk.index) - drop
-    for channel, (times, offsets) in kept.index.items():
+    for channel, (times, _offsets) in kept.index.items():
         np.testing.assert_array_equal(times, chunk.index[channel][0])
         old_times, old_starts, lengths = chunk.data_span(channel)
         _, new_starts, new_lengths = kept.data_span(channel)

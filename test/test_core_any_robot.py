@@ -197,7 +197,7 @@ def test_eight_joint_superposition_model_saves_loads_and_denoises_in_little_memo
     assert not loaded.dense_ok and len(stamps) == len(test["t_acc"]) and np.all(np.isfinite(values))
     assert path.stat().st_size < 2**20
     with pytest.raises(ModelFileError, match="too large for a dense view"):
-        loaded.mean
+        _ = loaded.mean
     # Eq. 6 for 8 joints: the estimate at a cell is the sum of its axis cells minus 7 x the
     # zero cell
     cell = np.array([[12, 10, 10, 3, 10, 10, 20, 10]])

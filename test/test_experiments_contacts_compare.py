@@ -37,7 +37,7 @@ FIELDS = {
 def _check(rows: dict) -> None:
     assert set(rows) == set(contacts_compare.METHODS)
     for method, r in rows.items():
-        assert FIELDS <= set(r), (method, FIELDS - set(r))
+        assert set(r) >= FIELDS, (method, FIELDS - set(r))
         assert r["tp"] + r["fn"] == r["n_taps"] > 0
         precision = r["tp"] / (r["tp"] + r["fp"]) if r["tp"] + r["fp"] else 1.0
         recall = r["tp"] / r["n_taps"]

@@ -34,7 +34,7 @@ def test_events_follow_their_documented_form_amplitude_and_timing():
     assert np.all((events.frequency_hz >= 100) & (events.frequency_hz <= 400))
     noise_peak = np.abs(combined_bandpassed(noise, PROFILE)[100 : n - 100]).max()
     assert events.target_peak == pytest.approx(noise_peak)
-    for k, onset in enumerate(events.onsets):  # each event alone peaks at the target
+    for onset in events.onsets:  # each event alone peaks at the target
         alone = np.zeros((n, 3))
         stop = min(n, onset + 200)
         alone[onset - 1 : stop] = events.signal[onset - 1 : stop]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import subprocess
 import sys
@@ -127,10 +128,8 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     while saved is None or (saved.counts > 0).sum() < 8:
         assert time.monotonic() < deadline and driver.poll() is None, nodes.log(first)
         time.sleep(0.2)
-        try:
+        with contextlib.suppress(ModelFileError):  # not written yet
             saved = NoiseModel.load(checkpoint)
-        except ModelFileError:  # not written yet
-            pass
     assert nodes.stop(first, sig=9) == -9  # SIGKILL: no chance to write anything at exit
     assert not model_path.exists()
     saved = NoiseModel.load(checkpoint)  # the last checkpoint before the kill

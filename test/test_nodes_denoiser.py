@@ -626,7 +626,7 @@ def test_positions_only_joint_states_live_equals_offline_paper_and_hybrid(
         shown(ros_client),
         shown(ros_client, "denoiser_hybrid"),
     )
-    for name, proc in started.items():
+    for proc in started.values():
         assert nodes.stop(proc) == 0, nodes.log(proc)
     values = {name: diagnostic_values(ros_client.statuses[name]) for name in received}
     for name, unit in (("denoiser", "blocks"), ("denoiser_hybrid", "samples")):

@@ -274,11 +274,10 @@ def test_prepare_outputs_in_adds_to_a_directory_but_replaces_files_only_with_for
 
 
 def test_directory_output_is_marked_and_appears_only_when_complete(cwd):
-    with pytest.raises(RuntimeError):
-        with atomic_output("bag", directory=True, kind="bag") as tmp:
-            tmp.mkdir()
-            (tmp / "metadata.yaml").write_text("half")
-            raise RuntimeError("killed")
+    with pytest.raises(RuntimeError), atomic_output("bag", directory=True, kind="bag") as tmp:
+        tmp.mkdir()
+        (tmp / "metadata.yaml").write_text("half")
+        raise RuntimeError("killed")
     assert sorted(os.listdir(cwd)) == []  # no output, no staging left
     write_dir_output(cwd / "bag")
     marker = json.loads((cwd / "bag" / MARKER).read_text())
@@ -289,10 +288,9 @@ def test_directory_output_is_marked_and_appears_only_when_complete(cwd):
 
 def test_replacing_our_directory_keeps_the_old_one_until_the_new_one_is_complete(cwd):
     write_dir_output(cwd / "bag", files=("old.mcap",))
-    with pytest.raises(RuntimeError):
-        with atomic_output("bag", directory=True) as tmp:
-            tmp.mkdir()
-            raise RuntimeError("killed")
+    with pytest.raises(RuntimeError), atomic_output("bag", directory=True) as tmp:
+        tmp.mkdir()
+        raise RuntimeError("killed")
     assert (cwd / "bag" / "old.mcap").is_file()
     write_dir_output(cwd / "bag", files=("new.mcap",))
     assert sorted(os.listdir(cwd / "bag")) == [MARKER, "new.mcap"]
@@ -306,32 +304,34 @@ def test_atomic_output_never_replaces_a_foreign_directory(cwd):
     before = state(cwd)
     with pytest.raises(OutputError, match="stuff: .*not replaced"):
         write_dir_output(cwd / "stuff")
-    with pytest.raises(OutputError, match="is a directory"):
-        with atomic_output(cwd / "stuff") as tmp:
-            tmp.write_text("{}")
+    with pytest.raises(OutputError, match="is a directory"), atomic_output(cwd / "stuff") as tmp:
+        tmp.write_text("{}")
     assert state(cwd) == before
 
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EDQUOT, errno.EFBIG])
 def test_a_full_disk_is_one_line_naming_the_output_and_the_staging_goes_at_once(cwd, code):
-    with pytest.raises(OutputError, match=r"^bag: not written: .* in .*\(.* MB free\)$"):
-        with atomic_output("bag", directory=True, kind="bag") as tmp:
-            tmp.mkdir()
-            (tmp / "data.mcap").write_bytes(b"\0" * 4096)
-            raise OSError(code, os.strerror(code))
+    with (
+        pytest.raises(OutputError, match=r"^bag: not written: .* in .*\(.* MB free\)$"),
+        atomic_output("bag", directory=True, kind="bag") as tmp,
+    ):
+        tmp.mkdir()
+        (tmp / "data.mcap").write_bytes(b"\0" * 4096)
+        raise OSError(code, os.strerror(code))
     assert sorted(os.listdir(cwd)) == []
-    with pytest.raises(PermissionError):  # other OS errors are not the disk's: unchanged
-        with atomic_output("bag", directory=True, kind="bag") as tmp:
-            raise PermissionError(errno.EACCES, "denied")
+    with (
+        pytest.raises(PermissionError),  # other OS errors are not the disk's: unchanged
+        atomic_output("bag", directory=True, kind="bag") as tmp,
+    ):
+        raise PermissionError(errno.EACCES, "denied")
     assert sorted(os.listdir(cwd)) == []
 
 
 def test_file_output_replaces_atomically(cwd):
     (cwd / "out.json").write_text("old")
-    with pytest.raises(RuntimeError):
-        with atomic_output("out.json") as tmp:
-            tmp.write_text("half")
-            raise RuntimeError("killed")
+    with pytest.raises(RuntimeError), atomic_output("out.json") as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("killed")
     assert (cwd / "out.json").read_text() == "old"
     with atomic_output("out.json") as tmp:
         tmp.write_text("new")

@@ -79,7 +79,7 @@ def test_accelerometer_is_quantised_and_clipped(params):
     out = _run(params, [3000])
     codes = out["sensor"] / LSB_MS2
     np.testing.assert_allclose(codes, np.round(codes), atol=1e-9)
-    assert LSB_MS2 == pytest.approx(157.0 / 1024)
+    assert pytest.approx(157.0 / 1024) == LSB_MS2
     clipped = quantise(np.array([[1000.0, -1000.0, 0.0]]))
     assert clipped[0, 0] == pytest.approx(511 * LSB_MS2) and clipped[0, 1] == pytest.approx(
         -512 * LSB_MS2

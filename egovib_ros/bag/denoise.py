@@ -188,46 +188,48 @@ def denoise_bag(
             noise_gain_db=noise_gain_db,
             source=f"{bag}: {raw_topic}",
         )
-        with atomic_output(out, directory=True, kind="bag") as tmp:
-            with BagWriter(tmp, compress=compress) as writer:
-                for topic in copy_topics:
-                    writer.copy_topic(reader, topic)
-                writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
-                job = _DenoisedTopic(writer, denoised_topic, profile.sensor_field)
-                copied = {"verbatim": 0, "rewritten": 0}  # chunks copied as they were; batches
-                joint_rows = [0]  # joint states as the core gets them (split messages joined)
+        with (
+            atomic_output(out, directory=True, kind="bag") as tmp,
+            BagWriter(tmp, compress=compress) as writer,
+        ):
+            for topic in copy_topics:
+                writer.copy_topic(reader, topic)
+            writer.copy_topic(reader, raw_topic, as_topic=denoised_topic)
+            job = _DenoisedTopic(writer, denoised_topic, profile.sensor_field)
+            copied = {"verbatim": 0, "rewritten": 0}  # chunks copied as they were; batches
+            joint_rows = [0]  # joint states as the core gets them (split messages joined)
 
-                def push(pieces) -> None:
-                    for piece in pieces:
-                        joint_rows[0] += len(piece.joint_stamps_ns)
-                        for chunk in (
-                            denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
-                            denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
-                        ):
-                            job.add_output(chunk.stamps_ns, chunk.values)
+            def push(pieces) -> None:
+                for piece in pieces:
+                    joint_rows[0] += len(piece.joint_stamps_ns)
+                    for chunk in (
+                        denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
+                        denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
+                    ):
+                        job.add_output(chunk.stamps_ns, chunk.values)
 
-                for batch in reader.batches(copy_topics):
-                    verbatim = writer.copy_batch(batch, set(copy_topics))
-                    copied["verbatim"] += verbatim
-                    copied["rewritten"] += verbatim == 0
-                    pieces = stream.add(batch)
-                    if "raw" in stream.decoded:
-                        job.add_raw(batch.messages[raw_topic], stream.decoded["raw"][0])
-                    push(pieces)
-                    if progress is not None:
-                        progress(batch.bytes_read)
-                push(stream.finish())
-                final = denoiser.flush()
-                job.add_output(final.stamps_ns, final.values)
-                job.finish()
-                # too many bad samples or unusable joint states: refused (before the bag appears)
-                counts = check_stream(
-                    denoiser.stats,
-                    f"{bag}: {raw_topic}",
-                    joint_states=joint_rows[0],  # rows, as calibrate, gap, model show
-                    joints_where=f"{bag}: {stream.names['joint_states']}",
-                )
-                ratio = writer.size_ratio
+            for batch in reader.batches(copy_topics):
+                verbatim = writer.copy_batch(batch, set(copy_topics))
+                copied["verbatim"] += verbatim
+                copied["rewritten"] += verbatim == 0
+                pieces = stream.add(batch)
+                if "raw" in stream.decoded:
+                    job.add_raw(batch.messages[raw_topic], stream.decoded["raw"][0])
+                push(pieces)
+                if progress is not None:
+                    progress(batch.bytes_read)
+            push(stream.finish())
+            final = denoiser.flush()
+            job.add_output(final.stamps_ns, final.values)
+            job.finish()
+            # too many bad samples or unusable joint states: refused (before the bag appears)
+            counts = check_stream(
+                denoiser.stats,
+                f"{bag}: {raw_topic}",
+                joint_states=joint_rows[0],  # rows, as calibrate, gap, model show
+                joints_where=f"{bag}: {stream.names['joint_states']}",
+            )
+            ratio = writer.size_ratio
     stats = denoiser.stats
     return {
         "samples_in": job.raw_read,

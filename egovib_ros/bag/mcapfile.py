@@ -258,7 +258,7 @@ class McapScanner:
             chunk.frontier_ns = frontier if frontier is not None else index.message_end_time
             yield chunk
 
-    def _sequential(self, fh, starts: list[int] | None) -> Iterator[ChunkData]:
+    def _sequential(self, fh, starts: list[int] | None) -> Iterator[ChunkData]:  # noqa: C901 (one pass over MCAP's record kinds; split, its pending-chunk state would be passed around)
         """Front to back. `starts`: each chunk's first log time (from the summary), which
         tells where the next chunk begins; without it a chunk's own start is the bound."""
         pending: tuple | None = None  # a chunk waiting for its message indexes
@@ -586,7 +586,7 @@ class McapWriter:
         if compression not in ("", "zstd"):
             raise ValueError(f"compression must be '' or 'zstd', got {compression!r}")
         self.path = Path(path)
-        self._fh = open(self.path, "xb")
+        self._fh = open(self.path, "xb")  # noqa: SIM115 (the writer's own; closed by close())
         self.compression = compression
         self.chunk_bytes = int(chunk_bytes)
         self.crc = crc  # chunk CRCs: damage is detected on reading (0: not computed)

@@ -6,6 +6,7 @@ through rosbags' writer.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -148,10 +149,8 @@ class BagWriter:
         """Close the MCAP file of a bag that is given up. Its buffered bytes cannot be written
         when the disk is full: that second failure would hide the first, so it is dropped."""
         if self._mcap is not None:
-            try:
+            with contextlib.suppress(OSError):
                 self._mcap.abort()
-            except OSError:
-                pass
 
     @property
     def size_ratio(self) -> float | None:

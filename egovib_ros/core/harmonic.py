@@ -268,7 +268,7 @@ def _strongest_lines(
     return out, curves
 
 
-def fit_harmonic_map(
+def fit_harmonic_map(  # noqa: C901 (the fit's numbered steps share their intermediate arrays)
     x: np.ndarray,
     speed: np.ndarray,
     *,
@@ -560,7 +560,7 @@ def _cos_sin_turns(t):
 
 
 @numba.njit(cache=True, fastmath=True)
-def _cancel_kernel(
+def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     x,
     speed,
     known,

@@ -216,7 +216,7 @@ class FilterBank:
 
 
 @numba.njit(cache=True, fastmath=True)
-def _gain_kernel(
+def _gain_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     r,
     noise,
     row,

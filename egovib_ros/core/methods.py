@@ -311,7 +311,7 @@ class MethodCalibration:
 
 
 @numba.njit(cache=True)
-def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):
+def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):  # noqa: C901 (numba loop: one compiled pass per call)
     """Expected band powers once per run of equal velocities, by multilinear interpolation
     of the flattened dense table (cells, M) (np.interp's position rule per joint, clamped
     at the grid's edges), at least `floor` (M,). Returns (values (n, M): the first R rows

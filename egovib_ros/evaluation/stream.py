@@ -730,7 +730,7 @@ class EvaluationPass:
                     tap.peaks[i] = max(tap.peaks[i], float(magnitude[a - p : b - p].max()))
         self.noise_count += int(np.count_nonzero(no_contact))
         if self.detectors:
-            for key, (signal_key, detector) in self.detectors.items():
+            for signal_key, detector in self.detectors.values():
                 detector.push(data[signal_key])
         else:  # this pass only sets the thresholds, from the run's own no-contact samples
             for key in self.detect_keys:

@@ -234,7 +234,7 @@ def direction(table: BlockTable) -> np.ndarray:
     return np.tanh(table.velocity / (SIGN_SOFT * table.vmax))
 
 
-def effect_regressors(
+def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, side by side)
     effect: str, table: BlockTable, scales: Scales
 ) -> tuple[np.ndarray, list[str]]:
     """Regressor columns (B, R) of one candidate effect, with their names (none for the
@@ -493,7 +493,7 @@ def _acceleration_shapes(
 ) -> dict:
     """Gain along each joint's |acceleration|, and around its reversals."""
     shapes: dict = {}
-    for j, name in enumerate(table.joint_names):
+    for name in table.joint_names:
         idx = {n: k for k, n in enumerate(names)}
         grid = np.linspace(0.0, 20.0, 41)
         g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)

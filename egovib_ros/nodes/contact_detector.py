@@ -110,7 +110,9 @@ class ContactDetectorNode(Node):
                 false_alarms_per_min=self.budget,
             )
         except ConfigError as exc:
-            raise ConfigError(f"contact_detector: {exc}; set calibration_bag or threshold")
+            raise ConfigError(
+                f"contact_detector: {exc}; set calibration_bag or threshold"
+            ) from None
         self.detector = ContactDetector(ContactSettings.for_model(self.model, self.threshold))
         topic = (
             self.profile.node_denoised_topic

@@ -152,7 +152,7 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     injected = [r for r in results if r["truth"] != "none"]
     strong = [r for r in injected if abs(r["strength"]) == max(abs(s) for s in _strengths(r))]
     named_from, named_at = {}, {}
-    for e, label, strengths in INJECTIONS:
+    for _effect, label, strengths in INJECTIONS:
         for name in directions:
             found = [
                 r["correct"] for r in results if r["direction"] == name and r["injection"] == label

@@ -184,7 +184,7 @@ def plan_runs(
         for label in none_classes(reality):
             add({"truth": label, "strength": 0.0})
 
-    for k in range(seeds):
+    for _ in range(seeds):
         add_nones()
         for effect in EFFECTS:
             lo, hi = ranges[effect]

@@ -52,7 +52,7 @@ CELL_FRACTIONS = PROFILE.grid_values(0) / PROFILE.max_speed[0]
 
 STEADY_TOLERANCE = 0.005  # of max speed
 FREQS_HZ = np.fft.rfftfreq(PROFILE.block_length, 1.0 / PROFILE.rate_hz)
-BAND_BINS = (FREQS_HZ >= PROFILE.band_hz[0]) & (FREQS_HZ <= PROFILE.band_hz[1])
+BAND_BINS = (PROFILE.band_hz[0] <= FREQS_HZ) & (PROFILE.band_hz[1] >= FREQS_HZ)
 
 
 BAND_SOS = design_bandpass(
@@ -106,7 +106,7 @@ def sweep_cell_stats(
     zi = np.zeros((BAND_SOS.shape[0], 2))
     vmax = np.asarray(PROFILE.max_speed)
     pieces: dict[int, list] = {}
-    for ci, cell, _, chunk in iter_sweep(sim, cells, dwell_s=dwell_s, settle_s=settle_s):
+    for ci, _cell, _, chunk in iter_sweep(sim, cells, dwell_s=dwell_s, settle_s=settle_s):
         bp, zi = signal.sosfilt(BAND_SOS, chunk.sensor.sum(axis=1), zi=zi)
         if ci not in pieces:
             # frame on the global hop grid, as a continuous calibrator does (blocks start at

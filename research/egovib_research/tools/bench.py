@@ -169,7 +169,9 @@ def bench_batch(duration_s: float = 60.0, repeats: int = 3) -> dict:
     data, model = synthetic_streams(duration_s), synthetic_model()
     streams = [data[k] for k in ("sensor_stamps_ns", "accel", "joint_stamps_ns", "joint_velocity")]
     seconds, seconds_axes = (
-        best_wall_and_cpu(lambda: denoise_batch(*streams, model, channels=channels), repeats)[0]
+        best_wall_and_cpu(
+            lambda channels=channels: denoise_batch(*streams, model, channels=channels), repeats
+        )[0]
         for channels in ("combined", "per_axis")
     )
     # the same samples stamped as a USB driver reads them (1 ms frames): the rebuilt clock
@@ -301,11 +303,13 @@ def bench_methods(
     for method in METHODS:
         denoise_batch_method(*args, method=method, channels="combined")  # warm-up
         runs = {
-            "batch": lambda: denoise_batch_method(*args, method=method, channels="combined"),
-            "batch_per_axis": lambda: denoise_batch_method(
+            "batch": lambda method=method: denoise_batch_method(
+                *args, method=method, channels="combined"
+            ),
+            "batch_per_axis": lambda method=method: denoise_batch_method(
                 *args, method=method, channels="per_axis"
             ),
-            "stream": lambda: streamed(method),
+            "stream": lambda method=method: streamed(method),
         }
         for name, fn in runs.items():
             wall, cpu = best_wall_and_cpu(fn, repeats)
@@ -403,7 +407,7 @@ def bench_bag_denoise(bag: Path, workdir: Path, *, repeats: int = 1) -> dict:
     for _ in range(repeats):
         for name, run in runs.items():
             out = workdir / f"bench_{name}"
-            best[name] = min(best[name], _timed(lambda: run(out))[1])
+            best[name] = min(best[name], _timed(lambda run=run, out=out: run(out))[1])
             sizes[name] = bag_size(out)
             shutil.rmtree(out)
     figures = {"bag_signal_s": duration_s, "bag_input_bytes": bag_size(bag)}
@@ -526,7 +530,7 @@ def bench_mcap_libraries(bag: Path, workdir: Path) -> dict:
         ("rosbags", write_rosbags),
     ):
         out = workdir / f"write_{name}"
-        _, seconds = _timed(lambda: write(out))
+        _, seconds = _timed(lambda write=write, out=out: write(out))
         shutil.rmtree(out)
         figures[f"write_{name}_msgs_per_s"] = len(datas) / seconds
         figures[f"write_{name}_s"] = seconds

@@ -406,7 +406,7 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
     result = {"load_average_1min": round(os.getloadavg()[0], 2), "duration_s": rec.duration_s}
     for method in ("paper", "cancel", "hybrid"):
         wall, cpu = best_wall_and_cpu(
-            lambda: denoise_batch_method(
+            lambda method=method: denoise_batch_method(
                 *core_arrays(rec), model, method=method, channels="combined"
             ),
             repeats,
