@@ -16,6 +16,7 @@ from scipy import signal
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.adapt import (
     ADAPT_PREFIX,
+    MIN_POINT_SPANS,
     AdaptSettings,
     Candidate,
     CellLearner,
@@ -369,7 +370,7 @@ def test_the_gate_clears_a_block_only_once_the_output_passed_its_guard_time():
     assert gate.decide(int(t[290]), int(t[320])) is None
 
 
-def test_the_harmonic_feed_forward_moves_the_trackers_by_what_was_learnt():
+def test_the_harmonic_map_learns_where_the_speed_is_steady_and_starts_the_stream_from_it():
     hmap = SimpleNamespace(
         n_joints=1,
         n_lines=2,
@@ -377,8 +378,8 @@ def test_the_harmonic_feed_forward_moves_the_trackers_by_what_was_learnt():
         min_speed=np.array([0.05]),
     )
     state = SimpleNamespace(
-        lagged=np.array([0.3]),
-        correction=np.array([0.01]),
+        lagged=np.array([0.45]),
+        correction=np.array([0.0]),
         weights=np.ones((3, 2, 2)),
         weights_w=np.ones((3, 2, 2)),
     )
@@ -386,21 +387,28 @@ def test_the_harmonic_feed_forward_moves_the_trackers_by_what_was_learnt():
         state=state, n_channels=3, settings=SimpleNamespace(max_correction=0.2)
     )
     learner = HarmonicLearner(hmap, (np.linspace(0, 1, 11),), canceller, AdaptSettings())
-    # learnt: at speed 0.3 correction 0.01, amplitudes 1; at 0.6 correction 0.05, amplitudes 2
-    for speed, correction, amplitude in ((0.3, 0.01, 1.0), (0.6, 0.05, 2.0)):
+    # at speed 0.4 correction 0.01, amplitudes 1; at 0.5 correction 0.05, amplitudes 2; a
+    # span whose speed moved by more than half a step teaches nothing
+    for speed, before, correction, amplitude in (
+        (0.4, 0.4, 0.01, 1.0), (0.5, 0.5, 0.05, 2.0), (0.5, 0.3, 0.5, 9.0)
+    ):  # fmt: skip
         now = (np.array([speed]), np.array([correction]), np.full((2, 3), amplitude))
-        learner.commit((0, 1, np.array([speed]), now), 0.1)
-    assert learner.updates == 2 and learner.blocks[0, 3] == 1 and learner.blocks[0, 6] == 1
-    learner.feed_forward()  # the first: remembers the speed
-    state.lagged[:] = 0.45  # half way
-    learner.feed_forward()
+        for _ in range(MIN_POINT_SPANS):
+            learner.commit((0, 1, np.array([before]), now), 0.1)
+    assert learner.updates == 2 * MIN_POINT_SPANS
+    assert np.flatnonzero(learner.blocks[0]).tolist() == [4, 5]
+    assert learner.correction[0, 5] == pytest.approx(0.05) and learner.amplitude[0, 5, 0] == 2.0
+    learner.warm_start()  # the stream's start at 0.45: half way between the learnt points
     assert state.correction[0] == pytest.approx(0.03)
-    np.testing.assert_allclose(
-        np.hypot(state.weights[..., 0], state.weights[..., 1]), 1.5 * math.sqrt(2)
-    )
-    state.lagged[:] = 0.9  # beyond the learnt speeds: flat
-    learner.feed_forward()
-    assert state.correction[0] == pytest.approx(0.05)
+    state.correction[:] = 0.0
+    learner.warm_start()  # once only
+    assert state.correction[0] == 0.0
+    fresh = HarmonicLearner(hmap, (np.linspace(0, 1, 11),), canceller, AdaptSettings())
+    state.lagged[:] = 0.9  # beyond what the map learnt: nothing
+    fresh.load({"correction": learner.correction, "amplitude": learner.amplitude,
+                "blocks": learner.blocks})  # fmt: skip
+    fresh.warm_start()
+    assert state.correction[0] == 0.0
 
 
 def test_bad_settings_and_models_are_one_line_errors(model):

@@ -17,10 +17,13 @@ contact-free, what calibration fitted on a no-contact recording -
   cells keep the calibrated model's values and fill), from the next update on.
 - the harmonic map (cancel, hybrid): per joint and per point of its speed grid, the
   canceller's frequency correction and each of the joint's lines' amplitudes (per axis)
-  seen there, averaged and forgotten alike. When a joint's speed moves, its correction
-  moves by the difference of the learnt corrections between the two speeds, and its lines'
-  weights are scaled by the ratio of the learnt amplitudes (feed-forward: the trackers need
-  not find again what was seen at that speed before).
+  seen there, averaged and forgotten alike, saved with the model; a stream starts its
+  joints' frequency corrections from the map at their speeds (warm start). They are not
+  fed forward while the speeds move: tried (the correction moved by the learnt difference
+  between two speeds, the line weights scaled by the learnt amplitude ratio), it made
+  bursts at the PR2 sweep's speed steps - the PLL's correction of a weak line wanders, and
+  a gripper's line amplitudes differ with its direction and opening - that doubled the
+  contact detector's no-contact level.
 
 Gating (`ContactGate`): the denoiser's own output goes through the contact detector's
 envelope (core.contact.DetectionEnvelope: band-passed axes, summed, 4 ms RMS), against the
@@ -45,7 +48,7 @@ output, to the bit.
 
 The learnt state is saved in the model's extras (`adapted_extras`): `adapt.residual.*`
 (cells, mean, power, blocks learnt online, whether the calibration had measured them) and
-`adapt.harmonic.*`; a model carrying them uses them (`AdaptiveTable`, the feed-forward)
+`adapt.harmonic.*`; a model carrying them uses them (`AdaptiveTable`, the warm start)
 whether or not it goes on adapting.
 """
 
@@ -68,10 +71,11 @@ RESIDUAL_KEYS = ("cells", "mean", "power", "blocks", "new")
 HARMONIC_KEYS = ("correction", "amplitude", "blocks")
 #: Least power (relative to the cell's largest bin) a bin's rate bound is measured from.
 TINY = 1e-30
-#: A line's amplitude ratio per update of the feed-forward is kept within these.
-MAX_AMPLITUDE_RATIO = 2.0
 #: What is learnt takes effect about this often (a whole number of hops).
 UPDATE_S = 0.04
+#: A speed-grid point of the harmonic map is used once learnt over this many spans
+#: between updates (0.4 s of steady, contact-free speed).
+MIN_POINT_SPANS = 10
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,7 +88,7 @@ class AdaptSettings:
     steady_tolerance: the largest change of a block's joint velocity (grid steps, first
     half against second half) that still counts for a cell (free-motion calibration's);
     harmonic: learn the harmonic map's corrections and amplitudes too; learn: False keeps
-    what the model learnt before (the feed-forward, the learnt cells) without learning more."""
+    what the model learnt before (the learnt cells, the warm start) without learning more."""
 
     forget_s: float = 30.0
     guard_s: float = 0.15
@@ -484,7 +488,7 @@ class HarmonicLearner:
     correction (J, G) and its lines' amplitudes per axis (lines, G, C), averaged over the
     spans between updates that the gate clears (the joint's speed within half a grid step
     of the point, and steady within half a step), forgotten like the cells.
-    `feed_forward` moves the canceller's state when the speeds move (module doc)."""
+    `warm_start` sets the canceller's corrections at the stream's start (module doc)."""
 
     def __init__(self, hmap, grid, canceller, settings: AdaptSettings):
         self.map = hmap
@@ -502,8 +506,7 @@ class HarmonicLearner:
         self.amplitude = np.full((hmap.n_lines, G, C), np.nan)
         self.weight = np.zeros((J, G))
         self.blocks = np.zeros((J, G), np.int64)
-        self._curves: list = [None] * J  # per joint: (learnt speeds, corrections, amplitudes)
-        self._last_speed: np.ndarray | None = None  # lagged speeds at the last feed-forward
+        self._started = False  # the warm start is done
         self._snapshot: tuple | None = None  # the state at the last update
         self.updates = 0
 
@@ -512,8 +515,6 @@ class HarmonicLearner:
         self.amplitude[:] = np.nan
         self.weight[:] = 0.0
         self.blocks[:] = 0
-        self._curves = [None] * len(self._curves)
-        self._last_speed = None
         self._snapshot = None
 
     def snapshot(self, first_ns: int, last_ns: int) -> tuple | None:
@@ -547,61 +548,44 @@ class HarmonicLearner:
                 self.amplitude[lines, k] += a * (amplitude[lines] - self.amplitude[lines, k])
             self.weight[j, k] = min(self.weight[j, k] + 1.0, 1.0 / rate)
             self.blocks[j, k] += 1
-            self._curves[j] = None
             self.updates += 1
 
-    def _curve(self, j: int):
-        """(learnt speeds, corrections there, amplitudes (lines of j, K, C)), or None."""
-        if self._curves[j] is None:
-            n = len(self.points[j])
-            known = ~np.isnan(self.correction[j, :n])
-            if not known.any():
-                self._curves[j] = ()
-            else:
-                self._curves[j] = (
-                    self.points[j][known],
-                    self.correction[j, :n][known],
-                    self.amplitude[self.lines[j]][:, :n][:, known],
-                )
-        return self._curves[j] or None
+    def _at(self, j: int, speed: float) -> tuple[float, np.ndarray] | None:
+        """Learnt correction and amplitudes (lines of j, C) at `speed`, linear between the
+        two grid points around it; None unless both (or the one it sits on) were learnt over
+        at least MIN_POINT_SPANS spans (no extrapolation to speeds the map has not seen)."""
+        points = self.points[j]
+        k = int(np.searchsorted(points, speed))
+        if k < len(points) and points[k] == speed:
+            around = (k, k)
+        elif 0 < k < len(points):
+            around = (k - 1, k)
+        else:
+            return None
+        if (
+            self.blocks[j, around[0]] < MIN_POINT_SPANS
+            or self.blocks[j, around[1]] < MIN_POINT_SPANS
+        ):
+            return None
+        lo, hi = around
+        w = 0.0 if lo == hi else (speed - points[lo]) / (points[hi] - points[lo])
+        lines = self.lines[j]
+        correction = (1.0 - w) * self.correction[j, lo] + w * self.correction[j, hi]
+        amplitude = (1.0 - w) * self.amplitude[lines, lo] + w * self.amplitude[lines, hi]
+        return float(correction), amplitude
 
-    @staticmethod
-    def _at(curve, speed: float) -> tuple[float, np.ndarray]:
-        """Correction and amplitudes (lines, C) at `speed`: linear between the learnt
-        speeds, flat beyond."""
-        x, correction, amplitude = curve
-        k = int(np.searchsorted(x, speed))
-        if k == 0 or k == len(x):
-            k = min(k, len(x) - 1)
-            return float(correction[k]), amplitude[:, k]
-        w = (speed - x[k - 1]) / (x[k] - x[k - 1])
-        return (
-            float((1.0 - w) * correction[k - 1] + w * correction[k]),
-            (1.0 - w) * amplitude[:, k - 1] + w * amplitude[:, k],
-        )
-
-    def feed_forward(self) -> None:
-        st = self.canceller.state
-        speed = st.lagged.copy()
-        last, self._last_speed = self._last_speed, speed
-        if last is None:
+    def warm_start(self) -> None:
+        """At the stream's first update: each joint's frequency correction from the map at
+        its speed, where learnt (the canceller's PLL otherwise starts from none)."""
+        if self._started:
             return
+        self._started = True
+        st = self.canceller.state
         bound = float(self.canceller.settings.max_correction)
         for j in range(len(self.points)):
-            if speed[j] == last[j]:
-                continue
-            curve = self._curve(j)
-            if curve is None:
-                continue
-            new_c, new_a = self._at(curve, speed[j])
-            old_c, old_a = self._at(curve, last[j])
-            st.correction[j] = min(max(st.correction[j] + new_c - old_c, -bound), bound)
-            ok = (old_a > 0) & (new_a > 0)
-            ratio = np.where(ok, new_a / np.where(ok, old_a, 1.0), 1.0)
-            ratio = np.clip(ratio, 1.0 / MAX_AMPLITUDE_RATIO, MAX_AMPLITUDE_RATIO)  # (lines, C)
-            lines = self.lines[j]
-            st.weights[:, lines, :] *= ratio.T[:, :, None]
-            st.weights_w[:, lines, :] *= ratio.T[:, :, None]
+            learnt = self._at(j, float(st.lagged[j]))
+            if learnt is not None and st.lagged[j] > self.map.min_speed[j]:
+                st.correction[j] = min(max(learnt[0], -bound), bound)
 
     def load(self, learnt: dict) -> None:
         correction, amplitude, blocks = learnt["correction"], learnt["amplitude"], learnt["blocks"]
@@ -613,7 +597,6 @@ class HarmonicLearner:
             raise ModelFileError("adapt: the learnt harmonic map does not fit the model's")
         self.correction[:], self.amplitude[:], self.blocks[:] = correction, amplitude, blocks
         self.weight[:] = blocks
-        self._curves = [None] * len(self._curves)
 
 
 # --------------------------------------------------------------------------------------
@@ -778,7 +761,7 @@ class Adaptation:
             self._take(final=False)
             self._apply()
         if self.harmonic is not None:
-            self.harmonic.feed_forward()
+            self.harmonic.warm_start()
 
     def _take(self, *, final: bool) -> None:
         """The pieces since the last update: blocks (cells), a span (harmonic map), the
