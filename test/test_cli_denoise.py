@@ -361,3 +361,49 @@ def test_noise_gain_from_a_gap_report_follows_the_warm_up_and_bad_reports_are_on
         )  # fmt: skip
         assert result.returncode == 2 and said in result.stderr, result.stderr
         assert result.stderr.strip().count("\n") == 0 and not (tmp_path / "x").exists()
+
+
+def test_adapt_learns_while_denoising_and_save_model_writes_the_adapted_model(
+    sim_bags, sim_bags_model, tmp_path
+):
+    """--adapt: the denoised topic of a model learning as it goes (the library's adapting
+    denoiser, message for message); --save-model: the model as adapted, which
+    `egovib model show` marks and `egovib denoise` uses; bad combinations one line."""
+    from egovib_ros.core.adapt import AdaptSettings, learnt_state
+
+    out, saved = tmp_path / "adapted", tmp_path / "adapted.npz"
+    args = ["denoise", sim_bags / "motion", "--model", sim_bags_model, "--out", out]
+    result = egovib(*args, "--adapt", "--forget-s", "10", "--save-model", saved)
+    assert result.returncode == 0, result.stderr
+    assert "adapted:" in result.stderr and f"model written to {saved}" in result.stderr
+    model = NoiseModel.load(sim_bags_model)
+    rec = read_recording(out)
+    _, expected, _ = denoise_batch_method(
+        rec.sensor_stamps_ns,
+        rec.sensor,
+        rec.joint_stamps_ns,
+        rec.joint_velocity,
+        model,
+        adapt=AdaptSettings(forget_s=10.0),
+    )
+    np.testing.assert_allclose(rec.denoised, expected, rtol=0, atol=1e-12)
+    adapted = NoiseModel.load(saved)
+    residual, harmonic = learnt_state(adapted)
+    assert len(residual["cells"]) > 0 and residual["blocks"].sum() > 0
+    assert residual["new"].any()  # the motion goes where the superposition sweep never did
+    show = tmp_path / "show"
+    result = egovib("model", "show", saved, "--out", show)
+    assert result.returncode == 0, result.stderr
+    assert "learnt online (adapt, forgetting time 10 s)" in result.stderr
+    assert (show / "online.png").is_file()
+    assert "## Learnt online" in (show / "summary.md").read_text()
+    for extra, message in (
+        (["--save-model", tmp_path / "x.npz"], "--save-model: applies with --adapt only"),
+        (["--forget-s", "5"], "--forget-s applies with --adapt only"),
+        (["--adapt", "--method", "paper"], "method paper: adapt applies to `cancel` and `hybrid`"),
+        (["--adapt", "--forget-s", "0"], "--forget-s: expected a number in [0.01, 1e+06]"),
+    ):
+        result = egovib(*args[:-1], tmp_path / "never", *extra)
+        errors = [line for line in result.stderr.splitlines() if "error" in line]
+        assert result.returncode == 2 and len(errors) == 1 and message in errors[0], result.stderr
+        assert not (tmp_path / "never").exists() and not (tmp_path / "x.npz").exists()

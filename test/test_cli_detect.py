@@ -72,3 +72,32 @@ def test_force_replaces_only_event_files_detect_wrote(sim_bags, sim_bags_model, 
         assert main([*args, "--out", str(out), "--threshold", "0.7"]) == 0
         assert main([*args, "--out", str(out), "--threshold", "0.9"]) == 0  # ours: replaced
         capsys.readouterr()
+
+
+def test_adapt_detects_after_the_adapting_denoiser_and_evaluate_reports_it(
+    sim_bags, sim_bags_model, tmp_path, capsys
+):
+    from egovib_ros.core.adapt import AdaptSettings
+
+    bag, model = sim_bags / "motion", NoiseModel.load(sim_bags_model)
+    args = ["detect", str(bag), "--model", str(sim_bags_model), "--adapt", "--forget-s", "5"]
+    assert main([*args, "--out", str(tmp_path / "events.json")]) == 0
+    assert "after hybrid (the model's default), adapting, threshold" in capsys.readouterr().err
+    report = json.loads((tmp_path / "events.json").read_text())
+    expected = detect_bag(bag, model=model, adapt=AdaptSettings(forget_s=5.0))
+    assert [e["onset_ns"] for e in report["events"]] == [e.onset_ns for e in expected.events]
+    assert report["adapt"]["forget_s"] == 5.0 and report["adapt"]["blocks_learnt"] > 0
+    assert report["adapt"] == expected.adapt
+    code = main(
+        ["evaluate", str(bag), "--model", str(sim_bags_model), "--methods", "default,hybrid",
+         "--json", str(tmp_path / "report.json"), "--adapt", "--quiet"]
+    )  # fmt: skip
+    assert code == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["adapt"]["forget_s"] == AdaptSettings().forget_s
+    assert report["methods"]["default"]["adapt"]["blocks_learnt"] > 0
+    assert "adapt" in report["methods"]["hybrid"] and "adapt" not in report["methods"]["paper"]
+    assert main(["detect", str(bag), "--model", str(sim_bags_model), "--method", "raw",
+                 "--adapt", "--out", str(tmp_path / "raw.json")]) == 2  # fmt: skip
+    assert "method raw has no model to adapt" in capsys.readouterr().err
+    assert not (tmp_path / "raw.json").exists()

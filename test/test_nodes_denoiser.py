@@ -723,3 +723,97 @@ def test_per_sample_methods_are_processed_every_2_ms_and_paper_every_hop(sim_mod
     assert default_batch_samples(model, "paper") == model.hop == 32
     for method in ("cancel", "hybrid"):
         assert default_batch_samples(model, method) == round(0.002 * model.sample_rate_hz) == 6
+
+
+def call_trigger(client, service: str):
+    """A std_srvs/Trigger call over DDS (as `ros2 service call SERVICE std_srvs/srv/Trigger`)."""
+    from std_srvs.srv import Trigger
+
+    cli = client.node.create_client(Trigger, service)
+    assert cli.wait_for_service(timeout_sec=30.0), service
+    future = cli.call_async(Trigger.Request())
+    assert client.spin_until(future.done, timeout=30.0), service
+    client.node.destroy_client(cli)
+    return future.result()
+
+
+def test_adapt_live_equals_offline_and_the_services_save_and_reset_the_model(
+    nodes, ros_client, feeder, sim_methods_model_path, tmp_path
+):
+    """adapt:=true: the node's output equals `egovib denoise --adapt` on a bag of the same
+    messages, sample for sample; ~/save_model writes the model as adapted (the learnt cells
+    and map those of `--save-model`, to the bit), /diagnostics counts the cells learnt
+    online, ~/reset_model returns to the calibrated model."""
+    from egovib_ros.core.adapt import AdaptSettings, learnt_state
+    from egovib_ros.core.methods import calibrate_detection
+
+    calibration, _ = simulate_motion(duration_s=4.0, max_speed=0.5, seed=4)
+    model, _ = calibrate_detection(
+        NoiseModel.load(sim_methods_model_path),
+        calibration.sensor_stamps_ns,
+        calibration.sensor,
+        calibration.joint_stamps_ns,
+        calibration.joint_velocity,
+    )
+    model_path, saved = tmp_path / "model.npz", tmp_path / "live_adapted.npz"
+    model.save(model_path)
+    params = {"adapt": True, "forget_s": 5.0, "save_model": str(saved)}
+    den = nodes.start(
+        "denoiser",
+        {"model": str(model_path), **params, **RELIABLE, **EXACT_REPLAY, **DEEP_OUTPUT},
+    )
+    received = []
+    output = ros_client.node.create_subscription(
+        Imu, PR2.denoised_topic, received.append, LOSSLESS, raw=True
+    )
+    assert wait_for_output(ros_client, output, "denoiser"), nodes.log(den)
+    stream = feeder(PR2, keep_messages=True)
+    assert stream.wait_for_subscribers("denoiser"), nodes.log(den)
+    rec, _ = simulate_motion(duration_s=4.0, max_speed=0.8, tap_rate_hz=2.0, seed=9)
+    shift = time.time_ns() - int(rec.joint_stamps_ns[0])
+    stamps = rec.sensor_stamps_ns + shift
+    stream.publish(stamps, rec.sensor, rec.joint_stamps_ns + shift, rec.joint_velocity)
+    n = len(stamps)
+    assert ros_client.spin_until(lambda: len(received) >= n, timeout=60.0), (len(received), n)
+
+    def flushed() -> bool:  # the end of the stream seen: learnt what the guard time allows
+        values = diagnostic_values(ros_client.statuses["denoiser"])
+        return int(values["samples_published"]) == n and int(values["cells_learnt_online"]) > 0
+
+    assert ros_client.spin_until(flushed, 30.0), shown(ros_client)
+    time.sleep(4.5)  # flush_after_idle: the end of the segment (its last blocks decided)
+    answer = call_trigger(ros_client, "/denoiser/save_model")
+    assert answer.success and f"wrote {saved}" in answer.message, answer.message
+    assert ros_client.spin_until(
+        lambda: diagnostic_values(ros_client.statuses["denoiser"])["adapt"] == "true", 10.0
+    ), shown(ros_client)
+    values = diagnostic_values(ros_client.statuses["denoiser"])
+    assert int(values["cells_new_online"]) > 0 and int(values["adapt_blocks_learnt"]) > 0
+    answer = call_trigger(ros_client, "/denoiser/reset_model")
+    assert answer.success, answer.message
+    assert ros_client.spin_until(
+        lambda: int(diagnostic_values(ros_client.statuses["denoiser"])["adapt_resets"]) == 1, 10.0
+    ), shown(ros_client)
+    assert int(diagnostic_values(ros_client.statuses["denoiser"])["cells_learnt_online"]) == 0
+    assert nodes.stop(den) == 0, nodes.log(den)
+
+    bag = stream.write_bag(tmp_path / "stream")
+    offline_model = tmp_path / "offline_adapted.npz"
+    denoise_bag(
+        bag, tmp_path / "offline", model=model_path, adapt=AdaptSettings(forget_s=5.0),
+        save_model=offline_model,
+    )  # fmt: skip
+    want_stamps, want = bag_topic(tmp_path / "offline", PR2.denoised_topic)
+    got_stamps, got, _ = decode_imu_messages(received)
+    np.testing.assert_array_equal(got_stamps, want_stamps)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+    live, offline = (
+        learnt_state(NoiseModel.load(saved)),
+        learnt_state(NoiseModel.load(offline_model)),
+    )
+    for part in range(2):
+        for key, value in offline[part].items():
+            assert np.array_equal(live[part][key], value, equal_nan=True), key
+    # and the adaptation did something: without it the output differs
+    denoise_bag(bag, tmp_path / "plain", model=model_path)
+    assert not np.allclose(bag_topic(tmp_path / "plain", PR2.denoised_topic)[1], want)

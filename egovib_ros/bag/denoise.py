@@ -23,6 +23,7 @@ from egovib_ros.bag.reader import BagReader
 from egovib_ros.bag.recording import RecordingStream
 from egovib_ros.bag.writer import BagWriter, compression_name
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.adapt import AdaptSettings
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import make_denoiser, resolve_method
 from egovib_ros.core.stream import check_stream, has_bad_input
@@ -153,6 +154,8 @@ def denoise_bag(
     compress: bool | str = False,
     replace_denoised: bool = False,
     progress: Callable[[int], None] | None = None,
+    adapt: AdaptSettings | None = None,
+    save_model: str | os.PathLike | None = None,
 ) -> dict:
     """Denoise one bag into `out` (written atomically: nothing appears unless complete).
 
@@ -160,7 +163,9 @@ def denoise_bag(
     the sensor and joint topics), the profile's denoised topic is added, one message
     per raw sample. A bag that holds that topic already (a recorded live run) is refused
     (BagError) unless `replace_denoised`: then its own is left out of the copy (counted in
-    the figures). Returns figures (samples, blocks, size ratio, ...)."""
+    the figures). Returns figures (samples, blocks, size ratio, ...). `adapt`: the model
+    goes on learning while no contact is detected (core.adapt); `save_model`: the model as
+    adapted by the end of the bag is written there (atomically, after the bag)."""
     model = model if isinstance(model, NoiseModel) else NoiseModel.load(model)
     profile = model.robot_profile()
     bag = Path(bag)
@@ -187,6 +192,7 @@ def denoise_bag(
             joint_lag_s=joint_lag_s,
             noise_gain_db=noise_gain_db,
             source=f"{bag}: {raw_topic}",
+            **({"adapt": adapt} if adapt is not None else {}),
         )
         with (
             atomic_output(out, directory=True, kind="bag") as tmp,
@@ -230,7 +236,11 @@ def denoise_bag(
                 joints_where=f"{bag}: {stream.names['joint_states']}",
             )
             ratio = writer.size_ratio
+            if save_model is not None:  # before the bag appears: both or neither
+                with atomic_output(save_model) as model_tmp:
+                    denoiser.adapted_model().save(model_tmp)
     stats = denoiser.stats
+    adapted = getattr(denoiser, "adaptation_stats", None)
     return {
         "samples_in": job.raw_read,
         "denoised_messages": job.written,
@@ -256,4 +266,6 @@ def denoise_bag(
         "input_counts": counts,
         "bad_input": has_bad_input(stats),  # anything counted in input_counts
         "replaced_denoised": replaced,  # messages of the bag's own denoised topic left out
+        "adapt": None if adapted is None else adapted.as_dict(),
+        "saved_model": None if save_model is None else str(save_model),
     }

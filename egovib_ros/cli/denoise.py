@@ -9,9 +9,16 @@ from pathlib import Path
 from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.bag.many import run_bags
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
-from egovib_ros.cli.options import force_and_quiet, joint_lag_option, nonneg_float
+from egovib_ros.cli.options import (
+    adapt_options,
+    adapt_settings,
+    force_and_quiet,
+    joint_lag_option,
+    nonneg_float,
+)
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.methods import make_denoiser, resolve_method
+from egovib_ros.errors import ConfigError
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.outputs import prepare_output
 
@@ -88,8 +95,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "refused; with this option that topic is left out of the copy and egovib's written in "
         "its place",
     )
+    adapt_options(den)
+    den.add_argument(
+        "--save-model",
+        metavar="FILE",
+        default=None,
+        help="with --adapt: write the model as adapted by the end of the bag (one bag; a "
+        "model like any other: the cells learnt online are marked, `egovib model show` "
+        "shows them)",
+    )
     parallel_options(den)
-    force_and_quiet(den, "replace an existing bag written by egovib")
+    force_and_quiet(den, "replace an existing bag (and --save-model file) written by egovib")
     den.set_defaults(func=run_denoise)
 
 
@@ -109,6 +125,15 @@ def _describe_denoise(figures: dict) -> str:
         text += f"samples with no joint state {figures['samples_no_joint_state']}"
         if figures.get("samples_unmeasured"):
             text += f", on unmeasured cells {figures['samples_unmeasured']}"
+    adapt = figures.get("adapt")
+    if adapt:
+        text += (
+            f"; adapted: {adapt['blocks_learnt']} blocks learnt, {adapt['blocks_gated']} left "
+            f"out for contacts, cells learnt online {adapt['cells_learnt']} "
+            f"({adapt['cells_new']} never calibrated)"
+        )
+        if figures.get("saved_model"):
+            text += f", model written to {figures['saved_model']}"
     if figures["raw_without_output"]:
         text += (
             f", raw messages without a denoised one (bad, out of order or recorded twice) "
@@ -137,13 +162,29 @@ def run_denoise(args: argparse.Namespace) -> int:
         joint_lag_s=args.joint_lag,
         noise_gain_db=noise_gain_db,
     )
+    adapt = adapt_settings(args)
+    if adapt is not None:
+        settings["adapt"] = adapt
+    elif args.save_model is not None:
+        raise ConfigError("--save-model: applies with --adapt only")
     # Bad options fail here too; this also builds the model's look-up table once, which
     # the workers then receive with the model instead of each building (and logging) it.
     method = resolve_method(model, args.method)
-    make_denoiser(model, method, **settings)
+    make_denoiser(model, method, **settings)  # also: a model without detector thresholds
     jobs = output_jobs(args.bags, args.out)
     for job in jobs:  # before any work: every output may be written (or replaced with --force)
         prepare_output(job.out, force=args.force, inputs=[job.bag, args.model], kind="bag")
+    if args.save_model is not None:
+        if len(jobs) != 1:
+            raise ConfigError(f"--save-model: takes one bag, got {len(jobs)}")
+        prepare_output(
+            args.save_model,
+            force=args.force,
+            inputs=[jobs[0].bag, args.model, jobs[0].out],
+            kind="model",
+            option="--save-model",
+        )
+        settings["save_model"] = args.save_model
     task = functools.partial(
         _denoise_task,
         model=model,

@@ -10,7 +10,13 @@ import json
 import sys
 from pathlib import Path
 
-from egovib_ros.cli.options import QUIET_HELP, float_in, nonneg_float
+from egovib_ros.cli.options import (
+    QUIET_HELP,
+    adapt_options,
+    adapt_settings,
+    float_in,
+    nonneg_float,
+)
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 
 SCHEMA = "egovib.events/1"
@@ -65,6 +71,7 @@ def register(subparsers) -> None:
         "--joint-lag", type=float_in(-1.0, 1.0), default=0.0, metavar="SECONDS",
         help="joint states lag the sensor by this much (as egovib denoise)",
     )  # fmt: skip
+    adapt_options(parser)
     parser.add_argument("--force", action="store_true", help="replace an output egovib wrote")
     parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     parser.set_defaults(func=run)
@@ -89,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         if kind == "file"
         else json_holding(schema=SCHEMA),
     )
+    adapt = adapt_settings(args)
     model = NoiseModel.load(args.model)
     model.robot_profile()
     method = check_detect_method(model, args.method)
@@ -113,10 +121,14 @@ def run(args: argparse.Namespace) -> int:
         calibration=calibration,
         false_alarms_per_min=args.false_alarms_per_min,
         joint_lag_s=args.joint_lag,
+        adapt=adapt,
     )
     with atomic_output(args.out) as tmp:
         tmp.write_text(render_csv(result) if kind == "file" else render_json(result, args))
     default = " (the model's default)" if args.method is None else ""
+    if adapt is not None:
+        default += ", adapting"
+
     line = (
         f"{len(result.events)} events in {result.duration_s:.1f} s after {result.method}{default}, "
         f"threshold {result.threshold:.3g} ({result.threshold_source})"
@@ -138,6 +150,7 @@ def render_json(result, args) -> str:
         "model": str(args.model),
         "method": result.method,
         "method_delay_ms": result.method_delay_ms,
+        "adapt": result.adapt,
         "threshold": result.threshold,
         "threshold_source": result.threshold_source,
         "false_alarm_budget_per_min": result.false_alarm_budget_per_min,

@@ -102,6 +102,7 @@ def _describe(figures: dict) -> str:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
+    options.adapt_settings(args)  # --forget-s without --adapt: before any work
     model = NoiseModel.load(args.model)  # a bad model fails once, before any bag is touched
     model.robot_profile()
     calibration_path = calibration_bag(
@@ -137,6 +138,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         model_short=model_short,
         methods=methods,
         max_bad_fraction=args.max_bad_fraction,
+        adapt=options.adapt_settings(args),
     )
     results = run_bags(
         task, jobs, jobs=args.jobs, scheduler=args.scheduler, desc="evaluate", quiet=args.quiet
@@ -211,6 +213,7 @@ def register(subparsers) -> None:
         help="refuse a recording with more bad (non-finite or out-of-range) samples "
         f"than this (default {metrics.MAX_BAD_FRACTION:g})",
     )
+    options.adapt_options(ev)
     parallel_options(ev)
     options.force_and_quiet(ev, "replace an existing JSON file", None)
     ev.set_defaults(func=run_evaluate)

@@ -11,6 +11,7 @@ import argparse
 import math
 from typing import Callable, NoReturn
 
+from egovib_ros.core.adapt import AdaptSettings
 from egovib_ros.errors import ConfigError
 from egovib_ros.sim.params import check_effects, parse_effects
 
@@ -122,3 +123,35 @@ def effects_spec(text: str) -> dict[str, float]:
         return check_effects(parse_effects(text), source="SPEC")
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def adapt_options(parser: argparse.ArgumentParser) -> None:
+    """--adapt and --forget-s: online adaptation of the model (core.adapt)."""
+    defaults = AdaptSettings()
+    parser.add_argument(
+        "--adapt",
+        action="store_true",
+        help="the model goes on learning while the contact detector sees no contact (with "
+        f"{defaults.guard_s:g} s of guard time around every detection): the residual table's "
+        "cells at the joint speeds met, calibrated or not, and the harmonic map's corrections "
+        "and amplitudes (methods cancel and hybrid)",
+    )
+    parser.add_argument(
+        "--forget-s",
+        type=float_in(0.01, 1e6),
+        default=None,
+        metavar="SECONDS",
+        help=f"with --adapt: the forgetting time (default {defaults.forget_s:g} s of "
+        "contact-free time at a speed)",
+    )
+
+
+def adapt_settings(args: argparse.Namespace) -> AdaptSettings | None:
+    """The AdaptSettings of --adapt / --forget-s (None without --adapt)."""
+    if not args.adapt:
+        if args.forget_s is not None:
+            raise ConfigError("--forget-s applies with --adapt only")
+        return None
+    if args.forget_s is None:
+        return AdaptSettings()
+    return AdaptSettings(forget_s=args.forget_s)

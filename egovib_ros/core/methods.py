@@ -35,6 +35,14 @@ import numba
 import numpy as np
 from scipy import signal
 
+from egovib_ros.core.adapt import (
+    Adaptation,
+    AdaptiveTable,
+    AdaptSettings,
+    AdaptStats,
+    learnt_state,
+    without_learnt,
+)
 from egovib_ros.core.calibration import calibrate_arrays
 from egovib_ros.core.contact import (
     FALSE_ALARMS_PER_MIN,
@@ -739,6 +747,7 @@ class SampleMethodDenoiser(FramedDenoiser):
         joint_lag_s: float = 0.0,
         noise_gain_db: tuple[tuple[float, float], ...] = (),
         source: str = "",
+        adapt: AdaptSettings | None = None,
     ):
         if check_method(method) == "paper":
             raise ConfigError(
@@ -828,6 +837,17 @@ class SampleMethodDenoiser(FramedDenoiser):
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
         self.samples_out = 0
         self.samples_no_joint_state = 0
+        # Online adaptation (core.adapt): with `adapt`, or a model that learnt before.
+        self._adaptation: Adaptation | None = None
+        if adapt is not None or any(part is not None for part in learnt_state(model)):
+            if self._table is not None:
+                self._table = AdaptiveTable(self._table)
+            adapt = adapt if adapt is not None else AdaptSettings(learn=False)
+            threshold = adapt.threshold
+            if threshold is None and adapt.learn:
+                threshold = stored_threshold(model, method)
+            self._adaptation = Adaptation(self, adapt, threshold=threshold)
+            self._adaptation.apply_loaded()
 
     # --- API -------------------------------------------------------------------
     @property
@@ -871,6 +891,10 @@ class SampleMethodDenoiser(FramedDenoiser):
                 s, v = self._release_lookahead()
                 stamps_out.append(s)
                 values_out.append(v)
+                if self._adaptation is not None:
+                    self._adaptation.observe(s, v)
+            if batch.ends_segment and self._adaptation is not None:
+                self._adaptation.end_segment()
         if not stamps_out:
             return self._empty
         chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
@@ -879,6 +903,8 @@ class SampleMethodDenoiser(FramedDenoiser):
 
     def _run(self, stamps, values, velocity, raw):
         """Band-passed `values` (and `raw`, for the drop-in output) through the method."""
+        if self._adaptation is not None:  # in pieces, each ending where what it learns applies
+            return self._adaptation.run(stamps, values, velocity, raw)
         unfiltered = None
         if self._lines_input is not None:
             tracked = self._lines_input.process(raw.T).T
@@ -891,6 +917,54 @@ class SampleMethodDenoiser(FramedDenoiser):
         if len(velocity):
             self._last_velocity = velocity[-1]
         return self._gained(stamps, residual, velocity, unfiltered)
+
+    def _run_piece(self, stamps, values, velocity, raw):
+        """`_run` for a piece of an adapting stream (core.adapt.Adaptation.run): the released
+        (stamps, values), and the canceller's residual the residual table learns from."""
+        unfiltered = None
+        if self._lines_input is not None:
+            tracked = self._lines_input.process(raw.T).T
+            residual, lines = self._canceller.process(values, velocity, unfiltered=tracked)
+            unfiltered = (raw, raw - lines)
+        else:
+            residual = self._canceller.process(values, velocity)
+        if self._gain is None:
+            out = self._output(stamps, residual if unfiltered is None else unfiltered[1])
+            return (*out, residual)
+        if len(velocity):
+            self._last_velocity = velocity[-1]
+        return (*self._gained(stamps, residual, velocity, unfiltered), residual)
+
+    # --- adaptation (core.adapt) ------------------------------------------------------
+    @property
+    def adapting(self) -> bool:
+        """Whether the model goes on learning (`adapt` given, learning on)."""
+        return self._adaptation is not None and self._adaptation.settings.learn
+
+    @property
+    def adaptation_stats(self) -> AdaptStats | None:
+        """What the adaptation counted; None without adaptation."""
+        return None if self._adaptation is None else self._adaptation.stats
+
+    def adapted_model(self) -> NoiseModel:
+        """The model with what was learnt online so far in its extras (`adapt.*`): saved,
+        it denoises with the learnt cells and corrections, and goes on learning with adapt."""
+        if self._adaptation is None:
+            raise ConfigError("adapted_model: this denoiser does not adapt (adapt not given)")
+        extras = {**without_learnt(self.model.extras), **self._adaptation.extras()}
+        provenance = {
+            **self.model.provenance,
+            "adapted_from": self.model.provenance.get("path", ""),
+            "adapted_stats": str(self._adaptation.stats.as_dict()),
+        }
+        return self.model.replace(extras=extras, provenance=provenance)
+
+    def reset_adaptation(self) -> None:
+        """Back to the calibrated model: what was learnt (online, or saved in the model) is
+        forgotten from the next sample on; learning goes on if it was on."""
+        if self._adaptation is None:
+            raise ConfigError("reset_adaptation: this denoiser does not adapt (adapt not given)")
+        self._adaptation.reset()
 
     def _gained(self, stamps, residual, velocity, unfiltered=None):
         rows, index = self._table.rows(velocity)
@@ -1052,8 +1126,16 @@ def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, 
             )
         if options.get("floor") is None:
             options.pop("floor", None)
+        if options.pop("adapt", None) is not None:
+            raise ConfigError("method paper: adapt applies to `cancel` and `hybrid`")
         return StreamingDenoiser(model, output=output, **options)
-    defaults = {"oversubtraction": 1.0, "floor": 0.0, "joint_lag_s": 0.0, "noise_gain_db": ()}
+    defaults = {
+        "oversubtraction": 1.0,
+        "floor": 0.0,
+        "joint_lag_s": 0.0,
+        "noise_gain_db": (),
+        "adapt": None,
+    }
     for name, value in defaults.items():
         if name in options and (options[name] == value or options[name] is None):
             del options[name]

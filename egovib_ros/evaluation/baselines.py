@@ -330,6 +330,15 @@ CORE_OPTIONS = {
 }
 
 
+#: methods that can adapt online (core.adapt); `default` where it is one of them
+ADAPTING = ("cancel", "hybrid")
+
+
+def adapts(name: str, model: NoiseModel) -> bool:
+    """Whether method `name` adapts its model online when asked to (core.adapt)."""
+    return name in ADAPTING or (name == "default" and default_method(model) in ADAPTING)
+
+
 def method_stream(
     name: str,
     *,
@@ -337,9 +346,11 @@ def method_stream(
     model_short: NoiseModel | None = None,
     gate: np.ndarray | None = None,
     source: str = "",
+    adapt=None,
 ) -> MethodStream:
     """A fresh stream of method `name` (`gate`: noisereduce's noise threshold, may be set
-    later on the stream's gate)."""
+    later on the stream's gate; `adapt`: core.adapt.AdaptSettings for the methods that
+    adapt, `adapts`)."""
     if name not in METHOD_LABELS:
         raise ValueError(f"unknown method {name!r}; expected one of {list(METHOD_LABELS)}")
     if name == "bandpass":
@@ -356,6 +367,8 @@ def method_stream(
     options = dict(CORE_OPTIONS[name])
     if name == "wiener":
         options["rule"] = WienerRule()
+    if adapt is not None and adapts(name, model):
+        options["adapt"] = adapt
     return CoreStream(model, source=source, **options)
 
 

@@ -62,6 +62,7 @@ class Detection:
     duration_s: float
     scores: dict | None = None  # with ground truth
     counts: dict = field(default_factory=dict)
+    adapt: dict | None = None  # with adapt: its settings and what it counted
 
 
 def check_detect_method(model: NoiseModel, method: str | None) -> str:
@@ -73,21 +74,36 @@ def check_detect_method(model: NoiseModel, method: str | None) -> str:
     return resolve_method(model, method)
 
 
-def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str):
+def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str, adapt=None):
     if method == "raw":
+        if adapt is not None:
+            raise ConfigError("adapt: method raw has no model to adapt")
         return None
     # the default output (the drop-in), as the denoiser node publishes it by default
-    return make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source)
+    options = {} if adapt is None else {"adapt": adapt}
+    return make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source, **options)
 
 
 def _delay_ms(model: NoiseModel, method: str) -> float:
     return 0.0 if method == "raw" else method_delay_ms(model, method)
 
 
-def _stream(bag, model: NoiseModel, method: str, joint_lag_s: float, *, ground_truth: bool):
-    """(stamps, values (N, 3), contact (N, 3) or None) of the method's output on `bag`."""
+def _stream(
+    bag,
+    model: NoiseModel,
+    method: str,
+    joint_lag_s: float,
+    *,
+    ground_truth: bool,
+    adapt=None,
+    used: list | None = None,
+):
+    """(stamps, values (N, 3), contact (N, 3) or None) of the method's output on `bag`
+    (`adapt`: the model learning as it goes, core.adapt; `used` gets the denoiser)."""
     profile = model.robot_profile()
-    denoiser = _denoiser(model, method, joint_lag_s, f"{bag}: {profile.sensor_topic}")
+    denoiser = _denoiser(model, method, joint_lag_s, f"{bag}: {profile.sensor_topic}", adapt)
+    if used is not None:
+        used.append(denoiser)
     truth: dict[int, np.ndarray] = {}
     for piece in iter_recording(
         bag, profile=profile, ground_truth=ground_truth, denoised=False, commands=False
@@ -227,8 +243,10 @@ def detect_bag(
     calibration: str | os.PathLike | None = None,
     false_alarms_per_min: float | None = None,
     joint_lag_s: float = 0.0,
+    adapt=None,
 ) -> Detection:
-    """Contact events of `bag` (see the module doc)."""
+    """Contact events of `bag` (see the module doc); `adapt` (core.adapt.AdaptSettings):
+    the denoiser's model goes on learning while no contact is detected."""
     method = check_detect_method(model, method)
     threshold, source, rate = detection_threshold(
         model,
@@ -241,7 +259,10 @@ def detect_bag(
     detector = ContactDetector(ContactSettings.for_model(model, threshold))
     events: list[ContactEvent] = []
     truth_parts, stamp_parts = [], []
-    for stamps, values, contact in _stream(bag, model, method, joint_lag_s, ground_truth=True):
+    used: list = []
+    for stamps, values, contact in _stream(
+        bag, model, method, joint_lag_s, ground_truth=True, adapt=adapt, used=used
+    ):
         events += detector.push(stamps, values)
         stamp_parts.append(stamps)
         if contact is not None:
@@ -262,6 +283,9 @@ def detect_bag(
         method_delay_ms=_delay_ms(model, method),
         duration_s=duration_s,
         counts={"samples": int(len(stamps)), "events": len(events)},
+        adapt=None
+        if adapt is None or not used
+        else {**vars(adapt), **used[0].adaptation_stats.as_dict()},
     )
     if truth_parts and len(np.concatenate(truth_parts)) == len(stamps):
         result.scores = score_events(events, stamps, np.concatenate(truth_parts), model, result)

@@ -93,10 +93,13 @@ def evaluate_pieces(
     source: str = "recording",
     calibration_source: str = "calibration recording",
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
+    adapt=None,
 ) -> dict:
     """The evaluation of a recording given as time slices: `open_run()` (and
     `open_calibration()`) return a fresh iterable of its Recording slices each time they
-    are called (once per pass, see evaluation/stream.py). Returns the report."""
+    are called (once per pass, see evaluation/stream.py). Returns the report. `adapt`
+    (core.adapt.AdaptSettings): the methods that can (the default, cancel, hybrid) adapt
+    their model online, in every pass afresh from the model."""
     names = streaming.method_names(
         methods, calibration=open_calibration is not None, model_short=model_short, model=model
     )
@@ -113,6 +116,7 @@ def evaluate_pieces(
             model_short=model_short,
             source=calibration_source,
             max_bad_fraction=max_bad_fraction,
+            adapt=adapt,
         )
         result = _through(calibration, open_calibration())
         thresholds, gate, calibration_bad = result.thresholds, result.gate, result.bad
@@ -125,6 +129,7 @@ def evaluate_pieces(
             model_short=model_short,
             extra=extra,
             source=source,
+            adapt=adapt,
         )
         _through(own, open_run())
         thresholds = own.noise_thresholds()
@@ -139,9 +144,10 @@ def evaluate_pieces(
         gate=gate,
         keep_signals=keep_signals or pr_curves,
         source=source,
+        adapt=adapt,
     )
     _through(run, open_run())
-    return _report(
+    report = _report(
         run,
         model,
         model_short=model_short,
@@ -150,6 +156,12 @@ def evaluate_pieces(
         keep_signals=keep_signals,
         pr_curves=pr_curves,
     )
+    report["adapt"] = None if adapt is None else dict(vars(adapt))
+    for name, stream in run.streams.items():
+        stats = getattr(getattr(stream, "denoiser", None), "adaptation_stats", None)
+        if stats is not None and name in report["methods"]:
+            report["methods"][name]["adapt"] = stats.as_dict()
+    return report
 
 
 def _through(stage, pieces: Iterable):
@@ -294,6 +306,7 @@ def evaluate_recording(
     source: str = "recording",
     calibration_source: str = "calibration recording",
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
+    adapt=None,
 ) -> dict:
     """Metrics of every method on `rec` (a bag.Recording with ground truth), pushed as one
     slice through the streaming evaluation.
@@ -318,6 +331,7 @@ def evaluate_recording(
         source=source,
         calibration_source=calibration_source,
         max_bad_fraction=max_bad_fraction,
+        adapt=adapt,
     )
 
 
@@ -331,6 +345,7 @@ def evaluate_bag(
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
     progress: Callable[[int], None] | None = None,
     chunk_s: float | None = None,
+    adapt=None,
 ) -> dict:
     """The report of one bag, streamed (memory does not grow with the bag): topics, field
     and joints from the model's robot profile. `calibration`: a no-contact bag for the
@@ -367,6 +382,7 @@ def evaluate_bag(
         source=str(bag),
         calibration_source=str(calibration),
         max_bad_fraction=max_bad_fraction,
+        adapt=adapt,
     )
 
 

@@ -428,6 +428,7 @@ class CalibrationPass:
         model_short: NoiseModel | None,
         source: str = "calibration recording",
         max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
+        adapt=None,
     ):
         self.model, self.source, self.max_bad_fraction = model, source, float(max_bad_fraction)
         fs = model.sample_rate_hz
@@ -435,7 +436,9 @@ class CalibrationPass:
         self.screen = Screen([float(model.profile.sensor_range)])
         self.band = BandPass.of(model, 1)
         self.streams = {
-            name: baselines.method_stream(name, model=model, model_short=model_short, source=source)
+            name: baselines.method_stream(
+                name, model=model, model_short=model_short, source=source, adapt=adapt
+            )
             for name in names
         }
         self.needs_gate = "noisereduce" in self.streams
@@ -565,6 +568,7 @@ class EvaluationPass:
         extra: Sequence[str] = (),
         keep_signals: bool = False,
         source: str = "recording",
+        adapt=None,
     ):
         fs = model.sample_rate_hz
         self.model, self.fs, self.source = model, fs, source
@@ -582,7 +586,7 @@ class EvaluationPass:
         self.detect_keys = self.metric_keys + [k for k in extra if k not in self.metric_keys]
         self.streams = {
             name: baselines.method_stream(
-                name, model=model, model_short=model_short, gate=gate, source=source
+                name, model=model, model_short=model_short, gate=gate, source=source, adapt=adapt
             )
             for name in self.detect_keys
             if name not in ("raw", "bag_denoised")

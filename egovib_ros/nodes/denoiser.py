@@ -19,6 +19,15 @@ or too many blocks on unmeasured cells (over a COVERAGE_WINDOW_S window, with hy
 see `unmeasured_warn_fraction`). With method paper `oversubtraction` and `floor` change
 live (`ros2 param set`); the other parameters, and those two with cancel and hybrid, are
 read-only.
+
+Adaptation (`adapt: true`, cancel and hybrid; core.adapt): the model goes on learning while
+the contact detector (its envelope on this node's own output, the threshold the model
+stores for the method) sees no contact, with `forget_s` of forgetting time, as `egovib
+denoise --adapt` does on the same messages. Services (std_srvs/Trigger): `~/save_model`
+writes the model as adapted so far to `save_model` (atomically; `egovib model show` marks
+the cells learnt online), `~/reset_model` returns to the calibrated model. /diagnostics
+counts the cells learnt online, those the calibration never measured, the blocks learnt and
+those left out for contacts.
 """
 
 from __future__ import annotations
@@ -27,14 +36,17 @@ import time
 from collections import deque
 from dataclasses import replace
 from math import nan
+from pathlib import Path
 
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
+from std_srvs.srv import Trigger
 
 from egovib_ros.bag.codec import replace_imu_field
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.adapt import AdaptSettings
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import METHODS, make_denoiser, resolve_method
 from egovib_ros.core.stream import RateWatch
@@ -50,6 +62,7 @@ from egovib_ros.nodes.common import (
     stream_counters,
     stream_publisher,
 )
+from egovib_ros.outputs import atomic_output
 
 LIVE = ("oversubtraction", "floor")
 #: The model-coverage WARN looks at the blocks of the last this many seconds (a free-motion
@@ -149,6 +162,25 @@ PARAMETERS = MODEL_PARAMETERS + (
         "seconds without input before /diagnostics reports STALE (reported at the "
         "next 1 Hz report)",
         range=(0.1, 3600.0),
+    ),
+    Param(
+        "adapt",
+        False,
+        "learn the model online while the contact detector sees no contact (methods cancel "
+        "and hybrid; as `egovib denoise --adapt`): the residual table's cells at the speeds "
+        "met, calibrated or not, and the harmonic map's corrections and amplitudes",
+    ),
+    Param(
+        "forget_s",
+        AdaptSettings().forget_s,
+        "with adapt: the forgetting time (s of contact-free time at a speed)",
+        range=(0.01, 1e6),
+    ),
+    Param(
+        "save_model",
+        "",
+        "where the ~/save_model service writes the adapted model (empty: <model>_adapted.npz "
+        "beside the model)",
     ),
     Param(
         "unmeasured_warn_fraction",
@@ -265,6 +297,12 @@ class Denoiser(Node):
         self.flush_after_idle_s = params["flush_after_idle"]
         self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
         self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
+        self.adapt = AdaptSettings(forget_s=params["forget_s"]) if params["adapt"] else None
+        adapt_option = {} if self.adapt is None else {"adapt": self.adapt}
+        model_path = Path(first["model"])
+        self.save_model_path = Path(
+            params["save_model"] or model_path.with_name(model_path.stem + "_adapted.npz")
+        )
         # the same construction as `egovib denoise --method` (bad combinations: one line)
         self._options = dict(
             channels=self.channels,
@@ -275,11 +313,15 @@ class Denoiser(Node):
             joint_lag_s=params["joint_lag"],
             noise_gain_db=noise_gain_from_report(params["noise_gain"], where="noise_gain"),
             source=self.resolve_topic_name(self.profile.node_sensor_topic),
+            **adapt_option,
         )
         self.denoiser = make_denoiser(self.model, self.method, **self._options)
         self._rate_watch: RateWatch | None = None  # after a rate refusal: is it back?
         self.rate_recoveries = 0
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        if self.adapt is not None:
+            self.create_service(Trigger, "~/save_model", self._on_save_model)
+            self.create_service(Trigger, "~/reset_model", self._on_reset_model)
 
         self.input = StreamInput(
             self,
@@ -311,7 +353,9 @@ class Denoiser(Node):
         self.get_logger().info(
             f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, "
             f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} (method {self.method}, "
-            f"{self.channels}), "
+            f"{self.channels}"
+            + (f", adapting, forgetting time {self.adapt.forget_s:g} s" if self.adapt else "")
+            + "), "
             f"joints {list(self.profile.joint_names)} from "
             f"{self.input.joints_topic}, model {first['model']}"
         )
@@ -332,6 +376,54 @@ class Denoiser(Node):
             f"oversubtraction {settings.oversubtraction:g}, floor {settings.floor:g}"
         )
         return SetParametersResult(successful=True)
+
+    # --- adaptation ------------------------------------------------------------------------
+    def _on_save_model(self, request, response):
+        """~/save_model: the model as adapted so far, written to `save_model` atomically."""
+        try:
+            model = self.denoiser.adapted_model()
+            with atomic_output(self.save_model_path) as tmp:
+                model.save(tmp)
+        except (EgovibError, OSError) as exc:
+            response.success, response.message = False, str(exc)
+            self.get_logger().error(f"save_model: {exc}")
+            return response
+        stats = self.denoiser.adaptation_stats
+        response.success = True
+        response.message = (
+            f"wrote {self.save_model_path}: {stats.cells_learnt} cells learnt online "
+            f"({stats.cells_new} never calibrated), {stats.blocks_learnt} blocks"
+        )
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_reset_model(self, request, response):
+        """~/reset_model: back to the calibrated model (learning goes on)."""
+        self.denoiser.reset_adaptation()
+        response.success, response.message = True, "back to the calibrated model"
+        self.get_logger().info(f"reset_model: {response.message}")
+        return response
+
+    def _adapt_values(self) -> dict:
+        """/diagnostics: what the adaptation counted (a model that learnt before, without
+        adapt: its cells learnt online too)."""
+        stats = getattr(self.denoiser, "adaptation_stats", None)
+        values = {"adapt": self.adapt is not None}
+        if self.adapt is not None:
+            values["forget_s"] = self.adapt.forget_s
+        if stats is not None:
+            values.update(
+                {
+                    "cells_learnt_online": stats.cells_learnt,
+                    "cells_new_online": stats.cells_new,
+                    "adapt_blocks_learnt": stats.blocks_learnt,
+                    "adapt_blocks_gated": stats.blocks_gated,
+                    "adapt_contacts": stats.contacts,
+                    "adapt_harmonic_points": stats.harmonic_points,
+                    "adapt_resets": stats.resets,
+                }
+            )
+        return values
 
     # --- input ---------------------------------------------------------------------------
     def _on_joint_state(self) -> None:
@@ -526,6 +618,7 @@ class Denoiser(Node):
                 self.denoiser.subtraction.oversubtraction if self.method == "paper" else nan
             ),
             "floor": self.denoiser.subtraction.floor if self.method == "paper" else nan,
+            **self._adapt_values(),
         }
         errors = []
         if self.stream_error:
@@ -584,6 +677,14 @@ class Denoiser(Node):
 
     def close(self) -> None:
         stats = self.denoiser.stats
+        adapted = getattr(self.denoiser, "adaptation_stats", None)
+        if self.adapt is not None and adapted is not None:
+            print(
+                f"denoiser: adapted, {adapted.blocks_learnt} blocks learnt, "
+                f"{adapted.blocks_gated} left out for contacts, cells learnt online "
+                f"{adapted.cells_learnt} ({adapted.cells_new} never calibrated)",
+                flush=True,
+            )
         print(
             f"denoiser: samples in {self.input.sensor_messages}, "
             f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "

@@ -17,9 +17,13 @@ Writes into DIR (atomically, one PNG per view, plus summary.md):
   them (streamed, never loaded whole): blocks per cell against the measured cells, and
   the shares on measured cells, on unmeasured cells (Eq. 6 or nearest) and beyond the
   grid.
+- online.png (a model written by `egovib denoise --adapt --save-model` or the denoiser
+  node's save_model service): the residual table's cells learnt online (core.adapt) and
+  from how many blocks, those the calibration never measured marked; the 2-joint
+  coverage map marks them too (stars).
 - summary.md: the numbers (cells measured / total, blocks, median blocks per cell, cells
   with too few blocks for a std, grid, rate, block length, band, measured kind,
-  provenance; with --bag the shares).
+  provenance; with --bag the shares; the cells learnt online).
 
 Everything is computed before the output is written; bad input (not a model, a bag
 without the model's topics) is one line, exit status 2, and nothing written.
@@ -35,6 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from egovib_ros.bag import BagReader, iter_recording
+from egovib_ros.core.adapt import describe_learnt
 from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD
 from egovib_ros.core.stream import BlockFramer, FramerSettings, check_stream
 from egovib_ros.core.velocity import MISSING
@@ -48,6 +53,7 @@ OUTSIDE_POINTS = 4000
 SUMMARY = "summary.md"
 COVERAGE_PNG = "coverage.png"
 BAG_PNG = "bag.png"
+ONLINE_PNG = "online.png"
 
 
 def spectra_png(channel: str) -> str:
@@ -426,6 +432,9 @@ def summary_lines(model, placement: BagPlacement | None = None) -> list[str]:
         f"coverage: {c['cells_measured']} of {_fmt_count(c['cells_total'])} cells measured, "
         f"{c['cells_under_min_blocks']} with fewer than {c['min_blocks_for_std']} blocks",
     ]
+    learnt = describe_learnt(model)
+    if learnt is not None:
+        lines.append(_learnt_line(learnt))
     if placement is not None:
         s = placement.shares()
         lines.append(
@@ -434,6 +443,21 @@ def summary_lines(model, placement: BagPlacement | None = None) -> list[str]:
             f"cells, {100 * s['share_outside']:.1f} % beyond the grid)"
         )
     return lines
+
+
+def _learnt_line(learnt: dict) -> str:
+    cells = learnt.get("cells")
+    text = f"learnt online (adapt, forgetting time {learnt['forget_s']:g} s): "
+    if cells is not None:
+        text += (
+            f"{len(cells)} cells of the residual table ({int(learnt['new'].sum())} the "
+            f"calibration never measured), {int(learnt['blocks'].sum())} blocks"
+        )
+    if "harmonic_points" in learnt:
+        text += (", " if cells is not None else "") + (
+            f"harmonic map at {learnt['harmonic_points']} joint speeds"
+        )
+    return text
 
 
 def summary_markdown(
@@ -492,6 +516,31 @@ def summary_markdown(
     for key, value in model.provenance.items():
         if key != "path" and str(value):
             rows.append(f"| provenance: {key} | {str(value).replace('|', '/')} |")
+    learnt = describe_learnt(model)
+    if learnt is not None:
+        rows += ["", "## Learnt online", "", _learnt_line(learnt) + "."]
+        if learnt.get("cells") is not None and len(learnt["cells"]):
+            rows += [
+                "",
+                "The residual table's cells (methods cancel and hybrid) that adaptation "
+                "learnt while no contact was detected; a cell the calibration never measured "
+                "started from the model's fill there. Those cells replace the table's value "
+                "at their grid point.",
+                "",
+                "| cell (joint velocities) | blocks learnt | calibrated before |",
+                "|---|---|---|",
+            ]
+            order = np.argsort(-learnt["blocks"])[:20]
+            for k in order.tolist():
+                speeds = ", ".join(
+                    f"{model.grid[j][i]:.3g}" for j, i in enumerate(learnt["cells"][k].tolist())
+                )
+                rows.append(
+                    f"| {speeds} | {int(learnt['blocks'][k])} | "
+                    f"{'no' if learnt['new'][k] else 'yes'} |"
+                )
+            if len(learnt["cells"]) > len(order):
+                rows.append(f"| ... {len(learnt['cells']) - len(order)} more | | |")
     if placement is not None:
         s = placement.shares()
         rows += [
@@ -596,6 +645,10 @@ def _coverage_map(model, c: dict, index: CellIndex, title: str, path: Path) -> N
     ax.scatter(*unmeasured[by_eq6].T, s=6, c="0.55", marker="o", linewidths=0)
     ax.scatter(*unmeasured[~by_eq6].T, s=22, c="tab:red", marker="x", linewidths=1)
     ax.scatter(*model.cells[thin].T, s=60, facecolors="none", edgecolors="tab:orange")
+    learnt = describe_learnt(model)
+    online = learnt.get("cells") if learnt is not None else None
+    if online is not None and len(online):
+        ax.scatter(*online.T, s=70, marker="*", c="white", edgecolors="black", linewidths=0.6)
     _velocity_ticks(ax, model.grid[0], "x")
     _velocity_ticks(ax, model.grid[1], "y")
     ax.set_xlabel(model.joint_names[0])
@@ -614,6 +667,9 @@ def _coverage_map(model, c: dict, index: CellIndex, title: str, path: Path) -> N
             label=f"< {c['min_blocks_for_std']} blocks (std borrowed)",
         ),
     ]
+    if online is not None and len(online):
+        star = dict(ls="", marker="*", mfc="white", mec="black", ms=10)
+        handles.append(Line2D([], [], label="learnt online (residual table)", **star))
     ax.legend(
         handles=handles,
         loc="upper center",
@@ -879,6 +935,36 @@ def _share_bar(ax, shares: dict) -> None:
     ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.5), frameon=False)
 
 
+def online_figure(model, learnt: dict, path: Path) -> None:
+    """The residual table's cells learnt online: per joint, at each of its grid
+    velocities, the blocks learnt and the cells learnt (those never calibrated apart)."""
+    plt = pyplot()
+    cells, blocks, new = learnt["cells"], learnt["blocks"], learnt["new"]
+    J = model.n_joints
+    cols = 1 if J == 1 else 2
+    rows = math.ceil(J / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 2.6 * rows + 0.8), squeeze=False)
+    for j, g in enumerate(model.grid):
+        ax = axes.flat[j]
+        x = np.arange(len(g))
+        ax.bar(x, np.bincount(cells[:, j], weights=blocks, minlength=len(g)), color="tab:green",
+               label="blocks learnt online")  # fmt: skip
+        ax.plot(x, np.bincount(cells[new, j], minlength=len(g)), "^-", color="tab:red", ms=4,
+                lw=1, label="cells never calibrated, learnt")  # fmt: skip
+        ax.plot(x, np.bincount(cells[~new, j], minlength=len(g)), "o-", color="tab:blue", ms=3,
+                lw=1, label="calibrated cells, learnt further")  # fmt: skip
+        ax.set_yscale("symlog", linthresh=1)
+        ax.set_ylabel("count")
+        _velocity_ticks(ax, g, "x")
+        ax.set_xlabel(f"{model.joint_names[j]} velocity")
+        if j == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    for ax in list(axes.flat)[J:]:
+        ax.set_visible(False)
+    fig.suptitle(f"{_robot_name(model)}: {_learnt_line(learnt)}", fontsize=9)
+    save_figure(fig, path, dpi=100)
+
+
 def write_views(
     model, directory: Path, *, placement: BagPlacement | None = None, model_path: str = ""
 ) -> list[str]:
@@ -886,6 +972,10 @@ def write_views(
     directory = Path(directory)
     written = [COVERAGE_PNG]
     coverage_figure(model, directory / COVERAGE_PNG)
+    learnt = describe_learnt(model)
+    if learnt is not None and learnt.get("cells") is not None and len(learnt["cells"]):
+        online_figure(model, learnt, directory / ONLINE_PNG)
+        written.append(ONLINE_PNG)
     panels = spectra_panels(model)
     for channel in model.channels:
         spectra_figure(model, channel, panels, directory / spectra_png(channel))

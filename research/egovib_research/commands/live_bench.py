@@ -33,6 +33,11 @@ def register(subparsers) -> None:
         "calibrated for every method)",
     )
     parser.add_argument(
+        "--adapt",
+        action="store_true",
+        help="the denoiser learns its model online (adapt:=true; cancel and hybrid)",
+    )
+    parser.add_argument(
         "--publish-period",
         type=float,
         default=0.002,

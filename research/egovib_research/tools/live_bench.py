@@ -52,7 +52,12 @@ from egovib_research.tools.watcher import Watcher
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.core.methods import calibrate_methods, make_denoiser, resolve_method
+from egovib_ros.core.methods import (
+    calibrate_detection,
+    calibrate_methods,
+    make_denoiser,
+    resolve_method,
+)
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.evaluation.contacts import TOLERANCE_S
 from egovib_ros.evaluation.detection import match_events
@@ -79,12 +84,14 @@ def cpu_seconds(pid: int) -> float:
 
 def bench_model(path: Path) -> Path:
     """A noise model from a short offline superposition sweep, as `egovib calibrate` makes it
-    (every method: the denoiser's default, hybrid, runs on it)."""
+    (every method: the denoiser's default, hybrid, runs on it; the contact detector's
+    thresholds, which adaptation needs)."""
 
     rec, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=5)
     arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
     model, _ = calibrate_arrays(*arrays, sweep="superposition", source="live_bench sweep")
     model, _ = calibrate_methods(model, *arrays, source="live_bench sweep")
+    model, _ = calibrate_detection(model, *arrays, source="live_bench sweep")
     model.save(path)
     return path
 
@@ -152,8 +159,10 @@ def run_bench(
     channels: str = "per_axis",
     method: str | None = None,
     publish_period: float = 0.002,
+    adapt: bool = False,
 ) -> dict:
-    """Run sim_hand + denoiser (`method`) for `seconds` (after `warmup`); return the figures."""
+    """Run sim_hand + denoiser (`method`; `adapt`: learning online, core.adapt) for
+    `seconds` (after `warmup`); return the figures."""
     workdir = Path(tempfile.mkdtemp(prefix="egovib_live_bench_"))
     model = model or bench_model(workdir / "model.npz")
     method = resolve_method(NoiseModel.load(model), method)  # none given: the model's default
@@ -182,9 +191,10 @@ def run_bench(
 
         watcher.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
 
-        den = group.start(
-            "denoiser", "denoiser", {"model": str(model), "channels": channels, "method": method}
-        )
+        params = {"model": str(model), "channels": channels, "method": method}
+        if adapt:
+            params["adapt"] = True
+        den = group.start("denoiser", "denoiser", params)
         sim = group.start(
             "sim_hand",
             "sim_hand",
@@ -212,7 +222,13 @@ def run_bench(
         denoiser_diag,
         first["diagnostics"],
         model=model,
-        run={"duration_s": wall, "warmup_s": warmup, "channels": channels, "method": method},
+        run={
+            "duration_s": wall,
+            "warmup_s": warmup,
+            "channels": channels,
+            "method": method,
+            "adapt": adapt,
+        },
         cpu=cpu,
         publish_period=publish_period,
     )
@@ -273,6 +289,17 @@ def denoised_figures(
             "total": int(sum(node_drops.values()) + missing_out + bad),
         },
         "cpu_share": {name: round(value, 4) for name, value in cpu.items()},
+        "adaptation": {
+            key: int(last[key])
+            for key in (
+                "cells_learnt_online",
+                "cells_new_online",
+                "adapt_blocks_learnt",
+                "adapt_blocks_gated",
+                "adapt_contacts",
+            )
+            if key in last
+        },
         "latency_ms": {
             **_percentiles(latency_ms),
             "block_length_ms": 64 / 3.0 if method == "paper" else None,
@@ -536,13 +563,16 @@ def run(args: argparse.Namespace) -> int:
         method=args.method,
         model=Path(args.model) if args.model else None,
         publish_period=args.publish_period,
+        adapt=getattr(args, "adapt", False),
     )
     with atomic_output(args.json) as tmp:
         tmp.write_text(json.dumps(result, indent=2) + "\n")
     lat, drops, cpu = result["latency_ms"], result["dropped_samples"], result["cpu_share"]
     algorithmic = result["algorithmic_latency_ms"]
+    adapting = ", adapting" if result["adapt"] else ""
     print(
-        f"{result['method']}, {result['duration_s']:.0f} s at {result['denoised_rate_hz']:.0f} Hz: "
+        f"{result['method']}{adapting}, {result['duration_s']:.0f} s at "
+        f"{result['denoised_rate_hz']:.0f} Hz: "
         f"dropped {drops['total']}, denoiser CPU {cpu['denoiser']:.1%} of a core "
         f"(sim_hand {cpu['sim_hand']:.1%}), latency p50 "
         f"{lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms (algorithmic p50 "

@@ -1,0 +1,912 @@
+"""Online adaptation: the model keeps learning while the contact detector sees no contact.
+
+`cancel` and `hybrid` (core.methods.SampleMethodDenoiser) take `adapt=AdaptSettings(...)`:
+while they denoise, they go on calibrating, from the stretches the contact detector calls
+contact-free, what calibration fitted on a no-contact recording -
+
+- the residual table (hybrid): each block of what the canceller leaves (the model's block
+  length, hop and window, as calibration frames it) adds its magnitude spectrum to the cell
+  nearest its joint velocity, under calibration's free-motion rules (the block's velocity
+  steady within `steady_tolerance` grid steps, inside the grid). A cell keeps the mean
+  magnitude and the mean power per channel and bin, each an exponential average that
+  forgets with time constant `forget_s` of contact-free time spent in that cell. A cell
+  starts from the model's value there: its calibrated statistics, or, for a cell never
+  calibrated (speeds beyond the calibration included), the model's fill (Eq. 6 or the
+  nearest measured cell); from its first block on it is a cell learnt online, and counts
+  as measured. A learnt cell's value replaces the table's at its grid point (the other
+  cells keep the calibrated model's values and fill), from the next update on.
+- the harmonic map (cancel, hybrid): per joint and per point of its speed grid, the
+  canceller's frequency correction and each of the joint's lines' amplitudes (per axis)
+  seen there, averaged and forgotten alike, saved with the model; a stream starts its
+  joints' frequency corrections from the map at their speeds (warm start). They are not
+  fed forward while the speeds move: tried (the correction moved by the learnt difference
+  between two speeds, the line weights scaled by the learnt amplitude ratio), it made
+  bursts at the PR2 sweep's speed steps - the PLL's correction of a weak line wanders, and
+  a gripper's line amplitudes differ with its direction and opening - that doubled the
+  contact detector's no-contact level.
+
+Gating (`ContactGate`): the denoiser's own output goes through the contact detector's
+envelope (core.contact.DetectionEnvelope: band-passed axes, summed, 4 ms RMS), against the
+detector's threshold for the method (the one calibration stored in the model, as the
+contact_detector node and `egovib detect` use it) times `gate_fraction`. A block is
+learnt only once the output has passed its end by `guard_s`, and only if no output sample
+from `guard_s` before its first sample to `guard_s` after its last one crossed that
+threshold: a contact, its ring-down and its onset before the envelope rose are never
+learnt. At a segment's end (a long gap, a clock jump, the end of the stream) the blocks
+whose guard reaches beyond it are dropped.
+
+Safety beyond the gate: a cell's power may change by at most `max_rate_db_s` per second
+of its own learning (per bin and channel; the mean magnitude by half of it in dB), so a
+contact the detector misses moves a cell by little, and one long press cannot rewrite it;
+`reset()` returns to the calibrated model.
+
+Determinism: what is learnt takes effect every `period` samples of the stream (a whole
+number of hops, about UPDATE_S; counted from its start), never at a chunk's edge: the
+denoiser processes its input in pieces that end there, and the learning itself (blocks,
+gate, cells) runs at those points on what the pieces left, so any chunking gives the same
+output, to the bit.
+
+The learnt state is saved in the model's extras (`adapted_extras`): `adapt.residual.*`
+(cells, mean, power, blocks learnt online, whether the calibration had measured them) and
+`adapt.harmonic.*`; a model carrying them uses them (`AdaptiveTable`, the warm start)
+whether or not it goes on adapting.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
+from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
+
+#: Keys of the learnt state in a model's extras.
+ADAPT_PREFIX = "adapt."
+RESIDUAL_KEYS = ("cells", "mean", "power", "blocks", "new")
+HARMONIC_KEYS = ("correction", "amplitude", "blocks")
+#: Least power (relative to the cell's largest bin) a bin's rate bound is measured from.
+TINY = 1e-30
+#: What is learnt takes effect about this often (a whole number of hops).
+UPDATE_S = 0.04
+#: A speed-grid point of the harmonic map is used once learnt over this many spans
+#: between updates (0.4 s of steady, contact-free speed).
+MIN_POINT_SPANS = 10
+
+
+@dataclass(frozen=True, kw_only=True)
+class AdaptSettings:
+    """forget_s: time constant (s of contact-free time in a cell) with which older data are
+    forgotten; guard_s: time around every contact detection that is never learnt;
+    max_rate_db_s: how fast a cell's power may change per second of its own learning;
+    gate_fraction: the gate's threshold as a share of the contact detector's; threshold:
+    the detector's threshold itself (None: the one the model stores for the method);
+    steady_tolerance: the largest change of a block's joint velocity (grid steps, first
+    half against second half) that still counts for a cell (free-motion calibration's);
+    harmonic: learn the harmonic map's corrections and amplitudes too; learn: False keeps
+    what the model learnt before (the learnt cells, the warm start) without learning more."""
+
+    forget_s: float = 30.0
+    guard_s: float = 0.15
+    max_rate_db_s: float = 10.0
+    gate_fraction: float = 1.0
+    threshold: float | None = None
+    steady_tolerance: float = 0.5
+    harmonic: bool = True
+    learn: bool = True
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("forget_s", 0.01, 1e6),
+            ("guard_s", 0.0, 60.0),
+            ("max_rate_db_s", 0.01, 1e4),
+            ("gate_fraction", 0.01, 100.0),
+            ("steady_tolerance", 0.01, 1.0),
+        )
+        check_ranges(self, checks, "adapt: ")
+        if self.threshold is not None and not (
+            isinstance(self.threshold, (int, float))
+            and math.isfinite(self.threshold)
+            and self.threshold > 0
+        ):
+            raise ConfigError(f"adapt: threshold must be a number > 0, got {self.threshold!r}")
+
+
+@dataclass(frozen=True)
+class AdaptStats:
+    """What the adaptation counted (reports, /diagnostics)."""
+
+    blocks_learnt: int  # blocks added to the residual table
+    blocks_gated: int  # blocks left out for a contact within the guard time
+    blocks_unsteady: int  # velocity not steady, no joint state, gap fill, beyond the grid
+    blocks_dropped: int  # guard time reaching past a segment's end
+    contacts: int  # episodes of the gate's envelope above its threshold
+    cells_learnt: int  # cells learnt online (in this run or saved before)
+    cells_new: int  # ... of them, cells the calibration never measured
+    harmonic_updates: int  # speed-grid points of the harmonic map updated
+    harmonic_points: int  # speed-grid points learnt online
+    resets: int  # resets to the calibrated model
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+# --------------------------------------------------------------------------------------
+# The gate
+# --------------------------------------------------------------------------------------
+class ContactGate:
+    """The contact detector's envelope on the denoiser's output, and when it crossed the
+    threshold: `push` the output (stamps (n,), values (n, 3), or (n, 1) band-passed and
+    summed), then `decide(first_ns, last_ns)` whether a block of those stamps is clear of
+    contacts by `guard_ns` on either side (None: the output has not passed it yet)."""
+
+    def __init__(
+        self, settings: ContactSettings, *, guard_s: float, prefiltered: bool, summed: bool
+    ):
+        self.settings = settings
+        self.threshold = settings.threshold
+        self.guard_ns = int(round(guard_s * 1e9))
+        self._prefiltered = prefiltered
+        self._summed = summed
+        self._envelope = DetectionEnvelope(settings, prefiltered=prefiltered)
+        self._intervals: deque = deque()  # [first, last] stamps of runs above the threshold
+        self._above = False  # the last sample pushed was above
+        self.progress_ns: int | None = None  # stamp of the last output sample pushed
+        self.contacts = 0
+
+    def push(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        if not len(stamps):
+            return
+        values = np.asarray(values, np.float64)
+        if self._summed or values.shape[1] == 1:  # band-passed axes, combined: the 1-D sum
+            values = values.sum(axis=1)
+        envelope = self._envelope.process(values)[1]
+        above = envelope > self.threshold
+        if above.any():
+            # runs of consecutive samples above the threshold
+            edges = np.diff(np.r_[False, above, False].astype(np.int8))
+            starts = np.flatnonzero(edges == 1)
+            stops = np.flatnonzero(edges == -1) - 1
+            for a, b in zip(starts.tolist(), stops.tolist()):
+                if a == 0 and self._above and self._intervals:
+                    self._intervals[-1][1] = int(stamps[b])
+                else:
+                    self._intervals.append([int(stamps[a]), int(stamps[b])])
+                    self.contacts += 1
+        self._above = bool(above[-1])
+        self.progress_ns = int(stamps[-1])
+
+    def decide(self, first_ns: int, last_ns: int) -> bool | None:
+        """Whether no sample from first - guard to last + guard crossed (None: not known)."""
+        if self.progress_ns is None or self.progress_ns < last_ns + self.guard_ns:
+            return None
+        low, high = first_ns - self.guard_ns, last_ns + self.guard_ns
+        for a, b in self._intervals:
+            if a > high:
+                break
+            if b >= low:
+                return False
+        return True
+
+    def prune(self, before_ns: int) -> None:
+        """Forget runs that ended before `before_ns` (no block will ask about them)."""
+        while self._intervals and self._intervals[0][1] < before_ns:
+            self._intervals.popleft()
+
+    def end_segment(self) -> None:
+        """The next output may restart the clock: forget the stamps (not the envelope)."""
+        self._intervals.clear()
+        self._above = False
+        self.progress_ns = None
+
+
+# --------------------------------------------------------------------------------------
+# The residual table's cells
+# --------------------------------------------------------------------------------------
+@dataclass
+class Candidate:
+    """A block waiting for the gate."""
+
+    first_ns: int
+    last_ns: int
+    cell: int  # flat cell id
+    index: np.ndarray  # (J,) grid index
+    magnitude: np.ndarray  # (C, F) |rfft| per model channel
+
+
+def _layout_of(channels: tuple[str, ...]) -> str:
+    for layout, names in (("all", ("combined", "x", "y", "z")), ("per_axis", ("x", "y", "z"))):
+        if tuple(channels) == names:
+            return layout
+    raise ModelFileError(f"adapt: residual table channels {list(channels)} are not x, y, z")
+
+
+@numba.njit(cache=True)
+def _commit(mean, power, x, weight, row, rate, max_step):
+    """One block `x` (C, F) into a cell's mean magnitude and mean power (in place): an
+    exponential average (weight 1 / (blocks averaged + 1), at least `rate`), each bin's power
+    moving by at most `max_step` in log (measured from at least TINY of the cell's loudest
+    bin), its mean by half of it, the mean never above the root of the power."""
+    a = 1.0 / (weight[row] + 1.0)
+    if a < rate:
+        a = rate
+    loudest = TINY
+    for c in range(power.shape[0]):
+        for f in range(power.shape[1]):
+            if power[c, f] > loudest:
+                loudest = power[c, f]
+    up, down = math.exp(max_step), math.exp(-max_step)
+    up_m, down_m = math.exp(max_step / 2), math.exp(-max_step / 2)
+    for c in range(power.shape[0]):
+        for f in range(power.shape[1]):
+            base = power[c, f] if power[c, f] > TINY * loudest else TINY * loudest
+            p = power[c, f] + a * (x[c, f] * x[c, f] - power[c, f])
+            p = min(max(p, base * down), base * up)
+            root = math.sqrt(base)
+            m = mean[c, f] + a * (x[c, f] - mean[c, f])
+            m = min(max(m, root * down_m), root * up_m)
+            power[c, f] = p
+            mean[c, f] = min(m, math.sqrt(p))
+    weight[row] = min(weight[row] + 1.0, 1.0 / rate)
+
+
+class CellLearner:
+    """Blocks of the residual stream (`push`, one segment at a time) become candidates
+    (`take`); a candidate the gate clears is `commit`ted to its cell. Per learnt cell:
+    mean magnitude and mean power (C, F), the weight of what it has averaged (saturating at
+    the forgetting window), blocks learnt online, whether the calibration measured it."""
+
+    def __init__(self, residual: NoiseModel, settings: AdaptSettings):
+        self.model = residual
+        self.settings = settings
+        self.layout = _layout_of(residual.channels)
+        self.L, self.hop = residual.block_length, residual.hop
+        self.window = residual.window
+        fs = residual.sample_rate_hz
+        self.grid = residual.grid
+        self.shape = residual.grid_shape
+        self._spacing = [
+            np.minimum(np.diff(g, prepend=-np.inf), np.diff(g, append=np.inf)) for g in self.grid
+        ]
+        # per block: the forgetting rate, and the largest log change of a bin's power
+        self.rate = min(1.0, self.hop / (settings.forget_s * fs))
+        self.max_step = settings.max_rate_db_s * self.hop / fs * math.log(10.0) / 10.0
+        C, F = len(residual.channels), self.L // 2 + 1
+        self.row_of: dict[int, int] = {}
+        self.cells = np.zeros((0, residual.n_joints), np.int64)
+        self.mean = np.zeros((0, C, F))
+        self.power = np.zeros((0, C, F))
+        self.weight = np.zeros(0)
+        self.blocks = np.zeros(0, np.int64)
+        self.new = np.zeros(0, bool)
+        self._calibrated = set(residual._cell_ids.tolist()) if len(residual.cells) else set()
+        self.changed: set[int] = set()
+        self.learnt = 0
+        self.unsteady = 0
+        self._reset_buffer()
+
+    # --- blocks of the stream ---------------------------------------------------------
+    def _reset_buffer(self) -> None:
+        J = self.model.n_joints
+        self._stamps = np.zeros(0, np.int64)
+        self._values = np.zeros((0, 3))
+        self._velocity = np.zeros((0, J))
+
+    def end_segment(self) -> None:
+        self._reset_buffer()
+
+    def push(self, stamps: np.ndarray, values: np.ndarray, velocity: np.ndarray) -> list:
+        """Samples of one segment, in order; returns the candidates of the blocks they end."""
+        self._stamps = np.concatenate([self._stamps, stamps])
+        self._values = np.concatenate([self._values, values])
+        self._velocity = np.concatenate([self._velocity, velocity])
+        L, hop = self.L, self.hop
+        ends = np.arange(L, len(self._stamps) + 1, hop)
+        if not len(ends):
+            return []
+        out = self._candidates(ends - L)
+        keep = int(ends[-1]) + hop - L
+        self._stamps = self._stamps[keep:]
+        self._values = self._values[keep:]
+        self._velocity = self._velocity[keep:]
+        return out
+
+    def _candidates(self, starts: np.ndarray) -> list:
+        """The blocks starting at `starts` (buffer rows) that may teach a cell: all samples
+        real, with joint states, steady and inside the grid (calibration's free rules)."""
+        L = self.L
+        rows = starts[:, None] + np.arange(L)[None, :]
+        stamps = self._stamps[rows]
+        velocity = self._velocity[rows]  # (b, L, J)
+        ok = (stamps.min(axis=1) >= 0) & np.all(np.isfinite(velocity), axis=(1, 2))
+        velocity = np.where(ok[:, None, None], velocity, 0.0)
+        half = L // 2
+        mean = velocity.mean(axis=1)
+        drift = np.abs(velocity[:, :half].mean(axis=1) - velocity[:, half:].mean(axis=1))
+        index = np.empty(mean.shape, np.int64)
+        for j, g in enumerate(self.grid):
+            i = np.abs(mean[:, j, None] - g[None, :]).argmin(axis=1)
+            step = self._spacing[j][i]
+            ok &= np.abs(mean[:, j] - g[i]) <= 0.5 * step  # beyond the grid's edge: no
+            ok &= drift[:, j] <= self.settings.steady_tolerance * step
+            index[:, j] = i
+        self.unsteady += int((~ok).sum())
+        if not ok.any():
+            return []
+        blocks = self._values[rows[ok]]  # (b, L, 3)
+        if self.layout == "all":
+            blocks = np.concatenate([blocks.sum(axis=2, keepdims=True), blocks], axis=2)
+        magnitude = np.abs(np.fft.rfft(blocks.transpose(0, 2, 1) * self.window, axis=-1))
+        cells = np.ravel_multi_index(tuple(index[ok].T), self.shape)
+        return [
+            Candidate(int(st[0]), int(st[-1]), int(c), i, m)
+            for st, c, i, m in zip(stamps[ok], cells.tolist(), index[ok], magnitude)
+        ]
+
+    # --- cells ---------------------------------------------------------------------------
+    def _row(self, cell: int, index: np.ndarray) -> int:
+        row = self.row_of.get(cell)
+        if row is not None:
+            return row
+        point = np.array([g[i] for g, i in zip(self.grid, index)])[None]
+        mean, _, _ = self.model.lookup(point, include_std=False)
+        high, _, _ = self.model.lookup(point, include_std=True)
+        std = np.maximum(high[0] - mean[0], 0.0)
+        calibrated = cell in self._calibrated
+        counts = 0
+        if calibrated:
+            counts = int(self.model.cell_counts[self.model._rows_of(index[None])[0]])
+        return self._add(
+            cell, index, mean[0], mean[0] ** 2 + std**2, min(counts, 1.0 / self.rate), 0,
+            not calibrated,
+        )  # fmt: skip
+
+    def _add(self, cell, index, mean, power, weight, blocks, new) -> int:
+        row = self.row_of[cell] = len(self.row_of)
+        self.cells = np.concatenate([self.cells, np.asarray(index, np.int64)[None]])
+        self.mean = np.concatenate([self.mean, np.asarray(mean, float)[None]])
+        self.power = np.concatenate([self.power, np.asarray(power, float)[None]])
+        self.weight = np.append(self.weight, float(weight))
+        self.blocks = np.append(self.blocks, int(blocks))
+        self.new = np.append(self.new, bool(new))
+        return row
+
+    def commit(self, candidate: Candidate) -> None:
+        row = self._row(candidate.cell, candidate.index)
+        _commit(
+            self.mean[row], self.power[row], candidate.magnitude, self.weight, row,
+            self.rate, self.max_step,
+        )  # fmt: skip
+        self.blocks[row] += 1
+        self.learnt += 1
+        self.changed.add(row)
+
+    def load(self, learnt: dict) -> None:
+        """Cells learnt before (the model's `adapt.residual.*`), as they were saved."""
+        for k in range(len(learnt["cells"])):
+            index = learnt["cells"][k]
+            cell = int(np.ravel_multi_index(tuple(index), self.shape))
+            blocks = int(learnt["blocks"][k])
+            weight = min(blocks, 1.0 / self.rate)
+            if not learnt["new"][k]:  # calibrated too: its calibration's blocks count
+                rows = self.model._rows_of(np.asarray(index)[None])
+                if rows[0] >= 0:
+                    weight = min(blocks + int(self.model.cell_counts[rows[0]]), 1.0 / self.rate)
+            self._add(
+                cell, index, learnt["mean"][k], learnt["power"][k], weight, blocks,
+                bool(learnt["new"][k]),
+            )  # fmt: skip
+
+    @property
+    def online(self) -> np.ndarray:
+        """Rows of the cells learnt online (at least one block)."""
+        return np.flatnonzero(self.blocks > 0)
+
+
+class AdaptiveTable:
+    """core.methods.ResidualTable with some cells' band powers replaced (learnt online):
+    the same `rows` (dense grids: the same compiled look-up on a copy of the table whose
+    learnt rows are changed and marked measured; larger grids: the nearest grid point's
+    learnt powers where it has them)."""
+
+    def __init__(self, table):
+        self.base = table
+        self.floor = table.floor
+        self.weights = table.weights
+        self.channel_index = table.channel_index
+        dense = getattr(table, "_table", None) is not None
+        self.dense = dense
+        if dense:
+            self._original = (table._table, table._measured)
+            table._table = table._table.copy()
+            table._measured = table._measured.copy()
+        self._learnt: dict[int, np.ndarray] = {}  # flat cell -> (C, B) powers (larger grids)
+        self._shape = table.model.grid_shape
+        self._grid = table.model.grid
+        if not dense:
+            base_at = table._at
+
+            def at(rows):
+                found, measured, outside = base_at(rows)
+                if self._learnt:
+                    cells = self._nearest(rows)
+                    for k, cell in enumerate(cells.tolist()):
+                        learnt = self._learnt.get(cell)
+                        if learnt is not None:
+                            found[k] = learnt
+                            measured[k] = True
+                return found, measured, outside
+
+            table._at = at
+
+    def _nearest(self, velocity: np.ndarray) -> np.ndarray:
+        index = np.empty(velocity.shape, np.int64)
+        for j, g in enumerate(self._grid):
+            index[:, j] = np.abs(velocity[:, j, None] - g[None]).argmin(axis=1)
+        return np.ravel_multi_index(tuple(index.T), self._shape)
+
+    def powers_of(self, power: np.ndarray) -> np.ndarray:
+        """A cell's band powers (3, B) from its mean power per model channel and bin (C, F)."""
+        return power[self.channel_index] @ self.weights.T
+
+    def set(self, cell: int, power: np.ndarray) -> None:
+        bands = self.powers_of(power)
+        if self.dense:
+            self.base._table[cell] = bands.reshape(-1)
+            self.base._measured[cell] = True
+        else:
+            self._learnt[cell] = bands
+
+    def restore(self) -> None:
+        if self.dense:
+            self.base._table[:] = self._original[0]
+            self.base._measured[:] = self._original[1]
+        self._learnt.clear()
+
+    # the ResidualTable interface the denoiser uses
+    def rows(self, velocity):
+        return self.base.rows(velocity)
+
+    @property
+    def samples_unmeasured(self) -> int:
+        return self.base.samples_unmeasured
+
+    @property
+    def samples_out_of_grid(self) -> int:
+        return self.base.samples_out_of_grid
+
+
+# --------------------------------------------------------------------------------------
+# The harmonic map's corrections and amplitudes
+# --------------------------------------------------------------------------------------
+class HarmonicLearner:
+    """Per joint j and point k of its speed grid (|grid values|): the canceller's frequency
+    correction (J, G) and its lines' amplitudes per axis (lines, G, C), averaged over the
+    spans between updates that the gate clears (the joint's speed within half a grid step
+    of the point, and steady within half a step), forgotten like the cells.
+    `warm_start` sets the canceller's corrections at the stream's start (module doc)."""
+
+    def __init__(self, hmap, grid, canceller, settings: AdaptSettings):
+        self.map = hmap
+        self.canceller = canceller
+        self.settings = settings
+        self.points = [np.unique(np.abs(np.asarray(g, float))) for g in grid]
+        self._half_step = [
+            0.5 * float(np.diff(p).min()) if len(p) > 1 else math.inf for p in self.points
+        ]
+        G = max(len(p) for p in self.points)
+        C = canceller.n_channels
+        J = hmap.n_joints
+        self.lines = [np.flatnonzero(hmap.line_joint == j) for j in range(J)]
+        self.correction = np.full((J, G), np.nan)
+        self.amplitude = np.full((hmap.n_lines, G, C), np.nan)
+        self.weight = np.zeros((J, G))
+        self.blocks = np.zeros((J, G), np.int64)
+        self._started = False  # the warm start is done
+        self._snapshot: tuple | None = None  # the state at the last update
+        self.updates = 0
+
+    def reset(self) -> None:
+        self.correction[:] = np.nan
+        self.amplitude[:] = np.nan
+        self.weight[:] = 0.0
+        self.blocks[:] = 0
+        self._snapshot = None
+
+    def snapshot(self, first_ns: int, last_ns: int) -> tuple | None:
+        """The canceller's speeds, corrections and line amplitudes now; returns the span
+        since the previous snapshot ((first_ns, last_ns): its real samples' stamps, speeds
+        then, state now), or None without a previous one or a real sample."""
+        st = self.canceller.state
+        amplitude = np.hypot(st.weights[:, :, 0], st.weights[:, :, 1]).T  # (lines, C)
+        now = (st.lagged.copy(), st.correction.copy(), amplitude)
+        before, self._snapshot = self._snapshot, now
+        if before is None or first_ns < 0:
+            return None
+        return (first_ns, last_ns, before[0], now)
+
+    def commit(self, span: tuple, rate: float) -> None:
+        _, _, speed_before, (speed, correction, amplitude) = span
+        for j, points in enumerate(self.points):
+            k = int(np.abs(points - speed[j]).argmin())
+            half = self._half_step[j]
+            if abs(points[k] - speed[j]) > half or abs(speed[j] - speed_before[j]) > half:
+                continue
+            if speed[j] <= self.map.min_speed[j]:
+                continue  # its lines are off
+            a = max(1.0 / (self.weight[j, k] + 1.0), rate)
+            lines = self.lines[j]
+            if np.isnan(self.correction[j, k]):
+                self.correction[j, k] = correction[j]
+                self.amplitude[lines, k] = amplitude[lines]
+            else:
+                self.correction[j, k] += a * (correction[j] - self.correction[j, k])
+                self.amplitude[lines, k] += a * (amplitude[lines] - self.amplitude[lines, k])
+            self.weight[j, k] = min(self.weight[j, k] + 1.0, 1.0 / rate)
+            self.blocks[j, k] += 1
+            self.updates += 1
+
+    def _at(self, j: int, speed: float) -> tuple[float, np.ndarray] | None:
+        """Learnt correction and amplitudes (lines of j, C) at `speed`, linear between the
+        two grid points around it; None unless both (or the one it sits on) were learnt over
+        at least MIN_POINT_SPANS spans (no extrapolation to speeds the map has not seen)."""
+        points = self.points[j]
+        k = int(np.searchsorted(points, speed))
+        if k < len(points) and points[k] == speed:
+            around = (k, k)
+        elif 0 < k < len(points):
+            around = (k - 1, k)
+        else:
+            return None
+        if (
+            self.blocks[j, around[0]] < MIN_POINT_SPANS
+            or self.blocks[j, around[1]] < MIN_POINT_SPANS
+        ):
+            return None
+        lo, hi = around
+        w = 0.0 if lo == hi else (speed - points[lo]) / (points[hi] - points[lo])
+        lines = self.lines[j]
+        correction = (1.0 - w) * self.correction[j, lo] + w * self.correction[j, hi]
+        amplitude = (1.0 - w) * self.amplitude[lines, lo] + w * self.amplitude[lines, hi]
+        return float(correction), amplitude
+
+    def warm_start(self) -> None:
+        """At the stream's first update: each joint's frequency correction from the map at
+        its speed, where learnt (the canceller's PLL otherwise starts from none)."""
+        if self._started:
+            return
+        self._started = True
+        st = self.canceller.state
+        bound = float(self.canceller.settings.max_correction)
+        for j in range(len(self.points)):
+            learnt = self._at(j, float(st.lagged[j]))
+            if learnt is not None and st.lagged[j] > self.map.min_speed[j]:
+                st.correction[j] = min(max(learnt[0], -bound), bound)
+
+    def load(self, learnt: dict) -> None:
+        correction, amplitude, blocks = learnt["correction"], learnt["amplitude"], learnt["blocks"]
+        if (
+            correction.shape != self.correction.shape
+            or amplitude.shape != self.amplitude.shape
+            or blocks.shape != self.blocks.shape
+        ):
+            raise ModelFileError("adapt: the learnt harmonic map does not fit the model's")
+        self.correction[:], self.amplitude[:], self.blocks[:] = correction, amplitude, blocks
+        self.weight[:] = blocks
+
+
+# --------------------------------------------------------------------------------------
+# The model's extras
+# --------------------------------------------------------------------------------------
+def learnt_state(model: NoiseModel) -> tuple[dict | None, dict | None]:
+    """(residual cells, harmonic map) learnt online that the model carries (None: none)."""
+    where = model.where
+    extras = model.extras
+    residual = harmonic = None
+    keys = [ADAPT_PREFIX + "residual." + k for k in RESIDUAL_KEYS]
+    if any(k in extras for k in keys):
+        if not all(k in extras for k in keys):
+            raise ModelFileError(f"{where}: learnt residual cells lack some of {keys}")
+        residual = {k: np.asarray(extras[key]) for k, key in zip(RESIDUAL_KEYS, keys)}
+        K = len(residual["cells"])
+        mean, power = residual["mean"], residual["power"]
+        if (
+            residual["cells"].ndim != 2
+            or residual["cells"].shape[1] != model.n_joints
+            or mean.shape[0] != K
+            or mean.shape != power.shape
+            or residual["blocks"].shape != (K,)
+            or residual["new"].shape != (K,)
+            or not np.all(np.isfinite(mean))
+            or not np.all(np.isfinite(power))
+            or np.any(power < 0)
+            or np.any(residual["cells"] < 0)
+            or np.any(residual["cells"] >= np.array(model.grid_shape))
+        ):
+            raise ModelFileError(f"{where}: malformed learnt residual cells ({keys[0]} ...)")
+        residual["cells"] = residual["cells"].astype(np.int64)
+        residual["new"] = residual["new"].astype(bool)
+    hkeys = [ADAPT_PREFIX + "harmonic." + k for k in HARMONIC_KEYS]
+    if any(k in extras for k in hkeys):
+        if not all(k in extras for k in hkeys):
+            raise ModelFileError(f"{where}: learnt harmonic map lacks some of {hkeys}")
+        harmonic = {k: np.asarray(extras[key], float) for k, key in zip(HARMONIC_KEYS, hkeys)}
+        harmonic["blocks"] = harmonic["blocks"].astype(np.int64)
+    return residual, harmonic
+
+
+def describe_learnt(model: NoiseModel) -> dict | None:
+    """What a model learnt online (for `egovib model show`), None if nothing."""
+    residual, harmonic = learnt_state(model)
+    if residual is None and harmonic is None:
+        return None
+    out = {"forget_s": float(model.extras.get(ADAPT_PREFIX + "forget_s", np.nan))}
+    if residual is not None:
+        online = residual["blocks"] > 0
+        out.update(
+            cells=residual["cells"][online],
+            blocks=residual["blocks"][online],
+            new=residual["new"][online],
+        )
+    if harmonic is not None:
+        out["harmonic_points"] = int((harmonic["blocks"] > 0).sum())
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# The whole of it, for SampleMethodDenoiser
+# --------------------------------------------------------------------------------------
+class Adaptation:
+    """Runs beside a SampleMethodDenoiser (`denoiser`): `run` takes a batch of framed samples
+    and hands it to the denoiser in pieces that end on the update schedule; `observe` takes
+    what the denoiser outputs besides (a segment's look-ahead released), `end_segment` the
+    end of a segment. The learning runs at each update (see the module doc)."""
+
+    def __init__(self, denoiser, settings: AdaptSettings, *, threshold: float | None):
+        self.d = denoiser
+        self.settings = settings
+        model = denoiser.model
+        cal = denoiser.calibration
+        fs = model.sample_rate_hz
+        hop = int(model.hop)
+        self.period = hop * max(1, int(round(UPDATE_S * fs / hop)))  # the update schedule
+        self.rate = min(1.0, self.period / (settings.forget_s * fs))  # per update (harmonic)
+        self._phase = 0
+        residual_learnt, harmonic_learnt = learnt_state(model)
+        self.table = denoiser._table  # an AdaptiveTable for hybrid, None for cancel
+        self.cells = None
+        if self.table is not None:
+            self.cells = CellLearner(cal.residual, settings)
+            if residual_learnt is not None:
+                self.cells.load(residual_learnt)
+        self.harmonic = None
+        if settings.harmonic and cal.harmonic.n_lines:
+            self.harmonic = HarmonicLearner(cal.harmonic, model.grid, denoiser._canceller, settings)
+            if harmonic_learnt is not None:
+                self.harmonic.load(harmonic_learnt)
+        self.gate = None
+        if settings.learn:
+            if threshold is None:
+                raise ConfigError(
+                    f"{model.where}: adapt needs the contact detector's threshold for method "
+                    f"{denoiser.method}, and the model stores none; calibrate it again "
+                    f"(`egovib calibrate` stores them) or give the threshold"
+                )
+            contact = ContactSettings.for_model(model, threshold * settings.gate_fraction)
+            dropin = denoiser.output == "dropin" and denoiser.channels == "per_axis"
+            self.gate = ContactGate(
+                contact,
+                guard_s=settings.guard_s,
+                prefiltered=not dropin,
+                summed=not dropin and denoiser.channels == "per_axis",
+            )
+        # what the pieces since the last update left: (stamps, residual, velocity), outputs
+        self._inputs: list = []
+        self._outputs: list = []
+        self._pending: deque = deque()  # candidates (cells) waiting for the gate
+        self._spans: deque = deque()  # harmonic spans waiting for the gate
+        self.blocks_gated = 0
+        self.blocks_dropped = 0
+        self.resets = 0
+
+    # --- the stream -----------------------------------------------------------------------
+    def run(self, stamps, values, velocity, raw):
+        """A framed batch through the denoiser, in pieces ending on the schedule."""
+        out_s, out_v = [], []
+        n, i = len(stamps), 0
+        learn = self.settings.learn
+        while i < n:
+            take = min(n - i, self.period - self._phase)
+            part = slice(i, i + take)
+            s, v, residual = self.d._run_piece(
+                stamps[part], values[part], velocity[part], None if raw is None else raw[part]
+            )
+            out_s.append(s)
+            out_v.append(v)
+            if learn:
+                self._inputs.append((stamps[part], residual, velocity[part]))
+                self._outputs.append((s, v))
+            self._phase += take
+            i += take
+            if self._phase == self.period:
+                self._phase = 0
+                self._update()
+        if len(out_s) == 1:
+            return out_s[0], out_v[0]
+        return np.concatenate(out_s), np.concatenate(out_v)
+
+    def observe(self, stamps: np.ndarray, values: np.ndarray) -> None:
+        if self.settings.learn and len(stamps):
+            self._outputs.append((stamps, values))
+
+    def end_segment(self) -> None:
+        """A segment ended (its output is all out): learn what can be decided, drop the rest."""
+        if self.settings.learn:
+            self._take(final=True)
+            if self.cells is not None:
+                self.cells.end_segment()
+            self.gate.end_segment()
+            if self.harmonic is not None:
+                self.harmonic._snapshot = None
+            self._apply()
+
+    # --- learning -------------------------------------------------------------------------
+    def _update(self) -> None:
+        """An update: learn what the gate can decide now, and put it to use."""
+        if self.settings.learn:
+            self._take(final=False)
+            self._apply()
+        if self.harmonic is not None:
+            self.harmonic.warm_start()
+
+    def _take(self, *, final: bool) -> None:
+        """The pieces since the last update: blocks (cells), a span (harmonic map), the
+        output through the gate; then what the gate clears is learnt."""
+        if self._inputs:
+            stamps = np.concatenate([p[0] for p in self._inputs])
+            if self.cells is not None:
+                residual = np.concatenate([p[1] for p in self._inputs])
+                velocity = np.concatenate([p[2] for p in self._inputs])
+                self._pending.extend(self.cells.push(stamps, residual, velocity))
+            if self.harmonic is not None:
+                real = stamps[stamps >= 0]
+                first, last = (int(real[0]), int(real[-1])) if len(real) else (-1, -1)
+                span = self.harmonic.snapshot(first, last)
+                if span is not None:
+                    self._spans.append(span)
+            self._inputs = []
+        if self._outputs:
+            self.gate.push(
+                np.concatenate([o[0] for o in self._outputs]),
+                np.concatenate([o[1] for o in self._outputs]),
+            )
+            self._outputs = []
+        self._decide(final=final)
+
+    def _decide(self, *, final: bool) -> None:
+        gate = self.gate
+        while self._pending:
+            c = self._pending[0]
+            clear = gate.decide(c.first_ns, c.last_ns)
+            if clear is None and not final:
+                break
+            self._pending.popleft()
+            if clear:
+                self.cells.commit(c)
+            elif clear is None:
+                self.blocks_dropped += 1
+            else:
+                self.blocks_gated += 1
+        while self._spans:
+            span = self._spans[0]
+            clear = gate.decide(span[0], span[1])
+            if clear is None and not final:
+                break
+            self._spans.popleft()
+            if clear:
+                self.harmonic.commit(span, self.rate)
+        if gate.progress_ns is not None:
+            oldest = [gate.progress_ns]
+            if self._pending:
+                oldest.append(self._pending[0].first_ns)
+            if self._spans:
+                oldest.append(self._spans[0][0])
+            gate.prune(min(oldest) - gate.guard_ns)
+
+    def _apply(self) -> None:
+        """Changed cells into the table."""
+        if self.cells is None or not self.cells.changed:
+            return
+        cells = self.cells
+        for row in sorted(cells.changed):
+            cell = int(np.ravel_multi_index(tuple(cells.cells[row]), cells.shape))
+            self.table.set(cell, cells.power[row])
+        cells.changed.clear()
+
+    # --- state ------------------------------------------------------------------------------
+    def apply_loaded(self) -> None:
+        """The cells a model learnt before go into the table (from the first sample on)."""
+        if self.cells is not None:
+            self.cells.changed.update(range(len(self.cells.row_of)))
+            self._apply()
+
+    def reset(self) -> None:
+        """Back to the calibrated model: nothing learnt (in this run or saved before); what
+        waits for the gate is dropped."""
+        if self.cells is not None:
+            fresh = CellLearner(self.d.calibration.residual, self.settings)
+            fresh.unsteady, fresh.learnt = self.cells.unsteady, self.cells.learnt
+            fresh._stamps, fresh._values, fresh._velocity = (
+                self.cells._stamps,
+                self.cells._values,
+                self.cells._velocity,
+            )
+            self.cells = fresh
+            self.table.restore()
+        if self.harmonic is not None:
+            self.harmonic.reset()
+        self._pending.clear()
+        self._spans.clear()
+        self.resets += 1
+
+    @property
+    def stats(self) -> AdaptStats:
+        cells = self.cells
+        online = cells.online if cells is not None else np.zeros(0, np.int64)
+        h = self.harmonic
+        return AdaptStats(
+            blocks_learnt=cells.learnt if cells is not None else 0,
+            blocks_gated=self.blocks_gated,
+            blocks_unsteady=cells.unsteady if cells is not None else 0,
+            blocks_dropped=self.blocks_dropped,
+            contacts=self.gate.contacts if self.gate is not None else 0,
+            cells_learnt=int(len(online)),
+            cells_new=int(cells.new[online].sum()) if cells is not None else 0,
+            harmonic_updates=h.updates if h is not None else 0,
+            harmonic_points=int((h.blocks > 0).sum()) if h is not None else 0,
+            resets=self.resets,
+        )
+
+    def extras(self) -> dict[str, np.ndarray]:
+        """The learnt state as model extras (`adapt.*`), for NoiseModel.replace."""
+        out: dict[str, np.ndarray] = {ADAPT_PREFIX + "forget_s": np.array(self.settings.forget_s)}
+        cells = self.cells
+        if cells is not None:
+            online = cells.online
+            prefix = ADAPT_PREFIX + "residual."
+            out[prefix + "cells"] = cells.cells[online].astype(np.int32)
+            out[prefix + "mean"] = cells.mean[online]
+            out[prefix + "power"] = cells.power[online]
+            out[prefix + "blocks"] = cells.blocks[online]
+            out[prefix + "new"] = cells.new[online]
+        h = self.harmonic
+        if h is not None:
+            prefix = ADAPT_PREFIX + "harmonic."
+            out[prefix + "correction"] = h.correction.copy()
+            out[prefix + "amplitude"] = h.amplitude.copy()
+            out[prefix + "blocks"] = h.blocks.copy()
+        return out
+
+
+def without_learnt(extras: dict) -> dict:
+    """Extras less what adaptation saved (a model back to its calibration)."""
+    return {k: v for k, v in extras.items() if not k.startswith(ADAPT_PREFIX)}
+
+
+__all__ = [
+    "ADAPT_PREFIX",
+    "AdaptSettings",
+    "AdaptStats",
+    "Adaptation",
+    "AdaptiveTable",
+    "CellLearner",
+    "ContactGate",
+    "HarmonicLearner",
+    "describe_learnt",
+    "learnt_state",
+    "without_learnt",
+]
