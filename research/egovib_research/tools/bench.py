@@ -691,7 +691,7 @@ def _method_rows(methods: dict) -> list[tuple[str, str, str]]:
     for method in METHODS:
         for name, label in (
             ("batch", "batch, combined"),
-            ("batch_per_axis", "batch, per axis, drop-in output (hybrid: the default)"),
+            ("batch_per_axis", "batch, per axis, drop-in output"),
             ("stream", f"streaming, {_robot().hop}-sample hops"),
         ):
             over = (
@@ -702,7 +702,8 @@ def _method_rows(methods: dict) -> list[tuple[str, str, str]]:
             target = ">= 300x (CPU)" if (method, name) == ("hybrid", "batch_per_axis") else ""
             rows.append(
                 (
-                    f"Method `{method}`, {label} (PR2 run, {methods['signal_s']:.0f} s)",
+                    f"Method `{method}`, {label}{' (the default)' if target else ''} "
+                    f"(PR2 run, {methods['signal_s']:.0f} s)",
                     f"{methods[f'{method}_{name}_x_realtime']:.0f}x real time wall, "
                     f"{methods[f'{method}_{name}_x_realtime_cpu']:.0f}x CPU{over}",
                     target,
