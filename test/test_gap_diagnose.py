@@ -92,7 +92,7 @@ def test_a_forward_split_tests_only_the_later_part():
     diag = diagnose(table, DiagnosisOptions(train_fraction=0.6, effects=("drift",)))
     assert diag.split_info["train_s"] == pytest.approx(0.6 * np.ptp(table.t_mid_s))
     assert diag.heldout_rows.min() > 0.55 * table.n_blocks
-    assert diag.verdict == "none" and set(diag.gaps) == {"sim_as_is", "refit", "drift"}
+    assert diag.verdict == "none" and set(diag.gaps) == {"sim_as_is", "refit", "drift", "combined"}
     assert diag.gaps["sim_as_is"] >= diag.gaps["refit"] - 0.1
 
 
