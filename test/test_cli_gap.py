@@ -84,12 +84,21 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     # then answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
     assert md[2].startswith("**What to do:** position-dependent")
-    assert md[3].startswith("**What it costs the denoiser:**")
-    assert md[4].startswith("**Left unexplained:**")
+    # the command that acts on it, an option egovib calibrate has (no position key exists)
+    assert md[3] == "**All corrections together:**" and md[4] == "```sh"
+    assert md[5].startswith("egovib calibrate NEW_RECORDING --grid free --out NEW_MODEL.npz")
+    assert md[6] == "```" and md[7].startswith("**What it costs the denoiser (model estimate):**")
+    assert md[8].startswith("**Left unexplained:**")
     advice = report["advice"]
-    assert advice["settings"]["calibration_key"] == "position"
+    assert advice["settings"]["calibration_grid"] == "free"
+    assert advice["settings"]["position_joint"] == "r_wrist_roll_joint"
     assert advice["denoiser"]["gain_db"] > 0  # the position term denoises held-out data better
-    head = "\n".join(md[:12])
+    assert advice["applied"] is None  # no flag of the denoiser acts on position
+    # verdict.effects (CONTRACT section 6): the ordered list, its first entry the verdict
+    first = report["verdict"]["effects"][0]
+    assert {"effect", "reduction", "p_value", "confidence", "parameters", "advice"} <= set(first)
+    assert first["effect"] == "position" and first["advice"] == advice["effects"][0]["action"]
+    head = "\n".join(md[:16])
     assert (
         "**Where:**" in head
         and "**Which:**" in head

@@ -28,6 +28,9 @@ from egovib_ros.gap.features import BlockTable
 
 #: Split index of the fit on every clean block (parameters and shapes for the report).
 ALL = -1
+#: A term "EFFECT|changed" is the effect's term on the blocks of the recording diagnosed only
+#: (`BlockTable.recording`), on a table joining it to a reference recording (gap.change).
+CHANGED = "|changed"
 
 
 @dataclass
@@ -106,10 +109,10 @@ class ChainFits:
         return self._base[(k, key)]
 
     def keep(self, chain: tuple[str, ...]) -> None:
-        """Cache the states of `chain` and its prefixes from now on (the selected chain)."""
+        """From now on cache the states of `chain` and its prefixes (the chain the next
+        candidates are fitted on top of), and only those."""
         terms = self._terms(chain)
-        for i in range(len(terms) + 1):
-            self._kept.add((self.lag_key(chain), terms[:i]))
+        self._kept = {(self.lag_key(chain), terms[:i]) for i in range(len(terms) + 1)}
         self._state = {key: v for key, v in self._state.items() if key[1:] in self._kept}
 
     def _terms(self, chain: tuple[str, ...]) -> tuple[str, ...]:
@@ -134,6 +137,9 @@ class ChainFits:
         if name in self.custom:
             regressors = self.custom[name](table, scales)
             return fit_variant(table, train, "custom", scales, previous, regressors=regressors)
+        if name.endswith(CHANGED):  # "coupling|changed": the term on one recording only
+            effect = name[: -len(CHANGED)]
+            return fit_variant(table, train, effect, scales, previous, mask=table.recording)
         return fit_variant(table, train, name, scales, previous)
 
     def fit(self, k: int, chain: tuple[str, ...]) -> FittedModel:

@@ -37,6 +37,13 @@ ALPHA = 0.01
 #: effect-free bags gave up to 0.0011 (a tiny real non-additivity of the simulator), the
 #: weakest true effects in the blind ranges 0.012 and more.
 MIN_DEVIANCE_GAIN = 0.004
+#: From the second step of the forward selection on, a candidate must gain at least this
+#: much on top of the effects found: a fitted term leaves structured misfit behind (its
+#: shape is not the generator's), which another flexible term can take a little of (on a
+#: synthetic position effect the coupling term gained 0.0054 on top of the position term,
+#: 0.02 dB of held-out gap). Set from pilot runs with a master seed the committed
+#: validations do not use (docs/gap.md).
+MIN_DEVIANCE_GAIN_LATER = 0.008
 #: The deviance compares power summed over this many consecutive tested blocks.
 DEVIANCE_RUN = 4
 #: Length of the contiguous held-out segments the permutation test flips (s).
@@ -627,7 +634,9 @@ def _select_more(
         cands, loss = _candidates(
             observed, cf_k, remaining, gaps_k, ctx.floor, ctx.segments, interleaved, ctx.rng
         )
-        effect, confidence = _verdict(cands, loss, ctx.alpha, ctx.segments, ctx.rng)
+        effect, confidence = _verdict(
+            cands, loss, ctx.alpha, ctx.segments, ctx.rng, min_gain=MIN_DEVIANCE_GAIN_LATER
+        )
         step = {
             "step": len(steps) + 1,
             "prefix": list(prefix),
@@ -879,6 +888,8 @@ def _verdict(
     alpha: float,
     segments: np.ndarray,
     rng: np.random.Generator,
+    *,
+    min_gain: float = MIN_DEVIANCE_GAIN,
 ) -> tuple[str, float]:
     """The effect named and its confidence.
 
@@ -892,7 +903,7 @@ def _verdict(
         c
         for c in candidates
         if c["p_value"] < level
-        and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
+        and c["deviance_reduction"] >= min_gain
         and c["gap_reduction_decisive"] > 0.0
     ]
     names = [c["effect"] for c in candidates]

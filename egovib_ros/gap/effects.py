@@ -350,18 +350,22 @@ def fit_variant(
     refit: Baseline | None = None,
     *,
     regressors: tuple[np.ndarray, list[str]] | None = None,
+    mask: np.ndarray | None = None,
 ) -> FittedModel:
     """Baseline, then one effect's regressors (or given `regressors`) on top of it (log domain),
-    fitted on the training rows."""
+    fitted on the training rows. `mask` (B,): every regressor column times it (the change
+    diagnosis: an effect's term on one recording of two only)."""
     base = refit if refit is not None else fit_baseline(table, train)
     lines = None
     if effect == "coupling" and regressors is None:
         # one joint's lines scaled by another joint's speed first, then the products of the
         # speeds on top (lines or broadband that sound only when two joints move together)
-        base, lines = line_stage(table, train, base, scales)
+        base, lines = line_stage(table, train, base, scales, mask=mask)
     extra, names = (
         regressors if regressors is not None else effect_regressors(effect, table, scales)
     )
+    if mask is not None and len(names):
+        extra = extra * np.asarray(mask, float)[:, None]
     coef, ridge = fit_power_term(extra, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
@@ -463,13 +467,21 @@ def line_design(
 
 
 def line_stage(
-    table: BlockTable, train: np.ndarray, base: Baseline, scales: Scales
+    table: BlockTable,
+    train: np.ndarray,
+    base: Baseline,
+    scales: Scales,
+    *,
+    mask: np.ndarray | None = None,
 ) -> tuple[Baseline, dict | None]:
-    """The baseline times the fitted per-line interaction (`line_design`), and its summary
-    and shapes; the baseline unchanged (None) when there is none to fit."""
+    """The baseline times the fitted per-line interaction (`line_design`; its columns times
+    `mask` if given), and its summary and shapes; the baseline unchanged (None) when there
+    is none to fit."""
     design, labels = line_design(table, scales, base)
     if design is None:
         return base, None
+    if mask is not None:
+        design.w = design.w * np.asarray(mask, float)[:, None]
     ratio = table.magnitude**2 / np.maximum(base.power, 1e-300)
     a, gamma, ridge = fit_shared_power_term(design, ratio, train)
     gain = np.exp(a[None, :] + np.clip(design.predict(gamma), -MAX_LOG_GAIN, MAX_LOG_GAIN))
@@ -492,7 +504,8 @@ def line_stage(
 def _line_summary(table: BlockTable, labels, gamma: np.ndarray, ridge: dict) -> dict:
     """Per ordered pair (lines of j, speed of k): the gain on j's lines along k's speed
     fraction (dB), and the signed differences (k one way minus the other; same minus
-    opposite direction of travel)."""
+    opposite direction of travel); the summary gives each curve's largest value (signed)
+    along k's speed."""
     grid = np.linspace(0.0, 1.0, 11)
     names = table.joint_names
     summary: dict = {"ridge": {k: round(v, 5) for k, v in ridge.items()}, "pairs": {}}
@@ -507,7 +520,11 @@ def _line_summary(table: BlockTable, labels, gamma: np.ndarray, ridge: dict) -> 
             knots = np.concatenate([[0.0], [labels[i][3] for i in idx]])
             curves[variant] = hat_matrix(grid, knots)[:, 1:] @ gamma[idx] * DB_PER_NEPER
         key = f"{names[j]} lines x {names[k]} speed"
-        entry = {"gain_db_at_top_speed": round(float(curves["speed"][-1]), 3)}
+
+        def peak(curve: np.ndarray, factor: float = 1.0) -> float:
+            return round(float(factor * curve[int(np.argmax(np.abs(curve)))]), 3)
+
+        entry = {"gain_db": peak(curves["speed"])}
         shape_entry = {
             "x": [round(float(v), 3) for v in grid],
             "unit": f"|{names[k]} speed| / top speed",
@@ -516,12 +533,12 @@ def _line_summary(table: BlockTable, labels, gamma: np.ndarray, ridge: dict) -> 
             "speed_of": names[k],
         }
         if "dir_k" in curves:
-            entry["one_way_minus_other_db"] = round(float(2 * curves["dir_k"][-1]), 3)
+            entry["one_way_minus_other_db"] = peak(curves["dir_k"], 2.0)
             shape_entry["one_way_minus_other_db"] = [
                 round(float(2 * v), 3) for v in curves["dir_k"]
             ]
         if "same_dir" in curves:
-            entry["same_minus_opposite_direction_db"] = round(float(2 * curves["same_dir"][-1]), 3)
+            entry["same_minus_opposite_direction_db"] = peak(curves["same_dir"], 2.0)
             shape_entry["same_minus_opposite_direction_db"] = [
                 round(float(2 * v), 3) for v in curves["same_dir"]
             ]
