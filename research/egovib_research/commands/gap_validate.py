@@ -21,12 +21,13 @@ def register(subparsers) -> None:
     )
     val.add_argument(
         "--reality",
-        choices=["sim", "alt", "real"],
+        choices=["sim", "alt", "third", "real"],
         default="sim",
-        help='where the blind "real" bags come from: our simulator, or the independent '
-        "alternate-reality generator (egovib_research.altreality), the model always "
-        "calibrated on our simulator; or `real`: known effects injected into one part of "
-        "the real flight bags/quadcopter_ar8, the model calibrated on the other part",
+        help='where the blind "real" bags come from: our simulator, the independent '
+        "alternate-reality generator (egovib_research.altreality) or the third hand "
+        "(egovib_research.thirdhand, written from the effect vocabulary alone), the model "
+        "always calibrated on our simulator; or `real`: known effects injected into one part "
+        "of the real flight bags/quadcopter_ar8, the model calibrated on the other part",
     )
     val.add_argument("--seeds", type=options.positive_int, default=5, help="seeds per effect class")
     val.add_argument(
