@@ -6,8 +6,9 @@ from __future__ import annotations
 import argparse
 import functools
 import sys
+from pathlib import Path
 
-from egovib_ros.bag.many import expand_bags, run_bags
+from egovib_ros.bag.many import expand_bags, is_bag, run_bags
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, report_results
 from egovib_ros.core.noise_model import NoiseModel
@@ -127,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
     jobs = output_jobs(args.real, args.out)
+    references = reference_bags(args.reference, jobs, args.real)  # before any output
     for job in jobs:  # before any work
         prepare_output(
             job.out,
@@ -134,7 +136,6 @@ def run(args: argparse.Namespace) -> int:
             inputs=[args.model, job.bag, args.sim_params, *(args.reference or [])],
             kind="report",
         )
-    references = reference_bags(args.reference, jobs, args.real)
     # measured once on the simulator, not once per bag; the diagnosis scans the opposite
     # sign internally (joint states stamped late)
     given = None if args.reference_lag is None else -args.reference_lag
@@ -174,12 +175,20 @@ def reference_bags(specs, jobs, real_specs) -> dict[str, str]:
     per bag, directories matched by the bags' names under them, else in order."""
     if not specs:
         return {}
-    refs = expand_bags(specs)
+    # each spec on its own: references write nothing, and one may serve several bags
+    refs = [ref for spec in specs for ref in expand_bags([spec], outputs_per_bag=False)]
     if len(refs) == 1:
         return {str(job.bag): str(refs[0][0]) for job in jobs}
-    names = {str(name): str(bag) for bag, name in refs}
-    reals = expand_bags(real_specs)
-    if all(str(name) in names for _, name in reals) and len(reals) == len(jobs):
+    if all(Path(spec).is_dir() and not is_bag(Path(spec)) for spec in specs):
+        # directories of bags: each --real bag's reference by its name under them
+        names = {str(name): str(bag) for bag, name in refs}
+        reals = expand_bags(real_specs)
+        missing = [str(name) for _, name in reals if str(name) not in names]
+        if missing:
+            raise ConfigError(
+                f"--reference: no bag named {missing[0]} under {', '.join(map(str, specs))} "
+                "(directories are matched by the bags' names)"
+            )
         return {str(job.bag): names[str(name)] for job, (_, name) in zip(jobs, reals)}
     if len(refs) == len(jobs):
         return {str(job.bag): str(ref) for job, (ref, _) in zip(jobs, refs)}

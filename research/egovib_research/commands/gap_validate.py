@@ -75,10 +75,11 @@ def run(args: argparse.Namespace) -> int:
         master_seed=args.master_seed,
         extra_none=args.extra_none,
     )
+    flagged = summary["none_false_positive_rate"]
     if not args.quiet:
         print(
             f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
-            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"none flagged {'n/a' if flagged is None else format(flagged, '.3f')}, "
             f"{summary['n_runs']} runs -> {summary['outputs']}"
         )
     return 0

@@ -26,7 +26,8 @@ vibration ~3 dB louder where the effect acts; drift: the relative level change; 
 | acceleration | `ringing` | the 980 Hz mode rung by the acceleration's jerk (speed changes) |
 | acceleration | `torque` | wrist lines x (1 + 0.41 s |a_wrist| / a_ref): torque ripple |
 | timing | `lag`, `lead` | joint-state stamps s late / early |
-| timing | `batched` | joint states delivered every 8 ms, stamped on arrival + s |
+| timing | `polled` | joint states published every 8 ms, each the driver's last reading (0-8 ms
+  old), stamped on publishing, + s |
 | drift | `cooldown` | level x (1 - s (1 - exp(-t / 30 s))): falls, levels off |
 | drift | `gripper_wear` | gripper sources x (1 + s t / T): one joint's level rises |
 | drift | `cycle` | level x (1 + s sin(2 pi t / (0.8 T))): a thermal cycle |
@@ -41,6 +42,8 @@ from egovib_research.thirdhand.motion import TOP_SPEED, trajectories
 
 FS = 3000.0
 JOINT_RATE_HZ = 1000.0
+#: The `polled` timing form: joint states published at this period (s).
+POLL_S = 0.008
 #: Wrist lines: Hz per rad/s, relative amplitude (m/s^2 at full speed before the structure).
 WRIST_LINES = ((23.0, 0.35), (71.0, 0.6), (142.0, 0.3), (187.0, 0.45), (229.0, 0.2))
 #: Gripper lines: Hz per m/s, relative amplitude.
@@ -67,7 +70,7 @@ FORMS = {
     "position": ("twice", "open_end", "sector"),
     "coupling": ("line_gain", "line_signed", "together"),
     "acceleration": ("ringing", "torque"),
-    "timing": ("lag", "lead", "batched"),
+    "timing": ("lag", "lead", "polled"),
     "drift": ("cooldown", "gripper_wear", "cycle"),
 }
 #: A gain that makes the vibration ~3 dB louder: 10^(3/20) - 1.
@@ -230,19 +233,24 @@ def joint_states(
     vel: np.ndarray, pos: np.ndarray, effects: dict, forms: dict, rng
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps ns, positions, velocities) at JOINT_RATE_HZ: encoder positions, velocity by
-    first-order differences of them (as on the PR2), stamps moved by the timing effect."""
-    step = int(FS / JOINT_RATE_HZ)
-    idx = np.arange(0, len(pos), step)
-    true_ns = START_NS + (idx * (1e9 / FS)).astype(np.int64)
-    q = np.round(pos[idx] / ENCODER_STEP) * ENCODER_STEP
-    v = np.vstack([np.zeros((1, 2)), np.diff(q, axis=0) * JOINT_RATE_HZ])
+    first-order differences of them (as on the PR2), stamps moved by the timing effect
+    (`polled`: at 1 / POLL_S, each the last reading, stamped on publishing)."""
     s = effects.get("timing", 0.0)
-    stamps = true_ns + int(round(s * 1e9))
-    if s and forms.get("timing") == "batched":
-        # delivered every 8 ms, each stamped when its batch arrives (then the lag s)
-        batch = int(0.008 * 1e9)
-        stamps = ((true_ns - START_NS) // batch + 1) * batch + START_NS + int(round(s * 1e9))
-    return stamps, q, v
+    rate = JOINT_RATE_HZ
+    if s and forms.get("timing") == "polled":
+        # published every 8 ms, each message the driver's last encoder reading (0-8 ms old),
+        # stamped when published, then the lag s; velocity over the nominal 8 ms
+        rate = 1.0 / POLL_S
+        publish = np.arange(POLL_S, len(pos) / FS, POLL_S)
+        read = publish - rng.uniform(0.0, POLL_S, len(publish))
+        idx = np.minimum(np.round(read * FS).astype(np.int64), len(pos) - 1)
+        true_ns = START_NS + (publish * 1e9).astype(np.int64)
+    else:
+        idx = np.arange(0, len(pos), int(FS / rate))
+        true_ns = START_NS + (idx * (1e9 / FS)).astype(np.int64)
+    q = np.round(pos[idx] / ENCODER_STEP) * ENCODER_STEP
+    v = np.vstack([np.zeros((1, 2)), np.diff(q, axis=0) * rate])
+    return true_ns + int(round(s * 1e9)), q, v
 
 
 def simulate(
