@@ -38,7 +38,7 @@ def test_a_valid_reproducible_recording_of_the_pr2_hand():
     step = 2 * 78.5 / 2**10
     assert np.abs(rec.sensor).max() <= 78.5
     np.testing.assert_allclose(rec.sensor / step, np.round(rec.sensor / step), atol=1e-9)
-    assert 0.0 <= rec.joint_position[:, 1].min() and rec.joint_position[:, 1].max() <= 0.086
+    assert rec.joint_position[:, 1].min() >= 0.0 and rec.joint_position[:, 1].max() <= 0.086
     assert np.abs(rec.joint_velocity).max(axis=0).tolist() <= [3.1, 0.045]
     # the ground truth adds up to what the sensor holds (but for gravity, noise, steps)
     assert truth["tap_onsets_ns"] and rec.contact.shape == rec.ego.shape == (n, 3)

@@ -104,9 +104,13 @@ def read_first_part(path: str | Path, model, max_s: float | None):
         if len(piece.sensor_stamps_ns):
             t0 = int(piece.sensor_stamps_ns.min()) if t0 is None else t0
         pieces.append(piece)
-        if max_s is not None and t0 is not None:
-            if piece.sensor_stamps_ns.size and piece.sensor_stamps_ns.max() > t0 + max_s * NS_PER_S:
-                break
+        if (
+            max_s is not None
+            and t0 is not None
+            and piece.sensor_stamps_ns.size
+            and piece.sensor_stamps_ns.max() > t0 + max_s * NS_PER_S
+        ):
+            break
     rec = concat_recordings(pieces)
     s, j = (
         np.argsort(rec.sensor_stamps_ns, kind="stable"),
