@@ -315,7 +315,7 @@ def test_what_changed_since_a_reference_recording(model_path, warm_pair, tmp_pat
     out = tmp_path / "report"
     args = ["gap", "--model", str(model_path), "--real", str(warm_pair / "warm")]
     args += ["--reference", str(warm_pair / "cold"), "--out", str(out), "--no-figures"]
-    assert main(args + ["--quiet"]) == 0
+    assert main(args) == 0  # not --quiet: the summary line is wanted
     line = capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
     change = {c["effect"]: c for c in report["change"]}
