@@ -51,7 +51,12 @@ def synthetic_table(
     duration_s: float = 40.0,
     seed: int = 0,
     gain: float = 1.0,
+    effects: dict[str, float] | None = None,
 ) -> BlockTable:
+    """`effect` at `strength`, or several at once (`effects`: name -> strength). Beyond the
+    vocabulary's names, "lines": the wrist's lines scaled by the gripper's speed, louder when
+    both move the same way and quieter when opposite (a per-line signed interaction)."""
+    effects = dict(effects) if effects is not None else {effect: strength}
     rng = np.random.default_rng(seed)
     model = synthetic_model()
     # Joint states at 1 kHz: low-pass random velocities up to 60 % of max speed.
@@ -72,25 +77,37 @@ def synthetic_table(
     t_first = np.arange(n_blocks) * 32 / 3000.0
     t_last = t_first + 63 / 3000.0
     freq_index = in_band_bins(model)
-    true_lag = strength if effect == "timing" else 0.0
+    true_lag = effects.get("timing", 0.0)
     # The vibration follows the true motion; the reported joint states are stamped true_lag late.
     v_true, p_true, a_true = _joint_block_means(joints, t_first, t_last, true_lag)
     mean_true, _ = _model_lookup(model, v_true, freq_index)
     factor = np.full(n_blocks, gain)
-    if effect == "position":
-        factor *= 1.0 + strength * np.cos(p_true[:, 0] - 0.7)
-    elif effect == "coupling":
-        # extra vibration power in the gripper's band growing with both speeds
-        # (joints no longer add)
-        f = model.freqs_hz[freq_index]
-        extra = strength * (np.abs(v_true[:, 0]) / 3.0) * (np.abs(v_true[:, 1]) / 0.04)
-        mean_true = np.sqrt(
-            mean_true**2 + (extra[:, None] * np.exp(-(((f - 600.0) / 120.0) ** 2))) ** 2
-        )
-    elif effect == "acceleration":
-        factor *= 1.0 + strength * np.abs(a_true[:, 0]) / np.percentile(np.abs(a_true[:, 0]), 95)
-    elif effect == "drift":
-        factor *= 1.0 + strength * t_first / 60.0
+    f = model.freqs_hz[freq_index]
+    for effect, strength in effects.items():
+        if effect == "position":
+            factor *= 1.0 + strength * np.cos(p_true[:, 0] - 0.7)
+        elif effect == "coupling":
+            # extra vibration power in the gripper's band growing with both speeds
+            # (joints no longer add)
+            extra = strength * (np.abs(v_true[:, 0]) / 3.0) * (np.abs(v_true[:, 1]) / 0.04)
+            mean_true = np.sqrt(
+                mean_true**2 + (extra[:, None] * np.exp(-(((f - 600.0) / 120.0) ** 2))) ** 2
+            )
+        elif effect == "lines":
+            # the wrist's part of the spectrum (its lines) times exp(+-s |v_g|): the sign of
+            # the product of the directions
+            wrist = (
+                1.5 * (np.abs(v_true[:, 0]) / 3.0)[:, None] * np.exp(-(((f - 300.0) / 120.0) ** 2))
+            )
+            same = np.sign(v_true[:, 0]) * np.sign(v_true[:, 1])
+            gain_w = np.exp(strength * same * np.abs(v_true[:, 1]) / 0.04)
+            mean_true = mean_true + wrist * (gain_w[:, None] - 1.0)
+        elif effect == "acceleration":
+            factor *= 1.0 + strength * np.abs(a_true[:, 0]) / np.percentile(
+                np.abs(a_true[:, 0]), 95
+            )
+        elif effect == "drift":
+            factor *= 1.0 + strength * t_first / 60.0
     magnitude = mean_true * factor[:, None] * rng.rayleigh(np.sqrt(2 / np.pi), mean_true.shape)
     v0, p0, a0 = _joint_block_means(joints, t_first, t_last, 0.0)
     mean0, std0 = _model_lookup(model, v0, freq_index)

@@ -84,12 +84,21 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     # then answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
     assert md[2].startswith("**What to do:** position-dependent")
-    assert md[3].startswith("**What it costs the denoiser:**")
-    assert md[4].startswith("**Left unexplained:**")
+    # the command that acts on it, an option egovib calibrate has (no position key exists)
+    assert md[3] == "**All corrections together:**" and md[4] == "```sh"
+    assert md[5].startswith("egovib calibrate NEW_RECORDING --grid free --out NEW_MODEL.npz")
+    assert md[6] == "```" and md[7].startswith("**What it costs the denoiser (model estimate):**")
+    assert md[8].startswith("**Left unexplained:**")
     advice = report["advice"]
-    assert advice["settings"]["calibration_key"] == "position"
+    assert advice["settings"]["calibration_grid"] == "free"
+    assert advice["settings"]["position_joint"] == "r_wrist_roll_joint"
     assert advice["denoiser"]["gain_db"] > 0  # the position term denoises held-out data better
-    head = "\n".join(md[:12])
+    assert advice["applied"] is None  # no flag of the denoiser acts on position
+    # verdict.effects (CONTRACT section 6): the ordered list, its first entry the verdict
+    first = report["verdict"]["effects"][0]
+    assert {"effect", "reduction", "p_value", "confidence", "parameters", "advice"} <= set(first)
+    assert first["effect"] == "position" and first["advice"] == advice["effects"][0]["action"]
+    head = "\n".join(md[:16])
     assert (
         "**Where:**" in head
         and "**Which:**" in head
@@ -282,3 +291,84 @@ def test_scattered_bad_samples_above_a_tenth_are_refused_as_such(model_path, pos
     accel[np.random.default_rng(0).random(len(accel)) < 0.15] = np.nan
     with pytest.raises(StreamError, match="bad|non-finite"):
         build_table(dataclasses.replace(rec, sensor=accel), model)
+
+
+@pytest.fixture(scope="module")
+def warm_pair(tmp_path_factory):
+    """The same robot twice: a reference recording, and one with joint states 40 ms late and
+    the vibration 40 % louder (a warm robot after a driver update)."""
+    root = tmp_path_factory.mktemp("gap_pair")
+    cold, _ = simulate_motion(duration_s=40.0, max_speed=0.8, tap_rate_hz=0.5, seed=31)
+    write_recording(root / "cold", cold)
+    warm, _ = simulate_motion(
+        duration_s=40.0, max_speed=0.8, tap_rate_hz=0.5, seed=32, effects={"timing": 0.04}
+    )
+    warm.sensor = warm.sensor * 1.4  # in-band ego-vibration x 1.4 (+2.9 dB), gravity too
+    write_recording(root / "warm", warm)
+    return root
+
+
+def test_what_changed_since_a_reference_recording(model_path, warm_pair, tmp_path, capsys):
+    """`egovib gap --reference A`: `change` lists what differs, the lag shift in ms (the
+    joint-lag convention: joint states 40 ms late = -40 ms) and the level change in dB; the
+    summary line says it; the advice's commands carry the bag, model and report paths."""
+    out = tmp_path / "report"
+    args = ["gap", "--model", str(model_path), "--real", str(warm_pair / "warm")]
+    args += ["--reference", str(warm_pair / "cold"), "--out", str(out), "--no-figures"]
+    assert main(args) == 0  # not --quiet: the summary line is wanted
+    line = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    change = {c["effect"]: c for c in report["change"]}
+    assert set(change) == {"timing", "drift"}, report["change_info"]["selection"]
+    for c in report["change"]:
+        assert {"effect", "reduction", "p_value", "confidence", "parameters", "advice"} <= set(c)
+    assert change["timing"]["parameters"]["lag_shift_ms"] == pytest.approx(-40.0, abs=8.0)
+    assert change["drift"]["parameters"]["level_change_db"] == pytest.approx(2.9, abs=0.8)
+    shift = change["timing"]["parameters"]["joint_lag_shift_s"]
+    assert f"add {shift:+g} s to the joint lag" in change["timing"]["advice"]
+    assert f"changed since {warm_pair / 'cold'}: " in line and "timing -4" in line
+    assert report["inputs"]["reference"] == str(warm_pair / "cold")
+    md = (out / "report.md").read_text()
+    assert f"**What changed since `{warm_pair / 'cold'}`:**" in md
+    # the warm recording's own diagnosis: its lag, with the exact flags and paths
+    assert report["verdict"]["effects"][0]["effect"] == "timing"
+    assert report["advice"]["settings"]["joint_lag_s"] == pytest.approx(-0.04, abs=0.008)
+    denoise = report["advice"]["commands"]["denoise"]
+    assert denoise.startswith(f"egovib denoise {warm_pair / 'warm'} --model {model_path} ")
+    assert "--joint-lag -0.0" in denoise
+    applied = report["advice"]["applied"]
+    assert applied["method"] == "paper" and applied["gain_db"] > 0.3, applied
+
+
+def test_references_pair_with_the_real_bags(model_path, warm_pair, tmp_path, capsys):
+    """Several --real bags: one --reference for all, or one per bag (in order); a count that
+    matches neither is one line naming --reference, exit 2, nothing written."""
+    from egovib_ros.bag.many import BagJob
+    from egovib_ros.cli.gap import reference_bags
+
+    jobs = [BagJob(warm_pair / "warm"), BagJob(warm_pair / "cold")]
+    reals = [str(warm_pair / "warm"), str(warm_pair / "cold")]
+    one = reference_bags([str(warm_pair / "cold")], jobs, reals)
+    assert set(one.values()) == {str(warm_pair / "cold")}
+    paired = reference_bags([str(warm_pair / "cold"), str(warm_pair / "warm")], jobs, reals)
+    assert paired == {str(warm_pair / "warm"): str(warm_pair / "cold"),
+                      str(warm_pair / "cold"): str(warm_pair / "warm")}  # fmt: skip
+    # a fleet: directories of bags, matched by the bags' names under them
+    import shutil
+
+    for fleet in ("today", "last_month"):
+        for robot, bag in (("robot1", "warm"), ("robot2", "cold")):
+            shutil.copytree(warm_pair / bag, tmp_path / fleet / robot)
+    fleet_jobs = [BagJob(tmp_path / "today" / r) for r in ("robot1", "robot2")]
+    matched = reference_bags([str(tmp_path / "last_month")], fleet_jobs, [str(tmp_path / "today")])
+    assert matched == {
+        str(tmp_path / "today" / r): str(tmp_path / "last_month" / r) for r in ("robot1", "robot2")
+    }
+    out = tmp_path / "out"
+    args = ["gap", "--model", str(model_path), "--real", *reals, "--out", str(out)]
+    # a reference may serve several bags; three for two is refused
+    refs = ["--reference", *(str(warm_pair / b) for b in ("cold", "warm", "cold"))]
+    assert main(args + refs + ["--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--reference: 3 bags for 2 --real bags" in err
+    assert not out.exists()

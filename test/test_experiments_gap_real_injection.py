@@ -82,3 +82,67 @@ def test_an_injection_the_diagnosis_refuses_is_a_recorded_miss():
     assert diag is None
     assert entry["verdict"] == "refused" and not entry["correct"]
     assert "too few no-contact blocks" in entry["refused"]
+
+
+def test_the_summary_and_page_of_the_injections():
+    """Per injection and direction: the strengths at which the injected effect is in
+    verdict.effects, first, and first in the change; the lag errors against the tolerance;
+    the advice applied; all on the page."""
+    from egovib_research.experiments.gap_real_injection import (
+        INJECTIONS,
+        LAG_TOLERANCE_MS,
+        _summary,
+        render_markdown,
+    )
+
+    d = "calibrated on first part, diagnosed 8.5-16.85 s"
+    applied = {
+        "noise_reduction_without_db": 10.0,
+        "noise_reduction_with_db": 11.0,
+        "gain_db": 1.0,
+        "applied_text": "--joint-lag 0.02",
+    }
+    runs = [
+        {"direction": d, "truth": "none", "injection": "untouched", "strength": 0.0,
+         "verdict": "timing", "effects": ["timing"], "in_effects": False, "correct": False,
+         "applied": applied},
+        {"direction": d, "truth": "timing", "injection": "lag", "strength": 0.04,
+         "verdict": "timing", "effects": ["timing", "drift"], "in_effects": True,
+         "correct": True, "joint_lag_moved_ms": -37.0, "lag_error_ms": 3.0,
+         "change": {"effects": ["timing"], "first_is_injected": True}, "applied": applied},
+        {"direction": d, "truth": "drift", "injection": "warm-up", "strength": 0.8,
+         "verdict": "timing", "effects": ["timing", "drift"], "in_effects": True,
+         "correct": False, "change": {"effects": ["coupling", "drift"],
+                                      "first_is_injected": False}},
+        {"direction": d, "truth": "timing", "injection": "lead", "strength": -0.02,
+         "verdict": "refused", "effects": [], "in_effects": False, "correct": False,
+         "refused": "too few no-contact blocks (3)"},
+    ]  # fmt: skip
+    directions = {d: {"own_joint_lag_s": 0.03, "untouched": {
+        "verdict": "timing", "effects": ["timing"], "confidence": 1.0,
+        "fitted_joint_lag_s": 0.032}}}  # fmt: skip
+    s = _summary(runs, directions, "bags/quadcopter_ar8")
+    assert s["in_effects_at_strengths"]["lag"][d] == [0.04]
+    assert s["in_effects_at_strengths"]["warm-up"][d] == [0.8]
+    assert s["first_at_strengths"]["warm-up"][d] == []
+    assert s["change_first_at_strengths"]["lag"][d] == [0.04]
+    assert s["in_effects"] == round(2 / 3, 4) and s["change_first"] == round(1 / 3, 4)
+    assert s["lag_errors_ms"] == [3.0] and s["lags_within_tolerance"] == 1
+    assert s["advice_applied_gain_db"] == [1.0, 1.0]
+    report = {
+        "summary": s,
+        "runs": runs,
+        "runtime_s": 60.0,
+        "settings": {
+            "command": "egovib gap validate --reality real",
+            "lag_tolerance_ms": LAG_TOLERANCE_MS,
+            "injections": [
+                {"effect": e, "label": lb, "strengths": list(v)} for e, lb, v in INJECTIONS
+            ],  # fmt: skip
+        },
+    }
+    page = render_markdown(report)
+    assert "**1 of 1** runs" in page and "| lag | 0.04 / 0.04 / 0.04 |" in page
+    assert "| warm-up | 0.8 / - / - |" in page
+    assert "10.00 -> 11.00 dB (+1.00; --joint-lag 0.02)" in page
+    assert "refused: too few no-contact blocks (3)" in page

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from gaptables import synthetic_table
 
-from egovib_ros.gap.advice import UNEXPLAINED_NOTE_DB, action, advise, first_lines
+from egovib_ros.gap.advice import UNEXPLAINED_NOTE_DB, action, advise, commands, first_lines
 from egovib_ros.gap.diagnose import diagnose
 
 
@@ -27,10 +27,14 @@ def test_a_lag_is_advised_as_the_joint_lag_that_undoes_it(diagnoses):
     text, settings = action(diag)
     p = diag.models["timing"].parameters
     offset = p["lag_s"] - p.get("reference_lag_s", 0.0)
-    # joint states stamped 50 ms after the vibration: moved earlier by as much
+    # joint states stamped 50 ms after the vibration: the vibration leads them, joint lag -50 ms
     assert settings["joint_lag_s"] == pytest.approx(-offset, abs=1e-4)
     assert settings["joint_lag_s"] == pytest.approx(-0.05, abs=0.005)
-    assert f"joint_lag: {settings['joint_lag_s']:g}" in text and "lag the vibration" in text
+    lag = f"{settings['joint_lag_s']:g}"
+    assert "the vibration leads the joint states by" in text
+    # the exact flags and parameters, one sign everywhere
+    assert f"`egovib denoise --joint-lag {lag}`" in text and f"`joint_lag:={lag}`" in text
+    assert f"`egovib calibrate --joint-lag {lag}`" in text
 
 
 def test_the_sign_of_the_lag_names_lead_or_lag(diagnoses):
@@ -38,13 +42,15 @@ def test_the_sign_of_the_lag_names_lead_or_lag(diagnoses):
     model = diag.models["timing"]
     lead = dataclasses.replace(model, parameters={**model.parameters, "lag_s": -0.03})
     text, settings = action(dataclasses.replace(diag, models={**diag.models, "timing": lead}))
-    assert "lead the vibration by 30 ms" in text and settings["joint_lag_s"] == pytest.approx(0.03)
+    assert "the vibration trails the joint states by 30 ms" in text
+    assert settings["joint_lag_s"] == pytest.approx(0.03) and "--joint-lag 0.03`" in text
 
 
 def test_drift_and_position_name_what_to_change(diagnoses):
     drift_text, drift = action(diagnoses["drift"])
     assert diagnoses["drift"].verdict == "drift"
     assert "recalibrate" in drift_text and drift["level_change_percent"] != 0.0
+    assert "`egovib denoise --noise-gain REPORT.json`" in drift_text
     # the fitted level change from the start, for `egovib denoise --noise-gain`
     knots = np.asarray(drift["noise_gain_db"])
     assert knots[0].tolist() == [0.0, 0.0] and np.all(np.diff(knots[:, 0]) > 0)
@@ -52,15 +58,36 @@ def test_drift_and_position_name_what_to_change(diagnoses):
     assert pct == pytest.approx(drift["level_change_percent"], abs=0.5)
     position_text, position = action(diagnoses["position"])
     assert diagnoses["position"].verdict == "position"
-    assert position == {"calibration_key": "position", "joint": position["joint"]}
-    assert "calibrate with position as a key" in position_text
+    assert position["calibration_grid"] == "free" and position["position_joint"]
+    # no option keys a model by position: not advised; an option that exists is
+    assert "position as a key" not in position_text
+    assert "`egovib calibrate BAG --grid free`" in position_text
+
+
+def test_the_commands_apply_every_correction_together():
+    settings = {"joint_lag_s": 0.032, "noise_gain_db": [[0.0, 0.0], [10.0, 2.0]]}
+    cmds = commands(settings, model="m.npz", bag="run", report="out/report.json")
+    assert cmds["denoise"] == (
+        "egovib denoise run --model m.npz --out DENOISED --joint-lag 0.032 "
+        "--noise-gain out/report.json"
+    )
+    assert cmds["denoiser_node"] == (
+        "denoiser --ros-args -p model:=m.npz -p joint_lag:=0.032 -p noise_gain:=out/report.json"
+    )
+    both = commands({**settings, "calibration_grid": "full"})
+    assert both["calibrate"].startswith(
+        "egovib calibrate NEW_RECORDING --grid full --joint-lag 0.032 --out NEW_MODEL.npz"
+    )
+    assert commands({}) == {}
 
 
 def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):
     for name, diag in diagnoses.items():
         advice = advise(diag)
         gaps, floor = diag.gaps, diag.floor
-        after = gaps[diag.verdict] if diag.verdict != "none" else gaps["refit"]
+        after = gaps["combined"]  # every effect found, or the baseline
+        if diag.verdict == "none":
+            assert after == gaps["refit"]
         assert advice["unexplained"]["above_floor_db"] == pytest.approx(after - floor, abs=1e-3)
         share = advice["unexplained"]["share_of_baseline_excess"]
         assert 0.0 <= share <= 1.0 + 1e-9, name
@@ -69,7 +96,7 @@ def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):
             d["noise_reduction_with_db"] - d["noise_reduction_without_db"], abs=2e-3
         )
         lines = first_lines(advice)
-        assert lines[0].startswith("**What to do:**") and lines[-1].startswith("**Left unexplained")
+        assert lines[0].startswith("**What to do") and lines[-1].startswith("**Left unexplained")
         # the cost line only where an effect was found
         assert any("What it costs" in line for line in lines) == (diag.verdict != "none")
 

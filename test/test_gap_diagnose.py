@@ -92,7 +92,7 @@ def test_a_forward_split_tests_only_the_later_part():
     diag = diagnose(table, DiagnosisOptions(train_fraction=0.6, effects=("drift",)))
     assert diag.split_info["train_s"] == pytest.approx(0.6 * np.ptp(table.t_mid_s))
     assert diag.heldout_rows.min() > 0.55 * table.n_blocks
-    assert diag.verdict == "none" and set(diag.gaps) == {"sim_as_is", "refit", "drift"}
+    assert diag.verdict == "none" and set(diag.gaps) == {"sim_as_is", "refit", "drift", "combined"}
     assert diag.gaps["sim_as_is"] >= diag.gaps["refit"] - 0.1
 
 
@@ -216,3 +216,54 @@ def test_drift_trend_column_spans_the_training_range_on_a_short_recording():
     # a minute stays the unit once the training span is longer
     scales.t_end_s = scales.t_ref_s + 96.0
     assert trend_unit_s(scales) == 60.0
+
+
+@pytest.fixture(scope="module")
+def two_effects():
+    """Joint states stamped 40 ms late and a level rising 60 % a minute, at once."""
+    return diagnose(synthetic_table(effects={"timing": 0.04, "drift": 0.6}, seed=6))
+
+
+def test_two_effects_at_once_are_both_found_in_order(two_effects):
+    diag = two_effects
+    found = [e["effect"] for e in diag.effects]
+    assert sorted(found) == ["drift", "timing"], diag.steps
+    assert diag.verdict == found[0]
+    for entry in diag.effects:
+        # each one's reduction is given the ones before it: the gap it leaves behind
+        assert entry["reduction"] == pytest.approx(
+            entry["heldout_gap_before"] - entry["heldout_gap"], abs=2e-4
+        )
+        assert entry["reduction"] > 0 and entry["p_value"] < 0.01 / 5
+    assert diag.effects[0]["heldout_gap_before"] == pytest.approx(diag.gaps["refit"], abs=1e-4)
+    # the combined model: both terms, better than either alone, near the floor
+    assert diag.gaps["combined"] < min(diag.gaps["timing"], diag.gaps["drift"])
+    assert diag.gaps["combined"] == pytest.approx(diag.effects[-1]["heldout_gap"], abs=1e-4)
+    assert diag.gaps["combined"] < diag.floor + 0.5
+    # the lag of the timing entry is the one generated, the drift the level change
+    timing = diag.effect_models[found.index("timing")]
+    assert timing.parameters["lag_s"] == pytest.approx(0.04, abs=0.004)
+    # the selection stopped at a step where nothing qualified, all else tested on top
+    assert diag.steps[-1]["effect"] == "none" and len(diag.steps) == 3
+    assert {c["effect"] for c in diag.steps[-1]["candidates"]} == set(D.EFFECTS) - set(found)
+
+
+def test_one_effect_stops_the_selection_after_it():
+    diag = diagnose(synthetic_table("position", 0.4, seed=5, duration_s=40.0))
+    assert [e["effect"] for e in diag.effects] == ["position"]
+    assert [s["effect"] for s in diag.steps] == ["position", "none"]
+    assert diag.gaps["combined"] == pytest.approx(diag.gaps["position"], abs=1e-9)
+
+
+def test_a_signed_interaction_on_one_joints_lines_is_coupling():
+    """The wrist's lines x exp(+-0.6 |v_gripper|): louder when both move the same way,
+    quieter when opposite; no product of speeds' magnitudes sees it (they average out)."""
+    diag = diagnose(synthetic_table(effects={"lines": 0.6}, seed=7, duration_s=60.0))
+    assert diag.verdict == "coupling", diag.candidates
+    pairs = diag.models["coupling"].parameters["lines"]["pairs"]
+    signed = pairs["wrist_roll lines x gripper speed"]["same_minus_opposite_direction_db"]
+    # generated: 2 x 0.6 u nepers at gripper speed fraction u on the wrist's part of the
+    # spectrum, 3.1 dB at u = 0.3 (the 75th percentile of its moving speeds): the curve's
+    # largest value, mostly on the speeds the gripper moves at, and signed
+    assert 1.5 < signed < 12.0, pairs
+    assert abs(pairs["gripper lines x wrist_roll speed"]["same_minus_opposite_direction_db"]) < 2.0

@@ -178,8 +178,16 @@ def test_a_joint_named_roll_in_any_case_is_an_angle_for_the_model_and_the_report
 
 
 def test_no_effect_and_a_model_from_a_recording_are_said_so(position):
-    none = dataclasses.replace(position, verdict="none", confidence=0.5)
+    none = dataclasses.replace(
+        position,
+        verdict="none",
+        confidence=0.5,
+        effects=[],
+        effect_models=[],
+        gaps={**position.gaps, "combined": position.gaps["refit"]},
+    )
     report = report_of(none)
+    assert report["verdict"]["effects"] == []
     assert report["gap"]["after_effect"] == report["gap"]["after_refit"]
     assert report["added_effect"] == {"effect": "none", "parameters": {}}
     report["inputs"]["model_kind"] = "recording"
@@ -222,8 +230,18 @@ def known_shapes() -> dict[str, tuple[dict, str]]:
             "(+0.0 dB with both at full speed; same vs opposite direction -1.0 dB)",
         ),
         "timing:lag_scan": (
-            {"fitted_lag_s": 0.05, "in_sync_band_s": [-0.005, 0.005]},
-            "best lag +50.0 ms (in sync: -5..+5 ms)",
+            {"fitted_joint_lag_s": -0.05, "in_sync_band_s": [-0.005, 0.005]},
+            "best joint lag -50.0 ms (in sync: -5..+5 ms)",
+        ),
+        "coupling-lines:wristxgripper": (
+            {
+                "x": sp,
+                "gain_db": 2.0 * sp,
+                "same_minus_opposite_direction_db": -4.0 * sp,
+                "lines_of": "wrist",
+                "speed_of": "gripper",
+            },
+            "wrist lines up to +2.0 dB with gripper's speed, same vs opposite direction -4.0 dB",
         ),
     }
 

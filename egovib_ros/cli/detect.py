@@ -69,7 +69,7 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--joint-lag", type=float_in(-1.0, 1.0), default=0.0, metavar="SECONDS",
-        help="joint states lag the sensor by this much (as egovib denoise)",
+        help="joint lag: seconds the vibration trails the joint states (as egovib denoise)",
     )  # fmt: skip
     adapt_options(parser)
     parser.add_argument("--force", action="store_true", help="replace an output egovib wrote")

@@ -16,6 +16,7 @@ import numpy as np
 
 from egovib_ros.bag.many import run_bags
 from egovib_ros.bag.reader import bag_fingerprint
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.core import NoiseModel
@@ -81,9 +82,22 @@ def evaluate_task(bag: Path, out: Path, progress, *, model_path: str, **options)
         "f1_raw",
         "f1_denoised",
     )
+    recorded = report.get("methods", {}).get("bag_denoised")
     return {
         **{field: report[field] for field in fields},
         "bad_samples": bad_samples_said(report["bad_samples"]),
+        # the bag's own denoised topic (a live run recorded, or `egovib denoise` with the
+        # gap advice's --joint-lag / --noise-gain): its figures beside egovib's own
+        **(
+            {
+                "bag_denoised": {
+                    "topic": bag_topic_names(options["model"].profile)["denoised"],
+                    **{k: recorded.get(k) for k in ("noise_reduction_db", "f1")},
+                }
+            }
+            if recorded
+            else {}
+        ),
     }
 
 
@@ -98,6 +112,13 @@ def _describe(figures: dict) -> str:
         f"{number(figures['tap_retention'], '.2f')}, F1 raw {figures['f1_raw']:.2f} -> "
         f"denoised {figures['f1_denoised']:.2f}"
     )
+    recorded = figures.get("bag_denoised")
+    if recorded:
+        text += (
+            f"; the bag's {recorded['topic']}: noise reduction "
+            f"{number(recorded['noise_reduction_db'], '.1f')} dB, F1 "
+            f"{number(recorded['f1'], '.2f')}"
+        )
     return text + (f"; {figures['bad_samples']}" if figures["bad_samples"] else "")
 
 

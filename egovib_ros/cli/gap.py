@@ -6,8 +6,9 @@ from __future__ import annotations
 import argparse
 import functools
 import sys
+from pathlib import Path
 
-from egovib_ros.bag.many import run_bags
+from egovib_ros.bag.many import expand_bags, is_bag, run_bags
 from egovib_ros.cli import options
 from egovib_ros.cli.jobs import output_jobs, report_results
 from egovib_ros.core.noise_model import NoiseModel
@@ -49,11 +50,23 @@ def register(subparsers) -> None:
         "--sim-params", metavar="YAML", help="simulator config (default config/sim.yaml)"
     )
     parser.add_argument(
+        "--reference",
+        nargs="+",
+        action="extend",
+        metavar="BAG",
+        help="an earlier recording of the same robot (cold vs warm, before vs after "
+        "maintenance, last month): report.json's `change` lists what differs in --real (a "
+        "joint-lag shift in ms, a level change in dB, a new interaction). One bag for every "
+        "--real bag, or one per --real bag (in order, or directories matched by the bags' "
+        "names)",
+    )
+    parser.add_argument(
         "--reference-lag",
         type=options.float_in(-1.0, 1.0),
         metavar="SECONDS",
-        help="lag between joint states and vibration that counts as in sync (default: "
-        "measured on the simulator for this robot's model, else 0)",
+        help="the joint lag that counts as in sync: seconds the vibration trails the joint "
+        "states, as --joint-lag of egovib denoise (default: measured on the simulator for "
+        "this robot's model, else 0)",
     )
     parser.add_argument(
         "--folds",
@@ -115,14 +128,21 @@ def run(args: argparse.Namespace) -> int:
 
     model = NoiseModel.load(args.model)  # a broken model is named first, as before
     jobs = output_jobs(args.real, args.out)
+    references = reference_bags(args.reference, jobs, args.real)  # before any output
     for job in jobs:  # before any work
         prepare_output(
-            job.out, force=args.force, inputs=[args.model, job.bag, args.sim_params], kind="report"
+            job.out,
+            force=args.force,
+            inputs=[args.model, job.bag, args.sim_params, *(args.reference or [])],
+            kind="report",
         )
-    # measured once on the simulator, not once per bag
-    lag = reference_lag_for(model, args.reference_lag, args.sim_params)
+    # measured once on the simulator, not once per bag; the diagnosis scans the opposite
+    # sign internally (joint states stamped late)
+    given = None if args.reference_lag is None else -args.reference_lag
+    lag = reference_lag_for(model, given, args.sim_params)
     task = functools.partial(
         gap_task,
+        references=references,
         model_path=args.model,
         write_back=args.write_back,
         sim_params=args.sim_params,
@@ -150,17 +170,58 @@ def run(args: argparse.Namespace) -> int:
     )
 
 
-def gap_task(bag, out, progress, *, model_path, **options) -> dict:
+def reference_bags(specs, jobs, real_specs) -> dict[str, str]:
+    """--reference for each --real bag (keyed by the bag's path): one bag for all; or one
+    per bag, directories matched by the bags' names under them, else in order."""
+    if not specs:
+        return {}
+    # each spec on its own: references write nothing, and one may serve several bags
+    refs = [ref for spec in specs for ref in expand_bags([spec], outputs_per_bag=False)]
+    if len(refs) == 1:
+        return {str(job.bag): str(refs[0][0]) for job in jobs}
+    if all(Path(spec).is_dir() and not is_bag(Path(spec)) for spec in specs):
+        # directories of bags: each --real bag's reference by its name under them
+        names = {str(name): str(bag) for bag, name in refs}
+        reals = expand_bags(real_specs)
+        missing = [str(name) for _, name in reals if str(name) not in names]
+        if missing:
+            raise ConfigError(
+                f"--reference: no bag named {missing[0]} under {', '.join(map(str, specs))} "
+                "(directories are matched by the bags' names)"
+            )
+        return {str(job.bag): names[str(name)] for job, (_, name) in zip(jobs, reals)}
+    if len(refs) == len(jobs):
+        return {str(job.bag): str(ref) for job, (ref, _) in zip(jobs, refs)}
+    raise ConfigError(
+        f"--reference: {len(refs)} bags for {len(jobs)} --real bags (give one for all, one "
+        "per bag in the same order, or directories holding bags of the same names)"
+    )
+
+
+def gap_task(bag, out, progress, *, model_path, references=None, **options) -> dict:
     """One bag's diagnosis into its report directory; the summary line's figures."""
 
-    report = run_gap(model_path, bag, out, progress=progress, **options)
+    reference = (references or {}).get(str(bag))
+    report = run_gap(model_path, bag, out, progress=progress, reference_path=reference, **options)
     return {
         "notices": report["inputs"]["notices"],
         "gap": report["gap"],
         "verdict": report["verdict"]["effect"],
+        "effects": [e["effect"] for e in report["verdict"].get("effects", [])],
+        "change": [_change_said(c) for c in report.get("change", [])],
+        "reference": reference,
         "confidence": report["verdict"].get("confidence"),
         "report": f"{out}/report.md",
     }
+
+
+def _change_said(change: dict) -> str:
+    p = change["parameters"]
+    if "lag_shift_ms" in p:
+        return f"timing {p['lag_shift_ms']:+.0f} ms"
+    if "level_change_db" in p:
+        return f"drift {p['level_change_db']:+.1f} dB"
+    return change["effect"]
 
 
 def describe_gap(summary: dict) -> str:
@@ -169,8 +230,17 @@ def describe_gap(summary: dict) -> str:
         for k in ("sim_as_is", "after_refit", "after_effect", "floor")
     }
     notices = "".join(f" ({n})" for n in summary.get("notices", ()))
+    effects = summary.get("effects") or (
+        [] if summary["verdict"] == "none" else [summary["verdict"]]
+    )
+    found = "+".join(effects) or "none"
+    changed = ""
+    if summary.get("reference"):
+        changed = f"; changed since {summary['reference']}: " + (
+            ", ".join(summary.get("change") or []) or "nothing"
+        )
     return (
         f"sim as-is {g['sim_as_is']} dB, baseline {g['after_refit']} dB, "
-        f"+{summary['verdict']} {g['after_effect']} dB, floor {g['floor']} dB; "
-        f"verdict {summary['verdict']} -> {summary['report']}{notices}"
+        f"+{found} {g['after_effect']} dB, floor {g['floor']} dB; "
+        f"verdict {found}{changed} -> {summary['report']}{notices}"
     )

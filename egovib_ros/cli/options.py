@@ -97,8 +97,9 @@ def joint_lag_option(parser: argparse.ArgumentParser) -> None:
         type=float_in(-1.0, 1.0),
         default=0.0,
         metavar="SECONDS",
-        help="joint states lag the sensor by this much: move their stamps later (egovib gap "
-        "measures it; negative: they lead)",
+        help="joint lag: seconds the vibration trails the joint states, by which their stamps "
+        "are moved later (egovib gap's advice; negative: the vibration leads them, i.e. the "
+        "joint states are stamped late)",
     )
 
 

@@ -1,20 +1,27 @@
-"""What the found effect costs the denoiser, what to do about it, and what is left.
+"""What the found effects cost the denoiser, what to do about each, and what is left.
 
 `advise(diag)` turns a diagnosis into the report's first lines:
 
+* per effect found (the forward selection's order), one sentence and the exact flags or
+  parameters that act on it: `egovib denoise --joint-lag`, the denoiser node's
+  `joint_lag`, `--noise-gain REPORT.json` / `noise_gain`, `egovib calibrate --grid` and
+  `--joint-lag` (options that exist; the model has no position key, so position is advised
+  as what to record, not as an option);
+* the commands that apply all of them together (`commands`);
 * the cost: held-out noise reduction of spectral subtraction (Eq. 3 with Eq. 5 noise) on
-  the no-contact blocks with the velocity-only baseline ("without the correction") and
-  with the baseline times the found effect's term ("with"), both fitted on the other
-  folds;
-* the action, in the user's terms: a joint-state lag to set (the core's `joint_lag_s`,
-  FramerSettings / StreamingDenoiser / CalibrationAccumulator), a recalibration after
-  warm-up, a calibration key (position), a joint grid instead of superposition, motion
-  with speed changes in the calibration;
-* what the model still leaves above the floor (dB and share of the baseline's excess).
+  the no-contact blocks with the velocity-only baseline and with the combined model of
+  every effect found, both fitted on the other folds (a model estimate); and, when the
+  caller measured it (`measure_advice`), the flags applied together with the user's model
+  and its default method on held-out data;
+* what the combined model still leaves above the floor.
 
-`measure_joint_lag(...)` applies the lag advice with the core itself: calibrate on one
-recording and denoise another, with and without `joint_lag_s`, and compares the noise
-reduction (the real flight in docs/gap.md).
+The joint lag has one sign convention everywhere (LAG_CONVENTION): the seconds the
+vibration trails the joint states, i.e. how much later their stamps are moved; negative:
+the vibration leads them (joint states stamped late). Internally the diagnosis scans
+`lag_s` = seconds the joint states are stamped late, the opposite sign (`joint_lag_of`).
+
+`measure_joint_lag(...)` applies a lag with the core on two recordings (calibrate on one,
+denoise the other); `measure_advice(...)` applies the advice's flags with the user's model.
 """
 
 from __future__ import annotations
@@ -27,13 +34,40 @@ import numpy as np
 
 from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.core.filters import BandPass
+from egovib_ros.core.methods import default_method, denoise_batch_method
 from egovib_ros.core.subtraction import noise_gain_curve
 from egovib_ros.errors import ConfigError
+from egovib_ros.gap.baseline import fit_baseline, lag_residual, simulator_cells
 from egovib_ros.gap.diagnose import Diagnosis
-from egovib_ros.gap.effects import drift_reach
+from egovib_ros.gap.effects import (
+    LAG_COARSE_S,
+    LAG_FINE_S,
+    drift_reach,
+    fit_scales,
+    fit_variant,
+)
 
 #: A `none` verdict whose baseline stays more than this above the floor says so.
 UNEXPLAINED_NOTE_DB = 0.3
+#: The one sign convention of the joint lag (report.json, report.md, CLI help, docs).
+LAG_CONVENTION = (
+    "joint lag = seconds the vibration trails the joint states: their stamps are moved that "
+    "much later before they are matched with the sensor (egovib denoise / calibrate "
+    "--joint-lag, the nodes' joint_lag); negative: the vibration leads them (joint states "
+    "stamped late)"
+)
+#: Corrections applied by `measure_advice` are fitted on this leading share of the
+#: recording and scored on the rest.
+MEASURE_TRAIN_FRACTION = 0.6
+#: The held-out lag of `measure_advice` is re-fitted within this distance of the diagnosis's.
+MEASURE_LAG_WINDOW_S = 0.015
+#: An interaction (coupling) of a joint's lines is described when it moves them this much.
+LINE_NOTE_DB = 1.0
+
+
+def joint_lag_of(lag_s: float) -> float:
+    """The internal lag (joint states stamped `lag_s` late) in the joint-lag convention."""
+    return -float(lag_s)
 
 
 def _noise_reduction(diag: Diagnosis, name: str) -> float:
@@ -51,84 +85,132 @@ def _shape_span(shape: dict, prefix: str) -> tuple[str, float, dict]:
     return best, span, curve
 
 
-def action(diag: Diagnosis) -> tuple[str, dict]:
-    """One sentence saying what to change, and the settings it names."""
-    effect = diag.verdict
-    model = diag.models.get(effect)
-    shape = (model.shape or {}) if model is not None else {}
-    if effect == "timing":
-        p = model.parameters
-        offset = float(p.get("lag_s", 0.0)) - float(p.get("reference_lag_s", 0.0))
-        joint_lag = round(-offset, 4)
-        way = "lead" if offset < 0 else "lag"
-        return (
-            f"joint states {way} the vibration by {1000 * abs(offset):.0f} ms: set "
-            f"joint_lag: {joint_lag:g} (joint_lag_s of the calibration and the denoiser; "
-            "it moves joint-state stamps later by that much)",
-            {"joint_lag_s": joint_lag},
+def _fmt(value: float) -> str:
+    return f"{value:g}"
+
+
+def _timing_action(model) -> tuple[str, dict]:
+    p = model.parameters
+    offset = float(p.get("lag_s", 0.0)) - float(p.get("reference_lag_s", 0.0))
+    joint_lag = round(joint_lag_of(offset), 4)
+    way = "trails" if joint_lag > 0 else "leads"
+    flag = _fmt(joint_lag)
+    return (
+        f"the vibration {way} the joint states by {1000 * abs(joint_lag):.0f} ms more than the "
+        f"model expects: joint lag {flag} s (`egovib denoise --joint-lag {flag}`, the denoiser "
+        f"node's `joint_lag:={flag}`; calibrate with the same: `egovib calibrate --joint-lag "
+        f"{flag}`, the calibrator's `joint_lag:={flag}`)",
+        {"joint_lag_s": joint_lag},
+    )
+
+
+def _drift_action(model) -> tuple[str, dict]:
+    shape = model.shape or {}
+    curves = [c for k, c in shape.items() if k.startswith("drift:")]
+    curve = curves[-1] if curves else {}
+    g = np.asarray(curve.get("gain_db", [0.0]), float)
+    x = np.asarray(curve.get("x", [0.0]), float)
+    change_db, reach = drift_reach(x, g)
+    pct = 100.0 * (10 ** (change_db / 20.0) - 1.0)
+    span = float(x[-1] - x[0]) if x.size else 0.0
+    saturates = reach < 0.7 * (x[-1] if x.size else 0.0)
+    return (
+        f"vibration {'grows' if pct > 0 else 'falls'} {abs(pct):.0f} % over {span:.0f} s"
+        + (
+            f" (90 % of it within {reach:.0f} s): recalibrate after warm-up"
+            if saturates
+            else ": recalibrate periodically, or calibrate on a recording as long as use"
         )
-    if effect == "drift":
-        curves = [c for k, c in shape.items() if k.startswith("drift:")]
-        curve = curves[-1] if curves else {}
-        g = np.asarray(curve.get("gain_db", [0.0]), float)
-        x = np.asarray(curve.get("x", [0.0]), float)
-        change_db, reach = drift_reach(x, g)
-        pct = 100.0 * (10 ** (change_db / 20.0) - 1.0)
-        span = float(x[-1] - x[0]) if x.size else 0.0
-        saturates = reach < 0.7 * (x[-1] if x.size else 0.0)
-        return (
-            f"vibration {'grows' if pct > 0 else 'falls'} {abs(pct):.0f} % over {span:.0f} s"
-            + (
-                f" (90 % of it within {reach:.0f} s): recalibrate after warm-up"
-                if saturates
-                else ": recalibrate periodically, or calibrate on a recording as long as use"
-            ),
-            {
-                "recalibrate_after_s": round(reach, 1),
-                "level_change_percent": round(pct, 1),
-                # for `egovib denoise --noise-gain`: the level change from the start
-                "noise_gain_db": [
-                    [round(float(t - x[0]), 2), round(float(v - g[0]), 3)] for t, v in zip(x, g)
-                ],
-            },
-        )
-    if effect == "position":
-        joint, span, curve = _shape_span(shape, "position:")
-        loud = ""
-        if curve:
-            k = int(np.argmax(curve["gain_db"]))
-            loud = f", loudest at {curve['x'][k]:.3g} {curve.get('unit', '')}"
-        where = f"{joint}: {span:.1f} dB peak-to-trough{loud}" if span >= 0.1 else "bin by bin"
-        return (
-            f"position-dependent ({where}): calibrate with position as a key (or avoid that "
-            "range while sensing)",
-            {"calibration_key": "position", "joint": joint},
-        )
-    if effect == "coupling":
-        pair, span, curve = _shape_span(shape, "coupling:")
-        signed = np.asarray(curve.get("same_minus_opposite_direction_db", [[0.0]]), float)
+        + "; until then the denoiser follows the fitted level: `egovib denoise --noise-gain "
+        "REPORT.json` (the denoiser node's `noise_gain:=REPORT.json`)",
+        {
+            "recalibrate_after_s": round(reach, 1),
+            "level_change_percent": round(pct, 1),
+            # for `egovib denoise --noise-gain`: the level change from the start
+            "noise_gain_db": [
+                [round(float(t - x[0]), 2), round(float(v - g[0]), 3)] for t, v in zip(x, g)
+            ],
+        },
+    )
+
+
+def _position_action(model) -> tuple[str, dict]:
+    joint, span, curve = _shape_span(model.shape or {}, "position:")
+    loud = ""
+    settings = {"calibration_grid": "free", "position_joint": joint}
+    if curve:
+        k = int(np.argmax(curve["gain_db"]))
+        loud = f", loudest at {curve['x'][k]:.3g} {curve.get('unit', '')}"
+        settings["loudest_at"] = curve["x"][k]
+    where = f"{joint}: {span:.1f} dB peak-to-trough{loud}" if span >= 0.1 else "bin by bin"
+    return (
+        f"position-dependent ({where}): the noise model has no position key, so calibrate on "
+        "free motion that covers the positions the task uses (`egovib calibrate BAG --grid "
+        "free`: the model holds their average) and keep contact sensing away from the "
+        "loudest range",
+        settings,
+    )
+
+
+def _coupling_action(model) -> tuple[str, dict]:
+    shape = model.shape or {}
+    pair, span, curve = _shape_span(shape, "coupling:")
+    parts = []
+    lines = (model.parameters.get("lines") or {}).get("pairs", {})
+    for name, entry in lines.items():
+        big = {k: v for k, v in entry.items() if abs(v) >= LINE_NOTE_DB}
+        if big:
+            parts.append(
+                f"{name}: "
+                + ", ".join(
+                    f"{k.replace('_db', '').replace('_', ' ')} {v:+.1f} dB" for k, v in big.items()
+                )
+            )
+    signed = np.asarray(curve.get("same_minus_opposite_direction_db", [[0.0]]), float)
+    if span >= 0.1:
         direction = (
             f", same vs opposite direction up to {np.max(np.abs(signed)):.1f} dB"
             if signed.size and np.max(np.abs(signed)) >= 0.5
             else ""
         )
-        where = (
-            f"{pair.replace('x', ' x ')}: up to {span:.1f} dB{direction}"
-            if span >= 0.1
-            else "bin by bin, flat across the band"
-        )
-        return (
-            f"joints do not add ({where}): calibrate these joints on a joint velocity grid "
-            "(sweep 'full' or free motion covering their combinations), not by superposition",
-            {"calibration_sweep": "full", "joints": pair.split("x") if span >= 0.1 else []},
-        )
-    if effect == "acceleration":
-        return (
-            "joint acceleration adds vibration (speed changes, reversals): calibrate on free "
-            "motion with speed changes like the task's, or over-subtract while joints "
-            "accelerate",
-            {"calibration_sweep": "free"},
-        )
+        parts.append(f"{pair.replace('x', ' x ')} together: up to {span:.1f} dB{direction}")
+    where = "; ".join(parts) if parts else "bin by bin, flat across the band"
+    joints = sorted(
+        {n for key in shape if key.startswith("coupling") for n in key.split(":", 1)[1].split("x")}
+    )
+    return (
+        f"joints do not add ({where}): calibrate these joints together, on a full velocity "
+        "grid (`sweep_driver --ros-args -p grid:=full`, then `egovib calibrate BAG --grid "
+        "full`) or on free motion covering their combinations (`egovib calibrate BAG --grid "
+        "free`), not by superposition",
+        {"calibration_grid": "full", "joints": joints if parts else []},
+    )
+
+
+def _acceleration_action(model) -> tuple[str, dict]:
+    return (
+        "joint acceleration adds vibration (speed changes, reversals): calibrate on free motion "
+        "with speed changes like the task's (`egovib calibrate BAG --grid free`)",
+        {"calibration_grid": "free"},
+    )
+
+
+_ACTIONS = {
+    "timing": _timing_action,
+    "drift": _drift_action,
+    "position": _position_action,
+    "coupling": _coupling_action,
+    "acceleration": _acceleration_action,
+}
+
+
+def effect_action(effect: str, model) -> tuple[str, dict]:
+    """One sentence saying what to change about `effect` (its fitted `model`: parameters,
+    shape), with the flags, and the settings it names."""
+    return _ACTIONS[effect](model)
+
+
+def _none_action(diag: Diagnosis) -> tuple[str, dict]:
     above = float(diag.gaps["refit"] - diag.floor)
     if above > UNEXPLAINED_NOTE_DB:
         return (
@@ -140,46 +222,148 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
     return ("the velocity-only model fits this recording: nothing to change", {})
 
 
-def advise(diag: Diagnosis) -> dict:
-    """report.json "advice": action, cost to the denoiser, unexplained rest."""
-    text, settings = action(diag)
+def action(diag: Diagnosis) -> tuple[str, dict]:
+    """The first effect's sentence and settings (`none`: whether anything is left)."""
+    if diag.verdict == "none":
+        return _none_action(diag)
+    return effect_action(diag.verdict, diag.models[diag.verdict])
+
+
+def effect_actions(diag: Diagnosis) -> list[dict]:
+    """Every effect found, in order: {"effect", "action", "settings"}."""
+    models = diag.effect_models or ([diag.models[diag.verdict]] if diag.verdict != "none" else [])
+    names = [e["effect"] for e in diag.effects] or (
+        [diag.verdict] if diag.verdict != "none" else []
+    )
+    out = []
+    for name, model in zip(names, models):
+        text, settings = effect_action(name, model)
+        out.append({"effect": name, "action": text, "settings": settings})
+    return out
+
+
+def merged_settings(actions: list[dict]) -> dict:
+    """The settings of every action in one dict (the first wins a clash; a full grid wins
+    over free motion: it covers the combinations free motion may miss)."""
+    merged: dict = {}
+    for a in actions:
+        for key, value in a["settings"].items():
+            if key == "calibration_grid" and merged.get(key) == "free" and value == "full":
+                merged[key] = value
+            merged.setdefault(key, value)
+    return merged
+
+
+def commands(
+    settings: dict, *, model: str = "MODEL.npz", bag: str = "BAG", report: str = "REPORT.json"
+) -> dict:
+    """The command lines that apply every advised correction together."""
+    flags, params = [], []
+    if settings.get("joint_lag_s"):
+        lag = _fmt(settings["joint_lag_s"])
+        flags.append(f"--joint-lag {lag}")
+        params.append(f"-p joint_lag:={lag}")
+    if settings.get("noise_gain_db"):
+        flags.append(f"--noise-gain {report}")
+        params.append(f"-p noise_gain:={report}")
+    out = {}
+    if flags:
+        out["denoise"] = f"egovib denoise {bag} --model {model} --out DENOISED " + " ".join(flags)
+        out["denoiser_node"] = f"denoiser --ros-args -p model:={model} " + " ".join(params)
+    if settings.get("calibration_grid"):
+        grid = settings["calibration_grid"]
+        lag = f" --joint-lag {_fmt(settings['joint_lag_s'])}" if settings.get("joint_lag_s") else ""
+        out["calibrate"] = (
+            f"egovib calibrate NEW_RECORDING --grid {grid}{lag} --out NEW_MODEL.npz"
+            + (
+                " (NEW_RECORDING: a sweep_driver sweep with grid:=full)"
+                if grid == "full"
+                else " (NEW_RECORDING: free motion of the robot, no contact)"
+            )
+        )
+    return out
+
+
+def advise(diag: Diagnosis, *, paths: dict | None = None, measured: dict | None = None) -> dict:
+    """report.json "advice": per effect action and settings, the commands applying them all,
+    cost to the denoiser (model estimate; `measured`: the flags applied with the user's
+    model, `measure_advice`), unexplained rest. `paths`: model, bag and report paths for
+    the commands."""
+    actions = effect_actions(diag)
+    if actions:
+        text = (
+            "; ".join(f"{a['effect']}: {a['action']}" for a in actions)
+            if len(actions) > 1
+            else actions[0]["action"]
+        )
+        settings = merged_settings(actions)
+    else:
+        text, settings = _none_action(diag)
     without = _noise_reduction(diag, "after_refit")
     with_fix = _noise_reduction(diag, "after_effect")
     gaps = diag.gaps
-    after = gaps[diag.verdict] if diag.verdict != "none" else gaps["refit"]
+    after = gaps.get("combined", gaps[diag.verdict] if diag.verdict != "none" else gaps["refit"])
     floor = diag.floor
     excess_base = max(gaps["refit"] ** 2 - floor**2, 1e-12)
     excess_after = max(after**2 - floor**2, 0.0)
     return {
         "effect": diag.verdict,
+        "effects": actions,
         "action": text,
         "settings": settings,
+        "commands": commands(settings, **(paths or {})),
+        "lag_convention": LAG_CONVENTION,
         "denoiser": {
-            "definition": "held-out noise reduction (dB, no-contact blocks, spectral "
-            "subtraction with mean + sd noise) with the velocity-only baseline (without the "
-            "correction) and with the baseline times the found effect's term (with it)",
+            "definition": "model estimate: held-out noise reduction (dB, no-contact blocks, "
+            "spectral subtraction with mean + sd noise) with the velocity-only baseline "
+            "(without the corrections) and with the baseline times every found effect's term "
+            "(with them), all fitted on the other folds",
             "noise_reduction_without_db": round(without, 3),
             "noise_reduction_with_db": round(with_fix, 3),
             "gain_db": round(with_fix - without, 3),
         },
+        "applied": measured,
         "unexplained": {
             "above_floor_db": round(after - floor, 3),
             "share_of_baseline_excess": round(float(excess_after / excess_base), 3),
-            "note": "held-out gap of the baseline plus the found effect minus the floor; "
+            "note": "held-out gap of the baseline plus every found effect minus the floor; "
             "share = (gap^2 - floor^2) / (baseline gap^2 - floor^2)",
         },
     }
 
 
 def first_lines(advice: dict) -> list[str]:
-    """report.md's opening: what to do, what it costs, what is left."""
+    """report.md's opening: what to do (each effect, its flags), the commands, what it
+    costs and what applying it gave, what is left."""
     d, u = advice["denoiser"], advice["unexplained"]
-    lines = [f"**What to do:** {advice['action']}."]
+    effects = advice.get("effects") or []
+    if len(effects) > 1:
+        lines = ["**What to do** (effects in the order found; each flag below applies one):"]
+        lines += [f"{k}. `{a['effect']}`: {a['action']}." for k, a in enumerate(effects, 1)]
+    else:
+        lines = [f"**What to do:** {advice['action']}."]
+    cmds = advice.get("commands") or {}
+    if cmds:
+        lines.append("**All corrections together:**")
+        lines += ["```sh"] + list(cmds.values()) + ["```"]
+    if advice.get("settings", {}).get("joint_lag_s") is not None:
+        lines.append(f"*Sign of the joint lag:* {advice.get('lag_convention', LAG_CONVENTION)}.")
+    applied = advice.get("applied")
+    if applied and applied.get("noise_reduction_with_db") is not None:
+        lines.append(
+            f"**Applied together, measured:** the model as given, its default method "
+            f"`{applied['method']}`, with {applied['applied_text']}: held-out noise reduction "
+            f"{applied['noise_reduction_without_db']:.2f} dB without, "
+            f"{applied['noise_reduction_with_db']:.2f} dB with ({applied['gain_db']:+.2f} dB; "
+            f"{applied['heldout']})."
+        )
+    elif applied and applied.get("note"):
+        lines.append(f"**Applied together:** {applied['note']}.")
     if advice["effect"] != "none":
         lines.append(
-            f"**What it costs the denoiser:** held-out noise reduction "
-            f"{d['noise_reduction_without_db']:.2f} dB without the correction, "
-            f"{d['noise_reduction_with_db']:.2f} dB with it ({d['gain_db']:+.2f} dB)."
+            f"**What it costs the denoiser (model estimate):** held-out noise reduction "
+            f"{d['noise_reduction_without_db']:.2f} dB without the corrections, "
+            f"{d['noise_reduction_with_db']:.2f} dB with them ({d['gain_db']:+.2f} dB)."
         )
     lines.append(
         f"**Left unexplained:** {u['above_floor_db']:.2f} dB above the floor "
@@ -284,3 +468,156 @@ def measure_joint_lag(
 
 
 __all__ = ["advise", "action", "first_lines", "measure_joint_lag"]
+
+
+def _train_rows(diag: Diagnosis, t_end_s: float) -> tuple[np.ndarray, float]:
+    """The clean blocks of the leading MEASURE_TRAIN_FRACTION of [start, t_end_s], and the
+    split time."""
+    t = diag.table.t_mid_s
+    start = float(t[0])
+    split = start + MEASURE_TRAIN_FRACTION * (min(float(t[-1]), t_end_s) - start)
+    return ~diag.table.contact & (t < split), split
+
+
+def _held_out_joint_lag(diag: Diagnosis, train: np.ndarray) -> float:
+    """The joint lag re-fitted on the training rows only, within MEASURE_LAG_WINDOW_S of the
+    diagnosis's (coarse grid, then 1 ms), relative to the reference, in the joint-lag
+    convention."""
+    table = diag.table
+    rows = np.flatnonzero(train)
+    prior = simulator_cells(table)
+    centre = float(diag.lag_scan.get("timing_lag_s", diag.sync_lag_s))
+    coarse = centre + np.arange(-MEASURE_LAG_WINDOW_S, MEASURE_LAG_WINDOW_S + 1e-9, LAG_COARSE_S)
+    coarse = (
+        coarse[[abs(lag) <= table.joints.max_lag_s for lag in coarse]] if table.joints else coarse
+    )
+    curve = [lag_residual(table, rows, float(lag), prior) for lag in coarse]
+    best = float(coarse[int(np.argmin(curve))])
+    fine = best + np.arange(-LAG_COARSE_S + LAG_FINE_S, LAG_COARSE_S - 1e-9, LAG_FINE_S)
+    values = [lag_residual(table, rows, float(lag), prior) for lag in fine]
+    lag = float(fine[int(np.argmin(values))])
+    return round(joint_lag_of(lag - diag.reference_lag_s), 4)
+
+
+def _held_out_noise_gain(diag: Diagnosis, train: np.ndarray) -> list[list[float]]:
+    """The drift term fitted on the training rows only (held flat beyond them but for its
+    linear trend), as (elapsed s, dB) knots for the denoiser's noise_gain_db."""
+    table = diag.table.at_lag(diag.sync_lag_s)
+    table.contact = diag.table.contact
+    prior = simulator_cells(table)
+    base = fit_baseline(table, train, prior=prior)
+    scales = fit_scales(table, train, base.magnitude)
+    fitted = fit_variant(table, train, "drift", scales, base)
+    curve = (fitted.shape or {}).get("drift:elapsed_time", {})
+    x, g = np.asarray(curve.get("x", [0.0]), float), np.asarray(curve.get("gain_db", [0.0]), float)
+    return [[round(float(t - x[0]), 2), round(float(v - g[0]), 3)] for t, v in zip(x, g)]
+
+
+def _scored_mask(diag: Diagnosis, t_s: np.ndarray, split_s: float, margin_s: float) -> np.ndarray:
+    """Samples (times t_s, s since the table's origin) after the split, inside a block the
+    diagnosis kept, not in a contact-like block, away from the ends by `margin_s`."""
+    table = diag.table
+    lo = np.searchsorted(t_s, table.t_first_s)
+    hi = np.searchsorted(t_s, table.t_last_s, side="right")
+    cover = np.zeros(len(t_s) + 1, int)
+    np.add.at(cover, lo, 1)
+    np.add.at(cover, hi, -1)
+    inside = np.cumsum(cover)[:-1] > 0
+    flagged = np.zeros(len(t_s) + 1, int)
+    np.add.at(flagged, lo[table.contact], 1)
+    np.add.at(flagged, hi[table.contact], -1)
+    bad = np.cumsum(flagged)[:-1] > 0
+    return (
+        inside & ~bad & (t_s >= split_s) & (t_s >= t_s[0] + margin_s) & (t_s <= t_s[-1] - margin_s)
+    )
+
+
+def measure_advice(
+    rec, model, diag: Diagnosis, settings: dict, order, *, method: str | None = None
+) -> dict:
+    """The advice's flags (joint lag, noise gain) applied together with the user's `model`
+    and its default method (or `method`), held out: the corrections are re-fitted on the
+    leading MEASURE_TRAIN_FRACTION of `rec` (the recording diagnosed, or its first part;
+    `order`: its joint columns in model order) and both runs, without and with them, are
+    scored on the rest: the band-passed sum of axes (the model's band) over the no-contact
+    blocks the diagnosis kept, away from the ends by the lag.
+
+    Returns the figures, or {"note": why nothing was applied} when no flag is advised."""
+    want_lag = "joint_lag_s" in settings and any(e["effect"] == "timing" for e in diag.effects)
+    want_gain = "noise_gain_db" in settings and any(e["effect"] == "drift" for e in diag.effects)
+    if not (want_lag or want_gain):
+        return {
+            "note": "no advised correction is a flag of the denoiser (joint lag, noise gain); "
+            "what the advice changes is the calibration"
+        }
+    method = method or default_method(model)
+    t_s = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
+    train, split = _train_rows(diag, float(t_s[-1]))
+    options: dict = {}
+    texts = []
+    if want_lag:
+        options["joint_lag_s"] = _held_out_joint_lag(diag, train)
+        texts.append(f"joint lag {options['joint_lag_s']:+g} s")
+    if want_gain:
+        knots = _held_out_noise_gain(diag, train)
+        noise_gain_curve(knots)
+        options["noise_gain_db"] = tuple((float(a), float(b)) for a, b in knots)
+        texts.append(f"noise gain {knots[-1][1]:+.1f} dB at {knots[-1][0]:.0f} s")
+    velocity = rec.joint_velocity[:, order]
+    core_log = logging.getLogger("egovib_ros.core")
+    level = core_log.level
+    core_log.setLevel(logging.ERROR)
+    runs = {}
+    try:
+        for name, opts in (("without", {}), ("with", options)):
+            stamps, values, _ = denoise_batch_method(
+                rec.sensor_stamps_ns,
+                rec.sensor,
+                rec.joint_stamps_ns,
+                velocity,
+                model,
+                method=method,
+                channels="combined",
+                **opts,
+            )
+            runs[name] = (stamps, values[:, 0])
+    finally:
+        core_log.setLevel(level)
+    bp = BandPass(
+        sample_rate_hz=model.sample_rate_hz,
+        band_hz=model.band_hz,
+        order=model.band_order,
+        n_channels=1,
+    )
+    raw = bp.process(rec.sensor.sum(axis=1)[None, :])[0]
+    margin = 4 * model.block_length / model.sample_rate_hz + abs(options.get("joint_lag_s", 0.0))
+    scored = _scored_mask(diag, t_s, split, margin)
+    out = {
+        "method": method,
+        "applied": {
+            k: (list(map(list, v)) if k == "noise_gain_db" else v) for k, v in options.items()
+        },
+        "applied_text": ", ".join(texts)
+        + f" (fitted on the first {100 * MEASURE_TRAIN_FRACTION:.0f} %)",
+        "advised_from_all_data": {
+            k: settings[k] for k in ("joint_lag_s",) if k in settings and want_lag
+        },
+        "heldout": f"scored on the last {100 * (1 - MEASURE_TRAIN_FRACTION):.0f} % "
+        f"({float(t_s[-1]) - split:.0f} s), no-contact blocks",
+        "definition": "20 log10 of the mean band-passed magnitude (sum of axes) of the raw "
+        "signal over that of the denoised one (channels combined), both runs on the same samples",
+    }
+    full = {}
+    for name, (stamps, values) in runs.items():
+        full[name] = np.full(len(raw), np.nan)
+        full[name][np.searchsorted(rec.sensor_stamps_ns, stamps)] = values
+    keep = scored & np.isfinite(full["without"]) & np.isfinite(full["with"])
+    noise_raw = float(np.mean(np.abs(raw[keep])))
+    for name, values in full.items():
+        out[f"noise_reduction_{name}_db"] = round(
+            float(20.0 * np.log10(noise_raw / max(float(np.mean(np.abs(values[keep]))), 1e-300))),
+            3,
+        )
+    out["scored_samples"] = int(keep.sum())
+    out["gain_db"] = round(out["noise_reduction_with_db"] - out["noise_reduction_without_db"], 3)
+    return out

@@ -15,18 +15,16 @@ from scipy import ndimage, stats
 from egovib_ros.errors import ConfigError, GapDataError
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import fit_baseline, simulator_cells
+from egovib_ros.gap.chain import ALL, ChainFits, CrossFitted, Split
 from egovib_ros.gap.effects import (
     EFFECTS,
     LAG_TOLERANCE_S,
     FittedModel,
-    fit_scales,
-    fit_variant,
     lag_scan,
     refine_lag,
     time_hats,
 )
 from egovib_ros.gap.features import BlockTable, detect_contacts
-from egovib_ros.gap.regression import fit_power_term
 
 TRAIN_FRACTION = 0.6
 #: Blocked cross-validation in time: this many contiguous folds.
@@ -39,6 +37,13 @@ ALPHA = 0.01
 #: effect-free bags gave up to 0.0011 (a tiny real non-additivity of the simulator), the
 #: weakest true effects in the blind ranges 0.012 and more.
 MIN_DEVIANCE_GAIN = 0.004
+#: From the second step of the forward selection on, a candidate must gain at least this
+#: much on top of the effects found: a fitted term leaves structured misfit behind (its
+#: shape is not the generator's), which another flexible term can take a little of (on a
+#: synthetic position effect the coupling term gained 0.0054 on top of the position term,
+#: 0.02 dB of held-out gap). Set from pilot runs with a master seed the committed
+#: validations do not use (docs/gap.md).
+MIN_DEVIANCE_GAIN_LATER = 0.008
 #: The deviance compares power summed over this many consecutive tested blocks.
 DEVIANCE_RUN = 4
 #: Length of the contiguous held-out segments the permutation test flips (s).
@@ -104,6 +109,13 @@ class Diagnosis:
     transients: dict = field(default_factory=dict)
     split_info: dict = field(default_factory=dict)
     floor_estimates: dict = field(default_factory=dict)
+    #: the effects found by the forward selection, in order (the first is `verdict`): each
+    #: with its held-out reduction given the ones before, test, confidence and parameters
+    effects: list[dict] = field(default_factory=list)
+    #: their terms, each fitted on every clean block on top of the ones before it
+    effect_models: list[FittedModel] = field(default_factory=list)
+    #: every forward-selection step: the candidates tested on top of the effects before
+    steps: list[dict] = field(default_factory=list)
 
     @property
     def verdict_model(self) -> FittedModel:
@@ -207,14 +219,6 @@ def reversal_locked_transients(
     return flagged & ~back, info
 
 
-@dataclass
-class Split:
-    """One train / test pair of block masks."""
-
-    train: np.ndarray
-    test: np.ndarray
-
-
 def blocked_folds(table: BlockTable, n_folds: int) -> list[Split]:
     """Contiguous time folds: each held out once, fitted on the others
     (no contact blocks anywhere)."""
@@ -241,16 +245,6 @@ def interleaved_splits(
     return [Split(clean & (chunk != r), clean & (chunk == r)) for r in range(period)]
 
 
-@dataclass
-class CrossFitted:
-    """Out-of-split predictions of the baseline and each candidate, assembled over the splits."""
-
-    predicted: dict[str, np.ndarray]  # name -> (B, F) expected magnitude, valid on test rows
-    power: dict[str, np.ndarray]  # name -> (B, F) expected power, valid on test rows
-    offset: np.ndarray  # (B, F) baseline training log offset of each row's split
-    rows: np.ndarray  # tested rows (sorted)
-
-
 def combined_floor(floors: dict[str, float]) -> float:
     """The smaller of the two floor estimates.
 
@@ -264,72 +258,20 @@ def combined_floor(floors: dict[str, float]) -> float:
     return float(min(values)) if values else float("nan")
 
 
-def _fit(table: BlockTable, train: np.ndarray, effects, prior) -> tuple:
-    """(baseline, scales, {name: FittedModel}) fitted on the `train` rows: the refit and
-    every candidate but timing (a refit at another lag)."""
-    base = fit_baseline(table, train, prior=prior)
-    scales = fit_scales(table, train, base.magnitude)
-    names = ["refit"] + [effect for effect in effects if effect != "timing"]
-    return base, scales, {name: fit_variant(table, train, name, scales, base) for name in names}
-
-
-def cross_fit(
-    base_table: BlockTable,
-    splits: list[Split],
-    effects: tuple[str, ...],
-    prior,
-    *,
-    timing_table: BlockTable | None = None,
-    terms=None,
-) -> CrossFitted:
-    """Fit the baseline and every candidate on each split's train rows; keep test-row predictions.
-
-    `terms`: optional callable(table, train, baseline) -> {name: FittedModel} for extra
-    candidates (the interleaved drift check).
-    """
-    n, n_bins = base_table.magnitude.shape
-    mags: dict[str, np.ndarray] = {}
-    pows: dict[str, np.ndarray] = {}
-    offset = np.zeros((n, n_bins))
-    observed = base_table.magnitude
-    for split in splits:
-        test = split.test
-        base, scales, fits = _fit(base_table, split.train, effects, prior)
-        if "timing" in effects and timing_table is None:
-            fits["timing"] = fits["refit"]
-        elif "timing" in effects:
-            _, _, lagged = _fit(timing_table, split.train, (), prior)  # the refit at the lag
-            fits["timing"] = lagged["refit"]
-        if terms is not None:
-            fits.update(terms(base_table, split.train, base, scales))
-        for name, fm in fits.items():
-            mags.setdefault(name, np.zeros((n, n_bins)))[test] = fm.predicted[test]
-            pows.setdefault(name, np.zeros((n, n_bins)))[test] = fm.power[test]
-        offset[test] = np.mean(
-            metric.block_log_errors(observed[split.train], fits["refit"].predicted[split.train]),
-            axis=0,
-        )
-    rows = np.flatnonzero(np.any([s.test for s in splits], axis=0))
-    return CrossFitted(predicted=mags, power=pows, offset=offset, rows=rows)
+def candidate_chains(prefix: tuple[str, ...], effects) -> dict[str, tuple[str, ...]]:
+    """The chains a forward-selection step compares: "refit" = the effects selected so far
+    (`prefix`; none: the velocity-only baseline), and each remaining candidate on top."""
+    return {"refit": tuple(prefix), **{e: tuple(prefix) + (e,) for e in effects}}
 
 
 def _time_trend_term(n_knots: int):
-    """Candidate maker for the in-sample time trend: piecewise linear in elapsed time
-    over the whole span."""
+    """Term maker for the in-sample time trend: piecewise linear in elapsed time over the
+    whole span."""
 
-    def term(table: BlockTable, train: np.ndarray, base, scales) -> dict[str, FittedModel]:
+    def term(table: BlockTable, scales) -> tuple[np.ndarray, list[str]]:
         t = table.t_mid_s
         x = time_hats(t, float(t[0]), float(t[-1]), n_knots)
-        return {
-            "drift_in_sample": fit_variant(
-                table,
-                train,
-                "custom",
-                scales,
-                base,
-                regressors=(x, [f"time_hat{k + 1}" for k in range(x.shape[1])]),
-            )
-        }
+        return x, [f"time_hat{k + 1}" for k in range(x.shape[1])]
 
     return term
 
@@ -369,10 +311,18 @@ def _test(
 
 
 def _interleaved_drift(
-    table: BlockTable, prior, window_blocks: int, rng: np.random.Generator
+    tables: dict | BlockTable,
+    prior,
+    window_blocks: int,
+    rng: np.random.Generator,
+    prefix: tuple[str, ...] = (),
 ) -> dict:
-    """Drift checked in-sample: a time trend fitted on interleaved chunks,
-    judged on the chunks between."""
+    """Drift checked in-sample: a time trend fitted on interleaved chunks, judged on the
+    chunks between; on top of the effects selected so far (`prefix`, fitted on the same
+    chunks). `tables`: as ChainFits takes them, or the in-sync table alone."""
+    if isinstance(tables, BlockTable):
+        tables = {"sync": tables, "timing": None}
+    table = tables["sync"]
     t = table.t_mid_s
     span = float(t[-1] - t[0])
     # A short recording (a real part of a few seconds) gets shorter chunks and knots, so that
@@ -385,9 +335,14 @@ def _interleaved_drift(
     if min(s.train.sum() for s in splits) < 200:
         return {}
     n_knots = int(np.clip(round(span / knot_s) + 1, 3, 12))
-    term = _time_trend_term(n_knots)
-
-    cf = cross_fit(table, splits, (), prior, terms=term)
+    clean = ~table.contact
+    chains = ChainFits(
+        tables, splits, prior, clean=clean, custom={"drift_in_sample": _time_trend_term(n_knots)}
+    )
+    chains.keep(prefix)
+    cf = chains.cross(
+        {"refit": prefix, "drift_in_sample": prefix + ("drift_in_sample",)}, offset_of="refit"
+    )
     rows = cf.rows
     if len(rows) < 4 * window_blocks:
         return {}
@@ -399,10 +354,8 @@ def _interleaved_drift(
     e_drift = heldout_errors(cf.predicted["drift_in_sample"], observed, rows, windows)
     best = "drift_in_sample" if metric.gap_db(e_drift) < metric.gap_db(e_base) else "refit"
     # The fitted shape, on all clean blocks.
-    clean = ~table.contact
-    base = fit_baseline(table, clean, prior=prior)
-    x = time_hats(t, float(t[0]), float(t[-1]), n_knots)
-    coef, ridge = fit_power_term(x, table.magnitude**2 / np.maximum(base.power, 1e-300), clean)
+    fitted = chains.fit(ALL, prefix + ("drift_in_sample",))
+    coef, ridge = fitted.coef, fitted.parameters.get("ridge", {})
     curve_t = np.linspace(float(t[0]), float(t[-1]), 61)
     g = time_hats(curve_t, float(t[0]), float(t[-1]), n_knots) @ coef[1:].mean(axis=1)
     return {
@@ -476,9 +429,11 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     the defaults when None).
 
     The steps: lags and contacts (`_align`), the splits, held-out predictions of the
-    baseline and every candidate (`cross_fit`), the fitted terms for the report
+    baseline and every candidate (`chain.ChainFits`), the fitted terms for the report
     (`_fitted_models`), held-out gaps and the floor (`_heldout_gaps`), each candidate
-    tested against the baseline (`_candidates`), the verdict (`_verdict`).
+    tested against the baseline (`_candidates`), the first effect (`_verdict`); then the
+    forward selection (`_select_more`): each remaining candidate on top of the effects
+    found so far, tested against them, until none is significant.
     """
     o = options or DiagnosisOptions()
     folds, train_fraction = o.folds, o.train_fraction
@@ -489,7 +444,6 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         raise GapDataError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
     aligned = _align(table, effects, prior, reference_lag_s, lag_tolerance_s)
-    base_table = aligned.base_table
     splits = (
         forward_split(table, train_fraction)
         if train_fraction is not None
@@ -500,11 +454,13 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         or sum(s.test.sum() for s in splits) < 4 * window_blocks
     ):
         raise GapDataError("too few no-contact blocks to fit and test")
-    cf = cross_fit(base_table, splits, effects, prior, timing_table=aligned.timing_table)
+    clean = ~aligned.contact
+    tables = {"sync": aligned.base_table, "timing": aligned.timing_table}
+    chains = ChainFits(tables, splits, prior, clean=clean)
+    cf = chains.cross(candidate_chains((), effects), offset_of="refit")
     rows = cf.rows
     windows = metric.make_windows(len(rows), window_blocks)
-    clean = ~aligned.contact
-    models = _fitted_models(table, aligned, effects, prior, cf, reference_lag_s, lag_tolerance_s)
+    models = _fitted_models(table, aligned, effects, chains, cf, reference_lag_s, lag_tolerance_s)
     errors, gaps, floors = _heldout_gaps(table, models, cf, windows)
     floor = combined_floor(floors)
     # The decision uses every held-out block, not window means: per-block squared log
@@ -513,7 +469,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     # contiguous SEGMENT_S segments.
     segments = _segments(table.t_mid_s, rows, float(table.t_mid_s[0]))
     interleaved = (
-        _interleaved_drift(base_table, prior, window_blocks, rng) if "drift" in effects else {}
+        _interleaved_drift(tables, prior, window_blocks, rng) if "drift" in effects else {}
     )
     candidates, loss = _candidates(
         table.magnitude, cf, effects, gaps, floor, segments, interleaved, rng
@@ -522,7 +478,37 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         models["drift"].shape = dict(models["drift"].shape or {})
         models["drift"].shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
     verdict, confidence = _verdict(candidates, loss, o.alpha, segments, rng)
-    vm = models[verdict] if verdict != "none" else models["refit"]
+    first = {
+        "step": 1,
+        "prefix": [],
+        "candidates": candidates,
+        "effect": verdict,
+        "confidence": confidence,
+    }
+    context = _SelectionContext(
+        chains=chains,
+        tables=tables,
+        prior=prior,
+        aligned=aligned,
+        effects=tuple(effects),
+        windows=windows,
+        segments=segments,
+        floor=floor,
+        alpha=o.alpha,
+        window_blocks=window_blocks,
+        reference_lag_s=reference_lag_s,
+        lag_tolerance_s=lag_tolerance_s,
+        rng=rng,
+    )
+    selection = _select_more(context, first, models, gaps, cf)
+    models["combined"] = _held_out_model("combined", selection.predicted, selection.power, table)
+    errors["combined"] = heldout_errors(selection.predicted, table.magnitude, rows, windows)
+    gaps["combined"] = metric.gap_db(errors["combined"])
+    if gaps["combined"] < min(gaps[name] for name in gaps if name != "sim_as_is") - 1e-12:
+        # scatter estimated around the best held-out model (the combined one)
+        floors = _floors(table.magnitude[rows], selection.predicted[rows], windows)
+        floor = combined_floor(floors)
+    vm = models["combined"]
     residual = {
         "raw": 0.0,
         "sim_as_is": residual_noise_db(table, table.base_mean, np.ones_like(table.base_mean), rows),
@@ -560,6 +546,142 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         transients=aligned.transients,
         split_info=_split_info(table.t_mid_s, folds, train_fraction),
         floor_estimates=floors,
+        effects=selection.effects,
+        effect_models=selection.models,
+        steps=selection.steps,
+    )
+
+
+@dataclass
+class _SelectionContext:
+    """What every forward-selection step needs."""
+
+    chains: ChainFits
+    tables: dict
+    prior: tuple
+    aligned: "_Aligned"
+    effects: tuple[str, ...]
+    windows: metric.Windows
+    segments: np.ndarray
+    floor: float
+    alpha: float
+    window_blocks: int
+    reference_lag_s: float
+    lag_tolerance_s: float
+    rng: np.random.Generator
+
+
+@dataclass
+class _Selection:
+    effects: list[dict]  # the selected effects, in order (report: verdict.effects)
+    models: list[FittedModel]  # each one's term fitted on every clean block after the ones before
+    steps: list[dict]  # every step: its candidates tested on top of the effects before
+    predicted: np.ndarray  # (B, F) held-out expected magnitude of the combined model
+    power: np.ndarray  # (B, F) held-out expected power of the combined model
+
+
+def _effect_entry(step: dict, gap_before: float, model: FittedModel) -> dict:
+    """A selected effect: its held-out reduction given the effects before it, test, model."""
+    c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
+    return {
+        "effect": step["effect"],
+        "step": step["step"],
+        "heldout_gap_before": round(float(gap_before), 4),
+        "heldout_gap": c["heldout_gap"],
+        "reduction": c["reduction"],
+        "gap_reduction_decisive": c["gap_reduction_decisive"],
+        "p_value": c["p_value"],
+        "confidence": step["confidence"],
+        "deviance_reduction": c["deviance_reduction"],
+        "block_mse_reduction_db2": c["block_mse_reduction_db2"],
+        **({"decided_by": c["decided_by"]} if "decided_by" in c else {}),
+        "parameters": model.parameters,
+    }
+
+
+def _select_more(
+    ctx: _SelectionContext, first: dict, models: dict, gaps: dict, cf: CrossFitted
+) -> _Selection:
+    """Forward selection on held-out data: the first step's effect, then each remaining
+    candidate fitted on top of the effects selected so far (the same folds), tested against
+    them with the first step's rule (p < alpha / candidates of the step, deviance gain, a
+    smaller held-out gap), the best one taken, until no candidate of a step qualifies."""
+    chains = ctx.chains
+    observed = chains.tables["sync"].magnitude
+    rows = cf.rows
+    steps = [first]
+    if first["effect"] == "none":
+        return _Selection([], [], steps, cf.predicted["refit"], cf.power["refit"])
+    selected = [first["effect"]]
+    entries = [_effect_entry(first, gaps["refit"], models[first["effect"]])]
+    fitted = [models[first["effect"]]]
+    predicted, power = cf.predicted[first["effect"]], cf.power[first["effect"]]
+    gap_now = gaps[first["effect"]]
+    while len(selected) < len(ctx.effects):
+        prefix = tuple(selected)
+        remaining = tuple(e for e in ctx.effects if e not in selected)
+        chains.keep(prefix)
+        cf_k = chains.cross(candidate_chains(prefix, remaining), offset_of="refit")
+        gaps_k = {
+            name: metric.gap_db(heldout_errors(cf_k.predicted[name], observed, rows, ctx.windows))
+            for name in cf_k.predicted
+        }
+        interleaved = (
+            _interleaved_drift(ctx.tables, ctx.prior, ctx.window_blocks, ctx.rng, prefix)
+            if "drift" in remaining
+            else {}
+        )
+        cands, loss = _candidates(
+            observed, cf_k, remaining, gaps_k, ctx.floor, ctx.segments, interleaved, ctx.rng
+        )
+        effect, confidence = _verdict(
+            cands, loss, ctx.alpha, ctx.segments, ctx.rng, min_gain=MIN_DEVIANCE_GAIN_LATER
+        )
+        step = {
+            "step": len(steps) + 1,
+            "prefix": list(prefix),
+            "candidates": cands,
+            "effect": effect,
+            "confidence": confidence,
+        }
+        steps.append(step)
+        if effect == "none":
+            break
+        model = _chain_model(ctx, prefix, effect, interleaved)
+        entries.append(_effect_entry(step, gap_now, model))
+        fitted.append(model)
+        selected.append(effect)
+        predicted, power = cf_k.predicted[effect], cf_k.power[effect]
+        gap_now = gaps_k[effect]
+    return _Selection(entries, fitted, steps, predicted, power)
+
+
+def _chain_model(
+    ctx: _SelectionContext, prefix: tuple[str, ...], effect: str, interleaved: dict
+) -> FittedModel:
+    """The selected effect's term fitted on every clean block on top of `prefix` (its
+    parameters and shape for the report)."""
+    chain = prefix + (effect,)
+    model = ctx.chains.fit(ALL, chain)
+    if effect == "timing":
+        scales = ctx.chains.baseline(ALL, ctx.chains.lag_key(chain))[1]
+        return _timing_model(model, ctx.aligned, scales, ctx.reference_lag_s, ctx.lag_tolerance_s)
+    if effect == "drift" and interleaved:
+        model.shape = dict(model.shape or {})
+        model.shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
+    return model
+
+
+def _held_out_model(
+    name: str, predicted: np.ndarray, power: np.ndarray, table: BlockTable
+) -> FittedModel:
+    """A model known by its held-out predictions only (the combined one)."""
+    return FittedModel(
+        name=name,
+        predicted=predicted,
+        std_scale=predicted / np.maximum(table.base_mean, 1e-12),
+        power=power,
+        table=table,
     )
 
 
@@ -622,15 +744,19 @@ def _fitted_models(
     table: BlockTable,
     aligned: _Aligned,
     effects,
-    prior,
+    chains: ChainFits,
     cf: CrossFitted,
     reference_lag_s: float,
     lag_tolerance_s: float,
 ) -> dict[str, FittedModel]:
     """The fitted terms (parameters, shapes) for the report, fitted on every clean block;
     their predictions then replaced by the held-out ones (all figures are held out)."""
-    _, scales, models = _fit(aligned.base_table, ~aligned.contact, effects, prior)
+    models = {
+        name: chains.fit(ALL, chain)
+        for name, chain in candidate_chains((), [e for e in effects if e != "timing"]).items()
+    }
     if "timing" in effects:
+        scales = chains.baseline(ALL, "sync")[1]
         models["timing"] = _timing_model(
             models["refit"], aligned, scales, reference_lag_s, lag_tolerance_s
         )
@@ -762,6 +888,8 @@ def _verdict(
     alpha: float,
     segments: np.ndarray,
     rng: np.random.Generator,
+    *,
+    min_gain: float = MIN_DEVIANCE_GAIN,
 ) -> tuple[str, float]:
     """The effect named and its confidence.
 
@@ -775,7 +903,7 @@ def _verdict(
         c
         for c in candidates
         if c["p_value"] < level
-        and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
+        and c["deviance_reduction"] >= min_gain
         and c["gap_reduction_decisive"] > 0.0
     ]
     names = [c["effect"] for c in candidates]

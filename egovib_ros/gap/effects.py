@@ -39,7 +39,12 @@ import numpy as np
 
 from egovib_ros.gap.baseline import Baseline, fit_baseline, lag_residual, relevel, simulator_cells
 from egovib_ros.gap.features import BlockTable, hat_matrix
-from egovib_ros.gap.regression import MAX_LOG_GAIN, fit_power_term
+from egovib_ros.gap.regression import (
+    MAX_LOG_GAIN,
+    SharedDesign,
+    fit_power_term,
+    fit_shared_power_term,
+)
 
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
@@ -68,6 +73,9 @@ LAG_FINE_S = 0.001
 #: structural and sensor group delays differ from the simulator's by a few ms.
 LAG_TOLERANCE_S = 0.005
 REL_CLIP = 25.0
+#: Per-line interactions (coupling): speed knots of the scaling joint, at most this many
+#: (quantiles of its training speeds), fewer with many joints (6 / sqrt(ordered pairs)).
+LINE_KNOTS = 3
 
 
 @dataclass
@@ -342,13 +350,22 @@ def fit_variant(
     refit: Baseline | None = None,
     *,
     regressors: tuple[np.ndarray, list[str]] | None = None,
+    mask: np.ndarray | None = None,
 ) -> FittedModel:
     """Baseline, then one effect's regressors (or given `regressors`) on top of it (log domain),
-    fitted on the training rows."""
+    fitted on the training rows. `mask` (B,): every regressor column times it (the change
+    diagnosis: an effect's term on one recording of two only)."""
     base = refit if refit is not None else fit_baseline(table, train)
+    lines = None
+    if effect == "coupling" and regressors is None:
+        # one joint's lines scaled by another joint's speed first, then the products of the
+        # speeds on top (lines or broadband that sound only when two joints move together)
+        base, lines = line_stage(table, train, base, scales, mask=mask)
     extra, names = (
         regressors if regressors is not None else effect_regressors(effect, table, scales)
     )
+    if mask is not None and len(names):
+        extra = extra * np.asarray(mask, float)[:, None]
     coef, ridge = fit_power_term(extra, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)
@@ -367,6 +384,8 @@ def fit_variant(
         params["n_regressors"] = len(names)
         params["ridge"] = {k: round(v, 5) for k, v in ridge.items()}
     params.update(_effect_summary(effect, names, coef[1:], scales))
+    if lines is not None:
+        params["lines"] = lines["summary"]
     std_scale = predicted / np.maximum(table.base_mean, 1e-12)
     fm = FittedModel(
         name=effect,
@@ -381,7 +400,151 @@ def fit_variant(
     )
     if names and regressors is None:
         fm.shape = effect_shape(effect, table, scales, coef, names)
+    if lines is not None:
+        fm.shape = {**(fm.shape or {}), **lines["shape"]}
     return fm
+
+
+def joint_shares(table: BlockTable, base: Baseline) -> np.ndarray | None:
+    """(J, B, F) each joint's share of each block's and bin's expected power by the
+    baseline's additive stage (its cells at the block's velocity trajectory): where that
+    joint's lines are. None when the table has no trajectory features."""
+    if table.hats is None or base.cell_power is None or base.rest_power is None:
+        return None
+    k = min(table.hats.shape[2], base.cell_power.shape[1])
+    power = np.einsum("bjk,jkf->jbf", table.hats[:, :, :k], base.cell_power[:, :k])
+    total = base.rest_power[None, None, :] + power.sum(axis=0)
+    return np.clip(power / np.maximum(total, 1e-300), 0.0, 1.0)
+
+
+def line_knots(table: BlockTable, scales: Scales) -> list[np.ndarray]:
+    """Per scaling joint: the speed-fraction knots of the per-line interaction (0 first)."""
+    n_j = len(table.joint_names)
+    n_pairs = max(n_j * (n_j - 1), 1)
+    n_knots = int(np.clip(round(6 / np.sqrt(n_pairs)), 1, LINE_KNOTS))
+    out = []
+    for j in range(n_j):
+        knots = scales.speed_knots[j] if scales.speed_knots else np.asarray(SPEED_KNOTS)
+        moving = knots[knots > 0]
+        pick = moving[np.round(np.linspace(0, len(moving) - 1, n_knots + 1)[1:]).astype(int)]
+        out.append(np.unique(np.concatenate([[0.0], pick])))
+    return out
+
+
+def line_design(
+    table: BlockTable, scales: Scales, base: Baseline
+) -> tuple[SharedDesign | None, list[tuple[int, int, str, float]]]:
+    """The per-line interaction's columns: joint j's share of each bin's power times hats
+    of joint k's speed fraction (its lines louder or quieter with k's speed), and for
+    joints that move both ways the same times k's direction (louder one way of k) and times
+    the product of both directions (louder moving the same way, quieter opposite). Column
+    labels: (j, k, variant "speed" | "dir_k" | "same_dir", knot)."""
+    share = joint_shares(table, base)
+    n_j = len(table.joint_names)
+    if share is None or n_j < 2:
+        return None, []
+    speed = np.abs(table.velocity) / table.vmax
+    sign = direction(table)
+    both = scales.bidirectional if scales.bidirectional is not None else np.ones(n_j, bool)
+    knots = line_knots(table, scales)
+    cols, owner, labels = [], [], []
+    for j in range(n_j):
+        for k in range(n_j):
+            if k == j:
+                continue
+            h = hat_matrix(speed[:, k], knots[k])[:, 1:]
+            variants = [("speed", 1.0)]
+            if both[k]:
+                variants.append(("dir_k", sign[:, k]))
+                if both[j]:
+                    variants.append(("same_dir", sign[:, k] * sign[:, j]))
+            for variant, factor in variants:
+                for m in range(h.shape[1]):
+                    cols.append(h[:, m] * factor)
+                    owner.append(j)
+                    labels.append((j, k, variant, float(knots[k][m + 1])))
+    return SharedDesign(share, np.stack(cols, axis=1), np.array(owner)), labels
+
+
+def line_stage(
+    table: BlockTable,
+    train: np.ndarray,
+    base: Baseline,
+    scales: Scales,
+    *,
+    mask: np.ndarray | None = None,
+) -> tuple[Baseline, dict | None]:
+    """The baseline times the fitted per-line interaction (`line_design`; its columns times
+    `mask` if given), and its summary and shapes; the baseline unchanged (None) when there
+    is none to fit."""
+    design, labels = line_design(table, scales, base)
+    if design is None:
+        return base, None
+    if mask is not None:
+        design.w = design.w * np.asarray(mask, float)[:, None]
+    ratio = table.magnitude**2 / np.maximum(base.power, 1e-300)
+    a, gamma, ridge = fit_shared_power_term(design, ratio, train)
+    gain = np.exp(a[None, :] + np.clip(design.predict(gamma), -MAX_LOG_GAIN, MAX_LOG_GAIN))
+    magnitude = base.magnitude * gain
+    magnitude = magnitude * relevel(table.magnitude, magnitude, train)
+    power = base.power * gain**2
+    power = power * relevel(table.magnitude**2, power, train)
+    info = dict(base.info)
+    info["n_parameters"] = int(info.get("n_parameters", 0) + len(a) + len(gamma))
+    out = Baseline(
+        magnitude=magnitude,
+        power=power,
+        rest_power=base.rest_power,
+        cell_power=base.cell_power,
+        info=info,
+    )
+    return out, _line_summary(table, labels, gamma, ridge)
+
+
+def _line_summary(table: BlockTable, labels, gamma: np.ndarray, ridge: dict) -> dict:
+    """Per ordered pair (lines of j, speed of k): the gain on j's lines along k's speed
+    fraction (dB), and the signed differences (k one way minus the other; same minus
+    opposite direction of travel); the summary gives each curve's largest value (signed)
+    along k's speed."""
+    grid = np.linspace(0.0, 1.0, 11)
+    names = table.joint_names
+    summary: dict = {"ridge": {k: round(v, 5) for k, v in ridge.items()}, "pairs": {}}
+    shape: dict = {}
+    pairs = sorted({(j, k) for j, k, _, _ in labels})
+    for j, k in pairs:
+        curves = {}
+        for variant in ("speed", "dir_k", "same_dir"):
+            idx = [i for i, lab in enumerate(labels) if lab[:3] == (j, k, variant)]
+            if not idx:
+                continue
+            knots = np.concatenate([[0.0], [labels[i][3] for i in idx]])
+            curves[variant] = hat_matrix(grid, knots)[:, 1:] @ gamma[idx] * DB_PER_NEPER
+        key = f"{names[j]} lines x {names[k]} speed"
+
+        def peak(curve: np.ndarray, factor: float = 1.0) -> float:
+            return round(float(factor * curve[int(np.argmax(np.abs(curve)))]), 3)
+
+        entry = {"gain_db": peak(curves["speed"])}
+        shape_entry = {
+            "x": [round(float(v), 3) for v in grid],
+            "unit": f"|{names[k]} speed| / top speed",
+            "gain_db": [round(float(v), 3) for v in curves["speed"]],
+            "lines_of": names[j],
+            "speed_of": names[k],
+        }
+        if "dir_k" in curves:
+            entry["one_way_minus_other_db"] = peak(curves["dir_k"], 2.0)
+            shape_entry["one_way_minus_other_db"] = [
+                round(float(2 * v), 3) for v in curves["dir_k"]
+            ]
+        if "same_dir" in curves:
+            entry["same_minus_opposite_direction_db"] = peak(curves["same_dir"], 2.0)
+            shape_entry["same_minus_opposite_direction_db"] = [
+                round(float(2 * v), 3) for v in curves["same_dir"]
+            ]
+        summary["pairs"][key] = entry
+        shape[f"coupling-lines:{names[j]}x{names[k]}"] = shape_entry
+    return {"summary": summary, "shape": shape}
 
 
 def apply_effect_term(

@@ -124,6 +124,9 @@ class BlockTable:
     speed_rate: np.ndarray | None = field(repr=False, default=None)
     #: counts of bad input treated as missing (framer stats, joint states dropped)
     bad_input: dict = field(repr=False, default_factory=dict)
+    #: (B,) on a table joining two recordings (`join_tables`): 0 = the reference's blocks,
+    #: 1 = the recording diagnosed; None on one recording's table
+    recording: np.ndarray | None = field(repr=False, default=None)
 
 
 #: The baseline's velocity cells: the model's grid with each interval split in this many
@@ -889,3 +892,45 @@ def table_from_blocks(
     table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
     table.bad_input = bad_input
     return table
+
+
+#: Seconds between the two recordings on the time axis of a joined table.
+JOIN_GAP_S = 10.0
+
+
+def join_tables(reference: BlockTable, real: BlockTable) -> BlockTable:
+    """One table of two recordings of the same robot, each at the joint-state lag it was
+    re-matched at: the reference's blocks, then the recording's, its times shifted to start
+    JOIN_GAP_S after the reference's end; `recording` says whose each block is. The joint
+    series is not joined (the tables are at their lags already: no `at_lag`)."""
+    if tuple(reference.joint_names) != tuple(real.joint_names) or len(reference.freqs_hz) != len(
+        real.freqs_hz
+    ):
+        raise ValueError("join_tables: the recordings' tables differ in joints or bins")
+    offset = float(reference.t_last_s[-1]) + JOIN_GAP_S - float(real.t_first_s[0])
+
+    def cat(name: str):
+        a, b = getattr(reference, name), getattr(real, name)
+        return None if a is None or b is None else np.concatenate([a, b], axis=0)
+
+    return replace(
+        reference,
+        t_first_s=np.concatenate([reference.t_first_s, real.t_first_s + offset]),
+        t_last_s=np.concatenate([reference.t_last_s, real.t_last_s + offset]),
+        magnitude=cat("magnitude"),
+        velocity=cat("velocity"),
+        position=cat("position"),
+        acceleration=cat("acceleration"),
+        base_mean=cat("base_mean"),
+        base_std=cat("base_std"),
+        contact=cat("contact"),
+        hats=cat("hats"),
+        reversal_after_s=cat("reversal_after_s"),
+        reversal_before_s=cat("reversal_before_s"),
+        speed_rate=cat("speed_rate"),
+        joints=None,
+        recording=np.concatenate(
+            [np.zeros(reference.n_blocks, np.int8), np.ones(real.n_blocks, np.int8)]
+        ),
+        bad_input={},
+    )

@@ -9,8 +9,14 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
+
+from egovib_ros.bag import concat_recordings, iter_recording
 from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError, GapDataError
+from egovib_ros.gap.advice import effect_actions, measure_advice, merged_settings
+from egovib_ros.gap.change import ChangeDiagnosis, diagnose_change
 from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
 from egovib_ros.gap.effects import LAG_COARSE_S, LAG_RANGE_S
 from egovib_ros.gap.features import (
@@ -19,9 +25,10 @@ from egovib_ros.gap.features import (
     THIN_RUN_BLOCKS,
     BlockTable,
     build_table,
+    joint_order,
     table_from_bag,
 )
-from egovib_ros.gap.report import build_report, make_figures, render_markdown
+from egovib_ros.gap.report import build_report, change_report, make_figures, render_markdown
 from egovib_ros.gap.simref import model_matches_simulator, simulator_reference_lag
 from egovib_ros.gap.writeback import write_back as do_write_back
 from egovib_ros.outputs import atomic_output, check_replaceable
@@ -41,6 +48,16 @@ def diagnose_table(
     """Diagnosis of a block table (`build_table` / `table_from_bag`)."""
     try:
         return diagnose(table, options)
+    except GapDataError as exc:
+        raise GapDataError(f"{source}: {exc}") from None
+
+
+def diagnose_change_of(
+    reference: BlockTable, diag: Diagnosis, *, source: str, options: DiagnosisOptions
+) -> ChangeDiagnosis:
+    """gap.change.diagnose_change, its data errors naming the reference bag."""
+    try:
+        return diagnose_change(reference, diag, options)
     except GapDataError as exc:
         raise GapDataError(f"{source}: {exc}") from None
 
@@ -77,6 +94,44 @@ def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path
     return simulator_reference_lag(model, params=SimParams.load(sim_params))
 
 
+def read_first_part(path: str | Path, model, max_s: float | None):
+    """The bag's first `max_s` seconds (all of it: None) as one Recording, streams sorted
+    by stamp (the advice is applied to them with the user's model)."""
+    pieces, t0 = [], None
+    for piece in iter_recording(
+        path, profile=model.profile, ground_truth=False, denoised=False, commands=False
+    ):
+        if len(piece.sensor_stamps_ns):
+            t0 = int(piece.sensor_stamps_ns.min()) if t0 is None else t0
+        pieces.append(piece)
+        if (
+            max_s is not None
+            and t0 is not None
+            and piece.sensor_stamps_ns.size
+            and piece.sensor_stamps_ns.max() > t0 + max_s * NS_PER_S
+        ):
+            break
+    rec = concat_recordings(pieces)
+    s, j = (
+        np.argsort(rec.sensor_stamps_ns, kind="stable"),
+        np.argsort(rec.joint_stamps_ns, kind="stable"),
+    )
+    rec.sensor_stamps_ns, rec.sensor = rec.sensor_stamps_ns[s], rec.sensor[s]
+    rec.joint_stamps_ns = rec.joint_stamps_ns[j]
+    rec.joint_position, rec.joint_velocity = rec.joint_position[j], rec.joint_velocity[j]
+    if max_s is not None:
+        keep = rec.sensor_stamps_ns <= rec.sensor_stamps_ns[0] + max_s * NS_PER_S
+        rec.sensor_stamps_ns, rec.sensor = rec.sensor_stamps_ns[keep], rec.sensor[keep]
+    return rec
+
+
+def applied_advice(rec, model, diag: Diagnosis, *, source: str) -> dict:
+    """The advice's flags applied together with the user's model on held-out data
+    (advice.measure_advice), or why nothing was applied."""
+    settings = merged_settings(effect_actions(diag))
+    return measure_advice(rec, model, diag, settings, joint_order(model, rec.joint_names, source))
+
+
 def run_gap(
     model_path: str | Path,
     real_path: str | Path,
@@ -89,6 +144,8 @@ def run_gap(
     budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     progress=None,
     options: DiagnosisOptions | None = None,
+    measure: bool = True,
+    reference_path: str | Path | None = None,
 ) -> dict:
     """Diagnose `real_path` against the model file; write report.json, report.md and
     figures into out_dir.
@@ -97,13 +154,18 @@ def run_gap(
     effect is written into a copy of the sim config `sim_params` (default
     config/sim.yaml) as out_dir/sim_updated.yaml, and checked on the held-out data.
     `options`: how the diagnosis runs; its reference lag is replaced by `reference_lag`
-    (or, when None, the lag measured on the simulator: `reference_lag_for`).
+    (the diagnosis's internal convention: seconds the joint states are stamped late; when
+    None, the lag measured on the simulator: `reference_lag_for`). `measure`: apply the
+    advised flags with the model on the bag's held-out part (`applied_advice`; the bag's
+    first budget minutes are read again for it). `reference_path`: a recording of the same
+    robot to compare with: report.json's `change` lists what differs (gap.change).
     """
 
     start = time.perf_counter()
     model = NoiseModel.load(model_path)
-    if not Path(real_path).exists():
-        raise BagError(f"{real_path}: no such bag")
+    for path in (real_path, reference_path):
+        if path is not None and not Path(path).exists():
+            raise BagError(f"{path}: no such bag")
     check_replaceable(out_dir, directory=True)  # refused now, not after the diagnosis
     lag = reference_lag_for(model, reference_lag, sim_params)
     options = dataclasses.replace(options or DiagnosisOptions(), reference_lag_s=lag)
@@ -121,6 +183,27 @@ def run_gap(
     )
     notices = input_notices(table, budget_minutes)
     diag = diagnose_table(table, source=str(real_path), options=options)
+    change = None
+    if reference_path is not None:
+        reference = table_from_bag(
+            reference_path,
+            model,
+            budget_minutes=budget_minutes,
+            max_lag_s=max(
+                JOINT_MARGIN_S,
+                abs(lag) + max(LAG_RANGE_S, options.lag_tolerance_s) + LAG_COARSE_S,
+            ),
+        )
+        notices += [
+            f"reference {reference_path}: {n}" for n in input_notices(reference, budget_minutes)
+        ]
+        change = diagnose_change_of(reference, diag, source=str(reference_path), options=options)
+    measured = None
+    if measure and any(e["effect"] in ("timing", "drift") for e in diag.effects):
+        rec = read_first_part(
+            real_path, model, None if budget_minutes is None else 60.0 * budget_minutes
+        )
+        measured = applied_advice(rec, model, diag, source=str(real_path))
     with atomic_output(out_dir, directory=True) as tmp:
         tmp.mkdir(parents=True)
         wb = None
@@ -133,9 +216,14 @@ def run_gap(
             figures={},
             runtime_s=0.0,
             write_back=wb,
+            measured=measured,
+            report_path=str(Path(out_dir) / "report.json"),
         )
         if figures:
             report["figures"] = make_figures(diag, report, tmp)
+        if change is not None:
+            report.update(change_report(change, reference=str(reference_path)))
+            report["inputs"]["reference"] = str(reference_path)
         report["inputs"]["bad_input"] = {
             k: (round(v, 6) if isinstance(v, float) else int(v))
             for k, v in table.bad_input.items()

@@ -116,3 +116,108 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
         work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
         coef, ridge = fit_term(x, work, train, cache)
     return coef / 2.0, ridge
+
+
+class SharedDesign:
+    """Columns z_s(b, f) = share[owner_s, b, f] * w[b, s] that differ from bin to bin, with
+    coefficients shared by every bin: a joint's share of each bin's power (where its lines
+    are) times a function of another joint's speed, so a gain acts on that joint's lines
+    wherever they are. Never held as (B, F, S): built one bin at a time."""
+
+    def __init__(self, share: np.ndarray, w: np.ndarray, owner: np.ndarray):
+        self.share = share  # (J, B, F)
+        self.w = w  # (B, S)
+        self.owner = np.asarray(owner, dtype=np.intp)  # (S,)
+
+    @property
+    def n_columns(self) -> int:
+        return self.w.shape[1]
+
+    def bin_columns(self, f: int, rows=slice(None)) -> np.ndarray:
+        """z(b, f, :) for the rows, (n, S)."""
+        return self.share[:, rows, f][self.owner].T * self.w[rows]
+
+    def predict(self, gamma: np.ndarray) -> np.ndarray:
+        """sum_s gamma_s z_s(b, f), (B, F)."""
+        out = np.zeros(self.share.shape[1:])
+        for j in np.unique(self.owner):
+            cols = self.owner == j
+            out += self.share[j] * (self.w[:, cols] @ gamma[cols])[:, None]
+        return out
+
+
+def _shared_gram(design: SharedDesign, train: np.ndarray) -> dict:
+    """Per-bin column means on the training rows and the centred Gram matrix summed over
+    bins, decomposed once (the GLM's iterations reuse it)."""
+    rows = np.flatnonzero(train)
+    n_bins = design.share.shape[2]
+    s = design.n_columns
+    mu = np.zeros((n_bins, s))
+    gram = np.zeros((s, s))
+    for f in range(n_bins):
+        zf = design.bin_columns(f, rows)
+        mu[f] = zf.mean(axis=0)
+        zc = zf - mu[f]
+        gram += zc.T @ zc
+    evals, v = np.linalg.eigh(gram)
+    order = np.argsort(evals)[::-1]
+    sv = np.sqrt(np.maximum(evals[order], 0.0))
+    keep = sv > (sv[0] * 1e-6 if len(sv) and sv[0] > 0 else np.inf)
+    return {"rows": rows, "mu": mu, "dec": (sv[keep], v[:, order][:, keep])}
+
+
+def fit_shared_term(
+    design: SharedDesign, y: np.ndarray, train: np.ndarray, cache: dict | None = None
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per-bin intercepts a(f) (F,) and coefficients gamma (S,) shared by every bin of
+    y(b, f) ~ a(f) + sum_s gamma_s z_s(b, f) (`SharedDesign`), GCV ridge on the training
+    rows (the effective rows counted as EFFECTIVE_ROW_SHARE of the *blocks*: the bins of
+    one block are not independent observations of a shared coefficient)."""
+    cache = {} if cache is None else cache
+    if "dec" not in cache:
+        cache.update(_shared_gram(design, train))
+    rows, mu, (sv, v) = cache["rows"], cache["mu"], cache["dec"]
+    yt = y[rows]
+    y_mean = yt.mean(axis=0)
+    gamma = np.zeros(design.n_columns)
+    info: dict = {}
+    if len(sv):
+        zy = np.zeros(design.n_columns)
+        yy = 0.0
+        for f in range(y.shape[1]):
+            yc = yt[:, f] - y_mean[f]
+            zy += (design.bin_columns(f, rows) - mu[f]).T @ yc
+            yy += float(yc @ yc)
+        uy = (v.T @ zy) / sv
+        n_rows = len(rows) * y.shape[1]
+        n_eff = EFFECTIVE_ROW_SHARE * len(rows)
+        best, best_lam = np.inf, RIDGE_GRID[-1] * n_rows
+        for lam in RIDGE_GRID * n_rows:
+            d = sv**2 / (sv**2 + lam)
+            dof = float(d.sum())
+            if dof >= n_eff:
+                continue
+            score = (yy - float(np.sum((2 * d - d * d) * uy**2))) / (1.0 - dof / n_eff) ** 2
+            if score < best:
+                best, best_lam = score, lam
+        gamma = v @ (sv / (sv**2 + best_lam) * uy)
+        info = {"ridge_shared": float(best_lam / n_rows)}
+    return y_mean - mu @ gamma, gamma, info
+
+
+def fit_shared_power_term(
+    design: SharedDesign, ratio: np.ndarray, train: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """`fit_power_term` for a `SharedDesign`: a log-link Gamma GLM of the power ratio by
+    IRLS; returns (intercept (F,), gamma (S,), ridge) on the magnitude scale (half the
+    power exponent)."""
+    log_ratio = np.log(np.maximum(ratio, 1e-300))
+    cache: dict = {}
+    a, gamma, ridge = fit_shared_term(design, log_ratio, train, cache)
+    a = a + EULER_GAMMA
+    for _ in range(GLM_ITERATIONS):
+        eta = a[None, :] + np.clip(design.predict(gamma), -2 * MAX_LOG_GAIN, 2 * MAX_LOG_GAIN)
+        mu = np.exp(eta)
+        work = eta + np.clip((ratio - mu) / mu, -1.0, WORKING_CLIP)
+        a, gamma, ridge = fit_shared_term(design, work, train, cache)
+    return a / 2.0, gamma / 2.0, ridge

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_ros.gap import metric
-from egovib_ros.gap.advice import advise, first_lines
+from egovib_ros.gap.advice import LAG_CONVENTION, advise, effect_action, first_lines, joint_lag_of
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
 from egovib_ros.gap.effects import angle_joints, drift_reach
 from egovib_ros.viz import pyplot
@@ -98,13 +98,13 @@ def covariate_breakdown(diag: Diagnosis) -> dict:
     if diag.lag_scan:
         scan = diag.lag_scan
         out["stream_lag"] = {
-            "unit": "s",
-            "fitted_lag_s": round(float(scan["timing_lag_s"]), 5),
-            "in_sync_lag_s": round(float(scan["sync_lag_s"]), 5),
-            "lag_s": [round(float(x), 4) for x in scan["lag_s"]],
-            "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]],
+            "unit": "s (joint lag: " + LAG_CONVENTION + ")",
+            "fitted_joint_lag_s": round(joint_lag_of(scan["timing_lag_s"]), 5),
+            "in_sync_joint_lag_s": round(joint_lag_of(scan["sync_lag_s"]), 5),
+            "joint_lag_s": [round(joint_lag_of(x), 4) for x in scan["lag_s"]][::-1],
+            "train_log_residual": [round(float(x), 6) for x in scan["train_log_residual"]][::-1],
             "note": "residual of the velocity-only baseline with joint states "
-            "re-matched at each lag",
+            "re-matched at each joint lag",
         }
     return out
 
@@ -188,6 +188,92 @@ def where_breakdown(diag: Diagnosis) -> dict:
     }
 
 
+def public_parameters(params: dict) -> dict:
+    """A term's parameters for the report: the diagnosis's internal lags (joint states
+    stamped that late) in the joint-lag convention (LAG_CONVENTION); `joint_lag_s` is the
+    correction to set (the recording's joint lag minus the reference's)."""
+    out = _clean_params(params)
+    if "lag_s" in out:
+        lag = float(out.pop("lag_s"))
+        reference = float(out.pop("reference_lag_s", 0.0))
+        sync = out.pop("sync_lag_s", None)
+        out.pop("lag_vs_simulator_s", None)
+        out = {
+            "joint_lag_s": round(joint_lag_of(lag - reference), 5),
+            "fitted_joint_lag_s": round(joint_lag_of(lag), 5),
+            "reference_joint_lag_s": round(joint_lag_of(reference), 5),
+            **({"in_sync_joint_lag_s": round(joint_lag_of(sync), 5)} if sync is not None else {}),
+            **out,
+        }
+    return out
+
+
+def public_shape(shape: dict) -> dict:
+    """A term's fitted shapes for the report, the lag scan in the joint-lag convention."""
+    out = dict(shape)
+    scan = out.get("timing:lag_scan")
+    if scan is not None:
+        lo, hi = scan["in_sync_band_s"]
+        out["timing:lag_scan"] = {
+            "x": [round(joint_lag_of(v), 4) for v in scan["x"]][::-1],
+            "unit": "s (joint lag)",
+            "train_log_residual": list(scan["train_log_residual"])[::-1],
+            "in_sync_band_s": [round(joint_lag_of(hi), 4), round(joint_lag_of(lo), 4)],
+            "fitted_joint_lag_s": round(joint_lag_of(scan["fitted_lag_s"]), 5),
+        }
+    return out
+
+
+def effects_list(diag: Diagnosis) -> list[dict]:
+    """verdict.effects: the effects found in order, each with its held-out reduction given
+    the ones before, p-value, confidence, parameters and advice (CONTRACT section 6)."""
+    out = []
+    for entry, model in zip(diag.effects, diag.effect_models):
+        text, settings = effect_action(entry["effect"], model)
+        out.append(
+            {
+                "effect": entry["effect"],
+                "reduction": entry["reduction"],
+                "p_value": _r(entry["p_value"], 6),
+                "confidence": entry["confidence"],
+                "parameters": public_parameters(model.parameters),
+                "advice": text,
+                "settings": settings,
+                "step": entry["step"],
+                "heldout_gap_before": entry["heldout_gap_before"],
+                "heldout_gap": entry["heldout_gap"],
+                "deviance_reduction": entry["deviance_reduction"],
+                "shape_summary": describe_shape(public_shape(model.shape or {})),
+                **({"decided_by": entry["decided_by"]} if "decided_by" in entry else {}),
+            }
+        )
+    return out
+
+
+def selection_steps(diag: Diagnosis) -> list[dict]:
+    """Every forward-selection step: the effects it was given, what each remaining candidate
+    added on top of them (held out) and the effect it took (none: the selection stopped)."""
+    return [
+        {
+            "step": st["step"],
+            "given": st["prefix"],
+            "effect": st["effect"],
+            "confidence": st["confidence"],
+            "candidates": [
+                {
+                    "effect": c["effect"],
+                    "heldout_gap": c["heldout_gap"],
+                    "reduction": c["reduction"],
+                    "p_value": _r(c["p_value"], 6),
+                    "deviance_reduction": c["deviance_reduction"],
+                }
+                for c in st["candidates"]
+            ],
+        }
+        for st in diag.steps
+    ]
+
+
 def build_report(
     diag: Diagnosis,
     *,
@@ -196,21 +282,32 @@ def build_report(
     figures: dict[str, str],
     runtime_s: float,
     write_back: dict | None = None,
+    measured: dict | None = None,
+    report_path: str | None = None,
 ) -> dict:
-    """The report.json dictionary (INTERFACES.md section 6 keys, plus documented extras)."""
+    """The report.json dictionary (INTERFACES.md section 6 keys, plus documented extras).
+    `measured`: the advice applied with the user's model (advice.measure_advice);
+    `report_path`: where report.json will be (the advice's commands name it)."""
     t = diag.table
     vm = diag.verdict_model
     added = {
         "effect": diag.verdict,
-        "parameters": _clean_params(vm.parameters) if diag.verdict != "none" else {},
+        "parameters": public_parameters(vm.parameters) if diag.verdict != "none" else {},
     }
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
+    combined = diag.gaps.get(
+        "combined", diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]
+    )
+    paths = {"model": str(model_path), "bag": str(real_path)}
+    if report_path:
+        paths["report"] = str(report_path)
 
     return {
         "schema": SCHEMA,
-        "advice": advise(diag),
+        "advice": advise(diag, paths=paths, measured=measured),
+        "conventions": {"joint_lag": LAG_CONVENTION},
         "metric": {
             "name": METRIC_NAME,
             "unit": "dB",
@@ -222,9 +319,7 @@ def build_report(
         "gap": {
             "sim_as_is": _r(diag.gaps["sim_as_is"]),
             "after_refit": _r(diag.gaps["refit"]),
-            "after_effect": _r(
-                diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]
-            ),
+            "after_effect": _r(combined),
             "floor": _r(diag.floor),
         },
         "where": {k: where[k] for k in ("frequency_hz", "velocity_cells", "covariates")},
@@ -238,24 +333,19 @@ def build_report(
                 "deviance_reduction": c["deviance_reduction"],
                 "block_mse_reduction_db2": c["block_mse_reduction_db2"],
                 **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
-                "parameters": _clean_params(diag.models[c["effect"]].parameters),
-                "shape": diag.models[c["effect"]].shape or {},
-                "shape_summary": describe_shape(diag.models[c["effect"]].shape or {}),
+                "parameters": public_parameters(diag.models[c["effect"]].parameters),
+                "shape": public_shape(diag.models[c["effect"]].shape or {}),
+                "shape_summary": describe_shape(public_shape(diag.models[c["effect"]].shape or {})),
             }
             for c in diag.candidates
         ],
         "verdict": {
             "effect": diag.verdict,
             "confidence": diag.confidence,
-            "rule": "largest held-out reduction of the Gamma deviance of the expected power "
-            "among the candidates with p < 0.01/number of candidates (paired sign-flip "
-            "permutation test over 0.5 s held-out segments, vs the velocity-only baseline; "
-            "drift: the better of two looks, Bonferroni x2), a reduction of at least 0.004 "
-            "per block and bin, and a smaller held-out gap than the baseline's; "
-            "confidence = block-bootstrap share of resamples in which the "
-            "verdict's effect stays best (for none: in which no candidate reaches the minimum "
-            "reduction)",
+            "effects": effects_list(diag),
+            "rule": VERDICT_RULE,
         },
+        "selection": selection_steps(diag),
         "added_effect": added,
         "ranked_regions": where["ranked_regions"],
         "residual_noise_db": {k: _r(v, 3) for k, v in diag.residual_noise.items()},
@@ -263,8 +353,8 @@ def build_report(
         "baseline": {
             "definition": BASELINE_DEFINITION,
             **diag.models["refit"].parameters,
-            "in_sync_lag_s": _r(diag.sync_lag_s, 5),
-            "reference_lag_s": _r(diag.reference_lag_s, 5),
+            "in_sync_joint_lag_s": _r(joint_lag_of(diag.sync_lag_s), 5),
+            "reference_joint_lag_s": _r(joint_lag_of(diag.reference_lag_s), 5),
         },
         "transients": {
             k: (_r(v, 6) if isinstance(v, float) else v) for k, v in diag.transients.items()
@@ -280,6 +370,108 @@ def build_report(
         "figures": figures,
         "runtime_s": _r(runtime_s, 2),
     }
+
+
+def change_advice(effect: str, params: dict, summary: str) -> str:
+    """One sentence on what a change since the reference means and what to do."""
+    if effect == "timing":
+        shift = params["joint_lag_shift_s"]
+        return (
+            f"the joint lag moved by {1000 * shift:+.0f} ms since the reference (the vibration "
+            f"now trails the joint states by {1000 * params['real_joint_lag_s']:+.0f} ms, was "
+            f"{1000 * params['reference_joint_lag_s']:+.0f} ms): add {shift:+g} s to the joint "
+            "lag set for the reference (`egovib denoise --joint-lag`, the denoiser node's "
+            "`joint_lag:=`)"
+        )
+    if effect == "drift":
+        level = params["level_change_db"]
+        return (
+            f"the vibration is {abs(level):.1f} dB {'louder' if level > 0 else 'quieter'} than "
+            "in the reference at the same joint velocities (warm vs cold, wear, maintenance): "
+            "recalibrate in these conditions (`egovib calibrate`)"
+        )
+    what = {
+        "coupling": "a new or changed interaction between joints",
+        "position": "a new or changed dependence on joint position",
+        "acceleration": "a new or changed dependence on joint acceleration",
+    }[effect]
+    return (
+        f"{what} since the reference ({summary or 'bin by bin'}): look at the mechanism, and "
+        "recalibrate as the advice for that effect says"
+    )
+
+
+def change_report(change, *, reference: str) -> dict:
+    """report.json's `change` (CONTRACT section 6: the same list as verdict.effects, for
+    what differs between the reference recording and the recording diagnosed) and
+    `change_info` (the lags, gaps and steps it rests on)."""
+    entries = []
+    for entry, model in zip(change.effects, change.models):
+        params = dict(entry["parameters"])
+        summary = ""
+        if model is not None:
+            params = {**params, "term": public_parameters(model.parameters)}
+            summary = describe_shape(public_shape(model.shape or {}))
+            if summary:
+                params["shape_summary"] = summary
+        entries.append(
+            {
+                "effect": entry["effect"],
+                "reduction": entry["reduction"],
+                "p_value": _r(entry["p_value"], 6),
+                "confidence": entry["confidence"],
+                "parameters": params,
+                "advice": change_advice(entry["effect"], params, summary),
+                "heldout_gap_before": entry["heldout_gap_before"],
+                "heldout_gap": entry["heldout_gap"],
+                "deviance_reduction": entry["deviance_reduction"],
+                "step": entry["step"],
+            }
+        )
+    return {
+        "change": entries,
+        "change_info": {
+            "reference": reference,
+            "joint_lag_s": {
+                "reference": _r(joint_lag_of(change.lags["reference"]), 5),
+                "real": _r(joint_lag_of(change.lags["real"]), 5),
+            },
+            "gap": change.gaps,
+            "blocks": change.blocks,
+            "selection": [
+                {
+                    **{k: st[k] for k in ("step", "given", "effect", "confidence")},
+                    "candidates": [{**c, "p_value": _r(c["p_value"], 6)} for c in st["candidates"]],
+                }
+                for st in change.steps
+            ],
+            "definition": CHANGE_DEFINITION,
+        },
+    }
+
+
+CHANGE_DEFINITION = (
+    "the two recordings' blocks in one table, a velocity-only baseline fitted on both; each "
+    "change is a term on the diagnosed recording's blocks only (timing: its joint states at "
+    "its own lag instead of the reference's; drift: a level per bin; position, coupling, "
+    "acceleration: the effect's term again, on top of the same term on both), tested on "
+    "held-out blocks of both (5 contiguous folds within each recording) by forward selection "
+    "with the rule of verdict.effects"
+)
+
+
+VERDICT_RULE = (
+    "forward selection on held-out data: at each step every remaining candidate is fitted on "
+    "top of the effects found so far (the velocity-only baseline at the first step) and tested "
+    "against them; the one with the largest held-out reduction of the Gamma deviance of the "
+    "expected power is taken among those with p < 0.01/number of candidates of the step "
+    "(paired sign-flip permutation test over 0.5 s held-out segments; drift: the better of "
+    "two looks, Bonferroni x2), a reduction of at least 0.004 per block and bin, and a "
+    "smaller held-out gap; the selection stops when none qualifies. verdict.effect = the "
+    "first effect taken (none: none qualified at the first step); confidence = "
+    "block-bootstrap share of resamples in which that effect stays best among its step's "
+    "candidates (for none: in which no candidate reaches the minimum reduction)"
+)
 
 
 BASELINE_DEFINITION = (
@@ -340,10 +532,34 @@ def describe_shape(shape: dict) -> str:
             )
         elif name.startswith("timing:"):
             parts.append(
-                f"best lag {1000 * c.get('fitted_lag_s', 0.0):+.1f} ms (in sync: "
+                f"best joint lag {1000 * c.get('fitted_joint_lag_s', 0.0):+.1f} ms (in sync: "
                 f"{1000 * c['in_sync_band_s'][0]:+.0f}..{1000 * c['in_sync_band_s'][1]:+.0f} ms)"
             )
+        elif name.startswith("coupling-lines:"):
+            signed = [
+                np.asarray(c[k], float)
+                for k in c
+                if k.endswith("_minus_opposite_direction_db") or k == "one_way_minus_other_db"
+            ]
+            if max([float(np.max(np.abs(a))) for a in [g, *signed] if a.size] or [0.0]) >= 0.05:
+                parts.append(
+                    f"{c['lines_of']} lines up to {_signed_peak(g):+.1f} dB with {c['speed_of']}'s "
+                    "speed"
+                    + "".join(
+                        f", {label} {_signed_peak(np.asarray(c[key], float)):+.1f} dB"
+                        for key, label in (
+                            ("one_way_minus_other_db", "one way vs the other"),
+                            ("same_minus_opposite_direction_db", "same vs opposite direction"),
+                        )
+                        if key in c and abs(c[key][-1]) >= 0.05
+                    )
+                )
     return "; ".join(parts)
+
+
+def _signed_peak(values: np.ndarray) -> float:
+    """The value of largest magnitude (its sign kept)."""
+    return float(values[int(np.argmax(np.abs(values)))]) if values.size else 0.0
 
 
 def _clean_params(params: dict) -> dict:
@@ -389,6 +605,8 @@ def render_markdown(report: dict) -> str:
     if "advice" in report:
         lines += first_lines(report["advice"]) + [""]
     lines += [_where_line(report), _which_line(report), _how_far_line(report), ""]
+    if "change" in report:
+        lines += _change_lines(report) + [""]
     lines.append(" ".join(f"![{name}]({path})" for name, path in report["figures"].items()))
     lines += _metric_lines(report) + _candidate_lines(report) + _effect_and_region_lines(report)
     lines.append("")
@@ -417,16 +635,48 @@ def _where_line(report: dict) -> str:
     )
 
 
+def _change_lines(report: dict) -> list[str]:
+    """What changed since the reference recording (--reference)."""
+    info = report["change_info"]
+    lags = info["joint_lag_s"]
+    head = (
+        f"**What changed since `{info['reference']}`:** "
+        f"(joint lag {1000 * lags['reference']:+.0f} ms there, {1000 * lags['real']:+.0f} ms "
+        f"here; held-out gap of what both share {info['gap']['baseline']:.2f} dB, "
+        f"{info['gap']['after_changes']:.2f} dB with the changes below)"
+    )
+    if not report["change"]:
+        return [head + " nothing significant."]
+    return [head] + [
+        f"{k}. `{c['effect']}` ({c['reduction']:.3f} dB, p = {c['p_value']:.2g}, confidence "
+        f"{c['confidence']:.2f}): {c['advice']}."
+        for k, c in enumerate(report["change"], 1)
+    ]
+
+
 def _which_line(report: dict) -> str:
     v = report["verdict"]
     cands = report["candidates"]
+    found = v.get("effects") or []
+    if len(found) > 1:
+        return (
+            f"**Which:** {len(found)} unmodelled effects, in the order the forward selection "
+            "took them (each one's held-out reduction given the ones before): "
+            + "; ".join(
+                f"**`{e['effect']}`** {e['reduction']:.3f} dB (p = {e['p_value']:.2g}, "
+                f"confidence {e['confidence']:.2f}; fitted shape: "
+                f"{e.get('shape_summary') or 'n/a'})"
+                for e in found
+            )
+            + "."
+        )
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
         return (
             f"**Which:** the unmodelled effect is **`{v['effect']}`** "
             f"(held-out reduction {c['reduction']:.3f} dB "
             f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, "
-            f"confidence {v['confidence']:.2f}). "
+            f"confidence {v['confidence']:.2f}; no other effect is significant on top of it). "
             f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
         )
     best = cands[0] if cands else None
@@ -447,7 +697,12 @@ def _how_far_line(report: dict) -> str:
         f"**How far:** held-out gap {g['sim_as_is']:.2f} dB (sim as-is) -> "
         f"{g['after_refit']:.2f} dB "
         "(velocity-only baseline fitted on this recording) -> "
-        f"**{g['after_effect']:.2f} dB** (refit + {report['verdict']['effect']}), "
+        f"**{g['after_effect']:.2f} dB** (refit + "
+        + (
+            " + ".join(e["effect"] for e in report["verdict"].get("effects") or [])
+            or report["verdict"]["effect"]
+        )
+        + "), "
         f"floor {g['floor']:.2f} dB. "
         f"Residual no-contact noise after denoising held-out data: "
         + ", ".join(
@@ -533,7 +788,7 @@ def _effect_and_region_lines(report: dict) -> list[str]:
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":
             lines.append(
-                f"- stream lag: fitted {cov['fitted_lag_s'] * 1000:.1f} ms "
+                f"- stream lag: fitted joint lag {cov['fitted_joint_lag_s'] * 1000:+.1f} ms "
                 "(training residual scan in report.json)"
             )
         else:
@@ -624,9 +879,9 @@ def covariate_figure(report: dict, path: Path) -> str:
     for ax, name in zip(np.atleast_1d(axes), names):
         c = covs[name]
         if name == "stream_lag":
-            ax.plot(np.array(c["lag_s"]) * 1000, c["train_log_residual"], "k.-")
-            ax.axvline(c["fitted_lag_s"] * 1000, color="r")
-            ax.set_xlabel("lag [ms]")
+            ax.plot(np.array(c["joint_lag_s"]) * 1000, c["train_log_residual"], "k.-")
+            ax.axvline(c["fitted_joint_lag_s"] * 1000, color="r")
+            ax.set_xlabel("joint lag [ms] (vibration trails joint states)")
             ax.set_title("stream lag: refit residual", fontsize=9)
             continue
         edges = np.array(c["bin_edges"], dtype=float)
@@ -706,8 +961,8 @@ def shape_figure(report: dict, path: Path) -> str:
             ax.plot(x, sh["train_log_residual"], ".-", color=color)
             lo, hi = sh["in_sync_band_s"]
             ax.axvspan(lo * 1000, hi * 1000, color="0.85")
-            ax.axvline(sh.get("fitted_lag_s", 0.0) * 1000, color=color, ls="--")
-            ax.set_xlabel("joint-state lag [ms] (grey: in sync)", fontsize=7)
+            ax.axvline(sh.get("fitted_joint_lag_s", 0.0) * 1000, color=color, ls="--")
+            ax.set_xlabel("joint lag [ms] (grey: in sync)", fontsize=7)
             ax.set_ylabel("baseline log residual", fontsize=7)
         else:
             x = np.asarray(sh["x"], float)

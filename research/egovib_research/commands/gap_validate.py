@@ -21,12 +21,13 @@ def register(subparsers) -> None:
     )
     val.add_argument(
         "--reality",
-        choices=["sim", "alt", "real"],
+        choices=["sim", "alt", "third", "real"],
         default="sim",
-        help='where the blind "real" bags come from: our simulator, or the independent '
-        "alternate-reality generator (egovib_research.altreality), the model always "
-        "calibrated on our simulator; or `real`: known effects injected into one part of "
-        "the real flight bags/quadcopter_ar8, the model calibrated on the other part",
+        help='where the blind "real" bags come from: our simulator, the independent '
+        "alternate-reality generator (egovib_research.altreality) or the third hand "
+        "(egovib_research.thirdhand, written from the effect vocabulary alone), the model "
+        "always calibrated on our simulator; or `real`: known effects injected into one part "
+        "of the real flight bags/quadcopter_ar8, the model calibrated on the other part",
     )
     val.add_argument("--seeds", type=options.positive_int, default=5, help="seeds per effect class")
     val.add_argument(
@@ -74,10 +75,11 @@ def run(args: argparse.Namespace) -> int:
         master_seed=args.master_seed,
         extra_none=args.extra_none,
     )
+    flagged = summary["none_false_positive_rate"]
     if not args.quiet:
         print(
             f"gap validate ({args.reality}): accuracy {summary['accuracy']:.3f}, "
-            f"none flagged {summary['none_false_positive_rate']:.3f}, "
+            f"none flagged {'n/a' if flagged is None else format(flagged, '.3f')}, "
             f"{summary['n_runs']} runs -> {summary['outputs']}"
         )
     return 0

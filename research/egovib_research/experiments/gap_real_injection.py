@@ -20,10 +20,19 @@ multiply the real gyro sample by sample, with joint states interpolated to its s
   motors 1 and 3: louder when both are above or both below their typical command,
   quieter when one is above and the other below (a signed interaction).
 
-The robot's own joint-state lag (its motors' command-to-speed delay) is measured on the
-calibration part, as the simulator's is measured on the simulator, and is the reference
-lag: a timing verdict means a lag beyond the robot's own. The untouched part's verdict and
-confidence are reported beside every injection.
+The diagnosis runs as `egovib gap` runs it for a model calibrated on the robot itself: the
+reference lag is 0, so the flight's own effects (its motors' command-to-speed lag, about a
++30 ms joint lag) are named too, and each injected effect is looked for in verdict.effects,
+on top of the flight's own. The robot's own lag (measured on the calibration part) is
+reported beside. For every run also:
+
+* the fitted joint lag against the untouched part's: a lag injection moves it by the
+  injected amount (the joint-lag convention: joint states re-stamped s late move it by -s);
+* the change from the untouched part to the injected one (gap.change, what `egovib gap
+  --reference` reports): the injected effect should come first;
+* where verdict.effects holds timing or drift, the advice's flags applied together with the
+  user's model (calibrated for every method, as `egovib calibrate` does: the default method
+  hybrid) on held-out data (advice.measure_advice).
 """
 
 from __future__ import annotations
@@ -34,14 +43,17 @@ from dataclasses import replace
 import numpy as np
 from scipy import signal
 
+from egovib_research.experiments import core_arrays
 from egovib_research.experiments.gap_flight import FLIGHT_END_S, SPLIT_S, _slice, calibrate_part
 from egovib_ros.bag import read_recording
+from egovib_ros.core.methods import calibrate_methods
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import GapDataError
-from egovib_ros.gap.advice import action, measure_joint_lag
+from egovib_ros.gap.advice import effect_actions, joint_lag_of, measure_advice, merged_settings
+from egovib_ros.gap.change import diagnose_change
 from egovib_ros.gap.diagnose import DiagnosisOptions
 from egovib_ros.gap.effects import fit_lag
-from egovib_ros.gap.features import build_table
+from egovib_ros.gap.features import build_table, joint_order
 from egovib_ros.gap.pipeline import diagnose_recording
 from egovib_ros.robot import load_profile
 
@@ -109,6 +121,17 @@ def _own_lag(model, cal) -> float:
     return float(lag)
 
 
+#: A lag injection counts as moving the fitted joint lag by the injected amount within this.
+LAG_TOLERANCE_MS = 8.0
+
+
+def user_model(cal, model, source: str):
+    """The model a user has after `egovib calibrate` (every method): the paper's table plus
+    what cancel and hybrid need, fitted on the same part."""
+    full, _ = calibrate_methods(model, *core_arrays(cal), source=source)
+    return full
+
+
 def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     start = time.perf_counter()
     profile = load_profile("quadcopter")
@@ -117,76 +140,112 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     results, directions = [], {}
     for calib, test in (("first", "second"), ("second", "first")):
         cal, model = calibrate_part(rec, profile, bag, parts[calib])
+        users = user_model(cal, model, f"{bag} {calib} part")
         own_lag = _own_lag(model, cal)
         real = _slice(rec, *parts[test])
         name = f"calibrated on {calib} part, diagnosed {parts[test][0]:g}-{parts[test][1]:g} s"
-        directions[name] = {"reference_lag_s": round(own_lag, 4)}
+        directions[name] = {"own_joint_lag_s": round(joint_lag_of(own_lag), 4)}
+        reference = build_table(real, model, source=f"{name}: untouched")
+        untouched = None
         cases = [("none", "untouched", 0.0)] + [
             (e, label, s) for e, label, strengths in INJECTIONS for s in strengths
         ]
         for effect, label, strength in cases:
             data = real if effect == "none" else inject(real, effect, strength)
-            diag, entry = diagnose_case(data, model, own_lag, name, effect, label, strength)
+            diag, entry = diagnose_case(data, model, 0.0, name, effect, label, strength)
             results.append(entry)
             if diag is None:
                 continue
-            if diag.verdict == "timing":
-                # apply the advice with the core: denoise this part with the advised joint
-                # lag (the model calibrated as before), and without
-
-                text, settings = action(diag)
-                results[-1]["advice"] = text
-                results[-1]["denoiser_with_advice"] = measure_joint_lag(
-                    cal,
-                    data,
-                    profile,
-                    settings["joint_lag_s"],
-                    calibration_lag_s=0.0,
-                    sweep="free",
-                )
             if effect == "none":
+                untouched = diag
                 directions[name]["untouched"] = {
                     "verdict": diag.verdict,
+                    "effects": entry["effects"],
                     "confidence": diag.confidence,
+                    "fitted_joint_lag_s": entry["fitted_joint_lag_s"],
                 }
-    injected = [r for r in results if r["truth"] != "none"]
-    strong = [r for r in injected if abs(r["strength"]) == max(abs(s) for s in _strengths(r))]
-    named_from, named_at = {}, {}
-    for _effect, label, strengths in INJECTIONS:
-        for name in directions:
-            found = [
-                r["correct"] for r in results if r["direction"] == name and r["injection"] == label
-            ]
-            first = next((i for i in range(len(found)) if all(found[i:])), None)
-            named_from.setdefault(label, {})[name] = None if first is None else strengths[first]
-            named_at.setdefault(label, {})[name] = [s for s, ok in zip(strengths, found) if ok]
-    pairs = [v for by in named_at.values() for v in by.values()]
-    summary = {
-        "named_from_strength": named_from,
-        "named_at_strengths": named_at,
-        # injection x direction pairs named at one strength of the ladder at least
-        "named_at_some_strength": round(float(np.mean([bool(v) for v in pairs])), 4),
-        "reality": "real",
-        "bag": bag,
-        "directions": directions,
-        "accuracy_injected": round(float(np.mean([r["correct"] for r in injected])), 4),
-        "accuracy_stronger": round(float(np.mean([r["correct"] for r in strong])), 4),
-        "untouched_correct": [r["verdict"] == "none" for r in results if r["truth"] == "none"],
-        "n_runs": len(results),
-    }
+            elif untouched is not None:
+                _compare_with_untouched(entry, diag, untouched, reference)
+            if any(e["effect"] in ("timing", "drift") for e in diag.effects):
+                settings = merged_settings(effect_actions(diag))
+                entry["advice"] = settings
+                entry["applied"] = measure_advice(
+                    data, users, diag, settings, joint_order(model, data.joint_names, name)
+                )
     return {
-        "schema": "egovib.gap_validation/2",
-        "summary": summary,
+        "schema": "egovib.gap_validation/3",
+        "summary": _summary(results, directions, bag),
         "runs": results,
         "settings": {
             "command": "egovib gap validate --reality real",
+            "reference_joint_lag_s": 0.0,
             "injections": [
                 {"effect": e, "label": label, "strengths": list(s)} for e, label, s in INJECTIONS
             ],
             "warmup_tau_s": WARMUP_TAU_S,
             "position_harmonic": POSITION_HARMONIC,
+            "lag_tolerance_ms": LAG_TOLERANCE_MS,
         },
         "runtime_s": round(time.perf_counter() - start, 1),
+    }
+
+
+def _compare_with_untouched(entry: dict, diag, untouched, reference) -> None:
+    """The fitted joint lag moved from the untouched part's, and the change from the
+    untouched part to this one (what `egovib gap --reference` says)."""
+    moved = entry["fitted_joint_lag_s"] - joint_lag_of(untouched.lag_scan["timing_lag_s"])
+    entry["joint_lag_moved_ms"] = round(1000.0 * moved, 1)
+    if entry["truth"] == "timing":
+        # joint states re-stamped s late: the joint lag moves by -s
+        entry["lag_error_ms"] = round(1000.0 * (moved + entry["strength"]), 1)
+    try:
+        change = diagnose_change(replace(reference, contact=reference.contact.copy()), diag)
+    except GapDataError as exc:
+        entry["change"] = {"refused": str(exc)}
+        return
+    entry["change"] = {
+        "effects": [c["effect"] for c in change.effects],
+        "first_is_injected": bool(change.effects) and change.effects[0]["effect"] == entry["truth"],
+        "parameters": [
+            c["parameters"] for c in change.effects if c["effect"] in ("timing", "drift")
+        ],
+    }
+
+
+def _summary(results: list[dict], directions: dict, bag: str) -> dict:
+    """Per injection and direction: the strengths at which the injected effect is in
+    verdict.effects (and first), the lag moved, the change named first, the advice applied."""
+    injected = [r for r in results if r["truth"] != "none"]
+    named_at, first_at, change_first_at = {}, {}, {}
+    for _effect, label, _strengths in INJECTIONS:
+        for name in directions:
+            runs = [r for r in injected if r["direction"] == name and r["injection"] == label]
+            named_at.setdefault(label, {})[name] = [r["strength"] for r in runs if r["in_effects"]]
+            first_at.setdefault(label, {})[name] = [r["strength"] for r in runs if r["correct"]]
+            change_first_at.setdefault(label, {})[name] = [
+                r["strength"] for r in runs if r.get("change", {}).get("first_is_injected")
+            ]
+    lags = [r for r in injected if "lag_error_ms" in r]
+    applied = [r["applied"] for r in results if r.get("applied", {}).get("gain_db") is not None]
+    return {
+        "reality": "real",
+        "bag": bag,
+        "directions": directions,
+        "in_effects_at_strengths": named_at,
+        "first_at_strengths": first_at,
+        "change_first_at_strengths": change_first_at,
+        "in_effects": round(float(np.mean([r["in_effects"] for r in injected])), 4),
+        "accuracy_injected": round(float(np.mean([r["correct"] for r in injected])), 4),
+        "change_first": round(
+            float(np.mean([r.get("change", {}).get("first_is_injected", False) for r in injected])),
+            4,
+        ),
+        "lag_errors_ms": [r["lag_error_ms"] for r in lags],
+        "lags_within_tolerance": int(sum(abs(r["lag_error_ms"]) <= LAG_TOLERANCE_MS for r in lags)),
+        "lag_runs": len(lags),
+        "advice_applied_gain_db": [a["gain_db"] for a in applied],
+        "untouched_correct": [r["verdict"] == "none" for r in results if r["truth"] == "none"],
+        "n_runs": len(results),
     }
 
 
@@ -211,12 +270,16 @@ def diagnose_case(
 
 def _run_entry(diag, direction: str, effect: str, label: str, strength: float, t0: float) -> dict:
     by = {c["effect"]: c for c in diag.candidates}
+    found = [e["effect"] for e in diag.effects]
     return {
         "direction": direction,
         "truth": effect,
         "injection": label,
         "strength": strength,
         "verdict": diag.verdict,
+        "effects": found,
+        "in_effects": effect in found,
+        "effect_confidences": [e["confidence"] for e in diag.effects],
         "confidence": diag.confidence,
         "correct": diag.verdict == effect,
         "p_truth": by[effect]["p_value"] if effect in by else None,
@@ -232,7 +295,7 @@ def _run_entry(diag, direction: str, effect: str, label: str, strength: float, t
             ),
             "floor": round(diag.floor, 4),
         },
-        "fitted_lag_s": round(float(diag.lag_scan.get("timing_lag_s", 0.0)), 4),
+        "fitted_joint_lag_s": round(joint_lag_of(diag.lag_scan.get("timing_lag_s", 0.0)), 4),
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
@@ -244,6 +307,8 @@ def _refused(direction: str, effect: str, label: str, strength: float, why: str,
         "injection": label,
         "strength": strength,
         "verdict": "refused",
+        "effects": [],
+        "in_effects": False,
         "refused": why,
         "confidence": None,
         "correct": False,
@@ -251,100 +316,95 @@ def _refused(direction: str, effect: str, label: str, strength: float, why: str,
         "deviance_gain_truth": None,
         "runner_up": None,
         "gap": None,
-        "fitted_lag_s": None,
+        "fitted_joint_lag_s": None,
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
 
-def _strengths(run: dict) -> tuple:
-    for e, label, s in INJECTIONS:
-        if e == run["truth"] and label == run["injection"]:
-            return s
-    return (run["strength"],)
+def _at(values: list) -> str:
+    return ", ".join(f"{v:g}" for v in values) if values else "-"
 
 
 def render_markdown(report: dict) -> str:
     s = report["summary"]
+    st = report["settings"]
+    dirs = list(s["directions"])
     lines = [
         "# Gap diagnosis: known effects injected into a real flight (`--reality real`)",
         "",
         f"Bag `{s['bag']}` (real quadcopter flight, profile `quadcopter`): a free-motion model "
         "is calibrated on one part of the flight; into the real gyro and joint states of the "
         "other part one known effect is injected "
-        "(research/egovib_research/experiments/gap_real_injection.py), and the "
-        "diagnosis must name it. The reference lag (in sync) is the robot's own lag measured "
-        "on the calibration part. Produced by `" + report["settings"]["command"] + "` in "
+        "(research/egovib_research/experiments/gap_real_injection.py), on top of the flight's "
+        "own effects; the diagnosis runs as `egovib gap` does for a model of the robot itself "
+        "(reference joint lag 0). Produced by `" + st["command"] + "` in "
         f"{report['runtime_s'] / 60:.1f} min.",
         "",
-        f"Injected effects named: **{100 * s['accuracy_injected']:.0f} %** of "
-        f"{sum(1 for r in report['runs'] if r['truth'] != 'none')} runs (the strongest "
-        f"strength of each: {100 * s['accuracy_stronger']:.0f} %).",
+        f"Injected effect in verdict.effects: **{100 * s['in_effects']:.0f} %** of "
+        f"{sum(1 for r in report['runs'] if r['truth'] != 'none')} runs (first: "
+        f"{100 * s['accuracy_injected']:.0f} %); named first by the change from the untouched "
+        f"part (`--reference`): **{100 * s['change_first']:.0f} %**. Lag injections: the fitted "
+        f"joint lag moved by the injected amount within {st['lag_tolerance_ms']:g} ms in "
+        f"**{s['lags_within_tolerance']} of {s['lag_runs']}** runs (errors "
+        + ", ".join(f"{v:+.0f}" for v in s["lag_errors_ms"])
+        + " ms).",
         "",
-        f"Injection and direction named at one strength of the ladder at least: "
-        f"**{100 * s['named_at_some_strength']:.0f} %**.",
+        "Strengths of the ladder ("
+        + "; ".join(f"{e['label']} {_at(e['strengths'])}" for e in st["injections"])
+        + ") at which the injected effect is in verdict.effects / first / first in the change:",
         "",
-        "Strengths at which each is named (- = at none; the ladder: "
-        + "; ".join(
-            f"{e['label']} {', '.join(f'{v:g}' for v in e['strengths'])}"
-            for e in report["settings"]["injections"]
-        )
-        + "):",
-        "",
-        "| injected | " + " | ".join(s["directions"]) + " |",
-        "|---" * (1 + len(s["directions"])) + "|",
+        "| injected | " + " | ".join(dirs) + " |",
+        "|---" * (1 + len(dirs)) + "|",
     ]
-    for label, by in s.get("named_at_strengths", {}).items():
-        lines.append(
-            f"| {label} | "
-            + " | ".join(", ".join(f"{v:g}" for v in at) if at else "-" for at in by.values())
-            + " |"
-        )
+    for label in s["in_effects_at_strengths"]:
+        cells = [
+            " / ".join(
+                _at(s[key][label][d])
+                for key in (
+                    "in_effects_at_strengths",
+                    "first_at_strengths",
+                    "change_first_at_strengths",
+                )
+            )
+            for d in dirs
+        ]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append("")
     for name, d in s["directions"].items():
         u = d.get("untouched", {})
         lines += [
             f"## {name}",
             "",
-            f"Untouched part: verdict **{u.get('verdict')}** (confidence {u.get('confidence')}); "
-            f"robot's own lag (reference) {1000 * d['reference_lag_s']:+.0f} ms.",
+            f"Untouched part: verdict.effects **{', '.join(u.get('effects') or ['none'])}** "
+            f"(confidence {u.get('confidence')}); fitted joint lag "
+            f"{1000 * (u.get('fitted_joint_lag_s') or 0.0):+.0f} ms; the robot's own joint lag "
+            f"on the calibration part {1000 * d['own_joint_lag_s']:+.0f} ms.",
             "",
-            "| injected | effect | strength | verdict | confidence | p (injected) | runner-up "
-            "| baseline dB | after dB | floor dB |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| injected | strength | verdict.effects | joint lag moved [ms] | change (first "
+            "listed first) | advice applied: noise reduction without -> with |",
+            "|---|---|---|---|---|---|",
         ]
         for r in report["runs"]:
             if r["direction"] != name:
                 continue
-            p = r["p_truth"]
             if r["verdict"] == "refused":
                 lines.append(
-                    f"| {r['injection']} | {r['truth']} | {r['strength']:g} | refused: "
-                    f"{r['refused']} |  |  |  |  |  |  |"
+                    f"| {r['injection']} | {r['strength']:g} | refused: {r['refused']} | | | |"
                 )
                 continue
-            lines.append(
-                f"| {r['injection']} | {r['truth']} | {r['strength']:g} | {r['verdict']} | "
-                f"{r['confidence']} | {'' if p is None else f'{p:.2g}'} | {r['runner_up']} | "
-                f"{r['gap']['after_refit']} | {r['gap']['after_verdict']} | {r['gap']['floor']} |"
+            change = r.get("change", {})
+            applied = r.get("applied") or {}
+            app = (
+                f"{applied['noise_reduction_without_db']:.2f} -> "
+                f"{applied['noise_reduction_with_db']:.2f} dB ({applied['gain_db']:+.2f}; "
+                f"{applied['applied_text']})"
+                if applied.get("gain_db") is not None
+                else ""
             )
-        lines.append("")
-    advised = [r for r in report["runs"] if r.get("denoiser_with_advice")]
-    if advised:
-        lines += [
-            "## The advice applied (timing verdicts)",
-            "",
-            "Both runs are scored on the same samples: the part's ends, as far as the lag "
-            "reaches, are left out (their blocks have no joint state with the lag).",
-            "",
-        ]
-        for r in advised:
-            d = r["denoiser_with_advice"]
             lines.append(
-                f'- {r["direction"]}, {r["injection"]} {r["strength"]:g} s: "{r["advice"]}"; '
-                f"the core denoiser on this part (model calibrated on the other part as before) "
-                f"removes {d['without']['noise_reduction_db']:.2f} dB of noise without the lag, "
-                f"{d['with']['noise_reduction_db']:.2f} dB with joint_lag_s "
-                f"{d['with']['joint_lag_s']:g} ({d['gain_db']:+.2f} dB)."
+                f"| {r['injection']} | {r['strength']:g} | {', '.join(r['effects']) or 'none'} | "
+                f"{r.get('joint_lag_moved_ms', '')} | "
+                f"{', '.join(change.get('effects', [])) or change.get('refused', '')} | {app} |"
             )
         lines.append("")
     return "\n".join(lines)

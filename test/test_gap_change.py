@@ -1,0 +1,72 @@
+"""gap.change: what differs between two recordings of the same robot, on synthetic block
+tables with known effects (test/gaptables.py): a lag shift and a level change are named with
+their size, an effect both recordings share is no change, two identical conditions give none."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gaptables import synthetic_table
+
+from egovib_ros.errors import GapDataError
+from egovib_ros.gap.change import change_folds, diagnose_change
+from egovib_ros.gap.diagnose import diagnose
+from egovib_ros.gap.features import JOIN_GAP_S, join_tables
+
+
+def change_of(reference_kw: dict, real_kw: dict):
+    reference = synthetic_table(**reference_kw)
+    real = diagnose(synthetic_table(**real_kw))
+    return diagnose_change(reference, real)
+
+
+def test_a_lag_shift_and_a_level_change_are_named_with_their_size():
+    change = change_of(
+        {"seed": 11, "duration_s": 40.0},
+        {"effects": {"timing": 0.04}, "gain": 1.4, "seed": 12, "duration_s": 40.0},
+    )
+    found = {e["effect"]: e for e in change.effects}
+    assert set(found) == {"timing", "drift"}, change.steps
+    # joint states stamped 40 ms late: the vibration leads them by 40 ms more than before
+    assert found["timing"]["parameters"]["lag_shift_ms"] == pytest.approx(-40.0, abs=5.0)
+    # a gain of 1.4 = +2.9 dB at every velocity
+    assert found["drift"]["parameters"]["level_change_db"] == pytest.approx(2.92, abs=0.5)
+    for e in change.effects:
+        assert e["p_value"] < 0.01 / 5 and e["reduction"] > 0 and 0 <= e["confidence"] <= 1
+    assert change.gaps["after_changes"] < change.gaps["baseline"]
+
+
+def test_an_effect_both_share_is_no_change_and_a_new_one_is():
+    """The same interaction in both recordings: nothing changed (the null model has what both
+    share of it); in the recording only: a new interaction."""
+    both = change_of(
+        {"effects": {"coupling": 5.0}, "seed": 13, "duration_s": 60.0},
+        {"effects": {"coupling": 5.0}, "seed": 14, "duration_s": 60.0},
+    )
+    assert both.effects == [], both.steps
+    new = change_of(
+        {"seed": 13, "duration_s": 60.0},
+        {"effects": {"coupling": 5.0}, "seed": 14, "duration_s": 60.0},
+    )
+    assert [e["effect"] for e in new.effects][:1] == ["coupling"], new.steps
+
+
+def test_joined_table_and_its_folds_hold_both_recordings():
+    a, b = synthetic_table(seed=1, duration_s=20.0), synthetic_table(seed=2, duration_s=10.0)
+    joined = join_tables(a, b)
+    assert joined.n_blocks == a.n_blocks + b.n_blocks
+    assert np.all(np.diff(joined.t_mid_s) > 0)
+    assert joined.t_first_s[a.n_blocks] == pytest.approx(a.t_last_s[-1] + JOIN_GAP_S)
+    assert joined.recording.tolist() == [0] * a.n_blocks + [1] * b.n_blocks
+    for split in change_folds(joined, 5):
+        # every fold holds out a part of each recording and trains on the rest of both
+        for r in (0, 1):
+            mine = joined.recording == r
+            assert split.test[mine].any() and split.train[mine].any()
+        assert not (split.train & split.test).any()
+
+
+def test_a_reference_without_enough_clean_blocks_is_refused():
+    short = synthetic_table(seed=1, duration_s=3.0)
+    with pytest.raises(GapDataError, match="too few no-contact blocks"):
+        diagnose_change(short, diagnose(synthetic_table(seed=2, duration_s=20.0)))
