@@ -1,5 +1,5 @@
-# Two commands (docs/INTERFACES.md section 7): `make demo` and `make test`.
-# Both create .venv if missing and install everything into it.
+# Two commands (docs/INTERFACES.md section 7): `make demo` and `make test`; `make check` for
+# the edit loop. Each creates .venv if missing and installs everything into it.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -29,12 +29,9 @@ test: $(STAMP)
 	$(PY) -m pytest -q -p no:cacheprovider -m nodes test; b=$$?; \
 	test $$a -eq 0 && test $$b -eq 0
 
-# The edit loop: lint, then the fast tests (no node test, no test file marked `slow` in
-# test/conftest.py) on two workers; about half a minute on an idle 2-core machine.
-LINTED := egovib_ros research test launch setup.py
+# The edit loop: the fast tests (no node test, no test file marked `slow` in
+# test/conftest.py; ruff among them, test/test_lint.py) on two workers.
 check: $(STAMP)
-	$(VENV)/bin/ruff check $(LINTED)
-	$(VENV)/bin/ruff format --check $(LINTED)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
 	$(PY) -m pytest -q -p no:cacheprovider -n 2 -m "not nodes and not slow" test
 

@@ -236,7 +236,8 @@ def denoise_bag(
                 joints_where=f"{bag}: {stream.names['joint_states']}",
             )
             ratio = writer.size_ratio
-            if save_model is not None:  # before the bag appears: both or neither
+            if save_model is not None:  # the bag complete, before it appears: both or neither
+                writer.close()  # (closing again on leaving the with is a no-op)
                 with atomic_output(save_model) as model_tmp:
                     denoiser.adapted_model().save(model_tmp)
     stats = denoiser.stats

@@ -516,7 +516,7 @@ def _band_passed_calibration(
 def _split(model: NoiseModel, accel: np.ndarray) -> np.ndarray | None:
     """The drop-in output's split for `model`, fitted to the calibration recording's
     spectrum near the band (core.filters.split_for): its taps (their delay is the look-ahead
-    the drop-in output needs: 5.7 ms for the simulated PR2 hand, 12 ms for the flight);
+    the drop-in output needs: 5.7 ms for the simulated PR2 hand, 13 ms for the flight);
     None for a recording too short to tell."""
     values = np.asarray(accel, float)
     # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
@@ -905,22 +905,11 @@ class SampleMethodDenoiser(FramedDenoiser):
         """Band-passed `values` (and `raw`, for the drop-in output) through the method."""
         if self._adaptation is not None:  # in pieces, each ending where what it learns applies
             return self._adaptation.run(stamps, values, velocity, raw)
-        unfiltered = None
-        if self._lines_input is not None:
-            tracked = self._lines_input.process(raw.T).T
-            residual, lines = self._canceller.process(values, velocity, unfiltered=tracked)
-            unfiltered = (raw, raw - lines)
-        else:
-            residual = self._canceller.process(values, velocity)
-        if self._gain is None:
-            return self._output(stamps, residual if unfiltered is None else unfiltered[1])
-        if len(velocity):
-            self._last_velocity = velocity[-1]
-        return self._gained(stamps, residual, velocity, unfiltered)
+        return self._run_piece(stamps, values, velocity, raw)[:2]
 
     def _run_piece(self, stamps, values, velocity, raw):
-        """`_run` for a piece of an adapting stream (core.adapt.Adaptation.run): the released
-        (stamps, values), and the canceller's residual the residual table learns from."""
+        """The released (stamps, values) of a piece of the stream, and the canceller's
+        residual (what an adapting stream's residual table learns from: core.adapt)."""
         unfiltered = None
         if self._lines_input is not None:
             tracked = self._lines_input.process(raw.T).T

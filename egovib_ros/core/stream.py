@@ -166,14 +166,25 @@ def rate_refusal(measured_hz: float, settings: "FramerSettings", stats) -> str:
     return text
 
 
+def _dropped_not_duplicated(stats) -> tuple[int, int, int, int]:
+    """(sensor samples out of order, joint states dropped, each less its exact duplicates
+    (a message recorded twice: dropped but not bad input), and those duplicates)."""
+    duplicates = int(getattr(stats, "duplicates", 0) or 0)
+    joint_duplicates = int(getattr(stats, "joint_states_duplicates", 0) or 0)
+    return (
+        int(stats.dropped_out_of_order) - duplicates,
+        int(getattr(stats, "joint_states_dropped", 0) or 0) - joint_duplicates,
+        duplicates,
+        joint_duplicates,
+    )
+
+
 def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
     """Raise a one-line StreamError when more than `limit` of the samples pushed were bad
     (`stats`: DenoiserStats, CalibrationStats or a framer's FramerStats)."""
-    total = int(stats.samples_in)
-    # exact duplicates (a message recorded twice) are dropped but not bad
-    duplicates = int(getattr(stats, "duplicates", 0) or 0)
-    bad = int(stats.samples_bad) + int(stats.dropped_out_of_order) - duplicates
-    total -= duplicates
+    out_of_order, _, duplicates, _ = _dropped_not_duplicated(stats)
+    bad = int(stats.samples_bad) + out_of_order
+    total = int(stats.samples_in) - duplicates
     if total == 0:
         raise StreamError(f"{where}: no sensor samples")
     if bad > limit * total:
@@ -185,7 +196,8 @@ def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
 
 
 def has_bad_input(stats) -> bool:
-    """Whether the line `check_stream` gives counts anything (else it says all is well)."""
+    """Whether the line `check_stream` gives counts anything: what `--quiet` still says
+    (exact duplicates too: not bad input, but the reader should know its bag holds them)."""
     return any(
         int(getattr(stats, name, 0) or 0)
         for name in (
@@ -216,10 +228,7 @@ def check_stream(
     """
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
-    duplicates = int(getattr(stats, "duplicates", 0) or 0)
-    out_of_order = int(stats.dropped_out_of_order) - duplicates
-    joint_duplicates = int(getattr(stats, "joint_states_duplicates", 0) or 0)
-    dropped = int(stats.joint_states_dropped) - joint_duplicates
+    out_of_order, dropped, duplicates, joint_duplicates = _dropped_not_duplicated(stats)
     if joint_states and dropped > limit * joint_states:
         raise StreamError(
             f"{joints_where or where}: {dropped} of {joint_states} joint states "

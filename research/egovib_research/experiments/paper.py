@@ -51,9 +51,6 @@ MUST_SHOW = {
     "f1": 0.95,
 }
 
-#: Why a must-show criterion can be missed on the simulator (measured; printed under the table
-#: and used by the test to mark a miss as a known, explained gap rather than hide it).
-
 
 @dataclass
 class ExperimentConfig:
