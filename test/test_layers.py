@@ -19,6 +19,7 @@ repository's research package (research/egovib_research), which sits above all o
     tools/                           benchmarks, the demo, node orchestration (ROS 2 allowed)
     experiments/                     the experiments that write docs/
     altreality/                      an independent PR2-hand generator (never egovib_ros.sim)
+    thirdhand/                       a third, from the effect vocabulary alone (the same)
 
 A package's `__main__.py` is an entry point like the commands and may use cli/'s option
 types.
@@ -61,12 +62,14 @@ ALLOWED = {
 # egovib_ros but for RESEARCH_NEVER
 RESEARCH_ALLOWED = {
     "altreality": set(),
-    "experiments": {"altreality"},
+    "thirdhand": set(),
+    "experiments": {"altreality", "thirdhand"},
     "tools": {"experiments"},  # the demo draws the paper's figure; the bench's timing helper
-    "commands": {"tools", "experiments", "altreality"},
+    "commands": {"tools", "experiments", "altreality", "thirdhand"},
     "__init__": set(),
 }
-RESEARCH_NEVER = {"altreality": {"sim"}}  # an independent generator shares no simulator code
+# an independent generator shares no simulator code
+RESEARCH_NEVER = {"altreality": {"sim"}, "thirdhand": {"sim"}}
 ROS = ("rclpy", "sensor_msgs", "std_msgs", "geometry_msgs", "diagnostic_msgs", "rosgraph_msgs")
 ROS += ("builtin_interfaces", "rcl_interfaces")
 ROS_AREAS = {PACKAGE: {"nodes"}, RESEARCH: {"tools"}}  # tools: the live benchmark, the demo
@@ -246,6 +249,7 @@ UNTESTED = {
     "cli/simulate_output": "every `egovib simulate` scenario writes through it (test_cli_simulate, "
     "test_sim_robot)",
     "nodes/bag_recorder": "records the replay in test_nodes_bag_player",
+    "gap/chain": "the forward selection's cross-fitted chains: test_gap_diagnose, test_gap_change",
     # research/egovib_research
     "commands/bench": "`egovib bench` runs in test_tools_bench",
     "commands/demo": "starts ROS 2 nodes; parsed in test_nodes_launch, run by `make demo`",
@@ -259,6 +263,7 @@ UNTESTED = {
     "tools/live_bench": "ROS 2 processes; run by `egovib live-bench`, figures in docs/",
     "tools/orchestration": "starts the nodes of every test_nodes_* file (conftest)",
     "tools/watcher": "the test harness's diagnostics reader (conftest)",
+    "thirdhand/motion": "the third hand's trajectories, run by every test_thirdhand_hand case",
 }
 #: Test files not named for one module: tests of the whole package or of the repository.
 SYSTEM_TESTS = {

@@ -10,7 +10,7 @@ read the project's simulator (egovib_ros/sim) nor the alternate reality
         --forms coupling=line_signed --out BAG
 
 Imports numpy, scipy and the project's Recording container only
-(test_thirdhand.test_shares_no_code_with_the_other_generators).
+(test_thirdhand_hand.test_shares_no_code_with_the_other_generators).
 """
 
 from __future__ import annotations
