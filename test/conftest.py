@@ -33,6 +33,13 @@ settings.register_profile("ci", max_examples=20, derandomize=True, deadline=None
 settings.register_profile("long", max_examples=300, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
+# A shell that starts a job in the background (`make test &`, a CI runner's script) starts it
+# with SIGINT ignored, and every process it starts inherits that: the nodes would then ignore
+# the Ctrl-C the tests send them (and a node test would wait for an exit that never comes).
+# Python installs its own handler only where SIGINT was not ignored: here it is, explicitly.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 
 #: Fixtures that start ROS 2 processes or a DDS participant: a test using one is a node test.
 NODE_FIXTURES = {"nodes", "ros_client", "ros_domain", "feeder"}
