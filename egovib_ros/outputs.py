@@ -54,6 +54,9 @@ import zipfile
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
+import numpy as np
+
+from egovib_ros import __version__
 from egovib_ros.errors import EgovibError
 
 MARKER = ".egovib-output"  # JSON marker inside every directory output we write
@@ -441,7 +444,6 @@ def _is_our_model(path: Path) -> bool:
         with zipfile.ZipFile(path) as zf:
             if "schema.npy" not in zf.namelist():
                 return False
-        import numpy as np
 
         with np.load(path, allow_pickle=False) as data:
             return str(data["schema"]) == MODEL_SCHEMA
@@ -532,8 +534,6 @@ def _make_staging(parent: Path, name: str) -> Path:
 
 
 def _write_marker(directory: Path, kind: str | None) -> None:
-    from egovib_ros import __version__
-
     files = sorted(_relative_files(directory))
     marker = {
         "schema": MARKER_SCHEMA,

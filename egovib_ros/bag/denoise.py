@@ -165,7 +165,11 @@ def denoise_bag(
     (BagError) unless `replace_denoised`: then its own is left out of the copy (counted in
     the figures). Returns figures (samples, blocks, size ratio, ...). `adapt`: the model
     goes on learning while no contact is detected (core.adapt); `save_model`: the model as
-    adapted by the end of the bag is written there (atomically, after the bag)."""
+    adapted by the end of the bag is written there (atomically, after the bag).
+
+    One function: the reading, the denoising and the writing share one bag's streams, and
+    the order of their ends (output closed, then the model saved, then the figures) is the
+    atomicity promised above."""
     model = model if isinstance(model, NoiseModel) else NoiseModel.load(model)
     profile = model.robot_profile()
     bag = Path(bag)

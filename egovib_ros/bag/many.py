@@ -31,6 +31,7 @@ from typing import Any, Callable, Sequence
 from tqdm import tqdm
 
 from egovib_ros.errors import BagError, ConfigError, EgovibError
+from egovib_ros.outputs import clean_partials_of
 
 
 @dataclass
@@ -275,8 +276,6 @@ def _run_dask(
                 logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
             cluster.close()
             if stopping:  # the staging of the bags its workers were writing when stopped
-                from egovib_ros.outputs import clean_partials_of
-
                 for directory in {Path(j.out).parent for j in jobs_list if j.out is not None}:
                     clean_partials_of(directory, workers)
         for name, level in quiet_loggers.items():

@@ -33,6 +33,7 @@ from typing import BinaryIO, Iterator
 
 import numpy as np
 from mcap.data_stream import ReadDataStream, RecordBuilder
+from mcap.reader import make_reader
 from mcap.records import (
     Channel,
     ChunkIndex,
@@ -215,8 +216,6 @@ class McapScanner:
     def _time_order(self, fh) -> tuple[list | None, list | None]:
         """(the summary's chunk indexes by start time if that differs from file order, else
         None; the chunk indexes in file order, or None without a summary)."""
-        from mcap.reader import make_reader
-
         if self.rebuilt:
             indexes = self.rebuilt
         else:
@@ -516,11 +515,11 @@ def _decompress(data: memoryview, compression: str, size: int) -> bytes | memory
     if compression == "":
         return data  # a view of the chunk record just read: no copy
     if compression == "zstd":
-        import zstandard
+        import zstandard  # deferred: a codec library, loaded for the files that use it
 
         out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     elif compression == "lz4":
-        import lz4.frame
+        import lz4.frame  # deferred: a codec library, loaded for the files that use it
 
         out = lz4.frame.decompress(bytes(data))
     else:
@@ -592,7 +591,7 @@ class McapWriter:
         self.crc = crc  # chunk CRCs: damage is detected on reading (0: not computed)
         self._compress = None
         if compression == "zstd":
-            import zstandard
+            import zstandard  # deferred: a codec library, loaded for the files that use it
 
             self._compress = zstandard.ZstdCompressor(level=level).compress
         self.schemas: dict[int, Schema] = {}

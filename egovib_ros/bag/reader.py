@@ -11,6 +11,7 @@ through rosbags' reader, a fixed number of messages at a time.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import heapq
 import logging
 import os
@@ -20,6 +21,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 import yaml
+from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag.codec import MessageBatch
@@ -205,8 +207,6 @@ class BagReader:
         if not hasattr(self, "_definitions"):
             self._definitions = None
             if self.is_plain_mcap:
-                from mcap.reader import make_reader
-
                 try:
                     with open(self.files[0], "rb") as fh:
                         summary = make_reader(fh).get_summary()
@@ -454,8 +454,6 @@ def _merge_by_time(batches: list[MessageBatch]) -> MessageBatch:
 def bag_fingerprint(path: str | os.PathLike) -> str:
     """SHA-256 of a bag's content (metadata.yaml and its data files, in the order the
     metadata lists them): tells whether a bag is still the one a model was made from."""
-    import hashlib
-
     path = Path(path)
     digest = hashlib.sha256()
     with BagReader(path) as reader:

@@ -10,12 +10,20 @@ import json
 import sys
 from pathlib import Path
 
+from egovib_ros.cli.evaluate import calibration_bag
 from egovib_ros.cli.options import (
     QUIET_HELP,
     adapt_options,
     adapt_settings,
     float_in,
     nonneg_float,
+)
+from egovib_ros.core import NoiseModel
+from egovib_ros.errors import ConfigError
+from egovib_ros.evaluation.contacts import (
+    check_detect_method,
+    detect_bag,
+    detection_threshold_needs_data,
 )
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
 
@@ -78,14 +86,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from egovib_ros.cli.evaluate import calibration_bag
-    from egovib_ros.core import NoiseModel
-    from egovib_ros.evaluation.contacts import (
-        check_detect_method,
-        detect_bag,
-        detection_threshold_needs_data,
-    )
-
     kind = "file" if Path(args.out).suffix.lower() == ".csv" else "json"
     prepare_output(
         args.out,
@@ -107,8 +107,6 @@ def run(args: argparse.Namespace) -> int:
     ):
         calibration = calibration_bag(args.calibration, model, thresholds_from_run=False)
         if calibration is None:
-            from egovib_ros.errors import ConfigError
-
             raise ConfigError(
                 f"{args.model}: no threshold for {method} and no calibration bag stored in the "
                 f"model; give --calibration BAG (no-contact data) or --threshold"

@@ -55,7 +55,7 @@ def _load_kernel():
     streaming path calls the kernel directly when it is present and gives the same
     result as the public function (checked here); otherwise it falls back to sosfilt."""
     try:
-        from scipy.signal._sosfilt import _sosfilt
+        from scipy.signal._sosfilt import _sosfilt  # deferred: private, absent in some builds
     except ImportError:  # pragma: no cover - depends on the scipy build
         return None
     sos = signal.butter(2, [0.1, 0.3], btype="bandpass", output="sos")
@@ -80,7 +80,7 @@ def _load_linear_filter():
     a few samples runs ten filters): used when present and equal to the public function
     (checked here), else lfilter."""
     try:
-        from scipy.signal._sigtools import _linear_filter
+        from scipy.signal._sigtools import _linear_filter  # deferred: private, as above
     except ImportError:  # pragma: no cover - depends on the scipy build
         return None
     b, a = signal.butter(2, 0.2)

@@ -46,6 +46,7 @@ from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
+from scipy.ndimage import median_filter
 
 from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
 
@@ -191,8 +192,6 @@ def _window_spectra(
     the running median over ~1/6 of the band, or, where higher, the mean spectrum of the
     windows in which no joint moves (lines that are there at rest - a fan's hum - are
     background, whatever the joints do). Returns (window starts, (W, F) log ratios, freqs)."""
-    from scipy.ndimage import median_filter
-
     hop = window // 2
     starts = np.arange(0, len(x) - window + 1, hop)
     taper = np.hanning(window)
@@ -268,7 +267,7 @@ def _strongest_lines(
     return out, curves
 
 
-def fit_harmonic_map(  # noqa: C901 (the fit's numbered steps share their intermediate arrays)
+def fit_harmonic_map(
     x: np.ndarray,
     speed: np.ndarray,
     *,
@@ -296,14 +295,14 @@ def fit_harmonic_map(  # noqa: C901 (the fit's numbered steps share their interm
     ORDERS, relative to the strongest line) that lowers the residual most while it gains
     at least `min_gain_db`, then the best scale of its coefficients (+-10 % in 1 % steps),
     exponent (the frequency at the joint's median speed kept), speed-up lag and slow-down
-    lag; `rounds` times over all joints. At most `max_seconds` of the recording are used
-    (evenly spaced 1 s pieces). Returns (map, info)."""
+    lag; `rounds` times over all joints (`_MapSearch`). At most `max_seconds` of the
+    recording are used (evenly spaced 1 s pieces). Returns (map, info)."""
     x = np.asarray(x, float)
     if x.ndim == 1:
         x = x[:, None]
     speed = np.abs(np.asarray(speed, float))
     fs = float(sample_rate_hz)
-    n, J = speed.shape
+    n = len(speed)
     if len(x) != n:
         raise ConfigError(f"fit_harmonic_map: {len(x)} sensor samples but {n} speed samples")
     settings = settings or CancellerSettings()
@@ -324,14 +323,37 @@ def fit_harmonic_map(  # noqa: C901 (the fit's numbered steps share their interm
     # The refinement runs the canceller on at most `max_seconds` (0.5 s pieces spread over
     # the recording: a sweep keeps every cell).
     keep = _pieces(n, int(max_seconds * fs), int(0.5 * fs))
-    x, speed = np.ascontiguousarray(x[keep]), np.ascontiguousarray(speed[keep])
-    n = len(x)
-    db = 10.0 / math.log(10.0)
-    # The map as lists per joint: orders (relative to the strongest line), coefficient, p, lags.
+    search = _MapSearch(
+        np.ascontiguousarray(x[keep]),
+        np.ascontiguousarray(speed[keep]),
+        sample_rate_hz=fs,
+        band_hz=band_hz,
+        joint_names=tuple(joint_names),
+        min_speed=min_speed,
+        residual_rms=residual_rms,
+        # Without the frequency correction (it would make up for a wrong map and flatten
+        # the cost) nor the guard (it would hide the bursts a wrong map makes).
+        settings=dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0),
+        joints=_first_joints(strongest, curves, min_score_db),
+        min_gain_db=min_gain_db,
+    )
+    search.refine(
+        max_lines_per_joint=max_lines_per_joint, exponents=exponents, lags_s=lags_s, rounds=rounds
+    )
+    return search.result()
+
+
+_DB = 10.0 / math.log(10.0)
+
+
+def _first_joints(strongest, curves, min_score_db: float) -> list[dict]:
+    """The map as lists per joint (what the search changes): orders relative to the
+    strongest line (none where it stands less than `min_score_db` above the floor),
+    coefficient c, exponent p, speed-up and slow-down lags, and the orders worth trying:
+    those whose line stands highest in the same spectra."""
     joints = []
     for j, (score, p, coefficient, _) in enumerate(strongest):
-        has = score * db >= min_score_db
-        # Orders worth trying: those whose line stands highest in the same spectra.
+        has = score * _DB >= min_score_db
         grid, curve = curves[j]
         ranked = []
         for order in ORDERS if has else ():
@@ -346,145 +368,183 @@ def fit_harmonic_map(  # noqa: C901 (the fit's numbered steps share their interm
                 "p": p,
                 "up": 0.02,
                 "down": 0.02,
-                "score": score * db,
+                "score": score * _DB,
                 "candidates": candidates,
             }
         )
-    settle = n // 10
-    # Without the frequency correction (it would make up for a wrong map and flatten the
-    # cost) nor the guard (it would hide the bursts a wrong map makes).
-    fit_settings = dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0)
+    return joints
 
-    def build(js) -> HarmonicMap:
+
+class _MapSearch:
+    """fit_harmonic_map's greedy search: `joints` (per joint: orders, c, p, up, down) are
+    changed where a change lowers the canceller's mean residual power on `x` (the first
+    10 % left out while the trackers settle) by at least `min_gain_db`."""
+
+    def __init__(
+        self,
+        x,
+        speed,
+        *,
+        sample_rate_hz,
+        band_hz,
+        joint_names,
+        min_speed,
+        residual_rms,
+        settings,
+        joints,
+        min_gain_db,
+    ):
+        self.x, self.speed, self.fs, self.band_hz = x, speed, sample_rate_hz, band_hz
+        self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, residual_rms
+        self.settings, self.min_gain_db = settings, min_gain_db
+        self.settle = len(x) // 10
+        self.joints = joints
+        self.evaluations = 0
+        self.current = self.start_cost = self.cost(joints)
+        self.alike = False
+
+    def build(self, joints) -> HarmonicMap:
         lj, lc = [], []
-        for j, d in enumerate(js):
+        for j, d in enumerate(joints):
             lj += [j] * len(d["orders"])
             lc += [o * d["c"] for o in d["orders"]]
         return HarmonicMap(
-            joint_names=tuple(joint_names),
-            exponent=np.array([d["p"] for d in js]),
-            tau_up_s=np.array([d["up"] for d in js]),
-            tau_down_s=np.array([d["down"] for d in js]),
-            min_speed=min_speed,
+            joint_names=self.joint_names,
+            exponent=np.array([d["p"] for d in joints]),
+            tau_up_s=np.array([d["up"] for d in joints]),
+            tau_down_s=np.array([d["down"] for d in joints]),
+            min_speed=self.min_speed,
             line_joint=np.array(lj, np.int64),
             line_coefficient=np.array(lc, float),
             line_score_db=np.zeros(len(lc)),
-            residual_rms=residual_rms,
+            residual_rms=self.residual_rms,
         )
 
-    def cost(js) -> float:
+    def cost(self, joints) -> float:
         canceller = HarmonicCanceller(
-            build(js),
-            sample_rate_hz=fs,
-            band_hz=band_hz,
-            n_channels=x.shape[1],
-            settings=fit_settings,
+            self.build(joints),
+            sample_rate_hz=self.fs,
+            band_hz=self.band_hz,
+            n_channels=self.x.shape[1],
+            settings=self.settings,
         )
-        r = canceller.process(x, speed)[settle:]
+        r = canceller.process(self.x, self.speed)[self.settle :]
         return float(np.mean(r**2)) + 1e-300
 
-    evaluations = 0
-    current = cost(joints)
-    start_cost = current
-    with_lines = [j for j, d in enumerate(joints) if d["orders"]]
-    alike = False
-    if len(with_lines) > 1:
-        # Alike actuators (a multirotor's motors): every joint with the best joint's line.
-        best_j = max(with_lines, key=lambda j: joints[j]["score"])
-        shared = [
-            dict(d, c=joints[best_j]["c"], p=joints[best_j]["p"]) if d["orders"] else dict(d)
-            for d in joints
-        ]
-        value = cost(shared)
-        evaluations += 1
-        if value < current:
-            current, joints, alike = value, shared, True
-    moving = [speed[:, j] > min_speed[j] for j in range(J)]
-    median_speed = [float(np.median(speed[m, j])) if m.any() else 1.0 for j, m in enumerate(moving)]
-
-    def try_all(changes) -> bool:
+    def try_all(self, changes) -> bool:
         """changes: list of {joint: {field: value}}; keep the best if it gains enough."""
-        nonlocal current, joints, evaluations
         best = None
         for change in changes:
-            trial = [dict(d, **change.get(j, {})) for j, d in enumerate(joints)]
-            value = cost(trial)
-            evaluations += 1
+            trial = [dict(d, **change.get(j, {})) for j, d in enumerate(self.joints)]
+            value = self.cost(trial)
+            self.evaluations += 1
             if best is None or value < best[0]:
                 best = (value, trial)
-        if best is not None and db * math.log(current / best[0]) >= min_gain_db:
-            current, joints = best
+        if best is not None and _DB * math.log(self.current / best[0]) >= self.min_gain_db:
+            self.current, self.joints = best
             return True
         return False
 
-    # Alike actuators are refined together first, then each on its own.
-    groups = ([with_lines] if alike else []) + [[j] for j in with_lines]
-    for _ in range(rounds):
-        for group in groups:
-            while max(len(joints[j]["orders"]) for j in group) < max_lines_per_joint:
-                tried = sorted({o for j in group for o in (1.0, *joints[j]["candidates"])})
-                missing = [o for o in tried if all(o not in joints[j]["orders"] for j in group)]
-                if not try_all(
-                    [{j: {"orders": joints[j]["orders"] + [o]} for j in group} for o in missing]
-                ):
-                    break
-            for per, most in ((100, 10), (400, 4)):  # scale: +-10 % by 1 %, then +-1 % by 0.25 %
-                try_all(
-                    [
-                        {j: {"c": joints[j]["c"] * (1 + k / per)} for j in group}
-                        for k in range(-most, most + 1)
-                        if k
-                    ]
-                )
-            # Exponent and scale together (the frequency at the median speed kept, then +-3 %).
-            try_all(
+    def refine(self, *, max_lines_per_joint, exponents, lags_s, rounds) -> None:
+        joints = self.joints
+        with_lines = [j for j, d in enumerate(joints) if d["orders"]]
+        if len(with_lines) > 1:
+            # Alike actuators (a multirotor's motors): every joint with the best joint's line.
+            best_j = max(with_lines, key=lambda j: joints[j]["score"])
+            shared = [
+                dict(d, c=joints[best_j]["c"], p=joints[best_j]["p"]) if d["orders"] else dict(d)
+                for d in joints
+            ]
+            value = self.cost(shared)
+            self.evaluations += 1
+            if value < self.current:
+                self.current, self.joints, self.alike = value, shared, True
+        speed, min_speed = self.speed, self.min_speed
+        moving = [speed[:, j] > min_speed[j] for j in range(speed.shape[1])]
+        median_speed = [
+            float(np.median(speed[m, j])) if m.any() else 1.0 for j, m in enumerate(moving)
+        ]
+        # Alike actuators are refined together first, then each on its own.
+        groups = ([with_lines] if self.alike else []) + [[j] for j in with_lines]
+        for _ in range(rounds):
+            for group in groups:
+                self._add_lines(group, max_lines_per_joint)
+                self._scale(group, median_speed, exponents)
+                self.try_all([{j: {"up": tau} for j in group} for tau in lags_s])
+                self.try_all([{j: {"down": tau} for j in group} for tau in lags_s])
+
+    def _add_lines(self, group, max_lines_per_joint) -> None:
+        """The line order that lowers the residual most, while one does."""
+        joints = self.joints
+        while max(len(joints[j]["orders"]) for j in group) < max_lines_per_joint:
+            tried = sorted({o for j in group for o in (1.0, *joints[j]["candidates"])})
+            missing = [o for o in tried if all(o not in joints[j]["orders"] for j in group)]
+            if not self.try_all(
+                [{j: {"orders": joints[j]["orders"] + [o]} for j in group} for o in missing]
+            ):
+                break
+            joints = self.joints
+
+    def _scale(self, group, median_speed, exponents) -> None:
+        """The coefficients' scale, then the exponent with it (the frequency at the median
+        speed kept, then +-3 %)."""
+        for per, most in ((100, 10), (400, 4)):  # scale: +-10 % by 1 %, then +-1 % by 0.25 %
+            self.try_all(
                 [
-                    {
-                        j: {
-                            "p": p,
-                            "c": joints[j]["c"]
-                            * median_speed[j] ** (joints[j]["p"] - p)
-                            * (1 + k / 200),
-                        }
-                        for j in group
-                    }
-                    for p in exponents
-                    if p != joints[group[0]]["p"]
-                    for k in range(-6, 7)
+                    {j: {"c": self.joints[j]["c"] * (1 + k / per)} for j in group}
+                    for k in range(-most, most + 1)
+                    if k
                 ]
             )
-            try_all([{j: {"up": tau} for j in group} for tau in lags_s])
-            try_all([{j: {"down": tau} for j in group} for tau in lags_s])
-    hmap = build(joints)
+        joints = self.joints
+        self.try_all(
+            [
+                {
+                    j: {
+                        "p": p,
+                        "c": joints[j]["c"]
+                        * median_speed[j] ** (joints[j]["p"] - p)
+                        * (1 + k / 200),
+                    }
+                    for j in group
+                }
+                for p in exponents
+                if p != joints[group[0]]["p"]
+                for k in range(-6, 7)
+            ]
+        )
 
-    def below_input_db(residual: float) -> float:
-        if n <= settle:
+    def _below_input_db(self, residual: float) -> float:
+        if len(self.x) <= self.settle:
             return 0.0
-        return round(db * math.log(float(np.mean(x[settle:] ** 2)) / residual), 2)
+        return round(_DB * math.log(float(np.mean(self.x[self.settle :] ** 2)) / residual), 2)
 
-    info = {
-        "residual_db": below_input_db(current),
-        "start_residual_db": below_input_db(start_cost),
-        "evaluations": evaluations,
-        "seconds_used": round(n / fs, 1),
-        "alike_joints": alike,
-        "joints": {
-            # Orders relative to the joint's lowest line (its "fundamental").
-            joint_names[j]: {
-                "orders": sorted(round(o / min(d["orders"]), 4) for o in d["orders"])
-                if d["orders"]
-                else [],
-                "coefficient_hz": round(d["c"] * min(d["orders"]), 2) if d["orders"] else None,
-                "exponent": d["p"],
-                "tau_up_ms": 1e3 * d["up"],
-                "tau_down_ms": 1e3 * d["down"],
-                "strongest_line_db": round(d["score"], 1),
-            }
-            for j, d in enumerate(joints)
-        },
-    }
-    scores = np.concatenate([[d["score"]] * len(d["orders"]) for d in joints])
-    return dataclasses.replace(hmap, line_score_db=scores), info
+    def result(self) -> tuple[HarmonicMap, dict]:
+        """(the map, what the search found)."""
+        joints, names = self.joints, self.joint_names
+        info = {
+            "residual_db": self._below_input_db(self.current),
+            "start_residual_db": self._below_input_db(self.start_cost),
+            "evaluations": self.evaluations,
+            "seconds_used": round(len(self.x) / self.fs, 1),
+            "alike_joints": self.alike,
+            "joints": {
+                # Orders relative to the joint's lowest line (its "fundamental").
+                names[j]: {
+                    "orders": sorted(round(o / min(d["orders"]), 4) for o in d["orders"])
+                    if d["orders"]
+                    else [],
+                    "coefficient_hz": round(d["c"] * min(d["orders"]), 2) if d["orders"] else None,
+                    "exponent": d["p"],
+                    "tau_up_ms": 1e3 * d["up"],
+                    "tau_down_ms": 1e3 * d["down"],
+                    "strongest_line_db": round(d["score"], 1),
+                }
+                for j, d in enumerate(joints)
+            },
+        }
+        scores = np.concatenate([[d["score"]] * len(d["orders"]) for d in joints])
+        return dataclasses.replace(self.build(joints), line_score_db=scores), info
 
 
 # --------------------------------------------------------------------------------------
@@ -599,7 +659,10 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     louder). See the module docstring. With `w` (n, C) (else an empty array): the same
     channels unfiltered (gravity and slow motion taken out), in which the same lines are
     tracked by weights of their own (`weights_w`, `spread2_w`) on the same references:
-    raw_lines[i, c] = the lines as the unfiltered signal carries them, scaled as `out`'s."""
+    raw_lines[i, c] = the lines as the unfiltered signal carries them, scaled as `out`'s.
+
+    One function: numba compiles it into one pass per sample over every line and channel,
+    no call per sample."""
     n, C = x.shape
     J = speed.shape[1]
     L = line_coef.shape[0]

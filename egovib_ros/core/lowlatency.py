@@ -263,7 +263,10 @@ def _gain_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     gains, with no look-ahead (`out_v`): the drop-in output's unfiltered counterpart of
     the band-passed residual, given already `D` samples late. power_scale (n,), or an empty
     array: each sample's expected noise powers are multiplied by it (a level change over
-    time, the gap diagnosis's drift advice)."""
+    time, the gap diagnosis's drift advice).
+
+    One function: numba compiles it into one pass per sample over every channel and band,
+    the state in local variables, no call per sample (what makes 3 kHz cheap in Python)."""
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1

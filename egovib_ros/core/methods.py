@@ -560,7 +560,10 @@ def calibrate_methods(
     3. The gain stage runs over the residual: `bias` = mean log of band power over the
        table's prediction; `alpha` = the `opening_quantile` of that ratio once corrected.
     `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
-    instead of fitting one."""
+    instead of fitting one.
+
+    One function: its numbered steps hand the recording's band-passed arrays and each
+    stage's residual to the next, in this order (each stage's fit is a function of its own)."""
     canceller = canceller or CancellerSettings()
     split = _split(model, accel)
     if gain is None and split is not None:
@@ -749,6 +752,8 @@ class SampleMethodDenoiser(FramedDenoiser):
         source: str = "",
         adapt: AdaptSettings | None = None,
     ):
+        """The stages the model's extras describe (framer, canceller, split, gain,
+        adaptation). One function: each stage's settings come from the ones built before it."""
         if check_method(method) == "paper":
             raise ConfigError(
                 "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"

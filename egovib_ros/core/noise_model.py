@@ -42,7 +42,7 @@ import numpy as np
 from egovib_ros import __version__
 from egovib_ros.core.blocks import WINDOW_NAME, analysis_window, n_bins, validate_blocking
 from egovib_ros.errors import ConfigError, ModelFileError
-from egovib_ros.robot import RobotProfile
+from egovib_ros.robot import RobotProfile, default_profile
 
 LOG = logging.getLogger("egovib_ros.core")
 
@@ -237,8 +237,6 @@ class NoiseModel:
     def _derived_profile(self) -> RobotProfile | None:
         """A profile for a model built without one: the PR2 hand's when it is the PR2 grid,
         else generic topics if the grid is a profile grid (uniform, symmetric or from 0)."""
-        from egovib_ros.robot import default_profile
-
         try:
             pr2 = default_profile()
         except ConfigError:

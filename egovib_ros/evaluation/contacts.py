@@ -34,6 +34,7 @@ from egovib_ros.core.contact import (
     DetectionEnvelope,
     no_contact_threshold,
 )
+from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.methods import (
     DETECTOR_BUDGET,
     EDGE_S,
@@ -45,6 +46,8 @@ from egovib_ros.core.methods import (
 )
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
+from egovib_ros.evaluation.detection import match_events, scores_of
+from egovib_ros.evaluation.metrics import segment_contacts
 
 DETECT_METHODS = (*METHODS, "raw")
 TOLERANCE_S = 0.010  # a detection within this of a true onset is a true positive
@@ -296,9 +299,6 @@ def score_events(events, stamps, contact, model: NoiseModel, result: Detection) 
     """F1 and false alarms per minute against the ground truth's tap onsets (+-10 ms), and
     the latency from each detected tap's true onset to its event's report (with the
     method's delay: when a live system would publish it)."""
-    from egovib_ros.core.filters import combined_bandpassed
-    from egovib_ros.evaluation.detection import match_events, scores_of
-    from egovib_ros.evaluation.metrics import segment_contacts
 
     reference = combined_bandpassed(contact, model.robot_profile())
     onsets = stamps[segment_contacts(reference, sample_rate_hz=model.sample_rate_hz).onsets]

@@ -24,6 +24,13 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize, signal
 
+from egovib_ros.core.contact import (
+    BURST_S,
+    THRESHOLD_MARGIN,
+    ContactDetector,
+    ContactSettings,
+)
+
 REFRACTORY_S = 0.05
 TOLERANCE_S = 0.010
 ONSET_FRACTION = 0.25  # onset = first sample at 25 % of the event's peak envelope
@@ -345,8 +352,6 @@ class OnsetStream:
     come is at or after this sample."""
 
     def __init__(self, threshold: float, model):
-        from egovib_ros.core.contact import ContactDetector, ContactSettings
-
         self.threshold = float(threshold)
         self.detector = ContactDetector(
             ContactSettings.for_model(model, self.threshold), prefiltered=True
@@ -380,8 +385,6 @@ class ThresholdReducer:
     rose above it)."""
 
     def __init__(self, *, sample_rate_hz: float, false_alarms_per_min: float):
-        from egovib_ros.core.contact import BURST_S
-
         self.fs = float(sample_rate_hz)
         self.budget = float(false_alarms_per_min)
         self.share = min(self.budget * BURST_S / 60.0, 0.5)
@@ -402,8 +405,6 @@ class ThresholdReducer:
         self.top = merged
 
     def threshold(self) -> float:
-        from egovib_ros.core.contact import THRESHOLD_MARGIN
-
         if not self.count:
             raise ValueError("no calibration samples to set a detection threshold from")
         if self.share <= 0:

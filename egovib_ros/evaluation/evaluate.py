@@ -188,6 +188,21 @@ def _method_result(run: streaming.EvaluationPass, key: str, label: str, delay, m
     return result
 
 
+#: The detection rule, in words, for the report.
+DETECTION_RULE = {
+    "detector": "core.contact.ContactDetector (egovib detect, contact_detector)",
+    "envelope": f"causal RMS over {contact.ENVELOPE_S * 1e3:g} ms",
+    "refractory_s": contact.REFRACTORY_S,
+    "onset": f"first sample at {contact.ONSET_FRACTION:g} of the peak within 10 ms of the crossing",
+    "tolerance_s": detection.TOLERANCE_S,
+    "threshold": (
+        f"{contact.THRESHOLD_MARGIN} x the no-contact envelope's level exceeded "
+        f"{contact.BURST_S * 1e3:g} ms a minute "
+        f"({contact.FALSE_ALARMS_PER_MIN:g} false alarm a minute)"
+    ),
+}
+
+
 def _report(
     run: streaming.EvaluationPass,
     model: NoiseModel,
@@ -256,19 +271,7 @@ def _report(
             "detection": {
                 "raw_bandpassed": raw_detection,
                 **pr2,
-                "rule": {
-                    "detector": "core.contact.ContactDetector (egovib detect, contact_detector)",
-                    "envelope": f"causal RMS over {contact.ENVELOPE_S * 1e3:g} ms",
-                    "refractory_s": contact.REFRACTORY_S,
-                    "onset": f"first sample at {contact.ONSET_FRACTION:g} of the peak within "
-                    f"10 ms of the crossing",
-                    "tolerance_s": detection.TOLERANCE_S,
-                    "threshold": (
-                        f"{contact.THRESHOLD_MARGIN} x the no-contact envelope's level exceeded "
-                        f"{contact.BURST_S * 1e3:g} ms a minute "
-                        f"({contact.FALSE_ALARMS_PER_MIN:g} false alarm a minute)"
-                    ),
-                },
+                "rule": DETECTION_RULE,
             },
             "methods": per_method,
         }

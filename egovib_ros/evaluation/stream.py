@@ -42,6 +42,7 @@ no-contact magnitudes (for the 99.9 % quantile: 8 bytes per 1000 samples and sig
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
@@ -49,7 +50,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from scipy import signal
 
-from egovib_ros.bag.recording import bag_topic_names
+from egovib_ros.bag.recording import bag_topic_names, concat_recordings
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
@@ -937,7 +938,6 @@ def rechunk(pieces: Iterable, samples: int) -> Iterator:
     """The same recording in slices of `samples` sensor samples (the last one shorter).
     Joint states and denoised messages go with the first slice cut after they arrived
     (ahead of their samples, as the streaming consumers allow)."""
-    from egovib_ros.bag.recording import concat_recordings
 
     samples = max(int(samples), 1)
     held = []
@@ -955,7 +955,6 @@ def rechunk(pieces: Iterable, samples: int) -> Iterator:
 
 
 def _cut(rec, a: int, b: int, *, first: bool):
-    import dataclasses
 
     changes = {
         "sensor_stamps_ns": rec.sensor_stamps_ns[a:b],

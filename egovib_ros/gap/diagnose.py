@@ -434,6 +434,9 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     tested against the baseline (`_candidates`), the first effect (`_verdict`); then the
     forward selection (`_select_more`): each remaining candidate on top of the effects
     found so far, tested against them, until none is significant.
+
+    One function: it is the order of the steps above, each a function of its own, passing
+    the splits, fits and tests along into the Diagnosis.
     """
     o = options or DiagnosisOptions()
     folds, train_fraction = o.folds, o.train_fraction

@@ -132,6 +132,20 @@ def applied_advice(rec, model, diag: Diagnosis, *, source: str) -> dict:
     return measure_advice(rec, model, diag, settings, joint_order(model, rec.joint_names, source))
 
 
+def _input_notes(table, notices: list[str], model) -> dict:
+    """report.json's inputs: the bad input counted, the notices, what the model was
+    calibrated on (our simulator: a sim-to-real gap; or a recording)."""
+    return {
+        "bad_input": {
+            k: (round(v, 6) if isinstance(v, float) else int(v))
+            for k, v in table.bad_input.items()
+            if isinstance(v, (int, float))
+        },
+        "notices": notices,
+        "model_kind": "simulator" if model_matches_simulator(model) else "recording",
+    }
+
+
 def run_gap(
     model_path: str | Path,
     real_path: str | Path,
@@ -171,14 +185,14 @@ def run_gap(
     options = dataclasses.replace(options or DiagnosisOptions(), reference_lag_s=lag)
     # streamed: the sensor samples are framed slice by slice, never held whole; a thinned
     # bag keeps the joint states near its blocks, as far as the lags tried reach
+    max_lag_s = max(
+        JOINT_MARGIN_S, abs(lag) + max(LAG_RANGE_S, options.lag_tolerance_s) + LAG_COARSE_S
+    )
     table = table_from_bag(
         real_path,
         model,
         budget_minutes=budget_minutes,
-        max_lag_s=max(
-            JOINT_MARGIN_S,
-            abs(lag) + max(LAG_RANGE_S, options.lag_tolerance_s) + LAG_COARSE_S,
-        ),
+        max_lag_s=max_lag_s,
         progress=progress,
     )
     notices = input_notices(table, budget_minutes)
@@ -189,10 +203,7 @@ def run_gap(
             reference_path,
             model,
             budget_minutes=budget_minutes,
-            max_lag_s=max(
-                JOINT_MARGIN_S,
-                abs(lag) + max(LAG_RANGE_S, options.lag_tolerance_s) + LAG_COARSE_S,
-            ),
+            max_lag_s=max_lag_s,
         )
         notices += [
             f"reference {reference_path}: {n}" for n in input_notices(reference, budget_minutes)
@@ -224,16 +235,7 @@ def run_gap(
         if change is not None:
             report.update(change_report(change, reference=str(reference_path)))
             report["inputs"]["reference"] = str(reference_path)
-        report["inputs"]["bad_input"] = {
-            k: (round(v, 6) if isinstance(v, float) else int(v))
-            for k, v in table.bad_input.items()
-            if isinstance(v, (int, float))
-        }
-        report["inputs"]["notices"] = notices
-        # what the model was calibrated on: our simulator (a sim-to-real gap), or a recording
-        report["inputs"]["model_kind"] = (
-            "simulator" if model_matches_simulator(model) else "recording"
-        )
+        report["inputs"].update(_input_notes(table, notices, model))
         report["runtime_s"] = round(time.perf_counter() - start, 2)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
         (tmp / "report.md").write_text(render_markdown(report))

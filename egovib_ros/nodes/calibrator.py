@@ -321,7 +321,7 @@ class Calibrator(Node):
         beside it (methods cancel and hybrid with `methods: all`, the contact detector's
         thresholds), so the model feeds the denoiser's default method and the
         contact_detector alone. What was fitted, in words (or why not)."""
-        from egovib_ros.core.methods import (  # numba: compiled at shutdown, not at start
+        from egovib_ros.core.methods import (  # deferred: numba compiles at shutdown, not at start
             calibrate_detection,
             calibrate_methods,
         )

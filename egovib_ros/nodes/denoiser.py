@@ -626,6 +626,15 @@ class Denoiser(Node):
         missing = inp.missing_joints_error("cannot denoise, publishing nothing")
         if missing:
             errors.append(missing)
+        warnings = self._warnings(grown, unit, fractions, coverage_warn, joint_rate_hz)
+        stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
+        self.health.publish(
+            errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values
+        )
+
+    def _warnings(self, grown, unit, fractions, coverage_warn, joint_rate_hz) -> list[str]:
+        """The /diagnostics warnings of one report: what grew since the last one."""
+        inp = self.input
         warnings = []
         if inp.joint_messages == 0 and inp.sensor_messages > 0:
             warnings.append(
@@ -659,10 +668,7 @@ class Denoiser(Node):
                 f"{self.coverage.share:.0%} of {unit} in the last {COVERAGE_WINDOW_S:g} s on "
                 f"cells the calibration did not measure"
             )
-        stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
-        self.health.publish(
-            errors=errors, stale=stale, warnings=warnings, ok="denoising", values=values
-        )
+        return warnings
 
     def _joint_rate_note(self, rate_hz: float) -> str:
         """Why samples go without joint state when the joint states come too seldom: each is

@@ -516,68 +516,82 @@ def summary_markdown(
     for key, value in model.provenance.items():
         if key != "path" and str(value):
             rows.append(f"| provenance: {key} | {str(value).replace('|', '/')} |")
-    learnt = describe_learnt(model)
-    if learnt is not None:
-        rows += ["", "## Learnt online", "", _learnt_line(learnt) + "."]
-        if learnt.get("cells") is not None and len(learnt["cells"]):
-            rows += [
-                "",
-                "The residual table's cells (methods cancel and hybrid) that adaptation "
-                "learnt while no contact was detected; a cell the calibration never measured "
-                "started from the model's fill there. Those cells replace the table's value "
-                "at their grid point.",
-                "",
-                "| cell (joint velocities) | blocks learnt | calibrated before |",
-                "|---|---|---|",
-            ]
-            order = np.argsort(-learnt["blocks"])[:20]
-            for k in order.tolist():
-                speeds = ", ".join(
-                    f"{model.grid[j][i]:.3g}" for j, i in enumerate(learnt["cells"][k].tolist())
-                )
-                rows.append(
-                    f"| {speeds} | {int(learnt['blocks'][k])} | "
-                    f"{'no' if learnt['new'][k] else 'yes'} |"
-                )
-            if len(learnt["cells"]) > len(order):
-                rows.append(f"| ... {len(learnt['cells']) - len(order)} more | | |")
-    if placement is not None:
-        s = placement.shares()
-        rows += [
-            "",
-            f"## Recording `{placement.bag}`",
-            "",
-            "Blocks framed as the denoiser frames them; each goes to the grid cell nearest its "
-            "mean joint velocity.",
-            "",
-            "| | blocks | share |",
-            "|---|---|---|",
-            f"| on measured cells | {s['blocks_measured']} | {100 * s['share_measured']:.1f} % |",
-            f"| on unmeasured cells, Eq. 6 | {s['blocks_eq6']} | {100 * s['share_eq6']:.1f} % |",
-            f"| on unmeasured cells, nearest measured cell | {s['blocks_nearest']} | "
-            f"{100 * s['share_nearest']:.1f} % |",
-            f"| beyond the grid (edge cells used) | {s['blocks_outside']} | "
-            f"{100 * s['share_outside']:.1f} % |",
-            "| **outside the calibrated speeds** ("
-            + (
-                "nearest measured cell + beyond: Eq. 6 is the design of a superposition model"
-                if model.measured == "superposition"
-                else "unmeasured + beyond"
-            )
-            + f") | {s['blocks_outside_calibrated']} | "
-            f"**{100 * s['share_outside_calibrated']:.1f} %** |",
-            f"| without a joint state (not placed) | {s['blocks_no_joint_state']} | |",
-            "",
-            placement.input_counts,
-        ]
-        if model.measured == "superposition":
-            rows += [
-                "",
-                "A superposition sweep measures only the cells where at most one joint moves; "
-                "every other cell comes from Eq. 6 by design.",
-            ]
+    rows += _learnt_rows(model) + _placement_rows(model, placement)
     rows += ["", "Figures: " + ", ".join(f"[{f}]({f})" for f in figures), ""]
     return "\n".join(rows)
+
+
+def _learnt_rows(model) -> list[str]:
+    """The summary's section on what adaptation learnt online (none: no rows)."""
+    learnt = describe_learnt(model)
+    if learnt is None:
+        return []
+    rows: list[str] = []
+    rows += ["", "## Learnt online", "", _learnt_line(learnt) + "."]
+    if learnt.get("cells") is not None and len(learnt["cells"]):
+        rows += [
+            "",
+            "The residual table's cells (methods cancel and hybrid) that adaptation "
+            "learnt while no contact was detected; a cell the calibration never measured "
+            "started from the model's fill there. Those cells replace the table's value "
+            "at their grid point.",
+            "",
+            "| cell (joint velocities) | blocks learnt | calibrated before |",
+            "|---|---|---|",
+        ]
+        order = np.argsort(-learnt["blocks"])[:20]
+        for k in order.tolist():
+            speeds = ", ".join(
+                f"{model.grid[j][i]:.3g}" for j, i in enumerate(learnt["cells"][k].tolist())
+            )
+            rows.append(
+                f"| {speeds} | {int(learnt['blocks'][k])} | {'no' if learnt['new'][k] else 'yes'} |"
+            )
+        if len(learnt["cells"]) > len(order):
+            rows.append(f"| ... {len(learnt['cells']) - len(order)} more | | |")
+    return rows
+
+
+def _placement_rows(model, placement: "BagPlacement | None") -> list[str]:
+    """The summary's section on where a recording's blocks fall on the grid."""
+    if placement is None:
+        return []
+    rows: list[str] = []
+    s = placement.shares()
+    rows += [
+        "",
+        f"## Recording `{placement.bag}`",
+        "",
+        "Blocks framed as the denoiser frames them; each goes to the grid cell nearest its "
+        "mean joint velocity.",
+        "",
+        "| | blocks | share |",
+        "|---|---|---|",
+        f"| on measured cells | {s['blocks_measured']} | {100 * s['share_measured']:.1f} % |",
+        f"| on unmeasured cells, Eq. 6 | {s['blocks_eq6']} | {100 * s['share_eq6']:.1f} % |",
+        f"| on unmeasured cells, nearest measured cell | {s['blocks_nearest']} | "
+        f"{100 * s['share_nearest']:.1f} % |",
+        f"| beyond the grid (edge cells used) | {s['blocks_outside']} | "
+        f"{100 * s['share_outside']:.1f} % |",
+        "| **outside the calibrated speeds** ("
+        + (
+            "nearest measured cell + beyond: Eq. 6 is the design of a superposition model"
+            if model.measured == "superposition"
+            else "unmeasured + beyond"
+        )
+        + f") | {s['blocks_outside_calibrated']} | "
+        f"**{100 * s['share_outside_calibrated']:.1f} %** |",
+        f"| without a joint state (not placed) | {s['blocks_no_joint_state']} | |",
+        "",
+        placement.input_counts,
+    ]
+    if model.measured == "superposition":
+        rows += [
+            "",
+            "A superposition sweep measures only the cells where at most one joint moves; "
+            "every other cell comes from Eq. 6 by design.",
+        ]
+    return rows
 
 
 # --- figures ---------------------------------------------------------------------------
@@ -595,7 +609,7 @@ def _velocity_ticks(ax, grid: np.ndarray, axis: str) -> None:
 
 def _count_norm(values: np.ndarray):
     """Colour scale of block counts: logarithmic when they span more than a decade."""
-    # deferred like pyplot(): matplotlib loads only when a figure is drawn
+    # deferred: matplotlib loads only when a figure is drawn (as in pyplot())
     from matplotlib.colors import LogNorm, Normalize
 
     low, high = float(np.min(values)), float(np.max(values))
@@ -620,7 +634,7 @@ def coverage_figure(model, path: Path) -> None:
 def _coverage_map(model, c: dict, index: CellIndex, title: str, path: Path) -> None:
     """Two joints: blocks per measured cell on the grid, the unmeasured cells marked by how
     the model fills them, the cells too thin for a std ringed."""
-    # deferred like pyplot(): matplotlib loads only when a figure is drawn
+    # deferred: matplotlib loads only when a figure is drawn (as in pyplot())
     from matplotlib.lines import Line2D
 
     plt = pyplot()
@@ -775,7 +789,7 @@ def bag_figure(model, placement: BagPlacement, path: Path) -> None:
 def _bag_map(model, placement: BagPlacement, s: dict):
     """Two joints: the recording's blocks per cell, the measured cells outlined, the blocks
     beyond the grid as points; (figure, the axes for the shares bar)."""
-    # deferred like pyplot(): matplotlib loads only when a figure is drawn
+    # deferred: matplotlib loads only when a figure is drawn (as in pyplot())
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
 
