@@ -168,10 +168,14 @@ def test_hybrid_removes_the_motors_and_keeps_the_taps_within_5_ms(model):
     st.sampled_from(["cancel", "hybrid"]),
     st.lists(st.integers(min_value=1, max_value=900), min_size=1, max_size=8),
     st.sampled_from(["per_axis", "combined"]),
+    st.booleans(),
 )
 # a chunk ending just before the gap: the segment's end must still release the look-ahead
-@example("hybrid", [1, 1, 298, 900], "per_axis")
-def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
+@example("hybrid", [1, 1, 298, 900], "per_axis", False)
+@example("hybrid", [6, 6, 6, 6, 6, 6, 900], "per_axis", True)
+def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels, together):
+    """Pushed apart, or (`together`, as the denoiser node does) each sensor chunk with
+    the joint states that came with it, in one `push`."""
     rec = recording(3.0, seed=3, taps_per_s=2.0)
     keep = np.ones(len(rec["t"]), bool)
     keep[1200:1230] = False  # a long gap: the segment ends and restarts
@@ -184,14 +188,19 @@ def test_streaming_equals_batch_for_any_chunking(model, method, cuts, channels):
     got_t, got, j_pos, start = [], [], 0, 0
     for stop in np.unique(edges):
         limit = int(np.searchsorted(rec["tj"], t[stop - 1] + 21_000_000, side="right"))
-        for a in range(j_pos, limit, 7):  # joint states in small batches
+        last = j_pos + (limit - j_pos - 1) // 7 * 7 if together and limit > j_pos else limit
+        for a in range(j_pos, last, 7):  # joint states in small batches
             chunk = denoiser.push_joint_states(
                 rec["tj"][a : min(a + 7, limit)], rec["velocity"][a : min(a + 7, limit)]
             )
             got_t.append(chunk.stamps_ns)
             got.append(chunk.values)
         j_pos = max(j_pos, limit)
-        chunk = denoiser.push_sensor(t[start:stop], accel[start:stop])
+        if last < limit:  # the last batch of joint states with the samples
+            jt, jv = rec["tj"][last:limit], rec["velocity"][last:limit]
+            chunk = denoiser.push(jt, jv, t[start:stop], accel[start:stop])
+        else:
+            chunk = denoiser.push_sensor(t[start:stop], accel[start:stop])
         got_t.append(chunk.stamps_ns)
         got.append(chunk.values)
         start = stop

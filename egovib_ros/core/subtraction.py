@@ -169,6 +169,19 @@ class FramedDenoiser:
         self._framer.push_sensor(stamps_ns, accel)
         return self._process(self._pop())
 
+    def push(
+        self,
+        joint_stamps_ns: np.ndarray,
+        joint_velocity: np.ndarray,
+        stamps_ns: np.ndarray,
+        accel: np.ndarray,
+    ) -> DenoisedChunk:
+        """push_joint_states then push_sensor, what both release processed in one pass (a
+        live node's batch: the samples its new joint states release and the new ones)."""
+        self._framer.push_joint_states(joint_stamps_ns, joint_velocity)
+        self._framer.push_sensor(stamps_ns, accel)
+        return self._process(self._pop())
+
     def flush(self) -> DenoisedChunk:
         self._framer.flush()
         return self._process(self._pop())

@@ -50,7 +50,7 @@ from egovib_ros.core.adapt import AdaptSettings
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import METHODS, make_denoiser, resolve_method
 from egovib_ros.core.stream import RateWatch
-from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION, DenoisedChunk
+from egovib_ros.core.subtraction import MAX_FLOOR, MAX_OVERSUBTRACTION
 from egovib_ros.errors import ConfigError, EgovibError, RateError
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.nodes.common import (
@@ -436,45 +436,50 @@ class Denoiser(Node):
             self._update_held_back()
 
     def _process(self) -> None:
-        """Decode what arrived, push joint states first (they cover the new blocks), publish."""
+        """Decode what arrived; joint states first (they cover the new samples) and the
+        samples in one pass of the core; publish."""
         self._last_input = time.monotonic()
         self._flushed = False
-        released = self._push_joints()
+        joints = self._take_joints()
         batch = self.input.take_sensor()
-        if batch is not None and len(batch.stamps_ns):
-            if self.stream_error is not None:  # the core refuses this stream
-                self.samples_withheld += len(batch.stamps_ns)
-                if self._rate_watch is not None and self._rate_watch.push(batch.stamps_ns):
-                    self._restart()  # its rate is back: from the next batch on
-                return
+        if batch is None or not len(batch.stamps_ns):
+            released = None if joints is None else self.denoiser.push_joint_states(*joints)
+        elif self.stream_error is not None:  # the core refuses this stream
+            if joints is not None:
+                self.denoiser.push_joint_states(*joints)
+            self.samples_withheld += len(batch.stamps_ns)
+            if self._rate_watch is not None and self._rate_watch.push(batch.stamps_ns):
+                self._restart()  # its rate is back: from the next batch on
+            return
+        else:
             self.held.add(batch.stamps_ns, batch.raws, batch.arrival_ns)
+            none = (np.zeros(0, np.int64), np.zeros((0, self.model.n_joints)))
             try:
-                chunk = self.denoiser.push_sensor(batch.stamps_ns, batch.values)
+                released = self.denoiser.push(*(joints or none), batch.stamps_ns, batch.values)
             except EgovibError as exc:
                 self._refuse(str(exc), rate=isinstance(exc, RateError))
                 return
-            if released is not None and len(released):  # one publish pass for both
-                chunk = DenoisedChunk(
-                    np.concatenate([released.stamps_ns, chunk.stamps_ns]),
-                    np.concatenate([released.values, chunk.values]),
-                )
-            released = chunk
         self._publish(released)
         self._update_held_back()
 
     def _process_joints(self) -> None:
         self._publish(self._push_joints())
 
-    def _push_joints(self, *, final: bool = False):
-        """Joint states received so far into the core; the output they release (or None).
-        `final`: the input has gone quiet, the last stamp's held joint states go in too."""
+    def _take_joints(self, *, final: bool = False):
+        """(stamps, velocity) of the joint states received so far, or None.
+        `final`: the input has gone quiet, the last stamp's held joint states come too."""
         batch = self.input.take_joints(final=final)
         # Output is withheld while any named joint is missing, also while joint states
         # arrive and none decodes (no row at all).
         self.missing_joints = self.input.missing_joints()
         if batch is None or not len(batch.stamps_ns):
             return None
-        return self.denoiser.push_joint_states(batch.stamps_ns, batch.velocity)
+        return batch.stamps_ns, batch.velocity
+
+    def _push_joints(self, *, final: bool = False):
+        """Joint states received so far into the core; the output they release (or None)."""
+        joints = self._take_joints(final=final)
+        return None if joints is None else self.denoiser.push_joint_states(*joints)
 
     def _refuse(self, reason: str, *, rate: bool = False) -> None:
         """The core refused the stream (e.g. its rate does not fit the model): publish nothing;
