@@ -133,3 +133,38 @@ def test_the_lag_advice_applied_with_the_core_is_scored_like_for_like(caplog):
     assert out["with"]["blocks_no_joint_state"] + out["without"]["blocks_no_joint_state"] > 0
     assert 0 < out["scored_samples"] < len(test.sensor)
     assert out["gain_db"] > 0.3, out
+
+
+@pytest.mark.parametrize("gain_db", [0.8, -0.85])
+def test_flags_that_cost_the_users_model_are_said_not_to_apply(gain_db):
+    """Measured with the user's model and its default method (measure_advice): a flag that
+    lowers held-out noise reduction (the untouched real flight's joint lag with hybrid:
+    -0.85 dB) is shown with its measurement and the advice not to apply it with that method."""
+    applied = {
+        "method": "hybrid",
+        "applied_text": "joint lag -0.032 s (fitted on the first 60 %)",
+        "noise_reduction_without_db": 20.0,
+        "noise_reduction_with_db": 20.0 + gain_db,
+        "gain_db": gain_db,
+        "heldout": "scored on the last 40 % (40 s), no-contact blocks",
+        "recommended": gain_db > 0,
+    }
+    advice = {
+        "effect": "timing",
+        "effects": [{"effect": "timing", "action": "set the joint lag"}],
+        "action": "set the joint lag",
+        "settings": {"joint_lag_s": -0.032},
+        "commands": {"denoise": "egovib denoise BAG --model M --out OUT --joint-lag -0.032"},
+        "lag_convention": "negative: the joint states lead",
+        "denoiser": {
+            "noise_reduction_without_db": 1.0,
+            "noise_reduction_with_db": 2.0,
+            "gain_db": 1.0,
+        },  # fmt: skip
+        "applied": applied,
+        "unexplained": {"above_floor_db": 0.5, "share_of_baseline_excess": 0.2},
+    }
+    text = "\n".join(first_lines(advice))
+    assert ("do not apply them with this method" in text) == (gain_db < 0)
+    assert ("not with `hybrid`" in text) == (gain_db < 0)
+    assert f"({gain_db:+.2f} dB;" in text and "--joint-lag -0.032" in text

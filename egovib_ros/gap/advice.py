@@ -343,19 +343,31 @@ def first_lines(advice: dict) -> list[str]:
     else:
         lines = [f"**What to do:** {advice['action']}."]
     cmds = advice.get("commands") or {}
+    applied = advice.get("applied")
+    costs = bool(applied) and applied.get("recommended") is False
     if cmds:
-        lines.append("**All corrections together:**")
+        lines.append(
+            f"**All corrections together** (not with `{applied['method']}`, this model's "
+            "default method: measured below, they cost it held-out noise reduction):"
+            if costs
+            else "**All corrections together:**"
+        )
         lines += ["```sh"] + list(cmds.values()) + ["```"]
     if advice.get("settings", {}).get("joint_lag_s") is not None:
         lines.append(f"*Sign of the joint lag:* {advice.get('lag_convention', LAG_CONVENTION)}.")
-    applied = advice.get("applied")
     if applied and applied.get("noise_reduction_with_db") is not None:
         lines.append(
             f"**Applied together, measured:** the model as given, its default method "
             f"`{applied['method']}`, with {applied['applied_text']}: held-out noise reduction "
             f"{applied['noise_reduction_without_db']:.2f} dB without, "
             f"{applied['noise_reduction_with_db']:.2f} dB with ({applied['gain_db']:+.2f} dB; "
-            f"{applied['heldout']})."
+            f"{applied['heldout']})"
+            + (
+                ": do not apply them with this method (what the model's own fit already follows, "
+                "e.g. the canceller's lags, the flags would correct twice)."
+                if costs
+                else "."
+            )
         )
     elif applied and applied.get("note"):
         lines.append(f"**Applied together:** {applied['note']}.")
@@ -620,4 +632,5 @@ def measure_advice(
         )
     out["scored_samples"] = int(keep.sum())
     out["gain_db"] = round(out["noise_reduction_with_db"] - out["noise_reduction_without_db"], 3)
+    out["recommended"] = out["gain_db"] > 0  # what it gave the user's model, held out
     return out
