@@ -20,13 +20,14 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 	touch $(STAMP)
 
 # The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests one at
-# a time: they measure stream timing and must not share the cores with a parallel test.
+# a time: they measure stream timing and must not share the cores with a parallel test. The
+# slowest of each are listed (--durations): where a faster suite starts.
 # One BLAS thread per worker: two workers already fill the two cores, and the gap baseline's
 # many small per-bin solves run ~20x slower when OpenBLAS threads contend for them.
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
-	$(PY) -m pytest -q -p no:cacheprovider -n 2 -m "not nodes" test; a=$$?; \
-	$(PY) -m pytest -q -p no:cacheprovider -m nodes test; b=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider --durations=15 -n 2 -m "not nodes" test; a=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -m nodes test; b=$$?; \
 	test $$a -eq 0 && test $$b -eq 0
 
 # The edit loop: the fast tests (no node test, no test file marked `slow` in
