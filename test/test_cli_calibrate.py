@@ -121,3 +121,15 @@ def test_one_bag_given_twice_is_refused_not_counted_twice(sim_bags, tmp_path):
         result = egovib("calibrate", *args, "--out", tmp_path / "m.npz", "--quiet")
         assert result.returncode == 2 and "given twice" in result.stderr, result.stderr
         assert not (tmp_path / "m.npz").exists()
+
+
+def test_quiet_still_says_the_cells_a_sweep_left_without_a_block(sim_bags, tmp_path):
+    """--quiet drops the progress and the summary, not the warnings (options.QUIET_HELP): a
+    superposition sweep calibrated as a full grid leaves most of that grid to the fill."""
+    args = ("calibrate", sim_bags / "sweep", "--grid", "full")
+    loud = egovib(*args, "--out", tmp_path / "loud.npz")
+    quiet = egovib(*args, "--out", tmp_path / "quiet.npz", "--quiet")
+    assert loud.returncode == 0 and quiet.returncode == 0, quiet.stderr
+    warning = [line for line in loud.stderr.splitlines() if line.startswith("warning:")]
+    assert warning and "of the full grid have no block" in warning[0]
+    assert quiet.stderr.splitlines() == warning  # that, and nothing else

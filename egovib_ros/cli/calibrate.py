@@ -151,7 +151,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
             f"{describe_thresholds(fitted['thresholds'])}",
             file=sys.stderr,
         )
-    if args.quiet:  # the counts of bad input only, if any (--quiet)
+    if args.quiet:  # warnings and the counts of bad input only, if any (--quiet)
+        for line in coverage_lines(model):
+            if line.startswith("warning:"):
+                print(line, file=sys.stderr)
         if len(results) == 1 and has_bad_input(stats):
             print(results[0].value["input_counts"], file=sys.stderr)
         return 0
