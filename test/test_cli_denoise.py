@@ -272,20 +272,23 @@ def test_many_bags_in_parallel_equal_single_runs_and_a_broken_one_is_named(
     assert not inside.exists()
 
 
-def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(sim_bags, tmp_path):
+def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(
+    sim_bags, sim_bags_model, tmp_path
+):
     """A driver that publishes JointState positions only (no velocity): calibrate, denoise
     and evaluate differentiate the positions (profile joints.velocity: auto) and denoise
-    within 0.5 dB of the same run with velocities."""
+    within 0.5 dB of the same run with velocities (its model: `egovib calibrate` of the
+    sweep with them, the session's)."""
     positions_only = bagcorpus.Layout("positions_only", velocity=False)
     figures = {}
     for name, layout in (("with", None), ("without", positions_only)):
-        sweep, motion = sim_bags / "sweep", sim_bags / "motion"
+        motion, model = sim_bags / "motion", sim_bags_model
         if layout is not None:
-            sweep = bagcorpus.write_layout(sweep, tmp_path / "sweep_positions", layout)
+            sweep = bagcorpus.write_layout(sim_bags / "sweep", tmp_path / "sweep_positions", layout)
             motion = bagcorpus.write_layout(motion, tmp_path / "motion_positions", layout)
-        model = tmp_path / f"{name}.npz"
-        result = egovib("calibrate", sweep, "--out", model, "--quiet")
-        assert result.returncode == 0, result.stderr
+            model = tmp_path / f"{name}.npz"
+            result = egovib("calibrate", sweep, "--out", model, "--quiet")
+            assert result.returncode == 0, result.stderr
         result = egovib("denoise", motion, "--model", model, "--out", tmp_path / f"den_{name}")
         assert result.returncode == 0, result.stderr
         report = tmp_path / f"{name}.json"
