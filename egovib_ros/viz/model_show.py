@@ -526,8 +526,7 @@ def _learnt_rows(model) -> list[str]:
     learnt = describe_learnt(model)
     if learnt is None:
         return []
-    rows: list[str] = []
-    rows += ["", "## Learnt online", "", _learnt_line(learnt) + "."]
+    rows = ["", "## Learnt online", "", _learnt_line(learnt) + "."]
     if learnt.get("cells") is not None and len(learnt["cells"]):
         rows += [
             "",
@@ -556,9 +555,8 @@ def _placement_rows(model, placement: "BagPlacement | None") -> list[str]:
     """The summary's section on where a recording's blocks fall on the grid."""
     if placement is None:
         return []
-    rows: list[str] = []
     s = placement.shares()
-    rows += [
+    rows = [
         "",
         f"## Recording `{placement.bag}`",
         "",
