@@ -19,15 +19,18 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 	$(PY) -m pip install -q -e ".[cluster]" -e research/
 	touch $(STAMP)
 
-# The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests one at
-# a time: they measure stream timing and must not share the cores with a parallel test. The
-# slowest of each are listed (--durations): where a faster suite starts.
+# The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests, also
+# on two workers (each worker's DDS domains apart: test/conftest.py `ros_domain`); they pass
+# beside `stress-ng --cpu 2` too. Apart, so that a node test shares the cores with another
+# node test (mostly waiting on real-time streams), not with a solver. The slowest of each
+# are listed (--durations): where a faster suite starts. `--dist loadscope` keeps a module's
+# tests on one worker: its module fixtures (a calibrated corpus, a gap table) are built once.
 # One BLAS thread per worker: two workers already fill the two cores, and the gap baseline's
 # many small per-bin solves run ~20x slower when OpenBLAS threads contend for them.
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
-	$(PY) -m pytest -q -p no:cacheprovider --durations=15 -n 2 -m "not nodes" test; a=$$?; \
-	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -m nodes test; b=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider --durations=15 -n 2 --dist loadscope -m "not nodes" test; a=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -n 2 -m nodes test; b=$$?; \
 	test $$a -eq 0 && test $$b -eq 0
 
 # The edit loop: the fast tests (no node test, no test file marked `slow` in

@@ -49,7 +49,7 @@ NODE_FIXTURES = {"nodes", "ros_client", "ros_domain", "feeder"}
 #: experiments or the simulators for tens of seconds (measured with `pytest --durations`).
 SLOW_FILES = re.compile(
     r"test_(cli|commands|experiments|tools)_.*|test_(faults|walkthrough|bag_conformance|"
-    r"bag_properties|bag_denoise|sim_robot|gap_advice|gap_writeback|gap_diagnose|gap_effects|"
+    r"bag_properties|bag_denoise|sim_robot|gap_advice|gap_change|gap_writeback|gap_diagnose|gap_effects|"
     r"gap_pipeline|gap_report|evaluation_stream|evaluation_contacts|core_receipt|"
     r"viz_model_show|outputs)\.py"
 )
@@ -57,9 +57,8 @@ SLOW_FILES = re.compile(
 
 def pytest_collection_modifyitems(items):
     """Mark every test that runs ROS 2 over DDS `nodes`, whatever its file: `make test` runs
-    them one at a time after the others (which run on two workers), since they measure
-    stream timing and must not compete with a parallel test for the cores. Mark the tests
-    of SLOW_FILES `slow`: `make check` leaves them (and the node tests) out."""
+    them after the others. Mark the tests of SLOW_FILES `slow`: `make check` leaves them
+    (and the node tests) out."""
     for item in items:
         if NODE_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.nodes)
@@ -88,8 +87,9 @@ class NodeProcesses(NodeGroup):
     def log(self, proc: subprocess.Popen) -> str:
         return super().log(self._name(proc))
 
-    def stop(self, proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
-        """Send `sig` (Ctrl-C by default) and wait; kill if it does not end in time."""
+    def stop(self, proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 60.0) -> int:
+        """Send `sig` (Ctrl-C by default) and wait; kill if it does not end in time (a
+        calibrator fits the model on Ctrl-C: seconds, more beside another node test)."""
         return super().stop(self._name(proc), timeout, sig)
 
     def wait_for_log(self, proc: subprocess.Popen, text: str, timeout: float = 60.0) -> None:
@@ -105,8 +105,13 @@ class NodeProcesses(NodeGroup):
 
 @pytest.fixture
 def ros_domain(monkeypatch) -> int:
-    """A random private ROS domain, localhost discovery, for this test and its nodes."""
-    domain_id = random.SystemRandom().randint(1, 200)
+    """A random private ROS domain, localhost discovery, for this test and its nodes. Under
+    pytest-xdist each worker draws from its own residue class (worker k of n: domains = k
+    mod n), so node tests running side by side never share a domain."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    domain_id = random.SystemRandom().randrange(1, 200)
+    domain_id += (int(worker.removeprefix("gw")) - domain_id) % workers
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     return domain_id

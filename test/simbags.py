@@ -1,12 +1,14 @@
-"""Small simulated bags and the `egovib` command run as a user runs it, for the tests of the
-offline commands (test_cli_*) and of the library behind them (test_bag_*).
+"""Small simulated bags and the `egovib` command, for the tests of the offline commands
+(test_cli_*) and of the library behind them (test_bag_*).
 
 The bags themselves are session fixtures in conftest.py (`sim_bags`, `sim_bags_model`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -14,19 +16,31 @@ from pathlib import Path
 import numpy as np
 from rosbags.rosbag2 import Reader
 
+from egovib_ros import cli
 from egovib_ros.bag import BagWriter, write_recording
 from egovib_ros.bag.codec import encode_imu_batch, rosbags_joint_state, typestore
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 
 def egovib(*args, cwd=None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "egovib_ros.cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=300,
-    )
+    """`egovib ARGS` through the console script's entry point (cli.main) in this process:
+    the command's whole path, without a new interpreter's ~3 s of imports per call.
+    test_walkthrough and test_faults run the installed console command as a process."""
+    argv = [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    with (
+        contextlib.chdir(cwd or Path.cwd()),
+        contextlib.redirect_stdout(out),
+        contextlib.redirect_stderr(err),
+    ):
+        code = cli.main(argv)
+    return subprocess.CompletedProcess(["egovib", *argv], code, out.getvalue(), err.getvalue())
+
+
+def egovib_process(*args) -> subprocess.CompletedProcess:
+    """`egovib ARGS` in a process of its own: what it logs, once per process, on stderr."""
+    command = [sys.executable, "-m", "egovib_ros.cli", *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300)
 
 
 def write_sim_bags(root: Path) -> Path:

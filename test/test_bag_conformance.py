@@ -248,7 +248,7 @@ def test_a_bag_stamped_on_receipt_goes_through_every_command(corpus, reference_o
     assert got["peak_snr_denoised_db"] == pytest.approx(ref["peak_snr_denoised_db"], abs=0.5)
     assert outputs["gap"]["verdict"] == want["gap"]["verdict"]
     # said once, though evaluate runs a denoiser per method (its own process: the log's)
-    run = simbags.egovib(
+    run = simbags.egovib_process(
         "evaluate", corpus / layout.name, "--model", corpus / "model.npz",
         "--json", corpus / "receipt_eval.json",
     )  # fmt: skip
