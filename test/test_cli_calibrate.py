@@ -10,7 +10,7 @@ import numpy as np
 import robots
 from simbags import egovib, write_robot_bag
 
-from egovib_ros.bag import write_recording
+from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.core import NoiseModel
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_sweep
@@ -136,5 +136,8 @@ def test_quiet_still_says_the_cells_a_sweep_left_without_a_block(sim_bags, tmp_p
     quiet = egovib(*args, "--out", tmp_path / "quiet.npz", "--quiet")
     assert loud.returncode == 0 and quiet.returncode == 0, quiet.stderr
     warning = [line for line in loud.stderr.splitlines() if line.startswith("warning:")]
-    assert warning and "of the full grid have no block" in warning[0]
-    assert quiet.stderr.splitlines() == warning  # that, and nothing else
+    assert "of the full grid have no block" in warning[0]
+    # ... and the ~20 s sweep's few largest bursts set the detector's thresholds
+    seconds = len(read_recording(sim_bags / "sweep", ground_truth=False).sensor) / 3000
+    assert f"thresholds come from {seconds:.0f} s of calibration data" in warning[1]
+    assert quiet.stderr.splitlines() == warning  # those, and nothing else

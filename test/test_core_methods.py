@@ -15,12 +15,14 @@ from scipy import signal
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
 from egovib_ros.core.lowlatency import MAX_DELAY_MS
 from egovib_ros.core.methods import (
+    DETECTION_MIN_S,
     MethodCalibration,
     SampleMethodDenoiser,
     calibrate_methods,
     denoise_batch_method,
     make_denoiser,
     method_delay_ms,
+    short_detection_warning,
 )
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError, ModelFileError
@@ -354,3 +356,9 @@ def test_methods_are_chosen_by_name_with_their_own_options(model, caplog):
         make_denoiser(model, "hybrid", oversubtraction=2.0)
     with pytest.raises(ConfigError, match="lookahead_ms applies to `hybrid`"):
         make_denoiser(model, "paper", lookahead_ms=2.0)
+
+
+def test_a_calibration_shorter_than_a_minute_is_said_to_set_unsteady_thresholds():
+    assert short_detection_warning(DETECTION_MIN_S) is None
+    line = short_detection_warning(16.4)
+    assert line.startswith("warning:") and "from 16 s of calibration data" in line

@@ -120,7 +120,8 @@ def calibrate_bag_methods(
     bag `bag` of `model`: with methods "all", what `cancel` and `hybrid` need
     (core.methods.calibrate_methods); in every case the contact detector's thresholds for
     each method the model can then run (core.methods.calibrate_detection). Returns (the
-    model with them, {"methods": what was fitted or None, "thresholds": ...}). The fit takes
+    model with them, {"methods": what was fitted or None, "thresholds": ..., "seconds": the
+    recording's length they come from}). The fit takes
     the recording whole: memory grows with the bag (a calibration run: minutes)."""
 
     profile = model.robot_profile()
@@ -132,4 +133,5 @@ def calibrate_bag_methods(
     if methods == "all":
         model, fitted = calibrate_methods(model, *arrays, source=source)
     model, thresholds = calibrate_detection(model, *arrays, source=source)
-    return model, {"methods": fitted, "thresholds": thresholds}
+    seconds = len(rec.sensor_stamps_ns) / profile.rate_hz
+    return model, {"methods": fitted, "thresholds": thresholds, "seconds": seconds}

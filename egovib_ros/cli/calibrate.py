@@ -13,6 +13,7 @@ from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
 from egovib_ros.cli.jobs import parallel_options
 from egovib_ros.cli.options import force_and_quiet, joint_lag_option
 from egovib_ros.core import NoiseModel
+from egovib_ros.core.methods import short_detection_warning
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.core.stream import has_bad_input
 from egovib_ros.errors import BagError
@@ -67,8 +68,9 @@ def _describe_calibrate(row: dict) -> str:
     )
 
 
-def coverage_lines(model: NoiseModel) -> list[str]:
-    """What `egovib calibrate` prints about the model's coverage."""
+def coverage_lines(model: NoiseModel, detection_s: float | None = None) -> list[str]:
+    """What `egovib calibrate` prints about the model's coverage (and, given the seconds of
+    calibration data the detector's thresholds come from, whether they are few)."""
     c = model.coverage()
     lines = [
         model.summary(),
@@ -88,7 +90,8 @@ def coverage_lines(model: NoiseModel) -> list[str]:
                 f"warning: {missing} cells of the {model.measured} grid have no block; "
                 f"they are filled at load time (see NoiseModel)"
             )
-    return lines
+    short = None if detection_s is None else short_detection_warning(detection_s)
+    return lines if short is None else [*lines, short]
 
 
 def describe_methods(fitted: dict) -> str:
@@ -152,13 +155,13 @@ def run_calibrate(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if args.quiet:  # warnings and the counts of bad input only, if any (--quiet)
-        for line in coverage_lines(model):
+        for line in coverage_lines(model, fitted["seconds"]):
             if line.startswith("warning:"):
                 print(line, file=sys.stderr)
         if len(results) == 1 and has_bad_input(stats):
             print(results[0].value["input_counts"], file=sys.stderr)
         return 0
-    for line in coverage_lines(model):
+    for line in coverage_lines(model, fitted["seconds"]):
         print(line, file=sys.stderr)
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)
     if len(results) == 1:

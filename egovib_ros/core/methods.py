@@ -136,6 +136,23 @@ def stored_threshold(model: NoiseModel, method: str) -> float | None:
     return float(value)
 
 
+#: Below this much no-contact data, the detector's thresholds (a level its envelope crosses
+#: once a minute) rest on the recording's few largest bursts and differ from run to run
+#: (0.12-0.30 over ten 6 s sweeps of the example arm, test_nodes_sim_robot).
+DETECTION_MIN_S = 60.0
+
+
+def short_detection_warning(seconds: float) -> str | None:
+    """What calibration says of detection thresholds set from `seconds` of data (None: enough)."""
+    if seconds >= DETECTION_MIN_S:
+        return None
+    return (
+        f"warning: the contact detector's thresholds come from {seconds:.0f} s of calibration "
+        "data: a level crossed once a minute rests on its few largest bursts and may differ "
+        f"from run to run; calibrate on {DETECTION_MIN_S:.0f} s or more of motion without contact"
+    )
+
+
 def calibrate_detection(
     model: NoiseModel,
     sensor_stamps_ns: np.ndarray,
@@ -1212,6 +1229,7 @@ __all__ = [
     "ResidualTable",
     "SampleMethodDenoiser",
     "calibrate_detection",
+    "short_detection_warning",
     "calibrate_methods",
     "check_method",
     "default_method",

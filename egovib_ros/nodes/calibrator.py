@@ -324,6 +324,7 @@ class Calibrator(Node):
         from egovib_ros.core.methods import (  # deferred: numba compiles at shutdown, not at start
             calibrate_detection,
             calibrate_methods,
+            short_detection_warning,
         )
 
         model = self.acc.to_model(source=f"live:{self.input.sensor_topic}")
@@ -343,6 +344,9 @@ class Calibrator(Node):
             fitted.append(
                 "detector thresholds " + ", ".join(f"{m} {t:.3g}" for m, t in thresholds.items())
             )
+            short = short_detection_warning(len(stamps) / self.profile.rate_hz)
+            if short:
+                fitted.append(short)
         except EgovibError as exc:
             return model, f"the paper's table only ({exc})"
         return model, f"on {len(stamps) / self.profile.rate_hz:.0f} s kept: " + "; ".join(fitted)
