@@ -17,9 +17,7 @@ report, runs on two layouts (topics one after the other; log times on another cl
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 from pathlib import Path
 
@@ -30,7 +28,6 @@ import robots
 import simbags
 from bagcorpus import LAYOUTS, Layout
 
-from egovib_ros import cli
 from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.core.methods import denoise_batch_method
@@ -44,10 +41,9 @@ FULL_GAP = ("rosbags_topic", "wall_clock_logs")
 
 
 def egovib(*args) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-        code = cli.main([str(a) for a in args])
-    return code, err.getvalue()
+    """(exit status, stderr) of `egovib ARGS` (simbags.egovib: in this process)."""
+    run = simbags.egovib(*args)
+    return run.returncode, run.stderr
 
 
 @pytest.fixture(scope="module")
