@@ -49,8 +49,8 @@ NODE_FIXTURES = {"nodes", "ros_client", "ros_domain", "feeder"}
 #: experiments or the simulators for tens of seconds (measured with `pytest --durations`).
 SLOW_FILES = re.compile(
     r"test_(cli|commands|experiments|tools)_.*|test_(faults|walkthrough|bag_conformance|"
-    r"bag_properties|bag_denoise|sim_robot|gap_advice|gap_change|gap_writeback|gap_diagnose|gap_effects|"
-    r"gap_pipeline|gap_report|evaluation_stream|evaluation_contacts|core_receipt|"
+    r"bag_properties|bag_denoise|sim_robot|gap_advice|gap_change|gap_writeback|gap_diagnose|"
+    r"gap_effects|gap_pipeline|gap_report|evaluation_stream|evaluation_contacts|core_receipt|"
     r"viz_model_show|outputs)\.py"
 )
 
