@@ -98,7 +98,9 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
         "denoiser",
         {
             "model": str(model),
-            "flush_after_idle": 0.3,
+            # The end of the replay, not a stall of a loaded machine (0.3 s was one: the
+            # segment ended early and live left offline from there on), ends the segment.
+            "flush_after_idle": 4.0,
             # Replay: a block waits for its joint states (which a busy machine may deliver
             # late on their own DDS reader) so that the output is exactly the offline one.
             "joint_wait": 1.0,
@@ -142,7 +144,7 @@ def replay_into_denoiser(nodes, ros_client, tmp_path, bag, model, robot, *, topi
     assert ros_client.spin_until(playing, timeout=60), nodes.log(player)
     assert player.returncode == 0, nodes.log(player)
 
-    def flushed() -> bool:  # the last held samples, published after 0.3 s idle, counted
+    def flushed() -> bool:  # the last held samples, published after 4 s idle, counted
         values = diagnostic_values(ros_client.statuses["denoiser"])
         published = int(values["samples_published"])
         return published == int(values["samples_in"]) and len(seen) == published
