@@ -20,9 +20,10 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 	touch $(STAMP)
 
 # The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests, also
-# on two workers (each worker's DDS domains apart: test/conftest.py `ros_domain`); they pass
-# beside `stress-ng --cpu 2` too. Apart, so that a node test shares the cores with another
-# node test (mostly waiting on real-time streams), not with a solver. The slowest of each
+# on two workers (each worker's DDS domains apart: test/conftest.py `ros_domain`), then the
+# node tests marked `alone` one at a time (they need a core of their own). Apart, so that a
+# node test shares the cores with another node test (mostly waiting on real-time streams),
+# not with a solver; all pass beside `stress-ng --cpu 2` too. The slowest of each
 # are listed (--durations): where a faster suite starts. `--dist loadscope` keeps a module's
 # tests on one worker: its module fixtures (a calibrated corpus, a gap table) are built once.
 # One BLAS thread per worker: two workers already fill the two cores, and the gap baseline's
@@ -30,8 +31,9 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
 	$(PY) -m pytest -q -p no:cacheprovider --durations=15 -n 2 --dist loadscope -m "not nodes" test; a=$$?; \
-	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -n 2 -m nodes test; b=$$?; \
-	test $$a -eq 0 && test $$b -eq 0
+	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -n 2 -m "nodes and not alone" test; b=$$?; \
+	$(PY) -m pytest -q -p no:cacheprovider -m alone test; c=$$?; \
+	test $$a -eq 0 && test $$b -eq 0 && test $$c -eq 0
 
 # The edit loop: the fast tests (no node test, no test file marked `slow` in
 # test/conftest.py; ruff among them, test/test_lint.py) on two workers.
