@@ -650,7 +650,7 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     power_in,
     power_residual,
     weights_w,
-    spread2_w,
+    power_w,
     out,
     raw_lines,
 ):
@@ -658,8 +658,9 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     out[i, c] = x[i, c] - predicted lines (scaled down where they would make the signal
     louder). See the module docstring. With `w` (n, C) (else an empty array): the same
     channels unfiltered (gravity and slow motion taken out), in which the same lines are
-    tracked by weights of their own (`weights_w`, `spread2_w`) on the same references:
-    raw_lines[i, c] = the lines as the unfiltered signal carries them, scaled as `out`'s.
+    tracked by weights of their own (`weights_w`) on the same references: raw_lines[i, c] =
+    the lines as the unfiltered signal carries them, scaled as `out`'s and by a guard of
+    their own (`power_w`: short-time powers of w and of w less its lines).
 
     One function: numba compiles it into one pass per sample over every line and channel,
     no call per sample."""
@@ -732,7 +733,17 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
             limit = clip * math.sqrt(spread2[c])
             ec = min(max(e, -limit), limit)
             if raw:
-                raw_lines[i, c] = unfiltered * scale
+                # The unfiltered lines' own guard: where subtracting them would make the
+                # unfiltered signal louder (lines jumping faster than their trackers follow:
+                # a crash's commands), they are scaled down as the band's are.
+                scale_w = scale
+                if guard_rate > 0.0:
+                    ew0 = w[i, c] - tracked
+                    power_w[c, 0] += guard_rate * (w[i, c] * w[i, c] - power_w[c, 0])
+                    power_w[c, 1] += guard_rate * (ew0 * ew0 - power_w[c, 1])
+                    if power_w[c, 1] > power_w[c, 0]:
+                        scale_w = min(scale, math.sqrt(power_w[c, 0] / power_w[c, 1]))
+                raw_lines[i, c] = unfiltered * scale_w
                 # The unfiltered lines' own trackers, their error shrunk as the band's is
                 # clipped (an event in the band slows both alike; no clipping of their own,
                 # which would turn slow motion into noise at the lines).
@@ -787,7 +798,7 @@ class CancellerState:
     power_in: np.ndarray  # (C,) short-time power of the input (the guard)
     power_residual: np.ndarray  # (C,) short-time power of the full residual (the guard)
     weights_w: np.ndarray  # (C, L, 2) cos/sin weights of the lines in the unfiltered signal
-    spread2_w: np.ndarray  # (C,) running robust error variance there
+    power_w: np.ndarray  # (C, 2) short-time powers of the unfiltered input and of it less its lines
 
 
 class HarmonicCanceller:
@@ -848,7 +859,7 @@ class HarmonicCanceller:
             power_in=np.zeros(self.n_channels),
             power_residual=np.zeros(self.n_channels),
             weights_w=np.zeros((self.n_channels, L, 2)),
-            spread2_w=self._initial_spread2.copy(),
+            power_w=np.zeros((self.n_channels, 2)),
         )
 
     def process(self, x: np.ndarray, speed: np.ndarray, *, unfiltered: np.ndarray | None = None):
@@ -910,7 +921,7 @@ class HarmonicCanceller:
             st.power_in,
             st.power_residual,
             st.weights_w,
-            st.spread2_w,
+            st.power_w,
             out,
             lines,
         )
