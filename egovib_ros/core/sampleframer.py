@@ -66,9 +66,18 @@ class SampleFramer(_Framer):
         self.samples_no_joint_state = 0
 
     # --- input ---------------------------------------------------------------
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+    def push_joint_states(
+        self, stamps_ns: np.ndarray, velocity: np.ndarray, *, release: bool = True
+    ) -> None:
         stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
-        self._push_joint_states(stamps_ns + self._joint_lag_ns, velocity)
+        if self._joint_lag_ns:
+            stamps_ns = stamps_ns + self._joint_lag_ns
+        if len(stamps_ns) and self._append_in_order(stamps_ns, velocity):  # the live case
+            self.stats.joint_states_in += len(stamps_ns)
+            if release:
+                self._drain()
+            return
+        self._push_joint_states(stamps_ns, velocity)
 
     def _push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self.stats.joint_states_in += len(stamps_ns)

@@ -745,6 +745,19 @@ class _Framer:
     def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         self._push_segments(self._cleaner.segments(stamps_ns, accel))
 
+    def _append_in_order(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> bool:
+        """Joint states after the last one, in order and finite (the common case, a live
+        node's every few ms: nothing to drop or count) appended; False if not all are."""
+        if len(self._joint_t) and stamps_ns[0] <= self._joint_t[-1]:
+            return False
+        if len(stamps_ns) > 1 and not (stamps_ns[1:] > stamps_ns[:-1]).all():
+            return False
+        if not np.isfinite(velocity).all():
+            return False
+        self._joint_t = np.concatenate([self._joint_t, stamps_ns])
+        self._joint_v = np.concatenate([self._joint_v, velocity])
+        return True
+
     @property
     def rate_checked(self) -> bool:
         """The stream's rate has been measured on its first samples (2 blocks' worth) and
@@ -871,24 +884,22 @@ class BlockFramer(_Framer):
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
-    def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+    def push_joint_states(
+        self, stamps_ns: np.ndarray, velocity: np.ndarray, *, release: bool = True
+    ) -> None:
+        """Joint states in; `release` False: what they complete waits for the next push
+        (a sensor push right after releases it all at once: a live node's batch)."""
         stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
         self.stats.joint_states_in += len(stamps_ns)
         if len(stamps_ns) == 0:
             return
         if self._joint_lag_ns:
             stamps_ns = stamps_ns + self._joint_lag_ns
-        last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
-        if (
-            stamps_ns[0] > last
-            and (len(stamps_ns) == 1 or (stamps_ns[1:] > stamps_ns[:-1]).all())
-            and np.isfinite(velocity).all()
-        ):
-            # Fast path (the live case): in order and finite.
-            self._joint_t = np.concatenate([self._joint_t, stamps_ns])
-            self._joint_v = np.concatenate([self._joint_v, velocity])
-            self._drain(final=False)
+        if self._append_in_order(stamps_ns, velocity):  # the live case
+            if release:
+                self._drain(final=False)
             return
+        last = self._joint_t[-1] if len(self._joint_t) else np.iinfo(np.int64).min
         in_order, i = stamp_order(
             last if len(self._joint_t) else None, stamps_ns, int(self.s.clock_jump_s * NS_PER_S)
         )

@@ -178,7 +178,7 @@ class FramedDenoiser:
     ) -> DenoisedChunk:
         """push_joint_states then push_sensor, what both release processed in one pass (a
         live node's batch: the samples its new joint states release and the new ones)."""
-        self._framer.push_joint_states(joint_stamps_ns, joint_velocity)
+        self._framer.push_joint_states(joint_stamps_ns, joint_velocity, release=False)
         self._framer.push_sensor(stamps_ns, accel)
         return self._process(self._pop())
 

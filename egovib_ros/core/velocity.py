@@ -177,6 +177,10 @@ class JointVelocity:
         if self.source == "auto" and np.isfinite(velocity).all():
             # Every velocity measured (the common driver): nothing to derive, only the last
             # position of each joint to keep (a live node calls this every few ms).
+            if np.isfinite(position[-1]).all():
+                self._last_p[:] = position[-1]
+                self._last_t[:] = stamps_ns[-1]
+                return velocity
             finite = np.isfinite(position)
             seen = finite.any(axis=0)
             last = len(position) - 1 - np.argmax(finite[::-1], axis=0)
@@ -251,6 +255,17 @@ class SplitJointStates:
         if n == 0:
             return stamps, position, velocity
         present = ~(np.isnan(position) & np.isnan(velocity))
+        if (
+            not held
+            and not self._joining
+            and stamps[0] != self._last_stamp
+            and (n == 1 or (stamps[1:] != stamps[:-1]).all())
+            and present.all()
+        ):
+            # Whole messages, one per stamp (the common driver; a live node's every few ms):
+            # nothing to join or hold back.
+            self._last_stamp, self._last_present = int(stamps[-1]), present[-1]
+            return stamps, position, velocity
         if self._last_stamp is not None and stamps[0] == self._last_stamp:
             # the stamp of a row already given out: it cannot be joined any more
             if not present[0].any():  # another controller's message: nothing of ours
@@ -313,12 +328,12 @@ def hold_missing_joints(
     keeps its last published value. `last` (2, J) carries position and velocity across
     batches (None at the start: NaN until first seen). Returns (position, velocity, last).
     Used alike by the bag layer offline and the nodes live."""
-    both = np.stack([position, velocity], axis=1)  # (M, 2, J)
-    if not len(both):
+    if not len(position):
         return position, velocity, last
     present = ~(np.isnan(position) & np.isnan(velocity))
     if present.all():
-        return position, velocity, both[-1].copy()
+        return position, velocity, np.stack([position[-1], velocity[-1]])
+    both = np.stack([position, velocity], axis=1)  # (M, 2, J)
     start = last if last is not None else np.full(both.shape[1:], np.nan)
     rows = np.where(present[:, None, :], np.arange(len(both))[:, None, None], -1)
     newest = np.maximum.accumulate(rows, axis=0)  # the last row holding each joint
