@@ -189,6 +189,39 @@ def test_stamps_that_repeat_are_said_with_their_likely_cause(ros_client):
     ]
 
 
+def test_a_burst_delivered_in_pieces_is_processed_once_whole(ros_client, monkeypatch):
+    """A per-sample method's batches follow the driver's bursts: in a stream that began with
+    1 sample, then bursts of 6, the second delivered as 5 + 1 (each callback takes what
+    waits), that burst is processed at its last message; a block method (`from_first`)
+    processes at every 6th message counted from the first, so that burst's last message
+    waits for the next burst."""
+    from egovib_ros.bag.codec import encode_imu_batch
+    from egovib_ros.nodes import common
+    from egovib_ros.robot import load_profile
+
+    messages = encode_imu_batch(np.arange(13, dtype=np.int64) * 333_333, np.zeros((13, 3)))
+    deliveries = [[0], [1, 2, 3, 4, 5, 6], [7, 8, 9, 10, 11], [12]]
+    wants = {
+        False: [[0, 1, 2, 3, 4, 5, 6], [7, 8, 9, 10, 11, 12]],
+        True: [[0, 1, 2, 3, 4, 5, 6], [7, 8, 9, 10, 11]],
+    }
+    for from_first, want in wants.items():
+        batches = []
+        inp = common.StreamInput(
+            ros_client.node,
+            load_profile(None),
+            batch_samples=6,
+            on_batch=lambda: batches.append(inp.take_sensor()),  # noqa: B023
+            from_first=from_first,
+        )
+        for delivery in deliveries:
+            taken = [messages[k] for k in delivery]
+            monkeypatch.setattr(common, "drain", lambda sub, kind, data, taken=taken: taken)
+            inp._on_sensor(taken[0])
+        got = [(b.stamps_ns // 333_333).tolist() for b in batches]
+        assert got == want, (from_first, got)
+
+
 def test_two_publishers_on_the_sensor_topic_are_named(ros_client):
     """Two sensors on one topic look like one stream at another rate: the refusal says how
     many publish on it."""

@@ -289,7 +289,9 @@ class StreamInput:
     Messages are collected as CDR bytes in the callbacks and decoded in batches;
     `on_batch` is called at every `batch_samples`-th sensor message counted from the first,
     with the rest of a burst that arrived together (with batch_samples = hop a block is
-    processed as soon as its last sample is in).
+    processed as soon as its last sample is in); with `from_first` False, as soon as
+    `batch_samples` messages wait (a per-sample method: its batches follow the driver's
+    bursts, so the last message of a burst delivered apart does not wait for the next one).
     Undecodable messages are counted and left out; everything else, NaN included, goes
     to the core, which counts and handles it (one count for each problem).
     Joint velocity comes as offline (bag.recording.RecordingStream): the profile's
@@ -306,10 +308,12 @@ class StreamInput:
         batch_samples: int,
         on_batch: Callable[[], None],
         on_joint_state: Callable[[], None] | None = None,
+        from_first: bool = True,
     ):
         self.field = profile.sensor_field
         self.joint_names = tuple(profile.joint_names)
         self.batch_samples = int(batch_samples)
+        self._from_first = from_first
         self._on_batch = on_batch
         self._on_joint_state = on_joint_state
         self._sensor_sub = sensor_subscription(
@@ -351,7 +355,11 @@ class StreamInput:
         self._sensor.extend(taken)
         self._arrival.extend([now] * len(taken))
         before, self.sensor_messages = self.sensor_messages, self.sensor_messages + len(taken)
-        if self.sensor_messages // self.batch_samples > before // self.batch_samples:
+        if self._from_first:
+            due = self.sensor_messages // self.batch_samples > before // self.batch_samples
+        else:
+            due = len(self._sensor) >= self.batch_samples
+        if due:
             self._on_batch()
 
     def _on_joints(self, data: bytes) -> None:

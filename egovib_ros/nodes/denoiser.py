@@ -329,6 +329,7 @@ class Denoiser(Node):
             batch_samples=params["batch_samples"],
             on_batch=self._process,
             on_joint_state=self._on_joint_state,
+            from_first=self.method == "paper",  # its blocks complete every hop from the first
         )
         self.pub = stream_publisher(self, Imu, self.profile.node_denoised_topic)
         self.output_topic = self.resolve_topic_name(self.profile.node_denoised_topic)
