@@ -138,8 +138,9 @@ PARAMETERS = MODEL_PARAMETERS + (
     Param(
         "batch_samples",
         32,
-        "process every this many sensor samples (default: paper, the model's hop, i.e. as "
-        "soon as a block completes; cancel and hybrid, 2 ms of samples)",
+        "process every this many sensor samples (default: paper, the model's hop, counted "
+        "from the first, i.e. as soon as a block completes; cancel and hybrid, as soon as "
+        "2 ms of samples wait)",
         range=(1, 100_000),
     ),
     Param(
