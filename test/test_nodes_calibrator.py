@@ -180,7 +180,10 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     assert np.all(final.counts >= saved.counts)
     assert np.all(final.counts[kept] > 0)
     # The restarted calibrator added the cells swept after the restart.
-    assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum()
+    assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum(), (
+        nodes.log(second)[-3000:],
+        nodes.log(driver)[-1500:],
+    )
 
 
 def test_free_motion_calibration_of_a_three_joint_gyro_keeps_statistics_when_checkpoints_fail(
