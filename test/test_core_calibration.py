@@ -125,6 +125,40 @@ def test_resume_from_checkpoint_keeps_cells_and_adds_new_ones(tmp_path, calibrat
     assert np.all(grown.counts[model.counts > 0] == model.counts[model.counts > 0])
 
 
+def test_a_stream_refused_for_its_rate_goes_on_after_restart_stream_with_what_it_had():
+    """A burst at another rate is refused (RateError: a calibrator node drops it); once the
+    rate is back, `restart_stream` frames afresh: the cells gathered before are kept, new
+    cells are added, and the counts run on over the restart."""
+    from egovib_ros.errors import RateError
+
+    def part(duration_s, cell, seed, start_s):
+        data = stream(duration_s, [cell], seed=seed)
+        shift = int(start_s * 1e9)
+        return data["t_acc"] + shift, data["accel"], data["t_joint"] + shift, data["velocity"]
+
+    acc = CalibrationAccumulator()
+    t, x, tj, v = part(4, (1.5, 0.0), 1, 0)
+    acc.push_joint_states(tj, v)
+    acc.push_sensor(t, x)
+    before = acc.to_model().counts.copy()
+    assert before.sum() > 0
+    t, x, tj, v = part(2, (1.5, 0.0), 2, 4.01)
+    acc.push_joint_states(tj, v)
+    with pytest.raises(RateError):  # every other sample lost: half the rate
+        acc.push_sensor(t[::2], x[::2])
+    with pytest.raises(RateError):  # and it stays refused
+        acc.push_sensor(t[-4:] + 10_000_000, x[-4:])
+    acc.restart_stream()
+    t, x, tj, v = part(4, (0.0, 0.02), 3, 6.02)
+    acc.push_joint_states(tj, v)
+    acc.push_sensor(t, x)
+    acc.flush()
+    after = acc.to_model()
+    assert np.all(after.counts[before > 0] >= before[before > 0])
+    assert after.counts[cell_index(after, (0.0, 0.02))] > 0
+    assert acc.stats.samples_in > len(t) + 2 * FS  # counted over the restart
+
+
 def test_a_sample_bridged_now_and_then_keeps_its_block_a_run_of_them_does_not():
     """1.6 % of the samples NaN on one axis (each bridged by the core): every block held
     one and was set aside as partial, so no model; blocks with at most MAX_BRIDGED_SAMPLES

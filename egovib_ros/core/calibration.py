@@ -17,6 +17,8 @@ Two ways a recording can calibrate, tallied side by side:
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from egovib_ros import __version__
@@ -167,6 +169,7 @@ class CalibrationAccumulator:
             source=source,
         )
         self._framer = BlockFramer(self.settings, len(self.grid))
+        self._retired: list = []  # FramerStats of framers before a restart_stream
         self.window = self._framer.window
         n_bins = self.settings.block_length // 2 + 1
         self._sweep_tally = _Tally(len(self.grid), len(MODEL_CHANNELS), n_bins)
@@ -206,11 +209,28 @@ class CalibrationAccumulator:
         cells, _, _, counts = self._tally().statistics()
         return cells, counts
 
+    def restart_stream(self) -> None:
+        """The stream was refused for its rate (RateError) and runs at the model's rate
+        again: framing starts afresh, as on a new stream; the statistics gathered and the
+        counts so far are kept."""
+        self._retired.append(self._framer.stats)
+        self._framer = BlockFramer(self.settings, len(self.grid))
+
     @property
     def stats(self) -> CalibrationStats:
         tally = self._tally()
+        counts = self._framer.stats
+        if self._retired:  # summed over the framers of the stream's restarts
+            counts = dataclasses.replace(
+                counts,
+                **{
+                    f.name: sum(getattr(c, f.name) for c in (*self._retired, counts))
+                    for f in dataclasses.fields(counts)
+                    if f.name != "receipt_latency_ns"
+                },
+            )
         return CalibrationStats.of(
-            self._framer.stats,
+            counts,
             mode=self.mode,
             blocks_used=int(tally.counts.sum()),
             cells=tally.n,

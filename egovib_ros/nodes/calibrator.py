@@ -28,7 +28,8 @@ import numpy as np
 from rclpy.node import Node
 
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
-from egovib_ros.errors import ConfigError, EgovibError
+from egovib_ros.core.stream import RateWatch
+from egovib_ros.errors import ConfigError, EgovibError, RateError
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -172,6 +173,9 @@ class Calibrator(Node):
         self.checkpoints_written = 0
         self.checkpoint_failures = 0
         self.stream_error: str | None = None
+        self._rate_watch: RateWatch | None = None  # after a rate refusal: is it back?
+        self.samples_withheld = 0
+        self.rate_recoveries = 0
         self._last_input = time.monotonic()
         self._last_report = (time.monotonic(), 0)
         self._blocks_reported = (0, 0)  # blocks without joint state, all blocks: last report
@@ -213,15 +217,25 @@ class Calibrator(Node):
         last stamp's held joint states too."""
         self._last_input = time.monotonic()
         joints = self.input.take_joints(final=final)
-        if joints is not None and len(joints.stamps_ns):
+        # while refused for its rate, joint states wait for nothing (a new framer follows)
+        if joints is not None and len(joints.stamps_ns) and self._rate_watch is None:
             self.acc.push_joint_states(joints.stamps_ns, joints.velocity)
             if self._kept < self._keep:
                 self._kept_joints.append((joints.stamps_ns.copy(), joints.velocity.copy()))
         batch = self.input.take_sensor()
-        if batch is not None and len(batch.stamps_ns):
-            if self._kept < self._keep:
-                self._kept_sensor.append((batch.stamps_ns.copy(), batch.values.copy()))
-                self._kept += len(batch.stamps_ns)
+        if batch is not None and len(batch.stamps_ns) and self._rate_watch is not None:
+            # refused for its rate: nothing is gathered until two windows fit again
+            self.samples_withheld += len(batch.stamps_ns)
+            if self._rate_watch.push(batch.stamps_ns) is None:
+                return
+            self.acc.restart_stream()
+            self.stream_error, self._rate_watch = None, None
+            self.rate_recoveries += 1
+            self.get_logger().warning(
+                f"{self.input.sensor_topic}: the sensor rate fits the model again: calibration "
+                f"goes on ({self.samples_withheld} samples withheld so far)"
+            )
+        elif batch is not None and len(batch.stamps_ns):
             try:
                 self.acc.push_sensor(batch.stamps_ns, batch.values)
             except EgovibError as exc:  # e.g. a stream at another rate than the profile's
@@ -229,6 +243,14 @@ class Calibrator(Node):
                     f"dropped {len(batch.stamps_ns)} samples: {exc}", throttle_duration_sec=5.0
                 )
                 self.stream_error = str(exc) + self.input.publishers_note()
+                if isinstance(exc, RateError):  # until the rate is back (a burst passes)
+                    self._rate_watch = RateWatch(
+                        self.acc.settings, receipt=self.acc.sensor_stamps == "receipt"
+                    )
+            else:  # what the methods are fitted on at shutdown: the stream as gathered
+                if self._kept < self._keep:
+                    self._kept_sensor.append((batch.stamps_ns.copy(), batch.values.copy()))
+                    self._kept += len(batch.stamps_ns)
         self._track_cells()
 
     def _cell_count_map(self) -> dict[tuple[int, ...], int]:
@@ -401,6 +423,8 @@ class Calibrator(Node):
             "sensor_stamps": self.acc.sensor_stamps,
             "checkpoints_written": self.checkpoints_written,
             "checkpoint_failures": self.checkpoint_failures,
+            "samples_withheld": self.samples_withheld,  # while refused for its rate
+            "rate_recoveries": self.rate_recoveries,
         }
         errors = [e for e in (self.stream_error, self.checkpoint_error) if e]
         missing = inp.missing_joints_error("no block can be used")
