@@ -2198,6 +2198,54 @@ def test_cli_main_leaves_the_logging_of_a_process_hosting_it_alone(caplog):
     assert caplog.text.count("said twice") == 2
 
 
+def test_live_burst_refused_then_calibration_goes_on(nodes, ros_client, feeder, tmp_path):
+    """The calibrator fed 1 s at 3 kHz, a burst of 600 samples stamped at 30 kHz, then 2 s
+    at 3 kHz: the burst is refused ("rate changed"), and once two rate windows fit again
+    calibration goes on with what it had (`rate_recoveries` 1): blocks from after the burst
+    are gathered (they were dropped for good before)."""
+    from egovib_research.tools.orchestration import reliable_input
+    from egovib_ros.nodes.convert import diagnostic_values
+    from egovib_ros.robot import load_profile
+
+    profile = load_profile()
+    cal = nodes.start(
+        "calibrator",
+        {
+            "output": str(tmp_path / "model.npz"),
+            "grid": "free",
+            **reliable_input(profile.sensor_topic, profile.joints_topic),
+        },
+    )
+    feed = feeder(profile)
+    assert feed.wait_for_subscribers("calibrator"), nodes.log(cal)
+    feed.publish_joint_state()
+    rate = profile.rate_hz
+    before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
+    burst = before[-1] + (np.arange(1, int(0.2 * rate) + 1) * 1e8 / rate).astype(np.int64)
+    after = burst[-1] + (np.arange(1, 2 * int(rate) + 1) * 1e9 / rate).astype(np.int64)
+    stamps = np.r_[before, burst, after]
+    joint_stamps = np.arange(stamps[0], stamps[-1], 1_000_000)
+    velocity = np.tile([0.3 * v for v in profile.max_speed], (len(joint_stamps), 1))
+    feed.publish(stamps, feed.rng.normal(0.0, 0.5, (len(stamps), 3)), joint_stamps, velocity)
+
+    def values() -> dict:
+        status = ros_client.statuses.get("calibrator")
+        return diagnostic_values(status) if status is not None else {}
+
+    assert ros_client.spin_until(lambda: int(values().get("rate_recoveries", 0)) == 1, 20.0), (
+        values(),
+        nodes.log(cal),
+    )
+    assert "rate changed" in nodes.log(cal) and "calibration goes on" in nodes.log(cal)
+    hop = profile.hop
+    # 1 s before the burst gives at most rate / hop blocks; most of the 2 s after it count
+    assert ros_client.spin_until(lambda: int(values()["blocks"]) > 2 * rate / hop, 20.0), (
+        values(),
+        nodes.log(cal),
+    )
+    assert int(values()["samples_withheld"]) >= len(burst) and cal.poll() is None
+
+
 def test_live_burst_at_ten_times_the_rate_refused_then_denoising_resumes(
     nodes, ros_client, feeder, sim_model_path
 ):
