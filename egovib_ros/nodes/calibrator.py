@@ -244,6 +244,7 @@ class Calibrator(Node):
                 )
                 self.stream_error = str(exc) + self.input.publishers_note()
                 if isinstance(exc, RateError):  # until the rate is back (a burst passes)
+                    self.samples_withheld += len(batch.stamps_ns)
                     self._rate_watch = RateWatch(
                         self.acc.settings, receipt=self.acc.sensor_stamps == "receipt"
                     )
