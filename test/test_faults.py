@@ -2198,6 +2198,21 @@ def test_cli_main_leaves_the_logging_of_a_process_hosting_it_alone(caplog):
     assert caplog.text.count("said twice") == 2
 
 
+def _publish_burst_stream(feed, profile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """1 s at the profile's rate, a burst of 0.2 s of samples stamped at 10 x the rate (a
+    driver glitch), then 2 s at the rate, joint states at 1 kHz at 0.3 x top speed:
+    published; returns the stamps of the three parts."""
+    rate = profile.rate_hz
+    before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
+    burst = before[-1] + (np.arange(1, int(0.2 * rate) + 1) * 1e8 / rate).astype(np.int64)
+    after = burst[-1] + (np.arange(1, 2 * int(rate) + 1) * 1e9 / rate).astype(np.int64)
+    stamps = np.r_[before, burst, after]
+    joint_stamps = np.arange(stamps[0], stamps[-1], 1_000_000)
+    velocity = np.tile([0.3 * v for v in profile.max_speed], (len(joint_stamps), 1))
+    feed.publish(stamps, feed.rng.normal(0.0, 0.5, (len(stamps), 3)), joint_stamps, velocity)
+    return before, burst, after
+
+
 def test_live_burst_refused_then_calibration_goes_on(nodes, ros_client, feeder, tmp_path):
     """The calibrator fed 1 s at 3 kHz, a burst of 600 samples stamped at 30 kHz, then 2 s
     at 3 kHz: the burst is refused ("rate changed"), and once two rate windows fit again
@@ -2219,14 +2234,7 @@ def test_live_burst_refused_then_calibration_goes_on(nodes, ros_client, feeder, 
     feed = feeder(profile)
     assert feed.wait_for_subscribers("calibrator"), nodes.log(cal)
     feed.publish_joint_state()
-    rate = profile.rate_hz
-    before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
-    burst = before[-1] + (np.arange(1, int(0.2 * rate) + 1) * 1e8 / rate).astype(np.int64)
-    after = burst[-1] + (np.arange(1, 2 * int(rate) + 1) * 1e9 / rate).astype(np.int64)
-    stamps = np.r_[before, burst, after]
-    joint_stamps = np.arange(stamps[0], stamps[-1], 1_000_000)
-    velocity = np.tile([0.3 * v for v in profile.max_speed], (len(joint_stamps), 1))
-    feed.publish(stamps, feed.rng.normal(0.0, 0.5, (len(stamps), 3)), joint_stamps, velocity)
+    before, _, _ = _publish_burst_stream(feed, profile)
 
     def values() -> dict:
         status = ros_client.statuses.get("calibrator")
@@ -2237,9 +2245,9 @@ def test_live_burst_refused_then_calibration_goes_on(nodes, ros_client, feeder, 
         nodes.log(cal),
     )
     assert "rate changed" in nodes.log(cal) and "calibration goes on" in nodes.log(cal)
-    hop = profile.hop
-    # 1 s before the burst gives at most rate / hop blocks; most of the 2 s after it count
-    assert ros_client.spin_until(lambda: int(values()["blocks"]) > 2 * rate / hop, 20.0), (
+    # the 1 s before the burst gives at most len(before) / hop blocks; most of the 2 s after it
+    blocks_before = len(before) / profile.hop
+    assert ros_client.spin_until(lambda: int(values()["blocks"]) > 2 * blocks_before, 20.0), (
         values(),
         nodes.log(cal),
     )
@@ -2285,14 +2293,7 @@ def test_live_burst_at_ten_times_the_rate_refused_then_denoising_resumes(
     feed = feeder(profile)
     assert feed.wait_for_subscribers("denoiser"), nodes.log(den)
     feed.publish_joint_state()
-    rate = profile.rate_hz
-    before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
-    burst = before[-1] + (np.arange(1, int(0.2 * rate) + 1) * 1e8 / rate).astype(np.int64)
-    after = burst[-1] + (np.arange(1, 2 * int(rate) + 1) * 1e9 / rate).astype(np.int64)
-    stamps = np.r_[before, burst, after]
-    joint_stamps = np.arange(stamps[0], stamps[-1], 1_000_000)
-    velocity = np.tile([0.3 * v for v in profile.max_speed], (len(joint_stamps), 1))
-    feed.publish(stamps, feed.rng.normal(0.0, 0.5, (len(stamps), 3)), joint_stamps, velocity)
+    before, burst, after = _publish_burst_stream(feed, profile)
     assert "rate changed" in nodes.log(den) or ros_client.spin_until(
         lambda: "rate changed" in nodes.log(den), 10.0
     ), nodes.log(den)

@@ -736,18 +736,17 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
                 # The unfiltered lines' own guard: where subtracting them would make the
                 # unfiltered signal louder (lines jumping faster than their trackers follow:
                 # a crash's commands), they are scaled down as the band's are.
+                ew = w[i, c] - tracked
                 scale_w = scale
                 if guard_rate > 0.0:
-                    ew0 = w[i, c] - tracked
                     power_w[c, 0] += guard_rate * (w[i, c] * w[i, c] - power_w[c, 0])
-                    power_w[c, 1] += guard_rate * (ew0 * ew0 - power_w[c, 1])
+                    power_w[c, 1] += guard_rate * (ew * ew - power_w[c, 1])
                     if power_w[c, 1] > power_w[c, 0]:
                         scale_w = min(scale, math.sqrt(power_w[c, 0] / power_w[c, 1]))
                 raw_lines[i, c] = unfiltered * scale_w
                 # The unfiltered lines' own trackers, their error shrunk as the band's is
                 # clipped (an event in the band slows both alike; no clipping of their own,
                 # which would turn slow motion into noise at the lines).
-                ew = w[i, c] - tracked
                 if ec != e:
                     ew *= ec / e
                 for q in range(L):
