@@ -98,6 +98,9 @@ DETECTOR_BUDGET = "detector.false_alarms_per_min"
 EDGE_S = 0.1
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
 SETTLE_S = 0.5
+#: Below this weight the whole ego-vibration no longer adds to the hybrid's expected
+#: noise (`SampleMethodDenoiser._settling`): the trackers have settled (7 time constants).
+SETTLED = 1e-3
 #: Least expected residual power, dB below the channel and band's mean over measured cells.
 FLOOR_DB = 30.0
 
@@ -822,6 +825,11 @@ class SampleMethodDenoiser(FramedDenoiser):
         )
         self._gain = None
         self._table = None
+        # The canceller's trackers start from nothing: until they have settled, the gains
+        # also expect the ego-vibration they have not taken yet (`_settling`).
+        self._start_table = None
+        self._settle_decay = 0.0
+        self._settle_weight = 1.0  # of the next sample
         if method == "hybrid":
             gain = cal.gain
             if floor is not None:
@@ -843,6 +851,10 @@ class SampleMethodDenoiser(FramedDenoiser):
                 guard_ref=cal.guard_ref,
             )
             self._table = ResidualTable(cal.residual, bank)
+            if all(axis in model.channels for axis in AXES):
+                self._start_table = ResidualTable(model, bank)
+                # per sample: the trackers' decay (time constant 2 / LMS step: 40 ms at 8 Hz)
+                self._settle_decay = math.exp(-cal.canceller.gains(fs)[0] / 2.0)
         self.lookahead = self._gain.delay if self._gain is not None else 0
         # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
         self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
@@ -978,7 +990,7 @@ class SampleMethodDenoiser(FramedDenoiser):
         self._adaptation.reset()
 
     def _gained(self, stamps, residual, velocity, unfiltered=None):
-        rows, index = self._table.rows(velocity)
+        rows, index = self._settling(*self._table.rows(velocity), velocity)
         scale = self._power_scale(stamps)
         stamps, self._lag_stamps = _delayed(self._lag_stamps, stamps)
         if unfiltered is None:
@@ -989,6 +1001,22 @@ class SampleMethodDenoiser(FramedDenoiser):
             residual, rows, index=index, unfiltered=high, power_scale=scale
         )
         return self._output(stamps, low + high)
+
+    def _settling(self, rows, index, velocity):
+        """The expected noise powers (rows, index) while the canceller settles: plus the
+        whole ego-vibration's (the paper's table) at a weight that falls as the trackers'
+        error does, exp(-samples since the start / their time constant). Without it, a stream
+        that starts in motion (a node started on a moving robot, a bag cut mid-flight) began
+        with 60 ms of ego-vibration that a contact detector took for an event. Per sample
+        while the weight is above SETTLED; (rows, index) as given afterwards."""
+        if self._start_table is None or self._settle_weight < SETTLED or not len(velocity):
+            return rows, index
+        # one product after the other, as one call over the whole stream would (any chunking)
+        weight = np.cumprod(np.r_[self._settle_weight, np.full(len(velocity), self._settle_decay)])
+        self._settle_weight = weight[-1]
+        weight = np.where(weight[:-1] < SETTLED, 0.0, weight[:-1])  # where a call would stop
+        start_rows, start_index = self._start_table.rows(velocity)
+        return rows[index] + weight[:, None, None] * start_rows[start_index], None
 
     def _power_scale(self, stamps: np.ndarray) -> np.ndarray | None:
         """Per sample, the factor on the expected noise power that `noise_gain_db` gives at
