@@ -16,7 +16,6 @@ from egovib_ros.core.noise_model import NoiseModel, sweep_cells
 from egovib_ros.core.stream import CalibrationStats
 from egovib_ros.outputs import MARKER
 from egovib_ros.robot import default_profile, load_profile
-from egovib_ros.sim.robot import as_recording, free_motion_arrays
 from egovib_ros.viz.model_show import (
     CellIndex,
     coverage_facts,
@@ -251,7 +250,9 @@ def test_eight_joint_model_is_shown_from_its_sparse_cells(tmp_path):
     model.save(path)
     bag = tmp_path / "eight_bag"
     write_recording(
-        bag, as_recording(p, free_motion_arrays(p, 5.0, seed=8, joint_rate_hz=250.0)), profile=p
+        bag,
+        robots.as_recording(p, robots.recording(p, 5.0, seed=8, joint_rate_hz=250.0)),
+        profile=p,
     )
     out = tmp_path / "show"
     assert _show(path, out, "--bag", bag) == 0

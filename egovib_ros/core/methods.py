@@ -27,7 +27,6 @@ the band-passed output.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 from dataclasses import dataclass
 
@@ -78,8 +77,6 @@ from egovib_ros.core.subtraction import (
 )
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError, ModelFileError, StreamError
-
-LOG = logging.getLogger("egovib_ros.core")
 
 METHODS = ("paper", "cancel", "hybrid")
 #: What a command or node runs when no method is named: the one that removes the most and

@@ -17,7 +17,7 @@ split; a candidate's own fit is not (a forward selection tries several per step)
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -173,7 +173,3 @@ class ChainFits:
                     )
         rows = np.flatnonzero(np.any([s.test for s in self.splits], axis=0))
         return CrossFitted(predicted=mags, power=pows, offset=offset, rows=rows)
-
-
-def with_contact(table: BlockTable | None, contact: np.ndarray) -> BlockTable | None:
-    return None if table is None else replace(table, contact=contact)
