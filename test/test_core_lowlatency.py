@@ -133,7 +133,7 @@ def reference_gain(fb: FilterBank, s: GainSettings, r, noise, alpha, bias, open_
     opening = np.zeros(C)
     wait = np.zeros(C, int)
     a_up, a_down = rate(1e3 * s.guard_up_s), rate(1e3 * s.guard_down_s)
-    guard = guard_ref.copy()
+    guard = guard_ref + s.guard_start  # the guard starts raised
     bands_hist = np.zeros((n + D, C, B))
     out = np.zeros((n, C))
     for i in range(n):

@@ -97,7 +97,11 @@ class GainSettings:
     guard_up_s / guard_down_s: time constants with which the guard (a slow level of the
     opening score) rises / falls (guard_up_s 0: no guard); guard_quantile: quantile of the
     guard on calibration data above which it raises the opening threshold; guard_gain:
-    the power of that excess by which the expected noise rises too (0: the opening only)."""
+    the power of that excess by which the expected noise rises too (0: the opening only);
+    guard_start: how far (log) above that level the guard starts, and stands again after a
+    long gap: the canceller before the gain settles from nothing then, a lasting excess
+    until it has (a stream started in motion began with 60 ms of ego-vibration a contact
+    detector took for an event); it falls in guard_down_s."""
 
     bands: int = 3
     bandwidth: float = 1.0
@@ -120,6 +124,7 @@ class GainSettings:
     guard_down_s: float = 0.5
     guard_quantile: float = 0.99
     guard_gain: float = 1.0
+    guard_start: float = 2.0
 
     def __post_init__(self) -> None:
         checks = (
@@ -142,6 +147,7 @@ class GainSettings:
             ("guard_down_s", 0.0, 1000.0),
             ("guard_quantile", 0.5, 1.0),
             ("guard_gain", 0.0, 1.0),
+            ("guard_start", 0.0, 10.0),
         )
         check_ranges(self, checks, "gain: ")
         if (
@@ -497,17 +503,20 @@ class LowLatencyGain:
             noise_held=np.zeros((C, B)),
             # From below when there is no reference (calibration): the guard rises to the
             # noise's level within a few guard_up_s, instead of falling for guard_down_s.
-            guard=np.where(np.isfinite(self.guard_ref), self.guard_ref, LOG_TINY),
+            guard=np.where(
+                np.isfinite(self.guard_ref), self.guard_ref + self.settings.guard_start, LOG_TINY
+            ),
             zv=np.zeros((C, B - 1), complex),
         )
 
     def reset_signal(self) -> None:
         """A new segment (after a long gap): forget the signal, keep the noise correction and
-        the guard (they describe the noise, not the signal)."""
+        the guard (they describe the noise, not the signal), the guard at least at its start
+        (the lines' phases are lost over the gap: the canceller settles again)."""
         kept = self.state
         self.state = self.initial_state()
         self.state.log_ratio, self.state.correction = kept.log_ratio, kept.correction
-        self.state.guard = kept.guard
+        self.state.guard = np.maximum(kept.guard, self.state.guard)
         self.state.position[1] = kept.position[1]
 
     def process(

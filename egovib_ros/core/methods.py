@@ -95,9 +95,6 @@ DETECTOR_BUDGET = "detector.false_alarms_per_min"
 EDGE_S = 0.1
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
 SETTLE_S = 0.5
-#: Below this weight the whole ego-vibration no longer adds to the hybrid's expected
-#: noise (`SampleMethodDenoiser._settling`): the trackers have settled (7 time constants).
-SETTLED = 1e-3
 #: Least expected residual power, dB below the channel and band's mean over measured cells.
 FLOOR_DB = 30.0
 
@@ -583,10 +580,10 @@ def calibrate_methods(
     stage's residual to the next, in this order (each stage's fit is a function of its own)."""
     canceller = canceller or CancellerSettings()
     split = _split(model, accel)
-    if gain is None and split is not None:
-        delay_ms = 1e3 * ((len(split) - 1) // 2) / model.sample_rate_hz
-        gain = GainSettings(split_ms=max(GainSettings().lookahead_ms, round(delay_ms, 3)))
     gain = gain or GainSettings()
+    if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
+        delay_ms = 1e3 * ((len(split) - 1) // 2) / model.sample_rate_hz
+        gain = dataclasses.replace(gain, split_ms=max(gain.lookahead_ms, round(delay_ms, 3)))
     if model.profile is None:
         raise ConfigError("calibrate_methods: the model carries no robot profile")
     fs = model.sample_rate_hz
@@ -822,11 +819,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         )
         self._gain = None
         self._table = None
-        # The canceller's trackers start from nothing: until they have settled, the gains
-        # also expect the ego-vibration they have not taken yet (`_settling`).
-        self._start_table = None
-        self._settle_decay = 0.0
-        self._settle_weight = 1.0  # of the next sample
         if method == "hybrid":
             gain = cal.gain
             if floor is not None:
@@ -848,10 +840,6 @@ class SampleMethodDenoiser(FramedDenoiser):
                 guard_ref=cal.guard_ref,
             )
             self._table = ResidualTable(cal.residual, bank)
-            if all(axis in model.channels for axis in AXES):
-                self._start_table = ResidualTable(model, bank)
-                # per sample: the trackers' decay (time constant 2 / LMS step: 40 ms at 8 Hz)
-                self._settle_decay = math.exp(-cal.canceller.gains(fs)[0] / 2.0)
         self.lookahead = self._gain.delay if self._gain is not None else 0
         # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
         self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
@@ -987,7 +975,7 @@ class SampleMethodDenoiser(FramedDenoiser):
         self._adaptation.reset()
 
     def _gained(self, stamps, residual, velocity, unfiltered=None):
-        rows, index = self._settling(*self._table.rows(velocity), velocity)
+        rows, index = self._table.rows(velocity)
         scale = self._power_scale(stamps)
         stamps, self._lag_stamps = _delayed(self._lag_stamps, stamps)
         if unfiltered is None:
@@ -998,22 +986,6 @@ class SampleMethodDenoiser(FramedDenoiser):
             residual, rows, index=index, unfiltered=high, power_scale=scale
         )
         return self._output(stamps, low + high)
-
-    def _settling(self, rows, index, velocity):
-        """The expected noise powers (rows, index) while the canceller settles: plus the
-        whole ego-vibration's (the paper's table) at a weight that falls as the trackers'
-        error does, exp(-samples since the start / their time constant). Without it, a stream
-        that starts in motion (a node started on a moving robot, a bag cut mid-flight) began
-        with 60 ms of ego-vibration that a contact detector took for an event. Per sample
-        while the weight is above SETTLED; (rows, index) as given afterwards."""
-        if self._start_table is None or self._settle_weight < SETTLED or not len(velocity):
-            return rows, index
-        # one product after the other, as one call over the whole stream would (any chunking)
-        weight = np.cumprod(np.r_[self._settle_weight, np.full(len(velocity), self._settle_decay)])
-        self._settle_weight = weight[-1]
-        weight = np.where(weight[:-1] < SETTLED, 0.0, weight[:-1])  # where a call would stop
-        start_rows, start_index = self._start_table.rows(velocity)
-        return rows[index] + weight[:, None, None] * start_rows[start_index], None
 
     def _power_scale(self, stamps: np.ndarray) -> np.ndarray | None:
         """Per sample, the factor on the expected noise power that `noise_gain_db` gives at

@@ -650,9 +650,7 @@ def main(argv: list[str] | None = None) -> int:
         if key not in {f.name for f in dataclasses.fields(GainSettings)}:
             parser.error(f"--gain: unknown setting {key!r}")
         overrides[key] = int(value) if key == "bands" else float(value)
-    # No override: calibrate's own settings (the drop-in split's look-ahead fitted to the
-    # recording), as a user gets them; GainSettings() would hold the split to 4 ms.
-    gain = GainSettings(**overrides) if overrides else None
+    gain = GainSettings(**overrides) if overrides else None  # None: calibrate's own
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("egovib_ros.core").setLevel(logging.ERROR)
     out_dir = Path(args.out)
@@ -663,7 +661,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "command": python_command("egovib_research.experiments.flight.methods_compare", argv),
         "event_sets": args.event_sets,
-        "gain_settings": overrides,
+        "gain_overrides": overrides,
         "flight": {},
     }
     for name in args.splits.split(","):
