@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy import signal
 
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
-from egovib_ros.core.lowlatency import MAX_DELAY_MS
+from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import (
     DETECTION_MIN_S,
     MethodCalibration,
@@ -284,6 +284,22 @@ def test_after_a_long_gap_the_stream_does_not_start_again_with_a_burst(model, se
     band = np.abs(combined_bp(values))
     after = band[2000 : 2000 + int(0.45 * FS)].max()
     assert after < max(band[600:1900].max(), band[2600:].max())
+
+
+def test_gain_settings_given_to_calibration_still_get_the_fitted_split(model):
+    # An ablation's settings (here 4 bands) once brought back the 4 ms look-ahead the split
+    # cannot stop the band in: the drop-in output then lost what the band-passed one removes.
+    rec = recording(25.0, seed=1)
+    paper, _ = calibrate_arrays(
+        rec["t"], rec["accel"], rec["tj"], rec["velocity"], profile=PROFILE, sweep="free"
+    )
+    fitted = MethodCalibration.from_model(model).gain.split_ms
+    full, _ = calibrate_methods(
+        paper, rec["t"], rec["accel"], rec["tj"], rec["velocity"], gain=GainSettings(bands=4)
+    )
+    gain = MethodCalibration.from_model(full).gain
+    assert fitted > GainSettings().lookahead_ms
+    assert (gain.bands, gain.split_ms) == (4, fitted)
 
 
 def test_combined_is_the_sum_of_the_cleaned_axes(model):

@@ -99,9 +99,10 @@ class GainSettings:
     guard on calibration data above which it raises the opening threshold; guard_gain:
     the power of that excess by which the expected noise rises too (0: the opening only);
     guard_start: how far (log) above that level the guard starts, and stands again after a
-    long gap: the canceller before the gain settles from nothing then, a lasting excess
-    until it has (a stream started in motion began with 60 ms of ego-vibration a contact
-    detector took for an event); it falls in guard_down_s."""
+    long gap. The canceller ahead of the gain settles from nothing then (tens of ms): its
+    residual is a lasting excess until it has settled. Without this, a stream started in
+    motion began with 60 ms of ego-vibration that a contact detector took for an event. The
+    guard falls from there in guard_down_s."""
 
     bands: int = 3
     bandwidth: float = 1.0
