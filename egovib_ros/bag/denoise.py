@@ -251,7 +251,7 @@ def denoise_bag(
         "denoised_messages": job.written,
         "raw_without_output": job.dropped,
         "method": method,
-        "delay_ms": 1e3 * denoiser.delay_samples[1] / model.sample_rate_hz,
+        "delay_ms": denoiser.delay_ms,
         # a superposition model fills the cells off its axes by design (Eq. 6): not unmeasured
         "samples_unmeasured": 0
         if model.measured == "superposition"

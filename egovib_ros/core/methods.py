@@ -874,10 +874,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         """(min, max) samples between a sample's arrival and its output (joint wait aside)."""
         return self.delay, self.delay
 
-    @property
-    def delay_ms(self) -> float:
-        return 1e3 * self.delay / self.model.sample_rate_hz
-
     def _pop(self):
         return self._framer.pop()
 
@@ -1190,31 +1186,12 @@ def denoise_batch_method(
     return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)
 
 
-def method_delay_ms(
-    model: NoiseModel,
-    method: str,
-    *,
-    output: str | None = None,
-    channels: str = "per_axis",
-    **options,
-) -> float:
-    """Algorithmic delay of `method`'s denoiser for `model` with these settings, ms (the
-    paper: a whole block, either output; cancel and hybrid: their band-passed output's, or
-    their drop-in output's, the default per axis, later)."""
-    check_method(method)
-    output = check_output(output, channels)
-    fs = model.sample_rate_hz
-    if method == "paper":
-        return 1e3 * (model.block_length - 1) / fs
-    samples = 0
-    if method == "hybrid":
-        gain = MethodCalibration.from_model(model).gain
-        if options.get("lookahead_ms") is not None:
-            gain = dataclasses.replace(gain, lookahead_ms=options["lookahead_ms"])
-        elif output == "dropin":
-            gain = dataclasses.replace(gain, lookahead_ms=dropin_lookahead_ms(gain))
-        samples = gain.delay_samples(fs)
-    return 1e3 * samples / fs
+def method_delay_ms(model: NoiseModel, method: str | None = None, **options) -> float:
+    """Algorithmic delay (ms) of the denoiser `make_denoiser(model, method, **options)`
+    builds: the delay is a property of what is built (the paper: a whole block, either
+    output; cancel and hybrid: their band-passed output's, or their drop-in output's, the
+    default per axis, later)."""
+    return make_denoiser(model, method, **options).delay_ms
 
 
 __all__ = [

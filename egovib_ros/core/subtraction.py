@@ -197,6 +197,12 @@ class FramedDenoiser:
         )
 
     @property
+    def delay_ms(self) -> float:
+        """The algorithmic delay: the most samples between a sample's arrival and its output
+        (`delay_samples`, joint wait aside), in ms."""
+        return 1e3 * self.delay_samples[1] / self.model.sample_rate_hz
+
+    @property
     def sensor_stamps(self) -> str:
         """What the sensor stamps mark: "sample" times, "receipt" times (a driver stamping
         on arrival: core.receipt) or "" while the first samples still wait to tell."""

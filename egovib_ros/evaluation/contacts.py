@@ -40,7 +40,6 @@ from egovib_ros.core.methods import (
     EDGE_S,
     METHODS,
     make_denoiser,
-    method_delay_ms,
     resolve_method,
     stored_threshold,
 )
@@ -85,10 +84,6 @@ def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str, a
     # the default output (the drop-in), as the denoiser node publishes it by default
     options = {} if adapt is None else {"adapt": adapt}
     return make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source, **options)
-
-
-def _delay_ms(model: NoiseModel, method: str) -> float:
-    return 0.0 if method == "raw" else method_delay_ms(model, method)
 
 
 def _stream(
@@ -283,7 +278,7 @@ def detect_bag(
         ),
         calibration_false_alarms_per_min=rate,
         method=method,
-        method_delay_ms=_delay_ms(model, method),
+        method_delay_ms=used[0].delay_ms if used and used[0] is not None else 0.0,
         duration_s=duration_s,
         counts={"samples": int(len(stamps)), "events": len(events)},
         adapt=None
