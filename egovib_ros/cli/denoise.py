@@ -17,7 +17,7 @@ from egovib_ros.cli.options import (
     nonneg_float,
 )
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.methods import make_denoiser, resolve_method
+from egovib_ros.core.methods import METHODS, make_denoiser, resolve_method
 from egovib_ros.errors import ConfigError
 from egovib_ros.gap.advice import noise_gain_from_report
 from egovib_ros.outputs import prepare_output
@@ -43,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     den.add_argument(
         "--method",
-        choices=("paper", "cancel", "hybrid"),
+        choices=METHODS,
         default=None,
         help="hybrid (the default, where the model was calibrated for it): speed-locked "
         "harmonic cancellation, then a low-latency gain (4 ms band-passed; the drop-in "

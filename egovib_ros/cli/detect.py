@@ -21,6 +21,7 @@ from egovib_ros.cli.options import (
 from egovib_ros.core import NoiseModel
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation.contacts import (
+    DETECT_METHODS,
     check_detect_method,
     detect_bag,
     detection_threshold_needs_data,
@@ -49,7 +50,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="EVENTS.json|EVENTS.csv")
     parser.add_argument(
         "--method",
-        choices=("paper", "cancel", "hybrid", "raw"),
+        choices=DETECT_METHODS,
         default=None,
         help="the denoiser before the detector (default: the model's, hybrid where it was "
         "calibrated for it; raw: none, the raw signal)",

@@ -79,6 +79,8 @@ from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError, ModelFileError, StreamError
 
 METHODS = ("paper", "cancel", "hybrid")
+#: The methods that need what calibrate_methods fits (the model's extras) and can adapt online.
+SAMPLE_METHODS = tuple(m for m in METHODS if m != "paper")
 #: What a command or node runs when no method is named: the one that removes the most and
 #: keeps events best (docs/methods_compare.md), where the model carries what it needs.
 DEFAULT_METHOD = "hybrid"
@@ -1197,6 +1199,7 @@ def method_delay_ms(model: NoiseModel, method: str | None = None, **options) -> 
 __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
+    "SAMPLE_METHODS",
     "MAX_DELAY_MS",
     "DropInSplit",
     "MethodCalibration",

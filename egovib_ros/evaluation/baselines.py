@@ -35,7 +35,7 @@ from scipy import signal
 
 from egovib_ros.core import NoiseModel, filters
 from egovib_ros.core.filters import BandPass
-from egovib_ros.core.methods import default_method, make_denoiser
+from egovib_ros.core.methods import SAMPLE_METHODS, default_method, make_denoiser
 from egovib_ros.core.methods import method_delay_ms as core_delay_ms
 
 NOISEREDUCE_N_FFT = 64
@@ -56,7 +56,7 @@ METHOD_LABELS = {
     "hybrid": "cancellation + low-latency gain",
 }
 #: methods that need what `egovib calibrate --methods hybrid` fits (the model's extras)
-NEEDS_METHOD_CALIBRATION = ("cancel", "hybrid")
+NEEDS_METHOD_CALIBRATION = SAMPLE_METHODS
 
 
 @dataclass
@@ -331,7 +331,7 @@ CORE_OPTIONS = {
 
 
 #: methods that can adapt online (core.adapt); `default` where it is one of them
-ADAPTING = ("cancel", "hybrid")
+ADAPTING = SAMPLE_METHODS
 
 
 def adapts(name: str, model: NoiseModel) -> bool:

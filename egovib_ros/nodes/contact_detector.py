@@ -34,7 +34,11 @@ from sensor_msgs.msg import Imu
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactDetector, ContactSettings
 from egovib_ros.errors import ConfigError
-from egovib_ros.evaluation.contacts import check_detect_method, detection_threshold
+from egovib_ros.evaluation.contacts import (
+    DETECT_METHODS,
+    check_detect_method,
+    detection_threshold,
+)
 from egovib_ros.nodes.common import (
     Health,
     Param,
@@ -62,7 +66,7 @@ PARAMETERS = (
         "the denoiser method producing the input (its threshold): empty for the model's "
         "default (hybrid where the model carries it, as the denoiser runs by default) | paper "
         "| cancel | hybrid; raw for source raw",
-        choices=("", "paper", "cancel", "hybrid", "raw"),
+        choices=("", *DETECT_METHODS),
     ),
     Param("threshold", 0.0, "envelope threshold (0: from no-contact data)", range=(0.0, 1e9)),
     Param(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from egovib_research.tools import live_bench as tool
+from egovib_ros.core.methods import METHODS
 
 
 def register(subparsers) -> None:
@@ -27,7 +28,7 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--method",
-        choices=("paper", "cancel", "hybrid"),
+        choices=METHODS,
         default=None,
         help="the denoiser's method (default: the model's, hybrid; the bench's own model is "
         "calibrated for every method)",

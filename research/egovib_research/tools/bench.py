@@ -56,7 +56,12 @@ from egovib_ros.bag.many import bag_size
 from egovib_ros.bag.recording import bag_topic_names, recording_streams
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, denoise_batch
 from egovib_ros.core.blocks import analysis_window, n_bins
-from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, make_denoiser
+from egovib_ros.core.methods import (
+    METHODS,
+    calibrate_methods,
+    denoise_batch_method,
+    make_denoiser,
+)
 from egovib_ros.core.noise_model import MODEL_CHANNELS, NoiseModel
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output, text_starting_with
@@ -85,7 +90,6 @@ TARGETS = {
     # the default: hybrid, per axis, drop-in output (issue 32)
     "hybrid_batch_per_axis_x_realtime_cpu": (">=", 300.0),
 }
-METHODS = ("paper", "cancel", "hybrid")
 
 
 def machine_info() -> dict:

@@ -64,7 +64,12 @@ from egovib_research.experiments.paper import (
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
-from egovib_ros.core.methods import calibrate_methods, denoise_batch_method, method_delay_ms
+from egovib_ros.core.methods import (
+    METHODS,
+    calibrate_methods,
+    denoise_batch_method,
+    method_delay_ms,
+)
 from egovib_ros.evaluation import detection, metrics
 from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.metrics import json_safe
@@ -80,7 +85,7 @@ SPLITS = {
 }
 STRENGTHS = (1.0, 0.5)
 FLIGHT_METHODS = ("raw", "paper", "cancel", "hybrid", "hybrid_dropin", "mean_command", "notch_q5")
-PR2_METHODS = ("raw", "paper", "cancel", "hybrid")
+PR2_METHODS = ("raw", *METHODS)
 LABELS = {
     "raw": "band-pass only",
     "paper": "paper (block subtraction, all joints)",
@@ -404,7 +409,7 @@ def pr2_benchmark(model, rec, repeats: int = 5) -> dict:
     wall time and per second of this process's CPU time (on a loaded machine the wall time
     counts the time other jobs ran; best of `repeats`)."""
     result = {"load_average_1min": round(os.getloadavg()[0], 2), "duration_s": rec.duration_s}
-    for method in ("paper", "cancel", "hybrid"):
+    for method in METHODS:
         wall, cpu = best_wall_and_cpu(
             lambda method=method: denoise_batch_method(
                 *core_arrays(rec), model, method=method, channels="combined"
