@@ -647,20 +647,6 @@ class NoiseModel:
             i0 = min(int(math.floor(position)), n - 2)
             lower.append(i0)
             frac.append(position - i0)
-        if self.n_joints == 2:
-            # Spelled out: same weights, same products, same left-to-right sum as below.
-            (i, j), (a, b) = lower, frac
-            out = (
-                ((1.0 - a) * (1.0 - b)) * table[i, j]
-                + ((1.0 - a) * b) * table[i, j + 1]
-                + (a * (1.0 - b)) * table[i + 1, j]
-                + (a * b) * table[i + 1, j + 1]
-            )
-            return (
-                out[None],
-                np.array([outside]),
-                bool(measured_grid[i + (a >= 0.5), j + (b >= 0.5)]),
-            )
         out = None
         for corner in itertools.product((0, 1), repeat=self.n_joints):
             weight = 1.0
