@@ -72,7 +72,6 @@ from egovib_ros.core.subtraction import (
     FramedDenoiser,
     StreamingDenoiser,
     check_output,
-    check_stream_fits_model,
     noise_gain_curve,
 )
 from egovib_ros.core.timebase import NS_PER_S
@@ -756,10 +755,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         channels: str = "per_axis",
         joint_wait_s: float = 0.02,
         max_hold_s: float = 0.05,
-        max_fill_samples: int = 8,
-        sample_rate_hz: float | None = None,
-        block_length: int | None = None,
-        joint_names: tuple[str, ...] | None = None,
         floor: float | None = None,
         lookahead_ms: float | None = None,
         output: str | None = None,
@@ -775,9 +770,6 @@ class SampleMethodDenoiser(FramedDenoiser):
                 "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"
             )
         output = check_output(output, channels)
-        check_stream_fits_model(
-            model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
-        )
         self.model = model
         self.method = method
         self.channels = channels
@@ -789,7 +781,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         self.settings = FramerSettings.for_model(
             model,
             layout="per_axis",
-            max_fill_samples=max_fill_samples,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
             with_steadiness=False,

@@ -109,32 +109,6 @@ def check_output(output: str | None, channels: str) -> str:
     return output
 
 
-def check_stream_fits_model(
-    model: NoiseModel,
-    *,
-    sample_rate_hz: float | None = None,
-    block_length: int | None = None,
-    joint_names=None,
-) -> None:
-    """StreamError (one line naming the model) when a stream's stated rate, block length or
-    joints differ from the model's; None means "not stated" (nothing to check)."""
-    where = model.provenance.get("path", "model")
-    if sample_rate_hz is not None and abs(sample_rate_hz - model.sample_rate_hz) > 1e-6:
-        raise StreamError(
-            f"stream sample rate {sample_rate_hz:g} Hz differs from the model's "
-            f"{model.sample_rate_hz:g} Hz ({where})"
-        )
-    if block_length is not None and block_length != model.block_length:
-        raise StreamError(
-            f"block length {block_length} differs from the model's {model.block_length} ({where})"
-        )
-    if joint_names is not None and tuple(joint_names) != model.joint_names:
-        raise StreamError(
-            f"{where}: model joints {list(model.joint_names)} do not match the stream's "
-            f"{list(joint_names)}"
-        )
-
-
 def noise_gain_curve(knots) -> tuple[np.ndarray, np.ndarray] | None:
     """(elapsed s, dB) knots of a level change over time (a warm-up the gap diagnosis
     fitted, `egovib gap`'s advice), checked: times ascending from 0, finite, at most
@@ -256,16 +230,9 @@ class StreamingDenoiser(FramedDenoiser):
         max_hold_s: float = 0.05,
         joint_lag_s: float = 0.0,
         noise_gain_db: tuple[tuple[float, float], ...] = (),
-        max_fill_samples: int = 8,
-        sample_rate_hz: float | None = None,
-        block_length: int | None = None,
-        joint_names: tuple[str, ...] | None = None,
         source: str = "",
     ):
         output = check_output(output, channels)
-        check_stream_fits_model(
-            model, sample_rate_hz=sample_rate_hz, block_length=block_length, joint_names=joint_names
-        )
         self.model = model
         self.channels = channels
         self.output = output
@@ -273,7 +240,6 @@ class StreamingDenoiser(FramedDenoiser):
         self.settings = FramerSettings.for_model(
             model,
             layout=channels,
-            max_fill_samples=max_fill_samples,
             joint_wait_s=joint_wait_s,
             max_hold_s=max_hold_s,
             joint_lag_s=joint_lag_s,
