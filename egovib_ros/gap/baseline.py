@@ -146,8 +146,32 @@ def _smoothness_rows(
     return np.array(rows), np.array(members)
 
 
+def _row_products(xt: sparse.csr_matrix) -> sparse.csr_matrix:
+    """(P*P, B): column b holds the outer product of row b of `xt` with itself, so that
+    `_row_products(xt) @ w` is every weighting's Gram matrix sum_b w_b x_b x_b^T at once,
+    flattened (a design row has a few non-zeros: a few dozen products)."""
+    xt = sparse.csr_matrix(xt, copy=True)
+    xt.sum_duplicates()
+    n_par = xt.shape[1]
+    counts = np.diff(xt.indptr)
+    row = np.repeat(np.arange(xt.shape[0]), counts)  # of each stored entry
+    each = counts[row]  # the entries in its row
+    entry = np.repeat(np.arange(len(row)), each)  # each entry, once per entry of its row
+    start = np.repeat(np.cumsum(each) - each, each)
+    partner = xt.indptr[row[entry]] + np.arange(len(entry)) - start
+    products = sparse.csr_matrix(
+        (
+            xt.data[entry] * xt.data[partner],
+            (row[entry], xt.indices[entry] * n_par + xt.indices[partner]),
+        ),
+        shape=(xt.shape[0], n_par * n_par),
+    )
+    return products.T.tocsr()
+
+
 def _solve(
     xt: sparse.csr_matrix,
+    products: sparse.csr_matrix,
     yn: np.ndarray,
     weights: np.ndarray,
     prior: np.ndarray,
@@ -156,24 +180,20 @@ def _solve(
     d2: np.ndarray,
     centres: np.ndarray,
 ) -> np.ndarray:
-    """Penalised weighted least squares per bin; all quantities in units of the bin's mean power."""
-    n_par = xt.shape[1]
-    coef = np.empty((yn.shape[1], n_par))
-    for f in range(yn.shape[1]):
-        xw = xt.multiply(weights[:, f, None]).tocsr()
-        lhs = (xw.T @ xt).toarray()
-        rhs = xw.T @ yn[:, f]
-        pen = prior_blocks / scale[f] ** 2
-        lhs[np.diag_indices(n_par)] += pen
-        rhs = rhs + pen * prior[f]
-        if len(d2):
-            # Curvature relative to the largest of the three cells involved: a sharp line
-            # (one loud cell between quiet ones) is not crushed by its quiet neighbours' scale.
-            local = np.max(np.where(centres >= 0, scale[f][np.maximum(centres, 0)], 0.0), axis=1)
-            ds = d2 / np.maximum(local, SCALE_FLOOR)[:, None]
-            lhs += SMOOTH_BLOCKS * ds.T @ ds
-        coef[f] = np.linalg.solve(lhs, rhs)
-    return coef
+    """Penalised weighted least squares per bin, every bin at once (`products`:
+    `_row_products(xt)`); all quantities in units of the bin's mean power."""
+    n_par, n_bins = xt.shape[1], yn.shape[1]
+    lhs = (products @ weights).T.reshape(n_bins, n_par, n_par)
+    pen = prior_blocks / scale**2  # (F, P)
+    lhs[:, np.arange(n_par), np.arange(n_par)] += pen
+    rhs = (xt.T @ (weights * yn)).T + pen * prior
+    if len(d2):
+        # Curvature relative to the largest of the three cells involved: a sharp line
+        # (one loud cell between quiet ones) is not crushed by its quiet neighbours' scale.
+        local = np.max(np.where(centres >= 0, scale[:, np.maximum(centres, 0)], 0.0), axis=2)
+        ds = d2[None] / np.maximum(local, SCALE_FLOOR)[:, :, None]  # (F, R, P)
+        lhs += SMOOTH_BLOCKS * np.matmul(ds.transpose(0, 2, 1), ds)
+    return np.linalg.solve(lhs, rhs[..., None])[..., 0]
 
 
 def _prior_matrix(where, rest: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -205,8 +225,9 @@ def fit_coarse(
     d2, centres = _smoothness_rows(knots_c, where, x.shape[1])
     scale = np.ones_like(prior)
     weights = np.ones_like(yn)
+    products = _row_products(xt)
     for _ in range(2):
-        coef = _solve(xt, yn, weights, prior, PRIOR_BLOCKS, scale, d2, centres)
+        coef = _solve(xt, products, yn, weights, prior, PRIOR_BLOCKS, scale, d2, centres)
         coef[:, 1:] = np.maximum(coef[:, 1:], 0.0)
         coef[:, 0] = np.maximum(coef[:, 0], SCALE_FLOOR * 0.1)
         fitted = np.maximum(np.asarray(xt @ coef.T), SCALE_FLOOR)
@@ -245,8 +266,17 @@ def fit_baseline(
     d2, centres = _smoothness_rows(table.knots, where, x.shape[1])
     scale = np.maximum(prior_f, SCALE_FLOOR)
     rows = np.flatnonzero(train)
+    xt = x[rows]
     coef = _solve(
-        x[rows], power[train] / level, weights, prior_f, COARSE_PRIOR_BLOCKS, scale, d2, centres
+        xt,
+        _row_products(xt),
+        power[train] / level,
+        weights,
+        prior_f,
+        COARSE_PRIOR_BLOCKS,
+        scale,
+        d2,
+        centres,
     )
     coef[:, 1:] = np.maximum(coef[:, 1:], 0.0)
     coef[:, 0] = np.maximum(coef[:, 0], SCALE_FLOOR * 0.1)
