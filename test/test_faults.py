@@ -2008,7 +2008,16 @@ NoiseModel.save = failing_save
 """
 BUG_ROWS = [
     ("denoise", _BUG_IN_FRAMER, den("motion"), "motion", "ValueError: injected failure", "den"),
-    ("calibrate", _BUG_IN_SAVE, cal("sweep"), "sweep", "RuntimeError: injected failure", "m.npz"),
+    # the paper's table only: the bug is in saving, after whatever calibration ran (the
+    # methods' fit would add ~5 s of work the row does not look at)
+    (
+        "calibrate",
+        _BUG_IN_SAVE,
+        cal("sweep", "--methods", "paper"),
+        "sweep",
+        "RuntimeError: injected failure",
+        "m.npz",
+    ),
 ]
 
 
