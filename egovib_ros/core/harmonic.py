@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 
 import numba
@@ -432,12 +434,21 @@ class _MapSearch:
         return float(np.mean(r**2)) + 1e-300
 
     def try_all(self, changes) -> bool:
-        """changes: list of {joint: {field: value}}; keep the best if it gains enough."""
+        """changes: list of {joint: {field: value}}; keep the best if it gains enough. The
+        trials run side by side on the machine's cores (each its own canceller; the kernel
+        releases the GIL): the same values, and the same choice, as one after the other."""
+        trials = [
+            [dict(d, **change.get(j, {})) for j, d in enumerate(self.joints)] for change in changes
+        ]
+        workers = min(len(trials), len(os.sched_getaffinity(0)))
+        if workers > 1:
+            with ThreadPoolExecutor(workers) as pool:
+                values = list(pool.map(self.cost, trials))
+        else:
+            values = [self.cost(trial) for trial in trials]
+        self.evaluations += len(trials)
         best = None
-        for change in changes:
-            trial = [dict(d, **change.get(j, {})) for j, d in enumerate(self.joints)]
-            value = self.cost(trial)
-            self.evaluations += 1
+        for value, trial in zip(values, trials):
             if best is None or value < best[0]:
                 best = (value, trial)
         if best is not None and _DB * math.log(self.current / best[0]) >= self.min_gain_db:
@@ -619,7 +630,7 @@ def _cos_sin_turns(t):
     return s, -c
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True, nogil=True)  # nogil: the map search runs it in threads
 def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     x,
     speed,
