@@ -440,7 +440,8 @@ class _MapSearch:
         trials = [
             [dict(d, **change.get(j, {})) for j, d in enumerate(self.joints)] for change in changes
         ]
-        workers = min(len(trials), len(os.sched_getaffinity(0)))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        workers = min(len(trials), cores or 1)
         if workers > 1:
             with ThreadPoolExecutor(workers) as pool:
                 values = list(pool.map(self.cost, trials))
