@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -10,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
 
+from egovib_ros.core import harmonic
 from egovib_ros.core.harmonic import (
     CancellerSettings,
     HarmonicCanceller,
@@ -274,6 +276,24 @@ def test_fit_finds_orders_exponent_and_coefficients_from_free_motion():
         x, speed
     )
     assert db(x[4000:], residual[4000:]) > 13.0
+
+
+def test_the_search_on_several_cores_makes_the_choices_of_one_core(monkeypatch):
+    """The map search runs a step's trials side by side (a thread per core): the same map,
+    info and costs as one trial after the other."""
+    truth = two_joint_map()
+    x, speed = robot(8.0, seed=7, truth=truth)
+    options = dict(
+        sample_rate_hz=FS, band_hz=BAND, joint_names=("a", "b"), max_speed=np.ones(2),
+        max_seconds=4.0,
+    )  # fmt: skip
+    monkeypatch.setattr(harmonic.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    side_by_side = fit_harmonic_map(x, speed, **options)
+    monkeypatch.setattr(harmonic.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    one_by_one = fit_harmonic_map(x, speed, **options)
+    for a, b in zip(dataclasses.astuple(side_by_side[0]), dataclasses.astuple(one_by_one[0])):
+        np.testing.assert_array_equal(a, b)
+    assert side_by_side[1] == one_by_one[1]
 
 
 def test_a_joint_without_lines_gets_none():

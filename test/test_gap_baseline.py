@@ -10,9 +10,16 @@ import dataclasses
 import numpy as np
 import pytest
 from gaptables import VMAX, synthetic_table
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy import sparse
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import (
+    SCALE_FLOOR,
+    SMOOTH_BLOCKS,
+    _row_products,
+    _solve,
     coarse_hats,
     coarse_knots,
     fit_baseline,
@@ -134,3 +141,40 @@ def test_the_lag_residual_is_smallest_at_the_lag_in_the_data():
     residual = [lag_residual(table, rows, float(lag), prior) for lag in lags]
     assert lags[int(np.argmin(residual))] == 0.05
     assert residual[2] > residual[4]  # in sync is worse than the true lag
+
+
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n_rows=st.integers(0, 60),
+    n_par=st.integers(1, 12),
+    n_bins=st.integers(1, 5),
+    per_row=st.integers(1, 4),
+)
+def test_every_bin_solved_at_once_equals_each_bin_solved_alone(
+    seed, n_rows, n_par, n_bins, per_row
+):
+    """_solve's Gram matrices from the rows' outer products and its batched solve give each
+    bin's penalised weighted least squares, as a dense per-bin solve does (rows with a few
+    non-zeros, duplicate entries, empty rows and no rows at all included)."""
+    rng = np.random.default_rng(seed)
+    rows = np.repeat(np.arange(n_rows), per_row)
+    cols = rng.integers(0, n_par, len(rows))  # may repeat within a row: summed
+    xt = sparse.csr_matrix((rng.random(len(rows)), (rows, cols)), shape=(n_rows, n_par))
+    yn, weights = rng.random((n_rows, n_bins)), rng.random((n_rows, n_bins)) + 0.1
+    prior, scale = rng.random((n_bins, n_par)), rng.random((n_bins, n_par)) + 0.05
+    n_smooth = max(n_par - 2, 0)
+    d2 = np.zeros((n_smooth, n_par))
+    centres = np.full((n_smooth, 3), -1)
+    for r in range(n_smooth):
+        d2[r, r : r + 3] = (1.0, -2.0, 1.0)
+        centres[r] = (r, r + 1, r + 2) if r % 2 else (r, -1, r + 2)
+    got = _solve(xt, _row_products(xt), yn, weights, prior, 0.3, scale, d2, centres)
+    x = xt.toarray()
+    for f in range(n_bins):
+        lhs = x.T @ (weights[:, f, None] * x) + np.diag(0.3 / scale[f] ** 2)
+        rhs = x.T @ (weights[:, f] * yn[:, f]) + 0.3 / scale[f] ** 2 * prior[f]
+        if n_smooth:
+            local = np.max(np.where(centres >= 0, scale[f][np.maximum(centres, 0)], 0.0), axis=1)
+            ds = d2 / np.maximum(local, SCALE_FLOOR)[:, None]
+            lhs += SMOOTH_BLOCKS * ds.T @ ds
+        np.testing.assert_allclose(got[f], np.linalg.solve(lhs, rhs), rtol=1e-9, atol=1e-9)
