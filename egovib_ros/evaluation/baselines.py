@@ -372,10 +372,6 @@ def method_stream(
     return CoreStream(model, source=source, **options)
 
 
-def _block_delay_ms(model: NoiseModel | None) -> float | None:
-    return None if model is None else 1e3 * model.block_length / model.sample_rate_hz
-
-
 def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
     """Algorithmic latency of a method in ms (None if it cannot run in this context)."""
     if name == "bandpass":
@@ -383,12 +379,13 @@ def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
     if name == "noisereduce":
         return 1e3 * NOISEREDUCE_N_FFT / ctx.model.sample_rate_hz
     if name == "paper_L32":
-        return _block_delay_ms(ctx.model_short)
+        return None if ctx.model_short is None else core_delay_ms(ctx.model_short, "paper")
     if name == "default":
         return core_delay_ms(ctx.model, default_method(ctx.model))
     if name in NEEDS_METHOD_CALIBRATION:
         return core_delay_ms(ctx.model, name, output="bandpassed")  # what CoreStream runs
-    return _block_delay_ms(ctx.model)
+    # the paper's blocks, whatever rule or channels (Boll, Wiener, per axis)
+    return None if ctx.model is None else core_delay_ms(ctx.model, "paper")
 
 
 def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
