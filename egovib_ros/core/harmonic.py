@@ -325,23 +325,31 @@ def fit_harmonic_map(
     # The refinement runs the canceller on at most `max_seconds` (0.5 s pieces spread over
     # the recording: a sweep keeps every cell).
     keep = _pieces(n, int(max_seconds * fs), int(0.5 * fs))
-    search = _MapSearch(
-        np.ascontiguousarray(x[keep]),
-        np.ascontiguousarray(speed[keep]),
-        sample_rate_hz=fs,
-        band_hz=band_hz,
-        joint_names=tuple(joint_names),
-        min_speed=min_speed,
-        residual_rms=residual_rms,
-        # Without the frequency correction (it would make up for a wrong map and flatten
-        # the cost) nor the guard (it would hide the bursts a wrong map makes).
-        settings=dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0),
-        joints=_first_joints(strongest, curves, min_score_db),
-        min_gain_db=min_gain_db,
-    )
-    search.refine(
-        max_lines_per_joint=max_lines_per_joint, exponents=exponents, lags_s=lags_s, rounds=rounds
-    )
+    # Each step's trials run side by side, a thread per core (the kernel releases the GIL):
+    # the same costs, hence the same choices, as one after the other.
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    with ThreadPoolExecutor(cores or 1) as pool:
+        search = _MapSearch(
+            np.ascontiguousarray(x[keep]),
+            np.ascontiguousarray(speed[keep]),
+            sample_rate_hz=fs,
+            band_hz=band_hz,
+            joint_names=tuple(joint_names),
+            min_speed=min_speed,
+            residual_rms=residual_rms,
+            # Without the frequency correction (it would make up for a wrong map and flatten
+            # the cost) nor the guard (it would hide the bursts a wrong map makes).
+            settings=dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0),
+            joints=_first_joints(strongest, curves, min_score_db),
+            min_gain_db=min_gain_db,
+            map_trials=pool.map,
+        )
+        search.refine(
+            max_lines_per_joint=max_lines_per_joint,
+            exponents=exponents,
+            lags_s=lags_s,
+            rounds=rounds,
+        )
     return search.result()
 
 
@@ -395,10 +403,12 @@ class _MapSearch:
         settings,
         joints,
         min_gain_db,
+        map_trials=map,
     ):
         self.x, self.speed, self.fs, self.band_hz = x, speed, sample_rate_hz, band_hz
         self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, residual_rms
         self.settings, self.min_gain_db = settings, min_gain_db
+        self.map_trials = map_trials  # map(cost, trials): the builtin, or a thread pool's
         self.settle = len(x) // 10
         self.joints = joints
         self.evaluations = 0
@@ -434,19 +444,12 @@ class _MapSearch:
         return float(np.mean(r**2)) + 1e-300
 
     def try_all(self, changes) -> bool:
-        """changes: list of {joint: {field: value}}; keep the best if it gains enough. The
-        trials run side by side on the machine's cores (each its own canceller; the kernel
-        releases the GIL): the same values, and the same choice, as one after the other."""
+        """changes: list of {joint: {field: value}}; keep the best if it gains enough (each
+        trial its own canceller, through `map_trials`)."""
         trials = [
             [dict(d, **change.get(j, {})) for j, d in enumerate(self.joints)] for change in changes
         ]
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        workers = min(len(trials), cores or 1)
-        if workers > 1:
-            with ThreadPoolExecutor(workers) as pool:
-                values = list(pool.map(self.cost, trials))
-        else:
-            values = [self.cost(trial) for trial in trials]
+        values = list(self.map_trials(self.cost, trials))
         self.evaluations += len(trials)
         best = None
         for value, trial in zip(values, trials):

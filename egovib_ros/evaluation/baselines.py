@@ -55,7 +55,8 @@ METHOD_LABELS = {
     "cancel": "speed-locked harmonic cancellation",
     "hybrid": "cancellation + low-latency gain",
 }
-#: methods that need what `egovib calibrate --methods hybrid` fits (the model's extras)
+#: methods that need what `egovib calibrate --methods hybrid` fits (the model's extras); they
+#: are also the ones that adapt online (core.adapt)
 NEEDS_METHOD_CALIBRATION = SAMPLE_METHODS
 
 
@@ -330,13 +331,12 @@ CORE_OPTIONS = {
 }
 
 
-#: methods that can adapt online (core.adapt); `default` where it is one of them
-ADAPTING = SAMPLE_METHODS
-
-
 def adapts(name: str, model: NoiseModel) -> bool:
-    """Whether method `name` adapts its model online when asked to (core.adapt)."""
-    return name in ADAPTING or (name == "default" and default_method(model) in ADAPTING)
+    """Whether method `name` adapts its model online when asked to (core.adapt); `default`
+    where the model's default is one of them."""
+    if name == "default":
+        name = default_method(model)
+    return name in SAMPLE_METHODS
 
 
 def method_stream(
