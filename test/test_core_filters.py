@@ -127,14 +127,44 @@ def test_the_split_takes_as_long_as_the_recordings_noise_near_the_band_asks():
         lp = np.abs(signal.freqz(taps, worN=freqs, fs=fs)[1])
         return 10 * np.log10((power * abs(h) ** 2 * lp**2).sum() / (power * abs(h) ** 2).sum())
 
-    mid, edge = (filters.split_for(power=p, **args) for p in (inside, near_edge))
-    assert 3 <= len(mid) < len(edge) <= 2 * filters.SPLIT_MAX_DELAY_S * fs + 1
-    for taps, power in ((mid, inside), (edge, near_edge)):
-        assert np.allclose(taps, taps[::-1]) and taps.sum() == pytest.approx(1.0, abs=1e-12)
+    (mid, mid_delay), (edge, edge_delay) = (
+        filters.split_for(power=p, **args) for p in (inside, near_edge)
+    )
+    assert 1 <= mid_delay < edge_delay <= filters.SPLIT_MAX_DELAY_S * fs
+    for taps, delay, power in ((mid, mid_delay, inside), (edge, edge_delay, near_edge)):
+        assert taps.sum() == pytest.approx(1.0, abs=1e-12)  # gravity passes as it is
         assert leak_db(taps, power) <= filters.SPLIT_LEAK_DB  # its own criterion holds
-    # fitted to the noise, it stops more of it than the plain design of the same length
-    plain = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=(len(edge) - 1) // 2)
+        # linear phase, or a low-delay split within its bounds of a pure delay below the band
+        if len(taps) != 2 * delay + 1:
+            assert len(taps) > 2 * delay + 1
+            for below, bound in (
+                (filters.SPLIT_PASS_FRACTION, filters.SPLIT_PASS_ERROR),
+                (filters.SPLIT_TRANSITION_FRACTION, filters.SPLIT_TRANSITION_ERROR),
+            ):
+                f = freqs[freqs <= below * band[0]]
+                error = signal.freqz(taps, worN=f, fs=fs)[1] - np.exp(-2j * np.pi * f / fs * delay)
+                assert np.abs(error).max() <= bound
+        else:
+            assert np.allclose(taps, taps[::-1])
+    # fitted to the noise, it stops more of it than the plain design of the same delay ...
+    plain = filters.split_taps(sample_rate_hz=fs, band_hz=band, delay=edge_delay)
     assert leak_db(edge, near_edge) < leak_db(plain, near_edge) - 3.0
+    # ... and never with less delay than asked (the gain's look-ahead, which it shares)
+    taps, delay = filters.split_for(power=inside, min_delay=edge_delay + 3, **args)
+    assert delay == edge_delay + 3 and leak_db(taps, inside) <= filters.SPLIT_LEAK_DB
+
+
+def test_a_low_delay_split_stops_the_band_sooner_than_a_linear_phase_one():
+    """The PR2 hand's band at 3 kHz, noise all over it: the linear-phase split that stops it
+    needs more delay than the gain's 4 ms look-ahead; a low-delay one stops it in that."""
+    fs, band = 3000.0, (150.0, 750.0)
+    freqs = np.linspace(0.0, fs / 2, 1501)
+    power = ((freqs > 130) & (freqs < 800)).astype(float)
+    args = dict(sample_rate_hz=fs, band_hz=band, order=4, freqs_hz=freqs, power=power)
+    look_ahead = round(0.004 * fs)
+    taps, delay = filters.split_for(min_delay=look_ahead, **args)
+    # (the linear-phase split of that delay, tried first, passes more than SPLIT_LEAK_DB)
+    assert delay == look_ahead and len(taps) > 2 * delay + 1
 
 
 def test_the_lines_highpass_is_undone_exactly_at_every_line():

@@ -362,6 +362,25 @@ def test_the_model_file_carries_the_methods_and_older_models_still_load(model, t
     assert before.guard_ref is None
     stage = make_denoiser(NoiseModel.load(unguarded), "hybrid")._gain
     assert np.all(np.isinf(stage.guard_ref))
+    # A model calibrated before the low-delay split (linear-phase taps, no split_delay) runs
+    # with its split's delay, half its length; low-delay taps without their delay are refused.
+    taps, delay = a.dropin_split
+    assert len(taps) > 2 * delay + 1  # this robot's split: a low-delay FIR
+    linear = tmp_path / "linear.npz"
+    with np.load(path, allow_pickle=False) as data:
+        fields = {k: data[k] for k in data.files if k != "extra.gain.split_delay"}
+    fields["extra.gain.split_taps"] = filters.split_taps(
+        sample_rate_hz=FS, band_hz=model.band_hz, delay=delay + 2
+    )
+    fields["extra.gain.split_ms"] = np.array(1e3 * (delay + 2) / FS)
+    with open(linear, "wb") as fh:
+        np.savez_compressed(fh, **fields)
+    assert make_denoiser(NoiseModel.load(linear), "hybrid").delay == delay + 2
+    fields["extra.gain.split_taps"] = taps
+    with open(linear, "wb") as fh:
+        np.savez_compressed(fh, **fields)
+    with pytest.raises(ModelFileError, match="linear.npz: gain split_taps without split_delay"):
+        make_denoiser(NoiseModel.load(linear), "hybrid")
     # A damaged extra is a one-line model error, not a crash.
     broken = tmp_path / "broken.npz"
     with np.load(path, allow_pickle=False) as data:

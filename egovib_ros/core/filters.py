@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 from scipy import signal
@@ -201,8 +202,8 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
 # The drop-in output of the per-sample methods (core.methods): what they remove from the
 # band-passed signal, removed from the unfiltered one with nothing below the band touched.
 # --------------------------------------------------------------------------------------
-#: The split's linear-phase low-pass (split_taps) passes up to this share of the band's low
-#: edge and stops from this share on (least squares, unit gain at 0 Hz).
+#: The split's low-pass passes up to this share of the band's low edge and stops from this
+#: share on (least squares, unit gain at 0 Hz).
 SPLIT_PASS_FRACTION = 0.1
 SPLIT_STOP_FRACTION = 0.9
 #: The split may pass at most this share (dB) of the band-passed noise of the calibration
@@ -210,11 +211,22 @@ SPLIT_STOP_FRACTION = 0.9
 #: as the band-passed one (measured: within 1 dB where the methods remove 30-37 dB).
 SPLIT_LEAK_DB = -45.0
 #: ... with the shortest delay that reaches it, at most this (a band low against the sample
-#: rate needs a long filter to stop it): 5.7 ms for the PR2 hand's band, 12 ms for the flight's.
+#: rate needs a long filter to stop it), and no shorter than the gain's own look-ahead.
 SPLIT_MAX_DELAY_S = 0.025
+#: A low-delay split (longer than twice its delay: it stops the band with less delay than the
+#: linear-phase split of the same delay) may err from a pure delay by at most
+#: SPLIT_PASS_ERROR over the passband and SPLIT_TRANSITION_ERROR up to
+#: SPLIT_TRANSITION_FRACTION of the band's low edge (the PR2 hand's linear-phase split of
+#: 5.7 ms: 0.03-0.04 and 0.15): there the error is what the gains may take from motion, which
+#: the drop-in output passes untouched.
+SPLIT_PASS_ERROR = 0.05
+SPLIT_TRANSITION_ERROR = 0.15
+SPLIT_TRANSITION_FRACTION = 0.2
 #: Weight of the split's passband (gravity, motion: exact at 0 Hz in any case) against the
-#: band-passed noise it must stop, in the design fitted to a recording.
+#: band-passed noise it must stop, in the design fitted to a recording ...
 SPLIT_PASS_WEIGHT = 1e-3
+#: ... and the weights a low-delay split tries, in this order, at each length.
+SPLIT_PASS_WEIGHTS = (SPLIT_PASS_WEIGHT, 1e-2, 1e-1, 1.0)
 #: The lines are tracked in the unfiltered signal after a 4th-order high-pass at this share of
 #: the band's low edge: gravity and motion do not reach their trackers, and the high-pass's
 #: phase at a line (undone exactly: `highpass_inverse`) barely changes over its tracking width.
@@ -265,6 +277,42 @@ def split_taps(*, sample_rate_hz: float, band_hz: tuple[float, float], delay: in
     return _split_taps(float(sample_rate_hz), float(band_hz[0]), int(delay))
 
 
+def _lowdelay_lowpass(
+    sample_rate_hz: float,
+    low_edge_hz: float,
+    delay: int,
+    length: int,
+    freqs: np.ndarray,
+    stop_weight: np.ndarray,
+    pass_weight: float,
+) -> np.ndarray:
+    """(length,) taps, least squares: a pure delay of `delay` samples over the passband
+    (weight `pass_weight`), 0 elsewhere weighted by `stop_weight`; longer than 2 delay + 1,
+    a low-delay FIR (it stops more of the band than the linear-phase split of that delay)."""
+    omega = 2.0 * np.pi * freqs / sample_rate_hz
+    basis = np.exp(-1j * np.outer(omega, np.arange(length)))
+    passed = freqs <= SPLIT_PASS_FRACTION * low_edge_hz
+    rows = np.vstack([np.sqrt(stop_weight)[:, None] * basis, pass_weight * basis[passed]])
+    target = np.r_[np.zeros(len(freqs)), pass_weight * np.exp(-1j * omega[passed] * delay)]
+    rows, target = np.vstack([rows.real, rows.imag]), np.r_[target.real, target.imag]
+    # at 0 Hz exactly 1 (gravity passes as it is) with a group delay of exactly `delay` (slow
+    # motion passes with an error growing with the square of its frequency, not linearly)
+    fixed = np.vstack([np.ones(length), np.arange(length, dtype=float)])
+    system = np.block([[rows.T @ rows, fixed.T], [fixed, np.zeros((2, 2))]])
+    rhs = np.r_[rows.T @ target, 1.0, float(delay)]
+    taps = np.linalg.lstsq(system, rhs, rcond=None)[0][:-2]
+    taps.flags.writeable = False
+    return taps
+
+
+def _delay_error(taps, delay, freqs, sample_rate_hz, below_hz) -> float:
+    """The largest error of the split against a pure delay below `below_hz`."""
+    mask = freqs <= below_hz
+    response = signal.freqz(taps, 1, worN=freqs[mask], fs=sample_rate_hz)[1]
+    shift = np.exp(-2j * np.pi * freqs[mask] / sample_rate_hz * delay)
+    return float(np.abs(response - shift).max()) if mask.any() else 0.0
+
+
 def split_for(
     *,
     sample_rate_hz: float,
@@ -272,26 +320,50 @@ def split_for(
     order: int,
     freqs_hz: np.ndarray,
     power: np.ndarray,
-) -> np.ndarray:
-    """The drop-in split for a recording of power spectrum `power` at `freqs_hz`: the
-    shortest (at most SPLIT_MAX_DELAY_S) whose taps, fitted to stop that recording's
-    band-passed noise (least squares weighted by it: 5-6 dB less leak than the plain design
-    of the same length), pass at most SPLIT_LEAK_DB of it into the untouched low part."""
+    min_delay: int = 1,
+) -> tuple[np.ndarray, int]:
+    """The drop-in split for a recording of power spectrum `power` at `freqs_hz`, as (taps,
+    delay): the shortest delay from `min_delay` on (at most SPLIT_MAX_DELAY_S) at which taps
+    fitted to stop that recording's band-passed noise (least squares weighted by it: 5-6 dB
+    less leak than the plain design of the same length) pass at most SPLIT_LEAK_DB of it into
+    the untouched low part. At each delay the linear-phase split first, then low-delay ones
+    up to three times as long, within SPLIT_PASS_ERROR and SPLIT_TRANSITION_ERROR of a pure
+    delay (the PR2 hand: 4.0 ms where a linear-phase split needs 5.7)."""
     freqs_hz = np.asarray(freqs_hz, float)
     sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
     response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
     band = np.asarray(power, float) * np.abs(response) ** 2
     total = max(float(band.sum()), 1e-300)
+    low_edge = band_hz[0]
     # what the split must stop: the band-passed noise from half the band's edge up
-    weight = np.where(freqs_hz >= 0.5 * band_hz[0], band / band.max(), 0.0) + 1e-6
-    longest = max(1, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
-    taps = np.ones(1)
-    for delay in range(1, longest + 1):
-        taps = _symmetric_lowpass(sample_rate_hz, band_hz[0], delay, freqs_hz, weight)
+    weight = np.where(freqs_hz >= 0.5 * low_edge, band / band.max(), 0.0) + 1e-6
+
+    def stops(taps) -> bool:
         leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
-        if 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB:
-            break
-    return taps
+        return 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB
+
+    def near_delay(taps, delay) -> bool:
+        err = functools.partial(_delay_error, taps, delay, freqs_hz, sample_rate_hz)
+        return (
+            err(SPLIT_PASS_FRACTION * low_edge) <= SPLIT_PASS_ERROR
+            and err(SPLIT_TRANSITION_FRACTION * low_edge) <= SPLIT_TRANSITION_ERROR
+        )
+
+    longest = max(1, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
+    taps, delay = np.ones(1), 0
+    for delay in range(max(1, min_delay), longest + 1):
+        taps = _symmetric_lowpass(sample_rate_hz, low_edge, delay, freqs_hz, weight)
+        if stops(taps):
+            return taps, delay
+        for length, pass_weight in itertools.product(
+            range(2 * delay + 5, 6 * delay + 2, 4), SPLIT_PASS_WEIGHTS
+        ):
+            candidate = _lowdelay_lowpass(
+                sample_rate_hz, low_edge, delay, length, freqs_hz, weight, pass_weight
+            )
+            if stops(candidate) and near_delay(candidate, delay):
+                return candidate, delay
+    return taps, delay
 
 
 def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:

@@ -18,10 +18,10 @@ consumer), so batch equals streaming for any chunking.
 Both new methods work on x, y and z separately (each axis has its own line weights,
 noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
 of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
-the raw samples split by a linear-phase low-pass fitted to the calibration recording
-(DropInSplit): gravity and motion pass untouched, the band and its edges are cleaned,
-the split's delay (5.7 ms on the simulated PR2 hand, 13 ms on the 1 kHz flight) later than
-the band-passed output.
+the raw samples split by a low-pass fitted to the calibration recording (DropInSplit):
+gravity and motion pass untouched, the band and its edges are cleaned, with the split's
+delay (4.0 ms on the simulated PR2 hand, as the band-passed output; 10 ms on the 1 kHz
+flight, whose band lies lower against its rate).
 """
 
 from __future__ import annotations
@@ -242,6 +242,7 @@ class MethodCalibration:
     open_alpha: np.ndarray  # (3,) per axis
     guard_ref: np.ndarray | None = None  # (3,) per axis; None: calibrated before the guard
     split_taps: np.ndarray | None = None  # the drop-in output's split fitted to the recording
+    split_delay: int | None = None  # its delay (samples); None: linear phase, half its length
     info: dict = dataclasses.field(default_factory=dict)
 
     def to_extras(self) -> dict[str, np.ndarray]:
@@ -265,6 +266,7 @@ class MethodCalibration:
             extras[GAIN_PREFIX + "guard_ref"] = self.guard_ref
         if self.split_taps is not None:
             extras[GAIN_PREFIX + "split_taps"] = np.asarray(self.split_taps, float)
+            extras[GAIN_PREFIX + "split_delay"] = np.array(self.dropin_split[1])
         return extras
 
     @classmethod
@@ -321,16 +323,29 @@ class MethodCalibration:
             if guard_ref.shape != (len(AXES),) or not np.all(np.isfinite(guard_ref)):
                 raise ModelFileError(f"{where}: gain guard_ref must hold 3 finite values")
         split = extras.get(GAIN_PREFIX + "split_taps")
+        delay = extras.get(GAIN_PREFIX + "split_delay")
         if split is not None:
             split = np.asarray(split, float)
-            if (
-                split.ndim != 1
-                or len(split) % 2 != 1
-                or not np.all(np.isfinite(split))
-                or not np.allclose(split, split[::-1])
-            ):
-                raise ModelFileError(f"{where}: gain split_taps must be symmetric, odd, finite")
-        return cls(harmonic, canceller, residual, gain, alpha, bias, open_alpha, guard_ref, split)
+            if split.ndim != 1 or not len(split) or not np.all(np.isfinite(split)):
+                raise ModelFileError(f"{where}: gain split_taps must be finite taps")
+            if delay is None and (len(split) % 2 != 1 or not np.allclose(split, split[::-1])):
+                raise ModelFileError(f"{where}: gain split_taps without split_delay must be "
+                                     "symmetric and odd (linear phase)")  # fmt: skip
+            if delay is not None:
+                delay = int(delay)
+                if not 0 <= delay < len(split):
+                    raise ModelFileError(f"{where}: gain split_delay must be within its taps")
+        return cls(
+            harmonic, canceller, residual, gain, alpha, bias, open_alpha, guard_ref, split, delay
+        )
+
+    @property
+    def dropin_split(self) -> tuple[np.ndarray, int] | None:
+        """The fitted split as (taps, delay in samples); None if calibrated without one."""
+        if self.split_taps is None:
+            return None
+        taps = np.asarray(self.split_taps, float)
+        return taps, (len(taps) - 1) // 2 if self.split_delay is None else self.split_delay
 
 
 @numba.njit(cache=True)
@@ -528,11 +543,11 @@ def _band_passed_calibration(
     return stamps, values, velocity
 
 
-def _split(model: NoiseModel, accel: np.ndarray) -> np.ndarray | None:
+def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | None:
     """The drop-in output's split for `model`, fitted to the calibration recording's
-    spectrum near the band (core.filters.split_for): its taps (their delay is the look-ahead
-    the drop-in output needs: 5.7 ms for the simulated PR2 hand, 13 ms for the flight);
-    None for a recording too short to tell."""
+    spectrum near the band (core.filters.split_for), no shorter than the gain's look-ahead:
+    (taps, delay), the delay being the look-ahead the drop-in output needs (4.0 ms for the
+    simulated PR2 hand, 8 ms for the flight); None for a recording too short to tell."""
     values = np.asarray(accel, float)
     # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
@@ -549,6 +564,7 @@ def _split(model: NoiseModel, accel: np.ndarray) -> np.ndarray | None:
         order=model.band_order,
         freqs_hz=freqs,
         power=power.sum(axis=1),
+        min_delay=gain.delay_samples(fs),
     )
 
 
@@ -580,10 +596,10 @@ def calibrate_methods(
     One function: its numbered steps hand the recording's band-passed arrays and each
     stage's residual to the next, in this order (each stage's fit is a function of its own)."""
     canceller = canceller or CancellerSettings()
-    split = _split(model, accel)
     gain = gain or GainSettings()
+    split = _split(model, accel, gain)
     if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
-        delay_ms = 1e3 * ((len(split) - 1) // 2) / model.sample_rate_hz
+        delay_ms = 1e3 * split[1] / model.sample_rate_hz
         gain = dataclasses.replace(gain, split_ms=max(gain.lookahead_ms, round(delay_ms, 3)))
     if model.profile is None:
         raise ConfigError("calibrate_methods: the model carries no robot profile")
@@ -672,7 +688,15 @@ def calibrate_methods(
         if len(levels):
             guard_ref[c] = float(np.quantile(levels, gain.guard_quantile)) - math.log(open_alpha[c])
     calibration = MethodCalibration(
-        harmonic, canceller, residual_model, gain, alpha, bias, open_alpha, guard_ref, split
+        harmonic,
+        canceller,
+        residual_model,
+        gain,
+        alpha,
+        bias,
+        open_alpha,
+        guard_ref,
+        *(split or (None, None)),
     )
     info = {
         "harmonic": {**harmonic.describe(), "fit": fit_info},
@@ -839,10 +863,11 @@ class SampleMethodDenoiser(FramedDenoiser):
         # ... less what the gains take from the same bands of it (split at the look-ahead).
         self._split = None
         if output == "dropin" and self._gain is not None:
-            taps = cal.split_taps  # fitted to the robot's calibration recording
-            if taps is None or len(taps) != 2 * self.lookahead + 1:  # another look-ahead
-                taps = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.lookahead)
-            self._split = DropInSplit(taps)
+            split = cal.dropin_split  # fitted to the robot's calibration recording
+            if split is None or split[1] != self.lookahead:  # another look-ahead
+                delay = self.lookahead
+                split = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=delay), delay
+            self._split = DropInSplit(*split)
         self.delay = self.lookahead
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
@@ -1030,7 +1055,7 @@ def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 @numba.njit(cache=True)
 def _fir(taps, history):
-    """(n, C) outputs of the symmetric FIR `taps` (odd length N, as the model file checks)
+    """(n, C) outputs of the symmetric FIR `taps` (odd length N: a linear-phase split)
     over `history` (its N - 1 samples before, then the n new ones): each the middle tap's
     product plus, per pair of equal taps, one multiply of the pair's summed samples (half
     the multiplies of the plain sum); the sums in the same order whatever the chunking (so
@@ -1043,14 +1068,34 @@ def _fir(taps, history):
     rows = np.ascontiguousarray(history.T)
     out = np.empty((C, n))
     for c in range(C):
+        o, x = out[c], rows[c]  # 1-D slices: the inner loops vectorise (2x 2-D indexing)
         t = taps[mid]
+        xm = x[mid : mid + n]
         for i in range(n):
-            out[c, i] = t * rows[c, i + mid]
+            o[i] = t * xm[i]
         for k in range(mid):
             t = taps[k]
-            far = N - 1 - k
+            near, far = x[k : k + n], x[N - 1 - k : N - 1 - k + n]
             for i in range(n):
-                out[c, i] += t * (rows[c, i + far] + rows[c, i + k])
+                o[i] += t * (far[i] + near[i])
+    return out.T.copy()
+
+
+@numba.njit(cache=True)
+def _fir_lowdelay(taps, history):
+    """_fir for taps of no symmetry (a low-delay split): the plain sum, same layout."""
+    N = len(taps)
+    n = history.shape[0] - (N - 1)
+    C = history.shape[1]
+    rows = np.ascontiguousarray(history.T)
+    out = np.zeros((C, n))
+    for c in range(C):
+        o, x = out[c], rows[c]
+        for k in range(N):
+            t = taps[k]
+            xk = x[N - 1 - k : N - 1 - k + n]
+            for i in range(n):
+                o[i] += t * xk[i]
     return out.T.copy()
 
 
@@ -1075,17 +1120,20 @@ def _joined(batches: list[SampleBatch]) -> list[SampleBatch]:
 
 class DropInSplit:
     """The drop-in output's split, `delay` samples late. `process(raw, cleaned)` with
-    `cleaned` = raw less its lines: (low, high), `low` the raw samples through a
-    linear-phase low-pass (core.filters.split_taps): gravity and motion, which the drop-in
-    output passes untouched; `high` = `cleaned`, delayed, less its own low part: inside the
-    band the cleaned samples themselves to within core.filters.SPLIT_ERROR_DB... with no
-    phase error (a causal IIR split of no delay would have one, or pass motion on to the
-    gains), so the gains take from it what they take from the band-passed signal. Whatever
+    `cleaned` = raw less its lines: (low, high), `low` the raw samples through the split's
+    low-pass (core.filters.split_for: linear-phase, or a low-delay FIR whose response is a
+    pure `delay` at 0 Hz and near it): gravity and motion, which the drop-in output passes
+    untouched; `high` = `cleaned`, delayed, less its own low part: inside the band the
+    cleaned samples themselves (a causal IIR split of no delay would shift their phase, or
+    pass motion on to the gains), so the gains take from it what they take from the
+    band-passed signal; low + high is the raw signal `delay` late, less its lines. Whatever
     slow part the subtracted lines had stays out of the output."""
 
-    def __init__(self, taps: np.ndarray, n_channels: int = 3):
+    def __init__(self, taps: np.ndarray, delay: int, n_channels: int = 3):
         self.taps = np.asarray(taps, float)
-        self.delay = (len(self.taps) - 1) // 2
+        self.delay = int(delay)
+        symmetric = 2 * self.delay + 1 == len(self.taps) and np.array_equal(taps, taps[::-1])
+        self._fir = _fir if symmetric else _fir_lowdelay
         self.n_channels = int(n_channels)
         self.reset()
 
@@ -1104,7 +1152,7 @@ class DropInSplit:
     def _low(self, history: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         both = np.concatenate([history, np.asarray(x, float)])
         late = both[len(self.taps) - 1 - self.delay : len(both) - self.delay]
-        return _fir(self.taps, both), late, both[len(both) - len(history) :]
+        return self._fir(self.taps, both), late, both[len(both) - len(history) :]
 
     def process(self, raw: np.ndarray, cleaned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self._raw is None:
