@@ -133,3 +133,65 @@ def jittery_stamps(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     steps = np.where(rng.random(n) < 0.1, rng.uniform(0.9, 1.25, n), 1.0) * 1e6
     return np.cumsum(steps).astype(np.int64)
+
+
+# --- two motors at 1 kHz: the per-sample methods' core tests (test_core_methods, _adapt) ---
+TWO_MOTOR_FS = 1000.0
+#: (joint, c, p): a line at c x (1.03 x the reported speed)^p Hz (the real speed 3 % off)
+TWO_MOTOR_LINES = ((0, 210.0, 1.0), (0, 420.0, 1.0), (1, 160.0, 0.8), (1, 240.0, 0.8))
+
+
+def two_motor_profile(name: str):
+    """A gyro at 1 kHz on two one-directional motors (top speed 1), band 60-450 Hz."""
+    from egovib_ros.robot import RobotProfile
+
+    return RobotProfile(
+        name=name,
+        sensor_topic="/imu/data_raw",
+        sensor_field="angular_velocity",
+        rate_hz=TWO_MOTOR_FS,
+        denoised_topic="/imu/denoised",
+        joints_topic="/joint_states",
+        joint_names=("m1", "m2"),
+        max_speed=(1.0, 1.0),
+        bidirectional=(False, False),
+        steps=10,
+        sensor_range=100.0,
+        block_length=32,
+        hop=16,
+        band_hz=(60.0, 450.0),
+        band_order=4,
+    )
+
+
+def two_motor_recording(speed, steps, rng, *, mixing, gain=1.0, taps_per_s=0.0, tap_peak=2.0):
+    """Arrays of the two motors at `speed` (n, 2), sample steps `steps` (n,) in ms: gravity,
+    their lines (mixed onto the axes by `mixing` (4, 3)) and broadband growing with speed,
+    all times `gain` (n,); taps (40 ms bursts, 120-380 Hz, one axis) every 1 / taps_per_s s;
+    joint states at 500 Hz, 0.3 ms late."""
+    fs, n = TWO_MOTOR_FS, len(speed)
+    t = (10**9 + np.round(np.cumsum(steps) * 1e6)).astype(np.int64)
+    accel = np.zeros((n, 3))
+    accel[:, 2] = 9.81
+    for k, (j, c, p) in enumerate(TWO_MOTOR_LINES):
+        phase = 2 * np.pi * np.cumsum(c * (1.03 * speed[:, j]) ** p * steps) / fs
+        accel += (0.6 * gain * speed[:, j] * np.sin(phase + k))[:, None] * mixing[k][None, :]
+    accel += (gain * (0.02 + 0.05 * speed.mean(axis=1)))[:, None] * rng.normal(size=(n, 3))
+    contact = np.zeros((n, 3))
+    onsets = np.zeros(0, dtype=np.int64)
+    if taps_per_s:
+        gap = int(fs / taps_per_s)
+        onsets = np.arange(gap // 2, n - int(0.2 * fs), gap)
+        k = np.arange(int(0.04 * fs)) / fs
+        for o in onsets:
+            burst = np.exp(-k / 0.008) * np.sin(2 * np.pi * rng.uniform(120, 380) * k)
+            contact[o : o + len(k), rng.integers(0, 3)] += tap_peak * burst
+    pick = np.arange(0, n, 2)
+    return {
+        "t": t,
+        "accel": accel + contact,
+        "tj": t[pick] + 300_000,
+        "velocity": speed[pick],
+        "contact": contact,
+        "onsets": onsets,
+    }

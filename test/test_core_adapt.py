@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import signal
+from synthetic import TWO_MOTOR_FS, two_motor_profile, two_motor_recording
 
 from egovib_ros.core import calibrate_arrays
 from egovib_ros.core.adapt import (
@@ -35,36 +36,17 @@ from egovib_ros.core.methods import (
 )
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError, ModelFileError
-from egovib_ros.robot import RobotProfile
 
-FS = 1000.0
-PROFILE = RobotProfile(
-    name="two_motor_adapt",
-    sensor_topic="/imu/data_raw",
-    sensor_field="angular_velocity",
-    rate_hz=FS,
-    denoised_topic="/imu/denoised",
-    joints_topic="/joint_states",
-    joint_names=("m1", "m2"),
-    max_speed=(1.0, 1.0),
-    bidirectional=(False, False),
-    steps=10,
-    sensor_range=100.0,
-    block_length=32,
-    hop=16,
-    band_hz=(60.0, 450.0),
-    band_order=4,
-)
-LINES = ((0, 210.0, 1.0), (0, 420.0, 1.0), (1, 160.0, 0.8), (1, 240.0, 0.8))
+FS = TWO_MOTOR_FS
+PROFILE = two_motor_profile("two_motor_adapt")
 
 
 def recording(
     speeds, *, seed: int, dwell_s: float = 1.5, level=1.0, taps_per_s: float = 0.0, tap_peak=4.0
 ):
-    """Two motors dwelling on each (m1, m2) of `speeds` for `dwell_s` (0.1 s ramps between):
-    their lines (210 v, 420 v; 160 v^0.8, 240 v^0.8, the real speed 3 % off the reported
-    one) and broadband, all times `level` (a number or a function of time in s), jittery
-    stamps, taps (40 ms bursts) every 1 / taps_per_s s."""
+    """Two motors (synthetic.two_motor_recording) dwelling on each (m1, m2) of `speeds` for
+    `dwell_s` (0.1 s ramps between), all times `level` (a number or a function of time in
+    s), jittery stamps."""
     rng = np.random.default_rng(seed)
     per = int(dwell_s * FS)
     target = np.repeat(np.asarray(speeds, float), per, axis=0)
@@ -72,34 +54,13 @@ def recording(
     ramp = signal.butter(1, 3.0, fs=FS, output="sos")
     speed = signal.sosfilt(ramp, target - target[0], axis=0) + target[0]
     steps = 1.0 + rng.uniform(-0.2, 0.2, n)
-    t = (10**9 + np.round(np.cumsum(steps) * 1e6)).astype(np.int64)
+    t = np.round(np.cumsum(steps) * 1e6).astype(np.int64)  # the stamps, less their start
     seconds = (t - t[0]) / 1e9
     gain = level(seconds) if callable(level) else np.full(n, float(level))
-    accel = np.zeros((n, 3))
-    accel[:, 2] = 9.81
     mixing = np.random.default_rng(99).normal(size=(4, 3))
-    for k, (j, c, p) in enumerate(LINES):
-        freq = c * (1.03 * speed[:, j]) ** p
-        phase = 2 * np.pi * np.cumsum(freq * steps) / FS
-        accel += (0.6 * gain * speed[:, j] * np.sin(phase + k))[:, None] * mixing[k][None, :]
-    accel += (gain * (0.02 + 0.05 * speed.mean(axis=1)))[:, None] * rng.normal(size=(n, 3))
-    contact = np.zeros((n, 3))
-    onsets = np.zeros(0, dtype=np.int64)
-    if taps_per_s:
-        gap = int(FS / taps_per_s)
-        onsets = np.arange(gap // 2, n - int(0.2 * FS), gap)
-        k = np.arange(int(0.04 * FS)) / FS
-        for o in onsets:
-            burst = np.exp(-k / 0.008) * np.sin(2 * np.pi * rng.uniform(120, 380) * k)
-            contact[o : o + len(k), rng.integers(0, 3)] += tap_peak * burst
-    pick = np.arange(0, n, 2)  # joint states at 500 Hz
-    return {
-        "t": t,
-        "accel": accel + contact,
-        "tj": t[pick] + 300_000,
-        "velocity": speed[pick],
-        "onsets": onsets,
-    }
+    return two_motor_recording(
+        speed, steps, rng, mixing=mixing, gain=gain, taps_per_s=taps_per_s, tap_peak=tap_peak
+    )
 
 
 def arrays(rec):

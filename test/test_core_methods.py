@@ -11,6 +11,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy import signal
+from synthetic import TWO_MOTOR_FS, two_motor_profile, two_motor_recording
 
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
@@ -26,68 +27,26 @@ from egovib_ros.core.methods import (
 )
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError, ModelFileError
-from egovib_ros.robot import RobotProfile
 
-FS = 1000.0
-PROFILE = RobotProfile(
-    name="two_motor_test",
-    sensor_topic="/imu/data_raw",
-    sensor_field="angular_velocity",
-    rate_hz=FS,
-    denoised_topic="/imu/denoised",
-    joints_topic="/joint_states",
-    joint_names=("m1", "m2"),
-    max_speed=(1.0, 1.0),
-    bidirectional=(False, False),
-    steps=10,
-    sensor_range=100.0,
-    block_length=32,
-    hop=16,
-    band_hz=(60.0, 450.0),
-    band_order=4,
-)
+FS = TWO_MOTOR_FS
+PROFILE = two_motor_profile("two_motor_test")
 
 
 def recording(duration_s: float, *, seed: int, taps_per_s: float = 0.0, tap_peak: float = 2.0):
-    """Two motors: lines at 210 v and 420 v (motor 1), 160 v^0.8 and 240 v^0.8 (motor 2),
-    the real speed 3 % off the reported one, broadband growing with speed, jittery stamps."""
+    """Two motors (synthetic.two_motor_recording) at speeds wandering over 0.1-1.0, jittery
+    stamps."""
     rng = np.random.default_rng(seed)
     n = int(duration_s * FS)
     steps = 1.0 + rng.uniform(-0.2, 0.2, n)
-    t = (10**9 + np.round(np.cumsum(steps) * 1e6)).astype(np.int64)
     sos = signal.butter(2, 0.5, fs=FS, output="sos")
     speed = np.empty((n, 2))
     for j in range(2):
         walk = signal.sosfiltfilt(sos, rng.normal(size=n + 2000))[1000:-1000]
         speed[:, j] = np.clip(0.55 + 0.2 * walk / walk.std(), 0.1, 1.0)
-    accel = np.zeros((n, 3))
-    accel[:, 2] = 9.81
     mixing = rng.normal(size=(4, 3))
-    lines = ((0, 210.0, 1.0), (0, 420.0, 1.0), (1, 160.0, 0.8), (1, 240.0, 0.8))
-    for k, (j, c, p) in enumerate(lines):
-        freq = c * (1.03 * speed[:, j]) ** p
-        phase = 2 * np.pi * np.cumsum(freq * steps) / FS
-        accel += (0.6 * speed[:, j] * np.sin(phase + k))[:, None] * mixing[k][None, :]
-    accel += (0.02 + 0.05 * speed.mean(axis=1))[:, None] * rng.normal(size=(n, 3))
-    contact = np.zeros((n, 3))
-    onsets = np.zeros(0, dtype=np.int64)
-    if taps_per_s:
-        gap = int(FS / taps_per_s)
-        onsets = np.arange(gap // 2, n - int(0.2 * FS), gap)
-        k = np.arange(int(0.04 * FS)) / FS
-        for o in onsets:
-            f = rng.uniform(120, 380)
-            burst = np.exp(-k / 0.008) * np.sin(2 * np.pi * f * k)
-            contact[o : o + len(k), rng.integers(0, 3)] += tap_peak * burst
-    pick = np.arange(0, n, 2)  # joint states at 500 Hz
-    return {
-        "t": t,
-        "accel": accel + contact,
-        "tj": t[pick] + 300_000,
-        "velocity": speed[pick],
-        "contact": contact,
-        "onsets": onsets,
-    }
+    return two_motor_recording(
+        speed, steps, rng, mixing=mixing, taps_per_s=taps_per_s, tap_peak=tap_peak
+    )
 
 
 @pytest.fixture(scope="module")

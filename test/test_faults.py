@@ -2105,26 +2105,21 @@ def test_bad_input_keeps_exit_2_and_writes_no_log(lab, tmp_path, state_home, mon
 # --- live: the denoiser node refuses a stream whose rate changes ---------------------------
 
 
-def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
-    nodes, ros_client, feeder, sim_model_path
-):
-    """The node on real DDS, fed 1 s at 3 kHz, then 1.5 s at 1.5 kHz: /diagnostics turns
-    ERROR naming the rate (it said "N missing samples bridged" each second before), output
-    stops within 3 rate windows of the change, the rest is withheld, the node keeps running."""
-    from conftest import reports
-    from diagnostic_msgs.msg import DiagnosticStatus
+def _live_denoiser(nodes, ros_client, feeder, model_path):
+    """The denoiser node on the PR2 profile, inputs reliable, its output collected raw by the
+    test's client: (process, received messages, feeder with one joint state published,
+    profile)."""
     from sensor_msgs.msg import Imu
 
     from egovib_research.tools.orchestration import reliable_input
     from egovib_ros.nodes.common import stream_publisher_qos
-    from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
     from egovib_ros.robot import load_profile
 
     profile = load_profile()
     den = nodes.start(
         "denoiser",
         {
-            "model": str(sim_model_path),
+            "model": str(model_path),
             **reliable_input(profile.sensor_topic, profile.joints_topic),
         },
     )
@@ -2139,6 +2134,21 @@ def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
     feed = feeder(profile)
     assert feed.wait_for_subscribers("denoiser"), nodes.log(den)
     feed.publish_joint_state()
+    return den, received, feed, profile
+
+
+def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
+    nodes, ros_client, feeder, sim_model_path
+):
+    """The node on real DDS, fed 1 s at 3 kHz, then 1.5 s at 1.5 kHz: /diagnostics turns
+    ERROR naming the rate (it said "N missing samples bridged" each second before), output
+    stops within 3 rate windows of the change, the rest is withheld, the node keeps running."""
+    from conftest import reports
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
+
+    den, received, feed, profile = _live_denoiser(nodes, ros_client, feeder, sim_model_path)
     rate = profile.rate_hz
     before = feed.stamp0 + (np.arange(int(rate)) * 1e9 / rate).astype(np.int64)
     after = before[-1] + (np.arange(1, int(0.75 * rate) + 1) * 2e9 / rate).astype(np.int64)
@@ -2276,32 +2286,10 @@ def test_live_burst_at_ten_times_the_rate_refused_then_denoising_resumes(
     `rate_recoveries` counts it."""
     from conftest import reports
     from diagnostic_msgs.msg import DiagnosticStatus
-    from sensor_msgs.msg import Imu
 
-    from egovib_research.tools.orchestration import reliable_input
-    from egovib_ros.nodes.common import stream_publisher_qos
     from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
-    from egovib_ros.robot import load_profile
 
-    profile = load_profile()
-    den = nodes.start(
-        "denoiser",
-        {
-            "model": str(sim_model_path),
-            **reliable_input(profile.sensor_topic, profile.joints_topic),
-        },
-    )
-    received = []
-    ros_client.node.create_subscription(
-        Imu,
-        profile.node_denoised_topic,
-        received.append,
-        stream_publisher_qos(depth=30_000),
-        raw=True,
-    )
-    feed = feeder(profile)
-    assert feed.wait_for_subscribers("denoiser"), nodes.log(den)
-    feed.publish_joint_state()
+    den, received, feed, profile = _live_denoiser(nodes, ros_client, feeder, sim_model_path)
     before, burst, after = _publish_burst_stream(feed, profile)
     assert "rate changed" in nodes.log(den) or ros_client.spin_until(
         lambda: "rate changed" in nodes.log(den), 10.0

@@ -308,9 +308,6 @@ UNTESTED = {
     "core/timebase": "one constant (ns per s)",
     "cli/jobs": "--jobs/--scheduler of every many-bag command (test_cli_denoise, test_cli_gap)",
     "cli/model": "`egovib model show` runs in test_viz_model_show",
-    "cli/simulate_robot": "`egovib simulate robot` runs in test_sim_robot",
-    "cli/simulate_output": "every `egovib simulate` scenario writes through it (test_cli_simulate, "
-    "test_sim_robot)",
     "nodes/bag_recorder": "records the replay in test_nodes_bag_player",
     "gap/chain": "the forward selection's cross-fitted chains: test_gap_diagnose, test_gap_change",
     # research/egovib_research

@@ -6,7 +6,7 @@ import functools
 import itertools
 
 import numpy as np
-from scipy import signal
+from scipy import linalg, signal
 
 from egovib_ros.errors import ConfigError, StreamError
 
@@ -277,32 +277,31 @@ def split_taps(*, sample_rate_hz: float, band_hz: tuple[float, float], delay: in
     return _split_taps(float(sample_rate_hz), float(band_hz[0]), int(delay))
 
 
-def _lowdelay_lowpass(
-    sample_rate_hz: float,
-    low_edge_hz: float,
-    delay: int,
-    length: int,
-    freqs: np.ndarray,
-    stop_weight: np.ndarray,
-    pass_weight: float,
-) -> np.ndarray:
-    """(length,) taps, least squares: a pure delay of `delay` samples over the passband
-    (weight `pass_weight`), 0 elsewhere weighted by `stop_weight`; longer than 2 delay + 1,
-    a low-delay FIR (it stops more of the band than the linear-phase split of that delay)."""
-    omega = 2.0 * np.pi * freqs / sample_rate_hz
-    basis = np.exp(-1j * np.outer(omega, np.arange(length)))
-    passed = freqs <= SPLIT_PASS_FRACTION * low_edge_hz
-    rows = np.vstack([np.sqrt(stop_weight)[:, None] * basis, pass_weight * basis[passed]])
-    target = np.r_[np.zeros(len(freqs)), pass_weight * np.exp(-1j * omega[passed] * delay)]
-    rows, target = np.vstack([rows.real, rows.imag]), np.r_[target.real, target.imag]
-    # at 0 Hz exactly 1 (gravity passes as it is) with a group delay of exactly `delay` (slow
-    # motion passes with an error growing with the square of its frequency, not linearly)
-    fixed = np.vstack([np.ones(length), np.arange(length, dtype=float)])
-    system = np.block([[rows.T @ rows, fixed.T], [fixed, np.zeros((2, 2))]])
-    rhs = np.r_[rows.T @ target, 1.0, float(delay)]
-    taps = np.linalg.lstsq(system, rhs, rcond=None)[0][:-2]
-    taps.flags.writeable = False
-    return taps
+class _LowDelayDesign:
+    """Low-delay splits for one recording's stop weights: taps of a given length and delay,
+    least squares against a pure delay over the passband (weight `pass_weight`) and 0
+    elsewhere (weighted by `stop_weight`), at 0 Hz exactly 1 (gravity passes as it is) with
+    a group delay there of exactly `delay` (slow motion passes with an error growing with
+    the square of its frequency, not linearly). Longer than 2 delay + 1, such a split stops
+    more of the band than the linear-phase one of its delay. The normal equations are
+    Toeplitz (a sum of cosines of the lag), built once for every length and delay."""
+
+    def __init__(self, sample_rate_hz, low_edge_hz, freqs, stop_weight, longest: int):
+        omega = 2.0 * np.pi * np.asarray(freqs, float) / sample_rate_hz
+        passed = freqs <= SPLIT_PASS_FRACTION * low_edge_hz
+        lags = np.arange(longest)
+        self._stop = np.cos(np.outer(lags, omega)) @ stop_weight
+        self._pass = np.cos(np.outer(lags, omega[passed])).sum(axis=1)
+
+    def taps(self, delay: int, length: int, pass_weight: float) -> np.ndarray:
+        w2 = pass_weight**2
+        gram = linalg.toeplitz(self._stop[:length] + w2 * self._pass[:length])
+        target = w2 * self._pass[np.abs(np.arange(length) - delay)]
+        fixed = np.vstack([np.ones(length), np.arange(length, dtype=float)])
+        system = np.block([[gram, fixed.T], [fixed, np.zeros((2, 2))]])
+        taps = np.linalg.lstsq(system, np.r_[target, 1.0, float(delay)], rcond=None)[0][:-2]
+        taps.flags.writeable = False
+        return taps
 
 
 def _delay_error(taps, delay, freqs, sample_rate_hz, below_hz) -> float:
@@ -326,9 +325,10 @@ def split_for(
     delay): the shortest delay from `min_delay` on (at most SPLIT_MAX_DELAY_S) at which taps
     fitted to stop that recording's band-passed noise (least squares weighted by it: 5-6 dB
     less leak than the plain design of the same length) pass at most SPLIT_LEAK_DB of it into
-    the untouched low part. At each delay the linear-phase split first, then low-delay ones
-    up to three times as long, within SPLIT_PASS_ERROR and SPLIT_TRANSITION_ERROR of a pure
-    delay (the PR2 hand: 4.0 ms where a linear-phase split needs 5.7)."""
+    the untouched low part: the linear-phase split's, then, by bisection below it, the least
+    delay of a low-delay split (_LowDelayDesign, up to three times as long as twice its delay)
+    within SPLIT_PASS_ERROR and SPLIT_TRANSITION_ERROR of a pure delay (the PR2 hand: 4.0 ms
+    where a linear-phase split needs 5.7). Seconds at most (a band at 20 Hz at 3 kHz: 3 s)."""
     freqs_hz = np.asarray(freqs_hz, float)
     sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
     response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
@@ -349,21 +349,36 @@ def split_for(
             and err(SPLIT_TRANSITION_FRACTION * low_edge) <= SPLIT_TRANSITION_ERROR
         )
 
-    longest = max(1, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
-    taps, delay = np.ones(1), 0
-    for delay in range(max(1, min_delay), longest + 1):
+    start = max(1, min_delay)
+    longest = max(start, int(SPLIT_MAX_DELAY_S * sample_rate_hz))
+    for delay in range(start, longest + 1):  # the linear-phase split
         taps = _symmetric_lowpass(sample_rate_hz, low_edge, delay, freqs_hz, weight)
         if stops(taps):
-            return taps, delay
+            break
+    else:  # none stops the band: the longest, unless a low-delay split does
+        delay += 1
+    design = _LowDelayDesign(sample_rate_hz, low_edge, freqs_hz, weight, 6 * delay + 2)
+
+    def low_delay(delay: int) -> np.ndarray | None:
+        step = 4 * max(1, delay // 16)  # (a long split: fewer lengths tried)
         for length, pass_weight in itertools.product(
-            range(2 * delay + 5, 6 * delay + 2, 4), SPLIT_PASS_WEIGHTS
+            range(2 * delay + 5, 6 * delay + 2, step), SPLIT_PASS_WEIGHTS
         ):
-            candidate = _lowdelay_lowpass(
-                sample_rate_hz, low_edge, delay, length, freqs_hz, weight, pass_weight
-            )
+            candidate = design.taps(delay, length, pass_weight)
             if stops(candidate) and near_delay(candidate, delay):
-                return candidate, delay
-    return taps, delay
+                return candidate
+        return None
+
+    # a low-delay split of less delay: the least, by bisection (a longer delay stops more)
+    best, low, high = (taps, min(delay, longest)), start, delay
+    while low < high:
+        middle = (low + high) // 2
+        candidate = low_delay(middle)
+        if candidate is None:
+            low = middle + 1
+        else:
+            best, high = (candidate, middle), middle
+    return best
 
 
 def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
