@@ -328,9 +328,11 @@ class MethodCalibration:
             split = np.asarray(split, float)
             if split.ndim != 1 or not len(split) or not np.all(np.isfinite(split)):
                 raise ModelFileError(f"{where}: gain split_taps must be finite taps")
-            if delay is None and (len(split) % 2 != 1 or not np.allclose(split, split[::-1])):
-                raise ModelFileError(f"{where}: gain split_taps without split_delay must be "
-                                     "symmetric and odd (linear phase)")  # fmt: skip
+            linear = len(split) % 2 == 1 and np.allclose(split, split[::-1])
+            if delay is None and not linear:
+                raise ModelFileError(
+                    f"{where}: gain split_taps without split_delay must be symmetric and odd"
+                )
             if delay is not None:
                 delay = int(delay)
                 if not 0 <= delay < len(split):
@@ -547,7 +549,7 @@ def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | 
     """The drop-in output's split for `model`, fitted to the calibration recording's
     spectrum near the band (core.filters.split_for), no shorter than the gain's look-ahead:
     (taps, delay), the delay being the look-ahead the drop-in output needs (4.0 ms for the
-    simulated PR2 hand, 8 ms for the flight); None for a recording too short to tell."""
+    simulated PR2 hand, 8-10 ms for the flight); None for a recording too short to tell."""
     values = np.asarray(accel, float)
     # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
