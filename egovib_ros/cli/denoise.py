@@ -47,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="hybrid (the default, where the model was calibrated for it): speed-locked "
         "harmonic cancellation, then a low-latency gain (4 ms band-passed; the drop-in "
-        "output takes the look-ahead its split needs, 5-11 ms); paper: the paper's block "
+        "output takes the look-ahead its split needs, 4-10 ms); paper: the paper's block "
         "spectral subtraction (a block of delay); cancel: the cancellation alone (no delay)",
     )
     joint_lag_option(den)

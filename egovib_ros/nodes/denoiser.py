@@ -93,7 +93,7 @@ MODEL_PARAMETERS = (
         "",
         "empty: the model's default (hybrid where the model carries it) | hybrid: "
         "speed-locked harmonic cancellation, then a low-latency gain (4 ms band-passed; the "
-        "drop-in output the look-ahead its split needs, 5-11 ms) | paper: the paper's block "
+        "drop-in output the look-ahead its split needs, 4-10 ms) | paper: the paper's block "
         "spectral subtraction (a block of delay) | cancel: the cancellation alone (no delay)",
         choices=("", *METHODS),
     ),
