@@ -473,6 +473,8 @@ class Calibrator(Node):
                 flush=True,
             )
             return 1
+        # the fit takes seconds to minutes (every method, on all the node kept): say so first
+        print(f"calibrator: fitting on {cov['blocks']} blocks ...", flush=True)
         model, fitted = self.fitted_model()
         try:
             self.write_model(self.output, model)
