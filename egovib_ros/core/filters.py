@@ -304,14 +304,6 @@ class _LowDelayDesign:
         return taps
 
 
-def _delay_error(taps, delay, freqs, sample_rate_hz, below_hz) -> float:
-    """The largest error of the split against a pure delay below `below_hz`."""
-    mask = freqs <= below_hz
-    response = signal.freqz(taps, 1, worN=freqs[mask], fs=sample_rate_hz)[1]
-    shift = np.exp(-2j * np.pi * freqs[mask] / sample_rate_hz * delay)
-    return float(np.abs(response - shift).max()) if mask.any() else 0.0
-
-
 def split_for(
     *,
     sample_rate_hz: float,
@@ -342,11 +334,16 @@ def split_for(
         leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
         return 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB
 
+    below = freqs_hz[freqs_hz <= SPLIT_TRANSITION_FRACTION * low_edge]
+    passed = below <= SPLIT_PASS_FRACTION * low_edge
+
     def near_delay(taps, delay) -> bool:
-        err = functools.partial(_delay_error, taps, delay, freqs_hz, sample_rate_hz)
+        """Within its bounds of a pure delay over the passband and below the transition."""
+        response = signal.freqz(taps, 1, worN=below, fs=sample_rate_hz)[1]
+        error = np.abs(response - np.exp(-2j * np.pi * below / sample_rate_hz * delay))
         return (
-            err(SPLIT_PASS_FRACTION * low_edge) <= SPLIT_PASS_ERROR
-            and err(SPLIT_TRANSITION_FRACTION * low_edge) <= SPLIT_TRANSITION_ERROR
+            error[passed].max(initial=0.0) <= SPLIT_PASS_ERROR
+            and error.max(initial=0.0) <= SPLIT_TRANSITION_ERROR
         )
 
     start = max(1, min_delay)
@@ -357,6 +354,8 @@ def split_for(
             break
     else:  # none stops the band: the longest, unless a low-delay split does
         delay += 1
+    if delay == start:  # no delay to save
+        return taps, delay
     design = _LowDelayDesign(sample_rate_hz, low_edge, freqs_hz, weight, 6 * delay + 2)
 
     def low_delay(delay: int) -> np.ndarray | None:
