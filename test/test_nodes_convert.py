@@ -122,7 +122,8 @@ def test_the_documented_reader_of_a_3_khz_imu_topic_keeps_up(nodes, tmp_path):
     """docs/live_nodes.md's script for reading the denoised topic in rclpy (EventsExecutor
     spun in a loop, a raw subscription, batches decoded with decode_imu_raws), run as
     written on sim_hand's 3 kHz stream: every message of the stamps it saw arrives (the
-    default executor with deserialised messages kept 20 % here, 4k of 120k in issue 34)."""
+    default executor with deserialised messages kept 20 % here, 4k of 120k in issue 34;
+    best effort lost 2.7 % in a CI run with both cores busy: the script is reliable)."""
     import re
     import subprocess
     import sys
