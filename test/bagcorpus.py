@@ -230,9 +230,10 @@ def arrange(  # noqa: C901 (one branch per layout option)
     return out
 
 
-def write_layout(source: Path, out: Path, layout: Layout) -> Path:
-    """Rewrite the bag `source` into the bag directory `out` in `layout`."""
-    conns, messages = read_messages(source)
+def write_layout(source: Path, out: Path, layout: Layout, *, read=None) -> Path:
+    """Rewrite the bag `source` into the bag directory `out` in `layout` (`read`: what
+    read_messages(source) returned, when several layouts are written from one source)."""
+    conns, messages = read if read is not None else read_messages(source)
     messages = arrange(conns, messages, layout)
     if layout.files == "topic":
         _write_rosbags_per_topic(out, conns, messages, layout)

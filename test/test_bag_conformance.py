@@ -55,8 +55,9 @@ def corpus(tmp_path_factory) -> Path:
     write_recording(root / "reference", motion)
     code, err = egovib("calibrate", root / "sweep", "--out", root / "model.npz", "--quiet")
     assert code == 0, err
+    read = bagcorpus.read_messages(root / "reference")  # read once, written in every layout
     for layout in (*LAYOUTS, SWAPPED_REFERENCE):
-        bagcorpus.write_layout(root / "reference", root / layout.name, layout)
+        bagcorpus.write_layout(root / "reference", root / layout.name, layout, read=read)
     return root
 
 
