@@ -57,18 +57,10 @@ def simulated(tmp_path_factory):
 
 def test_evaluate_writes_contract_fields(simulated, capsys):
     out = simulated["root"] / "report.json"
-    code = main(
-        [
-            "evaluate",
-            str(simulated["bag"]),
-            "--model",
-            str(simulated["model"]),
-            "--json",
-            str(out),
-            "--calibration",
-            str(simulated["quiet_bag"]),
-        ]
-    )
+    code = main([
+        "evaluate", str(simulated["bag"]), "--model", str(simulated["model"]), "--json", str(out),
+        "--calibration", str(simulated["quiet_bag"]),
+    ])  # fmt: skip
     assert code == 0
     report = json.loads(out.read_text())
     for field in REPORT_FIELDS:
@@ -97,16 +89,8 @@ def test_evaluate_writes_contract_fields(simulated, capsys):
 
 def test_evaluate_without_ground_truth_is_a_one_line_error(simulated, capsys):
     out = simulated["root"] / "no_truth.json"
-    code = main(
-        [
-            "evaluate",
-            str(simulated["robot_bag"]),
-            "--model",
-            str(simulated["model"]),
-            "--json",
-            str(out),
-        ]
-    )
+    bag, model = str(simulated["robot_bag"]), str(simulated["model"])
+    code = main(["evaluate", bag, "--model", model, "--json", str(out)])
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "/accelerometer/contact" in err and "robot_bag" in err
@@ -135,21 +119,9 @@ def test_evaluate_bad_input_exit_2_no_output(simulated, tmp_path, capsys, case):
 
 def test_evaluate_unknown_method_is_config_error(simulated, tmp_path, capsys):
     out = tmp_path / "out.json"
-    assert (
-        main(
-            [
-                "evaluate",
-                str(simulated["bag"]),
-                "--model",
-                str(simulated["model"]),
-                "--json",
-                str(out),
-                "--methods",
-                "paper,magic",
-            ]
-        )
-        == 2
-    )
+    bag, model = str(simulated["bag"]), str(simulated["model"])
+    args = ["evaluate", bag, "--model", model, "--json", str(out), "--methods", "paper,magic"]
+    assert main(args) == 2
     assert "magic" in capsys.readouterr().err
     assert not out.exists()
 
@@ -165,43 +137,15 @@ def test_evaluate_scores_the_bags_own_denoised_topic(simulated, tmp_path, channe
     recognised, band-passed first, and compared with the default (what `egovib denoise`
     writes without options: here the paper's, the model holds no other)."""
     denoised_bag = tmp_path / "denoised_bag"
-    assert (
-        main(
-            [
-                "denoise",
-                str(simulated["bag"]),
-                "--model",
-                str(simulated["model"]),
-                "--out",
-                str(denoised_bag),
-                "--channels",
-                channels,
-                "--output",
-                output,
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert main([
+        "denoise", str(simulated["bag"]), "--model", str(simulated["model"]), "--out",
+        str(denoised_bag), "--channels", channels, "--output", output, "--quiet",
+    ]) == 0  # fmt: skip
     out = tmp_path / "report.json"
-    assert (
-        main(
-            [
-                "evaluate",
-                str(denoised_bag),
-                "--model",
-                str(simulated["model"]),
-                "--json",
-                str(out),
-                "--calibration",
-                str(simulated["quiet_bag"]),
-                "--methods",
-                f"paper,{like}",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert main([
+        "evaluate", str(denoised_bag), "--model", str(simulated["model"]), "--json", str(out),
+        "--calibration", str(simulated["quiet_bag"]), "--methods", f"paper,{like}", "--quiet",
+    ]) == 0  # fmt: skip
     bag = json.loads(out.read_text())["methods"]["bag_denoised"]
     assert like in bag["label"] and ("drop-in" in bag["label"]) == (output == "dropin")
     assert bag["samples_missing"] == 0 and bag["alignment_lag_samples"] == 0

@@ -44,21 +44,8 @@ def position_bag(tmp_path_factory):
 
 def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     out = tmp_path / "report"
-    assert (
-        main(
-            [
-                "gap",
-                "--model",
-                str(model_path),
-                "--real",
-                str(position_bag),
-                "--out",
-                str(out),
-                "--write-back",
-            ]
-        )
-        == 0
-    )
+    args = ["gap", "--model", str(model_path), "--real", str(position_bag), "--out", str(out)]
+    assert main([*args, "--write-back"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert set(report) >= CONTRACT_KEYS
     assert report["schema"] == "egovib.gap/1" and report["metric"]["unit"] == "dB"
@@ -130,20 +117,8 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
 
 def test_gap_bad_input_is_one_line_error_without_output(model_path, tmp_path, capsys):
     out = tmp_path / "report"
-    assert (
-        main(
-            [
-                "gap",
-                "--model",
-                str(model_path),
-                "--real",
-                str(tmp_path / "missing.bag"),
-                "--out",
-                str(out),
-            ]
-        )
-        == 2
-    )
+    missing = tmp_path / "missing.bag"
+    assert main(["gap", "--model", str(model_path), "--real", str(missing), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("egovib: error:") and "missing.bag" in err and len(err.splitlines()) == 1
     assert not out.exists()

@@ -15,27 +15,11 @@ from egovib_ros.sim.pr2 import BAG_TOPICS
 
 def test_simulate_motion_bag_and_truth(tmp_path):
     out, truth = tmp_path / "motion", tmp_path / "truth.json"
-    rc = main(
-        [
-            "simulate",
-            "motion",
-            "--duration",
-            "3",
-            "--max-speed",
-            "0.5",
-            "--taps",
-            "2",
-            "--out",
-            str(out),
-            "--seed",
-            "7",
-            "--truth",
-            str(truth),
-            "--effects",
-            "position=0.5,timing=0.01",
-            "--quiet",
-        ]
-    )
+    rc = main([
+        "simulate", "motion", "--duration", "3", "--max-speed", "0.5", "--taps", "2",
+        "--out", str(out), "--seed", "7", "--truth", str(truth),
+        "--effects", "position=0.5,timing=0.01", "--quiet",
+    ])  # fmt: skip
     assert rc == 0
     assert (out / "metadata.yaml").exists() and list(out.glob("*.mcap"))
     topics = bag_topics(out)
@@ -56,27 +40,10 @@ def test_simulate_sweep_cli_matches_library(tmp_path):
     from egovib_ros.sim import simulate_sweep
 
     out = tmp_path / "sweep"
-    assert (
-        main(
-            [
-                "simulate",
-                "sweep",
-                "--grid",
-                "superposition",
-                "--dwell",
-                "0.1",
-                "--settle",
-                "0.05",
-                "--out",
-                str(out),
-                "--seed",
-                "3",
-                "--quiet",
-                "--compress",
-            ]
-        )
-        == 0
-    )
+    assert main([
+        "simulate", "sweep", "--grid", "superposition", "--dwell", "0.1", "--settle", "0.05",
+        "--out", str(out), "--seed", "3", "--quiet", "--compress",
+    ]) == 0  # fmt: skip
     rec = read_recording(out)
     ref, _ = simulate_sweep(grid="superposition", dwell_s=0.1, settle_s=0.05, seed=3)
     np.testing.assert_array_equal(rec.sensor, ref.sensor)
@@ -87,18 +54,9 @@ def test_simulate_sweep_cli_matches_library(tmp_path):
 def test_bad_input_exit_2_and_no_output(tmp_path, capsys):
     out = tmp_path / "bag"
     args = [
-        "simulate",
-        "motion",
-        "--duration",
-        "1",
-        "--max-speed",
-        "0.5",
-        "--taps",
-        "0",
-        "--out",
-        str(out),
-        "--quiet",
-    ]
+        "simulate", "motion", "--duration", "1", "--max-speed", "0.5", "--taps", "0",
+        "--out", str(out), "--quiet",
+    ]  # fmt: skip
     # the console script itself: one-line error, exit status 2
     res = subprocess.run(
         [sys.executable, "-m", "egovib_ros.cli", *args, "--effects", "wobble=1"],

@@ -21,24 +21,12 @@ BIN = Path(sys.executable).parent
 
 
 def test_colcon_build_installs_every_node(tmp_path):
-    result = subprocess.run(
-        [
-            str(BIN / "colcon"),
-            "--log-base",
-            str(tmp_path / "log"),
-            "build",
-            "--base-paths",
-            str(REPO),
-            "--build-base",
-            str(tmp_path / "build"),
-            "--install-base",
-            str(tmp_path / "install"),
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    command = [
+        str(BIN / "colcon"), "--log-base", str(tmp_path / "log"), "build",
+        "--base-paths", str(REPO), "--build-base", str(tmp_path / "build"),
+        "--install-base", str(tmp_path / "install"),
+    ]  # fmt: skip
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Finished <<< egovib_ros" in result.stdout
 

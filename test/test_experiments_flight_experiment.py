@@ -143,23 +143,10 @@ def test_events_are_repeatable_and_scaled_to_the_test_noise(short_result, flight
 
 def test_cli_writes_the_report_files(tmp_path, capsys):
     out = tmp_path / "docs"
-    code = egovib(
-        [
-            "real",
-            "evaluate",
-            "--bag",
-            str(BAG),
-            "--out",
-            str(out),
-            "--split",
-            "4",
-            "--end",
-            "6",
-            "--no-swapped",
-            "--event-sets",
-            "2",
-        ]
-    )
+    code = egovib([
+        "real", "evaluate", "--bag", str(BAG), "--out", str(out), "--split", "4", "--end", "6",
+        "--no-swapped", "--event-sets", "2",
+    ])  # fmt: skip
     assert code == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == [

@@ -61,22 +61,10 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     assert nodes.stop(cal) == 0, nodes.log(cal)
     assert nodes.stop(rec) == 0, nodes.log(rec)
     offline_model = tmp_path / "offline.npz"
-    subprocess.run(
-        [
-            EGOVIB,
-            "calibrate",
-            str(bag),
-            "--out",
-            str(offline_model),
-            "--grid",
-            "superposition",
-            "--joint-lag",
-            "0.01",
-            "--quiet",
-        ],
-        check=True,
-        capture_output=True,
-    )
+    subprocess.run([
+        EGOVIB, "calibrate", str(bag), "--out", str(offline_model), "--grid", "superposition",
+        "--joint-lag", "0.01", "--quiet",
+    ], check=True, capture_output=True)  # fmt: skip
 
     live, offline = NoiseModel.load(live_model), NoiseModel.load(offline_model)
     assert live.measured == offline.measured == "superposition"
