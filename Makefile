@@ -19,19 +19,23 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 	$(PY) -m pip install -q -e ".[cluster]" -e research/
 	touch $(STAMP)
 
-# The tests without ROS 2 processes on two workers (pytest-xdist), then the node tests, also
-# on two workers (each worker's DDS domains apart: test/conftest.py `ros_domain`), then the
-# node tests marked `alone` one at a time (they need a core of their own). Apart, so that a
-# node test shares the cores with another node test (mostly waiting on real-time streams),
-# not with a solver; all pass beside `stress-ng --cpu 2` too. The slowest of each
-# are listed (--durations): where a faster suite starts. `--dist loadscope` keeps a module's
-# tests on one worker: its module fixtures (a calibrated corpus, a gap table) are built once.
-# One BLAS thread per worker: two workers already fill the two cores, and the gap baseline's
-# many small per-bin solves run ~20x slower when OpenBLAS threads contend for them.
+# Three suites. The node tests (ROS 2 processes on real-time streams: about one core over
+# their 4 minutes, mostly waiting) run on two workers beside the tests without ROS 2
+# processes (two workers, CPU-bound), each worker's DDS domains apart (test/conftest.py
+# `ros_domain`); they pass beside `stress-ng --cpu 2`, and side by side the two suites take
+# 8 minutes instead of 10 one after the other. Their report follows the other suite's. Then
+# the node tests marked `alone`, one at a time (a live calibrator needs a core of its own).
+# The slowest of each are listed (--durations): where a faster suite starts. `--dist
+# loadscope` keeps a module's tests on one worker: its module fixtures (a calibrated corpus,
+# a gap table) are built once. One BLAS thread per worker: the workers already fill the
+# two cores, and the gap baseline's many small per-bin solves run ~20x slower when OpenBLAS
+# threads contend for them.
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
+	export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1; nodes_log=$$(mktemp); \
+	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -n 2 -m "nodes and not alone" test \
+		> $$nodes_log 2>&1 & nodes=$$!; \
 	$(PY) -m pytest -q -p no:cacheprovider --durations=15 -n 2 --dist loadscope -m "not nodes" test; a=$$?; \
-	$(PY) -m pytest -q -p no:cacheprovider --durations=10 -n 2 -m "nodes and not alone" test; b=$$?; \
+	wait $$nodes; b=$$?; cat $$nodes_log; rm -f $$nodes_log; \
 	$(PY) -m pytest -q -p no:cacheprovider -m alone test; c=$$?; \
 	test $$a -eq 0 && test $$b -eq 0 && test $$c -eq 0
 
