@@ -565,20 +565,29 @@ def in_band_bins(model) -> np.ndarray:
 def _interval_means(
     t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray
 ) -> np.ndarray:
-    """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)."""
+    """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)
+    where the series covers it; a block reaching past the series' ends (at a lag, the first
+    and last blocks of a recording) has the mean of the part covered, one wholly past an
+    end the value there: the series held, as the trajectory features (`motion_features`,
+    np.interp) and the denoiser (the last joint state) hold it. Divided by the whole block,
+    the mean was diluted towards 0, i.e. standstill: at a lag, a flight part's first or last
+    blocks read as idle motors."""
     dt = np.diff(t)
     cum = np.zeros((len(t), values.shape[1]))
     cum[1:] = np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)
 
     def integral(tq: np.ndarray) -> np.ndarray:
-        tq = np.clip(tq, t[0], t[-1])
         i = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 2)
         frac = (tq - t[i])[:, None]
         slope = (values[i + 1] - values[i]) / np.maximum(dt[i], 1e-12)[:, None]
         return cum[i] + values[i] * frac + 0.5 * slope * frac**2
 
-    span = np.maximum(t1 - t0, 1e-9)[:, None]
-    return (integral(t1) - integral(t0)) / span
+    a, b = np.clip(t0, t[0], t[-1]), np.clip(t1, t[0], t[-1])
+    covered = b - a > 1e-9
+    # wholly past an end (or of no length): the value at its clipped instant
+    means = np.column_stack([np.interp(a, t, values[:, k]) for k in range(values.shape[1])])
+    means[covered] = (integral(b[covered]) - integral(a[covered])) / (b - a)[covered, None]
+    return means
 
 
 def speed_rate_means(
