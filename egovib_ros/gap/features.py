@@ -565,13 +565,10 @@ def in_band_bins(model) -> np.ndarray:
 def _interval_means(
     t: np.ndarray, values: np.ndarray, t0: np.ndarray, t1: np.ndarray
 ) -> np.ndarray:
-    """Mean of a sampled series over [t0, t1] (trapezoid integral of the linear interpolant)
-    where the series covers it; a block reaching past the series' ends (at a lag, the first
-    and last blocks of a recording) has the mean of the part covered, one wholly past an
-    end the value there: the series held, as the trajectory features (`motion_features`,
-    np.interp) and the denoiser (the last joint state) hold it. Divided by the whole block,
-    the mean was diluted towards 0, i.e. standstill: at a lag, a flight part's first or last
-    blocks read as idle motors."""
+    """Mean of a sampled series over the part of [t0, t1] it covers (trapezoid integral of the
+    linear interpolant); a block wholly past an end, or of no length, the value at its clipped
+    instant: held past its ends, as `motion_features` and the denoiser hold joint states (over
+    the whole block, the first and last blocks at a lag were diluted towards standstill)."""
     dt = np.diff(t)
     cum = np.zeros((len(t), values.shape[1]))
     cum[1:] = np.cumsum(0.5 * (values[1:] + values[:-1]) * dt[:, None], axis=0)
@@ -584,7 +581,6 @@ def _interval_means(
 
     a, b = np.clip(t0, t[0], t[-1]), np.clip(t1, t[0], t[-1])
     covered = b - a > 1e-9
-    # wholly past an end (or of no length): the value at its clipped instant
     means = np.column_stack([np.interp(a, t, values[:, k]) for k in range(values.shape[1])])
     means[covered] = (integral(b[covered]) - integral(a[covered])) / (b - a)[covered, None]
     return means
