@@ -581,8 +581,9 @@ def _interval_means(
 
     a, b = np.clip(t0, t[0], t[-1]), np.clip(t1, t[0], t[-1])
     covered = b - a > 1e-9
-    means = np.column_stack([np.interp(a, t, values[:, k]) for k in range(values.shape[1])])
+    means = np.empty((len(a), values.shape[1]))
     means[covered] = (integral(b[covered]) - integral(a[covered])) / (b - a)[covered, None]
+    means[~covered] = np.column_stack([np.interp(a[~covered], t, column) for column in values.T])
     return means
 
 
