@@ -23,9 +23,12 @@ from egovib_ros.core.adapt import (
     CellLearner,
     ContactGate,
     HarmonicLearner,
+    TransientGate,
+    describe_learnt,
     learnt_state,
 )
 from egovib_ros.core.contact import ContactSettings
+from egovib_ros.core.harmonic import HarmonicMap
 from egovib_ros.core.methods import (
     DETECTOR_PREFIX,
     MethodCalibration,
@@ -268,9 +271,13 @@ def test_reset_returns_to_the_calibrated_model_and_learning_goes_on(model):
     st.sampled_from(["cancel", "hybrid"]),
     st.lists(st.integers(min_value=1, max_value=700), min_size=1, max_size=8),
     st.sampled_from([("per_axis", "dropin"), ("per_axis", "bandpassed"), ("combined", None)]),
+    st.booleans(),
 )
-def test_streaming_equals_batch_for_any_chunking_while_adapting(model, method, cuts, layout):
+def test_streaming_equals_batch_for_any_chunking_while_adapting(
+    model, blind, method, cuts, layout, finding_lines
+):
     channels, output = layout
+    model = blind if finding_lines else model
     rec = recording([(0.4, 0.4), (0.8, 0.7), (0.8, 0.7)], seed=10, taps_per_s=2.0, dwell_s=1.0)
     keep = np.ones(len(rec["t"]), bool)
     keep[1200:1230] = False  # a long gap: the segment ends and restarts
@@ -310,6 +317,53 @@ def test_streaming_equals_batch_for_any_chunking_while_adapting(model, method, c
         assert np.array_equal(learnt[key], value, equal_nan=True), key
     if method == "hybrid":
         assert denoiser.adaptation_stats.blocks_learnt > 0
+    if finding_lines:
+        assert denoiser.adaptation_stats.map_refits > 0
+
+
+@pytest.fixture(scope="module")
+def blind(model) -> NoiseModel:
+    """As a quadcopter calibrated at idle: `model` with no line in its harmonic map."""
+    cal = MethodCalibration.from_model(model)
+    bare = HarmonicMap(
+        **{**vars(cal.harmonic), "line_joint": [], "line_coefficient": [], "line_score_db": []}
+    )
+    return model.replace(extras={**model.extras, **replace_map(cal, bare)})
+
+
+def test_lines_the_calibration_never_showed_are_found_at_speeds_beyond_it(blind):
+    rec = recording([(0.8, 0.7)] * 4 + [(0.9, 0.8)] * 2, seed=12, taps_per_s=1.0)
+    options = dict(adapt=AdaptSettings(), output="bandpassed")
+    denoiser = make_denoiser(blind, "cancel", **options)
+    stamps, found, _ = denoiser.run_arrays(*arrays(rec), 30.0)
+    stats = denoiser.adaptation_stats
+    assert stats.map_refits >= 1 and stats.lines_found >= 2
+    fixed = denoise_batch_method(*arrays(rec), blind, method="cancel", output="bandpassed")[1]
+    # the second half, lines found by then: less left than with the blind map (about 2 dB;
+    # the calibrated map's 3.5)
+    late = slice(len(found) // 2, None)
+    assert np.mean(found[late] ** 2) < 0.75 * np.mean(fixed[late] ** 2)
+    # any chunking switches maps at the same sample
+    chunked = make_denoiser(blind, "cancel", **options)
+    got = [chunked.push_joint_states(rec["tj"], rec["velocity"]).values]
+    for part in np.array_split(np.arange(len(rec["t"])), 7):
+        got.append(chunked.push_sensor(rec["t"][part], rec["accel"][part]).values)
+    got.append(chunked.flush().values)
+    assert np.array_equal(np.concatenate(got), found)
+    # saved: the found map is the model's map, marked as found online
+    adapted = denoiser.adapted_model()
+    assert MethodCalibration.from_model(adapted).harmonic.n_lines == stats.lines_found
+    assert describe_learnt(adapted)["lines_found"] == stats.lines_found
+    denoiser.reset_adaptation()
+    assert denoiser.adaptation_stats.lines_found == 0
+    assert denoiser._canceller.map.n_lines == 0
+
+
+def replace_map(cal: MethodCalibration, hmap: HarmonicMap) -> dict:
+    return MethodCalibration(
+        hmap, *(getattr(cal, f) for f in ("canceller", "residual", "gain", "alpha", "bias",
+                                          "open_alpha", "guard_ref", "split_taps", "split_delay"))
+    ).to_extras()  # fmt: skip
 
 
 def test_the_gate_clears_a_block_only_once_the_output_passed_its_guard_time():
@@ -329,6 +383,24 @@ def test_the_gate_clears_a_block_only_once_the_output_passed_its_guard_time():
     assert gate.contacts == 1
     gate.end_segment()
     assert gate.decide(int(t[290]), int(t[320])) is None
+
+
+def test_the_line_finders_gate_takes_a_lasting_level_as_noise_and_a_transient_as_contact():
+    settings = ContactSettings(sample_rate_hz=FS, band_hz=(60.0, 450.0), threshold=0.5)
+    gate = TransientGate(settings, guard_s=0.02, prefiltered=True, summed=False)
+    rng = np.random.default_rng(0)
+    t = 10**9 + np.arange(3000, dtype=np.int64) * 1_000_000  # 1 ms apart
+    x = 3.0 * rng.standard_normal(3000)  # lines the model misses: 6x the detector's threshold
+    x[2000:2010] += 60.0  # a tap
+    for a in range(0, 3000, 40):  # pushed as the updates push it
+        gate.push(t[a : a + 40], x[a : a + 40, None])
+    # the first push (no level yet: the detector's threshold alone) and the tap
+    assert gate.contacts == 2
+    assert gate.decide(int(t[1000]), int(t[1040])) is True
+    assert gate.decide(int(t[1960]), int(t[1990])) is False
+    plain = ContactGate(settings, guard_s=0.02, prefiltered=True, summed=False)
+    plain.push(t, x[:, None])
+    assert plain.decide(int(t[1000]), int(t[1040])) is False
 
 
 def test_the_harmonic_map_learns_where_the_speed_is_steady_and_starts_the_stream_from_it():

@@ -742,10 +742,11 @@ def test_adapt_live_equals_offline_and_the_services_save_and_reset_the_model(
 ):
     """adapt:=true: the node's output equals `egovib denoise --adapt` on a bag of the same
     messages, sample for sample; ~/save_model writes the model as adapted (the learnt cells
-    and map those of `--save-model`, to the bit), /diagnostics counts the cells learnt
-    online, ~/reset_model returns to the calibrated model."""
+    and map, and the lines found for the joint whose calibration showed none, those of
+    `--save-model`, to the bit), /diagnostics counts the cells learnt online and the lines
+    found, ~/reset_model returns to the calibrated model."""
     from egovib_ros.core.adapt import AdaptSettings, learnt_state
-    from egovib_ros.core.methods import calibrate_detection
+    from egovib_ros.core.methods import MethodCalibration, calibrate_detection
 
     calibration, _ = simulate_motion(duration_s=4.0, max_speed=0.5, seed=4)
     model, _ = calibrate_detection(
@@ -789,6 +790,8 @@ def test_adapt_live_equals_offline_and_the_services_save_and_reset_the_model(
     ), shown(ros_client)
     values = diagnostic_values(ros_client.statuses["denoiser"])
     assert int(values["cells_new_online"]) > 0 and int(values["adapt_blocks_learnt"]) > 0
+    # the gripper's calibration (4 s at half speed) showed no line: found at 0.8 of top speed
+    assert int(values["adapt_lines_found"]) > 0, values
     answer = call_trigger(ros_client, "/denoiser/reset_model")
     assert answer.success, answer.message
     assert ros_client.spin_until(
@@ -814,6 +817,13 @@ def test_adapt_live_equals_offline_and_the_services_save_and_reset_the_model(
     for part in range(2):
         for key, value in offline[part].items():
             assert np.array_equal(live[part][key], value, equal_nan=True), key
+    live_map, offline_map = (
+        MethodCalibration.from_model(NoiseModel.load(path)).harmonic
+        for path in (saved, offline_model)
+    )
+    assert live_map.n_lines > MethodCalibration.from_model(model).harmonic.n_lines
+    for key, value in offline_map.to_arrays("").items():
+        assert np.array_equal(live_map.to_arrays("")[key], value), key
     # and the adaptation did something: without it the output differs
     denoise_bag(bag, tmp_path / "plain", model=model_path)
     assert not np.allclose(bag_topic(tmp_path / "plain", PR2.denoised_topic)[1], want)

@@ -132,6 +132,8 @@ def _describe_denoise(figures: dict) -> str:
             f"out for contacts, cells learnt online {adapt['cells_learnt']} "
             f"({adapt['cells_new']} never calibrated)"
         )
+        if adapt.get("lines_found"):
+            text += f", {adapt['lines_found']} harmonic lines found beyond the calibrated speeds"
         if figures.get("saved_model"):
             text += f", model written to {figures['saved_model']}"
     if figures["raw_without_output"]:

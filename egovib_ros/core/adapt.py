@@ -54,14 +54,20 @@ whether or not it goes on adapting.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import multiprocessing
+import os
+import sys
 from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
+from egovib_ros.core.harmonic import HarmonicCanceller, HarmonicMap, fit_harmonic_map
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
 
@@ -69,6 +75,11 @@ from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
 ADAPT_PREFIX = "adapt."
 RESIDUAL_KEYS = ("cells", "mean", "power", "blocks", "new")
 HARMONIC_KEYS = ("correction", "amplitude", "blocks")
+#: The speeds the harmonic map in use covers, and how many of its lines were found online
+#: (the map itself is saved in the model's place for it: a found map is the map).
+LINES_COVERED = ADAPT_PREFIX + "lines.covered"
+LINES_FOUND = ADAPT_PREFIX + "lines.found"
+LINES_OPEN = ADAPT_PREFIX + "lines.open"  # the joints whose calibration showed no line
 #: Least power (relative to the cell's largest bin) a bin's rate bound is measured from.
 TINY = 1e-30
 #: What is learnt takes effect about this often (a whole number of hops).
@@ -76,6 +87,32 @@ UPDATE_S = 0.04
 #: A speed-grid point of the harmonic map is used once learnt over this many spans
 #: between updates (0.4 s of steady, contact-free speed).
 MIN_POINT_SPANS = 10
+#: Lines found online (`LineFinder`): a refit of the harmonic map starts once the
+#: contact-free data hold REFIT_BEYOND_S at speeds beyond those the map was fitted on (by
+#: more than REFIT_MARGIN of that range), or, once lines were found, twice the data the last
+#: refit was given; on the last REFIT_WINDOW_S of them (the fit's cost grows with them:
+#: about 0.6 CPU-s per second of data at 1 kHz, 4 motors); its map is put to use
+#: REFIT_APPLY_S (+ REFIT_APPLY_PER_S per second fitted) of stream after the refit started
+#: (live, the fit runs beside the stream meanwhile: offline and live switch at the same
+#: sample), if it leaves at least REFIT_MIN_GAIN_DB less residual than the map in use on
+#: the same data.
+REFIT_BEYOND_S = 0.5
+REFIT_MARGIN = 0.1
+#: ... and REFIT_SPACING_S of new contact-free data since the last refit.
+REFIT_SPACING_S = 0.5
+REFIT_WINDOW_S = 8.0
+REFIT_APPLY_S = 0.5
+REFIT_APPLY_PER_S = 0.35  # ... plus this per second of data fitted (the fit's time to run)
+REFIT_MIN_GAIN_DB = 0.5
+REFIT_NICE = 10  # the worker process's niceness (the stream first)
+#: TransientGate: a contact stands this far above the envelope's recent median ...
+TRANSIENT_FACTOR = 4.0
+#: ... taken over this long (a climb changes the level within a second) ...
+TRANSIENT_LEVEL_S = 0.5
+#: ... and the time around a crossing it leaves out: a contact's onset and peak (its
+#: ring-down is weak broadband beside the lines, and every second left out delays the
+#: first map: 0.15 s, the cells' guard, left 40 % of the flight's input and 2 dB less).
+LINE_GUARD_S = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -87,7 +124,9 @@ class AdaptSettings:
     the detector's threshold itself (None: the one the model stores for the method);
     steady_tolerance: the largest change of a block's joint velocity (grid steps, first
     half against second half) that still counts for a cell (free-motion calibration's);
-    harmonic: learn the harmonic map's corrections and amplitudes too; learn: False keeps
+    harmonic: learn the harmonic map's corrections and amplitudes too; find_lines: refit
+    the harmonic map on contact-free data at speeds beyond those it was fitted on
+    (`LineFinder`); learn: False keeps
     what the model learnt before (the learnt cells, the warm start) without learning more."""
 
     forget_s: float = 30.0
@@ -97,6 +136,7 @@ class AdaptSettings:
     threshold: float | None = None
     steady_tolerance: float = 0.5
     harmonic: bool = True
+    find_lines: bool = True
     learn: bool = True
 
     def __post_init__(self) -> None:
@@ -130,6 +170,8 @@ class AdaptStats:
     harmonic_updates: int  # speed-grid points of the harmonic map updated
     harmonic_points: int  # speed-grid points learnt online
     resets: int  # resets to the calibrated model
+    map_refits: int  # refits of the harmonic map at speeds beyond its range (LineFinder)
+    lines_found: int  # lines of the map in use that were found online (0: the calibrated map)
 
     def as_dict(self) -> dict:
         return dict(vars(self))
@@ -165,7 +207,7 @@ class ContactGate:
         if self._summed or values.shape[1] == 1:  # band-passed axes, combined: the 1-D sum
             values = values.sum(axis=1)
         envelope = self._envelope.process(values)[1]
-        above = envelope > self.threshold
+        above = envelope > self._limit(envelope)
         if above.any():
             # runs of consecutive samples above the threshold
             edges = np.diff(np.r_[False, above, False].astype(np.int8))
@@ -179,6 +221,9 @@ class ContactGate:
                     self.contacts += 1
         self._above = bool(above[-1])
         self.progress_ns = int(stamps[-1])
+
+    def _limit(self, envelope: np.ndarray) -> float:
+        return self.threshold
 
     def decide(self, first_ns: int, last_ns: int) -> bool | None:
         """Whether no sample from first - guard to last + guard crossed (None: not known)."""
@@ -202,6 +247,31 @@ class ContactGate:
         self._intervals.clear()
         self._above = False
         self.progress_ns = None
+
+
+class TransientGate(ContactGate):
+    """The gate LineFinder learns behind: the contact detector's, whose threshold rises to
+    TRANSIENT_FACTOR times the envelope's median over the last TRANSIENT_LEVEL_S. Where the
+    model misses lines (speeds beyond the calibration), the output stands above the
+    detector's threshold for seconds and the contact gate clears nothing; contacts still
+    stand out of that level as transients, and lines are what stays."""
+
+    def __init__(self, settings: ContactSettings, **options):
+        super().__init__(settings, **options)
+        self._levels: deque = deque()  # (samples, median envelope) per push, the last ones
+        self._level_samples = 0
+        self._keep = int(TRANSIENT_LEVEL_S * settings.sample_rate_hz)
+
+    def _limit(self, envelope: np.ndarray) -> float:
+        limit = self.threshold
+        if self._levels:
+            level = float(np.median([m for _, m in self._levels]))
+            limit = max(limit, TRANSIENT_FACTOR * level)
+        self._levels.append((len(envelope), float(np.median(envelope))))
+        self._level_samples += len(envelope)
+        while self._level_samples - self._levels[0][0] >= self._keep:
+            self._level_samples -= self._levels.popleft()[0]
+        return limit
 
 
 # --------------------------------------------------------------------------------------
@@ -599,6 +669,201 @@ class HarmonicLearner:
         self.weight[:] = blocks
 
 
+def _merged(current: HarmonicMap, fitted: HarmonicMap, open_: np.ndarray) -> HarmonicMap | None:
+    """`current` with the joints of `open_` as `fitted` has them (their parameters and
+    lines); None if `fitted` has no line on them."""
+    take = open_[fitted.line_joint]
+    if not take.any():
+        return None
+    keep = ~open_[current.line_joint]
+
+    def per_joint(name):
+        return np.where(open_, getattr(fitted, name), getattr(current, name))
+
+    return HarmonicMap(
+        joint_names=current.joint_names,
+        exponent=per_joint("exponent"),
+        tau_up_s=per_joint("tau_up_s"),
+        tau_down_s=per_joint("tau_down_s"),
+        min_speed=per_joint("min_speed"),
+        line_joint=np.r_[current.line_joint[keep], fitted.line_joint[take]],
+        line_coefficient=np.r_[current.line_coefficient[keep], fitted.line_coefficient[take]],
+        line_score_db=np.r_[current.line_score_db[keep], fitted.line_score_db[take]],
+        residual_rms=current.residual_rms,
+    )
+
+
+_POOL: ProcessPoolExecutor | None = None
+
+
+def _refit_pool() -> ProcessPoolExecutor:
+    """One worker process for every LineFinder of this process, at a lower priority: a fit
+    takes seconds of CPU, and in the node's process it would take the interpreter from
+    the stream's callbacks (3 kHz: p99 latency 11.3 ms with fits in a thread, the budget
+    10). Started (spawn: no state of the caller's threads) at the first refit."""
+    global _POOL
+    if _POOL is None:
+        _POOL = ProcessPoolExecutor(
+            1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority
+        )
+    return _POOL
+
+
+def _lower_priority() -> None:
+    os.nice(REFIT_NICE)
+
+
+def _submit_refit(*args) -> Future:
+    """`_refit(*args)` in the worker process. The worker needs nothing of the caller's
+    `__main__` (its function lives here): hidden while the worker starts, a user's script
+    without a main guard is not run again in it (spawn would import it)."""
+    main = sys.modules["__main__"]
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
+    main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        return _refit_pool().submit(_refit, *args)
+    finally:
+        main.__dict__.pop("__spec__", None)
+        main.__dict__.update(saved)
+
+
+def _refit(x, speed, current: HarmonicMap, open_: np.ndarray, fit: dict) -> HarmonicMap | None:
+    """LineFinder's refit (in the worker process): the map fitted on (x, speed), the `open_`
+    joints from it and the others from `current`; None unless that leaves
+    REFIT_MIN_GAIN_DB less residual than `current` on the same data."""
+    fitted = _merged(current, fit_harmonic_map(x, speed, **fit)[0], open_)
+    if fitted is None:
+        return None
+    settle = len(x) // 10  # the trackers settling, left out as the fit leaves it out
+
+    def residual_power(hmap: HarmonicMap) -> float:
+        if not hmap.n_lines:
+            return float(np.mean(x[settle:] ** 2))
+        canceller = HarmonicCanceller(
+            hmap,
+            sample_rate_hz=fit["sample_rate_hz"],
+            band_hz=fit["band_hz"],
+            n_channels=x.shape[1],
+            settings=fit["settings"],
+        )
+        return float(np.mean(canceller.process(x, speed)[settle:] ** 2))
+
+    gain_db = 10 * math.log10(residual_power(current) / max(residual_power(fitted), 1e-300))
+    return fitted if gain_db >= REFIT_MIN_GAIN_DB else None
+
+
+def _measured_speeds(table: NoiseModel) -> np.ndarray:
+    """Per joint, the largest |velocity| of a cell the calibration measured (the speeds
+    the calibration's harmonic map was fitted on)."""
+    measured = table.cells[table.cell_counts > 0]
+    return np.array(
+        [
+            np.abs(np.asarray(g, float)[measured[:, j]]).max() if len(measured) else 0.0
+            for j, g in enumerate(table.grid)
+        ]
+    )
+
+
+class LineFinder:
+    """Lines of the joints whose calibration showed none (`open`: a quadcopter calibrated at
+    idle meets its motors' lines in flight): the contact-free samples TransientGate clears
+    (`push`: band-passed input, joint velocity) are kept, the last REFIT_WINDOW_S of them;
+    at an update (`at_update`) where they hold REFIT_BEYOND_S at speeds beyond the range the
+    map in use was fitted on (or twice the data of the last refit, once lines were found),
+    the map is fitted again on them (core.harmonic.fit_harmonic_map, as calibration fits it)
+    in a worker process (`_refit`). REFIT_APPLY_S later, the open joints take the fitted
+    map's lines, exponent and lags (the others keep the calibrated ones: a map fitted at
+    the new speeds alone cancelled less at the calibrated ones), if that leaves
+    REFIT_MIN_GAIN_DB less residual on those samples (`at_update` returns the map; the
+    caller swaps it in).
+    Tried: refitting the residual table and the gain's statistics with the found map gave
+    less than keeping the calibrated ones (the low flight split, 26.5 against 27.0 dB)."""
+
+    def __init__(
+        self, hmap: HarmonicMap, model: NoiseModel, residual: NoiseModel, canceller_settings
+    ):
+        self.model = model
+        self.canceller_settings = canceller_settings
+        self.map = hmap
+        self.open = np.array([not np.any(hmap.line_joint == j) for j in range(hmap.n_joints)])
+        fs = model.sample_rate_hz
+        self.calibrated = _measured_speeds(residual)
+        self.covered = self.calibrated.copy()
+        self._keep = int(REFIT_WINDOW_S * fs)
+        self._beyond = int(REFIT_BEYOND_S * fs)
+        self._spacing = int(REFIT_SPACING_S * fs)
+        self._pieces: deque = deque()  # (values (n, C), velocity (n, J)) cleared by the gate
+        self._held = 0
+        self._new = 0  # samples pushed since the last refit started
+        self._updates = 0
+        # (apply at update, the fit, the speeds it covers)
+        self._pending: tuple[int, Future, np.ndarray] | None = None
+        self._tried_on = 0  # samples the last refit was given
+        self.refits = 0
+        self.lines_found = 0
+
+    def push(self, values: np.ndarray, velocity: np.ndarray) -> None:
+        ok = np.all(np.isfinite(velocity), axis=1)
+        if not ok.any():
+            return
+        self._pieces.append((values[ok], velocity[ok]))
+        self._held += int(ok.sum())
+        self._new += int(ok.sum())
+        while self._held - len(self._pieces[0][0]) >= self._keep:
+            self._held -= len(self._pieces.popleft()[0])
+
+    def at_update(self) -> HarmonicMap | None:
+        """The new map to use from now on, or None."""
+        self._updates += 1
+        if self._pending is not None:
+            apply_at, future, covers = self._pending
+            if self._updates < apply_at:
+                return None
+            self._pending = None
+            found = future.result()
+            if found is not None:
+                self.map = found
+                self.lines_found = int(np.count_nonzero(self.open[found.line_joint]))
+                self.covered = np.maximum(self.covered, covers)
+            return found
+        if self._new < self._spacing:
+            return None
+        speed = np.abs(np.concatenate([p[1] for p in self._pieces]))
+        beyond = np.count_nonzero((speed > self.covered * (1 + REFIT_MARGIN)).any(axis=1))
+        grown = self.lines_found and self._held >= 2 * self._tried_on
+        if beyond < self._beyond and not grown:
+            return None
+        values = np.concatenate([p[0] for p in self._pieces])
+        self._new = 0
+        self._tried_on = len(speed)
+        self.refits += 1
+        m = self.model
+        fit = dict(
+            sample_rate_hz=m.sample_rate_hz,
+            band_hz=m.band_hz,
+            joint_names=m.joint_names,
+            max_speed=np.array(m.robot_profile().max_speed, float),
+            settings=self.canceller_settings,
+        )
+        future = _submit_refit(values, speed, self.map, self.open, fit)
+        wait_s = REFIT_APPLY_S + REFIT_APPLY_PER_S * len(speed) / self.model.sample_rate_hz
+        self._pending = (
+            self._updates + max(1, round(wait_s / UPDATE_S)),
+            future,
+            speed.max(axis=0),
+        )
+        return None
+
+    def reset(self, hmap: HarmonicMap) -> None:
+        """Back to the calibrated map (a refit under way is dropped)."""
+        self.map = hmap
+        self.covered = self.calibrated.copy()
+        self._pending = None
+        self.lines_found = 0
+        self._tried_on = 0
+
+
 # --------------------------------------------------------------------------------------
 # The model's extras
 # --------------------------------------------------------------------------------------
@@ -642,7 +907,8 @@ def learnt_state(model: NoiseModel) -> tuple[dict | None, dict | None]:
 def describe_learnt(model: NoiseModel) -> dict | None:
     """What a model learnt online (for `egovib model show`), None if nothing."""
     residual, harmonic = learnt_state(model)
-    if residual is None and harmonic is None:
+    found = int(model.extras.get(LINES_FOUND, 0))
+    if residual is None and harmonic is None and not found:
         return None
     out = {"forget_s": float(model.extras.get(ADAPT_PREFIX + "forget_s", np.nan))}
     if residual is not None:
@@ -654,6 +920,8 @@ def describe_learnt(model: NoiseModel) -> dict | None:
         )
     if harmonic is not None:
         out["harmonic_points"] = int((harmonic["blocks"] > 0).sum())
+    if found:
+        out["lines_found"] = found
     return out
 
 
@@ -688,7 +956,22 @@ class Adaptation:
             self.harmonic = HarmonicLearner(cal.harmonic, model.grid, denoiser._canceller, settings)
             if harmonic_learnt is not None:
                 self.harmonic.load(harmonic_learnt)
-        self.gate = None
+        self._calibrated_map = cal.harmonic
+        self.lines = None
+        if settings.learn and settings.find_lines:
+            lines = LineFinder(cal.harmonic, model, cal.residual, cal.canceller)
+            if LINES_OPEN in model.extras:  # a model that found lines before: its state
+                try:
+                    lines.open[:] = np.asarray(model.extras[LINES_OPEN], bool)
+                    lines.covered[:] = np.maximum(lines.covered, model.extras[LINES_COVERED])
+                    lines.lines_found = int(model.extras[LINES_FOUND])
+                except (KeyError, ValueError, TypeError):
+                    raise ModelFileError(
+                        f"{model.where}: malformed {ADAPT_PREFIX}lines.*"
+                    ) from None
+            if lines.open.any():  # else every joint has its calibrated lines
+                self.lines = lines
+        self.gate = self.line_gate = None
         if settings.learn:
             if threshold is None:
                 raise ConfigError(
@@ -704,11 +987,19 @@ class Adaptation:
                 prefiltered=not dropin,
                 summed=not dropin and denoiser.channels == "per_axis",
             )
+            # on the canceller's input (band-passed): the gain's output stands low most of
+            # the time and lets bursts through, transients against its own median
+            self.line_gate = (
+                TransientGate(contact, guard_s=LINE_GUARD_S, prefiltered=True, summed=True)
+                if self.lines is not None
+                else None
+            )
         # what the pieces since the last update left: (stamps, residual, velocity), outputs
         self._inputs: list = []
         self._outputs: list = []
         self._pending: deque = deque()  # candidates (cells) waiting for the gate
         self._spans: deque = deque()  # harmonic spans waiting for the gate
+        self._line_spans: deque = deque()  # (first, last, values, velocity) for LineFinder
         self.blocks_gated = 0
         self.blocks_dropped = 0
         self.resets = 0
@@ -728,7 +1019,7 @@ class Adaptation:
             out_s.append(s)
             out_v.append(v)
             if learn:
-                self._inputs.append((stamps[part], residual, velocity[part]))
+                self._inputs.append((stamps[part], residual, velocity[part], values[part]))
                 self._outputs.append((s, v))
             self._phase += take
             i += take
@@ -750,6 +1041,8 @@ class Adaptation:
             if self.cells is not None:
                 self.cells.end_segment()
             self.gate.end_segment()
+            if self.line_gate is not None:
+                self.line_gate.end_segment()
             if self.harmonic is not None:
                 self.harmonic._snapshot = None
             self._apply()
@@ -760,6 +1053,9 @@ class Adaptation:
         if self.settings.learn:
             self._take(final=False)
             self._apply()
+            found = self.lines.at_update() if self.lines is not None else None
+            if found is not None:
+                self._use_map(found)
         if self.harmonic is not None:
             self.harmonic.warm_start()
 
@@ -778,6 +1074,14 @@ class Adaptation:
                 span = self.harmonic.snapshot(first, last)
                 if span is not None:
                     self._spans.append(span)
+            real = stamps >= 0
+            if self.lines is not None and real.any():
+                values = np.concatenate([p[3] for p in self._inputs])[real]
+                velocity = np.concatenate([p[2] for p in self._inputs])[real]
+                self.line_gate.push(stamps[real], values)
+                self._line_spans.append(
+                    (int(stamps[real][0]), int(stamps[real][-1]), values, velocity)
+                )
             self._inputs = []
         if self._outputs:
             self.gate.push(
@@ -809,6 +1113,18 @@ class Adaptation:
             self._spans.popleft()
             if clear:
                 self.harmonic.commit(span, self.rate)
+        line_gate = self.line_gate
+        while self._line_spans:
+            first, last, values, velocity = self._line_spans[0]
+            clear = line_gate.decide(first, last)
+            if clear is None and not final:
+                break
+            self._line_spans.popleft()
+            if clear:
+                self.lines.push(values, velocity)
+        if line_gate is not None and line_gate.progress_ns is not None:
+            oldest = self._line_spans[0][0] if self._line_spans else line_gate.progress_ns
+            line_gate.prune(min(oldest, line_gate.progress_ns) - line_gate.guard_ns)
         if gate.progress_ns is not None:
             oldest = [gate.progress_ns]
             if self._pending:
@@ -816,6 +1132,17 @@ class Adaptation:
             if self._spans:
                 oldest.append(self._spans[0][0])
             gate.prune(min(oldest) - gate.guard_ns)
+
+    def _use_map(self, hmap: HarmonicMap) -> None:
+        """A harmonic map in place of the one in use, from the next sample on (its lines'
+        learnt amplitudes and corrections start afresh)."""
+        d = self.d
+        d._canceller = d._canceller.with_map(hmap)
+        d.calibration = dataclasses.replace(d.calibration, harmonic=hmap)
+        self._spans.clear()
+        self.harmonic = None
+        if self.settings.harmonic and hmap.n_lines:
+            self.harmonic = HarmonicLearner(hmap, d.model.grid, d._canceller, self.settings)
 
     def _apply(self) -> None:
         """Changed cells into the table."""
@@ -847,10 +1174,15 @@ class Adaptation:
             )
             self.cells = fresh
             self.table.restore()
+        if self.lines is not None and self.lines.lines_found:
+            self._use_map(self._calibrated_map)
+        if self.lines is not None:
+            self.lines.reset(self._calibrated_map)
         if self.harmonic is not None:
             self.harmonic.reset()
         self._pending.clear()
         self._spans.clear()
+        self._line_spans.clear()
         self.resets += 1
 
     @property
@@ -869,6 +1201,8 @@ class Adaptation:
             harmonic_updates=h.updates if h is not None else 0,
             harmonic_points=int((h.blocks > 0).sum()) if h is not None else 0,
             resets=self.resets,
+            map_refits=self.lines.refits if self.lines is not None else 0,
+            lines_found=self.lines.lines_found if self.lines is not None else 0,
         )
 
     def extras(self) -> dict[str, np.ndarray]:
@@ -889,6 +1223,10 @@ class Adaptation:
             out[prefix + "correction"] = h.correction.copy()
             out[prefix + "amplitude"] = h.amplitude.copy()
             out[prefix + "blocks"] = h.blocks.copy()
+        if self.lines is not None:
+            out[LINES_COVERED] = self.lines.covered.copy()
+            out[LINES_FOUND] = np.array(self.lines.lines_found)
+            out[LINES_OPEN] = self.lines.open.copy()
         return out
 
 
@@ -906,6 +1244,7 @@ __all__ = [
     "CellLearner",
     "ContactGate",
     "HarmonicLearner",
+    "LineFinder",
     "describe_learnt",
     "learnt_state",
     "without_learnt",

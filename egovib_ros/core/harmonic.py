@@ -876,6 +876,22 @@ class HarmonicCanceller:
             power_w=np.zeros((self.n_channels, 2)),
         )
 
+    def with_map(self, hmap: HarmonicMap) -> "HarmonicCanceller":
+        """The same canceller on another map, mid-stream: the joints' lagged speeds and the
+        error's spread and guard powers carried over; the lines (all new) start from nothing."""
+        other = HarmonicCanceller(
+            hmap,
+            sample_rate_hz=self.sample_rate_hz,
+            band_hz=self.band_hz,
+            n_channels=self.n_channels,
+            settings=self.settings,
+            active_hz=self.active_hz,
+            unfiltered_inverse=self.unfiltered_inverse,
+        )
+        for name in ("lagged", "spread2", "power_in", "power_residual", "power_w"):
+            getattr(other.state, name)[:] = getattr(self.state, name)
+        return other
+
     def process(self, x: np.ndarray, speed: np.ndarray, *, unfiltered: np.ndarray | None = None):
         """(n, C) band-passed samples and (n, J) speeds -> the residual (n, C). With
         `unfiltered` (n, C), the same samples before the band-pass (gravity and slow motion

@@ -975,7 +975,12 @@ class SampleMethodDenoiser(FramedDenoiser):
         it denoises with the learnt cells and corrections, and goes on learning with adapt."""
         if self._adaptation is None:
             raise ConfigError("adapted_model: this denoiser does not adapt (adapt not given)")
-        extras = {**without_learnt(self.model.extras), **self._adaptation.extras()}
+        extras = {
+            **without_learnt(self.model.extras),
+            # the map in use: the calibrated one, or one LineFinder found online
+            **self.calibration.harmonic.to_arrays(HARMONIC_PREFIX),
+            **self._adaptation.extras(),
+        }
         provenance = {
             **self.model.provenance,
             "adapted_from": self.model.provenance.get("path", ""),

@@ -394,7 +394,8 @@ class Denoiser(Node):
         response.success = True
         response.message = (
             f"wrote {self.save_model_path}: {stats.cells_learnt} cells learnt online "
-            f"({stats.cells_new} never calibrated), {stats.blocks_learnt} blocks"
+            f"({stats.cells_new} never calibrated), {stats.blocks_learnt} blocks, "
+            f"{stats.lines_found} harmonic lines found online"
         )
         self.get_logger().info(response.message)
         return response
@@ -422,6 +423,8 @@ class Denoiser(Node):
                     "adapt_blocks_gated": stats.blocks_gated,
                     "adapt_contacts": stats.contacts,
                     "adapt_harmonic_points": stats.harmonic_points,
+                    "adapt_map_refits": stats.map_refits,
+                    "adapt_lines_found": stats.lines_found,
                     "adapt_resets": stats.resets,
                 }
             )
@@ -695,7 +698,8 @@ class Denoiser(Node):
             print(
                 f"denoiser: adapted, {adapted.blocks_learnt} blocks learnt, "
                 f"{adapted.blocks_gated} left out for contacts, cells learnt online "
-                f"{adapted.cells_learnt} ({adapted.cells_new} never calibrated)",
+                f"{adapted.cells_learnt} ({adapted.cells_new} never calibrated), harmonic "
+                f"lines found online {adapted.lines_found}",
                 flush=True,
             )
         print(

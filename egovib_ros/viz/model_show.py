@@ -446,18 +446,18 @@ def summary_lines(model, placement: BagPlacement | None = None) -> list[str]:
 
 
 def _learnt_line(learnt: dict) -> str:
+    parts = []
     cells = learnt.get("cells")
-    text = f"learnt online (adapt, forgetting time {learnt['forget_s']:g} s): "
     if cells is not None:
-        text += (
+        parts.append(
             f"{len(cells)} cells of the residual table ({int(learnt['new'].sum())} the "
             f"calibration never measured), {int(learnt['blocks'].sum())} blocks"
         )
     if "harmonic_points" in learnt:
-        text += (", " if cells is not None else "") + (
-            f"harmonic map at {learnt['harmonic_points']} joint speeds"
-        )
-    return text
+        parts.append(f"harmonic map at {learnt['harmonic_points']} joint speeds")
+    if learnt.get("lines_found"):
+        parts.append(f"{learnt['lines_found']} lines found beyond the calibrated speeds")
+    return f"learnt online (adapt, forgetting time {learnt['forget_s']:g} s): " + ", ".join(parts)
 
 
 def summary_markdown(

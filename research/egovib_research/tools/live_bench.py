@@ -300,6 +300,8 @@ def denoised_figures(
                 "adapt_blocks_learnt",
                 "adapt_blocks_gated",
                 "adapt_contacts",
+                "adapt_map_refits",
+                "adapt_lines_found",
             )
             if key in last
         },
