@@ -23,6 +23,7 @@ from egovib_ros.core.adapt import (
     CellLearner,
     ContactGate,
     HarmonicLearner,
+    LineFinder,
     TransientGate,
     describe_learnt,
     learnt_state,
@@ -357,6 +358,23 @@ def test_lines_the_calibration_never_showed_are_found_at_speeds_beyond_it(blind)
     denoiser.reset_adaptation()
     assert denoiser.adaptation_stats.lines_found == 0
     assert denoiser._canceller.map.n_lines == 0
+
+
+def test_a_joint_without_lines_beyond_the_calibration_is_refitted_a_few_times_only(blind):
+    cal = MethodCalibration.from_model(blind)
+    finder = LineFinder(cal.harmonic, blind, cal.residual, cal.canceller)
+    rng = np.random.default_rng(3)
+    piece = int(0.04 * FS)
+    for _ in range(int(14.0 / 0.04)):  # 14 s of broadband noise at 0.9, beyond 0.5
+        finder.push(rng.standard_normal((piece, 3)), np.full((piece, 2), 0.9))
+        assert finder.at_update() is None
+    # at 0.5, 1, 2 and 4 s of data (twice that is more than the 8 s kept), then only at
+    # new speeds
+    assert finder.refits == 4 and finder.lines_found == 0
+    for _ in range(30):
+        finder.push(rng.standard_normal((piece, 3)), np.full((piece, 2), 1.2))
+        finder.at_update()
+    assert finder.refits == 5
 
 
 def replace_map(cal: MethodCalibration, hmap: HarmonicMap) -> dict:

@@ -61,6 +61,7 @@ import os
 import sys
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numba
@@ -69,7 +70,7 @@ import numpy as np
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.harmonic import HarmonicCanceller, HarmonicMap, fit_harmonic_map
 from egovib_ros.core.noise_model import NoiseModel
-from egovib_ros.errors import ConfigError, ModelFileError, check_ranges
+from egovib_ros.errors import ConfigError, EgovibError, ModelFileError, check_ranges
 
 #: Keys of the learnt state in a model's extras.
 ADAPT_PREFIX = "adapt."
@@ -88,8 +89,8 @@ UPDATE_S = 0.04
 #: between updates (0.4 s of steady, contact-free speed).
 MIN_POINT_SPANS = 10
 #: Lines found online (`LineFinder`): a refit of the harmonic map starts once the
-#: contact-free data hold REFIT_BEYOND_S at speeds beyond those the map was fitted on (by
-#: more than REFIT_MARGIN of that range), or, once lines were found, twice the data the last
+#: contact-free data hold REFIT_BEYOND_S at speeds beyond those the map was fitted on and
+#: the last refit was given (by more than REFIT_MARGIN of them), or twice the data the last
 #: refit was given; on the last REFIT_WINDOW_S of them (the fit's cost grows with them:
 #: about 0.6 CPU-s per second of data at 1 kHz, 4 motors); its map is put to use
 #: REFIT_APPLY_S (+ REFIT_APPLY_PER_S per second fitted) of stream after the refit started
@@ -709,6 +710,11 @@ def _refit_pool() -> ProcessPoolExecutor:
     return _POOL
 
 
+def _discard_pool() -> None:
+    global _POOL
+    _POOL = None
+
+
 def _lower_priority() -> None:
     os.nice(REFIT_NICE)
 
@@ -732,7 +738,11 @@ def _refit(x, speed, current: HarmonicMap, open_: np.ndarray, fit: dict) -> Harm
     """LineFinder's refit (in the worker process): the map fitted on (x, speed), the `open_`
     joints from it and the others from `current`; None unless that leaves
     REFIT_MIN_GAIN_DB less residual than `current` on the same data."""
-    fitted = _merged(current, fit_harmonic_map(x, speed, **fit)[0], open_)
+    try:
+        fitted = fit_harmonic_map(x, speed, **fit)[0]
+    except EgovibError:  # data a fit refuses (too short, no steady window): no lines
+        return None
+    fitted = _merged(current, fitted, open_)
     if fitted is None:
         return None
     settle = len(x) // 10  # the trackers settling, left out as the fit leaves it out
@@ -770,7 +780,7 @@ class LineFinder:
     idle meets its motors' lines in flight): the contact-free samples TransientGate clears
     (`push`: band-passed input, joint velocity) are kept, the last REFIT_WINDOW_S of them;
     at an update (`at_update`) where they hold REFIT_BEYOND_S at speeds beyond the range the
-    map in use was fitted on (or twice the data of the last refit, once lines were found),
+    map in use and the last refit covered (or twice the data the last refit was given),
     the map is fitted again on them (core.harmonic.fit_harmonic_map, as calibration fits it)
     in a worker process (`_refit`). REFIT_APPLY_S later, the open joints take the fitted
     map's lines, exponent and lags (the others keep the calibrated ones: a map fitted at
@@ -800,6 +810,7 @@ class LineFinder:
         # (apply at update, the fit, the speeds it covers)
         self._pending: tuple[int, Future, np.ndarray] | None = None
         self._tried_on = 0  # samples the last refit was given
+        self._tried = np.zeros_like(self.covered)  # the largest speeds refits were given
         self.refits = 0
         self.lines_found = 0
 
@@ -821,7 +832,11 @@ class LineFinder:
             if self._updates < apply_at:
                 return None
             self._pending = None
-            found = future.result()
+            try:
+                found = future.result()
+            except BrokenProcessPool:  # the worker died (killed, out of memory): a new one
+                _discard_pool()
+                found = None
             if found is not None:
                 self.map = found
                 self.lines_found = int(np.count_nonzero(self.open[found.line_joint]))
@@ -830,13 +845,16 @@ class LineFinder:
         if self._new < self._spacing:
             return None
         speed = np.abs(np.concatenate([p[1] for p in self._pieces]))
-        beyond = np.count_nonzero((speed > self.covered * (1 + REFIT_MARGIN)).any(axis=1))
-        grown = self.lines_found and self._held >= 2 * self._tried_on
-        if beyond < self._beyond and not grown:
+        # new speeds (beyond the map's and the last refit's), or twice the data of the
+        # last refit: a robot without lines there is tried a few times, not at every update
+        known = np.maximum(self.covered, self._tried) * (1 + REFIT_MARGIN)
+        beyond = np.count_nonzero((speed > known).any(axis=1))
+        if beyond < self._beyond and self._held < 2 * self._tried_on:
             return None
         values = np.concatenate([p[0] for p in self._pieces])
         self._new = 0
         self._tried_on = len(speed)
+        self._tried = np.maximum(self._tried, speed.max(axis=0))
         self.refits += 1
         m = self.model
         fit = dict(
@@ -862,6 +880,7 @@ class LineFinder:
         self._pending = None
         self.lines_found = 0
         self._tried_on = 0
+        self._tried[:] = 0.0
 
 
 # --------------------------------------------------------------------------------------
