@@ -394,18 +394,3 @@ def evaluate_bag(
         max_bad_fraction=max_bad_fraction,
         adapt=adapt,
     )
-
-
-def speed_envelope_mask(calibration, rec, margin: float = 1.05) -> np.ndarray:
-    """Calibration accelerometer samples whose joint speeds stay within the largest joint
-    speeds of `rec` (per joint, times `margin`)."""
-    limit = np.nanmax(np.abs(rec.joint_velocity), axis=0) * margin
-    mask = np.ones(len(calibration.sensor_stamps_ns), bool)
-    for j in range(calibration.joint_velocity.shape[1]):
-        speed = np.interp(
-            calibration.sensor_stamps_ns,
-            calibration.joint_stamps_ns,
-            np.abs(calibration.joint_velocity[:, j]),
-        )
-        mask &= speed <= limit[j]
-    return mask

@@ -55,7 +55,6 @@ from egovib_ros.core.filters import combined_bandpassed
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation import detection, metrics
-from egovib_ros.evaluation.evaluate import speed_envelope_mask
 from egovib_ros.outputs import prepare_outputs_in
 from egovib_ros.robot import RobotProfile, load_profile
 
@@ -96,6 +95,21 @@ class RealConfig:
             self.amplitudes = tuple(sorted(set(self.amplitudes) | {PRIMARY_AMPLITUDE}))
         if "raw" not in self.methods:
             self.methods = ("raw",) + tuple(self.methods)
+
+
+def speed_envelope_mask(calibration, rec, margin: float = 1.05) -> np.ndarray:
+    """Calibration accelerometer samples whose joint speeds stay within the largest joint
+    speeds of `rec` (per joint, times `margin`)."""
+    limit = np.nanmax(np.abs(rec.joint_velocity), axis=0) * margin
+    mask = np.ones(len(calibration.sensor_stamps_ns), bool)
+    for j in range(calibration.joint_velocity.shape[1]):
+        speed = np.interp(
+            calibration.sensor_stamps_ns,
+            calibration.joint_stamps_ns,
+            np.abs(calibration.joint_velocity[:, j]),
+        )
+        mask &= speed <= limit[j]
+    return mask
 
 
 def calibration_mask(cal, test, fs: float) -> np.ndarray:
