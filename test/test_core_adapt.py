@@ -355,6 +355,8 @@ def test_lines_the_calibration_never_showed_are_found_at_speeds_beyond_it(blind)
     adapted = denoiser.adapted_model()
     assert MethodCalibration.from_model(adapted).harmonic.n_lines == stats.lines_found
     assert describe_learnt(adapted)["lines_found"] == stats.lines_found
+    again = make_denoiser(adapted, "cancel", **options)  # goes on: the same joints open
+    assert again._adaptation.lines.open.all() and again.adaptation_stats.lines_found > 0
     denoiser.reset_adaptation()
     assert denoiser.adaptation_stats.lines_found == 0
     assert denoiser._canceller.map.n_lines == 0
