@@ -112,7 +112,8 @@ TRANSIENT_FACTOR = 4.0
 TRANSIENT_LEVEL_S = 0.5
 #: ... and the time around a crossing it leaves out: a contact's onset and peak (its
 #: ring-down is weak broadband beside the lines, and every second left out delays the
-#: first map: 0.15 s, the cells' guard, left 40 % of the flight's input and 2 dB less).
+#: first map: 0.15 s, the cells' guard, left about 40 % of the flight's input and 1.3 dB
+#: less).
 LINE_GUARD_S = 0.02
 
 
