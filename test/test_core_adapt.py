@@ -4,6 +4,7 @@ reset on request, saved in the model, and the same for any chunking."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -329,7 +330,9 @@ def blind(model) -> NoiseModel:
     bare = HarmonicMap(
         **{**vars(cal.harmonic), "line_joint": [], "line_coefficient": [], "line_score_db": []}
     )
-    return model.replace(extras={**model.extras, **replace_map(cal, bare)})
+    return model.replace(
+        extras={**model.extras, **dataclasses.replace(cal, harmonic=bare).to_extras()}
+    )
 
 
 def test_lines_the_calibration_never_showed_are_found_at_speeds_beyond_it(blind):
@@ -377,13 +380,6 @@ def test_a_joint_without_lines_beyond_the_calibration_is_refitted_a_few_times_on
         finder.push(rng.standard_normal((piece, 3)), np.full((piece, 2), 1.2))
         finder.at_update()
     assert finder.refits == 5
-
-
-def replace_map(cal: MethodCalibration, hmap: HarmonicMap) -> dict:
-    return MethodCalibration(
-        hmap, *(getattr(cal, f) for f in ("canceller", "residual", "gain", "alpha", "bias",
-                                          "open_alpha", "guard_ref", "split_taps", "split_delay"))
-    ).to_extras()  # fmt: skip
 
 
 def test_the_gate_clears_a_block_only_once_the_output_passed_its_guard_time():

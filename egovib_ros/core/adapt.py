@@ -769,10 +769,9 @@ def _refit(x, speed, current: HarmonicMap, open_: np.ndarray, fit: dict) -> Harm
 def _measured_speeds(table: NoiseModel) -> np.ndarray:
     """Per joint, the largest |velocity| of a cell the calibration measured (the speeds
     the calibration's harmonic map was fitted on)."""
-    measured = table.cells[table.cell_counts > 0]
     return np.array(
         [
-            np.abs(np.asarray(g, float)[measured[:, j]]).max() if len(measured) else 0.0
+            np.abs(np.asarray(g, float)[table.cells[:, j]]).max() if len(table.cells) else 0.0
             for j, g in enumerate(table.grid)
         ]
     )
@@ -807,8 +806,10 @@ class LineFinder:
         self._keep = int(REFIT_WINDOW_S * fs)
         self._beyond = int(REFIT_BEYOND_S * fs)
         self._spacing = int(REFIT_SPACING_S * fs)
-        self._pieces: deque = deque()  # (values (n, C), velocity (n, J)) cleared by the gate
+        # [values (n, C), |velocity| (n, J), samples beyond] cleared by the gate
+        self._pieces: deque = deque()
         self._held = 0
+        self._held_beyond = 0  # of them, at speeds beyond (`_beyond_of`)
         self._new = 0  # samples pushed since the last refit started
         self._updates = 0
         # (apply at update, the fit, the speeds it covers)
@@ -822,11 +823,28 @@ class LineFinder:
         ok = np.all(np.isfinite(velocity), axis=1)
         if not ok.any():
             return
-        self._pieces.append((values[ok], velocity[ok]))
-        self._held += int(ok.sum())
-        self._new += int(ok.sum())
+        speed = np.abs(velocity[ok])
+        beyond = self._beyond_of(speed)
+        self._pieces.append([values[ok], speed, beyond])
+        self._held += len(speed)
+        self._new += len(speed)
+        self._held_beyond += beyond
         while self._held - len(self._pieces[0][0]) >= self._keep:
-            self._held -= len(self._pieces.popleft()[0])
+            dropped = self._pieces.popleft()
+            self._held -= len(dropped[0])
+            self._held_beyond -= dropped[2]
+
+    def _beyond_of(self, speed: np.ndarray) -> int:
+        """Samples at speeds beyond the map's and the last refit's (by REFIT_MARGIN)."""
+        known = np.maximum(self.covered, self._tried) * (1 + REFIT_MARGIN)
+        return int(np.count_nonzero((speed > known).any(axis=1)))
+
+    def _recount(self) -> None:
+        """The held samples beyond, counted again (the map's or the refits' speeds moved):
+        counted per piece as it comes, not over the whole window at every update."""
+        for piece in self._pieces:
+            piece[2] = self._beyond_of(piece[1])
+        self._held_beyond = sum(piece[2] for piece in self._pieces)
 
     def at_update(self) -> HarmonicMap | None:
         """The new map to use from now on, or None."""
@@ -845,20 +863,20 @@ class LineFinder:
                 self.map = found
                 self.lines_found = int(np.count_nonzero(self.open[found.line_joint]))
                 self.covered = np.maximum(self.covered, covers)
+                self._recount()
             return found
         if self._new < self._spacing:
             return None
-        speed = np.abs(np.concatenate([p[1] for p in self._pieces]))
         # new speeds (beyond the map's and the last refit's), or twice the data of the
         # last refit: a robot without lines there is tried a few times, not at every update
-        known = np.maximum(self.covered, self._tried) * (1 + REFIT_MARGIN)
-        beyond = np.count_nonzero((speed > known).any(axis=1))
-        if beyond < self._beyond and self._held < 2 * self._tried_on:
+        if self._held_beyond < self._beyond and self._held < 2 * self._tried_on:
             return None
+        speed = np.concatenate([p[1] for p in self._pieces])
         values = np.concatenate([p[0] for p in self._pieces])
         self._new = 0
         self._tried_on = len(speed)
         self._tried = np.maximum(self._tried, speed.max(axis=0))
+        self._recount()
         self.refits += 1
         m = self.model
         fit = dict(
@@ -885,6 +903,7 @@ class LineFinder:
         self.lines_found = 0
         self._tried_on = 0
         self._tried[:] = 0.0
+        self._recount()
 
 
 # --------------------------------------------------------------------------------------
@@ -1087,9 +1106,9 @@ class Adaptation:
         output through the gate; then what the gate clears is learnt."""
         if self._inputs:
             stamps = np.concatenate([p[0] for p in self._inputs])
+            velocity = np.concatenate([p[2] for p in self._inputs])
             if self.cells is not None:
                 residual = np.concatenate([p[1] for p in self._inputs])
-                velocity = np.concatenate([p[2] for p in self._inputs])
                 self._pending.extend(self.cells.push(stamps, residual, velocity))
             if self.harmonic is not None:
                 real = stamps[stamps >= 0]
@@ -1100,10 +1119,9 @@ class Adaptation:
             real = stamps >= 0
             if self.lines is not None and real.any():
                 values = np.concatenate([p[3] for p in self._inputs])[real]
-                velocity = np.concatenate([p[2] for p in self._inputs])[real]
                 self.line_gate.push(stamps[real], values)
                 self._line_spans.append(
-                    (int(stamps[real][0]), int(stamps[real][-1]), values, velocity)
+                    (int(stamps[real][0]), int(stamps[real][-1]), values, velocity[real])
                 )
             self._inputs = []
         if self._outputs:
