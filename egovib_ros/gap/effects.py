@@ -12,9 +12,10 @@ in generic covariates that assume nothing about how the effect is produced:
   that turned one way over part of a turn the harmonics whose period it spans;
   piecewise-linear functions (POSITION_KNOTS knots
   over the travel seen in training) of every other joint's position.
-- coupling: products of piecewise-linear functions of two joints' speeds (zero when
-  either joint is still: main effects belong to the baseline), plain and relative to
-  the baseline's band power (an interaction that *adds* vibration power).
+- coupling: one joint's lines (its share of each bin's power) scaled by another joint's
+  speed and direction (`line_stage`), then products of piecewise-linear functions of two
+  joints' speeds, and of their directions (zero when either joint is still: main effects
+  belong to the baseline).
 - acceleration: magnitude of each joint's acceleration (log1p and hinges, relative to its
   training 95th percentile) and reversals (exponential kernels of the time since and
   until the joint last/next reverses direction), plain and relative to band power.
