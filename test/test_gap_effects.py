@@ -18,6 +18,7 @@ from egovib_ros.gap.effects import (
     apply_effect_term,
     covered_harmonics,
     effect_regressors,
+    effect_shape,
     fit_lag,
     fit_scales,
     fit_variant,
@@ -221,3 +222,24 @@ def test_time_hats_are_flat_beyond_the_span_and_drop_the_reference():
     t = np.array([-5.0, 0.0, 5.0, 10.0, 20.0, 30.0])
     h = time_hats(t, 0.0, 10.0, 3)  # knots 0, 5, 10; the first is the reference
     np.testing.assert_allclose(h, [[0, 0], [0, 0], [1, 0], [0, 1], [0, 1], [0, 1]])
+
+
+def test_an_interaction_of_opposite_sign_in_two_bins_shows_bin_by_bin():
+    """A coupling term that raises one bin and lowers another by as much averages to 0 dB
+    over the band (a real flight's interaction at a few motor lines): its shape says so,
+    and gives the largest single-bin gain, its bin and the speeds where it is."""
+    table = synthetic_table(seed=5, duration_s=10.0)
+    scales = fit_scales(table, ~table.contact)
+    _, names = effect_regressors("coupling", table, scales)
+    coef = np.zeros((1 + len(names), len(table.freqs_hz)))
+    products = [1 + k for k, n in enumerate(names) if n.startswith("s0=")]
+    # the speed products' hats sum to 1 once both joints move: +-0.87 dB there
+    coef[products, 2], coef[products, 5] = 0.1, -0.1
+    (shape,) = effect_shape("coupling", table, scales, coef, names).values()
+    assert np.max(np.abs(shape["gain_db"])) < 1e-9
+    assert abs(shape["per_bin_peak_db"]) == pytest.approx(0.1 * 20 / np.log(10), abs=1e-3)
+    assert shape["per_bin_peak_hz"] in (
+        round(float(table.freqs_hz[2]), 1),
+        round(float(table.freqs_hz[5]), 1),
+    )
+    assert all(0.0 < v <= 1.0 for v in shape["per_bin_peak_at"])

@@ -229,6 +229,15 @@ def known_shapes() -> dict[str, tuple[dict, str]]:
             "wristxgripper: up to +3.0 dB at speed fractions 0.5/0.3 "
             "(+0.0 dB with both at full speed; same vs opposite direction -1.0 dB)",
         ),
+        "coupling:motor1xmotor3": (
+            {
+                "speed_fraction": sp,
+                "gain_db": np.zeros_like(peak),
+                "per_bin_peak_db": -0.31,
+                "per_bin_peak_hz": 281.3,
+            },
+            "motor1xmotor3: flat across the band; bin by bin up to -0.3 dB at 281 Hz",
+        ),
         "timing:lag_scan": (
             {"fitted_joint_lag_s": -0.05, "in_sync_band_s": [-0.005, 0.005]},
             "best joint lag -50.0 ms (in sync: -5..+5 ms)",

@@ -174,7 +174,21 @@ def _coupling_action(model) -> tuple[str, dict]:
             else ""
         )
         parts.append(f"{pair.replace('x', ' x ')} together: up to {span:.1f} dB{direction}")
-    where = "; ".join(parts) if parts else "bin by bin, flat across the band"
+    if not parts:
+        # the interaction of the largest single-bin gain: where it is, not only that it is
+        peaks = [
+            (abs(c.get("per_bin_peak_db", 0.0)), key.split(":", 1)[1], c)
+            for key, c in shape.items()
+            if key.startswith("coupling:")
+        ]
+        size, pair, c = max(peaks, key=lambda p: p[0], default=(0.0, "", {}))
+        where = "bin by bin, flat across the band" + (
+            f"; largest: {pair} {c['per_bin_peak_db']:+.1f} dB at {c['per_bin_peak_hz']:.0f} Hz"
+            if size >= 0.1
+            else ""
+        )
+    else:
+        where = "; ".join(parts)
     joints = sorted(
         {n for key in shape if key.startswith("coupling") for n in key.split(":", 1)[1].split("x")}
     )

@@ -586,6 +586,8 @@ def effect_shape(
     0 dB at their own mean so they show the shape, not the level.
     """
     beta = coef[1:].mean(axis=1)  # broadband part (R,)
+    if effect == "coupling":  # also bin by bin: an interaction at a few lines averages out
+        return _coupling_shapes(table, scales, beta, names, per_bin=coef[1:])
     shapes = _SHAPES.get(effect)
     return shapes(table, scales, beta, names) if shapes else {}
 
@@ -616,8 +618,18 @@ def _position_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names:
     return shapes
 
 
-def _coupling_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
-    """Gain over each pair of joints' speeds."""
+def _coupling_shapes(
+    table: BlockTable,
+    scales: Scales,
+    beta: np.ndarray,
+    names: list[str],
+    *,
+    per_bin: np.ndarray | None = None,
+) -> dict:
+    """Gain over each pair of joints' speeds: broadband (`beta`, mean over bins) and, from
+    the per-bin coefficients `per_bin` (R, F), its largest value in any one bin (a real
+    flight's interaction sits at a few motor lines, of either sign: the mean over bins is
+    ~0 dB there)."""
     shapes: dict = {}
     # The gain over the two speeds with both joints moving the same way, and (for two
     # joints that move either way) the difference to moving opposite ways.
@@ -625,30 +637,47 @@ def _coupling_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names:
     idx = {n: k for k, n in enumerate(names)}
     n_j = len(table.joint_names)
     knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+
+    def surface(terms: list[tuple[int, np.ndarray]], coef: np.ndarray) -> np.ndarray:
+        """sum over the pair's columns of coef[column] x its (grid x grid) product;
+        coef (R,) -> (11, 11), (R, F) -> (F, 11, 11)."""
+        if not terms:
+            return np.zeros(coef.shape[1:] + (len(grid), len(grid)))
+        cols, mats = zip(*terms)
+        return np.tensordot(coef[list(cols)], np.stack(mats), axes=(0, 0))
+
     for i in range(n_j):
         for j in range(i + 1, n_j):
             hi_, hj = hat_matrix(grid, knots[i])[:, 1:], hat_matrix(grid, knots[j])[:, 1:]
-            gmat = np.zeros((len(grid), len(grid)))
-            for a in range(hi_.shape[1]):
-                for b in range(hj.shape[1]):
-                    key = f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}"
-                    if key in idx:
-                        gmat += beta[idx[key]] * np.outer(hi_[:, a], hj[:, b])
-            signed = np.zeros_like(gmat)
+            plain = [
+                (idx[key], np.outer(hi_[:, a], hj[:, b]))
+                for a in range(hi_.shape[1])
+                for b in range(hj.shape[1])
+                if (key := f"s{i}={knots[i][a + 1]:.3g}*s{j}={knots[j][b + 1]:.3g}") in idx
+            ]
             ci = knots[i][::2] if len(knots[i]) > 3 else knots[i]
             cj = knots[j][::2] if len(knots[j]) > 3 else knots[j]
             hci, hcj = hat_matrix(grid, ci)[:, 1:], hat_matrix(grid, cj)[:, 1:]
-            for a in range(hci.shape[1]):
-                for b in range(hcj.shape[1]):
-                    key = f"dir{i}*dir{j}:c{a}*c{b}"
-                    if key in idx:
-                        signed += beta[idx[key]] * np.outer(hci[:, a], hcj[:, b])
-            shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = {
+            signed_terms = [
+                (idx[key], np.outer(hci[:, a], hcj[:, b]))
+                for a in range(hci.shape[1])
+                for b in range(hcj.shape[1])
+                if (key := f"dir{i}*dir{j}:c{a}*c{b}") in idx
+            ]
+            gmat, signed = surface(plain, beta), surface(signed_terms, beta)
+            entry = {
                 "speed_fraction": [round(float(v), 3) for v in grid],
                 "gain_db": [_db(row) for row in gmat + signed],
                 "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
                 "unit": "speed fraction of each joint (same direction of travel)",
             }
+            if per_bin is not None:
+                bins = surface(plain, per_bin) + surface(signed_terms, per_bin)  # (F, 11, 11)
+                f, a, b = np.unravel_index(int(np.argmax(np.abs(bins))), bins.shape)
+                entry["per_bin_peak_db"] = _db(bins[f, a, b])[0]
+                entry["per_bin_peak_hz"] = round(float(table.freqs_hz[f]), 1)
+                entry["per_bin_peak_at"] = [float(grid[a]), float(grid[b])]
+            shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = entry
     return shapes
 
 
@@ -710,7 +739,7 @@ def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: li
 #: effect -> its shape curves (effect_shape); the others (timing: a lag) have none
 _SHAPES = {
     "position": _position_shapes,
-    "coupling": _coupling_shapes,
+    "coupling": _coupling_shapes,  # effect_shape calls it with the per-bin coefficients
     "acceleration": _acceleration_shapes,
     "drift": _drift_shapes,
 }

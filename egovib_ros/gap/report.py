@@ -504,6 +504,15 @@ def describe_shape(shape: dict) -> str:
             i, j = np.unravel_index(int(np.argmax(g)), g.shape)
             sp = c["speed_fraction"]
             signed = np.asarray(c.get("same_minus_opposite_direction_db", [[0.0]]), float)
+            bin_by_bin = (
+                f"; bin by bin up to {c['per_bin_peak_db']:+.1f} dB "
+                f"at {c['per_bin_peak_hz']:.0f} Hz"
+                if abs(c.get("per_bin_peak_db", 0.0)) >= 0.05
+                else ""
+            )
+            if np.max(np.abs(g)) < 0.05 and np.max(np.abs(signed)) < 0.05:
+                parts.append(f"{name[9:]}: flat across the band{bin_by_bin}")
+                continue
             parts.append(
                 f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
                 f"({g[-1, -1]:+.1f} dB with both at full speed"
@@ -512,6 +521,7 @@ def describe_shape(shape: dict) -> str:
                     if np.max(np.abs(signed)) >= 0.05
                     else ""
                 )
+                + bin_by_bin
                 + ")"
             )
         elif name.startswith("acceleration:"):
