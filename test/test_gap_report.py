@@ -265,6 +265,24 @@ def test_shapes_are_described_in_one_sentence_each():
     assert describe_shape({}) == ""
 
 
+def test_joint_names_holding_an_x_are_reported_and_drawn(tmp_path):
+    """ROS joints are often named *_flex_joint: a coupling shape keyed "AxB" cannot be split
+    back into its two joints (the figures raised ValueError, the advice listed halves of
+    names); the shape names them."""
+    table = synthetic_table("coupling", 5.0, seed=5, duration_s=30.0)
+    names = ("r_wrist_flex_joint", "r_gripper_joint")
+    options = DiagnosisOptions(effects=("position", "coupling", "acceleration", "timing"))
+    diag = diagnose(dataclasses.replace(table, joint_names=names), options)
+    assert diag.verdict == "coupling"
+    report = report_of(diag)
+    advice = next(a for a in report["advice"]["effects"] if a["effect"] == "coupling")
+    assert advice["settings"]["joints"] == sorted(names)
+    assert "r_wrist_flex_joint x r_gripper_joint" in advice["action"]
+    assert set(make_figures(diag, report, tmp_path).values()) <= {
+        p.name for p in tmp_path.iterdir()
+    }
+
+
 def test_figures_are_written_and_named(position, tmp_path):
     report = report_of(position)
     figures = make_figures(position, report, tmp_path)

@@ -154,7 +154,7 @@ def _position_action(model) -> tuple[str, dict]:
 
 def _coupling_action(model) -> tuple[str, dict]:
     shape = model.shape or {}
-    pair, span, curve = _shape_span(shape, "coupling:")
+    _, span, curve = _shape_span(shape, "coupling:")
     parts = []
     lines = (model.parameters.get("lines") or {}).get("pairs", {})
     for name, entry in lines.items():
@@ -173,24 +173,30 @@ def _coupling_action(model) -> tuple[str, dict]:
             if signed.size and np.max(np.abs(signed)) >= 0.5
             else ""
         )
-        parts.append(f"{pair.replace('x', ' x ')} together: up to {span:.1f} dB{direction}")
+        parts.append(f"{' x '.join(curve['joints'])} together: up to {span:.1f} dB{direction}")
     if not parts:
         # the interaction of the largest single-bin gain: where it is, not only that it is
         peaks = [
-            (abs(c.get("per_bin_peak_db", 0.0)), key.split(":", 1)[1], c)
+            (abs(c.get("per_bin_peak_db", 0.0)), c)
             for key, c in shape.items()
             if key.startswith("coupling:")
         ]
-        size, pair, c = max(peaks, key=lambda p: p[0], default=(0.0, "", {}))
+        size, c = max(peaks, key=lambda p: p[0], default=(0.0, {}))
         where = "bin by bin, flat across the band" + (
-            f"; largest: {pair} {c['per_bin_peak_db']:+.1f} dB at {c['per_bin_peak_hz']:.0f} Hz"
+            f"; largest: {' x '.join(c['joints'])} {c['per_bin_peak_db']:+.1f} dB at "
+            f"{c['per_bin_peak_hz']:.0f} Hz"
             if size >= 0.1
             else ""
         )
     else:
         where = "; ".join(parts)
     joints = sorted(
-        {n for key in shape if key.startswith("coupling") for n in key.split(":", 1)[1].split("x")}
+        {
+            n
+            for key, c in shape.items()
+            if key.startswith("coupling")
+            for n in c.get("joints") or (c["lines_of"], c["speed_of"])
+        }
     )
     return (
         f"joints do not add ({where}): calibrate these joints together, on a full velocity "

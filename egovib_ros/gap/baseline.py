@@ -352,9 +352,10 @@ def velocity_stage(
     On the joint's share, not on the whole bin: a gain on the whole bin applies joint j's
     correction to joint k's power too whenever both move, a misfit that depends on both
     speeds, which the coupling candidate then took as an interaction. On the third hand's
-    effect-free bags it gained 0.025-0.028 of deviance that way (significant, 6x the
-    minimum gain) while making the held-out gap 0.1 dB worse, and hid every real
-    interaction (0/9); on the joint's share it gains 0.0001-0.0012."""
+    five effect-free validation bags it gained 0.025-0.042 of deviance that way (p 5e-5,
+    6-10x the minimum gain) while making the held-out gap 0.1 dB worse, and hid every real
+    interaction (0/9); on the joint's share it gains 0.0000-0.0012 on four of them (the
+    fifth: docs/gap.md, the third hand)."""
     x, names = velocity_regressors(table)
     owner = np.repeat(np.arange(len(table.joint_names)), x.shape[1] // len(table.joint_names))
     ratio = table.magnitude**2 / np.maximum(base.power, 1e-300)

@@ -670,6 +670,8 @@ def _coupling_shapes(
                 "gain_db": [_db(row) for row in gmat + signed],
                 "same_minus_opposite_direction_db": [_db(row) for row in 2 * signed],
                 "unit": "speed fraction of each joint (same direction of travel)",
+                # the key's "AxB" cannot be split back where a name holds an x (wrist_flex)
+                "joints": [table.joint_names[i], table.joint_names[j]],
             }
             if per_bin is not None:
                 bins = surface(plain, per_bin) + surface(signed_terms, per_bin)  # (F, 11, 11)
@@ -736,10 +738,10 @@ def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: li
     return shapes
 
 
-#: effect -> its shape curves (effect_shape); the others (timing: a lag) have none
+#: effect -> its shape curves from the broadband coefficients (effect_shape; coupling's,
+#: `_coupling_shapes`, takes the per-bin ones too); the others (timing: a lag) have none
 _SHAPES = {
     "position": _position_shapes,
-    "coupling": _coupling_shapes,  # effect_shape calls it with the per-bin coefficients
     "acceleration": _acceleration_shapes,
     "drift": _drift_shapes,
 }

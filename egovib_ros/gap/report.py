@@ -510,11 +510,12 @@ def describe_shape(shape: dict) -> str:
                 if abs(c.get("per_bin_peak_db", 0.0)) >= 0.05
                 else ""
             )
+            pair = " x ".join(c["joints"]) if "joints" in c else name[9:]
             if np.max(np.abs(g)) < 0.05 and np.max(np.abs(signed)) < 0.05:
-                parts.append(f"{name[9:]}: flat across the band{bin_by_bin}")
+                parts.append(f"{pair}: flat across the band{bin_by_bin}")
                 continue
             parts.append(
-                f"{name[9:]}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
+                f"{pair}: up to {g.max():+.1f} dB at speed fractions {sp[i]:.1f}/{sp[j]:.1f} "
                 f"({g[-1, -1]:+.1f} dB with both at full speed"
                 + (
                     f"; same vs opposite direction {signed.flat[np.argmax(np.abs(signed))]:+.1f} dB"
@@ -963,7 +964,7 @@ def shape_figure(report: dict, path: Path) -> str:
                 aspect="auto",
             )
             fig.colorbar(im, ax=ax, label="dB")
-            a, b = name[9:].split("x")
+            a, b = sh["joints"]
             ax.set_xlabel(f"|v| / max: {a}", fontsize=7)
             ax.set_ylabel(f"|v| / max: {b}", fontsize=7)
         elif name.startswith("timing:"):
