@@ -130,6 +130,11 @@ def test_quiet_runs_say_only_the_bad_input(tmp_path):
     assert said.count("\n") == 1 and "12 sensor samples non-finite" in said, said
     loud = run("denoise", tmp_path / "clean", "--model", model, "--out", tmp_path / "c")
     assert "samples denoised" in loud and "wrote" in loud
+    # detect and model show printed their summary line with --quiet too
+    detect = ["detect", tmp_path / "clean", "--model", model, "--threshold", "1.0"]
+    assert run(*detect, "--out", tmp_path / "e.json", "--quiet") == ""
+    assert "events in" in run(*detect, "--out", tmp_path / "f.json")
+    assert run("model", "show", model, "--out", tmp_path / "show", "--quiet") == ""
 
 
 def test_no_help_text_shows_a_doubled_percent_sign():

@@ -138,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
             f"; against the ground truth: F1 {s['f1']:.2f}, false alarms "
             f"{s['false_alarms_per_min']:.1f}/min, latency p50 {s['latency_ms_p50'] or 0:.1f} ms"
         )
-    print(f"{line}; wrote {args.out}", file=sys.stderr)
+    if not args.quiet:
+        print(f"{line}; wrote {args.out}", file=sys.stderr)
     return 0
 
 

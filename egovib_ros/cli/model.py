@@ -54,5 +54,5 @@ def run_show(args: argparse.Namespace) -> int:
     if not args.quiet:
         for line in summary_lines(model, placement):
             print(line, file=sys.stderr)
-    print(f"wrote {out} ({', '.join(written)})", file=sys.stderr)
+        print(f"wrote {out} ({', '.join(written)})", file=sys.stderr)
     return 0
