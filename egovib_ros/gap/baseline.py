@@ -367,9 +367,10 @@ def velocity_stage(
     log_power, log_magnitude = np.zeros_like(ratio), np.zeros_like(ratio)
     for f in range(ratio.shape[1]):
         xf = x * share[owner, :, f].T
+        columns: dict = {}  # the bin's training columns, decomposed once for both fits
         for target, out in ((ratio, log_power), (ratio_m, log_magnitude)):
             # fit_power_term's coefficients are on the magnitude scale of its target: x2
-            coef, _ = fit_power_term(xf, target[:, f : f + 1], train)
+            coef, _ = fit_power_term(xf, target[:, f : f + 1], train, columns)
             out[:, f] = 2.0 * (coef[0, 0] + np.clip(xf @ coef[1:, 0], -MAX_LOG_GAIN, MAX_LOG_GAIN))
     power = base.power * np.exp(log_power)
     power = power * relevel(table.magnitude**2, power, train)

@@ -93,7 +93,9 @@ def fit_term(
     return np.vstack([intercept[None, :], beta]), info
 
 
-def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, dict]:
+def fit_power_term(
+    x: np.ndarray, ratio: np.ndarray, train: np.ndarray, cache: dict | None = None
+) -> tuple[np.ndarray, dict]:
     """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power:
     E[ratio] = exp(2 (a(f) + x beta(f))).
 
@@ -102,10 +104,11 @@ def fit_power_term(x: np.ndarray, ratio: np.ndarray, train: np.ndarray) -> tuple
     Gamma variance the working weights are constant, so each step is the same GCV ridge
     fit (`fit_term`) on the working response eta + (ratio - mu) / mu.  Starts from the
     least-squares fit of log ratio.  Returns coefficients on the magnitude scale (half the
-    power exponent), (1 + R, F).
+    power exponent), (1 + R, F). `cache`: as `fit_term`'s, shared by fits of one x and
+    train (another ratio on the same columns).
     """
     log_ratio = np.log(np.maximum(ratio, 1e-300))
-    cache: dict = {}
+    cache = {} if cache is None else cache
     coef, ridge = fit_term(x, log_ratio, train, cache)
     coef[0] += EULER_GAMMA  # E log of an exponential variable = log mean - gamma
     for _ in range(GLM_ITERATIONS):
