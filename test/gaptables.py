@@ -20,6 +20,7 @@ from egovib_ros.gap.features import (
     _model_lookup,
     attach_motion,
     in_band_bins,
+    jerk_means,
 )
 
 VMAX = np.array([3.0, 0.04])
@@ -55,7 +56,9 @@ def synthetic_table(
 ) -> BlockTable:
     """`effect` at `strength`, or several at once (`effects`: name -> strength). Beyond the
     vocabulary's names, "lines": the wrist's lines scaled by the gripper's speed, louder when
-    both move the same way and quieter when opposite (a per-line signed interaction)."""
+    both move the same way and quieter when opposite (a per-line signed interaction);
+    "gripper_wear": the gripper's part louder over time (one joint's drift); "jerk": louder
+    where the wrist's acceleration changes (a speed change starting or ending)."""
     effects = dict(effects) if effects is not None else {effect: strength}
     rng = np.random.default_rng(seed)
     model = synthetic_model()
@@ -102,6 +105,13 @@ def synthetic_table(
             same = np.sign(v_true[:, 0]) * np.sign(v_true[:, 1])
             gain_w = np.exp(strength * same * np.abs(v_true[:, 1]) / 0.04)
             mean_true = mean_true + wrist * (gain_w[:, None] - 1.0)
+        elif effect == "gripper_wear":
+            # the gripper's part of the spectrum x (1 + s t / 60 s): one drive wearing in
+            gripper = (np.abs(v_true[:, 1]) / 0.04)[:, None] * np.exp(-(((f - 600.0) / 120.0) ** 2))
+            mean_true = mean_true + gripper * (strength * t_first / 60.0)[:, None]
+        elif effect == "jerk":
+            jerk = jerk_means(joints, t_first, t_last, true_lag)[:, 0]
+            factor *= 1.0 + strength * np.minimum(jerk / np.percentile(jerk, 95), 3.0)
         elif effect == "acceleration":
             factor *= 1.0 + strength * np.abs(a_true[:, 0]) / np.percentile(
                 np.abs(a_true[:, 0]), 95

@@ -64,6 +64,28 @@ def test_drift_and_position_name_what_to_change(diagnoses):
     assert "`egovib calibrate BAG --grid free`" in position_text
 
 
+def test_a_drift_of_one_joint_names_that_joint(diagnoses):
+    """Where one joint's own trend is over twice any other's, the advice names it (its
+    change, and the whole vibration's beside it); the level it applies stays the whole's."""
+    diag = diagnoses["drift"]
+    model = diag.models["drift"]
+    shape = {k: v for k, v in model.shape.items() if "joint" not in v}
+    x = model.shape["drift:elapsed_time"]["x"]
+    for name, end_db in (("wrist_roll", 0.2), ("gripper", 3.0)):
+        curve = list(np.linspace(0.0, end_db, len(x)))
+        shape[f"drift:{name}"] = {"x": x, "gain_db": curve, "joint": name}
+    one = dataclasses.replace(model, shape=shape)
+    text, settings = action(dataclasses.replace(diag, models={**diag.models, "drift": one}))
+    level = action(diag)[1]
+    assert text.startswith("gripper's vibration grows 41 % over")
+    assert settings["joint"] == "gripper" and settings["joint_change_percent"] == 41.3
+    assert settings["noise_gain_db"] == level["noise_gain_db"]
+    shape["drift:wrist_roll"]["gain_db"] = list(np.linspace(0.0, 2.0, len(x)))
+    both = dataclasses.replace(model, shape=shape)
+    text, settings = action(dataclasses.replace(diag, models={**diag.models, "drift": both}))
+    assert text.startswith("vibration grows") and "joint" not in settings
+
+
 def test_the_commands_apply_every_correction_together():
     settings = {"joint_lag_s": 0.032, "noise_gain_db": [[0.0, 0.0], [10.0, 2.0]]}
     cmds = commands(settings, model="m.npz", bag="run", report="out/report.json")

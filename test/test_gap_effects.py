@@ -64,13 +64,14 @@ def test_no_candidate_gains_on_a_velocity_only_process():
     assert all(abs(g) < 0.1 * MIN_DEVIANCE_GAIN for g in gains.values()), gains
 
 
-def fitted_on_all(effect: str, strength: float):
-    """The table and the effect's variant fitted on all its clean blocks (as for the report)."""
+def fitted_on_all(effect: str, strength: float, candidate: str | None = None):
+    """The table made with `effect` and its candidate (`effect`, or `candidate`) fitted on
+    all its clean blocks (as for the report)."""
     table = synthetic_table(effect, strength, seed=5, duration_s=30.0)
     clean = ~table.contact
     base = fit_baseline(table, clean)
     scales = fit_scales(table, clean, base.magnitude)
-    return table, fit_variant(table, clean, effect, scales, base)
+    return table, fit_variant(table, clean, candidate or effect, scales, base)
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +100,35 @@ def test_the_drift_term_rises_with_elapsed_time():
     assert 0.6 * rise < gain[-1] - gain[0] < 1.1 * rise
     assert np.all(np.diff(gain) > -0.05)  # rising throughout, as generated
     assert fitted.parameters["log_gain_per_minute"] > 0.0
+
+
+def test_one_joints_drift_is_found_on_that_joint():
+    """The gripper's part of the spectrum x (1 + t / 60 s), the wrist's steady: the drift
+    candidate's per-joint trend rises on the gripper, over twice as much as on the wrist,
+    and the whole vibration's level rises. (Here the gripper's part keeps to its bins, so
+    the per-bin level on top takes part of the rise too: 0.64 dB on the gripper, 0.14 on
+    the wrist, 0.80 all of it; measured.)"""
+    _, fitted = fitted_on_all("gripper_wear", 1.0, "drift")
+    gripper = np.asarray(fitted.shape["drift:gripper"]["gain_db"])
+    wrist = np.asarray(fitted.shape["drift:wrist_roll"]["gain_db"])
+    level = np.asarray(fitted.shape["drift:elapsed_time"]["gain_db"])
+    assert gripper[-1] > max(0.3, 2.0 * abs(wrist[-1]))
+    assert level[-1] - level[0] > 0.3
+    assert fitted.parameters["joints"]["change_db"]["gripper"] == pytest.approx(gripper[-1])
+    _, untouched = fitted_on_all("none", 0.0, "drift")
+    assert all(abs(c["gain_db"][-1]) < 0.1 for c in untouched.shape.values())
+
+
+def test_the_acceleration_term_follows_the_jerk():
+    """Gain 1 + |jerk_wrist| / its 95th percentile (capped at 3): louder where the wrist's
+    acceleration changes, seen on its jerk curve, not on the gripper's."""
+    _, fitted = fitted_on_all("jerk", 1.0, "acceleration")
+    wrist = np.asarray(fitted.shape["jerk:wrist_roll"]["gain_db"])
+    gripper = np.asarray(fitted.shape["jerk:gripper"]["gain_db"])
+    x = np.asarray(fitted.shape["jerk:wrist_roll"]["x"])
+    at_top = wrist[np.searchsorted(x, 2.0)]
+    assert at_top > 1.0  # generated: up to 20 log10(3) = 9.5 dB at the 95th percentile x 2
+    assert np.abs(gripper[: np.searchsorted(x, 2.0) + 1]).max() < 0.5 * at_top
 
 
 def test_the_acceleration_term_grows_with_the_wrists_acceleration():

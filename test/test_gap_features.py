@@ -7,8 +7,10 @@ import pytest
 
 from egovib_ros.gap.features import (
     JointFeatures,
+    JointSeries,
     _interval_means,
     detect_reversals,
+    jerk_means,
     joint_period,
     savgol_joint,
 )
@@ -85,3 +87,26 @@ def test_block_means_past_the_ends_of_the_joint_series_hold_it_not_dilute_it():
     t0, t1 = np.array([0.2, 0.9, 1.2, -0.5, -0.1]), np.array([0.3, 1.1, 1.3, -0.4, 0.1])
     means = _interval_means(t, values, t0, t1)
     np.testing.assert_allclose(means, [[2.25, -3], [2.95, -3], [3, -3], [2, -3], [2.05, -3]])
+
+
+def test_the_jerk_is_where_a_ramp_starts_and_ends_and_a_repeated_stamp_says_nothing():
+    """A trapezoid (hold, ramp at 2 units/s^2 from 0.4 to 0.6 s, hold): |da/dt| only in the
+    blocks around the ramp's two corners, each corner's integral 2 (the step in a). A stamp
+    repeated (with its values) leaves every block mean finite and the same."""
+    t = np.arange(0.0, 1.0, 0.001)
+    acc = np.where((t >= 0.4) & (t < 0.6), 2.0, 0.0)[:, None]
+    joints = JointSeries(
+        t_s=t, position=np.zeros_like(acc), velocity=np.zeros_like(acc), acceleration=acc
+    )
+    t0 = np.arange(0.0, 0.95, 0.05)
+    means = jerk_means(joints, t0, t0 + 0.05, 0.0)[:, 0]
+    mid = t0 + 0.025
+    near = [np.abs(mid - corner) < 0.05 for corner in (0.4, 0.6)]
+    assert np.all(means[~(near[0] | near[1])] == 0.0)
+    assert all(np.any(means[n] > 0.0) for n in near)
+    np.testing.assert_allclose(np.sum(means * 0.05), 4.0, rtol=1e-9)
+    twice = np.insert(np.arange(len(t)), 300, 300)
+    repeated = JointSeries(
+        t_s=t[twice], position=acc[twice], velocity=acc[twice], acceleration=acc[twice]
+    )
+    np.testing.assert_allclose(jerk_means(repeated, t0, t0 + 0.05, 0.0)[:, 0], means)

@@ -104,9 +104,14 @@ def _timing_action(model) -> tuple[str, dict]:
     )
 
 
+#: A joint's own drift (dB from start to end) named in the advice from this size on.
+JOINT_DRIFT_MIN_DB = 0.5
+
+
 def _drift_action(model) -> tuple[str, dict]:
     shape = model.shape or {}
-    curves = [c for k, c in shape.items() if k.startswith("drift:")]
+    # the whole vibration's level (the interleaved check's, when the diagnosis added one)
+    curves = [c for k, c in shape.items() if k.startswith("drift:elapsed_time")]
     curve = curves[-1] if curves else {}
     g = np.asarray(curve.get("gain_db", [0.0]), float)
     x = np.asarray(curve.get("x", [0.0]), float)
@@ -114,8 +119,23 @@ def _drift_action(model) -> tuple[str, dict]:
     pct = 100.0 * (10 ** (change_db / 20.0) - 1.0)
     span = float(x[-1] - x[0]) if x.size else 0.0
     saturates = reach < 0.7 * (x[-1] if x.size else 0.0)
+    settings: dict = {}
+    head = f"vibration {'grows' if pct > 0 else 'falls'} {abs(pct):.0f} % over {span:.0f} s"
+    # one joint's own trend, when it is over twice any other's (a drive wearing in or out)
+    ends = sorted(
+        ((abs(c["gain_db"][-1]), c) for c in shape.values() if "joint" in c and c["gain_db"]),
+        key=lambda pair: pair[0],
+    )
+    worst = ends[-1][1] if ends else None
+    if len(ends) > 1 and ends[-1][0] > max(2.0 * ends[-2][0], JOINT_DRIFT_MIN_DB):
+        own = 100.0 * (10 ** (worst["gain_db"][-1] / 20.0) - 1.0)
+        head = (
+            f"{worst['joint']}'s vibration {'grows' if own > 0 else 'falls'} {abs(own):.0f} % "
+            f"over {span:.0f} s (the whole vibration {pct:+.0f} %)"
+        )
+        settings = {"joint": worst["joint"], "joint_change_percent": round(own, 1)}
     return (
-        f"vibration {'grows' if pct > 0 else 'falls'} {abs(pct):.0f} % over {span:.0f} s"
+        head
         + (
             f" (90 % of it within {reach:.0f} s): recalibrate after warm-up"
             if saturates
@@ -124,6 +144,7 @@ def _drift_action(model) -> tuple[str, dict]:
         + "; until then the denoiser follows the fitted level: `egovib denoise --noise-gain "
         "REPORT.json` (the denoiser node's `noise_gain:=REPORT.json`)",
         {
+            **settings,
             "recalibrate_after_s": round(reach, 1),
             "level_change_percent": round(pct, 1),
             # for `egovib denoise --noise-gain`: the level change from the start

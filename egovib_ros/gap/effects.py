@@ -114,6 +114,7 @@ class Scales:
     #: per joint: speed-fraction knots of the coupling products (quantiles of training speeds)
     speed_knots: tuple[np.ndarray, ...] = ()
     rate_scale: np.ndarray | None = None  # (J,) 95th percentile of |d|v|/dt| (train)
+    jerk_scale: np.ndarray | None = None  # (J,) 90th percentile of block |jerk| (train)
     #: per joint: the harmonics of its angle the training data identify (none: hats)
     harmonics: tuple[tuple[int, ...], ...] = ()
 
@@ -176,11 +177,13 @@ def fit_scales(
         )
         knots.append(np.unique(np.concatenate([[0.0], np.maximum(q, 1e-3)])))
     rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(table.velocity)
+    jerk = table.jerk if table.jerk is not None else np.zeros_like(table.velocity)
     return Scales(
         harmonics=harmonics,
         bidirectional=both,
         speed_knots=tuple(knots),
         rate_scale=np.maximum(np.percentile(np.abs(rate[train]), 95, axis=0), 1e-9),
+        jerk_scale=np.maximum(np.percentile(jerk[train], 90, axis=0), 1e-9),
         periodic=np.array([len(h) > 0 for h in harmonics]),
         pos_lo=lo,
         pos_hi=np.maximum(hi, lo + 1e-9),
@@ -220,6 +223,13 @@ def time_hats(t: np.ndarray, t0: float, t1: float, n_knots: int) -> np.ndarray:
     the first knot is the reference."""
     knots = np.linspace(t0, t1, n_knots) if t1 > t0 else np.array([t0, t0 + 1.0])
     return hat_matrix(t, knots)[:, 1:]
+
+
+def drift_columns(t: np.ndarray, scales: Scales) -> np.ndarray:
+    """(len(t), DRIFT_KNOTS) the drift term's columns at times `t`: hats in time over the
+    training span (flat beyond it) and a linear trend per `trend_unit_s`."""
+    h = time_hats(t, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
+    return np.concatenate([h, ((t - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
 
 
 def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, list[str]]:
@@ -302,6 +312,9 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
         rate_scale = scales.rate_scale if scales.rate_scale is not None else np.ones(acc.shape[1])
         up = np.clip(rate / rate_scale, 0.0, 40.0)
         down = np.clip(-rate / rate_scale, 0.0, 40.0)
+        jerk = table.jerk if table.jerk is not None else np.zeros_like(acc)
+        jerk_scale = scales.jerk_scale if scales.jerk_scale is not None else np.ones(acc.shape[1])
+        jerk = np.clip(jerk / jerk_scale, 0.0, 40.0)
         for j, name in enumerate(table.joint_names):
             u = acc[:, j]
             cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
@@ -316,6 +329,14 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
                 np.minimum((down[:, j] / 10.0) ** 2 * rel, REL_CLIP),
             ]
             names += [f"speeding_up^2/P({name})", f"slowing_down^2/P({name})"]
+            # where a speed change starts or ends (backlash knocked, a mode rung by the jerk):
+            # above its typical level only, so that a noisy jerk (a real robot's encoders
+            # differentiated twice) is not a constant that stands in for a level change
+            cols += [
+                np.log1p(np.maximum(jerk[:, j] - 1.0, 0.0)),
+                np.minimum((jerk[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+            ]
+            names += [f"log1p(|jerk|-1)+({name})", f"|jerk|^2/P({name})"]
             if table.reversal_after_s is not None:
                 after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
                 for tau in REVERSAL_TAUS_S:
@@ -328,12 +349,8 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
                 cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
                 names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
     elif effect == "drift":
-        t = table.t_mid_s
-        h = time_hats(t, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-        cols += list(h.T)
-        names += [f"time_hat{k + 1}" for k in range(h.shape[1])]
-        cols.append((t - scales.t_ref_s) / trend_unit_s(scales))
-        names.append("t_min")
+        cols += list(drift_columns(table.t_mid_s, scales).T)
+        names += [f"time_hat{k + 1}" for k in range(DRIFT_KNOTS - 1)] + ["t_min"]
     elif effect in ("refit", "timing", "custom"):
         pass
     else:
@@ -357,11 +374,15 @@ def fit_variant(
     fitted on the training rows. `mask` (B,): every regressor column times it (the change
     diagnosis: an effect's term on one recording of two only)."""
     base = refit if refit is not None else fit_baseline(table, train)
-    lines = None
+    stage = None
     if effect == "coupling" and regressors is None:
         # one joint's lines scaled by another joint's speed first, then the products of the
         # speeds on top (lines or broadband that sound only when two joints move together)
-        base, lines = line_stage(table, train, base, scales, mask=mask)
+        base, stage = line_stage(table, train, base, scales, mask=mask)
+    elif effect == "drift" and regressors is None:
+        # each joint's own trend first (one drive wearing in or out), then the broadband
+        # level over time on top (the whole robot warming up)
+        base, stage = joint_drift_stage(table, train, base, scales, mask=mask)
     extra, names = (
         regressors if regressors is not None else effect_regressors(effect, table, scales)
     )
@@ -385,8 +406,8 @@ def fit_variant(
         params["n_regressors"] = len(names)
         params["ridge"] = {k: round(v, 5) for k, v in ridge.items()}
     params.update(_effect_summary(effect, names, coef[1:], scales))
-    if lines is not None:
-        params["lines"] = lines["summary"]
+    if stage is not None:
+        params["lines" if effect == "coupling" else "joints"] = stage["summary"]
     std_scale = predicted / np.maximum(table.base_mean, 1e-12)
     fm = FittedModel(
         name=effect,
@@ -401,8 +422,12 @@ def fit_variant(
     )
     if names and regressors is None:
         fm.shape = effect_shape(effect, table, scales, coef, names)
-    if lines is not None:
-        fm.shape = {**(fm.shape or {}), **lines["shape"]}
+    if stage is not None:
+        fm.shape = {**(fm.shape or {}), **stage["shape"]}
+    if effect == "drift" and stage is not None and fm.shape:
+        # the whole vibration's level: each joint's trend weighted by its mean share
+        level = fm.shape["drift:elapsed_time"]
+        level["gain_db"] = [round(a + b, 3) for a, b in zip(level["gain_db"], stage["level_db"])]
     return fm
 
 
@@ -481,6 +506,19 @@ def line_stage(
     design, labels = line_design(table, scales, base)
     if design is None:
         return base, None
+    out, gamma, ridge = _shared_stage(table, train, base, design, mask)
+    return out, _line_summary(table, labels, gamma, ridge)
+
+
+def _shared_stage(
+    table: BlockTable,
+    train: np.ndarray,
+    base: Baseline,
+    design: SharedDesign,
+    mask: np.ndarray | None,
+) -> tuple[Baseline, np.ndarray, dict]:
+    """The baseline times a fitted term of columns shared by every bin (`design`, its
+    columns times `mask` if given); the term's coefficients and ridge."""
     if mask is not None:
         design.w = design.w * np.asarray(mask, float)[:, None]
     ratio = table.magnitude**2 / np.maximum(base.power, 1e-300)
@@ -499,7 +537,50 @@ def line_stage(
         cell_power=base.cell_power,
         info=info,
     )
-    return out, _line_summary(table, labels, gamma, ridge)
+    return out, gamma, ridge
+
+
+def joint_drift_stage(
+    table: BlockTable,
+    train: np.ndarray,
+    base: Baseline,
+    scales: Scales,
+    *,
+    mask: np.ndarray | None = None,
+) -> tuple[Baseline, dict | None]:
+    """The baseline times a drift term on each joint's share of each bin (one joint's
+    drive wearing in or out: its lines and noise louder or quieter over time, wherever they
+    are), its summary (each joint's change from start to end, dB), shapes (`drift:<joint>`)
+    and `level_db`: the joints' curves weighted by their mean share of the training
+    blocks, the whole vibration's level. The baseline unchanged (None) without shares."""
+    share = joint_shares(table, base)
+    if share is None:
+        return base, None
+    n_j = share.shape[0]
+    cols = drift_columns(table.t_mid_s, scales)
+    owner = np.repeat(np.arange(n_j), cols.shape[1])
+    design = SharedDesign(share, np.tile(cols, (1, n_j)), owner)
+    out, gamma, ridge = _shared_stage(table, train, base, design, mask)
+    grid = drift_grid(table, scales)
+    at_grid = drift_columns(grid, scales)
+    weight = share[:, train].mean(axis=(1, 2))
+    summary: dict = {"ridge": {k: round(v, 5) for k, v in ridge.items()}, "change_db": {}}
+    shape: dict = {}
+    level = np.zeros(len(grid))
+    for j, name in enumerate(table.joint_names):
+        curve = at_grid @ gamma[owner == j]
+        curve = DB_PER_NEPER * (curve - curve[0])
+        level += weight[j] * curve
+        summary["change_db"][name] = round(float(curve[-1]), 3)
+        shape[f"drift:{name}"] = {
+            "x": [round(float(v), 2) for v in grid],
+            "unit": "s",
+            "gain_db": [round(float(v), 3) for v in curve],
+            "train_end_s": round(scales.t_end_s, 2),
+            "joint": name,
+            "mean_share": round(float(weight[j]), 3),
+        }
+    return out, {"summary": summary, "shape": shape, "level_db": level}
 
 
 def _line_summary(table: BlockTable, labels, gamma: np.ndarray, ridge: dict) -> dict:
@@ -686,7 +767,7 @@ def _coupling_shapes(
 def _acceleration_shapes(
     table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]
 ) -> dict:
-    """Gain along each joint's |acceleration|, and around its reversals."""
+    """Gain along each joint's |acceleration| and |jerk|, and around its reversals."""
     shapes: dict = {}
     for name in table.joint_names:
         idx = {n: k for k, n in enumerate(names)}
@@ -700,6 +781,14 @@ def _acceleration_shapes(
             "unit": "|acceleration| / training 95th percentile",
             "gain_db": _db(g),
         }
+        if f"log1p(|jerk|-1)+({name})" in idx:
+            g = beta[idx[f"log1p(|jerk|-1)+({name})"]] * np.log1p(np.maximum(grid - 1.0, 0.0))
+            g = g + beta[idx[f"|jerk|^2/P({name})"]] * (grid / 10.0) ** 2
+            shapes[f"jerk:{name}"] = {
+                "x": [round(float(v), 3) for v in grid],
+                "unit": "|jerk| / training 90th percentile",
+                "gain_db": _db(g),
+            }
         if f"after_rev_15ms({name})" in idx:
             tgrid = np.linspace(-0.3, 0.3, 61)
             g = np.zeros_like(tgrid)
@@ -722,13 +811,16 @@ def _acceleration_shapes(
     return shapes
 
 
+def drift_grid(table: BlockTable, scales: Scales) -> np.ndarray:
+    """Times (s) at which drift curves are given: the training span's start to the end."""
+    return np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
+
+
 def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
     """Gain along the elapsed time (0 dB at the start of the training span)."""
     shapes: dict = {}
-    grid = np.linspace(scales.t_ref_s, float(table.t_mid_s.max()), 61)
-    h = time_hats(grid, scales.t_ref_s, scales.t_end_s, DRIFT_KNOTS)
-    x = np.concatenate([h, ((grid - scales.t_ref_s) / trend_unit_s(scales))[:, None]], axis=1)
-    g = x @ beta
+    grid = drift_grid(table, scales)
+    g = drift_columns(grid, scales) @ beta
     shapes["drift:elapsed_time"] = {
         "x": [round(float(v), 2) for v in grid],
         "unit": "s",

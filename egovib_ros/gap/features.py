@@ -122,6 +122,9 @@ class BlockTable:
     #: (B, J) block mean rate of change of the joint's *speed* (d|v|/dt, joint unit/s^2):
     #: positive while it speeds up, negative while it slows down
     speed_rate: np.ndarray | None = field(repr=False, default=None)
+    #: (B, J) block mean |d acceleration/dt| (joint unit/s^3): where a speed change starts
+    #: or ends (a gear's backlash knocked, a housing mode rung)
+    jerk: np.ndarray | None = field(repr=False, default=None)
     #: counts of bad input treated as missing (framer stats, joint states dropped)
     bad_input: dict = field(repr=False, default_factory=dict)
     #: (B,) on a table joining two recordings (`join_tables`): 0 = the reference's blocks,
@@ -599,6 +602,21 @@ def speed_rate_means(
     )
 
 
+def jerk_means(
+    joints: JointSeries, t_first: np.ndarray, t_last: np.ndarray, lag_s: float
+) -> np.ndarray:
+    """Block means of |d a/dt|, a the smoothed derivative of the velocity."""
+    check_lag(joints, lag_s)
+    t, acc = joints.t_s, joints.acceleration
+    if len(t) < 2:
+        return np.zeros((len(t_first), acc.shape[1]))
+    dt = np.diff(t)
+    # per interval; a repeated stamp (dt 0) says nothing about the rate
+    rate = np.abs(np.diff(acc, axis=0)) / np.where(dt > 0, dt, np.inf)[:, None]
+    jerk = np.concatenate([rate[:1], 0.5 * (rate[1:] + rate[:-1]), rate[-1:]])
+    return _interval_means(t - lag_s, jerk, t_first, t_last)
+
+
 def check_lag(joints: JointSeries, lag_s: float) -> None:
     """A thinned series holds joint states only near its blocks: refuse a lag beyond that."""
     if abs(lag_s) > joints.max_lag_s:
@@ -732,6 +750,7 @@ def _attach_trajectory(table: BlockTable) -> BlockTable:
         table.joints, table.t_first_s, table.t_last_s, table.lag_s, table.knots, table.model.window
     )
     table.speed_rate = speed_rate_means(table.joints, table.t_first_s, table.t_last_s, table.lag_s)
+    table.jerk = jerk_means(table.joints, table.t_first_s, table.t_last_s, table.lag_s)
     return table
 
 
@@ -934,6 +953,7 @@ def join_tables(reference: BlockTable, real: BlockTable) -> BlockTable:
         reversal_after_s=cat("reversal_after_s"),
         reversal_before_s=cat("reversal_before_s"),
         speed_rate=cat("speed_rate"),
+        jerk=cat("jerk"),
         joints=None,
         recording=np.concatenate(
             [np.zeros(reference.n_blocks, np.int8), np.ones(real.n_blocks, np.int8)]

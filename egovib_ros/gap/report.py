@@ -530,6 +530,11 @@ def describe_shape(shape: dict) -> str:
                 f"{name[13:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical "
                 "|acceleration|"
             )
+        elif name.startswith("jerk:"):
+            parts.append(
+                f"{name[5:]}: {g[np.searchsorted(x, 10.0)]:+.1f} dB at 10x the typical |jerk| "
+                "(where a speed change starts or ends)"
+            )
         elif name.startswith("reversal:"):
             at, top, span = _peak(x, g)
             parts.append(
