@@ -253,6 +253,54 @@ def direction(table: BlockTable) -> np.ndarray:
     return np.tanh(table.velocity / (SIGN_SOFT * table.vmax))
 
 
+def _acceleration_columns(table: BlockTable, scales: Scales) -> tuple[list, list[str]]:
+    """The acceleration candidate's columns and names (`effect_regressors`)."""
+    cols, names = [], []
+    acc = np.clip(table.acceleration / scales.acc_scale, 0.0, 40.0)
+    rel = relative_power(table, scales)
+    rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(acc)
+    rate_scale = scales.rate_scale if scales.rate_scale is not None else np.ones(acc.shape[1])
+    up = np.clip(rate / rate_scale, 0.0, 40.0)
+    down = np.clip(-rate / rate_scale, 0.0, 40.0)
+    jerk = table.jerk if table.jerk is not None else np.zeros_like(acc)
+    jerk_scale = scales.jerk_scale if scales.jerk_scale is not None else np.ones(acc.shape[1])
+    jerk = np.clip(jerk / jerk_scale, 0.0, 40.0)
+    for j, name in enumerate(table.joint_names):
+        u = acc[:, j]
+        cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
+        names += [f"log1p|a|({name})"] + [f"(|a|-{h:g})+({name})" for h in ACC_HINGES]
+        cols.append(np.minimum((u / 10.0) ** 2 * rel, REL_CLIP))
+        names.append(f"|a|^2/P({name})")
+        # speeding up vs slowing down (d|v|/dt of either sign), as a gain and as added power
+        cols += [np.log1p(up[:, j]), np.log1p(down[:, j])]
+        names += [f"log1p(speeding_up)({name})", f"log1p(slowing_down)({name})"]
+        cols += [
+            np.minimum((up[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+            np.minimum((down[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+        ]
+        names += [f"speeding_up^2/P({name})", f"slowing_down^2/P({name})"]
+        # where a speed change starts or ends (backlash knocked, a mode rung by the jerk):
+        # above its typical level only, so that a noisy jerk (a real robot's encoders
+        # differentiated twice) is not a constant that stands in for a level change
+        cols += [
+            np.log1p(np.maximum(jerk[:, j] - 1.0, 0.0)),
+            np.minimum((jerk[:, j] / 10.0) ** 2 * rel, REL_CLIP),
+        ]
+        names += [f"log1p(|jerk|-1)+({name})", f"|jerk|^2/P({name})"]
+        if table.reversal_after_s is not None:
+            after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
+            for tau in REVERSAL_TAUS_S:
+                ka, kb = np.exp(-after / tau), np.exp(-before / tau)
+                cols += [ka, kb]
+                names += [
+                    f"after_rev_{1000 * tau:g}ms({name})",
+                    f"before_rev_{1000 * tau:g}ms({name})",
+                ]
+            cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
+            names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
+    return cols, names
+
+
 def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, side by side)
     effect: str, table: BlockTable, scales: Scales
 ) -> tuple[np.ndarray, list[str]]:
@@ -306,48 +354,7 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
                             cols.append(coarse[i][:, a] * coarse[j][:, b] * sign[:, i] * sign[:, j])
                             names.append(f"dir{i}*dir{j}:c{a}*c{b}")
     elif effect == "acceleration":
-        acc = np.clip(table.acceleration / scales.acc_scale, 0.0, 40.0)
-        rel = relative_power(table, scales)
-        rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(acc)
-        rate_scale = scales.rate_scale if scales.rate_scale is not None else np.ones(acc.shape[1])
-        up = np.clip(rate / rate_scale, 0.0, 40.0)
-        down = np.clip(-rate / rate_scale, 0.0, 40.0)
-        jerk = table.jerk if table.jerk is not None else np.zeros_like(acc)
-        jerk_scale = scales.jerk_scale if scales.jerk_scale is not None else np.ones(acc.shape[1])
-        jerk = np.clip(jerk / jerk_scale, 0.0, 40.0)
-        for j, name in enumerate(table.joint_names):
-            u = acc[:, j]
-            cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
-            names += [f"log1p|a|({name})"] + [f"(|a|-{h:g})+({name})" for h in ACC_HINGES]
-            cols.append(np.minimum((u / 10.0) ** 2 * rel, REL_CLIP))
-            names.append(f"|a|^2/P({name})")
-            # speeding up vs slowing down (d|v|/dt of either sign), as a gain and as added power
-            cols += [np.log1p(up[:, j]), np.log1p(down[:, j])]
-            names += [f"log1p(speeding_up)({name})", f"log1p(slowing_down)({name})"]
-            cols += [
-                np.minimum((up[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-                np.minimum((down[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-            ]
-            names += [f"speeding_up^2/P({name})", f"slowing_down^2/P({name})"]
-            # where a speed change starts or ends (backlash knocked, a mode rung by the jerk):
-            # above its typical level only, so that a noisy jerk (a real robot's encoders
-            # differentiated twice) is not a constant that stands in for a level change
-            cols += [
-                np.log1p(np.maximum(jerk[:, j] - 1.0, 0.0)),
-                np.minimum((jerk[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-            ]
-            names += [f"log1p(|jerk|-1)+({name})", f"|jerk|^2/P({name})"]
-            if table.reversal_after_s is not None:
-                after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
-                for tau in REVERSAL_TAUS_S:
-                    ka, kb = np.exp(-after / tau), np.exp(-before / tau)
-                    cols += [ka, kb]
-                    names += [
-                        f"after_rev_{1000 * tau:g}ms({name})",
-                        f"before_rev_{1000 * tau:g}ms({name})",
-                    ]
-                cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
-                names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
+        cols, names = _acceleration_columns(table, scales)
     elif effect == "drift":
         cols += list(drift_columns(table.t_mid_s, scales).T)
         names += [f"time_hat{k + 1}" for k in range(DRIFT_KNOTS - 1)] + ["t_min"]
