@@ -90,19 +90,34 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     np.testing.assert_allclose(live.std[both], offline.std[both], rtol=0.25, atol=1e-6)
 
 
-def restarted_participant_env(directory: Path) -> dict[str, str]:
-    """Environment for a node restarted after a SIGKILL: the package's Fast DDS profiles plus
-    a participant id no other process of the test uses. A restarted process would take the
-    killed one's id, hence its shared-memory port; Fast DDS 2.14 may keep writing to the
-    dead process's copy of that port (seen here in 2 of 10 kills under load: the restarted
-    calibrator got nothing for 30 s while sim_hand published), so it would never receive."""
+def participant_env(directory: Path, participant_id: int, *, lease_s: int = 0) -> dict[str, str]:
+    """Environment for a node of the kill test: the package's Fast DDS profiles plus a
+    participant id no other process of the test uses and, with `lease_s`, a lease that
+    short (the default is 20 s).
+
+    A process started after a SIGKILL may take the killed one's id, hence its shared-memory
+    port; Fast DDS 2.14 may keep writing to the dead process's copy of that port (seen here
+    in 2 of 10 kills under load: the restarted calibrator got nothing for 30 s while
+    sim_hand published; once the resumed sweep_driver took the id, its commands were never
+    acknowledged and the hand never moved). And until the killed participant's lease ends,
+    sim_hand keeps resending its deep reliable history to the dead reader (under
+    `stress-ng --cpu 2` the restarted calibrator then received nothing for 30 s and half the
+    samples after)."""
     profiles = (config_dir() / "fastdds_profiles.xml").read_text()
+    lease = (
+        "<builtin><discovery_config>"
+        f"<leaseDuration><sec>{lease_s}</sec></leaseDuration>"
+        "<leaseAnnouncement><sec>0</sec><nanosec>500000000</nanosec></leaseAnnouncement>"
+        "</discovery_config></builtin>"
+        if lease_s
+        else ""
+    )
     participant = (
-        '    <participant profile_name="restarted" is_default_profile="true">\n'
-        "      <rtps><participantID>30</participantID></rtps>\n"
+        f'    <participant profile_name="test_{participant_id}" is_default_profile="true">\n'
+        f"      <rtps><participantID>{participant_id}</participantID>{lease}</rtps>\n"
         "    </participant>\n"
     )
-    path = directory / "restarted_participant.xml"
+    path = directory / f"participant_{participant_id}.xml"
     path.write_text(profiles.replace("  <profiles>\n", "  <profiles>\n" + participant, 1))
     return {"FASTRTPS_DEFAULT_PROFILES_FILE": str(path)}
 
@@ -111,7 +126,7 @@ def restarted_participant_env(directory: Path) -> dict[str, str]:
 def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp_path):
     model_path, checkpoint = tmp_path / "model.npz", tmp_path / "model.checkpoint.npz"
     params = {"output": str(model_path), "grid": "superposition", **RELIABLE}
-    first = nodes.start("calibrator", params)
+    first = nodes.start("calibrator", params, env=participant_env(tmp_path, 29, lease_s=2))
     sim = nodes.start("sim_hand", {"seed": 22, "publish_ground_truth": False, **DEEP_OUTPUT})
     nodes.wait_for_log(first, "calibrating")
     driver = nodes.start("sweep_driver", SWEEP)
@@ -130,12 +145,17 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     # calibrator receives the stream (how long a restart takes depends on the machine's load).
     assert nodes.stop(driver) == 0, nodes.log(driver)
     current_cell, n_cells = map(int, re.findall(r"cell (\d+)/(\d+):", nodes.log(driver))[-1])
+    # Restart once the dead calibrator's lease has ended: it is out of the graph, and
+    # sim_hand no longer sends to it.
+    assert ros_client.spin_until(
+        lambda: ros_client.node.count_subscribers("/accelerometer/raw") == 0, timeout=30
+    )
 
     second = nodes.start(
         "calibrator",
         params,
         remap={"__node": "calibrator_restarted"},  # its own /diagnostics status
-        env=restarted_participant_env(tmp_path),
+        env=participant_env(tmp_path, 30),
     )
     nodes.wait_for_log(second, "resumed from")
 
@@ -153,7 +173,11 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     # The resumed sweep covers the last cells only (they were not reached before the kill):
     # enough to show the restarted calibrator adds to the checkpoint, in half the time.
     resume_at = max(current_cell - 1, n_cells - 8)
-    driver = nodes.start("sweep_driver", {**SWEEP, "start_cell": resume_at})
+    driver = nodes.start(
+        "sweep_driver",
+        {**SWEEP, "start_cell": resume_at},
+        env=participant_env(tmp_path, 31),
+    )
     assert driver.wait(120) == 0, nodes.log(driver)
     time.sleep(0.5)
     # Ctrl-C: it fits every method on all it holds (here also the minute of rest it received
@@ -171,6 +195,7 @@ def test_calibrator_killed_mid_sweep_keeps_finished_cells(nodes, ros_client, tmp
     assert (final.counts[final.axis_mask()] > 0).sum() > kept.sum(), (
         nodes.log(second)[-3000:],
         nodes.log(driver)[-1500:],
+        nodes.log(sim)[-1500:],
     )
 
 
