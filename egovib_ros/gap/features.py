@@ -134,7 +134,7 @@ class BlockTable:
 
 #: The baseline's velocity cells: the model's grid with each interval split in this many
 #: (tonal lines sweep a DFT bin within a fraction of a 10 % grid step).
-KNOT_REFINE = 4
+KNOT_REFINE = 8
 KNOT_REFINE_LOW = 10
 LOW_SPEED_FRACTION = 0.2
 #: Points per block at which the velocity trajectory is sampled for the baseline's features.
@@ -189,13 +189,19 @@ def motion_features(
     vel = joints.smooth_velocity if joints.smooth_velocity is not None else joints.velocity
     n_knots = max(len(k) for k in knots)
     hats = np.zeros((n_blocks, n_joints, n_knots))
-    rows = np.repeat(np.arange(n_blocks), TRAJECTORY_POINTS)
+    cell = np.repeat(np.arange(n_blocks), TRAJECTORY_POINTS) * n_knots  # flat (block, knot)
     w = np.tile(weight, n_blocks)
     for j in range(n_joints):
         v = np.interp(times.ravel(), t_joint, vel[:, j])
         i, wl, wr = hat_basis(v, knots[j])
-        np.add.at(hats[:, j], (rows, i), w * wl)
-        np.add.at(hats[:, j], (rows, i + 1), w * wr)
+        # np.bincount, not np.add.at: the same sums in the same order, several times faster
+        # (the lag scan calls this ~120 times)
+        flat = np.bincount(
+            np.concatenate([cell + i, cell + i + 1]),
+            np.concatenate([w * wl, w * wr]),
+            minlength=n_blocks * n_knots,
+        )
+        hats[:, j] = flat.reshape(n_blocks, n_knots)
     t_mid = 0.5 * (t_first + t_last)
     after = np.full((n_blocks, n_joints), np.inf)
     before = np.full((n_blocks, n_joints), np.inf)
