@@ -96,13 +96,11 @@ def participant_env(directory: Path, participant_id: int, *, lease_s: int = 0) -
     short (the default is 20 s).
 
     A process started after a SIGKILL may take the killed one's id, hence its shared-memory
-    port; Fast DDS 2.14 may keep writing to the dead process's copy of that port (seen here
-    in 2 of 10 kills under load: the restarted calibrator got nothing for 30 s while
-    sim_hand published; once the resumed sweep_driver took the id, its commands were never
-    acknowledged and the hand never moved). And until the killed participant's lease ends,
-    sim_hand keeps resending its deep reliable history to the dead reader (under
-    `stress-ng --cpu 2` the restarted calibrator then received nothing for 30 s and half the
-    samples after)."""
+    port, to which Fast DDS 2.14 may keep writing for the dead process (once the resumed
+    sweep_driver took it, its commands were never acknowledged and the hand never moved).
+    And until the killed participant's lease ends, sim_hand keeps resending its deep
+    reliable history to the dead reader (beside `stress-ng --cpu 2` the restarted
+    calibrator then received nothing for 30 s, and half the samples after)."""
     profiles = (config_dir() / "fastdds_profiles.xml").read_text()
     lease = (
         "<builtin><discovery_config>"

@@ -134,7 +134,7 @@ class BlockTable:
 
 #: The baseline's velocity cells: the model's grid with each interval split in this many
 #: (tonal lines sweep a DFT bin within a fraction of a 10 % grid step).
-KNOT_REFINE = 8
+KNOT_REFINE = 6
 KNOT_REFINE_LOW = 10
 LOW_SPEED_FRACTION = 0.2
 #: Points per block at which the velocity trajectory is sampled for the baseline's features.
