@@ -266,7 +266,7 @@ class Feeder:
     def publish_joint_state(self) -> None:
         """One JointState stamped just before the stream: the node knows the joints before
         the first sensor sample (else it passes samples through until joint states come)."""
-        from egovib_ros.nodes.convert import encode_joint_state_batch
+        from egovib_ros.bag.codec import encode_joint_state_batch
 
         stamps = np.array([self.stamp0 - 1_000_000])
         for data in encode_joint_state_batch(
@@ -321,7 +321,7 @@ class Feeder:
     ) -> None:
         """Publish recorded arrays at their own pace (stamps relative to the first); velocities
         are of the profile's joints unless `all_joints` (then of `joint_names`)."""
-        from egovib_ros.nodes.convert import encode_imu_batch, encode_joint_state_batch
+        from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch
 
         names = self.joint_names
         if not all_joints:

@@ -7,6 +7,7 @@ import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.convert import (
     command_message,
@@ -17,15 +18,26 @@ from egovib_ros.nodes.convert import (
     decode_joint_state_raws,
     diagnostic_array,
     diagnostic_values,
-    encode_imu_batch,
-    encode_joint_state_batch,
-    imu_message,
     joint_names_of,
     ns_to_stamp,
     stamp_to_ns,
 )
 
 FRAME = "imu_link"
+
+
+def imu_message(stamp_ns: int, values, frame_id: str, field: str) -> Imu:
+    """One sample as rclpy builds it, `values` in `field` (REP 145: orientation and the other
+    vector unknown, covariance[0] = -1)."""
+    msg = Imu()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.orientation_covariance[0] = -1.0
+    other = "angular_velocity" if field == "linear_acceleration" else "linear_acceleration"
+    getattr(msg, f"{other}_covariance")[0] = -1.0
+    vector = getattr(msg, field)
+    vector.x, vector.y, vector.z = (float(v) for v in values)
+    return msg
 
 
 def test_stamps_round_trip():

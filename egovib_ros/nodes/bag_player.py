@@ -1,11 +1,9 @@
 """bag_player: play a rosbag2 (MCAP or sqlite3) at its recorded timing, then exit.
 
-The bag is read by the bag layer (egovib_ros.bag.BagReader), batch by batch.
-
-Messages are published as stored (serialized bytes) at their bag receive times,
-scaled by `rate`; bag topic names drop their leading '/' so that namespaces and
-remappings apply. With `clock: true`, /clock (rosgraph_msgs/Clock) carries the
-bag time, so nodes started with use_sim_time run on the recording's time base.
+Messages (read batch by batch by egovib_ros.bag.BagReader) are published as stored at
+their bag receive times, scaled by `rate`; topic names drop their leading '/' so that
+namespaces and remappings apply. With `clock: true`, /clock carries the bag time, so nodes
+started with use_sim_time run on the recording's time base.
 """
 
 from __future__ import annotations

@@ -1,10 +1,9 @@
 """bag_recorder: record chosen topics, as serialized bytes, to a rosbag2 (MCAP) with rosbags.
 
-Subscribes each topic once a publisher appears (type and QoS taken from the
-publishers, as `ros2 bag record` does: reliable when every publisher is reliable),
-writes each message as received (receive time on the node clock), and at exit
-reports received vs written per topic. The bag directory appears only when it is
-complete (written to a temporary sibling and moved in place on a clean exit).
+Subscribes each topic once a publisher appears (type and QoS from the publishers, as `ros2
+bag record` does: reliable when every publisher is), writes each message as received
+(receive time on the node clock) and at exit reports received vs written per topic. The
+bag directory appears only when complete (written beside it, moved in place at exit).
 """
 
 from __future__ import annotations
@@ -161,12 +160,6 @@ class BagRecorder(Node):
 
         return on_message
 
-    def summary(self) -> str:
-        """One line per topic: received vs written."""
-        return "; ".join(
-            f"{t}: received {self.received[t]}, written {self.written[t]}" for t in self.topics
-        )
-
     def close(self) -> int:
         """Close the bag, move it in place, report counts. Exit status 1 if any message was lost."""
         for sub in self._recording_subs:
@@ -175,7 +168,10 @@ class BagRecorder(Node):
         self.writer.close()
         self._files.close()
         lost = sum(self.received[t] - self.written[t] for t in self.topics)
-        line = f"bag {self.output} closed: {self.summary()}"
+        counts = (
+            f"{t}: received {self.received[t]}, written {self.written[t]}" for t in self.topics
+        )
+        line = f"bag {self.output} closed: {'; '.join(counts)}"
         self.get_logger().info(line)
         print(f"bag_recorder: {line}", flush=True)
         return 1 if lost else 0

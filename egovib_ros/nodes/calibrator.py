@@ -1,20 +1,16 @@
 """calibrator: live calibration of the noise model (egovib_ros.core.CalibrationAccumulator).
 
-The robot profile (`robot`: a YAML path or a shipped name; default the PR2 hand) gives
-the sensor and joint-state topics (relative names: remappable), the Imu field, the
-joints (picked by name from JointStates with any joints in any order) and the grid.
-Blocks are assigned to velocity cells from the *measured* joint velocities, so the
-calibrator needs nothing from a driver: `grid` full | superposition for a sweep (e.g.
-the sweep_driver node), free for any no-contact motion (a flight, a day of normal
-operation), auto to decide from the data.
+The robot profile (`robot`) gives the sensor and joint-state topics (relative names:
+remappable), the Imu field, the joints (picked by name) and the grid. Blocks go to velocity
+cells by the *measured* joint velocities, so nothing is needed from a driver: `grid` full |
+superposition for a sweep (e.g. the sweep_driver node), free for any no-contact motion,
+auto to decide from the data.
 
-A checkpoint model is written (atomically) when a sweep moves on to its next cell, or
-every `checkpoint_period` seconds of free motion, so a crash loses little; a restarted
-calibrator resumes from it. If a checkpoint cannot be written (read-only or missing
-directory, disk full) the statistics stay in memory, /diagnostics reports an ERROR
-naming the file, and the write is retried every `retry_period` seconds. At shutdown
-(Ctrl-C / SIGTERM) the model is written to `output` (or, if that fails, next to the
-system's temporary files, named in the error) and coverage is printed.
+A checkpoint model is written atomically when a sweep moves on to its next cell, or every
+`checkpoint_period` s of free motion; a restarted calibrator resumes from it. A checkpoint
+that cannot be written is an ERROR on /diagnostics, retried every `retry_period` s (the
+statistics stay in memory). At shutdown the model is written to `output` (or, failing
+that, beside the system's temporary files, named in the error) and coverage is printed.
 """
 
 from __future__ import annotations
@@ -31,6 +27,7 @@ from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.core.stream import RateWatch
 from egovib_ros.errors import ConfigError, EgovibError, RateError
 from egovib_ros.nodes.common import (
+    ROBOT_PARAM,
     Health,
     Param,
     StreamInput,
@@ -47,11 +44,7 @@ from egovib_ros.robot import load_profile
 JOINT_WAIT_S = 2.0
 SWEEPS = ("full", "superposition")
 PARAMETERS = (
-    Param(
-        "robot",
-        "",
-        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
-    ),
+    ROBOT_PARAM,
     Param("output", "noise_model.npz", "noise-model file written at shutdown"),
     Param(
         "grid",
@@ -104,29 +97,19 @@ PARAMETERS = (
 
 def coverage_text(cov: dict) -> str:
     """How much of the grid the model measured, for the summary line: a sweep names the
-    cells it should have reached and did not; free motion reaches the cells it reaches, so
-    only the count of the grid's cells measured is said (never "missing: none" for a grid
-    mostly unmeasured)."""
+    cells it missed; free motion only counts the cells measured (never "missing: none" for
+    a grid mostly unmeasured)."""
     measured = f"{cov['cells_measured']} of {cov['cells_total']} grid cells measured"
     if "cells_expected" not in cov:
         return f"{measured} (free motion: the rest are unmeasured)"
     missing = cov["missing_cells"]
-    shown = (
-        "none"
-        if not missing
-        else ", ".join(f"[{m}]" for m in missing[:20])
-        + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
-    )
+    shown = ", ".join(f"[{m}]" for m in missing[:20]) or "none"
+    if len(missing) > 20:
+        shown += f" and {len(missing) - 20} more"
     return (
         f"{cov['cells_covered']}/{cov['cells_expected']} cells of the {cov['mode']} sweep "
         f"covered ({measured}); sweep cells missing: {shown}"
     )
-
-
-def default_checkpoint(output: str) -> str:
-    """Checkpoint path beside the model: MODEL.checkpoint.npz."""
-    path = Path(output)
-    return str(path.with_name(path.stem + ".checkpoint.npz"))
 
 
 class Calibrator(Node):
@@ -136,7 +119,8 @@ class Calibrator(Node):
         self.profile = load_profile(params["robot"] or None)
         self.output = params["output"]
         self.grid = params["grid"]
-        self.checkpoint = params["checkpoint"] or default_checkpoint(self.output)
+        out = Path(self.output)  # default checkpoint: beside it, OUTPUT.checkpoint.npz
+        self.checkpoint = params["checkpoint"] or str(out.with_name(out.stem + ".checkpoint.npz"))
         self.checkpoint_period_s = params["checkpoint_period"]
         self.methods = params["methods"]
         self.joint_lag_s = params["joint_lag"]
@@ -260,25 +244,25 @@ class Calibrator(Node):
 
     def _track_cells(self) -> None:
         """A sweep's cell is complete when blocks start landing in another one: checkpoint
-        then. Free motion visits cells in any order: checkpoint every checkpoint_period."""
+        then (free motion visits cells in any order: every checkpoint_period)."""
         used = self.acc.stats.blocks_used
         if used == self._blocks_used:
             return
         self._blocks_used = used
-        if self.acc.mode not in SWEEPS:
-            if time.monotonic() - self._last_checkpoint >= self.checkpoint_period_s:
-                self._checkpoint_due = True
+        if self.acc.mode not in SWEEPS:  # free motion: _on_timer checkpoints
             return
         counts = self._cell_count_map()
-        grown = {
-            cell: n - self._counts.get(cell, 0)
-            for cell, n in counts.items()
-            if n > self._counts.get(cell, 0)
-        }
-        if grown:
+        grown = {cell: n - self._counts.get(cell, 0) for cell, n in counts.items()}
+        if grown and max(grown.values()) > 0:
             newest = max(grown, key=grown.get)
             if self._current_cell is not None and newest != self._current_cell:
-                self._log_cell(self._current_cell, counts)
+                expected = self._expected_cells()
+                covered = sum(1 for cell in expected if counts.get(cell, 0) > 0)
+                self.get_logger().info(
+                    f"cell [{self._velocity_text(self._current_cell)}] done: "
+                    f"{counts.get(self._current_cell, 0)} blocks; coverage {covered}/"
+                    f"{len(expected)} cells"
+                )
                 self._checkpoint_due = True
             self._current_cell = newest
         self._counts = counts
@@ -286,16 +270,8 @@ class Calibrator(Node):
     def _velocity_text(self, cell: tuple[int, ...]) -> str:
         return ", ".join(f"{self.acc.grid[j][i]:+.3g}" for j, i in enumerate(cell))
 
-    def _log_cell(self, cell: tuple[int, ...], counts: dict) -> None:
-        covered, expected = self._sweep_coverage(counts)
-        self.get_logger().info(
-            f"cell [{self._velocity_text(cell)}] done: {counts.get(cell, 0)} blocks; "
-            f"coverage {covered}/{expected} cells"
-        )
-
-    def _sweep_coverage(self, counts: dict) -> tuple[int, int]:
-        expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
-        return sum(1 for cell in expected if counts.get(cell, 0) > 0), len(expected)
+    def _expected_cells(self) -> list[tuple[int, ...]]:
+        return [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
 
     def _on_timer(self) -> None:
         if self.input.sensor_pending and time.monotonic() - self._last_input > 0.05:
@@ -332,12 +308,11 @@ class Calibrator(Node):
         self._last_checkpoint = time.monotonic()
         self.checkpoints_written += 1
 
-    def write_model(self, path: str, model: NoiseModel | None = None) -> NoiseModel:
+    def write_model(self, path: str, model: NoiseModel | None = None) -> None:
         """Write `model` (default: the one accumulated so far) to `path`, atomically."""
         model = model or self.acc.to_model(source=f"live:{self.input.sensor_topic}")
         with atomic_output(path) as tmp:
             model.save(tmp)
-        return model
 
     def fitted_model(self) -> tuple[NoiseModel, str]:
         """The final model: the table, and on the samples kept what `egovib calibrate` fits
@@ -385,7 +360,7 @@ class Calibrator(Node):
             "min_blocks": min(values) if values else 0,
         }
         if self.acc.mode in SWEEPS:
-            expected = [tuple(int(i) for i in cell) for cell in self.acc.expected_cell_list()]
+            expected = self._expected_cells()
             missing = [cell for cell in expected if counts.get(cell, 0) == 0]
             result.update(
                 cells_expected=len(expected),
@@ -427,10 +402,8 @@ class Calibrator(Node):
             "samples_withheld": self.samples_withheld,  # while refused for its rate
             "rate_recoveries": self.rate_recoveries,
         }
-        errors = [e for e in (self.stream_error, self.checkpoint_error) if e]
         missing = inp.missing_joints_error("no block can be used")
-        if missing:
-            errors.append(missing)
+        errors = [e for e in (self.stream_error, self.checkpoint_error, missing) if e]
         warnings = [f"{grown[key]} {key.replace('_', ' ')}" for key in counters if grown[key]]
         warnings += inp.stamp_notes(grown)
         # Most blocks since the last report set aside for want of a joint state: no cell
@@ -461,15 +434,12 @@ class Calibrator(Node):
         self._process(final=True)
         self.acc.flush()
         cov = self.coverage()
+        rejected = {k: v for k, v in self.acc.stats.rejected.items() if v}
         if cov["blocks"] == 0:
-            rejected = {k: v for k, v in self.acc.stats.rejected.items() if v}
+            aside = ", ".join(f"{k} {v}" for k, v in rejected.items())
             print(
                 "calibrator: no usable block (steady, with joint states): no model written"
-                + (
-                    f"; blocks set aside: {', '.join(f'{k} {v}' for k, v in rejected.items())}"
-                    if rejected
-                    else ""
-                ),
+                + (f"; blocks set aside: {aside}" if aside else ""),
                 flush=True,
             )
             return 1
@@ -484,23 +454,17 @@ class Calibrator(Node):
             try:
                 self.write_model(str(fallback), model)
             except (OSError, EgovibError):
-                raise ConfigError(
-                    f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
-                    + (
-                        f"; the last checkpoint is {self.checkpoint}"
-                        if os.path.exists(self.checkpoint)
-                        else ""
-                    )
-                ) from None
+                lost = f"cannot write {self.output} ({reason}) nor {fallback}: the model is lost"
+                if os.path.exists(self.checkpoint):
+                    lost += f"; the last checkpoint is {self.checkpoint}"
+                raise ConfigError(lost) from None
             raise ConfigError(
                 f"cannot write {self.output} ({reason}); the model was saved to {fallback}"
             ) from None
         if os.path.exists(self.checkpoint):
             os.remove(self.checkpoint)
         # one line that ends whole: the blocks set aside by reason, not a dict's repr
-        aside = ", ".join(
-            f"{reason.replace('_', ' ')} {n}" for reason, n in self.acc.stats.rejected.items() if n
-        )
+        aside = ", ".join(f"{reason.replace('_', ' ')} {n}" for reason, n in rejected.items())
         print(
             f"calibrator: wrote {self.output} ({cov['mode']}): {coverage_text(cov)}, "
             f"{cov['blocks']} blocks (min {cov['min_blocks']} per "

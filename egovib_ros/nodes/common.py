@@ -45,12 +45,10 @@ from egovib_ros.nodes.convert import (
 )
 from egovib_ros.robot import config_dir
 
-# Sensor subscriptions: the contract's qos_profile_sensor_data (best effort, volatile)
-# with a deeper queue (1 s at 3 kHz): publishers send 3 kHz streams in batches, which
-# a depth of 5 would cut, and a starved process must not lose what DDS delivered.
+# Queue depth of the 3 kHz streams (1 s): publishers send them in batches, which a depth
+# of 5 would cut, and a starved process must not lose what DDS delivered.
 SENSOR_QUEUE_DEPTH = 3000
 SPIN_TIMEOUT_S = 0.1
-_NO_HANDLERS = SignalHandlerOptions.NO  # run_node handles the signals (_StopOnSignal)
 #: After our writers see their subscribers, time for the subscribers' readers to see our
 #: writers too (DDS matches each side on its own): a reliable sample sent before that is
 #: resent only at the writer's next heartbeat (Fast DDS: every 3 s), i.e. arrives late.
@@ -58,7 +56,6 @@ MATCH_SETTLE_S = 1.0
 #: How long a node that is about to exit waits for its subscribers to acknowledge what it
 #: sent last (reliable QoS): unacknowledged samples die with the process.
 DELIVERY_TIMEOUT_S = 5.0
-DIAGNOSTICS_TOPIC = "/diagnostics"
 #: Latest sensor and joint-state stamps further apart than this (s), with joint states
 #: still arriving, are two clocks (any lag a robot has is well below it).
 CLOCKS_APART_S = 1.0
@@ -82,14 +79,14 @@ def use_package_fastdds_profiles() -> None:
         os.environ[FASTDDS_PROFILES_VARIABLE] = str(path)
 
 
-def sensor_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
-    """qos_profile_sensor_data with a queue deep enough for batched 3 kHz streams."""
+def sensor_qos() -> QoSProfile:
+    """The contract's qos_profile_sensor_data (best effort, volatile), SENSOR_QUEUE_DEPTH deep."""
     return QoSProfile(
         **{
             k: getattr(qos_profile_sensor_data, k)
             for k in ("reliability", "durability", "history", "liveliness")
         },
-        depth=depth,
+        depth=SENSOR_QUEUE_DEPTH,
     )
 
 
@@ -104,12 +101,10 @@ def stream_publisher_qos(depth: int = SENSOR_QUEUE_DEPTH) -> QoSProfile:
 
 
 def stream_publisher(node: Node, msg_type, topic: str):
-    """A publisher of a 3 kHz stream with stream_publisher_qos(); depth and reliability may be
-    overridden by the standard ROS parameters `qos_overrides.<topic>.publisher.{depth,
-    reliability}`. A deeper history is what makes a reliable link lossless on a loaded
-    machine: a sample lost on the way (e.g. its shared-memory buffer reused before a slow
-    reader took it) is resent only when the reader asks, at the writer's next heartbeat
-    (Fast DDS: every 3 s), and only if the writer still holds it (3000 = 1 s at 3 kHz)."""
+    """A publisher of a 3 kHz stream with stream_publisher_qos(), overridable by the ROS
+    parameters `qos_overrides.<topic>.publisher.{depth,reliability}`. The deep history makes
+    a reliable link lossless on a loaded machine: a sample lost on the way is resent at the
+    writer's next heartbeat (Fast DDS: every 3 s), only if the writer still holds it."""
     return node.create_publisher(
         msg_type,
         topic,
@@ -125,7 +120,7 @@ class SubscriberGate:
     once open it stays open."""
 
     def __init__(self, publishers: Sequence, count: int, timeout_s: float):
-        self.publishers = [p for p in publishers if p is not None]
+        self.publishers = publishers
         self.count, self.timeout_s = count, timeout_s
         self.timed_out = False
         self._open = count <= 0
@@ -149,7 +144,7 @@ class SubscriberGate:
         return self._open
 
 
-def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
+def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> None:
     """Before exiting: wait up to DELIVERY_TIMEOUT_S for every subscriber to acknowledge what
     `publishers` sent (reliable QoS); warn naming the topics that were not acknowledged."""
     deadline = time.monotonic() + DELIVERY_TIMEOUT_S
@@ -163,19 +158,18 @@ def wait_for_delivery(node: Node, publishers: Sequence, what: str) -> bool:
             f"{what} not acknowledged within {DELIVERY_TIMEOUT_S:g} s by every subscriber of "
             f"{', '.join(late)}"
         )
-    return not late
 
 
-def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool = True):
-    """Subscribe a sensor stream with sensor_qos(); reliability and depth may be overridden by
-    the standard ROS parameters `qos_overrides.<topic>.subscription.{reliability,depth}`
-    (e.g. reliable for a lossless replay of a bag on a loaded machine)."""
+def sensor_subscription(node: Node, msg_type, topic: str, callback):
+    """Subscribe a sensor stream raw with sensor_qos(), overridable by the ROS parameters
+    `qos_overrides.<topic>.subscription.{reliability,depth}` (e.g. reliable for a lossless
+    replay of a bag on a loaded machine)."""
     return node.create_subscription(
         msg_type,
         topic,
         callback,
         sensor_qos(),
-        raw=raw,
+        raw=True,
         qos_overriding_options=QoSOverridingOptions.with_default_policies(),
     )
 
@@ -183,12 +177,9 @@ def sensor_subscription(node: Node, msg_type, topic: str, callback, *, raw: bool
 # --- parameters ------------------------------------------------------------------
 @dataclass(frozen=True)
 class Param:
-    """A node parameter: declared with its description, range and read-only flag.
-
-    `read_only` (the default) for anything whose change needs a restart; `choices` are
-    checked at start (`ros2 param describe` shows them); `range` is inclusive and
-    enforced by rclpy on every set.
-    """
+    """A node parameter. `read_only` (the default) for anything whose change needs a restart;
+    `choices` are checked at start (`ros2 param describe` shows them); `range` is inclusive,
+    enforced by rclpy on every set."""
 
     name: str
     default: Any
@@ -203,8 +194,6 @@ class Param:
             descriptor.additional_constraints = "one of: " + ", ".join(self.choices)
         if self.range is not None:
             low, high = self.range
-            if isinstance(default, bool) or not isinstance(default, (int, float)):
-                raise TypeError(f"{self.name}: a range needs a numeric default")
             if isinstance(default, int):
                 descriptor.integer_range = [
                     IntegerRange(from_value=int(low), to_value=int(high), step=1)
@@ -214,6 +203,14 @@ class Param:
                     FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)
                 ]
         return descriptor
+
+
+#: The `robot` parameter of the nodes that take a robot profile rather than a model.
+ROBOT_PARAM = Param(
+    "robot",
+    "",
+    "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
+)
 
 
 def declare_parameters(
@@ -226,21 +223,15 @@ def declare_parameters(
     values = {}
     for param in params:
         default = (defaults or {}).get(param.name, param.default)
+        where = f"{node.get_name()}: parameter '{param.name}'"
         try:
             value = node.declare_parameter(param.name, default, param.descriptor(default)).value
         except ParameterException as exc:
-            raise ConfigError(
-                f"{node.get_name()}: parameter '{param.name}': {_parameter_reason(exc)}"
-            ) from None
+            raise ConfigError(f"{where}: {_parameter_reason(exc)}") from None
         if param.choices and value not in param.choices:
-            raise ConfigError(
-                f"{node.get_name()}: parameter '{param.name}' must be one of "
-                f"{', '.join(param.choices)}; got {value!r}"
-            )
+            raise ConfigError(f"{where} must be one of {', '.join(param.choices)}; got {value!r}")
         if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(
-                f"{node.get_name()}: parameter '{param.name}' must be finite, got {value}"
-            )
+            raise ConfigError(f"{where} must be finite, got {value}")
         values[param.name] = value
     return values
 
@@ -272,10 +263,9 @@ class JointBatch:
 
 
 def drain(subscription, msg_type, data: bytes) -> list[bytes]:
-    """`data` (a raw subscription's callback argument) and every message already waiting in
-    the subscription's queue: a driver's burst is taken at once and processed as one batch
-    (aligned with the burst, and without an executor round per message of a 3 kHz stream;
-    the executor finds nothing left for their events)."""
+    """`data` (a raw subscription's callback argument) and every message waiting in the
+    subscription's queue: a driver's burst is taken as one batch, without an executor round
+    per message of a 3 kHz stream (the executor finds nothing left for their events)."""
     taken = [data]
     take = subscription.handle.take_message
     while (more := take(msg_type, True)) is not None:
@@ -284,20 +274,14 @@ def drain(subscription, msg_type, data: bytes) -> list[bytes]:
 
 
 class StreamInput:
-    """The robot's sensor and joint-state topics (from the profile), subscribed raw.
-
-    Messages are collected as CDR bytes in the callbacks and decoded in batches;
-    `on_batch` is called at every `batch_samples`-th sensor message counted from the first,
-    with the rest of a burst that arrived together (with batch_samples = hop a block is
-    processed as soon as its last sample is in); with `from_first` False, as soon as
-    `batch_samples` messages wait (a per-sample method: its batches follow the driver's
-    bursts, so the last message of a burst delivered apart does not wait for the next one).
-    Undecodable messages are counted and left out; everything else, NaN included, goes
-    to the core, which counts and handles it (one count for each problem).
-    Joint velocity comes as offline (bag.recording.RecordingStream): the profile's
-    `joints.velocity` through core.velocity.JointVelocity (auto: the message's velocity
-    where finite, else differentiated positions), then a joint a message lacks keeps its
-    last value.
+    """The profile's sensor and joint-state topics, subscribed raw: CDR bytes collected in
+    the callbacks, decoded in batches. `on_batch` is called at every `batch_samples`-th
+    sensor message counted from the first, with the rest of its burst (batch_samples = hop:
+    a block as soon as it is complete); with `from_first` False, as soon as `batch_samples`
+    messages wait (a per-sample method's batches follow the driver's bursts). Undecodable
+    messages are counted and left out; the rest, NaN included, go to the core. Joint
+    velocity as offline (bag.recording.RecordingStream): the profile's `joints.velocity`
+    through core.velocity.JointVelocity, then a joint a message lacks keeps its last value.
     """
 
     def __init__(
@@ -333,8 +317,7 @@ class StreamInput:
         self.joint_messages = 0
         self.undecodable_sensor = 0
         self.undecodable_joints = 0
-        self.last_sensor_s: float | None = None  # monotonic time of the last sensor message
-        self.first_joint_s: float | None = None
+        self.last_sensor_s: float | None = None  # monotonic times of the last messages
         self.last_joint_s: float | None = None
         self.joints_seen = np.zeros(len(self.joint_names), bool)
         self.velocity_setting = profile.velocity_source
@@ -370,9 +353,8 @@ class StreamInput:
             self._on_joint_state()
 
     def publisher_counts(self) -> dict[str, int]:
-        """How many publishers this node's readers have matched, per input topic (for
-        /diagnostics: 0 names a topic nobody publishes, e.g. a wrong remapping; and it lets
-        a publisher see that this side of the match is done, not only its own)."""
+        """Publishers matched per input topic, for /diagnostics (0: nobody publishes it, e.g.
+        a wrong remapping; a publisher sees this side of the match is done too)."""
         return {
             "sensor_publishers": self._sensor_sub.get_publisher_count(),
             "joint_state_publishers": self._joints_sub.get_publisher_count(),
@@ -407,9 +389,7 @@ class StreamInput:
             return None
         raws, self._joints = self._joints, []
         if raws:
-            now = time.monotonic()
-            self.first_joint_s = self.first_joint_s or now
-            self.last_joint_s = now
+            self.last_joint_s = time.monotonic()
         stamps, position, velocity, bad = decode_joint_state_raws(raws, self.joint_names)
         self.undecodable_joints += bad
         # one message per joint, one stamp: one row, as the bag layer reads it offline
@@ -432,32 +412,29 @@ class StreamInput:
             _, velocity, self._last_joint = hold_missing_joints(
                 position, velocity, self._last_joint
             )
-        if len(stamps):
             self.last_joint_stamp_ns = int(stamps[-1])
         return JointBatch(stamps, velocity)
 
-    @property
-    def velocity_source(self) -> str:
-        """Where the joint velocities received so far came from: measured (the messages'),
-        from_position (differentiated), both (auto, some of each) or none (yet)."""
+    def velocity_values(self) -> dict[str, object]:
+        """For /diagnostics: the profile's setting and where the joint velocities received so
+        far came from: measured (the messages'), from_position, both (auto) or none (yet)."""
         derived = self._joint_velocity.derived
         if derived and self.velocities_measured:
-            return "both"
-        return "from_position" if derived else "measured" if self.velocities_measured else "none"
-
-    def velocity_values(self) -> dict[str, object]:
-        """For /diagnostics: the profile's setting and what it gave."""
+            source = "both"
+        else:
+            source = (
+                "from_position" if derived else "measured" if self.velocities_measured else "none"
+            )
         return {
             "velocity_setting": self.velocity_setting,
-            "velocity_source": self.velocity_source,
-            "joint_velocities_from_position": self._joint_velocity.derived,
+            "velocity_source": source,
+            "joint_velocities_from_position": derived,
         }
 
     def stamp_notes(self, grown: dict[str, float]) -> list[str]:
-        """For the node's periodic report (`grown`: the stream counters' growth since the
-        last one): a topic most of whose messages since then were dropped because their
-        stamps repeat or go back. Counted as 'out of order' alone, it did not say why: a
-        driver that stamps zero, a stuck clock, two publishers on one topic."""
+        """For the periodic report (`grown`: the stream counters' growth since the last): a
+        topic most of whose messages since were dropped as their stamps repeat or go back,
+        with the likely cause (a driver that stamps zero, a stuck clock, two publishers)."""
         received = (self.sensor_messages, self.joint_messages)
         sensor_in, joints_in = (now - before for now, before in zip(received, self._counted))
         self._counted = received
@@ -479,16 +456,15 @@ class StreamInput:
         return notes
 
     def publishers_note(self) -> str:
-        """' (N publishers on the sensor topic)' when more than one: two sensors on one topic
+        """' (N publishers on <sensor topic>)' when more than one: two sensors on one topic
         look like one stream at another rate."""
         n = self.publisher_counts()["sensor_publishers"]
         return f" ({n} publishers on {self.sensor_topic})" if n > 1 else ""
 
     def clock_note(self) -> str:
         """'joint-state stamps X s behind the sensor's: ...' when the two streams' latest
-        stamps are further apart than any lag (CLOCKS_APART_S), else ''. Blocks then have no
-        joint state while joint states keep coming: two clocks (sim time and wall time, a
-        driver that stamps zero), which the count of such blocks alone does not say."""
+        stamps are further apart than any lag (CLOCKS_APART_S) while joint states keep
+        coming: two clocks (sim time and wall time, a driver that stamps zero), else ''."""
         if self.last_sensor_stamp_ns is None or self.last_joint_stamp_ns is None:
             return ""
         if self.last_joint_s is None or time.monotonic() - self.last_joint_s > CLOCKS_APART_S:
@@ -504,15 +480,14 @@ class StreamInput:
 
     def missing_joints(self) -> list[str]:
         """Named joints that no joint state received so far has carried."""
-        if self.first_joint_s is None:
+        if self.last_joint_s is None:
             return []
         return [name for name, seen in zip(self.joint_names, self.joints_seen) if not seen]
 
     def missing_joints_error(self, consequence: str) -> str | None:
-        """For the node's periodic report: the ERROR text for named joints never seen (None
-        when all were), logged with its `consequence` once per change. Not at the message
-        itself: joint states split over several publishers lack some joints until every
-        publisher has been heard once."""
+        """For the periodic report: the ERROR text for named joints never seen (None when all
+        were), logged with its `consequence` once per change. Not per message: joint states
+        split over several publishers lack some joints until each has been heard once."""
         missing = self.missing_joints()
         message = self.missing_joints_message(missing) if missing else None
         if missing != self._logged_missing:
@@ -539,9 +514,8 @@ class StreamInput:
 
 # --- health ------------------------------------------------------------------------
 def stream_counters(inp: "StreamInput", stats) -> dict[str, int]:
-    """The input-quality counters every stream node reports (cumulative): undecodable
-    messages from the node's input, the core's bad/out-of-order/gap/restart counts
-    (`stats`: the core's DenoiserStats or CalibrationStats)."""
+    """The input-quality counters (cumulative) of a stream node: its undecodable messages and
+    the core's counts (`stats`: DenoiserStats or CalibrationStats)."""
     return {
         "undecodable_messages": inp.undecodable_sensor + inp.undecodable_joints,
         "samples_bad": stats.samples_bad,
@@ -554,25 +528,19 @@ def stream_counters(inp: "StreamInput", stats) -> dict[str, int]:
 
 
 class Health:
-    """The node's DiagnosticStatus on /diagnostics (~1 Hz), with the usual level semantics:
-
-    ERROR  a condition that stops the node doing its job (wrong model rate, a named joint
-           never seen, an unwritable output) - stays until the condition is gone;
-    STALE  no input for `stale_after_s` seconds;
-    WARN   something went wrong since the previous report (drops, gaps, restarts, bad
-           messages) - clears by itself once the stream is clean again;
-    OK     otherwise.
-
-    Every report has the same keys, numeric where possible, so a dashboard can plot them.
-    Status name: the node's fully qualified name without the leading '/'.
-    """
+    """The node's DiagnosticStatus on /diagnostics (~1 Hz), named by its fully qualified
+    name without the leading '/'. ERROR: a condition that stops the node doing its job
+    (wrong model rate, a named joint never seen, an unwritable output), until it is gone;
+    STALE: no input for `stale_after_s`; WARN: something went wrong since the previous
+    report (drops, gaps, restarts, bad messages); OK otherwise. Every report has the same
+    keys, numeric where possible, so a dashboard can plot them."""
 
     def __init__(self, node: Node, *, hardware_id: str = "", stale_after_s: float = 3.0):
         self.node = node
         self.name = node.get_fully_qualified_name().lstrip("/")
         self.hardware_id = hardware_id
         self.stale_after_s = float(stale_after_s)
-        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self.publisher = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._previous: dict[str, float] = {}
         self.level = "stale"
 
@@ -597,7 +565,7 @@ class Health:
         warnings: Sequence[str] = (),
         ok: str = "ok",
         values: dict[str, object],
-    ) -> str:
+    ) -> None:
         if errors:
             level, message = "error", "; ".join(errors)
         elif stale:
@@ -614,26 +582,25 @@ class Health:
                 self.hardware_id,
             )
         )
-        return level
 
 
 # --- running ----------------------------------------------------------------------
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
     """Create the node, spin it on an EventsExecutor until it is done or Ctrl-C/SIGTERM.
 
-    A node with a `run()` method (no callbacks to serve) is run instead of spun; its
-    return value is the exit status. A node may define `done` (an rclpy Future: spinning
-    stops when it completes, its result being the exit status) and `close()` (called
-    once at the end, also after Ctrl-C: write files, log summaries). Bad input
-    (EgovibError) is a one-line error and exit status 2.
+    A node with a `run()` method is run instead of spun, its return value the exit status.
+    A node may define `done` (an rclpy Future ending the spin, its result the exit status)
+    and `close()` (called once at the end, also after Ctrl-C). Bad input (EgovibError) is a
+    one-line error and exit status 2.
     """
     use_package_fastdds_profiles()
-    # Ctrl-C and SIGTERM are ours, not rclpy's: rclpy's handlers shut the context down at
-    # once, so a callback publishing then failed ("[FATAL] ... publisher's context is
-    # invalid" with a traceback) and every log line of `close()` with "Failed to publish
-    # log message to rosout". Here a signal while spinning only ends the spin loop (within
-    # SPIN_TIMEOUT_S); the node closes with its context valid, then rclpy shuts down.
-    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=_NO_HANDLERS)
+    # Ctrl-C and SIGTERM are ours (_StopOnSignal), not rclpy's: its handlers shut the context
+    # down under running callbacks ("[FATAL] ... publisher's context is invalid", and close()
+    # logging "Failed to publish log message to rosout"). A signal while spinning ends the
+    # spin loop (within SPIN_TIMEOUT_S); the node closes with its context valid.
+    rclpy.init(
+        args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO
+    )
     stop = _StopOnSignal()
     node = None
     status = 0
@@ -646,8 +613,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
             status = int(node.run() or 0)
         else:
             # EventsExecutor.spin() (rclpy 7.1) busy-waits at 100 % CPU; spinning until a
-            # future with a timeout does not, and serves many events per call (a call per
-            # event, spin_once, costs Python overhead at every message of a 3 kHz stream).
+            # future with a timeout does not, and serves many events per call (spin_once
+            # costs Python overhead at every message of a 3 kHz stream).
             until = done if done is not None else Future()
             with stop.deferred():
                 while not stop.received and rclpy.ok() and not until.done():
@@ -657,9 +624,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # Ctrl-C shuts the context down, possibly while a callback is publishing: rcl then
-        # fails that publish ("context is invalid", an RCLError, i.e. a RuntimeError). That
-        # is the interruption, not a failure; with the context still up it is a failure.
+        # a publish failing as the context was shut down from outside is no failure
         if rclpy.ok():
             raise
     except EgovibError as exc:

@@ -1,24 +1,18 @@
 """contact_detector: contact events, live, from the denoiser's output (or the raw stream).
 
-Subscribes to the model's denoised topic (`source: denoised`, the default) or its sensor
-topic (`source: raw`), runs the core's contact detector (core.contact: the band-passed
-sum of the axes, 4 ms RMS envelope, 50 ms refractory time, each event reported 10 ms
-after it crosses the threshold) and publishes one geometry_msgs/Vector3Stamped per event
-on `contact_events`: header.stamp = the onset (a sensor sample's stamp), frame_id = the
-sensor's frame, vector = the band-passed vector at the event's peak, in the sensor field's
-unit. The same detector as `egovib detect`, so live and offline events agree.
+Runs the core's contact detector (core.contact, the one `egovib detect` runs, so live and
+offline events agree) on the model's denoised topic (`source: denoised`) or its sensor
+topic (`source: raw`) and publishes one geometry_msgs/Vector3Stamped per event on
+`contact_events`: stamp = the onset (a sensor sample's stamp), frame_id = the sensor's,
+vector = the band-passed vector at the event's peak, in the sensor field's unit.
 
-The threshold is fixed at start by the rule `egovib detect` and `egovib evaluate` use:
-`threshold` if given, else the one `egovib calibrate` (or the calibrator node) stored in the
-model for `method` (default: the model's default method, the one the denoiser runs by
-default), else one from no-contact data (`calibration_bag`, or the bag the model was
-calibrated from) run through the denoiser `method` and the detector's envelope, at the
-false-alarm budget `false_alarms_per_min`.
-/diagnostics: events per minute, threshold, budget, the false-alarm rate on the
-calibration data, and the latency to an event's message (p50, p99): from its onset stamp
-when the sensor stamps run on this machine's clock, else (a replayed bag, simulated time:
-onset stamps more than REPLAYED_S away from the wall clock) from the arrival of the onset's
-sample; `latency_from` says which.
+The threshold is fixed at start by the rule of `egovib detect` and `egovib evaluate`
+(evaluation.contacts.detection_threshold): `threshold`, else the one stored in the model for
+`method`, else one from no-contact data at the budget `false_alarms_per_min`.
+/diagnostics: events per minute, threshold, budget, the calibration's false-alarm rate, and
+the latency to an event's message (p50, p99) from its onset stamp, or from the arrival of
+the onset's sample when the stamps are not on this machine's clock (a replay, sim time):
+`latency_from` says which.
 """
 
 from __future__ import annotations
@@ -123,12 +117,11 @@ class ContactDetectorNode(Node):
             if self.source == "denoised"
             else self.profile.node_sensor_topic
         )
-        self.input_topic = self.resolve_topic_name(topic)
         self._pending: list[bytes] = []
         self._pending_since = 0  # wall-clock arrival of the first pending message (ns)
         self._arrivals: list[tuple[int, int]] = []  # (last stamp, arrival) of recent batches
         self.latency_from = ""
-        self._input = sensor_subscription(self, Imu, topic, self._on_sample, raw=True)
+        self._input = sensor_subscription(self, Imu, topic, self._on_sample)
         self.pub = self.create_publisher(Vector3Stamped, "contact_events", 100)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
@@ -141,9 +134,9 @@ class ContactDetectorNode(Node):
         self.create_timer(0.002, self._process)  # batches of ~2 ms: latency small, cost low
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"contact events from {self.input_topic} ({self.profile.sensor_field}, after "
+            f"contact events from {self._input.topic_name} ({self.profile.sensor_field}, after "
             f"{self.method}), threshold {self.threshold:.4g} ({self.threshold_source}) -> "
-            f"{self.resolve_topic_name('contact_events')}"
+            f"{self.pub.topic_name}"
         )
 
     def _on_sample(self, data: bytes) -> None:
@@ -217,22 +210,16 @@ class ContactDetectorNode(Node):
                 "restarts": self.detector.restarts,
             }
         )
-        warnings = (
-            [f"{grown['undecodable']:.0f} undecodable messages"] if grown["undecodable"] else []
-        )
-        if grown["out_of_order"]:
-            warnings.append(f"{grown['out_of_order']:.0f} samples out of order (dropped)")
-        if grown["restarts"]:
-            warnings.append(
-                f"{grown['restarts']:.0f} stream restarts (stamps went back: detection restarted)"
-            )
-        if grown["bad"]:
-            warnings.append(
-                f"{grown['bad']:.0f} bad samples (non-finite or beyond the sensor's range: "
-                "held at the last good value)"
-            )
+        texts = {
+            "undecodable": "undecodable messages",
+            "out_of_order": "samples out of order (dropped)",
+            "restarts": "stream restarts (stamps went back: detection restarted)",
+            "bad": "bad samples (non-finite or beyond the sensor's range: held at the last good "
+            "value)",
+        }
+        warnings = [f"{grown[key]:.0f} {text}" for key, text in texts.items() if grown[key]]
         self.health.publish(
-            stale=self.health.stale_message(self._last_input, self.input_topic),
+            stale=self.health.stale_message(self._last_input, self._input.topic_name),
             warnings=warnings,
             ok=f"{self.events} events",
             values=values,

@@ -1,11 +1,8 @@
-"""ROS 2 message <-> numpy conversion, used by the nodes only (imports rclpy message types).
+"""ROS 2 message <-> numpy conversion for the nodes (imports rclpy message types).
 
-Stamps are int64 nanoseconds throughout, as in the core. The 3 kHz Imu and 1 kHz
-JointState streams have a fast path: nodes publish CDR bytes (rclpy's
-`Publisher.publish` takes bytes) and subscribe with `raw=True`, collecting bytes and
-decoding them in batches with the vectorised codec of egovib_ros.bag.codec. Nothing here
-knows a particular robot: joint names, the Imu field and frames come from the caller
-(the robot profile or the input messages).
+Stamps are int64 nanoseconds, as in the core. The 3 kHz Imu and 1 kHz JointState streams
+go as CDR bytes (published as bytes, subscribed with `raw=True`) and are decoded in batches
+by egovib_ros.bag.codec. Joint names, the Imu field and frames come from the caller.
 """
 
 from __future__ import annotations
@@ -15,39 +12,11 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.bag.codec import (
-    decode_imu,
-    decode_joint_states,
-    encode_imu_batch,
-    encode_joint_state_batch,
-    joint_state_layout,
-)
+from egovib_ros.bag.codec import decode_imu, decode_joint_states, joint_state_layout
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import StreamError
-
-__all__ = [
-    "stamp_to_ns",
-    "ns_to_stamp",
-    "imu_message",
-    "decode_imu_raws",
-    "decode_imu_messages",
-    "decode_joint_state_raws",
-    "decode_joint_state_messages",
-    "joint_names_of",
-    "command_message",
-    "command_velocity",
-    "diagnostic_array",
-    "diagnostic_values",
-    "LEVELS",
-    # the codec of egovib_ros.bag.codec, for the nodes and their tests
-    "decode_imu",
-    "decode_joint_states",
-    "encode_imu_batch",
-    "encode_joint_state_batch",
-]
 
 
 # --- stamps ------------------------------------------------------------------
@@ -63,22 +32,6 @@ def ns_to_stamp(stamp_ns: int) -> Time:
 
 
 # --- Imu ---------------------------------------------------------------------
-def imu_message(
-    stamp_ns: int, values: Sequence[float], frame_id: str, field: str = "linear_acceleration"
-) -> Imu:
-    """One sample as an Imu message, `values` in `field` (REP 145: orientation and the other
-    vector unknown, covariance[0] = -1)."""
-    msg = Imu()
-    msg.header.stamp = ns_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.orientation_covariance[0] = -1.0
-    other = "angular_velocity" if field == "linear_acceleration" else "linear_acceleration"
-    getattr(msg, f"{other}_covariance")[0] = -1.0
-    vector = getattr(msg, field)
-    vector.x, vector.y, vector.z = (float(v) for v in values)
-    return msg
-
-
 def decode_imu_raws(
     raws: Sequence[bytes], field: str = "linear_acceleration"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -181,14 +134,6 @@ def command_velocity(msg: Float64MultiArray, n_joints: int, topic: str = "comman
 
 
 # --- diagnostics ---------------------------------------------------------------
-LEVELS = {
-    "ok": DiagnosticStatus.OK,
-    "warn": DiagnosticStatus.WARN,
-    "error": DiagnosticStatus.ERROR,
-    "stale": DiagnosticStatus.STALE,
-}
-
-
 def diagnostic_array(
     stamp_ns: int,
     statuses: Iterable[tuple[str, str, str, Mapping[str, object]]],
@@ -199,7 +144,10 @@ def diagnostic_array(
     array.header.stamp = ns_to_stamp(max(int(stamp_ns), 0))
     for name, level, message, values in statuses:
         status = DiagnosticStatus(
-            level=LEVELS[level], name=name, message=message, hardware_id=hardware_id
+            level=getattr(DiagnosticStatus, level.upper()),
+            name=name,
+            message=message,
+            hardware_id=hardware_id,
         )
         status.values = [KeyValue(key=str(k), value=_format_value(v)) for k, v in values.items()]
         array.status.append(status)
@@ -211,26 +159,16 @@ def diagnostic_values(status: DiagnosticStatus) -> dict[str, str]:
     return {kv.key: kv.value for kv in status.values}
 
 
-def _format_value(value: object) -> str:
+def _format_value(value: object, in_list: bool = False) -> str:
     """A diagnostic value as plain text: numbers as numbers (numpy's too: never
-    "np.float64(0.0)"), lists and arrays as "[a, b]" of such numbers."""
+    "np.float64(0.0)"), lists and arrays as Python prints a list of such numbers."""
     if isinstance(value, (bool, np.bool_)):
         return "true" if value else "false"
     if isinstance(value, (float, np.floating)):
-        return f"{float(value):.6g}"
+        return repr(float(value)) if in_list else f"{float(value):.6g}"
     if isinstance(value, (int, np.integer)):
         return str(int(value))
-    if isinstance(value, (list, tuple, np.ndarray)):  # as Python prints a list of its numbers
+    if not in_list and isinstance(value, (list, tuple, np.ndarray)):
         items = value.tolist() if isinstance(value, np.ndarray) else value
-        return "[" + ", ".join(_list_item(v) for v in items) + "]"
-    return str(value)
-
-
-def _list_item(value: object) -> str:
-    if isinstance(value, (bool, np.bool_)):
-        return "true" if value else "false"
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    return repr(value)
+        return "[" + ", ".join(_format_value(v, in_list=True) for v in items) + "]"
+    return repr(value) if in_list else str(value)

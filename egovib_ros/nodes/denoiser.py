@@ -1,33 +1,23 @@
 """denoiser: streaming ego-vibration removal as a ROS 2 node, by `method` (paper: the paper's
-spectral subtraction, egovib_ros.core.StreamingDenoiser; cancel, hybrid: core.methods), built
-by the same function as `egovib denoise --method`, so live equals offline.
+spectral subtraction, core.StreamingDenoiser; cancel, hybrid: core.methods), built by the
+same function as `egovib denoise --method`, so live equals offline.
 
-Everything robot-specific comes from the noise model (`model.profile`): the sensor and
-joint-state topics (as relative names: remappable, namespaceable), the Imu field that
-is cleaned, the joints (picked by name from JointStates with any joints in any order;
-velocity as the profile's `joints.velocity` says, measured, from_position or auto, as
-offline) and the nominal rate. The output is the drop-in replacement of the input: each
-published Imu is the input message with the profile's field replaced by its cleaned
-value, every other byte (header, frame, orientation, covariances, other vector)
-copied; so the raw messages are kept until their samples come out.
+Everything robot-specific comes from the noise model's profile: the sensor and joint-state
+topics (relative names: remappable), the Imu field cleaned, the joints (picked by name,
+velocity as the profile's `joints.velocity` says) and the nominal rate. The output is the
+drop-in replacement of the input: each Imu is the input message with the profile's field
+replaced by its cleaned value, every other byte copied (so inputs are held until output).
 
-Health on /diagnostics (~1 Hz, see nodes.common.Health): ERROR, and nothing published,
-when the stream's rate does not fit the model or a named joint never appears in the
-joint states; STALE with no input for `stale_after` s; WARN for a period with bad,
-missing or out-of-order samples, restarts, blocks without joint state (passed through)
-or too many blocks on unmeasured cells (over a COVERAGE_WINDOW_S window, with hysteresis:
-see `unmeasured_warn_fraction`). With method paper `oversubtraction` and `floor` change
-live (`ros2 param set`); the other parameters, and those two with cancel and hybrid, are
-read-only.
+/diagnostics (nodes.common.Health): ERROR, nothing published, when the stream's rate does
+not fit the model or a named joint never appears; STALE with no input for `stale_after` s;
+WARN for bad, missing or out-of-order samples, restarts, blocks without joint state or too
+many blocks on unmeasured cells (CoverageWarning). Method paper's `oversubtraction` and
+`floor` change live (`ros2 param set`); all else is read-only.
 
-Adaptation (`adapt: true`, cancel and hybrid; core.adapt): the model goes on learning while
-the contact detector (its envelope on this node's own output, the threshold the model
-stores for the method) sees no contact, with `forget_s` of forgetting time, as `egovib
-denoise --adapt` does on the same messages. Services (std_srvs/Trigger): `~/save_model`
-writes the model as adapted so far to `save_model` (atomically; `egovib model show` marks
-the cells learnt online), `~/reset_model` returns to the calibrated model. /diagnostics
-counts the cells learnt online, those the calibration never measured, the blocks learnt and
-those left out for contacts.
+`adapt: true` (cancel, hybrid; core.adapt): the model goes on learning while the contact
+detector sees no contact on this node's output, as `egovib denoise --adapt`. Services
+(std_srvs/Trigger): `~/save_model` writes the adapted model to `save_model` atomically,
+`~/reset_model` returns to the calibrated one.
 """
 
 from __future__ import annotations
@@ -65,15 +55,10 @@ from egovib_ros.nodes.common import (
 from egovib_ros.outputs import atomic_output
 
 LIVE = ("oversubtraction", "floor")
-#: The model-coverage WARN looks at the blocks of the last this many seconds (a free-motion
-#: model's share of unmeasured cells varies from one second to the next) ...
+#: The model-coverage WARN looks at the blocks of the last this many seconds ...
 COVERAGE_WINDOW_S = 10.0
-#: ... and clears only once that share is below this fraction of unmeasured_warn_fraction
-#: (hysteresis: a share hovering at the limit does not flip OK/WARN every report).
+#: ... and clears once their share on unmeasured cells is below this x the limit.
 COVERAGE_CLEAR_FRACTION = 0.5
-# The core checks the stream's rate once it has accepted 2 blocks' worth of samples
-# (stream.BlockFramer); output waits for that, once, so that a stream at the wrong rate
-# publishes nothing at all (test_wrong_rate_... holds this to the core's rule).
 MODEL_PARAMETERS = (
     Param(
         "model",
@@ -98,16 +83,15 @@ MODEL_PARAMETERS = (
         choices=("", *METHODS),
     ),
 )
-OUTPUT_PARAMETER = Param(
-    "output",
-    "dropin",
-    "dropin (default): the raw field minus the estimated ego-vibration (gravity and motion "
-    "below the band kept; hybrid: the look-ahead its split needs) | bandpassed: the cleaned "
-    "band-passed signal; channels combined is always band-passed",
-    choices=("dropin", "bandpassed"),
-)
 PARAMETERS = MODEL_PARAMETERS + (
-    OUTPUT_PARAMETER,
+    Param(
+        "output",
+        "dropin",
+        "dropin (default): the raw field minus the estimated ego-vibration (gravity and motion "
+        "below the band kept; hybrid: the look-ahead its split needs) | bandpassed: the "
+        "cleaned band-passed signal; channels combined is always band-passed",
+        choices=("dropin", "bandpassed"),
+    ),
     Param(
         "oversubtraction",
         1.0,
@@ -196,9 +180,9 @@ PARAMETERS = MODEL_PARAMETERS + (
 
 class CoverageWarning:
     """Whether to WARN about model coverage: the share of the last COVERAGE_WINDOW_S of
-    blocks (or samples) on unmeasured cells exceeds `limit`; once on, it stays on until
-    that share falls below COVERAGE_CLEAR_FRACTION x `limit` (a free-motion model's share
-    from one second to the next hovers around any limit)."""
+    blocks (or samples) on unmeasured cells exceeds `limit`; once on, until that share falls
+    below COVERAGE_CLEAR_FRACTION x `limit` (a free-motion model's share hovers around any
+    limit from one second to the next: hysteresis, not a flip every report)."""
 
     def __init__(self, limit: float):
         self.limit = float(limit)
@@ -230,9 +214,6 @@ class HeldInput:
         self.stamps = np.zeros(0, dtype=np.int64)
         self.arrival = np.zeros(0, dtype=np.int64)
         self.raws: list[bytes] = []
-
-    def __len__(self) -> int:
-        return len(self.raws)
 
     def add(self, stamps: np.ndarray, raws: list[bytes], arrival: np.ndarray) -> None:
         self.stamps = np.concatenate([self.stamps, stamps])
@@ -287,19 +268,13 @@ class Denoiser(Node):
         rest = PARAMETERS[len(MODEL_PARAMETERS) :]
         if self.method != "paper":  # their settings are fixed at start: advertised read-only
             rest = tuple(replace(p, read_only=True) if p.name in LIVE else p for p in rest)
-        params = declare_parameters(
-            self,
-            rest,
-            defaults={
-                "batch_samples": default_batch_samples(self.model, self.method),
-            },
-        )
+        batch_samples = default_batch_samples(self.model, self.method)
+        params = declare_parameters(self, rest, defaults={"batch_samples": batch_samples})
         self.channels = first["channels"]
         self.flush_after_idle_s = params["flush_after_idle"]
         self.coverage = CoverageWarning(params["unmeasured_warn_fraction"])
         self.output = params["output"] if self.channels == "per_axis" else "bandpassed"
         self.adapt = AdaptSettings(forget_s=params["forget_s"]) if params["adapt"] else None
-        adapt_option = {} if self.adapt is None else {"adapt": self.adapt}
         model_path = Path(first["model"])
         self.save_model_path = Path(
             params["save_model"] or model_path.with_name(model_path.stem + "_adapted.npz")
@@ -314,7 +289,7 @@ class Denoiser(Node):
             joint_lag_s=params["joint_lag"],
             noise_gain_db=noise_gain_from_report(params["noise_gain"], where="noise_gain"),
             source=self.resolve_topic_name(self.profile.node_sensor_topic),
-            **adapt_option,
+            **({} if self.adapt is None else {"adapt": self.adapt}),
         )
         self.denoiser = make_denoiser(self.model, self.method, **self._options)
         self._rate_watch: RateWatch | None = None  # after a rate refusal: is it back?
@@ -333,7 +308,6 @@ class Denoiser(Node):
             from_first=self.method == "paper",  # its blocks complete every hop from the first
         )
         self.pub = stream_publisher(self, Imu, self.profile.node_denoised_topic)
-        self.output_topic = self.resolve_topic_name(self.profile.node_denoised_topic)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
         )
@@ -354,7 +328,7 @@ class Denoiser(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f"denoising {self.input.sensor_topic} ({self.profile.sensor_field}, "
-            f"{self.model.sample_rate_hz:g} Hz) -> {self.output_topic} (method {self.method}, "
+            f"{self.model.sample_rate_hz:g} Hz) -> {self.pub.topic_name} (method {self.method}, "
             f"{self.channels}"
             + (f", adapting, forgetting time {self.adapt.forget_s:g} s" if self.adapt else "")
             + "), "
@@ -416,17 +390,15 @@ class Denoiser(Node):
             values["forget_s"] = self.adapt.forget_s
         if stats is not None:
             values.update(
-                {
-                    "cells_learnt_online": stats.cells_learnt,
-                    "cells_new_online": stats.cells_new,
-                    "adapt_blocks_learnt": stats.blocks_learnt,
-                    "adapt_blocks_gated": stats.blocks_gated,
-                    "adapt_contacts": stats.contacts,
-                    "adapt_harmonic_points": stats.harmonic_points,
-                    "adapt_map_refits": stats.map_refits,
-                    "adapt_lines_found": stats.lines_found,
-                    "adapt_resets": stats.resets,
-                }
+                cells_learnt_online=stats.cells_learnt,
+                cells_new_online=stats.cells_new,
+                adapt_blocks_learnt=stats.blocks_learnt,
+                adapt_blocks_gated=stats.blocks_gated,
+                adapt_contacts=stats.contacts,
+                adapt_harmonic_points=stats.harmonic_points,
+                adapt_map_refits=stats.map_refits,
+                adapt_lines_found=stats.lines_found,
+                adapt_resets=stats.resets,
             )
         return values
 
@@ -437,8 +409,8 @@ class Denoiser(Node):
         # Before the first sensor sample, take joint states as they come: a joint they lack
         # is an ERROR before any output (and is reported while the sensor is silent).
         if self._blocks_held_back or self.input.sensor_messages == 0:
-            self._process_joints()
-            self._update_held_back()
+            self._publish(self._push_joints())
+            self._blocks_held_back = self.denoiser.samples_pending >= self.model.block_length
 
     def _process(self) -> None:
         """Decode what arrived; joint states first (they cover the new samples) and the
@@ -465,10 +437,8 @@ class Denoiser(Node):
                 self._refuse(str(exc), rate=isinstance(exc, RateError))
                 return
         self._publish(released)
-        self._update_held_back()
-
-    def _process_joints(self) -> None:
-        self._publish(self._push_joints())
+        # a completed block held back (more than a block of input not yet output)?
+        self._blocks_held_back = self.denoiser.samples_pending >= self.model.block_length
 
     def _take_joints(self, *, final: bool = False):
         """(stamps, velocity) of the joint states received so far, or None.
@@ -516,10 +486,6 @@ class Denoiser(Node):
         self.stream_error, self._rate_watch = None, None
         self._rate_proven = False
         self.rate_recoveries += 1
-
-    def _update_held_back(self) -> None:
-        """Is a completed block held back (more than a block of input not yet output)?"""
-        self._blocks_held_back = self.denoiser.samples_pending >= self.model.block_length
 
     def _publish(self, chunk, *, end_of_stream: bool = False) -> None:
         if self.stream_error is not None:
@@ -630,12 +596,8 @@ class Denoiser(Node):
             "floor": self.denoiser.subtraction.floor if self.method == "paper" else nan,
             **self._adapt_values(),
         }
-        errors = []
-        if self.stream_error:
-            errors.append(self.stream_error)
         missing = inp.missing_joints_error("cannot denoise, publishing nothing")
-        if missing:
-            errors.append(missing)
+        errors = [e for e in (self.stream_error, missing) if e]
         warnings = self._warnings(grown, unit, fractions, coverage_warn, joint_rate_hz)
         stale = self.health.stale_message(inp.last_sensor_s, inp.sensor_topic)
         self.health.publish(
@@ -702,18 +664,15 @@ class Denoiser(Node):
                 f"lines found online {adapted.lines_found}",
                 flush=True,
             )
-        print(
+        line = (
             f"denoiser: samples in {self.input.sensor_messages}, "
             f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
             f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
             f"restarts {stats.resets}"
-            + (
-                f", blocks out of grid {stats.blocks_out_of_grid}/{stats.blocks}"
-                if stats.blocks is not None
-                else ""
-            ),
-            flush=True,
         )
+        if stats.blocks is not None:
+            line += f", blocks out of grid {stats.blocks_out_of_grid}/{stats.blocks}"
+        print(line, flush=True)
 
 
 def main(args: list[str] | None = None) -> int:

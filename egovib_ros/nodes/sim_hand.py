@@ -1,11 +1,9 @@
 """sim_hand: the simulated PR2 right hand (egovib_ros.sim.HandSimulator) as a ROS 2 node.
 
-Subscribes `hand_velocity_controller/commands` and publishes, in real time on the
-node clock (so `use_sim_time` works), `joint_states` (1 kHz), `accelerometer/raw`
-(3 kHz, one Imu per sample) and the ground truth `accelerometer/contact` and
-`accelerometer/ego`. Every `publish_period` the samples due since the last tick are
-generated and sent as pre-serialised CDR, which keeps the CPU cost of 3 kHz low. The
-node's body is nodes.simulator.SimulatorNode, shared with sim_robot (any robot profile).
+Follows `hand_velocity_controller/commands` and publishes, in real time on the node clock,
+`joint_states` (1 kHz), `accelerometer/raw` (3 kHz, one Imu per sample) and the ground truth
+`accelerometer/contact` and `accelerometer/ego`. The node's body is
+nodes.simulator.SimulatorNode, shared with sim_robot (any robot profile).
 """
 
 from __future__ import annotations

@@ -1,18 +1,13 @@
 """sim_robot: any robot profile simulated live (egovib_ros.sim.robot.CommandedRobot).
 
 The simulator of `egovib simulate robot` as a node: `robot` (a profile path or a shipped
-name; empty = the PR2 profile, as everywhere) gives the topics, Imu field, rate, range,
-joints and band. Subscribes `hand_velocity_controller/commands` (one velocity per profile
-joint, what `sweep_driver robot:=...` publishes; remap both to your controller's
-`<controller>/commands`) and publishes, in real time on the node clock (so `use_sim_time`
-works), the profile's joint states (1 kHz, `joint_rate_hz`) and sensor topic (one Imu per
-sample, stamps jittering +-30 % around the nominal rate as the offline simulator's) and
-the ground truth beside the sensor topic, `<parent>/contact` and `<parent>/ego` (for the
-example arm `/arm/imu`: `arm/contact`, `arm/ego`), as `egovib simulate robot` writes them.
-The joints follow each command through a first-order velocity controller (50 ms),
-limited to their range (a command beyond a joint's max speed is held at it: WARN).
-The node's body is nodes.simulator.SimulatorNode, shared with sim_hand (the PR2 hand's
-own physical simulator; this one has no `effects`).
+name; empty = the PR2 profile) gives the topics, Imu field, rate, range, joints and band.
+Follows the commands on `hand_velocity_controller/commands` (one velocity per profile
+joint, as `sweep_driver robot:=...` publishes) through a first-order velocity controller
+(50 ms) limited to each joint's range (a command beyond it is held at the limit: WARN), and
+publishes the profile's joint states (`joint_rate_hz`), its sensor topic (stamps jittering
++-30 % around the nominal rate, as offline) and the ground truth beside it. The node's
+body is nodes.simulator.SimulatorNode, shared with sim_hand.
 """
 
 from __future__ import annotations
@@ -20,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from egovib_ros.errors import ConfigError
-from egovib_ros.nodes.common import Param, run_node
+from egovib_ros.nodes.common import ROBOT_PARAM, Param, run_node
 from egovib_ros.nodes.simulator import SimulatorNode, simulator_parameters
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim.robot import (
@@ -31,11 +26,7 @@ from egovib_ros.sim.robot import (
 )
 
 PARAMETERS = (
-    Param(
-        "robot",
-        "",
-        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
-    ),
+    ROBOT_PARAM,
     Param(
         "joint_rate_hz",
         DEFAULT_JOINT_RATE_HZ,

@@ -3,34 +3,26 @@
 A SimulatorNode steps a streaming simulator from a timer, in real time on the node clock
 (so `use_sim_time` works; the simulation starts at the first non-zero clock time, or once
 every stream has its subscribers with `wait_for_subscribers`), follows the velocity
-commands on `hand_velocity_controller/commands` (one value per profile joint, the
-ros2_control forward-command convention `sweep_driver` publishes) and publishes the
-profile's joint states and sensor stream, and the ground truth beside the sensor topic
-(`<parent>/contact`, `<parent>/ego`, as the simulators write them into bags), as
+commands on `hand_velocity_controller/commands` (one value per profile joint, as
+`sweep_driver` publishes) and publishes the profile's joint states and sensor stream, and
+the ground truth beside the sensor topic (`<parent>/contact`, `<parent>/ego`), as
 pre-serialised CDR: one Imu per sample, stamps = sample times. A node says what to
 simulate through four methods: configure (its own parameters, the profile), make
 (the simulator), due (samples due by a clock time) and describe (its start-up line).
-
-Ctrl-C and SIGTERM stop the node between two ticks. rclpy's own handling raises
-KeyboardInterrupt wherever the main thread is, which is mostly inside the tick (the
-simulator, the publishing): the EventsExecutor then logs it as a FATAL exception with a
-traceback (item 6 of issue 34: 2 of 6 Ctrl-C of sim_hand; 4 of 12 here), and the
-publishes after the context's shutdown fail. A SIGINT ignored from the start (a
-background job of a shell without job control) stays ignored, as rclpy leaves it.
+Ctrl-C and SIGTERM end the spin between two ticks (run_node).
 """
 
 from __future__ import annotations
 
-import signal
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
-from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
+from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import StreamError
@@ -42,11 +34,8 @@ from egovib_ros.nodes.common import (
     stream_publisher,
     wait_for_delivery,
 )
-from egovib_ros.nodes.convert import command_velocity, encode_imu_batch, encode_joint_state_batch
+from egovib_ros.nodes.convert import command_velocity
 from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile
-
-#: How often a Ctrl-C or SIGTERM is looked for (s)
-STOP_CHECK_S = 0.02
 
 
 def simulator_parameters(*, frame_id: str, truth: str) -> tuple[Param, ...]:
@@ -98,18 +87,6 @@ def simulator_parameters(*, frame_id: str, truth: str) -> tuple[Param, ...]:
     )
 
 
-class Simulator(Protocol):
-    """What a SimulatorNode needs of its simulator (sim.HandSimulator, sim.robot.CommandedRobot)."""
-
-    command: np.ndarray  # (J,) the command held
-    index: int  # samples made so far
-    velocity: np.ndarray  # (J,) true joint velocity at the last sample
-
-    def set_command(self, velocity) -> Any: ...
-
-    def step(self, n: int) -> Any: ...  # sensor_stamps_ns, sensor, contact, ego, joint_*
-
-
 class SimulatorNode(Node):
     """The simulator of a robot profile as a node; subclasses say which (module doc)."""
 
@@ -131,7 +108,9 @@ class SimulatorNode(Node):
         self.total_samples = int(round(self.duration_s * self.profile.rate_hz))
         self.done = Future()  # run_node spins until it is done: its result, the exit status
         self.make(start_ns=0)  # validate the settings now, not at the first tick
-        self.sim: Simulator | None = None
+        # sim.HandSimulator or sim.robot.CommandedRobot: command, index, velocity, set_command
+        # and step (sensor_stamps_ns, sensor, contact, ego, joint_*)
+        self.sim: Any = None
         self._pending_command: np.ndarray | None = None
 
         profile, topics = self.profile, bag_topic_names(self.profile)
@@ -147,8 +126,13 @@ class SimulatorNode(Node):
             if self.ground_truth and params["publish_ego"]
             else None
         )
+        self._publishers = [
+            p
+            for p in (self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego)
+            if p is not None
+        ]
         self.gate = SubscriberGate(
-            [self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego],
+            self._publishers,
             params["wait_for_subscribers"],
             params["wait_timeout"],
         )
@@ -160,14 +144,6 @@ class SimulatorNode(Node):
         self.taps = 0
         self.max_lag_samples = 0
         self._last_diag = (0, 0)
-        self._stop_requested = False
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            if signal.getsignal(signum) is not signal.SIG_IGN:  # a background job's stays
-                signal.signal(signum, self._on_signal)
-        # on the steady clock: with use_sim_time the tick stops with /clock
-        self.create_timer(
-            STOP_CHECK_S, self._check_stop, clock=Clock(clock_type=ClockType.STEADY_TIME)
-        )
         self.create_timer(self.period_s, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(self.describe())
@@ -177,7 +153,7 @@ class SimulatorNode(Node):
         """Read the node's own parameters; the robot profile simulated."""
         raise NotImplementedError
 
-    def make(self, start_ns: int) -> Simulator:
+    def make(self, start_ns: int) -> Any:
         """A simulator whose first sample is stamped `start_ns`."""
         raise NotImplementedError
 
@@ -218,17 +194,7 @@ class SimulatorNode(Node):
         else:
             self.command_note(velocity, self.sim.set_command(velocity))
 
-    def _on_signal(self, signum, frame) -> None:
-        # Only a flag: this runs between any two bytecodes of the main thread.
-        self._stop_requested = True
-
-    def _check_stop(self) -> None:
-        if self._stop_requested and not self.done.done():  # Ctrl-C or SIGTERM: exit status 0
-            self.done.set_result(0)
-
     def _tick(self) -> None:
-        if self._stop_requested:
-            return
         now_ns = self.get_clock().now().nanoseconds
         if now_ns <= 0 or self.done.done():  # use_sim_time and no /clock yet; or finished
             return
@@ -276,8 +242,7 @@ class SimulatorNode(Node):
         self.get_logger().info(
             f"simulated {self.duration_s:g} s: {self.samples_published} samples, {self.taps} taps"
         )
-        publishers = [self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego]
-        wait_for_delivery(self, [p for p in publishers if p is not None], "the last samples")
+        wait_for_delivery(self, self._publishers, "the last samples")
         self._publish_diagnostics()
         self.done.set_result(0)
 

@@ -1,15 +1,11 @@
 """sweep_driver: command the calibration sweep over a robot's velocity grid, then stop and exit 0.
 
-The robot profile (`robot`: a profile path or a shipped name, default the PR2 hand)
-gives the joints and their grid (max speed, steps, one- or two-directional). For each
-cell of the grid (`full`: every cell, only for small grids; `superposition`: the rest
-cell, then each joint's other grid values with the others at rest, which Eq. 6 needs;
-the core's `sweep_cells` order) the joint velocities are commanded
-in the ros2_control forward-command convention (std_msgs/Float64MultiArray, one value
-per joint in profile order) on `hand_velocity_controller/commands` (remap it to your
-controller's `<controller>/commands`) for `settle` + `dwell` seconds of node-clock
-time (so it follows use_sim_time). Progress: a log line per cell and /diagnostics.
-`start_cell` resumes an interrupted sweep.
+The robot profile (`robot`) gives the joints and their grid. Each cell of the sweep
+(`full`: every cell; `superposition`: the rest cell, then each joint's other grid values
+with the others at rest, which Eq. 6 needs; in the core's `sweep_cells` order) is
+commanded for `settle` + `dwell` s of node-clock time (so it follows use_sim_time) on
+`hand_velocity_controller/commands` (remap it to your controller's), one value per joint
+(ros2_control forward-command convention). `start_cell` resumes an interrupted sweep.
 """
 
 from __future__ import annotations
@@ -23,6 +19,7 @@ from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import (
+    ROBOT_PARAM,
     Health,
     Param,
     SubscriberGate,
@@ -33,17 +30,11 @@ from egovib_ros.nodes.common import (
 from egovib_ros.nodes.convert import command_message
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim.pr2 import TOPIC_COMMANDS
+from egovib_ros.sim.robot import MAX_SWEEP_CELLS
 
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
-MAX_SWEEP_CELLS = (
-    100_000  # a full grid beyond this would take days: sweep superposition or calibrate free motion
-)
 PARAMETERS = (
-    Param(
-        "robot",
-        "",
-        "robot profile: a YAML path or a shipped name (config/robots); empty = the PR2 hand",
-    ),
+    ROBOT_PARAM,
     Param(
         "grid",
         "superposition",
@@ -87,27 +78,24 @@ class SweepDriver(Node):
         super().__init__("sweep_driver")
         params = declare_parameters(self, PARAMETERS)
         self.profile = load_profile(params["robot"] or None)
-        grid = params["grid"]
+        self.grid = params["grid"]
         self.dwell_s, self.settle_s = params["dwell"], params["settle"]
         self.start_cell = params["start_cell"]
-        self.wait_for_subscriber = params["wait_for_subscriber"]
-        self.cells = sweep_velocities(self.profile, grid)
+        self.cells = sweep_velocities(self.profile, self.grid)
         if not 0 <= self.start_cell < len(self.cells):
             raise ConfigError(f"sweep_driver: start_cell must be in 0..{len(self.cells) - 1}")
-        self.grid = grid
         self.pub = self.create_publisher(Float64MultiArray, TOPIC_COMMANDS, 10)
         self.health = Health(self, hardware_id=self.profile.name)
         self.done = Future()
         self.cell = self.start_cell - 1
         self.cell_start_ns: int | None = None
-        self.gate = SubscriberGate(
-            [self.pub], 1 if self.wait_for_subscriber > 0 else 0, self.wait_for_subscriber
-        )
+        wait_s = params["wait_for_subscriber"]
+        self.gate = SubscriberGate([self.pub], 1 if wait_s > 0 else 0, wait_s)
         self.create_timer(COMMAND_PERIOD_S, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         total = (len(self.cells) - self.start_cell) * (self.dwell_s + self.settle_s)
         self.get_logger().info(
-            f"{grid} sweep of {self.profile.name} ({', '.join(self.profile.joint_names)}): "
+            f"{self.grid} sweep of {self.profile.name} ({', '.join(self.profile.joint_names)}): "
             f"cells {self.start_cell}..{len(self.cells) - 1}, "
             f"settle {self.settle_s:g} s + dwell {self.dwell_s:g} s, ~{total:.0f} s"
         )
@@ -143,7 +131,7 @@ class SweepDriver(Node):
         stop = command_message(np.zeros(self.cells.shape[1]))
         for _ in range(3):
             self.pub.publish(stop)
-        self._wait_for_delivery()
+        wait_for_delivery(self, [self.pub], "stop command")
         self.get_logger().info(f"{self.grid} sweep done: joints stopped")
         self._publish_diagnostics()
         self.done.set_result(0)
@@ -161,33 +149,21 @@ class SweepDriver(Node):
         commanding = not finished and 0 <= self.cell < len(self.cells)
         for j, name in enumerate(self.profile.joint_names):  # same keys every time (dashboards)
             values[f"command.{name}"] = float(self.cells[self.cell][j]) if commanding else 0.0
-        message = (
-            "done"
-            if finished
-            else (
-                f"cell {index + 1}/{len(self.cells)}"
-                if self.cell_start_ns is not None
-                else "waiting"
-            )
-        )
         waiting = self.cell_start_ns is None and not finished
-        warnings = (
-            ["no subscriber of the commands yet"]
-            if waiting and self.pub.get_subscription_count() == 0
-            else []
+        message = (
+            "done" if finished else "waiting" if waiting else f"cell {index + 1}/{len(self.cells)}"
         )
+        warnings = []
+        if waiting and self.pub.get_subscription_count() == 0:
+            warnings.append("no subscriber of the commands yet")
         self.health.publish(warnings=warnings, ok=message, values=values)
 
-    def _wait_for_delivery(self) -> None:
-        # The process exits right after the stop command: without the subscribers'
-        # acknowledgement (reliable QoS) DDS may drop it with the process.
-        wait_for_delivery(self, [self.pub], "stop command")
-
     def close(self) -> None:
-        # Interrupted or done: leave the joints stopped.
+        # Interrupted or done: leave the joints stopped (acknowledged: DDS may drop what is
+        # unacknowledged when the process exits).
         try:
             self.pub.publish(command_message(np.zeros(self.cells.shape[1])))
-            self._wait_for_delivery()
+            wait_for_delivery(self, [self.pub], "stop command")
         except Exception:  # noqa: BLE001 - context already shut down by Ctrl-C
             pass
 
