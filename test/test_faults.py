@@ -2146,7 +2146,8 @@ def test_live_sensor_rate_halving_is_an_error_and_publishing_stops(
     from conftest import reports
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
+    from egovib_research.tools.watcher import decode_imu_messages
+    from egovib_ros.nodes.convert import diagnostic_values
 
     den, received, feed, profile = _live_denoiser(nodes, ros_client, feeder, sim_model_path)
     rate = profile.rate_hz
@@ -2287,7 +2288,8 @@ def test_live_burst_at_ten_times_the_rate_refused_then_denoising_resumes(
     from conftest import reports
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values
+    from egovib_research.tools.watcher import decode_imu_messages
+    from egovib_ros.nodes.convert import diagnostic_values
 
     den, received, feed, profile = _live_denoiser(nodes, ros_client, feeder, sim_model_path)
     before, burst, after = _publish_burst_stream(feed, profile)

@@ -7,14 +7,13 @@ import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, JointState
 
+from egovib_research.tools.watcher import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.bag.codec import encode_imu_batch, encode_joint_state_batch
 from egovib_ros.errors import StreamError
 from egovib_ros.nodes.convert import (
     command_message,
     command_velocity,
-    decode_imu_messages,
     decode_imu_raws,
-    decode_joint_state_messages,
     decode_joint_state_raws,
     diagnostic_array,
     diagnostic_values,

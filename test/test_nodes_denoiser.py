@@ -37,13 +37,13 @@ from scipy import signal
 from sensor_msgs.msg import Imu
 
 from egovib_research.tools.orchestration import deep_output, reliable_input
+from egovib_research.tools.watcher import decode_imu_messages
 from egovib_ros.bag.codec import encode_imu_batch
 from egovib_ros.bag.denoise import denoise_bag
 from egovib_ros.core import NoiseModel
 from egovib_ros.nodes.common import stream_publisher_qos
 from egovib_ros.nodes.convert import (
     command_message,
-    decode_imu_messages,
     diagnostic_values,
 )
 from egovib_ros.robot import load_profile

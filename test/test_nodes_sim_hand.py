@@ -8,9 +8,9 @@ from conftest import wait_for_stream_end
 from sensor_msgs.msg import Imu, JointState
 
 from egovib_research.tools.orchestration import deep_output
+from egovib_research.tools.watcher import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.nodes.convert import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import simulate_motion
 

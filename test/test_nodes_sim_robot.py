@@ -22,10 +22,11 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64MultiArray
 
 from egovib_research.tools.orchestration import deep_output, reliable_input
+from egovib_research.tools.watcher import decode_imu_messages
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation.contacts import TOLERANCE_S
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.nodes.convert import decode_imu_messages, diagnostic_values, stamp_to_ns
+from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`

@@ -80,8 +80,6 @@ class BagPlayer(Node):
         params = declare_parameters(self, PARAMETERS)
         self.bag = Path(params["bag"])
         self.rate = params["rate"]
-        self.publish_clock = params["clock"]
-        topics = params["topics"] or []
         self.wait_for_subscribers = params["wait_for_subscribers"]
         self.wait_timeout = params["wait_timeout"]
         self.start_delay = params["start_delay"]
@@ -89,7 +87,7 @@ class BagPlayer(Node):
         if not (self.bag / "metadata.yaml").is_file():
             raise BagError(f"{self.bag}: not a rosbag2 directory (no metadata.yaml)")
         self.reader = BagReader(self.bag)  # the bag layer: BagError on an unreadable bag
-        wanted = {bag_topic_key(t) for t in topics if t.strip()}
+        wanted = {bag_topic_key(t) for t in params["topics"] or [] if t.strip()}
         missing = sorted(wanted - {bag_topic_key(t) for t in self.reader.topics})
         if missing and len(missing) == len(wanted):
             raise BagError(f"{self.bag}: none of the topics {missing} is in the bag")
@@ -106,7 +104,7 @@ class BagPlayer(Node):
                 continue
             self.topic_publishers[topic] = stream_publisher(self, msg_class, topic.lstrip("/"))
         self.clock_publisher = (
-            self.create_publisher(Clock, "/clock", 10) if self.publish_clock else None
+            self.create_publisher(Clock, "/clock", 10) if params["clock"] else None
         )
         self.published = 0
 

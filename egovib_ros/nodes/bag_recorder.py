@@ -14,31 +14,17 @@ import time
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import ReliabilityPolicy
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
 from egovib_ros.errors import BagError
-from egovib_ros.nodes.common import Param, declare_parameters, run_node
+from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
 from egovib_ros.outputs import atomic_output
-from egovib_ros.sim.pr2 import (
-    TOPIC_COMMANDS,
-    TOPIC_CONTACT,
-    TOPIC_DENOISED,
-    TOPIC_EGO,
-    TOPIC_JOINT_STATES,
-    TOPIC_RAW,
-)
+from egovib_ros.sim.pr2 import BAG_TOPICS
 
-DEFAULT_TOPICS = [
-    TOPIC_JOINT_STATES,
-    TOPIC_RAW,
-    TOPIC_DENOISED,
-    TOPIC_CONTACT,
-    TOPIC_EGO,
-    TOPIC_COMMANDS,
-]
+DEFAULT_TOPICS = [topic.lstrip("/") for topic in BAG_TOPICS.values()]  # the PR2 hand's, relative
 # 10 s at 3 kHz: a reliable publisher's samples are acknowledged once in this queue, so
 # writing may lag that long on a busy machine without losing anything.
 RECORDER_QUEUE_DEPTH = 30000
@@ -73,14 +59,12 @@ class BagRecorder(Node):
     def __init__(self):
         super().__init__("bag_recorder")
         params = declare_parameters(self, PARAMETERS)
-        topics = params["topics"]
         self.output = Path(params["output"])
-        storage = params["storage"]
-        compress = params["compress"]
+        storage, compress = params["storage"], params["compress"]
         self.queue_depth = params["queue_depth"]
         if self.output.exists():
             raise BagError(f"{self.output}: bag already exists")
-        self.topics = [self.resolve_topic_name(t) for t in topics]
+        self.topics = [self.resolve_topic_name(t) for t in params["topics"]]
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._files = contextlib.ExitStack()
         try:
@@ -115,14 +99,9 @@ class BagRecorder(Node):
             reliable = all(
                 p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers
             )
-            qos = QoSProfile(
-                history=HistoryPolicy.KEEP_LAST,
-                depth=self.queue_depth,
-                reliability=(
-                    ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
-                ),
-                durability=DurabilityPolicy.VOLATILE,
-            )
+            qos = stream_publisher_qos(self.queue_depth)  # keep-last, volatile
+            if not reliable:
+                qos.reliability = ReliabilityPolicy.BEST_EFFORT
             try:
                 msg_class = message_class(type_name)
                 connection = self.writer.add_connection(topic, type_name, typestore=self.typestore)

@@ -313,10 +313,8 @@ class StreamInput:
         self._sensor: list[bytes] = []
         self._arrival: list[int] = []
         self._joints: list[bytes] = []
-        self.sensor_messages = 0
-        self.joint_messages = 0
-        self.undecodable_sensor = 0
-        self.undecodable_joints = 0
+        self.sensor_messages = self.joint_messages = 0
+        self.undecodable_sensor = self.undecodable_joints = 0
         self.last_sensor_s: float | None = None  # monotonic times of the last messages
         self.last_joint_s: float | None = None
         self.joints_seen = np.zeros(len(self.joint_names), bool)

@@ -63,16 +63,6 @@ def decode_imu_raws(
     )
 
 
-def decode_imu_messages(
-    raws: Sequence[bytes], field: str = "linear_acceleration"
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Raw Imu CDR messages -> (stamps_ns, values (n, 3), number dropped), dropping
-    undecodable and non-finite messages (for analysing a received stream)."""
-    stamps, values, _ = decode_imu_raws(raws, field)
-    finite = np.all(np.isfinite(values), axis=1)
-    return stamps[finite], values[finite], len(raws) - int(finite.sum())
-
-
 def decode_joint_state_raws(
     raws: Sequence[bytes], names: Sequence[str]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -99,16 +89,6 @@ def decode_joint_state_raws(
         np.concatenate([p[2] for p in parts]),
         len(raws) - len(parts),
     )
-
-
-def decode_joint_state_messages(
-    raws: Sequence[bytes], names: Sequence[str]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """As decode_joint_state_raws, but also dropping rows without a finite position and
-    velocity of every named joint; the count returned covers both kinds."""
-    stamps, position, velocity, _ = decode_joint_state_raws(raws, names)
-    good = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(velocity), axis=1)
-    return stamps[good], position[good], velocity[good], len(raws) - int(good.sum())
 
 
 def joint_names_of(raw: bytes) -> tuple[str, ...]:

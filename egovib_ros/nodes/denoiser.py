@@ -456,7 +456,7 @@ class Denoiser(Node):
         joints = self._take_joints(final=final)
         return None if joints is None else self.denoiser.push_joint_states(*joints)
 
-    def _refuse(self, reason: str, *, rate: bool = False) -> None:
+    def _refuse(self, reason: str, *, rate: bool) -> None:
         """The core refused the stream (e.g. its rate does not fit the model): publish nothing;
         for a rate that changed (`rate`), until it is back (`_restart`)."""
         reason += self.input.publishers_note()
@@ -467,10 +467,8 @@ class Denoiser(Node):
         self.samples_withheld += self.held.clear() + sum(len(r) for r, _, _ in self._startup)
         self._startup = []
         if rate:
-            self._rate_watch = RateWatch(
-                self.denoiser.settings,
-                receipt=getattr(self.denoiser, "sensor_stamps", "") == "receipt",
-            )
+            receipt = self.denoiser.sensor_stamps == "receipt"
+            self._rate_watch = RateWatch(self.denoiser.settings, receipt=receipt)
 
     def _restart(self) -> None:
         """The stream's rate fits the model again (a burst at another rate has passed): the
@@ -509,8 +507,7 @@ class Denoiser(Node):
             for data in replace_imu_field(raws, values, self.profile.sensor_field):
                 self.pub.publish(data)
             self.samples_published += len(raws)
-            # Latency on this machine's clock: receive of the input message -> publish of its
-            # output.
+            # latency on this machine's clock: input message received -> its output published
             self._latency_ms.append((time.monotonic_ns() - arrival) / 1e6)
 
     def _on_idle_check(self) -> None:

@@ -48,7 +48,7 @@ from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import Imu
 
 from egovib_research.tools.orchestration import NodeGroup
-from egovib_research.tools.watcher import Watcher
+from egovib_research.tools.watcher import Watcher, decode_imu_messages
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.core.filters import combined_bandpassed
@@ -63,12 +63,7 @@ from egovib_ros.evaluation.contacts import TOLERANCE_S
 from egovib_ros.evaluation.detection import match_events
 from egovib_ros.evaluation.metrics import segment_contacts
 from egovib_ros.nodes.common import drain, sensor_qos
-from egovib_ros.nodes.convert import (
-    command_message,
-    decode_imu_messages,
-    diagnostic_values,
-    stamp_to_ns,
-)
+from egovib_ros.nodes.convert import command_message, diagnostic_values, stamp_to_ns
 from egovib_ros.outputs import atomic_output
 from egovib_ros.robot import load_profile
 from egovib_ros.sim import motion_commands, simulate_motion, simulate_sweep

@@ -1,11 +1,14 @@
 """Watcher: an rclpy node inside the calling process (its own context) that follows
-/diagnostics and publishes joint commands; the in-process side of `egovib demo`,
-`egovib live-bench` and the node tests (the processes: egovib_research.tools.orchestration)."""
+/diagnostics and publishes joint commands, and the decoding of the streams it receives; the
+in-process side of `egovib demo`, `egovib live-bench` and the node tests (the processes:
+egovib_research.tools.orchestration)."""
 
 from __future__ import annotations
 
 import time
+from typing import Sequence
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.experimental import EventsExecutor
@@ -13,6 +16,27 @@ from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
 from egovib_ros.nodes.common import use_package_fastdds_profiles
+from egovib_ros.nodes.convert import decode_imu_raws, decode_joint_state_raws
+
+
+def decode_imu_messages(
+    raws: Sequence[bytes], field: str = "linear_acceleration"
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Raw Imu CDR messages -> (stamps_ns, values (n, 3), number dropped), dropping
+    undecodable and non-finite messages (for analysing a received stream)."""
+    stamps, values, _ = decode_imu_raws(raws, field)
+    finite = np.all(np.isfinite(values), axis=1)
+    return stamps[finite], values[finite], len(raws) - int(finite.sum())
+
+
+def decode_joint_state_messages(
+    raws: Sequence[bytes], names: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """As decode_joint_state_raws, but also dropping rows without a finite position and
+    velocity of every named joint; the count returned covers both kinds."""
+    stamps, position, velocity, _ = decode_joint_state_raws(raws, names)
+    good = np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(velocity), axis=1)
+    return stamps[good], position[good], velocity[good], len(raws) - int(good.sum())
 
 
 class Watcher:
