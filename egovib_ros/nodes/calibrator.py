@@ -1,16 +1,11 @@
-"""calibrator: live calibration of the noise model (egovib_ros.core.CalibrationAccumulator).
+"""calibrator: live calibration of the noise model (core.CalibrationAccumulator;
+docs/live_nodes.md).
 
-The robot profile (`robot`) gives the sensor and joint-state topics (relative names:
-remappable), the Imu field, the joints (picked by name) and the grid. Blocks go to velocity
-cells by the *measured* joint velocities, so nothing is needed from a driver: `grid` full |
-superposition for a sweep (e.g. the sweep_driver node), free for any no-contact motion,
-auto to decide from the data.
-
-A checkpoint model is written atomically when a sweep moves on to its next cell, or every
-`checkpoint_period` s of free motion; a restarted calibrator resumes from it. A checkpoint
-that cannot be written is an ERROR on /diagnostics, retried every `retry_period` s (the
-statistics stay in memory). At shutdown the model is written to `output` (or, failing
-that, beside the system's temporary files, named in the error) and coverage is printed.
+Blocks go to the velocity cells of the robot profile's grid by the *measured* joint
+velocities, so nothing is needed from a driver (`grid`: a sweep, free motion or auto). A
+checkpoint is written atomically at each new sweep cell or every `checkpoint_period` s of
+free motion, and resumed from; one that cannot be written is an ERROR, retried. At
+shutdown the model is written to `output` (else beside the temporary files, named).
 """
 
 from __future__ import annotations

@@ -437,14 +437,12 @@ class StreamInput:
         sensor_in, joints_in = (now - before for now, before in zip(received, self._counted))
         self._counted = received
         notes = []
-        for topic, dropped, came in (
-            (self.sensor_topic, grown.get("samples_out_of_order", 0), sensor_in),
-            (self.joints_topic, grown.get("joint_states_dropped", 0), joints_in),
+        for topic, dropped, came, key in (
+            (self.sensor_topic, "samples_out_of_order", sensor_in, "sensor_publishers"),
+            (self.joints_topic, "joint_states_dropped", joints_in, "joint_state_publishers"),
         ):
-            if came and dropped > 0.5 * came:
-                publishers = self.publisher_counts()[
-                    "sensor_publishers" if topic == self.sensor_topic else "joint_state_publishers"
-                ]
+            if came and grown.get(dropped, 0) > 0.5 * came:
+                publishers = self.publisher_counts()[key]
                 why = (
                     f"{publishers} publishers on it: two sensors, or one twice?"
                     if publishers > 1
@@ -526,12 +524,9 @@ def stream_counters(inp: "StreamInput", stats) -> dict[str, int]:
 
 
 class Health:
-    """The node's DiagnosticStatus on /diagnostics (~1 Hz), named by its fully qualified
-    name without the leading '/'. ERROR: a condition that stops the node doing its job
-    (wrong model rate, a named joint never seen, an unwritable output), until it is gone;
-    STALE: no input for `stale_after_s`; WARN: something went wrong since the previous
-    report (drops, gaps, restarts, bad messages); OK otherwise. Every report has the same
-    keys, numeric where possible, so a dashboard can plot them."""
+    """The node's DiagnosticStatus on /diagnostics (~1 Hz), named by its fully qualified name
+    without the leading '/'; ERROR > STALE > WARN (since the previous report) > OK, every
+    report with the same keys (docs/live_nodes.md, Health)."""
 
     def __init__(self, node: Node, *, hardware_id: str = "", stale_after_s: float = 3.0):
         self.node = node
@@ -635,10 +630,9 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
         if node is not None:
             close = getattr(node, "close", None)
             try:
-                if close is not None:
-                    extra = close()
-                    if extra:
-                        status = status or int(extra)
+                if close is not None:  # its exit status counts unless there is one already
+                    extra = int(close() or 0)
+                    status = status or extra
             except EgovibError as exc:
                 print(f"{node.get_name()}: error: {exc}", file=sys.stderr)
                 status = 2

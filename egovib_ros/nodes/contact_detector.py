@@ -1,18 +1,12 @@
-"""contact_detector: contact events, live, from the denoiser's output (or the raw stream).
+"""contact_detector: contact events, live, from the denoiser's output or the raw stream
+(docs/live_nodes.md).
 
-Runs the core's contact detector (core.contact, the one `egovib detect` runs, so live and
-offline events agree) on the model's denoised topic (`source: denoised`) or its sensor
-topic (`source: raw`) and publishes one geometry_msgs/Vector3Stamped per event on
-`contact_events`: stamp = the onset (a sensor sample's stamp), frame_id = the sensor's,
-vector = the band-passed vector at the event's peak, in the sensor field's unit.
-
-The threshold is fixed at start by the rule of `egovib detect` and `egovib evaluate`
-(evaluation.contacts.detection_threshold): `threshold`, else the one stored in the model for
-`method`, else one from no-contact data at the budget `false_alarms_per_min`.
-/diagnostics: events per minute, threshold, budget, the calibration's false-alarm rate, and
-the latency to an event's message (p50, p99) from its onset stamp, or from the arrival of
-the onset's sample when the stamps are not on this machine's clock (a replay, sim time):
-`latency_from` says which.
+The detector of `egovib detect` (core.contact), so live and offline events agree, with its
+threshold fixed at start by the same rule (evaluation.contacts.detection_threshold). One
+geometry_msgs/Vector3Stamped per event on `contact_events`: stamp = the onset, frame_id =
+the sensor's, vector = the band-passed vector at the event's peak. Its latency is counted
+from the onset stamp, or from the arrival of the onset's sample when the stamps are not on
+this machine's clock (a replay, sim time): `latency_from` says which.
 """
 
 from __future__ import annotations

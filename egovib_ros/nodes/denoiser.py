@@ -1,23 +1,12 @@
-"""denoiser: streaming ego-vibration removal as a ROS 2 node, by `method` (paper: the paper's
-spectral subtraction, core.StreamingDenoiser; cancel, hybrid: core.methods), built by the
-same function as `egovib denoise --method`, so live equals offline.
+"""denoiser: streaming ego-vibration removal as a ROS 2 node (docs/live_nodes.md).
 
-Everything robot-specific comes from the noise model's profile: the sensor and joint-state
-topics (relative names: remappable), the Imu field cleaned, the joints (picked by name,
-velocity as the profile's `joints.velocity` says) and the nominal rate. The output is the
-drop-in replacement of the input: each Imu is the input message with the profile's field
-replaced by its cleaned value, every other byte copied (so inputs are held until output).
-
-/diagnostics (nodes.common.Health): ERROR, nothing published, when the stream's rate does
-not fit the model or a named joint never appears; STALE with no input for `stale_after` s;
-WARN for bad, missing or out-of-order samples, restarts, blocks without joint state or too
-many blocks on unmeasured cells (CoverageWarning). Method paper's `oversubtraction` and
-`floor` change live (`ros2 param set`); all else is read-only.
-
-`adapt: true` (cancel, hybrid; core.adapt): the model goes on learning while the contact
-detector sees no contact on this node's output, as `egovib denoise --adapt`. Services
-(std_srvs/Trigger): `~/save_model` writes the adapted model to `save_model` atomically,
-`~/reset_model` returns to the calibrated one.
+The `method` (paper, cancel, hybrid) is built by the function `egovib denoise --method`
+uses, so live equals offline; topics, Imu field, joints and rate come from the noise
+model's robot profile. Each output Imu is its input message with the profile's field
+replaced by the cleaned value (a drop-in replacement), so input messages are held until
+their samples come out. With method paper, `oversubtraction` and `floor` change live; with
+`adapt` (cancel, hybrid) the model goes on learning while no contact is seen, served by
+`~/save_model` and `~/reset_model` (std_srvs/Trigger).
 """
 
 from __future__ import annotations

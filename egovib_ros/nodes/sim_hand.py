@@ -1,9 +1,7 @@
-"""sim_hand: the simulated PR2 right hand (egovib_ros.sim.HandSimulator) as a ROS 2 node.
-
-Follows `hand_velocity_controller/commands` and publishes, in real time on the node clock,
-`joint_states` (1 kHz), `accelerometer/raw` (3 kHz, one Imu per sample) and the ground truth
-`accelerometer/contact` and `accelerometer/ego`. The node's body is
-nodes.simulator.SimulatorNode, shared with sim_robot (any robot profile).
+"""sim_hand: the simulated PR2 right hand (egovib_ros.sim.HandSimulator) as a ROS 2 node,
+a nodes.simulator.SimulatorNode (docs/live_nodes.md): `joint_states` (1 kHz),
+`accelerometer/raw` (3 kHz, one Imu per sample) and the ground truth
+`accelerometer/contact` and `accelerometer/ego`.
 """
 
 from __future__ import annotations

@@ -1,13 +1,8 @@
-"""sim_robot: any robot profile simulated live (egovib_ros.sim.robot.CommandedRobot).
+"""sim_robot: any robot profile simulated live (sim.robot.CommandedRobot, the simulator of
+`egovib simulate robot`), as a nodes.simulator.SimulatorNode (docs/live_nodes.md).
 
-The simulator of `egovib simulate robot` as a node: `robot` (a profile path or a shipped
-name; empty = the PR2 profile) gives the topics, Imu field, rate, range, joints and band.
-Follows the commands on `hand_velocity_controller/commands` (one velocity per profile
-joint, as `sweep_driver robot:=...` publishes) through a first-order velocity controller
-(50 ms) limited to each joint's range (a command beyond it is held at the limit: WARN), and
-publishes the profile's joint states (`joint_rate_hz`), its sensor topic (stamps jittering
-+-30 % around the nominal rate, as offline) and the ground truth beside it. The node's
-body is nodes.simulator.SimulatorNode, shared with sim_hand.
+Each command is held, limited to the joints' ranges (beyond them: WARN) and reached
+through a 50 ms first-order velocity controller.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
 """What the simulator nodes share (sim_hand: the PR2 hand; sim_robot: any robot profile).
 
-A SimulatorNode steps a streaming simulator from a timer, in real time on the node clock
-(so `use_sim_time` works; the simulation starts at the first non-zero clock time, or once
-every stream has its subscribers with `wait_for_subscribers`), follows the velocity
-commands on `hand_velocity_controller/commands` (one value per profile joint, as
-`sweep_driver` publishes) and publishes the profile's joint states and sensor stream, and
-the ground truth beside the sensor topic (`<parent>/contact`, `<parent>/ego`), as
-pre-serialised CDR: one Imu per sample, stamps = sample times. A node says what to
-simulate through four methods: configure (its own parameters, the profile), make
-(the simulator), due (samples due by a clock time) and describe (its start-up line).
-Ctrl-C and SIGTERM end the spin between two ticks (run_node).
+A SimulatorNode steps a streaming simulator from a timer in real time on the node clock
+(from the first non-zero clock time, or once every stream has its subscribers), follows
+the velocity commands and publishes the profile's joint states, sensor stream and ground
+truth (`<parent of the sensor topic>/contact`, `/ego`) as pre-serialised CDR. A node says
+what to simulate through configure (its parameters, the profile), make (the simulator),
+due (samples due by a clock time) and describe (its start-up line). docs/live_nodes.md.
 """
 
 from __future__ import annotations

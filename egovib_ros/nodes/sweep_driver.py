@@ -1,11 +1,9 @@
 """sweep_driver: command the calibration sweep over a robot's velocity grid, then stop and exit 0.
 
-The robot profile (`robot`) gives the joints and their grid. Each cell of the sweep
-(`full`: every cell; `superposition`: the rest cell, then each joint's other grid values
-with the others at rest, which Eq. 6 needs; in the core's `sweep_cells` order) is
-commanded for `settle` + `dwell` s of node-clock time (so it follows use_sim_time) on
-`hand_velocity_controller/commands` (remap it to your controller's), one value per joint
-(ros2_control forward-command convention). `start_cell` resumes an interrupted sweep.
+Each cell (`full`: every cell; `superposition`: the rest cell, then each joint's other
+values with the others at rest; in the core's `sweep_cells` order) is commanded for
+`settle` + `dwell` s of node-clock time on `hand_velocity_controller/commands`, one value
+per joint (ros2_control forward-command convention). docs/live_nodes.md.
 """
 
 from __future__ import annotations
