@@ -1,45 +1,28 @@
 """Outputs that never destroy what they did not create (INTERFACES.md section 3).
 
-Two steps, used by every command that writes:
-
-1. `prepare_output(path, force=..., inputs=..., kind=...)` BEFORE any work: refuses
-   `.`/`..` (and the working directory or its parents), an output that is, holds or
-   lies inside an input of the same run (always, even with --force), an existing
-   output without --force, an existing output that is not a previous output of ours
-   (even with --force), and an output that cannot be written (read-only directory or
-   file system: probed by creating a file there). Each refusal is an OutputError:
-   one line naming the option, the path and the problem (exit 2 in the CLI).
-   `prepare_outputs_in(directory, names, ...)` does the same for commands that write
-   named files into a directory (figures, gap validate).
-
+1. `prepare_output(path, force=..., inputs=..., kind=...)`, BEFORE any work, refuses with
+   an OutputError (one line naming the option, the path and the problem; exit 2): `.`, `..`,
+   the working directory or its parents; an output that is, holds or lies inside an input
+   of the run (even with --force); an existing output without --force, or one that is not a
+   previous output of ours (even with --force); an output that cannot be written (probed).
+   `prepare_outputs_in(directory, names, ...)`: the same for named files in a directory.
+   It also claims the output (flock on `.NAME.egovib-lock` beside it, held until
+   `release_outputs()`): a second run is refused at once, naming the run that holds it,
+   rather than made to wait and then find the output there (or replace it with --force).
 2. `atomic_output(path, directory=...)`: the output is written in a hidden staging
-   directory next to its target (`.NAME.PID.XXXX.partial`) and renamed into place
-   only when the block succeeds. An existing target is replaced only if it is of the
-   same type and, for a directory, recognisably ours. Directory outputs get a small
-   marker file (MARKER) listing the files we wrote, which is what makes them
-   recognisable (and replaceable with --force) later.
+   directory beside its target (`.NAME.PID.XXXX.partial`) and renamed into place only when
+   the block succeeds; an existing target only if of the same type and, for a directory,
+   ours (its MARKER file lists the files we wrote). A full file system (quota, size limit,
+   turned read-only) is an OutputError naming the output and the free space.
 
-Two runs never claim the same output: `prepare_output` takes an exclusive lock on the
-target (flock on `.NAME.egovib-lock` beside it) and holds it until `release_outputs()`
-(the CLI calls it when the command ends; atexit otherwise). A second run is refused at
-once with one line naming the run that holds it, rather than made to wait: after the
-wait it would find the output there and be refused anyway (or, with --force, silently
-replace what the first run just wrote).
-
-A write that fails for lack of space (or a quota, a file-size limit, a file system
-turned read-only) is an OutputError naming the output and the free space left; the
-staging directory goes at once, as for any failure inside `atomic_output`.
-
-Staging directories left by killed runs are removed on the next run that writes next
-to them, but only our own (they carry PARTIAL_MARKER), only when older than the running
-process and only when the process that made them is gone.
+Staging directories of killed runs are removed by the next run writing beside them: only
+ours (PARTIAL_MARKER), only older than this process, only when their process is gone.
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
-import dataclasses
 import datetime as _dt
 import errno
 import fcntl
@@ -60,7 +43,7 @@ from egovib_ros import __version__
 from egovib_ros.errors import EgovibError
 
 MARKER = ".egovib-output"  # JSON marker inside every directory output we write
-#: The keys of a --truth file (`egovib simulate`, the alternate reality; INTERFACES.md section 3)
+#: The keys of a --truth file (`egovib simulate`, the alternate reality)
 TRUTH_KEYS = ("seed", "effects", "tap_onsets_ns")
 MARKER_SCHEMA = "egovib.output/1"
 PARTIAL_SUFFIX = ".partial"
@@ -87,8 +70,6 @@ class OutputError(EgovibError):
 
 
 # --- checks done before any work ---------------------------------------------------------
-
-
 def prepare_output(
     path: str | os.PathLike,
     *,
@@ -98,20 +79,16 @@ def prepare_output(
     option: str = "--out",
     ours: Callable[[Path], bool] | None = None,
 ) -> Path:
-    """Check that `path` may be written by this run; raise OutputError (one line) if not.
+    """`path` as a Path if this run may write it, else OutputError (one line); claims it and
+    removes our stale staging directories beside it.
 
-    inputs: paths this run reads (and other outputs of the same run): the output may
-        not be one of them, lie inside one, or hold one, whatever --force says.
-    kind: "bag" | "report" | "directory" (directories) or "model" | "json" | "file".
-        With --force an existing output is replaced only if it is a previous output of
-        ours of that type (see `_why_not_ours`); `ours(path)`, if given, tells a file this
-        command wrote from any other file of that type (a JSON or CSV of the user's).
-    Also removes our own stale staging directories next to the output.
-    Returns `path` as a Path.
-    """
+    inputs: paths this run reads (and its other outputs). kind: "bag" | "report" |
+    "directory" (directories) or "model" | "json" | "file": with --force an existing output
+    is replaced only if it is a previous output of ours of that type (`_why_not_ours`);
+    `ours(path)` tells a file this command wrote from another of that type (a user's CSV)."""
     if kind not in DIRECTORY_KINDS + FILE_KINDS:
         raise ValueError(f"unknown output kind {kind!r}")
-    label = f"{option} {path}" if option else str(path)
+    label = f"{option} {path}"
     target = _check_path_itself(path, label)
     _check_not_an_input(target, inputs, label)
     _check_existing(target, force, kind, label, ours)
@@ -126,9 +103,7 @@ def prepare_output(
     return target
 
 
-def _check_existing(
-    target: Path, force: bool, kind: str, label: str, ours: Callable[[Path], bool] | None = None
-) -> None:
+def _check_existing(target: Path, force: bool, kind: str, label: str, ours) -> None:
     if os.path.lexists(target):
         if not force:
             raise OutputError(f"{label}: already exists (use --force to replace it)")
@@ -147,12 +122,10 @@ def prepare_outputs_in(
     inputs: Iterable[str | os.PathLike | None] = (),
     option: str = "--out",
 ) -> Path:
-    """Like prepare_output for a command that writes the files `names` into `directory`.
-
-    The directory itself may exist (it is added to, never replaced); each named file
-    that exists needs --force, and must then be a regular file (.json files: JSON).
-    """
-    label = f"{option} {directory}" if option else str(directory)
+    """Like prepare_output for a command that writes the files `names` into `directory`: the
+    directory may exist (it is added to, never replaced); each named file that exists needs
+    --force, and must then be a regular file (.json files: JSON)."""
+    label = f"{option} {directory}"
     target = _check_path_itself(directory, label)
     _check_not_an_input(target, inputs, label)
     if os.path.lexists(target) and not target.is_dir():
@@ -220,8 +193,8 @@ def _check_not_an_input(
 
 
 def _check_writable(target: Path, label: str) -> None:
-    """Create (and remove) a probe file where the output will be written, with one block of
-    data in it: a full file system is refused here, before any work."""
+    """Create (and remove) a probe file holding one block where the output will be written:
+    a full file system is refused here, before any work."""
     parent = _resolve(target).parent
     ancestor = parent
     while not ancestor.exists():
@@ -245,15 +218,13 @@ def _check_writable(target: Path, label: str) -> None:
 
 
 # --- a stop requested by a signal ------------------------------------------------------------
-
 _STOP: list[type[BaseException]] = []
 
 
 def request_stop(exception: type[BaseException]) -> None:
-    """Record that the run must stop (the CLI's Ctrl-C and SIGTERM handlers call this before
-    raising `exception`). A library that swallows the exception (a bare `except:`, C code
-    clearing the error) cannot make the run commit an output anyway: `atomic_output`
-    raises it again instead of moving the output into place."""
+    """Record that the run must stop (the CLI's Ctrl-C and SIGTERM handlers, before raising
+    `exception`): a library that swallows the exception (a bare `except:`, C code clearing
+    the error) cannot make the run commit an output: `atomic_output` raises it again."""
     if not _STOP:
         _STOP.append(exception)
 
@@ -263,24 +234,14 @@ def clear_stop() -> None:
 
 
 # --- one run per output ----------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class _Claim:
-    lock_path: Path
-    fd: int
-    made_dirs: list[Path]  # parent directories created for the lock file (removed if empty)
-
-
-_CLAIMS: dict[Path, _Claim] = {}
+# resolved target -> (lock file, its descriptor, directories made for it: removed if empty)
+_CLAIMS: dict[Path, tuple[Path, int, list[Path]]] = {}
 
 
 def claim_output(target: str | os.PathLike, label: str = "") -> None:
-    """Take an exclusive lock on the output `target` for this run: `.NAME.egovib-lock`
-    beside it, flocked (released by the kernel if the process dies, whatever kills it).
-    Another process holding it: OutputError naming its pid. Missing parent directories
-    are created for the lock file and removed again on release if still empty. A claim
-    this process already holds is kept."""
+    """Lock the output `target` for this run: `.NAME.egovib-lock` beside it, flocked
+    (released by the kernel if the process dies, whatever kills it); held by another
+    process: OutputError naming its pid. A claim this process holds already is kept."""
     key = _resolve(Path(target))
     if key in _CLAIMS:
         return
@@ -322,7 +283,7 @@ def claim_output(target: str | os.PathLike, label: str = "") -> None:
     with contextlib.suppress(OSError):  # only for the message of a run refused; may not fit
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
-    _CLAIMS[key] = _Claim(lock_path, fd, made)
+    _CLAIMS[key] = (lock_path, fd, made)
 
 
 def release_outputs(*targets: str | os.PathLike) -> None:
@@ -330,13 +291,13 @@ def release_outputs(*targets: str | os.PathLike) -> None:
     file is removed, then unlocked; directories made for it go if empty."""
     keys = [_resolve(Path(t)) for t in targets] if targets else list(_CLAIMS)
     for key in keys:
-        claim = _CLAIMS.pop(key, None)
-        if claim is None:
+        if key not in _CLAIMS:
             continue
+        lock_path, fd, made = _CLAIMS.pop(key)
         with contextlib.suppress(OSError):
-            os.unlink(claim.lock_path)
-        os.close(claim.fd)
-        _remove_empty(claim.made_dirs)
+            os.unlink(lock_path)
+        os.close(fd)
+        _remove_empty(made)
 
 
 atexit.register(release_outputs)
@@ -373,8 +334,6 @@ def _remove_empty(directories: list[Path]) -> None:
 
 
 # --- what counts as ours -----------------------------------------------------------------
-
-
 def json_holding(keys: Iterable[str] = (), **values) -> Callable[[Path], bool]:
     """`ours` for prepare_output: a JSON object with these keys, and these values."""
 
@@ -472,20 +431,16 @@ def _short_list(items: list[str], limit: int = 3) -> str:
 
 
 # --- writing -------------------------------------------------------------------------------
-
-
 @contextlib.contextmanager
 def atomic_output(
     path: str | os.PathLike, *, directory: bool = False, kind: str | None = None
 ) -> Iterator[Path]:
     """Yield a temporary sibling path; move it onto `path` only if the block succeeds.
 
-    For `directory=True` (rosbag2 bags, report directories) the yielded path does not
-    exist yet, so writers that insist on creating the directory themselves can do so;
-    the marker listing its files is added before it is moved into place. An existing
-    `path` is replaced only if it has the same type and, for a directory, is ours;
-    otherwise OutputError and the new output is discarded.
-    """
+    With `directory=True` (bags, report directories) the path does not exist yet (writers
+    that create their directory themselves can); the marker listing its files is added
+    before the move. An existing `path` is replaced only if of the same type and, for a
+    directory, ours; else OutputError and the new output is discarded."""
     final = Path(path)
     parent = final.parent
     try:
@@ -574,43 +529,29 @@ def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) 
 
 
 # --- stale staging directories -----------------------------------------------------------
-
-
 def clean_stale_partials(directory: str | os.PathLike) -> list[Path]:
-    """Remove our own staging directories in `directory` left by runs that are gone.
-
-    Only directories we made (PARTIAL_MARKER inside), only if older than this process, and
-    only if the process that made them no longer runs. Returns what was removed.
-    """
-    directory = Path(directory)
+    """Remove our own staging directories (PARTIAL_MARKER inside) in `directory` older
+    than this process whose process is gone; returns what was removed."""
     removed = []
     try:
-        entries = list(directory.iterdir())
+        entries = list(Path(directory).iterdir())
     except OSError:
         return removed
     started = process_start_time()
     for entry in entries:
-        name = entry.name
-        if (
-            not (name.startswith(".") and name.endswith(PARTIAL_SUFFIX))
-            or entry.is_symlink()
-            or not entry.is_dir()
-        ):
+        named = _PARTIAL.match(entry.name)
+        if not named or entry.is_symlink() or not entry.is_dir():
             continue
         try:
-            if not _is_stale_partial(entry, started):
-                continue
-            shutil.rmtree(entry)
-            removed.append(entry)
+            if _is_stale_partial(entry, int(named["pid"]), started):
+                shutil.rmtree(entry)
+                removed.append(entry)
         except OSError:
             continue  # read-only or racing: leave it
     return removed
 
 
-def _is_stale_partial(entry: Path, started: float) -> bool:
-    named = _PARTIAL.match(entry.name)
-    if not named:
-        return False
+def _is_stale_partial(entry: Path, named_pid: int, started: float) -> bool:
     marker = _read_json(entry / PARTIAL_MARKER)
     if isinstance(marker, dict):
         pid, created = marker.get("pid"), marker.get("created")
@@ -625,14 +566,13 @@ def _is_stale_partial(entry: Path, started: float) -> bool:
         )
         if not empty:
             return False
-        pid, created = int(named["pid"]), entry.stat().st_mtime
+        pid, created = named_pid, entry.stat().st_mtime
     return created < started and not _pid_alive(pid)
 
 
 def clean_partials_of(directory: str | os.PathLike, pids: Iterable[int]) -> list[Path]:
     """Remove the staging directories in `directory` of the processes `pids` once they are
-    gone (the workers of a parallel run stopped mid-bag: bag.many). Returns what was
-    removed."""
+    gone (the workers of a parallel run stopped mid-bag: bag.many); returns them."""
     pids, removed = set(pids), []
     with contextlib.suppress(OSError):
         for entry in Path(directory).iterdir():
@@ -665,10 +605,10 @@ _IMPORT_TIME = time.time()
 
 
 def process_start_time() -> float:
-    """Wall-clock start of this process (Linux /proc, to a clock tick: the time since it
-    started, from the uptime, subtracted from now; the boot time /proc/stat gives is whole
-    seconds, which made a run started within a second of a killed one take that run's
-    staging for its own age), else when this module was imported."""
+    """Wall-clock start of this process, to a clock tick (Linux /proc: now minus the time
+    since it started; /proc/stat's boot time is whole seconds, which made a run started
+    within a second of a killed one take that run's staging for its own age), else when
+    this module was imported."""
     try:
         fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
         ticks = int(fields[19])  # field 22: starttime, clock ticks after boot

@@ -1,13 +1,11 @@
 """Robot profiles (INTERFACES.md section 1b, schema ``egovib.robot/1``).
 
-Everything robot-specific - which Imu topic and field is cleaned, at what nominal
-rate, which joints key the noise and how fast they go, how the velocity grid is
-spaced, the block processing settings - comes from a profile. The PR2 right hand
-(``config/robots/pr2_right_hand.yaml``) is the default; a model calibrated with a
-profile carries it, so denoising needs only the model.
+Everything robot-specific - the Imu topic and field cleaned and its nominal rate, the
+joints that key the noise and how fast they go, the velocity grid, the block processing
+settings - comes from a profile. The PR2 right hand (``config/robots/pr2_right_hand.yaml``)
+is the default; a model carries the profile it was calibrated with.
 
     profile = load_profile("quadcopter")          # a name in config/robots, or a path
-    profile.grid()                                # per-joint grid velocities
 
 Pure Python + numpy + yaml: imported by the core, the CLI and the nodes alike.
 """
@@ -46,12 +44,28 @@ MAX_RATE_HZ = 200_000.0
 #: letters, digits and '_' not starting with a digit, joined by single '/'.
 _TOPIC_NAME = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 # The keys each section of a profile may hold (INTERFACES.md section 1b, plus `sensor.range`
-# and `sensor.stamps`).
+# and `sensor.stamps`), in the order written, and the field each sets.
 _SECTION_KEYS = {
-    "sensor": ("topic", "field", "rate_hz", "denoised_topic", "range", "stamps"),
-    "joints": ("topic", "names", "max_speed", "bidirectional", "steps", "velocity"),
-    "processing": ("block_length", "hop", "band_hz", "band_order"),
+    "sensor": {
+        "topic": "sensor_topic",
+        "field": "sensor_field",
+        "rate_hz": "rate_hz",
+        "denoised_topic": "denoised_topic",
+        "range": "sensor_range",
+        "stamps": "sensor_stamps",
+    },
+    "joints": {
+        "topic": "joints_topic",
+        "names": "joint_names",
+        "max_speed": "max_speed",
+        "bidirectional": "bidirectional",
+        "steps": "steps",
+        "velocity": "velocity_source",
+    },
+    "processing": {k: k for k in ("block_length", "hop", "band_hz", "band_order")},
 }
+#: field -> its key in a profile file ("sensor.topic"), for error messages
+_YAML_KEY = {f: f"{s}.{k}" for s, keys in _SECTION_KEYS.items() for k, f in keys.items()}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -94,19 +108,15 @@ class RobotProfile:
             if not isinstance(value, str) or not value.strip("/"):
                 raise bad(f"{key} must be a topic name, got {value!r}")
             if not _TOPIC_NAME.fullmatch(value):
-                yaml_key = {"sensor_topic": "sensor.topic", "joints_topic": "joints.topic"}
                 raise bad(
-                    f"{yaml_key.get(key, 'sensor.' + key)} {value!r} is not a valid ROS topic "
+                    f"{_YAML_KEY[key]} {value!r} is not a valid ROS topic "
                     f"name (letters, digits, '_' and '/' only, no token starting with a digit, "
                     f"no '//' nor trailing '/')"
                 )
         # One topic for two roles: the denoiser would read its own output, offline the
         # denoised topic would replace the raw one. Named by their keys in the YAML file.
-        roles = (
-            ("sensor.topic", self.sensor_topic),
-            ("sensor.denoised_topic", self.denoised_topic),
-            ("joints.topic", self.joints_topic),
-        )
+        roles = [(_YAML_KEY[k], getattr(self, k)) for k in ("sensor_topic", "denoised_topic")]
+        roles.append(("joints.topic", self.joints_topic))
         for i, (key, topic) in enumerate(roles):
             for other, other_topic in roles[i + 1 :]:
                 if topic.strip("/") == other_topic.strip("/"):
@@ -117,9 +127,7 @@ class RobotProfile:
         if self.rate_hz > MAX_RATE_HZ:
             raise bad(f"sensor.rate_hz {self.rate_hz:g} is beyond {MAX_RATE_HZ:g} Hz (a typo?)")
         names = (
-            tuple(self.joint_names)
-            if not isinstance(self.joint_names, str)
-            else (self.joint_names,)
+            (self.joint_names,) if isinstance(self.joint_names, str) else tuple(self.joint_names)
         )
         if not 1 <= len(names) <= MAX_JOINTS:
             raise bad(f"between 1 and {MAX_JOINTS} joints are supported, got {len(names)}")
@@ -200,36 +208,17 @@ class RobotProfile:
 
     # --- (de)serialisation ----------------------------------------------------
     def to_dict(self) -> dict:
-        """The profile as the YAML mapping of INTERFACES.md section 1b (plus `sensor.range`)."""
-        sensor = {
-            "topic": self.sensor_topic,
-            "field": self.sensor_field,
-            "rate_hz": self.rate_hz,
-            "denoised_topic": self.denoised_topic,
-        }
-        if math.isfinite(self.sensor_range):
-            sensor["range"] = self.sensor_range
-        if self.sensor_stamps != "auto":
-            sensor["stamps"] = self.sensor_stamps
-        return {
-            "schema": SCHEMA,
-            "name": self.name,
-            "sensor": sensor,
-            "joints": {
-                "topic": self.joints_topic,
-                "names": list(self.joint_names),
-                "max_speed": list(self.max_speed),
-                "bidirectional": list(self.bidirectional),
-                "steps": self.steps,
-                "velocity": self.velocity_source,
-            },
-            "processing": {
-                "block_length": self.block_length,
-                "hop": self.hop,
-                "band_hz": list(self.band_hz),
-                "band_order": self.band_order,
-            },
-        }
+        """The profile as the YAML mapping of INTERFACES.md section 1b (plus `sensor.range`
+        when finite, `sensor.stamps` when not auto)."""
+        out = {"schema": SCHEMA, "name": self.name}
+        for section, keys in _SECTION_KEYS.items():
+            values = {key: getattr(self, field) for key, field in keys.items()}
+            out[section] = {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+        if not math.isfinite(self.sensor_range):
+            del out["sensor"]["range"]
+        if self.sensor_stamps == "auto":
+            del out["sensor"]["stamps"]
+        return out
 
     def dumps(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
@@ -254,35 +243,28 @@ class RobotProfile:
                 raise ConfigError(f"{where}: section '{key}' is missing or not a mapping")
             sections[key] = value
         for key, known in _SECTION_KEYS.items():
-            _no_unknown(sections[key], known, key, where)
-        sensor, joints, processing = sections["sensor"], sections["joints"], sections["processing"]
+            unknown = sorted(set(sections[key]) - set(known))
+            if unknown:
+                raise ConfigError(
+                    f"{where}: unknown key(s) {unknown} in '{key}' (known: {list(known)})"
+                )
+        sensor, joints = sections["sensor"], sections["joints"]
         for key in ("topic", "field", "rate_hz"):
             if key not in sensor:
                 raise ConfigError(f"{where}: sensor.{key} is required")
         for key in ("names", "max_speed"):
             if key not in joints:
                 raise ConfigError(f"{where}: joints.{key} is required")
-        defaults = cls.__dataclass_fields__
-        return cls(
-            name=str(data.get("name", "")),
-            sensor_topic=sensor["topic"],
-            sensor_field=sensor["field"],
-            rate_hz=sensor["rate_hz"],
-            denoised_topic=sensor.get("denoised_topic", _denoised_name(sensor["topic"])),
-            joints_topic=joints.get("topic", "/joint_states"),
-            joint_names=joints["names"],  # a tuple once checked
-            max_speed=joints["max_speed"],
-            bidirectional=joints.get("bidirectional", True),
-            steps=joints.get("steps", defaults["steps"].default),
-            velocity_source=joints.get("velocity", defaults["velocity_source"].default),
-            sensor_range=sensor.get("range", math.inf),
-            sensor_stamps=sensor.get("stamps", defaults["sensor_stamps"].default),
-            block_length=processing.get("block_length", defaults["block_length"].default),
-            hop=processing.get("hop", defaults["hop"].default),
-            band_hz=processing.get("band_hz", defaults["band_hz"].default),
-            band_order=processing.get("band_order", defaults["band_order"].default),
-            source=source,
-        )
+        values = {
+            field: sections[section][key]
+            for section, keys in _SECTION_KEYS.items()
+            for key, field in keys.items()
+            if key in sections[section]
+        }
+        values.setdefault("denoised_topic", _denoised_name(sensor["topic"]))
+        values.setdefault("joints_topic", "/joint_states")
+        values.setdefault("bidirectional", True)
+        return cls(name=str(data.get("name", "")), source=source, **values)
 
     @classmethod
     def loads(cls, text: str, *, source: str = "") -> "RobotProfile":
@@ -331,12 +313,6 @@ def _integer(value, name: str, low: int, high: int, bad) -> int:
     ):
         raise bad(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     return int(value)
-
-
-def _no_unknown(section: dict, known: tuple[str, ...], name: str, where: str) -> None:
-    unknown = sorted(set(section) - set(known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown} in '{name}' (known: {list(known)})")
 
 
 def _denoised_name(topic: str) -> str:
@@ -389,15 +365,3 @@ def load_profile(spec: str | os.PathLike | None = None) -> RobotProfile:
 
 def default_profile() -> RobotProfile:
     return load_profile(None)
-
-
-__all__ = [
-    "RobotProfile",
-    "load_profile",
-    "default_profile",
-    "profile_names",
-    "config_dir",
-    "SCHEMA",
-    "SENSOR_FIELDS",
-    "MAX_JOINTS",
-]

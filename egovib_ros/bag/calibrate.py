@@ -51,18 +51,6 @@ def calibrate_bag(
     return acc
 
 
-def merge_accumulators(accumulators: Sequence[CalibrationAccumulator]) -> CalibrationAccumulator:
-    """Pool the per-cell sums of several bags' accumulators into the first (in the order
-    given, so the result does not depend on which bag finished first). Bags are separate
-    streams: each was framed and flushed on its own; only the statistics are pooled.
-
-    Both the sweep and the free-motion tally are pooled, so "auto" decides on the pooled data."""
-    first = accumulators[0]
-    for other in accumulators[1:]:
-        first.merge(other)
-    return first
-
-
 def _calibrate_task(bag: Path, out, progress, **options) -> CalibrationAccumulator:
     return calibrate_bag(bag, progress=progress, **options)
 
@@ -97,7 +85,12 @@ def calibrate_bags(
             r.value = dict(r.value.stats.as_dict(), input_counts=r.value.input_counts)
     if not all(r.ok for r in results):
         return None, None, results
-    acc = merge_accumulators(accumulators)
+    # Bags are separate streams, each framed and flushed on its own: only the statistics
+    # (sweep and free-motion tally: "auto" decides on the pooled data) are pooled, in the
+    # order given, so the result does not depend on which bag finished first.
+    acc = accumulators[0]
+    for other in accumulators[1:]:
+        acc.merge(other)
     # absolute paths: `evaluate` finds the calibration bag from any directory, and its
     # fingerprint tells whether it is still the bag the model was made from
     names = [str(Path(b).resolve()) for b, _ in pairs]
@@ -118,12 +111,10 @@ def calibrate_bag_methods(
 ):
     """What the other methods need on top of the paper's table, fitted on the calibration
     bag `bag` of `model`: with methods "all", what `cancel` and `hybrid` need
-    (core.methods.calibrate_methods); in every case the contact detector's thresholds for
-    each method the model can then run (core.methods.calibrate_detection). Returns (the
-    model with them, {"methods": what was fitted or None, "thresholds": ..., "seconds": the
-    recording's length they come from}). The fit takes
-    the recording whole: memory grows with the bag (a calibration run: minutes)."""
-
+    (core.methods.calibrate_methods); always the contact detector's thresholds of each method
+    the model can run (core.methods.calibrate_detection). Returns (the model with them,
+    {"methods": what was fitted or None, "thresholds": ..., "seconds": the recording's
+    length}). The fit takes the recording whole: memory grows with the bag."""
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
     joints = rec.joint_stamps_ns + int(round(joint_lag_s * NS_PER_S))

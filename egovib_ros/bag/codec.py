@@ -1,22 +1,15 @@
 """The one codec of the project's ROS messages: CDR bytes <-> numpy, no rclpy.
 
-A 3 kHz stream is one ``sensor_msgs/msg/Imu`` per sample, ~900k messages per topic for
-five minutes; going through rosbags' per-message (de)serialiser would take minutes. So
-messages travel packed (`MessageBatch`: one byte buffer, offsets per message, what the
-bag reader hands out per topic) and Imu and JointState are read and written with numpy on
-their fixed CDR layout: every message of a batch has the same length and structure, only
-stamps and numbers differ. Anything unusual (mixed frame_id lengths, big-endian CDR, other
-joint sets) goes through rosbags per message and gives the same result.
+A 3 kHz stream is one ``sensor_msgs/msg/Imu`` per sample: rosbags' per-message
+(de)serialiser would take minutes per recording. So messages travel packed (`MessageBatch`:
+one byte buffer, offsets per message) and Imu and JointState are read and written with
+numpy on their fixed CDR layout (little-endian, as rclpy produces: header ``00 01 00 00``,
+body aligned from its start). Anything unusual (mixed frame_id lengths, big-endian CDR,
+other joint sets) goes through rosbags per message and gives the same result.
 
-Every decoder takes a MessageBatch or a sequence of serialised messages (the nodes' raw
-subscriptions); `replace_imu_field` gives back the same kind. CDR here is what rclpy
-produces: a 4-byte encapsulation header ``00 01 00 00`` (little-endian CDR), then the
-body, aligned from the body's start.
-
-Imu vectors: `field` is ``linear_acceleration`` or ``angular_velocity`` (a gyro), the
-robot profile's ``sensor.field``. `replace_imu_field` writes cleaned values into copies of
-the input messages, every other byte (header, frame, orientation, covariances, the other
-vector) kept: the denoiser's drop-in output.
+Decoders take a MessageBatch or a sequence of serialised messages (the nodes' raw
+subscriptions). The Imu `field` is the profile's ``sensor.field``: ``linear_acceleration``
+or ``angular_velocity`` (a gyro).
 """
 
 from __future__ import annotations
@@ -38,11 +31,10 @@ IMU_TYPE = "sensor_msgs/msg/Imu"
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 COMMANDS_TYPE = "std_msgs/msg/Float64MultiArray"
 IMU_FIELDS = ("linear_acceleration", "angular_velocity")
-
-CDR_LE_HEADER = b"\x00\x01\x00\x00"
 # doubles between the end of the header and each vector: orientation (4) + its covariance (9)
 # [+ angular_velocity (3) + its covariance (9)]
 _FIELD_DOUBLES = {"angular_velocity": 13, "linear_acceleration": 25}
+_HEADER_STAMP = (("sec", "<i4", 4), ("nanosec", "<u4", 8))  # std_msgs/Header's, after the CDR's
 
 
 @lru_cache(maxsize=1)
@@ -67,9 +59,6 @@ def deserialize(raw: bytes | memoryview, typename: str):
         raise SerdeError(f"could not deserialize {typename}: {exc}") from exc
 
 
-# --------------------------------------------------------------------------
-# Packed messages
-# --------------------------------------------------------------------------
 @dataclass
 class MessageBatch:
     """n serialised messages: message i is buf[starts[i]:starts[i] + lengths[i]]."""
@@ -86,36 +75,19 @@ class MessageBatch:
         return len(self.starts)
 
     @classmethod
-    def empty(cls) -> "MessageBatch":
-        z = np.zeros(0, np.int64)
-        return cls(np.zeros(0, np.uint8), z, z.copy(), z.copy())
-
-    @classmethod
     def from_list(cls, datas: Sequence[bytes], log_times) -> "MessageBatch":
         if datas and len({len(d) for d in datas}) == 1:
-            width = len(datas[0])
-            matrix = np.frombuffer(b"".join(datas), np.uint8).reshape(len(datas), width)
+            matrix = np.frombuffer(b"".join(datas), np.uint8).reshape(len(datas), len(datas[0]))
             return cls.from_matrix(matrix, log_times)
         lengths = np.fromiter((len(d) for d in datas), np.int64, len(datas))
-        starts = (
-            np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
-            if len(datas)
-            else lengths
-        )
-        return cls(
-            np.frombuffer(b"".join(datas), np.uint8),
-            starts,
-            lengths,
-            np.asarray(log_times, np.int64),
-        )
+        buf = np.frombuffer(b"".join(datas), np.uint8)
+        return cls(buf, np.cumsum(lengths) - lengths, lengths, np.asarray(log_times, np.int64))
 
     @classmethod
     def concat(cls, batches: Sequence["MessageBatch"]) -> "MessageBatch":
         batches = [b for b in batches if len(b)]
-        if not batches:
-            return cls.empty()
-        if len(batches) == 1:
-            return batches[0]
+        if len(batches) <= 1:
+            return batches[0] if batches else cls.from_list([], [])
         matrices = [b.matrix() for b in batches]
         times = np.concatenate([b.log_times for b in batches])
         if all(m is not None for m in matrices) and len({m.shape[1] for m in matrices}) == 1:
@@ -178,10 +150,23 @@ class MessageBatch:
             return np.ascontiguousarray(self.packed[:, at : at + width])
         return rows(self.buf, self.starts + at, width)
 
+    def stamps(self) -> np.ndarray:
+        """The header stamps (int64 ns) of messages that start with a std_msgs/Header."""
+        return self.field(4, "<i4").astype(np.int64) * NS_PER_S + self.field(8, "<u4").astype(
+            np.int64
+        )
 
-# --------------------------------------------------------------------------
-# CDR helpers
-# --------------------------------------------------------------------------
+
+Messages = Union[MessageBatch, Sequence[bytes]]
+
+
+def as_batch(messages: Messages) -> MessageBatch:
+    """A MessageBatch of `messages` (itself, or packed from a sequence of bytes)."""
+    if isinstance(messages, MessageBatch):
+        return messages
+    return MessageBatch.from_list([bytes(m) for m in messages], np.zeros(len(messages), np.int64))
+
+
 def _align(offset: int, size: int) -> int:
     return (offset + size - 1) // size * size
 
@@ -200,14 +185,27 @@ def _header(stamp_ns: int, frame_id: str):
     return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
 
-def _stamp_fields(stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@lru_cache(maxsize=32)
+def _record_dtype(fields: tuple, itemsize: int) -> np.dtype:
+    names, formats, offsets = zip(*fields)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": itemsize})
+
+
+def _templated(template: bytes, stamps_ns, fields: tuple, *values: np.ndarray) -> list[bytes]:
+    """Copies of `template` (a message that starts with a std_msgs/Header), one per stamp,
+    with its header stamp and `fields` ((name, format, offset), ...) set to `values` (the
+    copies are a byte buffer: a structured array's copy would not keep the gap bytes)."""
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
-    return stamps_ns // NS_PER_S, stamps_ns % NS_PER_S
+    n = len(stamps_ns)
+    buf = np.frombuffer(template * n, dtype=np.uint8).copy()
+    arr = buf.view(_record_dtype(_HEADER_STAMP + fields, len(template)))
+    arr["sec"], arr["nanosec"] = stamps_ns // NS_PER_S, stamps_ns % NS_PER_S
+    for (name, _, _), value in zip(fields, values):
+        arr[name] = value
+    return _split(buf.tobytes(), n, len(template))
 
 
-# --------------------------------------------------------------------------
-# Imu
-# --------------------------------------------------------------------------
+# --- Imu ----------------------------------------------------------------------------------
 def _check_field(field: str) -> str:
     if field not in _FIELD_DOUBLES:
         raise ValueError(f"Imu field must be one of {IMU_FIELDS}, got {field!r}")
@@ -220,22 +218,6 @@ def imu_field_offset(frame_len: int, field: str = "linear_acceleration") -> int:
     return 4 + body + _FIELD_DOUBLES[_check_field(field)] * 8
 
 
-def _imu_length(frame_len: int) -> int:
-    return imu_field_offset(frame_len) + 12 * 8
-
-
-@lru_cache(maxsize=32)
-def _imu_dtype(frame_len: int, field: str = "linear_acceleration") -> np.dtype:
-    return np.dtype(
-        {
-            "names": ["sec", "nanosec", "strlen", "vector"],
-            "formats": ["<i4", "<u4", "<u4", ("<f8", 3)],
-            "offsets": [4, 8, 12, imu_field_offset(frame_len, field)],
-            "itemsize": _imu_length(frame_len),
-        }
-    )
-
-
 def rosbags_imu(
     stamp_ns: int,
     xyz: Sequence[float],
@@ -244,28 +226,21 @@ def rosbags_imu(
 ):
     """A rosbags Imu object following REP 145 with `xyz` in `field`; the other vector is
     zero and marked unknown (covariance[0] = -1), as is the orientation."""
-    ts = typestore()
-    Imu, Quaternion, Vector3 = (
-        ts.types[IMU_TYPE],
-        ts.types["geometry_msgs/msg/Quaternion"],
-        ts.types["geometry_msgs/msg/Vector3"],
-    )
+    types = typestore().types
+    vector = types["geometry_msgs/msg/Vector3"]
     unknown = np.zeros(9)
     unknown[0] = -1.0
-    vectors = {name: Vector3(x=0.0, y=0.0, z=0.0) for name in IMU_FIELDS}
-    vectors[_check_field(field)] = Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
-    return Imu(
+    vectors = {}
+    for name in IMU_FIELDS:
+        mine = name == _check_field(field)
+        x, y, z = (float(xyz[i]) if mine else 0.0 for i in range(3))
+        vectors[name] = vector(x=x, y=y, z=z)
+        vectors[f"{name}_covariance"] = np.zeros(9) if mine else unknown.copy()
+    return types[IMU_TYPE](
         header=_header(stamp_ns, frame_id),
-        orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=unknown.copy(),
-        angular_velocity=vectors["angular_velocity"],
-        angular_velocity_covariance=unknown.copy()
-        if field == "linear_acceleration"
-        else np.zeros(9),
-        linear_acceleration=vectors["linear_acceleration"],
-        linear_acceleration_covariance=np.zeros(9)
-        if field == "linear_acceleration"
-        else unknown.copy(),
+        **vectors,
     )
 
 
@@ -285,23 +260,10 @@ def encode_imu_batch(
     """Serialise one Imu per sample, `values` in `field`, to CDR bytes (identical to
     rclpy/rosbags serialisation of `rosbags_imu`)."""
     values = np.asarray(values, dtype=np.float64).reshape(-1, 3)
-    n = len(values)
-    if len(stamps_ns) != n:
-        raise ValueError(f"encode_imu_batch: {len(stamps_ns)} stamps for {n} samples")
-    template = _imu_template(frame_id, field)
-    frame_len = len(frame_id.encode())
-    # Work on a byte buffer: copying a structured array does not keep the gap bytes.
-    buf = np.frombuffer(template * n, dtype=np.uint8).copy()
-    arr = buf.view(_imu_dtype(frame_len, field))
-    arr["sec"], arr["nanosec"] = _stamp_fields(stamps_ns)
-    arr["vector"] = values
-    return _split(buf.tobytes(), n, len(template))
-
-
-def _decode_imu_slow(raw: bytes, field: str) -> tuple[int, np.ndarray]:
-    msg = deserialize(raw, IMU_TYPE)
-    v = getattr(msg, field)
-    return msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec, np.array([v.x, v.y, v.z])
+    if len(stamps_ns) != len(values):
+        raise ValueError(f"encode_imu_batch: {len(stamps_ns)} stamps for {len(values)} samples")
+    vector = ("vector", ("<f8", 3), imu_field_offset(len(frame_id.encode()), field))
+    return _templated(_imu_template(frame_id, field), stamps_ns, (vector,), values)
 
 
 def imu_layout(batch: MessageBatch, field: str) -> int | None:
@@ -316,23 +278,9 @@ def imu_layout(batch: MessageBatch, field: str) -> int | None:
     frame_len = int(strlen[0]) - 1
     if frame_len < 0 or not np.all(strlen == strlen[0]):
         return None
-    if imu_field_offset(frame_len, "linear_acceleration") + 12 * 8 != width:
+    if imu_field_offset(frame_len) + 12 * 8 != width:
         return None
     return imu_field_offset(frame_len, field)
-
-
-def _vectors(batch: MessageBatch, offset: int) -> np.ndarray:
-    return batch.columns(offset, 24).view("<f8").astype(np.float64)
-
-
-Messages = Union["MessageBatch", Sequence[bytes]]
-
-
-def as_batch(messages: Messages) -> "MessageBatch":
-    """A MessageBatch of `messages` (itself, or packed from a sequence of bytes)."""
-    if isinstance(messages, MessageBatch):
-        return messages
-    return MessageBatch.from_list([bytes(m) for m in messages], np.zeros(len(messages), np.int64))
 
 
 def decode_imu(
@@ -344,21 +292,21 @@ def decode_imu(
     if len(batch) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3))
     offset = imu_layout(batch, field)
-    if offset is None:  # unusual messages: rosbags, one by one
-        stamps = np.empty(len(batch), np.int64)
-        values = np.empty((len(batch), 3))
-        for i, raw in enumerate(batch.to_list()):
-            stamps[i], values[i] = _decode_imu_slow(raw, field)
-        return stamps, values
-    stamps = batch.field(4, "<i4").astype(np.int64) * NS_PER_S + batch.field(8, "<u4").astype(
-        np.int64
-    )
-    return stamps, _vectors(batch, offset)
+    if offset is not None:
+        return batch.stamps(), batch.columns(offset, 24).view("<f8").astype(np.float64)
+    stamps = np.empty(len(batch), np.int64)  # unusual messages: rosbags, one by one
+    values = np.empty((len(batch), 3))
+    for i, raw in enumerate(batch.to_list()):
+        msg = deserialize(raw, IMU_TYPE)
+        v = getattr(msg, field)
+        stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        values[i] = np.array([v.x, v.y, v.z])
+    return stamps, values
 
 
 def replace_imu_field(messages: Messages, values: np.ndarray, field: str = "linear_acceleration"):
     """Copies of Imu messages with `field` set to `values` (n, 3), every other byte kept
-    (the drop-in output); a MessageBatch for a MessageBatch, else a list of bytes."""
+    (the denoiser's drop-in output); a MessageBatch for a MessageBatch, else a list of bytes."""
     values = np.asarray(values, np.float64).reshape(-1, 3)
     batch = as_batch(messages)
     if len(values) != len(batch):
@@ -381,9 +329,7 @@ def replace_imu_field(messages: Messages, values: np.ndarray, field: str = "line
     return result if isinstance(messages, MessageBatch) else result.to_list()
 
 
-# --------------------------------------------------------------------------
-# JointState
-# --------------------------------------------------------------------------
+# --- JointState ---------------------------------------------------------------------------
 def rosbags_joint_state(
     stamp_ns: int, names: Sequence[str], position, velocity, frame_id: str = ""
 ):
@@ -407,9 +353,7 @@ def joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int,
     def u32(body_off: int) -> int:
         return struct.unpack_from("<I", raw, 4 + body_off)[0]
 
-    off = 8
-    off = 12 + u32(off)  # frame_id string
-    off = _align(off, 4)
+    off = _align(12 + u32(8), 4)  # after the stamp and the frame_id string
     n_names = u32(off)
     off += 4
     names = []
@@ -451,24 +395,11 @@ def encode_joint_state_batch(
         )
     )
     _, pos_off, _, vel_off, _, _ = joint_state_layout(template)
-    fields = {"sec": ("<i4", 4), "nanosec": ("<u4", 8), "pos": (("<f8", n_joints), pos_off)}
+    fields, values = (("pos", ("<f8", n_joints), pos_off),), [position]
     if velocity is not None:
-        fields["vel"] = (("<f8", n_joints), vel_off)
-    dtype = np.dtype(
-        {
-            "names": list(fields),
-            "formats": [f for f, _ in fields.values()],
-            "offsets": [o for _, o in fields.values()],
-            "itemsize": len(template),
-        }
-    )
-    buf = np.frombuffer(template * n, dtype=np.uint8).copy()
-    arr = buf.view(dtype)
-    arr["sec"], arr["nanosec"] = _stamp_fields(stamps_ns)
-    arr["pos"] = position
-    if velocity is not None:
-        arr["vel"] = np.asarray(velocity, np.float64).reshape(n, n_joints)
-    return _split(buf.tobytes(), n, len(template))
+        fields += (("vel", ("<f8", n_joints), vel_off),)
+        values.append(np.asarray(velocity, np.float64).reshape(n, n_joints))
+    return _templated(template, stamps_ns, fields, *values)
 
 
 def decode_joint_states(
@@ -489,34 +420,30 @@ def decode_joint_states(
     if names is None:
         names = joint_state_layout(batch.to_list()[0])[0]
     names = tuple(names)
+    notes = {} if notes is None else notes
+    named = notes.setdefault("named", np.zeros(len(names), bool))
     fast = _joint_states_fast(batch, names)
-    if notes is not None:
-        named = notes.setdefault("named", np.zeros(len(names), bool))
     if fast is not None:
-        if notes is not None:
-            named[:] = True  # every named joint, one value each (the fast path's condition)
+        named[:] = True  # every named joint, one value each (the fast path's condition)
         return fast
-    raws = batch.to_list()
     # Unusual batch: rosbags per message, columns matched by joint name.
     stamps = np.empty(n, np.int64)
     position = np.full((n, len(names)), np.nan)
     velocity = np.full((n, len(names)), np.nan)
     column = {name: j for j, name in enumerate(names)}
-    for i, raw in enumerate(raws):
+    for i, raw in enumerate(batch.to_list()):
         msg = deserialize(raw, JOINT_STATE_TYPE)
         stamps[i] = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        for key, values in (("short_position", msg.position), ("short_velocity", msg.velocity)):
+            if 0 < len(values) < len(msg.name):
+                notes[key] = notes.get(key, 0) + 1
         taken = set()
-        if notes is not None:
-            for key, values in (("short_position", msg.position), ("short_velocity", msg.velocity)):
-                if 0 < len(values) < len(msg.name):
-                    notes[key] = notes.get(key, 0) + 1
         for k, name in enumerate(msg.name):
             j = column.get(name)
             if j is None or j in taken:  # a name given twice: its first values, as the fast path
                 continue
             taken.add(j)
-            if notes is not None:
-                named[j] = True
+            named[j] = True
             if k < len(msg.position):
                 position[i, j] = msg.position[k]
             if k < len(msg.velocity):
@@ -532,9 +459,7 @@ def _joint_states_fast(batch: MessageBatch, names: tuple[str, ...]):
         return None
     start = int(batch.starts[0])
     first = batch.buf[start : start + width].tobytes()
-    if first[:2] != CDR_LE_HEADER[:2]:
-        return None
-    layout = _joint_columns(first, names)
+    layout = _joint_columns(first, names) if first[:2] == b"\x00\x01" else None
     if layout is None:
         return None
     pos_off, vel_off, n_joints, columns = layout
@@ -542,12 +467,9 @@ def _joint_states_fast(batch: MessageBatch, names: tuple[str, ...]):
     counts = batch.field(vel_off - 8, "<u8")  # velocity count (and its alignment)
     if not (np.all(structure == structure[0]) and np.all(counts == counts[0])):
         return None
-    stamps = batch.field(4, "<i4").astype(np.int64) * NS_PER_S + batch.field(8, "<u4").astype(
-        np.int64
-    )
     position = batch.columns(pos_off, 8 * n_joints).view("<f8")[:, columns].astype(np.float64)
     velocity = batch.columns(vel_off, 8 * n_joints).view("<f8")[:, columns].astype(np.float64)
-    return stamps, position, velocity
+    return batch.stamps(), position, velocity
 
 
 # The last layout walked: a live node decodes messages of one structure 1000 times a second.
@@ -576,19 +498,12 @@ def _joint_columns(first: bytes, names: tuple[str, ...]):
     if not set(names) <= set(msg_names) or not n_pos == n_vel == len(msg_names):
         return None
     layout = (pos_off, vel_off, n_pos, [msg_names.index(n) for n in names])
-    _last_joint_columns[0] = (
-        len(first),
-        first[12:pos_off],
-        first[vel_off - 8 : vel_off],
-        names,
-        layout,
-    )
+    head, count = first[12:pos_off], first[vel_off - 8 : vel_off]
+    _last_joint_columns[0] = (len(first), head, count, names, layout)
     return layout
 
 
-# --------------------------------------------------------------------------
-# Float64MultiArray commands
-# --------------------------------------------------------------------------
+# --- Float64MultiArray commands -----------------------------------------------------------
 def encode_commands(values: Sequence[float]) -> bytes:
     """Serialise one ``[wrist rad/s, gripper m/s]`` Float64MultiArray command."""
     ts = typestore()

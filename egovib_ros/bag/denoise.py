@@ -1,12 +1,10 @@
 """`egovib denoise` as a library: the core's denoiser run on a recorded bag.
 
-denoise_bag(bag, out, model=..., channels=..., output=..., compress=...) -> figures
-
 The bag is streamed (memory does not grow with the recording): input MCAP chunks are
-copied verbatim (topics never decoded but the sensor and joint topics) and the profile's
-denoised topic is added, one message per valid raw sample, each the raw message with the
-cleaned field and every other byte kept. The same core as the denoiser node, so live and
-offline results agree.
+copied verbatim (no topic decoded but the sensor and joint topics) and the profile's
+denoised topic is added, one message per valid raw sample: the raw message with the
+cleaned field, every other byte kept. The core is the denoiser node's: live and offline
+results agree.
 """
 
 from __future__ import annotations
@@ -23,7 +21,6 @@ from egovib_ros.bag.reader import BagReader
 from egovib_ros.bag.recording import RecordingStream
 from egovib_ros.bag.writer import BagWriter, compression_name
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.adapt import AdaptSettings
 from egovib_ros.core.held import output_rows
 from egovib_ros.core.methods import make_denoiser, resolve_method
 from egovib_ros.core.stream import check_stream, has_bad_input
@@ -33,18 +30,14 @@ from egovib_ros.outputs import atomic_output
 
 class _DenoisedTopic:
     """Writes the profile's denoised topic: for every sample the denoiser outputs, the raw
-    message with that header stamp, its field replaced (every other byte kept), at the raw
-    message's log time.
+    message of that header stamp with its field replaced, at the raw message's log time.
 
-    Raw messages are held by stamp, not by their place in the file: a bag may hold its
-    messages in any order (topic by topic, chunks overlapping in time, stamps swapped), and
-    the recording stream hands the denoiser its samples in stamp order. The denoiser's
-    output stamps increase strictly, so each is found by a binary search among the held
-    stamps (core.held.output_rows); a held message the output has passed without taking it
-    (out of order, a bad sample, a second message with the same stamp) gets no denoised
-    message and is counted.
-    Memory: the raw messages the denoiser has not answered yet (a block plus the stream's
-    look-ahead)."""
+    Raw messages are held by stamp, not by their place in the file (a bag may hold them in
+    any order; the denoiser gets its samples in stamp order). Output stamps increase
+    strictly: each is found by a binary search among the held stamps
+    (core.held.output_rows); a held message the output passed without taking it (out of
+    order, a bad sample, a stamp repeated) gets no denoised message and is counted.
+    Memory: the raw messages not answered yet (a block plus the stream's look-ahead)."""
 
     def __init__(self, writer: BagWriter, denoised_topic: str, field: str):
         self.writer = writer
@@ -145,27 +138,21 @@ def denoise_bag(
     *,
     model: NoiseModel | str | os.PathLike,
     method: str | None = None,
-    channels: str = "per_axis",
-    output: str | None = None,
-    oversubtraction: float = 1.0,
-    floor: float = 0.0,
-    joint_lag_s: float = 0.0,
-    noise_gain_db: tuple[tuple[float, float], ...] = (),
     compress: bool | str = False,
     replace_denoised: bool = False,
     progress: Callable[[int], None] | None = None,
-    adapt: AdaptSettings | None = None,
     save_model: str | os.PathLike | None = None,
+    **settings,
 ) -> dict:
-    """Denoise one bag into `out` (written atomically: nothing appears unless complete).
+    """Denoise one bag into `out` (written atomically: nothing appears unless complete);
+    returns figures (samples, blocks, size ratio, ...). `settings`: the denoiser's
+    (core.methods.make_denoiser: channels, output, oversubtraction, floor, joint_lag_s,
+    noise_gain_db, adapt: the model goes on learning while no contact is detected).
 
-    Streams the bag: input MCAP chunks are copied verbatim (topics never decoded but
-    the sensor and joint topics), the profile's denoised topic is added, one message
-    per raw sample. A bag that holds that topic already (a recorded live run) is refused
-    (BagError) unless `replace_denoised`: then its own is left out of the copy (counted in
-    the figures). Returns figures (samples, blocks, size ratio, ...). `adapt`: the model
-    goes on learning while no contact is detected (core.adapt); `save_model`: the model as
-    adapted by the end of the bag is written there (atomically, after the bag).
+    A bag that holds the denoised topic already (a recorded live run) is refused (BagError)
+    unless `replace_denoised`: then its own is left out of the copy (counted in the
+    figures). `save_model`: the model as adapted by the end of the bag is written there
+    (atomically, after the bag).
 
     One function: the reading, the denoising and the writing share one bag's streams, and
     the order of their ends (output closed, then the model saved, then the figures) is the
@@ -186,18 +173,7 @@ def denoise_bag(
                 f"denoiser's output?); not replaced without --replace-denoised"
             )
         method = resolve_method(model, method)
-        denoiser = make_denoiser(
-            model,
-            method,
-            channels=channels,
-            output=output,
-            oversubtraction=oversubtraction,
-            floor=floor,
-            joint_lag_s=joint_lag_s,
-            noise_gain_db=noise_gain_db,
-            source=f"{bag}: {raw_topic}",
-            **({"adapt": adapt} if adapt is not None else {}),
-        )
+        denoiser = make_denoiser(model, method, source=f"{bag}: {raw_topic}", **settings)
         with (
             atomic_output(out, directory=True, kind="bag") as tmp,
             BagWriter(tmp, compress=compress) as writer,
@@ -262,7 +238,7 @@ def denoise_bag(
         "blocks_unmeasured": stats.blocks_unmeasured or 0,
         "samples_no_joint_state": stats.samples_no_joint_state or 0,
         "dropped_out_of_order": stats.dropped_out_of_order,
-        "channels": channels,
+        "channels": settings.get("channels", "per_axis"),
         "output": getattr(denoiser, "output", "bandpassed"),
         "chunks_copied_verbatim": copied["verbatim"],
         "batches_rewritten": copied["rewritten"],

@@ -2,16 +2,13 @@
 one summary; a failing bag is reported by name and never stops or spoils the others.
 
 Parallel runs go through Dask (`dask.distributed`): a LocalCluster of `jobs` worker
-processes, or an existing cluster given by its scheduler address (the workers must see
-the bags and output paths under the same names, e.g. a shared file system). The task
-is the same function the single-process path calls, on the same arguments, so the
-results are the same. With `jobs=1` and no scheduler nothing is started: the bags are
-processed one after the other in this process.
+processes, or an existing cluster at a scheduler address (its workers must see the bags and
+outputs under the same paths). The task is the function the one-process path calls, on the
+same arguments: the same results. With `jobs=1` and no scheduler the bags are processed one
+after the other in this process.
 
-    results = run_bags(functools.partial(denoise_bag, model=..., ...), bags, jobs=2)
-
-A task is a picklable callable `task(bag: Path, out: Path | None, progress)` returning
-a small picklable summary (dict); `progress(n_bytes)` may be called as the bag is read.
+A task is a picklable `task(bag: Path, out: Path | None, progress)` returning a small
+picklable summary; `progress(n_bytes)` may be called as the bag is read.
 """
 
 from __future__ import annotations
@@ -24,7 +21,7 @@ import sys
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -69,7 +66,7 @@ def raise_if_bugs(results: Sequence[BagResult]) -> None:
 class BagJob:
     bag: Path
     out: Path | None = None
-    size: int = field(default=0)
+    size: int = 0
 
 
 def is_bag(path: Path) -> bool:
@@ -80,12 +77,10 @@ def expand_bags(
     specs: Sequence[str | os.PathLike], *, outputs_per_bag: bool = True
 ) -> list[tuple[Path, Path]]:
     """(bag, name) pairs from bag directories and directories of bags (searched
-    recursively, in sorted order; hidden and `.partial` directories skipped). `name` is
-    the bag's path relative to the directory it was found in (its own name for a bag
-    given directly): where its output goes under an output directory, so two bags of one
-    name are refused when `outputs_per_bag` (not when all bags make one output, as
-    calibration's model). A path that does not exist is kept, so its task reports it like
-    any other bad bag."""
+    recursively, sorted; hidden and `.partial` directories skipped). `name`, the bag's path
+    relative to the directory it was found in, is where its output goes: two bags of one
+    name are refused when `outputs_per_bag` (not for calibration's one model). A path that
+    does not exist is kept: its task reports it like any other bad bag."""
     found: list[tuple[Path, Path]] = []
     for spec in specs:
         path = Path(spec)
@@ -140,33 +135,22 @@ def run_guarded(
     """Run `task` on one bag; any failure becomes a BagResult naming the bag (bad input:
     its one-line message; anything else: the exception, with the traceback logged)."""
     start = time.perf_counter()
+    result = BagResult(str(job.bag), False)
     try:
-        value = task(job.bag, job.out, progress)
-        return BagResult(
-            str(job.bag),
-            True,
-            value=value,
-            seconds=time.perf_counter() - start,
-            out=None if job.out is None else str(job.out),
-        )
+        result.value = task(job.bag, job.out, progress)
+        result.ok, result.out = True, None if job.out is None else str(job.out)
     except EgovibError as exc:
         message = str(exc)
-        message = message if str(job.bag) in message else f"{job.bag}: {message}"
-        return BagResult(str(job.bag), False, error=message, seconds=time.perf_counter() - start)
+        result.error = message if str(job.bag) in message else f"{job.bag}: {message}"
     except Exception as exc:  # a bug or an unexpected file: report it, keep going with the others
         if reraise:
             raise
-        details = traceback.format_exc()
-        logging.getLogger("egovib_ros.bag").debug("%s", details)
+        result.traceback = traceback.format_exc()
+        logging.getLogger("egovib_ros.bag").debug("%s", result.traceback)
         first = (str(exc).strip().splitlines() or [""])[0]
-        return BagResult(
-            str(job.bag),
-            False,
-            error=f"{job.bag}: {type(exc).__name__}: {first}",
-            seconds=time.perf_counter() - start,
-            internal=True,
-            traceback=details,
-        )
+        result.error, result.internal = f"{job.bag}: {type(exc).__name__}: {first}", True
+    result.seconds = time.perf_counter() - start
+    return result
 
 
 def run_bags(
@@ -179,7 +163,6 @@ def run_bags(
     quiet: bool = False,
 ) -> list[BagResult]:
     """Run `task` on every bag; results in the order of `jobs_list`."""
-
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
     for job in jobs_list:
@@ -285,10 +268,9 @@ def _run_dask(
 @contextlib.contextmanager
 def _sigint_blocked():
     """While Dask starts its worker processes, SIGINT is ignored (the workers inherit that
-    across exec, so a Ctrl-C at the terminal reaches only this process, which stops the run
-    and closes the cluster; each worker would print a traceback) and blocked in this thread
-    (a blocked signal is kept pending, not discarded, so a Ctrl-C meanwhile is delivered here
-    once our handler is back)."""
+    across exec: a Ctrl-C at the terminal reaches only this process, which stops the run,
+    instead of making each worker print a traceback) and blocked in this thread (kept
+    pending, not discarded: a Ctrl-C meanwhile is delivered once our handler is back)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -306,11 +288,8 @@ def summary_lines(results: Sequence[BagResult], describe: Callable[[Any], str] =
     lines = []
     for r in results:
         if r.ok:
-            lines.append(
-                f"  ok     {r.bag} -> {r.out} ({r.seconds:.1f} s): {describe(r.value)}"
-                if r.out
-                else f"  ok     {r.bag} ({r.seconds:.1f} s): {describe(r.value)}"
-            )
+            where = f"{r.bag} -> {r.out}" if r.out else r.bag
+            lines.append(f"  ok     {where} ({r.seconds:.1f} s): {describe(r.value)}")
         else:
             lines.append(f"  FAILED {r.error}")
     failed = sum(not r.ok for r in results)

@@ -1,24 +1,19 @@
 """MCAP files chunk by chunk, with numpy doing the per-message work.
 
-A 3 kHz Imu stream is one small message per sample: an hour is ~11 million messages
-per topic. Reading or writing them one Python call at a time (rosbags, or the `mcap`
-library's reader and writer) costs 2-10 us each, minutes per hour of recording
-(figures: docs/bench_bags.md). Here a chunk is the unit of work:
+A 3 kHz Imu stream is ~11 million messages per topic an hour; one Python call per message
+(rosbags, or the `mcap` library's reader and writer) costs minutes per hour of recording
+(docs/bench_bags.md). Here a chunk is the unit of work:
 
-- reading: the chunk is decompressed once; the offsets of its messages come from the
-  chunk's Message Index records (one numpy array per channel, checked against the chunk:
-  every byte not covered by an indexed message must be a non-message record, else the
-  records are walked one by one); fields are then gathered with numpy;
-- writing: a chunk is a list of parts, each either records copied verbatim from an
-  input chunk (topics only copied are never decoded) or a topic's messages laid out as
-  one (n, 31 + L) byte array (header fields set through a structured view). Inside a
-  chunk the records are grouped by part, not interleaved by time; readers order
-  messages by log time across and within chunks (rosbags sorts each chunk, the MCAP
-  readers use the message indexes), and each channel's index is in log-time order.
+- reading: the chunk is decompressed once; its messages' offsets come from its Message
+  Index records (checked: every byte they do not cover must be a non-message record, else
+  the records are walked one by one); fields are then gathered with numpy;
+- writing: a chunk is a list of parts, each either records copied verbatim from an input
+  chunk (topics only copied are never decoded) or a topic's messages laid out as one
+  (n, 31 + L) byte array. Records are grouped by part, not interleaved by time: readers
+  order messages by log time (rosbags sorts each chunk, MCAP readers use the indexes).
 
-The structural records (header, schema, channel, chunk index, statistics, summary
-offsets, footer) are built with the `mcap` library's record classes, so the file
-layout follows the spec (https://mcap.dev/spec) as that library reads it.
+The structural records (header, schema, channel, chunk index, statistics, summary offsets,
+footer) are the `mcap` library's record classes (https://mcap.dev/spec).
 """
 
 from __future__ import annotations
@@ -88,9 +83,7 @@ def gather(buf: np.ndarray, positions: np.ndarray, dtype: np.dtype | str) -> np.
     return rows(buf, positions, dtype.itemsize).view(dtype).reshape(len(positions))
 
 
-# --------------------------------------------------------------------------
-# Reading
-# --------------------------------------------------------------------------
+# --- reading ------------------------------------------------------------------------------
 @dataclass
 class ChunkData:
     """The records of one chunk (or of loose top-level messages), decompressed.
@@ -124,40 +117,19 @@ class ChunkData:
 
     def without(self, channel_ids: set[int]) -> "ChunkData":
         """A copy without the messages (and channel records) of `channel_ids`."""
-        buf, keep, index, definitions = self.records, [], {}, []
-        pos, size, out = 0, len(buf), 0
-        per_channel: dict[int, tuple[list, list]] = {}
-        while pos < size:
+        buf, keep, pos = self.records, [], 0
+        while pos < len(buf):
             op, length = _RECORD_HEADER.unpack_from(buf, pos)
-            end = pos + 9 + length
-            drop = False
-            if op == OP_MESSAGE:
-                channel = struct.unpack_from("<H", buf, pos + 9)[0]
-                drop = channel in channel_ids
-                if not drop:
-                    times, offsets = per_channel.setdefault(channel, ([], []))
-                    times.append(struct.unpack_from("<Q", buf, pos + 15)[0])
-                    offsets.append(out)
-            elif op in (OP_SCHEMA, OP_CHANNEL):
-                ident = struct.unpack_from("<H", buf, pos + 9)[0]
-                drop = op == OP_CHANNEL and ident in channel_ids
-                if not drop:
-                    definitions.append((op, ident))
-            if not drop:
-                keep.append(memoryview(buf)[pos:end])
-                out += end - pos
-            pos = end
-        for channel, (times, offsets) in per_channel.items():
-            index[channel] = (np.array(times, np.int64), np.array(offsets, np.int64))
-        return ChunkData(b"".join(keep), index, definitions)
+            of_channel = op in (OP_MESSAGE, OP_CHANNEL)  # its channel id follows the header
+            if not of_channel or struct.unpack_from("<H", buf, pos + 9)[0] not in channel_ids:
+                keep.append(memoryview(buf)[pos : pos + 9 + length])
+            pos += 9 + length
+        return _walk(b"".join(keep), lambda op, body: (op, struct.unpack_from("<H", body)[0]))
 
 
 class McapScanner:
-    """Sequential reader of one MCAP file, chunk by chunk (bounded memory: one chunk).
-
-    `chunks()` yields ChunkData in file order; `schemas` and `channels` (mcap record
-    objects by id) fill in as their records are met, before the chunks that use them.
-    """
+    """Reader of one MCAP file, chunk by chunk (bounded memory: one chunk); `schemas` and
+    `channels` (mcap records by id) fill in before the chunks that use them."""
 
     # group messages outside chunks (unchunked files) this many bytes at a time
     loose_bytes = 4 << 20
@@ -169,42 +141,36 @@ class McapScanner:
         self.path = Path(path)
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
-        self.summary_start = 0
         self.cut = cut
         self.cut_at: int | None = None
-        # A cut file's chunk index, rebuilt by a first scan (`chunk_index`): a second scanner
-        # given it (with the definitions) reads the chunks in time order, as from a summary.
+        # A cut file's chunk index, rebuilt by a first scan: a second scanner given it
+        # (`reuse`) reads the chunks in time order, as from a summary.
         self.chunk_index: list[ChunkIndex] = []
         self.rebuilt: list[ChunkIndex] | None = None
 
     def chunks(self) -> Iterator[ChunkData]:
         """Chunks in order of their first message's log time: file order for files written
-        in time order (read front to back), else by seeking along the summary's chunk
-        index (files whose chunks were written per topic, or out of order) so that the
-        streams of different topics arrive together. Bytes that do not parse are damage
-        (McapDamaged), whatever part of the file they are in."""
+        in time order (read front to back), else by seeking along the summary's chunk index
+        (chunks written per topic, or out of order) so that the topics arrive together.
+        Bytes that do not parse are damage (McapDamaged), wherever they are in the file."""
         try:
-            yield from self._chunks()
-        except McapFormatError:
-            raise
-        except Exception as exc:  # struct, decoding, seeks and reads sized by damaged fields
-            reason = (str(exc).splitlines() or [""])[0]
-            raise McapDamaged(f"damaged record ({type(exc).__name__}: {reason})") from None
-
-    def _chunks(self) -> Iterator[ChunkData]:
-        with open(self.path, "rb") as fh:
-            if hasattr(os, "posix_fadvise"):  # one pass front to back: read ahead further
-                os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
-            if fh.read(8) != MAGIC:
-                raise McapFormatError("not an MCAP file (bad magic)")
-            by_time, by_file = self._time_order(fh)
-            if by_time is None:
+            with open(self.path, "rb") as fh:
+                if hasattr(os, "posix_fadvise"):  # one pass front to back: read ahead further
+                    os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_SEQUENTIAL)
+                if fh.read(8) != MAGIC:
+                    raise McapFormatError("not an MCAP file (bad magic)")
+                by_time, by_file = self._time_order(fh)
+                if by_time is not None:
+                    yield from self._seeking(fh, by_time)
+                    return
                 fh.seek(8)
                 yield from self._sequential(
                     fh, [c.message_start_time for c in by_file] if by_file else None
                 )
-            else:
-                yield from self._seeking(fh, by_time)
+        except McapFormatError:
+            raise
+        except Exception as exc:  # struct, decoding, seeks and reads sized by damaged fields
+            raise _damage("record", exc) from None
 
     def reuse(self, first: "McapScanner") -> "McapScanner":
         """Read a cut file with the chunk index and definitions a first scan rebuilt."""
@@ -270,18 +236,13 @@ class McapScanner:
         def progress(chunk: ChunkData) -> ChunkData:
             nonlocal consumed, n_chunks
             chunk.file_bytes, consumed = fh.tell() - consumed, fh.tell()
-            if chunk.start_ns is not None:  # a chunk (not loose messages)
-                n_chunks += 1
-                following = (
-                    starts[n_chunks] if starts is not None and n_chunks < len(starts) else None
-                )
-                chunk.frontier_ns = (
-                    following
-                    if following is not None
-                    else (chunk.end_ns if starts is not None else chunk.start_ns)
-                )
-            else:
+            if chunk.start_ns is None:  # loose messages
                 chunk.frontier_ns = chunk.end_ns
+            elif starts is None:  # no summary: the chunk's own start is the bound
+                chunk.frontier_ns = chunk.start_ns
+            else:  # the next chunk's start
+                n_chunks += 1
+                chunk.frontier_ns = starts[n_chunks] if n_chunks < len(starts) else chunk.end_ns
             return chunk
 
         while True:
@@ -305,7 +266,7 @@ class McapScanner:
                 continue
             if pending is not None:
                 yield progress(self._finish_chunk(*pending))
-                self._note_chunk(pending_at, at)
+                self._note_chunk(pending[0], pending_at, at)
                 pending = None
             if op == OP_CHUNK:
                 pending, pending_at = (_read_exact(fh, length), []), (at, fh.tell())
@@ -313,7 +274,7 @@ class McapScanner:
                 loose.append(head + _read_exact(fh, length))
                 loose_size += 9 + length
                 if loose_size >= self.loose_bytes:
-                    yield progress(self._walk(b"".join(loose)))
+                    yield progress(_walk(b"".join(loose), self._define))
                     loose, loose_size = [], 0
             elif op in (OP_SCHEMA, OP_CHANNEL):
                 self._define(op, _read_exact(fh, length))
@@ -323,20 +284,20 @@ class McapScanner:
                 fh.seek(length, io.SEEK_CUR)
         if pending is not None:  # cut after this chunk
             yield progress(self._finish_chunk(*pending))
-            self._note_chunk(pending_at, pending_at[1] if not pending[1] else self.cut_at)
+            self._note_chunk(
+                pending[0], pending_at, pending_at[1] if not pending[1] else self.cut_at
+            )
         if loose:
-            yield progress(self._walk(b"".join(loose)))
+            yield progress(_walk(b"".join(loose), self._define))
 
     # --- internals -------------------------------------------------------------
-    def _note_chunk(self, at: tuple[int, int], indexes_end: int) -> None:
-        """A cut file: the chunk index entry of a chunk read (record start and end, where its
-        message indexes end), as a summary would have listed it."""
+    def _note_chunk(self, body: bytes, at: tuple[int, int], indexes_end: int) -> None:
+        """A cut file: the chunk index entry of a chunk read (its record's body, start and
+        end, where its message indexes end), as a summary would have listed it."""
         if not self.cut:
             return
         start, end = at
-        with open(self.path, "rb") as fh:
-            fh.seek(start + 9)
-            first, last = struct.unpack("<QQ", fh.read(16))
+        first, last = struct.unpack_from("<QQ", body)
         self.chunk_index.append(
             ChunkIndex(
                 message_start_time=first,
@@ -369,8 +330,7 @@ class McapScanner:
         except McapFormatError:
             raise
         except Exception as exc:  # struct, decoding, decompression, index arithmetic
-            reason = (str(exc).splitlines() or [""])[0]
-            raise McapDamaged(f"damaged chunk ({type(exc).__name__}: {reason})") from None
+            raise _damage("chunk", exc) from None
 
     def _parse_chunk(self, body: bytes, index_bodies: list[bytes]) -> ChunkData:
         start, end, size, crc = struct.unpack_from("<QQQI", body, 0)
@@ -393,7 +353,7 @@ class McapScanner:
             )
             index[channel] = (pairs[:, 0], pairs[:, 1])
         checked = self._check_index(records, index) if index else None
-        chunk = checked if checked is not None else self._walk(records)
+        chunk = checked if checked is not None else _walk(records, self._define)
         if index and checked is None:
             # the index lists messages the records do not hold as such: records were damaged
             listed = {c: len(t) for c, (t, _) in index.items() if len(t)}
@@ -460,35 +420,38 @@ class McapScanner:
                 lengths[channel] = lengths[channel][order]
         return ChunkData(records, index, definitions, lengths=lengths)
 
-    def _walk(self, records: bytes) -> ChunkData:
-        """Record by record (chunks without usable message indexes, loose messages)."""
-        per_channel: dict[int, tuple[list, list]] = {}
-        definitions = []
-        pos, size = 0, len(records)
-        unpack_message = struct.Struct("<HIQ").unpack_from
-        while pos < size:
-            if pos + 9 > size:
-                raise McapFormatError("truncated record in chunk")
-            op, length = _RECORD_HEADER.unpack_from(records, pos)
-            if pos + 9 + length > size:
-                raise McapFormatError("truncated record in chunk")
-            if op == OP_MESSAGE:
-                channel, _, log_time = unpack_message(records, pos + 9)
-                times, offsets = per_channel.setdefault(channel, ([], []))
-                times.append(log_time)
-                offsets.append(pos)
-            elif op in (OP_SCHEMA, OP_CHANNEL):
-                definitions.append(
-                    self._define(op, memoryview(records)[pos + 9 : pos + 9 + length])
-                )
-            pos += 9 + length
-        index = {
-            c: (np.array(t, np.int64), np.array(o, np.int64)) for c, (t, o) in per_channel.items()
-        }
-        chunk = ChunkData(records, index, definitions)
-        times = [t.max() for t, _ in index.values() if len(t)]
-        chunk.end_ns = int(max(times)) if times else None  # loose messages: the latest log time
-        return chunk
+
+def _walk(records: bytes, define) -> ChunkData:
+    """Record by record (chunks without usable message indexes, loose messages, edited
+    chunks); `define(op, body)` takes a schema or channel record, returns (op, id)."""
+    per_channel: dict[int, tuple[list, list]] = {}
+    definitions = []
+    pos, size = 0, len(records)
+    unpack_message = struct.Struct("<HIQ").unpack_from
+    while pos < size:
+        if pos + 9 > size:
+            raise McapFormatError("truncated record in chunk")
+        op, length = _RECORD_HEADER.unpack_from(records, pos)
+        if pos + 9 + length > size:
+            raise McapFormatError("truncated record in chunk")
+        if op == OP_MESSAGE:
+            channel, _, log_time = unpack_message(records, pos + 9)
+            times, offsets = per_channel.setdefault(channel, ([], []))
+            times.append(log_time)
+            offsets.append(pos)
+        elif op in (OP_SCHEMA, OP_CHANNEL):
+            definitions.append(define(op, memoryview(records)[pos + 9 : pos + 9 + length]))
+        pos += 9 + length
+    index = {c: (np.array(t, np.int64), np.array(o, np.int64)) for c, (t, o) in per_channel.items()}
+    chunk = ChunkData(records, index, definitions)
+    times = [t.max() for t, _ in index.values() if len(t)]
+    chunk.end_ns = int(max(times)) if times else None  # loose messages: the latest log time
+    return chunk
+
+
+def _damage(what: str, exc: Exception) -> McapDamaged:
+    reason = (str(exc).splitlines() or [""])[0]
+    return McapDamaged(f"damaged {what} ({type(exc).__name__}: {reason})")
 
 
 def ends_complete(path: str | Path) -> bool:
@@ -529,9 +492,7 @@ def _decompress(data: memoryview, compression: str, size: int) -> bytes | memory
     return out
 
 
-# --------------------------------------------------------------------------
-# Writing
-# --------------------------------------------------------------------------
+# --- writing ------------------------------------------------------------------------------
 def message_records(
     channel_id: int, log_times: np.ndarray, data: np.ndarray | None, width: int | None = None
 ) -> np.ndarray:
@@ -553,24 +514,9 @@ def message_records(
     return out
 
 
-def ragged_message_records(channel_id: int, log_times: np.ndarray, datas: list) -> bytes:
-    """Message records for messages of different lengths (rare topics: commands, odd bags)."""
-    pack = struct.Struct("<BQHIQQ").pack
-    parts = []
-    for t, d in zip(log_times.tolist(), datas):
-        parts.append(pack(OP_MESSAGE, MESSAGE_HEADER - 9 + len(d), channel_id, 0, t, t))
-        parts.append(d)
-    return b"".join(parts)
-
-
 class McapWriter:
-    """Writes an MCAP file chunk by chunk from parts (see the module docstring).
-
-    >>> w = McapWriter(path, compression="zstd")
-    >>> sid = w.add_schema("sensor_msgs/msg/Imu", "ros2msg", text)
-    >>> cid = w.add_channel("/imu", sid, "cdr", {"offered_qos_profiles": ""})
-    >>> w.add_records(cid, log_times, data_2d); ...; w.close()
-    """
+    """Writes an MCAP file chunk by chunk from parts (see the module docstring): add_schema,
+    add_channel, then add_records(channel, log_times, data) ... and close()."""
 
     def __init__(
         self,
@@ -579,7 +525,6 @@ class McapWriter:
         compression: str = "",
         chunk_bytes: int = 4 << 20,
         library: str = "egovib_ros",
-        level: int = 1,
         crc: bool = True,
     ):
         if compression not in ("", "zstd"):
@@ -588,12 +533,12 @@ class McapWriter:
         self._fh = open(self.path, "xb")  # noqa: SIM115 (the writer's own; closed by close())
         self.compression = compression
         self.chunk_bytes = int(chunk_bytes)
-        self.crc = crc  # chunk CRCs: damage is detected on reading (0: not computed)
+        self.crc = crc  # chunk CRCs: damage is detected on reading
         self._compress = None
         if compression == "zstd":
             import zstandard  # deferred: a codec library, loaded for the files that use it
 
-            self._compress = zstandard.ZstdCompressor(level=level).compress
+            self._compress = zstandard.ZstdCompressor(level=1).compress
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.counts: dict[int, int] = {}
@@ -604,8 +549,6 @@ class McapWriter:
         self._chunk_indexes: list[ChunkIndex] = []
         self._parts: list[tuple[bytes | np.ndarray, dict]] = []
         self._pending = 0
-        # definitions already written in the data section
-        self._defined: set[tuple[int, int]] = set()
         self._fh.write(MAGIC)
         self._write_record(Header(profile="ros2", library=library))
 
@@ -623,7 +566,6 @@ class McapWriter:
             id=schema_id, name=name, encoding=encoding, data=bytes(data)
         )
         self._write_record(self.schemas[schema_id])
-        self._defined.add((OP_SCHEMA, schema_id))
         return schema_id
 
     def add_channel(
@@ -647,7 +589,6 @@ class McapWriter:
         )
         self.counts[channel_id] = 0
         self._write_record(self.channels[channel_id])
-        self._defined.add((OP_CHANNEL, channel_id))
         return channel_id
 
     def accepts_verbatim(
@@ -684,30 +625,27 @@ class McapWriter:
         log_times = np.asarray(log_times, np.int64)
         if len(log_times) == 0:
             return
-        if isinstance(data, np.ndarray):
-            width = MESSAGE_HEADER + data.shape[1]
-            step = max(1, (self.chunk_bytes - self._pending) // width)
-            if step < len(log_times):  # keep chunks near chunk_bytes: split the batch
-                self.add_records(channel_id, log_times[:step], data[:step])
-                for a in range(step, len(log_times), max(1, self.chunk_bytes // width)):
-                    b = a + max(1, self.chunk_bytes // width)
-                    self.add_records(channel_id, log_times[a:b], data[a:b])
+        if not isinstance(data, np.ndarray):
+            lengths = np.fromiter((len(d) for d in data), np.int64, len(data))
+            if np.any(lengths != lengths[0]):  # rare topics: commands, odd bags
+                pack, parts = struct.Struct("<BQHIQQ").pack, []
+                for t, d in zip(log_times.tolist(), data):
+                    parts += (pack(OP_MESSAGE, MESSAGE_HEADER - 9 + len(d), channel_id, 0, t, t), d)
+                blob, sizes = b"".join(parts), lengths + MESSAGE_HEADER
+                self._add_part(blob, {channel_id: (log_times, np.cumsum(sizes) - sizes)}, len(blob))
                 return
-            records = message_records(channel_id, log_times, data)
-            offsets = np.arange(len(log_times), dtype=np.int64) * width
-            self._add_part(records, {channel_id: (log_times, offsets)}, records.nbytes)
+            data = np.frombuffer(b"".join(data), np.uint8).reshape(len(data), int(lengths[0]))
+        width = MESSAGE_HEADER + data.shape[1]
+        step = max(1, (self.chunk_bytes - self._pending) // width)
+        if step < len(log_times):  # keep chunks near chunk_bytes: split the batch
+            self.add_records(channel_id, log_times[:step], data[:step])
+            for a in range(step, len(log_times), max(1, self.chunk_bytes // width)):
+                b = a + max(1, self.chunk_bytes // width)
+                self.add_records(channel_id, log_times[a:b], data[a:b])
             return
-        lengths = np.fromiter((len(d) for d in data), np.int64, len(data))
-        if len(lengths) and np.all(lengths == lengths[0]):
-            self.add_records(
-                channel_id,
-                log_times,
-                np.frombuffer(b"".join(data), np.uint8).reshape(len(data), int(lengths[0])),
-            )
-            return
-        blob = ragged_message_records(channel_id, log_times, data)
-        offsets = np.concatenate([[0], np.cumsum(lengths + MESSAGE_HEADER)[:-1]]).astype(np.int64)
-        self._add_part(blob, {channel_id: (log_times, offsets)}, len(blob))
+        self.add_message_records(
+            channel_id, log_times, message_records(channel_id, log_times, data)
+        )
 
     def add_message_records(
         self, channel_id: int, log_times: np.ndarray, records: np.ndarray
@@ -726,16 +664,13 @@ class McapWriter:
         if not self._parts:
             return
         parts, self._parts, self._pending = self._parts, [], 0
-        buffers = [
-            p if isinstance(p, (bytes, bytearray, memoryview)) else p.reshape(-1).data
-            for p, _ in parts
-        ]
+        buffers = [p.reshape(-1).data if isinstance(p, np.ndarray) else p for p, _ in parts]
         index: dict[int, list] = {}
         base = 0
-        for part, part_index in parts:
+        for buffer, (_, part_index) in zip(buffers, parts):
             for channel, (times, offsets) in part_index.items():
                 index.setdefault(channel, []).append((times, offsets + base))
-            base += part.nbytes if isinstance(part, (np.ndarray, memoryview)) else len(part)
+            base += memoryview(buffer).nbytes
         merged = {}
         for channel, pieces in index.items():
             times = np.concatenate([t for t, _ in pieces])
@@ -755,23 +690,14 @@ class McapWriter:
             crc = zlib.crc32(b, crc)
         if self._compress:
             buffers = [self._compress(b"".join(buffers))]
-        data_size = sum(len(b) if not isinstance(b, memoryview) else b.nbytes for b in buffers)
+        data_size = sum(memoryview(b).nbytes for b in buffers)
         self.bytes_uncompressed += size
         self.bytes_compressed += data_size
         compression = self.compression.encode()
         chunk_start = self._fh.tell()
-        head = struct.pack(
-            "<BQQQQI",
-            OP_CHUNK,
-            8 * 3 + 4 + 4 + len(compression) + 8 + data_size,
-            start,
-            end,
-            size,
-            crc,
-        )
-        self._fh.write(
-            head + struct.pack("<I", len(compression)) + compression + struct.pack("<Q", data_size)
-        )
+        length = 8 * 3 + 4 + 4 + len(compression) + 8 + data_size
+        head = struct.pack("<BQQQQII", OP_CHUNK, length, start, end, size, crc, len(compression))
+        self._fh.write(head + compression + struct.pack("<Q", data_size))
         for b in buffers:
             self._fh.write(b)
         chunk_end = self._fh.tell()

@@ -1,11 +1,10 @@
 """Reading rosbag2 bags batch by batch, in bounded memory.
 
-`BagReader(path)` opens a bag (MCAP or sqlite3; validated by rosbags) and
-`batches(topics)` yields `ReadBatch`es in file order: the messages of the wanted
-topics as packed `MessageBatch`es, and, for MCAP bags, the chunk they came from so a
-writer can copy it verbatim. MCAP files are scanned chunk by chunk (`mcapfile`);
-sqlite3 bags, file-compressed bags, and MCAP files the scan does not understand go
-through rosbags' reader, a fixed number of messages at a time.
+`BagReader(path)` opens a bag (MCAP or sqlite3; validated by rosbags) and `batches(topics)`
+yields `ReadBatch`es: the wanted topics' messages as packed `MessageBatch`es and, for MCAP
+bags, the chunks they came from (for verbatim copies). MCAP files are scanned chunk by chunk
+(`mcapfile`); sqlite3 bags, file-compressed bags and MCAP files the scan does not understand
+go through rosbags' reader, a fixed number of messages at a time.
 """
 
 from __future__ import annotations
@@ -16,12 +15,14 @@ import heapq
 import logging
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
 import yaml
 from mcap.reader import make_reader
+from mcap.records import Schema
 from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag.codec import MessageBatch
@@ -35,6 +36,7 @@ from egovib_ros.bag.mcapfile import (
 from egovib_ros.errors import BagError
 
 LOG = logging.getLogger("egovib_ros.bag")
+_NO_SCHEMA = Schema(id=0, data=b"", encoding="", name="")  # a channel without (schemaless)
 
 
 @dataclass
@@ -71,7 +73,12 @@ class BagReader:
         self.path = Path(path)
         if not self.path.exists():
             raise BagError(f"{self.path}: no such bag")
-        self.info = self._metadata()
+        try:
+            self.info = yaml.safe_load((self.path / "metadata.yaml").read_text())[
+                "rosbag2_bagfile_information"
+            ]
+        except Exception:
+            self.info = {}
         self.cut_files: dict[Path, int] = {}  # MCAP files cut short: their readable bytes
         self._rebuilt: dict[Path, McapScanner] = {}
         try:
@@ -83,11 +90,7 @@ class BagReader:
             if not self._open_cut_mcap():
                 raise BagError(f"{self.path}: not a readable rosbag2 bag ({reason})") from None
             return
-        entries = {
-            e["topic_metadata"]["name"]: e["topic_metadata"]
-            for e in self.info.get("topics_with_message_count") or []
-            if "topic_metadata" in e
-        }
+        entries = self._topic_entries()
         self.topics: dict[str, TopicInfo] = {}
         for conn in self._reader.connections:
             if conn.topic in self.topics:
@@ -123,12 +126,7 @@ class BagReader:
         cut = [f for f in files if not ends_complete(f)]
         if not cut:
             return False  # whole files rosbags still refused: not a cut recording
-        entries = {
-            e["topic_metadata"]["name"]: e["topic_metadata"]
-            for e in self.info.get("topics_with_message_count") or []
-            if "topic_metadata" in e
-        }
-        counts: dict[str, int] = {}
+        entries, counts = self._topic_entries(), {}
         self.topics = {}
         try:
             for file in files:
@@ -140,15 +138,13 @@ class BagReader:
                 for channel in scanner.channels.values():
                     if channel.topic in self.topics:
                         continue
-                    schema = scanner.schemas.get(channel.schema_id)
+                    schema = scanner.schemas.get(channel.schema_id) or _NO_SCHEMA
                     self.topics[channel.topic] = TopicInfo(
-                        msgtype=schema.name if schema is not None else "",
+                        msgtype=schema.name,
                         count=0,
                         metadata=dict(entries.get(channel.topic, {})),
-                        msgdef=schema.data.decode() if schema is not None else "",
-                        msgdef_format="ros2idl"
-                        if schema is not None and schema.encoding == "ros2idl"
-                        else "ros2msg",
+                        msgdef=schema.data.decode(),
+                        msgdef_format="ros2idl" if schema.encoding == "ros2idl" else "ros2msg",
                     )
                 if scanner.cut_at is not None:
                     self.cut_files[file] = scanner.cut_at
@@ -183,13 +179,13 @@ class BagReader:
         return True
 
     # --- facts -----------------------------------------------------------------
-    def _metadata(self) -> dict:
-        try:
-            return yaml.safe_load((self.path / "metadata.yaml").read_text())[
-                "rosbag2_bagfile_information"
-            ]
-        except Exception:
-            return {}
+    def _topic_entries(self) -> dict[str, dict]:
+        """metadata.yaml's entry of each topic (topic_metadata), for copying."""
+        return {
+            e["topic_metadata"]["name"]: e["topic_metadata"]
+            for e in self.info.get("topics_with_message_count") or []
+            if "topic_metadata" in e
+        }
 
     @property
     def is_plain_mcap(self) -> bool:
@@ -201,20 +197,15 @@ class BagReader:
             and all(f.suffix == ".mcap" and f.exists() for f in self.files)
         )
 
+    @cached_property
     def mcap_definitions(self):
         """(schemas, channels) by id from the summary of the bag's first MCAP file (read with
         the `mcap` library), or None (not MCAP, no summary)."""
-        if not hasattr(self, "_definitions"):
-            self._definitions = None
-            if self.is_plain_mcap:
-                try:
-                    with open(self.files[0], "rb") as fh:
-                        summary = make_reader(fh).get_summary()
-                    if summary is not None:
-                        self._definitions = (dict(summary.schemas), dict(summary.channels))
-                except Exception:
-                    pass
-        return self._definitions
+        if self.is_plain_mcap:
+            with contextlib.suppress(Exception), open(self.files[0], "rb") as fh:
+                summary = make_reader(fh).get_summary()
+                return (dict(summary.schemas), dict(summary.channels)) if summary else None
+        return None
 
     def require(self, topic: str, msgtype: str) -> None:
         """BagError unless the bag has `topic` with type `msgtype`."""

@@ -1,29 +1,21 @@
 """Recordings (numpy arrays of a bag's sensor and joint streams) read in bounded memory.
 
 `iter_recording(path, profile=...)` yields consecutive time slices of a bag as
-`Recording`s; `read_recording` joins them. Topics, the Imu field and the joints come
-from the robot profile (INTERFACES.md section 1b; default the PR2 hand): the sensor topic's
-`sensor.field` vector becomes `accel`, whatever its name, and the joints are picked
-by name from JointStates with any number and order of joints.
+`Recording`s; `read_recording` joins them. Topics, Imu field and joints come from the robot
+profile (INTERFACES.md section 1b): the sensor topic's `sensor.field` vector becomes
+`sensor`, and the joints are picked by name from JointStates of any joints in any order.
 
-Slices are aligned for the streaming core: each slice carries every joint state read
-so far and only sensor samples whose joint states (up to `horizon_s` past them) and
-earlier samples are all in, so pushing a slice's joint states and then its sensor
-samples into a StreamingDenoiser or CalibrationAccumulator gives the whole-array
-result (tested). "In" means the reader has passed that time: chunks are read in the
-order of their first log time, and every message not yet read is logged after the
-reader's frontier; each stream's stamps are placed against log times by the least
-(stamp - log time) it has shown (receive-time logs, another clock). A chunk may hold a
-whole topic (files written topic by topic): its samples wait, in memory with the chunk,
-until the next chunks bring the other topics. Only when log times stop advancing for
-two batches while `max_lag_s` of sensor samples wait do the oldest go on without their
-joint states (memory stays bounded; counted in `released_early`, and those blocks are
-treated as a live denoiser treats them).
-
-JointState messages that carry only some of the named joints (robots where each
-controller publishes its own JointState) are merged as joint_state_publisher does:
-each joint keeps its last value until it is published again. A named joint that
-never appears is a BagError naming the joint and the topic.
+Slices are aligned for the streaming core: a slice carries every joint state read so far
+and only sensor samples whose joint states (up to `HORIZON_NS` past them) and earlier
+samples are all in, so pushing its joint states, then its samples, into a
+StreamingDenoiser or CalibrationAccumulator gives the whole-array result (tested). "In":
+the reader has passed that time (chunks come in the order of their first log time; each
+stream's stamps are placed against log times by the least stamp - log time it has shown:
+receive-time logs, another clock). A chunk holding a whole topic makes its samples wait
+until the other topics come. Only when log times stop advancing for two batches while
+`max_lag_s` of samples wait do the oldest go on without their joint states (counted in
+`released_early`). Partial JointStates (one per controller) are merged as
+joint_state_publisher does: each joint keeps its last value until published again.
 """
 
 from __future__ import annotations
@@ -57,6 +49,7 @@ from egovib_ros.errors import BagError
 from egovib_ros.robot import COMMANDS_TOPIC, RobotProfile, load_profile
 
 LOG = logging.getLogger("egovib_ros.bag")
+HORIZON_NS = NS_PER_S // 10  # joint states a sensor sample waits for, past its stamp
 
 
 @lru_cache(maxsize=1)
@@ -123,13 +116,8 @@ def _concat(parts: list[np.ndarray], width: int | None) -> np.ndarray:
 
 
 class RecordingStream:
-    """Turns ReadBatches of one bag into aligned Recording slices (see the module doc).
-
-    >>> stream = RecordingStream(reader, profile)
-    >>> for batch in reader.batches(stream.topics):
-    ...     for piece in stream.add(batch): ...
-    >>> for piece in stream.finish(): ...
-    """
+    """Turns ReadBatches of one bag into aligned Recording slices (see the module doc):
+    `add(batch)` for each of `reader.batches(stream.topics)`, then `finish()`."""
 
     def __init__(
         self,
@@ -139,7 +127,6 @@ class RecordingStream:
         ground_truth: bool = True,
         denoised: bool = True,
         commands: bool = True,
-        horizon_s: float = 0.1,
         max_lag_s: float = 10.0,
         min_slice_s: float = 1.0,
     ):
@@ -168,12 +155,10 @@ class RecordingStream:
                 self.present.add(key)
         self.topics = [self.names[k] for k in sorted(self.present)]
         self._key_of = {self.names[k]: k for k in self.present}
-        self.horizon_ns = int(horizon_s * NS_PER_S)
         self.max_pending = max(1, int(max_lag_s * self.profile.rate_hz))
         self.min_slice_ns = int(min_slice_s * NS_PER_S)
         self._sensor_keys = [k for k in ("raw", "contact", "ego") if k in self.present]
-        # [(stamps, values), ...] per sensor stream
-        self._sensor: dict[str, list] = {k: [] for k in self._sensor_keys}
+        self._sensor: dict[str, list] = {k: [] for k in self._sensor_keys}  # [(stamps, values)]
         self._joints: list[tuple] = []
         self._denoised: list[tuple] = []
         self._commands: list[tuple] = []
@@ -181,7 +166,6 @@ class RecordingStream:
         self._split_joints = SplitJointStates()  # one message per joint, one stamp: one row
         self._joint_seen = np.zeros(len(self.joint_names), bool)
         self._joint_notes: dict = {}  # codec.decode_joint_states: joints named, short arrays
-        # velocity from positions where the driver publishes none (profile joints.velocity)
         self.joint_velocity = JointVelocity(
             len(self.joint_names), source=self.profile.velocity_source
         )
@@ -189,9 +173,8 @@ class RecordingStream:
         self._frontier_ns: int | None = None
         self._stuck = 0  # batches read since the frontier last moved
         self.released_early = 0  # sensor samples let go before their joint states could be in
-        # per stream, the least (header stamp - log time) seen: where the frontier of log
-        # times falls among its stamps (stamps may trail log times by a latency, or run on
-        # another clock altogether, e.g. simulated time in a bag logged in wall time)
+        # per stream, the least header stamp - log time seen: where the frontier of log times
+        # falls among its stamps (a latency, or another clock: simulated time, wall-time logs)
         self._lead_ns: dict[str, int] = {}
         self.counts = {k: 0 for k in self.present}
         self._started = False  # the sensor streams' starts aligned (`_align_ends`)
@@ -332,9 +315,15 @@ class RecordingStream:
         refuse_negative_stamps(stamps, where, BagError)
 
     def _add_joint_rows(self, stamps, position, velocity) -> None:
+        """Velocity where the driver gives none (core.velocity), then joints missing from a
+        message filled with their last published values."""
         velocity = self.joint_velocity.push(stamps, position, velocity)
         self._velocity_usable += np.isfinite(velocity).sum(axis=0)
-        self._joints.append(self._merge_partial(stamps, position, velocity))
+        self._joint_seen |= (~(np.isnan(position) & np.isnan(velocity))).any(axis=0)
+        position, velocity, self._last_joint_values = hold_missing_joints(
+            position, velocity, self._last_joint_values
+        )
+        self._joints.append((stamps, position, velocity))
 
     def _note_lead(self, key: str, stamps: np.ndarray, log_times: np.ndarray) -> None:
         lead = int((stamps - log_times).min())
@@ -348,14 +337,6 @@ class RecordingStream:
         frontier = self._frontier_ns + self._lead_ns[key]
         held = self._split_joints.held_from_ns if key == "joint_states" else None
         return frontier if held is None else min(frontier, held)  # read, not yet in
-
-    def _merge_partial(self, stamps, position, velocity):
-        """Fill a joint missing from a message with its last published value."""
-        self._joint_seen |= (~(np.isnan(position) & np.isnan(velocity))).any(axis=0)
-        position, velocity, self._last_joint_values = hold_missing_joints(
-            position, velocity, self._last_joint_values
-        )
-        return stamps, position, velocity
 
     # --- output ------------------------------------------------------------------------
     def _refuse_valueless_joints(self) -> None:
@@ -374,10 +355,9 @@ class RecordingStream:
 
     def _align_ends(self, sensor: dict, *, final: bool) -> dict:
         """The sensor topic and its ground truth (contact, ego) cut to the stamps they share
-        at the start (first release) and at the end (final): a recorder subscribes to the
-        topics, and stops, at slightly different times (`bag_recorder` stopped before or after
-        the simulator). The samples left out are counted (`unmatched_ends`) and said at the
-        end; a stamp missing in the middle is still refused (`_release`)."""
+        at the start (first release) and at the end (final): a recorder subscribes to, and
+        stops, the topics at slightly different times. The samples left out are counted
+        (`unmatched_ends`); a stamp missing in the middle is still refused (`_release`)."""
         if len(sensor) < 2:
             return sensor
         if not self._started and all(len(s) for s, _ in sensor.values()):
@@ -418,16 +398,14 @@ class RecordingStream:
         if final:
             take = n
         else:
-            # Everything not yet read is logged at or after the frontier: a sample stamped
-            # that far before it (on each stream's clock) has its joint states (up to the
-            # horizon) and all earlier samples in.
+            # Everything unread is logged at or after the frontier: a sample stamped that far
+            # before it (on each stream's clock) has its joint states and earlier samples in.
             frontier = min(self._stamp_frontier(k) for k in [*self._sensor_keys, "joint_states"])
-            take = int(np.searchsorted(raw_stamps[:n], frontier - self.horizon_ns, side="left"))
+            take = int(np.searchsorted(raw_stamps[:n], frontier - HORIZON_NS, side="left"))
             early = 0
             if n - take > self.max_pending and self._stuck >= 2:
-                # A frontier that does not move (log times that do not advance): hold no more
-                # than max_lag_s of samples. A chunk holding much of one topic is not that:
-                # its samples are in memory already, and the next chunk moves the frontier.
+                # Log times that do not advance: hold no more than max_lag_s of samples (not so
+                # for a chunk holding much of one topic: the next chunk moves the frontier).
                 early = n - self.max_pending - take
                 take = n - self.max_pending
             span = int(raw_stamps[take - 1]) - int(raw_stamps[0]) if take else 0
@@ -448,9 +426,7 @@ class RecordingStream:
             if final or self._frontier_ns is None
             else max(
                 int(np.searchsorted(js_stamps, self._stamp_frontier("joint_states"), side="left")),
-                int(
-                    np.searchsorted(js_stamps, raw_stamps[take - 1] + self.horizon_ns, side="right")
-                )
+                int(np.searchsorted(js_stamps, raw_stamps[take - 1] + HORIZON_NS, side="right"))
                 if take
                 else 0,
             )
@@ -500,23 +476,14 @@ def iter_recording(
     path: str | os.PathLike,
     *,
     profile: RobotProfile | None = None,
-    ground_truth: bool = True,
-    denoised: bool = True,
-    commands: bool = True,
     progress: Callable[[int], None] | None = None,
     **options,
 ) -> Iterator[Recording]:
-    """Consecutive aligned time slices of a bag (see the module doc); memory is bounded by
-    the slice length, not the bag's. `progress(bytes)` is called as the bag is read."""
+    """Consecutive aligned time slices of a bag (see the module doc), in memory bounded by
+    the slice length; `options`: RecordingStream's (ground_truth, denoised, commands: the
+    optional topics read when present). `progress(bytes)` is called as the bag is read."""
     with BagReader(path) as reader:
-        stream = RecordingStream(
-            reader,
-            profile,
-            ground_truth=ground_truth,
-            denoised=denoised,
-            commands=commands,
-            **options,
-        )
+        stream = RecordingStream(reader, profile, **options)
         for batch in reader.batches(stream.topics):
             yield from stream.add(batch)
             if progress is not None:
@@ -548,24 +515,14 @@ def concat_recordings(pieces: Sequence[Recording]) -> Recording:
 
 
 def read_recording(
-    path: str | os.PathLike,
-    *,
-    profile: RobotProfile | None = None,
-    ground_truth: bool = True,
-    denoised: bool = True,
+    path: str | os.PathLike, *, profile: RobotProfile | None = None, **options
 ) -> Recording:
-    """A whole bag as one Recording (MCAP or sqlite3): the profile's sensor topic and joints
-    (default PR2), plus ground truth, denoised and command topics when present and asked
-    for. Streams are sorted by stamp. BagError names the bag and the problem."""
-    profile = profile or _default_profile()
-    rec = concat_recordings(
-        list(iter_recording(path, profile=profile, ground_truth=ground_truth, denoised=denoised))
-    )
-    return _sorted(rec)
+    """A whole bag as one Recording (`iter_recording`'s slices joined), each stream sorted
+    by stamp (a bag's file order is receive order). BagError names the bag and problem."""
+    return _sorted(concat_recordings(list(iter_recording(path, profile=profile, **options))))
 
 
 def _sorted(rec: Recording) -> Recording:
-    """Streams in stamp order (a bag's file order is receive order)."""
     truth = [key for key in ("contact", "ego") if getattr(rec, key) is not None]
     rec.sensor_stamps_ns, rec.sensor, *values = _by_stamp(
         rec.sensor_stamps_ns, rec.sensor, *(getattr(rec, key) for key in truth)
@@ -580,29 +537,10 @@ def _sorted(rec: Recording) -> Recording:
     return rec
 
 
-# --------------------------------------------------------------------------
-# Writing
-# --------------------------------------------------------------------------
-def write_recording(
-    path: str | os.PathLike,
-    rec: Recording,
-    *,
-    profile: RobotProfile | None = None,
-    storage: str = "mcap",
-    compress: bool | str = False,
-    progress=None,
-    **options,
-) -> None:
+# --- writing ------------------------------------------------------------------------------
+def write_recording(path: str | os.PathLike, rec: Recording, **options) -> None:
     """Write a Recording as a rosbag2 bag: one message per sample, log time = stamp."""
-    write_recordings(
-        path,
-        [rec],
-        profile=profile,
-        storage=storage,
-        compress=compress,
-        progress=progress,
-        **options,
-    )
+    write_recordings(path, [rec], **options)
 
 
 def write_recordings(
@@ -612,105 +550,90 @@ def write_recordings(
     profile: RobotProfile | None = None,
     storage: str = "mcap",
     compress: bool | str = False,
-    progress=None,
     window_s: float = 1.0,
     chunk_bytes: int = 4 << 20,
     crc: bool = True,
     frame_id: str = "",
 ) -> None:
-    """Write consecutive time slices of a recording into one bag, in constant memory.
-    Imu messages carry `frame_id` (the sensor's frame).
-
-    Each slice is cut into `window_s` windows; a window's messages go into the bag
-    together (grouped by topic), so chunks follow time. `progress(n_messages)` is
-    called after each window."""
+    """Write consecutive time slices of a recording into one bag, in constant memory; Imu
+    messages carry `frame_id` (the sensor's frame). Each slice is cut into `window_s`
+    windows whose messages go into the bag together (grouped by topic): chunks follow time."""
     profile = profile or _default_profile()
     names = bag_topic_names(profile)
-    field_ = profile.sensor_field
     with BagWriter(
         path, storage=storage, compress=compress, chunk_bytes=chunk_bytes, crc=crc
     ) as bag:
         for rec in pieces:
-            streams = recording_streams(rec, names, field_, frame_id)
+            streams = recording_streams(rec, names, profile.sensor_field, frame_id)
             for topic, msgtype, _, _ in streams:
                 bag.add_topic(topic, msgtype)
             start = min(int(s[0]) for _, _, s, _ in streams if len(s))
             stop = max(int(s[-1]) for _, _, s, _ in streams if len(s)) + 1
             step = max(1, int(window_s * NS_PER_S))
             for t0 in range(start, stop, step):
-                count = 0
                 for topic, _, stamps, encode in streams:
                     a, b = np.searchsorted(stamps, [t0, t0 + step])
                     if b > a:
                         bag.write_batch(topic, stamps[a:b], encode(a, b))
-                        count += int(b - a)
-                if progress is not None and count:
-                    progress(count)
 
 
 def recording_streams(rec: Recording, names: dict, field_: str, frame_id: str = "") -> list:
-    """(topic, type, stamps, encode(a, b)) per topic present in the recording."""
+    """(topic, type, stamps, encode(a, b)) per topic present in the recording: stamps in
+    order (a slice's normally are), encode(a, b) the messages of stamps[a:b]."""
     n = len(rec.sensor_stamps_ns)
+    streams = []
 
-    def imu(values, stamps):
-        return lambda a, b: encode_imu_batch(stamps[a:b], values[a:b], frame_id, field_)
+    def add(topic: str, msgtype: str, stamps, encode_rows) -> None:
+        stamps = np.asarray(stamps, np.int64)
+        order = None
+        if len(stamps) > 1 and np.any(np.diff(stamps) < 0):
+            order = np.argsort(stamps, kind="stable")
 
-    stamps = np.asarray(rec.sensor_stamps_ns, np.int64)
-    streams = [(names["raw"], IMU_TYPE, stamps, imu(rec.sensor, stamps))]
+        def encode(a: int, b: int) -> list[bytes]:
+            return encode_rows(slice(a, b) if order is None else order[a:b])
+
+        streams.append((topic, msgtype, stamps if order is None else stamps[order], encode))
+
+    def add_imu(key: str, stamps, values) -> None:
+        stamps = np.asarray(stamps, np.int64)
+        add(
+            names[key],
+            IMU_TYPE,
+            stamps,
+            lambda r: encode_imu_batch(stamps[r], values[r], frame_id, field_),
+        )
+
+    add_imu("raw", rec.sensor_stamps_ns, rec.sensor)
     for key in ("contact", "ego"):
         values = getattr(rec, key)
         if values is not None:
             if len(values) != n:
                 raise BagError(f"recording: {key} has {len(values)} samples, accel has {n}")
-            streams.append((names[key], IMU_TYPE, stamps, imu(values, stamps)))
+            add_imu(key, rec.sensor_stamps_ns, values)
     if rec.denoised is not None:
-        den_stamps = np.asarray(rec.denoised_stamps_ns, np.int64)
-        streams.append((names["denoised"], IMU_TYPE, den_stamps, imu(rec.denoised, den_stamps)))
+        add_imu("denoised", rec.denoised_stamps_ns, rec.denoised)
     js = np.asarray(rec.joint_stamps_ns, np.int64)
-    streams.append(
-        (
-            names["joint_states"],
-            JOINT_STATE_TYPE,
-            js,
-            lambda a, b: encode_joint_state_batch(
-                js[a:b], rec.joint_position[a:b], rec.joint_velocity[a:b], rec.joint_names
-            ),
-        )
+    add(
+        names["joint_states"],
+        JOINT_STATE_TYPE,
+        js,
+        lambda r: encode_joint_state_batch(
+            js[r], rec.joint_position[r], rec.joint_velocity[r], rec.joint_names
+        ),
     )
     if rec.commands is not None and len(rec.commands):
-        cs = np.asarray(rec.command_stamps_ns, np.int64)
-        streams.append(
-            (
-                names["commands"],
-                COMMANDS_TYPE,
-                cs,
-                lambda a, b: [encode_commands(c) for c in rec.commands[a:b]],
-            )
+        add(
+            names["commands"],
+            COMMANDS_TYPE,
+            rec.command_stamps_ns,
+            lambda r: [encode_commands(c) for c in rec.commands[r]],
         )
-    # window lookup needs sorted stamps; a slice normally is (write in stamp order otherwise)
-    out = []
-    for topic, msgtype, s, encode in streams:
-        if len(s) > 1 and np.any(np.diff(s) < 0):
-            order = np.argsort(s, kind="stable")
-            s_sorted = s[order]
-            out.append((topic, msgtype, s_sorted, _reordered(encode, order)))
-        else:
-            out.append((topic, msgtype, s, encode))
-    return out
-
-
-def _reordered(encode, order):
-    def enc(a, b):
-        datas = encode(0, len(order))
-        return [datas[i] for i in order[a:b]]
-
-    return enc
+    return streams
 
 
 def duration_of(path: str | os.PathLike, profile: RobotProfile | None = None) -> float:
-    """Seconds of recording a bag holds: its sensor topic's message count at the profile's rate
-    when the bag lists it (a pause in the recording does not count), else the time spanned
-    (metadata.yaml)."""
+    """Seconds of recording a bag holds: its sensor topic's message count at the profile's
+    rate when listed (a pause does not count), else the time spanned (metadata.yaml)."""
     with BagReader(path) as reader:
         span = float((reader.info.get("duration") or {}).get("nanoseconds", 0)) / NS_PER_S
         if profile is None:

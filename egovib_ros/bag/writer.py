@@ -1,7 +1,6 @@
-"""Writing rosbag2 bags: MCAP written chunk by chunk (`mcapfile.McapWriter`), optionally
-zstd-compressed per chunk, plus the bag's `metadata.yaml` (rosbag2 version 9, as rosbags
-writes it), so the result reads with rosbags and `ros2 bag`. sqlite3 output goes
-through rosbags' writer.
+"""Writing rosbag2 bags: MCAP chunk by chunk (`mcapfile.McapWriter`), optionally
+zstd-compressed per chunk, plus `metadata.yaml` (rosbag2 version 9, as rosbags writes it):
+the result reads with rosbags and `ros2 bag`. sqlite3 output goes through rosbags' writer.
 """
 
 from __future__ import annotations
@@ -18,7 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from egovib_ros.bag.codec import MessageBatch, typestore
-from egovib_ros.bag.mcapfile import ChunkData, McapWriter
+from egovib_ros.bag.mcapfile import McapWriter
 from egovib_ros.errors import BagError
 
 COMPRESSIONS = ("none", "zstd")
@@ -50,20 +49,13 @@ def _library() -> str:
 
 
 class BagWriter:
-    """A rosbag2 bag being written; messages are serialised CDR bytes.
+    """A rosbag2 bag being written (a context manager): `add_topic`, then serialised CDR
+    messages one by one (`write`) or many at once (`write_batch`).
 
-    >>> with BagWriter("out_bag", compress="zstd") as bag:
-    ...     bag.add_topic("/accelerometer/raw", "sensor_msgs/msg/Imu")
-    ...     bag.write("/accelerometer/raw", stamp_ns, cdr_bytes)             # one message
-    ...     bag.write_batch("/accelerometer/raw", stamps_ns, matrix_or_list)  # many at once
-
-    `storage`: "mcap" (default) or "sqlite3". `compress`: zstd chunk compression for
-    MCAP (rosbags and `ros2 bag` read it); for sqlite3, per-message zstd (rosbag2's
-    "message" mode). `crc`: MCAP chunk CRCs (default), so a damaged file is refused on
-    reading rather than read wrong. Messages of one topic must be written in log-time
-    order; topics may be interleaved freely. Memory: one chunk (`chunk_bytes`) plus what `write`
-    has buffered towards it.
-    """
+    `storage`: "mcap" or "sqlite3". `compress`: zstd per MCAP chunk; for sqlite3, per message
+    (rosbag2's "message" mode). `crc`: MCAP chunk CRCs, so that a damaged file is refused on
+    reading rather than read wrong. Messages of one topic must come in log-time order; topics
+    may interleave. Memory: one chunk (`chunk_bytes`) plus what `write` has buffered."""
 
     def __init__(
         self,
@@ -146,8 +138,8 @@ class BagWriter:
             self._abort_mcap()
 
     def _abort_mcap(self) -> None:
-        """Close the MCAP file of a bag that is given up. Its buffered bytes cannot be written
-        when the disk is full: that second failure would hide the first, so it is dropped."""
+        """Close the MCAP file of a bag given up; its buffered bytes cannot be written when the
+        disk is full: that second failure would hide the first, so it is dropped."""
         if self._mcap is not None:
             with contextlib.suppress(OSError):
                 self._mcap.abort()
@@ -173,10 +165,9 @@ class BagWriter:
         channel_id: int | None = None,
         schema=None,
     ) -> int:
-        """Declare a topic (idempotent); returns its MCAP channel id.
-
-        Definitions default to the Jazzy typestore's; pass those of an input bag to copy
-        a topic as it was (`schema`: an mcap Schema record to reuse with its id)."""
+        """Declare a topic (idempotent); returns its MCAP channel id. Definitions default to
+        the Jazzy typestore's (`copy_topic` passes an input bag's; `schema`: an mcap Schema
+        record to reuse with its id)."""
         if topic in self.topics:
             return self.topics[topic].channel_id
         if msgdef is None and schema is None:
@@ -235,16 +226,15 @@ class BagWriter:
         info = reader.topics[topic]
         name = as_topic or topic
         schema = channel = None
-        definitions = reader.mcap_definitions() if self._mcap is not None else None
+        definitions = reader.mcap_definitions if self._mcap is not None else None
         if definitions is not None:
             schemas, channels = definitions
             channel = next((c for c in channels.values() if c.topic == topic), None)
             schema = schemas.get(channel.schema_id) if channel is not None else None
         qos = info.metadata.get("offered_qos_profiles")
         if channel is not None and "offered_qos_profiles" in channel.metadata:
-            # rosbags pairs metadata.yaml's topics with the file's channels by QoS too: a
-            # topic recorded on several connections (QoS variants) is written as one
-            # channel, declared alike in both places
+            # rosbags pairs metadata.yaml's topics with the file's channels by QoS too: a topic
+            # recorded on several connections (QoS variants) is one channel, alike in both
             try:
                 qos = yaml.safe_load(channel.metadata["offered_qos_profiles"]) or []
             except yaml.YAMLError:
@@ -297,40 +287,18 @@ class BagWriter:
 
     def write_message_records(self, topic: str, log_times: np.ndarray, records: np.ndarray) -> None:
         """Append ready-made MCAP message records of `topic` (see `mcapfile.message_records`,
-        whose channel id must be this topic's); other storage: the messages themselves."""
-        if self._mcap is None:
-            self.write_batch(topic, log_times, records[:, 31:])
-            return
+        whose channel id must be this topic's); MCAP storage only."""
         if topic in self._buffered:
             self._drain_buffer()
         self._mcap.add_message_records(self.topics[topic].channel_id, log_times, records)
         self.topics[topic].count += len(log_times)
 
-    def accepts_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
-        """Whether `write_chunk` can copy this input chunk as it is: MCAP output, and the
-        chunk's channel ids and definitions are this bag's."""
-        if self._mcap is None or not self._mcap.accepts_verbatim(chunk, schemas, channels):
-            return False
-        ours = {t.channel_id for t in self.topics.values()}
-        return all(c in ours for c in chunk.index)
-
-    def write_chunk(self, chunk: ChunkData, schemas: dict, channels: dict) -> bool:
-        """Copy an input MCAP chunk's records as they are, if `accepts_chunk`; returns False
-        (nothing written) otherwise."""
-        if not self.accepts_chunk(chunk, schemas, channels):
-            return False
-        self._drain_buffer()
-        by_id = {t.channel_id: t for t in self.topics.values()}
-        self._mcap.add_chunk_records(chunk)
-        for channel, (times, _) in chunk.index.items():
-            by_id[channel].count += len(times)
-        return True
-
     def copy_batch(self, batch, topics: set[str] | None = None) -> int:
         """Copy a `ReadBatch`'s messages of `topics` (default: all of the batch's): its
-        input MCAP chunks as they are when each can be (returns how many), else message by
-        message (returns 0). Topics must have been declared (`copy_topic`)."""
-        if batch.chunks:
+        input MCAP chunks as they are when each can be (MCAP output, the chunk's channel ids
+        and definitions this bag's; returns how many), else message by message (returns 0).
+        Topics must have been declared (`copy_topic`)."""
+        if batch.chunks and self._mcap is not None:
             other = (
                 {c for c, t in batch.topic_of_channel.items() if t not in topics}
                 if topics is not None
@@ -338,20 +306,22 @@ class BagWriter:
             )
             chunks = [chunk.without(other) if other else chunk for chunk in batch.chunks]
             schemas, channels = batch.scanner.schemas, batch.scanner.channels
-            if all(self.accepts_chunk(chunk, schemas, channels) for chunk in chunks):
+            by_id = {t.channel_id: t for t in self.topics.values()}
+            if all(
+                self._mcap.accepts_verbatim(chunk, schemas, channels)
+                and all(c in by_id for c in chunk.index)
+                for chunk in chunks
+            ):
+                self._drain_buffer()
                 for chunk in chunks:
-                    self.write_chunk(chunk, schemas, channels)
+                    self._mcap.add_chunk_records(chunk)
+                    for channel, (times, _) in chunk.index.items():
+                        by_id[channel].count += len(times)
                 return len(chunks)
         for topic, messages in batch.messages.items():
             if (topics is None or topic in topics) and len(messages):
                 self.write_batch(topic, messages.log_times, messages)
         return 0
-
-    def flush_chunk(self) -> None:
-        """End the current chunk here (e.g. at a natural boundary)."""
-        if self._mcap is not None:
-            self._drain_buffer()
-            self._mcap.flush_chunk()
 
     # --- internals ---------------------------------------------------------------------
     def _drain_buffer(self) -> None:
