@@ -3,25 +3,17 @@
     paper   the paper's block spectral subtraction (core.subtraction.StreamingDenoiser):
             block_length - 1 samples of delay (21 ms for the PR2, 32 ms for the quadcopter)
     cancel  speed-locked harmonic cancellation (core.harmonic) on each band-passed axis:
-            no delay, removes the actuators' lines only, leaves everything else untouched
+            no delay, removes the actuators' lines only
     hybrid  cancel, then the low-latency gain (core.lowlatency) keyed on the velocity table
             of what cancellation leaves: `lookahead_ms` of delay (4 ms by default)
 
-`cancel` and `hybrid` need what `calibrate_methods` fits on the calibration recording
-(the speed -> line-frequency map, the residual's velocity table, the gain's per-band
-oversubtraction and offset); it is stored in the noise model's `extras`, so one model
-file serves every method. All three have the same push interface (push_joint_states,
-push_sensor, flush -> DenoisedChunk; stats; delay_samples); `make_denoiser` builds one
-by name and `denoise_batch_method` runs whole arrays through it (as `feed` does for any
-consumer), so batch equals streaming for any chunking.
-
-Both new methods work on x, y and z separately (each axis has its own line weights,
-noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
-of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
-the raw samples split by a low-pass fitted to the calibration recording (DropInSplit):
-gravity and motion pass untouched, the band and its edges are cleaned, with the split's
-delay (4.0 ms on the simulated PR2 hand, as the band-passed output; 10 ms on the 1 kHz
-flight, whose band lies lower against its rate).
+What `cancel` and `hybrid` need (`calibrate_methods`: the speed -> line-frequency map, the
+residual's velocity table, the gain's statistics) is stored in the noise model's `extras`.
+All three have one push interface (`make_denoiser` builds one by name), so batch equals
+streaming for any chunking. The new methods clean x, y and z separately (`combined`: the
+sum of the cleaned axes); their drop-in output splits the raw samples by a low-pass fitted
+to the calibration recording (DropInSplit): gravity and motion pass untouched, at the
+split's delay (4.0 ms on the simulated PR2 hand, 10 ms on the 1 kHz flight).
 """
 
 from __future__ import annotations
@@ -63,7 +55,7 @@ from egovib_ros.core.harmonic import (
     HarmonicMap,
     fit_harmonic_map,
 )
-from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, LowLatencyGain
+from egovib_ros.core.lowlatency import FilterBank, GainSettings, LowLatencyGain
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleBatch, SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, bad_samples, feed
@@ -129,8 +121,7 @@ def stored_threshold(model: NoiseModel, method: str) -> float | None:
         return None
     value = np.asarray(value)
     if value.ndim != 0 or value.dtype.kind not in "if" or not (np.isfinite(value) and value > 0):
-        where = model.provenance.get("path", "noise model")
-        raise ModelFileError(f"{where}: malformed field {DETECTOR_PREFIX + method!r}")
+        raise ModelFileError(f"{model.where}: malformed field {DETECTOR_PREFIX + method!r}")
     return float(value)
 
 
@@ -243,7 +234,6 @@ class MethodCalibration:
     guard_ref: np.ndarray | None = None  # (3,) per axis; None: calibrated before the guard
     split_taps: np.ndarray | None = None  # the drop-in output's split fitted to the recording
     split_delay: int | None = None  # its delay (samples); None: linear phase, half its length
-    info: dict = dataclasses.field(default_factory=dict)
 
     def to_extras(self) -> dict[str, np.ndarray]:
         extras = self.harmonic.to_arrays(HARMONIC_PREFIX)
@@ -271,8 +261,7 @@ class MethodCalibration:
 
     @classmethod
     def from_model(cls, model: NoiseModel) -> "MethodCalibration":
-        where = model.provenance.get("path", "noise model")
-        extras = model.extras
+        where, extras = model.where, model.extras
         if HARMONIC_PREFIX + "exponent" not in extras:
             raise ModelFileError(
                 f"{where}: calibrated for the paper's method only; calibrate it with "
@@ -287,24 +276,14 @@ class MethodCalibration:
         missing = [k for k in keys if k not in extras]
         if missing:
             raise ModelFileError(f"{where}: missing field(s) {missing}")
-        residual = NoiseModel(
-            grid=model.grid,
-            joint_names=model.joint_names,
+        residual = model.replace(
             cells=extras[keys[0]],
             mean=extras[keys[1]],
             std=extras[keys[2]],
             counts=extras[keys[3]],
-            sample_rate_hz=model.sample_rate_hz,
-            block_length=model.block_length,
-            hop=model.hop,
-            window=model.window,
-            window_name=model.window_name,
-            band_hz=model.band_hz,
-            band_order=model.band_order,
-            channels=model.channels,
             measured=str(extras[keys[4]]),
-            profile=model.profile,
             provenance={**model.provenance, "path": f"{where} (residual table)"},
+            extras={},
         )
         bands = gain.bands + 1
         alpha = np.asarray(extras.get(GAIN_PREFIX + "alpha", np.zeros(0)), float)
@@ -577,27 +556,19 @@ def calibrate_methods(
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
     *,
-    canceller: CancellerSettings | None = None,
     gain: GainSettings | None = None,
     harmonic: HarmonicMap | None = None,
     source: str = "",
 ) -> tuple[NoiseModel, dict]:
-    """Fit what `cancel` and `hybrid` need on the calibration recording the paper's table
-    `model` came from (or any other no-contact recording of the robot); returns the model
-    with them in its extras, and what was fitted (for reports).
+    """Fit what `cancel` and `hybrid` need on the no-contact recording the paper's table
+    `model` came from; returns the model with it in its extras, and what was fitted:
 
-    1. The speed -> line-frequency map (core.harmonic.fit_harmonic_map) on the band-passed
-       axes with each sample's held joint velocity.
-    2. The canceller runs over the recording; its residual gets its own velocity table
-       (the paper's calibration on it: same grid, blocks, sweep or free-motion rules).
-    3. The gain stage runs over the residual: `bias` = mean log of band power over the
-       table's prediction; `alpha` = the `opening_quantile` of that ratio once corrected.
-    `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
-    instead of fitting one.
-
-    One function: its numbered steps hand the recording's band-passed arrays and each
-    stage's residual to the next, in this order (each stage's fit is a function of its own)."""
-    canceller = canceller or CancellerSettings()
+    1. the speed -> line-frequency map (core.harmonic.fit_harmonic_map) on the band-passed
+       axes with each sample's held joint velocity (`harmonic`: one fitted before);
+    2. the canceller's residual over the recording gets its own velocity table (the
+       paper's calibration on it: same grid, blocks, sweep or free-motion rules);
+    3. the gain stage's statistics on that residual (`_gain_statistics`)."""
+    canceller = CancellerSettings()
     gain = gain or GainSettings()
     split = _split(model, accel, gain)
     if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
@@ -615,7 +586,6 @@ def calibrate_methods(
         raise StreamError(
             f"{source or 'calibration'}: too few samples with joint states to calibrate"
         )
-    profile = model.profile
     fit_info = {"given": True}
     if harmonic is None:
         harmonic, fit_info = fit_harmonic_map(
@@ -624,7 +594,7 @@ def calibrate_methods(
             sample_rate_hz=fs,
             band_hz=model.band_hz,
             joint_names=model.joint_names,
-            max_speed=np.array(profile.max_speed, float),
+            max_speed=np.array(model.profile.max_speed, float),
             settings=canceller,
         )
     cancel = HarmonicCanceller(
@@ -636,7 +606,7 @@ def calibrate_methods(
         residual[real],
         joint_stamps_ns,
         joint_velocity,
-        profile=profile,
+        profile=model.profile,
         sweep=model.measured if model.measured != "full" else "auto",
         prefiltered=True,
         source=source,
@@ -645,21 +615,60 @@ def calibrate_methods(
         sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
     )
     table = ResidualTable(residual_model, bank)
-    noise = table.powers(velocity)
-    settle = min(int(SETTLE_S * fs), len(x) // 4)
     use = known.copy()
-    use[:settle] = False
-    # The statistics describe how the residual scatters about the table's value at the
-    # current velocity: without the hold after speed drops (a run-time guard that only ever
-    # makes the gain more cautious).
+    use[: min(int(SETTLE_S * fs), len(x) // 4)] = False
+    alpha, bias, open_alpha, guard_ref = _gain_statistics(
+        bank, gain, residual, table, velocity, use
+    )
+    calibration = MethodCalibration(
+        harmonic,
+        canceller,
+        residual_model,
+        gain,
+        alpha,
+        bias,
+        open_alpha,
+        guard_ref,
+        *(split or (None, None)),
+    )
+    cancelled_db = 0.0
+    if use.any():
+        ratio = float(np.mean(x[use] ** 2)) / max(float(np.mean(residual[use] ** 2)), 1e-300)
+        cancelled_db = round(10 * math.log10(ratio), 2)
+    info = {
+        "harmonic": {**harmonic.describe(), "fit": fit_info},
+        "residual_table": residual_model.coverage(),
+        "residual_calibration": {
+            k: v for k, v in residual_stats.as_dict().items() if k != "rejected"
+        },
+        "gain": {
+            "bands_hz": bank.centres_hz.round(1).tolist(),
+            "alpha_median": float(np.median(alpha)),
+            "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
+            "guard_ref_db": (10 * guard_ref / math.log(10)).round(1).tolist(),
+        },
+        "cancellation_db_on_calibration": cancelled_db,
+    }
+    extras = {**model.extras, **calibration.to_extras()}
+    return model.replace(extras=extras), info
+
+
+def _gain_statistics(bank, gain, residual, table, velocity, use) -> tuple:
+    """(alpha, bias (3, B), open_alpha, guard_ref (3,)) of the gain stage on the calibration
+    residual at the samples `use`: `bias` the mean log of band power over the table's
+    prediction, `alpha` the `opening_quantile` of that ratio once corrected, `open_alpha`
+    the `open_quantile` of the opening score (largest P / (alpha N) over bands), `guard_ref`
+    the `guard_quantile` of the guard's slow log level of it (less log open_alpha). Without
+    the hold after speed drops: the statistics are the scatter about the table's value at
+    the current velocity (the hold is a run-time guard that only makes the gain warier)."""
+    noise = table.powers(velocity)
     steady = dataclasses.replace(gain, hold_ms=0.0)
     probe = LowLatencyGain(
         bank, dataclasses.replace(steady, track_s=0.0, oversubtraction=1.0), n_channels=3
     )
     _, ratios = probe.process(residual, noise, collect=True)
     ratios = ratios[:, :, : bank.n_bands]
-    # Statistics where the table expects noise on that channel and band (an axis at rest
-    # reads a constant: no power, nothing to learn there).
+    # only where the table expects noise (an axis at rest reads a constant: nothing to learn)
     usable = use[:, None, None] & (noise > 1.001 * table.floor[None]) & (ratios > 0)
     logs = np.where(usable, np.clip(np.log(np.where(usable, ratios, 1.0)), -20.0, 20.0), 0.0)
     bias = logs.sum(axis=0) / np.maximum(usable.sum(axis=0), 1)
@@ -674,8 +683,6 @@ def calibrate_methods(
             values = values[np.isfinite(values) & (values > 0)]
             if len(values):
                 alpha[c, b] = float(np.quantile(values, gain.opening_quantile))
-    # The opening score (largest P / (alpha N) over bands) of the calibration residual, and
-    # the guard's slow level of it (its log; shifted by log open_alpha once that is known).
     probe = LowLatencyGain(bank, steady, n_channels=3, alpha=alpha, bias=bias)
     _, ratios = probe.process(residual, noise, collect=True)
     open_alpha = np.ones(3)
@@ -689,41 +696,7 @@ def calibrate_methods(
         levels = ratios[where, c, bank.n_bands + 1]
         if len(levels):
             guard_ref[c] = float(np.quantile(levels, gain.guard_quantile)) - math.log(open_alpha[c])
-    calibration = MethodCalibration(
-        harmonic,
-        canceller,
-        residual_model,
-        gain,
-        alpha,
-        bias,
-        open_alpha,
-        guard_ref,
-        *(split or (None, None)),
-    )
-    info = {
-        "harmonic": {**harmonic.describe(), "fit": fit_info},
-        "residual_table": residual_model.coverage(),
-        "residual_calibration": {
-            k: v for k, v in residual_stats.as_dict().items() if k != "rejected"
-        },
-        "gain": {
-            "bands_hz": bank.centres_hz.round(1).tolist(),
-            "alpha_median": float(np.median(alpha)),
-            "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
-            "guard_ref_db": (10 * guard_ref / math.log(10)).round(1).tolist(),
-        },
-        "cancellation_db_on_calibration": round(
-            10
-            * math.log10(
-                float(np.mean(x[use] ** 2)) / max(float(np.mean(residual[use] ** 2)), 1e-300)
-            ),
-            2,
-        )
-        if use.any()
-        else 0.0,
-    }
-    extras = {**model.extras, **calibration.to_extras()}
-    return model.replace(extras=extras), info
+    return alpha, bias, open_alpha, guard_ref
 
 
 # --------------------------------------------------------------------------------------
@@ -780,7 +753,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         method: str = "hybrid",
         channels: str = "per_axis",
         joint_wait_s: float = 0.02,
-        max_hold_s: float = 0.05,
         floor: float | None = None,
         lookahead_ms: float | None = None,
         output: str | None = None,
@@ -808,7 +780,6 @@ class SampleMethodDenoiser(FramedDenoiser):
             model,
             layout="per_axis",
             joint_wait_s=joint_wait_s,
-            max_hold_s=max_hold_s,
             with_steadiness=False,
             keep_raw=output == "dropin",
             joint_lag_s=joint_lag_s,
@@ -1240,27 +1211,3 @@ def method_delay_ms(model: NoiseModel, method: str | None = None, **options) -> 
     output; cancel and hybrid: their band-passed output's, or their drop-in output's, the
     default per axis, later)."""
     return make_denoiser(model, method, **options).delay_ms
-
-
-__all__ = [
-    "DEFAULT_METHOD",
-    "METHODS",
-    "SAMPLE_METHODS",
-    "MAX_DELAY_MS",
-    "DropInSplit",
-    "MethodCalibration",
-    "ResidualTable",
-    "SampleMethodDenoiser",
-    "calibrate_detection",
-    "calibrate_methods",
-    "check_method",
-    "default_method",
-    "has_method_calibration",
-    "resolve_method",
-    "short_detection_warning",
-    "stored_threshold",
-    "denoise_batch_method",
-    "make_denoiser",
-    "method_delay_ms",
-    "warm_up",
-]
