@@ -145,9 +145,7 @@ class AdaptStats:
         return dict(vars(self))
 
 
-# --------------------------------------------------------------------------------------
-# The gate
-# --------------------------------------------------------------------------------------
+# --- The gate -----------------------------------------------------------------------------
 class ContactGate:
     """The contact detector's envelope on the denoiser's output (`push`: stamps (n,),
     values (n, 3), or (n, 1) band-passed and summed); `decide(first_ns, last_ns)`: whether
@@ -239,9 +237,7 @@ class TransientGate(ContactGate):
         return limit
 
 
-# --------------------------------------------------------------------------------------
-# The residual table's cells
-# --------------------------------------------------------------------------------------
+# --- The residual table's cells -----------------------------------------------------------
 @dataclass
 class Candidate:
     """A block waiting for the gate."""
@@ -502,9 +498,7 @@ class AdaptiveTable:
         return self.base.samples_out_of_grid
 
 
-# --------------------------------------------------------------------------------------
-# The harmonic map's corrections and amplitudes
-# --------------------------------------------------------------------------------------
+# --- The harmonic map's corrections and amplitudes ----------------------------------------
 class HarmonicLearner:
     """Per joint and point of its speed grid (|grid values|): the canceller's frequency
     correction (J, G) and line amplitudes per axis (lines, G, C), averaged over the spans
@@ -841,9 +835,7 @@ class LineFinder:
         self._recount()
 
 
-# --------------------------------------------------------------------------------------
-# The model's extras
-# --------------------------------------------------------------------------------------
+# --- The model's extras -------------------------------------------------------------------
 def learnt_state(model: NoiseModel) -> tuple[dict | None, dict | None]:
     """(residual cells, harmonic map) learnt online that the model carries (None: none)."""
     where = model.where
@@ -902,9 +894,7 @@ def describe_learnt(model: NoiseModel) -> dict | None:
     return out
 
 
-# --------------------------------------------------------------------------------------
-# The whole of it, for SampleMethodDenoiser
-# --------------------------------------------------------------------------------------
+# --- The whole of it, for SampleMethodDenoiser --------------------------------------------
 class Adaptation:
     """Runs beside a SampleMethodDenoiser (`denoiser`): `run` takes a batch of framed samples
     and hands it to the denoiser in pieces that end on the update schedule; `observe` takes

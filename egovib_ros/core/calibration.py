@@ -385,21 +385,11 @@ def calibrate_arrays(
     progress=None,
     **options,
 ) -> tuple[NoiseModel, CalibrationStats]:
-    """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
-
-    `options` go to CalibrationAccumulator (profile, sweep, overrides). `progress`, if
-    given, is called with the number of sensor samples consumed."""
+    """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory);
+    `options` go to CalibrationAccumulator, `progress(n)`: samples consumed."""
     acc = CalibrationAccumulator(source=source, **options)
-    feed(
-        acc,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=acc.settings.sample_rate_hz,
-        joint_wait_s=acc.settings.joint_wait_s,
-        progress=progress,
-    )
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+    rates = dict(sample_rate_hz=acc.settings.sample_rate_hz, joint_wait_s=acc.settings.joint_wait_s)
+    feed(acc, *streams, chunk_s=chunk_s, progress=progress, **rates)
     acc.flush()
     return acc.to_model(source=source), acc.stats

@@ -192,10 +192,8 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows
 
 
-# --------------------------------------------------------------------------------------
-# The per-sample methods' drop-in output (core.methods): what they remove from the
+# --- The per-sample methods' drop-in output (core.methods): what they remove from the
 # band-passed signal, removed from the unfiltered one with nothing below the band touched.
-# --------------------------------------------------------------------------------------
 #: The split's low-pass passes up to this share of the band's low edge and stops from the
 #: next on (least squares, unit gain at 0 Hz).
 SPLIT_PASS_FRACTION = 0.1

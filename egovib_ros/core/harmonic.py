@@ -73,9 +73,7 @@ def fold(freq_hz, sample_rate_hz: float):
     return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
 
 
-# --------------------------------------------------------------------------------------
-# The map
-# --------------------------------------------------------------------------------------
+# --- The map ------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class HarmonicMap:
     """Per joint: exponent, lags, speed below which its lines are off; per line: the joint it
@@ -161,9 +159,7 @@ class HarmonicMap:
         }
 
 
-# --------------------------------------------------------------------------------------
-# Fitting the map from a no-contact recording (free motion or a sweep)
-# --------------------------------------------------------------------------------------
+# --- Fitting the map from a no-contact recording (free motion or a sweep) -----------------
 def _pieces(n: int, total: int, piece: int) -> np.ndarray:
     """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
     if n <= total:
@@ -309,20 +305,12 @@ def fit_harmonic_map(
     # the same costs, hence the same choices, as one after the other.
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     with ThreadPoolExecutor(cores or 1) as pool:
-        search = _MapSearch(
-            np.ascontiguousarray(x[keep]),
-            np.ascontiguousarray(speed[keep]),
-            sample_rate_hz=fs,
-            band_hz=band_hz,
-            joint_names=tuple(joint_names),
-            min_speed=min_speed,
-            residual_rms=residual_rms,
-            # Without the frequency correction (it would make up for a wrong map and flatten
-            # the cost) nor the guard (it would hide the bursts a wrong map makes).
-            settings=dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0),
-            joints=_first_joints(strongest, curves),
-            map_trials=pool.map,
-        )
+        # Without the frequency correction (it would make up for a wrong map and flatten the
+        # cost) nor the guard (it would hide the bursts a wrong map makes).
+        settings = dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0)
+        x, speed = np.ascontiguousarray(x[keep]), np.ascontiguousarray(speed[keep])
+        fixed = (fs, band_hz, tuple(joint_names), min_speed, residual_rms, settings)
+        search = _MapSearch(x, speed, *fixed, _first_joints(strongest, curves), pool.map)
         search.refine()
     return search.result()
 
@@ -366,23 +354,12 @@ class _MapSearch:
     (the frequency at the median speed kept), the speed-up and slow-down lags; ROUNDS times."""
 
     def __init__(
-        self,
-        x,
-        speed,
-        *,
-        sample_rate_hz,
-        band_hz,
-        joint_names,
-        min_speed,
-        residual_rms,
-        settings,
-        joints,
-        map_trials=map,
+        self, x, speed, fs, band_hz, joint_names, min_speed, rms, settings, joints, trials
     ):
-        self.x, self.speed, self.fs, self.band_hz = x, speed, sample_rate_hz, band_hz
-        self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, residual_rms
+        self.x, self.speed, self.fs, self.band_hz = x, speed, fs, band_hz
+        self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, rms
         self.settings = settings
-        self.map_trials = map_trials  # map(cost, trials): the builtin, or a thread pool's
+        self.map_trials = trials  # map(cost, trials): a thread pool's
         self.settle = len(x) // 10
         self.joints = joints
         self.evaluations = 0
@@ -536,9 +513,7 @@ class _MapSearch:
         return dataclasses.replace(self.build(joints), line_score_db=scores), info
 
 
-# --------------------------------------------------------------------------------------
-# The canceller
-# --------------------------------------------------------------------------------------
+# --- The canceller ------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
 class CancellerSettings:
     """tracking_hz: each line tracker's bandwidth (LMS step 2 pi tracking_hz / fs); pll_hz:
@@ -606,40 +581,7 @@ def _cos_sin_turns(t):
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True)  # nogil: the map search runs it in threads
-def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
-    x,
-    speed,
-    known,
-    fs,
-    exponent,
-    tau_up,
-    tau_down,
-    min_speed,
-    line_joint,
-    line_coef,
-    mu,
-    kp,
-    ki,
-    bound,
-    clip,
-    spread_rate,
-    guard_rate,
-    f_lo,
-    f_hi,
-    w,
-    inverse,
-    lagged,
-    correction,
-    theta,
-    weights,
-    spread2,
-    power_in,
-    power_residual,
-    weights_w,
-    power_w,
-    out,
-    raw_lines,
-):
+def _cancel_kernel(x, speed, known, fs, hmap, gains, band, w, inverse, st, out, raw_lines):  # noqa: C901 (numba per-sample loop: one pass, no calls)
     """One pass over (n, C) band-passed samples; every state array is updated in place.
     out[i, c] = x[i, c] - predicted lines (scaled down where they would make the signal
     louder). See the module docstring. With `w` (n, C) (else an empty array): the same
@@ -648,8 +590,15 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     the lines as the unfiltered signal carries them, scaled as `out`'s and by a guard of
     their own (`power_w`: short-time powers of w and of w less its lines).
 
+    `hmap`, `gains`, `band`, `st`: tuples of the map's arrays, the gains, the band's edges
+    and the state's arrays (CancellerState's fields), unpacked below.
+
     One function: numba compiles it into one pass per sample over every line and channel,
     no call per sample."""
+    exponent, tau_up, tau_down, min_speed, line_joint, line_coef = hmap
+    mu, kp, ki, bound, clip, spread_rate, guard_rate = gains
+    f_lo, f_hi = band
+    lagged, correction, theta, weights, spread2, power_in, power_residual, weights_w, power_w = st
     n, C = x.shape
     J = speed.shape[1]
     L = line_coef.shape[0]
@@ -813,9 +762,9 @@ class HarmonicCanceller:
             np.zeros((1, 2)) if unfiltered_inverse is None else np.asarray(unfiltered_inverse)
         )
         # (pll_hz 0: both PLL gains are 0, the map alone)
-        self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
-            self.sample_rate_hz
-        )
+        mu, kp, ki, spread_rate, guard_rate = self.settings.gains(self.sample_rate_hz)
+        bound, clip = float(self.settings.max_correction), float(self.settings.clip_sigma)
+        self._gains = (mu, kp, ki, bound, clip, spread_rate, guard_rate)  # the kernel's order
         rms = float(np.mean(hmap.residual_rms)) if hmap.residual_rms.size else 1.0
         spread = np.full(self.n_channels, rms)
         self._initial_spread2 = np.maximum(spread, 1e-12) ** 2
@@ -877,40 +826,9 @@ class HarmonicCanceller:
         known = np.all(np.isfinite(speed), axis=1)
         if not known.all():
             speed = np.where(known[:, None], speed, 0.0)
-        st = self.state
         m = self.map
-        _cancel_kernel(
-            x,
-            speed,
-            known,
-            self.sample_rate_hz,
-            m.exponent,
-            m.tau_up_s,
-            m.tau_down_s,
-            m.min_speed,
-            m.line_joint,
-            m.line_coefficient,
-            self._mu,
-            self._kp,
-            self._ki,
-            float(self.settings.max_correction),
-            float(self.settings.clip_sigma),
-            self._spread_rate,
-            self._guard_rate,
-            self.band_hz[0],
-            self.band_hz[1],
-            w,
-            self.unfiltered_inverse,
-            st.lagged,
-            st.correction,
-            st.theta,
-            st.weights,
-            st.spread2,
-            st.power_in,
-            st.power_residual,
-            st.weights_w,
-            st.power_w,
-            out,
-            lines,
-        )
+        hmap = (m.exponent, m.tau_up_s, m.tau_down_s, m.min_speed, m.line_joint, m.line_coefficient)
+        state = tuple(vars(self.state).values())  # the arrays in field order
+        fixed = (self.sample_rate_hz, hmap, self._gains, self.band_hz, w, self.unfiltered_inverse)
+        _cancel_kernel(x, speed, known, *fixed, state, out, lines)
         return (out, lines) if raw else out

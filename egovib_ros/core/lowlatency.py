@@ -193,45 +193,7 @@ class FilterBank:
 
 
 @numba.njit(cache=True, fastmath=True)
-def _gain_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
-    r,
-    noise,
-    row,
-    poles,
-    alpha,
-    bias,
-    open_alpha,
-    guard_ref,
-    floor,
-    exponent,
-    a_attack,
-    a_release,
-    a_track,
-    track_clip,
-    track_range,
-    open_decay,
-    open_span,
-    hold_decay,
-    a_guard_up,
-    a_guard_down,
-    guard_gain,
-    z,
-    power,
-    hist,
-    position,
-    log_ratio,
-    correction,
-    opening,
-    open_wait,
-    noise_held,
-    guard,
-    out,
-    collect,
-    v,
-    zv,
-    out_v,
-    power_scale,
-):
+def _gain_kernel(r, noise, row, poles, cal, levels, rates, st, out, collect, v, out_v, power_scale):  # noqa: C901 (numba per-sample loop: one pass, no calls)
     """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1), row[i] each
     sample's; state updated in place; out[i]: the output for sample i - D (hist holds D + 1
     samples per band). Optional (else empty arrays): collect (n, C, B + 2), P / N per band,
@@ -240,8 +202,16 @@ def _gain_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     (states zv) and weighted by the same gains into out_v; power_scale (n,), a factor on
     each sample's expected noise (the gap's drift advice).
 
+    `cal`, `levels`, `rates`, `st`: tuples of the calibrated arrays, the settings' levels,
+    the per-sample rates (LowLatencyGain builds them) and the state's arrays (GainState's
+    fields), unpacked below.
+
     One function: numba compiles it into one pass per sample over every channel and band,
     the state in local variables, no call per sample (what makes 3 kHz cheap in Python)."""
+    alpha, bias, open_alpha, guard_ref = cal
+    floor, exponent, track_clip, track_range, open_span, guard_gain = levels
+    a_attack, a_release, a_track, open_decay, hold_decay, a_guard_up, a_guard_down = rates
+    z, power, hist, position, log_ratio, correction, opening, open_wait, noise_held, guard, zv = st
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1
@@ -446,16 +416,27 @@ class LowLatencyGain:
         def decay(ms: float) -> float:
             return math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 0.0
 
-        self._a_attack = rate(settings.attack_ms)
-        self._a_release = rate(settings.release_ms)
         # The correction is updated every TRACK_EVERY samples: its rate per update.
-        self._a_track = (
+        a_track = (
             1.0 - math.exp(-TRACK_EVERY / (settings.track_s * fs)) if settings.track_s > 0 else 0.0
         )
-        self._open_decay = decay(settings.open_hold_ms)
-        self._hold_decay = decay(settings.hold_ms)
-        self._a_guard_up = rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0
-        self._a_guard_down = rate(1e3 * settings.guard_down_s)
+        self._rates = (  # the kernel's order
+            rate(settings.attack_ms),
+            rate(settings.release_ms),
+            a_track,
+            decay(settings.open_hold_ms),
+            decay(settings.hold_ms),
+            rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0,
+            rate(1e3 * settings.guard_down_s),
+        )
+        self._levels = (
+            float(settings.floor),
+            float(settings.exponent),
+            float(settings.track_clip),
+            float(settings.track_range_db) * math.log(10.0) / 10.0,
+            float(settings.open_span) if settings.open_hold_ms > 0 else 0.0,
+            float(settings.guard_gain),
+        )
         self.state = self.initial_state()
 
     def initial_state(self) -> GainState:
@@ -533,47 +514,10 @@ class LowLatencyGain:
             else np.ascontiguousarray(np.broadcast_to(power_scale, (len(r),)), dtype=np.float64)
         )
         if len(r):
-            s = self.state
-            span = float(self.settings.open_span) if self.settings.open_hold_ms > 0 else 0.0
-            _gain_kernel(
-                r,
-                noise,
-                index,
-                self.bank.poles,
-                self.alpha,
-                self.bias,
-                self.open_alpha,
-                self.guard_ref,
-                float(self.settings.floor),
-                float(self.settings.exponent),
-                self._a_attack,
-                self._a_release,
-                self._a_track,
-                float(self.settings.track_clip),
-                float(self.settings.track_range_db) * math.log(10.0) / 10.0,
-                self._open_decay,
-                span,
-                self._hold_decay,
-                self._a_guard_up,
-                self._a_guard_down,
-                float(self.settings.guard_gain),
-                s.z,
-                s.power,
-                s.hist,
-                s.position,
-                s.log_ratio,
-                s.correction,
-                s.opening,
-                s.open_wait,
-                s.noise_held,
-                s.guard,
-                out,
-                ratios,
-                v,
-                s.zv,
-                out_v,
-                scale,
-            )
+            cal = (self.alpha, self.bias, self.open_alpha, self.guard_ref)
+            state = tuple(vars(self.state).values())  # the arrays in field order
+            args = (index, self.bank.poles, cal, self._levels, self._rates, state)
+            _gain_kernel(r, noise, *args, out, ratios, v, out_v, scale)
         if unfiltered is not None:
             return out, out_v
         return (out, ratios) if collect else out

@@ -149,14 +149,14 @@ def calibrate_detection(
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
     *,
-    false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
     source: str = "",
 ) -> tuple[NoiseModel, dict]:
     """The contact detector's threshold for each method the model can run (its default
     output, as `egovib detect` and the contact_detector node read it) and for the raw
-    signal, from no-contact data (the calibration recording): core.contact's rule at
-    `false_alarms_per_min`, the first and last EDGE_S left out. Returns the model with
-    them in its extras (so a model calibrated live feeds the detector alone) and them."""
+    signal, from no-contact data: core.contact's rule at FALSE_ALARMS_PER_MIN, the first
+    and last EDGE_S left out. Returns the model with them in its extras (a model
+    calibrated live feeds the detector alone) and them."""
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
     settings = ContactSettings.for_model(model, 1.0)
     edge = int(EDGE_S * model.sample_rate_hz)
     methods = [m for m in METHODS if m == "paper" or has_method_calibration(model)]
@@ -165,31 +165,21 @@ def calibrate_detection(
         if method == "raw":  # bad samples held, as the detector holds them
             values, _ = hold_bad(accel, settings.sensor_range)
         else:
-            _, values, _ = denoise_batch_method(
-                sensor_stamps_ns,
-                accel,
-                joint_stamps_ns,
-                joint_velocity,
-                model,
-                method=method,
-                source=source,
-            )
+            _, values, _ = denoise_batch_method(*streams, model, method=method, source=source)
         envelope = DetectionEnvelope(settings).process(values)[1]
         if len(envelope) <= 2 * edge:
             raise StreamError(f"{source or 'calibration'}: too short for detection thresholds")
         thresholds[method], _ = no_contact_threshold(
             envelope[edge:-edge],
             sample_rate_hz=model.sample_rate_hz,
-            false_alarms_per_min=false_alarms_per_min,
+            false_alarms_per_min=FALSE_ALARMS_PER_MIN,
         )
     extras = {DETECTOR_PREFIX + m: np.array(t) for m, t in thresholds.items()}
-    extras[DETECTOR_BUDGET] = np.array(float(false_alarms_per_min))
+    extras[DETECTOR_BUDGET] = np.array(float(FALSE_ALARMS_PER_MIN))
     return model.replace(extras={**model.extras, **extras}), thresholds
 
 
-# --------------------------------------------------------------------------------------
-# What the methods calibrate, stored in the model's extras
-# --------------------------------------------------------------------------------------
+# --- What the methods calibrate, stored in the model's extras -----------------------------
 def _settings_arrays(prefix: str, settings) -> dict[str, np.ndarray]:
     out = {}
     for f in dataclasses.fields(settings):
@@ -461,15 +451,9 @@ class ResidualTable:
         state gets a row of zeros (its gains stay open)."""
         B = self.weights.shape[0]
         if self._table is not None:
-            values, index, R, unmeasured, outside = _dense_rows(
-                np.ascontiguousarray(velocity, dtype=np.float64),
-                self._grid_rows,
-                self._grid_len,
-                self._table,
-                self._strides,
-                self._measured,
-                self._floor_flat,
-            )
+            grid = (self._grid_rows, self._grid_len, self._table, self._strides, self._measured)
+            velocity = np.ascontiguousarray(velocity, dtype=np.float64)
+            values, index, R, unmeasured, outside = _dense_rows(velocity, *grid, self._floor_flat)
             self.samples_unmeasured += unmeasured
             self.samples_out_of_grid += outside
             return values[:R].reshape(R, len(AXES), B), index
@@ -504,16 +488,9 @@ def _band_passed_calibration(
         model, layout="per_axis", with_steadiness=False, source=source
     )
     framer = SampleFramer(settings, model.n_joints)
-    feed(  # the framer keeps what it releases
-        framer,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=settings.joint_wait_s,
-        chunk_s=10.0,
-    )
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+    # the framer keeps what it releases
+    feed(framer, *streams, sample_rate_hz=model.sample_rate_hz, joint_wait_s=settings.joint_wait_s)
     framer.flush()
     batches = framer.pop()
     stamps = np.concatenate([b.stamps_ns for b in batches]) if batches else np.zeros(0, np.int64)
@@ -617,19 +594,10 @@ def calibrate_methods(
     table = ResidualTable(residual_model, bank)
     use = known.copy()
     use[: min(int(SETTLE_S * fs), len(x) // 4)] = False
-    alpha, bias, open_alpha, guard_ref = _gain_statistics(
-        bank, gain, residual, table, velocity, use
-    )
+    stats = _gain_statistics(bank, gain, residual, table, velocity, use)
+    alpha, _, _, guard_ref = stats
     calibration = MethodCalibration(
-        harmonic,
-        canceller,
-        residual_model,
-        gain,
-        alpha,
-        bias,
-        open_alpha,
-        guard_ref,
-        *(split or (None, None)),
+        harmonic, canceller, residual_model, gain, *stats, *(split or (None, None))
     )
     cancelled_db = 0.0
     if use.any():
@@ -699,9 +667,7 @@ def _gain_statistics(bank, gain, residual, table, velocity, use) -> tuple:
     return alpha, bias, open_alpha, guard_ref
 
 
-# --------------------------------------------------------------------------------------
-# The streaming denoisers
-# --------------------------------------------------------------------------------------
+# --- The streaming denoisers --------------------------------------------------------------
 _WARM = False
 
 
@@ -761,8 +727,8 @@ class SampleMethodDenoiser(FramedDenoiser):
         source: str = "",
         adapt: AdaptSettings | None = None,
     ):
-        """The stages the model's extras describe (framer, canceller, split, gain,
-        adaptation). One function: each stage's settings come from the ones built before it."""
+        """The stages the model's extras describe: framer, canceller, gain and split
+        (hybrid), adaptation."""
         if check_method(method) == "paper":
             raise ConfigError(
                 "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"
@@ -807,41 +773,18 @@ class SampleMethodDenoiser(FramedDenoiser):
             if output != "dropin"
             else highpass_inverse(sample_rate_hz=fs, band_hz=model.band_hz),
         )
-        self._gain = None
-        self._table = None
+        self._gain = self._table = self._split = None
         if method == "hybrid":
-            gain = cal.gain
-            if floor is not None:
-                gain = dataclasses.replace(gain, floor=floor)
-            if lookahead_ms is not None:
-                gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
-            elif output == "dropin":
-                gain = dataclasses.replace(gain, lookahead_ms=dropin_lookahead_ms(gain))
-            bank = FilterBank(
-                sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
-            )
-            self._gain = LowLatencyGain(
-                bank,
-                gain,
-                n_channels=3,
-                alpha=cal.alpha,
-                bias=cal.bias,
-                open_alpha=cal.open_alpha,
-                guard_ref=cal.guard_ref,
-            )
-            self._table = ResidualTable(cal.residual, bank)
-        self.lookahead = self._gain.delay if self._gain is not None else 0
+            self._gain, self._table = _hybrid_gain(cal, floor, lookahead_ms, output)
+        self.delay = self._gain.delay if self._gain is not None else 0  # the look-ahead
         # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
-        self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
-        # ... less what the gains take from the same bands of it (split at the look-ahead).
-        self._split = None
+        self._lag_stamps = np.full(self.delay, -1, dtype=np.int64)
         if output == "dropin" and self._gain is not None:
             split = cal.dropin_split  # fitted to the robot's calibration recording
-            if split is None or split[1] != self.lookahead:  # another look-ahead
-                delay = self.lookahead
-                split = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=delay), delay
+            if split is None or split[1] != self.delay:  # another look-ahead: the plain design
+                taps = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.delay)
+                split = taps, self.delay
             self._split = DropInSplit(*split)
-        self.delay = self.lookahead
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
@@ -893,7 +836,7 @@ class SampleMethodDenoiser(FramedDenoiser):
                 s, v = self._run(batch.stamps_ns, batch.values, batch.velocity, batch.raw)
                 stamps_out.append(s)
                 values_out.append(v)
-            if batch.ends_segment and self.lookahead:
+            if batch.ends_segment and self.delay:
                 s, v = self._release_lookahead()
                 stamps_out.append(s)
                 values_out.append(v)
@@ -999,7 +942,7 @@ class SampleMethodDenoiser(FramedDenoiser):
         noise the table expects for the last samples is that of their own speed; a NaN
         would read "no joint state" and open the gain on them), and never reaches the
         canceller (it holds nothing back, and silence would drag its trackers)."""
-        d = self.lookahead
+        d = self.delay
         velocity = np.broadcast_to(self._last_velocity, (d, self.model.n_joints))
         zeros = np.zeros((d, 3))
         out = self._gained(
@@ -1022,6 +965,35 @@ class SampleMethodDenoiser(FramedDenoiser):
         if self.channels == "combined":
             cleaned = cleaned.sum(axis=1, keepdims=True)
         return stamps[real], cleaned[real]
+
+
+def _hybrid_gain(cal: MethodCalibration, floor, lookahead_ms, output: str) -> tuple:
+    """`hybrid`'s gain stage and residual table; `floor`, `lookahead_ms`: None for the
+    calibrated ones (the drop-in output: the look-ahead its split needs, if longer)."""
+    gain = cal.gain
+    if floor is not None:
+        gain = dataclasses.replace(gain, floor=floor)
+    if lookahead_ms is not None:
+        gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
+    elif output == "dropin":
+        gain = dataclasses.replace(gain, lookahead_ms=max(gain.lookahead_ms, gain.split_ms))
+    model = cal.residual
+    bank = FilterBank(
+        sample_rate_hz=model.sample_rate_hz,
+        band_hz=model.band_hz,
+        bands=gain.bands,
+        bandwidth=gain.bandwidth,
+    )
+    stage = LowLatencyGain(
+        bank,
+        gain,
+        n_channels=3,
+        alpha=cal.alpha,
+        bias=cal.bias,
+        open_alpha=cal.open_alpha,
+        guard_ref=cal.guard_ref,
+    )
+    return stage, ResidualTable(model, bank)
 
 
 def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1146,11 +1118,6 @@ class DropInSplit:
         c = self.n_channels
         self._raw, self._cleaned = both[:, :c], both[:, c:]
         return lows[:, :c], late[:, c:] - lows[:, c:]
-
-
-def dropin_lookahead_ms(gain: GainSettings) -> float:
-    """The gain's look-ahead with the drop-in output: its own, or what the split needs."""
-    return max(gain.lookahead_ms, gain.split_ms)
 
 
 def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, **options):

@@ -102,16 +102,9 @@ class ReceiptClock:
             self.origin = int(stamps_ns[0])
         missing = np.zeros(len(stamps_ns), dtype=np.int64)
         offsets = np.zeros(len(stamps_ns))
-        _receipt_kernel(
-            (stamps_ns - (self.origin or 0)).astype(np.float64),
-            self.period,
-            RECEIPT_LEAK,
-            1.0 - RECEIPT_FORGET,
-            self.max_fill,
-            self.state,
-            missing,
-            offsets,
-        )
+        stamps = (stamps_ns - (self.origin or 0)).astype(np.float64)
+        rates = (self.period, RECEIPT_LEAK, 1.0 - RECEIPT_FORGET, self.max_fill)
+        _receipt_kernel(stamps, *rates, self.state, missing, offsets)
         return missing, np.rint(offsets).astype(np.int64) + (self.origin or 0)
 
 

@@ -36,7 +36,7 @@ from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
 from egovib_ros.core.receipt import ReceiptClock, envelope_period, receipt_latency
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
+from egovib_ros.core.velocity import MISSING, block_mean_velocity
 from egovib_ros.errors import ConfigError, RateError, StreamError
 from egovib_ros.robot import STAMP_KINDS
 
@@ -975,19 +975,10 @@ class BlockFramer(_Framer):
                 if n_blocks == 0:
                     return buf_x, buf_t
                 index, window_t, real = index[:n_blocks], window_t[:n_blocks], real[:n_blocks]
-                any_real, t_first, t_last = (
-                    any_real[:n_blocks],
-                    t_first[:n_blocks],
-                    t_last[:n_blocks],
-                )
+                any_real, t_first, t_last = (a[:n_blocks] for a in (any_real, t_first, t_last))
         samples = buf_x[:, index].transpose(1, 0, 2).copy()  # (B, C, L)
-        velocity, steadiness, status = block_mean_velocity(
-            self._joint_t,
-            self._joint_v,
-            np.where(any_real, t_first, 0),
-            np.where(any_real, t_last, 0),
-            max_hold_ns=self._max_hold_ns,
-            with_steadiness=self.s.with_steadiness,
+        velocity, steadiness, status = self._matched(
+            np.where(any_real, t_first, 0), np.where(any_real, t_last, 0)
         )
         status = status.copy()  # may be a shared read-only constant
         status[~any_real] = MISSING
@@ -1035,19 +1026,7 @@ class BlockFramer(_Framer):
             int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
         )
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
-        if self.s.with_steadiness or not len(self._joint_t):
-            velocity, steadiness, status = block_mean_velocity(
-                self._joint_t,
-                self._joint_v,
-                first,
-                last,
-                max_hold_ns=self._max_hold_ns,
-                with_steadiness=self.s.with_steadiness,
-            )
-        else:
-            velocity, steadiness, status = one_block_mean_velocity(
-                self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns
-            )
+        velocity, steadiness, status = self._matched(first, last)
         self.stats.blocks += 1
         if status[0] == 1:
             self.stats.blocks_held += 1
@@ -1069,6 +1048,14 @@ class BlockFramer(_Framer):
         )
         self._buf_x, self._buf_t = self._buf_x[:, H:], self._buf_t[H:]
         self._trim_joints(t_first)
+
+    def _matched(self, first: np.ndarray, last: np.ndarray) -> tuple:
+        """The blocks' joint velocity, steadiness and status (core.velocity)."""
+        hold, steadiness = self._max_hold_ns, self.s.with_steadiness
+        joints = (self._joint_t, self._joint_v)
+        return block_mean_velocity(
+            *joints, first, last, max_hold_ns=hold, with_steadiness=steadiness
+        )
 
     def _trim_joints(self, oldest_needed_ns: int) -> None:
         # Keep one joint state before the next block's span for the hold rule.

@@ -178,16 +178,11 @@ class FramedDenoiser:
     ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
         """Whole arrays through this denoiser, `chunk_s` seconds at a time (`feed`), then
         flushed: (stamps_ns (K,), values (K, C), stats)."""
-        chunks = feed(
-            self,
-            sensor_stamps_ns,
-            accel,
-            joint_stamps_ns,
-            joint_velocity,
-            chunk_s=chunk_s,
-            sample_rate_hz=self.model.sample_rate_hz,
-            joint_wait_s=self.settings.joint_wait_s,
+        streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+        rates = dict(
+            sample_rate_hz=self.model.sample_rate_hz, joint_wait_s=self.settings.joint_wait_s
         )
+        chunks = feed(self, *streams, chunk_s=chunk_s, **rates)
         chunks = [self._empty, *chunks, self.flush()]  # _empty: the (0, C) shape if none
         stamps = np.concatenate([c.stamps_ns for c in chunks])
         return stamps, np.concatenate([c.values for c in chunks]), self.stats
