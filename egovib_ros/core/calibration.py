@@ -252,9 +252,7 @@ class CalibrationAccumulator:
             # Blocks holding start/end padding or runs of gap fill would bias the statistics;
             # a sample or two bridged inside a block (a bad sample now and then) does not,
             # and rejecting those left no block of a stream with 1.6 % NaN samples.
-            complete = blocks.complete
-            if blocks.bridged is not None:
-                complete = complete | (blocks.bridged <= MAX_BRIDGED_SAMPLES)
+            complete = blocks.complete | (blocks.bridged <= MAX_BRIDGED_SAMPLES)
             usable = complete & (blocks.status == MATCHED)
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, distance = self.cell_of(velocity)

@@ -321,12 +321,11 @@ class MethodCalibration:
 
 @numba.njit(cache=True)
 def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):  # noqa: C901 (numba loop: one compiled pass per call)
-    """Expected band powers once per run of equal velocities, by multilinear interpolation
-    of the flattened dense table (cells, M) (np.interp's position rule per joint, clamped
-    at the grid's edges), at least `floor` (M,). Returns (values (n, M): the first R rows
-    used, zeros where a run has no joint state; index (n,) row of each sample; R; samples
-    whose nearest cell is unmeasured; samples outside the grid). One compiled pass: a live
-    stream calls this every few samples, where numpy's per-call overhead dominated."""
+    """Expected band powers once per run of equal velocities: multilinear in the flattened
+    dense table (cells, M) (np.interp's position rule, clamped), at least `floor` (M,).
+    Returns (values (n, M), the first R rows used, zeros without joint state; index (n,);
+    R; samples whose nearest cell is unmeasured; samples outside the grid). Compiled: a
+    live stream calls it every few samples."""
     n, J = velocity.shape
     M = table.shape[1]
     values = np.zeros((n, M))
@@ -502,10 +501,9 @@ def _band_passed_calibration(
 
 
 def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | None:
-    """The drop-in output's split for `model`, fitted to the calibration recording's
-    spectrum near the band (core.filters.split_for), no shorter than the gain's look-ahead:
-    (taps, delay), the delay being the look-ahead the drop-in output needs (4.0 ms for the
-    simulated PR2 hand, 8-10 ms for the flight); None for a recording too short to tell."""
+    """The drop-in output's split (taps, delay) fitted to the calibration recording
+    (core.filters.split_for), no shorter than the gain's look-ahead; None for a recording
+    too short to tell."""
     values = np.asarray(accel, float)
     # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
@@ -707,10 +705,9 @@ def warm_up() -> None:
 
 
 class SampleMethodDenoiser(FramedDenoiser):
-    """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
-    each push returns the samples that became final (DenoisedChunk; output sample k
-    carries input stamp k). `cancel` releases a sample as soon as its joint state is in;
-    `hybrid` `lookahead_ms` later (the algorithmic delay, `delay_samples`)."""
+    """`cancel` or `hybrid` as a stream: each push returns the samples that became final
+    (output sample k carries input stamp k): `cancel` as soon as their joint state is in,
+    `hybrid` `delay` samples (its look-ahead) later."""
 
     def __init__(
         self,
@@ -937,11 +934,9 @@ class SampleMethodDenoiser(FramedDenoiser):
         return 10.0 ** (np.interp((held - t0) / NS_PER_S, knots_s, gain_db) / 10.0)
 
     def _release_lookahead(self):
-        """The segment ended: push silence through the gain to release the last samples it
-        holds, then start the gain afresh. The silence keeps the last joint velocity (the
-        noise the table expects for the last samples is that of their own speed; a NaN
-        would read "no joint state" and open the gain on them), and never reaches the
-        canceller (it holds nothing back, and silence would drag its trackers)."""
+        """The segment ended: silence through the gain releases the samples it holds, then
+        it starts afresh. The silence keeps the last joint velocity (NaN would open the gain
+        on the last samples) and never reaches the canceller (it would drag its trackers)."""
         d = self.delay
         velocity = np.broadcast_to(self._last_velocity, (d, self.model.n_joints))
         zeros = np.zeros((d, 3))
@@ -1005,12 +1000,10 @@ def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 @numba.njit(cache=True)
 def _fir(taps, history):
-    """(n, C) outputs of the symmetric FIR `taps` (odd length N: a linear-phase split)
-    over `history` (its N - 1 samples before, then the n new ones): each the middle tap's
-    product plus, per pair of equal taps, one multiply of the pair's summed samples (half
-    the multiplies of the plain sum); the sums in the same order whatever the chunking (so
-    streaming equals batch to the bit, which scipy's lfilter with carried state does not
-    give); the loop over samples innermost, on contiguous channels, so it vectorises."""
+    """(n, C) outputs of the symmetric FIR `taps` (odd length N) over `history` (N - 1
+    samples before, then the n new): one multiply per pair of equal taps; the sums in one
+    order whatever the chunking (scipy's lfilter with carried state differs in the last
+    bit); the loop over samples innermost, so it vectorises."""
     N = len(taps)
     mid = (N - 1) // 2
     n = history.shape[0] - (N - 1)
@@ -1069,15 +1062,12 @@ def _joined(batches: list[SampleBatch]) -> list[SampleBatch]:
 
 
 class DropInSplit:
-    """The drop-in output's split, `delay` samples late. `process(raw, cleaned)` with
-    `cleaned` = raw less its lines: (low, high), `low` the raw samples through the split's
-    low-pass (core.filters.split_for: linear-phase, or a low-delay FIR whose response is a
-    pure `delay` at 0 Hz and near it): gravity and motion, which the drop-in output passes
-    untouched; `high` = `cleaned`, delayed, less its own low part: inside the band the
-    cleaned samples themselves (a causal IIR split of no delay would shift their phase, or
-    pass motion on to the gains), so the gains take from it what they take from the
-    band-passed signal; low + high is the raw signal `delay` late, less its lines. Whatever
-    slow part the subtracted lines had stays out of the output."""
+    """The drop-in output's split, `delay` samples late: `process(raw, cleaned)` (`cleaned`
+    = raw less its lines) gives (low, high): `low` the raw samples through the split's
+    low-pass (core.filters.split_for), gravity and motion untouched; `high` the cleaned
+    samples delayed less their own low part, in the band the cleaned samples themselves (an
+    IIR split would shift their phase), for the gains; low + high is the raw signal late,
+    less its lines."""
 
     def __init__(self, taps: np.ndarray, delay: int, n_channels: int = 3):
         self.taps = np.asarray(taps, float)
@@ -1121,12 +1111,10 @@ class DropInSplit:
 
 
 def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, **options):
-    """The streaming denoiser of `method` for `model` (same push interface for all).
-    Options the method does not take are refused (ConfigError naming them); an option at
-    the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
-    is no option. `output`: "dropin" (the default with per-axis channels) or "bandpassed",
-    for every method (cancel and hybrid take their drop-in output `DropInSplit.delay`
-    samples later than their band-passed one)."""
+    """The streaming denoiser of `method` for `model` (one push interface for all). Options
+    the method does not take are refused (ConfigError); one at its neutral value
+    (oversubtraction 1, floor 0, no joint lag) is no option. `output`: "dropin" (the default
+    per axis) or "bandpassed", for every method."""
     method = resolve_method(model, method)
     if method == "paper":
         if options.pop("lookahead_ms", None) is not None:
@@ -1174,7 +1162,5 @@ def denoise_batch_method(
 
 def method_delay_ms(model: NoiseModel, method: str | None = None, **options) -> float:
     """Algorithmic delay (ms) of the denoiser `make_denoiser(model, method, **options)`
-    builds: the delay is a property of what is built (the paper: a whole block, either
-    output; cancel and hybrid: their band-passed output's, or their drop-in output's, the
-    default per axis, later)."""
+    builds (paper: a block; cancel and hybrid: their drop-in output's is the longer)."""
     return make_denoiser(model, method, **options).delay_ms

@@ -2,8 +2,8 @@
 
 `BlockFramer`, shared by calibration and denoising, cleans the input, band-passes it,
 cuts blocks of `block_length` samples every `hop` and hands each out once the joint states
-covering its span are in; `frame_batch` runs whole arrays through it, so streaming and
-batch agree (to the bit for the paper's settings, within ~1e-16 otherwise).
+covering its span are in: any chunking gives the same blocks (to the bit for the paper's
+settings, within ~1e-16 otherwise).
 
 Bad input is counted in `stats`, never a silent wrong result:
 - a sample stamped at or before the previous one is dropped;
@@ -350,11 +350,11 @@ class Blocks:
     status: np.ndarray  # (B,) velocity.MATCHED / HELD / MISSING
     # Output bookkeeping: the hop of samples that each block completes.
     out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
-    ends_segment: bool = False  # last blocks before a flush or a long gap
-    complete: np.ndarray | None = None  # (B,) every sample real (no padding or gap fill)
+    complete: np.ndarray  # (B,) every sample real (no padding or gap fill)
     # (B,) gap-filled samples inside a block whose first and last samples are real (a
     # bridged bad or missing sample); the block length when an end is padding or fill
-    bridged: np.ndarray | None = None
+    bridged: np.ndarray
+    ends_segment: bool = False  # last blocks before a flush or a long gap
 
     @property
     def n(self) -> int:
@@ -980,7 +980,6 @@ class BlockFramer(_Framer):
         velocity, steadiness, status = self._matched(
             np.where(any_real, t_first, 0), np.where(any_real, t_last, 0)
         )
-        status = status.copy()  # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
@@ -1063,22 +1062,6 @@ class BlockFramer(_Framer):
         if cut > 256:
             self._joint_t = self._joint_t[cut:]
             self._joint_v = self._joint_v[cut:]
-
-
-def frame_batch(
-    settings: FramerSettings,
-    n_joints: int,
-    sensor_stamps_ns: np.ndarray,
-    accel: np.ndarray,
-    joint_stamps_ns: np.ndarray,
-    joint_velocity: np.ndarray,
-) -> tuple[list[Blocks], FramerStats]:
-    """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
-    framer = BlockFramer(settings, n_joints)
-    framer.push_joint_states(joint_stamps_ns, joint_velocity)
-    framer.push_sensor(sensor_stamps_ns, accel)
-    framer.flush()
-    return framer.pop_blocks(), framer.stats
 
 
 @runtime_checkable

@@ -98,38 +98,14 @@ def one_block_mean_velocity(joint_stamps_ns, joint_velocity, t_first, t_last, ma
     one after another, as the padded-row sum above, so the numbers are identical."""
     start = int(joint_stamps_ns.searchsorted(t_first, side="left"))
     stop = int(joint_stamps_ns.searchsorted(t_last, side="right"))
+    nan = np.full((1, joint_velocity.shape[1]), np.nan)
     if stop > start:
         mean = joint_velocity[start:stop].sum(axis=0) / float(stop - start)
-        return mean[None], _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MATCHED]
+        return mean[None], nan, np.array([MATCHED], np.int8)
     if start > 0 and t_first - int(joint_stamps_ns[start - 1]) <= max_hold_ns:
-        return (
-            joint_velocity[start - 1][None].copy(),
-            np.zeros((1, joint_velocity.shape[1])),
-            _STATUS[HELD],
-        )
-    return (
-        np.full((1, joint_velocity.shape[1]), np.nan),
-        _NAN_STEADINESS[joint_velocity.shape[1]],
-        _STATUS[MISSING],
-    )
-
-
-class _Frozen(dict):
-    """Read-only per-size constants for the one-block path (returned arrays are never written)."""
-
-    def __init__(self, make):
-        super().__init__()
-        self._make = make
-
-    def __missing__(self, key):
-        value = self._make(key)
-        value.flags.writeable = False
-        self[key] = value
-        return value
-
-
-_NAN_STEADINESS = _Frozen(lambda n_joints: np.full((1, n_joints), np.nan))
-_STATUS = _Frozen(lambda code: np.array([code], dtype=np.int8))
+        held = joint_velocity[start - 1][None].copy()
+        return held, np.zeros_like(held), np.array([HELD], np.int8)
+    return nan, nan.copy(), np.array([MISSING], np.int8)
 
 
 class JointVelocity:
