@@ -22,7 +22,6 @@ from egovib_ros.core.stream import (
     FramerSettings,
     check_stream,
     feed,
-    frame_batch,
     measured_periods,
 )
 from egovib_ros.core.velocity import HELD, MATCHED, MISSING
@@ -30,6 +29,15 @@ from egovib_ros.errors import ConfigError, StreamError
 
 PERIOD_NS = 1e9 / FS
 SOURCE = "bag: /accelerometer/raw"
+
+
+def frame_batch(settings, n_joints, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity):
+    """Whole arrays framed: everything pushed into a BlockFramer, then flushed."""
+    framer = BlockFramer(settings, n_joints)
+    framer.push_joint_states(joint_stamps_ns, joint_velocity)
+    framer.push_sensor(sensor_stamps_ns, accel)
+    framer.flush()
+    return framer.pop_blocks(), framer.stats
 
 
 @pytest.fixture(scope="module")

@@ -130,7 +130,7 @@ def test_no_joint_state_passes_the_signal_and_counts(model, caplog, output):
 
 def test_stale_joint_state_is_held_briefly_then_missing(model):
     data = stream(2, [(1.5, 0.0)], seed=2)
-    denoiser = StreamingDenoiser(model, max_hold_s=0.05)
+    denoiser = StreamingDenoiser(model)  # max_hold_s 0.05
     denoiser.push_joint_states(data["t_joint"][:200], data["velocity"][:200])  # first 0.2 s only
     denoiser.push_sensor(data["t_acc"], data["accel"])
     denoiser.flush()

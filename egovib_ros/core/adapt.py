@@ -1,55 +1,32 @@
 """Online adaptation: the model keeps learning while the contact detector sees no contact.
 
-`cancel` and `hybrid` (core.methods.SampleMethodDenoiser) take `adapt=AdaptSettings(...)`:
-while they denoise, they go on calibrating, from the stretches the contact detector calls
-contact-free, what calibration fitted on a no-contact recording -
+`cancel` and `hybrid` (core.methods.SampleMethodDenoiser) take `adapt=AdaptSettings(...)`
+and go on calibrating, from the stretches the contact detector calls contact-free:
 
-- the residual table (hybrid): each block of what the canceller leaves (the model's block
-  length, hop and window, as calibration frames it) adds its magnitude spectrum to the cell
-  nearest its joint velocity, under calibration's free-motion rules (the block's velocity
-  steady within `steady_tolerance` grid steps, inside the grid). A cell keeps the mean
-  magnitude and the mean power per channel and bin, each an exponential average that
-  forgets with time constant `forget_s` of contact-free time spent in that cell. A cell
-  starts from the model's value there: its calibrated statistics, or, for a cell never
-  calibrated (speeds beyond the calibration included), the model's fill (Eq. 6 or the
-  nearest measured cell); from its first block on it is a cell learnt online, and counts
-  as measured. A learnt cell's value replaces the table's at its grid point (the other
-  cells keep the calibrated model's values and fill), from the next update on.
-- the harmonic map (cancel, hybrid): per joint and per point of its speed grid, the
-  canceller's frequency correction and each of the joint's lines' amplitudes (per axis)
-  seen there, averaged and forgotten alike, saved with the model; a stream starts its
-  joints' frequency corrections from the map at their speeds (warm start). They are not
-  fed forward while the speeds move: tried (the correction moved by the learnt difference
-  between two speeds, the line weights scaled by the learnt amplitude ratio), it made
-  bursts at the PR2 sweep's speed steps - the PLL's correction of a weak line wanders, and
-  a gripper's line amplitudes differ with its direction and opening - that doubled the
-  contact detector's no-contact level.
+- the residual table (hybrid): each block of what the canceller leaves (framed as
+  calibration frames it, steady within `steady_tolerance` grid steps, inside the grid)
+  adds its magnitude spectrum to the cell nearest its velocity. A cell keeps the mean
+  magnitude and mean power per channel and bin, exponential averages that forget with
+  `forget_s` of contact-free time in the cell, starting from the model's value there
+  (calibrated, or its fill for a cell never calibrated); a learnt cell counts as measured
+  and replaces the table's value from the next update on.
+- the harmonic map (cancel, hybrid): per joint and speed-grid point, the canceller's
+  frequency correction and its lines' amplitudes, averaged alike; a stream starts its
+  corrections from them (warm start). Fed forward while the speeds move, they made bursts
+  at the PR2 sweep's speed steps that doubled the detector's no-contact level: not done.
 
-Gating (`ContactGate`): the denoiser's own output goes through the contact detector's
-envelope (core.contact.DetectionEnvelope: band-passed axes, summed, 4 ms RMS), against the
-detector's threshold for the method (the one calibration stored in the model, as the
-contact_detector node and `egovib detect` use it) times `gate_fraction`. A block is
-learnt only once the output has passed its end by `guard_s`, and only if no output sample
-from `guard_s` before its first sample to `guard_s` after its last one crossed that
-threshold: a contact, its ring-down and its onset before the envelope rose are never
-learnt. At a segment's end (a long gap, a clock jump, the end of the stream) the blocks
-whose guard reaches beyond it are dropped.
-
-Safety beyond the gate: a cell's power may change by at most `max_rate_db_s` per second
-of its own learning (per bin and channel; the mean magnitude by half of it in dB), so a
-contact the detector misses moves a cell by little, and one long press cannot rewrite it;
+Gating (`ContactGate`): the denoiser's output through the contact detector's envelope,
+against its threshold for the method (stored in the model) times `gate_fraction`. A block
+is learnt only once the output has passed its end by `guard_s` and nothing crossed from
+`guard_s` before it to `guard_s` after it; at a segment's end the blocks whose guard
+reaches beyond it are dropped. Beyond the gate, a cell's power moves at most
+`max_rate_db_s` per second of its own learning (a missed contact moves it little);
 `reset()` returns to the calibrated model.
 
-Determinism: what is learnt takes effect every `period` samples of the stream (a whole
-number of hops, about UPDATE_S; counted from its start), never at a chunk's edge: the
-denoiser processes its input in pieces that end there, and the learning itself (blocks,
-gate, cells) runs at those points on what the pieces left, so any chunking gives the same
-output, to the bit.
-
-The learnt state is saved in the model's extras (`adapted_extras`): `adapt.residual.*`
-(cells, mean, power, blocks learnt online, whether the calibration had measured them) and
-`adapt.harmonic.*`; a model carrying them uses them (`AdaptiveTable`, the warm start)
-whether or not it goes on adapting.
+Determinism: what is learnt takes effect every `period` samples (whole hops, about
+UPDATE_S, counted from the stream's start), never at a chunk's edge, so any chunking gives
+the same output to the bit. The learnt state is saved in the model's extras (`adapt.*`); a
+model carrying it uses it whether or not it goes on adapting.
 """
 
 from __future__ import annotations
@@ -76,8 +53,8 @@ from egovib_ros.errors import ConfigError, EgovibError, ModelFileError, check_ra
 ADAPT_PREFIX = "adapt."
 RESIDUAL_KEYS = ("cells", "mean", "power", "blocks", "new")
 HARMONIC_KEYS = ("correction", "amplitude", "blocks")
-#: The speeds the harmonic map in use covers, and how many of its lines were found online
-#: (the map itself is saved in the model's place for it: a found map is the map).
+#: The speeds the map in use covers, and its lines found online (the map itself is saved
+#: in the model's place for it).
 LINES_COVERED = ADAPT_PREFIX + "lines.covered"
 LINES_FOUND = ADAPT_PREFIX + "lines.found"
 LINES_OPEN = ADAPT_PREFIX + "lines.open"  # the joints whose calibration showed no line
@@ -85,51 +62,40 @@ LINES_OPEN = ADAPT_PREFIX + "lines.open"  # the joints whose calibration showed 
 TINY = 1e-30
 #: What is learnt takes effect about this often (a whole number of hops).
 UPDATE_S = 0.04
-#: A speed-grid point of the harmonic map is used once learnt over this many spans
-#: between updates (0.4 s of steady, contact-free speed).
+#: A speed-grid point of the harmonic map is used once learnt over this many updates.
 MIN_POINT_SPANS = 10
-#: Lines found online (`LineFinder`): a refit of the harmonic map starts once the
-#: contact-free data hold REFIT_BEYOND_S at speeds beyond those the map was fitted on and
-#: the last refit was given (by more than REFIT_MARGIN of them), or twice the data the last
-#: refit was given; on the last REFIT_WINDOW_S of them (the fit's cost grows with them:
-#: about 0.6 CPU-s per second of data at 1 kHz, 4 motors); its map is put to use
-#: REFIT_APPLY_S (+ REFIT_APPLY_PER_S per second fitted) of stream after the refit started
-#: (live, the fit runs beside the stream meanwhile: offline and live switch at the same
-#: sample), if it leaves at least REFIT_MIN_GAIN_DB less residual than the map in use on
-#: the same data.
+#: Lines found online (`LineFinder`): a refit starts once the contact-free data hold
+#: REFIT_BEYOND_S at speeds beyond (by REFIT_MARGIN) those of the map and the last refit,
+#: or twice the data of the last refit, and REFIT_SPACING_S are new; it fits the last
+#: REFIT_WINDOW_S (about 0.6 CPU-s per second of data at 1 kHz, 4 motors), and its map is
+#: used REFIT_APPLY_S (+ REFIT_APPLY_PER_S per second fitted) later, offline as live, if it
+#: leaves REFIT_MIN_GAIN_DB less residual than the map in use.
 REFIT_BEYOND_S = 0.5
 REFIT_MARGIN = 0.1
-#: ... and REFIT_SPACING_S of new contact-free data since the last refit.
 REFIT_SPACING_S = 0.5
 REFIT_WINDOW_S = 8.0
 REFIT_APPLY_S = 0.5
-REFIT_APPLY_PER_S = 0.35  # ... plus this per second of data fitted (the fit's time to run)
+REFIT_APPLY_PER_S = 0.35
 REFIT_MIN_GAIN_DB = 0.5
 REFIT_NICE = 10  # the worker process's niceness (the stream first)
-#: TransientGate: a contact stands this far above the envelope's recent median ...
+#: TransientGate: a contact stands this far above the envelope's median over
+#: TRANSIENT_LEVEL_S (a climb changes the level within a second) ...
 TRANSIENT_FACTOR = 4.0
-#: ... taken over this long (a climb changes the level within a second) ...
 TRANSIENT_LEVEL_S = 0.5
-#: ... and the time around a crossing it leaves out: a contact's onset and peak (its
-#: ring-down is weak broadband beside the lines, and every second left out delays the
-#: first map: 0.15 s, the cells' guard, left about 40 % of the flight's input and 1.3 dB
-#: less).
+#: ... and this long around a crossing is left out (onset and peak; the cells' 0.15 s left
+#: out 40 % of the flight's input and cost 1.3 dB).
 LINE_GUARD_S = 0.02
 
 
 @dataclass(frozen=True, kw_only=True)
 class AdaptSettings:
-    """forget_s: time constant (s of contact-free time in a cell) with which older data are
-    forgotten; guard_s: time around every contact detection that is never learnt;
-    max_rate_db_s: how fast a cell's power may change per second of its own learning;
-    gate_fraction: the gate's threshold as a share of the contact detector's; threshold:
-    the detector's threshold itself (None: the one the model stores for the method);
-    steady_tolerance: the largest change of a block's joint velocity (grid steps, first
-    half against second half) that still counts for a cell (free-motion calibration's);
-    harmonic: learn the harmonic map's corrections and amplitudes too; find_lines: refit
-    the harmonic map on contact-free data at speeds beyond those it was fitted on
-    (`LineFinder`); learn: False keeps
-    what the model learnt before (the learnt cells, the warm start) without learning more."""
+    """forget_s: forgetting time constant (s of contact-free time in a cell); guard_s: time
+    around a contact that is never learnt; max_rate_db_s: a cell's power change per second
+    of its learning, at most; gate_fraction: the gate's share of the detector's threshold;
+    threshold: that threshold (None: the model's for the method); steady_tolerance: the
+    largest change of a block's velocity (grid steps, half against half) that counts;
+    harmonic: learn the map's corrections and amplitudes; find_lines: refit the map at
+    speeds beyond its own (`LineFinder`); learn False: use what was learnt, learn no more."""
 
     forget_s: float = 30.0
     guard_s: float = 0.15
@@ -179,22 +145,17 @@ class AdaptStats:
         return dict(vars(self))
 
 
-# --------------------------------------------------------------------------------------
-# The gate
-# --------------------------------------------------------------------------------------
+# --- The gate -----------------------------------------------------------------------------
 class ContactGate:
-    """The contact detector's envelope on the denoiser's output, and when it crossed the
-    threshold: `push` the output (stamps (n,), values (n, 3), or (n, 1) band-passed and
-    summed), then `decide(first_ns, last_ns)` whether a block of those stamps is clear of
-    contacts by `guard_ns` on either side (None: the output has not passed it yet)."""
+    """The contact detector's envelope on the denoiser's output (`push`: stamps (n,),
+    values (n, 3), or (n, 1) band-passed and summed); `decide(first_ns, last_ns)`: whether
+    nothing crossed the threshold within `guard_ns` of that span (None: not known yet)."""
 
     def __init__(
         self, settings: ContactSettings, *, guard_s: float, prefiltered: bool, summed: bool
     ):
-        self.settings = settings
         self.threshold = settings.threshold
         self.guard_ns = int(round(guard_s * 1e9))
-        self._prefiltered = prefiltered
         self._summed = summed
         self._envelope = DetectionEnvelope(settings, prefiltered=prefiltered)
         self._intervals: deque = deque()  # [first, last] stamps of runs above the threshold
@@ -252,13 +213,11 @@ class ContactGate:
 
 
 class TransientGate(ContactGate):
-    """The gate LineFinder learns behind, on the band-passed input: the contact detector's,
-    whose threshold rises to TRANSIENT_FACTOR times the envelope's median over the last
-    TRANSIENT_LEVEL_S. Where the model misses lines (speeds beyond the calibration), its
-    output stands above the detector's threshold for seconds and the contact gate clears
-    nothing; contacts still stand out of the input's level as transients, and lines are
-    what stays. (On the output, the gain's bursts stand out too: 130 crossings for 30
-    events on the flight.)"""
+    """LineFinder's gate, on the band-passed input: the threshold rises to TRANSIENT_FACTOR
+    times the envelope's recent median. Where the model misses lines, its output stays above
+    the detector's threshold and ContactGate clears nothing; contacts still stand out of the
+    input as transients (on the output the gain's bursts do too: 130 crossings for 30
+    events on the flight)."""
 
     def __init__(self, settings: ContactSettings, **options):
         super().__init__(settings, **options)
@@ -278,9 +237,7 @@ class TransientGate(ContactGate):
         return limit
 
 
-# --------------------------------------------------------------------------------------
-# The residual table's cells
-# --------------------------------------------------------------------------------------
+# --- The residual table's cells -----------------------------------------------------------
 @dataclass
 class Candidate:
     """A block waiting for the gate."""
@@ -301,10 +258,10 @@ def _layout_of(channels: tuple[str, ...]) -> str:
 
 @numba.njit(cache=True)
 def _commit(mean, power, x, weight, row, rate, max_step):
-    """One block `x` (C, F) into a cell's mean magnitude and mean power (in place): an
-    exponential average (weight 1 / (blocks averaged + 1), at least `rate`), each bin's power
-    moving by at most `max_step` in log (measured from at least TINY of the cell's loudest
-    bin), its mean by half of it, the mean never above the root of the power."""
+    """One block `x` (C, F) into a cell's mean magnitude and power, in place: exponential
+    averages (weight 1 / (blocks + 1), at least `rate`), a bin's power moving at most
+    `max_step` in log (from at least TINY of the loudest bin), its mean half that, the mean
+    never above the power's root."""
     a = 1.0 / (weight[row] + 1.0)
     if a < rate:
         a = rate
@@ -329,10 +286,10 @@ def _commit(mean, power, x, weight, row, rate, max_step):
 
 
 class CellLearner:
-    """Blocks of the residual stream (`push`, one segment at a time) become candidates
-    (`take`); a candidate the gate clears is `commit`ted to its cell. Per learnt cell:
-    mean magnitude and mean power (C, F), the weight of what it has averaged (saturating at
-    the forgetting window), blocks learnt online, whether the calibration measured it."""
+    """Blocks of the residual stream (`push`, one segment at a time) become candidates; one
+    the gate clears is `commit`ted to its cell. Per learnt cell: mean magnitude and power
+    (C, F), the weight averaged (up to the forgetting window), blocks learnt, and whether
+    the calibration measured it."""
 
     def __init__(self, residual: NoiseModel, settings: AdaptSettings):
         self.model = residual
@@ -482,32 +439,28 @@ class CellLearner:
 
 
 class AdaptiveTable:
-    """core.methods.ResidualTable with some cells' band powers replaced (learnt online):
-    the same `rows` (dense grids: the same compiled look-up on a copy of the table whose
-    learnt rows are changed and marked measured; larger grids: the nearest grid point's
-    learnt powers where it has them)."""
+    """core.methods.ResidualTable with the band powers of the cells learnt online: dense
+    grids, the same compiled look-up on a copy of the table whose learnt rows are changed
+    and marked measured; larger grids, the nearest grid point's learnt powers."""
 
     def __init__(self, table):
         self.base = table
-        self.floor = table.floor
-        self.weights = table.weights
-        self.channel_index = table.channel_index
-        dense = getattr(table, "_table", None) is not None
-        self.dense = dense
-        if dense:
+        self.dense = table._table is not None
+        if self.dense:
             self._original = (table._table, table._measured)
             table._table = table._table.copy()
             table._measured = table._measured.copy()
         self._learnt: dict[int, np.ndarray] = {}  # flat cell -> (C, B) powers (larger grids)
-        self._shape = table.model.grid_shape
-        self._grid = table.model.grid
-        if not dense:
+        if not self.dense:
             base_at = table._at
 
             def at(rows):
                 found, measured, outside = base_at(rows)
                 if self._learnt:
-                    cells = self._nearest(rows)
+                    index = np.empty(rows.shape, np.int64)
+                    for j, g in enumerate(table.model.grid):
+                        index[:, j] = np.abs(rows[:, j, None] - g[None]).argmin(axis=1)
+                    cells = np.ravel_multi_index(tuple(index.T), table.model.grid_shape)
                     for k, cell in enumerate(cells.tolist()):
                         learnt = self._learnt.get(cell)
                         if learnt is not None:
@@ -517,18 +470,9 @@ class AdaptiveTable:
 
             table._at = at
 
-    def _nearest(self, velocity: np.ndarray) -> np.ndarray:
-        index = np.empty(velocity.shape, np.int64)
-        for j, g in enumerate(self._grid):
-            index[:, j] = np.abs(velocity[:, j, None] - g[None]).argmin(axis=1)
-        return np.ravel_multi_index(tuple(index.T), self._shape)
-
-    def powers_of(self, power: np.ndarray) -> np.ndarray:
-        """A cell's band powers (3, B) from its mean power per model channel and bin (C, F)."""
-        return power[self.channel_index] @ self.weights.T
-
     def set(self, cell: int, power: np.ndarray) -> None:
-        bands = self.powers_of(power)
+        """A cell's mean power per model channel and bin (C, F), as band powers (3, B)."""
+        bands = power[self.base.channel_index] @ self.base.weights.T
         if self.dense:
             self.base._table[cell] = bands.reshape(-1)
             self.base._measured[cell] = True
@@ -554,15 +498,12 @@ class AdaptiveTable:
         return self.base.samples_out_of_grid
 
 
-# --------------------------------------------------------------------------------------
-# The harmonic map's corrections and amplitudes
-# --------------------------------------------------------------------------------------
+# --- The harmonic map's corrections and amplitudes ----------------------------------------
 class HarmonicLearner:
-    """Per joint j and point k of its speed grid (|grid values|): the canceller's frequency
-    correction (J, G) and its lines' amplitudes per axis (lines, G, C), averaged over the
-    spans between updates that the gate clears (the joint's speed within half a grid step
-    of the point, and steady within half a step), forgotten like the cells.
-    `warm_start` sets the canceller's corrections at the stream's start (module doc)."""
+    """Per joint and point of its speed grid (|grid values|): the canceller's frequency
+    correction (J, G) and line amplitudes per axis (lines, G, C), averaged over the spans
+    between updates the gate clears (speed within half a grid step of the point, and steady
+    within it), forgotten like the cells; `warm_start` (module doc)."""
 
     def __init__(self, hmap, grid, canceller, settings: AdaptSettings):
         self.map = hmap
@@ -592,9 +533,9 @@ class HarmonicLearner:
         self._snapshot = None
 
     def snapshot(self, first_ns: int, last_ns: int) -> tuple | None:
-        """The canceller's speeds, corrections and line amplitudes now; returns the span
-        since the previous snapshot ((first_ns, last_ns): its real samples' stamps, speeds
-        then, state now), or None without a previous one or a real sample."""
+        """The span since the previous snapshot: (first_ns, last_ns of its real samples,
+        speeds then, (speeds, corrections, line amplitudes) now); None without a previous
+        snapshot or a real sample."""
         st = self.canceller.state
         amplitude = np.hypot(st.weights[:, :, 0], st.weights[:, :, 1]).T  # (lines, C)
         now = (st.lagged.copy(), st.correction.copy(), amplitude)
@@ -701,10 +642,9 @@ _POOL: ProcessPoolExecutor | None = None
 
 
 def _refit_pool() -> ProcessPoolExecutor:
-    """One worker process for every LineFinder of this process, at a lower priority: a fit
-    takes seconds of CPU, and in the node's process it would take the interpreter from
-    the stream's callbacks (3 kHz: p99 latency 11.3 ms with fits in a thread, the budget
-    10). Started (spawn: no state of the caller's threads) at the first refit."""
+    """One worker process (spawned at the first refit) for every LineFinder, at a lower
+    priority: a fit in the node's process took the interpreter from the stream's callbacks
+    (3 kHz: p99 latency 11.3 ms with fits in a thread, the budget 10)."""
     global _POOL
     if _POOL is None:
         _POOL = ProcessPoolExecutor(
@@ -723,9 +663,8 @@ def _lower_priority() -> None:
 
 
 def _submit_refit(*args) -> Future:
-    """`_refit(*args)` in the worker process. The worker needs nothing of the caller's
-    `__main__` (its function lives here): hidden while the worker starts, a user's script
-    without a main guard is not run again in it (spawn would import it)."""
+    """`_refit(*args)` in the worker process, the caller's `__main__` hidden while it
+    starts (spawn would run a user's script without a main guard again)."""
     main = sys.modules["__main__"]
     saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
     main.__dict__.pop("__file__", None)
@@ -738,9 +677,8 @@ def _submit_refit(*args) -> Future:
 
 
 def _refit(x, speed, current: HarmonicMap, open_: np.ndarray, fit: dict) -> HarmonicMap | None:
-    """LineFinder's refit (in the worker process): the map fitted on (x, speed), the `open_`
-    joints from it and the others from `current`; None unless that leaves
-    REFIT_MIN_GAIN_DB less residual than `current` on the same data."""
+    """LineFinder's refit (in the worker): `current` with the `open_` joints fitted on (x,
+    speed); None unless that leaves REFIT_MIN_GAIN_DB less residual than `current`."""
     try:
         fitted = fit_harmonic_map(x, speed, **fit)[0]
     except EgovibError:  # data a fit refuses (too short, no steady window): no lines
@@ -767,8 +705,7 @@ def _refit(x, speed, current: HarmonicMap, open_: np.ndarray, fit: dict) -> Harm
 
 
 def _measured_speeds(table: NoiseModel) -> np.ndarray:
-    """Per joint, the largest |velocity| of a cell the calibration measured (the speeds
-    the calibration's harmonic map was fitted on)."""
+    """Per joint, the largest |velocity| of a measured cell (the calibrated map's speeds)."""
     return np.array(
         [
             np.abs(np.asarray(g, float)[table.cells[:, j]]).max() if len(table.cells) else 0.0
@@ -779,19 +716,12 @@ def _measured_speeds(table: NoiseModel) -> np.ndarray:
 
 class LineFinder:
     """Lines of the joints whose calibration showed none (`open`: a quadcopter calibrated at
-    idle meets its motors' lines in flight): the contact-free samples TransientGate clears
-    (`push`: band-passed input, joint velocity) are kept, the last REFIT_WINDOW_S of them;
-    at an update (`at_update`) where they hold REFIT_BEYOND_S at speeds beyond the range the
-    map in use and the last refit covered (or twice the data the last refit was given),
-    the map is fitted again on them (core.harmonic.fit_harmonic_map, as calibration fits it)
-    in a worker process (`_refit`). REFIT_APPLY_S later, the open joints take the fitted
-    map's lines, exponent and lags (the others keep the calibrated ones: a map fitted at
-    the new speeds alone cancelled less at the calibrated ones), if that leaves
-    REFIT_MIN_GAIN_DB less residual on those samples (`at_update` returns the map; the
-    caller swaps it in).
-    Tried: refitting the residual table and the gain's statistics with the found map gave
-    less than keeping the calibrated ones (one event set of the low flight split: 26.5
-    against 27.0 dB)."""
+    idle meets its motors' lines in flight): the last REFIT_WINDOW_S of contact-free samples
+    TransientGate clears (`push`) are refitted (module constants: when) in a worker process
+    (`_refit`); later `at_update` returns the map whose open joints take the fitted lines,
+    exponent and lags (the others keep the calibrated ones, which cancel more at their
+    speeds). Refitting the residual table and the gain's statistics too gave less (26.5
+    against 27.0 dB on the low flight split)."""
 
     def __init__(
         self, hmap: HarmonicMap, model: NoiseModel, residual: NoiseModel, canceller_settings
@@ -840,8 +770,7 @@ class LineFinder:
         return int(np.count_nonzero((speed > known).any(axis=1)))
 
     def _recount(self) -> None:
-        """The held samples beyond, counted again (the map's or the refits' speeds moved):
-        counted per piece as it comes, not over the whole window at every update."""
+        """The held samples beyond, counted again per piece (the covered speeds moved)."""
         for piece in self._pieces:
             piece[2] = self._beyond_of(piece[1])
         self._held_beyond = sum(piece[2] for piece in self._pieces)
@@ -906,9 +835,7 @@ class LineFinder:
         self._recount()
 
 
-# --------------------------------------------------------------------------------------
-# The model's extras
-# --------------------------------------------------------------------------------------
+# --- The model's extras -------------------------------------------------------------------
 def learnt_state(model: NoiseModel) -> tuple[dict | None, dict | None]:
     """(residual cells, harmonic map) learnt online that the model carries (None: none)."""
     where = model.where
@@ -967,9 +894,7 @@ def describe_learnt(model: NoiseModel) -> dict | None:
     return out
 
 
-# --------------------------------------------------------------------------------------
-# The whole of it, for SampleMethodDenoiser
-# --------------------------------------------------------------------------------------
+# --- The whole of it, for SampleMethodDenoiser --------------------------------------------
 class Adaptation:
     """Runs beside a SampleMethodDenoiser (`denoiser`): `run` takes a batch of framed samples
     and hands it to the denoiser in pieces that end on the update schedule; `observe` takes
@@ -1133,34 +1058,18 @@ class Adaptation:
         self._decide(final=final)
 
     def _decide(self, *, final: bool) -> None:
-        gate = self.gate
-        while self._pending:
-            c = self._pending[0]
-            clear = gate.decide(c.first_ns, c.last_ns)
-            if clear is None and not final:
-                break
-            self._pending.popleft()
+        gate, line_gate = self.gate, self.line_gate
+        for c, clear in _decided(self._pending, gate, final):
             if clear:
                 self.cells.commit(c)
             elif clear is None:
                 self.blocks_dropped += 1
             else:
                 self.blocks_gated += 1
-        while self._spans:
-            span = self._spans[0]
-            clear = gate.decide(span[0], span[1])
-            if clear is None and not final:
-                break
-            self._spans.popleft()
+        for span, clear in _decided(self._spans, gate, final):
             if clear:
                 self.harmonic.commit(span, self.rate)
-        line_gate = self.line_gate
-        while self._line_spans:
-            first, last, values, velocity = self._line_spans[0]
-            clear = line_gate.decide(first, last)
-            if clear is None and not final:
-                break
-            self._line_spans.popleft()
+        for (_, _, values, velocity), clear in _decided(self._line_spans, line_gate, final):
             if clear:
                 self.lines.push(values, velocity)
         if line_gate is not None and line_gate.progress_ns is not None:
@@ -1208,11 +1117,8 @@ class Adaptation:
         if self.cells is not None:
             fresh = CellLearner(self.d.calibration.residual, self.settings)
             fresh.unsteady, fresh.learnt = self.cells.unsteady, self.cells.learnt
-            fresh._stamps, fresh._values, fresh._velocity = (
-                self.cells._stamps,
-                self.cells._values,
-                self.cells._velocity,
-            )
+            for name in ("_stamps", "_values", "_velocity"):  # the blocks in the making
+                setattr(fresh, name, getattr(self.cells, name))
             self.cells = fresh
             self.table.restore()
         if self.lines is not None and self.lines.lines_found:
@@ -1251,19 +1157,14 @@ class Adaptation:
         out: dict[str, np.ndarray] = {ADAPT_PREFIX + "forget_s": np.array(self.settings.forget_s)}
         cells = self.cells
         if cells is not None:
-            online = cells.online
-            prefix = ADAPT_PREFIX + "residual."
-            out[prefix + "cells"] = cells.cells[online].astype(np.int32)
-            out[prefix + "mean"] = cells.mean[online]
-            out[prefix + "power"] = cells.power[online]
-            out[prefix + "blocks"] = cells.blocks[online]
-            out[prefix + "new"] = cells.new[online]
-        h = self.harmonic
-        if h is not None:
-            prefix = ADAPT_PREFIX + "harmonic."
-            out[prefix + "correction"] = h.correction.copy()
-            out[prefix + "amplitude"] = h.amplitude.copy()
-            out[prefix + "blocks"] = h.blocks.copy()
+            for key in RESIDUAL_KEYS:  # cells, mean, power, blocks, new of the cells learnt
+                value = getattr(cells, key)[cells.online]
+                out[ADAPT_PREFIX + "residual." + key] = (
+                    value.astype(np.int32) if key == "cells" else value
+                )
+        if self.harmonic is not None:
+            for key in HARMONIC_KEYS:
+                out[ADAPT_PREFIX + "harmonic." + key] = getattr(self.harmonic, key).copy()
         if self.lines is not None:
             out[LINES_COVERED] = self.lines.covered.copy()
             out[LINES_FOUND] = np.array(self.lines.lines_found)
@@ -1271,23 +1172,18 @@ class Adaptation:
         return out
 
 
+def _decided(queue: deque, gate: ContactGate, final: bool):
+    """The queued blocks or spans (first by their (first_ns, last_ns)) the gate can decide,
+    each taken off the queue with its verdict (None: not known, only when `final`)."""
+    while queue:
+        item = queue[0]
+        span = (item.first_ns, item.last_ns) if isinstance(item, Candidate) else item[:2]
+        clear = gate.decide(*span)
+        if clear is None and not final:
+            return
+        yield queue.popleft(), clear
+
+
 def without_learnt(extras: dict) -> dict:
     """Extras less what adaptation saved (a model back to its calibration)."""
     return {k: v for k, v in extras.items() if not k.startswith(ADAPT_PREFIX)}
-
-
-__all__ = [
-    "ADAPT_PREFIX",
-    "AdaptSettings",
-    "AdaptStats",
-    "Adaptation",
-    "AdaptiveTable",
-    "CellLearner",
-    "ContactGate",
-    "HarmonicLearner",
-    "LineFinder",
-    "TransientGate",
-    "describe_learnt",
-    "learnt_state",
-    "without_learnt",
-]

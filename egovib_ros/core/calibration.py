@@ -1,18 +1,12 @@
 """One-pass calibration of the noise model (paper section 3, "PR2 Ego-vibration Estimation").
 
-Blocks are framed exactly as in denoising, assigned to a velocity cell by their mean
-joint velocity, and accumulated as per-cell sums of magnitudes and of squared
-magnitudes, so memory stays constant however long the recording. Only cells that
-receive blocks are stored (sparse), so any number of joints (1 to 8) works.
-
-Two ways a recording can calibrate, tallied side by side:
-- a sweep (the paper): the robot dwells on grid velocities; a block counts when it
-  is steady and within `cell_tolerance` grid steps of a grid point (settling and
-  gripper reversals are rejected);
-- free motion (a flight, random motion, a day of normal operation): any steady
-  block counts for the cell nearest its velocity.
-`sweep="auto"` picks the sweep tally when most usable blocks sat on grid points
-(AUTO_SWEEP_SHARE), else free motion, and says which in `stats.mode`.
+Blocks are framed as in denoising, assigned to the velocity cell of their mean joint
+velocity and summed per cell (magnitudes and their squares: constant memory; only cells
+that receive blocks are stored, so 1 to 8 joints work). Two tallies side by side: a sweep
+(the paper: the robot dwells on grid velocities; a block counts when steady and within
+CELL_TOLERANCE grid steps of a grid point) and free motion (any steady block counts for
+its nearest cell). `sweep="auto"` takes the sweep's when most usable blocks sat on grid
+points (AUTO_SWEEP_SHARE), else free motion's, and says which in `stats.mode`.
 """
 
 from __future__ import annotations
@@ -34,6 +28,12 @@ SWEEPS = ("auto", "full", "superposition", "free")
 AUTO_SWEEP_SHARE = 0.7
 #: A block with at most this many gap-filled samples inside it (both ends real) is used.
 MAX_BRIDGED_SAMPLES = 2
+#: A sweep's block counts within this many grid steps of a grid point, its velocity steady
+#: within STEADY_TOLERANCE steps (first half against second); free motion's within
+#: FREE_STEADY_TOLERANCE (settling and gripper reversals are rejected).
+CELL_TOLERANCE = 0.3
+STEADY_TOLERANCE = 0.3
+FREE_STEADY_TOLERANCE = 0.5
 
 
 class _Tally:
@@ -88,12 +88,9 @@ class _Tally:
 
 
 class CalibrationAccumulator:
-    """Accumulates per-cell magnitude statistics from streamed joint states and sensor samples.
-
-    The robot profile (default: the PR2 hand) gives the grid, joints, rate and blocking;
-    `grid`, `joint_names`, `sample_rate_hz`, `block_length`, `hop`, `band_hz` and
-    `band_order` override it (tests, experiments with other block lengths).
-    """
+    """Per-cell magnitude statistics from streamed joint states and sensor samples. The
+    robot profile (default: the PR2 hand) gives the grid, joints, rate and blocking; the
+    other settings override it (tests, other block lengths)."""
 
     def __init__(
         self,
@@ -107,11 +104,7 @@ class CalibrationAccumulator:
         hop: int | None = None,
         band_hz: tuple[float, float] | None = None,
         band_order: int | None = None,
-        cell_tolerance: float = 0.3,
-        steady_tolerance: float = 0.3,
-        free_steady_tolerance: float = 0.5,
         joint_wait_s: float = 0.02,
-        max_hold_s: float = 0.05,
         prefiltered: bool = False,
         joint_lag_s: float = 0.0,
         source: str = "",
@@ -119,17 +112,9 @@ class CalibrationAccumulator:
         if sweep not in SWEEPS:
             raise ConfigError(f"grid: expected one of {SWEEPS}, got {sweep!r}")
         base = profile if profile is not None else default_profile()
-        overrides = dict(
-            grid=grid,
-            joint_names=joint_names,
-            sample_rate_hz=sample_rate_hz,
-            block_length=block_length,
-            hop=hop,
-            band_hz=band_hz,
-            band_order=band_order,
-        )
+        overrides = (grid, joint_names, sample_rate_hz, block_length, hop, band_hz, band_order)
         # The model carries the profile only when nothing was overridden.
-        self.profile = base if all(v is None for v in overrides.values()) else None
+        self.profile = base if all(v is None for v in overrides) else None
         self.grid = tuple(
             np.asarray(g, dtype=np.float64) for g in (grid if grid is not None else base.grid())
         )
@@ -142,17 +127,7 @@ class CalibrationAccumulator:
         )
         if len(self.joint_names) != len(self.grid):
             raise ConfigError(f"{len(self.joint_names)} joint names for {len(self.grid)} grid axes")
-        for name, value in (
-            ("cell_tolerance", cell_tolerance),
-            ("steady_tolerance", steady_tolerance),
-            ("free_steady_tolerance", free_steady_tolerance),
-        ):
-            if not (np.isfinite(value) and 0 < value <= 1):
-                raise ConfigError(f"calibration: {name} must be in (0, 1] grid steps, got {value}")
         self.sweep = sweep
-        self.cell_tolerance = float(cell_tolerance)
-        self.steady_tolerance = float(steady_tolerance)
-        self.free_steady_tolerance = float(free_steady_tolerance)
         self.settings = FramerSettings(
             sample_rate_hz=sample_rate_hz or base.rate_hz,
             block_length=block_length or base.block_length,
@@ -163,7 +138,6 @@ class CalibrationAccumulator:
             sensor_range=base.sensor_range,
             stamps=base.sensor_stamps,
             joint_wait_s=joint_wait_s,
-            max_hold_s=max_hold_s,
             prefiltered=prefiltered,
             joint_lag_s=joint_lag_s,
             source=source,
@@ -278,9 +252,7 @@ class CalibrationAccumulator:
             # Blocks holding start/end padding or runs of gap fill would bias the statistics;
             # a sample or two bridged inside a block (a bad sample now and then) does not,
             # and rejecting those left no block of a stream with 1.6 % NaN samples.
-            complete = blocks.complete
-            if blocks.bridged is not None:
-                complete = complete | (blocks.bridged <= MAX_BRIDGED_SAMPLES)
+            complete = blocks.complete | (blocks.bridged <= MAX_BRIDGED_SAMPLES)
             usable = complete & (blocks.status == MATCHED)
             velocity = np.where(usable[:, None], blocks.velocity, 0.0)
             index, distance = self.cell_of(velocity)
@@ -290,8 +262,8 @@ class CalibrationAccumulator:
             inside = np.all(distance <= 0.5, axis=1)
             accepted = []
             for tally, steady_tol, cell_tol in (
-                (self._sweep_tally, self.steady_tolerance, self.cell_tolerance),
-                (self._free_tally, self.free_steady_tolerance, None),
+                (self._sweep_tally, STEADY_TOLERANCE, CELL_TOLERANCE),
+                (self._free_tally, FREE_STEADY_TOLERANCE, None),
             ):
                 tally.rejected["partial"] += int((~complete).sum())
                 tally.rejected["no_joint_state"] += int(
@@ -411,21 +383,11 @@ def calibrate_arrays(
     progress=None,
     **options,
 ) -> tuple[NoiseModel, CalibrationStats]:
-    """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory).
-
-    `options` go to CalibrationAccumulator (profile, sweep, overrides). `progress`, if
-    given, is called with the number of sensor samples consumed."""
+    """Calibrate from whole arrays in one pass, `chunk_s` seconds at a time (bounded memory);
+    `options` go to CalibrationAccumulator, `progress(n)`: samples consumed."""
     acc = CalibrationAccumulator(source=source, **options)
-    feed(
-        acc,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        chunk_s=chunk_s,
-        sample_rate_hz=acc.settings.sample_rate_hz,
-        joint_wait_s=acc.settings.joint_wait_s,
-        progress=progress,
-    )
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+    rates = dict(sample_rate_hz=acc.settings.sample_rate_hz, joint_wait_s=acc.settings.joint_wait_s)
+    feed(acc, *streams, chunk_s=chunk_s, progress=progress, **rates)
     acc.flush()
     return acc.to_model(source=source), acc.stats

@@ -1,31 +1,19 @@
 """Contact events from a sensor stream: the detector of the contact_detector node and of
-`egovib detect` (numpy/scipy only; live and offline call the same class).
+`egovib detect` (live and offline call the same class; any chunking gives the same events).
 
-The signal: the three axes band-passed (the model's band) and summed (the paper's 1-D
-signal, the one `egovib evaluate` scores detection on), then a 4 ms causal RMS envelope.
-A contact along a direction whose components cancel in the sum (1, -1, 0) is seen weakly:
-the paper's choice, kept so that live and evaluated figures agree.
-An event starts where the envelope crosses a threshold fixed beforehand from no-contact
-data (`no_contact_threshold`); above-threshold samples less than `refractory_s` after the
-previous ones belong to the same event. Each event is reported `report_after_s` after its
-crossing, without waiting for its end:
+The signal: the three axes band-passed and summed (the paper's 1-D signal, which `egovib
+evaluate` scores; a contact along (1, -1, 0) is seen weakly, as there), then a 4 ms causal
+RMS envelope. An event starts where the envelope crosses a threshold set from no-contact
+data (`no_contact_threshold`); crossings within `refractory_s` belong to it. It is reported
+`report_after_s` (10 ms) after its crossing, whatever its length, with its onset (the first
+sample, at most `lookback_s` before the crossing, where the envelope reaches
+`onset_fraction` of its peak so far) and peak (the band-passed vector of largest magnitude
+from the onset to the report: the contact's direction; strength: the envelope's peak).
 
-- onset: the first sample, at most `lookback_s` before the crossing, where the envelope
-  reaches `onset_fraction` of its peak so far (constant-fraction timing, as the
-  evaluation's detector);
-- peak: the band-passed vector at the sample of largest magnitude from the onset to the
-  report (its components keep their signs: the contact's direction), in the sensor
-  field's unit; strength: the envelope's peak.
-
-So an event is out `report_after_s` (10 ms) after its crossing, whatever its length. The
-input may be the raw stream, the denoiser's drop-in output or its band-passed output (the
-band-pass is applied in every case; thresholds must come from data processed alike).
-A bad sample (non-finite, or beyond `sensor_range` on any axis) is counted and held at the
-last good value: one NaN in the band-pass state would end detection for good, and a
-spike beyond the sensor's range is not a contact. A sample stamped at or before an
-earlier one is dropped (counted); stamps going back by more than CLOCK_JUMP_S are a
-restarted clock: the events pending are reported and detection starts afresh (counted).
-State is explicit: any chunking gives the same events.
+The input may be raw or denoised (thresholds from data processed alike). A bad sample
+(non-finite, or beyond `sensor_range`) is counted and held at the last good value (one NaN
+in the band-pass would end detection for good); a sample stamped at or before an earlier
+one is dropped; stamps back by more than CLOCK_JUMP_S restart detection (counted).
 """
 
 from __future__ import annotations
@@ -306,12 +294,10 @@ def no_contact_threshold(
     refractory_s: float = REFRACTORY_S,
     margin: float = THRESHOLD_MARGIN,
 ) -> tuple[float, float]:
-    """(threshold, false alarms per minute it gives on these data) from the detection
-    envelope of no-contact data: `margin` x the level the envelope stays above for
-    `false_alarms_per_min` x BURST_S seconds per minute (its 1 - budget x BURST_S / 60
-    quantile; budget 0: its largest value). The one threshold rule of `egovib detect`,
-    `egovib evaluate` and the contact_detector node; a quantile, not the k-th largest
-    peak, so a short calibration recording is not set by its single largest burst."""
+    """(threshold, false alarms per minute it gives here) from the detection envelope of
+    no-contact data: `margin` x the level it stays above for `false_alarms_per_min` x
+    BURST_S seconds per minute (budget 0: its largest value). The one threshold rule; a
+    quantile, so a short recording is not set by its single largest burst."""
     envelope = np.asarray(envelope, np.float64)
     if not envelope.size:
         raise ConfigError("no no-contact samples to set a detection threshold from")

@@ -51,10 +51,9 @@ def design_bandpass(
 
 
 def _load_kernel():
-    """scipy's compiled SOS kernel, the one `signal.sosfilt` runs after ~90 us of argument
-    checks. At 32-sample hops those checks would cost more than the filtering, so the
-    streaming path calls the kernel directly when it is present and gives the same
-    result as the public function (checked here); otherwise it falls back to sosfilt."""
+    """scipy's compiled SOS kernel, which `signal.sosfilt` runs after ~90 us of argument
+    checks (more than the filtering of a 32-sample hop): used when present and equal to
+    the public function (checked here), else sosfilt."""
     try:
         from scipy.signal._sosfilt import _sosfilt  # deferred: private, absent in some builds
     except ImportError:  # pragma: no cover - depends on the scipy build
@@ -76,10 +75,9 @@ _SOS_KERNEL = _load_kernel()
 
 
 def _load_linear_filter():
-    """scipy's compiled direct-form filter, the one `signal.lfilter` runs for a denominator
-    of two or more coefficients after ~15 us of argument conversion (a simulator step of
-    a few samples runs ten filters): used when present and equal to the public function
-    (checked here), else lfilter."""
+    """scipy's compiled direct-form filter, which `signal.lfilter` runs after ~15 us of
+    argument conversion (a simulator step runs ten filters): used when present and equal
+    to the public function (checked here), else lfilter."""
     try:
         from scipy.signal._sigtools import _linear_filter  # deferred: private, as above
     except ImportError:  # pragma: no cover - depends on the scipy build
@@ -121,12 +119,9 @@ def sosfilt_carried(
 
 
 class CarriedFilter:
-    """An IIR filter (second-order sections `sos`) with carried state, channels-first:
-    (C, N) in, (C, N) out.
-
-    The state starts in steady state for the first sample (no start-up ringing from the
-    gravity offset), so chunked and whole-signal filtering agree exactly.
-    """
+    """An IIR filter (second-order sections) with carried state, channels-first (C, N); it
+    starts in steady state for the first sample (no ringing from the gravity offset), so
+    chunked and whole-signal filtering agree exactly."""
 
     def __init__(self, sos: np.ndarray, *, n_channels: int):
         self.sos = sos
@@ -186,9 +181,8 @@ class BelowBand(CarriedFilter):
 
 
 def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
-    """(N,) sum of the three axes of (N, 3) samples, band-passed with the streaming filter
-    from steady state in the robot profile's band (`profile`: a RobotProfile): the paper's
-    1-D signal, the reference every metric is taken on."""
+    """(N,) the paper's 1-D signal of (N, 3) samples: their sum band-passed in the robot
+    profile's band, as streamed (the reference every metric is taken on)."""
     band = BandPass(
         sample_rate_hz=profile.rate_hz,
         band_hz=profile.band_hz,
@@ -198,38 +192,30 @@ def combined_bandpassed(values: np.ndarray, profile) -> np.ndarray:
     return band.process(channel_matrix(values, "combined").T)[0]  # BandPass works on (C, N) rows
 
 
-# --------------------------------------------------------------------------------------
-# The drop-in output of the per-sample methods (core.methods): what they remove from the
+# --- The per-sample methods' drop-in output (core.methods): what they remove from the
 # band-passed signal, removed from the unfiltered one with nothing below the band touched.
-# --------------------------------------------------------------------------------------
-#: The split's low-pass passes up to this share of the band's low edge and stops from this
-#: share on (least squares, unit gain at 0 Hz).
+#: The split's low-pass passes up to this share of the band's low edge and stops from the
+#: next on (least squares, unit gain at 0 Hz).
 SPLIT_PASS_FRACTION = 0.1
 SPLIT_STOP_FRACTION = 0.9
-#: The split may pass at most this share (dB) of the band-passed noise of the calibration
-#: recording into its untouched low part: so little that the drop-in output removes as much
-#: as the band-passed one (measured: within 1 dB where the methods remove 30-37 dB).
+#: It may pass at most this (dB) of the calibration recording's band-passed noise into its
+#: untouched low part (the drop-in output then removes within 1 dB of the band-passed one),
+#: with the shortest delay that reaches it, at most SPLIT_MAX_DELAY_S.
 SPLIT_LEAK_DB = -45.0
-#: ... with the shortest delay that reaches it, at most this (a band low against the sample
-#: rate needs a long filter to stop it), and no shorter than the gain's own look-ahead.
 SPLIT_MAX_DELAY_S = 0.025
-#: A low-delay split (longer than twice its delay: it stops the band with less delay than the
-#: linear-phase split of the same delay) may err from a pure delay by at most
-#: SPLIT_PASS_ERROR over the passband and SPLIT_TRANSITION_ERROR up to
-#: SPLIT_TRANSITION_FRACTION of the band's low edge (the PR2 hand's linear-phase split of
-#: 5.7 ms: 0.03-0.04 and 0.15): there the error is what the gains may take from motion, which
-#: the drop-in output passes untouched.
+#: A low-delay split may err from a pure delay by SPLIT_PASS_ERROR over the passband and
+#: SPLIT_TRANSITION_ERROR up to SPLIT_TRANSITION_FRACTION of the band's low edge (the PR2
+#: hand's linear-phase split: 0.03-0.04 and 0.15): what the gains may take from motion.
 SPLIT_PASS_ERROR = 0.05
 SPLIT_TRANSITION_ERROR = 0.15
 SPLIT_TRANSITION_FRACTION = 0.2
-#: Weight of the split's passband (gravity, motion: exact at 0 Hz in any case) against the
-#: band-passed noise it must stop, in the design fitted to a recording ...
+#: Weight of the passband against the noise to stop in a design fitted to a recording, and
+#: the weights a low-delay split tries in turn at each length.
 SPLIT_PASS_WEIGHT = 1e-3
-#: ... and the weights a low-delay split tries, in this order, at each length.
 SPLIT_PASS_WEIGHTS = (SPLIT_PASS_WEIGHT, 1e-2, 1e-1, 1.0)
-#: The lines are tracked in the unfiltered signal after a 4th-order high-pass at this share of
-#: the band's low edge: gravity and motion do not reach their trackers, and the high-pass's
-#: phase at a line (undone exactly: `highpass_inverse`) barely changes over its tracking width.
+#: The lines are tracked in the unfiltered signal after a 4th-order high-pass at this share
+#: of the band's low edge (gravity and motion never reach their trackers; its phase at a line
+#: is undone exactly: `highpass_inverse`).
 LINES_HIGHPASS_FRACTION = 0.25
 
 
@@ -278,13 +264,11 @@ def split_taps(*, sample_rate_hz: float, band_hz: tuple[float, float], delay: in
 
 
 class _LowDelayDesign:
-    """Low-delay splits for one recording's stop weights: taps of a given length and delay,
-    least squares against a pure delay over the passband (weight `pass_weight`) and 0
-    elsewhere (weighted by `stop_weight`), at 0 Hz exactly 1 (gravity passes as it is) with
-    a group delay there of exactly `delay` (slow motion passes with an error growing with
-    the square of its frequency, not linearly). Longer than 2 delay + 1, such a split stops
-    more of the band than the linear-phase one of its delay. The normal equations are
-    Toeplitz (a sum of cosines of the lag), built once for every length and delay."""
+    """Low-delay splits for one recording's stop weights: taps of a given length, least
+    squares against a pure `delay` over the passband (weight `pass_weight`) and 0 elsewhere
+    (`stop_weight`), exactly 1 at 0 Hz with a group delay there of exactly `delay` (slow
+    motion errs with the square of its frequency). Longer than 2 delay + 1, they stop more
+    than the linear-phase split of that delay. The Toeplitz normal equations are built once."""
 
     def __init__(self, sample_rate_hz, low_edge_hz, freqs, stop_weight, longest: int):
         omega = 2.0 * np.pi * np.asarray(freqs, float) / sample_rate_hz
@@ -313,14 +297,11 @@ def split_for(
     power: np.ndarray,
     min_delay: int = 1,
 ) -> tuple[np.ndarray, int]:
-    """The drop-in split for a recording of power spectrum `power` at `freqs_hz`, as (taps,
-    delay): the shortest delay from `min_delay` on (at most SPLIT_MAX_DELAY_S) at which taps
-    fitted to stop that recording's band-passed noise (least squares weighted by it: 5-6 dB
-    less leak than the plain design of the same length) pass at most SPLIT_LEAK_DB of it into
-    the untouched low part: the linear-phase split's, then, by bisection below it, the least
-    delay of a low-delay split (_LowDelayDesign, up to three times as long as twice its delay)
-    within SPLIT_PASS_ERROR and SPLIT_TRANSITION_ERROR of a pure delay (the PR2 hand: 4.0 ms
-    where a linear-phase split needs 5.7). Seconds at most (a band at 20 Hz at 3 kHz: 3 s)."""
+    """The drop-in split (taps, delay) for a recording of power spectrum `power`: the
+    shortest delay from `min_delay` at which taps fitted to stop its band-passed noise (5-6
+    dB less leak than the plain design) pass at most SPLIT_LEAK_DB of it: the linear-phase
+    split's, then by bisection below it the least delay of a low-delay split within its
+    errors of a pure delay (the PR2 hand: 4.0 ms, the linear-phase 5.7). Seconds at most."""
     freqs_hz = np.asarray(freqs_hz, float)
     sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
     response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
@@ -402,7 +383,6 @@ def _highpass_inverse(sample_rate_hz: float, band_hz: tuple[float, float], point
 def highpass_inverse(
     *, sample_rate_hz: float, band_hz: tuple[float, float], points: int = 4096
 ) -> np.ndarray:
-    """(points, 2) real and imaginary parts of 1 / F(f) on `points` frequencies from 0 to
-    Nyquist, F the response of `lines_highpass` (0 where F stops): a line tracked with complex
-    amplitude A after the high-pass is A / F(f) in the unfiltered signal."""
+    """(points, 2) real and imaginary parts of 1 / F(f) from 0 to Nyquist, F the response
+    of `lines_highpass` (0 where F stops): a line of amplitude A after it is A / F(f) before."""
     return _highpass_inverse(float(sample_rate_hz), (float(band_hz[0]), float(band_hz[1])), points)

@@ -1,38 +1,25 @@
 """Speed-locked harmonic cancellation: each actuator's vibration lines tracked and subtracted.
 
-A motor, gear or propeller shakes the sensor at frequencies proportional to its speed
-(gear mesh, commutation, blade pass). Where the paper subtracts a magnitude spectrum per
-block, this stage predicts each line sample by sample and subtracts it, so it neither
-delays the signal nor touches what is not a line (a contact event keeps its waveform).
+A motor, gear or propeller shakes the sensor at frequencies proportional to its speed.
+Where the paper subtracts a magnitude spectrum per block, this stage predicts each line
+sample by sample and subtracts it: no delay, and what is not a line (a contact) keeps its
+waveform. Per joint j, the lines' frequencies are
 
-Per actuator (joint) j the map from speed to line frequency is
+    s_j = |v_j| through a first-order lag (tau_up speeding up, tau_down slowing down:
+          a rotor's inertia; the joint state may lead the vibration)
+    f_l = c_l * s_j ** p_j * (1 + d_j)      for each line l of joint j
 
-    s_j      = |v_j| through a first-order lag, tau_up when speeding up, tau_down when
-               slowing down (a rotor's inertia; the joint state may lead the vibration)
-    f_l      = c_l * s_j ** p_j * (1 + d_j)      for each line l of joint j
+with coefficients c_l (the line "orders", found by `fit_harmonic_map`), exponent p_j and a
+bounded per-joint correction d_j tracked online (a reported velocity is a few % off the
+real speed). Lines above Nyquist need no care: the references run at the unfolded
+frequency, and sampling folds them as it folds the vibration.
 
-with coefficients c_l (Hz per unit of speed**p_j: the line "orders", found from the
-data by `fit_harmonic_map`), exponent p_j, and d_j a bounded per-actuator frequency
-correction tracked online (the command or reported velocity is only a proxy of the
-real speed: a few % off, varying with load and battery). Lines above Nyquist need no
-special care: the reference oscillators run at the unfolded frequency, and sampling
-folds them exactly as it folds the vibration (a log decimated without anti-aliasing).
-
-Per line and channel, the amplitude and phase are two weights on cos/sin references,
-adapted by LMS (`tracking_hz` sets the notch-like bandwidth each line's tracker has).
-Per joint, a second-order phase-locked loop (`pll_hz`) moves the joint's phase and its
-correction d_j along the gradient of the squared error with respect to the phase of
-all its lines together (harmonics stay locked to each other). Robust to events: the
-error that drives both is clipped at `clip_sigma` times a running robust spread of the
-error, so a tap (far above the residual spread) barely moves the weights or the PLL.
-
-Never worse than doing nothing: when the vibration changes faster than the trackers follow
-(a speed step, a reversal, a motor stopping), the weights go on predicting lines that are
-no longer there, and subtracting them would add a burst the sensor never felt. Per
-channel, the short-time power (`guard_ms`) of the input and of the full residual are
-compared; where the residual is the louder, the prediction is scaled down by
-sqrt(P_in / P_residual) before it is subtracted (the trackers still learn from the full
-error). A contact event adds to both powers alike and leaves the scale at 1.
+Per line and channel, LMS adapts the weights of cos/sin references (`tracking_hz`: each
+tracker's bandwidth); per joint, a second-order PLL (`pll_hz`) moves the phase and d_j of
+all its lines together. The error driving both is clipped at `clip_sigma` running robust
+spreads, so a tap barely moves them. Never worse than nothing: where the short-time power
+(`guard_ms`) of the residual exceeds the input's (lines changing faster than the trackers
+follow), the prediction is scaled by sqrt(P_in / P_residual) before it is subtracted.
 
 `HarmonicCanceller.process` keeps all state between calls (any chunking gives the same
 result, to the bit); the per-sample loop is compiled with numba (`cache=True`).
@@ -71,6 +58,13 @@ SPECTRA_SECONDS = 600.0
 ORDER_CANDIDATES = 8
 #: Lags tried for speeding up / slowing down, seconds.
 LAGS_S = (0.0, 0.01, 0.02, 0.035, 0.05, 0.08)
+#: The map search: at most this many lines per joint; a joint whose strongest line stands
+#: less than MIN_SCORE_DB above the floor gets none; a change is kept when it lowers the
+#: residual by MIN_GAIN_DB; ROUNDS passes over the joints.
+MAX_LINES_PER_JOINT = 4
+MIN_SCORE_DB = 3.0
+MIN_GAIN_DB = 0.05
+ROUNDS = 2
 
 
 def fold(freq_hz, sample_rate_hz: float):
@@ -79,9 +73,7 @@ def fold(freq_hz, sample_rate_hz: float):
     return np.where(f > sample_rate_hz / 2, sample_rate_hz - f, f)
 
 
-# --------------------------------------------------------------------------------------
-# The map
-# --------------------------------------------------------------------------------------
+# --- The map ------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class HarmonicMap:
     """Per joint: exponent, lags, speed below which its lines are off; per line: the joint it
@@ -167,9 +159,7 @@ class HarmonicMap:
         }
 
 
-# --------------------------------------------------------------------------------------
-# Fitting the map from a no-contact recording (free motion or a sweep)
-# --------------------------------------------------------------------------------------
+# --- Fitting the map from a no-contact recording (free motion or a sweep) -----------------
 def _pieces(n: int, total: int, piece: int) -> np.ndarray:
     """Mask of evenly spaced pieces of `piece` samples adding up to at most `total` of n."""
     if n <= total:
@@ -218,7 +208,7 @@ def _window_spectra(
 
 
 def _strongest_lines(
-    ratio, starts, freqs, speed, window, fs, band_hz, min_speed, exponents
+    ratio, starts, freqs, speed, window, fs, band_hz, min_speed
 ) -> list[tuple[float, float, float, int]]:
     """Per joint: (score, exponent, coefficient, steady windows) of its strongest line.
 
@@ -243,7 +233,7 @@ def _strongest_lines(
             curves.append(curve)
             continue
         rows = ratio[steady]
-        for p in exponents:
+        for p in EXPONENTS:
             g = g_all**p
             # Lines up to 1.5 x the sample rate (folded once or twice: a log decimated
             # without anti-aliasing); beyond, coincidences of folding would pass for lines.
@@ -278,27 +268,13 @@ def fit_harmonic_map(
     joint_names: tuple[str, ...],
     max_speed: np.ndarray,
     settings: "CancellerSettings | None" = None,
-    max_lines_per_joint: int = 4,
-    min_score_db: float = 3.0,
-    min_gain_db: float = 0.05,
-    exponents: tuple[float, ...] = EXPONENTS,
-    lags_s: tuple[float, ...] = LAGS_S,
     max_seconds: float = 20.0,
-    rounds: int = 2,
 ) -> tuple[HarmonicMap, dict]:
-    """Fit the speed -> line-frequency map on no-contact data (free motion or a sweep).
-
-    x: (N, C) band-passed sensor channels; speed: (N, J) joint velocity held on the same
-    samples. First, per joint, the strongest line and the exponent from the spectra of
-    steady windows (`_strongest_lines`); a joint whose strongest line stands less than
-    `min_score_db` above the floor gets no line. Then the map is refined on what matters,
-    the canceller's own residual on this recording (mean power over channels, the first
-    10 % left out while the trackers settle): per joint in turn, add the line order (of
-    ORDERS, relative to the strongest line) that lowers the residual most while it gains
-    at least `min_gain_db`, then the best scale of its coefficients (+-10 % in 1 % steps),
-    exponent (the frequency at the joint's median speed kept), speed-up lag and slow-down
-    lag; `rounds` times over all joints (`_MapSearch`). At most `max_seconds` of the
-    recording are used (evenly spaced 1 s pieces). Returns (map, info)."""
+    """Fit the speed -> line-frequency map on no-contact data (free motion or a sweep):
+    (map, info). x: (N, C) band-passed channels; speed: (N, J) joint velocity held on the
+    same samples. Per joint, the strongest line and the exponent from the spectra of steady
+    windows (`_strongest_lines`), then the map refined on the canceller's own residual on
+    at most `max_seconds` of the recording (`_MapSearch`: the constants above)."""
     x = np.asarray(x, float)
     if x.ndim == 1:
         x = x[:, None]
@@ -320,7 +296,7 @@ def fit_harmonic_map(
         x[keep], speed[keep], min_speed, window, 4 * window, fs, band_hz
     )
     strongest, curves = _strongest_lines(
-        ratio, starts, freqs, speed[keep], window, fs, band_hz, min_speed, exponents
+        ratio, starts, freqs, speed[keep], window, fs, band_hz, min_speed
     )
     # The refinement runs the canceller on at most `max_seconds` (0.5 s pieces spread over
     # the recording: a sweep keeps every cell).
@@ -329,41 +305,26 @@ def fit_harmonic_map(
     # the same costs, hence the same choices, as one after the other.
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     with ThreadPoolExecutor(cores or 1) as pool:
-        search = _MapSearch(
-            np.ascontiguousarray(x[keep]),
-            np.ascontiguousarray(speed[keep]),
-            sample_rate_hz=fs,
-            band_hz=band_hz,
-            joint_names=tuple(joint_names),
-            min_speed=min_speed,
-            residual_rms=residual_rms,
-            # Without the frequency correction (it would make up for a wrong map and flatten
-            # the cost) nor the guard (it would hide the bursts a wrong map makes).
-            settings=dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0),
-            joints=_first_joints(strongest, curves, min_score_db),
-            min_gain_db=min_gain_db,
-            map_trials=pool.map,
-        )
-        search.refine(
-            max_lines_per_joint=max_lines_per_joint,
-            exponents=exponents,
-            lags_s=lags_s,
-            rounds=rounds,
-        )
+        # Without the frequency correction (it would make up for a wrong map and flatten the
+        # cost) nor the guard (it would hide the bursts a wrong map makes).
+        settings = dataclasses.replace(settings, pll_hz=0.0, guard_ms=0.0)
+        x, speed = np.ascontiguousarray(x[keep]), np.ascontiguousarray(speed[keep])
+        fixed = (fs, band_hz, tuple(joint_names), min_speed, residual_rms, settings)
+        search = _MapSearch(x, speed, *fixed, _first_joints(strongest, curves), pool.map)
+        search.refine()
     return search.result()
 
 
 _DB = 10.0 / math.log(10.0)
 
 
-def _first_joints(strongest, curves, min_score_db: float) -> list[dict]:
+def _first_joints(strongest, curves) -> list[dict]:
     """The map as lists per joint (what the search changes): orders relative to the
-    strongest line (none where it stands less than `min_score_db` above the floor),
-    coefficient c, exponent p, speed-up and slow-down lags, and the orders worth trying:
-    those whose line stands highest in the same spectra."""
+    strongest line (none below MIN_SCORE_DB), coefficient c, exponent p, speed-up and
+    slow-down lags, and the orders worth trying (those standing highest in the spectra)."""
     joints = []
     for j, (score, p, coefficient, _) in enumerate(strongest):
-        has = score * _DB >= min_score_db
+        has = score * _DB >= MIN_SCORE_DB
         grid, curve = curves[j]
         ranked = []
         for order in ORDERS if has else ():
@@ -387,28 +348,18 @@ def _first_joints(strongest, curves, min_score_db: float) -> list[dict]:
 
 class _MapSearch:
     """fit_harmonic_map's greedy search: `joints` (per joint: orders, c, p, up, down) are
-    changed where a change lowers the canceller's mean residual power on `x` (the first
-    10 % left out while the trackers settle) by at least `min_gain_db`."""
+    changed where that lowers the canceller's mean residual power on `x` (the first 10 %
+    left out while the trackers settle) by MIN_GAIN_DB. Per joint in turn (`refine`): the
+    line order that lowers it most while one does, the coefficients' scale, the exponent
+    (the frequency at the median speed kept), the speed-up and slow-down lags; ROUNDS times."""
 
     def __init__(
-        self,
-        x,
-        speed,
-        *,
-        sample_rate_hz,
-        band_hz,
-        joint_names,
-        min_speed,
-        residual_rms,
-        settings,
-        joints,
-        min_gain_db,
-        map_trials=map,
+        self, x, speed, fs, band_hz, joint_names, min_speed, rms, settings, joints, trials
     ):
-        self.x, self.speed, self.fs, self.band_hz = x, speed, sample_rate_hz, band_hz
-        self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, residual_rms
-        self.settings, self.min_gain_db = settings, min_gain_db
-        self.map_trials = map_trials  # map(cost, trials): the builtin, or a thread pool's
+        self.x, self.speed, self.fs, self.band_hz = x, speed, fs, band_hz
+        self.joint_names, self.min_speed, self.residual_rms = joint_names, min_speed, rms
+        self.settings = settings
+        self.map_trials = trials  # map(cost, trials): a thread pool's
         self.settle = len(x) // 10
         self.joints = joints
         self.evaluations = 0
@@ -455,12 +406,12 @@ class _MapSearch:
         for value, trial in zip(values, trials):
             if best is None or value < best[0]:
                 best = (value, trial)
-        if best is not None and _DB * math.log(self.current / best[0]) >= self.min_gain_db:
+        if best is not None and _DB * math.log(self.current / best[0]) >= MIN_GAIN_DB:
             self.current, self.joints = best
             return True
         return False
 
-    def refine(self, *, max_lines_per_joint, exponents, lags_s, rounds) -> None:
+    def refine(self) -> None:
         joints = self.joints
         with_lines = [j for j, d in enumerate(joints) if d["orders"]]
         if len(with_lines) > 1:
@@ -481,17 +432,17 @@ class _MapSearch:
         ]
         # Alike actuators are refined together first, then each on its own.
         groups = ([with_lines] if self.alike else []) + [[j] for j in with_lines]
-        for _ in range(rounds):
+        for _ in range(ROUNDS):
             for group in groups:
-                self._add_lines(group, max_lines_per_joint)
-                self._scale(group, median_speed, exponents)
-                self.try_all([{j: {"up": tau} for j in group} for tau in lags_s])
-                self.try_all([{j: {"down": tau} for j in group} for tau in lags_s])
+                self._add_lines(group)
+                self._scale(group, median_speed)
+                self.try_all([{j: {"up": tau} for j in group} for tau in LAGS_S])
+                self.try_all([{j: {"down": tau} for j in group} for tau in LAGS_S])
 
-    def _add_lines(self, group, max_lines_per_joint) -> None:
+    def _add_lines(self, group) -> None:
         """The line order that lowers the residual most, while one does."""
         joints = self.joints
-        while max(len(joints[j]["orders"]) for j in group) < max_lines_per_joint:
+        while max(len(joints[j]["orders"]) for j in group) < MAX_LINES_PER_JOINT:
             tried = sorted({o for j in group for o in (1.0, *joints[j]["candidates"])})
             missing = [o for o in tried if all(o not in joints[j]["orders"] for j in group)]
             if not self.try_all(
@@ -500,7 +451,7 @@ class _MapSearch:
                 break
             joints = self.joints
 
-    def _scale(self, group, median_speed, exponents) -> None:
+    def _scale(self, group, median_speed) -> None:
         """The coefficients' scale, then the exponent with it (the frequency at the median
         speed kept, then +-3 %)."""
         for per, most in ((100, 10), (400, 4)):  # scale: +-10 % by 1 %, then +-1 % by 0.25 %
@@ -523,7 +474,7 @@ class _MapSearch:
                     }
                     for j in group
                 }
-                for p in exponents
+                for p in EXPONENTS
                 if p != joints[group[0]]["p"]
                 for k in range(-6, 7)
             ]
@@ -562,19 +513,14 @@ class _MapSearch:
         return dataclasses.replace(self.build(joints), line_score_db=scores), info
 
 
-# --------------------------------------------------------------------------------------
-# The canceller
-# --------------------------------------------------------------------------------------
+# --- The canceller ------------------------------------------------------------------------
 @dataclass(frozen=True, kw_only=True)
 class CancellerSettings:
-    """tracking_hz: bandwidth of each line's amplitude/phase tracker (LMS step
-    2 pi tracking_hz / fs); pll_hz: natural frequency of each joint's phase-locked loop
-    (0: no correction, the map alone); pll_damping: its damping ratio; max_correction:
-    bound of the per-joint relative frequency correction; clip_sigma: the error driving the
-    trackers is clipped at this many running spreads (events do not drag them);
-    spread_s: time constant of that running spread; guard_ms: time constant of the
-    short-time powers of input and residual that scale the prediction down where it would
-    make the signal louder (0: no guard)."""
+    """tracking_hz: each line tracker's bandwidth (LMS step 2 pi tracking_hz / fs); pll_hz:
+    natural frequency of each joint's PLL (0: the map alone), pll_damping its damping;
+    max_correction: bound of the relative frequency correction; clip_sigma: the error is
+    clipped at this many running spreads, spread_s that spread's time constant; guard_ms:
+    time constant of the guard's short-time powers (0: no guard)."""
 
     tracking_hz: float = 8.0
     pll_hz: float = 2.0
@@ -635,40 +581,7 @@ def _cos_sin_turns(t):
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True)  # nogil: the map search runs it in threads
-def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
-    x,
-    speed,
-    known,
-    fs,
-    exponent,
-    tau_up,
-    tau_down,
-    min_speed,
-    line_joint,
-    line_coef,
-    mu,
-    kp,
-    ki,
-    bound,
-    clip,
-    spread_rate,
-    guard_rate,
-    f_lo,
-    f_hi,
-    w,
-    inverse,
-    lagged,
-    correction,
-    theta,
-    weights,
-    spread2,
-    power_in,
-    power_residual,
-    weights_w,
-    power_w,
-    out,
-    raw_lines,
-):
+def _cancel_kernel(x, speed, known, fs, hmap, gains, band, w, inverse, st, out, raw_lines):  # noqa: C901 (numba per-sample loop: one pass, no calls)
     """One pass over (n, C) band-passed samples; every state array is updated in place.
     out[i, c] = x[i, c] - predicted lines (scaled down where they would make the signal
     louder). See the module docstring. With `w` (n, C) (else an empty array): the same
@@ -677,8 +590,15 @@ def _cancel_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
     the lines as the unfiltered signal carries them, scaled as `out`'s and by a guard of
     their own (`power_w`: short-time powers of w and of w less its lines).
 
+    `hmap`, `gains`, `band`, `st`: tuples of the map's arrays, the gains, the band's edges
+    and the state's arrays (CancellerState's fields), unpacked below.
+
     One function: numba compiles it into one pass per sample over every line and channel,
     no call per sample."""
+    exponent, tau_up, tau_down, min_speed, line_joint, line_coef = hmap
+    mu, kp, ki, bound, clip, spread_rate, guard_rate = gains
+    f_lo, f_hi = band
+    lagged, correction, theta, weights, spread2, power_in, power_residual, weights_w, power_w = st
     n, C = x.shape
     J = speed.shape[1]
     L = line_coef.shape[0]
@@ -829,36 +749,24 @@ class HarmonicCanceller:
         band_hz: tuple[float, float],
         n_channels: int,
         settings: CancellerSettings | None = None,
-        initial_spread: np.ndarray | None = None,
-        active_hz: tuple[float, float] | None = None,
         unfiltered_inverse: np.ndarray | None = None,
     ):
-        """`band_hz`: the band the input was band-passed to; `active_hz`: where a line is
-        tracked and cancelled (default: the band)."""
+        """`band_hz`: the band the input was band-passed to, where lines are tracked."""
         self.map = hmap
         self.settings = settings or CancellerSettings()
         self.sample_rate_hz = float(sample_rate_hz)
         self.band_hz = (float(band_hz[0]), float(band_hz[1]))
-        self.active_hz = self.band_hz if active_hz is None else tuple(map(float, active_hz))
         self.n_channels = int(n_channels)
         # 1 / F on a grid 0..Nyquist, F the filter the unfiltered input went through
         self.unfiltered_inverse = (
             np.zeros((1, 2)) if unfiltered_inverse is None else np.asarray(unfiltered_inverse)
         )
         # (pll_hz 0: both PLL gains are 0, the map alone)
-        self._mu, self._kp, self._ki, self._spread_rate, self._guard_rate = self.settings.gains(
-            self.sample_rate_hz
-        )
-        spread = (
-            np.full(
-                self.n_channels,
-                float(np.mean(hmap.residual_rms)) if hmap.residual_rms.size else 1.0,
-            )
-            if initial_spread is None
-            else np.asarray(initial_spread, float).reshape(-1)
-        )
-        if spread.shape != (self.n_channels,):
-            raise ConfigError(f"canceller: initial spread needs {self.n_channels} values")
+        mu, kp, ki, spread_rate, guard_rate = self.settings.gains(self.sample_rate_hz)
+        bound, clip = float(self.settings.max_correction), float(self.settings.clip_sigma)
+        self._gains = (mu, kp, ki, bound, clip, spread_rate, guard_rate)  # the kernel's order
+        rms = float(np.mean(hmap.residual_rms)) if hmap.residual_rms.size else 1.0
+        spread = np.full(self.n_channels, rms)
         self._initial_spread2 = np.maximum(spread, 1e-12) ** 2
         self.state = self.initial_state()
 
@@ -885,7 +793,6 @@ class HarmonicCanceller:
             band_hz=self.band_hz,
             n_channels=self.n_channels,
             settings=self.settings,
-            active_hz=self.active_hz,
             unfiltered_inverse=self.unfiltered_inverse,
         )
         for name in ("lagged", "spread2", "power_in", "power_residual", "power_w"):
@@ -919,40 +826,9 @@ class HarmonicCanceller:
         known = np.all(np.isfinite(speed), axis=1)
         if not known.all():
             speed = np.where(known[:, None], speed, 0.0)
-        st = self.state
         m = self.map
-        _cancel_kernel(
-            x,
-            speed,
-            known,
-            self.sample_rate_hz,
-            m.exponent,
-            m.tau_up_s,
-            m.tau_down_s,
-            m.min_speed,
-            m.line_joint,
-            m.line_coefficient,
-            self._mu,
-            self._kp,
-            self._ki,
-            float(self.settings.max_correction),
-            float(self.settings.clip_sigma),
-            self._spread_rate,
-            self._guard_rate,
-            self.active_hz[0],
-            self.active_hz[1],
-            w,
-            self.unfiltered_inverse,
-            st.lagged,
-            st.correction,
-            st.theta,
-            st.weights,
-            st.spread2,
-            st.power_in,
-            st.power_residual,
-            st.weights_w,
-            st.power_w,
-            out,
-            lines,
-        )
+        hmap = (m.exponent, m.tau_up_s, m.tau_down_s, m.min_speed, m.line_joint, m.line_coefficient)
+        state = tuple(vars(self.state).values())  # the arrays in field order
+        fixed = (self.sample_rate_hz, hmap, self._gains, self.band_hz, w, self.unfiltered_inverse)
+        _cancel_kernel(x, speed, known, *fixed, state, out, lines)
         return (out, lines) if raw else out

@@ -1,10 +1,7 @@
-"""Which held input samples the core's output samples are.
-
-The core outputs a subsequence of its input samples, in the order it received them: it
-drops out-of-order and bad samples and never outputs gap fill. A consumer that pairs each
-output sample with its input message (the drop-in denoised output: the raw message with
-the field replaced, live in the denoiser node and offline in `egovib denoise`) holds the
-input stamps in the order it fed them and asks which rows the output stamps are.
+"""Which held input samples the core's output samples are: the core outputs a subsequence
+of its input (it drops out-of-order and bad samples, never outputs gap fill); a consumer
+pairing each output with its input message (the drop-in output, live and offline) holds
+the input stamps in feeding order and asks which rows the output stamps are.
 """
 
 from __future__ import annotations
@@ -13,11 +10,9 @@ import numpy as np
 
 
 def output_rows(held_stamps: np.ndarray, out_stamps: np.ndarray) -> np.ndarray:
-    """Rows of `held_stamps` (in feeding order) that the output samples `out_stamps` are, in
-    output order; a stamp held twice is answered by its first row at or after the previous
-    answer. The held rows before the last answer that no output took are the ones the core
-    dropped. RuntimeError when an output stamp has no held row (the caller fed other samples
-    than it holds: a bug)."""
+    """Rows of `held_stamps` (feeding order) that the output stamps are, in output order (a
+    stamp held twice: its first row after the previous answer; rows skipped were dropped).
+    RuntimeError when an output stamp has no held row (a bug of the caller)."""
     held_stamps = np.asarray(held_stamps, dtype=np.int64)
     out_stamps = np.asarray(out_stamps, dtype=np.int64)
     k = len(out_stamps)

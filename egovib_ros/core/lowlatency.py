@@ -1,59 +1,37 @@
 """A low-latency residual stage: a parametric Wiener gain per band on a complementary bank.
 
-What the canceller leaves (broadband friction, lines it could not follow) is removed by
-a gain that is computed, sample by sample, per band of a filter bank, from the band's
-short-time power P and the noise power N the velocity table of that residual expects
-at the current joint velocities:
+What the canceller leaves (broadband friction, lines it could not follow) is removed by a
+gain computed sample by sample per band from the band's short-time power P and the noise
+power N the residual's velocity table expects at the current joint velocities:
 
-    g = max(floor, max(0, 1 - alpha N / P) ** exponent)      (Lim & Oppenheim 1979;
-                                                               exponent 1: Wiener, 0.5:
-                                                               power subtraction)
+    g = max(floor, max(0, 1 - alpha N / P) ** exponent)   (Lim & Oppenheim 1979; exponent
+                                                            1: Wiener, 0.5: power subtraction)
 
-The bank: K one-pole complex resonators spread evenly over the band, each giving a
-band signal b_k = 2 Re(z_k), and the rest band b_rest = x - sum_k b_k. The bands add up
-to the input exactly (x = sum b), so with every gain at 1 the output is the input, to
-the bit of a float sum: a contact event that opens the gains keeps its waveform; the
-part of a transient the narrow resonators have not picked up yet is in the fast rest
-band. No block, no FFT, no filter delay.
+The bank: K one-pole complex resonators evenly over the band (b_k = 2 Re(z_k)) and the rest
+band x - sum_k b_k, so the bands add up to the input exactly: with every gain at 1 the
+output is the input to the bit, and a contact that opens the gains keeps its waveform. No
+block, no FFT, no filter delay. P follows 2 |z_k|^2 with an attack and a release time; the
+gain computed at sample n is applied to sample n - D (`lookahead_ms`): the delay is D.
 
-Time: P follows the band's instantaneous power (2 |z_k|^2, which has no ripple) with an
-attack and a release time; the gain computed at sample n is applied to sample
-n - D (`lookahead_ms`), so a gain is already open when an event's first samples leave:
-the algorithmic delay is exactly D samples.
+Noise: N = table(velocity) x c, c a slow per-band log-domain correction (`track_s`, each
+step clipped: an event barely moves it) following the real level's drift from the table.
+After the joints slow down, N is held from before, decaying with `hold_ms` (the canceller's
+trackers and a rotor take tens of ms), so a speed step does not pass for an event.
+Calibration sets `alpha` per band (the `opening_quantile` of P/N on its residual) and
+`bias` (the offset of the table's block spectra from the bank's power, so c = 1 there).
 
-Noise: N = table(velocity) x c, where c is a slow per-band correction (`track_s`,
-log-domain, each step clipped, so a short event barely moves it) that follows how the
-real noise level drifts from the table (speeds beyond the calibration, battery,
-temperature). After the joints slow down, what was shaking a moment ago has not gone
-yet (the trackers of the canceller take tens of ms to settle on the new lines, a rotor
-spins down): N is the larger of the table at the current velocity and N held from before,
-decaying with `hold_ms`, so a speed step does not pass for an event.
+Opening: when the largest P / (alpha N) over a channel's bands exceeds what the calibration
+residual reached in an `open_quantile` of its samples (`open_alpha`), every band opens (fully
+at `open_span` beyond) for about `open_hold_ms`: an event keeps its whole waveform.
 
-`alpha` per band is set in calibration as the `opening_quantile` of P/N on the
-calibration residual: the gain opens where the noise alone gets only that rarely.
-`bias` per band removes the offset between the table's block spectra and the bank's
-power measure, and the mean of log P/N, so c = 1 on calibration-like data.
+Guard: where the real noise stands above the table longer than an event lasts (speeds or
+phases the calibration never saw), every moment looks like an event. A slow log level of the
+opening score (rising in `guard_up_s`, falling in `guard_down_s`) above its calibration
+quantile (`guard_ref`) raises the opening threshold and, to the power `guard_gain`, the
+expected noise. Models calibrated before the guard have no `guard_ref`: no guard.
 
-Opening: a contact event is short and stands out in one band or two. When the largest
-P / (alpha N) over a channel's bands exceeds what the calibration residual reached in a
-`open_quantile` of its samples (`open_alpha`), every band of that channel opens (up to
-fully at `open_span` beyond) and stays open for about `open_hold_ms`: the event keeps
-its whole waveform, the noise under it stays too (noise reduction is for the time
-between events).
-
-Guard: where the real noise stands above the table for longer than an event lasts (speeds
-the calibration never saw, a flight phase it did not hold, a speed ramp the trackers lag
-behind), every moment looks like an event. The guard is a slow level of the opening score
-(in logs; rising in `guard_up_s`, falling in `guard_down_s`); above what it reached on the
-calibration residual (its `guard_quantile`, stored in the model as `guard_ref`), the
-excess raises both the opening threshold and, to the power `guard_gain`, the expected
-noise of every band. An event is over before the guard has risen much; a lasting excess
-is treated as noise. Models calibrated before the guard have no `guard_ref`: no guard.
-
-Defaults (3 bands, 4 ms look-ahead, 1 / 10 ms attack / release, power subtraction,
--30 dB floor, 20 ms opening, 20 ms / 0.5 s guard) were chosen on the simulator (seed 7,
-not the published seeds) and on the first half of the shipped flight split in two; docs
-say where a figure was measured on data that also served for choosing them.
+The defaults were chosen on the simulator (seed 7, not the published seeds) and the first
+half of the shipped flight; docs say where a figure was measured on data that chose them.
 """
 
 from __future__ import annotations
@@ -80,29 +58,21 @@ LOG_TINY = math.log(TINY)
 
 @dataclass(frozen=True, kw_only=True)
 class GainSettings:
-    """bands: narrow bands across the band (plus the rest band); bandwidth: each resonator's
-    3 dB width as a multiple of the spacing of the centres; lookahead_ms: algorithmic delay;
-    attack_ms / release_ms: time constants of the band power when it rises / falls;
-    split_ms: the drop-in output's split (core.methods.DropInSplit) needs at least this
-    look-ahead for this robot (set in calibration; 0: the gain's own);
-    opening_quantile: quantile of P/N on calibration data that sets alpha (ignored when
-    `oversubtraction` is given); exponent: 1 Wiener, 0.5 power subtraction; floor: least
-    gain; track_s: time constant of the noise-level correction (0: none); track_clip:
-    largest log step it takes per update before smoothing; track_range_db: how far it may
-    move from the table; hold_ms: time constant of the decay of the expected noise after
-    the table's value drops (0: the table's value at once); open_hold_ms: how long a
-    channel stays open after an event is
-    seen (0: no opening); open_quantile: quantile of the opening score on calibration
-    data above which it opens; open_span: how far beyond that (relative) it is fully open;
-    guard_up_s / guard_down_s: time constants with which the guard (a slow level of the
-    opening score) rises / falls (guard_up_s 0: no guard); guard_quantile: quantile of the
-    guard on calibration data above which it raises the opening threshold; guard_gain:
-    the power of that excess by which the expected noise rises too (0: the opening only);
-    guard_start: how far (log) above that level the guard starts, and stands again after a
-    long gap. The canceller ahead of the gain settles from nothing then (tens of ms): its
-    residual is a lasting excess until it has settled. Without this, a stream started in
-    motion began with 60 ms of ego-vibration that a contact detector took for an event. The
-    guard falls from there in guard_down_s."""
+    """bands: resonators across the band (plus the rest band); bandwidth: their 3 dB width
+    over the spacing of the centres; lookahead_ms: the delay; attack_ms / release_ms: time
+    constants of the band power rising / falling; split_ms: the look-ahead the drop-in
+    split needs (core.methods.DropInSplit; set in calibration; 0: the gain's own);
+    opening_quantile: the quantile of P/N that sets alpha (unless `oversubtraction`);
+    exponent: 1 Wiener, 0.5 power subtraction; floor: least gain; track_s: time constant of
+    the noise-level correction (0: none), track_clip: its largest log step per update,
+    track_range_db: how far it may move; hold_ms: decay of the expected noise after the
+    table's value drops; open_hold_ms: how long a channel stays open after an event (0: no
+    opening), open_quantile, open_span: where it opens and how far beyond fully; guard_up_s /
+    guard_down_s: the guard's rise and fall (guard_up_s 0: no guard); guard_quantile: its
+    calibration quantile; guard_gain: the power of its excess on the noise (0: the opening
+    only); guard_start: how far above that level it starts, and stands again after a long
+    gap, while the canceller settles from nothing (a stream started in motion began with
+    60 ms of ego-vibration a contact detector took for an event)."""
 
     bands: int = 3
     bandwidth: float = 1.0
@@ -223,57 +193,25 @@ class FilterBank:
 
 
 @numba.njit(cache=True, fastmath=True)
-def _gain_kernel(  # noqa: C901 (numba per-sample loop: one pass, no calls)
-    r,
-    noise,
-    row,
-    poles,
-    alpha,
-    bias,
-    open_alpha,
-    guard_ref,
-    floor,
-    exponent,
-    a_attack,
-    a_release,
-    a_track,
-    track_clip,
-    track_range,
-    open_decay,
-    open_span,
-    hold_decay,
-    a_guard_up,
-    a_guard_down,
-    guard_gain,
-    z,
-    power,
-    hist,
-    position,
-    log_ratio,
-    correction,
-    opening,
-    open_wait,
-    noise_held,
-    guard,
-    out,
-    collect,
-    v,
-    zv,
-    out_v,
-    power_scale,
-):
-    """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1); state updated in
-    place; out[i] = output for the sample `D` before sample i (hist holds D + 1 samples
-    per band). collect (n, C, B + 2): P / N per band, the opening score over open_alpha
-    and the guard's log level (calibration), or an empty array. v (n, C), or an empty
-    array: a second signal split by the same bank (states zv) and weighted by the same
-    gains, with no look-ahead (`out_v`): the drop-in output's unfiltered counterpart of
-    the band-passed residual, given already `D` samples late. power_scale (n,), or an empty
-    array: each sample's expected noise powers are multiplied by it (a level change over
-    time, the gap diagnosis's drift advice).
+def _gain_kernel(r, noise, row, poles, cal, levels, rates, st, out, collect, v, out_v, power_scale):  # noqa: C901 (numba per-sample loop: one pass, no calls)
+    """r (n, C) residual; noise (n, C, B) table band powers (B = K + 1), row[i] each
+    sample's; state updated in place; out[i]: the output for sample i - D (hist holds D + 1
+    samples per band). Optional (else empty arrays): collect (n, C, B + 2), P / N per band,
+    the opening score over open_alpha and the guard's log level (calibration); v (n, C), a
+    second signal (the drop-in's unfiltered one, already D late) split by the same bank
+    (states zv) and weighted by the same gains into out_v; power_scale (n,), a factor on
+    each sample's expected noise (the gap's drift advice).
+
+    `cal`, `levels`, `rates`, `st`: tuples of the calibrated arrays, the settings' levels,
+    the per-sample rates (LowLatencyGain builds them) and the state's arrays (GainState's
+    fields), unpacked below.
 
     One function: numba compiles it into one pass per sample over every channel and band,
     the state in local variables, no call per sample (what makes 3 kHz cheap in Python)."""
+    alpha, bias, open_alpha, guard_ref = cal
+    floor, exponent, track_clip, track_range, open_span, guard_gain = levels
+    a_attack, a_release, a_track, open_decay, hold_decay, a_guard_up, a_guard_down = rates
+    z, power, hist, position, log_ratio, correction, opening, open_wait, noise_held, guard, zv = st
     n, C = r.shape
     K = poles.shape[0]
     B = K + 1
@@ -478,16 +416,27 @@ class LowLatencyGain:
         def decay(ms: float) -> float:
             return math.exp(-1.0 / (ms * 1e-3 * fs)) if ms > 0 else 0.0
 
-        self._a_attack = rate(settings.attack_ms)
-        self._a_release = rate(settings.release_ms)
         # The correction is updated every TRACK_EVERY samples: its rate per update.
-        self._a_track = (
+        a_track = (
             1.0 - math.exp(-TRACK_EVERY / (settings.track_s * fs)) if settings.track_s > 0 else 0.0
         )
-        self._open_decay = decay(settings.open_hold_ms)
-        self._hold_decay = decay(settings.hold_ms)
-        self._a_guard_up = rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0
-        self._a_guard_down = rate(1e3 * settings.guard_down_s)
+        self._rates = (  # the kernel's order
+            rate(settings.attack_ms),
+            rate(settings.release_ms),
+            a_track,
+            decay(settings.open_hold_ms),
+            decay(settings.hold_ms),
+            rate(1e3 * settings.guard_up_s) if settings.guard_up_s > 0 else 0.0,
+            rate(1e3 * settings.guard_down_s),
+        )
+        self._levels = (
+            float(settings.floor),
+            float(settings.exponent),
+            float(settings.track_clip),
+            float(settings.track_range_db) * math.log(10.0) / 10.0,
+            float(settings.open_span) if settings.open_hold_ms > 0 else 0.0,
+            float(settings.guard_gain),
+        )
         self.state = self.initial_state()
 
     def initial_state(self) -> GainState:
@@ -565,47 +514,10 @@ class LowLatencyGain:
             else np.ascontiguousarray(np.broadcast_to(power_scale, (len(r),)), dtype=np.float64)
         )
         if len(r):
-            s = self.state
-            span = float(self.settings.open_span) if self.settings.open_hold_ms > 0 else 0.0
-            _gain_kernel(
-                r,
-                noise,
-                index,
-                self.bank.poles,
-                self.alpha,
-                self.bias,
-                self.open_alpha,
-                self.guard_ref,
-                float(self.settings.floor),
-                float(self.settings.exponent),
-                self._a_attack,
-                self._a_release,
-                self._a_track,
-                float(self.settings.track_clip),
-                float(self.settings.track_range_db) * math.log(10.0) / 10.0,
-                self._open_decay,
-                span,
-                self._hold_decay,
-                self._a_guard_up,
-                self._a_guard_down,
-                float(self.settings.guard_gain),
-                s.z,
-                s.power,
-                s.hist,
-                s.position,
-                s.log_ratio,
-                s.correction,
-                s.opening,
-                s.open_wait,
-                s.noise_held,
-                s.guard,
-                out,
-                ratios,
-                v,
-                s.zv,
-                out_v,
-                scale,
-            )
+            cal = (self.alpha, self.bias, self.open_alpha, self.guard_ref)
+            state = tuple(vars(self.state).values())  # the arrays in field order
+            args = (index, self.bank.poles, cal, self._levels, self._rates, state)
+            _gain_kernel(r, noise, *args, out, ratios, v, out_v, scale)
         if unfiltered is not None:
             return out, out_v
         return (out, ratios) if collect else out

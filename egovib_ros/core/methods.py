@@ -3,25 +3,17 @@
     paper   the paper's block spectral subtraction (core.subtraction.StreamingDenoiser):
             block_length - 1 samples of delay (21 ms for the PR2, 32 ms for the quadcopter)
     cancel  speed-locked harmonic cancellation (core.harmonic) on each band-passed axis:
-            no delay, removes the actuators' lines only, leaves everything else untouched
+            no delay, removes the actuators' lines only
     hybrid  cancel, then the low-latency gain (core.lowlatency) keyed on the velocity table
             of what cancellation leaves: `lookahead_ms` of delay (4 ms by default)
 
-`cancel` and `hybrid` need what `calibrate_methods` fits on the calibration recording
-(the speed -> line-frequency map, the residual's velocity table, the gain's per-band
-oversubtraction and offset); it is stored in the noise model's `extras`, so one model
-file serves every method. All three have the same push interface (push_joint_states,
-push_sensor, flush -> DenoisedChunk; stats; delay_samples); `make_denoiser` builds one
-by name and `denoise_batch_method` runs whole arrays through it (as `feed` does for any
-consumer), so batch equals streaming for any chunking.
-
-Both new methods work on x, y and z separately (each axis has its own line weights,
-noise table and gains; the frequencies are shared); `channels="combined"` outputs the sum
-of the three cleaned axes. Their drop-in output (the default per axis, as the paper's) is
-the raw samples split by a low-pass fitted to the calibration recording (DropInSplit):
-gravity and motion pass untouched, the band and its edges are cleaned, with the split's
-delay (4.0 ms on the simulated PR2 hand, as the band-passed output; 10 ms on the 1 kHz
-flight, whose band lies lower against its rate).
+What `cancel` and `hybrid` need (`calibrate_methods`: the speed -> line-frequency map, the
+residual's velocity table, the gain's statistics) is stored in the noise model's `extras`.
+All three have one push interface (`make_denoiser` builds one by name), so batch equals
+streaming for any chunking. The new methods clean x, y and z separately (`combined`: the
+sum of the cleaned axes); their drop-in output splits the raw samples by a low-pass fitted
+to the calibration recording (DropInSplit): gravity and motion pass untouched, at the
+split's delay (4.0 ms on the simulated PR2 hand, 10 ms on the 1 kHz flight).
 """
 
 from __future__ import annotations
@@ -63,7 +55,7 @@ from egovib_ros.core.harmonic import (
     HarmonicMap,
     fit_harmonic_map,
 )
-from egovib_ros.core.lowlatency import MAX_DELAY_MS, FilterBank, GainSettings, LowLatencyGain
+from egovib_ros.core.lowlatency import FilterBank, GainSettings, LowLatencyGain
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.sampleframer import SampleBatch, SampleFramer
 from egovib_ros.core.stream import DenoiserStats, FramerSettings, bad_samples, feed
@@ -129,8 +121,7 @@ def stored_threshold(model: NoiseModel, method: str) -> float | None:
         return None
     value = np.asarray(value)
     if value.ndim != 0 or value.dtype.kind not in "if" or not (np.isfinite(value) and value > 0):
-        where = model.provenance.get("path", "noise model")
-        raise ModelFileError(f"{where}: malformed field {DETECTOR_PREFIX + method!r}")
+        raise ModelFileError(f"{model.where}: malformed field {DETECTOR_PREFIX + method!r}")
     return float(value)
 
 
@@ -158,14 +149,14 @@ def calibrate_detection(
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
     *,
-    false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
     source: str = "",
 ) -> tuple[NoiseModel, dict]:
     """The contact detector's threshold for each method the model can run (its default
     output, as `egovib detect` and the contact_detector node read it) and for the raw
-    signal, from no-contact data (the calibration recording): core.contact's rule at
-    `false_alarms_per_min`, the first and last EDGE_S left out. Returns the model with
-    them in its extras (so a model calibrated live feeds the detector alone) and them."""
+    signal, from no-contact data: core.contact's rule at FALSE_ALARMS_PER_MIN, the first
+    and last EDGE_S left out. Returns the model with them in its extras (a model
+    calibrated live feeds the detector alone) and them."""
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
     settings = ContactSettings.for_model(model, 1.0)
     edge = int(EDGE_S * model.sample_rate_hz)
     methods = [m for m in METHODS if m == "paper" or has_method_calibration(model)]
@@ -174,31 +165,21 @@ def calibrate_detection(
         if method == "raw":  # bad samples held, as the detector holds them
             values, _ = hold_bad(accel, settings.sensor_range)
         else:
-            _, values, _ = denoise_batch_method(
-                sensor_stamps_ns,
-                accel,
-                joint_stamps_ns,
-                joint_velocity,
-                model,
-                method=method,
-                source=source,
-            )
+            _, values, _ = denoise_batch_method(*streams, model, method=method, source=source)
         envelope = DetectionEnvelope(settings).process(values)[1]
         if len(envelope) <= 2 * edge:
             raise StreamError(f"{source or 'calibration'}: too short for detection thresholds")
         thresholds[method], _ = no_contact_threshold(
             envelope[edge:-edge],
             sample_rate_hz=model.sample_rate_hz,
-            false_alarms_per_min=false_alarms_per_min,
+            false_alarms_per_min=FALSE_ALARMS_PER_MIN,
         )
     extras = {DETECTOR_PREFIX + m: np.array(t) for m, t in thresholds.items()}
-    extras[DETECTOR_BUDGET] = np.array(float(false_alarms_per_min))
+    extras[DETECTOR_BUDGET] = np.array(float(FALSE_ALARMS_PER_MIN))
     return model.replace(extras={**model.extras, **extras}), thresholds
 
 
-# --------------------------------------------------------------------------------------
-# What the methods calibrate, stored in the model's extras
-# --------------------------------------------------------------------------------------
+# --- What the methods calibrate, stored in the model's extras -----------------------------
 def _settings_arrays(prefix: str, settings) -> dict[str, np.ndarray]:
     out = {}
     for f in dataclasses.fields(settings):
@@ -243,7 +224,6 @@ class MethodCalibration:
     guard_ref: np.ndarray | None = None  # (3,) per axis; None: calibrated before the guard
     split_taps: np.ndarray | None = None  # the drop-in output's split fitted to the recording
     split_delay: int | None = None  # its delay (samples); None: linear phase, half its length
-    info: dict = dataclasses.field(default_factory=dict)
 
     def to_extras(self) -> dict[str, np.ndarray]:
         extras = self.harmonic.to_arrays(HARMONIC_PREFIX)
@@ -271,8 +251,7 @@ class MethodCalibration:
 
     @classmethod
     def from_model(cls, model: NoiseModel) -> "MethodCalibration":
-        where = model.provenance.get("path", "noise model")
-        extras = model.extras
+        where, extras = model.where, model.extras
         if HARMONIC_PREFIX + "exponent" not in extras:
             raise ModelFileError(
                 f"{where}: calibrated for the paper's method only; calibrate it with "
@@ -287,24 +266,14 @@ class MethodCalibration:
         missing = [k for k in keys if k not in extras]
         if missing:
             raise ModelFileError(f"{where}: missing field(s) {missing}")
-        residual = NoiseModel(
-            grid=model.grid,
-            joint_names=model.joint_names,
+        residual = model.replace(
             cells=extras[keys[0]],
             mean=extras[keys[1]],
             std=extras[keys[2]],
             counts=extras[keys[3]],
-            sample_rate_hz=model.sample_rate_hz,
-            block_length=model.block_length,
-            hop=model.hop,
-            window=model.window,
-            window_name=model.window_name,
-            band_hz=model.band_hz,
-            band_order=model.band_order,
-            channels=model.channels,
             measured=str(extras[keys[4]]),
-            profile=model.profile,
             provenance={**model.provenance, "path": f"{where} (residual table)"},
+            extras={},
         )
         bands = gain.bands + 1
         alpha = np.asarray(extras.get(GAIN_PREFIX + "alpha", np.zeros(0)), float)
@@ -352,12 +321,11 @@ class MethodCalibration:
 
 @numba.njit(cache=True)
 def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):  # noqa: C901 (numba loop: one compiled pass per call)
-    """Expected band powers once per run of equal velocities, by multilinear interpolation
-    of the flattened dense table (cells, M) (np.interp's position rule per joint, clamped
-    at the grid's edges), at least `floor` (M,). Returns (values (n, M): the first R rows
-    used, zeros where a run has no joint state; index (n,) row of each sample; R; samples
-    whose nearest cell is unmeasured; samples outside the grid). One compiled pass: a live
-    stream calls this every few samples, where numpy's per-call overhead dominated."""
+    """Expected band powers once per run of equal velocities: multilinear in the flattened
+    dense table (cells, M) (np.interp's position rule, clamped), at least `floor` (M,).
+    Returns (values (n, M), the first R rows used, zeros without joint state; index (n,);
+    R; samples whose nearest cell is unmeasured; samples outside the grid). Compiled: a
+    live stream calls it every few samples."""
     n, J = velocity.shape
     M = table.shape[1]
     values = np.zeros((n, M))
@@ -482,15 +450,9 @@ class ResidualTable:
         state gets a row of zeros (its gains stay open)."""
         B = self.weights.shape[0]
         if self._table is not None:
-            values, index, R, unmeasured, outside = _dense_rows(
-                np.ascontiguousarray(velocity, dtype=np.float64),
-                self._grid_rows,
-                self._grid_len,
-                self._table,
-                self._strides,
-                self._measured,
-                self._floor_flat,
-            )
+            grid = (self._grid_rows, self._grid_len, self._table, self._strides, self._measured)
+            velocity = np.ascontiguousarray(velocity, dtype=np.float64)
+            values, index, R, unmeasured, outside = _dense_rows(velocity, *grid, self._floor_flat)
             self.samples_unmeasured += unmeasured
             self.samples_out_of_grid += outside
             return values[:R].reshape(R, len(AXES), B), index
@@ -525,16 +487,9 @@ def _band_passed_calibration(
         model, layout="per_axis", with_steadiness=False, source=source
     )
     framer = SampleFramer(settings, model.n_joints)
-    feed(  # the framer keeps what it releases
-        framer,
-        sensor_stamps_ns,
-        accel,
-        joint_stamps_ns,
-        joint_velocity,
-        sample_rate_hz=model.sample_rate_hz,
-        joint_wait_s=settings.joint_wait_s,
-        chunk_s=10.0,
-    )
+    streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+    # the framer keeps what it releases
+    feed(framer, *streams, sample_rate_hz=model.sample_rate_hz, joint_wait_s=settings.joint_wait_s)
     framer.flush()
     batches = framer.pop()
     stamps = np.concatenate([b.stamps_ns for b in batches]) if batches else np.zeros(0, np.int64)
@@ -546,10 +501,9 @@ def _band_passed_calibration(
 
 
 def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | None:
-    """The drop-in output's split for `model`, fitted to the calibration recording's
-    spectrum near the band (core.filters.split_for), no shorter than the gain's look-ahead:
-    (taps, delay), the delay being the look-ahead the drop-in output needs (4.0 ms for the
-    simulated PR2 hand, 8-10 ms for the flight); None for a recording too short to tell."""
+    """The drop-in output's split (taps, delay) fitted to the calibration recording
+    (core.filters.split_for), no shorter than the gain's look-ahead; None for a recording
+    too short to tell."""
     values = np.asarray(accel, float)
     # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
@@ -577,27 +531,19 @@ def calibrate_methods(
     joint_stamps_ns: np.ndarray,
     joint_velocity: np.ndarray,
     *,
-    canceller: CancellerSettings | None = None,
     gain: GainSettings | None = None,
     harmonic: HarmonicMap | None = None,
     source: str = "",
 ) -> tuple[NoiseModel, dict]:
-    """Fit what `cancel` and `hybrid` need on the calibration recording the paper's table
-    `model` came from (or any other no-contact recording of the robot); returns the model
-    with them in its extras, and what was fitted (for reports).
+    """Fit what `cancel` and `hybrid` need on the no-contact recording the paper's table
+    `model` came from; returns the model with it in its extras, and what was fitted:
 
-    1. The speed -> line-frequency map (core.harmonic.fit_harmonic_map) on the band-passed
-       axes with each sample's held joint velocity.
-    2. The canceller runs over the recording; its residual gets its own velocity table
-       (the paper's calibration on it: same grid, blocks, sweep or free-motion rules).
-    3. The gain stage runs over the residual: `bias` = mean log of band power over the
-       table's prediction; `alpha` = the `opening_quantile` of that ratio once corrected.
-    `harmonic`: a map fitted before (e.g. the same recording with other gain settings)
-    instead of fitting one.
-
-    One function: its numbered steps hand the recording's band-passed arrays and each
-    stage's residual to the next, in this order (each stage's fit is a function of its own)."""
-    canceller = canceller or CancellerSettings()
+    1. the speed -> line-frequency map (core.harmonic.fit_harmonic_map) on the band-passed
+       axes with each sample's held joint velocity (`harmonic`: one fitted before);
+    2. the canceller's residual over the recording gets its own velocity table (the
+       paper's calibration on it: same grid, blocks, sweep or free-motion rules);
+    3. the gain stage's statistics on that residual (`_gain_statistics`)."""
+    canceller = CancellerSettings()
     gain = gain or GainSettings()
     split = _split(model, accel, gain)
     if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
@@ -615,7 +561,6 @@ def calibrate_methods(
         raise StreamError(
             f"{source or 'calibration'}: too few samples with joint states to calibrate"
         )
-    profile = model.profile
     fit_info = {"given": True}
     if harmonic is None:
         harmonic, fit_info = fit_harmonic_map(
@@ -624,7 +569,7 @@ def calibrate_methods(
             sample_rate_hz=fs,
             band_hz=model.band_hz,
             joint_names=model.joint_names,
-            max_speed=np.array(profile.max_speed, float),
+            max_speed=np.array(model.profile.max_speed, float),
             settings=canceller,
         )
     cancel = HarmonicCanceller(
@@ -636,7 +581,7 @@ def calibrate_methods(
         residual[real],
         joint_stamps_ns,
         joint_velocity,
-        profile=profile,
+        profile=model.profile,
         sweep=model.measured if model.measured != "full" else "auto",
         prefiltered=True,
         source=source,
@@ -645,21 +590,51 @@ def calibrate_methods(
         sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
     )
     table = ResidualTable(residual_model, bank)
-    noise = table.powers(velocity)
-    settle = min(int(SETTLE_S * fs), len(x) // 4)
     use = known.copy()
-    use[:settle] = False
-    # The statistics describe how the residual scatters about the table's value at the
-    # current velocity: without the hold after speed drops (a run-time guard that only ever
-    # makes the gain more cautious).
+    use[: min(int(SETTLE_S * fs), len(x) // 4)] = False
+    stats = _gain_statistics(bank, gain, residual, table, velocity, use)
+    alpha, _, _, guard_ref = stats
+    calibration = MethodCalibration(
+        harmonic, canceller, residual_model, gain, *stats, *(split or (None, None))
+    )
+    cancelled_db = 0.0
+    if use.any():
+        ratio = float(np.mean(x[use] ** 2)) / max(float(np.mean(residual[use] ** 2)), 1e-300)
+        cancelled_db = round(10 * math.log10(ratio), 2)
+    info = {
+        "harmonic": {**harmonic.describe(), "fit": fit_info},
+        "residual_table": residual_model.coverage(),
+        "residual_calibration": {
+            k: v for k, v in residual_stats.as_dict().items() if k != "rejected"
+        },
+        "gain": {
+            "bands_hz": bank.centres_hz.round(1).tolist(),
+            "alpha_median": float(np.median(alpha)),
+            "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
+            "guard_ref_db": (10 * guard_ref / math.log(10)).round(1).tolist(),
+        },
+        "cancellation_db_on_calibration": cancelled_db,
+    }
+    extras = {**model.extras, **calibration.to_extras()}
+    return model.replace(extras=extras), info
+
+
+def _gain_statistics(bank, gain, residual, table, velocity, use) -> tuple:
+    """(alpha, bias (3, B), open_alpha, guard_ref (3,)) of the gain stage on the calibration
+    residual at the samples `use`: `bias` the mean log of band power over the table's
+    prediction, `alpha` the `opening_quantile` of that ratio once corrected, `open_alpha`
+    the `open_quantile` of the opening score (largest P / (alpha N) over bands), `guard_ref`
+    the `guard_quantile` of the guard's slow log level of it (less log open_alpha). Without
+    the hold after speed drops: the statistics are the scatter about the table's value at
+    the current velocity (the hold is a run-time guard that only makes the gain warier)."""
+    noise = table.powers(velocity)
     steady = dataclasses.replace(gain, hold_ms=0.0)
     probe = LowLatencyGain(
         bank, dataclasses.replace(steady, track_s=0.0, oversubtraction=1.0), n_channels=3
     )
     _, ratios = probe.process(residual, noise, collect=True)
     ratios = ratios[:, :, : bank.n_bands]
-    # Statistics where the table expects noise on that channel and band (an axis at rest
-    # reads a constant: no power, nothing to learn there).
+    # only where the table expects noise (an axis at rest reads a constant: nothing to learn)
     usable = use[:, None, None] & (noise > 1.001 * table.floor[None]) & (ratios > 0)
     logs = np.where(usable, np.clip(np.log(np.where(usable, ratios, 1.0)), -20.0, 20.0), 0.0)
     bias = logs.sum(axis=0) / np.maximum(usable.sum(axis=0), 1)
@@ -674,8 +649,6 @@ def calibrate_methods(
             values = values[np.isfinite(values) & (values > 0)]
             if len(values):
                 alpha[c, b] = float(np.quantile(values, gain.opening_quantile))
-    # The opening score (largest P / (alpha N) over bands) of the calibration residual, and
-    # the guard's slow level of it (its log; shifted by log open_alpha once that is known).
     probe = LowLatencyGain(bank, steady, n_channels=3, alpha=alpha, bias=bias)
     _, ratios = probe.process(residual, noise, collect=True)
     open_alpha = np.ones(3)
@@ -689,46 +662,10 @@ def calibrate_methods(
         levels = ratios[where, c, bank.n_bands + 1]
         if len(levels):
             guard_ref[c] = float(np.quantile(levels, gain.guard_quantile)) - math.log(open_alpha[c])
-    calibration = MethodCalibration(
-        harmonic,
-        canceller,
-        residual_model,
-        gain,
-        alpha,
-        bias,
-        open_alpha,
-        guard_ref,
-        *(split or (None, None)),
-    )
-    info = {
-        "harmonic": {**harmonic.describe(), "fit": fit_info},
-        "residual_table": residual_model.coverage(),
-        "residual_calibration": {
-            k: v for k, v in residual_stats.as_dict().items() if k != "rejected"
-        },
-        "gain": {
-            "bands_hz": bank.centres_hz.round(1).tolist(),
-            "alpha_median": float(np.median(alpha)),
-            "alpha_db": (10 * np.log10(alpha)).round(1).tolist(),
-            "guard_ref_db": (10 * guard_ref / math.log(10)).round(1).tolist(),
-        },
-        "cancellation_db_on_calibration": round(
-            10
-            * math.log10(
-                float(np.mean(x[use] ** 2)) / max(float(np.mean(residual[use] ** 2)), 1e-300)
-            ),
-            2,
-        )
-        if use.any()
-        else 0.0,
-    }
-    extras = {**model.extras, **calibration.to_extras()}
-    return model.replace(extras=extras), info
+    return alpha, bias, open_alpha, guard_ref
 
 
-# --------------------------------------------------------------------------------------
-# The streaming denoisers
-# --------------------------------------------------------------------------------------
+# --- The streaming denoisers --------------------------------------------------------------
 _WARM = False
 
 
@@ -768,10 +705,9 @@ def warm_up() -> None:
 
 
 class SampleMethodDenoiser(FramedDenoiser):
-    """`cancel` or `hybrid` as a stream. Push joint states and sensor chunks of any size;
-    each push returns the samples that became final (DenoisedChunk; output sample k
-    carries input stamp k). `cancel` releases a sample as soon as its joint state is in;
-    `hybrid` `lookahead_ms` later (the algorithmic delay, `delay_samples`)."""
+    """`cancel` or `hybrid` as a stream: each push returns the samples that became final
+    (output sample k carries input stamp k): `cancel` as soon as their joint state is in,
+    `hybrid` `delay` samples (its look-ahead) later."""
 
     def __init__(
         self,
@@ -780,7 +716,6 @@ class SampleMethodDenoiser(FramedDenoiser):
         method: str = "hybrid",
         channels: str = "per_axis",
         joint_wait_s: float = 0.02,
-        max_hold_s: float = 0.05,
         floor: float | None = None,
         lookahead_ms: float | None = None,
         output: str | None = None,
@@ -789,8 +724,8 @@ class SampleMethodDenoiser(FramedDenoiser):
         source: str = "",
         adapt: AdaptSettings | None = None,
     ):
-        """The stages the model's extras describe (framer, canceller, split, gain,
-        adaptation). One function: each stage's settings come from the ones built before it."""
+        """The stages the model's extras describe: framer, canceller, gain and split
+        (hybrid), adaptation."""
         if check_method(method) == "paper":
             raise ConfigError(
                 "SampleMethodDenoiser runs `cancel` or `hybrid`; use StreamingDenoiser"
@@ -808,7 +743,6 @@ class SampleMethodDenoiser(FramedDenoiser):
             model,
             layout="per_axis",
             joint_wait_s=joint_wait_s,
-            max_hold_s=max_hold_s,
             with_steadiness=False,
             keep_raw=output == "dropin",
             joint_lag_s=joint_lag_s,
@@ -836,41 +770,18 @@ class SampleMethodDenoiser(FramedDenoiser):
             if output != "dropin"
             else highpass_inverse(sample_rate_hz=fs, band_hz=model.band_hz),
         )
-        self._gain = None
-        self._table = None
+        self._gain = self._table = self._split = None
         if method == "hybrid":
-            gain = cal.gain
-            if floor is not None:
-                gain = dataclasses.replace(gain, floor=floor)
-            if lookahead_ms is not None:
-                gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
-            elif output == "dropin":
-                gain = dataclasses.replace(gain, lookahead_ms=dropin_lookahead_ms(gain))
-            bank = FilterBank(
-                sample_rate_hz=fs, band_hz=model.band_hz, bands=gain.bands, bandwidth=gain.bandwidth
-            )
-            self._gain = LowLatencyGain(
-                bank,
-                gain,
-                n_channels=3,
-                alpha=cal.alpha,
-                bias=cal.bias,
-                open_alpha=cal.open_alpha,
-                guard_ref=cal.guard_ref,
-            )
-            self._table = ResidualTable(cal.residual, bank)
-        self.lookahead = self._gain.delay if self._gain is not None else 0
+            self._gain, self._table = _hybrid_gain(cal, floor, lookahead_ms, output)
+        self.delay = self._gain.delay if self._gain is not None else 0  # the look-ahead
         # Stamps of the samples inside the look-ahead (-1: synthetic or before the start).
-        self._lag_stamps = np.full(self.lookahead, -1, dtype=np.int64)
-        # ... less what the gains take from the same bands of it (split at the look-ahead).
-        self._split = None
+        self._lag_stamps = np.full(self.delay, -1, dtype=np.int64)
         if output == "dropin" and self._gain is not None:
             split = cal.dropin_split  # fitted to the robot's calibration recording
-            if split is None or split[1] != self.lookahead:  # another look-ahead
-                delay = self.lookahead
-                split = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=delay), delay
+            if split is None or split[1] != self.delay:  # another look-ahead: the plain design
+                taps = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.delay)
+                split = taps, self.delay
             self._split = DropInSplit(*split)
-        self.delay = self.lookahead
         self._last_velocity = np.full(model.n_joints, np.nan)  # of the last sample in
         n_out = 3 if channels == "per_axis" else 1
         self._empty = DenoisedChunk(np.zeros(0, dtype=np.int64), np.zeros((0, n_out)))
@@ -922,7 +833,7 @@ class SampleMethodDenoiser(FramedDenoiser):
                 s, v = self._run(batch.stamps_ns, batch.values, batch.velocity, batch.raw)
                 stamps_out.append(s)
                 values_out.append(v)
-            if batch.ends_segment and self.lookahead:
+            if batch.ends_segment and self.delay:
                 s, v = self._release_lookahead()
                 stamps_out.append(s)
                 values_out.append(v)
@@ -1023,12 +934,10 @@ class SampleMethodDenoiser(FramedDenoiser):
         return 10.0 ** (np.interp((held - t0) / NS_PER_S, knots_s, gain_db) / 10.0)
 
     def _release_lookahead(self):
-        """The segment ended: push silence through the gain to release the last samples it
-        holds, then start the gain afresh. The silence keeps the last joint velocity (the
-        noise the table expects for the last samples is that of their own speed; a NaN
-        would read "no joint state" and open the gain on them), and never reaches the
-        canceller (it holds nothing back, and silence would drag its trackers)."""
-        d = self.lookahead
+        """The segment ended: silence through the gain releases the samples it holds, then
+        it starts afresh. The silence keeps the last joint velocity (NaN would open the gain
+        on the last samples) and never reaches the canceller (it would drag its trackers)."""
+        d = self.delay
         velocity = np.broadcast_to(self._last_velocity, (d, self.model.n_joints))
         zeros = np.zeros((d, 3))
         out = self._gained(
@@ -1053,6 +962,35 @@ class SampleMethodDenoiser(FramedDenoiser):
         return stamps[real], cleaned[real]
 
 
+def _hybrid_gain(cal: MethodCalibration, floor, lookahead_ms, output: str) -> tuple:
+    """`hybrid`'s gain stage and residual table; `floor`, `lookahead_ms`: None for the
+    calibrated ones (the drop-in output: the look-ahead its split needs, if longer)."""
+    gain = cal.gain
+    if floor is not None:
+        gain = dataclasses.replace(gain, floor=floor)
+    if lookahead_ms is not None:
+        gain = dataclasses.replace(gain, lookahead_ms=lookahead_ms)
+    elif output == "dropin":
+        gain = dataclasses.replace(gain, lookahead_ms=max(gain.lookahead_ms, gain.split_ms))
+    model = cal.residual
+    bank = FilterBank(
+        sample_rate_hz=model.sample_rate_hz,
+        band_hz=model.band_hz,
+        bands=gain.bands,
+        bandwidth=gain.bandwidth,
+    )
+    stage = LowLatencyGain(
+        bank,
+        gain,
+        n_channels=3,
+        alpha=cal.alpha,
+        bias=cal.bias,
+        open_alpha=cal.open_alpha,
+        guard_ref=cal.guard_ref,
+    )
+    return stage, ResidualTable(model, bank)
+
+
 def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A delay line of len(line) samples: (the len(new) samples that leave it, the line
     after `new` entered it)."""
@@ -1062,12 +1000,10 @@ def _delayed(line: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 @numba.njit(cache=True)
 def _fir(taps, history):
-    """(n, C) outputs of the symmetric FIR `taps` (odd length N: a linear-phase split)
-    over `history` (its N - 1 samples before, then the n new ones): each the middle tap's
-    product plus, per pair of equal taps, one multiply of the pair's summed samples (half
-    the multiplies of the plain sum); the sums in the same order whatever the chunking (so
-    streaming equals batch to the bit, which scipy's lfilter with carried state does not
-    give); the loop over samples innermost, on contiguous channels, so it vectorises."""
+    """(n, C) outputs of the symmetric FIR `taps` (odd length N) over `history` (N - 1
+    samples before, then the n new): one multiply per pair of equal taps; the sums in one
+    order whatever the chunking (scipy's lfilter with carried state differs in the last
+    bit); the loop over samples innermost, so it vectorises."""
     N = len(taps)
     mid = (N - 1) // 2
     n = history.shape[0] - (N - 1)
@@ -1126,15 +1062,12 @@ def _joined(batches: list[SampleBatch]) -> list[SampleBatch]:
 
 
 class DropInSplit:
-    """The drop-in output's split, `delay` samples late. `process(raw, cleaned)` with
-    `cleaned` = raw less its lines: (low, high), `low` the raw samples through the split's
-    low-pass (core.filters.split_for: linear-phase, or a low-delay FIR whose response is a
-    pure `delay` at 0 Hz and near it): gravity and motion, which the drop-in output passes
-    untouched; `high` = `cleaned`, delayed, less its own low part: inside the band the
-    cleaned samples themselves (a causal IIR split of no delay would shift their phase, or
-    pass motion on to the gains), so the gains take from it what they take from the
-    band-passed signal; low + high is the raw signal `delay` late, less its lines. Whatever
-    slow part the subtracted lines had stays out of the output."""
+    """The drop-in output's split, `delay` samples late: `process(raw, cleaned)` (`cleaned`
+    = raw less its lines) gives (low, high): `low` the raw samples through the split's
+    low-pass (core.filters.split_for), gravity and motion untouched; `high` the cleaned
+    samples delayed less their own low part, in the band the cleaned samples themselves (an
+    IIR split would shift their phase), for the gains; low + high is the raw signal late,
+    less its lines."""
 
     def __init__(self, taps: np.ndarray, delay: int, n_channels: int = 3):
         self.taps = np.asarray(taps, float)
@@ -1177,18 +1110,11 @@ class DropInSplit:
         return lows[:, :c], late[:, c:] - lows[:, c:]
 
 
-def dropin_lookahead_ms(gain: GainSettings) -> float:
-    """The gain's look-ahead with the drop-in output: its own, or what the split needs."""
-    return max(gain.lookahead_ms, gain.split_ms)
-
-
 def make_denoiser(model: NoiseModel, method: str | None = None, *, output=None, **options):
-    """The streaming denoiser of `method` for `model` (same push interface for all).
-    Options the method does not take are refused (ConfigError naming them); an option at
-    the value that means "the paper's default" (oversubtraction 1, floor 0, no joint lag)
-    is no option. `output`: "dropin" (the default with per-axis channels) or "bandpassed",
-    for every method (cancel and hybrid take their drop-in output `DropInSplit.delay`
-    samples later than their band-passed one)."""
+    """The streaming denoiser of `method` for `model` (one push interface for all). Options
+    the method does not take are refused (ConfigError); one at its neutral value
+    (oversubtraction 1, floor 0, no joint lag) is no option. `output`: "dropin" (the default
+    per axis) or "bandpassed", for every method."""
     method = resolve_method(model, method)
     if method == "paper":
         if options.pop("lookahead_ms", None) is not None:
@@ -1236,31 +1162,5 @@ def denoise_batch_method(
 
 def method_delay_ms(model: NoiseModel, method: str | None = None, **options) -> float:
     """Algorithmic delay (ms) of the denoiser `make_denoiser(model, method, **options)`
-    builds: the delay is a property of what is built (the paper: a whole block, either
-    output; cancel and hybrid: their band-passed output's, or their drop-in output's, the
-    default per axis, later)."""
+    builds (paper: a block; cancel and hybrid: their drop-in output's is the longer)."""
     return make_denoiser(model, method, **options).delay_ms
-
-
-__all__ = [
-    "DEFAULT_METHOD",
-    "METHODS",
-    "SAMPLE_METHODS",
-    "MAX_DELAY_MS",
-    "DropInSplit",
-    "MethodCalibration",
-    "ResidualTable",
-    "SampleMethodDenoiser",
-    "calibrate_detection",
-    "calibrate_methods",
-    "check_method",
-    "default_method",
-    "has_method_calibration",
-    "resolve_method",
-    "short_detection_warning",
-    "stored_threshold",
-    "denoise_batch_method",
-    "make_denoiser",
-    "method_delay_ms",
-    "warm_up",
-]

@@ -1,30 +1,20 @@
 """The ego-vibration noise model: per velocity cell mean and std magnitude spectra.
 
-Paper Eq. 5: |N(f, v)| = mu_N(f, v) + sd_N(f, v).
-Paper Eq. 6 (superposition from cells where at most one joint moves), for J joints:
-    mu  = sum_j mu(v_j on axis j) - (J - 1) mu(0)
-    sd  = sqrt(sum_j sd(v_j on axis j)^2 + (J - 1) sd(0)^2)
-which for J = 2 is exactly the paper's equation, including its + sd(0, 0)^2 term (so
-at an on-axis cell Eq. 6 gives sqrt(sd^2 + sd0^2), and at (0, 0) sqrt(3) sd0, not the
-measured sd: the paper's over-subtraction), and for J = 1 returns the measured table.
+Paper Eq. 5: |N(f, v)| = mu_N(f, v) + sd_N(f, v). Eq. 6 (superposition from the cells
+where at most one joint moves), for J joints:
+    mu = sum_j mu(v_j on axis j) - (J - 1) mu(0)
+    sd = sqrt(sum_j sd(v_j on axis j)^2 + (J - 1) sd(0)^2)
+(for J = 2 the paper's equation with its + sd(0, 0)^2 term: its over-subtraction).
 
-Storage is sparse (schema version 2, 3): only measured cells are kept, as grid indices
-(K, J) with their spectra, so a model of 8 joints (21^8 grid points) costs what its
-measurements cost. How a velocity is looked up:
-
-- `measured == "superposition"` (the paper's 41-cell sweep): Eq. 6 everywhere, from
-  the single-joint cells (an empty one is filled from its nearest measured neighbour
-  on the same axis).
-- otherwise ("full" sweep, or "free" motion): a measured cell gives its own Eq. 5;
-  an unmeasured cell gives Eq. 6 where the all-stationary cell and the single-joint
-  cells it needs are measured, else the nearest measured cell (grid-index distance).
-  Blocks whose nearest cell was not measured are counted by the denoiser.
-- Cells measured from fewer than MIN_BLOCKS_FOR_STD blocks borrow the spread of the
-  well-measured ones (std >= pooled relative std x mean): one block has no spread.
-- Between grid points the estimate is interpolated multilinearly when the grid is
-  small enough for a dense table (DENSE_LIMIT_BYTES: the PR2's 441 cells, a
-  quadcopter's 11^4); larger grids use the nearest grid point per joint. Outside
-  the grid the estimate is clamped to the edge and the block is counted.
+Only measured cells are stored (schema 2, 3: grid indices (K, J) with their spectra), so
+8 joints cost what their measurements cost. A velocity is looked up as follows: a
+"superposition" model uses Eq. 6 everywhere (an empty single-joint cell filled from its
+nearest measured neighbour on the axis); otherwise a measured cell gives its Eq. 5, an
+unmeasured one Eq. 6 where the cells it needs are measured, else the nearest measured
+cell. Cells of fewer than MIN_BLOCKS_FOR_STD blocks borrow the pooled relative std.
+Between grid points the estimate is multilinear where a dense table fits in
+DENSE_LIMIT_BYTES, else the nearest grid point's; outside the grid it is clamped to the
+edge and counted.
 """
 
 from __future__ import annotations
@@ -62,12 +52,9 @@ FILL_RULES = (
 
 
 class NoiseModel:
-    """Per-cell noise statistics; see the module docstring for the estimate.
-
-    Build from sparse cells (``cells`` (K, J) grid indices, ``mean``/``std`` (K, C, F),
-    ``counts`` (K,)) or, for small grids, from dense grid-shaped arrays (``mean``/``std``
-    grid_shape + (C, F), ``counts`` grid_shape; cells with count 0 are unmeasured).
-    """
+    """Per-cell noise statistics (the estimate: module doc), from sparse cells (`cells`
+    (K, J) grid indices, `mean`/`std` (K, C, F), `counts` (K,)) or, for small grids, dense
+    grid-shaped arrays (`counts` 0: unmeasured)."""
 
     def __init__(
         self,
@@ -122,19 +109,14 @@ class NoiseModel:
         self.cell_counts = np.asarray(counts, dtype=np.int64).reshape(-1)
         self._check_cells(where)
         order = np.argsort(self._flat(self.cells), kind="stable")
-        self.cells, self.cell_mean, self.cell_std, self.cell_counts = (
-            self.cells[order],
-            self.cell_mean[order],
-            self.cell_std[order],
-            self.cell_counts[order],
-        )
+        tables = (self.cells, self.cell_mean, self.cell_std, self.cell_counts)
+        self.cells, self.cell_mean, self.cell_std, self.cell_counts = (t[order] for t in tables)
         self._cell_ids = self._flat(self.cells)
         self.profile = profile if profile is not None else self._derived_profile()
         if self.profile is not None:
             self._check_profile(where)
         self._cache: dict = {}
         self._positions = [np.arange(len(g), dtype=np.float64) for g in self.grid]
-        self._bounds = [(float(g[0]), float(g[-1])) for g in self.grid]
         # Grid step per joint if the grid is uniform (to the last bit of the step), else 0.
         self._steps = []
         for g in self.grid:
@@ -235,8 +217,8 @@ class NoiseModel:
             raise ModelFileError(f"{where}: 'cells' lists a cell twice")
 
     def _derived_profile(self) -> RobotProfile | None:
-        """A profile for a model built without one: the PR2 hand's when it is the PR2 grid,
-        else generic topics if the grid is a profile grid (uniform, symmetric or from 0)."""
+        """For a model built without a profile: the PR2 hand's on the PR2 grid, else generic
+        topics on a profile grid (uniform, symmetric or from 0)."""
         try:
             pr2 = default_profile()
         except ConfigError:
@@ -371,13 +353,13 @@ class NoiseModel:
         pos = np.minimum(np.searchsorted(self._cell_ids, ids), len(self._cell_ids) - 1)
         return np.where(self._cell_ids[pos] == ids, pos, -1)
 
-    def _dense(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+    def _dense(self, values: np.ndarray) -> np.ndarray:
         if not self.dense_ok:
             raise ModelFileError(
                 f"{self.where}: grid of {self.n_cells:.3g} cells is too large for a dense view; "
                 f"use cells_measured()"
             )
-        out = np.full(self.grid_shape + values.shape[1:], fill, dtype=values.dtype)
+        out = np.zeros(self.grid_shape + values.shape[1:], dtype=values.dtype)
         out[tuple(self.cells.T)] = values
         return out
 
@@ -518,28 +500,26 @@ class NoiseModel:
 
     def estimate_table(self, *, include_std: bool = True) -> np.ndarray:
         """grid_shape + (C, F): the noise magnitude used at each grid point (small grids)."""
-        key = ("table", include_std)
-        table = self._cache.get(key)
-        if table is None:
+
+        def make():
             if not self.dense_ok:
                 raise ModelFileError(f"{self.where}: grid too large for a table")
             if not len(self.cells):
                 raise ModelFileError(f"{self.where}: no measured cell at all")
             cells = np.indices(self.grid_shape).reshape(self.n_joints, -1).T
             values, measured = self._cell_estimates(cells, include_std)
-            table = values.reshape(self.grid_shape + values.shape[1:])
-            filled = ~measured.reshape(self.grid_shape)
-            if filled.any() and include_std and self.measured != "superposition":
-                # a superposition sweep fills the cells off the axes by Eq. 6 by design; for
-                # other models the calibration's coverage lines and `egovib model show` say it
+            filled = int(np.count_nonzero(~measured))
+            if filled and include_std and self.measured != "superposition":
+                # (a superposition sweep fills the cells off the axes by design)
                 LOG.info(
                     "noise model: %d of %d cells are not measured; filled by Eq. 6 or the "
                     "nearest measured cell",
-                    int(filled.sum()),
-                    filled.size,
+                    filled,
+                    measured.size,
                 )
-            self._cache[key] = table
-        return table
+            return values.reshape(self.grid_shape + values.shape[1:])
+
+        return self._cached(("table", include_std), make)
 
     # --- look-ups ------------------------------------------------------------------
     def _table_for(self, channel_index, include_std: bool) -> np.ndarray:
@@ -563,7 +543,7 @@ class NoiseModel:
             v = velocity[:, j]
             outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
             step = self._steps[j]
-            if step:  # uniform grid: plain arithmetic (the one-block path does the same on floats)
+            if step:  # uniform grid: plain arithmetic
                 position = np.minimum(np.maximum((v - g[0]) / step, 0.0), len(g) - 1.0)
             else:
                 position = np.interp(v, g, self._positions[j])
@@ -594,18 +574,7 @@ class NoiseModel:
             values, _ = self._cell_estimates(nearest, include_std)
             return values[:, channel_index, :], outside, measured
         table = self._table_for(channel_index, include_std)
-        if len(velocity) == 1:
-            noise, out, _ = self.estimate_one(velocity[0], table)
-            return noise, out, measured
-        out = np.zeros((len(velocity),) + table.shape[self.n_joints :])
-        for corner in itertools.product((0, 1), repeat=self.n_joints):
-            weight = np.ones(len(velocity))
-            index = []
-            for j, c in enumerate(corner):
-                weight = weight * (frac[j] if c else 1.0 - frac[j])
-                index.append(lower[j] + c)
-            out += weight[:, None, None] * table[tuple(index)]
-        return out, outside, measured
+        return _interpolate(table, lower, frac), outside, measured
 
     def estimate(
         self,
@@ -628,34 +597,25 @@ class NoiseModel:
     def estimate_one(
         self, velocity: np.ndarray, table: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, bool]:
-        """`lookup` for a single block (the streaming case) on a `table()`: the same
-        operations in the same order on Python floats and array views, so the result is
-        bit-identical to the vectorised path. Returns (noise (1, C, F), outside (1,),
-        whether the nearest grid cell was measured)."""
+        """`lookup` for one block (the streaming case) on a `table()`: `_positions_of`'s
+        operations on Python floats (a quarter of the time), the same bits. Returns (noise
+        (1, C, F), outside (1,), whether the nearest grid cell was measured)."""
         measured_grid = self._cached("measured_grid", lambda: self.counts > 0)
         lower, frac = [], []
         outside = False
-        for j, (low, high) in enumerate(self._bounds):
-            v = float(velocity[j])
+        for j, g in enumerate(self.grid):
+            v, low, high, n = float(velocity[j]), float(g[0]), float(g[-1]), len(g)
             outside = outside or v < low - 1e-9 * abs(low) or v > high + 1e-9 * abs(high)
-            step = self._steps[j]
-            n = len(self.grid[j])
-            if step:
-                position = min(max((v - low) / step, 0.0), n - 1.0)
+            if self._steps[j]:
+                position = min(max((v - low) / self._steps[j], 0.0), n - 1.0)
             else:
-                position = float(np.interp(v, self.grid[j], self._positions[j]))
+                position = float(np.interp(v, g, self._positions[j]))
             i0 = min(int(math.floor(position)), n - 2)
             lower.append(i0)
             frac.append(position - i0)
-        out = None
-        for corner in itertools.product((0, 1), repeat=self.n_joints):
-            weight = 1.0
-            for j, c in enumerate(corner):
-                weight = weight * (frac[j] if c else 1.0 - frac[j])
-            term = weight * table[tuple(lower[j] + c for j, c in enumerate(corner))]
-            out = term if out is None else out + term
         nearest = tuple(i + (f >= 0.5) for i, f in zip(lower, frac))
-        return out[None], np.array([outside]), bool(measured_grid[nearest])
+        noise = _interpolate(table, lower, frac)[None]
+        return noise, np.array([outside]), bool(measured_grid[nearest])
 
     # --- copies ---------------------------------------------------------------------
     def robot_profile(self) -> RobotProfile:
@@ -669,7 +629,8 @@ class NoiseModel:
         return self.profile
 
     def replace(self, **changes) -> "NoiseModel":
-        """A copy with some fields changed (dense `mean`/`std`/`counts` for small grids)."""
+        """A copy with some fields changed (`mean`/`std`/`counts` dense for small grids, or
+        sparse with `cells`)."""
         fields = dict(
             grid=self.grid,
             joint_names=self.joint_names,
@@ -690,7 +651,7 @@ class NoiseModel:
             provenance=dict(self.provenance),
             extras=dict(self.extras),
         )
-        if {"mean", "std", "counts"} & set(changes):
+        if {"mean", "std", "counts"} & set(changes) and "cells" not in changes:
             fields.update(cells=None, mean=self.mean, std=self.std, counts=self.counts)
         if {"joint_names", "grid"} & set(changes) and "profile" not in changes:
             fields["profile"] = None
@@ -866,6 +827,21 @@ class NoiseModel:
         )
 
 
+def _interpolate(table: np.ndarray, lower: list, frac: list) -> np.ndarray:
+    """Multilinear interpolation of `table` (grid + (C, F)) from the lower grid index and
+    fraction per joint: arrays (B,) -> (B, C, F), or numbers (one block) -> (C, F); the
+    corners summed in one order, so one block and many give the same bits."""
+    out = None
+    for corner in itertools.product((0, 1), repeat=len(lower)):
+        weight = 1.0
+        for j, c in enumerate(corner):
+            weight = weight * (frac[j] if c else 1.0 - frac[j])
+        term = table[tuple(lower[j] + c for j, c in enumerate(corner))]
+        term = weight * term if np.isscalar(weight) else weight[:, None, None] * term
+        out = term if out is None else out + term
+    return out
+
+
 def _array_field(data, key: str, where: str) -> np.ndarray:
     """One array of an open .npz; an object array (loadable only by unpickling, never done
     here) is a one-line ModelFileError naming it."""
@@ -921,14 +897,9 @@ def _profile_kwargs(profile: RobotProfile) -> dict:
 def sweep_mask(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:
     """Grid-shaped mask of the cells a sweep visits: all of them ("full") or those where
     at most one joint moves ("superposition", the cells Eq. 6 needs)."""
-    shape = tuple(len(g) for g in grid)
-    if sweep == "full":
-        return np.ones(shape, dtype=bool)
-    if sweep != "superposition":
-        raise ConfigError(f"grid: expected 'full' or 'superposition', got {sweep!r}")
-    index = np.indices(shape)
-    zero = [int(np.argmin(np.abs(g))) for g in grid]
-    return sum((index[j] != zero[j]).astype(int) for j in range(len(shape))) <= 1
+    mask = np.zeros(tuple(len(g) for g in grid), dtype=bool)
+    mask[tuple(sweep_cells(grid, sweep).T)] = True
+    return mask
 
 
 def sweep_cells(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:

@@ -1,13 +1,11 @@
 """Sensor streams stamped on receipt.
 
-A driver that stamps each message as it receives it (a USB or serial IMU read a packet at a
-time, stamped with the host clock) gives stamps that trail the sample times by a latency
-that varies: steps of 0 to several periods, however regular the sensor. Judged step by step
-those read as lost samples and as a wrong rate. Such a stream is recognised on its first
-samples (`receipt_latency`) and judged against a sample clock rebuilt from the count of
-samples and the stamps' lower envelope (`ReceiptClock`): a gap is a stamp later than any
-latency seen by 1.5 periods. Their rate is measured on the least late samples
-(`envelope_period`).
+A driver that stamps each message as it receives it (a USB or serial IMU read a packet at
+a time) gives stamps trailing the sample times by a varying latency: steps of 0 to several
+periods, which step by step read as lost samples and a wrong rate. Such a stream is told on
+its first samples (`receipt_latency`) and judged against a sample clock rebuilt from the
+sample count and the stamps' lower envelope (`ReceiptClock`: a gap is a stamp later than
+any latency seen by 1.5 periods); its rate on the least late samples (`envelope_period`).
 """
 
 from __future__ import annotations
@@ -33,11 +31,9 @@ RECEIPT_FIRST_WINDOW = 512
 def receipt_latency(
     stamps_ns: np.ndarray, period_ns: float, *, known: bool = False
 ) -> float | None:
-    """The latency spread (ns) of stamps taken on receipt, from the in-order stamps of a
-    stream's first samples; None when they mark sample times (steps of about a period or
-    whole periods more). Whatever rate the stamps keep: a wrong one is the rate check's to
-    refuse, measured as receipt stamps show it (`envelope_period`). `known`: they are
-    receipt times; only the spread is asked."""
+    """The latency spread (ns) of receipt stamps, from a stream's first in-order stamps;
+    None when they mark sample times (steps of a period or whole periods more). `known`:
+    they are receipt times, only the spread is asked."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     if len(stamps) < (2 if known else 16):
         return 0.0 if known else None
@@ -50,13 +46,10 @@ def receipt_latency(
 
 
 def envelope_period(stamps_ns: np.ndarray, period_ns: float) -> float:
-    """The sample period a window of receipt stamps shows (-1: a sample the clock bridged
-    in, left out): the slope between the least late stamp of each half of the window, over
-    the samples received between them. Stamps trail their samples by a varying latency; the
-    least late ones lie nearest their samples, so the slope holds to a fraction of a period
-    per half window when each half spans a few latencies (the mean step would carry the
-    two ends' latencies). Counting received samples, not the clock's guesses of lost ones,
-    keeps a stream at the wrong rate from being bridged into the right one."""
+    """The sample period a window of receipt stamps shows (-1, a bridged sample: left out):
+    the slope between the least late stamps of its halves (nearest their samples; the mean
+    step would carry the ends' latencies), over the samples received between them (not
+    the clock's guesses of lost ones, which would bridge a wrong rate into the right one)."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     stamps = stamps[stamps >= 0]
     half = len(stamps) // 2
@@ -102,16 +95,9 @@ class ReceiptClock:
             self.origin = int(stamps_ns[0])
         missing = np.zeros(len(stamps_ns), dtype=np.int64)
         offsets = np.zeros(len(stamps_ns))
-        _receipt_kernel(
-            (stamps_ns - (self.origin or 0)).astype(np.float64),
-            self.period,
-            RECEIPT_LEAK,
-            1.0 - RECEIPT_FORGET,
-            self.max_fill,
-            self.state,
-            missing,
-            offsets,
-        )
+        stamps = (stamps_ns - (self.origin or 0)).astype(np.float64)
+        rates = (self.period, RECEIPT_LEAK, 1.0 - RECEIPT_FORGET, self.max_fill)
+        _receipt_kernel(stamps, *rates, self.state, missing, offsets)
         return missing, np.rint(offsets).astype(np.int64) + (self.origin or 0)
 
 

@@ -1,19 +1,11 @@
 """From a sensor sample stream to band-passed samples, each with its joint velocity.
 
-The sample-by-sample counterpart of `stream.BlockFramer` for methods that work per
-sample (harmonic cancellation, the low-latency gain): the same input cleaning (the
-framer's `_Cleaner`: out-of-order samples dropped, non-finite or out-of-range samples
-treated as missing, gaps of up to `max_fill_samples` bridged by synthetic samples that
-are never output, longer gaps and clock jumps end the segment and restart the filter),
-the same band-pass with carried state, and the same rule for joint states: a sample is
-released once a joint state stamped at or after it has arrived, or `joint_wait_s` of
-sensor time later. Its velocity is the latest joint state at or before its stamp
-(zero-order hold), if that one is at most `max_hold_s` old; else NaN (no joint state:
-the methods pass the band-passed sample through, counted).
-
-Any chunking of either stream, pushed in the order `feed` uses (joint states up to a
-little past each sensor chunk first), releases the same samples with the same
-velocities as one push of everything.
+The per-sample counterpart of `stream.BlockFramer` (for harmonic cancellation and the
+low-latency gain): the same input cleaning, band-pass and joint-state rule. A sample is
+released once a joint state stamped at or after it is in, or `joint_wait_s` of sensor
+time later; its velocity is the latest joint state at or before it if at most
+`max_hold_s` old, else NaN (passed through band-passed, counted). Any chunking pushed as
+`feed` pushes releases the same samples with the same velocities as one push.
 """
 
 from __future__ import annotations

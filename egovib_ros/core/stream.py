@@ -1,31 +1,25 @@
 """From an accelerometer sample stream to analysis blocks with matched joint velocity.
 
-`BlockFramer` is the streaming state shared by calibration and denoising: it cleans
-the input (out-of-order stamps, NaN/inf, gaps), band-passes it, cuts it into blocks
-of `block_length` samples every `hop`, and hands out each block once the joint
-states covering its time span have arrived. `frame_batch` does the same for whole
-arrays through the same code, so streaming and batch results agree (to the bit for
-the paper's settings, within ~1e-16 otherwise).
+`BlockFramer`, shared by calibration and denoising, cleans the input, band-passes it,
+cuts blocks of `block_length` samples every `hop` and hands each out once the joint states
+covering its span are in: any chunking gives the same blocks (to the bit for the paper's
+settings, within ~1e-16 otherwise).
 
-Bad-input policy (counted in `stats`, never a silent wrong result):
+Bad input is counted in `stats`, never a silent wrong result:
 - a sample stamped at or before the previous one is dropped;
-- a bad sample (non-finite, or beyond the sensor's range on any axis) is treated as
-  missing (`samples_bad`): never averaged into a model, never output;
-- a gap of up to `max_fill_samples` missing samples is bridged by linear
-  interpolation (these synthetic samples are never output); a longer gap ends the
-  segment: pending samples are flushed as at end of stream and the filter restarts;
-- stamps may jitter around the nominal rate (+-30 % per step): the stream is
-  treated as uniform at the nominal rate; a step of 1.5 periods or more is a gap;
-- stamps a driver took on receipt (steps of 0 to several periods while the count keeps
-  the rate: core.receipt) are told apart on the first samples, which wait for it; gaps
-  are then counted against a rebuilt sample clock, and the rate measured on it;
-- the rate is measured on the first 2 blocks' worth of samples, then again on every
-  further RATE_WINDOW_BLOCKS blocks' worth (`measured_periods`); off by more than
-  `rate_tolerance` at the start, or on two windows in a row later (a sustained change,
-  not a glitch), the stream is refused: StreamError now and on every later push. A
-  stream whose rate halves would otherwise be "bridged" into invented samples;
-- a block with no joint state in or shortly before its span is MISSING: the
-  denoiser passes it through band-passed only, the calibrator skips it.
+- a bad sample (non-finite, or beyond the sensor's range) is missing: never averaged
+  into a model, never output;
+- a gap of up to `max_fill_samples` is bridged by linear interpolation (never output); a
+  longer one ends the segment (flushed as at the end of a stream; the filter restarts);
+- stamps jitter (+-30 % per step) around the nominal rate; 1.5 periods or more is a gap;
+- stamps taken on receipt (core.receipt) are told apart on the first samples, which wait;
+  gaps and the rate are then judged on a rebuilt sample clock;
+- the rate is measured on the first 2 blocks' worth, then on every RATE_WINDOW_BLOCKS
+  blocks' worth; off by more than `rate_tolerance` at the start, or on two windows in a
+  row later, the stream is refused (StreamError on every push), not bridged into invented
+  samples;
+- a block with no joint state in or shortly before its span is MISSING: the denoiser
+  passes it through band-passed, the calibrator skips it.
 """
 
 from __future__ import annotations
@@ -42,7 +36,7 @@ from egovib_ros.core.blocks import analysis_window, validate_blocking
 from egovib_ros.core.filters import CHANNEL_LAYOUTS, BandPass, BelowBand, channel_matrix
 from egovib_ros.core.receipt import ReceiptClock, envelope_period, receipt_latency
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.core.velocity import MISSING, block_mean_velocity, one_block_mean_velocity
+from egovib_ros.core.velocity import MISSING, block_mean_velocity
 from egovib_ros.errors import ConfigError, RateError, StreamError
 from egovib_ros.robot import STAMP_KINDS
 
@@ -62,14 +56,9 @@ PROBE_EARLY = 16
 
 
 def measured_periods(windows: np.ndarray, period: float) -> np.ndarray:
-    """The sample period each row of (W, n) stamp steps shows, robust to jitter and to lost
-    samples (a batch holds hundreds of rate windows: one call, not one each).
-
-    Steps of 1.5 nominal periods or more are gaps (lost samples, bridged or not). While
-    they are the minority, the period is the mean of the other steps: per-step jitter
-    averages out (also when it alternates, where a median would pick one side), and lost
-    samples do not count. When most steps are gaps, the stream runs slower than nominal
-    and their median is its period."""
+    """The sample period each row of (W, n) stamp steps shows: the mean of the steps under
+    1.5 nominal periods (longer ones are gaps; the mean, unlike a median, averages
+    alternating jitter), or, where most steps are that long (a slower stream), their median."""
     windows = np.asarray(windows, dtype=np.float64)
     gaps = windows >= 1.5 * period
     kept = windows.shape[1] - np.count_nonzero(gaps, axis=1)
@@ -82,10 +71,8 @@ def measured_periods(windows: np.ndarray, period: float) -> np.ndarray:
 
 
 class RateWatch:
-    """After a stream was refused for its rate (RateError): the rate of the samples that keep
-    coming, on windows of `window` steps (sample stamps: `measured_periods`; receipt stamps:
-    `envelope_period`). `push(stamps)` gives the rate once two windows in a row fit the
-    model again (within `settings.rate_tolerance`), else None."""
+    """After a RateError: `push(stamps)` gives the stream's rate once two windows of
+    `window` steps in a row fit the model again (within `rate_tolerance`), else None."""
 
     def __init__(self, settings: "FramerSettings", *, receipt: bool = False, window: int = 0):
         self.s, self.receipt = settings, receipt
@@ -114,10 +101,9 @@ class RateWatch:
 def stamp_order(
     last_ns: int | None, stamps_ns: np.ndarray, clock_jump_ns: int
 ) -> tuple[np.ndarray, int | None]:
-    """Stamps against everything accepted before them (`last_ns`: the latest, None: none):
-    (keep (N,): later than every stamp before it; the index of the first stamp more than
-    `clock_jump_ns` before one earlier in the stream, a restarted clock, or None). The
-    framer's sensor and joint streams and the contact detector share this rule."""
+    """(keep (N,): stamps later than every one before them (`last_ns`: the latest accepted
+    before, or None); index of the first stamp more than `clock_jump_ns` before an earlier
+    one (a restarted clock), or None). The one rule of the framers and the detector."""
     sentinel = np.iinfo(np.int64).min
     before = np.maximum.accumulate(
         np.concatenate([[sentinel if last_ns is None else last_ns], stamps_ns[:-1]])
@@ -128,9 +114,8 @@ def stamp_order(
 
 
 def repeats(last_ns, last_values, stamps_ns, values, keep) -> int:
-    """How many rows dropped from a stream (~keep) repeat the row before them exactly (stamp
-    and values: a message recorded twice); the first row is compared with the last one
-    accepted before (`last_ns`, `last_values`; None: none). Counted, not bad input."""
+    """How many rows dropped (~keep) repeat the row before them exactly (a message recorded
+    twice; the first against `last_ns`, `last_values`, None: none): not bad input."""
     dropped = np.flatnonzero(~keep)
     if len(dropped) == 0:
         return 0
@@ -151,8 +136,7 @@ def bad_samples(values: np.ndarray, sensor_range: float) -> np.ndarray:
 
 
 def rate_refusal(measured_hz: float, settings: "FramerSettings", stats) -> str:
-    """Why a stream's first rate window is refused; repeated stamps named when they explain
-    it (a driver that stamps a packet of samples once: its later samples look dropped)."""
+    """Why a stream's first rate window is refused (naming repeated stamps if they explain it)."""
     text = (
         f"sensor stream runs at {measured_hz:.0f} Hz but the model expects "
         f"{settings.sample_rate_hz:g} Hz"
@@ -167,8 +151,8 @@ def rate_refusal(measured_hz: float, settings: "FramerSettings", stats) -> str:
 
 
 def _dropped_not_duplicated(stats) -> tuple[int, int, int, int]:
-    """(sensor samples out of order, joint states dropped, each less its exact duplicates
-    (a message recorded twice: dropped but not bad input), and those duplicates)."""
+    """(sensor samples out of order, joint states dropped, each less its exact duplicates,
+    and those duplicates)."""
     duplicates = int(getattr(stats, "duplicates", 0) or 0)
     joint_duplicates = int(getattr(stats, "joint_states_duplicates", 0) or 0)
     return (
@@ -196,8 +180,7 @@ def check_bad_share(stats, where: str, limit: float = MAX_BAD_SHARE) -> None:
 
 
 def has_bad_input(stats) -> bool:
-    """Whether the line `check_stream` gives counts anything: what `--quiet` still says
-    (exact duplicates too: not bad input, but the reader should know its bag holds them)."""
+    """Whether the line `check_stream` gives counts anything (what `--quiet` still says)."""
     return any(
         int(getattr(stats, name, 0) or 0)
         for name in (
@@ -218,14 +201,9 @@ def check_stream(
     limit: float | None = None,
     joints_where: str | None = None,
 ) -> str:
-    """Refuse a recording the core found mostly unusable; else the line of counts to print.
-
-    stats: of calibrate_arrays / denoise_batch, or a framer's. Refused (one-line StreamError naming
-    `where`): more than `limit` (core.MAX_BAD_SHARE) of the sensor samples bad
-    (non-finite, beyond the sensor range, out of order), or of the `joint_states`
-    messages dropped (non-finite, or stamped not after the previous one: a stuck clock),
-    then naming `joints_where` (the joint-state topic) if given.
-    """
+    """The line of counts to print, or a one-line StreamError: more than `limit`
+    (MAX_BAD_SHARE) of the sensor samples bad, or of the `joint_states` dropped (then
+    naming `joints_where`, the joint-state topic, if given)."""
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
     out_of_order, dropped, duplicates, joint_duplicates = _dropped_not_duplicated(stats)
@@ -253,9 +231,8 @@ def check_stream(
 
 @dataclass(frozen=True, kw_only=True)
 class FramerSettings:
-    """How a sensor stream is cleaned, filtered and cut into blocks. Every field is
-    validated on construction (one-line ConfigError naming it); build one from a model
-    with `FramerSettings.for_model(model, layout=..., **overrides)`."""
+    """How a sensor stream is cleaned, filtered and cut into blocks (validated on
+    construction); from a model: `FramerSettings.for_model(model, layout=..., **overrides)`."""
 
     sample_rate_hz: float = 3000.0
     block_length: int = 64
@@ -267,21 +244,17 @@ class FramerSettings:
     max_fill_samples: int = 8
     joint_wait_s: float = 0.02  # give joint states this long to cover a block
     max_hold_s: float = 0.05  # use a joint state this old when none falls in a block
-    #: The vibration trails the joint states by this much (s): joint-state stamps are moved
-    #: this much later before they are matched to blocks (negative: earlier). A robot whose
-    #: joint states lead (motor commands ahead of the speed they cause) needs a positive lag.
+    #: Joint-state stamps are moved this much later before matching (the vibration trails
+    #: them, e.g. motor commands ahead of the speed they cause; negative: earlier).
     joint_lag_s: float = 0.0
     rate_tolerance: float = 0.1  # accepted relative error of the measured sample rate
     clock_jump_s: float = 1.0  # a stamp this far back means a restarted clock (bag loop, reset)
-    #: What a sensor stamp marks: "sample" (its sample time, +-30 % jitter per step), "receipt"
-    #: (when a driver received it: core.receipt) or "auto" (told apart on the first
-    #: PROBE_SAMPLES samples, which wait for it).
+    #: What a sensor stamp marks: "sample" time, "receipt" time (core.receipt) or "auto"
+    #: (told apart on the first PROBE_SAMPLES samples, which wait for it).
     stamps: str = "auto"
     with_steadiness: bool = True  # compute per-block velocity steadiness (calibration needs it)
     keep_raw: bool = False  # blocks also carry the unfiltered samples (the drop-in output)
-    # The samples were band-passed already (a residual computed on the band-passed signal):
-    # frame them as they are.
-    prefiltered: bool = False
+    prefiltered: bool = False  # band-passed already (a residual of the band-passed signal)
     source: str = ""  # topic or file named in error messages
 
     def __post_init__(self) -> None:
@@ -296,20 +269,13 @@ class FramerSettings:
                 f"{where}channels: unknown layout {self.layout!r}; expected one of "
                 f"{sorted(CHANNEL_LAYOUTS)}"
             )
+        lag = self.joint_lag_s
         checks = (
             ("sample_rate_hz", self.sample_rate_hz, 0.0, math.inf, False),
             ("sensor_range", self.sensor_range, 0.0, math.inf, True),
             ("joint_wait_s", self.joint_wait_s, 0.0, 10.0, False),
             ("max_hold_s", self.max_hold_s, 0.0, 10.0, False),
-            (
-                "joint_lag_s",
-                abs(self.joint_lag_s)
-                if isinstance(self.joint_lag_s, (int, float))
-                else self.joint_lag_s,
-                0.0,
-                1.0,
-                False,
-            ),
+            ("joint_lag_s", abs(lag) if isinstance(lag, (int, float)) else lag, 0.0, 1.0, False),
             ("rate_tolerance", self.rate_tolerance, 0.0, 1.0, False),
             ("clock_jump_s", self.clock_jump_s, 0.0, 3600.0, False),
         )
@@ -384,11 +350,11 @@ class Blocks:
     status: np.ndarray  # (B,) velocity.MATCHED / HELD / MISSING
     # Output bookkeeping: the hop of samples that each block completes.
     out_stamps_ns: np.ndarray  # (B, hop) stamps of those samples (-1 for padding/synthetic)
-    ends_segment: bool = False  # last blocks before a flush or a long gap
-    complete: np.ndarray | None = None  # (B,) every sample real (no padding or gap fill)
+    complete: np.ndarray  # (B,) every sample real (no padding or gap fill)
     # (B,) gap-filled samples inside a block whose first and last samples are real (a
     # bridged bad or missing sample); the block length when an end is padding or fill
-    bridged: np.ndarray | None = None
+    bridged: np.ndarray
+    ends_segment: bool = False  # last blocks before a flush or a long gap
 
     @property
     def n(self) -> int:
@@ -416,8 +382,7 @@ class FramerStats:
     blocks_held: int = 0
     blocks_missing: int = 0
     receipt_latency_ns: int = 0  # stamps read as receipt times: their latency spread, else 0
-    # of the samples and joint states dropped as out of order, the exact repeats of the one
-    # before them (stamp and values: a message recorded twice): dropped, but not bad input
+    # of those dropped as out of order, exact repeats (recorded twice): not bad input
     duplicates: int = 0
     joint_states_duplicates: int = 0
 
@@ -427,9 +392,9 @@ class _Counts:
 
     @classmethod
     def of(cls, framer: FramerStats, **own):
-        """The stats from a framer's FramerStats and the class's own counts (`own`): every
-        required field named as a FramerStats field is read from `framer` unless given; the
-        optional ones (None: the field does not apply to this kind) only when given."""
+        """The stats from a framer's counts and the class's own (`own`): the required fields
+        that FramerStats has come from `framer` unless given; optional ones (None: not of
+        this kind) only when given."""
         counted = {f.name for f in fields(FramerStats)}
         taken = {
             f.name: getattr(framer, f.name)
@@ -445,10 +410,8 @@ class _Counts:
 
 @dataclass(frozen=True, kw_only=True)
 class DenoiserStats(_Counts):
-    """What a denoiser counted (`.stats` of StreamingDenoiser and of the per-sample methods):
-    bad input is counted here, never averaged in. Fields of the other kind of denoiser are
-    None (blocks for `paper`, the per-sample counts for `cancel` and `hybrid`);
-    `as_dict()` leaves them out (reports and /diagnostics)."""
+    """What a denoiser counted (`.stats`); the other kind of denoiser's fields are None (the
+    blocks: `paper`; per-sample counts: `cancel`, `hybrid`) and left out of `as_dict()`."""
 
     method: str | None = None  # cancel | hybrid (None: the paper's StreamingDenoiser)
     samples_in: int
@@ -494,9 +457,8 @@ class CalibrationStats(_Counts):
 
 
 def refuse_negative_stamps(stamps_ns: np.ndarray, what: str, error) -> None:
-    """StreamError (`error(message)`) if a stamp lies before 1970. ROS messages can carry them
-    (int32 sec), e.g. a bag restamped to start at -2 s, but rclpy refuses such times and the
-    streaming core marks its synthetic samples with stamp -1: refused, never silently dropped."""
+    """`error(message)` if a stamp lies before 1970 (a ROS message can carry one, but rclpy
+    refuses them and the core marks synthetic samples -1): refused, never dropped silently."""
     if len(stamps_ns) and int(stamps_ns.min()) < 0:
         first = int(stamps_ns[np.argmax(stamps_ns < 0)])
         raise error(
@@ -507,8 +469,7 @@ def refuse_negative_stamps(stamps_ns: np.ndarray, what: str, error) -> None:
 
 
 def joint_state_arrays(stamps_ns, velocity, n_joints: int, error) -> tuple[np.ndarray, np.ndarray]:
-    """Joint-state input as (stamps int64 (M,), velocities float (M, n_joints)); a wrong shape
-    raises `error(message)` (FramerSettings.error: one line naming the source)."""
+    """Joint-state input as (stamps int64 (M,), velocities (M, n_joints)), or `error`."""
     stamps_ns = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     velocity = np.asarray(velocity, dtype=np.float64)
     if velocity.ndim != 2 or velocity.shape != (len(stamps_ns), n_joints):
@@ -560,11 +521,9 @@ class _Cleaner:
         return self._probe_n
 
     def _decide(self, *, final: bool) -> list[_Segment]:
-        """Tell from the waiting samples' in-order, good stamps (up to a clock jump) whether
-        they mark sample times or receipt times, then pass the samples on. No step shorter
-        than half a period in the first PROBE_EARLY: sample times (a stream on its sensor's
-        clock waits no longer); else the first PROBE_SAMPLES decide (core.receipt), however
-        the stream came in chunks."""
+        """Tell from the waiting samples' in-order good stamps whether they mark sample or
+        receipt times, then pass the samples on: no step under half a period in the first
+        PROBE_EARLY, sample times; else the first PROBE_SAMPLES decide (core.receipt)."""
         if self._probe_n == 0:
             return []  # nothing yet (an empty push, or a flush before any sample)
         if len(self._probe) > 1:
@@ -631,7 +590,7 @@ class _Cleaner:
             return head + self._segments(stamps[i:], accel[i:])
         if not keep.all():
             self.stats.dropped_out_of_order += int((~keep).sum())
-            self.stats.duplicates += self._repeats(stamps, accel, keep)
+            self.stats.duplicates += repeats(self.last_stamp, self.last_value, stamps, accel, keep)
             stamps, accel = stamps[keep], accel[keep]
         if len(stamps) == 0:
             return []
@@ -678,15 +637,9 @@ class _Cleaner:
         self.last_value = accel[-1].copy()
         return segments
 
-    def _repeats(self, stamps: np.ndarray, accel: np.ndarray, keep: np.ndarray) -> int:
-        """How many of the dropped samples (~keep) repeat the sample before them exactly."""
-        return repeats(self.last_stamp, self.last_value, stamps, accel, keep)
-
     def _receipt_gaps(self, stamps: np.ndarray, bad: np.ndarray) -> np.ndarray:
-        """Samples missing before each good sample, on the rebuilt sample clock (the stamps
-        trail it by a varying latency): the gap the clock finds before it plus the bad
-        samples since the previous good one. A bad sample's stamp still marks its slot, so
-        it is bridged like a lost sample, as with sample stamps."""
+        """Samples missing before each good sample on the rebuilt sample clock: the gap the
+        clock finds plus the bad samples since the previous good one (bridged like lost ones)."""
         if self.last_stamp is None:  # a new segment: its first stamp anchors the clock
             self.receipt.restart()
             self._bad_carry = 0
@@ -721,9 +674,8 @@ def _cat_v(pieces: list[np.ndarray]) -> np.ndarray:
 
 
 class _Framer:
-    """What BlockFramer and SampleFramer share: the input cleaning (`_Cleaner`), whose
-    segments go to the subclass's `_push_segments`, the band-pass, the joint states held
-    and the outcome of the rate check."""
+    """What BlockFramer and SampleFramer share: the input cleaning (`_Cleaner`, its segments
+    to the subclass's `_push_segments`), the band-pass, the joint states and the rate check."""
 
     def __init__(self, settings: FramerSettings, n_joints: int, n_channels: int):
         self.s = settings
@@ -746,8 +698,8 @@ class _Framer:
         self._push_segments(self._cleaner.segments(stamps_ns, accel))
 
     def _append_in_order(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> bool:
-        """Joint states after the last one, in order and finite (the common case, a live
-        node's every few ms: nothing to drop or count) appended; False if not all are."""
+        """Append joint states that are in order and finite (the live case: nothing to drop
+        or count); False if not all are."""
         if len(self._joint_t) and stamps_ns[0] <= self._joint_t[-1]:
             return False
         if len(stamps_ns) > 1 and not (stamps_ns[1:] > stamps_ns[:-1]).all():
@@ -760,34 +712,27 @@ class _Framer:
 
     @property
     def rate_checked(self) -> bool:
-        """The stream's rate has been measured on its first samples (2 blocks' worth) and
-        found right (a wrong rate raises StreamError on every push instead)."""
+        """The stream's rate was measured on its first 2 blocks' worth and found right."""
         return self._rate_checked and not self._rate_error
 
     @property
     def stamps(self) -> str:
-        """What the sensor stamps mark: "sample", "receipt" (with its latency in
-        stats.receipt_latency_ns), or "" while the first samples wait to tell."""
+        """What the sensor stamps mark: "sample", "receipt" or "" (not yet told)."""
         return self._cleaner.kind or ""
 
     def _rate_window(self) -> int:
-        """Samples (steps, for sample stamps) per rate window: the first 2 blocks' worth, then
-        RATE_WINDOW_BLOCKS blocks' worth; receipt stamps: core.receipt.rate_window."""
+        """Samples (steps) per rate window: 2 blocks' worth, then RATE_WINDOW_BLOCKS'."""
         need = (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * self.s.block_length
         if self._cleaner.receipt is not None:
             need = self._cleaner.receipt.rate_window(need, first=not self._rate_checked)
         return need
 
     def _check_rate(self, stamps: np.ndarray) -> None:
-        """Measure the rate on the steps between real samples of a segment (receipt stamps:
-        on every sample's stamp, bridged ones included, core.receipt.envelope_period) over
-        consecutive windows (`_rate_window`). The windows are counted in samples, so any
-        chunking measures the same windows; both framers measure alike, so a stream one
-        method accepts every method accepts (steps alternating 500 and 750 us: their mean
-        rate, 1600 Hz, not the shorter step's)."""
+        """Measure the rate on the steps between a segment's real samples (receipt stamps:
+        `envelope_period`) over consecutive windows counted in samples: any chunking and
+        either framer measures the same windows, so every method accepts the same streams."""
         if self._rate_error:
-            # a wrong rate stays wrong: refuse every chunk (a live node restarts on a new
-            # framer once the rate is back: RateWatch)
+            # refused for good (a live node restarts on a new framer: RateWatch)
             raise self.s.error(self._rate_error, RateError)
         receipt = self._cleaner.receipt is not None
         if receipt:
@@ -862,8 +807,7 @@ class _Framer:
 
 
 class BlockFramer(_Framer):
-    """Streaming framer. Push joint states and accelerometer chunks in any sizes;
-    `pop_blocks()` returns the blocks that became ready."""
+    """Streaming framer: push joint states and sensor chunks in any sizes; `pop_blocks()`."""
 
     def __init__(self, settings: FramerSettings, n_joints: int):
         self.n_channels = len(CHANNEL_LAYOUTS[settings.layout])
@@ -971,9 +915,8 @@ class BlockFramer(_Framer):
         self._buf_t = np.concatenate([self._buf_t, stamps])
 
     def _close_segment(self, *, wait_for_joints: bool) -> None:
-        """End the open segment (long gap, clock jump, flush): pad it as at the end of a stream
-        and queue it. Its last blocks are released like any other, once their joint states
-        are in (or after `joint_wait_s`), unless the joint clock has restarted."""
+        """End the open segment (long gap, clock jump, flush): pad it and queue it; its last
+        blocks wait for their joint states like any other, unless the joint clock restarted."""
         L, H = self.s.block_length, self.s.hop
         buf_x, buf_t = self._buf_x, self._buf_t
         real_pos = np.flatnonzero(buf_t >= 0)
@@ -1032,21 +975,11 @@ class BlockFramer(_Framer):
                 if n_blocks == 0:
                     return buf_x, buf_t
                 index, window_t, real = index[:n_blocks], window_t[:n_blocks], real[:n_blocks]
-                any_real, t_first, t_last = (
-                    any_real[:n_blocks],
-                    t_first[:n_blocks],
-                    t_last[:n_blocks],
-                )
+                any_real, t_first, t_last = (a[:n_blocks] for a in (any_real, t_first, t_last))
         samples = buf_x[:, index].transpose(1, 0, 2).copy()  # (B, C, L)
-        velocity, steadiness, status = block_mean_velocity(
-            self._joint_t,
-            self._joint_v,
-            np.where(any_real, t_first, 0),
-            np.where(any_real, t_last, 0),
-            max_hold_ns=self._max_hold_ns,
-            with_steadiness=self.s.with_steadiness,
+        velocity, steadiness, status = self._matched(
+            np.where(any_real, t_first, 0), np.where(any_real, t_last, 0)
         )
-        status = status.copy()  # may be a shared read-only constant
         status[~any_real] = MISSING
         self.stats.blocks += n_blocks
         self.stats.blocks_held += int(np.count_nonzero(status == 1))
@@ -1071,8 +1004,7 @@ class BlockFramer(_Framer):
         return rest_x, rest_t
 
     def _drain_one(self) -> None:
-        """The live case: exactly one block can be formed. Same result as the general path
-        of `_drain`, with Python scalars and views instead of index arrays."""
+        """The live case, one block: `_release`'s result with Python scalars and views."""
         L, H = self.s.block_length, self.s.hop
         window_t = self._buf_t[:L]
         t_last = int(window_t[-1])
@@ -1093,19 +1025,7 @@ class BlockFramer(_Framer):
             int(window_t[0]) if complete or window_t[0] >= 0 else int(window_t[int(real.argmax())])
         )
         first, last = np.array([t_first], dtype=np.int64), np.array([t_last], dtype=np.int64)
-        if self.s.with_steadiness or not len(self._joint_t):
-            velocity, steadiness, status = block_mean_velocity(
-                self._joint_t,
-                self._joint_v,
-                first,
-                last,
-                max_hold_ns=self._max_hold_ns,
-                with_steadiness=self.s.with_steadiness,
-            )
-        else:
-            velocity, steadiness, status = one_block_mean_velocity(
-                self._joint_t, self._joint_v, t_first, t_last, self._max_hold_ns
-            )
+        velocity, steadiness, status = self._matched(first, last)
         self.stats.blocks += 1
         if status[0] == 1:
             self.stats.blocks_held += 1
@@ -1128,6 +1048,14 @@ class BlockFramer(_Framer):
         self._buf_x, self._buf_t = self._buf_x[:, H:], self._buf_t[H:]
         self._trim_joints(t_first)
 
+    def _matched(self, first: np.ndarray, last: np.ndarray) -> tuple:
+        """The blocks' joint velocity, steadiness and status (core.velocity)."""
+        hold, steadiness = self._max_hold_ns, self.s.with_steadiness
+        joints = (self._joint_t, self._joint_v)
+        return block_mean_velocity(
+            *joints, first, last, max_hold_ns=hold, with_steadiness=steadiness
+        )
+
     def _trim_joints(self, oldest_needed_ns: int) -> None:
         # Keep one joint state before the next block's span for the hold rule.
         cut = int(np.searchsorted(self._joint_t, oldest_needed_ns, side="left")) - 1
@@ -1136,30 +1064,11 @@ class BlockFramer(_Framer):
             self._joint_v = self._joint_v[cut:]
 
 
-def frame_batch(
-    settings: FramerSettings,
-    n_joints: int,
-    sensor_stamps_ns: np.ndarray,
-    accel: np.ndarray,
-    joint_stamps_ns: np.ndarray,
-    joint_velocity: np.ndarray,
-) -> tuple[list[Blocks], FramerStats]:
-    """Frame whole arrays: the same as pushing everything into a BlockFramer and flushing."""
-    framer = BlockFramer(settings, n_joints)
-    framer.push_joint_states(joint_stamps_ns, joint_velocity)
-    framer.push_sensor(sensor_stamps_ns, accel)
-    framer.flush()
-    return framer.pop_blocks(), framer.stats
-
-
 @runtime_checkable
 class StreamConsumer(Protocol):
-    """What `feed` drives, and what every streaming class of the core is (BlockFramer,
-    SampleFramer, StreamingDenoiser, the methods' denoisers, CalibrationAccumulator; the
-    gap's and evaluation's accumulators on top of them): joint states and sensor chunks
-    pushed in time order, in any sizes. Each push returns what became ready (a
-    DenoisedChunk), or None for a consumer that keeps its results; ending the stream
-    (`flush()`) is the caller's."""
+    """What `feed` drives and every streaming class of the core is: joint states and sensor
+    chunks pushed in time order, in any sizes; each push returns what became ready (None
+    for a consumer that keeps its results); `flush()` is the caller's."""
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> Any: ...
 
@@ -1178,11 +1087,9 @@ def feed(
     chunk_s: float = 10.0,
     progress=None,
 ) -> list:
-    """Push whole arrays into a streaming consumer (`push_joint_states`, `push_sensor`)
-    `chunk_s` seconds at a time, joint states first up to a little past each sensor
-    chunk so that no block waits: the one loop behind every batch path (denoise_batch,
-    calibrate_arrays, benchmarks, tests). Returns what the pushes returned, in order;
-    the caller flushes. `progress(n)` is called with sensor samples consumed."""
+    """Push whole arrays into a streaming consumer `chunk_s` seconds at a time, joint states
+    first up to a little past each sensor chunk so that no block waits (every batch path);
+    returns what the pushes returned; the caller flushes. `progress(n)`: samples consumed."""
     sensor_stamps_ns = np.asarray(sensor_stamps_ns, dtype=np.int64).reshape(-1)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64).reshape(-1)
     step = max(1, int(chunk_s * sample_rate_hz))

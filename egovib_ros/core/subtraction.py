@@ -1,21 +1,16 @@
 """Spectral subtraction of the expected ego-vibration (paper Eqs. 2-4, Fig. 2).
 
-Per block: X = max(|Y| - alpha * N, beta * N) with the noisy phase (alpha = 1, beta = 0
-is the paper: negatives set to zero), N from the noise model at the block's mean joint
-velocity, then overlap-add. `rule` can replace the magnitude rule (baselines such as
-Wiener gains use it); it maps (|Y| (B, C, F), N (B, C, F)) -> |X|.
+Per block: X = max(|Y| - alpha N, beta N) with the noisy phase (alpha 1, beta 0: the
+paper), N from the noise model at the block's mean joint velocity, then overlap-add.
+`rule` can replace the magnitude rule ((|Y|, N) (B, C, F) -> |X|: baselines such as Wiener).
 
-Two outputs. "bandpassed" (the paper's): the cleaned band-passed signal. "dropin" (the
-default per axis): the raw signal minus the estimated ego-vibration, so that gravity,
-rigid-body motion and everything outside the band pass untouched, as a drop-in
-replacement for the raw Imu. Its gain per bin is the paper's, decided on the band-passed
-block where the model was calibrated. What it removes, (1 - gain) of each bin from half the
-band's low edge up (the skirts too: a reader that band-passes the output would get their
-ego-vibration back), is taken from the same block unfiltered
-(with the raw signal's phase, which the causal band-pass would shift), less what lies far
-below the band (gravity and motion would otherwise leak into the band's bins through the
-window), and overlap-added: output = raw - removed. With nothing to subtract the output
-is the input exactly, delayed by the block.
+Outputs: "bandpassed" (the paper's), and "dropin" (the default per axis): the raw signal
+less the estimated ego-vibration, gravity and motion untouched. It removes (1 - gain) of
+each bin (the paper's gain on the band-passed block) from half the band's low edge up
+(skirts included: a reader that band-passes it gets no ego-vibration back), taken from the
+same block unfiltered (the raw phase, which the causal band-pass would shift) less what
+lies far below the band (which would leak into the band's bins through the window). With
+nothing to subtract the output is the input exactly, delayed by the block.
 """
 
 from __future__ import annotations
@@ -50,9 +45,8 @@ MAX_NOISE_GAIN_DB = 20.0
 
 @dataclass(frozen=True, kw_only=True)
 class SubtractionSettings:
-    """The subtraction rule max(|Y| - alpha N, beta N): alpha = `oversubtraction` (the
-    paper: 1), beta = `floor` (the paper: 0; Berouti 1979 keeps a little noise to avoid
-    "musical" artefacts). Validated on construction."""
+    """max(|Y| - alpha N, beta N): alpha `oversubtraction` (the paper: 1), beta `floor`
+    (the paper: 0; Berouti 1979 keeps a little noise against "musical" artefacts)."""
 
     oversubtraction: float = 1.0
     floor: float = 0.0
@@ -131,9 +125,8 @@ def noise_gain_curve(knots) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 class FramedDenoiser:
-    """The push/flush interface of a denoiser fed through a framer (`self._framer`): each
-    call hands what the framer made ready (`_pop`) to `_process`, which returns the samples
-    that became final. Counts its output in `samples_out`."""
+    """The push/flush interface of a denoiser fed through a framer (`self._framer`): what
+    the framer made ready (`_pop`) goes to `_process`, which returns the final samples."""
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> DenoisedChunk:
         self._framer.push_joint_states(stamps_ns, velocity)
@@ -162,9 +155,8 @@ class FramedDenoiser:
 
     @property
     def samples_pending(self) -> int:
-        """Samples pushed that are still to be output: pushed less output, less those that
-        never will be (bad or out of order: counted, never output), without building the
-        stats (a live node asks at every batch)."""
+        """Samples pushed still to be output (bad or out-of-order ones never will be),
+        without building the stats (a live node asks at every batch)."""
         counts = self._framer.stats
         return (
             counts.samples_in - self.samples_out - counts.samples_bad - counts.dropped_out_of_order
@@ -172,49 +164,36 @@ class FramedDenoiser:
 
     @property
     def delay_ms(self) -> float:
-        """The algorithmic delay: the most samples between a sample's arrival and its output
-        (`delay_samples`, joint wait aside), in ms."""
+        """The algorithmic delay (the most of `delay_samples`, joint wait aside), in ms."""
         return 1e3 * self.delay_samples[1] / self.model.sample_rate_hz
 
     @property
     def sensor_stamps(self) -> str:
-        """What the sensor stamps mark: "sample" times, "receipt" times (a driver stamping
-        on arrival: core.receipt) or "" while the first samples still wait to tell."""
+        """What the sensor stamps mark: "sample", "receipt" (core.receipt) or "" (not yet
+        told)."""
         return self._framer.stamps
 
     def run_arrays(
         self, sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s: float
     ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
-        """Whole arrays through this denoiser, `chunk_s` seconds at a time (joint states
-        first), then flushed: (stamps_ns (K,), values (K, C), stats)."""
-        chunks = feed(
-            self,
-            sensor_stamps_ns,
-            accel,
-            joint_stamps_ns,
-            joint_velocity,
-            chunk_s=chunk_s,
-            sample_rate_hz=self.model.sample_rate_hz,
-            joint_wait_s=self.settings.joint_wait_s,
+        """Whole arrays through this denoiser, `chunk_s` seconds at a time (`feed`), then
+        flushed: (stamps_ns (K,), values (K, C), stats)."""
+        streams = (sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity)
+        rates = dict(
+            sample_rate_hz=self.model.sample_rate_hz, joint_wait_s=self.settings.joint_wait_s
         )
+        chunks = feed(self, *streams, chunk_s=chunk_s, **rates)
         chunks = [self._empty, *chunks, self.flush()]  # _empty: the (0, C) shape if none
         stamps = np.concatenate([c.stamps_ns for c in chunks])
         return stamps, np.concatenate([c.values for c in chunks]), self.stats
 
 
 class StreamingDenoiser(FramedDenoiser):
-    """Streaming spectral subtraction. Push joint states and accelerometer chunks of any
-    size (in any interleaving); each push returns the samples that became final.
-
-    Output sample k carries the stamp of input sample k. It is final when every block
-    covering it is processed: `block_length - hop` .. `block_length - 1` samples after it
-    arrived (10.7-21 ms at 3 kHz with L = 64, hop = 32), plus any wait for joint states
-    (`joint_wait_s`).
-
-    `noise_gain_db`: (elapsed s, dB) knots of a level change over time (the gap
-    diagnosis's drift advice): the noise estimate of a block is multiplied by it at the
-    block's time since the first block (linear between knots, flat beyond).
-    """
+    """Streaming spectral subtraction: push joint states and sensor chunks of any size;
+    each push returns the samples that became final (output sample k carries input stamp
+    k): `block_length - hop` .. `block_length - 1` samples after arrival (10.7-21 ms for the
+    PR2), plus any wait for joint states. `noise_gain_db`: (elapsed s, dB) knots of a level
+    change (the gap's drift advice) the noise estimate follows from the first block on."""
 
     def __init__(
         self,
@@ -227,7 +206,6 @@ class StreamingDenoiser(FramedDenoiser):
         include_std: bool = True,
         rule: MagnitudeRule | None = None,
         joint_wait_s: float = 0.02,
-        max_hold_s: float = 0.05,
         joint_lag_s: float = 0.0,
         noise_gain_db: tuple[tuple[float, float], ...] = (),
         source: str = "",
@@ -241,7 +219,6 @@ class StreamingDenoiser(FramedDenoiser):
             model,
             layout=channels,
             joint_wait_s=joint_wait_s,
-            max_hold_s=max_hold_s,
             joint_lag_s=joint_lag_s,
             with_steadiness=False,
             keep_raw=output == "dropin",
@@ -254,16 +231,12 @@ class StreamingDenoiser(FramedDenoiser):
                 f"{model.window_name} for L={model.block_length}, hop={model.hop}"
             )
         self._window = model.window
-        # The drop-in output changes every bin from DROPIN_LOWEST_FRACTION of the band's low
-        # edge up: the band, its skirts and beyond, as the band-passed spectra (the gain is a
-        # ratio: the band-pass's gain cancels in it) judge them; the bins below, gravity's and
-        # motion's, are left as they are.
+        # the drop-in output's bins left as they are (gravity, motion: module doc)
         freqs = np.fft.rfftfreq(model.block_length, 1.0 / model.sample_rate_hz)
         self._outside_band = freqs < DROPIN_LOWEST_FRACTION * model.band_hz[0]  # (F,)
         self.channel_index = model.channel_indices(CHANNEL_LAYOUTS[channels])
         self._include_std = include_std
-        # None for huge grids
-        self._table = model.table(self.channel_index, include_std=include_std)
+        self._table = model.table(self.channel_index, include_std=include_std)  # None: huge grid
         self._custom_rule = rule
         self._rule = rule if rule is not None else self.subtraction.rule()
         n_channels = len(self.channel_index)
@@ -343,9 +316,7 @@ class StreamingDenoiser(FramedDenoiser):
                 # End of stream or a long gap: nothing overlaps the next block.
                 self._tail = np.zeros_like(self._tail)
         if not stamps_out:
-            return DenoisedChunk(
-                np.zeros(0, dtype=np.int64), np.zeros((0, len(self.channel_index)))
-            )
+            return self._empty
         chunk = DenoisedChunk(np.concatenate(stamps_out), np.concatenate(values_out))
         self.samples_out += len(chunk)
         return chunk
@@ -395,35 +366,27 @@ class StreamingDenoiser(FramedDenoiser):
             # One block (the live case): skip the general lookup's bookkeeping.
             noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
             self.blocks_unmeasured += not measured
-            gain = self._gain(magnitude, self._scaled(noise, blocks), outside)
-        elif usable.all():
-            noise, outside, measured = self.model.lookup(
-                blocks.velocity, self.channel_index, include_std=self._include_std
-            )
-            self.blocks_unmeasured += int((~measured).sum())
-            gain = self._gain(magnitude, self._scaled(noise, blocks), outside)
-        else:
+            return self._gain(magnitude, self._scaled(noise, blocks.t_first_ns), outside)
+        if not usable.all():
             self._warn_once(
                 "missing", f"no joint state for a block: passing the {self.output} signal through"
             )
-            gain = np.ones_like(magnitude)
-            if usable.any():
-                noise, outside, measured = self.model.lookup(
-                    blocks.velocity[usable], self.channel_index, include_std=self._include_std
-                )
-                self.blocks_unmeasured += int((~measured).sum())
-                gain[usable] = self._gain(
-                    magnitude[usable], self._scaled(noise, blocks, usable), outside
-                )
+        gain = np.ones_like(magnitude)
+        if usable.any():
+            noise, outside, measured = self.model.lookup(
+                blocks.velocity[usable], self.channel_index, include_std=self._include_std
+            )
+            self.blocks_unmeasured += int((~measured).sum())
+            noise = self._scaled(noise, blocks.t_first_ns[usable])
+            gain[usable] = self._gain(magnitude[usable], noise, outside)
         return gain
 
-    def _scaled(self, noise: np.ndarray, blocks: Blocks, rows=None) -> np.ndarray:
+    def _scaled(self, noise: np.ndarray, t_first_ns: np.ndarray) -> np.ndarray:
         """The noise estimate (B, C, F) times the level change `noise_gain_db` gives at each
         block's elapsed time (from the first block's first stamp), when one is set."""
         if self._noise_gain is None:
             return noise
-        t_first = blocks.t_first_ns if rows is None else blocks.t_first_ns[rows]
-        elapsed = (t_first - self._t0_ns) / NS_PER_S
+        elapsed = (t_first_ns - self._t0_ns) / NS_PER_S
         knots_s, gain_db = self._noise_gain
         scale = 10.0 ** (np.interp(elapsed, knots_s, gain_db) / 20.0)
         return noise * scale[:, None, None]
@@ -457,12 +420,7 @@ def denoise_batch(
     chunk_s: float = 30.0,
     **options,
 ) -> tuple[np.ndarray, np.ndarray, DenoiserStats]:
-    """Denoise whole arrays. Returns (stamps_ns (K,), values (K, C), stats); K equals the
-    number of valid input samples (all of them unless some were out of order or non-finite
-    before the first finite one).
-
-    Works through the streaming denoiser `chunk_s` seconds at a time, joint states first,
-    so working memory does not grow with the recording (the output does, of course).
-    """
+    """Denoise whole arrays through the streaming denoiser, `chunk_s` seconds at a time
+    (bounded working memory): (stamps_ns (K,), values (K, C), stats), K the valid samples."""
     denoiser = StreamingDenoiser(model, channels=channels, **options)
     return denoiser.run_arrays(sensor_stamps_ns, accel, joint_stamps_ns, joint_velocity, chunk_s)

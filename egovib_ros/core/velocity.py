@@ -1,8 +1,6 @@
-"""Per-block joint velocity matched by time stamps (paper section 2, "Noise Spectrum
-Magnitude Estimate": each block is marked with the element-wise mean joint velocity).
-
-Joint states (1 kHz) and accelerometer samples (3 kHz) come from independent clocks,
-so matching is by stamps only, never by sample counts.
+"""Per-block joint velocity matched by time stamps (paper section 2: each block is marked
+with the element-wise mean joint velocity). Joint states and sensor samples come from
+independent clocks: matching is by stamps only, never by sample counts.
 """
 
 from __future__ import annotations
@@ -27,17 +25,11 @@ def block_mean_velocity(
     max_hold_ns: int,
     with_steadiness: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean joint velocity over [t_first, t_last] for each block.
-
-    Returns (mean (B, J), steadiness (B, J), status (B,)). Steadiness is the absolute
-    difference between the mean velocity of the first and second half of the joint
-    states in the block; unlike the raw spread it is not inflated by encoder
-    quantisation, because first-order differences telescope within each half.
-
-    Each block's sum runs over a zero-padded row of fixed width, so the result for a
-    block does not depend on which other blocks are computed in the same call
-    (streaming and batch give the same numbers).
-    """
+    """Mean joint velocity over [t_first, t_last] per block: (mean (B, J), steadiness
+    (B, J), status (B,)). Steadiness: |mean of the first half of the block's joint states -
+    mean of the second| (not inflated by encoder quantisation, unlike the spread). Each
+    block sums a zero-padded row of fixed width, so its result does not depend on the
+    other blocks of the call (streaming and batch give the same numbers)."""
     t_first_ns = np.asarray(t_first_ns, dtype=np.int64)
     t_last_ns = np.asarray(t_last_ns, dtype=np.int64)
     joint_stamps_ns = np.asarray(joint_stamps_ns, dtype=np.int64)
@@ -102,61 +94,31 @@ def _row_width(max_count: int) -> int:
 
 
 def one_block_mean_velocity(joint_stamps_ns, joint_velocity, t_first, t_last, max_hold_ns):
-    """The streaming case (one block per hop) with few numpy calls. Summing the rows of a
-    slice adds them one after another, as the padded-row sum above does, so the numbers
-    are identical."""
+    """The streaming case (one block per hop) with few numpy calls: a slice's rows summed
+    one after another, as the padded-row sum above, so the numbers are identical."""
     start = int(joint_stamps_ns.searchsorted(t_first, side="left"))
     stop = int(joint_stamps_ns.searchsorted(t_last, side="right"))
+    nan = np.full((1, joint_velocity.shape[1]), np.nan)
     if stop > start:
         mean = joint_velocity[start:stop].sum(axis=0) / float(stop - start)
-        return mean[None], _NAN_STEADINESS[joint_velocity.shape[1]], _STATUS[MATCHED]
+        return mean[None], nan, np.array([MATCHED], np.int8)
     if start > 0 and t_first - int(joint_stamps_ns[start - 1]) <= max_hold_ns:
-        return (
-            joint_velocity[start - 1][None].copy(),
-            np.zeros((1, joint_velocity.shape[1])),
-            _STATUS[HELD],
-        )
-    return (
-        np.full((1, joint_velocity.shape[1]), np.nan),
-        _NAN_STEADINESS[joint_velocity.shape[1]],
-        _STATUS[MISSING],
-    )
-
-
-class _Frozen(dict):
-    """Read-only per-size constants for the one-block path (returned arrays are never written)."""
-
-    def __init__(self, make):
-        super().__init__()
-        self._make = make
-
-    def __missing__(self, key):
-        value = self._make(key)
-        value.flags.writeable = False
-        self[key] = value
-        return value
-
-
-_NAN_STEADINESS = _Frozen(lambda n_joints: np.full((1, n_joints), np.nan))
-_STATUS = _Frozen(lambda code: np.array([code], dtype=np.int8))
+        held = joint_velocity[start - 1][None].copy()
+        return held, np.zeros_like(held), np.array([HELD], np.int8)
+    return nan, nan.copy(), np.array([MISSING], np.int8)
 
 
 class JointVelocity:
     """Joint velocities from JointState columns, for drivers that publish positions only.
+    `source`: "measured" (NaN stays NaN: the framer drops it), "from_position", or "auto"
+    (measured where finite, else from positions).
 
-    `source`: "measured" takes the message's velocity (NaN stays NaN: the framer drops it);
-    "from_position" differentiates positions; "auto" takes the measured velocity where it
-    is finite and the differentiated one elsewhere (an empty or NaN `velocity` field).
-
-    The differentiator is causal and stated: the backward difference of each joint's own
-    positions over their stamps, (p[k] - p[k-1]) / (t[k] - t[k-1]), as the PR2 derives
-    velocity from its encoders; a block's mean then telescopes to (displacement / time)
-    over the block. A difference beyond +-pi is wrapped into (-pi, pi]: a continuous joint
-    reported within +-pi crosses the cut between two joint states, and in REP 103 units
-    (rad, m) no joint moves pi between two joint states otherwise. A joint absent from a
-    message (NaN position and velocity: split publishers) stays NaN for the caller to
-    hold; its next difference spans back to its previous position. The first position of
-    a joint has no difference (NaN). State is explicit: any chunking gives the same."""
+    The backward difference of each joint's own positions over their stamps, as the PR2
+    derives velocity from its encoders (a block's mean telescopes to displacement / time);
+    a step beyond +-pi is wrapped into (-pi, pi] (a continuous joint crossing the cut; in
+    REP 103 units nothing else moves pi between joint states). A joint absent from a message
+    stays NaN, its next difference spanning back to its previous position; its first
+    position has none. Any chunking gives the same."""
 
     def __init__(self, n_joints: int, *, source: str = "auto"):
         if source not in VELOCITY_SOURCES:
@@ -210,20 +172,15 @@ class JointVelocity:
 
 
 class SplitJointStates:
-    """Joint states published one message per joint (or per controller) with one stamp:
-    the messages of one stamp whose joints do not overlap are joined into one row, as one
-    JointState would have carried them. Rows of one stamp that repeat a joint are left as
-    they are (a stuck clock: the framer counts and drops them); a row with none of the
-    joints that repeats the stamp before it (another controller's message) is dropped.
+    """Joint states published one message per joint (or controller) with one stamp: the
+    messages of one stamp whose joints do not overlap are joined into one row. Rows of one
+    stamp that repeat a joint stay (a stuck clock: the framer drops them); a row with none
+    of the joints repeating the stamp before it (another controller's) is dropped.
 
-    Streaming: `push` holds back the rows of the last stamp while some joint is missing
-    from them (the next message may complete it); `flush` gives them at the end of the
-    stream. A robot whose partial messages never share a stamp (an arm and a gripper
-    publishing at their own times) is held back for its first PROBE_STAMPS stamps only,
-    then not at all (unless a split stamp comes after all). Joining happens
-    before velocities are derived from positions and before missing joints are held
-    (`hold_missing_joints`), offline and live alike.
-    """
+    `push` holds back the last stamp's rows while a joint is missing (the next message may
+    complete them), `flush` gives them at the end; partial messages that never share a
+    stamp are held for the first PROBE_STAMPS stamps only. Offline and live alike, before
+    velocities are derived and missing joints held (`hold_missing_joints`)."""
 
     #: Partial stamps held without anything to join before holding stops.
     PROBE_STAMPS = 10
@@ -323,11 +280,9 @@ class SplitJointStates:
 def hold_missing_joints(
     position: np.ndarray, velocity: np.ndarray, last: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Partial JointStates (robots where each controller publishes some of the joints):
-    a joint a message lacks (NaN in both columns, as `bag.codec.decode_joint_states` gives it)
-    keeps its last published value. `last` (2, J) carries position and velocity across
-    batches (None at the start: NaN until first seen). Returns (position, velocity, last).
-    Used alike by the bag layer offline and the nodes live."""
+    """Partial JointStates: a joint a message lacks (NaN position and velocity) keeps its
+    last published value; `last` (2, J) carries them across batches (None: NaN until first
+    seen). Returns (position, velocity, last); offline and live alike."""
     if not len(position):
         return position, velocity, last
     present = ~(np.isnan(position) & np.isnan(velocity))
