@@ -10,13 +10,15 @@ import sys
 
 import numpy as np
 import pytest
+from scipy import signal
 
-from egovib_ros.bag import read_recording, write_recording
+from egovib_research.experiments import scoring
+from egovib_ros.bag import concat_recordings, iter_recording, read_recording, write_recording
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.evaluation import baselines, detection, metrics
-from egovib_ros.evaluation.evaluate import evaluate_bag, evaluate_recording
-from egovib_ros.evaluation.stream import Screen, rechunk
+from egovib_ros.evaluation.evaluate import evaluate_bag, evaluate_pieces, evaluate_recording
+from egovib_ros.evaluation.stream import Screen
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
 FS = 3000.0
@@ -30,6 +32,33 @@ def chunks(n: int, rng, sizes=(1, 7, 64, 500, 3001)) -> list[slice]:
         out.append(slice(start, stop))
         start = stop
     return out
+
+
+def exclusion_mask(bad: np.ndarray, *, margin: int, settle_max: int) -> np.ndarray:
+    """Each run [a, b) of `bad` widened to [a - margin, b + margin + min(b - a, settle_max))."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], bad.astype(np.int8), [0]))))
+    out = np.zeros(bad.size, bool)
+    for a, b in edges.reshape(-1, 2):
+        out[max(a - margin, 0) : b + margin + min(b - a, settle_max)] = True
+    return out
+
+
+def estimate_lag(reference: np.ndarray, x: np.ndarray, *, max_lag: int = 96) -> int:
+    """Lag (samples, positive: `x` late) maximising the cross-correlation."""
+    corr = signal.correlate(x, reference, mode="full", method="fft")
+    lags = signal.correlation_lags(x.size, reference.size, mode="full")
+    keep = np.abs(lags) <= max_lag
+    return int(lags[keep][np.argmax(corr[keep])])
+
+
+def fill_missing(values: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """`values` with bad rows linearly bridged from the good ones either side (held at the
+    ends)."""
+    values = np.array(values, float)
+    good, missing = np.flatnonzero(~bad), np.flatnonzero(bad)
+    for column in range(values.shape[1]):
+        values[missing, column] = np.interp(missing, good, values[good, column])
+    return values
 
 
 def bursty(rng, n: int) -> np.ndarray:
@@ -50,8 +79,8 @@ def test_event_detector_and_matcher_equal_whole_array(seed):
     magnitude[12_000:14_000] = 2.0 + rng.uniform(size=2000)  # one long event
     truth = np.sort(rng.choice(30_000, size=40, replace=False))
     for threshold in (0.6, 1.2):
-        onsets = detection.detect_events(magnitude, threshold, sample_rate_hz=FS)
-        expected = detection.precision_recall_f1(onsets, truth, sample_rate_hz=FS)
+        onsets = scoring.detect_events(magnitude, threshold, sample_rate_hz=FS)
+        expected = scoring.precision_recall_f1(onsets, truth, sample_rate_hz=FS)
         detector = detection.EventDetector(threshold, sample_rate_hz=FS)
         matcher = detection.EventMatcher(sample_rate_hz=FS)
         got, added = [], 0
@@ -95,7 +124,7 @@ def test_contact_segmenter_and_exclusion_equal_whole_array():
     taps = segmenter.take_new()
     np.testing.assert_array_equal([t.start for t in taps], seg.onsets)
     np.testing.assert_array_equal([[t.window_start, t.window_stop] for t in taps], seg.tap_windows)
-    expected = metrics.exclusion_mask(bad, margin=64, settle_max=300)
+    expected = exclusion_mask(bad, margin=64, settle_max=300)
     np.testing.assert_array_equal(exclusion.mask(0, n), expected)
     assert exclusion.bad == bad.sum()
 
@@ -114,7 +143,7 @@ def test_top_values_quantile_and_lag_correlation_equal_whole_array():
     assert len(top.values) < 30
     for q in (metrics.SPIKE_QUANTILE, 0.9995, 1.0):
         assert top.quantile(q) == np.quantile(values, q)
-    assert lag.lag() == metrics.estimate_lag(reference, late) == 3
+    assert lag.lag() == estimate_lag(reference, late) == 3
 
 
 def test_stationary_gate_is_noisereduce_in_any_chunking():
@@ -155,9 +184,7 @@ def test_screen_bridges_bad_samples_as_fill_missing():
         got_values += filled
         got_bad += flags
     _, filled, flags = screen.finish()
-    np.testing.assert_array_equal(
-        np.concatenate(got_values + filled), metrics.fill_missing(values, bad)
-    )
+    np.testing.assert_array_equal(np.concatenate(got_values + filled), fill_missing(values, bad))
     np.testing.assert_array_equal(np.concatenate(got_bad + flags), bad)
 
 
@@ -221,6 +248,68 @@ def whole_array_report(lab, calibration: bool) -> dict:
     return metrics.json_safe(report)
 
 
+def rechunk(pieces, samples: int):
+    """The same recording in slices of `samples` sensor samples (the last one shorter).
+    Joint states and denoised messages go with the first slice cut after they arrived
+    (ahead of their samples, as the streaming consumers allow)."""
+    held, held_n = [], 0
+    for piece in pieces:
+        held.append(piece)
+        held_n += len(piece.sensor_stamps_ns)
+        while held_n >= samples:
+            whole = concat_recordings(held)
+            yield _cut(whole, 0, samples, first=True)
+            rest = _cut(whole, samples, len(whole.sensor_stamps_ns), first=False)
+            held, held_n = [rest], len(rest.sensor_stamps_ns)
+    if held:
+        yield concat_recordings(held)
+
+
+def _cut(rec, a: int, b: int, *, first: bool):
+    changes = {
+        "sensor_stamps_ns": rec.sensor_stamps_ns[a:b],
+        "sensor": rec.sensor[a:b],
+        "contact": None if rec.contact is None else rec.contact[a:b],
+        "ego": None if rec.ego is None else rec.ego[a:b],
+    }
+    if not first:
+        width = rec.joint_velocity.shape[1]
+        changes.update(
+            joint_stamps_ns=rec.joint_stamps_ns[:0],
+            joint_position=np.zeros((0, width)),
+            joint_velocity=np.zeros((0, width)),
+            denoised_stamps_ns=None,
+            denoised=None,
+            command_stamps_ns=None,
+            commands=None,
+        )
+    return dataclasses.replace(rec, **changes)
+
+
+def sliced_report(lab, chunk_s: float, calibration: bool) -> dict:
+    """evaluate_bag's report with the bags read in slices of `chunk_s` seconds."""
+
+    def opener(path, truth: bool):
+        return lambda: rechunk(
+            iter_recording(
+                path,
+                profile=lab["model"].profile,
+                ground_truth=truth,
+                denoised=truth,
+                commands=False,
+            ),
+            round(chunk_s * FS),
+        )
+
+    return evaluate_pieces(
+        opener(lab["bag"], True),
+        lab["model"],
+        open_calibration=opener(lab["quiet"], False) if calibration else None,
+        source=str(lab["bag"]),
+        calibration_source=str(lab["quiet"]),
+    )
+
+
 def test_any_slicing_gives_the_whole_array_report(lab):
     expected = whole_array_report(lab, calibration=True)
     bad = expected["bad_samples"]
@@ -230,17 +319,17 @@ def test_any_slicing_gives_the_whole_array_report(lab):
     assert expected["methods"]["bag_denoised"]["samples_missing"] == 161
     assert set(expected["methods"]) >= {"paper", "noisereduce", "wiener", "bag_denoised"}
     assert expected["n_taps"] > 20
-    for chunk_s in (1.0, 7.3, None, 1e6):  # 1 s, 7.3 s, the bag's own slices, the whole bag
-        report = evaluate_bag(
-            lab["bag"], model=lab["model"], calibration=lab["quiet"], chunk_s=chunk_s
-        )
+    report = evaluate_bag(lab["bag"], model=lab["model"], calibration=lab["quiet"])
+    assert_same_report(metrics.json_safe(report), expected)  # the bag's own slices
+    for chunk_s in (1.0, 7.3, 1e6):  # 1 s, 7.3 s, the whole bag
+        report = sliced_report(lab, chunk_s, calibration=True)
         assert_same_report(metrics.json_safe(report), expected)
 
 
 def test_without_calibration_any_slicing_gives_the_whole_array_report(lab):
     expected = whole_array_report(lab, calibration=False)
     assert expected["threshold_source"].startswith("no-contact part")
-    report = evaluate_bag(lab["bag"], model=lab["model"], chunk_s=0.7)
+    report = sliced_report(lab, 0.7, calibration=False)
     assert_same_report(metrics.json_safe(report), expected)
 
 

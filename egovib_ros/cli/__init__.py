@@ -1,28 +1,18 @@
 """`egovib` console script (INTERFACES.md section 3).
 
-Each command lives in its own module, which exposes `register(subparsers)`;
-the parser it adds sets `func(args) -> int`. How a run ends:
+Each command's module has `register(subparsers)`, whose parser sets `func(args) -> int`.
+A run ends: bad input (EgovibError) in its one line, exit 2; Ctrl-C in one line, 130
+(also during start-up); SIGTERM in one line, 143 (128 + 15: "stopped", not "bad input"),
+unwinding like Ctrl-C so staging directories go at once (a second SIGTERM ends the
+process without cleanup); both are recorded before they raise, so a library that
+swallows the exception still cannot commit an output. Any other exception is a bug: one
+line naming the command, its input and the exception, exit 1, the traceback in a log
+file whose path is printed. Every way out releases the outputs the run claimed.
 
-- bad input raises EgovibError: its one line, exit status 2;
-- Ctrl-C (also during start-up: imports, model load): one line, exit status 130;
-- SIGTERM: one line, exit status 143 (128 + 15, what a shell reports for a process
-  the signal ended: "stopped", never "bad input"). It unwinds like Ctrl-C, so staging
-  directories are removed at once; a second SIGTERM ends the process without cleanup.
-  Both are recorded before they raise: where a library swallows the exception (C code
-  clearing errors while modules load), the run still stops before committing an output;
-- any other exception is a bug: one line naming the command, its input and the
-  exception, the traceback written to a log file whose path is printed, exit status 1.
-
-Other installed packages add commands through the entry-point group `egovib.commands`
-(COMMAND_GROUP): the repository's research package (research/, installed by `make venv`)
-adds bench, demo, figures, gap validate, live-bench and real so. Without it (a robot's
-install) each of those is refused in one line that says where it comes from.
-
-Every way out releases the outputs the run claimed (outputs.release_outputs); staged
-outputs are removed by the exception unwinding through outputs.atomic_output.
-Module-level imports are the standard library's and errors.py; the command modules, and
-numpy, scipy and numba with them, load in build_parser, once main() has its signal
-handlers in place, so that Ctrl-C while they load ends in one line too.
+Other installed packages add commands through the entry-point group COMMAND_GROUP (the
+repository's research package: bench, demo, ...); without it each of those is refused in
+one line. Module-level imports are the standard library's and errors.py: the command
+modules (and numpy, scipy, numba) load in build_parser, once main() handles signals.
 """
 
 from __future__ import annotations
@@ -56,12 +46,10 @@ COMMAND_MODULES = (
     "egovib_ros.cli.detect",  # detect
     "egovib_ros.cli.gap",  # gap
 )
-#: Entry points of this group add commands: each is named for the command line it adds
-#: ("bench"; "gap validate": under `egovib gap`) and loads a register(subparsers) like those
-#: of COMMAND_MODULES, called with the sub-commands of the command its name continues.
+#: Entry points of this group add commands, each named for its command line ("bench";
+#: "gap validate": under `egovib gap`) and loading a register(subparsers).
 COMMAND_GROUP = "egovib.commands"
-#: The commands the repository's research package adds (research/pyproject.toml): named
-#: here only to refuse them in one line where it is not installed.
+#: The research package's commands (research/pyproject.toml), refused where it is missing.
 REPOSITORY_COMMANDS = ("bench", "demo", "figures", "gap validate", "live-bench", "real")
 EXIT_BUG, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 130, 143
 # Arguments that name what a command reads, in the order they are named in a bug report.
@@ -75,8 +63,7 @@ class Terminated(BaseException):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    # deferred: the command modules and the library load from here on, after main() has
-    # put its signal handlers in place (module docstring)
+    # deferred: the command modules and the library load once main() handles signals
     from egovib_ros.cli.options import OneLineErrorParser
 
     parser = OneLineErrorParser(  # one-line errors for bad options, like every bad input
@@ -92,9 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def add_commands(parser) -> None:
-    """The commands of the entry-point group COMMAND_GROUP, in the order of their names (a
-    command before its actions): each entry point's register() gets the sub-commands of
-    the command its name continues, made when it adds the first."""
+    """The commands of COMMAND_GROUP in the order of their names (a command before its
+    actions), each register() given the sub-commands of the command its name continues."""
     for entry in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
         *parents, _ = entry.name.split()
         target = parser
@@ -141,8 +127,8 @@ _said: set[str] = set()  # the log messages said in this run
 
 
 def _said_once(record) -> bool:
-    """A log filter that lets each message through once per run: a command running several
-    denoisers over one bag (evaluate: every method) would say the same warning for each."""
+    """A log filter: each message once per run (evaluate's denoisers, one per method, would
+    each say the same warning)."""
     text = record.getMessage()
     if text in _said:
         return False
@@ -186,8 +172,7 @@ def _main(argv: list[str]) -> int:
 
 def _raise_if_stopped() -> None:
     """A Ctrl-C or SIGTERM whose exception a library swallowed (C code clearing errors while
-    modules load, a bare `except:`) still stops the run, here or before an output is
-    committed (outputs.atomic_output)."""
+    modules load) still stops the run, here or before an output is committed."""
     if _stopped:
         raise _stopped[0]()
 
@@ -204,9 +189,8 @@ def _request_stop(exception: type[BaseException]) -> None:
 @contextlib.contextmanager
 def _signals_raise():
     """While the command runs, Ctrl-C raises KeyboardInterrupt and SIGTERM Terminated, each
-    recorded first (`_request_stop`). Only in the main thread (elsewhere Python cannot
-    install handlers), never for a signal this process was started ignoring (a background
-    job's SIGINT); the previous handlers are restored afterwards."""
+    recorded first; only in the main thread, never for a signal this process was started
+    ignoring (a background job's SIGINT); the previous handlers restored afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -223,12 +207,11 @@ def _signals_raise():
     previous_hook = sys.unraisablehook
 
     def on_unraisable(unraisable):
-        # A stop raised inside a callback Python cannot propagate from (measured: the import
-        # system's module-lock weakref callback, Ctrl-C during start-up) would be printed as
-        # "Exception ignored" with a traceback. It is recorded already (`_request_stop`)
-        # and acted on where outputs are committed and when the command returns (exit 130):
-        # not printed. (Sending the signal again from a timer thread was tried: under load
-        # it landed after the command, in whatever ran next.)
+        # A stop raised inside a callback Python cannot propagate from (the import system's
+        # module-lock weakref callback, Ctrl-C during start-up) would print "Exception
+        # ignored" with a traceback; it is recorded already and acted on where outputs are
+        # committed: not printed. (Re-sending the signal from a timer thread landed, under
+        # load, after the command, in whatever ran next.)
         if not (_stopped and unraisable.exc_type in (KeyboardInterrupt, Terminated)):
             previous_hook(unraisable)
 
@@ -243,9 +226,6 @@ def _signals_raise():
         sys.unraisablehook = previous_hook
         for number, handler in previous.items():
             signal.signal(number, signal.SIG_DFL if handler is None else handler)
-
-
-# --- bugs ----------------------------------------------------------------------------------
 
 
 def _internal_error(exc: Exception, args, argv: list[str]) -> str:
@@ -285,8 +265,8 @@ def _inputs(args) -> str:
 
 
 def log_directories() -> list:
-    """Where a traceback log may go, in order: $XDG_STATE_HOME/egovib (default
-    ~/.local/state/egovib, the XDG place for logs), then the system temp directory."""
+    """Where a traceback log may go: $XDG_STATE_HOME/egovib (default ~/.local/state/egovib),
+    then the system temp directory."""
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(
         os.path.expanduser("~"), ".local", "state"
     )

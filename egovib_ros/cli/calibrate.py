@@ -103,11 +103,6 @@ def describe_methods(fitted: dict) -> str:
     )
 
 
-def describe_thresholds(thresholds: dict) -> str:
-    """The contact detector's thresholds per method, in one line."""
-    return ", ".join(f"{method} {value:.3g}" for method, value in thresholds.items())
-
-
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
@@ -148,20 +143,20 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if fitted["methods"] is not None and not args.quiet:
         print(f"methods cancel and hybrid{on}: {describe_methods(fitted['methods'])}",
               file=sys.stderr)  # fmt: skip
-    if not args.quiet:
-        print(
-            f"contact detector thresholds{on}, 1 false alarm a minute of it: "
-            f"{describe_thresholds(fitted['thresholds'])}",
-            file=sys.stderr,
-        )
+    coverage = coverage_lines(model, fitted["seconds"])
     if args.quiet:  # warnings and the counts of bad input only, if any (--quiet)
-        for line in coverage_lines(model, fitted["seconds"]):
+        for line in coverage:
             if line.startswith("warning:"):
                 print(line, file=sys.stderr)
         if len(results) == 1 and has_bad_input(stats):
             print(results[0].value["input_counts"], file=sys.stderr)
         return 0
-    for line in coverage_lines(model, fitted["seconds"]):
+    thresholds = ", ".join(f"{m} {value:.3g}" for m, value in fitted["thresholds"].items())
+    print(
+        f"contact detector thresholds{on}, 1 false alarm a minute of it: {thresholds}",
+        file=sys.stderr,
+    )
+    for line in coverage:
         print(line, file=sys.stderr)
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)
     if len(results) == 1:

@@ -12,10 +12,10 @@ from pathlib import Path
 
 from egovib_ros.cli.evaluate import calibration_bag
 from egovib_ros.cli.options import (
-    QUIET_HELP,
     adapt_options,
     adapt_settings,
     float_in,
+    force_and_quiet,
     nonneg_float,
 )
 from egovib_ros.core import NoiseModel
@@ -81,8 +81,7 @@ def register(subparsers) -> None:
         help="joint lag: seconds the vibration trails the joint states (as egovib denoise)",
     )  # fmt: skip
     adapt_options(parser)
-    parser.add_argument("--force", action="store_true", help="replace an output egovib wrote")
-    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    force_and_quiet(parser, "replace an output egovib wrote")
     parser.set_defaults(func=run)
 
 

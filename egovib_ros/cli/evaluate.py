@@ -236,5 +236,5 @@ def register(subparsers) -> None:
     )
     options.adapt_options(ev)
     parallel_options(ev)
-    options.force_and_quiet(ev, "replace an existing JSON file", None)
+    options.force_and_quiet(ev, "replace an existing JSON file")
     ev.set_defaults(func=run_evaluate)

@@ -1,9 +1,6 @@
-"""Option checks for the `egovib` commands, in one place.
-
-Every numeric option is checked by its argparse `type=` before any work starts:
-finite, in range, integral where it must be. A bad value is a one-line error naming
-the option (`OneLineErrorParser`), exit status 2, like every other bad input.
-"""
+"""Option checks and options shared by the `egovib` commands: every numeric option is
+checked by its argparse `type=` before any work starts (finite, in range, integral where
+it must be); a bad value is a one-line error naming the option, exit status 2."""
 
 from __future__ import annotations
 
@@ -19,13 +16,9 @@ MAX_SEED = 2**32 - 1
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
-    """argparse parser whose errors are one line (`PROG: error: ...`), exit status 2.
+    """argparse parser whose errors (and its subparsers') are one line, exit status 2."""
 
-    Subparsers inherit the class, so every subcommand reports bad options this way.
-    """
-
-    #: the sub-commands of this command (`add_subparsers`), None if it has none: where the
-    #: commands of another package go (egovib_ros.cli.add_commands)
+    #: the sub-commands of this command, None if it has none (egovib_ros.cli.add_commands)
     commands: argparse._SubParsersAction | None = None
 
     def add_subparsers(self, **kwargs) -> argparse._SubParsersAction:
@@ -110,9 +103,8 @@ QUIET_HELP = (
 )
 
 
-def force_and_quiet(parser: argparse.ArgumentParser, force_help: str, quiet_help=None) -> None:
-    """--force (replace an output: what it may replace in `force_help`) and --quiet
-    (QUIET_HELP, the same in every command)."""
+def force_and_quiet(parser: argparse.ArgumentParser, force_help: str) -> None:
+    """--force (what it may replace: `force_help`) and --quiet (QUIET_HELP)."""
     parser.add_argument("--force", action="store_true", help=force_help)
     parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
 

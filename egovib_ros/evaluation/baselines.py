@@ -1,96 +1,57 @@
-"""Denoising methods compared on the same data, each returning the paper's 1-D signal.
+"""The methods `egovib evaluate` compares, each a stream giving the paper's 1-D signal.
 
-Every method returns an (N,) array on the input's accelerometer stamps, in the
-paper's measurement space (axes summed, 150-750 Hz band-passed by the core's
-causal filter), so metrics can compare them sample by sample. Delays are the
-algorithmic latency of a streaming implementation, in ms:
+Every method outputs one value per input sample, in the paper's measurement space (axes
+summed, band-passed by the core's causal filter), so metrics compare them sample by
+sample. Delays are the algorithmic latency of a streaming implementation:
 
   bandpass      band-pass only (what a user gets without a noise model)       0
   boll          Boll 1979 magnitude subtraction of the mean noise only        L/fs
   paper         the paper: subtract mean + std (Eq. 5/6)                      L/fs
   wiener        decision-directed Wiener gain (Ephraim-Malah 1984 a-priori
                 SNR) with the same noise table as noise amplitude             L/fs
-  noisereduce   stationary spectral gating (noisereduce's gate as a stream,
-                `StationaryGate`), noise threshold from no-contact
-                calibration data; STFT with n_fft - 1 samples look-ahead      n_fft/fs
+  noisereduce   noisereduce's stationary spectral gate as a stream
+                (`StationaryGate`), noise threshold from no-contact data      n_fft/fs
   per_axis      the paper's subtraction on x, y, z separately, then summed    L/fs
   paper_L32     the paper with 32-sample blocks (a model calibrated at L=32)  32/fs
+  cancel, hybrid  core.methods' (band-passed output)                          their own
   default       what `egovib denoise` writes and the denoiser node publishes without
-                options (hybrid where the model carries it), band-passed as a reader
-                of the topic sees it                                          its own
+                options, band-passed as a reader of the topic sees it         its own
 
-Every method is a stream (`method_stream`): pushed the recording slice by slice it gives
-the same output as pushed all at once (`run_method`). Everything block-based goes through
-the core's StreamingDenoiser (its `rule`, `include_std`, `channels` options); nothing here
-re-implements its framing.
+Everything block-based goes through the core's denoisers (core.methods.make_denoiser:
+its `rule`, `include_std`, `channels` options); nothing here re-implements their framing.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sp_fft
 from scipy import signal
 
-from egovib_ros.core import NoiseModel, filters
+from egovib_ros.core import NoiseModel
 from egovib_ros.core.filters import BandPass
 from egovib_ros.core.methods import SAMPLE_METHODS, default_method, make_denoiser
-from egovib_ros.core.methods import method_delay_ms as core_delay_ms
 
 NOISEREDUCE_N_FFT = 64
 NOISEREDUCE_N_STD = 1.5  # reduce_noise's n_std_thresh_stationary
 NOISE_CLIP_SAMPLES = 600_000  # reduce_noise clips its noise clip to chunk_size samples
 
-#: name -> human label, in table order.
-METHOD_LABELS = {
-    "default": "the default: the model's default method, drop-in output band-passed",
-    "bandpass": "band-pass only",
-    "boll": "Boll (mean only)",
-    "paper": "paper (mean + std)",
-    "wiener": "Wiener (decision-directed)",
-    "noisereduce": "noisereduce (stationary gate)",
-    "per_axis": "paper, per axis",
-    "paper_L32": "paper, L = 32",
-    "cancel": "speed-locked harmonic cancellation",
-    "hybrid": "cancellation + low-latency gain",
+#: name -> (human label, its core denoiser's options or None), in table order.
+METHOD_TABLE = {
+    "default": (
+        "the default: the model's default method, drop-in output band-passed",
+        dict(channels="per_axis", method=None, output="dropin"),
+    ),
+    "bandpass": ("band-pass only", None),
+    "boll": ("Boll (mean only)", dict(channels="combined", include_std=False)),
+    "paper": ("paper (mean + std)", dict(channels="combined")),
+    "wiener": ("Wiener (decision-directed)", dict(channels="combined")),
+    "noisereduce": ("noisereduce (stationary gate)", None),
+    "per_axis": ("paper, per axis", dict(channels="per_axis")),
+    "paper_L32": ("paper, L = 32", dict(channels="combined")),
+    "cancel": ("speed-locked harmonic cancellation", dict(channels="combined", method="cancel")),
+    "hybrid": ("cancellation + low-latency gain", dict(channels="combined", method="hybrid")),
 }
-#: methods that need what `egovib calibrate --methods hybrid` fits (the model's extras); they
-#: are also the ones that adapt online (core.adapt)
-NEEDS_METHOD_CALIBRATION = SAMPLE_METHODS
-
-
-@dataclass
-class MethodContext:
-    """What the methods may use besides the test signal itself.
-
-    model:        the noise model (L = 64 in the paper).
-    model_short:  a model calibrated from the same data with shorter blocks (paper_L32).
-    noise_clip:   (n,) no-contact calibration signal, combined and band-passed (noisereduce).
-    """
-
-    model: NoiseModel
-    model_short: NoiseModel | None = None
-    noise_clip: np.ndarray | None = None
-
-
-def on_input_stamps(
-    out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray
-) -> np.ndarray:
-    """Sum the output channels and place them on the input stamps (0 where a sample is missing).
-
-    Denoised samples carry the stamp of the input sample they replace, so matching
-    is by stamp: dropped inputs or a shorter output (e.g. a live node stopped before
-    flushing) leave zeros, never a shift.
-    """
-    summed = np.asarray(values, float).sum(axis=1)
-    if len(out_stamps) == len(in_stamps) and np.array_equal(out_stamps, in_stamps):
-        return summed
-    result = np.zeros(len(in_stamps))
-    index = np.searchsorted(in_stamps, out_stamps)
-    ok = (index < len(in_stamps)) & (in_stamps[np.minimum(index, len(in_stamps) - 1)] == out_stamps)
-    result[index[ok]] = summed[ok]
-    return result
+METHOD_LABELS = {name: label for name, (label, _) in METHOD_TABLE.items()}
 
 
 class WienerRule:
@@ -101,8 +62,8 @@ class WienerRule:
     power it over-estimates E|N|^2 a little, a mild over-subtraction.
     """
 
-    def __init__(self, smoothing: float = 0.9):
-        self.smoothing = float(smoothing)
+    def __init__(self):
+        self.smoothing = 0.9
         self._previous_clean_power: np.ndarray | None = None
 
     def __call__(self, magnitude: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -124,15 +85,13 @@ class WienerRule:
         return cleaned
 
 
-# --------------------------------------------------------------------------
-# Each method as a stream: push joint states and sensor samples in any slices, get the
-# method's (combined, band-passed) output on the input samples as it becomes final.
-# run_method (whole arrays) pushes one slice through the same object.
-# --------------------------------------------------------------------------
 class MethodStream:
     """push_joint_states(stamps, velocity) and push(stamps, accel, raw) return the output
     samples that became final (in input order; `raw` is the combined band-passed input);
-    finish() returns the rest. Over a whole run the outputs add up to one per input."""
+    finish() returns the rest. Over a whole run the outputs add up to one per input, the
+    same for any slicing. `delay_ms`: the method's algorithmic delay."""
+
+    delay_ms = 0.0
 
     def push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         return _EMPTY
@@ -156,9 +115,8 @@ class BandpassStream(MethodStream):
 
 
 class CoreStream(MethodStream):
-    """The core's StreamingDenoiser, its output summed over channels and placed on the input
-    stamps (`on_input_stamps`: a sample the core drops gets 0). Causal: L - 1 samples of
-    delay plus the joint-state wait."""
+    """The core's denoiser, its output summed over channels and placed on the input stamps
+    (a sample the core drops gets 0)."""
 
     def __init__(
         self, model: NoiseModel, *, method: str | None = "paper", source: str = "", **options
@@ -169,6 +127,7 @@ class CoreStream(MethodStream):
         self.denoiser = make_denoiser(model, method, source=source, **options)
         self._band = BandPass.of(model, 1) if options["output"] == "dropin" else None
         self._pending = np.zeros(0, np.int64)  # input stamps without output yet
+        self.delay_ms = self.denoiser.delay_ms
 
     def push_joint_states(self, stamps_ns, velocity):
         return self._place(self.denoiser.push_joint_states(stamps_ns, velocity))
@@ -225,8 +184,8 @@ class StationaryGate:
 
     `threshold` may come later (`set_threshold`): the input waits until then."""
 
-    def __init__(self, threshold: np.ndarray | None = None, *, n_fft: int = NOISEREDUCE_N_FFT):
-        self.n_fft, self.hop = int(n_fft), int(n_fft) // 4
+    def __init__(self, threshold: np.ndarray | None = None):
+        self.n_fft, self.hop = NOISEREDUCE_N_FFT, NOISEREDUCE_N_FFT // 4
         self.overlap = self.n_fft // self.hop
         self.window = signal.get_window("hann", self.n_fft)
         self.scale = np.sqrt(1.0 / self.window.sum() ** 2)  # scipy.signal.stft, "spectrum"
@@ -293,11 +252,12 @@ class StationaryGate:
         return out[max(-start, 0) :] if start < 0 else out
 
 
-def gate_threshold(noise_clip: np.ndarray, *, n_fft: int = NOISEREDUCE_N_FFT) -> np.ndarray:
+def gate_threshold(noise_clip: np.ndarray) -> np.ndarray:
     """Per-frequency noise threshold (dB) of noisereduce's stationary gate from a noise clip
     (its first NOISE_CLIP_SAMPLES samples, as reduce_noise clips it), as noisereduce 3.0
     computes it: levels 20 log10(|X| + eps), floored 80 dB below each frame's top level."""
     clip = np.asarray(noise_clip, float)[:NOISE_CLIP_SAMPLES]
+    n_fft = NOISEREDUCE_N_FFT
     _, _, stft = signal.stft(
         clip, nfft=n_fft, noverlap=n_fft - n_fft // 4, nperseg=n_fft, padded=False
     )
@@ -309,26 +269,15 @@ def gate_threshold(noise_clip: np.ndarray, *, n_fft: int = NOISEREDUCE_N_FFT) ->
 class GateStream(MethodStream):
     """`StationaryGate` on the combined band-passed input."""
 
-    def __init__(self, threshold: np.ndarray | None = None):
+    def __init__(self, threshold: np.ndarray | None, sample_rate_hz: float):
         self.gate = StationaryGate(threshold)
+        self.delay_ms = 1e3 * NOISEREDUCE_N_FFT / sample_rate_hz
 
     def push(self, stamps_ns, accel, raw):
         return self.gate.push(raw)
 
     def finish(self):
         return self.gate.finish()
-
-
-CORE_OPTIONS = {
-    "default": dict(channels="per_axis", method=None, output="dropin"),
-    "boll": dict(channels="combined", include_std=False),
-    "paper": dict(channels="combined"),
-    "wiener": dict(channels="combined"),
-    "per_axis": dict(channels="per_axis"),
-    "paper_L32": dict(channels="combined"),
-    "cancel": dict(channels="combined", method="cancel"),
-    "hybrid": dict(channels="combined", method="hybrid"),
-}
 
 
 def adapts(name: str, model: NoiseModel) -> bool:
@@ -356,51 +305,14 @@ def method_stream(
     if name == "bandpass":
         return BandpassStream()
     if name == "noisereduce":
-        return GateStream(gate)
+        return GateStream(gate, model.sample_rate_hz)
     if name == "paper_L32":
         if model_short is None:
-            raise ValueError(
-                "paper_L32 needs a model calibrated with 32-sample blocks "
-                "(MethodContext.model_short)"
-            )
+            raise ValueError("paper_L32 needs a model calibrated with 32-sample blocks")
         model = model_short
-    options = dict(CORE_OPTIONS[name])
+    options = dict(METHOD_TABLE[name][1])
     if name == "wiener":
         options["rule"] = WienerRule()
     if adapt is not None and adapts(name, model):
         options["adapt"] = adapt
     return CoreStream(model, source=source, **options)
-
-
-def method_delay_ms(name: str, ctx: MethodContext) -> float | None:
-    """Algorithmic latency of a method in ms (None if it cannot run in this context)."""
-    if name == "bandpass":
-        return 0.0
-    if name == "noisereduce":
-        return 1e3 * NOISEREDUCE_N_FFT / ctx.model.sample_rate_hz
-    if name == "paper_L32":
-        return None if ctx.model_short is None else core_delay_ms(ctx.model_short, "paper")
-    if name == "default":
-        return core_delay_ms(ctx.model, default_method(ctx.model))
-    if name in NEEDS_METHOD_CALIBRATION:
-        return core_delay_ms(ctx.model, name, output="bandpassed")  # what CoreStream runs
-    # the paper's blocks, whatever rule or channels (Boll, Wiener, per axis)
-    return None if ctx.model is None else core_delay_ms(ctx.model, "paper")
-
-
-def run_method(name: str, rec, ctx: MethodContext) -> np.ndarray:
-    """(N,) combined band-passed output of method `name` on the recording `rec`: its
-    stream (`method_stream`, which refuses an unknown name) fed the whole recording at once."""
-    gate = None
-    if name == "noisereduce":
-        if ctx.noise_clip is None:
-            raise ValueError("noisereduce needs a no-contact noise clip (MethodContext.noise_clip)")
-        gate = gate_threshold(ctx.noise_clip)
-    stream = method_stream(name, model=ctx.model, model_short=ctx.model_short, gate=gate)
-    raw = filters.combined_bandpassed(rec.sensor, ctx.model.robot_profile())
-    parts = [
-        stream.push_joint_states(rec.joint_stamps_ns, rec.joint_velocity),
-        stream.push(rec.sensor_stamps_ns, rec.sensor, raw),
-        stream.finish(),
-    ]
-    return np.concatenate(parts)

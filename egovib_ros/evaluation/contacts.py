@@ -1,19 +1,13 @@
 """`egovib detect` as a library: contact events in a recorded bag (and their scores).
 
-The bag's sensor stream goes through the core's denoiser (any method, by default the
-model's default method and its drop-in output; or none: `raw`), then through core.contact's
-detector, exactly as the denoiser and contact_detector nodes run live. The threshold is
-fixed before the bag is looked at, by core.contact's one rule on no-contact data processed
-the same way: the one calibration stored in the model (core.methods.calibrate_detection),
-or computed again from a no-contact bag (`calibration`, or settings the stored one was not
-made with), or given.
-
-    detect_bag(bag, model=..., method=None, threshold=None, calibration=None) -> Detection
-
-With the simulator's ground truth in the bag (`<sensor parent>/contact`), the events are
-scored against the true tap onsets (+-10 ms, as `egovib evaluate`): F1, false alarms per
-minute, and the latency from a tap's onset to its event's report (the method's delay plus
-the detector's report time).
+`detect_bag`: the bag's sensor stream through the core's denoiser (by default the model's
+default method and its drop-in output; `raw`: none), then core.contact's detector, as the
+denoiser and contact_detector nodes run live. The threshold is fixed before the bag is
+looked at, by core.contact's rule on no-contact data processed the same way: stored in
+the model by calibration, or computed again from a no-contact bag, or given. With the
+simulator's ground truth in the bag the events are scored against the true tap onsets
+(+-10 ms, as `egovib evaluate`): F1, false alarms per minute, and the latency from a
+tap's onset to its event's report (the method's delay plus the detector's report time).
 """
 
 from __future__ import annotations
@@ -45,11 +39,10 @@ from egovib_ros.core.methods import (
 )
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
-from egovib_ros.evaluation.detection import match_events, scores_of
+from egovib_ros.evaluation.detection import TOLERANCE_S, match_events, scores_of
 from egovib_ros.evaluation.metrics import segment_contacts
 
 DETECT_METHODS = (*METHODS, "raw")
-TOLERANCE_S = 0.010  # a detection within this of a true onset is a true positive
 
 
 @dataclass
@@ -76,30 +69,26 @@ def check_detect_method(model: NoiseModel, method: str | None) -> str:
     return resolve_method(model, method)
 
 
-def _denoiser(model: NoiseModel, method: str, joint_lag_s: float, source: str, adapt=None):
-    if method == "raw":
-        if adapt is not None:
-            raise ConfigError("adapt: method raw has no model to adapt")
-        return None
-    # the default output (the drop-in), as the denoiser node publishes it by default
-    options = {} if adapt is None else {"adapt": adapt}
-    return make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source, **options)
-
-
-def _stream(
+def method_pieces(
     bag,
     model: NoiseModel,
     method: str,
-    joint_lag_s: float,
+    joint_lag_s: float = 0.0,
     *,
     ground_truth: bool,
     adapt=None,
     used: list | None = None,
 ):
-    """(stamps, values (N, 3), contact (N, 3) or None) of the method's output on `bag`
-    (`adapt`: the model learning as it goes, core.adapt; `used` gets the denoiser)."""
+    """Pieces (stamps, values (N, 3), contact (N, 3) or None) of what `detect_bag` feeds its
+    detector on `bag`: the checked method's streaming output, or the raw stream (`adapt`:
+    the model learning as it goes, core.adapt; `used` gets the denoiser)."""
     profile = model.robot_profile()
-    denoiser = _denoiser(model, method, joint_lag_s, f"{bag}: {profile.sensor_topic}", adapt)
+    denoiser = None
+    if method != "raw":  # its default output (the drop-in), as the denoiser node publishes
+        source = f"{bag}: {profile.sensor_topic}"
+        denoiser = make_denoiser(model, method, joint_lag_s=joint_lag_s, source=source, adapt=adapt)
+    elif adapt is not None:
+        raise ConfigError("adapt: method raw has no model to adapt")
     if used is not None:
         used.append(denoiser)
     truth: dict[int, np.ndarray] = {}
@@ -127,27 +116,6 @@ def _stream(
             yield chunk.stamps_ns, chunk.values, _truth(truth, chunk.stamps_ns)
 
 
-def method_output(
-    bag, model: NoiseModel, method: str | None = None, joint_lag_s: float = 0.0
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(stamps (N,), values (N, 3), ground truth (N, 3) or None): what `detect_bag` feeds
-    its detector on `bag` (the method's streaming output, or the raw stream), whole; for
-    looking at why a method detects what it does."""
-    method = check_detect_method(model, method)
-    stamps, values, truth = [], [], []
-    for s, v, contact in _stream(bag, model, method, joint_lag_s, ground_truth=True):
-        stamps.append(s)
-        values.append(v)
-        if contact is not None:
-            truth.append(contact)
-    stamps_all = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
-    values_all = np.concatenate(values) if values else np.zeros((0, 3))
-    contact_all = np.concatenate(truth) if truth else None
-    if contact_all is not None and len(contact_all) != len(stamps_all):
-        contact_all = None
-    return stamps_all, values_all, contact_all
-
-
 def _truth(truth: dict, stamps: np.ndarray):
     if not truth:
         return None
@@ -168,7 +136,7 @@ def calibration_threshold(
     envelope = DetectionEnvelope(ContactSettings.for_model(model, 1.0))
     parts = [
         envelope.process(values)[1]
-        for _, values, _ in _stream(bag, model, method, joint_lag_s, ground_truth=False)
+        for _, values, _ in method_pieces(bag, model, method, joint_lag_s, ground_truth=False)
     ]
     values = np.concatenate(parts) if parts else np.zeros(0)
     edge = int(EDGE_S * model.sample_rate_hz)
@@ -258,7 +226,7 @@ def detect_bag(
     events: list[ContactEvent] = []
     truth_parts, stamp_parts = [], []
     used: list = []
-    for stamps, values, contact in _stream(
+    for stamps, values, contact in method_pieces(
         bag, model, method, joint_lag_s, ground_truth=True, adapt=adapt, used=used
     ):
         events += detector.push(stamps, values)

@@ -2,27 +2,19 @@
 
 `evaluate_bag(bag, model=...)` streams a bag (any length, flat memory);
 `evaluate_recording(rec, model, ...)` takes whole arrays (figures, experiments, demo).
-Both push the recording through the same streaming evaluation (evaluation/stream.py:
-one slice for whole arrays, the bag's slices otherwise) and return the contract's JSON
-fields for the paper's method at the top level, plus every method's metrics, delays,
-event detection scores and the PR2 fixed-threshold comparison under "methods" and
-"detection".
+Both push the recording through the same streaming evaluation (evaluation/stream.py) and
+return the contract's JSON fields for the default method at the top level, plus every
+method's metrics, delays, event detection scores and the PR2 fixed-threshold comparison
+under "methods" and "detection".
 
-Signals compared (all combined + band-passed with the core's causal filter):
-raw = the accelerometer topic; reference = the ground-truth contact topic;
-each method's output on the input stamps (the core's output sample k carries
-input stamp k; "alignment_lag_samples" re-checks it by cross-correlation).
-
-Detection thresholds come from no-contact calibration data processed by the
-same method (`calibration`): never from the test signal, unless no calibration
-data is given, in which case the test's own no-contact samples are used and
-"threshold_source" says so.
-
-Bad samples (non-finite, or beyond the sensor range of the model's robot profile)
-in the raw, ground-truth or recorded denoised signals are missing data: bridged so
-that every method runs on finite input, and every sample they can have touched is
-excluded from every metric (metrics.exclude_samples); they are counted under
-"bad_samples". More than `max_bad_fraction` of them is an error (BagError).
+Signals compared (all combined + band-passed with the core's causal filter): raw = the
+sensor topic; reference = the ground-truth contact topic; each method's output on the
+input stamps ("alignment_lag_samples" re-checks by cross-correlation that output k
+carries input stamp k). Detection thresholds come from no-contact calibration data
+processed by the same method: never from the test signal, unless no calibration data is
+given ("threshold_source" says so). Bad samples are counted under "bad_samples" and left
+out of every metric (evaluation/metrics.py); more than `max_bad_fraction` of them is an
+error (BagError).
 """
 
 from __future__ import annotations
@@ -30,8 +22,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 from typing import Callable, Iterable
-
-import numpy as np
 
 from egovib_ros.bag import iter_recording
 from egovib_ros.bag.recording import bag_topic_names
@@ -89,7 +79,6 @@ def evaluate_pieces(
     model_short: NoiseModel | None = None,
     methods: list[str] | None = None,
     keep_signals: bool = False,
-    pr_curves: bool = False,
     source: str = "recording",
     calibration_source: str = "calibration recording",
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
@@ -109,6 +98,7 @@ def evaluate_pieces(
     like = summary.recorded_like
     extra = [like] if like is not None and like not in names else []
     gate, calibration_bad = None, None
+    common = dict(names=names, summary=summary, model_short=model_short, source=source)
     if open_calibration is not None:
         calibration = streaming.CalibrationPass(
             model,
@@ -121,41 +111,18 @@ def evaluate_pieces(
         result = _through(calibration, open_calibration())
         thresholds, gate, calibration_bad = result.thresholds, result.gate, result.bad
     else:
-        own = streaming.EvaluationPass(
-            model,
-            names=names,
-            summary=summary,
-            thresholds=None,
-            model_short=model_short,
-            extra=extra,
-            source=source,
-            adapt=adapt,
-        )
+        own = streaming.EvaluationPass(model, thresholds=None, extra=extra, adapt=adapt, **common)
         _through(own, open_run())
         thresholds = own.noise_thresholds()
     if like is not None:
         thresholds["bag_denoised"] = thresholds[like]
     run = streaming.EvaluationPass(
-        model,
-        names=names,
-        summary=summary,
-        thresholds=thresholds,
-        model_short=model_short,
-        gate=gate,
-        keep_signals=keep_signals or pr_curves,
-        source=source,
-        adapt=adapt,
+        model, thresholds=thresholds, gate=gate, keep_signals=keep_signals, adapt=adapt, **common
     )
     _through(run, open_run())
-    report = _report(
-        run,
-        model,
-        model_short=model_short,
-        names=names,
-        calibration_bad=calibration_bad,
-        keep_signals=keep_signals,
-        pr_curves=pr_curves,
-    )
+    report = _report(run, model, names=names, calibration_bad=calibration_bad)
+    if keep_signals:
+        report["signals"] = run.signals()
     report["adapt"] = None if adapt is None else dict(vars(adapt))
     for name, stream in run.streams.items():
         stats = getattr(getattr(stream, "denoiser", None), "adaptation_stats", None)
@@ -211,27 +178,16 @@ def _label(name: str, model: NoiseModel) -> str:
 
 
 def _report(
-    run: streaming.EvaluationPass,
-    model: NoiseModel,
-    *,
-    model_short: NoiseModel | None,
-    names: list[str],
-    calibration_bad: int | None,
-    keep_signals: bool,
-    pr_curves: bool,
+    run: streaming.EvaluationPass, model: NoiseModel, *, names: list[str], calibration_bad
 ) -> dict:
-    fs = model.sample_rate_hz
     minutes = run.minutes()
-    ctx = baselines.MethodContext(model=model, model_short=model_short)
     raw_detection = _detector_scores(run, "raw", minutes)
     pr2 = {
         f"pr2_{t:g}ms2": _detector_scores(run, f"pr2_{t:g}ms2", minutes)
         for t in detection.PR2_THRESHOLDS_MS2
     }
     per_method = {
-        name: _method_result(
-            run, name, _label(name, model), baselines.method_delay_ms(name, ctx), minutes
-        )
+        name: _method_result(run, name, _label(name, model), run.streams[name].delay_ms, minutes)
         for name in names
     }
     summary = run.summary
@@ -262,7 +218,7 @@ def _report(
             "peak_snr_improvement_db": primary["peak_snr_improvement_db"],
             "delay_ms": primary["delay_ms"],
             "alignment_lag_samples": run.lags[PRIMARY].lag() if run.kept else None,
-            "duration_s": run.n / fs,
+            "duration_s": run.n / model.sample_rate_hz,
             "bad_samples": {
                 **counts,
                 "excluded_samples": run.excluded,
@@ -283,24 +239,6 @@ def _report(
             "methods": per_method,
         }
     )
-    if pr_curves or keep_signals:
-        signals = run.signals()
-        seg = signals["seg"]
-        if pr_curves:
-            excluded = seg.excluded_mask
-
-            def env_kept(x: np.ndarray) -> np.ndarray:  # no detection where bad input was
-                env = detection.envelope(x, sample_rate_hz=fs)
-                return env if excluded is None else np.where(excluded, 0.0, env)
-
-            report["pr_curves"] = {
-                ("raw_bandpassed" if key == "raw" else key): detection.pr_curve(
-                    env_kept(signals[key]), seg.onsets, sample_rate_hz=fs
-                )
-                for key in ["raw", *names]
-            }
-        if keep_signals:
-            report["signals"] = signals
     return report
 
 
@@ -312,10 +250,7 @@ def evaluate_recording(
     model_short: NoiseModel | None = None,
     methods: list[str] | None = None,
     keep_signals: bool = False,
-    pr_curves: bool = False,
     source: str = "recording",
-    calibration_source: str = "calibration recording",
-    max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
     adapt=None,
 ) -> dict:
     """Metrics of every method on `rec` (a bag.Recording with ground truth), pushed as one
@@ -326,8 +261,7 @@ def evaluate_recording(
     model_short: model calibrated with 32-sample blocks (enables "paper_L32").
     methods: subset of baselines.METHOD_LABELS (default: all that can run).
     keep_signals: also return the signals (key "signals", not JSON-serialisable).
-    pr_curves: also return PR curves of the raw and each method's signal ("pr_curves").
-    source, calibration_source: names for errors; max_bad_fraction: see stream.SummaryPass.
+    source: the recording's name in errors.
     """
     require_ground_truth(rec, where=source, profile=model.profile)
     return evaluate_pieces(
@@ -337,10 +271,7 @@ def evaluate_recording(
         model_short=model_short,
         methods=methods,
         keep_signals=keep_signals,
-        pr_curves=pr_curves,
         source=source,
-        calibration_source=calibration_source,
-        max_bad_fraction=max_bad_fraction,
         adapt=adapt,
     )
 
@@ -354,13 +285,11 @@ def evaluate_bag(
     methods: list[str] | None = None,
     max_bad_fraction: float = metrics.MAX_BAD_FRACTION,
     progress: Callable[[int], None] | None = None,
-    chunk_s: float | None = None,
     adapt=None,
 ) -> dict:
     """The report of one bag, streamed (memory does not grow with the bag): topics, field
     and joints from the model's robot profile. `calibration`: a no-contact bag for the
-    detection thresholds. `chunk_s`: evaluate in slices of this many seconds instead of
-    the bag's own (tests). `progress(bytes)` as the bag is read (all passes together
+    detection thresholds. `progress(bytes)` as the bag is read (all passes together
     count as its size once)."""
 
     profile = model.robot_profile()
@@ -368,20 +297,14 @@ def evaluate_bag(
     size_share = None if progress is None else (lambda n: progress(n / passes))
 
     def pieces(path, *, truth: bool, report=None):
-        def open_pieces():
-            it = iter_recording(
-                path,
-                profile=profile,
-                ground_truth=truth,
-                denoised=truth,
-                commands=False,
-                progress=report,
-            )
-            if chunk_s is None:
-                return it
-            return streaming.rechunk(it, round(chunk_s * model.sample_rate_hz))
-
-        return open_pieces
+        return lambda: iter_recording(
+            path,
+            profile=profile,
+            ground_truth=truth,
+            denoised=truth,
+            commands=False,
+            progress=report,
+        )
 
     return evaluate_pieces(
         pieces(Path(bag), truth=True, report=size_share),

@@ -1,40 +1,23 @@
-"""Paper metrics (INTERFACES.md section 6) as pure functions on 1-D arrays.
+"""Paper metrics (INTERFACES.md section 6) on signals in the paper's measurement space:
+axes combined and band-passed (150-750 Hz) with the *same causal filter* for the raw
+signal, each method's output and the clean reference (the ground-truth contact signal),
+so that all three share phase and compare sample by sample.
 
-Every signal here is already in the paper's measurement space: axes combined
-and band-passed (150-750 Hz) with the *same causal filter* for the raw signal,
-the denoised output and the clean reference, so that all three share phase and
-can be compared sample by sample.
+* noise mean: mean magnitude over no-contact samples (contacts dilated by a margin: the
+  band-pass and the blocks smear a tap over its neighbours); noise spike: its 99.9th
+  percentile; noise reduction: 20 log10(noise mean raw / noise mean denoised).
+* tap peak: mean over taps of the largest magnitude in each tap window (onset - margin
+  .. end of contact + margin); peak SNR: 20 log10(tap peak / noise mean); tap retention:
+  tap peak denoised / tap peak raw (paper: 1.27/3.41 = 0.37).
+* segmental SNR: on 64-sample segments with 50 % overlap, 10 log10(sum s^2 / sum (x -
+  s)^2) against the reference s, clamped to [-10, 35] dB, averaged over the segments at
+  least half inside a contact.
 
-Definitions (paper section 4, INTERFACES.md section 6):
-
-* magnitude            |x[k]| of the band-passed 1-D signal.
-* noise mean           mean magnitude over no-contact samples (contacts dilated
-                       by a margin, because the band-pass and the 64-sample
-                       blocks smear a tap over its neighbours).
-* tap peak             mean over taps of the largest magnitude inside each tap
-                       window (onset - margin .. end of contact + margin).
-* peak SNR             20 log10(tap peak / noise mean).
-* noise reduction      20 log10(noise mean raw / noise mean denoised).
-* noise spike          99.9th percentile of the no-contact magnitude (the
-                       "noise spikes" the paper saw at fast motion).
-* tap retention        tap peak denoised / tap peak raw (paper: 1.27/3.41 = 0.37).
-* segmental SNR        on 64-sample segments with 50 % overlap, per segment
-                       10 log10(sum s^2 / sum (x - s)^2) with s the clean
-                       reference (the ground-truth contact signal, combined and
-                       band-passed) and x the raw or denoised signal; clamped
-                       to [-10, 35] dB and averaged over the contact segments
-                       (segments at least half inside a contact).
-
-Alignment: output sample k of the core's denoiser carries input stamp k, so the
-denoised array is compared with the raw/reference arrays index by index.
-`estimate_lag` checks this (it should return 0).
-
-Bad samples (non-finite, or beyond the sensor's range) are missing data, never
-measured: `bad_samples` finds them, `fill_missing` bridges them so filters stay
-finite, and `exclude_samples` removes every sample they can have touched from the
-noise mean, the tap peaks (a tap touched by them is dropped and counted), the
-segmental SNR and the event scores. More than MAX_BAD_FRACTION of bad samples is an
-error, not a result (evaluate.py).
+Bad samples (non-finite, or beyond the sensor's range) are missing data: bridged so that
+filters stay finite, and every sample they can have touched is left out of every metric
+(a tap touched by them is dropped and counted). The forms here are the streaming ones
+`egovib evaluate` runs (memory bounded by the longest contact or bad run, never by the
+recording); the whole-array ones: research/egovib_research/experiments/scoring.py.
 """
 
 from __future__ import annotations
@@ -70,7 +53,6 @@ class ContactSegmentation:
     active_mask:  (N,) bool, contact activity itself (for segmental SNR).
     no_contact_mask: (N,) bool, neither contact nor the start/end edges.
     excluded_mask: (N,) bool or None, samples touched by bad input (`exclude_samples`).
-    n_taps_excluded: taps dropped because bad input touched their window.
     """
 
     onsets: np.ndarray
@@ -79,7 +61,6 @@ class ContactSegmentation:
     active_mask: np.ndarray
     no_contact_mask: np.ndarray
     excluded_mask: np.ndarray | None = None
-    n_taps_excluded: int = 0
 
     @property
     def n_taps(self) -> int:
@@ -105,37 +86,25 @@ def _merge_runs(runs: np.ndarray, min_gap: int) -> np.ndarray:
     return np.stack([starts, stops], axis=1)
 
 
-def activity_threshold(
-    contact: np.ndarray, *, relative: float = 1e-3, floor: float = 1e-6
-) -> float:
+def activity_threshold(contact: np.ndarray) -> float:
     """Default level above which the ground-truth contact magnitude counts as contact."""
     peak = float(np.max(np.abs(contact))) if contact.size else 0.0
-    return max(relative * peak, floor)
+    return max(1e-3 * peak, 1e-6)
 
 
 def segment_contacts(
-    contact: np.ndarray,
-    *,
-    sample_rate_hz: float,
-    threshold: float | None = None,
-    margin_before_s: float = MARGIN_BEFORE_S,
-    margin_after_s: float = MARGIN_AFTER_S,
-    min_gap_s: float = MIN_GAP_S,
-    edge_s: float = EDGE_S,
+    contact: np.ndarray, *, sample_rate_hz: float, threshold: float | None = None
 ) -> ContactSegmentation:
-    """Split a recording into taps and no-contact time from the ground-truth contact signal.
-
-    `contact` is the 1-D ground-truth contact signal (combined axes, band-passed
-    or not: only where it is non-negligible matters). Taps are the runs of
-    |contact| > threshold, merged when closer than `min_gap_s`.
-    """
+    """Split a recording into taps and no-contact time from the ground-truth contact signal
+    (1-D, combined axes, band-passed or not: only where it is non-negligible matters).
+    Taps are the runs of |contact| > threshold, merged when closer than MIN_GAP_S."""
     contact = np.asarray(contact, dtype=float)
     n = contact.size
     level = activity_threshold(contact) if threshold is None else float(threshold)
     active = np.abs(contact) > level
-    runs = _merge_runs(_runs(active), max(1, int(round(min_gap_s * sample_rate_hz))))
-    before = int(round(margin_before_s * sample_rate_hz))
-    after = int(round(margin_after_s * sample_rate_hz))
+    runs = _merge_runs(_runs(active), max(1, int(round(MIN_GAP_S * sample_rate_hz))))
+    before = int(round(MARGIN_BEFORE_S * sample_rate_hz))
+    after = int(round(MARGIN_AFTER_S * sample_rate_hz))
     windows = np.stack(
         [np.clip(runs[:, 0] - before, 0, n), np.clip(runs[:, 1] + after, 0, n)], axis=1
     )
@@ -145,7 +114,7 @@ def segment_contacts(
     active_mask = np.zeros(n, bool)
     for start, stop in runs:
         active_mask[start:stop] = True
-    edge = min(int(round(edge_s * sample_rate_hz)), n // 2)
+    edge = min(int(round(EDGE_S * sample_rate_hz)), n // 2)
     no_contact = ~contact_mask
     no_contact[:edge] = False
     no_contact[n - edge :] = False
@@ -156,27 +125,6 @@ def segment_contacts(
         active_mask=active_mask,
         no_contact_mask=no_contact,
     )
-
-
-def noise_mean(x: np.ndarray, no_contact_mask: np.ndarray) -> float:
-    """Mean magnitude of the band-passed signal outside contacts ("mean signal magnitude")."""
-    values = np.abs(np.asarray(x, float)[no_contact_mask])
-    return float(values.mean()) if values.size else float("nan")
-
-
-def noise_spike(
-    x: np.ndarray, no_contact_mask: np.ndarray, quantile: float = SPIKE_QUANTILE
-) -> float:
-    """High quantile (99.9 %) of the no-contact magnitude: the noise spikes a threshold
-    must clear."""
-    values = np.abs(np.asarray(x, float)[no_contact_mask])
-    return float(np.quantile(values, quantile)) if values.size else float("nan")
-
-
-def tap_peaks(x: np.ndarray, tap_windows: np.ndarray) -> np.ndarray:
-    """(T,) largest magnitude of `x` inside each tap window."""
-    magnitude = np.abs(np.asarray(x, float))
-    return np.array([magnitude[start:stop].max() for start, stop in tap_windows if stop > start])
 
 
 def db20(ratio: float) -> float:
@@ -190,19 +138,10 @@ def peak_snr_db(peak: float, noise: float) -> float:
     return db20(peak / noise) if noise > 0 else float("inf")
 
 
-def segmental_snr(
-    reference: np.ndarray,
-    estimate: np.ndarray,
-    *,
-    length: int = SEGMENT_LENGTH,
-    hop: int = SEGMENT_HOP,
-    clamp_db: tuple[float, float] = SEGSNR_CLAMP_DB,
-) -> np.ndarray:
-    """Per-segment SNR in dB of `estimate` against the clean `reference`, clamped.
-
-    Segments are `length` samples with `hop` spacing (64 / 32 = 50 % overlap).
-    Returns one value per segment (starts 0, hop, 2 hop, ... while a whole one fits).
-    """
+def segmental_snr(reference: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """Per-segment SNR in dB of `estimate` against the clean `reference`, clamped: one value
+    per segment of SEGMENT_LENGTH samples starting every SEGMENT_HOP while a whole one fits."""
+    length, hop, clamp_db = SEGMENT_LENGTH, SEGMENT_HOP, SEGSNR_CLAMP_DB
     reference = np.asarray(reference, float)
     error = np.asarray(estimate, float) - reference
     if reference.size < length:
@@ -218,83 +157,10 @@ def segmental_snr(
     return np.clip(snr, *clamp_db)
 
 
-def segments_in_mask(
-    mask: np.ndarray,
-    *,
-    length: int = SEGMENT_LENGTH,
-    hop: int = SEGMENT_HOP,
-    min_fraction: float = 0.5,
-) -> np.ndarray:
-    """(S,) bool: which segments have at least `min_fraction` of their samples in `mask`."""
-    mask = np.asarray(mask, float)
-    if mask.size < length:
-        return np.zeros(0, bool)
-    frames = np.lib.stride_tricks.sliding_window_view(mask, length)[::hop]
-    return frames.mean(axis=1) >= min_fraction
-
-
-def mean_segmental_snr(
-    reference: np.ndarray,
-    estimate: np.ndarray,
-    mask: np.ndarray,
-    excluded: np.ndarray | None = None,
-) -> float:
-    """Mean clamped segmental SNR over the segments that lie in `mask` and hold no
-    `excluded` sample (nan if none)."""
-    values = segmental_snr(reference, estimate)
-    chosen = segments_in_mask(mask)
-    if excluded is not None and chosen.size:
-        chosen &= ~segments_in_mask(excluded, min_fraction=1e-9)
-    return float(values[chosen].mean()) if chosen.any() else float("nan")
-
-
-def estimate_lag(reference: np.ndarray, x: np.ndarray, *, max_lag: int = 96) -> int:
-    """Lag (samples) of `x` relative to `reference` maximising their cross-correlation.
-
-    Positive = `x` is late. Used to check the denoiser's stamp alignment (expected 0).
-    """
-    reference = np.asarray(reference, float)
-    x = np.asarray(x, float)
-    corr = signal.correlate(x, reference, mode="full", method="fft")
-    lags = signal.correlation_lags(x.size, reference.size, mode="full")
-    keep = np.abs(lags) <= max_lag
-    return int(lags[keep][np.argmax(corr[keep])])
-
-
-def signal_metrics(
-    raw: np.ndarray, denoised: np.ndarray, reference: np.ndarray, seg: ContactSegmentation
-) -> dict:
-    """The signal-quality JSON fields of INTERFACES.md section 6 (all but the event F1s).
-
-    raw, denoised, reference: (N,) band-passed 1-D signals on the same stamps.
-    """
-    raw = np.asarray(raw, float)
-    denoised = np.asarray(denoised, float)
-    if not (raw.shape == denoised.shape == reference.shape):
-        raise ValueError(
-            f"signal lengths differ: raw {raw.shape}, denoised {denoised.shape}, "
-            f"reference {reference.shape}"
-        )
-
-    def mean_peak(x: np.ndarray) -> float:
-        peaks = tap_peaks(x, seg.tap_windows)
-        return float(peaks.mean()) if peaks.size else float("nan")
-
-    return signal_figures(
-        noise=[noise_mean(x, seg.no_contact_mask) for x in (raw, denoised)],
-        spike=[noise_spike(x, seg.no_contact_mask) for x in (raw, denoised)],
-        peak=[mean_peak(x) for x in (raw, denoised)],
-        segsnr=[
-            mean_segmental_snr(reference, x, seg.active_mask, seg.excluded_mask)
-            for x in (raw, denoised)
-        ],
-        n_taps=seg.n_taps,
-    )
-
-
 def signal_figures(*, noise, spike, peak, segsnr, n_taps: int) -> dict:
-    """signal_metrics' dict from the (raw, denoised) pairs of the figures it is made of:
-    mean no-contact level, its spike, mean tap peak, segmental SNR over the contacts."""
+    """The signal-quality fields of INTERFACES.md section 6 (all but the event F1s) from the
+    (raw, denoised) pairs of the figures they are made of: mean no-contact level, its
+    spike, mean tap peak, segmental SNR over the contacts."""
     (noise_raw, noise_den), (peak_raw, peak_den) = noise, peak
     snr_raw = peak_snr_db(peak_raw, noise_raw)
     snr_den = peak_snr_db(peak_den, noise_den)
@@ -329,47 +195,12 @@ def bad_samples(values: np.ndarray, sensor_range: float = np.inf) -> tuple[np.nd
     return nonfinite | beyond, int(nonfinite.sum()), int(beyond.sum())
 
 
-def fill_missing(values: np.ndarray, bad: np.ndarray) -> np.ndarray:
-    """Copy of `values` with bad rows linearly bridged from the good ones on either side
-    (held at the ends), so that filters run on finite data; the bridged samples and what
-    they touch are excluded from every metric (`exclude_samples`)."""
-    values = np.array(values, float, copy=True)
-    bad = np.asarray(bad, bool)
-    if not bad.any():
-        return values
-    good = np.flatnonzero(~bad)
-    if good.size == 0:
-        raise ValueError("no valid sample at all")
-    missing = np.flatnonzero(bad)
-    flat = values.reshape(len(values), -1)
-    for column in range(flat.shape[1]):
-        flat[missing, column] = np.interp(missing, good, flat[good, column])
-    return flat.reshape(values.shape)
-
-
-def exclusion_mask(bad: np.ndarray, *, margin: int, settle_max: int) -> np.ndarray:
-    """Each run [a, b) of `bad` widened to [a - margin, b + margin + min(b - a, settle_max)):
-    what bridging the run can have disturbed (blocks holding it, then filter settling)."""
-    bad = np.asarray(bad, bool)
-    runs = _runs(bad)
-    n = bad.size
-    if runs.size == 0:
-        return np.zeros(n, bool)
-    length = runs[:, 1] - runs[:, 0]
-    starts = np.clip(runs[:, 0] - margin, 0, n)
-    stops = np.clip(runs[:, 1] + margin + np.minimum(length, settle_max), 0, n)
-    edges = np.zeros(n + 1, np.int64)
-    np.add.at(edges, starts, 1)
-    np.add.at(edges, stops, -1)
-    return np.cumsum(edges[:n]) > 0
-
-
 def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSegmentation:
     """`seg` without the samples in `excluded` (bad input and what it touched).
 
     No-contact statistics skip them; a tap whose window holds one is dropped whole
-    (its peak and onset would be guesses), counted in `n_taps_excluded`, and its window
-    joins the excluded samples (so its detection counts neither way).
+    (its peak and onset would be guesses) and its window joins the excluded samples (so
+    its detection counts neither way).
     """
     excluded = np.asarray(excluded, bool)
     if excluded.shape != seg.no_contact_mask.shape:
@@ -396,7 +227,6 @@ def exclude_samples(seg: ContactSegmentation, excluded: np.ndarray) -> ContactSe
         active_mask=active,
         no_contact_mask=seg.no_contact_mask & ~excluded,
         excluded_mask=excluded,
-        n_taps_excluded=seg.n_taps_excluded + int(np.count_nonzero(~keep)),
     )
 
 
@@ -416,12 +246,11 @@ def json_safe(value):
 
 
 # --------------------------------------------------------------------------
-# Streaming forms (evaluation/stream.py): the same definitions over a signal that
-# arrives in pieces, with explicit carried state; memory is bounded by the longest
-# contact or bad-sample run, never by the recording.
+# Streaming forms (evaluation/stream.py), with explicit carried state
 # --------------------------------------------------------------------------
 class BadRunExclusion:
-    """`exclusion_mask` over a bad-sample flag stream: each bad run [a, b) excludes
+    """What bridging bad samples can have disturbed (the blocks holding them, then filter
+    settling), over a bad-sample flag stream: each bad run [a, b) excludes
     [a - margin, b + margin + min(b - a, settle_max)), clipped to [0, n).
 
     `push(flags)` appends the flags of the next samples. The exclusion of sample i is
@@ -499,26 +328,17 @@ class Tap:
 
 class ContactSegmenter:
     """`segment_contacts` over a reference stream: taps appear as their contact starts and
-    close once no later activity can merge with them (`min_gap_s` of quiet).
+    close once no later activity can merge with them (MIN_GAP_S of quiet).
 
     The `level` is the activity threshold of the whole recording (activity_threshold of
     its reference, found by a pass before). A sample's window membership is final once
     the reference is in up to `lag` samples past it."""
 
-    def __init__(
-        self,
-        *,
-        level: float,
-        n: int,
-        sample_rate_hz: float,
-        margin_before_s: float = MARGIN_BEFORE_S,
-        margin_after_s: float = MARGIN_AFTER_S,
-        min_gap_s: float = MIN_GAP_S,
-    ):
+    def __init__(self, *, level: float, n: int, sample_rate_hz: float):
         self.level, self.n = float(level), int(n)
-        self.before = int(round(margin_before_s * sample_rate_hz))
-        self.after = int(round(margin_after_s * sample_rate_hz))
-        self.min_gap = max(1, int(round(min_gap_s * sample_rate_hz)))
+        self.before = int(round(MARGIN_BEFORE_S * sample_rate_hz))
+        self.after = int(round(MARGIN_AFTER_S * sample_rate_hz))
+        self.min_gap = max(1, int(round(MIN_GAP_S * sample_rate_hz)))
         self.lag = self.before + self.min_gap + 1
         self.open: Tap | None = None
         self.new: list[Tap] = []  # taps started since the last `take_new`
@@ -606,11 +426,13 @@ class TopValues:
 
 
 class LagCorrelation:
-    """`estimate_lag` over two streams: the cross-correlation sum_n x[n + lag] ref[n] for
-    |lag| <= max_lag, accumulated as pairs complete (history of max_lag samples)."""
+    """The lag (samples, positive: `x` late) of `x` relative to `reference` maximising their
+    cross-correlation sum_n x[n + lag] ref[n] over |lag| <= max_lag, over two streams,
+    accumulated as pairs complete (history of max_lag samples). The output sample k of
+    every method carries input stamp k: this checks it (expected 0)."""
 
-    def __init__(self, max_lag: int = 96):
-        self.max_lag = int(max_lag)
+    def __init__(self):
+        self.max_lag = 96
         self.corr = np.zeros(2 * self.max_lag + 1)
         self._ref = np.zeros(0)
         self._x = np.zeros(0)
@@ -623,8 +445,8 @@ class LagCorrelation:
         lag_max, o = self.max_lag, len(self._ref)
         ref = np.concatenate([np.zeros(lag_max - o), self._ref, np.asarray(reference, float)])
         xs = np.concatenate([np.zeros(lag_max - o), self._x, np.asarray(x, float)])
-        # FFT correlation, as estimate_lag (a direct sum is slow on a reference that decays
-        # into subnormal numbers between taps). Pairs whose later sample is in this piece:
+        # FFT correlation (a direct sum is slow on a reference that decays into subnormal
+        # numbers between taps). Pairs whose later sample is in this piece:
         # x[j] ref[j - lag] (lag >= 0) and ref[j] x[j + lag] (lag < 0), j in the piece.
         late = signal.correlate(ref, xs[lag_max:], mode="valid", method="fft")  # lag L .. 0
         early = signal.correlate(xs, ref[lag_max:], mode="valid", method="fft")  # -L .. 0

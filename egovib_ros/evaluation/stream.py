@@ -1,60 +1,42 @@
 """The evaluation as a stream: `egovib evaluate` over a recording pushed in time slices
-(`Recording`s, as `bag.iter_recording` yields them), in memory that does not grow with it.
-
-`evaluate.evaluate_recording` (whole arrays: `egovib figures`, experiments, the demo)
-pushes the recording as one slice through the very same objects, so a bag evaluated
-slice by slice gives the figures of the whole-array evaluation (tested for several
-slicings; sums are added in another order, so they agree to ~1e-15, all else exactly).
+(`Recording`s, as `bag.iter_recording` yields them), in memory that does not grow with it;
+`evaluate.evaluate_recording` pushes whole arrays as one slice through the same objects.
 
 Passes over the test recording (and the calibration recording):
 
-1. `SummaryPass` (test): what the evaluation needs of the whole run before it starts:
-   the number of samples, the peak of the ground-truth reference (the contact activity
-   threshold is 1e-3 of it), the bad-sample counts (more than `max_bad_fraction` bad is
-   refused before any other work) and whether the bag's own denoised topic is combined
-   or per axis, drop-in or band-passed.
-2. `CalibrationPass` (calibration data): every method run on the no-contact calibration
-   data, reduced to one detection threshold per method by the one rule of `egovib detect`
-   and the contact_detector node (core.contact.no_contact_threshold, its default budget,
-   on the one detector's envelope of the method's signal; detection.ThresholdReducer) and
-   noisereduce's per-frequency noise threshold (from the first 200 s, as noisereduce
-   clips its noise clip). Without calibration data, an `EvaluationPass` without thresholds
-   takes its place: the same rule on the run's own no-contact samples.
+1. `SummaryPass` (test): what the evaluation needs of the whole run first: the sample
+   count, the peak of the ground-truth reference (the contact activity threshold is 1e-3
+   of it), the bad-sample counts (more than `max_bad_fraction` bad is refused before any
+   other work) and what kind of output the bag's own denoised topic holds, if any.
+2. `CalibrationPass` (calibration data): every method on the no-contact data, reduced to
+   one detection threshold per method by the rule of `egovib detect` and the
+   contact_detector node (detection.ThresholdReducer), and noisereduce's noise threshold
+   (from its first 200 s). Without calibration data an `EvaluationPass` without
+   thresholds takes its place: the same rule on the run's own no-contact samples.
 3. `EvaluationPass` (test): every method as a stream (`baselines.method_stream`) and the
-   metrics as accumulators: noise sums and the largest 0.1 % of no-contact magnitudes
-   (the 99.9 % spike quantile, exact), per-tap peaks, segmental SNR, event detection by
-   the one contact detector (detection.OnsetStream) and its scoring, alignment lag; a
-   sample is scored once every signal has it and its contact and bad-input status is
-   final (`look-ahead` below).
-
-What is held, and for how long (the bounded look-ahead):
-- a run of bad samples until the next good sample (they are bridged between them);
-- each method's own delay: the core's blocks (L - 1 samples + the joint-state wait),
-  noisereduce's frames (n_fft - 1 samples), the bag's denoised topic until its stamps
-  pass (at most 10 s);
-- the contact segmentation: margin before a tap + the merge gap (40 ms);
-- the exclusion around bad samples: one block (L samples);
-- per-segment SNRs, onsets and the bag-vs-batch difference inside a tap's window until
-  the tap is known to be kept or dropped (its window has passed).
-Nothing is held for the whole run but counts, sums, and the largest 0.1 % of the
-no-contact magnitudes (for the 99.9 % quantile: 8 bytes per 1000 samples and signal).
+   metrics as accumulators (metrics, detection). A sample is scored once every signal has
+   it and its contact and bad-input status is final: held are a run of bad samples until
+   the next good one, each method's delay, the bag's denoised topic until its stamps pass
+   (at most 10 s), the contact segmentation's margins, one block around bad samples, and
+   what lies in a tap's window until the tap is known to be kept or dropped. Nothing is
+   held for the whole run but counts, sums and the largest 0.1 % of the no-contact
+   magnitudes (the 99.9 % spike quantile, exact).
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, Sequence
+from typing import Sequence
 
 import numpy as np
 from scipy import signal
 
-from egovib_ros.bag.recording import bag_topic_names, concat_recordings
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactSettings, DetectionEnvelope
+from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
-from egovib_ros.core.methods import has_method_calibration
+from egovib_ros.core.methods import SAMPLE_METHODS, has_method_calibration
 from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import baselines, detection, metrics
 
@@ -117,7 +99,7 @@ class _Fifo:
 # Input: bad samples, the bag's own denoised topic
 # --------------------------------------------------------------------------
 class Screen:
-    """metrics.bad_samples + fill_missing over streams of (N, 3) samples on the same stamps:
+    """Bad samples (metrics.bad_samples) over streams of (N, 3) samples on the same stamps:
     a bad sample (non-finite or beyond its stream's range) is bridged linearly between
     the good samples either side (held at the ends), so it is released once the next good
     sample of its stream is in. Counts per stream: `nonfinite`, `beyond`."""
@@ -183,11 +165,11 @@ class Screen:
 
 
 class RecordedDenoised:
-    """The bag's own denoised topic on the input samples (baselines.on_input_stamps): the
-    sum of the axes of the message stamped like the input sample (the last one if several),
-    0 if none; a non-finite message counts as 0 and makes its sample bad. An input sample
-    is resolved once a denoised message stamped later has been read (or at the end, or
-    `max_pending` samples later: then it has none)."""
+    """The bag's own denoised topic on the input samples: the sum of the axes of the
+    message stamped like the input sample (the last one if several), 0 if none; a
+    non-finite message counts as 0 and makes its sample bad. An input sample is resolved
+    once a denoised message stamped later has been read (or at the end, or `max_pending`
+    samples later: then it has none)."""
 
     def __init__(self, *, max_pending: int):
         self.max_pending = int(max_pending)
@@ -260,10 +242,6 @@ def _refuse_bad(source: str, bad: int, n: int, max_fraction: float, sensor_range
         )
 
 
-def _joints_nonfinite(piece) -> int:
-    return int(np.count_nonzero(~np.all(np.isfinite(piece.joint_velocity), axis=1)))
-
-
 def require_ground_truth(rec, where: str = "recording", profile=None) -> None:
     """Raise BagError unless `rec` (a Recording or a slice of one) carries the ground-truth
     contact signal, sample for sample (the topic `contact` beside the profile's sensor
@@ -289,7 +267,6 @@ def require_ground_truth(rec, where: str = "recording", profile=None) -> None:
 class RunSummary:
     samples: int
     activity_level: float  # ground-truth contact threshold (metrics.activity_threshold)
-    joint_speed_max: np.ndarray  # (J,) largest |velocity| per joint (nan: none finite)
     recorded: bool  # the run carries its own denoised topic
     recorded_like: str | None  # which method made it: "paper" (y = z = 0) or "per_axis"
     # the recorded output is the drop-in kind (raw minus the ego-vibration: out-of-band
@@ -319,7 +296,6 @@ class SummaryPass:
         self.recorded_bad = _Fifo(bool)
         self.low_raw, self.low_recorded = LowBandEnergy(model), LowBandEnergy(model)
         self.peak = 0.0
-        self.speed: np.ndarray | None = None
         self.joint_states_nonfinite = 0
         self.union_bad = 0
         self.n = 0
@@ -328,10 +304,8 @@ class SummaryPass:
         require_ground_truth(piece, self.source, self.model.profile)
         self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
-        if len(piece.joint_velocity):
-            speed = np.fmax.reduce(np.abs(piece.joint_velocity), axis=0)
-            self.speed = speed if self.speed is None else np.fmax(self.speed, speed)
-        self.joint_states_nonfinite += _joints_nonfinite(piece)
+        finite = np.all(np.isfinite(piece.joint_velocity), axis=1)
+        self.joint_states_nonfinite += int(np.count_nonzero(~finite))
         self._count(final=False)
 
     def _rows(self, stamps, values, bad) -> None:
@@ -382,13 +356,8 @@ class SummaryPass:
         return RunSummary(
             samples=n,
             activity_level=max(1e-3 * self.peak, 1e-6),  # metrics.activity_threshold
-            joint_speed_max=(
-                self.speed if self.speed is not None else np.full(self.model.n_joints, np.nan)
-            ),
             recorded=recorded,
             recorded_like=_like(self.recorded.any_yz, dropin) if recorded else None,
-            # drop-in output keeps what lies far below the band (gravity, motion), band-passed
-            # output keeps none of it (4th order: -48 dB at a quarter of the band's low edge)
             recorded_dropin=dropin,
             counts=counts,
         )
@@ -407,11 +376,9 @@ class CalibrationResult:
 class _Reducer:
     """The threshold rule's reducer of one signal's envelope over the calibration mask."""
 
-    def __init__(self, fs: float):
+    def __init__(self):
         self.values = _Fifo()
-        self.rule = detection.ThresholdReducer(
-            sample_rate_hz=fs, false_alarms_per_min=FALSE_ALARMS_PER_MIN
-        )
+        self.rule = detection.ThresholdReducer()
 
 
 class CalibrationPass:
@@ -433,7 +400,6 @@ class CalibrationPass:
     ):
         self.model, self.source, self.max_bad_fraction = model, source, float(max_bad_fraction)
         fs = model.sample_rate_hz
-        self.fs = fs
         self.screen = Screen([float(model.profile.sensor_range)])
         self.band = BandPass.of(model, 1)
         self.streams = {
@@ -447,7 +413,7 @@ class CalibrationPass:
         self.clip_n = 0
         self.gate: np.ndarray | None = None
         self.envelopes = {key: _envelope(model) for key in ["raw", *names]}
-        self.reducers = {key: _Reducer(fs) for key in ["raw", *names]}
+        self.reducers = {key: _Reducer() for key in ["raw", *names]}
         self.exclusion = metrics.BadRunExclusion(
             margin=int(model.block_length),
             settle_max=int(round(metrics.EDGE_S * fs)),
@@ -621,12 +587,7 @@ class EvaluationPass:
         self.pending_segments: deque[_Pending] = deque()
         # detection
         self.envelopes = {key: _envelope(model) for key in self.detect_keys}
-        self.own_thresholds = {
-            key: detection.ThresholdReducer(
-                sample_rate_hz=fs, false_alarms_per_min=FALSE_ALARMS_PER_MIN
-            )
-            for key in self.detect_keys
-        }
+        self.own_thresholds = {key: detection.ThresholdReducer() for key in self.detect_keys}
         # the one detector (core.contact) on each signal; the PR2 gripper's own magnitude
         # thresholds are a baseline of their own (detection.PR2Magnitude)
         self.detectors: dict[str, tuple] = {}
@@ -722,10 +683,8 @@ class EvaluationPass:
                 contact[max(tap.window_start, p) - p : min(tap.window_stop, q) - p] = True
         index = np.arange(p, q)
         no_contact = ~contact & ~excluded & (index >= self.edge) & (index < self.n - self.edge)
-        magnitudes = []
         for i, key in enumerate(self.metric_keys):
             magnitude = np.abs(data[key])
-            magnitudes.append(magnitude)
             quiet = magnitude[no_contact]
             self.noise_sum[i] += quiet.sum()
             self.top[i].push(quiet)
@@ -881,7 +840,7 @@ class EvaluationPass:
         return {key: self.own_thresholds[key].threshold() for key in self.detect_keys}
 
     def signal_metrics(self, key: str) -> dict:
-        """metrics.signal_metrics of signal `key` against the raw signal."""
+        """metrics.signal_figures of signal `key` against the raw signal."""
         i = self.metric_keys.index(key)
 
         def mean(total: np.ndarray, count: int) -> np.ndarray:
@@ -899,7 +858,7 @@ class EvaluationPass:
         )
 
     def scores(self, key: str) -> dict:
-        """detection.evaluate_detector's dict for detector `key` (a signal or pr2_*)."""
+        """detection.scores_of's dict and the threshold of detector `key` (a signal or pr2_*)."""
         scores = self.matchers[key].scores()
         scores["threshold"] = float(self.detectors[key][1].threshold)
         return scores
@@ -931,51 +890,6 @@ class EvaluationPass:
         return out
 
 
-# --------------------------------------------------------------------------
-# Slices
-# --------------------------------------------------------------------------
-def rechunk(pieces: Iterable, samples: int) -> Iterator:
-    """The same recording in slices of `samples` sensor samples (the last one shorter).
-    Joint states and denoised messages go with the first slice cut after they arrived
-    (ahead of their samples, as the streaming consumers allow)."""
-
-    samples = max(int(samples), 1)
-    held = []
-    held_n = 0
-    for piece in pieces:
-        held.append(piece)
-        held_n += len(piece.sensor_stamps_ns)
-        while held_n >= samples:
-            whole = concat_recordings(held)
-            yield _cut(whole, 0, samples, first=True)
-            rest = _cut(whole, samples, len(whole.sensor_stamps_ns), first=False)
-            held, held_n = [rest], len(rest.sensor_stamps_ns)
-    if held:
-        yield concat_recordings(held)
-
-
-def _cut(rec, a: int, b: int, *, first: bool):
-
-    changes = {
-        "sensor_stamps_ns": rec.sensor_stamps_ns[a:b],
-        "sensor": rec.sensor[a:b],
-        "contact": None if rec.contact is None else rec.contact[a:b],
-        "ego": None if rec.ego is None else rec.ego[a:b],
-    }
-    if not first:
-        width = rec.joint_velocity.shape[1]
-        changes.update(
-            joint_stamps_ns=rec.joint_stamps_ns[:0],
-            joint_position=np.zeros((0, width)),
-            joint_velocity=np.zeros((0, width)),
-            denoised_stamps_ns=None,
-            denoised=None,
-            command_stamps_ns=None,
-            commands=None,
-        )
-    return dataclasses.replace(rec, **changes)
-
-
 def _like(per_axis: bool, dropin: bool) -> str:
     """The method a recorded denoised topic is compared with: the default output (per axis,
     drop-in), the paper's per-axis band-passed one, or the paper's combined one."""
@@ -1000,7 +914,7 @@ def method_names(
         if not calibration:
             names.remove("noisereduce")
         if not fitted:
-            names = [n for n in names if n not in baselines.NEEDS_METHOD_CALIBRATION]
+            names = [n for n in names if n not in SAMPLE_METHODS]
     else:
         names = list(methods)
         unknown = [m for m in names if m not in baselines.METHOD_LABELS]
@@ -1014,7 +928,7 @@ def method_names(
             raise ValueError(
                 "paper_L32 needs a model calibrated with 32-sample blocks (--model-short)"
             )
-        needs = [n for n in names if n in baselines.NEEDS_METHOD_CALIBRATION]
+        needs = [n for n in names if n in SAMPLE_METHODS]
         if needs and not fitted:
             raise ConfigError(
                 f"methods {needs} need a model calibrated with `egovib calibrate --methods hybrid`"

@@ -2,59 +2,32 @@
 
 Base model (obeys the paper's assumptions exactly):
 
-* Joints. A first-order velocity controller (time constant ``controller_tau_s``)
-  follows the commanded velocities.  The wrist rolls continuously; the gripper
-  gap stays in 0..0.086 m by reversing its direction before a limit (the
-  commanded magnitude is kept, its sign flips).  Joint states are reported at
-  1 kHz with their own clock phase vs. the 3 kHz accelerometer: encoder
-  positions quantised to ``encoder_resolution`` and velocity = first-order
-  difference of those positions, as the PR2 reports it.
-* Ego-vibration of joint j (speed fraction s_j = |v_j| / vmax_j) is a source
+* Joints: a first-order velocity controller (`controller_tau_s`) follows the commands;
+  the wrist rolls freely, the gripper gap (0..0.086 m) reverses before a limit (speed
+  kept, sign flipped). Joint states at 1 kHz on their own clock phase vs. the 3 kHz
+  accelerometer: encoder positions quantised to `encoder_resolution`, velocity their
+  first-order difference, as the PR2 reports it.
+* Ego-vibration of joint j (speed fraction s_j = |v_j| / vmax_j): gear-mesh lines
+  sum_l a_l s_j^e (1 + jitter) sin(phi_l), phi_l' = 2 pi o_l r_j |v_j| + a phase random
+  walk, plus friction broadband (c_j (1 - exp(-s_j / 0.02)) + k_j s_j) w(t); through the
+  joint's own structural path (a Butterworth band of modes + a resonance near 1000 Hz)
+  onto its own sensor direction. The wrist's band is the lower part of 150-750 Hz, the
+  gripper's the upper, so their spectra overlap little and superpose (paper Eq. 6).
+* Accelerometer: gravity + idle hum + vibrations + contact + noise, quantised to 10 bits
+  over +/-78.5 m/s^2 with clipping. The hum is periodic in 32 samples (lines on multiples
+  of fs/32 = 93.75 Hz): a stationary background with a steady spectrum.
+* Taps: solenoid-like transients (a few decaying modes), Poisson onsets with a dead
+  time ("random") or evenly spaced ("periodic").
 
-      src_j(t) = sum_l a_l s_j^e (1 + jit_j(t)) sin(phi_l(t))          gear-mesh/commutation lines,
-                 phi_l' = 2 pi o_l r_j |v_j| + phase random walk        frequencies scale with speed
-               + (c_j (1 - exp(-s_j / 0.02)) + k_j s_j) w_j(t)          friction broadband (white w)
-
-  filtered by the joint's own structural path (a Butterworth band of modes +
-  a resonance near 1000 Hz) and put on the joint's own sensor direction.  The
-  wrist path carries the lower part of the 150-750 Hz band, the gripper path
-  the upper part, so their magnitude spectra overlap little and superpose
-  (paper Eq. 6).
-* Accelerometer: ego (gravity + idle hum + vibrations) + contact + sensor
-  noise, quantised to 10 bits over +/-78.5 m/s^2 with clipping.  The idle hum
-  (fans, power electronics) is periodic with period 32 samples, i.e. its
-  lines sit on multiples of fs/32 = 93.75 Hz, so the stationary background
-  has a steady magnitude spectrum.
-* Taps: solenoid-like transients, a few exponentially decaying modes,
-  Poisson onsets with a dead time ("random") or evenly spaced ("periodic").
-
-Effects (INTERFACES.md section 5), strength s; absent or 0 = bit-identical base:
-
-* ``position``:     wrist source x (1 + s cos(theta_w - position_phase_rad)),
-                    gripper source x (1 + s (gap / 0.086 - 0.5)).
-* ``coupling``:     extra broadband on the gripper path with rms
-                    s * coupling_gain * s_w * s_g (joints no longer add).
-* ``acceleration``: extra broadband on each joint's path with rms
-                    s * acceleration_gain * |a_j| / (vmax_j / controller_tau_s).
-* ``timing``:       reported joint_states stamps = true time + s seconds
-                    (positive: joint states lag the accelerometer).
-* ``drift``:        all joint vibration x (1 + s t / drift_period_s), t = time since start.
-
-Each effect can take another functional form (``effect_forms`` in the params, EFFECT_FORMS):
-
-* position ``closing_rub``: broadband added on the gripper path only while the gripper
-  closes, rms s * closing_rub_gain * s_g * (1 - gap / 0.086) (signed by the direction of
-  travel, additive, louder towards the closed end).
-* coupling ``signed``: the wrist source x exp(s * signed_coupling_gain * dir_w * dir_g *
-  s_w * s_g): louder when both joints move the same way, quieter when opposite
-  (multiplicative, tonal: the wrist's lines dominate its source).
-* acceleration ``speeding_up``: each joint's source x (1 + s * speeding_up_gain *
-  max(d|v|/dt, 0) / (vmax / controller_tau_s)): louder only while the joint speeds up.
-* timing ``filtered``: the reported joint velocity passes a first-order low-pass with time
-  constant |s| (a velocity estimator's lag; stamps and positions are exact).
-* drift ``warmup``: all joint vibration x (1 + 2 s (1 - exp(-t / warmup_tau_s)));
-  ``additive``: wear broadband added on each joint's path, rms s * wear_gain * s_j *
-  t / drift_period_s.
+Effects (INTERFACES.md section 5), strength s; absent or 0 = bit-identical base. Each
+has functional forms (`effect_forms` in the params, EFFECT_FORMS; docs/gap.md "Effect
+forms"), the first the default: position `gain` (wrist x (1 + s cos(theta_w -
+position_phase_rad)), gripper x (1 + s (gap / 0.086 - 0.5))) or `closing_rub`;
+coupling `broadband` (on the gripper path, rms s coupling_gain s_w s_g) or `signed`;
+acceleration `broadband` (rms s acceleration_gain |a_j| / (vmax_j / controller_tau_s))
+or `speeding_up`; timing `stamps` (joint stamps = true time + s) or `filtered` (the
+reported velocity low-passed with time constant |s|); drift `linear` (x (1 + s t /
+drift_period_s)), `warmup` or `additive` (`_with_effects`).
 """
 
 from __future__ import annotations

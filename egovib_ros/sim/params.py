@@ -24,12 +24,8 @@ def default_config_path() -> Path:
 
 @dataclass
 class JointVibration:
-    """Ego-vibration mechanisms of one joint, reaching the sensor through its own path.
-
-    Source = gear-mesh / commutation lines + friction broadband; the source is
-    filtered by the joint's structural path (a band of modes + a resonance near
-    1000 Hz) and lands on the joint's own sensor direction.
-    """
+    """Ego-vibration of one joint (sim/hand.py): gear-mesh / commutation lines + friction
+    broadband, through its own structural path onto its own sensor direction."""
 
     line_hz_per_unit: float  # gear-mesh fundamental (Hz) per joint speed unit (rad/s or m/s)
     line_orders: list[float]  # multiples of the fundamental (mesh harmonics, commutation)
@@ -270,9 +266,7 @@ def parse_effects(spec: str | None) -> dict[str, float]:
     raw: dict[str, str] = {}
     for item in spec.split(","):
         item = item.strip()
-        if not item:
-            continue
-        if item == "none":
+        if not item or item == "none":
             continue
         name, sep, value = item.partition("=")
         if not sep:

@@ -1,47 +1,30 @@
 """Any robot, simulated from its profile: free motion or a velocity-grid sweep.
 
-A generic N-joint model of the ego-vibration the denoiser removes. No robot's constants
-are in it: topics, field, rate, joints, speeds, grid and band come from the robot
-profile, the rest from the options.
+A generic N-joint model of the ego-vibration the denoiser removes; topics, field, rate,
+joints, speeds, grid and band come from the robot profile, the rest from the options.
 
-- Each joint drives a motor whose vibration is a line rising with its speed, from about
-  15 % to 75 % of the way across the profile's band between rest and full speed (each
-  joint with its own idle frequency and slope), with its second and third harmonics
-  (1/2, 1/3 of the fundamental's amplitude, faded out before Nyquist). The amplitude is
-  proportional to speed; each harmonic shakes the sensor along its own fixed direction.
-- The robot's build (frequencies, directions, the tap direction) is drawn from the
-  profile's name and joints, not from the run's seed: every run of one profile is the
-  same robot, so a model calibrated on one run fits another.
-- A white sensor floor; gravity (9.80665 m/s^2) on the sensor's z when the cleaned field
-  is linear_acceleration (a real accelerometer measures it, a gyro does not); values
-  saturate at the profile's sensor range.
-- Sensor stamps jitter +-30 % per step around the nominal rate, as flight controllers
-  and USB IMUs stamp them. Joint states at `joint_rate_hz` (default: 1 kHz, or the
-  sensor rate if lower), stamped 150 us after the sensor sample they describe; velocity
-  read to 0.2 % of full speed (never below 0 on a one-way joint), position integrated
-  from the true velocity.
+- Each joint's motor vibrates at a line rising with its speed, from about 15 % to 75 %
+  of the way across the band from rest to full speed (own idle frequency and slope per
+  joint), with 2nd and 3rd harmonics (1/2, 1/3 of its amplitude, faded out before
+  Nyquist); amplitude proportional to speed, each harmonic along its own direction. The
+  build (frequencies, directions, tap direction) is drawn from the profile's name and
+  joints, not the run's seed: every run of a profile is the same robot, so a model
+  calibrated on one run fits another.
+- A white sensor floor; gravity on z for linear_acceleration (a gyro does not measure
+  it); values saturate at the profile's sensor range. Sensor stamps jitter +-30 % per
+  step, as flight controllers and USB IMUs stamp them; joint states at `joint_rate_hz`
+  (default 1 kHz, or the sensor rate if lower), stamped 150 us after their sensor
+  sample, velocity read to 0.2 % of full speed (never below 0 on a one-way joint).
 - Taps: damped sine bursts (8 ms decay, 50 ms long) at the band's geometric centre,
-  three times the vibration level with a lognormal spread; onsets random (Poisson with
-  a 0.15 s dead time) or periodic; a tap's onset is the sample it rises from (zero there,
-  as in the PR2 simulator). The contact-only signal and the ego-vibration are written as
-  ground truth beside the sensor topic.
+  three times the vibration level with a lognormal spread, Poisson (0.15 s dead time) or
+  periodic; the contact-only signal and the ego-vibration are written as ground truth.
 
-Motion (`mode="motion"`): smooth random velocities (white noise through a 2nd-order
-0.3 Hz low-pass, unit rms), within `max_speed` of each joint's limit; one-directional
-joints stay in 0..max. Sweep (`mode="sweep"`): the profile's grid cells (full, or
-superposition: at most one joint moving) in turn, a cosine ramp of `settle_s` from one
-cell to the next, then `dwell_s` on it.
-
-Streaming: `RobotSimulator.step(velocity)` makes any number of samples from explicit
-state (clock, phases, filter state, taps under way); every random stream is drawn
-sample by sample in order and every running sum continues from its carried value, so
-the output does not depend on how a run is cut into steps (tested to the bit).
-
-Live (the `sim_robot` node): `CommandedRobot` follows velocity commands (one per joint,
-held until the next, as a ros2_control forward-command controller takes them) through a
-first-order velocity controller, and says how many samples are due at a clock time, so
-that the jittered stamps keep to the clock they are published on.
-numpy/scipy only.
+Motion: white noise through a 2nd-order 0.3 Hz low-pass within `max_speed` of each
+joint's limit (one-way joints in 0..max); sweep: the profile's grid cells in turn, a
+cosine ramp of `settle_s` between cells, then `dwell_s` on each. `RobotSimulator.step`
+works from explicit carried state, every random stream drawn in sample order, so a run
+cut into any steps gives the same output (tested to the bit). `CommandedRobot` (the
+sim_robot node) follows velocity commands and says how many samples a clock time is due.
 """
 
 from __future__ import annotations
@@ -298,18 +281,15 @@ class CommandedRobot:
     The command (one velocity per joint in profile order, held until the next, as a
     ros2_control forward-command controller takes it) is limited to each joint's range
     (-max..max, or 0..max for a one-way joint: a velocity controller saturates) and reached
-    through a first-order lag of `tau_s`, sample by sample; the RobotSimulator (keyword
-    `options`: its own, e.g. seed, tap_rate_hz, start_ns) makes the samples at the
-    resulting velocities. As with the simulator, any cut of a run gives the same samples.
+    through a first-order lag of CONTROLLER_TAU_S, sample by sample; the RobotSimulator
+    (`options`: seed, tap_rate_hz, start_ns, ...) makes the samples at those velocities.
 
     >>> robot = CommandedRobot(profile, seed=1, start_ns=now_ns)
     >>> robot.set_command([0.5, 0.0, -1.0])
     >>> piece = robot.step(robot.samples_due(now_ns))      # a Recording, as sim.step's
     """
 
-    def __init__(self, profile: RobotProfile, *, tau_s: float = CONTROLLER_TAU_S, **options):
-        if not (math.isfinite(tau_s) and tau_s > 0):
-            raise ConfigError(f"controller time constant must be > 0 s, got {tau_s!r}")
+    def __init__(self, profile: RobotProfile, **options):
         self.profile = profile
         self.sim = RobotSimulator(profile, **options)
         n = profile.n_joints
@@ -317,7 +297,7 @@ class CommandedRobot:
         self.velocity = np.zeros(n)  # true velocity at the last sample
         top = np.asarray(profile.max_speed, dtype=np.float64)
         self.low, self.high = np.where(profile.bidirectional, -top, 0.0), top
-        alpha = 1.0 - math.exp(-1.0 / (profile.rate_hz * tau_s))
+        alpha = 1.0 - math.exp(-1.0 / (profile.rate_hz * CONTROLLER_TAU_S))
         self._ba = ([alpha], [1.0, alpha - 1.0])
         self._zi = np.zeros((1, n))
 
@@ -470,10 +450,9 @@ def robot_slices(
     joint_rate_hz: float | None = None,
     jitter: float = 0.3,
     tap_amplitude: float | None = None,
-    slice_s: float = 1.0,
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Iterator[Recording], dict, float]:
-    """(iterator of `slice_s` Recording slices, truth dict filled as it runs, seconds
+    """(iterator of 1-s Recording slices, truth dict filled as it runs, seconds
     simulated). Everything that can be refused is refused here, before the first sample."""
     if mode not in MODES:
         raise ConfigError(f"--mode must be one of {MODES}, got {mode!r}")
@@ -494,7 +473,7 @@ def robot_slices(
             raise ConfigError(f"--duration must be > 0 seconds, got {duration_s!r}")
         schedule = SmoothMotion(profile, max_speed, sim.rng["motion"])
         total = int(round(duration_s * profile.rate_hz))
-    chunk = max(1, int(round(slice_s * profile.rate_hz)))
+    chunk = max(1, int(round(profile.rate_hz)))
     truth = truth_dict(seed, [])
 
     def generate() -> Iterator[Recording]:

@@ -19,6 +19,8 @@ from egovib_ros.sim.params import SimParams
 from egovib_ros.sim.pr2 import ACCEL_RATE_HZ, GRID_FRACTIONS, JOINT_NAMES, MAX_SPEED
 
 CHUNK = 3000  # samples per simulator step in offline runs (1 s)
+COMMAND_RATE_HZ = 50.0  # motion: commands sent at this rate ...
+MOTION_CUTOFF_HZ = 0.4  # ... low-passed white noise
 
 
 def sweep_cells(grid: str) -> np.ndarray:
@@ -98,46 +100,22 @@ def sweep_slices(
     return generate(), truth
 
 
-def simulate_sweep(
-    *,
-    grid: str = "superposition",
-    dwell_s: float = 15.0,
-    settle_s: float = 1.0,
-    effects: dict | None = None,
-    seed: int = 0,
-    params: SimParams | None = None,
-    tap_rate_hz: float = 0.0,
-    tap_mode: str = "random",
-    progress: Callable[[float], None] | None = None,
-) -> tuple[Recording, dict]:
-    """Sweep the velocity grid: each cell is commanded for settle_s + dwell_s seconds.
-
-    The gripper reverses at its gap limits (speed kept, sign flipped), so a
-    cell's blocks are split between +v and -v and the blocks around a reversal
-    are unsteady; calibration bins blocks by measured velocity anyway.
-    Returns the Recording (with ground truth) and the truth dict.
-    """
-    slices, truth = sweep_slices(
-        grid=grid,
-        dwell_s=dwell_s,
-        settle_s=settle_s,
-        effects=effects,
-        seed=seed,
-        params=params,
-        tap_rate_hz=tap_rate_hz,
-        tap_mode=tap_mode,
-        progress=progress,
-    )
+def simulate_sweep(**options) -> tuple[Recording, dict]:
+    """Sweep the velocity grid (sweep_slices' options): each cell is commanded for
+    settle_s + dwell_s seconds. The gripper reverses at its gap limits (speed kept, sign
+    flipped), so a cell's blocks are split between +v and -v and the blocks around a
+    reversal are unsteady; calibration bins blocks by measured velocity anyway.
+    Returns the whole Recording (with ground truth) and the truth dict."""
+    slices, truth = sweep_slices(**options)
     return concat_recordings(list(slices)), truth
 
 
 def motion_commands(
-    duration_s: float, max_speed: float, seed: int, *, rate_hz: float = 50.0, cutoff_hz: float = 0.4
+    duration_s: float, max_speed: float, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Random smooth velocity commands: low-pass filtered white noise, within +/- max_speed * vmax.
-
-    Returns (times_s (P,), commands (P, 2)) at `rate_hz`.
-    """
+    """Random smooth velocity commands, (times_s (P,), commands (P, 2)) at COMMAND_RATE_HZ:
+    low-pass filtered white noise, within +/- max_speed * vmax."""
+    rate_hz, cutoff_hz = COMMAND_RATE_HZ, MOTION_CUTOFF_HZ
     if not 0.0 <= max_speed <= 1.0:
         raise ConfigError(f"--max-speed must be a fraction in [0, 1], not {max_speed}")
     n = max(1, int(np.ceil(duration_s * rate_hz)))
@@ -161,7 +139,6 @@ def motion_slices(
     seed: int = 0,
     params: SimParams | None = None,
     tap_mode: str = "random",
-    command_rate_hz: float = 50.0,
     progress: Callable[[float], None] | None = None,
 ) -> tuple[Iterator[Recording], dict]:
     """Streaming form of simulate_motion: (iterator of 1-s Recording slices, truth dict
@@ -172,11 +149,11 @@ def motion_slices(
     sim = HandSimulator(
         params, effects=effects, seed=seed, tap_rate_hz=tap_rate_hz, tap_mode=tap_mode
     )
-    _, cmds = motion_commands(duration_s, max_speed, seed, rate_hz=command_rate_hz)
+    _, cmds = motion_commands(duration_s, max_speed, seed)
     total = int(round(duration_s * ACCEL_RATE_HZ))
     # zero-order hold of the commands at the accelerometer rate; a command is sent when it starts
     hold = np.minimum(
-        (np.arange(total) * command_rate_hz / ACCEL_RATE_HZ).astype(np.int64), len(cmds) - 1
+        (np.arange(total) * COMMAND_RATE_HZ / ACCEL_RATE_HZ).astype(np.int64), len(cmds) - 1
     )
     starts = np.flatnonzero(np.diff(hold, prepend=-1))
     truth = truth_dict(seed, sim.effects, [])
@@ -194,30 +171,10 @@ def motion_slices(
     return generate(), truth
 
 
-def simulate_motion(
-    *,
-    duration_s: float,
-    max_speed: float = 0.5,
-    tap_rate_hz: float = 0.0,
-    effects: dict | None = None,
-    seed: int = 0,
-    params: SimParams | None = None,
-    tap_mode: str = "random",
-    command_rate_hz: float = 50.0,
-    progress: Callable[[float], None] | None = None,
-) -> tuple[Recording, dict]:
-    """Random smooth motion (paper section 4) with optional taps; returns (Recording, truth)."""
-    slices, truth = motion_slices(
-        duration_s=duration_s,
-        max_speed=max_speed,
-        tap_rate_hz=tap_rate_hz,
-        effects=effects,
-        seed=seed,
-        params=params,
-        tap_mode=tap_mode,
-        command_rate_hz=command_rate_hz,
-        progress=progress,
-    )
+def simulate_motion(**options) -> tuple[Recording, dict]:
+    """Random smooth motion (paper section 4) with optional taps (motion_slices' options),
+    whole: (Recording, truth)."""
+    slices, truth = motion_slices(**options)
     return concat_recordings(list(slices)), truth
 
 

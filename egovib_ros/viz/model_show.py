@@ -1,32 +1,15 @@
 """`egovib model show MODEL.npz --out DIR [--bag BAG]`: look at a noise model.
 
-Writes into DIR (atomically, one PNG per view, plus summary.md):
-
-- coverage.png: which velocity cells the calibration measured and from how many blocks:
-  a heat map over the grid for two joints (a bar chart for one), with the cells that are
-  not measured marked by how the model fills them (Eq. 6 from the single-joint cells, or
-  the nearest measured cell); for 3 to 8 joints, per joint the blocks and measured cells
-  at each of its grid velocities, and how many joints move in the measured cells. Built
-  from the model's sparse cells: an 8-joint grid (21^8 points) is never allocated.
-- spectra_<channel>.png per model channel (combined, x, y, z): the mean (solid) and std
-  (dashed) magnitude spectra of a few measured cells (the paper's Fig. 3 for any robot):
-  per joint, rest and the single-joint cells nearest 25/50/75/100 % of its max speed
-  when measured; when no single-joint cell is (free motion of joints that move
-  together), the best-populated cell near each of 0/25/50/75/100 % mean speed.
-- bag.png (with --bag): where the recording's blocks fall, framed as the denoiser frames
-  them (streamed, never loaded whole): blocks per cell against the measured cells, and
-  the shares on measured cells, on unmeasured cells (Eq. 6 or nearest) and beyond the
-  grid.
-- online.png (a model written by `egovib denoise --adapt --save-model` or the denoiser
-  node's save_model service): the residual table's cells learnt online (core.adapt) and
-  from how many blocks, those the calibration never measured marked; the 2-joint
-  coverage map marks them too (stars).
-- summary.md: the numbers (cells measured / total, blocks, median blocks per cell, cells
-  with too few blocks for a std, grid, rate, block length, band, measured kind,
-  provenance; with --bag the shares; the cells learnt online).
-
-Everything is computed before the output is written; bad input (not a model, a bag
-without the model's topics) is one line, exit status 2, and nothing written.
+Writes into DIR (atomically): coverage.png (which velocity cells the calibration
+measured, from how many blocks, and how the model fills the others: Eq. 6 from the
+single-joint cells, or the nearest measured cell; a map for two joints, per-joint
+marginals else, built from the sparse cells: an 8-joint grid is never allocated);
+spectra_<channel>.png (mean and std spectra of a few measured cells, the paper's Fig. 3
+for any robot); with --bag bag.png (where the recording's blocks fall, framed as the
+denoiser frames them, streamed); for a model that learnt online (`egovib denoise --adapt
+--save-model`, the denoiser node's save_model) online.png; and summary.md with the
+numbers. Everything is computed before the output is written; bad input is one line,
+exit status 2, and nothing written.
 """
 
 from __future__ import annotations
@@ -181,7 +164,10 @@ def _speed_label(value: float, top: float) -> str:
 
 
 def spectra_panels(model) -> list[SpectraPanel]:
-    """Which measured cells the spectra figures show (see the module doc)."""
+    """Which measured cells the spectra figures show: per joint, rest and the single-joint
+    cells nearest 25/50/75/100 % of its max speed where measured; where no single-joint
+    cell is (joints that move together), the best-populated cell near each of
+    0/25/50/75/100 % mean speed."""
     index = CellIndex.of(model)
     counts = model.cell_counts
     zero = index.zero
@@ -209,8 +195,6 @@ def spectra_panels(model) -> list[SpectraPanel]:
             panels.append(panel)
     if panels:
         return panels
-    # No single-joint cell measured (joints that move together): the best-populated cell
-    # near each mean speed.
     tops = np.array([max(float(np.max(np.abs(g))), 1e-300) for g in model.grid])
     speeds = np.column_stack(
         [np.abs(model.grid[j][model.cells[:, j]]) for j in range(model.n_joints)]
@@ -697,31 +681,20 @@ def _coverage_map(model, c: dict, index: CellIndex, title: str, path: Path) -> N
 def _coverage_marginals(model, c: dict, index: CellIndex, title: str, path: Path) -> None:
     """One joint or three and more: blocks and measured cells at each grid velocity of each
     joint, and how many joints move in the measured cells."""
-    plt = pyplot()
-    marginals = joint_marginals(model)
-    n_panels = model.n_joints + (1 if model.n_joints > 1 else 0)
-    cols = 1 if n_panels == 1 else 2
-    rows = math.ceil(n_panels / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 2.6 * rows + 0.8), squeeze=False)
-    for j, m in enumerate(marginals):
-        ax = axes.flat[j]
-        g = m["grid"]
-        x = np.arange(len(g))
+    fig, axes = _panels(model.n_joints + (1 if model.n_joints > 1 else 0))
+    for j, m in enumerate(joint_marginals(model)):
+        ax = axes[j]
+        x = np.arange(len(m["grid"]))
         ax.bar(x, m["blocks"], color="tab:blue", label="blocks")
         ax.plot(x, m["cells"], "o-", color="tab:orange", ms=3, lw=1, label="cells measured")
         none = m["cells"] == 0
         if none.any():
             ax.plot(x[none], np.zeros(none.sum()), "x", color="tab:red", ms=7, mew=1.5,
                     label="no measured cell", zorder=3)  # fmt: skip
-        ax.set_yscale("symlog", linthresh=1)
+        _count_axes(ax, model, j)
         ax.set_ylim(bottom=-0.4)  # room for the markers at zero
-        ax.set_ylabel("count")
-        _velocity_ticks(ax, g, "x")
-        ax.set_xlabel(f"{model.joint_names[j]} velocity")
-        if j == 0:
-            ax.legend(fontsize=7, loc="upper left")
-    if n_panels > model.n_joints:
-        ax = axes.flat[model.n_joints]
+    if len(axes) > model.n_joints:
+        ax = axes[model.n_joints]
         moving = (model.cells != index.zero[None, :]).sum(axis=1)
         cells = np.bincount(moving, minlength=model.n_joints + 1)
         blocks = np.bincount(moving, weights=model.cell_counts, minlength=model.n_joints + 1)
@@ -732,10 +705,28 @@ def _coverage_marginals(model, c: dict, index: CellIndex, title: str, path: Path
         ax.set_xticks(k)
         ax.set_xlabel("joints moving in the cell")
         ax.legend(fontsize=7)
-    for ax in list(axes.flat)[n_panels:]:
-        ax.set_visible(False)
     fig.suptitle(title, fontsize=10)
     save_figure(fig, path, dpi=100)
+
+
+def _panels(n: int) -> tuple:
+    """(figure, its n axes) side by side in two columns (one for one panel), the spare hidden."""
+    cols = 1 if n == 1 else 2
+    rows = math.ceil(n / cols)
+    fig, axes = pyplot().subplots(rows, cols, figsize=(6 * cols, 2.6 * rows + 0.8), squeeze=False)
+    for ax in list(axes.flat)[n:]:
+        ax.set_visible(False)
+    return fig, list(axes.flat)[:n]
+
+
+def _count_axes(ax, model, j: int) -> None:
+    """A per-joint panel's axes: counts (symlog) over joint j's grid velocities."""
+    ax.set_yscale("symlog", linthresh=1)
+    ax.set_ylabel("count")
+    _velocity_ticks(ax, model.grid[j], "x")
+    ax.set_xlabel(f"{model.joint_names[j]} velocity")
+    if j == 0:
+        ax.legend(fontsize=7, loc="upper left")
 
 
 def spectra_figure(model, channel: str, panels: list[SpectraPanel], path: Path) -> None:
@@ -950,14 +941,10 @@ def _share_bar(ax, shares: dict) -> None:
 def online_figure(model, learnt: dict, path: Path) -> None:
     """The residual table's cells learnt online: per joint, at each of its grid
     velocities, the blocks learnt and the cells learnt (those never calibrated apart)."""
-    plt = pyplot()
     cells, blocks, new = learnt["cells"], learnt["blocks"], learnt["new"]
-    J = model.n_joints
-    cols = 1 if J == 1 else 2
-    rows = math.ceil(J / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 2.6 * rows + 0.8), squeeze=False)
+    fig, axes = _panels(model.n_joints)
     for j, g in enumerate(model.grid):
-        ax = axes.flat[j]
+        ax = axes[j]
         x = np.arange(len(g))
         ax.bar(x, np.bincount(cells[:, j], weights=blocks, minlength=len(g)), color="tab:green",
                label="blocks learnt online")  # fmt: skip
@@ -965,14 +952,7 @@ def online_figure(model, learnt: dict, path: Path) -> None:
                 lw=1, label="cells never calibrated, learnt")  # fmt: skip
         ax.plot(x, np.bincount(cells[~new, j], minlength=len(g)), "o-", color="tab:blue", ms=3,
                 lw=1, label="calibrated cells, learnt further")  # fmt: skip
-        ax.set_yscale("symlog", linthresh=1)
-        ax.set_ylabel("count")
-        _velocity_ticks(ax, g, "x")
-        ax.set_xlabel(f"{model.joint_names[j]} velocity")
-        if j == 0:
-            ax.legend(fontsize=7, loc="upper left")
-    for ax in list(axes.flat)[J:]:
-        ax.set_visible(False)
+        _count_axes(ax, model, j)
     fig.suptitle(f"{_robot_name(model)}: {_learnt_line(learnt)}", fontsize=9)
     save_figure(fig, path, dpi=100)
 

@@ -66,5 +66,5 @@ def register(subparsers) -> None:
     fig.add_argument("--out", default="docs", help="output directory (default: docs)")
     fig.add_argument("--seed", type=options.seed, default=1)
     fig.add_argument("--quick", action="store_true", help="small run (for tests)")
-    options.force_and_quiet(fig, "replace the files of a previous run in DIR", None)
+    options.force_and_quiet(fig, "replace the files of a previous run in DIR")
     fig.set_defaults(func=run_figures)

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from egovib_research.experiments import core_arrays, fmt, python_command
+from egovib_research.experiments import core_arrays, fmt, python_command, scoring
 from egovib_research.experiments.flight import ATTRIBUTION
 from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.methods import build_methods
@@ -165,11 +165,11 @@ def flight_split(rec, profile, name: str, event_sets: int, oracles: bool = True)
             "1-D table": one_d.run(noisy),
             **{key: _dropin_scored(noisy, m, profile, None) for key, m in oracles.items()},
         }
-        peaks = metrics.tap_peaks(reference, seg.tap_windows)
+        peaks = scoring.tap_peaks(reference, seg.tap_windows)
         for key, out in outputs.items():
-            row = metrics.signal_metrics(raw, out, reference, seg)
+            row = scoring.signal_metrics(raw, out, reference, seg)
             row["event_retention"] = float(
-                metrics.tap_peaks(out, seg.tap_windows).mean() / peaks.mean()
+                scoring.tap_peaks(out, seg.tap_windows).mean() / peaks.mean()
             )
             rows[key].append(row)
     pooled = {key: {k: float(np.mean([r[k] for r in v])) for k in KEYS} for key, v in rows.items()}

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_research.experiments import python_command
+from egovib_research.experiments import python_command, scoring
 from egovib_research.experiments.flight import ATTRIBUTION
 from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.methods_compare import SPLITS
@@ -57,9 +57,14 @@ from egovib_ros.bag import Recording, read_recording, write_recording, write_rec
 from egovib_ros.bag.calibrate import calibrate_bag_methods, calibrate_bags
 from egovib_ros.core.contact import THRESHOLD_MARGIN, ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import combined_bandpassed
-from egovib_ros.evaluation.contacts import EDGE_S, detect_bag, method_output
+from egovib_ros.evaluation.contacts import (
+    EDGE_S,
+    check_detect_method,
+    detect_bag,
+    method_pieces,
+)
 from egovib_ros.evaluation.detection import scores_of
-from egovib_ros.evaluation.metrics import json_safe, segment_contacts, tap_peaks
+from egovib_ros.evaluation.metrics import json_safe, segment_contacts
 from egovib_ros.robot import load_profile
 from egovib_ros.sim.pr2 import ACCEL_FRAME
 from egovib_ros.sim.scenarios import motion_slices, sweep_slices
@@ -130,6 +135,24 @@ def _envelope(values: np.ndarray, model) -> np.ndarray:
     return DetectionEnvelope(settings).process(values)[1]
 
 
+def method_output(bag, model, method: str) -> tuple:
+    """(stamps (N,), values (N, 3), ground truth (N, 3) or None): what `detect_bag` feeds
+    its detector on `bag`, whole; for looking at why a method detects what it does."""
+    method = check_detect_method(model, method)
+    stamps, values, truth = [], [], []
+    for s, v, contact in method_pieces(bag, model, method, ground_truth=True):
+        stamps.append(s)
+        values.append(v)
+        if contact is not None:
+            truth.append(contact)
+    stamps_all = np.concatenate(stamps) if stamps else np.zeros(0, np.int64)
+    values_all = np.concatenate(values) if values else np.zeros((0, 3))
+    contact_all = np.concatenate(truth) if truth else None
+    if contact_all is not None and len(contact_all) != len(stamps_all):
+        contact_all = None
+    return stamps_all, values_all, contact_all
+
+
 def run_method(bag: Path, calibration: Path, model, method: str) -> dict:
     """`egovib detect` on `bag` (threshold from `calibration`), with its scores and the
     detection envelope of what the detector saw."""
@@ -181,13 +204,13 @@ def why(runs: dict, model) -> dict:
     reference = combined_bandpassed(raw["contact"], model.robot_profile())
     seg = segment_contacts(reference, sample_rate_hz=model.sample_rate_hz)
     quiet = seg.no_contact_mask
-    raw_peaks = tap_peaks(raw["envelope"], seg.tap_windows)
+    raw_peaks = scoring.tap_peaks(raw["envelope"], seg.tap_windows)
     out = {"_onsets_ns": raw["stamps"][seg.onsets]}
     for method, run in runs.items():
         if not np.array_equal(run["stamps"], raw["stamps"]):
             raise RuntimeError(f"method {method}: output stamps differ from the input's")
         envelope, threshold = run["envelope"], run["detection"].threshold
-        peaks = tap_peaks(envelope, seg.tap_windows)
+        peaks = scoring.tap_peaks(envelope, seg.tap_windows)
         power = np.mean(envelope[quiet] ** 2)
         at = np.searchsorted(run["stamps"], [e.onset_ns for e in run["detection"].events])
         in_quiet = int(np.count_nonzero(quiet[np.clip(at, 0, len(quiet) - 1)]))

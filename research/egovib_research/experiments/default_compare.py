@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from egovib_research.altreality.hand import simulate_alt_motion
-from egovib_research.experiments import core_arrays, fmt, python_command
+from egovib_research.experiments import core_arrays, fmt, python_command, scoring
 from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.methods_compare import SPLITS
 from egovib_research.experiments.flight.recording import read_flight_bag
@@ -152,12 +152,12 @@ def score(case: Case) -> dict:
         raw = combined_bandpassed(rec.sensor, profile)
         onsets = rec.sensor_stamps_ns[seg.onsets]
         minutes += len(raw) / fs / 60.0
-        perfect = metrics.signal_metrics(raw, reference, reference, seg)["tap_retention"]
+        perfect = scoring.signal_metrics(raw, reference, reference, seg)["tap_retention"]
         rows.setdefault("perfect", {"tap_retention": []})["tap_retention"].append(perfect)
         for method in METHODS:
             for output in ("dropin", "bandpassed"):
                 stamps, values, band = _output(model, rec, method, output)
-                figures = metrics.signal_metrics(raw, band, reference, seg)
+                figures = scoring.signal_metrics(raw, band, reference, seg)
                 row = rows.setdefault(f"{method}/{output}", {"tp": 0, "fp": 0, "fn": 0})
                 for key in ("noise_reduction_db", "peak_snr_improvement_db", "tap_retention"):
                     row.setdefault(key, []).append(figures[key])
@@ -173,8 +173,8 @@ def score(case: Case) -> dict:
         )
         if case.firmware is not None:
             firmware = combined_bandpassed(case.firmware[k], profile)
-            noise_raw = metrics.noise_mean(raw, seg.no_contact_mask)
-            value = metrics.db20(noise_raw / metrics.noise_mean(firmware, seg.no_contact_mask))
+            noise_raw = scoring.noise_mean(raw, seg.no_contact_mask)
+            value = metrics.db20(noise_raw / scoring.noise_mean(firmware, seg.no_contact_mask))
             rows.setdefault("firmware", {}).setdefault("noise_reduction_db", []).append(value)
     out = {}
     for key, row in rows.items():

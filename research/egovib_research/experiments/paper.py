@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_research.experiments import core_arrays, fmt
+from egovib_research.experiments import core_arrays, fmt, scoring
 from egovib_research.experiments import sim_validation as validation
 from egovib_ros import sim
 from egovib_ros.core import calibrate_arrays
@@ -153,7 +153,7 @@ def added_taps_recording(taps_rec, motion_rec, model):
     seg = metrics.segment_contacts(tap_signal, sample_rate_hz=model.sample_rate_hz)
     noise = combined_bandpassed(motion_rec.sensor[:n], model.robot_profile())
     edge = int(metrics.EDGE_S * model.sample_rate_hz)
-    peak = metrics.tap_peaks(tap_signal, seg.tap_windows).mean()
+    peak = scoring.tap_peaks(tap_signal, seg.tap_windows).mean()
     scale = np.abs(noise[edge : n - edge]).max() / peak
     return dataclasses.replace(
         motion_rec,
@@ -181,17 +181,24 @@ def run_speed(
     calibration, rec_a, taps_rec, ego_rec = speed_recordings(
         config, speed, index=index, params=params, effects=effects, only_a=only_a
     )
-    kwargs = dict(
-        calibration=calibration,
-        model_short=models.model_short,
-        keep_signals=keep_signals,
-        pr_curves=keep_signals,
-    )
-    report_a = evaluate_recording(rec_a, models.model, **kwargs)
+
+    def evaluate(rec) -> dict:
+        report = evaluate_recording(
+            rec,
+            models.model,
+            calibration=calibration,
+            model_short=models.model_short,
+            keep_signals=keep_signals,
+        )
+        if keep_signals:
+            report["pr_curves"] = scoring.pr_curves(report, models.model.sample_rate_hz)
+        return report
+
+    report_a = evaluate(rec_a)
     if only_a:
         return {"a": report_a}
     rec_b, scale = added_taps_recording(taps_rec, ego_rec, models.model)
-    report_b = evaluate_recording(rec_b, models.model, **kwargs)
+    report_b = evaluate(rec_b)
     report_b["tap_scale"] = scale
     if keep_signals:
         report_a["recording"], report_b["recording"] = rec_a, rec_b

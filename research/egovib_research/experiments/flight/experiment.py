@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal as sps
 
+from egovib_research.experiments import scoring
 from egovib_research.experiments.flight import ATTRIBUTION
 from egovib_research.experiments.flight import report as report_module
 from egovib_research.experiments.flight.events import EventSpec, make_events
@@ -149,10 +150,10 @@ def score_events(
     rows, signals = {}, {}
     for name, method in fitted.items():
         output = method.run(noisy)
-        envelope = detection.envelope(output, sample_rate_hz=fs)
-        row = metrics.signal_metrics(raw, output, reference, seg)
-        scores = detection.evaluate_detector(envelope, truth, thresholds[name], sample_rate_hz=fs)
-        lenient = detection.evaluate_detector(
+        envelope = scoring.envelope(output, sample_rate_hz=fs)
+        row = scoring.signal_metrics(raw, output, reference, seg)
+        scores = scoring.evaluate_detector(envelope, truth, thresholds[name], sample_rate_hz=fs)
+        lenient = scoring.evaluate_detector(
             envelope, truth, thresholds[name], sample_rate_hz=fs, tolerance_s=LENIENT_TOLERANCE_S
         )
         row.update({key: scores[key] for key in SCORES})
@@ -165,13 +166,13 @@ def score_events(
         if keep_signals:
             signals[name] = output
     if firmware_bp is not None:
-        noise_fw = metrics.noise_mean(firmware_bp, seg.no_contact_mask)
+        noise_fw = scoring.noise_mean(firmware_bp, seg.no_contact_mask)
         rows["firmware"] = {
             "noise_mean_raw": rows["raw"]["noise_mean_raw"],
             "noise_mean_denoised": noise_fw,
             "noise_reduction_db": metrics.db20(rows["raw"]["noise_mean_raw"] / noise_fw),
             "noise_spike_raw": rows["raw"]["noise_spike_raw"],
-            "noise_spike_denoised": metrics.noise_spike(firmware_bp, seg.no_contact_mask),
+            "noise_spike_denoised": scoring.noise_spike(firmware_bp, seg.no_contact_mask),
         }
     info = {
         "seed": spec.seed,
@@ -277,8 +278,8 @@ def run_fold(
         start = time.perf_counter()
         method.fit(cal)
         fit_seconds[name] = time.perf_counter() - start
-        envelope = detection.envelope(method.run(cal), sample_rate_hz=fs)
-        thresholds[name] = detection.threshold_from_calibration(envelope[cal_mask])
+        envelope = scoring.envelope(method.run(cal), sample_rate_hz=fs)
+        thresholds[name] = scoring.threshold_from_calibration(envelope[cal_mask])
 
     firmware_bp = combined_bandpassed(test.filtered, profile) if test.filtered is not None else None
     results, event_info, signals = {}, {}, {}
@@ -390,10 +391,10 @@ def run_experiment(
             "amplitudes": list(config.amplitudes),
             "primary_amplitude": PRIMARY_AMPLITUDE,
             "detection": {
-                "envelope": f"causal RMS over {detection.ENVELOPE_S * 1e3:g} ms",
-                "refractory_s": detection.REFRACTORY_S,
+                "envelope": f"causal RMS over {scoring.ENVELOPE_S * 1e3:g} ms",
+                "refractory_s": scoring.REFRACTORY_S,
                 "tolerance_s": detection.TOLERANCE_S,
-                "threshold": f"{detection.CALIBRATION_MARGIN} x max envelope on calibration data",
+                "threshold": f"{scoring.CALIBRATION_MARGIN} x max envelope on calibration data",
             },
             "metrics": "egovib_ros.evaluation.metrics (INTERFACES.md section 6), on the combined, "
             f"{profile.band_hz[0]:g}-{profile.band_hz[1]:g} Hz band-passed gyro, rad/s",

@@ -39,7 +39,6 @@ from egovib_research.experiments.flight.notch import (
     hold,
 )
 from egovib_ros.core import BandPass, calibrate_arrays, denoise_batch, filters
-from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.robot import RobotProfile
 
@@ -53,6 +52,25 @@ LABELS = {
     "notch_q2": "(c) harmonic notch bank per motor, 3 harmonics, Q 2 (ArduPilot)",
 }
 METHODS = tuple(LABELS)
+
+
+def on_input_stamps(
+    out_stamps: np.ndarray, values: np.ndarray, in_stamps: np.ndarray
+) -> np.ndarray:
+    """Sum the output channels and place them on the input stamps (0 where a sample is missing).
+
+    Denoised samples carry the stamp of the input sample they replace, so matching
+    is by stamp: dropped inputs or a shorter output (e.g. a live node stopped before
+    flushing) leave zeros, never a shift.
+    """
+    summed = np.asarray(values, float).sum(axis=1)
+    if len(out_stamps) == len(in_stamps) and np.array_equal(out_stamps, in_stamps):
+        return summed
+    result = np.zeros(len(in_stamps))
+    index = np.searchsorted(in_stamps, out_stamps)
+    ok = (index < len(in_stamps)) & (in_stamps[np.minimum(index, len(in_stamps) - 1)] == out_stamps)
+    result[index[ok]] = summed[ok]
+    return result
 
 
 def single_joint_profile(

@@ -49,11 +49,17 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
-from egovib_research.experiments import best_wall_and_cpu, core_arrays, fmt, python_command
+from egovib_research.experiments import (
+    best_wall_and_cpu,
+    core_arrays,
+    fmt,
+    python_command,
+    scoring,
+)
 from egovib_research.experiments.flight import ATTRIBUTION
 from egovib_research.experiments.flight.events import EventSpec, make_events
 from egovib_research.experiments.flight.experiment import calibration_mask
-from egovib_research.experiments.flight.methods import build_methods
+from egovib_research.experiments.flight.methods import build_methods, on_input_stamps
 from egovib_research.experiments.flight.recording import read_flight_bag
 from egovib_research.experiments.paper import (
     ExperimentConfig,
@@ -71,7 +77,6 @@ from egovib_ros.core.methods import (
     method_delay_ms,
 )
 from egovib_ros.evaluation import detection, metrics
-from egovib_ros.evaluation.baselines import on_input_stamps
 from egovib_ros.evaluation.metrics import json_safe
 from egovib_ros.robot import load_profile
 from egovib_ros.viz import pyplot, save_figure
@@ -121,17 +126,17 @@ def waveform_correlation(output: np.ndarray, reference: np.ndarray, windows: np.
 
 
 def score(output, raw, reference, seg, threshold, fs, minutes) -> dict:
-    row = metrics.signal_metrics(raw, output, reference, seg)
+    row = scoring.signal_metrics(raw, output, reference, seg)
     # tap_retention (as `egovib evaluate` reports it) divides by the raw peak, noise included:
     # a perfect denoiser scores below 1. Here the true event is known: its own peak.
-    peaks_true = metrics.tap_peaks(reference, seg.tap_windows)
+    peaks_true = scoring.tap_peaks(reference, seg.tap_windows)
     row["event_retention"] = (
-        float(metrics.tap_peaks(output, seg.tap_windows).mean() / peaks_true.mean())
+        float(scoring.tap_peaks(output, seg.tap_windows).mean() / peaks_true.mean())
         if peaks_true.size
         else float("nan")
     )
-    scores = detection.evaluate_detector(
-        detection.envelope(output, sample_rate_hz=fs), seg.onsets, threshold, sample_rate_hz=fs
+    scores = scoring.evaluate_detector(
+        scoring.envelope(output, sample_rate_hz=fs), seg.onsets, threshold, sample_rate_hz=fs
     )
     row.update(
         waveform_corr=waveform_correlation(output, reference, seg.tap_windows),
@@ -211,8 +216,8 @@ def flight_split(
             method.fit(cal)
         fit_s[key] = round(time.perf_counter() - begin, 2)
         output = method.run(cal)
-        thresholds[key] = detection.threshold_from_calibration(
-            detection.envelope(output, sample_rate_hz=fs)[cal_mask]
+        thresholds[key] = scoring.threshold_from_calibration(
+            scoring.envelope(output, sample_rate_hz=fs)[cal_mask]
         )
         delays[key] = float(method.delay_ms)
     delays["paper"] = 1e3 * (profile.block_length - 1) / fs  # a block's last sample waits L - 1
@@ -237,11 +242,11 @@ def flight_split(
                     score(outputs[key], raw, reference, seg, thresholds[key], fs, minutes)
                 )
             # What a perfect denoiser (the true event alone) scores: the raw peak has noise in it.
-            oracle.append(metrics.signal_metrics(raw, reference, reference, seg)["tap_retention"])
+            oracle.append(scoring.signal_metrics(raw, reference, reference, seg)["tap_retention"])
             if firmware is not None:
-                noise_raw = metrics.noise_mean(raw, seg.no_contact_mask)
+                noise_raw = scoring.noise_mean(raw, seg.no_contact_mask)
                 firmware_db.append(
-                    metrics.db20(noise_raw / metrics.noise_mean(firmware, seg.no_contact_mask))
+                    metrics.db20(noise_raw / scoring.noise_mean(firmware, seg.no_contact_mask))
                 )
             if strength == 1.0 and seed == 1:
                 spectrogram = {"raw": raw, **{k: outputs[k] for k in ("paper", "hybrid")}}
@@ -389,11 +394,11 @@ def pr2_experiments(cache: Path | None, gain: GainSettings | None = None) -> dic
             reference = bp(rec.contact, full)
             seg = metrics.segment_contacts(reference, sample_rate_hz=fs)
             minutes = len(rec.sensor_stamps_ns) / fs / 60.0
-            oracle = metrics.signal_metrics(raw, reference, reference, seg)["tap_retention"]
+            oracle = scoring.signal_metrics(raw, reference, reference, seg)["tap_retention"]
             rows[label] = {"oracle": {"tap_retention": oracle}}
             for method in PR2_METHODS:
-                threshold = detection.threshold_from_calibration(
-                    detection.envelope(cal_out[method], sample_rate_hz=fs)[mask]
+                threshold = scoring.threshold_from_calibration(
+                    scoring.envelope(cal_out[method], sample_rate_hz=fs)[mask]
                 )
                 output = _pr2_output(rec, full, method)
                 row = score(output, raw, reference, seg, threshold, fs, minutes)
