@@ -58,10 +58,6 @@ def joint_lag_of(lag_s: float) -> float:
     return -float(lag_s)
 
 
-def _noise_reduction(diag: Diagnosis, name: str) -> float:
-    return -float(diag.residual_noise.get(name, float("nan")))
-
-
 def _shape_span(shape: dict, prefix: str) -> tuple[str, float, dict]:
     """The curve of `shape` (keys starting with prefix) with the largest peak-to-trough."""
     best, span, curve = "", 0.0, {}
@@ -73,16 +69,12 @@ def _shape_span(shape: dict, prefix: str) -> tuple[str, float, dict]:
     return best, span, curve
 
 
-def _fmt(value: float) -> str:
-    return f"{value:g}"
-
-
 def _timing_action(model) -> tuple[str, dict]:
     p = model.parameters
     offset = float(p.get("lag_s", 0.0)) - float(p.get("reference_lag_s", 0.0))
     joint_lag = round(joint_lag_of(offset), 4)
     way = "trails" if joint_lag > 0 else "leads"
-    flag = _fmt(joint_lag)
+    flag = f"{joint_lag:g}"
     return (
         f"the vibration {way} the joint states by {1000 * abs(joint_lag):.0f} ms more than the "
         f"model expects: joint lag {flag} s (`egovib denoise --joint-lag {flag}`, the denoiser "
@@ -285,7 +277,7 @@ def commands(
     """The command lines that apply every advised correction together."""
     flags, params = [], []
     if settings.get("joint_lag_s"):
-        lag = _fmt(settings["joint_lag_s"])
+        lag = f"{settings['joint_lag_s']:g}"
         flags.append(f"--joint-lag {lag}")
         params.append(f"-p joint_lag:={lag}")
     if settings.get("noise_gain_db"):
@@ -297,7 +289,7 @@ def commands(
         out["denoiser_node"] = f"denoiser --ros-args -p model:={model} " + " ".join(params)
     if settings.get("calibration_grid"):
         grid = settings["calibration_grid"]
-        lag = f" --joint-lag {_fmt(settings['joint_lag_s'])}" if settings.get("joint_lag_s") else ""
+        lag = f" --joint-lag {settings['joint_lag_s']:g}" if settings.get("joint_lag_s") else ""
         out["calibrate"] = (
             f"egovib calibrate NEW_RECORDING --grid {grid}{lag} --out NEW_MODEL.npz"
             + (
@@ -324,8 +316,8 @@ def advise(diag: Diagnosis, *, paths: dict | None = None, measured: dict | None 
         settings = merged_settings(actions)
     else:
         text, settings = _none_action(diag)
-    without = _noise_reduction(diag, "after_refit")
-    with_fix = _noise_reduction(diag, "after_effect")
+    without = -float(diag.residual_noise["after_refit"])  # noise reduction, dB
+    with_fix = -float(diag.residual_noise["after_effect"])
     after, floor = diag.gaps["combined"], diag.floor  # the baseline and every effect found
     excess_base = max(diag.gaps["refit"] ** 2 - floor**2, 1e-12)
     excess_after = max(after**2 - floor**2, 0.0)

@@ -86,7 +86,7 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
     chains, observed = ctx["chains"], ctx["observed"]
     cands, gains = [], {}
     for effect in remaining:
-        alt = prefix + _chosen_terms(effect)  # the null: without the change, alt[:-1]
+        alt = prefix + _chosen_terms(effect)  # with the change; the null: without its last term
         null = alt[:-1]
         chains.keep(null)
         cf = chains.cross({"refit": null, effect: alt}, offset_of="refit")

@@ -472,7 +472,7 @@ class JointFeatures:
         stop = n_total if final else n_total - w // 2
         if stop <= self._emitted:
             return
-        if self.count <= w:  # too short for the filter (only at the end): as it is, no slope
+        if self.count <= w:  # too short for the filter (only at the end): kept, acceleration 0
             smooth, acceleration = self._vel, np.zeros_like(self._vel)
         else:
             smooth, acceleration = (

@@ -197,7 +197,7 @@ def public_parameters(params: dict) -> dict:
     """A term's parameters for the report: the diagnosis's internal lags (joint states
     stamped that late) in the joint-lag convention (LAG_CONVENTION); `joint_lag_s` is the
     correction to set (the recording's joint lag minus the reference's)."""
-    out = _clean_params(params)
+    out = dict(params)
     if "lag_s" in out:
         lag = float(out.pop("lag_s"))
         reference = float(out.pop("reference_lag_s", 0.0))
@@ -555,10 +555,6 @@ def describe_shape(shape: dict) -> str:
 def _signed_peak(values: np.ndarray) -> float:
     """The value of largest magnitude (its sign kept)."""
     return float(values[int(np.argmax(np.abs(values)))]) if values.size else 0.0
-
-
-def _clean_params(params: dict) -> dict:
-    return {k: v for k, v in params.items() if k not in ("coefficients_per_bin", "lag_scan")}
 
 
 def _describe_region(r: dict) -> str:
