@@ -14,6 +14,7 @@ from scipy import signal
 from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.gap.features import (
+    REVERSAL_THRESHOLD,
     BlockTable,
     JointSeries,
     _joint_block_means,
@@ -21,9 +22,54 @@ from egovib_ros.gap.features import (
     attach_motion,
     in_band_bins,
     jerk_means,
+    joint_period,
+    savgol_window,
 )
 
 VMAX = np.array([3.0, 0.04])
+
+
+def savgol_joint(t_s: np.ndarray, velocity: np.ndarray, *, deriv: int = 0) -> np.ndarray:
+    """Velocity smoothed (deriv 0) or differentiated (deriv 1) by a quadratic
+    Savitzky-Golay filter over features.ACCEL_SMOOTH_S; a series too short for it is returned
+    as is (deriv 0) or as zeros (deriv 1): what `JointFeatures` computes slice by slice."""
+    dt = joint_period(t_s)
+    window = savgol_window(dt)
+    if len(velocity) <= window:
+        return velocity if deriv == 0 else np.zeros_like(velocity)
+    return signal.savgol_filter(velocity, window, 2, deriv=deriv, axis=0, delta=dt, mode="interp")
+
+
+def detect_reversals(
+    t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Per joint: times at which motion resumes opposite to the previous direction of motion
+    (`JointFeatures`'s, in one piece)."""
+    out = []
+    for j in range(smooth_velocity.shape[1]):
+        v = smooth_velocity[:, j]
+        thr = REVERSAL_THRESHOLD * vmax[j]
+        state = np.where(v > thr, 1, np.where(v < -thr, -1, 0))
+        moving = np.flatnonzero(state)
+        if len(moving) < 2:
+            out.append(np.zeros(0))
+            continue
+        flips = moving[1:][np.diff(state[moving]) != 0]
+        out.append(t_s[flips])
+    return tuple(out)
+
+
+def smoothed_series(t_s, position, velocity, acceleration) -> JointSeries:
+    """A joint series with its smoothed velocity and reversal times, as JointFeatures gives."""
+    smooth = savgol_joint(t_s, velocity)
+    return JointSeries(
+        t_s=t_s,
+        position=position,
+        velocity=velocity,
+        acceleration=acceleration,
+        smooth_velocity=smooth,
+        reversals=detect_reversals(t_s, smooth, VMAX),
+    )
 
 
 def synthetic_model() -> NoiseModel:
@@ -75,7 +121,7 @@ def synthetic_table(
     pos = np.cumsum(vel, axis=0) / 1000.0
     pos[:, 1] = 0.043 + 0.04 * np.sin(pos[:, 1] / 0.04 * 3)  # gripper gap stays in range
     acc = np.gradient(vel, t_joint, axis=0)
-    joints = JointSeries(t_s=t_joint, position=pos, velocity=vel, acceleration=acc)
+    joints = smoothed_series(t_joint, pos, vel, acc)
     n_blocks = int((duration_s * 3000 - 64) // 32)
     t_first = np.arange(n_blocks) * 32 / 3000.0
     t_last = t_first + 63 / 3000.0

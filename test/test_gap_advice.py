@@ -143,7 +143,7 @@ def test_the_lag_advice_applied_with_the_core_is_scored_like_for_like(caplog):
     the advised joint_lag (-50 ms) removes more noise; both runs are scored on the same
     samples (the end blocks the lag leaves without joint states are counted, not scored,
     and not warned about)."""
-    from egovib_ros.gap.advice import measure_joint_lag
+    from egovib_research.experiments.gap_flight import measure_joint_lag
     from egovib_ros.robot import load_profile
     from egovib_ros.sim import simulate_motion
 

@@ -75,7 +75,7 @@ def test_splits_partition_the_clean_blocks_in_time():
     train, heldout, split_s = time_split(table, 0.6)
     np.testing.assert_array_equal(forward.train, train)
     assert table.t_mid_s[train].max() < split_s <= table.t_mid_s[heldout].min()
-    rotations = interleaved_splits(table, chunk_s=2.0, period=3)
+    rotations = interleaved_splits(table, chunk_s=2.0)
     np.testing.assert_array_equal(np.sum([s.test for s in rotations], axis=0), clean.astype(int))
     chunk = np.floor((table.t_mid_s - table.t_mid_s[0]) / 2.0).astype(int)
     assert set(chunk[rotations[1].test] % 3) == {1}
@@ -160,7 +160,8 @@ def _decide(gain_per_block: float, p_value: float, seed: int = 0):
                 "gap_reduction_decisive": 0.5 if k == 0 else 0.0,
             }
         )
-    return D._verdict(candidates, loss, D.ALPHA, segments, np.random.default_rng(1))
+    gains = {name: base - loss[name] for name in D.EFFECTS}
+    return D._verdict(candidates, gains, D.ALPHA, segments, np.random.default_rng(1))
 
 
 def test_none_beside_a_large_but_insignificant_gain_has_low_confidence():
@@ -183,7 +184,8 @@ def test_a_significant_large_gain_is_named_as_before():
 
 def test_in_sample_drift_knots_span_several_chunks_on_a_short_recording():
     table = synthetic_table(duration_s=10.0, seed=2)
-    out = D._interleaved_drift(table, simulator_cells(table), 8, np.random.default_rng(0))
+    tables = {"sync": table, "timing": None}
+    out = D._interleaved_drift(tables, simulator_cells(table), 8, np.random.default_rng(0))
     span = float(table.t_mid_s[-1] - table.t_mid_s[0])
     chunk = span / D.INTERLEAVE_MIN_CHUNKS
     knot_spacing = span / (out["knots"] - 1)

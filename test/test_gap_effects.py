@@ -34,7 +34,7 @@ def heldout_gains(effect: str, strength: float, seed: int = 5) -> dict[str, floa
     of each candidate over the baseline (interleaved 2 s chunks: fitted on two of every
     three, tested on the third, so no term has to extrapolate in time)."""
     table = synthetic_table(effect, strength, seed=seed, duration_s=30.0)
-    split = interleaved_splits(table, chunk_s=2.0, period=3)[1]
+    split = interleaved_splits(table, chunk_s=2.0)[1]
     base = fit_baseline(table, split.train)
     scales = fit_scales(table, split.train, base.magnitude)
     power = table.magnitude[split.test] ** 2

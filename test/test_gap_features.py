@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gaptables import detect_reversals, savgol_joint
 
 from egovib_ros.gap.features import (
     JointFeatures,
     JointSeries,
     _interval_means,
-    detect_reversals,
     jerk_means,
     joint_period,
-    savgol_joint,
 )
 
 NS = 1_000_000_000

@@ -1,27 +1,16 @@
 """What the found effects cost the denoiser, what to do about each, and what is left.
 
-`advise(diag)` turns a diagnosis into the report's first lines:
-
-* per effect found (the forward selection's order), one sentence and the exact flags or
-  parameters that act on it: `egovib denoise --joint-lag`, the denoiser node's
-  `joint_lag`, `--noise-gain REPORT.json` / `noise_gain`, `egovib calibrate --grid` and
-  `--joint-lag` (options that exist; the model has no position key, so position is advised
-  as what to record, not as an option);
-* the commands that apply all of them together (`commands`);
-* the cost: held-out noise reduction of spectral subtraction (Eq. 3 with Eq. 5 noise) on
-  the no-contact blocks with the velocity-only baseline and with the combined model of
-  every effect found, both fitted on the other folds (a model estimate); and, when the
-  caller measured it (`measure_advice`), the flags applied together with the user's model
-  and its default method on held-out data;
-* what the combined model still leaves above the floor.
+`advise(diag)` gives report.json's "advice" and report.md's first lines: per effect found
+(in the forward selection's order) one sentence with the flags or parameters that act on
+it (options that exist: the model has no position key, so position is advised as what to
+record); the commands applying all of them (`commands`); the cost: held-out noise
+reduction of spectral subtraction with the velocity-only baseline and with the combined
+model (a model estimate) and, measured by the caller (`measure_advice`), the flags applied
+with the user's model; what the combined model leaves above the floor.
 
 The joint lag has one sign convention everywhere (LAG_CONVENTION): the seconds the
-vibration trails the joint states, i.e. how much later their stamps are moved; negative:
-the vibration leads them (joint states stamped late). Internally the diagnosis scans
-`lag_s` = seconds the joint states are stamped late, the opposite sign (`joint_lag_of`).
-
-`measure_joint_lag(...)` applies a lag with the core on two recordings (calibrate on one,
-denoise the other); `measure_advice(...)` applies the advice's flags with the user's model.
+vibration trails the joint states. The diagnosis scans `lag_s` = seconds the joint states
+are stamped late, the opposite sign (`joint_lag_of`).
 """
 
 from __future__ import annotations
@@ -32,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.core.filters import BandPass
 from egovib_ros.core.methods import default_method, denoise_batch_method
 from egovib_ros.core.subtraction import noise_gain_curve
@@ -70,10 +58,6 @@ def joint_lag_of(lag_s: float) -> float:
     return -float(lag_s)
 
 
-def _noise_reduction(diag: Diagnosis, name: str) -> float:
-    return -float(diag.residual_noise.get(name, float("nan")))
-
-
 def _shape_span(shape: dict, prefix: str) -> tuple[str, float, dict]:
     """The curve of `shape` (keys starting with prefix) with the largest peak-to-trough."""
     best, span, curve = "", 0.0, {}
@@ -85,16 +69,12 @@ def _shape_span(shape: dict, prefix: str) -> tuple[str, float, dict]:
     return best, span, curve
 
 
-def _fmt(value: float) -> str:
-    return f"{value:g}"
-
-
 def _timing_action(model) -> tuple[str, dict]:
     p = model.parameters
     offset = float(p.get("lag_s", 0.0)) - float(p.get("reference_lag_s", 0.0))
     joint_lag = round(joint_lag_of(offset), 4)
     way = "trails" if joint_lag > 0 else "leads"
-    flag = _fmt(joint_lag)
+    flag = f"{joint_lag:g}"
     return (
         f"the vibration {way} the joint states by {1000 * abs(joint_lag):.0f} ms more than the "
         f"model expects: joint lag {flag} s (`egovib denoise --joint-lag {flag}`, the denoiser "
@@ -272,14 +252,10 @@ def action(diag: Diagnosis) -> tuple[str, dict]:
 
 def effect_actions(diag: Diagnosis) -> list[dict]:
     """Every effect found, in order: {"effect", "action", "settings"}."""
-    models = diag.effect_models or ([diag.models[diag.verdict]] if diag.verdict != "none" else [])
-    names = [e["effect"] for e in diag.effects] or (
-        [diag.verdict] if diag.verdict != "none" else []
-    )
     out = []
-    for name, model in zip(names, models):
-        text, settings = effect_action(name, model)
-        out.append({"effect": name, "action": text, "settings": settings})
+    for entry, model in zip(diag.effects, diag.effect_models):
+        text, settings = effect_action(entry["effect"], model)
+        out.append({"effect": entry["effect"], "action": text, "settings": settings})
     return out
 
 
@@ -301,7 +277,7 @@ def commands(
     """The command lines that apply every advised correction together."""
     flags, params = [], []
     if settings.get("joint_lag_s"):
-        lag = _fmt(settings["joint_lag_s"])
+        lag = f"{settings['joint_lag_s']:g}"
         flags.append(f"--joint-lag {lag}")
         params.append(f"-p joint_lag:={lag}")
     if settings.get("noise_gain_db"):
@@ -313,7 +289,7 @@ def commands(
         out["denoiser_node"] = f"denoiser --ros-args -p model:={model} " + " ".join(params)
     if settings.get("calibration_grid"):
         grid = settings["calibration_grid"]
-        lag = f" --joint-lag {_fmt(settings['joint_lag_s'])}" if settings.get("joint_lag_s") else ""
+        lag = f" --joint-lag {settings['joint_lag_s']:g}" if settings.get("joint_lag_s") else ""
         out["calibrate"] = (
             f"egovib calibrate NEW_RECORDING --grid {grid}{lag} --out NEW_MODEL.npz"
             + (
@@ -340,12 +316,10 @@ def advise(diag: Diagnosis, *, paths: dict | None = None, measured: dict | None 
         settings = merged_settings(actions)
     else:
         text, settings = _none_action(diag)
-    without = _noise_reduction(diag, "after_refit")
-    with_fix = _noise_reduction(diag, "after_effect")
-    gaps = diag.gaps
-    after = gaps.get("combined", gaps[diag.verdict] if diag.verdict != "none" else gaps["refit"])
-    floor = diag.floor
-    excess_base = max(gaps["refit"] ** 2 - floor**2, 1e-12)
+    without = -float(diag.residual_noise["after_refit"])  # noise reduction, dB
+    with_fix = -float(diag.residual_noise["after_effect"])
+    after, floor = diag.gaps["combined"], diag.floor  # the baseline and every effect found
+    excess_base = max(diag.gaps["refit"] ** 2 - floor**2, 1e-12)
     excess_after = max(after**2 - floor**2, 0.0)
     return {
         "effect": diag.verdict,
@@ -445,84 +419,6 @@ def noise_gain_from_report(path: str | None, *, where: str) -> tuple[tuple[float
     return tuple((float(t), float(g)) for t, g in knots)
 
 
-def measure_joint_lag(
-    cal,
-    test,
-    profile,
-    joint_lag_s: float,
-    *,
-    calibration_lag_s: float | None = None,
-    sweep: str = "free",
-) -> dict:
-    """Noise reduction on `test` (Recording) by the core denoiser calibrated on `cal`, with
-    joint_lag_s 0 and with the given lag (in the calibration too, or `calibration_lag_s`
-    there: 0 when only the test recording's joint states are off).
-
-    Noise reduction = 20 log10 of the mean band-passed magnitude (summed axes) of the raw
-    test recording over that of the denoised one (no events in either). Both runs are
-    scored on the same samples, away from the ends by the lag: the blocks there have no
-    joint state with the lag and pass through undenoised (counted in each run's
-    `blocks_no_joint_state`; the core's warning about them is not printed)."""
-
-    runs = {}
-    core_log = logging.getLogger("egovib_ros.core")
-    level = core_log.level
-    core_log.setLevel(logging.ERROR)
-    try:
-        for name, lag in (("without", 0.0), ("with", float(joint_lag_s))):
-            cal_lag = lag if calibration_lag_s is None or name == "without" else calibration_lag_s
-            model, _ = calibrate_arrays(
-                cal.sensor_stamps_ns,
-                cal.sensor,
-                cal.joint_stamps_ns,
-                cal.joint_velocity,
-                profile=profile,
-                joint_lag_s=cal_lag,
-                sweep=sweep,
-            )
-            _, den, stats = denoise_batch(
-                test.sensor_stamps_ns,
-                test.sensor,
-                test.joint_stamps_ns,
-                test.joint_velocity,
-                model,
-                channels="combined",
-                joint_lag_s=lag,
-            )
-            runs[name] = (lag, model, den[:, 0], stats)
-    finally:
-        core_log.setLevel(level)
-    model = runs["without"][1]
-    bp = BandPass(
-        sample_rate_hz=model.sample_rate_hz,
-        band_hz=model.band_hz,
-        order=model.band_order,
-        n_channels=1,
-    )
-    raw = bp.process(test.sensor.sum(axis=1)[None, :])[0]
-    # filter start-up, and the blocks the lag leaves without joint states at either end
-    skip = model.block_length * 4 + int(np.ceil(abs(joint_lag_s) * model.sample_rate_hz))
-    scored = slice(skip, len(raw) - skip)
-    noise_raw = float(np.mean(np.abs(raw[scored])))
-    out = {}
-    for name, (lag, _, den, stats) in runs.items():
-        out[name] = {
-            "joint_lag_s": lag,
-            "noise_reduction_db": round(
-                20.0 * np.log10(noise_raw / np.mean(np.abs(den[scored]))), 3
-            ),
-            "blocks_no_joint_state": int(stats.blocks_no_joint_state or 0),
-        }
-    out["scored_samples"] = len(raw) - 2 * skip
-    out["gain_db"] = round(
-        out["with"]["noise_reduction_db"] - out["without"]["noise_reduction_db"], 3
-    )
-    return out
-
-
-__all__ = ["advise", "action", "first_lines", "measure_joint_lag"]
-
-
 def _train_rows(diag: Diagnosis, t_end_s: float) -> tuple[np.ndarray, float]:
     """The clean blocks of the leading MEASURE_TRAIN_FRACTION of [start, t_end_s], and the
     split time."""
@@ -572,28 +468,24 @@ def _scored_mask(diag: Diagnosis, t_s: np.ndarray, split_s: float, margin_s: flo
     table = diag.table
     lo = np.searchsorted(t_s, table.t_first_s)
     hi = np.searchsorted(t_s, table.t_last_s, side="right")
-    cover = np.zeros(len(t_s) + 1, int)
-    np.add.at(cover, lo, 1)
-    np.add.at(cover, hi, -1)
-    inside = np.cumsum(cover)[:-1] > 0
-    flagged = np.zeros(len(t_s) + 1, int)
-    np.add.at(flagged, lo[table.contact], 1)
-    np.add.at(flagged, hi[table.contact], -1)
-    bad = np.cumsum(flagged)[:-1] > 0
-    return (
-        inside & ~bad & (t_s >= split_s) & (t_s >= t_s[0] + margin_s) & (t_s <= t_s[-1] - margin_s)
-    )
+
+    def covered(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+        edges = np.zeros(len(t_s) + 1, int)
+        np.add.at(edges, starts, 1)
+        np.add.at(edges, stops, -1)
+        return np.cumsum(edges)[:-1] > 0
+
+    inside = covered(lo, hi) & ~covered(lo[table.contact], hi[table.contact])
+    return inside & (t_s >= split_s) & (t_s >= t_s[0] + margin_s) & (t_s <= t_s[-1] - margin_s)
 
 
-def measure_advice(
-    rec, model, diag: Diagnosis, settings: dict, order, *, method: str | None = None
-) -> dict:
+def measure_advice(rec, model, diag: Diagnosis, settings: dict, order) -> dict:
     """The advice's flags (joint lag, noise gain) applied together with the user's `model`
-    and its default method (or `method`), held out: the corrections are re-fitted on the
-    leading MEASURE_TRAIN_FRACTION of `rec` (the recording diagnosed, or its first part;
-    `order`: its joint columns in model order) and both runs, without and with them, are
-    scored on the rest: the band-passed sum of axes (the model's band) over the no-contact
-    blocks the diagnosis kept, away from the ends by the lag.
+    and its default method, held out: the corrections are re-fitted on the leading
+    MEASURE_TRAIN_FRACTION of `rec` (the recording diagnosed, or its first part; `order`: its
+    joint columns in model order) and both runs, without and with them, are scored on the
+    rest: the band-passed sum of axes over the no-contact blocks the diagnosis kept, away
+    from the ends by the lag.
 
     Returns the figures, or {"note": why nothing was applied} when no flag is advised."""
     want_lag = "joint_lag_s" in settings and any(e["effect"] == "timing" for e in diag.effects)
@@ -603,7 +495,7 @@ def measure_advice(
             "note": "no advised correction is a flag of the denoiser (joint lag, noise gain); "
             "what the advice changes is the calibration"
         }
-    method = method or default_method(model)
+    method = default_method(model)
     t_s = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
     train, split = _train_rows(diag, float(t_s[-1]))
     options: dict = {}
@@ -636,13 +528,7 @@ def measure_advice(
             runs[name] = (stamps, values[:, 0])
     finally:
         core_log.setLevel(level)
-    bp = BandPass(
-        sample_rate_hz=model.sample_rate_hz,
-        band_hz=model.band_hz,
-        order=model.band_order,
-        n_channels=1,
-    )
-    raw = bp.process(rec.sensor.sum(axis=1)[None, :])[0]
+    raw = BandPass.of(model, 1).process(rec.sensor.sum(axis=1)[None, :])[0]
     margin = 4 * model.block_length / model.sample_rate_hz + abs(options.get("joint_lag_s", 0.0))
     scored = _scored_mask(diag, t_s, split, margin)
     out = {

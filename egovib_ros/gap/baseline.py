@@ -1,37 +1,27 @@
 """The velocity-only baseline, estimated from the real recording's training split itself.
 
-The paper's table (expected spectrum per velocity cell and frequency bin) re-estimated
-on the real data, in the structure the paper assumes: velocity only, joints adding
-(independent sources add in *power*), stationary, in sync.  Per in-band bin f:
+The paper's table re-estimated on the real data, in the structure the paper assumes:
+velocity only, joints adding (in *power*), stationary, in sync. Per in-band bin f:
 
     E|Y_b(f)|^2 = c(f) + sum_j sum_k a_jk(f) H_bjk
 
 H_bjk = the block's window-weighted mean of the hat function of joint j's velocity at
-cell k (its velocity trajectory within the block, `features.motion_features`); the cell
-at rest is carried by c(f), so a_j0 = 0.  The cells a_jk(f) >= 0 are free: the baseline
-can put power at any frequency and speed, whatever the simulator's spectra look like.
+cell k (its trajectory within the block, `features.motion_features`); rest is carried by
+c(f), so a_j0 = 0. The cells a_jk(f) >= 0 are free: the baseline can put power at any
+frequency and speed, whatever the simulator's spectra look like.
 
-Estimation, in two resolutions (both penalties count in equivalent blocks of data at
-the cell's own power level, so they matter only where real data are thin):
+Estimated in two resolutions (the penalties count in equivalent blocks at the cell's own
+power level, so they matter only where real data are thin): on the model's grid by
+weighted least squares (weights 1/E^2; one reweighting) with a curvature penalty along the
+cells (SMOOTH_BLOCKS) and a pull towards the simulator's single-joint power, scaled to this
+recording per bin (PRIOR_BLOCKS); then on the fine cells (`features.KNOT_REFINE`: gear
+lines sweep a DFT bin within a fraction of a grid step), pulled towards the coarse fit;
+cells clipped at 0. Then a log-domain mean/rms correction per joint and coarse cell and a
+per-bin log-gain in each joint's velocity (`velocity_stage`), both on that joint's share
+of the bin's power; the mean magnitude re-levelled per bin on train.
 
-1. coarse cells = the model's velocity grid: weighted least squares (weights 1/E^2, the
-   scatter of a block's power grows with its mean; one reweighting) with a curvature
-   penalty along the cells (neighbours borrow strength, SMOOTH_BLOCKS) and a pull towards
-   the simulator's single-joint power at each cell, scaled to this recording's level per
-   bin (PRIOR_BLOCKS);
-2. fine cells (each grid step split in `features.KNOT_REFINE`: gear lines sweep a DFT bin
-   within a fraction of a 10 % step): one weighted least-squares solve with the coarse
-   fit's weights, pulled towards the coarse fit interpolated to the fine cells, with the
-   same curvature penalty; cells clipped at 0 (a moving joint adds power).
-
-A last, log-domain stage corrects the mean/rms ratio of a magnitude (tonal bins have a
-ratio near 1, noise-like bins ~0.89) per joint and coarse cell, acting only on that
-joint's share of the bin's power; then the predicted mean magnitude is re-levelled per
-bin on train.
-
-What it cannot represent: anything that is not a sum over joints of a function of that
-joint's velocity (interactions between joints, position, acceleration beyond what the
-block's velocity trajectory implies, time, lag): the five effects.
+It cannot represent anything that is not a sum over joints of a function of that joint's
+velocity: interactions, position, acceleration, time, lag (the five effects).
 """
 
 from __future__ import annotations
@@ -237,16 +227,11 @@ def fit_coarse(
 
 
 def fit_baseline(
-    table: BlockTable,
-    train: np.ndarray,
-    *,
-    hats: np.ndarray | None = None,
-    prior: tuple[np.ndarray, np.ndarray] | None = None,
-    velocity_gain: bool = True,
+    table: BlockTable, train: np.ndarray, *, prior: tuple[np.ndarray, np.ndarray] | None = None
 ) -> Baseline:
-    """Velocity-only baseline fitted on the `train` rows, predicting every block
-    (`velocity_gain`: with its per-bin log-gain stage in each joint's velocity)."""
-    hats = table.hats if hats is None else hats
+    """Velocity-only baseline fitted on the `train` rows, predicting every block (`prior`:
+    `simulator_cells`, computed when None)."""
+    hats = table.hats
     knots_c = coarse_knots(table)
     hats_c = coarse_hats(table, hats)
     prior_rest, prior_cells = simulator_cells(table) if prior is None else prior
@@ -323,7 +308,7 @@ def fit_baseline(
     base = Baseline(
         magnitude=magnitude, power=predicted, rest_power=coef[:, 0], cell_power=cells, info=info
     )
-    return velocity_stage(table, train, base, share) if velocity_gain else base
+    return velocity_stage(table, train, base, share)
 
 
 def velocity_regressors(table: BlockTable) -> tuple[np.ndarray, list[str]]:
@@ -351,11 +336,8 @@ def velocity_stage(
 
     On the joint's share, not on the whole bin: a gain on the whole bin applies joint j's
     correction to joint k's power too whenever both move, a misfit that depends on both
-    speeds, which the coupling candidate then took as an interaction. On the third hand's
-    five effect-free validation bags it gained 0.025-0.042 of deviance that way (p 5e-5,
-    6-10x the minimum gain) while making the held-out gap 0.1 dB worse, and hid every real
-    interaction (0/9); on the joint's share it gains 0.0000-0.0012 on four of them (the
-    fifth: docs/gap.md, the third hand)."""
+    speeds, which the coupling candidate then took as an interaction (docs/gap.md, the
+    third hand)."""
     x, names = velocity_regressors(table)
     owner = np.repeat(np.arange(len(table.joint_names)), x.shape[1] // len(table.joint_names))
     ratio = table.magnitude**2 / np.maximum(base.power, 1e-300)
@@ -406,6 +388,3 @@ def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> fl
     predicted = np.maximum(np.asarray(x @ coef.T), SCALE_FLOOR * 0.1) * level
     z = np.log(np.maximum(table.magnitude[rows], 1e-300)) - 0.5 * np.log(predicted)
     return float(np.mean((z - z.mean(axis=0)) ** 2))
-
-
-__all__ = ["Baseline", "fit_baseline", "simulator_cells", "lag_residual"]

@@ -2,22 +2,18 @@
 order, each fitted on top of the ones before it on every split's training rows; held-out
 (test-row) predictions assembled over the splits.
 
-A chain is a tuple of term names: the candidate effects of `effects.EFFECTS` (timing is no
-term: a chain holding it is fitted on the table with the joint states at the timing lag),
-or names of `custom` terms (a callable (table, scales) -> (regressors, names), e.g. the
-interleaved drift check's time trend or the change diagnosis's terms). The chain `()` is
-the baseline ("refit"); `("coupling",)` the baseline times the coupling term (the first
-step of the forward selection, as the single-effect diagnosis fitted it); `("timing",
-"drift")` the baseline at the timing lag times the drift term.
-
-Fitted baselines and the states of the chains asked to be kept (`keep`) are cached per
-split; a candidate's own fit is not (a forward selection tries several per step).
+A chain is a tuple of term names: candidate effects (`effects.EFFECTS`; timing is no term: a
+chain holding it is fitted on the table at the timing lag) or `custom` terms (a callable
+(table, scales) -> (regressors, names)). `()` is the baseline ("refit"); `("timing",
+"drift")` the baseline at the timing lag times the drift term. Fitted baselines and the
+states of the chains asked to be kept (`keep`) are cached per split; a candidate's own fit
+is not (a forward selection tries several per step).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -54,12 +50,9 @@ class CrossFitted:
 def as_state(fm: FittedModel, previous: Baseline) -> Baseline:
     """A fitted chain as the baseline the next term is fitted on (the velocity-only
     baseline's cells kept: the per-line interaction needs them)."""
-    return Baseline(
-        magnitude=fm.predicted,
-        power=fm.power,
-        rest_power=previous.rest_power,
-        cell_power=previous.cell_power,
-        info={"n_parameters": int(fm.parameters.get("n_parameters", 0))},
+    n_parameters = int(fm.parameters.get("n_parameters", 0))
+    return replace(
+        previous, magnitude=fm.predicted, power=fm.power, info={"n_parameters": n_parameters}
     )
 
 

@@ -32,17 +32,18 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import simulator_cells
 from egovib_ros.gap.chain import ALL, CHANGED, ChainFits, Split
 from egovib_ros.gap.diagnose import (
-    DB_PER_NEPER,
-    MIN_DEVIANCE_GAIN,
-    N_BOOTSTRAP,
     Diagnosis,
     DiagnosisOptions,
     _align,
+    _floors,
     _segments,
     _test,
+    _verdict,
+    combined_floor,
+    fold_index,
     heldout_errors,
 )
-from egovib_ros.gap.effects import EFFECTS
+from egovib_ros.gap.effects import DB_PER_NEPER, EFFECTS
 from egovib_ros.gap.features import BlockTable, join_tables
 
 #: The change of a level (drift between two recordings) is one custom term.
@@ -67,25 +68,12 @@ def _level_term(table: BlockTable, scales) -> tuple[np.ndarray, list[str]]:
 
 def change_folds(table: BlockTable, n_folds: int) -> list[Split]:
     """Contiguous folds within each recording; fold k holds the k-th part of both."""
-    t = table.t_mid_s
     fold = np.zeros(table.n_blocks, np.int64)
     for r in (0, 1):
         sel = table.recording == r
-        ts = t[sel]
-        fold[sel] = np.minimum(
-            ((ts - ts[0]) / max(ts[-1] - ts[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1
-        )
+        fold[sel] = fold_index(table.t_mid_s[sel], n_folds)
     clean = ~table.contact
     return [Split(clean & (fold != k), clean & (fold == k)) for k in range(n_folds)]
-
-
-def _pair(effect: str, prefix: tuple[str, ...]) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(null chain, chain with the change) of one candidate change on top of `prefix`."""
-    if effect == "timing":
-        return prefix, prefix + ("timing",)
-    if effect == "drift":
-        return prefix, prefix + (LEVEL,)
-    return prefix + (effect,), prefix + (effect, effect + CHANGED)
 
 
 def _chosen_terms(effect: str) -> tuple[str, ...]:
@@ -93,33 +81,13 @@ def _chosen_terms(effect: str) -> tuple[str, ...]:
     return {"timing": ("timing",), "drift": (LEVEL,)}.get(effect, (effect, effect + CHANGED))
 
 
-def _confidence(gains: dict[str, np.ndarray], segments: np.ndarray, chosen: str, rng) -> float:
-    """Share of block-bootstrap resamples (held-out segments) in which the chosen change
-    keeps the largest mean deviance gain over its null (at least MIN_DEVIANCE_GAIN); for
-    none: in which no change reaches it."""
-    names = list(gains)
-    n_seg = int(segments.max()) + 1
-    seg_len = np.bincount(segments, minlength=n_seg)
-    per_seg = np.stack([np.bincount(segments, weights=gains[n], minlength=n_seg) for n in names])
-    found = np.zeros(N_BOOTSTRAP, bool)
-    for start in range(0, N_BOOTSTRAP, 100):
-        picks = rng.integers(0, n_seg, size=(min(100, N_BOOTSTRAP - start), n_seg))
-        mean = per_seg[:, picks].sum(axis=2) / np.maximum(seg_len[picks].sum(axis=1), 1)
-        best = np.argmax(mean, axis=0)
-        top = mean[best, np.arange(mean.shape[1])] >= MIN_DEVIANCE_GAIN
-        if chosen == "none":
-            found[start : start + len(picks)] = ~np.any(mean >= MIN_DEVIANCE_GAIN, axis=0)
-        else:
-            found[start : start + len(picks)] = top & (best == names.index(chosen))
-    return round(float(found.mean()), 4)
-
-
 def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number: int) -> dict:
     """Every remaining change tested on top of the changes taken (`prefix`)."""
     chains, observed = ctx["chains"], ctx["observed"]
     cands, gains = [], {}
     for effect in remaining:
-        null, alt = _pair(effect, prefix)
+        alt = prefix + _chosen_terms(effect)  # with the change; the null: without its last term
+        null = alt[:-1]
         chains.keep(null)
         cf = chains.cross({"refit": null, effect: alt}, offset_of="refit")
         res = _test(observed, cf, effect, ctx["segments"], ctx["rng"])
@@ -129,7 +97,7 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
         gap_alt = metric.gap_db(
             heldout_errors(cf.predicted[effect], observed, cf.rows, ctx["windows"])
         )
-        gains[effect] = res["loss_base"] - res["loss_cand"]
+        gains[effect] = res["gain"]
         cands.append(
             {
                 "effect": effect,
@@ -142,20 +110,14 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
             }
         )
     cands.sort(key=lambda c: -c["deviance_reduction"])
-    level = ctx["alpha"] / max(len(cands), 1)
-    eligible = [
-        c
-        for c in cands
-        if c["p_value"] < level
-        and c["deviance_reduction"] >= MIN_DEVIANCE_GAIN
-        and c["reduction"] > 0.0
-    ]
-    chosen = eligible[0]["effect"] if eligible else "none"
+    chosen, confidence = _verdict(
+        cands, gains, ctx["alpha"], ctx["segments"], ctx["rng"], gap_key="reduction"
+    )
     return {
         "step": number,
         "given": list(prefix),
         "effect": chosen,
-        "confidence": _confidence(gains, ctx["segments"], chosen, ctx["rng"]),
+        "confidence": confidence,
         "candidates": cands,
     }
 
@@ -194,7 +156,7 @@ def diagnose_change(
     if (~reference.contact).sum() < 400:
         raise GapDataError(f"too few no-contact blocks ({int((~reference.contact).sum())})")
     prior = simulator_cells(reference)
-    aligned = _align(reference, o.effects, prior, o.reference_lag_s, o.lag_tolerance_s)
+    aligned = _align(reference, o, prior)
     lag_ref = float(aligned.timing_lag)
     lag_real = float(real_diag.lag_scan.get("timing_lag_s", real_diag.sync_lag_s))
     real_table = real_diag.table
@@ -240,19 +202,10 @@ def diagnose_change(
             break
         c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
         params, model = _parameters(ctx, step["effect"], prefix)
-        effects.append(
-            {
-                "effect": step["effect"],
-                "reduction": c["reduction"],
-                "p_value": c["p_value"],
-                "confidence": step["confidence"],
-                "parameters": params,
-                "heldout_gap_before": c["heldout_gap_before"],
-                "heldout_gap": c["heldout_gap"],
-                "deviance_reduction": c["deviance_reduction"],
-                "step": step["step"],
-            }
-        )
+        entry = {k: c[k] for k in ("effect", "reduction", "p_value", "heldout_gap_before")}
+        entry.update({k: c[k] for k in ("heldout_gap", "deviance_reduction")})
+        entry.update(confidence=step["confidence"], step=step["step"], parameters=params)
+        effects.append(entry)
         models.append(model)
         prefix = prefix + _chosen_terms(step["effect"])
         predicted = c["_predicted"][0]
@@ -260,11 +213,7 @@ def diagnose_change(
         for c in step["candidates"]:
             c.pop("_predicted", None)
     errors = heldout_errors(predicted, null.magnitude, rows, ctx["windows"])
-    floors = {
-        "block_ratio": metric.floor_db(null.magnitude[rows], predicted[rows], ctx["windows"]),
-        "window": metric.floor_window_db(null.magnitude[rows], predicted[rows], ctx["windows"]),
-    }
-    finite = [v for v in floors.values() if np.isfinite(v)]
+    floor = combined_floor(_floors(null.magnitude[rows], predicted[rows], ctx["windows"]))
     return ChangeDiagnosis(
         effects=effects,
         steps=steps,
@@ -272,7 +221,7 @@ def diagnose_change(
         gaps={
             "baseline": round(gap_base, 4),
             "after_changes": round(metric.gap_db(errors), 4),
-            "floor": round(float(min(finite)), 4) if finite else None,
+            "floor": round(floor, 4) if np.isfinite(floor) else None,
         },
         blocks={
             "reference": int(reference.n_blocks),

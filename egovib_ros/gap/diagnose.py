@@ -17,11 +17,13 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import fit_baseline, simulator_cells
 from egovib_ros.gap.chain import ALL, ChainFits, CrossFitted, Split
 from egovib_ros.gap.effects import (
+    DB_PER_NEPER,
     EFFECTS,
     LAG_TOLERANCE_S,
     FittedModel,
     lag_scan,
     refine_lag,
+    shape_curve,
     time_hats,
 )
 from egovib_ros.gap.features import BlockTable, detect_contacts
@@ -33,22 +35,15 @@ N_FOLDS = 5
 ALPHA = 0.01
 #: A significant candidate must also lower the held-out Gamma deviance of the expected
 #: power by at least this much per block and bin (~0.7 % of the deviance of noise-like
-#: bins, 0.577).  Set from pilot runs (2 seeds per class, not the committed validation):
-#: effect-free bags gave up to 0.0011 (a tiny real non-additivity of the simulator), the
-#: weakest true effects in the blind ranges 0.012 and more.
+#: bins; pilot runs: effect-free bags up to 0.0011, the weakest true effects 0.012).
 MIN_DEVIANCE_GAIN = 0.004
-#: From the second step of the forward selection on, a candidate must gain at least this
-#: much on top of the effects found: a fitted term leaves structured misfit behind (its
-#: shape is not the generator's), which another flexible term can take a little of (on a
-#: synthetic position effect the coupling term gained 0.0054 on top of the position term,
-#: 0.02 dB of held-out gap). Set from pilot runs with a master seed the committed
-#: validations do not use (docs/gap.md).
+#: ... and from the second step of the forward selection on this much: a fitted term leaves
+#: structured misfit behind, which another flexible term can take a little of (docs/gap.md).
 MIN_DEVIANCE_GAIN_LATER = 0.008
 #: The deviance compares power summed over this many consecutive tested blocks.
 DEVIANCE_RUN = 4
 #: Length of the contiguous held-out segments the permutation test flips (s).
 SEGMENT_S = 0.5
-DB_PER_NEPER = 20.0 / np.log(10.0)
 N_BOOTSTRAP = 2000
 #: Interleaved split of the drift check: chunks of this length, every INTERLEAVE_PERIOD-th held out.
 INTERLEAVE_CHUNK_S = 4.0
@@ -58,10 +53,8 @@ INTERLEAVE_KNOT_S = 10.0
 #: ... but at least this many chunks and knot intervals over the recording (short ones).
 INTERLEAVE_MIN_CHUNKS = 10
 INTERLEAVE_MIN_KNOTS = 8
-#: ... and knots never closer than this many chunk lengths (10 s / 4 s on long recordings):
-#: a held-out chunk is then predicted by a trend that spans several training chunks, not
-#: by the local level of its two neighbours (on a short real flight, knots 1.25 chunks
-#: apart took the motion-specific misfit of a flip into the next chunk: -4 dB there).
+#: ... and knots never closer than this many chunk lengths: a held-out chunk is then
+#: predicted by a trend spanning several training chunks, not by its neighbours' level.
 INTERLEAVE_KNOT_CHUNKS = 2.5
 #: A transient (detected like a contact) counts as reversal-locked if it starts within this
 #: window around a joint reversal (s after, s before).
@@ -117,10 +110,6 @@ class Diagnosis:
     #: every forward-selection step: the candidates tested on top of the effects before
     steps: list[dict] = field(default_factory=list)
 
-    @property
-    def verdict_model(self) -> FittedModel:
-        return self.models[self.verdict] if self.verdict != "none" else self.models["refit"]
-
 
 def time_split(
     table: BlockTable, train_fraction: float = TRAIN_FRACTION
@@ -168,16 +157,15 @@ def _block_loss(
 
 
 def reversal_locked_transients(
-    table: BlockTable, raw: np.ndarray, flagged: np.ndarray, train_region: np.ndarray
+    table: BlockTable, raw: np.ndarray, flagged: np.ndarray
 ) -> tuple[np.ndarray, dict]:
     """Transients that start at joint reversals are the robot's own (backlash, clunks),
     not contacts.
 
     Contacts are external: their onsets fall near a reversal only as often as reversal
-    windows cover the time.  If, on the training part, transient onsets cluster there far
-    more often (one-sided binomial test, LOCK_ALPHA), the transients starting near a
-    reversal are returned to the data as ego-vibration (everywhere, for every model).
-    Returns the new contact mask and a summary.
+    windows cover the time. If transient onsets cluster there far more often (one-sided
+    binomial test, LOCK_ALPHA), the transients starting near a reversal are returned to
+    the data as ego-vibration (for every model). Returns the new contact mask and a summary.
     """
     info = {
         "onsets": 0,
@@ -186,15 +174,14 @@ def reversal_locked_transients(
         "p_value": 1.0,
         "returned_blocks": 0,
     }
-    if table.reversal_after_s is None or not raw.any():
+    if not raw.any():
         return flagged, info
     near = (
         (table.reversal_after_s <= LOCK_AFTER_S) | (table.reversal_before_s <= LOCK_BEFORE_S)
     ).any(axis=1)
     onset = raw & ~np.concatenate([[False], raw[:-1]])
-    on_train = onset & train_region
-    n, k = int(on_train.sum()), int((on_train & near).sum())
-    share = float(near[train_region].mean()) if train_region.any() else 0.0
+    n, k = int(onset.sum()), int((onset & near).sum())
+    share = float(near.mean())
     p = (
         float(stats.binomtest(k, n, share, alternative="greater").pvalue)
         if n and 0 < share < 1
@@ -219,13 +206,17 @@ def reversal_locked_transients(
     return flagged & ~back, info
 
 
+def fold_index(t: np.ndarray, n_folds: int) -> np.ndarray:
+    """Each time's contiguous fold (0 .. n_folds - 1) over the span of `t`."""
+    return np.minimum(
+        ((t - t[0]) / max(t[-1] - t[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1
+    )
+
+
 def blocked_folds(table: BlockTable, n_folds: int) -> list[Split]:
     """Contiguous time folds: each held out once, fitted on the others
     (no contact blocks anywhere)."""
-    t = table.t_mid_s
-    fold = np.minimum(
-        ((t - t[0]) / max(t[-1] - t[0], 1e-9) * n_folds).astype(np.int64), n_folds - 1
-    )
+    fold = fold_index(table.t_mid_s, n_folds)
     clean = ~table.contact
     return [Split(clean & (fold != k), clean & (fold == k)) for k in range(n_folds)]
 
@@ -235,14 +226,12 @@ def forward_split(table: BlockTable, train_fraction: float) -> list[Split]:
     return [Split(train, held)]
 
 
-def interleaved_splits(
-    table: BlockTable, chunk_s: float = INTERLEAVE_CHUNK_S, period: int = INTERLEAVE_PERIOD
-) -> list[Split]:
-    """Chunks of `chunk_s`; rotation r holds out every `period`-th chunk starting at r."""
+def interleaved_splits(table: BlockTable, chunk_s: float = INTERLEAVE_CHUNK_S) -> list[Split]:
+    """Chunks of `chunk_s`; rotation r holds out every INTERLEAVE_PERIOD-th chunk from r on."""
     t = table.t_mid_s
-    chunk = np.floor((t - t[0]) / chunk_s).astype(np.int64) % period
+    chunk = np.floor((t - t[0]) / chunk_s).astype(np.int64) % INTERLEAVE_PERIOD
     clean = ~table.contact
-    return [Split(clean & (chunk != r), clean & (chunk == r)) for r in range(period)]
+    return [Split(clean & (chunk != r), clean & (chunk == r)) for r in range(INTERLEAVE_PERIOD)]
 
 
 def combined_floor(floors: dict[str, float]) -> float:
@@ -297,31 +286,24 @@ def _test(
     # each block gets its run's deviance
     dev_base = metric.block_deviance(y, sums(cf.power["refit"][rows]))[run]
     dev_cand = metric.block_deviance(y, sums(cf.power[name][rows]))[run]
-    p = metric.segment_signflip_pvalue(dev_base, dev_cand, segments, rng=rng)
+    gain = dev_base - dev_cand
     log_base = _block_loss(observed, cf.predicted["refit"], rows, cf.offset[rows])
     log_cand = _block_loss(observed, cf.predicted[name], rows, cf.offset[rows])
     return {
-        "p_value": p,
-        "deviance_reduction": float(np.mean(dev_base - dev_cand)),
+        "p_value": metric.segment_signflip_pvalue(gain, segments, rng),
+        "deviance_reduction": float(np.mean(gain)),
         "block_mse_reduction_db2": float(np.mean(log_base - log_cand) / observed.shape[1])
         * DB_PER_NEPER**2,
-        "loss_base": dev_base,
-        "loss_cand": dev_cand,
+        "gain": gain,  # per block: what the bootstrap resamples
     }
 
 
 def _interleaved_drift(
-    tables: dict | BlockTable,
-    prior,
-    window_blocks: int,
-    rng: np.random.Generator,
-    prefix: tuple[str, ...] = (),
+    tables: dict, prior, window_blocks: int, rng: np.random.Generator, prefix: tuple = ()
 ) -> dict:
     """Drift checked in-sample: a time trend fitted on interleaved chunks, judged on the
     chunks between; on top of the effects selected so far (`prefix`, fitted on the same
-    chunks). `tables`: as ChainFits takes them, or the in-sync table alone."""
-    if isinstance(tables, BlockTable):
-        tables = {"sync": tables, "timing": None}
+    chunks). `tables`: as ChainFits takes them."""
     table = tables["sync"]
     t = table.t_mid_s
     span = float(t[-1] - t[0])
@@ -371,11 +353,7 @@ def _interleaved_drift(
         f"in turn ({INTERLEAVE_PERIOD} rotations)",
         "knots": n_knots,
         "ridge": {k: round(v, 5) for k, v in ridge.items()},
-        "shape": {
-            "x": [round(float(v), 2) for v in curve_t],
-            "unit": "s",
-            "gain_db": [round(float(v) * DB_PER_NEPER, 3) for v in g - g.mean()],
-        },
+        "shape": shape_curve(curve_t, "s", g - g.mean(), 2),
     }
 
 
@@ -431,26 +409,24 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     The steps: lags and contacts (`_align`), the splits, held-out predictions of the
     baseline and every candidate (`chain.ChainFits`), the fitted terms for the report
     (`_fitted_models`), held-out gaps and the floor (`_heldout_gaps`), each candidate
-    tested against the baseline (`_candidates`), the first effect (`_verdict`); then the
-    forward selection (`_select_more`): each remaining candidate on top of the effects
-    found so far, tested against them, until none is significant.
+    tested against the baseline and the first effect (`_step`); then the forward selection
+    (`_select_more`): each remaining candidate on top of the effects found so far, tested
+    against them, until none is significant.
 
     One function: it is the order of the steps above, each a function of its own, passing
     the splits, fits and tests along into the Diagnosis.
     """
     o = options or DiagnosisOptions()
-    folds, train_fraction = o.folds, o.train_fraction
-    window_blocks, effects = o.window_blocks, o.effects
-    reference_lag_s, lag_tolerance_s = o.reference_lag_s, o.lag_tolerance_s
+    effects, window_blocks = o.effects, o.window_blocks
     rng = np.random.default_rng(o.seed)
     if (~table.contact).sum() < 400:
         raise GapDataError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
-    aligned = _align(table, effects, prior, reference_lag_s, lag_tolerance_s)
+    aligned = _align(table, o, prior)
     splits = (
-        forward_split(table, train_fraction)
-        if train_fraction is not None
-        else blocked_folds(table, folds)
+        forward_split(table, o.train_fraction)
+        if o.train_fraction is not None
+        else blocked_folds(table, o.folds)
     )
     if (
         min(s.train.sum() for s in splits) < 200
@@ -463,7 +439,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     cf = chains.cross(candidate_chains((), effects), offset_of="refit")
     rows = cf.rows
     windows = metric.make_windows(len(rows), window_blocks)
-    models = _fitted_models(table, aligned, effects, chains, cf, reference_lag_s, lag_tolerance_s)
+    models = _fitted_models(table, aligned, effects, chains, cf)
     errors, gaps, floors = _heldout_gaps(table, models, cf, windows)
     floor = combined_floor(floors)
     # The decision uses every held-out block, not window means: per-block squared log
@@ -471,38 +447,10 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     # log-of-Rayleigh bias common to all models), paired against the baseline,
     # contiguous SEGMENT_S segments.
     segments = _segments(table.t_mid_s, rows, float(table.t_mid_s[0]))
-    interleaved = (
-        _interleaved_drift(tables, prior, window_blocks, rng) if "drift" in effects else {}
-    )
-    candidates, loss = _candidates(
-        table.magnitude, cf, effects, gaps, floor, segments, interleaved, rng
-    )
+    context = _SelectionContext(chains, prior, aligned, o, windows, segments, floor, rng)
+    first, interleaved = _step(context, (), cf, gaps, 1)
     if "drift" in models and interleaved:
-        models["drift"].shape = dict(models["drift"].shape or {})
-        models["drift"].shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
-    verdict, confidence = _verdict(candidates, loss, o.alpha, segments, rng)
-    first = {
-        "step": 1,
-        "prefix": [],
-        "candidates": candidates,
-        "effect": verdict,
-        "confidence": confidence,
-    }
-    context = _SelectionContext(
-        chains=chains,
-        tables=tables,
-        prior=prior,
-        aligned=aligned,
-        effects=tuple(effects),
-        windows=windows,
-        segments=segments,
-        floor=floor,
-        alpha=o.alpha,
-        window_blocks=window_blocks,
-        reference_lag_s=reference_lag_s,
-        lag_tolerance_s=lag_tolerance_s,
-        rng=rng,
-    )
+        _add_interleaved_shape(models["drift"], interleaved)
     selection = _select_more(context, first, models, gaps, cf)
     models["combined"] = _held_out_model("combined", selection.predicted, selection.power, table)
     errors["combined"] = heldout_errors(selection.predicted, table.magnitude, rows, windows)
@@ -523,7 +471,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     heldout = np.zeros(table.n_blocks, bool)
     heldout[rows] = True
     return Diagnosis(
-        reference_lag_s=float(reference_lag_s),
+        reference_lag_s=float(o.reference_lag_s),
         table=table,
         train=clean,
         heldout=heldout,
@@ -533,9 +481,9 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         errors=errors,
         gaps=gaps,
         floor=floor,
-        candidates=candidates,
-        verdict=verdict,
-        confidence=confidence,
+        candidates=first["candidates"],
+        verdict=first["effect"],
+        confidence=first["confidence"],
         residual_noise=residual,
         window_blocks=window_blocks,
         sync_lag_s=float(aligned.sync_lag),
@@ -547,7 +495,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
         },
         interleaved=interleaved,
         transients=aligned.transients,
-        split_info=_split_info(table.t_mid_s, folds, train_fraction),
+        split_info=_split_info(table.t_mid_s, o.folds, o.train_fraction),
         floor_estimates=floors,
         effects=selection.effects,
         effect_models=selection.models,
@@ -560,17 +508,12 @@ class _SelectionContext:
     """What every forward-selection step needs."""
 
     chains: ChainFits
-    tables: dict
     prior: tuple
     aligned: "_Aligned"
-    effects: tuple[str, ...]
+    options: DiagnosisOptions
     windows: metric.Windows
     segments: np.ndarray
     floor: float
-    alpha: float
-    window_blocks: int
-    reference_lag_s: float
-    lag_tolerance_s: float
     rng: np.random.Generator
 
 
@@ -586,18 +529,12 @@ class _Selection:
 def _effect_entry(step: dict, gap_before: float, model: FittedModel) -> dict:
     """A selected effect: its held-out reduction given the effects before it, test, model."""
     c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
+    tested = ("heldout_gap", "reduction", "gap_reduction_decisive", "p_value")
+    tested += ("deviance_reduction", "block_mse_reduction_db2", "decided_by")
     return {
-        "effect": step["effect"],
-        "step": step["step"],
+        **{k: step[k] for k in ("effect", "step", "confidence")},
         "heldout_gap_before": round(float(gap_before), 4),
-        "heldout_gap": c["heldout_gap"],
-        "reduction": c["reduction"],
-        "gap_reduction_decisive": c["gap_reduction_decisive"],
-        "p_value": c["p_value"],
-        "confidence": step["confidence"],
-        "deviance_reduction": c["deviance_reduction"],
-        "block_mse_reduction_db2": c["block_mse_reduction_db2"],
-        **({"decided_by": c["decided_by"]} if "decided_by" in c else {}),
+        **{k: c[k] for k in tested if k in c},
         "parameters": model.parameters,
     }
 
@@ -620,34 +557,19 @@ def _select_more(
     fitted = [models[first["effect"]]]
     predicted, power = cf.predicted[first["effect"]], cf.power[first["effect"]]
     gap_now = gaps[first["effect"]]
-    while len(selected) < len(ctx.effects):
+    o = ctx.options
+    while len(selected) < len(o.effects):
         prefix = tuple(selected)
-        remaining = tuple(e for e in ctx.effects if e not in selected)
+        remaining = tuple(e for e in o.effects if e not in selected)
         chains.keep(prefix)
         cf_k = chains.cross(candidate_chains(prefix, remaining), offset_of="refit")
         gaps_k = {
             name: metric.gap_db(heldout_errors(cf_k.predicted[name], observed, rows, ctx.windows))
             for name in cf_k.predicted
         }
-        interleaved = (
-            _interleaved_drift(ctx.tables, ctx.prior, ctx.window_blocks, ctx.rng, prefix)
-            if "drift" in remaining
-            else {}
-        )
-        cands, loss = _candidates(
-            observed, cf_k, remaining, gaps_k, ctx.floor, ctx.segments, interleaved, ctx.rng
-        )
-        effect, confidence = _verdict(
-            cands, loss, ctx.alpha, ctx.segments, ctx.rng, min_gain=MIN_DEVIANCE_GAIN_LATER
-        )
-        step = {
-            "step": len(steps) + 1,
-            "prefix": list(prefix),
-            "candidates": cands,
-            "effect": effect,
-            "confidence": confidence,
-        }
+        step, interleaved = _step(ctx, prefix, cf_k, gaps_k, len(steps) + 1)
         steps.append(step)
+        effect = step["effect"]
         if effect == "none":
             break
         model = _chain_model(ctx, prefix, effect, interleaved)
@@ -659,6 +581,35 @@ def _select_more(
     return _Selection(entries, fitted, steps, predicted, power)
 
 
+def _step(
+    ctx: _SelectionContext, prefix: tuple[str, ...], cf: CrossFitted, gaps: dict, number: int
+) -> tuple[dict, dict]:
+    """Forward-selection step `number`: every remaining candidate on top of `prefix`
+    (cross-fitted in `cf`, held-out `gaps`) tested against it, and the one taken (`none`:
+    the selection stops); also the step's interleaved drift check ({} without drift)."""
+    o = ctx.options
+    remaining = tuple(e for e in o.effects if e not in prefix)
+    interleaved = (
+        _interleaved_drift(ctx.chains.tables, ctx.prior, o.window_blocks, ctx.rng, prefix)
+        if "drift" in remaining
+        else {}
+    )
+    observed = ctx.chains.tables["sync"].magnitude
+    cands, gains = _candidates(
+        observed, cf, remaining, gaps, ctx.floor, ctx.segments, interleaved, ctx.rng
+    )
+    min_gain = MIN_DEVIANCE_GAIN_LATER if prefix else MIN_DEVIANCE_GAIN
+    effect, confidence = _verdict(cands, gains, o.alpha, ctx.segments, ctx.rng, min_gain=min_gain)
+    step = {"step": number, "prefix": list(prefix), "candidates": cands, "effect": effect}
+    return {**step, "confidence": confidence}, interleaved
+
+
+def _add_interleaved_shape(model: FittedModel, interleaved: dict) -> None:
+    """The drift term's shapes with the interleaved check's curve beside them."""
+    model.shape = dict(model.shape or {})
+    model.shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
+
+
 def _chain_model(
     ctx: _SelectionContext, prefix: tuple[str, ...], effect: str, interleaved: dict
 ) -> FittedModel:
@@ -668,10 +619,9 @@ def _chain_model(
     model = ctx.chains.fit(ALL, chain)
     if effect == "timing":
         scales = ctx.chains.baseline(ALL, ctx.chains.lag_key(chain))[1]
-        return _timing_model(model, ctx.aligned, scales, ctx.reference_lag_s, ctx.lag_tolerance_s)
+        return _timing_model(model, ctx.aligned, scales)
     if effect == "drift" and interleaved:
-        model.shape = dict(model.shape or {})
-        model.shape["drift:elapsed_time (interleaved check)"] = interleaved["shape"]
+        _add_interleaved_shape(model, interleaved)
     return model
 
 
@@ -697,35 +647,34 @@ class _Aligned:
     sync_lag: float  # best lag within the tolerance of the simulator's own
     timing_lag: float  # best lag anywhere (the timing candidate's)
     sync_band: tuple[float, float]
+    reference_lag_s: float  # the options': the simulator's own lag, and the tolerance around it
+    tolerance_s: float
     base_table: BlockTable  # the table at the sync lag, contacts detected
     timing_table: BlockTable | None  # at the timing lag, if that differs
     contact: np.ndarray
     transients: dict
 
 
-def _align(
-    table: BlockTable, effects, prior, reference_lag_s: float, lag_tolerance_s: float
-) -> _Aligned:
+def _align(table: BlockTable, o: DiagnosisOptions, prior) -> _Aligned:
     """Lags: one scan of the baseline's residual (a single nuisance parameter, fitted on
-    every other clean block, +-LAG_RANGE_S around the reference); "in sync" = the best lag
-    within the tolerance. Then contacts
-    again, against the baseline fitted to this recording (the simulator's spectra may differ
-    in shape), with reversal-locked transients returned to the data. Sets table.contact."""
+    every clean block, +-LAG_RANGE_S around the reference); "in sync" = the best lag within
+    the tolerance. Then contacts again, against the baseline fitted to this recording (the
+    simulator's spectra may differ in shape), with reversal-locked transients returned to
+    the data. Sets table.contact."""
+    effects, reference_lag_s = o.effects, o.reference_lag_s
     clean = ~table.contact
     # Centred on the reference: the in-sync band is always inside the grid, and a lag is
     # looked for as far on either side of the robot's own lag.
     lags, curve = lag_scan(table, clean, prior=prior, centre_s=reference_lag_s)
-    lo, hi = reference_lag_s - lag_tolerance_s, reference_lag_s + lag_tolerance_s
+    lo, hi = reference_lag_s - o.lag_tolerance_s, reference_lag_s + o.lag_tolerance_s
     sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
     timing_lag = (
         refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
     )
     base_table = table.at_lag(sync_lag)
     base = fit_baseline(base_table, clean, prior=prior)
-    flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s, return_raw=True)
-    contact, transients = reversal_locked_transients(
-        base_table, raw, flagged, np.ones(table.n_blocks, bool)
-    )
+    flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s)
+    contact, transients = reversal_locked_transients(base_table, raw, flagged)
     table.contact = contact
     timing_table = None
     if "timing" in effects and abs(timing_lag - sync_lag) > 1e-4:
@@ -736,6 +685,8 @@ def _align(
         sync_lag=sync_lag,
         timing_lag=timing_lag,
         sync_band=(lo, hi),
+        reference_lag_s=reference_lag_s,
+        tolerance_s=o.lag_tolerance_s,
         base_table=replace(base_table, contact=contact),
         timing_table=timing_table,
         contact=contact,
@@ -744,13 +695,7 @@ def _align(
 
 
 def _fitted_models(
-    table: BlockTable,
-    aligned: _Aligned,
-    effects,
-    chains: ChainFits,
-    cf: CrossFitted,
-    reference_lag_s: float,
-    lag_tolerance_s: float,
+    table: BlockTable, aligned: _Aligned, effects, chains: ChainFits, cf: CrossFitted
 ) -> dict[str, FittedModel]:
     """The fitted terms (parameters, shapes) for the report, fitted on every clean block;
     their predictions then replaced by the held-out ones (all figures are held out)."""
@@ -760,9 +705,7 @@ def _fitted_models(
     }
     if "timing" in effects:
         scales = chains.baseline(ALL, "sync")[1]
-        models["timing"] = _timing_model(
-            models["refit"], aligned, scales, reference_lag_s, lag_tolerance_s
-        )
+        models["timing"] = _timing_model(models["refit"], aligned, scales)
     for name, fm in models.items():
         fm.refit_predicted = cf.predicted["refit"]
         fm.predicted = cf.predicted[name]
@@ -770,11 +713,10 @@ def _fitted_models(
     return models
 
 
-def _timing_model(
-    refit: FittedModel, aligned: _Aligned, scales, reference_lag_s: float, lag_tolerance_s: float
-) -> FittedModel:
+def _timing_model(refit: FittedModel, aligned: _Aligned, scales) -> FittedModel:
     """The timing candidate: the refit at the timing lag, with the lag scan as its shape."""
     lo, hi = aligned.sync_band
+    reference_lag_s = aligned.reference_lag_s
     fitted = FittedModel(
         name="timing",
         predicted=refit.predicted,
@@ -789,7 +731,7 @@ def _timing_model(
             "sync_lag_s": round(aligned.sync_lag, 5),
             "reference_lag_s": round(float(reference_lag_s), 5),
             "lag_vs_simulator_s": round(float(aligned.timing_lag - reference_lag_s), 5),
-            "tolerance_s": lag_tolerance_s,
+            "tolerance_s": aligned.tolerance_s,
         }
     )
     fitted.shape = {
@@ -838,13 +780,13 @@ def _candidates(
     rng: np.random.Generator,
 ) -> tuple[list[dict], dict[str, np.ndarray]]:
     """Each candidate tested against the baseline on the held-out blocks, sorted by its
-    deviance reduction; and the per-block losses the bootstrap resamples."""
+    deviance reduction; and (in that order) the per-block gains the bootstrap resamples."""
     excess_refit = max(gaps["refit"] ** 2 - floor**2, 1e-12)
-    loss = {}
+    gains = {}
     candidates = []
     for effect in effects:
         res = _test(observed, cf, effect, segments, rng)
-        loss["refit"], loss[effect] = res["loss_base"], res["loss_cand"]
+        gains[effect] = res["gain"]
         removed = float(
             np.clip((gaps["refit"] ** 2 - gaps[effect] ** 2) / excess_refit, -9.99, 1.0)
         )
@@ -862,7 +804,7 @@ def _candidates(
         entry.setdefault("gap_reduction_decisive", entry["reduction"])
         candidates.append(entry)
     candidates.sort(key=lambda c: -c["deviance_reduction"])
-    return candidates, loss
+    return candidates, {c["effect"]: gains[c["effect"]] for c in candidates}
 
 
 def _two_looks_at_drift(entry: dict, interleaved: dict) -> None:
@@ -874,12 +816,11 @@ def _two_looks_at_drift(entry: dict, interleaved: dict) -> None:
     }
     entry["interleaved"] = {k: v for k, v in interleaved.items() if k != "shape"}
     decided = "interleaved" if interleaved["p_value"] < p else "folds"
-    if decided == "interleaved":
-        entry["deviance_reduction"] = interleaved["deviance_reduction"]
-        entry["block_mse_reduction_db2"] = interleaved["block_mse_reduction_db2"]
     entry["p_value"] = min(1.0, 2.0 * min(p, interleaved["p_value"]))
     entry["decided_by"] = decided
     if decided == "interleaved":
+        entry["deviance_reduction"] = interleaved["deviance_reduction"]
+        entry["block_mse_reduction_db2"] = interleaved["block_mse_reduction_db2"]
         entry["gap_reduction_decisive"] = round(
             interleaved["heldout_gap_baseline"] - interleaved["heldout_gap_drift"], 4
         )
@@ -887,40 +828,31 @@ def _two_looks_at_drift(entry: dict, interleaved: dict) -> None:
 
 def _verdict(
     candidates: list[dict],
-    loss: dict[str, np.ndarray],
+    gains: dict[str, np.ndarray],
     alpha: float,
     segments: np.ndarray,
     rng: np.random.Generator,
     *,
     min_gain: float = MIN_DEVIANCE_GAIN,
+    gap_key: str = "gap_reduction_decisive",
 ) -> tuple[str, float]:
-    """The effect named and its confidence.
+    """The effect named (the first of `candidates`, sorted, that qualifies; `none`) and its
+    confidence (`_bootstrap_confidence` of the per-block `gains`).
 
-    Named only if significant, large enough, and the held-out gap (the metric the report
-    shows) actually shrinks: a term that improves the power deviance but worsens the
-    magnitude gap is explaining something else (measured: the coupling term on weak
-    timing and acceleration bags of the simulator, and on a tiny non-additivity of
-    effect-free ones)."""
+    Named only if significant (p < alpha / candidates), large enough (`min_gain`), and the
+    held-out gap (`gap_key`: the metric the report shows) actually shrinks: a term that
+    improves the power deviance but worsens the magnitude gap is explaining something else
+    (measured: the coupling term on weak timing and acceleration bags of the simulator)."""
     level = alpha / max(len(candidates), 1)
     eligible = [
         c
         for c in candidates
-        if c["p_value"] < level
-        and c["deviance_reduction"] >= min_gain
-        and c["gap_reduction_decisive"] > 0.0
+        if c["p_value"] < level and c["deviance_reduction"] >= min_gain and c[gap_key] > 0.0
     ]
-    names = [c["effect"] for c in candidates]
-    if not eligible:
-        # The same bootstrap as for a named effect: the share of resamples in which no
-        # candidate reaches the minimum gain. (It was 1 - the strongest candidate's adjusted
-        # p, which is largest when a candidate only just misses significance: `none` with
-        # confidence 0.97 beside a drift term that took 0.6 dB off a baseline 2 dB above
-        # the floor at p = 0.0066.)
-        return "none", _bootstrap_confidence(loss, names, "none", segments, rng)
-    verdict = eligible[0]["effect"]
+    verdict = eligible[0]["effect"] if eligible else "none"
     interleaved = any(c.get("decided_by") == "interleaved" for c in candidates)  # drift's
     return verdict, _bootstrap_confidence(
-        loss, names, verdict, segments, rng, interleaved=interleaved
+        gains, verdict, segments, rng, others_only=interleaved and verdict == "drift"
     )
 
 
@@ -950,28 +882,26 @@ def _split_info(t: np.ndarray, folds: int, train_fraction: float | None) -> dict
 
 
 def _bootstrap_confidence(
-    loss: dict[str, np.ndarray],
-    names: list[str],
+    gains: dict[str, np.ndarray],
     verdict: str,
     segments: np.ndarray,
     rng: np.random.Generator,
     *,
-    interleaved: bool = False,
+    others_only: bool = False,
 ) -> float:
     """Share of block-bootstrap resamples (held-out segments drawn with replacement) in which
-    the verdict's effect has the largest held-out deviance reduction over the baseline (at
-    least MIN_DEVIANCE_GAIN); for `none`, the share in which no candidate reaches it.  A drift
-    verdict decided on the interleaved split is not comparable segment by segment: its
-    confidence is the share in which no other candidate reaches the minimum gain.
+    the verdict has the largest mean per-block gain of `gains` (deviance reduction over its
+    null, at least MIN_DEVIANCE_GAIN); for `none`, the share in which no candidate reaches
+    it, i.e. low beside a large gain that just misses significance. `others_only` (a drift
+    verdict decided on the interleaved split, not comparable segment by segment): the share
+    in which no other candidate reaches it.
     """
-    names = [n for n in names if n in loss]
+    names = list(gains)
     if not names:
         return 1.0
     n_seg = int(segments.max()) + 1
     seg_len = np.bincount(segments, minlength=n_seg)
-    gain = np.stack(
-        [np.bincount(segments, weights=loss["refit"] - loss[n], minlength=n_seg) for n in names]
-    )
+    gain = np.stack([np.bincount(segments, weights=gains[n], minlength=n_seg) for n in names])
     mean_gain = np.empty((len(names), N_BOOTSTRAP))  # (K, N_BOOTSTRAP)
     batch = 100  # resamples per draw: the same stream as one draw, in bounded memory
     for start in range(0, N_BOOTSTRAP, batch):
@@ -980,7 +910,7 @@ def _bootstrap_confidence(
         mean_gain[:, start : start + len(picks)] = gain[:, picks].sum(axis=2) / n_picked
     if verdict == "none":
         return round(float(np.mean(np.max(mean_gain, axis=0) < MIN_DEVIANCE_GAIN)), 4)
-    if interleaved and verdict == "drift":
+    if others_only:
         others = [i for i, n in enumerate(names) if n != "drift"]
         if not others:
             return 1.0

@@ -7,11 +7,9 @@ real training split.  Each candidate multiplies it by a flexible log-linear term
 
 in generic covariates that assume nothing about how the effect is produced:
 
-- position: Fourier series (harmonics 1..POSITION_HARMONICS) of every continuous
-  (revolute, turning) joint's angle that turned a whole revolution in training, or of one
-  that turned one way over part of a turn the harmonics whose period it spans;
-  piecewise-linear functions (POSITION_KNOTS knots
-  over the travel seen in training) of every other joint's position.
+- position: Fourier series (harmonics 1..POSITION_HARMONICS) of every turning joint's
+  angle, those whose period its training motion spans (`fit_scales`); piecewise-linear
+  functions (POSITION_KNOTS knots over the travel seen in training) of every other joint's.
 - coupling: one joint's lines (its share of each bin's power) scaled by another joint's
   speed and direction (`line_stage`), then products of piecewise-linear functions of two
   joints' speeds, and of their directions (zero when either joint is still: main effects
@@ -19,11 +17,11 @@ in generic covariates that assume nothing about how the effect is produced:
 - acceleration: magnitude of each joint's acceleration (log1p and hinges, relative to its
   training 95th percentile) and reversals (exponential kernels of the time since and
   until the joint last/next reverses direction), plain and relative to band power.
-- drift: piecewise-linear function of elapsed time over the training span, held flat
-  beyond it, plus a linear trend that extrapolates (forward split); and, checked on
-  interleaved held-out blocks, a piecewise-linear function of elapsed time over the whole
-  recording (`fit_drift_interleaved` in diagnose.py): a warm-up that saturates inside
-  the training span is in-sample structure that extrapolation alone cannot see.
+- drift: each joint's own trend on its share of the bins (`joint_drift_stage`), then a
+  piecewise-linear function of elapsed time over the training span, held flat beyond it,
+  plus a linear trend that extrapolates; and, checked on interleaved held-out blocks
+  (diagnose.py), one over the whole recording: a warm-up that saturates inside the
+  training span is in-sample structure that extrapolation alone cannot see.
 - timing: the baseline refitted with joint states re-matched at a lag fitted on train
   (either sign), versus the best lag within LAG_TOLERANCE_S of the reference.
 
@@ -34,7 +32,7 @@ on the training rows (so a strong effect is barely shrunk and a spurious one is)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -50,7 +48,6 @@ from egovib_ros.gap.regression import (
 EFFECTS = ("position", "coupling", "acceleration", "timing", "drift")
 POSITION_HARMONICS = 6
 POSITION_KNOTS = 7
-SPEED_KNOTS = tuple(np.linspace(0.0, 1.0, 9))
 #: Coupling products: at most this many speed knots per joint (quantiles of the training
 #: speeds, where the data are), fewer with many joint pairs (8 / sqrt(pairs), at least 3),
 #: so the term does not outgrow the others (four motors: 6 pairs x 3 x 3, not 6 x 8 x 8).
@@ -74,6 +71,7 @@ LAG_FINE_S = 0.001
 #: structural and sensor group delays differ from the simulator's by a few ms.
 LAG_TOLERANCE_S = 0.005
 REL_CLIP = 25.0
+DB_PER_NEPER = 20.0 / np.log(10.0)
 #: Per-line interactions (coupling): speed knots of the scaling joint, at most this many
 #: (quantiles of its training speeds), fewer with many joints (6 / sqrt(ordered pairs)).
 LINE_KNOTS = 3
@@ -107,16 +105,16 @@ class Scales:
     acc_scale: np.ndarray  # (J,)
     t_ref_s: float  # start of the training span
     t_end_s: float  # end of the training span
-    power_ref: float = 1.0  # median baseline band power (train)
-    band_power: np.ndarray | None = None  # (B,) baseline band power of every block
+    power_ref: float  # median baseline band power (train)
+    band_power: np.ndarray  # (B,) baseline band power of every block
     #: (J,) bool: the joint moves both ways in training (direction-dependent terms apply)
-    bidirectional: np.ndarray | None = None
+    bidirectional: np.ndarray
     #: per joint: speed-fraction knots of the coupling products (quantiles of training speeds)
-    speed_knots: tuple[np.ndarray, ...] = ()
-    rate_scale: np.ndarray | None = None  # (J,) 95th percentile of |d|v|/dt| (train)
-    jerk_scale: np.ndarray | None = None  # (J,) 90th percentile of block |jerk| (train)
+    speed_knots: tuple[np.ndarray, ...]
+    rate_scale: np.ndarray  # (J,) 95th percentile of |d|v|/dt| (train)
+    jerk_scale: np.ndarray  # (J,) 90th percentile of block |jerk| (train)
     #: per joint: the harmonics of its angle the training data identify (none: hats)
-    harmonics: tuple[tuple[int, ...], ...] = ()
+    harmonics: tuple[tuple[int, ...], ...]
 
 
 def covered_harmonics(span_rad: float) -> tuple[int, ...]:
@@ -137,13 +135,11 @@ def fit_scales(
     table: BlockTable, train: np.ndarray, baseline_magnitude: np.ndarray | None = None
 ) -> Scales:
     pos = table.position[train]
-    # A turning joint's harmonics where training identifies them: all of them once it has
-    # turned a whole revolution; turning one way over part of a turn (a motor's integrated
-    # position on a short recording), only those whose period the angles span, since a
-    # harmonic seen over part of its period is a trend along a monotone angle, i.e. in
-    # time, that extrapolates on held-out blocks (the real flight: -1.7 dB). A joint turned
-    # back and forth over less than a turn (a wrist at +-0.5 rad) is fitted over its travel
-    # like a bounded joint.
+    # A turning joint's harmonics where training identifies them: all once it has turned a
+    # whole revolution; turning one way over part of a turn, only those whose period the
+    # angles span (one seen over part of its period is a trend in time that extrapolates on
+    # held-out blocks). A joint turned back and forth over less than a turn is fitted over
+    # its travel like a bounded joint.
     span = pos.max(axis=0) - pos.min(axis=0) if len(pos) else np.zeros(pos.shape[1])
     frac = table.velocity[train] / table.vmax
     moving = np.abs(frac) > MOVING_FRACTION
@@ -176,14 +172,12 @@ def fit_scales(
             else np.linspace(1.0 / n_knots, 1.0, n_knots)
         )
         knots.append(np.unique(np.concatenate([[0.0], np.maximum(q, 1e-3)])))
-    rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(table.velocity)
-    jerk = table.jerk if table.jerk is not None else np.zeros_like(table.velocity)
     return Scales(
         harmonics=harmonics,
         bidirectional=both,
         speed_knots=tuple(knots),
-        rate_scale=np.maximum(np.percentile(np.abs(rate[train]), 95, axis=0), 1e-9),
-        jerk_scale=np.maximum(np.percentile(jerk[train], 90, axis=0), 1e-9),
+        rate_scale=np.maximum(np.percentile(np.abs(table.speed_rate[train]), 95, axis=0), 1e-9),
+        jerk_scale=np.maximum(np.percentile(table.jerk[train], 90, axis=0), 1e-9),
         periodic=np.array([len(h) > 0 for h in harmonics]),
         pos_lo=lo,
         pos_hi=np.maximum(hi, lo + 1e-9),
@@ -203,7 +197,7 @@ def relative_power(table: BlockTable, scales: Scales) -> np.ndarray:
     """
     band = (
         scales.band_power
-        if scales.band_power is not None and len(scales.band_power) == table.n_blocks
+        if len(scales.band_power) == table.n_blocks
         else np.mean(table.base_mean**2, axis=1)
     )
     return np.minimum(scales.power_ref / np.maximum(band, 1e-9 * scales.power_ref), REL_CLIP)
@@ -237,8 +231,7 @@ def position_basis(p: np.ndarray, j: int, scales: Scales) -> tuple[np.ndarray, l
     (middle dropped)."""
     if scales.periodic[j]:
         cols, labels = [], []
-        harmonics = scales.harmonics[j] if scales.harmonics else range(1, POSITION_HARMONICS + 1)
-        for k in harmonics:
+        for k in scales.harmonics[j]:
             cols += [np.cos(k * p), np.sin(k * p)]
             labels += [f"cos{k}", f"sin{k}"]
         return np.stack(cols, axis=1), labels
@@ -255,50 +248,41 @@ def direction(table: BlockTable) -> np.ndarray:
 
 def _acceleration_columns(table: BlockTable, scales: Scales) -> tuple[list, list[str]]:
     """The acceleration candidate's columns and names (`effect_regressors`)."""
-    cols, names = [], []
     acc = np.clip(table.acceleration / scales.acc_scale, 0.0, 40.0)
     rel = relative_power(table, scales)
-    rate = table.speed_rate if table.speed_rate is not None else np.zeros_like(acc)
-    rate_scale = scales.rate_scale if scales.rate_scale is not None else np.ones(acc.shape[1])
-    up = np.clip(rate / rate_scale, 0.0, 40.0)
-    down = np.clip(-rate / rate_scale, 0.0, 40.0)
-    jerk = table.jerk if table.jerk is not None else np.zeros_like(acc)
-    jerk_scale = scales.jerk_scale if scales.jerk_scale is not None else np.ones(acc.shape[1])
-    jerk = np.clip(jerk / jerk_scale, 0.0, 40.0)
+    up = np.clip(table.speed_rate / scales.rate_scale, 0.0, 40.0)
+    down = np.clip(-table.speed_rate / scales.rate_scale, 0.0, 40.0)
+    jerk = np.clip(table.jerk / scales.jerk_scale, 0.0, 40.0)
+
+    def added(x: np.ndarray) -> np.ndarray:  # as added power: more where the model is quiet
+        return np.minimum((x / 10.0) ** 2 * rel, REL_CLIP)
+
+    cols: dict[str, np.ndarray] = {}
     for j, name in enumerate(table.joint_names):
         u = acc[:, j]
-        cols += [np.log1p(u)] + [np.maximum(u - h, 0.0) / 10.0 for h in ACC_HINGES]
-        names += [f"log1p|a|({name})"] + [f"(|a|-{h:g})+({name})" for h in ACC_HINGES]
-        cols.append(np.minimum((u / 10.0) ** 2 * rel, REL_CLIP))
-        names.append(f"|a|^2/P({name})")
+        cols[f"log1p|a|({name})"] = np.log1p(u)
+        for h in ACC_HINGES:
+            cols[f"(|a|-{h:g})+({name})"] = np.maximum(u - h, 0.0) / 10.0
+        cols[f"|a|^2/P({name})"] = added(u)
         # speeding up vs slowing down (d|v|/dt of either sign), as a gain and as added power
-        cols += [np.log1p(up[:, j]), np.log1p(down[:, j])]
-        names += [f"log1p(speeding_up)({name})", f"log1p(slowing_down)({name})"]
-        cols += [
-            np.minimum((up[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-            np.minimum((down[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-        ]
-        names += [f"speeding_up^2/P({name})", f"slowing_down^2/P({name})"]
+        cols[f"log1p(speeding_up)({name})"] = np.log1p(up[:, j])
+        cols[f"log1p(slowing_down)({name})"] = np.log1p(down[:, j])
+        cols[f"speeding_up^2/P({name})"] = added(up[:, j])
+        cols[f"slowing_down^2/P({name})"] = added(down[:, j])
         # where a speed change starts or ends (backlash knocked, a mode rung by the jerk):
         # above its typical level only, so that a noisy jerk (a real robot's encoders
         # differentiated twice) is not a constant that stands in for a level change
-        cols += [
-            np.log1p(np.maximum(jerk[:, j] - 1.0, 0.0)),
-            np.minimum((jerk[:, j] / 10.0) ** 2 * rel, REL_CLIP),
-        ]
-        names += [f"log1p(|jerk|-1)+({name})", f"|jerk|^2/P({name})"]
-        if table.reversal_after_s is not None:
-            after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
-            for tau in REVERSAL_TAUS_S:
-                ka, kb = np.exp(-after / tau), np.exp(-before / tau)
-                cols += [ka, kb]
-                names += [
-                    f"after_rev_{1000 * tau:g}ms({name})",
-                    f"before_rev_{1000 * tau:g}ms({name})",
-                ]
-            cols.append(np.minimum(np.exp(-after / REVERSAL_TAUS_S[1]) * rel, REL_CLIP))
-            names.append(f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})")
-    return cols, names
+        cols[f"log1p(|jerk|-1)+({name})"] = np.log1p(np.maximum(jerk[:, j] - 1.0, 0.0))
+        cols[f"|jerk|^2/P({name})"] = added(jerk[:, j])
+        after, before = table.reversal_after_s[:, j], table.reversal_before_s[:, j]
+        for tau in REVERSAL_TAUS_S:
+            cols[f"after_rev_{1000 * tau:g}ms({name})"] = np.exp(-after / tau)
+            cols[f"before_rev_{1000 * tau:g}ms({name})"] = np.exp(-before / tau)
+        tau = REVERSAL_TAUS_S[1]
+        cols[f"after_rev_{1000 * tau:g}ms/P({name})"] = np.minimum(
+            np.exp(-after / tau) * rel, REL_CLIP
+        )
+    return list(cols.values()), list(cols)
 
 
 def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, side by side)
@@ -307,11 +291,7 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
     """Regressor columns (B, R) of one candidate effect, with their names (none for the
     baseline and timing)."""
     cols, names = [], []
-    both = (
-        scales.bidirectional
-        if scales.bidirectional is not None
-        else np.ones(len(table.joint_names), bool)
-    )
+    both = scales.bidirectional
     if effect == "position":
         # Each function of a joint's position enters as a gain, weighted by that joint's speed
         # fraction (a spot or rub that sounds only while the joint moves) and, for a joint
@@ -336,7 +316,7 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
         speed = np.abs(table.velocity) / table.vmax
         sign = direction(table)
         n_j = speed.shape[1]
-        knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+        knots = scales.speed_knots
         basis = [hat_matrix(speed[:, j], knots[j])[:, 1:] for j in range(n_j)]
         coarse = [
             hat_matrix(speed[:, j], knots[j][::2] if len(knots[j]) > 3 else knots[j])[:, 1:]
@@ -438,12 +418,10 @@ def fit_variant(
     return fm
 
 
-def joint_shares(table: BlockTable, base: Baseline) -> np.ndarray | None:
+def joint_shares(table: BlockTable, base: Baseline) -> np.ndarray:
     """(J, B, F) each joint's share of each block's and bin's expected power by the
     baseline's additive stage (its cells at the block's velocity trajectory): where that
-    joint's lines are. None when the table has no trajectory features."""
-    if table.hats is None or base.cell_power is None or base.rest_power is None:
-        return None
+    joint's lines are."""
     k = min(table.hats.shape[2], base.cell_power.shape[1])
     power = np.einsum("bjk,jkf->jbf", table.hats[:, :, :k], base.cell_power[:, :k])
     total = base.rest_power[None, None, :] + power.sum(axis=0)
@@ -457,7 +435,7 @@ def line_knots(table: BlockTable, scales: Scales) -> list[np.ndarray]:
     n_knots = int(np.clip(round(6 / np.sqrt(n_pairs)), 1, LINE_KNOTS))
     out = []
     for j in range(n_j):
-        knots = scales.speed_knots[j] if scales.speed_knots else np.asarray(SPEED_KNOTS)
+        knots = scales.speed_knots[j]
         moving = knots[knots > 0]
         pick = moving[np.round(np.linspace(0, len(moving) - 1, n_knots + 1)[1:]).astype(int)]
         out.append(np.unique(np.concatenate([[0.0], pick])))
@@ -472,13 +450,13 @@ def line_design(
     joints that move both ways the same times k's direction (louder one way of k) and times
     the product of both directions (louder moving the same way, quieter opposite). Column
     labels: (j, k, variant "speed" | "dir_k" | "same_dir", knot)."""
-    share = joint_shares(table, base)
     n_j = len(table.joint_names)
-    if share is None or n_j < 2:
+    if n_j < 2:
         return None, []
+    share = joint_shares(table, base)
     speed = np.abs(table.velocity) / table.vmax
     sign = direction(table)
-    both = scales.bidirectional if scales.bidirectional is not None else np.ones(n_j, bool)
+    both = scales.bidirectional
     knots = line_knots(table, scales)
     cols, owner, labels = [], [], []
     for j in range(n_j):
@@ -537,14 +515,7 @@ def _shared_stage(
     power = power * relevel(table.magnitude**2, power, train)
     info = dict(base.info)
     info["n_parameters"] = int(info.get("n_parameters", 0) + len(a) + len(gamma))
-    out = Baseline(
-        magnitude=magnitude,
-        power=power,
-        rest_power=base.rest_power,
-        cell_power=base.cell_power,
-        info=info,
-    )
-    return out, gamma, ridge
+    return replace(base, magnitude=magnitude, power=power, info=info), gamma, ridge
 
 
 def joint_drift_stage(
@@ -554,15 +525,13 @@ def joint_drift_stage(
     scales: Scales,
     *,
     mask: np.ndarray | None = None,
-) -> tuple[Baseline, dict | None]:
+) -> tuple[Baseline, dict]:
     """The baseline times a drift term on each joint's share of each bin (one joint's
     drive wearing in or out: its lines and noise louder or quieter over time, wherever they
     are), its summary (each joint's change from start to end, dB), shapes (`drift:<joint>`)
     and `level_db`: the joints' curves weighted by their mean share of the training
-    blocks, the whole vibration's level. The baseline unchanged (None) without shares."""
+    blocks, the whole vibration's level."""
     share = joint_shares(table, base)
-    if share is None:
-        return base, None
     n_j = share.shape[0]
     cols = drift_columns(table.t_mid_s, scales)
     owner = np.repeat(np.arange(n_j), cols.shape[1])
@@ -657,11 +626,14 @@ def apply_effect_term(
     return predicted * relevel(table.magnitude, predicted, train)
 
 
-DB_PER_NEPER = 20.0 / np.log(10.0)
-
-
 def _db(log_gain) -> list:
     return [round(float(v) * DB_PER_NEPER, 3) for v in np.atleast_1d(log_gain)]
+
+
+def shape_curve(x: np.ndarray, unit: str, log_gain: np.ndarray, digits: int = 3, **extra) -> dict:
+    """A shape curve for the report: x (rounded to `digits`), its unit, the gain in dB."""
+    xs = [round(float(v), digits) for v in x]
+    return {"x": xs, "unit": unit, "gain_db": _db(log_gain), **extra}
 
 
 def effect_shape(
@@ -675,7 +647,7 @@ def effect_shape(
     """
     beta = coef[1:].mean(axis=1)  # broadband part (R,)
     if effect == "coupling":  # also bin by bin: an interaction at a few lines averages out
-        return _coupling_shapes(table, scales, beta, names, per_bin=coef[1:])
+        return _coupling_shapes(table, scales, beta, names, coef[1:])
     shapes = _SHAPES.get(effect)
     return shapes(table, scales, beta, names) if shapes else {}
 
@@ -697,22 +669,13 @@ def _position_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names:
             float(np.median(speed[:, j][speed[:, j] > 0.05])) if np.any(speed[:, j] > 0.05) else 0.5
         )
         g = basis @ (beta[plain] + typical * beta[moving])
-        shapes[f"position:{name}"] = {
-            "x": [round(float(v), 5) for v in grid],
-            "unit": unit,
-            "gain_db": _db(g - g.mean()),
-            "note": f"at the joint's median moving speed fraction {typical:.2f}",
-        }
+        note = f"at the joint's median moving speed fraction {typical:.2f}"
+        shapes[f"position:{name}"] = shape_curve(grid, unit, g - g.mean(), 5, note=note)
     return shapes
 
 
 def _coupling_shapes(
-    table: BlockTable,
-    scales: Scales,
-    beta: np.ndarray,
-    names: list[str],
-    *,
-    per_bin: np.ndarray | None = None,
+    table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str], per_bin: np.ndarray
 ) -> dict:
     """Gain over each pair of joints' speeds: broadband (`beta`, mean over bins) and, from
     the per-bin coefficients `per_bin` (R, F), its largest value in any one bin (a real
@@ -724,7 +687,7 @@ def _coupling_shapes(
     grid = np.linspace(0.0, 1.0, 11)
     idx = {n: k for k, n in enumerate(names)}
     n_j = len(table.joint_names)
-    knots = scales.speed_knots or tuple(np.asarray(SPEED_KNOTS) for _ in range(n_j))
+    knots = scales.speed_knots
 
     def surface(terms: list[tuple[int, np.ndarray]], coef: np.ndarray) -> np.ndarray:
         """sum over the pair's columns of coef[column] x its (grid x grid) product;
@@ -761,12 +724,11 @@ def _coupling_shapes(
                 # the key's "AxB" cannot be split back where a name holds an x (wrist_flex)
                 "joints": [table.joint_names[i], table.joint_names[j]],
             }
-            if per_bin is not None:
-                bins = surface(plain, per_bin) + surface(signed_terms, per_bin)  # (F, 11, 11)
-                f, a, b = np.unravel_index(int(np.argmax(np.abs(bins))), bins.shape)
-                entry["per_bin_peak_db"] = _db(bins[f, a, b])[0]
-                entry["per_bin_peak_hz"] = round(float(table.freqs_hz[f]), 1)
-                entry["per_bin_peak_at"] = [float(grid[a]), float(grid[b])]
+            bins = surface(plain, per_bin) + surface(signed_terms, per_bin)  # (F, 11, 11)
+            f, a, b = np.unravel_index(int(np.argmax(np.abs(bins))), bins.shape)
+            entry["per_bin_peak_db"] = _db(bins[f, a, b])[0]
+            entry["per_bin_peak_hz"] = round(float(table.freqs_hz[f]), 1)
+            entry["per_bin_peak_at"] = [float(grid[a]), float(grid[b])]
             shapes[f"coupling:{table.joint_names[i]}x{table.joint_names[j]}"] = entry
     return shapes
 
@@ -776,45 +738,32 @@ def _acceleration_shapes(
 ) -> dict:
     """Gain along each joint's |acceleration| and |jerk|, and around its reversals."""
     shapes: dict = {}
+    idx = {n: k for k, n in enumerate(names)}
+    grid = np.linspace(0.0, 20.0, 41)
     for name in table.joint_names:
-        idx = {n: k for k, n in enumerate(names)}
-        grid = np.linspace(0.0, 20.0, 41)
         g = beta[idx[f"log1p|a|({name})"]] * np.log1p(grid)
         for h in ACC_HINGES:
             g = g + beta[idx[f"(|a|-{h:g})+({name})"]] * np.maximum(grid - h, 0) / 10.0
         g = g + beta[idx[f"|a|^2/P({name})"]] * (grid / 10.0) ** 2
-        shapes[f"acceleration:{name}"] = {
-            "x": [round(float(v), 3) for v in grid],
-            "unit": "|acceleration| / training 95th percentile",
-            "gain_db": _db(g),
-        }
-        if f"log1p(|jerk|-1)+({name})" in idx:
-            g = beta[idx[f"log1p(|jerk|-1)+({name})"]] * np.log1p(np.maximum(grid - 1.0, 0.0))
-            g = g + beta[idx[f"|jerk|^2/P({name})"]] * (grid / 10.0) ** 2
-            shapes[f"jerk:{name}"] = {
-                "x": [round(float(v), 3) for v in grid],
-                "unit": "|jerk| / training 90th percentile",
-                "gain_db": _db(g),
-            }
-        if f"after_rev_15ms({name})" in idx:
-            tgrid = np.linspace(-0.3, 0.3, 61)
-            g = np.zeros_like(tgrid)
-            for tau in REVERSAL_TAUS_S:
-                ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
-                g = (
-                    g
-                    + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
-                    + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
-                )
-            g = g + beta[idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]] * np.where(
-                tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0
+        unit = "|acceleration| / training 95th percentile"
+        shapes[f"acceleration:{name}"] = shape_curve(grid, unit, g)
+        g = beta[idx[f"log1p(|jerk|-1)+({name})"]] * np.log1p(np.maximum(grid - 1.0, 0.0))
+        g = g + beta[idx[f"|jerk|^2/P({name})"]] * (grid / 10.0) ** 2
+        shapes[f"jerk:{name}"] = shape_curve(grid, "|jerk| / training 90th percentile", g)
+        tgrid = np.linspace(-0.3, 0.3, 61)
+        g = np.zeros_like(tgrid)
+        for tau in REVERSAL_TAUS_S:
+            ka = np.where(tgrid >= 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+            kb = np.where(tgrid < 0, np.exp(-np.abs(tgrid) / tau), 0.0)
+            g = (
+                g
+                + beta[idx[f"after_rev_{1000 * tau:g}ms({name})"]] * ka
+                + beta[idx[f"before_rev_{1000 * tau:g}ms({name})"]] * kb
             )
-            shapes[f"reversal:{name}"] = {
-                "x": [round(float(v), 3) for v in tgrid],
-                "unit": "s from the joint's reversal",
-                "gain_db": _db(g),
-            }
+        g = g + beta[idx[f"after_rev_{1000 * REVERSAL_TAUS_S[1]:g}ms/P({name})"]] * np.where(
+            tgrid >= 0, np.exp(-np.abs(tgrid) / REVERSAL_TAUS_S[1]), 0.0
+        )
+        shapes[f"reversal:{name}"] = shape_curve(tgrid, "s from the joint's reversal", g)
     return shapes
 
 
@@ -825,16 +774,10 @@ def drift_grid(table: BlockTable, scales: Scales) -> np.ndarray:
 
 def _drift_shapes(table: BlockTable, scales: Scales, beta: np.ndarray, names: list[str]) -> dict:
     """Gain along the elapsed time (0 dB at the start of the training span)."""
-    shapes: dict = {}
     grid = drift_grid(table, scales)
     g = drift_columns(grid, scales) @ beta
-    shapes["drift:elapsed_time"] = {
-        "x": [round(float(v), 2) for v in grid],
-        "unit": "s",
-        "gain_db": _db(g - g[0]),
-        "train_end_s": round(scales.t_end_s, 2),
-    }
-    return shapes
+    end = round(scales.t_end_s, 2)
+    return {"drift:elapsed_time": shape_curve(grid, "s", g - g[0], 2, train_end_s=end)}
 
 
 #: effect -> its shape curves from the broadband coefficients (effect_shape; coupling's,
@@ -883,7 +826,7 @@ def lag_scan(
     *,
     lag_range_s: float = LAG_RANGE_S,
     centre_s: float = 0.0,
-    prior=None,
+    prior,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Training residual of the baseline refitted with joint states re-matched
     at each lag of a grid.
@@ -892,7 +835,6 @@ def lag_scan(
     the curve of a 17.5 ms lag had a second, deeper minimum at 30 ms, where the timing
     term lost on held-out data; on all blocks its minimum is at 19-20 ms."""
     rows = np.flatnonzero(train)
-    prior = simulator_cells(table) if prior is None else prior
     lags = np.round(
         np.arange(centre_s - lag_range_s, centre_s + lag_range_s + 1e-12, LAG_COARSE_S), 6
     )
@@ -908,11 +850,10 @@ def refine_lag(
     *,
     lo: float = -np.inf,
     hi: float = np.inf,
-    prior=None,
+    prior,
 ) -> float:
     """Best lag within [lo, hi]: best coarse grid point there, then the fine grid around it."""
     rows = np.flatnonzero(train)
-    prior = simulator_cells(table) if prior is None else prior
     inside = (lags >= lo - 1e-9) & (lags <= hi + 1e-9)
     if not inside.any():  # the grid points nearest the band
         outside = np.abs(lags - np.clip(lags, lo, hi))

@@ -217,24 +217,6 @@ def motion_features(
     return hats, after, before
 
 
-def detect_reversals(
-    t_s: np.ndarray, smooth_velocity: np.ndarray, vmax: np.ndarray
-) -> tuple[np.ndarray, ...]:
-    """Per joint: times at which motion resumes opposite to the previous direction of motion."""
-    out = []
-    for j in range(smooth_velocity.shape[1]):
-        v = smooth_velocity[:, j]
-        thr = REVERSAL_THRESHOLD * vmax[j]
-        state = np.where(v > thr, 1, np.where(v < -thr, -1, 0))
-        moving = np.flatnonzero(state)
-        if len(moving) < 2:
-            out.append(np.zeros(0))
-            continue
-        flips = moving[1:][np.diff(state[moving]) != 0]
-        out.append(t_s[flips])
-    return tuple(out)
-
-
 #: A bag longer than the block budget is thinned in runs of this many consecutive blocks
 #: (~0.7 s at 3 kHz): a run holds 8 metric windows and about one 0.5 s test segment.
 THIN_RUN_BLOCKS = 64
@@ -251,12 +233,12 @@ class BlockSpectra:
     blocks that have a joint state. The framer is the only state, so any slicing of the
     same arrays gives the same blocks (tested); a bag is never held whole."""
 
-    def __init__(self, model, n_joints: int, *, max_hold_s: float = 0.05, keep: float = 1.0):
+    def __init__(self, model, n_joints: int, *, keep: float = 1.0):
         """`keep` < 1: keep that share of the runs of THIN_RUN_BLOCKS consecutive blocks,
         spread evenly (a long bag thinned over its whole length, see `table_from_bag`)."""
 
         # the model's framing, including its sensor range: bad samples are missing
-        settings = FramerSettings.for_model(model, layout="combined", max_hold_s=max_hold_s)
+        settings = FramerSettings.for_model(model, layout="combined", max_hold_s=0.05)
         self._framer = BlockFramer(settings, n_joints)
         self._window = model.window
         self._bins = in_band_bins(model)
@@ -377,7 +359,8 @@ class JointScreen:
 
 class JointFeatures:
     """The joint series and its motion covariates, slice by slice: position unwrapped,
-    velocity smoothed and differentiated (`savgol_joint`'s filter), the reversal times.
+    velocity smoothed and differentiated (a quadratic Savitzky-Golay filter over
+    ACCEL_SMOOTH_S), the reversal times.
 
     The state is explicit (the filter's unfinished tail, the unwrapping's running
     correction, each joint's last direction of motion), so any slicing gives the result
@@ -489,7 +472,7 @@ class JointFeatures:
         stop = n_total if final else n_total - w // 2
         if stop <= self._emitted:
             return
-        if self.count <= w:  # too short for the filter (only at the end): as savgol_joint
+        if self.count <= w:  # too short for the filter (only at the end): kept, acceleration 0
             smooth, acceleration = self._vel, np.zeros_like(self._vel)
         else:
             smooth, acceleration = (
@@ -508,7 +491,8 @@ class JointFeatures:
         self._buf_start += keep_from
 
     def _find_reversals(self, t_ns: np.ndarray, smooth: np.ndarray) -> None:
-        """`detect_reversals`, continued across slices by each joint's last direction."""
+        """Times where motion resumes opposite to each joint's last direction (|smoothed
+        velocity| above REVERSAL_THRESHOLD of its top speed), continued across slices."""
         for j in range(smooth.shape[1]):
             thr = REVERSAL_THRESHOLD * self._vmax[j]
             state = np.where(smooth[:, j] > thr, 1, np.where(smooth[:, j] < -thr, -1, 0))
@@ -539,14 +523,6 @@ class JointFeatures:
         if near.any():
             self._kept.append(tuple(x[near] for x in parts))
         self._pending = [tuple(x[~settled] for x in parts)] if not settled.all() else []
-
-
-def _sensor_topic(model) -> str:
-    return model.profile.sensor_topic if model.profile is not None else "sensor topic"
-
-
-def _joints_topic(model) -> str:
-    return model.profile.joints_topic if model.profile is not None else "joint-state topic"
 
 
 def joint_order(model, joint_names, source: str) -> list[int]:
@@ -651,20 +627,15 @@ def _model_lookup(
 
 
 def detect_contacts(
-    magnitude: np.ndarray,
-    predicted: np.ndarray,
-    t_s: np.ndarray,
-    *,
-    z: float = CONTACT_Z,
-    dilate: int = CONTACT_DILATE,
-    return_raw: bool = False,
-):
-    """Flag blocks whose spectrum is an outlier above the model's prediction.
+    magnitude: np.ndarray, predicted: np.ndarray, t_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flag blocks whose spectrum is an outlier above the model's prediction: (flagged, the
+    outliers themselves before widening).
 
     The statistic (mean of the three largest per-bin log ratios) is compared with its
     running median over ~2 s (so a mis-calibrated or drifting model does not flag
     everything) using a robust (MAD) scale; flagged blocks are widened by one block
-    before and `dilate` blocks after (tap tails).
+    before and CONTACT_DILATE blocks after (tap tails).
     """
     # A tap rings in a few modes: the mean of the three largest per-bin log ratios
     # separates taps from ego-vibration better than the band energy when the hand moves fast.
@@ -672,36 +643,34 @@ def detect_contacts(
     ratio = np.sort(log_ratio, axis=1)[:, -3:].mean(axis=1)
     if len(ratio) < 5:
         none = np.zeros(len(ratio), dtype=bool)
-        return (none, none.copy()) if return_raw else none
+        return none, none.copy()
     dt = np.median(np.diff(t_s)) if len(t_s) > 1 else 0.01
     size = int(max(5, min(len(ratio), round(2.0 / max(dt, 1e-6))))) | 1
     local = ndimage.median_filter(ratio, size=size, mode="nearest")
     resid = ratio - local
     scale = 1.4826 * np.median(np.abs(resid - np.median(resid))) + 1e-9
-    flagged = raw = resid > z * scale
+    flagged = raw = resid > CONTACT_Z * scale
     if flagged.any():
-        # A tap rings on after its onset: drop `dilate` blocks after each flagged block
-        # and one before (the block straddling the onset may be below threshold).
-        structure = np.zeros(2 * dilate + 1, dtype=bool)
-        structure[dilate - 1 :] = True  # origin at the centre: -1 .. +dilate
+        # A tap rings on after its onset: drop CONTACT_DILATE blocks after each flagged
+        # block and one before (the block straddling the onset may be below threshold).
+        structure = np.zeros(2 * CONTACT_DILATE + 1, dtype=bool)
+        structure[CONTACT_DILATE - 1 :] = True  # origin at the centre: -1 .. +dilate
         flagged = ndimage.binary_dilation(flagged, structure=structure)
-    return (flagged, raw) if return_raw else flagged
+    return flagged, raw
 
 
-def baseline_knots(
-    grid, refine: int = 1, low_refine: int | None = None, low_fraction: float = LOW_SPEED_FRACTION
-) -> tuple[np.ndarray, ...]:
-    """The model's velocity grid per joint, each interval split into `refine` cells
-    (`low_refine` within `low_fraction` of the top speed: a line whose frequency is a
+def baseline_knots(grid) -> tuple[np.ndarray, ...]:
+    """The model's velocity grid per joint, each interval split into KNOT_REFINE cells
+    (KNOT_REFINE_LOW within LOW_SPEED_FRACTION of the top speed: a line whose frequency is a
     high multiple of the shaft speed sweeps a DFT bin per ~1 % of speed there)."""
-    low_refine = refine if low_refine is None else low_refine
     out = []
     for g in grid:
         g = np.asarray(g, float)
         top = np.max(np.abs(g))
         pieces = []
         for a, b in zip(g[:-1], g[1:]):
-            n = low_refine if max(abs(a), abs(b)) <= low_fraction * top + 1e-12 else refine
+            low = max(abs(a), abs(b)) <= LOW_SPEED_FRACTION * top + 1e-12
+            n = KNOT_REFINE_LOW if low else KNOT_REFINE
             pieces.append(np.linspace(a, b, n + 1)[:-1])
         out.append(np.round(np.concatenate(pieces + [g[-1:]]), 12))
     return tuple(out)
@@ -719,34 +688,10 @@ def savgol_window(period_s: float) -> int:
     return max(int(round(ACCEL_SMOOTH_S / max(period_s, 1e-6))) | 1, 5)
 
 
-def savgol_joint(t_s: np.ndarray, velocity: np.ndarray, *, deriv: int = 0) -> np.ndarray:
-    """Velocity smoothed (deriv 0) or differentiated (deriv 1) by a quadratic
-    Savitzky-Golay filter over ACCEL_SMOOTH_S; a series too short for it is returned as is
-    (deriv 0) or as zeros (deriv 1). `JointFeatures` computes the same, slice by slice."""
-    dt = joint_period(t_s)
-    window = savgol_window(dt)
-    if len(velocity) <= window:
-        return velocity if deriv == 0 else np.zeros_like(velocity)
-    return signal.savgol_filter(velocity, window, 2, deriv=deriv, axis=0, delta=dt, mode="interp")
-
-
-def smooth_joint_series(joints: JointSeries, vmax: np.ndarray) -> JointSeries:
-    """Fill in the smoothed velocity and the reversal times of a joint series (if missing)."""
-    if joints.smooth_velocity is None:
-        joints.smooth_velocity = savgol_joint(joints.t_s, joints.velocity)
-    if not joints.reversals:
-        joints.reversals = detect_reversals(joints.t_s, joints.smooth_velocity, vmax)
-    return joints
-
-
-def attach_motion(table: BlockTable, *, knot_refine: int = KNOT_REFINE) -> BlockTable:
-    """Baseline cells, velocity-trajectory features and reversal times of a table built by hand."""
-    smooth_joint_series(table.joints, table.vmax)
-    table.knots = baseline_knots(
-        table.model.grid,
-        knot_refine,
-        KNOT_REFINE_LOW if knot_refine == KNOT_REFINE else knot_refine,
-    )
+def attach_motion(table: BlockTable) -> BlockTable:
+    """Baseline cells, velocity-trajectory features and reversal times of a table whose
+    joint series is smoothed (JointFeatures; by hand: test/gaptables.py)."""
+    table.knots = baseline_knots(table.model.grid)
     return _attach_trajectory(table)
 
 
@@ -760,29 +705,10 @@ def _attach_trajectory(table: BlockTable) -> BlockTable:
     return table
 
 
-def build_table(
-    rec, model, *, max_hold_s: float = 0.05, source: str = "bag", knot_refine: int = KNOT_REFINE
-) -> BlockTable:
+def build_table(rec, model, *, source: str = "bag") -> BlockTable:
     """Blocks, spectra, model prediction and covariates of a Recording for a NoiseModel
-    (the whole recording pushed as one slice; `table_from_bag` streams a bag)."""
-    order = joint_order(model, rec.joint_names, source)
-    screen = JointScreen()
-    good = screen(rec.joint_stamps_ns, rec.joint_position, rec.joint_velocity)
-    stamps = rec.joint_stamps_ns[good]
-    velocity = rec.joint_velocity[good][:, order]
-    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s)
-    joints = JointFeatures(grid_speeds(model))
-    joints.push(stamps, rec.joint_position[good][:, order], velocity)
-    framing.push_joint_states(stamps, velocity)
-    framing.push_sensor(rec.sensor_stamps_ns, rec.sensor)
-    bad_input = dict(
-        joint_states=screen.seen,
-        joint_states_bad=screen.bad,
-        joint_states_duplicates=screen.duplicates,
-    )
-    return table_from_blocks(
-        model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
-    )
+    (the whole recording as one slice; `table_from_bag` streams a bag)."""
+    return _table_of_pieces([rec], model, source=source)
 
 
 def grid_speeds(model) -> np.ndarray:
@@ -794,8 +720,6 @@ def table_from_bag(
     path,
     model,
     *,
-    max_hold_s: float = 0.05,
-    knot_refine: int = KNOT_REFINE,
     budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     max_lag_s: float = JOINT_MARGIN_S,
     progress=None,
@@ -811,24 +735,41 @@ def table_from_bag(
     that memory and time stop growing with the bag; `table.bad_input["kept_share"]` says
     the share. None: no budget."""
 
-    source = str(path)
-    keep, duration_s = 1.0, None
+    keep, budget = 1.0, {}
     if budget_minutes is not None:
         # the seconds of data, not of stamps: a pause in the recording thins nothing
         duration_s = duration_of(path, model.profile)
         if duration_s > 60.0 * budget_minutes:
             keep = 60.0 * budget_minutes / duration_s
-    framing = BlockSpectra(model, model.n_joints, max_hold_s=max_hold_s, keep=keep)
-    joints = JointFeatures(grid_speeds(model), blocks=framing, margin_s=max_lag_s)
-    order, screen = None, JointScreen()
-    for piece in iter_recording(
+        budget["recorded_s"] = duration_s  # seconds of sensor data the budget was held to
+    pieces = iter_recording(
         path,
         profile=model.profile,
         ground_truth=False,
         denoised=False,
         commands=False,
         progress=progress,
-    ):
+    )
+    return _table_of_pieces(
+        pieces, model, source=str(path), keep=keep, max_lag_s=max_lag_s, budget=budget
+    )
+
+
+def _table_of_pieces(
+    pieces,
+    model,
+    *,
+    source: str,
+    keep: float = 1.0,
+    max_lag_s: float = JOINT_MARGIN_S,
+    budget: dict | None = None,
+) -> BlockTable:
+    """The table of Recording slices (`keep` < 1: thinned, see `table_from_bag`; `budget`:
+    its recorded seconds, for bad_input beside kept_share)."""
+    framing = BlockSpectra(model, model.n_joints, keep=keep)
+    joints = JointFeatures(grid_speeds(model), blocks=framing, margin_s=max_lag_s)
+    order, screen = None, JointScreen()
+    for piece in pieces:
         if order is None:
             order = joint_order(model, piece.joint_names, source)
         good = screen(piece.joint_stamps_ns, piece.joint_position, piece.joint_velocity)
@@ -844,13 +785,10 @@ def table_from_bag(
         joint_states=screen.seen,
         joint_states_bad=screen.bad,
         joint_states_duplicates=screen.duplicates,
-        kept_share=keep,
     )
-    if duration_s is not None:
-        bad_input["recorded_s"] = duration_s  # seconds of sensor data the budget was held to
-    return table_from_blocks(
-        model, framing, joints, bad_input=bad_input, source=source, knot_refine=knot_refine
-    )
+    if budget is not None:
+        bad_input.update(kept_share=keep, **budget)
+    return table_from_blocks(model, framing, joints, bad_input=bad_input, source=source)
 
 
 def table_from_blocks(
@@ -860,7 +798,6 @@ def table_from_blocks(
     *,
     bad_input: dict,
     source: str,
-    knot_refine: int = KNOT_REFINE,
 ) -> BlockTable:
     """The table from the framed blocks and the (usable, model-ordered) joint states.
     More than core.MAX_BAD_SHARE of bad sensor samples or joint states is refused (one-line
@@ -879,11 +816,13 @@ def table_from_blocks(
         joint_states_duplicates=bad_input.pop("joint_states_duplicates", 0)
         + counts.get("joint_states_duplicates", 0),
     )
+    p = model.profile
+    topics = (p.sensor_topic, p.joints_topic) if p else ("sensor topic", "joint-state topic")
     bad_input["said"] = check_stream(
         counted,
-        f"{source}: {_sensor_topic(model)}",
+        f"{source}: {topics[0]}",
         joint_states=bad_input["joint_states"],
-        joints_where=f"{source}: {_joints_topic(model)}",
+        joints_where=f"{source}: {topics[1]}",
     )
     if framing.samples < 4 * model.block_length:
         raise BagError(f"{source}: the sensor topic has only {framing.samples} samples")
@@ -919,8 +858,8 @@ def table_from_blocks(
         joints=joints,
         freq_index=freq_index,
     )
-    attach_motion(table, knot_refine=knot_refine)  # baseline cells, trajectory, reversals
-    table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)
+    attach_motion(table)  # baseline cells, trajectory, reversals
+    table.contact = detect_contacts(table.magnitude, table.base_mean, table.t_mid_s)[0]
     table.bad_input = bad_input
     return table
 
@@ -939,27 +878,13 @@ def join_tables(reference: BlockTable, real: BlockTable) -> BlockTable:
     ):
         raise ValueError("join_tables: the recordings' tables differ in joints or bins")
     offset = float(reference.t_last_s[-1]) + JOIN_GAP_S - float(real.t_first_s[0])
-
-    def cat(name: str):
-        a, b = getattr(reference, name), getattr(real, name)
-        return None if a is None or b is None else np.concatenate([a, b], axis=0)
-
+    per_block = ("magnitude", "velocity", "position", "acceleration", "base_mean", "base_std")
+    per_block += ("contact", "hats", "reversal_after_s", "reversal_before_s", "speed_rate", "jerk")
     return replace(
         reference,
         t_first_s=np.concatenate([reference.t_first_s, real.t_first_s + offset]),
         t_last_s=np.concatenate([reference.t_last_s, real.t_last_s + offset]),
-        magnitude=cat("magnitude"),
-        velocity=cat("velocity"),
-        position=cat("position"),
-        acceleration=cat("acceleration"),
-        base_mean=cat("base_mean"),
-        base_std=cat("base_std"),
-        contact=cat("contact"),
-        hats=cat("hats"),
-        reversal_after_s=cat("reversal_after_s"),
-        reversal_before_s=cat("reversal_before_s"),
-        speed_rate=cat("speed_rate"),
-        jerk=cat("jerk"),
+        **{n: np.concatenate([getattr(reference, n), getattr(real, n)]) for n in per_block},
         joints=None,
         recording=np.concatenate(
             [np.zeros(reference.n_blocks, np.int8), np.ones(real.n_blocks, np.int8)]

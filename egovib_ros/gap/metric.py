@@ -1,25 +1,15 @@
 """The gap metric: windowed log-spectral distance between observed and predicted magnitudes.
 
-Definition (also written into every report):
-
     e[w, f] = 20 log10( sum_{b in w} |Y_b(f)| / sum_{b in w} m_b(f) )
     gap     = sqrt( mean_{w, f} e[w, f]^2 )                        [dB]
 
-where b runs over the no-contact blocks of a time window w (W consecutive held-out
-blocks), f over the in-band DFT bins, |Y_b| is the observed magnitude spectrum and
-m_b the model's predicted *expected* magnitude (mean spectrum, Eq. 5/6 without the
-+sd over-subtraction term).  Averaging within a window before the log keeps the
-per-block Rayleigh-like scatter (several dB) from swamping model errors, while a
-window (a fraction of a second) is short enough that position, acceleration, time
-and lag still vary between windows.  gap^2 is a mean of squares, so it splits
-additively over frequency bins, windows and anything a window is labelled with
-(velocity cell, covariate bin): `contributions` returns those shares.
-
-A model equal to the real process still scores > 0: finite-sample scatter of the
-window means.  `floor_db` estimates that from the data itself, from the covariances
-of the per-block ratio |Y|/m at lags 0 and 1 (overlapping blocks) minus the
-covariance at a lag of 4 blocks (a slowly varying model error adds about the same to
-all three).
+b runs over the no-contact blocks of a window w (W consecutive held-out blocks), f over
+the in-band bins; m_b is the model's *expected* magnitude (no +sd term). Averaging within
+a window before the log keeps the per-block Rayleigh-like scatter (several dB) from
+swamping model errors, while a window is short enough that position, acceleration, time
+and lag still vary between windows. gap^2 splits additively over bins, windows and
+window labels (`contributions`). A model equal to the real process still scores the
+scatter of the window means: the floor (`floor_db`, `floor_window_db`).
 """
 
 from __future__ import annotations
@@ -182,42 +172,36 @@ def block_deviance(observed_power: np.ndarray, predicted_power: np.ndarray) -> n
 
 
 def segment_signflip_pvalue(
-    base_loss: np.ndarray,
-    cand_loss: np.ndarray,
-    segments: np.ndarray,
-    *,
-    n_permutations: int = 20000,
-    rng: np.random.Generator | None = None,
+    gain: np.ndarray, segments: np.ndarray, rng: np.random.Generator
 ) -> float:
-    """One-sided paired sign-flip test on per-block losses grouped in contiguous time segments.
+    """One-sided paired sign-flip test of per-block loss reductions (base minus candidate)
+    grouped in contiguous time segments.
 
     Under H0 (the candidate predicts held-out blocks no better than the base) each
     segment's summed loss difference is symmetric about zero.
     """
-    rng = np.random.default_rng(0) if rng is None else rng
-    d_s = np.bincount(segments, weights=base_loss - cand_loss)
+    d_s = np.bincount(segments, weights=gain)
     d_s = d_s[np.bincount(segments) > 0]
     n_seg = len(d_s)
     observed = d_s.mean()
     if n_seg <= 16:
         signs = 1 - 2 * ((np.arange(2**n_seg)[:, None] >> np.arange(n_seg)) & 1)
         return float(np.mean((signs * d_s).mean(axis=1) >= observed - 1e-12))
-    return _signflip_tail(d_s, observed, n_permutations, rng)
+    return _signflip_tail(d_s, observed, rng)
 
 
-#: Sign patterns drawn per batch: the same random stream as one draw of all of them
-#: (int64 draws are not buffered), in bounded memory however many segments a long bag has.
+#: Sign patterns drawn (more than 16 segments), PERMUTATION_BATCH at a time: the same random
+#: stream as one draw of all of them (int64 draws are not buffered), in bounded memory.
+N_PERMUTATIONS = 20000
 PERMUTATION_BATCH = 1000
 
 
-def _signflip_tail(
-    d_s: np.ndarray, observed: float, n_permutations: int, rng: np.random.Generator
-) -> float:
-    """(1 + #{null mean >= observed}) / (1 + n_permutations), signs drawn in batches."""
+def _signflip_tail(d_s: np.ndarray, observed: float, rng: np.random.Generator) -> float:
+    """(1 + #{null mean >= observed}) / (1 + N_PERMUTATIONS), signs drawn in batches."""
     at_least = 0
-    for start in range(0, n_permutations, PERMUTATION_BATCH):
+    for start in range(0, N_PERMUTATIONS, PERMUTATION_BATCH):
         signs = rng.choice(
-            np.array([-1.0, 1.0]), size=(min(PERMUTATION_BATCH, n_permutations - start), len(d_s))
+            np.array([-1.0, 1.0]), size=(min(PERMUTATION_BATCH, N_PERMUTATIONS - start), len(d_s))
         )
         at_least += int(np.sum((signs * d_s).mean(axis=1) >= observed - 1e-12))
-    return float((1 + at_least) / (1 + n_permutations))
+    return float((1 + at_least) / (1 + N_PERMUTATIONS))

@@ -16,7 +16,7 @@ from egovib_ros.core.noise_model import NoiseModel
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError, GapDataError
 from egovib_ros.gap.advice import effect_actions, measure_advice, merged_settings
-from egovib_ros.gap.change import ChangeDiagnosis, diagnose_change
+from egovib_ros.gap.change import diagnose_change
 from egovib_ros.gap.diagnose import Diagnosis, DiagnosisOptions, diagnose
 from egovib_ros.gap.effects import LAG_COARSE_S, LAG_RANGE_S
 from egovib_ros.gap.features import (
@@ -46,18 +46,13 @@ def diagnose_table(
     table: BlockTable, *, source: str = "bag", options: DiagnosisOptions | None = None
 ) -> Diagnosis:
     """Diagnosis of a block table (`build_table` / `table_from_bag`)."""
-    try:
-        return diagnose(table, options)
-    except GapDataError as exc:
-        raise GapDataError(f"{source}: {exc}") from None
+    return _naming(source, diagnose, table, options)
 
 
-def diagnose_change_of(
-    reference: BlockTable, diag: Diagnosis, *, source: str, options: DiagnosisOptions
-) -> ChangeDiagnosis:
-    """gap.change.diagnose_change, its data errors naming the reference bag."""
+def _naming(source: str, function, *args):
+    """`function(*args)`, its data errors (GapDataError) naming `source`."""
     try:
-        return diagnose_change(reference, diag, options)
+        return function(*args)
     except GapDataError as exc:
         raise GapDataError(f"{source}: {exc}") from None
 
@@ -125,13 +120,6 @@ def read_first_part(path: str | Path, model, max_s: float | None):
     return rec
 
 
-def applied_advice(rec, model, diag: Diagnosis, *, source: str) -> dict:
-    """The advice's flags applied together with the user's model on held-out data
-    (advice.measure_advice), or why nothing was applied."""
-    settings = merged_settings(effect_actions(diag))
-    return measure_advice(rec, model, diag, settings, joint_order(model, rec.joint_names, source))
-
-
 def _input_notes(table, notices: list[str], model) -> dict:
     """report.json's inputs: the bad input counted, the notices, what the model was
     calibrated on (our simulator: a sim-to-real gap; or a recording)."""
@@ -158,21 +146,19 @@ def run_gap(
     budget_minutes: float | None = DEFAULT_BUDGET_MINUTES,
     progress=None,
     options: DiagnosisOptions | None = None,
-    measure: bool = True,
     reference_path: str | Path | None = None,
 ) -> dict:
     """Diagnose `real_path` against the model file; write report.json, report.md and
-    figures into out_dir.
+    figures into out_dir (the directory appears only when complete).
 
-    The directory appears only when complete. With `write_back`, the verdict's fitted
-    effect is written into a copy of the sim config `sim_params` (default
-    config/sim.yaml) as out_dir/sim_updated.yaml, and checked on the held-out data.
-    `options`: how the diagnosis runs; its reference lag is replaced by `reference_lag`
-    (the diagnosis's internal convention: seconds the joint states are stamped late; when
-    None, the lag measured on the simulator: `reference_lag_for`). `measure`: apply the
-    advised flags with the model on the bag's held-out part (`applied_advice`; the bag's
-    first budget minutes are read again for it). `reference_path`: a recording of the same
-    robot to compare with: report.json's `change` lists what differs (gap.change).
+    `write_back`: the verdict's fitted effect written into a copy of the sim config
+    `sim_params` (default config/sim.yaml) as out_dir/sim_updated.yaml, checked on the
+    held-out data. `options`: how the diagnosis runs, its reference lag replaced by
+    `reference_lag` (internal convention: seconds the joint states are stamped late; None:
+    `reference_lag_for`). A timing or drift found: the advised flags are applied with the
+    model on the bag's held-out part (`advice.measure_advice`; its first budget minutes read
+    again). `reference_path`: a recording of the same robot: report.json's `change` lists
+    what differs (gap.change).
     """
 
     start = time.perf_counter()
@@ -208,13 +194,15 @@ def run_gap(
         notices += [
             f"reference {reference_path}: {n}" for n in input_notices(reference, budget_minutes)
         ]
-        change = diagnose_change_of(reference, diag, source=str(reference_path), options=options)
+        change = _naming(str(reference_path), diagnose_change, reference, diag, options)
     measured = None
-    if measure and any(e["effect"] in ("timing", "drift") for e in diag.effects):
+    if any(e["effect"] in ("timing", "drift") for e in diag.effects):
         rec = read_first_part(
             real_path, model, None if budget_minutes is None else 60.0 * budget_minutes
         )
-        measured = applied_advice(rec, model, diag, source=str(real_path))
+        settings = merged_settings(effect_actions(diag))
+        order = joint_order(model, rec.joint_names, str(real_path))
+        measured = measure_advice(rec, model, diag, settings, order)
     with atomic_output(out_dir, directory=True) as tmp:
         tmp.mkdir(parents=True)
         wb = None

@@ -22,27 +22,22 @@ WORKING_CLIP = 20.0
 EULER_GAMMA = 0.5772156649
 
 
-def gram_decomposition(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Singular values s and right singular vectors V (R, r) of x (n, R), from the Gram
-    matrix: the same numbers as a thin SVD without forming U (n x R), which cost most of a
+def gram_decomposition(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Singular values s and right singular vectors V (R, r) of x (n, R) from its Gram matrix
+    x^T x: the same numbers as a thin SVD without forming U (n x R), which cost most of a
     diagnosis's time. Directions below 1e-6 of the largest singular value are dropped (the
     ridge shrinks them to nothing anyway)."""
-    evals, v = np.linalg.eigh(x.T @ x)
+    evals, v = np.linalg.eigh(gram)
     order = np.argsort(evals)[::-1]
     s = np.sqrt(np.maximum(evals[order], 0.0))
     keep = s > (s[0] * 1e-6 if len(s) else 0.0)
     return s[keep], v[:, order][:, keep]
 
 
-def _gcv_ridge(
-    x: np.ndarray, y: np.ndarray, decomposition: tuple[np.ndarray, np.ndarray] | None = None
-) -> tuple[np.ndarray, float]:
-    """Ridge coefficients (R, T) for standardised x (n, R) and centred y (n, T), weight by GCV."""
-    n = len(x)
-    s, v = gram_decomposition(x) if decomposition is None else decomposition
-    uy = (v.T @ (x.T @ y)) / s[:, None]
-    yy = float(np.sum(y * y))
-    n_eff = EFFECTIVE_ROW_SHARE * n
+def _gcv_lambda(s: np.ndarray, uy: np.ndarray, yy: float, n: int, n_eff: float) -> float:
+    """The ridge weight of RIDGE_GRID * n with the smallest generalised cross-validation
+    score (`uy`: the target's coordinates along the singular directions over s, (r, T);
+    `yy`: its sum of squares; `n_eff`: the effective rows)."""
     best, best_lam = np.inf, RIDGE_GRID[-1] * n
     for lam in RIDGE_GRID * n:
         d = s**2 / (s**2 + lam)
@@ -53,6 +48,17 @@ def _gcv_ridge(
         score = rss / (1.0 - dof / n_eff) ** 2
         if score < best:
             best, best_lam = score, lam
+    return best_lam
+
+
+def _gcv_ridge(
+    x: np.ndarray, y: np.ndarray, decomposition: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, float]:
+    """Ridge coefficients (R, T) for standardised x (n, R) and centred y (n, T), weight by GCV."""
+    n = len(x)
+    s, v = decomposition
+    uy = (v.T @ (x.T @ y)) / s[:, None]
+    best_lam = _gcv_lambda(s, uy, float(np.sum(y * y)), n, EFFECTIVE_ROW_SHARE * n)
     d = s / (s**2 + best_lam)
     return v @ (d[:, None] * uy), float(best_lam / n)
 
@@ -78,7 +84,8 @@ def fit_term(
         mu = xt.mean(axis=0)
         live = np.ptp(xt, axis=0) > 1e-12
         xs = xt[:, live] - mu[live]
-        cache.update(mu=mu, live=live, xs=xs, dec=gram_decomposition(xs) if live.any() else None)
+        dec = gram_decomposition(xs.T @ xs) if live.any() else None
+        cache.update(mu=mu, live=live, xs=xs, dec=dec)
     mu, live, xs = cache["mu"], cache["live"], cache["xs"]
     beta = np.zeros((x.shape[1], n_bins))
     info = {}
@@ -99,13 +106,11 @@ def fit_power_term(
     """Log-link Gamma GLM of the power ratio |Y|^2 / baseline power:
     E[ratio] = exp(2 (a(f) + x beta(f))).
 
-    Targets the *mean* power (the quantity that adds over independent sources and that the
-    held-out deviance judges), by iteratively reweighted least squares: for a log link and
-    Gamma variance the working weights are constant, so each step is the same GCV ridge
-    fit (`fit_term`) on the working response eta + (ratio - mu) / mu.  Starts from the
-    least-squares fit of log ratio.  Returns coefficients on the magnitude scale (half the
-    power exponent), (1 + R, F). `cache`: as `fit_term`'s, shared by fits of one x and
-    train (another ratio on the same columns).
+    Targets the *mean* power (what adds over independent sources and what the held-out
+    deviance judges), by IRLS: for a log link and Gamma variance the working weights are
+    constant, so each step is the same GCV ridge fit (`fit_term`) on the working response
+    eta + (ratio - mu) / mu, from the least-squares fit of log ratio. Returns coefficients
+    on the magnitude scale (half the power exponent), (1 + R, F); `cache`: as `fit_term`'s.
     """
     log_ratio = np.log(np.maximum(ratio, 1e-300))
     cache = {} if cache is None else cache
@@ -162,11 +167,7 @@ def _shared_gram(design: SharedDesign, train: np.ndarray) -> dict:
         mu[f] = zf.mean(axis=0)
         zc = zf - mu[f]
         gram += zc.T @ zc
-    evals, v = np.linalg.eigh(gram)
-    order = np.argsort(evals)[::-1]
-    sv = np.sqrt(np.maximum(evals[order], 0.0))
-    keep = sv > (sv[0] * 1e-6 if len(sv) and sv[0] > 0 else np.inf)
-    return {"rows": rows, "mu": mu, "dec": (sv[keep], v[:, order][:, keep])}
+    return {"rows": rows, "mu": mu, "dec": gram_decomposition(gram)}
 
 
 def fit_shared_term(
@@ -193,16 +194,7 @@ def fit_shared_term(
             yy += float(yc @ yc)
         uy = (v.T @ zy) / sv
         n_rows = len(rows) * y.shape[1]
-        n_eff = EFFECTIVE_ROW_SHARE * len(rows)
-        best, best_lam = np.inf, RIDGE_GRID[-1] * n_rows
-        for lam in RIDGE_GRID * n_rows:
-            d = sv**2 / (sv**2 + lam)
-            dof = float(d.sum())
-            if dof >= n_eff:
-                continue
-            score = (yy - float(np.sum((2 * d - d * d) * uy**2))) / (1.0 - dof / n_eff) ** 2
-            if score < best:
-                best, best_lam = score, lam
+        best_lam = _gcv_lambda(sv, uy[:, None], yy, n_rows, EFFECTIVE_ROW_SHARE * len(rows))
         gamma = v @ (sv / (sv**2 + best_lam) * uy)
         info = {"ridge_shared": float(best_lam / n_rows)}
     return y_mean - mu @ gamma, gamma, info

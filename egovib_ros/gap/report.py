@@ -11,7 +11,7 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.advice import LAG_CONVENTION, advise, effect_action, first_lines, joint_lag_of
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
 from egovib_ros.gap.effects import angle_joints, drift_reach
-from egovib_ros.viz import pyplot
+from egovib_ros.viz import pyplot, save_figure
 
 SCHEMA = "egovib.gap/1"
 #: Frequency bands used to name regions (Hz edges; bins are assigned by centre frequency).
@@ -24,6 +24,11 @@ SPEED_CLASS_EDGES = (0.1, 0.5)
 
 def _r(x: float, nd: int = 4) -> float:
     return None if x is None or not np.isfinite(x) else round(float(x), nd)
+
+
+def _pick(entry: dict, *keys: str) -> dict:
+    """Those of `keys` that `entry` holds, in that order (a p-value rounded to 6 digits)."""
+    return {k: _r(entry[k], 6) if k == "p_value" else entry[k] for k in keys if k in entry}
 
 
 def velocity_cells(diag: Diagnosis, velocity: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -192,7 +197,7 @@ def public_parameters(params: dict) -> dict:
     """A term's parameters for the report: the diagnosis's internal lags (joint states
     stamped that late) in the joint-lag convention (LAG_CONVENTION); `joint_lag_s` is the
     correction to set (the recording's joint lag minus the reference's)."""
-    out = _clean_params(params)
+    out = dict(params)
     if "lag_s" in out:
         lag = float(out.pop("lag_s"))
         reference = float(out.pop("reference_lag_s", 0.0))
@@ -232,19 +237,13 @@ def effects_list(diag: Diagnosis) -> list[dict]:
         text, settings = effect_action(entry["effect"], model)
         out.append(
             {
-                "effect": entry["effect"],
-                "reduction": entry["reduction"],
-                "p_value": _r(entry["p_value"], 6),
-                "confidence": entry["confidence"],
+                **_pick(entry, "effect", "reduction", "p_value", "confidence"),
                 "parameters": public_parameters(model.parameters),
                 "advice": text,
                 "settings": settings,
-                "step": entry["step"],
-                "heldout_gap_before": entry["heldout_gap_before"],
-                "heldout_gap": entry["heldout_gap"],
-                "deviance_reduction": entry["deviance_reduction"],
+                **_pick(entry, "step", "heldout_gap_before", "heldout_gap", "deviance_reduction"),
                 "shape_summary": describe_shape(public_shape(model.shape or {})),
-                **({"decided_by": entry["decided_by"]} if "decided_by" in entry else {}),
+                **_pick(entry, "decided_by"),
             }
         )
     return out
@@ -260,13 +259,7 @@ def selection_steps(diag: Diagnosis) -> list[dict]:
             "effect": st["effect"],
             "confidence": st["confidence"],
             "candidates": [
-                {
-                    "effect": c["effect"],
-                    "heldout_gap": c["heldout_gap"],
-                    "reduction": c["reduction"],
-                    "p_value": _r(c["p_value"], 6),
-                    "deviance_reduction": c["deviance_reduction"],
-                }
+                _pick(c, "effect", "heldout_gap", "reduction", "p_value", "deviance_reduction")
                 for c in st["candidates"]
             ],
         }
@@ -289,17 +282,14 @@ def build_report(
     `measured`: the advice applied with the user's model (advice.measure_advice);
     `report_path`: where report.json will be (the advice's commands name it)."""
     t = diag.table
-    vm = diag.verdict_model
+    found = diag.verdict != "none"
     added = {
         "effect": diag.verdict,
-        "parameters": public_parameters(vm.parameters) if diag.verdict != "none" else {},
+        "parameters": public_parameters(diag.models[diag.verdict].parameters) if found else {},
     }
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
-    combined = diag.gaps.get(
-        "combined", diag.gaps[diag.verdict] if diag.verdict != "none" else diag.gaps["refit"]
-    )
     paths = {"model": str(model_path), "bag": str(real_path)}
     if report_path:
         paths["report"] = str(report_path)
@@ -319,20 +309,15 @@ def build_report(
         "gap": {
             "sim_as_is": _r(diag.gaps["sim_as_is"]),
             "after_refit": _r(diag.gaps["refit"]),
-            "after_effect": _r(combined),
+            "after_effect": _r(diag.gaps["combined"]),
             "floor": _r(diag.floor),
         },
         "where": {k: where[k] for k in ("frequency_hz", "velocity_cells", "covariates")},
         "candidates": [
             {
-                "effect": c["effect"],
-                "heldout_gap": c["heldout_gap"],
-                "reduction": c["reduction"],
-                "p_value": _r(c["p_value"], 6),
-                "excess_removed": c["excess_removed"],
-                "deviance_reduction": c["deviance_reduction"],
-                "block_mse_reduction_db2": c["block_mse_reduction_db2"],
-                **{k: c[k] for k in ("folds", "interleaved", "decided_by") if k in c},
+                **_pick(c, "effect", "heldout_gap", "reduction", "p_value", "excess_removed"),
+                **_pick(c, "deviance_reduction", "block_mse_reduction_db2"),
+                **_pick(c, "folds", "interleaved", "decided_by"),
                 "parameters": public_parameters(diag.models[c["effect"]].parameters),
                 "shape": public_shape(diag.models[c["effect"]].shape or {}),
                 "shape_summary": describe_shape(public_shape(diag.models[c["effect"]].shape or {})),
@@ -416,16 +401,10 @@ def change_report(change, *, reference: str) -> dict:
                 params["shape_summary"] = summary
         entries.append(
             {
-                "effect": entry["effect"],
-                "reduction": entry["reduction"],
-                "p_value": _r(entry["p_value"], 6),
-                "confidence": entry["confidence"],
+                **_pick(entry, "effect", "reduction", "p_value", "confidence"),
                 "parameters": params,
                 "advice": change_advice(entry["effect"], params, summary),
-                "heldout_gap_before": entry["heldout_gap_before"],
-                "heldout_gap": entry["heldout_gap"],
-                "deviance_reduction": entry["deviance_reduction"],
-                "step": entry["step"],
+                **_pick(entry, "heldout_gap_before", "heldout_gap", "deviance_reduction", "step"),
             }
         )
     return {
@@ -440,7 +419,7 @@ def change_report(change, *, reference: str) -> dict:
             "blocks": change.blocks,
             "selection": [
                 {
-                    **{k: st[k] for k in ("step", "given", "effect", "confidence")},
+                    **_pick(st, "step", "given", "effect", "confidence"),
                     "candidates": [{**c, "p_value": _r(c["p_value"], 6)} for c in st["candidates"]],
                 }
                 for st in change.steps
@@ -576,10 +555,6 @@ def describe_shape(shape: dict) -> str:
 def _signed_peak(values: np.ndarray) -> float:
     """The value of largest magnitude (its sign kept)."""
     return float(values[int(np.argmax(np.abs(values)))]) if values.size else 0.0
-
-
-def _clean_params(params: dict) -> dict:
-    return {k: v for k, v in params.items() if k not in ("coefficients_per_bin", "lag_scan")}
 
 
 def _describe_region(r: dict) -> str:
@@ -880,10 +855,7 @@ def frequency_velocity_figure(diag: Diagnosis, path: Path) -> str:
         axes[1].set_ylabel(f"{t.joint_names[1]} [% max]")
         axes[1].set_title("band-summed bias per velocity cell, dB")
         fig.colorbar(im2, ax=axes[1])
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name
 
 
 def covariate_figure(report: dict, path: Path) -> str:
@@ -912,10 +884,7 @@ def covariate_figure(report: dict, path: Path) -> str:
         ax.set_xlabel(c["unit"], fontsize=8)
     np.atleast_1d(axes)[0].set_ylabel("held-out bias [dB]")
     np.atleast_1d(axes)[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name
 
 
 def candidate_figure(report: dict, path: Path) -> str:
@@ -934,10 +903,7 @@ def candidate_figure(report: dict, path: Path) -> str:
     ax.set_ylabel("held-out gap [dB]")
     ax.set_title(f"which effect: verdict {report['verdict']['effect']}")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name
 
 
 def shape_figure(report: dict, path: Path) -> str:
@@ -996,7 +962,4 @@ def shape_figure(report: dict, path: Path) -> str:
         f"fitted candidate terms (broadband gain over the band); verdict {verdict} in red",
         fontsize=9,
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path, dpi=100).name

@@ -35,14 +35,8 @@ STRENGTH_LIMITS = {
 TRIAL_SEED = 424242
 
 
-def _simulated_fit(
-    effect: str,
-    strength: float,
-    params,
-    duration_s: float,
-    max_speed: float,
-    model,
-):
+def _simulated_fit(effect: str, strength: float, params, duration_s: float, max_speed, model):
+    """The effect's term fitted on a simulated motion with it at `strength`."""
     rec, _ = simulate_motion(
         duration_s=duration_s,
         max_speed=max_speed,
@@ -56,10 +50,8 @@ def _simulated_fit(
     return fit_variant(table, train, effect, fit_scales(table, train))
 
 
-def estimate_strength(
-    diag: Diagnosis, params, *, rounds: int = 2
-) -> tuple[float, np.ndarray | None]:
-    """Simulator strength reproducing the real data's fitted effect;
+def estimate_strength(diag: Diagnosis, params) -> tuple[float, np.ndarray | None]:
+    """Simulator strength reproducing the real data's fitted effect (two rounds);
     also the simulator's coefficients."""
     effect = diag.verdict
     if effect == "timing":
@@ -79,7 +71,7 @@ def estimate_strength(
         if phase is not None:
             params.position_phase_rad = float(phase)
     lo, hi = STRENGTH_LIMITS[effect]
-    for _ in range(rounds):
+    for _ in range(2):
         sim = _simulated_fit(effect, strength, params, duration, speed, t.model).coef[1:]
         ratio = float(np.sum(real * sim) / max(np.sum(sim * sim), 1e-12))
         strength = float(np.clip(strength * ratio, lo, hi))
