@@ -11,6 +11,7 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.advice import LAG_CONVENTION, advise, effect_action, first_lines, joint_lag_of
 from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
 from egovib_ros.gap.effects import angle_joints, drift_reach
+from egovib_ros.gap.features import KNOT_REFINE
 from egovib_ros.viz import pyplot, save_figure
 
 SCHEMA = "egovib.gap/1"
@@ -456,7 +457,8 @@ VERDICT_RULE = (
 BASELINE_DEFINITION = (
     "velocity-only table re-estimated on the training folds of this recording: expected power "
     "per frequency bin = rest power + sum over joints of a free non-negative function of that "
-    "joint's velocity (cells = the model's grid, each step split 4x, 10x below 20 % of top "
+    "joint's velocity (cells = the model's grid, each step split "
+    f"{KNOT_REFINE}x, 10x below 20 % of top "
     "speed; averaged over each block's velocity trajectory), neighbouring cells smoothed, the "
     "simulator's spectrum used only where cells are thin; then a per-joint, per-cell mean/rms "
     "correction. It cannot represent interactions between joints, position, acceleration, "
