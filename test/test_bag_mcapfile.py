@@ -13,8 +13,10 @@ from synthetic import random_recording
 
 from egovib_ros.bag import BagReader, encode_imu_batch, read_recording, write_recording
 from egovib_ros.bag.mcapfile import McapFormatError, McapScanner, McapWriter, gather, rows
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.errors import BagError
-from egovib_ros.sim.pr2 import BAG_TOPICS
+
+BAG_TOPICS = bag_topic_names()  # the PR2 hand's
 
 
 def test_chunk_without_channels(tmp_path):

@@ -19,9 +19,12 @@ from egovib_ros.bag import (
     read_recording,
     write_recording,
 )
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.errors import BagError
 from egovib_ros.robot import RobotProfile
-from egovib_ros.sim.pr2 import BAG_TOPICS, JOINT_NAMES
+from egovib_ros.sim.pr2 import JOINT_NAMES
+
+BAG_TOPICS = bag_topic_names()  # the PR2 hand's
 
 
 @pytest.mark.parametrize("storage,compress", [("mcap", False), ("mcap", True), ("sqlite3", False)])

@@ -17,7 +17,10 @@ from egovib_ros.bag import (
     read_recording,
     write_recording,
 )
-from egovib_ros.sim.pr2 import BAG_TOPICS, JOINT_NAMES
+from egovib_ros.bag.recording import bag_topic_names
+from egovib_ros.sim.pr2 import JOINT_NAMES
+
+BAG_TOPICS = bag_topic_names()  # the PR2 hand's
 
 
 def test_bag_writer_raw_bytes(tmp_path):

@@ -9,8 +9,10 @@ import sys
 import numpy as np
 
 from egovib_ros.bag import bag_topics, read_recording
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.cli import main
-from egovib_ros.sim.pr2 import BAG_TOPICS
+
+BAG_TOPICS = bag_topic_names()  # the PR2 hand's
 
 
 def test_simulate_motion_bag_and_truth(tmp_path):

@@ -9,9 +9,9 @@ from std_msgs.msg import Float64MultiArray
 
 from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.errors import ConfigError
-from egovib_ros.nodes.sweep_driver import sweep_velocities
 from egovib_ros.robot import RobotProfile, load_profile
 from egovib_ros.sim import sweep_cells as simulator_sweep
+from egovib_ros.sim.robot import sweep_velocities
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
 

@@ -92,9 +92,9 @@ def bag_topic_names(profile: RobotProfile | None = None) -> dict[str, str]:
     profile = profile or _default_profile()
     head = profile.sensor_topic.rstrip("/").rpartition("/")[0]
     return {
+        "joint_states": profile.joints_topic,
         "raw": profile.sensor_topic,
         "denoised": profile.denoised_topic,
-        "joint_states": profile.joints_topic,
         "contact": f"{head}/contact",
         "ego": f"{head}/ego",
         "commands": f"/{COMMANDS_TOPIC}",

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays, repeats
+from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays
 from egovib_ros.core.timebase import NS_PER_S
 
 
@@ -51,10 +51,6 @@ class SampleFramer(_Framer):
         self._ready: list[SampleBatch] = []
         self._last_time: int | None = None  # effective time of the last real sample appended
         self._segment_open = False  # samples appended since the segment started
-        # joint states that lag the sensor (FramerSettings.joint_lag_s) are moved later, and
-        # arrive that much later relative to the samples they cover
-        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
-        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
         self.samples_no_joint_state = 0
 
     # --- input ---------------------------------------------------------------
@@ -92,24 +88,8 @@ class SampleFramer(_Framer):
         before = np.maximum.accumulate(
             np.concatenate([[last if last is not None else np.iinfo(np.int64).min], stamps_ns[:-1]])
         )
-        keep = (stamps_ns > before) & np.all(np.isfinite(velocity), axis=1)
-        self.stats.joint_states_dropped += int((~keep).sum())
-        self.stats.joint_states_duplicates += repeats(
-            last, self._joint_v[-1] if last is not None else None, stamps_ns, velocity, keep
-        )
-        if keep.any():
-            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
-            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
+        self._keep_joint_states(stamps_ns, velocity, stamps_ns > before)
         self._drain()
-
-    def _push_segments(self, segments: list) -> None:
-        for segment in segments:
-            self._check_rate(segment.stamps)
-            self._append(segment.stamps, segment.values)
-            if segment.ends_stream:
-                self._rate_segment_ends(segment)
-                self._close_segment(wait_for_joints=segment.wait_for_joints)
-            self._drain()
 
     def flush(self) -> None:
         """End of stream: release everything pending (the last segment ends here)."""

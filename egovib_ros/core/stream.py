@@ -693,9 +693,33 @@ class _Framer:
         self._rate_last: int | None = None  # last real stamp of the open segment
         self._rate_off_windows = 0  # consecutive windows measured beyond the tolerance
         self._max_hold_ns = int(settings.max_hold_s * NS_PER_S)
+        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
+        # joint states moved later arrive that much later relative to the samples they cover
+        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
 
     def push_sensor(self, stamps_ns: np.ndarray, accel: np.ndarray) -> None:
         self._push_segments(self._cleaner.segments(stamps_ns, accel))
+
+    def _push_segments(self, segments: list[_Segment]) -> None:
+        for segment in segments:
+            self._check_rate(segment.stamps)
+            self._append(segment.stamps, segment.values)
+            if segment.ends_stream:
+                self._rate_segment_ends(segment)
+                self._close_segment(wait_for_joints=segment.wait_for_joints)
+            self._drain(final=False)
+
+    def _keep_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray, in_order) -> None:
+        """Append the joint states in order (`in_order`) and finite; count the dropped and
+        the repeated."""
+        keep = in_order & np.all(np.isfinite(velocity), axis=1)
+        self.stats.joint_states_dropped += int((~keep).sum())
+        last = int(self._joint_t[-1]) if len(self._joint_t) else None
+        last_v = self._joint_v[-1] if len(self._joint_v) else None
+        self.stats.joint_states_duplicates += repeats(last, last_v, stamps_ns, velocity, keep)
+        if keep.any():
+            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
+            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
 
     def _append_in_order(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> bool:
         """Append joint states that are in order and finite (the live case: nothing to drop
@@ -822,9 +846,6 @@ class BlockFramer(_Framer):
         self._ready: list[Blocks] = []
         self._closed: list[list] = []  # [buf_x, buf_t, wait_for_joints] of ended segments
         self._offsets = np.arange(settings.block_length)
-        self._joint_lag_ns = int(round(settings.joint_lag_s * NS_PER_S))
-        # joint states moved later arrive that much later relative to the blocks they cover
-        self._joint_wait_ns = int(settings.joint_wait_s * NS_PER_S) + max(self._joint_lag_ns, 0)
         self._start_segment()
 
     # --- input ---------------------------------------------------------------
@@ -860,25 +881,8 @@ class BlockFramer(_Framer):
             self.push_joint_states(stamps_ns[i:] - self._joint_lag_ns, velocity[i:])
             self.stats.joint_states_in += i
             return
-        keep = in_order & np.all(np.isfinite(velocity), axis=1)
-        self.stats.joint_states_dropped += int((~keep).sum())
-        last_v = self._joint_v[-1] if len(self._joint_v) else None
-        self.stats.joint_states_duplicates += repeats(
-            int(last) if len(self._joint_t) else None, last_v, stamps_ns, velocity, keep
-        )
-        if keep.any():
-            self._joint_t = np.concatenate([self._joint_t, stamps_ns[keep]])
-            self._joint_v = np.concatenate([self._joint_v, velocity[keep]])
+        self._keep_joint_states(stamps_ns, velocity, in_order)
         self._drain(final=False)
-
-    def _push_segments(self, segments: list[_Segment]) -> None:
-        for segment in segments:
-            self._check_rate(segment.stamps)
-            self._append(segment.stamps, segment.values)
-            if segment.ends_stream:
-                self._rate_segment_ends(segment)
-                self._close_segment(wait_for_joints=segment.wait_for_joints)
-            self._drain(final=False)
 
     def flush(self) -> None:
         """End of stream: complete all pending blocks (zero padding at the end)."""

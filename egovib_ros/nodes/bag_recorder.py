@@ -19,12 +19,13 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.errors import BagError
 from egovib_ros.nodes.common import Param, declare_parameters, run_node, stream_publisher_qos
 from egovib_ros.outputs import atomic_output
-from egovib_ros.sim.pr2 import BAG_TOPICS
 
-DEFAULT_TOPICS = [topic.lstrip("/") for topic in BAG_TOPICS.values()]  # the PR2 hand's, relative
+# the PR2 hand's, relative
+DEFAULT_TOPICS = [topic.lstrip("/") for topic in bag_topic_names().values()]
 # 10 s at 3 kHz: a reliable publisher's samples are acknowledged once in this queue, so
 # writing may lag that long on a busy machine without losing anything.
 RECORDER_QUEUE_DEPTH = 30000

@@ -13,7 +13,6 @@ from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray
 
-from egovib_ros.core.noise_model import sweep_cells
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
 from egovib_ros.nodes.common import (
@@ -26,9 +25,8 @@ from egovib_ros.nodes.common import (
     wait_for_delivery,
 )
 from egovib_ros.nodes.convert import command_message
-from egovib_ros.robot import RobotProfile, load_profile
-from egovib_ros.sim.pr2 import TOPIC_COMMANDS
-from egovib_ros.sim.robot import MAX_SWEEP_CELLS
+from egovib_ros.robot import COMMANDS_TOPIC, load_profile
+from egovib_ros.sim.robot import MAX_SWEEP_CELLS, sweep_velocities
 
 COMMAND_PERIOD_S = 0.05  # the command is repeated at 20 Hz (forward-command controllers hold it)
 PARAMETERS = (
@@ -56,21 +54,6 @@ PARAMETERS = (
 )
 
 
-def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
-    """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
-    order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses)."""
-    n_cells = int(np.prod(profile.grid_shape, dtype=np.float64))
-    if grid == "full" and n_cells > MAX_SWEEP_CELLS:
-        raise ConfigError(
-            f"{profile.name}: a full sweep has {n_cells} "
-            f"cells (more than {MAX_SWEEP_CELLS}); sweep the superposition grid or calibrate "
-            f"from free motion"
-        )
-    axes = profile.grid()
-    cells = sweep_cells(axes, grid)
-    return np.column_stack([axes[j][cells[:, j]] for j in range(profile.n_joints)])
-
-
 class SweepDriver(Node):
     def __init__(self):
         super().__init__("sweep_driver")
@@ -82,7 +65,7 @@ class SweepDriver(Node):
         self.cells = sweep_velocities(self.profile, self.grid)
         if not 0 <= self.start_cell < len(self.cells):
             raise ConfigError(f"sweep_driver: start_cell must be in 0..{len(self.cells) - 1}")
-        self.pub = self.create_publisher(Float64MultiArray, TOPIC_COMMANDS, 10)
+        self.pub = self.create_publisher(Float64MultiArray, COMMANDS_TOPIC, 10)
         self.health = Health(self, hardware_id=self.profile.name)
         self.done = Future()
         self.cell = self.start_cell - 1

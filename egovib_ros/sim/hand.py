@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from egovib_ros.bag.recording import Recording
 from egovib_ros.core.filters import lfilter_carried, sosfilt_carried
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
@@ -48,6 +49,7 @@ from egovib_ros.sim.pr2 import (
     BAND_HZ,
     BAND_ORDER,
     GRIPPER_GAP_RANGE_M,
+    JOINT_NAMES,
     JOINT_RATE_HZ,
     MAX_SPEED,
 )
@@ -63,19 +65,14 @@ def quantise(accel: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class SimChunk:
-    """One step of the simulator; all stamps int64 ns."""
+class SimChunk(Recording):
+    """One step of the simulator: a time slice of the hand (raw quantised sensor, joint
+    states as reported, ground-truth contact and ego parts; the scenarios add the commands)
+    and what only the simulator knows."""
 
-    sensor_stamps_ns: np.ndarray  # (n,)
-    sensor: np.ndarray  # (n, 3) raw, quantised
-    contact: np.ndarray  # (n, 3) ground truth contact part
-    ego: np.ndarray  # (n, 3) ground truth ego part (gravity + hum + vibration)
-    joint_stamps_ns: np.ndarray  # (m,) reported stamps (timing effect included)
-    joint_position: np.ndarray  # (m, J) encoder positions
-    joint_velocity: np.ndarray  # (m, J) first-order differences of encoder positions
-    tap_onsets_ns: np.ndarray  # (t,) accel stamps at which taps start
-    true_velocity: np.ndarray  # (n, J) joint velocities at the accel samples
-    true_position: np.ndarray  # (n, J)
+    tap_onsets_ns: np.ndarray | None = None  # (t,) accel stamps at which taps start
+    true_velocity: np.ndarray | None = None  # (n, J) joint velocities at the accel samples
+    true_position: np.ndarray | None = None  # (n, J)
 
 
 def _unit(v) -> np.ndarray:
@@ -407,6 +404,7 @@ class HandSimulator:
             joint_stamps_ns=j_stamps,
             joint_position=j_pos,
             joint_velocity=j_vel,
+            joint_names=JOINT_NAMES,
             tap_onsets_ns=self.stamps_ns(np.asarray(onsets, np.int64)),
             true_velocity=vel,
             true_position=pos,

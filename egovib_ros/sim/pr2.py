@@ -1,4 +1,4 @@
-"""Robot and interface constants fixed by docs/INTERFACES.md (sections 1-2).
+"""Robot and interface constants of the PR2 hand fixed by docs/INTERFACES.md.
 
 Pure Python/numpy: imported by the core, the simulator, the nodes and the CLI.
 """
@@ -6,8 +6,6 @@ Pure Python/numpy: imported by the core, the simulator, the nodes and the CLI.
 from __future__ import annotations
 
 import numpy as np
-
-from egovib_ros.robot import COMMANDS_TOPIC
 
 # --- robot (INTERFACES.md section 1) -------------------------------------------
 JOINT_NAMES: tuple[str, ...] = ("r_wrist_roll_joint", "r_gripper_joint")
@@ -33,23 +31,5 @@ BLOCK_LENGTH: int = 64
 HOP: int = 32
 BAND_HZ: tuple[float, float] = (150.0, 750.0)
 BAND_ORDER: int = 4  # 4th-order Butterworth band-pass
-
-# --- ROS names (INTERFACES.md section 2), all relative ---------------------------
-TOPIC_JOINT_STATES = "joint_states"
-TOPIC_RAW = "accelerometer/raw"
-TOPIC_DENOISED = "accelerometer/denoised"
-TOPIC_CONTACT = "accelerometer/contact"
-TOPIC_EGO = "accelerometer/ego"
-TOPIC_COMMANDS = COMMANDS_TOPIC
-
-# Topic names inside bags (root namespace, INTERFACES.md section 4).
-BAG_TOPICS = {
-    "joint_states": "/joint_states",
-    "raw": "/accelerometer/raw",
-    "denoised": "/accelerometer/denoised",
-    "contact": "/accelerometer/contact",
-    "ego": "/accelerometer/ego",
-    "commands": "/hand_velocity_controller/commands",
-}
 
 EFFECT_NAMES: tuple[str, ...] = ("position", "coupling", "acceleration", "timing", "drift")

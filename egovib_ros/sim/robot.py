@@ -388,18 +388,7 @@ class SweepSchedule:
             raise ConfigError(f"--dwell must be > 0 seconds, got {dwell_s!r}")
         if not (math.isfinite(settle_s) and settle_s >= 0):
             raise ConfigError(f"--settle must be >= 0 seconds, got {settle_s!r}")
-        n_cells = sweep_cell_count(profile, grid)
-        if n_cells > MAX_SWEEP_CELLS:
-            raise ConfigError(
-                f"--grid {grid}: the {profile.n_joints}-joint grid of {profile.name!r} has "
-                f"{n_cells:.3g} cells (more than {MAX_SWEEP_CELLS}); sweep the superposition "
-                f"grid ({sweep_cell_count(profile, 'superposition')} cells) or record free motion"
-            )
-        grid_values = profile.grid()
-        index = sweep_cells(grid_values, grid)
-        self.velocities = np.array(
-            [[grid_values[j][c[j]] for j in range(profile.n_joints)] for c in index]
-        )
+        self.velocities = sweep_velocities(profile, grid)
         fs = profile.rate_hz
         self.settle = int(round(settle_s * fs))
         self.per_cell = self.settle + max(1, int(round(dwell_s * fs)))
@@ -422,6 +411,22 @@ class SweepSchedule:
         return previous + ramp[:, None] * (target - previous)
 
 
+def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
+    """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
+    order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses);
+    a full grid of more than MAX_SWEEP_CELLS cells is refused."""
+    n_cells = sweep_cell_count(profile, grid)
+    if n_cells > MAX_SWEEP_CELLS:
+        raise ConfigError(
+            f"{profile.name}: a full sweep has {n_cells} cells (more than {MAX_SWEEP_CELLS}); "
+            f"sweep the superposition grid ({sweep_cell_count(profile, 'superposition')} "
+            f"cells) or calibrate from free motion"
+        )
+    axes = profile.grid()
+    cells = sweep_cells(axes, grid)
+    return np.column_stack([axes[j][cells[:, j]] for j in range(profile.n_joints)])
+
+
 def sweep_cell_count(profile: RobotProfile, grid: str) -> int:
     shape = profile.grid_shape
     if grid == "full":
@@ -430,11 +435,6 @@ def sweep_cell_count(profile: RobotProfile, grid: str) -> int:
 
 
 # --- whole runs ---------------------------------------------------------------------
-def truth_dict(seed: int, onsets_ns) -> dict:
-    """The `--truth` sidecar: {seed, effects (none in this simulator), tap_onsets_ns}."""
-    return {"seed": int(seed), "effects": {}, "tap_onsets_ns": [int(x) for x in onsets_ns]}
-
-
 def robot_slices(
     profile: RobotProfile,
     *,
@@ -474,7 +474,7 @@ def robot_slices(
         schedule = SmoothMotion(profile, max_speed, sim.rng["motion"])
         total = int(round(duration_s * profile.rate_hz))
     chunk = max(1, int(round(profile.rate_hz)))
-    truth = truth_dict(seed, [])
+    truth = {"seed": int(seed), "effects": {}, "tap_onsets_ns": []}  # the --truth sidecar
 
     def generate() -> Iterator[Recording]:
         for start in range(0, total, chunk):

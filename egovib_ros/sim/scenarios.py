@@ -6,6 +6,7 @@ command schedule instead of a topic, so live and offline data agree.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -31,20 +32,22 @@ def sweep_cells(grid: str) -> np.ndarray:
     return np.column_stack([axes[j][index[:, j]] for j in range(2)])
 
 
-def _slice(chunk: SimChunk, command_stamps=(), commands=()) -> Recording:
-    """One simulator chunk as a Recording time slice."""
-    return Recording(
-        sensor_stamps_ns=chunk.sensor_stamps_ns,
-        sensor=chunk.sensor,
-        joint_stamps_ns=chunk.joint_stamps_ns,
-        joint_position=chunk.joint_position,
-        joint_velocity=chunk.joint_velocity,
-        joint_names=JOINT_NAMES,
-        contact=chunk.contact,
-        ego=chunk.ego,
-        command_stamps_ns=np.asarray(command_stamps, np.int64).reshape(-1),
+def _with_commands(chunk: SimChunk, stamps, commands) -> SimChunk:
+    """A step's chunk (a Recording slice) with the commands sent during it."""
+    return replace(
+        chunk,
+        command_stamps_ns=np.asarray(stamps, np.int64).reshape(-1),
         commands=np.asarray(commands, float).reshape(-1, len(JOINT_NAMES)),
     )
+
+
+def _truth(seed: int, effects: dict) -> dict:
+    """The `--truth` sidecar of INTERFACES.md section 3 (its tap onsets filled as it runs)."""
+    return {
+        "seed": int(seed),
+        "effects": {k: float(v) for k, v in effects.items()},
+        "tap_onsets_ns": [],
+    }
 
 
 def iter_sweep(
@@ -85,7 +88,7 @@ def sweep_slices(
     cells = sweep_cells(grid)
     if dwell_s <= 0 or settle_s < 0:
         raise ConfigError("sweep: dwell must be > 0 and settle >= 0 seconds")
-    truth = truth_dict(seed, sim.effects, [])
+    truth = _truth(seed, sim.effects)
 
     def generate() -> Iterator[Recording]:
         last_cell = -1
@@ -95,7 +98,7 @@ def sweep_slices(
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
                 progress(len(chunk.sensor) / ACCEL_RATE_HZ)
-            yield _slice(chunk, [stamp] if new_cell else [], [cell] if new_cell else [])
+            yield _with_commands(chunk, [stamp] if new_cell else [], [cell] if new_cell else [])
 
     return generate(), truth
 
@@ -156,7 +159,7 @@ def motion_slices(
         (np.arange(total) * COMMAND_RATE_HZ / ACCEL_RATE_HZ).astype(np.int64), len(cmds) - 1
     )
     starts = np.flatnonzero(np.diff(hold, prepend=-1))
-    truth = truth_dict(seed, sim.effects, [])
+    truth = _truth(seed, sim.effects)
 
     def generate() -> Iterator[Recording]:
         for a in range(0, total, CHUNK):
@@ -166,7 +169,7 @@ def motion_slices(
             truth["tap_onsets_ns"].extend(int(x) for x in chunk.tap_onsets_ns)
             if progress is not None:
                 progress(len(chunk.sensor) / ACCEL_RATE_HZ)
-            yield _slice(chunk, sim.stamps_ns(sent), cmds[hold[sent]])
+            yield _with_commands(chunk, sim.stamps_ns(sent), cmds[hold[sent]])
 
     return generate(), truth
 
@@ -176,12 +179,3 @@ def simulate_motion(**options) -> tuple[Recording, dict]:
     whole: (Recording, truth)."""
     slices, truth = motion_slices(**options)
     return concat_recordings(list(slices)), truth
-
-
-def truth_dict(seed: int, effects: dict, onsets_ns) -> dict:
-    """The `--truth` sidecar of INTERFACES.md section 3."""
-    return {
-        "seed": int(seed),
-        "effects": {k: float(v) for k, v in effects.items()},
-        "tap_onsets_ns": [int(x) for x in onsets_ns],
-    }

@@ -34,13 +34,15 @@ from egovib_research.experiments import paper_figures as figures
 from egovib_research.tools.orchestration import NodeGroup, reliable_input
 from egovib_research.tools.watcher import Watcher
 from egovib_ros.bag import BagReader, decode_imu, read_recording
+from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation import metrics
 from egovib_ros.evaluation.evaluate import evaluate_recording
 from egovib_ros.nodes.convert import command_message
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.sim import motion_commands
-from egovib_ros.sim.pr2 import BAG_TOPICS
+
+BAG_TOPICS = bag_topic_names()  # the PR2 hand's
 
 PR2_INPUT = ("/accelerometer/raw", "/joint_states")  # the simulated hand's streams (PR2 profile)
 PAPER_TOPIC = (
