@@ -43,11 +43,18 @@ def egovib_process(*args) -> subprocess.CompletedProcess:
     return subprocess.run(command, capture_output=True, text=True, timeout=300)
 
 
+def sim_sweep():
+    """The superposition calibration sweep of `write_sim_bags` (no ground truth: a calibration
+    bag has none). Test modules that calibrate a sweep of their own calibrate this one: the
+    harmonic fit of every calibration (conftest.py `harmonic_fits_once`, ~8 s) is then done
+    once per test session for all of them."""
+    sweep, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=3)
+    return dataclasses.replace(sweep, contact=None, ego=None)
+
+
 def write_sim_bags(root: Path) -> Path:
     """root/sweep (a superposition calibration sweep) and root/motion (4 s, taps, truth)."""
-    sweep, _ = simulate_sweep(grid="superposition", dwell_s=1.0, settle_s=0.3, seed=3)
-    # A calibration bag needs no ground truth; leaving it out keeps the test quick.
-    write_recording(root / "sweep", dataclasses.replace(sweep, contact=None, ego=None))
+    write_recording(root / "sweep", sim_sweep())
     motion, _ = simulate_motion(duration_s=4.0, max_speed=0.5, tap_rate_hz=1.0, seed=4)
     write_recording(root / "motion", motion)
     return root
