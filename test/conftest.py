@@ -7,6 +7,7 @@ all at the end, also when the test fails.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import pickle
@@ -123,13 +124,17 @@ def harmonic_fits_once(tmp_path_factory):
     def fit_once(x, speed, **options):
         key = hashlib.sha256(pickle.dumps((np.asarray(x), np.asarray(speed), options)))
         path = shared / f"{key.hexdigest()}.pkl"
-        if path.exists():
-            return pickle.loads(path.read_bytes())
-        result = fit(x, speed, **options)
-        partial = path.with_suffix(f".{os.getpid()}")
-        partial.write_bytes(pickle.dumps(result))
-        os.replace(partial, path)  # a worker reading it sees all of it or nothing
-        return result
+        # one lock per input: a worker that needs a fit the other is making waits for it
+        # (both workers calibrate the shared sweep as the session starts)
+        with open(path.with_suffix(".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if path.exists():
+                return pickle.loads(path.read_bytes())
+            result = fit(x, speed, **options)
+            partial = path.with_suffix(f".{os.getpid()}")
+            partial.write_bytes(pickle.dumps(result))
+            os.replace(partial, path)  # a reader sees all of it or nothing
+            return result
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(methods, "fit_harmonic_map", fit_once)

@@ -167,6 +167,7 @@ def test_force_replaces_only_a_report_evaluate_wrote(simulated, tmp_path, capsys
     args = [
         "evaluate", str(simulated["bag"]), "--model", str(simulated["model"]),
         "--calibration", str(simulated["quiet_bag"]), "--json", str(out), "--force", "--quiet",
+        "--methods", "paper",  # (which methods: test_evaluate_writes_contract_fields)
     ]  # fmt: skip
     assert main(args) == 2
     assert "not an output of this command" in capsys.readouterr().err

@@ -171,7 +171,8 @@ def test_several_bags_in_parallel_and_a_corrupt_one(model_path, position_bag, tm
     for jobs in ("1", "2"):
         out = tmp_path / f"out{jobs}"
         args = ["gap", "--model", str(model_path), "--real", str(bags), "--out", str(out)]
-        assert main(args + ["--jobs", jobs, "--reference-lag", "0", "--quiet"]) == 2
+        options = ["--jobs", jobs, "--reference-lag", "0", "--quiet", "--no-figures"]
+        assert main(args + options) == 2  # (figures: test_gap_report_on_blind_bag)
         err = capsys.readouterr().err
         assert "FAILED" in err and "corrupt" in err and "1 done, 1 failed" in err
         assert not (out / "corrupt").exists()
