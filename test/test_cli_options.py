@@ -92,9 +92,10 @@ def test_quiet_means_the_same_in_every_command():
     assert set(quiet.values()) == {options.QUIET_HELP}, quiet
 
 
-def test_quiet_runs_say_only_the_bad_input(tmp_path):
+def test_quiet_runs_say_only_the_bad_input(sim_bags, tmp_path):
     """`denoise --quiet` of a clean bag says nothing; of a bag with bad samples only their
-    counts; `calibrate --quiet` likewise (no coverage lines; its warnings)."""
+    counts; `calibrate --quiet` likewise (no coverage lines; its warnings). The session's
+    sweep (sim_bags): its harmonic fit is made once for the suite."""
     import contextlib
     import io
 
@@ -102,7 +103,7 @@ def test_quiet_runs_say_only_the_bad_input(tmp_path):
 
     from egovib_ros import cli
     from egovib_ros.bag import write_recording
-    from egovib_ros.sim import simulate_motion, simulate_sweep
+    from egovib_ros.sim import simulate_motion
 
     def run(*args) -> str:
         err = io.StringIO()
@@ -110,16 +111,14 @@ def test_quiet_runs_say_only_the_bad_input(tmp_path):
             assert cli.main([str(a) for a in args]) == 0, err.getvalue()
         return err.getvalue()
 
-    sweep, _ = simulate_sweep(grid="superposition", dwell_s=0.3, settle_s=0.2, seed=3)
-    write_recording(tmp_path / "sweep", sweep)
     motion, _ = simulate_motion(duration_s=2.0, max_speed=0.5, seed=4)
     write_recording(tmp_path / "clean", motion)
     bad = motion.sensor.copy()
     bad[1000:1012] = np.nan
     motion.sensor = bad
     write_recording(tmp_path / "bad", motion)
-    said = run("calibrate", tmp_path / "sweep", "--out", tmp_path / "m.npz", "--quiet")
-    # a warning only: this 20 s sweep is short for the detector's thresholds
+    said = run("calibrate", sim_bags / "sweep", "--out", tmp_path / "m.npz", "--quiet")
+    # a warning only: this 53 s sweep is short for the detector's thresholds
     assert said.count("\n") == 1 and said.startswith("warning: the contact detector's"), said
     model = tmp_path / "m.npz"
     assert (

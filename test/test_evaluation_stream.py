@@ -362,6 +362,7 @@ GOOD = ("day1/run0", "day1/run1", "day2/run2")
 
 def test_several_bags_one_json_each_and_the_broken_one_named(lab, fleet, tmp_path, capsys):
     common = ["--model", str(lab["root"] / "model.npz"), "--calibration", str(lab["quiet"])]
+    common += ["--methods", "default,paper"]  # (which methods: test_cli_evaluate)
     singles = {}
     for name in GOOD:
         out = tmp_path / "single" / f"{name}.json"
@@ -387,6 +388,7 @@ def test_several_bags_one_json_each_and_the_broken_one_named(lab, fleet, tmp_pat
 
 def test_jobs_2_equals_one_at_a_time(lab, fleet, tmp_path):
     common = ["--model", lab["root"] / "model.npz", "--calibration", lab["quiet"], "--quiet"]
+    common += ["--methods", "default,paper"]  # (which methods: test_cli_evaluate)
     outs = {}
     for jobs in ("1", "2"):
         outs[jobs] = tmp_path / f"jobs{jobs}"
