@@ -195,3 +195,18 @@ def two_motor_recording(speed, steps, rng, *, mixing, gain=1.0, taps_per_s=0.0, 
         "contact": contact,
         "onsets": onsets,
     }
+
+
+def decaying_tap(n, peak, freq=400.0, tau=0.01):
+    """A tap: a decaying 400 Hz sine at FS."""
+    t = np.arange(n) / FS
+    return peak * np.exp(-t / tau) * np.sin(2 * np.pi * freq * t + np.pi / 2)
+
+
+def tap_signals(n=3 * 3000, onsets=(3000, 4500, 6000), tap_len=150, peak=4.0, noise=0.25, seed=1):
+    """(reference with taps at known onsets, sign noise of magnitude `noise`)."""
+    rng = np.random.default_rng(seed)
+    reference = np.zeros(n)
+    for onset in onsets:
+        reference[onset : onset + tap_len] = decaying_tap(tap_len, peak)
+    return reference, noise * rng.choice([-1.0, 1.0], size=n)

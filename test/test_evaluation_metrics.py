@@ -2,30 +2,13 @@
 
 import numpy as np
 import pytest
+from synthetic import FS, tap_signals
 
 from egovib_ros.evaluation import metrics
 
-FS = 3000.0
-
-
-def _decaying_tap(n, peak, freq=400.0, tau=0.01):
-    t = np.arange(n) / FS
-    return peak * np.exp(-t / tau) * np.sin(2 * np.pi * freq * t + np.pi / 2)
-
-
-def _synthetic(n=3 * 3000, onsets=(3000, 4500, 6000), tap_len=150, peak=4.0, noise=0.25, seed=1):
-    """Reference with taps at known onsets; raw = reference + sign noise
-    (|noise| = `noise`) outside taps."""
-    rng = np.random.default_rng(seed)
-    reference = np.zeros(n)
-    for onset in onsets:
-        reference[onset : onset + tap_len] = _decaying_tap(tap_len, peak)
-    noise_signal = noise * rng.choice([-1.0, 1.0], size=n)
-    return reference, noise_signal
-
 
 def test_segment_contacts_finds_onsets_and_masks():
-    reference, _ = _synthetic()
+    reference, _ = tap_signals()
     seg = metrics.segment_contacts(reference, sample_rate_hz=FS)
     assert seg.onsets.tolist() == [3000, 4500, 6000]
     assert seg.n_taps == 3

@@ -3,27 +3,10 @@ synthetic signals with known answers."""
 
 import numpy as np
 import pytest
+from synthetic import FS, tap_signals
 
 from egovib_research.experiments import scoring
 from egovib_ros.evaluation import metrics
-
-FS = 3000.0
-
-
-def _decaying_tap(n, peak, freq=400.0, tau=0.01):
-    t = np.arange(n) / FS
-    return peak * np.exp(-t / tau) * np.sin(2 * np.pi * freq * t + np.pi / 2)
-
-
-def _synthetic(n=3 * 3000, onsets=(3000, 4500, 6000), tap_len=150, peak=4.0, noise=0.25, seed=1):
-    """Reference with taps at known onsets; raw = reference + sign noise
-    (|noise| = `noise`) outside taps."""
-    rng = np.random.default_rng(seed)
-    reference = np.zeros(n)
-    for onset in onsets:
-        reference[onset : onset + tap_len] = _decaying_tap(tap_len, peak)
-    noise_signal = noise * rng.choice([-1.0, 1.0], size=n)
-    return reference, noise_signal
 
 
 def _bursts(n, onsets, amplitude=3.0, length=60):
@@ -34,7 +17,7 @@ def _bursts(n, onsets, amplitude=3.0, length=60):
 
 
 def test_known_tap_in_known_noise_gives_known_snr_reduction_retention():
-    reference, noise = _synthetic(peak=4.0, noise=0.25)
+    reference, noise = tap_signals(peak=4.0, noise=0.25)
     seg = metrics.segment_contacts(reference, sample_rate_hz=FS)
     # Noise only where there is no contact, so the per-tap peak is exactly the tap's peak.
     raw = np.where(seg.contact_mask, reference, noise)
@@ -63,7 +46,7 @@ def test_segments_in_mask_majority_rule():
 
 
 def test_signal_metrics_rejects_misaligned_lengths():
-    reference, noise = _synthetic()
+    reference, noise = tap_signals()
     seg = metrics.segment_contacts(reference, sample_rate_hz=FS)
     with pytest.raises(ValueError):
         scoring.signal_metrics(noise, noise[:-1], reference, seg)
