@@ -8,11 +8,14 @@ times a known effect, so the right answers are known without the simulator.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import signal
 
 from egovib_ros.core.blocks import analysis_window
 from egovib_ros.core.noise_model import NoiseModel
+from egovib_ros.gap.diagnose import Diagnosis, diagnose
 from egovib_ros.gap.features import (
     REVERSAL_THRESHOLD,
     BlockTable,
@@ -185,3 +188,19 @@ def synthetic_table(
         freq_index=freq_index,
     )
     return attach_motion(table)
+
+
+def diagnosed(
+    effect: str = "none", strength: float = 0.0, *, seed: int = 0, duration_s: float = 40.0
+) -> Diagnosis:
+    """`diagnose` with the default options on `synthetic_table(effect, strength, ...)`, made
+    once per test process: test_gap_diagnose, test_gap_advice and test_gap_writeback assert
+    different things on the same diagnoses (seed 5, 40 s). Shared: read it, never change it
+    (dataclasses.replace makes a changed copy)."""
+    return _diagnosed(effect, float(strength), seed, float(duration_s))
+
+
+@functools.cache
+def _diagnosed(effect: str, strength: float, seed: int, duration_s: float) -> Diagnosis:
+    # one key however the arguments were spelled (functools.cache keys on the call's form)
+    return diagnose(synthetic_table(effect, strength, seed=seed, duration_s=duration_s))

@@ -7,18 +7,18 @@ import dataclasses
 
 import numpy as np
 import pytest
-from gaptables import synthetic_table
+from gaptables import diagnosed
 
 from egovib_ros.gap.advice import UNEXPLAINED_NOTE_DB, action, advise, commands, first_lines
-from egovib_ros.gap.diagnose import diagnose
 
 
 @pytest.fixture(scope="module")
 def diagnoses() -> dict:
-    """One diagnosis per effect whose advice names a setting, and one without an effect."""
+    """One diagnosis per effect whose advice names a setting, and one without an effect
+    (shared with test_gap_diagnose and test_gap_writeback: gaptables.diagnosed)."""
     cases = {"none": ("none", 0.0), "timing": ("timing", 0.05), "drift": ("drift", 0.5)}
     cases["position"] = ("position", 0.4)
-    return {name: diagnose(synthetic_table(e, s, seed=5)) for name, (e, s) in cases.items()}
+    return {name: diagnosed(e, s, seed=5) for name, (e, s) in cases.items()}
 
 
 def test_a_lag_is_advised_as_the_joint_lag_that_undoes_it(diagnoses):

@@ -6,9 +6,8 @@ from __future__ import annotations
 import hashlib
 
 import pytest
-from gaptables import synthetic_table
+from gaptables import diagnosed
 
-from egovib_ros.gap.diagnose import diagnose
 from egovib_ros.gap.writeback import write_back
 from egovib_ros.sim import SimParams
 from egovib_ros.sim.params import default_config_path
@@ -20,10 +19,8 @@ def digest(path) -> str:
 
 @pytest.fixture(scope="module")
 def timing_and_none():
-    return (
-        diagnose(synthetic_table("timing", 0.05, seed=5)),
-        diagnose(synthetic_table("none", 0.0, seed=5)),
-    )
+    # the diagnoses test_gap_advice reads too (gaptables.diagnosed: made once per process)
+    return diagnosed("timing", 0.05, seed=5), diagnosed("none", 0.0, seed=5)
 
 
 def test_a_found_lag_is_written_as_the_simulators_timing_strength(timing_and_none, tmp_path):
