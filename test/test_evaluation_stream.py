@@ -17,7 +17,8 @@ from egovib_ros.bag import concat_recordings, iter_recording, read_recording, wr
 from egovib_ros.cli import main
 from egovib_ros.core import calibrate_arrays, denoise_batch
 from egovib_ros.evaluation import baselines, detection, metrics
-from egovib_ros.evaluation.evaluate import evaluate_bag, evaluate_pieces, evaluate_recording
+from egovib_ros.evaluation import evaluate as evaluate_module
+from egovib_ros.evaluation.evaluate import evaluate_bag, evaluate_recording
 from egovib_ros.evaluation.stream import Screen
 from egovib_ros.sim import simulate_motion, simulate_sweep
 
@@ -286,31 +287,23 @@ def _cut(rec, a: int, b: int, *, first: bool):
     return dataclasses.replace(rec, **changes)
 
 
-def sliced_report(lab, chunk_s: float, calibration: bool) -> dict:
-    """evaluate_bag's report with the bags read in slices of `chunk_s` seconds."""
+def sliced_report(lab, chunk_s: float, calibration: bool, monkeypatch) -> dict:
+    """evaluate_bag's report with its bag reader's slices cut to `chunk_s` seconds."""
+    opened = []
 
-    def opener(path, truth: bool):
-        return lambda: rechunk(
-            iter_recording(
-                path,
-                profile=lab["model"].profile,
-                ground_truth=truth,
-                denoised=truth,
-                commands=False,
-            ),
-            round(chunk_s * FS),
-        )
+    def sliced(*args, **options):
+        opened.append(args[0])
+        return rechunk(iter_recording(*args, **options), round(chunk_s * FS))
 
-    return evaluate_pieces(
-        opener(lab["bag"], True),
-        lab["model"],
-        open_calibration=opener(lab["quiet"], False) if calibration else None,
-        source=str(lab["bag"]),
-        calibration_source=str(lab["quiet"]),
-    )
+    with monkeypatch.context() as patch:
+        patch.setattr(evaluate_module, "iter_recording", sliced)
+        quiet = lab["quiet"] if calibration else None
+        report = evaluate_bag(lab["bag"], model=lab["model"], calibration=quiet)
+    assert lab["bag"] in opened and (quiet is None or quiet in opened)  # read sliced
+    return report
 
 
-def test_any_slicing_gives_the_whole_array_report(lab):
+def test_any_slicing_gives_the_whole_array_report(lab, monkeypatch):
     expected = whole_array_report(lab, calibration=True)
     bad = expected["bad_samples"]
     assert bad["raw_nonfinite"] == 150 and bad["raw_beyond_range"] == 1
@@ -322,14 +315,14 @@ def test_any_slicing_gives_the_whole_array_report(lab):
     report = evaluate_bag(lab["bag"], model=lab["model"], calibration=lab["quiet"])
     assert_same_report(metrics.json_safe(report), expected)  # the bag's own slices
     for chunk_s in (1.0, 7.3, 1e6):  # 1 s, 7.3 s, the whole bag
-        report = sliced_report(lab, chunk_s, calibration=True)
+        report = sliced_report(lab, chunk_s, calibration=True, monkeypatch=monkeypatch)
         assert_same_report(metrics.json_safe(report), expected)
 
 
-def test_without_calibration_any_slicing_gives_the_whole_array_report(lab):
+def test_without_calibration_any_slicing_gives_the_whole_array_report(lab, monkeypatch):
     expected = whole_array_report(lab, calibration=False)
     assert expected["threshold_source"].startswith("no-contact part")
-    report = sliced_report(lab, 0.7, calibration=False)
+    report = sliced_report(lab, 0.7, calibration=False, monkeypatch=monkeypatch)
     assert_same_report(metrics.json_safe(report), expected)
 
 

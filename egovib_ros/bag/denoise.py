@@ -238,7 +238,7 @@ def denoise_bag(
         "blocks_unmeasured": stats.blocks_unmeasured or 0,
         "samples_no_joint_state": stats.samples_no_joint_state or 0,
         "dropped_out_of_order": stats.dropped_out_of_order,
-        "channels": settings.get("channels", "per_axis"),
+        "channels": denoiser.channels,
         "output": getattr(denoiser, "output", "bandpassed"),
         "chunks_copied_verbatim": copied["verbatim"],
         "batches_rewritten": copied["rewritten"],

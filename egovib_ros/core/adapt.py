@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from egovib_ros.core.calibration import FREE_STEADY_TOLERANCE
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.harmonic import HarmonicCanceller, HarmonicMap, fit_harmonic_map
 from egovib_ros.core.noise_model import NoiseModel
@@ -102,7 +103,7 @@ class AdaptSettings:
     max_rate_db_s: float = 10.0
     gate_fraction: float = 1.0
     threshold: float | None = None
-    steady_tolerance: float = 0.5
+    steady_tolerance: float = FREE_STEADY_TOLERANCE  # free-motion calibration's
     harmonic: bool = True
     find_lines: bool = True
     learn: bool = True

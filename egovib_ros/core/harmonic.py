@@ -734,6 +734,10 @@ class CancellerState:
     weights_w: np.ndarray  # (C, L, 2) cos/sin weights of the lines in the unfiltered signal
     power_w: np.ndarray  # (C, 2) short-time powers of the unfiltered input and of it less its lines
 
+    def arrays(self) -> tuple:
+        """The arrays in field order, as the kernel unpacks them (not copied: it updates them)."""
+        return tuple(getattr(self, f.name) for f in fields(self))
+
 
 class HarmonicCanceller:
     """Streaming harmonic canceller for C channels keyed on J joint speeds.
@@ -828,7 +832,7 @@ class HarmonicCanceller:
             speed = np.where(known[:, None], speed, 0.0)
         m = self.map
         hmap = (m.exponent, m.tau_up_s, m.tau_down_s, m.min_speed, m.line_joint, m.line_coefficient)
-        state = tuple(vars(self.state).values())  # the arrays in field order
+        state = self.state.arrays()
         fixed = (self.sample_rate_hz, hmap, self._gains, self.band_hz, w, self.unfiltered_inverse)
         _cancel_kernel(x, speed, known, *fixed, state, out, lines)
         return (out, lines) if raw else out

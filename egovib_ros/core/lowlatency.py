@@ -37,7 +37,7 @@ half of the shipped flight; docs say where a figure was measured on data that ch
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
@@ -370,6 +370,10 @@ class GainState:
     guard: np.ndarray  # (C,) log of the opening score's slow level
     zv: np.ndarray  # (C, K) complex resonator states of the second signal (drop-in)
 
+    def arrays(self) -> tuple:
+        """The arrays in field order, as the kernel unpacks them (not copied: it updates them)."""
+        return tuple(getattr(self, f.name) for f in fields(self))
+
 
 def _filled(value, default: float, shape: tuple) -> np.ndarray:
     """A copy of `value` broadcast to `shape`; `default` everywhere if it is None."""
@@ -515,7 +519,7 @@ class LowLatencyGain:
         )
         if len(r):
             cal = (self.alpha, self.bias, self.open_alpha, self.guard_ref)
-            state = tuple(vars(self.state).values())  # the arrays in field order
+            state = self.state.arrays()
             args = (index, self.bank.poles, cal, self._levels, self._rates, state)
             _gain_kernel(r, noise, *args, out, ratios, v, out_v, scale)
         if unfiltered is not None:

@@ -202,10 +202,16 @@ def diagnose_change(
             break
         c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
         params, model = _parameters(ctx, step["effect"], prefix)
-        entry = {k: c[k] for k in ("effect", "reduction", "p_value", "heldout_gap_before")}
-        entry.update({k: c[k] for k in ("heldout_gap", "deviance_reduction")})
-        entry.update(confidence=step["confidence"], step=step["step"], parameters=params)
-        effects.append(entry)
+        effects.append(
+            {
+                **{k: c[k] for k in ("effect", "reduction", "p_value", "heldout_gap_before")},
+                "heldout_gap": c["heldout_gap"],
+                "deviance_reduction": c["deviance_reduction"],
+                "confidence": step["confidence"],
+                "step": step["step"],
+                "parameters": params,
+            }
+        )
         models.append(model)
         prefix = prefix + _chosen_terms(step["effect"])
         predicted = c["_predicted"][0]

@@ -600,8 +600,14 @@ def _step(
     )
     min_gain = MIN_DEVIANCE_GAIN_LATER if prefix else MIN_DEVIANCE_GAIN
     effect, confidence = _verdict(cands, gains, o.alpha, ctx.segments, ctx.rng, min_gain=min_gain)
-    step = {"step": number, "prefix": list(prefix), "candidates": cands, "effect": effect}
-    return {**step, "confidence": confidence}, interleaved
+    step = {
+        "step": number,
+        "prefix": list(prefix),
+        "candidates": cands,
+        "effect": effect,
+        "confidence": confidence,
+    }
+    return step, interleaved
 
 
 def _add_interleaved_shape(model: FittedModel, interleaved: dict) -> None:

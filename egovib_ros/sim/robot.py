@@ -388,7 +388,7 @@ class SweepSchedule:
             raise ConfigError(f"--dwell must be > 0 seconds, got {dwell_s!r}")
         if not (math.isfinite(settle_s) and settle_s >= 0):
             raise ConfigError(f"--settle must be >= 0 seconds, got {settle_s!r}")
-        self.velocities = sweep_velocities(profile, grid)
+        self.velocities = sweep_velocities(profile, grid, where=f"--grid {grid}")
         fs = profile.rate_hz
         self.settle = int(round(settle_s * fs))
         self.per_cell = self.settle + max(1, int(round(dwell_s * fs)))
@@ -411,16 +411,17 @@ class SweepSchedule:
         return previous + ramp[:, None] * (target - previous)
 
 
-def sweep_velocities(profile: RobotProfile, grid: str) -> np.ndarray:
+def sweep_velocities(profile: RobotProfile, grid: str, where: str = "") -> np.ndarray:
     """Velocities (C, J) of the cells a sweep over the profile's grid visits, in the core's
     order (egovib_ros.core.noise_model.sweep_cells: the one definition calibration uses);
-    a full grid of more than MAX_SWEEP_CELLS cells is refused."""
+    a full grid of more than MAX_SWEEP_CELLS cells is refused (`where`: what the refusal
+    names, by default the profile)."""
     n_cells = sweep_cell_count(profile, grid)
     if n_cells > MAX_SWEEP_CELLS:
         raise ConfigError(
-            f"{profile.name}: a full sweep has {n_cells} cells (more than {MAX_SWEEP_CELLS}); "
-            f"sweep the superposition grid ({sweep_cell_count(profile, 'superposition')} "
-            f"cells) or calibrate from free motion"
+            f"{where or profile.name}: a full sweep has {n_cells} cells (more than "
+            f"{MAX_SWEEP_CELLS}); sweep the superposition grid "
+            f"({sweep_cell_count(profile, 'superposition')} cells) or calibrate from free motion"
         )
     axes = profile.grid()
     cells = sweep_cells(axes, grid)

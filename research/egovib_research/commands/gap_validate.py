@@ -55,10 +55,7 @@ def register(subparsers) -> None:
         "--no-ladder", action="store_true", help="skip the detectability strength ladder"
     )
     val.add_argument("--out", default="docs", help="output directory (default: docs)")
-    val.add_argument(
-        "--force", action="store_true", help="replace the files of a previous run in DIR"
-    )
-    val.add_argument("--quiet", action="store_true", help=options.QUIET_HELP)
+    options.force_and_quiet(val, "replace the files of a previous run in DIR")
     val.set_defaults(func=run)
 
 
