@@ -144,7 +144,8 @@ def test_options_are_keyword_only_and_effects_a_tuple():
 
 def _decide(gain_per_block: float, p_value: float, seed: int = 0):
     """`_verdict` on 20 segments of 30 blocks: one candidate whose held-out deviance gain
-    per block is `gain_per_block` on average (noisy), the others none."""
+    per block is `gain_per_block` on average (noisy: 5x the minimum gain per block), the
+    others none."""
     rng = np.random.default_rng(seed)
     segments = np.repeat(np.arange(20), 30)
     base = 0.6 + 0.05 * rng.standard_normal(len(segments))
@@ -152,7 +153,7 @@ def _decide(gain_per_block: float, p_value: float, seed: int = 0):
     candidates = []
     for k, name in enumerate(D.EFFECTS):
         gain = gain_per_block if k == 0 else 0.0
-        loss[name] = base - gain - 0.02 * rng.standard_normal(len(segments))
+        loss[name] = base - gain - 5 * D.MIN_DEVIANCE_GAIN * rng.standard_normal(len(segments))
         candidates.append(
             {
                 "effect": name,

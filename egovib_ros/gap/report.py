@@ -9,7 +9,14 @@ import numpy as np
 
 from egovib_ros.gap import metric
 from egovib_ros.gap.advice import LAG_CONVENTION, advise, effect_action, first_lines, joint_lag_of
-from egovib_ros.gap.diagnose import METRIC_DEFINITION, METRIC_NAME, Diagnosis
+from egovib_ros.gap.diagnose import (
+    ALPHA,
+    METRIC_DEFINITION,
+    METRIC_NAME,
+    MIN_DEVIANCE_GAIN,
+    MIN_DEVIANCE_GAIN_LATER,
+    Diagnosis,
+)
 from egovib_ros.gap.effects import angle_joints, drift_reach
 from egovib_ros.gap.features import KNOT_REFINE
 from egovib_ros.viz import pyplot, save_figure
@@ -444,9 +451,10 @@ VERDICT_RULE = (
     "forward selection on held-out data: at each step every remaining candidate is fitted on "
     "top of the effects found so far (the velocity-only baseline at the first step) and tested "
     "against them; the one with the largest held-out reduction of the Gamma deviance of the "
-    "expected power is taken among those with p < 0.01/number of candidates of the step "
+    f"expected power is taken among those with p < {ALPHA:g}/number of candidates of the step "
     "(paired sign-flip permutation test over 0.5 s held-out segments; drift: the better of "
-    "two looks, Bonferroni x2), a reduction of at least 0.004 per block and bin, and a "
+    f"two looks, Bonferroni x2), a reduction of at least {MIN_DEVIANCE_GAIN:g} per block and "
+    f"bin ({MIN_DEVIANCE_GAIN_LATER:g} from the second step on), and a "
     "smaller held-out gap; the selection stops when none qualifies. verdict.effect = the "
     "first effect taken (none: none qualified at the first step); confidence = "
     "block-bootstrap share of resamples in which that effect stays best among its step's "
