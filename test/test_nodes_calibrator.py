@@ -18,6 +18,7 @@ from robots import profile, recording
 from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.core import NoiseModel, calibrate_arrays
 from egovib_ros.errors import ModelFileError
+from egovib_ros.gap.simref import own_lag
 from egovib_ros.nodes.convert import diagnostic_values
 from egovib_ros.robot import config_dir
 
@@ -88,6 +89,9 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
         np.abs(live.mean[both] - offline.mean[both]) <= 4 * sem + 1e-9 * live.mean[both].max()
     )
     np.testing.assert_allclose(live.std[both], offline.std[both], rtol=0.25, atol=1e-6)
+    # the joint lag `egovib gap` judges timing against, measured alike on what each received
+    assert own_lag(offline) is not None
+    assert own_lag(live) == pytest.approx(own_lag(offline), abs=0.002)
 
 
 def participant_env(directory: Path, participant_id: int, *, lease_s: int = 0) -> dict[str, str]:

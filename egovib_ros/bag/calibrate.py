@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -114,15 +115,21 @@ def calibrate_bag_methods(
     (core.methods.calibrate_methods); always the contact detector's thresholds of each method
     the model can run (core.methods.calibrate_detection). Returns (the model with them,
     {"methods": what was fitted or None, "thresholds": ..., "seconds": the recording's
-    length}). The fit takes the recording whole: memory grows with the bag."""
+    length, "recording": it, joint states as calibrated}). The fit takes the recording
+    whole: memory grows with the bag."""
     profile = model.robot_profile()
     rec = read_recording(bag, profile=profile, ground_truth=False, denoised=False)
-    joints = rec.joint_stamps_ns + int(round(joint_lag_s * NS_PER_S))
-    arrays = (rec.sensor_stamps_ns, rec.sensor, joints, rec.joint_velocity)
+    rec = replace(rec, joint_stamps_ns=rec.joint_stamps_ns + int(round(joint_lag_s * NS_PER_S)))
+    arrays = (rec.sensor_stamps_ns, rec.sensor, rec.joint_stamps_ns, rec.joint_velocity)
     source = f"{bag}: {profile.sensor_topic}"
     fitted = None
     if methods == "all":
         model, fitted = calibrate_methods(model, *arrays, source=source)
     model, thresholds = calibrate_detection(model, *arrays, source=source)
     seconds = len(rec.sensor_stamps_ns) / profile.rate_hz
-    return model, {"methods": fitted, "thresholds": thresholds, "seconds": seconds}
+    return model, {
+        "methods": fitted,
+        "thresholds": thresholds,
+        "seconds": seconds,
+        "recording": rec,
+    }

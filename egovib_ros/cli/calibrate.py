@@ -17,6 +17,8 @@ from egovib_ros.core.methods import short_detection_warning
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.core.stream import has_bad_input
 from egovib_ros.errors import BagError
+from egovib_ros.gap.advice import joint_lag_of
+from egovib_ros.gap.simref import own_lag, with_own_lag
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import load_profile
 
@@ -137,6 +139,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     first = expand_bags(args.bags, outputs_per_bag=False)[0][0]
     model, fitted = calibrate_bag_methods(first, model, joint_lag_s=args.joint_lag, methods=methods)
+    model = with_own_lag(model, fitted["recording"])  # what `egovib gap` judges timing against
     with atomic_output(args.out) as tmp:  # said only once written: a failed save is one line
         model.save(tmp)
     on = "" if len(results) == 1 else f" (fitted on {first})"
@@ -158,6 +161,13 @@ def run_calibrate(args: argparse.Namespace) -> int:
     )
     for line in coverage:
         print(line, file=sys.stderr)
+    lag = own_lag(model)
+    if lag is not None:
+        print(
+            f"joint lag of the recording{on}: {1000 * joint_lag_of(lag):+.0f} ms (the vibration "
+            "trailing the joint states; `egovib gap` names timing only beyond it)",
+            file=sys.stderr,
+        )
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)
     if len(results) == 1:
         print(results[0].value["input_counts"], file=sys.stderr)

@@ -65,8 +65,9 @@ def register(subparsers) -> None:
         type=options.float_in(-1.0, 1.0),
         metavar="SECONDS",
         help="the joint lag that counts as in sync: seconds the vibration trails the joint "
-        "states, as --joint-lag of egovib denoise (default: measured on the simulator for "
-        "this robot's model, else 0)",
+        "states, as --joint-lag of egovib denoise (default: the one the model's calibration "
+        "recording showed, stored by egovib calibrate; for an older model of the simulated "
+        "joints measured on the simulator; else 0)",
     )
     parser.add_argument(
         "--folds",

@@ -29,6 +29,8 @@ from egovib_ros.gap.effects import (
 from egovib_ros.gap.features import BlockTable, detect_contacts
 
 TRAIN_FRACTION = 0.6
+#: A diagnosis needs at least this many no-contact blocks.
+MIN_BLOCKS = 400
 #: Blocked cross-validation in time: this many contiguous folds.
 N_FOLDS = 5
 #: Significance level of the verdict (Bonferroni-corrected over the candidates).
@@ -420,7 +422,7 @@ def diagnose(table: BlockTable, options: DiagnosisOptions | None = None) -> Diag
     o = options or DiagnosisOptions()
     effects, window_blocks = o.effects, o.window_blocks
     rng = np.random.default_rng(o.seed)
-    if (~table.contact).sum() < 400:
+    if (~table.contact).sum() < MIN_BLOCKS:
         raise GapDataError(f"too few no-contact blocks ({int((~table.contact).sum())})")
     prior = simulator_cells(table)
     aligned = _align(table, o, prior)

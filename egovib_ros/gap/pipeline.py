@@ -29,7 +29,7 @@ from egovib_ros.gap.features import (
     table_from_bag,
 )
 from egovib_ros.gap.report import build_report, change_report, make_figures, render_markdown
-from egovib_ros.gap.simref import model_matches_simulator, simulator_reference_lag
+from egovib_ros.gap.simref import model_matches_simulator, own_lag, simulator_reference_lag
 from egovib_ros.gap.writeback import write_back as do_write_back
 from egovib_ros.outputs import atomic_output, check_replaceable
 from egovib_ros.sim import SimParams
@@ -78,14 +78,16 @@ def input_notices(table: BlockTable, budget_minutes: float | None) -> list[str]:
 
 
 def reference_lag_for(model, reference_lag: float | None, sim_params: str | Path | None) -> float:
-    """The lag timing is judged against: given, or measured on the simulator
-    (0 for a foreign robot)."""
+    """The lag timing is judged against: given; else the one the model's calibration
+    recording showed (stored by `egovib calibrate`); else, for a model of the simulated
+    joints, measured on the simulator; else 0."""
     if reference_lag is not None:
         return float(reference_lag)
-
+    stored = own_lag(model)
+    if stored is not None:
+        return stored
     if not model_matches_simulator(model):
         return 0.0
-
     return simulator_reference_lag(model, params=SimParams.load(sim_params))
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from rclpy.node import Node
 
+from egovib_ros.bag.recording import Recording
 from egovib_ros.core import CalibrationAccumulator, NoiseModel
 from egovib_ros.core.stream import RateWatch
 from egovib_ros.errors import ConfigError, EgovibError, RateError
@@ -319,6 +320,8 @@ class Calibrator(Node):
             calibrate_methods,
             short_detection_warning,
         )
+        from egovib_ros.gap.advice import joint_lag_of  # deferred: the gap's imports
+        from egovib_ros.gap.simref import own_lag, with_own_lag
 
         model = self.acc.to_model(source=f"live:{self.input.sensor_topic}")
         if not self._kept_sensor or not self._kept_joints:
@@ -337,6 +340,9 @@ class Calibrator(Node):
             fitted.append(
                 "detector thresholds " + ", ".join(f"{m} {t:.3g}" for m, t in thresholds.items())
             )
+            model = with_own_lag(model, _recording(model, arrays))
+            if own_lag(model) is not None:
+                fitted.append(f"its joint lag {1000 * joint_lag_of(own_lag(model)):+.0f} ms")
             short = short_detection_warning(len(stamps) / self.profile.rate_hz)
             if short:
                 fitted.append(short)
@@ -470,6 +476,15 @@ class Calibrator(Node):
         )
         print(f"calibrator: fitted {fitted}", flush=True)
         return 0
+
+
+def _recording(model: NoiseModel, arrays: tuple) -> Recording:
+    """The kept samples as the Recording `egovib calibrate` reads (no positions: the lag
+    scan needs velocities only)."""
+    stamps, values, joint_stamps, velocity = arrays
+    return Recording(
+        stamps, values, joint_stamps, np.zeros_like(velocity), velocity, tuple(model.joint_names)
+    )
 
 
 def main(args: list[str] | None = None) -> int:

@@ -3,9 +3,10 @@
     egovib real gap --bag bags/quadcopter_ar8 --out docs/gap_flight [--force]
 
 The noise model is calibrated on one part of the flight (free motion, `calibrate_arrays`
-with the quadcopter profile) and the gap diagnosis runs on the other part, in both
-directions (calibrate on the first half and diagnose the second, and swapped), with the
-reference lag 0 (there is no simulator to measure one) and the default tolerance.
+with the quadcopter profile, and the joint lag the part shows, as `egovib calibrate` stores
+it) and the gap diagnosis runs on the other part, in both directions (calibrate on the
+first half and diagnose the second, and swapped), as `egovib gap` runs it: timing judged
+against the model's own lag, the default tolerance.
 Writes one report directory per direction (report.json, report.md, figures) and
 OUT/summary.md; every verdict is reported with its confidence, whatever it is.
 """
@@ -28,8 +29,9 @@ from egovib_ros.core.filters import BandPass
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError
 from egovib_ros.gap.diagnose import DiagnosisOptions
-from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.pipeline import diagnose_recording, reference_lag_for
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
+from egovib_ros.gap.simref import with_own_lag
 from egovib_ros.outputs import atomic_output, prepare_output
 from egovib_ros.robot import load_profile
 
@@ -64,7 +66,8 @@ def _slice(rec, start_s: float, stop_s: float):
 
 
 def calibrate_part(rec, profile, bag, part: tuple[float, float]):
-    """The flight's `part` ((start, stop) s) and its free-motion noise model: (slice, model)."""
+    """The flight's `part` ((start, stop) s) and its free-motion noise model with the joint
+    lag the part shows (as `egovib calibrate` stores it): (slice, model)."""
 
     cal = _slice(rec, *part)
     model, _ = calibrate_arrays(
@@ -73,7 +76,7 @@ def calibrate_part(rec, profile, bag, part: tuple[float, float]):
         sweep="free",
         source=f"{bag} [{part[0]:g}, {part[1]:g}) s",
     )
-    return cal, model
+    return cal, with_own_lag(model, cal)
 
 
 def measure_joint_lag(
@@ -176,7 +179,7 @@ def run_flight_gap(
                 real,
                 model,
                 source=f"{bag} [{parts[test][0]:g}, {parts[test][1]:g}) s",
-                options=DiagnosisOptions(reference_lag_s=0.0),
+                options=DiagnosisOptions(reference_lag_s=reference_lag_for(model, None, None)),
             )
             name = f"calibrated_on_{calib}_half"
             sub = tmp / name
@@ -224,8 +227,8 @@ def render_summary(summary: dict) -> str:
         f"Bag `{summary['bag']}` (profile `{summary['profile']}`): the noise model is "
         "calibrated on one half of the flight (free motion, split at "
         f"{summary['split_s']} s, flight used up to {summary['end_s']} s) "
-        "and the gap diagnosis runs on the other half; no simulator exists, so the "
-        "reference lag is 0. Both directions are reported.",
+        "and the gap diagnosis runs on the other half, timing judged against the joint lag "
+        "of the model's own half (as `egovib gap` does). Both directions are reported.",
         "",
         "| calibrated on | verdict | confidence | gap as-is | baseline | after effect | floor "
         "| left above floor |",

@@ -20,11 +20,11 @@ multiply the real gyro sample by sample, with joint states interpolated to its s
   motors 1 and 3: louder when both are above or both below their typical command,
   quieter when one is above and the other below (a signed interaction).
 
-The diagnosis runs as `egovib gap` runs it for a model calibrated on the robot itself: the
-reference lag is 0, so the flight's own effects (its motors' command-to-speed lag, about a
-+30 ms joint lag) are named too, and each injected effect is looked for in verdict.effects,
-on top of the flight's own. The robot's own lag (measured on the calibration part) is
-reported beside. For every run also:
+The diagnosis runs as `egovib gap` runs it for a model calibrated on the robot itself:
+timing is judged against the joint lag the calibration part shows (stored in the model as
+`egovib calibrate` stores it; the motors' command-to-speed lag, about +30 ms), and each
+injected effect is looked for in verdict.effects, on top of the flight's own other effects.
+For every run also:
 
 * the fitted joint lag against the untouched part's: a lag injection moves it by the
   injected amount (the joint-lag convention: joint states re-stamped s late move it by -s);
@@ -52,9 +52,8 @@ from egovib_ros.errors import GapDataError
 from egovib_ros.gap.advice import effect_actions, joint_lag_of, measure_advice, merged_settings
 from egovib_ros.gap.change import diagnose_change
 from egovib_ros.gap.diagnose import DiagnosisOptions
-from egovib_ros.gap.effects import fit_lag
 from egovib_ros.gap.features import build_table, joint_order
-from egovib_ros.gap.pipeline import diagnose_recording
+from egovib_ros.gap.pipeline import diagnose_recording, reference_lag_for
 from egovib_ros.robot import load_profile
 
 #: (effect, label, strengths): a ladder of four strengths per injection, the last well
@@ -112,15 +111,6 @@ def inject(rec, effect: str, strength: float):
     return replace(rec, sensor=rec.sensor * gain[:, None])
 
 
-def _own_lag(model, cal) -> float:
-    """The robot's own joint-state lag: best lag of the velocity-only baseline on the
-    calibration part itself (the same scan the diagnosis runs)."""
-
-    table = build_table(cal, model, source="calibration part")
-    lag, _, _ = fit_lag(table, ~table.contact)
-    return float(lag)
-
-
 #: A lag injection counts as moving the fitted joint lag by the injected amount within this.
 LAG_TOLERANCE_MS = 8.0
 
@@ -139,9 +129,9 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
     parts = {"first": (0.0, SPLIT_S), "second": (SPLIT_S, FLIGHT_END_S)}
     results, directions = [], {}
     for calib, test in (("first", "second"), ("second", "first")):
-        cal, model = calibrate_part(rec, profile, bag, parts[calib])
+        cal, model = calibrate_part(rec, profile, bag, parts[calib])  # with its own lag
         users = user_model(cal, model, f"{bag} {calib} part")
-        own_lag = _own_lag(model, cal)
+        own_lag = reference_lag_for(model, None, None)  # as `egovib gap` judges timing
         real = _slice(rec, *parts[test])
         name = f"calibrated on {calib} part, diagnosed {parts[test][0]:g}-{parts[test][1]:g} s"
         directions[name] = {"own_joint_lag_s": round(joint_lag_of(own_lag), 4)}
@@ -152,7 +142,7 @@ def run_real_validation(bag: str = "bags/quadcopter_ar8") -> dict:
         ]
         for effect, label, strength in cases:
             data = real if effect == "none" else inject(real, effect, strength)
-            diag, entry = diagnose_case(data, model, 0.0, name, effect, label, strength)
+            diag, entry = diagnose_case(data, model, own_lag, name, effect, label, strength)
             results.append(entry)
             if diag is None:
                 continue
@@ -337,7 +327,8 @@ def render_markdown(report: dict) -> str:
         "other part one known effect is injected "
         "(research/egovib_research/experiments/gap_real_injection.py), on top of the flight's "
         "own effects; the diagnosis runs as `egovib gap` does for a model of the robot itself "
-        "(reference joint lag 0). Produced by `" + st["command"] + "` in "
+        "(timing judged against the joint lag of the model's own part, stored by "
+        "`egovib calibrate`). Produced by `" + st["command"] + "` in "
         f"{report['runtime_s'] / 60:.1f} min.",
         "",
         f"Injected effect in verdict.effects: **{100 * s['in_effects']:.0f} %** of "
