@@ -33,9 +33,9 @@ TRAIN_FRACTION = 0.6
 MIN_BLOCKS = 400
 #: Blocked cross-validation in time: this many contiguous folds.
 N_FOLDS = 5
-#: Significance level of the verdict (Bonferroni-corrected over the candidates). 0.01 until
-#: timing was judged against the model's own lag: at 0.05 the real flight then named its
-#: motors' own lag, with advice that cost noise reduction (docs/gap.md, "The significance level").
+#: Significance level of the verdict (Bonferroni-corrected over the candidates). It was 0.01
+#: while timing was judged against 0: at 0.05 the real flight's own motor lag was named,
+#: with advice that cost noise reduction (docs/gap.md, "The significance level").
 ALPHA = 0.05
 #: A significant candidate must also lower the held-out Gamma deviance of the expected
 #: power by at least this much per block and bin (~0.7 % of the deviance of noise-like

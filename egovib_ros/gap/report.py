@@ -788,9 +788,11 @@ def _effect_and_region_lines(report: dict) -> list[str]:
     lines += ["", "## Covariates (held-out bias after refit, dB per bin)", ""]
     for name, cov in report["where"]["covariates"].items():
         if name == "stream_lag":
+            reference = report["baseline"].get("reference_joint_lag_s", 0.0)
             lines.append(
                 f"- stream lag: fitted joint lag {cov['fitted_joint_lag_s'] * 1000:+.1f} ms "
-                "(training residual scan in report.json)"
+                f"against the model's own {reference * 1000:+.1f} ms (what its calibration "
+                "recording, or the simulator, showed; training residual scan in report.json)"
             )
         else:
             lines.append(
