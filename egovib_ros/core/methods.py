@@ -116,13 +116,7 @@ def resolve_method(model: NoiseModel, method: str | None) -> str:
 def stored_threshold(model: NoiseModel, method: str) -> float | None:
     """The contact detector's threshold for `method`'s default output (or "raw") that
     calibration stored in the model (calibrate_detection); None if it did not."""
-    value = model.extras.get(DETECTOR_PREFIX + method)
-    if value is None:
-        return None
-    value = np.asarray(value)
-    if value.ndim != 0 or value.dtype.kind not in "if" or not (np.isfinite(value) and value > 0):
-        raise ModelFileError(f"{model.where}: malformed field {DETECTOR_PREFIX + method!r}")
-    return float(value)
+    return model.scalar_extra(DETECTOR_PREFIX + method, low=0.0, high=math.inf)
 
 
 #: Below this much no-contact data, the detector's thresholds (a level its envelope crosses

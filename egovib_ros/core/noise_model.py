@@ -285,6 +285,21 @@ class NoiseModel:
         """The model's file (or "noise model"), for error messages."""
         return self.provenance.get("path", "noise model")
 
+    def scalar_extra(self, key: str, *, low: float, high: float) -> float | None:
+        """The number stored in the extras under `key` (None if absent); a ModelFileError
+        unless it is one finite number in (low, high]."""
+        value = self.extras.get(key)
+        if value is None:
+            return None
+        value = np.asarray(value)
+        if (
+            value.ndim != 0
+            or value.dtype.kind not in "if"
+            or not (np.isfinite(value) and low < value <= high)
+        ):
+            raise ModelFileError(f"{self.where}: malformed field {key!r}")
+        return float(value)
+
     # --- shape facts -------------------------------------------------------
     @property
     def grid_shape(self) -> tuple[int, ...]:

@@ -791,8 +791,8 @@ def _effect_and_region_lines(report: dict) -> list[str]:
             reference = report["baseline"].get("reference_joint_lag_s", 0.0)
             lines.append(
                 f"- stream lag: fitted joint lag {cov['fitted_joint_lag_s'] * 1000:+.1f} ms "
-                f"against the model's own {reference * 1000:+.1f} ms (what its calibration "
-                "recording, or the simulator, showed; training residual scan in report.json)"
+                f"against the reference {reference * 1000:+.1f} ms (--reference-lag, else the "
+                "model's own lag: docs/gap.md; training residual scan in report.json)"
             )
         else:
             lines.append(

@@ -19,7 +19,6 @@ import numpy as np
 
 from egovib_ros.bag.recording import Recording
 from egovib_ros.core.timebase import NS_PER_S
-from egovib_ros.errors import ModelFileError
 from egovib_ros.gap.diagnose import MIN_BLOCKS
 from egovib_ros.gap.effects import fit_lag
 from egovib_ros.gap.features import DEFAULT_BUDGET_MINUTES, build_table
@@ -84,11 +83,5 @@ def with_own_lag(model, rec):
 
 
 def own_lag(model) -> float | None:
-    """The lag stored by `with_own_lag`, or None."""
-    value = model.extras.get(OWN_LAG_KEY)
-    if value is None:
-        return None
-    value = np.asarray(value)
-    if value.ndim != 0 or value.dtype.kind != "f" or not abs(value) <= 1.0:
-        raise ModelFileError(f"{model.where}: malformed field {OWN_LAG_KEY!r}")
-    return float(value)
+    """The lag stored by `with_own_lag` (within +-1 s, as --reference-lag), or None."""
+    return model.scalar_extra(OWN_LAG_KEY, low=-1.0, high=1.0)

@@ -341,8 +341,9 @@ class Calibrator(Node):
                 "detector thresholds " + ", ".join(f"{m} {t:.3g}" for m, t in thresholds.items())
             )
             model = with_own_lag(model, _recording(model, arrays))
-            if own_lag(model) is not None:
-                fitted.append(f"its joint lag {1000 * joint_lag_of(own_lag(model)):+.0f} ms")
+            lag = own_lag(model)
+            if lag is not None:
+                fitted.append(f"its joint lag {1000 * joint_lag_of(lag):+.0f} ms")
             short = short_detection_warning(len(stamps) / self.profile.rate_hz)
             if short:
                 fitted.append(short)
