@@ -388,3 +388,17 @@ def lag_residual(table: BlockTable, rows: np.ndarray, lag_s: float, prior) -> fl
     predicted = np.maximum(np.asarray(x @ coef.T), SCALE_FLOOR * 0.1) * level
     z = np.log(np.maximum(table.magnitude[rows], 1e-300)) - 0.5 * np.log(predicted)
     return float(np.mean((z - z.mean(axis=0)) ** 2))
+
+
+def full_lag_deviance(table: BlockTable, train: np.ndarray, lag_s: float, prior) -> float:
+    """Mean Gamma deviance of the observed power against the baseline the diagnosis fits
+    (`fit_baseline`, the table's fine knots) on the `train` blocks with joint states at
+    `lag_s`, its level per bin matched on them: the likelihood the candidates' tests use,
+    at ~10x `lag_residual`'s cost (for the few lags around a scan's minimum). The squared
+    log residual would weigh the near-zero powers that a Rayleigh magnitude often has most
+    (it put a polled 19 ms lag at 26 ms, where the timing term lost on held-out data)."""
+    at_lag = table.at_lag(lag_s)
+    base = fit_baseline(at_lag, train, prior=prior)
+    ratio = at_lag.magnitude[train] ** 2 / np.maximum(base.power[train], 1e-300)
+    ratio = np.maximum(ratio / np.maximum(ratio.mean(axis=0), 1e-300), 1e-300)
+    return float(np.mean(2.0 * (ratio - 1.0 - np.log(ratio))))

@@ -22,6 +22,7 @@ from egovib_ros.gap.effects import (
     LAG_TOLERANCE_S,
     FittedModel,
     lag_scan,
+    place_lag,
     refine_lag,
     shape_curve,
     time_hats,
@@ -679,9 +680,13 @@ def _align(table: BlockTable, o: DiagnosisOptions, prior) -> _Aligned:
     lags, curve = lag_scan(table, clean, prior=prior, centre_s=reference_lag_s)
     lo, hi = reference_lag_s - o.lag_tolerance_s, reference_lag_s + o.lag_tolerance_s
     sync_lag = refine_lag(table, clean, lags, curve, lo=lo, hi=hi, prior=prior)
-    timing_lag = (
-        refine_lag(table, clean, lags, curve, prior=prior) if "timing" in effects else sync_lag
-    )
+    # Timing is a lag beyond the tolerance: placed by the full baseline (`place_lag`), a
+    # lag it puts within the band is the in-sync one (two criteria's optima 1 ms apart
+    # must not make a timing term: an effect-free bag was named `timing` for a 1 ms lag).
+    timing_lag = sync_lag
+    if "timing" in effects:
+        placed = place_lag(table, clean, lags, curve, prior=prior)
+        timing_lag = sync_lag if lo - 1e-9 <= placed <= hi + 1e-9 else placed
     base_table = table.at_lag(sync_lag)
     base = fit_baseline(base_table, clean, prior=prior)
     flagged, raw = detect_contacts(table.magnitude, base.magnitude, table.t_mid_s)
