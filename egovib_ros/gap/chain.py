@@ -27,6 +27,8 @@ ALL = -1
 #: A term "EFFECT|changed" is the effect's term on the blocks of the recording diagnosed only
 #: (`BlockTable.recording`), on a table joining it to a reference recording (gap.change).
 CHANGED = "|changed"
+#: A term "EFFECT|alone" is the same fitted together with that recording's own level.
+ALONE = "|alone"
 
 
 @dataclass
@@ -130,9 +132,11 @@ class ChainFits:
         if name in self.custom:
             regressors = self.custom[name](table, scales)
             return fit_variant(table, train, "custom", scales, previous, regressors=regressors)
-        if name.endswith(CHANGED):  # "coupling|changed": the term on one recording only
-            effect = name[: -len(CHANGED)]
-            return fit_variant(table, train, effect, scales, previous, mask=table.recording)
+        for suffix in (CHANGED, ALONE):  # "coupling|changed": the term on one recording only
+            if name.endswith(suffix):
+                effect, level = name[: -len(suffix)], suffix == ALONE
+                mask = table.recording
+                return fit_variant(table, train, effect, scales, previous, mask=mask, level=level)
         return fit_variant(table, train, name, scales, previous)
 
     def fit(self, k: int, chain: tuple[str, ...]) -> FittedModel:

@@ -4,21 +4,25 @@ The two recordings' blocks are joined into one table (`features.join_tables`: th
 reference's, then the recording's), and a velocity-only baseline is fitted on both: what
 the two share. Each effect's change is a term that acts on the recording's blocks only,
 tested on held-out blocks of both (blocked folds within each recording: every training set
-holds parts of both) against a model that already has what both share of that effect:
+holds parts of both) against the changes taken so far and against every model that would
+explain the data without that change:
 
-| change | null model | with the change |
-|---|---|---|
-| `timing` | both recordings' joint states at the reference's lag | the recording's at its own |
-| `drift` | the baseline | times a level on the recording's blocks (per bin and broadband: dB) |
-| `position`, `coupling`, `acceleration` | times the effect's term on both | times the
-  same term again, on the recording's blocks only |
+- `timing`: the recording's joint states at its own lag instead of the reference's;
+- `drift`: a level on the recording's blocks (per bin and broadband: dB);
+- `coupling`: the effect's term on both, then again on the recording's blocks only; it
+  must also beat the term on both;
+- `position`, `acceleration`: the effect's term on the recording's blocks only, fitted
+  with their level; it must also beat the term on both, and the level alone.
 
 Forward selection as in `diagnose`: each step tests every remaining change on top of the
-changes taken (with the rule of the single diagnosis: p < alpha / candidates of the step,
-Gamma deviance gain >= MIN_DEVIANCE_GAIN, a smaller held-out gap), the largest gain is
-taken, until none qualifies. Parameters: a lag shift in ms (joint-lag convention), a level
+changes taken (with the rule of the single diagnosis, against each model above: p < alpha
+/ candidates of the step, Gamma deviance gain >= MIN_DEVIANCE_GAIN, a smaller held-out
+gap), the largest gain over the changes taken is taken, until none qualifies. A position or
+acceleration change whose shape adds nothing to its level once the other changes are taken
+(a lag shift taken later explains it) is struck, and the selection run again without it:
+its level is then a drift. Parameters: a lag shift in ms (joint-lag convention), a level
 change in dB, the changed term's fitted shape (a new interaction, a new position
-dependence).
+dependence) and the level it brings.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import numpy as np
 from egovib_ros.errors import GapDataError
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import simulator_cells
-from egovib_ros.gap.chain import ALL, CHANGED, ChainFits, Split
+from egovib_ros.gap.chain import ALL, ALONE, CHANGED, ChainFits, Split
 from egovib_ros.gap.diagnose import (
     Diagnosis,
     DiagnosisOptions,
@@ -66,6 +70,13 @@ def _level_term(table: BlockTable, scales) -> tuple[np.ndarray, list[str]]:
     return np.asarray(table.recording, float)[:, None], ["recording"]
 
 
+#: Effects whose change is their term on the recording's blocks only, fitted together with
+#: that recording's level (chain.ALONE). In two stages (the term, then a level), the term's
+#: columns carry the level and extrapolate wildly: on a real flight a new position dependence
+#: predicted held-out blocks worse than no change at all.
+SHAPES = ("position", "acceleration")
+
+
 def change_folds(table: BlockTable, n_folds: int) -> list[Split]:
     """Contiguous folds within each recording; fold k holds the k-th part of both."""
     fold = np.zeros(table.n_blocks, np.int64)
@@ -78,25 +89,45 @@ def change_folds(table: BlockTable, n_folds: int) -> list[Split]:
 
 def _chosen_terms(effect: str) -> tuple[str, ...]:
     """What a change taken adds to the chain."""
+    if effect in SHAPES:
+        return (effect + ALONE,)
     return {"timing": ("timing",), "drift": (LEVEL,)}.get(effect, (effect, effect + CHANGED))
 
 
+def _nulls(effect: str, prefix: tuple[str, ...]) -> tuple[tuple[str, ...], ...]:
+    """What a change must beat besides the changes taken: an effect both recordings share
+    (its term on both, for an effect with such a term), and for a shape change, which
+    carries the recording's level, that level alone."""
+    if effect == "coupling":
+        return (prefix + (effect,),)
+    if effect in SHAPES:
+        return prefix + (effect,), prefix + (LEVEL,)
+    return ()
+
+
+def _gap(ctx: dict, predicted: np.ndarray) -> float:
+    """Held-out gap (dB) of a prediction on the tested rows."""
+    rows = np.flatnonzero(np.any([s.test for s in ctx["chains"].splits], axis=0))
+    return metric.gap_db(heldout_errors(predicted, ctx["observed"], rows, ctx["windows"]))
+
+
 def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number: int) -> dict:
-    """Every remaining change tested on top of the changes taken (`prefix`)."""
+    """Every remaining change tested on top of the changes taken (`prefix`): its gain over
+    them ranks it; it is significant only if it also beats each of its `_nulls`."""
     chains, observed = ctx["chains"], ctx["observed"]
     cands, gains = [], {}
     for effect in remaining:
-        alt = prefix + _chosen_terms(effect)  # with the change; the null: without its last term
-        null = alt[:-1]
-        chains.keep(null)
-        cf = chains.cross({"refit": null, effect: alt}, offset_of="refit")
+        alt = prefix + _chosen_terms(effect)
+        chains.keep(prefix)
+        cf = chains.cross({"refit": prefix, effect: alt}, offset_of="refit")
         res = _test(observed, cf, effect, ctx["segments"], ctx["rng"])
-        gap_null = metric.gap_db(
-            heldout_errors(cf.predicted["refit"], observed, cf.rows, ctx["windows"])
-        )
-        gap_alt = metric.gap_db(
-            heldout_errors(cf.predicted[effect], observed, cf.rows, ctx["windows"])
-        )
+        gap_null, gap_alt = (_gap(ctx, cf.predicted[k]) for k in ("refit", effect))
+        p_value, decisive = res["p_value"], gap_null - gap_alt
+        for null in _nulls(effect, prefix):
+            other = chains.cross({"refit": null, effect: alt}, offset_of="refit")
+            tested = _test(observed, other, effect, ctx["segments"], ctx["rng"])
+            p_value = max(p_value, tested["p_value"])
+            decisive = min(decisive, _gap(ctx, other.predicted["refit"]) - gap_alt)
         gains[effect] = res["gain"]
         cands.append(
             {
@@ -104,15 +135,14 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
                 "heldout_gap_before": round(gap_null, 4),
                 "heldout_gap": round(gap_alt, 4),
                 "reduction": round(gap_null - gap_alt, 4),
-                "p_value": res["p_value"],
+                "gap_reduction_decisive": round(decisive, 4),
+                "p_value": p_value,
                 "deviance_reduction": round(res["deviance_reduction"], 6),
                 "_predicted": (cf.predicted[effect], cf.power[effect]),
             }
         )
     cands.sort(key=lambda c: -c["deviance_reduction"])
-    chosen, confidence = _verdict(
-        cands, gains, ctx["alpha"], ctx["segments"], ctx["rng"], gap_key="reduction"
-    )
+    chosen, confidence = _verdict(cands, gains, ctx["alpha"], ctx["segments"], ctx["rng"])
     return {
         "step": number,
         "given": list(prefix),
@@ -143,7 +173,63 @@ def _parameters(ctx: dict, effect: str, prefix: tuple[str, ...]) -> tuple[dict, 
             "level_change_db_per_bin": [round(float(v), 3) for v in level],
             "frequency_hz": [round(float(f), 1) for f in ctx["table"].freqs_hz],
         }, model
-    return {"term": model.parameters, "what": f"{effect} term on the recording only"}, model
+    params = {"term": model.parameters, "what": f"{effect} term on the recording only"}
+    if effect in SHAPES:  # the level it brings: the term's mean over the recording's blocks
+        rows = ctx["chains"].clean & (ctx["table"].recording == 1)
+        gain = np.log(model.predicted[rows] / np.maximum(model.refit_predicted[rows], 1e-300))
+        params["what"] += ", with its level"
+        params["level_change_db"] = round(float(gain.mean()) * DB_PER_NEPER, 3)
+    return params, model
+
+
+def _select(ctx: dict, candidates: tuple[str, ...], predicted: np.ndarray) -> tuple:
+    """Forward selection over `candidates`: (effects, steps, their models, the held-out
+    prediction with every change taken; `predicted`: the baseline's)."""
+    prefix: tuple[str, ...] = ()
+    effects, steps, models = [], [], []
+    while len(effects) < len(candidates):
+        taken = {e["effect"] for e in effects}
+        step = _step(ctx, prefix, tuple(e for e in candidates if e not in taken), len(steps) + 1)
+        steps.append(step)
+        if step["effect"] == "none":
+            break
+        c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
+        params, model = _parameters(ctx, step["effect"], prefix)
+        effects.append(
+            {
+                **{k: c[k] for k in ("effect", "reduction", "p_value", "heldout_gap_before")},
+                "heldout_gap": c["heldout_gap"],
+                "deviance_reduction": c["deviance_reduction"],
+                "confidence": step["confidence"],
+                "step": step["step"],
+                "parameters": params,
+            }
+        )
+        models.append(model)
+        prefix = prefix + _chosen_terms(step["effect"])
+        predicted = c["_predicted"][0]
+    for step in steps:
+        for c in step["candidates"]:
+            c.pop("_predicted", None)
+    return effects, steps, models, predicted
+
+
+def _level_only_shape(ctx: dict, selected: list[str], n_candidates: int) -> str | None:
+    """The first shape change taken whose shape, given every other change taken, adds
+    nothing significant to the level it carries (a lag shift taken later explains it: its
+    level is a drift); None if there is none."""
+    level = ctx["alpha"] / max(n_candidates, 1)
+    for effect in selected:
+        if effect not in SHAPES or len(selected) < 2:
+            continue
+        others = tuple(t for e in selected if e != effect for t in _chosen_terms(e))
+        cf = ctx["chains"].cross(
+            {"refit": others + (LEVEL,), effect: others + _chosen_terms(effect)},
+            offset_of="refit",
+        )
+        if _test(ctx["observed"], cf, effect, ctx["segments"], ctx["rng"])["p_value"] >= level:
+            return effect
+    return None
 
 
 def diagnose_change(
@@ -188,36 +274,17 @@ def diagnose_change(
         "lags": {"reference": lag_ref, "real": lag_real},
         "table": null,
     }
-    candidates = tuple(e for e in EFFECTS if e in o.effects)
-    prefix: tuple[str, ...] = ()
-    effects, steps, models = [], [], []
     base = chains.cross({"refit": ()}, offset_of="refit")
-    predicted = base.predicted["refit"]
-    gap_base = metric.gap_db(heldout_errors(predicted, null.magnitude, rows, ctx["windows"]))
-    while len(effects) < len(candidates):
-        taken = {e["effect"] for e in effects}
-        step = _step(ctx, prefix, tuple(e for e in candidates if e not in taken), len(steps) + 1)
-        steps.append(step)
-        if step["effect"] == "none":
+    gap_base = metric.gap_db(
+        heldout_errors(base.predicted["refit"], null.magnitude, rows, ctx["windows"])
+    )
+    candidates = tuple(e for e in EFFECTS if e in o.effects)
+    while True:
+        effects, steps, models, predicted = _select(ctx, candidates, base.predicted["refit"])
+        unsupported = _level_only_shape(ctx, [e["effect"] for e in effects], len(candidates))
+        if unsupported is None:
             break
-        c = next(c for c in step["candidates"] if c["effect"] == step["effect"])
-        params, model = _parameters(ctx, step["effect"], prefix)
-        effects.append(
-            {
-                **{k: c[k] for k in ("effect", "reduction", "p_value", "heldout_gap_before")},
-                "heldout_gap": c["heldout_gap"],
-                "deviance_reduction": c["deviance_reduction"],
-                "confidence": step["confidence"],
-                "step": step["step"],
-                "parameters": params,
-            }
-        )
-        models.append(model)
-        prefix = prefix + _chosen_terms(step["effect"])
-        predicted = c["_predicted"][0]
-    for step in steps:
-        for c in step["candidates"]:
-            c.pop("_predicted", None)
+        candidates = tuple(e for e in candidates if e != unsupported)
     errors = heldout_errors(predicted, null.magnitude, rows, ctx["windows"])
     floor = combined_floor(_floors(null.magnitude[rows], predicted[rows], ctx["windows"]))
     return ChangeDiagnosis(

@@ -354,6 +354,10 @@ def effect_regressors(  # noqa: C901 (one branch per effect of the vocabulary, s
     return np.stack(cols, axis=1), names
 
 
+#: The name of `fit_variant`'s level column.
+LEVEL_COLUMN = "level(recording)"
+
+
 def fit_variant(
     table: BlockTable,
     train: np.ndarray,
@@ -363,10 +367,12 @@ def fit_variant(
     *,
     regressors: tuple[np.ndarray, list[str]] | None = None,
     mask: np.ndarray | None = None,
+    level: bool = False,
 ) -> FittedModel:
     """Baseline, then one effect's regressors (or given `regressors`) on top of it (log domain),
     fitted on the training rows. `mask` (B,): every regressor column times it (the change
-    diagnosis: an effect's term on one recording of two only)."""
+    diagnosis: an effect's term on one recording of two only); `level`: with the mask as a
+    column too (that recording's own level, fitted with the term)."""
     base = refit if refit is not None else fit_baseline(table, train)
     stage = None
     if effect == "coupling" and regressors is None:
@@ -382,6 +388,8 @@ def fit_variant(
     )
     if mask is not None and len(names):
         extra = extra * np.asarray(mask, float)[:, None]
+        if level:
+            extra, names = np.column_stack([extra, mask]), [*names, LEVEL_COLUMN]
     coef, ridge = fit_power_term(extra, table.magnitude**2 / np.maximum(base.power, 1e-300), train)
     term = np.clip(extra @ coef[1:], -MAX_LOG_GAIN, MAX_LOG_GAIN) if len(names) else 0.0
     gain = np.exp(coef[0][None, :] + term)

@@ -388,6 +388,8 @@ def change_advice(effect: str, params: dict, summary: str) -> str:
         "position": "a new or changed dependence on joint position",
         "acceleration": "a new or changed dependence on joint acceleration",
     }[effect]
+    if "level_change_db" in params:  # a new dependence brings its level
+        what += f", {params['level_change_db']:+.1f} dB on average"
     return (
         f"{what} since the reference ({summary or 'bin by bin'}): look at the mechanism, and "
         "recalibrate as the advice for that effect says"
@@ -440,10 +442,13 @@ def change_report(change, *, reference: str) -> dict:
 CHANGE_DEFINITION = (
     "the two recordings' blocks in one table, a velocity-only baseline fitted on both; each "
     "change is a term on the diagnosed recording's blocks only (timing: its joint states at "
-    "its own lag instead of the reference's; drift: a level per bin; position, coupling, "
-    "acceleration: the effect's term again, on top of the same term on both), tested on "
-    "held-out blocks of both (5 contiguous folds within each recording) by forward selection "
-    "with the rule of verdict.effects"
+    "its own lag instead of the reference's; drift: a level per bin; coupling: the effect's "
+    "term again, on top of the same term on both; position, acceleration: the effect's term "
+    "with the recording's level, which must beat both the term on both recordings and the "
+    "level alone), tested on held-out blocks of both (5 contiguous folds within each "
+    "recording) by forward selection with the rule of verdict.effects, ranked by the gain "
+    "over the changes taken; a position or acceleration change whose shape adds nothing to "
+    "its level once the others are taken is dropped and the selection run again without it"
 )
 
 
