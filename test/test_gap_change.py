@@ -40,19 +40,17 @@ def test_a_lag_shift_and_a_level_change_are_named_with_their_size():
 
 def test_an_effect_both_share_is_no_change_and_a_new_one_is():
     """The same interaction in both recordings: nothing changed (the null model has what both
-    share of it); in the recording only: a new interaction, first or after the level change
-    its extra power also is (the recording is louder wherever both joints move: with the
-    baseline's velocity stage on each joint's share, the level's deviance gain 0.018 comes
-    before the interaction's 0.015 on seed pair 13/14, and on 17/18; 15/16 names the
-    interaction first). (40 s each; the recording's diagnosis serves both.)"""
+    share of it); in the recording only: a new interaction, first (the recording is louder
+    wherever both joints move: before the changes were ranked by their gain over the changes
+    taken, the level's gain 0.018 came before the interaction's 0.015 on seed pairs 13/14 and
+    17/18, each over a model of its own). (40 s each; the recording's diagnosis serves both.)"""
     real = diagnose(synthetic_table(effects={"coupling": 5.0}, seed=14, duration_s=40.0))
     both = diagnose_change(
         synthetic_table(effects={"coupling": 5.0}, seed=13, duration_s=40.0), real
     )
     assert both.effects == [], both.steps
     new = diagnose_change(synthetic_table(seed=13, duration_s=40.0), real)
-    named = [e["effect"] for e in new.effects]
-    assert "coupling" in named and set(named[: named.index("coupling")]) <= {"drift"}, new.steps
+    assert [e["effect"] for e in new.effects][:1] == ["coupling"], new.steps
 
 
 @pytest.mark.parametrize("effect", ["position", "acceleration"])

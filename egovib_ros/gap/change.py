@@ -34,7 +34,7 @@ import numpy as np
 from egovib_ros.errors import GapDataError
 from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import simulator_cells
-from egovib_ros.gap.chain import ALL, ALONE, CHANGED, ChainFits, Split
+from egovib_ros.gap.chain import ALL, ALONE, CHANGED, ChainFits, CrossFitted, Split
 from egovib_ros.gap.diagnose import (
     Diagnosis,
     DiagnosisOptions,
@@ -115,16 +115,29 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
     """Every remaining change tested on top of the changes taken (`prefix`): its gain over
     them ranks it; it is significant only if it also beats each of its `_nulls`."""
     chains, observed = ctx["chains"], ctx["observed"]
+    chains.keep(prefix)
+    # every chain of the step in one pass (each term fitted once), then compared in pairs
+    named = {"refit": prefix}
+    for effect in remaining:
+        named[effect] = prefix + _chosen_terms(effect)
+        named.update({f"{effect}#{i}": null for i, null in enumerate(_nulls(effect, prefix))})
+    every = chains.cross(named, offset_of="refit")
+
+    def pair(null: str, effect: str) -> CrossFitted:
+        return replace(
+            every,
+            predicted={"refit": every.predicted[null], effect: every.predicted[effect]},
+            power={"refit": every.power[null], effect: every.power[effect]},
+        )
+
     cands, gains = [], {}
     for effect in remaining:
-        alt = prefix + _chosen_terms(effect)
-        chains.keep(prefix)
-        cf = chains.cross({"refit": prefix, effect: alt}, offset_of="refit")
+        cf = pair("refit", effect)
         res = _test(observed, cf, effect, ctx["segments"], ctx["rng"])
         gap_null, gap_alt = (_gap(ctx, cf.predicted[k]) for k in ("refit", effect))
         p_value, decisive = res["p_value"], gap_null - gap_alt
-        for null in _nulls(effect, prefix):
-            other = chains.cross({"refit": null, effect: alt}, offset_of="refit")
+        for i in range(len(_nulls(effect, prefix))):
+            other = pair(f"{effect}#{i}", effect)
             tested = _test(observed, other, effect, ctx["segments"], ctx["rng"])
             p_value = max(p_value, tested["p_value"])
             decisive = min(decisive, _gap(ctx, other.predicted["refit"]) - gap_alt)
