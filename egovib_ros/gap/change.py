@@ -107,8 +107,7 @@ def _nulls(effect: str, prefix: tuple[str, ...]) -> tuple[tuple[str, ...], ...]:
 
 def _gap(ctx: dict, predicted: np.ndarray) -> float:
     """Held-out gap (dB) of a prediction on the tested rows."""
-    rows = np.flatnonzero(np.any([s.test for s in ctx["chains"].splits], axis=0))
-    return metric.gap_db(heldout_errors(predicted, ctx["observed"], rows, ctx["windows"]))
+    return metric.gap_db(heldout_errors(predicted, ctx["observed"], ctx["rows"], ctx["windows"]))
 
 
 def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number: int) -> dict:
@@ -118,9 +117,10 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
     chains.keep(prefix)
     # every chain of the step in one pass (each term fitted once), then compared in pairs
     named = {"refit": prefix}
+    nulls = {effect: _nulls(effect, prefix) for effect in remaining}
     for effect in remaining:
         named[effect] = prefix + _chosen_terms(effect)
-        named.update({f"{effect}#{i}": null for i, null in enumerate(_nulls(effect, prefix))})
+        named.update({f"{effect}#{i}": null for i, null in enumerate(nulls[effect])})
     every = chains.cross(named, offset_of="refit")
 
     def pair(null: str, effect: str) -> CrossFitted:
@@ -136,7 +136,7 @@ def _step(ctx: dict, prefix: tuple[str, ...], remaining: tuple[str, ...], number
         res = _test(observed, cf, effect, ctx["segments"], ctx["rng"])
         gap_null, gap_alt = (_gap(ctx, cf.predicted[k]) for k in ("refit", effect))
         p_value, decisive = res["p_value"], gap_null - gap_alt
-        for i in range(len(_nulls(effect, prefix))):
+        for i in range(len(nulls[effect])):
             other = pair(f"{effect}#{i}", effect)
             tested = _test(observed, other, effect, ctx["segments"], ctx["rng"])
             p_value = max(p_value, tested["p_value"])
@@ -231,7 +231,7 @@ def _level_only_shape(ctx: dict, selected: list[str], n_candidates: int) -> str 
     """The first shape change taken whose shape, given every other change taken, adds
     nothing significant to the level it carries (a lag shift taken later explains it: its
     level is a drift); None if there is none."""
-    level = ctx["alpha"] / max(n_candidates, 1)
+    significant = ctx["alpha"] / max(n_candidates, 1)
     for effect in selected:
         if effect not in SHAPES or len(selected) < 2:
             continue
@@ -240,7 +240,8 @@ def _level_only_shape(ctx: dict, selected: list[str], n_candidates: int) -> str 
             {"refit": others + (LEVEL,), effect: others + _chosen_terms(effect)},
             offset_of="refit",
         )
-        if _test(ctx["observed"], cf, effect, ctx["segments"], ctx["rng"])["p_value"] >= level:
+        p_value = _test(ctx["observed"], cf, effect, ctx["segments"], ctx["rng"])["p_value"]
+        if p_value >= significant:
             return effect
     return None
 
@@ -284,6 +285,7 @@ def diagnose_change(
         "windows": metric.make_windows(len(rows), o.window_blocks),
         "alpha": o.alpha,
         "rng": rng,
+        "rows": rows,
         "lags": {"reference": lag_ref, "real": lag_real},
         "table": null,
     }
