@@ -11,6 +11,7 @@ import pytest
 from egovib_research.experiments.gap_validation import calibrate_sim_model
 from egovib_ros.bag import write_recording
 from egovib_ros.cli import main
+from egovib_ros.cli.gap import _change_said
 from egovib_ros.sim import simulate_motion
 
 CONTRACT_KEYS = {
@@ -348,3 +349,18 @@ def test_references_pair_with_the_real_bags(model_path, warm_pair, tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--reference: 3 bags for 2 --real bags" in err
     assert not out.exists()
+
+
+def test_the_summary_line_names_each_change_by_its_effect():
+    """A position or acceleration change carries the level it brings: the summary line names
+    it by its effect, not as a drift (it did, from the level, once changes carried one)."""
+    said = [
+        _change_said({"effect": e, "parameters": p})
+        for e, p in (
+            ("timing", {"lag_shift_ms": -39.6, "joint_lag_shift_s": -0.0396}),
+            ("drift", {"level_change_db": 2.94}),
+            ("position", {"level_change_db": -0.31, "term": {}}),
+            ("coupling", {"term": {}}),
+        )
+    ]
+    assert said == ["timing -40 ms", "drift +2.9 dB", "position -0.3 dB", "coupling"]

@@ -217,12 +217,13 @@ def gap_task(bag, out, progress, *, model_path, references=None, **options) -> d
 
 
 def _change_said(change: dict) -> str:
-    p = change["parameters"]
+    """A change in a few words: the lag shift, or the level it brings (a drift is one)."""
+    p, effect = change["parameters"], change["effect"]
     if "lag_shift_ms" in p:
-        return f"timing {p['lag_shift_ms']:+.0f} ms"
+        return f"{effect} {p['lag_shift_ms']:+.0f} ms"
     if "level_change_db" in p:
-        return f"drift {p['level_change_db']:+.1f} dB"
-    return change["effect"]
+        return f"{effect} {p['level_change_db']:+.1f} dB"
+    return effect
 
 
 def describe_gap(summary: dict) -> str:
