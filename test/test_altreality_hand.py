@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import signal
 
 from egovib_research.altreality import (
     EFFECTS,
@@ -89,6 +90,17 @@ def test_an_effect_changes_only_the_vibration(effect):
     assert np.array_equal(base.joint_position, with_fx.joint_position)
     assert np.array_equal(base.joint_stamps_ns, with_fx.joint_stamps_ns)
     assert not np.array_equal(base.ego, with_fx.ego)
+
+
+def test_stick_slip_scale_changes_only_the_friction_impulses():
+    base, _ = simulate_alt_motion(duration_s=4.0, seed=5, tap_rate_hz=2.0)
+    quiet, _ = simulate_alt_motion(duration_s=4.0, seed=5, tap_rate_hz=2.0, stick_slip=0.0)
+    assert np.array_equal(base.contact, quiet.contact)
+    assert np.array_equal(base.joint_position, quiet.joint_position)
+    # the impulses are a loud part of the in-band vibration (gravity aside)
+    band = signal.butter(4, (150.0, 750.0), btype="band", fs=3000.0, output="sos")
+    power = [np.mean(signal.sosfilt(band, rec.ego.sum(axis=1)) ** 2) for rec in (quiet, base)]
+    assert power[0] < 0.7 * power[1]
 
 
 def test_timing_shifts_joint_stamps_both_ways():

@@ -42,7 +42,24 @@ def test_markdown_and_main_write_both_files(flight_result, tmp_path, monkeypatch
     # per split: default, paper, no denoising, firmware; then its drop-in table row
     assert text.count("real flight") == 2 * 5
     monkeypatch.setattr(default_compare, "pr2_cases", lambda seconds: [])
+    monkeypatch.setattr(default_compare, "STICK_SLIP_SCALES", ())
     assert default_compare.main(["--out", str(tmp_path), "--event-sets", "1"]) == 0
     stored = json.loads((tmp_path / "default_compare.json").read_text())
     assert set(stored["cases"]) == set(flight_result["cases"])
     assert (tmp_path / "default_compare.md").read_text().startswith("# What a user gets")
+
+
+def test_the_limit_study_is_a_row_per_scale(flight_result):
+    case = flight_result["cases"]["real flight, primary split"]
+    result = {
+        "cases": {"independent PR2-hand generator": case},
+        "stick_slip": {"0.5": case, "0": case},
+        "command": "python -m x",
+        "runtime_s": 1.0,
+    }
+    section = default_compare.markdown(result).split("## What limits the independent generator")
+    assert len(section) == 2
+    rows = [line for line in section[1].splitlines() if line.startswith("| ")]
+    assert [row.split(" | ")[0] for row in rows[1:]] == ["| as generated (x1)", "| x0.5", "| x0"]
+    default = case["figures"]["hybrid/dropin"]
+    assert all(f"{default['noise_reduction_db']:.1f} dB" in row for row in rows[1:])

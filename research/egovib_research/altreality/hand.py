@@ -192,8 +192,10 @@ class AltHand:
         top_speed: float = 0.85,
         motion: str = "smooth",
         forms: dict | None = None,
+        stick_slip: float = 1.0,
     ):
         self.seed = int(seed)
+        self.stick_slip = float(stick_slip)  # scale on the stick-slip impulses (0: none)
         self.forms = dict(forms or {})
         for name, form in self.forms.items():
             if name not in EFFECT_FORMS or (form is not None and form not in EFFECT_FORMS[name]):
@@ -243,6 +245,7 @@ class AltHand:
         frac = np.clip(speed / limit, 0.0, 1.5)
         counts = rng.poisson(STICK_SLIP_RATE[j] * frac**0.7 / FS)
         sizes = rng.lognormal(0.0, 0.7, len(speed)) * STICK_SLIP_SIZE[j] * (0.3 + frac)
+        sizes *= self.stick_slip
         impulses = counts * sizes
         b, a = signal.butter(1, 600.0, fs=FS)
         grind = (
@@ -573,9 +576,11 @@ def simulate_alt_motion(
     top_speed: float = 0.85,
     motion: str = "smooth",
     forms: dict | None = None,
+    stick_slip: float = 1.0,
 ) -> tuple[Recording, dict]:
     """One recording of random motion ("smooth" or task-like "segments")
-    of the alternate-reality hand; `forms`: effect -> form (EFFECT_FORMS)."""
+    of the alternate-reality hand; `forms`: effect -> form (EFFECT_FORMS); `stick_slip`: a
+    scale on the friction's stick-slip impulses (0: none; everything else the same)."""
     if duration_s <= 0:
         raise ValueError("duration_s must be > 0")
     return AltHand(
@@ -585,6 +590,7 @@ def simulate_alt_motion(
         top_speed=top_speed,
         motion=motion,
         forms=forms,
+        stick_slip=stick_slip,
     ).generate(duration_s)
 
 
