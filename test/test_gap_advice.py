@@ -190,3 +190,21 @@ def test_flags_that_cost_the_users_model_are_said_not_to_apply(gain_db):
     assert ("do not apply them with this method" in text) == (gain_db < 0)
     assert ("not with `hybrid`" in text) == (gain_db < 0)
     assert f"({gain_db:+.2f} dB;" in text and "--joint-lag -0.032" in text
+
+
+def test_a_drift_too_small_to_measure_is_said_so_and_nothing_is_applied(diagnoses):
+    """A significant drift of a tenth of a dB (the shipped flight's hover) is named, but
+    neither a recalibration nor a noise-gain curve is advised for it."""
+    diag = diagnoses["drift"]
+    model = diag.models["drift"]
+    x = model.shape["drift:elapsed_time"]["x"]
+    tiny = {k: v for k, v in model.shape.items() if "joint" not in v}
+    tiny = {k: {**v, "gain_db": list(np.linspace(0.0, -0.1, len(x)))} for k, v in tiny.items()}
+    text, settings = action(
+        dataclasses.replace(
+            diag, models={**diag.models, "drift": dataclasses.replace(model, shape=tiny)}
+        )
+    )
+    assert text.startswith("the vibration's level barely moves (-0.10 dB over")
+    assert "nothing to recalibrate for or apply" in text
+    assert "noise_gain_db" not in settings and commands(settings) == {}

@@ -84,8 +84,10 @@ def _timing_action(model) -> tuple[str, dict]:
     )
 
 
-#: A joint's own drift (dB from start to end) named in the advice from this size on.
-JOINT_DRIFT_MIN_DB = 0.5
+#: A drift (the whole vibration's, or one joint's own: dB from start to end) is acted on
+#: from this size on: below it, a correction buys nothing a user would measure (the shipped
+#: flight's hover: a significant -0.1 dB, whose noise-gain curve cost 0.2 dB of noise removed).
+DRIFT_MIN_DB = 0.5
 
 
 def _drift_action(model) -> tuple[str, dict]:
@@ -107,13 +109,19 @@ def _drift_action(model) -> tuple[str, dict]:
         key=lambda pair: pair[0],
     )
     worst = ends[-1][1] if ends else None
-    if len(ends) > 1 and ends[-1][0] > max(2.0 * ends[-2][0], JOINT_DRIFT_MIN_DB):
+    if len(ends) > 1 and ends[-1][0] > max(2.0 * ends[-2][0], DRIFT_MIN_DB):
         own = 100.0 * (10 ** (worst["gain_db"][-1] / 20.0) - 1.0)
         head = (
             f"{worst['joint']}'s vibration {'grows' if own > 0 else 'falls'} {abs(own):.0f} % "
             f"over {span:.0f} s (the whole vibration {pct:+.0f} %)"
         )
         settings = {"joint": worst["joint"], "joint_change_percent": round(own, 1)}
+    elif abs(change_db) < DRIFT_MIN_DB:
+        return (
+            f"the vibration's level barely moves ({change_db:+.2f} dB over {span:.0f} s; a "
+            f"drift is acted on from {DRIFT_MIN_DB:g} dB): nothing to recalibrate for or apply",
+            {"level_change_percent": round(pct, 1)},
+        )
     return (
         head
         + (
@@ -386,7 +394,7 @@ def first_lines(advice: dict) -> list[str]:
         )
     elif applied and applied.get("note"):
         lines.append(f"**Applied together:** {applied['note']}.")
-    if advice["effect"] != "none":
+    if advice["effect"] != "none" and cmds:  # (nothing advised: no cost to state)
         lines.append(
             f"**What it costs the denoiser (model estimate):** held-out noise reduction "
             f"{d['noise_reduction_without_db']:.2f} dB without the corrections, "
@@ -491,9 +499,10 @@ def measure_advice(rec, model, diag: Diagnosis, settings: dict, order) -> dict:
     want_lag = "joint_lag_s" in settings and any(e["effect"] == "timing" for e in diag.effects)
     want_gain = "noise_gain_db" in settings and any(e["effect"] == "drift" for e in diag.effects)
     if not (want_lag or want_gain):
+        changes = "the calibration" if settings.get("calibration_grid") else "nothing"
         return {
             "note": "no advised correction is a flag of the denoiser (joint lag, noise gain); "
-            "what the advice changes is the calibration"
+            f"what the advice changes is {changes}"
         }
     method = default_method(model)
     t_s = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
