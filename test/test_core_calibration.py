@@ -185,3 +185,26 @@ def test_a_sample_bridged_now_and_then_keeps_its_block_a_run_of_them_does_not():
     push_random_chunks(acc, {**data, "accel": sparse}, np.random.default_rng(2), max_chunk=3000)
     acc.flush()
     np.testing.assert_array_equal(acc.to_model().counts, model.counts)
+
+
+def test_auto_takes_a_superposition_sweep_with_a_few_stray_blocks_for_one():
+    """A joint settling while the next starts leaves a few blocks with two joints moving:
+    "auto" still calls it a superposition sweep and leaves them out; many such blocks make
+    it a full sweep."""
+    cells = [(v, 0.0) for v in (-3.0, -1.5, 1.5, 3.0)] + [(0.0, w) for w in (-0.04, 0.02)]
+    data = stream(24, cells, seed=8)
+    t_joint = data["t_joint"]
+    stray = (t_joint - t_joint[0] > 1.0e9) & (t_joint - t_joint[0] < 1.3e9)
+    data["velocity"][stray] = (-3.0, 0.02)  # 0.3 s of 24: two joints moving
+    model, stats = calibrate_arrays(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], sweep="auto"
+    )
+    assert stats.mode == model.measured == "superposition"
+    assert model.counts[cell_index(model, (-3.0, 0.02))] == 0 and stats.rejected["not_in_sweep"] > 0
+    assert model.counts[cell_index(model, (-3.0, 0.0))] > 0
+    data["velocity"][t_joint - t_joint[0] < 4e9] = (-3.0, 0.02)  # a sixth of it
+    model, stats = calibrate_arrays(
+        data["t_acc"], data["accel"], data["t_joint"], data["velocity"], sweep="auto"
+    )
+    assert stats.mode == model.measured == "full"
+    assert model.counts[cell_index(model, (-3.0, 0.02))] > 0
