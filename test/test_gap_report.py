@@ -139,6 +139,13 @@ def test_report_md_opens_with_the_advice_then_where_which_how_far(position):
     assert which.startswith("**Which:** the unmodelled effect is **`position`**")
     shape = next(c for c in report["candidates"] if c["effect"] == "position")["shape_summary"]
     assert f"Fitted shape: {shape}." in which
+    assert "interleaved" not in which
+    # an effect decided on interleaved folds (a drift) says so beside its blocked reduction
+    for c in report["candidates"]:
+        if c["effect"] == "position":
+            c["decided_by"] = "interleaved"
+    which = render_markdown(report).splitlines()[4 + len(advice)]
+    assert "baseline on blocked folds; decided on interleaved ones, where a trend" in which
     assert how_far.startswith(f"**How far:** held-out gap {gap['sim_as_is']:.2f} dB (sim as-is)")
     assert f"**{gap['after_effect']:.2f} dB** (refit + position)" in how_far
     assert lines[7 + len(advice)] == f"![{next(iter(FIGURES))}]({next(iter(FIGURES.values()))})"

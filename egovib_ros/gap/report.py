@@ -678,10 +678,17 @@ def _which_line(report: dict) -> str:
         )
     if v["effect"] != "none":
         c = next(c for c in cands if c["effect"] == v["effect"])
+        # a trend over time cannot be learned across blocked folds: drift may be decided on
+        # interleaved ones, where the blocked reduction shown can be nil
+        interleaved = (
+            " on blocked folds; decided on interleaved ones, where a trend over time is learnt"
+            if c.get("decided_by") == "interleaved"
+            else ""
+        )
         return (
             f"**Which:** the unmodelled effect is **`{v['effect']}`** "
             f"(held-out reduction {c['reduction']:.3f} dB "
-            f"beyond the velocity-only baseline, p = {c['p_value']:.2g}, "
+            f"beyond the velocity-only baseline{interleaved}, p = {c['p_value']:.2g}, "
             f"confidence {v['confidence']:.2f}; no other effect is significant on top of it). "
             f"Fitted shape: {c.get('shape_summary') or 'n/a'}."
         )
