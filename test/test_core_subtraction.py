@@ -205,10 +205,25 @@ def test_the_out_of_grid_warning_names_the_recording(model, caplog):
         denoiser.push_sensor(data["t_acc"], data["accel"])
         denoiser.flush()
     assert denoiser.stats.blocks_out_of_grid > 0
-    said = [r.getMessage() for r in caplog.records if "outside the model grid" in r.getMessage()]
+    said = [r.getMessage() for r in caplog.records if "beyond the model grid" in r.getMessage()]
     assert said == [
-        "sweep: /accelerometer/raw: joint velocity outside the model grid: using the edge cells"
+        "sweep: /accelerometer/raw: joint velocity beyond the model grid by more than half a "
+        "cell: using the edge cells (calibrate at the speeds the robot runs at)"
     ]
+
+
+def test_a_sweep_overshooting_its_top_speed_a_little_is_counted_not_warned(model, caplog):
+    """The edge cell is the cell of a dwell at the top speed that overshoots it a little."""
+    top = float(model.grid[0][-1])
+    step = float(model.grid[0][-1] - model.grid[0][-2])
+    data = stream(2, [(top + 0.3 * step, 0.02)], seed=6)
+    denoiser = StreamingDenoiser(model, source="sweep")
+    with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
+        denoiser.push_joint_states(data["t_joint"], data["velocity"])
+        denoiser.push_sensor(data["t_acc"], data["accel"])
+        denoiser.flush()
+    assert denoiser.stats.blocks_out_of_grid > 0
+    assert not [r for r in caplog.records if "beyond the model grid" in r.getMessage()]
 
 
 def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):

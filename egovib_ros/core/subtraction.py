@@ -366,7 +366,8 @@ class StreamingDenoiser(FramedDenoiser):
             # One block (the live case): skip the general lookup's bookkeeping.
             noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
             self.blocks_unmeasured += not measured
-            return self._gain(magnitude, self._scaled(noise, blocks.t_first_ns), outside)
+            self._count_outside(outside, blocks.velocity[:1])
+            return self._gain(magnitude, self._scaled(noise, blocks.t_first_ns))
         if not usable.all():
             self._warn_once(
                 "missing", f"no joint state for a block: passing the {self.output} signal through"
@@ -377,9 +378,30 @@ class StreamingDenoiser(FramedDenoiser):
                 blocks.velocity[usable], self.channel_index, include_std=self._include_std
             )
             self.blocks_unmeasured += int((~measured).sum())
+            self._count_outside(outside, blocks.velocity[usable])
             noise = self._scaled(noise, blocks.t_first_ns[usable])
-            gain[usable] = self._gain(magnitude[usable], noise, outside)
+            gain[usable] = self._gain(magnitude[usable], noise)
         return gain
+
+    def _count_outside(self, outside: np.ndarray, velocity: np.ndarray) -> None:
+        """Blocks beyond the grid counted (their noise: the edge cells'); a warning once
+        one is beyond it by more than half the edge cell's step (a sweep's dwell at a top
+        speed overshoots it a little, and the edge cell is its cell)."""
+        n_outside = int(outside.sum())
+        if not n_outside:
+            return
+        self.blocks_out_of_grid += n_outside
+        far = np.zeros(len(velocity), dtype=bool)
+        for j, g in enumerate(self.model.grid):
+            if len(g) > 1:
+                low, high = g[0] - (g[1] - g[0]) / 2, g[-1] + (g[-1] - g[-2]) / 2
+                far |= (velocity[:, j] < low) | (velocity[:, j] > high)
+        if far.any():
+            self._warn_once(
+                "out_of_grid",
+                "joint velocity beyond the model grid by more than half a cell: using the "
+                "edge cells (calibrate at the speeds the robot runs at)",
+            )
 
     def _scaled(self, noise: np.ndarray, t_first_ns: np.ndarray) -> np.ndarray:
         """The noise estimate (B, C, F) times the level change `noise_gain_db` gives at each
@@ -391,13 +413,7 @@ class StreamingDenoiser(FramedDenoiser):
         scale = 10.0 ** (np.interp(elapsed, knots_s, gain_db) / 20.0)
         return noise * scale[:, None, None]
 
-    def _gain(self, magnitude: np.ndarray, noise: np.ndarray, outside: np.ndarray) -> np.ndarray:
-        n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())
-        if n_outside:
-            self.blocks_out_of_grid += n_outside
-            self._warn_once(
-                "out_of_grid", "joint velocity outside the model grid: using the edge cells"
-            )
+    def _gain(self, magnitude: np.ndarray, noise: np.ndarray) -> np.ndarray:
         cleaned = self._rule(magnitude, noise)
         # |Y| = 0 (a dead axis): gain 0, whatever the rule says (a floor would give inf * 0).
         return np.divide(cleaned, magnitude, out=np.zeros_like(magnitude), where=magnitude > 0)
