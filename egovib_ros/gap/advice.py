@@ -499,10 +499,10 @@ def measure_advice(rec, model, diag: Diagnosis, settings: dict, order) -> dict:
     want_lag = "joint_lag_s" in settings and any(e["effect"] == "timing" for e in diag.effects)
     want_gain = "noise_gain_db" in settings and any(e["effect"] == "drift" for e in diag.effects)
     if not (want_lag or want_gain):
-        changes = "the calibration" if settings.get("calibration_grid") else "nothing"
+        changes = "; what the advice changes is the calibration"
         return {
-            "note": "no advised correction is a flag of the denoiser (joint lag, noise gain); "
-            f"what the advice changes is {changes}"
+            "note": "no advised correction is a flag of the denoiser (joint lag, noise gain)"
+            + (changes if settings.get("calibration_grid") else "")
         }
     method = default_method(model)
     t_s = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
