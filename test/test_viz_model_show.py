@@ -23,6 +23,7 @@ from egovib_ros.viz.model_show import (
     nearest_cells,
     place_bag,
     spectra_panels,
+    summary_lines,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -143,6 +144,10 @@ def test_pr2_recording_beyond_the_calibration_is_counted(sim_model_path, pr2_bag
     )
     assert f"**{100 * s['share_outside_calibrated']:.1f} %**" in text
     assert "Eq. 6 is the design of a superposition model" in text
+    # the command's summary line says what fills the unmeasured cells
+    line = summary_lines(model, placement)[-1]
+    assert f"{100 * s['share_outside_calibrated']:.1f} % outside the calibrated speeds" in line
+    assert f"{100 * s['share_eq6']:.1f} % filled by superposition, Eq. 6" in line
 
 
 def test_fill_rules_and_lookups_follow_the_noise_model():

@@ -423,8 +423,10 @@ def summary_lines(model, placement: BagPlacement | None = None) -> list[str]:
         s = placement.shares()
         lines.append(
             f"{placement.bag}: {s['blocks']} blocks, {100 * s['share_outside_calibrated']:.1f} % "
-            f"outside the calibrated speeds ({100 * s['share_unmeasured']:.1f} % on unmeasured "
-            f"cells, {100 * s['share_outside']:.1f} % beyond the grid)"
+            f"outside the calibrated speeds (on unmeasured cells: "
+            f"{100 * s['share_eq6']:.1f} % filled by superposition, Eq. 6, "
+            f"{100 * s['share_nearest']:.1f} % from the nearest measured cell; "
+            f"{100 * s['share_outside']:.1f} % beyond the grid)"
         )
     return lines
 
