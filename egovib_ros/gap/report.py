@@ -576,7 +576,7 @@ def _describe_region(r: dict) -> str:
     speeds = ", ".join(f"{n} {c}" for n, c in r["speeds"].items())
     return (
         f"{r['band_hz'][0]:.0f}-{r['band_hz'][1]:.0f} Hz with {speeds} "
-        f"(sim {'too quiet' if r['bias_db'] > 0 else 'too loud'} by "
+        f"(model {'too quiet' if r['bias_db'] > 0 else 'too loud'} by "
         f"{abs(r['bias_db']):.1f} dB on average, "
         f"{100 * r['share_of_gap2']:.0f} % of the gap^2)"
     )

@@ -192,6 +192,8 @@ def run_flight_gap(
                 figures={},
                 runtime_s=0.0,
             )
+            # a model of the robot itself, not of our simulator ("the noise model is off by")
+            report["inputs"]["model_kind"] = "recording"
             report["figures"] = make_figures(diag, report, sub)
             report["runtime_s"] = round(time.perf_counter() - start, 2)
             (sub / "report.json").write_text(json.dumps(report, indent=1))
