@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from gaptables import diagnosed
 
-from egovib_ros.gap.advice import UNEXPLAINED_NOTE_DB, action, advise, commands, first_lines
+from egovib_ros.gap.advice import action, advise, commands, first_lines
 
 
 @pytest.fixture(scope="module")
@@ -126,16 +126,30 @@ def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):
 def test_no_effect_says_whether_the_velocity_model_leaves_much(diagnoses):
     diag = diagnoses["none"]
     assert diag.verdict == "none"
-    text, settings = action(diag)
-    above = diag.gaps["refit"] - diag.floor
-    assert settings == {}
-    if above > UNEXPLAINED_NOTE_DB:
-        assert "unexplained" in text
-    else:
-        assert text == "the velocity-only model fits this recording: nothing to change"
-    worse = dataclasses.replace(diag, gaps={**diag.gaps, "refit": diag.floor + 1.0})
+    fits = {**diag.gaps, "sim_as_is": diag.floor + 0.2, "refit": diag.floor + 0.1}
+    text, settings = action(dataclasses.replace(diag, gaps=fits))
+    assert (text, settings) == (
+        "the velocity-only model fits this recording: nothing to change",
+        {},
+    )
+    worse = dataclasses.replace(diag, gaps={**fits, "refit": diag.floor + 1.0})
     assert "1.00 dB above the floor stays unexplained" in action(worse)[0]
     assert np.isfinite(advise(worse)["unexplained"]["above_floor_db"])
+
+
+def test_a_model_that_misses_the_recordings_motion_is_said_to_need_calibrating_on_it(diagnoses):
+    """`none`, but a velocity-only model fitted on the recording is far closer than the
+    model (speeds it never held): calibrate on such motion, the command that does it."""
+    diag = diagnoses["none"]
+    gaps = {**diag.gaps, "sim_as_is": 5.29, "refit": 2.77}
+    text, settings = action(dataclasses.replace(diag, gaps=gaps, floor=1.93))
+    assert text.startswith(
+        "the model misses this recording's motion: a velocity-only model fitted on it comes "
+        "2.52 dB closer (5.29 -> 2.77 dB); calibrate on motion like it, without contact; "
+        "no effect of the vocabulary explains the rest (0.84 dB above the floor"
+    )
+    assert settings == {"calibration_grid": "free"}
+    assert commands(settings)["calibrate"].startswith("egovib calibrate NEW_RECORDING --grid free")
 
 
 def test_the_lag_advice_applied_with_the_core_is_scored_like_for_like(caplog):
