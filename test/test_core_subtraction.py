@@ -195,18 +195,22 @@ def test_out_of_grid_velocity_uses_edge_cells_and_is_counted(model):
     np.testing.assert_array_equal(outside, clamped)
 
 
-def test_the_out_of_grid_warning_names_the_recording(model, caplog):
-    """`detect` and `evaluate` run the denoiser over the calibration bag too: the warning says
-    which recording went beyond the grid (it was the sweep, not the run)."""
-    data = stream(2, [(5.0, 0.02)], seed=6)
-    denoiser = StreamingDenoiser(model, source="sweep: /accelerometer/raw")
+def _beyond_grid_warnings(model, caplog, wrist: float, source: str) -> list[str]:
+    """The out-of-grid warnings of a denoiser over 2 s at `wrist` rad/s (blocks counted)."""
+    data = stream(2, [(wrist, 0.02)], seed=6)
+    denoiser = StreamingDenoiser(model, source=source)
     with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
         denoiser.push_joint_states(data["t_joint"], data["velocity"])
         denoiser.push_sensor(data["t_acc"], data["accel"])
         denoiser.flush()
     assert denoiser.stats.blocks_out_of_grid > 0
-    said = [r.getMessage() for r in caplog.records if "beyond the model grid" in r.getMessage()]
-    assert said == [
+    return [r.getMessage() for r in caplog.records if "beyond the model grid" in r.getMessage()]
+
+
+def test_the_out_of_grid_warning_names_the_recording(model, caplog):
+    """`detect` and `evaluate` run the denoiser over the calibration bag too: the warning says
+    which recording went beyond the grid (it was the sweep, not the run)."""
+    assert _beyond_grid_warnings(model, caplog, 5.0, "sweep: /accelerometer/raw") == [
         "sweep: /accelerometer/raw: joint velocity beyond the model grid by more than half a "
         "cell: using the edge cells (calibrate at the speeds the robot runs at)"
     ]
@@ -214,16 +218,8 @@ def test_the_out_of_grid_warning_names_the_recording(model, caplog):
 
 def test_a_sweep_overshooting_its_top_speed_a_little_is_counted_not_warned(model, caplog):
     """The edge cell is the cell of a dwell at the top speed that overshoots it a little."""
-    top = float(model.grid[0][-1])
-    step = float(model.grid[0][-1] - model.grid[0][-2])
-    data = stream(2, [(top + 0.3 * step, 0.02)], seed=6)
-    denoiser = StreamingDenoiser(model, source="sweep")
-    with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
-        denoiser.push_joint_states(data["t_joint"], data["velocity"])
-        denoiser.push_sensor(data["t_acc"], data["accel"])
-        denoiser.flush()
-    assert denoiser.stats.blocks_out_of_grid > 0
-    assert not [r for r in caplog.records if "beyond the model grid" in r.getMessage()]
+    top, step = float(model.grid[0][-1]), float(model.grid[0][-1] - model.grid[0][-2])
+    assert _beyond_grid_warnings(model, caplog, top + 0.3 * step, "sweep") == []
 
 
 def test_stream_rate_or_block_length_differing_from_model_is_an_error(model):
