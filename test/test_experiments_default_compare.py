@@ -53,7 +53,7 @@ def test_markdown_and_main_write_both_files(flight_result, tmp_path, monkeypatch
 def test_the_limit_study_is_a_row_per_scale(flight_result):
     case = flight_result["cases"]["real flight, primary split"]
     result = {
-        "cases": {"independent PR2-hand generator": case},
+        "cases": {default_compare.GENERATOR: case},
         "stick_slip": {"0.5": case, "0": case},
         "command": "python -m x",
         "runtime_s": 1.0,

@@ -387,7 +387,7 @@ class StreamingDenoiser(FramedDenoiser):
         """Blocks beyond the grid counted (their noise: the edge cells'); a warning once
         one is beyond it by more than half the edge cell's step (a sweep's dwell at a top
         speed overshoots it a little, and the edge cell is its cell)."""
-        n_outside = int(outside.sum())
+        n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())  # (live: one)
         if not n_outside:
             return
         self.blocks_out_of_grid += n_outside

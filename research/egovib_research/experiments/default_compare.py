@@ -63,7 +63,9 @@ from egovib_ros.sim import simulate_motion, simulate_sweep
 LOG = logging.getLogger("egovib_research.default_compare")
 FLIGHT_BAG = Path(__file__).resolve().parents[3] / "bags" / "quadcopter_ar8"
 TOLERANCE_NS = 10_000_000
-#: The generator's stick-slip impulses scaled by these in the limit study (markdown explains).
+#: The independent generator's case name, and its stick-slip impulses scaled by these in the
+#: limit study (markdown explains).
+GENERATOR = "independent PR2-hand generator"
 STICK_SLIP_SCALES = (0.5, 0.0)
 
 
@@ -108,7 +110,7 @@ def generator_case(seconds: float, stick_slip: float = 1.0) -> Case:
     run, _ = simulate_alt_motion(
         duration_s=seconds, top_speed=0.5, tap_rate_hz=2.0, seed=3, stick_slip=stick_slip
     )
-    name = "independent PR2-hand generator"
+    name = GENERATOR
     if stick_slip != 1.0:
         name += f", stick-slip impulses x{stick_slip:g}"
     return Case(name, _fitted(calibration, profile, "free"), [(run, run.contact)])
@@ -124,11 +126,9 @@ def flight_cases(event_sets: int) -> list[Case]:
     profile = load_profile("quadcopter")
     rec = read_flight_bag(FLIGHT_BAG, profile)
     cases = []
-    whole = (0.0, SPLITS["swapped"][0][1])
-    for name, ((c0, c1), (t0, t1)) in (
-        *((f"real flight, {k} split", SPLITS[k]) for k in ("primary", "swapped")),
-        (COVERED, (whole, SPLITS["swapped"][1])),
-    ):
+    parts = {f"real flight, {k} split": SPLITS[k] for k in ("primary", "swapped")}
+    parts[COVERED] = ((0.0, SPLITS["swapped"][0][1]), SPLITS["swapped"][1])
+    for name, ((c0, c1), (t0, t1)) in parts.items():
         cal, test = rec.part(c0, c1), rec.part(t0, t1)
         runs, firmware = [], []
         for seed in range(1, event_sets + 1):
@@ -281,7 +281,7 @@ def markdown(result: dict) -> str:
 def _stick_slip_lines(result: dict) -> list[str]:
     """The limit study: the generator's figures with its stick-slip impulses scaled down."""
     scored = result.get("stick_slip") or {}
-    base = result["cases"].get("independent PR2-hand generator")
+    base = result["cases"].get(GENERATOR)
     if not scored or base is None:
         return []
     lines = [
