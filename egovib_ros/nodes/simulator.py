@@ -122,13 +122,15 @@ class SimulatorNode(Node):
             if self.ground_truth and params["publish_ego"]
             else None
         )
-        self._publishers = [
+        # not `_publishers`: rclpy's Node keeps its own list under that name and appends every
+        # later publisher to it (/diagnostics then held the gate shut until its timeout)
+        self._streams = [
             p
             for p in (self.pub_joint, self.pub_raw, self.pub_contact, self.pub_ego)
             if p is not None
         ]
         self.gate = SubscriberGate(
-            self._publishers,
+            self._streams,
             params["wait_for_subscribers"],
             params["wait_timeout"],
         )
@@ -238,7 +240,7 @@ class SimulatorNode(Node):
         self.get_logger().info(
             f"simulated {self.duration_s:g} s: {self.samples_published} samples, {self.taps} taps"
         )
-        wait_for_delivery(self, self._publishers, "the last samples")
+        wait_for_delivery(self, self._streams, "the last samples")
         self._publish_diagnostics()
         self.done.set_result(0)
 
