@@ -46,7 +46,8 @@ def _gcv_lambda(s: np.ndarray, uy: np.ndarray, yy: float, n: int, n_eff: float) 
     fits = dof < n_eff
     if not fits.any():
         return float(lam[-1])
-    score = np.where(fits, rss / np.where(fits, 1.0 - dof / n_eff, 1.0) ** 2, np.inf)
+    score = np.full(len(lam), np.inf)
+    score[fits] = rss[fits] / (1.0 - dof[fits] / n_eff) ** 2
     return float(lam[int(np.argmin(score))])
 
 
