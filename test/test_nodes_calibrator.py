@@ -40,8 +40,8 @@ def test_live_calibration_equals_offline_calibration_of_recorded_bag(nodes, tmp_
     """With a joint lag set alike (the gap's timing advice): the node and `egovib calibrate`
     on a recording of what it received measure the same cells. Both fit the paper's table
     only (`methods: paper`): the tables and the joint lag are compared here, and fitting
-    methods cancel and hybrid twice took half of this test's 80 s (the node's `methods: all`
-    is test_free_motion_calibration_of_a_three_joint_gyro_...'s)."""
+    methods cancel and hybrid twice cost ~10 s (the node's `methods: all` is
+    test_free_motion_calibration_of_a_three_joint_gyro_...'s)."""
     live_model, bag = tmp_path / "live.npz", tmp_path / "sweep"
     cal = nodes.start(
         "calibrator",
