@@ -120,7 +120,7 @@ class SubscriberGate:
     once open it stays open."""
 
     def __init__(self, publishers: Sequence, count: int, timeout_s: float):
-        self.publishers = publishers
+        self.publishers = tuple(publishers)  # its own copy: a list appended to later is not its
         self.count, self.timeout_s = count, timeout_s
         self.timed_out = False
         self._open = count <= 0
