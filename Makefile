@@ -23,8 +23,10 @@ $(STAMP): requirements-ros.txt requirements-dev.txt setup.py research/pyproject.
 # their 4 minutes, mostly waiting) run on two workers beside the tests without ROS 2
 # processes (two workers, CPU-bound), each worker's DDS domains apart (test/conftest.py
 # `ros_domain`); they pass beside `stress-ng --cpu 2`, and side by side the two suites take
-# 8 minutes instead of 10 one after the other. Their report follows the other suite's. Then
-# the node tests marked `alone`, one at a time (a live calibrator needs a core of its own).
+# about as long as the other suite alone (2026-11-30, idle: the other suite 624 s beside the
+# node suite, 636 s alone on a cold cache; the node suite alone 238 s). Their report follows
+# the other suite's. Then the node tests marked `alone`,
+# one at a time (a live calibrator needs a core of its own).
 # The slowest of each are listed (--durations): where a faster suite starts. `--dist
 # loadscope` keeps a module's tests on one worker: its module fixtures (a calibrated corpus,
 # a gap table) are built once. One BLAS thread per worker: the workers already fill the
