@@ -391,6 +391,8 @@ class StreamingDenoiser(FramedDenoiser):
         if not n_outside:
             return
         self.blocks_out_of_grid += n_outside
+        if "out_of_grid" in self._warned:  # said once: only the count goes on (per block, live)
+            return
         far = np.zeros(len(velocity), dtype=bool)
         for j, g in enumerate(self.model.grid):
             if len(g) > 1:

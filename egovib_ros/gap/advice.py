@@ -513,11 +513,10 @@ def measure_advice(rec, model, diag: Diagnosis, settings: dict, order) -> dict:
     want_lag = "joint_lag_s" in settings and any(e["effect"] == "timing" for e in diag.effects)
     want_gain = "noise_gain_db" in settings and any(e["effect"] == "drift" for e in diag.effects)
     if not (want_lag or want_gain):
-        changes = "; what the advice changes is the calibration"
-        return {
-            "note": "no advised correction is a flag of the denoiser (joint lag, noise gain)"
-            + (changes if settings.get("calibration_grid") else "")
-        }
+        note = "no advised correction is a flag of the denoiser (joint lag, noise gain)"
+        if settings.get("calibration_grid"):
+            note += "; what the advice changes is the calibration"
+        return {"note": note}
     method = default_method(model)
     t_s = (rec.sensor_stamps_ns - rec.sensor_stamps_ns[0]) / 1e9
     train, split = _train_rows(diag, float(t_s[-1]))
