@@ -10,6 +10,7 @@ due (samples due by a clock time) and describe (its start-up line). docs/live_no
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -107,7 +108,10 @@ class SimulatorNode(Node):
         # sim.HandSimulator or sim.robot.CommandedRobot: command, index, velocity, set_command
         # and step (sensor_stamps_ns, sensor, contact, ego, joint_*)
         self.sim: Any = None
-        self._pending_command: np.ndarray | None = None
+        # Commands with their arrival time, each applied from the first sample stamped at or
+        # after it: a simulator that fell behind (a busy machine) then still moves as
+        # commanded when commanded, instead of skipping what it missed at the latest command.
+        self._commands: deque[tuple[int, np.ndarray]] = deque()
 
         profile, topics = self.profile, bag_topic_names(self.profile)
         self.pub_joint = stream_publisher(self, JointState, profile.node_joints_topic)
@@ -187,10 +191,19 @@ class SimulatorNode(Node):
             self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
             return
         self.commands_received += 1
-        if self.sim is None:
-            self._pending_command = velocity
-        else:
+        self._commands.append((self.get_clock().now().nanoseconds, velocity))
+
+    def _apply_commands_due(self) -> int:
+        """Apply the commands that arrived by the next sample's stamp; how many samples
+        may be made before the next command is due (-1: no command waiting)."""
+        while self._commands:
+            arrival_ns, velocity = self._commands[0]
+            ahead = self.due(arrival_ns)  # samples stamped before the command arrived
+            if ahead > 0:
+                return ahead
+            self._commands.popleft()
             self.command_note(velocity, self.sim.set_command(velocity))
+        return -1
 
     def _tick(self) -> None:
         now_ns = self.get_clock().now().nanoseconds
@@ -200,10 +213,6 @@ class SimulatorNode(Node):
             if not self._subscribers_ready():
                 return
             self.sim = self.make(start_ns=now_ns)
-            if self._pending_command is not None:
-                self.command_note(
-                    self._pending_command, self.sim.set_command(self._pending_command)
-                )
             self.get_logger().info(f"simulation started at stamp {now_ns} ns")
         lag = self.due(now_ns)
         if self.total_samples:
@@ -211,8 +220,16 @@ class SimulatorNode(Node):
         if lag <= 0:
             return
         self.max_lag_samples = max(self.max_lag_samples, lag)
-        n = min(lag, max(1, int(self.max_batch_s * self.profile.rate_hz)))
-        chunk = self.sim.step(n)
+        remaining = min(lag, max(1, int(self.max_batch_s * self.profile.rate_hz)))
+        while remaining > 0:
+            ahead = self._apply_commands_due()
+            n = remaining if ahead < 0 else min(remaining, ahead)
+            self._publish(self.sim.step(n))
+            remaining -= n
+        if self.total_samples and self.sim.index >= self.total_samples:
+            self._finish()
+
+    def _publish(self, chunk) -> None:
         self.taps += self.taps_in(chunk)
         if len(chunk.joint_stamps_ns):  # a short step may hold no joint state
             for data in encode_joint_state_batch(
@@ -231,9 +248,7 @@ class SimulatorNode(Node):
             if publisher is not None:
                 for data in encode_imu_batch(chunk.sensor_stamps_ns, values, self.frame_id, field):
                     publisher.publish(data)
-        self.samples_published += n
-        if self.total_samples and self.sim.index >= self.total_samples:
-            self._finish()
+        self.samples_published += len(chunk.sensor_stamps_ns)
 
     def _finish(self) -> None:
         """`duration` simulated: the subscribers get the last samples, then exit status 0."""
