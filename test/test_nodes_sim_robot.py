@@ -81,8 +81,10 @@ def test_example_arm_live_sweep_calibrate_denoise_and_detect_its_taps(nodes, ros
     # stamp it arrived, so the sweep is whole once it has caught up (lag < 0.1 s)
     ros_client.statuses.pop("sim_robot", None)
     assert ros_client.spin_until(
-        lambda: "sim_robot" in ros_client.statuses
-        and int(diagnostic_values(ros_client.statuses["sim_robot"])["max_lag_samples"]) < 200,
+        lambda: (
+            "sim_robot" in ros_client.statuses
+            and int(diagnostic_values(ros_client.statuses["sim_robot"])["max_lag_samples"]) < 200
+        ),
         60,
     ), ros_client.statuses.get("sim_robot")
     sim_values = diagnostic_values(ros_client.statuses["sim_robot"])
