@@ -4,7 +4,8 @@ commands). config/robots/example_arm.yaml (3 joints, an accelerometer on /arm/im
 2 kHz): sweep_driver commands its superposition grid to sim_robot, the calibrator measures
 the model while bag_recorder keeps the sweep (no contact: the detector's threshold, its
 `calibration_bag`); then sim_robot with taps, the denoiser with the live model, and
-contact_detector on its output find the simulator's true taps."""
+contact_detector on its output find the simulator's true taps. And a sim_robot behind its
+clock (this test publishes /clock) moves when commanded, not when it catches up."""
 
 from __future__ import annotations
 
@@ -14,19 +15,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 from conftest import matched
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 from scipy import signal
-from sensor_msgs.msg import Imu
+from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray
 
 from egovib_research.tools.orchestration import deep_output, reliable_input
-from egovib_research.tools.watcher import decode_imu_messages
+from egovib_research.tools.watcher import decode_imu_messages, decode_joint_state_messages
 from egovib_ros.core import NoiseModel
 from egovib_ros.evaluation.contacts import TOLERANCE_S
 from egovib_ros.nodes.common import stream_publisher_qos
-from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
+from egovib_ros.nodes.convert import command_message, diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
 
 pytestmark = pytest.mark.nodes  # the node suite: `pytest -m nodes`
@@ -249,3 +252,62 @@ def test_bad_parameters_are_one_line_exit_2(ros_domain):
         assert run.returncode == 2, (key, stdout + stderr)
         errors = [line for line in stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and key in errors[0] and cases[key][1] in errors[0], stderr
+
+
+def test_a_simulator_behind_its_clock_moves_when_commanded_not_when_it_catches_up(
+    nodes, ros_client
+):
+    """This test is the /clock: it jumps 2 s ahead of sim_robot (which then makes at most
+    `max_batch` 0.05 s of samples per tick), a command comes at clock 3 s, and the clock
+    creeps on while the simulator catches up. The wrist starts moving at the command's
+    clock time, not at the samples the simulator was making when it arrived (1.05 s)."""
+    node = ros_client.node
+    clock_pub = node.create_publisher(Clock, "/clock", 10)
+    command_pub = node.create_publisher(Float64MultiArray, "hand_velocity_controller/commands", 10)
+    joints: list = []
+    reader = node.create_subscription(
+        JointState, "joint_states", joints.append, stream_publisher_qos(depth=30_000), raw=True
+    )
+    sim = nodes.start(
+        "sim_robot",
+        {
+            "robot": "example_arm",
+            "use_sim_time": True,
+            "max_batch": 0.05,
+            "publish_ground_truth": False,
+            **deep_output(*TOPICS),
+        },
+    )
+    assert ros_client.spin_until(
+        lambda: (
+            reader.get_publisher_count() > 0
+            and clock_pub.get_subscription_count() > 0
+            and command_pub.get_subscription_count() > 0
+        ),
+        60,
+    ), nodes.log(sim)
+
+    def clock(seconds: float) -> None:
+        ns = int(round(seconds * 1e9))
+        clock_pub.publish(Clock(clock=Time(sec=ns // 10**9, nanosec=ns % 10**9)))
+
+    def made_until() -> float:  # the last joint state's stamp (s) received
+        stamps = decode_joint_state_messages(joints, ARM.joint_names)[0]
+        return stamps[-1] / 1e9 if len(stamps) else 0.0
+
+    # each clock time sent until seen: the first may go before sim_robot's side matched
+    assert ros_client.spin_until(lambda: clock(1.0) or "simulation started" in nodes.log(sim), 30)
+    assert ros_client.spin_until(lambda: clock(3.0) or made_until() > 1.04, 30), made_until()
+    wrist = [0.0, 0.0, 2.0]
+    for _ in range(10):  # as sweep_driver repeats it, all at clock 3 s
+        command_pub.publish(command_message(wrist))
+        ros_client.spin_for(0.05)
+    assert made_until() < 2.0  # behind when the command came
+    for k in range(1, 151):  # 1.5 s more clock, 10 ms a step: it catches up
+        clock(3.0 + 0.01 * k)
+        ros_client.spin_for(0.01)
+    assert ros_client.spin_until(lambda: made_until() > 4.0, 30), nodes.log(sim)
+    assert nodes.stop(sim) == 0, nodes.log(sim)
+    stamps, _, velocity, _ = decode_joint_state_messages(joints, ARM.joint_names)
+    moving = stamps[velocity[:, 2] > 0.5 * wrist[2]]  # the 50 ms controller: half way ~35 ms
+    assert 3.0e9 < moving[0] < 3.1e9, moving[0] / 1e9
