@@ -191,6 +191,8 @@ class SimulatorNode(Node):
             self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
             return
         self.commands_received += 1
+        if self.sim is None:  # not started: only the latest command will matter
+            self._commands.clear()
         self._commands.append((self.get_clock().now().nanoseconds, velocity))
 
     def _apply_commands_due(self) -> int:
