@@ -291,8 +291,8 @@ def test_a_simulator_behind_its_clock_moves_when_commanded_not_when_it_catches_u
         ns = int(round(seconds * 1e9))
         clock_pub.publish(Clock(clock=Time(sec=ns // 10**9, nanosec=ns % 10**9)))
 
-    def made_until() -> float:  # the last joint state's stamp (s) received
-        stamps = decode_joint_state_messages(joints, ARM.joint_names)[0]
+    def made_until() -> float:  # the last joint state's stamp (s) received: that one decoded
+        stamps = decode_joint_state_messages(joints[-1:], ARM.joint_names)[0]
         return stamps[-1] / 1e9 if len(stamps) else 0.0
 
     # each clock time sent until seen: the first may go before sim_robot's side matched
