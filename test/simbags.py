@@ -37,10 +37,10 @@ def egovib(*args, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(["egovib", *argv], code, out.getvalue(), err.getvalue())
 
 
-def egovib_process(*args) -> subprocess.CompletedProcess:
+def egovib_process(*args, cwd=None) -> subprocess.CompletedProcess:
     """`egovib ARGS` in a process of its own: what it logs, once per process, on stderr."""
     command = [sys.executable, "-m", "egovib_ros.cli", *map(str, args)]
-    return subprocess.run(command, capture_output=True, text=True, timeout=300)
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=cwd)
 
 
 def sim_sweep():

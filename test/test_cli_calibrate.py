@@ -8,7 +8,7 @@ import shutil
 import bagcorpus
 import numpy as np
 import robots
-from simbags import egovib, write_robot_bag
+from simbags import egovib, egovib_process, write_robot_bag
 
 from egovib_ros.bag import read_recording, write_recording
 from egovib_ros.core import NoiseModel
@@ -146,3 +146,18 @@ def test_quiet_still_says_the_cells_a_sweep_left_without_a_block(sim_bags, tmp_p
     seconds = len(read_recording(sim_bags / "sweep", ground_truth=False).sensor) / 3000
     assert f"thresholds come from {seconds:.0f} s of calibration data" in warning[1]
     assert quiet.stderr.splitlines() == warning  # those, and nothing else
+
+
+def test_a_sweep_cut_by_a_crash_is_said_truncated_once(sim_bags, tmp_path):
+    """Given as a relative path, as users type it: the bag's warning once, not again by the
+    absolute path the model's fingerprint once opened it by (the console script says each
+    message once per run; a second path was a second message)."""
+    shutil.copytree(sim_bags / "sweep", tmp_path / "cut")
+    (data,) = (tmp_path / "cut").glob("*.mcap")
+    data.write_bytes(data.read_bytes()[: data.stat().st_size * 9 // 10])
+    run = egovib_process(
+        "calibrate", "cut", "--out", "m.npz", "--methods", "paper", "--quiet", cwd=tmp_path
+    )
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if "without summary and footer" in line]
+    assert len(said) == 1 and said[0].startswith("egovib: WARNING: cut: truncated"), run.stderr

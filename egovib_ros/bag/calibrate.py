@@ -103,7 +103,9 @@ def calibrate_bags(
     model = acc.to_model(source=source)
     if len(names) == 1:
         model.provenance["source_bag"] = names[0]
-        model.provenance["source_fingerprint"] = bag_fingerprint(names[0])
+        # the bag as given: a warning its reader gives (a truncated file) then reads as the
+        # calibration's own, said once
+        model.provenance["source_fingerprint"] = bag_fingerprint(pairs[0][0])
     return model, acc.stats, results
 
 
