@@ -293,3 +293,30 @@ def test_a_bag_stamped_on_receipt_goes_through_every_command(corpus, reference_o
         "--json", corpus / "receipt_eval.json", "--methods", SOME_METHODS,
     )  # fmt: skip
     assert run.returncode == 0 and run.stderr.count("read as receipt times") == 1, run.stderr
+
+
+def test_a_bare_mcap_file_goes_through_every_command(corpus, reference_outputs, tmp_path):
+    """The .mcap file of a bag, given without its directory (what a recorder's user often
+    copies): calibrate (once an internal error: the model's fingerprint opened
+    FILE/metadata.yaml), denoise, and evaluate with the thresholds of the bare calibration
+    file the model names (once "not found": a bag was a directory), as on the directories."""
+    (sweep,) = (corpus / "sweep").glob("*.mcap")
+    (run,) = (corpus / "reference").glob("*.mcap")
+    model = tmp_path / "model.npz"
+    code, err = egovib("calibrate", sweep, "--out", model, "--quiet", "--methods", "paper")
+    assert code == 0, err
+    want = reference_outputs["reference"]
+    from_directory = NoiseModel.load(corpus / "model.npz")  # the sweep's directory
+    np.testing.assert_array_equal(NoiseModel.load(model).cell_mean, from_directory.cell_mean)
+    assert NoiseModel.load(model).provenance["source_bag"] == str(sweep.resolve())
+    code, err = egovib("denoise", run, "--model", corpus / "model.npz", "--out", tmp_path / "d")
+    assert code == 0, err
+    np.testing.assert_array_equal(
+        read_recording(tmp_path / "d").denoised, want["denoised"].denoised
+    )
+    code, err = egovib(
+        "evaluate", run, "--model", model, "--json", tmp_path / "e.json", "--methods", "paper"
+    )
+    assert code == 0, err
+    got = json.loads((tmp_path / "e.json").read_text())
+    assert got["n_taps"] == want["evaluate"]["n_taps"] > 0

@@ -494,6 +494,7 @@ def lab(tmp_path_factory) -> Lab:
     p["crashed_recording"] = root / "crashed_recording"  # several chunks, the summary cut off
     write_recording(p["crashed_recording"], motion, chunk_bytes=256 << 10)
     _cut_after_chunks(p["crashed_recording"])
+    p["crashed_file"] = _mcap(p["crashed_recording"])  # the same, given as its bare .mcap file
     p["crashed_at_start"] = root / "crashed_at_start"  # not one complete chunk
     shutil.copytree(p["motion"], p["crashed_at_start"])
     _mcap(p["crashed_at_start"]).write_bytes(_mcap(p["motion"]).read_bytes()[:5000])
@@ -1403,6 +1404,13 @@ ROWS += [
     Row(
         "denoise_mcap_cut_by_a_crash_read_to_its_last_chunk",
         den("crashed_recording"),
+        expect="ok",
+        check=truncated_read("den"),
+        unchanged=False,
+    ),
+    Row(  # a bare .mcap file cut alike: read as in its directory (was refused: no metadata)
+        "denoise_bare_mcap_file_cut_by_a_crash_read_to_its_last_chunk",
+        den("crashed_file"),
         expect="ok",
         check=truncated_read("den"),
         unchanged=False,

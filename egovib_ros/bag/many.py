@@ -70,7 +70,9 @@ class BagJob:
 
 
 def is_bag(path: Path) -> bool:
-    return (path / "metadata.yaml").is_file()
+    """A rosbag2 bag directory, or a bare .mcap file (BagReader reads both)."""
+    path = Path(path)
+    return (path / "metadata.yaml").is_file() or (path.suffix == ".mcap" and path.is_file())
 
 
 def expand_bags(

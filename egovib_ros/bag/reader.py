@@ -107,6 +107,8 @@ class BagReader:
                 digest=getattr(conn, "digest", "") or "",
             )
         self.files = [self.path / name for name in self.info.get("relative_file_paths") or []]
+        if not self.files and self.path.is_file():  # a bare .mcap file, given without its bag
+            self.files = [self.path]
         self.total_bytes = sum(f.stat().st_size for f in self.files if f.exists())
 
     def _open_cut_mcap(self) -> bool:
@@ -115,7 +117,8 @@ class BagReader:
         (topics, types and counts from one scan of the records), as `ros2 bag reindex` would
         recover them, and say so; False if this is not such a bag (the caller refuses it)."""
         files = [self.path / n for n in self.info.get("relative_file_paths") or []]
-        files = files or sorted(self.path.glob("*.mcap"))
+        bare = self.path.suffix == ".mcap" and self.path.is_file()  # a file given, no directory
+        files = files or ([self.path] if bare else sorted(self.path.glob("*.mcap")))
         if (
             not files
             or any(f.suffix != ".mcap" or not f.is_file() for f in files)
@@ -448,7 +451,7 @@ def bag_fingerprint(path: str | os.PathLike) -> str:
     path = Path(path)
     digest = hashlib.sha256()
     with BagReader(path) as reader:
-        files = [path / "metadata.yaml", *reader.files]
+        files = [*([path / "metadata.yaml"] if path.is_dir() else []), *reader.files]
     for file in files:
         digest.update(file.name.encode() + b"\0")
         with open(file, "rb") as fh:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.bag.many import run_bags
+from egovib_ros.bag.many import is_bag, run_bags
 from egovib_ros.bag.reader import bag_fingerprint
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.cli import options
@@ -41,9 +41,9 @@ def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path 
     stored = model.provenance.get("source_bag", "")
     if not stored:
         source = Path(model.provenance.get("source", "") or "-")
-        return source if (source / "metadata.yaml").is_file() else None
+        return source if is_bag(source) else None
     fix = "give --calibration BAG (no-contact data) or --thresholds-from-run"
-    if not (Path(stored) / "metadata.yaml").is_file():
+    if not is_bag(Path(stored)):
         raise ConfigError(
             f"{where}: the bag it was calibrated from ({stored}) is not found; it sets the "
             f"detection thresholds: {fix}"
