@@ -1,6 +1,7 @@
 """`egovib denoise` on real bag files, as a user runs it after `egovib calibrate`: the drop-in
 output, channels, compression, any robot profile, many bags in parallel, bad input."""
 
+import dataclasses
 import json
 import shutil
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import robots
 from rosbags.rosbag2 import Reader
-from simbags import egovib, topic_messages, write_robot_bag
+from simbags import egovib, egovib_process, topic_messages, write_robot_bag
 
 from egovib_ros.bag import bag_topics, read_recording, write_recording
 from egovib_ros.bag.codec import imu_field_offset, typestore
@@ -411,3 +412,31 @@ def test_adapt_learns_while_denoising_and_save_model_writes_the_adapted_model(
         errors = [line for line in result.stderr.splitlines() if "error" in line]
         assert result.returncode == 2 and len(errors) == 1 and message in errors[0], result.stderr
         assert not (tmp_path / "never").exists() and not (tmp_path / "x.npz").exists()
+
+
+def test_samples_left_without_joint_states_are_said_even_quiet(sim_bags, sim_bags_model, tmp_path):
+    """Joint states that stop 0.5 s before the sensor (a recording cut short): the default
+    writes those samples as read; the run says so in a WARNING, --quiet too (it once said
+    it only in the summary --quiet drops). A bag whose joint states span it says nothing."""
+    rec = read_recording(sim_bags / "motion", ground_truth=False, denoised=False)
+    keep = rec.joint_stamps_ns < rec.sensor_stamps_ns[-1] - 500_000_000
+    short = dataclasses.replace(
+        rec,
+        joint_stamps_ns=rec.joint_stamps_ns[keep],
+        joint_position=rec.joint_position[keep],
+        joint_velocity=rec.joint_velocity[keep],
+    )
+    write_recording(tmp_path / "short", short)
+    said = {}
+    for name, bag in (("short", tmp_path / "short"), ("whole", sim_bags / "motion")):
+        run = egovib_process(
+            "denoise", bag, "--model", sim_bags_model, "--out", tmp_path / f"out_{name}", "--quiet"
+        )
+        assert run.returncode == 0, run.stderr
+        said[name] = [line for line in run.stderr.splitlines() if "no joint state" in line]
+    assert len(said["short"]) == 1 and "written without denoising" in said["short"][0]
+    head = f"egovib: WARNING: {tmp_path / 'short'}: "
+    assert said["short"][0].startswith(head), said
+    # the last 0.5 s (1500 samples) but the joint state's hold after the last one
+    assert 1000 < int(said["short"][0][len(head) :].split()[0]) <= 1500, said
+    assert said["whole"] == []

@@ -9,6 +9,7 @@ results agree.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import Callable
@@ -26,6 +27,12 @@ from egovib_ros.core.methods import make_denoiser, resolve_method
 from egovib_ros.core.stream import check_stream, has_bad_input
 from egovib_ros.errors import BagError
 from egovib_ros.outputs import atomic_output
+
+LOG = logging.getLogger("egovib_ros.bag")
+#: Above this share of the output without a joint state near it, the run warns (--quiet
+#: too): a stream's first sample or block has none; a joint-state topic that stops early
+#: (a truncated recording) leaves the rest of the bag not denoised.
+NO_JOINT_STATE_WARN = 0.01
 
 
 class _DenoisedTopic:
@@ -221,6 +228,7 @@ def denoise_bag(
                 with atomic_output(save_model) as model_tmp:
                     denoiser.adapted_model().save(model_tmp)
     stats = denoiser.stats
+    _warn_without_joint_states(bag, method, stats, job.written)
     adapted = getattr(denoiser, "adaptation_stats", None)
     return {
         "samples_in": job.raw_read,
@@ -250,3 +258,19 @@ def denoise_bag(
         "adapt": None if adapted is None else adapted.as_dict(),
         "saved_model": None if save_model is None else str(save_model),
     }
+
+
+def _warn_without_joint_states(bag, method: str, stats, written: int) -> None:
+    """A WARNING when more than NO_JOINT_STATE_WARN of the samples had no joint state near
+    them (written as read: not denoised). The paper's blocks say it in the core already
+    (core.subtraction, at the first such block)."""
+    missing = stats.samples_no_joint_state or 0
+    if method != "paper" and written and missing > NO_JOINT_STATE_WARN * written:
+        LOG.warning(
+            "%s: %d of %d samples (%.0f %%) had no joint state near them (the joint states "
+            "start later or stop earlier than the sensor, or pause): written without denoising",
+            bag,
+            missing,
+            written,
+            100.0 * missing / written,
+        )
