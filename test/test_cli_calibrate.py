@@ -161,3 +161,43 @@ def test_a_sweep_cut_by_a_crash_is_said_truncated_once(sim_bags, tmp_path):
     assert run.returncode == 0, run.stderr
     said = [line for line in run.stderr.splitlines() if "without summary and footer" in line]
     assert len(said) == 1 and said[0].startswith("egovib: WARNING: cut: truncated"), run.stderr
+
+
+def test_a_run_with_taps_given_as_calibration_data_is_said(
+    sim_bags, sim_bags_model, tmp_path, caplog
+):
+    """calibrate, and detect's --calibration, on a simulated run whose ground truth holds
+    taps: a WARNING naming the bag and the taps (their thresholds were once raised above
+    the taps silently); the sweep, without that topic, says nothing."""
+
+    def said() -> list[str]:
+        return [
+            r.getMessage() for r in caplog.records if "calibration data should" in r.getMessage()
+        ]
+
+    motion = sim_bags / "motion"
+    run = egovib("calibrate", motion, "--out", tmp_path / "m.npz", "--methods", "paper", "--quiet")
+    assert run.returncode == 0, run.stderr
+    assert len(said()) == 1 and said()[0].startswith(f"{motion}: its ground truth"), said()
+    assert int(said()[0].split(" holds ")[1].split()[0]) >= 2  # 4 s of taps at 1 Hz
+    caplog.clear()
+    run = egovib(
+        "detect", motion, "--model", sim_bags_model, "--out", tmp_path / "e.json",
+        "--calibration", motion, "--quiet",
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert len(said()) == 1, said()
+    caplog.clear()
+    assert (
+        egovib(
+            "calibrate",
+            sim_bags / "sweep",
+            "--out",
+            tmp_path / "s.npz",
+            "--methods",
+            "paper",
+            "--quiet",
+        ).returncode
+        == 0
+    )
+    assert said() == []

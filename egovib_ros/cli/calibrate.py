@@ -17,6 +17,7 @@ from egovib_ros.core.methods import short_detection_warning
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.core.stream import has_bad_input
 from egovib_ros.errors import BagError
+from egovib_ros.evaluation.contacts import warn_if_contacts
 from egovib_ros.gap.advice import joint_lag_of
 from egovib_ros.gap.simref import own_lag, with_own_lag
 from egovib_ros.outputs import atomic_output, prepare_output
@@ -105,6 +106,15 @@ def describe_methods(fitted: dict) -> str:
     )
 
 
+def _first_bag_warned(specs, profile):
+    """The first of the calibration bags (the methods are fitted on it); each bag that holds
+    a simulated run's taps is said in a WARNING (calibration data is motion without contact)."""
+    bags = [bag for bag, _ in expand_bags(specs, outputs_per_bag=False)]
+    for bag in bags:
+        warn_if_contacts(bag, profile)
+    return bags[0]
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     prepare_output(args.out, force=args.force, inputs=args.bags, kind="model")  # before any work
     profile = load_profile(args.robot)
@@ -137,7 +147,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             f"{where}: no steady block near any grid velocity "
             f"(rejected: {stats.rejected}); is this a calibration sweep or free motion?"
         )
-    first = expand_bags(args.bags, outputs_per_bag=False)[0][0]
+    first = _first_bag_warned(args.bags, profile)
     model, fitted = calibrate_bag_methods(first, model, joint_lag_s=args.joint_lag, methods=methods)
     model = with_own_lag(model, fitted["recording"])  # what `egovib gap` judges timing against
     with atomic_output(args.out) as tmp:  # said only once written: a failed save is one line

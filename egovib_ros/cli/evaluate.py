@@ -22,6 +22,7 @@ from egovib_ros.cli.jobs import output_jobs, parallel_options, report_results
 from egovib_ros.core import NoiseModel
 from egovib_ros.errors import BagError, ConfigError, bag_error
 from egovib_ros.evaluation import baselines, metrics
+from egovib_ros.evaluation.contacts import warn_if_contacts
 from egovib_ros.evaluation.evaluate import REPORT_FIELDS, bad_samples_said, evaluate_bag
 from egovib_ros.outputs import atomic_output, json_holding, prepare_output
 
@@ -34,6 +35,7 @@ def calibration_bag(given, model, *, thresholds_from_run: bool = False) -> Path 
     --thresholds-from-run). Models without a stored bag (made from arrays, or before
     paths were stored) use their `source` if it is a bag found here, else the run."""
     if given:
+        warn_if_contacts(given, model.robot_profile())
         return Path(given)
     if thresholds_from_run:
         return None

@@ -12,13 +12,15 @@ tap's onset to its event's report (the method's delay plus the detector's report
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from egovib_ros.bag.recording import iter_recording
+from egovib_ros.bag.reader import bag_topics
+from egovib_ros.bag.recording import bag_topic_names, iter_recording, read_recording
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import (
     FALSE_ALARMS_PER_MIN,
@@ -43,6 +45,7 @@ from egovib_ros.evaluation.detection import TOLERANCE_S, match_events, scores_of
 from egovib_ros.evaluation.metrics import segment_contacts
 
 DETECT_METHODS = (*METHODS, "raw")
+LOG = logging.getLogger("egovib_ros.evaluation")
 
 
 @dataclass
@@ -120,6 +123,31 @@ def _truth(truth: dict, stamps: np.ndarray):
     if not truth:
         return None
     return np.array([truth.pop(int(s), np.zeros(3)) for s in stamps.tolist()]).reshape(-1, 3)
+
+
+def warn_if_contacts(bag, profile) -> int:
+    """Calibration data is motion without contact. A bag that holds the simulator's contact
+    ground truth with taps in it (a run of `egovib simulate motion --taps`, not a sweep) is
+    said in a WARNING: its taps would count as ego-vibration, the detector's thresholds
+    raised above them. Returns the taps found (0 without that topic: a real robot's bag)."""
+    topic = bag_topic_names(profile)["contact"]
+    if bag_topics(bag).get(topic, ("", 0))[1] == 0:
+        return 0
+    rec = read_recording(bag, profile=profile, ground_truth=True, denoised=False)
+    if rec.contact is None:
+        return 0
+    reference = combined_bandpassed(rec.contact, profile)
+    taps = segment_contacts(reference, sample_rate_hz=profile.rate_hz).n_taps
+    if taps:
+        LOG.warning(
+            "%s: its ground truth (%s) holds %d contacts: calibration data should be motion "
+            "without contact (the taps count as ego-vibration and raise the detector's "
+            "thresholds)",
+            bag,
+            topic,
+            taps,
+        )
+    return taps
 
 
 def calibration_threshold(
