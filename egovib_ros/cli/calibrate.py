@@ -174,8 +174,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     lag = own_lag(model)
     if lag is not None:
         print(
-            f"joint lag of the recording{on}: {1000 * joint_lag_of(lag):+.0f} ms (the vibration "
-            "trailing the joint states; `egovib gap` names timing only beyond it)",
+            f"joint lag of the recording{on}: {round(1000 * joint_lag_of(lag)):+d} ms (the "
+            "vibration trailing the joint states; `egovib gap` names timing only beyond it)",
             file=sys.stderr,
         )
     print(f"rejected blocks: {stats.rejected}", file=sys.stderr)

@@ -27,11 +27,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     den = subparsers.add_parser(
         "denoise",
         help="remove ego-vibration from bags",
-        description="Spectral subtraction of the model's noise at the recorded joint velocities; "
-        "writes a bag with the input topics (copied as they are) plus the model's denoised "
-        "topic: one message per raw sample, the input message with the cleaned field, the raw "
-        "sample's stamp. Several bags (or directories of bags): --out is a directory, one "
-        "output bag per input.",
+        description="Remove the ego-vibration the model holds at the recorded joint velocities "
+        "(the model's default method, hybrid unless the model lacks it; --method paper: the "
+        "paper's spectral subtraction); writes a bag with the input topics (copied as they "
+        "are) plus the model's denoised topic: one message per raw sample, the input "
+        "message with the cleaned field, the raw sample's stamp. Several bags (or "
+        "directories of bags): --out is a directory, one output bag per input.",
     )
     den.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 bag(s) or directories of bags")
     den.add_argument("--model", required=True, metavar="MODEL.npz")

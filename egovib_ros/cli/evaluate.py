@@ -107,12 +107,15 @@ def _describe(figures: dict) -> str:
     def number(value, form):
         return "n/a" if value is None or not np.isfinite(value) else format(value, form)
 
+    def f1(value):  # no tap: no F1 to score (its false alarms are in the JSON)
+        return number(value, ".2f") if figures["n_taps"] else "n/a"
+
     text = (
         f"{figures['n_taps']} taps, noise reduction {number(figures['noise_reduction_db'], '.1f')} "
         f"dB, peak SNR {number(figures['peak_snr_raw_db'], '.1f')} -> "
         f"{number(figures['peak_snr_denoised_db'], '.1f')} dB, retention "
-        f"{number(figures['tap_retention'], '.2f')}, F1 raw {figures['f1_raw']:.2f} -> "
-        f"denoised {figures['f1_denoised']:.2f}"
+        f"{number(figures['tap_retention'], '.2f')}, F1 raw {f1(figures['f1_raw'])} -> "
+        f"denoised {f1(figures['f1_denoised'])}"
     )
     recorded = figures.get("bag_denoised")
     if recorded:

@@ -697,7 +697,10 @@ def _which_line(report: dict) -> str:
         "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
         "no candidate effect lowers the held-out gap significantly"
         + (
-            f" (best: `{best['effect']}`, {best['reduction']:+.3f} dB, p = {best['p_value']:.2g})."
+            f" (the best, `{best['effect']}`: held-out gap {best['reduction']:+.3f} dB, p = "
+            f"{best['p_value']:.2g}; an effect is named only where p < {ALPHA:g}/{len(cands)}, "
+            f"the held-out deviance falls by {MIN_DEVIANCE_GAIN:g} per block and bin or more and "
+            "the held-out gap shrinks)."
             if best
             else "."
         )

@@ -343,7 +343,7 @@ class Calibrator(Node):
             model = with_own_lag(model, _recording(model, arrays))
             lag = own_lag(model)
             if lag is not None:
-                fitted.append(f"its joint lag {1000 * joint_lag_of(lag):+.0f} ms")
+                fitted.append(f"its joint lag {round(1000 * joint_lag_of(lag)):+d} ms")
             short = short_detection_warning(len(stamps) / self.profile.rate_hz)
             if short:
                 fitted.append(short)
