@@ -137,6 +137,8 @@ def test_bad_model_files_give_one_line_errors(tmp_path):
     model.save(good)
     with pytest.raises(ModelFileError, match="no such noise-model file"):
         NoiseModel.load(tmp_path / "absent.npz")
+    with pytest.raises(ModelFileError, match="a directory, not a noise-model file"):
+        NoiseModel.load(tmp_path)  # a bag or output directory given as --model
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(good.read_bytes()[:200])
     with pytest.raises(ModelFileError, match="corrupt.npz: not a readable noise-model"):

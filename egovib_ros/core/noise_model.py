@@ -716,7 +716,8 @@ class NoiseModel:
     def load(cls, path: str | os.PathLike) -> "NoiseModel":
         where = str(path)
         if not Path(path).is_file():
-            raise ModelFileError(f"{where}: no such noise-model file")
+            what = "a directory, not a" if Path(path).is_dir() else "no such"
+            raise ModelFileError(f"{where}: {what} noise-model file (a .npz of `egovib calibrate`)")
         try:
             with np.load(path, allow_pickle=False) as data:
                 if not hasattr(data, "files"):
