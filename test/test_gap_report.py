@@ -203,7 +203,7 @@ def test_no_effect_and_a_model_from_a_recording_are_said_so(position):
     assert "**Which:** **no effect** (`none`)" in md
     # the best candidate with why it is not named (once "best: X, +0.000 dB, p = 0.0037",
     # a significant-looking p beside no reduction, and nothing said of the rule)
-    assert f"(the best, `{best['effect']}`: held-out gap {best['reduction']:+.3f} dB" in md
+    assert f"(the best, `{best['effect']}`: held-out reduction {best['reduction']:+.3f} dB" in md
     assert "an effect is named only where p < 0.05/" in md
     assert "on held-out real data the noise model is off by" in md
     assert "the simulator's noise model" not in md

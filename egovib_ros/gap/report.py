@@ -697,7 +697,7 @@ def _which_line(report: dict) -> str:
         "**Which:** **no effect** (`none`): beyond the velocity-only baseline "
         "no candidate effect lowers the held-out gap significantly"
         + (
-            f" (the best, `{best['effect']}`: held-out gap {best['reduction']:+.3f} dB, p = "
+            f" (the best, `{best['effect']}`: held-out reduction {best['reduction']:+.3f} dB, p = "
             f"{best['p_value']:.2g}; an effect is named only where p < {ALPHA:g}/{len(cands)}, "
             f"the held-out deviance falls by {MIN_DEVIANCE_GAIN:g} per block and bin or more and "
             "the held-out gap shrinks)."
