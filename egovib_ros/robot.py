@@ -363,5 +363,14 @@ def load_profile(spec: str | os.PathLike | None = None) -> RobotProfile:
     )
 
 
+def robot_option(profile: RobotProfile) -> str | None:
+    """What `egovib calibrate --robot` names this profile by in a command line the project
+    advises: nothing for the default PR2 hand, a shipped profile's name, else PROFILE.yaml
+    (the user's own file, wherever it is)."""
+    if profile.name == DEFAULT_PROFILE:
+        return None
+    return profile.name if profile.name in profile_names() else "PROFILE.yaml"
+
+
 def default_profile() -> RobotProfile:
     return load_profile(None)

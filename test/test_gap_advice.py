@@ -4,12 +4,14 @@ known effect (test/gaptables.py), and the lag advice applied with the core."""
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 
 import numpy as np
 import pytest
 from gaptables import diagnosed
 
 from egovib_ros.gap.advice import action, advise, commands, first_lines
+from egovib_ros.robot import load_profile, robot_option
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +103,14 @@ def test_the_commands_apply_every_correction_together():
         "egovib calibrate NEW_RECORDING --grid full --joint-lag 0.032 --out NEW_MODEL.npz"
     )
     assert commands({}) == {}
+    # another robot's: calibrate names its profile; every line one a shell runs as it is
+    # (the note on NEW_RECORDING was once in parentheses: a syntax error, and no --robot)
+    arm = commands({**settings, "calibration_grid": "free"}, robot="example_arm")
+    assert arm["calibrate"].startswith("egovib calibrate NEW_RECORDING --robot example_arm ")
+    for line in arm.values():
+        assert subprocess.run(["bash", "-n", "-c", line], capture_output=True).returncode == 0
+    assert robot_option(load_profile("example_arm")) == "example_arm"
+    assert robot_option(load_profile(None)) is None  # the PR2 hand: the default
 
 
 def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):

@@ -294,9 +294,15 @@ def merged_settings(actions: list[dict]) -> dict:
 
 
 def commands(
-    settings: dict, *, model: str = "MODEL.npz", bag: str = "BAG", report: str = "REPORT.json"
+    settings: dict,
+    *,
+    model: str = "MODEL.npz",
+    bag: str = "BAG",
+    report: str = "REPORT.json",
+    robot: str | None = None,
 ) -> dict:
-    """The command lines that apply every advised correction together."""
+    """The command lines that apply every advised correction together, each one line a
+    shell runs as it is (`robot`: calibrate's --robot, robot.robot_option)."""
     flags, params = [], []
     if settings.get("joint_lag_s"):
         lag = f"{settings['joint_lag_s']:g}"
@@ -312,12 +318,13 @@ def commands(
     if settings.get("calibration_grid"):
         grid = settings["calibration_grid"]
         lag = f" --joint-lag {settings['joint_lag_s']:g}" if settings.get("joint_lag_s") else ""
+        robot_flag = f" --robot {robot}" if robot else ""
         out["calibrate"] = (
-            f"egovib calibrate NEW_RECORDING --grid {grid}{lag} --out NEW_MODEL.npz"
+            f"egovib calibrate NEW_RECORDING{robot_flag} --grid {grid}{lag} --out NEW_MODEL.npz"
             + (
-                " (NEW_RECORDING: a sweep_driver sweep with grid:=full)"
+                "  # NEW_RECORDING: a sweep_driver sweep with grid:=full"
                 if grid == "full"
-                else " (NEW_RECORDING: free motion of the robot, no contact)"
+                else "  # NEW_RECORDING: free motion of the robot, no contact"
             )
         )
     return out

@@ -32,6 +32,7 @@ from egovib_ros.gap.report import build_report, change_report, make_figures, ren
 from egovib_ros.gap.simref import model_matches_simulator, own_lag, simulator_reference_lag
 from egovib_ros.gap.writeback import write_back as do_write_back
 from egovib_ros.outputs import atomic_output, check_replaceable
+from egovib_ros.robot import robot_option
 from egovib_ros.sim import SimParams
 
 
@@ -219,6 +220,7 @@ def run_gap(
             write_back=wb,
             measured=measured,
             report_path=str(Path(out_dir) / "report.json"),
+            robot=robot_option(model.robot_profile()),
         )
         if figures:
             report["figures"] = make_figures(diag, report, tmp)

@@ -285,10 +285,12 @@ def build_report(
     write_back: dict | None = None,
     measured: dict | None = None,
     report_path: str | None = None,
+    robot: str | None = None,
 ) -> dict:
     """The report.json dictionary (INTERFACES.md section 6 keys, plus documented extras).
     `measured`: the advice applied with the user's model (advice.measure_advice);
-    `report_path`: where report.json will be (the advice's commands name it)."""
+    `report_path`: where report.json will be (the advice's commands name it); `robot`:
+    calibrate's --robot in them (robot.robot_option)."""
     t = diag.table
     found = diag.verdict != "none"
     added = {
@@ -298,7 +300,7 @@ def build_report(
     if write_back:
         added["simulator"] = write_back
     where = where_breakdown(diag)
-    paths = {"model": str(model_path), "bag": str(real_path)}
+    paths = {"model": str(model_path), "bag": str(real_path), "robot": robot}
     if report_path:
         paths["report"] = str(report_path)
 

@@ -33,7 +33,7 @@ from egovib_ros.gap.pipeline import diagnose_recording, reference_lag_for
 from egovib_ros.gap.report import build_report, make_figures, render_markdown
 from egovib_ros.gap.simref import with_own_lag
 from egovib_ros.outputs import atomic_output, prepare_output
-from egovib_ros.robot import load_profile
+from egovib_ros.robot import load_profile, robot_option
 
 #: The flight's usable span (s from the first sample): the last 0.15 s is a crash or hard
 #: landing (motors cut, gyro saturating), not free motion (see docs/real_results.md).
@@ -191,6 +191,7 @@ def run_flight_gap(
                 real_path=f"{bag} [{parts[test][0]:g}, {parts[test][1]:g}) s",
                 figures={},
                 runtime_s=0.0,
+                robot=robot_option(profile),
             )
             # a model of the robot itself, not of our simulator ("the noise model is off by")
             report["inputs"]["model_kind"] = "recording"
