@@ -532,9 +532,10 @@ def test_wrong_rate_and_missing_joint_are_errors_with_no_output(
 
 
 def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_path, ros_domain):
-    """One line naming the problem, exit status 2: batch_samples 0; method hybrid with a
-    model calibrated for the paper's method only; an output no method makes; a noise_gain
-    file that is not a gap report."""
+    """One line naming the problem (the node named once), exit status 2: batch_samples 0;
+    method hybrid with a model calibrated for the paper's method only; an output no method
+    makes; a noise_gain file that is not a gap report; a parameter without its value; a
+    method that does not exist."""
     cases = {
         "batch_samples": ([f"model:={sim_model_path}", "batch_samples:=0"], "range"),
         "--methods hybrid": ([f"model:={sim_model_path}", "method:=hybrid"], "paper"),
@@ -546,6 +547,9 @@ def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_p
             [f"model:={sim_model_path}", f"noise_gain:={sim_model_path}"],
             "not an egovib gap report",
         ),
+        # rclpy.init refuses the command line itself (it was a traceback, exit 1)
+        "model:=": (["model:="], "Couldn't parse parameter override rule"),
+        "method": ([f"model:={sim_model_path}", "method:=foo"], "paper, cancel, hybrid (or"),
     }
     runs = {
         key: subprocess.Popen(
@@ -568,6 +572,7 @@ def test_bad_parameters_are_refused_at_start(sim_model_path, sim_methods_model_p
         assert run.returncode == 2, (key, stdout + stderr)
         errors = [line for line in stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and key in errors[0] and cases[key][1] in errors[0], stderr
+        assert errors[0].count("denoiser:") == 1 and "Traceback" not in stderr, stderr
 
 
 def bag_topic(path: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -229,7 +230,9 @@ def declare_parameters(
         except ParameterException as exc:
             raise ConfigError(f"{where}: {_parameter_reason(exc)}") from None
         if param.choices and value not in param.choices:
-            raise ConfigError(f"{where} must be one of {', '.join(param.choices)}; got {value!r}")
+            named = ", ".join(c for c in param.choices if c)
+            unset = " (or unset: the default)" if "" in param.choices else ""
+            raise ConfigError(f"{where} must be one of {named}{unset}; got {value!r}")
         if isinstance(value, float) and not math.isfinite(value):
             raise ConfigError(f"{where} must be finite, got {value}")
         values[param.name] = value
@@ -591,9 +594,16 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
     # down under running callbacks ("[FATAL] ... publisher's context is invalid", and close()
     # logging "Failed to publish log message to rosout"). A signal while spinning ends the
     # spin loop (within SPIN_TIMEOUT_S); the node closes with its context valid.
-    rclpy.init(
-        args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO
-    )
+    program = os.path.basename(sys.argv[0]) or "egovib_ros"
+    try:
+        rclpy.init(
+            args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO
+        )
+    except _rclpy.RCLError as exc:  # the command line's --ros-args (e.g. `-p model:=`, no value)
+        reason = str(exc).split(", at ")[0].removeprefix("failed to initialize rcl: ")
+        reason = reason.split(". Error: ")[0]
+        print(f"{program}: error: {reason}", file=sys.stderr)
+        return 2
     stop = _StopOnSignal()
     node = None
     status = 0
@@ -621,10 +631,9 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None) -> in
         if rclpy.ok():
             raise
     except EgovibError as exc:
-        name = (
-            node.get_name() if node is not None else os.path.basename(sys.argv[0]) or "egovib_ros"
-        )
-        print(f"{name}: error: {exc}", file=sys.stderr)
+        name = node.get_name() if node is not None else program
+        # said once: "denoiser: error: denoiser: parameter ..." named the node twice
+        print(f"{name}: error: {str(exc).removeprefix(f'{name}: ')}", file=sys.stderr)
         status = 2
     finally:
         if node is not None:
