@@ -109,8 +109,9 @@ def test_joint_states_split_per_joint_are_joined_live_and_the_held_stamp_flushed
 
 
 def test_a_joint_never_seen_says_why_undecodable_or_without_values(ros_client):
-    """The missing-joint ERROR names the cause: messages that do not decode, or messages
-    that name the joints with no position or velocity (effort only)."""
+    """The missing-joint ERROR names the cause: messages that do not decode, messages that
+    name the joints with no position or velocity (effort only), or only other joints (the
+    model of another robot)."""
     from rosbags.typesys.stores.ros2_jazzy import (
         builtin_interfaces__msg__Time as Time,
     )
@@ -132,7 +133,20 @@ def test_a_joint_never_seen_says_why_undecodable_or_without_values(ros_client):
         effort=np.ones(len(names)),
     )
     raw = bytes(typestore().serialize_cdr(effort_only, JOINT_STATE_TYPE))
-    cases = {"with no position or velocity": [raw], "2 of its messages undecodable": [raw[:9]] * 2}
+    arm = JointState(  # the example arm's joints: a model of another robot was given
+        header=Header(stamp=Time(sec=1, nanosec=0), frame_id=""),
+        name=["shoulder", "elbow", "wrist"],
+        position=np.zeros(3),
+        velocity=np.ones(3),
+        effort=empty,
+    )
+    cases = {
+        "with no position or velocity": [raw],
+        "2 of its messages undecodable": [raw[:9]] * 2,
+        "none of robot profile 'pr2_right_hand': a model of another robot?": [
+            bytes(typestore().serialize_cdr(arm, JOINT_STATE_TYPE))
+        ],
+    }
     for why, raws in cases.items():
         inp = StreamInput(ros_client.node, profile, batch_samples=32, on_batch=lambda: None)
         inp._joints += raws  # as the subscription callback collects them

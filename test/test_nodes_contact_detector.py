@@ -103,6 +103,8 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
     values = diagnostic_values(ros_client.statuses["contact_detector"])
     assert nodes.stop(detector) == 0, nodes.log(detector)
     assert nodes.stop(denoiser) == 0, nodes.log(denoiser)
+    # at Ctrl-C, what it saw (it said nothing)
+    assert f"contact_detector: samples in {n}, events {values['events']} (" in nodes.log(detector)
 
     # The threshold: the no-contact bag through the model's default method and the envelope.
     model = NoiseModel.load(sim_model_path)

@@ -367,14 +367,19 @@ def build_report(
     }
 
 
+def _ms(seconds: float) -> str:
+    """Signed whole milliseconds, "+0" (not "-0") for a lag under half a millisecond."""
+    return f"{round(1000 * seconds):+d}"
+
+
 def change_advice(effect: str, params: dict, summary: str) -> str:
     """One sentence on what a change since the reference means and what to do."""
     if effect == "timing":
         shift = params["joint_lag_shift_s"]
         return (
-            f"the joint lag moved by {1000 * shift:+.0f} ms since the reference (the vibration "
-            f"now trails the joint states by {1000 * params['real_joint_lag_s']:+.0f} ms, was "
-            f"{1000 * params['reference_joint_lag_s']:+.0f} ms): add {shift:+g} s to the joint "
+            f"the joint lag moved by {_ms(shift)} ms since the reference (the vibration "
+            f"now trails the joint states by {_ms(params['real_joint_lag_s'])} ms, was "
+            f"{_ms(params['reference_joint_lag_s'])} ms): add {shift:+g} s to the joint "
             "lag set for the reference (`egovib denoise --joint-lag`, the denoiser node's "
             "`joint_lag:=`)"
         )
@@ -649,7 +654,7 @@ def _change_lines(report: dict) -> list[str]:
     lags = info["joint_lag_s"]
     head = (
         f"**What changed since `{info['reference']}`:** "
-        f"(joint lag {1000 * lags['reference']:+.0f} ms there, {1000 * lags['real']:+.0f} ms "
+        f"(joint lag {_ms(lags['reference'])} ms there, {_ms(lags['real'])} ms "
         f"here; held-out gap of what both share {info['gap']['baseline']:.2f} dB, "
         f"{info['gap']['after_changes']:.2f} dB with the changes below)"
     )

@@ -298,6 +298,7 @@ class StreamInput:
         from_first: bool = True,
     ):
         self.field = profile.sensor_field
+        self.profile_name = profile.name
         self.joint_names = tuple(profile.joint_names)
         self.batch_samples = int(batch_samples)
         self._from_first = from_first
@@ -501,6 +502,11 @@ class StreamInput:
             why = f" ({self.undecodable_joints} of its messages undecodable)"
         elif carried and set(missing) <= carried:
             why = " (its messages name them, with no position or velocity)"
+        elif carried and not self.joints_seen.any():
+            why = (
+                f" (its messages carry {list(self.carried_joint_names)}, none of robot profile "
+                f"{self.profile_name!r}: a model of another robot?)"
+            )
         elif carried:
             why = f" (its messages carry {list(self.carried_joint_names)})"
         else:

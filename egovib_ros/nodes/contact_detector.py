@@ -172,6 +172,17 @@ class ContactDetectorNode(Node):
         arrived = next((t for last, t in self._arrivals if last >= onset_ns), self._pending_since)
         return now - arrived
 
+    def close(self) -> None:
+        """What it saw, said at the end (Ctrl-C) as every node says it."""
+        minutes = max((time.monotonic() - self._started) / 60.0, 1e-9)
+        print(
+            f"contact_detector: samples in {self.samples}, events {self.events} "
+            f"({self.events / minutes:.1f} a minute, threshold {self.threshold:.4g}), undecodable "
+            f"{self.undecodable}, bad {self.detector.samples_bad}, out of order "
+            f"{self.detector.samples_out_of_order}, restarts {self.detector.restarts}",
+            flush=True,
+        )
+
     def _publish_diagnostics(self) -> None:
         minutes = max((time.monotonic() - self._started) / 60.0, 1e-9)
         latency = np.asarray(self._latency_ms[-1000:])
