@@ -188,16 +188,6 @@ def test_a_run_with_taps_given_as_calibration_data_is_said(
     assert run.returncode == 0, run.stderr
     assert len(said()) == 1, said()
     caplog.clear()
-    assert (
-        egovib(
-            "calibrate",
-            sim_bags / "sweep",
-            "--out",
-            tmp_path / "s.npz",
-            "--methods",
-            "paper",
-            "--quiet",
-        ).returncode
-        == 0
-    )
+    sweep = ("calibrate", sim_bags / "sweep", "--methods", "paper", "--quiet")
+    assert egovib(*sweep, "--out", tmp_path / "s.npz").returncode == 0
     assert said() == []

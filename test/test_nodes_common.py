@@ -62,7 +62,8 @@ sys.exit(run_node(Probe, []))
 
 @pytest.mark.parametrize(
     "mode, status, text",
-    [("raise", 2, "probe: error: probe: a bad setting found in a callback"), ("term", 0, "closed")],
+    # the node named once (it was "probe: error: probe: ..." for a message naming it)
+    [("raise", 2, "probe: error: a bad setting found in a callback"), ("term", 0, "closed")],
 )
 def test_run_node_exit_status_and_close_for_errors_in_callbacks_and_sigterm(
     ros_domain, mode, status, text
