@@ -232,6 +232,7 @@ class Feeder:
         self.receipt_stamps = receipt_stamps
         self.joint_rate_hz = joint_rate_hz
         self.last_receipt = 0
+        self.last_publish_s = time.monotonic()  # when the last message went out
         self.messages: list[tuple[str, int, bytes]] | None = [] if keep_messages else None
         self.position = np.zeros(len(self.joint_names))  # of the last joint state sent
         self.last_joint_stamp: int | None = None
@@ -295,6 +296,7 @@ class Feeder:
         if self.undecodable_joints and publisher is self.joint_pub:
             data = bytes(data)[: len(data) // 2]
         publisher.publish(data)
+        self.last_publish_s = time.monotonic()
         if self.messages is not None:
             self.messages.append((publisher.topic_name, header_stamp_ns(data), data))
 
