@@ -23,6 +23,7 @@ from egovib_ros.core.methods import (
     denoise_batch_method,
     make_denoiser,
     method_delay_ms,
+    rest_detection_warning,
     short_detection_warning,
 )
 from egovib_ros.core.noise_model import NoiseModel
@@ -386,3 +387,23 @@ def test_a_calibration_shorter_than_a_minute_is_said_to_set_unsteady_thresholds(
     assert short_detection_warning(DETECTION_MIN_S) is None
     line = short_detection_warning(16.4)
     assert line.startswith("warning:") and "from 16 s of calibration data" in line
+
+
+def test_a_calibration_mostly_at_rest_is_said_to_set_thresholds_below_motion():
+    """A live calibration left running after its sweep: 70 % of the samples with every joint
+    below 2 % of its top speed is said; 30 % is not; a NaN velocity counts as moving."""
+    stamps = np.arange(1000) * 1_000_000
+    joint_stamps = np.arange(0, 1000, 10) * 1_000_000  # each held over 10 samples
+    top = [1.0, 2.0]
+
+    def warned(rest_share: float, unknown: bool = False):
+        velocity = np.tile([0.5, 1.0], (len(joint_stamps), 1))
+        velocity[: int(rest_share * len(joint_stamps))] = [0.01, 0.0]  # under 2 %
+        if unknown:
+            velocity[:, 1] = np.nan
+        return rest_detection_warning(stamps, joint_stamps, velocity, top)
+
+    line = warned(0.7)
+    assert line.startswith("warning: 70% of the calibration data is the robot at rest"), line
+    assert warned(0.3) is None and warned(0.7, unknown=True) is None
+    assert rest_detection_warning(stamps, joint_stamps[:0], np.zeros((0, 2)), top) is None

@@ -13,7 +13,7 @@ from egovib_ros.bag.many import expand_bags, raise_if_bugs, summary_lines
 from egovib_ros.cli.jobs import parallel_options
 from egovib_ros.cli.options import force_and_quiet, joint_lag_option
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.methods import short_detection_warning
+from egovib_ros.core.methods import rest_detection_warning, short_detection_warning
 from egovib_ros.core.noise_model import sweep_mask
 from egovib_ros.core.stream import has_bad_input
 from egovib_ros.errors import BagError
@@ -156,7 +156,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if fitted["methods"] is not None and not args.quiet:
         print(f"methods cancel and hybrid{on}: {describe_methods(fitted['methods'])}",
               file=sys.stderr)  # fmt: skip
-    coverage = coverage_lines(model, fitted["seconds"])
+    rec = fitted["recording"]
+    rest = rest_detection_warning(
+        rec.sensor_stamps_ns, rec.joint_stamps_ns, rec.joint_velocity, profile.max_speed
+    )
+    coverage = coverage_lines(model, fitted["seconds"]) + ([rest] if rest else [])
     if args.quiet:  # warnings and the counts of bad input only, if any (--quiet)
         for line in coverage:
             if line.startswith("warning:"):

@@ -318,6 +318,7 @@ class Calibrator(Node):
         from egovib_ros.core.methods import (  # deferred: numba compiles at shutdown, not at start
             calibrate_detection,
             calibrate_methods,
+            rest_detection_warning,
             short_detection_warning,
         )
         from egovib_ros.gap.advice import joint_lag_of  # deferred: the gap's imports
@@ -345,8 +346,8 @@ class Calibrator(Node):
             if lag is not None:
                 fitted.append(f"its joint lag {round(1000 * joint_lag_of(lag)):+d} ms")
             short = short_detection_warning(len(stamps) / self.profile.rate_hz)
-            if short:
-                fitted.append(short)
+            rest = rest_detection_warning(stamps, joint_stamps, velocity, self.profile.max_speed)
+            fitted += [warning for warning in (short, rest) if warning]
         except EgovibError as exc:
             return model, f"the paper's table only ({exc})"
         return model, f"on {len(stamps) / self.profile.rate_hz:.0f} s kept: " + "; ".join(fitted)
