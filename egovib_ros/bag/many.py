@@ -69,10 +69,15 @@ class BagJob:
     size: int = 0
 
 
+def is_bare_mcap(path: Path) -> bool:
+    """A bag's .mcap file given alone, without its directory (BagReader reads it)."""
+    path = Path(path)
+    return path.suffix == ".mcap" and path.is_file()
+
+
 def is_bag(path: Path) -> bool:
     """A rosbag2 bag directory, or a bare .mcap file (BagReader reads both)."""
-    path = Path(path)
-    return (path / "metadata.yaml").is_file() or (path.suffix == ".mcap" and path.is_file())
+    return (Path(path) / "metadata.yaml").is_file() or is_bare_mcap(path)
 
 
 def expand_bags(

@@ -26,6 +26,7 @@ from mcap.records import Schema
 from rosbags.rosbag2 import Reader
 
 from egovib_ros.bag.codec import MessageBatch
+from egovib_ros.bag.many import is_bare_mcap
 from egovib_ros.bag.mcapfile import (
     ChunkData,
     McapDamaged,
@@ -107,7 +108,7 @@ class BagReader:
                 digest=getattr(conn, "digest", "") or "",
             )
         self.files = [self.path / name for name in self.info.get("relative_file_paths") or []]
-        if not self.files and self.path.is_file():  # a bare .mcap file, given without its bag
+        if not self.files and is_bare_mcap(self.path):
             self.files = [self.path]
         self.total_bytes = sum(f.stat().st_size for f in self.files if f.exists())
 
@@ -117,8 +118,9 @@ class BagReader:
         (topics, types and counts from one scan of the records), as `ros2 bag reindex` would
         recover them, and say so; False if this is not such a bag (the caller refuses it)."""
         files = [self.path / n for n in self.info.get("relative_file_paths") or []]
-        bare = self.path.suffix == ".mcap" and self.path.is_file()  # a file given, no directory
-        files = files or ([self.path] if bare else sorted(self.path.glob("*.mcap")))
+        files = files or (
+            [self.path] if is_bare_mcap(self.path) else sorted(self.path.glob("*.mcap"))
+        )
         if (
             not files
             or any(f.suffix != ".mcap" or not f.is_file() for f in files)
