@@ -311,7 +311,10 @@ def test_joint_states_too_seldom_are_named_as_the_cause(nodes, ros_client, feede
     assert stream.run_until(warned, at_most_s=4.0), shown(ros_client)
     message = ros_client.statuses["denoiser"].message
     assert "without joint state" in message
-    assert int(re.search(r"come every (\d+) ms", message).group(1)) >= 95, message
+    # the cause named: joint states further apart than one is held (50 ms). Not 95 ms or
+    # more: a feeder catching up on a loaded machine sends two at once, and the report's
+    # period then measured 64 ms (make test, 2026-12-01)
+    assert int(re.search(r"come every (\d+) ms", message).group(1)) > 50, message
     assert nodes.stop(den) == 0, nodes.log(den)
 
 
