@@ -407,3 +407,19 @@ def test_a_calibration_mostly_at_rest_is_said_to_set_thresholds_below_motion():
     assert line.startswith("warning: 70% of the calibration data is the robot at rest"), line
     assert warned(0.3) is None and warned(0.7, unknown=True) is None
     assert rest_detection_warning(stamps, joint_stamps[:0], np.zeros((0, 2)), top) is None
+
+
+def test_hybrid_counts_beyond_the_grid_by_the_papers_rule(model):
+    """A speed past the grid's top by less than half its edge step (a sweep's dwell
+    overshooting it) is in the edge cell; further out it is beyond the grid
+    (noise_model.grid_limits, as test_core_subtraction holds for the paper's method)."""
+    rec = recording(2.0, seed=3)
+    residual = MethodCalibration.from_model(model).residual
+    counts = []
+    for past in (0.3, 0.6):
+        velocity = np.array([g[-1] + past * (g[-1] - g[-2]) for g in residual.grid]) * np.ones(
+            (len(rec["tj"]), 1)
+        )
+        *_, stats = denoise_batch_method(rec["t"], rec["accel"], rec["tj"], velocity, model)
+        counts.append(stats.samples_out_of_grid)
+    assert counts[0] == 0 < counts[1]

@@ -345,11 +345,12 @@ class MethodCalibration:
 
 
 @numba.njit(cache=True)
-def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):  # noqa: C901 (numba loop: one compiled pass per call)
+def _dense_rows(velocity, grids, grid_len, limits, table, strides, measured, floor):  # noqa: C901 (numba loop: one compiled pass per call)
     """Expected band powers once per run of equal velocities: multilinear in the flattened
     dense table (cells, M) (np.interp's position rule, clamped), at least `floor` (M,).
     Returns (values (n, M), the first R rows used, zeros without joint state; index (n,);
-    R; samples whose nearest cell is unmeasured; samples outside the grid). Compiled: a
+    R; samples whose nearest cell is unmeasured; samples beyond the grid's `limits` (J, 2):
+    noise_model.grid_limits). Compiled: a
     live stream calls it every few samples."""
     n, J = velocity.shape
     M = table.shape[1]
@@ -386,7 +387,7 @@ def _dense_rows(velocity, grids, grid_len, table, strides, measured, floor):  # 
                     g = grids[j]
                     last = grid_len[j] - 1
                     v = velocity[i, j]
-                    if v < g[0] - 1e-9 * abs(g[0]) or v > g[last] + 1e-9 * abs(g[last]):
+                    if v < limits[j, 0] or v > limits[j, 1]:
                         outside = True
                     if v <= g[0]:
                         position = 0.0
@@ -445,6 +446,7 @@ class ResidualTable:
             )
             self._measured = np.ascontiguousarray((residual.counts > 0).reshape(-1))
             self._grid_len = np.array([len(g) for g in residual.grid], np.int64)
+            self._grid_limits = np.array(residual.grid_limits)
             self._grid_rows = np.zeros((J, int(self._grid_len.max())))
             for j, g in enumerate(residual.grid):
                 self._grid_rows[j, : len(g)] = g
@@ -475,7 +477,14 @@ class ResidualTable:
         state gets a row of zeros (its gains stay open)."""
         B = self.weights.shape[0]
         if self._table is not None:
-            grid = (self._grid_rows, self._grid_len, self._table, self._strides, self._measured)
+            grid = (
+                self._grid_rows,
+                self._grid_len,
+                self._grid_limits,
+                self._table,
+                self._strides,
+                self._measured,
+            )
             velocity = np.ascontiguousarray(velocity, dtype=np.float64)
             values, index, R, unmeasured, outside = _dense_rows(velocity, *grid, self._floor_flat)
             self.samples_unmeasured += unmeasured
@@ -720,6 +729,7 @@ def warm_up() -> None:
         np.zeros((2, 1)),
         np.array([[0.0, 1.0]]),
         np.array([2], np.int64),
+        np.array([[-0.5, 1.5]]),
         np.ones((2, 1)),
         np.ones(1, np.int64),
         np.ones(2, np.bool_),

@@ -124,6 +124,7 @@ class NoiseModel:
             self._steps.append(
                 float(step) if np.allclose(np.diff(g), step, rtol=1e-12, atol=0) else 0.0
             )
+        self.grid_limits = tuple(grid_limits(g) for g in self.grid)  # per joint (low, high)
 
     # --- construction checks --------------------------------------------------------
     def _check_settings(self, where: str) -> None:
@@ -556,7 +557,8 @@ class NoiseModel:
         outside = np.zeros(len(velocity), dtype=bool)
         for j, g in enumerate(self.grid):
             v = velocity[:, j]
-            outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
+            low, high = self.grid_limits[j]
+            outside |= (v < low) | (v > high)
             step = self._steps[j]
             if step:  # uniform grid: plain arithmetic
                 position = np.minimum(np.maximum((v - g[0]) / step, 0.0), len(g) - 1.0)
@@ -619,8 +621,9 @@ class NoiseModel:
         lower, frac = [], []
         outside = False
         for j, g in enumerate(self.grid):
-            v, low, high, n = float(velocity[j]), float(g[0]), float(g[-1]), len(g)
-            outside = outside or v < low - 1e-9 * abs(low) or v > high + 1e-9 * abs(high)
+            v, low, n = float(velocity[j]), float(g[0]), len(g)
+            limit_low, limit_high = self.grid_limits[j]
+            outside = outside or v < limit_low or v > limit_high
             if self._steps[j]:
                 position = min(max((v - low) / self._steps[j], 0.0), n - 1.0)
             else:
@@ -908,6 +911,16 @@ def _integer_field(value: np.ndarray, name: str, where: str) -> int:
 
 def _profile_kwargs(profile: RobotProfile) -> dict:
     return {f: getattr(profile, f) for f in profile.__dataclass_fields__ if f != "source"}
+
+
+def grid_limits(grid: np.ndarray) -> tuple[float, float]:
+    """Where a joint's velocity lies beyond its grid: past an edge by more than half the edge
+    step, where the edge cell stops being the nearest (a sweep's dwell at a top speed
+    overshoots it a little, and the edge cell is its cell)."""
+    g = np.asarray(grid, float)
+    if len(g) < 2:
+        return float(g[0]), float(g[0])
+    return float(g[0] - (g[1] - g[0]) / 2), float(g[-1] + (g[-1] - g[-2]) / 2)
 
 
 def sweep_mask(grid: tuple[np.ndarray, ...], sweep: str) -> np.ndarray:

@@ -366,7 +366,7 @@ class StreamingDenoiser(FramedDenoiser):
             # One block (the live case): skip the general lookup's bookkeeping.
             noise, outside, measured = self.model.estimate_one(blocks.velocity[0], self._table)
             self.blocks_unmeasured += not measured
-            self._count_outside(outside, blocks.velocity[:1])
+            self._count_outside(outside)
             return self._gain(magnitude, self._scaled(noise, blocks.t_first_ns))
         if not usable.all():
             self._warn_once(
@@ -378,32 +378,23 @@ class StreamingDenoiser(FramedDenoiser):
                 blocks.velocity[usable], self.channel_index, include_std=self._include_std
             )
             self.blocks_unmeasured += int((~measured).sum())
-            self._count_outside(outside, blocks.velocity[usable])
+            self._count_outside(outside)
             noise = self._scaled(noise, blocks.t_first_ns[usable])
             gain[usable] = self._gain(magnitude[usable], noise)
         return gain
 
-    def _count_outside(self, outside: np.ndarray, velocity: np.ndarray) -> None:
-        """Blocks beyond the grid counted (their noise: the edge cells'); a warning once
-        one is beyond it by more than half the edge cell's step (a sweep's dwell at a top
-        speed overshoots it a little, and the edge cell is its cell)."""
+    def _count_outside(self, outside: np.ndarray) -> None:
+        """Blocks beyond the grid (noise_model.grid_limits) counted (their noise: the edge
+        cells'), and said once."""
         n_outside = int(outside[0]) if len(outside) == 1 else int(outside.sum())  # (live: one)
         if not n_outside:
             return
         self.blocks_out_of_grid += n_outside
-        if "out_of_grid" in self._warned:  # said once: only the count goes on (per block, live)
-            return
-        far = np.zeros(len(velocity), dtype=bool)
-        for j, g in enumerate(self.model.grid):
-            if len(g) > 1:
-                low, high = g[0] - (g[1] - g[0]) / 2, g[-1] + (g[-1] - g[-2]) / 2
-                far |= (velocity[:, j] < low) | (velocity[:, j] > high)
-        if far.any():
-            self._warn_once(
-                "out_of_grid",
-                "joint velocity beyond the model grid by more than half a cell: using the "
-                "edge cells (calibrate at the speeds the robot runs at)",
-            )
+        self._warn_once(
+            "out_of_grid",
+            "joint velocity beyond the model grid by more than half a cell: using the "
+            "edge cells (calibrate at the speeds the robot runs at)",
+        )
 
     def _scaled(self, noise: np.ndarray, t_first_ns: np.ndarray) -> np.ndarray:
         """The noise estimate (B, C, F) times the level change `noise_gain_db` gives at each

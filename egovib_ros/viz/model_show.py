@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from egovib_ros.bag import BagReader, iter_recording
 from egovib_ros.core.adapt import describe_learnt
-from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD
+from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD, grid_limits
 from egovib_ros.core.stream import BlockFramer, FramerSettings, check_stream
 from egovib_ros.core.velocity import MISSING
 from egovib_ros.errors import BagError
@@ -326,28 +326,27 @@ class BagPlacement:
 
 
 def _histogram_edges(grid: np.ndarray) -> np.ndarray:
-    """Bin edges of a joint's velocity histogram: half-way between grid velocities inside
-    the grid, the grid's ends, then bins of the edge step beyond it, half the grid's span
-    on each side (blocks further out land in the two end bins)."""
+    """Bin edges of a joint's velocity histogram: one bin per grid velocity (half-way
+    between grid velocities, the edge cells reaching to `grid_limits`), then bins of the
+    edge step beyond, half the grid's span on each side (blocks further out land in the
+    two end bins)."""
     g = np.asarray(grid, dtype=np.float64)
-    mids = 0.5 * (g[1:] + g[:-1])
+    low, high = grid_limits(g)
     low_step, high_step = g[1] - g[0], g[-1] - g[-2]
     extra = max(1, (len(g) - 1) // 2)
-    below = g[0] - low_step * np.arange(extra, 0, -1)
-    above = g[-1] + high_step * np.arange(1, extra + 1)
-    return np.concatenate([below, [g[0]], mids, [g[-1]], above])
+    below = low - low_step * np.arange(extra, 0, -1)
+    above = high + high_step * np.arange(1, extra + 1)
+    return np.concatenate([below, [low], 0.5 * (g[1:] + g[:-1]), [high], above])
 
 
 def _histogram_bins(grid: np.ndarray, edges: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Bin of each value: 0 below the first edge, len(edges) above the last; a value on
-    the grid's end (within the look-up's tolerance) is inside the grid, as the denoiser
-    sees it."""
-    g0, g1 = float(grid[0]), float(grid[-1])
+    """Bin of each value: 0 below the first edge, len(edges) above the last; a value within
+    `grid_limits` is in its grid velocity's bin, as the denoiser sees it."""
+    low, high = grid_limits(grid)
     bins = np.searchsorted(edges, values, side="right")
-    inside = (values >= g0 - 1e-9 * abs(g0)) & (values <= g1 + 1e-9 * abs(g1))
-    first = int(np.searchsorted(edges, g0, side="right"))  # the bin starting at g0
-    last = first + len(grid) - 1  # the bin ending at g1
-    bins[inside] = np.clip(bins[inside], first, last)
+    inside = (values >= low) & (values <= high)
+    first = int(np.searchsorted(edges, low, side="right"))  # the first grid velocity's bin
+    bins[inside] = np.clip(bins[inside], first, first + len(grid) - 1)
     return bins
 
 
@@ -359,7 +358,8 @@ def nearest_cells(grid, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     outside = np.zeros(len(velocity), dtype=bool)
     for j, g in enumerate(grid):
         v = velocity[:, j]
-        outside |= (v < g[0] - 1e-9 * abs(g[0])) | (v > g[-1] + 1e-9 * abs(g[-1]))
+        low, high = grid_limits(g)
+        outside |= (v < low) | (v > high)
         position = np.interp(v, g, np.arange(len(g), dtype=np.float64))
         lower = np.minimum(np.floor(position).astype(np.int64), len(g) - 2)
         nearest[:, j] = lower + (position - lower >= 0.5)
