@@ -57,6 +57,11 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(
         err = capsys.readouterr().err.strip()
         assert named in err and "\n" not in err, err
         assert not out.exists()
+    # neither JSON nor CSV by its name: refused, not written as JSON under another name
+    args = ["detect", str(sim_bags / "motion"), "--model", str(sim_bags_model)]
+    assert main([*args, "--out", str(tmp_path / "events.txt")]) == 2
+    assert "EVENTS.json" in capsys.readouterr().err
+    assert not (tmp_path / "events.txt").exists()
 
 
 def test_force_replaces_only_event_files_detect_wrote(sim_bags, sim_bags_model, tmp_path, capsys):

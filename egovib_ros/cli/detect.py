@@ -86,7 +86,12 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    kind = "file" if Path(args.out).suffix.lower() == ".csv" else "json"
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in (".json", ".csv"):
+        raise ConfigError(
+            f"--out {args.out}: name it EVENTS.json (all of it) or EVENTS.csv (one row per event)"
+        )
+    kind = "file" if suffix == ".csv" else "json"
     prepare_output(
         args.out,
         force=args.force,
