@@ -144,6 +144,15 @@ def test_live_denoiser_keeps_stamps_lowers_noise_and_copies_the_input_message(
     assert wait_for_stream_end(ros_client, raw, denoised, end_ns=end_ns), (len(raw), len(denoised))
     assert nodes.stop(den) == 0
     assert nodes.stop(sim) == 0
+    # its closing line accounts for every sample it received
+    closing = re.search(
+        r"samples in (\d+), published (\d+), withheld (\d+), dropped as bad or out of order "
+        r"(\d+), not yet output at the stop (\d+)",
+        nodes.log(den),
+    )
+    assert closing is not None, nodes.log(den)
+    received, *parts = (int(n) for n in closing.groups())
+    assert received == sum(parts) and parts[0] > 0, closing.group(0)
 
     raw_stamps, raw_accel, bad = decode_imu_messages(raw)
     den_stamps, den_accel, bad_denoised = decode_imu_messages(denoised)

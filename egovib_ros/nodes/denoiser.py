@@ -650,9 +650,18 @@ class Denoiser(Node):
                 f"lines found online {adapted.lines_found}",
                 flush=True,
             )
+        # every sample received is one of these (the core's look-ahead and framing hold the
+        # last few at a stop: they are never output, and said so)
+        inside = (
+            len(self.held.raws)
+            + sum(len(raws) for raws, _, _ in self._startup)
+            + self.input.sensor_pending
+        )
         line = (
             f"denoiser: samples in {self.input.sensor_messages}, "
-            f"published {self.samples_published}, withheld {self.samples_withheld}, undecodable "
+            f"published {self.samples_published}, withheld {self.samples_withheld}, "
+            f"dropped as bad or out of order {stats.samples_bad + stats.dropped_out_of_order}, "
+            f"not yet output at the stop {inside}, undecodable "
             f"{self.input.undecodable_sensor + self.input.undecodable_joints}, "
             f"restarts {stats.resets}"
         )
