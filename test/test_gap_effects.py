@@ -24,6 +24,7 @@ from egovib_ros.gap.effects import (
     fit_variant,
     lag_scan,
     place_lag,
+    refine_lag,
     time_hats,
 )
 from egovib_ros.gap.regression import MAX_LOG_GAIN
@@ -146,15 +147,18 @@ def test_the_acceleration_term_grows_with_the_wrists_acceleration():
 
 
 def test_the_lag_is_found_with_its_sign():
-    """Joint states stamped 50 ms late: +50 ms (+-3 ms); in sync: within the 5 ms step."""
+    """Joint states stamped 50 ms late: +50 ms (+-3 ms), the full scan's lag at a third of
+    its cost; in sync: within the 5 ms step."""
     table = synthetic_table("timing", 0.05, seed=5, duration_s=30.0)
-    lag, lags, curve = fit_lag(table, ~table.contact, lag_range_s=0.07)
+    train, prior = ~table.contact, simulator_cells(table)
+    lag = fit_lag(table, train, lag_range_s=0.07)
     assert lag == pytest.approx(0.05, abs=0.003)
+    lags, curve = lag_scan(table, train, lag_range_s=0.07, prior=prior)
     assert lags.min() == pytest.approx(-0.07) and lags.max() == pytest.approx(0.07)
     assert curve[np.argmin(np.abs(lags))] > curve.min()
+    assert lag == refine_lag(table, train, lags, curve, prior=prior)
     table = synthetic_table(seed=5, duration_s=30.0)
-    lag, _, _ = fit_lag(table, ~table.contact, lag_range_s=0.02)
-    assert abs(lag) <= 0.005
+    assert abs(fit_lag(table, ~table.contact, lag_range_s=0.02)) <= 0.005
 
 
 def test_the_lag_scan_uses_every_training_block(sim_model_path):
@@ -173,7 +177,7 @@ def test_the_lag_scan_uses_every_training_block(sim_model_path):
         forms={"timing": "stamps"},
     )
     table = build_table(rec, NoiseModel.load(sim_model_path), source="alt lag")
-    lag, _, _ = fit_lag(table, ~table.contact, lag_range_s=0.05)
+    lag = fit_lag(table, ~table.contact, lag_range_s=0.05)
     assert lag == pytest.approx(0.0175, abs=0.004)
 
 

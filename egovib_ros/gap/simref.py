@@ -48,7 +48,7 @@ def simulator_reference_lag(
     table = build_table(rec, model, source="simulated reference motion")
     train = ~table.contact
     # The simulator's own lag is a few ms (group delays): a +-30 ms scan suffices.
-    lag, _, _ = fit_lag(table, train, lag_range_s=0.03)
+    lag = fit_lag(table, train, lag_range_s=0.03)
     return float(lag)
 
 
@@ -78,7 +78,7 @@ def with_own_lag(model, rec):
     table = build_table(rec, model, source="calibration recording")
     if (~table.contact).sum() < MIN_BLOCKS:
         return model
-    lag, _, _ = fit_lag(table, ~table.contact)
+    lag = fit_lag(table, ~table.contact)
     return model.replace(extras={**model.extras, OWN_LAG_KEY: np.array(float(lag))})
 
 
