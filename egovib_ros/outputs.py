@@ -371,7 +371,7 @@ def _why_not_ours(path: Path, kind: str) -> str | None:
     if kind in DIRECTORY_KINDS:
         if path.is_symlink() or not path.is_dir():
             return "exists and is not a directory"
-        return _why_not_our_directory(path)
+        return _why_not_our_directory(path, kind)
     if path.is_dir():
         return "is a directory"
     if kind == "model":
@@ -384,7 +384,7 @@ def _why_not_ours(path: Path, kind: str) -> str | None:
     return None
 
 
-def _why_not_our_directory(path: Path) -> str | None:
+def _why_not_our_directory(path: Path, kind: str | None) -> str | None:
     files = _relative_files(path)
     marker = _read_json(path / MARKER)
     if isinstance(marker, dict) and marker.get("schema") == MARKER_SCHEMA:
@@ -392,6 +392,11 @@ def _why_not_our_directory(path: Path) -> str | None:
         foreign = sorted(f for f in files if f not in ours)
         if foreign:
             return f"holds files egovib did not write ({_short_list(foreign)})"
+        # A bag is recorded data: only a bag replaces it, and a bag replaces only a bag (a
+        # bag_recorder's bag is marked "directory": its metadata.yaml tells it)
+        was_bag = marker.get("kind") == "bag" or "metadata.yaml" in files
+        if kind is not None and was_bag != (kind == "bag"):
+            return "is a bag egovib wrote" if was_bag else "is an egovib output but not a bag"
         return None
     if not files:
         return None  # an empty directory loses nothing
@@ -456,7 +461,7 @@ def atomic_output(
             raise _STOP[0]()
         if directory and tmp.is_dir():
             _write_marker(tmp, kind)
-        _move_into_place(tmp, final, directory=directory, staging=staging)
+        _move_into_place(tmp, final, directory=directory, kind=kind, staging=staging)
     except OSError as exc:
         if exc.errno not in _WRITE_FULL:
             raise
@@ -500,21 +505,28 @@ def _write_marker(directory: Path, kind: str | None) -> None:
     (directory / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
 
 
-def check_replaceable(path: str | os.PathLike, *, directory: bool = False) -> None:
-    """OutputError now, before any work, if `atomic_output(path, directory=...)` would
-    refuse to replace what is there at the end."""
+def check_replaceable(
+    path: str | os.PathLike, *, directory: bool = False, kind: str | None = None
+) -> None:
+    """OutputError now, before any work, if `atomic_output(path, directory=..., kind=...)`
+    would refuse to replace what is there at the end."""
     final = Path(path)
     if not os.path.lexists(final):
         return
-    reason = _why_not_ours(final, "directory") if directory else None
-    if reason is None and not directory and final.is_dir():
-        reason = "is a directory"
+    if not directory:
+        reason = "is a directory" if final.is_dir() else None
+    elif final.is_symlink() or not final.is_dir():
+        reason = "exists and is not a directory"
+    else:
+        reason = _why_not_our_directory(final, kind)
     if reason:
         raise OutputError(f"{final}: {reason}; not replaced")
 
 
-def _move_into_place(tmp: Path, final: Path, *, directory: bool, staging: Path) -> None:
-    check_replaceable(final, directory=directory)
+def _move_into_place(
+    tmp: Path, final: Path, *, directory: bool, kind: str | None, staging: Path
+) -> None:
+    check_replaceable(final, directory=directory, kind=kind)
     if not directory or not os.path.lexists(final):
         os.replace(tmp, final)
         return

@@ -114,6 +114,30 @@ def test_force_replaces_only_our_own_directories(cwd):
         prepare_output("ours", force=True, kind="bag")
 
 
+def test_a_bag_egovib_wrote_is_replaced_only_by_a_bag(cwd):
+    """`egovib model show M --out SWEEP --force` deleted the calibration sweep egovib had
+    written (a probe's, with the model's own bag): a report never replaces a bag, nor a bag
+    a report, even with --force; a bag_recorder's bag is marked by its metadata.yaml."""
+    write_dir_output(cwd / "sweep")
+    write_dir_output(cwd / "recorded", kind=None)  # an older bag_recorder's marker
+    write_dir_output(cwd / "figures", files=("summary.md",), kind="directory")
+    for bag in ("sweep", "recorded"):
+        for kind in ("directory", "report"):
+            with pytest.raises(OutputError, match="is a bag egovib wrote.*even with --force"):
+                prepare_output(bag, force=True, kind=kind)
+        assert prepare_output(bag, force=True, kind="bag")
+    with pytest.raises(OutputError, match="not a bag.*even with --force"):
+        prepare_output("figures", force=True, kind="bag")
+    assert prepare_output("figures", force=True, kind="report")
+    # and at the end of the run, whatever its checks before
+    with (
+        pytest.raises(OutputError, match="is a bag egovib wrote"),
+        atomic_output("sweep", directory=True, kind="report") as tmp,
+    ):
+        tmp.mkdir()
+    assert (cwd / "sweep" / "data.mcap").read_text() == "data.mcap"
+
+
 def test_directory_never_replaced_by_a_file_and_back(cwd):
     write_dir_output(cwd / "bag")
     with pytest.raises(OutputError, match="is a directory"):

@@ -169,7 +169,9 @@ def run_gap(
     for path in (real_path, reference_path):
         if path is not None and not Path(path).exists():
             raise BagError(f"{path}: no such bag")
-    check_replaceable(out_dir, directory=True)  # refused now, not after the diagnosis
+    check_replaceable(
+        out_dir, directory=True, kind="report"
+    )  # refused now, not after the diagnosis
     lag = reference_lag_for(model, reference_lag, sim_params)
     options = dataclasses.replace(options or DiagnosisOptions(), reference_lag_s=lag)
     # streamed: the sensor samples are framed slice by slice, never held whole; a thinned
@@ -206,7 +208,7 @@ def run_gap(
         settings = merged_settings(effect_actions(diag))
         order = joint_order(model, rec.joint_names, str(real_path))
         measured = measure_advice(rec, model, diag, settings, order)
-    with atomic_output(out_dir, directory=True) as tmp:
+    with atomic_output(out_dir, directory=True, kind="report") as tmp:
         tmp.mkdir(parents=True)
         wb = None
         if write_back:

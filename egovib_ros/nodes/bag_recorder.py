@@ -69,7 +69,9 @@ class BagRecorder(Node):
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._files = contextlib.ExitStack()
         try:
-            tmp_path = self._files.enter_context(atomic_output(self.output, directory=True))
+            tmp_path = self._files.enter_context(
+                atomic_output(self.output, directory=True, kind="bag")
+            )
             self.writer = Writer(tmp_path, version=9, storage_plugin=STORAGE[storage])
             if compress:  # readable by rosbags and `ros2 bag`, ~13x smaller for a 3 kHz Imu stream
                 mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE

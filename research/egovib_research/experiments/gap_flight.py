@@ -169,7 +169,7 @@ def run_flight_gap(
         "end_s": end_s,
         "directions": {},
     }
-    with atomic_output(out, directory=True) as tmp:
+    with atomic_output(out, directory=True, kind="report") as tmp:
         tmp.mkdir(parents=True)
         for calib, test in (("first", "second"), ("second", "first")):
             start = time.perf_counter()

@@ -108,7 +108,7 @@ def convert(
     joints = encode_joint_state_batch(
         stamps, motor_positions(stamps, log.motors), log.motors, MOTOR_NAMES
     )
-    with atomic_output(out, directory=True) as tmp:
+    with atomic_output(out, directory=True, kind="bag") as tmp:
         with BagWriter(tmp, compress=True) as bag:
             bag.add_topic(profile.joints_topic, JOINT_STATE_TYPE)
             bag.add_topic(profile.sensor_topic, IMU_TYPE)
