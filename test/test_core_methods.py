@@ -27,7 +27,7 @@ from egovib_ros.core.methods import (
     short_detection_warning,
 )
 from egovib_ros.core.noise_model import NoiseModel
-from egovib_ros.errors import ConfigError, ModelFileError
+from egovib_ros.errors import ConfigError, ModelFileError, StreamError
 
 FS = TWO_MOTOR_FS
 PROFILE = two_motor_profile("two_motor_test")
@@ -423,3 +423,12 @@ def test_hybrid_counts_beyond_the_grid_by_the_papers_rule(model):
         *_, stats = denoise_batch_method(rec["t"], rec["accel"], rec["tj"], velocity, model)
         counts.append(stats.samples_out_of_grid)
     assert counts[0] == 0 < counts[1]
+
+
+def test_a_sensor_that_never_changes_is_refused_not_fitted(model):
+    """The live calibrator's path (calibrate_methods on what it kept): a field the messages
+    leave at zero was an SVD that did not converge; now one line."""
+    rec = recording(3.0, seed=4)
+    flat = np.zeros_like(rec["accel"])
+    with pytest.raises(StreamError, match="never changes"):
+        calibrate_methods(model, rec["t"], flat, rec["tj"], rec["velocity"], source="live")

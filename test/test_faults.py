@@ -448,6 +448,10 @@ def lab(tmp_path_factory) -> Lab:
     write_recording(
         p["mostly_nan"], _with(motion, sensor=_with_bad_samples(motion.sensor, 3000, 3000))
     )
+    # a dead sensor, or a profile naming a field the messages leave at zero: refused
+    p["flat"] = root / "flat"
+    flat = np.broadcast_to([0.0, 0.0, 9.81], motion.sensor.shape)
+    write_recording(p["flat"], _with(motion, sensor=np.array(flat)))
     p["sweep_nan"] = root / "sweep_nan"  # 1 s of bad samples in the sweep
     write_recording(
         p["sweep_nan"], _with(sweep, sensor=_with_bad_samples(sweep.sensor, 30000, 3000))
@@ -1159,6 +1163,15 @@ ROWS = [
         den("mostly_nan"),
         ("mostly_nan", "bad"),
         check=no_output("den"),
+    ),
+    *(
+        Row(f"{command}_flat_sensor_refused", argv, ("flat", "never changes"), check=no_output(out))
+        for command, argv, out in (
+            ("calibrate", cal("flat"), "m.npz"),
+            ("denoise", den("flat"), "den"),
+            ("evaluate", ev("flat"), "eval.json"),
+            ("gap", gap("flat"), "report"),
+        )
     ),
     Row(
         "calibrate_nan_second_counted",

@@ -134,6 +134,7 @@ class RecordingStream:
         self.profile = profile or _default_profile()
         self.names = bag_topic_names(self.profile)
         self.field = self.profile.sensor_field
+        self._flat = _FlatWatch()  # a sensor that never changes is refused at the end
         self.joint_names = tuple(self.profile.joint_names)
         reader.require(self.names["raw"], IMU_TYPE)
         reader.require(self.names["joint_states"], JOINT_STATE_TYPE)
@@ -237,6 +238,12 @@ class RecordingStream:
         for key in ("raw", "joint_states"):
             if self.counts[key] == 0:
                 raise BagError(f"{where}: topic {self.names[key]} has no messages")
+        if self._flat.flat:
+            raise BagError(
+                f"{where}: {self.names['raw']}: its {self.field} never changes over "
+                f"{self._flat.samples} samples (a dead or disconnected sensor, or a field its "
+                f"messages leave unset: check the robot profile's sensor field)"
+            )
         if not self._joint_seen.all():
             missing = [n for n, seen in zip(self.joint_names, self._joint_seen) if not seen]
             raise BagError(
@@ -469,6 +476,7 @@ class RecordingStream:
                 [np.pad(v, (0, width_c - len(v)), constant_values=np.nan) for v in values]
             )
             self._commands = []
+        self._flat.see(piece.sensor)
         return [piece]
 
 
@@ -489,6 +497,28 @@ def iter_recording(
             if progress is not None:
                 progress(batch.bytes_read)
         yield from stream.finish()
+
+
+class _FlatWatch:
+    """Whether every finite sensor sample seen equals the first (`flat`, from two on)."""
+
+    def __init__(self):
+        self.first: np.ndarray | None = None
+        self.samples = 0
+        self.varies = False
+
+    def see(self, sensor: np.ndarray) -> None:
+        if self.varies or not len(sensor):
+            return
+        finite = sensor[np.all(np.isfinite(sensor), axis=1)]
+        if len(finite):
+            self.first = finite[0] if self.first is None else self.first
+            self.samples += len(finite)
+            self.varies = bool(np.any(finite != self.first))
+
+    @property
+    def flat(self) -> bool:
+        return self.samples > 1 and not self.varies
 
 
 def concat_recordings(pieces: Sequence[Recording]) -> Recording:

@@ -579,6 +579,12 @@ def calibrate_methods(
     3. the gain stage's statistics on that residual (`_gain_statistics`)."""
     canceller = CancellerSettings()
     gain = gain or GainSettings()
+    finite = np.asarray(accel)[np.all(np.isfinite(accel), axis=1)]
+    if len(finite) and not np.any(finite != finite[0]):  # the fits would divide by zero power
+        raise StreamError(
+            f"{source or 'calibration'}: the sensor never changes (a dead sensor, or a field "
+            f"its messages leave unset?): nothing to calibrate"
+        )
     split = _split(model, accel, gain)
     if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
         delay_ms = 1e3 * split[1] / model.sample_rate_hz
