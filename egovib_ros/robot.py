@@ -366,10 +366,10 @@ def load_profile(spec: str | os.PathLike | None = None) -> RobotProfile:
 def robot_option(profile: RobotProfile) -> str | None:
     """What `egovib calibrate --robot` names this profile by in a command line the project
     advises: nothing for the default PR2 hand, a shipped profile's name, else PROFILE.yaml
-    (the user's own file, wherever it is)."""
-    if profile.name == DEFAULT_PROFILE:
-        return None
-    return profile.name if profile.name in profile_names() else "PROFILE.yaml"
+    (the user's own file, wherever it is; also a copy of a shipped one that kept its name)."""
+    if profile.name not in profile_names() or load_profile(profile.name) != profile:
+        return "PROFILE.yaml"
+    return None if profile.name == DEFAULT_PROFILE else profile.name
 
 
 def default_profile() -> RobotProfile:

@@ -4,6 +4,7 @@ known effect (test/gaptables.py), and the lag advice applied with the core."""
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import subprocess
 
 import numpy as np
@@ -111,6 +112,15 @@ def test_the_commands_apply_every_correction_together():
         assert subprocess.run(["bash", "-n", "-c", line], capture_output=True).returncode == 0
     assert robot_option(load_profile("example_arm")) == "example_arm"
     assert robot_option(load_profile(None)) is None  # the PR2 hand: the default
+    # a copy of a shipped profile, edited, that kept its name: the user's file, not ours
+    edited = dataclasses.replace(load_profile("quadcopter"), sensor_topic="/imu/data_filtered")
+    assert robot_option(edited) == "PROFILE.yaml"
+    # paths with spaces: one word each, as pasted
+    spaced = commands(settings, bag="my runs/run 1", model="my models/m.npz", report="r 1.json")
+    for line in spaced.values():
+        words = shlex.split(line)
+        assert "my runs/run 1" in words or "model:=my models/m.npz" in words, line
+    assert shlex.split(spaced["denoise"])[2:5] == ["my runs/run 1", "--model", "my models/m.npz"]
 
 
 def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -304,17 +305,20 @@ def commands(
     """The command lines that apply every advised correction together, each one line a
     shell runs as it is (`robot`: calibrate's --robot, robot.robot_option)."""
     flags, params = [], []
+    q = shlex.quote  # a path with a space is one word when pasted
     if settings.get("joint_lag_s"):
         lag = f"{settings['joint_lag_s']:g}"
         flags.append(f"--joint-lag {lag}")
         params.append(f"-p joint_lag:={lag}")
     if settings.get("noise_gain_db"):
-        flags.append(f"--noise-gain {report}")
-        params.append(f"-p noise_gain:={report}")
+        flags.append(f"--noise-gain {q(report)}")
+        params.append(f"-p {q(f'noise_gain:={report}')}")
     out = {}
     if flags:
-        out["denoise"] = f"egovib denoise {bag} --model {model} --out DENOISED " + " ".join(flags)
-        out["denoiser_node"] = f"denoiser --ros-args -p model:={model} " + " ".join(params)
+        out["denoise"] = f"egovib denoise {q(bag)} --model {q(model)} --out DENOISED " + " ".join(
+            flags
+        )
+        out["denoiser_node"] = f"denoiser --ros-args -p {q(f'model:={model}')} " + " ".join(params)
     if settings.get("calibration_grid"):
         grid = settings["calibration_grid"]
         lag = f" --joint-lag {settings['joint_lag_s']:g}" if settings.get("joint_lag_s") else ""
