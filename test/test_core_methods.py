@@ -3,6 +3,7 @@ its storage in the noise model (schema 3, older models still load)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import zipfile
 
@@ -17,6 +18,7 @@ from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import (
     DETECTION_MIN_S,
+    MAX_EARLY_OPENING_MS,
     MethodCalibration,
     SampleMethodDenoiser,
     calibrate_methods,
@@ -432,3 +434,32 @@ def test_a_sensor_that_never_changes_is_refused_not_fitted(model):
     flat = np.zeros_like(rec["accel"])
     with pytest.raises(StreamError, match="never changes"):
         calibrate_methods(model, rec["t"], flat, rec["tj"], rec["velocity"], source="live")
+
+
+def test_a_long_split_lets_the_gain_open_at_most_the_onset_tolerance_early():
+    """A band edge low for the rate needs a long drop-in split (here 20 Hz at 1 kHz); its
+    gain looked as far ahead and opened that much before a contact (a 500 Hz robot's onsets
+    10-20 ms early, F1 0.30). It looks MAX_EARLY_OPENING_MS ahead at most: before that, a tap
+    changes nothing of the output."""
+    profile = dataclasses.replace(two_motor_profile("low_edge"), band_hz=(20.0, 450.0))
+    rec = recording(12.0, seed=1)
+    paper, _ = calibrate_arrays(
+        rec["t"], rec["accel"], rec["tj"], rec["velocity"], profile=profile, sweep="free"
+    )
+    model, _ = calibrate_methods(paper, rec["t"], rec["accel"], rec["tj"], rec["velocity"])
+    split_delay = MethodCalibration.from_model(model).dropin_split[1]
+    early = round(MAX_EARLY_OPENING_MS * 1e-3 * FS)
+    assert split_delay > early + 2  # the case: a split longer than the tolerance
+    denoiser = make_denoiser(model)
+    assert denoiser.delay == split_delay and denoiser.delay_ms == 1e3 * split_delay / FS
+    tapped = recording(8.0, seed=2, taps_per_s=2.0, tap_peak=4.0)
+    quiet = recording(8.0, seed=2)  # the same noise
+    outputs = [
+        combined_bp(denoise_batch_method(r["t"], r["accel"], r["tj"], r["velocity"], model)[1])
+        for r in (tapped, quiet)
+    ]
+    change = np.abs(outputs[0] - outputs[1])
+    onsets = tapped["onsets"][1:]
+    before = np.concatenate([change[o - early - 8 : o - early - 1] for o in onsets])
+    after = np.concatenate([change[o : o + 20] for o in onsets])
+    assert before.max() < 0.05 * after.max(), (before.max(), after.max())
