@@ -4,6 +4,7 @@ its storage in the noise model (schema 3, older models still load)."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import zipfile
 
@@ -463,3 +464,24 @@ def test_a_long_split_lets_the_gain_open_at_most_the_onset_tolerance_early():
     before = np.concatenate([change[o - early - 8 : o - early - 1] for o in onsets])
     after = np.concatenate([change[o : o + 20] for o in onsets])
     assert before.max() < 0.05 * after.max(), (before.max(), after.max())
+
+
+def test_a_band_edge_no_split_can_reach_is_said_at_calibration(caplog):
+    """A 3 Hz band edge at 1 kHz: no split within SPLIT_MAX_DELAY_S keeps motion apart from
+    the band (a probe's 5 Hz edge: onsets 20 ms early in the drop-in output). Calibration
+    says so, naming the recording; the 60 Hz edge of two_motor_profile does not."""
+    rec = recording(6.0, seed=1)
+    for edge, said in ((60.0, False), (3.0, True)):
+        profile = dataclasses.replace(two_motor_profile("edge"), band_hz=(edge, 450.0))
+        paper, _ = calibrate_arrays(
+            rec["t"], rec["accel"], rec["tj"], rec["velocity"], profile=profile, sweep="free"
+        )
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="egovib_ros.core"):
+            calibrate_methods(
+                paper, rec["t"], rec["accel"], rec["tj"], rec["velocity"], source="run: /imu"
+            )
+        warned = [r.getMessage() for r in caplog.records if "too low" in r.getMessage()]
+        assert len(warned) == int(said), warned
+    assert warned[0].startswith("run: /imu: the band's low edge (3 Hz) is too low")
+    assert "`output: bandpassed`" in warned[0]

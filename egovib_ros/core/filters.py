@@ -303,17 +303,13 @@ def split_for(
     split's, then by bisection below it the least delay of a low-delay split within its
     errors of a pure delay (the PR2 hand: 4.0 ms, the linear-phase 5.7). Seconds at most."""
     freqs_hz = np.asarray(freqs_hz, float)
-    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
-    response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
-    band = np.asarray(power, float) * np.abs(response) ** 2
-    total = max(float(band.sum()), 1e-300)
+    band = _band_passed_power(sample_rate_hz, band_hz, order, freqs_hz, power)
     low_edge = band_hz[0]
     # what the split must stop: the band-passed noise from half the band's edge up
     weight = np.where(freqs_hz >= 0.5 * low_edge, band / band.max(), 0.0) + 1e-6
 
     def stops(taps) -> bool:
-        leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
-        return 10.0 * np.log10(max(leak, 1e-300) / total) <= SPLIT_LEAK_DB
+        return _leak_db(taps, band, freqs_hz, sample_rate_hz) <= SPLIT_LEAK_DB
 
     below = freqs_hz[freqs_hz <= SPLIT_TRANSITION_FRACTION * low_edge]
     passed = below <= SPLIT_PASS_FRACTION * low_edge
@@ -359,6 +355,33 @@ def split_for(
         else:
             best, high = (candidate, middle), middle
     return best
+
+
+def split_leak_db(
+    taps: np.ndarray,
+    *,
+    sample_rate_hz: float,
+    band_hz: tuple[float, float],
+    order: int,
+    freqs_hz: np.ndarray,
+    power: np.ndarray,
+) -> float:
+    """dB of a recording's band-passed noise (spectrum `power`) the split `taps` passes into
+    its low part, which no gain touches (`split_for` aims at SPLIT_LEAK_DB)."""
+    freqs_hz = np.asarray(freqs_hz, float)
+    band = _band_passed_power(sample_rate_hz, band_hz, order, freqs_hz, power)
+    return _leak_db(taps, band, freqs_hz, sample_rate_hz)
+
+
+def _band_passed_power(sample_rate_hz, band_hz, order, freqs_hz, power) -> np.ndarray:
+    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+    response = signal.sosfreqz(sos, worN=freqs_hz, fs=sample_rate_hz)[1]
+    return np.asarray(power, float) * np.abs(response) ** 2
+
+
+def _leak_db(taps, band, freqs_hz, sample_rate_hz) -> float:
+    leak = float((band * _split_response(taps, freqs_hz, sample_rate_hz) ** 2).sum())
+    return 10.0 * np.log10(max(leak, 1e-300) / max(float(band.sum()), 1e-300))
 
 
 def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:

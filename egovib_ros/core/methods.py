@@ -19,6 +19,7 @@ split's delay (4.0 ms on the simulated PR2 hand, 10 ms on the 1 kHz flight).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 
@@ -43,10 +44,12 @@ from egovib_ros.core.contact import (
     no_contact_threshold,
 )
 from egovib_ros.core.filters import (
+    SPLIT_LEAK_DB,
     CarriedFilter,
     highpass_inverse,
     lines_highpass,
     split_for,
+    split_leak_db,
     split_taps,
 )
 from egovib_ros.core.harmonic import (
@@ -77,6 +80,8 @@ SAMPLE_METHODS = tuple(m for m in METHODS if m != "paper")
 DEFAULT_METHOD = "hybrid"
 AXES = ("x", "y", "z")
 #: Keys of the noise model's extras written by calibrate_methods.
+LOG = logging.getLogger("egovib_ros.core")
+
 HARMONIC_PREFIX = "harmonic."
 RESIDUAL_PREFIX = "residual."
 GAIN_PREFIX = "gain."
@@ -539,12 +544,12 @@ def _band_passed_calibration(
     return stamps, values, velocity
 
 
-def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | None:
+def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings, source: str) -> tuple | None:
     """The drop-in output's split (taps, delay) fitted to the calibration recording
     (core.filters.split_for), no shorter than the gain's look-ahead; None for a recording
-    too short to tell."""
+    too short to tell. Said when none within SPLIT_MAX_DELAY_S stops the band's noise."""
     values = np.asarray(accel, float)
-    # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
+    # the framer's bad samples (non-finite, beyond the sensor range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
     values = values[~bad_samples(values, sensor_range)]
     fs = model.sample_rate_hz
@@ -553,14 +558,21 @@ def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings) -> tuple | 
     freqs, power = signal.welch(
         values - values.mean(axis=0), fs, nperseg=min(len(values), 1 << int(np.log2(fs))), axis=0
     )
-    return split_for(
-        sample_rate_hz=fs,
-        band_hz=model.band_hz,
-        order=model.band_order,
-        freqs_hz=freqs,
+    spectrum = dict(
+        sample_rate_hz=fs, band_hz=model.band_hz, order=model.band_order, freqs_hz=freqs,
         power=power.sum(axis=1),
-        min_delay=gain.delay_samples(fs),
-    )
+    )  # fmt: skip
+    taps, delay = split_for(**spectrum, min_delay=gain.delay_samples(fs))
+    leak = split_leak_db(taps, **spectrum)
+    if leak > SPLIT_LEAK_DB:
+        LOG.warning(
+            f"{source or 'calibration'}: the band's low edge ({model.band_hz[0]:g} Hz) is too "
+            f"low for the drop-in output to keep motion apart from the band within "
+            f"{1e3 * delay / fs:.0f} ms: {leak:.0f} dB of the ego-vibration stays in it "
+            f"(aim: {SPLIT_LEAK_DB:g} dB), and contacts carry an echo up to that much "
+            f"before them; `output: bandpassed` has neither (or raise the band's low edge)"
+        )
+    return taps, delay
 
 
 def calibrate_methods(
@@ -590,7 +602,7 @@ def calibrate_methods(
             f"{source or 'calibration'}: the sensor never changes (a dead sensor, or a field "
             f"its messages leave unset?): nothing to calibrate"
         )
-    split = _split(model, accel, gain)
+    split = _split(model, accel, gain, source)
     if split is not None and not gain.split_ms:  # the look-ahead the fitted split needs
         delay_ms = 1e3 * split[1] / model.sample_rate_hz
         gain = dataclasses.replace(gain, split_ms=max(gain.lookahead_ms, round(delay_ms, 3)))
