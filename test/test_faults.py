@@ -452,6 +452,17 @@ def lab(tmp_path_factory) -> Lab:
     p["flat"] = root / "flat"
     flat = np.broadcast_to([0.0, 0.0, 9.81], motion.sensor.shape)
     write_recording(p["flat"], _with(motion, sensor=np.array(flat)))
+    # 5 % of the samples bad, scattered: the blocks around them leave nothing to measure
+    scattered = motion.sensor.copy()
+    scattered[np.random.default_rng(3).random(len(scattered)) < 0.05, 0] = np.nan
+    p["nan_scattered"] = root / "nan_scattered"
+    write_recording(p["nan_scattered"], _with(motion, sensor=scattered))
+    # a driver that stamps every joint state zero
+    p["joints_stamped_zero"] = root / "joints_stamped_zero"
+    write_recording(
+        p["joints_stamped_zero"],
+        _with(motion, joint_stamps_ns=np.zeros_like(motion.joint_stamps_ns)),
+    )
     p["sweep_nan"] = root / "sweep_nan"  # 1 s of bad samples in the sweep
     write_recording(
         p["sweep_nan"], _with(sweep, sensor=_with_bad_samples(sweep.sensor, 30000, 3000))
@@ -1149,6 +1160,18 @@ ROWS = [
         "evaluate_mostly_bad_samples_refused",
         ev("mostly_nan"),
         ("mostly_nan", "bad"),
+        check=no_output("eval.json"),
+    ),
+    Row(
+        "evaluate_scattered_bad_samples_leave_nothing_to_measure",
+        ev("nan_scattered"),
+        ("nan_scattered", "too little left to measure"),
+        check=no_output("eval.json"),
+    ),
+    Row(
+        "evaluate_joint_states_all_stamped_zero_refused",
+        ev("joints_stamped_zero"),
+        ("joints_stamped_zero: /joint_states", "joint states", "unusable"),
         check=no_output("eval.json"),
     ),
     Row(

@@ -193,6 +193,16 @@ def has_bad_input(stats) -> bool:
     )
 
 
+def check_joint_share(unusable: int, joint_states: int, where: str, limit: float) -> None:
+    """StreamError if more than `limit` of the `joint_states` are unusable."""
+    if joint_states and unusable > limit * joint_states:
+        raise StreamError(
+            f"{where}: {unusable} of {joint_states} joint states "
+            f"({100 * unusable / joint_states:.1f} %) are unusable (non-finite, or not stamped "
+            f"after the previous one: a stuck clock?); more than {100 * limit:g} % is refused"
+        )
+
+
 def check_stream(
     stats,
     where: str,
@@ -207,14 +217,7 @@ def check_stream(
     limit = MAX_BAD_SHARE if limit is None else limit
     check_bad_share(stats, where, limit)
     out_of_order, dropped, duplicates, joint_duplicates = _dropped_not_duplicated(stats)
-    if joint_states and dropped > limit * joint_states:
-        raise StreamError(
-            f"{joints_where or where}: {dropped} of {joint_states} joint states "
-            f"({100 * dropped / joint_states:.1f} %) are unusable (non-finite, or "
-            f"not "
-            f"stamped after the previous one: a stuck clock?); more than "
-            f"{100 * limit:g} % is refused"
-        )
+    check_joint_share(dropped, joint_states, joints_where or where, limit)
     return (
         f"bad input treated as missing: {int(stats.samples_bad)} sensor samples "
         f"non-finite or beyond the sensor range, {out_of_order} out of order, "

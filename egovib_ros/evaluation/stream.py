@@ -37,7 +37,8 @@ from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
 from egovib_ros.core.methods import SAMPLE_METHODS, has_method_calibration
-from egovib_ros.errors import BagError, ConfigError, bag_error
+from egovib_ros.core.stream import check_joint_share
+from egovib_ros.errors import BagError, ConfigError, StreamError, bag_error
 from egovib_ros.evaluation import baselines, detection, metrics
 
 SEGMENT_ACTIVE_MIN = metrics.SEGMENT_LENGTH // 2  # segments at least half inside a contact
@@ -297,6 +298,8 @@ class SummaryPass:
         self.low_raw, self.low_recorded = LowBandEnergy(model), LowBandEnergy(model)
         self.peak = 0.0
         self.joint_states_nonfinite = 0
+        self.joint_states_unusable, self.joint_states = 0, 0
+        self.last_joint_stamp: int | None = None
         self.union_bad = 0
         self.n = 0
 
@@ -306,6 +309,16 @@ class SummaryPass:
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         finite = np.all(np.isfinite(piece.joint_velocity), axis=1)
         self.joint_states_nonfinite += int(np.count_nonzero(~finite))
+        # as the denoiser takes them: each finite and stamped after the one before
+        stamps = piece.joint_stamps_ns[finite]
+        late = 0
+        if len(stamps):
+            start = stamps[0] - 1 if self.last_joint_stamp is None else self.last_joint_stamp
+            latest = np.maximum.accumulate(np.concatenate([[start], stamps]))
+            late = int(np.count_nonzero(stamps <= latest[:-1]))
+            self.last_joint_stamp = int(latest[-1])
+        self.joint_states_unusable += int(np.count_nonzero(~finite)) + late
+        self.joint_states += len(finite)
         self._count(final=False)
 
     def _rows(self, stamps, values, bad) -> None:
@@ -343,6 +356,13 @@ class SummaryPass:
             "sensor_range": self.sensor_range,
         }
         _refuse_bad(self.source, self.union_bad, n, self.max_bad_fraction, self.sensor_range)
+        joints = f"{self.source}: {self.model.profile.joints_topic}"
+        try:
+            check_joint_share(
+                self.joint_states_unusable, self.joint_states, joints, self.max_bad_fraction
+            )
+        except StreamError as exc:
+            raise BagError(str(exc)) from None
         if n and self.union_bad == n:
             raise BagError(f"{self.source}: no valid sample")
         recorded = self.recorded.rows > 0
