@@ -219,7 +219,8 @@ def test_partial_joint_states_are_merged_per_joint(tmp_path):
     with BagWriter(tmp_path / "bag") as bag:
         bag.add_topic("/imu/data_raw", codec.IMU_TYPE)
         bag.add_topic("/arm/joint_states", codec.JOINT_STATE_TYPE)
-        bag.write_batch("/imu/data_raw", stamps, encode_imu_batch(stamps, np.zeros((3000, 3))))
+        gyro = np.random.default_rng(0).normal(scale=0.01, size=(3000, 3))
+        bag.write_batch("/imu/data_raw", stamps, encode_imu_batch(stamps, gyro))
         for k in range(10):
             arm = codec.rosbags_joint_state(
                 k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k]
@@ -464,3 +465,27 @@ def test_a_velocity_array_shorter_than_the_names_is_said(tmp_path, caplog):
     assert np.allclose(back.joint_velocity[5:, 1], 1.0)  # 1e-3 per 1 ms, from the positions
     said = caplog.text
     assert f"{len(rec.joint_stamps_ns)} messages carry fewer velocity values than" in said, said
+
+
+def test_a_joint_named_twice_in_a_message_is_said(tmp_path, caplog):
+    """Two drivers writing into one JointState (a probe's bag: the wrist named first with
+    another's values): the first of each name is used, and said (it was silent)."""
+    rec = random_recording(seconds=1.5, with_truth=False)
+    ts = codec.typestore()
+    names = (JOINT_NAMES[0], *JOINT_NAMES)
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic(BAG_TOPICS["raw"], codec.IMU_TYPE)
+        stamps = rec.sensor_stamps_ns
+        bag.write_batch(BAG_TOPICS["raw"], stamps, encode_imu_batch(stamps, rec.sensor))
+        bag.add_topic(BAG_TOPICS["joint_states"], codec.JOINT_STATE_TYPE)
+        for i, stamp in enumerate(rec.joint_stamps_ns.tolist()):
+            values = np.r_[9.0, rec.joint_velocity[i]]
+            msg = codec.rosbags_joint_state(stamp, names, np.zeros(3), values)
+            raw = bytes(ts.serialize_cdr(msg, codec.JOINT_STATE_TYPE))
+            bag.write(BAG_TOPICS["joint_states"], stamp, raw)
+    with caplog.at_level("WARNING", logger="egovib_ros.bag"):
+        back = read_recording(tmp_path / "bag")
+    assert np.all(back.joint_velocity[:, 0] == 9.0)  # the first of the two
+    np.testing.assert_array_equal(back.joint_velocity[:, 1], rec.joint_velocity[:, 1])
+    n = len(rec.joint_stamps_ns)
+    assert f"a joint named twice in a message {n} times" in caplog.text, caplog.text

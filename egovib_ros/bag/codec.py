@@ -411,7 +411,8 @@ def decode_joint_states(
 
     `notes` (a dict, updated): "named" (J,) bool, the joints some message names (with or
     without a value: effort only); "short_position" / "short_velocity", how many messages
-    carry fewer values than names (neither empty nor one per name: malformed)."""
+    carry fewer values than names (neither empty nor one per name: malformed); "repeated",
+    how many times a message names one of `names` again (its first values are used)."""
     batch = as_batch(messages)
     n = len(batch)
     if n == 0:
@@ -440,7 +441,9 @@ def decode_joint_states(
         taken = set()
         for k, name in enumerate(msg.name):
             j = column.get(name)
-            if j is None or j in taken:  # a name given twice: its first values, as the fast path
+            if j is not None and j in taken:  # a name given twice: its first values
+                notes["repeated"] = notes.get("repeated", 0) + 1
+            if j is None or j in taken:
                 continue
             taken.add(j)
             named[j] = True
@@ -496,6 +499,8 @@ def _joint_columns(first: bytes, names: tuple[str, ...]):
     except Exception:
         return None
     if not set(names) <= set(msg_names) or not n_pos == n_vel == len(msg_names):
+        return None
+    if any(msg_names.count(n) > 1 for n in names):  # the slow path counts the repeats
         return None
     layout = (pos_off, vel_off, n_pos, [msg_names.index(n) for n in names])
     head, count = first[12:pos_off], first[vel_off - 8 : vel_off]

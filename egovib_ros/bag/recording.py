@@ -250,6 +250,12 @@ class RecordingStream:
                 f"{where}: topic {self.names['joint_states']} lacks joint(s) {', '.join(missing)} "
                 f"(named by robot profile {self.profile.name!r})"
             )
+        if self._joint_notes.get("repeated"):
+            LOG.warning(
+                f"{where}: topic {self.names['joint_states']}: a joint named twice in a "
+                f"message {self._joint_notes['repeated']} times (two drivers writing into one "
+                f"message?): the first of each is used"
+            )
         short = {k: self._joint_notes.get(f"short_{k}", 0) for k in ("position", "velocity")}
         for key, count in short.items():
             if count:  # neither empty nor one value per name: which joint is which?
