@@ -220,7 +220,8 @@ def test_partial_joint_states_are_merged_per_joint(tmp_path):
         bag.add_topic("/imu/data_raw", codec.IMU_TYPE)
         bag.add_topic("/arm/joint_states", codec.JOINT_STATE_TYPE)
         gyro = np.random.default_rng(0).normal(scale=0.01, size=(3000, 3))
-        bag.write_batch("/imu/data_raw", stamps, encode_imu_batch(stamps, gyro))
+        raws = encode_imu_batch(stamps, gyro, field="angular_velocity")
+        bag.write_batch("/imu/data_raw", stamps, raws)
         for k in range(10):
             arm = codec.rosbags_joint_state(
                 k * 2_000_000, ["elbow", "wrist"], [k, 10 + k], [0.1 * k, 1 + k]
