@@ -395,7 +395,8 @@ def _why_not_our_directory(path: Path, kind: str | None) -> str | None:
         # A bag is recorded data: only a bag replaces it, and a bag replaces only a bag (a
         # bag_recorder's bag is marked "directory": its metadata.yaml tells it)
         was_bag = marker.get("kind") == "bag" or "metadata.yaml" in files
-        if kind is not None and was_bag != (kind == "bag"):
+        holds = set(files) - {MARKER}  # (an empty one loses nothing)
+        if kind is not None and holds and was_bag != (kind == "bag"):
             return "is a bag egovib wrote" if was_bag else "is an egovib output but not a bag"
         return None
     if not files:

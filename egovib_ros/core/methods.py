@@ -829,28 +829,10 @@ class SampleMethodDenoiser(FramedDenoiser):
             else highpass_inverse(sample_rate_hz=fs, band_hz=model.band_hz),
         )
         self._gain = self._table = self._split = None
-        # The drop-in output waits for its split (fitted to the robot's calibration
-        # recording: the longer, the lower the band's edge) and its gain looks as far ahead
-        # (the longer, the more it removes), but at most MAX_EARLY_OPENING_MS: a gain looking
-        # further opens that much before a contact, and the ego-vibration it lets through
-        # moved onsets 10-20 ms early (F1 0.30 on a 500 Hz robot whose 40 Hz band edge needs
-        # a 16 ms split). What the gain is given then waits the difference.
-        split = cal.dropin_split if output == "dropin" and method == "hybrid" else None
-        gain_lookahead_ms = lookahead_ms
-        if lookahead_ms is None and split is not None:
-            split_ms = 1e3 * split[1] / fs
-            gain_lookahead_ms = max(cal.gain.lookahead_ms, min(split_ms, MAX_EARLY_OPENING_MS))
+        look = 0  # the gain's look-ahead
+        self.delay = 0  # samples from input to output
         if method == "hybrid":
-            self._gain, self._table = _hybrid_gain(cal, floor, gain_lookahead_ms)
-        look = self._gain.delay if self._gain is not None else 0  # the gain's look-ahead
-        self.delay = look  # samples from input to output
-        if output == "dropin" and self._gain is not None:
-            if lookahead_ms is None and split is not None:
-                self.delay = max(look, split[1])
-            if split is None or split[1] != self.delay:  # another look-ahead: the plain design
-                taps = split_taps(sample_rate_hz=fs, band_hz=model.band_hz, delay=self.delay)
-                split = taps, self.delay
-            self._split = DropInSplit(*split)
+            look = self._build_gain(cal, floor, lookahead_ms, output)
         self._control_delay = self.delay - look
         self._held_residual = np.zeros((self._control_delay, 3))
         self._held_velocity = np.full((self._control_delay, model.n_joints), np.nan)
@@ -872,6 +854,33 @@ class SampleMethodDenoiser(FramedDenoiser):
                 threshold = stored_threshold(model, method)
             self._adaptation = Adaptation(self, adapt, threshold=threshold)
             self._adaptation.apply_loaded()
+
+    def _build_gain(self, cal: MethodCalibration, floor, lookahead_ms, output: str) -> int:
+        """hybrid's gain, table and (drop-in) split; sets `delay`, returns the gain's look-ahead.
+
+        The drop-in output waits for its split (fitted to the robot's calibration recording:
+        the longer, the lower the band's edge) and its gain looks as far ahead (the longer,
+        the more it removes), but at most MAX_EARLY_OPENING_MS: a gain looking further opens
+        that much before a contact, and the ego-vibration it lets through moved onsets 10-20
+        ms early (F1 0.30 on a 500 Hz robot whose 40 Hz band edge needs a 16 ms split). What
+        the gain is given then waits the difference."""
+        fs = self.model.sample_rate_hz
+        split = cal.dropin_split if output == "dropin" else None
+        gain_lookahead_ms = lookahead_ms
+        if lookahead_ms is None and split is not None:
+            split_ms = 1e3 * split[1] / fs
+            gain_lookahead_ms = max(cal.gain.lookahead_ms, min(split_ms, MAX_EARLY_OPENING_MS))
+        self._gain, self._table = _hybrid_gain(cal, floor, gain_lookahead_ms)
+        look = self._gain.delay
+        self.delay = look
+        if output == "dropin":
+            if lookahead_ms is None and split is not None:
+                self.delay = max(look, split[1])
+            if split is None or split[1] != self.delay:  # another look-ahead: the plain design
+                band = self.model.band_hz
+                split = split_taps(sample_rate_hz=fs, band_hz=band, delay=self.delay), self.delay
+            self._split = DropInSplit(*split)
+        return look
 
     # --- API -------------------------------------------------------------------
     @property
