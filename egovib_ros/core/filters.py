@@ -50,6 +50,17 @@ def design_bandpass(
     return signal.butter(order, [low, high], btype="bandpass", fs=sample_rate_hz, output="sos")
 
 
+def bandpass_delay(*, sample_rate_hz: float, band_hz: tuple[float, float], order: int) -> float:
+    """The band-pass's group delay (samples) averaged over its band: how late the band-passed
+    signal shows what the raw one holds (~1.7 ms for the PR2 hand's 150-750 Hz, 25 ms for a
+    40 Hz wide band at 300 Hz)."""
+    sos = design_bandpass(sample_rate_hz=sample_rate_hz, band_hz=band_hz, order=order)
+    freqs = np.linspace(band_hz[0], band_hz[1], 64)
+    # a cascade's group delay: the sum of its sections' (better conditioned than one tf)
+    delays = [signal.group_delay((s[:3], s[3:]), w=freqs, fs=sample_rate_hz)[1] for s in sos]
+    return float(np.mean(np.sum(delays, axis=0)))
+
+
 def _load_kernel():
     """scipy's compiled SOS kernel, which `signal.sosfilt` runs after ~90 us of argument
     checks (more than the filtering of a 32-sample hop): used when present and equal to
