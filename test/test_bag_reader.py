@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from synthetic import RECORDING_FIELDS, random_recording
 
-from egovib_ros.bag import BagReader, read_recording, write_recording
+from egovib_ros.bag import BagReader, BagWriter, codec, read_recording, write_recording
+from egovib_ros.bag.codec import encode_imu_batch
+from egovib_ros.errors import BagError
 
 
 @pytest.mark.parametrize("compress", [False, True])
@@ -73,3 +75,26 @@ def test_reads_mcap_from_other_writers(tmp_path, monkeypatch, layout):
     for name in RECORDING_FIELDS:
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
         np.testing.assert_array_equal(getattr(fast, name), getattr(rec, name), err_msg=name)
+
+
+def test_a_missing_topic_names_what_the_bag_has_instead(tmp_path):
+    """The README's commands without --robot on the arm's bag, and a profile topic written
+    without its leading slash: each refusal says what is there."""
+    with BagWriter(tmp_path / "bag") as bag:
+        bag.add_topic("/arm/imu", codec.IMU_TYPE)
+        bag.write_batch(
+            "/arm/imu", np.array([1, 2]), encode_imu_batch(np.array([1, 2]), np.ones((2, 3)))
+        )
+    with BagReader(tmp_path / "bag") as reader:
+        with pytest.raises(
+            BagError,
+            match=r"missing topic /accelerometer/raw \(its Imu topics: /arm/imu: the profile "
+            r"of another robot\?\)$",
+        ):
+            reader.require("/accelerometer/raw", codec.IMU_TYPE)
+        with pytest.raises(
+            BagError,
+            match=r"missing topic arm/imu \(it has /arm/imu: a topic in a robot profile "
+            r"starts with /\)$",
+        ):
+            reader.require("arm/imu", codec.IMU_TYPE)

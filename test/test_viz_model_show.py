@@ -290,7 +290,11 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(
     pr2_bag = REPO / "bags" / "sim_motion_10s"
     assert _show(quadcopter_model[0], out, "--bag", pr2_bag) == 2
     err = capsys.readouterr().err.strip()
-    assert err == f"egovib: error: {pr2_bag}: missing topic /imu/data_raw"
+    assert err == (
+        f"egovib: error: {pr2_bag}: missing topic /imu/data_raw (its Imu topics: "
+        "/accelerometer/contact, /accelerometer/ego, /accelerometer/raw: the profile of another "
+        "robot?)"
+    )
     assert not out.exists() and not list(tmp_path.glob(".show*"))
     # outputs: never replaced without --force, never replaced if not ours (refused before
     # any work)

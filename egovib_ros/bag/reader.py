@@ -215,10 +215,22 @@ class BagReader:
     def require(self, topic: str, msgtype: str) -> None:
         """BagError unless the bag has `topic` with type `msgtype`."""
         if topic not in self.topics:
-            raise BagError(f"{self.path}: missing topic {topic}")
+            raise BagError(f"{self.path}: missing topic {topic}{self._near(topic, msgtype)}")
         if self.topics[topic].msgtype != msgtype:
             found = self.topics[topic].msgtype
             raise BagError(f"{self.path}: topic {topic} has type {found}, expected {msgtype}")
+
+    def _near(self, topic: str, msgtype: str) -> str:
+        """What the bag has instead: the topic with a leading slash, or its topics of the
+        type (another robot's bag, or a command without --robot)."""
+        if "/" + topic in self.topics:
+            return f" (it has /{topic}: a topic in a robot profile starts with /)"
+        same = sorted(t for t, info in self.topics.items() if info.msgtype == msgtype)
+        if not same:
+            return ""
+        listed = ", ".join(same[:3]) + (f" and {len(same) - 3} more" if len(same) > 3 else "")
+        kind = msgtype.rsplit("/", 1)[-1]
+        return f" (its {kind} topics: {listed}: the profile of another robot?)"
 
     # --- reading ---------------------------------------------------------------
     def batches(self, topics: Iterable[str] | None = None) -> Iterator[ReadBatch]:
