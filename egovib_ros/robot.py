@@ -271,8 +271,12 @@ class RobotProfile:
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
-            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise ConfigError(f"{source or 'robot profile'}: not valid YAML ({first})") from None
+            mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+            if mark is not None and problem:  # where the parser stopped, and why
+                why = f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+            else:
+                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ConfigError(f"{source or 'robot profile'}: not valid YAML ({why})") from None
         return cls.from_dict(data, source=source)
 
     @classmethod

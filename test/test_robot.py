@@ -78,3 +78,15 @@ def test_bad_profiles_are_one_line_errors(edit, message, tmp_path):
 def test_missing_profile_names_the_shipped_ones():
     with pytest.raises(ConfigError, match="pr2_right_hand"):
         load_profile("no_such_robot")
+
+
+def test_a_yaml_syntax_error_names_its_line(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(
+        "schema: egovib.robot/1\nname: mine\nprocessing:\n  band_hz: [150, 750\n  hop: 32\n"
+    )
+    with pytest.raises(ConfigError) as info:
+        load_profile(path)
+    assert str(info.value) == (
+        f"{path}: not valid YAML (line 5, column 6: expected ',' or ']', but got ':')"
+    )
