@@ -75,7 +75,9 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     # the command that acts on it, an option egovib calibrate has (no position key exists)
     assert md[3] == "**All corrections together:**" and md[4] == "```sh"
     assert md[5].startswith("egovib calibrate NEW_RECORDING --grid free --out NEW_MODEL.npz")
-    assert md[6] == "```" and md[7].startswith("**What it costs the denoiser (model estimate):**")
+    assert md[6] == "```" and md[7].startswith(
+        "**What the corrections are worth to the denoiser (model estimate):**"
+    )
     assert md[8].startswith("**Left unexplained:**")
     advice = report["advice"]
     assert advice["settings"]["calibration_grid"] == "free"

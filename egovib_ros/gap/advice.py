@@ -421,7 +421,8 @@ def first_lines(advice: dict) -> list[str]:
         lines.append(f"**Applied together:** {applied['note']}.")
     if advice["effect"] != "none" and cmds:  # (nothing advised: no cost to state)
         lines.append(
-            f"**What it costs the denoiser (model estimate):** held-out noise reduction "
+            f"**What the corrections are worth to the denoiser (model estimate):** held-out "
+            f"noise reduction "
             f"{d['noise_reduction_without_db']:.2f} dB without the corrections, "
             f"{d['noise_reduction_with_db']:.2f} dB with them ({d['gain_db']:+.2f} dB)."
         )
