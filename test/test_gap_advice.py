@@ -242,3 +242,16 @@ def test_a_drift_too_small_to_measure_is_said_so_and_nothing_is_applied(diagnose
     assert text.startswith("the vibration's level barely moves (-0.10 dB over")
     assert "nothing to recalibrate for or apply" in text
     assert "noise_gain_db" not in settings and commands(settings) == {}
+
+
+def test_the_calibrate_commands_in_the_text_name_the_robot(diagnoses):
+    """A probe pasted the text's `egovib calibrate BAG --grid free` for a quadcopter model:
+    without --robot it reads the PR2 hand's topics. The text names the robot as the commands
+    do; the PR2 hand's (the default) stays as it was."""
+    diag = diagnoses["position"]
+    plain = advise(diag)
+    assert "`egovib calibrate BAG --grid free`" in plain["action"]
+    arm = advise(diag, paths={"robot": "example_arm"})
+    assert "`egovib calibrate BAG --robot example_arm --grid free`" in arm["action"]
+    assert arm["effects"][0]["action"] == arm["action"]
+    assert advise(diag, paths={"robot": None})["action"] == plain["action"]

@@ -334,6 +334,15 @@ def commands(
     return out
 
 
+def _for_robot(text: str, robot: str | None) -> str:
+    """The commands in an action's text as they run for this robot (robot.robot_option:
+    None for the default PR2 hand)."""
+    if not robot:
+        return text
+    text = text.replace("`egovib calibrate BAG ", f"`egovib calibrate BAG --robot {robot} ")
+    return text.replace("`sweep_driver --ros-args ", f"`sweep_driver --ros-args -p robot:={robot} ")
+
+
 def advise(diag: Diagnosis, *, paths: dict | None = None, measured: dict | None = None) -> dict:
     """report.json "advice": per effect action and settings, the commands applying them all,
     cost to the denoiser (model estimate; `measured`: the flags applied with the user's
@@ -349,6 +358,10 @@ def advise(diag: Diagnosis, *, paths: dict | None = None, measured: dict | None 
         settings = merged_settings(actions)
     else:
         text, settings = _none_action(diag)
+    robot = (paths or {}).get("robot")
+    text = _for_robot(text, robot)
+    for a in actions:
+        a["action"] = _for_robot(a["action"], robot)
     without = -float(diag.residual_noise["after_refit"])  # noise reduction, dB
     with_fix = -float(diag.residual_noise["after_effect"])
     after, floor = diag.gaps["combined"], diag.floor  # the baseline and every effect found
