@@ -80,9 +80,8 @@ SAMPLE_METHODS = tuple(m for m in METHODS if m != "paper")
 #: keeps events best (docs/methods_compare.md), where the model carries what it needs.
 DEFAULT_METHOD = "hybrid"
 AXES = ("x", "y", "z")
-#: Keys of the noise model's extras written by calibrate_methods.
 LOG = logging.getLogger("egovib_ros.core")
-
+#: Keys of the noise model's extras written by calibrate_methods.
 HARMONIC_PREFIX = "harmonic."
 RESIDUAL_PREFIX = "residual."
 GAIN_PREFIX = "gain."
@@ -361,8 +360,7 @@ def _dense_rows(velocity, grids, grid_len, limits, table, strides, measured, flo
     dense table (cells, M) (np.interp's position rule, clamped), at least `floor` (M,).
     Returns (values (n, M), the first R rows used, zeros without joint state; index (n,);
     R; samples whose nearest cell is unmeasured; samples beyond the grid's `limits` (J, 2):
-    noise_model.grid_limits). Compiled: a
-    live stream calls it every few samples."""
+    noise_model.grid_limits). Compiled: a live stream calls it every few samples."""
     n, J = velocity.shape
     M = table.shape[1]
     values = np.zeros((n, M))
@@ -550,7 +548,7 @@ def _split(model: NoiseModel, accel: np.ndarray, gain: GainSettings, source: str
     (core.filters.split_for), no shorter than the gain's look-ahead; None for a recording
     too short to tell. Said when none within SPLIT_MAX_DELAY_S stops the band's noise."""
     values = np.asarray(accel, float)
-    # the framer's bad samples (non-finite, beyond the sensor range) are no spectrum
+    # the framer's bad samples (non-finite, beyond the sensor's range) are no spectrum
     sensor_range = model.profile.sensor_range if model.profile is not None else math.inf
     values = values[~bad_samples(values, sensor_range)]
     fs = model.sample_rate_hz
