@@ -68,8 +68,8 @@ def test_gap_report_on_blind_bag(model_path, position_bag, tmp_path, capsys):
     assert 0.2 < updated.effects["position"] < 0.6
     check = report["added_effect"]["simulator"]
     assert check["heldout_gap_with_updated_simulator"] < check["heldout_gap_refit"]
-    # The report's first lines say what to do, what it costs the denoiser and what is left,
-    # then answer where, which and how far, with figures that exist.
+    # The report's first lines say what to do, what the corrections are worth to the
+    # denoiser and what is left, then answer where, which and how far, with figures that exist.
     md = (out / "report.md").read_text().splitlines()
     assert md[2].startswith("**What to do:** position-dependent")
     # the command that acts on it, an option egovib calibrate has (no position key exists)

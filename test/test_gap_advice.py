@@ -139,8 +139,10 @@ def test_cost_and_unexplained_rest_follow_the_held_out_gaps(diagnoses):
         )
         lines = first_lines(advice)
         assert lines[0].startswith("**What to do") and lines[-1].startswith("**Left unexplained")
-        # the cost line only where an effect was found
-        assert any("What it costs" in line for line in lines) == (diag.verdict != "none")
+        # the worth line only where an effect was found
+        assert any("What the corrections are worth" in line for line in lines) == (
+            diag.verdict != "none"
+        )
 
 
 def test_no_effect_says_whether_the_velocity_model_leaves_much(diagnoses):
