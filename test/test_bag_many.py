@@ -24,7 +24,12 @@ def test_expand_bags(tmp_path):
     assert [str(n) for _, n in expand_bags([tmp_path])] == ["a/one", "a/two", "b/one", "solo"]
     with pytest.raises(ConfigError, match="one"):
         expand_bags([tmp_path / "a", tmp_path / "b"])
-    with pytest.raises(BagError, match="empty: no rosbag2 bags"):
+    with pytest.raises(BagError, match=r"empty: no rosbag2 bags \(.*\) in this directory$"):
+        expand_bags([tmp_path / "empty"])
+    # its metadata.yaml lost, a bag's MCAP file is still read given itself: said
+    mcap = next((tmp_path / "solo").glob("*.mcap"))
+    mcap.rename(tmp_path / "empty" / mcap.name)
+    with pytest.raises(BagError, match=rf"give its MCAP file itself: .*empty/{mcap.name}\)$"):
         expand_bags([tmp_path / "empty"])
     assert [b for b, _ in expand_bags([tmp_path / "missing"])] == [
         tmp_path / "missing"

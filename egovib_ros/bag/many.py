@@ -103,8 +103,11 @@ def expand_bags(
             # no bags inside bags
             bags = [b for b in bags if not any(b != o and o in b.parents for o in bags)]
             if not bags:
+                files = sorted(p.name for p in path.glob("*.mcap"))
+                hint = f" (give its MCAP file itself: {path / files[0]})" if files else ""
                 raise BagError(
-                    f"{path}: no rosbag2 bags (directories with metadata.yaml) in this directory"
+                    f"{path}: no rosbag2 bags (directories with metadata.yaml) in this "
+                    f"directory{hint}"
                 )
             found += [(b, b.relative_to(path)) for b in bags]
         else:
