@@ -98,3 +98,19 @@ def test_a_missing_topic_names_what_the_bag_has_instead(tmp_path):
             r"starts with /\)$",
         ):
             reader.require("arm/imu", codec.IMU_TYPE)
+
+
+def test_a_topic_carrying_two_message_types_is_refused_naming_both(tmp_path):
+    """Two publishers of different types on one topic (a probe's bag: an Imu and a
+    Vector3Stamped on /arm/imu): said, not 'cannot decode message (buffer size is 40)'."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = codec.typestore()
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        for msgtype in (codec.IMU_TYPE, "geometry_msgs/msg/Vector3Stamped"):
+            writer.add_connection("/arm/imu", msgtype, typestore=store)
+    with (
+        BagReader(tmp_path / "bag") as reader,
+        pytest.raises(BagError, match=r"topic /arm/imu carries 2 message types \("),
+    ):
+        reader.require("/arm/imu", codec.IMU_TYPE)

@@ -82,6 +82,7 @@ class BagReader:
             self.info = {}
         self.cut_files: dict[Path, int] = {}  # MCAP files cut short: their readable bytes
         self._rebuilt: dict[Path, McapScanner] = {}
+        self._types: dict[str, set[str]] = {}  # the message types of each topic
         try:
             self._reader = Reader(self.path)
             self._reader.open()
@@ -94,6 +95,7 @@ class BagReader:
         entries = self._topic_entries()
         self.topics: dict[str, TopicInfo] = {}
         for conn in self._reader.connections:
+            self._types.setdefault(conn.topic, set()).add(conn.msgtype)
             if conn.topic in self.topics:
                 continue
             msgdef = getattr(conn, "msgdef", None)
@@ -141,9 +143,10 @@ class BagReader:
                         topic = scanner.channels[channel].topic
                         counts[topic] = counts.get(topic, 0) + len(times)
                 for channel in scanner.channels.values():
+                    schema = scanner.schemas.get(channel.schema_id) or _NO_SCHEMA
+                    self._types.setdefault(channel.topic, set()).add(schema.name)
                     if channel.topic in self.topics:
                         continue
-                    schema = scanner.schemas.get(channel.schema_id) or _NO_SCHEMA
                     self.topics[channel.topic] = TopicInfo(
                         msgtype=schema.name,
                         count=0,
@@ -216,6 +219,12 @@ class BagReader:
         """BagError unless the bag has `topic` with type `msgtype`."""
         if topic not in self.topics:
             raise BagError(f"{self.path}: missing topic {topic}{self._near(topic, msgtype)}")
+        types = sorted(self._types.get(topic, ()))
+        if len(types) > 1:  # publishers of different types on one topic: which is which?
+            raise BagError(
+                f"{self.path}: topic {topic} carries {len(types)} message types "
+                f"({', '.join(types)}): publishers of different types on one topic?"
+            )
         if self.topics[topic].msgtype != msgtype:
             found = self.topics[topic].msgtype
             raise BagError(f"{self.path}: topic {topic} has type {found}, expected {msgtype}")
