@@ -394,3 +394,43 @@ def test_several_bags_one_json_each_the_broken_one_named_and_jobs_2_the_same(
     for name in GOOD:
         one = (out / f"{name}.json").read_text()
         assert (jobs2 / f"{name.split('/')[1]}.json").read_text() == one, name
+
+
+def test_the_summary_counts_unusable_joint_states_as_the_framers_drop_them():
+    """A driver stamping every joint state zero is refused (more than 10 % unusable); a
+    joint clock that restarts (a bag loop, 60 s back) is a restart, as the framers take it,
+    not a thousand late stamps; in one slice or in ten alike."""
+    from egovib_ros.errors import BagError
+    from egovib_ros.evaluation.stream import SummaryPass
+
+    motion, _ = simulate_motion(duration_s=2.0, max_speed=0.5, tap_rate_hz=1.0, seed=4)
+    model, _ = calibrate_arrays(
+        motion.sensor_stamps_ns, motion.sensor, motion.joint_stamps_ns, motion.joint_velocity
+    )
+    n, m = len(motion.sensor_stamps_ns), len(motion.joint_stamps_ns)
+    looped = motion.joint_stamps_ns.copy()
+    looped[m // 2 :] -= 60 * 10**9
+    for stamps, unusable in ((looped, 0), (np.zeros_like(looped), m - 1)):
+        for slices in (1, 10):
+            summary = SummaryPass(model, source="run")
+            for k in range(slices):
+                a, b = k * n // slices, (k + 1) * n // slices
+                c, d = k * m // slices, (k + 1) * m // slices
+                summary.push(
+                    dataclasses.replace(
+                        motion,
+                        sensor_stamps_ns=motion.sensor_stamps_ns[a:b],
+                        sensor=motion.sensor[a:b],
+                        contact=motion.contact[a:b],
+                        ego=None,
+                        joint_stamps_ns=stamps[c:d],
+                        joint_position=motion.joint_position[c:d],
+                        joint_velocity=motion.joint_velocity[c:d],
+                    )
+                )
+            assert summary.joint_states_unusable == unusable
+            if unusable:
+                with pytest.raises(BagError, match="run: /joint_states: .* joint states"):
+                    summary.finish()
+            else:
+                summary.finish()

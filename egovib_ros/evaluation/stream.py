@@ -37,10 +37,12 @@ from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
 from egovib_ros.core.methods import SAMPLE_METHODS, has_method_calibration
-from egovib_ros.core.stream import check_joint_share
+from egovib_ros.core.stream import FramerSettings, check_joint_share, stamp_order
+from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError, ConfigError, StreamError, bag_error
 from egovib_ros.evaluation import baselines, detection, metrics
 
+CLOCK_JUMP_NS = int(FramerSettings.clock_jump_s * NS_PER_S)  # a restarted clock, as the framers'
 SEGMENT_ACTIVE_MIN = metrics.SEGMENT_LENGTH // 2  # segments at least half inside a contact
 RECORDED_MAX_WAIT_S = 10.0  # the bag's denoised topic may lag its raw samples this much
 
@@ -309,14 +311,19 @@ class SummaryPass:
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         finite = np.all(np.isfinite(piece.joint_velocity), axis=1)
         self.joint_states_nonfinite += int(np.count_nonzero(~finite))
-        # as the denoiser takes them: each finite and stamped after the one before
+        # as the denoiser takes them (core.stream.stamp_order): each finite and stamped after
+        # the one before, a clock that jumps back a restart
         stamps = piece.joint_stamps_ns[finite]
         late = 0
-        if len(stamps):
-            start = stamps[0] - 1 if self.last_joint_stamp is None else self.last_joint_stamp
-            latest = np.maximum.accumulate(np.concatenate([[start], stamps]))
-            late = int(np.count_nonzero(stamps <= latest[:-1]))
-            self.last_joint_stamp = int(latest[-1])
+        while len(stamps):
+            keep, jump = stamp_order(self.last_joint_stamp, stamps, CLOCK_JUMP_NS)
+            head = slice(0, len(stamps) if jump is None else jump)
+            late += int(np.count_nonzero(~keep[head]))
+            if keep[head].any():
+                self.last_joint_stamp = int(stamps[head][keep[head]].max())
+            if jump is None:
+                break
+            self.last_joint_stamp, stamps = None, stamps[jump:]
         self.joint_states_unusable += int(np.count_nonzero(~finite)) + late
         self.joint_states += len(finite)
         self._count(final=False)
