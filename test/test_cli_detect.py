@@ -106,3 +106,34 @@ def test_adapt_detects_after_the_adapting_denoiser_and_evaluate_reports_it(
                  "--adapt", "--out", str(tmp_path / "raw.json")]) == 2  # fmt: skip
     assert "method raw has no model to adapt" in capsys.readouterr().err
     assert not (tmp_path / "raw.json").exists()
+
+
+def test_beyond_the_calibrations_motion_detect_and_evaluate_raise_the_threshold_alike(
+    tmp_path, capsys
+):
+    """Calibrated on free motion at 30 % of top speed, a run at 90 %: `egovib detect` says
+    on what share of the samples its threshold rose (the joints beyond the calibration's
+    speeds), raises fewer false alarms than without the rule (the model's limits removed),
+    and `egovib evaluate` scores the same detector: the same F1."""
+    cal, run, model = tmp_path / "cal", tmp_path / "run", tmp_path / "m.npz"
+    simulate = ["simulate", "motion", "--quiet", "--duration"]
+    assert main([*simulate, "20", "--max-speed", "0.3", "--taps", "0", "--out", str(cal)]) == 0
+    assert main([*simulate, "10", "--max-speed", "0.9", "--taps", "2", "--out", str(run)]) == 0
+    assert main(["calibrate", str(cal), "--grid", "free", "--out", str(model), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["detect", str(run), "--model", str(model), "--out", str(tmp_path / "e.json")]) == 0
+    line = capsys.readouterr().err
+    assert "% of the samples (motion beyond the calibration's)" in line
+    report = json.loads((tmp_path / "e.json").read_text())
+    assert report["counts"]["samples_beyond_calibration_motion"] > 0.5 * report["counts"]["samples"]
+    loaded = NoiseModel.load(model)
+    plain = loaded.replace(
+        extras={k: v for k, v in loaded.extras.items() if not k.startswith("detector.motion.")}
+    )
+    without = detect_bag(run, model=plain)
+    assert without.counts["samples_beyond_calibration_motion"] == 0
+    assert report["scores"]["fp"] < without.scores["fp"]
+    assert (
+        main(["evaluate", str(run), "--model", str(model), "--json", str(tmp_path / "v.json")]) == 0
+    )
+    assert json.loads((tmp_path / "v.json").read_text())["f1_denoised"] == report["scores"]["f1"]

@@ -6,9 +6,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from egovib_ros.core.contact import (
+    MOTION_ACCEL_S,
+    MOTION_HOLD_S,
     ContactDetector,
     ContactSettings,
     DetectionEnvelope,
+    MotionLimits,
+    joint_acceleration,
     no_contact_threshold,
 )
 from egovib_ros.errors import ConfigError
@@ -135,3 +139,103 @@ def test_settings_are_validated():
         settings(threshold=float("nan"))
     with pytest.raises(ConfigError, match="report_after_s"):
         settings(report_after_s=-1)
+
+
+# --- motion beyond the calibration's ------------------------------------------------------
+LIMITS = MotionLimits(speed_low=(-1.0, -1.0), speed_high=(1.0, 1.0), accel=50.0, factor=6.0)
+
+
+def joints(stamps_s=(0.0, 4.0), fast=((1.2, 1.5),)):
+    """1 kHz joint states over `stamps_s`: both joints at 0.5, the first at 2 within each
+    span of `fast` (beyond its speed, and a step of 1.5 in 1 ms: beyond the acceleration)."""
+    t = np.arange(*stamps_s, 0.001)
+    velocity = np.full((len(t), 2), 0.5)
+    for a, b in fast:
+        velocity[(t >= a) & (t < b), 0] = 2.0
+    return 1_000_000_000 + np.round(t * 1e9).astype(np.int64), velocity
+
+
+def interleaved(detector, stamps, values, joint_stamps, velocity, cuts):
+    """Samples and joint states pushed in time order, cut at `cuts` (sensor samples)."""
+    events, start = [], 0
+    for size in [*cuts, len(stamps)]:
+        stop = min(len(stamps), start + size)
+        if stop > start:
+            upto = np.searchsorted(joint_stamps, stamps[stop - 1], side="right")
+            done = np.searchsorted(joint_stamps, stamps[start], side="left") if start else 0
+            events += detector.push_joints(joint_stamps[done:upto], velocity[done:upto])
+            events += detector.push(stamps[start:stop], values[start:stop])
+        start = stop
+    events += detector.push_joints(joint_stamps[upto:], velocity[upto:])
+    return events + detector.finish()
+
+
+def test_beyond_the_calibrations_motion_the_threshold_rises_for_a_while():
+    """The tap at 1.30 s falls where a joint runs faster than calibration saw: at 6 x the
+    threshold (3.0, over the taps' 2.1) it is not an event; the others are, as without
+    limits. The acceleration alone (a step within the speeds) raises it too, MOTION_HOLD_S
+    after the step."""
+    stamps, values, onsets = taps()
+    plain = run(ContactDetector(settings()), stamps, values, [])
+    assert len(plain) == 4
+    detector = ContactDetector(settings(), motion=LIMITS)
+    events = interleaved(detector, stamps, values, *joints(), [])
+    assert [e.onset_ns for e in events] == [
+        e.onset_ns for e in plain if e.onset_ns != plain[1].onset_ns
+    ]
+    # 1.2-1.5 s too fast, then the step back down: 10 ms of joint states beyond the
+    # acceleration (a change over MOTION_ACCEL_S), then MOTION_HOLD_S
+    marked_s = 0.3 + MOTION_ACCEL_S - 0.001 + MOTION_HOLD_S
+    assert detector.samples_motion == pytest.approx(marked_s * FS, abs=3)
+    # the threshold stays raised MOTION_HOLD_S after the last joint state beyond: a step to
+    # a speed within the limits (0.5 -> -0.9 in 1 ms) marks 10 ms + MOTION_HOLD_S
+    joint_stamps, velocity = joints(fast=())
+    velocity[(joint_stamps >= 1_000_000_000 + 1_299_000_000), 0] = -0.9
+    detector = ContactDetector(settings(), motion=LIMITS)
+    events = interleaved(detector, stamps, values, joint_stamps, velocity, [])
+    # the 1.30 s tap falls inside it, and the 1.35 s one (without limits, part of the 1.30 s
+    # event) that rings on past it continues it: no event where the raising ends
+    assert [round((e.onset_ns - stamps[0]) / 1e9, 2) for e in events] == [0.5, 2.2, 3.1]
+    assert detector.samples_motion == pytest.approx(MOTION_HOLD_S * FS + 0.01 * FS, abs=3)
+
+
+@given(st.lists(st.integers(1, 3000), max_size=8))
+def test_with_motion_limits_any_chunking_gives_the_same_events(cuts):
+    stamps, values, _ = taps()
+    joint_stamps, velocity = joints(fast=((1.2, 1.5), (3.05, 3.06)))
+    whole = ContactDetector(settings(), motion=LIMITS)
+    expected = whole.push_joints(joint_stamps, velocity) + run(whole, stamps, values, [])
+    detector = ContactDetector(settings(), motion=LIMITS)
+    assert interleaved(detector, stamps, values, joint_stamps, velocity, cuts) == expected
+    assert detector.samples_motion == whole.samples_motion
+
+
+def test_a_sample_waits_for_its_joint_states_or_joint_wait_s():
+    """Without joint states up to its stamp a sample is not decided (offline); with
+    `joint_wait_s` (live) it is once that much later samples have come."""
+    stamps, values, _ = taps(onsets_s=(0.5,))
+    waiting = ContactDetector(settings(), motion=LIMITS)
+    assert waiting.push(stamps, values) == [] and waiting.onsets_settled == 0
+    assert len(waiting.finish()) == 1  # the end decides what is left, at the base threshold
+    live = ContactDetector(settings(), motion=LIMITS, joint_wait_s=0.02)
+    assert len(live.push(stamps, values)) == 1
+
+
+def test_motion_limits_are_validated():
+    with pytest.raises(ConfigError, match="factor"):
+        MotionLimits(speed_low=(0.0,), speed_high=(1.0,), accel=1.0, factor=0.5)
+    with pytest.raises(ConfigError, match="one low and one high"):
+        MotionLimits(speed_low=(0.0,), speed_high=(1.0, 2.0), accel=1.0, factor=2.0)
+    with pytest.raises(ConfigError, match="accel"):
+        MotionLimits(speed_low=(0.0,), speed_high=(1.0,), accel=float("nan"), factor=2.0)
+    with pytest.raises(ConfigError, match="joint_wait_s"):
+        ContactDetector(settings(), joint_wait_s=-1.0)
+
+
+def test_joint_acceleration_is_taken_over_motion_accel_s():
+    """The summed change of speeds over MOTION_ACCEL_S: jitter in the joint stamps (two
+    states 0.1 ms apart) does not make an acceleration; NaN speeds are left out."""
+    t = np.array([0, 5, 10, 10.1, 20, 30], float) * 1e6
+    velocity = np.array([[0, 0], [0, 0], [0.1, np.nan], [0.1, 0], [0.3, 0], [0.3, 0.2]])
+    accel = joint_acceleration(t.astype(np.int64), velocity)
+    assert accel.tolist() == pytest.approx([0, 0, 10, 10, 20, 20])

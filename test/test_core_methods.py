@@ -16,16 +16,20 @@ from scipy import signal
 from synthetic import TWO_MOTOR_FS, two_motor_profile, two_motor_recording
 
 from egovib_ros.core import StreamingDenoiser, calibrate_arrays, filters
+from egovib_ros.core.contact import joint_acceleration
 from egovib_ros.core.lowlatency import MAX_DELAY_MS, GainSettings
 from egovib_ros.core.methods import (
     DETECTION_MIN_S,
     MAX_EARLY_OPENING_MS,
+    MOTION_SPEED_MARGIN,
     MethodCalibration,
     SampleMethodDenoiser,
+    calibrate_detection,
     calibrate_methods,
     denoise_batch_method,
     make_denoiser,
     method_delay_ms,
+    motion_limits,
     rest_detection_warning,
     short_detection_warning,
 )
@@ -516,3 +520,26 @@ def test_a_narrow_band_waits_for_its_band_pass_and_keeps_the_taps():
         k: np.mean([v[w].max() / truth[w].max() for w in windows]) for k, v in kept.items()
     }
     assert retention["dropin"] > 0.8 * retention["bandpassed"] > 0.5, retention
+
+
+def test_detection_calibration_stores_the_motion_it_held(model):
+    """calibrate_detection keeps what the contact detector needs to know where the robot
+    moves beyond its calibration: each joint's speeds (a margin past them) and the largest
+    joint acceleration; the threshold's factor is the raw signal's threshold over the
+    method's, none for the raw signal; a malformed field is refused naming it."""
+    rec = recording(25.0, seed=1)
+    arrays = rec["t"], rec["accel"], rec["tj"], rec["velocity"]
+    calibrated, thresholds = calibrate_detection(model, *arrays)
+    limits = motion_limits(calibrated, "hybrid")
+    top = [np.abs(g).max() for g in calibrated.grid]
+    low = rec["velocity"].min(axis=0) - MOTION_SPEED_MARGIN * np.array(top)
+    assert limits.speed_low == pytest.approx(tuple(low))
+    assert limits.accel == pytest.approx(joint_acceleration(rec["tj"], rec["velocity"]).max())
+    assert limits.factor == pytest.approx(thresholds["raw"] / thresholds["hybrid"])
+    assert limits.factor > 1.0
+    assert motion_limits(calibrated, "raw") is None and motion_limits(model, "hybrid") is None
+    broken = calibrated.replace(
+        extras={**calibrated.extras, "detector.motion.speed_high": np.zeros(5)}
+    )
+    with pytest.raises(ModelFileError, match="detector.motion.speed_high"):
+        motion_limits(broken, "hybrid")

@@ -68,25 +68,31 @@ def test_the_limit_study_is_a_row_per_scale(flight_result):
 
 def test_a_calibration_that_holds_the_speeds_keeps_the_swapped_part_clean(flight_result):
     """README's advice for speeds beyond the calibration, followed: the take-off part,
-    calibrated on the whole flight, has the events and the paper's few false alarms, not the
-    swapped split's many."""
-    covered = flight_result["cases"][default_compare.COVERED]["figures"]
-    swapped = flight_result["cases"]["real flight, swapped split"]["figures"]
-    default, paper = covered["hybrid/dropin"], covered["paper/dropin"]
+    calibrated on the whole flight, has the events and no more false alarms than the
+    paper's, with the threshold raised nowhere."""
+    covered = flight_result["cases"][default_compare.COVERED]
+    default, paper = covered["figures"]["hybrid/dropin"], covered["figures"]["paper/dropin"]
     assert default["f1"] >= paper["f1"] and default["f1"] >= 0.9
     assert default["false_alarms_per_min"] <= paper["false_alarms_per_min"]
-    assert default["false_alarms_per_min"] < swapped["hybrid/dropin"]["false_alarms_per_min"] / 3
+    assert covered["quiet_events_per_min"]["hybrid_raised_share"] == 0.0
 
 
-def test_the_swapped_splits_false_alarms_are_the_flights_own_transients(flight_result):
-    """On the test part without added events the default finds about as many events a
-    minute (all false) as it raises false alarms with them: the take-off's own transients,
-    not the events' doing; the table says so for every flight case."""
+def test_beyond_the_calibrations_motion_the_default_detects_best(flight_result):
+    """Calibrated on the hover, tested on the take-off: the detector raises its threshold
+    where the motors move as the hover never did, and the default detects the events as well
+    as the paper's method or better, with no more false alarms than it and far fewer than
+    the raw signal; on every split its F1 is at least the paper's."""
     swapped = flight_result["cases"]["real flight, swapped split"]
-    quiet = swapped["quiet_events_per_min"]["hybrid"]
-    with_events = swapped["figures"]["hybrid/dropin"]["false_alarms_per_min"]
-    assert with_events > 10 and 0.5 * with_events <= quiet <= 1.5 * with_events
+    figures, quiet = swapped["figures"], swapped["quiet_events_per_min"]
+    default, paper = figures["hybrid/dropin"], figures["paper/dropin"]
+    assert default["f1"] >= 0.9 and default["tap_retention"] >= 0.9
+    assert default["false_alarms_per_min"] <= paper["false_alarms_per_min"]
+    assert quiet["hybrid"] <= quiet["paper"] < quiet["raw"]
+    assert 0.2 < quiet["hybrid_raised_share"] < 0.7
+    for name, case in flight_result["cases"].items():
+        f = case["figures"]
+        assert f["hybrid/dropin"]["f1"] >= f["paper/dropin"]["f1"], name
     text = default_compare.markdown(dict(flight_result, command="python -m x", runtime_s=1.0))
     section = text.split("## The flights' false alarms are their own transients")[1]
     rows = [line for line in section.splitlines() if line.startswith("| real flight")]
-    assert len(rows) == 3
+    assert len(rows) == 3 and rows[1].endswith(f"| {quiet['hybrid_raised_share']:.0%} |")

@@ -136,6 +136,12 @@ def run(args: argparse.Namespace) -> int:
         f"{len(result.events)} events in {result.duration_s:.1f} s after {result.method}{default}, "
         f"threshold {result.threshold:.3g} ({result.threshold_source})"
     )
+    beyond = result.counts.get("samples_beyond_calibration_motion", 0)
+    if beyond:
+        line += (
+            f", raised on {beyond / max(result.counts['samples'], 1):.0%} of the samples "
+            "(motion beyond the calibration's)"
+        )
     if result.scores is not None:
         s = result.scores
         line += (

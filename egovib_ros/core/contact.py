@@ -10,6 +10,17 @@ sample, at most `lookback_s` before the crossing, where the envelope reaches
 `onset_fraction` of its peak so far) and peak (the band-passed vector of largest magnitude
 from the onset to the report: the contact's direction; strength: the envelope's peak).
 
+Where the robot moves as its calibration never did (`MotionLimits`: a joint faster or
+slower than anywhere in the calibration data, or the joints accelerating harder),
+its own transients are ego-vibration no model knows, as strong and short as a contact (a
+quadcopter's take-off, its motors cut and restarted): for MOTION_HOLD_S after such a joint
+state the threshold is `factor` times higher (the raw signal's threshold over the method's:
+there the output must stand out as far as the raw signal would). What stays above the
+base threshold but below the raised one is the robot's own, and so is its continuation past
+the raised span (no event where the raising ends). With limits, a sample is decided once
+the joint states reach its stamp (or `joint_wait_s` of later samples have come: live, a
+joint topic that stalls does not stall detection).
+
 The input may be raw or denoised (thresholds from data processed alike). A bad sample
 (non-finite, or beyond `sensor_range`) is counted and held at the last good value (one NaN
 in the band-pass would end detection for good); a sample stamped at or before an earlier
@@ -39,6 +50,12 @@ BURST_S = 0.02
 #: The default false-alarm budget (per minute of no-contact data).
 FALSE_ALARMS_PER_MIN = 1.0
 CLOCK_JUMP_S = 1.0  # stamps this far back: a restarted clock (as core.stream's default)
+#: Joint acceleration: the summed change of the joints' speeds over this long (not between
+#: two joint states: their jitter would make it), per second.
+MOTION_ACCEL_S = 0.01
+#: How long the threshold stays raised after a joint state beyond the limits: a transient
+#: of the robot's rings down in tens of ms (20 ms let half of a flight's through).
+MOTION_HOLD_S = 0.05
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,6 +107,101 @@ class ContactSettings:
         )
 
 
+@dataclass(frozen=True, kw_only=True)
+class MotionLimits:
+    """The motion calibration held (see the module doc): per joint, the lowest and highest
+    speed (core.methods.calibrate_detection: those of its data, a margin past them); the
+    largest joint acceleration (`joint_acceleration`) of its data; the threshold's factor
+    beyond them (>= 1)."""
+
+    speed_low: tuple[float, ...]
+    speed_high: tuple[float, ...]
+    accel: float
+    factor: float
+
+    def __post_init__(self) -> None:
+        if len(self.speed_low) != len(self.speed_high):
+            raise ConfigError("motion limits: one low and one high speed per joint")
+        if not (self.accel > 0 and not math.isnan(self.accel)):
+            raise ConfigError(f"motion limits: accel must be > 0, got {self.accel!r}")
+        if not (math.isfinite(self.factor) and self.factor >= 1.0):
+            raise ConfigError(f"motion limits: factor must be a number >= 1, got {self.factor!r}")
+
+
+def joint_acceleration(
+    stamps_ns: np.ndarray, velocity: np.ndarray, before: tuple | None = None
+) -> np.ndarray:
+    """Per joint state, the summed |change| of the joints' speeds since the last state at
+    least MOTION_ACCEL_S before it, over MOTION_ACCEL_S (0 where there is none; NaN speeds
+    left out). `before`: (stamps, velocity) of earlier states to look back into."""
+    stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
+    if not len(stamps_ns):
+        return np.zeros(0)
+    velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
+    if before is not None:
+        all_stamps = np.concatenate([before[0], stamps_ns])
+        all_velocity = np.vstack([before[1], velocity])
+    else:
+        all_stamps, all_velocity = stamps_ns, velocity
+    step = int(MOTION_ACCEL_S * NS_PER_S)
+    back = np.searchsorted(all_stamps, stamps_ns - step, side="right") - 1
+    change = np.abs(velocity - all_velocity[np.maximum(back, 0)])
+    accel = np.nansum(change, axis=1) / MOTION_ACCEL_S
+    return np.where(back >= 0, accel, 0.0)
+
+
+class MotionGuard:
+    """The threshold's factor per sample from the joint states (MotionLimits): push the
+    joint states in order, then ask `factors` for samples up to `covered_ns`."""
+
+    def __init__(self, limits: MotionLimits):
+        self.limits = limits
+        self._low, self._high = np.array(limits.speed_low), np.array(limits.speed_high)
+        self.reset()
+
+    def reset(self) -> None:
+        self._history = (np.zeros(0, np.int64), np.zeros((0, len(self._low))))
+        self._marks = np.zeros(0, np.int64)  # stamps of joint states beyond the limits
+        self.covered_ns: int | None = None  # the latest joint stamp
+
+    def push(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
+        stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
+        if not len(stamps_ns):
+            return
+        velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
+        keep, jump = stamp_order(self.covered_ns, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
+        if jump is not None:  # a restarted joint clock: what came before is another time
+            self.push(stamps_ns[:jump], velocity[:jump])
+            self.reset()
+            self.push(stamps_ns[jump:], velocity[jump:])
+            return
+        stamps_ns, velocity = stamps_ns[keep], velocity[keep]
+        if not len(stamps_ns):
+            return
+        accel = joint_acceleration(stamps_ns, velocity, self._history)
+        with np.errstate(invalid="ignore"):  # NaN speeds: unknown, not beyond
+            fast = np.any((velocity < self._low) | (velocity > self._high), axis=1)
+        beyond = fast | (accel > self.limits.accel)
+        self._marks = np.concatenate([self._marks, stamps_ns[beyond]])
+        self.covered_ns = int(stamps_ns[-1])
+        stamps = np.concatenate([self._history[0], stamps_ns])
+        step = int(MOTION_ACCEL_S * NS_PER_S)
+        first = max(np.searchsorted(stamps, stamps[-1] - step, side="right") - 1, 0)
+        self._history = (stamps[first:], np.vstack([self._history[1], velocity])[first:])
+
+    def factors(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """The factor for samples (stamps in order): `factor` within MOTION_HOLD_S after a
+        joint state beyond the limits, else 1; marks before these samples' reach dropped."""
+        stamps_ns = np.asarray(stamps_ns, np.int64)
+        if not len(self._marks):
+            return np.ones(len(stamps_ns))
+        hold = int(MOTION_HOLD_S * NS_PER_S)
+        last = np.searchsorted(self._marks, stamps_ns, side="right") - 1
+        marked = (last >= 0) & (stamps_ns - self._marks[np.maximum(last, 0)] < hold)
+        self._marks = self._marks[max(np.searchsorted(self._marks, stamps_ns[-1] - hold) - 1, 0) :]
+        return np.where(marked, self.limits.factor, 1.0)
+
+
 @dataclass(frozen=True)
 class ContactEvent:
     onset_ns: int  # stamp of the onset sample
@@ -97,6 +209,7 @@ class ContactEvent:
     strength: float  # envelope peak (what was thresholded)
     crossing_ns: int  # stamp where the envelope crossed the threshold
     report_ns: int  # stamp of the sample after which the event was reported
+    onset_index: int = -1  # the onset sample's place among every sample pushed (from 0)
 
 
 def _as_x(signal_1d: np.ndarray) -> np.ndarray:
@@ -146,9 +259,22 @@ class ContactDetector:
     >>> events += detector.finish()
     """
 
-    def __init__(self, settings: ContactSettings, *, prefiltered: bool = False):
+    def __init__(
+        self,
+        settings: ContactSettings,
+        *,
+        prefiltered: bool = False,
+        motion: MotionLimits | None = None,
+        joint_wait_s: float = math.inf,
+    ):
         self.s = settings
         self._prefiltered = prefiltered
+        self._guard = None if motion is None else MotionGuard(motion)
+        if not joint_wait_s >= 0:
+            raise ConfigError(f"contact detector: joint_wait_s must be >= 0, got {joint_wait_s!r}")
+        self._wait_ns = None if math.isinf(joint_wait_s) else int(joint_wait_s * NS_PER_S)
+        self._decided = 0  # global index of the first sample not compared with the threshold
+        self.samples_motion = 0  # samples decided at the raised threshold
         self._envelope = DetectionEnvelope(settings, prefiltered=prefiltered)
         self._gap = settings.samples(settings.refractory_s)
         self._after = settings.samples(settings.report_after_s)
@@ -159,6 +285,7 @@ class ContactDetector:
         self._env = np.zeros(0)
         self._axes = np.zeros((0, 3))
         self._last_above: int | None = None  # global index of the last above-threshold sample
+        self._last_own: int | None = None  # ... above the base one, but the robot's own
         self._pending: list[int] = []  # crossings whose report is not due yet
         self._last_good = np.zeros(3)  # what a bad sample is held at
         self._last_stamp: int | None = None  # the latest stamp accepted since the (re)start
@@ -188,27 +315,71 @@ class ContactDetector:
         self._last_stamp = int(stamps_ns[-1])
         values = self._hold_bad(values)
         axes, envelope = self._envelope.process(values)
-        start = self._base + len(self._stamps)
         self._stamps = np.concatenate([self._stamps, stamps_ns])
         self._env = np.concatenate([self._env, envelope])
         self._axes = np.concatenate([self._axes, axes])
-        for i in (np.flatnonzero(envelope > self.s.threshold) + start).tolist():
-            if self._last_above is None or i - self._last_above >= self._gap:
-                self._pending.append(i)
-            self._last_above = i
         self.samples += len(stamps_ns)
+        return self._advance()
+
+    def push_joints(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> list[ContactEvent]:
+        """Joint states (stamps (M,), velocities (M, J)) for the motion limits; events that
+        the samples they decide report (none without limits)."""
+        if self._guard is None:
+            return []
+        self._guard.push(stamps_ns, velocity)
+        return self._advance()
+
+    def _advance(self) -> list[ContactEvent]:
+        self._decide(final=False)
         events = self._report(final=False)
         self._trim()
         return events
 
+    def _decide(self, *, final: bool) -> None:
+        """Threshold the samples that can be: all without motion limits (or at the end),
+        else those the joint states reach, and those `joint_wait_s` older than the newest."""
+        end = self._base + len(self._stamps)
+        upto = end
+        if self._guard is not None and not final:
+            reach = -1 if self._guard.covered_ns is None else self._guard.covered_ns
+            if self._wait_ns is not None and self._last_stamp is not None:
+                reach = max(reach, self._last_stamp - self._wait_ns)
+            upto = self._base + int(np.searchsorted(self._stamps, reach, side="right"))
+        if upto <= self._decided:
+            return
+        lo, hi = self._decided - self._base, upto - self._base
+        env = self._env[lo:hi]
+        factors = (
+            np.ones(hi - lo) if self._guard is None else self._guard.factors(self._stamps[lo:hi])
+        )
+        self.samples_motion += int(np.count_nonzero(factors > 1.0))
+        for k in np.flatnonzero(env > self.s.threshold).tolist():
+            i = k + self._decided
+            if self._last_above is not None and i - self._last_above < self._gap:
+                self._last_above = i  # an event going on, as long as it stays above
+                continue
+            quiet_since = None if self._last_own is None else i - self._last_own
+            if (factors[k] > 1.0 and env[k] <= self.s.threshold * factors[k]) or (
+                factors[k] == 1.0 and quiet_since is not None and quiet_since < self._gap
+            ):
+                # below the raised threshold, the robot's own; and so is what goes on from
+                # it where the raising ends (no event at the end of a raised span)
+                self._last_own = i
+                continue
+            self._pending.append(i)
+            self._last_above = i
+        self._decided = upto
+
     def _restart(self) -> list[ContactEvent]:
         """The clock went back: report what is pending, then detect afresh (filter state,
         history and refractory time cleared)."""
-        events = self._report(final=True)
+        events = self.finish()
         self._envelope = DetectionEnvelope(self.s, prefiltered=self._prefiltered)
         self._base += len(self._stamps)
+        self._decided = self._base
         self._stamps, self._env, self._axes = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
         self._last_above, self._pending, self._last_stamp = None, [], None
+        self._last_own = None
         self.restarts += 1
         return events
 
@@ -220,15 +391,16 @@ class ContactDetector:
         return values
 
     def finish(self) -> list[ContactEvent]:
-        """End of stream: events whose report falls after the last sample, reported now."""
+        """End of stream: the samples not decided yet decided with the joint states in,
+        and events whose report falls after the last sample, reported now."""
+        self._decide(final=True)
         return self._report(final=True)
 
     @property
     def onsets_settled(self) -> int:
         """Every onset still to be reported lies at or after this sample (counted from the
         first sample pushed): the pending crossings' and the next one's look-back."""
-        end = self._base + len(self._stamps)
-        first = self._pending[0] if self._pending else end
+        first = self._pending[0] if self._pending else self._decided
         return max(first - self._back, 0)
 
     def _report(self, *, final: bool) -> list[ContactEvent]:
@@ -250,6 +422,7 @@ class ContactDetector:
                     strength=float(running[-1]),
                     crossing_ns=int(self._stamps[crossing - self._base]),
                     report_ns=int(self._stamps[report - 1 - self._base]),
+                    onset_index=onset,
                 )
             )
         self.events += len(events)
@@ -258,7 +431,7 @@ class ContactDetector:
     def _trim(self) -> None:
         """Keep what a pending or a future event may still look back at."""
         end = self._base + len(self._stamps)
-        keep_from = end - self._back - self._after
+        keep_from = min(end - self._back - self._after, self._decided - self._back)
         if self._pending:
             keep_from = min(keep_from, self._pending[0] - self._back)
         cut = max(0, keep_from - self._base)

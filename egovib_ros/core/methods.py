@@ -40,7 +40,9 @@ from egovib_ros.core.contact import (
     FALSE_ALARMS_PER_MIN,
     ContactSettings,
     DetectionEnvelope,
+    MotionLimits,
     hold_bad,
+    joint_acceleration,
     no_contact_threshold,
 )
 from egovib_ros.core.filters import (
@@ -89,6 +91,10 @@ CANCELLER_PREFIX = "canceller."
 #: ... and the contact detector's thresholds, per method (and "raw": no denoising)
 DETECTOR_PREFIX = "detector.threshold."
 DETECTOR_BUDGET = "detector.false_alarms_per_min"
+#: The motion of the calibration data (core.contact.MotionLimits): its largest joint
+#: acceleration, each joint's lowest and highest speed.
+DETECTOR_MOTION = "detector.motion."
+MOTION_SPEED_MARGIN = 0.02
 #: The ends of a calibration recording the thresholds leave out (filter start-up, flush).
 EDGE_S = 0.1
 #: Calibration samples the gain statistics skip while the trackers settle (seconds).
@@ -127,6 +133,29 @@ def stored_threshold(model: NoiseModel, method: str) -> float | None:
     """The contact detector's threshold for `method`'s default output (or "raw") that
     calibration stored in the model (calibrate_detection); None if it did not."""
     return model.scalar_extra(DETECTOR_PREFIX + method, low=0.0, high=math.inf)
+
+
+def motion_limits(
+    model: NoiseModel, method: str, thresholds: dict | None = None
+) -> MotionLimits | None:
+    """The contact detector's motion limits for `method`'s output (core.contact): the
+    model's grid, the calibration's largest joint acceleration, and the raw signal's
+    threshold over the method's (`thresholds` by method, "raw" included; default: the
+    stored ones). None for the raw signal, a model calibrated before the limits, or
+    thresholds that leave the method's output no quieter than the raw signal."""
+    accel = model.scalar_extra(DETECTOR_MOTION + "accel", low=0.0, high=math.inf)
+    if thresholds is None:
+        thresholds = {m: stored_threshold(model, m) for m in ("raw", method)}
+    raw, own = thresholds.get("raw"), thresholds.get(method)
+    if method == "raw" or accel is None or not raw or not own or raw <= own:
+        return None
+    speeds = []
+    for key in ("speed_low", "speed_high"):
+        value = np.asarray(model.extras.get(DETECTOR_MOTION + key, ()), np.float64)
+        if value.shape != (model.n_joints,) or np.isnan(value).any():
+            raise ModelFileError(f"{model.where}: malformed field {DETECTOR_MOTION + key!r}")
+        speeds.append(tuple(value.tolist()))
+    return MotionLimits(speed_low=speeds[0], speed_high=speeds[1], accel=accel, factor=raw / own)
 
 
 #: Below this much no-contact data, the detector's thresholds (a level its envelope crosses
@@ -211,6 +240,15 @@ def calibrate_detection(
         )
     extras = {DETECTOR_PREFIX + m: np.array(t) for m, t in thresholds.items()}
     extras[DETECTOR_BUDGET] = np.array(float(FALSE_ALARMS_PER_MIN))
+    accel = joint_acceleration(joint_stamps_ns, joint_velocity)
+    known = np.isfinite(joint_velocity).all(axis=1)
+    if known.any() and accel.max() > 0:  # (a robot that never moved: no limits)
+        extras[DETECTOR_MOTION + "accel"] = np.array(float(accel.max()))
+        # past the speeds seen by MOTION_SPEED_MARGIN of each joint's top grid speed: a run
+        # at a sweep's top speed is not beyond it
+        margin = MOTION_SPEED_MARGIN * np.array([np.abs(g).max() for g in model.grid])
+        extras[DETECTOR_MOTION + "speed_low"] = joint_velocity[known].min(axis=0) - margin
+        extras[DETECTOR_MOTION + "speed_high"] = joint_velocity[known].max(axis=0) + margin
     return model.replace(extras={**model.extras, **extras}), thresholds
 
 

@@ -36,6 +36,7 @@ from egovib_ros.core.methods import (
     EDGE_S,
     METHODS,
     make_denoiser,
+    motion_limits,
     resolve_method,
     stored_threshold,
 )
@@ -82,9 +83,10 @@ def method_pieces(
     adapt=None,
     used: list | None = None,
 ):
-    """Pieces (stamps, values (N, 3), contact (N, 3) or None) of what `detect_bag` feeds its
-    detector on `bag`: the checked method's streaming output, or the raw stream (`adapt`:
-    the model learning as it goes, core.adapt; `used` gets the denoiser)."""
+    """Pieces (stamps, values (N, 3), contact (N, 3) or None, (joint stamps, velocities))
+    of what `detect_bag` feeds its detector on `bag`: the checked method's streaming
+    output, or the raw stream, and the joint states read with it (`adapt`: the model
+    learning as it goes, core.adapt; `used` gets the denoiser)."""
     profile = model.robot_profile()
     denoiser = None
     if method != "raw":  # its default output (the drop-in), as the denoiser node publishes
@@ -100,27 +102,23 @@ def method_pieces(
     ):
         if ground_truth and piece.contact is not None:
             truth.update(zip(piece.sensor_stamps_ns.tolist(), piece.contact))
+        joints = (piece.joint_stamps_ns, piece.joint_velocity)
         if denoiser is None:
-            outputs = [(piece.sensor_stamps_ns, piece.sensor)]
+            stamps, values = piece.sensor_stamps_ns, piece.sensor
         else:
-            outputs = [
-                (c.stamps_ns, c.values)
-                for c in (
-                    denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity),
-                    denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor),
-                )
-            ]
-        for stamps, values in outputs:
-            if len(stamps):
-                yield stamps, values, _truth(truth, stamps)
+            first = denoiser.push_joint_states(*joints)
+            then = denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor)
+            stamps = np.concatenate([first.stamps_ns, then.stamps_ns])
+            values = np.concatenate([first.values, then.values])
+        yield stamps, values, _truth(truth, stamps), joints
     if denoiser is not None:
         chunk = denoiser.flush()
-        if len(chunk):
-            yield chunk.stamps_ns, chunk.values, _truth(truth, chunk.stamps_ns)
+        no_joints = (np.zeros(0, np.int64), np.zeros((0, model.n_joints)))
+        yield chunk.stamps_ns, chunk.values, _truth(truth, chunk.stamps_ns), no_joints
 
 
 def _truth(truth: dict, stamps: np.ndarray):
-    if not truth:
+    if not truth or not len(stamps):
         return None
     return np.array([truth.pop(int(s), np.zeros(3)) for s in stamps.tolist()]).reshape(-1, 3)
 
@@ -164,7 +162,7 @@ def calibration_threshold(
     envelope = DetectionEnvelope(ContactSettings.for_model(model, 1.0))
     parts = [
         envelope.process(values)[1]
-        for _, values, _ in method_pieces(bag, model, method, joint_lag_s, ground_truth=False)
+        for _, values, _, _ in method_pieces(bag, model, method, joint_lag_s, ground_truth=False)
     ]
     values = np.concatenate(parts) if parts else np.zeros(0)
     edge = int(EDGE_S * model.sample_rate_hz)
@@ -250,13 +248,16 @@ def detect_bag(
         false_alarms_per_min=false_alarms_per_min,
         joint_lag_s=joint_lag_s,
     )
-    detector = ContactDetector(ContactSettings.for_model(model, threshold))
+    detector = ContactDetector(
+        ContactSettings.for_model(model, threshold), motion=motion_limits(model, method)
+    )
     events: list[ContactEvent] = []
     truth_parts, stamp_parts = [], []
     used: list = []
-    for stamps, values, contact in method_pieces(
+    for stamps, values, contact, joints in method_pieces(
         bag, model, method, joint_lag_s, ground_truth=True, adapt=adapt, used=used
     ):
+        events += detector.push_joints(*joints)
         events += detector.push(stamps, values)
         stamp_parts.append(stamps)
         if contact is not None:
@@ -276,7 +277,11 @@ def detect_bag(
         method=method,
         method_delay_ms=used[0].delay_ms if used and used[0] is not None else 0.0,
         duration_s=duration_s,
-        counts={"samples": int(len(stamps)), "events": len(events)},
+        counts={
+            "samples": int(len(stamps)),
+            "events": len(events),
+            "samples_beyond_calibration_motion": detector.samples_motion,
+        },
         adapt=None
         if adapt is None or not used
         else {**vars(adapt), **used[0].adaptation_stats.as_dict()},

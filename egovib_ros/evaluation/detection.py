@@ -195,14 +195,14 @@ class EventMatcher:
 
 class OnsetStream:
     """The one contact detector (core.contact, as `egovib detect` and the contact_detector
-    node run it) on a band-passed 1-D signal arriving in pieces: push(x), take() -> onsets
-    (sample indices) closed since the last call; `horizon`: every onset still to come is
-    at or after this sample."""
+    node run it) on a band-passed 1-D signal arriving in pieces: push(x, stamps),
+    push_joints (for `motion` limits), take() -> onsets (sample indices from 0) closed since
+    the last call; `horizon`: every onset still to come is at or after this sample."""
 
-    def __init__(self, threshold: float, model):
+    def __init__(self, threshold: float, model, motion=None):
         self.threshold = float(threshold)
         self.detector = ContactDetector(
-            ContactSettings.for_model(model, self.threshold), prefiltered=True
+            ContactSettings.for_model(model, self.threshold), prefiltered=True, motion=motion
         )
         self.pos = 0
         self._onsets: list[int] = []
@@ -211,14 +211,19 @@ class OnsetStream:
     def horizon(self) -> int:
         return self.detector.onsets_settled
 
-    def push(self, x: np.ndarray) -> None:
+    def push(self, x: np.ndarray, stamps: np.ndarray | None = None) -> None:
+        """`stamps`: the samples' stamps (needed with motion limits; default: indices)."""
         x = np.asarray(x, float)
-        index = np.arange(self.pos, self.pos + x.size, dtype=np.int64)
+        if stamps is None:
+            stamps = np.arange(self.pos, self.pos + x.size, dtype=np.int64)
         self.pos += x.size
-        self._onsets += [e.onset_ns for e in self.detector.push(index, x)]
+        self._onsets += [e.onset_index for e in self.detector.push(stamps, x)]
+
+    def push_joints(self, stamps: np.ndarray, velocity: np.ndarray) -> None:
+        self._onsets += [e.onset_index for e in self.detector.push_joints(stamps, velocity)]
 
     def finish(self) -> None:
-        self._onsets += [e.onset_ns for e in self.detector.finish()]
+        self._onsets += [e.onset_index for e in self.detector.finish()]
 
     def take(self) -> np.ndarray:
         onsets, self._onsets = self._onsets, []

@@ -36,7 +36,7 @@ from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import ContactSettings, DetectionEnvelope
 from egovib_ros.core.filters import BandPass, channel_matrix
-from egovib_ros.core.methods import SAMPLE_METHODS, has_method_calibration
+from egovib_ros.core.methods import SAMPLE_METHODS, has_method_calibration, motion_limits
 from egovib_ros.core.stream import FramerSettings, check_joint_share, stamp_order
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import BagError, ConfigError, StreamError, bag_error
@@ -589,6 +589,7 @@ class EvaluationPass:
         self.raw_band, self.ref_band = BandPass.of(model, 1), BandPass.of(model, 1)
         self.pr2 = detection.PR2Magnitude(sample_rate_hz=fs)
         self.fifos = {key: _Fifo() for key in ["reference", "pr2", *self.detect_keys]}
+        self.fifos["stamps"] = _Fifo(np.int64)  # the detector's motion limits need them
         self.screen_bad, self.recorded_bad = _Fifo(bool), _Fifo(bool)
         self.segmenter = metrics.ContactSegmenter(
             level=summary.activity_level, n=n, sample_rate_hz=fs
@@ -620,7 +621,8 @@ class EvaluationPass:
         self.detectors: dict[str, tuple] = {}
         if thresholds is not None:
             for key in self.metric_keys:
-                self.detectors[key] = (key, detection.OnsetStream(thresholds[key], model))
+                motion = motion_limits(model, key, thresholds)
+                self.detectors[key] = (key, detection.OnsetStream(thresholds[key], model, motion))
             for level in detection.PR2_THRESHOLDS_MS2:
                 self.detectors[f"pr2_{level:g}ms2"] = (
                     "pr2",
@@ -643,6 +645,9 @@ class EvaluationPass:
             self.fifos[name].put(
                 stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
+        for _, detector in self.detectors.values():
+            if isinstance(detector, detection.OnsetStream):
+                detector.push_joints(piece.joint_stamps_ns, piece.joint_velocity)
         self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         if self.recorded is not None:
             self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
@@ -661,6 +666,7 @@ class EvaluationPass:
         raw = self.raw_band.process(_combined(accel))[0]
         reference = self.ref_band.process(_combined(contact))[0]
         self.fifos["raw"].put(raw)
+        self.fifos["stamps"].put(stamps)
         self.fifos["reference"].put(reference)
         self.segmenter.push(reference)
         self.screen_bad.put(bad[0] | bad[1])
@@ -722,7 +728,10 @@ class EvaluationPass:
         self.noise_count += int(np.count_nonzero(no_contact))
         if self.detectors:
             for signal_key, detector in self.detectors.values():
-                detector.push(data[signal_key])
+                if isinstance(detector, detection.OnsetStream):
+                    detector.push(data[signal_key], data["stamps"])
+                else:
+                    detector.push(data[signal_key])
         else:  # this pass only sets the thresholds, from the run's own no-contact samples
             for key in self.detect_keys:
                 envelope = self.envelopes[key].process(data[key])[1]

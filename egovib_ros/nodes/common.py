@@ -296,7 +296,10 @@ class StreamInput:
         on_batch: Callable[[], None],
         on_joint_state: Callable[[], None] | None = None,
         from_first: bool = True,
+        sensor_topic: str | None = None,
     ):
+        """`sensor_topic`: another topic of the profile's Imu (the contact detector's input:
+        the denoised one) instead of the sensor's."""
         self.field = profile.sensor_field
         self.profile_name = profile.name
         self.joint_names = tuple(profile.joint_names)
@@ -304,15 +307,14 @@ class StreamInput:
         self._from_first = from_first
         self._on_batch = on_batch
         self._on_joint_state = on_joint_state
-        self._sensor_sub = sensor_subscription(
-            node, Imu, profile.node_sensor_topic, self._on_sensor
-        )
+        sensor_topic = sensor_topic or profile.node_sensor_topic
+        self._sensor_sub = sensor_subscription(node, Imu, sensor_topic, self._on_sensor)
         self._joints_sub = sensor_subscription(
             node, JointState, profile.node_joints_topic, self._on_joints
         )
         self._logger = node.get_logger()
         self._logged_missing: list[str] = []
-        self.sensor_topic = node.resolve_topic_name(profile.node_sensor_topic)
+        self.sensor_topic = node.resolve_topic_name(sensor_topic)
         self.joints_topic = node.resolve_topic_name(profile.node_joints_topic)
         self._sensor: list[bytes] = []
         self._arrival: list[int] = []

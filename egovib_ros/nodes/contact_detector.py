@@ -2,7 +2,9 @@
 (docs/live_nodes.md).
 
 The detector of `egovib detect` (core.contact), so live and offline events agree, with its
-threshold fixed at start by the same rule (evaluation.contacts.detection_threshold). One
+threshold fixed at start by the same rule (evaluation.contacts.detection_threshold) and
+raised, as offline, where the joint states (the profile's topic) show motion beyond the
+calibration's (a sample waits for them at most JOINT_WAIT_S). One
 geometry_msgs/Vector3Stamped per event on `contact_events`: stamp = the onset, frame_id =
 the sensor's, vector = the band-passed vector at the event's peak. Its latency is counted
 from the onset stamp, or from the arrival of the onset's sample when the stamps are not on
@@ -17,10 +19,10 @@ import time
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
-from sensor_msgs.msg import Imu
 
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactDetector, ContactSettings
+from egovib_ros.core.methods import motion_limits
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation.contacts import (
     DETECT_METHODS,
@@ -30,15 +32,17 @@ from egovib_ros.evaluation.contacts import (
 from egovib_ros.nodes.common import (
     Health,
     Param,
+    StreamInput,
     declare_parameters,
-    drain,
     run_node,
-    sensor_subscription,
 )
-from egovib_ros.nodes.convert import decode_imu_raws, ns_to_stamp
+from egovib_ros.nodes.convert import ns_to_stamp
 
 #: Onset stamps further than this from the wall clock are not on it (a replay, sim time).
 REPLAYED_S = 10.0
+#: How long a sample waits for the joint states that decide its threshold (as the
+#: denoiser's framer waits for them).
+JOINT_WAIT_S = 0.02
 
 PARAMETERS = (
     Param("model", "", "noise-model file (.npz): the robot profile (topics, field, band, rate)"),
@@ -105,54 +109,67 @@ class ContactDetectorNode(Node):
             raise ConfigError(
                 f"contact_detector: {exc}; set calibration_bag or threshold"
             ) from None
-        self.detector = ContactDetector(ContactSettings.for_model(self.model, self.threshold))
+        self.motion = motion_limits(self.model, self.method)
+        self.detector = ContactDetector(
+            ContactSettings.for_model(self.model, self.threshold),
+            motion=self.motion,
+            joint_wait_s=JOINT_WAIT_S,
+        )
         topic = (
             self.profile.node_denoised_topic
             if self.source == "denoised"
             else self.profile.node_sensor_topic
         )
-        self._pending: list[bytes] = []
-        self._pending_since = 0  # wall-clock arrival of the first pending message (ns)
         self._arrivals: list[tuple[int, int]] = []  # (last stamp, arrival) of recent batches
         self.latency_from = ""
-        self._input = sensor_subscription(self, Imu, topic, self._on_sample)
+        # every message waits for the 2 ms timer (batch_samples: never due on its own)
+        self.input = StreamInput(
+            self,
+            self.profile,
+            batch_samples=2**62,
+            on_batch=lambda: None,
+            from_first=False,
+            sensor_topic=topic,
+        )
         self.pub = self.create_publisher(Vector3Stamped, "contact_events", 100)
         self.health = Health(
             self, hardware_id=self.profile.name, stale_after_s=params["stale_after"]
         )
         self.frame_id: str | None = None
-        self.samples = self.undecodable = self.events = 0
+        self.samples = self.events = 0
         self._last_input: float | None = None
         self._started = time.monotonic()
         self._latency_ms: list[float] = []
         self.create_timer(0.002, self._process)  # batches of ~2 ms: latency small, cost low
         self.create_timer(1.0, self._publish_diagnostics)
+        raised = (
+            f", x{self.motion.factor:.3g} where the joints move beyond the calibration"
+            if self.motion is not None
+            else ""
+        )
         self.get_logger().info(
-            f"contact events from {self._input.topic_name} ({self.profile.sensor_field}, after "
-            f"{self.method}), threshold {self.threshold:.4g} ({self.threshold_source}) -> "
-            f"{self.pub.topic_name}"
+            f"contact events from {self.input.sensor_topic} ({self.profile.sensor_field}, after "
+            f"{self.method}), threshold {self.threshold:.4g} ({self.threshold_source}{raised}) "
+            f"-> {self.pub.topic_name}"
         )
 
-    def _on_sample(self, data: bytes) -> None:
-        # not bound to the list itself: _process replaces it with a fresh one
-        if not self._pending:
-            self._pending_since = time.time_ns()
-        self._pending.extend(drain(self._input, Imu, data))
-
     def _process(self) -> None:
-        if not self._pending:
-            return
-        raws, self._pending = self._pending, []
-        self._last_input = time.monotonic()
-        stamps, values, index = decode_imu_raws(raws, self.profile.sensor_field)
-        self.undecodable += len(raws) - len(index)
-        if not len(index):
-            return
-        if self.frame_id is None:
-            self.frame_id = frame_of(raws[int(index[0])])
-        self.samples += len(stamps)
-        self._arrivals = self._arrivals[-2000:] + [(int(stamps.max()), self._pending_since)]
-        for event in self.detector.push(stamps, values):
+        events = []
+        joints = self.input.take_joints()
+        if joints is not None and len(joints.stamps_ns):
+            events += self.detector.push_joints(joints.stamps_ns, joints.velocity)
+        batch = self.input.take_sensor()
+        if batch is not None:
+            self._last_input = time.monotonic()
+        if batch is not None and len(batch.stamps_ns):
+            if self.frame_id is None:
+                self.frame_id = frame_of(batch.raws[0])
+            self.samples += len(batch.stamps_ns)
+            # on the wall clock: the first message's arrival, as monotonic ns
+            arrived = int(batch.arrival_ns[0]) - time.monotonic_ns() + time.time_ns()
+            self._arrivals = self._arrivals[-2000:] + [(int(batch.stamps_ns.max()), arrived)]
+            events += self.detector.push(batch.stamps_ns, batch.values)
+        for event in events:
             msg = Vector3Stamped()
             msg.header.stamp = ns_to_stamp(event.onset_ns)
             msg.header.frame_id = self.frame_id
@@ -169,16 +186,17 @@ class ContactDetectorNode(Node):
             self.latency_from = "onset stamp"
             return now - onset_ns
         self.latency_from = "arrival of the onset's sample (replayed: stamps not on this clock)"
-        arrived = next((t for last, t in self._arrivals if last >= onset_ns), self._pending_since)
-        return now - arrived
+        arrived = next((t for last, t in self._arrivals if last >= onset_ns), None)
+        return now - (arrived if arrived is not None else self._arrivals[-1][1])
 
     def close(self) -> None:
         """What it saw, said at the end (Ctrl-C) as every node says it."""
         minutes = max((time.monotonic() - self._started) / 60.0, 1e-9)
         print(
             f"contact_detector: samples in {self.samples}, events {self.events} "
-            f"({self.events / minutes:.1f} a minute, threshold {self.threshold:.4g}), undecodable "
-            f"{self.undecodable}, bad {self.detector.samples_bad}, out of order "
+            f"({self.events / minutes:.1f} a minute, threshold {self.threshold:.4g}, raised on "
+            f"{self.detector.samples_motion} samples), undecodable "
+            f"{self.input.undecodable_sensor}, bad {self.detector.samples_bad}, out of order "
             f"{self.detector.samples_out_of_order}, restarts {self.detector.restarts}",
             flush=True,
         )
@@ -188,7 +206,8 @@ class ContactDetectorNode(Node):
         latency = np.asarray(self._latency_ms[-1000:])
         values = {
             "samples_in": self.samples,
-            "undecodable_messages": self.undecodable,
+            "undecodable_messages": self.input.undecodable_sensor,
+            "samples_beyond_calibration_motion": self.detector.samples_motion,
             "samples_bad": self.detector.samples_bad,
             "samples_out_of_order": self.detector.samples_out_of_order,
             "stream_restarts": self.detector.restarts,
@@ -204,12 +223,12 @@ class ContactDetectorNode(Node):
             "latency_p99_ms": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
             "latency_from": self.latency_from,
             # DDS matches (0 publishers: nobody publishes the input, e.g. a wrong remapping)
-            "input_publishers": self._input.get_publisher_count(),
+            "input_publishers": self.input.publisher_counts()["sensor_publishers"],
             "event_subscribers": self.pub.get_subscription_count(),
         }
         grown = self.health.changes(
             {
-                "undecodable": self.undecodable,
+                "undecodable": self.input.undecodable_sensor,
                 "bad": self.detector.samples_bad,
                 "out_of_order": self.detector.samples_out_of_order,
                 "restarts": self.detector.restarts,
@@ -224,7 +243,7 @@ class ContactDetectorNode(Node):
         }
         warnings = [f"{grown[key]:.0f} {text}" for key, text in texts.items() if grown[key]]
         self.health.publish(
-            stale=self.health.stale_message(self._last_input, self._input.topic_name),
+            stale=self.health.stale_message(self._last_input, self.input.sensor_topic),
             warnings=warnings,
             ok=f"{self.events} events",
             values=values,

@@ -140,7 +140,7 @@ def method_output(bag, model, method: str) -> tuple:
     its detector on `bag`, whole; for looking at why a method detects what it does."""
     method = check_detect_method(model, method)
     stamps, values, truth = [], [], []
-    for s, v, contact in method_pieces(bag, model, method, ground_truth=True):
+    for s, v, contact, _ in method_pieces(bag, model, method, ground_truth=True):
         stamps.append(s)
         values.append(v)
         if contact is not None:

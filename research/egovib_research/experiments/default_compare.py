@@ -54,6 +54,7 @@ from egovib_ros.core.methods import (
     default_method,
     denoise_batch_method,
     method_delay_ms,
+    motion_limits,
     stored_threshold,
 )
 from egovib_ros.evaluation import detection, metrics
@@ -157,13 +158,18 @@ def _output(model, rec, method, output):
     return stamps, values, band
 
 
-def _detected(model, method, stamps, values, onsets_ns) -> tuple[int, int, int]:
-    """(tp, fp, fn) of the one detector at the stored threshold on the method's output."""
+def _detected(model, method, rec, stamps, values, onsets_ns) -> tuple:
+    """(tp, fp, fn, the share of samples at its raised threshold) of the one detector at
+    the stored threshold on the method's output (the run's joint states for its motion
+    limits)."""
     settings = ContactSettings.for_model(model, stored_threshold(model, method))
-    detector = ContactDetector(settings)
+    detector = ContactDetector(settings, motion=motion_limits(model, method))
+    _, _, joint_stamps, joint_velocity = core_arrays(rec)
+    detector.push_joints(joint_stamps, joint_velocity)
     events = detector.push(stamps, values) + detector.finish()
     found = np.array([e.onset_ns for e in events], np.int64)
-    return detection.match_events(found // 1000, onsets_ns // 1000, TOLERANCE_NS // 1000)
+    matched = detection.match_events(found // 1000, onsets_ns // 1000, TOLERANCE_NS // 1000)
+    return (*matched, detector.samples_motion / max(detector.samples, 1))
 
 
 def score(case: Case) -> dict:
@@ -189,9 +195,9 @@ def score(case: Case) -> dict:
                 for key in ("noise_reduction_db", "peak_snr_improvement_db", "tap_retention"):
                     row.setdefault(key, []).append(figures[key])
                 if output == "dropin":  # what the detector node reads by default
-                    tp, fp, fn = _detected(model, method, stamps, values, onsets)
+                    tp, fp, fn, _ = _detected(model, method, rec, stamps, values, onsets)
                     row["tp"], row["fp"], row["fn"] = row["tp"] + tp, row["fp"] + fp, row["fn"] + fn
-        tp, fp, fn = _detected(model, "raw", rec.sensor_stamps_ns, rec.sensor, onsets)
+        tp, fp, fn, _ = _detected(model, "raw", rec, rec.sensor_stamps_ns, rec.sensor, onsets)
         raw_row = rows.setdefault("raw", {"tp": 0, "fp": 0, "fn": 0})
         raw_row["tp"], raw_row["fp"], raw_row["fn"] = (
             raw_row["tp"] + tp,
@@ -224,13 +230,18 @@ def score(case: Case) -> dict:
 
 def _quiet_events(model, rec) -> dict[str, float]:
     """Events per minute the one detector finds on a recording without contacts, on the raw
-    signal and each method's drop-in output (all false alarms)."""
+    signal and each method's drop-in output (all false alarms), and the share of its samples
+    where the joints' motion raised the threshold (`<method>_raised_share`)."""
     none = np.zeros(0, np.int64)
     minutes = len(rec.sensor_stamps_ns) / model.sample_rate_hz / 60.0
-    rates = {"raw": _detected(model, "raw", rec.sensor_stamps_ns, rec.sensor, none)[1] / minutes}
+    rates = {
+        "raw": _detected(model, "raw", rec, rec.sensor_stamps_ns, rec.sensor, none)[1] / minutes
+    }
     for method in METHODS:
         stamps, values, _ = _output(model, rec, method, "dropin")
-        rates[method] = _detected(model, method, stamps, values, none)[1] / minutes
+        _, fp, _, raised = _detected(model, method, rec, stamps, values, none)
+        rates[method] = fp / minutes
+        rates[f"{method}_raised_share"] = raised
     return rates
 
 
@@ -309,11 +320,13 @@ def _quiet_lines(result: dict) -> list[str]:
         "",
         "Events per minute the detector finds on each test part *without* the added events "
         "(every one a false alarm: the flight's own transients above the threshold its "
-        "calibration part set), beside the false alarms per minute of the runs with them.",
+        "calibration part set), beside the false alarms per minute of the runs with them, "
+        "and the share of the test part where the joints moved beyond the calibration's "
+        "motion (the default's threshold raised there).",
         "",
         "| recording | the default: without / with events | paper: without / with | "
-        "no denoising: without / with |",
-        "|---|---|---|---|",
+        "no denoising: without / with | threshold raised on |",
+        "|---|---|---|---|---|",
     ]
     for name, case in quiet.items():
         rates, f = case["quiet_events_per_min"], case["figures"]
@@ -322,14 +335,21 @@ def _quiet_lines(result: dict) -> list[str]:
             f"{fmt(rates[key])} / {fmt(with_events[key]['false_alarms_per_min'])}"
             for key in (case["default_method"], "paper", "raw")
         ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        raised = rates[f"{case['default_method']}_raised_share"]
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {raised:.0%} |")
     lines += [
         "",
-        "Each method's threshold is set on its own output over the calibration part; where "
-        "the test part holds speeds that part never did (the swapped split: calibrated on the "
-        "hover, tested on the take-off), the take-off's transients cross every threshold, and "
-        "the default's, set on the quietest residual, most often. A calibration that holds "
-        "those speeds (the README's advice; the last row) leaves the paper's few.",
+        "Each method's threshold is set on its own output over the calibration part. Where "
+        "the test part holds motion that part never did (the swapped split: calibrated on the "
+        "hover, tested on the take-off: motors from rest, cut and restarted, faster than the "
+        "hover), the take-off's transients are ego-vibration no model knows; the detector "
+        "raises its threshold there (core.contact.MotionLimits: speeds beyond those the "
+        "calibration held, or joints accelerating harder than anywhere in it; the raw "
+        "signal's threshold over the method's, for 50 ms after), so the default's output "
+        "must stand out there as far as the raw signal would. Without that rule the default "
+        "found 78.8 events a minute on the swapped test part without events (paper 35.8), "
+        "F1 0.77 at 53.7 false alarms a minute with them (paper 0.84 at 32.2). A calibration "
+        "that holds those speeds (the README's advice; the last row) needs no raising.",
     ]
     return lines
 
