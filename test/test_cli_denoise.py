@@ -296,6 +296,8 @@ def test_positions_only_joint_states_give_the_same_denoising_within_half_a_db(
         evaluate = ("evaluate", motion, "--model", model, "--json", report, "--quiet")
         result = egovib(*evaluate, "--methods", "default")  # the figure asserted
         assert result.returncode == 0, result.stderr
+        # the first joint state has no velocity yet (no difference): not bad input, unsaid
+        assert "joint states" not in result.stderr, result.stderr
         figures[name] = json.loads(report.read_text())["noise_reduction_db"]
     assert figures["with"] > 15 and abs(figures["with"] - figures["without"]) < 0.5, figures
     with Reader(tmp_path / "motion_positions") as reader:  # positions only, indeed

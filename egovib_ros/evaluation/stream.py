@@ -300,6 +300,7 @@ class SummaryPass:
         self.low_raw, self.low_recorded = LowBandEnergy(model), LowBandEnergy(model)
         self.peak = 0.0
         self.joint_states_nonfinite = 0
+        self.joint_started = False  # a finite joint state seen
         self.joint_states_unusable, self.joint_states = 0, 0
         self.last_joint_stamp: int | None = None
         self.union_bad = 0
@@ -310,6 +311,13 @@ class SummaryPass:
         self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor, piece.contact))
         self.recorded.add_denoised(piece.denoised_stamps_ns, piece.denoised)
         finite = np.all(np.isfinite(piece.joint_velocity), axis=1)
+        if not self.joint_started:
+            # a stream's first velocities may be unknown without being bad: a driver that
+            # publishes positions only has no difference before its second message
+            lead = len(finite) if not finite.any() else int(np.argmax(finite))
+            self.joint_started = lead < len(finite)
+            finite = finite.copy()
+            finite[:lead] = True
         self.joint_states_nonfinite += int(np.count_nonzero(~finite))
         # as the denoiser takes them (core.stream.stamp_order): each finite and stamped after
         # the one before, a clock that jumps back a restart
