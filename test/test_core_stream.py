@@ -477,3 +477,24 @@ def test_stats_of_the_streaming_classes_keep_their_keys(model, motion):
     for cal in (calibrated, accumulator.stats):
         assert list(cal.as_dict()) == CALIBRATION_KEYS
         assert cal.samples_in == len(motion["t_acc"]) and cal.blocks >= cal.blocks_used > 0
+
+
+def test_short_blocks_measure_the_rate_over_enough_samples(motion):
+    """A profile with 4-sample blocks: the rate windows are RATE_BLOCK_MIN samples per block
+    at least, so a driver's +-30 % stamp jitter is not a rate change (16 samples measured
+    2294 Hz of a 2000 Hz stream: a probe's sweep was refused), and a real change still is."""
+    rng = np.random.default_rng(5)
+    n = len(motion["t_acc"])
+    jittery = with_stamps(motion, np.cumsum(1 + rng.uniform(-0.3, 0.3, n)))
+    short = FramerSettings(sample_rate_hz=FS, block_length=4, hop=2, source=SOURCE)
+    blocks, stats = frame_batch(
+        short, 2, jittery["t_acc"], jittery["accel"], jittery["t_joint"], jittery["velocity"]
+    )
+    assert sum(len(b.samples) for b in blocks) > n // 2 - 10  # every hop of 2 samples
+    halved = with_stamps(
+        motion, np.concatenate([np.arange(n // 2), n // 2 + 2 * np.arange(n // 2)])
+    )
+    with pytest.raises(StreamError, match="sensor rate changed"):
+        frame_batch(
+            short, 2, halved["t_acc"], halved["accel"], halved["t_joint"], halved["velocity"]
+        )

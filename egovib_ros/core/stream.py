@@ -15,9 +15,9 @@ Bad input is counted in `stats`, never a silent wrong result:
 - stamps taken on receipt (core.receipt) are told apart on the first samples, which wait;
   gaps and the rate are then judged on a rebuilt sample clock;
 - the rate is measured on the first 2 blocks' worth, then on every RATE_WINDOW_BLOCKS
-  blocks' worth; off by more than `rate_tolerance` at the start, or on two windows in a
-  row later, the stream is refused (StreamError on every push), not bridged into invented
-  samples;
+  blocks' worth (blocks of RATE_BLOCK_MIN samples at least); off by more than
+  `rate_tolerance` at the start, or on two windows in a row later, the stream is refused
+  (StreamError on every push), not bridged into invented samples;
 - a block with no joint state in or shortly before its span is MISSING: the denoiser
   passes it through band-passed, the calibrator skips it.
 """
@@ -48,6 +48,9 @@ MAX_BAD_SHARE = 0.1
 #: After the start, the sample rate is measured again on every window of this many blocks'
 #: worth of samples; two windows in a row beyond the tolerance are a rate mismatch.
 RATE_WINDOW_BLOCKS = 4
+#: ... blocks of at least this many samples: a window of a few short blocks (16 samples of a
+#: 4-sample block) measures a jittery driver's stamps, not its rate
+RATE_BLOCK_MIN = 64
 #: With FramerSettings.stamps "auto", up to this many first samples wait while the stamps tell
 #: whether they mark sample times or a driver's receipt times (the first rate window); the
 #: first PROBE_EARLY are enough when none of their steps is shorter than half a period.
@@ -76,7 +79,7 @@ class RateWatch:
 
     def __init__(self, settings: "FramerSettings", *, receipt: bool = False, window: int = 0):
         self.s, self.receipt = settings, receipt
-        self.window = window or RATE_WINDOW_BLOCKS * settings.block_length
+        self.window = window or RATE_WINDOW_BLOCKS * max(settings.block_length, RATE_BLOCK_MIN)
         self._stamps = np.zeros(0, np.int64)
         self._fitting = 0
 
@@ -749,7 +752,8 @@ class _Framer:
 
     def _rate_window(self) -> int:
         """Samples (steps) per rate window: 2 blocks' worth, then RATE_WINDOW_BLOCKS'."""
-        need = (RATE_WINDOW_BLOCKS if self._rate_checked else 2) * self.s.block_length
+        blocks = RATE_WINDOW_BLOCKS if self._rate_checked else 2
+        need = blocks * max(self.s.block_length, RATE_BLOCK_MIN)
         if self._cleaner.receipt is not None:
             need = self._cleaner.receipt.rate_window(need, first=not self._rate_checked)
         return need
