@@ -114,7 +114,8 @@ def test_beyond_the_calibrations_motion_detect_and_evaluate_raise_the_threshold_
     """Calibrated on free motion at 30 % of top speed, a run at 90 %: `egovib detect` says
     on what share of the samples its threshold rose (the joints beyond the calibration's
     speeds), raises fewer false alarms than without the rule (the model's limits removed),
-    and `egovib evaluate` scores the same detector: the same F1."""
+    and `egovib evaluate` scores the same detector: the same F1. With thresholds from
+    another no-contact bag (`--calibration`), the limits are that bag's."""
     cal, run, model = tmp_path / "cal", tmp_path / "run", tmp_path / "m.npz"
     simulate = ["simulate", "motion", "--quiet", "--duration"]
     assert main([*simulate, "20", "--max-speed", "0.3", "--taps", "0", "--out", str(cal)]) == 0
@@ -137,3 +138,10 @@ def test_beyond_the_calibrations_motion_detect_and_evaluate_raise_the_threshold_
         main(["evaluate", str(run), "--model", str(model), "--json", str(tmp_path / "v.json")]) == 0
     )
     assert json.loads((tmp_path / "v.json").read_text())["f1_denoised"] == report["scores"]["f1"]
+    # thresholds from a no-contact bag at the run's speeds (--calibration): the limits are
+    # that bag's too, so hardly anything rises
+    fast = tmp_path / "fast"
+    assert main([*simulate, "10", "--max-speed", "0.9", "--taps", "0", "--out", str(fast)]) == 0
+    given = detect_bag(run, model=loaded, calibration=fast)
+    assert given.threshold_source.startswith(f"no-contact data {fast}")
+    assert given.counts["samples_beyond_calibration_motion"] < 0.1 * given.counts["samples"]

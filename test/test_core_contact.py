@@ -210,15 +210,15 @@ def test_with_motion_limits_any_chunking_gives_the_same_events(cuts):
     assert detector.samples_motion == whole.samples_motion
 
 
-def test_a_sample_waits_for_its_joint_states_or_joint_wait_s():
-    """Without joint states up to its stamp a sample is not decided (offline); with
-    `joint_wait_s` (live) it is once that much later samples have come."""
+def test_a_sample_waits_for_its_joint_states_or_its_release():
+    """Without joint states up to its stamp a sample is not decided; `release` (live, after
+    waiting for them) or the end decides it at what the joint states say by then."""
     stamps, values, _ = taps(onsets_s=(0.5,))
     waiting = ContactDetector(settings(), motion=LIMITS)
     assert waiting.push(stamps, values) == [] and waiting.onsets_settled == 0
     assert len(waiting.finish()) == 1  # the end decides what is left, at the base threshold
-    live = ContactDetector(settings(), motion=LIMITS, joint_wait_s=0.02)
-    assert len(live.push(stamps, values)) == 1
+    live = ContactDetector(settings(), motion=LIMITS)
+    assert live.push(stamps, values) == [] and len(live.release(int(stamps[-1]))) == 1
 
 
 def test_motion_limits_are_validated():
@@ -228,8 +228,6 @@ def test_motion_limits_are_validated():
         MotionLimits(speed_low=(0.0,), speed_high=(1.0, 2.0), accel=1.0, factor=2.0)
     with pytest.raises(ConfigError, match="accel"):
         MotionLimits(speed_low=(0.0,), speed_high=(1.0,), accel=float("nan"), factor=2.0)
-    with pytest.raises(ConfigError, match="joint_wait_s"):
-        ContactDetector(settings(), joint_wait_s=-1.0)
 
 
 def test_joint_acceleration_is_taken_over_motion_accel_s():

@@ -14,7 +14,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from egovib_research.tools.orchestration import deep_output, reliable_input
 from egovib_ros.bag import write_recording
 from egovib_ros.core import NoiseModel
-from egovib_ros.core.methods import calibrate_detection, default_method
+from egovib_ros.core.methods import default_method
 from egovib_ros.evaluation.contacts import TOLERANCE_S, calibration_threshold, detect_bag
 from egovib_ros.nodes.convert import diagnostic_values, stamp_to_ns
 from egovib_ros.robot import load_profile
@@ -40,22 +40,10 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
     within 10 ms (the evaluation's tolerance) of the tap's true onset; /diagnostics carries
     events per minute, threshold, budget and latency."""
     calibration = tmp_path / "no_contact"
-    no_contact, _ = simulate_motion(duration_s=8.0, max_speed=0.5, seed=12)
+    # at lower speeds than the run's: where the run goes faster, the detector's threshold
+    # rises (core.contact.MotionLimits, from this bag), live as offline
+    no_contact, _ = simulate_motion(duration_s=8.0, max_speed=0.35, seed=12)
     write_recording(calibration, no_contact)
-    # the detector's model with the detector's calibration (on the no-contact run), as if
-    # that had held lower speeds of the first joint: where the run goes faster, its
-    # threshold rises (core.contact.MotionLimits), live as offline
-    model, _ = calibrate_detection(
-        NoiseModel.load(sim_model_path),
-        no_contact.sensor_stamps_ns,
-        no_contact.sensor,
-        no_contact.joint_stamps_ns,
-        no_contact.joint_velocity,
-    )
-    high = np.array(model.extras["detector.motion.speed_high"])
-    high[0] = 0.8
-    narrowed = tmp_path / "narrowed.npz"
-    model.replace(extras={**model.extras, "detector.motion.speed_high": high}).save(narrowed)
     denoiser = nodes.start(
         "denoiser",
         {
@@ -71,7 +59,7 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
     detector = nodes.start(
         "contact_detector",
         {
-            "model": str(narrowed),
+            "model": str(sim_model_path),
             "calibration_bag": str(calibration),
             "false_alarms_per_min": 0.0,
             **reliable_input(PR2.denoised_topic),
@@ -121,7 +109,7 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
     assert f"contact_detector: samples in {n}, events {values['events']} (" in nodes.log(detector)
 
     # The threshold: the no-contact bag through the model's default method and the envelope.
-    model = NoiseModel.load(narrowed)
+    model = NoiseModel.load(sim_model_path)
     method = default_method(model)
     assert values["method"] == method
     threshold, _ = calibration_threshold(calibration, model, method=method, false_alarms_per_min=0)
@@ -134,7 +122,9 @@ def test_live_contact_events_equal_offline_detection_at_the_true_onsets(
 
     # Offline, on a bag of the very messages sent: the same events. The live detector
     # reports an event 10 ms after its crossing; one in the stream's last 10 ms never is.
-    offline = detect_bag(stream.write_bag(tmp_path / "run"), model=model, threshold=threshold)
+    run = stream.write_bag(tmp_path / "run")
+    offline = detect_bag(run, model=model, calibration=calibration, false_alarms_per_min=0)
+    assert offline.threshold == pytest.approx(threshold, rel=1e-12)
     assert offline.counts["samples_beyond_calibration_motion"] == raised
     expected = [e for e in offline.events if e.report_ns < stamps[-1]]
     onsets = np.array([stamp_to_ns(e.header.stamp) for e in events])

@@ -18,8 +18,8 @@ state the threshold is `factor` times higher (the raw signal's threshold over th
 there the output must stand out as far as the raw signal would). What stays above the
 base threshold but below the raised one is the robot's own, and so is its continuation past
 the raised span (no event where the raising ends). With limits, a sample is decided once
-the joint states reach its stamp (or `joint_wait_s` of later samples have come: live, a
-joint topic that stalls does not stall detection).
+the joint states reach its stamp, or once `release` lets it go without them (live: a joint
+topic that stalls does not stall detection).
 
 The input may be raw or denoised (thresholds from data processed alike). A bad sample
 (non-finite, or beyond `sensor_range`) is counted and held at the last good value (one NaN
@@ -265,14 +265,11 @@ class ContactDetector:
         *,
         prefiltered: bool = False,
         motion: MotionLimits | None = None,
-        joint_wait_s: float = math.inf,
     ):
         self.s = settings
         self._prefiltered = prefiltered
         self._guard = None if motion is None else MotionGuard(motion)
-        if not joint_wait_s >= 0:
-            raise ConfigError(f"contact detector: joint_wait_s must be >= 0, got {joint_wait_s!r}")
-        self._wait_ns = None if math.isinf(joint_wait_s) else int(joint_wait_s * NS_PER_S)
+        self._released = -1  # samples stamped up to here are decided without joint states
         self._decided = 0  # global index of the first sample not compared with the threshold
         self.samples_motion = 0  # samples decided at the raised threshold
         self._envelope = DetectionEnvelope(settings, prefiltered=prefiltered)
@@ -329,6 +326,12 @@ class ContactDetector:
         self._guard.push(stamps_ns, velocity)
         return self._advance()
 
+    def release(self, upto_ns: int) -> list[ContactEvent]:
+        """Samples stamped up to `upto_ns` are decided with the joint states in by now
+        (live, after waiting for them long enough); the events that reports."""
+        self._released = max(self._released, int(upto_ns))
+        return self._advance()
+
     def _advance(self) -> list[ContactEvent]:
         self._decide(final=False)
         events = self._report(final=False)
@@ -337,13 +340,12 @@ class ContactDetector:
 
     def _decide(self, *, final: bool) -> None:
         """Threshold the samples that can be: all without motion limits (or at the end),
-        else those the joint states reach, and those `joint_wait_s` older than the newest."""
+        else those the joint states reach or `release` let go."""
         end = self._base + len(self._stamps)
         upto = end
         if self._guard is not None and not final:
-            reach = -1 if self._guard.covered_ns is None else self._guard.covered_ns
-            if self._wait_ns is not None and self._last_stamp is not None:
-                reach = max(reach, self._last_stamp - self._wait_ns)
+            covered = self._guard.covered_ns
+            reach = max(-1 if covered is None else covered, self._released)
             upto = self._base + int(np.searchsorted(self._stamps, reach, side="right"))
         if upto <= self._decided:
             return

@@ -240,16 +240,28 @@ def calibrate_detection(
         )
     extras = {DETECTOR_PREFIX + m: np.array(t) for m, t in thresholds.items()}
     extras[DETECTOR_BUDGET] = np.array(float(FALSE_ALARMS_PER_MIN))
+    extras.update(motion_extras(model, joint_stamps_ns, joint_velocity))
+    return model.replace(extras={**model.extras, **extras}), thresholds
+
+
+def motion_extras(
+    model: NoiseModel, joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray
+) -> dict[str, np.ndarray]:
+    """The motion of no-contact data, as the model's extras keep it (motion_limits reads
+    them): its largest joint acceleration, each joint's lowest and highest speed past the
+    speeds seen by MOTION_SPEED_MARGIN of its top grid speed (a run at a sweep's top speed
+    is not beyond it). None for a robot that never moved."""
+    joint_velocity = np.asarray(joint_velocity, np.float64).reshape(len(joint_stamps_ns), -1)
     accel = joint_acceleration(joint_stamps_ns, joint_velocity)
     known = np.isfinite(joint_velocity).all(axis=1)
-    if known.any() and accel.max() > 0:  # (a robot that never moved: no limits)
-        extras[DETECTOR_MOTION + "accel"] = np.array(float(accel.max()))
-        # past the speeds seen by MOTION_SPEED_MARGIN of each joint's top grid speed: a run
-        # at a sweep's top speed is not beyond it
-        margin = MOTION_SPEED_MARGIN * np.array([np.abs(g).max() for g in model.grid])
-        extras[DETECTOR_MOTION + "speed_low"] = joint_velocity[known].min(axis=0) - margin
-        extras[DETECTOR_MOTION + "speed_high"] = joint_velocity[known].max(axis=0) + margin
-    return model.replace(extras={**model.extras, **extras}), thresholds
+    if not known.any() or not accel.max() > 0:
+        return {}
+    margin = MOTION_SPEED_MARGIN * np.array([np.abs(g).max() for g in model.grid])
+    return {
+        DETECTOR_MOTION + "accel": np.array(float(accel.max())),
+        DETECTOR_MOTION + "speed_low": joint_velocity[known].min(axis=0) - margin,
+        DETECTOR_MOTION + "speed_high": joint_velocity[known].max(axis=0) + margin,
+    }
 
 
 # --- What the methods calibrate, stored in the model's extras -----------------------------

@@ -28,6 +28,7 @@ from egovib_ros.core.contact import (
     ContactEvent,
     ContactSettings,
     DetectionEnvelope,
+    MotionLimits,
     no_contact_threshold,
 )
 from egovib_ros.core.filters import combined_bandpassed
@@ -36,6 +37,7 @@ from egovib_ros.core.methods import (
     EDGE_S,
     METHODS,
     make_denoiser,
+    motion_extras,
     motion_limits,
     resolve_method,
     stored_threshold,
@@ -197,18 +199,22 @@ def detection_threshold(
     calibration: str | os.PathLike | None = None,
     false_alarms_per_min: float | None = None,
     joint_lag_s: float = 0.0,
-) -> tuple[float, str, float | None]:
+) -> tuple[float, str, float | None, MotionLimits | None]:
     """(threshold, where it came from, false alarms per minute it gave on its no-contact
-    data or None): `threshold` if given; else the model's stored one when nothing asks for
-    another (no `calibration` bag, no budget but the stored one's, no joint lag); else
-    computed from `calibration` (default: the bag the model was calibrated from)."""
+    data or None, the detector's motion limits): `threshold` if given; else the model's
+    stored one when nothing asks for another (no `calibration` bag, no budget but the
+    stored one's, no joint lag); else computed from `calibration` (default: the bag the
+    model was calibrated from), and the motion limits with it: that bag's speeds and
+    accelerations, its raw signal's threshold at the same budget over the method's (else
+    the model's stored limits)."""
     if threshold is not None:
-        return float(threshold), "given", None
+        return float(threshold), "given", None, motion_limits(model, method)
     if calibration is None and not detection_threshold_needs_data(
         model, method, false_alarms_per_min, joint_lag_s
     ):
         budget = float(model.extras[DETECTOR_BUDGET])
-        return stored_threshold(model, method), f"stored in the model, {budget:g}/min", None
+        source = f"stored in the model, {budget:g}/min"
+        return stored_threshold(model, method), source, None, motion_limits(model, method)
     calibration = calibration or model.provenance.get("source_bag")
     if not calibration:
         raise ConfigError(
@@ -216,14 +222,27 @@ def detection_threshold(
             "calibration bag: give --calibration (a no-contact bag) or --threshold"
         )
     budget = FALSE_ALARMS_PER_MIN if false_alarms_per_min is None else false_alarms_per_min
-    value, rate = calibration_threshold(
-        calibration,
-        model,
-        method=method,
-        false_alarms_per_min=budget,
-        joint_lag_s=joint_lag_s,
+    options = dict(false_alarms_per_min=budget, joint_lag_s=joint_lag_s)
+    value, rate = calibration_threshold(calibration, model, method=method, **options)
+    source = f"no-contact data {Path(calibration)}, {budget:g}/min"
+    return value, source, rate, calibration_motion(calibration, model, method, value, **options)
+
+
+def calibration_motion(
+    bag, model: NoiseModel, method: str, threshold: float, **options
+) -> MotionLimits | None:
+    """The detector's motion limits from the no-contact `bag` its `threshold` came from
+    (`options`: calibration_threshold's): the bag's motion (core.methods.motion_extras)
+    and its raw signal's threshold over `threshold`."""
+    if method == "raw":
+        return None
+    raw, _ = calibration_threshold(bag, model, method="raw", **options)
+    rec = read_recording(
+        bag, profile=model.robot_profile(), ground_truth=False, denoised=False, commands=False
     )
-    return value, f"no-contact data {Path(calibration)}, {budget:g}/min", rate
+    extras = motion_extras(model, rec.joint_stamps_ns, rec.joint_velocity)
+    with_bags = model.replace(extras={**model.extras, **extras})
+    return motion_limits(with_bags, method, {"raw": raw, method: threshold})
 
 
 def detect_bag(
@@ -240,7 +259,7 @@ def detect_bag(
     """Contact events of `bag` (see the module doc); `adapt` (core.adapt.AdaptSettings):
     the denoiser's model goes on learning while no contact is detected."""
     method = check_detect_method(model, method)
-    threshold, source, rate = detection_threshold(
+    threshold, source, rate, motion = detection_threshold(
         model,
         method,
         threshold=threshold,
@@ -248,9 +267,7 @@ def detect_bag(
         false_alarms_per_min=false_alarms_per_min,
         joint_lag_s=joint_lag_s,
     )
-    detector = ContactDetector(
-        ContactSettings.for_model(model, threshold), motion=motion_limits(model, method)
-    )
+    detector = ContactDetector(ContactSettings.for_model(model, threshold), motion=motion)
     events: list[ContactEvent] = []
     truth_parts, stamp_parts = [], []
     used: list = []

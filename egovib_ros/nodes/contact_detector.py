@@ -4,7 +4,7 @@
 The detector of `egovib detect` (core.contact), so live and offline events agree, with its
 threshold fixed at start by the same rule (evaluation.contacts.detection_threshold) and
 raised, as offline, where the joint states (the profile's topic) show motion beyond the
-calibration's (a sample waits for them at most JOINT_WAIT_S). One
+calibration's (a sample waits for them at most JOINT_WAIT_S after its arrival). One
 geometry_msgs/Vector3Stamped per event on `contact_events`: stamp = the onset, frame_id =
 the sensor's, vector = the band-passed vector at the event's peak. Its latency is counted
 from the onset stamp, or from the arrival of the onset's sample when the stamps are not on
@@ -22,7 +22,6 @@ from rclpy.node import Node
 
 from egovib_ros.core import NoiseModel
 from egovib_ros.core.contact import FALSE_ALARMS_PER_MIN, ContactDetector, ContactSettings
-from egovib_ros.core.methods import motion_limits
 from egovib_ros.errors import ConfigError
 from egovib_ros.evaluation.contacts import (
     DETECT_METHODS,
@@ -98,7 +97,7 @@ class ContactDetectorNode(Node):
         )
         self.budget = params["false_alarms_per_min"]
         try:
-            self.threshold, self.threshold_source, self.calibration_rate = detection_threshold(
+            found = detection_threshold(
                 self.model,
                 self.method,
                 threshold=params["threshold"] or None,
@@ -109,11 +108,10 @@ class ContactDetectorNode(Node):
             raise ConfigError(
                 f"contact_detector: {exc}; set calibration_bag or threshold"
             ) from None
-        self.motion = motion_limits(self.model, self.method)
+        self.threshold, self.threshold_source, self.calibration_rate, self.motion = found
         self.detector = ContactDetector(
             ContactSettings.for_model(self.model, self.threshold),
             motion=self.motion,
-            joint_wait_s=JOINT_WAIT_S,
         )
         topic = (
             self.profile.node_denoised_topic
@@ -169,6 +167,12 @@ class ContactDetectorNode(Node):
             arrived = int(batch.arrival_ns[0]) - time.monotonic_ns() + time.time_ns()
             self._arrivals = self._arrivals[-2000:] + [(int(batch.stamps_ns.max()), arrived)]
             events += self.detector.push(batch.stamps_ns, batch.values)
+        if self.motion is not None:  # what waited JOINT_WAIT_S for joint states goes on
+            waited = time.time_ns() - int(JOINT_WAIT_S * 1e9)
+            arrivals = reversed(self._arrivals)
+            ready = next((last for last, arrived in arrivals if arrived <= waited), None)
+            if ready is not None:
+                events += self.detector.release(ready)
         for event in events:
             msg = Vector3Stamped()
             msg.header.stamp = ns_to_stamp(event.onset_ns)
