@@ -145,3 +145,7 @@ def test_beyond_the_calibrations_motion_detect_and_evaluate_raise_the_threshold_
     given = detect_bag(run, model=loaded, calibration=fast)
     assert given.threshold_source.startswith(f"no-contact data {fast}")
     assert given.counts["samples_beyond_calibration_motion"] < 0.1 * given.counts["samples"]
+    # and `egovib evaluate --calibration` takes the same limits from it: the same F1
+    args = ["evaluate", str(run), "--model", str(model), "--calibration", str(fast)]
+    assert main([*args, "--json", str(tmp_path / "f.json")]) == 0
+    assert json.loads((tmp_path / "f.json").read_text())["f1_denoised"] == given.scores["f1"]

@@ -244,6 +244,14 @@ def calibrate_detection(
     return model.replace(extras={**model.extras, **extras}), thresholds
 
 
+def with_motion(model: NoiseModel, joint_stamps_ns, joint_velocity) -> NoiseModel:
+    """The model with the motion of other no-contact data in place of its own (none if
+    that robot never moved): what motion_limits reads when thresholds come from them."""
+    extras = {k: v for k, v in model.extras.items() if not k.startswith(DETECTOR_MOTION)}
+    extras.update(motion_extras(model, joint_stamps_ns, joint_velocity))
+    return model.replace(extras=extras)
+
+
 def motion_extras(
     model: NoiseModel, joint_stamps_ns: np.ndarray, joint_velocity: np.ndarray
 ) -> dict[str, np.ndarray]:

@@ -37,10 +37,10 @@ from egovib_ros.core.methods import (
     EDGE_S,
     METHODS,
     make_denoiser,
-    motion_extras,
     motion_limits,
     resolve_method,
     stored_threshold,
+    with_motion,
 )
 from egovib_ros.core.timebase import NS_PER_S
 from egovib_ros.errors import ConfigError
@@ -232,7 +232,7 @@ def calibration_motion(
     bag, model: NoiseModel, method: str, threshold: float, **options
 ) -> MotionLimits | None:
     """The detector's motion limits from the no-contact `bag` its `threshold` came from
-    (`options`: calibration_threshold's): the bag's motion (core.methods.motion_extras)
+    (`options`: calibration_threshold's): the bag's motion (core.methods.with_motion)
     and its raw signal's threshold over `threshold`."""
     if method == "raw":
         return None
@@ -240,9 +240,8 @@ def calibration_motion(
     rec = read_recording(
         bag, profile=model.robot_profile(), ground_truth=False, denoised=False, commands=False
     )
-    extras = motion_extras(model, rec.joint_stamps_ns, rec.joint_velocity)
-    with_bags = model.replace(extras={**model.extras, **extras})
-    return motion_limits(with_bags, method, {"raw": raw, method: threshold})
+    bags = with_motion(model, rec.joint_stamps_ns, rec.joint_velocity)
+    return motion_limits(bags, method, {"raw": raw, method: threshold})
 
 
 def detect_bag(

@@ -26,7 +26,7 @@ from typing import Callable, Iterable
 from egovib_ros.bag import iter_recording
 from egovib_ros.bag.recording import bag_topic_names
 from egovib_ros.core import NoiseModel, contact
-from egovib_ros.core.methods import default_method
+from egovib_ros.core.methods import default_method, with_motion
 from egovib_ros.errors import BagError
 from egovib_ros.evaluation import baselines, detection, metrics
 from egovib_ros.evaluation import stream as streaming
@@ -114,6 +114,8 @@ def evaluate_pieces(
         )
         result = _through(calibration, open_calibration())
         thresholds, gate, calibration_bad = result.thresholds, result.gate, result.bad
+        # the detector's motion limits: those of the data its thresholds came from
+        common["limits_model"] = with_motion(model, *result.joints)
     else:
         own = streaming.EvaluationPass(model, thresholds=None, extra=extra, adapt=adapt, **common)
         _through(own, open_run())

@@ -406,6 +406,7 @@ class CalibrationResult:
     thresholds: dict  # "raw" and each method -> detection threshold
     gate: np.ndarray | None  # noisereduce's noise threshold per frequency (dB)
     bad: int  # bad calibration samples
+    joints: tuple  # its joint states (stamps, velocities): the detector's motion limits
 
 
 class _Reducer:
@@ -444,6 +445,8 @@ class CalibrationPass:
             for name in names
         }
         self.needs_gate = "noisereduce" in self.streams
+        # joint states, small beside the sensor's: (stamps, velocities) per piece
+        self.joints: list[tuple] = [(np.zeros(0, np.int64), np.zeros((0, model.n_joints)))]
         self.clip: list[np.ndarray] = []
         self.clip_n = 0
         self.gate: np.ndarray | None = None
@@ -465,6 +468,7 @@ class CalibrationPass:
             self._signal(
                 name, stream.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             )
+        self.joints.append((piece.joint_stamps_ns, piece.joint_velocity))
         self._rows(*self.screen.push(piece.sensor_stamps_ns, piece.sensor))
         self._advance(final=False)
 
@@ -540,7 +544,10 @@ class CalibrationPass:
         except ValueError as exc:
             raise bag_error(self.source, exc) from None
         thresholds = {key: reducer.rule.threshold() for key, reducer in self.reducers.items()}
-        return CalibrationResult(thresholds=thresholds, gate=self.gate, bad=bad)
+        stamps, velocity = (np.concatenate(part) for part in zip(*self.joints))
+        order = np.argsort(stamps, kind="stable")
+        joints = stamps[order], velocity[order]
+        return CalibrationResult(thresholds=thresholds, gate=self.gate, bad=bad, joints=joints)
 
 
 # --------------------------------------------------------------------------
@@ -571,7 +578,10 @@ class EvaluationPass:
         keep_signals: bool = False,
         source: str = "recording",
         adapt=None,
+        limits_model: NoiseModel | None = None,
     ):
+        """`limits_model`: the model whose motion the thresholds' data had (the detector's
+        motion limits; None: none, the thresholds come from this run)."""
         fs = model.sample_rate_hz
         self.model, self.fs, self.source = model, fs, source
         self.summary = summary
@@ -629,7 +639,9 @@ class EvaluationPass:
         self.detectors: dict[str, tuple] = {}
         if thresholds is not None:
             for key in self.metric_keys:
-                motion = motion_limits(model, key, thresholds)
+                motion = None
+                if limits_model is not None:
+                    motion = motion_limits(limits_model, key, thresholds)
                 self.detectors[key] = (key, detection.OnsetStream(thresholds[key], model, motion))
             for level in detection.PR2_THRESHOLDS_MS2:
                 self.detectors[f"pr2_{level:g}ms2"] = (
