@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     beyond = result.counts.get("samples_beyond_calibration_motion", 0)
     if beyond:
         line += (
-            f", raised on {beyond / max(result.counts['samples'], 1):.0%} of the samples "
+            f", raised on {beyond / max(result.counts['samples'], 1):.1%} of the samples "
             "(motion beyond the calibration's)"
         )
     if result.scores is not None:
