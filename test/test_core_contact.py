@@ -231,9 +231,16 @@ def test_motion_limits_are_validated():
 
 
 def test_joint_acceleration_is_taken_over_motion_accel_s():
-    """The summed change of speeds over MOTION_ACCEL_S: jitter in the joint stamps (two
-    states 0.1 ms apart) does not make an acceleration; NaN speeds are left out."""
+    """The summed change of speeds since the last state MOTION_ACCEL_S or more before, over
+    the time between them: jitter in the joint stamps (two states 0.1 ms apart) does not
+    make an acceleration, NaN speeds are left out, and a ramp reads the same at 50 Hz as at
+    1 kHz (a fixed divisor read 50 Hz joint states twice as fast)."""
     t = np.array([0, 5, 10, 10.1, 20, 30], float) * 1e6
     velocity = np.array([[0, 0], [0, 0], [0.1, np.nan], [0.1, 0], [0.3, 0], [0.3, 0.2]])
     accel = joint_acceleration(t.astype(np.int64), velocity)
-    assert accel.tolist() == pytest.approx([0, 0, 10, 10, 20, 20])
+    assert accel.tolist() == pytest.approx([0, 0, 10, 0.1 / 0.0101, 20, 20])
+    for rate in (50, 1000):
+        stamps = np.arange(0, 1e9, 1e9 / rate).astype(np.int64)
+        ramp = np.stack([2.0 * stamps / 1e9, np.zeros(len(stamps))], axis=1)  # 2 rad/s^2
+        first = int(np.ceil(MOTION_ACCEL_S * rate))  # the first with a state far enough back
+        assert joint_acceleration(stamps, ramp)[first:] == pytest.approx(2.0), rate

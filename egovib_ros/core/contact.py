@@ -132,8 +132,9 @@ def joint_acceleration(
     stamps_ns: np.ndarray, velocity: np.ndarray, before: tuple | None = None
 ) -> np.ndarray:
     """Per joint state, the summed |change| of the joints' speeds since the last state at
-    least MOTION_ACCEL_S before it, over MOTION_ACCEL_S (0 where there is none; NaN speeds
-    left out). `before`: (stamps, velocity) of earlier states to look back into."""
+    least MOTION_ACCEL_S before it, over the time between them (0 where there is none; NaN
+    speeds left out): the same at any joint-state rate. `before`: (stamps, velocity) of
+    earlier states to look back into."""
     stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
     if not len(stamps_ns):
         return np.zeros(0)
@@ -146,8 +147,8 @@ def joint_acceleration(
     step = int(MOTION_ACCEL_S * NS_PER_S)
     back = np.searchsorted(all_stamps, stamps_ns - step, side="right") - 1
     change = np.abs(velocity - all_velocity[np.maximum(back, 0)])
-    accel = np.nansum(change, axis=1) / MOTION_ACCEL_S
-    return np.where(back >= 0, accel, 0.0)
+    elapsed = (stamps_ns - all_stamps[np.maximum(back, 0)]) / NS_PER_S
+    return np.where(back >= 0, np.nansum(change, axis=1) / np.maximum(elapsed, 1e-9), 0.0)
 
 
 class MotionGuard:
@@ -279,6 +280,7 @@ class ContactDetector:
         # history of the last samples (for onsets and peaks): global index of its first row
         self._base = 0
         self._stamps = np.zeros(0, np.int64)
+        self._clock = np.zeros(0, np.int64)  # the same samples on the joint states' clock
         self._env = np.zeros(0)
         self._axes = np.zeros((0, 3))
         self._last_above: int | None = None  # global index of the last above-threshold sample
@@ -292,26 +294,31 @@ class ContactDetector:
         self.restarts = 0
         self.events = 0
 
-    def push(self, stamps_ns: np.ndarray, values: np.ndarray) -> list[ContactEvent]:
+    def push(
+        self, stamps_ns: np.ndarray, values: np.ndarray, clock: np.ndarray | None = None
+    ) -> list[ContactEvent]:
         """Events reported by the end of these samples (stamps (N,), values (N, 3); with
-        `prefiltered`, the band-passed 1-D signal (N,))."""
+        `prefiltered`, the band-passed 1-D signal (N,)). `clock`: the samples' times on the
+        joint states' clock, where the stamps are not (`egovib evaluate` counts samples)."""
         stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
+        clock = stamps_ns if clock is None else np.asarray(clock, np.int64).reshape(-1)
         values = np.asarray(values, np.float64)
         values = (_as_x(values) if self._prefiltered else values).reshape(-1, 3)
         if not len(stamps_ns):
             return []
         keep, i = stamp_order(self._last_stamp, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
         if i is not None:  # a restarted clock: what came before, a fresh start, what follows
-            events = self.push(stamps_ns[:i], values[:i]) + self._restart()
-            return events + self.push(stamps_ns[i:], values[i:])
+            events = self.push(stamps_ns[:i], values[:i], clock[:i]) + self._restart()
+            return events + self.push(stamps_ns[i:], values[i:], clock[i:])
         if not keep.all():
             self.samples_out_of_order += int((~keep).sum())
-            stamps_ns, values = stamps_ns[keep], values[keep]
+            stamps_ns, values, clock = stamps_ns[keep], values[keep], clock[keep]
             if not len(stamps_ns):
                 return []
         self._last_stamp = int(stamps_ns[-1])
         values = self._hold_bad(values)
         axes, envelope = self._envelope.process(values)
+        self._clock = np.concatenate([self._clock, clock])
         self._stamps = np.concatenate([self._stamps, stamps_ns])
         self._env = np.concatenate([self._env, envelope])
         self._axes = np.concatenate([self._axes, axes])
@@ -346,13 +353,16 @@ class ContactDetector:
         if self._guard is not None and not final:
             covered = self._guard.covered_ns
             reach = max(-1 if covered is None else covered, self._released)
-            upto = self._base + int(np.searchsorted(self._stamps, reach, side="right"))
+            # the samples up to the first one beyond (a clock may go back: a bag's loop)
+            beyond = self._clock[self._decided - self._base :] > reach
+            first = int(np.argmax(beyond)) if beyond.any() else len(beyond)
+            upto = self._decided + first
         if upto <= self._decided:
             return
         lo, hi = self._decided - self._base, upto - self._base
         env = self._env[lo:hi]
         factors = (
-            np.ones(hi - lo) if self._guard is None else self._guard.factors(self._stamps[lo:hi])
+            np.ones(hi - lo) if self._guard is None else self._guard.factors(self._clock[lo:hi])
         )
         self.samples_motion += int(np.count_nonzero(factors > 1.0))
         for k in np.flatnonzero(env > self.s.threshold).tolist():
@@ -380,6 +390,7 @@ class ContactDetector:
         self._base += len(self._stamps)
         self._decided = self._base
         self._stamps, self._env, self._axes = np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+        self._clock = np.zeros(0, np.int64)
         self._last_above, self._pending, self._last_stamp = None, [], None
         self._last_own = None
         self.restarts += 1
@@ -438,6 +449,7 @@ class ContactDetector:
             keep_from = min(keep_from, self._pending[0] - self._back)
         cut = max(0, keep_from - self._base)
         if cut > 4096:
+            self._clock = self._clock[cut:]
             self._stamps, self._env, self._axes = (
                 self._stamps[cut:],
                 self._env[cut:],

@@ -99,16 +99,18 @@ def method_pieces(
     if used is not None:
         used.append(denoiser)
     truth: dict[int, np.ndarray] = {}
+    lag_ns = int(round(joint_lag_s * NS_PER_S))
     for piece in iter_recording(
         bag, profile=profile, ground_truth=ground_truth, denoised=False, commands=False
     ):
         if ground_truth and piece.contact is not None:
             truth.update(zip(piece.sensor_stamps_ns.tolist(), piece.contact))
-        joints = (piece.joint_stamps_ns, piece.joint_velocity)
+        # as the denoiser aligns them (its joint lag): the detector's motion limits
+        joints = (piece.joint_stamps_ns + lag_ns, piece.joint_velocity)
         if denoiser is None:
             stamps, values = piece.sensor_stamps_ns, piece.sensor
         else:
-            first = denoiser.push_joint_states(*joints)
+            first = denoiser.push_joint_states(piece.joint_stamps_ns, piece.joint_velocity)
             then = denoiser.push_sensor(piece.sensor_stamps_ns, piece.sensor)
             stamps = np.concatenate([first.stamps_ns, then.stamps_ns])
             values = np.concatenate([first.values, then.values])

@@ -212,12 +212,12 @@ class OnsetStream:
         return self.detector.onsets_settled
 
     def push(self, x: np.ndarray, stamps: np.ndarray | None = None) -> None:
-        """`stamps`: the samples' stamps (needed with motion limits; default: indices)."""
+        """`stamps`: the samples' stamps, for the motion limits' joint states (the detector
+        counts samples: a stream of stamps that go back, a bag's loop, is scored whole)."""
         x = np.asarray(x, float)
-        if stamps is None:
-            stamps = np.arange(self.pos, self.pos + x.size, dtype=np.int64)
+        index = np.arange(self.pos, self.pos + x.size, dtype=np.int64)
         self.pos += x.size
-        self._onsets += [e.onset_index for e in self.detector.push(stamps, x)]
+        self._onsets += [e.onset_index for e in self.detector.push(index, x, stamps)]
 
     def push_joints(self, stamps: np.ndarray, velocity: np.ndarray) -> None:
         self._onsets += [e.onset_index for e in self.detector.push_joints(stamps, velocity)]
