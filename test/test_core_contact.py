@@ -210,6 +210,33 @@ def test_with_motion_limits_any_chunking_gives_the_same_events(cuts):
     assert detector.samples_motion == whole.samples_motion
 
 
+@given(st.lists(st.integers(1, 6000), max_size=6))
+def test_a_looped_recording_gives_the_same_events_whichever_stream_comes_first(cuts):
+    """A bag's loop: sensor and joint clocks restart together; the second copy reads its
+    own joint states whether all joint states came first, or each copy's in time."""
+    stamps, values, _ = taps()
+    joint_stamps, velocity = joints(fast=((1.2, 1.5), (3.05, 3.06)))
+    back = 3_000_000_000  # 4 s of data, restarted 3 s back: a jump of the clock
+    loop = np.concatenate([stamps, stamps[-1] + 333_333 - back + (stamps - stamps[0])])
+    twice = np.vstack([values, values])
+    joint_loop = np.concatenate(
+        [joint_stamps, stamps[-1] + 333_333 - back + joint_stamps - joint_stamps[0]]
+    )
+    joint_twice = np.vstack([velocity, velocity])
+    first = ContactDetector(settings(), motion=LIMITS)
+    expected = first.push_joints(joint_loop, joint_twice) + run(first, loop, twice, cuts)
+    assert first.restarts == 1
+    one = ContactDetector(settings(), motion=LIMITS)
+    once = one.push_joints(joint_stamps, velocity) + run(one, stamps, values, [])
+    assert len(expected) == 2 * len(once)  # each copy as the recording alone
+    assert first.samples_motion == 2 * one.samples_motion
+    timed = ContactDetector(settings(), motion=LIMITS)
+    events = interleaved(
+        timed, loop[: len(stamps)], twice[: len(stamps)], joint_stamps, velocity, cuts
+    )
+    assert [e.onset_ns for e in events] == [e.onset_ns for e in once]
+
+
 def test_a_sample_waits_for_its_joint_states_or_its_release():
     """Without joint states up to its stamp a sample is not decided; `release` (live, after
     waiting for them) or the end decides it at what the joint states say by then."""

@@ -153,27 +153,32 @@ def joint_acceleration(
 
 class MotionGuard:
     """The threshold's factor per sample from the joint states (MotionLimits): push the
-    joint states in order, then ask `factors` for samples up to `covered_ns`."""
+    joint states in order, then ask `factors` for samples the joint states `reach`. A joint
+    clock that restarts (a bag's loop) begins an epoch; samples of the detector's k-th
+    epoch (its own restarts) read the joint states of the k-th, whatever arrived first."""
 
     def __init__(self, limits: MotionLimits):
         self.limits = limits
         self._low, self._high = np.array(limits.speed_low), np.array(limits.speed_high)
-        self.reset()
+        self._marks: list[np.ndarray] = []  # per epoch: stamps of joint states beyond
+        self._covered: list[int] = []  # per epoch: its latest joint stamp
+        self._restart()
 
-    def reset(self) -> None:
+    def _restart(self) -> None:
         self._history = (np.zeros(0, np.int64), np.zeros((0, len(self._low))))
-        self._marks = np.zeros(0, np.int64)  # stamps of joint states beyond the limits
-        self.covered_ns: int | None = None  # the latest joint stamp
+        self._marks.append(np.zeros(0, np.int64))
+        self._covered.append(-1)
 
     def push(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         stamps_ns = np.asarray(stamps_ns, np.int64).reshape(-1)
         if not len(stamps_ns):
             return
         velocity = np.asarray(velocity, np.float64).reshape(len(stamps_ns), -1)
-        keep, jump = stamp_order(self.covered_ns, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
+        latest = None if self._covered[-1] < 0 else self._covered[-1]
+        keep, jump = stamp_order(latest, stamps_ns, int(CLOCK_JUMP_S * NS_PER_S))
         if jump is not None:  # a restarted joint clock: what came before is another time
             self.push(stamps_ns[:jump], velocity[:jump])
-            self.reset()
+            self._restart()
             self.push(stamps_ns[jump:], velocity[jump:])
             return
         stamps_ns, velocity = stamps_ns[keep], velocity[keep]
@@ -183,23 +188,33 @@ class MotionGuard:
         with np.errstate(invalid="ignore"):  # NaN speeds: unknown, not beyond
             fast = np.any((velocity < self._low) | (velocity > self._high), axis=1)
         beyond = fast | (accel > self.limits.accel)
-        self._marks = np.concatenate([self._marks, stamps_ns[beyond]])
-        self.covered_ns = int(stamps_ns[-1])
+        self._marks[-1] = np.concatenate([self._marks[-1], stamps_ns[beyond]])
+        self._covered[-1] = int(stamps_ns[-1])
         stamps = np.concatenate([self._history[0], stamps_ns])
         step = int(MOTION_ACCEL_S * NS_PER_S)
         first = max(np.searchsorted(stamps, stamps[-1] - step, side="right") - 1, 0)
         self._history = (stamps[first:], np.vstack([self._history[1], velocity])[first:])
 
-    def factors(self, stamps_ns: np.ndarray) -> np.ndarray:
-        """The factor for samples (stamps in order): `factor` within MOTION_HOLD_S after a
-        joint state beyond the limits, else 1; marks before these samples' reach dropped."""
+    def reach(self, epoch: int) -> float:
+        """How far the joint states of `epoch` reach (stamp; inf once a later one began;
+        a sensor clock restarted alone reads the latest)."""
+        if epoch < len(self._covered) - 1:
+            return math.inf
+        return self._covered[-1]
+
+    def factors(self, stamps_ns: np.ndarray, epoch: int = 0) -> np.ndarray:
+        """The factor for samples of `epoch` (stamps in order): `factor` within
+        MOTION_HOLD_S after a joint state beyond the limits, else 1; marks before these
+        samples' reach dropped."""
         stamps_ns = np.asarray(stamps_ns, np.int64)
-        if not len(self._marks):
+        e = min(epoch, len(self._marks) - 1)
+        marks = self._marks[e]
+        if not len(marks) or not len(stamps_ns):
             return np.ones(len(stamps_ns))
         hold = int(MOTION_HOLD_S * NS_PER_S)
-        last = np.searchsorted(self._marks, stamps_ns, side="right") - 1
-        marked = (last >= 0) & (stamps_ns - self._marks[np.maximum(last, 0)] < hold)
-        self._marks = self._marks[max(np.searchsorted(self._marks, stamps_ns[-1] - hold) - 1, 0) :]
+        last = np.searchsorted(marks, stamps_ns, side="right") - 1
+        marked = (last >= 0) & (stamps_ns - marks[np.maximum(last, 0)] < hold)
+        self._marks[e] = marks[max(np.searchsorted(marks, stamps_ns[-1] - hold) - 1, 0) :]
         return np.where(marked, self.limits.factor, 1.0)
 
 
@@ -351,8 +366,7 @@ class ContactDetector:
         end = self._base + len(self._stamps)
         upto = end
         if self._guard is not None and not final:
-            covered = self._guard.covered_ns
-            reach = max(-1 if covered is None else covered, self._released)
+            reach = max(self._guard.reach(self.restarts), self._released)
             # the samples up to the first one beyond (a clock may go back: a bag's loop)
             beyond = self._clock[self._decided - self._base :] > reach
             first = int(np.argmax(beyond)) if beyond.any() else len(beyond)
@@ -362,7 +376,9 @@ class ContactDetector:
         lo, hi = self._decided - self._base, upto - self._base
         env = self._env[lo:hi]
         factors = (
-            np.ones(hi - lo) if self._guard is None else self._guard.factors(self._clock[lo:hi])
+            np.ones(hi - lo)
+            if self._guard is None
+            else self._guard.factors(self._clock[lo:hi], self.restarts)
         )
         self.samples_motion += int(np.count_nonzero(factors > 1.0))
         for k in np.flatnonzero(env > self.s.threshold).tolist():
