@@ -12,6 +12,7 @@ from matplotlib import image
 from egovib_ros.bag import Recording, write_recording
 from egovib_ros.bag.calibrate import calibrate_bags
 from egovib_ros.cli import main
+from egovib_ros.core.methods import motion_limits, stored_threshold
 from egovib_ros.core.noise_model import NoiseModel, sweep_cells
 from egovib_ros.core.stream import CalibrationStats
 from egovib_ros.outputs import MARKER
@@ -307,3 +308,24 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(
     assert _show(sim_model_path, foreign, "--force") == 2
     assert "is not an egovib output" in capsys.readouterr().err
     assert [p.name for p in foreign.iterdir()] == ["mine.txt"]
+
+
+def test_the_detectors_thresholds_and_the_motion_they_hold_are_shown(sim_bags_model, tmp_path):
+    """A model `egovib calibrate` made: its detection thresholds per method, and for the
+    default method the speeds and acceleration its calibration held (beyond them the
+    threshold rises by the factor shown)."""
+    out = tmp_path / "show"
+    assert _show(sim_bags_model, out) == 0
+    text = (out / "summary.md").read_text()
+    model = NoiseModel.load(sim_bags_model)
+    for method in ("raw", "paper", "hybrid"):
+        assert _row(text, f"detector threshold, {method}") == (
+            f"{stored_threshold(model, method):.4g}"
+        )
+    limits = motion_limits(model, "hybrid")
+    name = model.joint_names[0]
+    assert _row(text, f"detector: joint `{name}` speeds held") == (
+        f"{limits.speed_low[0]:.4g} .. {limits.speed_high[0]:.4g} "
+        f"(beyond: threshold x{limits.factor:.3g})"
+    )
+    assert _row(text, "detector: largest joint acceleration held") == f"{limits.accel:.4g} /s^2"

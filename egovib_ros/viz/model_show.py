@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from egovib_ros.bag import BagReader, iter_recording
 from egovib_ros.core.adapt import describe_learnt
+from egovib_ros.core.methods import METHODS, default_method, motion_limits, stored_threshold
 from egovib_ros.core.noise_model import MIN_BLOCKS_FOR_STD, grid_limits
 from egovib_ros.core.stream import BlockFramer, FramerSettings, check_stream
 from egovib_ros.core.velocity import MISSING
@@ -502,9 +503,28 @@ def summary_markdown(
     for key, value in model.provenance.items():
         if key != "path" and str(value):
             rows.append(f"| provenance: {key} | {str(value).replace('|', '/')} |")
-    rows += _learnt_rows(model) + _placement_rows(model, placement)
+    rows += _detector_rows(model) + _learnt_rows(model) + _placement_rows(model, placement)
     rows += ["", "Figures: " + ", ".join(f"[{f}]({f})" for f in figures), ""]
     return "\n".join(rows)
+
+
+def _detector_rows(model) -> list[str]:
+    """The contact detector's stored thresholds, and the motion its calibration held
+    (beyond it the threshold rises: core.contact.MotionLimits)."""
+    rows = [
+        f"| detector threshold, {method} | {threshold:.4g} |"
+        for method in ("raw", *METHODS)
+        if (threshold := stored_threshold(model, method)) is not None
+    ]
+    limits = motion_limits(model, default_method(model))
+    if limits is not None:
+        rows += [
+            f"| detector: joint `{name}` speeds held | {limits.speed_low[j]:.4g} .. "
+            f"{limits.speed_high[j]:.4g} (beyond: threshold x{limits.factor:.3g}) |"
+            for j, name in enumerate(model.joint_names)
+        ]
+        rows.append(f"| detector: largest joint acceleration held | {limits.accel:.4g} /s^2 |")
+    return rows
 
 
 def _learnt_rows(model) -> list[str]:
