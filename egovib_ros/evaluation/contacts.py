@@ -159,15 +159,20 @@ def calibration_threshold(
     method: str,
     false_alarms_per_min: float = FALSE_ALARMS_PER_MIN,
     joint_lag_s: float = 0.0,
+    joints: list | None = None,
 ) -> tuple[float, float]:
     """(threshold, false alarms per minute on these data) from a no-contact bag processed
     as the run will be (the method, then the detector's envelope), by core.contact's rule;
-    its first and last EDGE_S left out (filter start-up and flush)."""
+    its first and last EDGE_S left out (filter start-up and flush). `joints`: gets the
+    bag's joint states, (stamps, velocities) per piece, read in the same pass."""
     envelope = DetectionEnvelope(ContactSettings.for_model(model, 1.0))
-    parts = [
-        envelope.process(values)[1]
-        for _, values, _, _ in method_pieces(bag, model, method, joint_lag_s, ground_truth=False)
-    ]
+    parts = []
+    for _, values, _, piece_joints in method_pieces(
+        bag, model, method, joint_lag_s, ground_truth=False
+    ):
+        parts.append(envelope.process(values)[1])
+        if joints is not None:
+            joints.append(piece_joints)
     values = np.concatenate(parts) if parts else np.zeros(0)
     edge = int(EDGE_S * model.sample_rate_hz)
     if len(values) <= 2 * edge:
@@ -238,11 +243,10 @@ def calibration_motion(
     and its raw signal's threshold over `threshold`."""
     if method == "raw":
         return None
-    raw, _ = calibration_threshold(bag, model, method="raw", **options)
-    rec = read_recording(
-        bag, profile=model.robot_profile(), ground_truth=False, denoised=False, commands=False
-    )
-    bags = with_motion(model, rec.joint_stamps_ns, rec.joint_velocity)
+    joints: list = []  # read in the raw signal's pass (the bag is read once more, not twice)
+    raw, _ = calibration_threshold(bag, model, method="raw", joints=joints, **options)
+    stamps, velocity = (np.concatenate(part) for part in zip(*joints))
+    bags = with_motion(model, stamps, velocity)
     return motion_limits(bags, method, {"raw": raw, method: threshold})
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import struct
 import time
+from collections import deque
 
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
@@ -118,7 +119,8 @@ class ContactDetectorNode(Node):
             if self.source == "denoised"
             else self.profile.node_sensor_topic
         )
-        self._arrivals: list[tuple[int, int]] = []  # (last stamp, arrival) of recent batches
+        # (last stamp, arrival) of the recent batches (a deque: a batch every 2 ms)
+        self._arrivals: deque[tuple[int, int]] = deque(maxlen=2000)
         self.latency_from = ""
         # every message waits for the 2 ms timer (batch_samples: never due on its own)
         self.input = StreamInput(
@@ -165,7 +167,7 @@ class ContactDetectorNode(Node):
             self.samples += len(batch.stamps_ns)
             # on the wall clock: the first message's arrival, as monotonic ns
             arrived = int(batch.arrival_ns[0]) - time.monotonic_ns() + time.time_ns()
-            self._arrivals = self._arrivals[-2000:] + [(int(batch.stamps_ns.max()), arrived)]
+            self._arrivals.append((int(batch.stamps_ns.max()), arrived))
             events += self.detector.push(batch.stamps_ns, batch.values)
         if self.motion is not None:  # what waited JOINT_WAIT_S for joint states goes on
             waited = time.time_ns() - int(JOINT_WAIT_S * 1e9)
