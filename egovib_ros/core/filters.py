@@ -36,6 +36,18 @@ def channel_matrix(accel: np.ndarray, layout: str) -> np.ndarray:
     return np.concatenate([combined, accel], axis=1)
 
 
+def butter_sos(order: int, corners_hz, btype: str, sample_rate_hz: float) -> np.ndarray:
+    """scipy's Butterworth as second-order sections, designed once per setting (a copy:
+    scipy's sosfilt kernel takes writable arrays): every denoiser a batch builds asks for the
+    same few, and a design costs ~1 ms."""
+    return _butter_sos(order, corners_hz, btype, sample_rate_hz).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _butter_sos(order: int, corners_hz, btype: str, sample_rate_hz: float) -> np.ndarray:
+    return signal.butter(order, corners_hz, btype=btype, fs=sample_rate_hz, output="sos")
+
+
 def design_bandpass(
     *, sample_rate_hz: float, band_hz: tuple[float, float], order: int
 ) -> np.ndarray:
@@ -47,7 +59,7 @@ def design_bandpass(
         raise ConfigError(f"band_hz: need 0 < low < high < {nyquist:g} Hz (Nyquist), got {band_hz}")
     if order < 1:
         raise ConfigError(f"band_order: must be >= 1, got {order}")
-    return signal.butter(order, [low, high], btype="bandpass", fs=sample_rate_hz, output="sos")
+    return butter_sos(int(order), (low, high), "bandpass", float(sample_rate_hz))
 
 
 def bandpass_delay(*, sample_rate_hz: float, band_hz: tuple[float, float], order: int) -> float:
@@ -187,7 +199,7 @@ class BelowBand(CarriedFilter):
     band is not (its complement, input minus this, is the input to within 0.4 % there)."""
 
     def __init__(self, *, sample_rate_hz: float, band_hz: tuple[float, float], n_channels: int):
-        sos = signal.butter(4, band_hz[0] / 4.0, btype="lowpass", fs=sample_rate_hz, output="sos")
+        sos = butter_sos(4, band_hz[0] / 4.0, "lowpass", sample_rate_hz)
         super().__init__(sos, n_channels=n_channels)
 
 
@@ -397,9 +409,7 @@ def _leak_db(taps, band, freqs_hz, sample_rate_hz) -> float:
 
 def lines_highpass(*, sample_rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
     """SOS of the high-pass the lines are tracked after in the unfiltered signal."""
-    return signal.butter(
-        4, LINES_HIGHPASS_FRACTION * band_hz[0], btype="highpass", fs=sample_rate_hz, output="sos"
-    )
+    return butter_sos(4, LINES_HIGHPASS_FRACTION * band_hz[0], "highpass", sample_rate_hz)
 
 
 @functools.lru_cache(maxsize=32)
