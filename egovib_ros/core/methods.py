@@ -139,8 +139,8 @@ def motion_limits(
     model: NoiseModel, method: str, thresholds: dict | None = None
 ) -> MotionLimits | None:
     """The contact detector's motion limits for `method`'s output (core.contact): the
-    model's grid, the calibration's largest joint acceleration, and the raw signal's
-    threshold over the method's (`thresholds` by method, "raw" included; default: the
+    calibration data's joint speeds and largest joint acceleration (motion_extras), and the
+    raw signal's threshold over the method's (`thresholds` by method, "raw" included; default: the
     stored ones). None for the raw signal, a model calibrated before the limits, or
     thresholds that leave the method's output no quieter than the raw signal."""
     accel = model.scalar_extra(DETECTOR_MOTION + "accel", low=0.0, high=math.inf)
