@@ -24,7 +24,7 @@ import numpy as np
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
-from egovib_ros.bag.mcapfile import gather, rows
+from egovib_ros.bag.mcapfile import rows
 from egovib_ros.core.timebase import NS_PER_S
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
@@ -67,8 +67,7 @@ class MessageBatch:
     starts: np.ndarray  # (n,) int64
     lengths: np.ndarray  # (n,) int64
     log_times: np.ndarray  # (n,) int64, bag log time (receive time) of each message
-    # (n, L) view of buf when the messages are L bytes each, back to back (from_matrix):
-    # field reads are then column slices (a live node decodes a few messages 500 times a s)
+    # (n, L) view of buf when the messages are L bytes each, back to back (from_matrix)
     packed: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
@@ -135,25 +134,6 @@ class MessageBatch:
     def take(self, index: np.ndarray) -> "MessageBatch":
         return MessageBatch(
             self.buf, self.starts[index], self.lengths[index], self.log_times[index]
-        )
-
-    def field(self, at: int, dtype) -> np.ndarray:
-        """The value of `dtype` at byte `at` of every message (callers check the lengths)."""
-        if self.packed is not None:
-            dtype = np.dtype(dtype)
-            return self.columns(at, dtype.itemsize).view(dtype).reshape(len(self))
-        return gather(self.buf, self.starts + at, dtype)
-
-    def columns(self, at: int, width: int) -> np.ndarray:
-        """(n, width) copy of bytes at..at + width of every message (callers check the lengths)."""
-        if self.packed is not None:
-            return np.ascontiguousarray(self.packed[:, at : at + width])
-        return rows(self.buf, self.starts + at, width)
-
-    def stamps(self) -> np.ndarray:
-        """The header stamps (int64 ns) of messages that start with a std_msgs/Header."""
-        return self.field(4, "<i4").astype(np.int64) * NS_PER_S + self.field(8, "<u4").astype(
-            np.int64
         )
 
 
@@ -269,31 +249,64 @@ def encode_imu_batch(
 def imu_layout(batch: MessageBatch, field: str) -> int | None:
     """Byte offset of `field` when every message has the codec's fixed little-endian
     layout with one frame_id length, else None (use the per-message fallback)."""
-    width = batch.uniform_length
-    if width is None or width < 16:
+    records = _imu_records(batch, field)
+    return None if records is None else records.dtype.fields["vector"][1]
+
+
+def _back_to_back(messages: Messages) -> tuple[object, int, int] | None:
+    """(buffer, n, width): the messages back to back, each `width` bytes (the usual
+    stream: one driver, one frame_id), or None."""
+    if not len(messages):
         return None
-    if not np.all(batch.field(0, "<u2") == 0x0100):  # CDR little-endian encapsulation
+    if isinstance(messages, MessageBatch):
+        matrix = messages.matrix()
+        return None if matrix is None else (matrix.reshape(-1), *matrix.shape)
         return None
-    strlen = batch.field(12, "<u4")
-    frame_len = int(strlen[0]) - 1
-    if frame_len < 0 or not np.all(strlen == strlen[0]):
+    width = len(messages[0])
+    buf = b"".join(messages)
+    return (buf, len(messages), width) if len(buf) == len(messages) * width else None
+
+
+def _imu_records(messages: Messages, field: str, *, writable: bool = False):
+    """The messages as records ("sec", "nanosec", "vector": `field`) when they lie back to
+    back with the codec's fixed little-endian layout and one frame_id, else None. Without
+    a MessageBatch's bookkeeping: a live node decodes a few messages 500 times a second.
+    `writable`: records over a copy of the bytes, to change."""
+    packed = _back_to_back(messages)
+    if packed is None:
         return None
-    if imu_field_offset(frame_len) + 12 * 8 != width:
+    buf, n, width = packed
+    if width < 16:
         return None
-    return imu_field_offset(frame_len, field)
+    frame_len = int.from_bytes(bytes(buf[12:16]), "little") - 1
+    if frame_len < 0 or imu_field_offset(frame_len) + 12 * 8 != width:
+        return None
+    fields = (
+        ("encapsulation", "<u2", 0),
+        *_HEADER_STAMP,
+        ("frame_length", "<u4", 12),
+        ("vector", ("<f8", 3), imu_field_offset(frame_len, field)),
+    )
+    records = np.frombuffer(bytearray(buf) if writable else buf, _record_dtype(fields, width))
+    if (records["encapsulation"] == 0x0100).all() and (
+        records["frame_length"] == frame_len + 1
+    ).all():
+        return records
+    return None
+
+
+def _record_stamps(records: np.ndarray) -> np.ndarray:
+    return records["sec"].astype(np.int64) * NS_PER_S + records["nanosec"]
 
 
 def decode_imu(
     messages: Messages, field: str = "linear_acceleration"
 ) -> tuple[np.ndarray, np.ndarray]:
     """Header stamps (n,) int64 ns and the `field` vectors (n, 3) of Imu messages."""
-    _check_field(field)
+    records = _imu_records(messages, _check_field(field))
+    if records is not None:
+        return _record_stamps(records), records["vector"].astype(np.float64)
     batch = as_batch(messages)
-    if len(batch) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    offset = imu_layout(batch, field)
-    if offset is not None:
-        return batch.stamps(), batch.columns(offset, 24).view("<f8").astype(np.float64)
     stamps = np.empty(len(batch), np.int64)  # unusual messages: rosbags, one by one
     values = np.empty((len(batch), 3))
     for i, raw in enumerate(batch.to_list()):
@@ -308,24 +321,25 @@ def replace_imu_field(messages: Messages, values: np.ndarray, field: str = "line
     """Copies of Imu messages with `field` set to `values` (n, 3), every other byte kept
     (the denoiser's drop-in output); a MessageBatch for a MessageBatch, else a list of bytes."""
     values = np.asarray(values, np.float64).reshape(-1, 3)
+    if len(values) != len(messages):
+        raise ValueError(f"replace_imu_field: {len(values)} values for {len(messages)} messages")
+    records = _imu_records(messages, _check_field(field), writable=True)
+    if records is not None:
+        records["vector"] = values
+        if isinstance(messages, MessageBatch):
+            return MessageBatch.from_matrix(
+                records.view(np.uint8).reshape(len(records), -1), messages.log_times
+            )
+        return _split(records.tobytes(), len(records), records.itemsize)
     batch = as_batch(messages)
-    if len(values) != len(batch):
-        raise ValueError(f"replace_imu_field: {len(values)} values for {len(batch)} messages")
-    offset = imu_layout(batch, field) if len(batch) else None
-    if offset is None:  # unusual messages: rosbags, one by one
-        ts = typestore()
-        out = []
-        for raw, xyz in zip(batch.to_list(), values):
-            msg = deserialize(raw, IMU_TYPE)
-            vector = getattr(msg, field)
-            vector.x, vector.y, vector.z = (float(v) for v in xyz)
-            out.append(bytes(ts.serialize_cdr(msg, IMU_TYPE)))
-        result = MessageBatch.from_list(out, batch.log_times)
-    else:
-        matrix = np.array(batch.matrix())  # a copy: the input stays as it was
-        packed = np.ascontiguousarray(values, "<f8").view(np.uint8).reshape(-1, 24)
-        matrix[:, offset : offset + 24] = packed
-        result = MessageBatch.from_matrix(matrix, batch.log_times)
+    ts = typestore()
+    out = []
+    for raw, xyz in zip(batch.to_list(), values):
+        msg = deserialize(raw, IMU_TYPE)
+        vector = getattr(msg, field)
+        vector.x, vector.y, vector.z = (float(v) for v in xyz)
+        out.append(bytes(ts.serialize_cdr(msg, IMU_TYPE)))
+    result = MessageBatch.from_list(out, batch.log_times)
     return result if isinstance(messages, MessageBatch) else result.to_list()
 
 
@@ -375,6 +389,21 @@ def joint_state_layout(raw: bytes) -> tuple[tuple[str, ...], int, int, int, int,
     return tuple(names), seqs[0][0], seqs[0][1], seqs[1][0], seqs[1][1], 4 + off
 
 
+@lru_cache(maxsize=8)
+def _joint_state_template(
+    names: tuple[str, ...], n_joints: int, n_velocity: int
+) -> tuple[bytes, int, int]:
+    """A JointState of `names` with zero arrays and its position and velocity offsets."""
+    template = bytes(
+        typestore().serialize_cdr(
+            rosbags_joint_state(0, names, np.zeros(n_joints), np.zeros(n_velocity)),
+            JOINT_STATE_TYPE,
+        )
+    )
+    _, pos_off, _, vel_off, _, _ = joint_state_layout(template)
+    return template, pos_off, vel_off
+
+
 def encode_joint_state_batch(
     stamps_ns: np.ndarray,
     position: np.ndarray,
@@ -387,14 +416,9 @@ def encode_joint_state_batch(
         return []
     position = np.asarray(position, np.float64).reshape(len(stamps_ns), -1)
     n, n_joints = position.shape
-    n_velocity = n_joints if velocity is not None else 0
-    template = bytes(
-        typestore().serialize_cdr(
-            rosbags_joint_state(0, names, np.zeros(n_joints), np.zeros(n_velocity)),
-            JOINT_STATE_TYPE,
-        )
+    template, pos_off, vel_off = _joint_state_template(
+        tuple(names), n_joints, n_joints if velocity is not None else 0
     )
-    _, pos_off, _, vel_off, _, _ = joint_state_layout(template)
     fields, values = (("pos", ("<f8", n_joints), pos_off),), [position]
     if velocity is not None:
         fields += (("vel", ("<f8", n_joints), vel_off),)
@@ -413,20 +437,21 @@ def decode_joint_states(
     without a value: effort only); "short_position" / "short_velocity", how many messages
     carry fewer values than names (neither empty nor one per name: malformed); "repeated",
     how many times a message names one of `names` again (its first values are used)."""
-    batch = as_batch(messages)
-    n = len(batch)
+    n = len(messages)
     if n == 0:
         k = len(names) if names is not None else 0
         return np.zeros(0, np.int64), np.zeros((0, k)), np.zeros((0, k))
     if names is None:
-        names = joint_state_layout(batch.to_list()[0])[0]
+        first = messages.to_list()[0] if isinstance(messages, MessageBatch) else messages[0]
+        names = joint_state_layout(bytes(first))[0]
     names = tuple(names)
     notes = {} if notes is None else notes
     named = notes.setdefault("named", np.zeros(len(names), bool))
-    fast = _joint_states_fast(batch, names)
+    fast = _joint_states_fast(messages, names)
     if fast is not None:
         named[:] = True  # every named joint, one value each (the fast path's condition)
         return fast
+    batch = as_batch(messages)
     # Unusual batch: rosbags per message, columns matched by joint name.
     stamps = np.empty(n, np.int64)
     position = np.full((n, len(names)), np.nan)
@@ -454,25 +479,33 @@ def decode_joint_states(
     return stamps, position, velocity
 
 
-def _joint_states_fast(batch: MessageBatch, names: tuple[str, ...]):
-    """The codec's fast path on packed messages: every message has the first one's length
-    and structure (frame, joint names, array sizes), only stamps and numbers differ."""
-    width = batch.uniform_length
-    if width is None:
+def _joint_states_fast(messages: Messages, names: tuple[str, ...]):
+    """The codec's fast path on messages back to back: every message has the first one's
+    length and structure (frame, joint names, array sizes), only stamps and numbers differ."""
+    packed = _back_to_back(messages)
+    if packed is None:
         return None
-    start = int(batch.starts[0])
-    first = batch.buf[start : start + width].tobytes()
+    buf, _, width = packed
+    first = bytes(buf[:width])
     layout = _joint_columns(first, names) if first[:2] == b"\x00\x01" else None
     if layout is None:
         return None
     pos_off, vel_off, n_joints, columns = layout
-    structure = batch.columns(12, pos_off - 12)  # frame_id, names, position count
-    counts = batch.field(vel_off - 8, "<u8")  # velocity count (and its alignment)
-    if not (np.all(structure == structure[0]) and np.all(counts == counts[0])):
+    fields = (
+        *_HEADER_STAMP,
+        ("structure", f"V{pos_off - 12}", 12),  # frame_id, names, position count
+        ("velocity_count", "<u8", vel_off - 8),  # (and its alignment)
+        ("position", ("<f8", n_joints), pos_off),
+        ("velocity", ("<f8", n_joints), vel_off),
+    )
+    records = np.frombuffer(buf, _record_dtype(fields, width))
+    if not (
+        (records["structure"] == records["structure"][0]).all()
+        and (records["velocity_count"] == records["velocity_count"][0]).all()
+    ):
         return None
-    position = batch.columns(pos_off, 8 * n_joints).view("<f8")[:, columns].astype(np.float64)
-    velocity = batch.columns(vel_off, 8 * n_joints).view("<f8")[:, columns].astype(np.float64)
-    return batch.stamps(), position, velocity
+    position = records["position"][:, columns].astype(np.float64)
+    return _record_stamps(records), position, records["velocity"][:, columns].astype(np.float64)
 
 
 # The last layout walked: a live node decodes messages of one structure 1000 times a second.

@@ -735,8 +735,10 @@ class CancellerState:
     power_w: np.ndarray  # (C, 2) short-time powers of the unfiltered input and of it less its lines
 
     def arrays(self) -> tuple:
-        """The arrays in field order, as the kernel unpacks them (not copied: it updates them)."""
-        return tuple(getattr(self, f.name) for f in fields(self))
+        """The arrays in field order, as the kernel unpacks them (not copied: it updates them).
+        The instance dict holds exactly the fields, in order (a per-batch call: `fields()`
+        cost more than the kernel on a live node's few samples)."""
+        return tuple(vars(self).values())
 
 
 class HarmonicCanceller:

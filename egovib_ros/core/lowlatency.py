@@ -37,7 +37,7 @@ half of the shipped flight; docs say where a figure was measured on data that ch
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -373,8 +373,10 @@ class GainState:
     zv: np.ndarray  # (C, K) complex resonator states of the second signal (drop-in)
 
     def arrays(self) -> tuple:
-        """The arrays in field order, as the kernel unpacks them (not copied: it updates them)."""
-        return tuple(getattr(self, f.name) for f in fields(self))
+        """The arrays in field order, as the kernel unpacks them (not copied: it updates them).
+        The instance dict holds exactly the fields, in order (a per-batch call: `fields()`
+        cost more than the kernel on a live node's few samples)."""
+        return tuple(vars(self).values())
 
 
 def _filled(value, default: float, shape: tuple) -> np.ndarray:

@@ -114,8 +114,8 @@ class SampleFramer(_Framer):
             filtered = np.concatenate([filtered, values], axis=1)
         # Effective times: a synthetic sample stands one period after the one before it.
         times = stamps.copy()
-        synthetic = np.flatnonzero(stamps < 0)
-        if len(synthetic):
+        if stamps.min() < 0:
+            synthetic = np.flatnonzero(stamps < 0)
             period = int(round(self.s.period_ns))
             for i in synthetic:
                 previous = times[i - 1] if i > 0 else self._last_time
@@ -175,21 +175,24 @@ class SampleFramer(_Framer):
 
     def _emit(self, stamps, times, values, *, ends: bool) -> None:
         index = np.searchsorted(self._joint_t, times, side="right") - 1
-        velocity = np.full((len(times), self.n_joints), np.nan)
         have = index >= 0
+        # a joint state at or before each sample, held no longer than max_hold
+        fresh = have
         if have.any():
             fresh = have.copy()
             fresh[have] = (times[have] - self._joint_t[index[have]]) <= self._max_hold_ns
+        if fresh.all():  # the live case: every sample has its joint state
+            velocity = self._joint_v[index]
+        else:
+            velocity = np.full((len(times), self.n_joints), np.nan)
             velocity[fresh] = self._joint_v[index[fresh]]
             self.samples_no_joint_state += int(np.count_nonzero(~fresh & (stamps >= 0)))
-        else:
-            self.samples_no_joint_state += int(np.count_nonzero(stamps >= 0))
         raw = values[:, 3:] if self.s.keep_raw else None
         self._ready.append(SampleBatch(stamps, values[:, :3], velocity, ends, raw))
         if not len(times):
             return
         # Keep the joint state that holds for the next sample and anything after it.
-        cut = int(np.searchsorted(self._joint_t, times[-1], side="right")) - 1
+        cut = int(index[-1])
         if cut > 256:
             self._joint_t = self._joint_t[cut:]
             self._joint_v = self._joint_v[cut:]

@@ -773,7 +773,7 @@ class _Framer:
             if len(real) == 0:
                 return
             if self._rate_last is not None:
-                steps, ends = np.diff(real, prepend=self._rate_last), real
+                steps, ends = real - np.concatenate(([self._rate_last], real[:-1])), real
             else:
                 steps, ends = np.diff(real), real[1:]
             self._rate_last = int(real[-1])
