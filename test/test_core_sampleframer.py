@@ -102,6 +102,66 @@ def test_any_chunking_releases_the_same_samples(accel_cuts, joint_cuts):
         np.testing.assert_array_equal(a, b)
 
 
+def pushed_until(framer: SampleFramer, t, accel, tj, vel, until: int):
+    """Joint states stamped up to sample `until`, then the samples up to it: (the stamps
+    released so far, the joint states pushed)."""
+    j = int(np.searchsorted(tj, t[until], side="right"))
+    framer.push_joint_states(tj[:j], vel[:j])
+    framer.push_sensor(t[: until + 1], accel[: until + 1])
+    return np.concatenate([b.stamps_ns for b in framer.pop()]), j
+
+
+@pytest.mark.parametrize(("offset_ms", "released_at_once"), [(0.6, True), (0.4, False)])
+def test_a_sample_within_the_joint_spacing_is_released_before_the_next_joint_state(
+    offset_ms, released_at_once
+):
+    """Joint states every 1 ms (spacing learnt: half of it): a sample 0.4 ms after the latest
+    is released at once (no joint state can come before it any more); one 0.6 ms after waits
+    for the next (one could still come before it). Either way its velocity is the one the
+    whole stream gives it."""
+    n = 400
+    t = 10**9 + np.arange(n, dtype=np.int64) * 1_000_000
+    accel = np.random.default_rng(5).normal(size=(n, 3))
+    tj = t + int(offset_ms * 1e6)
+    vel = np.random.default_rng(6).uniform(0, 1, size=(n, 2))
+    framer = SampleFramer(SETTINGS, 2)
+    released, j = pushed_until(framer, t, accel, tj, vel, 300)
+    assert (released[-1] == t[300]) == released_at_once
+    assert released[-1] >= t[299]
+    whole = SampleFramer(SETTINGS, 2)
+    whole.push_joint_states(tj, vel)
+    whole.push_sensor(t, accel)
+    whole.flush()
+    _, (_, _, want) = collect(whole)
+    framer.push_joint_states(tj[j:], vel[j:])
+    framer.push_sensor(t[301:], accel[301:])
+    framer.flush()
+    _, (_, _, rest) = collect(framer)
+    np.testing.assert_array_equal(want[len(released) :], rest)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 1000])
+def test_a_joint_state_closer_than_the_spacing_is_thinned_whatever_the_chunking(chunk):
+    """A joint state 0.1 ms after another (a burst) in a 1 ms stream is left out, counted,
+    for every chunking: the samples after it hold the one before."""
+    t, accel, _, _ = streams(1000, seed=7)
+    tj = 10**9 + np.arange(1000, dtype=np.int64) * 1_000_000
+    tj = np.sort(np.r_[tj, tj[500] + 100_000])
+    vel = np.random.default_rng(8).uniform(0, 1, size=(len(tj), 2))
+    framer = SampleFramer(SETTINGS, 2)
+    for start in range(0, len(tj), chunk):
+        framer.push_joint_states(tj[start : start + chunk], vel[start : start + chunk])
+    framer.push_sensor(t, accel)
+    framer.flush()
+    _, (stamps, _, velocity) = collect(framer)
+    assert framer.joint_states_thinned == 1
+    kept = np.ones(len(tj), bool)
+    kept[501] = False
+    index = np.searchsorted(tj[kept], stamps, side="right") - 1
+    held = np.where(index[:, None] >= 0, vel[kept][np.maximum(index, 0)], np.nan)
+    np.testing.assert_array_equal(velocity, held)
+
+
 def test_a_long_gap_ends_the_segment_and_restarts_the_filter():
     t, accel, tj, vel = streams(2000, seed=2)
     keep = np.ones(len(t), bool)

@@ -1,11 +1,13 @@
 """From a sensor sample stream to band-passed samples, each with its joint velocity.
 
 The per-sample counterpart of `stream.BlockFramer` (for harmonic cancellation and the
-low-latency gain): the same input cleaning, band-pass and joint-state rule. A sample is
-released once a joint state stamped at or after it is in, or `joint_wait_s` of sensor
-time later; its velocity is the latest joint state at or before it if at most
-`max_hold_s` old, else NaN (passed through band-passed, counted). Any chunking pushed as
-`feed` pushes releases the same samples with the same velocities as one push.
+low-latency gain): the same input cleaning, band-pass and joint-state rule. A sample's
+velocity is the latest joint state at or before it if at most `max_hold_s` old, else NaN
+(passed through band-passed, counted). It is released once no joint state can still come
+that changes this: one stamped at or after it is in, or it lies less than the joint
+stream's spacing after the latest (`_thinned`), or `joint_wait_s` of sensor time later.
+Any chunking pushed as `feed` pushes releases the same samples with the same velocities as
+one push.
 """
 
 from __future__ import annotations
@@ -17,6 +19,12 @@ import numpy as np
 
 from egovib_ros.core.stream import FramerSettings, _Framer, joint_state_arrays
 from egovib_ros.core.timebase import NS_PER_S
+
+#: The joint stream's spacing G: this share of the smallest of its first JOINT_SPACING_LEARN
+#: intervals, at most JOINT_SPACING_MAX_S (`SampleFramer._thinned`).
+JOINT_SPACING_SHARE = 0.5
+JOINT_SPACING_LEARN = 8
+JOINT_SPACING_MAX_S = 0.005
 
 
 @dataclass
@@ -52,6 +60,11 @@ class SampleFramer(_Framer):
         self._last_time: int | None = None  # effective time of the last real sample appended
         self._segment_open = False  # samples appended since the segment started
         self.samples_no_joint_state = 0
+        # the joint stream's spacing (ns; None until learnt) and what it is learnt from
+        self._spacing_ns: int | None = None
+        self._intervals: list[int] = []
+        self._spacing_last: int | None = None  # the last joint stamp passed on
+        self.joint_states_thinned = 0
 
     # --- input ---------------------------------------------------------------
     def push_joint_states(
@@ -60,12 +73,77 @@ class SampleFramer(_Framer):
         stamps_ns, velocity = joint_state_arrays(stamps_ns, velocity, self.n_joints, self.s.error)
         if self._joint_lag_ns:
             stamps_ns = stamps_ns + self._joint_lag_ns
+        stamps_ns, velocity = self._thinned(stamps_ns, velocity)
         if len(stamps_ns) and self._append_in_order(stamps_ns, velocity):  # the live case
             self.stats.joint_states_in += len(stamps_ns)
             if release:
                 self._drain()
             return
         self._push_joint_states(stamps_ns, velocity)
+
+    def _thinned(self, stamps_ns: np.ndarray, velocity: np.ndarray):
+        """The joint states less those stamped less than the stream's spacing G after the
+        last one passed on. Once no passed joint state is closer than G to the one before,
+        a sample less than G after the latest is released at once (`_releasable`): none can
+        come before it any more. Without it a sample waits for the next joint state, up to
+        a joint-state period (10 ms at 100 Hz). G is learnt from the first intervals (0 for a
+        stream that repeats or bursts: nothing thinned, every sample waits). On stamps
+        alone, so any chunking thins the same joint states; later and earlier ones (out of
+        order, a restarted clock) pass, for the framer to drop or restart on."""
+        if self._spacing_ns is None:
+            learnt = self._learn_spacing(stamps_ns)
+            if learnt == len(stamps_ns):
+                return stamps_ns, velocity
+            rest, rest_velocity = self._thinned(stamps_ns[learnt:], velocity[learnt:])
+            return (
+                np.concatenate([stamps_ns[:learnt], rest]),
+                np.concatenate([velocity[:learnt], rest_velocity]),
+            )
+        spacing, last = max(self._spacing_ns, 1), self._spacing_last
+        if (  # the usual batch: nothing to thin
+            len(stamps_ns)
+            and last is not None
+            and stamps_ns[0] - last >= spacing
+            and (len(stamps_ns) == 1 or (stamps_ns[1:] - stamps_ns[:-1]).min() >= spacing)
+        ):
+            self._spacing_last = int(stamps_ns[-1])
+            return stamps_ns, velocity
+        keep = np.ones(len(stamps_ns), bool)
+        for i, stamp in enumerate(stamps_ns.tolist()):
+            if not self._passes(stamp):
+                continue
+            if self._spacing_last is not None and stamp - self._spacing_last < self._spacing_ns:
+                keep[i] = False
+                continue
+            self._spacing_last = stamp
+        if keep.all():
+            return stamps_ns, velocity
+        self.joint_states_thinned += int(np.count_nonzero(~keep))
+        return stamps_ns[keep], velocity[keep]
+
+    def _passes(self, stamp: int) -> bool:
+        """Whether a joint stamp is later than the last one passed on (a restarted clock
+        forgets that one); an earlier or equal one is the framer's to drop."""
+        last = self._spacing_last
+        if last is not None and stamp < last - int(self.s.clock_jump_s * NS_PER_S):
+            self._spacing_last = last = None
+        return last is None or stamp > last
+
+    def _learn_spacing(self, stamps_ns: np.ndarray) -> int:
+        """Learn the spacing from the first intervals; how many joint states that took."""
+        for i, stamp in enumerate(stamps_ns.tolist()):
+            if not self._passes(stamp):
+                continue
+            if self._spacing_last is not None:
+                self._intervals.append(stamp - self._spacing_last)
+            self._spacing_last = stamp
+            if len(self._intervals) == JOINT_SPACING_LEARN:
+                self._spacing_ns = min(
+                    int(JOINT_SPACING_SHARE * min(self._intervals)),
+                    int(JOINT_SPACING_MAX_S * NS_PER_S),
+                )
+                return i + 1
+        return len(stamps_ns)
 
     def _push_joint_states(self, stamps_ns: np.ndarray, velocity: np.ndarray) -> None:
         self.stats.joint_states_in += len(stamps_ns)
@@ -167,7 +245,9 @@ class SampleFramer(_Framer):
         newest = self._cleaner.last_stamp
         limit = newest - self._joint_wait_ns if newest is not None else None
         n = 0
-        if latest_joint is not None:
+        if latest_joint is not None and self._spacing_ns:  # before the next can come
+            n = int(np.searchsorted(times, latest_joint + self._spacing_ns, side="left"))
+        elif latest_joint is not None:
             n = int(np.searchsorted(times, latest_joint, side="right"))
         if limit is not None:
             n = max(n, int(np.searchsorted(times, limit, side="right")))
