@@ -86,8 +86,8 @@ class SampleFramer(_Framer):
         last one passed on. Once no passed joint state is closer than G to the one before,
         a sample less than G after the latest is released at once (`_releasable`): none can
         come before it any more. Without it a sample waits for the next joint state, up to
-        a joint-state period (10 ms at 100 Hz). G is learnt from the first intervals (0 for a
-        stream that repeats or bursts: nothing thinned, every sample waits). On stamps
+        a joint-state period (10 ms at 100 Hz). G is learnt from the first intervals (a stream
+        that starts in bursts gets a tiny G: little thinned, samples wait as before). On stamps
         alone, so any chunking thins the same joint states; later and earlier ones (out of
         order, a restarted clock) pass, for the framer to drop or restart on."""
         if self._spacing_ns is None:
