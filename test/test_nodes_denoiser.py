@@ -368,8 +368,18 @@ def test_health_stale_without_input_and_ok_again_after_a_restart(
     recovered = time.monotonic() - resumed
     assert level_of(ros_client) == DiagnosticStatus.OK, (levels, shown(ros_client))
     assert set(levels) <= {DiagnosticStatus.STALE, DiagnosticStatus.WARN}
+
+    def restarts() -> int:
+        return int(diagnostic_values(ros_client.statuses["denoiser"])["stream_restarts"])
+
+    # The restart is counted once the first sample after the gap is framed (it waits for its
+    # joint state); on a loaded machine an OK report may come before that (the input is back):
+    # the count follows within a report or two (a run under load read 0 at the first OK).
+    deadline = time.monotonic() + 10.0
+    while restarts() == 0 and time.monotonic() < deadline:
+        stream.run(0.1)
+    assert restarts() == 1, shown(ros_client)
     values = diagnostic_values(ros_client.statuses["denoiser"])
-    assert int(values["stream_restarts"]) == 1
     assert int(values["joint_states_dropped"]) <= 1  # the first, before every joint was seen
     print(
         f"STALE {stale_after:.2f} s after the input stopped; OK {recovered:.2f} s after it resumed"
