@@ -7,6 +7,7 @@ import dataclasses
 import logging
 import math
 import zipfile
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from egovib_ros.core.methods import (
     DETECTION_MIN_S,
     MAX_EARLY_OPENING_MS,
     MOTION_SPEED_MARGIN,
+    DropInSplit,
     MethodCalibration,
     SampleMethodDenoiser,
     calibrate_detection,
@@ -543,3 +545,38 @@ def test_detection_calibration_stores_the_motion_it_held(model):
     )
     with pytest.raises(ModelFileError, match="detector.motion.speed_high"):
         motion_limits(broken, "hybrid")
+
+
+@given(
+    n_taps=st.sampled_from([3, 25, 49]),
+    symmetric=st.booleans(),
+    cuts=st.lists(st.integers(0, 4000), max_size=4),
+    seed=st.integers(0, 2**16),
+)
+@example(n_taps=49, symmetric=False, cuts=[1023, 1024, 1025], seed=0)  # the FIRs' tile edges
+@settings(max_examples=30)
+def test_dropin_split_is_the_textbook_fir_and_gives_the_same_bits_in_any_chunking(
+    n_taps, symmetric, cuts, seed
+):
+    """The drop-in split's FIRs (tiled, compiled) against np.convolve, and chunked against one
+    call: low = the raw signal through the taps, high = the cleaned one late less its low."""
+    rng = np.random.default_rng(seed)
+    taps = rng.standard_normal(n_taps)
+    delay = (n_taps - 1) // 2 if symmetric else n_taps // 4
+    if symmetric:
+        taps = (taps + taps[::-1]) / 2
+    raw, cleaned = rng.standard_normal((2, 5000, 3))
+    low, high = DropInSplit(taps, delay).process(raw, cleaned)
+
+    def through(x):  # the history starts as the first sample held
+        padded = np.concatenate([np.repeat(x[:1], n_taps - 1, axis=0), x])
+        return np.stack([np.convolve(padded[:, c], taps, "valid") for c in range(3)], axis=1)
+
+    late = np.concatenate([np.repeat(cleaned[:1], delay, axis=0), cleaned])[: len(cleaned)]
+    np.testing.assert_allclose(low, through(raw), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(high, late - through(cleaned), rtol=0, atol=1e-12)
+    chunked = DropInSplit(taps, delay)
+    bounds = pairwise([0, *sorted(cuts), len(raw)])
+    parts = [chunked.process(raw[a:b], cleaned[a:b]) for a, b in bounds]
+    assert np.array_equal(np.concatenate([p[0] for p in parts]), low)
+    assert np.array_equal(np.concatenate([p[1] for p in parts]), high)
