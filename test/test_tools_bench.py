@@ -38,9 +38,12 @@ def test_bench_quick_writes_json_and_markdown(tmp_path):
         "bag_copy_x_realtime",
         "denoise_vs_file_copy",
         "denoise_vs_bag_copy",
+        "denoise_default_x_realtime",  # what `egovib denoise` with no option runs
+        "denoise_default_vs_file_copy",
         "imu_stream_zstd_size_ratio",
     ):
         assert bags[key] > 0, key
+    assert bags["denoise_bag_x_realtime"] == bags["denoise_default_x_realtime"]
     assert bags["zstd_output_size_ratio"] > 2 and bags["imu_stream_zstd_size_ratio"] > 2
     assert bags["bag_signal_s"] > 2.5
     for key in (
