@@ -22,9 +22,9 @@ file; the robot is the default profile (the PR2 hand) and the noise model a
 synthetic table of its shape (21 x 21 cells, 4 channels, 33 bins), except for the
 methods figures and the default's `egovib denoise`, which need a fitted model (harmonic
 map, canceller, gain): there the model is calibrated on a simulated superposition sweep
-(the demo's: 1 s dwell). Writes FILE
-(JSON) and a markdown summary next to it (FILE.md). `--bag-seconds` sets the length
-of the simulated bag (the 10-minute figures of docs/bench_bags.md: 600).
+(the demo's: 1 s dwell). Writes FILE (JSON) and a markdown summary next to it (FILE.md).
+`--bag-seconds` sets the length of the simulated bag (the 10-minute figures of
+docs/bench_bags.md: 600).
 """
 
 from __future__ import annotations
@@ -277,9 +277,8 @@ def _timed(fn) -> tuple:
 @lru_cache(maxsize=2)
 def methods_model(dwell_s: float = 1.0, settle_s: float = 0.3) -> tuple:
     """(model, seconds to calibrate it, the sweep's seconds): every method calibrated on a
-    simulated superposition
-    sweep of `dwell_s` per cell (paper's table, then the harmonic map, canceller and gain),
-    as `egovib calibrate` with no option fits it."""
+    simulated superposition sweep of `dwell_s` per cell (paper's table, then the harmonic
+    map, canceller and gain), as `egovib calibrate` with no option fits it."""
     robot = _robot()
     sweep, _ = simulate_sweep(grid="superposition", dwell_s=dwell_s, settle_s=settle_s, seed=1)
     arrays = (sweep.sensor_stamps_ns, sweep.sensor, sweep.joint_stamps_ns, sweep.joint_velocity)
