@@ -36,6 +36,8 @@ from egovib_ros.gap import metric
 from egovib_ros.gap.baseline import simulator_cells
 from egovib_ros.gap.chain import ALL, ALONE, CHANGED, ChainFits, CrossFitted, Split
 from egovib_ros.gap.diagnose import (
+    MIN_BLOCKS,
+    MIN_TRAIN_BLOCKS,
     Diagnosis,
     DiagnosisOptions,
     _align,
@@ -253,7 +255,7 @@ def diagnose_change(
     diagnosed (its lags and contacts are reused): see the module's docstring."""
     o = options or DiagnosisOptions()
     rng = np.random.default_rng(o.seed + 1)
-    if (~reference.contact).sum() < 400:
+    if (~reference.contact).sum() < MIN_BLOCKS:
         raise GapDataError(f"too few no-contact blocks ({int((~reference.contact).sum())})")
     prior = simulator_cells(reference)
     aligned = _align(reference, o, prior)
@@ -268,7 +270,7 @@ def diagnose_change(
             ref_at, replace(real_table.at_lag(lag_real), contact=real_table.contact)
         )
     splits = change_folds(null, o.folds)
-    if min(s.train.sum() for s in splits) < 200:
+    if min(s.train.sum() for s in splits) < MIN_TRAIN_BLOCKS:
         raise GapDataError("too few no-contact blocks to fit and test the change")
     chains = ChainFits(
         {"sync": null, "timing": moved},
